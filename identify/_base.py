@@ -1,0 +1,47 @@
+"""scikit-learn style estimator plumbing without depending on scikit-learn."""
+
+from __future__ import annotations
+
+import inspect
+
+from identify.lifting import Lifting
+
+
+class Estimator:
+    """Hyperparameters are constructor arguments, stored unchanged; ``fit`` returns self."""
+
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [p for p in sig.parameters if p != "self"]
+
+    def get_params(self) -> dict:
+        """Constructor hyperparameters."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params) -> "Estimator":
+        """Set hyperparameters (unknown names are an error); returns self."""
+        valid = self._param_names()
+        for key, value in params.items():
+            if key not in valid:
+                raise ValueError(f"unknown parameter {key!r} for {type(self).__name__}; "
+                                 f"expected one of {', '.join(valid)}")
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        params = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({params})"
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "model_"):
+            raise ValueError(f"this {type(self).__name__} is not fitted yet; call fit first")
+
+
+def resolve_lifting(lifting) -> Lifting:
+    """A Lifting from None (identity), a Lifting, or a sequence of lifting functions."""
+    if lifting is None:
+        return Lifting()
+    if isinstance(lifting, Lifting):
+        return lifting
+    return Lifting(list(lifting))

@@ -1,0 +1,81 @@
+"""EDMD with Tikhonov regularization for systems with inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from identify._base import Estimator, resolve_lifting
+from identify._checks import check_alpha
+from identify.model import KoopmanModel
+from identify.regression import Snapshots, ridge_solve
+from identify.trajectory import Trajectory, check_trajectories
+
+__all__ = ["Edmd"]
+
+
+class Edmd(Estimator):
+    """Extended dynamic mode decomposition of a plant: ``theta_{k+1} = A theta_k + B u_k``.
+
+    Parameters
+    ----------
+    lifting : Lifting or sequence of LiftingFunction, optional
+        Lifting of the states (identity when None).
+    alpha : float
+        Tikhonov coefficient on ``||U||_F^2`` against the un-normalized sum
+        of squares.
+    input_lifting : Lifting or sequence of LiftingFunction, optional
+        Pointwise lifting of the inputs; inputs are not lifted by default.
+
+    Attributes
+    ----------
+    model_ : KoopmanModel
+        The identified plant.
+    koopman_matrix_ : ndarray of shape (n_lifted, n_lifted + n_inputs)
+        ``U = [A B]``.
+    snapshots_ : Snapshots
+        Snapshot statistics the fit used.
+    """
+
+    def __init__(self, lifting=None, alpha: float = 0.0, input_lifting=None) -> None:
+        self.lifting = lifting
+        self.alpha = alpha
+        self.input_lifting = input_lifting
+
+    def fit(self, trajectories) -> "Edmd":
+        """Fit on episodes with signals ``x`` (states) and ``u`` (inputs).
+
+        Returns
+        -------
+        self
+        """
+        alpha = check_alpha(self.alpha)
+        lifting = resolve_lifting(self.lifting)
+        trajs = check_trajectories(trajectories, ("x", "u"), 2, "EDMD")
+        lifting.fit([t.x for t in trajs], trajs[0].state_names)
+        d = lifting.n_delays_
+        trajs = check_trajectories(trajs, ("x", "u"), d + 2, "EDMD")
+        input_lifting = None
+        if self.input_lifting is not None:
+            input_lifting = resolve_lifting(self.input_lifting).fit([t.u for t in trajs], trajs[0].input_names)
+            if input_lifting.n_delays_:
+                raise ValueError("input lifting must be pointwise (no delays)")
+        model = KoopmanModel(np.zeros((lifting.n_features_out_,) * 2),
+                             np.zeros((lifting.n_features_out_, 0)), lifting, ("u",),
+                             input_lifting=input_lifting, dt=trajs[0].dt)
+        parts = []
+        for t in trajs:
+            z = lifting.transform(t.x)
+            v = model.inputs_of(t)[d:] if input_lifting is not None else t.u[d:]
+            parts.append(Snapshots.from_snapshots(z[1:], np.hstack([z[:-1], v[:-1]])))
+        self.snapshots_ = Snapshots.total(parts)
+        U = ridge_solve(self.snapshots_, alpha)
+        n_z = lifting.n_features_out_
+        self.koopman_matrix_ = U
+        self.model_ = KoopmanModel(U[:, :n_z], U[:, n_z:], lifting, ("u",), input_lifting=input_lifting,
+                                   dt=trajs[0].dt)
+        return self
+
+    def predict(self, trajectory: Trajectory, relift: bool = True) -> np.ndarray:
+        """Predicted plant states of one episode (see :meth:`KoopmanModel.predict`)."""
+        self._check_fitted()
+        return self.model_.predict(trajectory, relift=relift)

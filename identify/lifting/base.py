@@ -1,0 +1,137 @@
+"""The lifting-function contract and the pipeline that composes them."""
+
+from __future__ import annotations
+
+import copy
+from abc import ABC, abstractmethod
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["LiftingFunction", "Lifting"]
+
+
+class LiftingFunction(ABC):
+    """One lifting step: maps a window of feature vectors to new features.
+
+    Hyperparameters live in the constructor; :meth:`fit` learns from
+    training episodes and sets attributes ending in ``_``. A step that uses
+    the past consumes ``n_delays`` samples at the start of each episode.
+    Every step keeps its input features first, so the first lifted features
+    are always the original states.
+    """
+
+    n_delays: int = 0
+
+    def fit(self, episodes: Sequence[np.ndarray], names: Sequence[str]) -> "LiftingFunction":
+        """Learn from training episodes (each of shape (n_samples, n_features_in)).
+
+        Returns
+        -------
+        self
+        """
+        names = tuple(names)
+        self.n_features_in_ = len(names)
+        self.feature_names_in_ = names
+        self._fit(list(episodes))
+        self.feature_names_out_ = tuple(self._names_out(names))
+        self.n_features_out_ = len(self.feature_names_out_)
+        return self
+
+    def _fit(self, episodes: list[np.ndarray]) -> None:
+        """Learn what the step needs; nothing by default."""
+
+    @abstractmethod
+    def _names_out(self, names: tuple[str, ...]) -> list[str]:
+        """Names of the output features."""
+
+    @abstractmethod
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        """Lift ``X`` of shape (..., n_samples, n_features_in).
+
+        Returns an array of shape (..., n_samples - n_delays, n_features_out).
+        Leading dimensions are independent episodes (batched prediction).
+        """
+
+    def __repr__(self) -> str:
+        params = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({params})"
+
+    def get_params(self) -> dict:
+        """Constructor hyperparameters."""
+        return {k: v for k, v in vars(self).items() if not k.endswith("_") and not k.startswith("_")}
+
+
+class Lifting:
+    """Lifting functions applied in order, fitted on training episodes only.
+
+    Parameters
+    ----------
+    steps : sequence of LiftingFunction
+        Applied first to last; empty means identity (no lifting).
+
+    Attributes
+    ----------
+    steps_ : list of LiftingFunction
+        Fitted copies of ``steps`` (the constructor's objects stay untouched).
+    n_delays_ : int
+        Samples consumed at the start of each episode (sum over steps).
+    feature_names_out_ : tuple of str
+        Readable name of every lifted state.
+    """
+
+    def __init__(self, steps: Sequence[LiftingFunction] = ()) -> None:
+        self.steps = tuple(steps)
+
+    def fit(self, episodes: Sequence[np.ndarray], names: Sequence[str] | None = None) -> "Lifting":
+        """Fit every step on the output of the previous one, episode by episode.
+
+        Parameters
+        ----------
+        episodes : sequence of ndarray of shape (n_samples, n_states)
+            Training episodes; no step ever sees two episodes joined.
+        names : sequence of str, optional
+            State names; ``x0, x1, ...`` by default.
+
+        Returns
+        -------
+        self
+        """
+        for step in self.steps:
+            if not isinstance(step, LiftingFunction):
+                raise ValueError(f"lifting step {step!r} is not a LiftingFunction")
+        episodes = [np.asarray(e, dtype=float) for e in episodes]
+        if not episodes:
+            raise ValueError("lifting needs at least one training episode")
+        n_states = episodes[0].shape[1]
+        names = tuple(names) if names is not None else tuple(f"x{i}" for i in range(n_states))
+        if len(names) != n_states:
+            raise ValueError(f"{len(names)} state names for {n_states} states")
+        self.n_features_in_ = n_states
+        self.feature_names_in_ = names
+        self.steps_ = []
+        for step in self.steps:
+            fitted = copy.deepcopy(step).fit(episodes, names)
+            self.steps_.append(fitted)
+            episodes = [fitted.transform(e) for e in episodes]
+            names = fitted.feature_names_out_
+        self.feature_names_out_ = tuple(names)
+        self.n_features_out_ = len(names)
+        self.n_delays_ = sum(step.n_delays for step in self.steps_)
+        return self
+
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        """Lift (..., n_samples, n_states) to (..., n_samples - n_delays_, n_features_out_)."""
+        X = np.asarray(X, dtype=float)
+        if X.shape[-1] != self.n_features_in_:
+            raise ValueError(f"lifting expects {self.n_features_in_} states, got {X.shape[-1]}")
+        for step in self.steps_:
+            X = step.transform(X)
+        return X
+
+    def __repr__(self) -> str:
+        return f"Lifting({list(self.steps)!r})"
+
+    def get_params(self) -> dict:
+        """Constructor hyperparameters."""
+        return {"steps": self.steps}

@@ -1,0 +1,51 @@
+"""Polynomial lifting: all monomials of the features up to a given order."""
+
+from __future__ import annotations
+
+from itertools import combinations_with_replacement
+
+import numpy as np
+
+from identify._checks import check_nonneg_int
+from identify.lifting.base import LiftingFunction
+
+__all__ = ["Polynomial"]
+
+
+class Polynomial(LiftingFunction):
+    """Monomials of degree 1..``order`` with cross terms (degree 1 first).
+
+    For (theta, alpha) and order 2: theta, alpha, theta^2, theta*alpha, alpha^2.
+
+    Parameters
+    ----------
+    order : int
+        Highest total degree (1 is the identity).
+    """
+
+    def __init__(self, order: int = 2) -> None:
+        self.order = check_nonneg_int(order, "polynomial order", minimum=1)
+
+    def _fit(self, episodes):
+        n = self.n_features_in_
+        self.monomials_ = tuple(c for d in range(1, self.order + 1)
+                                for c in combinations_with_replacement(range(n), d))
+
+    def _names_out(self, names):
+        out = []
+        for combo in self.monomials_:
+            parts = []
+            for i in sorted(set(combo)):
+                k = combo.count(i)
+                parts.append(names[i] if k == 1 else f"{names[i]}^{k}")
+            out.append("*".join(parts))
+        return out
+
+    def transform(self, X):
+        X = np.asarray(X, dtype=float)
+        n = self.n_features_in_
+        out = np.empty(X.shape[:-1] + (len(self.monomials_),))
+        out[..., :n] = X
+        for j, combo in enumerate(self.monomials_[n:], start=n):
+            out[..., j] = np.prod(X[..., list(combo)], axis=-1)
+        return out

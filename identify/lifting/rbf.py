@@ -1,0 +1,108 @@
+"""Radial basis function lifting: thin-plate splines and Gaussians."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from identify._checks import check_nonneg_int
+from identify.lifting.base import LiftingFunction
+
+__all__ = ["ThinPlateRbf", "GaussianRbf"]
+
+
+class _RadialBasis(LiftingFunction):
+    """Features followed by ``phi(||z - c_i||)`` for each centre ``c_i``.
+
+    Centres are given explicitly or drawn by Latin-hypercube sampling
+    (``scipy.stats.qmc``) inside the bounding box of the training data.
+    """
+
+    prefix = "rbf"
+
+    def __init__(self, n_centers: int = 50, shape: float = 1.0, centers=None, seed: int | None = None):
+        self.n_centers = check_nonneg_int(n_centers, "number of RBF centres", minimum=1)
+        if not (np.isfinite(shape) and shape > 0):
+            raise ValueError(f"RBF shape must be positive, got {shape!r}")
+        self.shape = float(shape)
+        self.centers = centers
+        self.seed = seed
+
+    def _fit(self, episodes):
+        n = self.n_features_in_
+        if self.centers is not None:
+            centers = np.atleast_2d(np.asarray(self.centers, dtype=float))
+            if centers.shape[1] != n or not np.all(np.isfinite(centers)):
+                raise ValueError(f"RBF centres must be a finite array of shape (n_centers, {n}), "
+                                 f"got {centers.shape}")
+        else:
+            from scipy.stats import qmc  # scipy.stats costs ~0.5 s to import; only RBF fits need it
+
+            data = np.concatenate(episodes, axis=0)
+            low, high = data.min(axis=0), data.max(axis=0)
+            high = np.where(high > low, high, low + 1.0)  # a constant feature still gets a box
+            sample = qmc.LatinHypercube(d=n, seed=self.seed).random(self.n_centers)
+            centers = qmc.scale(sample, low, high)
+        self.centers_ = centers
+
+    def _names_out(self, names):
+        return list(names) + [f"{self.prefix}{i}" for i in range(len(self.centers_))]
+
+    def transform(self, X):
+        X = np.asarray(X, dtype=float)
+        dist = np.linalg.norm(X[..., :, None, :] - self.centers_, axis=-1)
+        return np.concatenate([X, self._kernel(dist)], axis=-1)
+
+    def _kernel(self, dist):
+        raise NotImplementedError
+
+
+class ThinPlateRbf(_RadialBasis):
+    """Thin-plate RBF of the paper: ``(a r + d)^2 ln(a r + d)``.
+
+    Parameters
+    ----------
+    n_centers : int
+        Number of centres drawn when ``centers`` is not given.
+    shape : float
+        Shape parameter ``a`` (the paper's 0.2).
+    offset : float
+        Offset ``d`` that keeps the logarithm away from zero (the paper's 1e-3).
+    centers : array_like of shape (n_centers, n_features), optional
+        Explicit centres.
+    seed : int, optional
+        Seed of the Latin-hypercube sampler.
+    """
+
+    prefix = "tps"
+
+    def __init__(self, n_centers: int = 50, shape: float = 1.0, offset: float = 1e-3,
+                 centers=None, seed: int | None = None):
+        super().__init__(n_centers, shape, centers, seed)
+        if not (np.isfinite(offset) and offset > 0):
+            raise ValueError(f"thin-plate offset must be positive, got {offset!r}")
+        self.offset = float(offset)
+
+    def _kernel(self, dist):
+        s = self.shape * dist + self.offset
+        return s * s * np.log(s)
+
+
+class GaussianRbf(_RadialBasis):
+    """Gaussian RBF ``exp(-(a r)^2)``.
+
+    Parameters
+    ----------
+    n_centers : int
+        Number of centres drawn when ``centers`` is not given.
+    shape : float
+        Shape parameter ``a`` (inverse length scale).
+    centers : array_like of shape (n_centers, n_features), optional
+        Explicit centres.
+    seed : int, optional
+        Seed of the Latin-hypercube sampler.
+    """
+
+    prefix = "gauss"
+
+    def _kernel(self, dist):
+        return np.exp(-(self.shape * dist) ** 2)

@@ -1,0 +1,214 @@
+"""Fitted Koopman models: linear dynamics on lifted states, with prediction."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from identify.lifting import Lifting
+from identify.trajectory import Trajectory
+
+__all__ = ["KoopmanModel"]
+
+
+@dataclass(frozen=True, eq=False)
+class KoopmanModel:
+    """``z_{k+1} = A z_k + B v_k`` on the lifted state ``z = [p; lift(x history)]``.
+
+    ``p`` are ``n_passthrough`` states that are not lifted (the controller
+    state of a closed-loop model), ``x`` the measured plant states and ``v``
+    the exogenous input built from the trajectory signals ``input_signals``
+    (``("u",)`` for a plant, ``("r", "f")`` for a closed loop).
+
+    Parameters
+    ----------
+    A : ndarray of shape (n_lifted, n_lifted)
+    B : ndarray of shape (n_lifted, n_inputs)
+    lifting : Lifting
+        Fitted lifting of the plant states.
+    input_signals : tuple of str
+        Trajectory attributes stacked (in order) into ``v``.
+    n_passthrough : int
+        Leading states that are not lifted.
+    input_lifting : Lifting, optional
+        Fitted pointwise lifting of the inputs.
+    dt : float, optional
+        Sample period in seconds.
+    passthrough_names : tuple of str
+        Names of the passthrough states.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    lifting: Lifting
+    input_signals: tuple[str, ...]
+    n_passthrough: int = 0
+    input_lifting: Lifting | None = None
+    dt: float | None = None
+    passthrough_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        A = np.asarray(self.A, dtype=float)
+        B = np.asarray(self.B, dtype=float)
+        n_z = self.n_passthrough + self.lifting.n_features_out_
+        if A.shape != (n_z, n_z) or B.shape[0] != n_z:
+            raise ValueError(f"A {A.shape} and B {B.shape} do not fit {n_z} lifted states")
+        object.__setattr__(self, "A", A)
+        object.__setattr__(self, "B", B)
+        if not self.passthrough_names:
+            object.__setattr__(self, "passthrough_names", tuple(f"xc{i}" for i in range(self.n_passthrough)))
+
+    # --- structure -----------------------------------------------------------------
+    @property
+    def n_delays(self) -> int:
+        """Samples of history the lifting needs before the first prediction."""
+        return self.lifting.n_delays_
+
+    @property
+    def n_states(self) -> int:
+        """Number of measured (original) plant states."""
+        return self.lifting.n_features_in_
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Name of every lifted state."""
+        return tuple(self.passthrough_names) + tuple(self.lifting.feature_names_out_)
+
+    @property
+    def koopman_matrix(self) -> np.ndarray:
+        """``U = [A B]``."""
+        return np.hstack([self.A, self.B])
+
+    @property
+    def C(self) -> np.ndarray:
+        """Output matrix picking the original plant states out of the lifted state."""
+        C = np.zeros((self.n_states, self.A.shape[0]))
+        C[:, self.n_passthrough:self.n_passthrough + self.n_states] = np.eye(self.n_states)
+        return C
+
+    @property
+    def D(self) -> np.ndarray:
+        """Zero feedthrough."""
+        return np.zeros((self.n_states, self.B.shape[1]))
+
+    def eigenvalues(self) -> np.ndarray:
+        """Eigenvalues of ``A``."""
+        return np.linalg.eigvals(self.A)
+
+    def spectral_radius(self) -> float:
+        """Largest eigenvalue magnitude of ``A``; above 1 the model is unstable."""
+        return float(np.max(np.abs(self.eigenvalues())))
+
+    def to_state_space(self):
+        """The model as a discrete ``control.StateSpace`` (outputs: the original states)."""
+        import control  # lazily: python-control imports matplotlib
+
+        return control.ss(self.A, self.B, self.C, self.D, self.dt if self.dt is not None else True)
+
+    # --- prediction ----------------------------------------------------------------
+    def inputs_of(self, trajectory: Trajectory) -> np.ndarray:
+        """The exogenous input ``v`` of a trajectory (lifted when the model lifts inputs)."""
+        parts = []
+        for key in self.input_signals:
+            value = getattr(trajectory, key)
+            if value is None:
+                raise ValueError(f"trajectory {trajectory.name!r} lacks signal {key!r} the model needs")
+            parts.append(value)
+        v = np.hstack(parts) if parts else np.zeros((trajectory.n_samples, 0))
+        if self.input_lifting is not None:
+            v = self.input_lifting.transform(v)
+        if v.shape[1] != self.B.shape[1]:
+            raise ValueError(f"trajectory {trajectory.name!r} gives {v.shape[1]} inputs, "
+                             f"the model takes {self.B.shape[1]}")
+        return v
+
+    def predict(self, trajectory: Trajectory, relift: bool = True) -> np.ndarray:
+        """Predict the plant states of one episode from its initial condition and inputs.
+
+        The first ``n_delays + 1`` samples are the initial condition (copied);
+        the rest is predicted. A diverging prediction yields non-finite values.
+
+        Parameters
+        ----------
+        trajectory : Trajectory
+            Episode giving the initial states, the inputs and (closed loop)
+            the initial controller state.
+        relift : bool
+            Re-lift the predicted original state at every step (default, as
+            the reference code) or propagate the lifted state linearly.
+
+        Returns
+        -------
+        ndarray of shape (n_samples, n_states)
+        """
+        d = self.n_delays
+        if trajectory.n_samples < d + 2:
+            raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; "
+                             f"prediction needs at least {d + 2}")
+        if trajectory.x.shape[1] != self.n_states:
+            raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.x.shape[1]} states, "
+                             f"the model {self.n_states}")
+        p0 = None
+        if self.n_passthrough:
+            if trajectory.xc is None or trajectory.xc.shape[1] != self.n_passthrough:
+                raise ValueError(f"trajectory {trajectory.name!r} needs a controller state of "
+                                 f"{self.n_passthrough} channels")
+            p0 = trajectory.xc[d]
+        x, _ = self.simulate(trajectory.x[:d + 1], self.inputs_of(trajectory), p0, relift=relift)
+        return x
+
+    def simulate(self, x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None = None,
+                 relift: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Batched prediction from arrays.
+
+        Parameters
+        ----------
+        x_init : ndarray of shape (..., n_delays + 1, n_states)
+            Initial history of the plant states.
+        v : ndarray of shape (..., n_samples, n_inputs)
+            Input at every sample (the first ``n_delays`` are not used).
+        p0 : ndarray of shape (..., n_passthrough), optional
+            Passthrough (controller) state at sample ``n_delays``.
+        relift : bool
+            Re-lift at every step, or propagate linearly.
+
+        Returns
+        -------
+        x : ndarray of shape (..., n_samples, n_states)
+        p : ndarray of shape (..., n_samples, n_passthrough)
+            NaN before sample ``n_delays``.
+        """
+        d, m, n_p = self.n_delays, self.n_states, self.n_passthrough
+        x_init = np.asarray(x_init, dtype=float)
+        v = np.asarray(v, dtype=float)
+        batch, T = v.shape[:-2], v.shape[-2]
+        x = np.full(batch + (T, m), np.nan)
+        p = np.full(batch + (T, n_p), np.nan)
+        x[..., :d + 1, :] = x_init
+        if n_p:
+            p[..., d, :] = np.zeros(batch + (n_p,)) if p0 is None else p0
+        z = np.concatenate([p[..., d, :], self.lifting.transform(x[..., :d + 1, :])[..., 0, :]], axis=-1)
+        Bv = v @ self.B.T
+        At = self.A.T
+        lo, hi = n_p, n_p + m
+        with np.errstate(all="ignore"):
+            for k in range(d, T - 1):
+                nxt = z @ At + Bv[..., k, :]
+                x[..., k + 1, :] = nxt[..., lo:hi]
+                p[..., k + 1, :] = nxt[..., :n_p]
+                if k % 64 == 0 and not np.any(np.isfinite(nxt)):
+                    x[..., k + 1:, :] = np.nan  # every batch member diverged: nothing left to predict
+                    p[..., k + 1:, :] = np.nan
+                    break
+                if relift:
+                    lifted = self.lifting.transform(x[..., k + 1 - d:k + 2, :])[..., 0, :]
+                    z = np.concatenate([nxt[..., :n_p], lifted], axis=-1)
+                else:
+                    z = nxt
+        return x, p
+
+    def predict_many(self, trajectories: Sequence[Trajectory], relift: bool = True) -> list[np.ndarray]:
+        """:meth:`predict` for several episodes."""
+        return [self.predict(t, relift=relift) for t in trajectories]

@@ -1,0 +1,80 @@
+"""Prediction scores, per episode and aggregated over episodes.
+
+All take ``y_true`` and ``y_pred`` of shape (n_samples, n_states). The error
+is ``y_true - y_pred``. A prediction with any non-finite value scores
+``-inf`` for R^2 and ``+inf`` for the error measures: it never raises.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+__all__ = ["r2_score", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
+
+
+def _pair(y_true, y_pred) -> tuple[np.ndarray, np.ndarray]:
+    y_true = np.asarray(y_true, dtype=float)
+    y_pred = np.asarray(y_pred, dtype=float)
+    if y_true.ndim == 1:
+        y_true, y_pred = y_true[:, None], y_pred.reshape(-1, 1)
+    if y_true.shape != y_pred.shape:
+        raise ValueError(f"true {y_true.shape} and predicted {y_pred.shape} shapes differ")
+    if y_true.shape[0] < 2:
+        raise ValueError("scores need at least two samples")
+    return y_true, y_pred
+
+
+def r2_score(y_true, y_pred) -> float:
+    """Coefficient of determination, averaged over states (1 is perfect)."""
+    y_true, y_pred = _pair(y_true, y_pred)
+    if not np.all(np.isfinite(y_pred)):
+        return -np.inf
+    ss_res = np.sum((y_true - y_pred) ** 2, axis=0)
+    ss_tot = np.sum((y_true - y_true.mean(axis=0)) ** 2, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        per_state = np.where(ss_tot > 0, 1.0 - ss_res / ss_tot, np.where(ss_res > 0, -np.inf, 1.0))
+    return float(np.mean(per_state))
+
+
+def _peak(y_true: np.ndarray) -> np.ndarray:
+    peak = np.max(np.abs(y_true), axis=0)
+    return np.where(peak > 0, peak, 1.0)
+
+
+def nrmse(y_true, y_pred) -> float:
+    """RMS error as a percentage of each state's peak amplitude, averaged over states."""
+    y_true, y_pred = _pair(y_true, y_pred)
+    if not np.all(np.isfinite(y_pred)):
+        return np.inf
+    rmse = np.sqrt(np.mean((y_true - y_pred) ** 2, axis=0))
+    return float(np.mean(100.0 * rmse / _peak(y_true)))
+
+
+def normalized_mean_error(y_true, y_pred) -> float:
+    """Mean error as a percentage of each state's peak amplitude, averaged over states."""
+    y_true, y_pred = _pair(y_true, y_pred)
+    if not np.all(np.isfinite(y_pred)):
+        return np.inf
+    return float(np.mean(100.0 * np.mean(y_true - y_pred, axis=0) / _peak(y_true)))
+
+
+SCORES: dict[str, Callable] = {"r2": r2_score, "nrmse": nrmse, "nme": normalized_mean_error}
+
+
+def score_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray],
+                   score: str = "r2") -> tuple[float, float]:
+    """Mean and standard deviation of a score over episodes.
+
+    A diverged episode makes the mean (and standard deviation) infinite.
+    """
+    if score not in SCORES:
+        raise ValueError(f"unknown score {score!r}; expected one of {', '.join(SCORES)}")
+    if len(y_true) != len(y_pred) or not y_true:
+        raise ValueError(f"need matching, non-empty episode lists, got {len(y_true)} and {len(y_pred)}")
+    values = np.array([SCORES[score](t, p) for t, p in zip(y_true, y_pred)])
+    if not np.all(np.isfinite(values)):
+        bad = values[~np.isfinite(values)][0]
+        return float(bad), float("nan")
+    return float(values.mean()), float(values.std())

@@ -1,0 +1,110 @@
+"""Trajectories: one episode's time-aligned signals, as identification sees them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Sequence
+
+import numpy as np
+
+from identify._checks import as_signal
+
+__all__ = ["Trajectory", "check_trajectories"]
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Signals of one episode, one row per sample (the naming guide's symbols).
+
+    Parameters
+    ----------
+    x : array_like of shape (n_samples, n_states)
+        Measured plant states (for the QUBE-Servo: theta, alpha).
+    u : array_like of shape (n_samples, n_plant_inputs), optional
+        Plant input (controller output plus feedforward, as applied).
+    r : array_like of shape (n_samples, n_references), optional
+        Controller reference.
+    f : array_like of shape (n_samples, n_plant_inputs), optional
+        Feedforward added to the controller output.
+    xc : array_like of shape (n_samples, n_controller_states), optional
+        Controller state.
+    name : str
+        Where the episode came from (file name); used in messages.
+    state_names, input_names : sequence of str, optional
+        Names of the columns of ``x`` and ``u``.
+    dt : float, optional
+        Sample period in seconds.
+
+    Raises
+    ------
+    ValueError
+        If a signal is not 1-D/2-D, has a non-finite value or a different
+        number of samples than ``x``.
+    """
+
+    x: np.ndarray
+    u: np.ndarray | None = None
+    r: np.ndarray | None = None
+    f: np.ndarray | None = None
+    xc: np.ndarray | None = None
+    name: str = ""
+    state_names: tuple[str, ...] | None = field(default=None)
+    input_names: tuple[str, ...] | None = field(default=None)
+    dt: float | None = None
+
+    def __post_init__(self) -> None:
+        label = f"trajectory {self.name!r}: " if self.name else ""
+        if self.dt is not None and not (np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"{label}dt must be a positive number of seconds, got {self.dt!r}")
+        x = as_signal(self.x, f"{label}x")
+        object.__setattr__(self, "x", x)
+        for key in ("u", "r", "f", "xc"):
+            value = getattr(self, key)
+            if value is not None:
+                object.__setattr__(self, key, as_signal(value, f"{label}{key}", n_samples=x.shape[0]))
+        for key, n in (("state_names", x.shape[1]), ("input_names", None if self.u is None else self.u.shape[1])):
+            names = getattr(self, key)
+            if names is not None:
+                names = tuple(str(s) for s in names)
+                if n is not None and len(names) != n:
+                    raise ValueError(f"{label}{key} has {len(names)} names for {n} channels")
+                object.__setattr__(self, key, names)
+
+    @property
+    def n_samples(self) -> int:
+        """Number of samples."""
+        return self.x.shape[0]
+
+    def skip(self, n: int) -> "Trajectory":
+        """The same trajectory without its first ``n`` samples."""
+        cut = {k: None if getattr(self, k) is None else getattr(self, k)[n:]
+               for k in ("x", "u", "r", "f", "xc")}
+        return replace(self, **cut)
+
+
+def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, what: str) -> list[Trajectory]:
+    """A non-empty list of trajectories with the needed signals and consistent widths."""
+    if isinstance(trajectories, Trajectory):
+        trajectories = [trajectories]
+    trajectories = list(trajectories)
+    if not trajectories:
+        raise ValueError(f"{what} needs at least one trajectory")
+    first = trajectories[0]
+    for i, traj in enumerate(trajectories):
+        if not isinstance(traj, Trajectory):
+            raise ValueError(f"{what}: item {i} is a {type(traj).__name__}, not a Trajectory")
+        label = traj.name or f"#{i}"
+        for key in needs:
+            value = getattr(traj, key)
+            if value is None:
+                raise ValueError(f"{what} needs signal {key!r}, missing in trajectory {label}")
+            ref = getattr(first, key)
+            if value.shape[1] != ref.shape[1]:
+                raise ValueError(f"trajectory {label}: {key} has {value.shape[1]} channels, "
+                                 f"the first trajectory has {ref.shape[1]}")
+        if traj.dt != first.dt:
+            raise ValueError(f"trajectory {label} has sample period {traj.dt}, the first has {first.dt}")
+        if traj.n_samples < min_samples:
+            raise ValueError(f"trajectory {label} has {traj.n_samples} samples; {what} needs at least "
+                             f"{min_samples} (delays plus two)")
+    return trajectories

@@ -1,0 +1,138 @@
+"""Discrete-time linear state-space systems.
+
+The one container for a discrete LTI system (A, B, C, D, dt) in the project:
+controllers run with it in the loop and in simulations, logs store its
+matrices, and identification reads them back as the known controller.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["DiscreteStateSpace"]
+
+
+def _as_matrix(value, name: str) -> np.ndarray:
+    arr = np.atleast_2d(np.asarray(value, dtype=float))
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D matrix, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} has non-finite entries")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class DiscreteStateSpace:
+    """A discrete-time LTI system ``x[k+1] = A x[k] + B u[k]``, ``y[k] = C x[k] + D u[k]``.
+
+    Parameters
+    ----------
+    A, B, C, D : array_like
+        State-space matrices of shapes (n, n), (n, p), (q, n) and (q, p).
+    dt : float
+        Sample period in seconds (positive).
+
+    Raises
+    ------
+    ValueError
+        If the shapes are inconsistent, an entry is non-finite or ``dt`` is
+        not positive.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    dt: float
+
+    def __post_init__(self) -> None:
+        A = _as_matrix(self.A, "A")
+        B = _as_matrix(self.B, "B")
+        C = _as_matrix(self.C, "C")
+        D = _as_matrix(self.D, "D")
+        n = A.shape[0]
+        if A.shape != (n, n):
+            raise ValueError(f"A must be square, got shape {A.shape}")
+        if B.shape[0] != n:
+            raise ValueError(f"B has {B.shape[0]} rows but A has {n} states")
+        if C.shape[1] != n:
+            raise ValueError(f"C has {C.shape[1]} columns but A has {n} states")
+        if D.shape != (C.shape[0], B.shape[1]):
+            raise ValueError(
+                f"D must have shape {(C.shape[0], B.shape[1])} (outputs x inputs), got {D.shape}"
+            )
+        if not (np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
+        for name, value in zip("ABCD", (A, B, C, D)):
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "dt", float(self.dt))
+
+    @property
+    def n_states(self) -> int:
+        """Number of states."""
+        return self.A.shape[0]
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of inputs."""
+        return self.B.shape[1]
+
+    @property
+    def n_outputs(self) -> int:
+        """Number of outputs."""
+        return self.C.shape[0]
+
+    def simulate(self, u: np.ndarray, x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Run the system over an input sequence.
+
+        Parameters
+        ----------
+        u : ndarray of shape (n_samples, n_inputs)
+            Input at each sample.
+        x0 : ndarray of shape (n_states,), optional
+            Initial state; zero by default.
+
+        Returns
+        -------
+        x : ndarray of shape (n_samples, n_states)
+            State at each sample (``x[0] = x0``), before that sample's update.
+        y : ndarray of shape (n_samples, n_outputs)
+            Output at each sample.
+        """
+        u = np.asarray(u, dtype=float)
+        if u.ndim == 1 and self.n_inputs == 1:
+            u = u[:, None]
+        if u.ndim != 2 or u.shape[1] != self.n_inputs:
+            raise ValueError(f"u must have shape (n_samples, {self.n_inputs}), got {u.shape}")
+        x = np.empty((u.shape[0], self.n_states))
+        state = np.zeros(self.n_states) if x0 is None else np.asarray(x0, dtype=float).reshape(self.n_states)
+        # B u for all samples at once; the recursion itself is inherently sequential.
+        bu = u @ self.B.T
+        A = self.A
+        for k in range(u.shape[0]):
+            x[k] = state
+            state = A @ state + bu[k]
+        y = x @ self.C.T + u @ self.D.T
+        return x, y
+
+    def as_dict(self) -> dict:
+        """Plain-data form (lists of lists), for logs and model files."""
+        return {"A": self.A.tolist(), "B": self.B.tolist(), "C": self.C.tolist(),
+                "D": self.D.tolist(), "dt": self.dt}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "DiscreteStateSpace":
+        """Inverse of :meth:`as_dict`."""
+        missing = {"A", "B", "C", "D", "dt"} - set(data)
+        if missing:
+            raise ValueError(f"state-space data misses {sorted(missing)}")
+        return cls(data["A"], data["B"], data["C"], data["D"], data["dt"])
+
+    def to_control(self):
+        """The same system as a ``control.StateSpace`` (discrete, with ``dt``)."""
+        import control  # imported lazily: python-control pulls in matplotlib
+
+        return control.ss(self.A, self.B, self.C, self.D, self.dt)
