@@ -1,0 +1,149 @@
+"""Controllers built from gains: discrete LTI systems for the loop, the logs and identification.
+
+Every controller maps the tracking error ``e = r - y`` (one channel per fed-back
+state) to one plant input, as the sum of one SISO block per channel. Blocks
+are discretized with python-control (no slycot needed: only SISO conversions)
+and each first-order block is scaled to ``B = 1``, the realization the rig
+and the reference code used (FACTS sections 2 and 4), so logged controller
+states match theirs.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sim.lti import DiscreteStateSpace
+
+__all__ = [
+    "DISCRETIZATIONS",
+    "PdGains",
+    "load_pd_gains",
+    "pd_controller",
+    "pi_controller",
+    "discretize_channels",
+]
+
+# Our names -> scipy.signal.cont2discrete's (used by control.sample_system).
+DISCRETIZATIONS = {"backward-euler": "backward_diff", "zoh": "zoh", "tustin": "bilinear"}
+
+QUBE_SAMPLE_PERIOD = 1.0 / 500.0
+
+
+@dataclass(frozen=True)
+class PdGains:
+    """Gains of the QUBE-Servo's two filtered PD channels (V/rad, V s/rad, rad/s).
+
+    Each channel is ``K = -kp - kd tau s / (s + tau)`` on the tracking error.
+    """
+
+    kp_theta: float
+    kd_theta: float
+    kp_alpha: float
+    kd_alpha: float
+    tau: float
+
+    def __post_init__(self) -> None:
+        for name, value in asdict(self).items():
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not np.isfinite(value):
+                raise ValueError(f"gain {name} must be a finite number, got {value!r}")
+        if self.tau <= 0:
+            raise ValueError(f"derivative filter tau must be positive, got {self.tau}")
+
+    def as_dict(self) -> dict:
+        """Plain-data form, as in controller.toml."""
+        return {k: float(v) for k, v in asdict(self).items()}
+
+
+def load_pd_gains(path: str | Path) -> PdGains:
+    """Read the gains from a controller.toml like the dataset's.
+
+    Raises
+    ------
+    ValueError
+        Naming the file when it cannot be read, is not TOML or misses a gain.
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read controller file ({exc.strerror or exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path}: not valid TOML ({exc})") from None
+    fields = PdGains.__dataclass_fields__
+    missing = [k for k in fields if k not in data]
+    if missing:
+        raise ValueError(f"{path}: missing gains {', '.join(missing)}")
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ValueError(f"{path}: unknown keys {', '.join(unknown)}")
+    try:
+        return PdGains(**{k: data[k] for k in fields})
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def discretize_channels(channels, dt: float, method: str) -> DiscreteStateSpace:
+    """Discretize continuous SISO blocks and sum them into one multi-input controller.
+
+    Parameters
+    ----------
+    channels : sequence of control.TransferFunction
+        One continuous SISO block per error channel.
+    dt : float
+        Sample period in seconds.
+    method : {"backward-euler", "zoh", "tustin"}
+        Discretization of each block.
+    """
+    import control  # lazily: python-control imports matplotlib
+
+    if method not in DISCRETIZATIONS:
+        raise ValueError(f"unknown discretization {method!r}; expected one of {', '.join(DISCRETIZATIONS)}")
+    blocks = []
+    for channel in channels:
+        sys = control.sample_system(control.ss(channel), dt, method=DISCRETIZATIONS[method])
+        A, B, C, D = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (sys.A, sys.B, sys.C, sys.D))
+        if A.shape == (1, 1) and B[0, 0] != 0:
+            # Scale the state so that B = 1 (same transfer function, the rig's realization).
+            C, B = C * B[0, 0], np.ones((1, 1))
+        blocks.append((A, B, C, D))
+    n = sum(b[0].shape[0] for b in blocks)
+    A = np.zeros((n, n))
+    B = np.zeros((n, len(blocks)))
+    C = np.zeros((1, n))
+    D = np.zeros((1, len(blocks)))
+    i = 0
+    for j, (Ab, Bb, Cb, Db) in enumerate(blocks):
+        k = Ab.shape[0]
+        A[i:i + k, i:i + k] = Ab
+        B[i:i + k, j] = Bb[:, 0]
+        C[0, i:i + k] = Cb[0]
+        D[0, j] = Db[0, 0]
+        i += k
+    return DiscreteStateSpace(A, B, C, D, dt)
+
+
+def pd_controller(gains: PdGains, dt: float = QUBE_SAMPLE_PERIOD,
+                  method: str = "backward-euler") -> DiscreteStateSpace:
+    """The QUBE-Servo's two filtered PD channels (theta, alpha) as one discrete controller.
+
+    ``method="backward-euler"`` is what ran on the rig (it reproduces the
+    dataset's control_output to 1e-14 V); the paper's text says ZOH.
+    """
+    import control
+
+    s = control.tf("s")
+    channels = [-(kp + kd * gains.tau * s / (s + gains.tau))
+                for kp, kd in ((gains.kp_theta, gains.kd_theta), (gains.kp_alpha, gains.kd_alpha))]
+    return discretize_channels(channels, dt, method)
+
+
+def pi_controller(kp: float, ki: float, dt: float, method: str = "zoh") -> DiscreteStateSpace:
+    """A SISO PI controller ``kp + ki / s`` (the Duffing example's, with kp = ki = 1)."""
+    import control
+
+    s = control.tf("s")
+    return discretize_channels([kp + ki / s], dt, method)
