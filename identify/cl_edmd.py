@@ -178,7 +178,9 @@ class ClEdmd(_ClosedLoopKoopman):
             U_c = np.hstack([ctrl.A, -ctrl.B @ self.output_matrix_, ctrl.B,
                              np.zeros((n_c, self.n_feedforward_))])
         else:
-            U_c = ridge_solve(snapshots, alpha, slice(0, n_c))
+            # Only the closed-loop penalty covers the controller rows; "plant" leaves them free.
+            alpha_c = alpha if regularize == "closed_loop" else 0.0
+            U_c = ridge_solve(snapshots, alpha_c, slice(0, n_c))
         return np.vstack([U_c, U_p @ S]), U_p
 
 

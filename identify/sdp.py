@@ -18,9 +18,15 @@ from sim.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmdSdp"]
 
+CLARABEL_TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10, "max_iter": 500}
+
 
 class ClEdmdSdp(_ClosedLoopKoopman):
     """Closed-loop EDMD as the paper's SDP: min tr(W) s.t. the Schur-complement LMI.
+
+    The structural constraint is substituted (the plant rows are ``U^p S``)
+    and the paper's ``W > 0`` is left out because the LMI implies it; stating
+    it makes the problem degenerate on exact controller data.
 
     Parameters
     ----------
@@ -38,7 +44,10 @@ class ClEdmdSdp(_ClosedLoopKoopman):
         Any cvxpy solver that handles semidefinite cones (``"CLARABEL"``
         by default, ``"SCS"``, ...).
     solver_options : dict, optional
-        Passed to ``cvxpy.Problem.solve``.
+        Passed to ``cvxpy.Problem.solve``. By default Clarabel's gap and
+        feasibility tolerances are tightened to 1e-10: this is a reference
+        path, and the variables converge only like the square root of the
+        objective's accuracy.
 
     Attributes
     ----------
@@ -78,23 +87,30 @@ class ClEdmdSdp(_ClosedLoopKoopman):
             R = np.linalg.cholesky(H_alpha + 1e-12 * np.trace(H_alpha) / n_psi * np.eye(n_psi))
 
         W = cp.Variable((n_theta, n_theta), symmetric=True)
-        U_f = cp.Variable((n_theta, n_psi))
+        U_c = cp.Variable((n_c, n_psi))
         U_p = cp.Variable((n_pl, S.shape[0]))
+        # The structural constraint U_f[plant rows] = U^p S, substituted (fewer variables, same problem).
+        U_f = cp.vstack([U_c, U_p @ S])
         cross = U_f @ G.T
         lmi = cp.bmat([[-W + F - cross - cross.T, U_f @ R],
                        [R.T @ U_f.T, -np.eye(n_psi)]])
         # The LMI block is symmetric by construction; symmetrize the expression so the
         # cone constraint is imposed on the whole matrix, not only its symmetric part.
-        constraints = [W >> 0, 0.5 * (lmi + lmi.T) << 0, U_f[n_c:, :] == U_p @ S]
+        # W >= 0 is implied by the LMI; stating it again makes the problem degenerate when a
+        # block of rows fits with zero residual (exact controller data) and costs accuracy.
+        constraints = [0.5 * (lmi + lmi.T) << 0]
         objective = cp.trace(W)
         if regularize == "plant":
             objective = objective + (alpha / q) * cp.sum_squares(U_p)
         problem = cp.Problem(cp.Minimize(objective), constraints)
+        options = self.solver_options
+        if options is None:
+            options = CLARABEL_TIGHT if solver == "CLARABEL" else {}
         try:
-            problem.solve(solver=solver, **(self.solver_options or {}))
+            problem.solve(solver=solver, **options)
         except cp.error.SolverError as exc:
             raise ValueError(f"SDP solver {solver} failed: {exc}") from exc
         self.solver_status_ = problem.status
-        if U_f.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
+        if U_p.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
             raise ValueError(f"SDP solver {solver} ended with status {problem.status!r}")
         return np.asarray(U_f.value), np.asarray(U_p.value)
