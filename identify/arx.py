@@ -137,19 +137,30 @@ class Arx(Estimator):
             raise ValueError("this Arx is not fitted yet; call fit first")
 
 
+def _ss_inverse(sys):
+    """Inverse of a square discrete system with invertible feedthrough, in state space."""
+    import control
+
+    D_inv = np.linalg.inv(np.atleast_2d(sys.D))
+    return control.ss(sys.A - sys.B @ D_inv @ sys.C, sys.B @ D_inv, -D_inv @ sys.C, D_inv, sys.dt)
+
+
 class ClArx(Estimator):
     """The indirect approach: a closed-loop ARX, then the plant recovered with the controller.
 
     With a feedforward input the plant follows from the feedforward channel
     ``T_f = G (1 + K G)^-1`` as ``G = T_f (1 - K T_f)^-1`` (one SISO inverse,
     as the paper does for the QUBE-Servo); without, from the reference
-    channel of a SISO loop, ``G = T_r / (K (1 - T_r))``. Transfer-function
-    algebra uses python-control.
+    channel of a SISO loop, ``G = T_r (1 - T_r)^-1 K^-1``. The algebra is done
+    in state space with python-control (inverses of systems with invertible
+    feedthrough): transfer-function polynomials lose the near-cancelling
+    pole/zero pairs at z = 1 to rounding and the recovered plant diverges.
 
     Parameters
     ----------
     controller : DiscreteStateSpace
-        The known controller.
+        The known controller (single output, invertible feedthrough for the
+        reference-channel case).
     output_lags, input_lags : int
         Orders of the closed-loop ARX.
     alpha : float
@@ -159,8 +170,8 @@ class ClArx(Estimator):
     ----------
     closed_loop_ : Arx
         The closed-loop ARX (inputs ``r`` and, if present, ``f``).
-    plant_tf_ : list of control.TransferFunction
-        Recovered plant, one SISO transfer function per output.
+    plant_ : control.StateSpace
+        Recovered plant from ``u`` to the measured states (non-minimal).
     """
 
     def __init__(self, controller: DiscreteStateSpace, output_lags: int = 1, input_lags: int = 1,
@@ -177,33 +188,30 @@ class ClArx(Estimator):
         -------
         self
         """
-        import control
-
         trajs = check_trajectories(trajectories, ("x", "r"), 2, "CL ARX")
         with_f = trajs[0].f is not None
         ctrl = self.controller
-        if ctrl.n_inputs != trajs[0].r.shape[1] or ctrl.n_outputs != 1:
-            raise ValueError(f"CL ARX needs a single-output controller taking {trajs[0].r.shape[1]} "
-                             f"errors; got {ctrl.n_outputs} outputs, {ctrl.n_inputs} inputs")
-        if not with_f and ctrl.n_inputs != 1:
+        n_r = trajs[0].r.shape[1]
+        if ctrl.n_inputs != n_r or ctrl.n_outputs != 1:
+            raise ValueError(f"CL ARX needs a single-output controller taking {n_r} errors; "
+                             f"got {ctrl.n_outputs} outputs, {ctrl.n_inputs} inputs")
+        if n_r != trajs[0].x.shape[1]:
+            raise ValueError(f"CL ARX feeds back every measured state: {trajs[0].x.shape[1]} states "
+                             f"but {n_r} references")
+        if not with_f and n_r != 1:
             raise ValueError("without feedforward CL ARX recovers only a SISO plant")
         inputs = ("r", "f") if with_f else ("r",)
         self.closed_loop_ = Arx(self.output_lags, self.input_lags, inputs, self.alpha).fit(trajs)
         T = self.closed_loop_.model_.to_control()
-        K_ss = ctrl.to_control()
-        K = [control.ss2tf(K_ss[0, i]) for i in range(ctrl.n_inputs)]
-        n_r = trajs[0].r.shape[1]
+        K = ctrl.to_control()
         if with_f:
-            # y = T_f f with T_f = G / (1 + K G): K T_f = KG / (1 + KG), so G = T_f / (1 - K T_f).
-            T_f = [control.ss2tf(T[i, n_r]) for i in range(T.noutputs)]
-            loop = 1 - K[0] * T_f[0]
-            for i in range(1, n_r):
-                loop = loop - K[i] * T_f[i]
-            plants = [control.minreal(t / loop, verbose=False) for t in T_f]
+            T_f = T[:, n_r]
+            self.plant_ = T_f * _ss_inverse(1 - K * T_f)
         else:
-            T_r = control.ss2tf(T[0, 0])
-            plants = [control.minreal(T_r / (K[0] * (1 - T_r)), verbose=False)]
-        self.plant_tf_ = plants
+            if abs(ctrl.D[0, 0]) == 0:
+                raise ValueError("the reference-channel recovery needs a controller with feedthrough")
+            T_r = T[0, 0]
+            self.plant_ = T_r * _ss_inverse(1 - T_r) * _ss_inverse(K)
         self.dt_ = ctrl.dt
         return self
 
@@ -211,16 +219,13 @@ class ClArx(Estimator):
         """Plant prediction from the plant input ``u`` (zero initial state)."""
         import control
 
-        if not hasattr(self, "plant_tf_"):
+        if not hasattr(self, "plant_"):
             raise ValueError("this ClArx is not fitted yet; call fit first")
         if trajectory.u is None or trajectory.u.shape[1] != 1:
             raise ValueError(f"trajectory {trajectory.name!r} needs a single plant input u")
-        u = trajectory.u[:, 0]
-        out = np.empty((trajectory.n_samples, len(self.plant_tf_)))
         with np.errstate(all="ignore"):
-            for i, G in enumerate(self.plant_tf_):
-                out[:, i] = control.forced_response(G, U=u).outputs
-        return out
+            y = control.forced_response(self.plant_, U=trajectory.u[:, 0]).outputs
+        return np.asarray(y, dtype=float).reshape(trajectory.n_samples, -1)
 
     def predict_closed_loop(self, trajectory: Trajectory) -> np.ndarray:
         """Closed-loop prediction from the references (and feedforward)."""

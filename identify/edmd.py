@@ -59,13 +59,10 @@ class Edmd(Estimator):
             input_lifting = resolve_lifting(self.input_lifting).fit([t.u for t in trajs], trajs[0].input_names)
             if input_lifting.n_delays_:
                 raise ValueError("input lifting must be pointwise (no delays)")
-        model = KoopmanModel(np.zeros((lifting.n_features_out_,) * 2),
-                             np.zeros((lifting.n_features_out_, 0)), lifting, ("u",),
-                             input_lifting=input_lifting, dt=trajs[0].dt)
         parts = []
         for t in trajs:
             z = lifting.transform(t.x)
-            v = model.inputs_of(t)[d:] if input_lifting is not None else t.u[d:]
+            v = (t.u if input_lifting is None else input_lifting.transform(t.u))[d:]
             parts.append(Snapshots.from_snapshots(z[1:], np.hstack([z[:-1], v[:-1]])))
         self.snapshots_ = Snapshots.total(parts)
         U = ridge_solve(self.snapshots_, alpha)

@@ -24,7 +24,8 @@ __all__ = ["Snapshots", "ridge_solve", "constrained_plant_solve"]
 
 
 def _triangular_factor(M: np.ndarray) -> np.ndarray:
-    return linalg.qr(M, mode="r", check_finite=False)[0]
+    # mode="r" returns the full (rows x columns) R; only its top square part is non-zero.
+    return linalg.qr(M, mode="r", check_finite=False)[0][:min(M.shape)]
 
 
 @dataclass(frozen=True, eq=False)

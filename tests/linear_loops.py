@@ -23,9 +23,17 @@ def mass_spring_damper(dt: float = 0.01, m: float = 1.0, c: float = 0.4, k: floa
 
 
 def pid_position_controller(dt: float = 0.01) -> DiscreteStateSpace:
-    """A PI controller with a filtered derivative on the position error (2 states)."""
-    return DiscreteStateSpace(A=[[1.0, 0.0], [0.0, 0.8]], B=[[1.0], [1.0]],
-                              C=[[0.5 * dt, -4.0]], D=[[8.0]], dt=dt)
+    """PID with a filtered derivative on the position error (2 states), backward Euler.
+
+    ``K(s) = 5 + 2/s + s 20/(s + 20)``; with :func:`mass_spring_damper` the
+    loop is stable (checked in :func:`closed_loop_trajectories`).
+    """
+    import control
+
+    from daq.controller import discretize_channels
+
+    s = control.tf("s")
+    return discretize_channels([5 + 2 / s + 20 * s / (s + 20)], dt, "backward-euler")
 
 
 def simulate_loop(A_p, B_p, controller: DiscreteStateSpace, measured, r, f, w=None):
@@ -61,6 +69,12 @@ def prbs(rng, n, n_channels, amplitude, dwell=(20, 80)):
 def closed_loop_trajectories(A_p, B_p, controller, measured, n_episodes=4, n=400, seed=0,
                              process_noise=0.0, feedforward=True):
     """Episodes of the loop with PRBS references and feedforward."""
+    from identify import closed_loop_matrices, output_selection
+
+    A_f, _ = closed_loop_matrices(A_p, B_p, controller, output_selection(A_p.shape[0], measured),
+                                  controller.n_outputs)
+    if max(abs(np.linalg.eigvals(A_f))) >= 1:
+        raise ValueError("this test loop is unstable; pick other gains")
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n_episodes):

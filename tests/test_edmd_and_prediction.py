@@ -1,0 +1,132 @@
+"""EDMD details, prediction behaviour, structure helpers."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from identify import (ClEdmd, Delay, Edmd, GaussianRbf, Polynomial, Trajectory, closed_loop_matrices,
+                      controller_states, output_selection, plant_input, plant_input_map, r2_score)
+from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
+
+
+@pytest.fixture(scope="module")
+def loop():
+    A_p, B_p = mass_spring_damper()
+    controller = pid_position_controller()
+    return A_p, B_p, controller, closed_loop_trajectories(A_p, B_p, controller, [0], n_episodes=3, seed=1)
+
+
+def test_fit_returns_self_and_keeps_hyperparameters(loop):
+    *_, trajs = loop
+    lifting = [Polynomial(2)]
+    est = Edmd(lifting=lifting, alpha=0.5)
+    assert est.fit(trajs) is est
+    assert est.get_params() == {"lifting": lifting, "alpha": 0.5, "input_lifting": None}
+    assert lifting[0].__dict__.keys() == {"order"}  # fit did not touch the constructor's objects
+
+
+def test_episodes_are_never_joined(loop):
+    *_, trajs = loop
+    a = Edmd(lifting=[Delay(2)]).fit(trajs[:2]).koopman_matrix_
+    b = Edmd(lifting=[Delay(2)]).fit(trajs[1::-1]).koopman_matrix_
+    joined = Trajectory(x=np.vstack([t.x for t in trajs[:2]]), u=np.vstack([t.u for t in trajs[:2]]))
+    c = Edmd(lifting=[Delay(2)]).fit([joined]).koopman_matrix_
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    assert np.abs(a - c).max() > 1e-6
+
+
+def test_regularization_shrinks_the_koopman_matrix(loop):
+    *_, trajs = loop
+    norms = [np.linalg.norm(Edmd(alpha=a).fit(trajs).koopman_matrix_) for a in (0.0, 1.0, 100.0)]
+    assert norms[0] > norms[1] > norms[2]
+
+
+def test_ridge_convention_matches_normal_equations(loop):
+    *_, trajs = loop
+    est = Edmd(lifting=[Polynomial(2)], alpha=3.0).fit(trajs)
+    G, H = est.snapshots_.G, est.snapshots_.H
+    np.testing.assert_allclose(est.koopman_matrix_, G @ np.linalg.inv(H + 3.0 * np.eye(H.shape[0])),
+                               rtol=1e-8, atol=1e-10)
+
+
+def test_closed_form_equals_generalized_ridge_formula(loop):
+    """U^p = G_2 S^T (S H_alpha S^T)^-1 (FACTS section 1)."""
+    A_p, B_p, controller, trajs = loop
+    noisy = [Trajectory(x=t.x + 1e-3 * np.sin(np.arange(t.n_samples))[:, None], r=t.r, f=t.f, xc=t.xc,
+                        dt=t.dt) for t in trajs]
+    est = ClEdmd(controller, lifting=[Polynomial(2)], alpha=2.0, measured=[0]).fit(noisy)
+    G, H, S = est.snapshots_.G, est.snapshots_.H, est.plant_input_map_
+    n_c = controller.n_states
+    H_alpha = H + 2.0 * np.eye(H.shape[0])
+    expected = G[n_c:] @ S.T @ np.linalg.inv(S @ H_alpha @ S.T)
+    np.testing.assert_allclose(est.plant_koopman_matrix_, expected, rtol=1e-7, atol=1e-9)
+
+
+def test_input_lifting(loop):
+    *_, trajs = loop
+    est = Edmd(input_lifting=[Polynomial(2)]).fit(trajs)
+    assert est.model_.B.shape[1] == 2  # u, u^2
+    assert np.all(np.isfinite(est.predict(trajs[0])))
+    with pytest.raises(ValueError, match="pointwise"):
+        Edmd(input_lifting=[Delay(1)]).fit(trajs)
+
+
+def test_relift_and_linear_propagation_agree_for_linear_lifting(loop):
+    *_, trajs = loop
+    est = Edmd(lifting=[Delay(3)]).fit(trajs[:2])
+    np.testing.assert_allclose(est.predict(trajs[2]), est.predict(trajs[2], relift=False), atol=1e-9)
+
+
+def test_relift_differs_from_linear_propagation_for_nonlinear_lifting(loop):
+    *_, trajs = loop
+    est = Edmd(lifting=[Polynomial(3)], alpha=1e-3).fit(trajs[:2])
+    a, b = est.predict(trajs[2]), est.predict(trajs[2], relift=False)
+    assert np.all(np.isfinite(a)) and np.abs(a - b).max() > 1e-9
+
+
+def test_initial_condition_samples_are_copied(loop):
+    *_, trajs = loop
+    est = Edmd(lifting=[Delay(4)]).fit(trajs[:2])
+    pred = est.predict(trajs[2])
+    np.testing.assert_array_equal(pred[:5], trajs[2].x[:5])
+
+
+def test_batched_simulation_equals_per_episode(loop):
+    *_, trajs = loop
+    model = ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(1)], alpha=1e-2,
+                   measured=[0]).fit(trajs[:2]).closed_loop_model_
+    d = model.n_delays
+    x_init = np.stack([t.x[:d + 1] for t in trajs])
+    v = np.stack([model.inputs_of(t) for t in trajs])
+    p0 = np.stack([t.xc[d] for t in trajs])
+    batched, _ = model.simulate(x_init, v, p0)
+    for i, t in enumerate(trajs):
+        np.testing.assert_allclose(batched[i], model.predict(t), rtol=1e-12, atol=1e-12)
+
+
+def test_diverging_prediction_is_non_finite_and_does_not_raise():
+    rng = np.random.default_rng(0)
+    n = 2000
+    x = np.cumsum(rng.normal(size=(n, 1)), axis=0) * 0.01
+    traj = Trajectory(x=x, u=rng.normal(size=(n, 1)))
+    est = Edmd(lifting=[GaussianRbf(5, seed=0)]).fit([traj])
+    unstable = replace(est.model_, A=3.0 * est.model_.A)
+    pred = unstable.predict(traj)
+    assert not np.all(np.isfinite(pred))
+    assert r2_score(x, pred) == -np.inf
+
+
+def test_structure_helpers_reproduce_simulated_signals(loop):
+    A_p, B_p, controller, trajs = loop
+    t = trajs[0]
+    xc = controller_states(controller, t.r, t.x[:, [0]])
+    np.testing.assert_allclose(xc, t.xc, atol=1e-12)
+    np.testing.assert_allclose(plant_input(controller, t.xc, t.r, t.x[:, [0]], t.f), t.u, atol=1e-12)
+    C_p = output_selection(2, [0])
+    S = plant_input_map(controller, C_p, 1)
+    psi = np.hstack([t.xc, t.x, t.r, t.f])
+    np.testing.assert_allclose(psi @ S.T, np.hstack([t.x, t.u]), atol=1e-12)
+    A_f, B_f = closed_loop_matrices(A_p, B_p, controller, C_p, 1)
+    theta = np.hstack([t.xc, t.x])
+    np.testing.assert_allclose(theta[:-1] @ A_f.T + np.hstack([t.r, t.f])[:-1] @ B_f.T, theta[1:], atol=1e-12)

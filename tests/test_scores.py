@@ -1,0 +1,53 @@
+"""Scores against values computed by hand."""
+
+import numpy as np
+import pytest
+
+from identify import normalized_mean_error, nrmse, r2_score, score_episodes
+
+
+def test_r2_perfect_and_mean_predictor():
+    y = np.column_stack([np.sin(np.linspace(0, 6, 100)), np.linspace(-1, 2, 100)])
+    assert r2_score(y, y) == 1.0
+    assert r2_score(y, np.broadcast_to(y.mean(axis=0), y.shape)) == pytest.approx(0.0)
+
+
+def test_r2_is_averaged_over_states():
+    y = np.column_stack([np.arange(10.0), np.arange(10.0)])
+    pred = y.copy()
+    pred[:, 1] = y[:, 1].mean()
+    assert r2_score(y, pred) == pytest.approx(0.5)
+
+
+def test_nrmse_and_nme_by_hand():
+    y = np.array([[1.0, -4.0], [2.0, 0.0], [-2.0, 2.0]])
+    pred = y + np.array([[0.1, 0.2], [0.1, -0.2], [0.1, 0.2]])
+    # state 0: rmse 0.1, peak 2 -> 5 %; state 1: rmse 0.2, peak 4 -> 5 %
+    assert nrmse(y, pred) == pytest.approx(5.0)
+    # error = true - pred: state 0 mean -0.1 / 2 -> -5 %; state 1 mean -0.2/3 / 4 -> -1.667 %
+    assert normalized_mean_error(y, pred) == pytest.approx((-5.0 - 100 * 0.2 / 3 / 4) / 2)
+
+
+def test_non_finite_prediction_scores_minus_infinity():
+    y = np.ones((5, 2)) * np.arange(5)[:, None]
+    pred = y.copy()
+    pred[3, 1] = np.nan
+    assert r2_score(y, pred) == -np.inf
+    assert nrmse(y, pred) == np.inf
+    mean, std = score_episodes([y, y], [y, pred], "r2")
+    assert mean == -np.inf
+
+
+def test_score_episodes_mean_and_std():
+    y = np.column_stack([np.arange(10.0)])
+    preds = [y, y + 1.0]
+    mean, std = score_episodes([y, y], preds, "nrmse")
+    assert mean == pytest.approx(50 * 1 / 9)
+    assert std == pytest.approx(50 * 1 / 9)
+
+
+def test_bad_score_inputs():
+    with pytest.raises(ValueError, match="unknown score"):
+        score_episodes([np.zeros((3, 1))], [np.zeros((3, 1))], "mape")
+    with pytest.raises(ValueError, match="shapes differ"):
+        r2_score(np.zeros((3, 2)), np.zeros((3, 1)))
