@@ -51,10 +51,11 @@ def main() -> None:
         state = rk4_step(state, v)
 
     rows.append(("reference: rk4_step on one numpy state", _per_tick_us(numpy_step)))
-    print(f"{'per tick':45s} {'mean us':>8s} {'p50 us':>8s} {'p99 us':>8s} {'max us':>8s} {'x real time':>12s}")
+    header = ("mean us", "p50 us", "p99 us", "max us", "x real time")
+    print(f"{'per tick':45s}" + "".join(f"{h:>12s}" for h in header))
     for label, us in rows:
-        print(f"{label:45s} {us.mean():8.2f} {np.median(us):8.2f} {np.percentile(us, 99):8.2f} {us.max():8.1f} "
-              f"{PERIOD_US / us.mean():12.0f}")
+        values = (us.mean(), np.median(us), np.percentile(us, 99), us.max(), PERIOD_US / us.mean())
+        print(f"{label:45s}" + "".join(f"{v:12.2f}" for v in values))
     print(f"speed-up of the float path over numpy: {rows[2][1].mean() / rows[0][1].mean():.1f}x")
 
 

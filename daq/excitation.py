@@ -108,7 +108,10 @@ def smooth(x: np.ndarray, cutoff: float, sample_rate: float) -> np.ndarray:
 
 
 def integrate(rate: np.ndarray, sample_rate: float) -> np.ndarray:
-    """Forward-Euler running integral as the rig did it: ``out[0] = 0``, ``out[i] = out[i-1] + rate[i] / fs``."""
+    """Forward-Euler running integral as the rig did it.
+
+    ``out[0] = 0`` (``rate[0]`` is not used), ``out[i] = out[i-1] + rate[i] / fs``.
+    """
     rate = np.asarray(rate, dtype=float)
     out = np.empty_like(rate)
     if rate.size:

@@ -119,7 +119,8 @@ def test_energy_balance_with_damping_and_input():
     def power(td, ad):
         return p.km / p.Rm * volts * td - (p.km**2 / p.Rm + p.Dr) * td**2 - p.Dp * ad**2
 
-    work = np.concatenate([[0.0], np.cumsum(0.5 * (power(x[:-1, 2], x[:-1, 3]) + power(x[1:, 2], x[1:, 3])) * dt)])
+    trapezoids = 0.5 * (power(x[:-1, 2], x[:-1, 3]) + power(x[1:, 2], x[1:, 3])) * dt
+    work = np.concatenate([[0.0], np.cumsum(trapezoids)])
     energy = total_energy(x, p)
     assert np.ptp(energy) > 1e-3
     np.testing.assert_allclose(energy - energy[0], work, rtol=0, atol=1e-7)

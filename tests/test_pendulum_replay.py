@@ -56,8 +56,9 @@ def replay(real, controller, params):
 
 
 def balanced(run):
-    y = run.measurements
-    return (np.max(np.abs(y[..., 0]), axis=0) < math.pi / 2) & (np.max(np.abs(y[..., 1]), axis=0) < math.pi / 4)
+    """Per episode: within the rig's safety limits (|theta| < pi/2, |alpha| < pi/4) throughout."""
+    peak = np.max(np.abs(run.measurements), axis=0)
+    return (peak[..., 0] < math.pi / 2) & (peak[..., 1] < math.pi / 4)
 
 
 def test_real_measurements_are_on_the_encoder_grid(real):

@@ -66,7 +66,8 @@ class PendulumSimulator:
         """Set the state (theta, alpha, theta_dot, alpha_dot) and time zero; return its measurement."""
         values = tuple(float(v) for v in np.asarray(state, dtype=float).reshape(-1))
         if len(values) != 4 or not all(math.isfinite(v) for v in values):
-            raise ValueError(f"state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), got {state!r}")
+            raise ValueError("state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), "
+                             f"got {state!r}")
         self._x = values
         self._steps = 0
         self._y = self._measure()
