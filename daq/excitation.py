@@ -1,0 +1,282 @@
+"""The rig's excitation: smoothed PRBS references and feedforward (FACTS section 3).
+
+Reproduces, sample for sample, the generator of the C program that recorded
+the paper's QUBE-Servo dataset, so an episode's target_theta, target_alpha and
+feedforward follow from the three seeds in its file name.
+
+How the rig built each signal (checked against all 48 dataset files):
+
+1. A 16-bit Fibonacci LFSR (taps 16, 14, 13, 11) started at the seed gives
+   one bit per bit period; the LFSR advances once per bit, not per sample.
+   The bits start at sample 0, so the first ``window_start`` samples consume
+   bits that are then blanked.
+2. Each bit is held for ``bit_period * sample_rate`` samples and maps to
+   ``+amplitude`` (bit 1) or ``-amplitude`` (bit 0). Only whole bits that
+   fit before ``window_stop`` are generated; anything after is zero.
+3. Samples before ``window_start`` are set to zero, then the first-order
+   low-pass ``y[k] = g x[k] + (1 - g) y[k-1]``, ``g = (c/fs) / (1 + c/fs)``
+   (backward Euler of ``c/(s + c)``) runs over samples ``0 .. window_stop-1``.
+   From ``window_stop`` on the signal is exactly zero (no filter tail).
+4. target_theta is the forward-Euler integral of the smoothed rate signal,
+   ``out[0] = 0``, ``out[i] = out[i-1] + in[i] / fs``, so it holds its last
+   value once the rate is zero.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from scipy import signal
+
+__all__ = [
+    "PrbsChannel",
+    "ExcitationSettings",
+    "Excitation",
+    "lfsr_bits",
+    "held_prbs",
+    "smooth",
+    "integrate",
+    "generate_excitation",
+    "parse_seeds",
+]
+
+_SEED_MAX = 0xFFFF
+_FILE_NAME = re.compile(r"^qube_(\d{8})T(\d{6})_(\d+)_(\d+)_(\d+)\.csv$")
+
+
+def lfsr_bits(seed: int, n_bits: int) -> np.ndarray:
+    """Output bits of the rig's 16-bit Fibonacci LFSR (taps 16, 14, 13, 11).
+
+    Parameters
+    ----------
+    seed : int
+        Initial register, 1 .. 65535 (zero would lock the register at zero).
+    n_bits : int
+        Number of bits to produce (non-negative).
+
+    Returns
+    -------
+    ndarray of bool, shape (n_bits,)
+        The feedback bit of each shift, which is also the output bit.
+    """
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 1 <= seed <= _SEED_MAX:
+        raise ValueError(f"LFSR seed must be an integer in 1..{_SEED_MAX}, got {seed!r}")
+    if n_bits < 0:
+        raise ValueError(f"n_bits must be non-negative, got {n_bits}")
+    register = int(seed)
+    out = np.empty(n_bits, dtype=bool)
+    for i in range(n_bits):
+        bit = (register ^ (register >> 2) ^ (register >> 3) ^ (register >> 5)) & 1
+        register = (register >> 1) | (bit << 15)
+        out[i] = bit
+    return out
+
+
+def held_prbs(seed: int, amplitude: float, bit_samples: int, n_samples: int) -> np.ndarray:
+    """Binary sequence of +-amplitude, each LFSR bit held for ``bit_samples`` samples.
+
+    Only whole bits are produced; samples after the last whole bit are zero,
+    as on the rig.
+    """
+    if bit_samples < 1:
+        raise ValueError(f"a bit must last at least one sample, got {bit_samples}")
+    if n_samples < 0:
+        raise ValueError(f"n_samples must be non-negative, got {n_samples}")
+    bits = lfsr_bits(seed, n_samples // bit_samples)
+    out = np.zeros(n_samples)
+    levels = np.where(bits, float(amplitude), -float(amplitude))
+    out[: bits.size * bit_samples] = np.repeat(levels, bit_samples)
+    return out
+
+
+def smooth(x: np.ndarray, cutoff: float, sample_rate: float) -> np.ndarray:
+    """First-order low-pass ``c/(s + c)`` discretized by backward Euler, from rest.
+
+    ``y[k] = g x[k] + p y[k-1]`` with ``g = (c/fs) / (1 + c/fs)`` and
+    ``p = 1 / (1 + c/fs)``, both computed as the rig did so the output
+    matches its rounding. ``cutoff <= 0`` returns a copy (the rig's "no
+    smoothing").
+    """
+    x = np.array(x, dtype=float)
+    if cutoff <= 0:
+        return x
+    ratio = cutoff / sample_rate
+    return signal.lfilter([ratio / (1.0 + ratio)], [1.0, -1.0 / (1.0 + ratio)], x)
+
+
+def integrate(rate: np.ndarray, sample_rate: float) -> np.ndarray:
+    """Forward-Euler running integral as the rig did it.
+
+    ``out[0] = 0`` (``rate[0]`` is not used), ``out[i] = out[i-1] + rate[i] / fs``.
+    """
+    rate = np.asarray(rate, dtype=float)
+    out = np.empty_like(rate)
+    if rate.size:
+        out[0] = 0.0
+        # cumsum adds sequentially, so it rounds exactly as the rig's loop did.
+        np.cumsum((1.0 / sample_rate) * rate[1:], out=out[1:])
+    return out
+
+
+@dataclass(frozen=True)
+class PrbsChannel:
+    """One PRBS channel: levels ``+-amplitude``, each bit held ``bit_period`` seconds."""
+
+    amplitude: float
+    bit_period: float
+
+    def __post_init__(self) -> None:
+        for name in ("amplitude", "bit_period"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise ValueError(f"PRBS {name} must be a finite number, got {value!r}")
+        if self.amplitude < 0:
+            raise ValueError(f"PRBS amplitude must be non-negative, got {self.amplitude}")
+        if self.bit_period <= 0:
+            raise ValueError(f"PRBS bit_period must be positive, got {self.bit_period}")
+
+    def bit_samples(self, sample_rate: float) -> int:
+        """Samples per bit; the bit period must be a whole number of samples."""
+        exact = self.bit_period * sample_rate
+        n = round(exact)
+        if n < 1 or abs(exact - n) > 1e-9 * max(1.0, exact):
+            raise ValueError(f"bit period {self.bit_period} s is not a whole number of samples "
+                             f"at {sample_rate} Hz ({exact} samples)")
+        return n
+
+
+@dataclass(frozen=True)
+class ExcitationSettings:
+    """Settings of the rig's excitation; the defaults are those that recorded the dataset.
+
+    Parameters
+    ----------
+    sample_rate : float
+        Samples per second.
+    n_samples : int
+        Episode length in samples.
+    window_start, window_stop : int
+        Active window ``[window_start, window_stop)``: the signals are zero
+        before it and zero after it (target_theta holds its last value).
+    theta_rate : PrbsChannel
+        Rate PRBS (rad/s) integrated into target_theta.
+    alpha : PrbsChannel
+        Pendulum-angle reference PRBS (rad).
+    feedforward : PrbsChannel
+        Feedforward voltage PRBS (V).
+    smoothing_cutoff : float
+        Cutoff ``c`` (rad/s) of the low-pass applied to all three PRBS;
+        ``c / sample_rate`` is the coefficient in
+        ``y[k] = (c/fs) / (1 + c/fs) x[k] + 1 / (1 + c/fs) y[k-1]``
+        (0.4 on the rig). Zero or negative disables smoothing.
+    """
+
+    sample_rate: float = 500.0
+    n_samples: int = 10_000
+    window_start: int = 2000
+    window_stop: int = 8000
+    theta_rate: PrbsChannel = PrbsChannel(0.25, 0.25)
+    alpha: PrbsChannel = PrbsChannel(0.01, 0.1)
+    feedforward: PrbsChannel = PrbsChannel(0.5, 0.1)
+    smoothing_cutoff: float = 200.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.sample_rate) and self.sample_rate > 0):
+            raise ValueError(f"sample_rate must be positive, got {self.sample_rate!r}")
+        if not np.isfinite(self.smoothing_cutoff):
+            raise ValueError(f"smoothing_cutoff must be finite, got {self.smoothing_cutoff!r}")
+        for name in ("n_samples", "window_start", "window_stop"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"{name} must be an integer number of samples, got {value!r}")
+        if not 0 <= self.window_start <= self.window_stop <= self.n_samples:
+            raise ValueError("need 0 <= window_start <= window_stop <= n_samples, got "
+                             f"{self.window_start}, {self.window_stop}, {self.n_samples}")
+        for name in ("theta_rate", "alpha", "feedforward"):
+            channel = getattr(self, name)
+            if not isinstance(channel, PrbsChannel):
+                raise ValueError(f"{name} must be a PrbsChannel, got {channel!r}")
+            channel.bit_samples(self.sample_rate)
+
+    def as_dict(self) -> dict:
+        """Plain-data form, for episode metadata."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ExcitationSettings":
+        """Inverse of :meth:`as_dict`."""
+        unknown = sorted(set(data) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"unknown excitation settings {', '.join(unknown)}")
+        values = dict(data)
+        for name in ("theta_rate", "alpha", "feedforward"):
+            if name in values and isinstance(values[name], dict):
+                values[name] = PrbsChannel(**values[name])
+        return cls(**values)
+
+
+@dataclass(frozen=True, eq=False)
+class Excitation:
+    """The three exogenous signals of an episode, one sample per row of the log."""
+
+    target_theta: np.ndarray
+    target_alpha: np.ndarray
+    feedforward: np.ndarray
+
+
+def _windowed_prbs(seed: int, channel: PrbsChannel, settings: ExcitationSettings) -> np.ndarray:
+    stop = settings.window_stop
+    raw = held_prbs(seed, channel.amplitude, channel.bit_samples(settings.sample_rate), stop)
+    raw[: settings.window_start] = 0.0
+    out = np.zeros(settings.n_samples)
+    out[:stop] = smooth(raw, settings.smoothing_cutoff, settings.sample_rate)
+    return out
+
+
+def generate_excitation(seeds: tuple[int, int, int],
+                        settings: ExcitationSettings = ExcitationSettings()) -> Excitation:
+    """The rig's references and feedforward for one episode.
+
+    Parameters
+    ----------
+    seeds : (int, int, int)
+        LFSR seeds of the motor-angle rate, pendulum-angle reference and
+        feedforward, as in the dataset's file names (see :func:`parse_seeds`).
+    settings : ExcitationSettings
+        Amplitudes, bit periods, window and smoothing.
+
+    Returns
+    -------
+    Excitation
+        target_theta (rad), target_alpha (rad), feedforward (V), each of
+        ``settings.n_samples`` samples; read-only arrays.
+    """
+    if len(seeds) != 3:
+        raise ValueError(f"need three seeds (theta, alpha, feedforward), got {seeds!r}")
+    seed_theta, seed_alpha, seed_ff = seeds
+    rate = _windowed_prbs(seed_theta, settings.theta_rate, settings)
+    signals = (integrate(rate, settings.sample_rate),
+               _windowed_prbs(seed_alpha, settings.alpha, settings),
+               _windowed_prbs(seed_ff, settings.feedforward, settings))
+    for s in signals:
+        s.setflags(write=False)
+    return Excitation(*signals)
+
+
+def parse_seeds(file_name: str | Path) -> tuple[int, int, int]:
+    """The three seeds in a dataset file name ``qube_<date>T<time>_<theta>_<alpha>_<ff>.csv``.
+
+    Raises
+    ------
+    ValueError
+        If the name (directories are ignored) does not have that form.
+    """
+    name = Path(file_name).name
+    match = _FILE_NAME.match(name)
+    if match is None:
+        raise ValueError(f"{name!r} is not a dataset file name of the form "
+                         "'qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_<alpha seed>_<ff seed>.csv'")
+    return int(match[3]), int(match[4]), int(match[5])

@@ -1,0 +1,292 @@
+"""The Quanser QUBE-Servo rotary inverted pendulum (FACTS section 6).
+
+State ``x = (theta, alpha, theta_dot, alpha_dot)``: motor-arm angle, pendulum
+angle with ``alpha = 0`` upright (the dataset's convention), and their rates;
+input: motor voltage, held constant over each sample (zero-order hold).
+
+The equations are written once, in plain arithmetic on the four state
+components, so the same code integrates a batch of numpy arrays (replays,
+tests) and plain Python floats (:class:`PendulumSimulator`, called once per
+500 Hz tick, where numpy's per-call overhead would dominate).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Callable, NamedTuple
+
+import numpy as np
+from scipy.linalg import expm
+
+from sim.lti import DiscreteStateSpace
+
+__all__ = [
+    "PendulumParameters",
+    "dynamics",
+    "rk4_step",
+    "simulate",
+    "total_energy",
+    "linearize_upright",
+    "linear_model",
+    "SAMPLE_PERIOD",
+]
+
+SAMPLE_PERIOD = 1.0 / 500.0
+DEFAULT_SUBSTEPS = 2
+
+
+@dataclass(frozen=True)
+class PendulumParameters:
+    """Physical parameters (SI units); defaults: Quanser workbook, hardware-fitted damping.
+
+    Parameters
+    ----------
+    Rm : float
+        Motor terminal resistance (ohm).
+    km : float
+        Motor torque and back-EMF constant (N m / A = V s / rad).
+    mr, Lr : float
+        Rotary arm mass (kg) and length (m).
+    mp, Lp : float
+        Pendulum mass (kg) and length (m).
+    g : float
+        Gravity (m/s^2).
+    Dr, Dp : float
+        Viscous damping of the arm and the pendulum (N m s / rad). The
+        defaults were fitted to hardware by another public project; the
+        workbook's larger values (:meth:`workbook`) made 4 of 5 replayed
+        dataset episodes fall.
+    """
+
+    Rm: float = 8.4
+    km: float = 0.042
+    mr: float = 0.095
+    Lr: float = 0.085
+    mp: float = 0.024
+    Lp: float = 0.129
+    g: float = 9.81
+    Dr: float = 2.7e-4
+    Dp: float = 5e-5
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"parameter {f.name} must be a finite number, got {value!r}")
+        for name in ("Rm", "mr", "Lr", "mp", "Lp"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"parameter {name} must be positive, got {getattr(self, name)}")
+        # km = 0 (motor disconnected) and zero damping are legitimate idealizations.
+        for name in ("km", "Dr", "Dp", "g"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
+
+    @classmethod
+    def workbook(cls) -> "PendulumParameters":
+        """All values from the Quanser QUBE-Servo 2 workbook, including its damping."""
+        return cls(Dr=0.0015, Dp=0.0005)
+
+    @property
+    def Jr(self) -> float:
+        """Arm moment of inertia about its centre, ``mr Lr^2 / 12`` (kg m^2)."""
+        return self.mr * self.Lr**2 / 12.0
+
+    @property
+    def Jp(self) -> float:
+        """Pendulum moment of inertia about its centre, ``mp Lp^2 / 12`` (kg m^2)."""
+        return self.mp * self.Lp**2 / 12.0
+
+
+class _Coefficients(NamedTuple):
+    """The parameter combinations the equations use, computed once."""
+
+    m11: float     # M11 at alpha = 0: Jr + mp Lr^2
+    quarter: float  # mp Lp^2 / 4: the s^2 part of M11, centrifugal coefficient
+    m12: float     # mp Lp Lr / 2: M12 / cos(alpha)
+    m22: float     # Jp + mp Lp^2 / 4
+    gravity: float  # mp Lp g / 2
+    torque_per_volt: float  # km / Rm
+    arm_damping: float      # km^2 / Rm (back-EMF) + Dr
+    pendulum_damping: float  # Dp
+
+    @classmethod
+    def of(cls, p: PendulumParameters) -> "_Coefficients":
+        return cls(m11=p.Jr + p.mp * p.Lr**2, quarter=p.mp * p.Lp**2 / 4.0,
+                   m12=p.mp * p.Lp * p.Lr / 2.0, m22=p.Jp + p.mp * p.Lp**2 / 4.0,
+                   gravity=p.mp * p.Lp * p.g / 2.0, torque_per_volt=p.km / p.Rm,
+                   arm_damping=p.km**2 / p.Rm + p.Dr, pendulum_damping=p.Dp)
+
+
+def _accelerations(s, c, theta_dot, alpha_dot, voltage, k: _Coefficients):
+    """(theta_ddot, alpha_ddot) from sin and cos of alpha; floats or arrays alike."""
+    # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
+    # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
+    r1 = (k.torque_per_volt * voltage - k.arm_damping * theta_dot
+          - 2.0 * k.quarter * s * c * theta_dot * alpha_dot + k.m12 * s * alpha_dot * alpha_dot)
+    r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
+    m11 = k.m11 + k.quarter * s * s
+    m12 = k.m12 * c
+    det = m11 * k.m22 - m12 * m12
+    return (k.m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
+
+
+def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: _Coefficients,
+         sin: Callable, cos: Callable):
+    """``n`` classic RK4 steps of size ``h`` at constant voltage, on the four components."""
+    half = 0.5 * h
+    sixth = h / 6.0
+    for _ in range(n):
+        a1, b1 = _accelerations(sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage, k)
+        al2 = alpha + half * alpha_dot
+        td2 = theta_dot + half * a1
+        ad2 = alpha_dot + half * b1
+        a2, b2 = _accelerations(sin(al2), cos(al2), td2, ad2, voltage, k)
+        al3 = alpha + half * ad2
+        td3 = theta_dot + half * a2
+        ad3 = alpha_dot + half * b2
+        a3, b3 = _accelerations(sin(al3), cos(al3), td3, ad3, voltage, k)
+        al4 = alpha + h * ad3
+        td4 = theta_dot + h * a3
+        ad4 = alpha_dot + h * b3
+        a4, b4 = _accelerations(sin(al4), cos(al4), td4, ad4, voltage, k)
+        theta = theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4)
+        alpha = alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4)
+        theta_dot = theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+        alpha_dot = alpha_dot + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+    return theta, alpha, theta_dot, alpha_dot
+
+
+def _as_states(state) -> np.ndarray:
+    state = np.asarray(state, dtype=float)
+    if state.ndim == 0 or state.shape[-1] != 4:
+        raise ValueError("state must have shape (..., 4): theta, alpha, theta_dot, alpha_dot; "
+                         f"got {state.shape}")
+    return state
+
+
+def _check_timing(dt: float, n_substeps: int) -> None:
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+    if isinstance(n_substeps, bool) or not isinstance(n_substeps, (int, np.integer)) or n_substeps < 1:
+        raise ValueError(f"n_substeps must be a positive integer, got {n_substeps!r}")
+
+
+def dynamics(state, voltage, params: PendulumParameters = PendulumParameters()) -> np.ndarray:
+    """Time derivative of the state.
+
+    Parameters
+    ----------
+    state : array_like of shape (..., 4)
+        theta, alpha, theta_dot, alpha_dot (rad, rad/s); any leading batch shape.
+    voltage : float or array_like broadcastable to ``state.shape[:-1]``
+        Motor voltage (V).
+    params : PendulumParameters
+
+    Returns
+    -------
+    ndarray of shape (..., 4)
+        theta_dot, alpha_dot, theta_ddot, alpha_ddot.
+    """
+    x = _as_states(state)
+    theta_ddot, alpha_ddot = _accelerations(np.sin(x[..., 1]), np.cos(x[..., 1]), x[..., 2], x[..., 3],
+                                            np.asarray(voltage, dtype=float), _Coefficients.of(params))
+    return np.stack(np.broadcast_arrays(x[..., 2], x[..., 3], theta_ddot, alpha_ddot), axis=-1)
+
+
+def rk4_step(state, voltage, params: PendulumParameters = PendulumParameters(),
+             dt: float = SAMPLE_PERIOD, n_substeps: int = DEFAULT_SUBSTEPS) -> np.ndarray:
+    """Advance by ``dt`` under a constant (zero-order-held) voltage with ``n_substeps`` RK4 steps.
+
+    Shapes as in :func:`dynamics`; the result has the broadcast batch shape.
+    """
+    _check_timing(dt, n_substeps)
+    x = _as_states(state)
+    out = _rk4(x[..., 0], x[..., 1], x[..., 2], x[..., 3], np.asarray(voltage, dtype=float),
+               dt / n_substeps, int(n_substeps), _Coefficients.of(params), np.sin, np.cos)
+    return np.stack(np.broadcast_arrays(*out), axis=-1)
+
+
+def simulate(state0, voltages, params: PendulumParameters = PendulumParameters(),
+             dt: float = SAMPLE_PERIOD, n_substeps: int = DEFAULT_SUBSTEPS) -> np.ndarray:
+    """Open-loop trajectory under a sequence of zero-order-held voltages.
+
+    Parameters
+    ----------
+    state0 : array_like of shape (..., 4)
+        Initial state(s).
+    voltages : array_like of shape (n_steps, ...)
+        Voltage over each sample period; trailing shape broadcastable to the batch.
+
+    Returns
+    -------
+    ndarray of shape (n_steps + 1, ..., 4)
+        The state at each sample, starting with ``state0``.
+    """
+    _check_timing(dt, n_substeps)
+    x = _as_states(state0)
+    voltages = np.asarray(voltages, dtype=float)
+    if voltages.ndim == 0:
+        raise ValueError("voltages must have a leading time axis")
+    batch = np.broadcast_shapes(x.shape[:-1], voltages.shape[1:])
+    out = np.empty((voltages.shape[0] + 1, *batch, 4))
+    out[0] = x
+    k = _Coefficients.of(params)
+    comps = tuple(np.broadcast_to(x[..., i], batch) for i in range(4))
+    h = dt / n_substeps
+    for step, v in enumerate(voltages):
+        comps = _rk4(*comps, v, h, int(n_substeps), k, np.sin, np.cos)
+        out[step + 1] = np.stack(np.broadcast_arrays(*comps), axis=-1)
+    return out
+
+
+def total_energy(state, params: PendulumParameters = PendulumParameters()) -> np.ndarray:
+    """Kinetic (full inertia matrix) plus pendulum potential energy (J), zero potential level at the pivot.
+
+    With alpha = 0 upright the potential is ``mp g Lp / 2 cos(alpha)``.
+    """
+    x = _as_states(state)
+    k = _Coefficients.of(params)
+    s, c = np.sin(x[..., 1]), np.cos(x[..., 1])
+    td, ad = x[..., 2], x[..., 3]
+    kinetic = 0.5 * ((k.m11 + k.quarter * s * s) * td * td + 2.0 * k.m12 * c * td * ad + k.m22 * ad * ad)
+    return kinetic + k.gravity * c
+
+
+def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous linearization ``x_dot = A x + B V`` at the upright equilibrium.
+
+    Returns
+    -------
+    A : ndarray of shape (4, 4)
+    B : ndarray of shape (4, 1)
+        State order theta, alpha, theta_dot, alpha_dot. With the default
+        parameters A[2, 1] ~ -149, A[3, 1] ~ 262, B ~ (50, -49): magnitudes as
+        in the Quanser workbook; the signs are this frame's (alpha positive
+        pushes the arm backwards), the one in which the dataset's controller
+        (u = +30 alpha + ...) stabilizes.
+    """
+    k = _Coefficients.of(params)
+    mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])
+    # Generalized forces to first order at alpha = 0: columns (theta, alpha, theta_dot, alpha_dot).
+    forces = np.array([[0.0, 0.0, -k.arm_damping, 0.0],
+                       [0.0, k.gravity, 0.0, -k.pendulum_damping]])
+    A = np.zeros((4, 4))
+    A[0, 2] = A[1, 3] = 1.0
+    A[2:] = np.linalg.solve(mass, forces)
+    B = np.zeros((4, 1))
+    B[2:, 0] = np.linalg.solve(mass, [k.torque_per_volt, 0.0])
+    return A, B
+
+
+def linear_model(params: PendulumParameters = PendulumParameters(),
+                 dt: float = SAMPLE_PERIOD) -> DiscreteStateSpace:
+    """The upright linearization discretized exactly under zero-order hold, measuring (theta, alpha)."""
+    _check_timing(dt, 1)
+    A, B = linearize_upright(params)
+    block = np.zeros((5, 5))
+    block[:4, :4] = A
+    block[:4, 4:] = B
+    phi = expm(block * dt)
+    C = np.hstack([np.eye(2), np.zeros((2, 2))])
+    return DiscreteStateSpace(phi[:4, :4], phi[:4, 4:], C, np.zeros((2, 1)), dt)

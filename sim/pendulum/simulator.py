@@ -1,0 +1,125 @@
+"""A stateful pendulum for a real-time loop: one call per 500 Hz tick.
+
+Plain Python floats throughout: at this size numpy's per-call overhead
+would cost more than the arithmetic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, PendulumParameters, _check_timing,
+                                _Coefficients, _rk4)
+from sim.pendulum.sensor import SensorModel, _encode
+
+__all__ = ["PendulumSimulator"]
+
+_NOISE_BLOCK = 4096
+
+
+class PendulumSimulator:
+    """The pendulum plus its encoders, advanced one sample at a time.
+
+    ``y = sim.reset(x0)`` then, each tick, ``y = sim.step(u)``: the voltage
+    is held over one sample period (as the amplifier holds the last command)
+    and the measurement of the state at the end of it is returned.
+
+    Parameters
+    ----------
+    params : PendulumParameters
+    sensor : SensorModel
+    dt : float
+        Sample period (s).
+    n_substeps : int
+        RK4 steps per sample.
+    max_voltage : float or None
+        Amplifier saturation (V); the QUBE-Servo 2's amplifier stops at 15 V.
+        None for no limit.
+    seed : int, optional
+        Seed of the measurement noise.
+    """
+
+    def __init__(self, params: PendulumParameters = PendulumParameters(),
+                 sensor: SensorModel = SensorModel(), dt: float = SAMPLE_PERIOD,
+                 n_substeps: int = DEFAULT_SUBSTEPS, max_voltage: float | None = 15.0,
+                 seed: int | None = None) -> None:
+        _check_timing(dt, n_substeps)
+        if max_voltage is not None and not (math.isfinite(max_voltage) and max_voltage > 0):
+            raise ValueError(f"max_voltage must be positive or None, got {max_voltage!r}")
+        self._params = params
+        self._sensor = sensor
+        self.dt = float(dt)
+        self.n_substeps = int(n_substeps)
+        self.max_voltage = math.inf if max_voltage is None else float(max_voltage)
+        self._k = _Coefficients.of(params)
+        self._h = self.dt / self.n_substeps
+        self._rng = np.random.default_rng(seed)
+        self._noise: list[float] = []
+        self._noise_at = 0
+        self._x = (0.0, 0.0, 0.0, 0.0)
+        self._steps = 0
+        self._y = self._measure()
+
+    def reset(self, state=(0.0, 0.0, 0.0, 0.0)) -> tuple[float, float]:
+        """Set the state (theta, alpha, theta_dot, alpha_dot) and time zero; return its measurement."""
+        values = tuple(float(v) for v in np.asarray(state, dtype=float).reshape(-1))
+        if len(values) != 4 or not all(math.isfinite(v) for v in values):
+            raise ValueError("state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), "
+                             f"got {state!r}")
+        self._x = values
+        self._steps = 0
+        self._y = self._measure()
+        return self._y
+
+    def step(self, voltage: float) -> tuple[float, float]:
+        """Hold ``voltage`` for one sample period; return the measured (theta, alpha) after it."""
+        v = float(voltage)
+        if not math.isfinite(v):
+            raise ValueError(f"voltage must be finite, got {voltage!r}")
+        v = min(max(v, -self.max_voltage), self.max_voltage)
+        self._x = _rk4(*self._x, v, self._h, self.n_substeps, self._k, math.sin, math.cos)
+        self._steps += 1
+        self._y = self._measure()
+        return self._y
+
+    @property
+    def params(self) -> PendulumParameters:
+        """The model's parameters (fixed at construction: the integrator precomputes from them)."""
+        return self._params
+
+    @property
+    def sensor(self) -> SensorModel:
+        """The encoder model."""
+        return self._sensor
+
+    @property
+    def state(self) -> np.ndarray:
+        """True state (theta, alpha, theta_dot, alpha_dot); alpha is not wrapped."""
+        return np.array(self._x)
+
+    @property
+    def measurement(self) -> tuple[float, float]:
+        """The last measurement returned."""
+        return self._y
+
+    @property
+    def time(self) -> float:
+        """Seconds since the last reset."""
+        return self._steps * self.dt
+
+    def _measure(self) -> tuple[float, float]:
+        theta, alpha = self._x[0], self._x[1]
+        if self._sensor.noise_std > 0:
+            theta += self._next_noise()
+            alpha += self._next_noise()
+        return _encode(theta, alpha, self._sensor.counts_per_rev, math.floor)
+
+    def _next_noise(self) -> float:
+        # Drawn in blocks: one Generator call per sample would cost microseconds.
+        if self._noise_at == len(self._noise):
+            self._noise = self._rng.normal(0.0, self._sensor.noise_std, _NOISE_BLOCK).tolist()
+            self._noise_at = 0
+        self._noise_at += 1
+        return self._noise[self._noise_at - 1]

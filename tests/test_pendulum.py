@@ -1,0 +1,255 @@
+"""The rotary-pendulum model, encoders and per-tick simulator (sim.pendulum) against FACTS 5 and 6."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from daq.controller import PdGains, pd_controller
+from sim.pendulum import (PendulumParameters, PendulumSimulator, SensorModel, dynamics, linear_model,
+                          linearize_upright, measure, rk4_step, simulate, total_energy)
+
+P = PendulumParameters()
+COUNT = 2 * math.pi / 2048  # encoder resolution, FACTS 5
+
+
+def test_defaults_are_the_workbook_with_hardware_fitted_damping():
+    assert (P.Rm, P.km, P.mr, P.Lr, P.mp, P.Lp, P.g) == (8.4, 0.042, 0.095, 0.085, 0.024, 0.129, 9.81)
+    assert (P.Dr, P.Dp) == (2.7e-4, 5e-5)
+    assert P.Jr == pytest.approx(0.095 * 0.085**2 / 12) and P.Jp == pytest.approx(0.024 * 0.129**2 / 12)
+    wb = PendulumParameters.workbook()
+    assert (wb.Dr, wb.Dp) == (0.0015, 0.0005)
+
+
+@pytest.mark.parametrize("changes, match", [(dict(Rm=0.0), "Rm"), (dict(Dr=-1e-4), "Dr"),
+                                            (dict(mp=float("nan")), "mp"), (dict(km="0.04"), "km")])
+def test_parameters_reject_bad_values(changes, match):
+    with pytest.raises(ValueError, match=match):
+        dataclasses.replace(P, **changes)
+
+
+# --- linearization -----------------------------------------------------------------------------
+
+def test_linearization_has_the_familiar_magnitudes():
+    A, B = linearize_upright()
+    # FACTS 6 / Quanser workbook: |A32| 149, |A42| 262, |B3| 50, |B4| 49 (1-based, rounded).
+    assert abs(A[2, 1]) == pytest.approx(149, rel=0.01)
+    assert abs(A[3, 1]) == pytest.approx(262, rel=0.01)
+    assert abs(B[2, 0]) == pytest.approx(50, rel=0.01)
+    assert abs(B[3, 0]) == pytest.approx(49, rel=0.01)
+    # Signs of this frame: gravity tips the pendulum further (unstable) and
+    # pushes the arm the other way; a positive voltage swings it back.
+    assert A[3, 1] > 0 > A[2, 1] and B[2, 0] > 0 > B[3, 0]
+    np.testing.assert_array_equal(A[:2], [[0, 0, 1, 0], [0, 0, 0, 1]])
+
+
+def test_linearization_is_the_jacobian_of_the_dynamics():
+    A, B = linearize_upright()
+    eps = 1e-6
+    jac = np.empty((4, 5))
+    for i in range(5):
+        step = np.zeros(5)
+        step[i] = eps
+        plus, minus = step[:4], -step[:4]
+        jac[:, i] = (dynamics(plus, step[4]) - dynamics(minus, -step[4])) / (2 * eps)
+    np.testing.assert_allclose(jac, np.hstack([A, B]), rtol=1e-6, atol=1e-6)
+
+
+def test_paper_controller_stabilizes_the_linear_model():
+    # The rig's controller (FACTS 2) on the ZOH-discretized linearization: closed
+    # loop x+ = Ap x + Bp u, xc+ = Ac xc + Bc e, u = Cc xc + Dc e, e = -Cp x.
+    plant = linear_model()
+    ctrl = pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0))
+    top = np.hstack([plant.A - plant.B @ ctrl.D @ plant.C, plant.B @ ctrl.C])
+    bottom = np.hstack([-ctrl.B @ plant.C, ctrl.A])
+    radius = np.max(np.abs(np.linalg.eigvals(np.vstack([top, bottom]))))
+    assert radius < 1.0
+    # ... and the open-loop plant is unstable (an inverted pendulum).
+    assert np.max(np.abs(np.linalg.eigvals(plant.A))) > 1.0
+
+
+def test_linear_model_matches_small_nonlinear_motions():
+    plant = linear_model()
+    x0 = np.array([0.0, 1e-4, 0.0, 0.0])
+    u = 1e-3 * np.sin(np.arange(50) / 5.0)
+    nonlinear = simulate(x0, u)
+    xl, yl = x0, []
+    for uk in u:
+        yl.append(plant.C @ xl)
+        xl = plant.A @ xl + plant.B[:, 0] * uk
+    np.testing.assert_allclose(nonlinear[:-1, :2], np.array(yl), atol=1e-9)
+
+
+# --- behaviour of the nonlinear model ----------------------------------------------------------
+
+def test_constant_1v_settles_at_the_back_emf_limited_speed():
+    # Hanging down at rest, 1 V: steady state km V / Rm = (km^2 / Rm + Dr) w.
+    x = simulate([0.0, math.pi, 0.0, 0.0], np.ones(2500))  # 5 s, ~10 time constants
+    expected = (P.km / P.Rm) / (P.km**2 / P.Rm + P.Dr)
+    assert expected == pytest.approx(10.4, abs=0.1)  # FACTS: near 10 rad/s, not 35
+    assert x[-1, 2] == pytest.approx(expected, rel=1e-3)
+    assert np.ptp(x[-250:, 2]) < 1e-3
+    assert abs(x[-1, 1] - math.pi) < 1e-3 and abs(x[-1, 3]) < 1e-3
+
+
+def test_energy_is_conserved_without_damping_or_input():
+    # An amplifier at 0 V still brakes the arm through the back-EMF (km^2/Rm),
+    # so the undamped case also takes the motor out (km = 0).
+    free = dataclasses.replace(P, Dr=0.0, Dp=0.0, km=0.0)
+    x = simulate([0.0, 0.3, 5.0, 0.0], np.zeros(5000), free)  # 10 s at 500 Hz
+    # Large swings: through hanging down and back to near upright, fast.
+    assert np.ptp(x[:, 1]) > 5.0 and np.max(np.abs(x[:, 3])) > 20.0
+    energy = total_energy(x, free)
+    scale = free.mp * free.g * free.Lp  # twice the pendulum's potential swing
+    assert np.max(np.abs(energy - energy[0])) < 1e-6 * scale
+
+
+def test_energy_balance_with_damping_and_input():
+    # dE/dt = (km/Rm) V theta_dot - (km^2/Rm + Dr) theta_dot^2 - Dp alpha_dot^2:
+    # checks the torque law, the back-EMF sign and both damping terms at once.
+    p = PendulumParameters.workbook()
+    dt = 1e-4
+    t = np.arange(20_000) * dt
+    volts = 3.0 * np.sin(2 * math.pi * 1.5 * t)
+    x = simulate([0.0, 2.5, 0.0, 0.0], volts, p, dt=dt, n_substeps=1)
+
+    def power(td, ad):
+        return p.km / p.Rm * volts * td - (p.km**2 / p.Rm + p.Dr) * td**2 - p.Dp * ad**2
+
+    trapezoids = 0.5 * (power(x[:-1, 2], x[:-1, 3]) + power(x[1:, 2], x[1:, 3])) * dt
+    work = np.concatenate([[0.0], np.cumsum(trapezoids)])
+    energy = total_energy(x, p)
+    assert np.ptp(energy) > 1e-3
+    np.testing.assert_allclose(energy - energy[0], work, rtol=0, atol=1e-7)
+
+
+def test_more_substeps_converge():
+    x0, volts = [0.0, 0.5, 0.0, 0.0], np.full(500, 2.0)
+    fine = simulate(x0, volts, n_substeps=16)
+    errors = [np.max(np.abs(simulate(x0, volts, n_substeps=n) - fine)) for n in (1, 2, 4)]
+    assert errors[1] < errors[0] / 8 and errors[2] < errors[1] / 8  # fourth order: ~1/16 per halving
+    assert errors[1] < 1e-5
+
+
+def test_batches_match_single_states():
+    rng = np.random.default_rng(0)
+    states = rng.normal(size=(3, 5, 4))
+    volts = rng.normal(size=(3, 5))
+    batch = rk4_step(states, volts)
+    assert batch.shape == (3, 5, 4)
+    single = rk4_step(states[1, 2], volts[1, 2])
+    np.testing.assert_array_equal(batch[1, 2], single)
+    assert dynamics(states, 0.0).shape == (3, 5, 4)
+    trajectory = simulate(states[0], np.broadcast_to(volts[0], (3, 5)))
+    np.testing.assert_array_equal(trajectory[1], rk4_step(states[0], volts[0]))
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: dynamics(np.zeros(3), 0.0), "shape"),
+    (lambda: rk4_step(np.zeros(4), 0.0, n_substeps=0), "n_substeps"),
+    (lambda: rk4_step(np.zeros(4), 0.0, dt=-1.0), "dt"),
+    (lambda: simulate(np.zeros(4), 1.0), "time axis"),
+])
+def test_model_functions_reject_bad_arguments(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+# --- encoders ----------------------------------------------------------------------------------
+
+def test_encoder_quantizes_to_2048_counts_and_wraps_alpha():
+    rng = np.random.default_rng(1)
+    states = np.zeros((1000, 4))
+    states[:, 0] = rng.uniform(-3, 3, 1000)
+    states[:, 1] = rng.uniform(-12, 12, 1000)
+    y = measure(states)
+    counts = y / COUNT
+    np.testing.assert_allclose(counts, np.round(counts), atol=1e-9)
+    assert np.max(np.abs(y[:, 0] - states[:, 0])) <= COUNT / 2 + 1e-12
+    assert np.all((y[:, 1] >= -math.pi) & (y[:, 1] < math.pi))
+    wrapped_error = np.angle(np.exp(1j * (y[:, 1] - states[:, 1])))
+    assert np.max(np.abs(wrapped_error)) <= COUNT / 2 + 1e-12
+    # The upside-down pendulum reads -pi, like the rig's wrap to [-pi, pi).
+    assert measure([0.0, math.pi, 0.0, 0.0])[1] == pytest.approx(-math.pi)
+
+
+def test_exact_sensor_only_wraps():
+    y = measure([[0.1234, 2 * math.pi + 0.5, 0.0, 0.0]], SensorModel(counts_per_rev=None))
+    np.testing.assert_allclose(y, [[0.1234, 0.5]], atol=1e-15)
+
+
+def test_noise_is_seeded_and_has_the_given_size():
+    sensor = SensorModel(counts_per_rev=None, noise_std=0.01)
+    states = np.zeros((20_000, 4))
+    a = measure(states, sensor, np.random.default_rng(5))
+    b = measure(states, sensor, np.random.default_rng(5))
+    np.testing.assert_array_equal(a, b)
+    assert a.std(axis=0) == pytest.approx([0.01, 0.01], rel=0.03)
+    with pytest.raises(ValueError, match="rng"):
+        measure(states, sensor)
+
+
+@pytest.mark.parametrize("kwargs", [dict(counts_per_rev=2047), dict(counts_per_rev=0), dict(noise_std=-1.0)])
+def test_sensor_rejects_bad_settings(kwargs):
+    with pytest.raises(ValueError):
+        SensorModel(**kwargs)
+
+
+# --- the per-tick simulator --------------------------------------------------------------------
+
+def test_simulator_follows_the_batch_integrator():
+    sim = PendulumSimulator()
+    x0 = [0.01, 0.05, -0.2, 0.3]
+    assert sim.reset(x0) == tuple(measure(x0))
+    volts = np.sin(np.arange(200) / 10.0)
+    expected = simulate(x0, volts)
+    measured = [sim.step(v) for v in volts]
+    np.testing.assert_allclose(sim.state, expected[-1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(measured, measure(expected[1:]), atol=1e-12)
+    assert sim.time == pytest.approx(200 * 0.002)
+    assert sim.measurement == measured[-1]
+
+
+def test_simulator_saturates_at_the_amplifier_limit():
+    a, b = PendulumSimulator(), PendulumSimulator(max_voltage=None)
+    a.step(100.0)
+    b.step(15.0)
+    np.testing.assert_array_equal(a.state, b.state)
+
+
+def test_simulator_noise_is_reproducible():
+    runs = []
+    for _ in range(2):
+        sim = PendulumSimulator(sensor=SensorModel(noise_std=0.01), seed=3)
+        sim.reset()
+        runs.append([sim.step(0.0) for _ in range(5000)])  # spans several noise blocks
+    assert runs[0] == runs[1]
+    assert np.std(np.array(runs[0])[:, 0]) == pytest.approx(0.01, rel=0.1)
+
+
+def test_simulator_balances_under_the_paper_controller():
+    ctrl = pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0))
+    sim = PendulumSimulator()
+    y = np.array(sim.reset([0.0, 0.05, 0.0, 0.0]))
+    xc = np.zeros(2)
+    for _ in range(1500):
+        e = -y
+        u = float(ctrl.C[0] @ xc + ctrl.D[0] @ e)
+        xc = ctrl.A @ xc + ctrl.B @ e
+        y = np.array(sim.step(np.clip(u, -10, 10)))
+    assert abs(sim.state[1]) < 0.02 and abs(sim.state[0]) < 0.1
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: PendulumSimulator().reset([0, 0, 0]), "4 finite"),
+    (lambda: PendulumSimulator().reset([0, 0, np.nan, 0]), "4 finite"),
+    (lambda: PendulumSimulator().step(float("nan")), "voltage"),
+    (lambda: PendulumSimulator(max_voltage=0.0), "max_voltage"),
+    (lambda: PendulumSimulator(n_substeps=0), "n_substeps"),
+])
+def test_simulator_rejects_bad_arguments(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
