@@ -42,6 +42,6 @@ def resolve_lifting(lifting) -> Lifting:
     """A Lifting from None (identity), a Lifting, or a sequence of lifting functions."""
     if lifting is None:
         return Lifting()
-    if isinstance(lifting, Lifting):
-        return lifting
-    return Lifting(list(lifting))
+    # Always a new object: fitting must never mutate the estimator's parameters.
+    steps = lifting.steps if isinstance(lifting, Lifting) else lifting
+    return Lifting(list(steps))

@@ -64,12 +64,13 @@ class _ClosedLoopKoopman(Estimator):
         self
         """
         alpha = check_alpha(self.alpha)
-        trajs = check_trajectories(trajectories, ("x", "r", "xc"), 2, type(self).__name__)
+        lifting = resolve_lifting(self.lifting)
+        trajs = check_trajectories(trajectories, ("x", "r", "xc"), lifting.n_delays + 2, type(self).__name__)
         with_f = [t.f is not None for t in trajs]
         if any(with_f) and not all(with_f):
             raise ValueError("feedforward f is present in some episodes and missing in others")
         if all(with_f):
-            trajs = check_trajectories(trajs, ("x", "r", "xc", "f"), 2, type(self).__name__)
+            trajs = check_trajectories(trajs, ("x", "r", "xc", "f"), lifting.n_delays + 2, type(self).__name__)
         n_f = trajs[0].f.shape[1] if all(with_f) else 0
         m = trajs[0].x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
@@ -77,9 +78,8 @@ class _ClosedLoopKoopman(Estimator):
             raise ValueError(f"measured state indices {measured} are outside 0..{m - 1}")
         self._check_controller(trajs, measured, n_f)
 
-        lifting = resolve_lifting(self.lifting).fit([t.x for t in trajs], trajs[0].state_names)
+        lifting.fit([t.x for t in trajs], trajs[0].state_names)
         d = lifting.n_delays_
-        trajs = check_trajectories(trajs, ("x", "r", "xc"), d + 2, type(self).__name__)
         C_p = output_selection(lifting.n_features_out_, measured)
         S = plant_input_map(self.controller, C_p, n_f)
 

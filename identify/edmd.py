@@ -50,10 +50,9 @@ class Edmd(Estimator):
         """
         alpha = check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
-        trajs = check_trajectories(trajectories, ("x", "u"), 2, "EDMD")
+        trajs = check_trajectories(trajectories, ("x", "u"), lifting.n_delays + 2, "EDMD")
         lifting.fit([t.x for t in trajs], trajs[0].state_names)
         d = lifting.n_delays_
-        trajs = check_trajectories(trajs, ("x", "u"), d + 2, "EDMD")
         input_lifting = None
         if self.input_lifting is not None:
             input_lifting = resolve_lifting(self.input_lifting).fit([t.u for t in trajs], trajs[0].input_names)

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from identify import (ClEdmd, Delay, Edmd, GaussianRbf, Polynomial, Trajectory, closed_loop_matrices,
+from identify import (ClEdmd, Delay, Edmd, GaussianRbf, Lifting, Polynomial, Trajectory, closed_loop_matrices,
                       controller_states, output_selection, plant_input, plant_input_map, r2_score)
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
@@ -24,6 +24,9 @@ def test_fit_returns_self_and_keeps_hyperparameters(loop):
     assert est.fit(trajs) is est
     assert est.get_params() == {"lifting": lifting, "alpha": 0.5, "input_lifting": None}
     assert lifting[0].__dict__.keys() == {"order"}  # fit did not touch the constructor's objects
+    pipeline = Lifting([Polynomial(2)])
+    Edmd(lifting=pipeline).fit(trajs)
+    assert not hasattr(pipeline, "steps_")
 
 
 def test_episodes_are_never_joined(loop):

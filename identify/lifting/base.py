@@ -83,6 +83,11 @@ class Lifting:
     def __init__(self, steps: Sequence[LiftingFunction] = ()) -> None:
         self.steps = tuple(steps)
 
+    @property
+    def n_delays(self) -> int:
+        """Samples the steps consume at the start of each episode (known before fitting)."""
+        return sum(getattr(step, "n_delays", 0) for step in self.steps)
+
     def fit(self, episodes: Sequence[np.ndarray], names: Sequence[str] | None = None) -> "Lifting":
         """Fit every step on the output of the previous one, episode by episode.
 
