@@ -8,6 +8,7 @@ reads it as MCAP, ``daq.legacy_csv`` builds it from the rig's CSV files.
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass, field, fields
 from datetime import datetime
@@ -47,6 +48,7 @@ UNITS = MappingProxyType({
 _TIMING = ("lateness", "compute_time")
 
 
+@functools.cache
 def software_version() -> str:
     """Name and version of this software, as recorded in logs."""
     from importlib.metadata import PackageNotFoundError, version

@@ -394,3 +394,36 @@ def test_metadata_only_read_skips_samples(tmp_path):
     meta = read_episode_metadata(path)
     assert meta.status == "complete" and meta.sample_rate_hz == RATE
     np.testing.assert_array_equal(meta.controller.system.D, QUBE_PD.D)
+
+
+@pytest.mark.parametrize("use_chunking", [True, False])
+def test_file_rewritten_by_another_mcap_writer_reads_the_same(tmp_path, use_chunking):
+    # Another tool may rewrite a log: unchunked, or with other channels interleaved
+    # (which takes the reader off its one-view-per-chunk fast path).
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    episode = make_episode(400)
+    original = write_episode(tmp_path / "e.mcap", episode)
+    rewritten = tmp_path / "rewritten.mcap"
+    with open(original, "rb") as f, open(rewritten, "wb") as out:
+        reader = make_reader(f)
+        writer = Writer(out, use_chunking=use_chunking)
+        writer.start()
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        events = None
+        for k, (schema, channel, message) in enumerate(reader.iter_messages()):
+            if events is None:
+                sample_channel = writer.register_channel(
+                    channel.topic, channel.message_encoding,
+                    writer.register_schema(schema.name, schema.encoding, schema.data))
+                events = writer.register_channel("/qube/event", "json", 0)
+            writer.add_message(sample_channel, message.log_time, message.data, message.publish_time,
+                               message.sequence)
+            if k % 100 == 0:
+                writer.add_message(events, message.log_time, b'{"note": "x"}', message.log_time, k)
+        writer.finish()
+    read = read_episode(rewritten)
+    assert_prefix(read, episode, 400)
+    assert read.is_complete
