@@ -427,3 +427,29 @@ def test_file_rewritten_by_another_mcap_writer_reads_the_same(tmp_path, use_chun
     read = read_episode(rewritten)
     assert_prefix(read, episode, 400)
     assert read.is_complete
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(position=st.floats(0, 1), flip=st.integers(1, 255), cut=st.booleans())
+def test_damaged_or_cut_files_give_a_prefix_or_a_value_error(tmp_path, position, flip, cut):
+    # Whatever happens to the bytes, the reader returns samples it can vouch
+    # for or refuses the file with a ValueError: never another exception.
+    episode = make_episode(300, seed=1)
+    path = tmp_path / "e.mcap"
+    if not path.exists():
+        with EpisodeWriter(path, episode.metadata, flush_interval_s=0.1) as log:
+            log.write_samples(episode)
+    data = bytearray(path.read_bytes())
+    offset = int(position * (len(data) - 1))
+    if cut:
+        data = data[:offset]
+    else:
+        data[offset] ^= flip
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    try:
+        read = read_quietly(damaged)
+    except ValueError:
+        return
+    # Sample bytes are CRC-checked per chunk, so what is read is never altered.
+    assert_prefix(read, episode, len(read))

@@ -158,9 +158,12 @@ class _Scan:
         import lz4.frame
         import zstandard
 
-        _, _, size, crc, clen = _CHUNK_HEAD.unpack_from(body, 0)
-        compression = bytes(body[32:32 + clen]).decode()
-        (records_len,) = struct.unpack_from("<Q", body, 32 + clen)
+        try:
+            _, _, size, crc, clen = _CHUNK_HEAD.unpack_from(body, 0)
+            compression = bytes(body[32:32 + clen]).decode()
+            (records_len,) = struct.unpack_from("<Q", body, 32 + clen)
+        except (struct.error, UnicodeDecodeError) as exc:
+            raise _Damaged(f"malformed chunk header ({exc})") from None
         start = 40 + clen
         if start + records_len > len(body):
             raise _Damaged("records overrun the chunk")
