@@ -1,0 +1,1 @@
+"""Command-line entry points of the daq package (each imports its heavy parts lazily)."""

@@ -1,0 +1,168 @@
+"""``qube-import``: convert the legacy rig's CSV episodes into MCAP episode logs."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+PROG = "qube-import"
+
+_DESCRIPTION = """\
+Convert the QUBE-Servo rig's legacy CSV episodes (the paper's dataset) into
+MCAP episode logs, one OUT/<CSV base name>.mcap per file (format: daq/log/FORMAT.md).
+
+Each file is checked before it is converted: the header must hold the columns
+t, target_theta, target_alpha, theta, alpha, control_output, feedforward,
+plant_input, saturation; every row must be complete and finite, sampled at
+500 Hz; and the controller from controller.toml (backward-Euler derivative
+filter, as the rig ran it), run on the tracking error, must reproduce the
+logged control_output to 1e-9 V after the first second. The recomputed
+controller state is stored in the log. A file that fails is refused with one
+line on stderr naming it and the problem; the other files still import.
+"""
+
+_EPILOG = """\
+exit status: 0 when every file was imported, 1 when any was refused,
+2 on a usage error.
+
+example:
+  qube-import ../shared/datasets/qube_servo_20230828 --out episodes/
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser (also documents the options)."""
+    parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("sources", nargs="+", metavar="SRC",
+                        help="a legacy CSV file, or a folder whose *.csv files are all imported")
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+                        help="output folder (created if missing)")
+    parser.add_argument("--controller", type=Path, metavar="FILE",
+                        help="controller gains (TOML: kp_theta, kd_theta, kp_alpha, kd_alpha, tau) for "
+                             "every file; default: the controller.toml beside each CSV file")
+    parser.add_argument("--force", action="store_true",
+                        help="overwrite existing .mcap files in DIR (by default an existing file is "
+                             "left alone and its CSV is refused)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress counter")
+    return parser
+
+
+def _expand(sources: list[str], problems: list[str]) -> list[Path]:
+    files: list[Path] = []
+    for source in sources:
+        path = Path(source)
+        if path.is_dir():
+            found = sorted(path.glob("*.csv"))
+            if not found:
+                problems.append(f"{path}: folder holds no .csv files")
+            files.extend(found)
+        elif path.is_file():
+            files.append(path)
+        else:
+            problems.append(f"{path}: no such file or folder")
+    # A file named twice (say, on its own and through its folder) is imported once.
+    unique = {f.resolve(): f for f in reversed(files)}
+    return [f for f in files if unique[f.resolve()] is f]
+
+
+class _Progress:
+    """A counter on stderr: rewritten in place on a terminal, one line per file otherwise."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled and total > 0
+        self.tty = sys.stderr.isatty()
+        self.width = len(str(total))
+
+    def step(self, done: int, name: str) -> None:
+        if not self.enabled:
+            return
+        line = f"[{done:>{self.width}}/{self.total}] {name}"
+        if self.tty:
+            print(f"\r\033[K{line}", end="" if done < self.total else "\n", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr)
+
+    def interrupt(self) -> None:
+        # Start error lines on a fresh line, not after the in-place counter.
+        if self.enabled and self.tty:
+            print("\r\033[K", end="", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, or a usage error argparse has already explained
+        return int(exc.code or 0)
+
+    from daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
+    from daq.log import write_episode
+
+    def refuse(message: str) -> None:
+        progress.interrupt()
+        print(f"{PROG}: refused: {message}", file=sys.stderr)
+
+    problems: list[str] = []
+    files = _expand(args.sources, problems)
+    if args.out.exists() and not args.out.is_dir():
+        print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)
+        return 2
+    progress = _Progress(len(files), not args.quiet)
+    for problem in problems:
+        refuse(problem)
+
+    # One controller per controller.toml; a file that cannot give one is
+    # remembered as its problem, so each CSV beside it is refused with it.
+    controllers: dict[Path, object] = {}
+    if args.controller is not None:
+        try:
+            controllers[args.controller] = load_legacy_controller(args.controller)
+        except ValueError as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return 2
+
+    def controller_for(csv: Path):
+        toml = args.controller or csv.parent / "controller.toml"
+        if toml not in controllers:
+            if not toml.is_file():
+                controllers[toml] = f"no controller file {toml} (give one with --controller FILE)"
+            else:
+                try:
+                    controllers[toml] = load_legacy_controller(toml)
+                except ValueError as exc:
+                    controllers[toml] = str(exc)
+        found = controllers[toml]
+        if isinstance(found, str):
+            raise LegacyCsvError(f"{csv}: {found}")
+        return found
+
+    imported, refused = 0, 0
+    claimed: dict[Path, Path] = {}
+    for done, csv in enumerate(files, start=1):
+        out = args.out / f"{csv.stem}.mcap"
+        try:
+            if out in claimed:
+                raise LegacyCsvError(f"{csv}: same base name as {claimed[out]}; both would write {out}")
+            claimed[out] = csv
+            if out.exists() and not args.force:
+                raise LegacyCsvError(f"{csv}: {out} exists (use --force to overwrite)")
+            episode = legacy_episode(csv, controller_for(csv))
+            args.out.mkdir(parents=True, exist_ok=True)
+            write_episode(out, episode, overwrite=args.force)
+            imported += 1
+        except LegacyCsvError as exc:
+            refused += 1
+            refuse(str(exc))
+        except OSError as exc:
+            refused += 1
+            refuse(f"{csv}: cannot write {out}: {exc.strerror or exc}")
+        progress.step(done, csv.name)
+
+    print(f"imported {imported} of {len(files)} file{'s' if len(files) != 1 else ''} into {args.out}"
+          + (f"; {refused} refused" if refused else "")
+          + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
+    return 0 if refused == 0 and not problems and imported > 0 else 1

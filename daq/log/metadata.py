@@ -1,0 +1,135 @@
+"""Episode metadata as MCAP metadata records (string maps), and back.
+
+MCAP metadata values are strings: plain text stays plain (so Foxglove's
+metadata panel shows it readably), structured values are JSON. Floats go
+through JSON's repr, which round-trips float64 exactly.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Mapping
+
+from daq.episode import ControllerInfo, EpisodeMetadata
+from daq.log.schema import FORMAT_VERSION
+
+__all__ = [
+    "EPISODE_RECORD",
+    "CONTROLLER_RECORD",
+    "STATUS_RECORD",
+    "episode_records",
+    "status_record",
+    "metadata_from_records",
+]
+
+EPISODE_RECORD = "qube.episode"
+CONTROLLER_RECORD = "qube.controller"
+STATUS_RECORD = "qube.status"
+
+# Written at the start, so a log cut short still says what it is.
+_EPISODE_KEYS = ("format_version", "sample_rate_hz", "backend", "source", "start_time",
+                 "software_version", "excitation", "extra")
+_CONTROLLER_KEYS = ("kind", "method", "gains", "dt", "A", "B", "C", "D")
+
+
+def _json(value) -> str:
+    return json.dumps(value, allow_nan=False, separators=(",", ":"))
+
+
+def episode_records(meta: EpisodeMetadata) -> dict[str, dict[str, str]]:
+    """The records written when an episode starts: name -> string map."""
+    controller = meta.controller.as_dict()
+    return {
+        EPISODE_RECORD: {
+            "format_version": FORMAT_VERSION,
+            "sample_rate_hz": repr(meta.sample_rate_hz),
+            "backend": meta.backend,
+            "source": meta.source,
+            "start_time": meta.start_time,
+            "software_version": meta.software_version,
+            "excitation": _json(dict(meta.excitation)),
+            "extra": _json(dict(meta.extra)),
+        },
+        CONTROLLER_RECORD: {
+            "kind": controller["kind"],
+            "method": controller["method"],
+            "gains": _json(controller["gains"]),
+            "dt": repr(controller["dt"]),
+            **{m: _json(controller[m]) for m in "ABCD"},
+        },
+    }
+
+
+def status_record(status: str, reason: str, n_samples: int) -> dict[str, str]:
+    """The record written when an episode ends."""
+    return {"status": status, "reason": reason, "n_samples": str(n_samples)}
+
+
+def _major(version: str) -> str:
+    return version.split(".", 1)[0]
+
+
+def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, *,
+                          salvage_note: str = "") -> EpisodeMetadata:
+    """Rebuild :class:`EpisodeMetadata` from the records of one file.
+
+    Parameters
+    ----------
+    records : mapping
+        Metadata record name -> string map, as found in the file.
+    where : str
+        The file, for messages.
+    salvage_note : str
+        Non-empty when the file was cut short or damaged: marks the
+        metadata salvaged; without a status record the status is
+        ``"incomplete"``.
+
+    Raises
+    ------
+    ValueError
+        Naming the file, when it is not an episode log, has an unsupported
+        format version or malformed metadata.
+    """
+    if EPISODE_RECORD not in records:
+        raise ValueError(f"{where}: not a QUBE episode log (no {EPISODE_RECORD!r} metadata record)")
+    episode = records[EPISODE_RECORD]
+    version = episode.get("format_version", "")
+    if _major(version) != _major(FORMAT_VERSION):
+        raise ValueError(f"{where}: episode log format version {version!r} is not supported "
+                         f"(this reader reads {_major(FORMAT_VERSION)}.x)")
+    if CONTROLLER_RECORD not in records:
+        raise ValueError(f"{where}: no {CONTROLLER_RECORD!r} metadata record")
+    controller = records[CONTROLLER_RECORD]
+    try:
+        missing = [k for k in _EPISODE_KEYS if k not in episode] + \
+                  [k for k in _CONTROLLER_KEYS if k not in controller]
+        if missing:
+            raise ValueError(f"missing metadata keys {', '.join(missing)}")
+        controller_info = ControllerInfo.from_dict({
+            "kind": controller["kind"], "method": controller["method"],
+            "gains": json.loads(controller["gains"]), "dt": float(controller["dt"]),
+            **{m: json.loads(controller[m]) for m in "ABCD"},
+        })
+        status = records.get(STATUS_RECORD)
+        if status is None:
+            status_value = "incomplete"
+            reason = "no final status record: the writer stopped before finishing the episode"
+        else:
+            status_value, reason = status.get("status", ""), status.get("reason", "")
+        return EpisodeMetadata(
+            controller=controller_info,
+            sample_rate_hz=float(episode["sample_rate_hz"]),
+            backend=episode["backend"],
+            source=episode["source"],
+            start_time=episode["start_time"],
+            excitation=json.loads(episode["excitation"]),
+            software_version=episode["software_version"],
+            status=status_value,
+            status_reason=reason,
+            salvaged=bool(salvage_note),
+            salvage_note=salvage_note,
+            log_format_version=version,
+            extra=json.loads(episode["extra"]),
+        )
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"{where}: malformed episode metadata: {exc}") from None

@@ -1,0 +1,292 @@
+"""Writing episode logs: incrementally, sample by sample, or a whole episode at once."""
+
+from __future__ import annotations
+
+import os
+import struct
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from daq.episode import SIGNALS, Episode, EpisodeMetadata
+from daq.log.metadata import STATUS_RECORD, episode_records, status_record
+from daq.log.schema import (
+    CDR_LE_HEADER,
+    FORMAT_VERSION,
+    SAMPLE_SCHEMA_NAME,
+    SAMPLE_TOPIC,
+    payload_dtype,
+    sample_fields,
+    schema_text,
+    state_field,
+)
+
+__all__ = ["EpisodeWriter", "write_episode", "COMPRESSIONS"]
+
+COMPRESSIONS = ("zstd", "lz4", "none")
+
+
+def _epoch_ns(start_time: str) -> int:
+    # MCAP log times are absolute nanoseconds; a start time without a UTC
+    # offset (the legacy rig's local time) is placed on the axis as if UTC.
+    start = datetime.fromisoformat(start_time)
+    if start.tzinfo is None:
+        start = start.replace(tzinfo=timezone.utc)
+    delta = start - datetime(1970, 1, 1, tzinfo=timezone.utc)
+    return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
+
+
+class EpisodeWriter:
+    """Write one episode to an MCAP file, sample by sample.
+
+    The file is created at once with the episode's metadata, and samples go
+    into compressed chunks that are flushed every ``flush_interval_s`` of
+    data: a process killed mid-episode leaves a file that
+    :func:`daq.log.read_episode` reads up to the last flush, marked
+    incomplete. :meth:`finish` records the final status.
+
+    Not thread-safe, and not for the real-time loop's thread: compressing a
+    chunk takes milliseconds (MCAP ``add_message`` spikes of 5-33 ms). The
+    loop hands samples to a writer thread (e.g. through a queue), and only
+    that thread calls this object.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file (conventionally ``*.mcap``).
+    metadata : EpisodeMetadata
+        Controller, sample rate, excitation and provenance; its status
+        fields are ignored (the status is given to :meth:`finish`).
+    flush_interval_s : float or None
+        Make the data durable (against a killed process, not a power cut
+        unless ``fsync``) every this many seconds of samples; None flushes
+        only when a chunk is full and at the end.
+    compression : {"zstd", "lz4", "none"}
+        Chunk compression.
+    overwrite : bool
+        Replace an existing file; by default an existing file is an error.
+    fsync : bool
+        Also ``os.fsync`` at every flush.
+
+    Raises
+    ------
+    FileExistsError
+        If ``path`` exists and ``overwrite`` is false.
+
+    Examples
+    --------
+    >>> with EpisodeWriter("run.mcap", meta) as log:          # doctest: +SKIP
+    ...     for sample in samples:                              # writer thread
+    ...         log.write_sample(**sample)
+    ...     log.finish("aborted", "pendulum fell: |alpha| > pi/4")
+    """
+
+    def __init__(self, path: str | os.PathLike, metadata: EpisodeMetadata, *,
+                 flush_interval_s: float | None = 0.5, compression: str = "zstd",
+                 overwrite: bool = False, fsync: bool = False) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        if compression not in COMPRESSIONS:
+            raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
+        if flush_interval_s is not None and not flush_interval_s > 0:
+            raise ValueError(f"flush_interval_s must be positive or None, got {flush_interval_s!r}")
+        self.path = Path(path)
+        self.metadata = metadata
+        self._n_states = metadata.controller.system.n_states
+        self._flush_every = (None if flush_interval_s is None
+                             else max(1, round(flush_interval_s * metadata.sample_rate_hz)))
+        self._fsync = fsync
+        self._epoch_ns = _epoch_ns(metadata.start_time)
+        fields = sample_fields(self._n_states)
+        self._dtype = payload_dtype(fields)
+        # "<" packs without padding; valid because payload_dtype has none for
+        # this field order (float64s first, the int8 last).
+        self._struct = struct.Struct("<4s" + "d" * (len(fields) - 1) + "b")
+        assert self._struct.size == self._dtype.itemsize
+        self._file: IO[bytes] = open(self.path, "wb" if overwrite else "xb")
+        self._mcap = Writer(self._file, compression={
+            "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE,
+        }[compression])
+        self._mcap.start(profile="", library=f"qube-koopman daq.log {FORMAT_VERSION}")
+        schema_id = self._mcap.register_schema(SAMPLE_SCHEMA_NAME, "ros2msg",
+                                               schema_text(self._n_states).encode())
+        self._channel = self._mcap.register_channel(SAMPLE_TOPIC, "cdr", schema_id)
+        for name, record in episode_records(metadata).items():
+            self._mcap.add_metadata(name, record)
+        self._n = 0
+        self._since_flush = 0
+        self._finished = False
+        self.flush()
+
+    @property
+    def n_samples(self) -> int:
+        """Samples written so far."""
+        return self._n
+
+    @property
+    def finished(self) -> bool:
+        """True once :meth:`finish` has run."""
+        return self._finished
+
+    def _check_open(self) -> None:
+        if self._finished:
+            raise RuntimeError(f"{self.path}: episode log already finished")
+
+    def _add(self, payload: bytes, log_time: int) -> None:
+        self._mcap.add_message(self._channel, log_time, payload, log_time, self._n)
+        self._n += 1
+        self._since_flush += 1
+        if self._flush_every is not None and self._since_flush >= self._flush_every:
+            self.flush()
+
+    def write_sample(self, *, t: float, theta: float, alpha: float, target_theta: float,
+                     target_alpha: float, feedforward: float, controller_state, control_output: float,
+                     plant_input: float, saturation: int, lateness: float = float("nan"),
+                     compute_time: float = float("nan")) -> None:
+        """Append one tick (units as in :class:`daq.episode.Episode`).
+
+        Raises
+        ------
+        ValueError
+            If ``t`` is not finite, the controller state has the wrong length
+            or saturation is not -1, 0 or +1.
+        """
+        self._check_open()
+        state = tuple(float(v) for v in np.ravel(controller_state))
+        if len(state) != self._n_states:
+            raise ValueError(f"controller_state must have {self._n_states} values, got {len(state)}")
+        if saturation not in (-1, 0, 1):
+            raise ValueError(f"saturation must be -1, 0 or +1, got {saturation!r}")
+        if not np.isfinite(t):
+            raise ValueError(f"t must be finite, got {t!r}")
+        payload = self._struct.pack(CDR_LE_HEADER, t, theta, alpha, target_theta, target_alpha,
+                                    feedforward, control_output, plant_input, lateness,
+                                    compute_time, *state, int(saturation))
+        self._add(payload, self._epoch_ns + round(t * 1e9))
+
+    def write_samples(self, episode: Episode) -> None:
+        """Append all samples of an episode (its metadata is not written)."""
+        self._check_open()
+        if episode.controller_state.shape[1] != self._n_states:
+            raise ValueError(f"episode has {episode.controller_state.shape[1]} controller states, "
+                             f"the log {self._n_states}")
+        if not np.isfinite(episode.t).all():
+            raise ValueError("t must be finite")
+        # Pack every payload at once; only the per-message MCAP call stays in Python.
+        block = np.zeros(len(episode), self._dtype)
+        block["cdr_header"] = np.frombuffer(CDR_LE_HEADER, "<u4")[0]
+        for name in SIGNALS:
+            block[name] = getattr(episode, name)
+        for i in range(self._n_states):
+            block[state_field(i)] = episode.controller_state[:, i]
+        block["saturation"] = episode.saturation
+        raw = block.tobytes()
+        size = self._dtype.itemsize
+        log_times = (self._epoch_ns + np.round(episode.t * 1e9).astype(np.int64)).tolist()
+        for k, log_time in enumerate(log_times):
+            self._add(raw[k * size:(k + 1) * size], log_time)
+
+    def flush(self) -> None:
+        """Close the chunk in progress and push everything written so far to the OS."""
+        self._check_open()
+        self._mcap.flush()
+        self._since_flush = 0
+        if self._fsync:
+            os.fsync(self._file.fileno())
+
+    def finish(self, status: str = "complete", reason: str = "") -> None:
+        """Record the final status and close the file.
+
+        Parameters
+        ----------
+        status : {"complete", "aborted"}
+            How the episode ended.
+        reason : str
+            Why it was aborted (required then).
+        """
+        self._check_open()
+        if status not in ("complete", "aborted"):
+            raise ValueError(f"status must be 'complete' or 'aborted', got {status!r}")
+        if status == "aborted" and not reason:
+            raise ValueError("an aborted episode needs a reason")
+        # Flush first so the status record follows the last chunk in the file.
+        self.flush()
+        self._mcap.add_metadata(STATUS_RECORD, status_record(status, reason, self._n))
+        self._mcap.finish()
+        self._file.flush()
+        if self._fsync:
+            os.fsync(self._file.fileno())
+        self._file.close()
+        self._finished = True
+
+    def __enter__(self) -> "EpisodeWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._finished:
+            return
+        if exc_type is None:
+            self.finish("complete")
+        else:
+            self.finish("aborted", f"{exc_type.__name__}: {exc}")
+
+
+def write_episode(path: str | os.PathLike, episode: Episode, *, overwrite: bool = False,
+                  compression: str = "zstd") -> Path:
+    """Write a whole episode to ``path`` at once.
+
+    The file appears only when complete (written beside it, then linked or
+    renamed into place), so an interrupted call leaves no partial log.
+    An episode whose status is ``"incomplete"`` is recorded as aborted,
+    with the reason saying so.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file.
+    episode : Episode
+        What to write.
+    overwrite : bool
+        Replace an existing file; by default it is an error.
+    compression : {"zstd", "lz4", "none"}
+        Chunk compression.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    FileExistsError
+        If ``path`` exists and ``overwrite`` is false.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: file exists")
+    meta = episode.metadata
+    status, reason = meta.status, meta.status_reason
+    if status == "incomplete":
+        status, reason = "aborted", f"incomplete log: {reason or 'no final status'}"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        writer = EpisodeWriter(tmp, meta, flush_interval_s=None, compression=compression, overwrite=True)
+        writer.write_samples(episode)
+        writer.finish(status, reason)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path)  # fails if path appeared meanwhile: never clobber
+            except FileExistsError:
+                raise FileExistsError(f"{path}: file exists") from None
+            except OSError:  # a file system without hard links
+                os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
