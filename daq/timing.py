@@ -1,0 +1,265 @@
+"""Real-time pacing and timing statistics of the acquisition loop (DESIGN.md, Real time).
+
+Ticks are paced by absolute deadlines ``t0 + k T`` (relative sleeps drift),
+reached by a hybrid wait: sleep until shortly before the deadline, then spin
+on ``time.perf_counter`` (the OS sleep alone wakes up to milliseconds late on
+a VM, FACTS section 7). CPU pinning and SCHED_FIFO are attempted only when
+asked for, and their failure is reported rather than raised: the loop works
+without them.
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+import os
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Iterator
+
+import numpy as np
+
+__all__ = [
+    "DEFAULT_SPIN",
+    "STALL_THRESHOLD",
+    "DeadlinePacer",
+    "TimingStats",
+    "timing_stats",
+    "RealtimeReport",
+    "realtime_scheduling",
+    "quiet_interpreter",
+]
+
+#: Spin this long before each deadline (s): covers the usual sleep overshoot.
+DEFAULT_SPIN = 300e-6
+
+#: A tick this late (s) is counted as a stall (VM steal, page fault...), not hidden.
+STALL_THRESHOLD = 2e-3
+
+
+class DeadlinePacer:
+    """Wait for tick ``k``'s absolute deadline ``t0 + k period`` with a hybrid sleep-then-spin.
+
+    Parameters
+    ----------
+    period : float
+        Tick period (s).
+    spin : float
+        How long before the deadline to stop sleeping and start spinning (s).
+    clock, sleep : callable
+        Time source and sleep function (replaceable in tests).
+    """
+
+    def __init__(self, period: float, spin: float = DEFAULT_SPIN,
+                 clock: Callable[[], float] = time.perf_counter,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        if not (math.isfinite(period) and period > 0):
+            raise ValueError(f"period must be a positive number of seconds, got {period!r}")
+        if not (math.isfinite(spin) and spin >= 0):
+            raise ValueError(f"spin must be a non-negative number of seconds, got {spin!r}")
+        self.period = float(period)
+        self.spin = float(spin)
+        self._clock = clock
+        self._sleep = sleep
+        self.t0 = clock()
+
+    def start(self, t0: float | None = None) -> float:
+        """Set time zero (now by default): tick 0's deadline. Returns it."""
+        self.t0 = self._clock() if t0 is None else float(t0)
+        return self.t0
+
+    def deadline(self, k: int) -> float:
+        """Absolute deadline of tick ``k``."""
+        return self.t0 + k * self.period
+
+    def wait(self, k: int) -> float:
+        """Return at tick ``k``'s deadline (at once if it has passed); the lateness (s)."""
+        deadline = self.t0 + k * self.period
+        clock = self._clock
+        remaining = deadline - clock()
+        if remaining > self.spin:
+            self._sleep(remaining - self.spin)
+        now = clock()
+        while now < deadline:
+            now = clock()
+        return now - deadline
+
+
+@dataclass(frozen=True)
+class TimingStats:
+    """Timing of one episode's ticks.
+
+    Attributes
+    ----------
+    n_ticks : int
+        Ticks measured.
+    period : float
+        Nominal tick period (s).
+    paced : bool
+        Whether ticks had deadlines (lateness measured); free-running ticks
+        have none and their lateness fields are NaN.
+    lateness_p50, lateness_p99, lateness_max : float
+        How late ticks started against their deadlines (s).
+    overruns : int
+        Ticks whose command went out after the next tick's deadline
+        (lateness + compute time > period).
+    stalls : int
+        Ticks that started more than :data:`STALL_THRESHOLD` late.
+    compute_p50, compute_p99, compute_max : float
+        Time from the tick's start to its command being written (s).
+    """
+
+    n_ticks: int
+    period: float
+    paced: bool
+    lateness_p50: float = math.nan
+    lateness_p99: float = math.nan
+    lateness_max: float = math.nan
+    overruns: int = 0
+    stalls: int = 0
+    compute_p50: float = math.nan
+    compute_p99: float = math.nan
+    compute_max: float = math.nan
+
+    def as_dict(self) -> dict:
+        """Plain-data form (None where not measured: JSON has no NaN), for logs and summaries."""
+        return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in asdict(self).items()}
+
+
+def _percentiles(values: np.ndarray) -> tuple[float, float, float]:
+    if values.size == 0:
+        return math.nan, math.nan, math.nan
+    p50, p99 = np.percentile(values, [50, 99])
+    return float(p50), float(p99), float(values.max())
+
+
+def timing_stats(lateness, compute_time, period: float) -> TimingStats:
+    """Summarize per-tick lateness and compute time.
+
+    Parameters
+    ----------
+    lateness : array_like of shape (n,)
+        Lateness of each tick (s); all NaN for free-running ticks.
+    compute_time : array_like of shape (n,)
+        Compute time of each tick (s).
+    period : float
+        Nominal tick period (s).
+    """
+    lateness = np.asarray(lateness, dtype=float)
+    compute = np.asarray(compute_time, dtype=float)
+    if lateness.shape != compute.shape or lateness.ndim != 1:
+        raise ValueError(f"lateness {lateness.shape} and compute_time {compute.shape} must be "
+                         "1-D arrays of the same length")
+    c50, c99, cmax = _percentiles(compute[np.isfinite(compute)])
+    paced = bool(np.isfinite(lateness).any())
+    if not paced:
+        return TimingStats(lateness.size, float(period), False, compute_p50=c50, compute_p99=c99,
+                           compute_max=cmax)
+    measured = np.isfinite(lateness)
+    l50, l99, lmax = _percentiles(lateness[measured])
+    late = lateness[measured]
+    overruns = int(np.count_nonzero(late + np.nan_to_num(compute[measured]) > period))
+    stalls = int(np.count_nonzero(late > STALL_THRESHOLD))
+    return TimingStats(lateness.size, float(period), True, l50, l99, lmax, overruns, stalls,
+                       c50, c99, cmax)
+
+
+@dataclass
+class RealtimeReport:
+    """What :func:`realtime_scheduling` managed to set up.
+
+    Attributes
+    ----------
+    cpu : int or None
+        CPU the process is pinned to, None when not pinned.
+    priority : int or None
+        SCHED_FIFO priority in effect, None when not real-time.
+    notes : list of str
+        Why a request was not granted (e.g. missing permission).
+    """
+
+    cpu: int | None = None
+    priority: int | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def describe(self) -> str:
+        """One line for the user."""
+        parts = [f"pinned to CPU {self.cpu}" if self.cpu is not None else "not pinned",
+                 f"SCHED_FIFO {self.priority}" if self.priority is not None else "normal scheduling"]
+        return ", ".join(parts) + ("" if not self.notes else " (" + "; ".join(self.notes) + ")")
+
+
+@contextmanager
+def realtime_scheduling(cpu: int | None = None, priority: int | None = None) -> Iterator[RealtimeReport]:
+    """Pin the process to a CPU and/or run it SCHED_FIFO, where permitted; undo on exit.
+
+    Parameters
+    ----------
+    cpu : int, optional
+        CPU to pin to; None leaves the affinity alone.
+    priority : int, optional
+        SCHED_FIFO priority (1..99); None leaves the scheduling policy alone.
+
+    Yields
+    ------
+    RealtimeReport
+        What was granted; refused requests are noted, never raised.
+    """
+    report = RealtimeReport()
+    saved_affinity = saved_policy = None
+    if cpu is not None:
+        try:
+            saved_affinity = os.sched_getaffinity(0)
+            os.sched_setaffinity(0, {int(cpu)})
+            report.cpu = int(cpu)
+        except (AttributeError, OSError, ValueError) as exc:
+            saved_affinity = None
+            report.notes.append(f"CPU pinning refused: {exc}")
+    if priority is not None:
+        try:
+            saved_policy = (os.sched_getscheduler(0), os.sched_getparam(0))
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
+            report.priority = int(priority)
+        except (AttributeError, OSError, ValueError) as exc:
+            saved_policy = None
+            report.notes.append(f"SCHED_FIFO refused: {exc}")
+    try:
+        yield report
+    finally:
+        if saved_policy is not None:
+            try:
+                os.sched_setscheduler(0, *saved_policy)
+            except OSError:
+                pass
+        if saved_affinity is not None:
+            try:
+                os.sched_setaffinity(0, saved_affinity)
+            except OSError:
+                pass
+
+
+@contextmanager
+def quiet_interpreter(switch_interval: float | None = None) -> Iterator[None]:
+    """Keep the interpreter from interrupting the loop; restore everything on exit.
+
+    The garbage collector is frozen and disabled (a collection pauses every
+    thread for milliseconds). With ``switch_interval`` the GIL is handed
+    over more often, so the loop thread waiting for it after a sleep is not
+    held up for the default 5 ms by the writer thread.
+    """
+    was_enabled = gc.isenabled()
+    saved_interval = sys.getswitchinterval()
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    if switch_interval is not None:
+        sys.setswitchinterval(switch_interval)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(saved_interval)
+        gc.unfreeze()
+        if was_enabled:
+            gc.enable()
