@@ -145,6 +145,10 @@ class EpisodeMetadata:
         Set by the reader: the format version of the file it came from.
     extra : mapping
         Further JSON-serializable provenance (e.g. a source file's hash).
+    timing : mapping
+        The loop's timing statistics of the episode (lateness percentiles,
+        overruns...), recorded with the final status; empty when the
+        episode has none (imported data, no status record).
     """
 
     controller: ControllerInfo
@@ -160,6 +164,7 @@ class EpisodeMetadata:
     salvage_note: str = ""
     log_format_version: str = ""
     extra: Mapping[str, Any] = field(default_factory=dict)
+    timing: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.controller, ControllerInfo):
@@ -179,6 +184,7 @@ class EpisodeMetadata:
                              f"the sample rate {rate} Hz")
         object.__setattr__(self, "excitation", _plain_json(self.excitation, "excitation"))
         object.__setattr__(self, "extra", _plain_json(self.extra, "extra"))
+        object.__setattr__(self, "timing", _plain_json(self.timing, "timing"))
 
     @property
     def dt(self) -> float:

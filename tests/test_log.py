@@ -27,7 +27,7 @@ from daq.log import (
     read_episode_metadata,
     write_episode,
 )
-from daq.log.schema import parse_schema
+from daq.log.schema import FORMAT_VERSION, parse_schema
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -58,7 +58,7 @@ def test_whole_episode_round_trip_is_exact(tmp_path):
     assert read.saturation.dtype == np.int8
     meta = read.metadata
     assert meta.status == "complete" and not meta.salvaged and read.is_complete
-    assert meta.log_format_version == "1.0"
+    assert meta.log_format_version == FORMAT_VERSION
     assert (meta.backend, meta.source, meta.start_time) == ("sim", "unit test", "2026-11-21T12:00:00+00:00")
     assert meta.excitation == episode.metadata.excitation
     assert meta.controller.gains == episode.metadata.controller.gains
@@ -233,7 +233,7 @@ def test_mcap_library_reads_one_scalar_message_per_sample(tmp_path):
         assert fields["controller_state_1"] == episode.controller_state[k, 1]
         assert fields["saturation"] == episode.saturation[k]
     assert metadata["qube.status"] == {"status": "complete", "reason": "", "n_samples": "600"}
-    assert metadata["qube.episode"]["format_version"] == "1.0"
+    assert metadata["qube.episode"]["format_version"] == FORMAT_VERSION
 
 
 # --- salvage -----------------------------------------------------------------

@@ -60,9 +60,18 @@ def episode_records(meta: EpisodeMetadata) -> dict[str, dict[str, str]]:
     }
 
 
-def status_record(status: str, reason: str, n_samples: int) -> dict[str, str]:
-    """The record written when an episode ends."""
-    return {"status": status, "reason": reason, "n_samples": str(n_samples)}
+def status_record(status: str, reason: str, n_samples: int,
+                  timing: Mapping | None = None) -> dict[str, str]:
+    """The record written when an episode ends (``timing``: JSON, only when given)."""
+    record = {"status": status, "reason": reason, "n_samples": str(n_samples)}
+    if timing:
+        record["timing"] = _json(_finite(dict(timing)))
+    return record
+
+
+def _finite(timing: dict) -> dict:
+    # JSON has no NaN: a statistic that was not measured is written as null.
+    return {k: None if isinstance(v, float) and v != v else v for k, v in timing.items()}
 
 
 def _major(version: str) -> str:
@@ -111,11 +120,14 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
             **{m: json.loads(controller[m]) for m in "ABCD"},
         })
         status = records.get(STATUS_RECORD)
+        timing = {}
         if status is None:
             status_value = "incomplete"
             reason = "no final status record: the writer stopped before finishing the episode"
         else:
             status_value, reason = status.get("status", ""), status.get("reason", "")
+            if "timing" in status:
+                timing = json.loads(status["timing"])
         return EpisodeMetadata(
             controller=controller_info,
             sample_rate_hz=float(episode["sample_rate_hz"]),
@@ -130,6 +142,7 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
             salvage_note=salvage_note,
             log_format_version=version,
             extra=json.loads(episode["extra"]),
+            timing=timing,
         )
     except (ValueError, TypeError, KeyError) as exc:
         raise ValueError(f"{where}: malformed episode metadata: {exc}") from None

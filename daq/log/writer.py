@@ -7,7 +7,7 @@ import struct
 import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import IO
+from typing import IO, Mapping
 
 import numpy as np
 
@@ -197,7 +197,7 @@ class EpisodeWriter:
         if self._fsync:
             os.fsync(self._file.fileno())
 
-    def finish(self, status: str = "complete", reason: str = "") -> None:
+    def finish(self, status: str = "complete", reason: str = "", timing: Mapping | None = None) -> None:
         """Record the final status and close the file.
 
         Parameters
@@ -206,6 +206,9 @@ class EpisodeWriter:
             How the episode ended.
         reason : str
             Why it was aborted (required then).
+        timing : mapping, optional
+            The loop's timing statistics of the episode (plain numbers;
+            NaN is stored as null), recorded with the status.
         """
         self._check_open()
         if status not in ("complete", "aborted"):
@@ -214,7 +217,7 @@ class EpisodeWriter:
             raise ValueError("an aborted episode needs a reason")
         # Flush first so the status record follows the last chunk in the file.
         self.flush()
-        self._mcap.add_metadata(STATUS_RECORD, status_record(status, reason, self._n))
+        self._mcap.add_metadata(STATUS_RECORD, status_record(status, reason, self._n, timing))
         self._mcap.finish()
         self._file.flush()
         if self._fsync:
