@@ -1,0 +1,87 @@
+"""The backend contract: the loop's only view of the hardware (DESIGN.md, Backend).
+
+A backend starts, gives one sample (theta, alpha) per tick, takes one
+command (V) per tick, stops with the motor at 0 V, and reports faults by
+raising :class:`BackendFault`. Backends differ in who keeps time, which
+they declare through :attr:`Backend.pacing`, so the loop needs no other
+knowledge of them:
+
+- ``Pacing.DEVICE``: :meth:`Backend.read` blocks until the device's next
+  sample (a bridge microcontroller owning the 500 Hz clock).
+- ``Pacing.LOOP``: the loop must pace ticks by its own deadlines
+  (the simulator in real time).
+- ``Pacing.NONE``: nothing keeps time; ticks run as fast as they can
+  (the simulator for batch collection and CI).
+"""
+
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+
+__all__ = ["Backend", "BackendFault", "Pacing"]
+
+
+class Pacing(str, enum.Enum):
+    """Who paces the ticks of a backend."""
+
+    DEVICE = "device"
+    LOOP = "loop"
+    NONE = "none"
+
+
+class BackendFault(RuntimeError):
+    """The backend cannot go on (lost link, amplifier fault, stall...); the message says why."""
+
+
+class Backend(ABC):
+    """Interface of an acquisition backend.
+
+    Attributes
+    ----------
+    name : str
+        Short name recorded in episode logs (``"sim"``, ``"serial"``).
+    pacing : Pacing
+        Who keeps time (see the module docstring).
+    sample_period : float
+        Seconds between samples.
+    """
+
+    name: str = "backend"
+    pacing: Pacing = Pacing.NONE
+    sample_period: float = 1.0 / 500.0
+
+    @abstractmethod
+    def start(self) -> None:
+        """Prepare for an episode (called before every episode)."""
+
+    @abstractmethod
+    def read(self) -> tuple[float, float]:
+        """This tick's measured (theta, alpha) in rad, alpha = 0 upright.
+
+        Raises
+        ------
+        BackendFault
+            When no valid sample can be had.
+        """
+
+    @abstractmethod
+    def write(self, volts: float) -> None:
+        """Command the motor voltage for this tick (already clamped by the loop).
+
+        Raises
+        ------
+        BackendFault
+            When the command cannot be delivered.
+        """
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Put the motor at 0 V and end the episode; safe to call twice and after a fault."""
+
+    def describe(self) -> dict:
+        """Plain-data description for the episode metadata (settings, initial state...)."""
+        return {"name": self.name, "pacing": self.pacing.value}
+
+    def close(self) -> None:
+        """Release resources when no more episodes will run (default: nothing to release)."""

@@ -1,0 +1,111 @@
+"""The simulated QUBE-Servo as a backend: the ``sim.pendulum`` model behind the backend contract.
+
+Each episode starts upright with a small seeded perturbation of the
+pendulum angle, so the start gate (|alpha| < 5 deg) passes at once: a
+simulated pendulum cannot be raised by hand. Measurements follow the
+dataset's conventions (alpha = 0 upright, 2048-count encoders).
+
+Time: each :meth:`SimBackend.write` holds the command for one sample period
+and advances the model by it, so the next :meth:`SimBackend.read` returns
+the encoders one period later, as on the rig (read, compute, write, wait).
+Free-running, this runs as fast as the CPU allows; with ``realtime=True``
+the backend asks the loop to pace ticks by wall-clock deadlines.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+
+import numpy as np
+
+from daq.backends.base import Backend, BackendFault, Pacing
+from sim.pendulum import SAMPLE_PERIOD, PendulumParameters, PendulumSimulator, SensorModel
+
+__all__ = ["SimBackend", "DEFAULT_PERTURBATION"]
+
+#: Largest initial |alpha| (rad) by default: well inside the 5 deg start gate.
+DEFAULT_PERTURBATION = math.radians(2.0)
+
+
+class SimBackend(Backend):
+    """The pendulum simulator behind the backend contract.
+
+    Parameters
+    ----------
+    params : PendulumParameters
+        Physical model.
+    sensor : SensorModel
+        Encoders (and optional noise).
+    perturbation : float
+        Each episode starts at rest with alpha drawn uniformly from
+        ``[-perturbation, perturbation]`` (rad) and theta = 0.
+    seed : int, optional
+        Seeds the perturbations and the sensor noise.
+    realtime : bool
+        Pace ticks like hardware (the loop's deadlines) instead of running
+        as fast as possible.
+    dt : float
+        Sample period (s).
+    """
+
+    name = "sim"
+    # Set by the instance from ``realtime``.
+    pacing = Pacing.NONE
+
+    def __init__(self, params: PendulumParameters = PendulumParameters(),
+                 sensor: SensorModel = SensorModel(), perturbation: float = DEFAULT_PERTURBATION,
+                 seed: int | None = None, realtime: bool = False, dt: float = SAMPLE_PERIOD) -> None:
+        if not (math.isfinite(perturbation) and perturbation >= 0):
+            raise ValueError(f"perturbation must be a non-negative angle in rad, got {perturbation!r}")
+        self.params = params
+        self.sensor = sensor
+        self.perturbation = float(perturbation)
+        self.seed = seed
+        self.realtime = bool(realtime)
+        self.pacing = Pacing.LOOP if realtime else Pacing.NONE
+        self.sample_period = float(dt)
+        self._rng = np.random.default_rng(seed)
+        noise_seed = int(self._rng.integers(2**63))
+        self._sim = PendulumSimulator(params, sensor, dt=dt, seed=noise_seed)
+        self._y = self._sim.measurement
+        self._initial_state = (0.0, 0.0, 0.0, 0.0)
+        self._running = False
+
+    def start(self) -> None:
+        """Reset the pendulum upright with a fresh random perturbation."""
+        alpha0 = float(self._rng.uniform(-self.perturbation, self.perturbation))
+        self._initial_state = (0.0, alpha0, 0.0, 0.0)
+        self._y = self._sim.reset(self._initial_state)
+        self._running = True
+
+    def read(self) -> tuple[float, float]:
+        """The encoders' (theta, alpha) at the current simulated time."""
+        if not self._running:
+            raise BackendFault("simulator read before start() or after stop()")
+        return self._y
+
+    def write(self, volts: float) -> None:
+        """Hold ``volts`` for one sample period (advances the simulation)."""
+        if not self._running:
+            raise BackendFault("simulator written before start() or after stop()")
+        try:
+            self._y = self._sim.step(volts)
+        except (ValueError, OverflowError) as exc:
+            raise BackendFault(f"simulator step failed: {exc}") from exc
+
+    def stop(self) -> None:
+        """End the episode (the simulated motor simply stops being driven)."""
+        self._running = False
+
+    @property
+    def state(self) -> np.ndarray:
+        """The true simulated state (theta, alpha, theta_dot, alpha_dot)."""
+        return self._sim.state
+
+    def describe(self) -> dict:
+        """Model, encoders, perturbation and this episode's initial state."""
+        return {**super().describe(), "realtime": self.realtime, "seed": self.seed,
+                "perturbation": self.perturbation, "initial_state": list(self._initial_state),
+                "params": asdict(self.params), "sensor": asdict(self.sensor),
+                "sample_period": self.sample_period}

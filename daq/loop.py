@@ -1,0 +1,310 @@
+"""The acquisition loop: one code path for every backend.
+
+Each tick: wait for the tick (the backend's clock, the loop's deadline, or
+nothing), read the sample, check safety, run the controller, saturate,
+write the command, hand the sample to the writer thread. The controller
+state is kept and logged every tick.
+
+Aborts (a safety limit, SIGINT/SIGTERM, a log that cannot be written) put
+the motor at 0 V in the tick that sees them, and that tick is logged with
+``plant_input = 0`` (what was applied). A backend fault ends the episode
+without logging the failed tick. In every case the samples already taken
+reach the sinks, which are closed with status ``aborted`` and the reason.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+
+import numpy as np
+
+from daq.backends.base import Backend, BackendFault, Pacing
+from daq.excitation import Excitation
+from daq.safety import SafetyLimits, StopRequest, stop_on_signals
+from daq.episode import ControllerInfo, EpisodeMetadata
+from daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
+from daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingStats, quiet_interpreter, timing_stats
+
+__all__ = ["ABORT_CAUSES", "EpisodePlan", "EpisodeResult", "run_episode", "REALTIME_SWITCH_INTERVAL"]
+
+#: Why an episode can end early: a safety limit, a stop request (signal),
+#: a backend fault, a sink (log) failure, the start gate, or an error in the loop.
+ABORT_CAUSES = ("safety", "stop", "fault", "log", "start", "error")
+
+#: GIL switch interval (s) while a paced episode runs: the loop thread, waking
+#: from its sleep, waits at most this long for the writer thread to yield.
+REALTIME_SWITCH_INTERVAL = 1e-4
+
+
+@dataclass(frozen=True, eq=False)
+class EpisodePlan:
+    """What one episode runs: the controller and the exogenous signals.
+
+    Parameters
+    ----------
+    controller : ControllerInfo
+        The controller: tracking errors (theta, alpha) in, volts out; its
+        ``dt`` must equal the backend's sample period.
+    excitation : Excitation
+        target_theta, target_alpha (rad) and feedforward (V), one value per tick.
+    excitation_info : dict
+        Seeds and settings of the excitation, recorded in the log.
+    index : int
+        Episode number within the run.
+    source : str
+        Run identifier recorded in the log.
+    extra : dict
+        Further provenance recorded in the log.
+    """
+
+    controller: ControllerInfo
+    excitation: Excitation
+    excitation_info: dict = field(default_factory=dict)
+    index: int = 0
+    source: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_samples(self) -> int:
+        """Ticks planned."""
+        return len(self.excitation.target_theta)
+
+
+@dataclass(frozen=True, eq=False)
+class EpisodeResult(EpisodeOutcome):
+    """How an episode went: its :class:`~daq.sinks.EpisodeOutcome` and more.
+
+    Attributes
+    ----------
+    metadata : EpisodeMetadata or None
+        What the sinks were told, with the final status; None when the episode never started
+        (backend failed to start, start gate not passed, stopped before).
+    sink_errors : tuple of str
+        Errors raised by sinks.
+    signal : int or None
+        The signal that stopped the episode, if one did.
+    cause : str
+        What ended an aborted episode: one of :data:`ABORT_CAUSES`; empty
+        when complete.
+    lateness, compute_time : ndarray of shape (n_samples,)
+        Per-tick timing (s); lateness is NaN for a free-running backend.
+    """
+
+    metadata: EpisodeMetadata | None = None
+    sink_errors: tuple[str, ...] = ()
+    signal: int | None = None
+    cause: str = ""
+    lateness: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    compute_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def complete(self) -> bool:
+        """True when the episode ran to its end."""
+        return self.status == "complete"
+
+    @property
+    def started(self) -> bool:
+        """True when the episode got past the start gate (so sinks hold it)."""
+        return self.metadata is not None
+
+
+def _zero_motor(backend: Backend) -> None:
+    # Best effort: after a fault the write may fail too, and stop() must still run.
+    try:
+        backend.write(0.0)
+    except BackendFault:
+        pass
+    finally:
+        backend.stop()
+
+
+def _wait_upright(backend: Backend, limits: SafetyLimits, stop: StopRequest,
+                  pacer: DeadlinePacer | None) -> tuple[str, str]:
+    """Hold 0 V until |alpha| < start_alpha; ('', '') once there, else (why not, cause)."""
+    max_ticks = (math.inf if limits.start_timeout is None
+                 else max(1, round(limits.start_timeout / backend.sample_period)))
+    k = 0
+    if pacer is not None:
+        pacer.start()
+    while True:
+        if stop.requested:
+            return f"{stop.reason} before the start", "stop"
+        _, alpha = backend.read()
+        if abs(alpha) < limits.start_alpha:
+            return "", ""
+        backend.write(0.0)
+        k += 1
+        if k >= max_ticks:
+            return (f"not started: |alpha| stayed above {math.degrees(limits.start_alpha):.1f} deg "
+                    f"for {limits.start_timeout} s", "start")
+        if pacer is not None:
+            pacer.wait(k)
+
+
+def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
+                limits: SafetyLimits = SafetyLimits(), stop: StopRequest | None = None,
+                handle_signals: bool = True, spin: float = DEFAULT_SPIN) -> EpisodeResult:
+    """Run one episode on a backend, under the safety supervisor, into sinks.
+
+    Parameters
+    ----------
+    backend : Backend
+        Started by this function and stopped (motor at 0 V) before it returns.
+    plan : EpisodePlan
+        Controller and excitation; the episode lasts ``plan.n_samples`` ticks.
+    sinks : list of Sink
+        Receive the episode on a writer thread.
+    limits : SafetyLimits
+        Voltage clamp, angle limits and start gate.
+    stop : StopRequest, optional
+        Set it (from another thread, or a signal handler) to end the episode
+        early; one is made when not given.
+    handle_signals : bool
+        Turn SIGINT and SIGTERM into a stop while the episode runs (main
+        thread only); the previous handlers are restored afterwards.
+    spin : float
+        For a loop-paced backend: spin this long before each deadline (s).
+
+    Returns
+    -------
+    EpisodeResult
+    """
+    ctrl = plan.controller.system
+    if ctrl.n_inputs != 2 or ctrl.n_outputs != 1:
+        raise ValueError("the controller must map the two tracking errors (theta, alpha) to one voltage; "
+                         f"got {ctrl.n_inputs} inputs and {ctrl.n_outputs} outputs")
+    period = backend.sample_period
+    if abs(ctrl.dt - period) > 1e-9 * period:
+        raise ValueError(f"controller dt {ctrl.dt} s differs from the backend's sample period {period} s")
+    stop = stop if stop is not None else StopRequest()
+    n = plan.n_samples
+    not_started = TimingStats(0, period, backend.pacing is not Pacing.NONE)
+
+    signals = stop_on_signals(stop) if handle_signals else nullcontext(False)
+    # The collector is frozen before the start gate: once the pendulum is upright,
+    # control must begin within a tick, not after a collection of the whole heap.
+    quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if backend.pacing is Pacing.LOOP else None)
+    with signals, quiet:
+        pacer = DeadlinePacer(period, spin) if backend.pacing is Pacing.LOOP else None
+        lateness = np.full(n, np.nan)
+        compute = np.full(n, np.nan)
+        try:
+            backend.start()
+            reason, cause = _wait_upright(backend, limits, stop, pacer)
+        except BackendFault as exc:
+            reason, cause = f"backend fault before the start: {exc}", "fault"
+        if reason:
+            _zero_motor(backend)
+            return EpisodeResult("aborted", reason, 0, not_started, None, signal=stop.signal, cause=cause)
+
+        metadata = EpisodeMetadata(
+            controller=plan.controller, sample_rate_hz=1.0 / period, backend=backend.name,
+            source=plan.source, start_time=datetime.now(timezone.utc).isoformat(),
+            excitation=plan.excitation_info,
+            extra={"episode_index": plan.index, "n_planned": n, "backend": backend.describe(),
+                   "safety": limits.as_dict(), **plan.extra})
+        writer = SinkWriter(sinks)
+        n_done = 0
+        reason = cause = ""
+        try:
+            if not writer.open(metadata):
+                reason, cause = f"log failed: {writer.failed}", "log"
+            else:
+                n_done, reason, cause = _ticks(backend, plan, limits, stop, writer, pacer, lateness, compute)
+        except BaseException as exc:
+            if not reason:
+                reason, cause = f"loop error: {type(exc).__name__}: {exc}", "error"
+            raise
+        finally:
+            _zero_motor(backend)
+            timing = timing_stats(lateness[:n_done], compute[:n_done], period)
+            outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing)
+            errors = writer.close(outcome)
+    metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict())
+    return EpisodeResult(outcome.status, reason, n_done, timing, metadata, tuple(errors), stop.signal, cause,
+                         lateness[:n_done], compute[:n_done])
+
+
+def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest,
+           writer: SinkWriter, pacer: DeadlinePacer | None, lateness: np.ndarray,
+           compute: np.ndarray) -> tuple[int, str, str]:
+    """The ticks of one episode; returns (ticks recorded, abort reason, cause), '' when complete."""
+    ctrl = plan.controller.system
+    # Plain floats and lists: numpy's per-call overhead would cost more than
+    # the arithmetic of a 2-state controller.
+    A = ctrl.A.tolist()
+    B = ctrl.B.tolist()
+    C = ctrl.C[0].tolist()
+    D0, D1 = ctrl.D[0].tolist()
+    rows = [(a, b[0], b[1]) for a, b in zip(A, B)]
+    xc = (0.0,) * ctrl.n_states
+    ex = plan.excitation
+    ref_theta = np.asarray(ex.target_theta, dtype=float).tolist()
+    ref_alpha = np.asarray(ex.target_alpha, dtype=float).tolist()
+    ff = np.asarray(ex.feedforward, dtype=float).tolist()
+    vmax = limits.max_voltage
+    th_lim, al_lim = limits.theta_limit, limits.alpha_limit
+    period = backend.sample_period
+    pacing = backend.pacing
+    read, write, put = backend.read, backend.write, writer.put
+    clock = time.perf_counter
+    nan = math.nan
+    late = nan
+    t0 = 0.0
+    if pacer is not None:
+        pacer.start()
+    wait = pacer.wait if pacer is not None else None
+    device = pacing is Pacing.DEVICE
+
+    for k in range(len(ff)):
+        if wait is not None:
+            late = wait(k)
+            t_tick = clock()
+        try:
+            theta, alpha = read()
+        except BackendFault as exc:
+            return k, f"backend fault: {exc}", "fault"
+        if wait is None:
+            t_tick = clock()
+            if device:
+                if k == 0:
+                    t0 = t_tick
+                late = t_tick - (t0 + k * period)
+        r_theta, r_alpha = ref_theta[k], ref_alpha[k]
+        e0 = r_theta - theta
+        e1 = r_alpha - alpha
+        u = D0 * e0 + D1 * e1
+        for c, x in zip(C, xc):
+            u += c * x
+        reason = ""
+        if not (abs(theta) <= th_lim and abs(alpha) <= al_lim):
+            reason, cause = limits.violation(theta, alpha), "safety"
+        elif stop.requested:
+            reason, cause = stop.reason, "stop"
+        elif writer.failed is not None:
+            reason, cause = f"log failed: {writer.failed}", "log"
+        if reason:
+            v, sat = 0.0, 0
+        else:
+            v = u + ff[k]
+            sat = 0
+            if v > vmax:
+                v, sat = vmax, 1
+            elif v < -vmax:
+                v, sat = -vmax, -1
+        try:
+            write(v)
+        except BackendFault as exc:
+            return k, f"backend fault: {exc}", "fault"
+        spent = clock() - t_tick
+        lateness[k] = late
+        compute[k] = spent
+        put(Sample(k, k * period, theta, alpha, r_theta, r_alpha, ff[k], u, v, sat, late, spent, xc))
+        if reason:
+            return k + 1, reason, cause
+        xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 for row, b0, b1 in rows])
+    return len(ff), "", ""

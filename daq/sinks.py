@@ -1,0 +1,296 @@
+"""Where the loop's samples go: sinks fed by a writer thread through a queue.
+
+The loop thread only puts one :class:`Sample` per tick on a queue; a
+:class:`SinkWriter` thread hands them to the sinks (episode log, live view,
+progress bar), so file I/O and compression never stall a tick. A sink
+implements ``open(metadata)``, ``write(sample)`` and ``close(outcome)``; those
+run on the writer thread except ``open``, which runs before the first tick.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from daq.episode import Episode, EpisodeMetadata
+from daq.timing import TimingStats
+
+__all__ = [
+    "Sample",
+    "SAMPLE_FIELDS",
+    "EpisodeOutcome",
+    "Sink",
+    "MemorySink",
+    "MemoryEpisode",
+    "SinkWriter",
+    "McapSink",
+    "episode_file_stem",
+]
+
+
+class Sample(NamedTuple):
+    """One tick, as the loop hands it to the sinks (units: s, rad, V).
+
+    ``controller_state`` is the state the controller held when it computed
+    ``control_output`` (before that tick's update). ``saturation`` is -1, 0
+    or +1 when ``plant_input`` was clipped at the lower limit, not clipped,
+    or clipped at the upper limit.
+    """
+
+    k: int
+    t: float
+    theta: float
+    alpha: float
+    target_theta: float
+    target_alpha: float
+    feedforward: float
+    control_output: float
+    plant_input: float
+    saturation: int
+    lateness: float
+    compute_time: float
+    controller_state: tuple[float, ...]
+
+
+SAMPLE_FIELDS = Sample._fields
+
+
+@dataclass(frozen=True)
+class EpisodeOutcome:
+    """How an episode ended.
+
+    Attributes
+    ----------
+    status : {"complete", "aborted"}
+    reason : str
+        Why it was aborted; empty when complete.
+    n_samples : int
+        Ticks recorded.
+    timing : TimingStats
+    """
+
+    status: str
+    reason: str
+    n_samples: int
+    timing: TimingStats
+
+    def as_dict(self) -> dict:
+        """Plain-data form."""
+        return asdict(self)
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """A consumer of episodes. ``required = False`` sinks may fail without aborting the episode."""
+
+    required: bool
+
+    def open(self, metadata: EpisodeMetadata) -> None:
+        """An episode starts (called on the loop's thread, before tick 0)."""
+
+    def write(self, sample: Sample) -> None:
+        """One tick (called on the writer thread, in tick order)."""
+
+    def close(self, outcome: EpisodeOutcome) -> None:
+        """The episode ended; every sample has been written (writer thread or caller)."""
+
+
+@dataclass(eq=False)
+class MemoryEpisode:
+    """One episode held by :class:`MemorySink`."""
+
+    metadata: EpisodeMetadata
+    samples: list = field(default_factory=list)
+    outcome: EpisodeOutcome | None = None
+
+    def episode(self) -> Episode:
+        """The samples so far as an :class:`~daq.episode.Episode`, with the final status once closed."""
+        from dataclasses import replace
+
+        n = len(self.samples)
+        n_c = self.metadata.controller.system.n_states
+        columns = {name: np.array([getattr(s, name) for s in self.samples], dtype=float)
+                   for name in SAMPLE_FIELDS if name not in ("k", "saturation", "controller_state")}
+        state = np.array([s.controller_state for s in self.samples], dtype=float).reshape(n, n_c)
+        saturation = np.array([s.saturation for s in self.samples], dtype=np.int8)
+        meta = self.metadata
+        if self.outcome is not None:
+            meta = replace(meta, status=self.outcome.status, status_reason=self.outcome.reason,
+                           timing=self.outcome.timing.as_dict())
+        return Episode(**columns, controller_state=state, saturation=saturation, metadata=meta)
+
+
+class MemorySink:
+    """Keeps every episode in memory (tests, and quick experiments in a notebook)."""
+
+    required = True
+
+    def __init__(self) -> None:
+        self.episodes: list[MemoryEpisode] = []
+
+    def open(self, metadata: EpisodeMetadata) -> None:
+        self.episodes.append(MemoryEpisode(metadata))
+
+    def write(self, sample: Sample) -> None:
+        self.episodes[-1].samples.append(sample)
+
+    def close(self, outcome: EpisodeOutcome) -> None:
+        self.episodes[-1].outcome = outcome
+
+
+class SinkWriter:
+    """A thread that feeds the loop's samples to the sinks of one episode.
+
+    ``put`` is the only call the loop makes per tick: an append to a deque,
+    which wakes nobody. The writer thread polls every ``poll_interval``
+    seconds and drains what has accumulated, so it competes with the loop
+    for the interpreter a few dozen times a second instead of once per tick.
+    A required sink that raises sets :attr:`failed` (the loop then aborts
+    the episode); an optional one is dropped with its error recorded in
+    :attr:`errors`.
+
+    Parameters
+    ----------
+    sinks : sequence of Sink
+    poll_interval : float
+        Seconds between the writer thread's visits to the queue.
+    """
+
+    def __init__(self, sinks: Sequence[Sink], poll_interval: float = 0.01) -> None:
+        self.sinks = list(sinks)
+        self.errors: list[str] = []
+        self.failed: str | None = None
+        self.poll_interval = poll_interval
+        self._queue: deque = deque()
+        self._closing = threading.Event()
+        self.put = self._queue.append
+        self._opened: list[Any] = []
+        self._active: list[Any] = []
+        self._thread: threading.Thread | None = None
+
+    def _record(self, sink, what: str, exc: BaseException) -> None:
+        message = f"{type(sink).__name__}.{what}: {type(exc).__name__}: {exc}"
+        self.errors.append(message)
+        if getattr(sink, "required", True) and self.failed is None:
+            self.failed = message
+
+    def open(self, metadata: EpisodeMetadata) -> bool:
+        """Open every sink and start the thread; False when a required sink failed to open."""
+        self._opened = []
+        for sink in self.sinks:
+            try:
+                sink.open(metadata)
+                self._opened.append(sink)
+            except Exception as exc:  # noqa: BLE001 - any sink error is reported, not raised
+                self._record(sink, "open", exc)
+        self._active = list(self._opened)
+        self._thread = threading.Thread(target=self._run, name="episode-writer", daemon=True)
+        self._thread.start()
+        return self.failed is None
+
+    def _run(self) -> None:
+        pop = self._queue.popleft
+        while True:
+            # Read the flag before draining: whatever was put before close() is then drained.
+            closing = self._closing.is_set()
+            while self._queue:
+                item = pop()
+                for sink in self._active:
+                    try:
+                        sink.write(item)
+                    except Exception as exc:  # noqa: BLE001
+                        self._record(sink, "write", exc)
+                        self._active = [s for s in self._active if s is not sink]
+            if closing:
+                return
+            self._closing.wait(self.poll_interval)
+
+    def close(self, outcome: EpisodeOutcome) -> list[str]:
+        """Write every queued sample, then close the sinks; returns the errors of the episode."""
+        if self._thread is not None:
+            self._closing.set()
+            self._thread.join()
+            self._thread = None
+        # A sink that failed mid-episode still gets closed: the log then
+        # records the abort and the samples it did take.
+        for sink in self._opened:
+            if sink in self._active or getattr(sink, "required", True):
+                try:
+                    sink.close(outcome)
+                except Exception as exc:  # noqa: BLE001
+                    self._record(sink, "close", exc)
+        self._opened = self._active = []
+        return list(self.errors)
+
+
+class McapSink:
+    """Writes each episode to its own MCAP episode log in a folder (format: daq/log/FORMAT.md).
+
+    Files are named ``qube_<UTC date>T<time>_<s1>_<s2>_<s3>.mcap`` after the
+    start time and the excitation seeds, like the dataset's CSV files; a
+    name already taken gets a ``_<n>`` suffix rather than overwriting.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Folder for the logs (must exist).
+    flush_interval_s : float
+        Make the samples durable every this many seconds of data, so a
+        killed process loses at most that much.
+
+    Attributes
+    ----------
+    paths : list of Path
+        The files written, in episode order.
+    """
+
+    required = True
+
+    def __init__(self, out_dir, flush_interval_s: float = 0.5) -> None:
+        from pathlib import Path
+
+        self.out_dir = Path(out_dir)
+        self.flush_interval_s = flush_interval_s
+        self.paths: list = []
+        self._writer = None
+
+    def open(self, metadata: EpisodeMetadata) -> None:
+        from daq.log import EpisodeWriter
+
+        base = episode_file_stem(metadata)
+        path = self.out_dir / f"{base}.mcap"
+        n = 1
+        while path.exists():
+            path = self.out_dir / f"{base}_{n}.mcap"
+            n += 1
+        self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
+        self.paths.append(path)
+
+    def write(self, sample: Sample) -> None:
+        self._writer.write_sample(t=sample.t, theta=sample.theta, alpha=sample.alpha,
+                                  target_theta=sample.target_theta, target_alpha=sample.target_alpha,
+                                  feedforward=sample.feedforward, controller_state=sample.controller_state,
+                                  control_output=sample.control_output, plant_input=sample.plant_input,
+                                  saturation=sample.saturation, lateness=sample.lateness,
+                                  compute_time=sample.compute_time)
+
+    def close(self, outcome: EpisodeOutcome) -> None:
+        writer, self._writer = self._writer, None
+        if writer is not None and not writer.finished:
+            writer.finish(outcome.status, outcome.reason, outcome.timing.as_dict())
+
+
+def episode_file_stem(metadata: EpisodeMetadata) -> str:
+    """``qube_<date>T<time>_<s1>_<s2>_<s3>``: start time (UTC) and excitation seeds, as the dataset named files."""
+    start = metadata.start_datetime
+    if start.tzinfo is not None:
+        from datetime import timezone
+
+        start = start.astimezone(timezone.utc)
+    seeds = metadata.excitation.get("seeds", {})
+    parts = [str(seeds[k]) for k in ("target_theta", "target_alpha", "feedforward") if k in seeds]
+    return "_".join([f"qube_{start:%Y%m%dT%H%M%S}", *parts])
