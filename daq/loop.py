@@ -249,6 +249,7 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
     vmax = limits.max_voltage
     th_lim, al_lim = limits.theta_limit, limits.alpha_limit
     period = backend.sample_period
+    rate = 1.0 / period  # t = k / rate, the log's nominal time (FORMAT.md)
     pacing = backend.pacing
     read, write, put = backend.read, backend.write, writer.put
     clock = time.perf_counter
@@ -303,7 +304,7 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         spent = clock() - t_tick
         lateness[k] = late
         compute[k] = spent
-        put(Sample(k, k * period, theta, alpha, r_theta, r_alpha, ff[k], u, v, sat, late, spent, xc))
+        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[k], u, v, sat, late, spent, xc))
         if reason:
             return k + 1, reason, cause
         xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 for row, b0, b1 in rows])

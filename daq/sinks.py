@@ -133,12 +133,15 @@ class MemorySink:
         self.episodes: list[MemoryEpisode] = []
 
     def open(self, metadata: EpisodeMetadata) -> None:
+        """Start a new episode."""
         self.episodes.append(MemoryEpisode(metadata))
 
     def write(self, sample: Sample) -> None:
+        """Keep one tick."""
         self.episodes[-1].samples.append(sample)
 
     def close(self, outcome: EpisodeOutcome) -> None:
+        """Record how the episode ended."""
         self.episodes[-1].outcome = outcome
 
 
@@ -259,6 +262,7 @@ class McapSink:
         self._writer = None
 
     def open(self, metadata: EpisodeMetadata) -> None:
+        """Create the episode's file and write its metadata (durable at once)."""
         from daq.log import EpisodeWriter
 
         base = episode_file_stem(metadata)
@@ -271,6 +275,7 @@ class McapSink:
         self.paths.append(path)
 
     def write(self, sample: Sample) -> None:
+        """Append one tick (flushed every ``flush_interval_s`` of data)."""
         self._writer.write_sample(t=sample.t, theta=sample.theta, alpha=sample.alpha,
                                   target_theta=sample.target_theta, target_alpha=sample.target_alpha,
                                   feedforward=sample.feedforward, controller_state=sample.controller_state,
@@ -279,6 +284,7 @@ class McapSink:
                                   compute_time=sample.compute_time)
 
     def close(self, outcome: EpisodeOutcome) -> None:
+        """Record the final status and timing statistics, and close the file."""
         writer, self._writer = self._writer, None
         if writer is not None and not writer.finished:
             writer.finish(outcome.status, outcome.reason, outcome.timing.as_dict())

@@ -1,0 +1,355 @@
+"""``qube-run``: collect closed-loop episodes of the QUBE-Servo (simulated for now) into MCAP logs."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+PROG = "qube-run"
+DEFAULT_EPISODES = 3
+DEFAULT_DURATION = 20.0
+DEFAULT_OUT = Path("episodes")
+
+_DESCRIPTION = """\
+Run closed-loop episodes of the QUBE-Servo rotary inverted pendulum and write
+one MCAP episode log per episode (format: daq/log/FORMAT.md).
+
+Each episode: the pendulum starts upright (the simulator adds a small random
+perturbation), the PD controller balances it while the rig's excitation
+(PRBS references and feedforward, three seeds per episode drawn from --seed)
+drives it. Every tick is logged: angles, references, feedforward, controller
+state and output, applied voltage, saturation, lateness and compute time.
+Safety: the command is clamped to +-10 V; an episode stops with the motor at
+0 V when |theta| > 90 deg or |alpha| > 45 deg; Ctrl-C or SIGTERM stops the
+run with the motor at 0 V and the current log closed as "aborted".
+
+With no arguments: 3 episodes of 20 s on the simulator, as fast as the
+computer allows, into ./episodes.
+"""
+
+_EPILOG = """\
+exit status: 0 when every episode completed, 1 when any was aborted (or a run
+error), 2 on a usage error, 130 / 143 when stopped by SIGINT / SIGTERM.
+
+examples:
+  qube-run                                        # 3 x 20 s on the simulator into ./episodes
+  qube-run --episodes 48 --seed 1 --out data/     # a dataset the size of the paper's
+  qube-run --realtime --rerun                     # paced like hardware, live in a rerun viewer
+  qube-run --controller gains.toml --rerun-save run.rrd
+"""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, no usage dump
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    if text.strip() in ("0", "0.0"):
+        return 0.0
+    return _positive_float(text)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser (also documents the options)."""
+    p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--backend", default="sim", choices=("sim", "serial"),
+                   help="sim: the simulated pendulum (default); serial: the bridge firmware (not available yet)")
+    p.add_argument("--episodes", type=_positive_int, default=DEFAULT_EPISODES, metavar="N",
+                   help=f"number of episodes (default {DEFAULT_EPISODES})")
+    p.add_argument("--duration", type=_positive_float, default=DEFAULT_DURATION, metavar="S",
+                   help=f"seconds per episode (default {DEFAULT_DURATION:g}; the excitation is active "
+                        "from 20%% to 80%% of it, as the rig's was from 4 s to 16 s of 20 s)")
+    p.add_argument("--seed", type=int, default=None, metavar="K",
+                   help="run seed: draws the three excitation seeds of every episode and the "
+                        "simulator's perturbations (default: a fresh one, printed so the run can be repeated)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
+                   help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT})")
+    p.add_argument("--controller", type=Path, default=None, metavar="FILE.toml",
+                   help="controller gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau); default: the "
+                        "gains that recorded the paper's dataset")
+    p.add_argument("--discretization", default="backward-euler", choices=("backward-euler", "zoh", "tustin"),
+                   help="discretization of the derivative filters (default backward-euler, as the rig ran)")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the simulator like hardware, one tick every 2 ms (default: as fast as possible)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="URL",
+                   help="stream live to a rerun viewer: URL, else one listening on 127.0.0.1:9876, "
+                        "else a newly spawned one (needs a display)")
+    p.add_argument("--rerun-save", type=Path, default=None, metavar="FILE.rrd",
+                   help="write a rerun recording of the run (no display needed)")
+    safety = p.add_argument_group("safety and simulator")
+    safety.add_argument("--theta-limit", type=_positive_float, default=90.0, metavar="DEG",
+                        help="stop an episode when |theta| exceeds this (default 90)")
+    safety.add_argument("--alpha-limit", type=_positive_float, default=45.0, metavar="DEG",
+                        help="stop an episode when |alpha| exceeds this (default 45)")
+    safety.add_argument("--perturbation", type=_non_negative_float, default=2.0, metavar="DEG",
+                        help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
+                             "an episode starts only once |alpha| < 5)")
+    rt = p.add_argument_group("real-time scheduling (attempted only when asked; works without)")
+    rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
+    rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                    help="run SCHED_FIFO at priority P (1..99; needs permission)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+class _Fail(Exception):
+    """A user-facing error: printed as one line, exit status 1 or 2."""
+
+    def __init__(self, message: str, status: int = 2) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class _Progress:
+    """Progress on stderr: a bar redrawn in place on a terminal, one line per episode otherwise."""
+
+    WIDTH = 30
+
+    def __init__(self, n_episodes: int, samples_per_episode: int, enabled: bool) -> None:
+        self.n = n_episodes
+        self.per = samples_per_episode
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self.episode = 0
+        self.samples = 0
+        self.aborted = 0
+        self._lock = threading.Lock()
+        self._last = 0.0
+
+    # Called as a sink on the writer thread: redraw at most 10 times a second.
+    required = False
+
+    def open(self, metadata) -> None:
+        self.samples = 0
+
+    def write(self, sample) -> None:
+        self.samples = sample.k + 1
+        now = time.monotonic()
+        if self.tty and now - self._last > 0.1:
+            self._last = now
+            self._draw()
+
+    def close(self, outcome) -> None:
+        pass
+
+    def _draw(self, newline: bool = False) -> None:
+        if not (self.enabled and self.tty):
+            return
+        done = (self.episode + min(self.samples, self.per) / self.per) / self.n
+        filled = int(done * self.WIDTH)
+        bar = "#" * filled + "-" * (self.WIDTH - filled)
+        text = f"[{bar}] {100 * done:5.1f}%  episode {min(self.episode + 1, self.n)}/{self.n}"
+        if self.aborted:
+            text += f"  ({self.aborted} aborted)"
+        with self._lock:
+            print(f"\r\033[K{text}", end="\n" if newline else "", file=sys.stderr, flush=True)
+
+    def episode_done(self, index: int, result, name: str) -> None:
+        self.episode = index + 1
+        self.samples = 0
+        self.aborted += not result.complete
+        if not self.enabled:
+            return
+        if self.tty:
+            self._draw(newline=self.episode >= self.n or not result.complete)
+        else:
+            status = result.status + (f" ({result.reason})" if result.reason else "")
+            print(f"[{self.episode}/{self.n}] {name}: {status}", file=sys.stderr, flush=True)
+
+    def clear(self) -> None:
+        if self.enabled and self.tty:
+            with self._lock:
+                print("\r\033[K", end="", file=sys.stderr, flush=True)
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value * 1e3:.3f}"
+
+
+def summary_table(rows: list[tuple[str, object]], totals) -> str:
+    """The end-of-run table: one row per episode, then the whole run's timing."""
+    header = ("#", "log file", "status", "samples", "late p50 ms", "p99 ms", "max ms", "overruns",
+              "compute p99 ms")
+    lines = []
+    table = [header]
+    for i, (name, r) in enumerate(rows):
+        t = r.timing
+        table.append((str(i), name, r.status, str(r.n_samples), _ms(t.lateness_p50), _ms(t.lateness_p99),
+                      _ms(t.lateness_max), str(t.overruns) if t.paced else "-", _ms(t.compute_p99)))
+    widths = [max(len(row[j]) for row in table) for j in range(len(header))]
+    for j, row in enumerate(table):
+        lines.append("  ".join(c.ljust(w) if k < 3 else c.rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
+        if j == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    for i, (name, r) in enumerate(rows):
+        if r.reason:
+            lines.append(f"episode {i}: {r.reason}")
+    t = totals
+    line = f"all {t.n_ticks} ticks: "
+    if t.paced:
+        line += (f"lateness p50 {_ms(t.lateness_p50)} ms, p99 {_ms(t.lateness_p99)} ms, max "
+                 f"{_ms(t.lateness_max)} ms; {t.overruns} overruns, {t.stalls} stalls > 2 ms; ")
+    else:
+        line += "free-running (no deadlines); "
+    line += f"compute p50 {_ms(t.compute_p50)} ms, p99 {_ms(t.compute_p99)} ms, max {_ms(t.compute_max)} ms"
+    lines.append(line)
+    return "\n".join(lines)
+
+
+def _check_writable(folder: Path) -> None:
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise _Fail(f"cannot write episode logs to {folder}: {exc.strerror or exc}") from None
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``qube-run``; returns the exit status (see ``qube-run --help``)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, or a usage error already explained in one line
+        return int(exc.code or 0)
+    try:
+        return _run(args)
+    except _Fail as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return exc.status
+    except KeyboardInterrupt:  # only before the run's signal handlers, before anything was written
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _run(args) -> int:
+    if args.backend == "serial":
+        raise _Fail("--backend serial is not available yet (the serial bridge comes in a later "
+                    "release); use --backend sim")
+    import numpy as np
+
+    from daq.backends import SimBackend
+    from daq.loop import EpisodeResult
+    from daq.safety import SafetyLimits
+    from daq.session import (excitation_settings, load_controller, plan_episodes, run_episodes,
+                             run_seeds)
+    from daq.sinks import McapSink
+    from daq.timing import realtime_scheduling, timing_stats
+
+    rate = 500.0
+    try:
+        settings = excitation_settings(args.duration, rate)
+    except ValueError as exc:
+        raise _Fail(f"--duration: {exc}") from None
+    try:
+        controller = load_controller(args.controller, args.discretization, 1.0 / rate)
+    except ValueError as exc:
+        raise _Fail(f"--controller: {exc}") from None
+    try:
+        limits = SafetyLimits(theta_limit=math.radians(args.theta_limit),
+                              alpha_limit=math.radians(args.alpha_limit))
+    except ValueError as exc:
+        raise _Fail(str(exc)) from None
+    if math.radians(args.perturbation) >= limits.start_alpha:
+        raise _Fail(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
+                    f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
+    _check_writable(args.out)
+    if args.rerun_save is not None and not args.rerun_save.parent.is_dir():
+        raise _Fail(f"--rerun-save: folder {args.rerun_save.parent} does not exist")
+
+    seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 1_000_000)
+    seeds, backend_seed = run_seeds(seed, args.episodes)
+    run_id = f"qube-run seed {seed}"
+    plans = plan_episodes(controller, seeds, settings, source=run_id,
+                          extra={"run_seed": seed, "command": "qube-run"})
+    backend = SimBackend(perturbation=math.radians(args.perturbation), seed=backend_seed,
+                         realtime=args.realtime, dt=1.0 / rate)
+
+    sinks: list = [McapSink(args.out)]
+    rerun_sink = None
+    if args.rerun is not None or args.rerun_save is not None:
+        from daq.viz import RerunSink, RerunUnavailable, open_recording
+
+        try:
+            recording = open_recording(live=args.rerun is not None, url=args.rerun or None,
+                                       save=args.rerun_save)
+        except RerunUnavailable as exc:
+            raise _Fail(f"--rerun: {exc}", status=1) from None
+        rerun_sink = RerunSink(recording)
+        sinks.append(rerun_sink)
+    progress = _Progress(args.episodes, settings.n_samples, enabled=not args.quiet)
+    sinks.append(progress)
+
+    pace = "paced in real time" if args.realtime else "free-running"
+    print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on the "
+          f"simulator ({pace}), seed {seed}, controller "
+          f"{args.controller or 'of the paper dataset'} ({args.discretization}), logs to {args.out}/",
+          flush=True)
+    mcap: McapSink = sinks[0]
+    names: list[str] = []
+
+    def on_result(plan, result: EpisodeResult) -> None:
+        name = mcap.paths[-1].name if result.started and mcap.paths else "(not started)"
+        names.append(name)
+        progress.episode_done(plan.index, result, name)
+
+    want_rt = args.rt_cpu is not None or args.rt_priority is not None
+    try:
+        with realtime_scheduling(args.rt_cpu, args.rt_priority) as rt:
+            if want_rt:
+                print(f"{PROG}: real-time scheduling: {rt.describe()}", flush=True)
+            run = run_episodes(backend, plans, sinks, limits=limits, on_result=on_result)
+    finally:
+        progress.clear()
+        if rerun_sink is not None:
+            rerun_sink.finish()
+
+    results = run.results
+    started = [r for r in results if r.started]
+    late = np.concatenate([r.lateness for r in results]) if results else np.zeros(0)
+    comp = np.concatenate([r.compute_time for r in results]) if results else np.zeros(0)
+    print(summary_table(list(zip(names, results)), timing_stats(late, comp, 1.0 / rate)))
+    for r in results:
+        for error in r.sink_errors:
+            print(f"{PROG}: warning: {error}", file=sys.stderr)
+    out = args.out.resolve()
+    print(f"{run.n_complete} complete, {run.n_aborted} aborted; {len(started)} episode "
+          f"log{'s' if len(started) != 1 else ''} in {out}"
+          + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else ""))
+    if run.stopped:
+        print(f"{PROG}: run stopped: {run.stopped}", file=sys.stderr)
+    if run.signal is not None:
+        return 128 + int(run.signal)
+    return 0 if run.n_aborted == 0 and len(results) == len(plans) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""A run of episodes: per-episode seeds and excitation, the controller, and the loop over them.
+
+The library behind ``qube-run``: :func:`plan_episodes` makes the plans
+(three excitation seeds per episode drawn from one run seed, the rig's
+excitation scaled to the episode length) and :func:`run_episodes` runs them
+one after the other on a backend, stopping the run on a signal, a backend
+fault or a log failure, and going on after a safety stop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from daq.backends.base import Backend
+from daq.controller import load_pd_gains, pd_controller
+from daq.episode import ControllerInfo
+from daq.excitation import ExcitationSettings, generate_excitation
+from daq.loop import EpisodePlan, EpisodeResult, run_episode
+from daq.safety import SafetyLimits, StopRequest, stop_on_signals
+from daq.sinks import Sink
+from daq.timing import DEFAULT_SPIN
+
+__all__ = [
+    "SEED_RANGE",
+    "default_controller_path",
+    "load_controller",
+    "run_seeds",
+    "excitation_settings",
+    "excitation_record",
+    "plan_episodes",
+    "RunResult",
+    "run_episodes",
+]
+
+#: Excitation seeds are drawn from this range, as the rig's were (1..999).
+SEED_RANGE = (1, 999)
+
+# The rig's excitation (FACTS section 3) was laid out for 20 s episodes:
+# quiet until 4 s, active until 16 s. Other lengths keep these proportions.
+_RIG_SECONDS = 20.0
+
+
+def default_controller_path() -> Path:
+    """The controller.toml shipped with the package: the gains that recorded the paper's dataset."""
+    return Path(str(resources.files("daq") / "rig_controller.toml"))
+
+
+def load_controller(path: str | Path | None = None, method: str = "backward-euler",
+                    dt: float = 1.0 / 500.0) -> ControllerInfo:
+    """The PD controller of a controller.toml (the rig's by default), discretized like the rig's.
+
+    Raises
+    ------
+    ValueError
+        Naming the file, when it cannot be read or lacks a gain.
+    """
+    gains = load_pd_gains(default_controller_path() if path is None else path)
+    return ControllerInfo(pd_controller(gains, dt, method), method, gains.as_dict(), "pd")
+
+
+def run_seeds(seed: int, n_episodes: int) -> tuple[list[tuple[int, int, int]], int]:
+    """Three excitation seeds per episode and a seed for the backend, all drawn from ``seed``."""
+    if n_episodes < 0:
+        raise ValueError(f"n_episodes must be non-negative, got {n_episodes}")
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(SEED_RANGE[0], SEED_RANGE[1] + 1, size=(n_episodes, 3))
+    return [tuple(int(s) for s in row) for row in draws], int(rng.integers(2**32))
+
+
+def excitation_settings(duration: float, sample_rate: float = 500.0) -> ExcitationSettings:
+    """The rig's excitation for an episode of ``duration`` seconds.
+
+    At 20 s this is exactly the rig's (active samples 2000..7999 of 10,000);
+    for other lengths the active window keeps its place, 20 % to 80 % of
+    the episode.
+    """
+    n = round(duration * sample_rate)
+    if n < 1 or abs(n - duration * sample_rate) > 1e-6:
+        raise ValueError(f"duration {duration} s is not a whole, positive number of samples at "
+                         f"{sample_rate} Hz")
+    start = round(n * 4.0 / _RIG_SECONDS)
+    stop = round(n * 16.0 / _RIG_SECONDS)
+    return ExcitationSettings(sample_rate=sample_rate, n_samples=n, window_start=start, window_stop=stop)
+
+
+def excitation_record(seeds: Sequence[int], settings: ExcitationSettings) -> dict:
+    """What the log records of an episode's excitation: enough to regenerate it exactly."""
+    return {
+        "generator": "daq.excitation.generate_excitation (the rig's PRBS: 16-bit Fibonacci LFSR, "
+                     "taps 16 14 13 11)",
+        "seeds": dict(zip(("target_theta", "target_alpha", "feedforward"), (int(s) for s in seeds))),
+        "settings": settings.as_dict(),
+    }
+
+
+def plan_episodes(controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]],
+                  settings: ExcitationSettings, source: str = "", extra: dict | None = None
+                  ) -> list[EpisodePlan]:
+    """One plan per seed triple: the rig's excitation with those seeds, under ``controller``."""
+    return [EpisodePlan(controller, generate_excitation(tuple(s), settings), excitation_record(s, settings),
+                        index=i, source=source, extra=dict(extra or {}))
+            for i, s in enumerate(seeds)]
+
+
+@dataclass
+class RunResult:
+    """The episodes of a run, and whether it ended early.
+
+    Attributes
+    ----------
+    results : list of EpisodeResult
+        One per episode attempted.
+    stopped : str
+        Why the run ended before its last episode; empty when it ran them all.
+    signal : int or None
+        The signal that ended it, if one did.
+    """
+
+    results: list[EpisodeResult] = field(default_factory=list)
+    stopped: str = ""
+    signal: int | None = None
+
+    @property
+    def n_complete(self) -> int:
+        """Episodes that ran to their end."""
+        return sum(r.complete for r in self.results)
+
+    @property
+    def n_aborted(self) -> int:
+        """Episodes that ended early (including those that never started)."""
+        return len(self.results) - self.n_complete
+
+
+# An abort for these causes ends the run: the next episode would fail the same way.
+_FATAL = ("stop", "fault", "log", "error")
+
+
+def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sink], *,
+                 limits: SafetyLimits = SafetyLimits(), stop: StopRequest | None = None,
+                 spin: float = DEFAULT_SPIN,
+                 on_start: Callable[[EpisodePlan], None] | None = None,
+                 on_result: Callable[[EpisodePlan, EpisodeResult], None] | None = None) -> RunResult:
+    """Run episodes one after the other; SIGINT/SIGTERM end the run cleanly.
+
+    Signal handlers are installed for the duration of the run (restored
+    after), so a signal between two episodes also ends the run without
+    leaving a log half-written.
+
+    Parameters
+    ----------
+    backend : Backend
+    plans : sequence of EpisodePlan
+    sinks : list of Sink
+        Receive every episode.
+    limits : SafetyLimits
+    stop : StopRequest, optional
+        Set it to end the run (a signal sets it too).
+    spin : float
+        Spin before each deadline when the loop paces (s).
+    on_start, on_result : callable, optional
+        Called before and after each episode (progress, summaries).
+    """
+    stop = stop if stop is not None else StopRequest()
+    run = RunResult()
+    with stop_on_signals(stop):
+        for plan in plans:
+            if stop.requested:
+                run.stopped = stop.reason
+                break
+            if on_start is not None:
+                on_start(plan)
+            result = run_episode(backend, plan, sinks, limits=limits, stop=stop, handle_signals=False,
+                                 spin=spin)
+            run.results.append(result)
+            if on_result is not None:
+                on_result(plan, result)
+            if result.cause in _FATAL:
+                run.stopped = result.reason
+                break
+    run.signal = stop.signal
+    if stop.requested and not run.stopped:
+        run.stopped = stop.reason
+    return run

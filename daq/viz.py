@@ -1,0 +1,225 @@
+"""Live and recorded views of a run in rerun (rerun-sdk, imported only when used).
+
+:class:`RerunSink` is a sink like the episode log: it runs on the writer
+thread, off the loop, and sends samples in batches (``send_columns``, about
+every 0.1 s of data) rather than one ``log`` call per sample. Episodes follow
+one another on the ``time`` timeline (seconds since the first episode
+started, episodes back to back); the ``episode`` timeline numbers them.
+
+The default blueprint shows theta and alpha against their references, the
+voltages (controller output, applied input, feedforward) and the loop's
+timing (lateness and compute time per tick), plus a log of episode events.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+import numpy as np
+
+from daq.episode import EpisodeMetadata
+from daq.sinks import EpisodeOutcome, Sample
+
+__all__ = ["DEFAULT_VIEWER_PORT", "RerunUnavailable", "blueprint", "open_recording", "RerunSink"]
+
+DEFAULT_VIEWER_PORT = 9876
+
+# entity path -> (Sample field, scale, legend name)
+_SERIES = {
+    "theta/measured": ("theta", 1.0, "theta (rad)"),
+    "theta/reference": ("target_theta", 1.0, "target_theta (rad)"),
+    "alpha/measured": ("alpha", 1.0, "alpha (rad)"),
+    "alpha/reference": ("target_alpha", 1.0, "target_alpha (rad)"),
+    "voltage/control_output": ("control_output", 1.0, "controller output (V)"),
+    "voltage/plant_input": ("plant_input", 1.0, "applied, clamped (V)"),
+    "voltage/feedforward": ("feedforward", 1.0, "feedforward (V)"),
+    "timing/lateness": ("lateness", 1e3, "lateness (ms)"),
+    "timing/compute_time": ("compute_time", 1e3, "compute time (ms)"),
+}
+_FIELD_INDEX = {name: Sample._fields.index(name) for name, _, _ in _SERIES.values()}
+EVENTS = "events"
+
+
+class RerunUnavailable(RuntimeError):
+    """No rerun viewer to stream to (the message says what to do instead)."""
+
+
+def blueprint():
+    """The run's default layout: angles against references, voltages, timing, events."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.TimeSeriesView(origin="/theta", name="theta vs reference (rad)"),
+            rrb.TimeSeriesView(origin="/alpha", name="alpha vs reference (rad)"),
+            rrb.TimeSeriesView(origin="/voltage", name="voltages (V)"),
+            rrb.TimeSeriesView(origin="/timing", name="loop timing (ms)"),
+            rrb.TextLogView(origin=f"/{EVENTS}", name="episodes"),
+            row_shares=[3, 3, 3, 2, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
+def _port_open(host: str, port: int, timeout: float = 0.3) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def _viewer_url(port: int) -> str:
+    return f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def _live_sink(url: str | None, port: int):
+    """A gRPC sink to a viewer: the given URL, a viewer already listening, or one spawned."""
+    import rerun as rr
+
+    if url:
+        return rr.GrpcSink(url)
+    if _port_open("127.0.0.1", port):
+        return rr.GrpcSink(_viewer_url(port))
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise RerunUnavailable(
+            f"no rerun viewer is listening on 127.0.0.1:{port} and there is no display to open one; "
+            "start a viewer elsewhere and pass its address, or record with --rerun-save FILE.rrd")
+    try:
+        rr.spawn(port=port, connect=False)
+    except Exception as exc:  # noqa: BLE001 - any spawn failure becomes one clear message
+        raise RerunUnavailable(f"could not start the rerun viewer: {exc}") from None
+    if not _port_open("127.0.0.1", port, timeout=5.0):
+        raise RerunUnavailable(f"the rerun viewer did not start listening on 127.0.0.1:{port}")
+    return rr.GrpcSink(_viewer_url(port))
+
+
+def open_recording(*, live: bool = False, url: str | None = None, save: str | Path | None = None,
+                   port: int = DEFAULT_VIEWER_PORT, application_id: str = "qube-run",
+                   recording_id: str | None = None):
+    """A rerun recording streaming to a viewer and/or saving to an .rrd file, with the default blueprint.
+
+    Parameters
+    ----------
+    live : bool
+        Stream to a viewer: ``url`` if given, else one listening on ``port``,
+        else a newly spawned one (needs a display).
+    url : str, optional
+        Viewer address, e.g. ``rerun+http://host:9876/proxy``.
+    save : path, optional
+        Also write the recording to this .rrd file (headless).
+    port : int
+        Local viewer port.
+
+    Raises
+    ------
+    RerunUnavailable
+        When ``live`` and no viewer can be reached or started.
+    """
+    import rerun as rr
+
+    sinks = []
+    if live:
+        sinks.append(_live_sink(url, port))
+    if save is not None:
+        sinks.append(rr.FileSink(str(save)))
+    if not sinks:
+        raise ValueError("open_recording needs live=True or a save path")
+    rec = rr.RecordingStream(application_id, recording_id=recording_id)
+    rec.set_sinks(*sinks, default_blueprint=blueprint())
+    return rec
+
+
+class RerunSink:
+    """Sends every episode of a run to a rerun recording, in batches, from the writer thread.
+
+    Optional (``required = False``): a failing viewer never stops data
+    collection.
+
+    Parameters
+    ----------
+    recording : rerun.RecordingStream
+        From :func:`open_recording` (or any recording stream).
+    batch_seconds : float
+        Send the buffered samples every this many seconds of data.
+    """
+
+    required = False
+
+    def __init__(self, recording, batch_seconds: float = 0.1) -> None:
+        self.recording = recording
+        self.batch_seconds = batch_seconds
+        self._offset = 0.0
+        self._index = 0
+        self._buffer: list[Sample] = []
+        self._batch = 1
+        self._dt = 0.002
+        self._styled = False
+
+    def _style(self) -> None:
+        import rerun as rr
+
+        for path, (_, _, label) in _SERIES.items():
+            self.recording.log(path, rr.SeriesLines(names=label), static=True)
+        self._styled = True
+
+    def open(self, metadata: EpisodeMetadata) -> None:
+        """Mark the episode's start on the event log."""
+        import rerun as rr
+
+        if not self._styled:
+            self._style()
+        self._dt = metadata.dt
+        self._batch = max(1, round(self.batch_seconds / self._dt))
+        self._index = int(metadata.extra.get("episode_index", self._index))
+        self._buffer = []
+        seeds = metadata.excitation.get("seeds", {})
+        self.recording.set_time("time", duration=self._offset)
+        self.recording.set_time("episode", sequence=self._index)
+        self.recording.log(EVENTS, rr.TextLog(f"episode {self._index} started, seeds {seeds}, "
+                                              f"backend {metadata.backend}", level="INFO"))
+
+    def write(self, sample: Sample) -> None:
+        """Buffer one tick; send the batch when it is full."""
+        self._buffer.append(sample)
+        if len(self._buffer) >= self._batch:
+            self._send()
+
+    def _send(self) -> None:
+        import rerun as rr
+
+        if not self._buffer:
+            return
+        rows = np.array([[s[i] for i in _FIELD_INDEX.values()] for s in self._buffer], dtype=float)
+        columns = dict(zip(_FIELD_INDEX, rows.T))
+        t = self._offset + np.array([s.t for s in self._buffer])
+        indexes = [rr.TimeColumn("time", duration=t),
+                   rr.TimeColumn("episode", sequence=np.full(t.size, self._index))]
+        for path, (name, scale, _) in _SERIES.items():
+            self.recording.send_columns(path, indexes=indexes,
+                                        columns=rr.Scalars.columns(scalars=columns[name] * scale))
+        self._buffer = []
+
+    def close(self, outcome: EpisodeOutcome) -> None:
+        """Send what is buffered and log how the episode ended, with its timing."""
+        import rerun as rr
+
+        self._send()
+        timing = outcome.timing
+        end = self._offset + outcome.n_samples * self._dt
+        text = f"episode {self._index} {outcome.status}" + (f": {outcome.reason}" if outcome.reason else "")
+        if timing.paced:
+            text += (f"; lateness p50 {timing.lateness_p50 * 1e3:.3f} ms, p99 {timing.lateness_p99 * 1e3:.3f} ms, "
+                     f"max {timing.lateness_max * 1e3:.3f} ms, {timing.overruns} overruns")
+        self.recording.set_time("time", duration=end)
+        self.recording.set_time("episode", sequence=self._index)
+        self.recording.log(EVENTS, rr.TextLog(text, level="INFO" if outcome.status == "complete" else "WARN"))
+        self._offset = end
+        self._index += 1
+
+    def finish(self) -> None:
+        """Flush and close the recording (the .rrd file is complete after this)."""
+        self.recording.flush()
+        self.recording.disconnect()

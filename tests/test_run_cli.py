@@ -1,0 +1,227 @@
+"""``qube-run`` (daq.cli.run) on the simulator: defaults, logs, errors, rerun, signals."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daq.cli.run import main
+from daq.controller import PdGains, pd_controller
+from daq.excitation import ExcitationSettings, generate_excitation
+from daq.log import read_episode, read_episode_metadata
+
+REPO = Path(__file__).resolve().parents[1]
+NAME = re.compile(r"^qube_\d{8}T\d{6}_(\d+)_(\d+)_(\d+)(_\d+)?\.mcap$")
+
+
+def _episodes(folder: Path):
+    """The run's episodes in the order they were run."""
+    eps = [read_episode(p) for p in folder.glob("*.mcap")]
+    return sorted(eps, key=lambda e: e.metadata.extra["episode_index"])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_no_arguments_collects_a_small_default_set_and_says_where(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main([]) == 0
+    out = capsys.readouterr().out
+    files = sorted((tmp_path / "episodes").glob("*.mcap"))
+    assert len(files) == 3 and all(NAME.match(f.name) for f in files)
+    assert str(tmp_path / "episodes") in out and "3 complete, 0 aborted" in out
+    for f in files:
+        meta = read_episode_metadata(f)
+        assert meta.status == "complete" and meta.backend == "sim"
+        assert meta.excitation["settings"]["n_samples"] == 10_000  # 20 s at 500 Hz
+
+
+def test_logs_hold_what_reproduces_the_run(tmp_path):
+    assert main(["--episodes", "2", "--duration", "4", "--seed", "7", "--out", str(tmp_path), "-q"]) == 0
+    eps = _episodes(tmp_path)
+    assert [e.metadata.extra["episode_index"] for e in eps] == [0, 1]
+    rig = pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0))
+    for path in tmp_path.glob("*.mcap"):
+        ep = read_episode(path)
+        meta = ep.metadata
+        seeds = meta.excitation["seeds"]
+        assert NAME.match(path.name).groups()[:3] == tuple(
+            str(seeds[k]) for k in ("target_theta", "target_alpha", "feedforward"))
+        # The excitation regenerates exactly from the log's seeds and settings.
+        settings = ExcitationSettings.from_dict(meta.excitation["settings"])
+        assert (settings.n_samples, settings.window_start, settings.window_stop) == (2000, 400, 1600)
+        ex = generate_excitation(tuple(seeds[k] for k in ("target_theta", "target_alpha", "feedforward")),
+                                 settings)
+        assert np.array_equal(ep.target_theta, ex.target_theta)
+        assert np.array_equal(ep.target_alpha, ex.target_alpha)
+        assert np.array_equal(ep.feedforward, ex.feedforward)
+        np.testing.assert_array_equal(ep.controller.A, rig.A)
+        np.testing.assert_array_equal(ep.controller.D, rig.D)
+        assert meta.controller.method == "backward-euler" and meta.extra["run_seed"] == 7
+        assert meta.timing["n_ticks"] == 2000 and meta.timing["paced"] is False
+        assert np.array_equal(ep.t, np.arange(2000) / 500)
+
+
+def test_same_seed_same_episodes(tmp_path):
+    for name in ("a", "b"):
+        assert main(["--episodes", "2", "--duration", "2", "--seed", "11", "--out", str(tmp_path / name),
+                     "-q"]) == 0
+    a, b = _episodes(tmp_path / "a"), _episodes(tmp_path / "b")
+    for ea, eb in zip(a, b):
+        assert ea.metadata.excitation == eb.metadata.excitation
+        assert np.array_equal(ea.states, eb.states) and np.array_equal(ea.plant_input, eb.plant_input)
+    assert a[0].metadata.excitation["seeds"] != a[1].metadata.excitation["seeds"]
+
+
+def test_summary_counts_aborted_episodes(tmp_path, capsys):
+    # A 3 deg motor-angle limit: the excitation's motor reference goes well past it.
+    status = main(["--episodes", "2", "--duration", "10", "--seed", "3", "--theta-limit", "3",
+                   "--out", str(tmp_path), "-q"])
+    out = capsys.readouterr().out
+    assert status == 1
+    assert "0 complete, 2 aborted" in out and "safety stop: |theta|" in out
+    for ep in _episodes(tmp_path):
+        assert ep.metadata.status == "aborted" and "|theta|" in ep.metadata.status_reason
+        assert abs(ep.theta[-1]) > math.radians(3) and ep.plant_input[-1] == 0.0
+        assert np.all(np.abs(ep.theta[:-1]) <= math.radians(3))
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--controller", "missing.toml"], "--controller: missing.toml: cannot read"),
+    (["--controller", "{bad}"], "not valid TOML"),
+    (["--out", "{file}"], "cannot write episode logs"),
+    (["--backend", "quantum"], "invalid choice: 'quantum'"),
+    (["--backend", "serial"], "not available yet"),
+    (["--episodes", "0"], "must be at least 1"),
+    (["--duration", "0.0013"], "not a whole, positive number of samples"),
+    (["--perturbation", "6"], "start gate"),
+    (["--alpha-limit", "2"], "start_alpha"),
+    (["--rerun-save", "no/such/folder/run.rrd"], "does not exist"),
+])
+def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, message):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("kp_theta = [")
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    args = [a.format(bad=bad, file=a_file) for a in args]
+    out_dir = tmp_path / "out"
+    if "--out" not in args:
+        args += ["--out", str(out_dir)]
+    status = main(args + ["-q"])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert err.count("\n") == 1 and err.startswith("qube-run: error:") and message in err
+    assert "Traceback" not in err
+    assert not list(out_dir.glob("*.mcap"))
+
+
+def test_help_documents_the_options(capsys):
+    assert main(["--help"]) == 0
+    text = capsys.readouterr().out
+    for option in ("--backend", "--episodes", "--duration", "--seed", "--out", "--controller",
+                   "--realtime", "--rerun", "--rerun-save", "exit status"):
+        assert option in text
+
+
+def test_rerun_save_records_the_run_with_a_blueprint(tmp_path):
+    from rerun.chunk import RrdReader
+
+    rrd = tmp_path / "run.rrd"
+    assert main(["--episodes", "2", "--duration", "2", "--seed", "1", "--out", str(tmp_path / "ep"),
+                 "--rerun-save", str(rrd), "-q"]) == 0
+    reader = RrdReader(str(rrd))
+    assert len(reader.recordings()) == 1 and len(reader.blueprints()) == 1
+    rows: dict[str, int] = {}
+    for chunk in reader.stream():
+        if not chunk.is_static:
+            rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    for path in ("/theta/measured", "/theta/reference", "/alpha/measured", "/alpha/reference",
+                 "/voltage/plant_input", "/voltage/control_output", "/timing/lateness"):
+        assert rows[path] == 2 * 1000, path
+    assert rows["/events"] == 4  # a start and an end per episode
+
+
+def test_rerun_without_a_viewer_or_display_fails_cleanly(tmp_path, capsys, monkeypatch):
+    probe = socket.socket()
+    if probe.connect_ex(("127.0.0.1", 9876)) == 0:
+        probe.close()
+        pytest.skip("a rerun viewer is listening on 127.0.0.1:9876")
+    probe.close()
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    status = main(["--rerun", "--episodes", "1", "--duration", "1", "--out", str(tmp_path), "-q"])
+    err = capsys.readouterr().err
+    assert status == 1 and err.count("\n") == 1 and "--rerun-save" in err and "Traceback" not in err
+    assert not list(tmp_path.glob("*.mcap"))
+
+
+def test_rerun_streams_to_a_listening_server(tmp_path):
+    if shutil.which("rerun") is None:
+        pytest.skip("the rerun command (from rerun-sdk) is not on PATH")
+    port = _free_port()
+    server = subprocess.Popen(["rerun", "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 20
+        while socket.socket().connect_ex(("127.0.0.1", port)) != 0:
+            assert time.monotonic() < deadline, "rerun server did not start"
+            assert server.poll() is None, "rerun server exited"
+            time.sleep(0.1)
+        assert main(["--rerun", f"rerun+http://127.0.0.1:{port}/proxy", "--episodes", "1", "--duration", "1",
+                     "--out", str(tmp_path), "-q"]) == 0
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+
+
+# --- signals: a real process, paced in real time -------------------------------------------------
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_stops_the_motor_and_closes_the_log_aborted(tmp_path, signum):
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    code = "import sys; from daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", code, "--realtime", "--episodes", "3", "--duration", "20",
+                             "--seed", "5", "--out", str(tmp_path), "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 30
+        # Wait until the first log exists and has flushed data (0.5 s chunks), then signal.
+        while not any(p.stat().st_size > 4000 for p in tmp_path.glob("*.mcap")):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "qube-run wrote no log in 30 s"
+            time.sleep(0.05)
+        time.sleep(0.3)
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signum, err
+    name = signal.Signals(signum).name
+    files = list(tmp_path.glob("*.mcap"))
+    assert len(files) == 1, "the run stops at the signal: no further episodes"
+    ep = read_episode(files[0])  # warns if anything was salvaged: it must not be
+    meta = ep.metadata
+    assert meta.status == "aborted" and meta.status_reason == f"interrupted by {name}"
+    assert not meta.salvaged
+    n = len(ep)
+    assert 250 < n < 10_000
+    assert np.array_equal(ep.t, np.arange(n) / 500), "no sample lost"
+    assert ep.plant_input[-1] == 0.0, "0 V in the tick that saw the signal"
+    assert meta.timing["n_ticks"] == n and meta.timing["paced"] is True
+    assert "0 complete, 1 aborted" in out and f"interrupted by {name}" in err
