@@ -453,6 +453,25 @@ def test_core_under_sanitizers(tmp_path):
     assert run.returncode == 0 and run.stdout.startswith("OK"), run.stdout + run.stderr
 
 
+def test_core_compiles_for_a_16_bit_int_avr(tmp_path):
+    """Optional: the core is meant for 8-bit AVRs (16-bit int, 2 KiB RAM) too."""
+    avr_gcc = shutil.which("avr-gcc")
+    if avr_gcc is None:
+        pytest.skip("avr-gcc not installed (Debian: gcc-avr avr-libc): AVR portability not checked")
+    main = tmp_path / "main.c"
+    main.write_text('#include "qp_device.h"\nstatic qd_device dev;\n'
+                    "int main(void) { uint8_t tx[17], rx[17] = {3, 9}; qd_init(&dev, 0);\n"
+                    "qd_tick_begin(&dev, 0, tx); qd_tick_end(&dev, rx); return (int)qd_pending_output(&dev); }\n")
+    elf = tmp_path / "core.elf"
+    cmd = [avr_gcc, "-mmcu=atmega328p", "-Os", *ccore.C_FLAGS, f"-I{ccore.C_SOURCE_DIR}", str(main),
+           *map(str, sorted(ccore.C_SOURCE_DIR.glob("*.c"))), "-o", str(elf)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    size = subprocess.run(["avr-size", str(elf)], capture_output=True, text=True).stdout.split("\n")[1].split()
+    text, data, bss = map(int, size[:3])
+    assert text < 16 * 1024 and data + bss < 1024  # leaves the Arduino core most of 32 KiB / 2 KiB
+
+
 ARDUINO_STUB = """
 #pragma once
 #include <stddef.h>
