@@ -257,13 +257,16 @@ class CDecoder:
         self._mem = _opaque(core.lib.qp_decoder_size())
         core.lib.qp_decoder_init(self._mem)
         self.count = 0
+        self._frames = (CFrame * 256)()  # reused: allocating per call would dominate small chunks
 
     def feed(self, data: bytes, max_frames: int = 256) -> list[tuple[int, int, int, bytes]]:
         """Push bytes; return ``(type, seq, timestamp_us, payload)`` of each valid frame.
 
         At most ``max_frames`` are returned; ``count`` says how many there were.
         """
-        frames = (CFrame * max_frames)()
+        if len(self._frames) < max_frames:
+            self._frames = (CFrame * max_frames)()
+        frames = self._frames
         self.count = self._core.lib.qp_decoder_feed(self._mem, _buf(data), len(data), frames, max_frames)
         return [(f.type, f.seq, f.timestamp_us, bytes(f.payload[:f.payload_len]))
                 for f in frames[:min(self.count, max_frames)]]
