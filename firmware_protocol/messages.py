@@ -14,7 +14,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, fields
 from enum import IntEnum, IntFlag
-from typing import ClassVar
+from typing import ClassVar, TypeVar
 
 __all__ = [
     "PROTOCOL_VERSION",
@@ -142,6 +142,9 @@ _CODE_RANGES = {
 }
 
 
+_M = TypeVar("_M", bound="Message")
+
+
 class Message:
     """Base of all messages: packing driven by the subclass's ``LAYOUT``."""
 
@@ -185,7 +188,7 @@ class Message:
         return {f.name: narrow or _CODE_RANGES[code] for f, (code, narrow) in zip(fields(cls), cls.LAYOUT)}
 
     @classmethod
-    def unpack(cls, payload: bytes | bytearray | memoryview):
+    def unpack(cls: type[_M], payload: bytes | bytearray | memoryview) -> _M:
         """Rebuild a message from exactly ``SIZE`` payload bytes (no range checks).
 
         Raises
