@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import inspect
+from dataclasses import dataclass
+
+import numpy as np
 
 from identify.lifting import Lifting
+from identify.trajectory import Trajectory
 
 
 class Estimator:
@@ -45,3 +49,19 @@ def resolve_lifting(lifting) -> Lifting:
     # Always a new object: fitting must never mutate the estimator's parameters.
     steps = lifting.steps if isinstance(lifting, Lifting) else lifting
     return Lifting(list(steps))
+
+
+@dataclass(frozen=True, eq=False)
+class FitSetup:
+    """What a fit learns before solving: validated data, fitted lifting, structure.
+
+    Sweeps reuse one setup and per-episode snapshots across folds and alphas.
+    """
+
+    trajectories: list[Trajectory]
+    lifting: Lifting
+    dt: float | None
+    output_matrix: np.ndarray | None = None
+    plant_input_map: np.ndarray | None = None
+    n_feedforward: int = 0
+    input_lifting: Lifting | None = None

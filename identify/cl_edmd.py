@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from identify._base import Estimator, resolve_lifting
+from identify._base import Estimator, FitSetup, resolve_lifting
 from identify._checks import check_alpha, check_choice
 from identify.model import KoopmanModel
 from identify.regression import Snapshots, constrained_plant_solve, ridge_solve
@@ -63,7 +63,13 @@ class _ClosedLoopKoopman(Estimator):
         -------
         self
         """
-        alpha = check_alpha(self.alpha)
+        setup = self._setup(trajectories)
+        parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]
+        return self._finish(setup, Snapshots.total(parts))
+
+    def _setup(self, trajectories) -> FitSetup:
+        """Validate the data and the controller, fit the lifting."""
+        check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
         trajs = check_trajectories(trajectories, ("x", "r", "xc"), lifting.n_delays + 2, type(self).__name__)
         with_f = [t.f is not None for t in trajs]
@@ -77,30 +83,33 @@ class _ClosedLoopKoopman(Estimator):
         if any(not 0 <= i < m for i in measured):
             raise ValueError(f"measured state indices {measured} are outside 0..{m - 1}")
         self._check_controller(trajs, measured, n_f)
-
         lifting.fit([t.x for t in trajs], trajs[0].state_names)
-        d = lifting.n_delays_
         C_p = output_selection(lifting.n_features_out_, measured)
-        S = plant_input_map(self.controller, C_p, n_f)
+        return FitSetup(trajs, lifting, trajs[0].dt if trajs[0].dt is not None else self.controller.dt,
+                        C_p, plant_input_map(self.controller, C_p, n_f), n_f)
 
-        parts = []
-        for t in trajs:
-            theta = np.hstack([t.xc[d:], lifting.transform(t.x)])
-            v = np.hstack([t.r[d:]] + ([t.f[d:]] if n_f else []))
-            parts.append(Snapshots.from_snapshots(theta[1:], np.hstack([theta[:-1], v[:-1]])))
-        self.snapshots_ = Snapshots.total(parts)
-        self.output_matrix_ = C_p
-        self.plant_input_map_ = S
-        self.n_feedforward_ = n_f
-        U_f, U_p = self._solve(self.snapshots_, S, alpha)
-        self._set_models(U_f, U_p, lifting, n_f, trajs[0].dt)
+    def _episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
+        """Snapshot statistics of one episode: theta = [x^c; lift(x)], upsilon = [r; f]."""
+        d = setup.lifting.n_delays_
+        theta = np.hstack([t.xc[d:], setup.lifting.transform(t.x)])
+        v = np.hstack([t.r[d:]] + ([t.f[d:]] if setup.n_feedforward else []))
+        return Snapshots.from_snapshots(theta[1:], np.hstack([theta[:-1], v[:-1]]))
+
+    def _finish(self, setup: FitSetup, snapshots: Snapshots) -> "_ClosedLoopKoopman":
+        """Solve for ``self.alpha`` and set the fitted attributes."""
+        alpha = check_alpha(self.alpha)
+        self.snapshots_ = snapshots
+        self.output_matrix_ = setup.output_matrix
+        self.plant_input_map_ = setup.plant_input_map
+        self.n_feedforward_ = setup.n_feedforward
+        U_f, U_p = self._solve(snapshots, setup.plant_input_map, alpha)
+        self._set_models(U_f, U_p, setup.lifting, setup.n_feedforward, setup.dt)
         return self
 
     def _set_models(self, U_f, U_p, lifting, n_f, dt) -> None:
         ctrl = self.controller
         n_c, n_theta_p = ctrl.n_states, lifting.n_features_out_
         n_theta = n_c + n_theta_p
-        dt = dt if dt is not None else ctrl.dt
         self.koopman_matrix_ = U_f
         self.plant_koopman_matrix_ = U_p
         self.closed_loop_model_ = KoopmanModel(U_f[:, :n_theta], U_f[:, n_theta:], lifting,

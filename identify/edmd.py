@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify._base import Estimator, resolve_lifting
+from identify._base import Estimator, FitSetup, resolve_lifting
 from identify._checks import check_alpha
 from identify.model import KoopmanModel
 from identify.regression import Snapshots, ridge_solve
@@ -48,27 +48,38 @@ class Edmd(Estimator):
         -------
         self
         """
-        alpha = check_alpha(self.alpha)
+        setup = self._setup(trajectories)
+        parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]
+        return self._finish(setup, Snapshots.total(parts))
+
+    def _setup(self, trajectories) -> FitSetup:
+        """Validate the data, fit the state and input liftings."""
+        check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
         trajs = check_trajectories(trajectories, ("x", "u"), lifting.n_delays + 2, "EDMD")
         lifting.fit([t.x for t in trajs], trajs[0].state_names)
-        d = lifting.n_delays_
         input_lifting = None
         if self.input_lifting is not None:
             input_lifting = resolve_lifting(self.input_lifting).fit([t.u for t in trajs], trajs[0].input_names)
             if input_lifting.n_delays_:
                 raise ValueError("input lifting must be pointwise (no delays)")
-        parts = []
-        for t in trajs:
-            z = lifting.transform(t.x)
-            v = (t.u if input_lifting is None else input_lifting.transform(t.u))[d:]
-            parts.append(Snapshots.from_snapshots(z[1:], np.hstack([z[:-1], v[:-1]])))
-        self.snapshots_ = Snapshots.total(parts)
-        U = ridge_solve(self.snapshots_, alpha)
-        n_z = lifting.n_features_out_
+        return FitSetup(trajs, lifting, trajs[0].dt, input_lifting=input_lifting)
+
+    def _episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
+        """Snapshot statistics of one episode: theta = lift(x), input u (lifted if asked)."""
+        d = setup.lifting.n_delays_
+        z = setup.lifting.transform(t.x)
+        v = (t.u if setup.input_lifting is None else setup.input_lifting.transform(t.u))[d:]
+        return Snapshots.from_snapshots(z[1:], np.hstack([z[:-1], v[:-1]]))
+
+    def _finish(self, setup: FitSetup, snapshots: Snapshots) -> "Edmd":
+        """Solve for ``self.alpha`` and set the fitted attributes."""
+        U = ridge_solve(snapshots, check_alpha(self.alpha))
+        n_z = setup.lifting.n_features_out_
+        self.snapshots_ = snapshots
         self.koopman_matrix_ = U
-        self.model_ = KoopmanModel(U[:, :n_z], U[:, n_z:], lifting, ("u",), input_lifting=input_lifting,
-                                   dt=trajs[0].dt)
+        self.model_ = KoopmanModel(U[:, :n_z], U[:, n_z:], setup.lifting, ("u",),
+                                   input_lifting=setup.input_lifting, dt=setup.dt)
         return self
 
     def predict(self, trajectory: Trajectory, relift: bool = True) -> np.ndarray:

@@ -161,53 +161,35 @@ class KoopmanModel:
 
     def simulate(self, x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None = None,
                  relift: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Batched prediction from arrays.
+        """Prediction from arrays for one or several episodes.
 
         Parameters
         ----------
-        x_init : ndarray of shape (..., n_delays + 1, n_states)
+        x_init : ndarray of shape ([n_episodes,] n_delays + 1, n_states)
             Initial history of the plant states.
-        v : ndarray of shape (..., n_samples, n_inputs)
+        v : ndarray of shape ([n_episodes,] n_samples, n_inputs)
             Input at every sample (the first ``n_delays`` are not used).
-        p0 : ndarray of shape (..., n_passthrough), optional
+        p0 : ndarray of shape ([n_episodes,] n_passthrough), optional
             Passthrough (controller) state at sample ``n_delays``.
         relift : bool
             Re-lift at every step, or propagate linearly.
 
         Returns
         -------
-        x : ndarray of shape (..., n_samples, n_states)
-        p : ndarray of shape (..., n_samples, n_passthrough)
+        x : ndarray of shape ([n_episodes,] n_samples, n_states)
+        p : ndarray of shape ([n_episodes,] n_samples, n_passthrough)
             NaN before sample ``n_delays``.
         """
-        d, m, n_p = self.n_delays, self.n_states, self.n_passthrough
-        x_init = np.asarray(x_init, dtype=float)
+        from identify.simulate import simulate_batch
+
         v = np.asarray(v, dtype=float)
-        batch, T = v.shape[:-2], v.shape[-2]
-        x = np.full(batch + (T, m), np.nan)
-        p = np.full(batch + (T, n_p), np.nan)
-        x[..., :d + 1, :] = x_init
-        if n_p:
-            p[..., d, :] = np.zeros(batch + (n_p,)) if p0 is None else p0
-        z = np.concatenate([p[..., d, :], self.lifting.transform(x[..., :d + 1, :])[..., 0, :]], axis=-1)
-        Bv = v @ self.B.T
-        At = self.A.T
-        lo, hi = n_p, n_p + m
-        with np.errstate(all="ignore"):
-            for k in range(d, T - 1):
-                nxt = z @ At + Bv[..., k, :]
-                x[..., k + 1, :] = nxt[..., lo:hi]
-                p[..., k + 1, :] = nxt[..., :n_p]
-                if k % 64 == 0 and not np.any(np.isfinite(nxt)):
-                    x[..., k + 1:, :] = np.nan  # every batch member diverged: nothing left to predict
-                    p[..., k + 1:, :] = np.nan
-                    break
-                if relift:
-                    lifted = self.lifting.transform(x[..., k + 1 - d:k + 2, :])[..., 0, :]
-                    z = np.concatenate([nxt[..., :n_p], lifted], axis=-1)
-                else:
-                    z = nxt
-        return x, p
+        single = v.ndim == 2
+        if single:
+            x_init, v = np.asarray(x_init)[None], v[None]
+            p0 = None if p0 is None else np.asarray(p0)[None]
+        x, p = simulate_batch(self.A[None], self.B[None], self.lifting, self.n_passthrough,
+                              np.asarray(x_init, dtype=float), v, p0, relift=relift)
+        return (x[0, 0], p[0, 0]) if single else (x[0], p[0])
 
     def predict_many(self, trajectories: Sequence[Trajectory], relift: bool = True) -> list[np.ndarray]:
         """:meth:`predict` for several episodes."""

@@ -11,7 +11,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["r2_score", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
+__all__ = ["r2_score", "r2_scores", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
 
 
 def _pair(y_true, y_pred) -> tuple[np.ndarray, np.ndarray]:
@@ -26,16 +26,27 @@ def _pair(y_true, y_pred) -> tuple[np.ndarray, np.ndarray]:
     return y_true, y_pred
 
 
+def r2_scores(y_true, y_pred) -> np.ndarray:
+    """R^2 averaged over states, vectorized over leading axes of ``y_pred``.
+
+    ``y_true`` has shape (..., n_samples, n_states) and broadcasts against
+    ``y_pred`` (e.g. one row of models per episode). Non-finite predictions
+    give -inf.
+    """
+    y_true = np.asarray(y_true, dtype=float)
+    y_pred = np.asarray(y_pred, dtype=float)
+    with np.errstate(all="ignore"):
+        ss_res = np.sum((y_true - y_pred) ** 2, axis=-2)
+        ss_tot = np.sum((y_true - y_true.mean(axis=-2, keepdims=True)) ** 2, axis=-2)
+        per_state = np.where(ss_tot > 0, 1.0 - ss_res / ss_tot, np.where(ss_res > 0, -np.inf, 1.0))
+    per_state = np.where(np.isfinite(per_state), per_state, -np.inf)
+    return per_state.mean(axis=-1)
+
+
 def r2_score(y_true, y_pred) -> float:
     """Coefficient of determination, averaged over states (1 is perfect)."""
     y_true, y_pred = _pair(y_true, y_pred)
-    if not np.all(np.isfinite(y_pred)):
-        return -np.inf
-    ss_res = np.sum((y_true - y_pred) ** 2, axis=0)
-    ss_tot = np.sum((y_true - y_true.mean(axis=0)) ** 2, axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        per_state = np.where(ss_tot > 0, 1.0 - ss_res / ss_tot, np.where(ss_res > 0, -np.inf, 1.0))
-    return float(np.mean(per_state))
+    return float(r2_scores(y_true, y_pred))
 
 
 def _peak(y_true: np.ndarray) -> np.ndarray:

@@ -133,3 +133,22 @@ def test_structure_helpers_reproduce_simulated_signals(loop):
     A_f, B_f = closed_loop_matrices(A_p, B_p, controller, C_p, 1)
     theta = np.hstack([t.xc, t.x])
     np.testing.assert_allclose(theta[:-1] @ A_f.T + np.hstack([t.r, t.f])[:-1] @ B_f.T, theta[1:], atol=1e-12)
+
+
+@pytest.mark.parametrize("lifting", [
+    [Polynomial(2), Delay(3)],                      # pointwise head, one delay: the shift path
+    [Delay(2), GaussianRbf(6, shape=0.5, seed=1)],  # delays then RBF: the history path
+    [Polynomial(2)],                                # no delays
+])
+def test_fast_predictor_equals_naive_relifting(loop, lifting):
+    from naive_reference import naive_predict
+
+    *_, trajs = loop
+    model = ClEdmd(pid_position_controller(), lifting=lifting, alpha=1e-3, measured=[0]).fit(trajs[:2])
+    cl = model.closed_loop_model_
+    t = trajs[2]
+    d = cl.n_delays
+    expected = naive_predict(cl, t.x[:d + 1], cl.inputs_of(t), t.xc[d])
+    np.testing.assert_allclose(cl.predict(t), expected, rtol=1e-10, atol=1e-12)
+    plant = model.plant_model_
+    np.testing.assert_allclose(plant.predict(t), naive_predict(plant, t.x[:d + 1], t.u), rtol=1e-10, atol=1e-12)

@@ -22,6 +22,7 @@ class LiftingFunction(ABC):
     """
 
     n_delays: int = 0
+    learns_from_data: bool = True  # conservative default: refit on every fold
 
     def fit(self, episodes: Sequence[np.ndarray], names: Sequence[str]) -> "LiftingFunction":
         """Learn from training episodes (each of shape (n_samples, n_features_in)).

@@ -19,6 +19,8 @@ class Delay(LiftingFunction):
         Number of past samples appended.
     """
 
+    learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
+
     def __init__(self, n_delays: int = 1) -> None:
         self.n_delays = check_nonneg_int(n_delays, "number of delays")
 

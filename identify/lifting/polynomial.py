@@ -23,6 +23,8 @@ class Polynomial(LiftingFunction):
         Highest total degree (1 is the identity).
     """
 
+    learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
+
     def __init__(self, order: int = 2) -> None:
         self.order = check_nonneg_int(order, "polynomial order", minimum=1)
 
@@ -47,5 +49,8 @@ class Polynomial(LiftingFunction):
         out = np.empty(X.shape[:-1] + (len(self.monomials_),))
         out[..., :n] = X
         for j, combo in enumerate(self.monomials_[n:], start=n):
-            out[..., j] = np.prod(X[..., list(combo)], axis=-1)
+            # column views multiplied in place: no fancy-index copies (this runs every predicted step)
+            np.multiply(X[..., combo[0]], X[..., combo[1]], out=out[..., j])
+            for i in combo[2:]:
+                out[..., j] *= X[..., i]
         return out

@@ -19,6 +19,11 @@ class _RadialBasis(LiftingFunction):
 
     prefix = "rbf"
 
+    @property
+    def learns_from_data(self) -> bool:
+        """Centres drawn from the training data's range make the lifting data-dependent."""
+        return self.centers is None
+
     def __init__(self, n_centers: int = 50, shape: float = 1.0, centers=None, seed: int | None = None):
         self.n_centers = check_nonneg_int(n_centers, "number of RBF centres", minimum=1)
         if not (np.isfinite(shape) and shape > 0):

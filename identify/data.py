@@ -1,0 +1,125 @@
+"""Episode logs as identification data: reading, checking, splitting."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from identify.trajectory import Trajectory
+from sim.lti import DiscreteStateSpace
+
+__all__ = ["LoggedTrajectory", "load_logs", "check_same_controller", "check_same_rate",
+           "paper_split", "group_shuffle_splits", "IncompleteLogSkipped"]
+
+STATE_NAMES = ("theta", "alpha")
+
+
+class IncompleteLogSkipped(UserWarning):
+    """An incomplete (aborted or salvaged) log was left out of the data."""
+
+
+@dataclass(frozen=True, eq=False)
+class LoggedTrajectory:
+    """One episode log, ready for identification."""
+
+    path: Path
+    trajectory: Trajectory
+    controller: DiscreteStateSpace
+
+
+def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False) -> list[LoggedTrajectory]:
+    """Read MCAP episode logs into trajectories, dropping ``skip`` samples at each start.
+
+    Incomplete logs (aborted, or cut short and salvaged) are skipped with an
+    :class:`IncompleteLogSkipped` warning, or refused when ``strict``.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: unreadable, not an episode log, incomplete with
+        ``strict``, or too short for ``skip``.
+    """
+    from daq.log import read_episode  # lazily: mcap and zstandard
+
+    if skip < 0:
+        raise ValueError(f"skip must be >= 0, got {skip}")
+    out = []
+    for raw in paths:
+        path = Path(raw)
+        if not path.is_file():
+            raise ValueError(f"{path}: no such log file")
+        episode = read_episode(path, warn=False)
+        if not episode.is_complete:
+            reason = episode.metadata.status_reason or episode.metadata.salvage_note or episode.metadata.status
+            if strict:
+                raise ValueError(f"{path}: incomplete episode ({reason}); refused because of --strict")
+            warnings.warn(f"{path}: incomplete episode ({reason}); skipped", IncompleteLogSkipped, stacklevel=2)
+            continue
+        if len(episode) <= skip + 2:
+            raise ValueError(f"{path}: {len(episode)} samples, too few to drop {skip} and identify")
+        traj = Trajectory(x=episode.states, u=np.asarray(episode.plant_input)[:, None], r=episode.references,
+                          f=np.asarray(episode.feedforward)[:, None], xc=episode.controller_state,
+                          name=path.name, state_names=STATE_NAMES, input_names=("u",), dt=episode.dt)
+        out.append(LoggedTrajectory(path, traj.skip(skip), episode.controller))
+    return out
+
+
+def check_same_rate(logs: Sequence[LoggedTrajectory], what: str) -> float:
+    """The common sample period of the logs; a ValueError naming the odd file otherwise."""
+    dt = logs[0].trajectory.dt
+    for log in logs[1:]:
+        if not np.isclose(log.trajectory.dt, dt, rtol=1e-9, atol=0):
+            raise ValueError(f"{log.path}: sample rate {1 / log.trajectory.dt:g} Hz differs from "
+                             f"{1 / dt:g} Hz of {logs[0].path.name} ({what} logs must share one rate)")
+    return dt
+
+
+def _same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
+    return (a.dt == b.dt and all(x.shape == y.shape and np.allclose(x, y, rtol=1e-12, atol=1e-12)
+                                 for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))))
+
+
+def check_same_controller(logs: Sequence[LoggedTrajectory], what: str) -> DiscreteStateSpace:
+    """The common controller of the logs; a ValueError naming the odd file otherwise."""
+    controller = logs[0].controller
+    for log in logs[1:]:
+        if not _same_system(log.controller, controller):
+            raise ValueError(f"{log.path}: its controller differs from that of {logs[0].path.name} "
+                             f"({what} logs must share one controller)")
+    return controller
+
+
+def paper_split(paths: Sequence[str | Path], n_train: int = 28) -> tuple[list[Path], list[Path]]:
+    """The paper's split: names sorted, the first ``n_train`` train, the rest test."""
+    ordered = sorted((Path(p) for p in paths), key=lambda p: p.name)
+    if len(ordered) <= n_train:
+        raise ValueError(f"the paper's split needs more than {n_train} logs, got {len(ordered)}")
+    return ordered[:n_train], ordered[n_train:]
+
+
+def group_shuffle_splits(n_groups: int, n_splits: int = 3, test_size: float = 0.2,
+                         seed: int = 1234) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Random episode-grouped splits, identical to scikit-learn's GroupShuffleSplit.
+
+    Each split holds out ``ceil(test_size * n_groups)`` episodes (6 of 28 for
+    the paper's protocol) drawn by the same ``RandomState`` permutations as
+    ``GroupShuffleSplit(n_splits, test_size=test_size, random_state=seed)``.
+
+    Returns
+    -------
+    list of (train_indices, validation_indices)
+    """
+    n_test = int(np.ceil(test_size * n_groups))
+    n_train = n_groups - n_test
+    if n_test < 1 or n_train < 1 or n_splits < 1:
+        raise ValueError(f"cannot make {n_splits} splits holding out {test_size:g} of {n_groups} episodes")
+    rng = np.random.RandomState(seed)
+    splits = []
+    for _ in range(n_splits):
+        permutation = rng.permutation(n_groups)
+        splits.append((np.sort(permutation[n_test:n_test + n_train]), np.sort(permutation[:n_test])))
+    return splits
