@@ -233,9 +233,12 @@ class SinkWriter:
 class McapSink:
     """Writes each episode to its own MCAP episode log in a folder (format: daq/log/FORMAT.md).
 
-    Files are named ``qube_<UTC date>T<time>_<s1>_<s2>_<s3>.mcap`` after the
-    start time and the excitation seeds, like the dataset's CSV files; a
-    name already taken gets a ``_<n>`` suffix rather than overwriting.
+    Files are named ``qube_<UTC date>T<time>.<ms>_<s1>_<s2>_<s3>.mcap`` after
+    the start time and the excitation seeds, like the dataset's CSV files
+    plus milliseconds: free-running episodes start several per second, and
+    the names must sort in the order the episodes ran (the paper's split
+    takes the first files by name). A name already taken gets a ``_<n>``
+    suffix rather than overwriting.
 
     Parameters
     ----------
@@ -291,7 +294,7 @@ class McapSink:
 
 
 def episode_file_stem(metadata: EpisodeMetadata) -> str:
-    """``qube_<date>T<time>_<s1>_<s2>_<s3>``: start time (UTC) and excitation seeds, as the dataset named files."""
+    """``qube_<date>T<time>.<ms>_<s1>_<s2>_<s3>``: start time (UTC, ISO 8601 basic) and excitation seeds."""
     start = metadata.start_datetime
     if start.tzinfo is not None:
         from datetime import timezone
@@ -299,4 +302,5 @@ def episode_file_stem(metadata: EpisodeMetadata) -> str:
         start = start.astimezone(timezone.utc)
     seeds = metadata.excitation.get("seeds", {})
     parts = [str(seeds[k]) for k in ("target_theta", "target_alpha", "feedforward") if k in seeds]
-    return "_".join([f"qube_{start:%Y%m%dT%H%M%S}", *parts])
+    stamp = f"{start:%Y%m%dT%H%M%S}.{start.microsecond // 1000:03d}"
+    return "_".join([f"qube_{stamp}", *parts])

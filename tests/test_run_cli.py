@@ -22,13 +22,12 @@ from daq.excitation import ExcitationSettings, generate_excitation
 from daq.log import read_episode, read_episode_metadata
 
 REPO = Path(__file__).resolve().parents[1]
-NAME = re.compile(r"^qube_\d{8}T\d{6}_(\d+)_(\d+)_(\d+)(_\d+)?\.mcap$")
+NAME = re.compile(r"^qube_\d{8}T\d{6}\.\d{3}_(\d+)_(\d+)_(\d+)(_\d+)?\.mcap$")
 
 
 def _episodes(folder: Path):
-    """The run's episodes in the order they were run."""
-    eps = [read_episode(p) for p in folder.glob("*.mcap")]
-    return sorted(eps, key=lambda e: e.metadata.extra["episode_index"])
+    """The run's episodes, in file-name order (which must be the order they ran)."""
+    return [read_episode(p) for p in sorted(folder.glob("*.mcap"))]
 
 
 def _free_port() -> int:
@@ -43,6 +42,7 @@ def test_no_arguments_collects_a_small_default_set_and_says_where(tmp_path, monk
     out = capsys.readouterr().out
     files = sorted((tmp_path / "episodes").glob("*.mcap"))
     assert len(files) == 3 and all(NAME.match(f.name) for f in files)
+    assert [read_episode_metadata(f).extra["episode_index"] for f in files] == [0, 1, 2]
     assert str(tmp_path / "episodes") in out and "3 complete, 0 aborted" in out
     for f in files:
         meta = read_episode_metadata(f)

@@ -45,7 +45,7 @@ def test_writer_thread_delivers_every_sample_in_order_then_closes():
 
 def test_mcap_sink_names_files_like_the_dataset_and_records_timing(tmp_path):
     meta = make_metadata(start_time="2026-11-21T12:34:56.789+00:00")
-    assert episode_file_stem(meta) == "qube_20261121T123456_1_2_3"
+    assert episode_file_stem(meta) == "qube_20261121T123456.789_1_2_3"
     sink = McapSink(tmp_path)
     for _ in range(2):  # the same name twice: the second gets a suffix, nothing is overwritten
         writer = SinkWriter([sink])
@@ -53,8 +53,8 @@ def test_mcap_sink_names_files_like_the_dataset_and_records_timing(tmp_path):
         for k in range(1200):
             writer.put(_sample(k, late=1e-5 * (k % 7)))
         assert writer.close(_outcome(1200)) == []
-    assert [p.name for p in sink.paths] == ["qube_20261121T123456_1_2_3.mcap",
-                                            "qube_20261121T123456_1_2_3_1.mcap"]
+    assert [p.name for p in sink.paths] == ["qube_20261121T123456.789_1_2_3.mcap",
+                                            "qube_20261121T123456.789_1_2_3_1.mcap"]
     ep = read_episode(sink.paths[1])
     assert ep.is_complete and len(ep) == 1200
     assert np.array_equal(ep.controller_state[:, 0], np.arange(1200.0))
