@@ -188,20 +188,20 @@ class _Progress:
                 print("\r\033[K", end="", file=sys.stderr, flush=True)
 
 
-def _ms(value: float | None) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{value * 1e3:.3f}"
+def _us(value: float | None) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value * 1e6:.1f}"
 
 
 def summary_table(rows: list[tuple[str, object]], totals) -> str:
     """The end-of-run table: one row per episode, then the whole run's timing."""
-    header = ("#", "log file", "status", "samples", "late p50 ms", "p99 ms", "max ms", "overruns",
-              "compute p99 ms")
+    header = ("#", "log file", "status", "samples", "late p50 us", "p99 us", "max us", "overruns",
+              "compute p99 us")
     lines = []
     table = [header]
     for i, (name, r) in enumerate(rows):
         t = r.timing
-        table.append((str(i), name, r.status, str(r.n_samples), _ms(t.lateness_p50), _ms(t.lateness_p99),
-                      _ms(t.lateness_max), str(t.overruns) if t.paced else "-", _ms(t.compute_p99)))
+        table.append((str(i), name, r.status, str(r.n_samples), _us(t.lateness_p50), _us(t.lateness_p99),
+                      _us(t.lateness_max), str(t.overruns) if t.paced else "-", _us(t.compute_p99)))
     widths = [max(len(row[j]) for row in table) for j in range(len(header))]
     for j, row in enumerate(table):
         lines.append("  ".join(c.ljust(w) if k < 3 else c.rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
@@ -213,11 +213,11 @@ def summary_table(rows: list[tuple[str, object]], totals) -> str:
     t = totals
     line = f"all {t.n_ticks} ticks: "
     if t.paced:
-        line += (f"lateness p50 {_ms(t.lateness_p50)} ms, p99 {_ms(t.lateness_p99)} ms, max "
-                 f"{_ms(t.lateness_max)} ms; {t.overruns} overruns, {t.stalls} stalls > 2 ms; ")
+        line += (f"lateness p50 {_us(t.lateness_p50)} us, p99 {_us(t.lateness_p99)} us, max "
+                 f"{_us(t.lateness_max)} us; {t.overruns} overruns, {t.stalls} stalls > 2 ms; ")
     else:
         line += "free-running (no deadlines); "
-    line += f"compute p50 {_ms(t.compute_p50)} ms, p99 {_ms(t.compute_p99)} ms, max {_ms(t.compute_max)} ms"
+    line += f"compute p50 {_us(t.compute_p50)} us, p99 {_us(t.compute_p99)} us, max {_us(t.compute_max)} us"
     lines.append(line)
     return "\n".join(lines)
 
