@@ -8,13 +8,15 @@ through the acquisition loop into an MCAP log, as ``qube-run`` does:
 - hybrid wait (sleep to the deadline - 300 us, then spin): qube-run's default;
 - the same with CPU pinning and SCHED_FIFO (``--rt-cpu``, ``--rt-priority``),
   where the system permits it (the row says when it did not);
+- with ``--with-rerun``: the hybrid row again, also recording to a rerun
+  .rrd file from the writer thread (what ``--rerun-save`` adds);
 - reference: sleep to the absolute deadline only (no spin), as a ratio.
 
 Each row takes ticks / 500 seconds of wall time (20 s by default).
 
 Usage::
 
-    PYTHONPATH=. python bench/bench_realtime.py [--ticks N] [--no-rt] [--cpu N] [--priority P]
+    PYTHONPATH=. python bench/bench_realtime.py [--ticks N] [--no-rt] [--with-rerun] [--cpu N] [--priority P]
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--ticks", type=int, default=10_000, help="ticks per row (default 10000 = 20 s)")
     parser.add_argument("--no-rt", action="store_true", help="skip the pinned SCHED_FIFO row")
+    parser.add_argument("--with-rerun", action="store_true", help="add a row that also records to rerun")
     parser.add_argument("--cpu", type=int, default=max(os.sched_getaffinity(0)), help="CPU for the rt row")
     parser.add_argument("--priority", type=int, default=50, help="SCHED_FIFO priority for the rt row")
     args = parser.parse_args(argv)
@@ -50,18 +53,27 @@ def main(argv=None) -> int:
     seeds, backend_seed = run_seeds(0, 1)
     plan = plan_episodes(controller, seeds, excitation_settings(args.ticks / 500.0), source="bench")[0]
 
-    configs = [("hybrid sleep+spin (qube-run --realtime)", DEFAULT_SPIN, None, None)]
+    configs = [("hybrid sleep+spin (qube-run --realtime)", DEFAULT_SPIN, None, None, False)]
     if not args.no_rt:
         configs.append((f"hybrid + CPU {args.cpu} + SCHED_FIFO {args.priority}", DEFAULT_SPIN, args.cpu,
-                        args.priority))
-    configs.append(("reference: absolute-deadline sleep only", 0.0, None, None))
+                        args.priority, False))
+    if args.with_rerun:
+        configs.append(("hybrid + rerun recording (--rerun-save)", DEFAULT_SPIN, None, None, True))
+    configs.append(("reference: absolute-deadline sleep only", 0.0, None, None, False))
 
     rows = []
     with tempfile.TemporaryDirectory() as folder:
-        for label, spin, cpu, priority in configs:
+        for label, spin, cpu, priority, rerun in configs:
+            sinks = [McapSink(Path(folder))]
+            if rerun:
+                from daq.viz import RerunSink, open_recording
+
+                sinks.append(RerunSink(open_recording(save=Path(folder) / "bench.rrd")))
             with realtime_scheduling(cpu, priority) as rt:
-                result = run_episode(SimBackend(seed=backend_seed, realtime=True), plan, [McapSink(Path(folder))],
+                result = run_episode(SimBackend(seed=backend_seed, realtime=True), plan, sinks,
                                      spin=spin, handle_signals=False)
+            if rerun:
+                sinks[1].finish()
             if rt.notes:
                 label += " [" + "; ".join(rt.notes) + "]"
             assert result.complete, result.reason

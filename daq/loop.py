@@ -39,6 +39,10 @@ ABORT_CAUSES = ("safety", "stop", "fault", "log", "start", "error")
 #: from its sleep, waits at most this long for the writer thread to yield.
 REALTIME_SWITCH_INTERVAL = 1e-4
 
+#: While ticks are paced, the writer thread stays idle this long before each
+#: deadline (s): the loop's spin before the deadline must not share the GIL.
+WRITER_GUARD = 0.8e-3
+
 
 @dataclass(frozen=True, eq=False)
 class EpisodePlan:
@@ -257,7 +261,7 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
     late = nan
     t0 = 0.0
     if pacer is not None:
-        pacer.start()
+        writer.keep_clear(pacer.start(), period, min(WRITER_GUARD, 0.5 * period))
     wait = pacer.wait if pacer is not None else None
     device = pacing is Pacing.DEVICE
 
@@ -274,6 +278,7 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
             if device:
                 if k == 0:
                     t0 = t_tick
+                    writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
                 late = t_tick - (t0 + k * period)
         r_theta, r_alpha = ref_theta[k], ref_alpha[k]
         e0 = r_theta - theta

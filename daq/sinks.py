@@ -10,6 +10,7 @@ run on the writer thread except ``open``, which runs before the first tick.
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
 from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
@@ -145,6 +146,10 @@ class MemorySink:
         self.episodes[-1].outcome = outcome
 
 
+# Writer-thread work resumes this long after a tick deadline it waited for (s).
+_AFTER_DEADLINE = 50e-6
+
+
 class SinkWriter:
     """A thread that feeds the loop's samples to the sinks of one episode.
 
@@ -174,6 +179,7 @@ class SinkWriter:
         self._opened: list[Any] = []
         self._active: list[Any] = []
         self._thread: threading.Thread | None = None
+        self._schedule: tuple[float, float, float] | None = None
 
     def _record(self, sink, what: str, exc: BaseException) -> None:
         message = f"{type(sink).__name__}.{what}: {type(exc).__name__}: {exc}"
@@ -195,12 +201,34 @@ class SinkWriter:
         self._thread.start()
         return self.failed is None
 
+    def keep_clear(self, t0: float, period: float, guard: float) -> None:
+        """Do no work in the last ``guard`` seconds before each tick deadline ``t0 + k period``.
+
+        The loop thread wakes shortly before its deadline and then spins;
+        Python hands the interpreter lock back and forth every switch
+        interval, so a busy writer thread there makes the tick late. Work
+        is instead deferred to just after the deadline (``time.perf_counter``
+        clock).
+        """
+        if not (period > 0 and 0 <= guard < period):
+            raise ValueError(f"need 0 <= guard < period, got guard {guard}, period {period}")
+        self._schedule = (float(t0), float(period), float(guard))
+
+    def _wait_for_window(self) -> None:
+        t0, period, guard = self._schedule
+        to_deadline = period - (time.perf_counter() - t0) % period
+        if to_deadline < guard:
+            # Past the deadline plus a little: the loop's tick is then under way.
+            time.sleep(to_deadline + _AFTER_DEADLINE)
+
     def _run(self) -> None:
         pop = self._queue.popleft
         while True:
             # Read the flag before draining: whatever was put before close() is then drained.
             closing = self._closing.is_set()
             while self._queue:
+                if self._schedule is not None and not closing:
+                    self._wait_for_window()
                 item = pop()
                 for sink in self._active:
                     try:

@@ -26,19 +26,16 @@ __all__ = ["DEFAULT_VIEWER_PORT", "RerunUnavailable", "blueprint", "open_recordi
 
 DEFAULT_VIEWER_PORT = 9876
 
-# entity path -> (Sample field, scale, legend name)
+# entity path -> series on it: (Sample field, scale, legend name). One send_columns
+# call per entity and batch: every call holds the interpreter for a while.
 _SERIES = {
-    "theta/measured": ("theta", 1.0, "theta (rad)"),
-    "theta/reference": ("target_theta", 1.0, "target_theta (rad)"),
-    "alpha/measured": ("alpha", 1.0, "alpha (rad)"),
-    "alpha/reference": ("target_alpha", 1.0, "target_alpha (rad)"),
-    "voltage/control_output": ("control_output", 1.0, "controller output (V)"),
-    "voltage/plant_input": ("plant_input", 1.0, "applied, clamped (V)"),
-    "voltage/feedforward": ("feedforward", 1.0, "feedforward (V)"),
-    "timing/lateness": ("lateness", 1e3, "lateness (ms)"),
-    "timing/compute_time": ("compute_time", 1e3, "compute time (ms)"),
+    "theta": (("theta", 1.0, "theta (rad)"), ("target_theta", 1.0, "target_theta (rad)")),
+    "alpha": (("alpha", 1.0, "alpha (rad)"), ("target_alpha", 1.0, "target_alpha (rad)")),
+    "voltage": (("control_output", 1.0, "controller output (V)"), ("plant_input", 1.0, "applied, clamped (V)"),
+                ("feedforward", 1.0, "feedforward (V)")),
+    "timing": (("lateness", 1e3, "lateness (ms)"), ("compute_time", 1e3, "compute time (ms)")),
 }
-_FIELD_INDEX = {name: Sample._fields.index(name) for name, _, _ in _SERIES.values()}
+_FIELDS = [(Sample._fields.index(name), scale) for series in _SERIES.values() for name, scale, _ in series]
 EVENTS = "events"
 
 
@@ -154,6 +151,7 @@ class RerunSink:
         self._offset = 0.0
         self._index = 0
         self._buffer: list[Sample] = []
+        self._jobs: list = []
         self._batch = 1
         self._dt = 0.002
         self._styled = False
@@ -161,8 +159,8 @@ class RerunSink:
     def _style(self) -> None:
         import rerun as rr
 
-        for path, (_, _, label) in _SERIES.items():
-            self.recording.log(path, rr.SeriesLines(names=label), static=True)
+        for path, series in _SERIES.items():
+            self.recording.log(path, rr.SeriesLines(names=[label for _, _, label in series]), static=True)
         self._styled = True
 
     def open(self, metadata: EpisodeMetadata) -> None:
@@ -182,31 +180,42 @@ class RerunSink:
                                               f"backend {metadata.backend}", level="INFO"))
 
     def write(self, sample: Sample) -> None:
-        """Buffer one tick; send the batch when it is full."""
+        """Buffer one tick; a full batch becomes one job per plot, sent one job per later tick.
+
+        Spreading the sends keeps each call of this method short, so the
+        writer thread can stay clear of the loop's deadlines between them.
+        """
         self._buffer.append(sample)
         if len(self._buffer) >= self._batch:
-            self._send()
+            self._queue_batch()
+        elif self._jobs:
+            self._send(self._jobs.pop())
 
-    def _send(self) -> None:
-        import rerun as rr
-
+    def _queue_batch(self) -> None:
         if not self._buffer:
             return
-        rows = np.array([[s[i] for i in _FIELD_INDEX.values()] for s in self._buffer], dtype=float)
-        columns = dict(zip(_FIELD_INDEX, rows.T))
+        rows = np.array([[s[i] * scale for i, scale in _FIELDS] for s in self._buffer], dtype=float)
         t = self._offset + np.array([s.t for s in self._buffer])
-        indexes = [rr.TimeColumn("time", duration=t),
-                   rr.TimeColumn("episode", sequence=np.full(t.size, self._index))]
-        for path, (name, scale, _) in _SERIES.items():
-            self.recording.send_columns(path, indexes=indexes,
-                                        columns=rr.Scalars.columns(scalars=columns[name] * scale))
+        first = 0
+        for path, series in _SERIES.items():
+            self._jobs.insert(0, (path, t, rows[:, first:first + len(series)]))
+            first += len(series)
         self._buffer = []
+
+    def _send(self, job) -> None:
+        import rerun as rr
+
+        path, t, block = job
+        indexes = [rr.TimeColumn("time", duration=t), rr.TimeColumn("episode", sequence=np.full(t.size, self._index))]
+        self.recording.send_columns(path, indexes=indexes, columns=rr.Scalars.columns(scalars=block))
 
     def close(self, outcome: EpisodeOutcome) -> None:
         """Send what is buffered and log how the episode ended, with its timing."""
         import rerun as rr
 
-        self._send()
+        self._queue_batch()
+        while self._jobs:
+            self._send(self._jobs.pop())
         timing = outcome.timing
         end = self._offset + outcome.n_samples * self._dt
         text = f"episode {self._index} {outcome.status}" + (f": {outcome.reason}" if outcome.reason else "")

@@ -149,9 +149,11 @@ def test_rerun_save_records_the_run_with_a_blueprint(tmp_path):
     for chunk in reader.stream():
         if not chunk.is_static:
             rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
-    for path in ("/theta/measured", "/theta/reference", "/alpha/measured", "/alpha/reference",
-                 "/voltage/plant_input", "/voltage/control_output", "/timing/lateness"):
+    # One entity per plot, one series per column: angles with their references, voltages, timing.
+    for path in ("/theta", "/alpha", "/voltage", "/timing"):
         assert rows[path] == 2 * 1000, path
+    theta = next(c for c in reader.stream() if c.entity_path == "/theta" and not c.is_static)
+    assert len(theta.to_record_batch().column("Scalars:scalars")[0]) == 2  # measured, reference
     assert rows["/events"] == 4  # a start and an end per episode
 
 

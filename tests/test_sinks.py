@@ -87,3 +87,28 @@ def test_memory_sink_episode_carries_the_outcome():
     assert len(ep) == 10 and ep.metadata.status == "aborted" and ep.metadata.status_reason == "safety stop"
     assert np.array_equal(ep.plant_input, 1.5 + np.arange(10))
     assert ep.metadata.timing["n_ticks"] == 10
+
+
+def test_writer_keeps_clear_of_the_loops_deadlines():
+    import time
+
+    stamps = []
+
+    class Stamper(MemorySink):
+        def write(self, sample):
+            stamps.append(time.perf_counter())
+
+    period, guard = 0.02, 0.01
+    writer = SinkWriter([Stamper()], poll_interval=0.001)
+    writer.open(make_metadata())
+    t0 = time.perf_counter()
+    writer.keep_clear(t0, period, guard)
+    for k in range(40):  # trickled in, as the loop does
+        writer.put(_sample(k))
+        time.sleep(0.003)
+    writer.close(_outcome(40))
+    phase = (np.array(stamps[:-5]) - t0) % period  # the last few may be drained at close, unguarded
+    # Unguarded, half the writes would land in the window before a deadline.
+    assert np.mean(phase > period - guard) < 0.1
+    with pytest.raises(ValueError, match="guard"):
+        writer.keep_clear(t0, period, period)
