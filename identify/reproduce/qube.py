@@ -23,7 +23,7 @@ from identify.data import (check_same_controller, check_same_rate, group_shuffle
                            same_system)
 from identify.edmd import Edmd
 from identify.lifting import Delay, Polynomial
-from identify.scores import nrmse, r2_scores
+from identify.scores import summarize_episodes
 from identify.structure import close_loop
 from identify.sweep import SweepResult, regularization_sweep
 
@@ -73,38 +73,14 @@ ROWS = (
 
 
 def score_closed_loop(pairs) -> dict:
-    """Closed-loop test scores over (model, trajectory) pairs.
-
-    R^2 and NRMSE over theta and alpha with the first sample stripped (the
-    initial-condition samples kept, as the reference code); mean and standard
-    deviation over episodes. A diverged episode makes the means infinite
-    (R^2 -inf, NRMSE +inf) and the deviations None.
-    """
-    r2, err = [], []
-    for model, t in pairs:
-        pred = model.predict(t)
-        r2.append(float(r2_scores(t.x[1:], pred[1:])))
-        err.append(nrmse(t.x[1:], pred[1:]))
-    return _summary(np.array(r2), np.array(err))
-
-
-def _summary(r2: np.ndarray, err: np.ndarray) -> dict:
-    finite = bool(np.all(np.isfinite(r2)) and np.all(np.isfinite(err)))
-    return {"r2_mean": float(r2.mean()) if finite else -np.inf,
-            "r2_std": float(r2.std()) if finite else None,
-            "nrmse_mean": float(err.mean()) if finite else np.inf,
-            "nrmse_std": float(err.std()) if finite else None,
-            "n_episodes": int(r2.size)}
+    """Closed-loop test scores over (model, trajectory) pairs (see :func:`summarize_episodes`)."""
+    pairs = list(pairs)
+    return summarize_episodes([t.x for _, t in pairs], [m.predict(t) for m, t in pairs])
 
 
 def _arx_scores(train, test) -> dict:
     arx = Arx(ARX_LAGS, ARX_LAGS, inputs=("r", "f")).fit(train)
-    r2, err = [], []
-    for t in test:
-        pred = arx.predict(t)
-        r2.append(float(r2_scores(t.x[1:], pred[1:])))
-        err.append(nrmse(t.x[1:], pred[1:]))
-    return _summary(np.array(r2), np.array(err))
+    return summarize_episodes([t.x for t in test], [arx.predict(t) for t in test])
 
 
 def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
