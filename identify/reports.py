@@ -6,7 +6,8 @@ import math
 from pathlib import Path
 
 
-def _fmt(value, spec: str) -> str:
+def format_number(value, spec: str) -> str:
+    """``format(value, spec)``, with "-" for None and "inf"/"-inf" for infinities."""
     if value is None:
         return "-"
     if isinstance(value, float) and math.isinf(value):
@@ -21,29 +22,29 @@ def markdown_report(report: dict) -> str:
     lines = [
         f"# Identification report: {report['method']}",
         "",
-        f"- regularization alpha: {_fmt(report.get('alpha'), 'g')}",
+        f"- regularization alpha: {format_number(report.get('alpha'), 'g')}",
         f"- scoring: {'closed loop (r, f inputs)' if report['score'] == 'cl' else 'plant (u input)'}",
         f"- training episodes: {len(report['train_logs'])}; test episodes: {t['n_episodes']}",
-        f"- spectral radius: closed loop {_fmt(rho.get('closed_loop'), '.6f')}, plant {_fmt(rho.get('plant'), '.6f')}",
+        f"- spectral radius: closed loop {format_number(rho.get('closed_loop'), '.6f')}, plant {format_number(rho.get('plant'), '.6f')}",
         "",
         "## Test scores",
         "",
         "| R^2 mean | R^2 std | NRMSE mean (%) | NRMSE std (%) |",
         "|---|---|---|---|",
-        f"| {_fmt(t['r2_mean'], '.4f')} | {_fmt(t['r2_std'], '.4f')} | {_fmt(t['nrmse_mean'], '.2f')} "
-        f"| {_fmt(t['nrmse_std'], '.2f')} |",
+        f"| {format_number(t['r2_mean'], '.4f')} | {format_number(t['r2_std'], '.4f')} | {format_number(t['nrmse_mean'], '.2f')} "
+        f"| {format_number(t['nrmse_std'], '.2f')} |",
         "",
         "| test episode | R^2 |",
         "|---|---|",
     ]
-    lines += [f"| {name} | {_fmt(r2, '.4f')} |" for name, r2 in zip(report["test_logs"], t["r2_per_episode"])]
+    lines += [f"| {name} | {format_number(r2, '.4f')} |" for name, r2 in zip(report["test_logs"], t["r2_per_episode"])]
     sweep = report.get("sweep")
     if sweep:
         best = max(range(len(sweep["alpha"])), key=lambda i: sweep["cv_r2_mean"][i])
         lines += ["", "## Regularization sweep", "",
                   f"{len(sweep['alpha'])} alphas from {sweep['alpha'][0]:g} to {sweep['alpha'][-1]:g}, "
                   f"{sweep['cv_splits']} episode-grouped splits; best cross-validated R^2 "
-                  f"{_fmt(sweep['cv_r2_mean'][best], '.4f')} at alpha {sweep['alpha'][best]:g}."]
+                  f"{format_number(sweep['cv_r2_mean'][best], '.4f')} at alpha {sweep['alpha'][best]:g}."]
     return "\n".join(lines) + "\n"
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -60,3 +61,17 @@ def progress(label: str, done: int, total: int) -> None:
         print(f"\r{bar}", end="\n" if done == total else "", file=sys.stderr, flush=True)
     elif done == total:
         print(bar, file=sys.stderr, flush=True)
+
+
+def run_command(command, args) -> int:
+    """Run ``command(args)``: user mistakes and interruptions become one line and an exit status."""
+    try:
+        return command(args)
+    except CliError as exc:
+        return fail(str(exc))
+    except KeyboardInterrupt:
+        return fail("interrupted")
+    except BrokenPipeError:
+        # The reader went away (e.g. piped into `head`): nothing left to tell it.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1

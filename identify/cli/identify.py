@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import warnings
 from pathlib import Path
 
-from identify.cli.common import CliError, fail, output_dir, progress, write_json
+from identify.cli.common import CliError, output_dir, progress, run_command, write_json
 
 DESCRIPTION = """\
 Identify a Koopman model of the closed loop and of the plant from MCAP episode
@@ -180,16 +179,7 @@ def _run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-identify``; returns the exit status."""
     args = _parser().parse_args(argv)
-    try:
-        return _run(args)
-    except CliError as exc:
-        return fail(str(exc))
-    except KeyboardInterrupt:
-        return fail("interrupted")
-    except BrokenPipeError:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 1
-
+    return run_command(_run, args)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
-from identify.cli.common import CliError, fail, output_dir, progress, write_json
+from identify.cli.common import CliError, output_dir, progress, run_command, write_json
 
 DESCRIPTION = """\
 Reproduce the closed-loop Koopman paper's results.
@@ -102,17 +101,7 @@ def _duffing(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-reproduce``; returns the exit status."""
     args = _parser().parse_args(argv)
-    try:
-        return {"duffing": _duffing, "qube": _qube}[args.experiment](args)
-    except CliError as exc:
-        return fail(str(exc))
-    except KeyboardInterrupt:
-        return fail("interrupted")
-    except BrokenPipeError:
-        # The reader went away (e.g. piped into `head`): nothing left to tell it.
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 1
-
+    return run_command(lambda a: {"duffing": _duffing, "qube": _qube}[a.experiment](a), args)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -2,15 +2,7 @@
 
 from __future__ import annotations
 
-import math
-
-
-def _num(value, fmt: str) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float) and math.isinf(value):
-        return "-inf" if value < 0 else "inf"
-    return format(value, fmt)
+from identify.reports import format_number as _num
 
 
 def qube_table(results: dict, markdown: bool = False) -> str:
