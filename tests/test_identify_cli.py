@@ -132,3 +132,18 @@ def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monk
     monkeypatch.chdir(tmp_path)
     code, out, err = run(capsys, *argv)
     assert code == 2 and message in err and "Traceback" not in err
+
+
+def test_logs_with_another_sample_rate_are_refused(tmp_path):
+    from pathlib import Path
+
+    from identify import Trajectory
+    from identify.data import LoggedTrajectory, check_same_rate
+    from sim.lti import DiscreteStateSpace
+
+    ctrl = DiscreteStateSpace([[1.0]], [[1.0]], [[1.0]], [[1.0]], 0.002)
+    fast = LoggedTrajectory(Path("a.mcap"), Trajectory(x=np.zeros((5, 2)), dt=0.002), ctrl)
+    slow = LoggedTrajectory(Path("b.mcap"), Trajectory(x=np.zeros((5, 2)), dt=0.004), ctrl)
+    assert check_same_rate([fast, fast], "training") == 0.002
+    with pytest.raises(ValueError, match="b.mcap: sample rate 250 Hz differs from 500 Hz of a.mcap"):
+        check_same_rate([fast, slow], "training")
