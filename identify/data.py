@@ -13,7 +13,7 @@ from identify.trajectory import Trajectory
 from sim.lti import DiscreteStateSpace
 
 __all__ = ["LoggedTrajectory", "load_logs", "check_same_controller", "check_same_rate",
-           "paper_split", "group_shuffle_splits", "IncompleteLogSkipped"]
+           "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "same_system"]
 
 STATE_NAMES = ("theta", "alpha")
 
@@ -78,7 +78,8 @@ def check_same_rate(logs: Sequence[LoggedTrajectory], what: str) -> float:
     return dt
 
 
-def _same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
+def same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
+    """Whether two discrete systems have the same matrices and period (to 1e-12)."""
     return (a.dt == b.dt and all(x.shape == y.shape and np.allclose(x, y, rtol=1e-12, atol=1e-12)
                                  for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))))
 
@@ -87,7 +88,7 @@ def check_same_controller(logs: Sequence[LoggedTrajectory], what: str) -> Discre
     """The common controller of the logs; a ValueError naming the odd file otherwise."""
     controller = logs[0].controller
     for log in logs[1:]:
-        if not _same_system(log.controller, controller):
+        if not same_system(log.controller, controller):
             raise ValueError(f"{log.path}: its controller differs from that of {logs[0].path.name} "
                              f"({what} logs must share one controller)")
     return controller

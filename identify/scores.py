@@ -11,7 +11,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["r2_score", "r2_scores", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
+__all__ = ["r2_score", "r2_scores", "summarize_episodes", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
 
 
 def _pair(y_true, y_pred) -> tuple[np.ndarray, np.ndarray]:
@@ -89,3 +89,24 @@ def score_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray],
         bad = values[~np.isfinite(values)][0]
         return float(bad), float("nan")
     return float(values.mean()), float(values.std())
+
+
+def summarize_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray], start: int = 1) -> dict:
+    """Test-set summary: R^2 and NRMSE per episode, their means and standard deviations.
+
+    Samples before ``start`` are left out (by default the first, which is the
+    initial condition itself; the reference code keeps the other
+    initial-condition samples). A diverged episode makes the means infinite
+    (R^2 -inf, NRMSE +inf) and the deviations None.
+    """
+    if len(y_true) != len(y_pred) or not y_true:
+        raise ValueError(f"need matching, non-empty episode lists, got {len(y_true)} and {len(y_pred)}")
+    r2 = np.array([r2_score(t[start:], p[start:]) for t, p in zip(y_true, y_pred)])
+    err = np.array([nrmse(t[start:], p[start:]) for t, p in zip(y_true, y_pred)])
+    finite = bool(np.all(np.isfinite(r2)) and np.all(np.isfinite(err)))
+    return {"r2_mean": float(r2.mean()) if finite else -np.inf,
+            "r2_std": float(r2.std()) if finite else None,
+            "nrmse_mean": float(err.mean()) if finite else np.inf,
+            "nrmse_std": float(err.std()) if finite else None,
+            "n_episodes": int(r2.size),
+            "r2_per_episode": r2.tolist()}

@@ -33,3 +33,16 @@ def qube_dataset() -> Path:
 def qube_csv_files(qube_dataset: Path) -> list[Path]:
     """The dataset's 48 episode files, sorted by name (the paper's split order)."""
     return sorted(qube_dataset.glob("*.csv"))
+
+
+@pytest.fixture(scope="session")
+def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
+    """All 48 episodes imported into MCAP logs once per session (about 6 s)."""
+    from daq.legacy_csv import legacy_episode, load_legacy_controller
+    from daq.log import write_episode
+
+    out = tmp_path_factory.mktemp("qube_logs")
+    controller = load_legacy_controller(qube_csv_files[0].parent / "controller.toml")
+    for path in qube_csv_files:
+        write_episode(out / f"{path.stem}.mcap", legacy_episode(path, controller))
+    return out

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import math
+import os
 import sys
 from pathlib import Path
 
@@ -29,11 +31,47 @@ def output_dir(path: str | Path) -> Path:
     return path
 
 
+def _standard(value):
+    """Non-finite floats as the strings "inf", "-inf", "nan": strict JSON has no such numbers."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, dict):
+        return {str(k): _standard(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_standard(v) for v in value]
+    if hasattr(value, "item") and getattr(value, "ndim", None) == 0:  # numpy scalars
+        return _standard(value.item())
+    return value
+
+
 def write_json(path: Path, data) -> None:
-    """Write JSON atomically enough for a report (whole file, then rename)."""
+    """Write strict JSON (non-finite numbers as strings), whole file then rename."""
     tmp = path.with_suffix(path.suffix + ".tmp")
     try:
-        tmp.write_text(json.dumps(data, indent=2, allow_nan=True) + "\n")
+        tmp.write_text(json.dumps(_standard(data), indent=2, allow_nan=False) + "\n")
         tmp.replace(path)
     except OSError as exc:
         raise CliError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def progress(label: str, done: int, total: int) -> None:
+    """A one-line progress bar on stderr; redrawn in place on a terminal, else printed once done."""
+    bar = f"{label}: [{'#' * done}{'.' * (total - done)}] {done}/{total}"
+    if sys.stderr.isatty():
+        print(f"\r{bar}", end="\n" if done == total else "", file=sys.stderr, flush=True)
+    elif done == total:
+        print(bar, file=sys.stderr, flush=True)
+
+
+def run_command(command, args) -> int:
+    """Run ``command(args)``: user mistakes and interruptions become one line and an exit status."""
+    try:
+        return command(args)
+    except CliError as exc:
+        return fail(str(exc))
+    except KeyboardInterrupt:
+        return fail("interrupted")
+    except BrokenPipeError:
+        # The reader went away (e.g. piped into `head`): nothing left to tell it.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1

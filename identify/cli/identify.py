@@ -1,0 +1,185 @@
+"""``qube-identify``: identify Koopman models from episode logs, score them, report."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+from identify.cli.common import CliError, output_dir, progress, run_command, write_json
+
+DESCRIPTION = """\
+Identify a Koopman model of the closed loop and of the plant from MCAP episode
+logs (qube-run or qube-import), score it on test episodes and write a report.
+
+Examples:
+  qube-identify logs/*.mcap --split paper --out model            # the paper's split, CL EDMD
+  qube-identify --train a/*.mcap --test b/*.mcap --alpha-sweep 1e-3 1e3 30
+  qube-identify logs/ --split paper --method edmd --score plant --alpha 1
+
+Test episodes are predicted in closed loop under the controller recorded in
+each test log (a plant model is wrapped with it), or from their plant input
+with --score plant. Outputs in --out: model.json (see identify/MODEL_FORMAT.md),
+report.json, report.md, and with --rerun FILE.rrd a rerun recording.
+"""
+
+METHODS = ("cl-edmd", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="qube-identify", description=DESCRIPTION,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    data = p.add_argument_group("data")
+    data.add_argument("logs", nargs="*", metavar="LOGS", help="episode logs (.mcap files or folders), with --split")
+    data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
+    data.add_argument("--train", nargs="+", metavar="LOG", help="training logs (files or folders)")
+    data.add_argument("--test", nargs="+", metavar="LOG", help="test logs (files or folders)")
+    data.add_argument("--skip", type=int, default=500, metavar="N",
+                      help="samples dropped at the start of each episode (default %(default)s: the rig's "
+                           "hand-raising second)")
+    data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
+    lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
+    lift.add_argument("--poly", type=int, default=2, metavar="ORDER", help="monomial order (1: none; default %(default)s)")
+    lift.add_argument("--delays", type=int, default=10, metavar="N", help="time delays (default %(default)s)")
+    lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions")
+    lift.add_argument("--rbf-centers", type=int, default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
+    lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
+    lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)")
+    lift.add_argument("--rbf-seed", type=int, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
+    fit = p.add_argument_group("identification")
+    fit.add_argument("--method", choices=METHODS, default="cl-edmd", help="default: %(default)s")
+    reg = fit.add_mutually_exclusive_group()
+    reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
+    reg.add_argument("--alpha-sweep", nargs=3, metavar=("MIN", "MAX", "N"),
+                     help="choose alpha among N log-spaced values by episode-grouped cross-validation")
+    fit.add_argument("--cv-splits", type=int, default=3, metavar="K",
+                     help="random splits holding out 20%% of the training episodes (default %(default)s)")
+    fit.add_argument("--cv-seed", type=int, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
+    fit.add_argument("--score", choices=["cl", "plant"], default="cl",
+                     help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
+    fit.add_argument("--arx-lags", type=int, default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
+    out = p.add_argument_group("output")
+    out.add_argument("--out", default="identified", metavar="DIR", help="output folder (default %(default)s)")
+    out.add_argument("--rerun", metavar="FILE.rrd", help="also write a rerun recording of the results")
+    return p
+
+
+def _expand(items) -> list[Path]:
+    paths = []
+    for item in items or []:
+        path = Path(item)
+        if path.is_dir():
+            found = sorted(path.glob("*.mcap"))
+            if not found:
+                raise CliError(f"{path}: folder has no .mcap logs")
+            paths.extend(found)
+        elif path.is_file():
+            paths.append(path)
+        else:
+            raise CliError(f"{path}: no such file or folder")
+    return paths
+
+
+def _lifting(args) -> list:
+    from identify.lifting import Delay, GaussianRbf, Polynomial, ThinPlateRbf
+
+    steps = []
+    if args.poly > 1:
+        steps.append(Polynomial(args.poly))
+    if args.delays > 0:
+        steps.append(Delay(args.delays))
+    if args.rbf == "thin-plate":
+        steps.append(ThinPlateRbf(args.rbf_centers, args.rbf_shape, args.rbf_offset, seed=args.rbf_seed))
+    elif args.rbf == "gaussian":
+        steps.append(GaussianRbf(args.rbf_centers, args.rbf_shape, seed=args.rbf_seed))
+    return steps
+
+
+def _check_args(args) -> None:
+    if args.split and (args.train or args.test):
+        raise CliError("give either LOGS with --split, or --train and --test")
+    if not args.split and not (args.train and args.test):
+        raise CliError("no data: give LOGS --split paper, or --train LOGS... --test LOGS...")
+    if args.split and not args.logs:
+        raise CliError("--split paper needs LOGS")
+    if args.skip < 0 or args.delays < 0 or args.poly < 1 or args.cv_splits < 1 or args.arx_lags < 1:
+        raise CliError("--skip and --delays must be >= 0, --poly, --cv-splits and --arx-lags >= 1")
+    if args.alpha is not None and not args.alpha >= 0:
+        raise CliError(f"--alpha must be a non-negative number, got {args.alpha}")
+    if args.alpha_sweep:
+        try:
+            lo, hi, n = float(args.alpha_sweep[0]), float(args.alpha_sweep[1]), int(args.alpha_sweep[2])
+        except ValueError:
+            raise CliError("--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30") from None
+        if not (0 < lo < hi) or n < 2:
+            raise CliError("--alpha-sweep needs 0 < MIN < MAX and N >= 2")
+        args.alpha_sweep = (lo, hi, n)
+    if args.method in ("arx", "cl-arx") and args.alpha_sweep:
+        raise CliError("--alpha-sweep is for the Koopman methods (edmd, cl-edmd, cl-edmd-lstsq)")
+    if args.method == "arx" and args.score == "cl":
+        raise CliError("--method arx models the plant only; use --score plant, or --method cl-arx")
+
+
+def _load(args):
+    from identify.data import IncompleteLogSkipped, check_same_controller, check_same_rate, load_logs, paper_split
+
+    if args.split:
+        train_paths, test_paths = paper_split(_expand(args.logs))
+    else:
+        train_paths, test_paths = _expand(args.train), _expand(args.test)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", IncompleteLogSkipped)
+        train = load_logs(train_paths, skip=args.skip, strict=args.strict)
+        test = load_logs(test_paths, skip=args.skip, strict=args.strict)
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    if not train or not test:
+        raise CliError("no complete training or test logs left")
+    check_same_rate(train + test, "training and test")
+    controller = check_same_controller(train, "training")
+    return train, test, controller
+
+
+def _run(args) -> int:
+    import numpy as np
+
+    from identify.workflow import identify_and_score
+    from identify.reports import write_markdown_report
+
+    _check_args(args)
+    out = output_dir(args.out)
+    try:
+        train, test, controller = _load(args)
+        print(f"{len(train)} training and {len(test)} test episodes, {args.skip} samples dropped from each",
+              file=sys.stderr)
+        alphas = None if not args.alpha_sweep else np.logspace(np.log10(args.alpha_sweep[0]),
+                                                               np.log10(args.alpha_sweep[1]), args.alpha_sweep[2])
+        result = identify_and_score(
+            method=args.method, lifting=_lifting(args), train=train, test=test, controller=controller,
+            alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
+            cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
+            model_path=out / "model.json", progress=progress)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    write_json(out / "report.json", result.report)
+    write_markdown_report(out / "report.md", result.report)
+    if args.rerun:
+        from identify.rerun_view import write_recording
+
+        write_recording(args.rerun, result)
+    t = result.report["test"]
+    print(f"{args.method}, alpha {result.report['alpha']}: test R^2 {t['r2_mean']:.4f} +- {t['r2_std'] or 0:.4f}, "
+          f"NRMSE {t['nrmse_mean']:.2f} +- {t['nrmse_std'] or 0:.2f} % over {t['n_episodes']} episodes ({args.score})")
+    written = ["model.json", "report.json", "report.md"]
+    print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``qube-identify``; returns the exit status."""
+    args = _parser().parse_args(argv)
+    return run_command(_run, args)
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""Model files: a fitted Koopman model, its lifting and its controller, as JSON.
+
+The format is documented in MODEL_FORMAT.md. A loaded model predicts exactly
+as the fitted one did.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from identify.lifting import Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
+from identify.model import KoopmanModel
+from sim.lti import DiscreteStateSpace
+
+__all__ = ["FORMAT", "VERSION", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model"]
+
+FORMAT = "qube-koopman-model"
+VERSION = 1
+
+
+def lifting_to_dict(lifting: Lifting) -> dict:
+    """The fitted lifting as plain data (RBF centres included)."""
+    steps = []
+    for step in lifting.steps_:
+        entry = {"type": type(step).__name__}
+        if isinstance(step, Polynomial):
+            entry["order"] = step.order
+        elif isinstance(step, Delay):
+            entry["n_delays"] = step.n_delays
+        elif isinstance(step, (ThinPlateRbf, GaussianRbf)):
+            entry.update(shape=step.shape, centers=step.centers_.tolist())
+            if isinstance(step, ThinPlateRbf):
+                entry["offset"] = step.offset
+        else:
+            raise ValueError(f"lifting step {type(step).__name__} cannot be saved")
+        steps.append(entry)
+    return {"state_names": list(lifting.feature_names_in_), "steps": steps}
+
+
+def lifting_from_dict(data: dict) -> Lifting:
+    """Rebuild a fitted lifting from :func:`lifting_to_dict` output."""
+    steps = []
+    for entry in data["steps"]:
+        kind = entry.get("type")
+        if kind == "Polynomial":
+            steps.append(Polynomial(entry["order"]))
+        elif kind == "Delay":
+            steps.append(Delay(entry["n_delays"]))
+        elif kind == "ThinPlateRbf":
+            steps.append(ThinPlateRbf(len(entry["centers"]), entry["shape"], entry["offset"], centers=entry["centers"]))
+        elif kind == "GaussianRbf":
+            steps.append(GaussianRbf(len(entry["centers"]), entry["shape"], centers=entry["centers"]))
+        else:
+            raise ValueError(f"unknown lifting step {kind!r}")
+    lifting = Lifting(steps)
+    names = data["state_names"]
+    # Every step is now determined by its parameters; fitting only records the names.
+    return lifting.fit([np.zeros((lifting.n_delays + 2, len(names)))], names)
+
+
+def _model_to_dict(model: KoopmanModel | None) -> dict | None:
+    if model is None:
+        return None
+    return {"A": model.A.tolist(), "B": model.B.tolist(), "input_signals": list(model.input_signals),
+            "n_passthrough": model.n_passthrough, "passthrough_names": list(model.passthrough_names)}
+
+
+def save_model(path: str | Path, *, method: str, alpha: float | None, plant: KoopmanModel,
+               closed_loop: KoopmanModel | None, controller: DiscreteStateSpace | None,
+               measured: list[int], training: dict) -> None:
+    """Write a model file (see MODEL_FORMAT.md)."""
+    data = {
+        "format": FORMAT, "version": VERSION, "method": method, "alpha": alpha, "dt": plant.dt,
+        "lifting": lifting_to_dict(plant.lifting), "measured": list(measured),
+        "controller": None if controller is None else controller.as_dict(),
+        "plant": _model_to_dict(plant), "closed_loop": _model_to_dict(closed_loop), "training": training,
+    }
+    Path(path).write_text(json.dumps(data, indent=1) + "\n")
+
+
+def load_model(path: str | Path) -> dict:
+    """Read a model file.
+
+    Returns
+    -------
+    dict
+        ``plant`` and ``closed_loop`` (:class:`KoopmanModel` or None),
+        ``controller`` (:class:`DiscreteStateSpace` or None) and the file's
+        other fields as stored.
+
+    Raises
+    ------
+    ValueError
+        Naming the file when it is not a model file or has another version.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable model file ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a {FORMAT} file")
+    if data.get("version") != VERSION:
+        raise ValueError(f"{path}: model format version {data.get('version')}, this software reads {VERSION}")
+    lifting = lifting_from_dict(data["lifting"])
+
+    def model(entry):
+        if entry is None:
+            return None
+        return KoopmanModel(np.array(entry["A"]), np.array(entry["B"]), lifting, tuple(entry["input_signals"]),
+                            n_passthrough=entry["n_passthrough"], dt=data["dt"],
+                            passthrough_names=tuple(entry["passthrough_names"]))
+
+    out = dict(data)
+    out.update(plant=model(data["plant"]), closed_loop=model(data["closed_loop"]),
+               controller=None if data["controller"] is None else DiscreteStateSpace.from_dict(data["controller"]))
+    return out

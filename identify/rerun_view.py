@@ -1,0 +1,57 @@
+"""A rerun recording of an identification run (rerun-sdk imported lazily).
+
+Entities: ``test/<episode>/<state>/{measured,predicted}`` against time;
+``eigenvalues/{closed_loop,plant}`` beside ``eigenvalues/unit_circle``;
+``sweep/{cv_r2,spectral_radius_closed_loop,spectral_radius_plant}`` against
+the sweep index (timeline ``alpha_index``; ``sweep/log10_alpha`` gives the
+value).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+STATE_NAMES = ("theta", "alpha")
+
+
+def _eigenvalues(model) -> np.ndarray | None:
+    A = getattr(model, "A", None)
+    if A is None:  # ARX wrappers keep their state-space form in model_
+        inner = getattr(model, "model_", None) or getattr(model, "plant_", None)
+        A = None if inner is None else inner.A
+    return None if A is None else np.linalg.eigvals(np.asarray(A))
+
+
+def write_recording(path, result) -> None:
+    """Write ``result`` (an :class:`identify.workflow.IdentificationResult`) to an .rrd file."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("qube-identify")
+    rec.save(str(path))
+    for name, t, truth, pred in zip(result.test_names, result.test_time, result.test_truth,
+                                    result.test_predictions):
+        stem = name.rsplit(".", 1)[0]
+        for j, state in enumerate(STATE_NAMES[:truth.shape[1]]):
+            for kind, values in (("measured", truth[:, j]), ("predicted", pred[:, j])):
+                rec.send_columns(f"test/{stem}/{state}/{kind}", indexes=[rr.TimeColumn("time", duration=t)],
+                                 columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+    circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
+    rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
+    for kind, model in (("closed_loop", result.closed_loop), ("plant", result.plant)):
+        eig = None if model is None else _eigenvalues(model)
+        if eig is not None:
+            rec.log(f"eigenvalues/{kind}", rr.Points2D(np.column_stack([eig.real, eig.imag]), radii=0.01),
+                    static=True)
+    sweep = result.report.get("sweep")
+    if sweep:
+        index = rr.TimeColumn("alpha_index", sequence=np.arange(len(sweep["alpha"])))
+        series = {"log10_alpha": np.log10(sweep["alpha"]), "cv_r2": sweep["cv_r2_mean"],
+                  "spectral_radius_closed_loop": sweep["spectral_radius_closed_loop"],
+                  "spectral_radius_plant": sweep["spectral_radius_plant"]}
+        for key, values in series.items():
+            if values is not None:
+                values = np.asarray(values, dtype=float)
+                rec.send_columns(f"sweep/{key}", indexes=[index],
+                                 columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+    rec.flush()
+    rec.disconnect()

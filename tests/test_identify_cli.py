@@ -1,0 +1,149 @@
+"""qube-identify end to end on real logs, model files, refusals."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from identify.cli.identify import main
+from identify.model_file import load_model
+
+pytestmark = pytest.mark.dataset
+
+
+@pytest.fixture(scope="module")
+def small_set(qube_logs, tmp_path_factory):
+    """8 training and 4 test episodes of the real data."""
+    logs = sorted(qube_logs.glob("*.mcap"))
+    root = tmp_path_factory.mktemp("small")
+    for name, chosen in (("train", logs[:8]), ("test", logs[28:32])):
+        (root / name).mkdir()
+        for path in chosen:
+            shutil.copy(path, root / name / path.name)
+    return root
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_cl_edmd_on_a_few_real_episodes(small_set, tmp_path, capsys):
+    """Band derived from the paper's data: the full 28/20 split gives 0.897 +- 0.018; with 8
+    training episodes the same model scores slightly lower but above 0.85 on these 4."""
+    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test",
+                         "--out", tmp_path, "--rerun", tmp_path / "run.rrd")
+    assert code == 0, err
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["method"] == "cl-edmd" and report["alpha"] == 1e-3
+    assert 0.85 <= report["test"]["r2_mean"] <= 0.93
+    assert report["test"]["n_episodes"] == 4
+    assert report["spectral_radius"]["closed_loop"] <= 1.0001 < report["spectral_radius"]["plant"]
+    assert "R^2" in (tmp_path / "report.md").read_text()
+    from rerun.chunk import RrdReader
+
+    paths = set(RrdReader(tmp_path / "run.rrd").store().schema().entity_paths())
+    assert "/eigenvalues/plant" in paths and any(p.endswith("/theta/predicted") for p in paths)
+
+
+def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
+    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
+                       "--delays", "3", "--rbf", "gaussian", "--rbf-centers", "5", "--rbf-shape", "2")
+    assert code == 0, err
+    loaded = load_model(tmp_path / "model.json")
+    from identify.data import load_logs
+
+    log = load_logs(sorted((small_set / "test").glob("*.mcap"))[:1], skip=500)[0]
+    pred = loaded["closed_loop"].predict(log.trajectory)
+    from identify import r2_score
+
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert r2_score(log.trajectory.x[1:], pred[1:]) == pytest.approx(report["test"]["r2_per_episode"][0], abs=1e-9)
+    assert loaded["controller"].n_states == 2
+    assert loaded["lifting"]["steps"][-1]["type"] == "GaussianRbf"
+
+
+def test_sweep_edmd_plant_scoring_and_arx(small_set, tmp_path, capsys):
+    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
+                       "--method", "edmd", "--alpha-sweep", "1e-3", "1e3", "4", "--cv-splits", "2")
+    assert code == 0, err
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert len(report["sweep"]["alpha"]) == 4 and len(report["sweep"]["cv_r2_mean"]) == 4
+    assert report["alpha"] in report["sweep"]["alpha"]
+    assert "cross-validation" in err
+    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
+                       "--method", "cl-arx")
+    assert code == 0, err
+    assert 0.7 < json.loads((tmp_path / "report.json").read_text())["test"]["r2_mean"] < 0.95
+
+
+def test_plant_scoring_of_an_unstable_plant_diverges(small_set, tmp_path, capsys):
+    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
+                         "--score", "plant")
+    assert code == 0, err
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["test"]["r2_mean"] == "-inf"  # strict JSON: non-finite numbers as strings
+
+
+def test_paper_split_needs_more_than_28_logs(small_set, tmp_path, capsys):
+    code, _, err = run(capsys, small_set / "train", "--split", "paper", "--out", tmp_path)
+    assert code == 2 and "more than 28 logs" in err
+
+
+def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
+    # a different controller among the training logs
+    from daq.log import read_episode, write_episode
+    from dataclasses import replace
+
+    source = sorted((small_set / "train").glob("*.mcap"))[0]
+    ep = read_episode(source)
+    system = ep.metadata.controller.system
+    odd_system = replace(system, C=system.C * 1.1)
+    odd_controller = replace(ep.metadata.controller, system=odd_system)
+    odd = tmp_path / "odd"
+    odd.mkdir()
+    write_episode(odd / "odd.mcap", replace(ep, metadata=replace(ep.metadata, controller=odd_controller)))
+    code, _, err = run(capsys, "--train", small_set / "train", odd / "odd.mcap", "--test", small_set / "test",
+                       "--out", tmp_path / "o")
+    assert code == 2 and "odd.mcap: its controller differs" in err
+
+    # an incomplete log is skipped with a warning, refused with --strict
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    data = source.read_bytes()
+    (cut / "cut.mcap").write_bytes(data[: len(data) // 2])
+    code, _, err = run(capsys, "--train", small_set / "train", cut / "cut.mcap", "--test", small_set / "test",
+                       "--out", tmp_path / "o")
+    assert code == 0 and "cut.mcap: incomplete episode" in err and "skipped" in err
+    code, _, err = run(capsys, "--train", small_set / "train", cut / "cut.mcap", "--test", small_set / "test",
+                       "--out", tmp_path / "o", "--strict")
+    assert code == 2 and "refused because of --strict" in err
+
+
+@pytest.mark.parametrize("argv,message", [
+    ([], "no data"),
+    (["--train", "nowhere.mcap", "--test", "x"], "nowhere.mcap: no such file or folder"),
+    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "0.1", "5"], "0 < MIN < MAX"),
+    (["--train", ".", "--test", ".", "--method", "arx"], "models the plant only"),
+])
+def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run(capsys, *argv)
+    assert code == 2 and message in err and "Traceback" not in err
+
+
+def test_logs_with_another_sample_rate_are_refused(tmp_path):
+    from pathlib import Path
+
+    from identify import Trajectory
+    from identify.data import LoggedTrajectory, check_same_rate
+    from sim.lti import DiscreteStateSpace
+
+    ctrl = DiscreteStateSpace([[1.0]], [[1.0]], [[1.0]], [[1.0]], 0.002)
+    fast = LoggedTrajectory(Path("a.mcap"), Trajectory(x=np.zeros((5, 2)), dt=0.002), ctrl)
+    slow = LoggedTrajectory(Path("b.mcap"), Trajectory(x=np.zeros((5, 2)), dt=0.004), ctrl)
+    assert check_same_rate([fast, fast], "training") == 0.002
+    with pytest.raises(ValueError, match="b.mcap: sample rate 250 Hz differs from 500 Hz of a.mcap"):
+        check_same_rate([fast, slow], "training")
