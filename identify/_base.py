@@ -42,6 +42,37 @@ class Estimator:
             raise ValueError(f"this {type(self).__name__} is not fitted yet; call fit first")
 
 
+class SnapshotEstimator(Estimator):
+    """A least-squares Koopman estimator fitted from per-episode snapshot statistics.
+
+    ``fit`` = ``_setup`` (validate, fit the lifting), ``_episode_snapshots``
+    for each episode, ``_finish`` (solve for ``alpha``). Sweeps call the three
+    steps themselves to reuse statistics across folds and alphas.
+    """
+
+    def fit(self, trajectories) -> "SnapshotEstimator":
+        """Fit on a list of :class:`~identify.Trajectory` (the class says which signals it needs).
+
+        Returns
+        -------
+        self
+        """
+        from identify.regression import Snapshots
+
+        setup = self._setup(trajectories)
+        parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]
+        return self._finish(setup, Snapshots.total(parts))
+
+    def _setup(self, trajectories) -> "FitSetup":
+        raise NotImplementedError
+
+    def _episode_snapshots(self, setup: "FitSetup", trajectory: Trajectory):
+        raise NotImplementedError
+
+    def _finish(self, setup: "FitSetup", snapshots) -> "SnapshotEstimator":
+        raise NotImplementedError
+
+
 def resolve_lifting(lifting) -> Lifting:
     """A Lifting from None (identity), a Lifting, or a sequence of lifting functions."""
     if lifting is None:

@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from identify._base import Estimator, FitSetup, resolve_lifting
+from identify._base import FitSetup, SnapshotEstimator, resolve_lifting
 from identify._checks import check_alpha, check_choice
 from identify.model import KoopmanModel
 from identify.regression import Snapshots, constrained_plant_solve, ridge_solve
@@ -20,7 +20,7 @@ __all__ = ["ClEdmd", "ClEdmdLstsq"]
 REGULARIZE = ("closed_loop", "plant")
 
 
-class _ClosedLoopKoopman(Estimator):
+class _ClosedLoopKoopman(SnapshotEstimator):
     """Shared data handling of the closed-loop estimators.
 
     Data: per episode the plant states ``x``, reference ``r``, controller
@@ -55,17 +55,6 @@ class _ClosedLoopKoopman(Estimator):
                              f"has {n_f} channels")
         if first.dt is not None and abs(first.dt - ctrl.dt) > 1e-12 * ctrl.dt:
             raise ValueError(f"the data's sample period {first.dt} s differs from the controller's {ctrl.dt} s")
-
-    def fit(self, trajectories) -> "_ClosedLoopKoopman":
-        """Fit on closed-loop episodes (signals ``x``, ``r``, ``xc``, optional ``f``).
-
-        Returns
-        -------
-        self
-        """
-        setup = self._setup(trajectories)
-        parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]
-        return self._finish(setup, Snapshots.total(parts))
 
     def _setup(self, trajectories) -> FitSetup:
         """Validate the data and the controller, fit the lifting."""

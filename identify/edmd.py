@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify._base import Estimator, FitSetup, resolve_lifting
+from identify._base import FitSetup, SnapshotEstimator, resolve_lifting
 from identify._checks import check_alpha
 from identify.model import KoopmanModel
 from identify.regression import Snapshots, ridge_solve
@@ -13,7 +13,7 @@ from identify.trajectory import Trajectory, check_trajectories
 __all__ = ["Edmd"]
 
 
-class Edmd(Estimator):
+class Edmd(SnapshotEstimator):
     """Extended dynamic mode decomposition of a plant: ``theta_{k+1} = A theta_k + B u_k``.
 
     Parameters
@@ -40,17 +40,6 @@ class Edmd(Estimator):
         self.lifting = lifting
         self.alpha = alpha
         self.input_lifting = input_lifting
-
-    def fit(self, trajectories) -> "Edmd":
-        """Fit on episodes with signals ``x`` (states) and ``u`` (inputs).
-
-        Returns
-        -------
-        self
-        """
-        setup = self._setup(trajectories)
-        parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]
-        return self._finish(setup, Snapshots.total(parts))
 
     def _setup(self, trajectories) -> FitSetup:
         """Validate the data, fit the state and input liftings."""
