@@ -13,7 +13,6 @@ from identify.arx import Arx, ClArx
 from identify.cl_edmd import ClEdmd, ClEdmdLstsq
 from identify.data import LoggedTrajectory, group_shuffle_splits, same_system
 from identify.edmd import Edmd
-from identify.model import KoopmanModel
 from identify.model_file import lifting_to_dict, save_model
 from identify.scores import summarize_episodes
 from identify.structure import close_loop
