@@ -166,3 +166,7 @@ def main(argv: list[str] | None = None) -> int:
           + (f"; {refused} refused" if refused else "")
           + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
     return 0 if refused == 0 and not problems and imported > 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
