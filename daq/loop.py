@@ -14,6 +14,7 @@ reach the sinks, which are closed with status ``aborted`` and the reason.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from contextlib import nullcontext
@@ -126,6 +127,15 @@ def _zero_motor(backend: Backend) -> None:
         backend.stop()
 
 
+def _statistics(backend: Backend) -> dict:
+    # The counters are informative: a backend failing to give them, or giving
+    # something JSON cannot hold, must not cost the log its final status.
+    try:
+        return json.loads(json.dumps(dict(backend.statistics()), allow_nan=False))
+    except Exception as exc:  # noqa: BLE001
+        return {"error": f"statistics unavailable: {type(exc).__name__}: {exc}"}
+
+
 def _wait_upright(backend: Backend, limits: SafetyLimits, stop: StopRequest,
                   pacer: DeadlinePacer | None) -> tuple[str, str]:
     """Hold 0 V until |alpha| < start_alpha; ('', '') once there, else (why not, cause)."""
@@ -203,7 +213,8 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
             reason, cause = f"backend fault before the start: {exc}", "fault"
         if reason:
             _zero_motor(backend)
-            return EpisodeResult("aborted", reason, 0, not_started, None, signal=stop.signal, cause=cause)
+            return EpisodeResult("aborted", reason, 0, not_started, _statistics(backend), signal=stop.signal,
+                                 cause=cause)
 
         metadata = EpisodeMetadata(
             controller=plan.controller, sample_rate_hz=1.0 / period, backend=backend.name,
@@ -226,11 +237,14 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
         finally:
             _zero_motor(backend)
             timing = timing_stats(lateness[:n_done], compute[:n_done], period)
-            outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing)
+            outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
+                                     _statistics(backend))
             errors = writer.close(outcome)
-    metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict())
-    return EpisodeResult(outcome.status, reason, n_done, timing, metadata, tuple(errors), stop.signal, cause,
-                         lateness[:n_done], compute[:n_done])
+    metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict(),
+                       backend_stats=outcome.backend_stats)
+    return EpisodeResult(outcome.status, reason, n_done, timing, outcome.backend_stats, metadata=metadata,
+                         sink_errors=tuple(errors), signal=stop.signal, cause=cause, lateness=lateness[:n_done],
+                         compute_time=compute[:n_done])
 
 
 def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest,

@@ -83,5 +83,13 @@ class Backend(ABC):
         """Plain-data description for the episode metadata (settings, initial state...)."""
         return {"name": self.name, "pacing": self.pacing.value}
 
+    def statistics(self) -> dict:
+        """Plain-data counters of the episode just run (e.g. a link's lost frames), or {}.
+
+        Called once when the episode ends, after :meth:`stop`; the loop records
+        the result with the episode's final status.
+        """
+        return {}
+
     def close(self) -> None:
         """Release resources when no more episodes will run (default: nothing to release)."""
