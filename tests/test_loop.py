@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from _episodes import QUBE_PD
+from _episodes import QUBE_PD, assert_follows_controller
 
 from daq.backends import Backend, BackendFault, Pacing, SimBackend
 from daq.episode import ControllerInfo
@@ -18,7 +18,6 @@ from daq.excitation import Excitation, ExcitationSettings, generate_excitation
 from daq.loop import EpisodePlan, run_episode
 from daq.safety import SafetyLimits, StopRequest
 from daq.sinks import MemorySink
-from identify import controller_states
 from sim.pendulum import SensorModel, simulate_closed_loop
 
 RIG_GAINS = {"kp_theta": 6.0, "kd_theta": 1.8, "kp_alpha": 30.0, "kd_alpha": 2.5, "tau": 50.0}
@@ -250,15 +249,7 @@ def sim_episode():
 def test_controller_state_and_output_follow_the_controller(sim_episode):
     result, ep, _ = sim_episode
     assert result.complete and len(ep) == 3000
-    # The controller run offline from zero on the logged tracking error (FACTS section 2).
-    xc = controller_states(QUBE_PD, ep.references, ep.states)
-    np.testing.assert_allclose(ep.controller_state, xc, rtol=0, atol=1e-10)
-    u = ep.controller_state @ QUBE_PD.C[0] + ep.tracking_error @ QUBE_PD.D[0]
-    np.testing.assert_allclose(ep.control_output, u, rtol=0, atol=1e-10)
-    np.testing.assert_array_equal(ep.plant_input, np.clip(ep.control_output + ep.feedforward, -10, 10))
-    wanted = ep.control_output + ep.feedforward
-    assert np.array_equal(ep.saturation, np.where(wanted > 10, 1, np.where(wanted < -10, -1, 0)))
-    assert np.all(ep.controller_state[0] == 0.0), "the rig started from a zero controller state"
+    assert_follows_controller(ep)
 
 
 def test_loop_on_the_simulator_matches_the_batched_closed_loop():
