@@ -18,6 +18,13 @@ reason, on:
   ticks: the motor was off, the data no longer shows the controller's
   loop), or a bridge that lost the session.
 
+A watchdog trip while the host has commanded nothing but 0 V in this session
+is not a fault: that is the start gate holding the motor still (the loop's
+pause between the gate opening and its first tick, opening the log, can
+exceed five ticks). The backend then re-arms the watchdog with one
+amplifier-off command before its first real one. Skipped ticks and late
+commands are counted from the first non-zero command on.
+
 Lost frames are counted, not fatal: a gap in the telemetry's tick counter
 (``ticks_missed``) or in the frame sequence (``frames_lost``), frames the
 decoder rejected, commands that missed their tick (``late_commands``), and
@@ -135,7 +142,7 @@ class SerialBackend(Backend):
                  handshake_timeout: float = 1.0) -> None:
         if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
             raise ValueError(f"baud must be a positive whole number, got {baud!r}")
-        Config(rate_hz=rate_hz, watchdog_ticks=watchdog_ticks)  # checks the rate and watchdog
+        Config(rate_hz=rate_hz, watchdog_ticks=watchdog_ticks).pack()  # ValueError naming a bad one
         if not (math.isfinite(max_voltage) and 0 < max_voltage <= MAX_MILLIVOLTS / 1000):
             raise ValueError(f"max_voltage must be in (0, {MAX_MILLIVOLTS / 1000:g}] V, got {max_voltage!r}")
         for name, value in (("link_timeout", link_timeout), ("handshake_timeout", handshake_timeout)):
@@ -157,6 +164,8 @@ class SerialBackend(Backend):
         self._command_seq = 0
         self._running = False
         self._faulted = False
+        self._driving = self._rearm = False
+        self._rearm_seq: int | None = None
         self._reset_counts()
 
     # --- link ------------------------------------------------------------------------------
@@ -332,6 +341,8 @@ class SerialBackend(Backend):
                 self._counts["device_overruns"] += message.value
             elif code == FaultCode.RX_ERRORS:
                 self._counts["device_rx_errors"] = message.value
+            elif code == FaultCode.WATCHDOG_TRIPPED and not self._driving:
+                self._rearm = True
             elif code in (FaultCode.WATCHDOG_TRIPPED, FaultCode.AMP_FAULT, FaultCode.STALL_ERROR,
                           FaultCode.BAD_MODULE_ID, FaultCode.NOT_CONNECTED):
                 self._faulted = True
@@ -349,10 +360,19 @@ class SerialBackend(Backend):
                                    f"{self._expected_tick - 1})")
             counts["ticks_missed"] += gap
         self._expected_tick = (tm.tick + 1) & _U32
-        if tm.status & _DEVICE_FAULT_STATUS:
+        status = tm.status
+        if status & Status.WATCHDOG_TRIPPED:
+            if not self._driving:
+                self._rearm = True
+                status &= ~Status.WATCHDOG_TRIPPED
+            elif self._rearm_seq is not None and (tm.last_command_seq - self._rearm_seq) & _U32 >= 1 << 31:
+                status &= ~Status.WATCHDOG_TRIPPED  # sent before the re-arming command arrived
+        if self._rearm_seq is not None and (tm.last_command_seq - self._rearm_seq) & _U32 < 1 << 31:
+            self._rearm_seq = None
+        if status & _DEVICE_FAULT_STATUS:
             self._faulted = True
-            raise BackendFault(_status_text(tm.status))
-        if tm.command_age != _AGE_NONE and tm.command_age > 0:
+            raise BackendFault(_status_text(status))
+        if self._driving and tm.command_age != _AGE_NONE and tm.command_age > 0:
             counts["late_commands"] += 1
         if tm.status & Status.TX_OVERFLOW:
             counts["tx_overflows"] += 1
@@ -369,6 +389,8 @@ class SerialBackend(Backend):
             As :meth:`open`.
         """
         self._faulted = False
+        self._driving = self._rearm = False
+        self._rearm_seq: int | None = None
         self._reset_counts()
         self.open()
         # Rejects while resynchronizing on an older session's stream are not this episode's.
@@ -397,7 +419,7 @@ class SerialBackend(Backend):
                 frame = frames.popleft()
                 self._track(frame)
                 if isinstance(frame.message, Telemetry):
-                    if latest is not None:
+                    if latest is not None and self._driving:
                         self._counts["ticks_skipped"] += 1
                     latest = self._telemetry(frame)
             if latest is not None:
@@ -423,6 +445,11 @@ class SerialBackend(Backend):
             self._command(0, 0)
             return
         mv = max(-self.max_millivolts, min(self.max_millivolts, int(round(volts * 1000.0))))
+        if self._rearm:
+            # The trip is latched until the amplifier is commanded off (PROTOCOL.md 7.4).
+            self._command(0, 0)
+            self._rearm, self._rearm_seq = False, self._command_seq
+        self._driving = self._driving or mv != 0
         self._command(mv, CommandFlags.AMP_ENABLE)
 
     def _command(self, millivolts: int, flags: int) -> None:
