@@ -28,7 +28,9 @@ Ticks are paced in one of two ways:
 
 Each HELLO (a host opening a session) puts the pendulum back upright at
 rest with a seeded perturbation of alpha, as a person raises the real one by
-hand, so that ``qube-run`` passes its start gate. Faults are injected as
+hand, so that ``qube-run`` passes its start gate: at once, or carried up from
+hanging over ``raise_time`` seconds of device time (the host's start gate
+then holds the motor at 0 V meanwhile, as on the rig). Faults are injected as
 :class:`~sim.bridge.faults.Faults` asks.
 """
 
@@ -61,7 +63,8 @@ DEFAULT_PERTURBATION = math.radians(2.0)
 DEFAULT_SPIN = 300e-6
 
 #: Per-tick record kept when ``record_ticks > 0`` (see :meth:`BridgeEmulator.record`).
-RECORD_FIELDS = ("device_us", "wall", "lateness", "volts", "amp_enabled", "command_seq", "command_mv", "session")
+RECORD_FIELDS = ("device_us", "wall", "lateness", "volts", "amp_enabled", "command_seq", "command_mv", "session",
+                 "answer")
 
 # Output waiting for a host that does not read is dropped beyond this (bytes),
 # as a real USB serial link drops what nobody collects.
@@ -90,6 +93,9 @@ class BridgeEmulator:
     start_upright : bool
         Raise the pendulum at each HELLO; False leaves it hanging, as after
         power-up (the host's start gate then waits in vain).
+    raise_time : float
+        Seconds of device time the raising takes (0: at once). Meanwhile
+        the pendulum follows the hand, whatever the motor does.
     faults : Faults
         What to break.
     params : PendulumParameters
@@ -106,12 +112,14 @@ class BridgeEmulator:
 
     def __init__(self, *, seed: int | None = None, lockstep: bool = False, lockstep_timeout: float = 0.01,
                  perturbation: float = DEFAULT_PERTURBATION, start_upright: bool = True,
-                 faults: Faults = Faults(), params: PendulumParameters = PendulumParameters(),
+                 raise_time: float = 0.0, faults: Faults = Faults(), params: PendulumParameters = PendulumParameters(),
                  spin: float = DEFAULT_SPIN, record_ticks: int = 0, core=None) -> None:
         if not (math.isfinite(perturbation) and 0 <= perturbation < math.pi / 2):
             raise ValueError(f"perturbation must be an angle in [0, pi/2) rad, got {perturbation!r}")
         if not (math.isfinite(lockstep_timeout) and lockstep_timeout > 0):
             raise ValueError(f"lockstep_timeout must be a positive number of s, got {lockstep_timeout!r}")
+        if not (math.isfinite(raise_time) and 0 <= raise_time <= 60):
+            raise ValueError(f"raise_time must be in [0, 60] s, got {raise_time!r}")
         if not (math.isfinite(spin) and 0 <= spin < 0.002):
             raise ValueError(f"spin must be in [0, 2 ms), got {spin!r}")
         if not isinstance(faults, Faults):
@@ -125,6 +133,8 @@ class BridgeEmulator:
         self.lockstep_timeout = float(lockstep_timeout)
         self.perturbation = float(perturbation)
         self.start_upright = bool(start_upright)
+        self.raise_time = float(raise_time)
+        self._raising: tuple[int, int, float] | None = None  # ticks done, ticks in all, final alpha
         self.faults = faults
         self.params = params
         self.spin = float(spin)
@@ -157,6 +167,7 @@ class BridgeEmulator:
         self._silent = False
         self._command_seq = 0
         self._command_mv = 0
+        self._last_row: list | None = None
         self.initial_states: list[tuple[float, float, float, float]] = []
         self._counts = dict(ticks=0, sessions=0, commands=0, slips=0, missed_periods=0, bytes_in=0,
                             bytes_out=0, bytes_discarded=0, bytes_silenced=0)
@@ -289,7 +300,7 @@ class BridgeEmulator:
                 deadline = now + period
 
     def _wait_deadline(self, deadline: float, stop: threading.Event) -> tuple[float, float]:
-        """Sleep in select (taking host bytes as they come), then spin to the deadline."""
+        """Sleep in select, then spin to the deadline; host bytes are taken as they come."""
         clock = time.perf_counter
         master = self._master
         while not stop.is_set():
@@ -302,8 +313,10 @@ class BridgeEmulator:
                 ready, _, _ = select.select([master], [], [], max(timeout, 0.0))
                 self._service(clock(), bool(ready))
             else:
+                # Spin, still taking host bytes as they come (a poll is about a microsecond).
                 while clock() < deadline:
-                    pass
+                    if select.select([master], [], [], 0.0)[0]:
+                        self._read_host(clock())
         return clock(), math.nan
 
     def _wait_answer(self, limit: float, stop: threading.Event) -> float:
@@ -369,6 +382,9 @@ class BridgeEmulator:
             elif isinstance(message, Command) and self._session:
                 self._command_seq, self._command_mv = frame.seq, message.millivolts
                 self._counts["commands"] += 1
+                row = self._last_row
+                if row is not None and row[-1] != row[-1]:
+                    row[-1] = now - row[1]  # the first answer to that tick
         # Frames answered between ticks carry the last tick's time.
         self._dev.receive(data, self._last_tick_us)
         self._send(self._dev.take_output(), now)
@@ -412,12 +428,13 @@ class BridgeEmulator:
         qube.set_period(period_us * 1e-6)
         if self._raise_pending:
             self._raise_pending = False
-            state = (0.0, float(self._pose_rng.uniform(-self.perturbation, self.perturbation)), 0.0, 0.0)
-            qube.place(state)
-            self.initial_states.append(state)
+            alpha0 = float(self._pose_rng.uniform(-self.perturbation, self.perturbation))
+            self._raising = (0, round(self.raise_time * 1e6 / period_us), alpha0)
+        held = self._hand(qube)
         spi_rx = qube.transfer(dev.tick_begin(self._device_us))
         dev.tick_end(spi_rx)
-        qube.advance()
+        if not held:
+            qube.advance()
         while self._inject:
             self._write(self._inject.popleft())
         self._send(dev.take_output(), now)
@@ -427,11 +444,29 @@ class BridgeEmulator:
         if lateness > self._max_lateness:
             self._max_lateness = lateness
         if self._record is not None:
-            self._record.append((self._device_us, now, lateness, qube.volts, qube.enabled,
-                                 self._command_seq, self._command_mv, self._counts["sessions"]))
+            self._last_row = [self._device_us, now, lateness, qube.volts, qube.enabled, self._command_seq,
+                              self._command_mv, self._counts["sessions"], math.nan]
+            self._record.append(self._last_row)
         self._counts["ticks"] += 1
         self._last_tick_us = self._device_us
         self._device_us += period_us
+
+    def _hand(self, qube: EmulatedQube) -> bool:
+        """Carry the pendulum from hanging to its start tilt; True while it is held."""
+        if self._raising is None:
+            return False
+        done, total, alpha0 = self._raising
+        if done >= total:
+            self._raising = None
+            state = (0.0, alpha0, 0.0, 0.0)
+            qube.place(state)
+            self.initial_states.append(state)
+            return False
+        s = done / total
+        s = s * s * (3.0 - 2.0 * s)  # eased, as a hand moves
+        qube.place((0.0, math.pi + (alpha0 - math.pi) * s, 0.0, 0.0))
+        self._raising = (done + 1, total, alpha0)
+        return True
 
     def _fire_faults(self, now: float) -> bool:
         """Raise the faults whose time has come; True when the device vanished."""
@@ -478,7 +513,9 @@ class BridgeEmulator:
         ``command_seq``, ``command_mv``: the newest command received from the
         host before the tick (0 before any); ``session``: HELLOs received
         before the tick (the pendulum is raised at the first tick of each
-        session, to ``initial_states[session - 1]``).
+        session, to ``initial_states[session - 1]``); ``answer``: seconds from
+        the tick to the first command received after it, NaN when none came
+        before the next tick (the round trip the host's loop achieves).
 
         Raises
         ------
@@ -489,5 +526,5 @@ class BridgeEmulator:
             raise RuntimeError("no record kept: make the emulator with record_ticks > 0")
         rows = list(self._record)
         columns = list(zip(*rows)) if rows else [()] * len(RECORD_FIELDS)
-        dtypes = (np.int64, float, float, float, bool, np.int64, np.int64, np.int64)
+        dtypes = (np.int64, float, float, float, bool, np.int64, np.int64, np.int64, float)
         return {name: np.array(col, dtype=dt) for name, col, dt in zip(RECORD_FIELDS, columns, dtypes)}

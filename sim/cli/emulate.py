@@ -69,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
     p.add_argument("--hanging", action="store_true",
                    help="do not raise the pendulum at each session: it stays hanging down")
+    p.add_argument("--raise-time", type=_number(0.0, 60.0, "--raise-time"), default=0.0, metavar="S",
+                   help="raise the pendulum from hanging over S seconds, as by hand (default 0: at once); "
+                        "the host's start gate holds the motor at 0 V meanwhile")
     p.add_argument("--lockstep", action="store_true",
                    help="tick as soon as the host answers (max 10 ms apart) instead of every 2 ms of wall "
                         "time: deterministic and faster than real time, for tests")
@@ -132,8 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate, garbage_rate=args.garbage_rate,
                     latency=args.latency / 1e3, stall_at=args.stall_at, amp_fault_at=args.amp_fault_at,
                     silence_at=args.silence_at, vanish_at=args.vanish_at)
-    emulator = BridgeEmulator(seed=args.seed, lockstep=args.lockstep, perturbation=math.radians(args.perturbation),
-                              start_upright=not args.hanging, faults=faults, spin=args.spin / 1e6,
+    emulator = BridgeEmulator(seed=args.seed, lockstep=args.lockstep,
+                              perturbation=math.radians(args.perturbation), start_upright=not args.hanging,
+                              raise_time=args.raise_time, faults=faults, spin=args.spin / 1e6,
                               record_ticks=300_000 if args.record else 0)
     for path in (args.record, args.stats):
         if path is not None:
