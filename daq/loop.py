@@ -201,7 +201,7 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
     signals = stop_on_signals(stop) if handle_signals else nullcontext(False)
     # The collector is frozen before the start gate: once the pendulum is upright,
     # control must begin within a tick, not after a collection of the whole heap.
-    quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if backend.pacing is Pacing.LOOP else None)
+    quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if backend.pacing is not Pacing.NONE else None)
     with signals, quiet:
         pacer = DeadlinePacer(period, spin) if backend.pacing is Pacing.LOOP else None
         lateness = np.full(n, np.nan)
