@@ -96,6 +96,16 @@ class FakeDevice:
                 if out:
                     os.write(self.master, out)
 
+    def wait_for(self, predicate, timeout: float = 2.0) -> list:
+        """The frames received, once ``predicate(frames)`` holds (a failure after ``timeout``)."""
+        import time
+
+        deadline = time.monotonic() + timeout
+        while not predicate(list(self.received)):
+            assert time.monotonic() < deadline, f"the fake device got only {self.received}"
+            time.sleep(0.005)
+        return list(self.received)
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2)

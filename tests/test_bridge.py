@@ -40,6 +40,7 @@ from firmware_protocol.qube_spi import (
     MASK_NORMAL,
     SpiCommand,
     current_amps,
+    motor_word_pwm,
     pack_spi_command,
     unpack_spi_response,
 )
@@ -237,7 +238,7 @@ def test_watchdog_zeroes_the_motor_ten_ms_of_device_time_after_the_last_command(
     z = j + off[0]
     assert z - j == 5, "a command is applied for five ticks, the sixth without one is off"
     assert record["device_us"][z] - record["device_us"][j] == 10_000
-    assert np.all(record["volts"][j:z] == pytest.approx(2000 // 24 * 0.024))
+    assert np.all(record["volts"][j:z] == pytest.approx(motor_word_pwm(2000) * 0.024))
     assert np.all(record["volts"][z:] == 0.0) and not record["amp_enabled"][z:].any()
     fault = next(f.message for f in frames if isinstance(f.message, Fault))
     assert fault.code == FaultCode.WATCHDOG_TRIPPED and fault.value == 5
