@@ -278,6 +278,8 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         writer.keep_clear(pacer.start(), period, min(WRITER_GUARD, 0.5 * period))
     wait = pacer.wait if pacer is not None else None
     device = pacing is Pacing.DEVICE
+    device_time = backend.device_time
+    when0 = None
 
     for k in range(len(ff)):
         if wait is not None:
@@ -290,10 +292,20 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         if wait is None:
             t_tick = clock()
             if device:
+                when = device_time()
                 if k == 0:
-                    t0 = t_tick
+                    t0, when0 = t_tick, when
                     writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
-                late = t_tick - (t0 + k * period)
+                if when is None:
+                    late = t_tick - (t0 + k * period)
+                else:
+                    late = t_tick - (t0 + (when - when0))
+                    if late < 0:
+                        # Came sooner after tick 0 than the device's clock says: tick 0 was
+                        # read late (it had been waiting). Anchor on the earliest arrival.
+                        t0 += late
+                        late = 0.0
+                        writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
         r_theta, r_alpha = ref_theta[k], ref_alpha[k]
         e0 = r_theta - theta
         e1 = r_alpha - alpha

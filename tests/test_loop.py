@@ -334,6 +334,37 @@ def test_device_paced_backend_is_not_paced_by_the_loop():
     assert ep.lateness[-1] < 0
 
 
+def test_device_clock_lateness_survives_a_late_start_and_a_passed_over_sample():
+    class Device(ScriptedBackend):
+        """Ticks every 2 ms on its own clock; tick 0 is read 1 ms late, tick 40 is never read."""
+
+        def __init__(self):
+            super().__init__([(0.0, 0.01)] * 10, pacing=Pacing.DEVICE)
+            self.t0 = None
+            self.tick = -1
+
+        def read(self):
+            self.tick += 1 if self.tick != 39 else 2
+            if self.t0 is None:
+                self.t0 = time.perf_counter()
+            due = self.t0 + self.tick * 0.002 + (0.001 if self.tick <= 1 else 0.0)
+            while time.perf_counter() < due:
+                time.sleep(0.0002)
+            return super().read()
+
+        def device_time(self):
+            return self.tick * 0.002
+
+    backend = Device()
+    sink = MemorySink()
+    assert run_episode(backend, _plan(100), [sink]).complete
+    late = sink.episodes[0].episode().lateness
+    # Against k periods from the first read, ticks before the gap would read -1 ms and after it
+    # +1 ms; against the device's clock, anchored on its earliest arrival, both are near zero.
+    assert np.all(late >= 0)
+    assert np.median(late[5:38]) < 0.0008 and np.median(late[45:]) < 0.0008
+
+
 def test_stop_from_another_thread_ends_a_paced_episode():
     stop = StopRequest()
     timer = threading.Timer(0.1, stop.request, args=("operator pressed stop",))

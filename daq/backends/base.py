@@ -79,6 +79,16 @@ class Backend(ABC):
     def stop(self) -> None:
         """Put the motor at 0 V and end the episode; safe to call twice and after a fault."""
 
+    def device_time(self) -> float | None:
+        """The device's own clock (s) at the sample the last :meth:`read` returned, or None.
+
+        For ``Pacing.DEVICE``: the loop then measures each tick's lateness
+        against the device's schedule, so a sample the host passed over (it
+        fell behind, or the link lost it) does not shift every later tick.
+        None (the default) measures against ``k`` sample periods.
+        """
+        return None
+
     def describe(self) -> dict:
         """Plain-data description for the episode metadata (settings, initial state...)."""
         return {"name": self.name, "pacing": self.pacing.value}

@@ -327,6 +327,8 @@ class SerialBackend(Backend):
         self._expected_tick: int | None = None
         self._last_frame_seq: int | None = None
         self._rejected_at_start = self._decoder.stats.rejected
+        self._stamp: int | None = None
+        self._device_us = 0
 
     def _track(self, frame) -> None:
         """Sequence gaps, and the bridge's fault reports; raises on device faults."""
@@ -352,6 +354,10 @@ class SerialBackend(Backend):
         tm = frame.message
         counts = self._counts
         counts["telemetry"] += 1
+        # The bridge's clock, unwrapped (32-bit microseconds wrap every 71.6 min).
+        if self._stamp is not None:
+            self._device_us += (frame.timestamp_us - self._stamp) & _U32
+        self._stamp = frame.timestamp_us
         if self._expected_tick is not None and tm.tick != self._expected_tick:
             gap = (tm.tick - self._expected_tick) & _U32
             if gap >= 1 << 31:
@@ -476,6 +482,10 @@ class SerialBackend(Backend):
                 port.close()
             except Exception:  # noqa: BLE001 - closing a vanished device may fail; it is gone either way
                 pass
+
+    def device_time(self) -> float | None:
+        """The bridge's clock at the last telemetry read (s since the session's first), or None before."""
+        return None if self._stamp is None else self._device_us * 1e-6
 
     def describe(self) -> dict:
         """Port, link settings and what the bridge said of itself at the handshake."""
