@@ -9,8 +9,9 @@ probe) in this one. Rows:
   through the emulated bridge (the link plus the firmware core);
 - missed ticks over ``--ticks`` ticks at 500 Hz (10,000 by default, 20 s per
   row): one episode of the loop on the serial backend. From the bridge's
-  side: schedule slips (ticks that started a whole period late, whose
-  periods are lost) and its worst lateness; from the host's: telemetry
+  side: ticks that started a period or more late and were caught up back
+  to back, schedule restarts after longer stalls (their periods are lost)
+  and its worst lateness; from the host's: telemetry
   missed (gaps), skipped (the host fell a tick behind and took the newest),
   commands that missed their tick; and the loop's round trip as the bridge
   sees it, from each tick to the command that answers it (p50 / p99 / max).
@@ -262,14 +263,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {name:<44} {_percentiles(times)}")
 
     print(f"\n{args.ticks} ticks at 500 Hz, loop on the serial backend, bridge in real time")
-    print("  bridge pacing           status    slips  periods lost  bridge max ms | missed  skipped  "
+    print("  bridge pacing           status    late  restarts (periods lost)  bridge max ms | missed  skipped  "
           "late cmds | tick -> command ms p50 / p99 / max")
     rows = [("sleep + 300 us spin", 300.0)] + ([] if args.no_reference else [("sleep only (reference)", 0.0)])
     for name, spin in rows:
         r = episode(args.ticks, spin)
         d, link = r["device"], r["link"]
         answered = r["answer"][np.isfinite(r["answer"])] * 1e3
-        print(f"  {name:<23} {r['result'].status:<9} {d['slips']:>5}  {d['missed_periods']:>12}  "
+        print(f"  {name:<23} {r['result'].status:<9} {d['late_ticks']:>4}  {d['slips']:>8} ({d['missed_periods']:>3})"
+              f"{'':>13}  "
               f"{d['max_lateness'] * 1e3:>13.2f} | {link['ticks_missed']:>6}  {link['ticks_skipped']:>7}  "
               f"{link['late_commands']:>9} | {np.percentile(answered, 50):.3f} / "
               f"{np.percentile(answered, 99):.3f} / {answered.max():.3f}")
@@ -287,8 +289,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\ndecoder: StreamDecoder {rate:,.0f} telemetry frames/s ({rate / 500:,.0f}x the 500 frames/s needed; "
           "bench/bench_protocol.py compares decoders)")
     print("\nmissed: telemetry lost on the link; skipped: telemetry passed over because the host was a tick "
-          "behind;\nlate cmds: ticks at which the bridge had no new command (it applied the previous one); "
-          "slips: bridge ticks\nthat started a whole period late (device time pauses for the lost periods).")
+          "behind;\nlate cmds: ticks at which the bridge had no new command (it applied the previous one); late: bridge "
+          "ticks\nthat started a period or more late, caught up at once; restarts: stalls beyond three periods "
+          "(device time\npauses for the lost periods).")
     return 0
 
 

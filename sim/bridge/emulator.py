@@ -14,10 +14,13 @@ Ticks are paced in one of two ways:
 
 - real time (default): absolute wall-clock deadlines, reached by sleeping
   in ``select`` on the pty (so host bytes are taken as they arrive) and
-  spinning the last ``spin`` seconds. A tick that starts a whole period late
-  restarts the schedule instead of bursting to catch up, as the firmware
-  sketch does; device time then simply pauses, as a virtual machine's clock
-  would, and the restart is counted (``stats()["slips"]``).
+  spinning the last ``spin`` seconds. Ticks that fall up to three periods
+  behind (the emulator's process was not scheduled) are caught up back to
+  back, as by a bridge whose clock was right but whose output was held up:
+  device time stays with the wall clock (``stats()["late_ticks"]``). A
+  longer stall restarts the schedule instead, as the firmware sketch does,
+  so that a burst cannot trip the watchdog by itself; device time then
+  pauses for the lost periods (``stats()["slips"]``).
 - lockstep: once a session is open, the next tick comes as soon as the host
   has answered the last telemetry (any valid frame; normally its command),
   or after ``lockstep_timeout`` of wall time without an answer: a host does
@@ -71,6 +74,9 @@ RECORD_FIELDS = ("device_us", "wall", "lateness", "volts", "amp_enabled", "comma
 _MAX_PENDING = 4096
 # Longest select() timeout (s), so a stop request is seen promptly.
 _POLL = 0.05
+# Periods a late emulator catches up back to back; beyond, it restarts its schedule.
+# Below the default watchdog (5): a burst alone must not trip it.
+_MAX_BURST = 3
 
 
 class BridgeEmulator:
@@ -169,8 +175,8 @@ class BridgeEmulator:
         self._command_mv = 0
         self._last_row: list | None = None
         self.initial_states: list[tuple[float, float, float, float]] = []
-        self._counts = dict(ticks=0, sessions=0, commands=0, slips=0, missed_periods=0, bytes_in=0,
-                            bytes_out=0, bytes_discarded=0, bytes_silenced=0)
+        self._counts = dict(ticks=0, sessions=0, commands=0, late_ticks=0, slips=0, missed_periods=0,
+                            bytes_in=0, bytes_out=0, bytes_discarded=0, bytes_silenced=0)
         self._max_lateness = 0.0
 
     # --- lifecycle -------------------------------------------------------------------------
@@ -294,10 +300,13 @@ class BridgeEmulator:
             if self.lockstep:
                 deadline = now + period
             elif now >= deadline:
-                # A whole period lost: restart the schedule rather than burst.
-                self._counts["slips"] += 1
-                self._counts["missed_periods"] += int(lateness / period)
-                deadline = now + period
+                behind = int(lateness / period)
+                if behind <= _MAX_BURST:
+                    self._counts["late_ticks"] += 1  # the next ones follow at once
+                else:
+                    self._counts["slips"] += 1
+                    self._counts["missed_periods"] += behind
+                    deadline = now + period
 
     def _wait_deadline(self, deadline: float, stop: threading.Event) -> tuple[float, float]:
         """Sleep in select, then spin to the deadline; host bytes are taken as they come."""
@@ -497,7 +506,7 @@ class BridgeEmulator:
         return self._device_us * 1e-6
 
     def stats(self) -> dict:
-        """Counters so far: ticks, sessions, schedule slips, bytes, faults injected."""
+        """Counters so far: ticks, sessions, late ticks caught up, schedule slips, bytes, faults injected."""
         return {**self._counts, "max_lateness": self._max_lateness, "device_time": self.device_time,
                 "seed": self.seed, "lockstep": self.lockstep, **self._link.counters(),
                 "host_frames": self._mirror.stats.frames, "host_rejects": self._mirror.stats.rejected,

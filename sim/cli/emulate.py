@@ -178,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
         s = emulator.stats()
         end = "vanished as asked" if emulator.vanished_at is not None else "stopped"
         print(f"{PROG}: {end} after {s['ticks']} ticks ({s['device_time']:.1f} s of device time), "
-              f"{s['sessions']} session(s), {s['commands']} commands, {s['slips']} schedule slips "
+              f"{s['sessions']} session(s), {s['commands']} commands, {s['late_ticks']} ticks caught up late, "
+              f"{s['slips']} schedule restarts "
               f"(max lateness {s['max_lateness'] * 1e3:.1f} ms)", file=sys.stderr)
     return 0
 
