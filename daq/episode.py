@@ -145,6 +145,9 @@ class EpisodeMetadata:
         Set by the reader: the format version of the file it came from.
     extra : mapping
         Further JSON-serializable provenance (e.g. a source file's hash).
+    backend_stats : mapping
+        The backend's counters of the episode (e.g. the serial link's lost
+        frames), recorded with the final status; empty when it has none.
     timing : mapping
         The loop's timing statistics of the episode (lateness percentiles,
         overruns...), recorded with the final status; empty when the
@@ -165,6 +168,7 @@ class EpisodeMetadata:
     log_format_version: str = ""
     extra: Mapping[str, Any] = field(default_factory=dict)
     timing: Mapping[str, Any] = field(default_factory=dict)
+    backend_stats: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.controller, ControllerInfo):
@@ -185,6 +189,7 @@ class EpisodeMetadata:
         object.__setattr__(self, "excitation", _plain_json(self.excitation, "excitation"))
         object.__setattr__(self, "extra", _plain_json(self.extra, "extra"))
         object.__setattr__(self, "timing", _plain_json(self.timing, "timing"))
+        object.__setattr__(self, "backend_stats", _plain_json(self.backend_stats, "backend_stats"))
 
     @property
     def dt(self) -> float:

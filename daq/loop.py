@@ -14,6 +14,7 @@ reach the sinks, which are closed with status ``aborted`` and the reason.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from contextlib import nullcontext
@@ -126,6 +127,15 @@ def _zero_motor(backend: Backend) -> None:
         backend.stop()
 
 
+def _statistics(backend: Backend) -> dict:
+    # The counters are informative: a backend failing to give them, or giving
+    # something JSON cannot hold, must not cost the log its final status.
+    try:
+        return json.loads(json.dumps(dict(backend.statistics()), allow_nan=False))
+    except Exception as exc:  # noqa: BLE001
+        return {"error": f"statistics unavailable: {type(exc).__name__}: {exc}"}
+
+
 def _wait_upright(backend: Backend, limits: SafetyLimits, stop: StopRequest,
                   pacer: DeadlinePacer | None) -> tuple[str, str]:
     """Hold 0 V until |alpha| < start_alpha; ('', '') once there, else (why not, cause)."""
@@ -191,7 +201,7 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
     signals = stop_on_signals(stop) if handle_signals else nullcontext(False)
     # The collector is frozen before the start gate: once the pendulum is upright,
     # control must begin within a tick, not after a collection of the whole heap.
-    quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if backend.pacing is Pacing.LOOP else None)
+    quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if backend.pacing is not Pacing.NONE else None)
     with signals, quiet:
         pacer = DeadlinePacer(period, spin) if backend.pacing is Pacing.LOOP else None
         lateness = np.full(n, np.nan)
@@ -203,7 +213,8 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
             reason, cause = f"backend fault before the start: {exc}", "fault"
         if reason:
             _zero_motor(backend)
-            return EpisodeResult("aborted", reason, 0, not_started, None, signal=stop.signal, cause=cause)
+            return EpisodeResult("aborted", reason, 0, not_started, _statistics(backend), signal=stop.signal,
+                                 cause=cause)
 
         metadata = EpisodeMetadata(
             controller=plan.controller, sample_rate_hz=1.0 / period, backend=backend.name,
@@ -226,11 +237,14 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
         finally:
             _zero_motor(backend)
             timing = timing_stats(lateness[:n_done], compute[:n_done], period)
-            outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing)
+            outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
+                                     _statistics(backend))
             errors = writer.close(outcome)
-    metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict())
-    return EpisodeResult(outcome.status, reason, n_done, timing, metadata, tuple(errors), stop.signal, cause,
-                         lateness[:n_done], compute[:n_done])
+    metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict(),
+                       backend_stats=outcome.backend_stats)
+    return EpisodeResult(outcome.status, reason, n_done, timing, outcome.backend_stats, metadata=metadata,
+                         sink_errors=tuple(errors), signal=stop.signal, cause=cause, lateness=lateness[:n_done],
+                         compute_time=compute[:n_done])
 
 
 def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest,
@@ -264,6 +278,8 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         writer.keep_clear(pacer.start(), period, min(WRITER_GUARD, 0.5 * period))
     wait = pacer.wait if pacer is not None else None
     device = pacing is Pacing.DEVICE
+    device_time = backend.device_time
+    when0 = None
 
     for k in range(len(ff)):
         if wait is not None:
@@ -276,10 +292,20 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         if wait is None:
             t_tick = clock()
             if device:
+                when = device_time()
                 if k == 0:
-                    t0 = t_tick
+                    t0, when0 = t_tick, when
                     writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
-                late = t_tick - (t0 + k * period)
+                if when is None:
+                    late = t_tick - (t0 + k * period)
+                else:
+                    late = t_tick - (t0 + (when - when0))
+                    if late < 0:
+                        # Came sooner after tick 0 than the device's clock says: tick 0 was
+                        # read late (it had been waiting). Anchor on the earliest arrival.
+                        t0 += late
+                        late = 0.0
+                        writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
         r_theta, r_alpha = ref_theta[k], ref_alpha[k]
         e0 = r_theta - theta
         e1 = r_alpha - alpha

@@ -72,12 +72,15 @@ class EpisodeOutcome:
     n_samples : int
         Ticks recorded.
     timing : TimingStats
+    backend_stats : dict
+        The backend's counters of the episode (:meth:`~daq.backends.base.Backend.statistics`).
     """
 
     status: str
     reason: str
     n_samples: int
     timing: TimingStats
+    backend_stats: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         """Plain-data form."""
@@ -121,7 +124,7 @@ class MemoryEpisode:
         meta = self.metadata
         if self.outcome is not None:
             meta = replace(meta, status=self.outcome.status, status_reason=self.outcome.reason,
-                           timing=self.outcome.timing.as_dict())
+                           timing=self.outcome.timing.as_dict(), backend_stats=self.outcome.backend_stats)
         return Episode(**columns, controller_state=state, saturation=saturation, metadata=meta)
 
 
@@ -315,10 +318,10 @@ class McapSink:
                                   compute_time=sample.compute_time)
 
     def close(self, outcome: EpisodeOutcome) -> None:
-        """Record the final status and timing statistics, and close the file."""
+        """Record the final status, timing statistics and backend counters, and close the file."""
         writer, self._writer = self._writer, None
         if writer is not None and not writer.finished:
-            writer.finish(outcome.status, outcome.reason, outcome.timing.as_dict())
+            writer.finish(outcome.status, outcome.reason, outcome.timing.as_dict(), outcome.backend_stats)
 
 
 def episode_file_stem(metadata: EpisodeMetadata) -> str:

@@ -9,9 +9,11 @@ built at import time: call ``build_library`` (or ``load``) explicitly.
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import os
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 from .messages import Message
@@ -23,6 +25,7 @@ __all__ = [
     "CompilerNotFound",
     "find_c_compiler",
     "build_library",
+    "cached_library",
     "CCore",
     "CDecoder",
     "CDevice",
@@ -85,6 +88,57 @@ def build_library(out_dir: str | os.PathLike, *, extra_flags: tuple[str, ...] = 
     if proc.returncode != 0:
         raise RuntimeError(f"C build failed ({' '.join(cmd)}):\n{proc.stdout}{proc.stderr}")
     return lib
+
+
+def _cache_root() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "qube-koopman"
+
+
+def cached_library(cache_dir: str | os.PathLike | None = None) -> Path:
+    """``build_library`` once per version of the C sources, then reuse the build.
+
+    The library goes to ``<cache_dir>/ccore-<hash>/`` where the hash covers
+    the sources, the flags and the compiler, so an edited source or another
+    compiler gets a fresh build. Concurrent callers are safe: each builds in
+    its own folder and the first finished build is moved into place.
+
+    Parameters
+    ----------
+    cache_dir : path, optional
+        Default ``$XDG_CACHE_HOME/qube-koopman`` (``~/.cache/qube-koopman``);
+        a temporary folder when that cannot be written.
+
+    Returns
+    -------
+    Path
+        The library file.
+
+    Raises
+    ------
+    CompilerNotFound, RuntimeError
+        As ``build_library``.
+    """
+    cc = find_c_compiler()
+    if cc is None:
+        raise CompilerNotFound("no C compiler found: set $CC or install gcc or clang")
+    digest = hashlib.sha256("\0".join((cc, *C_FLAGS)).encode())
+    for path in sorted(C_SOURCE_DIR.glob("*.[ch]")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    root = Path(cache_dir) if cache_dir is not None else _cache_root()
+    final = root / f"ccore-{digest.hexdigest()[:16]}" / "libqubeproto.so"
+    if final.is_file():
+        return final
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        scratch = Path(tempfile.mkdtemp(dir=final.parent, prefix="build-"))
+    except OSError:
+        return build_library(tempfile.mkdtemp(prefix="qube-ccore-"))
+    try:
+        os.replace(build_library(scratch), final)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return final
 
 
 class Counters(ctypes.Structure):

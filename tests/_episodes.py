@@ -17,6 +17,28 @@ QUBE_PD = DiscreteStateSpace(np.eye(2) * _A, np.eye(2),
                              [[-6 - 1.8 * 50 * _A, -30 - 2.5 * 50 * _A]], 1 / RATE)
 
 
+def assert_follows_controller(ep: Episode, controller: DiscreteStateSpace = QUBE_PD,
+                              max_voltage: float = 10.0) -> None:
+    """What every backend's complete episode must satisfy, whoever measured the angles.
+
+    The controller run offline from zero on the logged tracking error
+    reproduces the logged controller state and output (FACTS section 2); the
+    plant input is their sum with the feedforward, clamped and flagged; the
+    samples are evenly spaced from t = 0.
+    """
+    from identify import controller_states
+
+    xc = controller_states(controller, ep.references, ep.states)
+    np.testing.assert_allclose(ep.controller_state, xc, rtol=0, atol=1e-10)
+    u = ep.controller_state @ controller.C[0] + ep.tracking_error @ controller.D[0]
+    np.testing.assert_allclose(ep.control_output, u, rtol=0, atol=1e-10)
+    wanted = ep.control_output + ep.feedforward
+    np.testing.assert_array_equal(ep.plant_input, np.clip(wanted, -max_voltage, max_voltage))
+    assert np.array_equal(ep.saturation, np.where(wanted > max_voltage, 1, np.where(wanted < -max_voltage, -1, 0)))
+    assert np.all(ep.controller_state[0] == 0.0), "the rig started from a zero controller state"
+    assert np.array_equal(ep.t, np.arange(len(ep)) / ep.metadata.sample_rate_hz), "samples are evenly spaced"
+
+
 def make_metadata(**changes) -> EpisodeMetadata:
     base = dict(
         controller=ControllerInfo(QUBE_PD, "backward-euler",

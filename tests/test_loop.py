@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from _episodes import QUBE_PD
+from _episodes import QUBE_PD, assert_follows_controller
 
 from daq.backends import Backend, BackendFault, Pacing, SimBackend
 from daq.episode import ControllerInfo
@@ -18,7 +18,6 @@ from daq.excitation import Excitation, ExcitationSettings, generate_excitation
 from daq.loop import EpisodePlan, run_episode
 from daq.safety import SafetyLimits, StopRequest
 from daq.sinks import MemorySink
-from identify import controller_states
 from sim.pendulum import SensorModel, simulate_closed_loop
 
 RIG_GAINS = {"kp_theta": 6.0, "kd_theta": 1.8, "kp_alpha": 30.0, "kd_alpha": 2.5, "tau": 50.0}
@@ -250,15 +249,7 @@ def sim_episode():
 def test_controller_state_and_output_follow_the_controller(sim_episode):
     result, ep, _ = sim_episode
     assert result.complete and len(ep) == 3000
-    # The controller run offline from zero on the logged tracking error (FACTS section 2).
-    xc = controller_states(QUBE_PD, ep.references, ep.states)
-    np.testing.assert_allclose(ep.controller_state, xc, rtol=0, atol=1e-10)
-    u = ep.controller_state @ QUBE_PD.C[0] + ep.tracking_error @ QUBE_PD.D[0]
-    np.testing.assert_allclose(ep.control_output, u, rtol=0, atol=1e-10)
-    np.testing.assert_array_equal(ep.plant_input, np.clip(ep.control_output + ep.feedforward, -10, 10))
-    wanted = ep.control_output + ep.feedforward
-    assert np.array_equal(ep.saturation, np.where(wanted > 10, 1, np.where(wanted < -10, -1, 0)))
-    assert np.all(ep.controller_state[0] == 0.0), "the rig started from a zero controller state"
+    assert_follows_controller(ep)
 
 
 def test_loop_on_the_simulator_matches_the_batched_closed_loop():
@@ -341,6 +332,37 @@ def test_device_paced_backend_is_not_paced_by_the_loop():
     assert result.complete and np.all(np.isfinite(ep.lateness))
     # Samples came faster than the nominal 2 ms and the loop did not hold them back.
     assert ep.lateness[-1] < 0
+
+
+def test_device_clock_lateness_survives_a_late_start_and_a_passed_over_sample():
+    class Device(ScriptedBackend):
+        """Ticks every 2 ms on its own clock; tick 0 is read 1 ms late, tick 40 is never read."""
+
+        def __init__(self):
+            super().__init__([(0.0, 0.01)] * 10, pacing=Pacing.DEVICE)
+            self.t0 = None
+            self.tick = -1
+
+        def read(self):
+            self.tick += 1 if self.tick != 39 else 2
+            if self.t0 is None:
+                self.t0 = time.perf_counter()
+            due = self.t0 + self.tick * 0.002 + (0.001 if self.tick <= 1 else 0.0)
+            while time.perf_counter() < due:
+                time.sleep(0.0002)
+            return super().read()
+
+        def device_time(self):
+            return self.tick * 0.002
+
+    backend = Device()
+    sink = MemorySink()
+    assert run_episode(backend, _plan(100), [sink]).complete
+    late = sink.episodes[0].episode().lateness
+    # Against k periods from the first read, ticks before the gap would read -1 ms and after it
+    # +1 ms; against the device's clock, anchored on its earliest arrival, both are near zero.
+    assert np.all(late >= 0)
+    assert np.median(late[5:38]) < 0.0008 and np.median(late[45:]) < 0.0008
 
 
 def test_stop_from_another_thread_ends_a_paced_episode():

@@ -79,9 +79,27 @@ class Backend(ABC):
     def stop(self) -> None:
         """Put the motor at 0 V and end the episode; safe to call twice and after a fault."""
 
+    def device_time(self) -> float | None:
+        """The device's own clock (s) at the sample the last :meth:`read` returned, or None.
+
+        For ``Pacing.DEVICE``: the loop then measures each tick's lateness
+        against the device's schedule, so a sample the host passed over (it
+        fell behind, or the link lost it) does not shift every later tick.
+        None (the default) measures against ``k`` sample periods.
+        """
+        return None
+
     def describe(self) -> dict:
         """Plain-data description for the episode metadata (settings, initial state...)."""
         return {"name": self.name, "pacing": self.pacing.value}
+
+    def statistics(self) -> dict:
+        """Plain-data counters of the episode just run (e.g. a link's lost frames), or {}.
+
+        Called once when the episode ends, after :meth:`stop`; the loop records
+        the result with the episode's final status.
+        """
+        return {}
 
     def close(self) -> None:
         """Release resources when no more episodes will run (default: nothing to release)."""

@@ -1,4 +1,4 @@
-"""``qube-run``: collect closed-loop episodes of the QUBE-Servo (simulated for now) into MCAP logs."""
+"""``qube-run``: collect closed-loop episodes of the QUBE-Servo (simulated, or through the serial bridge) into MCAP logs."""
 
 from __future__ import annotations
 
@@ -28,7 +28,11 @@ Safety: the command is clamped to +-10 V; an episode stops with the motor at
 run with the motor at 0 V and the current log closed as "aborted".
 
 With no arguments: 3 episodes of 20 s on the simulator, as fast as the
-computer allows, into ./episodes.
+computer allows, into ./episodes. With --backend serial --port DEV the
+episodes run on the QUBE through the bridge firmware (or on the emulated
+bridge that qube-emulate starts), paced by the bridge's 500 Hz clock; a lost
+link or a fault reported by the bridge ends the run with the motor at 0 V and
+the log closed as "aborted" with the reason.
 """
 
 _EPILOG = """\
@@ -40,6 +44,7 @@ examples:
   qube-run --episodes 48 --seed 1 --out data/     # a dataset the size of the paper's
   qube-run --realtime --rerun                     # paced like hardware, live in a rerun viewer
   qube-run --controller gains.toml --rerun-save run.rrd
+  qube-run --backend serial --port /dev/ttyACM0   # the rig, through the bridge firmware
 """
 
 
@@ -79,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--backend", default="sim", choices=("sim", "serial"),
-                   help="sim: the simulated pendulum (default); serial: the bridge firmware (not available yet)")
+                   help="sim: the simulated pendulum (default); serial: the bridge firmware on --port")
     p.add_argument("--episodes", type=_positive_int, default=DEFAULT_EPISODES, metavar="N",
                    help=f"number of episodes (default {DEFAULT_EPISODES})")
     p.add_argument("--duration", type=_positive_float, default=DEFAULT_DURATION, metavar="S",
@@ -110,6 +115,11 @@ def build_parser() -> argparse.ArgumentParser:
     safety.add_argument("--perturbation", type=_non_negative_float, default=2.0, metavar="DEG",
                         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
                              "an episode starts only once |alpha| < 5)")
+    link = p.add_argument_group("serial bridge (--backend serial)")
+    link.add_argument("--port", default=None, metavar="DEV",
+                      help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
+    link.add_argument("--baud", type=_positive_int, default=None, metavar="B",
+                      help="baud rate of a UART bridge (default 500000, the sketch's; USB CDC ignores it)")
     rt = p.add_argument_group("real-time scheduling (attempted only when asked; works without)")
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
@@ -250,19 +260,64 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
-def _run(args) -> int:
+def _check_backend_options(args) -> None:
     if args.backend == "serial":
-        raise _Fail("--backend serial is not available yet (the serial bridge comes in a later "
-                    "release); use --backend sim")
+        if not args.port:
+            raise _Fail("--backend serial needs --port DEV (the bridge's serial device, or the path "
+                        "qube-emulate prints)")
+        if args.realtime:
+            raise _Fail("--realtime is for --backend sim: the bridge's clock paces the serial backend")
+    elif args.port is not None or args.baud is not None:
+        raise _Fail("--port and --baud are for --backend serial")
+
+
+def _make_backend(args, limits, backend_seed: int, rate: float):
+    """The backend the options ask for, connected; a one-line error when it cannot be."""
+    if args.backend == "sim":
+        from daq.backends import SimBackend
+
+        return SimBackend(perturbation=math.radians(args.perturbation), seed=backend_seed,
+                          realtime=args.realtime, dt=1.0 / rate)
+    from daq.backends import BackendFault
+    from daq.backends.serial import DEFAULT_BAUD, SerialBackend
+
+    backend = SerialBackend(args.port, args.baud or DEFAULT_BAUD, rate_hz=round(rate),
+                            max_voltage=limits.max_voltage)
+    try:
+        backend.open()
+    except BackendFault as exc:
+        backend.close()
+        raise _Fail(str(exc), status=1) from None
+    return backend
+
+
+def _where(args, backend) -> str:
+    if args.backend == "sim":
+        return f"the simulator ({'paced in real time' if args.realtime else 'free-running'})"
+    info = backend.describe()
+    kind = "emulated bridge" if info.get("emulated") else "bridge"
+    return f"the {kind} on {args.port} (firmware {info.get('firmware', '?')})"
+
+
+def _link_summary(results) -> str | None:
+    """One line of the serial link's counters over the run, or None for a backend without them."""
+    stats = [r.backend_stats for r in results if r.backend_stats and "telemetry" in r.backend_stats]
+    if not stats:
+        return None
+    total = {k: sum(s.get(k, 0) for s in stats)
+             for k in ("telemetry", "ticks_missed", "ticks_skipped", "frames_lost", "late_commands",
+                       "host_rejects")}
+    return (f"serial link: {total['telemetry']} telemetry frames, {total['ticks_missed']} ticks missed, "
+            f"{total['ticks_skipped']} skipped, {total['frames_lost']} frames lost, {total['host_rejects']} "
+            f"rejected, {total['late_commands']} commands late")
+
+
+def _run(args) -> int:
+    _check_backend_options(args)
     import numpy as np
 
-    from daq.backends import SimBackend
-    from daq.loop import EpisodeResult
     from daq.safety import SafetyLimits
-    from daq.session import (excitation_settings, load_controller, plan_episodes, run_episodes,
-                             run_seeds)
-    from daq.sinks import McapSink
-    from daq.timing import realtime_scheduling, timing_stats
+    from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
 
     rate = 500.0
     try:
@@ -278,7 +333,7 @@ def _run(args) -> int:
                               alpha_limit=math.radians(args.alpha_limit))
     except ValueError as exc:
         raise _Fail(str(exc)) from None
-    if math.radians(args.perturbation) >= limits.start_alpha:
+    if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:
         raise _Fail(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
     _check_writable(args.out)
@@ -290,8 +345,20 @@ def _run(args) -> int:
     run_id = f"qube-run seed {seed}"
     plans = plan_episodes(controller, seeds, settings, source=run_id,
                           extra={"run_seed": seed, "command": "qube-run"})
-    backend = SimBackend(perturbation=math.radians(args.perturbation), seed=backend_seed,
-                         realtime=args.realtime, dt=1.0 / rate)
+    backend = _make_backend(args, limits, backend_seed, rate)
+    try:
+        return _collect(args, backend, plans, settings, limits, seed, rate)
+    finally:
+        backend.close()
+
+
+def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
+    import numpy as np
+
+    from daq.loop import EpisodeResult
+    from daq.session import run_episodes
+    from daq.sinks import McapSink
+    from daq.timing import realtime_scheduling, timing_stats
 
     sinks: list = [McapSink(args.out)]
     rerun_sink = None
@@ -308,9 +375,8 @@ def _run(args) -> int:
     progress = _Progress(args.episodes, settings.n_samples, enabled=not args.quiet)
     sinks.append(progress)
 
-    pace = "paced in real time" if args.realtime else "free-running"
-    print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on the "
-          f"simulator ({pace}), seed {seed}, controller "
+    print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on "
+          f"{_where(args, backend)}, seed {seed}, controller "
           f"{args.controller or 'of the paper dataset'} ({args.discretization}), logs to {args.out}/",
           flush=True)
     mcap: McapSink = sinks[0]
@@ -337,6 +403,9 @@ def _run(args) -> int:
     late = np.concatenate([r.lateness for r in results]) if results else np.zeros(0)
     comp = np.concatenate([r.compute_time for r in results]) if results else np.zeros(0)
     print(summary_table(list(zip(names, results)), timing_stats(late, comp, 1.0 / rate)))
+    link = _link_summary(results)
+    if link:
+        print(link)
     for r in results:
         for error in r.sink_errors:
             print(f"{PROG}: warning: {error}", file=sys.stderr)

@@ -61,11 +61,13 @@ def episode_records(meta: EpisodeMetadata) -> dict[str, dict[str, str]]:
 
 
 def status_record(status: str, reason: str, n_samples: int,
-                  timing: Mapping | None = None) -> dict[str, str]:
-    """The record written when an episode ends (``timing``: JSON, only when given)."""
+                  timing: Mapping | None = None, backend_stats: Mapping | None = None) -> dict[str, str]:
+    """The record written when an episode ends (``timing``, ``backend_stats``: JSON, only when given)."""
     record = {"status": status, "reason": reason, "n_samples": str(n_samples)}
     if timing:
         record["timing"] = _json(_finite(dict(timing)))
+    if backend_stats:
+        record["backend_stats"] = _json(dict(backend_stats))
     return record
 
 
@@ -120,7 +122,7 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
             **{m: json.loads(controller[m]) for m in "ABCD"},
         })
         status = records.get(STATUS_RECORD)
-        timing = {}
+        timing = backend_stats = {}
         if status is None:
             status_value = "incomplete"
             reason = "no final status record: the writer stopped before finishing the episode"
@@ -128,6 +130,8 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
             status_value, reason = status.get("status", ""), status.get("reason", "")
             if "timing" in status:
                 timing = json.loads(status["timing"])
+            if "backend_stats" in status:
+                backend_stats = json.loads(status["backend_stats"])
         return EpisodeMetadata(
             controller=controller_info,
             sample_rate_hz=float(episode["sample_rate_hz"]),
@@ -143,6 +147,7 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
             log_format_version=version,
             extra=json.loads(episode["extra"]),
             timing=timing,
+            backend_stats=backend_stats,
         )
     except (ValueError, TypeError, KeyError) as exc:
         raise ValueError(f"{where}: malformed episode metadata: {exc}") from None

@@ -197,7 +197,8 @@ class EpisodeWriter:
         if self._fsync:
             os.fsync(self._file.fileno())
 
-    def finish(self, status: str = "complete", reason: str = "", timing: Mapping | None = None) -> None:
+    def finish(self, status: str = "complete", reason: str = "", timing: Mapping | None = None,
+               backend_stats: Mapping | None = None) -> None:
         """Record the final status and close the file.
 
         Parameters
@@ -209,6 +210,8 @@ class EpisodeWriter:
         timing : mapping, optional
             The loop's timing statistics of the episode (plain numbers;
             NaN is stored as null), recorded with the status.
+        backend_stats : mapping, optional
+            The backend's counters of the episode (plain data), recorded with the status.
         """
         self._check_open()
         if status not in ("complete", "aborted"):
@@ -217,7 +220,7 @@ class EpisodeWriter:
             raise ValueError("an aborted episode needs a reason")
         # Flush first so the status record follows the last chunk in the file.
         self.flush()
-        self._mcap.add_metadata(STATUS_RECORD, status_record(status, reason, self._n, timing))
+        self._mcap.add_metadata(STATUS_RECORD, status_record(status, reason, self._n, timing, backend_stats))
         self._mcap.finish()
         self._file.flush()
         if self._fsync:

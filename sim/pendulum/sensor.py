@@ -1,8 +1,12 @@
 """What the rig's encoders report: quantized angles, the pendulum's wrapped.
 
 The rig read two 2048-count encoders (FACTS sections 3 and 5):
-``theta = count0 * 2 pi / 2048`` and ``alpha = wrap(count1 * 2 pi / 2048)``
-to ``[-pi, pi)``, with the pendulum's zero count set upright.
+``theta = count0 * 2 pi / 2048`` and ``alpha = wrap(count1 * 2 pi / 2048 - pi)``
+to ``[-pi, pi)``, the pendulum's counter being zeroed hanging down, so that
+``alpha = 0`` is upright. :func:`counts_to_angles` is that conversion (the
+serial backend uses it on the bridge's counts) and :func:`angles_to_counts`
+its inverse up to quantization (the emulated QUBE uses it); the simulator's
+measurements go through the same counts, so every path lands on the same grid.
 """
 
 from __future__ import annotations
@@ -13,9 +17,12 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["SensorModel", "measure"]
+__all__ = ["SensorModel", "measure", "counts_to_angles", "angles_to_counts", "COUNTS_PER_REV"]
 
 TWO_PI = 2.0 * math.pi
+
+#: Encoder counts per revolution of the QUBE-Servo 2 (FACTS section 5).
+COUNTS_PER_REV = 2048
 
 
 @dataclass(frozen=True)
@@ -50,17 +57,63 @@ class SensorModel:
         return 0.0 if self.counts_per_rev is None else TWO_PI / self.counts_per_rev
 
 
+def _counts(theta, alpha, counts_per_rev: int, floor: Callable):
+    # Nearest count: unbiased around the true angle. The pendulum's counter
+    # reads half a turn when upright, as it was zeroed hanging down.
+    step = TWO_PI / counts_per_rev
+    return floor(theta / step + 0.5), floor(alpha / step + 0.5) + counts_per_rev // 2
+
+
+def _angles(count0, count1, counts_per_rev: int):
+    # Wrapping the integer count keeps alpha exactly on the grid, in [-pi, pi)
+    # like the rig's: wrap(c * step - pi) = (c mod N - N/2) * step.
+    step = TWO_PI / counts_per_rev
+    return count0 * step, (count1 % counts_per_rev - counts_per_rev // 2) * step
+
+
 def _encode(theta, alpha, counts_per_rev: int | None, floor: Callable):
     """Quantize and wrap; plain arithmetic so floats and arrays share it."""
     if counts_per_rev is None:
         return theta, (alpha + math.pi) % TWO_PI - math.pi
-    step = TWO_PI / counts_per_rev
-    half = counts_per_rev // 2
-    # Nearest count: unbiased around the true angle. Wrapping the integer
-    # count keeps alpha exactly on the grid, in [-pi, pi) like the rig's.
-    count_theta = floor(theta / step + 0.5)
-    count_alpha = (floor(alpha / step + 0.5) + half) % counts_per_rev - half
-    return count_theta * step, count_alpha * step
+    return _angles(*_counts(theta, alpha, counts_per_rev, floor), counts_per_rev)
+
+
+def angles_to_counts(theta: float, alpha: float, counts_per_rev: int = COUNTS_PER_REV) -> tuple[int, int]:
+    """Raw encoder counters for true angles: what a QUBE's counters read.
+
+    Parameters
+    ----------
+    theta, alpha : float
+        True motor and pendulum angles (rad, alpha = 0 upright, not wrapped).
+    counts_per_rev : int
+        Encoder resolution.
+
+    Returns
+    -------
+    (int, int)
+        Nearest counts; the pendulum's counter is zero hanging down (so it
+        reads ``counts_per_rev / 2`` upright). Not wrapped: the hardware's
+        24-bit counters keep counting over turns.
+    """
+    return _counts(theta, alpha, counts_per_rev, math.floor)
+
+
+def counts_to_angles(count0: int, count1: int, counts_per_rev: int = COUNTS_PER_REV) -> tuple[float, float]:
+    """The rig's angles from its raw encoder counters (FACTS section 3).
+
+    ``theta = count0 * 2 pi / N`` and ``alpha = wrap(count1 * 2 pi / N - pi)``
+    in ``[-pi, pi)``: the pendulum's counter was zeroed hanging down, so
+    ``alpha = 0`` is upright. For the counts of :func:`angles_to_counts` the
+    result equals what :class:`SensorModel` reports for the same angles.
+
+    Examples
+    --------
+    >>> counts_to_angles(0, 1024)
+    (0.0, 0.0)
+    >>> counts_to_angles(512, 0)[1] == -math.pi
+    True
+    """
+    return _angles(count0, count1, counts_per_rev)
 
 
 def measure(state, sensor: SensorModel = SensorModel(),

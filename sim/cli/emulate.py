@@ -1,0 +1,188 @@
+"""``qube-emulate``: an emulated QUBE-Servo bridge on a pseudo-terminal, for the serial path without hardware."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+PROG = "qube-emulate"
+
+_DESCRIPTION = """\
+Start an emulated QUBE-Servo bridge: the bridge firmware's own core (compiled
+from firmware_protocol/c/src with the system C compiler, cached after the
+first build) driving a simulated pendulum at 500 Hz, behind a pseudo-terminal
+that a host opens as it would open the real bridge's serial port.
+
+The device path is printed alone on the first line of standard output, so
+that scripts can read it, e.g.:
+
+  qube-emulate &                                   # prints /dev/pts/N
+  qube-run --backend serial --port /dev/pts/N
+
+Each time a host opens a session the pendulum is put back upright, at rest,
+with a small seeded tilt (as a person raises the real one by hand). Runs until
+Ctrl-C or SIGTERM, or until the device vanishes (--vanish-at).
+"""
+
+_EPILOG = """\
+fault injection (seeded by --seed; times are seconds of device time after the
+host's first HELLO):
+  --drop-rate 0.01 --corrupt-rate 1e-4 --garbage-rate 0.01    a bad link
+  --latency 3                                                  a slow link (ms, each way)
+  --stall-at 2 / --amp-fault-at 2                              the QUBE fails
+  --silence-at 2 / --vanish-at 2                               the bridge hangs / is unplugged
+
+exit status: 0 when stopped by Ctrl-C or SIGTERM or after vanishing as asked,
+1 when the emulator cannot run (no C compiler...), 2 on a usage error.
+"""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, no usage dump
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(low: float, high: float, what: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not (math.isfinite(value) and low <= value <= high):
+            raise argparse.ArgumentTypeError(f"{what} must be in [{low:g}, {high:g}], got {text}")
+        return value
+    return parse
+
+
+_RATE = _number(0.0, 1.0, "a rate")
+_TIME = _number(0.0, 1e6, "a time")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser (also documents the options)."""
+    p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seed", type=int, default=None, metavar="K",
+                   help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
+    p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
+                   help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
+    p.add_argument("--hanging", action="store_true",
+                   help="do not raise the pendulum at each session: it stays hanging down")
+    p.add_argument("--raise-time", type=_number(0.0, 60.0, "--raise-time"), default=0.0, metavar="S",
+                   help="raise the pendulum from hanging over S seconds, as by hand (default 0: at once); "
+                        "the host's start gate holds the motor at 0 V meanwhile")
+    p.add_argument("--lockstep", action="store_true",
+                   help="tick as soon as the host answers (max 10 ms apart) instead of every 2 ms of wall "
+                        "time: deterministic and faster than real time, for tests")
+    p.add_argument("--spin", type=_number(0.0, 1900.0, "--spin"), default=300.0, metavar="US",
+                   help="spin this long before each tick deadline (default 300 us; 0: sleep only, less CPU, "
+                        "more jitter)")
+    faults = p.add_argument_group("fault injection")
+    faults.add_argument("--drop-rate", type=_RATE, default=0.0, metavar="P",
+                        help="fraction of frames to the host dropped")
+    faults.add_argument("--corrupt-rate", type=_RATE, default=0.0, metavar="P",
+                        help="probability per byte, each way, of a flipped bit")
+    faults.add_argument("--garbage-rate", type=_RATE, default=0.0, metavar="P",
+                        help="probability per tick of a burst of random bytes to the host")
+    faults.add_argument("--latency", type=_number(0.0, 9999.0, "--latency"), default=0.0, metavar="MS",
+                        help="added to every byte's trip, each way (ms)")
+    for name, what in (("stall-at", "the QUBE reports a motor stall error"),
+                       ("amp-fault-at", "the QUBE reports an amplifier fault"),
+                       ("silence-at", "the bridge stops sending (the port stays open)"),
+                       ("vanish-at", "the device disappears (the pseudo-terminal is closed)")):
+        faults.add_argument(f"--{name}", type=_TIME, default=None, metavar="S", help=f"{what} at S")
+    out = p.add_argument_group("output")
+    out.add_argument("--record", default=None, metavar="FILE.csv",
+                     help="write a per-tick record (device time, applied voltage, commands) at exit "
+                          "(the last 10 minutes)")
+    out.add_argument("--stats", default=None, metavar="FILE.json", help="write the final counters at exit")
+    out.add_argument("-q", "--quiet", action="store_true", help="only the device path on standard output")
+    return p
+
+
+def _write_outputs(emulator, args) -> None:
+    import json
+
+    if args.stats:
+        with open(args.stats, "w") as f:
+            json.dump({"stats": emulator.stats(), "faults": emulator.faults.as_dict(),
+                       "vanished_at": emulator.vanished_at,
+                       "events": [{"device_us": d, "wall": w, "event": e} for d, w, e in emulator.events]},
+                      f, indent=1)
+    if args.record:
+        from sim.bridge import RECORD_FIELDS
+
+        record = emulator.record()
+        with open(args.record, "w") as f:
+            f.write(",".join(RECORD_FIELDS) + "\n")
+            for row in zip(*(record[name].tolist() for name in RECORD_FIELDS)):
+                f.write(",".join(repr(v) for v in row) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``qube-emulate``; returns the exit status (see ``qube-emulate --help``)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    import signal
+
+    from firmware_protocol.ccore import CompilerNotFound
+    from sim.bridge import BridgeEmulator, Faults
+
+    faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate, garbage_rate=args.garbage_rate,
+                    latency=args.latency / 1e3, stall_at=args.stall_at, amp_fault_at=args.amp_fault_at,
+                    silence_at=args.silence_at, vanish_at=args.vanish_at)
+    emulator = BridgeEmulator(seed=args.seed, lockstep=args.lockstep,
+                              perturbation=math.radians(args.perturbation), start_upright=not args.hanging,
+                              raise_time=args.raise_time, faults=faults, spin=args.spin / 1e6,
+                              record_ticks=300_000 if args.record else 0)
+    for path in (args.record, args.stats):
+        if path is not None:
+            try:
+                open(path, "a").close()
+            except OSError as exc:
+                print(f"{PROG}: error: cannot write {path}: {exc.strerror or exc}", file=sys.stderr)
+                return 2
+    try:
+        path = emulator.open()
+    except CompilerNotFound as exc:
+        print(f"{PROG}: error: {exc} (the emulated bridge runs the bridge firmware's C core)", file=sys.stderr)
+        return 1
+    except (RuntimeError, OSError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"{PROG}: error: cannot start the emulated bridge: {first}", file=sys.stderr)
+        return 1
+    previous = {}
+
+    def on_signal(signum, frame):
+        emulator.request_stop()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        previous[signum] = signal.signal(signum, on_signal)
+    try:
+        print(path, flush=True)
+        if not args.quiet:
+            mode = "lockstep" if args.lockstep else "real time, 500 Hz"
+            print(f"{PROG}: emulated QUBE-Servo bridge on {path} ({mode}, seed {emulator.seed}); try "
+                  f"qube-run --backend serial --port {path}; Ctrl-C to stop", file=sys.stderr, flush=True)
+        emulator.run()
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        emulator.close()
+        _write_outputs(emulator, args)
+    if not args.quiet:
+        s = emulator.stats()
+        end = "vanished as asked" if emulator.vanished_at is not None else "stopped"
+        print(f"{PROG}: {end} after {s['ticks']} ticks ({s['device_time']:.1f} s of device time), "
+              f"{s['sessions']} session(s), {s['commands']} commands, {s['late_ticks']} ticks caught up late, "
+              f"{s['slips']} schedule restarts "
+              f"(max lateness {s['max_lateness'] * 1e3:.1f} ms)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,474 @@
+"""The serial backend (daq.backends.serial) through the acquisition loop, against the emulated bridge.
+
+Episodes run over a real pseudo-terminal with the bridge firmware's own core
+behind it. Checked here: a full episode logged to MCAP passes the sim
+backend's checks, with contiguous device ticks whose angles are exactly the
+emulated QUBE's counts and whose commands were applied at the next tick;
+garbage and corrupted frames are survived and counted; a vanished or silent
+device aborts the episode within 50 ms with the log intact; device faults
+and a host that falls behind abort with the reason; sequence gaps are counted
+exactly; handshake failures are one clear line; ``qube-run --backend serial``
+end to end in real time.
+
+Most episodes use the emulator's lockstep mode (the device ticks as soon as
+the host answers), so they do not depend on scheduling noise; the real-time
+path runs in ``test_qube_run_in_real_time`` and in test_bridge.py.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from _episodes import assert_follows_controller
+from bridge_helpers import FakeDevice, cache_home, core, env, start_emulator, stop_process  # noqa: F401
+
+from daq.backends.base import BackendFault
+from daq.backends.serial import SerialBackend
+from daq.cli.run import main
+from daq.excitation import generate_excitation
+from daq.log import read_episode
+from daq.loop import run_episode
+from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+from daq.sinks import McapSink
+from firmware_protocol import (
+    Command,
+    Config,
+    ConfigAck,
+    Fault,
+    FaultCode,
+    Hello,
+    HelloReply,
+    Status,
+    Telemetry,
+    encode_frame,
+    encode_raw_frame,
+)
+from firmware_protocol.qube_spi import motor_word_pwm
+from sim.bridge import BridgeEmulator, Faults
+from sim.pendulum import PendulumSimulator, SensorModel
+from sim.pendulum.sensor import angles_to_counts, counts_to_angles
+
+CONTROLLER = load_controller()
+
+
+def _plan(seconds: float = 4.0, seed: int = 1):
+    seeds, _ = run_seeds(seed, 1)
+    return plan_episodes(CONTROLLER, seeds, excitation_settings(seconds), source="test")[0]
+
+
+class TimedBackend(SerialBackend):
+    """Notes when a read or write first raises, to time the abort against the device's own clock."""
+
+    fault_at: float | None = None
+
+    def _timed(self, call, *args):
+        try:
+            return call(*args)
+        except BackendFault:
+            if self.fault_at is None:
+                self.fault_at = time.perf_counter()
+            raise
+
+    def read(self):
+        return self._timed(super().read)
+
+    def write(self, volts):
+        return self._timed(super().write, volts)
+
+
+def _run(core, tmp_path, faults=Faults(), seconds=4.0, lockstep_timeout=0.1, link_timeout=0.2,
+         backend_cls=SerialBackend):
+    """One episode in lockstep into an MCAP log: (result, episode read back, emulator, backend)."""
+    emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=lockstep_timeout, faults=faults,
+                         record_ticks=200_000)
+    path = emu.start()
+    backend = backend_cls(path, link_timeout=link_timeout)
+    sink = McapSink(tmp_path)
+    try:
+        result = run_episode(backend, _plan(seconds), [sink])
+    finally:
+        backend.close()
+        time.sleep(0.05)  # the amplifier-off command reaches the device's record
+        emu.stop()
+    episode = read_episode(sink.paths[0]) if sink.paths else None
+    return result, episode, emu, backend
+
+
+# --- a clean episode ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def clean(core, tmp_path_factory):
+    return _run(core, tmp_path_factory.mktemp("clean"))
+
+
+def test_full_episode_passes_the_sim_backends_checks(clean):
+    result, ep, _, _ = clean
+    assert result.complete and len(ep) == 2000
+    meta = ep.metadata
+    assert meta.status == "complete" and not meta.salvaged and meta.backend == "serial"
+    assert_follows_controller(ep)
+    info = meta.extra["backend"]
+    assert info["emulated"] is True and info["firmware"] == "1.0.0" and info["protocol_version"] == 1
+    assert info["pacing"] == "device" and info["max_millivolts"] == 10_000
+    seeds = meta.excitation["seeds"]
+    ex = generate_excitation(tuple(seeds[k] for k in ("target_theta", "target_alpha", "feedforward")),
+                             excitation_settings(4.0))
+    assert np.array_equal(ep.target_theta, ex.target_theta) and np.array_equal(ep.feedforward, ex.feedforward)
+    assert meta.timing["n_ticks"] == 2000 and meta.timing["paced"] is True
+    link = meta.backend_stats
+    assert link["ticks_missed"] == 0 and link["frames_lost"] == 0 and link["host_rejects"] == 0
+    assert link["telemetry"] >= 2000 and link["device_rx_errors"] == 0
+    assert np.abs(ep.alpha).max() < math.radians(20), "balanced"
+
+
+def _session_ticks(emu):
+    """The emulator's record from the first session's first tick, and the angles a replay gives there."""
+    rec = emu.record()
+    p = np.flatnonzero(rec["session"] == 1)[0]
+    sim = PendulumSimulator(sensor=SensorModel(counts_per_rev=None))
+    sim.reset(emu.initial_states[0])
+    angles = []
+    for volts in rec["volts"][p:]:
+        theta, alpha = sim.state[:2]
+        angles.append(counts_to_angles(*angles_to_counts(theta, alpha)))
+        sim.step(volts)
+    return {k: v[p:] for k, v in rec.items()}, np.array(angles)
+
+
+def test_logged_angles_are_the_emulated_counts_of_contiguous_ticks(clean):
+    # An independent replay of the pendulum under the voltages the emulated QUBE applied gives the
+    # counts of every device tick; the log must hold a contiguous run of them, converted as the rig did.
+    _, ep, emu, _ = clean
+    _, angles = _session_ticks(emu)
+    starts = [g for g in range(len(angles) - len(ep)) if np.array_equal(angles[g:g + len(ep)], ep.states)]
+    assert len(starts) == 1, "the episode is one contiguous run of device ticks"
+
+
+def test_each_command_is_applied_at_the_next_tick_in_integer_millivolts(clean):
+    _, ep, emu, _ = clean
+    rec, angles = _session_ticks(emu)
+    g = next(g for g in range(len(angles)) if np.array_equal(angles[g:g + len(ep)], ep.states))
+    # The last one may be overtaken by the 0 V the loop sends as the episode ends: only the newest
+    # command is applied at a tick.
+    after = g + 1 + np.arange(len(ep) - 1)
+    mv = np.round(ep.plant_input[:-1] * 1000).astype(int)
+    np.testing.assert_array_equal(rec["command_mv"][after], mv)
+    np.testing.assert_allclose(rec["volts"][after], [motor_word_pwm(v) * 0.024 for v in mv], rtol=0, atol=1e-12)
+    assert rec["amp_enabled"][after].all()
+    assert not rec["amp_enabled"][-1] and rec["command_mv"][-1] == 0, "stop(): 0 V, amplifier off"
+    # Lockstep: every tick of the episode was answered, and the next tick came upon the answer.
+    answer = rec["answer"][after - 1]
+    assert np.all(answer > 0) and np.all(answer < 0.1)
+    assert np.all(np.diff(rec["wall"])[after[:-1] - 1] >= answer[:-1])
+
+
+# --- a bad link -------------------------------------------------------------------------------------
+
+def test_garbage_and_corrupted_frames_are_survived_and_counted(core, tmp_path):
+    faults = Faults(drop_rate=0.01, corrupt_rate=2e-4, garbage_rate=0.02)
+    result, ep, emu, _ = _run(core, tmp_path, faults, lockstep_timeout=0.01, link_timeout=0.025)
+    assert result.complete and len(ep) == 2000 and ep.metadata.status == "complete"
+    assert_follows_controller(ep)
+    injected = emu.stats()
+    assert injected["frames_dropped"] > 0 and injected["bytes_corrupted"] > 0 and injected["garbage_bursts"] > 0
+    link = ep.metadata.backend_stats
+    assert link["ticks_missed"] > 0 and link["frames_lost"] > 0, "dropped and rejected telemetry is counted"
+    assert link["host_rejects"] > 0 and link["decoder"]["bad_crc"] > 0
+    assert link["device_rx_errors"] > 0, "corrupted commands, rejected by the bridge, are reported by it"
+    # Every frame lost shows as a gap: frames dropped on purpose are a lower bound.
+    assert link["frames_lost"] >= 1
+
+
+# --- link loss --------------------------------------------------------------------------------------
+
+def test_vanished_device_aborts_within_50_ms_with_the_log_intact(core, tmp_path):
+    result, ep, emu, backend = _run(core, tmp_path, Faults(vanish_at=1.0), lockstep_timeout=0.01,
+                                    link_timeout=0.025, backend_cls=TimedBackend)
+    assert result.status == "aborted" and result.cause == "fault" and "link lost" in result.reason
+    detected = backend.fault_at - emu.vanished_at
+    assert 0 <= detected < 0.050, f"abort {detected * 1e3:.1f} ms after the device vanished"
+    meta = ep.metadata
+    assert meta.status == "aborted" and "link lost" in meta.status_reason and not meta.salvaged
+    assert 300 < len(ep) < 600 and np.array_equal(ep.t, np.arange(len(ep)) / 500)
+    assert meta.backend_stats["telemetry"] >= len(ep)
+
+
+def test_silent_device_aborts_within_50_ms(core, tmp_path):
+    result, ep, emu, backend = _run(core, tmp_path, Faults(silence_at=1.0), lockstep_timeout=0.01,
+                                    link_timeout=0.025, backend_cls=TimedBackend)
+    silent_at = next(w for _, w, e in emu.events if e == "silence")
+    assert result.cause == "fault" and "no telemetry" in result.reason and "25 ms" in result.reason
+    detected = backend.fault_at - silent_at
+    # The link timeout runs from the host's last read, a little before the first silent tick.
+    assert 0.015 <= detected < 0.050, f"abort {detected * 1e3:.1f} ms after the device went silent"
+    assert ep.metadata.status == "aborted" and not ep.metadata.salvaged and len(ep) > 300
+
+
+# --- device faults ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("fault, text", [("stall_at", "motor stall error"), ("amp_fault_at", "amplifier fault")])
+def test_device_fault_aborts_with_the_reason_and_the_motor_off(core, tmp_path, fault, text):
+    result, ep, emu, _ = _run(core, tmp_path, Faults(**{fault: 1.0}))
+    assert result.cause == "fault" and text in result.reason and text in ep.metadata.status_reason
+    rec, _ = _session_ticks(emu)
+    at = next(d for d, _, e in emu.events if e in ("stall", "amplifier fault"))
+    after = rec["device_us"] >= at
+    assert np.all(rec["volts"][after] == 0.0), "the QUBE drives nothing once faulted"
+    assert rec["amp_enabled"][~after][-50:].all() and not rec["amp_enabled"][-1]
+
+
+def test_host_falling_behind_trips_the_watchdog_and_aborts(core, tmp_path):
+    class Stalling(SerialBackend):
+        writes = 0
+
+        def write(self, volts):
+            self.writes += 1
+            if self.writes == 800:
+                time.sleep(0.08)  # the bridge ticks on (every 10 ms in lockstep) without commands
+            super().write(volts)
+
+    result, ep, emu, _ = _run(core, tmp_path, lockstep_timeout=0.01, link_timeout=0.2, backend_cls=Stalling)
+    assert result.cause == "fault" and "watchdog tripped" in result.reason
+    assert "no command for 5 ticks" in ep.metadata.status_reason
+    rec, _ = _session_ticks(emu)
+    assert not rec["amp_enabled"][-1]
+
+
+def test_a_pause_after_holding_zero_volts_is_not_a_fault(core):
+    # The start gate holds 0 V; opening the log before tick 0 can take longer than the watchdog's
+    # five ticks (the first McapSink.open takes ~30 ms). The motor was at 0 V: no fault, re-armed.
+    emu = BridgeEmulator(seed=3, core=core, lockstep=True, lockstep_timeout=0.01, record_ticks=10_000)
+    backend = SerialBackend(emu.start(), link_timeout=0.2)
+    try:
+        backend.start()
+        for _ in range(20):
+            backend.read()
+            backend.write(0.0)
+        backend.read()
+        time.sleep(0.1)  # ten ticks without a command
+        for _ in range(50):
+            backend.read()
+            backend.write(1.0)
+        stats = backend.statistics()
+    finally:
+        backend.close()
+        time.sleep(0.05)
+        emu.stop()
+    rec, _ = _session_ticks(emu)
+    assert not rec["amp_enabled"][25:35].all(), "the watchdog did trip during the pause"
+    driven = rec["command_mv"] == 1000
+    assert driven.sum() >= 45 and rec["amp_enabled"][driven].all()
+    assert np.all(rec["volts"][driven] == pytest.approx(motor_word_pwm(1000) * 0.024))
+    assert stats["ticks_skipped"] == 0 and stats["late_commands"] <= 1
+
+
+def test_rig_start_gate_then_a_slow_log_open_still_runs_the_episode(core, tmp_path):
+    # As on the rig: the pendulum is raised by hand over a second while the start gate holds 0 V,
+    # then the log takes 100 ms to open (ten ticks here: the watchdog trips at the fifth).
+    class SlowDisk(McapSink):
+        def open(self, metadata):
+            time.sleep(0.1)
+            super().open(metadata)
+
+    emu = BridgeEmulator(seed=5, core=core, lockstep=True, lockstep_timeout=0.01, raise_time=1.0,
+                         record_ticks=20_000)
+    backend = SerialBackend(emu.start(), link_timeout=0.2)
+    sink = SlowDisk(tmp_path)
+    try:
+        result = run_episode(backend, _plan(1.0), [sink])
+    finally:
+        backend.close()
+        emu.stop()
+    assert result.complete, result.reason
+    ep = read_episode(sink.paths[0])
+    assert ep.metadata.status == "complete" and len(ep) == 500
+    assert_follows_controller(ep)
+    rec = emu.record()
+    held = rec["session"] == 1
+    gate = held & (rec["command_mv"] == 0) & rec["amp_enabled"]
+    assert gate.sum() > 400, "the start gate held 0 V, amplifier on, while the pendulum was raised"
+    tripped = held & ~rec["amp_enabled"] & (rec["command_seq"] > 0)
+    assert tripped.any(), "the watchdog tripped while the log opened"
+    assert ep.metadata.backend_stats["ticks_skipped"] == 0
+
+
+def test_trip_bits_sent_before_the_rearm_arrived_are_ignored_but_not_later_ones():
+    import os
+
+    with _scripted_bridge() as dev:
+        backend = SerialBackend(dev.path, link_timeout=0.5)
+        backend.start()
+        os.write(dev.master, _tm(12, 0))
+        backend.read()
+        backend.write(0.0)                                                      # seq 3: the gate's 0 V
+        tripped = Status.WATCHDOG_TRIPPED
+        os.write(dev.master, encode_frame(Fault(FaultCode.WATCHDOG_TRIPPED, 6, 5), 13, 0)
+                 + _tm(14, 6, status=tripped, last_command_seq=3))
+        backend.read()                                                          # not driving: re-arm
+        backend.write(2.0)                                                      # seq 4 amp off, seq 5 2 V
+        os.write(dev.master, _tm(15, 7, status=tripped, last_command_seq=3))    # made before seq 4 arrived
+        backend.read()
+        os.write(dev.master, _tm(16, 8, last_command_seq=5))
+        backend.read()
+        backend.write(2.0)
+        os.write(dev.master, _tm(17, 9, status=tripped, last_command_seq=6))    # a real trip now
+        with pytest.raises(BackendFault, match="watchdog tripped"):
+            backend.read()
+        backend.close()
+        received = dev.wait_for(lambda got: sum(isinstance(f.message, Command) for f in got) == 5)
+    commands = [(f.seq, f.message.millivolts, f.message.flags) for f in received if isinstance(f.message, Command)]
+    assert commands == [(3, 0, 1), (4, 0, 0), (5, 2000, 1), (6, 2000, 1), (7, 0, 0)]
+
+
+# --- sequence tracking, exactly -----------------------------------------------------------------
+
+def _scripted_bridge():
+    def respond(frame):
+        m = frame.message
+        if isinstance(m, Hello):
+            return encode_frame(HelloReply(nonce=m.nonce, capabilities=0x7F, module_id=777), 10, 0)
+        if isinstance(m, Config):
+            return encode_frame(ConfigAck(), 11, 0)
+        return b""
+    return FakeDevice(respond)
+
+
+def _tm(seq, tick, **fields):
+    return encode_frame(Telemetry(tick=tick, encoder0=tick, encoder1=1024, **fields), seq, 2000 * tick)
+
+
+def test_sequence_gaps_are_counted_exactly():
+    import os
+
+    with _scripted_bridge() as dev:
+        backend = SerialBackend(dev.path, link_timeout=0.5)
+        backend.start()
+        script = [
+            _tm(12, 0), _tm(13, 1),
+            _tm(15, 3),                                                     # tick 2 (seq 14) lost
+            encode_frame(Fault(FaultCode.RX_ERRORS, 3, 7), 16, 0) + _tm(17, 4),
+            _tm(19, 5),                                                     # seq 18 lost
+            _tm(20, 6, command_age=2),                                      # our command came late
+            _tm(21, 7, status=Status.TX_OVERFLOW),
+            _tm(22, 8) + _tm(23, 9),                                        # fell behind: the newest wins
+        ]
+        angles = []
+        for chunk in script:
+            os.write(dev.master, chunk)
+            angles.append(backend.read())
+            backend.write(0.5)
+        stats = backend.statistics()
+        backend.close()
+        commands = [f for f in dev.wait_for(lambda got: sum(isinstance(f.message, Command) for f in got) == 9)
+                    if isinstance(f.message, Command)]
+    assert stats["telemetry"] == 9 and stats["ticks_missed"] == 1 and stats["frames_lost"] == 2
+    assert stats["ticks_skipped"] == 1 and stats["late_commands"] == 1 and stats["tx_overflows"] == 1
+    assert stats["device_rx_errors"] == 7 and stats["host_rejects"] == 0
+    assert [a[0] for a in angles] == [k * 2 * math.pi / 2048 for k in (0, 1, 3, 4, 5, 6, 7, 9)]
+    assert all(a[1] == 0.0 for a in angles)
+    assert [c.message.millivolts for c in commands[:-1]] == [500] * 8 and commands[-1].message.flags == 0
+    # Command sequence numbers: after HELLO (1) and CONFIG (2), one per command without gaps.
+    assert [c.seq for c in commands] == list(range(3, 3 + len(commands)))
+
+
+@pytest.mark.parametrize("status, fault_frame, text", [
+    (Status.WATCHDOG_TRIPPED, None, "watchdog tripped"),
+    (0, Fault(FaultCode.NOT_CONNECTED, 0, 3), "lost the session"),
+    (0, Fault(FaultCode.BAD_MODULE_ID, 0, 0), "module id 0"),
+])
+def test_fault_reports_and_status_bits_raise(status, fault_frame, text):
+    import os
+
+    with _scripted_bridge() as dev:
+        backend = SerialBackend(dev.path, link_timeout=0.5)
+        backend.start()
+        os.write(dev.master, _tm(12, 0))
+        backend.read()
+        backend.write(1.0)  # driving: from now on a watchdog trip is a fault
+        os.write(dev.master, (encode_frame(fault_frame, 13, 0) if fault_frame else b"")
+                 + _tm(14 if fault_frame else 13, 1, status=status))
+        with pytest.raises(BackendFault, match=text):
+            backend.read()
+        backend.write(3.0)
+        backend.close()
+        received = dev.wait_for(lambda got: sum(isinstance(f.message, Command) for f in got) == 3)
+        last = [f.message for f in received if isinstance(f.message, Command)][-2:]
+    assert all(c.flags == 0 and c.millivolts == 0 for c in last), "after a fault: amplifier off"
+
+
+# --- handshake failures -------------------------------------------------------------------------
+
+def _hello_reply(**fields):
+    def respond(frame):
+        if isinstance(frame.message, Hello):
+            return encode_frame(HelloReply(nonce=frame.message.nonce, **fields), 1, 0)
+        if isinstance(frame.message, Config):
+            return encode_frame(ConfigAck(result=1), 2, 0)
+        return b""
+    return respond
+
+
+@pytest.mark.parametrize("respond, text", [
+    (lambda f: b"", "no answer from the bridge"),
+    (lambda f: encode_raw_frame(0x81, 0, 0, bytes(20), version=2), "speaks protocol version 2; this host "
+                                                                     "speaks version 1"),
+    (lambda f: bytes(range(1, 200)) + b"\0" + bytes(range(50, 120)) + b"\0", "is the baud rate right"),
+    (_hello_reply(firmware_major=2, capabilities=0x7F), "firmware 2.0.0 is not supported"),
+    (_hello_reply(capabilities=0x01), "lacks telemetry or the watchdog"),
+    (_hello_reply(capabilities=0x7F), "refused the configuration"),
+])
+def test_handshake_failures_say_why(respond, text):
+    with FakeDevice(respond) as dev:
+        backend = SerialBackend(dev.path, handshake_timeout=0.3)
+        with pytest.raises(BackendFault, match=text):
+            backend.start()
+        backend.close()
+
+
+def test_unknown_port_is_a_clear_fault():
+    with pytest.raises(BackendFault, match="cannot open /nonexistent/tty: No such file"):
+        SerialBackend("/nonexistent/tty").open()
+
+
+@pytest.mark.parametrize("bad", [dict(baud=0), dict(rate_hz=333), dict(max_voltage=20.0),
+                                 dict(link_timeout=0.0)])
+def test_settings_are_checked(bad):
+    with pytest.raises(ValueError):
+        SerialBackend("/dev/null", **bad)
+
+
+# --- qube-run --backend serial ------------------------------------------------------------------
+
+def test_qube_run_with_a_bad_port_is_one_line(tmp_path, capsys):
+    status = main(["--backend", "serial", "--port", "/nonexistent/tty", "--out", str(tmp_path), "-q"])
+    err = capsys.readouterr().err
+    assert status == 1 and err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith("qube-run: error: cannot open /nonexistent/tty")
+    assert not list(tmp_path.glob("*.mcap"))
+
+
+@pytest.mark.slow
+def test_qube_run_in_real_time(env, tmp_path, capsys):
+    proc, path = start_emulator(env, "--seed", "5")
+    try:
+        status = main(["--backend", "serial", "--port", path, "--episodes", "2", "--duration", "2",
+                       "--seed", "7", "--out", str(tmp_path), "-q"])
+    finally:
+        _, emulator_err = stop_process(proc)
+    out = capsys.readouterr().out
+    assert status == 0, out
+    assert f"on the emulated bridge on {path} (firmware 1.0.0)" in out and "serial link: " in out
+    assert "2 complete, 0 aborted" in out
+    files = sorted(tmp_path.glob("*.mcap"))
+    assert len(files) == 2
+    for f in files:
+        ep = read_episode(f)
+        assert ep.metadata.status == "complete" and len(ep) == 1000 and ep.metadata.backend == "serial"
+        assert_follows_controller(ep)
+        link = ep.metadata.backend_stats
+        assert link["ticks_missed"] == 0 and link["frames_lost"] == 0 and link["host_rejects"] == 0
+        assert ep.metadata.timing["paced"] is True
+    assert "3 session(s)" in emulator_err, "one to connect, one per episode"
