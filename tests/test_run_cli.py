@@ -230,3 +230,18 @@ def test_signal_stops_the_motor_and_closes_the_log_aborted(tmp_path, signum):
     assert ep.plant_input[-1] == 0.0, "0 V in the tick that saw the signal"
     assert meta.timing["n_ticks"] == n and meta.timing["paced"] is True
     assert "0 complete, 1 aborted" in out and f"interrupted by {name}" in err
+
+
+@pytest.mark.parametrize("text,expected", [("0", 0.0), ("0.00", 0.0), ("0e0", 0.0), ("-0", 0.0), ("2.5", 2.5)])
+def test_non_negative_options_accept_any_spelling_of_zero(text, expected):
+    from daq.cli.run import build_parser
+
+    assert build_parser().parse_args(["--perturbation", text]).perturbation == expected
+
+
+def test_negative_perturbation_is_refused(capsys):
+    from daq.cli.run import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--perturbation", "-1"])
+    assert "must be zero or positive" in capsys.readouterr().err
