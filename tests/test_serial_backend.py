@@ -42,6 +42,7 @@ from firmware_protocol import (
     Hello,
     HelloReply,
     Status,
+    StreamDecoder,
     Telemetry,
     encode_frame,
     encode_raw_frame,
@@ -240,7 +241,9 @@ def test_host_falling_behind_trips_the_watchdog_and_aborts(core, tmp_path):
 def test_a_pause_after_holding_zero_volts_is_not_a_fault(core):
     # The start gate holds 0 V; opening the log before tick 0 can take longer than the watchdog's
     # five ticks (the first McapSink.open takes ~30 ms). The motor was at 0 V: no fault, re-armed.
-    emu = BridgeEmulator(seed=3, core=core, lockstep=True, lockstep_timeout=0.01, record_ticks=10_000)
+    # The lockstep timeout is 50 ms, so that a loaded CI machine pausing the host for tens of ms
+    # does not make the bridge tick ahead of it (a skipped tick); the pause below is eight ticks.
+    emu = BridgeEmulator(seed=3, core=core, lockstep=True, lockstep_timeout=0.05, record_ticks=10_000)
     backend = SerialBackend(emu.start(), link_timeout=0.2)
     try:
         backend.start()
@@ -248,7 +251,7 @@ def test_a_pause_after_holding_zero_volts_is_not_a_fault(core):
             backend.read()
             backend.write(0.0)
         backend.read()
-        time.sleep(0.1)  # ten ticks without a command
+        time.sleep(0.4)  # eight ticks without a command
         for _ in range(50):
             backend.read()
             backend.write(1.0)
@@ -267,13 +270,15 @@ def test_a_pause_after_holding_zero_volts_is_not_a_fault(core):
 
 def test_rig_start_gate_then_a_slow_log_open_still_runs_the_episode(core, tmp_path):
     # As on the rig: the pendulum is raised by hand over a second while the start gate holds 0 V,
-    # then the log takes 100 ms to open (ten ticks here: the watchdog trips at the fifth).
+    # then the log takes 400 ms to open (eight ticks at the 50 ms lockstep timeout: the watchdog
+    # trips at the fifth). The long timeout keeps scheduling noise on a loaded machine from
+    # making the bridge tick ahead of the host, which the ticks_skipped check would see.
     class SlowDisk(McapSink):
         def open(self, metadata):
-            time.sleep(0.1)
+            time.sleep(0.4)
             super().open(metadata)
 
-    emu = BridgeEmulator(seed=5, core=core, lockstep=True, lockstep_timeout=0.01, raise_time=1.0,
+    emu = BridgeEmulator(seed=5, core=core, lockstep=True, lockstep_timeout=0.05, raise_time=1.0,
                          record_ticks=20_000)
     backend = SerialBackend(emu.start(), link_timeout=0.2)
     sink = SlowDisk(tmp_path)
@@ -308,7 +313,11 @@ def test_trip_bits_sent_before_the_rearm_arrived_are_ignored_but_not_later_ones(
         os.write(dev.master, encode_frame(Fault(FaultCode.WATCHDOG_TRIPPED, 6, 5), 13, 0)
                  + _tm(14, 6, status=tripped, last_command_seq=3))
         backend.read()                                                          # not driving: re-arm
+        writes, port_write = [], backend._serial.write
+        backend._serial.write = lambda data: (writes.append(data), port_write(data))[1]
         backend.write(2.0)                                                      # seq 4 amp off, seq 5 2 V
+        # One write: a bridge (or the lockstep emulator) must not take the re-arm for a whole answer.
+        assert [[f.seq for f in StreamDecoder().feed(w)] for w in writes] == [[4, 5]]
         os.write(dev.master, _tm(15, 7, status=tripped, last_command_seq=3))    # made before seq 4 arrived
         backend.read()
         os.write(dev.master, _tm(16, 8, last_command_seq=5))

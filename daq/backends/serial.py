@@ -451,17 +451,23 @@ class SerialBackend(Backend):
             self._command(0, 0)
             return
         mv = max(-self.max_millivolts, min(self.max_millivolts, int(round(volts * 1000.0))))
+        rearm = b""
         if self._rearm:
-            # The trip is latched until the amplifier is commanded off (PROTOCOL.md 7.4).
-            self._command(0, 0)
+            # The trip is latched until the amplifier is commanded off (PROTOCOL.md 7.4); the
+            # device clears it on receipt, so both commands go in one write: one USB transfer,
+            # and a bridge never sees the re-arm as an answer of its own.
+            rearm = self._command_frame(0, 0)
             self._rearm, self._rearm_seq = False, self._command_seq
         self._driving = self._driving or mv != 0
-        self._command(mv, CommandFlags.AMP_ENABLE)
+        self._send(rearm + self._command_frame(mv, CommandFlags.AMP_ENABLE))
 
     def _command(self, millivolts: int, flags: int) -> None:
+        self._send(self._command_frame(millivolts, flags))
+
+    def _command_frame(self, millivolts: int, flags: int) -> bytes:
         red, green, blue = _LED_RUNNING if flags else (0, 0, 0)
-        self._send(encode_frame(Command(millivolts, int(flags), red, green, blue), self._next_seq(),
-                                self._host_us()))
+        return encode_frame(Command(millivolts, int(flags), red, green, blue), self._next_seq(),
+                            self._host_us())
 
     def stop(self) -> None:
         """Command 0 V with the amplifier off (best effort: the link may be gone); safe to call twice."""
