@@ -247,13 +247,16 @@ class BridgeEmulator:
 
     def close(self) -> None:
         """Close the pseudo-terminal (the device disappears)."""
-        for fd in (self._master, self._slave):
+        # Not running before the host can tell: closing the master is what it sees (EIO, and the
+        # device node goes), so our own slave end goes first and the fds are forgotten before.
+        fds = (self._slave, self._master)
+        self._master = self._slave = -1
+        for fd in fds:
             if fd >= 0:
                 try:
                     os.close(fd)
                 except OSError:
                     pass
-        self._master = self._slave = -1
 
     def __enter__(self) -> "BridgeEmulator":
         self.start()
