@@ -54,6 +54,13 @@ def find_c_compiler() -> str | None:
     return None
 
 
+def _required_compiler() -> str:
+    cc = find_c_compiler()
+    if cc is None:
+        raise CompilerNotFound("no C compiler found: set $CC or install gcc or clang")
+    return cc
+
+
 def build_library(out_dir: str | os.PathLike, *, extra_flags: tuple[str, ...] = ()) -> Path:
     """Compile ``c/src/*.c`` into a shared library in ``out_dir``.
 
@@ -76,9 +83,7 @@ def build_library(out_dir: str | os.PathLike, *, extra_flags: tuple[str, ...] = 
     RuntimeError
         If compilation fails (the message holds the compiler's output).
     """
-    cc = find_c_compiler()
-    if cc is None:
-        raise CompilerNotFound("no C compiler found: set $CC or install gcc or clang")
+    cc = _required_compiler()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     lib = out / "libqubeproto.so"
@@ -119,9 +124,7 @@ def cached_library(cache_dir: str | os.PathLike | None = None) -> Path:
     CompilerNotFound, RuntimeError
         As ``build_library``.
     """
-    cc = find_c_compiler()
-    if cc is None:
-        raise CompilerNotFound("no C compiler found: set $CC or install gcc or clang")
+    cc = _required_compiler()
     digest = hashlib.sha256("\0".join((cc, *C_FLAGS)).encode())
     for path in sorted(C_SOURCE_DIR.glob("*.[ch]")):
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
