@@ -101,8 +101,10 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         n_theta = n_c + n_theta_p
         self.koopman_matrix_ = U_f
         self.plant_koopman_matrix_ = U_p
+        feedback = tuple(range(lifting.n_features_in_)) if self.measured is None else tuple(self.measured)
         self.closed_loop_model_ = KoopmanModel(U_f[:, :n_theta], U_f[:, n_theta:], lifting,
-                                               ("r", "f") if n_f else ("r",), n_passthrough=n_c, dt=dt)
+                                               ("r", "f") if n_f else ("r",), n_passthrough=n_c, dt=dt,
+                                               feedback=feedback)
         self.plant_model_ = KoopmanModel(U_p[:, :n_theta_p], U_p[:, n_theta_p:], lifting, ("u",), dt=dt)
         self.model_ = self.closed_loop_model_
 
