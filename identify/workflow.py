@@ -10,7 +10,7 @@ import numpy as np
 
 from identify._blas import limited_blas_threads
 from identify.arx import Arx, ClArx
-from identify.cl_edmd import ClEdmd, ClEdmdLstsq
+from identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from identify.data import LoggedTrajectory, group_shuffle_splits, same_system
 from identify.edmd import Edmd
 from identify.model_file import lifting_to_dict, save_model
@@ -22,7 +22,8 @@ from sim.lti import DiscreteStateSpace
 
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
 
-KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-lstsq": ClEdmdLstsq}
+KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows,
+                   "cl-edmd-lstsq": ClEdmdLstsq}
 MEASURED = [0, 1]  # theta and alpha are both fed back on the QUBE-Servo
 
 

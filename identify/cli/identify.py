@@ -24,7 +24,7 @@ with --score plant. Outputs in --out: model.json (see identify/MODEL_FORMAT.md),
 report.json, report.md, and with --rerun FILE.rrd a rerun recording.
 """
 
-METHODS = ("cl-edmd", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
+METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -51,7 +51,10 @@ def _parser() -> argparse.ArgumentParser:
                       help="append a constant lifting function (an affine term: the model's equilibrium is "
                            "not pinned at the measured zero)")
     fit = p.add_argument_group("identification")
-    fit.add_argument("--method", choices=METHODS, default="cl-edmd", help="default: %(default)s")
+    fit.add_argument("--method", choices=METHODS, default="cl-edmd",
+                     help="cl-edmd: the paper's CL EDMD (controller rows of the closed-loop matrix fitted); "
+                          "cl-edmd-known-rows: the same plant, controller rows fixed to the known controller; "
+                          "default: %(default)s")
     reg = fit.add_mutually_exclusive_group()
     reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
     reg.add_argument("--alpha-sweep", nargs=3, metavar=("MIN", "MAX", "N"),
