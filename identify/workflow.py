@@ -13,6 +13,7 @@ from identify.arx import Arx, ClArx
 from identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from identify.data import LoggedTrajectory, group_shuffle_splits, same_system
 from identify.edmd import Edmd
+from identify.stability import ClEdmdStable
 from identify.model_file import lifting_to_dict, save_model
 from identify.offsets import DEFAULT_BOUND, estimate_offsets, predict_with_offsets
 from identify.scores import summarize_episodes
@@ -23,7 +24,7 @@ from sim.lti import DiscreteStateSpace
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
 
 KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows,
-                   "cl-edmd-lstsq": ClEdmdLstsq}
+                   "cl-edmd-lstsq": ClEdmdLstsq, "cl-edmd-stable": ClEdmdStable}
 MEASURED = [0, 1]  # theta and alpha are both fed back on the QUBE-Servo
 
 
@@ -86,7 +87,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        alphas: Sequence[float] | None = None, score: str = "cl", cv_splits: int = 3,
                        cv_seed: int = 1234, arx_lags: int = 10, model_path: str | Path | None = None,
                        offsets: OffsetProtocol | None = None, what_if: DiscreteStateSpace | None = None,
-                       progress: Callable[[str, int, int], None] | None = None) -> IdentificationResult:
+                       estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
     With ``alphas`` the regularization is chosen by episode-grouped
@@ -113,7 +114,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     with limited_blas_threads(1):
         if method in KOOPMAN_METHODS:
             plant, closed = _koopman(method, lifting, trajs, controller, alpha, alphas, score,
-                                     cv_splits, cv_seed, progress, result)
+                                     cv_splits, cv_seed, progress, result, estimator_options or {})
             result.report["lifting"] = lifting_to_dict(plant.lifting)
             result.report["spectral_radius"] = {"closed_loop": closed.spectral_radius(),
                                                 "plant": plant.spectral_radius()}
@@ -133,10 +134,11 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     return result
 
 
-def _koopman(method, lifting, trajs, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result):
+def _koopman(method, lifting, trajs, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result,
+             options):
     cls = KOOPMAN_METHODS[method]
-    make = (lambda a: cls(lifting=lifting, alpha=a)) if cls is Edmd else \
-        (lambda a: cls(controller, lifting=lifting, alpha=a))
+    make = (lambda a: cls(lifting=lifting, alpha=a, **options)) if cls is Edmd else \
+        (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
     if alphas is not None:
         splits = group_shuffle_splits(len(trajs), n_splits=cv_splits, test_size=0.2, seed=cv_seed)
         report = (lambda done, total: progress("cross-validation", done, total)) if progress else None
@@ -154,6 +156,9 @@ def _koopman(method, lifting, trajs, controller, alpha, alphas, score, cv_splits
         }
     result.report["alpha"] = float(alpha)
     fitted = make(alpha).fit(trajs)
+    if hasattr(fitted, "unconstrained_radius_"):
+        result.report["constraint"] = {**options, "unconstrained_radius": fitted.unconstrained_radius_,
+                                       "solver_status": fitted.solver_status_}
     plant = fitted.model_ if cls is Edmd else fitted.plant_model_
     closed = close_loop(plant, controller, MEASURED) if cls is Edmd else fitted.closed_loop_model_
     return plant, closed

@@ -65,6 +65,12 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--score", choices=["cl", "plant"], default="cl",
                      help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
     fit.add_argument("--arx-lags", type=int, default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
+    fit.add_argument("--max-radius", type=float, metavar="R",
+                     help="constrain the closed loop's eigenvalues to |lambda - C| <= R (C: --pole-center, "
+                          "default 0: the spectral radius), the plant left free; CL EDMD with the controller "
+                          "rows known, solved as an LMI with cvxpy + Clarabel")
+    fit.add_argument("--pole-center", type=float, default=0.0, metavar="C",
+                     help="centre of the eigenvalue disc of --max-radius (default %(default)s)")
     pred = p.add_argument_group("prediction of the test episodes")
     pred.add_argument("--offsets", nargs="+", choices=["theta", "alpha"], metavar="CHANNEL",
                       help="estimate a constant sensor offset of these channels on each test episode from its "
@@ -146,6 +152,12 @@ def _check_args(args) -> None:
         raise CliError("--offsets and --controller need a Koopman method (edmd, cl-edmd, cl-edmd-lstsq)")
     if args.controller and args.score != "cl":
         raise CliError("--controller predicts the closed loop: use --score cl")
+    if args.max_radius is not None:
+        if not args.max_radius > 0:
+            raise CliError(f"--max-radius must be positive, got {args.max_radius}")
+        if args.method != "cl-edmd" or args.alpha_sweep:
+            raise CliError("--max-radius constrains a single CL EDMD fit (--method cl-edmd, no --alpha-sweep)")
+        args.method = "cl-edmd-stable"
     if not (args.estimate_window > 0 and args.offset_bound > 0):
         raise CliError("--estimate-window and --offset-bound must be positive")
 
@@ -194,7 +206,9 @@ def _run(args) -> int:
             method=args.method, lifting=_lifting(args), train=train, test=test, controller=controller,
             alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
-            model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress)
+            model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
+            estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
+                               if args.max_radius is not None else None))
     except ValueError as exc:
         raise CliError(str(exc)) from None
     write_json(out / "report.json", result.report)

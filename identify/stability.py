@@ -1,0 +1,162 @@
+"""Stability-constrained CL EDMD: the closed loop's eigenvalues kept in a disc.
+
+The paper's stated future work. With the controller rows of the
+closed-loop Koopman matrix fixed to the known controller, its state matrix
+
+    A^f = [[A^c, -B^c C^p], [B^p C^c, A^p - B^p D^c C^p]]
+
+is affine in the plant (A^p, B^p), which stays free: the plant is unstable
+and must be allowed to be. Eigenvalues of ``A^f`` in the disc of centre
+``c`` and radius ``rho`` is ``M^T P M < rho^2 P`` for some ``P > 0``, with
+``M = A^f - c I``: bilinear in (P, A^f). As in the iterative LMI methods for
+Koopman approximation (Dahdah and Forbes, "Linear matrix inequality
+approaches to Koopman operator approximation", arXiv:2102.03613, 2021), the
+problem is solved for the plant with ``P`` fixed, which makes the constraint
+the linear matrix inequality
+
+    [[rho^2 P, M^T P], [P M, P]] >= 0
+
+and ``P`` is updated between solves. Here each ``P`` is the solution of a
+discrete Lyapunov equation of the current ``M`` (scaled into the disc if it
+is outside), so a P-step costs a Lyapunov solve rather than a second SDP.
+A ``P`` that certifies the unconstrained fit makes that fit feasible: when
+the constraint is inactive the solve returns the closed form.
+
+The least-squares objective is posed on the triangular factor of the
+snapshot Gram matrix (size of the lifted state), never on the snapshots.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from scipy import linalg
+
+from identify.cl_edmd import ClEdmdKnownRows
+from identify.regression import Snapshots, constrained_plant_solve
+from sim.lti import DiscreteStateSpace
+
+__all__ = ["ClEdmdStable"]
+
+# The LMI is imposed with this margin (relative to P's scale): solver tolerance, not slack.
+_MARGIN = 1e-7
+# A fit outside the disc is scaled to this fraction of the radius to seed P.
+_SEED_FRACTION = 0.995
+
+
+class ClEdmdStable(ClEdmdKnownRows):
+    """CL EDMD with the closed loop's eigenvalues in a disc (cvxpy + Clarabel).
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        The known controller.
+    lifting : Lifting or sequence of LiftingFunction, optional
+        Lifting of the plant states.
+    alpha : float
+        Tikhonov coefficient on ``||U^f||_F^2`` (closed-loop regularization).
+    measured : sequence of int, optional
+        Indices of the plant states fed back; all by default.
+    max_radius : float
+        Radius ``rho`` of the disc (the spectral radius bound when
+        ``center`` is 0).
+    center : float
+        Centre ``c`` of the disc on the real axis (a pole-region constraint).
+    n_iter : int
+        Lyapunov-matrix updates after the first solve (each one more SDP).
+    solver : str
+        A cvxpy solver for semidefinite cones.
+
+    Attributes
+    ----------
+    koopman_matrix_, plant_koopman_matrix_, closed_loop_model_, plant_model_
+        As for :class:`~identify.ClEdmd`.
+    unconstrained_radius_ : float
+        ``max |lambda - c|`` of the closed form's closed loop.
+    solver_status_ : str
+    objective_ : float
+        Regularized least-squares cost of the result.
+    """
+
+    def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
+                 measured: Sequence[int] | None = None, max_radius: float = 1.0, center: float = 0.0,
+                 n_iter: int = 2, solver: str = "CLARABEL") -> None:
+        super().__init__(controller, lifting, alpha, measured)
+        self.max_radius = max_radius
+        self.center = center
+        self.n_iter = n_iter
+        self.solver = solver
+
+    def _closed_loop_state(self, U_p: np.ndarray, S: np.ndarray) -> np.ndarray:
+        n_c = self.controller.n_states
+        n_theta = n_c + U_p.shape[0]
+        ctrl_rows = np.hstack([self.controller.A, -self.controller.B @ self.output_matrix_])
+        return np.vstack([ctrl_rows, (U_p @ S)[:, :n_theta]])
+
+    def _solve(self, snapshots: Snapshots, S: np.ndarray, alpha: float):
+        if not (np.isfinite(self.max_radius) and self.max_radius > 0 and np.isfinite(self.center)):
+            raise ValueError(f"the disc needs a positive radius and a finite centre, got "
+                             f"{self.max_radius!r}, {self.center!r}")
+        n_c = self.controller.n_states
+        U0 = constrained_plant_solve(snapshots, S, alpha, slice(n_c, None), "closed_loop")
+        shift = self.center * np.eye(n_c + U0.shape[0])
+        M0 = self._closed_loop_state(U0, S) - shift
+        self.unconstrained_radius_ = float(np.max(np.abs(np.linalg.eigvals(M0))))
+        best, best_cost = None, np.inf
+        M = M0
+        for _ in range(int(self.n_iter) + 1):
+            P = _lyapunov_certificate(M, self.max_radius)
+            U_p, cost = self._solve_fixed_p(snapshots, S, alpha, P, shift)
+            if cost < best_cost:
+                best, best_cost = U_p, cost
+            M = self._closed_loop_state(U_p, S) - shift
+        self.objective_ = best_cost
+        n_theta = n_c + best.shape[0]
+        ctrl = self.controller
+        U_c = np.hstack([ctrl.A, -ctrl.B @ self.output_matrix_, ctrl.B, np.zeros((n_c, self.n_feedforward_))])
+        assert U_c.shape[1] == S.shape[1] and n_theta <= S.shape[1]
+        return np.vstack([U_c, best @ S]), best
+
+    def _solve_fixed_p(self, snapshots: Snapshots, S: np.ndarray, alpha: float, P: np.ndarray, shift):
+        import cvxpy as cp
+
+        n_c = self.controller.n_states
+        R_psi = snapshots.R[:, :snapshots.n_regressors]
+        Y = snapshots.R[:, snapshots.n_regressors + n_c:]   # plant rows of the targets
+        n_pl, n_s = Y.shape[1], S.shape[0]
+        U_p = cp.Variable((n_pl, n_s))
+        rows = U_p @ S
+        residual = R_psi @ rows.T - Y
+        # Scaled by the snapshot count like the paper's SDP: same minimizer, better conditioning.
+        q = snapshots.q
+        cost = (cp.sum_squares(residual) + alpha * cp.sum_squares(rows)) / q
+        n_theta = n_c + n_pl
+        ctrl_rows = np.hstack([self.controller.A, -self.controller.B @ self.output_matrix_])
+        M = cp.vstack([cp.Constant(ctrl_rows), rows[:, :n_theta]]) - shift
+        PM = P @ M
+        rho2 = self.max_radius ** 2
+        lmi = cp.bmat([[rho2 * P, PM.T], [PM, P]])
+        scale = float(np.linalg.norm(P, 2))
+        constraints = [0.5 * (lmi + lmi.T) >> _MARGIN * scale * np.eye(2 * n_theta)]
+        problem = cp.Problem(cp.Minimize(cost), constraints)
+        try:
+            problem.solve(solver=str(self.solver).upper())
+        except cp.error.SolverError as exc:
+            raise ValueError(f"SDP solver {self.solver} failed: {exc}") from exc
+        self.solver_status_ = problem.status
+        if U_p.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
+            raise ValueError(f"SDP solver {self.solver} ended with status {problem.status!r}")
+        return np.asarray(U_p.value), float(problem.value)
+
+
+def _lyapunov_certificate(M: np.ndarray, radius: float) -> np.ndarray:
+    """``P > 0`` with ``M^T P M < radius^2 P`` for ``M`` scaled into the open disc if needed."""
+    rho = float(np.max(np.abs(np.linalg.eigvals(M))))
+    target = _SEED_FRACTION * radius
+    scaled = M * (target / rho) if rho > target else M
+    a = scaled / radius
+    # a^T P a - P + I = 0  <=>  (a^T) P (a^T)^T - P + I = 0: scipy's form with a^T.
+    P = linalg.solve_discrete_lyapunov(a.T, np.eye(M.shape[0]))
+    P = 0.5 * (P + P.T)
+    return P / np.linalg.norm(P, 2)
