@@ -32,8 +32,8 @@ _COMMON = ("-mmcu=atmega328p", f"-DF_CPU={F_CPU}L", "-DARDUINO=10807", "-DARDUIN
            "-Os", "-flto", "-ffunction-sections", "-fdata-sections", "-Wall",
            # Debian's core 1.8.7 with avr-gcc 5.4: WString.cpp needs it.
            "-DDECIMAL_DIG=__DECIMAL_DIG__")
-_CXX = ("-std=gnu++11", "-fno-exceptions", "-fno-threadsafe-statics", "-fpermissive")
-_TOOLS = ("avr-gcc", "avr-g++", "avr-size", "avr-objcopy", "avr-nm")
+_CXX = ("-std=gnu++11", "-fno-exceptions", "-fno-threadsafe-statics")
+_TOOLS = ("avr-gcc", "avr-g++", "avr-gcc-ar", "avr-size", "avr-objcopy", "avr-nm")
 _INSTALL = "apt-get install gcc-avr avr-libc arduino-core-avr (or tools/install_system_deps.sh)"
 
 
@@ -49,15 +49,15 @@ def avr_tools_missing() -> list[str]:
     return missing
 
 
-def _sources() -> list[Path]:
+def _sources(source_dir: Path = C_SOURCE_DIR) -> list[Path]:
     core = ARDUINO_AVR / "cores" / "arduino"
     return sorted([*core.glob("*.c"), *core.glob("*.cpp"), *core.glob("*.S"),
-                   ARDUINO_AVR / "libraries" / "SPI" / "src" / "SPI.cpp", *C_SOURCE_DIR.glob("*.c")])
+                   ARDUINO_AVR / "libraries" / "SPI" / "src" / "SPI.cpp", *Path(source_dir).glob("*.c")])
 
 
-def _includes() -> tuple[str, ...]:
+def _includes(source_dir: Path = C_SOURCE_DIR) -> tuple[str, ...]:
     return (f"-I{ARDUINO_AVR / 'cores' / 'arduino'}", f"-I{ARDUINO_AVR / 'variants' / 'standard'}",
-            f"-I{ARDUINO_AVR / 'libraries' / 'SPI' / 'src'}", f"-I{C_SOURCE_DIR}")
+            f"-I{ARDUINO_AVR / 'libraries' / 'SPI' / 'src'}", f"-I{source_dir}")
 
 
 def _run(cmd: list[str]) -> None:
@@ -67,7 +67,7 @@ def _run(cmd: list[str]) -> None:
 
 
 def build_firmware(out_dir: str | os.PathLike, *, sketch: str | os.PathLike = SKETCH,
-                   extra_flags: tuple[str, ...] = ()) -> Path:
+                   source_dir: str | os.PathLike = C_SOURCE_DIR, extra_flags: tuple[str, ...] = ()) -> Path:
     """Compile and link the sketch for the Uno; writes ``qube_bridge.elf`` and ``.hex``.
 
     Parameters
@@ -76,6 +76,8 @@ def build_firmware(out_dir: str | os.PathLike, *, sketch: str | os.PathLike = SK
         Directory for objects and images (created if missing).
     sketch : path
         The ``.ino`` file (default: the project's bridge sketch).
+    source_dir : path
+        The firmware core's C sources (default: this package's ``c/src``).
     extra_flags : tuple of str
         Added to every compile and the link.
 
@@ -96,9 +98,9 @@ def build_firmware(out_dir: str | os.PathLike, *, sketch: str | os.PathLike = SK
         raise AvrToolsMissing(f"cannot build the AVR firmware, missing: {', '.join(missing)}; {_INSTALL}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    flags = (*_COMMON, *_includes(), *extra_flags)
+    flags = (*_COMMON, *_includes(Path(source_dir)), *extra_flags)
     objects = []
-    for i, src in enumerate([*_sources(), Path(sketch)]):
+    for i, src in enumerate([*_sources(Path(source_dir)), Path(sketch)]):
         obj = out / f"{i:02d}-{src.name}.o"
         if src.suffix == ".c":
             cmd = ["avr-gcc", *flags, "-std=gnu11"]
@@ -110,8 +112,14 @@ def build_firmware(out_dir: str | os.PathLike, *, sketch: str | os.PathLike = SK
             cmd = ["avr-g++", *flags, *_CXX]
         _run([*cmd, "-c", str(src), "-o", str(obj)])
         objects.append(str(obj))
+    # The core goes in an archive, as the IDE does: only the objects the
+    # sketch needs are linked (a sketch may define its own UART interrupts).
+    core = out / "core.a"
+    core.unlink(missing_ok=True)
+    _run(["avr-gcc-ar", "rcs", str(core), *objects[:-1]])
     elf = out / "qube_bridge.elf"
-    _run(["avr-gcc", *flags, "-fuse-linker-plugin", "-Wl,--gc-sections", "-o", str(elf), *objects, "-lm"])
+    _run(["avr-gcc", *flags, "-fuse-linker-plugin", "-Wl,--gc-sections", "-o", str(elf), objects[-1], str(core),
+          "-lm"])
     _run(["avr-objcopy", "-O", "ihex", "-R", ".eeprom", str(elf), str(elf.with_suffix(".hex"))])
     return elf
 

@@ -41,7 +41,7 @@ def test_session_over_the_emulated_uart(avr_cache):
 def test_spi_bytes_take_eight_sck_periods(avr_cache):
     bridge = new_bridge(avr_cache)
     bridge.run_for(0.02)
-    full = [(fall, rise) for fall, rise, n in bridge.transactions if n == SPI_SIZE]
+    full = [(fall, rise) for fall, rise, n, _ in bridge.transactions if n == SPI_SIZE]
     assert full
     # 1 MHz SCK from 16 MHz: 16 cycles per bit, 128 per byte, 17 bytes per transaction.
     assert all(rise - fall >= SPI_SIZE * 128 for fall, rise in full)

@@ -79,6 +79,7 @@ _SIGNATURES = {
     "qh_run": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_uint64]),
     "qh_cycle": (ctypes.c_uint64, [ctypes.c_void_p]),
     "qh_busy": (ctypes.c_uint64, [ctypes.c_void_p]),
+    "qh_pc_cycles": (ctypes.POINTER(ctypes.c_uint64 * 16384), [ctypes.c_void_p]),
     "qh_peek": (ctypes.c_uint8, [ctypes.c_void_p, ctypes.c_uint16]),
     "qh_rx_lost": (ctypes.c_uint32, [ctypes.c_void_p]),
     "qh_rx_pending": (ctypes.c_uint32, [ctypes.c_void_p]),
@@ -136,6 +137,10 @@ class AvrChip:
     def busy_cycles(self) -> int:
         """Cycles spent running (not asleep) since reset."""
         return self._lib.qh_busy(self._h)
+
+    def pc_cycles(self) -> list[int]:
+        """Running cycles since reset by program word address (a flat profile)."""
+        return list(self._lib.qh_pc_cycles(self._h).contents)
 
     def run(self, until_cycle: int) -> int:
         """Run to ``until_cycle`` or the next chip-select edge: 0, 1 (fell), 2 (rose); -1 if the chip stopped."""
@@ -211,8 +216,8 @@ class AvrBridge:
                  harness: str | os.PathLike | None = None) -> None:
         self.chip = AvrChip(elf, harness)
         self.qube = qube if qube is not None else EmulatedQube()
-        # (cycle at CS fall, cycle at CS rise, bytes) of each transaction
-        self.transactions: list[tuple[int, int, int]] = []
+        # (cycle at CS fall, cycle at CS rise, bytes, busy cycles at CS fall) of each transaction
+        self.transactions: list[tuple[int, int, int, int]] = []
         self._last_fall: int | None = None
 
     @property
@@ -233,7 +238,7 @@ class AvrBridge:
                 self._on_select(chip.cycle)
             else:
                 sent = chip.spi_sent()
-                self.transactions.append((self._last_fall, chip.cycle, len(sent)))
+                self.transactions.append((self._last_fall, chip.cycle, len(sent), self._busy_at_fall))
                 if len(sent) == len(self._reply):
                     self.qube.apply(sent)
 
@@ -246,5 +251,6 @@ class AvrBridge:
             self.qube.set_period(round((now - self._last_fall) * 1e6 / F_CPU) * 1e-6)
             self.qube.advance()
         self._last_fall = now
+        self._busy_at_fall = self.chip.busy_cycles
         self._reply = self.qube.latch()
         self.chip.spi_reply(self._reply)

@@ -65,6 +65,7 @@ typedef struct {
     int cs_level, event;
     uint32_t cs_driven_low, cs_falls;
     uint64_t busy, sleeping;
+    uint64_t pc_cycles[16384]; /* running cycles by program word address */
 } qh_t;
 
 static void on_uart_out(struct avr_irq_t *irq, uint32_t value, void *param)
@@ -258,9 +259,11 @@ int qh_run(void *p, uint64_t until)
     while (avr->cycle < until) {
         avr_cycle_count_t c0 = avr->cycle;
         int running = avr->state == cpu_Running;
+        uint32_t pc = avr->pc;
         int state = avr_run(avr);
         if (running) {
             h->busy += avr->cycle - c0;
+            h->pc_cycles[(pc >> 1) & 16383u] += avr->cycle - c0;
         } else {
             h->sleeping += avr->cycle - c0;
         }
@@ -276,6 +279,7 @@ int qh_run(void *p, uint64_t until)
 
 uint64_t qh_cycle(void *p) { return ((qh_t *)p)->avr->cycle; }
 uint64_t qh_busy(void *p) { return ((qh_t *)p)->busy; }
+const uint64_t *qh_pc_cycles(void *p) { return ((qh_t *)p)->pc_cycles; }
 uint8_t qh_peek(void *p, uint16_t addr) { return ((qh_t *)p)->avr->data[addr]; }
 uint32_t qh_rx_lost(void *p) { return ((qh_t *)p)->rx_lost; }
 uint32_t qh_rx_pending(void *p) { return ((qh_t *)p)->rx_len; }

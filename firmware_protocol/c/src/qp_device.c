@@ -58,6 +58,7 @@ static void start_session(qd_device *dev)
     dev->command_seq = 0;
     dev->command_age = QD_AGE_NONE;
     dev->config = DEFAULT_CONFIG;
+    dev->period_us = 1000000UL / DEFAULT_CONFIG.rate_hz;
     dev->tick = 0;
     dev->have_last_tick = 0;
     /* Faults already present are news to the new host. */
@@ -78,6 +79,7 @@ void qd_init(qd_device *dev, uint32_t extra_capabilities)
     qp_decoder_init(&dev->decoder);
     dev->capabilities = QD_CAPABILITIES | extra_capabilities;
     dev->config = DEFAULT_CONFIG;
+    dev->period_us = 1000000UL / DEFAULT_CONFIG.rate_hz;
     dev->command_age = QD_AGE_NONE;
     /* A leading delimiter ends whatever partial frame the host holds. */
     dev->tx[0] = 0;
@@ -116,6 +118,7 @@ static void on_config(qd_device *dev, const qp_frame *frame, uint32_t now_us)
     ack.result = (uint8_t)qp_config_problem(&cfg);
     if (ack.result == QP_CONFIG_OK) {
         dev->config = cfg;
+        dev->period_us = 1000000UL / cfg.rate_hz; /* divided once here, not every tick */
     }
     ack.rate_hz = dev->config.rate_hz;
     ack.watchdog_ticks = dev->config.watchdog_ticks;
@@ -175,18 +178,24 @@ void qd_receive(qd_device *dev, const uint8_t *data, size_t len, uint32_t now_us
 
 uint32_t qd_period_us(const qd_device *dev)
 {
-    return 1000000UL / dev->config.rate_hz;
+    return dev->period_us;
 }
 
+/* Periods since the previous tick, to the nearest (the glue stamps ticks
+ * with their period's start, so this is exact on the bridge): every period
+ * beyond the first was lost, and the tick counter skips it, so telemetry
+ * counts elapsed periods and the host sees the gap. */
 static void check_timing(qd_device *dev, uint32_t now_us)
 {
     uint32_t period = qd_period_us(dev);
     if (dev->have_last_tick) {
         uint32_t elapsed = now_us - dev->last_tick_us; /* wraps correctly */
         if (elapsed >= period + period / 2u) {
+            uint32_t lost = (elapsed + period / 2u) / period - 1u;
             dev->tick_status |= QP_ST_TICK_OVERRUN;
+            dev->tick += lost;
             if (dev->connected) {
-                send_fault(dev, QP_FAULT_TICK_OVERRUN, (elapsed + period / 2u) / period - 1u, now_us);
+                send_fault(dev, QP_FAULT_TICK_OVERRUN, lost, now_us);
             }
         }
     }

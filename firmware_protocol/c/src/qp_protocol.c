@@ -1,6 +1,10 @@
 /* QUBE bridge protocol, version 1: the C codec (see qp_protocol.h). */
 #include "qp_protocol.h"
 
+#ifdef __AVR__
+#include <util/crc16.h>
+#endif
+
 #include <string.h>
 
 /* Written for 8-bit targets too: int may be 16 bits, so every shift that can
@@ -33,6 +37,13 @@ static uint32_t get_u32(const uint8_t *p)
 uint16_t qp_crc16(uint16_t crc, const uint8_t *data, size_t len)
 {
     size_t i;
+#ifdef __AVR__
+    /* avr-libc's hand-written update for polynomial 0x1021 (MSB first, the
+     * same CRC as below): about a fifth of the cycles of the C version. */
+    for (i = 0; i < len; i++) {
+        crc = _crc_xmodem_update(crc, data[i]);
+    }
+#else
     /* Table-free byte update for polynomial 0x1021: no 512-byte table to
      * keep in an AVR's RAM, and still a few instructions per byte. */
     for (i = 0; i < len; i++) {
@@ -40,6 +51,7 @@ uint16_t qp_crc16(uint16_t crc, const uint8_t *data, size_t len)
         x = (uint16_t)(x ^ (x >> 4));
         crc = (uint16_t)((uint16_t)(crc << 8) ^ (uint16_t)(x << 12) ^ (uint16_t)(x << 5) ^ x);
     }
+#endif
     return crc;
 }
 
