@@ -4,8 +4,9 @@ Runs the sketch and core of a reference commit (default: 89b7e0d, the
 HardwareSerial sketch polling micros()) and the current ones on simavr in
 simulated time, with a COMMAND every 2 ms as the host loop sends them, and
 prints ticks per simulated second, busy cycles per tick (cycles not spent in
-sleep; the reference never sleeps, so its figure is the whole period and its
-cost shows as the period it really achieves) and a flat profile: running
+sleep, the mean and the worst mean of 10 consecutive ticks; the reference
+never sleeps, so its figure is the whole period and its cost shows as the
+period it really achieves) and a flat profile: running
 cycles per tick by function (self time; ISRs are named by vector).
 
 Target: at most 60 % of the 32,000-cycle tick (19,200) with a command every tick.
@@ -75,8 +76,7 @@ def measure(elf: Path, seconds: float) -> dict:
         if after != before:
             name = names[max(0, bisect.bisect_right(addrs, word) - 1)]
             parts[name] = parts.get(name, 0) + after - before
-    busy_at = [t[3] for t in bridge.transactions[n0:]]
-    worst = max(b - a for a, b in zip(busy_at, busy_at[1:]))
+    _, worst = bridge.busy_per_tick(n0)
     return dict(ticks_per_s=ticks / ((chip.cycle - c0) / F_CPU), busy=(chip.busy_cycles - busy0) / ticks, worst=worst,
                 parts={k: v / ticks for k, v in parts.items()}, frames=len(frames), rx_lost=chip.rx_lost,
                 sizes=firmware_sizes(elf), stack=0x8FF - chip.stack_low + 1)
@@ -93,7 +93,7 @@ def main() -> None:
     for label, r in results.items():
         s = r["sizes"]
         print(f"\n{label}: {r['ticks_per_s']:.1f} ticks/s, busy {r['busy']:.0f} cycles/tick "
-              f"({100 * r['busy'] / BUDGET:.1f} % of {BUDGET}), worst tick {r['worst']}; flash {s.flash} B, static RAM {s.static_ram} B, "
+              f"({100 * r['busy'] / BUDGET:.1f} % of {BUDGET}), worst 10-tick mean {r['worst']:.0f}; flash {s.flash} B, static RAM {s.static_ram} B, "
               f"stack {r['stack']} B; UART bytes lost {r['rx_lost']}")
         for name, cycles in sorted(r["parts"].items(), key=lambda kv: -kv[1])[:12]:
             print(f"  {cycles:8.0f}  {name}")

@@ -68,8 +68,11 @@ class Host:
         self.read()
 
     def command_every_tick(self, seconds: float, millivolts: int = 200) -> None:
-        """One COMMAND per 2 ms of simulated time, as the host loop sends them."""
-        for _ in range(round(seconds / 0.002)):
+        """One COMMAND per 2 ms of simulated time, sent 1 ms after a tick as a host loop answers telemetry."""
+        bridge = self.bridge
+        start = bridge.transactions[-1][0] + 16_000 if bridge.transactions else bridge.chip.cycle
+        bridge.run_until(max(start, bridge.chip.cycle))
+        for k in range(1, round(seconds / 0.002) + 1):
             self.send(Command(millivolts=millivolts, flags=1))
-            self.bridge.run_for(0.002)
+            bridge.run_until(start + k * 32_000)
             self.read()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from daq.backends.serial import DEFAULT_BAUD
-from firmware_protocol import HelloReply, Telemetry
+from firmware_protocol import Command, Fault, FaultCode, HelloReply, Status, Telemetry
 from firmware_protocol.avr import F_CPU, firmware_sizes
 from firmware_protocol.qube_spi import SPI_SIZE
 from tests.avr_helpers import Host, avr_cache, new_bridge  # noqa: F401 (fixture)
@@ -54,3 +54,71 @@ def test_stack_leaves_half_a_kilobyte(avr_cache):
     host.command_every_tick(0.1)
     free = bridge.chip.stack_low - bridge.chip.paint_start
     assert free >= 512, f"only {free} B of RAM never reached by the stack"
+
+
+def _telemetry(host):
+    return [f for f in host.frames if isinstance(f, Telemetry)]
+
+
+def test_keeps_500_hz_with_a_command_every_tick(avr_cache):
+    bridge = new_bridge(avr_cache)
+    host = Host(bridge)
+    host.connect()
+    first = len(bridge.transactions)
+    start = bridge.chip.cycle
+    host.command_every_tick(0.5)
+    ticks = len(bridge.transactions) - first
+    assert ticks / ((bridge.chip.cycle - start) / F_CPU) == pytest.approx(500, abs=2)
+    tm = _telemetry(host)
+    assert all(b.tick - a.tick == 1 for a, b in zip(tm, tm[1:]))
+    assert not [f for f in host.frames if isinstance(f, Fault)]
+    assert sum(t.command_age == 0 for t in tm[5:]) >= len(tm[5:]) - 1  # each tick applies a fresh command
+    mean, worst = bridge.busy_per_tick(first)
+    # Measured 23,100 (72 %) mean, 23,900 worst 10-tick mean; the reference sketch needed ~35,700
+    # (448 ticks/s). The target, 60 % (19,200), is not reached yet: this guards the gain.
+    assert worst <= 0.78 * F_CPU / 500, f"{worst:.0f} cycles per tick"
+
+
+def test_every_lost_period_is_reported(avr_cache):
+    bridge = new_bridge(avr_cache)
+    host = Host(bridge)
+    host.connect()
+    host.command_every_tick(0.02)
+    # The QUBE holds the bus: one SPI byte takes three and a half periods.
+    bridge.chip.spi_stall(int(3.5 * F_CPU / 500))
+    host.command_every_tick(0.05)
+    tm = _telemetry(host)
+    steps = [b.tick - a.tick for a, b in zip(tm, tm[1:])]
+    overruns = [f for f in host.frames if isinstance(f, Fault) and f.code == FaultCode.TICK_OVERRUN]
+    lost = sum(s - 1 for s in steps)
+    assert lost >= 3 and sorted(set(steps)) == [1, 1 + lost]  # one gap, every period in it counted
+    assert [f.value for f in overruns] == [lost]
+    flagged = [t for t in tm if t.status & Status.TICK_OVERRUN]
+    assert len(flagged) == 1 and flagged[0].tick == overruns[0].tick
+    # The counter follows the crystal: elapsed periods = ticks in telemetry + lost.
+    span_s = (tm[-1].tick - tm[0].tick) * 0.002
+    assert span_s == pytest.approx((bridge.transactions[-1][0] - bridge.transactions[-len(tm)][0]) / F_CPU,
+                                   abs=5e-4)  # CS falls within a quarter period of its period's start
+
+
+def test_a_burst_of_eight_commands_loses_no_byte(avr_cache):
+    bridge = new_bridge(avr_cache)
+    host = Host(bridge)
+    host.connect()
+    host.send(*[Command(millivolts=100 * k, flags=1) for k in range(1, 9)])  # 160 bytes back to back
+    # 3.2 ms on the wire; decoding keeps pace with the wire between ticks (the
+    # CPU is ~90 % busy meanwhile), so the last command is applied ~3 ticks later.
+    bridge.run_for(0.012)
+    host.read()
+    assert bridge.chip.rx_lost == 0
+    assert not [f for f in host.frames if isinstance(f, Fault)]
+    last = _telemetry(host)[-1]
+    assert last.last_command_seq == host.seq and last.applied_millivolts == 800
+
+
+def test_chip_select_is_high_from_reset(avr_cache):
+    bridge = new_bridge(avr_cache)
+    bridge.run_for(0.011)
+    sizes = [n for _, _, n, _ in bridge.transactions]
+    assert len(sizes) == 5 and set(sizes) == {SPI_SIZE}  # no empty pulse before the first tick
+    assert bridge.chip.cs_driven_low == len(sizes)

@@ -246,6 +246,20 @@ class AvrBridge:
         """Run for ``seconds`` of simulated time."""
         self.run_until(self.chip.cycle + round(seconds * F_CPU))
 
+    def busy_per_tick(self, first: int = 0, window: int = 10) -> tuple[float, float]:
+        """Running cycles per tick from transaction ``first`` on: the mean, and the worst mean of ``window`` ticks.
+
+        Counted between chip-select falls. A single period is not a fair
+        unit: a command whose last byte lands just across a tick boundary is
+        decoded in the next period, which then holds two decodes and its
+        neighbour none; the mean over a few ticks is what the chip must keep.
+        """
+        busy = [t[3] for t in self.transactions[first:]]
+        if len(busy) <= window:
+            raise ValueError(f"need more than {window} transactions, have {len(busy)}")
+        spans = [(busy[i + window] - busy[i]) / window for i in range(len(busy) - window)]
+        return (busy[-1] - busy[0]) / (len(busy) - 1), max(spans)
+
     def _on_select(self, now: int) -> None:
         if self._last_fall is not None:
             self.qube.set_period(round((now - self._last_fall) * 1e6 / F_CPU) * 1e-6)

@@ -23,9 +23,10 @@
  * UART: 500000 baud exactly (UBRR0 = 3 with U2X, 16 MHz); 460800 would be
  * 8.5 % off. The receive interrupt fills a 128-byte ring (a burst of eight
  * commands is about 160 bytes, decoded faster than they arrive); the
- * transmit interrupt feeds the UART straight from the core's output queue,
- * with no copy through HardwareSerial. The core's queue is touched by the
- * main loop only while the transmit interrupt is masked.
+ * transmit interrupt feeds the UART from its own 128-byte ring, refilled
+ * from the core's output queue by the main loop (no HardwareSerial; only
+ * the main loop touches the core). The UART is topped up after every tick
+ * and every decoded chunk, and whenever the main loop wakes.
  *
  * Chip select (pin 10, PB2) is driven high before it becomes an output, so
  * the QUBE sees no empty transaction at power-up.
@@ -41,7 +42,7 @@
 static qd_device dev;
 static volatile uint8_t rx_ring[RX_RING];
 static volatile uint8_t rx_head, rx_tail;
-static volatile uint8_t rx_frames; /* delimiters received and not yet decoded */
+static volatile uint8_t work; /* set by the interrupts when the main loop has something to do */
 static volatile uint8_t periods_due;
 static volatile uint32_t period_start_us;
 static uint32_t period_us;
@@ -54,23 +55,27 @@ ISR(USART_RX_vect)
     if (next != rx_tail) { /* a full ring drops the byte: the frame's CRC then fails and is reported */
         rx_ring[rx_head] = byte;
         rx_head = next;
-        if (byte == 0) {
-            rx_frames++;
+        if (byte == 0 || (uint8_t)(next - rx_tail) >= RX_RING / 2u) {
+            work = 1; /* a frame is complete, or the ring is half full */
         }
     }
 }
 
-/* qd_take_output for one byte, written out: a call from an interrupt would
- * save every call-clobbered register, for each of the 46 bytes of a tick. */
+/* The transmit interrupt's own ring with 8-bit indices: the cheapest
+ * interrupt for each of the 46 bytes of a tick, and the core is touched by
+ * the main loop only (no masking: simavr, like a careless port, can lose a
+ * transmit interrupt that was pending while masked). */
+#define TX_RING 128u /* power of two */
+static volatile uint8_t tx_ring[TX_RING];
+static volatile uint8_t tx_head, tx_tail;
+
 ISR(USART_UDRE_vect)
 {
-    uint16_t len = dev.tx_len;
-    if (len) {
-        uint16_t head = dev.tx_head;
-        UDR0 = dev.tx[head];
-        dev.tx_head = (uint16_t)((head + 1u) % QD_TX_CAPACITY);
-        dev.tx_len = (uint16_t)(len - 1u);
-    } else {
+    uint8_t tail = tx_tail;
+    UDR0 = tx_ring[tail];
+    tail = (uint8_t)((tail + 1u) & (TX_RING - 1u));
+    tx_tail = tail;
+    if (tail == tx_head) {
         UCSR0B &= (uint8_t)~_BV(UDRIE0);
     }
 }
@@ -81,6 +86,7 @@ ISR(TIMER1_COMPA_vect)
     if (periods_due < 255u) {
         periods_due++;
     }
+    work = 1;
 }
 
 static uint32_t now_us(void)
@@ -133,9 +139,25 @@ static void spi_transfer(const uint8_t *tx, uint8_t *rx)
     PORTB |= _BV(CS_BIT);
 }
 
+/* Refill the transmit ring from the core's queue and start the interrupt. */
 static void start_tx(void)
 {
-    if (qd_pending_output(&dev)) {
+    uint8_t head = tx_head;
+    uint8_t room = (uint8_t)((tx_tail - head - 1u) & (TX_RING - 1u));
+    uint8_t chunk[48];
+    while (room) {
+        uint8_t i, n = (uint8_t)qd_take_output(&dev, chunk, room < sizeof chunk ? room : sizeof chunk);
+        if (n == 0) {
+            break;
+        }
+        for (i = 0; i < n; i++) {
+            tx_ring[head] = chunk[i];
+            head = (uint8_t)((head + 1u) & (TX_RING - 1u));
+        }
+        room = (uint8_t)(room - n);
+    }
+    if (head != tx_head) {
+        tx_head = head;
         UCSR0B |= _BV(UDRIE0);
     }
 }
@@ -163,29 +185,29 @@ void setup()
 }
 
 /* Bytes are decoded a whole frame at a time (or when the ring is half
- * full): waking up for every byte would cost more than decoding it. */
-static uint8_t rx_ready(void)
-{
-    return rx_frames || (uint8_t)((rx_head - rx_tail) & (RX_RING - 1u)) >= RX_RING / 2u;
-}
-
+ * full): waking up the main loop for every byte would cost more than
+ * decoding it. A tick that falls due stops the decoding. */
 static void receive_pending(void)
 {
-    uint8_t buf[32];
-    while (rx_ready() && !periods_due) {
+    uint8_t buf[16];
+    for (;;) {
         uint8_t n = 0;
+        cli();
+        if (rx_tail == rx_head) {
+            sei();
+            return;
+        }
+        sei();
         while (n < sizeof buf && rx_tail != rx_head) {
             buf[n++] = rx_ring[rx_tail];
             rx_tail = (uint8_t)((rx_tail + 1u) & (RX_RING - 1u));
         }
-        UCSR0B &= (uint8_t)~_BV(UDRIE0);
         qd_receive(&dev, buf, n, now_us());
         start_tx();
-        cli();
-        if (rx_tail == rx_head) {
-            rx_frames = 0; /* every delimiter received has been decoded */
+        if (periods_due) {
+            work = 1; /* come back for the rest after the tick */
+            return;
         }
-        sei();
     }
 }
 
@@ -199,7 +221,6 @@ static void tick(void)
     periods_due = 0;
     start = period_start_us;
     sei();
-    UCSR0B &= (uint8_t)~_BV(UDRIE0);
     qd_tick_begin(&dev, start, tx);
     spi_transfer(tx, rx);
     qd_tick_end(&dev, rx);
@@ -210,18 +231,26 @@ static void tick(void)
     }
 }
 
+/* Whatever woke the CPU (every UART byte does) goes back to sleep at once
+ * unless an interrupt flagged work: a tick due or a frame complete. */
 void loop()
 {
-    if (periods_due) {
-        tick();
+    sleep_enable();
+    for (;;) {
+        if (qd_pending_output(&dev)) {
+            start_tx(); /* the core's queue holds more than the ring took */
+        }
+        cli();
+        if (!work) {
+            sei(); /* the instruction after sei runs before any interrupt: no lost wake-up */
+            sleep_cpu();
+            continue;
+        }
+        work = 0;
+        sei();
+        if (periods_due) {
+            tick();
+        }
+        receive_pending();
     }
-    receive_pending();
-    cli();
-    if (!periods_due && !rx_ready()) {
-        sleep_enable();
-        sei(); /* the instruction after sei runs before any interrupt: no lost wake-up */
-        sleep_cpu();
-        sleep_disable();
-    }
-    sei();
 }
