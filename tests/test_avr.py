@@ -8,7 +8,8 @@ from daq.backends.serial import DEFAULT_BAUD
 from firmware_protocol import Command, Fault, FaultCode, HelloReply, Status, Telemetry
 from firmware_protocol.avr import F_CPU, firmware_sizes
 from firmware_protocol.qube_spi import SPI_SIZE
-from tests.avr_helpers import Host, avr_cache, new_bridge  # noqa: F401 (fixture)
+from avr_helpers import Host, avr_cache, new_bridge  # noqa: F401 (fixture)
+from bridge_helpers import cache_home, env, start_emulator, stop_process  # noqa: F401 (fixtures)
 
 
 def test_fits_the_uno(avr_cache):
@@ -122,3 +123,25 @@ def test_chip_select_is_high_from_reset(avr_cache):
     sizes = [n for _, _, n, _ in bridge.transactions]
     assert len(sizes) == 5 and set(sizes) == {SPI_SIZE}  # no empty pulse before the first tick
     assert bridge.chip.cs_driven_low == len(sizes)
+
+
+@pytest.mark.slow
+def test_qube_run_against_the_emulated_uno_in_real_time(avr_cache, env, tmp_path, capsys):
+    from daq.cli.run import main
+    from daq.log import read_episode
+
+    proc, path = start_emulator(env, "--target", "avr", "--seed", "5")
+    try:
+        status = main(["--backend", "serial", "--port", path, "--episodes", "1", "--duration", "5",
+                       "--seed", "7", "--out", str(tmp_path), "-q"])
+    finally:
+        _, emulator_err = stop_process(proc)
+    out = capsys.readouterr().out
+    assert status == 0, out + emulator_err
+    assert "1 complete, 0 aborted" in out
+    (log,) = tmp_path.glob("*.mcap")
+    episode = read_episode(log)
+    assert episode.metadata.status == "complete" and len(episode) == 2500
+    link = episode.metadata.backend_stats
+    assert link["ticks_missed"] == 0 and link["frames_lost"] == 0, link
+    assert "CPU busy" in emulator_err and "ticks" in emulator_err

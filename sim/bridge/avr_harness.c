@@ -17,6 +17,7 @@
  *     allows and depends on nothing but its inputs;
  *   - cycles are split into running and sleeping, for busy-time accounting.
  */
+#include <stdarg.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -187,6 +188,14 @@ static void on_ddr(struct avr_irq_t *irq, uint32_t value, void *param)
     track_cs(h);
 }
 
+static void no_log(struct avr_t *avr, const int level, const char *format, va_list ap)
+{
+    (void)avr;
+    (void)level;
+    (void)format;
+    (void)ap;
+}
+
 static void no_sleep(avr_t *avr, avr_cycle_count_t how_long)
 {
     (void)avr;
@@ -201,6 +210,8 @@ void *qh_new(const char *elf_path, uint32_t frequency)
     avr_t *avr;
     avr_io_t *io;
 
+    /* Quiet: stdout may be a protocol channel (qube-emulate prints the device path on it). */
+    avr_global_logger_set(no_log);
     memset(&fw, 0, sizeof fw);
     if (elf_read_firmware(elf_path, &fw) != 0) {
         return NULL;
@@ -214,7 +225,6 @@ void *qh_new(const char *elf_path, uint32_t frequency)
     avr_load_firmware(avr, &fw);
     avr->frequency = frequency;
     avr->sleep = no_sleep;
-    avr->log = 0;
     avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT), on_uart_out, h);
     for (io = avr->io_port; io; io = io->next) {
