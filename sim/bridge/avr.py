@@ -42,6 +42,8 @@ _INCLUDE = Path("/usr/include/simavr/sim_avr.h")
 def harness_missing() -> list[str]:
     """What is missing to build the harness (empty when it can be built)."""
     missing = [] if find_c_compiler() else ["a C compiler"]
+    if not HARNESS_SOURCE.is_file():
+        missing.append(f"{HARNESS_SOURCE.name} (a source checkout: the wheel does not ship it)")
     if not _INCLUDE.is_file():
         missing.append("simavr headers (libsimavr-dev)")
     return missing
