@@ -18,13 +18,13 @@ import os
 import select
 import threading
 import time
-import tty
 
 import numpy as np
 
 from firmware_protocol import Hello, StreamDecoder
 from firmware_protocol.avr import F_CPU, cached_firmware
 from sim.bridge.avr import AvrBridge
+from sim.bridge.emulator import close_fds, open_raw_pty
 
 __all__ = ["AvrPtyBridge"]
 
@@ -65,12 +65,7 @@ class AvrPtyBridge:
         """Build the firmware and harness if needed, reset the chip, create the pty; returns its path."""
         self.bridge = AvrBridge(cached_firmware())
         self.bridge.qube.place((0.0, math.pi, 0.0, 0.0))
-        master, slave = os.openpty()
-        tty.setraw(master)
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self.path = os.ttyname(slave)
+        self._master, self._slave, self.path = open_raw_pty()
         return self.path
 
     def request_stop(self) -> None:
@@ -120,12 +115,7 @@ class AvrPtyBridge:
         """Close the pseudo-terminal and free the chip."""
         fds = (self._slave, self._master)
         self._master = self._slave = -1
-        for fd in fds:
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+        close_fds(fds)  # our slave end first: the host sees the device go only once we are done
         if self.bridge is not None and self._final is None:
             self._final = self.stats()
             self.bridge.chip.close()
