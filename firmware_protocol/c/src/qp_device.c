@@ -13,13 +13,14 @@ size_t qd_device_size(void)
     return sizeof(qd_device);
 }
 
+/* Appends in at most two copies (the queue wraps once at most). */
 static void push_bytes(qd_device *dev, const uint8_t *data, size_t len)
 {
-    size_t i;
-    for (i = 0; i < len; i++) {
-        dev->tx[(dev->tx_head + dev->tx_len) % QD_TX_CAPACITY] = data[i];
-        dev->tx_len++;
-    }
+    size_t tail = (dev->tx_head + dev->tx_len) % QD_TX_CAPACITY;
+    size_t first = QD_TX_CAPACITY - tail < len ? QD_TX_CAPACITY - tail : len;
+    memcpy(dev->tx + tail, data, first);
+    memcpy(dev->tx, data + first, len - first);
+    dev->tx_len = (uint16_t)(dev->tx_len + len);
 }
 
 /* Queue one whole frame or none: a half-sent frame would cost the host the
@@ -347,12 +348,12 @@ void qd_tick_end(qd_device *dev, const uint8_t spi_rx[QP_SPI_SIZE])
 
 size_t qd_take_output(qd_device *dev, uint8_t *out, size_t cap)
 {
-    size_t n = 0;
-    while (n < cap && dev->tx_len > 0) {
-        out[n++] = dev->tx[dev->tx_head];
-        dev->tx_head = (uint16_t)((dev->tx_head + 1u) % QD_TX_CAPACITY);
-        dev->tx_len--;
-    }
+    size_t n = cap < dev->tx_len ? cap : dev->tx_len;
+    size_t first = QD_TX_CAPACITY - dev->tx_head < n ? QD_TX_CAPACITY - dev->tx_head : n;
+    memcpy(out, dev->tx + dev->tx_head, first);
+    memcpy(out + first, dev->tx, n - first);
+    dev->tx_head = (uint16_t)((dev->tx_head + n) % QD_TX_CAPACITY);
+    dev->tx_len = (uint16_t)(dev->tx_len - n);
     return n;
 }
 

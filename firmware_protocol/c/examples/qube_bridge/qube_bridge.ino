@@ -25,8 +25,8 @@
  * commands is about 160 bytes, decoded faster than they arrive); the
  * transmit interrupt feeds the UART from its own 128-byte ring, refilled
  * from the core's output queue by the main loop (no HardwareSerial; only
- * the main loop touches the core). The UART is topped up after every tick
- * and every decoded chunk, and whenever the main loop wakes.
+ * the main loop touches the core). The ring is topped up after every tick
+ * and every decoded chunk.
  *
  * Chip select (pin 10, PB2) is driven high before it becomes an output, so
  * the QUBE sees no empty transaction at power-up.
@@ -51,11 +51,13 @@ static uint8_t us_shift_left; /* Timer1 count to microseconds: prescaler 8 -> /2
 ISR(USART_RX_vect)
 {
     uint8_t byte = UDR0;
-    uint8_t next = (uint8_t)((rx_head + 1u) & (RX_RING - 1u));
-    if (next != rx_tail) { /* a full ring drops the byte: the frame's CRC then fails and is reported */
-        rx_ring[rx_head] = byte;
+    uint8_t head = rx_head;
+    uint8_t next = (uint8_t)((head + 1u) & (RX_RING - 1u));
+    uint8_t tail = rx_tail;
+    if (next != tail) { /* a full ring drops the byte: the frame's CRC then fails and is reported */
+        rx_ring[head] = byte;
         rx_head = next;
-        if (byte == 0 || (uint8_t)(next - rx_tail) >= RX_RING / 2u) {
+        if (byte == 0 || (uint8_t)((next - tail) & (RX_RING - 1u)) >= RX_RING / 2u) {
             work = 1; /* a frame is complete, or the ring is half full */
         }
     }
@@ -64,7 +66,9 @@ ISR(USART_RX_vect)
 /* The transmit interrupt's own ring with 8-bit indices: the cheapest
  * interrupt for each of the 46 bytes of a tick, and the core is touched by
  * the main loop only (no masking: simavr, like a careless port, can lose a
- * transmit interrupt that was pending while masked). */
+ * transmit interrupt that was pending while masked). What the ring cannot
+ * take stays in the core's queue until the next tick or decoded chunk
+ * (a tick adds 46 bytes; the ring takes up to 127). */
 #define TX_RING 128u /* power of two */
 static volatile uint8_t tx_ring[TX_RING];
 static volatile uint8_t tx_head, tx_tail;
@@ -139,21 +143,20 @@ static void spi_transfer(const uint8_t *tx, uint8_t *rx)
     PORTB |= _BV(CS_BIT);
 }
 
-/* Refill the transmit ring from the core's queue and start the interrupt. */
+/* Refill the transmit ring from the core's queue (straight into the ring,
+ * at most two copies) and start the interrupt. The interrupt reads only
+ * between tx_tail and tx_head, so the free part may be written meanwhile. */
 static void start_tx(void)
 {
     uint8_t head = tx_head;
     uint8_t room = (uint8_t)((tx_tail - head - 1u) & (TX_RING - 1u));
-    uint8_t chunk[48];
     while (room) {
-        uint8_t i, n = (uint8_t)qd_take_output(&dev, chunk, room < sizeof chunk ? room : sizeof chunk);
+        uint8_t run = (uint8_t)(TX_RING - head) < room ? (uint8_t)(TX_RING - head) : room;
+        uint8_t n = (uint8_t)qd_take_output(&dev, (uint8_t *)&tx_ring[head], run);
         if (n == 0) {
             break;
         }
-        for (i = 0; i < n; i++) {
-            tx_ring[head] = chunk[i];
-            head = (uint8_t)((head + 1u) & (TX_RING - 1u));
-        }
+        head = (uint8_t)((head + n) & (TX_RING - 1u));
         room = (uint8_t)(room - n);
     }
     if (head != tx_head) {
@@ -237,9 +240,6 @@ void loop()
 {
     sleep_enable();
     for (;;) {
-        if (qd_pending_output(&dev)) {
-            start_tx(); /* the core's queue holds more than the ring took */
-        }
         cli();
         if (!work) {
             sei(); /* the instruction after sei runs before any interrupt: no lost wake-up */
