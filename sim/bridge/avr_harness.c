@@ -23,6 +23,7 @@
 #include <string.h>
 
 #include <simavr/avr_ioport.h>
+#include <simavr/avr_spi.h>
 #include <simavr/avr_uart.h>
 #include <simavr/sim_avr.h>
 #include <simavr/sim_elf.h>
@@ -47,6 +48,7 @@ typedef struct {
     avr_t *avr;
     avr_irq_t *uart_in;
     avr_uart_t *uart;
+    avr_spi_t *spi;
     /* UART host -> chip */
     uint8_t rx[RING];
     uint32_t rx_head, rx_len;
@@ -124,8 +126,8 @@ static avr_cycle_count_t spi_done(struct avr_t *avr, avr_cycle_count_t when, voi
     (void)when;
     avr->data[SPDR] = h->spi_index < SPI_MAX ? h->spi_reply[h->spi_index] : 0;
     h->spi_index++;
-    avr->data[SPSR] |= 0x80; /* SPIF; the bridge polls, SPIE is not modelled */
     h->spi_in_flight = 0;
+    avr_raise_interrupt(avr, &h->spi->spi); /* sets SPIF; runs the interrupt if SPIE */
     return 0;
 }
 
@@ -230,9 +232,11 @@ void *qh_new(const char *elf_path, uint32_t frequency)
     for (io = avr->io_port; io; io = io->next) {
         if (strcmp(io->kind, "uart") == 0 && ((avr_uart_t *)io)->name == '0') {
             h->uart = (avr_uart_t *)io;
+        } else if (strcmp(io->kind, "spi") == 0) {
+            h->spi = (avr_spi_t *)io;
         }
     }
-    if (!h->uart || !avr->io[IO(UDR0)].r.c) {
+    if (!h->uart || !h->spi || !avr->io[IO(UDR0)].r.c) {
         free(h);
         return NULL;
     }

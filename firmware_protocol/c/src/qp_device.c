@@ -166,7 +166,12 @@ void qd_receive(qd_device *dev, const uint8_t *data, size_t len, uint32_t now_us
     qp_frame frame;
     size_t i;
     for (i = 0; i < len; i++) {
-        uint32_t bad_versions = dev->decoder.counters.bad_version;
+        uint32_t bad_versions;
+        if (data[i] != 0) { /* only a delimiter ends a frame */
+            (void)qp_decoder_push(&dev->decoder, data[i], &frame);
+            continue;
+        }
+        bad_versions = dev->decoder.counters.bad_version;
         if (qp_decoder_push(&dev->decoder, data[i], &frame)) {
             on_frame(dev, &frame, now_us);
         } else if (dev->decoder.counters.bad_version != bad_versions) {

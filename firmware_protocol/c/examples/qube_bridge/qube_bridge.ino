@@ -17,8 +17,9 @@
  * counts them; the main loop runs one tick per batch of elapsed periods,
  * stamped with the period's start, so the core sees exactly how many
  * periods went by and reports every lost one (TICK_OVERRUN, and the
- * telemetry's tick counter advances by elapsed periods). Between ticks the
- * CPU sleeps (idle mode), which also makes its busy time measurable.
+ * telemetry's tick counter advances by elapsed periods). Between ticks and
+ * during the SPI transaction (run by its interrupt) the CPU sleeps (idle
+ * mode), which also makes its busy time measurable.
  *
  * UART: 500000 baud exactly (UBRR0 = 3 with U2X, 16 MHz); 460800 would be
  * 8.5 % off. The receive interrupt fills a 128-byte ring (a burst of eight
@@ -125,22 +126,32 @@ static void set_period(uint32_t us)
     SREG = sreg;
 }
 
-static void spi_transfer(const uint8_t *tx, uint8_t *rx)
+/* The SPI transaction runs from its interrupt, one byte per 8 SCK periods
+ * (128 cycles at 1 MHz): the CPU sleeps meanwhile instead of spinning. */
+static uint8_t spi_tx[QP_SPI_SIZE], spi_rx[QP_SPI_SIZE];
+static volatile uint8_t spi_index = QP_SPI_SIZE; /* QP_SPI_SIZE: no transaction running */
+static uint8_t spi_busy;
+
+ISR(SPI_STC_vect)
 {
-    uint8_t i;
+    uint8_t i = spi_index;
+    spi_rx[i] = SPDR;
+    i++;
+    spi_index = i;
+    if (i < QP_SPI_SIZE) {
+        SPDR = spi_tx[i];
+    } else {
+        PORTB |= _BV(CS_BIT);
+        work = 1;
+    }
+}
+
+static void spi_start(void)
+{
+    spi_busy = 1;
+    spi_index = 0;
     PORTB &= (uint8_t)~_BV(CS_BIT);
-    SPDR = tx[0];
-    for (i = 1; i < QP_SPI_SIZE; i++) {
-        uint8_t next = tx[i];
-        while (!(SPSR & _BV(SPIF))) {
-        }
-        rx[i - 1u] = SPDR;
-        SPDR = next;
-    }
-    while (!(SPSR & _BV(SPIF))) {
-    }
-    rx[QP_SPI_SIZE - 1u] = SPDR;
-    PORTB |= _BV(CS_BIT);
+    SPDR = spi_tx[0];
 }
 
 /* Refill the transmit ring from the core's queue (straight into the ring,
@@ -170,7 +181,7 @@ void setup()
     /* Chip select high first, then an output: no empty pulse for the QUBE. */
     PORTB |= _BV(CS_BIT);
     DDRB |= (uint8_t)(_BV(CS_BIT) | _BV(PB3) | _BV(PB5)); /* CS, MOSI, SCK */
-    SPCR = (uint8_t)(_BV(SPE) | _BV(MSTR) | _BV(CPOL) | _BV(SPR0)); /* mode 2, 16 MHz / 16 = 1 MHz */
+    SPCR = (uint8_t)(_BV(SPIE) | _BV(SPE) | _BV(MSTR) | _BV(CPOL) | _BV(SPR0)); /* mode 2, 1 MHz */
     SPSR = 0;
 
     UCSR0A = _BV(U2X0);
@@ -214,19 +225,23 @@ static void receive_pending(void)
     }
 }
 
-static void tick(void)
+/* A tick in two halves around the SPI transaction. */
+static void tick_start(void)
 {
-    uint8_t tx[QP_SPI_SIZE], rx[QP_SPI_SIZE];
     uint32_t start;
-    uint32_t period;
-
     cli();
     periods_due = 0;
     start = period_start_us;
     sei();
-    qd_tick_begin(&dev, start, tx);
-    spi_transfer(tx, rx);
-    qd_tick_end(&dev, rx);
+    qd_tick_begin(&dev, start, spi_tx);
+    spi_start();
+}
+
+static void tick_finish(void)
+{
+    uint32_t period;
+    spi_busy = 0;
+    qd_tick_end(&dev, spi_rx);
     start_tx();
     period = qd_period_us(&dev);
     if (period != period_us) {
@@ -248,8 +263,15 @@ void loop()
         }
         work = 0;
         sei();
+        if (spi_busy) {
+            if (spi_index < QP_SPI_SIZE) {
+                continue; /* the core is mid-tick: nothing else touches it */
+            }
+            tick_finish();
+        }
         if (periods_due) {
-            tick();
+            tick_start();
+            continue;
         }
         receive_pending();
     }
