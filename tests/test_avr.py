@@ -75,9 +75,12 @@ def test_keeps_500_hz_with_a_command_every_tick(avr_cache):
     assert not [f for f in host.frames if isinstance(f, Fault)]
     assert sum(t.command_age == 0 for t in tm[5:]) >= len(tm[5:]) - 1  # each tick applies a fresh command
     mean, worst = bridge.busy_per_tick(first)
-    # Measured 20,700 (65 %) mean, 20,900 worst 10-tick mean; the reference sketch needed ~35,700
-    # (448 ticks/s). The target, 60 % (19,200), is not reached yet: this guards the gain.
-    assert worst <= 0.68 * F_CPU / 500, f"{worst:.0f} cycles per tick"
+    # The budget: at most 60 % of the 32,000-cycle tick (19,200). Measured here (command 1 ms
+    # after each tick, as a host answers telemetry): 18,690 mean (58.4 %), 19,150 worst 10-tick mean
+    # (59.8 %); the reference HardwareSerial sketch needed ~35,700 (448 ticks/s). Deterministic
+    # (simulated time): a change that adds cycles fails here.
+    assert mean <= 0.59 * F_CPU / 500, f"{mean:.0f} cycles per tick on average"
+    assert worst <= 0.60 * F_CPU / 500, f"{worst:.0f} cycles per tick"
 
 
 def test_every_lost_period_is_reported(avr_cache):

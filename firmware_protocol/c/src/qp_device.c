@@ -164,15 +164,20 @@ static void on_frame(qd_device *dev, const qp_frame *frame, uint32_t now_us)
 void qd_receive(qd_device *dev, const uint8_t *data, size_t len, uint32_t now_us)
 {
     qp_frame frame;
-    size_t i;
-    for (i = 0; i < len; i++) {
+    size_t i = 0;
+    while (i < len) {
+        /* The bytes up to the next delimiter in one copy: only a delimiter ends a frame. */
+        const uint8_t *zero = (const uint8_t *)memchr(data + i, 0, len - i);
+        size_t run = zero ? (size_t)(zero - (data + i)) : len - i;
         uint32_t bad_versions;
-        if (data[i] != 0) { /* only a delimiter ends a frame */
-            (void)qp_decoder_push(&dev->decoder, data[i], &frame);
-            continue;
+        qp_decoder_append(&dev->decoder, data + i, run);
+        i += run;
+        if (i == len) {
+            break;
         }
+        i++;
         bad_versions = dev->decoder.counters.bad_version;
-        if (qp_decoder_push(&dev->decoder, data[i], &frame)) {
+        if (qp_decoder_push(&dev->decoder, 0, &frame)) {
             on_frame(dev, &frame, now_us);
         } else if (dev->decoder.counters.bad_version != bad_versions) {
             /* Answer even before HELLO: this is how a host speaking another

@@ -275,6 +275,23 @@ const qp_counters *qp_decoder_counters(const qp_decoder *dec)
     return &dec->counters;
 }
 
+void qp_decoder_append(qp_decoder *dec, const uint8_t *data, size_t len)
+{
+    dec->counters.bytes_in += len;
+    if (dec->overflowed || len == 0) {
+        return;
+    }
+    if (len > (size_t)QP_MAX_WIRE - dec->len) {
+        /* As byte by byte: the byte that finds the buffer full drops the piece. */
+        dec->counters.oversize++;
+        dec->overflowed = 1;
+        dec->len = 0;
+        return;
+    }
+    memcpy(dec->buf + dec->len, data, len);
+    dec->len = (uint16_t)(dec->len + len);
+}
+
 int qp_decoder_push(qp_decoder *dec, uint8_t byte, qp_frame *frame)
 {
     qp_counters *c = &dec->counters;
