@@ -172,6 +172,23 @@ def test_c_and_python_decoders_agree(core, parts, flips):
     assert c.counters.as_dict() == py.stats.as_dict()
 
 
+@settings(max_examples=100)
+@given(st.lists(st.one_of(st.binary(max_size=200), st.tuples(messages, u32, u32)), max_size=10),
+       st.lists(st.integers(1, 40), max_size=8))
+def test_device_receive_counts_as_the_python_decoder(core, parts, cuts):
+    # qd_receive copies runs between delimiters at once (qp_decoder_append): same counters as byte by
+    # byte, however the stream is cut into receive calls (oversize pieces included).
+    stream = b"".join(p if isinstance(p, bytes) else encode_frame(*p) for p in parts)
+    py, dev = StreamDecoder(), ccore.CDevice(core)
+    py.feed(stream)
+    pos = 0
+    for cut in [*cuts, len(stream)]:
+        dev.receive(stream[pos:pos + cut], 0)
+        pos += cut
+    dev.receive(stream[pos:], 0)
+    assert dev.rx_counters.as_dict() == py.stats.as_dict()
+
+
 # --- the device state machine -------------------------------------------------
 
 QUBE_OK = SpiResponse(module_id=777, encoder0=-5, encoder1=1024, tach_raw=0x123, status=0, current_raw=8190)
