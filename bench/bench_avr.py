@@ -48,11 +48,14 @@ def reference_elf(commit: str, out: Path) -> Path:
 
 
 def symbols(elf: Path) -> tuple[list[int], list[str]]:
-    """Word addresses and names of the functions in an image, sorted."""
+    """Word addresses where each sized symbol of the image and each gap after one starts, and their names."""
     out = subprocess.run(["avr-nm", "-n", "-S", str(elf)], capture_output=True, text=True, check=True).stdout
-    rows = [(int(a, 16) // 2, VECTORS.get(n, n)) for a, _, t, n in (ln.split() for ln in out.splitlines()
-                                                                       if len(ln.split()) == 4) if t in "tTW"]
-    return [a for a, _ in rows], [n for _, n in rows]
+    addrs, names = [], []
+    for a, size, t, n in (ln.split() for ln in out.splitlines() if len(ln.split()) == 4):
+        if t in "tTW":
+            addrs += [int(a, 16) // 2, (int(a, 16) + int(size, 16)) // 2]
+            names += [VECTORS.get(n, n), "(code without a sized symbol)"]
+    return addrs, names
 
 
 def measure(elf: Path, seconds: float) -> dict:
@@ -74,7 +77,8 @@ def measure(elf: Path, seconds: float) -> dict:
     parts: dict[str, int] = {}
     for word, (after, before) in enumerate(zip(chip.pc_cycles(), prof0)):
         if after != before:
-            name = names[max(0, bisect.bisect_right(addrs, word) - 1)]
+            at = bisect.bisect_right(addrs, word) - 1
+            name = names[at] if at >= 0 else "interrupt vector table (jumps)"
             parts[name] = parts.get(name, 0) + after - before
     _, worst = bridge.busy_per_tick(n0)
     return dict(ticks_per_s=ticks / ((chip.cycle - c0) / F_CPU), busy=(chip.busy_cycles - busy0) / ticks, worst=worst,
