@@ -79,6 +79,28 @@ _POLL = 0.05
 _MAX_BURST = 3
 
 
+def open_raw_pty() -> tuple[int, int, str]:
+    """A pseudo-terminal for an emulated device: (master fd, slave fd, device path)."""
+    master, slave = os.openpty()
+    # Raw on both ends: no echo, no newline translation, every byte as sent.
+    tty.setraw(master)
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    # The slave stays open here too: with no slave open the master reads
+    # EIO, and a host closing the port must not look like one.
+    return master, slave, os.ttyname(slave)
+
+
+def close_fds(fds) -> None:
+    """Close file descriptors in order, skipping -1 and ignoring errors (the other end may be gone)."""
+    for fd in fds:
+        if fd >= 0:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
 class BridgeEmulator:
     """The bridge firmware and a simulated QUBE-Servo 2 behind a pseudo-terminal.
 
@@ -198,15 +220,7 @@ class BridgeEmulator:
         self._qube = EmulatedQube(self.params, dt=self._dev.period_us * 1e-6)
         # Power-up: the pendulum hangs at rest, the counters read zero.
         self._qube.place((0.0, math.pi, 0.0, 0.0))
-        master, slave = os.openpty()
-        # Raw on both ends: no echo, no newline translation, every byte as sent.
-        tty.setraw(master)
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        # The slave stays open here too: with no slave open the master reads
-        # EIO, and a host closing the port must not look like one.
-        self._master, self._slave = master, slave
-        self.path = os.ttyname(slave)
+        self._master, self._slave, self.path = open_raw_pty()
         self._send(self._dev.take_output(), time.perf_counter())
         return self.path
 
@@ -251,12 +265,7 @@ class BridgeEmulator:
         # device node goes), so our own slave end goes first and the fds are forgotten before.
         fds = (self._slave, self._master)
         self._master = self._slave = -1
-        for fd in fds:
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+        close_fds(fds)
 
     def __enter__(self) -> "BridgeEmulator":
         self.start()

@@ -76,6 +76,7 @@ class EmulatedQube:
         self.amp_fault = False
         self.stall_error = False
         self.led = (0, 0, 0)
+        self._latched_raw = (0, 0)
 
     @property
     def dt(self) -> float:
@@ -105,14 +106,24 @@ class EmulatedQube:
         The returned counts and current are those of this moment; the motor
         word applies from now until the next transfer.
         """
-        cmd = unpack_spi_command(spi_tx)
+        response = self.latch()
+        self.apply(spi_tx)
+        return response
+
+    def latch(self) -> bytes:
+        """The QUBE's 17 bytes of this moment (chip select falling); see :meth:`apply`."""
         theta, alpha, theta_dot, _ = self._sim.state.tolist()
         raw0, raw1 = angles_to_counts(theta, alpha)
+        self._latched_raw = (raw0, raw1)
         counts = (raw0 - self._offsets[0], raw1 - self._offsets[1])
         status = (STATUS_AMP_FAULT if self.amp_fault else 0) | (STATUS_STALL_ERROR if self.stall_error else 0)
         amps = (self.volts - self.params.km * theta_dot) / self.params.Rm if self.volts else 0.0
-        response = pack_spi_response(SpiResponse(self.module_id, counts[0], counts[1], 0, status,
-                                                 current_raw(amps)))
+        return pack_spi_response(SpiResponse(self.module_id, counts[0], counts[1], 0, status, current_raw(amps)))
+
+    def apply(self, spi_tx: bytes) -> None:
+        """Take the bridge's 17 bytes of the transaction begun by :meth:`latch` (chip select rising)."""
+        cmd = unpack_spi_command(spi_tx)
+        raw0, raw1 = self._latched_raw
         # Presets take effect after this transfer's counts were latched (PROTOCOL.md, ENCODER_RESET).
         if cmd.write_mask & MASK_ENCODER0:
             self._offsets[0] = raw0 - cmd.encoder0_preset
@@ -126,7 +137,6 @@ class EmulatedQube:
         pwm = max(-_PWM_LIMIT, min(_PWM_LIMIT, pwm))
         driving = self.enabled and not (self.amp_fault or self.stall_error)
         self.volts = pwm * MILLIVOLTS_PER_PWM / 1000.0 if driving else 0.0
-        return response
 
     def advance(self) -> None:
         """Hold the motor voltage for one period."""

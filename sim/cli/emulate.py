@@ -63,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--target", choices=("host", "avr"), default="host",
+                   help="host (default): the firmware core compiled for this machine; avr: the whole Uno "
+                        "sketch on an emulated ATmega328P (simavr; Debian packages gcc-avr avr-libc "
+                        "arduino-core-avr simavr libsimavr-dev libsimavrparts1), real time, no fault injection")
     p.add_argument("--seed", type=int, default=None, metavar="K",
                    help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
     p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
@@ -127,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:
         return int(exc.code or 0)
+    if args.target == "avr":
+        return _main_avr(args, parser)
     import signal
 
     from firmware_protocol.ccore import CompilerNotFound
@@ -181,6 +187,51 @@ def main(argv: list[str] | None = None) -> int:
               f"{s['sessions']} session(s), {s['commands']} commands, {s['late_ticks']} ticks caught up late, "
               f"{s['slips']} schedule restarts "
               f"(max lateness {s['max_lateness'] * 1e3:.1f} ms)", file=sys.stderr)
+    return 0
+
+
+_AVR_OPTIONS = ("target", "seed", "perturbation", "hanging", "quiet")
+
+
+def _main_avr(args, parser) -> int:
+    """``qube-emulate --target avr``: the Uno sketch on simavr behind a pty."""
+    import signal
+
+    defaults = vars(parser.parse_args([]))
+    extra = [k for k, v in vars(args).items() if k not in _AVR_OPTIONS and v != defaults[k]]
+    if extra:
+        print(f"{PROG}: error: --target avr takes only --seed, --perturbation, --hanging and -q "
+              f"(not --{extra[0].replace('_', '-')})", file=sys.stderr)
+        return 2
+    from firmware_protocol.avr import AvrToolsMissing
+    from sim.bridge.avr_pty import AvrPtyBridge
+
+    emulator = AvrPtyBridge(seed=args.seed, perturbation=math.radians(args.perturbation),
+                            start_upright=not args.hanging)
+    try:
+        path = emulator.open()
+    except (AvrToolsMissing, RuntimeError, OSError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"{PROG}: error: cannot start the emulated Uno: {first}", file=sys.stderr)
+        return 1
+    previous = {signum: signal.signal(signum, lambda *_: emulator.request_stop())
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        print(path, flush=True)
+        if not args.quiet:
+            print(f"{PROG}: bridge sketch on an emulated ATmega328P (simavr) on {path} (real time, seed "
+                  f"{emulator.seed}); try qube-run --backend serial --port {path}; Ctrl-C to stop",
+                  file=sys.stderr, flush=True)
+        emulator.run()
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        emulator.close()
+    if not args.quiet:
+        s = emulator.stats()
+        print(f"{PROG}: stopped after {s['ticks']} ticks ({s['device_time']:.1f} s of device time in "
+              f"{s['wall_time']:.1f} s), {s['sessions']} session(s), CPU busy {100 * s['busy']:.0f} %, "
+              f"at most {s['max_behind'] * 1e3:.1f} ms behind the wall clock", file=sys.stderr)
     return 0
 
 

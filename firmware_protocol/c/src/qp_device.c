@@ -13,13 +13,14 @@ size_t qd_device_size(void)
     return sizeof(qd_device);
 }
 
+/* Appends in at most two copies (the queue wraps once at most). */
 static void push_bytes(qd_device *dev, const uint8_t *data, size_t len)
 {
-    size_t i;
-    for (i = 0; i < len; i++) {
-        dev->tx[(dev->tx_head + dev->tx_len) % QD_TX_CAPACITY] = data[i];
-        dev->tx_len++;
-    }
+    size_t tail = (dev->tx_head + dev->tx_len) % QD_TX_CAPACITY;
+    size_t first = QD_TX_CAPACITY - tail < len ? QD_TX_CAPACITY - tail : len;
+    memcpy(dev->tx + tail, data, first);
+    memcpy(dev->tx, data + first, len - first);
+    dev->tx_len = (uint16_t)(dev->tx_len + len);
 }
 
 /* Queue one whole frame or none: a half-sent frame would cost the host the
@@ -58,6 +59,7 @@ static void start_session(qd_device *dev)
     dev->command_seq = 0;
     dev->command_age = QD_AGE_NONE;
     dev->config = DEFAULT_CONFIG;
+    dev->period_us = 1000000UL / DEFAULT_CONFIG.rate_hz;
     dev->tick = 0;
     dev->have_last_tick = 0;
     /* Faults already present are news to the new host. */
@@ -78,6 +80,7 @@ void qd_init(qd_device *dev, uint32_t extra_capabilities)
     qp_decoder_init(&dev->decoder);
     dev->capabilities = QD_CAPABILITIES | extra_capabilities;
     dev->config = DEFAULT_CONFIG;
+    dev->period_us = 1000000UL / DEFAULT_CONFIG.rate_hz;
     dev->command_age = QD_AGE_NONE;
     /* A leading delimiter ends whatever partial frame the host holds. */
     dev->tx[0] = 0;
@@ -116,6 +119,7 @@ static void on_config(qd_device *dev, const qp_frame *frame, uint32_t now_us)
     ack.result = (uint8_t)qp_config_problem(&cfg);
     if (ack.result == QP_CONFIG_OK) {
         dev->config = cfg;
+        dev->period_us = 1000000UL / cfg.rate_hz; /* divided once here, not every tick */
     }
     ack.rate_hz = dev->config.rate_hz;
     ack.watchdog_ticks = dev->config.watchdog_ticks;
@@ -160,10 +164,20 @@ static void on_frame(qd_device *dev, const qp_frame *frame, uint32_t now_us)
 void qd_receive(qd_device *dev, const uint8_t *data, size_t len, uint32_t now_us)
 {
     qp_frame frame;
-    size_t i;
-    for (i = 0; i < len; i++) {
-        uint32_t bad_versions = dev->decoder.counters.bad_version;
-        if (qp_decoder_push(&dev->decoder, data[i], &frame)) {
+    size_t i = 0;
+    while (i < len) {
+        /* The bytes up to the next delimiter in one copy: only a delimiter ends a frame. */
+        const uint8_t *zero = (const uint8_t *)memchr(data + i, 0, len - i);
+        size_t run = zero ? (size_t)(zero - (data + i)) : len - i;
+        uint32_t bad_versions;
+        qp_decoder_append(&dev->decoder, data + i, run);
+        i += run;
+        if (i == len) {
+            break;
+        }
+        i++;
+        bad_versions = dev->decoder.counters.bad_version;
+        if (qp_decoder_push(&dev->decoder, 0, &frame)) {
             on_frame(dev, &frame, now_us);
         } else if (dev->decoder.counters.bad_version != bad_versions) {
             /* Answer even before HELLO: this is how a host speaking another
@@ -175,18 +189,24 @@ void qd_receive(qd_device *dev, const uint8_t *data, size_t len, uint32_t now_us
 
 uint32_t qd_period_us(const qd_device *dev)
 {
-    return 1000000UL / dev->config.rate_hz;
+    return dev->period_us;
 }
 
+/* Periods since the previous tick, to the nearest (the glue stamps ticks
+ * with their period's start, so this is exact on the bridge): every period
+ * beyond the first was lost, and the tick counter skips it, so telemetry
+ * counts elapsed periods and the host sees the gap. */
 static void check_timing(qd_device *dev, uint32_t now_us)
 {
     uint32_t period = qd_period_us(dev);
     if (dev->have_last_tick) {
         uint32_t elapsed = now_us - dev->last_tick_us; /* wraps correctly */
         if (elapsed >= period + period / 2u) {
+            uint32_t lost = (elapsed + period / 2u) / period - 1u;
             dev->tick_status |= QP_ST_TICK_OVERRUN;
+            dev->tick += lost;
             if (dev->connected) {
-                send_fault(dev, QP_FAULT_TICK_OVERRUN, (elapsed + period / 2u) / period - 1u, now_us);
+                send_fault(dev, QP_FAULT_TICK_OVERRUN, lost, now_us);
             }
         }
     }
@@ -338,12 +358,12 @@ void qd_tick_end(qd_device *dev, const uint8_t spi_rx[QP_SPI_SIZE])
 
 size_t qd_take_output(qd_device *dev, uint8_t *out, size_t cap)
 {
-    size_t n = 0;
-    while (n < cap && dev->tx_len > 0) {
-        out[n++] = dev->tx[dev->tx_head];
-        dev->tx_head = (uint16_t)((dev->tx_head + 1u) % QD_TX_CAPACITY);
-        dev->tx_len--;
-    }
+    size_t n = cap < dev->tx_len ? cap : dev->tx_len;
+    size_t first = QD_TX_CAPACITY - dev->tx_head < n ? QD_TX_CAPACITY - dev->tx_head : n;
+    memcpy(out, dev->tx + dev->tx_head, first);
+    memcpy(out + first, dev->tx, n - first);
+    dev->tx_head = (uint16_t)((dev->tx_head + n) % QD_TX_CAPACITY);
+    dev->tx_len = (uint16_t)(dev->tx_len - n);
     return n;
 }
 

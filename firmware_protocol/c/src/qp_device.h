@@ -50,6 +50,7 @@ typedef struct {
     uint32_t command_seq;
     uint16_t command_age;
     qp_config config;
+    uint32_t period_us; /* 1e6 / config.rate_hz */
     uint32_t tick;
     uint32_t rx_errors_reported;
 

@@ -205,6 +205,9 @@ const qp_counters *qp_decoder_counters(const qp_decoder *dec);
 /* Feed one received byte. Returns 1 when it completes a valid frame (copied
  * to *frame), else 0; rejected pieces are counted in dec->counters. */
 int qp_decoder_push(qp_decoder *dec, uint8_t byte, qp_frame *frame);
+/* The same as qp_decoder_push for each of len bytes none of which is 0x00
+ * (a run inside a frame), in one copy. */
+void qp_decoder_append(qp_decoder *dec, const uint8_t *data, size_t len);
 
 /* Feed a buffer: stores up to max_frames valid frames in frames[] and
  * returns how many valid frames the buffer completed (possibly more). */
