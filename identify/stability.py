@@ -133,12 +133,17 @@ class ClEdmdStable(ClEdmdKnownRows):
         cost = (cp.sum_squares(residual) + alpha * cp.sum_squares(rows)) / q
         n_theta = n_c + n_pl
         ctrl_rows = np.hstack([self.controller.A, -self.controller.B @ self.output_matrix_])
-        M = cp.vstack([cp.Constant(ctrl_rows), rows[:, :n_theta]]) - shift
-        PM = P @ M
+        # P M = P M_c + (P E) U_p S_theta, with E placing the plant rows. Written with
+        # W = (P E) U_p as a variable of its own, every entry of the LMI depends on one row of
+        # W (sparse); P times the variable directly would make each entry depend on all of
+        # U_p, and the solver's matrices dense (minutes instead of seconds at QUBE size).
+        M_c = np.vstack([ctrl_rows, np.zeros((n_pl, n_theta))]) - shift
+        PE = P[:, n_c:]
+        W = cp.Variable((n_theta, n_s))
+        PM = P @ M_c + W @ S[:, :n_theta]
         rho2 = self.max_radius ** 2
         lmi = cp.bmat([[rho2 * P, PM.T], [PM, P]])
-        scale = float(np.linalg.norm(P, 2))
-        constraints = [0.5 * (lmi + lmi.T) >> _MARGIN * scale * np.eye(2 * n_theta)]
+        constraints = [W == PE @ U_p, 0.5 * (lmi + lmi.T) >> _MARGIN * np.eye(2 * n_theta)]
         problem = cp.Problem(cp.Minimize(cost), constraints)
         try:
             problem.solve(solver=str(self.solver).upper())
@@ -153,8 +158,9 @@ class ClEdmdStable(ClEdmdKnownRows):
 def _lyapunov_certificate(M: np.ndarray, radius: float) -> np.ndarray:
     """``P > 0`` with ``M^T P M < radius^2 P`` for ``M`` scaled into the open disc if needed."""
     rho = float(np.max(np.abs(np.linalg.eigvals(M))))
-    target = _SEED_FRACTION * radius
-    scaled = M * (target / rho) if rho > target else M
+    # Inside the disc: M itself is certified (an inactive constraint keeps the closed form).
+    # Outside: scale it just inside to seed the certificate.
+    scaled = M * (_SEED_FRACTION * radius / rho) if rho >= radius else M
     a = scaled / radius
     # a^T P a - P + I = 0  <=>  (a^T) P (a^T)^T - P + I = 0: scipy's form with a^T.
     P = linalg.solve_discrete_lyapunov(a.T, np.eye(M.shape[0]))
