@@ -179,14 +179,19 @@ class ClEdmd(_ClosedLoopKoopman):
         n_c = self.controller.n_states
         U_p = constrained_plant_solve(snapshots, S, alpha, slice(n_c, None), regularize)
         if self.known_controller_rows:
-            ctrl = self.controller
-            U_c = np.hstack([ctrl.A, -ctrl.B @ self.output_matrix_, ctrl.B,
-                             np.zeros((n_c, self.n_feedforward_))])
+            U_c = self._known_controller_rows()
         else:
             # Only the closed-loop penalty covers the controller rows; "plant" leaves them free.
             alpha_c = alpha if regularize == "closed_loop" else 0.0
             U_c = ridge_solve(snapshots, alpha_c, slice(0, n_c))
         return np.vstack([U_c, U_p @ S]), U_p
+
+
+    def _known_controller_rows(self) -> np.ndarray:
+        """The controller rows of ``U^f``: ``[A^c, -B^c C^p, B^c, 0]``."""
+        ctrl = self.controller
+        return np.hstack([ctrl.A, -ctrl.B @ self.output_matrix_, ctrl.B,
+                          np.zeros((ctrl.n_states, self.n_feedforward_))])
 
 
 class ClEdmdKnownRows(ClEdmd):

@@ -89,10 +89,8 @@ class ClEdmdStable(ClEdmdKnownRows):
         self.solver = solver
 
     def _closed_loop_state(self, U_p: np.ndarray, S: np.ndarray) -> np.ndarray:
-        n_c = self.controller.n_states
-        n_theta = n_c + U_p.shape[0]
-        ctrl_rows = np.hstack([self.controller.A, -self.controller.B @ self.output_matrix_])
-        return np.vstack([ctrl_rows, (U_p @ S)[:, :n_theta]])
+        n_theta = self.controller.n_states + U_p.shape[0]
+        return np.vstack([self._known_controller_rows()[:, :n_theta], (U_p @ S)[:, :n_theta]])
 
     def _solve(self, snapshots: Snapshots, S: np.ndarray, alpha: float):
         if not (np.isfinite(self.max_radius) and self.max_radius > 0 and np.isfinite(self.center)):
@@ -112,11 +110,7 @@ class ClEdmdStable(ClEdmdKnownRows):
                 best, best_cost = U_p, cost
             M = self._closed_loop_state(U_p, S) - shift
         self.objective_ = best_cost
-        n_theta = n_c + best.shape[0]
-        ctrl = self.controller
-        U_c = np.hstack([ctrl.A, -ctrl.B @ self.output_matrix_, ctrl.B, np.zeros((n_c, self.n_feedforward_))])
-        assert U_c.shape[1] == S.shape[1] and n_theta <= S.shape[1]
-        return np.vstack([U_c, best @ S]), best
+        return np.vstack([self._known_controller_rows(), best @ S]), best
 
     def _solve_fixed_p(self, snapshots: Snapshots, S: np.ndarray, alpha: float, P: np.ndarray, shift):
         import cvxpy as cp
@@ -132,7 +126,7 @@ class ClEdmdStable(ClEdmdKnownRows):
         q = snapshots.q
         cost = (cp.sum_squares(residual) + alpha * cp.sum_squares(rows)) / q
         n_theta = n_c + n_pl
-        ctrl_rows = np.hstack([self.controller.A, -self.controller.B @ self.output_matrix_])
+        ctrl_rows = self._known_controller_rows()[:, :n_theta]
         # P M = P M_c + (P E) U_p S_theta, with E placing the plant rows. Written with
         # W = (P E) U_p as a variable of its own, every entry of the LMI depends on one row of
         # W (sparse); P times the variable directly would make each entry depend on all of
