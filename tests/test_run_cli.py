@@ -107,7 +107,8 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
     (["--backend", "quantum"], "invalid choice: 'quantum'"),
     (["--backend", "serial"], "--backend serial needs --port DEV"),
     (["--backend", "serial", "--port", "/dev/null", "--realtime"], "--realtime is for --backend sim"),
-    (["--port", "/dev/ttyACM0"], "--port and --baud are for --backend serial"),
+    (["--port", "/dev/ttyACM0"], "--port, --baud and --link-timeout are for --backend serial"),
+    (["--link-timeout", "100"], "--port, --baud and --link-timeout are for --backend serial"),
     (["--backend", "serial", "--port", "/dev/x", "--baud", "0"], "must be at least 1"),
     (["--episodes", "0"], "must be at least 1"),
     (["--duration", "0.0013"], "not a whole, positive number of samples"),
@@ -178,8 +179,10 @@ def test_rerun_streams_to_a_listening_server(tmp_path):
     if shutil.which("rerun") is None:
         pytest.skip("the rerun command (from rerun-sdk) is not on PATH")
     port = _free_port()
+    # `rerun` is a wrapper that runs the viewer binary as its child: its own session, so that
+    # stopping it stops the binary too (terminating the wrapper alone left the server running).
     server = subprocess.Popen(["rerun", "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)
+                              stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 20
         while socket.socket().connect_ex(("127.0.0.1", port)) != 0:
@@ -189,8 +192,31 @@ def test_rerun_streams_to_a_listening_server(tmp_path):
         assert main(["--rerun", f"rerun+http://127.0.0.1:{port}/proxy", "--episodes", "1", "--duration", "1",
                      "--out", str(tmp_path), "-q"]) == 0
     finally:
-        server.terminate()
-        server.wait(timeout=10)
+        _stop_group(server)
+
+
+def _stop_group(proc: subprocess.Popen, grace: float = 5.0) -> None:
+    """SIGTERM a process group led by ``proc``; SIGKILL whatever of it still runs after ``grace``."""
+    os.killpg(proc.pid, signal.SIGTERM)
+    proc.wait(timeout=10)
+    deadline = time.monotonic() + grace
+    while _group_alive(proc.pid):
+        if time.monotonic() > deadline:
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+        time.sleep(0.05)
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether a live (not zombie) process of group ``pgid`` remains (from /proc)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[0] != "Z" and int(fields[3]) == pgid:
+            return True
+    return False
 
 
 # --- signals: a real process, paced in real time -------------------------------------------------

@@ -128,6 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
     link.add_argument("--baud", type=_positive_int, default=None, metavar="B",
                       help="baud rate of a UART bridge (default 500000, the sketch's; USB CDC ignores it)")
+    link.add_argument("--link-timeout", type=_positive_float, default=None, metavar="MS",
+                      help="abort an episode after this long without telemetry (default 25; raise it on a "
+                           "heavily loaded host, the bridge's watchdog still stops the motor after 10 ms)")
     rt = p.add_argument_group("real-time scheduling (attempted only when asked; works without)")
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
@@ -275,8 +278,8 @@ def _check_backend_options(args) -> None:
                         "qube-emulate prints)")
         if args.realtime:
             raise _Fail("--realtime is for --backend sim: the bridge's clock paces the serial backend")
-    elif args.port is not None or args.baud is not None:
-        raise _Fail("--port and --baud are for --backend serial")
+    elif args.port is not None or args.baud is not None or args.link_timeout is not None:
+        raise _Fail("--port, --baud and --link-timeout are for --backend serial")
 
 
 def _make_backend(args, limits, backend_seed: int, rate: float):
@@ -287,10 +290,11 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
         return SimBackend(perturbation=math.radians(args.perturbation), seed=backend_seed,
                           realtime=args.realtime, dt=1.0 / rate)
     from daq.backends import BackendFault
-    from daq.backends.serial import DEFAULT_BAUD, SerialBackend
+    from daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
 
+    link_timeout = DEFAULT_LINK_TIMEOUT if args.link_timeout is None else args.link_timeout / 1e3
     backend = SerialBackend(args.port, args.baud or DEFAULT_BAUD, rate_hz=round(rate),
-                            max_voltage=limits.max_voltage)
+                            max_voltage=limits.max_voltage, link_timeout=link_timeout)
     try:
         backend.open()
     except BackendFault as exc:
