@@ -240,6 +240,11 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
             outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
                                      _statistics(backend))
             errors = writer.close(outcome)
+            if writer.failed is not None and not reason:
+                # The log failed after the last tick, while its queue drained: the episode is
+                # lost all the same (SinkWriter.close recorded it aborted).
+                reason, cause = f"log failed: {writer.failed}", "log"
+                outcome = replace(outcome, status="aborted", reason=reason)
     metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict(),
                        backend_stats=outcome.backend_stats)
     return EpisodeResult(outcome.status, reason, n_done, timing, outcome.backend_stats, metadata=metadata,

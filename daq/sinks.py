@@ -9,10 +9,12 @@ run on the writer thread except ``open``, which runs before the first tick.
 
 from __future__ import annotations
 
+import errno
+import shutil
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import numpy as np
@@ -28,6 +30,8 @@ __all__ = [
     "MemorySink",
     "MemoryEpisode",
     "SinkWriter",
+    "LogWriteError",
+    "BYTES_PER_SAMPLE",
     "McapSink",
     "episode_file_stem",
 ]
@@ -250,7 +254,11 @@ class SinkWriter:
             self._thread.join()
             self._thread = None
         # A sink that failed mid-episode still gets closed: the log then
-        # records the abort and the samples it did take.
+        # records the abort and the samples it did take. A required sink that failed while
+        # the queue drained after the last tick makes the episode aborted too: never
+        # recorded complete with samples missing.
+        if self.failed is not None and outcome.status == "complete":
+            outcome = replace(outcome, status="aborted", reason=f"log failed: {self.failed}")
         for sink in self._opened:
             if sink in self._active or getattr(sink, "required", True):
                 try:
@@ -293,10 +301,17 @@ class McapSink:
         self.out_dir = Path(out_dir)
         self.flush_interval_s = flush_interval_s
         self.paths: list = []
+        self.error: LogWriteError | None = None
         self._writer = None
 
     def open(self, metadata: EpisodeMetadata) -> None:
-        """Create the episode's file and write its metadata (durable at once)."""
+        """Check the free space, create the episode's file and write its metadata (durable at once).
+
+        Raises
+        ------
+        LogWriteError
+            Too little free space for the planned episode, or the file cannot be written.
+        """
         from daq.log import EpisodeWriter
 
         base = episode_file_stem(metadata)
@@ -305,23 +320,85 @@ class McapSink:
         while path.exists():
             path = self.out_dir / f"{base}_{n}.mcap"
             n += 1
-        self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
+        need = log_size_needed(int(metadata.extra.get("n_planned", 0)))
+        free = shutil.disk_usage(self.out_dir).free
+        if free < need:
+            self._fail(path, OSError(errno.ENOSPC, f"{free / 1e6:.1f} MB free, the episode needs about "
+                                                   f"{need / 1e6:.1f} MB; not started"))
+        with self._naming(path):
+            self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
         self.paths.append(path)
 
     def write(self, sample: Sample) -> None:
         """Append one tick (flushed every ``flush_interval_s`` of data)."""
-        self._writer.write_sample(t=sample.t, theta=sample.theta, alpha=sample.alpha,
-                                  target_theta=sample.target_theta, target_alpha=sample.target_alpha,
-                                  feedforward=sample.feedforward, controller_state=sample.controller_state,
-                                  control_output=sample.control_output, plant_input=sample.plant_input,
-                                  saturation=sample.saturation, lateness=sample.lateness,
-                                  compute_time=sample.compute_time)
+        with self._naming(self._writer.path):
+            self._writer.write_sample(
+                t=sample.t, theta=sample.theta, alpha=sample.alpha, target_theta=sample.target_theta,
+                target_alpha=sample.target_alpha, feedforward=sample.feedforward,
+                controller_state=sample.controller_state, control_output=sample.control_output,
+                plant_input=sample.plant_input, saturation=sample.saturation, lateness=sample.lateness,
+                compute_time=sample.compute_time)
 
     def close(self, outcome: EpisodeOutcome) -> None:
-        """Record the final status, timing statistics and backend counters, and close the file."""
+        """Record the final status, timing statistics and backend counters, and close the file.
+
+        After a write error the file is closed without a status record instead: it then
+        reads as incomplete, up to its last flushed chunk.
+        """
         writer, self._writer = self._writer, None
-        if writer is not None and not writer.finished:
+        if writer is None or writer.finished:
+            return
+        if self.error is not None:
+            writer.abandon()
+            return
+        with self._naming(writer.path):
             writer.finish(outcome.status, outcome.reason, outcome.timing.as_dict(), outcome.backend_stats)
+
+    def _fail(self, path, exc: OSError):
+        self.error = LogWriteError(path, exc)
+        raise self.error from None
+
+    def _naming(self, path):
+        """A context in which an OSError becomes a :class:`LogWriteError` naming ``path``."""
+        sink = self
+
+        class _Naming:
+            def __enter__(self):
+                return None
+
+            def __exit__(self, kind, exc, tb):
+                if isinstance(exc, OSError) and not isinstance(exc, LogWriteError):
+                    sink._fail(path, exc)
+                return False
+
+        return _Naming()
+
+
+#: Bytes an episode log takes per sample at most: the payload (about 120 bytes) and its MCAP
+#: message record and index entries (about 60 bytes), as if compression saved nothing.
+BYTES_PER_SAMPLE = 200
+
+
+def log_size_needed(n_samples: int) -> int:
+    """Free space (bytes) an episode of ``n_samples`` must find before it starts: twice the
+    uncompressed size (:data:`BYTES_PER_SAMPLE`) plus 1 MB for the metadata and the summary."""
+    return 2 * BYTES_PER_SAMPLE * max(n_samples, 0) + 1_000_000
+
+
+class LogWriteError(OSError):
+    """An episode log could not be written: the file and the operating system's reason.
+
+    ``str()`` reads ``<file>: <reason> (<ERRNO>)``.
+    """
+
+    def __init__(self, path, cause: OSError) -> None:
+        super().__init__(cause.errno, cause.strerror or str(cause))
+        self.path = path
+        self.cause = cause
+
+    def __str__(self) -> str:
+        name = errno.errorcode.get(self.errno, "") if self.errno else ""
+        return f"{self.path}: {self.strerror}" + (f" ({name})" if name else "")
 
 
 def episode_file_stem(metadata: EpisodeMetadata) -> str:

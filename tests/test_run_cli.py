@@ -92,7 +92,7 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
     status = main(["--episodes", "2", "--duration", "10", "--seed", "3", "--theta-limit", "3",
                    "--out", str(tmp_path), "-q"])
     out = capsys.readouterr().out
-    assert status == 1
+    assert status == 0, "a safety stop is a recorded outcome of an episode, not an error of the run"
     assert "0 complete, 2 aborted" in out and "safety stop: |theta|" in out
     for ep in _episodes(tmp_path):
         assert ep.metadata.status == "aborted" and "|theta|" in ep.metadata.status_reason

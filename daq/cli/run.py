@@ -36,8 +36,11 @@ the log closed as "aborted" with the reason.
 """
 
 _EPILOG = """\
-exit status: 0 when every episode completed, 1 when any was aborted (or a run
-error), 2 on a usage error, 130 / 143 when stopped by SIGINT / SIGTERM.
+exit status: 0 when every episode completed or was stopped by the safety limits
+(a recorded outcome, counted in the summary); 1 when one was aborted by a fault,
+a log write error (the file and the error are named) or another run error; 2 on
+a usage error; 130 / 143 when stopped by SIGINT / SIGTERM. Before each episode
+the free space of --out is checked against what it needs.
 
 examples:
   qube-run                                        # 3 x 20 s on the simulator into ./episodes
@@ -420,16 +423,23 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
         print(link)
     for r in results:
         for error in r.sink_errors:
-            print(f"{PROG}: warning: {error}", file=sys.stderr)
+            if not (mcap.error is not None and error.startswith("McapSink.")):
+                print(f"{PROG}: warning: {error}", file=sys.stderr)
     out = args.out.resolve()
     print(f"{run.n_complete} complete, {run.n_aborted} aborted; {len(started)} episode "
           f"log{'s' if len(started) != 1 else ''} in {out}"
           + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else ""))
-    if run.stopped:
+    if run.stopped and mcap.error is None:
         print(f"{PROG}: run stopped: {run.stopped}", file=sys.stderr)
+    if mcap.error is not None:
+        print(f"{PROG}: error: {mcap.error}: " + ("the episode was not started" if not mcap.error.path.exists()
+              else "the episode was stopped with the motor at 0 V; the samples flushed before stay "
+                   "readable, marked incomplete"), file=sys.stderr)
     if run.signal is not None:
         return 128 + int(run.signal)
-    return 0 if run.n_aborted == 0 and len(results) == len(plans) else 1
+    # A safety stop is a recorded outcome of an episode, not an error of the run.
+    errors = [r for r in results if r.status == "aborted" and r.cause != "safety"]
+    return 0 if not errors and len(results) == len(plans) else 1
 
 
 if __name__ == "__main__":
