@@ -208,6 +208,15 @@ class SinkWriter:
         self._thread.start()
         return self.failed is None
 
+    def wait_below(self, n: int, poll: float = 0.0005) -> None:
+        """Block until at most ``n`` samples wait to be written (for free-running loops only).
+
+        A loop without deadlines produces samples faster than a log takes them; without this
+        the queue would hold the whole episode (memory growing with its length).
+        """
+        while len(self._queue) > n and self._thread is not None and self._thread.is_alive():
+            time.sleep(poll)
+
     def keep_clear(self, t0: float, period: float, guard: float) -> None:
         """Do no work in the last ``guard`` seconds before each tick deadline ``t0 + k period``.
 
@@ -314,6 +323,7 @@ class McapSink:
         """
         from daq.log import EpisodeWriter
 
+        self.error = None
         base = episode_file_stem(metadata)
         path = self.out_dir / f"{base}.mcap"
         n = 1
@@ -325,19 +335,23 @@ class McapSink:
         if free < need:
             self._fail(path, OSError(errno.ENOSPC, f"{free / 1e6:.1f} MB free, the episode needs about "
                                                    f"{need / 1e6:.1f} MB; not started"))
-        with self._naming(path):
+        try:
             self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
+        except OSError as exc:
+            self._fail(path, exc)
         self.paths.append(path)
 
     def write(self, sample: Sample) -> None:
         """Append one tick (flushed every ``flush_interval_s`` of data)."""
-        with self._naming(self._writer.path):
+        try:
             self._writer.write_sample(
                 t=sample.t, theta=sample.theta, alpha=sample.alpha, target_theta=sample.target_theta,
                 target_alpha=sample.target_alpha, feedforward=sample.feedforward,
                 controller_state=sample.controller_state, control_output=sample.control_output,
                 plant_input=sample.plant_input, saturation=sample.saturation, lateness=sample.lateness,
                 compute_time=sample.compute_time)
+        except OSError as exc:
+            self._fail(self._writer.path, exc)
 
     def close(self, outcome: EpisodeOutcome) -> None:
         """Record the final status, timing statistics and backend counters, and close the file.
@@ -351,27 +365,15 @@ class McapSink:
         if self.error is not None:
             writer.abandon()
             return
-        with self._naming(writer.path):
+        try:
             writer.finish(outcome.status, outcome.reason, outcome.timing.as_dict(), outcome.backend_stats)
+        except OSError as exc:
+            self._fail(writer.path, exc)
 
     def _fail(self, path, exc: OSError):
-        self.error = LogWriteError(path, exc)
+        """Record and raise the error as a :class:`LogWriteError` naming ``path``."""
+        self.error = exc if isinstance(exc, LogWriteError) else LogWriteError(path, exc)
         raise self.error from None
-
-    def _naming(self, path):
-        """A context in which an OSError becomes a :class:`LogWriteError` naming ``path``."""
-        sink = self
-
-        class _Naming:
-            def __enter__(self):
-                return None
-
-            def __exit__(self, kind, exc, tb):
-                if isinstance(exc, OSError) and not isinstance(exc, LogWriteError):
-                    sink._fail(path, exc)
-                return False
-
-        return _Naming()
 
 
 #: Bytes an episode log takes per sample at most: the payload (about 120 bytes) and its MCAP

@@ -332,8 +332,13 @@ def _run(args) -> int:
     import numpy as np
 
     from daq.safety import SafetyLimits
-    from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from daq.session import MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller, plan_episodes, run_seeds
 
+    if args.episodes > MAX_EPISODES:
+        raise _Fail(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "
+                    "for more)")
+    if args.duration > MAX_DURATION:
+        raise _Fail(f"--duration {args.duration:g}: at most {MAX_DURATION:g} s (24 h) per episode")
     rate = 500.0
     try:
         settings = excitation_settings(args.duration, rate)
