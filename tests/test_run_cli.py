@@ -119,13 +119,17 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
     (["--perturbation", "6"], "start gate"),
     (["--alpha-limit", "2"], "start_alpha"),
     (["--rerun-save", "no/such/folder/run.rrd"], "does not exist"),
+    (["--rerun-save", "{file}"], "a_file: already exists (a recording is not overwritten"),
+    (["--controller", "{binary}"], "binary.toml: not a text file (a TOML controller file is expected)"),
 ])
 def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, message):
     bad = tmp_path / "bad.toml"
     bad.write_text("kp_theta = [")
     a_file = tmp_path / "a_file"
     a_file.write_text("")
-    args = [a.format(bad=bad, file=a_file) for a in args]
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(bytes(range(256)))
+    args = [a.format(bad=bad, file=a_file, binary=binary) for a in args]
     out_dir = tmp_path / "out"
     if "--out" not in args:
         args += ["--out", str(out_dir)]

@@ -92,6 +92,8 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
+    from sim.cli.common import add_version
+
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--backend", default="sim", choices=("sim", "serial"),
@@ -139,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
                     help="run SCHED_FIFO at priority P (1..99; needs permission)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_version(p)
     return p
 
 
@@ -359,6 +362,9 @@ def _run(args) -> int:
     _check_writable(args.out)
     if args.rerun_save is not None and not args.rerun_save.parent.is_dir():
         raise _Fail(f"--rerun-save: folder {args.rerun_save.parent} does not exist")
+    if args.rerun_save is not None and args.rerun_save.exists():
+        raise _Fail(f"--rerun-save: {args.rerun_save}: already exists (a recording is not overwritten; "
+                    "remove it or choose another name)")
 
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 1_000_000)
     seeds, backend_seed = run_seeds(seed, args.episodes)
