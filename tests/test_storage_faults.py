@@ -132,3 +132,25 @@ def test_too_little_free_space_refuses_to_start(monkeypatch, tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
     assert "1.0 MB free, the episode needs about 5.0 MB; not started (ENOSPC): the episode was not started" in err
     assert err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_flipped_bytes_read_as_a_corrupted_chunk_at_its_offset(tmp_path):
+    from _episodes import make_episode
+
+    from daq.log import EpisodeWriter
+
+    episode = make_episode(4000, seed=2)
+    path = tmp_path / "flipped.mcap"
+    with EpisodeWriter(path, episode.metadata, flush_interval_s=0.5) as writer:
+        writer.write_samples(episode)
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle] ^= 0xFF
+    data[middle + 1] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.warns(IncompleteEpisodeWarning, match="is unusable"):
+        ep = read_episode(path)
+    reason = ep.metadata.status_reason
+    assert ep.metadata.status == "incomplete" and 0 < len(ep) < 4000
+    assert reason.startswith("corrupted: Chunk record at byte ") and "CRC" in reason, reason
+    assert "writer stopped" not in reason
