@@ -154,3 +154,14 @@ def test_flipped_bytes_read_as_a_corrupted_chunk_at_its_offset(tmp_path):
     assert ep.metadata.status == "incomplete" and 0 < len(ep) < 4000
     assert reason.startswith("corrupted: Chunk record at byte ") and "CRC" in reason, reason
     assert "writer stopped" not in reason
+
+
+def test_qube_import_of_a_binary_file_is_one_short_line(tmp_path, capsys):
+    from daq.cli.import_csv import main as import_main
+
+    src = tmp_path / "qube_20230828T120000_1_2_3.csv"
+    src.write_bytes(b"\x7fELF\x02\x01\x01" + bytes(3000))
+    controller = Path(__file__).resolve().parents[1] / "daq" / "rig_controller.toml"
+    assert import_main([str(src), "--controller", str(controller), "--out", str(tmp_path / "o"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err == f"qube-import: refused: {src}: not a CSV file (binary content: NUL bytes near its start)\n"
