@@ -493,8 +493,10 @@ def test_qube_run_in_real_time(env, tmp_path, capsys):
         out_dir = tmp_path / f"attempt{attempt}"
         proc, path = start_emulator(env, "--seed", "5")
         try:
+            # A 200 ms link timeout: an emulator process held up pauses device time (its ticks
+            # slip, nothing is lost), which the default 25 ms would take for a lost link.
             status = main(["--backend", "serial", "--port", path, "--episodes", "2", "--duration", "2",
-                           "--seed", "7", "--out", str(out_dir), "-q"])
+                           "--seed", "7", "--out", str(out_dir), "--link-timeout", "200", "-q"])
         finally:
             _, emulator_err = stop_process(proc)
         out = capsys.readouterr().out
