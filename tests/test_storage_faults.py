@@ -165,3 +165,28 @@ def test_qube_import_of_a_binary_file_is_one_short_line(tmp_path, capsys):
     assert import_main([str(src), "--controller", str(controller), "--out", str(tmp_path / "o"), "-q"]) == 1
     err = capsys.readouterr().err
     assert err == f"qube-import: refused: {src}: not a CSV file (binary content: NUL bytes near its start)\n"
+
+
+def test_a_log_failing_on_its_last_sample_is_never_recorded_complete(tmp_path):
+    # Free-running, the loop is done long before the writer thread reaches the last sample:
+    # the failure then shows only while the queue drains, and must still abort the episode.
+    from daq.loop import run_episode
+    from daq.session import excitation_settings, load_controller, plan_episodes
+
+    plan = plan_episodes(load_controller(), [(1, 2, 3)], excitation_settings(1.0))[0]
+
+    class FailsAtTheEnd(MemorySink):
+        def write(self, sample):
+            if sample.k == plan.n_samples - 1:
+                raise OSError(errno.EIO, os.strerror(errno.EIO))
+            super().write(sample)
+
+        def close(self, outcome):
+            self.outcome = outcome
+            super().close(outcome)
+
+    failing, mcap = FailsAtTheEnd(), McapSink(tmp_path)
+    result = run_episode(SimBackend(seed=1), plan, [failing, mcap], handle_signals=False)
+    assert result.status == "aborted" and result.cause == "log" and "Input/output error" in result.reason
+    assert failing.outcome.status == "aborted" and result.metadata.status == "aborted"
+    assert read_episode(_logs(tmp_path)[0]).metadata.status == "aborted"  # the log says so too
