@@ -334,7 +334,7 @@ class McapSink:
         free = shutil.disk_usage(self.out_dir).free
         if free < need:
             self._fail(path, OSError(errno.ENOSPC, f"{free / 1e6:.1f} MB free, the episode needs about "
-                                                   f"{need / 1e6:.1f} MB; not started"))
+                                                   f"{need / 1e6:.1f} MB"))
         try:
             self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
         except OSError as exc:

@@ -130,7 +130,7 @@ def test_too_little_free_space_refuses_to_start(monkeypatch, tmp_path, capsys):
     assert main(["--episodes", "2", "--duration", "20", "--out", str(tmp_path), "-q"]) == 1
     err = capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
-    assert "1.0 MB free, the episode needs about 5.0 MB; not started (ENOSPC): the episode was not started" in err
+    assert "1.0 MB free, the episode needs about 5.0 MB (ENOSPC): the episode was not started" in err
     assert err.count("\n") == 1 and "Traceback" not in err
 
 
