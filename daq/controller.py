@@ -71,6 +71,8 @@ def load_pd_gains(path: str | Path) -> PdGains:
         data = tomllib.loads(path.read_text())
     except OSError as exc:
         raise ValueError(f"{path}: cannot read controller file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (a TOML controller file is expected)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path}: not valid TOML ({exc})") from None
     fields = PdGains.__dataclass_fields__

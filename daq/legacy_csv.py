@@ -109,6 +109,11 @@ def _line_of(text: str, row: int) -> int:
     return -1
 
 
+def _shorten(text: str, limit: int = 120) -> str:
+    """``text`` cut to ``limit`` characters, marked when cut (for one-line messages)."""
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
     """Parse and validate a legacy CSV file.
 
@@ -132,6 +137,8 @@ def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
         raw = path.read_bytes()
     except OSError as exc:
         raise LegacyCsvError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if b"\0" in raw[:4096]:
+        raise LegacyCsvError(f"{path}: not a CSV file (binary content: NUL bytes near its start)")
     text = raw.decode("utf-8", errors="replace")
     header = text.split("\n", 1)[0].strip()
     if not header:
@@ -140,7 +147,7 @@ def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
     missing = [c for c in LEGACY_COLUMNS if c not in names]
     if missing:
         raise LegacyCsvError(f"{path}: missing column{'s' if len(missing) > 1 else ''} "
-                             f"{', '.join(missing)} (header: {header!r})")
+                             f"{', '.join(missing)} (header: {_shorten(header)!r})")
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:
         raise LegacyCsvError(f"{path}: duplicated column {', '.join(duplicated)}")

@@ -44,6 +44,14 @@ REALTIME_SWITCH_INTERVAL = 1e-4
 #: deadline (s): the loop's spin before the deadline must not share the GIL.
 WRITER_GUARD = 0.8e-3
 
+# A free-running loop (no deadlines) waits, every 1024 ticks, until at most this many samples
+# wait for the writer thread: its queue, and so memory, stays bounded whatever the length.
+_MAX_BACKLOG = 8192
+_BACKLOG_CHECK = 1023
+# Ticks of excitation converted to plain floats at a time (a power of two).
+_CHUNK = 4096
+_CHUNK_MASK = _CHUNK - 1
+
 
 @dataclass(frozen=True, eq=False)
 class EpisodePlan:
@@ -240,6 +248,11 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
             outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
                                      _statistics(backend))
             errors = writer.close(outcome)
+            if writer.failed is not None and not reason:
+                # The log failed after the last tick, while its queue drained: the episode is
+                # lost all the same (SinkWriter.close recorded it aborted).
+                reason, cause = f"log failed: {writer.failed}", "log"
+                outcome = replace(outcome, status="aborted", reason=reason)
     metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict(),
                        backend_stats=outcome.backend_stats)
     return EpisodeResult(outcome.status, reason, n_done, timing, outcome.backend_stats, metadata=metadata,
@@ -261,9 +274,10 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
     rows = [(a, b[0], b[1]) for a, b in zip(A, B)]
     xc = (0.0,) * ctrl.n_states
     ex = plan.excitation
-    ref_theta = np.asarray(ex.target_theta, dtype=float).tolist()
-    ref_alpha = np.asarray(ex.target_alpha, dtype=float).tolist()
-    ff = np.asarray(ex.feedforward, dtype=float).tolist()
+    n_ticks = len(ex.feedforward)
+    # The excitation is turned into plain floats a chunk at a time: a whole long episode's
+    # worth would take 100 bytes a tick.
+    ref_theta = ref_alpha = ff = []
     vmax = limits.max_voltage
     th_lim, al_lim = limits.theta_limit, limits.alpha_limit
     period = backend.sample_period
@@ -278,10 +292,16 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         writer.keep_clear(pacer.start(), period, min(WRITER_GUARD, 0.5 * period))
     wait = pacer.wait if pacer is not None else None
     device = pacing is Pacing.DEVICE
+    throttle = pacing is Pacing.NONE
     device_time = backend.device_time
     when0 = None
 
-    for k in range(len(ff)):
+    for k in range(n_ticks):
+        j = k & _CHUNK_MASK
+        if not j:
+            ref_theta = np.asarray(ex.target_theta[k:k + _CHUNK], dtype=float).tolist()
+            ref_alpha = np.asarray(ex.target_alpha[k:k + _CHUNK], dtype=float).tolist()
+            ff = np.asarray(ex.feedforward[k:k + _CHUNK], dtype=float).tolist()
         if wait is not None:
             late = wait(k)
             t_tick = clock()
@@ -306,7 +326,7 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
                         t0 += late
                         late = 0.0
                         writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
-        r_theta, r_alpha = ref_theta[k], ref_alpha[k]
+        r_theta, r_alpha = ref_theta[j], ref_alpha[j]
         e0 = r_theta - theta
         e1 = r_alpha - alpha
         u = D0 * e0 + D1 * e1
@@ -322,7 +342,7 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         if reason:
             v, sat = 0.0, 0
         else:
-            v = u + ff[k]
+            v = u + ff[j]
             sat = 0
             if v > vmax:
                 v, sat = vmax, 1
@@ -335,8 +355,10 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         spent = clock() - t_tick
         lateness[k] = late
         compute[k] = spent
-        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[k], u, v, sat, late, spent, xc))
+        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[j], u, v, sat, late, spent, xc))
+        if throttle and not k & _BACKLOG_CHECK:
+            writer.wait_below(_MAX_BACKLOG)  # free-running: memory must not grow with the episode
         if reason:
             return k + 1, reason, cause
         xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 for row, b0, b1 in rows])
-    return len(ff), "", ""
+    return n_ticks, "", ""

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Sequence, overload
 
 import numpy as np
 
@@ -33,12 +33,21 @@ __all__ = [
     "excitation_settings",
     "excitation_record",
     "plan_episodes",
+    "EpisodePlans",
+    "MAX_EPISODES",
+    "MAX_DURATION",
     "RunResult",
     "run_episodes",
 ]
 
 #: Excitation seeds are drawn from this range, as the rig's were (1..999).
 SEED_RANGE = (1, 999)
+
+#: Most episodes one run plans (their seeds take 6 bytes each: 6 MB).
+MAX_EPISODES = 1_000_000
+#: Longest episode (s): one day. An episode's plan and timing arrays take 40 bytes a tick
+#: (about 1.7 GB at 500 Hz for a day); see bench/bench_memory.py.
+MAX_DURATION = 86_400.0
 
 # The rig's excitation (FACTS section 3) was laid out for 20 s episodes:
 # quiet until 4 s, active until 16 s. Other lengths keep these proportions.
@@ -63,13 +72,14 @@ def load_controller(path: str | Path | None = None, method: str = "backward-eule
     return ControllerInfo(pd_controller(gains, dt, method), method, gains.as_dict(), "pd")
 
 
-def run_seeds(seed: int, n_episodes: int) -> tuple[list[tuple[int, int, int]], int]:
-    """Three excitation seeds per episode and a seed for the backend, all drawn from ``seed``."""
-    if n_episodes < 0:
-        raise ValueError(f"n_episodes must be non-negative, got {n_episodes}")
+def run_seeds(seed: int, n_episodes: int) -> tuple[np.ndarray, int]:
+    """Three excitation seeds per episode (an ``(n_episodes, 3)`` int16 array) and a seed for
+    the backend, all drawn from ``seed``."""
+    if not 0 <= n_episodes <= MAX_EPISODES:
+        raise ValueError(f"n_episodes must be in [0, {MAX_EPISODES}], got {n_episodes}")
     rng = np.random.default_rng(seed)
-    draws = rng.integers(SEED_RANGE[0], SEED_RANGE[1] + 1, size=(n_episodes, 3))
-    return [tuple(int(s) for s in row) for row in draws], int(rng.integers(2**32))
+    draws = rng.integers(SEED_RANGE[0], SEED_RANGE[1] + 1, size=(n_episodes, 3)).astype(np.int16)
+    return draws, int(rng.integers(2**32))
 
 
 def excitation_settings(duration: float, sample_rate: float = 500.0) -> ExcitationSettings:
@@ -100,11 +110,46 @@ def excitation_record(seeds: Sequence[int], settings: ExcitationSettings) -> dic
 
 def plan_episodes(controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]],
                   settings: ExcitationSettings, source: str = "", extra: dict | None = None
-                  ) -> list[EpisodePlan]:
-    """One plan per seed triple: the rig's excitation with those seeds, under ``controller``."""
-    return [EpisodePlan(controller, generate_excitation(tuple(s), settings), excitation_record(s, settings),
-                        index=i, source=source, extra=dict(extra or {}))
-            for i, s in enumerate(seeds)]
+                  ) -> "EpisodePlans":
+    """One plan per seed triple: the rig's excitation with those seeds, under ``controller``.
+
+    The plans are made one at a time, when asked for (:class:`EpisodePlans`).
+    """
+    return EpisodePlans(controller, seeds, settings, source, extra)
+
+
+class EpisodePlans(Sequence):
+    """The plans of a run, each made when it is asked for.
+
+    Only the seeds are kept (6 bytes an episode), so planning a million episodes costs what
+    planning one does, plus 6 MB; each plan's excitation exists while its episode runs.
+    """
+
+    def __init__(self, controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]],
+                 settings: ExcitationSettings, source: str = "", extra: dict | None = None) -> None:
+        self.controller = controller
+        self.seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 3)
+        self.settings = settings
+        self.source = source
+        self.extra = dict(extra or {})
+
+    def __len__(self) -> int:
+        return len(self.seeds)
+
+    @overload
+    def __getitem__(self, index: int) -> EpisodePlan: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[EpisodePlan]: ...
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        i = range(len(self))[index]  # IndexError and negative indices as a list's
+        s = tuple(int(v) for v in self.seeds[i])
+        return EpisodePlan(self.controller, generate_excitation(s, self.settings),
+                           excitation_record(s, self.settings), index=i, source=self.source,
+                           extra=dict(self.extra))
 
 
 @dataclass

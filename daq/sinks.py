@@ -9,10 +9,12 @@ run on the writer thread except ``open``, which runs before the first tick.
 
 from __future__ import annotations
 
+import errno
+import shutil
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import numpy as np
@@ -28,6 +30,8 @@ __all__ = [
     "MemorySink",
     "MemoryEpisode",
     "SinkWriter",
+    "LogWriteError",
+    "BYTES_PER_SAMPLE",
     "McapSink",
     "episode_file_stem",
 ]
@@ -204,6 +208,15 @@ class SinkWriter:
         self._thread.start()
         return self.failed is None
 
+    def wait_below(self, n: int, poll: float = 0.0005) -> None:
+        """Block until at most ``n`` samples wait to be written (for free-running loops only).
+
+        A loop without deadlines produces samples faster than a log takes them; without this
+        the queue would hold the whole episode (memory growing with its length).
+        """
+        while len(self._queue) > n and self._thread is not None and self._thread.is_alive():
+            time.sleep(poll)
+
     def keep_clear(self, t0: float, period: float, guard: float) -> None:
         """Do no work in the last ``guard`` seconds before each tick deadline ``t0 + k period``.
 
@@ -250,7 +263,11 @@ class SinkWriter:
             self._thread.join()
             self._thread = None
         # A sink that failed mid-episode still gets closed: the log then
-        # records the abort and the samples it did take.
+        # records the abort and the samples it did take. A required sink that failed while
+        # the queue drained after the last tick makes the episode aborted too: never
+        # recorded complete with samples missing.
+        if self.failed is not None and outcome.status == "complete":
+            outcome = replace(outcome, status="aborted", reason=f"log failed: {self.failed}")
         for sink in self._opened:
             if sink in self._active or getattr(sink, "required", True):
                 try:
@@ -293,35 +310,97 @@ class McapSink:
         self.out_dir = Path(out_dir)
         self.flush_interval_s = flush_interval_s
         self.paths: list = []
+        self.error: LogWriteError | None = None
         self._writer = None
 
     def open(self, metadata: EpisodeMetadata) -> None:
-        """Create the episode's file and write its metadata (durable at once)."""
+        """Check the free space, create the episode's file and write its metadata (durable at once).
+
+        Raises
+        ------
+        LogWriteError
+            Too little free space for the planned episode, or the file cannot be written.
+        """
         from daq.log import EpisodeWriter
 
+        self.error = None
         base = episode_file_stem(metadata)
         path = self.out_dir / f"{base}.mcap"
         n = 1
         while path.exists():
             path = self.out_dir / f"{base}_{n}.mcap"
             n += 1
-        self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
+        need = log_size_needed(int(metadata.extra.get("n_planned", 0)))
+        free = shutil.disk_usage(self.out_dir).free
+        if free < need:
+            self._fail(path, OSError(errno.ENOSPC, f"{free / 1e6:.1f} MB free, the episode needs about "
+                                                   f"{need / 1e6:.1f} MB"))
+        try:
+            self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
+        except OSError as exc:
+            self._fail(path, exc)
         self.paths.append(path)
 
     def write(self, sample: Sample) -> None:
         """Append one tick (flushed every ``flush_interval_s`` of data)."""
-        self._writer.write_sample(t=sample.t, theta=sample.theta, alpha=sample.alpha,
-                                  target_theta=sample.target_theta, target_alpha=sample.target_alpha,
-                                  feedforward=sample.feedforward, controller_state=sample.controller_state,
-                                  control_output=sample.control_output, plant_input=sample.plant_input,
-                                  saturation=sample.saturation, lateness=sample.lateness,
-                                  compute_time=sample.compute_time)
+        try:
+            self._writer.write_sample(
+                t=sample.t, theta=sample.theta, alpha=sample.alpha, target_theta=sample.target_theta,
+                target_alpha=sample.target_alpha, feedforward=sample.feedforward,
+                controller_state=sample.controller_state, control_output=sample.control_output,
+                plant_input=sample.plant_input, saturation=sample.saturation, lateness=sample.lateness,
+                compute_time=sample.compute_time)
+        except OSError as exc:
+            self._fail(self._writer.path, exc)
 
     def close(self, outcome: EpisodeOutcome) -> None:
-        """Record the final status, timing statistics and backend counters, and close the file."""
+        """Record the final status, timing statistics and backend counters, and close the file.
+
+        After a write error the file is closed without a status record instead: it then
+        reads as incomplete, up to its last flushed chunk.
+        """
         writer, self._writer = self._writer, None
-        if writer is not None and not writer.finished:
+        if writer is None or writer.finished:
+            return
+        if self.error is not None:
+            writer.abandon()
+            return
+        try:
             writer.finish(outcome.status, outcome.reason, outcome.timing.as_dict(), outcome.backend_stats)
+        except OSError as exc:
+            self._fail(writer.path, exc)
+
+    def _fail(self, path, exc: OSError):
+        """Record and raise the error as a :class:`LogWriteError` naming ``path``."""
+        self.error = exc if isinstance(exc, LogWriteError) else LogWriteError(path, exc)
+        raise self.error from None
+
+
+#: Bytes an episode log takes per sample at most: the payload (about 120 bytes) and its MCAP
+#: message record and index entries (about 60 bytes), as if compression saved nothing.
+BYTES_PER_SAMPLE = 200
+
+
+def log_size_needed(n_samples: int) -> int:
+    """Free space (bytes) an episode of ``n_samples`` must find before it starts: twice the
+    uncompressed size (:data:`BYTES_PER_SAMPLE`) plus 1 MB for the metadata and the summary."""
+    return 2 * BYTES_PER_SAMPLE * max(n_samples, 0) + 1_000_000
+
+
+class LogWriteError(OSError):
+    """An episode log could not be written: the file and the operating system's reason.
+
+    ``str()`` reads ``<file>: <reason> (<ERRNO>)``.
+    """
+
+    def __init__(self, path, cause: OSError) -> None:
+        super().__init__(cause.errno, cause.strerror or str(cause))
+        self.path = path
+        self.cause = cause
+
+    def __str__(self) -> str:
+        name = errno.errorcode.get(self.errno, "") if self.errno else ""
+        return f"{self.path}: {self.strerror}" + (f" ({name})" if name else "")
 
 
 def episode_file_stem(metadata: EpisodeMetadata) -> str:

@@ -13,13 +13,17 @@ from identify.trajectory import Trajectory
 from sim.lti import DiscreteStateSpace
 
 __all__ = ["LoggedTrajectory", "load_logs", "check_same_controller", "check_same_rate",
-           "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "same_system"]
+           "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "UnreadableLogSkipped", "same_system"]
 
 STATE_NAMES = ("theta", "alpha")
 
 
 class IncompleteLogSkipped(UserWarning):
     """An incomplete (aborted or salvaged) log was left out of the data."""
+
+
+class UnreadableLogSkipped(IncompleteLogSkipped):
+    """A file that cannot be read as an episode log (empty, not MCAP, no metadata) was left out."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,7 +39,9 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False) 
     """Read MCAP episode logs into trajectories, dropping ``skip`` samples at each start.
 
     Incomplete logs (aborted, or cut short and salvaged) are skipped with an
-    :class:`IncompleteLogSkipped` warning, or refused when ``strict``.
+    :class:`IncompleteLogSkipped` warning, unreadable ones (empty, not MCAP,
+    damaged before the episode's metadata) with an :class:`UnreadableLogSkipped`
+    warning, one per file naming it and the reason; both are refused when ``strict``.
 
     Raises
     ------
@@ -52,7 +58,14 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False) 
         path = Path(raw)
         if not path.is_file():
             raise ValueError(f"{path}: no such log file")
-        episode = read_episode(path, warn=False)
+        try:
+            episode = read_episode(path, warn=False)
+        except (ValueError, OSError) as exc:
+            problem = str(exc).removeprefix(f"{path}: ") if isinstance(exc, ValueError) else exc.strerror or exc
+            if strict:
+                raise ValueError(f"{path}: {problem}; refused because of --strict") from None
+            warnings.warn(f"{path}: {problem}; skipped", UnreadableLogSkipped, stacklevel=2)
+            continue
         if not episode.is_complete:
             reason = episode.metadata.status_reason or episode.metadata.salvage_note or episode.metadata.status
             if strict:

@@ -1,8 +1,11 @@
-"""Shared fixtures: where the paper's QUBE-Servo dataset lives."""
+"""Shared fixtures: where the paper's QUBE-Servo dataset lives; no process outlives the suite."""
 
 from __future__ import annotations
 
+import ctypes
 import os
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -24,7 +27,9 @@ def qube_dataset() -> Path:
     """Path of the dataset folder; skips with a message saying where the data comes from."""
     path = dataset_dir()
     if path is None:
-        pytest.skip(f"dataset not found: set {DATASET_ENV} or place {DATASET_SOURCE} "
+        # CI must run them: a missing dataset there is a broken setup, not a reason to skip.
+        fail = pytest.fail if os.environ.get("CI", "").lower() == "true" else pytest.skip
+        fail(f"dataset not found: set {DATASET_ENV} or place {DATASET_SOURCE} "
                     f"at {DEFAULT_DATASET}")
     return path
 
@@ -46,3 +51,74 @@ def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
     for path in qube_csv_files:
         write_episode(out / f"{path.stem}.mcap", legacy_episode(path, controller))
     return out
+
+
+# --- no process started by the suite outlives it -------------------------------------------------
+
+_PR_SET_CHILD_SUBREAPER = 36
+
+
+def _become_subreaper() -> bool:
+    """Let orphans of the suite's children be re-parented to this process, not to init (Linux)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _descendants(root: int) -> dict[int, str]:
+    """Live (not zombie) descendants of ``root`` from /proc: {pid: command line}."""
+    parent: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[0] != "Z":
+            parent[int(entry.name)] = int(fields[1])
+    found, frontier = {}, [root]
+    while frontier:
+        pid = frontier.pop()
+        for child, ppid in parent.items():
+            if ppid == pid and child not in found:
+                try:
+                    cmd = (Path("/proc") / str(child) / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+                except OSError:
+                    cmd = "?"
+                found[child] = cmd.strip()
+                frontier.append(child)
+    return found
+
+
+@pytest.fixture(scope="session", autouse=True)
+def no_process_outlives_the_suite():
+    """At the end of the session, fail naming any process the suite started that still runs.
+
+    This process becomes a child subreaper, so a grandchild whose parent died (a server
+    started through a wrapper script) is still counted. Those found are then terminated.
+    """
+    if not Path("/proc/self/stat").exists():
+        yield
+        return
+    before = set(_descendants(os.getpid()))
+    _become_subreaper()
+    yield
+    time.sleep(0.3)  # a process started just now is forked by then
+    deadline = time.monotonic() + 5  # give processes being stopped a moment to go
+    left = {p: c for p, c in _descendants(os.getpid()).items() if p not in before}
+    while left and time.monotonic() < deadline:
+        time.sleep(0.1)
+        left = {p: c for p, c in _descendants(os.getpid()).items() if p not in before}
+    for pid in left:
+        try:
+            os.kill(pid, 15)
+        except OSError:
+            pass
+    if left:
+        pytest.fail("processes started by the test suite outlived it: "
+                    + "; ".join(f"pid {p}: {c}" for p, c in sorted(left.items())), pytrace=False)

@@ -92,7 +92,7 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
     status = main(["--episodes", "2", "--duration", "10", "--seed", "3", "--theta-limit", "3",
                    "--out", str(tmp_path), "-q"])
     out = capsys.readouterr().out
-    assert status == 1
+    assert status == 0, "a safety stop is a recorded outcome of an episode, not an error of the run"
     assert "0 complete, 2 aborted" in out and "safety stop: |theta|" in out
     for ep in _episodes(tmp_path):
         assert ep.metadata.status == "aborted" and "|theta|" in ep.metadata.status_reason
@@ -107,20 +107,29 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
     (["--backend", "quantum"], "invalid choice: 'quantum'"),
     (["--backend", "serial"], "--backend serial needs --port DEV"),
     (["--backend", "serial", "--port", "/dev/null", "--realtime"], "--realtime is for --backend sim"),
-    (["--port", "/dev/ttyACM0"], "--port and --baud are for --backend serial"),
+    (["--port", "/dev/ttyACM0"], "--port, --baud and --link-timeout are for --backend serial"),
+    (["--link-timeout", "100"], "--port, --baud and --link-timeout are for --backend serial"),
     (["--backend", "serial", "--port", "/dev/x", "--baud", "0"], "must be at least 1"),
     (["--episodes", "0"], "must be at least 1"),
+    (["--episodes", "1000001"], "--episodes 1000001: at most 1,000,000 in one run"),
+    (["--duration", "86400.002"], "at most 86400 s (24 h) per episode"),
+    (["--duration", "nan"], "must be a finite number"),
+    (["--duration", "-1"], "must be a positive number"),
     (["--duration", "0.0013"], "not a whole, positive number of samples"),
     (["--perturbation", "6"], "start gate"),
     (["--alpha-limit", "2"], "start_alpha"),
     (["--rerun-save", "no/such/folder/run.rrd"], "does not exist"),
+    (["--rerun-save", "{file}"], "a_file: already exists (a recording is not overwritten"),
+    (["--controller", "{binary}"], "binary.toml: not a text file (a TOML controller file is expected)"),
 ])
 def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, message):
     bad = tmp_path / "bad.toml"
     bad.write_text("kp_theta = [")
     a_file = tmp_path / "a_file"
     a_file.write_text("")
-    args = [a.format(bad=bad, file=a_file) for a in args]
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(bytes(range(256)))
+    args = [a.format(bad=bad, file=a_file, binary=binary) for a in args]
     out_dir = tmp_path / "out"
     if "--out" not in args:
         args += ["--out", str(out_dir)]
@@ -178,8 +187,10 @@ def test_rerun_streams_to_a_listening_server(tmp_path):
     if shutil.which("rerun") is None:
         pytest.skip("the rerun command (from rerun-sdk) is not on PATH")
     port = _free_port()
+    # `rerun` is a wrapper that runs the viewer binary as its child: its own session, so that
+    # stopping it stops the binary too (terminating the wrapper alone left the server running).
     server = subprocess.Popen(["rerun", "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)
+                              stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 20
         while socket.socket().connect_ex(("127.0.0.1", port)) != 0:
@@ -189,8 +200,31 @@ def test_rerun_streams_to_a_listening_server(tmp_path):
         assert main(["--rerun", f"rerun+http://127.0.0.1:{port}/proxy", "--episodes", "1", "--duration", "1",
                      "--out", str(tmp_path), "-q"]) == 0
     finally:
-        server.terminate()
-        server.wait(timeout=10)
+        _stop_group(server)
+
+
+def _stop_group(proc: subprocess.Popen, grace: float = 5.0) -> None:
+    """SIGTERM a process group led by ``proc``; SIGKILL whatever of it still runs after ``grace``."""
+    os.killpg(proc.pid, signal.SIGTERM)
+    proc.wait(timeout=10)
+    deadline = time.monotonic() + grace
+    while _group_alive(proc.pid):
+        if time.monotonic() > deadline:
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+        time.sleep(0.05)
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether a live (not zombie) process of group ``pgid`` remains (from /proc)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[0] != "Z" and int(fields[3]) == pgid:
+            return True
+    return False
 
 
 # --- signals: a real process, paced in real time -------------------------------------------------

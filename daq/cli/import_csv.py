@@ -33,6 +33,8 @@ example:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
+    from sim.cli.common import add_version
+
     parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sources", nargs="+", metavar="SRC",
@@ -46,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="overwrite existing .mcap files in DIR (by default an existing file is "
                              "left alone and its CSV is refused)")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress counter")
+    add_version(parser)
     return parser
 
 

@@ -36,8 +36,11 @@ the log closed as "aborted" with the reason.
 """
 
 _EPILOG = """\
-exit status: 0 when every episode completed, 1 when any was aborted (or a run
-error), 2 on a usage error, 130 / 143 when stopped by SIGINT / SIGTERM.
+exit status: 0 when every episode completed or was stopped by the safety limits
+(a recorded outcome, counted in the summary); 1 when one was aborted by a fault,
+a log write error (the file and the error are named) or another run error; 2 on
+a usage error; 130 / 143 when stopped by SIGINT / SIGTERM. Before each episode
+the free space of --out is checked against what it needs.
 
 examples:
   qube-run                                        # 3 x 20 s on the simulator into ./episodes
@@ -89,6 +92,8 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
+    from sim.cli.common import add_version
+
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--backend", default="sim", choices=("sim", "serial"),
@@ -128,11 +133,15 @@ def build_parser() -> argparse.ArgumentParser:
                       help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
     link.add_argument("--baud", type=_positive_int, default=None, metavar="B",
                       help="baud rate of a UART bridge (default 500000, the sketch's; USB CDC ignores it)")
+    link.add_argument("--link-timeout", type=_positive_float, default=None, metavar="MS",
+                      help="abort an episode after this long without telemetry (default 25; raise it on a "
+                           "heavily loaded host, the bridge's watchdog still stops the motor after 10 ms)")
     rt = p.add_argument_group("real-time scheduling (attempted only when asked; works without)")
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
                     help="run SCHED_FIFO at priority P (1..99; needs permission)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_version(p)
     return p
 
 
@@ -275,8 +284,8 @@ def _check_backend_options(args) -> None:
                         "qube-emulate prints)")
         if args.realtime:
             raise _Fail("--realtime is for --backend sim: the bridge's clock paces the serial backend")
-    elif args.port is not None or args.baud is not None:
-        raise _Fail("--port and --baud are for --backend serial")
+    elif args.port is not None or args.baud is not None or args.link_timeout is not None:
+        raise _Fail("--port, --baud and --link-timeout are for --backend serial")
 
 
 def _make_backend(args, limits, backend_seed: int, rate: float):
@@ -287,10 +296,11 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
         return SimBackend(perturbation=math.radians(args.perturbation), seed=backend_seed,
                           realtime=args.realtime, dt=1.0 / rate)
     from daq.backends import BackendFault
-    from daq.backends.serial import DEFAULT_BAUD, SerialBackend
+    from daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
 
+    link_timeout = DEFAULT_LINK_TIMEOUT if args.link_timeout is None else args.link_timeout / 1e3
     backend = SerialBackend(args.port, args.baud or DEFAULT_BAUD, rate_hz=round(rate),
-                            max_voltage=limits.max_voltage)
+                            max_voltage=limits.max_voltage, link_timeout=link_timeout)
     try:
         backend.open()
     except BackendFault as exc:
@@ -325,8 +335,13 @@ def _run(args) -> int:
     import numpy as np
 
     from daq.safety import SafetyLimits
-    from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from daq.session import MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller, plan_episodes, run_seeds
 
+    if args.episodes > MAX_EPISODES:
+        raise _Fail(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "
+                    "for more)")
+    if args.duration > MAX_DURATION:
+        raise _Fail(f"--duration {args.duration:g}: at most {MAX_DURATION:g} s (24 h) per episode")
     rate = 500.0
     try:
         settings = excitation_settings(args.duration, rate)
@@ -347,6 +362,9 @@ def _run(args) -> int:
     _check_writable(args.out)
     if args.rerun_save is not None and not args.rerun_save.parent.is_dir():
         raise _Fail(f"--rerun-save: folder {args.rerun_save.parent} does not exist")
+    if args.rerun_save is not None and args.rerun_save.exists():
+        raise _Fail(f"--rerun-save: {args.rerun_save}: already exists (a recording is not overwritten; "
+                    "remove it or choose another name)")
 
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 1_000_000)
     seeds, backend_seed = run_seeds(seed, args.episodes)
@@ -416,16 +434,23 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
         print(link)
     for r in results:
         for error in r.sink_errors:
-            print(f"{PROG}: warning: {error}", file=sys.stderr)
+            if not (mcap.error is not None and error.startswith("McapSink.")):
+                print(f"{PROG}: warning: {error}", file=sys.stderr)
     out = args.out.resolve()
     print(f"{run.n_complete} complete, {run.n_aborted} aborted; {len(started)} episode "
           f"log{'s' if len(started) != 1 else ''} in {out}"
           + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else ""))
-    if run.stopped:
+    if run.stopped and mcap.error is None:
         print(f"{PROG}: run stopped: {run.stopped}", file=sys.stderr)
+    if mcap.error is not None:
+        print(f"{PROG}: error: {mcap.error}: " + ("the episode was not started" if not mcap.error.path.exists()
+              else "the episode was stopped with the motor at 0 V; the samples flushed before stay "
+                   "readable, marked incomplete"), file=sys.stderr)
     if run.signal is not None:
         return 128 + int(run.signal)
-    return 0 if run.n_aborted == 0 and len(results) == len(plans) else 1
+    # A safety stop is a recorded outcome of an episode, not an error of the run.
+    errors = [r for r in results if r.status == "aborted" and r.cause != "safety"]
+    return 0 if not errors and len(results) == len(plans) else 1
 
 
 if __name__ == "__main__":

@@ -125,7 +125,11 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
         timing = backend_stats = {}
         if status is None:
             status_value = "incomplete"
-            reason = "no final status record: the writer stopped before finishing the episode"
+            if " is unusable: " in salvage_note:
+                # A damaged record (flipped bits, a bad CRC) ends the readable part, not the writer.
+                reason = f"corrupted: {salvage_note}; the samples after it are lost"
+            else:
+                reason = "no final status record: the writer stopped before finishing the episode"
         else:
             status_value, reason = status.get("status", ""), status.get("reason", "")
             if "timing" in status:

@@ -107,6 +107,19 @@ class EpisodeWriter:
         self._struct = struct.Struct("<4s" + "d" * (len(fields) - 1) + "b")
         assert self._struct.size == self._dtype.itemsize
         self._file: IO[bytes] = open(self.path, "wb" if overwrite else "xb")
+        try:
+            self._start(metadata, compression, Writer, CompressionType)
+        except BaseException:
+            # A file whose header never reached the disk (a full disk, a size limit) is no log:
+            # nothing is left behind that a reader would have to reject.
+            try:
+                self._file.close()
+            except OSError:
+                pass
+            self.path.unlink(missing_ok=True)
+            raise
+
+    def _start(self, metadata: EpisodeMetadata, compression: str, Writer, CompressionType) -> None:
         self._mcap = Writer(self._file, compression={
             "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE,
         }[compression])
@@ -218,15 +231,31 @@ class EpisodeWriter:
             raise ValueError(f"status must be 'complete' or 'aborted', got {status!r}")
         if status == "aborted" and not reason:
             raise ValueError("an aborted episode needs a reason")
-        # Flush first so the status record follows the last chunk in the file.
-        self.flush()
-        self._mcap.add_metadata(STATUS_RECORD, status_record(status, reason, self._n, timing, backend_stats))
-        self._mcap.finish()
-        self._file.flush()
-        if self._fsync:
-            os.fsync(self._file.fileno())
+        try:
+            # Flush first so the status record follows the last chunk in the file.
+            self.flush()
+            self._mcap.add_metadata(STATUS_RECORD, status_record(status, reason, self._n, timing, backend_stats))
+            self._mcap.finish()
+            self._file.flush()
+            if self._fsync:
+                os.fsync(self._file.fileno())
+        except BaseException:
+            self.abandon()
+            raise
         self._file.close()
         self._finished = True
+
+    def abandon(self) -> None:
+        """Close the file without a status record (after a write error): it reads as incomplete.
+
+        What was flushed before stays readable (the salvage path of :func:`daq.log.read_episode`);
+        whatever the OS refuses now is dropped. Never raises.
+        """
+        self._finished = True
+        try:
+            self._file.close()
+        except OSError:
+            pass
 
     def __enter__(self) -> "EpisodeWriter":
         return self

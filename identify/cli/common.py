@@ -6,6 +6,7 @@ import json
 import math
 import os
 import sys
+import warnings
 from pathlib import Path
 
 
@@ -64,9 +65,25 @@ def progress(label: str, done: int, total: int) -> None:
 
 
 def run_command(command, args) -> int:
-    """Run ``command(args)``: user mistakes and interruptions become one line and an exit status."""
+    """Run ``command(args)``: user mistakes and interruptions become one line and an exit status.
+
+    A log left out of the data (incomplete or unreadable) is one ``warning:`` line naming it.
+    """
+    from identify.data import IncompleteLogSkipped
+
+    default_show = warnings.showwarning
+
+    def show(message, category, *rest, **kwargs):
+        if issubclass(category, IncompleteLogSkipped):
+            print(f"warning: {message}", file=sys.stderr)
+        else:
+            default_show(message, category, *rest, **kwargs)
+
     try:
-        return command(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", IncompleteLogSkipped)
+            warnings.showwarning = show
+            return command(args)
     except CliError as exc:
         return fail(str(exc))
     except KeyboardInterrupt:

@@ -21,8 +21,11 @@ Reproduce the closed-loop Koopman paper's results.
 
 
 def _parser() -> argparse.ArgumentParser:
+    from sim.cli.common import add_version
+
     parser = argparse.ArgumentParser(prog="qube-reproduce", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_version(parser)
     sub = parser.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
     duffing = sub.add_parser("duffing", help="paper section 4 (simulated Duffing oscillator)",
                              description="Paper section 4: simulate the Duffing experiment, fit four models, "

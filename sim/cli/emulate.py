@@ -61,6 +61,8 @@ _TIME = _number(0.0, 1e6, "a time")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
+    from sim.cli.common import add_version
+
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--target", choices=("host", "avr"), default="host",
@@ -102,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "(the last 10 minutes)")
     out.add_argument("--stats", default=None, metavar="FILE.json", help="write the final counters at exit")
     out.add_argument("-q", "--quiet", action="store_true", help="only the device path on standard output")
+    add_version(p)
     return p
 
 

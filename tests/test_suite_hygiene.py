@@ -1,0 +1,42 @@
+"""The suite's own guards (tests/conftest.py): leftover processes are seen, the dataset is required in CI."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+
+import pytest
+from conftest import _descendants
+
+pytest_plugins = ["pytester"]
+
+
+def test_an_orphaned_grandchild_is_still_seen_as_the_suites():
+    # The wrapper exits at once; its child (a stand-in for a server) lives on, re-parented to
+    # this process (a child subreaper for the session), so the end-of-session check names it.
+    wrapper = subprocess.Popen(["sh", "-c", "sleep 30 & echo $!"], stdout=subprocess.PIPE, text=True)
+    pid = int(wrapper.stdout.readline())
+    wrapper.wait(10)
+    try:
+        deadline = time.monotonic() + 5
+        while pid not in _descendants(os.getpid()):
+            assert time.monotonic() < deadline, "the orphaned grandchild is not counted"
+            time.sleep(0.05)
+        assert "sleep 30" in _descendants(os.getpid())[pid]
+    finally:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)  # re-parented to this process: reap it here
+    assert pid not in _descendants(os.getpid())
+
+
+def test_a_missing_dataset_fails_under_ci(pytester, monkeypatch):
+    pytester.makeconftest(open(os.path.join(os.path.dirname(__file__), "conftest.py")).read())
+    pytester.makepyfile("def test_needs(qube_dataset):\n    pass\n")
+    monkeypatch.setenv("QUBE_DATASET_DIR", str(pytester.path / "none"))
+    monkeypatch.setenv("CI", "true")
+    pytester.runpytest("-p", "no:cacheprovider").assert_outcomes(errors=1)
+    monkeypatch.setenv("CI", "")
+    pytester.runpytest("-p", "no:cacheprovider").assert_outcomes(skipped=1)
+
