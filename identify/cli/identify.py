@@ -28,8 +28,11 @@ METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-
 
 
 def _parser() -> argparse.ArgumentParser:
+    from sim.cli.common import add_version
+
     p = argparse.ArgumentParser(prog="qube-identify", description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_version(p)
     data = p.add_argument_group("data")
     data.add_argument("logs", nargs="*", metavar="LOGS", help="episode logs (.mcap files or folders), with --split")
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
