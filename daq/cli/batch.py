@@ -1,0 +1,55 @@
+"""Shared by the command-line tools that work through many files: the file list and a progress counter."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+__all__ = ["Progress", "expand_sources"]
+
+
+class Progress:
+    """A counter on stderr: rewritten in place on a terminal, one line per file otherwise."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled and total > 0
+        self.tty = sys.stderr.isatty()
+        self.width = len(str(total))
+
+    def step(self, done: int, name: str) -> None:
+        if not self.enabled:
+            return
+        line = f"[{done:>{self.width}}/{self.total}] {name}"
+        if self.tty:
+            print(f"\r\033[K{line}", end="" if done < self.total else "\n", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr)
+
+    def interrupt(self) -> None:
+        # Start error lines on a fresh line, not after the in-place counter.
+        if self.enabled and self.tty:
+            print("\r\033[K", end="", file=sys.stderr)
+
+
+def expand_sources(sources: list[str], suffix: str, problems: list[str]) -> list[Path]:
+    """Files named on the command line, a folder standing for its ``*<suffix>`` files.
+
+    A source that does not exist, or a folder without such files, is appended
+    to ``problems`` as a message naming it. A file named twice (say, on its
+    own and through its folder) is listed once.
+    """
+    files: list[Path] = []
+    for source in sources:
+        path = Path(source)
+        if path.is_dir():
+            found = sorted(path.glob(f"*{suffix}"))
+            if not found:
+                problems.append(f"{path}: folder holds no {suffix} files")
+            files.extend(found)
+        elif path.is_file():
+            files.append(path)
+        else:
+            problems.append(f"{path}: no such file or folder")
+    unique = {f.resolve(): f for f in reversed(files)}
+    return [f for f in files if unique[f.resolve()] is f]
