@@ -116,9 +116,14 @@ def open_recording(*, live: bool = False, url: str | None = None, save: str | Pa
     Raises
     ------
     RerunUnavailable
-        When ``live`` and no viewer can be reached or started.
+        When rerun-sdk is not installed, or ``live`` and no viewer can be
+        reached or started.
     """
-    import rerun as rr
+    try:
+        import rerun as rr
+    except ImportError:
+        raise RerunUnavailable('rerun-sdk is not installed (the viewer is optional): '
+                               'pip install "qube-koopman[viz]"') from None
 
     sinks = []
     if live:

@@ -18,6 +18,7 @@ class Progress:
         self.width = len(str(total))
 
     def step(self, done: int, name: str) -> None:
+        """Show that ``done`` files are through, the last being ``name``."""
         if not self.enabled:
             return
         line = f"[{done:>{self.width}}/{self.total}] {name}"
@@ -27,7 +28,7 @@ class Progress:
             print(line, file=sys.stderr)
 
     def interrupt(self) -> None:
-        # Start error lines on a fresh line, not after the in-place counter.
+        """Clear the in-place counter so that an error line starts on a fresh line."""
         if self.enabled and self.tty:
             print("\r\033[K", end="", file=sys.stderr)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import warnings
 from pathlib import Path
@@ -119,6 +120,8 @@ def _check_args(args) -> None:
         raise CliError("--alpha-sweep is for the Koopman methods (edmd, cl-edmd, cl-edmd-lstsq)")
     if args.method == "arx" and args.score == "cl":
         raise CliError("--method arx models the plant only; use --score plant, or --method cl-arx")
+    if args.rerun and importlib.util.find_spec("rerun") is None:
+        raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"')
 
 
 def _load(args):
