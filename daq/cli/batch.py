@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
-__all__ = ["Progress", "expand_sources"]
+__all__ = ["Progress", "expand_sources", "parse_args", "summarize"]
 
 
 class Progress:
@@ -54,3 +55,22 @@ def expand_sources(sources: list[str], suffix: str, problems: list[str]) -> list
             problems.append(f"{path}: no such file or folder")
     unique = {f.resolve(): f for f in reversed(files)}
     return [f for f in files if unique[f.resolve()] is f]
+
+
+def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace | int:
+    """The parsed arguments, or the exit status when argparse has already answered (--help, a usage error)."""
+    try:
+        return parser.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+
+
+def summarize(done: str, n_done: int, n_total: int, noun: str, where: str, refused: int, problems: list[str]) -> int:
+    """Print the closing line (e.g. ``imported 3 of 4 files into DIR; 1 refused``); return the exit status.
+
+    The status is 0 when every file went through (and at least one did), 1 otherwise.
+    """
+    print(f"{done} {n_done} of {n_total} {noun}{'s' if n_total != 1 else ''} {where}"
+          + (f"; {refused} refused" if refused else "")
+          + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
+    return 0 if refused == 0 and not problems and n_done > 0 else 1

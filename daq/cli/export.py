@@ -7,7 +7,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from daq.cli.batch import Progress, expand_sources
+from daq.cli.batch import Progress, expand_sources, parse_args, summarize
 
 PROG = "qube-export"
 
@@ -52,11 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage)."""
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # --help, or a usage error argparse has already explained
-        return int(exc.code or 0)
+    args = parse_args(build_parser(), argv)
+    if isinstance(args, int):  # --help, or a usage error argparse has already explained
+        return args
 
     from daq.export import ExportError, export_episode
     from daq.log import IncompleteEpisodeWarning
@@ -90,10 +88,7 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
         progress.step(done, log.name)
 
-    print(f"exported {exported} of {len(logs)} log{'s' if len(logs) != 1 else ''} as {args.format} into {args.out}"
-          + (f"; {refused} refused" if refused else "")
-          + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
-    return 0 if refused == 0 and not problems and exported > 0 else 1
+    return summarize("exported", exported, len(logs), "log", f"as {args.format} into {args.out}", refused, problems)
 
 
 if __name__ == "__main__":

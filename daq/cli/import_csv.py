@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from daq.cli.batch import Progress, expand_sources
+from daq.cli.batch import Progress, expand_sources, parse_args, summarize
 
 PROG = "qube-import"
 
@@ -53,11 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage)."""
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # --help, or a usage error argparse has already explained
-        return int(exc.code or 0)
+    args = parse_args(build_parser(), argv)
+    if isinstance(args, int):  # --help, or a usage error argparse has already explained
+        return args
 
     from daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
     from daq.log import write_episode
@@ -122,10 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             refuse(f"{csv}: cannot write {out}: {exc.strerror or exc}")
         progress.step(done, csv.name)
 
-    print(f"imported {imported} of {len(files)} file{'s' if len(files) != 1 else ''} into {args.out}"
-          + (f"; {refused} refused" if refused else "")
-          + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
-    return 0 if refused == 0 and not problems and imported > 0 else 1
+    return summarize("imported", imported, len(files), "file", f"into {args.out}", refused, problems)
 
 
 if __name__ == "__main__":
