@@ -7,9 +7,9 @@ symbols. Heavy libraries (cvxpy, python-control) are imported only when used.
 """
 
 from identify.arx import Arx, ClArx
-from identify.cl_edmd import ClEdmd, ClEdmdLstsq
+from identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from identify.edmd import Edmd
-from identify.lifting import Delay, GaussianRbf, Lifting, LiftingFunction, Polynomial, ThinPlateRbf
+from identify.lifting import Constant, Delay, GaussianRbf, Lifting, LiftingFunction, Polynomial, ThinPlateRbf
 from identify.model import KoopmanModel
 from identify.regression import Snapshots, constrained_plant_solve, ridge_solve
 from identify.scores import normalized_mean_error, nrmse, r2_score, score_episodes
@@ -20,8 +20,8 @@ from identify.structure import (close_loop, closed_loop_matrices, controller_sta
 from identify.trajectory import Trajectory
 
 __all__ = [
-    "Trajectory", "Lifting", "LiftingFunction", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf",
-    "Edmd", "ClEdmd", "ClEdmdLstsq", "ClEdmdSdp", "Arx", "ClArx", "KoopmanModel",
+    "Trajectory", "Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf",
+    "Edmd", "ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq", "ClEdmdSdp", "Arx", "ClArx", "KoopmanModel",
     "Snapshots", "ridge_solve", "constrained_plant_solve",
     "close_loop", "closed_loop_matrices", "extract_plant_lstsq", "output_selection",
     "plant_input_map", "controller_states", "plant_input",

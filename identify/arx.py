@@ -216,16 +216,37 @@ class ClArx(Estimator):
         return self
 
     def predict(self, trajectory: Trajectory) -> np.ndarray:
-        """Plant prediction from the plant input ``u`` (zero initial state)."""
+        """Plant prediction from the plant input ``u``, started from the episode's history.
+
+        The recovered plant's initial state is the least-squares (minimum
+        norm) fit of its free response to the first ``n_history`` measured
+        samples, ``n_history = max(ARX lag, plant order)``; those samples are
+        the initial condition (copied), the rest is predicted. An episode cut
+        from a longer run therefore starts where it really was, not at rest.
+        """
         import control
 
         if not hasattr(self, "plant_"):
             raise ValueError("this ClArx is not fitted yet; call fit first")
         if trajectory.u is None or trajectory.u.shape[1] != 1:
             raise ValueError(f"trajectory {trajectory.name!r} needs a single plant input u")
+        A, C = np.atleast_2d(self.plant_.A), np.atleast_2d(self.plant_.C)
+        n_hist = max(self.closed_loop_._lag, A.shape[0])
+        if trajectory.n_samples <= n_hist:
+            raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; the recovered "
+                             f"plant needs more than {n_hist} (its initial history)")
+        u, y = trajectory.u[:, 0], trajectory.x
         with np.errstate(all="ignore"):
-            y = control.forced_response(self.plant_, U=trajectory.u[:, 0]).outputs
-        return np.asarray(y, dtype=float).reshape(trajectory.n_samples, -1)
+            forced = np.asarray(control.forced_response(self.plant_, U=u).outputs, dtype=float).reshape(len(u), -1)
+            rows, M = [], np.eye(A.shape[0])
+            for _ in range(n_hist):  # observability matrix over the history: y_k = C A^k x0 + forced_k
+                rows.append(C @ M)
+                M = A @ M
+            x0 = np.linalg.lstsq(np.vstack(rows), (y[:n_hist] - forced[:n_hist]).reshape(-1), rcond=None)[0]
+            out = np.asarray(control.forced_response(self.plant_, U=u, X0=x0).outputs,
+                             dtype=float).reshape(len(u), -1)
+        out[:n_hist] = y[:n_hist]
+        return out
 
     def predict_closed_loop(self, trajectory: Trajectory) -> np.ndarray:
         """Closed-loop prediction from the references (and feedforward)."""

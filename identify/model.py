@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -38,6 +38,9 @@ class KoopmanModel:
         Sample period in seconds.
     passthrough_names : tuple of str
         Names of the passthrough states.
+    feedback : tuple of int
+        For a closed-loop model: the measured state each reference channel
+        is compared with (``C^p``); empty means states ``0..n_r-1``.
     """
 
     A: np.ndarray
@@ -48,6 +51,7 @@ class KoopmanModel:
     input_lifting: Lifting | None = None
     dt: float | None = None
     passthrough_names: tuple[str, ...] = ()
+    feedback: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         A = np.asarray(self.A, dtype=float)
@@ -124,7 +128,9 @@ class KoopmanModel:
                              f"the model takes {self.B.shape[1]}")
         return v
 
-    def predict(self, trajectory: Trajectory, relift: bool = True) -> np.ndarray:
+    def predict(self, trajectory: Trajectory, relift: bool = True,
+                offsets: Mapping[int, float] | Sequence[int | str] | None = None,
+                window: int | None = None) -> np.ndarray:
         """Predict the plant states of one episode from its initial condition and inputs.
 
         The first ``n_delays + 1`` samples are the initial condition (copied);
@@ -138,11 +144,32 @@ class KoopmanModel:
         relift : bool
             Re-lift the predicted original state at every step (default, as
             the reference code) or propagate the lifted state linearly.
+        offsets : mapping or sequence, optional
+            Per-episode sensor offsets (measured = true + offset), see
+            :mod:`identify.offsets`: a mapping ``{channel: value}`` of known
+            offsets, or channels (indices or state names such as
+            ``"alpha"``) whose offsets are estimated from the first
+            ``window`` samples. An implausible estimate (beyond
+            :data:`identify.offsets.DEFAULT_BOUND`) is not used, with an
+            :class:`~identify.offsets.OffsetWarning`.
+        window : int, optional
+            Samples of the estimation window (needed when estimating).
 
         Returns
         -------
         ndarray of shape (n_samples, n_states)
+            The measured states (offsets added back).
         """
+        if offsets is not None:
+            from identify import offsets as off
+
+            if isinstance(offsets, Mapping):
+                known = {c: float(v) for c, v in zip(
+                    off.resolve_channels(list(offsets), trajectory.state_names, self.n_states), offsets.values())}
+                return off.predict_with_offsets(self, trajectory, known, relift)
+            if window is None:
+                raise ValueError("estimating offsets needs window (samples from the start)")
+            return off.predict_estimating_offsets(self, trajectory, offsets, window, relift=relift)[0]
         d = self.n_delays
         if trajectory.n_samples < d + 2:
             raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; "

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.lifting import Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
+from identify.lifting import Constant, Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
 from identify.model import KoopmanModel
 from sim.lti import DiscreteStateSpace
 
@@ -30,6 +30,8 @@ def lifting_to_dict(lifting: Lifting) -> dict:
             entry["order"] = step.order
         elif isinstance(step, Delay):
             entry["n_delays"] = step.n_delays
+        elif isinstance(step, Constant):
+            pass
         elif isinstance(step, (ThinPlateRbf, GaussianRbf)):
             entry.update(shape=step.shape, centers=step.centers_.tolist())
             if isinstance(step, ThinPlateRbf):
@@ -49,6 +51,8 @@ def lifting_from_dict(data: dict) -> Lifting:
             steps.append(Polynomial(entry["order"]))
         elif kind == "Delay":
             steps.append(Delay(entry["n_delays"]))
+        elif kind == "Constant":
+            steps.append(Constant())
         elif kind == "ThinPlateRbf":
             steps.append(ThinPlateRbf(len(entry["centers"]), entry["shape"], entry["offset"], centers=entry["centers"]))
         elif kind == "GaussianRbf":
@@ -112,7 +116,8 @@ def load_model(path: str | Path) -> dict:
             return None
         return KoopmanModel(np.array(entry["A"]), np.array(entry["B"]), lifting, tuple(entry["input_signals"]),
                             n_passthrough=entry["n_passthrough"], dt=data["dt"],
-                            passthrough_names=tuple(entry["passthrough_names"]))
+                            passthrough_names=tuple(entry["passthrough_names"]),
+                            feedback=tuple(data["measured"]) if "r" in entry["input_signals"] else ())
 
     out = dict(data)
     out.update(plant=model(data["plant"]), closed_loop=model(data["closed_loop"]),

@@ -15,29 +15,55 @@ def format_number(value, spec: str) -> str:
     return format(value, spec)
 
 
+def _score_row(label: str, t: dict) -> str:
+    return (f"| {label} | {format_number(t['r2_mean'], '.4f')} | {format_number(t['r2_std'], '.4f')} "
+            f"| {format_number(t['nrmse_mean'], '.2f')} | {format_number(t['nrmse_std'], '.2f')} |")
+
+
+def _test_section(report: dict) -> list[str]:
+    t = report["test"]
+    lines = ["## Test scores", "", f"Protocol: {report.get('protocol', 'the paper’s')}.", ""]
+    if t is None:
+        return lines + ["No test episode was recorded under the what-if controller: nothing to score.", ""]
+    plain = report.get("test_without_offsets")
+    lines += ["| prediction | R^2 mean | R^2 std | NRMSE mean (%) | NRMSE std (%) |", "|---|---|---|---|---|",
+              _score_row("with estimated offsets" if plain else "as identified", t)]
+    if plain:
+        lines.append(_score_row("without offsets, same samples", plain))
+    scored = report.get("scored_logs", report["test_logs"])
+    offsets = {e["log"]: e for e in report.get("offsets", [])}
+    header = "| test episode | R^2 |" + (" R^2 without offsets | offsets (used?) |" if plain else "")
+    lines += ["", header, "|---|---|" + ("---|---|" if plain else "")]
+    for i, name in enumerate(scored):
+        row = f"| {name} | {format_number(t['r2_per_episode'][i], '.4f')} |"
+        if plain:
+            e = offsets[name]
+            values = ", ".join(f"{k} {v:+.5f}" for k, v in e.items()
+                               if k not in ("log", "plausible", "rms_before", "rms_after"))
+            row += (f" {format_number(plain['r2_per_episode'][i], '.4f')} | {values} "
+                    f"({'yes' if e['plausible'] else 'NO: beyond the bound ' + format(report['offset_bound'], 'g')}) |")
+        lines.append(row)
+    return lines
+
+
 def markdown_report(report: dict) -> str:
     """report.json as a short markdown document."""
-    t = report["test"]
     rho = report.get("spectral_radius", {})
+    t = report["test"]
     lines = [
         f"# Identification report: {report['method']}",
         "",
         f"- regularization alpha: {format_number(report.get('alpha'), 'g')}",
         f"- scoring: {'closed loop (r, f inputs)' if report['score'] == 'cl' else 'plant (u input)'}",
-        f"- training episodes: {len(report['train_logs'])}; test episodes: {t['n_episodes']}",
+        f"- training episodes: {len(report['train_logs'])}; test episodes: {len(report['test_logs'])}"
+        + (f" ({t['n_episodes']} scored)" if t else " (none scored)"),
         f"- spectral radius: closed loop {format_number(rho.get('closed_loop'), '.6f')}, plant {format_number(rho.get('plant'), '.6f')}",
-        "",
-        "## Test scores",
-        "",
-        "| R^2 mean | R^2 std | NRMSE mean (%) | NRMSE std (%) |",
-        "|---|---|---|---|",
-        f"| {format_number(t['r2_mean'], '.4f')} | {format_number(t['r2_std'], '.4f')} | {format_number(t['nrmse_mean'], '.2f')} "
-        f"| {format_number(t['nrmse_std'], '.2f')} |",
-        "",
-        "| test episode | R^2 |",
-        "|---|---|",
     ]
-    lines += [f"| {name} | {format_number(r2, '.4f')} |" for name, r2 in zip(report["test_logs"], t["r2_per_episode"])]
+    what_if = report.get("what_if")
+    if what_if:
+        lines.append(f"- what-if controller: {what_if['note']}; {len(what_if['unscored_logs'])} episode(s) predicted "
+                     "without a recording to score against")
+    lines += [""] + _test_section(report)
     sweep = report.get("sweep")
     if sweep:
         best = max(range(len(sweep["alpha"])), key=lambda i: sweep["cv_r2_mean"][i])

@@ -3,15 +3,26 @@
 All take ``y_true`` and ``y_pred`` of shape (n_samples, n_states). The error
 is ``y_true - y_pred``. A prediction with any non-finite value scores
 ``-inf`` for R^2 and ``+inf`` for the error measures: it never raises.
+
+A channel whose true values are constant has no variance to explain: its
+R^2 is undefined. It is left out of the average over states (with a
+:class:`ConstantChannelWarning` from :func:`r2_score`); when every channel
+is constant, R^2 is NaN.
 """
 
 from __future__ import annotations
 
 from typing import Callable, Sequence
 
+import warnings
+
 import numpy as np
 
-__all__ = ["r2_score", "r2_scores", "summarize_episodes", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
+__all__ = ["ConstantChannelWarning", "r2_score", "r2_scores", "summarize_episodes", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
+
+
+class ConstantChannelWarning(UserWarning):
+    """A channel of the true values is constant: its R^2 is undefined and left out."""
 
 
 def _pair(y_true, y_pred) -> tuple[np.ndarray, np.ndarray]:
@@ -31,21 +42,39 @@ def r2_scores(y_true, y_pred) -> np.ndarray:
 
     ``y_true`` has shape (..., n_samples, n_states) and broadcasts against
     ``y_pred`` (e.g. one row of models per episode). Non-finite predictions
-    give -inf.
+    give -inf; constant true channels are left out of the average (NaN when
+    all are constant).
     """
     y_true = np.asarray(y_true, dtype=float)
     y_pred = np.asarray(y_pred, dtype=float)
     with np.errstate(all="ignore"):
         ss_res = np.sum((y_true - y_pred) ** 2, axis=-2)
         ss_tot = np.sum((y_true - y_true.mean(axis=-2, keepdims=True)) ** 2, axis=-2)
-        per_state = np.where(ss_tot > 0, 1.0 - ss_res / ss_tot, np.where(ss_res > 0, -np.inf, 1.0))
-    per_state = np.where(np.isfinite(per_state), per_state, -np.inf)
-    return per_state.mean(axis=-1)
+        per_state = 1.0 - ss_res / ss_tot
+    # Constant means every value equals the first (the mean's rounding leaves ss_tot ~1e-31).
+    constant = np.all(y_true == y_true[..., :1, :], axis=-2)
+    per_state = np.where(np.isfinite(per_state) | constant, per_state, -np.inf)
+    per_state, constant = np.broadcast_arrays(per_state, constant)
+    valid = ~constant
+    n_valid = valid.sum(axis=-1)
+    diverged = np.any(np.isinf(np.where(valid, per_state, 0.0)), axis=-1) | ~np.all(
+        np.isfinite(y_pred), axis=(-2, -1))
+    with np.errstate(all="ignore"):
+        mean = np.where(valid, per_state, 0.0).sum(axis=-1) / n_valid
+    return np.where(diverged, -np.inf, np.where(n_valid > 0, mean, np.nan))
 
 
 def r2_score(y_true, y_pred) -> float:
-    """Coefficient of determination, averaged over states (1 is perfect)."""
+    """Coefficient of determination, averaged over states (1 is perfect).
+
+    Constant true channels are left out with a :class:`ConstantChannelWarning`
+    (NaN when every channel is constant).
+    """
     y_true, y_pred = _pair(y_true, y_pred)
+    constant = np.flatnonzero(np.all(y_true == y_true[0], axis=0))
+    if constant.size:
+        warnings.warn(f"true channel(s) {constant.tolist()} are constant: R^2 is undefined there and "
+                      "left out of the average", ConstantChannelWarning, stacklevel=2)
     return float(r2_scores(y_true, y_pred))
 
 

@@ -3,6 +3,11 @@
 The closed form in :class:`~identify.ClEdmd` solves the same problem exactly
 and thousands of times faster; this path exists as an independent
 cross-check and as the place for constraints without a closed form.
+To be independent it builds its own data: the snapshot matrices from the
+trajectories (:func:`closed_loop_snapshots`), their Gram matrices from one
+QR factorization, and the closed-loop matrix block by block from the
+controller (:func:`closed_loop_blocks`), sharing none of the closed form's
+set-up (``Snapshots``, ``plant_input_map``, ``closed_loop_matrices``).
 cvxpy is imported only when a fit runs.
 """
 
@@ -12,13 +17,79 @@ from typing import Sequence
 
 import numpy as np
 
-from identify._checks import check_choice
+from dataclasses import dataclass
+
+from identify._base import resolve_lifting
+from identify._checks import check_alpha, check_choice
 from identify.cl_edmd import REGULARIZE, _ClosedLoopKoopman
+from identify.trajectory import check_trajectories
 from sim.lti import DiscreteStateSpace
 
-__all__ = ["ClEdmdSdp"]
+__all__ = ["ClEdmdSdp", "SnapshotGram", "closed_loop_snapshots", "closed_loop_blocks"]
 
 CLARABEL_TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10, "max_iter": 500}
+
+
+@dataclass(frozen=True)
+class SnapshotGram:
+    """``F = Theta Theta^T``, ``G = Theta Psi^T``, ``H = Psi Psi^T`` over ``q`` snapshots, and a factor.
+
+    ``R`` (upper triangular, from one QR factorization of the stacked
+    snapshots ``[Psi^T Theta^T]``) satisfies ``R^T R = [[H, G^T], [G, F]]``:
+    a fit can work on it (size of the lifted state) instead of the snapshots.
+    """
+
+    F: np.ndarray
+    G: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    q: int
+
+
+def closed_loop_snapshots(trajectories, lifting, n_feedforward: int) -> tuple[np.ndarray, np.ndarray]:
+    """Snapshot matrices of the closed loop, one column per snapshot, episodes never joined.
+
+    ``Psi`` stacks ``[x^c_k; theta^p_k; r_k; f_k]`` and ``Theta`` stacks
+    ``[x^c_{k+1}; theta^p_{k+1}]``, where ``theta^p`` is the fitted
+    ``lifting`` of the plant states (it consumes ``n_delays_`` samples).
+    """
+    psi, theta = [], []
+    for t in trajectories:
+        d = lifting.n_delays_
+        lifted = lifting.transform(t.x)
+        columns = [t.xc[d:].T, lifted.T, t.r[d:].T] + ([t.f[d:].T] if n_feedforward else [])
+        stacked = np.vstack(columns)
+        n_theta = t.xc.shape[1] + lifted.shape[1]
+        psi.append(stacked[:, :-1])
+        theta.append(stacked[:n_theta, 1:])
+    return np.hstack(psi), np.hstack(theta)
+
+
+def snapshot_gram(psi: np.ndarray, theta: np.ndarray) -> SnapshotGram:
+    """Gram matrices of the snapshots from one QR factorization."""
+    R = np.linalg.qr(np.vstack([psi, theta]).T, mode="r")
+    n_psi = psi.shape[0]
+    R_psi, R_theta = R[:, :n_psi], R[:, n_psi:]
+    return SnapshotGram(R_theta.T @ R_theta, R_theta.T @ R_psi, R_psi.T @ R_psi, R, psi.shape[1])
+
+
+def closed_loop_blocks(controller: DiscreteStateSpace, A_p, B_p, measured, n_feedforward: int, rows_c=None):
+    """``U^f`` assembled from its blocks (paper section 3), for numpy arrays or cvxpy expressions.
+
+    ``[[A^c, -B^c C^p, B^c, 0], [B^p C^c, A^p - B^p D^c C^p, B^p D^c, B^p]]`` with
+    ``C^p`` picking ``measured`` out of the lifted plant state; ``rows_c``
+    replaces the controller rows when they are fitted (the paper's problem).
+    """
+    import cvxpy as cp
+
+    n_pl = A_p.shape[0]
+    C_p = np.eye(n_pl)[list(measured)]
+    Ac, Bc, Cc, Dc = controller.A, controller.B, controller.C, controller.D
+    n_c, n_r = Ac.shape[0], Bc.shape[1]
+    top = rows_c if rows_c is not None else np.hstack(
+        [Ac, -Bc @ C_p, Bc, np.zeros((n_c, n_feedforward))])
+    bottom = [B_p @ Cc, A_p - B_p @ (Dc @ C_p), B_p @ Dc] + ([B_p] if n_feedforward else [])
+    return cp.vstack([top if not isinstance(top, np.ndarray) else cp.Constant(top), cp.hstack(bottom)])
 
 
 class ClEdmdSdp(_ClosedLoopKoopman):
@@ -65,20 +136,45 @@ class ClEdmdSdp(_ClosedLoopKoopman):
         self.solver = solver
         self.solver_options = solver_options
 
-    def _solve(self, snapshots, S, alpha):
+    def fit(self, trajectories) -> "ClEdmdSdp":
+        """Fit on closed-loop trajectories (signals x, r, xc, optional f), from data built here.
+
+        Returns
+        -------
+        self
+        """
+        alpha = check_alpha(self.alpha)
+        regularize = check_choice(self.regularize, "regularize", REGULARIZE)
+        lifting = resolve_lifting(self.lifting)
+        trajs = check_trajectories(trajectories, ("x", "r", "xc"), lifting.n_delays + 2, type(self).__name__)
+        with_f = [t.f is not None for t in trajs]
+        if any(with_f) and not all(with_f):
+            raise ValueError("feedforward f is present in some episodes and missing in others")
+        n_f = trajs[0].f.shape[1] if all(with_f) else 0
+        m = trajs[0].x.shape[1]
+        measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
+        self._check_controller(trajs, measured, n_f)
+        lifting.fit([t.x for t in trajs], trajs[0].state_names)
+        gram = snapshot_gram(*closed_loop_snapshots(trajs, lifting, n_f))
+        U_f, U_p = self._solve(gram, lifting.n_features_out_, measured, n_f, alpha, regularize)
+        self.snapshots_ = gram
+        self.output_matrix_ = np.eye(lifting.n_features_out_)[measured]
+        self.n_feedforward_ = n_f
+        self._set_models(U_f, U_p, lifting, n_f, trajs[0].dt if trajs[0].dt is not None else self.controller.dt)
+        return self
+
+    def _solve(self, gram: SnapshotGram, n_pl: int, measured, n_f: int, alpha: float, regularize: str):
         import cvxpy as cp
 
-        regularize = check_choice(self.regularize, "regularize", REGULARIZE)
         solver = str(self.solver).upper()
         if solver not in cp.installed_solvers():
             raise ValueError(f"solver {self.solver!r} is not installed; cvxpy has "
                              f"{', '.join(cp.installed_solvers())}")
-        q = snapshots.q
+        q = gram.q
         # The paper's 1/q scaling keeps the problem well conditioned; the minimizer is unchanged.
-        F, G, H = snapshots.F / q, snapshots.G / q, snapshots.H / q
+        F, G, H = gram.F / q, gram.G / q, gram.H / q
         n_theta, n_psi = G.shape
-        n_c = self.controller.n_states
-        n_pl = n_theta - n_c
+        n_c, n_u = self.controller.n_states, self.controller.n_outputs
         H_alpha = H + (alpha / q) * np.eye(n_psi) if regularize == "closed_loop" else H
         try:
             R = np.linalg.cholesky(H_alpha)
@@ -87,10 +183,9 @@ class ClEdmdSdp(_ClosedLoopKoopman):
             R = np.linalg.cholesky(H_alpha + 1e-12 * np.trace(H_alpha) / n_psi * np.eye(n_psi))
 
         W = cp.Variable((n_theta, n_theta), symmetric=True)
-        U_c = cp.Variable((n_c, n_psi))
-        U_p = cp.Variable((n_pl, S.shape[0]))
-        # The structural constraint U_f[plant rows] = U^p S, substituted (fewer variables, same problem).
-        U_f = cp.vstack([U_c, U_p @ S])
+        U_c = cp.Variable((n_c, n_psi))   # the paper leaves the controller rows free
+        A_p, B_p = cp.Variable((n_pl, n_pl)), cp.Variable((n_pl, n_u))
+        U_f = closed_loop_blocks(self.controller, A_p, B_p, measured, n_f, rows_c=U_c)
         cross = U_f @ G.T
         lmi = cp.bmat([[-W + F - cross - cross.T, U_f @ R],
                        [R.T @ U_f.T, -np.eye(n_psi)]])
@@ -101,7 +196,7 @@ class ClEdmdSdp(_ClosedLoopKoopman):
         constraints = [0.5 * (lmi + lmi.T) << 0]
         objective = cp.trace(W)
         if regularize == "plant":
-            objective = objective + (alpha / q) * cp.sum_squares(U_p)
+            objective = objective + (alpha / q) * (cp.sum_squares(A_p) + cp.sum_squares(B_p))
         problem = cp.Problem(cp.Minimize(objective), constraints)
         options = self.solver_options
         if options is None:
@@ -111,6 +206,6 @@ class ClEdmdSdp(_ClosedLoopKoopman):
         except cp.error.SolverError as exc:
             raise ValueError(f"SDP solver {solver} failed: {exc}") from exc
         self.solver_status_ = problem.status
-        if U_p.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
+        if A_p.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
             raise ValueError(f"SDP solver {solver} ended with status {problem.status!r}")
-        return np.asarray(U_f.value), np.asarray(U_p.value)
+        return np.asarray(U_f.value), np.hstack([A_p.value, B_p.value])

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify.lifting import Delay, Lifting
+from identify.lifting import Constant, Delay, Lifting
 
 __all__ = ["simulate_batch"]
 
@@ -60,9 +60,12 @@ def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough
     n_lifted = lifted0.shape[-1]
     z = np.broadcast_to(np.concatenate([p_d, lifted0], axis=-1), (n_models, n_eps, n_p + lifted0.shape[-1]))
     head, tail = _split_pointwise_head(lifting)
-    # Pointwise steps then one Delay (e.g. monomials then delays): the new lifted state is the
-    # newest sample's features followed by the previous lifted state, shifted.
-    shift = len(tail) == 1 and isinstance(tail[0], Delay)
+    # Pointwise steps then one Delay (e.g. monomials then delays), optionally then constants: the
+    # new lifted state is the newest sample's features followed by the previous lifted state,
+    # shifted, and the constants.
+    shift = bool(tail) and isinstance(tail[0], Delay) and all(isinstance(s, Constant) for s in tail[1:])
+    n_const = len(tail) - 1 if shift else 0
+    ones = np.ones((n_models, n_eps, n_const))
     if relift and not shift:
         # Features of the leading pointwise steps for the last d + 1 samples: each step lifts
         # only the newest predicted sample and shifts the rest.
@@ -82,7 +85,8 @@ def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough
                 continue
             newest = _apply(head, nxt[..., None, n_p:n_p + m])[..., 0, :]
             if shift:
-                lifted = np.concatenate([newest, z[..., n_p:n_p + n_lifted - newest.shape[-1]]], axis=-1)
+                lifted = np.concatenate([newest, z[..., n_p:n_p + n_lifted - n_const - newest.shape[-1]], ones],
+                                        axis=-1)
             else:
                 history[..., :-1, :] = history[..., 1:, :]
                 history[..., -1, :] = newest

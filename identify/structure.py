@@ -149,4 +149,5 @@ def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | 
     n_f = controller.n_outputs if feedforward else 0
     A_f, B_f = closed_loop_matrices(plant.A, plant.B, controller, C_p, n_f)
     return KoopmanModel(A_f, B_f, plant.lifting, ("r", "f") if feedforward else ("r",),
-                        n_passthrough=controller.n_states, dt=plant.dt if plant.dt is not None else controller.dt)
+                        n_passthrough=controller.n_states, dt=plant.dt if plant.dt is not None else controller.dt,
+                        feedback=tuple(measured))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -10,19 +10,57 @@ import numpy as np
 
 from identify._blas import limited_blas_threads
 from identify.arx import Arx, ClArx
-from identify.cl_edmd import ClEdmd, ClEdmdLstsq
+from identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from identify.data import LoggedTrajectory, group_shuffle_splits, same_system
 from identify.edmd import Edmd
 from identify.model_file import lifting_to_dict, save_model
+from identify.offsets import DEFAULT_BOUND, estimate_offsets, predict_with_offsets
 from identify.scores import summarize_episodes
-from identify.structure import close_loop
+from identify.structure import close_loop, controller_states
 from identify.sweep import SweepResult, regularization_sweep
 from sim.lti import DiscreteStateSpace
 
-__all__ = ["IdentificationResult", "identify_and_score", "KOOPMAN_METHODS"]
+__all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
 
-KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-lstsq": ClEdmdLstsq}
+KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows,
+                   "cl-edmd-lstsq": ClEdmdLstsq}
 MEASURED = [0, 1]  # theta and alpha are both fed back on the QUBE-Servo
+
+
+@dataclass(frozen=True)
+class OffsetProtocol:
+    """Per-episode offsets estimated on each test episode before it is scored.
+
+    Parameters
+    ----------
+    channels : tuple of str
+        Measured channels with an offset (state names, e.g. ``("alpha",)``).
+    window_s : float
+        Estimation window (s) at the start of each test episode; scores
+        cover only the samples after it.
+    bound : float
+        Plausibility bound; a larger estimate is flagged and not used.
+    """
+
+    channels: tuple[str, ...]
+    window_s: float = 1.0
+    bound: float = DEFAULT_BOUND
+
+    def describe(self, dt: float) -> str:
+        """The protocol in words, for reports."""
+        return (f"offsets of {', '.join(self.channels)} estimated on each test episode from its first "
+                f"{self.window_s:g} s ({self.window(dt)} samples) by simulation-error least squares, "
+                f"estimates beyond {self.bound:g} flagged and not used; the whole episode is predicted "
+                f"from its start and only the samples after the window are scored, with and without "
+                f"the offsets")
+
+    def window(self, dt: float) -> int:
+        """The window in samples."""
+        return int(round(self.window_s / dt))
+
+
+PAPER_PROTOCOL = ("the paper's: each test episode predicted from its initial condition, "
+                  "every sample after the first scored, no offsets")
 
 
 @dataclass
@@ -47,14 +85,26 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        test: Sequence[LoggedTrajectory], controller: DiscreteStateSpace, alpha: float = 1e-3,
                        alphas: Sequence[float] | None = None, score: str = "cl", cv_splits: int = 3,
                        cv_seed: int = 1234, arx_lags: int = 10, model_path: str | Path | None = None,
+                       offsets: OffsetProtocol | None = None, what_if: DiscreteStateSpace | None = None,
                        progress: Callable[[str, int, int], None] | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
     With ``alphas`` the regularization is chosen by episode-grouped
     cross-validation on the training logs with the same ``score``. Test
     episodes are predicted in closed loop under their own log's controller
-    (``score="cl"``) or from their plant input (``score="plant"``).
+    (``score="cl"``) or from their plant input (``score="plant"``). With
+    ``offsets`` each test episode's offsets are estimated from its initial
+    window (see :class:`OffsetProtocol`). With ``what_if`` every test episode
+    is predicted under that controller instead; only episodes recorded under
+    it are scored.
     """
+    if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None):
+        raise ValueError(f"offsets and what-if controllers need a Koopman method, not {method}")
+    if method == "arx" and score == "cl":
+        raise ValueError("ARX models the plant only: its predictions come from the plant input, not the "
+                         "closed loop; use score='plant', or method 'cl-arx' for closed-loop scores")
+    if what_if is not None and score != "cl":
+        raise ValueError("a what-if controller predicts the closed loop: use score='cl'")
     trajs = [log.trajectory for log in train]
     result = IdentificationResult(report={"method": method, "score": score,
                                           "train_logs": [log.path.name for log in train],
@@ -62,8 +112,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                                           "controller": controller.as_dict()})
     with limited_blas_threads(1):
         if method in KOOPMAN_METHODS:
-            plant, closed, predictions = _koopman(method, lifting, trajs, test, controller, alpha, alphas, score,
-                                                  cv_splits, cv_seed, progress, result)
+            plant, closed = _koopman(method, lifting, trajs, controller, alpha, alphas, score,
+                                     cv_splits, cv_seed, progress, result)
             result.report["lifting"] = lifting_to_dict(plant.lifting)
             result.report["spectral_radius"] = {"closed_loop": closed.spectral_radius(),
                                                 "plant": plant.spectral_radius()}
@@ -71,22 +121,19 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                 save_model(model_path, method=method, alpha=result.report["alpha"], plant=plant, closed_loop=closed,
                            controller=controller, measured=MEASURED,
                            training={"logs": result.report["train_logs"]})
+            _score_koopman(plant, closed, controller, test, score, offsets, what_if, result)
         elif method in ("arx", "cl-arx"):
             plant, closed, predictions = _arx(method, trajs, test, controller, arx_lags, score, result)
             if model_path is not None:
                 Path(model_path).write_text(_arx_json(method, arx_lags, plant, closed))
+            _summarize(result, test, predictions, None, 1, PAPER_PROTOCOL)
         else:
             raise ValueError(f"unknown method {method!r}")
     result.plant, result.closed_loop = plant, closed
-    result.test_names = [log.path.name for log in test]
-    result.test_truth = [log.trajectory.x for log in test]
-    result.test_predictions = predictions
-    result.test_time = [np.arange(log.trajectory.n_samples) * log.trajectory.dt for log in test]
-    result.report["test"] = summarize_episodes(result.test_truth, predictions)
     return result
 
 
-def _koopman(method, lifting, trajs, test, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result):
+def _koopman(method, lifting, trajs, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result):
     cls = KOOPMAN_METHODS[method]
     make = (lambda a: cls(lifting=lifting, alpha=a)) if cls is Edmd else \
         (lambda a: cls(controller, lifting=lifting, alpha=a))
@@ -109,20 +156,75 @@ def _koopman(method, lifting, trajs, test, controller, alpha, alphas, score, cv_
     fitted = make(alpha).fit(trajs)
     plant = fitted.model_ if cls is Edmd else fitted.plant_model_
     closed = close_loop(plant, controller, MEASURED) if cls is Edmd else fitted.closed_loop_model_
-    predictions = []
+    return plant, closed
+
+
+def _test_model(plant, closed, controller, log, score, what_if):
+    """The model predicting one test episode, and the trajectory it predicts from."""
+    if score == "plant":
+        return plant, log.trajectory
+    if what_if is not None:
+        t = log.trajectory
+        if not same_system(log.controller, what_if):
+            # No record under this controller: its state is run on the logged tracking errors.
+            t = replace(t, xc=controller_states(what_if, t.r, t.x[:, MEASURED]))
+        return close_loop(plant, what_if, MEASURED), t
+    # A plant model must predict the loop under any known controller: each log's own.
+    return (closed if same_system(log.controller, controller) else close_loop(plant, log.controller, MEASURED),
+            log.trajectory)
+
+
+def _score_koopman(plant, closed, controller, test, score, offsets, what_if, result):
+    dt = test[0].trajectory.dt
+    predictions, plain, estimates = [], [], []
     for log in test:
-        if score == "plant":
-            predictions.append(plant.predict(log.trajectory))
+        model, traj = _test_model(plant, closed, controller, log, score, what_if)
+        plain.append(model.predict(traj))
+        if offsets is None:
             continue
-        # A plant model must predict the loop under any known controller.
-        model = closed if same_system(log.controller, controller) else close_loop(plant, log.controller, MEASURED)
-        predictions.append(model.predict(log.trajectory))
-    return plant, closed, predictions
+        est = estimate_offsets(model, traj, offsets.channels, offsets.window(dt), offsets.bound)
+        estimates.append(est)
+        predictions.append(predict_with_offsets(model, traj, est.as_mapping()) if est.plausible else plain[-1])
+    scored = test if what_if is None else [log for log in test if same_system(log.controller, what_if)]
+    if what_if is not None:
+        result.report["what_if"] = {
+            "controller": what_if.as_dict(), "n_scored": len(scored),
+            "unscored_logs": [log.path.name for log in test if log not in scored],
+            "note": "test episodes are predicted under this controller; only those recorded under it are scored"}
+    keep = [i for i, log in enumerate(test) if log in scored]
+    if offsets is None:
+        _summarize(result, test, plain, None, 1, PAPER_PROTOCOL, keep)
+        return
+    names = list(offsets.channels)
+    result.report["offsets"] = [
+        {"log": log.path.name, **{n: float(v) for n, v in zip(names, est.values)}, "plausible": est.plausible,
+         "rms_before": est.rms_before, "rms_after": est.rms_after} for log, est in zip(test, estimates)]
+    result.report["offset_bound"] = offsets.bound
+    _summarize(result, test, predictions, plain, offsets.window(dt), offsets.describe(dt), keep)
+
+
+def _summarize(result, test, predictions, plain, start, protocol, keep=None):
+    """Scores of the kept episodes from sample ``start`` on (and without offsets on the same samples)."""
+    keep = list(range(len(test))) if keep is None else keep
+    result.test_names = [log.path.name for log in test]
+    result.test_truth = [log.trajectory.x for log in test]
+    result.test_predictions = predictions
+    result.test_time = [np.arange(log.trajectory.n_samples) * log.trajectory.dt for log in test]
+    result.report["protocol"] = protocol
+    result.report["scored_from_sample"] = start
+    result.report["scored_logs"] = [test[i].path.name for i in keep]
+    if not keep:
+        result.report["test"] = None
+        return
+    truth = [result.test_truth[i] for i in keep]
+    result.report["test"] = summarize_episodes(truth, [predictions[i] for i in keep], start)
+    if plain is not None:
+        result.report["test_without_offsets"] = summarize_episodes(truth, [plain[i] for i in keep], start)
 
 
 def _arx(method, trajs, test, controller, lags, score, result):
     result.report["alpha"] = None
-    if method == "arx":
+    if method == "arx":  # plant scoring only (identify_and_score refuses score="cl")
         plant = Arx(lags, lags, inputs=("u",)).fit(trajs)
         result.report["spectral_radius"] = {"closed_loop": None, "plant": _spectral_radius(plant.model_.A)}
         return plant, None, [plant.predict(log.trajectory) for log in test]

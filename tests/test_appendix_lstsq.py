@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from daq.controller import load_pd_gains, pd_controller
-from identify import ClEdmd, ClEdmdLstsq, Delay, Polynomial, Trajectory, controller_states
+from identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Delay, Polynomial, Trajectory, controller_states
 
 pytestmark = pytest.mark.dataset
 
@@ -37,7 +37,8 @@ def test_rewrapping_lstsq_plant_moves_eigenvalues(qube_training):
 
 def test_rewrapping_constrained_plant_gives_the_closed_loop_back(qube_training):
     controller, trajs = qube_training
-    model = ClEdmd(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
+    # With the controller rows fixed to the known controller (the named variant).
+    model = ClEdmdKnownRows(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
     wrapped = model.wrap()
     np.testing.assert_array_equal(wrapped.koopman_matrix, model.koopman_matrix_)
     np.testing.assert_array_equal(np.sort_complex(wrapped.eigenvalues()),
@@ -48,8 +49,8 @@ def test_fitted_controller_rows_predict_like_the_controller(qube_training):
     """The paper's free controller rows drift along poorly excited directions of the
     delayed features but predict the controller state as the known controller does."""
     controller, trajs = qube_training
-    free = ClEdmd(controller, lifting=LIFTING, alpha=1e-3, known_controller_rows=False).fit(trajs)
-    known = ClEdmd(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
+    free = ClEdmd(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
+    known = ClEdmdKnownRows(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
     n_c = controller.n_states
     R_psi = known.snapshots_.R[:, :known.snapshots_.n_regressors]
     drift = R_psi @ (free.koopman_matrix_[:n_c] - known.koopman_matrix_[:n_c]).T

@@ -78,3 +78,38 @@ def test_cli_errors_are_clean(tmp_path, capsys):
     assert "cannot create output folder" in capsys.readouterr().err
     assert main(["duffing", "--out", str(tmp_path), "--alpha", "-1"]) == 2
     assert "--alpha must be" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_cl_edmd_and_edmd_solve_different_problems_on_the_duffing_data():
+    """Each estimator matches its own normal equations (built here from the raw snapshots,
+    FACTS section 1) and not the other's: with a real regularization the closed-loop penalty
+    ||U^p S||^2 and EDMD's ||U^p||^2 give different plants."""
+    from identify import ClEdmd, Edmd
+    from identify.reproduce.duffing import duffing_lifting, duffing_trajectory
+
+    experiment = duffing_experiment(seed=5)
+    dt, ctrl = experiment.controller.dt, experiment.controller
+    train = [duffing_trajectory(e, f"train{i}", dt) for i, e in enumerate(experiment.train)]
+    alpha = 10.0
+    cl = ClEdmd(ctrl, lifting=duffing_lifting(5), alpha=alpha).fit(train)
+    edmd = Edmd(lifting=duffing_lifting(5), alpha=alpha).fit(train)
+    lifting, d = cl.plant_model_.lifting, cl.plant_model_.n_delays
+    n = lifting.n_features_out_
+    # Raw snapshots: theta^p_k, controller state, reference and plant input of every episode.
+    z = [lifting.transform(t.x) for t in train]
+    psi_p = np.vstack([np.hstack([zi[:-1], t.u[d:-1]]) for zi, t in zip(z, train)])     # [theta^p; u]
+    psi_cl = np.vstack([np.hstack([t.xc[d:-1], zi[:-1], t.r[d:-1]]) for zi, t in zip(z, train)])
+    target = np.vstack([zi[1:] for zi in z])
+    # S maps [x^c; theta^p; r] to [theta^p; u] with u = C^c x^c + D^c (r - theta^p_0).
+    S = np.zeros((n + 1, 1 + n + 1))
+    S[:n, 1:n + 1] = np.eye(n)
+    S[n, 0], S[n, 1], S[n, n + 1] = ctrl.C[0, 0], -ctrl.D[0, 0], ctrl.D[0, 0]
+    np.testing.assert_allclose(psi_cl @ S.T, psi_p, atol=1e-9)
+    H = psi_cl.T @ psi_cl + alpha * np.eye(psi_cl.shape[1])
+    U_cl = target.T @ psi_cl @ S.T @ np.linalg.inv(S @ H @ S.T)
+    U_edmd = target.T @ psi_p @ np.linalg.inv(psi_p.T @ psi_p + alpha * np.eye(n + 1))
+    scale = np.linalg.norm(U_cl)
+    assert np.linalg.norm(cl.plant_koopman_matrix_ - U_cl) / scale < 1e-6
+    assert np.linalg.norm(edmd.koopman_matrix_ - U_edmd) / scale < 1e-6
+    assert np.linalg.norm(U_cl - U_edmd) / scale > 1e-3        # the two problems really differ

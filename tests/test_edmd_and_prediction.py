@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from identify import (ClEdmd, Delay, Edmd, GaussianRbf, Lifting, Polynomial, Trajectory, closed_loop_matrices,
+from identify import (ClEdmd, Constant, Delay, Edmd, GaussianRbf, Lifting, Polynomial, Trajectory, closed_loop_matrices,
                       controller_states, output_selection, plant_input, plant_input_map, r2_score)
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
@@ -139,6 +139,8 @@ def test_structure_helpers_reproduce_simulated_signals(loop):
     [Polynomial(2), Delay(3)],                      # pointwise head, one delay: the shift path
     [Delay(2), GaussianRbf(6, shape=0.5, seed=1)],  # delays then RBF: the history path
     [Polynomial(2)],                                # no delays
+    [Polynomial(2), Delay(3), Constant()],          # the shift path with an affine term
+    [Delay(2), Constant(), GaussianRbf(4, seed=2)], # a constant inside the history path
 ])
 def test_fast_predictor_equals_naive_relifting(loop, lifting):
     from naive_reference import naive_predict
@@ -152,3 +154,17 @@ def test_fast_predictor_equals_naive_relifting(loop, lifting):
     np.testing.assert_allclose(cl.predict(t), expected, rtol=1e-10, atol=1e-12)
     plant = model.plant_model_
     np.testing.assert_allclose(plant.predict(t), naive_predict(plant, t.x[:d + 1], t.u), rtol=1e-10, atol=1e-12)
+
+
+def test_constant_lifting_appends_a_one_and_makes_the_model_affine(loop):
+    *_, trajs = loop
+    lifting = Lifting([Polynomial(2), Delay(2), Constant()]).fit([t.x for t in trajs])
+    z = lifting.transform(trajs[0].x)
+    assert lifting.feature_names_out_[-1] == "1"
+    np.testing.assert_array_equal(z[:, -1], 1.0)
+    # An offset on the data: the affine model fits it exactly where the linear one cannot.
+    shifted = [replace(t, x=t.x + 0.5) for t in trajs]
+    affine = Edmd(lifting=[Constant()], alpha=0.0).fit(shifted)
+    linear = Edmd(alpha=0.0).fit(shifted)
+    assert r2_score(shifted[0].x, affine.predict(shifted[0])) > 1 - 1e-8
+    assert r2_score(shifted[0].x, linear.predict(shifted[0])) < 1 - 1e-4

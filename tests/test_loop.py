@@ -262,8 +262,12 @@ def test_loop_on_the_simulator_matches_the_batched_closed_loop():
     sink = MemorySink()
     assert run_episode(backend, EpisodePlan(CONTROLLER, ex), [sink]).complete
     ep = sink.episodes[0].episode()
-    x0 = backend.describe()["initial_state"]
-    run = simulate_closed_loop(x0, QUBE_PD, ep.references, ep.feedforward, sensor=sensor)
+    described = backend.describe()
+    # The episode's encoder zero offset was drawn at its start; the batched run uses the same sensor.
+    episode_sensor = SensorModel(**described["sensor"])
+    assert episode_sensor.alpha_offset != 0.0
+    run = simulate_closed_loop(described["initial_state"], QUBE_PD, ep.references, ep.feedforward,
+                               sensor=episode_sensor)
     np.testing.assert_allclose(ep.states, run.measurements, rtol=0, atol=1e-9)
     np.testing.assert_allclose(ep.controller_state, run.controller_states, rtol=0, atol=1e-9)
     np.testing.assert_allclose(ep.plant_input, run.plant_input, rtol=0, atol=1e-9)

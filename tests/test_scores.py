@@ -51,3 +51,24 @@ def test_bad_score_inputs():
         score_episodes([np.zeros((3, 1))], [np.zeros((3, 1))], "mape")
     with pytest.raises(ValueError, match="shapes differ"):
         r2_score(np.zeros((3, 2)), np.zeros((3, 1)))
+
+
+def test_a_constant_true_channel_is_left_out_with_a_warning():
+    import warnings
+
+    from identify.scores import ConstantChannelWarning, r2_scores
+
+    t = np.linspace(0, 1, 50)
+    truth = np.column_stack([np.sin(6 * t), np.full_like(t, 0.3)])
+    pred = np.column_stack([np.sin(6 * t) + 0.01, np.full_like(t, 0.5)])
+    expected = r2_score(truth[:, 0], pred[:, 0])
+    with pytest.warns(ConstantChannelWarning, match=r"\[1\] are constant"):
+        assert r2_score(truth, pred) == pytest.approx(expected)
+    with pytest.warns(ConstantChannelWarning):
+        assert np.isnan(r2_score(truth[:, 1:], pred[:, 1:]))      # nothing to explain at all
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert r2_scores(truth, pred) == pytest.approx(expected)  # the vectorized form agrees, silently
+        bad = pred.copy()
+        bad[10, 1] = np.nan
+        assert r2_scores(truth, bad) == -np.inf                   # divergence anywhere still counts

@@ -48,3 +48,19 @@ def test_sdp_rejects_unknown_solver():
     controller, trajs = random_problem(0)
     with pytest.raises(ValueError, match="not installed"):
         ClEdmdSdp(controller, measured=[0], solver="NO_SUCH_SOLVER").fit(trajs)
+
+
+def test_default_cl_edmd_is_the_papers_problem_and_the_variant_is_named():
+    from identify import ClEdmdKnownRows
+
+    controller, trajs = random_problem(1)
+    lifting = [Polynomial(2), Delay(1)]
+    default = ClEdmd(controller, lifting=lifting, alpha=5.0, measured=[0]).fit(trajs)
+    free = ClEdmd(controller, lifting=lifting, alpha=5.0, measured=[0], known_controller_rows=False).fit(trajs)
+    known = ClEdmdKnownRows(controller, lifting=lifting, alpha=5.0, measured=[0]).fit(trajs)
+    np.testing.assert_array_equal(default.koopman_matrix_, free.koopman_matrix_)
+    np.testing.assert_array_equal(default.plant_koopman_matrix_, known.plant_koopman_matrix_)
+    n_c = controller.n_states
+    wrapped = known.wrap().koopman_matrix
+    np.testing.assert_allclose(known.koopman_matrix_, wrapped, atol=1e-12)   # exactly the wrapped plant
+    assert np.abs(default.koopman_matrix_[:n_c] - wrapped[:n_c]).max() > 1e-6  # the paper's rows drift

@@ -3,7 +3,10 @@
 Each episode starts upright with a small seeded perturbation of the
 pendulum angle, so the start gate (|alpha| < 5 deg) passes at once: a
 simulated pendulum cannot be raised by hand. Measurements follow the
-dataset's conventions (alpha = 0 upright, 2048-count encoders).
+dataset's conventions (alpha = 0 upright, 2048-count encoders), with the
+pendulum encoder's zero drawn a little off the true upright each episode as
+on the rig (:class:`~sim.pendulum.ZeroOffsetDistribution`); the episode's
+offset is recorded in the log's metadata (``extra.backend.sensor.alpha_offset``).
 
 Time: each :meth:`SimBackend.write` holds the command for one sample period
 and advances the model by it, so the next :meth:`SimBackend.read` returns
@@ -15,12 +18,13 @@ the backend asks the loop to pace ticks by wall-clock deadlines.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 
 from daq.backends.base import Backend, BackendFault, Pacing
-from sim.pendulum import SAMPLE_PERIOD, PendulumParameters, PendulumSimulator, SensorModel
+from sim.pendulum import (SAMPLE_PERIOD, PendulumParameters, PendulumSimulator, SensorModel,
+                          ZeroOffsetDistribution)
 
 __all__ = ["SimBackend", "DEFAULT_PERTURBATION"]
 
@@ -37,6 +41,9 @@ class SimBackend(Backend):
         Physical model.
     sensor : SensorModel
         Encoders (and optional noise).
+    zero_offsets : ZeroOffsetDistribution or None
+        Each episode's pendulum encoder zero offset is drawn from it (the
+        rig's, by default); None keeps ``sensor.alpha_offset`` for every episode.
     perturbation : float
         Each episode starts at rest with alpha drawn uniformly from
         ``[-perturbation, perturbation]`` (rad) and theta = 0.
@@ -54,12 +61,15 @@ class SimBackend(Backend):
     pacing = Pacing.NONE
 
     def __init__(self, params: PendulumParameters = PendulumParameters(),
-                 sensor: SensorModel = SensorModel(), perturbation: float = DEFAULT_PERTURBATION,
+                 sensor: SensorModel = SensorModel(),
+                 zero_offsets: ZeroOffsetDistribution | None = ZeroOffsetDistribution(),
+                 perturbation: float = DEFAULT_PERTURBATION,
                  seed: int | None = None, realtime: bool = False, dt: float = SAMPLE_PERIOD) -> None:
         if not (math.isfinite(perturbation) and perturbation >= 0):
             raise ValueError(f"perturbation must be a non-negative angle in rad, got {perturbation!r}")
         self.params = params
         self.sensor = sensor
+        self.zero_offsets = zero_offsets
         self.perturbation = float(perturbation)
         self.seed = seed
         self.realtime = bool(realtime)
@@ -73,9 +83,11 @@ class SimBackend(Backend):
         self._running = False
 
     def start(self) -> None:
-        """Reset the pendulum upright with a fresh random perturbation."""
+        """Reset the pendulum upright with a fresh random perturbation and encoder zero."""
         alpha0 = float(self._rng.uniform(-self.perturbation, self.perturbation))
         self._initial_state = (0.0, alpha0, 0.0, 0.0)
+        if self.zero_offsets is not None:
+            self._sim.sensor = replace(self.sensor, alpha_offset=self.zero_offsets.draw(self._rng))
         self._y = self._sim.reset(self._initial_state)
         self._running = True
 
@@ -104,8 +116,10 @@ class SimBackend(Backend):
         return self._sim.state
 
     def describe(self) -> dict:
-        """Model, encoders, perturbation and this episode's initial state."""
+        """Model, encoders (with this episode's zero offset), perturbation and initial state."""
+        offsets = None if self.zero_offsets is None else asdict(self.zero_offsets)
         return {**super().describe(), "realtime": self.realtime, "seed": self.seed,
                 "perturbation": self.perturbation, "initial_state": list(self._initial_state),
-                "params": asdict(self.params), "sensor": asdict(self.sensor),
+                "params": asdict(self.params), "sensor": asdict(self._sim.sensor),
+                "zero_offsets": offsets,
                 "sample_period": self.sample_period}

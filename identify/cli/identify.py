@@ -25,7 +25,7 @@ with --score plant. Outputs in --out: model.json (see identify/MODEL_FORMAT.md),
 report.json, report.md, and with --rerun FILE.rrd a rerun recording.
 """
 
-METHODS = ("cl-edmd", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
+METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -48,8 +48,14 @@ def _parser() -> argparse.ArgumentParser:
     lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
     lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)")
     lift.add_argument("--rbf-seed", type=int, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
+    lift.add_argument("--const", action="store_true",
+                      help="append a constant lifting function (an affine term: the model's equilibrium is "
+                           "not pinned at the measured zero)")
     fit = p.add_argument_group("identification")
-    fit.add_argument("--method", choices=METHODS, default="cl-edmd", help="default: %(default)s")
+    fit.add_argument("--method", choices=METHODS, default="cl-edmd",
+                     help="cl-edmd: the paper's CL EDMD (controller rows of the closed-loop matrix fitted); "
+                          "cl-edmd-known-rows: the same plant, controller rows fixed to the known controller; "
+                          "default: %(default)s")
     reg = fit.add_mutually_exclusive_group()
     reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
     reg.add_argument("--alpha-sweep", nargs=3, metavar=("MIN", "MAX", "N"),
@@ -60,6 +66,21 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--score", choices=["cl", "plant"], default="cl",
                      help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
     fit.add_argument("--arx-lags", type=int, default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
+    pred = p.add_argument_group("prediction of the test episodes")
+    pred.add_argument("--offsets", nargs="+", choices=["theta", "alpha"], metavar="CHANNEL",
+                      help="estimate a constant sensor offset of these channels on each test episode from its "
+                           "first --estimate-window seconds, then predict with it (for example: alpha, whose "
+                           "encoder zero is a few counts off upright); scores then cover the samples after the "
+                           "window, beside the plain prediction's on the same samples. Default: none (the "
+                           "paper's protocol)")
+    pred.add_argument("--estimate-window", type=float, default=1.0, metavar="S",
+                      help="offset estimation window in seconds (default %(default)s)")
+    pred.add_argument("--offset-bound", type=float, default=0.05, metavar="RAD",
+                      help="estimates beyond this are flagged in the report and not used (default %(default)s)")
+    pred.add_argument("--controller", metavar="FILE.toml",
+                      help="what-if: predict every test episode under this controller's gains (kp_theta, "
+                           "kd_theta, kp_alpha, kd_alpha, tau; backward Euler as on the rig) instead of its "
+                           "log's own; only episodes recorded under it are scored")
     out = p.add_argument_group("output")
     out.add_argument("--out", default="identified", metavar="DIR", help="output folder (default %(default)s)")
     out.add_argument("--rerun", metavar="FILE.rrd", help="also write a rerun recording of the results")
@@ -83,7 +104,7 @@ def _expand(items) -> list[Path]:
 
 
 def _lifting(args) -> list:
-    from identify.lifting import Delay, GaussianRbf, Polynomial, ThinPlateRbf
+    from identify.lifting import Constant, Delay, GaussianRbf, Polynomial, ThinPlateRbf
 
     steps = []
     if args.poly > 1:
@@ -94,6 +115,8 @@ def _lifting(args) -> list:
         steps.append(ThinPlateRbf(args.rbf_centers, args.rbf_shape, args.rbf_offset, seed=args.rbf_seed))
     elif args.rbf == "gaussian":
         steps.append(GaussianRbf(args.rbf_centers, args.rbf_shape, seed=args.rbf_seed))
+    if args.const:
+        steps.append(Constant())
     return steps
 
 
@@ -120,6 +143,12 @@ def _check_args(args) -> None:
         raise CliError("--alpha-sweep is for the Koopman methods (edmd, cl-edmd, cl-edmd-lstsq)")
     if args.method == "arx" and args.score == "cl":
         raise CliError("--method arx models the plant only; use --score plant, or --method cl-arx")
+    if (args.offsets or args.controller) and args.method in ("arx", "cl-arx"):
+        raise CliError("--offsets and --controller need a Koopman method (edmd, cl-edmd, cl-edmd-lstsq)")
+    if args.controller and args.score != "cl":
+        raise CliError("--controller predicts the closed loop: use --score cl")
+    if not (args.estimate_window > 0 and args.offset_bound > 0):
+        raise CliError("--estimate-window and --offset-bound must be positive")
     if args.rerun and importlib.util.find_spec("rerun") is None:
         raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"')
 
@@ -147,8 +176,8 @@ def _load(args):
 def _run(args) -> int:
     import numpy as np
 
-    from identify.workflow import identify_and_score
     from identify.reports import write_markdown_report
+    from identify.workflow import OffsetProtocol, identify_and_score
 
     _check_args(args)
     out = output_dir(args.out)
@@ -156,13 +185,19 @@ def _run(args) -> int:
         train, test, controller = _load(args)
         print(f"{len(train)} training and {len(test)} test episodes, {args.skip} samples dropped from each",
               file=sys.stderr)
+        what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
+        offsets = (OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound)
+                   if args.offsets else None)
+        if offsets and min(log.trajectory.n_samples for log in test) <= offsets.window(train[0].trajectory.dt) + 2:
+            raise CliError(f"--estimate-window {args.estimate_window} s leaves nothing to score in the shortest "
+                           "test episode")
         alphas = None if not args.alpha_sweep else np.logspace(np.log10(args.alpha_sweep[0]),
                                                                np.log10(args.alpha_sweep[1]), args.alpha_sweep[2])
         result = identify_and_score(
             method=args.method, lifting=_lifting(args), train=train, test=test, controller=controller,
             alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
-            model_path=out / "model.json", progress=progress)
+            model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     write_json(out / "report.json", result.report)
@@ -171,12 +206,32 @@ def _run(args) -> int:
         from identify.rerun_view import write_recording
 
         write_recording(args.rerun, result)
-    t = result.report["test"]
-    print(f"{args.method}, alpha {result.report['alpha']}: test R^2 {t['r2_mean']:.4f} +- {t['r2_std'] or 0:.4f}, "
-          f"NRMSE {t['nrmse_mean']:.2f} +- {t['nrmse_std'] or 0:.2f} % over {t['n_episodes']} episodes ({args.score})")
+    _print_scores(args, result.report)
     written = ["model.json", "report.json", "report.md"]
     print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
     return 0
+
+
+def _what_if_controller(path: str, dt: float):
+    from daq.controller import load_pd_gains, pd_controller
+
+    return pd_controller(load_pd_gains(path), dt, "backward-euler")
+
+
+def _print_scores(args, report: dict) -> None:
+    t = report["test"]
+    if t is None:
+        print(f"{args.method}, alpha {report['alpha']}: no test episode was recorded under --controller "
+              f"{args.controller}; predictions only (nothing to score)")
+        return
+    line = (f"{args.method}, alpha {report['alpha']}: test R^2 {t['r2_mean']:.4f} +- {t['r2_std'] or 0:.4f}, "
+            f"NRMSE {t['nrmse_mean']:.2f} +- {t['nrmse_std'] or 0:.2f} % over {t['n_episodes']} episodes ({args.score})")
+    plain = report.get("test_without_offsets")
+    if plain is not None:
+        flagged = sum(not e["plausible"] for e in report["offsets"])
+        line += (f" with offsets estimated; without them on the same samples R^2 {plain['r2_mean']:.4f}"
+                 + (f"; {flagged} implausible estimate(s) not used" if flagged else ""))
+    print(line)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,7 @@
 from sim.pendulum.closed_loop import ClosedLoopRun, simulate_closed_loop
 from sim.pendulum.model import (SAMPLE_PERIOD, PendulumParameters, dynamics, linear_model,
                                 linearize_upright, rk4_step, simulate, total_energy)
-from sim.pendulum.sensor import SensorModel, measure
+from sim.pendulum.sensor import SensorModel, ZeroOffsetDistribution, measure
 from sim.pendulum.simulator import PendulumSimulator
 
 __all__ = [
@@ -12,6 +12,7 @@ __all__ = [
     "PendulumParameters",
     "PendulumSimulator",
     "SensorModel",
+    "ZeroOffsetDistribution",
     "dynamics",
     "linear_model",
     "linearize_upright",

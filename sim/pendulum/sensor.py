@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["SensorModel", "measure", "counts_to_angles", "angles_to_counts", "COUNTS_PER_REV"]
+__all__ = ["SensorModel", "ZeroOffsetDistribution", "measure", "counts_to_angles", "angles_to_counts", "COUNTS_PER_REV"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -38,10 +38,17 @@ class SensorModel:
         Standard deviation (rad) of Gaussian noise added to each true angle
         before quantization, so measurements stay on the encoder's grid as
         the real ones do (a dithered count rather than an off-grid value).
+    alpha_offset : float
+        Encoder zero offset of the pendulum (rad): the measured alpha is the
+        true one plus this, before quantization. The rig's counter is zeroed
+        wherever the pendulum hung when it was reset, so the measured upright
+        is a few counts off the true one, differently each episode (FACTS
+        section 6a: about +0.0025 rad, spread 0.001, in the paper's dataset).
     """
 
     counts_per_rev: int | None = 2048
     noise_std: float = 0.0
+    alpha_offset: float = 0.0
 
     def __post_init__(self) -> None:
         cpr = self.counts_per_rev
@@ -50,11 +57,41 @@ class SensorModel:
             raise ValueError(f"counts_per_rev must be an even integer >= 2 or None, got {cpr!r}")
         if not (math.isfinite(self.noise_std) and self.noise_std >= 0):
             raise ValueError(f"noise_std must be a non-negative number of radians, got {self.noise_std!r}")
+        if not (math.isfinite(self.alpha_offset) and abs(self.alpha_offset) < math.pi):
+            raise ValueError(f"alpha_offset must be an angle in (-pi, pi) rad, got {self.alpha_offset!r}")
 
     @property
     def resolution(self) -> float:
         """Radians per count (0.0 for exact angles)."""
         return 0.0 if self.counts_per_rev is None else TWO_PI / self.counts_per_rev
+
+
+@dataclass(frozen=True)
+class ZeroOffsetDistribution:
+    """Where the pendulum encoder's zero falls, episode by episode.
+
+    Each episode's :attr:`SensorModel.alpha_offset` is drawn from a normal
+    distribution; the defaults are the paper's dataset (FACTS section 6a:
+    mean alpha over an episode +0.0025 rad, spread about 0.001 rad).
+
+    Parameters
+    ----------
+    mean, std : float
+        Of the offset (rad).
+    """
+
+    mean: float = 0.0025
+    std: float = 0.001
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.mean) and abs(self.mean) < 0.5):
+            raise ValueError(f"mean must be a small angle (|mean| < 0.5 rad), got {self.mean!r}")
+        if not (math.isfinite(self.std) and 0 <= self.std < 0.5):
+            raise ValueError(f"std must be in [0, 0.5) rad, got {self.std!r}")
+
+    def draw(self, rng: np.random.Generator) -> float:
+        """One episode's offset (rad)."""
+        return float(self.mean + self.std * rng.standard_normal())
 
 
 def _counts(theta, alpha, counts_per_rev: int, floor: Callable):
@@ -136,7 +173,7 @@ def measure(state, sensor: SensorModel = SensorModel(),
     x = np.asarray(state, dtype=float)
     if x.ndim == 0 or x.shape[-1] not in (2, 4):
         raise ValueError(f"state must have shape (..., 4) or (..., 2), got {x.shape}")
-    theta, alpha = x[..., 0], x[..., 1]
+    theta, alpha = x[..., 0], x[..., 1] + sensor.alpha_offset
     if sensor.noise_std > 0:
         if rng is None:
             raise ValueError("a noisy sensor needs rng (a numpy Generator) for reproducible noise")

@@ -91,8 +91,14 @@ class PendulumSimulator:
 
     @property
     def sensor(self) -> SensorModel:
-        """The encoder model."""
+        """The encoder model; settable between episodes (a new zero offset, say)."""
         return self._sensor
+
+    @sensor.setter
+    def sensor(self, sensor: SensorModel) -> None:
+        if not isinstance(sensor, SensorModel):
+            raise TypeError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
+        self._sensor = sensor
 
     @property
     def state(self) -> np.ndarray:
@@ -110,7 +116,7 @@ class PendulumSimulator:
         return self._steps * self.dt
 
     def _measure(self) -> tuple[float, float]:
-        theta, alpha = self._x[0], self._x[1]
+        theta, alpha = self._x[0], self._x[1] + self._sensor.alpha_offset
         if self._sensor.noise_std > 0:
             theta += self._next_noise()
             alpha += self._next_noise()

@@ -1,0 +1,215 @@
+"""Per-episode sensor offsets: estimated from an initial window, applied in prediction.
+
+An encoder's zero can sit a little off the true equilibrium, differently in
+each episode (FACTS section 6a: the QUBE's pendulum angle, a few counts). A
+model identified on other episodes then predicts around the wrong
+equilibrium. With a measured channel's offset ``o`` (measured = true + o),
+prediction works in true coordinates: the channel's history is shifted by
+``-o``, so is the reference the controller compares it with (the tracking
+error ``r - y`` is unchanged), and ``o`` is added back to the predicted
+output.
+
+Offsets are estimated per episode from its first ``window`` samples by
+simulation-error least squares: the model predicts the window from its
+initial condition for trial offsets, and a Levenberg-Marquardt solve
+(``scipy.optimize.least_squares``) minimizes the squared difference between
+the measured and predicted angles (in rad: both channels are angles, so no
+weighting). One parameter per chosen channel; each residual evaluation is
+one batched prediction of the window, the Jacobian's finite differences one
+more (all perturbations in one batch).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, replace
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from identify.trajectory import Trajectory
+
+__all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "shift_trajectory", "predict_with_offsets",
+           "predict_estimating_offsets", "resolve_channels", "DEFAULT_BOUND"]
+
+#: Largest plausible offset (rad) by default: 16 encoder counts of the QUBE; the dataset's are ~1.
+DEFAULT_BOUND = 0.05
+# Finite-difference step of the Jacobian (rad): a tenth of an encoder count, far above rounding.
+_STEP = 3e-4
+# Residual given to a diverged prediction: large and finite, so the solver backs off.
+_DIVERGED = 1e3
+
+
+class OffsetWarning(UserWarning):
+    """An estimated offset was implausible and was not used."""
+
+
+@dataclass(frozen=True)
+class OffsetEstimate:
+    """Offsets of one episode, estimated from its first ``window`` samples.
+
+    Attributes
+    ----------
+    channels : tuple of int
+        Measured channels with an offset.
+    values : ndarray of shape (n_channels,)
+        Estimated offsets (measured = true + offset), in the channels' units.
+    window : int
+        Samples used (from the trajectory's start).
+    bound : float
+        Plausibility bound on ``|values|``.
+    rms_before, rms_after : float
+        RMS simulation error over the window without and with the offsets.
+    """
+
+    channels: tuple[int, ...]
+    values: np.ndarray
+    window: int
+    bound: float
+    rms_before: float
+    rms_after: float
+
+    @property
+    def plausible(self) -> bool:
+        """Whether every offset is within the bound (an implausible estimate is never used)."""
+        return bool(np.all(np.abs(self.values) <= self.bound))
+
+    def as_mapping(self) -> dict[int, float]:
+        """``{channel: offset}``; empty when implausible (then no offset is applied)."""
+        return {c: float(v) for c, v in zip(self.channels, self.values)} if self.plausible else {}
+
+
+def resolve_channels(channels: Sequence[int | str], state_names: Sequence[str] | None, n_states: int) -> tuple[int, ...]:
+    """Channel indices from indices or state names (``"alpha"``)."""
+    out = []
+    for c in channels:
+        if isinstance(c, str):
+            if state_names is None or c not in state_names:
+                raise ValueError(f"unknown channel {c!r}; the states are {', '.join(state_names or ())}")
+            c = list(state_names).index(c)
+        if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= c < n_states:
+            raise ValueError(f"offset channel {c!r} is not a state index in 0..{n_states - 1}")
+        out.append(int(c))
+    if len(set(out)) != len(out):
+        raise ValueError(f"offset channels repeat: {list(channels)}")
+    return tuple(out)
+
+
+def _reference_columns(model, offsets: Mapping[int, float]) -> dict[int, int]:
+    """Which reference column is compared with each offset channel (closed-loop models)."""
+    if "r" not in model.input_signals:
+        return {}
+    feedback = list(model.feedback) if model.feedback else list(range(model.n_states))
+    return {feedback.index(c): c for c in offsets if c in feedback}
+
+
+def shift_trajectory(model, trajectory: Trajectory, offsets: Mapping[int, float]) -> Trajectory:
+    """The trajectory in true coordinates: offset channels and their references shifted by ``-offset``."""
+    if not offsets:
+        return trajectory
+    o = np.zeros(trajectory.x.shape[1])
+    for c, value in offsets.items():
+        o[c] = value
+    changes = {"x": trajectory.x - o}
+    columns = _reference_columns(model, offsets)
+    if columns:
+        r = trajectory.r.copy()
+        for col, c in columns.items():
+            r[:, col] -= o[c]
+        changes["r"] = r
+    return replace(trajectory, **changes)
+
+
+def predict_with_offsets(model, trajectory: Trajectory, offsets: Mapping[int, float],
+                         relift: bool = True) -> np.ndarray:
+    """Prediction of the measured states with known offsets (see the module docstring)."""
+    pred = model.predict(shift_trajectory(model, trajectory, offsets), relift=relift)
+    for c, value in offsets.items():
+        pred[:, c] += value
+    return pred
+
+
+def _window_predictions(model, trajectory: Trajectory, channels, trials: np.ndarray, window: int,
+                        relift: bool) -> np.ndarray:
+    """Measured-state predictions of the first ``window`` samples for each row of offsets in ``trials``."""
+    d = model.n_delays
+    head = replace(trajectory, **{k: None if getattr(trajectory, k) is None else getattr(trajectory, k)[:window]
+                                  for k in ("x", "u", "r", "f", "xc")})
+    shifted = [shift_trajectory(model, head, dict(zip(channels, row))) for row in trials]
+    x_init = np.stack([t.x[:d + 1] for t in shifted])
+    v = np.stack([model.inputs_of(t) for t in shifted])
+    p0 = np.stack([t.xc[d] for t in shifted]) if model.n_passthrough else None
+    x, _ = model.simulate(x_init, v, p0, relift=relift)
+    x[:, :, list(channels)] += trials[:, None, :]
+    return x
+
+
+def estimate_offsets(model, trajectory: Trajectory, channels: Sequence[int | str], window: int,
+                     bound: float = DEFAULT_BOUND, relift: bool = True) -> OffsetEstimate:
+    """Estimate constant offsets of ``channels`` from the first ``window`` samples.
+
+    Parameters
+    ----------
+    model : KoopmanModel
+        Closed-loop model (inputs r, f) or plant model (input u).
+    trajectory : Trajectory
+        The episode (measured signals).
+    channels : sequence of int or str
+        Measured channels with an offset (indices or state names).
+    window : int
+        Samples from the start used for the estimate; more than the
+        model's ``n_delays + 2``.
+    bound : float
+        Plausibility bound; :attr:`OffsetEstimate.plausible` says whether it holds.
+    relift : bool
+        As in prediction.
+
+    Returns
+    -------
+    OffsetEstimate
+    """
+    from scipy.optimize import least_squares
+
+    channels = resolve_channels(channels, trajectory.state_names, trajectory.x.shape[1])
+    d = model.n_delays
+    window = int(window)
+    if not d + 3 <= window <= trajectory.n_samples:
+        raise ValueError(f"trajectory {trajectory.name!r}: the estimation window must hold between {d + 3} "
+                         f"and {trajectory.n_samples} samples, got {window}")
+    if not (np.isfinite(bound) and bound > 0):
+        raise ValueError(f"the offset bound must be positive, got {bound!r}")
+    truth = trajectory.x[d + 1:window]
+    k = len(channels)
+    trials_of = lambda o: np.vstack([o, o + _STEP * np.eye(k)])  # noqa: E731 (one line, used twice)
+
+    def residuals(pred: np.ndarray) -> np.ndarray:
+        res = (truth - pred[..., d + 1:, :]).reshape(pred.shape[0], -1)
+        return np.where(np.isfinite(res), res, _DIVERGED)
+
+    def fun(o):
+        return residuals(_window_predictions(model, trajectory, channels, o[None], window, relift))[0]
+
+    def jac(o):
+        res = residuals(_window_predictions(model, trajectory, channels, trials_of(o), window, relift))
+        return ((res[1:] - res[0]) / _STEP).T
+
+    start = np.zeros(k)
+    before = fun(start)
+    fit = least_squares(fun, start, jac=jac, method="lm", xtol=1e-10, ftol=1e-12, max_nfev=50)
+    rms = lambda r: float(np.sqrt(np.mean(r ** 2)))  # noqa: E731
+    return OffsetEstimate(channels, np.asarray(fit.x, dtype=float), window, float(bound), rms(before),
+                          rms(fit.fun))
+
+
+def predict_estimating_offsets(model, trajectory: Trajectory, channels: Sequence[int | str], window: int,
+                               bound: float = DEFAULT_BOUND, relift: bool = True) -> tuple[np.ndarray, OffsetEstimate]:
+    """Estimate the offsets from the window, then predict the whole episode with them.
+
+    An implausible estimate (beyond ``bound``) is not used: the prediction
+    is then the plain one, with an :class:`OffsetWarning`.
+    """
+    estimate = estimate_offsets(model, trajectory, channels, window, bound, relift)
+    if not estimate.plausible:
+        warnings.warn(f"trajectory {trajectory.name!r}: estimated offsets {estimate.values.tolist()} exceed "
+                      f"the plausibility bound {bound:g}; not used", OffsetWarning, stacklevel=2)
+    return predict_with_offsets(model, trajectory, estimate.as_mapping(), relift), estimate
