@@ -1,8 +1,11 @@
 """Live and recorded views of a run in rerun (rerun-sdk, imported only when used).
 
 :class:`RerunSink` is a sink like the episode log: it runs on the writer
-thread, off the loop, and sends samples in batches (``send_columns``, about
-every 0.1 s of data) rather than one ``log`` call per sample. Episodes follow
+thread, off the loop, and sends samples in batches (``send_columns``, one
+chunk per plot every 0.25 s of data: the view still follows live, four
+updates a second) rather than one ``log`` call per sample. A 20 s episode
+records as about 330 chunks and 1.4 MB (with 0.1 s batches: 820 chunks,
+2.0 MB). Episodes follow
 one another on the ``time`` timeline (seconds since the first episode
 started, episodes back to back); the ``episode`` timeline numbers them.
 
@@ -113,9 +116,14 @@ def open_recording(*, live: bool = False, url: str | None = None, save: str | Pa
     Raises
     ------
     RerunUnavailable
-        When ``live`` and no viewer can be reached or started.
+        When rerun-sdk is not installed, or ``live`` and no viewer can be
+        reached or started.
     """
-    import rerun as rr
+    try:
+        import rerun as rr
+    except ImportError:
+        raise RerunUnavailable('rerun-sdk is not installed (the viewer is optional): '
+                               'pip install "qube-koopman[viz]"') from None
 
     sinks = []
     if live:
@@ -145,7 +153,7 @@ class RerunSink:
 
     required = False
 
-    def __init__(self, recording, batch_seconds: float = 0.1) -> None:
+    def __init__(self, recording, batch_seconds: float = 0.25) -> None:
         self.recording = recording
         self.batch_seconds = batch_seconds
         self._offset = 0.0

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from daq.cli.batch import Progress, expand_sources, parse_args, summarize
+
 PROG = "qube-import"
 
 _DESCRIPTION = """\
@@ -52,55 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _expand(sources: list[str], problems: list[str]) -> list[Path]:
-    files: list[Path] = []
-    for source in sources:
-        path = Path(source)
-        if path.is_dir():
-            found = sorted(path.glob("*.csv"))
-            if not found:
-                problems.append(f"{path}: folder holds no .csv files")
-            files.extend(found)
-        elif path.is_file():
-            files.append(path)
-        else:
-            problems.append(f"{path}: no such file or folder")
-    # A file named twice (say, on its own and through its folder) is imported once.
-    unique = {f.resolve(): f for f in reversed(files)}
-    return [f for f in files if unique[f.resolve()] is f]
-
-
-class _Progress:
-    """A counter on stderr: rewritten in place on a terminal, one line per file otherwise."""
-
-    def __init__(self, total: int, enabled: bool) -> None:
-        self.total = total
-        self.enabled = enabled and total > 0
-        self.tty = sys.stderr.isatty()
-        self.width = len(str(total))
-
-    def step(self, done: int, name: str) -> None:
-        if not self.enabled:
-            return
-        line = f"[{done:>{self.width}}/{self.total}] {name}"
-        if self.tty:
-            print(f"\r\033[K{line}", end="" if done < self.total else "\n", file=sys.stderr, flush=True)
-        else:
-            print(line, file=sys.stderr)
-
-    def interrupt(self) -> None:
-        # Start error lines on a fresh line, not after the in-place counter.
-        if self.enabled and self.tty:
-            print("\r\033[K", end="", file=sys.stderr)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage)."""
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # --help, or a usage error argparse has already explained
-        return int(exc.code or 0)
+    args = parse_args(build_parser(), argv)
+    if isinstance(args, int):  # --help, or a usage error argparse has already explained
+        return args
 
     from daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
     from daq.log import write_episode
@@ -110,11 +68,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: refused: {message}", file=sys.stderr)
 
     problems: list[str] = []
-    files = _expand(args.sources, problems)
+    files = expand_sources(args.sources, ".csv", problems)
     if args.out.exists() and not args.out.is_dir():
         print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)
         return 2
-    progress = _Progress(len(files), not args.quiet)
+    progress = Progress(len(files), not args.quiet)
     for problem in problems:
         refuse(problem)
 
@@ -165,10 +123,7 @@ def main(argv: list[str] | None = None) -> int:
             refuse(f"{csv}: cannot write {out}: {exc.strerror or exc}")
         progress.step(done, csv.name)
 
-    print(f"imported {imported} of {len(files)} file{'s' if len(files) != 1 else ''} into {args.out}"
-          + (f"; {refused} refused" if refused else "")
-          + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
-    return 0 if refused == 0 and not problems and imported > 0 else 1
+    return summarize("imported", imported, len(files), "file", f"into {args.out}", refused, problems)
 
 
 if __name__ == "__main__":

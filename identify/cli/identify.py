@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import warnings
 from pathlib import Path
@@ -163,6 +164,8 @@ def _check_args(args) -> None:
         args.method = "cl-edmd-stable"
     if not (args.estimate_window > 0 and args.offset_bound > 0):
         raise CliError("--estimate-window and --offset-bound must be positive")
+    if args.rerun and importlib.util.find_spec("rerun") is None:
+        raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"')
 
 
 def _load(args):

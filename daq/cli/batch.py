@@ -1,0 +1,76 @@
+"""Shared by the command-line tools that work through many files: the file list and a progress counter."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+__all__ = ["Progress", "expand_sources", "parse_args", "summarize"]
+
+
+class Progress:
+    """A counter on stderr: rewritten in place on a terminal, one line per file otherwise."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled and total > 0
+        self.tty = sys.stderr.isatty()
+        self.width = len(str(total))
+
+    def step(self, done: int, name: str) -> None:
+        """Show that ``done`` files are through, the last being ``name``."""
+        if not self.enabled:
+            return
+        line = f"[{done:>{self.width}}/{self.total}] {name}"
+        if self.tty:
+            print(f"\r\033[K{line}", end="" if done < self.total else "\n", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr)
+
+    def interrupt(self) -> None:
+        """Clear the in-place counter so that an error line starts on a fresh line."""
+        if self.enabled and self.tty:
+            print("\r\033[K", end="", file=sys.stderr)
+
+
+def expand_sources(sources: list[str], suffix: str, problems: list[str]) -> list[Path]:
+    """Files named on the command line, a folder standing for its ``*<suffix>`` files.
+
+    A source that does not exist, or a folder without such files, is appended
+    to ``problems`` as a message naming it. A file named twice (say, on its
+    own and through its folder) is listed once.
+    """
+    files: list[Path] = []
+    for source in sources:
+        path = Path(source)
+        if path.is_dir():
+            found = sorted(path.glob(f"*{suffix}"))
+            if not found:
+                problems.append(f"{path}: folder holds no {suffix} files")
+            files.extend(found)
+        elif path.is_file():
+            files.append(path)
+        else:
+            problems.append(f"{path}: no such file or folder")
+    unique = {f.resolve(): f for f in reversed(files)}
+    return [f for f in files if unique[f.resolve()] is f]
+
+
+def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace | int:
+    """The parsed arguments, or the exit status when argparse has already answered (--help, a usage error)."""
+    try:
+        return parser.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+
+
+def summarize(done: str, n_done: int, n_total: int, noun: str, where: str, refused: int, problems: list[str]) -> int:
+    """Print the closing line (e.g. ``imported 3 of 4 files into DIR; 1 refused``); return the exit status.
+
+    The status is 0 when every file went through (and at least one did), 1 otherwise.
+    """
+    print(f"{done} {n_done} of {n_total} {noun}{'s' if n_total != 1 else ''} {where}"
+          + (f"; {refused} refused" if refused else "")
+          + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
+    return 0 if refused == 0 and not problems and n_done > 0 else 1

@@ -1,0 +1,95 @@
+"""``qube-export``: episode logs out to legacy CSV, Parquet or MATLAB (formats: daq/export.py)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+from daq.cli.batch import Progress, expand_sources, parse_args, summarize
+
+PROG = "qube-export"
+
+_DESCRIPTION = """\
+Export MCAP episode logs, one OUT/<log base name>.<ext> per log:
+
+  csv      the rig's legacy layout (the paper's dataset; qube-import reads it
+           back, and an imported dataset file exports to its original bytes)
+  parquet  one table per episode, every signal a column, the episode's
+           metadata (controller, excitation, status...) in the schema
+           metadata (needs pyarrow)
+  mat      MATLAB .mat: one column vector per signal and a struct `metadata`
+
+A log that cannot be read is refused with one line on stderr naming it and
+the problem; the other logs are still exported. A log cut short is exported
+up to its last readable sample, with a warning.
+"""
+
+_EPILOG = """\
+exit status: 0 when every log was exported, 1 when any was refused,
+2 on a usage error.
+
+example:
+  qube-export episodes/ --format parquet --out exported/
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser (also documents the options)."""
+    from daq.export import FORMATS
+
+    parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("logs", nargs="+", metavar="LOG",
+                        help="an episode log (.mcap), or a folder whose *.mcap files are all exported")
+    parser.add_argument("--format", required=True, choices=tuple(FORMATS), help="output format")
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (created if missing)")
+    parser.add_argument("--force", action="store_true", help="overwrite existing files in DIR")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress counter")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage)."""
+    args = parse_args(build_parser(), argv)
+    if isinstance(args, int):  # --help, or a usage error argparse has already explained
+        return args
+
+    from daq.export import ExportError, export_episode
+    from daq.log import IncompleteEpisodeWarning
+
+    if args.out.exists() and not args.out.is_dir():
+        print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)
+        return 2
+    problems: list[str] = []
+    logs = expand_sources(args.logs, ".mcap", problems)
+    progress = Progress(len(logs), not args.quiet)
+
+    def say(kind: str, message: str) -> None:
+        progress.interrupt()
+        print(f"{PROG}: {kind}: {message}", file=sys.stderr)
+
+    for problem in problems:
+        say("refused", problem)
+    exported = refused = 0
+    for done, log in enumerate(logs, start=1):
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", IncompleteEpisodeWarning)
+                export_episode(log, args.format, args.out, overwrite=args.force)
+            for warning in caught:
+                say("warning", str(warning.message))
+            exported += 1
+        except ExportError as exc:
+            refused += 1
+            say("refused", str(exc))
+            if str(exc).startswith("--format"):  # pyarrow missing: the same for every log
+                return 1
+        progress.step(done, log.name)
+
+    return summarize("exported", exported, len(logs), "log", f"as {args.format} into {args.out}", refused, problems)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

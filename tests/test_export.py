@@ -1,0 +1,128 @@
+"""qube-export and daq.export: legacy CSV round trip, Parquet and MATLAB contents, refused input."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from _episodes import make_episode
+from daq.cli.export import main
+from daq.cli.import_csv import main as import_main
+from daq.export import episode_columns, export_episode, write_mat
+from daq.log import read_episode, write_episode
+from daq.log.metadata import metadata_from_records
+
+
+@pytest.fixture
+def log(tmp_path):
+    path = tmp_path / "qube_20260101T000000_1_2_3.mcap"
+    episode = make_episode(n=700, seed=3, status="aborted", status_reason="|alpha| > 45 deg")
+    write_episode(path, episode)
+    return path, episode
+
+
+@pytest.mark.dataset
+def test_csv_round_trips_the_48_dataset_files_bit_for_bit(qube_csv_files, qube_logs, tmp_path):
+    assert len(qube_csv_files) == 48
+    assert main([str(qube_logs), "--format", "csv", "--out", str(tmp_path / "csv"), "-q"]) == 0
+    for original in qube_csv_files:
+        assert (tmp_path / "csv" / original.name).read_bytes() == original.read_bytes(), original.name
+    # ...and qube-import reads the exported files back into the same episodes.
+    (tmp_path / "csv" / "controller.toml").write_bytes((qube_csv_files[0].parent / "controller.toml").read_bytes())
+    assert import_main([str(tmp_path / "csv"), "--out", str(tmp_path / "again"), "-q"]) == 0
+    for original in qube_csv_files[:5]:
+        first, again = read_episode(qube_logs / f"{original.stem}.mcap"), read_episode(tmp_path / "again" / f"{original.stem}.mcap")
+        for name, value in first.arrays().items():
+            np.testing.assert_array_equal(getattr(again, name), value, err_msg=f"{original.name}: {name}")
+
+
+def test_csv_of_a_simulated_episode_has_the_legacy_header_and_exact_values(log, tmp_path):
+    path, episode = log
+    out = export_episode(path, "csv", tmp_path / "out")
+    lines = out.read_text().splitlines()
+    assert out.name == "qube_20260101T000000_1_2_3.csv"
+    assert lines[0] == "t, target_theta, target_alpha, theta, alpha, control_output, feedforward, plant_input, saturation"
+    assert len(lines) == 1 + len(episode)
+    values = np.array([[float(v) for v in line.split(", ")] for line in lines[1:]])
+    np.testing.assert_array_equal(values[:, 3], episode.theta)
+    np.testing.assert_array_equal(values[:, 8], episode.saturation)
+
+
+def test_parquet_holds_every_signal_and_the_metadata(log, tmp_path):
+    pq = pytest.importorskip("pyarrow.parquet")
+    path, episode = log
+    table = pq.read_table(export_episode(path, "parquet", tmp_path))
+    for name, value in episode_columns(episode).items():
+        np.testing.assert_array_equal(table.column(name).to_numpy(), value, err_msg=name)
+    assert table.schema.field("theta").metadata[b"unit"] == b"rad"
+    records = {k.decode(): json.loads(v) for k, v in table.schema.metadata.items() if k.startswith(b"qube.")}
+    meta = metadata_from_records(records, "parquet")
+    assert meta.status == "aborted" and meta.status_reason == "|alpha| > 45 deg"
+    np.testing.assert_array_equal(meta.controller.system.C, episode.controller.C)
+    assert meta.excitation == episode.metadata.excitation
+
+
+def test_mat_holds_column_vectors_and_a_metadata_struct(log, tmp_path):
+    from scipy.io import loadmat
+
+    path, episode = log
+    data = loadmat(export_episode(path, "mat", tmp_path), simplify_cells=True)
+    np.testing.assert_array_equal(data["alpha"], episode.alpha)
+    np.testing.assert_array_equal(data["controller_state"], episode.controller_state)
+    assert data["metadata"]["status"]["status"] == "aborted"
+    assert json.loads(data["metadata"]["controller"]["D"]) == episode.controller.D.tolist()
+
+
+def test_refused_logs_are_named_and_the_others_exported(log, tmp_path, capsys):
+    path, _ = log
+    bad = tmp_path / "not_a_log.mcap"
+    bad.write_text("hello")
+    status = main([str(path), str(bad), str(tmp_path / "missing.mcap"), "--format", "mat", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert status == 1
+    assert f"refused: {bad}: not an MCAP file" in err
+    assert "missing.mcap: no such file or folder" in err
+    assert (tmp_path / "o" / f"{path.stem}.mat").is_file()
+    # An existing output is left alone unless --force.
+    assert main([str(path), "--format", "mat", "--out", str(tmp_path / "o"), "-q"]) == 1
+    assert "exists (use --force" in capsys.readouterr().err
+    assert main([str(path), "--format", "mat", "--out", str(tmp_path / "o"), "-q", "--force"]) == 0
+    assert main([str(path), "--format", "xlsx", "--out", str(tmp_path / "o")]) == 2
+    assert main([str(path), "--format", "csv", "--out", str(path)]) == 2
+
+
+def test_parquet_without_pyarrow_says_how_to_get_it(log, tmp_path, monkeypatch, capsys):
+    path, _ = log
+    monkeypatch.setitem(sys.modules, "pyarrow", None)
+    assert main([str(path), str(path.with_name("x.mcap")), "--format", "parquet", "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert "needs pyarrow (pip install pyarrow" in err and err.count("needs pyarrow") == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_episode_frame_when_pandas_is_there(log):
+    pytest.importorskip("pandas")
+    from daq.export import episode_frame
+
+    _, episode = log
+    frame = episode_frame(episode)
+    np.testing.assert_array_equal(frame["plant_input"].to_numpy(), episode.plant_input)
+    assert frame.attrs["metadata"]["qube.status"]["status"] == "aborted"
+
+
+def test_episode_frame_without_pandas_says_it_is_optional(log, monkeypatch):
+    from daq.export import episode_frame
+
+    monkeypatch.setitem(sys.modules, "pandas", None)
+    with pytest.raises(ImportError, match="pandas, which is optional"):
+        episode_frame(log[1])
+
+
+def test_write_mat_of_an_empty_episode(tmp_path):
+    from scipy.io import loadmat
+
+    write_mat(make_episode(n=0), tmp_path / "e.mat")
+    assert loadmat(tmp_path / "e.mat")["t"].size == 0
