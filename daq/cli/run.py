@@ -123,6 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
     safety.add_argument("--perturbation", type=_non_negative_float, default=2.0, metavar="DEG",
                         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
                              "an episode starts only once |alpha| < 5)")
+    safety.add_argument("--plant", type=Path, default=None, metavar="FILE.toml",
+                        help="the simulated pendulum's physical parameters (a qube-calibrate plant file; "
+                             "default: the built-in ones)")
     link = p.add_argument_group("serial bridge (--backend serial)")
     link.add_argument("--port", default=None, metavar="DEV",
                       help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
@@ -275,8 +278,23 @@ def _check_backend_options(args) -> None:
                         "qube-emulate prints)")
         if args.realtime:
             raise _Fail("--realtime is for --backend sim: the bridge's clock paces the serial backend")
+        if args.plant is not None:
+            raise _Fail("--plant is for --backend sim: the serial backend drives a real (or emulated) pendulum")
     elif args.port is not None or args.baud is not None:
         raise _Fail("--port and --baud are for --backend serial")
+
+
+def _load_plant(path):
+    """The --plant file's parameters (the defaults without one); a one-line error when unreadable."""
+    from sim.pendulum import PendulumParameters
+    from sim.pendulum.params_file import PlantFileError, load_plant
+
+    if path is None:
+        return PendulumParameters()
+    try:
+        return load_plant(path).params
+    except PlantFileError as exc:
+        raise _Fail(str(exc)) from None
 
 
 def _make_backend(args, limits, backend_seed: int, rate: float):
@@ -284,7 +302,8 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
     if args.backend == "sim":
         from daq.backends import SimBackend
 
-        return SimBackend(perturbation=math.radians(args.perturbation), seed=backend_seed,
+        params = _load_plant(args.plant)
+        return SimBackend(params=params, perturbation=math.radians(args.perturbation), seed=backend_seed,
                           realtime=args.realtime, dt=1.0 / rate)
     from daq.backends import BackendFault
     from daq.backends.serial import DEFAULT_BAUD, SerialBackend
