@@ -101,3 +101,25 @@ def test_qube_emulate_refuses_a_bad_plant_file_in_one_line(tmp_path, capsys):
     assert emulate_main(["--plant", str(tmp_path / "bad.toml")]) == 2
     err = capsys.readouterr().err
     assert "bad.toml" in err and "km" in err and "Traceback" not in err
+
+
+def test_replay_repeats_the_logged_excitations_under_another_plant(tmp_path, capsys):
+    assert run_main(["--episodes", "2", "--duration", "2", "--seed", "4", "--out", str(tmp_path / "a"), "-q"]) == 0
+    logs = sorted((tmp_path / "a").glob("*.mcap"))
+    save_plant(tmp_path / "plant.toml", PlantFile(PendulumParameters(Cr=2e-4)))
+    assert run_main(["--replay", *map(str, logs), "--plant", str(tmp_path / "plant.toml"),
+                     "--out", str(tmp_path / "b"), "-q"]) == 0
+    replays = sorted((tmp_path / "b").glob("*.mcap"))
+    assert len(replays) == 2
+    by_origin = {read_episode(p).metadata.extra["replay_of"]: read_episode(p) for p in replays}
+    for log in logs:
+        original, again = read_episode(log), by_origin[log.name]
+        assert len(again) == len(original)
+        for name in ("target_theta", "target_alpha", "feedforward"):
+            np.testing.assert_array_equal(getattr(again, name), getattr(original, name))
+        assert again.metadata.extra["backend"]["params"]["Cr"] == 2e-4
+    capsys.readouterr()
+    (tmp_path / "junk.mcap").write_bytes(b"not a log")
+    assert run_main(["--replay", str(tmp_path / "junk.mcap"), "--out", str(tmp_path / "c"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "junk.mcap" in err and "Traceback" not in err

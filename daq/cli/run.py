@@ -103,6 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "simulator's perturbations (default: a fresh one, printed so the run can be repeated)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
                    help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT})")
+    p.add_argument("--replay", type=Path, nargs="+", default=None, metavar="LOG",
+                   help="run the same excitations as these logs (their seeds, settings and durations), "
+                        "under their own controller unless --controller is given")
     p.add_argument("--controller", type=Path, default=None, metavar="FILE.toml",
                    help="controller gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau); default: the "
                         "gains that recorded the paper's dataset")
@@ -284,6 +287,25 @@ def _check_backend_options(args) -> None:
         raise _Fail("--port and --baud are for --backend serial")
 
 
+def _replay(args, rate: float):
+    """Plans repeating the --replay logs' excitations, and the longest one's settings (for progress)."""
+    from daq.replay import replay_plans
+    from daq.session import load_controller
+
+    controller = None
+    if args.controller is not None:
+        controller = load_controller(args.controller, args.discretization, 1.0 / rate)
+    try:
+        plans = replay_plans(args.replay, controller)
+    except ValueError as exc:
+        raise _Fail(f"--replay: {exc}") from None
+    args.episodes = len(plans)
+    from daq.excitation import ExcitationSettings
+
+    longest = max(plans, key=lambda p: p.n_samples)
+    return plans, ExcitationSettings.from_dict(longest.excitation_info["settings"])
+
+
 def _load_plant(path):
     """The --plant file's parameters (the defaults without one); a one-line error when unreadable."""
     from sim.pendulum import PendulumParameters
@@ -372,6 +394,8 @@ def _run(args) -> int:
     run_id = f"qube-run seed {seed}"
     plans = plan_episodes(controller, seeds, settings, source=run_id,
                           extra={"run_seed": seed, "command": "qube-run"})
+    if args.replay:
+        plans, settings = _replay(args, rate)
     backend = _make_backend(args, limits, backend_seed, rate)
     try:
         return _collect(args, backend, plans, settings, limits, seed, rate)
