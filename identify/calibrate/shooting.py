@@ -15,7 +15,9 @@ confounded with ``km / Rm`` and is not fitted. The whole mass matrix and all
 torques can be scaled together without changing the motion, so the masses
 ``mr``, ``mp`` and the arm length ``Lr`` stay nominal (weighable, measurable);
 the pendulum's length-mass group enters through ``Lp``, which is fitted. (Fitting
-the arm's inertia too leaves it 0.995 correlated with ``km``: measured.)
+the arm's inertia too leaves it 0.995 correlated with ``km``: measured.) The
+Coulomb friction's smoothing speed stays nominal: fitted, it ran to its lower
+bound without improving the closed-loop replay (measured).
 """
 
 from __future__ import annotations
