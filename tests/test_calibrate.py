@@ -12,7 +12,7 @@ from identify.calibrate import shooting as ms
 from sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
 
 DT = 1 / 500
-TRUTH = PendulumParameters(km=0.034, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5)
+TRUTH = PendulumParameters(km=0.034, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1)
 
 
 def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0, seed: int = 0):

@@ -123,3 +123,11 @@ def test_replay_repeats_the_logged_excitations_under_another_plant(tmp_path, cap
     assert run_main(["--replay", str(tmp_path / "junk.mcap"), "--out", str(tmp_path / "c"), "-q"]) == 2
     err = capsys.readouterr().err
     assert "junk.mcap" in err and "Traceback" not in err
+
+
+def test_dead_zone_swallows_small_voltages_and_is_off_by_default():
+    x0 = np.array([0.0, math.pi, 0.0, 0.0])
+    params = PendulumParameters(dead_zone=0.3)
+    np.testing.assert_array_equal(simulate(x0, np.full(100, 0.25), params), simulate(x0, np.zeros(100), params))
+    np.testing.assert_allclose(simulate(x0, np.full(100, 1.3), params), simulate(x0, np.full(100, 1.0)),
+                               rtol=1e-12, atol=1e-15)

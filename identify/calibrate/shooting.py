@@ -41,6 +41,7 @@ PHYSICAL = (
     ("Cr", "linear", 1e-4, 0.0, 100.0),
     ("Lp", "log", 1.0, np.log(0.7), np.log(1.4)),
     ("Dp", "linear", 1e-5, 0.0, 100.0),
+    ("dead_zone", "linear", 0.1, 0.0, 20.0),
 )
 N_PHYSICAL = len(PHYSICAL)
 OFFSET_SCALE = 1e-3  # rad per unit of the fitted offset variable

@@ -62,6 +62,9 @@ class PendulumParameters:
         ``Cr tanh(theta_dot / coulomb_speed)``; 0 (the default) leaves it out.
     coulomb_speed : float
         Arm speed (rad/s) over which the Coulomb torque changes sign.
+    dead_zone : float
+        Amplifier dead zone (V): the motor sees ``V - clip(V, -dead_zone, dead_zone)``;
+        0 (the default) leaves it out.
     """
 
     Rm: float = 8.4
@@ -75,6 +78,7 @@ class PendulumParameters:
     Dp: float = 5e-5
     Cr: float = 0.0
     coulomb_speed: float = 0.05
+    dead_zone: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -87,7 +91,7 @@ class PendulumParameters:
         # km = 0 (motor disconnected) and zero damping are legitimate idealizations.
         if self.coulomb_speed <= 0:
             raise ValueError(f"parameter coulomb_speed must be positive, got {self.coulomb_speed}")
-        for name in ("km", "Dr", "Dp", "g", "Cr"):
+        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone"):
             if getattr(self, name) < 0:
                 raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
 
@@ -120,6 +124,7 @@ class _Coefficients(NamedTuple):
     pendulum_damping: float  # Dp
     arm_coulomb: float = 0.0   # Cr
     inverse_coulomb_speed: float = 20.0  # 1 / coulomb_speed
+    dead_zone: float = 0.0
 
     @classmethod
     def of(cls, p: PendulumParameters) -> "_Coefficients":
@@ -127,13 +132,15 @@ class _Coefficients(NamedTuple):
                    m12=p.mp * p.Lp * p.Lr / 2.0, m22=p.Jp + p.mp * p.Lp**2 / 4.0,
                    gravity=p.mp * p.Lp * p.g / 2.0, torque_per_volt=p.km / p.Rm,
                    arm_damping=p.km**2 / p.Rm + p.Dr, pendulum_damping=p.Dp,
-                   arm_coulomb=p.Cr, inverse_coulomb_speed=1.0 / p.coulomb_speed)
+                   arm_coulomb=p.Cr, inverse_coulomb_speed=1.0 / p.coulomb_speed, dead_zone=p.dead_zone)
 
 
 def _accelerations(s, c, theta_dot, alpha_dot, voltage, k: _Coefficients):
     """(theta_ddot, alpha_ddot) from sin and cos of alpha; floats or arrays alike."""
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
+    if k.dead_zone:
+        voltage = voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
     r1 = (k.torque_per_volt * voltage - k.arm_damping * theta_dot
           - 2.0 * k.quarter * s * c * theta_dot * alpha_dot + k.m12 * s * alpha_dot * alpha_dot)
     if k.arm_coulomb:  # a Python branch: without friction the arithmetic is exactly as before
