@@ -70,3 +70,21 @@ def test_cli_refuses_missing_logs_in_one_line(tmp_path, capsys):
     assert main([str(tmp_path / "nope.mcap"), "--out", str(tmp_path / "p.toml")]) == 2
     err = capsys.readouterr().err
     assert "nope.mcap" in err and "Traceback" not in err
+
+
+def test_cli_writes_a_plant_file_qube_run_accepts_and_a_report(tmp_path):
+    from daq.cli.run import main as run_main
+    from identify.cli.calibrate import main
+    from sim.pendulum.params_file import load_plant
+
+    assert run_main(["--episodes", "3", "--duration", "3", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
+    logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
+    assert main([*logs[:2], "--validate", logs[2], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "8",
+                 "--report", str(tmp_path / "report"), "-q"]) == 0
+    plant = load_plant(tmp_path / "plant.toml")
+    assert plant.provenance["logs"] == [p.rsplit("/", 1)[-1] for p in logs[:2]]
+    assert set(plant.standard_errors) == {p[0] for p in ms.PHYSICAL}
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "## Validation on 1 episodes not fitted" in report and "| km |" in report
+    assert run_main(["--episodes", "1", "--duration", "1", "--plant", str(tmp_path / "plant.toml"),
+                     "--out", str(tmp_path / "again"), "-q"]) == 0
