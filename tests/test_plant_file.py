@@ -131,3 +131,13 @@ def test_dead_zone_swallows_small_voltages_and_is_off_by_default():
     np.testing.assert_array_equal(simulate(x0, np.full(100, 0.25), params), simulate(x0, np.zeros(100), params))
     np.testing.assert_allclose(simulate(x0, np.full(100, 1.3), params), simulate(x0, np.full(100, 1.0)),
                                rtol=1e-12, atol=1e-15)
+
+
+def test_shipped_calibration_loads_with_its_provenance():
+    from sim.pendulum.params_file import PLANTS
+
+    plant = load_plant(PLANTS / "qube_20230828.toml")
+    assert named_parameters("calibrated-20230828") == plant.params != PendulumParameters()
+    assert len(plant.provenance["logs"]) == 28 and len(plant.provenance["validated_on"]) == 20
+    assert set(plant.provenance["logs"]).isdisjoint(plant.provenance["validated_on"])
+    assert plant.standard_errors["km"] < 0.01 * plant.params.km
