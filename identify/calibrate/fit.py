@@ -155,10 +155,10 @@ class PlantCalibration:
         out = []
         for i, name in enumerate(self.fitted_names_):
             span = hi[i] - lo[i]
-            if z[i] - lo[i] < 1e-4 * span or hi[i] - z[i] < 1e-4 * span:
-                out.append(f"{name} is at a bound of its physical range ({getattr(self.params_, name):.4g})")
             value, se = getattr(self.params_, name), self.standard_errors_[name]
-            if se > 0.5 * abs(value) and not out[-1:] or (out and name not in out[-1] and se > 0.5 * abs(value)):
+            if z[i] - lo[i] < 1e-4 * span or hi[i] - z[i] < 1e-4 * span:
+                out.append(f"{name} is at a bound of its physical range ({value:.4g})")
+            elif se > 0.5 * abs(value):
                 out.append(f"{name} is poorly identified (standard error {se:.2g} vs value {value:.2g})")
         n = len(self.fitted_names_)
         for i in range(n):

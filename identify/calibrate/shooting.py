@@ -27,8 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.sparse import lil_matrix
 
-from sim.pendulum import PendulumParameters
-from sim.pendulum.model import _Coefficients, _rk4
+from sim.pendulum import PendulumParameters, simulate
 
 __all__ = ["PHYSICAL", "Segments", "make_segments", "to_params", "from_params", "residuals",
            "sparsity", "simulate_segments"]
@@ -124,16 +123,8 @@ def make_segments(measured: list[np.ndarray], voltages: list[np.ndarray], horizo
 def simulate_segments(nodes: np.ndarray, u: np.ndarray, params: PendulumParameters,
                       dt: float, n_substeps: int = 2) -> np.ndarray:
     """Angles (horizon + 1, n_seg, 2) from node states (n_seg, 4) under voltages (horizon, n_seg)."""
-    k = _Coefficients.of(params)
-    h = dt / n_substeps
-    out = np.empty((u.shape[0] + 1, nodes.shape[0], 2))
-    comps = tuple(nodes[:, i] for i in range(4))
-    out[0, :, 0], out[0, :, 1] = comps[0], comps[1]
     with np.errstate(over="ignore", invalid="ignore"):
-        for step in range(u.shape[0]):
-            comps = _rk4(*comps, u[step], h, n_substeps, k, np.sin, np.cos)
-            out[step + 1, :, 0], out[step + 1, :, 1] = comps[0], comps[1]
-    return out
+        return simulate(nodes, u, params, dt, n_substeps)[..., :2]
 
 
 def unpack(z: np.ndarray, n_episodes: int, n_seg: int):
