@@ -108,6 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "simulator's perturbations (default: a fresh one, printed so the run can be repeated)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
                    help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT})")
+    p.add_argument("--replay", type=Path, nargs="+", default=None, metavar="LOG",
+                   help="run the same excitations as these logs (their seeds, settings and durations), "
+                        "under their own controller unless --controller is given")
     p.add_argument("--controller", type=Path, default=None, metavar="FILE.toml",
                    help="controller gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau); default: the "
                         "gains that recorded the paper's dataset")
@@ -128,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     safety.add_argument("--perturbation", type=_non_negative_float, default=2.0, metavar="DEG",
                         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
                              "an episode starts only once |alpha| < 5)")
+    safety.add_argument("--plant", type=Path, default=None, metavar="FILE.toml",
+                        help="the simulated pendulum's physical parameters (a qube-calibrate plant file; "
+                             "default: the built-in ones)")
     link = p.add_argument_group("serial bridge (--backend serial)")
     link.add_argument("--port", default=None, metavar="DEV",
                       help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
@@ -284,8 +290,42 @@ def _check_backend_options(args) -> None:
                         "qube-emulate prints)")
         if args.realtime:
             raise _Fail("--realtime is for --backend sim: the bridge's clock paces the serial backend")
+        if args.plant is not None:
+            raise _Fail("--plant is for --backend sim: the serial backend drives a real (or emulated) pendulum")
     elif args.port is not None or args.baud is not None or args.link_timeout is not None:
         raise _Fail("--port, --baud and --link-timeout are for --backend serial")
+
+
+def _replay(args, rate: float):
+    """Plans repeating the --replay logs' excitations, and the longest one's settings (for progress)."""
+    from daq.replay import replay_plans
+    from daq.session import load_controller
+
+    controller = None
+    if args.controller is not None:
+        controller = load_controller(args.controller, args.discretization, 1.0 / rate)
+    try:
+        plans = replay_plans(args.replay, controller)
+    except ValueError as exc:
+        raise _Fail(f"--replay: {exc}") from None
+    args.episodes = len(plans)
+    from daq.excitation import ExcitationSettings
+
+    longest = max(plans, key=lambda p: p.n_samples)
+    return plans, ExcitationSettings.from_dict(longest.excitation_info["settings"])
+
+
+def _load_plant(path):
+    """The --plant file's parameters (the defaults without one); a one-line error when unreadable."""
+    from sim.pendulum import PendulumParameters
+    from sim.pendulum.params_file import PlantFileError, load_plant
+
+    if path is None:
+        return PendulumParameters()
+    try:
+        return load_plant(path).params
+    except PlantFileError as exc:
+        raise _Fail(str(exc)) from None
 
 
 def _make_backend(args, limits, backend_seed: int, rate: float):
@@ -293,7 +333,8 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
     if args.backend == "sim":
         from daq.backends import SimBackend
 
-        return SimBackend(perturbation=math.radians(args.perturbation), seed=backend_seed,
+        params = _load_plant(args.plant)
+        return SimBackend(params=params, perturbation=math.radians(args.perturbation), seed=backend_seed,
                           realtime=args.realtime, dt=1.0 / rate)
     from daq.backends import BackendFault
     from daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
@@ -371,6 +412,8 @@ def _run(args) -> int:
     run_id = f"qube-run seed {seed}"
     plans = plan_episodes(controller, seeds, settings, source=run_id,
                           extra={"run_seed": seed, "command": "qube-run"})
+    if args.replay:
+        plans, settings = _replay(args, rate)
     backend = _make_backend(args, limits, backend_seed, rate)
     try:
         return _collect(args, backend, plans, settings, limits, seed, rate)

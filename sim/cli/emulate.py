@@ -73,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
     p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
                    help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
+    p.add_argument("--plant", default=None, metavar="FILE.toml",
+                   help="the pendulum's physical parameters (a qube-calibrate plant file; default: built in)")
     p.add_argument("--hanging", action="store_true",
                    help="do not raise the pendulum at each session: it stays hanging down")
     p.add_argument("--raise-time", type=_number(0.0, 60.0, "--raise-time"), default=0.0, metavar="S",
@@ -144,7 +146,15 @@ def main(argv: list[str] | None = None) -> int:
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate, garbage_rate=args.garbage_rate,
                     latency=args.latency / 1e3, stall_at=args.stall_at, amp_fault_at=args.amp_fault_at,
                     silence_at=args.silence_at, vanish_at=args.vanish_at)
-    emulator = BridgeEmulator(seed=args.seed, lockstep=args.lockstep,
+    from sim.pendulum import PendulumParameters
+    from sim.pendulum.params_file import PlantFileError, load_plant
+
+    try:
+        params = PendulumParameters() if args.plant is None else load_plant(args.plant).params
+    except PlantFileError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    emulator = BridgeEmulator(seed=args.seed, params=params, lockstep=args.lockstep,
                               perturbation=math.radians(args.perturbation), start_upright=not args.hanging,
                               raise_time=args.raise_time, faults=faults, spin=args.spin / 1e6,
                               record_ticks=300_000 if args.record else 0)

@@ -49,7 +49,7 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
                          params: PendulumParameters = PendulumParameters(),
                          sensor: SensorModel = SensorModel(), controller_state0=None,
                          max_voltage: float = 10.0, n_substeps: int = DEFAULT_SUBSTEPS,
-                         rng: np.random.Generator | None = None) -> ClosedLoopRun:
+                         rng: np.random.Generator | None = None, alpha_offsets=None) -> ClosedLoopRun:
     """Run the pendulum under a controller on the tracking error, for a batch of episodes.
 
     Parameters
@@ -72,6 +72,8 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
         RK4 steps per sample.
     rng : numpy.random.Generator, optional
         For sensor noise.
+    alpha_offsets : array_like broadcastable to the batch, optional
+        Per-episode pendulum encoder zero offsets (rad), added to the sensor's own.
     """
     if controller.n_inputs != 2 or controller.n_outputs != 1:
         raise ValueError("controller must map the two tracking errors (theta, alpha) to one voltage; "
@@ -103,8 +105,10 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     k = _Coefficients.of(params)
     h = controller.dt / n_substeps
     comps = tuple(x[..., i] for i in range(4))
+    shift = None if alpha_offsets is None else np.stack(np.broadcast_arrays(
+        0.0, np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)), axis=-1)
     for step in range(n_steps):
-        y = measure(states[step], sensor, rng)
+        y = measure(states[step] if shift is None else states[step][..., :2] + shift, sensor, rng)
         e = r[step] - y
         u = xc @ Cc + e @ Dc
         v = np.clip(u + f[step], -max_voltage, max_voltage)

@@ -57,6 +57,14 @@ class PendulumParameters:
         defaults were fitted to hardware by another public project; the
         workbook's larger values (:meth:`workbook`) made 4 of 5 replayed
         dataset episodes fall.
+    Cr : float
+        Coulomb (dry) friction torque of the arm (N m), smoothed as
+        ``Cr tanh(theta_dot / coulomb_speed)``; 0 (the default) leaves it out.
+    coulomb_speed : float
+        Arm speed (rad/s) over which the Coulomb torque changes sign.
+    dead_zone : float
+        Amplifier dead zone (V): the motor sees ``V - clip(V, -dead_zone, dead_zone)``;
+        0 (the default) leaves it out.
     """
 
     Rm: float = 8.4
@@ -68,6 +76,9 @@ class PendulumParameters:
     g: float = 9.81
     Dr: float = 2.7e-4
     Dp: float = 5e-5
+    Cr: float = 0.0
+    coulomb_speed: float = 0.05
+    dead_zone: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -78,7 +89,9 @@ class PendulumParameters:
             if getattr(self, name) <= 0:
                 raise ValueError(f"parameter {name} must be positive, got {getattr(self, name)}")
         # km = 0 (motor disconnected) and zero damping are legitimate idealizations.
-        for name in ("km", "Dr", "Dp", "g"):
+        if self.coulomb_speed <= 0:
+            raise ValueError(f"parameter coulomb_speed must be positive, got {self.coulomb_speed}")
+        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone"):
             if getattr(self, name) < 0:
                 raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
 
@@ -109,21 +122,29 @@ class _Coefficients(NamedTuple):
     torque_per_volt: float  # km / Rm
     arm_damping: float      # km^2 / Rm (back-EMF) + Dr
     pendulum_damping: float  # Dp
+    arm_coulomb: float = 0.0   # Cr
+    inverse_coulomb_speed: float = 20.0  # 1 / coulomb_speed
+    dead_zone: float = 0.0
 
     @classmethod
     def of(cls, p: PendulumParameters) -> "_Coefficients":
         return cls(m11=p.Jr + p.mp * p.Lr**2, quarter=p.mp * p.Lp**2 / 4.0,
                    m12=p.mp * p.Lp * p.Lr / 2.0, m22=p.Jp + p.mp * p.Lp**2 / 4.0,
                    gravity=p.mp * p.Lp * p.g / 2.0, torque_per_volt=p.km / p.Rm,
-                   arm_damping=p.km**2 / p.Rm + p.Dr, pendulum_damping=p.Dp)
+                   arm_damping=p.km**2 / p.Rm + p.Dr, pendulum_damping=p.Dp,
+                   arm_coulomb=p.Cr, inverse_coulomb_speed=1.0 / p.coulomb_speed, dead_zone=p.dead_zone)
 
 
 def _accelerations(s, c, theta_dot, alpha_dot, voltage, k: _Coefficients):
     """(theta_ddot, alpha_ddot) from sin and cos of alpha; floats or arrays alike."""
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
+    if k.dead_zone:
+        voltage = voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
     r1 = (k.torque_per_volt * voltage - k.arm_damping * theta_dot
           - 2.0 * k.quarter * s * c * theta_dot * alpha_dot + k.m12 * s * alpha_dot * alpha_dot)
+    if k.arm_coulomb:  # a Python branch: without friction the arithmetic is exactly as before
+        r1 = r1 - k.arm_coulomb * np.tanh(theta_dot * k.inverse_coulomb_speed)
     r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
     m11 = k.m11 + k.quarter * s * s
     m12 = k.m12 * c
@@ -269,7 +290,9 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     k = _Coefficients.of(params)
     mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])
     # Generalized forces to first order at alpha = 0: columns (theta, alpha, theta_dot, alpha_dot).
-    forces = np.array([[0.0, 0.0, -k.arm_damping, 0.0],
+    # The smoothed Coulomb torque's slope at rest acts as viscous damping there.
+    arm_damping = k.arm_damping + k.arm_coulomb * k.inverse_coulomb_speed
+    forces = np.array([[0.0, 0.0, -arm_damping, 0.0],
                        [0.0, k.gravity, 0.0, -k.pendulum_damping]])
     A = np.zeros((4, 4))
     A[0, 2] = A[1, 3] = 1.0

@@ -1,0 +1,75 @@
+"""Benchmark of ``qube-calibrate``'s fit on the paper's 28 training episodes.
+
+Measures, against the issue's target (at most 2 minutes on 2 cores):
+
+- wall time of :class:`identify.calibrate.PlantCalibration` on the training
+  episodes (the paper's split), its iterations and final residual;
+- time per iteration of the reference approach, scipy's ``least_squares``
+  (trf, LSMR trust-region solver, the same residuals and ``jac_sparsity``
+  pattern), over a few iterations, and the ratio to ours.
+
+Usage::
+
+    PYTHONPATH=. python bench/bench_calibrate.py LOG_DIR [--episodes N] [--reference-iterations K]
+
+LOG_DIR holds the dataset imported to MCAP
+(``python -m daq.cli.import_csv ../shared/datasets/qube_servo_20230828/*.csv --out LOG_DIR``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("logs", type=Path)
+    p.add_argument("--episodes", type=int, default=28)
+    p.add_argument("--reference-iterations", type=int, default=3)
+    args = p.parse_args()
+
+    from scipy.optimize import least_squares
+
+    from daq.log import read_episode
+    from identify.calibrate import PlantCalibration
+    from identify.calibrate import shooting as ms
+    from identify.calibrate.fit import ENCODER_SIGMA
+    from identify.data import paper_split
+
+    train, _ = paper_split(sorted(args.logs.glob("*.mcap")))
+    episodes = [read_episode(path) for path in train[:args.episodes]]
+    ys, us, dt = [e.states for e in episodes], [e.plant_input for e in episodes], episodes[0].dt
+
+    started = time.perf_counter()
+    cal = PlantCalibration().fit(ys, us, dt)
+    ours = time.perf_counter() - started
+    ours_per_iteration = ours / max(1, cal.nfev_)  # per trial step (accepted or rejected), Jacobian included
+
+    # The reference: scipy's trust-region least squares on the same problem, from the same start.
+    h = int(round(cal.horizon / dt))
+    seg = ms.make_segments(ys, us, h, int(round(cal.skip / dt)), 0, 2 * h)
+    z0 = cal._start(ys, seg, len(ys), dt)
+    lo, hi = cal._bounds(len(ys), seg.n)
+    started = time.perf_counter()
+    ref = least_squares(lambda z: ms.residuals(z, seg, len(ys), cal.nominal, dt, ENCODER_SIGMA),
+                        np.clip(z0, lo, hi), jac_sparsity=ms.sparsity(seg, len(ys)), bounds=(lo, hi),
+                        method="trf", tr_solver="lsmr", x_scale="jac", max_nfev=args.reference_iterations)
+    reference = time.perf_counter() - started
+    reference_per_iteration = reference / max(1, ref.nfev)
+
+    print(f"| measure | value | target |\n|---|---|---|")
+    print(f"| calibration, {len(episodes)} episodes | {ours:.1f} s ({cal.nfev_} evaluations) | <= 120 s |")
+    print(f"| residual RMS theta, alpha | {1e3 * cal.residual_rms_[:, 0].mean():.2f}, "
+          f"{1e3 * cal.residual_rms_[:, 1].mean():.2f} mrad | |")
+    print(f"| time per trial step (with its Jacobian): ours | {ours_per_iteration:.2f} s | |")
+    print(f"| time per iteration: scipy trf+lsmr (reference, {ref.nfev} iterations) | "
+          f"{reference_per_iteration:.2f} s | |")
+    print(f"| ratio reference / ours per iteration | {reference_per_iteration / ours_per_iteration:.1f} | |")
+
+
+if __name__ == "__main__":
+    main()

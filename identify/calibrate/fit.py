@@ -1,0 +1,192 @@
+"""Grey-box calibration of the simulator's pendulum by multiple-shooting least squares."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import asdict
+from typing import Sequence
+
+import numpy as np
+from scipy.signal import savgol_filter
+from scipy.sparse.linalg import splu
+
+from identify.calibrate import shooting as ms
+from identify.calibrate.solver import levenberg_marquardt
+from sim.pendulum import PendulumParameters
+
+__all__ = ["PlantCalibration"]
+
+#: Standard deviation (rad) of a 2048-count encoder's quantization error: the residual scale.
+ENCODER_SIGMA = 2 * np.pi / 2048 / np.sqrt(12)
+
+
+class _Progress:
+    """A one-line progress bar on stderr (iterations of the solver, best cost so far)."""
+
+    def __init__(self, enabled: bool, budget: int) -> None:
+        self.enabled, self.budget = enabled and sys.stderr.isatty(), budget
+
+    def __call__(self, iteration: int, cost: float) -> None:
+        if self.enabled:
+            filled = min(30, 30 * iteration // self.budget)
+            print(f"\rcalibrating [{'#' * filled}{'.' * (30 - filled)}] iteration {iteration}/{self.budget}, "
+                  f"cost {cost:.5g}", end="", file=sys.stderr, flush=True)
+
+    def done(self) -> None:
+        if self.enabled:
+            print(file=sys.stderr, flush=True)
+
+
+class PlantCalibration:
+    """Fit the pendulum's physical parameters and per-episode encoder offsets to logs.
+
+    Parameters
+    ----------
+    horizon : float
+        Shooting segment length (s).
+    skip : float
+        Seconds dropped at each episode's start (the hand-raising and derivative kick).
+    delay : int
+        Transport delay in whole samples assumed between the logged voltage and the motor.
+    nominal : PendulumParameters
+        Starting point; the parameters not fitted keep these values.
+    stride : float or None
+        Seconds between segment starts (default: ``2 * horizon``, every other stretch of data).
+    max_nfev : int
+        Iteration budget of the solver (Levenberg-Marquardt iterations).
+    progress : bool
+        Show a progress line on stderr.
+
+    Attributes
+    ----------
+    params_ : PendulumParameters
+    standard_errors_ : dict of str to float
+        Of the fitted physical parameters (asymptotic, from the Jacobian).
+    correlation_ : ndarray (n_fitted, n_fitted)
+    fitted_names_ : list of str
+    alpha_offsets_ : ndarray (n_episodes,)
+        Pendulum encoder zero offsets (rad); ``alpha_offset_errors_`` their standard errors.
+    residual_rms_ : ndarray (n_episodes, 2)
+        RMS prediction error (rad) of theta and alpha over each episode's segments.
+    warnings_ : list of str
+        Parameters at a bound or poorly identified.
+    cost_, nfev_ : float, int
+    """
+
+    def __init__(self, horizon: float = 0.1, skip: float = 1.0, delay: int = 0,
+                 nominal: PendulumParameters = PendulumParameters(), stride: float | None = None,
+                 max_nfev: int = 40, progress: bool = False) -> None:
+        self.horizon = horizon
+        self.skip = skip
+        self.delay = delay
+        self.nominal = nominal
+        self.stride = stride
+        self.max_nfev = max_nfev
+        self.progress = progress
+
+    def fit(self, measured: Sequence[np.ndarray], voltages: Sequence[np.ndarray], dt: float) -> "PlantCalibration":
+        """Fit to episodes: ``measured[i]`` (n_i, 2) angles, ``voltages[i]`` (n_i,) plant input (V)."""
+        if len(measured) != len(voltages) or not measured:
+            raise ValueError("need one voltage sequence per measured episode, and at least one episode")
+        h = max(2, int(round(self.horizon / dt)))
+        seg = ms.make_segments([np.asarray(y, float) for y in measured], [np.asarray(u, float) for u in voltages],
+                               h, int(round(self.skip / dt)), self.delay,
+                               2 * h if self.stride is None else max(1, int(round(self.stride / dt))))
+        n_ep = len(measured)
+        z0 = self._start(measured, seg, n_ep, dt)
+        lo, hi = self._bounds(n_ep, seg.n)
+        z0 = np.clip(z0, lo, hi)
+        progress = _Progress(self.progress, self.max_nfev)
+
+        def fun(z):
+            return ms.residuals(z, seg, n_ep, self.nominal, dt, ENCODER_SIGMA)
+
+        def jac(z, r):
+            return ms.jacobian(z, r, seg, n_ep, self.nominal, dt, ENCODER_SIGMA)
+
+        result = levenberg_marquardt(fun, jac, z0, lo, hi, max_iter=self.max_nfev, callback=progress)
+        progress.done()
+        self._store(result, seg, n_ep, lo, hi)
+        return self
+
+    def _start(self, measured, seg: ms.Segments, n_ep: int, dt: float) -> np.ndarray:
+        """Nominal parameters, offsets = mean measured alpha, nodes from smoothed data."""
+        offsets = np.array([np.mean(np.asarray(y)[seg.start[seg.episode == e].min():, 1])
+                            for e, y in enumerate(measured)])
+        rates = [savgol_filter(np.asarray(y, float), 21, 2, deriv=1, delta=dt, axis=0) for y in measured]
+        nodes = np.empty((seg.n, 4))
+        nodes[:, :2] = seg.y[0]
+        nodes[:, 1] -= offsets[seg.episode]
+        nodes[:, 2:] = np.stack([rates[e][k] for e, k in zip(seg.episode, seg.start)]) / ms.RATE_SCALE
+        phys = ms.from_params(self.nominal, self.nominal)
+        return np.concatenate([phys, offsets / ms.OFFSET_SCALE, nodes.ravel()])
+
+    @staticmethod
+    def _bounds(n_ep: int, n_seg: int) -> tuple[np.ndarray, np.ndarray]:
+        plo, phi = ms.physical_bounds()
+        lo = np.concatenate([plo, np.full(n_ep, -100.0), np.full(4 * n_seg, -np.inf)])
+        hi = np.concatenate([phi, np.full(n_ep, 100.0), np.full(4 * n_seg, np.inf)])
+        return lo, hi
+
+    def _store(self, result, seg: ms.Segments, n_ep: int, lo: np.ndarray, hi: np.ndarray) -> None:
+        z = result.x
+        phys, offsets, _ = ms.unpack(z, n_ep, seg.n)
+        self.params_ = ms.to_params(phys, self.nominal)
+        self.cost_, self.nfev_ = float(result.cost), int(result.nfev)
+        n_res, n_var = result.jac.shape
+        s2 = 2 * result.cost / max(1, n_res - n_var)
+        cov = _marginal_covariance(result.jac, ms.N_PHYSICAL + n_ep) * s2
+        z_se = np.sqrt(np.maximum(np.diag(cov), 0))
+        self.fitted_names_ = [p[0] for p in ms.PHYSICAL]
+        self.standard_errors_ = {}
+        for i, (name, kind, scale, _, _) in enumerate(ms.PHYSICAL):
+            value = getattr(self.params_, name)
+            self.standard_errors_[name] = float(abs(value) * z_se[i] if kind == "log" else scale * z_se[i])
+        d = np.sqrt(np.maximum(np.diag(cov)[:ms.N_PHYSICAL], 1e-300))
+        self.correlation_ = cov[:ms.N_PHYSICAL, :ms.N_PHYSICAL] / np.outer(d, d)
+        self.alpha_offsets_ = offsets
+        self.alpha_offset_errors_ = ms.OFFSET_SCALE * z_se[ms.N_PHYSICAL:]
+        r = result.fun.reshape(seg.n, seg.horizon + 1, 2) * ENCODER_SIGMA
+        self.residual_rms_ = np.array([np.sqrt(np.mean(r[seg.episode == e] ** 2, axis=(0, 1)))
+                                       for e in range(n_ep)])
+        self.warnings_ = self._warnings(z[:ms.N_PHYSICAL], lo, hi)
+
+    def _warnings(self, z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> list[str]:
+        out = []
+        for i, name in enumerate(self.fitted_names_):
+            span = hi[i] - lo[i]
+            value, se = getattr(self.params_, name), self.standard_errors_[name]
+            if z[i] - lo[i] < 1e-4 * span or hi[i] - z[i] < 1e-4 * span:
+                out.append(f"{name} is at a bound of its physical range ({value:.4g})")
+            elif se > 0.5 * abs(value):
+                out.append(f"{name} is poorly identified (standard error {se:.2g} vs value {value:.2g})")
+        n = len(self.fitted_names_)
+        for i in range(n):
+            for j in range(i + 1, n):
+                if abs(self.correlation_[i, j]) > 0.95:
+                    out.append(f"{self.fitted_names_[i]} and {self.fitted_names_[j]} are strongly correlated "
+                               f"({self.correlation_[i, j]:+.3f}): only a combination of them is well identified")
+        return out
+
+    def summary(self) -> dict:
+        """Plain data for reports and provenance."""
+        return {"params": asdict(self.params_), "standard_errors": dict(self.standard_errors_),
+                "alpha_offsets": self.alpha_offsets_.tolist(), "residual_rms": self.residual_rms_.tolist(),
+                "warnings": list(self.warnings_), "cost": self.cost_, "nfev": self.nfev_}
+
+
+def _marginal_covariance(jac, q: int) -> np.ndarray:
+    """The top-left q x q block of (J^T J)^-1 for a sparse J (the nodes marginalized out)."""
+    jtj = (jac.T @ jac).tocsc()
+    n = jtj.shape[0]
+    jtj = jtj + 1e-12 * jtj.diagonal().max() * _identity(n)
+    lu = splu(jtj)
+    rhs = np.zeros((n, q))
+    rhs[np.arange(q), np.arange(q)] = 1.0
+    return lu.solve(rhs)[:q]
+
+
+def _identity(n: int):
+    from scipy.sparse import identity
+
+    return identity(n, format="csc")

@@ -1,0 +1,201 @@
+"""Multiple shooting for the pendulum: segments, the physical parameterization, residuals.
+
+Each episode is cut into segments of ``horizon`` samples. A segment starts
+from its own (free) state, is simulated with the logged voltage held over
+each sample (sim's RK4 model, vectorized over all segments at once) and is
+compared with the measured angles at each of its ``horizon + 1`` samples; the
+measured pendulum angle is the true one plus the episode's encoder zero
+offset. Segments share the physical parameters and their episode's offset.
+
+Parameterization (what voltage and angle data can tell apart): the motor
+enters only through ``km / Rm`` (torque per volt) and ``km^2 / Rm + Dr``
+(arm damping), so ``Rm`` is held at its nominal value and ``km``, ``Dr`` are
+fitted (a one-to-one map to those two groups); an amplifier gain would be
+confounded with ``km / Rm`` and is not fitted. The whole mass matrix and all
+torques can be scaled together without changing the motion, so the masses
+``mr``, ``mp`` and the arm length ``Lr`` stay nominal (weighable, measurable);
+the pendulum's length-mass group enters through ``Lp``, which is fitted. (Fitting
+the arm's inertia too leaves it 0.995 correlated with ``km``: measured.) The
+Coulomb friction's smoothing speed stays nominal: fitted, it ran to its lower
+bound without improving the closed-loop replay (measured).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.sparse import lil_matrix
+
+from sim.pendulum import PendulumParameters, simulate
+
+__all__ = ["PHYSICAL", "Segments", "make_segments", "to_params", "from_params", "residuals",
+           "sparsity", "simulate_segments"]
+
+#: Fitted physical parameters: (name, kind, scale, lower, upper). "log": value = nominal exp(z);
+#: "linear": value = scale z. Bounds are in the fitted variable z.
+PHYSICAL = (
+    ("km", "log", 1.0, np.log(0.5), np.log(2.0)),
+    ("Dr", "linear", 1e-4, 0.0, 50.0),
+    ("Cr", "linear", 1e-4, 0.0, 100.0),
+    ("Lp", "log", 1.0, np.log(0.7), np.log(1.4)),
+    ("Dp", "linear", 1e-5, 0.0, 100.0),
+    ("dead_zone", "linear", 0.1, 0.0, 20.0),
+)
+N_PHYSICAL = len(PHYSICAL)
+OFFSET_SCALE = 1e-3  # rad per unit of the fitted offset variable
+RATE_SCALE = 1.0     # node rates are fitted in rad/s
+
+
+def to_params(z: np.ndarray, nominal: PendulumParameters) -> PendulumParameters:
+    """Physical parameters from the fitted variables."""
+    values = {}
+    for (name, kind, scale, _, _), zi in zip(PHYSICAL, z):
+        values[name] = getattr(nominal, name) * np.exp(zi) if kind == "log" else scale * zi
+    return replace(nominal, **{k: float(v) for k, v in values.items()})
+
+
+def from_params(params: PendulumParameters, nominal: PendulumParameters) -> np.ndarray:
+    """The fitted variables of ``params`` (inverse of :func:`to_params`)."""
+    z = []
+    for name, kind, scale, _, _ in PHYSICAL:
+        value = getattr(params, name)
+        z.append(np.log(value / getattr(nominal, name)) if kind == "log" else value / scale)
+    return np.array(z)
+
+
+def physical_bounds() -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds of the fitted physical variables."""
+    return np.array([p[3] for p in PHYSICAL]), np.array([p[4] for p in PHYSICAL])
+
+
+@dataclass(frozen=True)
+class Segments:
+    """Shooting segments of several episodes, stacked along the last axis.
+
+    Attributes
+    ----------
+    y : ndarray (horizon + 1, n_seg, 2)
+        Measured angles over each segment.
+    u : ndarray (horizon, n_seg)
+        Voltage held over each sample.
+    episode : ndarray (n_seg,)
+        Index of each segment's episode.
+    start : ndarray (n_seg,)
+        First sample of each segment in its episode.
+    """
+
+    y: np.ndarray
+    u: np.ndarray
+    episode: np.ndarray
+    start: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.u.shape[1]
+
+    @property
+    def horizon(self) -> int:
+        return self.u.shape[0]
+
+
+def make_segments(measured: list[np.ndarray], voltages: list[np.ndarray], horizon: int, skip: int,
+                  delay: int = 0, stride: int | None = None) -> Segments:
+    """Cut episodes into segments of ``horizon`` samples, every ``stride`` samples from ``skip``.
+
+    ``delay`` whole samples of transport delay: the voltage logged at sample
+    ``k - delay`` acts over sample ``k``.
+    """
+    stride = horizon if stride is None else stride
+    ys, us, eps, starts = [], [], [], []
+    for e, (y, u) in enumerate(zip(measured, voltages)):
+        u = np.concatenate([np.zeros(delay), u[:len(u) - delay]]) if delay else u
+        for k in range(max(skip, delay), len(y) - horizon, stride):
+            ys.append(y[k:k + horizon + 1])
+            us.append(u[k:k + horizon])
+            eps.append(e)
+            starts.append(k)
+    if not ys:
+        raise ValueError(f"no segment of {horizon} samples fits after skipping {skip}")
+    return Segments(np.stack(ys, axis=1), np.stack(us, axis=1), np.array(eps), np.array(starts))
+
+
+def simulate_segments(nodes: np.ndarray, u: np.ndarray, params: PendulumParameters,
+                      dt: float, n_substeps: int = 2) -> np.ndarray:
+    """Angles (horizon + 1, n_seg, 2) from node states (n_seg, 4) under voltages (horizon, n_seg)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return simulate(nodes, u, params, dt, n_substeps)[..., :2]
+
+
+def unpack(z: np.ndarray, n_episodes: int, n_seg: int):
+    """(physical variables, offsets in rad, node states (n_seg, 4)) from the full variable vector."""
+    phys = z[:N_PHYSICAL]
+    offsets = OFFSET_SCALE * z[N_PHYSICAL:N_PHYSICAL + n_episodes]
+    nodes = z[N_PHYSICAL + n_episodes:].reshape(n_seg, 4).copy()
+    nodes[:, 2:] *= RATE_SCALE
+    return phys, offsets, nodes
+
+
+def residuals(z: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumParameters,
+              dt: float, sigma: float) -> np.ndarray:
+    """Scaled prediction errors, ordered (segment, sample, angle)."""
+    phys, offsets, nodes = unpack(z, n_episodes, seg.n)
+    pred = simulate_segments(nodes, seg.u, to_params(phys, nominal), dt)
+    pred[..., 1] += offsets[seg.episode]
+    r = (pred - seg.y) / sigma
+    r = np.nan_to_num(r, nan=1e6, posinf=1e6, neginf=-1e6)
+    return r.transpose(1, 0, 2).ravel()
+
+
+def sparsity(seg: Segments, n_episodes: int):
+    """Jacobian pattern: physical variables touch every residual, an offset its episode's alpha
+    residuals, a node its segment's residuals."""
+    per_seg = 2 * (seg.horizon + 1)
+    n_res = seg.n * per_seg
+    n_var = N_PHYSICAL + n_episodes + 4 * seg.n
+    pattern = lil_matrix((n_res, n_var), dtype=np.int8)
+    pattern[:, :N_PHYSICAL] = 1
+    rows = np.arange(n_res)
+    segment_of_row = rows // per_seg
+    alpha_rows = rows[rows % 2 == 1]
+    pattern[alpha_rows, N_PHYSICAL + seg.episode[segment_of_row[alpha_rows]]] = 1
+    for j in range(4):
+        pattern[rows, N_PHYSICAL + n_episodes + 4 * segment_of_row + j] = 1
+    return pattern.tocsr()
+
+
+def jacobian(z: np.ndarray, r0: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumParameters,
+             dt: float, sigma: float):
+    """Sparse Jacobian of :func:`residuals` in the :func:`sparsity` pattern, by grouped differences.
+
+    One residual evaluation per physical variable and four for all the
+    nodes at once (a node touches only its own segment); the offsets enter
+    linearly and need none.
+    """
+    from scipy.sparse import csr_matrix
+
+    per_seg = 2 * (seg.horizon + 1)
+    n_res = seg.n * per_seg
+    rows = np.arange(n_res)
+    segment_of_row = rows // per_seg
+    base = N_PHYSICAL + n_episodes
+    data, cols, rws = [], [], []
+    for i in range(N_PHYSICAL):
+        step = 1e-6 * max(1.0, abs(z[i]))
+        zi = z.copy()
+        zi[i] += step
+        data.append((residuals(zi, seg, n_episodes, nominal, dt, sigma) - r0) / step)
+        cols.append(np.full(n_res, i))
+        rws.append(rows)
+    for j in range(4):
+        zj = z.copy()
+        zj[base + j::4] += 1e-6
+        data.append((residuals(zj, seg, n_episodes, nominal, dt, sigma) - r0) / 1e-6)
+        cols.append(base + 4 * segment_of_row + j)
+        rws.append(rows)
+    alpha_rows = rows[1::2]
+    data.append(np.full(alpha_rows.size, OFFSET_SCALE / sigma))
+    cols.append(N_PHYSICAL + seg.episode[segment_of_row[alpha_rows]])
+    rws.append(alpha_rows)
+    return csr_matrix((np.concatenate(data), (np.concatenate(rws), np.concatenate(cols))),
+                      shape=(n_res, base + 4 * seg.n))

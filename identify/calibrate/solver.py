@@ -1,0 +1,63 @@
+"""A bounded Levenberg-Marquardt for sparse, arrow-shaped least squares (multiple shooting).
+
+scipy's ``least_squares`` (trf with an LSMR trust-region solver) handles the
+same sparse problem but needed over 10 s per iteration on the 28 training
+episodes (measured); here each iteration factors the sparse normal matrix
+``J^T J`` (block diagonal in the node states, bordered by the shared
+parameters) directly with SuperLU, which costs milliseconds.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from scipy.sparse import diags
+from scipy.sparse.linalg import splu
+
+__all__ = ["levenberg_marquardt", "LmResult"]
+
+
+class LmResult:
+    """``x``, ``fun`` (residuals), ``jac`` (sparse, at ``x``), ``cost`` (half the sum of squares), ``nfev``, ``nit``."""
+
+    def __init__(self, x, fun, jac, cost, nfev, nit, converged):
+        self.x, self.fun, self.jac, self.cost = x, fun, jac, cost
+        self.nfev, self.nit, self.converged = nfev, nit, converged
+
+
+def levenberg_marquardt(fun: Callable, jac: Callable, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                        max_iter: int = 40, ftol: float = 1e-7, callback: Callable | None = None) -> LmResult:
+    """Minimize ``0.5 ||fun(x)||^2`` within bounds (steps projected onto them).
+
+    ``jac(x, r)`` returns the sparse Jacobian at ``x`` (``r = fun(x)``).
+    Stops when an accepted step lowers the cost by less than ``ftol`` relatively.
+    """
+    x = np.clip(x0, lower, upper)
+    r = fun(x)
+    cost = 0.5 * float(r @ r)
+    nfev, lam, converged, it = 1, 1e-3, False, 0
+    for it in range(1, max_iter + 1):
+        J = jac(x, r)
+        JtJ = (J.T @ J).tocsc()
+        g = J.T @ r
+        d = np.maximum(JtJ.diagonal(), 1e-12 * max(1.0, JtJ.diagonal().max()))
+        while True:
+            step = -splu((JtJ + diags(lam * d)).tocsc()).solve(g)
+            x_new = np.clip(x + step, lower, upper)
+            r_new = fun(x_new)
+            nfev += 1
+            cost_new = 0.5 * float(r_new @ r_new)
+            if np.isfinite(cost_new) and cost_new < cost:
+                break
+            lam *= 5.0
+            if lam > 1e12:
+                return LmResult(x, r, J, cost, nfev, it, True)
+        gain = (cost - cost_new) / cost
+        x, r, cost, lam = x_new, r_new, cost_new, max(lam / 3.0, 1e-9)
+        if callback is not None:
+            callback(it, cost)
+        if gain < ftol:
+            converged = True
+            break
+    return LmResult(x, r, jac(x, r), cost, nfev, it, converged)

@@ -1,0 +1,90 @@
+"""Grey-box calibration (identify.calibrate): identifiability on simulated logs, solver pieces, CLI errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from _episodes import QUBE_PD
+from daq.excitation import ExcitationSettings, generate_excitation
+from identify.calibrate import PlantCalibration
+from identify.calibrate import shooting as ms
+from sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
+
+DT = 1 / 500
+TRUTH = PendulumParameters(km=0.034, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1)
+
+
+def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0, seed: int = 0):
+    """Closed-loop episodes of the rig's excitation (active from 1 s), encoder noise and offsets."""
+    rng = np.random.default_rng(seed)
+    samples = int(seconds / DT)
+    settings = ExcitationSettings(n_samples=samples, window_start=250, window_stop=samples)
+    ex = [generate_excitation((11 + i, 22 + i, 33 + i), settings) for i in range(n)]
+    refs = np.stack([np.column_stack([e.target_theta, e.target_alpha]) for e in ex], axis=1)
+    ff = np.stack([e.feedforward for e in ex], axis=1)
+    offsets = rng.normal(0.0025, 0.002, n)
+    state0 = np.column_stack([np.zeros(n), rng.uniform(-0.02, 0.02, n), np.zeros((n, 2))])
+    run = simulate_closed_loop(state0, QUBE_PD, refs, ff, params, SensorModel(noise_std=5e-4),
+                               alpha_offsets=offsets, rng=rng)
+    return ([run.measurements[:, i] for i in range(n)], [run.plant_input[:, i] for i in range(n)], offsets)
+
+
+def test_parameter_map_round_trips():
+    z = ms.from_params(TRUTH, PendulumParameters())
+    assert ms.to_params(z, PendulumParameters()) == TRUTH
+
+
+def test_sparse_jacobian_matches_dense_differences():
+    ys, us, _ = simulated_logs(TRUTH, n=2, seconds=1.0)
+    seg = ms.make_segments(ys, us, horizon=10, skip=300, stride=40)
+    rng = np.random.default_rng(1)
+    z = np.concatenate([ms.from_params(TRUTH, PendulumParameters()), [2.0, 3.0],
+                        (np.column_stack([seg.y[0], rng.normal(0, 0.1, (seg.n, 2))])).ravel()])
+    r0 = ms.residuals(z, seg, 2, PendulumParameters(), DT, 1e-3)
+    J = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3).toarray()
+    dense = np.empty_like(J)
+    for j in range(z.size):
+        zj = z.copy()
+        zj[j] += 1e-6
+        dense[:, j] = (ms.residuals(zj, seg, 2, PendulumParameters(), DT, 1e-3) - r0) / 1e-6
+    np.testing.assert_allclose(J, dense, rtol=1e-4, atol=1e-3 * np.abs(dense).max())
+    assert not np.any(J[ms.sparsity(seg, 2).toarray() == 0])
+
+
+@pytest.mark.slow
+def test_known_parameters_are_recovered_within_two_standard_errors():
+    ys, us, offsets = simulated_logs(TRUTH)
+    cal = PlantCalibration(horizon=0.1, skip=0.5, stride=0.1, nominal=PendulumParameters()).fit(ys, us, DT)
+    for name in cal.fitted_names_:
+        fitted, truth, se = getattr(cal.params_, name), getattr(TRUTH, name), cal.standard_errors_[name]
+        assert abs(fitted - truth) <= 2 * se + 1e-12, (name, fitted, truth, se)
+        assert se < 0.2 * truth, (name, se)  # identified, not merely uncertain
+    np.testing.assert_array_less(np.abs(cal.alpha_offsets_ - offsets), 2 * cal.alpha_offset_errors_ + 1e-9)
+    assert not cal.warnings_
+
+
+def test_cli_refuses_missing_logs_in_one_line(tmp_path, capsys):
+    from identify.cli.calibrate import main
+
+    assert main([str(tmp_path / "nope.mcap"), "--out", str(tmp_path / "p.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "nope.mcap" in err and "Traceback" not in err
+
+
+def test_cli_writes_a_plant_file_qube_run_accepts_and_a_report(tmp_path):
+    from daq.cli.run import main as run_main
+    from identify.cli.calibrate import main
+    from sim.pendulum.params_file import load_plant
+
+    assert run_main(["--episodes", "3", "--duration", "3", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
+    logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
+    assert main([*logs[:2], "--validate", logs[2], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "8",
+                 "--report", str(tmp_path / "report"), "-q"]) == 0
+    plant = load_plant(tmp_path / "plant.toml")
+    assert plant.provenance["logs"] == [p.rsplit("/", 1)[-1] for p in logs[:2]]
+    assert set(plant.standard_errors) == {p[0] for p in ms.PHYSICAL}
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "## Validation on 1 episodes not fitted" in report and "| km |" in report
+    assert run_main(["--episodes", "1", "--duration", "1", "--plant", str(tmp_path / "plant.toml"),
+                     "--out", str(tmp_path / "again"), "-q"]) == 0

@@ -1,0 +1,143 @@
+"""Plant parameter files (sim.pendulum.params_file), Coulomb friction, and ``--plant`` on the command lines."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+
+import numpy as np
+import pytest
+
+from daq.cli.run import main as run_main
+from daq.log import read_episode
+from sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel, linearize_upright, simulate
+from sim.pendulum.params_file import PlantFile, PlantFileError, load_plant, named_parameters, save_plant
+
+
+def test_round_trip_keeps_every_value_and_the_provenance(tmp_path):
+    params = PendulumParameters(km=0.0411234567891, Dr=3.1e-4, Cr=4.5e-4, coulomb_speed=0.02)
+    plant = PlantFile(params, {"km": 1e-4}, {"source": "test", "logs": ["a.mcap", 'b "q".mcap'],
+                                             "residual_rms": 1.5e-3, "n": 3, "ok": True})
+    save_plant(tmp_path / "p.toml", plant)
+    back = load_plant(tmp_path / "p.toml")
+    assert back.params == params
+    assert back.standard_errors == {"km": 1e-4}
+    assert back.provenance == plant.provenance
+
+
+def test_missing_parameters_keep_their_defaults(tmp_path):
+    (tmp_path / "p.toml").write_text('format = "qube-plant/1"\n[parameters]\nDr = 0.001\n')
+    assert load_plant(tmp_path / "p.toml").params == PendulumParameters(Dr=0.001)
+
+
+@pytest.mark.parametrize("text, message", [
+    ('format = "qube-plant/1"\n[parameters]\nDrr = 0.001\n', "unknown parameter(s) Drr"),
+    ('format = "qube-plant/1"\n[parameters]\nRm = -1.0\n', "Rm must be positive"),
+    ('format = "qube-plant/1"\n[parameters]\nRm = "8"\n', "Rm must be a number"),
+    ('[parameters]\nRm = 8.0\n', "format must be"),
+    ('format = = 1', "not a TOML file"),
+])
+def test_bad_files_name_the_file_and_the_problem(tmp_path, text, message):
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    with pytest.raises(PlantFileError, match=r"p\.toml") as info:
+        load_plant(path)
+    assert message in str(info.value)
+
+
+def test_named_sets():
+    assert named_parameters("default") == PendulumParameters()
+    assert named_parameters("workbook").Dr == 0.0015
+    assert named_parameters("previous") == PendulumParameters(Dr=2.7e-4, Dp=5e-5)
+    with pytest.raises(ValueError, match="known"):
+        named_parameters("nope")
+
+
+def test_coulomb_friction_stops_the_arm_sooner_and_is_off_by_default():
+    x0 = np.array([0.0, math.pi, 5.0, 0.0])  # hanging, arm spinning, motor idle
+    free = simulate(x0, np.zeros(500))
+    dry = simulate(x0, np.zeros(500), PendulumParameters(Cr=2e-3))
+    assert abs(dry[-1, 2]) < 0.05 < abs(free[-1, 2])
+    # Below the dead band the arm does not move against a small voltage.
+    creep = simulate(np.array([0.0, math.pi, 0.0, 0.0]), np.full(500, 0.1), PendulumParameters(Cr=2e-3))
+    assert abs(creep[-1, 0]) < 0.1 * abs(simulate(np.array([0.0, math.pi, 0.0, 0.0]), np.full(500, 0.1))[-1, 0])
+    # Linearized, the smoothed friction adds damping Cr / coulomb_speed at rest.
+    a0, _ = linearize_upright(PendulumParameters())
+    a1, _ = linearize_upright(PendulumParameters(Dr=2.7e-4 + 0.04))
+    a2, _ = linearize_upright(PendulumParameters(Cr=2e-3, coulomb_speed=0.05))
+    np.testing.assert_allclose(a1, a2, rtol=1e-12)
+    assert not np.allclose(a0, a2)
+
+
+def test_per_tick_simulator_and_batch_model_agree_with_friction():
+    params = PendulumParameters(Cr=1e-3)
+    sim = PendulumSimulator(params, SensorModel(counts_per_rev=None))
+    sim.reset((0.0, 0.05, 0.0, 0.0))
+    volts = np.sin(np.arange(200) * 0.05)
+    for v in volts:
+        sim.step(v)
+    batch = simulate(np.array([0.0, 0.05, 0.0, 0.0]), volts, params)
+    np.testing.assert_allclose(sim.state, batch[-1], rtol=0, atol=1e-12)
+
+
+def test_qube_run_plant_option_reaches_the_simulator(tmp_path, capsys):
+    params = PendulumParameters(Dr=4e-4, Cr=3e-4)
+    save_plant(tmp_path / "plant.toml", PlantFile(params, provenance={"source": "test"}))
+    assert run_main(["--episodes", "1", "--duration", "1", "--seed", "2", "--out", str(tmp_path / "ep"),
+                     "--plant", str(tmp_path / "plant.toml"), "-q"]) == 0
+    (path,) = (tmp_path / "ep").glob("*.mcap")
+    assert read_episode(path).metadata.extra["backend"]["params"] == asdict(params)
+    capsys.readouterr()
+    assert run_main(["--episodes", "1", "--duration", "1", "--out", str(tmp_path / "ep2"),
+                     "--plant", str(tmp_path / "missing.toml"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "missing.toml" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_qube_emulate_refuses_a_bad_plant_file_in_one_line(tmp_path, capsys):
+    from sim.cli.emulate import main as emulate_main
+
+    (tmp_path / "bad.toml").write_text('format = "qube-plant/1"\n[parameters]\nkm = -1.0\n')
+    assert emulate_main(["--plant", str(tmp_path / "bad.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.toml" in err and "km" in err and "Traceback" not in err
+
+
+def test_replay_repeats_the_logged_excitations_under_another_plant(tmp_path, capsys):
+    assert run_main(["--episodes", "2", "--duration", "2", "--seed", "4", "--out", str(tmp_path / "a"), "-q"]) == 0
+    logs = sorted((tmp_path / "a").glob("*.mcap"))
+    save_plant(tmp_path / "plant.toml", PlantFile(PendulumParameters(Cr=2e-4)))
+    assert run_main(["--replay", *map(str, logs), "--plant", str(tmp_path / "plant.toml"),
+                     "--out", str(tmp_path / "b"), "-q"]) == 0
+    replays = sorted((tmp_path / "b").glob("*.mcap"))
+    assert len(replays) == 2
+    by_origin = {read_episode(p).metadata.extra["replay_of"]: read_episode(p) for p in replays}
+    for log in logs:
+        original, again = read_episode(log), by_origin[log.name]
+        assert len(again) == len(original)
+        for name in ("target_theta", "target_alpha", "feedforward"):
+            np.testing.assert_array_equal(getattr(again, name), getattr(original, name))
+        assert again.metadata.extra["backend"]["params"]["Cr"] == 2e-4
+    capsys.readouterr()
+    (tmp_path / "junk.mcap").write_bytes(b"not a log")
+    assert run_main(["--replay", str(tmp_path / "junk.mcap"), "--out", str(tmp_path / "c"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "junk.mcap" in err and "Traceback" not in err
+
+
+def test_dead_zone_swallows_small_voltages_and_is_off_by_default():
+    x0 = np.array([0.0, math.pi, 0.0, 0.0])
+    params = PendulumParameters(dead_zone=0.3)
+    np.testing.assert_array_equal(simulate(x0, np.full(100, 0.25), params), simulate(x0, np.zeros(100), params))
+    np.testing.assert_allclose(simulate(x0, np.full(100, 1.3), params), simulate(x0, np.full(100, 1.0)),
+                               rtol=1e-12, atol=1e-15)
+
+
+def test_shipped_calibration_loads_with_its_provenance():
+    from sim.pendulum.params_file import PLANTS
+
+    plant = load_plant(PLANTS / "qube_20230828.toml")
+    assert named_parameters("calibrated-20230828") == plant.params != PendulumParameters()
+    assert len(plant.provenance["logs"]) == 28 and len(plant.provenance["validated_on"]) == 20
+    assert set(plant.provenance["logs"]).isdisjoint(plant.provenance["validated_on"])
+    assert plant.standard_errors["km"] < 0.01 * plant.params.km
