@@ -35,17 +35,17 @@ STATUSES = ("complete", "aborted", "incomplete")
 
 #: One-dimensional float signals of an episode, in storage order.
 SIGNALS = ("t", "theta", "alpha", "target_theta", "target_alpha", "feedforward",
-           "control_output", "plant_input", "lateness", "compute_time")
+           "control_output", "plant_input", "lateness", "compute_time", "device_time")
 
 #: Units of every per-sample quantity (the controller state has the units of
 #: the controller's realization: V per (rad) for the rig's PD filters).
 UNITS = MappingProxyType({
     "t": "s", "theta": "rad", "alpha": "rad", "target_theta": "rad", "target_alpha": "rad",
     "feedforward": "V", "control_output": "V", "plant_input": "V", "lateness": "s",
-    "compute_time": "s", "controller_state": "rad (controller realization)", "saturation": "1",
+    "compute_time": "s", "device_time": "s", "controller_state": "rad (controller realization)", "saturation": "1",
 })
 
-_TIMING = ("lateness", "compute_time")
+_TIMING = ("lateness", "compute_time", "device_time")
 
 
 @functools.cache
@@ -233,6 +233,11 @@ class Episode:
         Controller, sample rate, excitation, provenance, status.
     lateness, compute_time : array_like of shape (n,), optional
         Per-tick timing, s; NaN where not measured (imported data).
+    device_time : array_like of shape (n,), optional
+        The device's own clock at each sample, s since its first telemetry of
+        the session; NaN where the backend has no device clock (the simulator,
+        imported data, logs older than format 1.3). A gap between consecutive
+        values larger than ``dt`` shows periods the device lost.
 
     Raises
     ------
@@ -254,6 +259,7 @@ class Episode:
     metadata: EpisodeMetadata
     lateness: np.ndarray | None = None
     compute_time: np.ndarray | None = None
+    device_time: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = np.shape(self.t)[0] if np.ndim(self.t) == 1 else None

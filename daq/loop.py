@@ -309,10 +309,10 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
             theta, alpha = read()
         except BackendFault as exc:
             return k, f"backend fault: {exc}", "fault"
+        when = device_time()  # logged per sample (format 1.3): the device's gaps stay visible
         if wait is None:
             t_tick = clock()
             if device:
-                when = device_time()
                 if k == 0:
                     t0, when0 = t_tick, when
                     writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
@@ -355,7 +355,8 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         spent = clock() - t_tick
         lateness[k] = late
         compute[k] = spent
-        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[j], u, v, sat, late, spent, xc))
+        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[j], u, v, sat, late, spent, xc,
+                   nan if when is None else when))
         if throttle and not k & _BACKLOG_CHECK:
             writer.wait_below(_MAX_BACKLOG)  # free-running: memory must not grow with the episode
         if reason:

@@ -43,7 +43,8 @@ class Sample(NamedTuple):
     ``controller_state`` is the state the controller held when it computed
     ``control_output`` (before that tick's update). ``saturation`` is -1, 0
     or +1 when ``plant_input`` was clipped at the lower limit, not clipped,
-    or clipped at the upper limit.
+    or clipped at the upper limit. ``device_time`` is the device's clock
+    at the sample (s), NaN when the backend has none.
     """
 
     k: int
@@ -59,6 +60,7 @@ class Sample(NamedTuple):
     lateness: float
     compute_time: float
     controller_state: tuple[float, ...]
+    device_time: float = float("nan")
 
 
 SAMPLE_FIELDS = Sample._fields
@@ -349,7 +351,7 @@ class McapSink:
                 target_alpha=sample.target_alpha, feedforward=sample.feedforward,
                 controller_state=sample.controller_state, control_output=sample.control_output,
                 plant_input=sample.plant_input, saturation=sample.saturation, lateness=sample.lateness,
-                compute_time=sample.compute_time)
+                compute_time=sample.compute_time, device_time=sample.device_time)
         except OSError as exc:
             self._fail(self._writer.path, exc)
 

@@ -453,3 +453,66 @@ def test_damaged_or_cut_files_give_a_prefix_or_a_value_error(tmp_path, position,
         return
     # Sample bytes are CRC-checked per chunk, so what is read is never altered.
     assert_prefix(read, episode, len(read))
+
+
+# --- device time (format 1.3) -------------------------------------------------
+
+def test_device_time_round_trips_and_shows_a_gap(tmp_path):
+    # A device clock that lost three periods after sample 4, written sample by sample.
+    device = np.r_[np.arange(5), np.arange(8, 13)] * (1 / RATE)
+    path = tmp_path / "gap.mcap"
+    with EpisodeWriter(path, make_metadata()) as log:
+        for k, when in enumerate(device):
+            log.write_sample(**sample(k), device_time=when)
+        log.write_sample(**sample(len(device)))  # no device clock: NaN
+    read = read_episode(path)
+    np.testing.assert_array_equal(read.device_time[:-1], device)
+    assert np.isnan(read.device_time[-1])
+    gaps = np.diff(read.device_time[:-1]) * RATE
+    assert np.flatnonzero(gaps > 1.5).tolist() == [4] and round(gaps[4]) == 4
+
+
+def _write_format_1_2(path, episode: Episode) -> None:
+    """An episode log as format 1.2 wrote it: the same file without the device_time field."""
+    from mcap.writer import Writer
+
+    from daq.log.metadata import episode_records
+    from daq.log.schema import CDR_LE_HEADER, payload_dtype, sample_fields, state_field
+
+    fields = [f for f in sample_fields(2) if f[0] != "device_time"]
+    text = "\n".join(f"{t} {n}" for n, t in fields) + "\n"
+    block = np.zeros(len(episode), payload_dtype(fields))
+    block["cdr_header"] = np.frombuffer(CDR_LE_HEADER, "<u4")[0]
+    for name, _ in fields:
+        if name.startswith("controller_state_"):
+            block[name] = episode.controller_state[:, int(name.rsplit("_", 1)[1])]
+        elif name != "cdr_header":
+            block[name] = getattr(episode, name)
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start()
+        channel = writer.register_channel("/qube/sample", "cdr",
+                                          writer.register_schema("qube_msgs/msg/EpisodeSample", "ros2msg",
+                                                                 text.encode()))
+        for name, record in episode_records(episode.metadata).items():
+            if name == "qube.episode":
+                record = {**record, "format_version": "1.2"}
+            writer.add_metadata(name, record)
+        for k, row in enumerate(block):
+            writer.add_message(channel, 10**18 + k * 2_000_000, row.tobytes(), 10**18 + k * 2_000_000, k)
+        writer.add_metadata("qube.status", {"status": "complete", "reason": "", "n_samples": str(len(episode))})
+        writer.finish()
+    assert state_field(1) in text and "device_time" not in text
+
+
+def test_format_1_2_file_still_reads_with_nan_device_time(tmp_path):
+    episode = make_episode(300)
+    path = tmp_path / "old.mcap"
+    _write_format_1_2(path, episode)
+    read = read_episode(path)
+    assert read.metadata.log_format_version == "1.2" and read.is_complete
+    assert np.isnan(read.device_time).all() and len(read) == 300
+    for name in SIGNALS:
+        if name != "device_time":
+            np.testing.assert_array_equal(getattr(read, name), getattr(episode, name))
+    np.testing.assert_array_equal(read.controller_state, episode.controller_state)

@@ -226,6 +226,21 @@ def test_device_fault_aborts_with_the_reason_and_the_motor_off(core, tmp_path, f
     assert rec["amp_enabled"][~after][-50:].all() and not rec["amp_enabled"][-1]
 
 
+def test_firmware_held_for_periods_shows_the_gap_in_the_logged_device_time(core, tmp_path):
+    # The firmware is held 7 periods at 1 s of device time (as by a QUBE holding the SPI bus): it
+    # reports the lost periods, and the log's device time says where they went.
+    result, ep, emu, backend = _run(core, tmp_path, Faults(hold_at=1.0, hold_periods=7), seconds=2.0)
+    assert result.complete and ep.metadata.status == "complete", result.reason
+    assert any(e == "hold" for _, _, e in emu.events)
+    assert np.isfinite(ep.device_time).all()
+    steps = np.round(np.diff(ep.device_time) * ep.metadata.sample_rate_hz).astype(int)
+    gaps = np.flatnonzero(steps != 1)
+    assert gaps.size == 1 and steps[gaps[0]] == 8, f"steps {np.unique(steps, return_counts=True)}"
+    assert ep.metadata.backend_stats["device_overruns"] == 7
+    # The tick counter skipped the lost periods with the clock; no frame was lost on the link.
+    assert ep.metadata.backend_stats["ticks_missed"] == 7 and ep.metadata.backend_stats["frames_lost"] == 0
+
+
 def test_host_falling_behind_trips_the_watchdog_and_aborts(core, tmp_path):
     class Stalling(SerialBackend):
         writes = 0

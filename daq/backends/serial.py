@@ -329,6 +329,7 @@ class SerialBackend(Backend):
         self._rejected_at_start = self._decoder.stats.rejected
         self._stamp: int | None = None
         self._device_us = 0
+        self.last_telemetry: Telemetry | None = None
 
     def _track(self, frame) -> None:
         """Sequence gaps, and the bridge's fault reports; raises on device faults."""
@@ -378,6 +379,7 @@ class SerialBackend(Backend):
         if status & _DEVICE_FAULT_STATUS:
             self._faulted = True
             raise BackendFault(_status_text(status))
+        self.last_telemetry = tm
         if self._driving and tm.command_age != _AGE_NONE and tm.command_age > 0:
             counts["late_commands"] += 1
         if tm.status & Status.TX_OVERFLOW:
@@ -488,6 +490,11 @@ class SerialBackend(Backend):
                 port.close()
             except Exception:  # noqa: BLE001 - closing a vanished device may fail; it is gone either way
                 pass
+
+    @property
+    def last_command_seq(self) -> int:
+        """Sequence number of the last frame sent (telemetry's ``last_command_seq`` once applied)."""
+        return self._command_seq
 
     def device_time(self) -> float | None:
         """The bridge's clock at the last telemetry read (s since the session's first), or None before."""

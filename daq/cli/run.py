@@ -142,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     link.add_argument("--link-timeout", type=_positive_float, default=None, metavar="MS",
                       help="abort an episode after this long without telemetry (default 25; raise it on a "
                            "heavily loaded host, the bridge's watchdog still stops the motor after 10 ms)")
+    link.add_argument("--check", action="store_true",
+                      help="pre-flight only: module id 777, encoders, amplifier enabling at 0 V and the "
+                           "round trip; exit 0 when all pass, 1 naming the failed checks")
     rt = p.add_argument_group("real-time scheduling (attempted only when asked; works without)")
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
@@ -292,6 +295,8 @@ def _check_backend_options(args) -> None:
             raise _Fail("--realtime is for --backend sim: the bridge's clock paces the serial backend")
         if args.plant is not None:
             raise _Fail("--plant is for --backend sim: the serial backend drives a real (or emulated) pendulum")
+    elif args.check:
+        raise _Fail("--check is for --backend serial (the pre-flight of the real rig)")
     elif args.port is not None or args.baud is not None or args.link_timeout is not None:
         raise _Fail("--port, --baud and --link-timeout are for --backend serial")
 
@@ -348,6 +353,24 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
         backend.close()
         raise _Fail(str(exc), status=1) from None
     return backend
+
+
+def _preflight(backend) -> int:
+    """``--check``: the pre-flight report on standard output; 0 when every check passed."""
+    from daq.backends import BackendFault
+    from daq.preflight import preflight
+
+    try:
+        report = preflight(backend)
+    except BackendFault as exc:
+        raise _Fail(f"check failed: {exc}", status=1) from None
+    finally:
+        backend.close()
+    print(f"pre-flight of the bridge on {backend.port}:\n{report.text()}")
+    if not report.ok:
+        print(f"{PROG}: check failed: {', '.join(report.failed)}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _where(args, backend) -> str:
@@ -415,6 +438,8 @@ def _run(args) -> int:
     if args.replay:
         plans, settings = _replay(args, rate)
     backend = _make_backend(args, limits, backend_seed, rate)
+    if args.check:
+        return _preflight(backend)
     try:
         return _collect(args, backend, plans, settings, limits, seed, rate)
     finally:

@@ -42,6 +42,8 @@ _OPNAMES = {0x01: "Header", 0x02: "Footer", 0x03: "Schema", 0x04: "Channel", 0x0
 _RECORD_HEAD = struct.Struct("<BQ")
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
 _CDR_LE = int.from_bytes(CDR_LE_HEADER, "little")
+#: Sample fields added by a minor version; a file without them reads them as NaN.
+_ADDED_FIELDS = frozenset({"device_time"})  # 1.3
 
 
 class IncompleteEpisodeWarning(UserWarning):
@@ -290,9 +292,10 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
     scan, meta = _scan(path, decode_chunks=True)
     where = str(path)
     k = meta.controller.system.n_states
+    present = set(SIGNALS) if scan.fields is None else set(dict(scan.fields))
     if scan.fields is not None:
         missing = [name for name in (*SIGNALS, *map(state_field, range(k)), "saturation")
-                   if name not in dict(scan.fields)]
+                   if name not in present and name not in _ADDED_FIELDS]
         if missing:
             raise ValueError(f"{where}: sample schema misses fields {', '.join(missing)}")
     blocks = scan.blocks
@@ -304,7 +307,8 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
         if not np.array_equal(column("seq"), np.arange(sum(map(len, blocks)))):
             raise ValueError(f"{where}: sample sequence numbers are not 0, 1, 2, ... "
                              f"(samples missing, duplicated or out of order)")
-        arrays = {name: column(name) for name in (*SIGNALS, "saturation")}
+        arrays = {name: column(name) for name in (*SIGNALS, "saturation")
+                  if name in present or name == "saturation"}
         state = np.column_stack([column(state_field(i)) for i in range(k)]) if k else np.empty((len(arrays["t"]), 0))
     else:
         arrays = {name: np.empty(0) for name in SIGNALS}

@@ -158,7 +158,7 @@ class EpisodeWriter:
     def write_sample(self, *, t: float, theta: float, alpha: float, target_theta: float,
                      target_alpha: float, feedforward: float, controller_state, control_output: float,
                      plant_input: float, saturation: int, lateness: float = float("nan"),
-                     compute_time: float = float("nan")) -> None:
+                     compute_time: float = float("nan"), device_time: float = float("nan")) -> None:
         """Append one tick (units as in :class:`daq.episode.Episode`).
 
         Raises
@@ -177,7 +177,7 @@ class EpisodeWriter:
             raise ValueError(f"t must be finite, got {t!r}")
         payload = self._struct.pack(CDR_LE_HEADER, t, theta, alpha, target_theta, target_alpha,
                                     feedforward, control_output, plant_input, lateness,
-                                    compute_time, *state, int(saturation))
+                                    compute_time, device_time, *state, int(saturation))
         self._add(payload, self._epoch_ns + round(t * 1e9))
 
     def write_samples(self, episode: Episode) -> None:

@@ -191,7 +191,7 @@ class BridgeEmulator:
         self._first_hello_us: int | None = None
         self._fired: set[str] = set()
         self._timed_faults = any(t is not None for t in (faults.stall_at, faults.amp_fault_at,
-                                                          faults.silence_at, faults.vanish_at))
+                                                          faults.silence_at, faults.vanish_at, faults.hold_at))
         self._silent = False
         self._command_seq = 0
         self._command_mv = 0
@@ -498,6 +498,7 @@ class BridgeEmulator:
             ("amplifier fault", f.amp_fault_at, lambda: setattr(self._qube, "amp_fault", True)),
             ("silence", f.silence_at, lambda: setattr(self, "_silent", True)),
             ("vanish", f.vanish_at, self._vanish),
+            ("hold", f.hold_at, self._hold),
         )
         for name, at, action in actions:
             if at is not None and elapsed >= at - 1e-9 and name not in self._fired:
@@ -505,6 +506,12 @@ class BridgeEmulator:
                 self.events.append((self._device_us, now, name))
                 action()
         return self._master < 0
+
+    def _hold(self) -> None:
+        """The firmware misses ``hold_periods`` ticks; its clock and the pendulum go on."""
+        for _ in range(self.faults.hold_periods):
+            self._qube.advance()
+        self._device_us += self.faults.hold_periods * self._dev.period_us
 
     def _vanish(self) -> None:
         self.vanished_at = time.perf_counter()

@@ -49,6 +49,14 @@ class Faults:
     vanish_at : float, optional
         Device time at which the device disappears: the pseudo-terminal is
         closed, as a USB device unplugged.
+    hold_at : float, optional
+        Device time at which the firmware is held for ``hold_periods``
+        sample periods (as by a QUBE holding the SPI bus): its clock and the
+        pendulum go on, no tick runs, and the next tick finds the periods
+        lost (the firmware then reports TICK_OVERRUN and its tick counter
+        skips them).
+    hold_periods : int
+        How many periods the hold lasts (default 10).
     """
 
     drop_rate: float = 0.0
@@ -59,13 +67,17 @@ class Faults:
     amp_fault_at: float | None = None
     silence_at: float | None = None
     vanish_at: float | None = None
+    hold_at: float | None = None
+    hold_periods: int = 10
 
     def __post_init__(self) -> None:
         for name in ("drop_rate", "corrupt_rate", "garbage_rate"):
             _check_rate(name, getattr(self, name))
         if not (isinstance(self.latency, (int, float)) and 0.0 <= self.latency < 10.0):
             raise ValueError(f"latency must be in [0, 10) s, got {self.latency!r}")
-        for name in ("stall_at", "amp_fault_at", "silence_at", "vanish_at"):
+        if not (isinstance(self.hold_periods, int) and 1 <= self.hold_periods <= 100_000):
+            raise ValueError(f"hold_periods must be an integer in [1, 100000], got {self.hold_periods!r}")
+        for name in ("stall_at", "amp_fault_at", "silence_at", "vanish_at", "hold_at"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value)
                                           and value >= 0):

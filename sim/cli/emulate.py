@@ -98,8 +98,11 @@ def build_parser() -> argparse.ArgumentParser:
     for name, what in (("stall-at", "the QUBE reports a motor stall error"),
                        ("amp-fault-at", "the QUBE reports an amplifier fault"),
                        ("silence-at", "the bridge stops sending (the port stays open)"),
-                       ("vanish-at", "the device disappears (the pseudo-terminal is closed)")):
+                       ("vanish-at", "the device disappears (the pseudo-terminal is closed)"),
+                       ("hold-at", "the firmware is held for --hold-periods periods (periods lost)")):
         faults.add_argument(f"--{name}", type=_TIME, default=None, metavar="S", help=f"{what} at S")
+    faults.add_argument("--hold-periods", type=int, default=10, metavar="N",
+                        help="periods the --hold-at hold lasts (default 10)")
     out = p.add_argument_group("output")
     out.add_argument("--record", default=None, metavar="FILE.csv",
                      help="write a per-tick record (device time, applied voltage, commands) at exit "
@@ -145,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
 
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate, garbage_rate=args.garbage_rate,
                     latency=args.latency / 1e3, stall_at=args.stall_at, amp_fault_at=args.amp_fault_at,
-                    silence_at=args.silence_at, vanish_at=args.vanish_at)
+                    silence_at=args.silence_at, vanish_at=args.vanish_at, hold_at=args.hold_at,
+                    hold_periods=args.hold_periods)
     from sim.pendulum import PendulumParameters
     from sim.pendulum.params_file import PlantFileError, load_plant
 

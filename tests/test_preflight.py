@@ -1,0 +1,47 @@
+"""``qube-run --backend serial --check``: the rig's pre-flight, against ``qube-emulate`` (host target)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+from bridge_helpers import cache_home, env, start_emulator, stop_process  # noqa: F401
+
+from daq.cli.run import main
+
+
+def _check(env, path: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "daq.cli.run", "--backend", "serial", "--port", path, "--check"],
+                          capture_output=True, text=True, env=env, timeout=60)
+
+
+def test_check_passes_on_the_emulated_rig_and_reports_the_round_trip(env, tmp_path):
+    proc, path = start_emulator(env, "-q")
+    try:
+        run = _check(env, path)
+    finally:
+        stop_process(proc)
+    assert run.returncode == 0, run.stderr
+    out = run.stdout
+    for name in ("module id: 777", "encoders: read", "amplifier: enabled at 0 V", "round trip: p50"):
+        assert f"ok   {name}" in out, out
+    p50, worst = map(float, re.search(r"p50 ([\d.]+) ms, max ([\d.]+) ms over 100 commands", out).groups())
+    # A command is applied at the bridge's next tick: its telemetry comes within about a period.
+    assert 0.0 < p50 <= worst and p50 < 20.0, out
+    assert not list(tmp_path.iterdir()), "no episode is run"
+
+
+def test_check_fails_naming_the_amplifier_on_a_fault(env):
+    proc, path = start_emulator(env, "-q", "--amp-fault-at", "0.1")  # mid-check (it lasts 0.2 s)
+    try:
+        run = _check(env, path)
+    finally:
+        stop_process(proc)
+    assert run.returncode == 1
+    assert "amplifier" in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
+def test_check_is_for_the_serial_backend(capsys):
+    assert main(["--check"]) == 2
+    assert "--check is for --backend serial" in capsys.readouterr().err
