@@ -21,3 +21,20 @@ def test_version(module, prog):
                           cwd=REPO, timeout=60)
     assert proc.returncode == 0 and proc.stdout == f"{prog} {package_version()}\n", proc.stderr
     assert package_version() != ""
+
+
+@pytest.mark.parametrize("terminal", [True, False])
+def test_the_progress_callback_draws_on_a_terminal_only(terminal, capsys, monkeypatch):
+    from sim.cli.common import ProgressCallback
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
+    progress = ProgressCallback()
+    for done in range(4):
+        progress("cross-validation", done, 3)
+    progress("alpha sweep", 1, 2)  # a new label: a new bar
+    progress.close()
+    err = capsys.readouterr().err
+    if terminal:
+        assert "cross-validation" in err and "3/3" in err and "alpha sweep" in err and "1/2" in err
+    else:
+        assert err == ""

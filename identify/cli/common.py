@@ -9,6 +9,8 @@ import sys
 import warnings
 from pathlib import Path
 
+from sim.cli.common import ProgressCallback
+
 
 class CliError(Exception):
     """A user mistake: printed as one line, exit status 2, no traceback."""
@@ -55,13 +57,9 @@ def write_json(path: Path, data) -> None:
         raise CliError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
-def progress(label: str, done: int, total: int) -> None:
-    """A one-line progress bar on stderr; redrawn in place on a terminal, else printed once done."""
-    bar = f"{label}: [{'#' * done}{'.' * (total - done)}] {done}/{total}"
-    if sys.stderr.isatty():
-        print(f"\r{bar}", end="\n" if done == total else "", file=sys.stderr, flush=True)
-    elif done == total:
-        print(bar, file=sys.stderr, flush=True)
+#: The ``progress(label, done, total)`` callback the library's long steps report to: a tqdm bar
+#: on stderr, silent when stderr is not a terminal.
+progress = ProgressCallback()
 
 
 def run_command(command, args) -> int:
