@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -38,3 +39,27 @@ def test_the_progress_callback_draws_on_a_terminal_only(terminal, capsys, monkey
         assert "cross-validation" in err and "3/3" in err and "alpha sweep" in err and "1/2" in err
     else:
         assert err == ""
+
+
+# One error style for every command: `<command>: error: <file>: <problem>`, a non-zero exit, no traceback.
+BAD_ARGUMENTS = [  # module, program, arguments, the file the error must name first
+    ("daq.cli.run", "qube-run", ["--controller", "{binary}", "--episodes", "1", "--duration", "1", "--out", "o", "-q"],
+     "{binary}"),
+    ("daq.cli.import_csv", "qube-import", ["{binary}", "--controller", "{binary}", "--out", "o", "-q"], "{binary}"),
+    ("daq.cli.export", "qube-export", ["{binary}", "--format", "csv", "--out", "o", "-q"], "{binary}"),
+    ("identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
+     "{missing}"),
+    ("identify.cli.reproduce", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
+    ("sim.cli.emulate", "qube-emulate", ["--record", "{missing}/x.csv", "-q"], "{missing}/x.csv"),
+]
+
+
+@pytest.mark.parametrize("module, prog, argv, named", BAD_ARGUMENTS, ids=[case[1] for case in BAD_ARGUMENTS])
+def test_every_command_reports_a_bad_file_as_command_error_file_problem(module, prog, argv, named, tmp_path):
+    paths = {"binary": tmp_path / "bin.dat", "missing": tmp_path / "missing"}
+    paths["binary"].write_bytes(b"\x7fELF\x02\x01\x01" + bytes(500))
+    proc = subprocess.run([sys.executable, "-m", module, *(a.format(**paths) for a in argv)], capture_output=True,
+                          text=True, cwd=tmp_path, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if ": error: " in line]
+    assert errors and errors[0].startswith(f"{prog}: error: {named.format(**paths)}: "), proc.stderr

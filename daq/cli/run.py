@@ -329,7 +329,7 @@ def _run(args) -> int:
     try:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
     except ValueError as exc:
-        raise _Fail(f"--controller: {exc}") from None
+        raise _Fail(f"{exc} (--controller)") from None
     try:
         limits = SafetyLimits(theta_limit=math.radians(args.theta_limit),
                               alpha_limit=math.radians(args.alpha_limit))
