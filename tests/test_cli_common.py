@@ -63,3 +63,16 @@ def test_every_command_reports_a_bad_file_as_command_error_file_problem(module, 
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if ": error: " in line]
     assert errors and errors[0].startswith(f"{prog}: error: {named.format(**paths)}: "), proc.stderr
+
+
+def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(tmp_path, capsys):
+    pytest.importorskip("rerun")
+    from identify.cli.identify import main
+
+    target = tmp_path / "no" / "such" / "id.rrd"
+    status = main(["--train", str(tmp_path), "--test", str(tmp_path), "--out", str(tmp_path / "model"),
+                   "--rerun", str(target)])
+    assert status == 2
+    assert capsys.readouterr().err == (f"qube-identify: error: {target}: folder {target.parent} does not exist "
+                                       "(--rerun)\n")
+    assert not (tmp_path / "model").exists()  # refused before the output folder, the data or the fit

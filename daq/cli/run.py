@@ -340,7 +340,7 @@ def _run(args) -> int:
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
     _check_writable(args.out)
     if args.rerun_save is not None and not args.rerun_save.parent.is_dir():
-        raise _Fail(f"--rerun-save: folder {args.rerun_save.parent} does not exist")
+        raise _Fail(f"{args.rerun_save}: folder {args.rerun_save.parent} does not exist (--rerun-save)")
     if args.rerun_save is not None and args.rerun_save.exists():
         raise _Fail(f"--rerun-save: {args.rerun_save}: already exists (a recording is not overwritten; "
                     "remove it or choose another name)")
