@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -21,3 +22,57 @@ def test_version(module, prog):
                           cwd=REPO, timeout=60)
     assert proc.returncode == 0 and proc.stdout == f"{prog} {package_version()}\n", proc.stderr
     assert package_version() != ""
+
+
+@pytest.mark.parametrize("terminal", [True, False])
+def test_the_progress_callback_draws_on_a_terminal_only(terminal, capsys, monkeypatch):
+    from sim.cli.common import ProgressCallback
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
+    progress = ProgressCallback()
+    for done in range(4):
+        progress("cross-validation", done, 3)
+    progress("alpha sweep", 1, 2)  # a new label: a new bar
+    progress.close()
+    err = capsys.readouterr().err
+    if terminal:
+        assert "cross-validation" in err and "3/3" in err and "alpha sweep" in err and "1/2" in err
+    else:
+        assert err == ""
+
+
+# One error style for every command: `<command>: error: <file>: <problem>`, a non-zero exit, no traceback.
+BAD_ARGUMENTS = [  # module, program, arguments, the file the error must name first
+    ("daq.cli.run", "qube-run", ["--controller", "{binary}", "--episodes", "1", "--duration", "1", "--out", "o", "-q"],
+     "{binary}"),
+    ("daq.cli.import_csv", "qube-import", ["{binary}", "--controller", "{binary}", "--out", "o", "-q"], "{binary}"),
+    ("daq.cli.export", "qube-export", ["{binary}", "--format", "csv", "--out", "o", "-q"], "{binary}"),
+    ("identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
+     "{missing}"),
+    ("identify.cli.reproduce", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
+    ("sim.cli.emulate", "qube-emulate", ["--record", "{missing}/x.csv", "-q"], "{missing}/x.csv"),
+]
+
+
+@pytest.mark.parametrize("module, prog, argv, named", BAD_ARGUMENTS, ids=[case[1] for case in BAD_ARGUMENTS])
+def test_every_command_reports_a_bad_file_as_command_error_file_problem(module, prog, argv, named, tmp_path):
+    paths = {"binary": tmp_path / "bin.dat", "missing": tmp_path / "missing"}
+    paths["binary"].write_bytes(b"\x7fELF\x02\x01\x01" + bytes(500))
+    proc = subprocess.run([sys.executable, "-m", module, *(a.format(**paths) for a in argv)], capture_output=True,
+                          text=True, cwd=tmp_path, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if ": error: " in line]
+    assert errors and errors[0].startswith(f"{prog}: error: {named.format(**paths)}: "), proc.stderr
+
+
+def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(tmp_path, capsys):
+    pytest.importorskip("rerun")
+    from identify.cli.identify import main
+
+    target = tmp_path / "no" / "such" / "id.rrd"
+    status = main(["--train", str(tmp_path), "--test", str(tmp_path), "--out", str(tmp_path / "model"),
+                   "--rerun", str(target)])
+    assert status == 2
+    assert capsys.readouterr().err == (f"qube-identify: error: {target}: folder {target.parent} does not exist "
+                                       "(--rerun)\n")
+    assert not (tmp_path / "model").exists()  # refused before the output folder, the data or the fit

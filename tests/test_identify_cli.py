@@ -2,6 +2,7 @@
 
 import json
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -65,7 +66,8 @@ def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
     assert loaded["lifting"]["steps"][-1]["type"] == "GaussianRbf"
 
 
-def test_sweep_edmd_plant_scoring_and_arx(small_set, tmp_path, capsys):
+def test_sweep_edmd_plant_scoring_and_arx(small_set, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # the progress bar draws on a terminal only
     code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
                        "--method", "edmd", "--alpha-sweep", "1e-3", "1e3", "4", "--cv-splits", "2")
     assert code == 0, err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -240,11 +241,15 @@ def test_help_and_usage_errors(capsys):
     assert "--out" in capsys.readouterr().err
 
 
-def test_progress_counter_on_stderr(synthetic_dir, tmp_path, capsys):
+def test_progress_bar_on_a_terminal_and_silence_elsewhere(synthetic_dir, tmp_path, capsys, monkeypatch):
     shutil.copy(synthetic_dir / f"{GOOD}.csv", synthetic_dir / "qube_20230828T170000_1_2_3.csv")
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
     assert main([str(synthetic_dir), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
-    assert "[1/2]" in err and "[2/2]" in err
+    assert "2/2" in err and "qube_20230828T170000_1_2_3.csv" in err
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)  # piped or logged: no bar
+    assert main([str(synthetic_dir), "--out", str(tmp_path / "p")]) == 0
+    assert capsys.readouterr().err == ""
 
 
 # --- the paper's dataset -----------------------------------------------------------

@@ -101,7 +101,7 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--controller", "missing.toml"], "--controller: missing.toml: cannot read"),
+    (["--controller", "missing.toml"], "qube-run: error: missing.toml: cannot read"),
     (["--controller", "{bad}"], "not valid TOML"),
     (["--out", "{file}"], "cannot write episode logs"),
     (["--backend", "quantum"], "invalid choice: 'quantum'"),

@@ -164,7 +164,7 @@ def test_qube_import_of_a_binary_file_is_one_short_line(tmp_path, capsys):
     controller = Path(__file__).resolve().parents[1] / "daq" / "rig_controller.toml"
     assert import_main([str(src), "--controller", str(controller), "--out", str(tmp_path / "o"), "-q"]) == 1
     err = capsys.readouterr().err
-    assert err == f"qube-import: refused: {src}: not a CSV file (binary content: NUL bytes near its start)\n"
+    assert err == f"qube-import: error: {src}: not a CSV file (binary content: NUL bytes near its start)\n"
 
 
 def test_a_log_failing_on_its_last_sample_is_never_recorded_complete(tmp_path):

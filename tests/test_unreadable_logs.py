@@ -70,7 +70,7 @@ def test_commands_print_one_warning_line_per_skipped_log(folder, capsys):
     # qube-reproduce and qube-identify run through run_command: one line per skipped file.
     from identify.cli.common import run_command
 
-    assert run_command(lambda a: len(load_logs(sorted(folder.glob("*.mcap")))), None) == 1
+    assert run_command("qube-reproduce", lambda a: len(load_logs(sorted(folder.glob("*.mcap")))), None) == 1
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 3 and all(line.startswith("warning: ") and line.endswith("; skipped") for line in err)
+    assert len(err) == 3 and all(line.startswith("qube-reproduce: warning: ") and line.endswith("; skipped") for line in err)
     assert "b_empty.mcap" in err[0] and "c_text.mcap" in err[1] and "d_header_only.mcap" in err[2]

@@ -1,4 +1,4 @@
-"""Shared by the command-line tools that work through many files: the file list and a progress counter."""
+"""Shared by the command-line tools that work through many files: the file list, a progress bar, the closing line."""
 
 from __future__ import annotations
 
@@ -10,28 +10,23 @@ __all__ = ["Progress", "expand_sources", "parse_args", "summarize"]
 
 
 class Progress:
-    """A counter on stderr: rewritten in place on a terminal, one line per file otherwise."""
+    """A bar on stderr counting files (tqdm; silent when stderr is not a terminal), and its messages."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        self.total = total
-        self.enabled = enabled and total > 0
-        self.tty = sys.stderr.isatty()
-        self.width = len(str(total))
+        from sim.cli.common import progress_bar
+
+        self.bar = progress_bar(total, unit="file", enabled=enabled and total > 0)
 
     def step(self, done: int, name: str) -> None:
         """Show that ``done`` files are through, the last being ``name``."""
-        if not self.enabled:
-            return
-        line = f"[{done:>{self.width}}/{self.total}] {name}"
-        if self.tty:
-            print(f"\r\033[K{line}", end="" if done < self.total else "\n", file=sys.stderr, flush=True)
-        else:
-            print(line, file=sys.stderr)
+        self.bar.set_postfix_str(name, refresh=False)
+        self.bar.update(done - self.bar.n)
+        if done >= self.bar.total:
+            self.bar.close()
 
-    def interrupt(self) -> None:
-        """Clear the in-place counter so that an error line starts on a fresh line."""
-        if self.enabled and self.tty:
-            print("\r\033[K", end="", file=sys.stderr)
+    def say(self, line: str) -> None:
+        """Print ``line`` on stderr above the bar."""
+        self.bar.write(line, file=sys.stderr)
 
 
 def expand_sources(sources: list[str], suffix: str, problems: list[str]) -> list[Path]:

@@ -67,11 +67,10 @@ def main(argv: list[str] | None = None) -> int:
     progress = Progress(len(logs), not args.quiet)
 
     def say(kind: str, message: str) -> None:
-        progress.interrupt()
-        print(f"{PROG}: {kind}: {message}", file=sys.stderr)
+        progress.say(f"{PROG}: {kind}: {message}")
 
     for problem in problems:
-        say("refused", problem)
+        say("error", problem)
     exported = refused = 0
     for done, log in enumerate(logs, start=1):
         try:
@@ -83,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
             exported += 1
         except ExportError as exc:
             refused += 1
-            say("refused", str(exc))
+            say("error", str(exc))
             if str(exc).startswith("--format"):  # pyarrow missing: the same for every log
                 return 1
         progress.step(done, log.name)

@@ -64,8 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     from daq.log import write_episode
 
     def refuse(message: str) -> None:
-        progress.interrupt()
-        print(f"{PROG}: refused: {message}", file=sys.stderr)
+        progress.say(f"{PROG}: error: {message}")
 
     problems: list[str] = []
     files = expand_sources(args.sources, ".csv", problems)

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import threading
-import time
 from pathlib import Path
 
 PROG = "qube-run"
@@ -163,65 +161,46 @@ class _Fail(Exception):
 
 
 class _Progress:
-    """Progress on stderr: a bar redrawn in place on a terminal, one line per episode otherwise."""
+    """A tqdm bar on stderr counting samples over the whole run, silent when stderr is not a terminal.
 
-    WIDTH = 30
+    A sink on the writer thread (``write`` per sample); ``episode_done`` from the main thread.
+    """
 
-    def __init__(self, n_episodes: int, samples_per_episode: int, enabled: bool) -> None:
-        self.n = n_episodes
-        self.per = samples_per_episode
-        self.enabled = enabled
-        self.tty = sys.stderr.isatty()
-        self.episode = 0
-        self.samples = 0
-        self.aborted = 0
-        self._lock = threading.Lock()
-        self._last = 0.0
-
-    # Called as a sink on the writer thread: redraw at most 10 times a second.
     required = False
 
+    def __init__(self, n_episodes: int, samples_per_episode: int, enabled: bool) -> None:
+        from sim.cli.common import progress_bar
+
+        self.n = n_episodes
+        self.per = samples_per_episode
+        self.aborted = 0
+        self.bar = progress_bar(n_episodes * samples_per_episode, unit="sample", unit_scale=True,
+                                enabled=enabled)
+        self._postfix(0)
+
+    def _postfix(self, episode: int) -> None:
+        text = f"episode {min(episode + 1, self.n)}/{self.n}"
+        self.bar.set_postfix_str(text + (f", {self.aborted} aborted" if self.aborted else ""), refresh=False)
+
     def open(self, metadata) -> None:
-        self.samples = 0
+        pass
 
     def write(self, sample) -> None:
-        self.samples = sample.k + 1
-        now = time.monotonic()
-        if self.tty and now - self._last > 0.1:
-            self._last = now
-            self._draw()
+        self.bar.update(1)
 
     def close(self, outcome) -> None:
         pass
 
-    def _draw(self, newline: bool = False) -> None:
-        if not (self.enabled and self.tty):
-            return
-        done = (self.episode + min(self.samples, self.per) / self.per) / self.n
-        filled = int(done * self.WIDTH)
-        bar = "#" * filled + "-" * (self.WIDTH - filled)
-        text = f"[{bar}] {100 * done:5.1f}%  episode {min(self.episode + 1, self.n)}/{self.n}"
-        if self.aborted:
-            text += f"  ({self.aborted} aborted)"
-        with self._lock:
-            print(f"\r\033[K{text}", end="\n" if newline else "", file=sys.stderr, flush=True)
-
     def episode_done(self, index: int, result, name: str) -> None:
-        self.episode = index + 1
-        self.samples = 0
         self.aborted += not result.complete
-        if not self.enabled:
-            return
-        if self.tty:
-            self._draw(newline=self.episode >= self.n or not result.complete)
-        else:
+        self.bar.update((index + 1) * self.per - self.bar.n)  # an aborted episode counts as through
+        self._postfix(index + 1)
+        if not result.complete and not self.bar.disable:  # the summary table has it too
             status = result.status + (f" ({result.reason})" if result.reason else "")
-            print(f"[{self.episode}/{self.n}] {name}: {status}", file=sys.stderr, flush=True)
+            self.bar.write(f"{PROG}: episode {index + 1}/{self.n} {name}: {status}", file=sys.stderr)
 
     def clear(self) -> None:
-        if self.enabled and self.tty:
-            with self._lock:
-                print("\r\033[K", end="", file=sys.stderr, flush=True)
+        self.bar.close()
 
 
 def _us(value: float | None) -> str:
@@ -414,7 +393,7 @@ def _run(args) -> int:
     try:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
     except ValueError as exc:
-        raise _Fail(f"--controller: {exc}") from None
+        raise _Fail(f"{exc} (--controller)") from None
     try:
         limits = SafetyLimits(theta_limit=math.radians(args.theta_limit),
                               alpha_limit=math.radians(args.alpha_limit))
@@ -425,7 +404,7 @@ def _run(args) -> int:
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
     _check_writable(args.out)
     if args.rerun_save is not None and not args.rerun_save.parent.is_dir():
-        raise _Fail(f"--rerun-save: folder {args.rerun_save.parent} does not exist")
+        raise _Fail(f"{args.rerun_save}: folder {args.rerun_save.parent} does not exist (--rerun-save)")
     if args.rerun_save is not None and args.rerun_save.exists():
         raise _Fail(f"--rerun-save: {args.rerun_save}: already exists (a recording is not overwritten; "
                     "remove it or choose another name)")
@@ -466,8 +445,6 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
             raise _Fail(f"--rerun: {exc}", status=1) from None
         rerun_sink = RerunSink(recording)
         sinks.append(rerun_sink)
-    progress = _Progress(args.episodes, settings.n_samples, enabled=not args.quiet)
-    sinks.append(progress)
 
     print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on "
           f"{_where(args, backend)}, seed {seed}, controller "
@@ -475,6 +452,8 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
           flush=True)
     mcap: McapSink = sinks[0]
     names: list[str] = []
+    progress = _Progress(args.episodes, settings.n_samples, enabled=not args.quiet)  # after the header line
+    sinks.append(progress)
 
     def on_result(plan, result: EpisodeResult) -> None:
         name = mcap.paths[-1].name if result.started and mcap.paths else "(not started)"

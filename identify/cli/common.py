@@ -9,14 +9,16 @@ import sys
 import warnings
 from pathlib import Path
 
+from sim.cli.common import ProgressCallback
+
 
 class CliError(Exception):
     """A user mistake: printed as one line, exit status 2, no traceback."""
 
 
-def fail(message: str) -> int:
-    """Print an error line to stderr and return the exit status for user errors."""
-    print(f"error: {message}", file=sys.stderr)
+def fail(prog: str, message: str) -> int:
+    """Print ``<prog>: error: <message>`` to stderr and return the exit status for user errors."""
+    print(f"{prog}: error: {message}", file=sys.stderr)
     return 2
 
 
@@ -26,9 +28,9 @@ def output_dir(path: str | Path) -> Path:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise CliError(f"cannot create output folder {path}: {exc.strerror or exc}") from None
+        raise CliError(f"{path}: cannot create output folder: {exc.strerror or exc}") from None
     if not path.is_dir():
-        raise CliError(f"output path {path} exists and is not a folder")
+        raise CliError(f"{path}: exists and is not a folder")
     return path
 
 
@@ -52,22 +54,20 @@ def write_json(path: Path, data) -> None:
         tmp.write_text(json.dumps(_standard(data), indent=2, allow_nan=False) + "\n")
         tmp.replace(path)
     except OSError as exc:
-        raise CliError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise CliError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
-def progress(label: str, done: int, total: int) -> None:
-    """A one-line progress bar on stderr; redrawn in place on a terminal, else printed once done."""
-    bar = f"{label}: [{'#' * done}{'.' * (total - done)}] {done}/{total}"
-    if sys.stderr.isatty():
-        print(f"\r{bar}", end="\n" if done == total else "", file=sys.stderr, flush=True)
-    elif done == total:
-        print(bar, file=sys.stderr, flush=True)
+#: The ``progress(label, done, total)`` callback the library's long steps report to: a tqdm bar
+#: on stderr, silent when stderr is not a terminal.
+progress = ProgressCallback()
 
 
-def run_command(command, args) -> int:
+def run_command(prog: str, command, args) -> int:
     """Run ``command(args)``: user mistakes and interruptions become one line and an exit status.
 
-    A log left out of the data (incomplete or unreadable) is one ``warning:`` line naming it.
+    Errors read ``<prog>: error: <problem>`` (the problem names the file first when there is
+    one); a log left out of the data (incomplete or unreadable) is one ``<prog>: warning:`` line
+    naming it.
     """
     from identify.data import IncompleteLogSkipped
 
@@ -75,7 +75,7 @@ def run_command(command, args) -> int:
 
     def show(message, category, *rest, **kwargs):
         if issubclass(category, IncompleteLogSkipped):
-            print(f"warning: {message}", file=sys.stderr)
+            print(f"{prog}: warning: {message}", file=sys.stderr)
         else:
             default_show(message, category, *rest, **kwargs)
 
@@ -85,9 +85,9 @@ def run_command(command, args) -> int:
             warnings.showwarning = show
             return command(args)
     except CliError as exc:
-        return fail(str(exc))
+        return fail(prog, str(exc))
     except KeyboardInterrupt:
-        return fail("interrupted")
+        return fail(prog, "interrupted")
     except BrokenPipeError:
         # The reader went away (e.g. piped into `head`): nothing left to tell it.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -10,6 +10,8 @@ from pathlib import Path
 
 from identify.cli.common import CliError, output_dir, progress, run_command, write_json
 
+PROG = "qube-identify"
+
 DESCRIPTION = """\
 Identify a Koopman model of the closed loop and of the plant from MCAP episode
 logs (qube-run or qube-import), score it on test episodes and write a report.
@@ -31,7 +33,7 @@ METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-
 def _parser() -> argparse.ArgumentParser:
     from sim.cli.common import add_version
 
-    p = argparse.ArgumentParser(prog="qube-identify", description=DESCRIPTION,
+    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_version(p)
     data = p.add_argument_group("data")
@@ -166,6 +168,8 @@ def _check_args(args) -> None:
         raise CliError("--estimate-window and --offset-bound must be positive")
     if args.rerun and importlib.util.find_spec("rerun") is None:
         raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"')
+    if args.rerun and not Path(args.rerun).resolve().parent.is_dir():  # before any work, not after the fit
+        raise CliError(f"{args.rerun}: folder {Path(args.rerun).parent} does not exist (--rerun)")
 
 
 def _load(args):
@@ -180,7 +184,7 @@ def _load(args):
         train = load_logs(train_paths, skip=args.skip, strict=args.strict)
         test = load_logs(test_paths, skip=args.skip, strict=args.strict)
     for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
+        print(f"{PROG}: warning: {w.message}", file=sys.stderr)
     if not train or not test:
         raise CliError("no complete training or test logs left")
     check_same_rate(train + test, "training and test")
@@ -254,7 +258,7 @@ def _print_scores(args, report: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-identify``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command(_run, args)
+    return run_command(PROG, _run, args)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -7,6 +7,8 @@ import sys
 
 from identify.cli.common import CliError, output_dir, progress, run_command, write_json
 
+PROG = "qube-reproduce"
+
 DESCRIPTION = """\
 Reproduce the closed-loop Koopman paper's results.
 
@@ -23,7 +25,7 @@ Reproduce the closed-loop Koopman paper's results.
 def _parser() -> argparse.ArgumentParser:
     from sim.cli.common import add_version
 
-    parser = argparse.ArgumentParser(prog="qube-reproduce", description=DESCRIPTION,
+    parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_version(parser)
     sub = parser.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
@@ -104,7 +106,7 @@ def _duffing(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-reproduce``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command(lambda a: {"duffing": _duffing, "qube": _qube}[a.experiment](a), args)
+    return run_command(PROG, lambda a: {"duffing": _duffing, "qube": _qube}[a.experiment](a), args)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 open(path, "a").close()
             except OSError as exc:
-                print(f"{PROG}: error: cannot write {path}: {exc.strerror or exc}", file=sys.stderr)
+                print(f"{PROG}: error: {path}: cannot write: {exc.strerror or exc}", file=sys.stderr)
                 return 2
     try:
         path = emulator.open()
