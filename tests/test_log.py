@@ -516,3 +516,10 @@ def test_format_1_2_file_still_reads_with_nan_device_time(tmp_path):
         if name != "device_time":
             np.testing.assert_array_equal(getattr(read, name), getattr(episode, name))
     np.testing.assert_array_equal(read.controller_state, episode.controller_state)
+
+
+def test_a_damaged_chunk_size_is_reported_not_allocated(tmp_path):
+    """Hypothesis found a flipped byte in a chunk's uncompressed size that made the reader
+    reserve gigabytes (MemoryError); it is a damaged chunk like any other."""
+    test_damaged_or_cut_files_give_a_prefix_or_a_value_error.hypothesis.inner_test(
+        tmp_path=tmp_path, position=0.02, flip=129, cut=False)

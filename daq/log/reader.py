@@ -46,6 +46,9 @@ _CDR_LE = int.from_bytes(CDR_LE_HEADER, "little")
 _ADDED_FIELDS = frozenset({"device_time"})  # 1.3
 
 
+#: Largest uncompressed/stored size ratio a chunk may claim before it counts as damaged.
+_MAX_EXPANSION = 100_000
+
 class IncompleteEpisodeWarning(UserWarning):
     """A log was cut short or damaged; the episode read holds its readable prefix."""
 
@@ -170,6 +173,11 @@ class _Scan:
         if start + records_len > len(body):
             raise _Damaged("records overrun the chunk")
         packed = body[start:start + records_len]
+        # A damaged size field must not make the decompressor reserve gigabytes (hypothesis found
+        # a flipped byte that did: MemoryError). The bound is far above any real chunk's
+        # expansion; past it the chunk counts as damaged, like a failed CRC.
+        if size > _MAX_EXPANSION * max(records_len, 1) + 4096:
+            raise _Damaged(f"implausible uncompressed size {size} for {records_len} stored bytes")
         try:
             if compression == "zstd":
                 raw = zstandard.ZstdDecompressor().decompress(packed, max_output_size=size)
@@ -179,8 +187,8 @@ class _Scan:
                 raw = bytes(packed)
             else:
                 raise ValueError(f"{self.where}: unsupported chunk compression {compression!r}")
-        except (zstandard.ZstdError, RuntimeError) as exc:
-            raise _Damaged(f"cannot decompress ({exc})") from None
+        except (zstandard.ZstdError, RuntimeError, MemoryError) as exc:
+            raise _Damaged(f"cannot decompress ({type(exc).__name__}: {exc})") from None
         if len(raw) != size or (crc and zlib.crc32(raw) != crc):
             raise _Damaged("contents fail the size or CRC check")
         blocks: list[np.ndarray] = []

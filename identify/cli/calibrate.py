@@ -102,7 +102,7 @@ def _run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-calibrate``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command(_run, args)
+    return run_command("qube-calibrate", _run, args)
 
 
 if __name__ == "__main__":
