@@ -181,7 +181,13 @@ class Host:
         deadline = time.monotonic() + timeout
         while not until(got):
             assert time.monotonic() < deadline, f"timed out with {len(got)} frames"
-            got += self.decoder.feed(self.port.read(max(1, self.port.in_waiting)))
+            try:
+                got += self.decoder.feed(self.port.read(max(1, self.port.in_waiting)))
+            except OSError as exc:
+                # A vanished pty surfaces as EIO from pyserial's in_waiting ioctl or as a
+                # SerialException from read, by timing; the serial backend treats both as a
+                # lost link, and so does this host.
+                raise serial.SerialException(f"device lost: {exc}") from exc
         return got
 
     def close(self) -> None:
