@@ -22,9 +22,9 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from firmware_protocol import Command, Hello, StreamDecoder, encode_frame
-from firmware_protocol.avr import F_CPU, SKETCH, build_firmware, cached_firmware, firmware_sizes
-from sim.bridge.avr import AvrBridge
+from qube_koopman.firmware_protocol import Command, Hello, StreamDecoder, encode_frame
+from qube_koopman.firmware_protocol.avr import F_CPU, SKETCH, build_firmware, cached_firmware, firmware_sizes
+from qube_koopman.sim.bridge.avr import AvrBridge
 
 REPO = Path(__file__).resolve().parents[1]
 BUDGET = F_CPU // 500

@@ -13,7 +13,7 @@ Usage::
     PYTHONPATH=. python bench/bench_calibrate.py LOG_DIR [--episodes N] [--reference-iterations K]
 
 LOG_DIR holds the dataset imported to MCAP
-(``python -m daq.cli.import_csv ../shared/datasets/qube_servo_20230828/*.csv --out LOG_DIR``).
+(``python -m qube_koopman.daq.cli.import_csv ../shared/datasets/qube_servo_20230828/*.csv --out LOG_DIR``).
 """
 
 from __future__ import annotations
@@ -34,11 +34,11 @@ def main() -> None:
 
     from scipy.optimize import least_squares
 
-    from daq.log import read_episode
-    from identify.calibrate import PlantCalibration
-    from identify.calibrate import shooting as ms
-    from identify.calibrate.fit import ENCODER_SIGMA
-    from identify.data import paper_split
+    from qube_koopman.daq.log import read_episode
+    from qube_koopman.identify.calibrate import PlantCalibration
+    from qube_koopman.identify.calibrate import shooting as ms
+    from qube_koopman.identify.calibrate.fit import ENCODER_SIGMA
+    from qube_koopman.identify.data import paper_split
 
     train, _ = paper_split(sorted(args.logs.glob("*.mcap")))
     episodes = [read_episode(path) for path in train[:args.episodes]]

@@ -41,7 +41,7 @@ SECOND_GAINS = "kp_theta = 6.0\nkd_theta = 1.8\nkp_alpha = 35.0\nkd_alpha = 3.0\
 
 
 def _collect(args: list[str]) -> float:
-    from daq.cli.run import main
+    from qube_koopman.daq.cli.run import main
 
     start = time.perf_counter()
     status = main(args + ["-q"])
@@ -54,7 +54,7 @@ def _collect(args: list[str]) -> float:
 def _identify(data: list[str], delays: int, out: Path) -> dict:
     import json
 
-    from identify.cli.identify import main as qube_identify
+    from qube_koopman.identify.cli.identify import main as qube_identify
 
     with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):
         status = qube_identify([*data, "--delays", str(delays), "--alpha", str(ALPHA), "--skip", str(SKIP),

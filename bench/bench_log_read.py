@@ -47,9 +47,9 @@ def _median_seconds(fn, repeats: int) -> float:
 def _synthetic_episode_file(folder: Path) -> Path:
     import numpy as np
 
-    from daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
-    from daq.log import write_episode
-    from sim.lti import DiscreteStateSpace
+    from qube_koopman.daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
+    from qube_koopman.daq.log import write_episode
+    from qube_koopman.sim.lti import DiscreteStateSpace
 
     a = 1 / 1.1
     controller = DiscreteStateSpace(np.eye(2) * a, np.eye(2), [[7.4380165, 10.3305785]],
@@ -94,7 +94,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=30)
     args = parser.parse_args()
     sys.path.insert(0, str(REPO))
-    from daq.log import read_episode
+    from qube_koopman.daq.log import read_episode
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

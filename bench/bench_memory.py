@@ -29,10 +29,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
 import json, resource, sys, tempfile
-from daq.backends import SimBackend
-from daq.session import excitation_settings, load_controller, plan_episodes, run_episodes, run_seeds
-from daq.safety import StopRequest
-from daq.sinks import McapSink
+from qube_koopman.daq.backends import SimBackend
+from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_episodes, run_seeds
+from qube_koopman.daq.safety import StopRequest
+from qube_koopman.daq.sinks import McapSink
 
 episodes, seconds, run = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3])
 if run:

@@ -28,7 +28,7 @@ import time
 
 def make_stream(n_frames: int, seed: int) -> bytes:
     """``n_frames`` telemetry frames with random values, as the device sends them."""
-    from firmware_protocol import Telemetry, encode_frame
+    from qube_koopman.firmware_protocol import Telemetry, encode_frame
 
     rng = random.Random(seed)
     frames = []
@@ -56,13 +56,13 @@ class ByteLoopDecoder:
     """Reference: the obvious byte-at-a-time decoder (same piece parser)."""
 
     def __init__(self) -> None:
-        from firmware_protocol.frame import MAX_WIRE_SIZE, parse_piece
+        from qube_koopman.firmware_protocol.frame import MAX_WIRE_SIZE, parse_piece
 
         self._parse, self._max = parse_piece, MAX_WIRE_SIZE
         self._buf = bytearray()
 
     def feed(self, data: bytes) -> list:
-        from firmware_protocol import Frame
+        from qube_koopman.firmware_protocol import Frame
 
         out = []
         buf = self._buf
@@ -101,7 +101,7 @@ def time_decoder(make, chunks: list[bytes], expected: int, runs: int) -> tuple[f
 
 def c_decoder_factory(build_dir: str):
     """A factory of C decoders, or None without a C compiler."""
-    from firmware_protocol import ccore
+    from qube_koopman.firmware_protocol import ccore
 
     if ccore.find_c_compiler() is None:
         return None
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
 
-    from firmware_protocol import StreamDecoder
+    from qube_koopman.firmware_protocol import StreamDecoder
 
     stream = make_stream(args.frames, args.seed)
     chunkings = [("1-16 B", 1, 16), ("1-64 B", 1, 64), ("1-512 B", 1, 512), ("1-4096 B", 1, 4096)]

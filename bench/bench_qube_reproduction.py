@@ -29,8 +29,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 def import_dataset(out: Path) -> None:
     from conftest import dataset_dir
-    from daq.legacy_csv import legacy_episode, load_legacy_controller
-    from daq.log import write_episode
+    from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
+    from qube_koopman.daq.log import write_episode
 
     src = dataset_dir()
     if src is None:
@@ -42,8 +42,8 @@ def import_dataset(out: Path) -> None:
 
 def naive_cost(data: Path, n_alphas: int = 2, n_validation: int = 2) -> float:
     """Seconds per (fold, alpha, scoring) evaluation of the naive approach."""
-    from identify import ClEdmd, Delay, Polynomial
-    from identify.data import check_same_controller, group_shuffle_splits, load_logs, paper_split
+    from qube_koopman.identify import ClEdmd, Delay, Polynomial
+    from qube_koopman.identify.data import check_same_controller, group_shuffle_splits, load_logs, paper_split
     from naive_reference import naive_predict
 
     train_paths, _ = paper_split(sorted(data.glob("*.mcap")))
@@ -76,7 +76,7 @@ def main() -> None:
             t0 = time.perf_counter()
             import_dataset(data)
             print(f"imported the dataset in {time.perf_counter() - t0:.1f} s (not counted)")
-        from identify.reproduce.qube import reproduce_qube
+        from qube_koopman.identify.reproduce.qube import reproduce_qube
 
         runs = []
         for _ in range(2):

@@ -43,11 +43,11 @@ def main(argv=None) -> int:
     parser.add_argument("--priority", type=int, default=50, help="SCHED_FIFO priority for the rt row")
     args = parser.parse_args(argv)
 
-    from daq.backends import SimBackend
-    from daq.loop import run_episode
-    from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
-    from daq.sinks import McapSink
-    from daq.timing import DEFAULT_SPIN, realtime_scheduling
+    from qube_koopman.daq.backends import SimBackend
+    from qube_koopman.daq.loop import run_episode
+    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.sinks import McapSink
+    from qube_koopman.daq.timing import DEFAULT_SPIN, realtime_scheduling
 
     controller = load_controller()
     seeds, backend_seed = run_seeds(0, 1)
@@ -66,7 +66,7 @@ def main(argv=None) -> int:
         for label, spin, cpu, priority, rerun in configs:
             sinks = [McapSink(Path(folder))]
             if rerun:
-                from daq.viz import RerunSink, open_recording
+                from qube_koopman.daq.viz import RerunSink, open_recording
 
                 sinks.append(RerunSink(open_recording(save=Path(folder) / "bench.rrd")))
             with realtime_scheduling(cpu, priority) as rt:

@@ -72,7 +72,7 @@ def _spawn(args: list[str]) -> tuple[subprocess.Popen, str]:
 
 
 def _emulator(*args: str) -> tuple[subprocess.Popen, str]:
-    return _spawn(["-m", "sim.cli.emulate", "-q", *args])
+    return _spawn(["-m", "qube_koopman.sim.cli.emulate", "-q", *args])
 
 
 def _stop(proc: subprocess.Popen) -> None:
@@ -111,7 +111,7 @@ def _time_round_trips(proc: subprocess.Popen, path: str, n: int, timeout: float,
 
 def round_trips(n: int) -> list[tuple[str, list[float]]]:
     """Echo round trips over a bare pty, and HELLO round trips through the emulated bridge (s)."""
-    from firmware_protocol import Command, Hello, HelloReply, StreamDecoder, encode_frame
+    from qube_koopman.firmware_protocol import Command, Hello, HelloReply, StreamDecoder, encode_frame
 
     frame = encode_frame(Command(1000, 1), 1, 0)
 
@@ -141,7 +141,7 @@ class _TimedBackend:
     fault_at: float | None = None
 
     def _timed(self, call, *args):
-        from daq.backends.base import BackendFault
+        from qube_koopman.daq.backends.base import BackendFault
 
         try:
             return call(*args)
@@ -158,10 +158,10 @@ class _TimedBackend:
 
 def _serial_episode(path: str, seconds: float, out: str, timed: bool = False):
     """One episode of the loop on the serial backend at ``path``: (result, backend)."""
-    from daq.backends.serial import SerialBackend
-    from daq.loop import run_episode
-    from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
-    from daq.sinks import McapSink
+    from qube_koopman.daq.backends.serial import SerialBackend
+    from qube_koopman.daq.loop import run_episode
+    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.sinks import McapSink
 
     backend = type("Timed", (_TimedBackend, SerialBackend), {})(path) if timed else SerialBackend(path)
     try:
@@ -244,7 +244,7 @@ def decoder_rate(n_frames: int = 20_000) -> float:
     """StreamDecoder frames/s on telemetry in 1-64 byte chunks (median of 5)."""
     from bench_protocol import chunked, make_stream, time_decoder
 
-    from firmware_protocol import StreamDecoder
+    from qube_koopman.firmware_protocol import StreamDecoder
 
     stream = make_stream(n_frames, 1)
     return time_decoder(StreamDecoder, chunked(stream, 1, 64, 1), n_frames, 5)[0]

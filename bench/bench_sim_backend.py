@@ -39,12 +39,12 @@ def main(argv=None) -> int:
 
     import numpy as np
 
-    from daq.backends import SimBackend
-    from daq.loop import run_episode
-    from daq.log import read_episode
-    from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
-    from daq.sinks import McapSink, MemorySink
-    from sim.pendulum import simulate_closed_loop
+    from qube_koopman.daq.backends import SimBackend
+    from qube_koopman.daq.loop import run_episode
+    from qube_koopman.daq.log import read_episode
+    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.sinks import McapSink, MemorySink
+    from qube_koopman.sim.pendulum import simulate_closed_loop
 
     controller = load_controller()
     seeds, backend_seed = run_seeds(0, args.repeats)

@@ -29,8 +29,8 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
     """The same fixed-P constrained problem with the cost on raw snapshots; returns seconds."""
     import cvxpy as cp
 
-    from identify.regression import Snapshots
-    from identify.stability import _lyapunov_certificate
+    from qube_koopman.identify.regression import Snapshots
+    from qube_koopman.identify.stability import _lyapunov_certificate
 
     setup = est._setup(trajs)
     parts = [est._episode_snapshots(setup, t) for t in setup.trajectories]
@@ -41,7 +41,7 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
     est.output_matrix_, est.n_feedforward_ = setup.output_matrix, setup.n_feedforward
     S = setup.plant_input_map
     snapshots = Snapshots.total(parts)
-    from identify.regression import constrained_plant_solve
+    from qube_koopman.identify.regression import constrained_plant_solve
 
     n_c = est.controller.n_states
     U0 = constrained_plant_solve(snapshots, S, est.alpha, slice(n_c, None), "closed_loop")
@@ -60,10 +60,10 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
 def main() -> None:
     from bench_qube_reproduction import import_dataset
 
-    from identify import ClEdmdKnownRows, Delay, Polynomial
-    from identify.data import check_same_controller, load_logs, paper_split
-    from identify.scores import summarize_episodes
-    from identify.stability import ClEdmdStable
+    from qube_koopman.identify import ClEdmdKnownRows, Delay, Polynomial
+    from qube_koopman.identify.data import check_same_controller, load_logs, paper_split
+    from qube_koopman.identify.scores import summarize_episodes
+    from qube_koopman.identify.stability import ClEdmdStable
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path)

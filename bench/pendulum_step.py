@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from sim.pendulum import PendulumSimulator, SensorModel, rk4_step
+from qube_koopman.sim.pendulum import PendulumSimulator, SensorModel, rk4_step
 
 TICKS = 10_000  # one 20 s episode at 500 Hz
 PERIOD_US = 2000.0

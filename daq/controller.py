@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = [
     "DISCRETIZATIONS",

@@ -17,7 +17,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = [
     "STATUSES",

@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.episode import UNITS, Episode
-from daq.legacy_csv import LEGACY_COLUMNS
+from qube_koopman.daq.episode import UNITS, Episode
+from qube_koopman.daq.legacy_csv import LEGACY_COLUMNS
 
 __all__ = ["FORMATS", "ExportError", "episode_columns", "metadata_records", "episode_frame",
            "legacy_csv_bytes", "write_csv", "write_parquet", "write_mat", "export_episode"]
@@ -63,7 +63,7 @@ def episode_columns(episode: Episode) -> dict[str, np.ndarray]:
 
 def metadata_records(episode: Episode) -> dict[str, dict[str, str]]:
     """The episode's metadata as the log's string maps (``qube.episode``, ``qube.controller``, ``qube.status``)."""
-    from daq.log.metadata import STATUS_RECORD, episode_records, status_record
+    from qube_koopman.daq.log.metadata import STATUS_RECORD, episode_records, status_record
 
     meta = episode.metadata
     records = episode_records(meta)
@@ -186,7 +186,7 @@ def export_episode(log: str | Path, fmt: str, out_dir: str | Path, *, overwrite:
         raise ExportError(f"{log}: {out} exists (use --force to overwrite)")
     if fmt == "parquet":
         _pyarrow()  # fail before reading, with the install hint
-    from daq.log import read_episode
+    from qube_koopman.daq.log import read_episode
 
     try:
         episode = read_episode(log)

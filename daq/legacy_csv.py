@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.episode import ControllerInfo, Episode, EpisodeMetadata
+from qube_koopman.daq.episode import ControllerInfo, Episode, EpisodeMetadata
 
 __all__ = [
     "LEGACY_COLUMNS",
@@ -242,7 +242,7 @@ def load_legacy_controller(path: str | Path, method: str = "backward-euler") -> 
     ValueError
         Naming the file, if it cannot be read or misses a gain.
     """
-    from daq.controller import load_pd_gains, pd_controller  # python-control: imported lazily
+    from qube_koopman.daq.controller import load_pd_gains, pd_controller  # python-control: imported lazily
 
     gains = load_pd_gains(path)
     system = pd_controller(gains, 1.0 / LEGACY_SAMPLE_RATE_HZ, method)
@@ -276,7 +276,7 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
         source=f"legacy CSV {path.name}",
         start_time=start_time,
         excitation=legacy_excitation(seeds),
-        extra={"source_sha256": hashlib.sha256(raw).hexdigest(), "importer": "daq.legacy_csv",
+        extra={"source_sha256": hashlib.sha256(raw).hexdigest(), "importer": "qube_koopman.daq.legacy_csv",
                "plant_input_limit_V": 10.0},
     )
     return Episode(t=columns["t"], theta=columns["theta"], alpha=columns["alpha"],

@@ -23,12 +23,12 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from daq.backends.base import Backend, BackendFault, Pacing
-from daq.excitation import Excitation
-from daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from daq.episode import ControllerInfo, EpisodeMetadata
-from daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
-from daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingStats, quiet_interpreter, timing_stats
+from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.daq.excitation import Excitation
+from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
+from qube_koopman.daq.episode import ControllerInfo, EpisodeMetadata
+from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
+from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingStats, quiet_interpreter, timing_stats
 
 __all__ = ["ABORT_CAUSES", "EpisodePlan", "EpisodeResult", "run_episode", "REALTIME_SWITCH_INTERVAL"]
 

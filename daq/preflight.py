@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daq.backends.base import BackendFault
-from firmware_protocol import Status
-from firmware_protocol.messages import MODULE_ID_QUBE_SERVO_2
+from qube_koopman.daq.backends.base import BackendFault
+from qube_koopman.firmware_protocol import Status
+from qube_koopman.firmware_protocol.messages import MODULE_ID_QUBE_SERVO_2
 
 __all__ = ["CheckResult", "PreflightReport", "preflight"]
 

@@ -14,10 +14,10 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
-from daq.episode import ControllerInfo
-from daq.excitation import ExcitationSettings
-from daq.loop import EpisodePlan
-from daq.session import plan_episodes
+from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.daq.excitation import ExcitationSettings
+from qube_koopman.daq.loop import EpisodePlan
+from qube_koopman.daq.session import plan_episodes
 
 __all__ = ["replay_plans"]
 
@@ -41,7 +41,7 @@ def replay_plans(paths: Sequence[str | Path], controller: ControllerInfo | None 
     ValueError
         Naming the file: unreadable, without excitation seeds, or with unusable settings.
     """
-    from daq.log import read_episode_metadata
+    from qube_koopman.daq.log import read_episode_metadata
 
     plans = []
     for i, raw in enumerate(paths):

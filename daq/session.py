@@ -16,14 +16,14 @@ from typing import Callable, Sequence, overload
 
 import numpy as np
 
-from daq.backends.base import Backend
-from daq.controller import load_pd_gains, pd_controller
-from daq.episode import ControllerInfo
-from daq.excitation import ExcitationSettings, generate_excitation
-from daq.loop import EpisodePlan, EpisodeResult, run_episode
-from daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from daq.sinks import Sink
-from daq.timing import DEFAULT_SPIN
+from qube_koopman.daq.backends.base import Backend
+from qube_koopman.daq.controller import load_pd_gains, pd_controller
+from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
+from qube_koopman.daq.loop import EpisodePlan, EpisodeResult, run_episode
+from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
+from qube_koopman.daq.sinks import Sink
+from qube_koopman.daq.timing import DEFAULT_SPIN
 
 __all__ = [
     "SEED_RANGE",

@@ -19,8 +19,8 @@ from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from daq.episode import Episode, EpisodeMetadata
-from daq.timing import TimingStats
+from qube_koopman.daq.episode import Episode, EpisodeMetadata
+from qube_koopman.daq.timing import TimingStats
 
 __all__ = [
     "Sample",
@@ -323,7 +323,7 @@ class McapSink:
         LogWriteError
             Too little free space for the planned episode, or the file cannot be written.
         """
-        from daq.log import EpisodeWriter
+        from qube_koopman.daq.log import EpisodeWriter
 
         self.error = None
         base = episode_file_stem(metadata)

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.episode import EpisodeMetadata
-from daq.sinks import EpisodeOutcome, Sample
+from qube_koopman.daq.episode import EpisodeMetadata
+from qube_koopman.daq.sinks import EpisodeOutcome, Sample
 
 __all__ = ["DEFAULT_VIEWER_PORT", "RerunUnavailable", "blueprint", "open_recording", "RerunSink"]
 

@@ -13,7 +13,7 @@ tested against. Its sections and where their values come from:
   by hand from PROTOCOL.md to check the encoder that made them.
 
 Regenerate only for a deliberate protocol change (with a version bump):
-``python -m firmware_protocol.vectors --write``. Without ``--write`` the
+``python -m qube_koopman.firmware_protocol.vectors --write``. Without ``--write`` the
 command reports whether the file is current.
 """
 

@@ -6,18 +6,18 @@ come as :class:`Trajectory` objects, one per episode; see NAMING.md for the
 symbols. Heavy libraries (cvxpy, python-control) are imported only when used.
 """
 
-from identify.arx import Arx, ClArx
-from identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
-from identify.edmd import Edmd
-from identify.lifting import Constant, Delay, GaussianRbf, Lifting, LiftingFunction, Polynomial, ThinPlateRbf
-from identify.model import KoopmanModel
-from identify.regression import Snapshots, constrained_plant_solve, ridge_solve
-from identify.scores import normalized_mean_error, nrmse, r2_score, score_episodes
-from identify.sdp import ClEdmdSdp
-from identify.structure import (close_loop, closed_loop_matrices, controller_states,
+from qube_koopman.identify.arx import Arx, ClArx
+from qube_koopman.identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
+from qube_koopman.identify.edmd import Edmd
+from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Lifting, LiftingFunction, Polynomial, ThinPlateRbf
+from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.regression import Snapshots, constrained_plant_solve, ridge_solve
+from qube_koopman.identify.scores import normalized_mean_error, nrmse, r2_score, score_episodes
+from qube_koopman.identify.sdp import ClEdmdSdp
+from qube_koopman.identify.structure import (close_loop, closed_loop_matrices, controller_states,
                                 extract_plant_lstsq, output_selection, plant_input,
                                 plant_input_map)
-from identify.trajectory import Trajectory
+from qube_koopman.identify.trajectory import Trajectory
 
 __all__ = [
     "Trajectory", "Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf",

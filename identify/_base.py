@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from identify.lifting import Lifting
-from identify.trajectory import Trajectory
+from qube_koopman.identify.lifting import Lifting
+from qube_koopman.identify.trajectory import Trajectory
 
 
 class Estimator:
@@ -57,7 +57,7 @@ class SnapshotEstimator(Estimator):
         -------
         self
         """
-        from identify.regression import Snapshots
+        from qube_koopman.identify.regression import Snapshots
 
         setup = self._setup(trajectories)
         parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]

@@ -6,14 +6,14 @@ from typing import Sequence
 
 import numpy as np
 
-from identify._base import FitSetup, SnapshotEstimator, resolve_lifting
-from identify._checks import check_alpha, check_choice
-from identify.model import KoopmanModel
-from identify.regression import Snapshots, constrained_plant_solve, ridge_solve
-from identify.structure import (close_loop, extract_plant_lstsq, output_selection,
+from qube_koopman.identify._base import FitSetup, SnapshotEstimator, resolve_lifting
+from qube_koopman.identify._checks import check_alpha, check_choice
+from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.regression import Snapshots, constrained_plant_solve, ridge_solve
+from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, output_selection,
                                 plant_input_map)
-from identify.trajectory import Trajectory, check_trajectories
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify.trajectory import Trajectory, check_trajectories
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
 

@@ -9,8 +9,8 @@ from typing import Sequence
 
 import numpy as np
 
-from identify.trajectory import Trajectory
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["LoggedTrajectory", "load_logs", "check_same_controller", "check_same_rate",
            "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "UnreadableLogSkipped", "same_system"]
@@ -49,7 +49,7 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False) 
         Naming the file: unreadable, not an episode log, incomplete with
         ``strict``, or too short for ``skip``.
     """
-    from daq.log import read_episode  # lazily: mcap and zstandard
+    from qube_koopman.daq.log import read_episode  # lazily: mcap and zstandard
 
     if skip < 0:
         raise ValueError(f"skip must be >= 0, got {skip}")

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify._base import FitSetup, SnapshotEstimator, resolve_lifting
-from identify._checks import check_alpha
-from identify.model import KoopmanModel
-from identify.regression import Snapshots, ridge_solve
-from identify.trajectory import Trajectory, check_trajectories
+from qube_koopman.identify._base import FitSetup, SnapshotEstimator, resolve_lifting
+from qube_koopman.identify._checks import check_alpha
+from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.regression import Snapshots, ridge_solve
+from qube_koopman.identify.trajectory import Trajectory, check_trajectories
 
 __all__ = ["Edmd"]
 

@@ -7,8 +7,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from identify.lifting import Lifting
-from identify.trajectory import Trajectory
+from qube_koopman.identify.lifting import Lifting
+from qube_koopman.identify.trajectory import Trajectory
 
 __all__ = ["KoopmanModel"]
 
@@ -161,7 +161,7 @@ class KoopmanModel:
             The measured states (offsets added back).
         """
         if offsets is not None:
-            from identify import offsets as off
+            from qube_koopman.identify import offsets as off
 
             if isinstance(offsets, Mapping):
                 known = {c: float(v) for c, v in zip(
@@ -207,7 +207,7 @@ class KoopmanModel:
         p : ndarray of shape ([n_episodes,] n_samples, n_passthrough)
             NaN before sample ``n_delays``.
         """
-        from identify.simulate import simulate_batch
+        from qube_koopman.identify.simulate import simulate_batch
 
         v = np.asarray(v, dtype=float)
         single = v.ndim == 2

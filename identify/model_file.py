@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.lifting import Constant, Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
-from identify.model import KoopmanModel
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
+from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["FORMAT", "VERSION", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model"]
 

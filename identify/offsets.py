@@ -27,7 +27,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from identify.trajectory import Trajectory
+from qube_koopman.identify.trajectory import Trajectory
 
 __all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "shift_trajectory", "predict_with_offsets",
            "predict_estimating_offsets", "resolve_channels", "DEFAULT_BOUND"]

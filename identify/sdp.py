@@ -19,11 +19,11 @@ import numpy as np
 
 from dataclasses import dataclass
 
-from identify._base import resolve_lifting
-from identify._checks import check_alpha, check_choice
-from identify.cl_edmd import REGULARIZE, _ClosedLoopKoopman
-from identify.trajectory import check_trajectories
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify._base import resolve_lifting
+from qube_koopman.identify._checks import check_alpha, check_choice
+from qube_koopman.identify.cl_edmd import REGULARIZE, _ClosedLoopKoopman
+from qube_koopman.identify.trajectory import check_trajectories
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmdSdp", "SnapshotGram", "closed_loop_snapshots", "closed_loop_blocks"]
 

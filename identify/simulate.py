@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify.lifting import Constant, Delay, Lifting
+from qube_koopman.identify.lifting import Constant, Delay, Lifting
 
 __all__ = ["simulate_batch"]
 

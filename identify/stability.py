@@ -33,9 +33,9 @@ from typing import Sequence
 import numpy as np
 from scipy import linalg
 
-from identify.cl_edmd import ClEdmdKnownRows
-from identify.regression import Snapshots, constrained_plant_solve
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify.cl_edmd import ClEdmdKnownRows
+from qube_koopman.identify.regression import Snapshots, constrained_plant_solve
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmdStable"]
 

@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = [
     "output_selection",
@@ -137,7 +137,7 @@ def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | 
     KoopmanModel
         Closed-loop model with state ``[x^c; theta^p]`` and input ``[r; f]``.
     """
-    from identify.model import KoopmanModel
+    from qube_koopman.identify.model import KoopmanModel
 
     if plant.n_passthrough or plant.input_signals != ("u",) or plant.input_lifting is not None:
         raise ValueError("close_loop needs a plant model whose input is the unlifted plant input u")

@@ -14,17 +14,17 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from identify._blas import limited_blas_threads
-from identify._checks import check_choice
-from identify.cl_edmd import _ClosedLoopKoopman
-from identify.edmd import Edmd
-from identify.model import KoopmanModel
-from identify.regression import Snapshots
-from identify.scores import r2_scores
-from identify.simulate import simulate_batch
-from identify.structure import close_loop
-from identify.trajectory import Trajectory
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify._blas import limited_blas_threads
+from qube_koopman.identify._checks import check_choice
+from qube_koopman.identify.cl_edmd import _ClosedLoopKoopman
+from qube_koopman.identify.edmd import Edmd
+from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.regression import Snapshots
+from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.simulate import simulate_batch
+from qube_koopman.identify.structure import close_loop
+from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["SweepResult", "regularization_sweep", "fitted_models", "SCORINGS"]
 
@@ -192,7 +192,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
 
 
 def _learns_from_data(estimator) -> bool:
-    from identify._base import resolve_lifting
+    from qube_koopman.identify._base import resolve_lifting
 
     return any(getattr(step, "learns_from_data", True) for step in resolve_lifting(estimator.lifting).steps)
 

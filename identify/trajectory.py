@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
-from identify._checks import as_signal
+from qube_koopman.identify._checks import as_signal
 
 __all__ = ["Trajectory", "check_trajectories"]
 

@@ -8,18 +8,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from identify._blas import limited_blas_threads
-from identify.arx import Arx, ClArx
-from identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
-from identify.data import LoggedTrajectory, group_shuffle_splits, same_system
-from identify.edmd import Edmd
-from identify.stability import ClEdmdStable
-from identify.model_file import lifting_to_dict, save_model
-from identify.offsets import DEFAULT_BOUND, estimate_offsets, predict_with_offsets
-from identify.scores import summarize_episodes
-from identify.structure import close_loop, controller_states
-from identify.sweep import SweepResult, regularization_sweep
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify._blas import limited_blas_threads
+from qube_koopman.identify.arx import Arx, ClArx
+from qube_koopman.identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
+from qube_koopman.identify.data import LoggedTrajectory, group_shuffle_splits, same_system
+from qube_koopman.identify.edmd import Edmd
+from qube_koopman.identify.stability import ClEdmdStable
+from qube_koopman.identify.model_file import lifting_to_dict, save_model
+from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets, predict_with_offsets
+from qube_koopman.identify.scores import summarize_episodes
+from qube_koopman.identify.structure import close_loop, controller_states
+from qube_koopman.identify.sweep import SweepResult, regularization_sweep
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
-from sim.lti import DiscreteStateSpace
+from qube_koopman.daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 RATE = 500.0
 
@@ -26,7 +26,7 @@ def assert_follows_controller(ep: Episode, controller: DiscreteStateSpace = QUBE
     plant input is their sum with the feedforward, clamped and flagged; the
     samples are evenly spaced from t = 0.
     """
-    from identify import controller_states
+    from qube_koopman.identify import controller_states
 
     xc = controller_states(controller, ep.references, ep.states)
     np.testing.assert_allclose(ep.controller_state, xc, rtol=0, atol=1e-10)

@@ -6,12 +6,12 @@ import os
 
 import pytest
 
-from firmware_protocol import Command, Hello, StreamDecoder, encode_frame
-from firmware_protocol import avr as avr_build
+from qube_koopman.firmware_protocol import Command, Hello, StreamDecoder, encode_frame
+from qube_koopman.firmware_protocol import avr as avr_build
 
 
 def _need_tools() -> None:
-    from sim.bridge import avr as avr_sim
+    from qube_koopman.sim.bridge import avr as avr_sim
 
     missing = avr_build.avr_tools_missing() + avr_sim.harness_missing()
     if missing:
@@ -26,7 +26,7 @@ def _need_tools() -> None:
 def avr_cache(tmp_path_factory):
     """A cache folder holding the built Uno firmware and the simavr harness."""
     _need_tools()
-    from sim.bridge import avr as avr_sim
+    from qube_koopman.sim.bridge import avr as avr_sim
 
     root = tmp_path_factory.mktemp("avr_cache")
     return avr_build.cached_firmware(root), avr_sim.cached_harness(root)
@@ -34,7 +34,7 @@ def avr_cache(tmp_path_factory):
 
 def new_bridge(avr_cache):
     """A freshly reset Uno with the simulated QUBE on its SPI bus."""
-    from sim.bridge.avr import AvrBridge
+    from qube_koopman.sim.bridge.avr import AvrBridge
 
     elf, harness = avr_cache
     return AvrBridge(elf, harness=harness)

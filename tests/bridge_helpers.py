@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_protocol import StreamDecoder, ccore
+from qube_koopman.firmware_protocol import StreamDecoder, ccore
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -41,7 +41,7 @@ def env(cache_home) -> dict:
 
 def start_emulator(env: dict, *args: str) -> tuple[subprocess.Popen, str]:
     """``qube-emulate ARGS`` in a subprocess; returns it and the device path it printed first."""
-    proc = subprocess.Popen([sys.executable, "-m", "sim.cli.emulate", *args], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "qube_koopman.sim.cli.emulate", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
     path = proc.stdout.readline().strip()
     if not path.startswith("/dev/"):

@@ -43,8 +43,8 @@ def qube_csv_files(qube_dataset: Path) -> list[Path]:
 @pytest.fixture(scope="session")
 def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
     """All 48 episodes imported into MCAP logs once per session (about 6 s)."""
-    from daq.legacy_csv import legacy_episode, load_legacy_controller
-    from daq.log import write_episode
+    from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
+    from qube_koopman.daq.log import write_episode
 
     out = tmp_path_factory.mktemp("qube_logs")
     controller = load_legacy_controller(qube_csv_files[0].parent / "controller.toml")

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import linalg
 
-from identify import Trajectory
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify import Trajectory
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 
 def mass_spring_damper(dt: float = 0.01, m: float = 1.0, c: float = 0.4, k: float = 2.0):
@@ -30,7 +30,7 @@ def pid_position_controller(dt: float = 0.01) -> DiscreteStateSpace:
     """
     import control
 
-    from daq.controller import discretize_channels
+    from qube_koopman.daq.controller import discretize_channels
 
     s = control.tf("s")
     return discretize_channels([5 + 2 / s + 20 * s / (s + 20)], dt, "backward-euler")
@@ -69,7 +69,7 @@ def prbs(rng, n, n_channels, amplitude, dwell=(20, 80)):
 def closed_loop_trajectories(A_p, B_p, controller, measured, n_episodes=4, n=400, seed=0,
                              process_noise=0.0, feedforward=True):
     """Episodes of the loop with PRBS references and feedforward."""
-    from identify import closed_loop_matrices, output_selection
+    from qube_koopman.identify import closed_loop_matrices, output_selection
 
     A_f, _ = closed_loop_matrices(A_p, B_p, controller, output_selection(A_p.shape[0], measured),
                                   controller.n_outputs)

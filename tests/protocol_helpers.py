@@ -6,7 +6,7 @@ import random
 
 from hypothesis import strategies as st
 
-from firmware_protocol import MESSAGE_CLASSES, Command, Config, Message, Telemetry
+from qube_koopman.firmware_protocol import MESSAGE_CLASSES, Command, Config, Message, Telemetry
 
 # Tick rates the device accepts: 10..1000 Hz with a whole-microsecond period.
 VALID_RATES = [r for r in range(10, 1001) if 1_000_000 % r == 0]

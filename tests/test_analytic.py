@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from identify import ClEdmd, ClEdmdLstsq, Edmd, close_loop
+from qube_koopman.identify import ClEdmd, ClEdmdLstsq, Edmd, close_loop
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 
@@ -26,7 +26,7 @@ def test_cl_edmd_recovers_plant_exactly(loop, regularize):
 def test_cl_edmd_closed_loop_matrix_is_the_wrapped_plant(loop):
     A_p, B_p, controller, trajs = loop
     model = ClEdmd(controller, measured=[0]).fit(trajs)
-    from identify import closed_loop_matrices, output_selection
+    from qube_koopman.identify import closed_loop_matrices, output_selection
 
     A_f, B_f = closed_loop_matrices(A_p, B_p, controller, output_selection(2, [0]), 1)
     np.testing.assert_allclose(model.koopman_matrix_, np.hstack([A_f, B_f]), atol=1e-8)

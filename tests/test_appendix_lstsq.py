@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from daq.controller import load_pd_gains, pd_controller
-from identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Delay, Polynomial, Trajectory, controller_states
+from qube_koopman.daq.controller import load_pd_gains, pd_controller
+from qube_koopman.identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Delay, Polynomial, Trajectory, controller_states
 
 pytestmark = pytest.mark.dataset
 

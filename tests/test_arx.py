@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from identify import Arx, ClArx, Trajectory
+from qube_koopman.identify import Arx, ClArx, Trajectory
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from daq.backends.serial import DEFAULT_BAUD
-from firmware_protocol import Command, Fault, FaultCode, HelloReply, Status, Telemetry
-from firmware_protocol.avr import F_CPU, firmware_sizes
-from firmware_protocol.qube_spi import SPI_SIZE
+from qube_koopman.daq.backends.serial import DEFAULT_BAUD
+from qube_koopman.firmware_protocol import Command, Fault, FaultCode, HelloReply, Status, Telemetry
+from qube_koopman.firmware_protocol.avr import F_CPU, firmware_sizes
+from qube_koopman.firmware_protocol.qube_spi import SPI_SIZE
 from avr_helpers import Host, avr_cache, new_bridge  # noqa: F401 (fixture)
 from bridge_helpers import cache_home, env, start_emulator, stop_process  # noqa: F401 (fixtures)
 
@@ -131,8 +131,8 @@ def test_chip_select_is_high_from_reset(avr_cache):
 
 @pytest.mark.slow
 def test_qube_run_against_the_emulated_uno_in_real_time(avr_cache, env, tmp_path, capsys):
-    from daq.cli.run import main
-    from daq.log import read_episode
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.daq.log import read_episode
 
     proc, path = start_emulator(env, "--target", "avr", "--seed", "5")
     try:

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from identify import Arx, ClEdmd, Delay, Edmd, Polynomial, Trajectory
-from sim.lti import DiscreteStateSpace
+from qube_koopman.identify import Arx, ClEdmd, Delay, Edmd, Polynomial, Trajectory
+from qube_koopman.sim.lti import DiscreteStateSpace
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 

@@ -23,7 +23,7 @@ import pytest
 import serial
 from bridge_helpers import REPO, cache_home, core, env, start_emulator, stop_process  # noqa: F401
 
-from firmware_protocol import (
+from qube_koopman.firmware_protocol import (
     Capability,
     Command,
     CommandFlags,
@@ -35,7 +35,7 @@ from firmware_protocol import (
     Telemetry,
     encode_frame,
 )
-from firmware_protocol.qube_spi import (
+from qube_koopman.firmware_protocol.qube_spi import (
     MASK_ENCODER1,
     MASK_NORMAL,
     SpiCommand,
@@ -44,9 +44,9 @@ from firmware_protocol.qube_spi import (
     pack_spi_command,
     unpack_spi_response,
 )
-from sim.bridge import BridgeEmulator, DelayLine, EmulatedQube, Faults, FaultyLink
-from sim.pendulum import SensorModel, measure
-from sim.pendulum.sensor import angles_to_counts, counts_to_angles
+from qube_koopman.sim.bridge import BridgeEmulator, DelayLine, EmulatedQube, Faults, FaultyLink
+from qube_koopman.sim.pendulum import SensorModel, measure
+from qube_koopman.sim.pendulum.sensor import angles_to_counts, counts_to_angles
 
 STEP = 2 * math.pi / 2048
 
@@ -367,7 +367,7 @@ def test_cli_vanishes_on_request_and_exits(env):
 
 
 def test_cli_help_and_usage_errors(env):
-    run = [sys.executable, "-m", "sim.cli.emulate"]
+    run = [sys.executable, "-m", "qube_koopman.sim.cli.emulate"]
     help_text = subprocess.run(run + ["--help"], capture_output=True, text=True, env=env)
     assert help_text.returncode == 0
     for option in ("--lockstep", "--drop-rate", "--corrupt-rate", "--latency", "--stall-at", "--amp-fault-at",
@@ -381,7 +381,7 @@ def test_cli_help_and_usage_errors(env):
 def test_cli_without_a_compiler_says_so_in_one_line(env, tmp_path):
     bare = dict(env, PATH=str(tmp_path), XDG_CACHE_HOME=str(tmp_path / "empty_cache"))
     bare.pop("CC", None)
-    proc = subprocess.run([sys.executable, "-m", "sim.cli.emulate"], capture_output=True, text=True, env=bare,
+    proc = subprocess.run([sys.executable, "-m", "qube_koopman.sim.cli.emulate"], capture_output=True, text=True, env=bare,
                           cwd=REPO)
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.count("\n") == 1 and "no C compiler found" in proc.stderr and "Traceback" not in proc.stderr

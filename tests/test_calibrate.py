@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from _episodes import QUBE_PD
-from daq.excitation import ExcitationSettings, generate_excitation
-from identify.calibrate import PlantCalibration
-from identify.calibrate import shooting as ms
-from sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
+from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
+from qube_koopman.identify.calibrate import PlantCalibration
+from qube_koopman.identify.calibrate import shooting as ms
+from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
 
 DT = 1 / 500
 TRUTH = PendulumParameters(km=0.034, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1)
@@ -65,7 +65,7 @@ def test_known_parameters_are_recovered_within_two_standard_errors():
 
 
 def test_cli_refuses_missing_logs_in_one_line(tmp_path, capsys):
-    from identify.cli.calibrate import main
+    from qube_koopman.identify.cli.calibrate import main
 
     assert main([str(tmp_path / "nope.mcap"), "--out", str(tmp_path / "p.toml")]) == 2
     err = capsys.readouterr().err
@@ -73,9 +73,9 @@ def test_cli_refuses_missing_logs_in_one_line(tmp_path, capsys):
 
 
 def test_cli_writes_a_plant_file_qube_run_accepts_and_a_report(tmp_path):
-    from daq.cli.run import main as run_main
-    from identify.cli.calibrate import main
-    from sim.pendulum.params_file import load_plant
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.calibrate import main
+    from qube_koopman.sim.pendulum.params_file import load_plant
 
     assert run_main(["--episodes", "3", "--duration", "3", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
     logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))

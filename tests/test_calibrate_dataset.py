@@ -11,17 +11,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from identify.calibrate import PlantCalibration
-from identify.calibrate.validate import replay_episodes
-from identify.data import paper_split
-from sim.pendulum import PendulumParameters
+from qube_koopman.identify.calibrate import PlantCalibration
+from qube_koopman.identify.calibrate.validate import replay_episodes
+from qube_koopman.identify.data import paper_split
+from qube_koopman.sim.pendulum import PendulumParameters
 
 pytestmark = [pytest.mark.dataset, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
 def split(qube_logs):
-    from daq.log import read_episode
+    from qube_koopman.daq.log import read_episode
 
     train, test = paper_split(sorted(qube_logs.glob("*.mcap")))
     return [read_episode(p) for p in train], [read_episode(p) for p in test]

@@ -12,11 +12,11 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("module, prog", [("daq.cli.run", "qube-run"), ("daq.cli.import_csv", "qube-import"),
-                                          ("sim.cli.emulate", "qube-emulate"),
-                                          ("identify.cli.reproduce", "qube-reproduce")])
+@pytest.mark.parametrize("module, prog", [("qube_koopman.daq.cli.run", "qube-run"), ("qube_koopman.daq.cli.import_csv", "qube-import"),
+                                          ("qube_koopman.sim.cli.emulate", "qube-emulate"),
+                                          ("qube_koopman.identify.cli.reproduce", "qube-reproduce")])
 def test_version(module, prog):
-    from sim.cli.common import package_version
+    from qube_koopman.sim.cli.common import package_version
 
     proc = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True,
                           cwd=REPO, timeout=60)
@@ -26,7 +26,7 @@ def test_version(module, prog):
 
 @pytest.mark.parametrize("terminal", [True, False])
 def test_the_progress_callback_draws_on_a_terminal_only(terminal, capsys, monkeypatch):
-    from sim.cli.common import ProgressCallback
+    from qube_koopman.sim.cli.common import ProgressCallback
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
     progress = ProgressCallback()
@@ -43,14 +43,14 @@ def test_the_progress_callback_draws_on_a_terminal_only(terminal, capsys, monkey
 
 # One error style for every command: `<command>: error: <file>: <problem>`, a non-zero exit, no traceback.
 BAD_ARGUMENTS = [  # module, program, arguments, the file the error must name first
-    ("daq.cli.run", "qube-run", ["--controller", "{binary}", "--episodes", "1", "--duration", "1", "--out", "o", "-q"],
+    ("qube_koopman.daq.cli.run", "qube-run", ["--controller", "{binary}", "--episodes", "1", "--duration", "1", "--out", "o", "-q"],
      "{binary}"),
-    ("daq.cli.import_csv", "qube-import", ["{binary}", "--controller", "{binary}", "--out", "o", "-q"], "{binary}"),
-    ("daq.cli.export", "qube-export", ["{binary}", "--format", "csv", "--out", "o", "-q"], "{binary}"),
-    ("identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
+    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{binary}", "--controller", "{binary}", "--out", "o", "-q"], "{binary}"),
+    ("qube_koopman.daq.cli.export", "qube-export", ["{binary}", "--format", "csv", "--out", "o", "-q"], "{binary}"),
+    ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
      "{missing}"),
-    ("identify.cli.reproduce", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
-    ("sim.cli.emulate", "qube-emulate", ["--record", "{missing}/x.csv", "-q"], "{missing}/x.csv"),
+    ("qube_koopman.identify.cli.reproduce", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
+    ("qube_koopman.sim.cli.emulate", "qube-emulate", ["--record", "{missing}/x.csv", "-q"], "{missing}/x.csv"),
 ]
 
 
@@ -67,7 +67,7 @@ def test_every_command_reports_a_bad_file_as_command_error_file_problem(module, 
 
 def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(tmp_path, capsys):
     pytest.importorskip("rerun")
-    from identify.cli.identify import main
+    from qube_koopman.identify.cli.identify import main
 
     target = tmp_path / "no" / "such" / "id.rrd"
     status = main(["--train", str(tmp_path), "--test", str(tmp_path), "--out", str(tmp_path / "model"),

@@ -5,10 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from daq.controller import pi_controller
-from identify.cli.reproduce import main
-from identify.reproduce.duffing import reproduce_duffing
-from sim.duffing import coloured_noise, duffing_experiment, duffing_pi_controller, random_dwell_prbs
+from qube_koopman.daq.controller import pi_controller
+from qube_koopman.identify.cli.reproduce import main
+from qube_koopman.identify.reproduce.duffing import reproduce_duffing
+from qube_koopman.sim.duffing import coloured_noise, duffing_experiment, duffing_pi_controller, random_dwell_prbs
 
 
 def test_pi_controller_matches_the_zoh_discretization():
@@ -85,8 +85,8 @@ def test_cl_edmd_and_edmd_solve_different_problems_on_the_duffing_data():
     """Each estimator matches its own normal equations (built here from the raw snapshots,
     FACTS section 1) and not the other's: with a real regularization the closed-loop penalty
     ||U^p S||^2 and EDMD's ||U^p||^2 give different plants."""
-    from identify import ClEdmd, Edmd
-    from identify.reproduce.duffing import duffing_lifting, duffing_trajectory
+    from qube_koopman.identify import ClEdmd, Edmd
+    from qube_koopman.identify.reproduce.duffing import duffing_lifting, duffing_trajectory
 
     experiment = duffing_experiment(seed=5)
     dt, ctrl = experiment.controller.dt, experiment.controller

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from identify import (ClEdmd, Constant, Delay, Edmd, GaussianRbf, Lifting, Polynomial, Trajectory, closed_loop_matrices,
+from qube_koopman.identify import (ClEdmd, Constant, Delay, Edmd, GaussianRbf, Lifting, Polynomial, Trajectory, closed_loop_matrices,
                       controller_states, output_selection, plant_input, plant_input_map, r2_score)
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 

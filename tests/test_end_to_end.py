@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daq.cli.run import main as qube_run
-from daq.log import read_episode_metadata
-from identify.cli.identify import main as qube_identify
+from qube_koopman.daq.cli.run import main as qube_run
+from qube_koopman.daq.log import read_episode_metadata
+from qube_koopman.identify.cli.identify import main as qube_identify
 
 
 @pytest.fixture(scope="module")

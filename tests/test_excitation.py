@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from _qube_csv import load_episode
 
-from daq.excitation import (ExcitationSettings, PrbsChannel, generate_excitation, held_prbs, integrate,
+from qube_koopman.daq.excitation import (ExcitationSettings, PrbsChannel, generate_excitation, held_prbs, integrate,
                             lfsr_bits, parse_seeds, smooth)
 
 FS = 500.0

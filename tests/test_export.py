@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from _episodes import make_episode
-from daq.cli.export import main
-from daq.cli.import_csv import main as import_main
-from daq.export import episode_columns, export_episode, write_mat
-from daq.log import read_episode, write_episode
-from daq.log.metadata import metadata_from_records
+from qube_koopman.daq.cli.export import main
+from qube_koopman.daq.cli.import_csv import main as import_main
+from qube_koopman.daq.export import episode_columns, export_episode, write_mat
+from qube_koopman.daq.log import read_episode, write_episode
+from qube_koopman.daq.log.metadata import metadata_from_records
 
 
 @pytest.fixture
@@ -105,7 +105,7 @@ def test_parquet_without_pyarrow_says_how_to_get_it(log, tmp_path, monkeypatch, 
 
 def test_episode_frame_when_pandas_is_there(log):
     pytest.importorskip("pandas")
-    from daq.export import episode_frame
+    from qube_koopman.daq.export import episode_frame
 
     _, episode = log
     frame = episode_frame(episode)
@@ -114,7 +114,7 @@ def test_episode_frame_when_pandas_is_there(log):
 
 
 def test_episode_frame_without_pandas_says_it_is_optional(log, monkeypatch):
-    from daq.export import episode_frame
+    from qube_koopman.daq.export import episode_frame
 
     monkeypatch.setitem(sys.modules, "pandas", None)
     with pytest.raises(ImportError, match="pandas, which is optional"):

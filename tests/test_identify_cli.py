@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from identify.cli.identify import main
-from identify.model_file import load_model
+from qube_koopman.identify.cli.identify import main
+from qube_koopman.identify.model_file import load_model
 
 pytestmark = pytest.mark.dataset
 
@@ -54,11 +54,11 @@ def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
                        "--delays", "3", "--rbf", "gaussian", "--rbf-centers", "5", "--rbf-shape", "2")
     assert code == 0, err
     loaded = load_model(tmp_path / "model.json")
-    from identify.data import load_logs
+    from qube_koopman.identify.data import load_logs
 
     log = load_logs(sorted((small_set / "test").glob("*.mcap"))[:1], skip=500)[0]
     pred = loaded["closed_loop"].predict(log.trajectory)
-    from identify import r2_score
+    from qube_koopman.identify import r2_score
 
     report = json.loads((tmp_path / "report.json").read_text())
     assert r2_score(log.trajectory.x[1:], pred[1:]) == pytest.approx(report["test"]["r2_per_episode"][0], abs=1e-9)
@@ -96,7 +96,7 @@ def test_paper_split_needs_more_than_28_logs(small_set, tmp_path, capsys):
 
 def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     # a different controller among the training logs
-    from daq.log import read_episode, write_episode
+    from qube_koopman.daq.log import read_episode, write_episode
     from dataclasses import replace
 
     source = sorted((small_set / "train").glob("*.mcap"))[0]
@@ -139,9 +139,9 @@ def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monk
 def test_logs_with_another_sample_rate_are_refused(tmp_path):
     from pathlib import Path
 
-    from identify import Trajectory
-    from identify.data import LoggedTrajectory, check_same_rate
-    from sim.lti import DiscreteStateSpace
+    from qube_koopman.identify import Trajectory
+    from qube_koopman.identify.data import LoggedTrajectory, check_same_rate
+    from qube_koopman.sim.lti import DiscreteStateSpace
 
     ctrl = DiscreteStateSpace([[1.0]], [[1.0]], [[1.0]], [[1.0]], 0.002)
     fast = LoggedTrajectory(Path("a.mcap"), Trajectory(x=np.zeros((5, 2)), dt=0.002), ctrl)

@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 
 from _episodes import QUBE_PD
-from daq.cli.import_csv import main
-from daq.legacy_csv import (
+from qube_koopman.daq.cli.import_csv import main
+from qube_koopman.daq.legacy_csv import (
     LEGACY_COLUMNS,
     LegacyCsvError,
     legacy_episode,
     load_legacy_controller,
     parse_legacy_name,
 )
-from daq.log import read_episode
+from qube_koopman.daq.log import read_episode
 
 GAINS_TOML = "kp_theta = 6.0\nkd_theta = 1.8\nkp_alpha = 30.0\nkd_alpha = 2.5\ntau = 50.0\n"
 GOOD = "qube_20230828T150615_434_696_394"

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from identify import Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
+from qube_koopman.identify import Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
 
 
 @pytest.fixture

@@ -19,15 +19,15 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from _episodes import QUBE_PD, RATE, make_episode, make_metadata, sample
-from daq.episode import SIGNALS, Episode
-from daq.log import (
+from qube_koopman.daq.episode import SIGNALS, Episode
+from qube_koopman.daq.log import (
     EpisodeWriter,
     IncompleteEpisodeWarning,
     read_episode,
     read_episode_metadata,
     write_episode,
 )
-from daq.log.schema import FORMAT_VERSION, parse_schema
+from qube_koopman.daq.log.schema import FORMAT_VERSION, parse_schema
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -310,7 +310,7 @@ import sys, time
 import numpy as np
 sys.path[:0] = [sys.argv[1], sys.argv[1] + "/tests"]
 from _episodes import make_metadata, sample
-from daq.log import EpisodeWriter
+from qube_koopman.daq.log import EpisodeWriter
 mode, path = sys.argv[2], sys.argv[3]
 log = EpisodeWriter(path, make_metadata(), flush_interval_s=0.1)
 for k in range(1_000_000):  # bounded, in case the kill never comes
@@ -476,8 +476,8 @@ def _write_format_1_2(path, episode: Episode) -> None:
     """An episode log as format 1.2 wrote it: the same file without the device_time field."""
     from mcap.writer import Writer
 
-    from daq.log.metadata import episode_records
-    from daq.log.schema import CDR_LE_HEADER, payload_dtype, sample_fields, state_field
+    from qube_koopman.daq.log.metadata import episode_records
+    from qube_koopman.daq.log.schema import CDR_LE_HEADER, payload_dtype, sample_fields, state_field
 
     fields = [f for f in sample_fields(2) if f[0] != "device_time"]
     text = "\n".join(f"{t} {n}" for n, t in fields) + "\n"

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from _episodes import QUBE_PD, assert_follows_controller
 
-from daq.backends import Backend, BackendFault, Pacing, SimBackend
-from daq.episode import ControllerInfo
-from daq.excitation import Excitation, ExcitationSettings, generate_excitation
-from daq.loop import EpisodePlan, run_episode
-from daq.safety import SafetyLimits, StopRequest
-from daq.sinks import MemorySink
-from sim.pendulum import SensorModel, simulate_closed_loop
+from qube_koopman.daq.backends import Backend, BackendFault, Pacing, SimBackend
+from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.daq.excitation import Excitation, ExcitationSettings, generate_excitation
+from qube_koopman.daq.loop import EpisodePlan, run_episode
+from qube_koopman.daq.safety import SafetyLimits, StopRequest
+from qube_koopman.daq.sinks import MemorySink
+from qube_koopman.sim.pendulum import SensorModel, simulate_closed_loop
 
 RIG_GAINS = {"kp_theta": 6.0, "kd_theta": 1.8, "kp_alpha": 30.0, "kd_alpha": 2.5, "tau": 50.0}
 CONTROLLER = ControllerInfo(QUBE_PD, "backward-euler", RIG_GAINS)
@@ -326,7 +326,7 @@ def _use_clock(monkeypatch, clock: SimClock) -> None:
     """Run daq.loop (its tick clock and its deadline pacer) on ``clock``."""
     import types
 
-    from daq import loop, timing
+    from qube_koopman.daq import loop, timing
 
     monkeypatch.setattr(loop, "time", types.SimpleNamespace(perf_counter=clock.perf_counter))
     monkeypatch.setattr(loop, "DeadlinePacer", lambda period, spin: timing.DeadlinePacer(
@@ -335,7 +335,7 @@ def _use_clock(monkeypatch, clock: SimClock) -> None:
 
 def test_free_running_never_waits(monkeypatch):
     # Free-running means no pacer and no sleep in the loop's thread (counted, not timed).
-    from daq import loop
+    from qube_koopman.daq import loop
 
     pacers, sleeps, me = [], [], threading.get_ident()
     real_sleep = time.sleep

@@ -56,19 +56,52 @@ def _run(args: list, cwd: Path, timeout: float = 600) -> subprocess.CompletedPro
     return subprocess.run([str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.slow
-@pytest.mark.network
-def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(tmp_path):
+@pytest.fixture(scope="module")
+def lowest_venv(tmp_path_factory) -> Path:
+    """A fresh venv with the wheel built from this checkout, the lowest allowed versions, and
+    PyPI's own `identify` (pre-commit's dependency, whose import name the project must not take)."""
+    tmp_path = tmp_path_factory.mktemp("lowest")
     env_dir = tmp_path / "venv"
     venv.create(env_dir, with_pip=True)
-    bin_dir = env_dir / "bin"
-    python = bin_dir / "python"
+    python = env_dir / "bin" / "python"
     install = _run([python, "-m", "pip", "install", "--disable-pip-version-check", "--only-binary", ":all:",
-                    "-c", PINS, f"{ROOT}[viz,test]"], tmp_path, timeout=900)
+                    "-c", PINS, f"{ROOT}[viz,test]", "identify"], tmp_path, timeout=900)
     if install.returncode != 0 and re.search(r"(?i)connection|network is unreachable|temporary failure",
                                              install.stdout + install.stderr):
         pytest.skip(f"PyPI not reachable: {install.stderr.strip().splitlines()[-1]}")
     assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
+    return env_dir
+
+
+COMMANDS = ["qube-run", "qube-identify", "qube-reproduce", "qube-import", "qube-export", "qube-emulate",
+            "qube-calibrate"]
+
+
+@pytest.mark.slow
+@pytest.mark.network
+def test_the_wheel_installs_beside_pypi_identify(lowest_venv, tmp_path):
+    python = lowest_venv / "bin" / "python"
+    code = ("import identify, identify.identify, qube_koopman.identify, qube_koopman.daq, qube_koopman.sim, "
+            "qube_koopman.firmware_protocol; from qube_koopman.identify import ClEdmd; "
+            "print(identify.__file__); print(qube_koopman.identify.__file__); "
+            "print(identify.identify.tags_from_filename('x.py'))")
+    done = _run([python, "-c", code], tmp_path)  # outside the checkout: only installed code is seen
+    assert done.returncode == 0, done.stderr[-3000:]
+    theirs, ours, tags = done.stdout.split("\n")[:3]
+    assert "site-packages/identify/" in theirs and "site-packages/qube_koopman/identify/" in ours
+    assert "python" in tags
+    # every command of the project runs from the wheel (and none is PyPI identify's `identify-cli`)
+    for command in COMMANDS:
+        for flag in ("--version", "--help"):
+            ran = _run([lowest_venv / "bin" / command, flag], tmp_path, timeout=120)
+            assert ran.returncode == 0 and ran.stdout.strip(), f"{command} {flag}: {ran.stderr[-2000:]}"
+
+
+@pytest.mark.slow
+@pytest.mark.network
+def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(lowest_venv, tmp_path):
+    bin_dir = lowest_venv / "bin"
+    python = bin_dir / "python"
     listed = _run([python, "-m", "pip", "list", "--format", "freeze"], tmp_path).stdout
     installed = dict(line.split("==") for line in listed.split() if "==" in line)
     for name, version in _pins().items():

@@ -14,14 +14,14 @@ import math
 import numpy as np
 import pytest
 
-from daq.backends.sim import SimBackend
-from daq.controller import PdGains, pd_controller
-from daq.episode import ControllerInfo
-from daq.log import read_episode_metadata
-from daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
-from daq.sinks import McapSink
-from identify.cli.identify import main as qube_identify
-from sim.pendulum import ZeroOffsetDistribution
+from qube_koopman.daq.backends.sim import SimBackend
+from qube_koopman.daq.controller import PdGains, pd_controller
+from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.daq.log import read_episode_metadata
+from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
+from qube_koopman.daq.sinks import McapSink
+from qube_koopman.identify.cli.identify import main as qube_identify
+from qube_koopman.sim.pendulum import ZeroOffsetDistribution
 
 pytestmark = pytest.mark.slow
 

@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from identify import ClEdmd, r2_score
-from identify.offsets import OffsetWarning, estimate_offsets, predict_estimating_offsets
+from qube_koopman.identify import ClEdmd, r2_score
+from qube_koopman.identify.offsets import OffsetWarning, estimate_offsets, predict_estimating_offsets
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 OFFSET = 0.03

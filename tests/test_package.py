@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-PACKAGES = ["identify", "sim", "daq", "firmware_protocol"]
+PACKAGES = ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.firmware_protocol"]
 
 
 def public_modules():
@@ -40,7 +40,7 @@ def test_every_public_function_and_class_is_documented():
     assert not missing, f"undocumented: {missing}"
 
 
-@pytest.mark.parametrize("module", ["identify", "sim", "daq", "identify.cli.reproduce"])
+@pytest.mark.parametrize("module", ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.identify.cli.reproduce"])
 def test_import_has_no_heavy_side_effects(module):
     code = (f"import sys, {module}; heavy = [m for m in ('cvxpy', 'control', 'matplotlib', 'rerun', 'mcap')"
             " if m in sys.modules]; print(','.join(heavy))")
@@ -49,10 +49,26 @@ def test_import_has_no_heavy_side_effects(module):
 
 
 def test_estimators_follow_the_constructor_contract():
-    from identify import Arx, ClArx, ClEdmd, ClEdmdLstsq, ClEdmdSdp, Edmd
+    from qube_koopman.identify import Arx, ClArx, ClEdmd, ClEdmdLstsq, ClEdmdSdp, Edmd
 
     for cls in (Edmd, ClEdmd, ClEdmdLstsq, ClEdmdSdp, Arx, ClArx):
         params = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
         est = cls(controller=None) if "controller" in params else cls()
         # every constructor argument is stored unchanged under its own name
         assert set(est.get_params()) == set(params)
+
+
+def test_the_installed_package_list_covers_every_source_folder():
+    """pyproject.toml lists the packages under the `qube_koopman` namespace by hand (package-dir
+    maps the top-level folders): a new sub-package left out would be missing from the wheel."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    tool = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    folders = {"qube_koopman." + str(init.parent.relative_to(root)).replace("/", ".")
+               for top in tool["package-dir"].values() for init in (root / top).rglob("__init__.py")}
+    assert set(tool["packages"]) == folders
+    for name, folder in tool["package-dir"].items():
+        assert name == f"qube_koopman.{folder}"
+        assert importlib.import_module(name).__file__ == str(root / folder / "__init__.py")

@@ -20,8 +20,8 @@ import pytest
 from _qube_csv import load_episode
 from scipy.signal import savgol_filter
 
-from daq.controller import load_pd_gains, pd_controller
-from sim.pendulum import PendulumParameters, simulate_closed_loop
+from qube_koopman.daq.controller import load_pd_gains, pd_controller
+from qube_koopman.sim.pendulum import PendulumParameters, simulate_closed_loop
 
 START = 500
 DT = 1.0 / 500.0

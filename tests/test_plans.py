@@ -7,7 +7,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from daq.session import (MAX_EPISODES, EpisodePlans, excitation_settings, load_controller, plan_episodes,
+from qube_koopman.daq.session import (MAX_EPISODES, EpisodePlans, excitation_settings, load_controller, plan_episodes,
                          run_seeds)
 
 
@@ -45,9 +45,9 @@ def test_absurd_episode_counts_are_refused():
 
 def test_the_loop_follows_the_plan_across_its_chunks():
     # The loop turns the excitation into floats 4096 ticks at a time: 10,000 ticks cross two seams.
-    from daq.backends import SimBackend
-    from daq.loop import run_episode
-    from daq.sinks import MemorySink
+    from qube_koopman.daq.backends import SimBackend
+    from qube_koopman.daq.loop import run_episode
+    from qube_koopman.daq.sinks import MemorySink
 
     plan = plan_episodes(load_controller(), [(11, 22, 33)], excitation_settings(20.0))[0]
     memory = MemorySink()

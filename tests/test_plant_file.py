@@ -8,10 +8,10 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from daq.cli.run import main as run_main
-from daq.log import read_episode
-from sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel, linearize_upright, simulate
-from sim.pendulum.params_file import PlantFile, PlantFileError, load_plant, named_parameters, save_plant
+from qube_koopman.daq.cli.run import main as run_main
+from qube_koopman.daq.log import read_episode
+from qube_koopman.sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel, linearize_upright, simulate
+from qube_koopman.sim.pendulum.params_file import PlantFile, PlantFileError, load_plant, named_parameters, save_plant
 
 
 def test_round_trip_keeps_every_value_and_the_provenance(tmp_path):
@@ -95,7 +95,7 @@ def test_qube_run_plant_option_reaches_the_simulator(tmp_path, capsys):
 
 
 def test_qube_emulate_refuses_a_bad_plant_file_in_one_line(tmp_path, capsys):
-    from sim.cli.emulate import main as emulate_main
+    from qube_koopman.sim.cli.emulate import main as emulate_main
 
     (tmp_path / "bad.toml").write_text('format = "qube-plant/1"\n[parameters]\nkm = -1.0\n')
     assert emulate_main(["--plant", str(tmp_path / "bad.toml")]) == 2
@@ -134,7 +134,7 @@ def test_dead_zone_swallows_small_voltages_and_is_off_by_default():
 
 
 def test_shipped_calibration_loads_with_its_provenance():
-    from sim.pendulum.params_file import PLANTS
+    from qube_koopman.sim.pendulum.params_file import PLANTS
 
     plant = load_plant(PLANTS / "qube_20230828.toml")
     assert named_parameters("calibrated-20230828") == plant.params != PendulumParameters()

@@ -8,11 +8,11 @@ import sys
 
 from bridge_helpers import cache_home, env, start_emulator, stop_process  # noqa: F401
 
-from daq.cli.run import main
+from qube_koopman.daq.cli.run import main
 
 
 def _check(env, path: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "daq.cli.run", "--backend", "serial", "--port", path, "--check"],
+    return subprocess.run([sys.executable, "-m", "qube_koopman.daq.cli.run", "--backend", "serial", "--port", path, "--check"],
                           capture_output=True, text=True, env=env, timeout=60)
 
 

@@ -27,7 +27,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware_protocol import (
+from qube_koopman.firmware_protocol import (
     MESSAGE_CLASSES,
     Capability,
     Command,
@@ -48,8 +48,8 @@ from firmware_protocol import (
     encode_frame,
     encode_raw_frame,
 )
-from firmware_protocol import ccore
-from firmware_protocol.qube_spi import (
+from qube_koopman.firmware_protocol import ccore
+from qube_koopman.firmware_protocol.qube_spi import (
     MASK_ENCODER0,
     MASK_ENCODER1,
     MASK_NORMAL,
@@ -58,7 +58,7 @@ from firmware_protocol.qube_spi import (
     pack_spi_response,
     unpack_spi_command,
 )
-from firmware_protocol.vectors import load_vectors
+from qube_koopman.firmware_protocol.vectors import load_vectors
 
 from protocol_helpers import messages, u32
 
@@ -93,7 +93,7 @@ def test_cobs_decode_rejects_invalid(core):
 @given(st.binary(max_size=700))
 @settings(max_examples=200)
 def test_c_cobs_and_crc_match_python(core, data):
-    from firmware_protocol import cobs_encode, crc16_ccitt_false
+    from qube_koopman.firmware_protocol import cobs_encode, crc16_ccitt_false
 
     assert core.cobs_encode(data) == cobs_encode(data)
     assert core.cobs_decode(cobs_encode(data)) == data
@@ -496,7 +496,7 @@ def test_arduino_sketch_compiles_cleanly_for_the_uno():
     (It drives the ATmega328P's registers directly, so stub headers no longer
     describe it; tests/test_avr.py builds and runs it.)
     """
-    from firmware_protocol import avr
+    from qube_koopman.firmware_protocol import avr
 
     missing = avr.avr_tools_missing()
     if missing:

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from firmware_protocol import (
+from qube_koopman.firmware_protocol import (
     MESSAGE_CLASSES,
     CobsError,
     Command,
@@ -32,9 +32,9 @@ from firmware_protocol import (
     encode_raw_frame,
     parse_piece,
 )
-from firmware_protocol.frame import MAX_WIRE_SIZE, MIN_WIRE_SIZE
-from firmware_protocol.messages import MAX_PAYLOAD, config_problem, ConfigResult
-from firmware_protocol.qube_spi import (
+from qube_koopman.firmware_protocol.frame import MAX_WIRE_SIZE, MIN_WIRE_SIZE
+from qube_koopman.firmware_protocol.messages import MAX_PAYLOAD, config_problem, ConfigResult
+from qube_koopman.firmware_protocol.qube_spi import (
     SpiCommand,
     SpiResponse,
     current_amps,
@@ -44,7 +44,7 @@ from firmware_protocol.qube_spi import (
     unpack_spi_command,
     unpack_spi_response,
 )
-from firmware_protocol.vectors import load_vectors
+from qube_koopman.firmware_protocol.vectors import load_vectors
 
 VECTORS = load_vectors()
 

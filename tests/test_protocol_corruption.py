@@ -29,7 +29,7 @@ from itertools import combinations
 
 import pytest
 
-from firmware_protocol import StreamDecoder, encode_frame
+from qube_koopman.firmware_protocol import StreamDecoder, encode_frame
 
 from protocol_helpers import random_message
 

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware_protocol import Frame, Hello, StreamDecoder, Telemetry, encode_frame, encode_raw_frame
-from firmware_protocol.frame import MAX_WIRE_SIZE
-from firmware_protocol.vectors import load_vectors
+from qube_koopman.firmware_protocol import Frame, Hello, StreamDecoder, Telemetry, encode_frame, encode_raw_frame
+from qube_koopman.firmware_protocol.frame import MAX_WIRE_SIZE
+from qube_koopman.firmware_protocol.vectors import load_vectors
 
 from protocol_helpers import messages, u32
 

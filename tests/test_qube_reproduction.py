@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from identify.cli.reproduce import main
+from qube_koopman.identify.cli.reproduce import main
 
 pytestmark = [pytest.mark.dataset, pytest.mark.slow]
 

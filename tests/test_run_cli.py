@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daq.cli.run import main
-from daq.controller import PdGains, pd_controller
-from daq.excitation import ExcitationSettings, generate_excitation
-from daq.log import read_episode, read_episode_metadata
+from qube_koopman.daq.cli.run import main
+from qube_koopman.daq.controller import PdGains, pd_controller
+from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
+from qube_koopman.daq.log import read_episode, read_episode_metadata
 
 REPO = Path(__file__).resolve().parents[1]
 NAME = re.compile(r"^qube_\d{8}T\d{6}\.\d{3}_(\d+)_(\d+)_(\d+)(_\d+)?\.mcap$")
@@ -268,13 +268,13 @@ def test_signal_stops_the_motor_and_closes_the_log_aborted(tmp_path, signum):
 
 @pytest.mark.parametrize("text,expected", [("0", 0.0), ("0.00", 0.0), ("0e0", 0.0), ("-0", 0.0), ("2.5", 2.5)])
 def test_non_negative_options_accept_any_spelling_of_zero(text, expected):
-    from daq.cli.run import build_parser
+    from qube_koopman.daq.cli.run import build_parser
 
     assert build_parser().parse_args(["--perturbation", text]).perturbation == expected
 
 
 def test_negative_perturbation_is_refused(capsys):
-    from daq.cli.run import build_parser
+    from qube_koopman.daq.cli.run import build_parser
 
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--perturbation", "-1"])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from identify import normalized_mean_error, nrmse, r2_score, score_episodes
+from qube_koopman.identify import normalized_mean_error, nrmse, r2_score, score_episodes
 
 
 def test_r2_perfect_and_mean_predictor():
@@ -56,7 +56,7 @@ def test_bad_score_inputs():
 def test_a_constant_true_channel_is_left_out_with_a_warning():
     import warnings
 
-    from identify.scores import ConstantChannelWarning, r2_scores
+    from qube_koopman.identify.scores import ConstantChannelWarning, r2_scores
 
     t = np.linspace(0, 1, 50)
     truth = np.column_stack([np.sin(6 * t), np.full_like(t, 0.3)])

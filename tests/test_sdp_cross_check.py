@@ -4,9 +4,9 @@
 import numpy as np
 import pytest
 
-from identify import ClEdmd, ClEdmdSdp, Delay, Polynomial
+from qube_koopman.identify import ClEdmd, ClEdmdSdp, Delay, Polynomial
 from linear_loops import closed_loop_trajectories
-from sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 
 def random_problem(seed):
@@ -51,7 +51,7 @@ def test_sdp_rejects_unknown_solver():
 
 
 def test_default_cl_edmd_is_the_papers_problem_and_the_variant_is_named():
-    from identify import ClEdmdKnownRows
+    from qube_koopman.identify import ClEdmdKnownRows
 
     controller, trajs = random_problem(1)
     lifting = [Polynomial(2), Delay(1)]

@@ -26,15 +26,15 @@ import pytest
 from _episodes import assert_follows_controller
 from bridge_helpers import FakeDevice, cache_home, core, env, start_emulator, stop_process  # noqa: F401
 
-from daq.backends.base import BackendFault
-from daq.backends.serial import SerialBackend
-from daq.cli.run import main
-from daq.excitation import generate_excitation
-from daq.log import read_episode
-from daq.loop import run_episode
-from daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
-from daq.sinks import McapSink
-from firmware_protocol import (
+from qube_koopman.daq.backends.base import BackendFault
+from qube_koopman.daq.backends.serial import SerialBackend
+from qube_koopman.daq.cli.run import main
+from qube_koopman.daq.excitation import generate_excitation
+from qube_koopman.daq.log import read_episode
+from qube_koopman.daq.loop import run_episode
+from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+from qube_koopman.daq.sinks import McapSink
+from qube_koopman.firmware_protocol import (
     Command,
     Config,
     ConfigAck,
@@ -48,10 +48,10 @@ from firmware_protocol import (
     encode_frame,
     encode_raw_frame,
 )
-from firmware_protocol.qube_spi import motor_word_pwm
-from sim.bridge import BridgeEmulator, Faults
-from sim.pendulum import PendulumSimulator, SensorModel
-from sim.pendulum.sensor import angles_to_counts, counts_to_angles
+from qube_koopman.firmware_protocol.qube_spi import motor_word_pwm
+from qube_koopman.sim.bridge import BridgeEmulator, Faults
+from qube_koopman.sim.pendulum import PendulumSimulator, SensorModel
+from qube_koopman.sim.pendulum.sensor import angles_to_counts, counts_to_angles
 
 CONTROLLER = load_controller()
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from _episodes import make_metadata
 
-from daq.log import read_episode, read_episode_metadata
-from daq.sinks import EpisodeOutcome, McapSink, MemorySink, Sample, SinkWriter, episode_file_stem
-from daq.timing import timing_stats
+from qube_koopman.daq.log import read_episode, read_episode_metadata
+from qube_koopman.daq.sinks import EpisodeOutcome, McapSink, MemorySink, Sample, SinkWriter, episode_file_stem
+from qube_koopman.daq.timing import timing_stats
 
 
 def _sample(k: int, late: float = math.nan) -> Sample:

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from identify import ClEdmdKnownRows, Delay, Polynomial, r2_score
-from identify.stability import ClEdmdStable
+from qube_koopman.identify import ClEdmdKnownRows, Delay, Polynomial, r2_score
+from qube_koopman.identify.stability import ClEdmdStable
 from linear_loops import closed_loop_trajectories
-from sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace
 from test_sdp_cross_check import random_problem
 
 LIFTING = [Polynomial(2), Delay(1)]
@@ -83,8 +83,8 @@ def test_qube_identify_max_radius_on_simulated_logs(tmp_path):
     """The command's path: a small lifting keeps the LMI small; the report records the constraint."""
     import json
 
-    from daq.cli.run import main as qube_run
-    from identify.cli.identify import main as qube_identify
+    from qube_koopman.daq.cli.run import main as qube_run
+    from qube_koopman.identify.cli.identify import main as qube_identify
 
     assert qube_run(["--episodes", "3", "--duration", "6", "--seed", "4", "--out", str(tmp_path / "logs"),
                      "-q"]) == 0

@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import daq.log.writer as writer_module
-from daq.backends import SimBackend
-from daq.cli.run import main
-from daq.log import IncompleteEpisodeWarning, read_episode
-from daq.sinks import McapSink, MemorySink
+import qube_koopman.daq.log.writer as writer_module
+from qube_koopman.daq.backends import SimBackend
+from qube_koopman.daq.cli.run import main
+from qube_koopman.daq.log import IncompleteEpisodeWarning, read_episode
+from qube_koopman.daq.sinks import McapSink, MemorySink
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -95,8 +95,8 @@ def test_full_disk_mid_episode_stops_the_run_and_is_never_complete(monkeypatch, 
 
 
 def test_full_disk_in_the_loop_commands_zero_volts_in_the_detecting_tick(monkeypatch, tmp_path):
-    from daq.loop import run_episode
-    from daq.session import excitation_settings, load_controller, plan_episodes
+    from qube_koopman.daq.loop import run_episode
+    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes
 
     _full_disk_at(monkeypatch, 50_000)
     plan = plan_episodes(load_controller(), [(1, 2, 3)], excitation_settings(60.0))[0]
@@ -123,9 +123,9 @@ def test_full_disk_at_the_header_leaves_no_file(monkeypatch, tmp_path, capsys):
 def test_too_little_free_space_refuses_to_start(monkeypatch, tmp_path, capsys):
     import shutil
 
-    import daq.sinks
+    import qube_koopman.daq.sinks as sinks_module
 
-    monkeypatch.setattr(daq.sinks.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9 - 10**6,
+    monkeypatch.setattr(sinks_module.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9 - 10**6,
                                                                                           10**6))
     assert main(["--episodes", "2", "--duration", "20", "--out", str(tmp_path), "-q"]) == 1
     err = capsys.readouterr().err
@@ -137,7 +137,7 @@ def test_too_little_free_space_refuses_to_start(monkeypatch, tmp_path, capsys):
 def test_flipped_bytes_read_as_a_corrupted_chunk_at_its_offset(tmp_path):
     from _episodes import make_episode
 
-    from daq.log import EpisodeWriter
+    from qube_koopman.daq.log import EpisodeWriter
 
     episode = make_episode(4000, seed=2)
     path = tmp_path / "flipped.mcap"
@@ -157,7 +157,7 @@ def test_flipped_bytes_read_as_a_corrupted_chunk_at_its_offset(tmp_path):
 
 
 def test_qube_import_of_a_binary_file_is_one_short_line(tmp_path, capsys):
-    from daq.cli.import_csv import main as import_main
+    from qube_koopman.daq.cli.import_csv import main as import_main
 
     src = tmp_path / "qube_20230828T120000_1_2_3.csv"
     src.write_bytes(b"\x7fELF\x02\x01\x01" + bytes(3000))
@@ -170,8 +170,8 @@ def test_qube_import_of_a_binary_file_is_one_short_line(tmp_path, capsys):
 def test_a_log_failing_on_its_last_sample_is_never_recorded_complete(tmp_path):
     # Free-running, the loop is done long before the writer thread reaches the last sample:
     # the failure then shows only while the queue drains, and must still abort the episode.
-    from daq.loop import run_episode
-    from daq.session import excitation_settings, load_controller, plan_episodes
+    from qube_koopman.daq.loop import run_episode
+    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes
 
     plan = plan_episodes(load_controller(), [(1, 2, 3)], excitation_settings(1.0))[0]
 

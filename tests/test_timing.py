@@ -11,8 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from daq.timing import (STALL_THRESHOLD, DeadlinePacer, quiet_interpreter, realtime_scheduling,
+from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
+from qube_koopman.daq.timing import (STALL_THRESHOLD, DeadlinePacer, quiet_interpreter, realtime_scheduling,
                         timing_stats)
 
 

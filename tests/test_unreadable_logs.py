@@ -8,8 +8,8 @@ import warnings
 import pytest
 from _episodes import make_episode
 
-from daq.log import write_episode
-from identify.data import IncompleteLogSkipped, UnreadableLogSkipped, load_logs
+from qube_koopman.daq.log import write_episode
+from qube_koopman.identify.data import IncompleteLogSkipped, UnreadableLogSkipped, load_logs
 
 
 @pytest.fixture
@@ -43,7 +43,7 @@ def test_strict_refuses_the_first_unreadable_log(folder):
 
 @pytest.mark.dataset
 def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, capsys):
-    from identify.cli.identify import main
+    from qube_koopman.identify.cli.identify import main
 
     logs = sorted(qube_logs.glob("*.mcap"))
     train = tmp_path / "train"
@@ -68,7 +68,7 @@ def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, ca
 
 def test_commands_print_one_warning_line_per_skipped_log(folder, capsys):
     # qube-reproduce and qube-identify run through run_command: one line per skipped file.
-    from identify.cli.common import run_command
+    from qube_koopman.identify.cli.common import run_command
 
     assert run_command("qube-reproduce", lambda a: len(load_logs(sorted(folder.glob("*.mcap")))), None) == 1
     err = capsys.readouterr().err.splitlines()

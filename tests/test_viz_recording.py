@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from daq.cli.run import main
+from qube_koopman.daq.cli.run import main
 
 
 @pytest.mark.slow
@@ -40,7 +40,7 @@ def test_qube_run_without_rerun_says_how_to_get_it(tmp_path, monkeypatch, capsys
 
 
 def test_qube_identify_without_rerun_says_how_to_get_it_before_any_work(tmp_path, monkeypatch, capsys):
-    from identify.cli.identify import main as identify_main
+    from qube_koopman.identify.cli.identify import main as identify_main
 
     monkeypatch.setitem(sys.modules, "rerun", None)
     status = identify_main(["--train", str(tmp_path / "nothing"), "--test", str(tmp_path / "nothing"),

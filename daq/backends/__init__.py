@@ -1,7 +1,7 @@
 """Acquisition backends: the simulated pendulum, and the bridge firmware over a serial port."""
 
-from daq.backends.base import Backend, BackendFault, Pacing
-from daq.backends.serial import SerialBackend
-from daq.backends.sim import SimBackend
+from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.daq.backends.serial import SerialBackend
+from qube_koopman.daq.backends.sim import SimBackend
 
 __all__ = ["Backend", "BackendFault", "Pacing", "SerialBackend", "SimBackend"]

@@ -42,8 +42,8 @@ import os
 import time
 from collections import deque
 
-from daq.backends.base import Backend, BackendFault, Pacing
-from firmware_protocol import (
+from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.firmware_protocol import (
     PROTOCOL_VERSION,
     Capability,
     Command,
@@ -60,8 +60,8 @@ from firmware_protocol import (
     Telemetry,
     encode_frame,
 )
-from firmware_protocol.messages import FIRMWARE_VERSION, MAX_MILLIVOLTS
-from sim.pendulum.sensor import counts_to_angles
+from qube_koopman.firmware_protocol.messages import FIRMWARE_VERSION, MAX_MILLIVOLTS
+from qube_koopman.sim.pendulum.sensor import counts_to_angles
 
 __all__ = ["SerialBackend", "DEFAULT_BAUD", "DEFAULT_LINK_TIMEOUT"]
 

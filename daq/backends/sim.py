@@ -22,8 +22,8 @@ from dataclasses import asdict, replace
 
 import numpy as np
 
-from daq.backends.base import Backend, BackendFault, Pacing
-from sim.pendulum import (SAMPLE_PERIOD, PendulumParameters, PendulumSimulator, SensorModel,
+from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.sim.pendulum import (SAMPLE_PERIOD, PendulumParameters, PendulumSimulator, SensorModel,
                           ZeroOffsetDistribution)
 
 __all__ = ["SimBackend", "DEFAULT_PERTURBATION"]

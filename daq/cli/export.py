@@ -7,7 +7,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 
 PROG = "qube-export"
 
@@ -37,7 +37,7 @@ example:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from daq.export import FORMATS
+    from qube_koopman.daq.export import FORMATS
 
     parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
 
-    from daq.export import ExportError, export_episode
-    from daq.log import IncompleteEpisodeWarning
+    from qube_koopman.daq.export import ExportError, export_episode
+    from qube_koopman.daq.log import IncompleteEpisodeWarning
 
     if args.out.exists() and not args.out.is_dir():
         print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)

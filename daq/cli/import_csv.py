@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 
 PROG = "qube-import"
 
@@ -35,7 +35,7 @@ example:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_version
 
     parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -60,8 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
 
-    from daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
-    from daq.log import write_episode
+    from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
+    from qube_koopman.daq.log import write_episode
 
     def refuse(message: str) -> None:
         progress.say(f"{PROG}: error: {message}")

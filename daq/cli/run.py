@@ -90,7 +90,7 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_version
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -169,7 +169,7 @@ class _Progress:
     required = False
 
     def __init__(self, n_episodes: int, samples_per_episode: int, enabled: bool) -> None:
-        from sim.cli.common import progress_bar
+        from qube_koopman.sim.cli.common import progress_bar
 
         self.n = n_episodes
         self.per = samples_per_episode
@@ -282,8 +282,8 @@ def _check_backend_options(args) -> None:
 
 def _replay(args, rate: float):
     """Plans repeating the --replay logs' excitations, and the longest one's settings (for progress)."""
-    from daq.replay import replay_plans
-    from daq.session import load_controller
+    from qube_koopman.daq.replay import replay_plans
+    from qube_koopman.daq.session import load_controller
 
     controller = None
     if args.controller is not None:
@@ -293,7 +293,7 @@ def _replay(args, rate: float):
     except ValueError as exc:
         raise _Fail(f"--replay: {exc}") from None
     args.episodes = len(plans)
-    from daq.excitation import ExcitationSettings
+    from qube_koopman.daq.excitation import ExcitationSettings
 
     longest = max(plans, key=lambda p: p.n_samples)
     return plans, ExcitationSettings.from_dict(longest.excitation_info["settings"])
@@ -301,8 +301,8 @@ def _replay(args, rate: float):
 
 def _load_plant(path):
     """The --plant file's parameters (the defaults without one); a one-line error when unreadable."""
-    from sim.pendulum import PendulumParameters
-    from sim.pendulum.params_file import PlantFileError, load_plant
+    from qube_koopman.sim.pendulum import PendulumParameters
+    from qube_koopman.sim.pendulum.params_file import PlantFileError, load_plant
 
     if path is None:
         return PendulumParameters()
@@ -315,13 +315,13 @@ def _load_plant(path):
 def _make_backend(args, limits, backend_seed: int, rate: float):
     """The backend the options ask for, connected; a one-line error when it cannot be."""
     if args.backend == "sim":
-        from daq.backends import SimBackend
+        from qube_koopman.daq.backends import SimBackend
 
         params = _load_plant(args.plant)
         return SimBackend(params=params, perturbation=math.radians(args.perturbation), seed=backend_seed,
                           realtime=args.realtime, dt=1.0 / rate)
-    from daq.backends import BackendFault
-    from daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
+    from qube_koopman.daq.backends import BackendFault
+    from qube_koopman.daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
 
     link_timeout = DEFAULT_LINK_TIMEOUT if args.link_timeout is None else args.link_timeout / 1e3
     backend = SerialBackend(args.port, args.baud or DEFAULT_BAUD, rate_hz=round(rate),
@@ -336,8 +336,8 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
 
 def _preflight(backend) -> int:
     """``--check``: the pre-flight report on standard output; 0 when every check passed."""
-    from daq.backends import BackendFault
-    from daq.preflight import preflight
+    from qube_koopman.daq.backends import BackendFault
+    from qube_koopman.daq.preflight import preflight
 
     try:
         report = preflight(backend)
@@ -377,8 +377,8 @@ def _run(args) -> int:
     _check_backend_options(args)
     import numpy as np
 
-    from daq.safety import SafetyLimits
-    from daq.session import MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.safety import SafetyLimits
+    from qube_koopman.daq.session import MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller, plan_episodes, run_seeds
 
     if args.episodes > MAX_EPISODES:
         raise _Fail(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "
@@ -428,15 +428,15 @@ def _run(args) -> int:
 def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
     import numpy as np
 
-    from daq.loop import EpisodeResult
-    from daq.session import run_episodes
-    from daq.sinks import McapSink
-    from daq.timing import realtime_scheduling, timing_stats
+    from qube_koopman.daq.loop import EpisodeResult
+    from qube_koopman.daq.session import run_episodes
+    from qube_koopman.daq.sinks import McapSink
+    from qube_koopman.daq.timing import realtime_scheduling, timing_stats
 
     sinks: list = [McapSink(args.out)]
     rerun_sink = None
     if args.rerun is not None or args.rerun_save is not None:
-        from daq.viz import RerunSink, RerunUnavailable, open_recording
+        from qube_koopman.daq.viz import RerunSink, RerunUnavailable, open_recording
 
         try:
             recording = open_recording(live=args.rerun is not None, url=args.rerun or None,

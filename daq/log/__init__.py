@@ -6,9 +6,9 @@ or :func:`write_episode` (a whole episode); read with :func:`read_episode`
 :func:`read_episode_metadata` (metadata only).
 """
 
-from daq.log.reader import IncompleteEpisodeWarning, read_episode, read_episode_metadata
-from daq.log.schema import FORMAT_VERSION, SAMPLE_TOPIC
-from daq.log.writer import EpisodeWriter, write_episode
+from qube_koopman.daq.log.reader import IncompleteEpisodeWarning, read_episode, read_episode_metadata
+from qube_koopman.daq.log.schema import FORMAT_VERSION, SAMPLE_TOPIC
+from qube_koopman.daq.log.writer import EpisodeWriter, write_episode
 
 __all__ = [
     "FORMAT_VERSION",

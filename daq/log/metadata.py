@@ -10,8 +10,8 @@ from __future__ import annotations
 import json
 from typing import Mapping
 
-from daq.episode import ControllerInfo, EpisodeMetadata
-from daq.log.schema import FORMAT_VERSION
+from qube_koopman.daq.episode import ControllerInfo, EpisodeMetadata
+from qube_koopman.daq.log.schema import FORMAT_VERSION
 
 __all__ = [
     "EPISODE_RECORD",

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.episode import SIGNALS, Episode, EpisodeMetadata
-from daq.log.metadata import EPISODE_RECORD, STATUS_RECORD, metadata_from_records
-from daq.log.schema import (
+from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
+from qube_koopman.daq.log.metadata import EPISODE_RECORD, STATUS_RECORD, metadata_from_records
+from qube_koopman.daq.log.schema import (
     CDR_LE_HEADER,
     SAMPLE_TOPIC,
     parse_schema,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from daq.episode import SIGNALS, UNITS
+from qube_koopman.daq.episode import SIGNALS, UNITS
 
 __all__ = [
     "FORMAT_VERSION",

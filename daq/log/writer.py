@@ -11,9 +11,9 @@ from typing import IO, Mapping
 
 import numpy as np
 
-from daq.episode import SIGNALS, Episode, EpisodeMetadata
-from daq.log.metadata import STATUS_RECORD, episode_records, status_record
-from daq.log.schema import (
+from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
+from qube_koopman.daq.log.metadata import STATUS_RECORD, episode_records, status_record
+from qube_koopman.daq.log.schema import (
     CDR_LE_HEADER,
     FORMAT_VERSION,
     SAMPLE_SCHEMA_NAME,

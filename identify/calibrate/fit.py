@@ -10,9 +10,9 @@ import numpy as np
 from scipy.signal import savgol_filter
 from scipy.sparse.linalg import splu
 
-from identify.calibrate import shooting as ms
-from identify.calibrate.solver import levenberg_marquardt
-from sim.pendulum import PendulumParameters
+from qube_koopman.identify.calibrate import shooting as ms
+from qube_koopman.identify.calibrate.solver import levenberg_marquardt
+from qube_koopman.sim.pendulum import PendulumParameters
 
 __all__ = ["PlantCalibration"]
 

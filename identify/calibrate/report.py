@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.pendulum.params_file import named_parameters
+from qube_koopman.sim.pendulum.params_file import named_parameters
 
 __all__ = ["calibration_text", "validation_text", "write_report"]
 

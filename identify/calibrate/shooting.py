@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.sparse import lil_matrix
 
-from sim.pendulum import PendulumParameters, simulate
+from qube_koopman.sim.pendulum import PendulumParameters, simulate
 
 __all__ = ["PHYSICAL", "Segments", "make_segments", "to_params", "from_params", "residuals",
            "sparsity", "simulate_segments"]

@@ -18,9 +18,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
-from identify.calibrate import shooting as ms
-from identify.calibrate.fit import ENCODER_SIGMA
-from sim.pendulum import PendulumParameters, simulate_closed_loop
+from qube_koopman.identify.calibrate import shooting as ms
+from qube_koopman.identify.calibrate.fit import ENCODER_SIGMA
+from qube_koopman.sim.pendulum import PendulumParameters, simulate_closed_loop
 
 __all__ = ["estimate_offset", "ReplayResult", "replay_episodes", "open_loop_error"]
 

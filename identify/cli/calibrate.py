@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from identify.cli.common import CliError, output_dir, run_command
+from qube_koopman.identify.cli.common import CliError, output_dir, run_command
 
 __all__ = ["main"]
 
@@ -39,22 +39,22 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _read(paths):
-    from identify.data import load_logs
+    from qube_koopman.identify.data import load_logs
 
     try:
         logs = load_logs(paths, strict=True)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    from daq.log import read_episode
+    from qube_koopman.daq.log import read_episode
 
     return [read_episode(log.path, warn=False) for log in logs]
 
 
 def _run(args) -> int:
-    from identify.calibrate import PlantCalibration
-    from identify.calibrate.report import calibration_text, validation_text, write_report
-    from identify.data import paper_split
-    from sim.pendulum.params_file import PlantFile, save_plant
+    from qube_koopman.identify.calibrate import PlantCalibration
+    from qube_koopman.identify.calibrate.report import calibration_text, validation_text, write_report
+    from qube_koopman.identify.data import paper_split
+    from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
     fit_paths, val_paths = list(args.logs), list(args.validate)
     if args.split == "paper":
@@ -82,7 +82,7 @@ def _run(args) -> int:
                   "horizon_s": args.horizon, "delay_samples": args.delay, "seconds": round(seconds, 1)}
     validation = None
     if val_paths:
-        from identify.calibrate.validate import open_loop_error, replay_episodes
+        from qube_koopman.identify.calibrate.validate import open_loop_error, replay_episodes
 
         held = _read(val_paths)
         replay = replay_episodes(held, cal.params_)

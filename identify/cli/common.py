@@ -9,7 +9,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from sim.cli.common import ProgressCallback
+from qube_koopman.sim.cli.common import ProgressCallback
 
 
 class CliError(Exception):
@@ -69,7 +69,7 @@ def run_command(prog: str, command, args) -> int:
     one); a log left out of the data (incomplete or unreadable) is one ``<prog>: warning:`` line
     naming it.
     """
-    from identify.data import IncompleteLogSkipped
+    from qube_koopman.identify.data import IncompleteLogSkipped
 
     default_show = warnings.showwarning
 

@@ -8,7 +8,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from identify.cli.common import CliError, output_dir, progress, run_command, write_json
+from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
 
 PROG = "qube-identify"
 
@@ -31,7 +31,7 @@ METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-
 
 
 def _parser() -> argparse.ArgumentParser:
-    from sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_version
 
     p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -115,7 +115,7 @@ def _expand(items) -> list[Path]:
 
 
 def _lifting(args) -> list:
-    from identify.lifting import Constant, Delay, GaussianRbf, Polynomial, ThinPlateRbf
+    from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Polynomial, ThinPlateRbf
 
     steps = []
     if args.poly > 1:
@@ -173,7 +173,7 @@ def _check_args(args) -> None:
 
 
 def _load(args):
-    from identify.data import IncompleteLogSkipped, check_same_controller, check_same_rate, load_logs, paper_split
+    from qube_koopman.identify.data import IncompleteLogSkipped, check_same_controller, check_same_rate, load_logs, paper_split
 
     if args.split:
         train_paths, test_paths = paper_split(_expand(args.logs))
@@ -195,8 +195,8 @@ def _load(args):
 def _run(args) -> int:
     import numpy as np
 
-    from identify.reports import write_markdown_report
-    from identify.workflow import OffsetProtocol, identify_and_score
+    from qube_koopman.identify.reports import write_markdown_report
+    from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
     _check_args(args)
     out = output_dir(args.out)
@@ -224,7 +224,7 @@ def _run(args) -> int:
     write_json(out / "report.json", result.report)
     write_markdown_report(out / "report.md", result.report)
     if args.rerun:
-        from identify.rerun_view import write_recording
+        from qube_koopman.identify.rerun_view import write_recording
 
         write_recording(args.rerun, result)
     _print_scores(args, result.report)
@@ -234,7 +234,7 @@ def _run(args) -> int:
 
 
 def _what_if_controller(path: str, dt: float):
-    from daq.controller import load_pd_gains, pd_controller
+    from qube_koopman.daq.controller import load_pd_gains, pd_controller
 
     return pd_controller(load_pd_gains(path), dt, "backward-euler")
 

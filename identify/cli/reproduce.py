@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from identify.cli.common import CliError, output_dir, progress, run_command, write_json
+from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
 
 PROG = "qube-reproduce"
 
@@ -23,7 +23,7 @@ Reproduce the closed-loop Koopman paper's results.
 
 
 def _parser() -> argparse.ArgumentParser:
-    from sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_version
 
     parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -56,8 +56,8 @@ def _parser() -> argparse.ArgumentParser:
 def _qube(args) -> int:
     from pathlib import Path
 
-    from identify.reproduce.qube import reproduce_qube
-    from identify.reproduce.report import qube_markdown, qube_table
+    from qube_koopman.identify.reproduce.qube import reproduce_qube
+    from qube_koopman.identify.reproduce.report import qube_markdown, qube_table
 
     if not Path(args.data).is_dir():
         raise CliError(f"--data {args.data}: no such folder")
@@ -82,7 +82,7 @@ def _qube(args) -> int:
 
 
 def _duffing(args) -> int:
-    from identify.reproduce.duffing import DEFAULT_ALPHA, PAPER_DUFFING, reproduce_duffing
+    from qube_koopman.identify.reproduce.duffing import DEFAULT_ALPHA, PAPER_DUFFING, reproduce_duffing
 
     alpha = DEFAULT_ALPHA if args.alpha is None else args.alpha
     if not alpha >= 0:

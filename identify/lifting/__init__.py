@@ -1,9 +1,9 @@
 """Lifting functions: composable, fitted on training data, episode-aware."""
 
-from identify.lifting.base import Lifting, LiftingFunction
-from identify.lifting.constant import Constant
-from identify.lifting.delay import Delay
-from identify.lifting.polynomial import Polynomial
-from identify.lifting.rbf import GaussianRbf, ThinPlateRbf
+from qube_koopman.identify.lifting.base import Lifting, LiftingFunction
+from qube_koopman.identify.lifting.constant import Constant
+from qube_koopman.identify.lifting.delay import Delay
+from qube_koopman.identify.lifting.polynomial import Polynomial
+from qube_koopman.identify.lifting.rbf import GaussianRbf, ThinPlateRbf
 
 __all__ = ["Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf"]

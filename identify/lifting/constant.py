@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify.lifting.base import LiftingFunction
+from qube_koopman.identify.lifting.base import LiftingFunction
 
 __all__ = ["Constant"]
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify._checks import check_nonneg_int
-from identify.lifting.base import LiftingFunction
+from qube_koopman.identify._checks import check_nonneg_int
+from qube_koopman.identify.lifting.base import LiftingFunction
 
 __all__ = ["ThinPlateRbf", "GaussianRbf"]
 

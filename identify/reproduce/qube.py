@@ -16,16 +16,16 @@ from typing import Callable
 
 import numpy as np
 
-from identify._blas import limited_blas_threads
-from identify.arx import Arx
-from identify.cl_edmd import ClEdmd
-from identify.data import (check_same_controller, check_same_rate, group_shuffle_splits, load_logs, paper_split,
+from qube_koopman.identify._blas import limited_blas_threads
+from qube_koopman.identify.arx import Arx
+from qube_koopman.identify.cl_edmd import ClEdmd
+from qube_koopman.identify.data import (check_same_controller, check_same_rate, group_shuffle_splits, load_logs, paper_split,
                            same_system)
-from identify.edmd import Edmd
-from identify.lifting import Delay, Polynomial
-from identify.scores import summarize_episodes
-from identify.structure import close_loop
-from identify.sweep import SweepResult, regularization_sweep
+from qube_koopman.identify.edmd import Edmd
+from qube_koopman.identify.lifting import Delay, Polynomial
+from qube_koopman.identify.scores import summarize_episodes
+from qube_koopman.identify.structure import close_loop
+from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 
 __all__ = ["PAPER_QUBE", "ROWS", "QubeRow", "reproduce_qube", "score_closed_loop"]
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from identify.reports import format_number as _num
+from qube_koopman.identify.reports import format_number as _num
 
 
 def qube_table(results: dict, markdown: bool = False) -> str:

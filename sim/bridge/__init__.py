@@ -6,9 +6,9 @@ open the real bridge, so the serial path runs end to end without hardware
 QUBE-Servo 2 behind its SPI interface; ``Faults`` says what to break.
 """
 
-from sim.bridge.emulator import DEFAULT_PERTURBATION, RECORD_FIELDS, BridgeEmulator
-from sim.bridge.faults import DelayLine, Faults, FaultyLink
-from sim.bridge.qube import EmulatedQube
+from qube_koopman.sim.bridge.emulator import DEFAULT_PERTURBATION, RECORD_FIELDS, BridgeEmulator
+from qube_koopman.sim.bridge.faults import DelayLine, Faults, FaultyLink
+from qube_koopman.sim.bridge.qube import EmulatedQube
 
 __all__ = ["BridgeEmulator", "DEFAULT_PERTURBATION", "RECORD_FIELDS", "DelayLine", "EmulatedQube", "Faults",
            "FaultyLink"]

@@ -25,9 +25,9 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from firmware_protocol.avr import F_CPU, symbol_address
-from firmware_protocol.ccore import _cache_root, find_c_compiler
-from sim.bridge.qube import EmulatedQube
+from qube_koopman.firmware_protocol.avr import F_CPU, symbol_address
+from qube_koopman.firmware_protocol.ccore import _cache_root, find_c_compiler
+from qube_koopman.sim.bridge.qube import EmulatedQube
 
 __all__ = ["HARNESS_SOURCE", "AvrBridge", "AvrChip", "cached_harness", "harness_missing", "RAMEND"]
 

@@ -21,10 +21,10 @@ import time
 
 import numpy as np
 
-from firmware_protocol import Hello, StreamDecoder
-from firmware_protocol.avr import F_CPU, cached_firmware
-from sim.bridge.avr import AvrBridge
-from sim.bridge.emulator import close_fds, open_raw_pty
+from qube_koopman.firmware_protocol import Hello, StreamDecoder
+from qube_koopman.firmware_protocol.avr import F_CPU, cached_firmware
+from qube_koopman.sim.bridge.avr import AvrBridge
+from qube_koopman.sim.bridge.emulator import close_fds, open_raw_pty
 
 __all__ = ["AvrPtyBridge"]
 

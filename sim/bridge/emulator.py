@@ -52,10 +52,10 @@ from typing import Callable
 
 import numpy as np
 
-from firmware_protocol import Capability, Command, Hello, StreamDecoder
-from sim.bridge.faults import DelayLine, Faults, FaultyLink
-from sim.bridge.qube import EmulatedQube
-from sim.pendulum import PendulumParameters
+from qube_koopman.firmware_protocol import Capability, Command, Hello, StreamDecoder
+from qube_koopman.sim.bridge.faults import DelayLine, Faults, FaultyLink
+from qube_koopman.sim.bridge.qube import EmulatedQube
+from qube_koopman.sim.pendulum import PendulumParameters
 
 __all__ = ["BridgeEmulator", "DEFAULT_PERTURBATION", "DEFAULT_SPIN", "RECORD_FIELDS"]
 
@@ -213,7 +213,7 @@ class BridgeEmulator:
         """
         if self._master >= 0:
             return self.path
-        from firmware_protocol import ccore
+        from qube_koopman.firmware_protocol import ccore
 
         core = self._core if self._core is not None else ccore.CCore(ccore.cached_library())
         self._dev = ccore.CDevice(core, Capability.EMULATED)

@@ -22,8 +22,8 @@ answers such transfers from :class:`~sim.pendulum.PendulumSimulator`:
 
 from __future__ import annotations
 
-from firmware_protocol.messages import MODULE_ID_QUBE_SERVO_2
-from firmware_protocol.qube_spi import (
+from qube_koopman.firmware_protocol.messages import MODULE_ID_QUBE_SERVO_2
+from qube_koopman.firmware_protocol.qube_spi import (
     MASK_ENCODER0,
     MASK_ENCODER1,
     MILLIVOLTS_PER_PWM,
@@ -32,9 +32,9 @@ from firmware_protocol.qube_spi import (
     pack_spi_response,
     unpack_spi_command,
 )
-from sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel
-from sim.pendulum.model import SAMPLE_PERIOD
-from sim.pendulum.sensor import angles_to_counts
+from qube_koopman.sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel
+from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
+from qube_koopman.sim.pendulum.sensor import angles_to_counts
 
 __all__ = ["EmulatedQube", "STATUS_AMP_FAULT", "STATUS_STALL_ERROR", "current_raw"]
 

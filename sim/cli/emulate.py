@@ -61,7 +61,7 @@ _TIME = _number(0.0, 1e6, "a time")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_version
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -123,7 +123,7 @@ def _write_outputs(emulator, args) -> None:
                        "events": [{"device_us": d, "wall": w, "event": e} for d, w, e in emulator.events]},
                       f, indent=1)
     if args.record:
-        from sim.bridge import RECORD_FIELDS
+        from qube_koopman.sim.bridge import RECORD_FIELDS
 
         record = emulator.record()
         with open(args.record, "w") as f:
@@ -143,15 +143,15 @@ def main(argv: list[str] | None = None) -> int:
         return _main_avr(args, parser)
     import signal
 
-    from firmware_protocol.ccore import CompilerNotFound
-    from sim.bridge import BridgeEmulator, Faults
+    from qube_koopman.firmware_protocol.ccore import CompilerNotFound
+    from qube_koopman.sim.bridge import BridgeEmulator, Faults
 
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate, garbage_rate=args.garbage_rate,
                     latency=args.latency / 1e3, stall_at=args.stall_at, amp_fault_at=args.amp_fault_at,
                     silence_at=args.silence_at, vanish_at=args.vanish_at, hold_at=args.hold_at,
                     hold_periods=args.hold_periods)
-    from sim.pendulum import PendulumParameters
-    from sim.pendulum.params_file import PlantFileError, load_plant
+    from qube_koopman.sim.pendulum import PendulumParameters
+    from qube_koopman.sim.pendulum.params_file import PlantFileError, load_plant
 
     try:
         params = PendulumParameters() if args.plant is None else load_plant(args.plant).params
@@ -220,8 +220,8 @@ def _main_avr(args, parser) -> int:
         print(f"{PROG}: error: --target avr takes only --seed, --perturbation, --hanging and -q "
               f"(not --{extra[0].replace('_', '-')})", file=sys.stderr)
         return 2
-    from firmware_protocol.avr import AvrToolsMissing
-    from sim.bridge.avr_pty import AvrPtyBridge
+    from qube_koopman.firmware_protocol.avr import AvrToolsMissing
+    from qube_koopman.sim.bridge.avr_pty import AvrPtyBridge
 
     emulator = AvrPtyBridge(seed=args.seed, perturbation=math.radians(args.perturbation),
                             start_upright=not args.hanging)

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.lti import DiscreteStateSpace
-from sim.pendulum.model import (DEFAULT_SUBSTEPS, PendulumParameters, _as_states, _check_timing,
+from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, PendulumParameters, _as_states, _check_timing,
                                 _Coefficients, _rk4)
-from sim.pendulum.sensor import SensorModel, measure
+from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
 __all__ = ["ClosedLoopRun", "simulate_closed_loop"]
 

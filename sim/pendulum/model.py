@@ -19,7 +19,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 from scipy.linalg import expm
 
-from sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = [
     "PendulumParameters",

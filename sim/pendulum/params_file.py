@@ -42,7 +42,7 @@ import tomllib
 from dataclasses import asdict, fields
 from pathlib import Path
 
-from sim.pendulum.model import PendulumParameters
+from qube_koopman.sim.pendulum.model import PendulumParameters
 
 __all__ = ["PlantFile", "load_plant", "save_plant", "named_parameters", "PlantFileError", "FORMAT"]
 

@@ -10,9 +10,9 @@ import math
 
 import numpy as np
 
-from sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, PendulumParameters, _check_timing,
+from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, PendulumParameters, _check_timing,
                                 _Coefficients, _rk4)
-from sim.pendulum.sensor import SensorModel, _encode
+from qube_koopman.sim.pendulum.sensor import SensorModel, _encode
 
 __all__ = ["PendulumSimulator"]
 
