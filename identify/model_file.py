@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf
+from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf, Trigonometric
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -32,6 +32,8 @@ def lifting_to_dict(lifting: Lifting) -> dict:
             entry["n_delays"] = step.n_delays
         elif isinstance(step, Constant):
             pass
+        elif isinstance(step, Trigonometric):
+            entry["features"] = list(step.features)
         elif isinstance(step, (ThinPlateRbf, GaussianRbf)):
             entry.update(shape=step.shape, centers=step.centers_.tolist())
             if isinstance(step, ThinPlateRbf):
@@ -53,6 +55,8 @@ def lifting_from_dict(data: dict) -> Lifting:
             steps.append(Delay(entry["n_delays"]))
         elif kind == "Constant":
             steps.append(Constant())
+        elif kind == "Trigonometric":
+            steps.append(Trigonometric(entry["features"]))
         elif kind == "ThinPlateRbf":
             steps.append(ThinPlateRbf(len(entry["centers"]), entry["shape"], entry["offset"], centers=entry["centers"]))
         elif kind == "GaussianRbf":

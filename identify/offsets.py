@@ -29,7 +29,7 @@ import numpy as np
 
 from qube_koopman.identify.trajectory import Trajectory
 
-__all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "shift_trajectory", "predict_with_offsets",
+__all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "estimate_offsets_many", "predict_with_offsets_many", "shift_trajectory", "predict_with_offsets",
            "predict_estimating_offsets", "resolve_channels", "DEFAULT_BOUND"]
 
 #: Largest plausible offset (rad) by default: 16 encoder counts of the QUBE; the dataset's are ~1.
@@ -129,18 +129,26 @@ def predict_with_offsets(model, trajectory: Trajectory, offsets: Mapping[int, fl
     return pred
 
 
+def _head(trajectory: Trajectory, window: int) -> Trajectory:
+    return replace(trajectory, **{k: None if getattr(trajectory, k) is None else getattr(trajectory, k)[:window]
+                                  for k in ("x", "u", "r", "f", "xc")})
+
+
 def _window_predictions(model, trajectory: Trajectory, channels, trials: np.ndarray, window: int,
                         relift: bool) -> np.ndarray:
     """Measured-state predictions of the first ``window`` samples for each row of offsets in ``trials``."""
+    return _batch_predictions(model, [_head(trajectory, window)] * len(trials), channels, trials, relift)
+
+
+def _batch_predictions(model, heads: Sequence[Trajectory], channels, trials: np.ndarray, relift: bool) -> np.ndarray:
+    """Predictions of equally long episode heads, ``heads[i]`` with the offsets ``trials[i]``: one batch."""
     d = model.n_delays
-    head = replace(trajectory, **{k: None if getattr(trajectory, k) is None else getattr(trajectory, k)[:window]
-                                  for k in ("x", "u", "r", "f", "xc")})
-    shifted = [shift_trajectory(model, head, dict(zip(channels, row))) for row in trials]
+    shifted = [shift_trajectory(model, h, dict(zip(channels, row))) for h, row in zip(heads, trials)]
     x_init = np.stack([t.x[:d + 1] for t in shifted])
     v = np.stack([model.inputs_of(t) for t in shifted])
     p0 = np.stack([t.xc[d] for t in shifted]) if model.n_passthrough else None
     x, _ = model.simulate(x_init, v, p0, relift=relift)
-    x[:, :, list(channels)] += trials[:, None, :]
+    x[:, :, list(channels)] += np.asarray(trials)[:, None, :]
     return x
 
 
@@ -199,6 +207,67 @@ def estimate_offsets(model, trajectory: Trajectory, channels: Sequence[int | str
     rms = lambda r: float(np.sqrt(np.mean(r ** 2)))  # noqa: E731
     return OffsetEstimate(channels, np.asarray(fit.x, dtype=float), window, float(bound), rms(before),
                           rms(fit.fun))
+
+
+def predict_with_offsets_many(model, trajectories: Sequence[Trajectory], estimates: Sequence[OffsetEstimate],
+                              relift: bool = True) -> list[np.ndarray]:
+    """:func:`predict_with_offsets` for many episodes, batched by length (implausible estimates unused)."""
+    out: list[np.ndarray | None] = [None] * len(trajectories)
+    by_length: dict[int, list[int]] = {}
+    for i, t in enumerate(trajectories):
+        by_length.setdefault(t.n_samples, []).append(i)
+    for group in by_length.values():
+        e0 = estimates[group[0]]
+        trials = np.array([estimates[i].values if estimates[i].plausible else np.zeros(len(e0.channels))
+                           for i in group])
+        pred = _batch_predictions(model, [trajectories[i] for i in group], e0.channels, trials, relift)
+        for row, i in enumerate(group):
+            out[i] = pred[row]
+    return out
+
+
+def estimate_offsets_many(model, trajectories: Sequence[Trajectory], channels: Sequence[int | str], window: int,
+                          bound: float = DEFAULT_BOUND, relift: bool = True, iterations: int = 8) -> list[OffsetEstimate]:
+    """:func:`estimate_offsets` for many episodes at once, by Gauss-Newton steps batched over them.
+
+    The problem per episode is the same (the window's simulation error in a
+    few offsets); each Gauss-Newton step predicts every episode's window at
+    its current offsets and at the finite-difference perturbations in one
+    batched simulation, which is what makes cross-validation with offsets
+    affordable. The residual is nearly affine in the offsets, so a few steps
+    reach the Levenberg-Marquardt solution (tests compare the two).
+    """
+    trajectories = list(trajectories)
+    if not trajectories:
+        return []
+    channels = resolve_channels(channels, trajectories[0].state_names, trajectories[0].x.shape[1])
+    d, k, window = model.n_delays, len(channels), int(window)
+    if not all(d + 3 <= window <= t.n_samples for t in trajectories):
+        raise ValueError(f"the estimation window must hold between {d + 3} samples and every episode's length, "
+                         f"got {window}")
+    heads = [_head(t, window) for t in trajectories]
+    truth = np.stack([t.x[d + 1:window] for t in heads])  # (episodes, samples, states)
+    values = np.zeros((len(heads), k))
+
+    def residuals(offsets: np.ndarray) -> np.ndarray:  # (episodes, trials, residuals)
+        trials = offsets.reshape(-1, k)
+        pred = _batch_predictions(model, [h for h in heads for _ in range(offsets.shape[1])], channels, trials,
+                                  relift)
+        res = truth.repeat(offsets.shape[1], axis=0) - pred[:, d + 1:, :]
+        return np.where(np.isfinite(res), res, _DIVERGED).reshape(len(heads), offsets.shape[1], -1)
+
+    before = residuals(values[:, None, :])[:, 0]
+    for _ in range(iterations):
+        res = residuals(values[:, None, :] + np.concatenate([np.zeros((1, k)), _STEP * np.eye(k)])[None])
+        J = (res[:, 1:] - res[:, :1]) / _STEP  # (episodes, k, residuals)
+        step = np.linalg.solve(J @ J.transpose(0, 2, 1) + 1e-12 * np.eye(k), -(J @ res[:, 0, :, None]))[..., 0]
+        values += step
+        if np.max(np.abs(step)) < 1e-10:
+            break
+    after = residuals(values[:, None, :])[:, 0]
+    rms = lambda r: float(np.sqrt(np.mean(r ** 2)))  # noqa: E731
+    return [OffsetEstimate(channels, values[i].copy(), window, float(bound), rms(before[i]), rms(after[i]))
+            for i in range(len(heads))]
 
 
 def predict_estimating_offsets(model, trajectory: Trajectory, channels: Sequence[int | str], window: int,

@@ -46,6 +46,22 @@ def _test_section(report: dict) -> list[str]:
     return lines
 
 
+def _search_section(search: dict) -> list[str]:
+    w = search["winner"]
+    lines = ["", "## Lifting search", "",
+             f"{len(search['candidates'])} candidates in {format_number(search['seconds'], '.0f')} s, "
+             f"{search['cv_splits']} episode-grouped splits of the training episodes (seed {search['cv_seed']}); "
+             f"score: {search['score']}. Stages: {', '.join(search['stages'])}. Winner: **{w['label']}**, "
+             f"alpha {w['alpha']:g}, cross-validated R^2 {format_number(w['cv_r2'], '.4f')}.", "",
+             "| rank | stage | lifting | features | alpha | CV R^2 | CV R^2 std | seconds |",
+             "|---|---|---|---|---|---|---|---|"]
+    for i, c in enumerate(search["candidates"], start=1):
+        lines.append(f"| {i} | {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
+                     f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c['cv_r2_std'], '.4f')} "
+                     f"| {format_number(c['seconds'], '.1f')} |")
+    return lines
+
+
 def markdown_report(report: dict) -> str:
     """report.json as a short markdown document."""
     rho = report.get("spectral_radius", {})
@@ -71,6 +87,8 @@ def markdown_report(report: dict) -> str:
                   f"{len(sweep['alpha'])} alphas from {sweep['alpha'][0]:g} to {sweep['alpha'][-1]:g}, "
                   f"{sweep['cv_splits']} episode-grouped splits; best cross-validated R^2 "
                   f"{format_number(sweep['cv_r2_mean'][best], '.4f')} at alpha {sweep['alpha'][best]:g}."]
+    if report.get("search"):
+        lines += _search_section(report["search"])
     return "\n".join(lines) + "\n"
 
 

@@ -46,12 +46,20 @@ class SweepResult:
         ``"plant"``: plant prediction from the plant input).
     spectral_radius_closed_loop, spectral_radius_plant : ndarray of shape (n_alphas,)
         Of the models fitted on all training episodes.
+    closed_loop_models, plant_models : list of KoopmanModel
+        The models fitted on all training episodes, one per alpha
+        (closed-loop entries are None for EDMD without a controller).
+    fold_models : list of (closed-loop models, plant models, validation indices), optional
+        Every fold's models, with ``keep_fold_models``.
     """
 
     alphas: np.ndarray
     cv_r2: dict[str, np.ndarray] = field(default_factory=dict)
     spectral_radius_closed_loop: np.ndarray | None = None
     spectral_radius_plant: np.ndarray | None = None
+    closed_loop_models: list | None = None
+    plant_models: list | None = None
+    fold_models: list | None = None
 
     def cv_r2_mean(self, scoring: str) -> np.ndarray:
         """Mean over folds (-inf where any fold diverged)."""
@@ -87,8 +95,9 @@ def _batches(n_models: int, n_values_per_model: int) -> list[slice]:
     return [slice(i, min(i + size, n_models)) for i in range(0, n_models, size)]
 
 
-def _score(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool) -> np.ndarray:
-    """Mean R^2 over episodes for every model: shape (n_models,)."""
+def _score(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool, start: int = 1,
+           measured_only: bool = False) -> np.ndarray:
+    """Mean R^2 over episodes for every model, from sample ``start`` on: shape (n_models,)."""
     ref = models[0]
     d = ref.n_delays
     by_length: dict[int, list[Trajectory]] = {}
@@ -100,30 +109,31 @@ def _score(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str,
     for T, group in by_length.items():
         x_init = np.stack([t.x[:d + 1] for t in group])
         v = np.stack([ref.inputs_of(t) for t in group])
-        if scoring == "cl":
+        if scoring == "cl" and not measured_only:
             truth = np.stack([np.hstack([t.xc, t.x]) for t in group])
             p0 = np.stack([t.xc[d] for t in group])
         else:
             truth = np.stack([t.x for t in group])
-            p0 = None
+            p0 = np.stack([t.xc[d] for t in group]) if scoring == "cl" else None
         per_model = truth.shape[-1] * T * len(group)
         for sl in _batches(len(models), per_model):
             x, p = simulate_batch(A[sl], B[sl], ref.lifting, ref.n_passthrough, x_init, v, p0, relift=relift)
-            if scoring == "cl":
+            if scoring == "cl" and not measured_only:
                 p[:, :, :d] = truth[None, :, :d, :ref.n_passthrough]  # the initial condition, as for x
                 pred = np.concatenate([p, x], axis=-1)
             else:
                 pred = x
             # The first sample is the initial condition itself; later initial samples are kept
             # (the reference's convention).
-            totals[sl] += r2_scores(truth[None, :, 1:], pred[:, :, 1:]).sum(axis=1)
+            totals[sl] += r2_scores(truth[None, :, start:], pred[:, :, start:]).sum(axis=1)
     return totals / len(episodes)
 
 
 def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float],
                          splits: Sequence[tuple[np.ndarray, np.ndarray]], scorings: Sequence[str] = SCORINGS,
                          controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
-                         progress: Callable[[int, int], None] | None = None) -> SweepResult:
+                         progress: Callable[[int, int], None] | None = None, score_from: int = 1,
+                         measured_only: bool = False, keep_fold_models: bool = False) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
 
     Parameters
@@ -145,16 +155,26 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Re-lift predictions at every step (as the reference code).
     progress : callable(done, total), optional
         Called after each fold and after the final fits.
+    score_from : int
+        First scored sample of each validation episode (1: all but the
+        initial condition, the reference's convention).
+    measured_only : bool
+        Closed-loop scoring of the measured states only (the test scores'
+        measure), not of the controller states too.
+    keep_fold_models : bool
+        Keep every fold's models in :attr:`SweepResult.fold_models`.
 
     Returns
     -------
     SweepResult
     """
     with limited_blas_threads(1):
-        return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress)
+        return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress,
+                      (score_from, measured_only, keep_fold_models))
 
 
-def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress):
+def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
+    start, measured_only, keep = options
     for s in scorings:
         check_choice(s, "scoring", SCORINGS)
     alphas = np.asarray(alphas, dtype=float)
@@ -167,7 +187,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     trajectories = list(trajectories)
     total = len(splits) + 1
     shared = None if _learns_from_data(estimator) else _prepare(estimator, trajectories)
-    result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings})
+    result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
+                         fold_models=[] if keep else None)
     for i, (train, validation) in enumerate(splits):
         if shared is None:
             setup, per_episode = _prepare(estimator, [trajectories[j] for j in train])
@@ -178,11 +199,14 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         closed, plants = fitted_models(estimator, setup, snapshots, alphas, controller, measured)
         held_out = [trajectories[j] for j in validation]
         for s in scorings:
-            result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift)
+            result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start, measured_only)
+        if keep:
+            result.fold_models.append((closed, plants, np.asarray(validation)))
         if progress:
             progress(i + 1, total)
     setup, per_episode = shared if shared is not None else _prepare(estimator, trajectories)
     closed, plants = fitted_models(estimator, setup, Snapshots.total(per_episode), alphas, controller, measured)
+    result.closed_loop_models, result.plant_models = closed, plants
     result.spectral_radius_plant = np.array([m.spectral_radius() for m in plants])
     if closed[0] is not None:
         result.spectral_radius_closed_loop = np.array([m.spectral_radius() for m in closed])

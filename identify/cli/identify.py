@@ -20,6 +20,16 @@ Examples:
   qube-identify logs/*.mcap --split paper --out model            # the paper's split, CL EDMD
   qube-identify --train a/*.mcap --test b/*.mcap --alpha-sweep 1e-3 1e3 30
   qube-identify logs/ --split paper --method edmd --score plant --alpha 1
+  qube-identify logs/ --split paper --search --n-jobs 2            # choose the lifting by CV
+
+With --search the lifting, alpha and offset protocol are chosen by episode-
+grouped cross-validation on the training episodes only, in stages (delays;
+monomial order x constant x sin/cos; RBF centres; offsets on the best few),
+each candidate scored as the test episodes will be (closed-loop prediction of
+theta and alpha from the end of the --estimate-window on). The winner is fitted
+on all training episodes, written to model.json and scored on the test
+episodes; report.md lists every candidate. --search-space FILE.toml narrows or
+widens the space (keys: delays, poly, const, trig, rbf, alphas, offsets: lists).
 
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
@@ -46,8 +56,8 @@ def _parser() -> argparse.ArgumentParser:
                            "hand-raising second)")
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
     lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
-    lift.add_argument("--poly", type=int, default=2, metavar="ORDER", help="monomial order (1: none; default %(default)s)")
-    lift.add_argument("--delays", type=int, default=10, metavar="N", help="time delays (default %(default)s)")
+    lift.add_argument("--poly", type=int, metavar="ORDER", help="monomial order (1: none; default 2)")
+    lift.add_argument("--delays", type=int, metavar="N", help="time delays (default 10)")
     lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions")
     lift.add_argument("--rbf-centers", type=int, default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
     lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
@@ -92,6 +102,17 @@ def _parser() -> argparse.ArgumentParser:
                       help="what-if: predict every test episode under this controller's gains (kp_theta, "
                            "kd_theta, kp_alpha, kd_alpha, tau; backward Euler as on the rig) instead of its "
                            "log's own; only episodes recorded under it are scored")
+    search = p.add_argument_group("lifting search")
+    search.add_argument("--search", action="store_true",
+                        help="choose lifting, alpha and offsets by cross-validation (see above)")
+    search.add_argument("--search-space", metavar="FILE.toml",
+                        help="the values to try (default: delays 0-40 by 5, poly 1-3, const and sin/cos on/off, "
+                             "0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
+    search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
+                        help="worker processes for the search (default %(default)s: every core)")
+    search.add_argument("--scheduler", metavar="ADDRESS",
+                        help="run the search on this dask.distributed scheduler (e.g. tcp://host:8786) "
+                             'instead of local processes; needs pip install "qube-koopman[dask]"')
     out = p.add_argument_group("output")
     out.add_argument("--out", default="identified", metavar="DIR", help="output folder (default %(default)s)")
     out.add_argument("--rerun", metavar="FILE.rrd", help="also write a rerun recording of the results")
@@ -131,7 +152,27 @@ def _lifting(args) -> list:
     return steps
 
 
+def _check_search_args(args) -> None:
+    chosen = [flag for flag, given in (("--poly", args.poly is not None), ("--delays", args.delays is not None),
+                                       ("--rbf", args.rbf != "none"), ("--const", args.const),
+                                       ("--alpha", args.alpha is not None), ("--alpha-sweep", args.alpha_sweep),
+                                       ("--offsets", args.offsets), ("--max-radius", args.max_radius is not None))
+              if given]
+    if chosen:
+        raise CliError(f"--search chooses the lifting, alpha and offsets itself: leave out {', '.join(chosen)}")
+    if args.method != "cl-edmd" or args.score != "cl":
+        raise CliError("--search selects CL EDMD models scored in closed loop (--method cl-edmd, --score cl)")
+    if args.n_jobs == 0:
+        raise CliError("--n-jobs must be a positive number of processes, or negative (-1: every core)")
+
+
 def _check_args(args) -> None:
+    if args.search:
+        _check_search_args(args)
+    elif args.scheduler or args.search_space:
+        raise CliError("--scheduler and --search-space belong to --search")
+    args.poly = 2 if args.poly is None else args.poly
+    args.delays = 10 if args.delays is None else args.delays
     if args.split and (args.train or args.test):
         raise CliError("give either LOGS with --split, or --train and --test")
     if not args.split and not (args.train and args.test):
@@ -212,8 +253,16 @@ def _run(args) -> int:
                            "test episode")
         alphas = None if not args.alpha_sweep else np.logspace(np.log10(args.alpha_sweep[0]),
                                                                np.log10(args.alpha_sweep[1]), args.alpha_sweep[2])
+        search = None
+        if args.search:
+            from qube_koopman.identify.cli.search import run_search
+
+            search = run_search(args, train, controller)
+            args.offsets = ["alpha"] if search.winner.spec.offsets else None
+            offsets = OffsetProtocol(("alpha",), args.estimate_window, args.offset_bound) if args.offsets else None
+            args.alpha = search.winner.best_alpha
         result = identify_and_score(
-            method=args.method, lifting=_lifting(args), train=train, test=test, controller=controller,
+            method=args.method, lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args), train=train, test=test, controller=controller,
             alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
             model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
@@ -221,6 +270,10 @@ def _run(args) -> int:
                                if args.max_radius is not None else None))
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if search is not None:
+        from qube_koopman.identify.cli.search import search_report
+
+        result.report["search"] = search_report(search, args)
     write_json(out / "report.json", result.report)
     write_markdown_report(out / "report.md", result.report)
     if args.rerun:

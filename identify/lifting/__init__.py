@@ -5,5 +5,6 @@ from qube_koopman.identify.lifting.constant import Constant
 from qube_koopman.identify.lifting.delay import Delay
 from qube_koopman.identify.lifting.polynomial import Polynomial
 from qube_koopman.identify.lifting.rbf import GaussianRbf, ThinPlateRbf
+from qube_koopman.identify.lifting.trig import Trigonometric
 
-__all__ = ["Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf"]
+__all__ = ["Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf", "Trigonometric"]

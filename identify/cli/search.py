@@ -1,0 +1,79 @@
+"""``qube-identify --search``: the lifting search's command-line side (space file, report)."""
+
+from __future__ import annotations
+
+import sys
+import tomllib
+from dataclasses import fields
+from pathlib import Path
+
+from qube_koopman.identify.cli.common import CliError, progress
+
+_LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool, "trig": bool, "offsets": bool}
+
+
+def load_space(path: str | None):
+    """The search space: the defaults, with the lists of a TOML file replacing theirs."""
+    from qube_koopman.identify.search import SearchSpace
+
+    if path is None:
+        return SearchSpace()
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise CliError(f"{path}: not a readable TOML search space ({exc})") from None
+    unknown = set(data) - set(_LISTS)
+    if unknown:
+        raise CliError(f"{path}: unknown search-space keys {sorted(unknown)}; known: {', '.join(_LISTS)}")
+    values = {}
+    for key, value in data.items():
+        kind = _LISTS[key]
+        if not isinstance(value, list) or not value or not all(
+                isinstance(v, kind) or (kind is float and isinstance(v, int) and not isinstance(v, bool))
+                for v in value) or (kind is int and any(isinstance(v, bool) for v in value)):
+            raise CliError(f"{path}: {key} must be a non-empty list of {kind.__name__} values")
+        values[key] = tuple(kind(v) for v in value)
+    try:
+        return SearchSpace(**values)
+    except ValueError as exc:
+        raise CliError(f"{path}: {exc}") from None
+
+
+def run_search(args, train, controller):
+    """Run the search on the training logs; prints the winner's line."""
+    from qube_koopman.identify.data import group_shuffle_splits
+    from qube_koopman.identify.search import search_liftings
+
+    space = load_space(args.search_space)
+    trajs = [log.trajectory for log in train]
+    window = int(round(args.estimate_window / trajs[0].dt))
+    if min(t.n_samples for t in trajs) <= window + max(space.delays) + 2:
+        raise CliError(f"--estimate-window {args.estimate_window} s and {max(space.delays)} delays leave nothing "
+                       "to score in the shortest training episode")
+    splits = group_shuffle_splits(len(trajs), n_splits=args.cv_splits, test_size=0.2, seed=args.cv_seed)
+    result = search_liftings(trajs, controller, splits=splits, window=window, space=space, n_jobs=args.n_jobs,
+                             scheduler=args.scheduler, bound=args.offset_bound, rbf_seed=args.rbf_seed,
+                             progress=progress)
+    best = result.winner
+    print(f"search: {len(result.candidates)} candidates in {result.seconds:.0f} s; winner {best.spec.label()}, "
+          f"alpha {best.best_alpha:g}, cross-validated R^2 {best.score:.4f}", file=sys.stderr)
+    return result
+
+
+def search_report(result, args) -> dict:
+    """The search's part of report.json."""
+    from qube_koopman.identify.search import STAGES
+
+    space = load_space(args.search_space)
+    return {
+        "winner": result.winner.as_dict(),
+        "candidates": [r.as_dict() for r in result.ranked()],
+        "stages": list(STAGES),
+        "space": {f.name: getattr(space, f.name) for f in fields(space) if f.name in _LISTS},
+        "alphas": list(space.alphas),
+        "cv_splits": args.cv_splits, "cv_seed": args.cv_seed,
+        "score": (f"mean R^2 of theta and alpha over each fold's validation episodes, closed-loop prediction "
+                  f"from the episode's start, scored from sample {result.window} on"),
+        "seconds": result.seconds,
+        "n_jobs": args.n_jobs, "scheduler": args.scheduler,
+    }

@@ -1,0 +1,49 @@
+"""Trigonometric lifting: sine and cosine of the angles."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from qube_koopman.identify.lifting.base import LiftingFunction
+
+__all__ = ["Trigonometric"]
+
+
+class Trigonometric(LiftingFunction):
+    """Append ``sin`` and ``cos`` of chosen input features (angles, in radians).
+
+    The pendulum's gravity torque is ``sin(alpha)`` and its inertia terms
+    involve ``cos(alpha)`` (FACTS section 4): these are the lifting functions
+    its equations name. Pointwise: put it before a delay step.
+
+    Parameters
+    ----------
+    features : sequence of int
+        Indices of the input features that are angles (the plant states are
+        always the first features of any pipeline, so ``(0, 1)`` means
+        theta and alpha on the QUBE-Servo).
+    """
+
+    learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
+
+    def __init__(self, features: Sequence[int] = (0, 1)) -> None:
+        features = tuple(int(i) for i in features)
+        if not features or min(features) < 0 or len(set(features)) != len(features):
+            raise ValueError(f"trigonometric lifting needs distinct non-negative feature indices, got {features}")
+        self.features = features
+
+    def _fit(self, episodes):
+        if max(self.features) >= self.n_features_in_:
+            raise ValueError(f"trigonometric lifting of feature {max(self.features)}: only "
+                             f"{self.n_features_in_} features come in")
+
+    def _names_out(self, names):
+        return (list(names) + [f"sin({names[i]})" for i in self.features]
+                + [f"cos({names[i]})" for i in self.features])
+
+    def transform(self, X):
+        X = np.asarray(X, dtype=float)
+        angles = X[..., list(self.features)]
+        return np.concatenate([X, np.sin(angles), np.cos(angles)], axis=-1)

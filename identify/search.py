@@ -1,0 +1,366 @@
+"""Lifting search: choose the lifting, the regularization and the offset protocol by
+episode-grouped cross-validation on the training episodes only.
+
+Every candidate is scored the way the test episodes will be: its closed loop
+predicts each validation episode's measured states from the episode's start,
+under the recorded controller, and R^2 is taken from the end of the offset
+estimation window on (the same samples whether offsets are estimated or not,
+so the two protocols compare). A candidate's statistics are computed once per
+episode and merged per fold, and every alpha is then a small solve on them
+(:func:`~qube_koopman.identify.sweep.regularization_sweep`).
+
+The space is searched in stages, each a coordinate step from the best so far
+(a full product of the default space would be about 1,400 liftings):
+
+1. ``delays``: every delay count, with the base form (monomials of order 2);
+2. ``form``: at the best delays, every monomial order x constant x sin/cos;
+3. ``rbf``: at the best so far, every number of thin-plate RBF centres;
+4. ``offsets``: the best candidates so far again, with per-episode offsets
+   estimated on each validation episode (at their best alphas).
+
+Candidates of a stage are independent: they run through joblib, on local
+cores (``n_jobs``) or on a dask.distributed cluster (see :func:`search_liftings`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from qube_koopman.identify.cl_edmd import ClEdmd
+from qube_koopman.identify.lifting import Constant, Delay, Polynomial, ThinPlateRbf, Trigonometric
+from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets_many
+from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.sweep import regularization_sweep
+from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+__all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
+           "evaluate_candidate"]
+
+MEASURED = [0, 1]
+STAGES = ("delays", "form", "rbf", "offsets")
+
+
+@dataclass(frozen=True, order=True)
+class LiftingSpec:
+    """One lifting of the search: monomials (and sin/cos), delays, RBFs, constant, in that order.
+
+    Parameters
+    ----------
+    delays : int
+        Time delays.
+    poly : int
+        Monomial order (1: the states themselves).
+    trig : bool
+        Append sin and cos of both angles (before the delays).
+    rbf : int
+        Thin-plate RBF centres on the delayed state (0: none).
+    const : bool
+        Append a constant (an affine term).
+    offsets : bool
+        Estimate an alpha offset on each validation (and test) episode.
+    """
+
+    delays: int = 10
+    poly: int = 2
+    trig: bool = False
+    rbf: int = 0
+    const: bool = False
+    offsets: bool = False
+
+    def steps(self, rbf_seed: int = 0) -> list:
+        """The lifting functions, in the order of ``qube-identify``'s options."""
+        steps = [Polynomial(self.poly)] if self.poly > 1 else []
+        if self.trig:
+            steps.append(Trigonometric(MEASURED))
+        if self.delays:
+            steps.append(Delay(self.delays))
+        if self.rbf:
+            steps.append(ThinPlateRbf(self.rbf, seed=rbf_seed))
+        if self.const:
+            steps.append(Constant())
+        return steps
+
+    def n_features(self, n_states: int = 2) -> int:
+        """Lifted plant features (a measure of size: the smaller wins a tie)."""
+        from math import comb
+
+        pointwise = comb(n_states + self.poly, self.poly) - 1 + (2 * n_states if self.trig else 0)
+        return pointwise * (self.delays + 1) + self.rbf + int(self.const)
+
+    def label(self) -> str:
+        """A short readable name, e.g. ``"poly 2, 20 delays, const, offsets"``."""
+        parts = [f"poly {self.poly}"] + (["sin/cos"] if self.trig else []) + [f"{self.delays} delays"]
+        parts += ([f"{self.rbf} RBF"] if self.rbf else []) + (["const"] if self.const else [])
+        return ", ".join(parts + (["offsets"] if self.offsets else []))
+
+
+@dataclass(frozen=True)
+class SearchSpace:
+    """The values each stage tries (see the module docstring), and the alpha grid.
+
+    The defaults span delays 0 to 40, monomial orders 1 to 3, constant and
+    sin/cos on and off, 0 to 100 RBF centres, alpha on a log grid of two
+    points per decade, offsets on and off.
+    """
+
+    delays: tuple[int, ...] = (0, 5, 10, 15, 20, 25, 30, 35, 40)
+    poly: tuple[int, ...] = (1, 2, 3)
+    const: tuple[bool, ...] = (False, True)
+    trig: tuple[bool, ...] = (False, True)
+    rbf: tuple[int, ...] = (0, 25, 50, 100)
+    alphas: tuple[float, ...] = tuple(np.logspace(-6, 2, 17).tolist())
+    offsets: tuple[bool, ...] = (False, True)
+    base: LiftingSpec = LiftingSpec(delays=0, poly=2)
+    n_offset_candidates: int = 3  # stage 4 re-scores this many of the best with offsets
+    n_offset_alphas: int = 3      # ... each at its best alphas
+
+    def __post_init__(self):
+        for name in ("delays", "poly", "rbf", "alphas"):
+            values = getattr(self, name)
+            if not values or any(not np.isfinite(v) or v < 0 for v in values):
+                raise ValueError(f"search space: {name} needs non-negative values, got {values!r}")
+        if min(self.poly) < 1:
+            raise ValueError("search space: poly (monomial orders) starts at 1")
+
+    def stage_candidates(self, stage: str, best: Sequence["CandidateResult"]) -> list[LiftingSpec]:
+        """The liftings a stage tries, given the results so far (best first)."""
+        lead = best[0].spec if best else self.base
+        if stage == "delays":
+            return [replace(self.base, delays=d) for d in self.delays]
+        if stage == "form":
+            return [replace(lead, poly=p, const=c, trig=t) for p in self.poly for c in self.const
+                    for t in self.trig]
+        if stage == "rbf":
+            return [replace(lead, rbf=n) for n in self.rbf]
+        if stage == "offsets":
+            if True not in self.offsets:
+                return []
+            return [replace(r.spec, offsets=True) for r in best[:self.n_offset_candidates]]
+        raise ValueError(f"unknown stage {stage!r}")
+
+
+@dataclass
+class CandidateResult:
+    """Cross-validated scores of one lifting over the alpha grid.
+
+    Attributes
+    ----------
+    spec : LiftingSpec
+    stage : str
+    alphas : ndarray of shape (n_alphas,)
+    cv_r2 : ndarray of shape (n_folds, n_alphas)
+        Mean R^2 of each fold's validation episodes (NaN: alpha not scored,
+        as offsets are only estimated at the best alphas; -inf: diverged).
+    seconds : float
+        Wall time of the evaluation.
+    """
+
+    spec: LiftingSpec
+    stage: str
+    alphas: np.ndarray
+    cv_r2: np.ndarray
+    seconds: float
+
+    @property
+    def mean(self) -> np.ndarray:
+        """Mean over folds per alpha (-inf where unscored)."""
+        m = self.cv_r2.mean(axis=0)
+        return np.where(np.isnan(m), -np.inf, m)
+
+    @property
+    def best_index(self) -> int:
+        """Index of the best alpha (the largest among ties: the better conditioned)."""
+        m = self.mean
+        return int(np.flatnonzero(m == m.max())[-1])
+
+    @property
+    def best_alpha(self) -> float:
+        """The alpha with the best mean cross-validated R^2."""
+        return float(self.alphas[self.best_index])
+
+    @property
+    def score(self) -> float:
+        """The best mean cross-validated R^2."""
+        return float(self.mean[self.best_index])
+
+    @property
+    def score_std(self) -> float:
+        """Spread of the fold scores at the best alpha."""
+        return float(np.std(self.cv_r2[:, self.best_index]))
+
+    def as_dict(self) -> dict:
+        """Plain data for reports."""
+        return {**asdict(self.spec), "label": self.spec.label(), "stage": self.stage,
+                "n_features": self.spec.n_features(), "alpha": self.best_alpha, "cv_r2": self.score,
+                "cv_r2_std": self.score_std, "seconds": self.seconds,
+                "cv_r2_by_alpha": [None if not np.isfinite(v) else float(v) for v in self.mean]}
+
+
+@dataclass
+class SearchResult:
+    """Every candidate tried, and the winner.
+
+    Attributes
+    ----------
+    candidates : list of CandidateResult
+        In the order they were evaluated.
+    window : int
+        First scored sample of every validation episode.
+    seconds : float
+        Wall time of the search.
+    """
+
+    candidates: list[CandidateResult] = field(default_factory=list)
+    window: int = 0
+    seconds: float = 0.0
+
+    def ranked(self) -> list[CandidateResult]:
+        """Best first; ties go to the smaller lifting, then the plain protocol."""
+        return sorted(self.candidates, key=lambda r: (-r.score, r.spec.n_features(), r.spec.offsets, r.spec))
+
+    @property
+    def winner(self) -> CandidateResult:
+        """The best candidate."""
+        return self.ranked()[0]
+
+
+@dataclass(frozen=True)
+class SearchData:
+    """What every candidate evaluation needs (sent once to each worker)."""
+
+    trajectories: list[Trajectory]
+    splits: list[tuple[np.ndarray, np.ndarray]]
+    controller: DiscreteStateSpace
+    alphas: np.ndarray
+    window: int
+    bound: float = DEFAULT_BOUND
+    rbf_seed: int = 0
+
+
+def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "") -> CandidateResult:
+    """Cross-validate one lifting over the alpha grid (see the module docstring)."""
+    started = time.perf_counter()
+    estimator = ClEdmd(data.controller, lifting=spec.steps(data.rbf_seed))
+    sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits, scorings=("cl",),
+                                 score_from=data.window, measured_only=True, keep_fold_models=spec.offsets)
+    cv = sweep.cv_r2["cl"]
+    if spec.offsets:
+        cv = _offset_scores(sweep, data, cv)
+    return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started)
+
+
+def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
+    """Fold scores with an alpha offset estimated on each validation episode, at the best alphas."""
+    from qube_koopman.identify._blas import limited_blas_threads
+
+    mean = np.where(np.isfinite(plain.mean(axis=0)), plain.mean(axis=0), -np.inf)
+    top = np.argsort(-mean, kind="stable")[:min(3, data.alphas.size)]
+    out = np.full_like(plain, np.nan)
+    with limited_blas_threads(1):
+        for i, (closed, _, validation) in enumerate(sweep.fold_models):
+            held_out = [data.trajectories[k] for k in validation]
+            for j in top:
+                estimates = estimate_offsets_many(closed[j], held_out, ["alpha"], data.window, data.bound)
+                predictions = predict_with_offsets_many(closed[j], held_out, estimates)
+                out[i, j] = np.mean([float(r2_scores(t.x[data.window:], p[data.window:]))
+                                     for t, p in zip(held_out, predictions)])
+    return out
+
+
+def _runner(n_jobs: int, scheduler: str | None):
+    """A function mapping evaluations over candidates, in order, through joblib.
+
+    joblib (a well-kept library) gives local processes and, with ``scheduler``, the same
+    calls on a dask.distributed cluster; nothing here depends on which.
+    """
+    import joblib
+
+    def run(calls):
+        if scheduler is not None:
+            with joblib.parallel_config(backend="dask"):
+                yield from joblib.Parallel(return_as="generator")(calls)
+        elif n_jobs == 1:
+            for fn, args, kwargs in calls:
+                yield fn(*args, **kwargs)
+        else:
+            yield from joblib.Parallel(n_jobs=n_jobs, return_as="generator")(calls)
+
+    return run
+
+
+def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStateSpace, *, splits,
+                    window: int, space: SearchSpace | None = None, n_jobs: int = 1, scheduler: str | None = None,
+                    bound: float = DEFAULT_BOUND, rbf_seed: int = 0,
+                    progress: Callable[[str, int, int], None] | None = None) -> SearchResult:
+    """Search the lifting space in stages (see the module docstring).
+
+    Parameters
+    ----------
+    trajectories : sequence of Trajectory
+        Training episodes, all recorded under ``controller``.
+    controller : DiscreteStateSpace
+    splits : sequence of (train_indices, validation_indices)
+        Episode-grouped folds.
+    window : int
+        Offset estimation window in samples; every candidate is scored from
+        this sample on.
+    space : SearchSpace, optional
+    n_jobs : int
+        Local worker processes (joblib's convention: -1 for every core).
+    scheduler : str, optional
+        Address of a dask.distributed scheduler to run the candidates on
+        instead (needs the ``dask`` extra).
+    progress : callable(label, done, total), optional
+
+    Returns
+    -------
+    SearchResult
+    """
+    import joblib
+
+    space = space or SearchSpace()
+    data = SearchData(list(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
+                      int(window), bound, rbf_seed)
+    client = _dask_client(scheduler) if scheduler else None
+    started = time.perf_counter()
+    result, seen = SearchResult(window=int(window)), set()
+    try:
+        for stage in STAGES:
+            specs = [s for s in space.stage_candidates(stage, result.ranked()) if s not in seen]
+            seen.update(specs)
+            calls = [joblib.delayed(evaluate_candidate)(s, data, stage) for s in specs]
+            for done, res in enumerate(_runner(n_jobs, scheduler)(calls), start=1):
+                result.candidates.append(res)
+                if progress:
+                    progress(f"search: {stage}", done, len(specs))
+    finally:
+        if client is not None:
+            client.close()
+        _release_workers(n_jobs, scheduler)
+    result.seconds = time.perf_counter() - started
+    return result
+
+
+def _release_workers(n_jobs: int, scheduler: str | None) -> None:
+    """Stop joblib's reusable local workers: a search leaves no process behind it."""
+    if scheduler is None and n_jobs != 1:
+        from joblib.externals.loky import get_reusable_executor
+
+        get_reusable_executor().shutdown(wait=True)
+
+
+def _dask_client(address: str):
+    try:
+        from dask.distributed import Client
+    except ImportError:
+        raise ValueError('a dask scheduler needs dask.distributed, which is optional: '
+                         'pip install "qube-koopman[dask]"') from None
+    try:
+        return Client(address, timeout=30, set_as_default=True)
+    except (OSError, TimeoutError) as exc:
+        raise ValueError(f"{address}: cannot reach the dask scheduler ({exc})") from None

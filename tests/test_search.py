@@ -1,0 +1,157 @@
+"""The lifting search: its scores against a naive per-fold refit, its stages, its runners, its CLI."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from qube_koopman.identify import ClEdmd, Lifting
+from qube_koopman.identify.data import check_same_controller, group_shuffle_splits, load_logs
+from qube_koopman.identify.offsets import (estimate_offsets, estimate_offsets_many, predict_with_offsets,
+                                           predict_with_offsets_many)
+from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace, evaluate_candidate,
+                                          search_liftings)
+
+pytestmark = pytest.mark.dataset
+WINDOW = 250  # 0.5 s
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _stop_library_helpers():
+    """joblib's loky workers and the resource trackers of loky and multiprocessing (dask's
+    worker processes) are library daemons that live until their parent exits; stop them when
+    this module is done, so the suite's check for outliving processes sees only real leaks."""
+    yield
+    from multiprocessing import resource_tracker
+
+    from joblib.externals.loky import get_reusable_executor
+    from joblib.externals.loky.backend import resource_tracker as loky_tracker
+
+    get_reusable_executor().shutdown(wait=True)
+    loky_tracker._resource_tracker._stop()
+    resource_tracker._resource_tracker._stop()
+
+
+@pytest.fixture(scope="module")
+def small(qube_logs):
+    """Eight real training episodes, cut to 6 s each (the search's arithmetic, not its statistics)."""
+    logs = load_logs(sorted(qube_logs.glob("*.mcap"))[:8], skip=500)
+    controller = check_same_controller(logs, "training")
+    trajs = [replace(log.trajectory, **{k: getattr(log.trajectory, k)[:3000] for k in ("x", "u", "r", "f", "xc")})
+             for log in logs]
+    splits = group_shuffle_splits(len(trajs), n_splits=2, test_size=0.25, seed=7)
+    return trajs, controller, splits
+
+
+def _naive_fold_score(spec, trajs, controller, splits, alpha, offsets):
+    """Refit from scratch per fold and predict each validation episode alone (no shared statistics)."""
+    scores = []
+    for train, validation in splits:
+        model = ClEdmd(controller, lifting=spec.steps(), alpha=alpha).fit([trajs[i] for i in train]).closed_loop_model_
+        per_episode = []
+        for i in validation:
+            t = trajs[i]
+            if offsets:
+                est = estimate_offsets(model, t, ["alpha"], WINDOW)
+                pred = predict_with_offsets(model, t, est.as_mapping())
+            else:
+                pred = model.predict(t)
+            per_episode.append(float(r2_scores(t.x[WINDOW:], pred[WINDOW:])))
+        scores.append(np.mean(per_episode))
+    return np.array(scores)
+
+
+@pytest.mark.parametrize("spec", [LiftingSpec(delays=3, poly=2), LiftingSpec(delays=2, poly=1, trig=True, const=True),
+                                  LiftingSpec(delays=5, poly=1, offsets=True)])
+def test_candidate_scores_equal_a_naive_refit_per_fold(small, spec):
+    trajs, controller, splits = small
+    alphas = np.array([1e-4, 1e-2, 1.0])
+    result = evaluate_candidate(spec, SearchData(trajs, splits, controller, alphas, WINDOW))
+    scored = np.flatnonzero(np.isfinite(result.cv_r2[0]))
+    assert scored.size == 3  # every alpha; with offsets the best three, here all of them
+    for j in scored:
+        naive = _naive_fold_score(spec, trajs, controller, splits, alphas[j], spec.offsets)
+        # offsets: Gauss-Newton (search) vs Levenberg-Marquardt (naive) stop at slightly different points
+        np.testing.assert_allclose(result.cv_r2[:, j], naive, rtol=1e-5 if spec.offsets else 1e-9, atol=1e-6)
+
+
+def test_batched_offset_estimates_equal_levenberg_marquardt(small):
+    trajs, controller, _ = small
+    model = ClEdmd(controller, lifting=LiftingSpec(delays=4).steps(), alpha=1e-3).fit(trajs[:6]).closed_loop_model_
+    shifted = [replace(t, x=t.x + [0.0, o], r=t.r + [0.0, o]) for t, o in zip(trajs[6:], (0.004, -0.003))]
+    many = estimate_offsets_many(model, shifted, ["alpha"], WINDOW)
+    for t, est in zip(shifted, many):
+        lm = estimate_offsets(model, t, ["alpha"], WINDOW)
+        # the same minimum: within 1e-5 rad (0.3 % of a count; LM stops at its xtol), and no worse a fit
+        np.testing.assert_allclose(est.values, lm.values, atol=1e-5)
+        assert est.rms_after <= lm.rms_after * (1 + 1e-6) and est.rms_after < est.rms_before
+    for t, pred, est in zip(shifted, predict_with_offsets_many(model, shifted, many), many):
+        np.testing.assert_allclose(pred, predict_with_offsets(model, t, est.as_mapping()), atol=1e-12)
+
+
+@pytest.mark.parametrize("spec", [LiftingSpec(0, 1), LiftingSpec(5, 3, trig=True, const=True),
+                                  LiftingSpec(2, 2, rbf=4, const=True)])
+def test_spec_size_matches_the_fitted_lifting(small, spec):
+    trajs = small[0]
+    lifting = Lifting(spec.steps()).fit([t.x for t in trajs[:2]], ("theta", "alpha"))
+    assert lifting.n_features_out_ == spec.n_features()
+    assert lifting.n_delays == spec.delays
+
+
+def test_stages_step_from_the_best_so_far():
+    space = SearchSpace(delays=(0, 4), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0, 3),
+                        alphas=(1e-3, 1.0))
+    assert space.stage_candidates("delays", []) == [LiftingSpec(0, 2), LiftingSpec(4, 2)]
+    lead = CandidateResult(LiftingSpec(4, 2), "delays", np.array(space.alphas), np.array([[0.9, 0.5]]), 0.0)
+    form = space.stage_candidates("form", [lead])
+    assert {(s.poly, s.const) for s in form} == {(1, False), (1, True), (2, False), (2, True)}
+    assert all(s.delays == 4 for s in form)
+    assert space.stage_candidates("rbf", [lead]) == [LiftingSpec(4, 2, rbf=0), LiftingSpec(4, 2, rbf=3)]
+    assert space.stage_candidates("offsets", [lead]) == [LiftingSpec(4, 2, offsets=True)]
+    assert replace(space, offsets=(False,)).stage_candidates("offsets", [lead]) == []
+    with pytest.raises(ValueError, match="poly"):
+        SearchSpace(poly=(0, 1))
+
+
+SMALL_SPACE = SearchSpace(delays=(0, 3), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0,),
+                          alphas=(1e-4, 1e-2, 1.0))
+
+
+def test_search_winner_is_the_best_candidate_and_parallel_runs_agree(small):
+    trajs, controller, splits = small
+    serial = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, n_jobs=1)
+    stages = [c.stage for c in serial.candidates]
+    assert stages == sorted(stages, key=["delays", "form", "rbf", "offsets"].index)
+    assert len({c.spec for c in serial.candidates}) == len(serial.candidates)  # nothing evaluated twice
+    assert serial.winner.score == max(c.score for c in serial.candidates)
+    best_delays = max((c for c in serial.candidates if c.stage == "delays"), key=lambda c: c.score).spec.delays
+    assert {c.spec.delays for c in serial.candidates if c.stage == "form"} == {best_delays}
+    parallel = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, n_jobs=2)
+    assert [c.spec for c in parallel.candidates] == [c.spec for c in serial.candidates]
+    for a, b in zip(serial.candidates, parallel.candidates):
+        np.testing.assert_array_equal(a.cv_r2, b.cv_r2)
+
+
+@pytest.mark.slow
+def test_a_local_dask_cluster_finds_the_same_winner(small):
+    distributed = pytest.importorskip("dask.distributed", reason="the dask extra is optional")
+    trajs, controller, splits = small
+    local = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, n_jobs=1)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        remote = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE,
+                                 scheduler=cluster.scheduler_address)
+    assert remote.winner.spec == local.winner.spec and remote.winner.best_alpha == local.winner.best_alpha
+    np.testing.assert_allclose([c.score for c in remote.candidates], [c.score for c in local.candidates],
+                               rtol=0, atol=1e-12)
+
+
+def test_an_unreachable_scheduler_is_a_clear_error(small):
+    pytest.importorskip("dask.distributed", reason="the dask extra is optional")
+    trajs, controller, splits = small
+    with pytest.raises(ValueError, match="tcp://127.0.0.1:9: cannot reach the dask scheduler"):
+        search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE,
+                        scheduler="tcp://127.0.0.1:9")
