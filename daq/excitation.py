@@ -24,12 +24,13 @@ How the rig built each signal (checked against all 48 dataset files):
 
 from __future__ import annotations
 
-import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 from scipy import signal
+
+from qube_koopman.daq.log.names import SEED_SIGNALS, parse_episode_name
 
 __all__ = [
     "PrbsChannel",
@@ -44,7 +45,6 @@ __all__ = [
 ]
 
 _SEED_MAX = 0xFFFF
-_FILE_NAME = re.compile(r"^qube_(\d{8})T(\d{6})_(\d+)_(\d+)_(\d+)\.csv$")
 
 
 def lfsr_bits(seed: int, n_bits: int) -> np.ndarray:
@@ -275,8 +275,8 @@ def parse_seeds(file_name: str | Path) -> tuple[int, int, int]:
         If the name (directories are ignored) does not have that form.
     """
     name = Path(file_name).name
-    match = _FILE_NAME.match(name)
-    if match is None:
+    parsed = parse_episode_name(name, ".csv")
+    if parsed is None:
         raise ValueError(f"{name!r} is not a dataset file name of the form "
                          "'qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_<alpha seed>_<ff seed>.csv'")
-    return int(match[3]), int(match[4]), int(match[5])
+    return tuple(parsed.seeds[k] for k in SEED_SIGNALS)

@@ -20,6 +20,7 @@ from qube_koopman.daq.backends.base import Backend
 from qube_koopman.daq.controller import load_pd_gains, pd_controller
 from qube_koopman.daq.episode import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
+from qube_koopman.daq.log.names import SEED_SIGNALS
 from qube_koopman.daq.loop import EpisodePlan, EpisodeResult, run_episode
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.sinks import Sink
@@ -103,7 +104,7 @@ def excitation_record(seeds: Sequence[int], settings: ExcitationSettings) -> dic
     return {
         "generator": "daq.excitation.generate_excitation (the rig's PRBS: 16-bit Fibonacci LFSR, "
                      "taps 16 14 13 11)",
-        "seeds": dict(zip(("target_theta", "target_alpha", "feedforward"), (int(s) for s in seeds))),
+        "seeds": dict(zip(SEED_SIGNALS, (int(s) for s in seeds))),
         "settings": settings.as_dict(),
     }
 

@@ -8,6 +8,7 @@ import warnings
 from pathlib import Path
 
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.daq.log.names import LOG_SUFFIX
 
 PROG = "qube-export"
 
@@ -63,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)
         return 2
     problems: list[str] = []
-    logs = expand_sources(args.logs, ".mcap", problems)
+    logs = expand_sources(args.logs, LOG_SUFFIX, problems)
     progress = Progress(len(logs), not args.quiet)
 
     def say(kind: str, message: str) -> None:

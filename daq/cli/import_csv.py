@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.daq.log.names import log_path
 
 PROG = "qube-import"
 
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     imported, refused = 0, 0
     claimed: dict[Path, Path] = {}
     for done, csv in enumerate(files, start=1):
-        out = args.out / f"{csv.stem}.mcap"
+        out = log_path(args.out, csv.stem)
         try:
             if out in claimed:
                 raise LegacyCsvError(f"{csv}: same base name as {claimed[out]}; both would write {out}")
