@@ -25,11 +25,11 @@ from typing import NamedTuple
 import numpy as np
 
 from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
-from qube_koopman.daq.excitation import Excitation
+from qube_koopman.daq.excitation import Excitation, ExcitationStream
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.episode import ControllerInfo, EpisodeMetadata
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
-from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingStats, quiet_interpreter, timing_stats
+from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingRecord, TimingStats, quiet_interpreter
 
 __all__ = ["ABORT_CAUSES", "EpisodePlan", "EpisodeResult", "run_episode", "REALTIME_SWITCH_INTERVAL"]
 
@@ -63,8 +63,9 @@ class EpisodePlan:
     controller : ControllerInfo
         The controller: tracking errors (theta, alpha) in, volts out; its
         ``dt`` must equal the backend's sample period.
-    excitation : Excitation
-        target_theta, target_alpha (rad) and feedforward (V), one value per tick.
+    excitation : Excitation or ExcitationStream
+        target_theta, target_alpha (rad) and feedforward (V), one value per tick,
+        read a chunk at a time (``chunks``).
     excitation_info : dict
         Seeds and settings of the excitation, recorded in the log.
     index : int
@@ -76,7 +77,7 @@ class EpisodePlan:
     """
 
     controller: ControllerInfo
-    excitation: Excitation
+    excitation: Excitation | ExcitationStream
     excitation_info: dict = field(default_factory=dict)
     index: int = 0
     source: str = ""
@@ -85,7 +86,7 @@ class EpisodePlan:
     @property
     def n_samples(self) -> int:
         """Ticks planned."""
-        return len(self.excitation.target_theta)
+        return len(self.excitation)
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,16 +105,12 @@ class EpisodeResult(EpisodeOutcome):
     cause : str
         What ended an aborted episode: one of :data:`ABORT_CAUSES`; empty
         when complete.
-    lateness, compute_time : ndarray of shape (n_samples,)
-        Per-tick timing (s); lateness is NaN for a free-running backend.
     """
 
     metadata: EpisodeMetadata | None = None
     sink_errors: tuple[str, ...] = ()
     signal: int | None = None
     cause: str = ""
-    lateness: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    compute_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def complete(self) -> bool:
@@ -200,6 +197,29 @@ def _episode_metadata(plan: EpisodePlan, backend: Backend, limits: SafetyLimits)
                "safety": limits.as_dict(), **plan.extra})
 
 
+class _TickTimes:
+    """Per-tick lateness and compute time, buffered a chunk of ticks at a time into timing records.
+
+    Memory stays the same for any episode length: the loop writes tick ``k`` at ``k % _CHUNK``,
+    and :meth:`fold` hands the buffered ticks to the records before the buffer is reused.
+    """
+
+    def __init__(self, period: float, also: TimingRecord | None = None) -> None:
+        self.lateness = np.full(_CHUNK, np.nan)
+        self.compute = np.full(_CHUNK, np.nan)
+        self.record = TimingRecord(period)
+        self._records = [self.record] + ([also] if also is not None else [])
+        self._n = 0
+
+    def fold(self, n_ticks: int) -> None:
+        """Add the ticks buffered since the last fold, up to ``n_ticks`` ticks in all."""
+        rest = n_ticks - self._n
+        if rest > 0:
+            for record in self._records:
+                record.add(self.lateness[:rest], self.compute[:rest])
+            self._n = n_ticks
+
+
 class _Logged(NamedTuple):
     """How the logged part of an episode went (see :func:`_run_logged`)."""
 
@@ -212,7 +232,7 @@ class _Logged(NamedTuple):
 
 def _run_logged(backend: Backend, plan: EpisodePlan, metadata: EpisodeMetadata, sinks: list[Sink],
                 limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None,
-                lateness: np.ndarray, compute: np.ndarray) -> _Logged:
+                times: _TickTimes) -> _Logged:
     """Open the sinks, run the ticks, and whatever happens zero the motor and close the sinks."""
     writer = SinkWriter(sinks)
     n_done = 0
@@ -221,14 +241,15 @@ def _run_logged(backend: Backend, plan: EpisodePlan, metadata: EpisodeMetadata, 
         if not writer.open(metadata):
             reason, cause = f"log failed: {writer.failed}", "log"
         else:
-            n_done, reason, cause = _ticks(backend, plan, limits, stop, writer, pacer, lateness, compute)
+            n_done, reason, cause = _ticks(backend, plan, limits, stop, writer, pacer, times)
     except BaseException as exc:
         if not reason:
             reason, cause = f"loop error: {type(exc).__name__}: {exc}", "error"
         raise
     finally:
         _zero_motor(backend)
-        timing = timing_stats(lateness[:n_done], compute[:n_done], backend.sample_period)
+        times.fold(n_done)
+        timing = times.record.stats() if n_done else TimingRecord(backend.sample_period).stats()
         outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
                                  _statistics(backend))
         errors = writer.close(outcome)
@@ -242,7 +263,8 @@ def _run_logged(backend: Backend, plan: EpisodePlan, metadata: EpisodeMetadata, 
 
 def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
                 limits: SafetyLimits = SafetyLimits(), stop: StopRequest | None = None,
-                handle_signals: bool = True, spin: float = DEFAULT_SPIN) -> EpisodeResult:
+                handle_signals: bool = True, spin: float = DEFAULT_SPIN,
+                timing: TimingRecord | None = None) -> EpisodeResult:
     """Run one episode on a backend, under the safety supervisor, into sinks.
 
     Parameters
@@ -263,6 +285,8 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
         thread only); the previous handlers are restored afterwards.
     spin : float
         For a loop-paced backend: spin this long before each deadline (s).
+    timing : TimingRecord, optional
+        Also add the episode's tick timing to it (a run's statistics over its episodes).
 
     Returns
     -------
@@ -280,20 +304,18 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
     quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if paced else None)
     with signals, quiet:
         pacer = DeadlinePacer(period, spin) if backend.pacing is Pacing.LOOP else None
-        lateness = np.full(n, np.nan)
-        compute = np.full(n, np.nan)
+        times = _TickTimes(period, timing)
         reason, cause = _start(backend, limits, stop, pacer)
         if reason:
             return EpisodeResult("aborted", reason, 0, TimingStats(0, period, paced), _statistics(backend),
                                  signal=stop.signal, cause=cause)
         metadata = _episode_metadata(plan, backend, limits)
-        run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, lateness, compute)
+        run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times)
     outcome, timing = run.outcome, run.outcome.timing
     metadata = replace(metadata, status=outcome.status, status_reason=run.reason, timing=timing.as_dict(),
                        backend_stats=outcome.backend_stats)
     return EpisodeResult(outcome.status, run.reason, run.n_done, timing, outcome.backend_stats, metadata=metadata,
-                         sink_errors=tuple(run.errors), signal=stop.signal, cause=run.cause,
-                         lateness=lateness[:run.n_done], compute_time=compute[:run.n_done])
+                         sink_errors=tuple(run.errors), signal=stop.signal, cause=run.cause)
 
 
 def _plain_controller(ctrl) -> tuple[list, list, float, float]:
@@ -337,12 +359,11 @@ class _DeviceLateness:
         return late
 
 
-def _excitation_chunks(ex: Excitation):
+def _excitation_chunks(ex: Excitation | ExcitationStream):
     """The excitation as plain floats, a chunk at a time: a whole long episode's worth would
     take 100 bytes a tick."""
-    for k in range(0, len(ex.feedforward), _CHUNK):
-        yield tuple(np.asarray(signal[k:k + _CHUNK], dtype=float).tolist()
-                    for signal in (ex.target_theta, ex.target_alpha, ex.feedforward))
+    for chunk in ex.chunks(_CHUNK):
+        yield tuple(signal.tolist() for signal in chunk)
 
 
 def _abort(theta: float, alpha: float, limits: SafetyLimits, stop: StopRequest,
@@ -370,8 +391,7 @@ def _clocking(backend: Backend, writer: SinkWriter, pacer: DeadlinePacer | None)
 
 
 def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest,
-           writer: SinkWriter, pacer: DeadlinePacer | None, lateness: np.ndarray,
-           compute: np.ndarray) -> tuple[int, str, str]:
+           writer: SinkWriter, pacer: DeadlinePacer | None, times: _TickTimes) -> tuple[int, str, str]:
     """The ticks of one episode; returns (ticks recorded, abort reason, cause), '' when complete."""
     rows, C, D0, D1 = _plain_controller(plan.controller.system)
     xc = (0.0,) * len(rows)
@@ -387,10 +407,12 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
     wait, device_lateness = _clocking(backend, writer, pacer)
     throttle = backend.pacing is Pacing.NONE
     device_time = backend.device_time
+    lateness, compute = times.lateness, times.compute
 
     for k in range(n_ticks):
         j = k & _CHUNK_MASK
         if not j:
+            times.fold(k)
             ref_theta, ref_alpha, ff = next(chunks)
         if wait is not None:
             late = wait(k)
@@ -425,8 +447,8 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         except BackendFault as exc:
             return k, f"backend fault: {exc}", "fault"
         spent = clock() - t_tick
-        lateness[k] = late
-        compute[k] = spent
+        lateness[j] = late
+        compute[j] = spent
         put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[j], u, v, sat, late, spent, xc,
                    nan if when is None else when))
         if throttle and not k & _BACKLOG_CHECK:

@@ -426,12 +426,10 @@ def _run(args) -> int:
 
 
 def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
-    import numpy as np
-
     from qube_koopman.daq.loop import EpisodeResult
     from qube_koopman.daq.session import run_episodes
     from qube_koopman.daq.sinks import McapSink
-    from qube_koopman.daq.timing import realtime_scheduling, timing_stats
+    from qube_koopman.daq.timing import TimingRecord, realtime_scheduling
 
     sinks: list = [McapSink(args.out)]
     rerun_sink = None
@@ -460,12 +458,13 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
         names.append(name)
         progress.episode_done(plan.index, result, name)
 
+    timing = TimingRecord(1.0 / rate)  # all episodes' ticks, in bounded memory
     want_rt = args.rt_cpu is not None or args.rt_priority is not None
     try:
         with realtime_scheduling(args.rt_cpu, args.rt_priority) as rt:
             if want_rt:
                 print(f"{PROG}: real-time scheduling: {rt.describe()}", flush=True)
-            run = run_episodes(backend, plans, sinks, limits=limits, on_result=on_result)
+            run = run_episodes(backend, plans, sinks, limits=limits, on_result=on_result, timing=timing)
     finally:
         progress.clear()
         if rerun_sink is not None:
@@ -473,9 +472,7 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
 
     results = run.results
     started = [r for r in results if r.started]
-    late = np.concatenate([r.lateness for r in results]) if results else np.zeros(0)
-    comp = np.concatenate([r.compute_time for r in results]) if results else np.zeros(0)
-    print(summary_table(list(zip(names, results)), timing_stats(late, comp, 1.0 / rate)))
+    print(summary_table(list(zip(names, results)), timing.stats()))
     link = _link_summary(results)
     if link:
         print(link)
