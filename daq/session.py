@@ -9,6 +9,7 @@ fault or a log failure, and going on after a safety stop.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -53,6 +54,8 @@ MAX_DURATION = 86_400.0
 # The rig's excitation (FACTS section 3) was laid out for 20 s episodes:
 # quiet until 4 s, active until 16 s. Other lengths keep these proportions.
 _RIG_SECONDS = 20.0
+
+_log = logging.getLogger(__name__)
 
 
 def default_controller_path() -> Path:
@@ -226,6 +229,8 @@ def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sin
             result = run_episode(backend, plan, sinks, limits=limits, stop=stop, handle_signals=False,
                                  spin=spin, timing=timing)
             run.results.append(result)
+            _log.info("episode %d: %s after %d of %d ticks%s", plan.index, result.status, result.n_samples,
+                      plan.n_samples, f" ({result.reason})" if result.reason else "")
             if on_result is not None:
                 on_result(plan, result)
             if result.cause in _FATAL:

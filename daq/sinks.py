@@ -10,6 +10,7 @@ run on the writer thread except ``open``, which runs before the first tick.
 from __future__ import annotations
 
 import errno
+import logging
 import shutil
 import threading
 import time
@@ -22,6 +23,8 @@ import numpy as np
 from qube_koopman.daq.episode import Episode, EpisodeMetadata
 from qube_koopman.daq.log.names import episode_stem, log_path
 from qube_koopman.daq.timing import TimingStats
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "Sample",
@@ -343,6 +346,7 @@ class McapSink:
         except OSError as exc:
             self._fail(path, exc)
         self.paths.append(path)
+        _log.debug("writing %s (%.1f MB free, the episode needs about %.1f MB)", path, free / 1e6, need / 1e6)
 
     def write(self, sample: Sample) -> None:
         """Append one tick (flushed every ``flush_interval_s`` of data)."""

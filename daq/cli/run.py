@@ -7,6 +7,8 @@ import math
 import sys
 from pathlib import Path
 
+from qube_koopman.sim.cli.common import configure_logging
+
 PROG = "qube-run"
 DEFAULT_EPISODES = 3
 DEFAULT_DURATION = 20.0
@@ -90,7 +92,7 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_standard_options
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -147,8 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
                     help="run SCHED_FIFO at priority P (1..99; needs permission)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    add_version(p)
+    add_standard_options(p, "no progress bar")
     return p
 
 
@@ -255,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, or a usage error already explained in one line
         return int(exc.code or 0)
+    configure_logging(PROG, args)
     try:
         return _run(args)
     except _Fail as exc:
