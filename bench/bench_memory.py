@@ -14,7 +14,7 @@ what a run adds to it.
 
 Usage::
 
-    PYTHONPATH=. python bench/bench_memory.py [--long SECONDS]
+    python bench/bench_memory.py [--long SECONDS]    # the python of the environment the package is installed in
 """
 
 from __future__ import annotations

@@ -31,13 +31,14 @@ def import_dataset(out: Path) -> None:
     from conftest import dataset_dir
     from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
     from qube_koopman.daq.log import write_episode
+    from qube_koopman.daq.log.names import log_path
 
     src = dataset_dir()
     if src is None:
         sys.exit("dataset not found: set QUBE_DATASET_DIR or pass --data")
     controller = load_legacy_controller(src / "controller.toml")
     for path in sorted(src.glob("*.csv")):
-        write_episode(out / f"{path.stem}.mcap", legacy_episode(path, controller))
+        write_episode(log_path(out, path.stem), legacy_episode(path, controller))
 
 
 def naive_cost(data: Path, n_alphas: int = 2, n_validation: int = 2) -> float:

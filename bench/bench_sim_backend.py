@@ -40,6 +40,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     from qube_koopman.daq.backends import SimBackend
+    from qube_koopman.daq.episode import REFERENCE_SIGNALS, stack_signals
     from qube_koopman.daq.loop import run_episode
     from qube_koopman.daq.log import read_episode
     from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
@@ -73,7 +74,7 @@ def main(argv=None) -> int:
     ref = []
     for plan in plans:
         ex = plan.excitation
-        refs = np.stack([ex.target_theta, ex.target_alpha], axis=-1)
+        refs = stack_signals(ex, REFERENCE_SIGNALS)
         start = time.perf_counter()
         simulate_closed_loop([0.0, 0.01, 0.0, 0.0], controller.system, refs, np.asarray(ex.feedforward))
         ref.append(time.perf_counter() - start)

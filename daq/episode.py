@@ -13,7 +13,7 @@ import json
 from dataclasses import dataclass, field, fields
 from datetime import datetime
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -22,11 +22,14 @@ from qube_koopman.sim.lti import DiscreteStateSpace
 __all__ = [
     "STATUSES",
     "SIGNALS",
+    "STATE_SIGNALS",
+    "REFERENCE_SIGNALS",
     "UNITS",
     "ControllerInfo",
     "EpisodeMetadata",
     "Episode",
     "software_version",
+    "stack_signals",
 ]
 
 #: Final status of an episode: finished normally, stopped early with a
@@ -45,7 +48,34 @@ UNITS = MappingProxyType({
     "compute_time": "s", "device_time": "s", "controller_state": "rad (controller realization)", "saturation": "1",
 })
 
+#: The measured plant states (the fed-back outputs), in the controller's channel order.
+STATE_SIGNALS = ("theta", "alpha")
+
+#: Their references, channel for channel.
+REFERENCE_SIGNALS = ("target_theta", "target_alpha")
+
 _TIMING = ("lateness", "compute_time", "device_time")
+
+
+def stack_signals(source: Any, names: Sequence[str]) -> np.ndarray:
+    """Named per-sample signals side by side, one column each (the last axis).
+
+    Parameters
+    ----------
+    source : mapping or object
+        Holds the signals as items (a dict of columns) or attributes (an
+        :class:`Episode`, an excitation).
+    names : sequence of str
+        The signals, in column order (e.g. :data:`STATE_SIGNALS`).
+
+    Returns
+    -------
+    ndarray of shape (*signal_shape, len(names))
+        ``(n_samples, k)`` for 1-D signals; a batch of episodes ``(n_samples, n_episodes)``
+        stacks to ``(n_samples, n_episodes, k)``.
+    """
+    get = source.__getitem__ if isinstance(source, Mapping) else lambda name: getattr(source, name)
+    return np.stack([np.asarray(get(name), dtype=float) for name in names], axis=-1)
 
 
 @functools.cache
@@ -307,12 +337,12 @@ class Episode:
     @property
     def states(self) -> np.ndarray:
         """Measured plant states, shape (n, 2): columns theta, alpha."""
-        return np.column_stack((self.theta, self.alpha))
+        return stack_signals(self, STATE_SIGNALS)
 
     @property
     def references(self) -> np.ndarray:
         """References, shape (n, 2): columns target_theta, target_alpha."""
-        return np.column_stack((self.target_theta, self.target_alpha))
+        return stack_signals(self, REFERENCE_SIGNALS)
 
     @property
     def tracking_error(self) -> np.ndarray:

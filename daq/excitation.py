@@ -24,17 +24,20 @@ How the rig built each signal (checked against all 48 dataset files):
 
 from __future__ import annotations
 
-import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 from scipy import signal
+
+from qube_koopman.daq.log.names import SEED_SIGNALS, parse_episode_name
 
 __all__ = [
     "PrbsChannel",
     "ExcitationSettings",
     "Excitation",
+    "ExcitationStream",
     "lfsr_bits",
     "held_prbs",
     "smooth",
@@ -44,7 +47,6 @@ __all__ = [
 ]
 
 _SEED_MAX = 0xFFFF
-_FILE_NAME = re.compile(r"^qube_(\d{8})T(\d{6})_(\d+)_(\d+)_(\d+)\.csv$")
 
 
 def lfsr_bits(seed: int, n_bits: int) -> np.ndarray:
@@ -226,14 +228,128 @@ class Excitation:
     target_alpha: np.ndarray
     feedforward: np.ndarray
 
+    def __len__(self) -> int:
+        return len(self.target_theta)
 
-def _windowed_prbs(seed: int, channel: PrbsChannel, settings: ExcitationSettings) -> np.ndarray:
-    stop = settings.window_stop
-    raw = held_prbs(seed, channel.amplitude, channel.bit_samples(settings.sample_rate), stop)
-    raw[: settings.window_start] = 0.0
-    out = np.zeros(settings.n_samples)
-    out[:stop] = smooth(raw, settings.smoothing_cutoff, settings.sample_rate)
-    return out
+    def chunks(self, size: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(target_theta, target_alpha, feedforward) ``size`` samples at a time (the last may be shorter)."""
+        for k in range(0, len(self), size):
+            yield tuple(np.asarray(signal[k:k + size], dtype=float)
+                        for signal in (self.target_theta, self.target_alpha, self.feedforward))
+
+
+class _ChannelStream:
+    """One channel's windowed, smoothed PRBS (steps 1 to 3 of the module docstring), chunk by chunk."""
+
+    def __init__(self, seed: int, channel: PrbsChannel, settings: ExcitationSettings) -> None:
+        lfsr_bits(seed, 0)  # checks the seed
+        self.register = int(seed)
+        self.amplitude = float(channel.amplitude)
+        self.bit_samples = channel.bit_samples(settings.sample_rate)
+        # Only whole bits that fit before window_stop are generated; zero after them.
+        self.held_end = (settings.window_stop // self.bit_samples) * self.bit_samples
+        self.window_start, self.window_stop = settings.window_start, settings.window_stop
+        ratio = settings.smoothing_cutoff / settings.sample_rate
+        self.smoothing = settings.smoothing_cutoff > 0
+        self.b, self.a = [ratio / (1.0 + ratio)], [1.0, -1.0 / (1.0 + ratio)]  # as smooth() computes them
+        self.zi = np.zeros(1)
+        self.next_bit = 0
+        self.level = 0.0
+
+    def _levels(self, first: int, last: int) -> np.ndarray:
+        """The held levels of bits ``first..last``; bit ``first`` is the last one made, or the next."""
+        levels = [self.level] if first < self.next_bit else []
+        register, high, low = self.register, self.amplitude, -self.amplitude
+        for _ in range(self.next_bit, last + 1):
+            bit = (register ^ (register >> 2) ^ (register >> 3) ^ (register >> 5)) & 1
+            register = (register >> 1) | (bit << 15)
+            levels.append(high if bit else low)
+        self.register, self.next_bit, self.level = register, last + 1, levels[-1]
+        return np.array(levels)
+
+    def take(self, k0: int, k1: int) -> np.ndarray:
+        """Samples ``k0 .. k1 - 1`` (called for consecutive ranges from 0)."""
+        out = np.zeros(k1 - k0)
+        held = min(k1, self.held_end)
+        if held > k0:
+            bit = np.arange(k0, held) // self.bit_samples
+            out[:held - k0] = self._levels(int(bit[0]), int(bit[-1]))[bit - bit[0]]
+        out[:max(0, min(self.window_start, k1) - k0)] = 0.0
+        active = min(k1, self.window_stop) - k0
+        if active > 0 and self.smoothing:
+            out[:active], self.zi = signal.lfilter(self.b, self.a, out[:active], zi=self.zi)
+        return out
+
+
+class ExcitationStream:
+    """The rig's excitation for one episode, made a chunk at a time: memory does not grow with its length.
+
+    Chunk for chunk the same values, bit for bit, as the whole-episode arrays of
+    :func:`generate_excitation` (which is this stream taken in one chunk).
+
+    Parameters
+    ----------
+    seeds : (int, int, int)
+        LFSR seeds of the motor-angle rate, pendulum-angle reference and feedforward.
+    settings : ExcitationSettings
+        Amplitudes, bit periods, window and smoothing.
+    """
+
+    def __init__(self, seeds: tuple[int, int, int], settings: ExcitationSettings = ExcitationSettings()) -> None:
+        if len(seeds) != 3:
+            raise ValueError(f"need three seeds (theta, alpha, feedforward), got {seeds!r}")
+        for seed in seeds:
+            lfsr_bits(seed, 0)
+        self.seeds = tuple(int(seed) for seed in seeds)
+        self.settings = settings
+
+    def __len__(self) -> int:
+        return self.settings.n_samples
+
+    def chunks(self, size: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(target_theta, target_alpha, feedforward) ``size`` samples at a time (the last may be shorter)."""
+        if size < 1:
+            raise ValueError(f"chunk size must be positive, got {size}")
+        settings = self.settings
+        channels = [_ChannelStream(seed, channel, settings) for seed, channel
+                    in zip(self.seeds, (settings.theta_rate, settings.alpha, settings.feedforward))]
+        step = 1.0 / settings.sample_rate
+        theta_end = 0.0
+        for k0 in range(0, len(self), size):
+            k1 = min(len(self), k0 + size)
+            rate, alpha, ff = (channel.take(k0, k1) for channel in channels)
+            # integrate(), continued across chunks: the same sequential additions.
+            theta = np.empty_like(rate)
+            if k0 == 0:
+                theta[0] = 0.0
+                np.cumsum(step * rate[1:], out=theta[1:])
+            else:
+                theta = np.cumsum(np.concatenate(([theta_end], step * rate)))[1:]
+            theta_end = theta[-1]
+            yield theta, alpha, ff
+
+    def whole(self) -> Excitation:
+        """The whole episode as read-only arrays."""
+        n = len(self)
+        signals = next(self.chunks(n)) if n else (np.zeros(0), np.zeros(0), np.zeros(0))
+        for s in signals:
+            s.setflags(write=False)
+        return Excitation(*signals)
+
+    @property
+    def target_theta(self) -> np.ndarray:
+        """The whole episode's target_theta (made when asked for)."""
+        return self.whole().target_theta
+
+    @property
+    def target_alpha(self) -> np.ndarray:
+        """The whole episode's target_alpha (made when asked for)."""
+        return self.whole().target_alpha
+
+    @property
+    def feedforward(self) -> np.ndarray:
+        """The whole episode's feedforward (made when asked for)."""
+        return self.whole().feedforward
 
 
 def generate_excitation(seeds: tuple[int, int, int],
@@ -252,18 +368,10 @@ def generate_excitation(seeds: tuple[int, int, int],
     -------
     Excitation
         target_theta (rad), target_alpha (rad), feedforward (V), each of
-        ``settings.n_samples`` samples; read-only arrays.
+        ``settings.n_samples`` samples; read-only arrays. For long episodes,
+        :class:`ExcitationStream` makes the same values a chunk at a time.
     """
-    if len(seeds) != 3:
-        raise ValueError(f"need three seeds (theta, alpha, feedforward), got {seeds!r}")
-    seed_theta, seed_alpha, seed_ff = seeds
-    rate = _windowed_prbs(seed_theta, settings.theta_rate, settings)
-    signals = (integrate(rate, settings.sample_rate),
-               _windowed_prbs(seed_alpha, settings.alpha, settings),
-               _windowed_prbs(seed_ff, settings.feedforward, settings))
-    for s in signals:
-        s.setflags(write=False)
-    return Excitation(*signals)
+    return ExcitationStream(seeds, settings).whole()
 
 
 def parse_seeds(file_name: str | Path) -> tuple[int, int, int]:
@@ -275,8 +383,8 @@ def parse_seeds(file_name: str | Path) -> tuple[int, int, int]:
         If the name (directories are ignored) does not have that form.
     """
     name = Path(file_name).name
-    match = _FILE_NAME.match(name)
-    if match is None:
+    parsed = parse_episode_name(name, ".csv")
+    if parsed is None:
         raise ValueError(f"{name!r} is not a dataset file name of the form "
                          "'qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_<alpha seed>_<ff seed>.csv'")
-    return int(match[3]), int(match[4]), int(match[5])
+    return tuple(parsed.seeds[k] for k in SEED_SIGNALS)

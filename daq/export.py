@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.daq.episode import UNITS, Episode
+from qube_koopman.daq.episode import UNITS, Episode, stack_signals
 from qube_koopman.daq.legacy_csv import LEGACY_COLUMNS
 
 __all__ = ["FORMATS", "ExportError", "episode_columns", "metadata_records", "episode_frame",
@@ -100,7 +100,7 @@ def episode_frame(episode: Episode):
 
 def legacy_csv_bytes(episode: Episode) -> bytes:
     """The episode in the legacy rig's CSV layout (see the module docstring)."""
-    data = np.column_stack([getattr(episode, name).astype(np.float64) for name in LEGACY_COLUMNS])
+    data = stack_signals(episode, LEGACY_COLUMNS)
     buffer = io.StringIO()
     np.savetxt(buffer, data, fmt="%.17e", delimiter=", ", header=", ".join(LEGACY_COLUMNS), comments="")
     return buffer.getvalue().encode("ascii")

@@ -14,14 +14,16 @@ from __future__ import annotations
 
 import hashlib
 import io
-import re
 import warnings
-from datetime import datetime
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.daq.episode import ControllerInfo, Episode, EpisodeMetadata
+from qube_koopman.daq.episode import (REFERENCE_SIGNALS, STATE_SIGNALS, ControllerInfo, Episode, EpisodeMetadata,
+                                      stack_signals)
+from qube_koopman.daq.log.names import parse_episode_name
+from qube_koopman.sim.lti import replay_controller
 
 __all__ = [
     "LEGACY_COLUMNS",
@@ -45,7 +47,6 @@ CONTROL_TOLERANCE_V = 1e-9
 #: ...from this time on (the first second is the hand-raising transient).
 CONTROL_CHECK_AFTER_S = 1.0
 
-_NAME = re.compile(r"qube_(\d{8}T\d{6})_(\d+)_(\d+)_(\d+)\.csv")
 _TIME_TOLERANCE_S = 1e-9
 
 
@@ -69,16 +70,17 @@ def parse_legacy_name(path: str | Path) -> tuple[str, dict[str, int]]:
         If the name does not follow the pattern or holds an invalid date.
     """
     path = Path(path)
-    match = _NAME.fullmatch(path.name)
-    if match is None:
+    name = parse_episode_name(path, ".csv")
+    if name is None:
         raise LegacyCsvError(f"{path}: file name does not follow qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_"
                              f"<alpha seed>_<feedforward seed>.csv (it gives the start time and seeds)")
     try:
-        start = datetime.strptime(match[1], "%Y%m%dT%H%M%S")
+        start = datetime.strptime(name.stamp, "%Y%m%dT%H%M%S")
     except ValueError:
-        raise LegacyCsvError(f"{path}: file name holds an invalid date and time {match[1]!r}") from None
-    seeds = dict(zip(("target_theta", "target_alpha", "feedforward"), map(int, match.groups()[1:])))
-    return start.isoformat(), seeds
+        raise LegacyCsvError(f"{path}: file name holds an invalid date and time {name.stamp!r}") from None
+    if name.milliseconds is not None:
+        start += timedelta(milliseconds=name.milliseconds)
+    return start.isoformat(), name.seeds
 
 
 def _diagnose(path: Path, text: str, names: list[str]) -> str:
@@ -201,9 +203,8 @@ def controller_state_from_log(columns: dict[str, np.ndarray], controller: Contro
         than ``tolerance`` volts at some t >= ``after_s``, or the file ends
         before ``after_s``.
     """
-    error = np.column_stack((columns["target_theta"] - columns["theta"],
-                             columns["target_alpha"] - columns["alpha"]))
-    state, output = controller.system.simulate(error)
+    state, output = replay_controller(controller.system, stack_signals(columns, REFERENCE_SIGNALS),
+                                      stack_signals(columns, STATE_SIGNALS))
     checked = columns["t"] >= after_s - _TIME_TOLERANCE_S
     if not checked.any():
         raise LegacyCsvError(f"{where}: ends before t = {after_s:g} s, too short to check the controller")

@@ -20,15 +20,16 @@ import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
+from typing import NamedTuple
 
 import numpy as np
 
 from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
-from qube_koopman.daq.excitation import Excitation
+from qube_koopman.daq.excitation import Excitation, ExcitationStream
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.episode import ControllerInfo, EpisodeMetadata
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
-from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingStats, quiet_interpreter, timing_stats
+from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingRecord, TimingStats, quiet_interpreter
 
 __all__ = ["ABORT_CAUSES", "EpisodePlan", "EpisodeResult", "run_episode", "REALTIME_SWITCH_INTERVAL"]
 
@@ -62,8 +63,9 @@ class EpisodePlan:
     controller : ControllerInfo
         The controller: tracking errors (theta, alpha) in, volts out; its
         ``dt`` must equal the backend's sample period.
-    excitation : Excitation
-        target_theta, target_alpha (rad) and feedforward (V), one value per tick.
+    excitation : Excitation or ExcitationStream
+        target_theta, target_alpha (rad) and feedforward (V), one value per tick,
+        read a chunk at a time (``chunks``).
     excitation_info : dict
         Seeds and settings of the excitation, recorded in the log.
     index : int
@@ -75,7 +77,7 @@ class EpisodePlan:
     """
 
     controller: ControllerInfo
-    excitation: Excitation
+    excitation: Excitation | ExcitationStream
     excitation_info: dict = field(default_factory=dict)
     index: int = 0
     source: str = ""
@@ -84,7 +86,7 @@ class EpisodePlan:
     @property
     def n_samples(self) -> int:
         """Ticks planned."""
-        return len(self.excitation.target_theta)
+        return len(self.excitation)
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,16 +105,12 @@ class EpisodeResult(EpisodeOutcome):
     cause : str
         What ended an aborted episode: one of :data:`ABORT_CAUSES`; empty
         when complete.
-    lateness, compute_time : ndarray of shape (n_samples,)
-        Per-tick timing (s); lateness is NaN for a free-running backend.
     """
 
     metadata: EpisodeMetadata | None = None
     sink_errors: tuple[str, ...] = ()
     signal: int | None = None
     cause: str = ""
-    lateness: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    compute_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def complete(self) -> bool:
@@ -167,9 +165,106 @@ def _wait_upright(backend: Backend, limits: SafetyLimits, stop: StopRequest,
             pacer.wait(k)
 
 
+def _check_controller(ctrl, period: float) -> None:
+    """Refuse a controller the loop cannot run: two tracking errors in, one voltage out, at the backend's rate."""
+    if ctrl.n_inputs != 2 or ctrl.n_outputs != 1:
+        raise ValueError("the controller must map the two tracking errors (theta, alpha) to one voltage; "
+                         f"got {ctrl.n_inputs} inputs and {ctrl.n_outputs} outputs")
+    if abs(ctrl.dt - period) > 1e-9 * period:
+        raise ValueError(f"controller dt {ctrl.dt} s differs from the backend's sample period {period} s")
+
+
+def _start(backend: Backend, limits: SafetyLimits, stop: StopRequest,
+           pacer: DeadlinePacer | None) -> tuple[str, str]:
+    """Start the backend and pass the start gate; ('', '') then, else (why not, cause) with the motor at 0 V."""
+    try:
+        backend.start()
+        reason, cause = _wait_upright(backend, limits, stop, pacer)
+    except BackendFault as exc:
+        reason, cause = f"backend fault before the start: {exc}", "fault"
+    if reason:
+        _zero_motor(backend)
+    return reason, cause
+
+
+def _episode_metadata(plan: EpisodePlan, backend: Backend, limits: SafetyLimits) -> EpisodeMetadata:
+    """What the sinks are told when the episode starts."""
+    return EpisodeMetadata(
+        controller=plan.controller, sample_rate_hz=1.0 / backend.sample_period, backend=backend.name,
+        source=plan.source, start_time=datetime.now(timezone.utc).isoformat(),
+        excitation=plan.excitation_info,
+        extra={"episode_index": plan.index, "n_planned": plan.n_samples, "backend": backend.describe(),
+               "safety": limits.as_dict(), **plan.extra})
+
+
+class _TickTimes:
+    """Per-tick lateness and compute time, buffered a chunk of ticks at a time into timing records.
+
+    Memory stays the same for any episode length: the loop writes tick ``k`` at ``k % _CHUNK``,
+    and :meth:`fold` hands the buffered ticks to the records before the buffer is reused.
+    """
+
+    def __init__(self, period: float, also: TimingRecord | None = None) -> None:
+        self.lateness = np.full(_CHUNK, np.nan)
+        self.compute = np.full(_CHUNK, np.nan)
+        self.record = TimingRecord(period)
+        self._records = [self.record] + ([also] if also is not None else [])
+        self._n = 0
+
+    def fold(self, n_ticks: int) -> None:
+        """Add the ticks buffered since the last fold, up to ``n_ticks`` ticks in all."""
+        rest = n_ticks - self._n
+        if rest > 0:
+            for record in self._records:
+                record.add(self.lateness[:rest], self.compute[:rest])
+            self._n = n_ticks
+
+
+class _Logged(NamedTuple):
+    """How the logged part of an episode went (see :func:`_run_logged`)."""
+
+    n_done: int
+    reason: str
+    cause: str
+    outcome: EpisodeOutcome
+    errors: list
+
+
+def _run_logged(backend: Backend, plan: EpisodePlan, metadata: EpisodeMetadata, sinks: list[Sink],
+                limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None,
+                times: _TickTimes) -> _Logged:
+    """Open the sinks, run the ticks, and whatever happens zero the motor and close the sinks."""
+    writer = SinkWriter(sinks)
+    n_done = 0
+    reason = cause = ""
+    try:
+        if not writer.open(metadata):
+            reason, cause = f"log failed: {writer.failed}", "log"
+        else:
+            n_done, reason, cause = _ticks(backend, plan, limits, stop, writer, pacer, times)
+    except BaseException as exc:
+        if not reason:
+            reason, cause = f"loop error: {type(exc).__name__}: {exc}", "error"
+        raise
+    finally:
+        _zero_motor(backend)
+        times.fold(n_done)
+        timing = times.record.stats() if n_done else TimingRecord(backend.sample_period).stats()
+        outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
+                                 _statistics(backend))
+        errors = writer.close(outcome)
+        if writer.failed is not None and not reason:
+            # The log failed after the last tick, while its queue drained: the episode is
+            # lost all the same (SinkWriter.close recorded it aborted).
+            reason, cause = f"log failed: {writer.failed}", "log"
+            outcome = replace(outcome, status="aborted", reason=reason)
+    return _Logged(n_done, reason, cause, outcome, errors)
+
+
 def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
                 limits: SafetyLimits = SafetyLimits(), stop: StopRequest | None = None,
-                handle_signals: bool = True, spin: float = DEFAULT_SPIN) -> EpisodeResult:
+                handle_signals: bool = True, spin: float = DEFAULT_SPIN,
+                timing: TimingRecord | None = None) -> EpisodeResult:
     """Run one episode on a backend, under the safety supervisor, into sinks.
 
     Parameters
@@ -190,118 +285,135 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
         thread only); the previous handlers are restored afterwards.
     spin : float
         For a loop-paced backend: spin this long before each deadline (s).
+    timing : TimingRecord, optional
+        Also add the episode's tick timing to it (a run's statistics over its episodes).
 
     Returns
     -------
     EpisodeResult
     """
-    ctrl = plan.controller.system
-    if ctrl.n_inputs != 2 or ctrl.n_outputs != 1:
-        raise ValueError("the controller must map the two tracking errors (theta, alpha) to one voltage; "
-                         f"got {ctrl.n_inputs} inputs and {ctrl.n_outputs} outputs")
     period = backend.sample_period
-    if abs(ctrl.dt - period) > 1e-9 * period:
-        raise ValueError(f"controller dt {ctrl.dt} s differs from the backend's sample period {period} s")
+    _check_controller(plan.controller.system, period)
     stop = stop if stop is not None else StopRequest()
     n = plan.n_samples
-    not_started = TimingStats(0, period, backend.pacing is not Pacing.NONE)
+    paced = backend.pacing is not Pacing.NONE
 
     signals = stop_on_signals(stop) if handle_signals else nullcontext(False)
     # The collector is frozen before the start gate: once the pendulum is upright,
     # control must begin within a tick, not after a collection of the whole heap.
-    quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if backend.pacing is not Pacing.NONE else None)
+    quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if paced else None)
     with signals, quiet:
         pacer = DeadlinePacer(period, spin) if backend.pacing is Pacing.LOOP else None
-        lateness = np.full(n, np.nan)
-        compute = np.full(n, np.nan)
-        try:
-            backend.start()
-            reason, cause = _wait_upright(backend, limits, stop, pacer)
-        except BackendFault as exc:
-            reason, cause = f"backend fault before the start: {exc}", "fault"
+        times = _TickTimes(period, timing)
+        reason, cause = _start(backend, limits, stop, pacer)
         if reason:
-            _zero_motor(backend)
-            return EpisodeResult("aborted", reason, 0, not_started, _statistics(backend), signal=stop.signal,
-                                 cause=cause)
-
-        metadata = EpisodeMetadata(
-            controller=plan.controller, sample_rate_hz=1.0 / period, backend=backend.name,
-            source=plan.source, start_time=datetime.now(timezone.utc).isoformat(),
-            excitation=plan.excitation_info,
-            extra={"episode_index": plan.index, "n_planned": n, "backend": backend.describe(),
-                   "safety": limits.as_dict(), **plan.extra})
-        writer = SinkWriter(sinks)
-        n_done = 0
-        reason = cause = ""
-        try:
-            if not writer.open(metadata):
-                reason, cause = f"log failed: {writer.failed}", "log"
-            else:
-                n_done, reason, cause = _ticks(backend, plan, limits, stop, writer, pacer, lateness, compute)
-        except BaseException as exc:
-            if not reason:
-                reason, cause = f"loop error: {type(exc).__name__}: {exc}", "error"
-            raise
-        finally:
-            _zero_motor(backend)
-            timing = timing_stats(lateness[:n_done], compute[:n_done], period)
-            outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
-                                     _statistics(backend))
-            errors = writer.close(outcome)
-            if writer.failed is not None and not reason:
-                # The log failed after the last tick, while its queue drained: the episode is
-                # lost all the same (SinkWriter.close recorded it aborted).
-                reason, cause = f"log failed: {writer.failed}", "log"
-                outcome = replace(outcome, status="aborted", reason=reason)
-    metadata = replace(metadata, status=outcome.status, status_reason=reason, timing=timing.as_dict(),
+            return EpisodeResult("aborted", reason, 0, TimingStats(0, period, paced), _statistics(backend),
+                                 signal=stop.signal, cause=cause)
+        metadata = _episode_metadata(plan, backend, limits)
+        run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times)
+    outcome, timing = run.outcome, run.outcome.timing
+    metadata = replace(metadata, status=outcome.status, status_reason=run.reason, timing=timing.as_dict(),
                        backend_stats=outcome.backend_stats)
-    return EpisodeResult(outcome.status, reason, n_done, timing, outcome.backend_stats, metadata=metadata,
-                         sink_errors=tuple(errors), signal=stop.signal, cause=cause, lateness=lateness[:n_done],
-                         compute_time=compute[:n_done])
+    return EpisodeResult(outcome.status, run.reason, run.n_done, timing, outcome.backend_stats, metadata=metadata,
+                         sink_errors=tuple(run.errors), signal=stop.signal, cause=run.cause)
+
+
+def _plain_controller(ctrl) -> tuple[list, list, float, float]:
+    """The controller as plain floats: (rows (A row, B0, B1) per state, C, D0, D1).
+
+    numpy's per-call overhead would cost more than the arithmetic of a 2-state controller.
+    """
+    rows = [(a, b[0], b[1]) for a, b in zip(ctrl.A.tolist(), ctrl.B.tolist())]
+    D0, D1 = ctrl.D[0].tolist()
+    return rows, ctrl.C[0].tolist(), D0, D1
+
+
+class _DeviceLateness:
+    """Lateness of a device-paced tick: its arrival against the device's clock, anchored on tick 0.
+
+    Keeps the writer thread clear of the expected arrivals, and moves the anchor when a tick
+    comes sooner after tick 0 than the device's clock says (tick 0 was read late).
+    """
+
+    def __init__(self, writer: SinkWriter, period: float) -> None:
+        self.writer = writer
+        self.period = period
+        self.guard = min(WRITER_GUARD, 0.5 * period)
+        self.t0 = 0.0
+        self.when0 = None
+
+    def __call__(self, k: int, t_tick: float, when: float | None) -> float:
+        """The lateness (s) of tick ``k`` read at ``t_tick`` (host clock), device time ``when``."""
+        if k == 0:
+            self.t0, self.when0 = t_tick, when
+            self.writer.keep_clear(self.t0, self.period, self.guard)
+        if when is None:
+            return t_tick - (self.t0 + k * self.period)
+        late = t_tick - (self.t0 + (when - self.when0))
+        if late < 0:
+            # Came sooner after tick 0 than the device's clock says: tick 0 was
+            # read late (it had been waiting). Anchor on the earliest arrival.
+            self.t0 += late
+            late = 0.0
+            self.writer.keep_clear(self.t0, self.period, self.guard)
+        return late
+
+
+def _excitation_chunks(ex: Excitation | ExcitationStream):
+    """The excitation as plain floats, a chunk at a time: a whole long episode's worth would
+    take 100 bytes a tick."""
+    for chunk in ex.chunks(_CHUNK):
+        yield tuple(signal.tolist() for signal in chunk)
+
+
+def _abort(theta: float, alpha: float, limits: SafetyLimits, stop: StopRequest,
+           writer: SinkWriter) -> tuple[str, str]:
+    """Why this tick must put the motor at 0 V and end the episode: (reason, cause), or ('', '')."""
+    if not (abs(theta) <= limits.theta_limit and abs(alpha) <= limits.alpha_limit):
+        return limits.violation(theta, alpha), "safety"
+    if stop.requested:
+        return stop.reason, "stop"
+    if writer.failed is not None:
+        return f"log failed: {writer.failed}", "log"
+    return "", ""
+
+
+def _clocking(backend: Backend, writer: SinkWriter, pacer: DeadlinePacer | None):
+    """How ticks are timed: (the pacer's wait or None, a :class:`_DeviceLateness` or None).
+
+    A loop-paced episode's time zero is set here, and the writer kept clear of its deadlines.
+    """
+    period = backend.sample_period
+    if pacer is not None:
+        writer.keep_clear(pacer.start(), period, min(WRITER_GUARD, 0.5 * period))
+        return pacer.wait, None
+    return None, (_DeviceLateness(writer, period) if backend.pacing is Pacing.DEVICE else None)
 
 
 def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest,
-           writer: SinkWriter, pacer: DeadlinePacer | None, lateness: np.ndarray,
-           compute: np.ndarray) -> tuple[int, str, str]:
+           writer: SinkWriter, pacer: DeadlinePacer | None, times: _TickTimes) -> tuple[int, str, str]:
     """The ticks of one episode; returns (ticks recorded, abort reason, cause), '' when complete."""
-    ctrl = plan.controller.system
-    # Plain floats and lists: numpy's per-call overhead would cost more than
-    # the arithmetic of a 2-state controller.
-    A = ctrl.A.tolist()
-    B = ctrl.B.tolist()
-    C = ctrl.C[0].tolist()
-    D0, D1 = ctrl.D[0].tolist()
-    rows = [(a, b[0], b[1]) for a, b in zip(A, B)]
-    xc = (0.0,) * ctrl.n_states
-    ex = plan.excitation
-    n_ticks = len(ex.feedforward)
-    # The excitation is turned into plain floats a chunk at a time: a whole long episode's
-    # worth would take 100 bytes a tick.
+    rows, C, D0, D1 = _plain_controller(plan.controller.system)
+    xc = (0.0,) * len(rows)
+    n_ticks = plan.n_samples
+    chunks = _excitation_chunks(plan.excitation)
     ref_theta = ref_alpha = ff = []
     vmax = limits.max_voltage
     th_lim, al_lim = limits.theta_limit, limits.alpha_limit
-    period = backend.sample_period
-    rate = 1.0 / period  # t = k / rate, the log's nominal time (FORMAT.md)
-    pacing = backend.pacing
+    rate = 1.0 / backend.sample_period  # t = k / rate, the log's nominal time (FORMAT.md)
     read, write, put = backend.read, backend.write, writer.put
     clock = time.perf_counter
-    nan = math.nan
-    late = nan
-    t0 = 0.0
-    if pacer is not None:
-        writer.keep_clear(pacer.start(), period, min(WRITER_GUARD, 0.5 * period))
-    wait = pacer.wait if pacer is not None else None
-    device = pacing is Pacing.DEVICE
-    throttle = pacing is Pacing.NONE
+    late = nan = math.nan
+    wait, device_lateness = _clocking(backend, writer, pacer)
+    throttle = backend.pacing is Pacing.NONE
     device_time = backend.device_time
-    when0 = None
+    lateness, compute = times.lateness, times.compute
 
     for k in range(n_ticks):
         j = k & _CHUNK_MASK
         if not j:
-            ref_theta = np.asarray(ex.target_theta[k:k + _CHUNK], dtype=float).tolist()
-            ref_alpha = np.asarray(ex.target_alpha[k:k + _CHUNK], dtype=float).tolist()
-            ff = np.asarray(ex.feedforward[k:k + _CHUNK], dtype=float).tolist()
+            times.fold(k)
+            ref_theta, ref_alpha, ff = next(chunks)
         if wait is not None:
             late = wait(k)
             t_tick = clock()
@@ -312,20 +424,8 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         when = device_time()  # logged per sample (format 1.3): the device's gaps stay visible
         if wait is None:
             t_tick = clock()
-            if device:
-                if k == 0:
-                    t0, when0 = t_tick, when
-                    writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
-                if when is None:
-                    late = t_tick - (t0 + k * period)
-                else:
-                    late = t_tick - (t0 + (when - when0))
-                    if late < 0:
-                        # Came sooner after tick 0 than the device's clock says: tick 0 was
-                        # read late (it had been waiting). Anchor on the earliest arrival.
-                        t0 += late
-                        late = 0.0
-                        writer.keep_clear(t0, period, min(WRITER_GUARD, 0.5 * period))
+            if device_lateness is not None:
+                late = device_lateness(k, t_tick, when)
         r_theta, r_alpha = ref_theta[j], ref_alpha[j]
         e0 = r_theta - theta
         e1 = r_alpha - alpha
@@ -333,28 +433,22 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         for c, x in zip(C, xc):
             u += c * x
         reason = ""
-        if not (abs(theta) <= th_lim and abs(alpha) <= al_lim):
-            reason, cause = limits.violation(theta, alpha), "safety"
-        elif stop.requested:
-            reason, cause = stop.reason, "stop"
-        elif writer.failed is not None:
-            reason, cause = f"log failed: {writer.failed}", "log"
+        if not (abs(theta) <= th_lim and abs(alpha) <= al_lim) or stop.requested or writer.failed is not None:
+            reason, cause = _abort(theta, alpha, limits, stop, writer)
         if reason:
             v, sat = 0.0, 0
         else:
             v = u + ff[j]
-            sat = 0
-            if v > vmax:
-                v, sat = vmax, 1
-            elif v < -vmax:
-                v, sat = -vmax, -1
+            sat = 1 if v > vmax else -1 if v < -vmax else 0
+            if sat:
+                v = sat * vmax
         try:
             write(v)
         except BackendFault as exc:
             return k, f"backend fault: {exc}", "fault"
         spent = clock() - t_tick
-        lateness[k] = late
-        compute[k] = spent
+        lateness[j] = late
+        compute[j] = spent
         put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[j], u, v, sat, late, spent, xc,
                    nan if when is None else when))
         if throttle and not k & _BACKLOG_CHECK:

@@ -16,13 +16,11 @@ from typing import Sequence
 
 from qube_koopman.daq.episode import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings
+from qube_koopman.daq.log.names import SEED_SIGNALS
 from qube_koopman.daq.loop import EpisodePlan
 from qube_koopman.daq.session import plan_episodes
 
 __all__ = ["replay_plans"]
-
-_SEED_NAMES = ("target_theta", "target_alpha", "feedforward")
-
 
 def _settings(meta, path: Path) -> ExcitationSettings:
     recorded = meta.excitation.get("settings")
@@ -51,9 +49,9 @@ def replay_plans(paths: Sequence[str | Path], controller: ControllerInfo | None 
         except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's to fix
             raise ValueError(f"{path}: cannot read the episode log ({exc})") from None
         seeds = meta.excitation.get("seeds", {})
-        if not all(isinstance(seeds.get(k), int) for k in _SEED_NAMES):
+        if not all(isinstance(seeds.get(k), int) for k in SEED_SIGNALS):
             raise ValueError(f"{path}: the log records no excitation seeds; it cannot be replayed")
-        (plan,) = plan_episodes(controller or meta.controller, [tuple(seeds[k] for k in _SEED_NAMES)],
+        (plan,) = plan_episodes(controller or meta.controller, [tuple(seeds[k] for k in SEED_SIGNALS)],
                                 _settings(meta, path), source=source,
                                 extra={"command": "qube-run --replay", "replay_of": path.name})
         plans.append(replace(plan, index=i))

@@ -9,6 +9,7 @@ fault or a log failure, and going on after a safety stop.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -19,11 +20,12 @@ import numpy as np
 from qube_koopman.daq.backends.base import Backend
 from qube_koopman.daq.controller import load_pd_gains, pd_controller
 from qube_koopman.daq.episode import ControllerInfo
-from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
+from qube_koopman.daq.excitation import ExcitationSettings, ExcitationStream
+from qube_koopman.daq.log.names import SEED_SIGNALS
 from qube_koopman.daq.loop import EpisodePlan, EpisodeResult, run_episode
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.sinks import Sink
-from qube_koopman.daq.timing import DEFAULT_SPIN
+from qube_koopman.daq.timing import DEFAULT_SPIN, TimingRecord
 
 __all__ = [
     "SEED_RANGE",
@@ -52,6 +54,8 @@ MAX_DURATION = 86_400.0
 # The rig's excitation (FACTS section 3) was laid out for 20 s episodes:
 # quiet until 4 s, active until 16 s. Other lengths keep these proportions.
 _RIG_SECONDS = 20.0
+
+_log = logging.getLogger(__name__)
 
 
 def default_controller_path() -> Path:
@@ -103,7 +107,7 @@ def excitation_record(seeds: Sequence[int], settings: ExcitationSettings) -> dic
     return {
         "generator": "daq.excitation.generate_excitation (the rig's PRBS: 16-bit Fibonacci LFSR, "
                      "taps 16 14 13 11)",
-        "seeds": dict(zip(("target_theta", "target_alpha", "feedforward"), (int(s) for s in seeds))),
+        "seeds": dict(zip(SEED_SIGNALS, (int(s) for s in seeds))),
         "settings": settings.as_dict(),
     }
 
@@ -122,7 +126,7 @@ class EpisodePlans(Sequence):
     """The plans of a run, each made when it is asked for.
 
     Only the seeds are kept (6 bytes an episode), so planning a million episodes costs what
-    planning one does, plus 6 MB; each plan's excitation exists while its episode runs.
+    planning one does, plus 6 MB; each plan's excitation is made a chunk at a time as its episode runs.
     """
 
     def __init__(self, controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]],
@@ -147,7 +151,7 @@ class EpisodePlans(Sequence):
             return [self[i] for i in range(*index.indices(len(self)))]
         i = range(len(self))[index]  # IndexError and negative indices as a list's
         s = tuple(int(v) for v in self.seeds[i])
-        return EpisodePlan(self.controller, generate_excitation(s, self.settings),
+        return EpisodePlan(self.controller, ExcitationStream(s, self.settings),
                            excitation_record(s, self.settings), index=i, source=self.source,
                            extra=dict(self.extra))
 
@@ -189,7 +193,8 @@ def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sin
                  limits: SafetyLimits = SafetyLimits(), stop: StopRequest | None = None,
                  spin: float = DEFAULT_SPIN,
                  on_start: Callable[[EpisodePlan], None] | None = None,
-                 on_result: Callable[[EpisodePlan, EpisodeResult], None] | None = None) -> RunResult:
+                 on_result: Callable[[EpisodePlan, EpisodeResult], None] | None = None,
+                 timing: TimingRecord | None = None) -> RunResult:
     """Run episodes one after the other; SIGINT/SIGTERM end the run cleanly.
 
     Signal handlers are installed for the duration of the run (restored
@@ -209,6 +214,8 @@ def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sin
         Spin before each deadline when the loop paces (s).
     on_start, on_result : callable, optional
         Called before and after each episode (progress, summaries).
+    timing : TimingRecord, optional
+        Gathers the tick timing of every episode (the run's statistics, in bounded memory).
     """
     stop = stop if stop is not None else StopRequest()
     run = RunResult()
@@ -220,8 +227,10 @@ def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sin
             if on_start is not None:
                 on_start(plan)
             result = run_episode(backend, plan, sinks, limits=limits, stop=stop, handle_signals=False,
-                                 spin=spin)
+                                 spin=spin, timing=timing)
             run.results.append(result)
+            _log.info("episode %d: %s after %d of %d ticks%s", plan.index, result.status, result.n_samples,
+                      plan.n_samples, f" ({result.reason})" if result.reason else "")
             if on_result is not None:
                 on_result(plan, result)
             if result.cause in _FATAL:

@@ -10,6 +10,7 @@ run on the writer thread except ``open``, which runs before the first tick.
 from __future__ import annotations
 
 import errno
+import logging
 import shutil
 import threading
 import time
@@ -20,7 +21,10 @@ from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
 import numpy as np
 
 from qube_koopman.daq.episode import Episode, EpisodeMetadata
+from qube_koopman.daq.log.names import episode_stem, log_path
 from qube_koopman.daq.timing import TimingStats
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "Sample",
@@ -327,10 +331,10 @@ class McapSink:
 
         self.error = None
         base = episode_file_stem(metadata)
-        path = self.out_dir / f"{base}.mcap"
+        path = log_path(self.out_dir, base)
         n = 1
         while path.exists():
-            path = self.out_dir / f"{base}_{n}.mcap"
+            path = log_path(self.out_dir, f"{base}_{n}")
             n += 1
         need = log_size_needed(int(metadata.extra.get("n_planned", 0)))
         free = shutil.disk_usage(self.out_dir).free
@@ -342,6 +346,7 @@ class McapSink:
         except OSError as exc:
             self._fail(path, exc)
         self.paths.append(path)
+        _log.debug("writing %s (%.1f MB free, the episode needs about %.1f MB)", path, free / 1e6, need / 1e6)
 
     def write(self, sample: Sample) -> None:
         """Append one tick (flushed every ``flush_interval_s`` of data)."""
@@ -406,13 +411,6 @@ class LogWriteError(OSError):
 
 
 def episode_file_stem(metadata: EpisodeMetadata) -> str:
-    """``qube_<date>T<time>.<ms>_<s1>_<s2>_<s3>``: start time (UTC, ISO 8601 basic) and excitation seeds."""
-    start = metadata.start_datetime
-    if start.tzinfo is not None:
-        from datetime import timezone
-
-        start = start.astimezone(timezone.utc)
-    seeds = metadata.excitation.get("seeds", {})
-    parts = [str(seeds[k]) for k in ("target_theta", "target_alpha", "feedforward") if k in seeds]
-    stamp = f"{start:%Y%m%dT%H%M%S}.{start.microsecond // 1000:03d}"
-    return "_".join([f"qube_{stamp}", *parts])
+    """``qube_<date>T<time>.<ms>_<s1>_<s2>_<s3>``: start time (UTC, ISO 8601 basic) and excitation seeds
+    (:func:`daq.log.names.episode_stem` of the metadata)."""
+    return episode_stem(metadata.start_datetime, metadata.excitation.get("seeds", {}))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,8 @@ __all__ = ["LoggedTrajectory", "load_logs", "check_same_controller", "check_same
            "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "UnreadableLogSkipped", "same_system"]
 
 STATE_NAMES = ("theta", "alpha")
+
+_log = logging.getLogger(__name__)
 
 
 class IncompleteLogSkipped(UserWarning):
@@ -78,6 +81,8 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False) 
                           f=np.asarray(episode.feedforward)[:, None], xc=episode.controller_state,
                           name=path.name, state_names=STATE_NAMES, input_names=("u",), dt=episode.dt)
         out.append(LoggedTrajectory(path, traj.skip(skip), episode.controller))
+        _log.debug("%s: %d samples at %g Hz", path, len(episode), 1.0 / episode.dt)
+    _log.info("read %d of %d episode logs", len(out), len(paths))
     return out
 
 

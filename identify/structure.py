@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace, replay_controller
 
 __all__ = [
     "output_selection",
@@ -96,11 +96,9 @@ def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np
 
 
 def controller_states(controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Controller state along an episode, run from zero on the tracking error ``r - y``."""
-    e = np.asarray(r, dtype=float) - np.asarray(y, dtype=float)
-    if e.ndim == 1:
-        e = e[:, None]
-    return controller.simulate(e)[0]
+    """Controller state along an episode, run from zero on the tracking error ``r - y``
+    (the states of :func:`sim.lti.replay_controller`)."""
+    return replay_controller(controller, r, y)[0]
 
 
 def plant_input(controller: DiscreteStateSpace, xc: np.ndarray, r: np.ndarray, y: np.ndarray,

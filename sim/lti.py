@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DiscreteStateSpace"]
+__all__ = ["DiscreteStateSpace", "replay_controller"]
 
 
 def _as_matrix(value, name: str) -> np.ndarray:
@@ -136,3 +136,33 @@ class DiscreteStateSpace:
         import control  # imported lazily: python-control pulls in matplotlib
 
         return control.ss(self.A, self.B, self.C, self.D, self.dt)
+
+
+def replay_controller(controller: DiscreteStateSpace, references, measured,
+                      x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Re-run a controller over logged samples: its state and output along the tracking error.
+
+    Every controller of the project maps the tracking error ``e = references - measured``
+    (one channel per fed-back state) to the plant input; this is the one place that replays
+    it offline, from ``x0`` (zero, as on the rig, by default).
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        The controller, ``n_inputs`` tracking-error channels in.
+    references, measured : array_like of shape (n_samples, n_inputs) or (n_samples,)
+        Logged references and measured outputs; 1-D for a one-channel controller.
+    x0 : ndarray of shape (n_states,), optional
+        Initial controller state.
+
+    Returns
+    -------
+    states : ndarray of shape (n_samples, n_states)
+        State before each sample's update.
+    outputs : ndarray of shape (n_samples, n_outputs)
+        Controller output ``C x + D e`` at each sample (before any feedforward).
+    """
+    error = np.asarray(references, dtype=float) - np.asarray(measured, dtype=float)
+    if error.ndim == 1:
+        error = error[:, None]
+    return controller.simulate(error, x0)

@@ -45,11 +45,12 @@ def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
     """All 48 episodes imported into MCAP logs once per session (about 6 s)."""
     from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
     from qube_koopman.daq.log import write_episode
+    from qube_koopman.daq.log.names import log_path
 
     out = tmp_path_factory.mktemp("qube_logs")
     controller = load_legacy_controller(qube_csv_files[0].parent / "controller.toml")
     for path in qube_csv_files:
-        write_episode(out / f"{path.stem}.mcap", legacy_episode(path, controller))
+        write_episode(log_path(out, path.stem), legacy_episode(path, controller))
     return out
 
 

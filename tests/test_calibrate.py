@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from _episodes import QUBE_PD
+from qube_koopman.daq.episode import REFERENCE_SIGNALS, stack_signals
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
 from qube_koopman.identify.calibrate import PlantCalibration
 from qube_koopman.identify.calibrate import shooting as ms
@@ -21,7 +22,7 @@ def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0,
     samples = int(seconds / DT)
     settings = ExcitationSettings(n_samples=samples, window_start=250, window_stop=samples)
     ex = [generate_excitation((11 + i, 22 + i, 33 + i), settings) for i in range(n)]
-    refs = np.stack([np.column_stack([e.target_theta, e.target_alpha]) for e in ex], axis=1)
+    refs = np.stack([stack_signals(e, REFERENCE_SIGNALS) for e in ex], axis=1)
     ff = np.stack([e.feedforward for e in ex], axis=1)
     offsets = rng.normal(0.0025, 0.002, n)
     state0 = np.column_stack([np.zeros(n), rng.uniform(-0.02, 0.02, n), np.zeros((n, 2))])

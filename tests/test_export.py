@@ -14,6 +14,7 @@ from qube_koopman.daq.cli.import_csv import main as import_main
 from qube_koopman.daq.export import episode_columns, export_episode, write_mat
 from qube_koopman.daq.log import read_episode, write_episode
 from qube_koopman.daq.log.metadata import metadata_from_records
+from qube_koopman.daq.log.names import log_path
 
 
 @pytest.fixture
@@ -34,7 +35,7 @@ def test_csv_round_trips_the_48_dataset_files_bit_for_bit(qube_csv_files, qube_l
     (tmp_path / "csv" / "controller.toml").write_bytes((qube_csv_files[0].parent / "controller.toml").read_bytes())
     assert import_main([str(tmp_path / "csv"), "--out", str(tmp_path / "again"), "-q"]) == 0
     for original in qube_csv_files[:5]:
-        first, again = read_episode(qube_logs / f"{original.stem}.mcap"), read_episode(tmp_path / "again" / f"{original.stem}.mcap")
+        first, again = read_episode(log_path(qube_logs, original.stem)), read_episode(log_path(tmp_path / "again", original.stem))
         for name, value in first.arrays().items():
             np.testing.assert_array_equal(getattr(again, name), value, err_msg=f"{original.name}: {name}")
 

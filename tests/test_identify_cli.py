@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+from qube_koopman.daq.log.names import find_logs
 from qube_koopman.identify.cli.identify import main
 from qube_koopman.identify.model_file import load_model
 
@@ -16,7 +17,7 @@ pytestmark = pytest.mark.dataset
 @pytest.fixture(scope="module")
 def small_set(qube_logs, tmp_path_factory):
     """8 training and 4 test episodes of the real data."""
-    logs = sorted(qube_logs.glob("*.mcap"))
+    logs = find_logs(qube_logs)
     root = tmp_path_factory.mktemp("small")
     for name, chosen in (("train", logs[:8]), ("test", logs[28:32])):
         (root / name).mkdir()
@@ -56,7 +57,7 @@ def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
     loaded = load_model(tmp_path / "model.json")
     from qube_koopman.identify.data import load_logs
 
-    log = load_logs(sorted((small_set / "test").glob("*.mcap"))[:1], skip=500)[0]
+    log = load_logs(find_logs(small_set / "test")[:1], skip=500)[0]
     pred = loaded["closed_loop"].predict(log.trajectory)
     from qube_koopman.identify import r2_score
 
@@ -99,7 +100,7 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     from qube_koopman.daq.log import read_episode, write_episode
     from dataclasses import replace
 
-    source = sorted((small_set / "train").glob("*.mcap"))[0]
+    source = find_logs(small_set / "train")[0]
     ep = read_episode(source)
     system = ep.metadata.controller.system
     odd_system = replace(system, C=system.C * 1.1)

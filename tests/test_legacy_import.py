@@ -20,6 +20,8 @@ from qube_koopman.daq.legacy_csv import (
     parse_legacy_name,
 )
 from qube_koopman.daq.log import read_episode
+from qube_koopman.daq.log.names import log_path
+from qube_koopman.sim.lti import replay_controller
 
 GAINS_TOML = "kp_theta = 6.0\nkd_theta = 1.8\nkp_alpha = 30.0\nkd_alpha = 2.5\ntau = 50.0\n"
 GOOD = "qube_20230828T150615_434_696_394"
@@ -31,7 +33,7 @@ def write_synthetic_csv(path: Path, n: int = 1000, seed: int = 0) -> np.ndarray:
     t = np.arange(n) * 0.002
     target = np.column_stack((np.cumsum(rng.normal(0, 1e-3, n)), 0.01 * np.sign(rng.normal(size=n))))
     measured = target + rng.normal(0, 0.02, (n, 2))
-    _, output = QUBE_PD.simulate(target - measured)
+    _, output = replay_controller(QUBE_PD, target, measured)
     feedforward = 0.5 * np.sign(rng.normal(size=n))
     plant_input = np.clip(output[:, 0] + feedforward, -10, 10)
     saturation = np.where(output[:, 0] + feedforward > 10, 1, np.where(output[:, 0] + feedforward < -10, -1, 0))
@@ -97,7 +99,7 @@ def test_synthetic_import_round_trip(synthetic_dir, tmp_path, capsys):
     out = tmp_path / "out"
     assert main([str(synthetic_dir), "--out", str(out)]) == 0
     assert "imported 1 of 1 file into" in capsys.readouterr().out
-    episode = read_episode(out / f"{GOOD}.mcap")
+    episode = read_episode(log_path(out, GOOD))
     assert_matches_csv(episode, synthetic_dir / f"{GOOD}.csv")
     assert_controller_state_consistent(episode)
     meta = episode.metadata
@@ -259,7 +261,7 @@ def test_dataset_subset_round_trip(qube_csv_files, tmp_path, capsys):
     subset = [qube_csv_files[0], qube_csv_files[-1]]
     assert main([*map(str, subset), "--out", str(tmp_path), "--quiet"]) == 0
     for path in subset:
-        episode = read_episode(tmp_path / f"{path.stem}.mcap")
+        episode = read_episode(log_path(tmp_path, path.stem))
         assert len(episode) == 10_000
         assert_matches_csv(episode, path)
         assert_controller_state_consistent(episode)

@@ -21,6 +21,8 @@ from _qube_csv import load_episode
 from scipy.signal import savgol_filter
 
 from qube_koopman.daq.controller import load_pd_gains, pd_controller
+from qube_koopman.daq.episode import REFERENCE_SIGNALS, STATE_SIGNALS, stack_signals
+from qube_koopman.sim.lti import replay_controller
 from qube_koopman.sim.pendulum import PendulumParameters, simulate_closed_loop
 
 START = 500
@@ -35,8 +37,8 @@ def real(qube_csv_files):
     """All episodes stacked, time first: (10000, 48[, 2])."""
     episodes = [load_episode(path) for path in qube_csv_files]
     stack = {name: np.stack([e[name] for e in episodes], axis=1) for name in episodes[0]}
-    stack["r"] = np.stack([stack["target_theta"], stack["target_alpha"]], axis=-1)
-    stack["y"] = np.stack([stack["theta"], stack["alpha"]], axis=-1)
+    stack["r"] = stack_signals(stack, REFERENCE_SIGNALS)
+    stack["y"] = stack_signals(stack, STATE_SIGNALS)
     return stack
 
 
@@ -46,9 +48,8 @@ def controller(qube_dataset):
 
 
 def replay(real, controller, params):
-    errors = real["r"][:START + 1] - real["y"][:START + 1]
-    controller_state = np.stack([controller.simulate(errors[:, i])[0][START]
-                                 for i in range(errors.shape[1])])
+    r, y = real["r"][:START + 1], real["y"][:START + 1]
+    controller_state = np.stack([replay_controller(controller, r[:, i], y[:, i])[0][START] for i in range(r.shape[1])])
     rates = savgol_filter(real["y"][START - 10:START + 11], 21, 2, deriv=1, delta=DT, axis=0)[10]
     state0 = np.concatenate([real["y"][START], rates], axis=-1)
     return simulate_closed_loop(state0, controller, real["r"][START:], real["feedforward"][START:],
@@ -69,8 +70,7 @@ def test_real_measurements_are_on_the_encoder_grid(real):
 
 def test_controller_state_reproduces_the_logged_output(real, controller):
     # The starting controller state is only right if it reproduces the rig's output.
-    errors = real["r"][:, 0] - real["y"][:, 0]
-    _, u = controller.simulate(errors)
+    _, u = replay_controller(controller, real["r"][:, 0], real["y"][:, 0])
     np.testing.assert_allclose(u[:, 0], real["control_output"][:, 0], rtol=0, atol=1e-9)
 
 

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import warnings
 from pathlib import Path
 
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.daq.log.names import LOG_SUFFIX
+from qube_koopman.sim.cli.common import add_standard_options, configure_logging
+
+_log = logging.getLogger(__name__)
 
 PROG = "qube-export"
 
@@ -46,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--format", required=True, choices=tuple(FORMATS), help="output format")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (created if missing)")
     parser.add_argument("--force", action="store_true", help="overwrite existing files in DIR")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress counter")
+    add_standard_options(parser, "no progress counter")
     return parser
 
 
@@ -55,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
+    configure_logging(PROG, args)
 
     from qube_koopman.daq.export import ExportError, export_episode
     from qube_koopman.daq.log import IncompleteEpisodeWarning
@@ -63,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)
         return 2
     problems: list[str] = []
-    logs = expand_sources(args.logs, ".mcap", problems)
+    logs = expand_sources(args.logs, LOG_SUFFIX, problems)
     progress = Progress(len(logs), not args.quiet)
 
     def say(kind: str, message: str) -> None:
@@ -80,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             for warning in caught:
                 say("warning", str(warning.message))
             exported += 1
+            _log.info("%s: exported as %s into %s", log, args.format, args.out)
         except ExportError as exc:
             refused += 1
             say("error", str(exc))

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.daq.log.names import log_path
+from qube_koopman.sim.cli.common import configure_logging
+
+_log = logging.getLogger(__name__)
 
 PROG = "qube-import"
 
@@ -35,7 +40,7 @@ example:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_standard_options
 
     parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -49,8 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--force", action="store_true",
                         help="overwrite existing .mcap files in DIR (by default an existing file is "
                              "left alone and its CSV is refused)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress counter")
-    add_version(parser)
+    add_standard_options(parser, "no progress counter")
     return parser
 
 
@@ -59,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
+    configure_logging(PROG, args)
 
     from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
     from qube_koopman.daq.log import write_episode
@@ -103,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     imported, refused = 0, 0
     claimed: dict[Path, Path] = {}
     for done, csv in enumerate(files, start=1):
-        out = args.out / f"{csv.stem}.mcap"
+        out = log_path(args.out, csv.stem)
         try:
             if out in claimed:
                 raise LegacyCsvError(f"{csv}: same base name as {claimed[out]}; both would write {out}")
@@ -114,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
             args.out.mkdir(parents=True, exist_ok=True)
             write_episode(out, episode, overwrite=args.force)
             imported += 1
+            _log.info("%s: imported into %s", csv, out)
         except LegacyCsvError as exc:
             refused += 1
             refuse(str(exc))

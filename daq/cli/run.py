@@ -7,6 +7,8 @@ import math
 import sys
 from pathlib import Path
 
+from qube_koopman.sim.cli.common import configure_logging
+
 PROG = "qube-run"
 DEFAULT_EPISODES = 3
 DEFAULT_DURATION = 20.0
@@ -90,7 +92,7 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_standard_options
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -147,8 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
                     help="run SCHED_FIFO at priority P (1..99; needs permission)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    add_version(p)
+    add_standard_options(p, "no progress bar")
     return p
 
 
@@ -255,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, or a usage error already explained in one line
         return int(exc.code or 0)
+    configure_logging(PROG, args)
     try:
         return _run(args)
     except _Fail as exc:
@@ -426,12 +428,10 @@ def _run(args) -> int:
 
 
 def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
-    import numpy as np
-
     from qube_koopman.daq.loop import EpisodeResult
     from qube_koopman.daq.session import run_episodes
     from qube_koopman.daq.sinks import McapSink
-    from qube_koopman.daq.timing import realtime_scheduling, timing_stats
+    from qube_koopman.daq.timing import TimingRecord, realtime_scheduling
 
     sinks: list = [McapSink(args.out)]
     rerun_sink = None
@@ -460,12 +460,13 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
         names.append(name)
         progress.episode_done(plan.index, result, name)
 
+    timing = TimingRecord(1.0 / rate)  # all episodes' ticks, in bounded memory
     want_rt = args.rt_cpu is not None or args.rt_priority is not None
     try:
         with realtime_scheduling(args.rt_cpu, args.rt_priority) as rt:
             if want_rt:
                 print(f"{PROG}: real-time scheduling: {rt.describe()}", flush=True)
-            run = run_episodes(backend, plans, sinks, limits=limits, on_result=on_result)
+            run = run_episodes(backend, plans, sinks, limits=limits, on_result=on_result, timing=timing)
     finally:
         progress.clear()
         if rerun_sink is not None:
@@ -473,9 +474,7 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
 
     results = run.results
     started = [r for r in results if r.started]
-    late = np.concatenate([r.lateness for r in results]) if results else np.zeros(0)
-    comp = np.concatenate([r.compute_time for r in results]) if results else np.zeros(0)
-    print(summary_table(list(zip(names, results)), timing_stats(late, comp, 1.0 / rate)))
+    print(summary_table(list(zip(names, results)), timing.stats()))
     link = _link_summary(results)
     if link:
         print(link)

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from qube_koopman.identify.cli.common import CliError, output_dir, run_command
+from qube_koopman.sim.cli.common import add_standard_options
 
 __all__ = ["main"]
 
@@ -34,7 +35,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--horizon", type=float, default=0.1, metavar="S", help="shooting segment length (default 0.1)")
     p.add_argument("--delay", type=int, default=0, metavar="N", help="transport delay in samples (default 0)")
     p.add_argument("--max-nfev", type=int, default=40, metavar="N", help="solver iteration budget (default 40)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    add_standard_options(p, "no progress line")
     return p
 
 

@@ -9,7 +9,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from qube_koopman.sim.cli.common import ProgressCallback
+from qube_koopman.sim.cli.common import ProgressCallback, configure_logging
 
 
 class CliError(Exception):
@@ -67,8 +67,11 @@ def run_command(prog: str, command, args) -> int:
 
     Errors read ``<prog>: error: <problem>`` (the problem names the file first when there is
     one); a log left out of the data (incomplete or unreadable) is one ``<prog>: warning:`` line
-    naming it.
+    naming it. Log lines go to stderr at the level ``-v``/``-q`` ask for; ``-q`` also silences
+    the progress bars.
     """
+    configure_logging(prog, args)
+    progress.enabled = not getattr(args, "quiet", False)
     from qube_koopman.identify.data import IncompleteLogSkipped
 
     default_show = warnings.showwarning

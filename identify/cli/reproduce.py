@@ -18,16 +18,17 @@ Reproduce the closed-loop Koopman paper's results.
             paper's table, and writes OUT/duffing.json.
   qube      Section 5: the QUBE-Servo regularization study and test table from
             the imported episode logs (qube-import), beside the paper's values;
-            writes OUT/qube.json and OUT/qube.md.
+            writes OUT/qube.json and OUT/qube.md. Unreadable or incomplete logs
+            are skipped with a warning naming each (--strict: refused).
 """
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_standard_options
 
     parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_version(parser)
+    add_standard_options(parser)
     sub = parser.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
     duffing = sub.add_parser("duffing", help="paper section 4 (simulated Duffing oscillator)",
                              description="Paper section 4: simulate the Duffing experiment, fit four models, "
@@ -50,12 +51,18 @@ def _parser() -> argparse.ArgumentParser:
                       help="folder for qube.json and qube.md (default: %(default)s)")
     qube.add_argument("--n-alphas", type=int, default=180, metavar="N",
                       help="alphas in the study, log-spaced 1e-3..1e3 (default: %(default)s)")
+    qube.add_argument("--strict", action="store_true",
+                      help="refuse unreadable or incomplete logs in --data instead of skipping them")
+    for experiment in (duffing, qube):
+        add_standard_options(experiment, subcommand=True)
     return parser
 
 
 def _qube(args) -> int:
+    import warnings
     from pathlib import Path
 
+    from qube_koopman.identify.data import IncompleteLogSkipped
     from qube_koopman.identify.reproduce.qube import reproduce_qube
     from qube_koopman.identify.reproduce.report import qube_markdown, qube_table
 
@@ -65,7 +72,12 @@ def _qube(args) -> int:
         raise CliError(f"--n-alphas must be at least 2, got {args.n_alphas}")
     out = output_dir(args.out)
     try:
-        results = reproduce_qube(args.data, n_alphas=args.n_alphas, progress=progress)
+        with warnings.catch_warnings():
+            if args.strict:  # the first log load_logs would skip stops the study instead
+                warnings.simplefilter("error", IncompleteLogSkipped)
+            results = reproduce_qube(args.data, n_alphas=args.n_alphas, progress=progress)
+    except IncompleteLogSkipped as exc:
+        raise CliError(f"{str(exc).removesuffix('; skipped')}; refused because of --strict") from None
     except ValueError as exc:
         raise CliError(str(exc)) from None
     print(qube_table(results))

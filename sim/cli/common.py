@@ -8,9 +8,18 @@ library, and tqdm for progress bars (imported when a bar is made).
 from __future__ import annotations
 
 import argparse
+import logging
+import platform
 import sys
 
-__all__ = ["package_version", "add_version", "progress_bar", "ProgressCallback"]
+__all__ = ["package_version", "add_standard_options", "add_version", "configure_logging", "LOGGER",
+           "progress_bar", "ProgressCallback"]
+
+#: The project's logger namespace: modules log with ``logging.getLogger(__name__)`` under it.
+LOGGER = "qube_koopman"
+
+# The handler configure_logging installed last (replaced, not stacked, when called again).
+_handler: logging.Handler | None = None
 
 DISTRIBUTION = "qube-koopman"
 
@@ -25,10 +34,78 @@ def package_version() -> str:
         return "unknown"
 
 
+def add_standard_options(parser: argparse.ArgumentParser, quiet_help: str = "no progress bar", *,
+                         subcommand: bool = False) -> None:
+    """Give ``parser`` the options every command has: ``--version``, ``-v/--verbose``, ``-q/--quiet``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        A command's parser (or one of its subcommands' parsers).
+    quiet_help : str
+        What ``-q`` quiets besides log lines below errors (always: progress bars).
+    subcommand : bool
+        For a subcommand's parser: no ``--version`` (the command has it); ``-v``/``-q`` are
+        then taken before or after the subcommand (when both, those after it count).
+    """
+    default = argparse.SUPPRESS if subcommand else None
+    if not subcommand:
+        parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}",
+                            help="print the version and exit")
+    parser.add_argument("-v", "--verbose", action="count", default=default if subcommand else 0,
+                        help="say more on stderr: -v what is done (info), -vv details (debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", default=default if subcommand else False,
+                        help=f"{quiet_help}; log only errors")
+
+
 def add_version(parser: argparse.ArgumentParser) -> None:
-    """Give ``parser`` a ``--version`` that prints ``<prog> <version>`` and exits 0."""
-    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}",
-                        help="print the version and exit")
+    """The standard options under their first name (``--version`` came first): :func:`add_standard_options`."""
+    add_standard_options(parser)
+
+
+def configure_logging(prog: str, args: argparse.Namespace) -> logging.Logger:
+    """Send the project's log records to stderr as ``<prog>: <level>: <message>``, at the level asked for.
+
+    Warnings and errors by default, info with ``-v``, debug with ``-vv``, errors only with
+    ``-q``. Call it once the arguments are parsed; calling it again replaces the handler.
+
+    Parameters
+    ----------
+    prog : str
+        The command's name, first on every line.
+    args : argparse.Namespace
+        Parsed arguments with ``verbose`` (count) and ``quiet`` (missing ones count as unset).
+
+    Returns
+    -------
+    logging.Logger
+        The project's logger (:data:`LOGGER`).
+    """
+    global _handler
+    verbose, quiet = getattr(args, "verbose", 0) or 0, bool(getattr(args, "quiet", False))
+    level = logging.ERROR if quiet else {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
+    logger = logging.getLogger(LOGGER)
+    if _handler is not None:
+        logger.removeHandler(_handler)
+    _handler = logging.StreamHandler(sys.stderr)
+    _handler.setFormatter(_CommandFormatter(prog))
+    logger.addHandler(_handler)
+    logger.setLevel(level)
+    logger.propagate = False  # the command owns stderr: no second copy through the root logger
+    logger.info("%s %s on Python %s (%s)", prog, package_version(), platform.python_version(), sys.executable)
+    return logger
+
+
+class _CommandFormatter(logging.Formatter):
+    """``<prog>: <level>: <message>``, the style of the commands' error lines."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__()
+        self.prog = prog
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = f"{self.prog}: {record.levelname.lower()}: {record.getMessage()}"
+        return text + ("\n" + self.formatException(record.exc_info) if record.exc_info else "")
 
 
 def progress_bar(total: float, desc: str | None = None, unit: str = "it", enabled: bool = True, **options):

@@ -6,6 +6,8 @@ import argparse
 import math
 import sys
 
+from qube_koopman.sim.cli.common import configure_logging
+
 PROG = "qube-emulate"
 
 _DESCRIPTION = """\
@@ -61,7 +63,7 @@ _TIME = _number(0.0, 1e6, "a time")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_standard_options
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -108,8 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="write a per-tick record (device time, applied voltage, commands) at exit "
                           "(the last 10 minutes)")
     out.add_argument("--stats", default=None, metavar="FILE.json", help="write the final counters at exit")
-    out.add_argument("-q", "--quiet", action="store_true", help="only the device path on standard output")
-    add_version(p)
+    add_standard_options(p, "only the device path on standard output")
     return p
 
 
@@ -139,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:
         return int(exc.code or 0)
+    configure_logging(PROG, args)
     if args.target == "avr":
         return _main_avr(args, parser)
     import signal
@@ -207,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-_AVR_OPTIONS = ("target", "seed", "perturbation", "hanging", "quiet")
+_AVR_OPTIONS = ("target", "seed", "perturbation", "hanging", "quiet", "verbose")
 
 
 def _main_avr(args, parser) -> int:
