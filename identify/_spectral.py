@@ -1,0 +1,183 @@
+"""Least change of a regression that puts a matrix's eigenvalues in a disc (sequential QP).
+
+The problem: the closed-loop state matrix ``A(U) = A_0 + E U S`` is affine
+in the free rows ``U`` (``E`` places them, ``S`` maps the state onto the
+regressors), and the least-squares cost is a quadratic
+``(U - U_0) K (U - U_0)^T`` around its unconstrained minimizer ``U_0``.
+Minimize that cost subject to ``|lambda_i(A(U)) - c| <= rho`` for every
+eigenvalue.
+
+The eigenvalue moduli are smooth where the eigenvalues are simple, with
+first-order perturbation theory (left eigenvector ``w``, right ``v``)
+
+    d lambda = w^H E dU S v / (w^H v).
+
+Each step linearizes the moduli of the eigenvalues near or beyond the
+boundary and solves the resulting least-distance problem in the metric of
+``K`` exactly (Lawson and Hanson, *Solving Least Squares Problems*, 1974,
+ch. 23: least distance programming through one NNLS), i.e. a sequential
+quadratic programming method on the eigenvalue constraints (the spectral
+abscissa/radius optimization literature, e.g. Overton and Womersley's
+SQP for eigenvalue optimization). Usually one or two eigenvalues are
+active; a step costs an eigendecomposition of ``A`` and an NNLS with one
+column per active eigenvalue. Nothing here certifies optimality in
+general (the feasible set is not convex); the caller checks the radius of
+the result, which is the certificate, and keeps a Lyapunov matrix for it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg, optimize
+
+__all__ = ["DiscProblem", "DiscResult", "least_change_into_disc"]
+
+
+@dataclass(frozen=True, eq=False)
+class DiscProblem:
+    """``A(U) = A_0 + E U S`` (``E`` = rows ``rows`` of the identity) and the cost metric ``K``.
+
+    Attributes
+    ----------
+    A0 : ndarray of shape (n, n)
+        The matrix with the free rows zeroed.
+    rows : slice
+        The free rows of ``A``.
+    S : ndarray of shape (k, n)
+        ``A[rows] = U @ S``.
+    K : ndarray of shape (k, k)
+        Symmetric positive semidefinite metric of the cost.
+    """
+
+    A0: np.ndarray
+    rows: slice
+    S: np.ndarray
+    K: np.ndarray
+
+    def matrix(self, U: np.ndarray) -> np.ndarray:
+        """``A(U)``."""
+        A = self.A0.copy()
+        A[self.rows] += U @ self.S
+        return A
+
+    def cost(self, D: np.ndarray) -> float:
+        """``trace(D K D^T)``, the cost increase of the change ``D``."""
+        return float(np.sum((D @ self.K) * D))
+
+
+@dataclass
+class DiscResult:
+    """Outcome of :func:`least_change_into_disc`."""
+
+    U: np.ndarray
+    radius: float
+    converged: bool
+    n_iter: int
+    n_active: int
+
+
+def _whitening(K: np.ndarray) -> np.ndarray:
+    """``W`` with ``W^T K W = I`` on the range of ``K`` (its null directions cost nothing: unused)."""
+    d, Q = linalg.eigh(0.5 * (K + K.T))
+    keep = d > 1e-13 * max(float(d[-1]), np.finfo(float).tiny)
+    return Q[:, keep] / np.sqrt(d[keep])
+
+
+def _moduli_and_gradients(problem: DiscProblem, U: np.ndarray, center: float, floor: float):
+    """``|lambda_i - c|`` of every eigenvalue, and its gradient in ``U`` for those above ``floor``.
+
+    Of a complex-conjugate pair only the member with positive imaginary part
+    is returned (the pair's moduli and gradients are equal).
+    """
+    lam, W, V = linalg.eig(problem.matrix(U), left=True, right=True)
+    dist = np.abs(lam - center)
+    floor = min(floor, dist.max() * (1.0 - 1e-12))   # the outermost eigenvalue at least
+    pick = np.flatnonzero((dist > floor) & (lam.imag >= -1e-12 * (1.0 + np.abs(lam))))
+    grads = []
+    for i in pick:
+        w, v = W[:, i], V[:, i]
+        z = np.conj(lam[i] - center) / (dist[i] * np.vdot(w, v))
+        grads.append(np.real(z * np.outer(np.conj(w[problem.rows]), problem.S @ v)))
+    return dist, dist[pick], grads
+
+
+def _least_distance(G: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, float]:
+    """``argmin ||z||`` subject to ``G z <= h`` (Lawson-Hanson LDP through NNLS), and the largest multiplier."""
+    E = np.vstack([-G.T, -h[None, :]])
+    f = np.zeros(E.shape[0])
+    f[-1] = 1.0
+    u, _ = optimize.nnls(E, f, maxiter=50 * E.shape[1] + 100)
+    r = E @ u - f
+    if abs(r[-1]) < 1e-14:
+        raise ValueError("the linearized eigenvalue constraints are inconsistent")
+    # z = -G^T nu with nu = u / |r_n|: the multipliers of 1/2 ||z||^2, doubled for ||z||^2.
+    return -r[:-1] / r[-1], 2.0 * float(u.max(initial=0.0)) / abs(r[-1])
+
+
+def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, center: float = 0.0,
+                           margin: float = 1e-9, band: float = 1e-2, max_iter: int = 100) -> DiscResult:
+    """Smallest ``trace((U - U0) K (U - U0)^T)`` with every eigenvalue of ``A(U)`` in the disc.
+
+    Parameters
+    ----------
+    problem : DiscProblem
+        The affine matrix and the cost metric.
+    U0 : ndarray
+        The unconstrained minimizer (returned unchanged when it is feasible).
+    radius, center : float
+        The disc ``|lambda - center| <= radius``.
+    margin : float
+        Eigenvalues are steered to ``radius * (1 - margin)``, strictly inside.
+    band : float
+        Eigenvalues within ``band * radius`` of the boundary are constrained
+        in each step (so that none crosses it unnoticed).
+    max_iter : int
+        Most linearizations.
+
+    Returns
+    -------
+    DiscResult
+        The change, the largest ``|lambda - center|`` reached, and whether it
+        is in the disc.
+    """
+    W = _whitening(problem.K)
+    target = radius * (1.0 - margin)
+
+    def violation(U):
+        return float(np.sum(np.maximum(np.abs(np.linalg.eigvals(problem.matrix(U)) - center) - target, 0.0)))
+
+    U, viol, mu = U0, violation(U0), 0.0
+    if viol == 0.0:
+        return DiscResult(U0, float(np.abs(np.linalg.eigvals(problem.matrix(U0)) - center).max()), True, 0, 0)
+    best, n_active = None, 0
+    for it in range(1, max_iter + 1):
+        _, d_i, grads = _moduli_and_gradients(problem, U, center, target - band * radius)
+        Gw = np.stack([(g @ W).ravel() for g in grads])
+        # Constraint d_i + <g_i, U_new - U> <= target, in the whitened change Z (U_new = U0 + Z W^T).
+        h = target - d_i + np.array([np.sum(g * (U - U0)) for g in grads])
+        z, nu_max = _least_distance(Gw, h)
+        n_active = int(np.sum(Gw @ z > h - 1e-9 * np.abs(h).max()))
+        step = U0 + z.reshape(U0.shape[0], W.shape[1]) @ W.T - U
+        # Backtracking on the exact-penalty merit cost + mu * violation (Han's SQP globalization).
+        mu = max(mu, 2.0 * nu_max)
+        merit = problem.cost(U - U0) + mu * viol
+        t = 1.0
+        while True:
+            U_try = U + t * step
+            viol_try = violation(U_try)
+            if problem.cost(U_try - U0) + mu * viol_try < merit or t < 1e-3:
+                break
+            t *= 0.5
+        U, viol = U_try, viol_try
+        if viol == 0.0:
+            cost = problem.cost(U - U0)
+            if best is None or cost < best[1]:
+                best = (U, cost)
+            if t * np.linalg.norm(step) <= 1e-8 * np.linalg.norm(U - U0) + 1e-14 * np.linalg.norm(U0):
+                break
+    rad = lambda V: float(np.abs(np.linalg.eigvals(problem.matrix(V)) - center).max())
+    if best is None:
+        return DiscResult(U, rad(U), False, it, n_active)
+    return DiscResult(best[0], rad(best[0]), True, it, n_active)
