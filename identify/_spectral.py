@@ -85,22 +85,76 @@ def _whitening(K: np.ndarray) -> np.ndarray:
     return Q[:, keep] / np.sqrt(d[keep])
 
 
-def _moduli_and_gradients(problem: DiscProblem, U: np.ndarray, center: float, floor: float):
-    """``|lambda_i - c|`` of every eigenvalue, and its gradient in ``U`` for those above ``floor``.
-
-    Of a complex-conjugate pair only the member with positive imaginary part
-    is returned (the pair's moduli and gradients are equal).
-    """
-    lam, W, V = linalg.eig(problem.matrix(U), left=True, right=True)
-    dist = np.abs(lam - center)
-    floor = min(floor, dist.max() * (1.0 - 1e-12))   # the outermost eigenvalue at least
-    pick = np.flatnonzero((dist > floor) & (lam.imag >= -1e-12 * (1.0 + np.abs(lam))))
-    grads = []
+def _groups(lam: np.ndarray, pick: np.ndarray, gap: float) -> list[list[int]]:
+    """The picked eigenvalues in groups of one real eigenvalue or two (a conjugate pair, or two
+    real eigenvalues closer than ``gap``: they may be about to meet and leave the real axis)."""
+    groups, used = [], set()
+    reals = sorted((i for i in pick if lam[i].imag == 0.0), key=lambda i: lam[i].real)
+    for a, b in zip(reals, reals[1:]):
+        if a not in used and b not in used and lam[b].real - lam[a].real < gap:
+            groups.append([a, b])
+            used.update((a, b))
+    groups += [[i] for i in reals if i not in used]
     for i in pick:
-        w, v = W[:, i], V[:, i]
-        z = np.conj(lam[i] - center) / (dist[i] * np.vdot(w, v))
-        grads.append(np.real(z * np.outer(np.conj(w[problem.rows]), problem.S @ v)))
-    return dist, dist[pick], grads
+        if lam[i].imag > 0.0:
+            partner = int(np.argmin(np.abs(lam - np.conj(lam[i]))))
+            groups.append([i, partner])
+    return groups
+
+
+def _group_constraints(problem: DiscProblem, A: np.ndarray, lam: np.ndarray, group: list[int],
+                       rho: float):
+    """Linearized "the group's eigenvalues in the disc |z| <= rho": rows (value, gradient in U),
+    each meaning ``value + <gradient, dU> <= 0``.
+
+    The group's invariant subspace comes from a reordered real Schur form,
+    ``A = Q [[T11, T12], [0, T22]] Q^T``; to first order its block changes by
+    ``Y^T dA X`` (``X = Q[:, :k]``, ``Y^T = [I, R] Q^T`` with
+    ``T11 R - R T22 = T12``). One real eigenvalue ``t``: ``|t| <= rho``. Two
+    (trace ``s``, determinant ``p`` of ``T11``, smooth even where the two
+    meet): the Schur-Cohn (Jury) conditions ``|p| <= rho^2`` and
+    ``|s| <= rho + p / rho``, linear in ``(s, p)``.
+    """
+    chosen = lam[group]
+
+    def select(re, im):
+        return bool(np.argmin(np.abs(lam - complex(re, im))) in group or
+                    np.min(np.abs(chosen - complex(re, im))) < 1e-9 * (1.0 + abs(complex(re, im))))
+
+    T, Q, sdim = linalg.schur(A, output="real", sort=select)
+    k = len(group)
+    if sdim != k:
+        return []
+    R = linalg.solve_sylvester(T[:k, :k], -T[k:, k:], T[:k, k:]) if k < len(A) else np.zeros((k, 0))
+    Yt = np.hstack([np.eye(k), R]) @ Q.T
+    left, right = Yt[:, problem.rows].T, (problem.S @ Q[:, :k]).T
+
+    def grad(C):   # gradient of trace(C^T T11) in U
+        return left @ C @ right
+
+    B = T[:k, :k]
+    if k == 1:
+        t = B[0, 0]
+        return [(t - rho, grad(np.ones((1, 1)))), (-t - rho, -grad(np.ones((1, 1))))]
+    s, p = np.trace(B), np.linalg.det(B)
+    gs = grad(np.eye(2))
+    gp = grad(np.array([[B[1, 1], -B[1, 0]], [-B[0, 1], B[0, 0]]]))   # adj(B)^T
+    return [(p - rho ** 2, gp), (-p - rho ** 2, -gp),
+            (s - rho - p / rho, gs - gp / rho), (-s - rho - p / rho, -gs - gp / rho)]
+
+
+def _constraints(problem: DiscProblem, U: np.ndarray, center: float, rho: float, floor: float):
+    """Linearized disc constraints of every eigenvalue group above ``floor`` (the outermost at least)."""
+    A = problem.matrix(U) - center * np.eye(problem.A0.shape[0])
+    lam = np.linalg.eigvals(A)
+    lam = np.where(np.abs(lam.imag) <= 1e-13 * (1.0 + np.abs(lam)), lam.real + 0j, lam)
+    dist = np.abs(lam)
+    floor = min(floor, dist.max() * (1.0 - 1e-12))
+    pick = np.flatnonzero((dist > floor) & (lam.imag >= 0.0))
+    rows = []
+    for group in _groups(lam, pick, gap=0.1 * rho):
+        rows += _group_constraints(problem, A, lam, group, rho)
+    return np.array([r[0] for r in rows]), [r[1] for r in rows]
 
 
 def _least_distance(G: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, float]:
@@ -117,7 +171,8 @@ def _least_distance(G: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, center: float = 0.0,
-                           margin: float = 1e-9, band: float = 1e-2, max_iter: int = 100) -> DiscResult:
+                           margin: float = 1e-9, band: float = 1e-2, max_iter: int = 100,
+                           rtol: float = 1e-4) -> DiscResult:
     """Smallest ``trace((U - U0) K (U - U0)^T)`` with every eigenvalue of ``A(U)`` in the disc.
 
     Parameters
@@ -135,12 +190,16 @@ def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, 
         in each step (so that none crosses it unnoticed).
     max_iter : int
         Most linearizations.
+    rtol : float
+        Stop at a feasible point once a step changes ``U - U0`` by less
+        than this fraction (the SQP converges linearly: it ignores the
+        constraints' curvature).
 
     Returns
     -------
     DiscResult
-        The change, the largest ``|lambda - center|`` reached, and whether it
-        is in the disc.
+        The cheapest iterate in the disc, or the last one if none is, the
+        largest ``|lambda - center|`` of it, and whether it is in the disc.
     """
     W = _whitening(problem.K)
     target = radius * (1.0 - margin)
@@ -153,10 +212,12 @@ def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, 
         return DiscResult(U0, float(np.abs(np.linalg.eigvals(problem.matrix(U0)) - center).max()), True, 0, 0)
     best, n_active = None, 0
     for it in range(1, max_iter + 1):
-        _, d_i, grads = _moduli_and_gradients(problem, U, center, target - band * radius)
+        values, grads = _constraints(problem, U, center, target, target - band * radius)
+        if not grads:
+            break
         Gw = np.stack([(g @ W).ravel() for g in grads])
-        # Constraint d_i + <g_i, U_new - U> <= target, in the whitened change Z (U_new = U0 + Z W^T).
-        h = target - d_i + np.array([np.sum(g * (U - U0)) for g in grads])
+        # Constraint value_i + <g_i, U_new - U> <= 0, in the whitened change Z (U_new = U0 + Z W^T).
+        h = -values + np.array([np.sum(g * (U - U0)) for g in grads])
         z, nu_max = _least_distance(Gw, h)
         n_active = int(np.sum(Gw @ z > h - 1e-9 * np.abs(h).max()))
         step = U0 + z.reshape(U0.shape[0], W.shape[1]) @ W.T - U
@@ -175,7 +236,7 @@ def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, 
             cost = problem.cost(U - U0)
             if best is None or cost < best[1]:
                 best = (U, cost)
-            if t * np.linalg.norm(step) <= 1e-8 * np.linalg.norm(U - U0) + 1e-14 * np.linalg.norm(U0):
+            if t * np.linalg.norm(step) <= rtol * np.linalg.norm(U - U0) + 1e-14 * np.linalg.norm(U0):
                 break
     rad = lambda V: float(np.abs(np.linalg.eigvals(problem.matrix(V)) - center).max())
     if best is None:

@@ -42,6 +42,7 @@ it is kept (``lyapunov_matrix_``).
 
 from __future__ import annotations
 
+import warnings
 from typing import Sequence
 
 import numpy as np
@@ -108,9 +109,10 @@ class ClEdmdStable(ClEdmdKnownRows):
     objective_ : float
         Regularized least-squares cost of the result (divided by the snapshot count).
     lyapunov_matrix_ : ndarray or None
-        ``P > 0`` with ``M^T P M - rho^2 P = -I`` (``M = A^f - c I``): the
-        result's certificate, checked positive definite (always there for
-        ``method_ == "sqp"``; None when an LMI result sits on the boundary).
+        ``P > 0`` with ``M^T P M - rho^2 P = -I`` (``M = A^f - c I``), a
+        certificate of the disc checked positive definite; None where it is
+        numerically out of reach (see :func:`_certificate`). The SQP's result
+        is accepted on its eigenvalues: ``max |lambda - c| <= rho``.
     """
 
     def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
@@ -138,20 +140,18 @@ class ClEdmdStable(ClEdmdKnownRows):
         M0 = self._closed_loop_state(U0, S) - shift
         self.unconstrained_radius_ = float(np.max(np.abs(np.linalg.eigvals(M0))))
         self.n_sqp_iter_ = 0
-        U_p = self._solve_sqp(snapshots, S, alpha, U0) if method == "sqp" else None
-        P = None if U_p is None else _certificate(self._closed_loop_state(U_p, S) - shift, self.max_radius)
-        if P is None:   # the LMI asked for, or the SQP did not reach the disc
-            U_p = self._solve_lmi(snapshots, S, alpha, M0, shift)
+        U_p, seed = (self._solve_sqp(snapshots, S, alpha, U0) if method == "sqp" else (None, U0))
+        if U_p is None:   # the LMI asked for, or the SQP did not reach the disc: seed P from its last step
+            U_p = self._solve_lmi(snapshots, S, alpha, self._closed_loop_state(seed, S) - shift, shift)
             self.method_ = "lmi"
-            P = _certificate(self._closed_loop_state(U_p, S) - shift, self.max_radius)
         else:
             self.method_, self.solver_status_ = "sqp", "optimal"
             self.objective_ = _plant_cost(snapshots, S, alpha, U_p, n_c)
-        self.lyapunov_matrix_ = P
+        self.lyapunov_matrix_ = _certificate(self._closed_loop_state(U_p, S) - shift, self.max_radius)
         return np.vstack([self._known_controller_rows(), U_p @ S]), U_p
 
     def _solve_sqp(self, snapshots: Snapshots, S: np.ndarray, alpha: float, U0: np.ndarray):
-        """The plant rows by :func:`least_change_into_disc`, or None if it did not reach the disc."""
+        """The plant rows by :func:`least_change_into_disc` (None if it did not reach the disc), and its last iterate."""
         n_c = self.controller.n_states
         n_theta = n_c + U0.shape[0]
         # The cost is (||R_psi S^T U^T - Y||^2 + alpha ||U S||^2) / q: metric K = F^T F / q.
@@ -161,12 +161,11 @@ class ClEdmdStable(ClEdmdKnownRows):
                               F.T @ F / snapshots.q)
         result = least_change_into_disc(problem, U0, self.max_radius, 0.0, margin=_SQP_MARGIN)
         self.n_sqp_iter_ = result.n_iter
-        return result.U if result.converged and result.radius <= self.max_radius else None
+        return (result.U if result.converged and result.radius <= self.max_radius else None), result.U
 
-    def _solve_lmi(self, snapshots: Snapshots, S: np.ndarray, alpha: float, M0: np.ndarray, shift):
-        """The plant rows by the fixed-``P`` LMI, ``P`` updated ``n_iter`` times."""
+    def _solve_lmi(self, snapshots: Snapshots, S: np.ndarray, alpha: float, M: np.ndarray, shift):
+        """The plant rows by the fixed-``P`` LMI, ``P`` seeded from ``M`` and updated ``n_iter`` times."""
         best, best_cost = None, np.inf
-        M = M0
         for _ in range(int(self.n_iter) + 1):
             P = _lyapunov_certificate(M, self.max_radius)
             U_p, cost = self._solve_fixed_p(snapshots, S, alpha, P, shift)
@@ -244,16 +243,25 @@ def _plant_cost(snapshots: Snapshots, S: np.ndarray, alpha: float, U_p: np.ndarr
     return float((np.sum(residual ** 2) + alpha * np.sum(rows ** 2)) / snapshots.q)
 
 
-def _certificate(M: np.ndarray, radius: float) -> np.ndarray:
-    """``P`` with ``M^T P M - radius^2 P = -I`` if it is positive definite, else None.
+def _certificate(M: np.ndarray, radius: float) -> np.ndarray | None:
+    """``P > 0`` with ``M^T P M - radius^2 P = -I``, or None where it is not numerically available.
 
     For ``max |lambda(M)| < radius`` the solution is positive definite, and a
-    positive definite solution proves it (discrete Lyapunov theorem). The LMI
-    meets its disc only to solver tolerance, so its result may have none.
+    positive definite solution proves it (discrete Lyapunov theorem). It is
+    returned only if it is positive definite and solves the equation to 1e-8
+    relative. None: the LMI's result sits on the disc to solver tolerance, or
+    a multiple eigenvalue sits just inside it (where a minimal change tends to
+    put them), which makes ``P`` too ill-conditioned to compute; the
+    eigenvalue check of the result stands alone then.
     """
     a = M / radius
-    P = linalg.solve_discrete_lyapunov(a.T, np.eye(M.shape[0]) / radius ** 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", linalg.LinAlgWarning)
+        P = linalg.solve_discrete_lyapunov(a.T, np.eye(M.shape[0]) / radius ** 2)
     P = 0.5 * (P + P.T)
-    if not (np.all(np.isfinite(P)) and np.linalg.eigvalsh(P)[0] > 0):
+    if not np.all(np.isfinite(P)):
+        return None
+    residual = np.linalg.norm(M.T @ P @ M - radius ** 2 * P + np.eye(M.shape[0]))
+    if residual > 1e-8 * radius ** 2 * np.linalg.norm(P) or np.linalg.eigvalsh(P)[0] <= 0:
         return None
     return P
