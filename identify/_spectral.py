@@ -66,10 +66,28 @@ class DiscProblem:
         """``trace(D K D^T)``, the cost increase of the change ``D``."""
         return float(np.sum((D @ self.K) * D))
 
+    def distances(self, U: np.ndarray, center: float) -> np.ndarray:
+        """``|lambda_i - center|`` of every eigenvalue of ``A(U)``."""
+        return np.abs(np.linalg.eigvals(self.matrix(U)) - center)
+
 
 @dataclass
 class DiscResult:
-    """Outcome of :func:`least_change_into_disc`."""
+    """Outcome of :func:`least_change_into_disc`.
+
+    Attributes
+    ----------
+    U : ndarray
+        The free rows found.
+    radius : float
+        Largest ``|lambda - center|`` of ``A(U)``.
+    converged : bool
+        Whether ``A(U)`` is in the disc.
+    n_iter : int
+        Linearizations taken.
+    n_active : int
+        Constraints active in the last step.
+    """
 
     U: np.ndarray
     radius: float
@@ -205,22 +223,17 @@ def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, 
     target = radius * (1.0 - margin)
 
     def violation(U):
-        return float(np.sum(np.maximum(np.abs(np.linalg.eigvals(problem.matrix(U)) - center) - target, 0.0)))
+        return float(np.sum(np.maximum(problem.distances(U, center) - target, 0.0)))
 
     U, viol, mu = U0, violation(U0), 0.0
     if viol == 0.0:
-        return DiscResult(U0, float(np.abs(np.linalg.eigvals(problem.matrix(U0)) - center).max()), True, 0, 0)
+        return DiscResult(U0, float(problem.distances(U0, center).max()), True, 0, 0)
     best, n_active = None, 0
     for it in range(1, max_iter + 1):
         values, grads = _constraints(problem, U, center, target, target - band * radius)
         if not grads:
             break
-        Gw = np.stack([(g @ W).ravel() for g in grads])
-        # Constraint value_i + <g_i, U_new - U> <= 0, in the whitened change Z (U_new = U0 + Z W^T).
-        h = -values + np.array([np.sum(g * (U - U0)) for g in grads])
-        z, nu_max = _least_distance(Gw, h)
-        n_active = int(np.sum(Gw @ z > h - 1e-9 * np.abs(h).max()))
-        step = U0 + z.reshape(U0.shape[0], W.shape[1]) @ W.T - U
+        step, nu_max, n_active = _sqp_step(W, U, U0, values, grads)
         # Backtracking on the exact-penalty merit cost + mu * violation (Han's SQP globalization).
         mu = max(mu, 2.0 * nu_max)
         merit = problem.cost(U - U0) + mu * viol
@@ -233,12 +246,20 @@ def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, 
             t *= 0.5
         U, viol = U_try, viol_try
         if viol == 0.0:
-            cost = problem.cost(U - U0)
-            if best is None or cost < best[1]:
-                best = (U, cost)
+            if best is None or problem.cost(U - U0) < problem.cost(best - U0):
+                best = U
             if t * np.linalg.norm(step) <= rtol * np.linalg.norm(U - U0) + 1e-14 * np.linalg.norm(U0):
                 break
-    rad = lambda V: float(np.abs(np.linalg.eigvals(problem.matrix(V)) - center).max())
-    if best is None:
-        return DiscResult(U, rad(U), False, it, n_active)
-    return DiscResult(best[0], rad(best[0]), True, it, n_active)
+    found = U if best is None else best
+    return DiscResult(found, float(problem.distances(found, center).max()), best is not None, it, n_active)
+
+
+def _sqp_step(W: np.ndarray, U: np.ndarray, U0: np.ndarray, values: np.ndarray, grads: list):
+    """The step to the least change obeying the linearized constraints, the largest multiplier,
+    and the number of active constraints."""
+    Gw = np.stack([(g @ W).ravel() for g in grads])
+    # Constraint value_i + <g_i, U_new - U> <= 0, in the whitened change Z (U_new = U0 + Z W^T).
+    h = -values + np.array([np.sum(g * (U - U0)) for g in grads])
+    z, nu_max = _least_distance(Gw, h)
+    n_active = int(np.sum(Gw @ z > h - 1e-9 * np.abs(h).max()))
+    return U0 + z.reshape(U0.shape[0], W.shape[1]) @ W.T - U, nu_max, n_active
