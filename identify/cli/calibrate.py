@@ -31,7 +31,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", nargs="+", type=Path, default=[], metavar="LOG",
                    help="logs to validate on (never fitted)")
     p.add_argument("--report", type=Path, default=None, metavar="DIR", help="write report.md there")
-    p.add_argument("--horizon", type=float, default=0.1, metavar="S", help="shooting segment length (default 0.1)")
+    p.add_argument("--horizon", type=float, default=0.2, metavar="S", help="shooting segment length (default 0.2)")
     p.add_argument("--delay", type=int, default=0, metavar="N", help="transport delay in samples (default 0)")
     p.add_argument("--max-nfev", type=int, default=40, metavar="N", help="solver iteration budget (default 40)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
