@@ -74,8 +74,8 @@ class PendulumParameters:
         motor sees the command of ``delay`` seconds earlier, so a fraction of a
         sample period splits the sample between the previous and the current
         command. Used by the sampled simulations (:func:`simulate`, the closed
-        loop, :class:`PendulumSimulator`), not by :func:`dynamics`; 0 (the
-        default) applies each command at once.
+        loop, :class:`PendulumSimulator`), not by :func:`dynamics` nor the
+        linearization; 0 (the default) applies each command at once.
     """
 
     Rm: float = 8.4
