@@ -13,7 +13,8 @@ from qube_koopman.identify.calibrate import shooting as ms
 from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
 
 DT = 1 / 500
-TRUTH = PendulumParameters(km=0.034, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1)
+# Near the rig's calibrated values (a weaker motor with this much arm inertia lets the pendulum fall).
+TRUTH = PendulumParameters(km=0.048, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1, Jh=8e-5, delay=0.001)
 
 
 def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0, seed: int = 0):
@@ -32,8 +33,10 @@ def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0,
 
 
 def test_parameter_map_round_trips():
+    from dataclasses import asdict
+
     z = ms.from_params(TRUTH, PendulumParameters())
-    assert ms.to_params(z, PendulumParameters()) == TRUTH
+    assert asdict(ms.to_params(z, PendulumParameters())) == pytest.approx(asdict(TRUTH), rel=1e-12, abs=0)
 
 
 def test_sparse_jacobian_matches_dense_differences():
@@ -56,13 +59,16 @@ def test_sparse_jacobian_matches_dense_differences():
 @pytest.mark.slow
 def test_known_parameters_are_recovered_within_two_standard_errors():
     ys, us, offsets = simulated_logs(TRUTH)
-    cal = PlantCalibration(horizon=0.1, skip=0.5, stride=0.1, nominal=PendulumParameters()).fit(ys, us, DT)
+    assert max(np.abs(y[:, 1]).max() for y in ys) < 0.5  # the simulated rig stayed up
+    cal = PlantCalibration(horizon=0.2, skip=0.5, stride=0.2, nominal=PendulumParameters()).fit(ys, us, DT)
     for name in cal.fitted_names_:
         fitted, truth, se = getattr(cal.params_, name), getattr(TRUTH, name), cal.standard_errors_[name]
         assert abs(fitted - truth) <= 2 * se + 1e-12, (name, fitted, truth, se)
         assert se < 0.2 * truth, (name, se)  # identified, not merely uncertain
     np.testing.assert_array_less(np.abs(cal.alpha_offsets_ - offsets), 2 * cal.alpha_offset_errors_ + 1e-9)
-    assert not cal.warnings_
+    # The one expected warning: the arm's torque constant and extra inertia are ~0.99 correlated.
+    assert cal.warnings_ == [w for w in cal.warnings_ if w.startswith("km and Jh are strongly correlated")]
+    assert len(cal.warnings_) <= 1
 
 
 def test_cli_refuses_missing_logs_in_one_line(tmp_path, capsys):

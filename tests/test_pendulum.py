@@ -24,6 +24,19 @@ def test_defaults_are_the_workbook_with_hardware_fitted_damping():
     assert (wb.Dr, wb.Dp) == (0.0015, 0.0005)
 
 
+
+def test_hub_inertia_adds_to_the_arm_rod():
+    # Jh enters only the arm's inertia: Jh = Jr is the same plant as an arm rod twice as heavy,
+    # and it slows the arm's response to a voltage (B[2] smaller), not the pendulum's gravity term.
+    assert P.Jh == 0.0
+    hub = dataclasses.replace(P, Jh=P.Jr)
+    heavy = dataclasses.replace(P, mr=2 * P.mr)
+    x = np.array([[0.1, 0.2, -1.0, 3.0], [0.0, -0.4, 2.0, -1.0]])
+    np.testing.assert_allclose(dynamics(x, 1.5, hub), dynamics(x, 1.5, heavy), rtol=1e-12)
+    assert np.all(np.abs(dynamics(x, 1.5, hub)[:, 2:] - dynamics(x, 1.5, P)[:, 2:]) > 1.0)
+    with pytest.raises(ValueError, match="Jh"):
+        dataclasses.replace(P, Jh=-1e-6)
+
 @pytest.mark.parametrize("changes, match", [(dict(Rm=0.0), "Rm"), (dict(Dr=-1e-4), "Dr"),
                                             (dict(mp=float("nan")), "mp"), (dict(km="0.04"), "km")])
 def test_parameters_reject_bad_values(changes, match):
@@ -211,6 +224,38 @@ def test_simulator_follows_the_batch_integrator():
     np.testing.assert_allclose(measured, measure(expected[1:]), atol=1e-12)
     assert sim.time == pytest.approx(200 * 0.002)
     assert sim.measurement == measured[-1]
+
+
+def test_transport_delay_shifts_whole_samples_and_splits_fractions():
+    dt = 0.002
+    x0 = [0.0, 0.05, 0.0, 0.0]
+    volts = 2.0 * np.sin(np.arange(300) * 0.07)
+    plain = simulate(x0, volts, P)
+    # Two whole samples: the commands arrive two samples late, zero volts before the first.
+    late = simulate(x0, volts, dataclasses.replace(P, delay=2 * dt))
+    np.testing.assert_allclose(late, simulate(x0, np.r_[0.0, 0.0, volts[:-2]], P), rtol=0, atol=1e-12)
+    # 0.3 of a sample: each sample holds the previous command for its first 0.3 (fine reference integration).
+    part = simulate(x0, volts, dataclasses.replace(P, delay=0.3 * dt), n_substeps=10)
+    fine = np.repeat(volts, 10)
+    fine[3:] = fine[:-3].copy()
+    fine[:3] = 0.0
+    np.testing.assert_allclose(part, simulate(x0, fine, P, dt=dt / 10, n_substeps=1)[::10], rtol=0, atol=1e-9)
+    assert np.max(np.abs(part - plain)) > 1e-3
+    # Continuous in the delay at zero, and the per-tick simulator and the closed loop agree with the batch.
+    tiny = simulate(x0, volts, dataclasses.replace(P, delay=1e-9))
+    assert np.max(np.abs(tiny - plain)) < 1e-5
+    lagging = dataclasses.replace(P, delay=1.4 * dt)
+    sim = PendulumSimulator(lagging, SensorModel(counts_per_rev=None))
+    sim.reset(x0)
+    for v in volts:
+        sim.step(v)
+    np.testing.assert_allclose(sim.state, simulate(x0, volts, lagging)[-1], rtol=0, atol=1e-12)
+    from qube_koopman.sim.lti import DiscreteStateSpace
+    from qube_koopman.sim.pendulum import simulate_closed_loop
+
+    silent = DiscreteStateSpace(np.zeros((1, 1)), np.zeros((1, 2)), np.zeros((1, 1)), np.zeros((1, 2)), dt)
+    run = simulate_closed_loop(x0, silent, np.zeros((300, 2)), volts, lagging)  # plant input = feedforward
+    np.testing.assert_allclose(run.states, simulate(x0, volts, lagging), rtol=0, atol=1e-12)
 
 
 def test_simulator_saturates_at_the_amplifier_limit():

@@ -141,3 +141,6 @@ def test_shipped_calibration_loads_with_its_provenance():
     assert len(plant.provenance["logs"]) == 28 and len(plant.provenance["validated_on"]) == 20
     assert set(plant.provenance["logs"]).isdisjoint(plant.provenance["validated_on"])
     assert plant.standard_errors["km"] < 0.01 * plant.params.km
+    # Its validation (closed-loop replay of the 20 test episodes) met the targets.
+    assert plant.provenance["balanced"] == 20
+    assert np.all(np.abs(np.array(plant.provenance["std_ratio_min"] + plant.provenance["std_ratio_max"]) - 1) < 0.05)

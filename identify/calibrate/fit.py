@@ -73,7 +73,7 @@ class PlantCalibration:
     cost_, nfev_ : float, int
     """
 
-    def __init__(self, horizon: float = 0.1, skip: float = 1.0, delay: int = 0,
+    def __init__(self, horizon: float = 0.2, skip: float = 1.0, delay: int = 0,
                  nominal: PendulumParameters = PendulumParameters(), stride: float | None = None,
                  max_nfev: int = 40, progress: bool = False) -> None:
         self.horizon = horizon

@@ -36,8 +36,8 @@ def estimate_offset(y: np.ndarray, u: np.ndarray, params: PendulumParameters, dt
     Multiple shooting with the physics fixed: the segments' node states and
     the offset are free.
     """
-    seg = ms.make_segments([y[start:start + window + 1]], [u[start:start + window + 1]], horizon, 0, 0, horizon)
-    nodes = np.concatenate([seg.y[0], _rates(y, dt)[start + seg.start]], axis=1)
+    seg = ms.make_segments([y[:start + window + 1]], [u[:start + window + 1]], horizon, start, 0, horizon)
+    nodes = np.concatenate([seg.y[0], _rates(y, dt)[seg.start]], axis=1)
     phys = ms.from_params(params, params)
     offset0 = float(np.mean(y[start:start + window, 1]))
     pattern = ms.sparsity(seg, 1)[:, ms.N_PHYSICAL:]
@@ -93,8 +93,10 @@ def replay_episodes(episodes: Sequence, params: PendulumParameters, start: int =
     ff = np.stack([np.asarray(e.feedforward, float)[start:] for e in episodes], axis=1)
     xc0 = np.stack([np.asarray(e.controller_state, float)[start] for e in episodes])
     max_v = float(np.max(np.abs(np.concatenate(us)))) if episodes else 10.0
+    past = np.stack([u[max(0, start - ms.N_PAST):start] for u in us], axis=1)
     run = simulate_closed_loop(state0, controller, refs, ff, params, controller_state0=xc0,
-                               max_voltage=max(max_v, 1e-3), alpha_offsets=offsets)
+                               max_voltage=max(max_v, 1e-3), alpha_offsets=offsets,
+                               past_voltages=past if len(past) else None)
     twin = np.concatenate([run.measurements, run.plant_input[..., None]], axis=-1)
     real = np.stack([np.column_stack([y[start:], u[start:]]) for y, u in zip(ys, us)], axis=1)
     ratio = twin.std(axis=0) / real.std(axis=0)
@@ -120,7 +122,7 @@ def open_loop_error(episodes: Sequence, params: PendulumParameters, offsets: np.
         y, u = np.asarray(e.states, float), np.asarray(e.plant_input, float)
         seg = ms.make_segments([y], [u], h, start)
         nodes = np.concatenate([seg.y[0] - [0.0, o], _rates(y, dt)[seg.start]], axis=1)
-        pred = ms.simulate_segments(nodes, seg.u, params, dt)
+        pred = ms.simulate_segments(nodes, seg.u, params, dt, past=seg.past)
         pred[..., 1] += o
         out.append(np.sqrt(np.mean((pred - seg.y) ** 2, axis=(0, 1))))
     return np.array(out)

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from qube_koopman.sim.lti import DiscreteStateSpace
-from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, PendulumParameters, _as_states, _check_timing,
-                                _Coefficients, _rk4)
+from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, PendulumParameters, _advance, _as_states,
+                                _check_timing, _Coefficients, _hold_pattern)
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
 __all__ = ["ClosedLoopRun", "simulate_closed_loop"]
@@ -49,7 +49,8 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
                          params: PendulumParameters = PendulumParameters(),
                          sensor: SensorModel = SensorModel(), controller_state0=None,
                          max_voltage: float = 10.0, n_substeps: int = DEFAULT_SUBSTEPS,
-                         rng: np.random.Generator | None = None, alpha_offsets=None) -> ClosedLoopRun:
+                         rng: np.random.Generator | None = None, alpha_offsets=None,
+                         past_voltages=None) -> ClosedLoopRun:
     """Run the pendulum under a controller on the tracking error, for a batch of episodes.
 
     Parameters
@@ -74,6 +75,9 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
         For sensor noise.
     alpha_offsets : array_like broadcastable to the batch, optional
         Per-episode pendulum encoder zero offsets (rad), added to the sensor's own.
+    past_voltages : array_like of shape (n_past, ...), optional
+        Commands before the first step, oldest first, that a transport delay
+        (``params.delay``) still applies; zero volts by default.
     """
     if controller.n_inputs != 2 or controller.n_outputs != 1:
         raise ValueError("controller must map the two tracking errors (theta, alpha) to one voltage; "
@@ -104,6 +108,12 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     Ac, Bc, Cc, Dc = controller.A.T, controller.B.T, controller.C[0], controller.D[0]
     k = _Coefficients.of(params)
     h = controller.dt / n_substeps
+    whole, weights = _hold_pattern(params.delay, controller.dt, int(n_substeps))
+    past = np.zeros((whole + 1, *batch)) if past_voltages is None else np.asarray(past_voltages, dtype=float)
+    if past.ndim != len(batch) + 1 or past.shape[0] < 1:
+        raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
+    history = list(np.broadcast_to(past, (past.shape[0], *batch))[-(whole + 1):])
+    history = [history[0]] * (whole + 1 - len(history)) + history  # oldest first, whole + 1 commands
     comps = tuple(x[..., i] for i in range(4))
     shift = None if alpha_offsets is None else np.stack(np.broadcast_arrays(
         0.0, np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)), axis=-1)
@@ -114,6 +124,8 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
         v = np.clip(u + f[step], -max_voltage, max_voltage)
         measurements[step], xcs[step], control[step], plant_input[step] = y, xc, u, v
         xc = xc @ Ac + e @ Bc
-        comps = _rk4(*comps, v, h, n_substeps, k, np.sin, np.cos)
+        history.append(v)
+        comps = _advance(comps, history[-whole - 2], history[-whole - 1], weights, h, k, np.sin, np.cos)
+        del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)

@@ -65,6 +65,17 @@ class PendulumParameters:
     dead_zone : float
         Amplifier dead zone (V): the motor sees ``V - clip(V, -dead_zone, dead_zone)``;
         0 (the default) leaves it out.
+    Jh : float
+        Inertia the arm carries besides its rod (kg m^2): the motor's rotor, the
+        hub, the pendulum's encoder and bearing at the arm's tip. The workbook's
+        ``Jr = mr Lr^2 / 12`` leaves them out; 0 (the default) keeps its model.
+    delay : float
+        Transport delay (s) from a command to the motor: over each sample the
+        motor sees the command of ``delay`` seconds earlier, so a fraction of a
+        sample period splits the sample between the previous and the current
+        command. Used by the sampled simulations (:func:`simulate`, the closed
+        loop, :class:`PendulumSimulator`), not by :func:`dynamics` nor the
+        linearization; 0 (the default) applies each command at once.
     """
 
     Rm: float = 8.4
@@ -79,6 +90,8 @@ class PendulumParameters:
     Cr: float = 0.0
     coulomb_speed: float = 0.05
     dead_zone: float = 0.0
+    Jh: float = 0.0
+    delay: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -91,7 +104,7 @@ class PendulumParameters:
         # km = 0 (motor disconnected) and zero damping are legitimate idealizations.
         if self.coulomb_speed <= 0:
             raise ValueError(f"parameter coulomb_speed must be positive, got {self.coulomb_speed}")
-        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone"):
+        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone", "Jh", "delay"):
             if getattr(self, name) < 0:
                 raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
 
@@ -114,7 +127,7 @@ class PendulumParameters:
 class _Coefficients(NamedTuple):
     """The parameter combinations the equations use, computed once."""
 
-    m11: float     # M11 at alpha = 0: Jr + mp Lr^2
+    m11: float     # M11 at alpha = 0: Jr + Jh + mp Lr^2
     quarter: float  # mp Lp^2 / 4: the s^2 part of M11, centrifugal coefficient
     m12: float     # mp Lp Lr / 2: M12 / cos(alpha)
     m22: float     # Jp + mp Lp^2 / 4
@@ -128,7 +141,7 @@ class _Coefficients(NamedTuple):
 
     @classmethod
     def of(cls, p: PendulumParameters) -> "_Coefficients":
-        return cls(m11=p.Jr + p.mp * p.Lr**2, quarter=p.mp * p.Lp**2 / 4.0,
+        return cls(m11=p.Jr + p.Jh + p.mp * p.Lr**2, quarter=p.mp * p.Lp**2 / 4.0,
                    m12=p.mp * p.Lp * p.Lr / 2.0, m22=p.Jp + p.mp * p.Lp**2 / 4.0,
                    gravity=p.mp * p.Lp * p.g / 2.0, torque_per_volt=p.km / p.Rm,
                    arm_damping=p.km**2 / p.Rm + p.Dr, pendulum_damping=p.Dp,
@@ -177,6 +190,28 @@ def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: _Coef
         alpha_dot = alpha_dot + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
     return theta, alpha, theta_dot, alpha_dot
 
+
+
+def _hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[float, ...]]:
+    """Whole samples of ``delay`` and, per substep, the weight of the previous command in it.
+
+    A substep the switch falls inside sees the two commands averaged by the
+    time each is held (exact impulse, continuous in the delay).
+    """
+    samples = delay / dt
+    whole = int(math.floor(samples + 1e-12))
+    fraction = max(0.0, samples - whole)
+    return whole, tuple(min(1.0, max(0.0, fraction * n_substeps - j)) for j in range(n_substeps))
+
+
+def _advance(comps, previous, current, weights: tuple[float, ...], h: float, k: _Coefficients,
+             sin: Callable, cos: Callable):
+    """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``."""
+    if not any(weights):  # no fractional delay: exactly the plain zero-order hold
+        return _rk4(*comps, current, h, len(weights), k, sin, cos)
+    for w in weights:
+        comps = _rk4(*comps, current + w * (previous - current), h, 1, k, sin, cos)
+    return comps
 
 def _as_states(state) -> np.ndarray:
     state = np.asarray(state, dtype=float)
@@ -229,7 +264,7 @@ def rk4_step(state, voltage, params: PendulumParameters = PendulumParameters(),
 
 
 def simulate(state0, voltages, params: PendulumParameters = PendulumParameters(),
-             dt: float = SAMPLE_PERIOD, n_substeps: int = DEFAULT_SUBSTEPS) -> np.ndarray:
+             dt: float = SAMPLE_PERIOD, n_substeps: int = DEFAULT_SUBSTEPS, past_voltages=None) -> np.ndarray:
     """Open-loop trajectory under a sequence of zero-order-held voltages.
 
     Parameters
@@ -238,6 +273,9 @@ def simulate(state0, voltages, params: PendulumParameters = PendulumParameters()
         Initial state(s).
     voltages : array_like of shape (n_steps, ...)
         Voltage over each sample period; trailing shape broadcastable to the batch.
+    past_voltages : array_like of shape (n_past, ...), optional
+        Commands before the first sample, oldest first: with a transport delay
+        (``params.delay``) the motor still sees them; zero volts by default.
 
     Returns
     -------
@@ -255,8 +293,16 @@ def simulate(state0, voltages, params: PendulumParameters = PendulumParameters()
     k = _Coefficients.of(params)
     comps = tuple(np.broadcast_to(x[..., i], batch) for i in range(4))
     h = dt / n_substeps
-    for step, v in enumerate(voltages):
-        comps = _rk4(*comps, v, h, int(n_substeps), k, np.sin, np.cos)
+    whole, weights = _hold_pattern(params.delay, dt, int(n_substeps))
+    past = np.zeros((whole + 1, *voltages.shape[1:])) if past_voltages is None else np.asarray(past_voltages, float)
+    if past.ndim != voltages.ndim:
+        raise ValueError("past_voltages must have a leading time axis and the voltages' trailing shape")
+    commands = np.concatenate([np.broadcast_to(past, (past.shape[0], *voltages.shape[1:])), voltages])
+    first = past.shape[0] - whole
+    for step in range(voltages.shape[0]):
+        now = commands[max(0, first + step)]
+        before = commands[max(0, first + step - 1)]
+        comps = _advance(comps, before, now, weights, h, k, np.sin, np.cos)
         out[step + 1] = np.stack(np.broadcast_arrays(*comps), axis=-1)
     return out
 

@@ -31,8 +31,9 @@ Named parameter sets (:func:`named_parameters`): ``"default"`` (what
 including its damping), ``"previous"`` (workbook masses with another public
 project's hardware-fitted damping: the default before calibration), and
 ``"calibrated-20230828"`` (``plants/qube_20230828.toml``: ``qube-calibrate`` on
-the paper's 28 training episodes; not the default, as its closed-loop
-validation on the 20 test episodes misses the targets, see its provenance).
+the paper's 28 training episodes, with the arm's hub inertia and the transport
+delay fitted; its closed-loop validation on the 20 test episodes meets the
+issue's targets, see its provenance).
 """
 
 from __future__ import annotations

@@ -10,8 +10,8 @@ import math
 
 import numpy as np
 
-from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, PendulumParameters, _check_timing,
-                                _Coefficients, _rk4)
+from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, PendulumParameters, _advance,
+                                _check_timing, _Coefficients, _hold_pattern)
 from qube_koopman.sim.pendulum.sensor import SensorModel, _encode
 
 __all__ = ["PendulumSimulator"]
@@ -23,7 +23,8 @@ class PendulumSimulator:
     """The pendulum plus its encoders, advanced one sample at a time.
 
     ``y = sim.reset(x0)`` then, each tick, ``y = sim.step(u)``: the voltage
-    is held over one sample period (as the amplifier holds the last command)
+    is held over one sample period (as the amplifier holds the last command;
+    after ``params.delay`` seconds, the commands before it are held until then)
     and the measurement of the state at the end of it is returned.
 
     Parameters
@@ -55,6 +56,8 @@ class PendulumSimulator:
         self.max_voltage = math.inf if max_voltage is None else float(max_voltage)
         self._k = _Coefficients.of(params)
         self._h = self.dt / self.n_substeps
+        self._whole, self._weights = _hold_pattern(params.delay, self.dt, self.n_substeps)
+        self._commands = [0.0] * (self._whole + 1)  # the last commands, oldest first (transport delay)
         self._rng = np.random.default_rng(seed)
         self._noise: list[float] = []
         self._noise_at = 0
@@ -70,6 +73,7 @@ class PendulumSimulator:
                              f"got {state!r}")
         self._x = values
         self._steps = 0
+        self._commands = [0.0] * (self._whole + 1)
         self._y = self._measure()
         return self._y
 
@@ -79,7 +83,11 @@ class PendulumSimulator:
         if not math.isfinite(v):
             raise ValueError(f"voltage must be finite, got {voltage!r}")
         v = min(max(v, -self.max_voltage), self.max_voltage)
-        self._x = _rk4(*self._x, v, self._h, self.n_substeps, self._k, math.sin, math.cos)
+        commands = self._commands
+        commands.append(v)
+        self._x = _advance(self._x, commands[-self._whole - 2], commands[-self._whole - 1], self._weights, self._h,
+                           self._k, math.sin, math.cos)
+        del commands[0]
         self._steps += 1
         self._y = self._measure()
         return self._y
