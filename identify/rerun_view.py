@@ -4,7 +4,13 @@ Entities: ``test/<episode>/<state>/{measured,predicted}`` against time;
 ``eigenvalues/{closed_loop,plant}`` beside ``eigenvalues/unit_circle``;
 ``sweep/{cv_r2,spectral_radius_closed_loop,spectral_radius_plant}`` against
 the sweep index (timeline ``alpha_index``; ``sweep/log10_alpha`` gives the
-value).
+value); with ``--search``, ``search/cv_r2`` against the number of delays
+(timeline ``delays``, the search's delays stage).
+
+The recording carries a blueprint (:func:`blueprint`): one tab of measured
+vs predicted trajectories, one plot per test episode; one of the plant's and
+closed loop's eigenvalues with the unit circle; one of the alpha sweep; one
+of the search's cross-validated R^2 against delays.
 """
 
 from __future__ import annotations
@@ -22,12 +28,38 @@ def _eigenvalues(model) -> np.ndarray | None:
     return None if A is None else np.linalg.eigvals(np.asarray(A))
 
 
+def blueprint(result):
+    """The recording's layout: tabs of test trajectories, eigenvalues, alpha sweep, lifting search."""
+    import rerun.blueprint as rrb
+
+    episodes = [rrb.TimeSeriesView(origin=f"test/{name.rsplit('.', 1)[0]}", name=name.rsplit(".", 1)[0])
+                for name in result.test_names]
+    tabs = [rrb.Grid(*episodes, name="test episodes: measured vs predicted"),
+            rrb.Spatial2DView(origin="eigenvalues", name="eigenvalues and the unit circle")]
+    if result.report.get("sweep"):
+        tabs.append(rrb.TimeSeriesView(origin="sweep", name="alpha sweep (x: alpha index)"))
+    if result.report.get("search"):
+        tabs.append(rrb.TimeSeriesView(origin="search", name="search: CV R^2 against delays"))
+    return rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True)
+
+
+def _log_search(rec, search: dict) -> None:
+    import rerun as rr
+
+    stage = sorted((c for c in search["candidates"] if c["stage"] == "delays"), key=lambda c: c["delays"])
+    if not stage:
+        return
+    values = np.array([np.nan if c["cv_r2"] is None else c["cv_r2"] for c in stage], dtype=float)
+    rec.send_columns("search/cv_r2", indexes=[rr.TimeColumn("delays", sequence=[c["delays"] for c in stage])],
+                     columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+
+
 def write_recording(path, result) -> None:
     """Write ``result`` (an :class:`identify.workflow.IdentificationResult`) to an .rrd file."""
     import rerun as rr
 
     rec = rr.RecordingStream("qube-identify")
-    rec.save(str(path))
+    rec.save(str(path), default_blueprint=blueprint(result))
     for name, t, truth, pred in zip(result.test_names, result.test_time, result.test_truth,
                                     result.test_predictions):
         stem = name.rsplit(".", 1)[0]
@@ -53,5 +85,7 @@ def write_recording(path, result) -> None:
                 values = np.asarray(values, dtype=float)
                 rec.send_columns(f"sweep/{key}", indexes=[index],
                                  columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+    if result.report.get("search"):
+        _log_search(rec, result.report["search"])
     rec.flush()
     rec.disconnect()

@@ -247,7 +247,8 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "") -> 
     started = time.perf_counter()
     estimator = ClEdmd(data.controller, lifting=spec.steps(data.rbf_seed))
     sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits, scorings=("cl",),
-                                 score_from=data.window, measured_only=True, keep_fold_models=spec.offsets)
+                                 score_from=data.window, measured_only=True, keep_fold_models=spec.offsets,
+                                 fit_all=False)
     cv = sweep.cv_r2["cl"]
     if spec.offsets:
         cv = _offset_scores(sweep, data, cv)
@@ -288,7 +289,8 @@ def _runner(n_jobs: int, scheduler: str | None):
             for fn, args, kwargs in calls:
                 yield fn(*args, **kwargs)
         else:
-            yield from joblib.Parallel(n_jobs=n_jobs, return_as="generator")(calls)
+            # max_nbytes=None: arguments pickled, not memory-mapped (no shared folders to track)
+            yield from joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None)(calls)
 
     return run
 

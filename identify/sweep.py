@@ -133,7 +133,8 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
                          splits: Sequence[tuple[np.ndarray, np.ndarray]], scorings: Sequence[str] = SCORINGS,
                          controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
                          progress: Callable[[int, int], None] | None = None, score_from: int = 1,
-                         measured_only: bool = False, keep_fold_models: bool = False) -> SweepResult:
+                         measured_only: bool = False, keep_fold_models: bool = False,
+                         fit_all: bool = True) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
 
     Parameters
@@ -163,6 +164,9 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         measure), not of the controller states too.
     keep_fold_models : bool
         Keep every fold's models in :attr:`SweepResult.fold_models`.
+    fit_all : bool
+        Also fit every alpha on all the episodes (models and spectral radii
+        in the result); a search that only ranks liftings can skip it.
 
     Returns
     -------
@@ -170,11 +174,11 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     """
     with limited_blas_threads(1):
         return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress,
-                      (score_from, measured_only, keep_fold_models))
+                      (score_from, measured_only, keep_fold_models, fit_all))
 
 
 def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
-    start, measured_only, keep = options
+    start, measured_only, keep, fit_all = options
     for s in scorings:
         check_choice(s, "scoring", SCORINGS)
     alphas = np.asarray(alphas, dtype=float)
@@ -204,6 +208,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
             result.fold_models.append((closed, plants, np.asarray(validation)))
         if progress:
             progress(i + 1, total)
+    if not fit_all:
+        return result
     setup, per_episode = shared if shared is not None else _prepare(estimator, trajectories)
     closed, plants = fitted_models(estimator, setup, Snapshots.total(per_episode), alphas, controller, measured)
     result.closed_loop_models, result.plant_models = closed, plants

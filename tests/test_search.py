@@ -155,3 +155,85 @@ def test_an_unreachable_scheduler_is_a_clear_error(small):
     with pytest.raises(ValueError, match="tcp://127.0.0.1:9: cannot reach the dask scheduler"):
         search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE,
                         scheduler="tcp://127.0.0.1:9")
+
+
+@pytest.fixture(scope="module")
+def log_dirs(qube_logs, tmp_path_factory):
+    import shutil
+
+    logs = sorted(qube_logs.glob("*.mcap"))
+    root = tmp_path_factory.mktemp("search_cli")
+    for name, chosen in (("train", logs[:6]), ("test", logs[28:30])):
+        (root / name).mkdir()
+        for path in chosen:
+            shutil.copy(path, root / name / path.name)
+    (root / "space.toml").write_text("delays = [0, 2]\npoly = [1]\nconst = [false, true]\ntrig = [false]\n"
+                                     "rbf = [0]\nalphas = [1e-3, 1.0]\noffsets = [false]\n")
+    return root
+
+
+def _cli(capsys, *argv):
+    from qube_koopman.identify.cli.identify import main
+
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.mark.slow
+def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_path, capsys):
+    pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
+    from qube_koopman.identify.model_file import load_model
+
+    code, out, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
+                          "--search-space", log_dirs / "space.toml", "--n-jobs", "1", "--out", tmp_path,
+                          "--rerun", tmp_path / "id.rrd")
+    assert code == 0, err
+    report = json.loads((tmp_path / "report.json").read_text())
+    search = report["search"]
+    assert len(search["candidates"]) == 4  # delays 0, 2; then const on/off at the best (one repeats)
+    winner = search["winner"]
+    assert winner == search["candidates"][0] and winner["cv_r2"] == max(c["cv_r2"] for c in search["candidates"])
+    assert report["alpha"] == winner["alpha"]
+    steps = [s["type"] for s in load_model(tmp_path / "model.json")["lifting"]["steps"]]
+    assert ("Delay" in steps) == (winner["delays"] > 0) and ("Constant" in steps) == winner["const"]
+    table = (tmp_path / "report.md").read_text()
+    assert "## Lifting search" in table and all(c["label"] in table for c in search["candidates"])
+    assert f"winner {winner['label']}" in err
+    from rerun.chunk import RrdReader
+
+    paths = set(RrdReader(tmp_path / "id.rrd").store().schema().entity_paths())
+    assert "/search/cv_r2" in paths
+
+
+def test_blueprint_has_a_view_per_test_episode_and_per_section():
+    from qube_koopman.identify.rerun_view import blueprint
+    from qube_koopman.identify.workflow import IdentificationResult
+
+    rrb = pytest.importorskip("rerun.blueprint", reason="the viewer is the optional viz extra")
+    result = IdentificationResult(report={"sweep": {"alpha": [1.0]}, "search": {"candidates": []}},
+                                  test_names=["a.mcap", "b.mcap"])
+    tabs = blueprint(result).root_container
+    names = [str(view.name) for view in tabs.contents]
+    assert len(names) == 4 and "search" in names[3] and "sweep" in names[2] and "eigenvalues" in names[1]
+    assert [str(v.origin) for v in tabs.contents[0].contents] == ["test/a", "test/b"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--search", "--delays", "5"], "--search chooses the lifting, alpha and offsets itself: leave out --delays"),
+    (["--search", "--method", "edmd"], "--search selects CL EDMD models"),
+    (["--scheduler", "tcp://x:1"], "--scheduler and --search-space belong to --search"),
+])
+def test_cli_search_refusals(log_dirs, tmp_path, capsys, argv, message):
+    code, _, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--out", tmp_path, *argv)
+    assert code == 2 and message in err and "Traceback" not in err
+
+
+def test_cli_search_space_file_errors_name_the_file(log_dirs, tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    for text, problem in (("delays = [", "not a readable TOML"), ("depth = [1]", "unknown search-space keys"),
+                          ("delays = [1.5]", "delays must be a non-empty list of int")):
+        bad.write_text(text)
+        code, _, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
+                            "--search-space", bad, "--out", tmp_path / "o")
+        assert code == 2 and f"{bad}: " in err and problem in err, err
