@@ -60,7 +60,7 @@ _log = logging.getLogger(__name__)
 
 def default_controller_path() -> Path:
     """The controller.toml shipped with the package: the gains that recorded the paper's dataset."""
-    return Path(str(resources.files("daq") / "rig_controller.toml"))
+    return Path(str(resources.files(__package__) / "rig_controller.toml"))
 
 
 def load_controller(path: str | Path | None = None, method: str = "backward-euler",

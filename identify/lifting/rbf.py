@@ -54,7 +54,12 @@ class _RadialBasis(LiftingFunction):
 
     def transform(self, X):
         X = np.asarray(X, dtype=float)
-        dist = np.linalg.norm(X[..., :, None, :] - self.centers_, axis=-1)
+        # |x - c|^2 = |x|^2 - 2 x.c + |c|^2: one matrix product instead of an (..., centres,
+        # features) difference array (20x faster in the re-lifted prediction of a search). The
+        # cancellation costs ~1e-8 |x| of distance, far below the kernels' scales and offsets.
+        c = self.centers_
+        sq = (np.einsum("...i,...i->...", X, X)[..., None] - 2.0 * (X @ c.T) + np.einsum("ij,ij->i", c, c))
+        dist = np.sqrt(np.maximum(sq, 0.0))
         return np.concatenate([X, self._kernel(dist)], axis=-1)
 
     def _kernel(self, dist):
