@@ -40,6 +40,20 @@ report.json, report.md, and with --rerun FILE.rrd a rerun recording.
 METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
 
 
+def _add_search_options(p: argparse.ArgumentParser) -> None:
+    search = p.add_argument_group("lifting search")
+    search.add_argument("--search", action="store_true",
+                        help="choose lifting, alpha and offsets by cross-validation (see above)")
+    search.add_argument("--search-space", metavar="FILE.toml",
+                        help="the values to try (default: delays 0-40 by 5, poly 1-3, const and sin/cos on/off, "
+                             "0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
+    search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
+                        help="worker processes for the search (default %(default)s: every core)")
+    search.add_argument("--scheduler", metavar="ADDRESS",
+                        help="run the search on this dask.distributed scheduler (e.g. tcp://host:8786) "
+                             'instead of local processes; needs pip install "qube-koopman[dask]"')
+
+
 def _parser() -> argparse.ArgumentParser:
     from qube_koopman.sim.cli.common import add_version
 
@@ -102,17 +116,7 @@ def _parser() -> argparse.ArgumentParser:
                       help="what-if: predict every test episode under this controller's gains (kp_theta, "
                            "kd_theta, kp_alpha, kd_alpha, tau; backward Euler as on the rig) instead of its "
                            "log's own; only episodes recorded under it are scored")
-    search = p.add_argument_group("lifting search")
-    search.add_argument("--search", action="store_true",
-                        help="choose lifting, alpha and offsets by cross-validation (see above)")
-    search.add_argument("--search-space", metavar="FILE.toml",
-                        help="the values to try (default: delays 0-40 by 5, poly 1-3, const and sin/cos on/off, "
-                             "0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
-    search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
-                        help="worker processes for the search (default %(default)s: every core)")
-    search.add_argument("--scheduler", metavar="ADDRESS",
-                        help="run the search on this dask.distributed scheduler (e.g. tcp://host:8786) "
-                             'instead of local processes; needs pip install "qube-koopman[dask]"')
+    _add_search_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--out", default="identified", metavar="DIR", help="output folder (default %(default)s)")
     out.add_argument("--rerun", metavar="FILE.rrd", help="also write a rerun recording of the results")
