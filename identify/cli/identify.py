@@ -124,11 +124,13 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _expand(items) -> list[Path]:
+    from qube_koopman.daq.log.names import find_logs
+
     paths = []
     for item in items or []:
         path = Path(item)
         if path.is_dir():
-            found = sorted(path.glob("*.mcap"))
+            found = find_logs(path)
             if not found:
                 raise CliError(f"{path}: folder has no .mcap logs")
             paths.extend(found)

@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from qube_koopman.daq.log.names import find_logs
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify.arx import Arx
 from qube_koopman.identify.cl_edmd import ClEdmd
@@ -152,7 +153,7 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
         radii of both methods; ``timing_s``; ``checks``.
     """
     started = time.perf_counter()
-    paths = sorted(Path(data_dir).glob("*.mcap"))
+    paths = find_logs(data_dir)
     if not paths:
         raise ValueError(f"{data_dir}: no .mcap episode logs (import the CSV dataset with qube-import first)")
     train_paths, test_paths = paper_split(paths)
