@@ -1,7 +1,8 @@
-"""Text of ``qube-calibrate``: parameter table, residuals, validation; ``report.md``."""
+"""Text of ``qube-calibrate``: parameter table, residuals, validation; ``report.md`` and ``calibration.rrd``."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,8 @@ import numpy as np
 from qube_koopman.sim.pendulum.params_file import named_parameters
 
 __all__ = ["calibration_text", "validation_text", "write_report"]
+
+_log = logging.getLogger(__name__)
 
 
 def calibration_text(cal, names: list[str], seconds: float) -> str:
@@ -51,8 +54,46 @@ def validation_text(replay, open_loop: np.ndarray, names: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(folder: Path, text: str, validation) -> Path:
-    """``report.md`` in ``folder`` (the tables above)."""
+def write_report(folder: Path, text: str, validation=None, dt: float | None = None) -> list[Path]:
+    """Write ``report.md`` and, with validation and rerun-sdk, ``calibration.rrd`` in ``folder``.
+
+    Parameters
+    ----------
+    folder : Path
+        An existing folder.
+    text : str
+        The tables (:func:`calibration_text`, :func:`validation_text`).
+    validation : tuple, optional
+        ``(replay, open_loop, names)`` as for :func:`validation_text`: the
+        replay's band-power table (:func:`spectra.spectra_text`) is appended
+        to the report and the replay written to ``calibration.rrd``
+        (:func:`recording.write_recording`). Without rerun-sdk (the optional
+        ``viz`` extra) one warning says the recording was skipped.
+    dt : float, optional
+        Sample period (s) of the replay; needed with ``validation``.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
     path = folder / "report.md"
-    path.write_text("# qube-calibrate report\n\n" + text)
-    return path
+    if validation is None:
+        path.write_text("# qube-calibrate report\n\n" + text)
+        return [path]
+    if dt is None:
+        raise ValueError("write_report needs dt (the replay's sample period) with validation")
+    from qube_koopman.identify.calibrate.spectra import spectra_text
+
+    replay, _, names = validation
+    path.write_text("# qube-calibrate report\n\n" + text + "\n" + spectra_text(replay, dt))
+    rrd = folder / "calibration.rrd"
+    try:
+        import rerun  # noqa: F401  (the optional viz extra)
+    except ImportError:
+        _log.warning("%s not written: rerun-sdk is not installed (the viewer is optional): "
+                     'pip install "qube-koopman[viz]" (in a checkout: pip install -e ".[viz]")', rrd)
+        return [path]
+    from qube_koopman.identify.calibrate.recording import write_recording
+
+    return [path, write_recording(rrd, replay, names, dt)]

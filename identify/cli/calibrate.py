@@ -10,6 +10,14 @@ closed loop through the calibrated twin and predicts 0.2 s open loop; the
 plant file's provenance then records the balanced count, the standard
 deviation ratios' minimum and maximum (theta, alpha, voltage) and the mean
 replay NRMSE.
+
+``--report DIR`` writes ``DIR/report.md``: the tables printed, and with
+validation the power in frequency bands (0-1, 1-3, 3-10, 10-30, 30-100 Hz)
+of theta, alpha and voltage, twin vs real (Welch spectra averaged over the
+validation episodes). With validation it also writes ``DIR/calibration.rrd``,
+a rerun recording of each validation episode's measured and twin
+trajectories and of the spectra; that needs rerun-sdk (the optional ``viz``
+extra), without which a warning says it was skipped.
 """
 
 from __future__ import annotations
@@ -34,7 +42,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="paper: fit the first 28 logs by name, validate on the rest")
     p.add_argument("--validate", nargs="+", type=Path, default=[], metavar="LOG",
                    help="logs to validate on (never fitted)")
-    p.add_argument("--report", type=Path, default=None, metavar="DIR", help="write report.md there")
+    p.add_argument("--report", type=Path, default=None, metavar="DIR",
+                   help="write report.md there (the tables; with validation also band powers twin vs real) and, "
+                        "with validation, calibration.rrd (rerun recording of the replayed episodes and spectra; "
+                        "needs the viz extra)")
     p.add_argument("--horizon", type=float, default=0.2, metavar="S", help="shooting segment length (default 0.2)")
     p.add_argument("--delay", type=int, default=0, metavar="N", help="transport delay in samples (default 0)")
     p.add_argument("--max-nfev", type=int, default=40, metavar="N", help="solver iteration budget (default 40)")
@@ -84,12 +95,12 @@ def _run(args) -> int:
                   "residual_rms_theta": float(cal.residual_rms_[:, 0].mean()),
                   "residual_rms_alpha": float(cal.residual_rms_[:, 1].mean()),
                   "horizon_s": args.horizon, "delay_samples": args.delay, "seconds": round(seconds, 1)}
-    validation = None
+    validation, val_dt = None, None
     if val_paths:
         from qube_koopman.identify.calibrate.validate import open_loop_error, replay_episodes
 
         held = _read(val_paths)
-        replay = replay_episodes(held, cal.params_)
+        replay, val_dt = replay_episodes(held, cal.params_), held[0].dt
         validation = (replay, open_loop_error(held, cal.params_, replay.offsets), [p.name for p in val_paths])
         text += "\n" + validation_text(*validation)
         ratio = replay.std_ratio
@@ -103,7 +114,7 @@ def _run(args) -> int:
         raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None
     print(text)
     if args.report is not None:
-        write_report(output_dir(args.report), text, validation)
+        write_report(output_dir(args.report), text, validation, val_dt)
     return 0
 
 

@@ -1,0 +1,130 @@
+"""qube-calibrate --report: band-power table of the replay's spectra, the calibration.rrd recording."""
+
+from __future__ import annotations
+
+import logging
+import re
+
+import numpy as np
+import pytest
+
+from qube_koopman.identify.calibrate.report import write_report
+from qube_koopman.identify.calibrate.spectra import (BANDS, CHANNELS, band_power_ratios, band_powers,
+                                                     replay_spectra, spectra_text)
+from qube_koopman.identify.calibrate.validate import ReplayResult
+
+DT = 0.002
+SCALE = np.array([0.5, 2.0, 1.5])  # twin = real * SCALE per channel (theta, alpha, voltage)
+NAMES = ["val_a.mcap", "val_b.mcap"]
+
+
+def synthetic_replay(scale=SCALE, n_steps: int = 4000, seed: int = 0) -> ReplayResult:
+    """Two episodes: theta at 2 Hz, alpha at 5 Hz, voltage at 20 Hz (amplitudes 0.1, 0.02, 3), plus noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_steps) * DT
+    real = np.stack([np.column_stack([0.1 * np.sin(2 * np.pi * 2 * t + k), 0.02 * np.sin(2 * np.pi * 5 * t + k),
+                                      3.0 * np.sin(2 * np.pi * 20 * t + k)]) for k in range(2)], axis=1)
+    real += rng.normal(0.0, 1e-3, real.shape)
+    n = real.shape[1]
+    return ReplayResult(np.ones((n, 3)), np.ones(n, bool), np.zeros(n), np.zeros(n), real * scale, real)
+
+
+def table_ratios(text: str) -> dict[str, list[float]]:
+    """The twin/real column of each channel's table in ``text``."""
+    out = {}
+    for channel in CHANNELS:
+        section = text.split(f"### {channel}\n", 1)[1].split("###", 1)[0]
+        out[channel] = [float(row.split("|")[-2]) for row in section.splitlines() if re.match(r"\| [\d.]+-", row)]
+    return out
+
+
+def test_band_power_ratios_are_the_scale_squared_and_one_against_itself():
+    text = spectra_text(synthetic_replay(), DT)
+    ratios = table_ratios(text)
+    for channel, scale in zip(CHANNELS, SCALE):
+        assert ratios[channel] == pytest.approx([scale ** 2] * len(BANDS), abs=1e-3), channel
+    same = table_ratios(spectra_text(synthetic_replay(scale=np.ones(3)), DT))
+    assert all(r == [1.0] * len(BANDS) for r in same.values())
+    assert "| 1-3 |" in text and "| 30-100 |" in text and "(2 episodes)" in text
+    np.testing.assert_allclose(band_power_ratios(replay_spectra(synthetic_replay(), DT)),
+                               np.tile(SCALE ** 2, (len(BANDS), 1)), rtol=1e-12)
+
+
+def test_band_power_integrates_the_psd_to_the_sinusoid_power():
+    spectra = replay_spectra(synthetic_replay(), DT)
+    assert spectra.nperseg == 1024 and spectra.frequency[-1] == pytest.approx(0.5 / DT)
+    real, _ = spectra.mean()
+    power = band_powers(spectra.frequency, real)  # (bands, channels)
+    # A sinusoid of amplitude A carries A^2 / 2, all of it in its band (2, 5 and 20 Hz: bands 1, 2, 3).
+    for j, (band, amplitude) in enumerate(((1, 0.1), (2, 0.02), (3, 3.0))):
+        assert power[band, j] == pytest.approx(amplitude ** 2 / 2, rel=0.03)
+    assert np.isnan(band_powers(spectra.frequency, real, [(300.0, 400.0)])).all()  # above Nyquist
+
+
+def test_report_writes_the_table_and_a_recording_with_the_expected_entities(tmp_path):
+    pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
+    from rerun.chunk import RrdReader
+
+    replay = synthetic_replay()
+    written = write_report(tmp_path, "tables\n", (replay, np.zeros((2, 2)), NAMES), DT)
+    assert written == [tmp_path / "report.md", tmp_path / "calibration.rrd"]
+    report = (tmp_path / "report.md").read_text()
+    assert report.startswith("# qube-calibrate report\n\ntables\n") and "## Power spectra" in report
+    schema = RrdReader(tmp_path / "calibration.rrd").store().schema()
+    paths = set(schema.entity_paths())
+    expected = {f"/validation/{stem}/{channel}/{kind}" for stem in ("val_a", "val_b") for channel in CHANNELS
+                for kind in ("real", "twin")}
+    expected |= {f"/spectra/{channel}/{kind}" for channel in CHANNELS for kind in ("real", "twin")}
+    assert expected | {"/spectra/frequency_hz"} == paths
+    timelines = {str(c) for c in schema.index_columns()}
+    assert all(any(name in t for t in timelines) for name in ("time", "frequency_bin", "frequency_millihertz"))
+
+
+def test_blueprint_has_an_episode_grid_and_a_spectra_tab():
+    pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
+    from qube_koopman.identify.calibrate.recording import blueprint, episode_paths
+
+    parts = episode_paths(["a.mcap", "dir/a.mcap", "b c.mcap"])
+    assert parts[0] == "a" and parts[1] != "a" and len(set(parts)) == 3
+    episodes, spectra = blueprint(parts).root_container.contents
+    assert len(episodes.contents) == 3 and "validation" in str(episodes.name)
+    assert [str(v.origin) for v in episodes.contents[0].contents] == [f"validation/a/{c}" for c in CHANNELS]
+    assert [str(v.origin) for v in spectra.contents[:3]] == [f"spectra/{c}" for c in CHANNELS]
+
+
+def test_without_rerun_the_report_is_written_and_one_warning_names_the_skip(tmp_path, monkeypatch, caplog):
+    monkeypatch.setitem(__import__("sys").modules, "rerun", None)  # as if the viz extra were not installed
+    monkeypatch.setattr(logging.getLogger("qube_koopman"), "propagate", True)  # a CLI run may have cut it
+    with caplog.at_level(logging.WARNING, logger="qube_koopman"):
+        written = write_report(tmp_path, "tables\n", (synthetic_replay(), np.zeros((2, 2)), NAMES), DT)
+    assert written == [tmp_path / "report.md"] and not (tmp_path / "calibration.rrd").exists()
+    assert "## Power spectra" in (tmp_path / "report.md").read_text()
+    [record] = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert "calibration.rrd not written" in record.getMessage() and 'pip install -e ".[viz]"' in record.getMessage()
+
+
+def test_report_without_validation_is_the_tables_only(tmp_path):
+    assert write_report(tmp_path, "tables\n", None) == [tmp_path / "report.md"]
+    assert (tmp_path / "report.md").read_text() == "# qube-calibrate report\n\ntables\n"
+    with pytest.raises(ValueError, match="dt"):
+        write_report(tmp_path, "tables\n", (synthetic_replay(), np.zeros((2, 2)), NAMES))
+
+
+def test_cli_report_folder_gets_the_spectra_and_the_recording(tmp_path, capsys):
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.calibrate import main
+
+    assert run_main(["--episodes", "3", "--duration", "3", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
+    logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
+    capsys.readouterr()
+    assert main([*logs[:2], "--validate", logs[2], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "4",
+                 "--report", str(tmp_path / "report")]) == 0
+    err = capsys.readouterr().err
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "## Validation on 1 episodes not fitted" in report and "### voltage" in report
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        assert "calibration.rrd not written" in err
+    else:
+        assert (tmp_path / "report" / "calibration.rrd").stat().st_size > 0 and "warning" not in err
