@@ -12,16 +12,28 @@ from qube_koopman.daq.controller import PdGains, pd_controller
 from qube_koopman.sim.pendulum import (PendulumParameters, PendulumSimulator, SensorModel, dynamics, linear_model,
                           linearize_upright, measure, rk4_step, simulate, total_energy)
 
-P = PendulumParameters()
+#: The workbook's model with hardware-fitted damping (the defaults before calibration): no dry
+#: friction, dead zone, hub inertia or delay, so the analytic checks below hold exactly.
+P = PendulumParameters.previous()
 COUNT = 2 * math.pi / 2048  # encoder resolution, FACTS 5
 
 
-def test_defaults_are_the_workbook_with_hardware_fitted_damping():
+def test_previous_is_the_workbook_with_hardware_fitted_damping():
     assert (P.Rm, P.km, P.mr, P.Lr, P.mp, P.Lp, P.g) == (8.4, 0.042, 0.095, 0.085, 0.024, 0.129, 9.81)
     assert (P.Dr, P.Dp) == (2.7e-4, 5e-5)
+    assert (P.Cr, P.dead_zone, P.Jh, P.delay) == (0.0, 0.0, 0.0, 0.0)
     assert P.Jr == pytest.approx(0.095 * 0.085**2 / 12) and P.Jp == pytest.approx(0.024 * 0.129**2 / 12)
     wb = PendulumParameters.workbook()
     assert (wb.Dr, wb.Dp) == (0.0015, 0.0005)
+    assert dataclasses.replace(wb, Dr=P.Dr, Dp=P.Dp) == P
+
+
+def test_defaults_are_the_calibrated_twin_with_the_workbook_masses():
+    from qube_koopman.sim.pendulum.params_file import PLANTS, load_plant
+    cal = PendulumParameters()
+    assert cal == load_plant(PLANTS / "qube_20230828.toml").params  # digit for digit
+    assert (cal.Rm, cal.mr, cal.Lr, cal.mp, cal.g) == (P.Rm, P.mr, P.Lr, P.mp, P.g)
+    assert cal.Jh > 0 and cal.delay > 0 and cal.Cr > 0 and cal.dead_zone > 0
 
 
 
@@ -47,7 +59,7 @@ def test_parameters_reject_bad_values(changes, match):
 # --- linearization -----------------------------------------------------------------------------
 
 def test_linearization_has_the_familiar_magnitudes():
-    A, B = linearize_upright()
+    A, B = linearize_upright(P)
     # FACTS 6 / Quanser workbook: |A32| 149, |A42| 262, |B3| 50, |B4| 49 (1-based, rounded).
     assert abs(A[2, 1]) == pytest.approx(149, rel=0.01)
     assert abs(A[3, 1]) == pytest.approx(262, rel=0.01)
@@ -60,21 +72,21 @@ def test_linearization_has_the_familiar_magnitudes():
 
 
 def test_linearization_is_the_jacobian_of_the_dynamics():
-    A, B = linearize_upright()
+    A, B = linearize_upright(P)
     eps = 1e-6
     jac = np.empty((4, 5))
     for i in range(5):
         step = np.zeros(5)
         step[i] = eps
         plus, minus = step[:4], -step[:4]
-        jac[:, i] = (dynamics(plus, step[4]) - dynamics(minus, -step[4])) / (2 * eps)
+        jac[:, i] = (dynamics(plus, step[4], P) - dynamics(minus, -step[4], P)) / (2 * eps)
     np.testing.assert_allclose(jac, np.hstack([A, B]), rtol=1e-6, atol=1e-6)
 
 
 def test_paper_controller_stabilizes_the_linear_model():
     # The rig's controller (FACTS 2) on the ZOH-discretized linearization: closed
     # loop x+ = Ap x + Bp u, xc+ = Ac xc + Bc e, u = Cc xc + Dc e, e = -Cp x.
-    plant = linear_model()
+    plant = linear_model(P)
     ctrl = pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0))
     top = np.hstack([plant.A - plant.B @ ctrl.D @ plant.C, plant.B @ ctrl.C])
     bottom = np.hstack([-ctrl.B @ plant.C, ctrl.A])
@@ -85,10 +97,10 @@ def test_paper_controller_stabilizes_the_linear_model():
 
 
 def test_linear_model_matches_small_nonlinear_motions():
-    plant = linear_model()
+    plant = linear_model(P)
     x0 = np.array([0.0, 1e-4, 0.0, 0.0])
     u = 1e-3 * np.sin(np.arange(50) / 5.0)
-    nonlinear = simulate(x0, u)
+    nonlinear = simulate(x0, u, P)
     xl, yl = x0, []
     for uk in u:
         yl.append(plant.C @ xl)
@@ -100,7 +112,7 @@ def test_linear_model_matches_small_nonlinear_motions():
 
 def test_constant_1v_settles_at_the_back_emf_limited_speed():
     # Hanging down at rest, 1 V: steady state km V / Rm = (km^2 / Rm + Dr) w.
-    x = simulate([0.0, math.pi, 0.0, 0.0], np.ones(2500))  # 5 s, ~10 time constants
+    x = simulate([0.0, math.pi, 0.0, 0.0], np.ones(2500), P)  # 5 s, ~10 time constants
     expected = (P.km / P.Rm) / (P.km**2 / P.Rm + P.Dr)
     assert expected == pytest.approx(10.4, abs=0.1)  # FACTS: near 10 rad/s, not 35
     assert x[-1, 2] == pytest.approx(expected, rel=1e-3)
@@ -141,8 +153,8 @@ def test_energy_balance_with_damping_and_input():
 
 def test_more_substeps_converge():
     x0, volts = [0.0, 0.5, 0.0, 0.0], np.full(500, 2.0)
-    fine = simulate(x0, volts, n_substeps=16)
-    errors = [np.max(np.abs(simulate(x0, volts, n_substeps=n) - fine)) for n in (1, 2, 4)]
+    fine = simulate(x0, volts, P, n_substeps=16)
+    errors = [np.max(np.abs(simulate(x0, volts, P, n_substeps=n) - fine)) for n in (1, 2, 4)]
     assert errors[1] < errors[0] / 8 and errors[2] < errors[1] / 8  # fourth order: ~1/16 per halving
     assert errors[1] < 1e-5
 
@@ -151,13 +163,13 @@ def test_batches_match_single_states():
     rng = np.random.default_rng(0)
     states = rng.normal(size=(3, 5, 4))
     volts = rng.normal(size=(3, 5))
-    batch = rk4_step(states, volts)
+    batch = rk4_step(states, volts, P)
     assert batch.shape == (3, 5, 4)
-    single = rk4_step(states[1, 2], volts[1, 2])
+    single = rk4_step(states[1, 2], volts[1, 2], P)
     np.testing.assert_array_equal(batch[1, 2], single)
     assert dynamics(states, 0.0).shape == (3, 5, 4)
-    trajectory = simulate(states[0], np.broadcast_to(volts[0], (3, 5)))
-    np.testing.assert_array_equal(trajectory[1], rk4_step(states[0], volts[0]))
+    trajectory = simulate(states[0], np.broadcast_to(volts[0], (3, 5)), P)
+    np.testing.assert_array_equal(trajectory[1], rk4_step(states[0], volts[0], P))
 
 
 @pytest.mark.parametrize("call, match", [
@@ -298,3 +310,25 @@ def test_simulator_balances_under_the_paper_controller():
 def test_simulator_rejects_bad_arguments(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_a_new_period_keeps_the_commands_in_flight():
+    # The emulated bridge steps the plant at its ticks' pace (periods a few cycles apart):
+    # a period change must not drop the delayed commands (it did: the pendulum fell on the
+    # emulated Uno once the calibrated twin's 1 ms delay became the default).
+    dt = 0.002
+    lagging = dataclasses.replace(P, delay=1.4 * dt)
+    volts = 2.0 * np.sin(np.arange(400) * 0.07)
+    steady, jittery = (PendulumSimulator(lagging, SensorModel(counts_per_rev=None)) for _ in range(2))
+    for x in (steady, jittery):
+        x.reset([0.0, 0.05, 0.0, 0.0])
+    for k, v in enumerate(volts):
+        jittery.set_period(dt * (1 + (1e-6 if k % 2 else -1e-6)))
+        steady.step(v)
+        jittery.step(v)
+    np.testing.assert_allclose(jittery.state, steady.state, rtol=0, atol=1e-4)
+    assert jittery.time == pytest.approx(steady.time, rel=1e-5)
+    jittery.set_period(3 * dt)  # a longer period: fewer whole samples in flight, the newest kept
+    assert jittery._commands == [float(volts[-1])]
+    with pytest.raises(ValueError, match="dt"):
+        jittery.set_period(-1.0)

@@ -112,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the same excitations as these logs (their seeds, settings and durations), "
                         "under their own controller unless --controller is given")
     p.add_argument("--controller", type=Path, default=None, metavar="FILE.toml",
-                   help="controller gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau); default: the "
-                        "gains that recorded the paper's dataset")
+                   help="controller gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau), a file or a shipped "
+                        "name: 'rig' (the gains that recorded the paper's dataset: the default) or 'soft-theta' "
+                        "(a softer arm, kp_theta 2)")
     p.add_argument("--discretization", default="backward-euler", choices=("backward-euler", "zoh", "tustin"),
                    help="discretization of the derivative filters (default backward-euler, as the rig ran)")
     p.add_argument("--realtime", action="store_true",
@@ -132,8 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
                              "an episode starts only once |alpha| < 5)")
     safety.add_argument("--plant", type=Path, default=None, metavar="FILE.toml",
-                        help="the simulated pendulum's physical parameters (a qube-calibrate plant file; "
-                             "default: the built-in ones)")
+                        help="the simulated pendulum's physical parameters: a qube-calibrate plant file or a "
+                             "named set (default: the twin calibrated on the paper's rig, 'calibrated-20230828'; "
+                             "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)")
     link = p.add_argument_group("serial bridge (--backend serial)")
     link.add_argument("--port", default=None, metavar="DEV",
                       help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
@@ -303,13 +305,10 @@ def _replay(args, rate: float):
 
 def _load_plant(path):
     """The --plant file's parameters (the defaults without one); a one-line error when unreadable."""
-    from qube_koopman.sim.pendulum import PendulumParameters
-    from qube_koopman.sim.pendulum.params_file import PlantFileError, load_plant
+    from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_parameters
 
-    if path is None:
-        return PendulumParameters()
     try:
-        return load_plant(path).params
+        return plant_parameters(path)
     except PlantFileError as exc:
         raise _Fail(str(exc)) from None
 

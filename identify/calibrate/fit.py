@@ -48,8 +48,10 @@ class PlantCalibration:
         Seconds dropped at each episode's start (the hand-raising and derivative kick).
     delay : int
         Transport delay in whole samples assumed between the logged voltage and the motor.
-    nominal : PendulumParameters
-        Starting point; the parameters not fitted keep these values.
+    nominal : PendulumParameters or None
+        Starting point; the parameters not fitted keep these values. Default:
+        :meth:`PendulumParameters.previous` (the workbook with hardware-fitted
+        damping), so a calibration does not start from an earlier one.
     stride : float or None
         Seconds between segment starts (default: ``2 * horizon``, every other stretch of data).
     max_nfev : int
@@ -60,6 +62,8 @@ class PlantCalibration:
     Attributes
     ----------
     params_ : PendulumParameters
+    nominal_ : PendulumParameters
+        The starting point used (``nominal`` or its default).
     standard_errors_ : dict of str to float
         Of the fitted physical parameters (asymptotic, from the Jacobian).
     correlation_ : ndarray (n_fitted, n_fitted)
@@ -74,7 +78,7 @@ class PlantCalibration:
     """
 
     def __init__(self, horizon: float = 0.2, skip: float = 1.0, delay: int = 0,
-                 nominal: PendulumParameters = PendulumParameters(), stride: float | None = None,
+                 nominal: PendulumParameters | None = None, stride: float | None = None,
                  max_nfev: int = 40, progress: bool = False) -> None:
         self.horizon = horizon
         self.skip = skip
@@ -93,16 +97,17 @@ class PlantCalibration:
                                h, int(round(self.skip / dt)), self.delay,
                                2 * h if self.stride is None else max(1, int(round(self.stride / dt))))
         n_ep = len(measured)
+        self.nominal_ = PendulumParameters.previous() if self.nominal is None else self.nominal
         z0 = self._start(measured, seg, n_ep, dt)
         lo, hi = self._bounds(n_ep, seg.n)
         z0 = np.clip(z0, lo, hi)
         progress = _Progress(self.progress, self.max_nfev)
 
         def fun(z):
-            return ms.residuals(z, seg, n_ep, self.nominal, dt, ENCODER_SIGMA)
+            return ms.residuals(z, seg, n_ep, self.nominal_, dt, ENCODER_SIGMA)
 
         def jac(z, r):
-            return ms.jacobian(z, r, seg, n_ep, self.nominal, dt, ENCODER_SIGMA)
+            return ms.jacobian(z, r, seg, n_ep, self.nominal_, dt, ENCODER_SIGMA)
 
         result = levenberg_marquardt(fun, jac, z0, lo, hi, max_iter=self.max_nfev, callback=progress)
         progress.done()
@@ -118,7 +123,7 @@ class PlantCalibration:
         nodes[:, :2] = seg.y[0]
         nodes[:, 1] -= offsets[seg.episode]
         nodes[:, 2:] = np.stack([rates[e][k] for e, k in zip(seg.episode, seg.start)]) / ms.RATE_SCALE
-        phys = ms.from_params(self.nominal, self.nominal)
+        phys = ms.from_params(self.nominal_, self.nominal_)
         return np.concatenate([phys, offsets / ms.OFFSET_SCALE, nodes.ravel()])
 
     @staticmethod
@@ -131,7 +136,7 @@ class PlantCalibration:
     def _store(self, result, seg: ms.Segments, n_ep: int, lo: np.ndarray, hi: np.ndarray) -> None:
         z = result.x
         phys, offsets, _ = ms.unpack(z, n_ep, seg.n)
-        self.params_ = ms.to_params(phys, self.nominal)
+        self.params_ = ms.to_params(phys, self.nominal_)
         self.cost_, self.nfev_ = float(result.cost), int(result.nfev)
         n_res, n_var = result.jac.shape
         s2 = 2 * result.cost / max(1, n_res - n_var)

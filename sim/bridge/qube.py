@@ -86,9 +86,7 @@ class EmulatedQube:
     def set_period(self, dt: float) -> None:
         """Change the time between transfers (the bridge's rate was reconfigured); keeps the state."""
         if dt != self._sim.dt:
-            state = self._sim.state
-            self._sim = PendulumSimulator(self.params, SensorModel(counts_per_rev=None), dt=dt)
-            self._sim.reset(state)
+            self._sim.set_period(dt)  # the commands in flight (transport delay) carry over
 
     def place(self, state=(0.0, 0.0, 0.0, 0.0)) -> None:
         """Put the pendulum in ``state`` (theta, alpha, theta_dot, alpha_dot), counters as at power-up."""

@@ -76,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
                    help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
     p.add_argument("--plant", default=None, metavar="FILE.toml",
-                   help="the pendulum's physical parameters (a qube-calibrate plant file; default: built in)")
+                   help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
+                        "(default: the twin calibrated on the paper's rig; 'workbook', 'previous')")
     p.add_argument("--hanging", action="store_true",
                    help="do not raise the pendulum at each session: it stays hanging down")
     p.add_argument("--raise-time", type=_number(0.0, 60.0, "--raise-time"), default=0.0, metavar="S",
@@ -152,11 +153,10 @@ def main(argv: list[str] | None = None) -> int:
                     latency=args.latency / 1e3, stall_at=args.stall_at, amp_fault_at=args.amp_fault_at,
                     silence_at=args.silence_at, vanish_at=args.vanish_at, hold_at=args.hold_at,
                     hold_periods=args.hold_periods)
-    from qube_koopman.sim.pendulum import PendulumParameters
-    from qube_koopman.sim.pendulum.params_file import PlantFileError, load_plant
+    from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_parameters
 
     try:
-        params = PendulumParameters() if args.plant is None else load_plant(args.plant).params
+        params = plant_parameters(args.plant)
     except PlantFileError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2

@@ -13,7 +13,7 @@ tests) and plain Python floats (:class:`PendulumSimulator`, called once per
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -38,7 +38,15 @@ DEFAULT_SUBSTEPS = 2
 
 @dataclass(frozen=True)
 class PendulumParameters:
-    """Physical parameters (SI units); defaults: Quanser workbook, hardware-fitted damping.
+    """Physical parameters (SI units); defaults: the twin calibrated on the paper's rig.
+
+    The defaults are ``plants/qube_20230828.toml`` (``qube-calibrate`` on the
+    paper's 28 training episodes; validated by closed-loop replay of its 20
+    test episodes, see that file's provenance; a test keeps the two equal).
+    The Quanser workbook's values are :meth:`workbook`; the simulator's
+    defaults before the calibration (workbook masses, another public
+    project's hardware-fitted damping) are :meth:`previous`. Masses, arm
+    length, ``Rm`` and ``g`` are the workbook's in all three.
 
     Parameters
     ----------
@@ -54,44 +62,44 @@ class PendulumParameters:
         Gravity (m/s^2).
     Dr, Dp : float
         Viscous damping of the arm and the pendulum (N m s / rad). The
-        defaults were fitted to hardware by another public project; the
         workbook's larger values (:meth:`workbook`) made 4 of 5 replayed
         dataset episodes fall.
     Cr : float
         Coulomb (dry) friction torque of the arm (N m), smoothed as
-        ``Cr tanh(theta_dot / coulomb_speed)``; 0 (the default) leaves it out.
+        ``Cr tanh(theta_dot / coulomb_speed)``; 0 leaves it out.
     coulomb_speed : float
         Arm speed (rad/s) over which the Coulomb torque changes sign.
     dead_zone : float
         Amplifier dead zone (V): the motor sees ``V - clip(V, -dead_zone, dead_zone)``;
-        0 (the default) leaves it out.
+        0 leaves it out.
     Jh : float
         Inertia the arm carries besides its rod (kg m^2): the motor's rotor, the
         hub, the pendulum's encoder and bearing at the arm's tip. The workbook's
-        ``Jr = mr Lr^2 / 12`` leaves them out; 0 (the default) keeps its model.
+        ``Jr = mr Lr^2 / 12`` leaves them out; 0 keeps its model.
     delay : float
         Transport delay (s) from a command to the motor: over each sample the
         motor sees the command of ``delay`` seconds earlier, so a fraction of a
         sample period splits the sample between the previous and the current
         command. Used by the sampled simulations (:func:`simulate`, the closed
         loop, :class:`PendulumSimulator`), not by :func:`dynamics` nor the
-        linearization; 0 (the default) applies each command at once.
+        linearization; 0 applies each command at once.
     """
 
+    # The calibrated twin, digit for digit as plants/qube_20230828.toml (tests/test_plant_file.py).
     Rm: float = 8.4
-    km: float = 0.042
+    km: float = 0.04864813046650378
     mr: float = 0.095
     Lr: float = 0.085
     mp: float = 0.024
-    Lp: float = 0.129
+    Lp: float = 0.12242902564414418
     g: float = 9.81
-    Dr: float = 2.7e-4
-    Dp: float = 5e-5
-    Cr: float = 0.0
+    Dr: float = 2.7494801249532958e-05
+    Dp: float = 0.0
+    Cr: float = 0.000358814238994569
     coulomb_speed: float = 0.05
-    dead_zone: float = 0.0
-    Jh: float = 0.0
-    delay: float = 0.0
+    dead_zone: float = 0.061651748211563454
+    Jh: float = 8.515183927191558e-05
+    delay: float = 0.001031465297751494
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -110,8 +118,22 @@ class PendulumParameters:
 
     @classmethod
     def workbook(cls) -> "PendulumParameters":
-        """All values from the Quanser QUBE-Servo 2 workbook, including its damping."""
-        return cls(Dr=0.0015, Dp=0.0005)
+        """All values from the Quanser QUBE-Servo 2 workbook, including its damping.
+
+        No dry friction, dead zone, hub inertia or delay: the workbook's model.
+        """
+        return cls(km=0.042, Lp=0.129, Dr=0.0015, Dp=0.0005, Cr=0.0, dead_zone=0.0, Jh=0.0, delay=0.0)
+
+    @classmethod
+    def previous(cls) -> "PendulumParameters":
+        """The simulator's defaults before calibration: the workbook with hardware-fitted damping.
+
+        Another public project fitted ``Dr`` and ``Dp`` to a QUBE-Servo 2;
+        everything else is :meth:`workbook`. Replaying the paper's episodes
+        through it: theta's standard deviation 0.88-0.96 of the real one,
+        alpha's 0.71-0.84. It is the calibration's starting point.
+        """
+        return replace(cls.workbook(), Dr=2.7e-4, Dp=5e-5)
 
     @property
     def Jr(self) -> float:
@@ -327,11 +349,21 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     -------
     A : ndarray of shape (4, 4)
     B : ndarray of shape (4, 1)
-        State order theta, alpha, theta_dot, alpha_dot. With the default
-        parameters A[2, 1] ~ -149, A[3, 1] ~ 262, B ~ (50, -49): magnitudes as
-        in the Quanser workbook; the signs are this frame's (alpha positive
-        pushes the arm backwards), the one in which the dataset's controller
-        (u = +30 alpha + ...) stabilizes.
+        State order theta, alpha, theta_dot, alpha_dot. With the workbook's
+        parameters (:meth:`PendulumParameters.previous`) A[2, 1] ~ -149,
+        A[3, 1] ~ 262, B ~ (50, -49): magnitudes as in the Quanser workbook;
+        the signs are this frame's (alpha positive pushes the arm backwards),
+        the one in which the dataset's controller (u = +30 alpha + ...)
+        stabilizes. The calibrated defaults' larger arm inertia (``Jh``) gives
+        about -81, 204 and (31, -32).
+
+    Notes
+    -----
+    The amplifier's dead zone and the transport delay are left out: the
+    slope at 0 V of a dead zone is zero, which describes no motion the loop
+    makes; the linearization is that of the motor outside it. The smoothed
+    Coulomb torque enters through its slope at rest, ``Cr / coulomb_speed``,
+    as viscous damping of the arm.
     """
     k = _Coefficients.of(params)
     mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])

@@ -26,14 +26,14 @@ Unknown keys in ``[parameters]`` are an error (a misspelt ``Dr`` must not
 silently keep its default). Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
-Named parameter sets (:func:`named_parameters`): ``"default"`` (what
-:class:`PendulumParameters` gives), ``"workbook"`` (the Quanser workbook,
-including its damping), ``"previous"`` (workbook masses with another public
-project's hardware-fitted damping: the default before calibration), and
-``"calibrated-20230828"`` (``plants/qube_20230828.toml``: ``qube-calibrate`` on
-the paper's 28 training episodes, with the arm's hub inertia and the transport
-delay fitted; its closed-loop validation on the 20 test episodes meets the
-issue's targets, see its provenance).
+Named parameter sets (:func:`named_parameters`): ``"calibrated-20230828"``
+(``plants/qube_20230828.toml``: ``qube-calibrate`` on the paper's 28 training
+episodes, with the arm's hub inertia and the transport delay fitted; its
+closed-loop validation on the 20 test episodes is in its provenance),
+``"default"`` (what :class:`PendulumParameters` gives: the same values),
+``"workbook"`` (the Quanser workbook, including its damping) and
+``"previous"`` (workbook masses with another public project's hardware-fitted
+damping: the default before calibration, the calibration's starting point).
 """
 
 from __future__ import annotations
@@ -45,7 +45,8 @@ from pathlib import Path
 
 from qube_koopman.sim.pendulum.model import PendulumParameters
 
-__all__ = ["PlantFile", "load_plant", "save_plant", "named_parameters", "PlantFileError", "FORMAT"]
+__all__ = ["PlantFile", "load_plant", "save_plant", "named_parameters", "plant_parameters", "PARAMETER_SETS",
+           "PlantFileError", "FORMAT"]
 
 FORMAT = "qube-plant/1"
 
@@ -74,14 +75,35 @@ class PlantFile:
         self.provenance = dict(provenance or {})
 
 
+#: The named parameter sets (:func:`named_parameters`).
+PARAMETER_SETS = ("default", "calibrated-20230828", "workbook", "previous")
+
+
 def named_parameters(name: str) -> PendulumParameters:
-    """A named parameter set: ``"default"``, ``"workbook"``, ``"previous"`` or ``"calibrated-20230828"``."""
+    """A named parameter set: ``"default"``, ``"calibrated-20230828"``, ``"workbook"`` or ``"previous"``."""
     sets = {"default": PendulumParameters, "workbook": PendulumParameters.workbook,
-            "previous": lambda: PendulumParameters(Dr=2.7e-4, Dp=5e-5),
+            "previous": PendulumParameters.previous,
             "calibrated-20230828": lambda: load_plant(PLANTS / "qube_20230828.toml").params}
     if name not in sets:
         raise ValueError(f"no parameter set named {name!r}; known: {', '.join(sets)}")
     return sets[name]()
+
+
+def plant_parameters(name_or_path: str | Path | None) -> PendulumParameters:
+    """What ``--plant`` names: a plant file, a set of :data:`PARAMETER_SETS`, or None for the defaults.
+
+    A set's name that is also a file in the working folder is the file.
+
+    Raises
+    ------
+    PlantFileError
+        The file cannot be read (the message names it).
+    """
+    if name_or_path is None:
+        return PendulumParameters()
+    if str(name_or_path) in PARAMETER_SETS and not Path(name_or_path).exists():
+        return named_parameters(str(name_or_path))
+    return load_plant(name_or_path).params
 
 
 def load_plant(path: str | Path) -> PlantFile:

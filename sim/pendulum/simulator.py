@@ -92,6 +92,20 @@ class PendulumSimulator:
         self._y = self._measure()
         return self._y
 
+    def set_period(self, dt: float) -> None:
+        """Change the sample period from the next step on, keeping the state and the last commands.
+
+        For a plant stepped at the pace of something else's clock (the emulated
+        bridge's ticks, a few cycles apart): the transport delay keeps its
+        commands in flight, where a new simulator would start them from 0 V.
+        """
+        _check_timing(dt, self.n_substeps)
+        self.dt = float(dt)
+        self._h = self.dt / self.n_substeps
+        self._whole, self._weights = _hold_pattern(self._params.delay, self.dt, self.n_substeps)
+        kept = self._commands[-(self._whole + 1):]
+        self._commands = [kept[0]] * (self._whole + 1 - len(kept)) + kept
+
     @property
     def params(self) -> PendulumParameters:
         """The model's parameters (fixed at construction: the integrator precomputes from them)."""
