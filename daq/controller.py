@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import asdict, dataclass
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,8 @@ from qube_koopman.sim.lti import DiscreteStateSpace
 __all__ = [
     "DISCRETIZATIONS",
     "PdGains",
+    "SHIPPED_CONTROLLERS",
+    "controller_file",
     "load_pd_gains",
     "pd_controller",
     "pi_controller",
@@ -58,15 +61,41 @@ class PdGains:
         return {k: float(v) for k, v in asdict(self).items()}
 
 
+#: Controller files shipped with the package, by the name ``--controller`` accepts.
+SHIPPED_CONTROLLERS = {
+    "rig": "rig_controller.toml",  # the gains that recorded the paper's dataset
+    "soft-theta": "soft_theta_controller.toml",  # a softer arm: the README's transfer example
+}
+
+
+def controller_file(name_or_path: str | Path) -> Path:
+    """The path of a controller file: an existing file, or a shipped one by name.
+
+    A name of :data:`SHIPPED_CONTROLLERS` (``"rig"``, ``"soft-theta"``) that is
+    not also a file in the working folder gives the package's file; anything
+    else is taken as a path (and reported by :func:`load_pd_gains` if missing).
+    """
+    path = Path(name_or_path)
+    if str(name_or_path) in SHIPPED_CONTROLLERS and not path.exists():
+        # resources.files on the package's own name: the file is found in a wheel as in a checkout.
+        return Path(str(resources.files(__package__) / SHIPPED_CONTROLLERS[str(name_or_path)]))
+    return path
+
+
 def load_pd_gains(path: str | Path) -> PdGains:
-    """Read the gains from a controller.toml like the dataset's.
+    """Read the gains from a controller.toml like the dataset's, or a shipped one by name.
+
+    Parameters
+    ----------
+    path : str or Path
+        A controller file, or a name of :data:`SHIPPED_CONTROLLERS` (:func:`controller_file`).
 
     Raises
     ------
     ValueError
         Naming the file when it cannot be read, is not TOML or misses a gain.
     """
-    path = Path(path)
+    path = controller_file(path)
     try:
         data = tomllib.loads(path.read_text())
     except OSError as exc:

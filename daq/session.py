@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Callable, Sequence, overload
 
 import numpy as np
 
 from qube_koopman.daq.backends.base import Backend
-from qube_koopman.daq.controller import load_pd_gains, pd_controller
+from qube_koopman.daq.controller import controller_file, load_pd_gains, pd_controller
 from qube_koopman.daq.episode import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings, ExcitationStream
 from qube_koopman.daq.log.names import SEED_SIGNALS
@@ -60,7 +59,7 @@ _log = logging.getLogger(__name__)
 
 def default_controller_path() -> Path:
     """The controller.toml shipped with the package: the gains that recorded the paper's dataset."""
-    return Path(str(resources.files(__package__) / "rig_controller.toml"))
+    return controller_file("rig")
 
 
 def load_controller(path: str | Path | None = None, method: str = "backward-euler",

@@ -279,3 +279,15 @@ def test_negative_perturbation_is_refused(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--perturbation", "-1"])
     assert "must be zero or positive" in capsys.readouterr().err
+
+
+def test_shipped_controllers_by_name_and_a_file_of_that_name_wins(tmp_path, monkeypatch):
+    from qube_koopman.daq.controller import load_pd_gains
+
+    assert load_pd_gains("rig") == PdGains(6.0, 1.8, 30.0, 2.5, 50.0)  # the dataset's controller.toml
+    assert load_pd_gains("soft-theta") == PdGains(2.0, 1.0, 35.0, 3.0, 50.0)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "soft-theta").write_text("kp_theta = 1.0\nkd_theta = 1.0\nkp_alpha = 30.0\nkd_alpha = 2.5\ntau = 50.0\n")
+    assert load_pd_gains("soft-theta").kp_theta == 1.0
+    assert main(["--episodes", "1", "--duration", "2", "--controller", "rig", "--out", "e", "-q"]) == 0
+    assert read_episode_metadata(next((tmp_path / "e").glob("*.mcap"))).controller.gains["kp_theta"] == 6.0

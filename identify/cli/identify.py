@@ -115,7 +115,8 @@ def _parser() -> argparse.ArgumentParser:
     pred.add_argument("--controller", metavar="FILE.toml",
                       help="what-if: predict every test episode under this controller's gains (kp_theta, "
                            "kd_theta, kp_alpha, kd_alpha, tau; backward Euler as on the rig) instead of its "
-                           "log's own; only episodes recorded under it are scored")
+                           "log's own (a file, or a shipped name: rig, soft-theta); only episodes recorded "
+                           "under it are scored")
     _add_search_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--out", default="identified", metavar="DIR", help="output folder (default %(default)s)")
