@@ -170,6 +170,12 @@ class KoopmanModel:
             if window is None:
                 raise ValueError("estimating offsets needs window (samples from the start)")
             return off.predict_estimating_offsets(self, trajectory, offsets, window, relift=relift)[0]
+        p0 = self._initial_passthrough(trajectory)
+        x, _ = self.simulate(trajectory.x[:self.n_delays + 1], self.inputs_of(trajectory), p0, relift=relift)
+        return x
+
+    def _initial_passthrough(self, trajectory: Trajectory) -> np.ndarray | None:
+        """Check that ``trajectory`` can be predicted; its controller state at sample ``n_delays``."""
         d = self.n_delays
         if trajectory.n_samples < d + 2:
             raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; "
@@ -177,14 +183,12 @@ class KoopmanModel:
         if trajectory.x.shape[1] != self.n_states:
             raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.x.shape[1]} states, "
                              f"the model {self.n_states}")
-        p0 = None
-        if self.n_passthrough:
-            if trajectory.xc is None or trajectory.xc.shape[1] != self.n_passthrough:
-                raise ValueError(f"trajectory {trajectory.name!r} needs a controller state of "
-                                 f"{self.n_passthrough} channels")
-            p0 = trajectory.xc[d]
-        x, _ = self.simulate(trajectory.x[:d + 1], self.inputs_of(trajectory), p0, relift=relift)
-        return x
+        if not self.n_passthrough:
+            return None
+        if trajectory.xc is None or trajectory.xc.shape[1] != self.n_passthrough:
+            raise ValueError(f"trajectory {trajectory.name!r} needs a controller state of "
+                             f"{self.n_passthrough} channels")
+        return trajectory.xc[d]
 
     def simulate(self, x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None = None,
                  relift: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -219,5 +223,22 @@ class KoopmanModel:
         return (x[0, 0], p[0, 0]) if single else (x[0], p[0])
 
     def predict_many(self, trajectories: Sequence[Trajectory], relift: bool = True) -> list[np.ndarray]:
-        """:meth:`predict` for several episodes."""
-        return [self.predict(t, relift=relift) for t in trajectories]
+        """:meth:`predict` for several episodes, simulated together (one batch per episode length).
+
+        The same numbers as one :meth:`predict` each, in one pass over the
+        samples instead of one per episode.
+        """
+        trajectories = list(trajectories)
+        p0s = [self._initial_passthrough(t) for t in trajectories]
+        out: list[np.ndarray | None] = [None] * len(trajectories)
+        by_length: dict[int, list[int]] = {}
+        for i, t in enumerate(trajectories):
+            by_length.setdefault(t.n_samples, []).append(i)
+        d = self.n_delays
+        for group in by_length.values():
+            p0 = None if p0s[group[0]] is None else np.stack([p0s[i] for i in group])
+            x, _ = self.simulate(np.stack([trajectories[i].x[:d + 1] for i in group]),
+                                 np.stack([self.inputs_of(trajectories[i]) for i in group]), p0, relift=relift)
+            for j, i in enumerate(group):
+                out[i] = x[j]
+        return out

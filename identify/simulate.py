@@ -73,6 +73,10 @@ def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough
     rows = n_p + m if relift else A.shape[1]
     At = np.ascontiguousarray(A[:, :rows, :].transpose(0, 2, 1))  # (models, n_lifted, rows)
     Bt = np.ascontiguousarray(B[:, :rows, :].transpose(0, 2, 1))  # (models, n_inputs, rows)
+    if relift and shift:
+        with np.errstate(all="ignore"):
+            if _relift_shifting(np.array(z), At, Bt, v, x, p, d, head, n_p, n_lifted - n_const):
+                return np.moveaxis(x, 0, 2), np.moveaxis(p, 0, 2)
     with np.errstate(all="ignore"):
         for k in range(d, T - 1):
             nxt = z @ At + v[None, :, k, :] @ Bt
@@ -93,6 +97,84 @@ def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough
                 lifted = _apply(tail, history)[..., 0, :]
             z = np.concatenate([nxt[..., :n_p], lifted], axis=-1)
     return np.moveaxis(x, 0, 2), np.moveaxis(p, 0, 2)
+
+
+#: Samples whose input terms are computed together (bounds that array to a few MB).
+_INPUT_CHUNK = 256
+#: Largest set of row-permuted Koopman matrices the ring buffer may keep (bytes).
+_MAX_RING_BYTES = 64 * 2**20
+
+
+def _monomial_columns(head, m: int) -> list[np.ndarray] | None:
+    """Column indices whose products give the head's features of one sample, if it is one Polynomial.
+
+    ``cols[j][i]`` is the j-th factor of feature i among the sample's ``m`` states, or ``m`` for
+    a factor of 1 (lower-degree monomials are padded with it). None for any other head.
+    """
+    from qube_koopman.identify.lifting import Polynomial
+
+    if len(head) != 1 or not isinstance(head[0], Polynomial):
+        return None
+    monomials = head[0].monomials_
+    order = max(len(c) for c in monomials)
+    return [np.array([c[j] if j < len(c) else m for c in monomials]) for j in range(order)]
+
+
+def _relift_shifting(z, At, Bt, v, x, p, d: int, head, n_p: int, n_shifting: int) -> bool:
+    """The re-lifted prediction loop for monomials, one delay step and constants, in a ring buffer.
+
+    ``z`` (models, episodes, n_p + lifted): the passthrough states, then the features of the
+    last ``d + 1`` samples newest first (``n_shifting`` values), then constants. Instead of
+    shifting the delayed features every sample, they stay in place in a ring and the rows
+    of ``At`` are permuted to match (one permuted copy per ring position): each sample
+    costs a batched product, its input term (precomputed by chunks), and the newest
+    sample's monomials written over the oldest. Fills ``x`` and ``p`` (time-major) from
+    sample ``d + 1`` on. Returns False, doing nothing, when the head is not one
+    Polynomial or the permuted copies would exceed ``_MAX_RING_BYTES``.
+    """
+    T, rows = v.shape[1], At.shape[2]
+    m = x.shape[-1]
+    cols = _monomial_columns(head, m)
+    if cols is None:
+        return False
+    n_feat = cols[0].size
+    slots = n_shifting // n_feat
+    if slots * At.nbytes > _MAX_RING_BYTES:
+        return False
+    lo = n_p
+    # ring position q: slot s holds the sample of age (s - q) mod slots
+    perms = []
+    for q in range(slots):
+        ages = [(s - q) % slots for s in range(slots)]
+        idx = np.r_[np.arange(lo), [lo + a * n_feat + c for a in ages for c in range(n_feat)],
+                    np.arange(lo + n_shifting, At.shape[1])]
+        perms.append(np.ascontiguousarray(At[:, idx, :]))
+    # Y: the newest sample's passthrough and states, with a column of ones for padded factors.
+    y = np.ones(z.shape[:2] + (rows + 1,))
+    out = y[..., :rows]
+    picks = [np.where(c == m, rows, n_p + c) for c in cols]
+    q = 0
+    for c0 in range(d, T - 1, _INPUT_CHUNK):
+        c1 = min(c0 + _INPUT_CHUNK, T - 1)
+        u_terms = np.matmul(v[:, c0:c1].reshape(1, -1, v.shape[-1]), Bt).reshape(
+            Bt.shape[0], v.shape[0], c1 - c0, rows)
+        for j, k in enumerate(range(c0, c1)):
+            np.matmul(z, perms[q], out=out)
+            out += u_terms[:, :, j]
+            x[k + 1] = out[..., n_p:n_p + m]
+            p[k + 1] = out[..., :n_p]
+            q = (q - 1) % slots  # the oldest slot takes the newest sample
+            slot = z[..., lo + q * n_feat:lo + (q + 1) * n_feat]
+            if len(picks) == 1:  # order 1: the states themselves
+                np.copyto(slot, y[..., picks[0]])
+            else:
+                np.multiply(y[..., picks[0]], y[..., picks[1]], out=slot)
+            for extra in picks[2:]:
+                slot *= y[..., extra]
+            z[..., :n_p] = out[..., :n_p]
+        if not np.any(np.isfinite(out)):
+            break  # every prediction diverged; the rest stays NaN
+    return True
 
 
 def _split_pointwise_head(lifting: Lifting) -> tuple[list, list]:

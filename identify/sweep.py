@@ -20,7 +20,7 @@ from qube_koopman.identify.cl_edmd import _ClosedLoopKoopman
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.regression import Snapshots
-from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.scores import r2_scores_time_major
 from qube_koopman.identify.simulate import simulate_batch
 from qube_koopman.identify.structure import close_loop
 from qube_koopman.identify.trajectory import Trajectory
@@ -109,23 +109,22 @@ def _score(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str,
     for T, group in by_length.items():
         x_init = np.stack([t.x[:d + 1] for t in group])
         v = np.stack([ref.inputs_of(t) for t in group])
-        if scoring == "cl" and not measured_only:
-            truth = np.stack([np.hstack([t.xc, t.x]) for t in group])
-            p0 = np.stack([t.xc[d] for t in group])
-        else:
-            truth = np.stack([t.x for t in group])
-            p0 = np.stack([t.xc[d] for t in group]) if scoring == "cl" else None
+        with_p = scoring == "cl" and not measured_only
+        # Time-major truth (samples, episodes, channels), as the simulator stores its predictions.
+        truth = np.stack([np.hstack([t.xc, t.x]) if with_p else t.x for t in group], axis=1)
+        p0 = np.stack([t.xc[d] for t in group]) if scoring == "cl" else None
         per_model = truth.shape[-1] * T * len(group)
         for sl in _batches(len(models), per_model):
             x, p = simulate_batch(A[sl], B[sl], ref.lifting, ref.n_passthrough, x_init, v, p0, relift=relift)
-            if scoring == "cl" and not measured_only:
-                p[:, :, :d] = truth[None, :, :d, :ref.n_passthrough]  # the initial condition, as for x
-                pred = np.concatenate([p, x], axis=-1)
-            else:
-                pred = x
+            x, p = np.moveaxis(x, 2, 0), np.moveaxis(p, 2, 0)  # back to the storage order
             # The first sample is the initial condition itself; later initial samples are kept
             # (the reference's convention).
-            totals[sl] += r2_scores(truth[None, :, start:], pred[:, :, start:]).sum(axis=1)
+            if with_p:
+                p[:d] = truth[:d, None, :, :ref.n_passthrough]  # the initial condition, as for x
+                scores = r2_scores_time_major(truth[start:], p[start:], x[start:])
+            else:
+                scores = r2_scores_time_major(truth[start:], x[start:])
+            totals[sl] += scores.sum(axis=1)
     return totals / len(episodes)
 
 

@@ -54,6 +54,18 @@ def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def qube_reproduction(qube_logs, tmp_path_factory) -> tuple[dict, str]:
+    """``qube-reproduce qube`` on the imported dataset, once per session: (qube.json, qube.md)."""
+    import json
+
+    from qube_koopman.identify.cli.reproduce import main
+
+    out = tmp_path_factory.mktemp("qube_out")
+    assert main(["qube", "--data", str(qube_logs), "--out", str(out), "-q"]) == 0
+    return json.loads((out / "qube.json").read_text()), (out / "qube.md").read_text()
+
+
 # --- no process started by the suite outlives it -------------------------------------------------
 
 _PR_SET_CHILD_SUBREAPER = 36
@@ -96,6 +108,24 @@ def _descendants(root: int) -> dict[int, str]:
     return found
 
 
+def stop_library_daemons() -> None:
+    """Stop joblib's reusable loky workers and the resource trackers of loky and multiprocessing.
+
+    They are library daemons that live until their parent exits (identification runs its
+    sweeps and searches through joblib); stopping them leaves only real leaks to be found.
+    """
+    if "joblib" not in sys.modules:
+        return
+    from multiprocessing import resource_tracker
+
+    from joblib.externals.loky import get_reusable_executor
+    from joblib.externals.loky.backend import resource_tracker as loky_tracker
+
+    get_reusable_executor().shutdown(wait=True)
+    loky_tracker._resource_tracker._stop()
+    resource_tracker._resource_tracker._stop()
+
+
 @pytest.fixture(scope="session", autouse=True)
 def no_process_outlives_the_suite():
     """At the end of the session, fail naming any process the suite started that still runs.
@@ -109,6 +139,7 @@ def no_process_outlives_the_suite():
     before = set(_descendants(os.getpid()))
     _become_subreaper()
     yield
+    stop_library_daemons()
     time.sleep(0.3)  # a process started just now is forked by then
     deadline = time.monotonic() + 5  # give processes being stopped a moment to go
     left = {p: c for p, c in _descendants(os.getpid()).items() if p not in before}

@@ -108,6 +108,20 @@ def test_batched_simulation_equals_per_episode(loop):
         np.testing.assert_allclose(batched[i], model.predict(t), rtol=1e-12, atol=1e-12)
 
 
+def test_predict_many_equals_predict_for_episodes_of_any_length(loop):
+    *_, trajs = loop
+    model = ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(1)], alpha=1e-2,
+                   measured=[0]).fit(trajs[:2]).closed_loop_model_
+    episodes = [trajs[0], trajs[1].skip(7), trajs[2]]  # two lengths
+    many = model.predict_many(episodes)
+    assert len(many) == 3
+    for t, x in zip(episodes, many):
+        assert x.shape == t.x.shape
+        np.testing.assert_allclose(x, model.predict(t), rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="controller state"):
+        model.predict_many([replace(trajs[0], xc=None)])
+
+
 def test_diverging_prediction_is_non_finite_and_does_not_raise():
     rng = np.random.default_rng(0)
     n = 2000
@@ -136,7 +150,9 @@ def test_structure_helpers_reproduce_simulated_signals(loop):
 
 
 @pytest.mark.parametrize("lifting", [
-    [Polynomial(2), Delay(3)],                      # pointwise head, one delay: the shift path
+    [Polynomial(2), Delay(3)],                      # pointwise head, one delay: the ring path
+    [Polynomial(3), Delay(4), Constant()],          # the ring path with three factors and an affine term
+    [Polynomial(1), Delay(1)],                      # the ring path with the identity's features
     [Delay(2), GaussianRbf(6, shape=0.5, seed=1)],  # delays then RBF: the history path
     [Polynomial(2)],                                # no delays
     [Polynomial(2), Delay(3), Constant()],          # the shift path with an affine term

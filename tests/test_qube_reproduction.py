@@ -1,19 +1,13 @@
 """Paper section 5 reproduced from the imported real dataset (the expected values of the issue)."""
 
-import json
-
 import pytest
-
-from qube_koopman.identify.cli.reproduce import main
 
 pytestmark = [pytest.mark.dataset, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def results(qube_logs, tmp_path_factory):
-    out = tmp_path_factory.mktemp("qube_out")
-    assert main(["qube", "--data", str(qube_logs), "--out", str(out)]) == 0
-    return json.loads((out / "qube.json").read_text()), (out / "qube.md").read_text()
+def results(qube_reproduction):
+    return qube_reproduction  # conftest: run once per session, shared with the twin's equivalence test
 
 
 def test_cl_edmd_reaches_the_paper(results):

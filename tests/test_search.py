@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from conftest import stop_library_daemons
 from qube_koopman.identify import ClEdmd, Lifting
 from qube_koopman.identify.data import check_same_controller, group_shuffle_splits, load_logs
 from qube_koopman.identify.offsets import (estimate_offsets, estimate_offsets_many, predict_with_offsets,
@@ -22,18 +23,9 @@ WINDOW = 250  # 0.5 s
 
 @pytest.fixture(scope="module", autouse=True)
 def _stop_library_helpers():
-    """joblib's loky workers and the resource trackers of loky and multiprocessing (dask's
-    worker processes) are library daemons that live until their parent exits; stop them when
-    this module is done, so the suite's check for outliving processes sees only real leaks."""
+    """Stop joblib's and dask's helper processes when this module is done (conftest)."""
     yield
-    from multiprocessing import resource_tracker
-
-    from joblib.externals.loky import get_reusable_executor
-    from joblib.externals.loky.backend import resource_tracker as loky_tracker
-
-    get_reusable_executor().shutdown(wait=True)
-    loky_tracker._resource_tracker._stop()
-    resource_tracker._resource_tracker._stop()
+    stop_library_daemons()
 
 
 @pytest.fixture(scope="module")

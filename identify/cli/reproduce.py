@@ -51,6 +51,8 @@ def _parser() -> argparse.ArgumentParser:
                       help="folder for qube.json and qube.md (default: %(default)s)")
     qube.add_argument("--n-alphas", type=int, default=180, metavar="N",
                       help="alphas in the study, log-spaced 1e-3..1e3 (default: %(default)s)")
+    qube.add_argument("--n-jobs", type=int, default=-1, metavar="N",
+                      help="worker processes for the regularization sweeps (default: one per core; 1: none)")
     qube.add_argument("--strict", action="store_true",
                       help="refuse unreadable or incomplete logs in --data instead of skipping them")
     for experiment in (duffing, qube):
@@ -70,12 +72,14 @@ def _qube(args) -> int:
         raise CliError(f"--data {args.data}: no such folder")
     if args.n_alphas < 2:
         raise CliError(f"--n-alphas must be at least 2, got {args.n_alphas}")
+    if args.n_jobs == 0 or args.n_jobs < -1:
+        raise CliError(f"--n-jobs must be -1 (every core) or at least 1, got {args.n_jobs}")
     out = output_dir(args.out)
     try:
         with warnings.catch_warnings():
             if args.strict:  # the first log load_logs would skip stops the study instead
                 warnings.simplefilter("error", IncompleteLogSkipped)
-            results = reproduce_qube(args.data, n_alphas=args.n_alphas, progress=progress)
+            results = reproduce_qube(args.data, n_alphas=args.n_alphas, progress=progress, n_jobs=args.n_jobs)
     except IncompleteLogSkipped as exc:
         raise CliError(f"{str(exc).removesuffix('; skipped')}; refused because of --strict") from None
     except ValueError as exc:

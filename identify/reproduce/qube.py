@@ -74,9 +74,19 @@ ROWS = (
 
 
 def score_closed_loop(pairs) -> dict:
-    """Closed-loop test scores over (model, trajectory) pairs (see :func:`summarize_episodes`)."""
+    """Closed-loop test scores over (model, trajectory) pairs (see :func:`summarize_episodes`).
+
+    The episodes of each model are predicted together (:meth:`KoopmanModel.predict_many`).
+    """
     pairs = list(pairs)
-    return summarize_episodes([t.x for _, t in pairs], [m.predict(t) for m, t in pairs])
+    predictions: list = [None] * len(pairs)
+    by_model: dict[int, list[int]] = {}
+    for i, (model, _) in enumerate(pairs):
+        by_model.setdefault(id(model), []).append(i)
+    for group in by_model.values():
+        for i, x in zip(group, pairs[group[0]][0].predict_many([pairs[i][1] for i in group])):
+            predictions[i] = x
+    return summarize_episodes([t.x for _, t in pairs], predictions)
 
 
 def _arx_scores(train, test) -> dict:
@@ -95,21 +105,45 @@ def _grid(n: int) -> np.ndarray:
     return np.logspace(np.log10(ALPHA_RANGE[0]), np.log10(ALPHA_RANGE[1]), n)
 
 
-def _sweeps(train, controller, n_alphas, progress) -> dict[tuple[str, int], SweepResult]:
-    """One cross-validated sweep per (method, delays) of the table; the paper's grid for its study."""
-    splits = group_shuffle_splits(len(train), n_splits=3, test_size=0.2, seed=1234)
-    sweeps: dict[tuple[str, int], SweepResult] = {}
+def _sweep_tasks(n_alphas: int) -> list[tuple[tuple[str, int], np.ndarray, tuple[str, ...]]]:
+    """The table's sweeps, most expensive first: ((method, delays), alphas, scorings)."""
+    tasks = {}
     for row in ROWS:
         key = (row.method, row.n_delays)
-        if row.method == "arx" or key in sweeps:
+        if row.method == "arx" or key in tasks:
             continue
         paper_study = row.n_alphas is None
-        label = f"sweep {row.method}, {row.n_delays} delays"
-        report = (lambda done, total, label=label: progress(label, done, total)) if progress else None
-        sweeps[key] = regularization_sweep(_template(*key, controller), train,
-                                           _grid(n_alphas if paper_study else row.n_alphas), splits,
-                                           scorings=("cl", "plant") if paper_study else ("cl",),
-                                           controller=controller, progress=report)
+        tasks[key] = (key, _grid(n_alphas if paper_study else row.n_alphas),
+                      ("cl", "plant") if paper_study else ("cl",))
+    return sorted(tasks.values(), key=lambda task: -task[1].size * len(task[2]))
+
+
+def _one_sweep(key, alphas, scorings, train, controller, splits) -> SweepResult:
+    return regularization_sweep(_template(*key, controller), train, alphas, splits, scorings=scorings,
+                                controller=controller)
+
+
+def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1) -> dict[tuple[str, int], SweepResult]:
+    """One cross-validated sweep per (method, delays) of the table; the paper's grid for its study.
+
+    The sweeps are independent: joblib runs them in ``n_jobs`` worker processes (-1: one per
+    core), each sweep with one BLAS thread. ``progress(label, done, total)`` counts sweeps.
+    """
+    import joblib
+
+    splits = group_shuffle_splits(len(train), n_splits=3, test_size=0.2, seed=1234)
+    tasks = _sweep_tasks(n_alphas)
+    calls = [joblib.delayed(_one_sweep)(key, alphas, scorings, train, controller, splits)
+             for key, alphas, scorings in tasks]
+    n_jobs = min(len(tasks), joblib.cpu_count() if n_jobs == -1 else max(1, n_jobs))
+    # max_nbytes=None: arguments pickled, not memory-mapped (no shared folders left to track).
+    results = (joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None)(calls) if n_jobs > 1
+               else (fn(*args, **kwargs) for fn, args, kwargs in calls))
+    sweeps: dict[tuple[str, int], SweepResult] = {}
+    for (key, _, _), result in zip(tasks, results):
+        sweeps[key] = result
+        if progress:
+            progress("sweeps", len(sweeps), len(tasks))
     return sweeps
 
 
@@ -142,8 +176,10 @@ def _checks(rows: dict, cl_sweep: SweepResult) -> dict:
 
 
 def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
-                   progress: Callable[[str, int, int], None] | None = None) -> dict:
+                   progress: Callable[[str, int, int], None] | None = None, n_jobs: int = -1) -> dict:
     """Run the study on the imported logs in ``data_dir`` (48 ``*.mcap`` files).
+
+    ``n_jobs`` worker processes run the regularization sweeps (-1: one per core; 1: none).
 
     Returns
     -------
@@ -161,7 +197,7 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
     check_same_rate(train_logs + test_logs, "all")
     controller = check_same_controller(train_logs, "training")
     train = [log.trajectory for log in train_logs]
-    sweeps = _sweeps(train, controller, n_alphas, progress)
+    sweeps = _sweeps(train, controller, n_alphas, progress, n_jobs)
     rows = {}
     with limited_blas_threads(1):
         for row in ROWS:
