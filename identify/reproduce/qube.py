@@ -123,11 +123,12 @@ def _one_sweep(key, alphas, scorings, train, controller, splits) -> SweepResult:
                                 controller=controller)
 
 
-def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1) -> dict[tuple[str, int], SweepResult]:
+def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1):
     """One cross-validated sweep per (method, delays) of the table; the paper's grid for its study.
 
     The sweeps are independent: joblib runs them in ``n_jobs`` worker processes (-1: one per
-    core), each sweep with one BLAS thread. ``progress(label, done, total)`` counts sweeps.
+    core), each sweep with one BLAS thread, started at once. Yields ``((method, delays),
+    SweepResult)`` as they finish, in order. ``progress(label, done, total)`` counts sweeps.
     """
     import joblib
 
@@ -139,12 +140,10 @@ def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1) -> dict[tup
     # max_nbytes=None: arguments pickled, not memory-mapped (no shared folders left to track).
     results = (joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None)(calls) if n_jobs > 1
                else (fn(*args, **kwargs) for fn, args, kwargs in calls))
-    sweeps: dict[tuple[str, int], SweepResult] = {}
-    for (key, _, _), result in zip(tasks, results):
-        sweeps[key] = result
+    for done, ((key, _, _), result) in enumerate(zip(tasks, results), start=1):
         if progress:
-            progress("sweeps", len(sweeps), len(tasks))
-    return sweeps
+            progress("sweeps", done, len(tasks))
+        yield key, result
 
 
 def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs) -> dict:
@@ -197,15 +196,20 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
     check_same_rate(train_logs + test_logs, "all")
     controller = check_same_controller(train_logs, "training")
     train = [log.trajectory for log in train_logs]
-    sweeps = _sweeps(train, controller, n_alphas, progress, n_jobs)
-    rows = {}
+    pending = _sweeps(train, controller, n_alphas, progress, n_jobs)
+    sweeps, rows = {}, {}
     with limited_blas_threads(1):
+        # The workers run the sweeps meanwhile: ARX first, then each sweep's rows as it arrives.
         for row in ROWS:
-            rows[row.key] = ({**_arx_scores(train, [log.trajectory for log in test_logs]), "alpha": None}
-                             if row.method == "arx" else
-                             _row_scores(row, sweeps[(row.method, row.n_delays)], controller, test_logs))
+            if row.method == "arx":
+                rows[row.key] = {**_arx_scores(train, [log.trajectory for log in test_logs]), "alpha": None}
+        for key, sweep in pending:
+            sweeps[key] = sweep
+            for row in ROWS:
+                if (row.method, row.n_delays) == key:
+                    rows[row.key] = _row_scores(row, sweep, controller, test_logs)
     return {
-        "rows": rows,
+        "rows": {row.key: rows[row.key] for row in ROWS},
         "paper": PAPER_QUBE,
         "sweep": {
             "alpha": _grid(n_alphas).tolist(),

@@ -170,16 +170,24 @@ class _Coefficients(NamedTuple):
                    arm_coulomb=p.Cr, inverse_coulomb_speed=1.0 / p.coulomb_speed, dead_zone=p.dead_zone)
 
 
-def _accelerations(s, c, theta_dot, alpha_dot, voltage, k: _Coefficients):
-    """(theta_ddot, alpha_ddot) from sin and cos of alpha; floats or arrays alike."""
+def _motor_voltage(voltage, k: _Coefficients):
+    """The voltage past the amplifier's dead zone; floats or arrays alike."""
+    if not k.dead_zone:
+        return voltage
+    if isinstance(voltage, float):  # the per-tick simulator: numpy's clip costs microseconds a call
+        return voltage - min(max(voltage, -k.dead_zone), k.dead_zone)
+    return voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
+
+
+def _accelerations(s, c, theta_dot, alpha_dot, voltage, k: _Coefficients, tanh: Callable = np.tanh):
+    """(theta_ddot, alpha_ddot) from sin and cos of alpha and the motor's voltage (past the dead
+    zone, :func:`_motor_voltage`); floats or arrays alike."""
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
-    if k.dead_zone:
-        voltage = voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
     r1 = (k.torque_per_volt * voltage - k.arm_damping * theta_dot
           - 2.0 * k.quarter * s * c * theta_dot * alpha_dot + k.m12 * s * alpha_dot * alpha_dot)
     if k.arm_coulomb:  # a Python branch: without friction the arithmetic is exactly as before
-        r1 = r1 - k.arm_coulomb * np.tanh(theta_dot * k.inverse_coulomb_speed)
+        r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
     r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
     m11 = k.m11 + k.quarter * s * s
     m12 = k.m12 * c
@@ -192,20 +200,22 @@ def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: _Coef
     """``n`` classic RK4 steps of size ``h`` at constant voltage, on the four components."""
     half = 0.5 * h
     sixth = h / 6.0
+    voltage = _motor_voltage(voltage, k)  # constant over the steps: the dead zone once
+    tanh = math.tanh if sin is math.sin else np.tanh
     for _ in range(n):
-        a1, b1 = _accelerations(sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage, k)
+        a1, b1 = _accelerations(sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage, k, tanh)
         al2 = alpha + half * alpha_dot
         td2 = theta_dot + half * a1
         ad2 = alpha_dot + half * b1
-        a2, b2 = _accelerations(sin(al2), cos(al2), td2, ad2, voltage, k)
+        a2, b2 = _accelerations(sin(al2), cos(al2), td2, ad2, voltage, k, tanh)
         al3 = alpha + half * ad2
         td3 = theta_dot + half * a2
         ad3 = alpha_dot + half * b2
-        a3, b3 = _accelerations(sin(al3), cos(al3), td3, ad3, voltage, k)
+        a3, b3 = _accelerations(sin(al3), cos(al3), td3, ad3, voltage, k, tanh)
         al4 = alpha + h * ad3
         td4 = theta_dot + h * a3
         ad4 = alpha_dot + h * b3
-        a4, b4 = _accelerations(sin(al4), cos(al4), td4, ad4, voltage, k)
+        a4, b4 = _accelerations(sin(al4), cos(al4), td4, ad4, voltage, k, tanh)
         theta = theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4)
         alpha = alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4)
         theta_dot = theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
@@ -267,8 +277,9 @@ def dynamics(state, voltage, params: PendulumParameters = PendulumParameters()) 
         theta_dot, alpha_dot, theta_ddot, alpha_ddot.
     """
     x = _as_states(state)
+    k = _Coefficients.of(params)
     theta_ddot, alpha_ddot = _accelerations(np.sin(x[..., 1]), np.cos(x[..., 1]), x[..., 2], x[..., 3],
-                                            np.asarray(voltage, dtype=float), _Coefficients.of(params))
+                                            _motor_voltage(np.asarray(voltage, dtype=float), k), k)
     return np.stack(np.broadcast_arrays(x[..., 2], x[..., 3], theta_ddot, alpha_ddot), axis=-1)
 
 
