@@ -138,12 +138,17 @@ def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1):
              for key, alphas, scorings in tasks]
     n_jobs = min(len(tasks), joblib.cpu_count() if n_jobs == -1 else max(1, n_jobs))
     # max_nbytes=None: arguments pickled, not memory-mapped (no shared folders left to track).
+    # Not a generator function itself: the workers start now, not at the first result asked for.
     results = (joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None)(calls) if n_jobs > 1
                else (fn(*args, **kwargs) for fn, args, kwargs in calls))
-    for done, ((key, _, _), result) in enumerate(zip(tasks, results), start=1):
-        if progress:
-            progress("sweeps", done, len(tasks))
-        yield key, result
+
+    def arriving():
+        for done, ((key, _, _), result) in enumerate(zip(tasks, results), start=1):
+            if progress:
+                progress("sweeps", done, len(tasks))
+            yield key, result
+
+    return arriving()
 
 
 def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs) -> dict:
