@@ -170,9 +170,7 @@ class KoopmanModel:
             if window is None:
                 raise ValueError("estimating offsets needs window (samples from the start)")
             return off.predict_estimating_offsets(self, trajectory, offsets, window, relift=relift)[0]
-        p0 = self._initial_passthrough(trajectory)
-        x, _ = self.simulate(trajectory.x[:self.n_delays + 1], self.inputs_of(trajectory), p0, relift=relift)
-        return x
+        return self.predict_many([trajectory], relift=relift)[0]
 
     def _initial_passthrough(self, trajectory: Trajectory) -> np.ndarray | None:
         """Check that ``trajectory`` can be predicted; its controller state at sample ``n_delays``."""
