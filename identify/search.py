@@ -298,7 +298,8 @@ def _runner(n_jobs: int, scheduler: str | None):
 def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStateSpace, *, splits,
                     window: int, space: SearchSpace | None = None, n_jobs: int = 1, scheduler: str | None = None,
                     bound: float = DEFAULT_BOUND, rbf_seed: int = 0,
-                    progress: Callable[[str, int, int], None] | None = None) -> SearchResult:
+                    progress: Callable[[str, int, int], None] | None = None,
+                    connect_timeout: float = 30.0) -> SearchResult:
     """Search the lifting space in stages (see the module docstring).
 
     Parameters
@@ -318,6 +319,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
         Address of a dask.distributed scheduler to run the candidates on
         instead (needs the ``dask`` extra).
     progress : callable(label, done, total), optional
+    connect_timeout : float
+        Seconds to keep trying to reach ``scheduler`` before giving up.
 
     Returns
     -------
@@ -328,7 +331,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     space = space or SearchSpace()
     data = SearchData(list(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
                       int(window), bound, rbf_seed)
-    client = _dask_client(scheduler) if scheduler else None
+    client = _dask_client(scheduler, connect_timeout) if scheduler else None
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window)), set()
     try:
@@ -356,13 +359,13 @@ def _release_workers(n_jobs: int, scheduler: str | None) -> None:
         get_reusable_executor().shutdown(wait=True)
 
 
-def _dask_client(address: str):
+def _dask_client(address: str, timeout: float):
     try:
         from dask.distributed import Client
     except ImportError:
         raise ValueError('a dask scheduler needs dask.distributed, which is optional: '
                          'pip install "qube-koopman[dask]"') from None
     try:
-        return Client(address, timeout=30, set_as_default=True)
+        return Client(address, timeout=timeout, set_as_default=True)
     except (OSError, TimeoutError) as exc:
         raise ValueError(f"{address}: cannot reach the dask scheduler ({exc})") from None

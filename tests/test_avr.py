@@ -9,7 +9,7 @@ from qube_koopman.firmware_protocol import Command, Fault, FaultCode, HelloReply
 from qube_koopman.firmware_protocol.avr import F_CPU, firmware_sizes
 from qube_koopman.firmware_protocol.qube_spi import SPI_SIZE
 from avr_helpers import Host, avr_cache, new_bridge  # noqa: F401 (fixture)
-from bridge_helpers import cache_home, env, start_emulator, stop_process  # noqa: F401 (fixtures)
+from bridge_helpers import cache_home, env, run_in_real_time  # noqa: F401 (fixtures)
 
 
 def test_fits_the_uno(avr_cache):
@@ -131,16 +131,10 @@ def test_chip_select_is_high_from_reset(avr_cache):
 
 @pytest.mark.slow
 def test_qube_run_against_the_emulated_uno_in_real_time(avr_cache, env, tmp_path, capsys):
-    from qube_koopman.daq.cli.run import main
     from qube_koopman.daq.log import read_episode
 
-    proc, path = start_emulator(env, "--target", "avr", "--seed", "5")
-    try:
-        status = main(["--backend", "serial", "--port", path, "--episodes", "1", "--duration", "5",
-                       "--seed", "7", "--out", str(tmp_path), "-q"])
-    finally:
-        _, emulator_err = stop_process(proc)
-    out = capsys.readouterr().out
+    status, out, emulator_err, tmp_path, _ = run_in_real_time(
+        env, ["--target", "avr", "--seed", "5"], ["--episodes", "1", "--duration", "5", "--seed", "7"], tmp_path, capsys)
     assert status == 0, out + emulator_err
     assert "1 complete, 0 aborted" in out
     (log,) = tmp_path.glob("*.mcap")

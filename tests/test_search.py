@@ -146,7 +146,7 @@ def test_an_unreachable_scheduler_is_a_clear_error(small):
     trajs, controller, splits = small
     with pytest.raises(ValueError, match="tcp://127.0.0.1:9: cannot reach the dask scheduler"):
         search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE,
-                        scheduler="tcp://127.0.0.1:9")
+                        scheduler="tcp://127.0.0.1:9", connect_timeout=2)
 
 
 @pytest.fixture(scope="module")

@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 
 import numpy as np
 import pytest
 from _episodes import assert_follows_controller
-from bridge_helpers import FakeDevice, cache_home, core, env, start_emulator, stop_process  # noqa: F401
+from bridge_helpers import FakeDevice, cache_home, core, env, run_in_real_time, start_emulator, stop_process  # noqa: F401
 
 from qube_koopman.daq.backends.base import BackendFault
 from qube_koopman.daq.backends.serial import SerialBackend
@@ -479,53 +478,10 @@ def test_qube_run_with_a_bad_port_is_one_line(tmp_path, capsys):
     assert not list(tmp_path.glob("*.mcap"))
 
 
-def _lost_to_stalls(folder) -> list[str]:
-    """What the logs in ``folder`` measured of each episode lost to a scheduler stall.
-
-    A host stalled past the bridge's watchdog (10 ms) loses its episode to the watchdog; a
-    stalled emulator process, to link loss. Either counts as a stall only when the host's own
-    log measured ticks more than 2 ms late (``timing.stalls``); then its worst lateness is given.
-    """
-    lost = []
-    for f in sorted(folder.glob("*.mcap")):
-        meta = read_episode(f).metadata
-        reason = meta.status_reason
-        if meta.status != "complete" and ("watchdog" in reason or "link lost: no telemetry" in reason) \
-                and (meta.timing.get("stalls") or 0) > 0:
-            lost.append(f"{meta.timing['stalls']} late ticks, worst {meta.timing['lateness_max'] * 1e3:.1f} ms "
-                        f"({reason.split(':')[1].strip()})")
-    return lost
-
-
 @pytest.mark.slow
 def test_qube_run_in_real_time(env, tmp_path, capsys):
-    # Real time on a shared machine: a host the scheduler stalls past the bridge's watchdog loses
-    # its episode. Such a run (the stall measured in its own log) is tried again, at most twice,
-    # and reported; three lost to measured stalls skip (the machine gave no real time to test);
-    # any other failure fails at once.
-    measured, lost_runs = [], 0
-    for attempt in range(3):
-        out_dir = tmp_path / f"attempt{attempt}"
-        proc, path = start_emulator(env, "--seed", "5")
-        try:
-            # A 200 ms link timeout: an emulator process held up pauses device time (its ticks
-            # slip, nothing is lost), which the default 25 ms would take for a lost link.
-            status = main(["--backend", "serial", "--port", path, "--episodes", "2", "--duration", "2",
-                           "--seed", "7", "--out", str(out_dir), "--link-timeout", "200", "-q"])
-        finally:
-            _, emulator_err = stop_process(proc)
-        out = capsys.readouterr().out
-        stalls = _lost_to_stalls(out_dir) if status != 0 else []
-        if not stalls:
-            break
-        measured += stalls
-        lost_runs += 1
-    report = "; ".join(measured)
-    if lost_runs == 3:
-        pytest.skip(f"three runs lost to measured scheduler stalls: {report}")
-    if measured:
-        warnings.warn(f"runs lost to measured scheduler stalls, tried again: {report}")
-    tmp_path = out_dir
+    status, out, emulator_err, tmp_path, path = run_in_real_time(
+        env, ["--seed", "5"], ["--episodes", "2", "--duration", "2", "--seed", "7"], tmp_path, capsys)
     assert status == 0, out
     assert f"on the emulated bridge on {path} (firmware 1.0.0)" in out and "serial link: " in out
     assert "2 complete, 0 aborted" in out
