@@ -19,6 +19,7 @@ import warnings
 import numpy as np
 
 __all__ = ["ConstantChannelWarning", "r2_score", "r2_scores", "r2_scores_time_major", "r2_from_sums",
+           "r2_from_residuals",
            "summarize_episodes", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
 
 
@@ -113,6 +114,24 @@ def r2_scores_time_major(y_true: np.ndarray, *y_pred: np.ndarray) -> np.ndarray:
     if lo != y_true.shape[-1]:
         raise ValueError(f"predicted parts have {lo} channels, the truth {y_true.shape[-1]}")
     return r2_from_sums(np.concatenate(sums, axis=-1), *_true_sums(y_true, axis=0))
+
+
+def r2_from_residuals(ss_res: np.ndarray, y_true: np.ndarray) -> np.ndarray:
+    """R^2 averaged over states from residual sums of squares accumulated elsewhere.
+
+    Parameters
+    ----------
+    ss_res : ndarray of shape (..., n_episodes, n_states)
+        Sums of squared prediction errors over the scored samples (e.g. summed
+        chunk by chunk as a simulation runs).
+    y_true : ndarray of shape (n_samples, n_episodes, n_states)
+        The true values of those samples, time first.
+
+    Returns
+    -------
+    ndarray of shape (..., n_episodes)
+    """
+    return r2_from_sums(ss_res, *_true_sums(np.asarray(y_true, dtype=float), axis=0))
 
 
 def r2_score(y_true, y_pred) -> float:

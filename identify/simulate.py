@@ -6,15 +6,33 @@ at every step only the rows of ``A`` and ``B`` that produce the passthrough
 (controller) states and the original plant states are needed: the rest of
 the lifted state is recomputed from the predicted history. On the
 QUBE-Servo that is 4 rows of 57.
+
+Three loops, the fastest that fits the lifting:
+
+- the ring (:class:`_RingStepper`): pointwise steps (monomials, sin/cos), one
+  delay step, optionally one radial basis on the delayed state, then
+  constants: every lifting of the search and of the paper;
+- the history loop (:class:`_HistoryStepper`): any other lifting, re-lifted
+  from the last ``n_delays + 1`` predicted samples at every step;
+- linear propagation of the lifted state (``relift=False``).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 
-from qube_koopman.identify.lifting import Constant, Delay, Lifting
+from qube_koopman.identify.lifting import Constant, Delay, Lifting, Polynomial
+from qube_koopman.identify.lifting.rbf import _RadialBasis
 
-__all__ = ["simulate_batch"]
+__all__ = ["simulate_batch", "simulate_chunks"]
+
+#: Samples whose input terms are computed together (bounds that array to a few MB).
+_INPUT_CHUNK = 256
+#: Largest set of permuted Koopman matrices and RBF centres the ring may keep (bytes).
+_MAX_RING_BYTES = 64 * 2**20
 
 
 def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough: int,
@@ -50,131 +68,239 @@ def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough
     """
     d, m, n_p = lifting.n_delays_, lifting.n_features_in_, n_passthrough
     n_models, n_eps, T = A.shape[0], v.shape[0], v.shape[1]
-    # Time-major storage: each step writes one contiguous block.
+    # Time-major storage: each chunk writes one contiguous block.
     x = np.full((T, n_models, n_eps, m), np.nan)
     p = np.full((T, n_models, n_eps, n_p), np.nan)
     x[:d + 1] = np.moveaxis(np.asarray(x_init, dtype=float), 1, 0)[:, None]
-    p_d = np.zeros((n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
-    p[d] = p_d
-    lifted0 = lifting.transform(x_init)[:, 0, :]
-    n_lifted = lifted0.shape[-1]
-    z = np.broadcast_to(np.concatenate([p_d, lifted0], axis=-1), (n_models, n_eps, n_p + lifted0.shape[-1]))
-    head, tail = _split_pointwise_head(lifting)
-    # Pointwise steps then one Delay (e.g. monomials then delays), optionally then constants: the
-    # new lifted state is the newest sample's features followed by the previous lifted state,
-    # shifted, and the constants.
-    shift = bool(tail) and isinstance(tail[0], Delay) and all(isinstance(s, Constant) for s in tail[1:])
-    n_const = len(tail) - 1 if shift else 0
-    ones = np.ones((n_models, n_eps, n_const))
-    if relift and not shift:
-        # Features of the leading pointwise steps for the last d + 1 samples: each step lifts
-        # only the newest predicted sample and shifts the rest.
-        history = _apply(head, np.moveaxis(x[:d + 1], 0, 2).copy())  # a copy: it is shifted in place
-    rows = n_p + m if relift else A.shape[1]
-    At = np.ascontiguousarray(A[:, :rows, :].transpose(0, 2, 1))  # (models, n_lifted, rows)
-    Bt = np.ascontiguousarray(B[:, :rows, :].transpose(0, 2, 1))  # (models, n_inputs, rows)
-    if relift and shift:
-        with np.errstate(all="ignore"):
-            if _relift_shifting(np.array(z), At, Bt, v, x, p, d, head, n_p, n_lifted - n_const):
-                return np.moveaxis(x, 0, 2), np.moveaxis(p, 0, 2)
-    with np.errstate(all="ignore"):
-        for k in range(d, T - 1):
-            nxt = z @ At + v[None, :, k, :] @ Bt
-            x[k + 1] = nxt[..., n_p:n_p + m]
-            p[k + 1] = nxt[..., :n_p]
-            if k % 256 == 0 and not np.any(np.isfinite(nxt)):
-                break  # every prediction diverged; the rest stays NaN
-            if not relift:
-                z = nxt
-                continue
-            newest = _apply(head, nxt[..., None, n_p:n_p + m])[..., 0, :]
-            if shift:
-                lifted = np.concatenate([newest, z[..., n_p:n_p + n_lifted - n_const - newest.shape[-1]], ones],
-                                        axis=-1)
-            else:
-                history[..., :-1, :] = history[..., 1:, :]
-                history[..., -1, :] = newest
-                lifted = _apply(tail, history)[..., 0, :]
-            z = np.concatenate([nxt[..., :n_p], lifted], axis=-1)
+    p[d] = np.zeros((n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
+
+    def store(k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
+        if models.size == n_models:
+            x[k0:k0 + len(chunk)] = chunk[..., n_p:]
+            p[k0:k0 + len(chunk)] = chunk[..., :n_p]
+        else:  # the others diverged: their samples stay NaN
+            x[k0:k0 + len(chunk), models] = chunk[..., n_p:]
+            p[k0:k0 + len(chunk), models] = chunk[..., :n_p]
+
+    simulate_chunks(A, B, lifting, n_passthrough, x_init, v, p0, relift, store)
     return np.moveaxis(x, 0, 2), np.moveaxis(p, 0, 2)
 
 
-#: Samples whose input terms are computed together (bounds that array to a few MB).
-_INPUT_CHUNK = 256
-#: Largest set of row-permuted Koopman matrices the ring buffer may keep (bytes).
-_MAX_RING_BYTES = 64 * 2**20
+def simulate_chunks(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough: int,
+                    x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None, relift: bool,
+                    sink: Callable[[int, np.ndarray, np.ndarray], None]) -> None:
+    """:func:`simulate_batch`, handing the predictions to ``sink`` by chunks of samples.
 
-
-def _monomial_columns(head, m: int) -> list[np.ndarray] | None:
-    """Column indices whose products give the head's features of one sample, if it is one Polynomial.
-
-    ``cols[j][i]`` is the j-th factor of feature i among the sample's ``m`` states, or ``m`` for
-    a factor of 1 (lower-degree monomials are padded with it). None for any other head.
+    ``sink(k0, chunk, models)`` receives ``chunk`` of shape (n, len(models),
+    n_episodes, n_passthrough + n_states): the predicted passthrough then plant
+    states of samples ``k0 .. k0 + n - 1`` (from sample ``n_delays + 1`` on,
+    time first) of the models whose indices ``models`` lists. A model leaves
+    the chunks once every one of its predictions has diverged (its remaining
+    samples would be non-finite); they stop when all have. The chunk is
+    reused: copy what must outlive the call. A scorer that sums errors as they
+    come never holds a whole prediction (memory stays flat in the episodes'
+    length and the number of models).
     """
-    from qube_koopman.identify.lifting import Polynomial
+    d, m, n_p = lifting.n_delays_, lifting.n_features_in_, n_passthrough
+    n_models, n_eps = A.shape[0], v.shape[0]
+    p_d = np.zeros((n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
+    lifted0 = lifting.transform(x_init)[:, 0, :]
+    z = np.array(np.broadcast_to(np.concatenate([p_d, lifted0], axis=-1),
+                                 (n_models, n_eps, n_p + lifted0.shape[-1])))
+    rows = n_p + m if relift else A.shape[1]
+    At = np.ascontiguousarray(A[:, :rows, :].transpose(0, 2, 1))  # (models, n_lifted, rows)
+    Bt = np.ascontiguousarray(B[:, :rows, :].transpose(0, 2, 1))  # (models, n_inputs, rows)
+    if not relift:
+        stepper = _Propagate(z, At)
+    else:
+        ring = _RingLayout.of(lifting, n_p, m, At)
+        stepper = _RingStepper(ring, z, rows) if ring is not None else _HistoryStepper(lifting, z, At, x_init, n_p)
+    with np.errstate(all="ignore"):
+        _run(stepper, Bt, v, d, n_p + m, sink)
 
+
+def _run(stepper, Bt: np.ndarray, v: np.ndarray, d: int, width: int, sink) -> None:
+    """Step from sample ``d``: input terms by chunks of samples, predictions to ``sink`` by the same chunks.
+
+    A model whose every prediction has diverged by the end of a chunk is dropped from the
+    rest of the run (its remaining samples would be non-finite): ``sink`` is told which
+    models, by their index, each chunk holds.
+    """
+    T = v.shape[1]
+    models = np.arange(Bt.shape[0])
+    buf = np.empty((_INPUT_CHUNK,) + stepper.z.shape[:2] + (width,))
+    for c0 in range(d, T - 1, _INPUT_CHUNK):
+        n = min(_INPUT_CHUNK, T - 1 - c0)
+        # Time first, so that each step adds one contiguous block.
+        u_terms = np.ascontiguousarray(np.matmul(v[:, c0:c0 + n].reshape(1, -1, v.shape[-1]), Bt).reshape(
+            Bt.shape[0], v.shape[0], n, Bt.shape[-1]).transpose(2, 0, 1, 3))
+        for j in range(n):
+            stepper.step(u_terms[j], buf[j])
+        sink(c0 + 1, buf[:n], models)
+        alive = np.isfinite(buf[n - 1]).any(axis=(1, 2))
+        if not alive.all():
+            if not alive.any():
+                break
+            stepper.keep(alive)
+            models, Bt, buf = models[alive], Bt[alive], np.ascontiguousarray(buf[:, alive])
+
+
+class _Propagate:
+    """The lifted state propagated linearly: ``z_{k+1} = A z_k + B v_k``."""
+
+    def __init__(self, z: np.ndarray, At: np.ndarray) -> None:
+        self.z, self.At = z, At
+
+    def step(self, u_term: np.ndarray, out: np.ndarray) -> None:
+        self.z = self.z @ self.At
+        self.z += u_term
+        out[...] = self.z[..., :out.shape[-1]]
+
+    def keep(self, models: np.ndarray) -> None:
+        """Only these models from now on (a boolean mask over the current ones)."""
+        self.z, self.At = self.z[models], self.At[models]
+
+
+class _HistoryStepper:
+    """Any lifting, re-lifted at every step from the features of the last ``d + 1`` samples.
+
+    The leading pointwise steps lift only the newest predicted sample; the
+    history of their features shifts by one; the rest of the lifting is
+    applied to that history.
+    """
+
+    def __init__(self, lifting: Lifting, z: np.ndarray, At: np.ndarray, x_init: np.ndarray, n_p: int) -> None:
+        self.head, self.tail = _split_pointwise_head(lifting)
+        self.z, self.At, self.n_p = z, At, n_p
+        history = _apply(self.head, np.asarray(x_init, dtype=float))  # (episodes, d + 1, features)
+        self.history = np.array(np.broadcast_to(history, z.shape[:2] + history.shape[1:]))
+
+    def step(self, u_term: np.ndarray, out: np.ndarray) -> None:
+        nxt = self.z @ self.At
+        nxt += u_term
+        out[...] = nxt
+        history = self.history
+        history[..., :-1, :] = history[..., 1:, :]
+        history[..., -1, :] = _apply(self.head, nxt[..., None, self.n_p:])[..., 0, :]
+        self.z = np.concatenate([nxt[..., :self.n_p], _apply(self.tail, history)[..., 0, :]], axis=-1)
+
+    def keep(self, models: np.ndarray) -> None:
+        """Only these models from now on (a boolean mask over the current ones)."""
+        self.z, self.At, self.history = self.z[models], self.At[models], self.history[models]
+
+
+@dataclass
+class _RingLayout:
+    """Where a ring-shaped lifting keeps its features in the lifted state.
+
+    The lifted state is ``[passthrough (n_p), the pointwise features of the
+    last d + 1 samples newest first (slots x n_feat), radial basis values of
+    that delayed vector (n_rbf), constants]``. In the ring the delayed
+    features stay in place and the oldest slot takes the newest sample; the
+    rows of ``A^T`` (and the RBF centres' columns) are permuted to match,
+    one permuted copy per ring position.
+    """
+
+    head: list
+    n_p: int
+    n_feat: int
+    slots: int
+    rbf: _RadialBasis | None
+    perms: list[np.ndarray]
+    centers: list[np.ndarray] | None
+    picks: list[np.ndarray] | None
+
+    @classmethod
+    def of(cls, lifting: Lifting, n_p: int, m: int, At: np.ndarray) -> "_RingLayout | None":
+        """The layout of ``lifting``, or None when it is not ring-shaped or the ring is too large."""
+        head, tail = _split_pointwise_head(lifting)
+        if not tail or not isinstance(tail[0], Delay):
+            return None
+        rest = list(tail[1:])
+        rbf = rest.pop(0) if rest and isinstance(rest[0], _RadialBasis) else None
+        if not all(isinstance(step, Constant) for step in rest):
+            return None
+        n_feat = _apply(head, np.zeros((1, m))).shape[-1]
+        slots = tail[0].n_delays + 1
+        n_shift = slots * n_feat
+        n_rbf = 0 if rbf is None else rbf.centers_.shape[0]
+        if slots * (At.nbytes + n_shift * n_rbf * 8) > _MAX_RING_BYTES:
+            return None
+        # Ring position q: slot s holds the sample of age (s - q) mod slots.
+        order = [np.array([((s - q) % slots) * n_feat + c for s in range(slots) for c in range(n_feat)])
+                 for q in range(slots)]
+        perms = [np.ascontiguousarray(At[:, np.r_[np.arange(n_p), n_p + o, np.arange(n_p + n_shift, At.shape[1])], :])
+                 for o in order]
+        centers = None if rbf is None else [np.ascontiguousarray(rbf.centers_[:, o].T) for o in order]
+        return cls(head, n_p, n_feat, slots, rbf, perms, centers, _monomial_picks(head, n_p, m))
+
+    def write_newest(self, z: np.ndarray, y: np.ndarray, q: int) -> None:
+        """The newest sample's pointwise features (from ``y``: its rows, then ones) into slot ``q``."""
+        lo = self.n_p + q * self.n_feat
+        slot = z[..., lo:lo + self.n_feat]
+        rows = y.shape[-1] - 1
+        if self.picks is None:
+            slot[...] = _apply(self.head, y[..., None, self.n_p:rows])[..., 0, :]
+        elif len(self.picks) == 1:  # order 1: the states themselves
+            np.copyto(slot, np.take(y, self.picks[0], axis=-1))
+        else:  # np.take: faster than fancy indexing on these small arrays
+            np.multiply(np.take(y, self.picks[0], axis=-1), np.take(y, self.picks[1], axis=-1), out=slot)
+            for extra in self.picks[2:]:
+                slot *= np.take(y, extra, axis=-1)
+
+    def write_rbf(self, z: np.ndarray, q: int) -> None:
+        """The radial basis values of the delayed vector at ring position ``q`` (see ``_RadialBasis``)."""
+        lo, n_shift = self.n_p, self.slots * self.n_feat
+        delayed = z[..., lo:lo + n_shift]
+        c = self.rbf.centers_
+        sq = (np.einsum("...i,...i->...", delayed, delayed)[..., None] - 2.0 * (delayed @ self.centers[q])
+              + np.einsum("ij,ij->i", c, c))
+        z[..., lo + n_shift:lo + n_shift + c.shape[0]] = self.rbf._kernel(np.sqrt(np.maximum(sq, 0.0)))
+
+
+def _monomial_picks(head, n_p: int, m: int) -> list[np.ndarray] | None:
+    """Columns of ``[passthrough, states, 1]`` whose products give one Polynomial head's features.
+
+    ``picks[j][i]`` is the column of the j-th factor of feature i (the trailing column of ones
+    pads lower-degree monomials). None for any other head: it is applied as it is.
+    """
     if len(head) != 1 or not isinstance(head[0], Polynomial):
         return None
     monomials = head[0].monomials_
     order = max(len(c) for c in monomials)
-    return [np.array([c[j] if j < len(c) else m for c in monomials]) for j in range(order)]
+    return [np.array([n_p + c[j] if j < len(c) else n_p + m for c in monomials]) for j in range(order)]
 
 
-def _relift_shifting(z, At, Bt, v, x, p, d: int, head, n_p: int, n_shifting: int) -> bool:
-    """The re-lifted prediction loop for monomials, one delay step and constants, in a ring buffer.
+class _RingStepper:
+    """The re-lifted step of a ring-shaped lifting (see :class:`_RingLayout`).
 
-    ``z`` (models, episodes, n_p + lifted): the passthrough states, then the features of the
-    last ``d + 1`` samples newest first (``n_shifting`` values), then constants. Instead of
-    shifting the delayed features every sample, they stay in place in a ring and the rows
-    of ``At`` are permuted to match (one permuted copy per ring position): each sample
-    costs a batched product, its input term (precomputed by chunks), and the newest
-    sample's monomials written over the oldest. Fills ``x`` and ``p`` (time-major) from
-    sample ``d + 1`` on. Returns False, doing nothing, when the head is not one
-    Polynomial or the permuted copies would exceed ``_MAX_RING_BYTES``.
+    Each sample costs a batched product with the permuted ``A^T``, its input
+    term, and the newest sample's features written over the oldest (and, with
+    a radial basis, one product with the permuted centres).
     """
-    T, rows = v.shape[1], At.shape[2]
-    m = x.shape[-1]
-    cols = _monomial_columns(head, m)
-    if cols is None:
-        return False
-    n_feat = cols[0].size
-    slots = n_shifting // n_feat
-    if slots * At.nbytes > _MAX_RING_BYTES:
-        return False
-    lo = n_p
-    # ring position q: slot s holds the sample of age (s - q) mod slots
-    perms = []
-    for q in range(slots):
-        ages = [(s - q) % slots for s in range(slots)]
-        idx = np.r_[np.arange(lo), [lo + a * n_feat + c for a in ages for c in range(n_feat)],
-                    np.arange(lo + n_shifting, At.shape[1])]
-        perms.append(np.ascontiguousarray(At[:, idx, :]))
-    # Y: the newest sample's passthrough and states, with a column of ones for padded factors.
-    y = np.ones(z.shape[:2] + (rows + 1,))
-    out = y[..., :rows]
-    picks = [np.where(c == m, rows, n_p + c) for c in cols]
-    q = 0
-    for c0 in range(d, T - 1, _INPUT_CHUNK):
-        c1 = min(c0 + _INPUT_CHUNK, T - 1)
-        u_terms = np.matmul(v[:, c0:c1].reshape(1, -1, v.shape[-1]), Bt).reshape(
-            Bt.shape[0], v.shape[0], c1 - c0, rows)
-        for j, k in enumerate(range(c0, c1)):
-            np.matmul(z, perms[q], out=out)
-            out += u_terms[:, :, j]
-            x[k + 1] = out[..., n_p:n_p + m]
-            p[k + 1] = out[..., :n_p]
-            q = (q - 1) % slots  # the oldest slot takes the newest sample
-            slot = z[..., lo + q * n_feat:lo + (q + 1) * n_feat]
-            if len(picks) == 1:  # order 1: the states themselves
-                np.copyto(slot, y[..., picks[0]])
-            else:
-                np.multiply(y[..., picks[0]], y[..., picks[1]], out=slot)
-            for extra in picks[2:]:
-                slot *= y[..., extra]
-            z[..., :n_p] = out[..., :n_p]
-        if not np.any(np.isfinite(out)):
-            break  # every prediction diverged; the rest stays NaN
-    return True
+
+    def __init__(self, ring: _RingLayout, z: np.ndarray, rows: int) -> None:
+        self.ring, self.z, self.q = ring, z, 0
+        # y: the newest sample's passthrough and states, then a column of ones for padded factors.
+        self.y = np.ones(z.shape[:2] + (rows + 1,))
+        self.newest = self.y[..., :rows]
+
+    def step(self, u_term: np.ndarray, out: np.ndarray) -> None:
+        ring, z, newest = self.ring, self.z, self.newest
+        np.matmul(z, ring.perms[self.q], out=newest)
+        newest += u_term
+        out[...] = newest
+        self.q = q = (self.q - 1) % ring.slots  # the oldest slot takes the newest sample
+        ring.write_newest(z, self.y, q)
+        if ring.rbf is not None:
+            ring.write_rbf(z, q)
+        z[..., :ring.n_p] = newest[..., :ring.n_p]
+
+    def keep(self, models: np.ndarray) -> None:
+        """Only these models from now on (a boolean mask over the current ones)."""
+        self.z, self.y = self.z[models], self.y[models]
+        self.newest = self.y[..., :-1]
+        self.ring.perms = [perm[models] for perm in self.ring.perms]
 
 
 def _split_pointwise_head(lifting: Lifting) -> tuple[list, list]:

@@ -20,8 +20,8 @@ from qube_koopman.identify.cl_edmd import _ClosedLoopKoopman
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.regression import Snapshots
-from qube_koopman.identify.scores import r2_scores_time_major
-from qube_koopman.identify.simulate import simulate_batch
+from qube_koopman.identify.scores import r2_from_residuals
+from qube_koopman.identify.simulate import simulate_chunks
 from qube_koopman.identify.structure import close_loop
 from qube_koopman.identify.trajectory import Trajectory
 from qube_koopman.sim.lti import DiscreteStateSpace
@@ -29,8 +29,9 @@ from qube_koopman.sim.lti import DiscreteStateSpace
 __all__ = ["SweepResult", "regularization_sweep", "fitted_models", "SCORINGS"]
 
 SCORINGS = ("cl", "plant")
-# Alphas simulated together: bounds the prediction arrays to ~100 MB on QUBE-sized data.
-_MAX_BATCH_VALUES = 12_000_000
+# Models simulated together: bounds their rings of permuted Koopman rows to ~64 MB (predictions
+# are scored as they come, never held whole).
+_MAX_BATCH_VALUES = 8_000_000
 
 
 @dataclass
@@ -95,36 +96,55 @@ def _batches(n_models: int, n_values_per_model: int) -> list[slice]:
     return [slice(i, min(i + size, n_models)) for i in range(0, n_models, size)]
 
 
+class _ResidualSums:
+    """Squared prediction errors from sample ``start`` on, summed chunk by chunk as the simulation runs.
+
+    ``truth`` is time-major (samples, episodes, channels); the chunk's channels ``channels``
+    (passthrough then plant states, or the plant states alone) are compared with it.
+    Samples before the first prediction are the initial condition itself: no error.
+    """
+
+    def __init__(self, truth: np.ndarray, start: int, n_models: int, channels: slice) -> None:
+        self.truth, self.start, self.channels = truth, start, channels
+        self.sums = np.zeros((n_models,) + truth.shape[1:])
+
+    def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
+        lo, hi = max(k0, self.start), k0 + len(chunk)
+        if lo < hi:
+            diff = chunk[lo - k0:, ..., self.channels] - self.truth[lo:hi, None]
+            self.sums[models] += np.einsum("tmec,tmec->mec", diff, diff)
+        else:
+            # Not scored yet, but a prediction diverged here stays diverged (its model may leave
+            # the chunks before the scored samples): its sums become infinite now.
+            diverged = ~np.isfinite(chunk[-1, ..., self.channels])
+            self.sums[models] += np.where(diverged, np.inf, 0.0)
+
+
 def _score(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool, start: int = 1,
            measured_only: bool = False) -> np.ndarray:
     """Mean R^2 over episodes for every model, from sample ``start`` on: shape (n_models,)."""
     ref = models[0]
-    d = ref.n_delays
+    d, n_p = ref.n_delays, ref.n_passthrough
     by_length: dict[int, list[Trajectory]] = {}
     for t in episodes:
         by_length.setdefault(t.n_samples, []).append(t)
     totals = np.zeros(len(models))
     A = np.stack([m.A for m in models])
     B = np.stack([m.B for m in models])
+    with_p = scoring == "cl" and not measured_only
+    channels = slice(0, None) if with_p else slice(n_p, None)
+    # The memory a model's simulation holds: its ring of permuted rows (see identify.simulate).
+    per_model = (n_p + ref.n_states) * A.shape[1] * (d + 1)
     for T, group in by_length.items():
         x_init = np.stack([t.x[:d + 1] for t in group])
         v = np.stack([ref.inputs_of(t) for t in group])
-        with_p = scoring == "cl" and not measured_only
-        # Time-major truth (samples, episodes, channels), as the simulator stores its predictions.
+        # Time-major truth (samples, episodes, channels), as the simulator hands its predictions.
         truth = np.stack([np.hstack([t.xc, t.x]) if with_p else t.x for t in group], axis=1)
         p0 = np.stack([t.xc[d] for t in group]) if scoring == "cl" else None
-        per_model = truth.shape[-1] * T * len(group)
         for sl in _batches(len(models), per_model):
-            x, p = simulate_batch(A[sl], B[sl], ref.lifting, ref.n_passthrough, x_init, v, p0, relift=relift)
-            x, p = np.moveaxis(x, 2, 0), np.moveaxis(p, 2, 0)  # back to the storage order
-            # The first sample is the initial condition itself; later initial samples are kept
-            # (the reference's convention).
-            if with_p:
-                p[:d] = truth[:d, None, :, :ref.n_passthrough]  # the initial condition, as for x
-                scores = r2_scores_time_major(truth[start:], p[start:], x[start:])
-            else:
-                scores = r2_scores_time_major(truth[start:], x[start:])
-            totals[sl] += scores.sum(axis=1)
+            sums = _ResidualSums(truth, start, sl.stop - sl.start, channels)
+            simulate_chunks(A[sl], B[sl], ref.lifting, n_p, x_init, v, p0, relift, sums)
+            totals[sl] += r2_from_residuals(sums.sums, truth[start:]).sum(axis=1)
     return totals / len(episodes)
 
 

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from qube_koopman.identify import (ClEdmd, Constant, Delay, Edmd, GaussianRbf, Lifting, Polynomial, Trajectory, closed_loop_matrices,
+from qube_koopman.identify import (ClEdmd, Constant, Delay, Edmd, GaussianRbf, Lifting, Polynomial, ThinPlateRbf, Trajectory, Trigonometric, closed_loop_matrices,
                       controller_states, output_selection, plant_input, plant_input_map, r2_score)
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
@@ -153,7 +153,10 @@ def test_structure_helpers_reproduce_simulated_signals(loop):
     [Polynomial(2), Delay(3)],                      # pointwise head, one delay: the ring path
     [Polynomial(3), Delay(4), Constant()],          # the ring path with three factors and an affine term
     [Polynomial(1), Delay(1)],                      # the ring path with the identity's features
-    [Delay(2), GaussianRbf(6, shape=0.5, seed=1)],  # delays then RBF: the history path
+    [Delay(2), GaussianRbf(6, shape=0.5, seed=1)],  # delays then RBF: the ring with a radial basis
+    [Polynomial(2), Trigonometric([0, 1]), Delay(3)],                # the ring, a head applied as it is
+    [Trigonometric([1]), Delay(2), ThinPlateRbf(5, seed=3), Constant()],  # ... with RBF and an affine term
+    [Delay(2), Polynomial(2)],                      # a step after the delays: the history path
     [Polynomial(2)],                                # no delays
     [Polynomial(2), Delay(3), Constant()],          # the shift path with an affine term
     [Delay(2), Constant(), GaussianRbf(4, seed=2)], # a constant inside the history path
@@ -184,3 +187,19 @@ def test_constant_lifting_appends_a_one_and_makes_the_model_affine(loop):
     linear = Edmd(alpha=0.0).fit(shifted)
     assert r2_score(shifted[0].x, affine.predict(shifted[0])) > 1 - 1e-8
     assert r2_score(shifted[0].x, linear.predict(shifted[0])) < 1 - 1e-4
+
+
+def test_a_model_that_diverges_before_the_scored_samples_scores_minus_infinity(loop):
+    # The simulator drops a model once all its predictions diverged; scoring from a later
+    # sample must still see it as diverged, not as a perfect fit of samples it never produced.
+    from qube_koopman.identify.sweep import _score
+
+    *_, trajs = loop
+    model = ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(2)], alpha=1e-3, measured=[0]).fit(
+        trajs[:2]).closed_loop_model_
+    unstable = replace(model, A=model.A * 50.0)
+    start = trajs[2].n_samples - 5
+    scores = _score([model, unstable], [trajs[2]], "cl", relift=True, start=start)
+    assert np.isfinite(scores[0]) and scores[1] == -np.inf
+    x = unstable.predict(trajs[2])
+    assert not np.isfinite(x[start:]).any() and np.isfinite(x[:3]).all()

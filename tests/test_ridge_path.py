@@ -1,0 +1,69 @@
+"""The ridge solves from one SVD per factor equal LAPACK's least squares on the stacked problem."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import linalg
+
+from qube_koopman.identify.regression import Snapshots, constrained_plant_solve, ridge_solve
+
+
+def _stacked(M, Y, alpha, penalty):
+    """The reference: gelsd on [M; sqrt(alpha) P] against [Y; 0], built from the raw snapshots."""
+    A = np.vstack([M, np.sqrt(alpha) * penalty])
+    return linalg.lstsq(A, np.vstack([Y, np.zeros((penalty.shape[0], Y.shape[1]))]), lapack_driver="gelsd")[0].T
+
+
+def _data(q, p, t, collinear, seed=0):
+    rng = np.random.default_rng(seed)
+    psi = rng.standard_normal((q, p)) * np.logspace(0, -3, p)
+    if collinear:
+        psi[:, -1] = psi[:, 0] - 2 * psi[:, 1]  # exactly dependent: the minimum-norm solution
+    theta = psi @ rng.standard_normal((p, t)) + 0.01 * rng.standard_normal((q, t))
+    return psi, theta
+
+
+def _objective(U, psi, theta, alpha):
+    return np.sum((theta - psi @ U.T) ** 2) + alpha * np.sum(U ** 2)
+
+
+@pytest.mark.parametrize("q, collinear", [(400, False), (400, True), (12, False)])  # tall, rank deficient, wide
+@pytest.mark.parametrize("alpha", [0.0, 1e-9, 1e-3, 10.0])
+def test_ridge_equals_least_squares_on_the_stacked_problem(q, collinear, alpha):
+    psi, theta = _data(q, 20, 5, collinear)
+    snaps = Snapshots.from_snapshots(theta, psi)
+    expected = _stacked(psi, theta, alpha, np.eye(20))
+    got = ridge_solve(snaps, alpha)
+    assert _objective(got, psi, theta, alpha) == pytest.approx(_objective(expected, psi, theta, alpha), rel=1e-10)
+    # A direction that is singular but for a 1e-9 ridge amplifies rounding (to ~1e-7 here) in both.
+    rtol = 1e-5 if collinear and 0 < alpha < 1e-6 else 1e-8
+    np.testing.assert_allclose(got, expected, rtol=rtol, atol=rtol * np.abs(expected).max())
+    rows = slice(1, 3)
+    np.testing.assert_allclose(ridge_solve(snaps, alpha, rows), got[rows], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("regularize", ["closed_loop", "plant"])
+@pytest.mark.parametrize("alpha", [0.0, 1e-6, 1e-1])
+def test_constrained_solve_equals_least_squares_on_the_stacked_problem(regularize, alpha):
+    psi, theta = _data(300, 12, 6, False, seed=1)
+    S = np.random.default_rng(2).standard_normal((9, 12))  # full row rank
+    snaps = Snapshots.from_snapshots(theta, psi)
+    penalty = S.T if regularize == "closed_loop" else np.eye(9)
+    expected = _stacked(psi @ S.T, theta[:, 2:], alpha, penalty)
+    got = constrained_plant_solve(snaps, S, alpha, slice(2, None), regularize)
+    np.testing.assert_allclose(got, expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
+
+
+def test_one_decomposition_serves_every_alpha_and_a_rank_deficient_map_still_solves():
+    psi, theta = _data(300, 12, 6, False, seed=3)
+    snaps = Snapshots.from_snapshots(theta, psi)
+    S = np.random.default_rng(4).standard_normal((9, 12))
+    for alpha in np.logspace(-6, 2, 9):
+        constrained_plant_solve(snaps, S, alpha, slice(0, None))
+        ridge_solve(snaps, alpha)
+    assert len(snaps._paths) == 2
+    S[-1] = S[0]  # a repeated row: no triangular change of variables, the stacked problem instead
+    expected = _stacked(psi @ S.T, theta, 1e-2, S.T)
+    np.testing.assert_allclose(constrained_plant_solve(snaps, S, 1e-2, slice(0, None)), expected, rtol=1e-7,
+                               atol=1e-10 * np.abs(expected).max())
