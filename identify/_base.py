@@ -72,6 +72,10 @@ class SnapshotEstimator(Estimator):
     def _finish(self, setup: "FitSetup", snapshots) -> "SnapshotEstimator":
         raise NotImplementedError
 
+    def _relift_rows(self, setup: "FitSetup") -> int | None:
+        """Leading lifted states a re-lifted prediction produces (it recomputes the rest), if known."""
+        return None
+
 
 def resolve_lifting(lifting) -> Lifting:
     """A Lifting from None (identity), a Lifting, or a sequence of lifting functions."""
@@ -96,3 +100,13 @@ class FitSetup:
     plant_input_map: np.ndarray | None = None
     n_feedforward: int = 0
     input_lifting: Lifting | None = None
+    #: Fit only this many leading rows of the Koopman matrix, those a re-lifted prediction
+    #: uses (a sweep that only scores re-lifted predictions); the other rows are NaN.
+    target_rows: int | None = None
+
+
+def pad_rows(U: np.ndarray, n_rows: int) -> np.ndarray:
+    """``U`` with NaN rows appended up to ``n_rows``: the rows a partial fit left out."""
+    if U.shape[0] >= n_rows:
+        return U
+    return np.vstack([U, np.full((n_rows - U.shape[0], U.shape[1]), np.nan)])

@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify._base import FitSetup, SnapshotEstimator, resolve_lifting
+from qube_koopman.identify._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.regression import Snapshots, constrained_plant_solve, ridge_solve
@@ -82,7 +82,7 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         d = setup.lifting.n_delays_
         theta = np.hstack([t.xc[d:], setup.lifting.transform(t.x)])
         v = np.hstack([t.r[d:]] + ([t.f[d:]] if setup.n_feedforward else []))
-        return Snapshots.from_snapshots(theta[1:], np.hstack([theta[:-1], v[:-1]]))
+        return Snapshots.from_snapshots(theta[1:, :setup.target_rows], np.hstack([theta[:-1], v[:-1]]))
 
     def _finish(self, setup: FitSetup, snapshots: Snapshots) -> "_ClosedLoopKoopman":
         """Solve for ``self.alpha`` and set the fitted attributes."""
@@ -99,6 +99,7 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         ctrl = self.controller
         n_c, n_theta_p = ctrl.n_states, lifting.n_features_out_
         n_theta = n_c + n_theta_p
+        U_f, U_p = pad_rows(U_f, n_theta), pad_rows(U_p, n_theta_p)  # a partial fit's missing rows
         self.koopman_matrix_ = U_f
         self.plant_koopman_matrix_ = U_p
         feedback = tuple(range(lifting.n_features_in_)) if self.measured is None else tuple(self.measured)
@@ -173,6 +174,10 @@ class ClEdmd(_ClosedLoopKoopman):
         super().__init__(controller, lifting, alpha, measured)
         self.regularize = regularize
         self.known_controller_rows = known_controller_rows
+
+    def _relift_rows(self, setup: FitSetup) -> int:
+        # Solved row by row: the controller rows and the plant states' rows alone are exact.
+        return self.controller.n_states + setup.lifting.n_features_in_
 
     def _solve(self, snapshots, S, alpha):
         regularize = check_choice(self.regularize, "regularize", REGULARIZE)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from qube_koopman.identify._base import FitSetup, SnapshotEstimator, resolve_lifting
+from qube_koopman.identify._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.regression import Snapshots, ridge_solve
@@ -59,12 +59,15 @@ class Edmd(SnapshotEstimator):
         d = setup.lifting.n_delays_
         z = setup.lifting.transform(t.x)
         v = (t.u if setup.input_lifting is None else setup.input_lifting.transform(t.u))[d:]
-        return Snapshots.from_snapshots(z[1:], np.hstack([z[:-1], v[:-1]]))
+        return Snapshots.from_snapshots(z[1:, :setup.target_rows], np.hstack([z[:-1], v[:-1]]))
+
+    def _relift_rows(self, setup: FitSetup) -> int:
+        return setup.lifting.n_features_in_
 
     def _finish(self, setup: FitSetup, snapshots: Snapshots) -> "Edmd":
         """Solve for ``self.alpha`` and set the fitted attributes."""
-        U = ridge_solve(snapshots, check_alpha(self.alpha))
         n_z = setup.lifting.n_features_out_
+        U = pad_rows(ridge_solve(snapshots, check_alpha(self.alpha)), n_z)  # a partial fit's missing rows
         self.snapshots_ = snapshots
         self.koopman_matrix_ = U
         self.model_ = KoopmanModel(U[:, :n_z], U[:, n_z:], setup.lifting, ("u",),

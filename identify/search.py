@@ -242,14 +242,21 @@ class SearchData:
     rbf_seed: int = 0
 
 
-def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "") -> CandidateResult:
-    """Cross-validate one lifting over the alpha grid (see the module docstring)."""
+def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
+                       plain: np.ndarray | None = None) -> CandidateResult:
+    """Cross-validate one lifting over the alpha grid (see the module docstring).
+
+    With ``spec.offsets``, ``plain`` (the same lifting's fold scores without offsets,
+    when already known) picks the alphas to estimate offsets at, instead of scoring
+    the folds again.
+    """
     started = time.perf_counter()
     estimator = ClEdmd(data.controller, lifting=spec.steps(data.rbf_seed))
-    sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits, scorings=("cl",),
-                                 score_from=data.window, measured_only=True, keep_fold_models=spec.offsets,
-                                 fit_all=False)
-    cv = sweep.cv_r2["cl"]
+    rescore = not spec.offsets or plain is None
+    sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits,
+                                 scorings=("cl",) if rescore else (), score_from=data.window, measured_only=True,
+                                 keep_fold_models=spec.offsets, fit_all=False)
+    cv = sweep.cv_r2["cl"] if rescore else np.asarray(plain, dtype=float)
     if spec.offsets:
         cv = _offset_scores(sweep, data, cv)
     return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started)
@@ -338,7 +345,10 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
         for stage in STAGES:
             specs = [s for s in space.stage_candidates(stage, result.ranked()) if s not in seen]
             seen.update(specs)
-            calls = [joblib.delayed(evaluate_candidate)(s, data, stage) for s in specs]
+            # An offsets candidate reuses its plain twin's fold scores to choose its alphas.
+            plain = {r.spec: r.cv_r2 for r in result.candidates}
+            calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)))
+                     for s in specs]
             for done, res in enumerate(_runner(n_jobs, scheduler)(calls), start=1):
                 result.candidates.append(res)
                 if progress:

@@ -9,6 +9,7 @@ learns from data (RBF centres) is refitted on each fold's training episodes.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -51,7 +52,9 @@ class SweepResult:
         The models fitted on all training episodes, one per alpha
         (closed-loop entries are None for EDMD without a controller).
     fold_models : list of (closed-loop models, plant models, validation indices), optional
-        Every fold's models, with ``keep_fold_models``.
+        Every fold's models, with ``keep_fold_models``. Without ``fit_all`` (and
+        with ``relift``) only the rows a re-lifted prediction uses are fitted;
+        the others are NaN.
     """
 
     alphas: np.ndarray
@@ -185,7 +188,9 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Keep every fold's models in :attr:`SweepResult.fold_models`.
     fit_all : bool
         Also fit every alpha on all the episodes (models and spectral radii
-        in the result); a search that only ranks liftings can skip it.
+        in the result); a search that only ranks liftings can skip it, and
+        then (with ``relift``) the folds fit only the Koopman rows that
+        re-lifted predictions use.
 
     Returns
     -------
@@ -209,12 +214,15 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         raise ValueError("closed-loop scoring of EDMD needs the controller to wrap its plant")
     trajectories = list(trajectories)
     total = len(splits) + 1
-    shared = None if _learns_from_data(estimator) else _prepare(estimator, trajectories)
+    # Without the final fits only re-lifted predictions are made: the rows they recompute from
+    # the predicted states need no fit (on a 40-delay search lifting, 4 rows of 370).
+    partial = relift and not fit_all
+    shared = None if _learns_from_data(estimator) else _prepare(estimator, trajectories, partial)
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None)
     for i, (train, validation) in enumerate(splits):
         if shared is None:
-            setup, per_episode = _prepare(estimator, [trajectories[j] for j in train])
+            setup, per_episode = _prepare(estimator, [trajectories[j] for j in train], partial)
             snapshots = Snapshots.total(per_episode)
         else:
             setup, per_episode = shared
@@ -246,7 +254,10 @@ def _learns_from_data(estimator) -> bool:
     return any(getattr(step, "learns_from_data", True) for step in resolve_lifting(estimator.lifting).steps)
 
 
-def _prepare(estimator, trajectories):
+def _prepare(estimator, trajectories, partial: bool = False):
+    """Setup and per-episode statistics; ``partial``: of the rows a re-lifted prediction uses only."""
     template = copy.copy(estimator)
     setup = template._setup(trajectories)
+    if partial and template._relift_rows(setup) is not None:
+        setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
     return setup, [template._episode_snapshots(setup, t) for t in setup.trajectories]

@@ -14,6 +14,7 @@ from qube_koopman.identify.data import check_same_controller, group_shuffle_spli
 from qube_koopman.identify.offsets import (estimate_offsets, estimate_offsets_many, predict_with_offsets,
                                            predict_with_offsets_many)
 from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.sweep import regularization_sweep
 from qube_koopman.identify.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace, evaluate_candidate,
                                           search_liftings)
 
@@ -229,3 +230,25 @@ def test_cli_search_space_file_errors_name_the_file(log_dirs, tmp_path, capsys):
         code, _, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
                             "--search-space", bad, "--out", tmp_path / "o")
         assert code == 2 and f"{bad}: " in err and problem in err, err
+
+
+def test_a_sweep_without_final_fits_fits_only_the_rows_relifted_predictions_use(small):
+    trajs, controller, splits = small
+    lifting = LiftingSpec(delays=3, poly=2).steps()
+    sweep = regularization_sweep(ClEdmd(controller, lifting=lifting), trajs, [1e-3], splits[:1], scorings=(),
+                                 keep_fold_models=True, fit_all=False)
+    closed, plants, _ = sweep.fold_models[0]
+    full = ClEdmd(controller, lifting=lifting, alpha=1e-3).fit([trajs[i] for i in splits[0][0]])
+    rows = controller.n_states + 2  # the controller states, then theta and alpha
+    np.testing.assert_allclose(closed[0].A[:rows], full.closed_loop_model_.A[:rows], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(plants[0].B[:2], full.plant_model_.B[:2], rtol=1e-9, atol=1e-12)
+    assert np.isnan(closed[0].A[rows:]).all() and np.isnan(plants[0].A[2:]).all()
+
+
+def test_an_offsets_candidate_given_its_plain_scores_scores_the_same(small):
+    trajs, controller, splits = small
+    data = SearchData(trajs, splits, controller, np.array([1e-4, 1e-2, 1.0]), WINDOW)
+    plain = evaluate_candidate(LiftingSpec(delays=5, poly=1), data)
+    spec = LiftingSpec(delays=5, poly=1, offsets=True)
+    np.testing.assert_allclose(evaluate_candidate(spec, data, plain=plain.cv_r2).cv_r2,
+                               evaluate_candidate(spec, data).cv_r2, rtol=1e-12)
