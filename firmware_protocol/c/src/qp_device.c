@@ -29,7 +29,19 @@ static void push_bytes(qd_device *dev, const uint8_t *data, size_t len)
 static void send(qd_device *dev, uint8_t type, const uint8_t *payload, size_t len, uint32_t now_us)
 {
     uint8_t frame[QP_MAX_FRAME];
-    size_t n = qp_encode_frame(type, dev->seq_out, now_us, payload, len, frame, sizeof frame);
+    size_t tail = (dev->tx_head + dev->tx_len) % QD_TX_CAPACITY;
+    size_t n;
+    if (QD_TX_CAPACITY - dev->tx_len >= QP_MAX_FRAME && QD_TX_CAPACITY - tail >= QP_MAX_FRAME) {
+        /* Room for the largest frame without wrapping: encode it in place (one copy fewer). */
+        n = qp_encode_frame(type, dev->seq_out++, now_us, payload, len, dev->tx + tail, QP_MAX_FRAME);
+        if (n == 0) {
+            dev->tx_overflow = 1;
+            return;
+        }
+        dev->tx_len = (uint16_t)(dev->tx_len + n);
+        return;
+    }
+    n = qp_encode_frame(type, dev->seq_out, now_us, payload, len, frame, sizeof frame);
     dev->seq_out++;
     if (n == 0 || n > QD_TX_CAPACITY - dev->tx_len) {
         dev->tx_overflow = 1;

@@ -159,7 +159,11 @@ static void spi_start(void)
  * between tx_tail and tx_head, so the free part may be written meanwhile. */
 static void start_tx(void)
 {
-    uint8_t head = tx_head;
+    uint8_t head;
+    if (qd_pending_output(&dev) == 0) {
+        return; /* the common case after a decoded command: nothing to send */
+    }
+    head = tx_head;
     uint8_t room = (uint8_t)((tx_tail - head - 1u) & (TX_RING - 1u));
     while (room) {
         uint8_t run = (uint8_t)(TX_RING - head) < room ? (uint8_t)(TX_RING - head) : room;
