@@ -75,12 +75,17 @@ def test_keeps_500_hz_with_a_command_every_tick(avr_cache):
     assert not [f for f in host.frames if isinstance(f, Fault)]
     assert sum(t.command_age == 0 for t in tm[5:]) >= len(tm[5:]) - 1  # each tick applies a fresh command
     mean, worst = bridge.busy_per_tick(first)
+    # The single worst tick in steady state: the tick of the session's first command (20,546
+    # cycles: the core starts applying commands) happens once per session.
+    busy = [t[3] for t in bridge.transactions[first + 1:]]
+    single = max(b - a for a, b in zip(busy, busy[1:]))
     # The budget: at most 60 % of the 32,000-cycle tick (19,200). Measured here (command 1 ms
-    # after each tick, as a host answers telemetry): 18,690 mean (58.4 %), 19,150 worst 10-tick mean
-    # (59.8 %); the reference HardwareSerial sketch needed ~35,700 (448 ticks/s). Deterministic
-    # (simulated time): a change that adds cycles fails here.
-    assert mean <= 0.59 * F_CPU / 500, f"{mean:.0f} cycles per tick on average"
-    assert worst <= 0.60 * F_CPU / 500, f"{worst:.0f} cycles per tick"
+    # after each tick, as a host answers telemetry): 18,230 mean (57.0 %), 18,370 worst 10-tick mean
+    # (57.4 %), 18,830 worst single tick (58.8 %); the reference HardwareSerial sketch needed ~35,700
+    # (448 ticks/s). Deterministic (simulated time): a change that adds cycles fails here.
+    assert mean <= 0.58 * F_CPU / 500, f"{mean:.0f} cycles per tick on average"
+    assert worst <= 0.59 * F_CPU / 500, f"{worst:.0f} cycles per tick over 10 ticks"
+    assert single <= 0.60 * F_CPU / 500, f"{single:.0f} cycles in one tick"
 
 
 def test_every_lost_period_is_reported(avr_cache):
