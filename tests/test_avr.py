@@ -75,17 +75,39 @@ def test_keeps_500_hz_with_a_command_every_tick(avr_cache):
     assert not [f for f in host.frames if isinstance(f, Fault)]
     assert sum(t.command_age == 0 for t in tm[5:]) >= len(tm[5:]) - 1  # each tick applies a fresh command
     mean, worst = bridge.busy_per_tick(first)
-    # The single worst tick in steady state: the tick of the session's first command (20,546
-    # cycles: the core starts applying commands) happens once per session.
-    busy = [t[3] for t in bridge.transactions[first + 1:]]
-    single = max(b - a for a, b in zip(busy, busy[1:]))
-    # The budget: at most 60 % of the 32,000-cycle tick (19,200). Measured here (command 1 ms
-    # after each tick, as a host answers telemetry): 18,230 mean (57.0 %), 18,370 worst 10-tick mean
-    # (57.4 %), 18,830 worst single tick (58.8 %); the reference HardwareSerial sketch needed ~35,700
-    # (448 ticks/s). Deterministic (simulated time): a change that adds cycles fails here.
-    assert mean <= 0.58 * F_CPU / 500, f"{mean:.0f} cycles per tick on average"
-    assert worst <= 0.59 * F_CPU / 500, f"{worst:.0f} cycles per tick over 10 ticks"
-    assert single <= 0.60 * F_CPU / 500, f"{single:.0f} cycles in one tick"
+    busy = [t[3] for t in bridge.transactions[first:]]
+    per_tick = [b - a for a, b in zip(busy, busy[1:])]
+    # The budget: at most 60 % of the 32,000-cycle tick (19,200), every tick. Measured here
+    # (command 1 ms after each tick, as a host answers telemetry): 15,970 mean (49.9 %), 16,340 in
+    # the worst steady-state tick (51.1 %), 18,950 in the tick of the session's first command
+    # (59.2 %, once per session); over 16 arrival phases the steady-state worst is 17,250 (53.9 %).
+    # The reference HardwareSerial sketch needed ~35,700 (448 ticks/s). Deterministic (simulated
+    # time): a change that adds cycles fails here.
+    assert mean <= 0.52 * F_CPU / 500, f"{mean:.0f} cycles per tick on average"
+    assert worst <= 0.53 * F_CPU / 500, f"{worst:.0f} cycles per tick over 10 ticks"
+    assert max(per_tick[1:]) <= 0.55 * F_CPU / 500, f"{max(per_tick[1:]):.0f} cycles in one tick"
+    assert max(per_tick) <= 0.60 * F_CPU / 500, f"{max(per_tick):.0f} cycles in the session's first tick"
+
+
+def test_sleep_counts_as_sleep_not_as_busy(avr_cache):
+    # simavr executes SLEEP and moves its clock to the next event in one step: the harness counts
+    # only the instruction and the wake-up (8 cycles) as busy, so each SLEEP executed costs at most
+    # 9 busy cycles, and each one ends in an interrupt (one 3-cycle JMP in the vector table).
+    import subprocess
+
+    bridge = new_bridge(avr_cache)
+    host = Host(bridge)
+    host.connect()
+    before = bridge.chip.pc_cycles()
+    host.command_every_tick(0.1)
+    spent = [a - b for a, b in zip(bridge.chip.pc_cycles(), before)]
+    listing = subprocess.run(["avr-objdump", "-d", str(avr_cache[0])], capture_output=True, text=True,
+                             check=True).stdout
+    sleeps = [int(ln.split(":")[0], 16) // 2 for ln in listing.splitlines() if ln.rstrip().endswith("\tsleep")]
+    assert sleeps, "the sketch sleeps between ticks"
+    interrupts = sum(spent[:26 * 2]) / 3  # 26 vectors of one 2-word JMP each
+    assert interrupts > 50 * 20  # ~90 interrupts a tick: telemetry, commands, SPI, the timer
+    assert sum(spent[w] for w in sleeps) <= 9 * interrupts
 
 
 def test_every_lost_period_is_reported(avr_cache):

@@ -15,7 +15,10 @@
  *     (UDR0 plus one) is full is lost and counted, as on the chip;
  *   - no host sleeping and no console echo: the run is as fast as the host
  *     allows and depends on nothing but its inputs;
- *   - cycles are split into running and sleeping, for busy-time accounting.
+ *   - cycles are split into running and sleeping, for busy-time accounting:
+ *     the step that executes SLEEP and the one that wakes count as busy only
+ *     the instruction and the wake-up (WAKE_CYCLES); simavr's clock jumps to
+ *     its next event within them.
  */
 #include <stdarg.h>
 #include <stdint.h>
@@ -28,6 +31,11 @@
 #include <simavr/sim_avr.h>
 #include <simavr/sim_elf.h>
 #include <simavr/sim_irq.h>
+
+#define SLEEP_OPCODE 0x9588u
+/* Waking from idle sleep into an interrupt: the 4-cycle interrupt response plus
+ * 4 cycles from sleep (ATmega328P datasheet, "Interrupt Response Time"). */
+#define WAKE_CYCLES 8u
 #include <simavr/sim_interrupts.h>
 
 DEFINE_FIFO(uint16_t, uart_fifo);
@@ -274,13 +282,19 @@ int qh_run(void *p, uint64_t until)
         avr_cycle_count_t c0 = avr->cycle;
         int running = avr->state == cpu_Running;
         uint32_t pc = avr->pc;
+        int sleeps = running && ((uint16_t)avr->flash[pc] | ((uint16_t)avr->flash[pc + 1] << 8)) == SLEEP_OPCODE;
         int state = avr_run(avr);
-        if (running) {
-            h->busy += avr->cycle - c0;
-            h->pc_cycles[(pc >> 1) & 16383u] += avr->cycle - c0;
-        } else {
-            h->sleeping += avr->cycle - c0;
+        uint64_t delta = avr->cycle - c0, busy = delta;
+        if (sleeps || !running) {
+            /* simavr executes SLEEP and advances the clock to its next event in one step, and
+             * wakes in the step that services the interrupt: those steps are asleep but for
+             * the instruction itself and, when an interrupt was serviced, its wake-up. */
+            busy = (sleeps ? 1u : 0u) + (avr->state == cpu_Running ? WAKE_CYCLES : 0u);
+            busy = busy < delta ? busy : delta;
         }
+        h->busy += busy;
+        h->sleeping += delta - busy;
+        h->pc_cycles[(pc >> 1) & 16383u] += busy;
         if (state == cpu_Done || state == cpu_Crashed) {
             return -1;
         }
