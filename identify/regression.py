@@ -117,15 +117,16 @@ class _RidgePath:
 
     @classmethod
     def of(cls, M: np.ndarray, back: np.ndarray | None = None) -> "_RidgePath":
-        U, s, Vt = linalg.svd(M, full_matrices=False, check_finite=False, lapack_driver="gesdd")
-        return cls(U, np.pad(s, (0, Vt.shape[0] - s.size)), Vt, back)
+        return cls(*linalg.svd(M, full_matrices=False, check_finite=False, lapack_driver="gesdd"), back)
 
     def solve(self, Y: np.ndarray, alpha: float) -> np.ndarray:
+        # The stacked problem's singular values beyond those of M (a wide M) are sqrt(alpha):
+        # never the largest, and their directions get no weight either way.
         s = self.s
         augmented = np.sqrt(s * s + alpha)
-        keep = augmented > np.finfo(float).eps * augmented.max()
+        keep = augmented > np.finfo(float).eps * augmented.max(initial=np.sqrt(alpha))
         gain = np.divide(s, s * s + alpha, out=np.zeros_like(s), where=keep)
-        W = self.Vt[:gain.size].T @ (gain[:self.U.shape[1], None] * (self.U.T @ Y)) if s.size else Y[:0]
+        W = self.Vt.T @ (gain[:, None] * (self.U.T @ Y))
         return W if self.back is None else linalg.solve_triangular(self.back, W, check_finite=False)
 
 

@@ -113,7 +113,7 @@ def r2_scores_time_major(y_true: np.ndarray, *y_pred: np.ndarray) -> np.ndarray:
             lo += part.shape[-1]
     if lo != y_true.shape[-1]:
         raise ValueError(f"predicted parts have {lo} channels, the truth {y_true.shape[-1]}")
-    return r2_from_sums(np.concatenate(sums, axis=-1), *_true_sums(y_true, axis=0))
+    return r2_from_residuals(np.concatenate(sums, axis=-1), y_true)
 
 
 def r2_from_residuals(ss_res: np.ndarray, y_true: np.ndarray) -> np.ndarray:

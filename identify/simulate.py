@@ -208,6 +208,7 @@ class _RingLayout:
     rbf: _RadialBasis | None
     perms: list[np.ndarray]
     centers: list[np.ndarray] | None
+    centers_sq: np.ndarray | None
     picks: list[np.ndarray] | None
 
     @classmethod
@@ -232,7 +233,8 @@ class _RingLayout:
         perms = [np.ascontiguousarray(At[:, np.r_[np.arange(n_p), n_p + o, np.arange(n_p + n_shift, At.shape[1])], :])
                  for o in order]
         centers = None if rbf is None else [np.ascontiguousarray(rbf.centers_[:, o].T) for o in order]
-        return cls(head, n_p, n_feat, slots, rbf, perms, centers, _monomial_picks(head, n_p, m))
+        centers_sq = None if rbf is None else np.einsum("ij,ij->i", rbf.centers_, rbf.centers_)
+        return cls(head, n_p, n_feat, slots, rbf, perms, centers, centers_sq, _monomial_picks(head, n_p, m))
 
     def write_newest(self, z: np.ndarray, y: np.ndarray, q: int) -> None:
         """The newest sample's pointwise features (from ``y``: its rows, then ones) into slot ``q``."""
@@ -249,13 +251,11 @@ class _RingLayout:
                 slot *= np.take(y, extra, axis=-1)
 
     def write_rbf(self, z: np.ndarray, q: int) -> None:
-        """The radial basis values of the delayed vector at ring position ``q`` (see ``_RadialBasis``)."""
+        """The radial basis values of the delayed vector at ring position ``q``."""
         lo, n_shift = self.n_p, self.slots * self.n_feat
-        delayed = z[..., lo:lo + n_shift]
-        c = self.rbf.centers_
-        sq = (np.einsum("...i,...i->...", delayed, delayed)[..., None] - 2.0 * (delayed @ self.centers[q])
-              + np.einsum("ij,ij->i", c, c))
-        z[..., lo + n_shift:lo + n_shift + c.shape[0]] = self.rbf._kernel(np.sqrt(np.maximum(sq, 0.0)))
+        n_rbf = self.centers_sq.size
+        z[..., lo + n_shift:lo + n_shift + n_rbf] = self.rbf.kernel_values(z[..., lo:lo + n_shift], self.centers[q],
+                                                                           self.centers_sq)
 
 
 def _monomial_picks(head, n_p: int, m: int) -> list[np.ndarray] | None:
