@@ -30,24 +30,20 @@ static void send(qd_device *dev, uint8_t type, const uint8_t *payload, size_t le
 {
     uint8_t frame[QP_MAX_FRAME];
     size_t tail = (dev->tx_head + dev->tx_len) % QD_TX_CAPACITY;
-    size_t n;
-    if (QD_TX_CAPACITY - dev->tx_len >= QP_MAX_FRAME && QD_TX_CAPACITY - tail >= QP_MAX_FRAME) {
-        /* Room for the largest frame without wrapping: encode it in place (one copy fewer). */
-        n = qp_encode_frame(type, dev->seq_out++, now_us, payload, len, dev->tx + tail, QP_MAX_FRAME);
-        if (n == 0) {
-            dev->tx_overflow = 1;
-            return;
-        }
-        dev->tx_len = (uint16_t)(dev->tx_len + n);
-        return;
-    }
-    n = qp_encode_frame(type, dev->seq_out, now_us, payload, len, frame, sizeof frame);
+    /* With room for the largest frame before the queue wraps, encode it in place (one copy fewer). */
+    int in_place = QD_TX_CAPACITY - dev->tx_len >= QP_MAX_FRAME && QD_TX_CAPACITY - tail >= QP_MAX_FRAME;
+    uint8_t *out = in_place ? dev->tx + tail : frame;
+    size_t n = qp_encode_frame(type, dev->seq_out, now_us, payload, len, out, QP_MAX_FRAME);
     dev->seq_out++;
     if (n == 0 || n > QD_TX_CAPACITY - dev->tx_len) {
         dev->tx_overflow = 1;
         return;
     }
-    push_bytes(dev, frame, n);
+    if (in_place) {
+        dev->tx_len = (uint16_t)(dev->tx_len + n);
+    } else {
+        push_bytes(dev, frame, n);
+    }
 }
 
 static void send_fault(qd_device *dev, uint8_t code, uint32_t value, uint32_t now_us)

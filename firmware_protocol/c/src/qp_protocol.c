@@ -131,9 +131,9 @@ size_t qp_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap)
 
 long qp_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap)
 {
-    /* Pointers and an 8-bit block counter: on the 8-bit AVR the indexed 16-bit
-     * form cost ~65 cycles a byte, this ~15. In-place safe: the write pointer
-     * never passes the read pointer. */
+    /* Pointers and an 8-bit block counter: cheaper on the 8-bit AVR than 16-bit
+     * indices (with the receive ring's chunking, 6,030 -> 5,590 cycles per
+     * command). In-place safe: the write pointer never passes the read pointer. */
     const uint8_t *src = in, *end = in + len;
     uint8_t *dst = out, *limit = out + cap;
 
