@@ -194,12 +194,13 @@ def sparsity(seg: Segments, n_episodes: int):
 
 
 def jacobian(z: np.ndarray, r0: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumParameters,
-             dt: float, sigma: float):
+             dt: float, sigma: float, physics: bool = True):
     """Sparse Jacobian of :func:`residuals` in the :func:`sparsity` pattern, by grouped differences.
 
     One residual evaluation per physical variable and four for all the
     nodes at once (a node touches only its own segment); the offsets enter
-    linearly and need none.
+    linearly and need none. ``physics=False``: the physical variables are
+    held fixed and their columns left empty (no evaluation for them).
     """
     from scipy.sparse import csr_matrix
 
@@ -209,7 +210,7 @@ def jacobian(z: np.ndarray, r0: np.ndarray, seg: Segments, n_episodes: int, nomi
     segment_of_row = rows // per_seg
     base = N_PHYSICAL + n_episodes
     data, cols, rws = [], [], []
-    for i in range(N_PHYSICAL):
+    for i in range(N_PHYSICAL if physics else 0):
         step = 1e-6 * max(1.0, abs(z[i]))
         zi = z.copy()
         zi[i] += step
