@@ -91,15 +91,18 @@ class ReplayResult:
     Attributes
     ----------
     std_ratio : ndarray (n, 3)
-        Standard deviation twin / real of theta, alpha, voltage.
+        Standard deviation twin / real of theta, alpha, voltage, the mean
+        over the replays from start angles within an encoder count.
     balanced : ndarray (n,) of bool
-        Stayed within |theta| < pi/2 and |alpha| < pi/4.
+        Every replay stayed within |theta| < pi/2 and |alpha| < pi/4.
     nrmse : ndarray (n,)
-        Mean over theta and alpha of RMSE / max|real| (percent).
+        Mean over theta and alpha of RMSE / max|real| (percent), the mean
+        over the replays.
     offsets : ndarray (n,)
         The offsets used (rad).
     twin : ndarray (n_steps, n, 3)
-        The twin's theta, alpha (measured) and voltage; ``real`` the log's.
+        The twin's theta, alpha (measured) and voltage of the replay from the
+        measured start; ``real`` the log's.
     """
 
     std_ratio: np.ndarray
