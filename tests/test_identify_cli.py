@@ -135,6 +135,7 @@ def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monk
     monkeypatch.chdir(tmp_path)
     code, out, err = run(capsys, *argv)
     assert code == 2 and message in err and "Traceback" not in err
+    assert not list(tmp_path.iterdir())  # no empty output folder left behind
 
 
 def test_logs_with_another_sample_rate_are_refused(tmp_path):

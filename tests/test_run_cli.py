@@ -119,7 +119,7 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
     (["--perturbation", "6"], "start gate"),
     (["--alpha-limit", "2"], "start_alpha"),
     (["--rerun-save", "no/such/folder/run.rrd"], "does not exist"),
-    (["--rerun-save", "{file}"], "a_file: already exists (a recording is not overwritten"),
+    (["--rerun-save", "{file}"], "a_file: already exists; a recording is not overwritten: remove it or choose another name (--rerun-save)"),
     (["--controller", "{binary}"], "binary.toml: not a text file (a TOML controller file is expected)"),
 ])
 def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, message):
@@ -138,7 +138,7 @@ def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, mes
     assert status == 2
     assert err.count("\n") == 1 and err.startswith("qube-run: error:") and message in err
     assert "Traceback" not in err
-    assert not list(out_dir.glob("*.mcap"))
+    assert not out_dir.exists()  # a refused command leaves no empty episode folder behind
 
 
 def test_help_documents_the_options(capsys):

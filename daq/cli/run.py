@@ -403,12 +403,11 @@ def _run(args) -> int:
     if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:
         raise _Fail(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
-    _check_writable(args.out)
     if args.rerun_save is not None and not args.rerun_save.parent.is_dir():
         raise _Fail(f"{args.rerun_save}: folder {args.rerun_save.parent} does not exist (--rerun-save)")
     if args.rerun_save is not None and args.rerun_save.exists():
-        raise _Fail(f"--rerun-save: {args.rerun_save}: already exists (a recording is not overwritten; "
-                    "remove it or choose another name)")
+        raise _Fail(f"{args.rerun_save}: already exists; a recording is not overwritten: remove it or "
+                    "choose another name (--rerun-save)")
 
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 1_000_000)
     seeds, backend_seed = run_seeds(seed, args.episodes)
@@ -419,8 +418,10 @@ def _run(args) -> int:
         plans, settings = _replay(args, rate)
     backend = _make_backend(args, limits, backend_seed, rate)
     if args.check:
-        return _preflight(backend)
+        return _preflight(backend)  # closes the backend
     try:
+        # Only now: a refused command, or a bridge check, leaves no empty episode folder behind.
+        _check_writable(args.out)
         return _collect(args, backend, plans, settings, limits, seed, rate)
     finally:
         backend.close()

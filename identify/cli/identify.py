@@ -247,9 +247,9 @@ def _run(args) -> int:
     from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
     _check_args(args)
-    out = output_dir(args.out)
     try:
         train, test, controller = _load(args)
+        out = output_dir(args.out)  # after the logs load (no empty folder for a bad one), before the fit
         print(f"{len(train)} training and {len(test)} test episodes, {args.skip} samples dropped from each",
               file=sys.stderr)
         what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
