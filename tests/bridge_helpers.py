@@ -129,10 +129,10 @@ def run_in_real_time(env: dict, emulator_args: list[str], run_args: list[str], t
     run at ``RT_PRIORITY`` (``--rt-priority``). Elsewhere a host the scheduler stalls past the
     bridge's watchdog loses its episode. Such a run (the stall measured in its own log) is tried
     again, at most twice, and reported; three lost to measured stalls skip (the machine gave no
-    real time to test); any other failure is returned at once for the test to fail on. A 200 ms link timeout: an
-    emulator process held up pauses device time (then catches up; nothing is lost), which the
-    default 25 ms would take for a lost link. Returns the exit status, qube-run's stdout, the
-    emulator's stderr, the log folder and the device path.
+    real time to test); any other failure is returned at once for the test to fail on. A 200 ms
+    link timeout: an emulator process held up pauses device time (then catches up; nothing is
+    lost), which the default 25 ms would take for a lost link. Returns the exit status,
+    qube-run's stdout, the emulator's stderr, the log folder and the device path.
     """
     from qube_koopman.daq.cli.run import main
 

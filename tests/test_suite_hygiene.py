@@ -21,12 +21,13 @@ def test_an_orphaned_grandchild_is_still_seen_as_the_suites():
     wrapper.wait(10)
     try:
         # Seen with its command line: while the forked shell execs sleep, /proc gives an empty
-        # one (a loaded run read it in that window once), so wait for it like for the pid.
+        # one (a loaded run read it in that window once), so wait for it like for the pid, and
+        # check the command line that was read rather than reading /proc again mid-exec.
         deadline = time.monotonic() + 5
-        while not _descendants(os.getpid()).get(pid):
+        while not (command := _descendants(os.getpid()).get(pid)):
             assert time.monotonic() < deadline, "the orphaned grandchild is not counted"
             time.sleep(0.05)
-        assert "sleep 30" in _descendants(os.getpid())[pid]
+        assert "sleep 30" in command
     finally:
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)  # re-parented to this process: reap it here
