@@ -92,14 +92,31 @@ def test_blueprint_has_an_episode_grid_and_a_spectra_tab():
     assert [str(v.origin) for v in spectra.contents[:3]] == [f"spectra/{c}" for c in CHANNELS]
 
 
+class _Records(logging.Handler):
+    """Keeps every record it is handed: attached to the project's logger itself, it sees each record once
+    whatever a CLI run left on that logger (``propagate = False``) and whatever pytest attaches (pytest 9.2
+    also hangs caplog's handler on non-propagating loggers, so caplog saw a propagated record twice)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
 def test_without_rerun_the_report_is_written_and_one_warning_names_the_skip(tmp_path, monkeypatch, caplog):
     monkeypatch.setitem(__import__("sys").modules, "rerun", None)  # as if the viz extra were not installed
-    monkeypatch.setattr(logging.getLogger("qube_koopman"), "propagate", True)  # a CLI run may have cut it
-    with caplog.at_level(logging.WARNING, logger="qube_koopman"):
-        written = write_report(tmp_path, "tables\n", (synthetic_replay(), np.zeros((2, 2)), NAMES), DT)
+    logger, seen = logging.getLogger("qube_koopman"), _Records()
+    logger.addHandler(seen)
+    try:  # at_level: a `-q` CLI run earlier in the process may have left the logger at ERROR
+        with caplog.at_level(logging.WARNING, logger="qube_koopman"):
+            written = write_report(tmp_path, "tables\n", (synthetic_replay(), np.zeros((2, 2)), NAMES), DT)
+    finally:
+        logger.removeHandler(seen)
     assert written == [tmp_path / "report.md"] and not (tmp_path / "calibration.rrd").exists()
     assert "## Power spectra" in (tmp_path / "report.md").read_text()
-    [record] = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    [record] = seen.records
     assert "calibration.rrd not written" in record.getMessage() and 'pip install -e ".[viz]"' in record.getMessage()
 
 
