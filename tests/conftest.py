@@ -16,6 +16,16 @@ DATASET_SOURCE = ("the paper's QUBE-Servo dataset (public repository decargroup/
                   "folder dataset/controller_20230828, MIT licence)")
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: one worker per CPU this process may run on.
+
+    pytest-xdist's own count asks psutil (which the test extra brings) for physical cores,
+    one on a 2-vCPU machine with SMT, and ignores a restricted CPU set; the affinity mask
+    is what the scheduler will actually give the suite.
+    """
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def dataset_dir() -> Path | None:
     """The dataset folder: $QUBE_DATASET_DIR, else ../shared/datasets/qube_servo_20230828."""
     path = Path(os.environ.get(DATASET_ENV, DEFAULT_DATASET))
