@@ -289,15 +289,24 @@ def test_a_pause_after_holding_zero_volts_is_not_a_fault(core):
 
 def test_rig_start_gate_then_a_slow_log_open_still_runs_the_episode(core, tmp_path):
     # As on the rig: the pendulum is raised by hand over a second while the start gate holds 0 V,
-    # then the log takes 400 ms to open (eight ticks at the 50 ms lockstep timeout: the watchdog
-    # trips at the fifth). The long timeout keeps scheduling noise on a loaded machine from
-    # making the bridge tick ahead of the host, which the ticks_skipped check would see.
+    # then the log is slow to open: the bridge ticks eight times unanswered (the watchdog trips at
+    # the fifth). Counted on the emulator's ticks, not wall time: only while the log opens does
+    # the bridge tick on its own (50 ms lockstep timeout); otherwise lockstep waits up to 2 s
+    # for the host, so a scheduler stall on a loaded machine cannot make the bridge tick ahead of
+    # the host (the ticks_skipped check would see it; a loaded run with 50 ms throughout did).
+    unanswered, patient = 0.05, 2.0
+
     class SlowDisk(McapSink):
         def open(self, metadata):
-            time.sleep(0.4)
+            ticks, deadline = emu.stats()["ticks"], time.monotonic() + 60
+            emu.lockstep_timeout = unanswered
+            while emu.stats()["ticks"] < ticks + 8:
+                assert time.monotonic() < deadline, "the bridge stopped ticking while the log opened"
+                time.sleep(0.01)
+            emu.lockstep_timeout = patient
             super().open(metadata)
 
-    emu = BridgeEmulator(seed=5, core=core, lockstep=True, lockstep_timeout=0.05, raise_time=1.0,
+    emu = BridgeEmulator(seed=5, core=core, lockstep=True, lockstep_timeout=patient, raise_time=1.0,
                          record_ticks=20_000)
     backend = SerialBackend(emu.start(), link_timeout=0.2)
     sink = SlowDisk(tmp_path)
