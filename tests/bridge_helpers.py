@@ -59,6 +59,11 @@ def fifo_granted() -> bool:
     return True
 
 
+def granted_rt_priority() -> int | None:
+    """:data:`RT_PRIORITY` where SCHED_FIFO is granted and ``chrt`` is on the path, else None."""
+    return RT_PRIORITY if fifo_granted() and shutil.which("chrt") else None
+
+
 def start_emulator(env: dict, *args: str, rt_priority: int | None = None) -> tuple[subprocess.Popen, str]:
     """``qube-emulate ARGS`` in a subprocess; returns it and the device path it printed first.
 
@@ -136,7 +141,7 @@ def run_in_real_time(env: dict, emulator_args: list[str], run_args: list[str], t
     """
     from qube_koopman.daq.cli.run import main
 
-    rt = RT_PRIORITY if fifo_granted() and shutil.which("chrt") else None
+    rt = granted_rt_priority()
     rt_args = ["--rt-priority", str(rt)] if rt is not None else []
     measured = []
     for attempt in range(3):
