@@ -64,15 +64,18 @@ def granted_rt_priority() -> int | None:
     return RT_PRIORITY if fifo_granted() and shutil.which("chrt") else None
 
 
+def fifo_command(command: list, rt_priority: int | None) -> list:
+    """``command`` under ``chrt --fifo rt_priority`` (every thread inherits it), or as it is with None."""
+    return command if rt_priority is None else ["chrt", "--fifo", str(rt_priority), *command]
+
+
 def start_emulator(env: dict, *args: str, rt_priority: int | None = None) -> tuple[subprocess.Popen, str]:
     """``qube-emulate ARGS`` in a subprocess; returns it and the device path it printed first.
 
     With ``rt_priority`` it runs SCHED_FIFO at that priority (through ``chrt``, so every thread of
     it inherits the policy from its start).
     """
-    command = [sys.executable, "-m", "qube_koopman.sim.cli.emulate", *args]
-    if rt_priority is not None:
-        command = ["chrt", "--fifo", str(rt_priority), *command]
+    command = fifo_command([sys.executable, "-m", "qube_koopman.sim.cli.emulate", *args], rt_priority)
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     path = proc.stdout.readline().strip()
     if not path.startswith("/dev/"):

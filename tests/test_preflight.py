@@ -6,16 +6,14 @@ import re
 import subprocess
 import sys
 
-from bridge_helpers import cache_home, env, granted_rt_priority, start_emulator, stop_process  # noqa: F401
+from bridge_helpers import cache_home, env, fifo_command, granted_rt_priority, start_emulator, stop_process  # noqa: F401
 
 from qube_koopman.daq.cli.run import main
 
 
 def _check(env, path: str, rt_priority: int | None = None) -> subprocess.CompletedProcess:
     command = [sys.executable, "-m", "qube_koopman.daq.cli.run", "--backend", "serial", "--port", path, "--check"]
-    if rt_priority is not None:
-        command = ["chrt", "--fifo", str(rt_priority), *command]
-    return subprocess.run(command, capture_output=True, text=True, env=env, timeout=60)
+    return subprocess.run(fifo_command(command, rt_priority), capture_output=True, text=True, env=env, timeout=60)
 
 
 def test_check_passes_on_the_emulated_rig_and_reports_the_round_trip(env, tmp_path):
