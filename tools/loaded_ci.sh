@@ -15,11 +15,12 @@
 # Usage: tools/loaded_ci.sh [-n RUNS] [-b BURNERS] [-o OUT] [-c COMMAND]
 #   -n RUNS     consecutive runs to try (default 10)
 #   -b BURNERS  CPU-burning processes beside them (default 2)
-#   -o OUT      working folder, created if missing (default /tmp/qube-loaded-ci)
+#   -o OUT      working folder: new, empty, or made by this script before (its
+#               clone is replaced); default /tmp/qube-loaded-ci
 #   -c COMMAND  what one run executes in the clone (default "bash .ci/run")
 # Exit status: 0 when every run passed, 1 at the first failed run, 2 on bad usage.
-# On a 2-core machine with 2 burners one run took 15 to 17 minutes (pytest-xdist
-# on both cores); ten take close to three hours.
+# On a 2-core machine with 2 burners one run took 15 to 20 minutes (pytest-xdist
+# on both cores); ten take about three hours.
 set -euo pipefail
 
 RUNS=10
@@ -53,6 +54,13 @@ if [ ! -d "$SHARED" ]; then
 fi
 mkdir -p "$OUT"
 OUT=$(cd "$OUT" && pwd)
+# The clone at OUT/main is deleted and made again: never do that to a folder
+# this script did not make (OUT could be the folder holding your checkout).
+if [ ! -e "$OUT/.loaded_ci" ] && [ -n "$(ls -A "$OUT")" ]; then
+    echo "loaded_ci: $OUT: not empty and not made by loaded_ci; choose a new folder (-o)" >&2
+    exit 2
+fi
+touch "$OUT/.loaded_ci"
 CLONE="$OUT/main"
 rm -rf "$CLONE"
 git clone -q "$REPO" "$CLONE"
