@@ -10,7 +10,9 @@
 # in OUT/run_<i>.log and one line per run goes to OUT/summary.txt: exit status,
 # wall time, pytest's summary line and how many real-time runs the suite had
 # to try again after a measured scheduler stall (tests/bridge_helpers.py warns
-# "runs lost to measured scheduler stalls").
+# "runs lost to measured scheduler stalls"; pytest's warnings summary prints the
+# message twice, the warning and the source line that raised it, so only the
+# "UserWarning:" lines are counted).
 #
 # Usage: tools/loaded_ci.sh [-n RUNS] [-b BURNERS] [-o OUT] [-c COMMAND]
 #   -n RUNS     consecutive runs to try (default 10)
@@ -89,7 +91,7 @@ for i in $(seq 1 "$RUNS"); do
     (cd "$CLONE" && CI=true bash -c "$COMMAND" < /dev/null) > "$log" 2>&1 || rc=$?
     elapsed=$(( $(date +%s) - start ))
     result=$(grep -E '^[0-9]+ (passed|failed|errors?|skipped)|no tests ran' "$log" | tail -n 1 || true)
-    retries=$(grep -c "runs lost to measured scheduler stalls" "$log" || true)
+    retries=$(grep -c "UserWarning: runs lost to measured scheduler stalls" "$log" || true)
     printf 'run %d: exit %d, %d:%02d, %s, real-time retries %d\n' \
         "$i" "$rc" $((elapsed / 60)) $((elapsed % 60)) "${result:-no pytest summary}" "$retries" \
         | tee -a "$SUMMARY"
