@@ -38,12 +38,30 @@ def _test_section(report: dict) -> list[str]:
         row = f"| {name} | {format_number(t['r2_per_episode'][i], '.4f')} |"
         if plain:
             e = offsets[name]
-            values = ", ".join(f"{k} {v:+.5f}" for k, v in e.items()
-                               if k not in ("log", "plausible", "rms_before", "rms_after"))
-            row += (f" {format_number(plain['r2_per_episode'][i], '.4f')} | {values} "
-                    f"({'yes' if e['plausible'] else 'NO: beyond the bound ' + format(report['offset_bound'], 'g')}) |")
+            values = ", ".join(f"{k} {v:+.5f}" + (f" ± {e[k + '_std_error']:.5f}" if e.get(k + "_std_error") else "")
+                               for k, v in e.items() if isinstance(v, float) and k not in (
+                                   "rms_before", "rms_after") and not k.endswith("_std_error"))
+            used = {"ok": "yes", "flat": "yes, but the cost is flat: poorly determined"}.get(
+                e.get("status", "ok" if e["plausible"] else ""),
+                "NO: beyond the bound " + format(report["offset_bound"], "g"))
+            row += f" {format_number(plain['r2_per_episode'][i], '.4f')} | {values} ({used}) |"
         lines.append(row)
     return lines
+
+
+def _why_it_won(search: dict) -> str:
+    """One sentence: the winner's scores against the best cross-validated candidate's."""
+    w, candidates = search["winner"], search["candidates"]
+    if w.get("transfer_r2") is None:
+        return "It has the best cross-validated R^2."
+    by_cv = max(candidates, key=lambda c: -math.inf if c["cv_r2"] is None else c["cv_r2"])
+    if by_cv["label"] == w["label"] and by_cv["alpha"] == w["alpha"]:
+        return "It has both the best objective and the best cross-validated R^2."
+    return (f"The best cross-validated candidate, {by_cv['label']} (alpha {by_cv['alpha']:g}, CV R^2 "
+            f"{format_number(by_cv['cv_r2'], '.4f')}), transfers worse: transfer R^2 "
+            f"{format_number(by_cv['transfer_r2'], '.4f')} (worst probe {format_number(by_cv['transfer_r2_worst'], '.3f')}) "
+            f"against the winner's {format_number(w['transfer_r2'], '.4f')} "
+            f"(worst {format_number(w['transfer_r2_worst'], '.3f')}).")
 
 
 def _search_section(search: dict) -> list[str]:
@@ -51,14 +69,21 @@ def _search_section(search: dict) -> list[str]:
     lines = ["", "## Lifting search", "",
              f"{len(search['candidates'])} candidates in {format_number(search['seconds'], '.0f')} s, "
              f"{search['cv_splits']} episode-grouped splits of the training episodes (seed {search['cv_seed']}); "
-             f"score: {search['score']}. Stages: {', '.join(search['stages'])}. Winner: **{w['label']}**, "
-             f"alpha {w['alpha']:g}, cross-validated R^2 {format_number(w['cv_r2'], '.4f')}.", "",
-             "| rank | stage | lifting | features | alpha | CV R^2 | CV R^2 std | seconds |",
-             "|---|---|---|---|---|---|---|---|"]
+             f"score: {search['score']}. Stages: {', '.join(search['stages'])}.", "",
+             f"Ranked by {search.get('objective', 'the cross-validated R^2')}."
+             + (f" Transfer probes: {search['transfer']}." if search.get("transfer") else ""), "",
+             f"Winner: **{w['label']}**, alpha {w['alpha']:g}, cross-validated R^2 {format_number(w['cv_r2'], '.4f')}"
+             + (f", transfer R^2 {format_number(w['transfer_r2'], '.4f')}" if w.get("transfer_r2") is not None else "")
+             + f". {_why_it_won(search)}"
+             + (f" Refit by hand with `qube-identify ... {w['flags']}`." if w.get("flags") else ""), "",
+             "| rank | stage | lifting | features | alpha | CV R^2 | CV R^2 std | transfer R^2 | worst probe "
+             "| objective | seconds |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for i, c in enumerate(search["candidates"], start=1):
         lines.append(f"| {i} | {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
                      f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c['cv_r2_std'], '.4f')} "
-                     f"| {format_number(c['seconds'], '.1f')} |")
+                     f"| {format_number(c.get('transfer_r2'), '.4f')} | {format_number(c.get('transfer_r2_worst'), '.3f')} "
+                     f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} | {format_number(c['seconds'], '.1f')} |")
     return lines
 
 

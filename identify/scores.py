@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 __all__ = ["ConstantChannelWarning", "r2_score", "r2_scores", "r2_scores_time_major", "r2_from_sums",
-           "r2_from_residuals",
+           "r2_from_residuals", "DivergedPrediction", "first_diverged_sample",
            "summarize_episodes", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
 
 
@@ -190,22 +190,45 @@ def score_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray],
     return float(values.mean()), float(values.std())
 
 
-def summarize_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray], start: int = 1) -> dict:
+class DivergedPrediction(UserWarning):
+    """A predicted episode diverged: its score is -inf and the means leave it out, saying so."""
+
+
+def first_diverged_sample(y_pred: np.ndarray) -> int | None:
+    """Index of the first sample with a non-finite prediction, or None."""
+    bad = ~np.all(np.isfinite(np.asarray(y_pred, dtype=float).reshape(len(y_pred), -1)), axis=1)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def summarize_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray], start: int = 1,
+                       names: Sequence[str] | None = None) -> dict:
     """Test-set summary: R^2 and NRMSE per episode, their means and standard deviations.
 
     Samples before ``start`` are left out (by default the first, which is the
     initial condition itself; the reference code keeps the other
-    initial-condition samples). A diverged episode makes the means infinite
-    (R^2 -inf, NRMSE +inf) and the deviations None.
+    initial-condition samples). A diverged episode (a non-finite prediction
+    from ``start`` on) makes the means infinite (R^2 -inf, NRMSE +inf, the
+    reference's convention) and the deviations None; it is listed under
+    ``"diverged"`` (episode index, name, first non-finite sample), and
+    ``"r2_mean_converged"`` is the mean over the other episodes (None when
+    all diverged), so nothing is averaged silently.
     """
     if len(y_true) != len(y_pred) or not y_true:
         raise ValueError(f"need matching, non-empty episode lists, got {len(y_true)} and {len(y_pred)}")
+    names = [str(i) for i in range(len(y_true))] if names is None else [str(n) for n in names]
     r2 = np.array([r2_score(t[start:], p[start:]) for t, p in zip(y_true, y_pred)])
     err = np.array([nrmse(t[start:], p[start:]) for t, p in zip(y_true, y_pred)])
-    finite = bool(np.all(np.isfinite(r2)) and np.all(np.isfinite(err)))
+    ok = np.isfinite(r2) & np.isfinite(err)
+    diverged = []
+    for i in np.flatnonzero(~ok):
+        k = first_diverged_sample(y_pred[i][start:])
+        diverged.append({"episode": int(i), "name": names[i], "sample": None if k is None else k + start})
+    finite = bool(ok.all())
     return {"r2_mean": float(r2.mean()) if finite else -np.inf,
             "r2_std": float(r2.std()) if finite else None,
             "nrmse_mean": float(err.mean()) if finite else np.inf,
             "nrmse_std": float(err.std()) if finite else None,
             "n_episodes": int(r2.size),
+            "n_diverged": len(diverged), "diverged": diverged,
+            "r2_mean_converged": float(r2[ok].mean()) if ok.any() else None,
             "r2_per_episode": r2.tolist()}

@@ -36,6 +36,7 @@ from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, 
 from qube_koopman.identify.scores import r2_scores
 from qube_koopman.identify.sweep import regularization_sweep
 from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.transfer import ProbeSet, probe_scores
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
@@ -92,6 +93,14 @@ class LiftingSpec:
         pointwise = comb(n_states + self.poly, self.poly) - 1 + (2 * n_states if self.trig else 0)
         return pointwise * (self.delays + 1) + self.rbf + int(self.const)
 
+    def flags(self, rbf_seed: int = 0) -> list[str]:
+        """The ``qube-identify`` options that fit this lifting by hand (without alpha)."""
+        out = ["--poly", str(self.poly)] + (["--trig"] if self.trig else []) + ["--delays", str(self.delays)]
+        if self.rbf:
+            out += ["--rbf", "thin-plate", "--rbf-centers", str(self.rbf)] + (
+                ["--rbf-seed", str(rbf_seed)] if rbf_seed else [])
+        return out + (["--const"] if self.const else []) + (["--offsets", "alpha"] if self.offsets else [])
+
     def label(self) -> str:
         """A short readable name, e.g. ``"poly 2, 20 delays, const, offsets"``."""
         parts = [f"poly {self.poly}"] + (["sin/cos"] if self.trig else []) + [f"{self.delays} delays"]
@@ -146,7 +155,7 @@ class SearchSpace:
 
 @dataclass
 class CandidateResult:
-    """Cross-validated scores of one lifting over the alpha grid.
+    """Cross-validated and transfer scores of one lifting over the alpha grid.
 
     Attributes
     ----------
@@ -158,6 +167,10 @@ class CandidateResult:
         as offsets are only estimated at the best alphas; -inf: diverged).
     seconds : float
         Wall time of the evaluation.
+    transfer_r2 : ndarray of shape (n_probe_episodes, n_alphas), optional
+        R^2 of each transfer probe episode (:mod:`~qube_koopman.identify.transfer`)
+        predicted by the plant fitted on all training episodes (NaN: alpha not
+        probed; -inf: diverged). None when the search has no probes.
     """
 
     spec: LiftingSpec
@@ -165,28 +178,62 @@ class CandidateResult:
     alphas: np.ndarray
     cv_r2: np.ndarray
     seconds: float
+    transfer_r2: np.ndarray | None = None
 
     @property
     def mean(self) -> np.ndarray:
-        """Mean over folds per alpha (-inf where unscored)."""
+        """Mean cross-validated R^2 over folds per alpha (-inf where unscored)."""
         m = self.cv_r2.mean(axis=0)
         return np.where(np.isnan(m), -np.inf, m)
 
     @property
+    def transfer_mean(self) -> np.ndarray | None:
+        """Mean transfer R^2 over the probe episodes per alpha (-inf where unprobed or diverged)."""
+        if self.transfer_r2 is None:
+            return None
+        m = self.transfer_r2.mean(axis=0)
+        return np.where(np.isnan(m), -np.inf, m)
+
+    @property
+    def objective(self) -> np.ndarray:
+        """What the search maximizes per alpha: the lower of the cross-validated and transfer R^2.
+
+        Without probes, the cross-validated R^2 alone.
+        """
+        t = self.transfer_mean
+        return self.mean if t is None else np.minimum(self.mean, t)
+
+    @property
     def best_index(self) -> int:
         """Index of the best alpha (the largest among ties: the better conditioned)."""
-        m = self.mean
+        m = self.objective
         return int(np.flatnonzero(m == m.max())[-1])
 
     @property
     def best_alpha(self) -> float:
-        """The alpha with the best mean cross-validated R^2."""
+        """The alpha with the best objective."""
         return float(self.alphas[self.best_index])
 
     @property
     def score(self) -> float:
-        """The best mean cross-validated R^2."""
+        """The best objective (see :attr:`objective`)."""
+        return float(self.objective[self.best_index])
+
+    @property
+    def cv_score(self) -> float:
+        """Mean cross-validated R^2 at the best alpha."""
         return float(self.mean[self.best_index])
+
+    @property
+    def transfer_score(self) -> float | None:
+        """Mean transfer R^2 at the best alpha (None without probes)."""
+        t = self.transfer_mean
+        return None if t is None else float(t[self.best_index])
+
+    @property
+    def transfer_worst(self) -> float | None:
+        """The worst probe episode's R^2 at the best alpha (None without probes)."""
+        return None if self.transfer_r2 is None else float(np.min(self.transfer_r2[:, self.best_index]))
 
     @property
     def score_std(self) -> float:
@@ -194,11 +241,16 @@ class CandidateResult:
         return float(np.std(self.cv_r2[:, self.best_index]))
 
     def as_dict(self) -> dict:
-        """Plain data for reports."""
-        return {**asdict(self.spec), "label": self.spec.label(), "stage": self.stage,
-                "n_features": self.spec.n_features(), "alpha": self.best_alpha, "cv_r2": self.score,
-                "cv_r2_std": self.score_std, "seconds": self.seconds,
-                "cv_r2_by_alpha": [None if not np.isfinite(v) else float(v) for v in self.mean]}
+        """Plain data for reports (None for scores that are not finite numbers)."""
+        number = lambda v: None if v is None or not np.isfinite(v) else float(v)  # noqa: E731
+        out = {**asdict(self.spec), "label": self.spec.label(), "stage": self.stage,
+               "n_features": self.spec.n_features(), "alpha": self.best_alpha, "objective": number(self.score),
+               "cv_r2": number(self.cv_score), "cv_r2_std": number(self.score_std),
+               "transfer_r2": number(self.transfer_score), "transfer_r2_worst": number(self.transfer_worst),
+               "seconds": self.seconds, "cv_r2_by_alpha": [number(v) for v in self.mean]}
+        if self.transfer_r2 is not None:
+            out["transfer_r2_by_alpha"] = [number(v) for v in self.transfer_mean]
+        return out
 
 
 @dataclass
@@ -213,14 +265,17 @@ class SearchResult:
         First scored sample of every validation episode.
     seconds : float
         Wall time of the search.
+    probes : ProbeSet, optional
+        The transfer probes the candidates were scored on.
     """
 
     candidates: list[CandidateResult] = field(default_factory=list)
     window: int = 0
     seconds: float = 0.0
+    probes: ProbeSet | None = None
 
     def ranked(self) -> list[CandidateResult]:
-        """Best first; ties go to the smaller lifting, then the plain protocol."""
+        """Best :attr:`CandidateResult.score` first; ties go to the smaller lifting, then the plain protocol."""
         return sorted(self.candidates, key=lambda r: (-r.score, r.spec.n_features(), r.spec.offsets, r.spec))
 
     @property
@@ -240,6 +295,8 @@ class SearchData:
     window: int
     bound: float = DEFAULT_BOUND
     rbf_seed: int = 0
+    probes: ProbeSet | None = None
+    n_transfer_alphas: int = 3
 
 
 def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
@@ -259,7 +316,35 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     cv = sweep.cv_r2["cl"] if rescore else np.asarray(plain, dtype=float)
     if spec.offsets:
         cv = _offset_scores(sweep, data, cv)
-    return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started)
+    transfer = None if data.probes is None else _transfer_scores(estimator, spec, data, cv, sweep.statistics)
+    return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started,
+                           transfer)
+
+
+def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndarray, statistics) -> np.ndarray:
+    """Probe scores (episodes x alphas) of the plants fitted on all training episodes, at the best CV alphas.
+
+    The plants fit only the rows re-lifted predictions use, from the sweep's shared
+    per-episode statistics when it had them.
+    """
+    from qube_koopman.identify._blas import limited_blas_threads
+    from qube_koopman.identify.regression import Snapshots
+    from qube_koopman.identify.sweep import fit_alphas, fitted_models
+
+    mean = cv.mean(axis=0)
+    mean = np.where(np.isfinite(mean), mean, -np.inf)
+    top = np.sort(np.argsort(-mean, kind="stable")[:min(data.n_transfer_alphas, data.alphas.size)])
+    if statistics is not None:
+        setup, per_episode = statistics
+        with limited_blas_threads(1):
+            _, plants = fitted_models(estimator, setup, Snapshots.total(per_episode), data.alphas[top], None, None)
+    else:
+        _, plants = fit_alphas(estimator, data.trajectories, data.alphas[top], relift_rows_only=True)
+    out = np.full((data.probes.n_episodes, data.alphas.size), np.nan)
+    with limited_blas_threads(1):
+        for j, plant in zip(top, plants):
+            out[:, j] = probe_scores(plant, data.probes, data.window, spec.offsets, data.bound, MEASURED)
+    return out
 
 
 def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
@@ -304,7 +389,7 @@ def _runner(n_jobs: int, scheduler: str | None):
 
 def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStateSpace, *, splits,
                     window: int, space: SearchSpace | None = None, n_jobs: int = 1, scheduler: str | None = None,
-                    bound: float = DEFAULT_BOUND, rbf_seed: int = 0,
+                    bound: float = DEFAULT_BOUND, rbf_seed: int = 0, probes: ProbeSet | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     connect_timeout: float = 30.0) -> SearchResult:
     """Search the lifting space in stages (see the module docstring).
@@ -325,6 +410,11 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     scheduler : str, optional
         Address of a dask.distributed scheduler to run the candidates on
         instead (needs the ``dask`` extra).
+    probes : ProbeSet, optional
+        Transfer probes (:func:`~qube_koopman.identify.transfer.twin_probes`):
+        each candidate is then ranked by the lower of its cross-validated and
+        its transfer R^2 (:attr:`CandidateResult.objective`); without them by
+        the cross-validated R^2 alone.
     progress : callable(label, done, total), optional
     connect_timeout : float
         Seconds to keep trying to reach ``scheduler`` before giving up.
@@ -337,10 +427,10 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
 
     space = space or SearchSpace()
     data = SearchData(list(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
-                      int(window), bound, rbf_seed)
+                      int(window), bound, rbf_seed, probes)
     client = _dask_client(scheduler, connect_timeout) if scheduler else None
     started = time.perf_counter()
-    result, seen = SearchResult(window=int(window)), set()
+    result, seen = SearchResult(window=int(window), probes=probes), set()
     try:
         for stage in STAGES:
             specs = [s for s in space.stage_candidates(stage, result.ranked()) if s not in seen]

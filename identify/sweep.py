@@ -27,7 +27,7 @@ from qube_koopman.identify.structure import close_loop
 from qube_koopman.identify.trajectory import Trajectory
 from qube_koopman.sim.lti import DiscreteStateSpace
 
-__all__ = ["SweepResult", "regularization_sweep", "fitted_models", "SCORINGS"]
+__all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "SCORINGS"]
 
 SCORINGS = ("cl", "plant")
 # Models simulated together: bounds their rings of permuted Koopman rows to ~64 MB (predictions
@@ -55,6 +55,11 @@ class SweepResult:
         Every fold's models, with ``keep_fold_models``. Without ``fit_all`` (and
         with ``relift``) only the rows a re-lifted prediction uses are fitted;
         the others are NaN.
+    statistics : (setup, per-episode Snapshots), optional
+        Without ``fit_all``: the per-episode statistics every fold shared (None
+        when the lifting learns from data and each fold computed its own, and
+        with ``fit_all``, which fits the final models itself): models on all the
+        episodes at any alpha are then one small solve each (:func:`fitted_models`).
     """
 
     alphas: np.ndarray
@@ -64,6 +69,7 @@ class SweepResult:
     closed_loop_models: list | None = None
     plant_models: list | None = None
     fold_models: list | None = None
+    statistics: tuple | None = None
 
     def cv_r2_mean(self, scoring: str) -> np.ndarray:
         """Mean over folds (-inf where any fold diverged)."""
@@ -92,6 +98,23 @@ def fitted_models(template, setup, snapshots: Snapshots, alphas: Sequence[float]
             plants.append(est.plant_model_)
             closed.append(est.closed_loop_model_)
     return closed, plants
+
+
+def fit_alphas(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float],
+               controller: DiscreteStateSpace | None = None, measured=None,
+               relift_rows_only: bool = False) -> tuple[list, list[KoopmanModel]]:
+    """Closed-loop and plant models of ``estimator`` fitted on all ``trajectories``, one per alpha.
+
+    The statistics are computed once and shared by every alpha (as in a sweep).
+    With ``relift_rows_only`` only the Koopman rows a re-lifted prediction uses
+    are fitted (the others NaN, as in a sweep's folds): several times faster
+    for long liftings, for models that only predict.
+    """
+    if isinstance(estimator, _ClosedLoopKoopman):
+        controller, measured = estimator.controller, estimator.measured
+    with limited_blas_threads(1):
+        setup, per_episode = _prepare(estimator, list(trajectories), relift_rows_only)
+        return fitted_models(estimator, setup, Snapshots.total(per_episode), alphas, controller, measured)
 
 
 def _batches(n_models: int, n_values_per_model: int) -> list[slice]:
@@ -219,7 +242,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     partial = relift and not fit_all
     shared = None if _learns_from_data(estimator) else _prepare(estimator, trajectories, partial)
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
-                         fold_models=[] if keep else None)
+                         fold_models=[] if keep else None, statistics=None if fit_all else shared)
     for i, (train, validation) in enumerate(splits):
         if shared is None:
             setup, per_episode = _prepare(estimator, [trajectories[j] for j in train], partial)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
@@ -15,8 +16,8 @@ from qube_koopman.identify.data import LoggedTrajectory, group_shuffle_splits, s
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.stability import ClEdmdStable
 from qube_koopman.identify.model_file import lifting_to_dict, save_model
-from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets, predict_with_offsets
-from qube_koopman.identify.scores import summarize_episodes
+from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets
+from qube_koopman.identify.scores import DivergedPrediction, summarize_episodes
 from qube_koopman.identify.structure import close_loop, controller_states
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 from qube_koopman.sim.lti import DiscreteStateSpace
@@ -64,6 +65,12 @@ PAPER_PROTOCOL = ("the paper's: each test episode predicted from its initial con
                   "every sample after the first scored, no offsets")
 
 
+def window_protocol(start: int, dt: float) -> str:
+    """The plain protocol scored from the end of an estimation window, as the search scores candidates."""
+    return (f"each test episode predicted from its initial condition, no offsets, scored from sample {start} "
+            f"({start * dt:g} s: the end of the estimation window, as the search scored its candidates)")
+
+
 @dataclass
 class IdentificationResult:
     """What a run produced: the report, the models, the test predictions."""
@@ -87,7 +94,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        alphas: Sequence[float] | None = None, score: str = "cl", cv_splits: int = 3,
                        cv_seed: int = 1234, arx_lags: int = 10, model_path: str | Path | None = None,
                        offsets: OffsetProtocol | None = None, what_if: DiscreteStateSpace | None = None,
-                       estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None) -> IdentificationResult:
+                       estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None,
+                       score_from: int | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
     With ``alphas`` the regularization is chosen by episode-grouped
@@ -97,7 +105,11 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     ``offsets`` each test episode's offsets are estimated from its initial
     window (see :class:`OffsetProtocol`). With ``what_if`` every test episode
     is predicted under that controller instead; only episodes recorded under
-    it are scored.
+    it are scored. Without offsets, ``score_from`` (samples) scores the test
+    episodes from that sample on instead of the paper's sample 1 (as a
+    search scores its candidates). A diverged test prediction is reported by
+    episode and sample with a :class:`~qube_koopman.identify.scores.DivergedPrediction`
+    warning.
     """
     if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None):
         raise ValueError(f"offsets and what-if controllers need a Koopman method, not {method}")
@@ -122,7 +134,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                 save_model(model_path, method=method, alpha=result.report["alpha"], plant=plant, closed_loop=closed,
                            controller=controller, measured=MEASURED,
                            training={"logs": result.report["train_logs"]})
-            _score_koopman(plant, closed, controller, test, score, offsets, what_if, result)
+            _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from)
         elif method in ("arx", "cl-arx"):
             plant, closed, predictions = _arx(method, trajs, test, controller, arx_lags, score, result)
             if model_path is not None:
@@ -179,7 +191,7 @@ def _test_model(plant, closed, controller, log, score, what_if):
             log.trajectory)
 
 
-def _score_koopman(plant, closed, controller, test, score, offsets, what_if, result):
+def _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from=None):
     dt = test[0].trajectory.dt
     predictions, plain, estimates = [], [], []
     for log in test:
@@ -187,7 +199,7 @@ def _score_koopman(plant, closed, controller, test, score, offsets, what_if, res
         plain.append(model.predict(traj))
         if offsets is None:
             continue
-        est = estimate_offsets(model, traj, offsets.channels, offsets.window(dt), offsets.bound)
+        est = estimate_offsets_many(model, [traj], offsets.channels, offsets.window(dt), offsets.bound)[0]
         estimates.append(est)
         predictions.append(predict_with_offsets(model, traj, est.as_mapping()) if est.plausible else plain[-1])
     scored = test if what_if is None else [log for log in test if same_system(log.controller, what_if)]
@@ -198,12 +210,11 @@ def _score_koopman(plant, closed, controller, test, score, offsets, what_if, res
             "note": "test episodes are predicted under this controller; only those recorded under it are scored"}
     keep = [i for i, log in enumerate(test) if log in scored]
     if offsets is None:
-        _summarize(result, test, plain, None, 1, PAPER_PROTOCOL, keep)
+        protocol = PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt)
+        _summarize(result, test, plain, None, 1 if score_from is None else score_from, protocol, keep)
         return
     names = list(offsets.channels)
-    result.report["offsets"] = [
-        {"log": log.path.name, **{n: float(v) for n, v in zip(names, est.values)}, "plausible": est.plausible,
-         "rms_before": est.rms_before, "rms_after": est.rms_after} for log, est in zip(test, estimates)]
+    result.report["offsets"] = [{"log": log.path.name, **est.as_dict(names)} for log, est in zip(test, estimates)]
     result.report["offset_bound"] = offsets.bound
     _summarize(result, test, predictions, plain, offsets.window(dt), offsets.describe(dt), keep)
 
@@ -222,9 +233,24 @@ def _summarize(result, test, predictions, plain, start, protocol, keep=None):
         result.report["test"] = None
         return
     truth = [result.test_truth[i] for i in keep]
-    result.report["test"] = summarize_episodes(truth, [predictions[i] for i in keep], start)
+    names = [test[i].path.name for i in keep]
+    result.report["test"] = summarize_episodes(truth, [predictions[i] for i in keep], start, names)
+    _warn_diverged(result.report["test"], test[0].trajectory.dt, "")
     if plain is not None:
-        result.report["test_without_offsets"] = summarize_episodes(truth, [plain[i] for i in keep], start)
+        result.report["test_without_offsets"] = summarize_episodes(truth, [plain[i] for i in keep], start, names)
+        _warn_diverged(result.report["test_without_offsets"], test[0].trajectory.dt, " without offsets")
+
+
+def _warn_diverged(summary: dict, dt: float, what: str) -> None:
+    """One warning per diverged test prediction, naming the log and the sample."""
+    others = summary["n_episodes"] - summary["n_diverged"]
+    for d in summary["diverged"]:
+        at = "" if d["sample"] is None else f" at sample {d['sample']} ({d['sample'] * dt:.2f} s)"
+        mean = summary["r2_mean_converged"]
+        rest = (f"the mean over the other {others} episode(s) is {mean:.4f}" if mean is not None
+                else "no episode converged")
+        warnings.warn(f"{d['name']}: the prediction{what} diverged{at}; its R^2 is -inf and so is the test "
+                      f"mean; {rest}", DivergedPrediction, stacklevel=3)
 
 
 def _arx(method, trajs, test, controller, lags, score, result):

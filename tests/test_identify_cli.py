@@ -88,6 +88,13 @@ def test_plant_scoring_of_an_unstable_plant_diverges(small_set, tmp_path, capsys
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["test"]["r2_mean"] == "-inf"  # strict JSON: non-finite numbers as strings
+    # ... and said aloud: each diverged episode by name and first non-finite sample, with a warning
+    test = report["test"]
+    assert test["n_diverged"] == len(test["diverged"]) == test["n_episodes"] >= 1
+    for d in test["diverged"]:
+        assert d["name"] in report["scored_logs"] and 1 <= d["sample"] < 10_000
+        assert f"qube-identify: warning: {d['name']}: the prediction diverged at sample {d['sample']}" in err
+    assert test["r2_mean_converged"] is None and "no episode converged" in err
 
 
 def test_paper_split_needs_more_than_28_logs(small_set, tmp_path, capsys):

@@ -186,12 +186,19 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     search = report["search"]
     assert len(search["candidates"]) == 4  # delays 0, 2; then const on/off at the best (one repeats)
     winner = search["winner"]
-    assert winner == search["candidates"][0] and winner["cv_r2"] == max(c["cv_r2"] for c in search["candidates"])
+    assert {k: v for k, v in winner.items() if k != "flags"} == search["candidates"][0]
+    # Ranked by the lower of the cross-validated and the transfer R^2 (the default --transfer twin).
+    for c in search["candidates"]:
+        assert c["transfer_r2"] is not None and c["objective"] == pytest.approx(min(c["cv_r2"], c["transfer_r2"]))
+    assert winner["objective"] == max(c["objective"] for c in search["candidates"])
+    assert "probe PD controllers" in search["transfer"] and "lower of the cross-validated" in search["objective"]
     assert report["alpha"] == winner["alpha"]
+    assert report["scored_from_sample"] == 500 and "as the search scored its candidates" in report["protocol"]
     steps = [s["type"] for s in load_model(tmp_path / "model.json")["lifting"]["steps"]]
     assert ("Delay" in steps) == (winner["delays"] > 0) and ("Constant" in steps) == winner["const"]
     table = (tmp_path / "report.md").read_text()
     assert "## Lifting search" in table and all(c["label"] in table for c in search["candidates"])
+    assert "| transfer R^2 | worst probe | objective |" in table and f"`qube-identify ... {winner['flags']}`" in table
     assert f"winner {winner['label']}" in err
     from rerun.chunk import RrdReader
 
@@ -215,7 +222,9 @@ def test_blueprint_has_a_view_per_test_episode_and_per_section():
 @pytest.mark.parametrize("argv, message", [
     (["--search", "--delays", "5"], "--search chooses the lifting, alpha and offsets itself: leave out --delays"),
     (["--search", "--method", "edmd"], "--search selects CL EDMD models"),
-    (["--scheduler", "tcp://x:1"], "--scheduler and --search-space belong to --search"),
+    (["--scheduler", "tcp://x:1"], "--scheduler, --search-space and --transfer belong to --search"),
+    (["--transfer", "none"], "--scheduler, --search-space and --transfer belong to --search"),
+    (["--offsets", "alpha", "--protocol", "paper"], "it cannot use --protocol paper"),
 ])
 def test_cli_search_refusals(log_dirs, tmp_path, capsys, argv, message):
     code, _, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--out", tmp_path, *argv)

@@ -66,18 +66,19 @@ def run_command(prog: str, command, args) -> int:
     """Run ``command(args)``: user mistakes and interruptions become one line and an exit status.
 
     Errors read ``<prog>: error: <problem>`` (the problem names the file first when there is
-    one); a log left out of the data (incomplete or unreadable) is one ``<prog>: warning:`` line
-    naming it. Log lines go to stderr at the level ``-v``/``-q`` ask for; ``-q`` also silences
+    one); a log left out of the data (incomplete or unreadable), or a test prediction that
+    diverged, is one ``<prog>: warning:`` line naming it. Log lines go to stderr at the level ``-v``/``-q`` ask for; ``-q`` also silences
     the progress bars.
     """
     configure_logging(prog, args)
     progress.enabled = not getattr(args, "quiet", False)
     from qube_koopman.identify.data import IncompleteLogSkipped
+    from qube_koopman.identify.scores import DivergedPrediction
 
     default_show = warnings.showwarning
 
     def show(message, category, *rest, **kwargs):
-        if issubclass(category, IncompleteLogSkipped):
+        if issubclass(category, (IncompleteLogSkipped, DivergedPrediction)):
             print(f"{prog}: warning: {message}", file=sys.stderr)
         else:
             default_show(message, category, *rest, **kwargs)
@@ -85,6 +86,7 @@ def run_command(prog: str, command, args) -> int:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", IncompleteLogSkipped)
+            warnings.simplefilter("always", DivergedPrediction)
             warnings.showwarning = show
             return command(args)
     except CliError as exc:

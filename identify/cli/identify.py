@@ -22,14 +22,20 @@ Examples:
   qube-identify logs/ --split paper --method edmd --score plant --alpha 1
   qube-identify logs/ --split paper --search --n-jobs 2            # choose the lifting by CV
 
-With --search the lifting, alpha and offset protocol are chosen by episode-
-grouped cross-validation on the training episodes only, in stages (delays;
-monomial order x constant x sin/cos; RBF centres; offsets on the best few),
-each candidate scored as the test episodes will be (closed-loop prediction of
-theta and alpha from the end of the --estimate-window on). The winner is fitted
-on all training episodes, written to model.json and scored on the test
-episodes; report.md lists every candidate. --search-space FILE.toml narrows or
-widens the space (keys: delays, poly, const, trig, rbf, alphas, offsets: lists).
+With --search the lifting, alpha and offset protocol are chosen on the
+training episodes only, in stages (delays; monomial order x constant x sin/cos;
+RBF centres; offsets on the best few). Each candidate is scored twice: by
+episode-grouped cross-validation (closed-loop prediction under the training
+controller, from the end of the --estimate-window on) and, with --transfer twin
+(the default), by transfer: its plant, wrapped with three probe PD controllers
+unlike the training one, predicts twin episodes (the training excitations
+replayed on the calibrated twin under those controllers). Candidates rank by
+the lower of the two, since users identify the plant to predict loops it has
+not run. The winner is fitted on all training episodes, written to model.json
+and scored on the test episodes from the same sample as the candidates;
+report.md lists every candidate with both scores and the flags that refit the
+winner by hand. --search-space FILE.toml narrows or widens the space (keys:
+delays, poly, const, trig, rbf, alphas, offsets: lists).
 
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
@@ -49,6 +55,11 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                              "0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
     search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
                         help="worker processes for the search (default %(default)s: every core)")
+    search.add_argument("--transfer", choices=["twin", "none"], default="twin",
+                        help="twin (default): rank candidates by the lower of their cross-validated R^2 and their "
+                             "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
+                             "unlike the training one (the training excitations replayed on the calibrated twin); "
+                             "none: by cross-validated R^2 alone (sees only the training controller)")
     search.add_argument("--scheduler", metavar="ADDRESS",
                         help="run the search on this dask.distributed scheduler (e.g. tcp://host:8786) "
                              'instead of local processes; needs pip install "qube-koopman[dask]"')
@@ -71,6 +82,8 @@ def _parser() -> argparse.ArgumentParser:
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
     lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
     lift.add_argument("--poly", type=int, metavar="ORDER", help="monomial order (1: none; default 2)")
+    lift.add_argument("--trig", action="store_true",
+                      help="append sin and cos of theta and alpha (after the monomials, before the delays)")
     lift.add_argument("--delays", type=int, metavar="N", help="time delays (default 10)")
     lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions")
     lift.add_argument("--rbf-centers", type=int, default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
@@ -112,6 +125,10 @@ def _parser() -> argparse.ArgumentParser:
                       help="offset estimation window in seconds (default %(default)s)")
     pred.add_argument("--offset-bound", type=float, default=0.05, metavar="RAD",
                       help="estimates beyond this are flagged in the report and not used (default %(default)s)")
+    pred.add_argument("--protocol", choices=["paper", "window"],
+                      help="window: score the test episodes from the end of --estimate-window, as --search scores "
+                           "its candidates (the default with --search or --offsets); paper: from the second "
+                           "sample, the paper's protocol (the default otherwise; not with --offsets)")
     pred.add_argument("--controller", metavar="FILE.toml",
                       help="what-if: predict every test episode under this controller's gains (kp_theta, "
                            "kd_theta, kp_alpha, kd_alpha, tau; backward Euler as on the rig) instead of its "
@@ -143,11 +160,13 @@ def _expand(items) -> list[Path]:
 
 
 def _lifting(args) -> list:
-    from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Polynomial, ThinPlateRbf
+    from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
 
     steps = []
     if args.poly > 1:
         steps.append(Polynomial(args.poly))
+    if args.trig:
+        steps.append(Trigonometric((0, 1)))
     if args.delays > 0:
         steps.append(Delay(args.delays))
     if args.rbf == "thin-plate":
@@ -161,6 +180,7 @@ def _lifting(args) -> list:
 
 def _check_search_args(args) -> None:
     chosen = [flag for flag, given in (("--poly", args.poly is not None), ("--delays", args.delays is not None),
+                                       ("--trig", args.trig),
                                        ("--rbf", args.rbf != "none"), ("--const", args.const),
                                        ("--alpha", args.alpha is not None), ("--alpha-sweep", args.alpha_sweep),
                                        ("--offsets", args.offsets), ("--max-radius", args.max_radius is not None))
@@ -176,8 +196,12 @@ def _check_search_args(args) -> None:
 def _check_args(args) -> None:
     if args.search:
         _check_search_args(args)
-    elif args.scheduler or args.search_space:
-        raise CliError("--scheduler and --search-space belong to --search")
+    elif args.scheduler or args.search_space or args.transfer != "twin":
+        raise CliError("--scheduler, --search-space and --transfer belong to --search")
+    if args.protocol == "paper" and args.offsets:
+        raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
+    if args.protocol is None:
+        args.protocol = "window" if args.search or args.offsets else "paper"
     args.poly = 2 if args.poly is None else args.poly
     args.delays = 10 if args.delays is None else args.delays
     if args.split and (args.train or args.test):
@@ -273,6 +297,8 @@ def _run(args) -> int:
             alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
             model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
+            score_from=(int(round(args.estimate_window / train[0].trajectory.dt))
+                        if args.protocol == "window" and offsets is None else None),
             estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
                                if args.max_radius is not None else None))
     except ValueError as exc:

@@ -51,13 +51,28 @@ def run_search(args, train, controller):
         raise CliError(f"--estimate-window {args.estimate_window} s and {max(space.delays)} delays leave nothing "
                        "to score in the shortest training episode")
     splits = group_shuffle_splits(len(trajs), n_splits=args.cv_splits, test_size=0.2, seed=args.cv_seed)
+    probes = None
+    if args.transfer == "twin":
+        from qube_koopman.identify.transfer import twin_probes
+
+        probes = twin_probes(trajs)
     result = search_liftings(trajs, controller, splits=splits, window=window, space=space, n_jobs=args.n_jobs,
                              scheduler=args.scheduler, bound=args.offset_bound, rbf_seed=args.rbf_seed,
-                             progress=progress)
+                             probes=probes, progress=progress)
     best = result.winner
+    transfer = "" if best.transfer_score is None else f", transfer R^2 {best.transfer_score:.4f}"
     print(f"search: {len(result.candidates)} candidates in {result.seconds:.0f} s; winner {best.spec.label()}, "
-          f"alpha {best.best_alpha:g}, cross-validated R^2 {best.score:.4f}", file=sys.stderr)
+          f"alpha {best.best_alpha:g}, cross-validated R^2 {best.cv_score:.4f}{transfer}", file=sys.stderr)
     return result
+
+
+OBJECTIVE = {
+    "twin": ("the lower of the cross-validated R^2 (the training controller) and the transfer R^2 (the plant "
+             "wrapped with each probe controller predicting the twin's probe episodes, with the candidate's "
+             "offset protocol, scored from the same sample): a model must predict both the loop it was trained "
+             "under and loops it was not"),
+    "none": "the cross-validated R^2 alone (it sees only the training controller)",
+}
 
 
 def search_report(result, args) -> dict:
@@ -66,7 +81,9 @@ def search_report(result, args) -> dict:
 
     space = load_space(args.search_space)
     return {
-        "winner": result.winner.as_dict(),
+        "winner": {**result.winner.as_dict(), "flags": " ".join(
+            result.winner.spec.flags(args.rbf_seed) + ["--alpha", f"{result.winner.best_alpha:g}",
+                                                        "--estimate-window", f"{args.estimate_window:g}"])},
         "candidates": [r.as_dict() for r in result.ranked()],
         "stages": list(STAGES),
         "space": {f.name: getattr(space, f.name) for f in fields(space) if f.name in _LISTS},
@@ -74,6 +91,8 @@ def search_report(result, args) -> dict:
         "cv_splits": args.cv_splits, "cv_seed": args.cv_seed,
         "score": (f"mean R^2 of theta and alpha over each fold's validation episodes, closed-loop prediction "
                   f"from the episode's start, scored from sample {result.window} on"),
+        "objective": OBJECTIVE[args.transfer],
+        "transfer": None if result.probes is None else result.probes.describe(),
         "seconds": result.seconds,
         "n_jobs": args.n_jobs, "scheduler": args.scheduler,
     }

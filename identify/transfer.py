@@ -1,0 +1,197 @@
+"""Transfer probes: does an identified plant predict the loop under controllers it never saw?
+
+Users identify the plant from closed-loop data to predict what the rig will
+do under another controller. Cross-validation under the training controller
+cannot see that: a lifting rich enough to fit the training loop's own
+correlations (high-order monomials, radial basis functions) scores best
+there and can diverge under a softer arm controller (measured on the paper's
+28 training episodes: the 48-episode search winner, monomials of order 3
+with 100 RBF centres, diverged on 1 to 2 of 20 twin episodes under each of
+three other PD controllers, while its cross-validated R^2 was the best).
+
+A probe set answers the transfer question with physics instead of data from
+another controller: the training episodes' own excitations (references and
+feedforward) are replayed on the calibrated twin (the simulator's default
+parameters, fitted to the rig's logs by ``qube-calibrate``) under a few PD
+controllers unlike the training one, with per-episode pendulum encoder zeros
+drawn as the rig shows them (FACTS 6a). A candidate plant is wrapped with
+each probe controller and predicts the probe episodes from their start, with
+the candidate's offset protocol, scored from the end of the estimation
+window like the test episodes. Nothing of another controller's real data is
+used; the twin's own errors cap the score (a perfect model of the rig scores
+below 1 on the twin), so the search combines this score with the
+cross-validated one (:mod:`qube_koopman.identify.search`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+__all__ = ["ProbeSet", "DEFAULT_PROBE_GAINS", "twin_probes", "probe_scores"]
+
+#: PD gains of the probe controllers (kp_theta, kd_theta, kp_alpha, kd_alpha, tau): a softer
+#: arm, a much softer arm, and a stiffer pendulum with more damping, all balancing on the
+#: twin and all unlike the rig's (6, 1.8, 30, 2.5, 50). Not the controllers the README or the
+#: tests judge transfer on (soft-theta and others), so the search is not tuned to its judges.
+DEFAULT_PROBE_GAINS: tuple[tuple[float, float, float, float, float], ...] = (
+    (3.0, 1.5, 32.0, 2.8, 50.0),
+    (1.5, 1.2, 38.0, 3.2, 50.0),
+    (4.0, 3.0, 45.0, 4.0, 50.0),
+)
+THETA_LIMIT, ALPHA_LIMIT = np.pi / 2, np.pi / 4  # the rig's safety stops: a probe beyond them is dropped
+
+
+@dataclass(frozen=True)
+class ProbeSet:
+    """Twin episodes under probe controllers.
+
+    Attributes
+    ----------
+    controllers : list of DiscreteStateSpace
+        One per probe controller.
+    episodes : list of list of Trajectory
+        The episodes run under each controller (measured signals, as a log holds them).
+    alpha_offsets : list of ndarray
+        The pendulum encoder zero offsets drawn for each controller's episodes (rad).
+    gains : list of tuple
+        The probe controllers' PD gains.
+    dropped : int
+        Episodes that reached a safety stop on the twin (not probes).
+    """
+
+    controllers: list[DiscreteStateSpace]
+    episodes: list[list[Trajectory]]
+    alpha_offsets: list[np.ndarray]
+    gains: list[tuple] = field(default_factory=list)
+    dropped: int = 0
+
+    @property
+    def n_episodes(self) -> int:
+        """Probe episodes in all."""
+        return sum(len(e) for e in self.episodes)
+
+    def describe(self) -> str:
+        """The probe set in words, for reports."""
+        gains = "; ".join("kp_theta {:g}, kd_theta {:g}, kp_alpha {:g}, kd_alpha {:g}".format(*g[:4])
+                          for g in self.gains)
+        return (f"{self.n_episodes} twin episodes (the training episodes' excitations replayed on the calibrated "
+                f"twin, encoder zeros drawn as on the rig) under {len(self.controllers)} probe PD controllers "
+                f"({gains})" + (f"; {self.dropped} fell and were dropped" if self.dropped else ""))
+
+
+def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[float]] = DEFAULT_PROBE_GAINS,
+                per_controller: int = 6, params=None, seed: int = 0, skip: int = 500,
+                zero_offsets="rig") -> ProbeSet:
+    """Replay training excitations on the twin under probe controllers.
+
+    Parameters
+    ----------
+    trajectories : sequence of Trajectory
+        Training episodes: their references ``r`` and feedforward ``f`` are
+        replayed (episode ``i * per_controller + j`` for controller ``i``,
+        cycling); their sample period is the loop's.
+    gains : sequence of (kp_theta, kd_theta, kp_alpha, kd_alpha, tau)
+        The probe PD controllers (backward Euler, as the rig ran).
+    per_controller : int
+        Episodes per probe controller.
+    params : PendulumParameters, optional
+        The twin's physics; the calibrated default when None.
+    seed : int
+        Draws the start perturbations, the encoder zeros and the sensor noise.
+    skip : int
+        Samples dropped at each probe's start (the derivative kick), as the logs are.
+    zero_offsets : ZeroOffsetDistribution or None or "rig"
+        Where each episode's pendulum encoder zero falls: ``"rig"`` (default) as
+        the paper's rig shows them (:class:`~qube_koopman.sim.pendulum.ZeroOffsetDistribution`'s
+        defaults), None for exact zeros.
+
+    Returns
+    -------
+    ProbeSet
+    """
+    from qube_koopman.daq.controller import PdGains, pd_controller
+    from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, ZeroOffsetDistribution, simulate_closed_loop
+
+    trajectories = list(trajectories)
+    if not trajectories or per_controller < 1:
+        raise ValueError("probes need training episodes and at least one episode per controller")
+    params = PendulumParameters() if params is None else params
+    distribution = ZeroOffsetDistribution() if isinstance(zero_offsets, str) and zero_offsets == "rig" else zero_offsets
+    rng = np.random.default_rng(seed)
+    dt = trajectories[0].dt
+    out = ProbeSet([], [], [], [tuple(float(v) for v in g) for g in gains])
+    dropped = 0
+    for i, g in enumerate(out.gains):
+        controller = pd_controller(PdGains(*g), dt, "backward-euler")
+        sources = [trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
+        n = min(t.n_samples for t in sources)
+        r = np.stack([t.r[:n] for t in sources], axis=1)
+        f = np.stack([t.f[:n].reshape(n) for t in sources], axis=1)
+        start = np.zeros((per_controller, 4))
+        start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)
+        zeros = np.array([0.0 if zero_offsets is None else distribution.draw(rng) for _ in range(per_controller)])
+        run = simulate_closed_loop(start, controller, r, f, params, SensorModel(), rng=rng, alpha_offsets=zeros)
+        kept, kept_zeros = [], []
+        for j in range(per_controller):
+            y = run.measurements[:, j]
+            if np.any(np.abs(y[:, 0]) > THETA_LIMIT) or np.any(np.abs(y[:, 1]) > ALPHA_LIMIT):
+                dropped += 1
+                continue
+            kept.append(Trajectory(x=y[skip:], u=run.plant_input[skip:, j, None], r=r[skip:, j],
+                                   f=f[skip:, j, None], xc=run.controller_states[skip:, j], dt=dt,
+                                   name=f"probe {i + 1}.{j + 1}", state_names=("theta", "alpha")))
+            kept_zeros.append(zeros[j])
+        if kept:
+            out.controllers.append(controller)
+            out.episodes.append(kept)
+            out.alpha_offsets.append(np.array(kept_zeros))
+    if not out.controllers:
+        raise ValueError("no probe episode stayed balanced on the twin")
+    return ProbeSet(out.controllers, out.episodes, out.alpha_offsets, out.gains, dropped)
+
+
+def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: float,
+                 measured: Sequence[int] = (0, 1)) -> np.ndarray:
+    """R^2 of every probe episode predicted by ``plant`` wrapped with its probe controller.
+
+    Parameters
+    ----------
+    plant : KoopmanModel
+        An identified plant (input ``u``).
+    probes : ProbeSet
+    window : int
+        Scores cover the samples from this one on (the offset estimation window's end).
+    offsets : bool
+        Estimate each probe episode's alpha offset from the window first.
+    bound : float
+        Plausibility bound of the offsets (larger estimates are not used).
+    measured : sequence of int
+        Fed-back states.
+
+    Returns
+    -------
+    ndarray of shape (n_episodes,)
+        Mean R^2 of theta and alpha per probe episode (-inf: diverged).
+    """
+    from qube_koopman.identify.offsets import estimate_offsets_many, predict_with_offsets_many
+    from qube_koopman.identify.scores import r2_scores
+    from qube_koopman.identify.structure import close_loop
+
+    scores = []
+    for controller, episodes in zip(probes.controllers, probes.episodes):
+        closed = close_loop(plant, controller, list(measured))
+        if offsets:
+            estimates = estimate_offsets_many(closed, episodes, ["alpha"], window, bound)
+            predictions = predict_with_offsets_many(closed, episodes, estimates)
+        else:
+            predictions = closed.predict_many(episodes)
+        for t, p in zip(episodes, predictions):
+            tail = p[window:]
+            scores.append(float(np.mean(r2_scores(t.x[window:], tail))) if np.all(np.isfinite(tail)) else -np.inf)
+    return np.array(scores)

@@ -1,0 +1,140 @@
+"""Selection for transfer and offsets under other controllers (issue 27).
+
+- The search ranks by the lower of the cross-validated and the transfer R^2: a candidate
+  that wins under the training controller but transfers worse loses.
+- Transfer probes are twin episodes under probe controllers; their scores are the plain
+  closed-loop predictions' R^2, and a diverged probe counts as -inf.
+- The offset estimator weights each channel by its spread over the window: on twin episodes
+  under soft arm gains with known encoder zeros it is unbiased, and closer than the unweighted
+  cost, which lets the arm (ten times the pendulum's spread there) set the pendulum's offset.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from qube_koopman.daq.controller import load_pd_gains
+from qube_koopman.identify import ClEdmd
+from qube_koopman.identify.data import load_logs
+from qube_koopman.identify.offsets import estimate_offsets_many
+from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.search import CandidateResult, LiftingSpec, SearchResult
+from qube_koopman.identify.structure import close_loop
+from qube_koopman.identify.transfer import twin_probes, probe_scores
+
+COUNT = 2 * math.pi / 2048
+WINDOW = 500
+
+
+def _candidate(spec, cv, transfer):
+    alphas = np.array([1e-3, 1e-2])
+    return CandidateResult(spec, "test", alphas, np.tile(cv, (3, 1)), 0.0, np.tile(transfer, (4, 1)))
+
+
+def test_the_objective_is_the_lower_of_cv_and_transfer_and_ranks_by_it():
+    # Best under the training controller, but its plant transfers worse: it must lose.
+    fits_the_loop = _candidate(LiftingSpec(delays=40, poly=3, rbf=100), [0.995, 0.990], [0.90, 0.93])
+    transfers = _candidate(LiftingSpec(delays=20, poly=1, const=True), [0.985, 0.980], [0.970, 0.975])
+    np.testing.assert_allclose(fits_the_loop.objective, [0.90, 0.93])
+    assert fits_the_loop.best_alpha == 1e-2 and fits_the_loop.score == pytest.approx(0.93)
+    # min(0.985, 0.970) < min(0.980, 0.975): the larger alpha wins on the objective, not on CV
+    assert transfers.best_alpha == 1e-2 and transfers.score == pytest.approx(0.975)
+    assert transfers.cv_score == pytest.approx(0.980) and transfers.transfer_score == pytest.approx(0.975)
+    assert SearchResult([fits_the_loop, transfers]).winner is transfers
+    # Unprobed alphas (NaN) and diverged probes (-inf) never win.
+    unprobed = _candidate(LiftingSpec(), [0.999, 0.5], [np.nan, 0.6])
+    assert unprobed.best_alpha == 1e-2
+    diverged = CandidateResult(LiftingSpec(), "test", np.array([1.0]), np.full((3, 1), 0.99), 0.0,
+                               np.array([[0.99], [-np.inf]]))
+    assert diverged.score == -np.inf and diverged.as_dict()["transfer_r2"] is None
+    # Without probes, cross-validation alone (the old behaviour).
+    plain = CandidateResult(LiftingSpec(), "test", np.array([1.0, 2.0]), np.array([[0.5, 0.7]]), 0.0)
+    assert plain.best_alpha == 2.0 and plain.transfer_score is None and plain.as_dict()["objective"] == 0.7
+
+
+@pytest.fixture(scope="module")
+def real_train(qube_logs):
+    """Eight of the paper's training episodes: their excitations drive the twin."""
+    return [log.trajectory for log in load_logs(sorted(qube_logs.glob("*.mcap"))[:8], skip=500)]
+
+
+@pytest.mark.dataset
+@pytest.mark.slow
+def test_probe_scores_are_the_closed_loop_predictions_r2(real_train):
+    short = [replace(t, **{k: getattr(t, k)[:3000] for k in ("x", "u", "r", "f", "xc")}) for t in real_train]
+    probes = twin_probes(short, per_controller=2, seed=3)
+    assert probes.n_episodes == 6 and len(probes.controllers) == 3 and probes.dropped == 0
+    assert "3 probe PD controllers" in probes.describe()
+    for zeros in probes.alpha_offsets:  # drawn as the rig shows them (FACTS 6a)
+        assert np.all(np.abs(zeros - 0.0025) < 0.005)
+    plant = ClEdmd(_rig_controller(), lifting=LiftingSpec(delays=5, poly=1).steps(),
+                   alpha=1e-3).fit(short).plant_model_
+    scores = probe_scores(plant, probes, WINDOW, offsets=False, bound=0.05)
+    expected = []
+    for controller, episodes in zip(probes.controllers, probes.episodes):
+        closed = close_loop(plant, controller, [0, 1])
+        expected += [float(np.mean(r2_scores(t.x[WINDOW:], closed.predict(t)[WINDOW:]))) for t in episodes]
+    np.testing.assert_allclose(scores, expected, rtol=1e-10)
+    # A plant that cannot balance anything (its input ignored) diverges: -inf, not an error.
+    broken = replace(plant, B=np.zeros_like(plant.B), A=plant.A * 2.0)
+    assert np.all(probe_scores(broken, probes, WINDOW, offsets=False, bound=0.05) == -np.inf)
+
+
+def _rig_controller():
+    from qube_koopman.daq.controller import pd_controller
+
+    return pd_controller(load_pd_gains("rig"))
+
+
+def _soft_arm_offset_errors(real_train, params, weighted_too=True):
+    """Offset estimation errors (counts) on twin episodes under soft-theta with known zeros.
+
+    Training: twin episodes under the rig's gains with exact encoder zeros (so the model's zero is
+    the true upright and estimates are absolute); test: under soft-theta, zeros drawn as the rig's.
+    """
+    rig, soft = load_pd_gains("rig"), load_pd_gains("soft-theta")
+    as_tuple = lambda g: (g.kp_theta, g.kd_theta, g.kp_alpha, g.kd_alpha, g.tau)  # noqa: E731
+    train = twin_probes(real_train, gains=[as_tuple(rig)], per_controller=8, seed=11, zero_offsets=None,
+                        params=params)
+    test = twin_probes(real_train, gains=[as_tuple(soft)], per_controller=8, seed=12, params=params)
+    plant = ClEdmd(train.controllers[0], lifting=LiftingSpec(delays=20, poly=1).steps(),
+                   alpha=1e-3).fit(train.episodes[0]).plant_model_
+    closed = close_loop(plant, test.controllers[0], [0, 1])
+    errors = {}
+    for weighted in (True, False):
+        est = estimate_offsets_many(closed, test.episodes[0], ["alpha"], WINDOW, weighted=weighted)
+        errors[weighted] = (np.array([e.values[0] for e in est]) - test.alpha_offsets[0]) / COUNT
+        if weighted:
+            assert all(e.status == "ok" and np.isfinite(e.std_error[0]) for e in est)
+    rms = {w: float(np.sqrt(np.mean(e ** 2))) for w, e in errors.items()}
+    print(f"offset errors (counts): weighted bias {errors[True].mean():+.2f} rms {rms[True]:.2f}; "
+          f"unweighted bias {errors[False].mean():+.2f} rms {rms[False]:.2f}")
+    return errors, rms
+
+
+@pytest.mark.dataset
+@pytest.mark.slow
+def test_offsets_under_soft_arm_gains_are_unbiased_when_the_model_can_represent_the_plant(real_train):
+    # The frictionless twin (the workbook's plant with fitted damping): a linear lifting represents it
+    # near upright, so what is left is the estimator's own error. Measured: bias +0.07, rms 0.19 counts.
+    from qube_koopman.sim.pendulum import PendulumParameters
+
+    errors, rms = _soft_arm_offset_errors(real_train, PendulumParameters.previous())
+    assert abs(errors[True].mean()) <= 0.2 and rms[True] <= 0.35
+
+
+@pytest.mark.dataset
+@pytest.mark.slow
+def test_weighted_offsets_on_the_calibrated_twin_beat_the_unweighted_cost(real_train):
+    # The calibrated twin has arm Coulomb friction and an amplifier dead zone that the linear model
+    # lacks: under soft arm gains the arm stops short of where the offset would put it, so both
+    # estimates come out low (measured with a 1 s window: weighted -0.51, unweighted -0.72 counts;
+    # with 2 s, -0.19 and -0.24). Weighting by each channel's spread keeps the arm from setting
+    # the pendulum's offset: errors measured rms 0.57 against 0.80 counts.
+    errors, rms = _soft_arm_offset_errors(real_train, None)
+    assert rms[True] < 0.85 * rms[False]
+    assert abs(errors[True].mean()) < abs(errors[False].mean()) and rms[True] <= 0.7
