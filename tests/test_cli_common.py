@@ -76,3 +76,43 @@ def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(
     assert capsys.readouterr().err == (f"qube-identify: error: {target}: folder {target.parent} does not exist "
                                        "(--rerun)\n")
     assert not (tmp_path / "model").exists()  # refused before the output folder, the data or the fit
+
+
+# A negative seed is a usage error naming the option (numpy refused it with a traceback before).
+NEGATIVE_SEEDS = [
+    ("qube_koopman.daq.cli.run", ["--seed", "-5", "--episodes", "1", "--duration", "0.2"], "--seed"),
+    ("qube_koopman.sim.cli.emulate", ["--seed", "-5"], "--seed"),
+    ("qube_koopman.identify.cli.reproduce", ["duffing", "--seed", "-5"], "--seed"),
+    ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--rbf", "thin-plate", "--rbf-seed", "-5"],
+     "--rbf-seed"),
+    ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--cv-seed", "-5"], "--cv-seed"),
+]
+
+
+@pytest.mark.parametrize("module, argv, option", NEGATIVE_SEEDS, ids=[f"{c[0].rsplit('.')[-1]} {c[2]}" for c in NEGATIVE_SEEDS])
+def test_a_negative_seed_is_a_usage_error_naming_the_option(module, argv, option, tmp_path, capsys, monkeypatch):
+    import importlib
+
+    monkeypatch.chdir(tmp_path)
+    try:
+        status = importlib.import_module(module).main(argv)
+    except SystemExit as exc:  # the commands that leave usage errors to argparse
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == 2 and "Traceback" not in err, err
+    assert f"error: argument {option}: must be a whole number >= 0, got -5" in err, err
+    assert list(tmp_path.iterdir()) == []  # refused before any work
+
+
+@pytest.mark.parametrize("option, value, minimum", [("--skip", "-1", 0), ("--delays", "-2", 0), ("--poly", "0", 1),
+                                                    ("--cv-splits", "0", 1), ("--arx-lags", "-3", 1)])
+def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(option, value, minimum, tmp_path,
+                                                                               capsys):
+    from qube_koopman.identify.cli.identify import main
+
+    with pytest.raises(SystemExit) as exc:  # the logs do not exist: refused before looking for them
+        main(["--train", str(tmp_path / "missing"), "--test", str(tmp_path / "missing"), option, value])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert f"error: argument {option}: must be a whole number >= {minimum}, got {value}" in err, err
+    assert "missing" not in err.splitlines()[-1]

@@ -92,7 +92,7 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options
+    from qube_koopman.sim.cli.common import add_standard_options, seed
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=_positive_float, default=DEFAULT_DURATION, metavar="S",
                    help=f"seconds per episode (default {DEFAULT_DURATION:g}; the excitation is active "
                         "from 20%% to 80%% of it, as the rig's was from 4 s to 16 s of 20 s)")
-    p.add_argument("--seed", type=int, default=None, metavar="K",
+    p.add_argument("--seed", type=seed, default=None, metavar="K",
                    help="run seed: draws the three excitation seeds of every episode and the "
                         "simulator's perturbations (default: a fresh one, printed so the run can be repeated)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",

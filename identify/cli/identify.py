@@ -55,7 +55,7 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_version, seed, whole_number
 
     p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -65,18 +65,18 @@ def _parser() -> argparse.ArgumentParser:
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
     data.add_argument("--train", nargs="+", metavar="LOG", help="training logs (files or folders)")
     data.add_argument("--test", nargs="+", metavar="LOG", help="test logs (files or folders)")
-    data.add_argument("--skip", type=int, default=500, metavar="N",
+    data.add_argument("--skip", type=whole_number(0), default=500, metavar="N",
                       help="samples dropped at the start of each episode (default %(default)s: the rig's "
                            "hand-raising second)")
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
     lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
-    lift.add_argument("--poly", type=int, metavar="ORDER", help="monomial order (1: none; default 2)")
-    lift.add_argument("--delays", type=int, metavar="N", help="time delays (default 10)")
+    lift.add_argument("--poly", type=whole_number(1), metavar="ORDER", help="monomial order (1: none; default 2)")
+    lift.add_argument("--delays", type=whole_number(0), metavar="N", help="time delays (default 10)")
     lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions")
-    lift.add_argument("--rbf-centers", type=int, default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
+    lift.add_argument("--rbf-centers", type=whole_number(1), default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
     lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
     lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)")
-    lift.add_argument("--rbf-seed", type=int, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
+    lift.add_argument("--rbf-seed", type=seed, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
     lift.add_argument("--const", action="store_true",
                       help="append a constant lifting function (an affine term: the model's equilibrium is "
                            "not pinned at the measured zero)")
@@ -89,12 +89,12 @@ def _parser() -> argparse.ArgumentParser:
     reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
     reg.add_argument("--alpha-sweep", nargs=3, metavar=("MIN", "MAX", "N"),
                      help="choose alpha among N log-spaced values by episode-grouped cross-validation")
-    fit.add_argument("--cv-splits", type=int, default=3, metavar="K",
+    fit.add_argument("--cv-splits", type=whole_number(1), default=3, metavar="K",
                      help="random splits holding out 20%% of the training episodes (default %(default)s)")
-    fit.add_argument("--cv-seed", type=int, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
+    fit.add_argument("--cv-seed", type=seed, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
     fit.add_argument("--score", choices=["cl", "plant"], default="cl",
                      help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
-    fit.add_argument("--arx-lags", type=int, default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
+    fit.add_argument("--arx-lags", type=whole_number(1), default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
     fit.add_argument("--max-radius", type=float, metavar="R",
                      help="constrain the closed loop's eigenvalues to |lambda - C| <= R (C: --pole-center, "
                           "default 0: the spectral radius), the plant left free; CL EDMD with the controller "
@@ -186,8 +186,6 @@ def _check_args(args) -> None:
         raise CliError("no data: give LOGS --split paper, or --train LOGS... --test LOGS...")
     if args.split and not args.logs:
         raise CliError("--split paper needs LOGS")
-    if args.skip < 0 or args.delays < 0 or args.poly < 1 or args.cv_splits < 1 or args.arx_lags < 1:
-        raise CliError("--skip and --delays must be >= 0, --poly, --cv-splits and --arx-lags >= 1")
     if args.alpha is not None and not args.alpha >= 0:
         raise CliError(f"--alpha must be a non-negative number, got {args.alpha}")
     if args.alpha_sweep:

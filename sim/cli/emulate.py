@@ -63,7 +63,7 @@ _TIME = _number(0.0, 1e6, "a time")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options
+    from qube_koopman.sim.cli.common import add_standard_options, seed
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -71,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="host (default): the firmware core compiled for this machine; avr: the whole Uno "
                         "sketch on an emulated ATmega328P (simavr; Debian packages gcc-avr avr-libc "
                         "arduino-core-avr simavr libsimavr-dev libsimavrparts1), real time, no fault injection")
-    p.add_argument("--seed", type=int, default=None, metavar="K",
+    p.add_argument("--seed", type=seed, default=None, metavar="K",
                    help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
     p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
                    help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
