@@ -141,3 +141,21 @@ def test_qube_reproduce_without_strict_skips_it_with_a_warning(logs_with_an_empt
     assert err.splitlines()[0] == (f"qube-reproduce: warning: {logs_with_an_empty_one / 'b_empty.mcap'}: empty file, "
                                    "not an MCAP episode log; skipped"), err
     assert status == 0 and (tmp_path / "o" / "qube.json").exists(), err  # the study ran on the other 29
+
+
+@pytest.mark.parametrize("flag", ["-q", None, "-v"])
+def test_qube_identify_counts_the_episodes_as_an_info_line(flag, tmp_path, capsys):
+    from qube_koopman.identify.cli.identify import main
+
+    for name in ("train_a", "train_b", "test_a"):
+        write_episode(tmp_path / f"{name}.mcap", make_episode(300, seed=len(name)))
+    train, test = [str(tmp_path / "train_a.mcap"), str(tmp_path / "train_b.mcap")], [str(tmp_path / "test_a.mcap")]
+    # --estimate-window longer than the episodes: refused right after the count, before any fit
+    argv = ["--train", *train, "--test", *test, "--skip", "0", "--offsets", "alpha", "--estimate-window", "5",
+            "--out", str(tmp_path / "o"), *([flag] if flag else [])]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    counted = "qube-identify: info: 2 training and 1 test episodes, 0 samples dropped from each\n"
+    assert (counted in err) == (flag == "-v"), err
+    assert "training and" not in err.replace(counted, ""), "never a bare line"
+    assert err.endswith("leaves nothing to score in the shortest test episode\n"), err

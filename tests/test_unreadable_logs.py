@@ -56,12 +56,12 @@ def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, ca
     test.mkdir()
     for path in logs[28:30]:
         shutil.copy(path, test / path.name)
-    code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o")])
+    code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o"), "-v"])
     err = capsys.readouterr().err
     assert code == 0, err
     warned = [line for line in err.splitlines() if "warning:" in line]
     assert len(warned) == 2 and "zz_cut_header.mcap: unreadable" in warned[0] and "zz_empty.mcap: empty file" in warned[1]
-    assert "6 training and 2 test episodes" in err
+    assert "qube-identify: info: 6 training and 2 test episodes" in err
     code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o"), "--strict"])
     assert code == 2 and "zz_cut_header.mcap" in capsys.readouterr().err
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import logging
 import sys
 import warnings
 from pathlib import Path
@@ -248,8 +249,8 @@ def _run(args) -> int:
     try:
         train, test, controller = _load(args)
         out = output_dir(args.out)  # after the logs load (no empty folder for a bad one), before the fit
-        print(f"{len(train)} training and {len(test)} test episodes, {args.skip} samples dropped from each",
-              file=sys.stderr)
+        logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
+                                         len(train), len(test), args.skip)
         what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
         offsets = (OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound)
                    if args.offsets else None)
