@@ -74,3 +74,13 @@ def test_commands_print_one_warning_line_per_skipped_log(folder, capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 3 and all(line.startswith("qube-reproduce: warning: ") and line.endswith("; skipped") for line in err)
     assert "b_empty.mcap" in err[0] and "c_text.mcap" in err[1] and "d_header_only.mcap" in err[2]
+
+
+def test_qube_calibrate_refuses_an_unreadable_log_without_naming_an_option_it_lacks(folder, tmp_path, capsys):
+    # qube-calibrate always refuses such a log; it has no --strict to blame.
+    from qube_koopman.identify.cli.calibrate import main
+
+    assert main([str(folder / "b_empty.mcap"), "--out", str(tmp_path / "p.toml"), "-q"]) == 2
+    assert capsys.readouterr().err == (f"qube-calibrate: error: {folder / 'b_empty.mcap'}: empty file, not an MCAP "
+                                       "episode log; refused: qube-calibrate fits complete, readable logs only\n")
+    assert not (tmp_path / "p.toml").exists()

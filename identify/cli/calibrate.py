@@ -57,7 +57,7 @@ def _read(paths):
     from qube_koopman.identify.data import load_logs
 
     try:
-        logs = load_logs(paths, strict=True)
+        logs = load_logs(paths, strict=True, refusal="refused: qube-calibrate fits complete, readable logs only")
     except ValueError as exc:
         raise CliError(str(exc)) from None
     from qube_koopman.daq.log import read_episode
