@@ -76,6 +76,18 @@ def qube_reproduction(qube_logs, tmp_path_factory) -> tuple[dict, str]:
     return json.loads((out / "qube.json").read_text()), (out / "qube.md").read_text()
 
 
+@pytest.fixture
+def legacy_folder(tmp_path):
+    """A folder with one synthetic legacy CSV episode (tests/test_legacy_import.py) and its controller.toml."""
+    from test_legacy_import import GAINS_TOML, GOOD, write_synthetic_csv
+
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "controller.toml").write_text(GAINS_TOML)
+    write_synthetic_csv(src / f"{GOOD}.csv")
+    return src
+
+
 # --- no process started by the suite outlives it -------------------------------------------------
 
 _PR_SET_CHILD_SUBREAPER = 36

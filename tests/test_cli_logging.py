@@ -69,17 +69,6 @@ def test_v_and_vv_show_the_work_of_a_real_run(tmp_path, capsys):
     assert "qube-run: debug: writing " in capsys.readouterr().err
 
 
-@pytest.fixture
-def legacy_folder(tmp_path):
-    from test_legacy_import import GAINS_TOML, GOOD, write_synthetic_csv
-
-    src = tmp_path / "src"
-    src.mkdir()
-    (src / "controller.toml").write_text(GAINS_TOML)
-    write_synthetic_csv(src / f"{GOOD}.csv")
-    return src
-
-
 @pytest.mark.parametrize("quiet", [False, True])
 def test_q_silences_the_progress_bar_on_a_terminal(quiet, legacy_folder, tmp_path, capsys, monkeypatch):
     from qube_koopman.daq.cli.import_csv import main

@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
     from qube_koopman.daq.log import write_episode
+    from qube_koopman.daq.log.writer import remove_stale_temp_files
 
     def refuse(message: str) -> None:
         progress.say(f"{PROG}: error: {message}")
@@ -105,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
             raise LegacyCsvError(f"{csv}: {found}")
         return found
 
+    for stale in remove_stale_temp_files(args.out):
+        _log.info("%s: removed, a temporary file an interrupted import left", stale)
     imported, refused = 0, 0
     claimed: dict[Path, Path] = {}
     for done, csv in enumerate(files, start=1):
