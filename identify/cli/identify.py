@@ -219,6 +219,20 @@ def _check_args(args) -> None:
         raise CliError(f"{args.rerun}: folder {Path(args.rerun).parent} does not exist (--rerun)")
 
 
+def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
+    """Refuse a log among both the training and the test logs: its test score would be meaningless."""
+    def key(path: Path):
+        info = path.stat()
+        return info.st_dev, info.st_ino  # the same file by any name (a link, another path)
+
+    training = {key(p) for p in train_paths}
+    both = list(dict.fromkeys(str(p) for p in test_paths if key(p) in training))
+    if both:
+        more = f" and {len(both) - 3} more" if len(both) > 3 else ""
+        raise CliError(f"{', '.join(both[:3])}{more}: among both the training and the test logs (a test "
+                       "score on training data means nothing)")
+
+
 def _load(args):
     from qube_koopman.identify.data import IncompleteLogSkipped, check_same_controller, check_same_rate, load_logs, paper_split
 
@@ -226,6 +240,7 @@ def _load(args):
         train_paths, test_paths = paper_split(_expand(args.logs))
     else:
         train_paths, test_paths = _expand(args.train), _expand(args.test)
+    _check_disjoint(train_paths, test_paths)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", IncompleteLogSkipped)
         train = load_logs(train_paths, skip=args.skip, strict=args.strict)
