@@ -89,7 +89,8 @@ NEGATIVE_SEEDS = [
 ]
 
 
-@pytest.mark.parametrize("module, argv, option", NEGATIVE_SEEDS, ids=[f"{c[0].rsplit('.')[-1]} {c[2]}" for c in NEGATIVE_SEEDS])
+@pytest.mark.parametrize("module, argv, option", NEGATIVE_SEEDS,
+                         ids=[f"{c[0].rsplit('.')[-1]} {c[2]}" for c in NEGATIVE_SEEDS])
 def test_a_negative_seed_is_a_usage_error_naming_the_option(module, argv, option, tmp_path, capsys, monkeypatch):
     import importlib
 
