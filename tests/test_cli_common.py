@@ -117,3 +117,20 @@ def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(op
     assert exc.value.code == 2
     assert f"error: argument {option}: must be a whole number >= {minimum}, got {value}" in err, err
     assert "missing" not in err.splitlines()[-1]
+
+
+@pytest.mark.parametrize("module, prog, argv", [
+    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{missing}", "--out", "{tmp}/o"]),
+    ("qube_koopman.daq.cli.export", "qube-export", ["{missing}", "--format", "csv", "--out", "{tmp}/o"]),
+    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{tmp}", "--out", "{tmp}/o"]),  # a folder without any
+    ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}"]),
+    ("qube_koopman.identify.cli.calibrate", "qube-calibrate", ["{missing}", "--out", "{tmp}/p.toml"]),
+    ("qube_koopman.identify.cli.reproduce", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
+], ids=["qube-import", "qube-export", "qube-import empty folder", "qube-identify", "qube-calibrate", "qube-reproduce"])
+def test_a_missing_input_is_a_usage_error_in_every_command(module, prog, argv, tmp_path, capsys):
+    import importlib
+
+    status = importlib.import_module(module).main([a.format(missing=tmp_path / "nowhere", tmp=tmp_path) for a in argv])
+    err = capsys.readouterr().err
+    assert status == 2, err
+    assert err.startswith(f"{prog}: error: ") and "Traceback" not in err, err

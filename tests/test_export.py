@@ -83,7 +83,7 @@ def test_refused_logs_are_named_and_the_others_exported(log, tmp_path, capsys):
     bad.write_text("hello")
     status = main([str(path), str(bad), str(tmp_path / "missing.mcap"), "--format", "mat", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
-    assert status == 1
+    assert status == 2  # a LOG that does not exist is a usage error, as in every command (issue 30)
     assert f"qube-export: error: {bad}: not an MCAP file" in err
     assert "missing.mcap: no such file or folder" in err
     assert (tmp_path / "o" / f"{path.stem}.mat").is_file()

@@ -208,7 +208,7 @@ def test_usage_problems_give_one_line_each_and_no_traceback(synthetic_dir, tmp_p
     shutil.copy(synthetic_dir / f"{GOOD}.csv", misnamed)
     status = main([str(tmp_path / "nowhere.csv"), str(lonely), str(misnamed), "--out", str(tmp_path / "o")])
     captured = capsys.readouterr()
-    assert status == 1
+    assert status == 2  # a SRC that does not exist is a usage error, as in every command (issue 30)
     errors = _stderr_lines(captured)
     assert len(errors) == 3, captured.err
     assert any("nowhere.csv: no such file or folder" in e for e in errors)

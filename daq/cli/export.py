@@ -33,7 +33,8 @@ up to its last readable sample, with a warning.
 
 _EPILOG = """\
 exit status: 0 when every log was exported, 1 when any was refused,
-2 on a usage error.
+2 on a usage error (also a LOG that does not exist or a folder without .mcap
+logs; the other logs are still exported).
 
 example:
   qube-export episodes/ --format parquet --out exported/
@@ -56,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage)."""
+    """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage or a missing LOG)."""
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args

@@ -31,7 +31,8 @@ line on stderr naming it and the problem; the other files still import.
 
 _EPILOG = """\
 exit status: 0 when every file was imported, 1 when any was refused,
-2 on a usage error.
+2 on a usage error (also a SRC that does not exist or a folder without CSV
+files; the other files are still imported).
 
 example:
   qube-import ../shared/datasets/qube_servo_20230828 --out episodes/
@@ -59,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage)."""
+    """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage or a missing SRC)."""
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
