@@ -26,7 +26,9 @@ plant_input, saturation; every row must be complete and finite, sampled at
 filter, as the rig ran it), run on the tracking error, must reproduce the
 logged control_output to 1e-9 V after the first second. The recomputed
 controller state is stored in the log. A file that fails is refused with one
-line on stderr naming it and the problem; the other files still import.
+line on stderr naming it and the problem; the other files still import. A file
+cut short (its last line without a newline) is imported without that line,
+with a warning, and its log is marked incomplete (qube-identify skips it).
 """
 
 _EPILOG = """\
@@ -120,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
             if out.exists() and not args.force:
                 raise LegacyCsvError(f"{csv}: {out} exists (use --force to overwrite)")
             episode = legacy_episode(csv, controller_for(csv))
+            if not episode.is_complete:  # cut short: the rows before the cut, the log marked incomplete
+                progress.say(f"{PROG}: warning: {csv}: {episode.metadata.status_reason.removeprefix('legacy CSV ')}; "
+                             f"imported as an incomplete episode of {len(episode)} samples")
             args.out.mkdir(parents=True, exist_ok=True)
             write_episode(out, episode, overwrite=args.force)
             imported += 1
