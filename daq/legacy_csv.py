@@ -13,12 +13,18 @@ The rig ended every line, the last one too, with a newline: a file whose last
 line has none was cut short (a copy or a write that stopped). That line is
 dropped (a number cut short still parses, to a wrong value), the rest is read,
 and the episode is marked incomplete, its reason saying so.
+
+The layout has no place for an episode's status: ``qube-export`` writes the
+status of an episode that did not complete beside its CSV, in
+``<name>.status.json`` (:data:`STATUS_SIDECAR_SUFFIX`), and the import gives
+the episode that status back.
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import json
 import warnings
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -42,6 +48,8 @@ __all__ = [
     "legacy_excitation",
     "load_legacy_controller",
     "legacy_episode",
+    "STATUS_SIDECAR_SUFFIX",
+    "status_sidecar",
 ]
 
 LEGACY_COLUMNS = ("t", "target_theta", "target_alpha", "theta", "alpha", "control_output",
@@ -53,6 +61,32 @@ CONTROL_TOLERANCE_V = 1e-9
 CONTROL_CHECK_AFTER_S = 1.0
 
 _TIME_TOLERANCE_S = 1e-9
+
+#: Beside ``<name>.csv``, ``<name>.status.json``: the status of an episode that did not complete
+#: (keys ``status``, ``reason``, ``salvaged``, ``salvage_note``, ``samples``), which the CSV cannot hold.
+STATUS_SIDECAR_SUFFIX = ".status.json"
+
+
+def status_sidecar(csv_path: str | Path) -> Path:
+    """The status file beside a legacy CSV file (:data:`STATUS_SIDECAR_SUFFIX`)."""
+    return Path(csv_path).with_suffix(STATUS_SIDECAR_SUFFIX)
+
+
+def _sidecar_status(path: Path) -> dict[str, str]:
+    """The status an export recorded beside ``path`` as EpisodeMetadata fields; {} when there is none."""
+    sidecar = status_sidecar(path)
+    if not sidecar.is_file():
+        return {}
+    try:
+        info = json.loads(sidecar.read_text())
+        status = info["status"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise LegacyCsvError(f"{path}: its status file {sidecar.name} is unreadable ({exc})") from None
+    reason = "; ".join(str(text) for text in (info.get("reason"), info.get("salvage_note")) if text)
+    if status == "complete" and not info.get("salvaged"):
+        return {}
+    return {"status": status if status == "aborted" else "incomplete",
+            "status_reason": reason or f"exported from a log whose status was {status}"}
 
 
 class LegacyCsvError(ValueError):
@@ -302,6 +336,7 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
     start_time, seeds = parse_legacy_name(path)
     columns, raw, cut = _read(path)
     state = controller_state_from_log(columns, controller, str(path))
+    status = {"status": "incomplete", "status_reason": f"legacy CSV {cut}"} if cut else _sidecar_status(path)
     metadata = EpisodeMetadata(
         controller=controller,
         sample_rate_hz=LEGACY_SAMPLE_RATE_HZ,
@@ -311,7 +346,7 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
         excitation=legacy_excitation(seeds),
         extra={"source_sha256": hashlib.sha256(raw).hexdigest(), "importer": "qube_koopman.daq.legacy_csv",
                "plant_input_limit_V": 10.0},
-        **({"status": "incomplete", "status_reason": f"legacy CSV {cut}"} if cut else {}),
+        **status,
     )
     return Episode(t=columns["t"], theta=columns["theta"], alpha=columns["alpha"],
                    target_theta=columns["target_theta"], target_alpha=columns["target_alpha"],
