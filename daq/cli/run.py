@@ -427,6 +427,27 @@ def _run(args) -> int:
         backend.close()
 
 
+def _as_logged(rows: list[tuple[str, object]], mcap) -> list[tuple[str, object]]:
+    """The summary's rows, the episode whose log failed counted by the samples its file still holds.
+
+    After a write error the loop has run more ticks than the file keeps (it is readable up to its
+    last flush); the summary gives what can be read, and both counts in the episode's reason line.
+    """
+    if mcap.error is None or not mcap.error.path.exists():
+        return rows
+    import dataclasses
+
+    from qube_koopman.daq.log import read_episode
+
+    try:
+        readable = len(read_episode(mcap.error.path, warn=False))
+    except (OSError, ValueError):  # not even the start readable
+        readable = 0
+    return [(name, dataclasses.replace(r, n_samples=readable, reason=f"{r.reason}; the log holds the first "
+                                       f"{readable} of the {r.n_samples} samples run, marked incomplete"))
+            if name == mcap.error.path.name else (name, r) for name, r in rows]
+
+
 def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
     from qube_koopman.daq.loop import EpisodeResult
     from qube_koopman.daq.session import run_episodes
@@ -474,7 +495,7 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
 
     results = run.results
     started = [r for r in results if r.started]
-    print(summary_table(list(zip(names, results)), timing.stats()))
+    print(summary_table(_as_logged(list(zip(names, results)), mcap), timing.stats()))
     link = _link_summary(results)
     if link:
         print(link)
