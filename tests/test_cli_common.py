@@ -134,3 +134,56 @@ def test_a_missing_input_is_a_usage_error_in_every_command(module, prog, argv, t
     err = capsys.readouterr().err
     assert status == 2, err
     assert err.startswith(f"{prog}: error: ") and "Traceback" not in err, err
+
+
+def _raises(exc):
+    def command(args):
+        raise exc
+    return command
+
+
+@pytest.mark.parametrize("exc, status, line", [
+    (None, 2, "qube-x: error: f.txt: bad value"),                               # a user mistake
+    (OSError(28, "No space left on device", "/out/model.json"), 1,
+     "qube-x: error: /out/model.json: No space left on device"),                # a run-time failure
+    (KeyboardInterrupt(), 130, "qube-x: error: interrupted"),
+])
+def test_run_command_exit_statuses_follow_the_readme_table(exc, status, line, capsys):
+    import argparse
+
+    from qube_koopman.identify.cli.common import CliError, run_command
+
+    exc = exc if exc is not None else CliError("f.txt: bad value")
+    assert run_command("qube-x", _raises(exc), argparse.Namespace(quiet=True, verbose=0)) == status
+    assert capsys.readouterr().err == line + "\n"
+
+
+def test_a_write_error_is_a_run_time_failure_naming_the_file(tmp_path, capsys, monkeypatch):
+    import argparse
+    import errno
+
+    from qube_koopman.identify.cli.common import run_command, write_json
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(Path, "write_text", full)
+    path = tmp_path / "report.json"
+    assert run_command("qube-x", lambda a: write_json(path, {}), argparse.Namespace(quiet=True, verbose=0)) == 1
+    assert capsys.readouterr().err == f"qube-x: error: {path}: cannot write: No space left on device\n"
+
+
+def test_qube_emulate_names_an_output_it_cannot_write_at_exit(tmp_path):
+    # /dev/full opens, then refuses every byte (ENOSPC): a full disk when the counters are written
+    import argparse
+    import types
+
+    from qube_koopman.sim.cli.emulate import _write_outputs
+
+    emulator = types.SimpleNamespace(stats=lambda: {"ticks": 1}, faults=types.SimpleNamespace(as_dict=dict),
+                                     vanished_at=None, events=[])
+    errors = _write_outputs(emulator, argparse.Namespace(stats="/dev/full", record=None))
+    assert errors == ["/dev/full: cannot write: No space left on device"]
+    good = tmp_path / "stats.json"
+    assert _write_outputs(emulator, argparse.Namespace(stats=str(good), record=None)) == []
+    assert '"ticks": 1' in good.read_text()

@@ -111,7 +111,7 @@ def _run(args) -> int:
     try:
         save_plant(args.out, PlantFile(cal.params_, cal.standard_errors_, provenance))
     except OSError as exc:
-        raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None
+        raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
     print(text)
     if args.report is not None:
         write_report(output_dir(args.report), text, validation, val_dt)

@@ -214,7 +214,7 @@ def _check_args(args) -> None:
     if not (args.estimate_window > 0 and args.offset_bound > 0):
         raise CliError("--estimate-window and --offset-bound must be positive")
     if args.rerun and importlib.util.find_spec("rerun") is None:
-        raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"')
+        raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"', status=1)
     if args.rerun and not Path(args.rerun).resolve().parent.is_dir():  # before any work, not after the fit
         raise CliError(f"{args.rerun}: folder {Path(args.rerun).parent} does not exist (--rerun)")
 

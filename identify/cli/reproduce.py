@@ -92,7 +92,7 @@ def _qube(args) -> int:
     try:
         (out / "qube.md").write_text(qube_markdown(results))
     except OSError as exc:
-        raise CliError(f"cannot write {out / 'qube.md'}: {exc.strerror or exc}") from None
+        raise CliError(f"{out / 'qube.md'}: cannot write: {exc.strerror or exc}", status=1) from None
     print(f"wrote {out / 'qube.json'} and {out / 'qube.md'}")
     return 0
 
