@@ -187,3 +187,24 @@ def test_qube_emulate_names_an_output_it_cannot_write_at_exit(tmp_path):
     good = tmp_path / "stats.json"
     assert _write_outputs(emulator, argparse.Namespace(stats=str(good), record=None)) == []
     assert '"ticks": 1' in good.read_text()
+
+
+@pytest.mark.parametrize("module, argv, message", [
+    ("qube_koopman.sim.cli.emulate", ["--hold-at", "1", "--hold-periods", "-3"],
+     "argument --hold-periods: must be a whole number in [1, 100000], got -3"),  # a traceback from Faults before
+    ("qube_koopman.identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--delay", "-1"],
+     "argument --delay: must be a whole number >= 0, got -1"),
+    ("qube_koopman.identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--max-nfev", "0"],
+     "argument --max-nfev: must be a whole number >= 1, got 0"),
+], ids=["emulate --hold-periods", "calibrate --delay", "calibrate --max-nfev"])
+def test_counts_out_of_range_are_usage_errors_naming_option_and_value(module, argv, message, tmp_path, capsys,
+                                                                     monkeypatch):
+    import importlib
+
+    monkeypatch.chdir(tmp_path)
+    try:
+        status = importlib.import_module(module).main(argv)
+    except SystemExit as exc:
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == 2 and message in err and "Traceback" not in err, err

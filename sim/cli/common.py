@@ -34,13 +34,15 @@ def package_version() -> str:
         return "unknown"
 
 
-def whole_number(minimum: int):
+def whole_number(minimum: int, maximum: int | None = None):
     """An argparse ``type``: a whole number of at least ``minimum``, else a usage error naming the value.
 
     Parameters
     ----------
     minimum : int
         The smallest value accepted.
+    maximum : int, optional
+        The largest value accepted (default: no limit).
 
     Returns
     -------
@@ -53,11 +55,12 @@ def whole_number(minimum: int):
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be a whole number >= {minimum}, got {value}")
+        if value < minimum or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"must be a whole number {bounds}, got {value}")
         return value
 
-    parse.__name__ = f"whole number >= {minimum}"
+    bounds = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
+    parse.__name__ = f"whole number {bounds}"
     return parse
 
 

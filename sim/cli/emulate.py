@@ -64,7 +64,7 @@ _TIME = _number(0.0, 1e6, "a time")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options, seed
+    from qube_koopman.sim.cli.common import add_standard_options, seed, whole_number
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
                        ("vanish-at", "the device disappears (the pseudo-terminal is closed)"),
                        ("hold-at", "the firmware is held for --hold-periods periods (periods lost)")):
         faults.add_argument(f"--{name}", type=_TIME, default=None, metavar="S", help=f"{what} at S")
-    faults.add_argument("--hold-periods", type=int, default=10, metavar="N",
+    faults.add_argument("--hold-periods", type=whole_number(1, 100_000), default=10, metavar="N",
                         help="periods the --hold-at hold lasts (default 10)")
     out = p.add_argument_group("output")
     out.add_argument("--record", default=None, metavar="FILE.csv",
