@@ -148,7 +148,10 @@ def test_csv_of_an_episode_that_did_not_complete_carries_its_status_beside_it(le
                                                "salvaged": False, "salvage_note": "", "samples": len(complete)}
     # qube-import gives the status back: the CSV never reads as a complete episode
     (out / "controller.toml").write_bytes((legacy_folder / "controller.toml").read_bytes())
-    assert import_main([str(out), "--out", str(tmp_path / "again"), "-q"]) == 0
+    capsys.readouterr()
+    assert import_main([str(out), "--out", str(tmp_path / "again")]) == 0
+    assert capsys.readouterr().err == (f"qube-import: warning: {out / f'{GOOD}.csv'}: safety: |alpha| > 45 deg; "
+                                       f"imported as an aborted episode of {len(complete)} samples\n")
     again = read_episode(tmp_path / "again" / f"{GOOD}.mcap")
     assert not again.is_complete and again.metadata.status_reason == "safety: |alpha| > 45 deg"
     # exporting the complete episode over it removes the stale status file
