@@ -129,8 +129,11 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
 @pytest.mark.parametrize("argv,message", [
     ([], "no data"),
     (["--train", "nowhere.mcap", "--test", "x"], "nowhere.mcap: no such file or folder"),
-    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "0.1", "5"], "0 < MIN < MAX"),
+    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "0.1", "5"], "0 < MIN < MAX and N >= 2, got 1 0.1 5"),
+    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "x", "5"], "for example 1e-3 1e3 30, got 1 x 5"),
     (["--train", ".", "--test", ".", "--method", "arx"], "models the plant only"),
+    (["--train", ".", "--test", ".", "--offset-bound", "-1"], "--offset-bound must be positive, got -1.0"),
+    (["--train", ".", "--test", ".", "--estimate-window", "nan"], "--estimate-window must be positive, got nan"),
 ])
 def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monkeypatch):
     monkeypatch.chdir(tmp_path)

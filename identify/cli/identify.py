@@ -193,9 +193,10 @@ def _check_args(args) -> None:
         try:
             lo, hi, n = float(args.alpha_sweep[0]), float(args.alpha_sweep[1]), int(args.alpha_sweep[2])
         except ValueError:
-            raise CliError("--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30") from None
+            raise CliError(f"--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30, got "
+                           f"{' '.join(args.alpha_sweep)}") from None
         if not (0 < lo < hi) or n < 2:
-            raise CliError("--alpha-sweep needs 0 < MIN < MAX and N >= 2")
+            raise CliError(f"--alpha-sweep needs 0 < MIN < MAX and N >= 2, got {' '.join(args.alpha_sweep)}")
         args.alpha_sweep = (lo, hi, n)
     if args.method in ("arx", "cl-arx") and args.alpha_sweep:
         raise CliError("--alpha-sweep is for the Koopman methods (edmd, cl-edmd, cl-edmd-lstsq)")
@@ -211,8 +212,9 @@ def _check_args(args) -> None:
         if args.method != "cl-edmd" or args.alpha_sweep:
             raise CliError("--max-radius constrains a single CL EDMD fit (--method cl-edmd, no --alpha-sweep)")
         args.method = "cl-edmd-stable"
-    if not (args.estimate_window > 0 and args.offset_bound > 0):
-        raise CliError("--estimate-window and --offset-bound must be positive")
+    for option, value in (("--estimate-window", args.estimate_window), ("--offset-bound", args.offset_bound)):
+        if not value > 0:
+            raise CliError(f"{option} must be positive, got {value}")
     if args.rerun and importlib.util.find_spec("rerun") is None:
         raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"', status=1)
     if args.rerun and not Path(args.rerun).resolve().parent.is_dir():  # before any work, not after the fit
