@@ -295,7 +295,7 @@ def _replay(args, rate: float):
     try:
         plans = replay_plans(args.replay, controller)
     except ValueError as exc:
-        raise _Fail(f"--replay: {exc}") from None
+        raise _Fail(f"{exc} (--replay)") from None
     args.episodes = len(plans)
     from qube_koopman.daq.excitation import ExcitationSettings
 
