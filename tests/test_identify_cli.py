@@ -180,3 +180,10 @@ def test_a_log_in_both_training_and_test_is_refused_naming_it(how, tmp_path, cap
     assert err.startswith(f"qube-identify: error: {test[0]}") and err.count("\n") == 1, err
     assert "among both the training and the test logs" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_missing_model_file_is_named_once(tmp_path):
+    path = tmp_path / "model.json"
+    with pytest.raises(ValueError) as caught:
+        load_model(path)
+    assert str(caught.value) == f"{path}: not a readable model file (No such file or directory)"
