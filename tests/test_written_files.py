@@ -60,11 +60,13 @@ def test_the_next_import_removes_the_temporary_files_an_interrupted_one_left(leg
     out = tmp_path / "o"
     out.mkdir()
     left = _stale(out, f".{GOOD}.mcap.1a2b3c4d.tmp", 3600)   # an import killed an hour ago
-    recent = _stale(out, f".{GOOD}.mcap.99999999.tmp", 0)    # maybe a concurrent import starting now
+    just = _stale(out, f".{GOOD}.mcap.99999999.tmp", 0)      # ... or killed a moment ago: no writer holds it
     other = _stale(out, ".notes.txt.1a2b3c4d.tmp", 3600)     # not a log's temporary file
     assert main([str(legacy_folder), "--out", str(out), "-v"]) == 0
-    assert not left.exists() and recent.exists() and other.exists()
-    assert f"qube-import: info: {left}: removed, a temporary file an interrupted import left" in capsys.readouterr().err
+    assert not left.exists() and not just.exists() and other.exists()
+    err = capsys.readouterr().err
+    for path in (left, just):
+        assert f"qube-import: info: {path}: removed, a temporary file an interrupted import left" in err
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [f"{GOOD}.mcap"]
 
 
@@ -73,9 +75,29 @@ def test_a_temporary_file_being_written_is_never_removed(tmp_path):
 
     fd, name = _temp_file(tmp_path / "a.mcap")  # what write_episode holds while it writes
     try:
-        os.utime(name, (time.time() - 3600,) * 2)
         assert remove_stale_temp_files(tmp_path) == [] and os.path.exists(name)
     finally:
         os.close(fd)
     assert remove_stale_temp_files(tmp_path) == [tmp_path / os.path.basename(name)]  # its writer gone
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_temporary_file_taken_before_its_lock_is_given_up_for_another(tmp_path, monkeypatch):
+    # A cleaner that removed the new file between its creation and its lock: the writer sees the
+    # name no longer leads to its file, and takes another name.
+    import qube_koopman.daq.log.writer as writer
+    from qube_koopman.daq.log.writer import _temp_file
+
+    real_open, calls = os.open, []
+
+    def open_then_lose_it(path, flags, *mode):
+        fd = real_open(path, flags, *mode)
+        calls.append(path)
+        if len(calls) == 1:
+            os.unlink(path)  # the cleaner's doing
+        return fd
+
+    monkeypatch.setattr(writer.os, "open", open_then_lose_it)
+    fd, name = _temp_file(tmp_path / "a.mcap")
+    os.close(fd)
+    assert len(calls) == 2 and name == str(calls[1]) and os.path.exists(name)

@@ -6,7 +6,6 @@ import os
 import secrets
 import stat
 import struct
-import time
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Mapping
@@ -334,11 +333,6 @@ def write_episode(path: str | os.PathLike, episode: Episode, *, overwrite: bool 
     return path
 
 
-#: How old an unlocked temporary file must be before :func:`remove_stale_temp_files` takes it
-#: for a leftover (its writer creates and locks it in the same instant; this covers that instant).
-STALE_AFTER_S = 60.0
-
-
 def _temp_name(path: Path, tag: str = "*") -> str:
     return f".{path.name}.{tag}.tmp"
 
@@ -348,7 +342,9 @@ def _temp_file(path: Path) -> tuple[int, str]:
 
     Created like :func:`open` creates a file (mode 0666 less the umask; ``tempfile.mkstemp``
     makes 0600 whatever the umask), exclusively, and held under an advisory lock (``flock``)
-    until ``fd`` is closed, so :func:`remove_stale_temp_files` never takes a live one.
+    until ``fd`` is closed, so :func:`remove_stale_temp_files` never takes a live one. A
+    cleaner that took it in the instant between its creation and its lock is seen (the name
+    no longer leads to it): another name is tried.
     """
     for _ in range(100):
         tmp = path.with_name(_temp_name(path, secrets.token_hex(4)))
@@ -361,8 +357,19 @@ def _temp_file(path: Path) -> tuple[int, str]:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:  # a file system without locks: then never taken for stale either
                 pass
-        return fd, str(tmp)
+        if _same_file(tmp, fd):
+            return fd, str(tmp)
+        os.close(fd)
     raise FileExistsError(f"{path}: no free temporary name beside it")
+
+
+def _same_file(path: Path, fd: int) -> bool:
+    """Whether ``path`` still names the file open as ``fd``."""
+    try:
+        named, held = os.stat(path), os.fstat(fd)
+    except FileNotFoundError:
+        return False
+    return (named.st_dev, named.st_ino) == (held.st_dev, held.st_ino)
 
 
 def remove_stale_temp_files(folder: str | os.PathLike, suffix: str = ".mcap") -> list[Path]:
@@ -370,8 +377,8 @@ def remove_stale_temp_files(folder: str | os.PathLike, suffix: str = ".mcap") ->
 
     Only hidden ``.<name><suffix>.<tag>.tmp`` regular files (the names :func:`write_episode`
     gives its temporary files) are candidates, and of those only the ones no live writer
-    holds locked and unchanged for :data:`STALE_AFTER_S` seconds. Without ``fcntl`` (not a
-    POSIX system) nothing is removed.
+    holds locked (a writer locks its file as it creates it, see :func:`_temp_file`). Without
+    ``fcntl`` (not a POSIX system) nothing is removed.
 
     Parameters
     ----------
@@ -395,7 +402,7 @@ def remove_stale_temp_files(folder: str | os.PathLike, suffix: str = ".mcap") ->
             continue
         try:
             info = os.fstat(fd)
-            if not stat.S_ISREG(info.st_mode) or time.time() - info.st_mtime < STALE_AFTER_S:
+            if not stat.S_ISREG(info.st_mode):
                 continue
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # OSError: a writer holds it
             os.unlink(tmp)
