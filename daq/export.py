@@ -11,7 +11,13 @@ Formats (one file per episode, named after the log: ``<log stem>.<ext>``):
     nine columns: the controller state is recomputed on import, the
     metadata lives in the file name (start time, seeds) and the
     ``controller.toml`` beside it. Exporting an imported dataset file gives
-    back the original bytes.
+    back the original bytes. The layout has no status: for an episode that
+    did not complete (aborted, or a log cut short and salvaged) the status
+    goes beside the CSV, in ``<log stem>.status.json`` (keys ``status``,
+    ``reason``, ``salvaged``, ``salvage_note``, ``samples``), written before
+    the CSV, and ``qube-import`` gives the episode that status back; a
+    complete episode's export removes a status file left there by an
+    earlier one.
 ``parquet``
     One table per episode: every per-sample array as a float64 column
     (``saturation`` int8, ``controller_state`` as ``controller_state_0``...),
@@ -37,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from qube_koopman.daq.episode import UNITS, Episode, stack_signals
-from qube_koopman.daq.legacy_csv import LEGACY_COLUMNS
+from qube_koopman.daq.legacy_csv import LEGACY_COLUMNS, status_sidecar
 
 __all__ = ["FORMATS", "ExportError", "episode_columns", "metadata_records", "episode_frame",
            "legacy_csv_bytes", "write_csv", "write_parquet", "write_mat", "export_episode"]
@@ -107,8 +113,19 @@ def legacy_csv_bytes(episode: Episode) -> bytes:
 
 
 def write_csv(episode: Episode, path: str | Path) -> None:
-    """Write the episode as a legacy-layout CSV file."""
-    Path(path).write_bytes(legacy_csv_bytes(episode))
+    """Write the episode as a legacy-layout CSV file, and the status of one that did not complete beside it.
+
+    See the module's docstring (``csv``) for the status file.
+    """
+    path, sidecar = Path(path), status_sidecar(path)
+    if episode.is_complete:
+        sidecar.unlink(missing_ok=True)
+    else:
+        meta = episode.metadata
+        sidecar.write_text(json.dumps({"status": meta.status, "reason": meta.status_reason,
+                                       "salvaged": meta.salvaged, "salvage_note": meta.salvage_note,
+                                       "samples": len(episode)}, indent=2) + "\n")
+    path.write_bytes(legacy_csv_bytes(episode))
 
 
 def _pyarrow():

@@ -8,12 +8,23 @@ the files on the tracking error from zero state at t = 0 (as the rig did),
 and refuses the file unless that controller reproduces the logged
 ``control_output`` (:func:`controller_state_from_log`). Every problem is
 raised as :class:`LegacyCsvError`, whose message starts with the file.
+
+The rig ended every line, the last one too, with a newline: a file whose last
+line has none was cut short (a copy or a write that stopped). That line is
+dropped (a number cut short still parses, to a wrong value), the rest is read,
+and the episode is marked incomplete, its reason saying so.
+
+The layout has no place for an episode's status: ``qube-export`` writes the
+status of an episode that did not complete beside its CSV, in
+``<name>.status.json`` (:data:`STATUS_SIDECAR_SUFFIX`), and the import gives
+the episode that status back.
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import json
 import warnings
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -37,6 +48,8 @@ __all__ = [
     "legacy_excitation",
     "load_legacy_controller",
     "legacy_episode",
+    "STATUS_SIDECAR_SUFFIX",
+    "status_sidecar",
 ]
 
 LEGACY_COLUMNS = ("t", "target_theta", "target_alpha", "theta", "alpha", "control_output",
@@ -48,6 +61,32 @@ CONTROL_TOLERANCE_V = 1e-9
 CONTROL_CHECK_AFTER_S = 1.0
 
 _TIME_TOLERANCE_S = 1e-9
+
+#: Beside ``<name>.csv``, ``<name>.status.json``: the status of an episode that did not complete
+#: (keys ``status``, ``reason``, ``salvaged``, ``salvage_note``, ``samples``), which the CSV cannot hold.
+STATUS_SIDECAR_SUFFIX = ".status.json"
+
+
+def status_sidecar(csv_path: str | Path) -> Path:
+    """The status file beside a legacy CSV file (:data:`STATUS_SIDECAR_SUFFIX`)."""
+    return Path(csv_path).with_suffix(STATUS_SIDECAR_SUFFIX)
+
+
+def _sidecar_status(path: Path) -> dict[str, str]:
+    """The status an export recorded beside ``path`` as EpisodeMetadata fields; {} when there is none."""
+    sidecar = status_sidecar(path)
+    if not sidecar.is_file():
+        return {}
+    try:
+        info = json.loads(sidecar.read_text())
+        status = info["status"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise LegacyCsvError(f"{path}: its status file {sidecar.name} is unreadable ({exc})") from None
+    reason = "; ".join(str(text) for text in (info.get("reason"), info.get("salvage_note")) if text)
+    if status == "complete" and not info.get("salvaged"):
+        return {}
+    return {"status": status if status == "aborted" else "incomplete",
+            "status_reason": reason or f"exported from a log whose status was {status}"}
 
 
 class LegacyCsvError(ValueError):
@@ -119,6 +158,9 @@ def _shorten(text: str, limit: int = 120) -> str:
 def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
     """Parse and validate a legacy CSV file.
 
+    A last line cut short (no newline after it) is dropped with a :class:`UserWarning`
+    naming the file (see the module's docstring).
+
     Returns
     -------
     columns : dict of str to ndarray
@@ -134,7 +176,23 @@ def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
         rows, time not evenly spaced at 500 Hz from 0, saturation other
         than -1, 0, +1.
     """
-    path = Path(path)
+    columns, raw, cut = _read(Path(path))
+    if cut:
+        warnings.warn(f"{path}: {cut}", UserWarning, stacklevel=2)
+    return columns, raw
+
+
+def _drop_cut_line(raw: bytes) -> tuple[bytes, str]:
+    """The file's whole lines, and what was dropped ("" for a file ending in a newline, as the rig's did)."""
+    if raw.endswith(b"\n") or b"\n" not in raw:  # no newline at all: a header alone, refused later
+        return raw, ""
+    whole = raw[:raw.rindex(b"\n") + 1]
+    line = whole.count(b"\n") + 1
+    return whole, f"cut short: its last line (line {line}) ends without a newline and was dropped"
+
+
+def _read(path: Path) -> tuple[dict[str, np.ndarray], bytes, str]:
+    """:func:`read_legacy_csv`, and what was dropped from a file cut short ("" when nothing)."""
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -153,10 +211,12 @@ def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:
         raise LegacyCsvError(f"{path}: duplicated column {', '.join(duplicated)}")
+    whole, cut = _drop_cut_line(raw)
+    text = whole.decode("utf-8", errors="replace")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "input contained no data": handled below
-            data = np.loadtxt(io.BytesIO(raw), delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
+            data = np.loadtxt(io.BytesIO(whole), delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
     except ValueError:
         raise LegacyCsvError(f"{path}: {_diagnose(path, text, names)}") from None
     if data.shape[0] == 0:
@@ -180,7 +240,7 @@ def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
         k = int(np.argmax(~np.isin(columns["saturation"], (-1.0, 0.0, 1.0))))
         raise LegacyCsvError(f"{path}: line {_line_of(text, k)}: saturation {columns['saturation'][k]!r} "
                              f"is not -1, 0 or +1")
-    return columns, raw
+    return columns, raw, cut
 
 
 def controller_state_from_log(columns: dict[str, np.ndarray], controller: ControllerInfo, where: str, *,
@@ -260,6 +320,12 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
     controller : ControllerInfo
         The controller that ran it (:func:`load_legacy_controller`).
 
+    Returns
+    -------
+    Episode
+        Complete, or, for a file cut short, ``"incomplete"`` with the reason (the rows
+        before the cut line; see the module's docstring).
+
     Raises
     ------
     LegacyCsvError
@@ -268,8 +334,9 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
     """
     path = Path(path)
     start_time, seeds = parse_legacy_name(path)
-    columns, raw = read_legacy_csv(path)
+    columns, raw, cut = _read(path)
     state = controller_state_from_log(columns, controller, str(path))
+    status = {"status": "incomplete", "status_reason": f"legacy CSV {cut}"} if cut else _sidecar_status(path)
     metadata = EpisodeMetadata(
         controller=controller,
         sample_rate_hz=LEGACY_SAMPLE_RATE_HZ,
@@ -279,6 +346,7 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
         excitation=legacy_excitation(seeds),
         extra={"source_sha256": hashlib.sha256(raw).hexdigest(), "importer": "qube_koopman.daq.legacy_csv",
                "plant_input_limit_V": 10.0},
+        **status,
     )
     return Episode(t=columns["t"], theta=columns["theta"], alpha=columns["alpha"],
                    target_theta=columns["target_theta"], target_alpha=columns["target_alpha"],

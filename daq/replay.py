@@ -46,8 +46,11 @@ def replay_plans(paths: Sequence[str | Path], controller: ControllerInfo | None 
         path = Path(raw)
         try:
             meta = read_episode_metadata(path)
+        except OSError as exc:
+            raise ValueError(f"{path}: cannot read the episode log ({exc.strerror or exc})") from None
         except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's to fix
-            raise ValueError(f"{path}: cannot read the episode log ({exc})") from None
+            # the reader's messages start with the path: named once
+            raise ValueError(f"{path}: cannot read the episode log ({str(exc).removeprefix(f'{path}: ')})") from None
         seeds = meta.excitation.get("seeds", {})
         if not all(isinstance(seeds.get(k), int) for k in SEED_SIGNALS):
             raise ValueError(f"{path}: the log records no excitation seeds; it cannot be replayed")

@@ -38,13 +38,26 @@ class LoggedTrajectory:
     controller: DiscreteStateSpace
 
 
-def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False) -> list[LoggedTrajectory]:
+def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False, *,
+              refusal: str = "refused because of --strict") -> list[LoggedTrajectory]:
     """Read MCAP episode logs into trajectories, dropping ``skip`` samples at each start.
 
     Incomplete logs (aborted, or cut short and salvaged) are skipped with an
     :class:`IncompleteLogSkipped` warning, unreadable ones (empty, not MCAP,
     damaged before the episode's metadata) with an :class:`UnreadableLogSkipped`
     warning, one per file naming it and the reason; both are refused when ``strict``.
+
+    Parameters
+    ----------
+    paths : sequence of str or Path
+        The log files.
+    skip : int, default 0
+        Samples dropped at the start of each episode.
+    strict : bool, default False
+        Refuse an unreadable or incomplete log instead of skipping it.
+    refusal : str, default "refused because of --strict"
+        What the error of a refused log ends with: why it is refused (a command that always
+        refuses, without a ``--strict`` option, says so in its own words).
 
     Raises
     ------
@@ -66,13 +79,13 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False) 
         except (ValueError, OSError) as exc:
             problem = str(exc).removeprefix(f"{path}: ") if isinstance(exc, ValueError) else exc.strerror or exc
             if strict:
-                raise ValueError(f"{path}: {problem}; refused because of --strict") from None
+                raise ValueError(f"{path}: {problem}; {refusal}") from None
             warnings.warn(f"{path}: {problem}; skipped", UnreadableLogSkipped, stacklevel=2)
             continue
         if not episode.is_complete:
             reason = episode.metadata.status_reason or episode.metadata.salvage_note or episode.metadata.status
             if strict:
-                raise ValueError(f"{path}: incomplete episode ({reason}); refused because of --strict")
+                raise ValueError(f"{path}: incomplete episode ({reason}); {refusal}")
             warnings.warn(f"{path}: incomplete episode ({reason}); skipped", IncompleteLogSkipped, stacklevel=2)
             continue
         if len(episode) <= skip + 2:

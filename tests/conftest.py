@@ -76,6 +76,18 @@ def qube_reproduction(qube_logs, tmp_path_factory) -> tuple[dict, str]:
     return json.loads((out / "qube.json").read_text()), (out / "qube.md").read_text()
 
 
+@pytest.fixture
+def legacy_folder(tmp_path):
+    """A folder with one synthetic legacy CSV episode (tests/test_legacy_import.py) and its controller.toml."""
+    from test_legacy_import import GAINS_TOML, GOOD, write_synthetic_csv
+
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "controller.toml").write_text(GAINS_TOML)
+    write_synthetic_csv(src / f"{GOOD}.csv")
+    return src
+
+
 # --- no process started by the suite outlives it -------------------------------------------------
 
 _PR_SET_CHILD_SUBREAPER = 36
@@ -123,15 +135,23 @@ def stop_library_daemons() -> None:
 
     They are library daemons that live until their parent exits (identification runs its
     sweeps and searches through joblib); stopping them leaves only real leaks to be found.
+    The executor is terminated, not only shut down: a memmapping folder still in use when
+    its ``Parallel`` call ended is otherwise left to an atexit handler of joblib's, which
+    would unregister it with a tracker started afresh after this one was stopped: a
+    ``KeyError`` traceback from that tracker after pytest's summary (or, folder already
+    gone, a "leaked folder objects" warning from this one).
     """
     if "joblib" not in sys.modules:
         return
     from multiprocessing import resource_tracker
 
-    from joblib.externals.loky import get_reusable_executor
+    from joblib.externals.loky import reusable_executor
     from joblib.externals.loky.backend import resource_tracker as loky_tracker
 
-    get_reusable_executor().shutdown(wait=True)
+    executor = reusable_executor._executor  # the last one, live or shut down; None if none was made
+    if executor is not None:
+        # joblib's executor frees its memmapping folders (and cancels their atexit handlers)
+        getattr(executor, "terminate", executor.shutdown)()
     loky_tracker._resource_tracker._stop()
     resource_tracker._resource_tracker._stop()
 

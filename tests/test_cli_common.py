@@ -76,3 +76,135 @@ def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(
     assert capsys.readouterr().err == (f"qube-identify: error: {target}: folder {target.parent} does not exist "
                                        "(--rerun)\n")
     assert not (tmp_path / "model").exists()  # refused before the output folder, the data or the fit
+
+
+# A negative seed is a usage error naming the option (numpy refused it with a traceback before).
+NEGATIVE_SEEDS = [
+    ("qube_koopman.daq.cli.run", ["--seed", "-5", "--episodes", "1", "--duration", "0.2"], "--seed"),
+    ("qube_koopman.sim.cli.emulate", ["--seed", "-5"], "--seed"),
+    ("qube_koopman.identify.cli.reproduce", ["duffing", "--seed", "-5"], "--seed"),
+    ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--rbf", "thin-plate", "--rbf-seed", "-5"],
+     "--rbf-seed"),
+    ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--cv-seed", "-5"], "--cv-seed"),
+]
+
+
+@pytest.mark.parametrize("module, argv, option", NEGATIVE_SEEDS,
+                         ids=[f"{c[0].rsplit('.')[-1]} {c[2]}" for c in NEGATIVE_SEEDS])
+def test_a_negative_seed_is_a_usage_error_naming_the_option(module, argv, option, tmp_path, capsys, monkeypatch):
+    import importlib
+
+    monkeypatch.chdir(tmp_path)
+    try:
+        status = importlib.import_module(module).main(argv)
+    except SystemExit as exc:  # the commands that leave usage errors to argparse
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == 2 and "Traceback" not in err, err
+    assert f"error: argument {option}: must be a whole number >= 0, got -5" in err, err
+    assert list(tmp_path.iterdir()) == []  # refused before any work
+
+
+@pytest.mark.parametrize("option, value, minimum", [("--skip", "-1", 0), ("--delays", "-2", 0), ("--poly", "0", 1),
+                                                    ("--cv-splits", "0", 1), ("--arx-lags", "-3", 1)])
+def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(option, value, minimum, tmp_path,
+                                                                               capsys):
+    from qube_koopman.identify.cli.identify import main
+
+    with pytest.raises(SystemExit) as exc:  # the logs do not exist: refused before looking for them
+        main(["--train", str(tmp_path / "missing"), "--test", str(tmp_path / "missing"), option, value])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert f"error: argument {option}: must be a whole number >= {minimum}, got {value}" in err, err
+    assert "missing" not in err.splitlines()[-1]
+
+
+@pytest.mark.parametrize("module, prog, argv", [
+    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{missing}", "--out", "{tmp}/o"]),
+    ("qube_koopman.daq.cli.export", "qube-export", ["{missing}", "--format", "csv", "--out", "{tmp}/o"]),
+    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{tmp}", "--out", "{tmp}/o"]),  # a folder without any
+    ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}"]),
+    ("qube_koopman.identify.cli.calibrate", "qube-calibrate", ["{missing}", "--out", "{tmp}/p.toml"]),
+    ("qube_koopman.identify.cli.reproduce", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
+], ids=["qube-import", "qube-export", "qube-import empty folder", "qube-identify", "qube-calibrate", "qube-reproduce"])
+def test_a_missing_input_is_a_usage_error_in_every_command(module, prog, argv, tmp_path, capsys):
+    import importlib
+
+    status = importlib.import_module(module).main([a.format(missing=tmp_path / "nowhere", tmp=tmp_path) for a in argv])
+    err = capsys.readouterr().err
+    assert status == 2, err
+    assert err.startswith(f"{prog}: error: ") and "Traceback" not in err, err
+
+
+def _raises(exc):
+    def command(args):
+        raise exc
+    return command
+
+
+@pytest.mark.parametrize("exc, status, line", [
+    (None, 2, "qube-x: error: f.txt: bad value"),                               # a user mistake
+    (OSError(28, "No space left on device", "/out/model.json"), 1,
+     "qube-x: error: /out/model.json: No space left on device"),                # a run-time failure
+    (KeyboardInterrupt(), 130, "qube-x: error: interrupted"),
+])
+def test_run_command_exit_statuses_follow_the_readme_table(exc, status, line, capsys):
+    import argparse
+
+    from qube_koopman.identify.cli.common import CliError, run_command
+
+    exc = exc if exc is not None else CliError("f.txt: bad value")
+    assert run_command("qube-x", _raises(exc), argparse.Namespace(quiet=True, verbose=0)) == status
+    assert capsys.readouterr().err == line + "\n"
+
+
+def test_a_write_error_is_a_run_time_failure_naming_the_file(tmp_path, capsys, monkeypatch):
+    import argparse
+    import errno
+
+    from qube_koopman.identify.cli.common import run_command, write_json
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(Path, "write_text", full)
+    path = tmp_path / "report.json"
+    assert run_command("qube-x", lambda a: write_json(path, {}), argparse.Namespace(quiet=True, verbose=0)) == 1
+    assert capsys.readouterr().err == f"qube-x: error: {path}: cannot write: No space left on device\n"
+
+
+def test_qube_emulate_names_an_output_it_cannot_write_at_exit(tmp_path):
+    # /dev/full opens, then refuses every byte (ENOSPC): a full disk when the counters are written
+    import argparse
+    import types
+
+    from qube_koopman.sim.cli.emulate import _write_outputs
+
+    emulator = types.SimpleNamespace(stats=lambda: {"ticks": 1}, faults=types.SimpleNamespace(as_dict=dict),
+                                     vanished_at=None, events=[])
+    errors = _write_outputs(emulator, argparse.Namespace(stats="/dev/full", record=None))
+    assert errors == ["/dev/full: cannot write: No space left on device"]
+    good = tmp_path / "stats.json"
+    assert _write_outputs(emulator, argparse.Namespace(stats=str(good), record=None)) == []
+    assert '"ticks": 1' in good.read_text()
+
+
+@pytest.mark.parametrize("module, argv, message", [
+    ("qube_koopman.sim.cli.emulate", ["--hold-at", "1", "--hold-periods", "-3"],
+     "argument --hold-periods: must be a whole number in [1, 100000], got -3"),  # a traceback from Faults before
+    ("qube_koopman.identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--delay", "-1"],
+     "argument --delay: must be a whole number >= 0, got -1"),
+    ("qube_koopman.identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--max-nfev", "0"],
+     "argument --max-nfev: must be a whole number >= 1, got 0"),
+], ids=["emulate --hold-periods", "calibrate --delay", "calibrate --max-nfev"])
+def test_counts_out_of_range_are_usage_errors_naming_option_and_value(module, argv, message, tmp_path, capsys,
+                                                                     monkeypatch):
+    import importlib
+
+    monkeypatch.chdir(tmp_path)
+    try:
+        status = importlib.import_module(module).main(argv)
+    except SystemExit as exc:
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == 2 and message in err and "Traceback" not in err, err

@@ -69,17 +69,6 @@ def test_v_and_vv_show_the_work_of_a_real_run(tmp_path, capsys):
     assert "qube-run: debug: writing " in capsys.readouterr().err
 
 
-@pytest.fixture
-def legacy_folder(tmp_path):
-    from test_legacy_import import GAINS_TOML, GOOD, write_synthetic_csv
-
-    src = tmp_path / "src"
-    src.mkdir()
-    (src / "controller.toml").write_text(GAINS_TOML)
-    write_synthetic_csv(src / f"{GOOD}.csv")
-    return src
-
-
 @pytest.mark.parametrize("quiet", [False, True])
 def test_q_silences_the_progress_bar_on_a_terminal(quiet, legacy_folder, tmp_path, capsys, monkeypatch):
     from qube_koopman.daq.cli.import_csv import main
@@ -141,3 +130,21 @@ def test_qube_reproduce_without_strict_skips_it_with_a_warning(logs_with_an_empt
     assert err.splitlines()[0] == (f"qube-reproduce: warning: {logs_with_an_empty_one / 'b_empty.mcap'}: empty file, "
                                    "not an MCAP episode log; skipped"), err
     assert status == 0 and (tmp_path / "o" / "qube.json").exists(), err  # the study ran on the other 29
+
+
+@pytest.mark.parametrize("flag", ["-q", None, "-v"])
+def test_qube_identify_counts_the_episodes_as_an_info_line(flag, tmp_path, capsys):
+    from qube_koopman.identify.cli.identify import main
+
+    for name in ("train_a", "train_b", "test_a"):
+        write_episode(tmp_path / f"{name}.mcap", make_episode(300, seed=len(name)))
+    train, test = [str(tmp_path / "train_a.mcap"), str(tmp_path / "train_b.mcap")], [str(tmp_path / "test_a.mcap")]
+    # --estimate-window longer than the episodes: refused right after the count, before any fit
+    argv = ["--train", *train, "--test", *test, "--skip", "0", "--offsets", "alpha", "--estimate-window", "5",
+            "--out", str(tmp_path / "o"), *([flag] if flag else [])]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    counted = "qube-identify: info: 2 training and 1 test episodes, 0 samples dropped from each\n"
+    assert (counted in err) == (flag == "-v"), err
+    assert "training and" not in err.replace(counted, ""), "never a bare line"
+    assert err.endswith("leaves nothing to score in the shortest test episode\n"), err

@@ -83,7 +83,7 @@ def test_refused_logs_are_named_and_the_others_exported(log, tmp_path, capsys):
     bad.write_text("hello")
     status = main([str(path), str(bad), str(tmp_path / "missing.mcap"), "--format", "mat", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
-    assert status == 1
+    assert status == 2  # a LOG that does not exist is a usage error, as in every command (issue 30)
     assert f"qube-export: error: {bad}: not an MCAP file" in err
     assert "missing.mcap: no such file or folder" in err
     assert (tmp_path / "o" / f"{path.stem}.mat").is_file()
@@ -127,3 +127,34 @@ def test_write_mat_of_an_empty_episode(tmp_path):
 
     write_mat(make_episode(n=0), tmp_path / "e.mat")
     assert loadmat(tmp_path / "e.mat")["t"].size == 0
+
+
+def test_csv_of_an_episode_that_did_not_complete_carries_its_status_beside_it(legacy_folder, tmp_path, capsys):
+    import dataclasses
+
+    from test_legacy_import import GOOD
+
+    assert import_main([str(legacy_folder), "--out", str(tmp_path / "logs"), "-q"]) == 0
+    complete = read_episode(tmp_path / "logs" / f"{GOOD}.mcap")
+    stopped = dataclasses.replace(complete, metadata=dataclasses.replace(
+        complete.metadata, status="aborted", status_reason="safety: |alpha| > 45 deg"))
+    write_episode(tmp_path / "logs" / f"{GOOD}.mcap", stopped, overwrite=True)
+    out = tmp_path / "csv"
+    assert main([str(tmp_path / "logs"), "--format", "csv", "--out", str(out)]) == 0
+    sidecar = out / f"{GOOD}.status.json"
+    assert f"qube-export: warning: {tmp_path / 'logs' / f'{GOOD}.mcap'}: not a complete episode; its status is in " \
+           f"{sidecar}" in capsys.readouterr().err
+    assert json.loads(sidecar.read_text()) == {"status": "aborted", "reason": "safety: |alpha| > 45 deg",
+                                               "salvaged": False, "salvage_note": "", "samples": len(complete)}
+    # qube-import gives the status back: the CSV never reads as a complete episode
+    (out / "controller.toml").write_bytes((legacy_folder / "controller.toml").read_bytes())
+    capsys.readouterr()
+    assert import_main([str(out), "--out", str(tmp_path / "again")]) == 0
+    assert capsys.readouterr().err == (f"qube-import: warning: {out / f'{GOOD}.csv'}: safety: |alpha| > 45 deg; "
+                                       f"imported as an aborted episode of {len(complete)} samples\n")
+    again = read_episode(tmp_path / "again" / f"{GOOD}.mcap")
+    assert not again.is_complete and again.metadata.status_reason == "safety: |alpha| > 45 deg"
+    # exporting the complete episode over it removes the stale status file
+    write_episode(tmp_path / "logs" / f"{GOOD}.mcap", complete, overwrite=True)
+    assert main([str(tmp_path / "logs"), "--format", "csv", "--out", str(out), "--force", "-q"]) == 0
+    assert not sidecar.exists() and (out / f"{GOOD}.csv").read_bytes() == (legacy_folder / f"{GOOD}.csv").read_bytes()

@@ -1,6 +1,7 @@
 """qube-identify end to end on real logs, model files, refusals."""
 
 import json
+import os
 import shutil
 import sys
 
@@ -135,8 +136,11 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
 @pytest.mark.parametrize("argv,message", [
     ([], "no data"),
     (["--train", "nowhere.mcap", "--test", "x"], "nowhere.mcap: no such file or folder"),
-    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "0.1", "5"], "0 < MIN < MAX"),
+    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "0.1", "5"], "0 < MIN < MAX and N >= 2, got 1 0.1 5"),
+    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "x", "5"], "for example 1e-3 1e3 30, got 1 x 5"),
     (["--train", ".", "--test", ".", "--method", "arx"], "models the plant only"),
+    (["--train", ".", "--test", ".", "--offset-bound", "-1"], "--offset-bound must be positive, got -1.0"),
+    (["--train", ".", "--test", ".", "--estimate-window", "nan"], "--estimate-window must be positive, got nan"),
 ])
 def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -158,3 +162,35 @@ def test_logs_with_another_sample_rate_are_refused(tmp_path):
     assert check_same_rate([fast, fast], "training") == 0.002
     with pytest.raises(ValueError, match="b.mcap: sample rate 250 Hz differs from 500 Hz of a.mcap"):
         check_same_rate([fast, slow], "training")
+
+
+@pytest.mark.parametrize("how", ["same path", "folder and file", "another name"])
+def test_a_log_in_both_training_and_test_is_refused_naming_it(how, tmp_path, capsys):
+    from _episodes import make_episode
+
+    from qube_koopman.daq.log import write_episode
+
+    train = tmp_path / "train"
+    train.mkdir()
+    for name in ("a.mcap", "b.mcap"):
+        write_episode(train / name, make_episode(300, seed=len(name)))
+    shared = train / "b.mcap"
+    if how == "another name":
+        os.link(shared, tmp_path / "b_again.mcap")
+        test = [str(tmp_path / "b_again.mcap")]
+    else:
+        test = [str(shared)] if how == "same path" else [str(shared), str(train / "a.mcap")]
+    argv = ["--train", str(train) if how != "same path" else str(shared), str(train / "a.mcap"), "--test", *test,
+            "--out", str(tmp_path / "o"), "-q"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"qube-identify: error: {test[0]}") and err.count("\n") == 1, err
+    assert "among both the training and the test logs" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_missing_model_file_is_named_once(tmp_path):
+    path = tmp_path / "model.json"
+    with pytest.raises(ValueError) as caught:
+        load_model(path)
+    assert str(caught.value) == f"{path}: not a readable model file (No such file or directory)"

@@ -208,7 +208,7 @@ def test_usage_problems_give_one_line_each_and_no_traceback(synthetic_dir, tmp_p
     shutil.copy(synthetic_dir / f"{GOOD}.csv", misnamed)
     status = main([str(tmp_path / "nowhere.csv"), str(lonely), str(misnamed), "--out", str(tmp_path / "o")])
     captured = capsys.readouterr()
-    assert status == 1
+    assert status == 2  # a SRC that does not exist is a usage error, as in every command (issue 30)
     errors = _stderr_lines(captured)
     assert len(errors) == 3, captured.err
     assert any("nowhere.csv: no such file or folder" in e for e in errors)
@@ -281,3 +281,24 @@ def test_dataset_all_episodes_round_trip_within_the_size_budget(qube_dataset, qu
         csv_bytes += path.stat().st_size
         mcap_bytes += out.stat().st_size
     assert mcap_bytes <= 0.40 * csv_bytes
+
+
+@pytest.mark.parametrize("cut_from_end", [5, 40])  # inside the last number (9 fields still), or inside the row
+def test_a_file_cut_mid_line_is_imported_without_that_line_as_incomplete(cut_from_end, legacy_folder, tmp_path,
+                                                                         capsys):
+    csv_path = legacy_folder / f"{GOOD}.csv"
+    whole = parse_csv_independently(csv_path)
+    raw = csv_path.read_bytes()
+    cut_at = raw.index(b"\n", len(raw) * 3 // 4) - cut_from_end  # past the first second, inside a row
+    csv_path.write_bytes(raw[:cut_at])
+    rows_before = raw[:cut_at].count(b"\n") - 1  # whole data rows before the cut one
+    status = main([str(legacy_folder), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert status == 0, err
+    line = raw[:cut_at].count(b"\n") + 1
+    assert err == (f"qube-import: warning: {csv_path}: cut short: its last line (line {line}) ends without a "
+                   f"newline and was dropped; imported as an incomplete episode of {rows_before} samples\n")
+    episode = read_episode(tmp_path / "o" / f"{GOOD}.mcap", warn=False)
+    assert len(episode) == rows_before and not episode.is_complete
+    assert episode.metadata.status == "aborted" and "legacy CSV cut short" in episode.metadata.status_reason
+    np.testing.assert_array_equal(episode.theta, whole["theta"][:rows_before])

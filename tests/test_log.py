@@ -282,19 +282,54 @@ def test_file_cut_in_its_summary_keeps_status_and_all_samples(tmp_path):
     assert read.metadata.status == "complete" and read.metadata.salvaged
 
 
-def test_damaged_chunk_stops_the_read_there(tmp_path):
+def _five_chunks(tmp_path):
     episode = make_episode(500)
     path = tmp_path / "e.mcap"
     with EpisodeWriter(path, episode.metadata, flush_interval_s=0.2) as log:  # 100 samples a chunk
         log.write_samples(episode)
-    ends = [end for _, end in _chunks(path)]
+    return episode, path, _chunks(path)
+
+
+def test_damaged_chunk_is_skipped_and_every_chunk_after_it_read(tmp_path):
+    episode, path, chunks = _five_chunks(tmp_path)
+    intact = read_episode(path).metadata
     data = bytearray(path.read_bytes())
-    data[ends[2] - 50] ^= 0xFF  # inside the compressed data of the third chunk
+    data[chunks[2][1] - 50] ^= 0xFF  # inside the compressed data of the third chunk
     path.write_bytes(bytes(data))
-    with pytest.warns(IncompleteEpisodeWarning, match="unusable"):
+    with pytest.warns(IncompleteEpisodeWarning, match="unusable") as caught:
         read = read_episode(path)
+    kept = np.r_[0:200, 300:500]
+    assert len(read) == 400
+    for name, value in episode.arrays().items():
+        np.testing.assert_array_equal(getattr(read, name), value[kept], err_msg=name)
+    meta = read.metadata
+    assert meta.salvaged and not read.is_complete and meta.status == "incomplete"
+    gap = meta.salvage_note
+    assert gap.startswith(f"Chunk record at byte {chunks[2][0]} is unusable: ") and "; " not in gap.split(": ", 1)[0]
+    assert gap.endswith("; skipped: samples 200 to 299 lost, 200 read after it") and gap in str(caught[0].message)
+    assert meta.status_reason == f"corrupted: {gap}; the log's final status: complete"
+    assert meta.timing == intact.timing and meta.backend_stats == intact.backend_stats  # the status record kept
+
+
+def test_damaged_last_chunk_of_a_finished_log_names_the_samples_lost(tmp_path):
+    episode, path, chunks = _five_chunks(tmp_path)
+    data = bytearray(path.read_bytes())
+    data[chunks[4][1] - 50] ^= 0xFF
+    path.write_bytes(bytes(data))
+    read = read_quietly(path)
+    assert_prefix(read, episode, 400)
+    assert "skipped: samples 400 to 499 lost, 0 read after it" in read.metadata.salvage_note
+
+
+def test_damaged_chunk_length_stops_the_read_there(tmp_path):
+    # The record's length field itself damaged: where the next record starts is unknown.
+    episode, path, chunks = _five_chunks(tmp_path)
+    data = bytearray(path.read_bytes())
+    data[chunks[2][0] + 1] ^= 0x07  # low byte of the Chunk record's length
+    path.write_bytes(bytes(data))
+    read = read_quietly(path)
     assert_prefix(read, episode, 200)
-    assert read.metadata.salvaged
+    assert read.metadata.salvaged and "skipped" not in read.metadata.salvage_note
 
 
 def test_file_cut_before_its_metadata_is_refused(tmp_path):
@@ -451,8 +486,14 @@ def test_damaged_or_cut_files_give_a_prefix_or_a_value_error(tmp_path, position,
         read = read_quietly(damaged)
     except ValueError:
         return
-    # Sample bytes are CRC-checked per chunk, so what is read is never altered.
-    assert_prefix(read, episode, len(read))
+    # Sample bytes are CRC-checked per chunk, so what is read is never altered: the samples it
+    # had, in order, a prefix unless a damaged chunk was skipped (then the note says so).
+    index = np.rint(read.t * RATE).astype(int)
+    assert np.all(np.diff(index) > 0) and (len(index) == 0 or index[0] >= 0)
+    for name, value in episode.arrays().items():
+        np.testing.assert_array_equal(getattr(read, name), value[index], err_msg=name)
+    if "; skipped: " not in read.metadata.salvage_note:
+        assert_prefix(read, episode, len(read))
 
 
 # --- device time (format 1.3) -------------------------------------------------

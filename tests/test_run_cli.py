@@ -291,3 +291,14 @@ def test_shipped_controllers_by_name_and_a_file_of_that_name_wins(tmp_path, monk
     assert load_pd_gains("soft-theta").kp_theta == 1.0
     assert main(["--episodes", "1", "--duration", "2", "--controller", "rig", "--out", "e", "-q"]) == 0
     assert read_episode_metadata(next((tmp_path / "e").glob("*.mcap"))).controller.gains["kp_theta"] == 6.0
+
+
+@pytest.mark.parametrize("content, problem", [(None, "No such file or directory"),
+                                              (b"not a log", "not an MCAP file (bad magic bytes)")])
+def test_a_replay_log_that_cannot_be_read_is_named_once_and_first(content, problem, tmp_path, capsys):
+    log = tmp_path / "junk.mcap"
+    if content is not None:
+        log.write_bytes(content)
+    assert main(["--replay", str(log), "--out", str(tmp_path / "o"), "-q"]) == 2
+    assert capsys.readouterr().err == (f"qube-run: error: {log}: cannot read the episode log ({problem}) "
+                                       "(--replay)\n")

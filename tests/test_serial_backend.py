@@ -468,6 +468,9 @@ def test_handshake_failures_say_why(respond, text):
 def test_unknown_port_is_a_clear_fault():
     with pytest.raises(BackendFault, match="cannot open /nonexistent/tty: No such file"):
         SerialBackend("/nonexistent/tty").open()
+    with pytest.raises(BackendFault) as caught:
+        SerialBackend("/nonexistent/tty").open()
+    assert str(caught.value) == "cannot open /nonexistent/tty: No such file or directory"  # the path once
 
 
 @pytest.mark.parametrize("bad", [dict(baud=0), dict(rate_hz=333), dict(max_voltage=20.0),

@@ -190,3 +190,16 @@ def test_a_log_failing_on_its_last_sample_is_never_recorded_complete(tmp_path):
     assert result.status == "aborted" and result.cause == "log" and "Input/output error" in result.reason
     assert failing.outcome.status == "aborted" and result.metadata.status == "aborted"
     assert read_episode(_logs(tmp_path)[0]).metadata.status == "aborted"  # the log says so too
+
+
+def test_the_summary_counts_the_samples_the_failed_log_still_holds(monkeypatch, tmp_path, capsys):
+    _full_disk_at(monkeypatch, 50_000)
+    assert main(["--episodes", "1", "--duration", "60", "--seed", "2", "--out", str(tmp_path), "-q"]) == 1
+    out = capsys.readouterr().out
+    log = _logs(tmp_path)[0]
+    readable = len(read_episode(log, warn=False))
+    row = next(line.split() for line in out.splitlines() if log.name in line)
+    assert row[2] == "aborted" and int(row[3]) == readable, out  # not the ticks the loop ran
+    ran = int(next(line for line in out.splitlines() if line.startswith("episode 0: ")).split(" of the ")[1].split()[0])
+    assert readable < ran
+    assert f"the log holds the first {readable} of the {ran} samples run, marked incomplete" in out

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
 import time
 
 import pytest
@@ -43,3 +44,32 @@ def test_a_missing_dataset_fails_under_ci(pytester, monkeypatch):
     monkeypatch.setenv("CI", "")
     pytester.runpytest("-p", "no:cacheprovider").assert_outcomes(skipped=1)
 
+
+
+@pytest.mark.slow  # a pytest run of its own with two loky workers: about 5 s
+def test_joblib_workers_are_stopped_without_tracebacks_after_the_summary(pytester):
+    # A memmapped array a worker still holds when its Parallel call ends leaves joblib a folder
+    # to free at exit; stopping the trackers first made a fresh tracker print KeyError tracebacks
+    # after the summary (or the old one warn of a leaked folder). conftest frees it before.
+    pytester.makeconftest(open(os.path.join(os.path.dirname(__file__), "conftest.py")).read())
+    pytester.makepyfile("""
+        import numpy as np
+        from joblib import Parallel, delayed
+
+        _kept = []  # in each worker: the memmap stays open after the call
+
+        def keep(a):
+            _kept.append(a)
+            return float(a[0])
+
+        def test_memmapped():
+            big = np.ones(300_000)
+            assert sum(Parallel(n_jobs=2, max_nbytes="1K")(delayed(keep)(big) for i in range(4))) == 4
+    """)
+    # Not runpytest_subprocess: it reads stderr when pytest exits, before the tracker has written
+    # there; a pipe is read to its end, when the last process holding it (the tracker) is gone.
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"], cwd=pytester.path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "1 passed" in proc.stdout, proc.stdout + proc.stderr
+    err = proc.stderr + proc.stdout.split("1 passed")[-1]
+    assert "Traceback" not in err and "KeyError" not in err and "leaked" not in err, err

@@ -56,12 +56,12 @@ def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, ca
     test.mkdir()
     for path in logs[28:30]:
         shutil.copy(path, test / path.name)
-    code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o")])
+    code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o"), "-v"])
     err = capsys.readouterr().err
     assert code == 0, err
     warned = [line for line in err.splitlines() if "warning:" in line]
     assert len(warned) == 2 and "zz_cut_header.mcap: unreadable" in warned[0] and "zz_empty.mcap: empty file" in warned[1]
-    assert "6 training and 2 test episodes" in err
+    assert "qube-identify: info: 6 training and 2 test episodes" in err
     code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o"), "--strict"])
     assert code == 2 and "zz_cut_header.mcap" in capsys.readouterr().err
 
@@ -74,3 +74,13 @@ def test_commands_print_one_warning_line_per_skipped_log(folder, capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 3 and all(line.startswith("qube-reproduce: warning: ") and line.endswith("; skipped") for line in err)
     assert "b_empty.mcap" in err[0] and "c_text.mcap" in err[1] and "d_header_only.mcap" in err[2]
+
+
+def test_qube_calibrate_refuses_an_unreadable_log_without_naming_an_option_it_lacks(folder, tmp_path, capsys):
+    # qube-calibrate always refuses such a log; it has no --strict to blame.
+    from qube_koopman.identify.cli.calibrate import main
+
+    assert main([str(folder / "b_empty.mcap"), "--out", str(tmp_path / "p.toml"), "-q"]) == 2
+    assert capsys.readouterr().err == (f"qube-calibrate: error: {folder / 'b_empty.mcap'}: empty file, not an MCAP "
+                                       "episode log; refused: qube-calibrate fits complete, readable logs only\n")
+    assert not (tmp_path / "p.toml").exists()

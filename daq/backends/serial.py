@@ -191,7 +191,8 @@ class SerialBackend(Backend):
             port = serial.serial_for_url(self.port, baudrate=self.baud, timeout=min(0.005, self.link_timeout),
                                          write_timeout=self.link_timeout)
         except (serial.SerialException, ValueError, OSError) as exc:
-            raise BackendFault(f"cannot open {self.port}: {_plain(exc)}") from None
+            # pyserial's text ends with the path (an OSError's filename): named once, first
+            raise BackendFault(f"cannot open {self.port}: {_plain(exc).removesuffix(f': {self.port!r}')}") from None
         try:
             port.set_low_latency_mode(True)
             self._low_latency = "on"

@@ -63,9 +63,13 @@ def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argpa
 def summarize(done: str, n_done: int, n_total: int, noun: str, where: str, refused: int, problems: list[str]) -> int:
     """Print the closing line (e.g. ``imported 3 of 4 files into DIR; 1 refused``); return the exit status.
 
-    The status is 0 when every file went through (and at least one did), 1 otherwise.
+    The status is 2 when a source named on the command line does not exist or holds no such
+    files (a usage error, as in every command; the other files still went through), else 1
+    when a file was refused, else 0.
     """
     print(f"{done} {n_done} of {n_total} {noun}{'s' if n_total != 1 else ''} {where}"
           + (f"; {refused} refused" if refused else "")
           + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
-    return 0 if refused == 0 and not problems and n_done > 0 else 1
+    if problems:
+        return 2
+    return 0 if refused == 0 and n_done > 0 else 1

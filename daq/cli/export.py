@@ -28,12 +28,16 @@ Export MCAP episode logs, one OUT/<log base name>.<ext> per log:
 
 A log that cannot be read is refused with one line on stderr naming it and
 the problem; the other logs are still exported. A log cut short is exported
-up to its last readable sample, with a warning.
+up to its last readable sample, with a warning. The CSV layout has no status:
+for an episode that did not complete (aborted, or cut short) the status is
+written beside the CSV in <name>.status.json, with a warning, and qube-import
+gives it back.
 """
 
 _EPILOG = """\
 exit status: 0 when every log was exported, 1 when any was refused,
-2 on a usage error.
+2 on a usage error (also a LOG that does not exist or a folder without .mcap
+logs; the other logs are still exported).
 
 example:
   qube-export episodes/ --format parquet --out exported/
@@ -56,13 +60,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage)."""
+    """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage or a missing LOG)."""
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
     configure_logging(PROG, args)
 
     from qube_koopman.daq.export import ExportError, export_episode
+    from qube_koopman.daq.legacy_csv import status_sidecar
     from qube_koopman.daq.log import IncompleteEpisodeWarning
 
     if args.out.exists() and not args.out.is_dir():
@@ -82,9 +87,12 @@ def main(argv: list[str] | None = None) -> int:
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", IncompleteEpisodeWarning)
-                export_episode(log, args.format, args.out, overwrite=args.force)
+                written = export_episode(log, args.format, args.out, overwrite=args.force)
             for warning in caught:
                 say("warning", str(warning.message))
+            if args.format == "csv" and status_sidecar(written).exists():
+                say("warning", f"{log}: not a complete episode; its status is in {status_sidecar(written)} "
+                               "(the CSV layout has no place for it)")
             exported += 1
             _log.info("%s: exported as %s into %s", log, args.format, args.out)
         except ExportError as exc:

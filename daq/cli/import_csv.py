@@ -26,12 +26,15 @@ plant_input, saturation; every row must be complete and finite, sampled at
 filter, as the rig ran it), run on the tracking error, must reproduce the
 logged control_output to 1e-9 V after the first second. The recomputed
 controller state is stored in the log. A file that fails is refused with one
-line on stderr naming it and the problem; the other files still import.
+line on stderr naming it and the problem; the other files still import. A file
+cut short (its last line without a newline) is imported without that line,
+with a warning, and its log is marked incomplete (qube-identify skips it).
 """
 
 _EPILOG = """\
 exit status: 0 when every file was imported, 1 when any was refused,
-2 on a usage error.
+2 on a usage error (also a SRC that does not exist or a folder without CSV
+files; the other files are still imported).
 
 example:
   qube-import ../shared/datasets/qube_servo_20230828 --out episodes/
@@ -58,15 +61,54 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Controllers:
+    """The controller of each CSV file: --controller's, else the controller.toml beside the file.
+
+    One per controller.toml; a file that cannot give one is remembered as its problem, so
+    each CSV beside it is refused with it.
+
+    Raises
+    ------
+    ValueError
+        From the constructor, when --controller's file cannot be used (a usage error).
+    """
+
+    def __init__(self, given: Path | None) -> None:
+        from qube_koopman.daq.legacy_csv import load_legacy_controller
+
+        self.given = given
+        self.found: dict[Path, object] = {}
+        if given is not None:
+            self.found[given] = load_legacy_controller(given)
+
+    def __call__(self, csv: Path):
+        from qube_koopman.daq.legacy_csv import LegacyCsvError, load_legacy_controller
+
+        toml = self.given or csv.parent / "controller.toml"
+        if toml not in self.found:
+            if not toml.is_file():
+                self.found[toml] = f"no controller file {toml} (give one with --controller FILE)"
+            else:
+                try:
+                    self.found[toml] = load_legacy_controller(toml)
+                except ValueError as exc:
+                    self.found[toml] = str(exc)
+        found = self.found[toml]
+        if isinstance(found, str):
+            raise LegacyCsvError(f"{csv}: {found}")
+        return found
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage)."""
+    """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage or a missing SRC)."""
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
     configure_logging(PROG, args)
 
-    from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
+    from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode
     from qube_koopman.daq.log import write_episode
+    from qube_koopman.daq.log.writer import remove_stale_temp_files
 
     def refuse(message: str) -> None:
         progress.say(f"{PROG}: error: {message}")
@@ -80,31 +122,13 @@ def main(argv: list[str] | None = None) -> int:
     for problem in problems:
         refuse(problem)
 
-    # One controller per controller.toml; a file that cannot give one is
-    # remembered as its problem, so each CSV beside it is refused with it.
-    controllers: dict[Path, object] = {}
-    if args.controller is not None:
-        try:
-            controllers[args.controller] = load_legacy_controller(args.controller)
-        except ValueError as exc:
-            print(f"{PROG}: error: {exc}", file=sys.stderr)
-            return 2
-
-    def controller_for(csv: Path):
-        toml = args.controller or csv.parent / "controller.toml"
-        if toml not in controllers:
-            if not toml.is_file():
-                controllers[toml] = f"no controller file {toml} (give one with --controller FILE)"
-            else:
-                try:
-                    controllers[toml] = load_legacy_controller(toml)
-                except ValueError as exc:
-                    controllers[toml] = str(exc)
-        found = controllers[toml]
-        if isinstance(found, str):
-            raise LegacyCsvError(f"{csv}: {found}")
-        return found
-
+    try:
+        controller_for = _Controllers(args.controller)
+    except ValueError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    for stale in remove_stale_temp_files(args.out):
+        _log.info("%s: removed, a temporary file an interrupted import left", stale)
     imported, refused = 0, 0
     claimed: dict[Path, Path] = {}
     for done, csv in enumerate(files, start=1):
@@ -116,6 +140,10 @@ def main(argv: list[str] | None = None) -> int:
             if out.exists() and not args.force:
                 raise LegacyCsvError(f"{csv}: {out} exists (use --force to overwrite)")
             episode = legacy_episode(csv, controller_for(csv))
+            if not episode.is_complete:  # cut short, or exported from a log that did not complete
+                meta = episode.metadata
+                progress.say(f"{PROG}: warning: {csv}: {meta.status_reason.removeprefix('legacy CSV ')}; "
+                             f"imported as an {meta.status} episode of {len(episode)} samples")
             args.out.mkdir(parents=True, exist_ok=True)
             write_episode(out, episode, overwrite=args.force)
             imported += 1

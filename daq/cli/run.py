@@ -92,7 +92,7 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options
+    from qube_koopman.sim.cli.common import add_standard_options, seed
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=_positive_float, default=DEFAULT_DURATION, metavar="S",
                    help=f"seconds per episode (default {DEFAULT_DURATION:g}; the excitation is active "
                         "from 20%% to 80%% of it, as the rig's was from 4 s to 16 s of 20 s)")
-    p.add_argument("--seed", type=int, default=None, metavar="K",
+    p.add_argument("--seed", type=seed, default=None, metavar="K",
                    help="run seed: draws the three excitation seeds of every episode and the "
                         "simulator's perturbations (default: a fresh one, printed so the run can be repeated)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
@@ -295,7 +295,7 @@ def _replay(args, rate: float):
     try:
         plans = replay_plans(args.replay, controller)
     except ValueError as exc:
-        raise _Fail(f"--replay: {exc}") from None
+        raise _Fail(f"{exc} (--replay)") from None
     args.episodes = len(plans)
     from qube_koopman.daq.excitation import ExcitationSettings
 
@@ -427,6 +427,27 @@ def _run(args) -> int:
         backend.close()
 
 
+def _as_logged(rows: list[tuple[str, object]], mcap) -> list[tuple[str, object]]:
+    """The summary's rows, the episode whose log failed counted by the samples its file still holds.
+
+    After a write error the loop has run more ticks than the file keeps (it is readable up to its
+    last flush); the summary gives what can be read, and both counts in the episode's reason line.
+    """
+    if mcap.error is None or not mcap.error.path.exists():
+        return rows
+    import dataclasses
+
+    from qube_koopman.daq.log import read_episode
+
+    try:
+        readable = len(read_episode(mcap.error.path, warn=False))
+    except (OSError, ValueError):  # not even the start readable
+        readable = 0
+    return [(name, dataclasses.replace(r, n_samples=readable, reason=f"{r.reason}; the log holds the first "
+                                       f"{readable} of the {r.n_samples} samples run, marked incomplete"))
+            if name == mcap.error.path.name else (name, r) for name, r in rows]
+
+
 def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
     from qube_koopman.daq.loop import EpisodeResult
     from qube_koopman.daq.session import run_episodes
@@ -474,7 +495,7 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
 
     results = run.results
     started = [r for r in results if r.started]
-    print(summary_table(list(zip(names, results)), timing.stats()))
+    print(summary_table(_as_logged(list(zip(names, results)), mcap), timing.stats()))
     link = _link_summary(results)
     if link:
         print(link)

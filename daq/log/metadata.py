@@ -80,6 +80,23 @@ def _major(version: str) -> str:
     return version.split(".", 1)[0]
 
 
+def _final_status(status: dict[str, str] | None, salvage_note: str) -> tuple[str, str]:
+    """The episode's status and reason from the status record (None when lost) and what the reader salvaged."""
+    skipped = "; skipped: " in salvage_note  # a damaged chunk skipped, samples lost in the middle
+    if status is not None and not skipped:
+        return status.get("status", ""), status.get("reason", "")
+    if " is unusable: " in salvage_note:
+        # A damaged record (flipped bits, a bad CRC) ends the readable part, not the writer;
+        # a damaged chunk framed soundly is skipped, and the note says what it lost.
+        reason = f"corrupted: {salvage_note}" + ("" if skipped else "; the samples after it are lost")
+    else:
+        reason = "no final status record: the writer stopped before finishing the episode"
+    if status is not None:
+        reason += (f"; the log's final status: {status.get('status', '')}"
+                   + (f" ({status['reason']})" if status.get("reason") else ""))
+    return "incomplete", reason
+
+
 def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, *,
                           salvage_note: str = "") -> EpisodeMetadata:
     """Rebuild :class:`EpisodeMetadata` from the records of one file.
@@ -123,15 +140,8 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
         })
         status = records.get(STATUS_RECORD)
         timing = backend_stats = {}
-        if status is None:
-            status_value = "incomplete"
-            if " is unusable: " in salvage_note:
-                # A damaged record (flipped bits, a bad CRC) ends the readable part, not the writer.
-                reason = f"corrupted: {salvage_note}; the samples after it are lost"
-            else:
-                reason = "no final status record: the writer stopped before finishing the episode"
-        else:
-            status_value, reason = status.get("status", ""), status.get("reason", "")
+        status_value, reason = _final_status(status, salvage_note)
+        if status is not None:
             if "timing" in status:
                 timing = json.loads(status["timing"])
             if "backend_stats" in status:

@@ -5,8 +5,11 @@ The reader walks the MCAP records itself instead of using
 10k-sample episode), while the fixed-layout sample messages of a chunk can
 be viewed with one ``np.frombuffer``. Walking the records also makes the
 salvage of a truncated file exact: a record is used only if it is whole,
-and a chunk only if it decompresses and passes its CRC. Non-sample records
-are parsed with the mcap library's record classes.
+and a chunk only if it decompresses and passes its CRC. A damaged chunk whose
+record framing is intact (the next record starts where its length says) is
+skipped, and every intact chunk after it is read: the gap (which samples are
+lost) is reported, and the episode read is marked incomplete. Non-sample
+records are parsed with the mcap library's record classes.
 """
 
 from __future__ import annotations
@@ -90,6 +93,8 @@ class _Scan:
         self.blocks: list[np.ndarray] = []
         self.n_chunks = 0
         self.problem = ""
+        #: Damaged chunks skipped: (what was wrong, the index in ``blocks`` the samples after it start at).
+        self.gaps: list[tuple[str, int]] = []
 
     def run(self, data: bytes) -> None:
         if len(data) == 0:
@@ -119,9 +124,42 @@ class _Scan:
                     return
                 self._record(op, view[pos + 9:end])
             except _Damaged as exc:
-                self.problem = f"{name} record at byte {pos} is unusable: {exc}"
-                return
+                problem = f"{name} record at byte {pos} is unusable: {exc}"
+                if op == _CHUNK and self._framed_after(data, end):
+                    self.gaps.append((problem, len(self.blocks)))
+                else:
+                    self.problem = problem
+                    return
             pos = end
+
+    @staticmethod
+    def _framed_after(data: bytes, end: int) -> bool:
+        """Whether a record (of a known kind) or the end of the file follows a damaged one at ``end``.
+
+        Then the damage is inside the record, its length field sound, and the records after it
+        can be read; otherwise nothing after it can be trusted to start where it seems to.
+        """
+        return end == len(data) or (end + 9 <= len(data) and data[end] in _OPNAMES)
+
+    def gap_notes(self, n_recorded: str | None) -> list[str]:
+        """One line per skipped chunk: what was wrong, which samples are lost, how many were read after.
+
+        Parameters
+        ----------
+        n_recorded : str or None
+            The status record's sample count, if it survived (it tells what a gap at the end lost).
+        """
+        notes = []
+        for problem, i in self.gaps:
+            first = int(self.blocks[i - 1]["seq"][-1]) + 1 if i > 0 else 0
+            after = sum(len(b) for b in self.blocks[i:])
+            if i < len(self.blocks):
+                last = int(self.blocks[i]["seq"][0]) - 1
+            else:
+                last = int(n_recorded) - 1 if n_recorded and n_recorded.isdigit() else None
+            lost = f"samples {first} to {last} lost" if last is not None else f"the samples from {first} on lost"
+            notes.append(f"{problem}; skipped: {lost}, {after} read after it")
+        return notes
 
     def _record(self, op: int, body: memoryview) -> None:
         from mcap.records import Channel, Metadata, Schema
@@ -248,11 +286,29 @@ def _scan(path: str | os.PathLike, decode_chunks: bool) -> tuple[_Scan, EpisodeM
     if EPISODE_RECORD not in scan.records and scan.problem:
         raise ValueError(f"{path}: unreadable episode log: {scan.problem}, before any episode metadata")
     status = scan.records.get(STATUS_RECORD)
-    if decode_chunks and status is not None and not scan.problem:
+    if decode_chunks and status is not None and not scan.problem and not scan.gaps:
         n = sum(len(b) for b in scan.blocks)
         if status.get("n_samples") != str(n):
             scan.problem = f"status record counts {status.get('n_samples')} samples, the file holds {n}"
-    return scan, metadata_from_records(scan.records, str(path), salvage_note=scan.problem)
+    notes = scan.gap_notes(None if status is None else status.get("n_samples"))
+    note = "; ".join([*notes, *([scan.problem] if scan.problem else [])])
+    return scan, metadata_from_records(scan.records, str(path), salvage_note=note)
+
+
+def _in_sequence(blocks: list[np.ndarray], gaps: set[int]) -> bool:
+    """Sample sequence numbers 0, 1, 2, ..., jumping forward only where a damaged chunk was skipped."""
+    expected = 0
+    for i, block in enumerate(blocks):
+        seq = block["seq"]
+        if len(seq) == 0:
+            continue
+        start = int(seq[0])
+        if not (start > expected if i in gaps else start == expected):
+            return False
+        if not np.array_equal(seq, start + np.arange(len(seq))):
+            return False
+        expected = start + len(seq)
+    return True
 
 
 def read_episode_metadata(path: str | os.PathLike) -> EpisodeMetadata:
@@ -276,7 +332,11 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
     A file cut short (the writer was killed) or damaged is read up to its
     last whole chunk: the episode then has ``metadata.salvaged = True``,
     ``metadata.salvage_note`` saying what was wrong, and status
-    ``"incomplete"`` unless the final status record survived.
+    ``"incomplete"`` unless the final status record survived. A damaged
+    chunk inside the file is skipped and the chunks after it read: the
+    samples then jump over the gap (``t`` shows it), the salvage note names
+    the samples lost, and the status is ``"incomplete"`` (its reason gives
+    the final status the log recorded, if it did).
 
     Parameters
     ----------
@@ -312,7 +372,7 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
             return blocks[0][name] if len(blocks) == 1 else np.concatenate([b[name] for b in blocks])
         if not (column("cdr_header") == _CDR_LE).all():
             raise ValueError(f"{where}: sample messages are not plain little-endian CDR")
-        if not np.array_equal(column("seq"), np.arange(sum(map(len, blocks)))):
+        if not _in_sequence(blocks, {i for _, i in scan.gaps}):
             raise ValueError(f"{where}: sample sequence numbers are not 0, 1, 2, ... "
                              f"(samples missing, duplicated or out of order)")
         arrays = {name: column(name) for name in (*SIGNALS, "saturation")

@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import os
+import secrets
+import stat
 import struct
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Mapping
 
 import numpy as np
+
+try:
+    import fcntl
+except ImportError:  # not a POSIX system: temporary files are not locked
+    fcntl = None
 
 from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
 from qube_koopman.daq.log.metadata import STATUS_RECORD, episode_records, status_record
@@ -24,7 +30,7 @@ from qube_koopman.daq.log.schema import (
     state_field,
 )
 
-__all__ = ["EpisodeWriter", "write_episode", "COMPRESSIONS"]
+__all__ = ["EpisodeWriter", "write_episode", "remove_stale_temp_files", "COMPRESSIONS"]
 
 COMPRESSIONS = ("zstd", "lz4", "none")
 
@@ -306,8 +312,7 @@ def write_episode(path: str | os.PathLike, episode: Episode, *, overwrite: bool 
     status, reason = meta.status, meta.status_reason
     if status == "incomplete":
         status, reason = "aborted", f"incomplete log: {reason or 'no final status'}"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    fd, tmp = _temp_file(path)
     try:
         writer = EpisodeWriter(tmp, meta, flush_interval_s=None, compression=compression, overwrite=True)
         writer.write_samples(episode)
@@ -324,4 +329,86 @@ def write_episode(path: str | os.PathLike, episode: Episode, *, overwrite: bool 
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        os.close(fd)  # releases the lock
     return path
+
+
+def _temp_name(path: Path, tag: str = "*") -> str:
+    return f".{path.name}.{tag}.tmp"
+
+
+def _temp_file(path: Path) -> tuple[int, str]:
+    """A new hidden file beside ``path``, locked while its writer lives, as ``(fd, name)``.
+
+    Created like :func:`open` creates a file (mode 0666 less the umask; ``tempfile.mkstemp``
+    makes 0600 whatever the umask), exclusively, and held under an advisory lock (``flock``)
+    until ``fd`` is closed, so :func:`remove_stale_temp_files` never takes a live one. A
+    cleaner that took it in the instant between its creation and its lock is seen (the name
+    no longer leads to it): another name is tried.
+    """
+    for _ in range(100):
+        tmp = path.with_name(_temp_name(path, secrets.token_hex(4)))
+        try:
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+        except FileExistsError:
+            continue
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:  # a file system without locks: then never taken for stale either
+                pass
+        if _same_file(tmp, fd):
+            return fd, str(tmp)
+        os.close(fd)
+    raise FileExistsError(f"{path}: no free temporary name beside it")
+
+
+def _same_file(path: Path, fd: int) -> bool:
+    """Whether ``path`` still names the file open as ``fd``."""
+    try:
+        named, held = os.stat(path), os.fstat(fd)
+    except FileNotFoundError:
+        return False
+    return (named.st_dev, named.st_ino) == (held.st_dev, held.st_ino)
+
+
+def remove_stale_temp_files(folder: str | os.PathLike, suffix: str = ".mcap") -> list[Path]:
+    """Remove what interrupted :func:`write_episode` calls left in ``folder``; return the files removed.
+
+    Only hidden ``.<name><suffix>.<tag>.tmp`` regular files (the names :func:`write_episode`
+    gives its temporary files) are candidates, and of those only the ones no live writer
+    holds locked (a writer locks its file as it creates it, see :func:`_temp_file`). Without
+    ``fcntl`` (not a POSIX system) nothing is removed.
+
+    Parameters
+    ----------
+    folder : str or PathLike
+        The folder logs are written to.
+    suffix : str, default ".mcap"
+        The suffix of the logs whose temporary files are looked for.
+
+    Returns
+    -------
+    list of Path
+        The files removed.
+    """
+    removed = []
+    if fcntl is None or not Path(folder).is_dir():
+        return removed
+    for tmp in sorted(Path(folder).glob(f".*{suffix}.*.tmp")):
+        try:
+            fd = os.open(tmp, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
+        except OSError:  # gone, a link, unreadable: not ours to judge
+            continue
+        try:
+            info = os.fstat(fd)
+            if not stat.S_ISREG(info.st_mode):
+                continue
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # OSError: a writer holds it
+            os.unlink(tmp)
+            removed.append(tmp)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return removed

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from qube_koopman.identify.cli.common import CliError, output_dir, run_command
-from qube_koopman.sim.cli.common import add_standard_options
+from qube_koopman.sim.cli.common import add_standard_options, whole_number
 
 __all__ = ["main"]
 
@@ -47,8 +47,8 @@ def _parser() -> argparse.ArgumentParser:
                         "with validation, calibration.rrd (rerun recording of the replayed episodes and spectra; "
                         "needs the viz extra)")
     p.add_argument("--horizon", type=float, default=0.2, metavar="S", help="shooting segment length (default 0.2)")
-    p.add_argument("--delay", type=int, default=0, metavar="N", help="transport delay in samples (default 0)")
-    p.add_argument("--max-nfev", type=int, default=40, metavar="N", help="solver iteration budget (default 40)")
+    p.add_argument("--delay", type=whole_number(0), default=0, metavar="N", help="transport delay in samples (default 0)")
+    p.add_argument("--max-nfev", type=whole_number(1), default=40, metavar="N", help="solver iteration budget (default 40)")
     add_standard_options(p, "no progress line")
     return p
 
@@ -57,7 +57,7 @@ def _read(paths):
     from qube_koopman.identify.data import load_logs
 
     try:
-        logs = load_logs(paths, strict=True)
+        logs = load_logs(paths, strict=True, refusal="refused: qube-calibrate fits complete, readable logs only")
     except ValueError as exc:
         raise CliError(str(exc)) from None
     from qube_koopman.daq.log import read_episode
@@ -80,8 +80,6 @@ def _run(args) -> int:
         val_paths += held
     if not 0.004 <= args.horizon <= 2.0:
         raise CliError(f"--horizon must be between 0.004 and 2 s, got {args.horizon}")
-    if args.delay < 0 or args.max_nfev < 1:
-        raise CliError("--delay must be >= 0 and --max-nfev >= 1")
     episodes = _read(fit_paths)
     started = time.perf_counter()
     cal = PlantCalibration(horizon=args.horizon, delay=args.delay, max_nfev=args.max_nfev,
@@ -111,7 +109,7 @@ def _run(args) -> int:
     try:
         save_plant(args.out, PlantFile(cal.params_, cal.standard_errors_, provenance))
     except OSError as exc:
-        raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None
+        raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
     print(text)
     if args.report is not None:
         write_report(output_dir(args.report), text, validation, val_dt)

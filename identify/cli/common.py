@@ -13,7 +13,21 @@ from qube_koopman.sim.cli.common import ProgressCallback, configure_logging
 
 
 class CliError(Exception):
-    """A user mistake: printed as one line, exit status 2, no traceback."""
+    """A user mistake (exit status 2), or with ``status=1`` a failure at run time such as a write error.
+
+    Printed as one line, no traceback.
+
+    Parameters
+    ----------
+    message : str
+        The problem, naming the file first when there is one.
+    status : int, default 2
+        The exit status: 2 for a user mistake, 1 for a run-time failure.
+    """
+
+    def __init__(self, message: str, status: int = 2) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 def fail(prog: str, message: str) -> int:
@@ -54,7 +68,7 @@ def write_json(path: Path, data) -> None:
         tmp.write_text(json.dumps(_standard(data), indent=2, allow_nan=False) + "\n")
         tmp.replace(path)
     except OSError as exc:
-        raise CliError(f"{path}: cannot write: {exc.strerror or exc}") from None
+        raise CliError(f"{path}: cannot write: {exc.strerror or exc}", status=1) from None
 
 
 #: The ``progress(label, done, total)`` callback the library's long steps report to: a tqdm bar
@@ -67,8 +81,11 @@ def run_command(prog: str, command, args) -> int:
 
     Errors read ``<prog>: error: <problem>`` (the problem names the file first when there is
     one); a log left out of the data (incomplete or unreadable), or a test prediction that
-    diverged, is one ``<prog>: warning:`` line naming it. Log lines go to stderr at the level ``-v``/``-q`` ask for; ``-q`` also silences
-    the progress bars.
+    diverged, is one ``<prog>: warning:`` line naming it. Log lines go to stderr at the level
+    ``-v``/``-q`` ask for; ``-q`` also silences the progress bars. Exit status: the command's, 2
+    for a user mistake (:class:`CliError`), 1 for a failure at run time (a :class:`CliError`
+    saying so, or an ``OSError`` such as a full disk, named by its file), 130 when interrupted
+    (Ctrl-C).
     """
     configure_logging(prog, args)
     progress.enabled = not getattr(args, "quiet", False)
@@ -90,10 +107,15 @@ def run_command(prog: str, command, args) -> int:
             warnings.showwarning = show
             return command(args)
     except CliError as exc:
-        return fail(prog, str(exc))
+        fail(prog, str(exc))
+        return exc.status
     except KeyboardInterrupt:
-        return fail(prog, "interrupted")
+        fail(prog, "interrupted")
+        return 130  # 128 + SIGINT, as qube-run
     except BrokenPipeError:
         # The reader went away (e.g. piped into `head`): nothing left to tell it.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except OSError as exc:  # a write or read failing at run time (a full disk...): no traceback
+        fail(prog, f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
         return 1

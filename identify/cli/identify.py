@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import logging
 import sys
 import warnings
 from pathlib import Path
@@ -66,7 +67,7 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_version
+    from qube_koopman.sim.cli.common import add_version, seed, whole_number
 
     p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -76,20 +77,20 @@ def _parser() -> argparse.ArgumentParser:
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
     data.add_argument("--train", nargs="+", metavar="LOG", help="training logs (files or folders)")
     data.add_argument("--test", nargs="+", metavar="LOG", help="test logs (files or folders)")
-    data.add_argument("--skip", type=int, default=500, metavar="N",
+    data.add_argument("--skip", type=whole_number(0), default=500, metavar="N",
                       help="samples dropped at the start of each episode (default %(default)s: the rig's "
                            "hand-raising second)")
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
     lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
-    lift.add_argument("--poly", type=int, metavar="ORDER", help="monomial order (1: none; default 2)")
+    lift.add_argument("--poly", type=whole_number(1), metavar="ORDER", help="monomial order (1: none; default 2)")
     lift.add_argument("--trig", action="store_true",
                       help="append sin and cos of theta and alpha (after the monomials, before the delays)")
-    lift.add_argument("--delays", type=int, metavar="N", help="time delays (default 10)")
+    lift.add_argument("--delays", type=whole_number(0), metavar="N", help="time delays (default 10)")
     lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions")
-    lift.add_argument("--rbf-centers", type=int, default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
+    lift.add_argument("--rbf-centers", type=whole_number(1), default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
     lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
     lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)")
-    lift.add_argument("--rbf-seed", type=int, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
+    lift.add_argument("--rbf-seed", type=seed, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
     lift.add_argument("--const", action="store_true",
                       help="append a constant lifting function (an affine term: the model's equilibrium is "
                            "not pinned at the measured zero)")
@@ -102,12 +103,12 @@ def _parser() -> argparse.ArgumentParser:
     reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
     reg.add_argument("--alpha-sweep", nargs=3, metavar=("MIN", "MAX", "N"),
                      help="choose alpha among N log-spaced values by episode-grouped cross-validation")
-    fit.add_argument("--cv-splits", type=int, default=3, metavar="K",
+    fit.add_argument("--cv-splits", type=whole_number(1), default=3, metavar="K",
                      help="random splits holding out 20%% of the training episodes (default %(default)s)")
-    fit.add_argument("--cv-seed", type=int, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
+    fit.add_argument("--cv-seed", type=seed, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
     fit.add_argument("--score", choices=["cl", "plant"], default="cl",
                      help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
-    fit.add_argument("--arx-lags", type=int, default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
+    fit.add_argument("--arx-lags", type=whole_number(1), default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
     fit.add_argument("--max-radius", type=float, metavar="R",
                      help="constrain the closed loop's eigenvalues to |lambda - C| <= R (C: --pole-center, "
                           "default 0: the spectral radius), the plant left free; CL EDMD with the controller "
@@ -210,17 +211,16 @@ def _check_args(args) -> None:
         raise CliError("no data: give LOGS --split paper, or --train LOGS... --test LOGS...")
     if args.split and not args.logs:
         raise CliError("--split paper needs LOGS")
-    if args.skip < 0 or args.delays < 0 or args.poly < 1 or args.cv_splits < 1 or args.arx_lags < 1:
-        raise CliError("--skip and --delays must be >= 0, --poly, --cv-splits and --arx-lags >= 1")
     if args.alpha is not None and not args.alpha >= 0:
         raise CliError(f"--alpha must be a non-negative number, got {args.alpha}")
     if args.alpha_sweep:
         try:
             lo, hi, n = float(args.alpha_sweep[0]), float(args.alpha_sweep[1]), int(args.alpha_sweep[2])
         except ValueError:
-            raise CliError("--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30") from None
+            raise CliError(f"--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30, got "
+                           f"{' '.join(args.alpha_sweep)}") from None
         if not (0 < lo < hi) or n < 2:
-            raise CliError("--alpha-sweep needs 0 < MIN < MAX and N >= 2")
+            raise CliError(f"--alpha-sweep needs 0 < MIN < MAX and N >= 2, got {' '.join(args.alpha_sweep)}")
         args.alpha_sweep = (lo, hi, n)
     if args.method in ("arx", "cl-arx") and args.alpha_sweep:
         raise CliError("--alpha-sweep is for the Koopman methods (edmd, cl-edmd, cl-edmd-lstsq)")
@@ -236,12 +236,27 @@ def _check_args(args) -> None:
         if args.method != "cl-edmd" or args.alpha_sweep:
             raise CliError("--max-radius constrains a single CL EDMD fit (--method cl-edmd, no --alpha-sweep)")
         args.method = "cl-edmd-stable"
-    if not (args.estimate_window > 0 and args.offset_bound > 0):
-        raise CliError("--estimate-window and --offset-bound must be positive")
+    for option, value in (("--estimate-window", args.estimate_window), ("--offset-bound", args.offset_bound)):
+        if not value > 0:
+            raise CliError(f"{option} must be positive, got {value}")
     if args.rerun and importlib.util.find_spec("rerun") is None:
-        raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"')
+        raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"', status=1)
     if args.rerun and not Path(args.rerun).resolve().parent.is_dir():  # before any work, not after the fit
         raise CliError(f"{args.rerun}: folder {Path(args.rerun).parent} does not exist (--rerun)")
+
+
+def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
+    """Refuse a log among both the training and the test logs: its test score would be meaningless."""
+    def key(path: Path):
+        info = path.stat()
+        return info.st_dev, info.st_ino  # the same file by any name (a link, another path)
+
+    training = {key(p) for p in train_paths}
+    both = list(dict.fromkeys(str(p) for p in test_paths if key(p) in training))
+    if both:
+        more = f" and {len(both) - 3} more" if len(both) > 3 else ""
+        raise CliError(f"{', '.join(both[:3])}{more}: among both the training and the test logs (a test "
+                       "score on training data means nothing)")
 
 
 def _load(args):
@@ -251,6 +266,7 @@ def _load(args):
         train_paths, test_paths = paper_split(_expand(args.logs))
     else:
         train_paths, test_paths = _expand(args.train), _expand(args.test)
+    _check_disjoint(train_paths, test_paths)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", IncompleteLogSkipped)
         train = load_logs(train_paths, skip=args.skip, strict=args.strict)
@@ -274,8 +290,8 @@ def _run(args) -> int:
     try:
         train, test, controller = _load(args)
         out = output_dir(args.out)  # after the logs load (no empty folder for a bad one), before the fit
-        print(f"{len(train)} training and {len(test)} test episodes, {args.skip} samples dropped from each",
-              file=sys.stderr)
+        logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
+                                         len(train), len(test), args.skip)
         what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
         offsets = (OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound)
                    if args.offsets else None)

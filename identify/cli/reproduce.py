@@ -24,7 +24,7 @@ Reproduce the closed-loop Koopman paper's results.
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_standard_options
+    from qube_koopman.sim.cli.common import add_standard_options, seed
 
     parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -35,7 +35,7 @@ def _parser() -> argparse.ArgumentParser:
                                          "score their plant predictions on the noise-free test episode.")
     duffing.add_argument("--out", default="results", metavar="DIR",
                          help="folder for duffing.json (created if missing; default: %(default)s)")
-    duffing.add_argument("--seed", type=int, default=1234,
+    duffing.add_argument("--seed", type=seed, default=1234,
                          help="seed of the whole experiment: references, noise, RBF centres (default: %(default)s)")
     duffing.add_argument("--alpha", type=float, default=None, metavar="A",
                          help="Tikhonov coefficient of EDMD and CL EDMD (default: 1e-6, numerically zero; "
@@ -92,7 +92,7 @@ def _qube(args) -> int:
     try:
         (out / "qube.md").write_text(qube_markdown(results))
     except OSError as exc:
-        raise CliError(f"cannot write {out / 'qube.md'}: {exc.strerror or exc}") from None
+        raise CliError(f"{out / 'qube.md'}: cannot write: {exc.strerror or exc}", status=1) from None
     print(f"wrote {out / 'qube.json'} and {out / 'qube.md'}")
     return 0
 

@@ -13,7 +13,7 @@ import platform
 import sys
 
 __all__ = ["package_version", "add_standard_options", "add_version", "configure_logging", "LOGGER",
-           "progress_bar", "ProgressCallback"]
+           "progress_bar", "ProgressCallback", "whole_number", "seed"]
 
 #: The project's logger namespace: modules log with ``logging.getLogger(__name__)`` under it.
 LOGGER = "qube_koopman"
@@ -32,6 +32,40 @@ def package_version() -> str:
         return version(DISTRIBUTION)
     except PackageNotFoundError:
         return "unknown"
+
+
+def whole_number(minimum: int, maximum: int | None = None):
+    """An argparse ``type``: a whole number of at least ``minimum``, else a usage error naming the value.
+
+    Parameters
+    ----------
+    minimum : int
+        The smallest value accepted.
+    maximum : int, optional
+        The largest value accepted (default: no limit).
+
+    Returns
+    -------
+    callable
+        ``parse(text) -> int``, raising :class:`argparse.ArgumentTypeError` (argparse then
+        names the option: ``argument --seed: must be a whole number >= 0, got -5``).
+    """
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < minimum or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"must be a whole number {bounds}, got {value}")
+        return value
+
+    bounds = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
+    parse.__name__ = f"whole number {bounds}"
+    return parse
+
+
+#: The argparse ``type`` of every seed option: numpy seeds are non-negative whole numbers.
+seed = whole_number(0)
 
 
 def add_standard_options(parser: argparse.ArgumentParser, quiet_help: str = "no progress bar", *,

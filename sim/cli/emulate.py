@@ -36,7 +36,8 @@ host's first HELLO):
   --silence-at 2 / --vanish-at 2                               the bridge hangs / is unplugged
 
 exit status: 0 when stopped by Ctrl-C or SIGTERM or after vanishing as asked,
-1 when the emulator cannot run (no C compiler...), 2 on a usage error.
+1 when the emulator cannot run (no C compiler...) or --record/--stats cannot
+be written at exit, 2 on a usage error.
 """
 
 
@@ -63,7 +64,7 @@ _TIME = _number(0.0, 1e6, "a time")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options
+    from qube_koopman.sim.cli.common import add_standard_options, seed, whole_number
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -71,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="host (default): the firmware core compiled for this machine; avr: the whole Uno "
                         "sketch on an emulated ATmega328P (simavr; Debian packages gcc-avr avr-libc "
                         "arduino-core-avr simavr libsimavr-dev libsimavrparts1), real time, no fault injection")
-    p.add_argument("--seed", type=int, default=None, metavar="K",
+    p.add_argument("--seed", type=seed, default=None, metavar="K",
                    help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
     p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
                    help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
@@ -104,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
                        ("vanish-at", "the device disappears (the pseudo-terminal is closed)"),
                        ("hold-at", "the firmware is held for --hold-periods periods (periods lost)")):
         faults.add_argument(f"--{name}", type=_TIME, default=None, metavar="S", help=f"{what} at S")
-    faults.add_argument("--hold-periods", type=int, default=10, metavar="N",
+    faults.add_argument("--hold-periods", type=whole_number(1, 100_000), default=10, metavar="N",
                         help="periods the --hold-at hold lasts (default 10)")
     out = p.add_argument_group("output")
     out.add_argument("--record", default=None, metavar="FILE.csv",
@@ -115,23 +116,35 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _write_outputs(emulator, args) -> None:
+def _write_outputs(emulator, args) -> list[str]:
+    """Write --stats and --record; return the errors, one ``<file>: cannot write: <reason>`` each."""
     import json
 
+    errors = []
+
+    def write(path: str, fill) -> None:
+        try:
+            with open(path, "w") as f:
+                fill(f)
+        except OSError as exc:  # a full disk at exit: the other file is still written
+            errors.append(f"{path}: cannot write: {exc.strerror or exc}")
+
     if args.stats:
-        with open(args.stats, "w") as f:
-            json.dump({"stats": emulator.stats(), "faults": emulator.faults.as_dict(),
-                       "vanished_at": emulator.vanished_at,
-                       "events": [{"device_us": d, "wall": w, "event": e} for d, w, e in emulator.events]},
-                      f, indent=1)
+        write(args.stats, lambda f: json.dump(
+            {"stats": emulator.stats(), "faults": emulator.faults.as_dict(), "vanished_at": emulator.vanished_at,
+             "events": [{"device_us": d, "wall": w, "event": e} for d, w, e in emulator.events]}, f, indent=1))
     if args.record:
         from qube_koopman.sim.bridge import RECORD_FIELDS
 
         record = emulator.record()
-        with open(args.record, "w") as f:
+
+        def rows(f) -> None:
             f.write(",".join(RECORD_FIELDS) + "\n")
             for row in zip(*(record[name].tolist() for name in RECORD_FIELDS)):
                 f.write(",".join(repr(v) for v in row) + "\n")
+
+        write(args.record, rows)
+    return errors
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,7 +211,9 @@ def main(argv: list[str] | None = None) -> int:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         emulator.close()
-        _write_outputs(emulator, args)
+        errors = _write_outputs(emulator, args)
+    for error in errors:
+        print(f"{PROG}: error: {error}", file=sys.stderr)
     if not args.quiet:
         s = emulator.stats()
         end = "vanished as asked" if emulator.vanished_at is not None else "stopped"
@@ -206,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{s['sessions']} session(s), {s['commands']} commands, {s['late_ticks']} ticks caught up late, "
               f"{s['slips']} schedule restarts "
               f"(max lateness {s['max_lateness'] * 1e3:.1f} ms)", file=sys.stderr)
-    return 0
+    return 1 if errors else 0
 
 
 _AVR_OPTIONS = ("target", "seed", "perturbation", "hanging", "quiet", "verbose")
