@@ -72,11 +72,12 @@ def controller_file(name_or_path: str | Path) -> Path:
     """The path of a controller file: an existing file, or a shipped one by name.
 
     A name of :data:`SHIPPED_CONTROLLERS` (``"rig"``, ``"soft-theta"``) that is
-    not also a file in the working folder gives the package's file; anything
-    else is taken as a path (and reported by :func:`load_pd_gains` if missing).
+    not also a file in the working folder gives the package's file (a folder of
+    that name, such as episodes in ``./rig``, does not count); anything else is
+    taken as a path (and reported by :func:`load_pd_gains` if missing).
     """
     path = Path(name_or_path)
-    if str(name_or_path) in SHIPPED_CONTROLLERS and not path.exists():
+    if str(name_or_path) in SHIPPED_CONTROLLERS and not path.is_file():
         # resources.files on the package's own name: the file is found in a wheel as in a checkout.
         return Path(str(resources.files(__package__) / SHIPPED_CONTROLLERS[str(name_or_path)]))
     return path

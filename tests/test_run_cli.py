@@ -291,6 +291,10 @@ def test_shipped_controllers_by_name_and_a_file_of_that_name_wins(tmp_path, monk
     assert load_pd_gains("soft-theta").kp_theta == 1.0
     assert main(["--episodes", "1", "--duration", "2", "--controller", "rig", "--out", "e", "-q"]) == 0
     assert read_episode_metadata(next((tmp_path / "e").glob("*.mcap"))).controller.gains["kp_theta"] == 6.0
+    # A folder named like a shipped controller (episodes in ./rig, say) is not a controller file.
+    assert main(["--episodes", "1", "--duration", "2", "--out", "rig", "-q"]) == 0
+    assert load_pd_gains("rig") == PdGains(6.0, 1.8, 30.0, 2.5, 50.0)
+    assert main(["--episodes", "1", "--duration", "2", "--out", "rig", "-q"]) == 0
 
 
 @pytest.mark.parametrize("content, problem", [(None, "No such file or directory"),
