@@ -66,6 +66,7 @@ def whole_number(minimum: int, maximum: int | None = None):
 
 #: The argparse ``type`` of every seed option: numpy seeds are non-negative whole numbers.
 seed = whole_number(0)
+seed.__doc__ = "The argparse ``type`` of every seed option: a whole number >= 0 (numpy seeds are non-negative)."
 
 
 def add_standard_options(parser: argparse.ArgumentParser, quiet_help: str = "no progress bar", *,
