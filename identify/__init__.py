@@ -9,7 +9,8 @@ symbols. Heavy libraries (cvxpy, python-control) are imported only when used.
 from qube_koopman.identify.arx import Arx, ClArx
 from qube_koopman.identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from qube_koopman.identify.edmd import Edmd
-from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Lifting, LiftingFunction, Polynomial, ThinPlateRbf, Trigonometric
+from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Lifting, LiftingFunction,
+                                           Polynomial, ThinPlateRbf, Trigonometric)
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.regression import Snapshots, constrained_plant_solve, ridge_solve
 from qube_koopman.identify.scores import normalized_mean_error, nrmse, r2_score, score_episodes
@@ -21,6 +22,7 @@ from qube_koopman.identify.trajectory import Trajectory
 
 __all__ = [
     "Trajectory", "Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf", "Trigonometric",
+    "CoulombFriction",
     "Edmd", "ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq", "ClEdmdSdp", "Arx", "ClArx", "KoopmanModel",
     "Snapshots", "ridge_solve", "constrained_plant_solve",
     "close_loop", "closed_loop_matrices", "extract_plant_lstsq", "output_selection",

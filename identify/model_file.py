@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Lifting, Polynomial, ThinPlateRbf, Trigonometric
+from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Lifting, Polynomial,
+                                           ThinPlateRbf, Trigonometric)
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -34,6 +35,8 @@ def lifting_to_dict(lifting: Lifting) -> dict:
             pass
         elif isinstance(step, Trigonometric):
             entry["features"] = list(step.features)
+        elif isinstance(step, CoulombFriction):
+            entry.update(feature=step.feature, lag=step.lag, width=step.width)
         elif isinstance(step, (ThinPlateRbf, GaussianRbf)):
             entry.update(shape=step.shape, centers=step.centers_.tolist())
             if isinstance(step, ThinPlateRbf):
@@ -57,6 +60,8 @@ def lifting_from_dict(data: dict) -> Lifting:
             steps.append(Constant())
         elif kind == "Trigonometric":
             steps.append(Trigonometric(entry["features"]))
+        elif kind == "CoulombFriction":
+            steps.append(CoulombFriction(entry["feature"], entry["lag"], entry["width"]))
         elif kind == "ThinPlateRbf":
             steps.append(ThinPlateRbf(len(entry["centers"]), entry["shape"], entry["offset"], centers=entry["centers"]))
         elif kind == "GaussianRbf":

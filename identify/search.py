@@ -1,22 +1,30 @@
-"""Lifting search: choose the lifting, the regularization and the offset protocol by
-episode-grouped cross-validation on the training episodes only.
+"""Lifting search: choose the lifting, the regularization and the offset protocol on the
+training episodes only, for the question users ask: transfer to another controller.
 
-Every candidate is scored the way the test episodes will be: its closed loop
+Every candidate is scored twice. Cross-validation: the way the test episodes will be, its closed loop
 predicts each validation episode's measured states from the episode's start,
 under the recorded controller, and R^2 is taken from the end of the offset
 estimation window on (the same samples whether offsets are estimated or not,
 so the two protocols compare). A candidate's statistics are computed once per
 episode and merged per fold, and every alpha is then a small solve on them
-(:func:`~qube_koopman.identify.sweep.regularization_sweep`).
+(:func:`~qube_koopman.identify.sweep.regularization_sweep`). Transfer: with
+probes (:mod:`~qube_koopman.identify.transfer`), its plant fitted on all the
+training episodes, wrapped with probe controllers unlike the training one,
+predicts twin episodes run under them. Candidates rank by the lower of the
+two (:attr:`CandidateResult.objective`): cross-validation under the training
+controller alone rewards liftings that fit that loop's own correlations
+(high-order monomials, RBFs), which diverged under other controllers.
 
 The space is searched in stages, each a coordinate step from the best so far
 (a full product of the default space would be about 1,400 liftings):
 
 1. ``delays``: every delay count, with the base form (monomials of order 2);
 2. ``form``: at the best delays, every monomial order x constant x sin/cos;
-3. ``rbf``: at the best so far, every number of thin-plate RBF centres;
-4. ``offsets``: the best candidates so far again, with per-episode offsets
-   estimated on each validation episode (at their best alphas).
+3. ``friction``: the best so far with and without the arm's Coulomb friction
+   shape (:class:`~qube_koopman.identify.lifting.CoulombFriction`);
+4. ``rbf``: at the best so far, every number of thin-plate RBF centres;
+5. ``offsets``: the best candidates so far again, with per-episode offsets
+   estimated on each validation episode and probe (at their best alphas).
 
 Candidates of a stage are independent: they run through joblib, on local
 cores (``n_jobs``) or on a dask.distributed cluster (see :func:`search_liftings`).
@@ -31,7 +39,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from qube_koopman.identify.cl_edmd import ClEdmd
-from qube_koopman.identify.lifting import Constant, Delay, Polynomial, ThinPlateRbf, Trigonometric
+from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, Polynomial, ThinPlateRbf, Trigonometric
 from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets_many
 from qube_koopman.identify.scores import r2_scores
 from qube_koopman.identify.sweep import regularization_sweep
@@ -43,7 +51,8 @@ __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "sea
            "evaluate_candidate"]
 
 MEASURED = [0, 1]
-STAGES = ("delays", "form", "rbf", "offsets")
+STAGES = ("delays", "form", "friction", "rbf", "offsets")
+FRICTION_LAG = 10  # samples: CoulombFriction's default, and the fewest delays it needs
 
 
 @dataclass(frozen=True, order=True)
@@ -62,6 +71,9 @@ class LiftingSpec:
         Thin-plate RBF centres on the delayed state (0: none).
     const : bool
         Append a constant (an affine term).
+    friction : bool
+        Append the arm's Coulomb friction shape (:class:`CoulombFriction` of
+        theta over 10 samples, after the RBFs); needs at least 10 delays.
     offsets : bool
         Estimate an alpha offset on each validation (and test) episode.
     """
@@ -72,6 +84,7 @@ class LiftingSpec:
     rbf: int = 0
     const: bool = False
     offsets: bool = False
+    friction: bool = False
 
     def steps(self, rbf_seed: int = 0) -> list:
         """The lifting functions, in the order of ``qube-identify``'s options."""
@@ -82,6 +95,8 @@ class LiftingSpec:
             steps.append(Delay(self.delays))
         if self.rbf:
             steps.append(ThinPlateRbf(self.rbf, seed=rbf_seed))
+        if self.friction:
+            steps.append(CoulombFriction(0, FRICTION_LAG))
         if self.const:
             steps.append(Constant())
         return steps
@@ -91,7 +106,7 @@ class LiftingSpec:
         from math import comb
 
         pointwise = comb(n_states + self.poly, self.poly) - 1 + (2 * n_states if self.trig else 0)
-        return pointwise * (self.delays + 1) + self.rbf + int(self.const)
+        return pointwise * (self.delays + 1) + self.rbf + int(self.friction) + int(self.const)
 
     def flags(self, rbf_seed: int = 0) -> list[str]:
         """The ``qube-identify`` options that fit this lifting by hand (without alpha)."""
@@ -99,12 +114,14 @@ class LiftingSpec:
         if self.rbf:
             out += ["--rbf", "thin-plate", "--rbf-centers", str(self.rbf)] + (
                 ["--rbf-seed", str(rbf_seed)] if rbf_seed else [])
-        return out + (["--const"] if self.const else []) + (["--offsets", "alpha"] if self.offsets else [])
+        return (out + (["--friction"] if self.friction else []) + (["--const"] if self.const else [])
+                + (["--offsets", "alpha"] if self.offsets else []))
 
     def label(self) -> str:
         """A short readable name, e.g. ``"poly 2, 20 delays, const, offsets"``."""
         parts = [f"poly {self.poly}"] + (["sin/cos"] if self.trig else []) + [f"{self.delays} delays"]
-        parts += ([f"{self.rbf} RBF"] if self.rbf else []) + (["const"] if self.const else [])
+        parts += ([f"{self.rbf} RBF"] if self.rbf else []) + (["friction"] if self.friction else [])
+        parts += ["const"] if self.const else []
         return ", ".join(parts + (["offsets"] if self.offsets else []))
 
 
@@ -124,6 +141,7 @@ class SearchSpace:
     rbf: tuple[int, ...] = (0, 25, 50, 100)
     alphas: tuple[float, ...] = tuple(np.logspace(-6, 2, 17).tolist())
     offsets: tuple[bool, ...] = (False, True)
+    friction: tuple[bool, ...] = (False, True)
     base: LiftingSpec = LiftingSpec(delays=0, poly=2)
     n_offset_candidates: int = 3  # stage 4 re-scores this many of the best with offsets
     n_offset_alphas: int = 3      # ... each at its best alphas
@@ -144,6 +162,8 @@ class SearchSpace:
         if stage == "form":
             return [replace(lead, poly=p, const=c, trig=t) for p in self.poly for c in self.const
                     for t in self.trig]
+        if stage == "friction":
+            return [replace(lead, friction=f) for f in self.friction if not f or lead.delays >= FRICTION_LAG]
         if stage == "rbf":
             return [replace(lead, rbf=n) for n in self.rbf]
         if stage == "offsets":

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from qube_koopman.identify import (ClEdmd, Constant, Delay, Edmd, GaussianRbf, Lifting, Polynomial, ThinPlateRbf, Trajectory, Trigonometric, closed_loop_matrices,
+from qube_koopman.identify import (ClEdmd, Constant, CoulombFriction, Delay, Edmd, GaussianRbf, Lifting, Polynomial, ThinPlateRbf, Trajectory, Trigonometric, closed_loop_matrices,
                       controller_states, output_selection, plant_input, plant_input_map, r2_score)
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
@@ -160,6 +160,7 @@ def test_structure_helpers_reproduce_simulated_signals(loop):
     [Polynomial(2)],                                # no delays
     [Polynomial(2), Delay(3), Constant()],          # the shift path with an affine term
     [Delay(2), Constant(), GaussianRbf(4, seed=2)], # a constant inside the history path
+    [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],  # friction: the history path
 ])
 def test_fast_predictor_equals_naive_relifting(loop, lifting):
     from naive_reference import naive_predict

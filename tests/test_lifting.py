@@ -123,3 +123,19 @@ def test_wrong_width_and_too_short(episodes):
         lift.transform(np.zeros((10, 3)))
     with pytest.raises(ValueError, match="too few"):
         lift.transform(np.zeros((5, 2)))
+
+
+def test_coulomb_friction_is_the_smoothed_sign_of_the_motion_over_its_lag(episodes):
+    from qube_koopman.identify.lifting import CoulombFriction
+
+    lifting = Lifting([Delay(4), CoulombFriction(0, lag=3, width=0.2)]).fit(episodes, ["theta", "alpha"])
+    x = episodes[0]
+    z = lifting.transform(x)
+    assert lifting.feature_names_out_[-1] == "friction(theta)" and z.shape[1] == 2 * 5 + 1
+    np.testing.assert_allclose(z[:, -1], np.tanh((x[4:, 0] - x[1:-3, 0]) / 0.2), rtol=1e-12)
+    np.testing.assert_array_equal(z[:, :-1], Lifting([Delay(4)]).fit(episodes).transform(x))
+    with pytest.raises(ValueError, match="needs a Delay step of at least 5"):
+        Lifting([Delay(4), CoulombFriction(0, lag=5)]).fit(episodes)
+    for bad in (dict(lag=0), dict(width=0.0), dict(feature=-1)):
+        with pytest.raises(ValueError, match="friction"):
+            CoulombFriction(**bad)

@@ -59,7 +59,8 @@ def _naive_fold_score(spec, trajs, controller, splits, alpha, offsets):
 
 
 @pytest.mark.parametrize("spec", [LiftingSpec(delays=3, poly=2), LiftingSpec(delays=2, poly=1, trig=True, const=True),
-                                  LiftingSpec(delays=5, poly=1, offsets=True)])
+                                  LiftingSpec(delays=5, poly=1, offsets=True),
+                                  LiftingSpec(delays=10, poly=1, friction=True, const=True)])
 def test_candidate_scores_equal_a_naive_refit_per_fold(small, spec):
     trajs, controller, splits = small
     alphas = np.array([1e-4, 1e-2, 1.0])
@@ -87,7 +88,7 @@ def test_batched_offset_estimates_equal_levenberg_marquardt(small):
 
 
 @pytest.mark.parametrize("spec", [LiftingSpec(0, 1), LiftingSpec(5, 3, trig=True, const=True),
-                                  LiftingSpec(2, 2, rbf=4, const=True)])
+                                  LiftingSpec(2, 2, rbf=4, const=True), LiftingSpec(12, 1, rbf=3, friction=True)])
 def test_spec_size_matches_the_fitted_lifting(small, spec):
     trajs = small[0]
     lifting = Lifting(spec.steps()).fit([t.x for t in trajs[:2]], ("theta", "alpha"))
@@ -104,6 +105,11 @@ def test_stages_step_from_the_best_so_far():
     assert {(s.poly, s.const) for s in form} == {(1, False), (1, True), (2, False), (2, True)}
     assert all(s.delays == 4 for s in form)
     assert space.stage_candidates("rbf", [lead]) == [LiftingSpec(4, 2, rbf=0), LiftingSpec(4, 2, rbf=3)]
+    # Friction needs 10 delays (its motion is measured over 10 samples): at 4, only "off" is tried.
+    assert space.stage_candidates("friction", [lead]) == [LiftingSpec(4, 2)]
+    long = replace(lead, spec=LiftingSpec(20, 1))
+    assert space.stage_candidates("friction", [long]) == [LiftingSpec(20, 1), LiftingSpec(20, 1, friction=True)]
+    assert LiftingSpec(20, 1, friction=True).flags() == ["--poly", "1", "--delays", "20", "--friction"]
     assert space.stage_candidates("offsets", [lead]) == [LiftingSpec(4, 2, offsets=True)]
     assert replace(space, offsets=(False,)).stage_candidates("offsets", [lead]) == []
     with pytest.raises(ValueError, match="poly"):

@@ -25,7 +25,7 @@ Examples:
 
 With --search the lifting, alpha and offset protocol are chosen on the
 training episodes only, in stages (delays; monomial order x constant x sin/cos;
-RBF centres; offsets on the best few). Each candidate is scored twice: by
+friction on/off; RBF centres; offsets on the best few). Each candidate is scored twice: by
 episode-grouped cross-validation (closed-loop prediction under the training
 controller, from the end of the --estimate-window on) and, with --transfer twin
 (the default), by transfer: its plant, wrapped with three probe PD controllers
@@ -36,7 +36,7 @@ not run. The winner is fitted on all training episodes, written to model.json
 and scored on the test episodes from the same sample as the candidates;
 report.md lists every candidate with both scores and the flags that refit the
 winner by hand. --search-space FILE.toml narrows or widens the space (keys:
-delays, poly, const, trig, rbf, alphas, offsets: lists).
+delays, poly, const, trig, friction, rbf, alphas, offsets: lists).
 
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
@@ -91,6 +91,9 @@ def _parser() -> argparse.ArgumentParser:
     lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
     lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)")
     lift.add_argument("--rbf-seed", type=seed, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
+    lift.add_argument("--friction", action="store_true",
+                      help="append the arm's Coulomb friction shape, tanh((theta_k - theta_k-10) / 0.002 rad), "
+                           "after the RBFs (needs --delays 10 or more)")
     lift.add_argument("--const", action="store_true",
                       help="append a constant lifting function (an affine term: the model's equilibrium is "
                            "not pinned at the measured zero)")
@@ -161,7 +164,8 @@ def _expand(items) -> list[Path]:
 
 
 def _lifting(args) -> list:
-    from qube_koopman.identify.lifting import Constant, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
+    from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf,
+                                               Trigonometric)
 
     steps = []
     if args.poly > 1:
@@ -174,6 +178,8 @@ def _lifting(args) -> list:
         steps.append(ThinPlateRbf(args.rbf_centers, args.rbf_shape, args.rbf_offset, seed=args.rbf_seed))
     elif args.rbf == "gaussian":
         steps.append(GaussianRbf(args.rbf_centers, args.rbf_shape, seed=args.rbf_seed))
+    if args.friction:
+        steps.append(CoulombFriction(0, 10))
     if args.const:
         steps.append(Constant())
     return steps
@@ -181,7 +187,7 @@ def _lifting(args) -> list:
 
 def _check_search_args(args) -> None:
     chosen = [flag for flag, given in (("--poly", args.poly is not None), ("--delays", args.delays is not None),
-                                       ("--trig", args.trig),
+                                       ("--trig", args.trig), ("--friction", args.friction),
                                        ("--rbf", args.rbf != "none"), ("--const", args.const),
                                        ("--alpha", args.alpha is not None), ("--alpha-sweep", args.alpha_sweep),
                                        ("--offsets", args.offsets), ("--max-radius", args.max_radius is not None))
@@ -211,6 +217,9 @@ def _check_args(args) -> None:
         raise CliError("no data: give LOGS --split paper, or --train LOGS... --test LOGS...")
     if args.split and not args.logs:
         raise CliError("--split paper needs LOGS")
+    if args.friction and args.delays < 10:
+        raise CliError(f"--friction measures the arm's motion over 10 samples: it needs --delays 10 or more, "
+                       f"got --delays {args.delays}")
     if args.alpha is not None and not args.alpha >= 0:
         raise CliError(f"--alpha must be a non-negative number, got {args.alpha}")
     if args.alpha_sweep:

@@ -9,7 +9,8 @@ from pathlib import Path
 
 from qube_koopman.identify.cli.common import CliError, progress
 
-_LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool, "trig": bool, "offsets": bool}
+_LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool, "trig": bool, "offsets": bool,
+          "friction": bool}
 
 
 def load_space(path: str | None):

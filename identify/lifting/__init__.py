@@ -3,8 +3,10 @@
 from qube_koopman.identify.lifting.base import Lifting, LiftingFunction
 from qube_koopman.identify.lifting.constant import Constant
 from qube_koopman.identify.lifting.delay import Delay
+from qube_koopman.identify.lifting.friction import CoulombFriction
 from qube_koopman.identify.lifting.polynomial import Polynomial
 from qube_koopman.identify.lifting.rbf import GaussianRbf, ThinPlateRbf
 from qube_koopman.identify.lifting.trig import Trigonometric
 
-__all__ = ["Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf", "Trigonometric"]
+__all__ = ["Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf", "Trigonometric",
+           "CoulombFriction"]
