@@ -108,12 +108,14 @@ def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(lowest_venv, tm
         assert installed.get(name) == version, (name, installed.get(name))
 
     # The commands, from the installed wheel: acquire, record, identify, export.
-    logs = tmp_path / "logs"
+    logs, held_out = tmp_path / "logs", tmp_path / "held_out"
     steps = [
         [bin_dir / "qube-run", "--episodes", "4", "--duration", "2", "--seed", "1", "--out", logs,
          "--rerun-save", tmp_path / "run.rrd", "-q"],
+        [bin_dir / "qube-run", "--episodes", "1", "--duration", "2", "--seed", "2", "--out", held_out, "-q"],
         [bin_dir / "rerun", "rrd", "verify", tmp_path / "run.rrd"],
-        [bin_dir / "qube-identify", "--train", logs, "--test", logs, "--delays", "2", "--out", tmp_path / "model",
+        # training and test logs apart: qube-identify refuses a log given as both
+        [bin_dir / "qube-identify", "--train", logs, "--test", held_out, "--delays", "2", "--out", tmp_path / "model",
          "--rerun", tmp_path / "id.rrd"],
         [bin_dir / "qube-export", logs, "--format", "parquet", "--out", tmp_path / "pq", "-q"],
         [bin_dir / "qube-export", logs, "--format", "mat", "--out", tmp_path / "mat", "-q"],
