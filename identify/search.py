@@ -130,8 +130,8 @@ class SearchSpace:
     """The values each stage tries (see the module docstring), and the alpha grid.
 
     The defaults span delays 0 to 40, monomial orders 1 to 3, constant and
-    sin/cos on and off, 0 to 100 RBF centres, alpha on a log grid of two
-    points per decade, offsets on and off.
+    sin/cos on and off, the arm's friction shape on and off, 0 to 100 RBF
+    centres, alpha on a log grid of two points per decade, offsets on and off.
     """
 
     delays: tuple[int, ...] = (0, 5, 10, 15, 20, 25, 30, 35, 40)

@@ -116,13 +116,15 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
     ProbeSet
     """
     from qube_koopman.daq.controller import PdGains, pd_controller
-    from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, ZeroOffsetDistribution, simulate_closed_loop
+    from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
 
     trajectories = list(trajectories)
     if not trajectories or per_controller < 1:
         raise ValueError("probes need training episodes and at least one episode per controller")
     params = PendulumParameters() if params is None else params
     distribution = ZeroOffsetDistribution() if isinstance(zero_offsets, str) and zero_offsets == "rig" else zero_offsets
+    if distribution is not None and not isinstance(distribution, ZeroOffsetDistribution):
+        raise ValueError(f"zero_offsets must be 'rig', None or a ZeroOffsetDistribution, got {zero_offsets!r}")
     rng = np.random.default_rng(seed)
     dt = trajectories[0].dt
     out = ProbeSet([], [], [], [tuple(float(v) for v in g) for g in gains])
@@ -130,30 +132,39 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
     for i, g in enumerate(out.gains):
         controller = pd_controller(PdGains(*g), dt, "backward-euler")
         sources = [trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
-        n = min(t.n_samples for t in sources)
-        r = np.stack([t.r[:n] for t in sources], axis=1)
-        f = np.stack([t.f[:n].reshape(n) for t in sources], axis=1)
         start = np.zeros((per_controller, 4))
-        start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)
-        zeros = np.array([0.0 if zero_offsets is None else distribution.draw(rng) for _ in range(per_controller)])
-        run = simulate_closed_loop(start, controller, r, f, params, SensorModel(), rng=rng, alpha_offsets=zeros)
-        kept, kept_zeros = [], []
-        for j in range(per_controller):
-            y = run.measurements[:, j]
-            if np.any(np.abs(y[:, 0]) > THETA_LIMIT) or np.any(np.abs(y[:, 1]) > ALPHA_LIMIT):
-                dropped += 1
-                continue
-            kept.append(Trajectory(x=y[skip:], u=run.plant_input[skip:, j, None], r=r[skip:, j],
-                                   f=f[skip:, j, None], xc=run.controller_states[skip:, j], dt=dt,
-                                   name=f"probe {i + 1}.{j + 1}", state_names=("theta", "alpha")))
-            kept_zeros.append(zeros[j])
+        start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)  # hand-raised, within half a degree
+        zeros = np.array([0.0 if distribution is None else distribution.draw(rng) for _ in range(per_controller)])
+        kept, kept_zeros = _run_probes(controller, sources, start, zeros, params, rng, skip, f"probe {i + 1}")
+        dropped += per_controller - len(kept)
         if kept:
             out.controllers.append(controller)
             out.episodes.append(kept)
-            out.alpha_offsets.append(np.array(kept_zeros))
+            out.alpha_offsets.append(kept_zeros)
     if not out.controllers:
         raise ValueError("no probe episode stayed balanced on the twin")
     return ProbeSet(out.controllers, out.episodes, out.alpha_offsets, out.gains, dropped)
+
+
+def _run_probes(controller: DiscreteStateSpace, sources: Sequence[Trajectory], start: np.ndarray, zeros: np.ndarray,
+                params, rng: np.random.Generator, skip: int, label: str) -> tuple[list[Trajectory], np.ndarray]:
+    """The sources' excitations under ``controller`` on the twin from ``start``, one batch; those that stayed up."""
+    from qube_koopman.sim.pendulum import SensorModel, simulate_closed_loop
+
+    n, k = min(t.n_samples for t in sources), len(sources)
+    r = np.stack([t.r[:n] for t in sources], axis=1)
+    f = np.stack([t.f[:n].reshape(n) for t in sources], axis=1)
+    run = simulate_closed_loop(start, controller, r, f, params, SensorModel(), rng=rng, alpha_offsets=zeros)
+    kept, kept_zeros = [], []
+    for j in range(k):
+        y = run.measurements[:, j]
+        if np.any(np.abs(y[:, 0]) > THETA_LIMIT) or np.any(np.abs(y[:, 1]) > ALPHA_LIMIT):
+            continue
+        kept.append(Trajectory(x=y[skip:], u=run.plant_input[skip:, j, None], r=r[skip:, j], f=f[skip:, j, None],
+                               xc=run.controller_states[skip:, j], dt=controller.dt, name=f"{label}.{j + 1}",
+                               state_names=("theta", "alpha")))
+        kept_zeros.append(zeros[j])
+    return kept, np.array(kept_zeros)
 
 
 def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: float,

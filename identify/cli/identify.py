@@ -52,8 +52,8 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
     search.add_argument("--search", action="store_true",
                         help="choose lifting, alpha and offsets by cross-validation (see above)")
     search.add_argument("--search-space", metavar="FILE.toml",
-                        help="the values to try (default: delays 0-40 by 5, poly 1-3, const and sin/cos on/off, "
-                             "0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
+                        help="the values to try (default: delays 0-40 by 5, poly 1-3, const, sin/cos and friction "
+                             "on/off, 0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
     search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
                         help="worker processes for the search (default %(default)s: every core)")
     search.add_argument("--transfer", choices=["twin", "none"], default="twin",
