@@ -107,7 +107,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     is predicted under that controller instead; only episodes recorded under
     it are scored. Without offsets, ``score_from`` (samples) scores the test
     episodes from that sample on instead of the paper's sample 1 (as a
-    search scores its candidates). A diverged test prediction is reported by
+    search scores its candidates), for every method. A diverged test prediction is reported by
     episode and sample with a :class:`~qube_koopman.identify.scores.DivergedPrediction`
     warning.
     """
@@ -139,7 +139,9 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
             plant, closed, predictions = _arx(method, trajs, test, controller, arx_lags, score, result)
             if model_path is not None:
                 Path(model_path).write_text(_arx_json(method, arx_lags, plant, closed))
-            _summarize(result, test, predictions, None, 1, PAPER_PROTOCOL)
+            dt = test[0].trajectory.dt
+            _summarize(result, test, predictions, None, 1 if score_from is None else score_from,
+                       PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt))
         else:
             raise ValueError(f"unknown method {method!r}")
     result.plant, result.closed_loop = plant, closed

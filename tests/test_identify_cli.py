@@ -194,3 +194,18 @@ def test_a_missing_model_file_is_named_once(tmp_path):
     with pytest.raises(ValueError) as caught:
         load_model(path)
     assert str(caught.value) == f"{path}: not a readable model file (No such file or directory)"
+
+
+@pytest.mark.parametrize("method", ["cl-edmd", "cl-arx"])
+def test_protocol_window_scores_from_the_end_of_the_estimation_window(small_set, tmp_path, capsys, method):
+    # The search scores candidates from the window's end; --protocol window scores the test episodes
+    # the same way (the default with --search or --offsets); the paper's protocol from sample 1.
+    reports = {}
+    for protocol in ("paper", "window"):
+        code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--method", method,
+                           "--protocol", protocol, "--estimate-window", "0.5", "--out", tmp_path / protocol)
+        assert code == 0, err
+        reports[protocol] = json.loads((tmp_path / protocol / "report.json").read_text())
+    assert reports["paper"]["scored_from_sample"] == 1 and "the paper's" in reports["paper"]["protocol"]
+    assert reports["window"]["scored_from_sample"] == 250 and "scored from sample 250" in reports["window"]["protocol"]
+    assert reports["window"]["test"]["r2_per_episode"] != reports["paper"]["test"]["r2_per_episode"]
