@@ -140,3 +140,22 @@ def test_weighted_offsets_on_the_calibrated_twin_beat_the_unweighted_cost(real_t
     errors, rms = _soft_arm_offset_errors(real_train, None)
     assert rms[True] < 0.85 * rms[False]
     assert abs(errors[True].mean()) < abs(errors[False].mean()) and rms[True] <= 0.7
+
+
+
+def test_offset_status_says_flat_and_beyond_bound_aloud():
+    from qube_koopman.identify.offsets import OffsetEstimate
+
+    def estimate(value, se):
+        return OffsetEstimate((1,), np.array([value]), 500, 0.05, 0.01, 0.005, np.array([se]))
+
+    assert estimate(0.003, 1e-4).status == "ok" and estimate(0.003, 1e-4).as_mapping() == {1: 0.003}
+    flat = estimate(0.003, 0.02)  # a standard error above a quarter of the bound: the window hardly sees it
+    assert flat.status == "flat" and flat.as_mapping() == {1: 0.003}
+    assert estimate(0.003, np.inf).status == "flat"
+    beyond = estimate(0.08, 1e-4)
+    assert beyond.status == "beyond bound" and beyond.as_mapping() == {}
+    row = flat.as_dict(["alpha"])
+    assert row == {"alpha": 0.003, "alpha_std_error": 0.02, "plausible": True, "status": "flat",
+                   "rms_before": 0.01, "rms_after": 0.005}
+    assert estimate(0.003, np.inf).as_dict(["alpha"])["alpha_std_error"] is None  # strict JSON
