@@ -50,7 +50,7 @@ from qube_koopman.identify.trajectory import Trajectory
 
 __all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "estimate_offsets_many",
            "predict_with_offsets_many", "shift_trajectory", "predict_with_offsets", "predict_estimating_offsets",
-           "resolve_channels", "channel_scales", "DEFAULT_BOUND", "SPREAD_FLOOR"]
+           "resolve_channels", "channel_scales", "scores_after_window", "DEFAULT_BOUND", "SPREAD_FLOOR"]
 
 #: Largest plausible offset (rad) by default: 16 encoder counts of the QUBE; the dataset's are ~1.
 DEFAULT_BOUND = 0.05
@@ -377,3 +377,22 @@ def predict_estimating_offsets(model, trajectory: Trajectory, channels: Sequence
         warnings.warn(f"trajectory {trajectory.name!r}: estimated offsets {estimate.values.tolist()} exceed "
                       f"the plausibility bound {bound:g}; not used", OffsetWarning, stacklevel=2)
     return predict_with_offsets(model, trajectory, estimate.as_mapping(), relift), estimate
+
+
+def scores_after_window(model, trajectories: Sequence[Trajectory], window: int, offsets: bool,
+                        bound: float = DEFAULT_BOUND) -> np.ndarray:
+    """R^2 of each episode's prediction from sample ``window`` on, its alpha offset estimated first or not.
+
+    The protocol candidates and probes are scored by: the whole episode predicted from its start
+    (with the offset estimated from the first ``window`` samples when ``offsets``), R^2 averaged
+    over the measured states, -inf for a diverged prediction.
+    """
+    from qube_koopman.identify.scores import r2_scores
+
+    trajectories = list(trajectories)
+    if offsets:
+        estimates = estimate_offsets_many(model, trajectories, ["alpha"], window, bound)
+        predictions = predict_with_offsets_many(model, trajectories, estimates)
+    else:
+        predictions = model.predict_many(trajectories)
+    return np.array([float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, predictions)])

@@ -40,8 +40,7 @@ import numpy as np
 
 from qube_koopman.identify.cl_edmd import ClEdmd
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, Polynomial, ThinPlateRbf, Trigonometric
-from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets_many
-from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
 from qube_koopman.identify.sweep import regularization_sweep
 from qube_koopman.identify.trajectory import Trajectory
 from qube_koopman.identify.transfer import ProbeSet, probe_scores
@@ -351,9 +350,7 @@ def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndar
     from qube_koopman.identify.regression import Snapshots
     from qube_koopman.identify.sweep import fit_alphas, fitted_models
 
-    mean = cv.mean(axis=0)
-    mean = np.where(np.isfinite(mean), mean, -np.inf)
-    top = np.sort(np.argsort(-mean, kind="stable")[:min(data.n_transfer_alphas, data.alphas.size)])
+    top = np.sort(_best_alphas(cv, data.n_transfer_alphas))
     if statistics is not None:
         setup, per_episode = statistics
         with limited_blas_threads(1):
@@ -367,21 +364,23 @@ def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndar
     return out
 
 
+def _best_alphas(cv: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` best alphas by mean fold score (-inf where a fold diverged), best first."""
+    mean = cv.mean(axis=0)
+    mean = np.where(np.isfinite(mean), mean, -np.inf)
+    return np.argsort(-mean, kind="stable")[:min(k, mean.size)]
+
+
 def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
     """Fold scores with an alpha offset estimated on each validation episode, at the best alphas."""
     from qube_koopman.identify._blas import limited_blas_threads
 
-    mean = np.where(np.isfinite(plain.mean(axis=0)), plain.mean(axis=0), -np.inf)
-    top = np.argsort(-mean, kind="stable")[:min(3, data.alphas.size)]
-    out = np.full_like(plain, np.nan)
+    out, top = np.full_like(plain, np.nan), _best_alphas(plain, 3)
     with limited_blas_threads(1):
         for i, (closed, _, validation) in enumerate(sweep.fold_models):
             held_out = [data.trajectories[k] for k in validation]
             for j in top:
-                estimates = estimate_offsets_many(closed[j], held_out, ["alpha"], data.window, data.bound)
-                predictions = predict_with_offsets_many(closed[j], held_out, estimates)
-                out[i, j] = np.mean([float(r2_scores(t.x[data.window:], p[data.window:]))
-                                     for t, p in zip(held_out, predictions)])
+                out[i, j] = np.mean(scores_after_window(closed[j], held_out, data.window, True, data.bound))
     return out
 
 

@@ -190,19 +190,9 @@ def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: flo
     ndarray of shape (n_episodes,)
         Mean R^2 of theta and alpha per probe episode (-inf: diverged).
     """
-    from qube_koopman.identify.offsets import estimate_offsets_many, predict_with_offsets_many
-    from qube_koopman.identify.scores import r2_scores
+    from qube_koopman.identify.offsets import scores_after_window
     from qube_koopman.identify.structure import close_loop
 
-    scores = []
-    for controller, episodes in zip(probes.controllers, probes.episodes):
-        closed = close_loop(plant, controller, list(measured))
-        if offsets:
-            estimates = estimate_offsets_many(closed, episodes, ["alpha"], window, bound)
-            predictions = predict_with_offsets_many(closed, episodes, estimates)
-        else:
-            predictions = closed.predict_many(episodes)
-        for t, p in zip(episodes, predictions):
-            tail = p[window:]
-            scores.append(float(np.mean(r2_scores(t.x[window:], tail))) if np.all(np.isfinite(tail)) else -np.inf)
-    return np.array(scores)
+    return np.concatenate([scores_after_window(close_loop(plant, controller, list(measured)), episodes, window,
+                                               offsets, bound)
+                           for controller, episodes in zip(probes.controllers, probes.episodes)])
