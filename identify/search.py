@@ -51,7 +51,7 @@ __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "sea
 
 MEASURED = [0, 1]
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
-FRICTION_LAG = 10  # samples: CoulombFriction's default, and the fewest delays it needs
+FRICTION_LAG = CoulombFriction().lag  # samples: the fewest delays the friction lifting needs
 
 
 @dataclass(frozen=True, order=True)
@@ -95,7 +95,7 @@ class LiftingSpec:
         if self.rbf:
             steps.append(ThinPlateRbf(self.rbf, seed=rbf_seed))
         if self.friction:
-            steps.append(CoulombFriction(0, FRICTION_LAG))
+            steps.append(CoulombFriction())
         if self.const:
             steps.append(Constant())
         return steps

@@ -179,7 +179,7 @@ def _lifting(args) -> list:
     elif args.rbf == "gaussian":
         steps.append(GaussianRbf(args.rbf_centers, args.rbf_shape, seed=args.rbf_seed))
     if args.friction:
-        steps.append(CoulombFriction(0, 10))
+        steps.append(CoulombFriction())
     if args.const:
         steps.append(Constant())
     return steps
@@ -217,9 +217,13 @@ def _check_args(args) -> None:
         raise CliError("no data: give LOGS --split paper, or --train LOGS... --test LOGS...")
     if args.split and not args.logs:
         raise CliError("--split paper needs LOGS")
-    if args.friction and args.delays < 10:
-        raise CliError(f"--friction measures the arm's motion over 10 samples: it needs --delays 10 or more, "
-                       f"got --delays {args.delays}")
+    if args.friction:
+        from qube_koopman.identify.lifting import CoulombFriction
+
+        lag = CoulombFriction().lag
+        if args.delays < lag:
+            raise CliError(f"--friction measures the arm's motion over {lag} samples: it needs --delays {lag} or "
+                           f"more, got --delays {args.delays}")
     if args.alpha is not None and not args.alpha >= 0:
         raise CliError(f"--alpha must be a non-negative number, got {args.alpha}")
     if args.alpha_sweep:
