@@ -41,9 +41,8 @@ def _test_section(report: dict) -> list[str]:
             values = ", ".join(f"{k} {v:+.5f}" + (f" ± {e[k + '_std_error']:.5f}" if e.get(k + "_std_error") else "")
                                for k, v in e.items() if isinstance(v, float) and k not in (
                                    "rms_before", "rms_after") and not k.endswith("_std_error"))
-            used = {"ok": "yes", "flat": "yes, but the cost is flat: poorly determined"}.get(
-                e.get("status", "ok" if e["plausible"] else ""),
-                "NO: beyond the bound " + format(report["offset_bound"], "g"))
+            used = {"ok": "yes", "flat": "yes, but the cost is flat: poorly determined",
+                    "beyond bound": "NO: beyond the bound " + format(report["offset_bound"], "g")}[e["status"]]
             row += f" {format_number(plain['r2_per_episode'][i], '.4f')} | {values} ({used}) |"
         lines.append(row)
     return lines
