@@ -10,8 +10,9 @@ QUBE-Servo that is 4 rows of 57.
 Three loops, the fastest that fits the lifting:
 
 - the ring (:class:`_RingStepper`): pointwise steps (monomials, sin/cos), one
-  delay step, optionally one radial basis on the delayed state, then
-  constants: every lifting of the search and of the paper;
+  delay step, optionally one radial basis on the delayed state, Coulomb
+  friction shapes of delayed features, then constants: every lifting of the
+  search and of the paper;
 - the history loop (:class:`_HistoryStepper`): any other lifting, re-lifted
   from the last ``n_delays + 1`` predicted samples at every step;
 - linear propagation of the lifted state (``relift=False``).
@@ -24,7 +25,7 @@ from typing import Callable
 
 import numpy as np
 
-from qube_koopman.identify.lifting import Constant, Delay, Lifting, Polynomial
+from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, Lifting, Polynomial
 from qube_koopman.identify.lifting.rbf import _RadialBasis
 
 __all__ = ["simulate_batch", "simulate_chunks"]
@@ -195,10 +196,12 @@ class _RingLayout:
 
     The lifted state is ``[passthrough (n_p), the pointwise features of the
     last d + 1 samples newest first (slots x n_feat), radial basis values of
-    that delayed vector (n_rbf), constants]``. In the ring the delayed
-    features stay in place and the oldest slot takes the newest sample; the
-    rows of ``A^T`` (and the RBF centres' columns) are permuted to match,
-    one permuted copy per ring position.
+    that delayed vector (n_rbf), Coulomb friction shapes (n_friction),
+    constants]``. In the ring the delayed features stay in place and the
+    oldest slot takes the newest sample; the rows of ``A^T`` (and the RBF
+    centres' columns) are permuted to match, one permuted copy per ring
+    position. A friction shape reads two ages of one delayed feature, found
+    in the ring from its position.
     """
 
     head: list
@@ -210,6 +213,7 @@ class _RingLayout:
     centers: list[np.ndarray] | None
     centers_sq: np.ndarray | None
     picks: list[np.ndarray] | None
+    friction: list[tuple[int, int, float]]  # per friction step: (feature in a slot, age of the past, width)
 
     @classmethod
     def of(cls, lifting: Lifting, n_p: int, m: int, At: np.ndarray) -> "_RingLayout | None":
@@ -219,11 +223,16 @@ class _RingLayout:
             return None
         rest = list(tail[1:])
         rbf = rest.pop(0) if rest and isinstance(rest[0], _RadialBasis) else None
+        friction = []
+        while rest and isinstance(rest[0], CoulombFriction):
+            friction.append(rest.pop(0))
         if not all(isinstance(step, Constant) for step in rest):
             return None
         n_feat = _apply(head, np.zeros((1, m))).shape[-1]
         slots = tail[0].n_delays + 1
         n_shift = slots * n_feat
+        if any(f.feature >= n_feat or f.past_index_ >= n_shift for f in friction):
+            return None  # a friction shape of something other than the delayed features
         n_rbf = 0 if rbf is None else rbf.centers_.shape[0]
         if slots * (At.nbytes + n_shift * n_rbf * 8) > _MAX_RING_BYTES:
             return None
@@ -234,7 +243,8 @@ class _RingLayout:
                  for o in order]
         centers = None if rbf is None else [np.ascontiguousarray(rbf.centers_[:, o].T) for o in order]
         centers_sq = None if rbf is None else np.einsum("ij,ij->i", rbf.centers_, rbf.centers_)
-        return cls(head, n_p, n_feat, slots, rbf, perms, centers, centers_sq, _monomial_picks(head, n_p, m))
+        return cls(head, n_p, n_feat, slots, rbf, perms, centers, centers_sq, _monomial_picks(head, n_p, m),
+                   [(f.feature, f.past_index_ // n_feat, f.width) for f in friction])
 
     def write_newest(self, z: np.ndarray, y: np.ndarray, q: int) -> None:
         """The newest sample's pointwise features (from ``y``: its rows, then ones) into slot ``q``."""
@@ -256,6 +266,15 @@ class _RingLayout:
         n_rbf = self.centers_sq.size
         z[..., lo + n_shift:lo + n_shift + n_rbf] = self.rbf.kernel_values(z[..., lo:lo + n_shift], self.centers[q],
                                                                            self.centers_sq)
+
+
+    def write_friction(self, z: np.ndarray, q: int) -> None:
+        """The friction shapes at ring position ``q``: the age-``a`` sample sits in slot ``(q + a) % slots``."""
+        lo = self.n_p + self.slots * self.n_feat + (0 if self.rbf is None else self.centers_sq.size)
+        newest = self.n_p + q * self.n_feat
+        for j, (c, age, width) in enumerate(self.friction):
+            past = self.n_p + ((q + age) % self.slots) * self.n_feat
+            np.tanh((z[..., newest + c] - z[..., past + c]) / width, out=z[..., lo + j])
 
 
 def _monomial_picks(head, n_p: int, m: int) -> list[np.ndarray] | None:
@@ -294,6 +313,8 @@ class _RingStepper:
         ring.write_newest(z, self.y, q)
         if ring.rbf is not None:
             ring.write_rbf(z, q)
+        if ring.friction:
+            ring.write_friction(z, q)
         z[..., :ring.n_p] = newest[..., :ring.n_p]
 
     def keep(self, models: np.ndarray) -> None:

@@ -160,7 +160,9 @@ def test_structure_helpers_reproduce_simulated_signals(loop):
     [Polynomial(2)],                                # no delays
     [Polynomial(2), Delay(3), Constant()],          # the shift path with an affine term
     [Delay(2), Constant(), GaussianRbf(4, seed=2)], # a constant inside the history path
-    [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],  # friction: the history path
+    [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],  # friction: the ring path
+    [Delay(4), ThinPlateRbf(5, seed=3), CoulombFriction(0, 3, 0.05), CoulombFriction(1, 1, 0.1), Constant()],
+    [Polynomial(2), Delay(3), Constant(), CoulombFriction(0, 2, 0.05)],  # friction after a constant: history
 ])
 def test_fast_predictor_equals_naive_relifting(loop, lifting):
     from naive_reference import naive_predict
@@ -174,6 +176,22 @@ def test_fast_predictor_equals_naive_relifting(loop, lifting):
     np.testing.assert_allclose(cl.predict(t), expected, rtol=1e-10, atol=1e-12)
     plant = model.plant_model_
     np.testing.assert_allclose(plant.predict(t), naive_predict(plant, t.x[:d + 1], t.u), rtol=1e-10, atol=1e-12)
+
+
+def test_every_search_lifting_takes_the_ring(loop):
+    # The ring is the fast path (about 10x the history loop on the search's liftings): a lifting the
+    # search can choose that fell back to the history loop would still predict right, only slowly.
+    from qube_koopman.identify.search import LiftingSpec
+    from qube_koopman.identify.simulate import _RingLayout
+
+    *_, trajs = loop
+    for spec in (LiftingSpec(delays=12, poly=3, friction=True, const=True),
+                 LiftingSpec(delays=12, poly=1, trig=True, rbf=5, friction=True, const=True)):
+        model = ClEdmd(pid_position_controller(), lifting=spec.steps(), alpha=1e-3, measured=[0]).fit(trajs[:2])
+        plant = model.plant_model_
+        At = np.ascontiguousarray(plant.A.T[None, :, :2])
+        ring = _RingLayout.of(plant.lifting, 0, 2, At)
+        assert ring is not None and len(ring.friction) == 1, spec.label()
 
 
 def test_constant_lifting_appends_a_one_and_makes_the_model_affine(loop):
