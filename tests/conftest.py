@@ -130,19 +130,20 @@ def _descendants(root: int) -> dict[int, str]:
     return found
 
 
-def stop_library_daemons() -> None:
-    """Stop joblib's reusable loky workers and the resource trackers of loky and multiprocessing.
+def stop_library_daemons() -> set[int]:
+    """Stop joblib's reusable loky workers; return the pids of the resource trackers left running.
 
-    They are library daemons that live until their parent exits (identification runs its
-    sweeps and searches through joblib); stopping them leaves only real leaks to be found.
-    The executor is terminated, not only shut down: a memmapping folder still in use when
-    its ``Parallel`` call ended is otherwise left to an atexit handler of joblib's, which
-    would unregister it with a tracker started afresh after this one was stopped: a
-    ``KeyError`` traceback from that tracker after pytest's summary (or, folder already
-    gone, a "leaked folder objects" warning from this one).
+    The workers are library daemons that live until their parent exits (identification runs
+    its sweeps and searches through joblib); stopping them leaves only real leaks to be found.
+    The executor is terminated, not only shut down, so that it frees its memmapping folders.
+    The resource trackers of loky and multiprocessing are left to end with this process, as
+    they do for a user: every ``Parallel`` call registers a folder with loky's tracker and an
+    atexit handler that unregisters it, and an unregistration sent to a tracker stopped here
+    would start a fresh one that does not know the folder (a ``KeyError`` traceback on stderr
+    after pytest's summary). A tracker ends when this process closes its pipe.
     """
     if "joblib" not in sys.modules:
-        return
+        return set()
     from multiprocessing import resource_tracker
 
     from joblib.externals.loky import reusable_executor
@@ -152,8 +153,8 @@ def stop_library_daemons() -> None:
     if executor is not None:
         # joblib's executor frees its memmapping folders (and cancels their atexit handlers)
         getattr(executor, "terminate", executor.shutdown)()
-    loky_tracker._resource_tracker._stop()
-    resource_tracker._resource_tracker._stop()
+    return {tracker._pid for tracker in (loky_tracker._resource_tracker, resource_tracker._resource_tracker)
+            if getattr(tracker, "_pid", None) is not None}
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -169,7 +170,7 @@ def no_process_outlives_the_suite():
     before = set(_descendants(os.getpid()))
     _become_subreaper()
     yield
-    stop_library_daemons()
+    before |= stop_library_daemons()  # the resource trackers end with this process
     time.sleep(0.3)  # a process started just now is forked by then
     deadline = time.monotonic() + 5  # give processes being stopped a moment to go
     left = {p: c for p, c in _descendants(os.getpid()).items() if p not in before}
