@@ -109,6 +109,25 @@ def test_synthetic_import_round_trip(synthetic_dir, tmp_path, capsys):
     assert np.isnan(episode.lateness).all() and np.isnan(episode.compute_time).all()
 
 
+def test_an_imported_log_is_chunked_at_most_one_second_of_samples_a_chunk(tmp_path, capsys):
+    # One bad byte costs its chunk: imported logs hold the live writer's 0.5 s chunks (they held the
+    # whole episode in one or two 1 MiB chunks, 15 s of samples, before).
+    from mcap.reader import make_reader
+
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "controller.toml").write_text(GAINS_TOML)
+    write_synthetic_csv(src / f"{GOOD}.csv", n=3000)  # 6 s
+    out = tmp_path / "out"
+    assert main([str(src), "--out", str(out), "-q"]) == 0
+    with open(log_path(out, GOOD), "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    # consecutive samples 2 ms apart: a chunk's time span gives its count
+    per_chunk = [round((c.message_end_time - c.message_start_time) / 2_000_000) + 1 for c in chunks]
+    assert max(per_chunk) <= 500 and sum(per_chunk) == 3000, per_chunk
+    assert per_chunk == [250] * 12
+
+
 def _edit_lines(path: Path, edit) -> None:
     lines = path.read_text().splitlines()
     path.write_text("\n".join(edit(lines)) + "\n")

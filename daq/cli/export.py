@@ -6,11 +6,10 @@ import argparse
 import logging
 import sys
 import warnings
-from pathlib import Path
 
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 from qube_koopman.daq.log.names import LOG_SUFFIX
-from qube_koopman.sim.cli.common import add_standard_options, configure_logging
+from qube_koopman.sim.cli.common import add_standard_options, configure_logging, path
 
 _log = logging.getLogger(__name__)
 
@@ -50,10 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("logs", nargs="+", metavar="LOG",
+    parser.add_argument("logs", nargs="+", type=path, metavar="LOG",
                         help="an episode log (.mcap), or a folder whose *.mcap files are all exported")
     parser.add_argument("--format", required=True, choices=tuple(FORMATS), help="output format")
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (created if missing)")
+    parser.add_argument("--out", required=True, type=path, metavar="DIR", help="output folder (created if missing)")
     parser.add_argument("--force", action="store_true", help="overwrite existing files in DIR")
     add_standard_options(parser, "no progress counter")
     return parser

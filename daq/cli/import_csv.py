@@ -43,15 +43,15 @@ example:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options
+    from qube_koopman.sim.cli.common import add_standard_options, path
 
     parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("sources", nargs="+", metavar="SRC",
+    parser.add_argument("sources", nargs="+", type=path, metavar="SRC",
                         help="a legacy CSV file, or a folder whose *.csv files are all imported")
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+    parser.add_argument("--out", required=True, type=path, metavar="DIR",
                         help="output folder (created if missing)")
-    parser.add_argument("--controller", type=Path, metavar="FILE",
+    parser.add_argument("--controller", type=path, metavar="FILE",
                         help="controller gains (TOML: kp_theta, kd_theta, kp_alpha, kd_alpha, tau) for "
                              "every file; default: the controller.toml beside each CSV file")
     parser.add_argument("--force", action="store_true",

@@ -92,7 +92,7 @@ def _non_negative_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options, seed
+    from qube_koopman.sim.cli.common import add_standard_options, path, seed
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -106,12 +106,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=seed, default=None, metavar="K",
                    help="run seed: draws the three excitation seeds of every episode and the "
                         "simulator's perturbations (default: a fresh one, printed so the run can be repeated)")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
+    p.add_argument("--out", type=path, default=DEFAULT_OUT, metavar="DIR",
                    help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT})")
-    p.add_argument("--replay", type=Path, nargs="+", default=None, metavar="LOG",
+    p.add_argument("--replay", type=path, nargs="+", default=None, metavar="LOG",
                    help="run the same excitations as these logs (their seeds, settings and durations), "
                         "under their own controller unless --controller is given")
-    p.add_argument("--controller", type=Path, default=None, metavar="FILE.toml",
+    p.add_argument("--controller", type=path, default=None, metavar="FILE.toml",
                    help="controller gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau), a file or a shipped "
                         "name: 'rig' (the gains that recorded the paper's dataset: the default) or 'soft-theta' "
                         "(a softer arm, kp_theta 2)")
@@ -122,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", nargs="?", const="", default=None, metavar="URL",
                    help="stream live to a rerun viewer: URL, else one listening on 127.0.0.1:9876, "
                         "else a newly spawned one (needs a display)")
-    p.add_argument("--rerun-save", type=Path, default=None, metavar="FILE.rrd",
+    p.add_argument("--rerun-save", type=path, default=None, metavar="FILE.rrd",
                    help="write a rerun recording of the run (no display needed)")
     safety = p.add_argument_group("safety and simulator")
     safety.add_argument("--theta-limit", type=_positive_float, default=90.0, metavar="DEG",
@@ -132,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     safety.add_argument("--perturbation", type=_non_negative_float, default=2.0, metavar="DEG",
                         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
                              "an episode starts only once |alpha| < 5)")
-    safety.add_argument("--plant", type=Path, default=None, metavar="FILE.toml",
+    safety.add_argument("--plant", type=path, default=None, metavar="FILE.toml",
                         help="the simulated pendulum's physical parameters: a qube-calibrate plant file or a "
                              "named set (default: the twin calibrated on the paper's rig, 'calibrated-20230828'; "
                              "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)")
@@ -398,8 +398,8 @@ def _run(args) -> int:
     try:
         limits = SafetyLimits(theta_limit=math.radians(args.theta_limit),
                               alpha_limit=math.radians(args.alpha_limit))
-    except ValueError as exc:
-        raise _Fail(str(exc)) from None
+    except ValueError as exc:  # the start gate above --alpha-limit (the library's radians)
+        raise _Fail(f"--alpha-limit {args.alpha_limit:g} deg: inside the start gate ({exc})") from None
     if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:
         raise _Fail(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")

@@ -314,7 +314,8 @@ def write_episode(path: str | os.PathLike, episode: Episode, *, overwrite: bool 
         status, reason = "aborted", f"incomplete log: {reason or 'no final status'}"
     fd, tmp = _temp_file(path)
     try:
-        writer = EpisodeWriter(tmp, meta, flush_interval_s=None, compression=compression, overwrite=True)
+        # The live writer's chunks (0.5 s of samples): a damaged byte costs one chunk, never the episode.
+        writer = EpisodeWriter(tmp, meta, compression=compression, overwrite=True)
         writer.write_samples(episode)
         writer.finish(status, reason)
         if overwrite:

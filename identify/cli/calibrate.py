@@ -25,10 +25,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 from qube_koopman.identify.cli.common import CliError, output_dir, run_command
-from qube_koopman.sim.cli.common import add_standard_options, whole_number
+from qube_koopman.sim.cli.common import add_standard_options, path, whole_number
 
 __all__ = ["main"]
 
@@ -36,13 +35,13 @@ __all__ = ["main"]
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="qube-calibrate", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("logs", nargs="+", type=Path, help="episode logs (.mcap) to fit")
-    p.add_argument("--out", type=Path, required=True, metavar="FILE.toml", help="plant file to write")
+    p.add_argument("logs", nargs="+", type=path, help="episode logs (.mcap) to fit")
+    p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="plant file to write")
     p.add_argument("--split", choices=("none", "paper"), default="none",
                    help="paper: fit the first 28 logs by name, validate on the rest")
-    p.add_argument("--validate", nargs="+", type=Path, default=[], metavar="LOG",
+    p.add_argument("--validate", nargs="+", type=path, default=[], metavar="LOG",
                    help="logs to validate on (never fitted)")
-    p.add_argument("--report", type=Path, default=None, metavar="DIR",
+    p.add_argument("--report", type=path, default=None, metavar="DIR",
                    help="write report.md there (the tables; with validation also band powers twin vs real) and, "
                         "with validation, calibration.rrd (rerun recording of the replayed episodes and spectra; "
                         "needs the viz extra)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import logging
+import math
 import sys
 import warnings
 from pathlib import Path
@@ -46,12 +47,20 @@ report.json, report.md, and with --rerun FILE.rrd a rerun recording.
 
 METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
 
+# Bounds of the counts that size the fit: beyond them numpy fails (10**30 centres: "Maximum allowed
+# dimension exceeded") or the monomials never end. Ten times the search space's largest.
+MAX_POLY = 10
+MAX_RBF_CENTERS = 1000
+MAX_ALPHAS = 1000
+
 
 def _add_search_options(p: argparse.ArgumentParser) -> None:
+    from qube_koopman.sim.cli.common import path
+
     search = p.add_argument_group("lifting search")
     search.add_argument("--search", action="store_true",
                         help="choose lifting, alpha and offsets by cross-validation (see above)")
-    search.add_argument("--search-space", metavar="FILE.toml",
+    search.add_argument("--search-space", type=path, metavar="FILE.toml",
                         help="the values to try (default: delays 0-40 by 5, poly 1-3, const, sin/cos and friction "
                              "on/off, 0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
     search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
@@ -67,27 +76,29 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_version, seed, whole_number
+    from qube_koopman.sim.cli.common import add_version, path, seed, whole_number
 
     p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_version(p)
     data = p.add_argument_group("data")
-    data.add_argument("logs", nargs="*", metavar="LOGS", help="episode logs (.mcap files or folders), with --split")
+    data.add_argument("logs", nargs="*", type=path, metavar="LOGS", help="episode logs (.mcap files or folders), with --split")
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
-    data.add_argument("--train", nargs="+", metavar="LOG", help="training logs (files or folders)")
-    data.add_argument("--test", nargs="+", metavar="LOG", help="test logs (files or folders)")
+    data.add_argument("--train", nargs="+", type=path, metavar="LOG", help="training logs (files or folders)")
+    data.add_argument("--test", nargs="+", type=path, metavar="LOG", help="test logs (files or folders)")
     data.add_argument("--skip", type=whole_number(0), default=500, metavar="N",
                       help="samples dropped at the start of each episode (default %(default)s: the rig's "
                            "hand-raising second)")
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
     lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
-    lift.add_argument("--poly", type=whole_number(1), metavar="ORDER", help="monomial order (1: none; default 2)")
+    lift.add_argument("--poly", type=whole_number(1), metavar="ORDER",
+                      help=f"monomial order (1: none; default 2; at most {MAX_POLY})")
     lift.add_argument("--trig", action="store_true",
                       help="append sin and cos of theta and alpha (after the monomials, before the delays)")
     lift.add_argument("--delays", type=whole_number(0), metavar="N", help="time delays (default 10)")
     lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions")
-    lift.add_argument("--rbf-centers", type=whole_number(1), default=50, metavar="N", help="RBF centres, Latin hypercube (default %(default)s)")
+    lift.add_argument("--rbf-centers", type=whole_number(1, MAX_RBF_CENTERS), default=50, metavar="N",
+                      help=f"RBF centres, Latin hypercube (default %(default)s, at most {MAX_RBF_CENTERS})")
     lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
     lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)")
     lift.add_argument("--rbf-seed", type=seed, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
@@ -133,15 +144,15 @@ def _parser() -> argparse.ArgumentParser:
                       help="window: score the test episodes from the end of --estimate-window, as --search scores "
                            "its candidates (the default with --search or --offsets); paper: from the second "
                            "sample, the paper's protocol (the default otherwise; not with --offsets)")
-    pred.add_argument("--controller", metavar="FILE.toml",
+    pred.add_argument("--controller", type=path, metavar="FILE.toml",
                       help="what-if: predict every test episode under this controller's gains (kp_theta, "
                            "kd_theta, kp_alpha, kd_alpha, tau; backward Euler as on the rig) instead of its "
                            "log's own (a file, or a shipped name: rig, soft-theta); only episodes recorded "
                            "under it are scored")
     _add_search_options(p)
     out = p.add_argument_group("output")
-    out.add_argument("--out", default="identified", metavar="DIR", help="output folder (default %(default)s)")
-    out.add_argument("--rerun", metavar="FILE.rrd", help="also write a rerun recording of the results")
+    out.add_argument("--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)")
+    out.add_argument("--rerun", type=path, metavar="FILE.rrd", help="also write a rerun recording of the results")
     return p
 
 
@@ -211,6 +222,8 @@ def _check_args(args) -> None:
         args.protocol = "window" if args.search or args.offsets else "paper"
     args.poly = 2 if args.poly is None else args.poly
     args.delays = 10 if args.delays is None else args.delays
+    if args.poly > MAX_POLY:  # 10**30: the monomials were never all listed
+        raise CliError(f"--poly must be at most {MAX_POLY}, got {args.poly}")
     if args.split and (args.train or args.test):
         raise CliError("give either LOGS with --split, or --train and --test")
     if not args.split and not (args.train and args.test):
@@ -224,8 +237,8 @@ def _check_args(args) -> None:
         if args.delays < lag:
             raise CliError(f"--friction measures the arm's motion over {lag} samples: it needs --delays {lag} or "
                            f"more, got --delays {args.delays}")
-    if args.alpha is not None and not args.alpha >= 0:
-        raise CliError(f"--alpha must be a non-negative number, got {args.alpha}")
+    if args.alpha is not None and not 0 <= args.alpha < math.inf:
+        raise CliError(f"--alpha must be a finite number >= 0, got {args.alpha}")
     if args.alpha_sweep:
         try:
             lo, hi, n = float(args.alpha_sweep[0]), float(args.alpha_sweep[1]), int(args.alpha_sweep[2])
@@ -234,6 +247,8 @@ def _check_args(args) -> None:
                            f"{' '.join(args.alpha_sweep)}") from None
         if not (0 < lo < hi) or n < 2:
             raise CliError(f"--alpha-sweep needs 0 < MIN < MAX and N >= 2, got {' '.join(args.alpha_sweep)}")
+        if hi == math.inf or n > MAX_ALPHAS:
+            raise CliError(f"--alpha-sweep needs a finite MAX and N <= {MAX_ALPHAS}, got {' '.join(args.alpha_sweep)}")
         args.alpha_sweep = (lo, hi, n)
     if args.method in ("arx", "cl-arx") and args.alpha_sweep:
         raise CliError("--alpha-sweep is for the Koopman methods (edmd, cl-edmd, cl-edmd-lstsq)")
@@ -244,14 +259,22 @@ def _check_args(args) -> None:
     if args.controller and args.score != "cl":
         raise CliError("--controller predicts the closed loop: use --score cl")
     if args.max_radius is not None:
-        if not args.max_radius > 0:
-            raise CliError(f"--max-radius must be positive, got {args.max_radius}")
+        if not 0 < args.max_radius < math.inf:
+            raise CliError(f"--max-radius must be a finite positive number, got {args.max_radius}")
+        if not math.isfinite(args.pole_center):
+            raise CliError(f"--pole-center must be a finite number, got {args.pole_center}")
         if args.method != "cl-edmd" or args.alpha_sweep:
             raise CliError("--max-radius constrains a single CL EDMD fit (--method cl-edmd, no --alpha-sweep)")
         args.method = "cl-edmd-stable"
-    for option, value in (("--estimate-window", args.estimate_window), ("--offset-bound", args.offset_bound)):
+    for option, value in (("--estimate-window", args.estimate_window), ("--offset-bound", args.offset_bound),
+                          ("--rbf-shape", args.rbf_shape), ("--rbf-offset", args.rbf_offset)):
         if not value > 0:
             raise CliError(f"{option} must be positive, got {value}")
+    from qube_koopman.daq.session import MAX_DURATION
+
+    if not args.estimate_window <= MAX_DURATION:  # inf, 1e308: no whole number of samples (a traceback)
+        raise CliError(f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got "
+                       f"{args.estimate_window}")
     if args.rerun and importlib.util.find_spec("rerun") is None:
         raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"', status=1)
     if args.rerun and not Path(args.rerun).resolve().parent.is_dir():  # before any work, not after the fit

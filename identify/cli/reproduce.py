@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
@@ -24,7 +25,7 @@ Reproduce the closed-loop Koopman paper's results.
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_standard_options, seed
+    from qube_koopman.sim.cli.common import add_standard_options, path, seed
 
     parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -33,7 +34,7 @@ def _parser() -> argparse.ArgumentParser:
     duffing = sub.add_parser("duffing", help="paper section 4 (simulated Duffing oscillator)",
                              description="Paper section 4: simulate the Duffing experiment, fit four models, "
                                          "score their plant predictions on the noise-free test episode.")
-    duffing.add_argument("--out", default="results", metavar="DIR",
+    duffing.add_argument("--out", type=path, default="results", metavar="DIR",
                          help="folder for duffing.json (created if missing; default: %(default)s)")
     duffing.add_argument("--seed", type=seed, default=1234,
                          help="seed of the whole experiment: references, noise, RBF centres (default: %(default)s)")
@@ -44,10 +45,10 @@ def _parser() -> argparse.ArgumentParser:
                           description="Paper section 5 from the 48 imported episode logs: 180-alpha "
                                       "regularization study with cross-validation, the four method/scoring "
                                       "combinations, closed-loop ARX, and a row beyond the paper.")
-    qube.add_argument("--data", required=True, metavar="DIR",
+    qube.add_argument("--data", type=path, required=True, metavar="DIR",
                       help="folder with the imported .mcap logs (qube-import ../shared/datasets/"
                            "qube_servo_20230828/*.csv --out DIR)")
-    qube.add_argument("--out", default="results", metavar="DIR",
+    qube.add_argument("--out", type=path, default="results", metavar="DIR",
                       help="folder for qube.json and qube.md (default: %(default)s)")
     qube.add_argument("--n-alphas", type=int, default=180, metavar="N",
                       help="alphas in the study, log-spaced 1e-3..1e3 (default: %(default)s)")
@@ -101,8 +102,8 @@ def _duffing(args) -> int:
     from qube_koopman.identify.reproduce.duffing import DEFAULT_ALPHA, PAPER_DUFFING, reproduce_duffing
 
     alpha = DEFAULT_ALPHA if args.alpha is None else args.alpha
-    if not alpha >= 0:
-        raise CliError(f"--alpha must be a non-negative number, got {args.alpha}")
+    if not 0 <= alpha < math.inf:  # inf reached the fit as a traceback
+        raise CliError(f"--alpha must be a finite number >= 0, got {args.alpha}")
     out = output_dir(args.out)
     results = reproduce_duffing(seed=args.seed, alpha=alpha)
     names = {"edmd": "EDMD", "cl_edmd": "CL EDMD", "arx": "ARX", "cl_arx": "CL ARX"}

@@ -11,9 +11,10 @@ import argparse
 import logging
 import platform
 import sys
+from pathlib import Path
 
 __all__ = ["package_version", "add_standard_options", "add_version", "configure_logging", "LOGGER",
-           "progress_bar", "ProgressCallback", "whole_number", "seed"]
+           "progress_bar", "ProgressCallback", "whole_number", "seed", "path"]
 
 #: The project's logger namespace: modules log with ``logging.getLogger(__name__)`` under it.
 LOGGER = "qube_koopman"
@@ -67,6 +68,17 @@ def whole_number(minimum: int, maximum: int | None = None):
 #: The argparse ``type`` of every seed option: numpy seeds are non-negative whole numbers.
 seed = whole_number(0)
 seed.__doc__ = "The argparse ``type`` of every seed option: a whole number >= 0 (numpy seeds are non-negative)."
+
+
+def path(text: str) -> Path:
+    """The argparse ``type`` of every file or folder argument: a Path, not the empty string.
+
+    ``Path("")`` is the current folder: an unset shell variable (``--out "$DIR"``) would write
+    there, or read every file in it, without a word. argparse names the option in the error.
+    """
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path (an unset shell variable?): give a file or folder")
+    return Path(text)
 
 
 def add_standard_options(parser: argparse.ArgumentParser, quiet_help: str = "no progress bar", *,

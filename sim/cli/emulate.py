@@ -64,7 +64,7 @@ _TIME = _number(0.0, 1e6, "a time")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options, seed, whole_number
+    from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
     p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
     p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
                    help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
-    p.add_argument("--plant", default=None, metavar="FILE.toml",
+    p.add_argument("--plant", type=path, default=None, metavar="FILE.toml",
                    help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
                         "(default: the twin calibrated on the paper's rig; 'workbook', 'previous')")
     p.add_argument("--hanging", action="store_true",
@@ -108,10 +108,10 @@ def build_parser() -> argparse.ArgumentParser:
     faults.add_argument("--hold-periods", type=whole_number(1, 100_000), default=10, metavar="N",
                         help="periods the --hold-at hold lasts (default 10)")
     out = p.add_argument_group("output")
-    out.add_argument("--record", default=None, metavar="FILE.csv",
+    out.add_argument("--record", type=path, default=None, metavar="FILE.csv",
                      help="write a per-tick record (device time, applied voltage, commands) at exit "
                           "(the last 10 minutes)")
-    out.add_argument("--stats", default=None, metavar="FILE.json", help="write the final counters at exit")
+    out.add_argument("--stats", type=path, default=None, metavar="FILE.json", help="write the final counters at exit")
     add_standard_options(p, "only the device path on standard output")
     return p
 
