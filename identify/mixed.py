@@ -111,3 +111,73 @@ class ControllerGroups:
         return GroupedSnapshots(tuple(Snapshots.total(chosen[g]) for g in order), tuple(self.maps[g] for g in order),
                                 tuple(slice(self.controllers[g].n_states, None) for g in order),
                                 tuple(self.controllers[g] for g in order))
+
+
+FOLD_KINDS = {
+    "leave-one-controller-out": "each fold holds out all the training episodes of one controller and predicts its "
+                                "loop with the plant fitted to the other controllers' episodes",
+    "episode-grouped": "random splits holding out 20% of the training episodes (one controller: the paper's "
+                       "protocol)",
+}
+
+
+@dataclass(frozen=True)
+class CrossValidationFolds:
+    """The folds of a cross-validation on training episodes, and what they hold out.
+
+    Attributes
+    ----------
+    kind : {"leave-one-controller-out", "episode-grouped"}
+    splits : list of (train_indices, validation_indices)
+    held_out : list of int, optional
+        Leave-one-controller-out: the controller each fold holds out (its
+        index among the distinct training controllers, in order of appearance).
+    """
+
+    kind: str
+    splits: list[tuple[np.ndarray, np.ndarray]]
+    held_out: list[int] | None = None
+
+    def report(self, names: Sequence[str], scores: Sequence[float] | None = None) -> list[dict]:
+        """Each fold for a report: what it held out (log names) and its score (None: not finite)."""
+        out = []
+        for i, (train, validation) in enumerate(self.splits):
+            fold = {"fold": i + 1, "n_train": len(train), "validation_logs": [names[j] for j in validation]}
+            if self.held_out is not None:
+                fold["held_out_controller"] = self.held_out[i] + 1
+            if scores is not None:
+                fold["cv_r2"] = float(scores[i]) if np.isfinite(scores[i]) else None
+            out.append(fold)
+        return out
+
+
+def cross_validation_folds(controllers: Sequence[DiscreteStateSpace], n_splits: int = 3,
+                           seed: int = 1234) -> CrossValidationFolds:
+    """Leave one controller out when the episodes ran two or more controllers; else
+    :func:`~qube_koopman.identify.data.group_shuffle_splits` (``n_splits``, ``seed``)."""
+    from qube_koopman.identify.data import group_shuffle_splits
+
+    distinct, labels = distinct_controllers(controllers)
+    if len(distinct) >= 2:
+        splits = leave_one_controller_out(labels)
+        return CrossValidationFolds("leave-one-controller-out", splits, [int(labels[v[0]]) for _, v in splits])
+    return CrossValidationFolds("episode-grouped", group_shuffle_splits(len(labels), n_splits, 0.2, seed))
+
+
+def training_controllers_report(logs: Sequence, model_controller: DiscreteStateSpace) -> dict:
+    """The training logs' controllers for a report: how many, episodes each, which one the model's loop is.
+
+    ``logs`` are :class:`~qube_koopman.identify.data.LoggedTrajectory`; controllers are numbered
+    from 1 in order of first appearance.
+    """
+    distinct, labels = distinct_controllers([log.controller for log in logs])
+    entries = []
+    for g, ctrl in enumerate(distinct):
+        mine = [log for log, label in zip(logs, labels) if label == g]
+        entries.append({"controller": g + 1, "n_episodes": len(mine), "gains": mine[0].gains,
+                        "model_closed_loop": same_system(ctrl, model_controller),
+                        "logs": [log.path.name for log in mine], "matrices": ctrl.as_dict()})
+    note = ("one controller: the model's closed loop is its loop" if len(distinct) == 1 else
+            "one plant fitted to the episodes of all; the saved model's closed loop is that of the "
+            "controller with the most training episodes (the first to appear among ties)")
+    return {"n_controllers": len(distinct), "controllers": entries, "note": note}
