@@ -26,7 +26,11 @@ REGULARIZE = ("closed_loop", "plant")
 def _check_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: int, dt: float | None,
                       episode: Trajectory | None = None) -> None:
     """A controller fits the loop's signals (and, given, the episode recorded under it)."""
+    if not isinstance(ctrl, DiscreteStateSpace):
+        raise ValueError(f"controller must be a DiscreteStateSpace, got {type(ctrl).__name__}")
     where = "" if episode is None else f"episode {episode.name or '(unnamed)'}: "
+    if episode is not None and episode.xc is None:
+        raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
     if episode is not None and ctrl.n_states != episode.xc.shape[1]:
         raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
                          f"has {episode.xc.shape[1]} channels")

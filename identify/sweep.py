@@ -4,6 +4,10 @@ Snapshot statistics are computed once per episode and merged per fold; each
 alpha is then one small least-squares solve, and every alpha's model
 predicts every validation episode in one batched simulation. A lifting that
 learns from data (RBF centres) is refitted on each fold's training episodes.
+Episodes of several controllers (``controllers``) are grouped per controller
+in the statistics; each fold's closed loops are those of the controller its
+validation episodes ran (leave-one-controller-out folds: one the fold's
+plant was not fitted to).
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ import copy
 import numpy as np
 import pytest
 
-from qube_koopman.identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Trajectory, close_loop
+from qube_koopman.identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Delay, Trajectory, close_loop
 from qube_koopman.identify.mixed import ControllerGroups, leave_one_controller_out, majority_controller
 from qube_koopman.identify.regression import constrained_plant_solve, grouped_plant_solve
 from qube_koopman.identify.stability import ClEdmdStable
@@ -232,6 +232,10 @@ def test_bad_controller_lists_are_refused(mixed):
         ClEdmd(pid, measured=[0]).fit(trajs, [pd] + controllers[1:])
     with pytest.raises(ValueError, match="must be a DiscreteStateSpace"):
         ClEdmd(pid, measured=[0]).fit(trajs, ["pid"] + controllers[1:])
+    from dataclasses import replace
+
+    with pytest.raises(ValueError, match="episode ep1: closed-loop data need the controller state 'xc'"):
+        ClEdmd(pid, measured=[0]).fit([trajs[0], replace(trajs[1], xc=None)] + trajs[2:], controllers)
     with pytest.raises(ValueError, match="leave-one-controller-out needs episodes of at least two"):
         leave_one_controller_out([0, 0, 0])
 
@@ -250,3 +254,20 @@ def test_known_rows_variant_fits_the_same_plant(noisy_mixed):
     np.testing.assert_array_equal(free.plant_koopman_matrix_, known.plant_koopman_matrix_)
     wrapped = close_loop(known.plant_model_, pid, [0])
     np.testing.assert_allclose(known.closed_loop_model_.A, wrapped.A, rtol=1e-12, atol=1e-14)
+
+
+def test_partial_fold_fits_score_as_full_ones(mixed):
+    """A search's folds fit only the rows re-lifted predictions use, counted per episode's own controller
+    states (2 for the PID, 1 for the PD): the scores are those of the full fits."""
+    A_p, B_p, pid, pd, trajs, controllers = mixed
+    splits = leave_one_controller_out([0, 0, 0, 1, 1])
+    alphas = [1e-6, 1e-1, 1e1]
+    est = ClEdmd(pid, lifting=[Delay(2)], measured=[0])  # 6 lifted states, 2 of them fitted in the folds
+    full = regularization_sweep(est, trajs, alphas, splits, controllers=controllers)
+    partial = regularization_sweep(est, trajs, alphas, splits, controllers=controllers, fit_all=False,
+                                   keep_fold_models=True)
+    for closed, _, _ in partial.fold_models:
+        n_c = closed[0].n_passthrough
+        assert np.isnan(closed[0].A[n_c + 2:]).all() and np.isfinite(closed[0].A[:n_c + 2]).all()
+    np.testing.assert_allclose(partial.cv_r2["cl"], full.cv_r2["cl"], rtol=1e-10)
+    np.testing.assert_allclose(partial.cv_r2["plant"], full.cv_r2["plant"], rtol=1e-10)
