@@ -57,14 +57,20 @@ class SnapshotEstimator(Estimator):
         -------
         self
         """
-        from qube_koopman.identify.regression import Snapshots
+        return self._fit(self._setup(trajectories))
 
-        setup = self._setup(trajectories)
+    def _fit(self, setup: "FitSetup") -> "SnapshotEstimator":
         parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]
-        return self._finish(setup, Snapshots.total(parts))
+        return self._finish(setup, self._statistics(setup, parts))
 
     def _setup(self, trajectories) -> "FitSetup":
         raise NotImplementedError
+
+    def _statistics(self, setup: "FitSetup", per_episode: list, indices=None):
+        """The statistics of the selected episodes (all by default), ready for ``_finish``."""
+        from qube_koopman.identify.regression import Snapshots
+
+        return Snapshots.total(per_episode if indices is None else [per_episode[int(j)] for j in indices])
 
     def _episode_snapshots(self, setup: "FitSetup", trajectory: Trajectory):
         raise NotImplementedError
@@ -103,6 +109,9 @@ class FitSetup:
     #: Fit only this many leading rows of the Koopman matrix, those a re-lifted prediction
     #: uses (a sweep that only scores re-lifted predictions); the other rows are NaN.
     target_rows: int | None = None
+    #: Closed-loop fits of episodes under several controllers: who ran which episode
+    #: (:class:`~qube_koopman.identify.mixed.ControllerGroups`); None when all ran the estimator's.
+    controller_groups: object | None = None
 
 
 def pad_rows(U: np.ndarray, n_rows: int) -> np.ndarray:

@@ -9,7 +9,10 @@ import numpy as np
 from qube_koopman.identify._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice
 from qube_koopman.identify.model import KoopmanModel
-from qube_koopman.identify.regression import Snapshots, constrained_plant_solve, ridge_solve
+from qube_koopman.identify.data import same_system
+from qube_koopman.identify.mixed import ControllerGroups, distinct_controllers
+from qube_koopman.identify.regression import (GroupedSnapshots, Snapshots, constrained_plant_solve,
+                                              grouped_plant_solve, ridge_solve)
 from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, output_selection,
                                 plant_input_map)
 from qube_koopman.identify.trajectory import Trajectory, check_trajectories
@@ -20,13 +23,40 @@ __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
 REGULARIZE = ("closed_loop", "plant")
 
 
+def _check_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: int, dt: float | None,
+                      episode: Trajectory | None = None) -> None:
+    """A controller fits the loop's signals (and, given, the episode recorded under it)."""
+    if not isinstance(ctrl, DiscreteStateSpace):
+        raise ValueError(f"controller must be a DiscreteStateSpace, got {type(ctrl).__name__}")
+    where = "" if episode is None else f"episode {episode.name or '(unnamed)'}: "
+    if episode is not None and episode.xc is None:
+        raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
+    if episode is not None and ctrl.n_states != episode.xc.shape[1]:
+        raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
+                         f"has {episode.xc.shape[1]} channels")
+    references = "" if episode is None else f"{episode.r.shape[1]} references and "
+    if ctrl.n_inputs != len(measured) or (episode is not None and ctrl.n_inputs != episode.r.shape[1]):
+        raise ValueError(f"{where}the controller takes {ctrl.n_inputs} tracking errors; the data has "
+                         f"{references}{len(measured)} fed-back states")
+    if n_f and ctrl.n_outputs != n_f:
+        raise ValueError(f"{where}the controller drives {ctrl.n_outputs} plant inputs, the feedforward "
+                         f"has {n_f} channels")
+    if dt is not None and abs(dt - ctrl.dt) > 1e-12 * ctrl.dt:
+        raise ValueError(f"{where}the data's sample period {dt} s differs from the controller's {ctrl.dt} s")
+
+
 class _ClosedLoopKoopman(SnapshotEstimator):
     """Shared data handling of the closed-loop estimators.
 
     Data: per episode the plant states ``x``, reference ``r``, controller
     state ``xc`` and optionally feedforward ``f`` (all episodes or none).
     Only the plant states are lifted; ``xc``, ``r`` and ``f`` are not.
+    Episodes may come from several controllers (``fit``'s ``controllers``)
+    where the subclass allows it (``_mixed_controllers``).
     """
+
+    #: Whether the plant can be fitted to episodes recorded under several controllers.
+    _mixed_controllers = False
 
     def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
                  measured: Sequence[int] | None = None) -> None:
@@ -35,63 +65,106 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         self.alpha = alpha
         self.measured = measured
 
+    def fit(self, trajectories, controllers: Sequence[DiscreteStateSpace] | None = None) -> "_ClosedLoopKoopman":
+        """Fit on a list of :class:`~identify.Trajectory` (signals x, r, xc, optionally f).
+
+        Parameters
+        ----------
+        trajectories : sequence of Trajectory
+            The episodes.
+        controllers : sequence of DiscreteStateSpace, optional
+            The controller each episode was recorded under (its ``xc`` is that
+            controller's state). None: every episode ran ``self.controller``.
+            The fitted closed loop (``closed_loop_model_``, ``koopman_matrix_``)
+            is always ``self.controller``'s, which need not be among them.
+
+        Returns
+        -------
+        self
+        """
+        return self._fit(self._setup(trajectories, controllers))
+
     # subclasses: return (U_f, U_p) from the statistics
-    def _solve(self, snapshots: Snapshots, S: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    def _solve(self, snapshots, S: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
-    def _check_controller(self, trajs: list[Trajectory], measured: list[int], n_f: int) -> None:
-        ctrl = self.controller
-        if not isinstance(ctrl, DiscreteStateSpace):
-            raise ValueError(f"controller must be a DiscreteStateSpace, got {type(ctrl).__name__}")
-        first = trajs[0]
-        if ctrl.n_states != first.xc.shape[1]:
-            raise ValueError(f"the controller has {ctrl.n_states} states but the data's controller state "
-                             f"has {first.xc.shape[1]} channels")
-        if ctrl.n_inputs != first.r.shape[1] or ctrl.n_inputs != len(measured):
-            raise ValueError(f"the controller takes {ctrl.n_inputs} tracking errors; the data has "
-                             f"{first.r.shape[1]} references and {len(measured)} fed-back states")
-        if n_f and ctrl.n_outputs != n_f:
-            raise ValueError(f"the controller drives {ctrl.n_outputs} plant inputs, the feedforward "
-                             f"has {n_f} channels")
-        if first.dt is not None and abs(first.dt - ctrl.dt) > 1e-12 * ctrl.dt:
-            raise ValueError(f"the data's sample period {first.dt} s differs from the controller's {ctrl.dt} s")
+    def _per_episode_controllers(self, trajs: list[Trajectory], controllers) -> list[DiscreteStateSpace] | None:
+        """The controllers given per episode, checked; None when every episode ran ``self.controller``."""
+        if not isinstance(self.controller, DiscreteStateSpace):
+            raise ValueError(f"controller must be a DiscreteStateSpace, got {type(self.controller).__name__}")
+        if controllers is None:
+            return None
+        controllers = list(controllers)
+        if len(controllers) != len(trajs):
+            raise ValueError(f"{len(controllers)} controllers for {len(trajs)} episodes: give one per episode")
+        distinct, _ = distinct_controllers(controllers)
+        if len(distinct) == 1 and same_system(distinct[0], self.controller):
+            return None
+        if not self._mixed_controllers:
+            raise ValueError(f"{type(self).__name__} fits episodes of one controller, its own; these were "
+                             f"recorded under {len(distinct)} controller(s) (ClEdmd fits several)")
+        return controllers
 
-    def _setup(self, trajectories) -> FitSetup:
-        """Validate the data and the controller, fit the lifting."""
+    def _setup(self, trajectories, controllers: Sequence[DiscreteStateSpace] | None = None) -> FitSetup:
+        """Validate the data and the controllers, fit the lifting."""
         check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
-        trajs = check_trajectories(trajectories, ("x", "r", "xc"), lifting.n_delays + 2, type(self).__name__)
+        what, min_samples = type(self).__name__, lifting.n_delays + 2
+        trajs = check_trajectories(trajectories, ("x", "r"), min_samples, what)
+        per_episode = self._per_episode_controllers(trajs, controllers)
+        # One controller: one controller state width for all; several: each episode's own (checked below).
+        needs = ("x", "r", "xc") if per_episode is None else ("x", "r")
+        trajs = check_trajectories(trajs, needs, min_samples, what)
         with_f = [t.f is not None for t in trajs]
         if any(with_f) and not all(with_f):
             raise ValueError("feedforward f is present in some episodes and missing in others")
         if all(with_f):
-            trajs = check_trajectories(trajs, ("x", "r", "xc", "f"), lifting.n_delays + 2, type(self).__name__)
+            trajs = check_trajectories(trajs, needs + ("f",), min_samples, what)
         n_f = trajs[0].f.shape[1] if all(with_f) else 0
         m = trajs[0].x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
         if any(not 0 <= i < m for i in measured):
             raise ValueError(f"measured state indices {measured} are outside 0..{m - 1}")
-        self._check_controller(trajs, measured, n_f)
+        dt = trajs[0].dt
+        if per_episode is None:  # the same widths in every episode
+            _check_controller(self.controller, measured, n_f, dt, trajs[0])
+        else:
+            _check_controller(self.controller, measured, n_f, dt)
+            for t, ctrl in zip(trajs, per_episode):
+                _check_controller(ctrl, measured, n_f, dt, t)
         lifting.fit([t.x for t in trajs], trajs[0].state_names)
         C_p = output_selection(lifting.n_features_out_, measured)
-        return FitSetup(trajs, lifting, trajs[0].dt if trajs[0].dt is not None else self.controller.dt,
-                        C_p, plant_input_map(self.controller, C_p, n_f), n_f)
+        groups = None if per_episode is None else ControllerGroups.of(per_episode, C_p, n_f)
+        return FitSetup(trajs, lifting, dt if dt is not None else self.controller.dt,
+                        C_p, plant_input_map(self.controller, C_p, n_f), n_f, controller_groups=groups)
 
     def _episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
         """Snapshot statistics of one episode: theta = [x^c; lift(x)], upsilon = [r; f]."""
         d = setup.lifting.n_delays_
         theta = np.hstack([t.xc[d:], setup.lifting.transform(t.x)])
         v = np.hstack([t.r[d:]] + ([t.f[d:]] if setup.n_feedforward else []))
-        return Snapshots.from_snapshots(theta[1:, :setup.target_rows], np.hstack([theta[:-1], v[:-1]]))
+        # A partial fit's rows count this episode's own controller states (their number may differ).
+        rows = None if setup.target_rows is None else setup.target_rows - self.controller.n_states + t.xc.shape[1]
+        return Snapshots.from_snapshots(theta[1:, :rows], np.hstack([theta[:-1], v[:-1]]))
 
-    def _finish(self, setup: FitSetup, snapshots: Snapshots) -> "_ClosedLoopKoopman":
+    def _statistics(self, setup: FitSetup, per_episode: list, indices=None):
+        """One :class:`Snapshots`; :class:`GroupedSnapshots` (per controller) for several controllers."""
+        if setup.controller_groups is None:
+            return super()._statistics(setup, per_episode, indices)
+        return setup.controller_groups.statistics(per_episode, indices)
+
+    def _finish(self, setup: FitSetup, snapshots) -> "_ClosedLoopKoopman":
         """Solve for ``self.alpha`` and set the fitted attributes."""
         alpha = check_alpha(self.alpha)
         self.snapshots_ = snapshots
         self.output_matrix_ = setup.output_matrix
-        self.plant_input_map_ = setup.plant_input_map
         self.n_feedforward_ = setup.n_feedforward
-        U_f, U_p = self._solve(snapshots, setup.plant_input_map, alpha)
+        # The statistics' controllers (a fold's may lack the setup's); the closed loop is self.controller's.
+        grouped = isinstance(snapshots, GroupedSnapshots)
+        self.training_controllers_ = snapshots.controllers if grouped else (self.controller,)
+        self.plant_input_map_ = (plant_input_map(self.controller, setup.output_matrix, setup.n_feedforward)
+                                 if grouped else setup.plant_input_map)
+        U_f, U_p = self._solve(snapshots, self.plant_input_map_, alpha)
         self._set_models(U_f, U_p, setup.lifting, setup.n_feedforward, setup.dt)
         return self
 
@@ -134,6 +207,17 @@ class ClEdmd(_ClosedLoopKoopman):
     Koopman matrix are ``U^p S`` with the known controller; ``U^p`` follows
     from ``U^p = G_2 S^T (S H_alpha S^T)^-1`` (FACTS section 1).
 
+    Episodes recorded under several controllers (``fit(trajectories,
+    controllers)``) share the plant: with controller g's statistics and map
+    ``S_g``, ``U^p`` minimizes ``sum_g ||Theta2_g - U^p S_g Psi_g||^2 + alpha
+    sum_g w_g ||U^p S_g||^2`` (``w_g``: g's share of the snapshots; with
+    ``regularize="plant"`` the penalty is ``alpha ||U^p||^2``), which with one
+    controller is the problem above
+    (:func:`~qube_koopman.identify.regression.grouped_plant_solve`). The
+    closed loop is ``self.controller``'s: its controller rows are fitted to its
+    own episodes (penalty ``alpha w_g``), or are the known controller when
+    none of the episodes ran it.
+
     Parameters
     ----------
     controller : DiscreteStateSpace
@@ -164,8 +248,10 @@ class ClEdmd(_ClosedLoopKoopman):
         Plant Koopman matrix ``U^p = [A^p B^p]``.
     closed_loop_model_, plant_model_ : KoopmanModel
         The closed loop (inputs r, f) and the plant (input u).
-    snapshots_ : Snapshots
-        Snapshot statistics.
+    snapshots_ : Snapshots or GroupedSnapshots
+        Snapshot statistics (per controller when the episodes ran several).
+    training_controllers_ : tuple of DiscreteStateSpace
+        The distinct controllers of the training episodes.
     """
 
     def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
@@ -179,18 +265,27 @@ class ClEdmd(_ClosedLoopKoopman):
         # Solved row by row: the controller rows and the plant states' rows alone are exact.
         return self.controller.n_states + setup.lifting.n_features_in_
 
+    _mixed_controllers = True
+
     def _solve(self, snapshots, S, alpha):
         regularize = check_choice(self.regularize, "regularize", REGULARIZE)
         n_c = self.controller.n_states
-        U_p = constrained_plant_solve(snapshots, S, alpha, slice(n_c, None), regularize)
-        if self.known_controller_rows:
+        if isinstance(snapshots, GroupedSnapshots):
+            U_p = grouped_plant_solve(snapshots, alpha, regularize)
+            own = [(part, w) for part, w, ctrl in zip(snapshots.parts, snapshots.weights, snapshots.controllers)
+                   if same_system(ctrl, self.controller)]
+        else:
+            U_p = constrained_plant_solve(snapshots, S, alpha, slice(n_c, None), regularize)
+            own = [(snapshots, 1.0)]
+        if self.known_controller_rows or not own:  # no episode of self.controller: nothing to fit them to
             U_c = self._known_controller_rows()
         else:
             # Only the closed-loop penalty covers the controller rows; "plant" leaves them free.
-            alpha_c = alpha if regularize == "closed_loop" else 0.0
-            U_c = ridge_solve(snapshots, alpha_c, slice(0, n_c))
+            # Several controllers: fitted to self.controller's episodes, penalty weighted by their share.
+            part, weight = own[0]
+            alpha_c = alpha * weight if regularize == "closed_loop" else 0.0
+            U_c = ridge_solve(part, alpha_c, slice(0, n_c))
         return np.vstack([U_c, U_p @ S]), U_p
-
 
     def _known_controller_rows(self) -> np.ndarray:
         """The controller rows of ``U^f``: ``[A^c, -B^c C^p, B^c, 0]``."""
@@ -219,6 +314,7 @@ class ClEdmdLstsq(_ClosedLoopKoopman):
     ``B^p = [U21 U23 U24] [C^c D^c I]^+`` and ``A^p = U22 + B^p D^c C^p``.
     The closed-loop model is the unstructured ``U^f``; re-wrapping the
     extracted plant with the controller generally moves its eigenvalues.
+    The episodes must share one controller: the unstructured ``U^f`` is one loop's.
 
     Parameters
     ----------

@@ -31,11 +31,12 @@ class UnreadableLogSkipped(IncompleteLogSkipped):
 
 @dataclass(frozen=True, eq=False)
 class LoggedTrajectory:
-    """One episode log, ready for identification."""
+    """One episode log, ready for identification (``gains``: those the log's controller was built from)."""
 
     path: Path
     trajectory: Trajectory
     controller: DiscreteStateSpace
+    gains: dict | None = None
 
 
 def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False, *,
@@ -93,7 +94,8 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False, 
         traj = Trajectory(x=episode.states, u=np.asarray(episode.plant_input)[:, None], r=episode.references,
                           f=np.asarray(episode.feedforward)[:, None], xc=episode.controller_state,
                           name=path.name, state_names=STATE_NAMES, input_names=("u",), dt=episode.dt)
-        out.append(LoggedTrajectory(path, traj.skip(skip), episode.controller))
+        out.append(LoggedTrajectory(path, traj.skip(skip), episode.controller,
+                                    dict(episode.metadata.controller.gains) or None))
         _log.debug("%s: %d samples at %g Hz", path, len(episode), 1.0 / episode.dt)
     _log.info("read %d of %d episode logs", len(out), len(paths))
     return out

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import linalg
 
-__all__ = ["Snapshots", "ridge_solve", "constrained_plant_solve"]
+__all__ = ["Snapshots", "GroupedSnapshots", "ridge_solve", "constrained_plant_solve", "grouped_plant_solve"]
 
 
 def _triangular_factor(M: np.ndarray) -> np.ndarray:
@@ -169,24 +169,116 @@ def constrained_plant_solve(snapshots: Snapshots, S: np.ndarray, alpha: float, r
     (``||S^T u|| = ||w||``), when ``S`` has full row rank (else by least squares
     on the stacked problem).
     """
+    top = _psi_block(snapshots)
+    block = _Block(snapshots._psi[top], snapshots._theta[top, rows], S, 1.0)
+    return _plant_solve([block], snapshots, (regularize, S.shape, S.tobytes()), alpha, regularize)
+
+
+@dataclass(frozen=True, eq=False)
+class GroupedSnapshots:
+    """Statistics of episodes recorded under several controllers, one :class:`Snapshots` per controller.
+
+    Each controller's episodes have their own regressor ``Psi_g = [x^c; theta^p; r; f]``
+    (the controller state's width may differ) and plant input map ``S_g``
+    (:func:`~qube_koopman.identify.structure.plant_input_map`), but the plant
+    ``U^p`` is common: :func:`grouped_plant_solve` fits it to all of them.
+
+    Attributes
+    ----------
+    parts : tuple of Snapshots
+        Statistics of each controller's episodes.
+    maps : tuple of ndarray
+        ``S_g`` of each part.
+    plant_rows : tuple of slice
+        The plant's target rows in each part (those after its controller states).
+    controllers : tuple
+        The controller of each part (the estimator picks its own out of them).
+    """
+
+    parts: tuple[Snapshots, ...]
+    maps: tuple[np.ndarray, ...]
+    plant_rows: tuple[slice, ...]
+    controllers: tuple
+    _paths: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not self.parts or not len(self.parts) == len(self.maps) == len(self.plant_rows) == len(self.controllers):
+            raise ValueError("grouped snapshots need one map, row range and controller per (non-empty) part")
+
+    @property
+    def q(self) -> int:
+        """Number of snapshots of all parts."""
+        return sum(p.q for p in self.parts)
+
+    @property
+    def weights(self) -> tuple[float, ...]:
+        """Each part's share of the snapshots, ``w_g = q_g / q``: its weight in the closed-loop penalty."""
+        return tuple(p.q / self.q for p in self.parts)
+
+
+def grouped_plant_solve(grouped: GroupedSnapshots, alpha: float, regularize: str = "closed_loop") -> np.ndarray:
+    """The common plant ``U^p`` of episodes under several controllers (stacked least squares).
+
+    Minimizes ``sum_g ||Theta2_g - U^p S_g Psi_g||^2`` plus, with
+    ``regularize="closed_loop"``, ``alpha sum_g w_g ||U^p S_g||_F^2`` (``w_g``:
+    :attr:`GroupedSnapshots.weights`), or with ``"plant"`` ``alpha ||U^p||_F^2``.
+    With one part it is :func:`constrained_plant_solve` (to the last bit). Solved
+    like it on the stacked factors ``R_g S_g^T``: with the closed-loop penalty in
+    ``w = R_p u``, where ``P = [sqrt(w_g) S_g^T]_g = Q_p R_p`` and so
+    ``R_g S_g^T R_p^-1 = R_g Q_p,g / sqrt(w_g)``. Memory grows with the number
+    of controllers, not with the data.
+    """
+    blocks = []
+    for part, S, rows, w in zip(grouped.parts, grouped.maps, grouped.plant_rows, grouped.weights):
+        top = _psi_block(part)
+        blocks.append(_Block(part._psi[top], part._theta[top, rows], S, w))
+    return _plant_solve(blocks, grouped, (regularize,), alpha, regularize)
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One controller's part of the plant problem: factor rows ``R_psi``, targets ``Y``, map ``S``, weight."""
+
+    R_psi: np.ndarray
+    Y: np.ndarray
+    S: np.ndarray
+    weight: float
+
+    @property
+    def penalty(self) -> np.ndarray:
+        """``sqrt(w) S^T``: this block's rows of the closed-loop penalty."""
+        return self.S.T if self.weight == 1.0 else np.sqrt(self.weight) * self.S.T
+
+
+def _stack(arrays: list[np.ndarray]) -> np.ndarray:
+    # One block is used as it is: a single controller's solve stays that of constrained_plant_solve.
+    return arrays[0] if len(arrays) == 1 else np.vstack(arrays)
+
+
+def _plant_solve(blocks: list[_Block], owner, key, alpha: float, regularize: str) -> np.ndarray:
+    """``U^p`` of the stacked blocks; the alpha-independent decomposition is cached on ``owner``."""
     if regularize not in ("closed_loop", "plant"):
         raise ValueError(f"unknown regularize {regularize!r}; expected 'closed_loop' or 'plant'")
-    top = _psi_block(snapshots)
-    Y = snapshots._theta[top, rows]
-    key = (regularize, S.shape, S.tobytes())
+    Y = _stack([b.Y for b in blocks])
     if regularize == "plant":
-        return _path(snapshots, key, lambda: _RidgePath.of(snapshots._psi[top] @ S.T)).solve(Y, alpha).T
-    path = _path(snapshots, key, lambda: _closed_loop_path(snapshots._psi[top], S))
+        return _path(owner, key, lambda: _RidgePath.of(_stack([b.R_psi @ b.S.T for b in blocks]))).solve(Y, alpha).T
+    path = _path(owner, key, lambda: _closed_loop_path(blocks))
     if path is not None:
         return path.solve(Y, alpha).T
-    A = np.vstack([snapshots._psi[top] @ S.T, np.sqrt(alpha) * S.T])
-    return _lstsq(A, np.vstack([Y, np.zeros((S.shape[1], Y.shape[1]))])).T
+    P = _stack([b.penalty for b in blocks])
+    A = np.vstack([_stack([b.R_psi @ b.S.T for b in blocks]), np.sqrt(alpha) * P])
+    return _lstsq(A, np.vstack([Y, np.zeros((P.shape[0], Y.shape[1]))])).T
 
 
-def _closed_loop_path(R_psi: np.ndarray, S: np.ndarray) -> _RidgePath | None:
-    """The closed-loop penalty's path in ``w = R_s u`` (None when ``S`` is rank deficient)."""
-    Q_s, R_s = linalg.qr(S.T, mode="economic", check_finite=False)
-    diag = np.abs(np.diag(R_s))
-    if not diag.size or diag.min() <= np.finfo(float).eps * S.shape[1] * diag.max():
+def _closed_loop_path(blocks: list[_Block]) -> _RidgePath | None:
+    """The closed-loop penalty's path in ``w = R_p u`` (None when the penalty ``P`` is rank deficient)."""
+    P = _stack([b.penalty for b in blocks])
+    Q_p, R_p = linalg.qr(P, mode="economic", check_finite=False)
+    diag = np.abs(np.diag(R_p))
+    if not diag.size or diag.min() <= np.finfo(float).eps * P.shape[0] * diag.max():
         return None
-    return _RidgePath.of(R_psi @ Q_s, R_s)
+    if len(blocks) == 1:
+        return _RidgePath.of(blocks[0].R_psi @ Q_p, R_p)
+    at = np.cumsum([0] + [b.S.shape[1] for b in blocks])
+    return _RidgePath.of(np.vstack([b.R_psi @ (Q_p[at[g]:at[g + 1]] / np.sqrt(b.weight))
+                                    for g, b in enumerate(blocks)]), R_p)

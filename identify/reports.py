@@ -67,7 +67,7 @@ def _search_section(search: dict) -> list[str]:
     w = search["winner"]
     lines = ["", "## Lifting search", "",
              f"{len(search['candidates'])} candidates in {format_number(search['seconds'], '.0f')} s, "
-             f"{search['cv_splits']} episode-grouped splits of the training episodes (seed {search['cv_seed']}); "
+             f"{_folds_phrase(search)} of the training episodes; "
              f"score: {search['score']}. Stages: {', '.join(search['stages'])}.", "",
              f"Ranked by {search.get('objective', 'the cross-validated R^2')}."
              + (f" Transfer probes: {search['transfer']}." if search.get("transfer") else ""), "",
@@ -86,6 +86,39 @@ def _search_section(search: dict) -> list[str]:
     return lines
 
 
+def _folds_phrase(cv: dict) -> str:
+    """The cross-validation's folds in words (reports before issue 27 have no ``cv_kind``)."""
+    if cv.get("cv_kind") == "leave-one-controller-out":
+        return f"{cv['cv_splits']} leave-one-controller-out folds (each holds out one training controller's episodes)"
+    return f"{cv['cv_splits']} episode-grouped splits (seed {cv['cv_seed']})"
+
+
+def _folds_table(folds: list | None) -> list[str]:
+    """Each fold's held-out episodes (or controller) and score at the chosen alpha."""
+    if not folds:
+        return []
+    by_controller = "held_out_controller" in folds[0]
+    lines = ["", "| fold | held out | training episodes | CV R^2 at the chosen alpha |", "|---|---|---|---|"]
+    for f in folds:
+        n = len(f["validation_logs"])
+        held = (f"controller {f['held_out_controller']} ({n} episodes)" if by_controller else f"{n} episodes")
+        lines.append(f"| {f['fold']} | {held} | {f['n_train']} | {format_number(f.get('cv_r2'), '.4f')} |")
+    return lines
+
+
+def _controllers_lines(training: dict | None) -> list[str]:
+    """The training controllers: how many, episodes each, whose closed loop the model is."""
+    if not training:
+        return []
+    lines = [f"- training controllers: {training['n_controllers']} ({training['note']})"]
+    for c in training["controllers"]:
+        gains = ", ".join(f"{k} {v:g}" for k, v in (c.get("gains") or {}).items())
+        lines.append(f"  - controller {c['controller']}: {c['n_episodes']} episodes"
+                     + (f", gains {gains}" if gains else "")
+                     + ("; the model's closed loop" if c["model_closed_loop"] else ""))
+    return lines
+
+
 def markdown_report(report: dict) -> str:
     """report.json as a short markdown document."""
     rho = report.get("spectral_radius", {})
@@ -99,6 +132,7 @@ def markdown_report(report: dict) -> str:
         + (f" ({t['n_episodes']} scored)" if t else " (none scored)"),
         f"- spectral radius: closed loop {format_number(rho.get('closed_loop'), '.6f')}, plant {format_number(rho.get('plant'), '.6f')}",
     ]
+    lines += _controllers_lines(report.get("training_controllers"))
     what_if = report.get("what_if")
     if what_if:
         lines.append(f"- what-if controller: {what_if['note']}; {len(what_if['unscored_logs'])} episode(s) predicted "
@@ -109,8 +143,9 @@ def markdown_report(report: dict) -> str:
         best = max(range(len(sweep["alpha"])), key=lambda i: sweep["cv_r2_mean"][i])
         lines += ["", "## Regularization sweep", "",
                   f"{len(sweep['alpha'])} alphas from {sweep['alpha'][0]:g} to {sweep['alpha'][-1]:g}, "
-                  f"{sweep['cv_splits']} episode-grouped splits; best cross-validated R^2 "
+                  f"{_folds_phrase(sweep)}; best cross-validated R^2 "
                   f"{format_number(sweep['cv_r2_mean'][best], '.4f')} at alpha {sweep['alpha'][best]:g}."]
+        lines += _folds_table(sweep.get("folds"))
     if report.get("search"):
         lines += _search_section(report["search"])
     return "\n".join(lines) + "\n"

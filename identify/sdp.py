@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from qube_koopman.identify._base import resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice
-from qube_koopman.identify.cl_edmd import REGULARIZE, _ClosedLoopKoopman
+from qube_koopman.identify.cl_edmd import REGULARIZE, _check_controller, _ClosedLoopKoopman
 from qube_koopman.identify.trajectory import check_trajectories
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -153,7 +153,7 @@ class ClEdmdSdp(_ClosedLoopKoopman):
         n_f = trajs[0].f.shape[1] if all(with_f) else 0
         m = trajs[0].x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
-        self._check_controller(trajs, measured, n_f)
+        _check_controller(self.controller, measured, n_f, trajs[0].dt, trajs[0])
         lifting.fit([t.x for t in trajs], trajs[0].state_names)
         gram = snapshot_gram(*closed_loop_snapshots(trajs, lifting, n_f))
         U_f, U_p = self._solve(gram, lifting.n_features_out_, measured, n_f, alpha, regularize)

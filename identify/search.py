@@ -286,12 +286,15 @@ class SearchResult:
         Wall time of the search.
     probes : ProbeSet, optional
         The transfer probes the candidates were scored on.
+    folds : CrossValidationFolds, optional
+        The folds, with what each holds out (set by the caller that made them).
     """
 
     candidates: list[CandidateResult] = field(default_factory=list)
     window: int = 0
     seconds: float = 0.0
     probes: ProbeSet | None = None
+    folds: object | None = None
 
     def ranked(self) -> list[CandidateResult]:
         """Best :attr:`CandidateResult.score` first; ties go to the smaller lifting, then the plain protocol."""
@@ -316,6 +319,8 @@ class SearchData:
     rbf_seed: int = 0
     probes: ProbeSet | None = None
     n_transfer_alphas: int = 3
+    #: Each episode's controller when they ran several (None: all ran ``controller``).
+    controllers: list[DiscreteStateSpace] | None = None
 
 
 def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
@@ -331,7 +336,7 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     rescore = not spec.offsets or plain is None
     sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits,
                                  scorings=("cl",) if rescore else (), score_from=data.window, measured_only=True,
-                                 keep_fold_models=spec.offsets, fit_all=False)
+                                 keep_fold_models=spec.offsets, fit_all=False, controllers=data.controllers)
     cv = sweep.cv_r2["cl"] if rescore else np.asarray(plain, dtype=float)
     if spec.offsets:
         cv = _offset_scores(sweep, data, cv)
@@ -347,16 +352,17 @@ def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndar
     per-episode statistics when it had them.
     """
     from qube_koopman.identify._blas import limited_blas_threads
-    from qube_koopman.identify.regression import Snapshots
     from qube_koopman.identify.sweep import fit_alphas, fitted_models
 
     top = np.sort(_best_alphas(cv, data.n_transfer_alphas))
     if statistics is not None:
         setup, per_episode = statistics
         with limited_blas_threads(1):
-            _, plants = fitted_models(estimator, setup, Snapshots.total(per_episode), data.alphas[top], None, None)
+            _, plants = fitted_models(estimator, setup, estimator._statistics(setup, per_episode), data.alphas[top],
+                                      None, None)
     else:
-        _, plants = fit_alphas(estimator, data.trajectories, data.alphas[top], relift_rows_only=True)
+        _, plants = fit_alphas(estimator, data.trajectories, data.alphas[top], relift_rows_only=True,
+                               controllers=data.controllers)
     out = np.full((data.probes.n_episodes, data.alphas.size), np.nan)
     with limited_blas_threads(1):
         for j, plant in zip(top, plants):
@@ -410,16 +416,19 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                     window: int, space: SearchSpace | None = None, n_jobs: int = 1, scheduler: str | None = None,
                     bound: float = DEFAULT_BOUND, rbf_seed: int = 0, probes: ProbeSet | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
-                    connect_timeout: float = 30.0) -> SearchResult:
+                    connect_timeout: float = 30.0,
+                    controllers: Sequence[DiscreteStateSpace] | None = None) -> SearchResult:
     """Search the lifting space in stages (see the module docstring).
 
     Parameters
     ----------
     trajectories : sequence of Trajectory
-        Training episodes, all recorded under ``controller``.
+        Training episodes, recorded under ``controller`` (or ``controllers``).
     controller : DiscreteStateSpace
+        The candidates' closed loop.
     splits : sequence of (train_indices, validation_indices)
-        Episode-grouped folds.
+        Episode-grouped folds, or with several controllers
+        :func:`~qube_koopman.identify.mixed.leave_one_controller_out`'s.
     window : int
         Offset estimation window in samples; every candidate is scored from
         this sample on.
@@ -437,6 +446,10 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     progress : callable(label, done, total), optional
     connect_timeout : float
         Seconds to keep trying to reach ``scheduler`` before giving up.
+    controllers : sequence of DiscreteStateSpace, optional
+        Each episode's controller, when they ran several: every candidate's
+        plant is fitted to all of them, and each fold's closed loop is that of
+        the controller its validation episodes ran.
 
     Returns
     -------
@@ -446,7 +459,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
 
     space = space or SearchSpace()
     data = SearchData(list(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
-                      int(window), bound, rbf_seed, probes)
+                      int(window), bound, rbf_seed, probes, controllers=None if controllers is None else list(controllers))
     client = _dask_client(scheduler, connect_timeout) if scheduler else None
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window), probes=probes), set()

@@ -115,6 +115,8 @@ class ClEdmdStable(ClEdmdKnownRows):
         is accepted on its eigenvalues: ``max |lambda - c| <= rho``.
     """
 
+    _mixed_controllers = False  # its cost and metric are written for one controller's statistics
+
     def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
                  measured: Sequence[int] | None = None, max_radius: float = 1.0, center: float = 0.0,
                  n_iter: int = 2, solver: str = "CLARABEL", method: str = "sqp") -> None:

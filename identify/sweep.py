@@ -4,6 +4,10 @@ Snapshot statistics are computed once per episode and merged per fold; each
 alpha is then one small least-squares solve, and every alpha's model
 predicts every validation episode in one batched simulation. A lifting that
 learns from data (RBF centres) is refitted on each fold's training episodes.
+Episodes of several controllers (``controllers``) are grouped per controller
+in the statistics; each fold's closed loops are those of the controller its
+validation episodes ran (leave-one-controller-out folds: one the fold's
+plant was not fitted to).
 """
 
 from __future__ import annotations
@@ -18,7 +22,9 @@ import numpy as np
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify._checks import check_choice
 from qube_koopman.identify.cl_edmd import _ClosedLoopKoopman
+from qube_koopman.identify.data import same_system
 from qube_koopman.identify.edmd import Edmd
+from qube_koopman.identify.mixed import distinct_controllers
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.regression import Snapshots
 from qube_koopman.identify.scores import r2_from_residuals
@@ -102,19 +108,22 @@ def fitted_models(template, setup, snapshots: Snapshots, alphas: Sequence[float]
 
 def fit_alphas(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float],
                controller: DiscreteStateSpace | None = None, measured=None,
-               relift_rows_only: bool = False) -> tuple[list, list[KoopmanModel]]:
+               relift_rows_only: bool = False,
+               controllers: Sequence[DiscreteStateSpace] | None = None) -> tuple[list, list[KoopmanModel]]:
     """Closed-loop and plant models of ``estimator`` fitted on all ``trajectories``, one per alpha.
 
     The statistics are computed once and shared by every alpha (as in a sweep).
     With ``relift_rows_only`` only the Koopman rows a re-lifted prediction uses
     are fitted (the others NaN, as in a sweep's folds): several times faster
-    for long liftings, for models that only predict.
+    for long liftings, for models that only predict. ``controllers``: each
+    episode's, for a closed-loop estimator's episodes under several controllers.
     """
     if isinstance(estimator, _ClosedLoopKoopman):
         controller, measured = estimator.controller, estimator.measured
     with limited_blas_threads(1):
-        setup, per_episode = _prepare(estimator, list(trajectories), relift_rows_only)
-        return fitted_models(estimator, setup, Snapshots.total(per_episode), alphas, controller, measured)
+        setup, per_episode = _prepare(estimator, list(trajectories), relift_rows_only, controllers)
+        return fitted_models(estimator, setup, estimator._statistics(setup, per_episode), alphas, controller,
+                             measured)
 
 
 def _batches(n_models: int, n_values_per_model: int) -> list[slice]:
@@ -179,7 +188,7 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
                          controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
                          progress: Callable[[int, int], None] | None = None, score_from: int = 1,
                          measured_only: bool = False, keep_fold_models: bool = False,
-                         fit_all: bool = True) -> SweepResult:
+                         fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
 
     Parameters
@@ -190,7 +199,8 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Training episodes (signals x, u, r, f, xc as the scorings need).
     alphas : sequence of float
     splits : sequence of (train_indices, validation_indices)
-        For example :func:`identify.data.group_shuffle_splits`.
+        For example :func:`identify.data.group_shuffle_splits`, or with
+        several controllers :func:`identify.mixed.leave_one_controller_out`.
     scorings : sequence of {"cl", "plant"}
     controller : DiscreteStateSpace, optional
         Wraps EDMD plants for closed-loop scoring (a closed-loop estimator
@@ -214,6 +224,12 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         in the result); a search that only ranks liftings can skip it, and
         then (with ``relift``) the folds fit only the Koopman rows that
         re-lifted predictions use.
+    controllers : sequence of DiscreteStateSpace, optional
+        The controller each episode was recorded under (None: all ran the
+        estimator's, or ``controller`` for EDMD). Each fold's validation
+        episodes must share one controller: the fold's closed loops are that
+        controller's (a closed-loop estimator's plant fitted to the fold's
+        training episodes, whatever their controllers).
 
     Returns
     -------
@@ -221,11 +237,11 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     """
     with limited_blas_threads(1):
         return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress,
-                      (score_from, measured_only, keep_fold_models, fit_all))
+                      (score_from, measured_only, keep_fold_models, fit_all, controllers))
 
 
 def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
-    start, measured_only, keep, fit_all = options
+    start, measured_only, keep, fit_all, controllers = options
     for s in scorings:
         check_choice(s, "scoring", SCORINGS)
     alphas = np.asarray(alphas, dtype=float)
@@ -236,21 +252,26 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     elif "cl" in scorings and controller is None:
         raise ValueError("closed-loop scoring of EDMD needs the controller to wrap its plant")
     trajectories = list(trajectories)
+    if controllers is not None and len(controllers) != len(trajectories):
+        raise ValueError(f"{len(controllers)} controllers for {len(trajectories)} episodes: give one per episode")
     total = len(splits) + 1
     # Without the final fits only re-lifted predictions are made: the rows they recompute from
     # the predicted states need no fit (on a 40-delay search lifting, 4 rows of 370).
     partial = relift and not fit_all
-    shared = None if _learns_from_data(estimator) else _prepare(estimator, trajectories, partial)
+    shared = None if _learns_from_data(estimator) else _prepare(estimator, trajectories, partial, controllers)
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None, statistics=None if fit_all else shared)
     for i, (train, validation) in enumerate(splits):
+        held_out_by = _fold_controller(controllers, validation, controller, i)
+        fold = _for_controller(estimator, held_out_by)
         if shared is None:
-            setup, per_episode = _prepare(estimator, [trajectories[j] for j in train], partial)
-            snapshots = Snapshots.total(per_episode)
+            setup, per_episode = _prepare(fold, [trajectories[j] for j in train], partial,
+                                          None if controllers is None else [controllers[j] for j in train])
+            snapshots = fold._statistics(setup, per_episode)
         else:
             setup, per_episode = shared
-            snapshots = Snapshots.total([per_episode[j] for j in train])
-        closed, plants = fitted_models(estimator, setup, snapshots, alphas, controller, measured)
+            snapshots = fold._statistics(setup, per_episode, train)
+        closed, plants = fitted_models(fold, setup, snapshots, alphas, held_out_by, measured)
         held_out = [trajectories[j] for j in validation]
         for s in scorings:
             result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start, measured_only)
@@ -260,8 +281,9 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
             progress(i + 1, total)
     if not fit_all:
         return result
-    setup, per_episode = shared if shared is not None else _prepare(estimator, trajectories)
-    closed, plants = fitted_models(estimator, setup, Snapshots.total(per_episode), alphas, controller, measured)
+    setup, per_episode = shared if shared is not None else _prepare(estimator, trajectories, controllers=controllers)
+    closed, plants = fitted_models(estimator, setup, estimator._statistics(setup, per_episode), alphas, controller,
+                                   measured)
     result.closed_loop_models, result.plant_models = closed, plants
     result.spectral_radius_plant = np.array([m.spectral_radius() for m in plants])
     if closed[0] is not None:
@@ -277,10 +299,35 @@ def _learns_from_data(estimator) -> bool:
     return any(getattr(step, "learns_from_data", True) for step in resolve_lifting(estimator.lifting).steps)
 
 
-def _prepare(estimator, trajectories, partial: bool = False):
-    """Setup and per-episode statistics; ``partial``: of the rows a re-lifted prediction uses only."""
+def _fold_controller(controllers, validation, default, fold: int):
+    """The one controller a fold's validation episodes ran (``default`` when none are given)."""
+    if controllers is None:
+        return default
+    distinct, _ = distinct_controllers([controllers[j] for j in validation])
+    if len(distinct) != 1:
+        raise ValueError(f"fold {fold + 1}'s validation episodes were recorded under {len(distinct)} controllers; "
+                         "a fold predicts one controller's loop: hold out one controller per fold "
+                         "(identify.mixed.leave_one_controller_out)")
+    return distinct[0]
+
+
+def _for_controller(estimator, controller):
+    """``estimator``, or a copy whose closed loop is ``controller``'s (a closed-loop estimator's)."""
+    if not isinstance(estimator, _ClosedLoopKoopman) or same_system(estimator.controller, controller):
+        return estimator
+    return copy.copy(estimator).set_params(controller=controller)
+
+
+def _prepare(estimator, trajectories, partial: bool = False, controllers=None):
+    """Setup and per-episode statistics; ``partial``: of the rows a re-lifted prediction uses only.
+
+    ``controllers``: each episode's (a closed-loop estimator's episodes under several controllers).
+    """
     template = copy.copy(estimator)
-    setup = template._setup(trajectories)
+    if isinstance(template, _ClosedLoopKoopman):
+        setup = template._setup(trajectories, controllers)
+    else:
+        setup = template._setup(trajectories)
     if partial and template._relift_rows(setup) is not None:
         setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
     return setup, [template._episode_snapshots(setup, t) for t in setup.trajectories]

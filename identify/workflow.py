@@ -12,7 +12,8 @@ import numpy as np
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify.arx import Arx, ClArx
 from qube_koopman.identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
-from qube_koopman.identify.data import LoggedTrajectory, group_shuffle_splits, same_system
+from qube_koopman.identify.data import LoggedTrajectory, same_system
+from qube_koopman.identify.mixed import FOLD_KINDS, cross_validation_folds, training_controllers_report
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.stability import ClEdmdStable
 from qube_koopman.identify.model_file import lifting_to_dict, save_model
@@ -27,6 +28,9 @@ __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOP
 KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows,
                    "cl-edmd-lstsq": ClEdmdLstsq, "cl-edmd-stable": ClEdmdStable}
 MEASURED = [0, 1]  # theta and alpha are both fed back on the QUBE-Servo
+# Methods whose model is one loop's (unstructured closed loop, or a constraint on one loop): one controller only.
+SINGLE_LOOP_METHODS = {"cl-arx": "--method cl-arx", "cl-edmd-lstsq": "--method cl-edmd-lstsq",
+                       "cl-edmd-stable": "--max-radius (the stability-constrained fit)"}
 
 
 @dataclass(frozen=True)
@@ -98,8 +102,13 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        score_from: int | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
-    With ``alphas`` the regularization is chosen by episode-grouped
-    cross-validation on the training logs with the same ``score``. Test
+    Training logs may come from several controllers: each episode is fitted
+    with its own log's controller (one plant for all), and ``controller`` is
+    the one whose closed loop the model describes (qube-identify: the
+    majority's). With ``alphas`` the regularization is chosen by
+    cross-validation on the training logs with the same ``score``: folds
+    leave one controller out when the logs ran two or more, else
+    episode-grouped random splits (``cv_splits``, ``cv_seed``). Test
     episodes are predicted in closed loop under their own log's controller
     (``score="cl"``) or from their plant input (``score="plant"``). With
     ``offsets`` each test episode's offsets are estimated from its initial
@@ -122,10 +131,16 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     result = IdentificationResult(report={"method": method, "score": score,
                                           "train_logs": [log.path.name for log in train],
                                           "test_logs": [log.path.name for log in test],
-                                          "controller": controller.as_dict()})
+                                          "controller": controller.as_dict(),
+                                          "training_controllers": training_controllers_report(train, controller)})
+    n_controllers = result.report["training_controllers"]["n_controllers"]
+    if method in SINGLE_LOOP_METHODS and n_controllers > 1:
+        raise ValueError(f"{SINGLE_LOOP_METHODS[method]} identifies one closed loop: its training logs must share "
+                         f"one controller, these ran {n_controllers} (cl-edmd, cl-edmd-known-rows, edmd and arx fit "
+                         "logs of several)")
     with limited_blas_threads(1):
         if method in KOOPMAN_METHODS:
-            plant, closed = _koopman(method, lifting, trajs, controller, alpha, alphas, score,
+            plant, closed = _koopman(method, lifting, train, controller, alpha, alphas, score,
                                      cv_splits, cv_seed, progress, result, estimator_options or {})
             result.report["lifting"] = lifting_to_dict(plant.lifting)
             result.report["spectral_radius"] = {"closed_loop": closed.spectral_radius(),
@@ -148,28 +163,35 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     return result
 
 
-def _koopman(method, lifting, trajs, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result,
+def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result,
              options):
     cls = KOOPMAN_METHODS[method]
+    trajs, controllers = [log.trajectory for log in train], [log.controller for log in train]
     make = (lambda a: cls(lifting=lifting, alpha=a, **options)) if cls is Edmd else \
         (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
+    # EDMD fits the plant from its logged input, whatever the controller; the others from each episode's own.
+    fit = (lambda est: est.fit(trajs)) if cls is Edmd else (lambda est: est.fit(trajs, controllers))
     if alphas is not None:
-        splits = group_shuffle_splits(len(trajs), n_splits=cv_splits, test_size=0.2, seed=cv_seed)
+        folds = cross_validation_folds(controllers, cv_splits, cv_seed)
         report = (lambda done, total: progress("cross-validation", done, total)) if progress else None
-        sweep = regularization_sweep(make(0.0), trajs, alphas, splits, scorings=(score,), controller=controller,
-                                     measured=MEASURED, progress=report)
+        sweep = regularization_sweep(make(0.0), trajs, alphas, folds.splits, scorings=(score,), controller=controller,
+                                     measured=MEASURED, progress=report, controllers=controllers)
         alpha = sweep.best_alpha(score)
         result.sweep = sweep
+        best = int(np.flatnonzero(sweep.alphas == alpha)[0])
         result.report["sweep"] = {
             "alpha": [float(a) for a in sweep.alphas],
             "cv_r2_mean": sweep.cv_r2_mean(score).tolist(),
             "spectral_radius_closed_loop": (None if sweep.spectral_radius_closed_loop is None
                                             else sweep.spectral_radius_closed_loop.tolist()),
             "spectral_radius_plant": sweep.spectral_radius_plant.tolist(),
-            "cv_splits": cv_splits, "cv_seed": cv_seed, "score": score,
+            "cv_kind": folds.kind, "cv_description": FOLD_KINDS[folds.kind],
+            "cv_splits": len(folds.splits), "cv_seed": cv_seed if folds.kind == "episode-grouped" else None,
+            "score": score,
+            "folds": folds.report([log.path.name for log in train], sweep.cv_r2[score][:, best]),
         }
     result.report["alpha"] = float(alpha)
-    fitted = make(alpha).fit(trajs)
+    fitted = fit(make(alpha))
     if hasattr(fitted, "unconstrained_radius_"):
         result.report["constraint"] = {**options, "unconstrained_radius": fitted.unconstrained_radius_,
                                        "solver_status": fitted.solver_status_}

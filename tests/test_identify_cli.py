@@ -104,7 +104,8 @@ def test_paper_split_needs_more_than_28_logs(small_set, tmp_path, capsys):
 
 
 def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
-    # a different controller among the training logs
+    # a different controller among the training logs: accepted since issue 27 (one plant for all the
+    # loops), counted in the report; refused by the methods that identify one loop only
     from qube_koopman.daq.log import read_episode, write_episode
     from dataclasses import replace
 
@@ -116,9 +117,17 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     odd = tmp_path / "odd"
     odd.mkdir()
     write_episode(odd / "odd.mcap", replace(ep, metadata=replace(ep.metadata, controller=odd_controller)))
+    code, out, err = run(capsys, "--train", small_set / "train", odd / "odd.mcap", "--test", small_set / "test",
+                         "--out", tmp_path / "o")
+    assert code == 0, err
+    controllers = json.loads((tmp_path / "o" / "report.json").read_text())["training_controllers"]
+    n_train = len(find_logs(small_set / "train"))
+    assert [(c["n_episodes"], c["model_closed_loop"]) for c in controllers["controllers"]] == [(n_train, True), (1, False)]
+    assert controllers["controllers"][1]["logs"] == ["odd.mcap"]
+    assert "training episodes under 2 controllers" in out
     code, _, err = run(capsys, "--train", small_set / "train", odd / "odd.mcap", "--test", small_set / "test",
-                       "--out", tmp_path / "o")
-    assert code == 2 and "odd.mcap: its controller differs" in err
+                       "--out", tmp_path / "o", "--method", "cl-edmd-lstsq")
+    assert code == 2 and "--method cl-edmd-lstsq identifies one closed loop" in err and "these ran 2" in err
 
     # an incomplete log is skipped with a warning, refused with --strict
     cut = tmp_path / "cut"

@@ -28,7 +28,8 @@ With --search the lifting, alpha and offset protocol are chosen on the
 training episodes only, in stages (delays; monomial order x constant x sin/cos;
 friction on/off; RBF centres; offsets on the best few). Each candidate is scored twice: by
 episode-grouped cross-validation (closed-loop prediction under the training
-controller, from the end of the --estimate-window on) and, with --transfer twin
+controller, from the end of the --estimate-window on; leave-one-controller-out
+with training logs of several controllers) and, with --transfer twin
 (the default), by transfer: its plant, wrapped with three probe PD controllers
 unlike the training one, predicts twin episodes (the training excitations
 replayed on the calibrated twin under those controllers). Candidates rank by
@@ -38,6 +39,12 @@ and scored on the test episodes from the same sample as the candidates;
 report.md lists every candidate with both scores and the flags that refit the
 winner by hand. --search-space FILE.toml narrows or widens the space (keys:
 delays, poly, const, trig, friction, rbf, alphas, offsets: lists).
+
+Training logs may come from several controllers (the plant is common, each
+loop differs by its known controller): each episode is fitted with the
+controller its log records, one plant for all; model.json's closed loop is
+that of the controller with the most training episodes. Cross-validation
+(--alpha-sweep, --search) then holds out one controller per fold.
 
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
@@ -116,9 +123,11 @@ def _parser() -> argparse.ArgumentParser:
     reg = fit.add_mutually_exclusive_group()
     reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
     reg.add_argument("--alpha-sweep", nargs=3, metavar=("MIN", "MAX", "N"),
-                     help="choose alpha among N log-spaced values by episode-grouped cross-validation")
+                     help="choose alpha among N log-spaced values by cross-validation: episode-grouped, or "
+                          "leave-one-controller-out when the training logs ran two or more controllers")
     fit.add_argument("--cv-splits", type=whole_number(1), default=3, metavar="K",
-                     help="random splits holding out 20%% of the training episodes (default %(default)s)")
+                     help="random splits holding out 20%% of the training episodes (default %(default)s; with "
+                          "training logs of several controllers the folds leave one controller out instead)")
     fit.add_argument("--cv-seed", type=seed, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
     fit.add_argument("--score", choices=["cl", "plant"], default="cl",
                      help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
@@ -296,7 +305,8 @@ def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
 
 
 def _load(args):
-    from qube_koopman.identify.data import IncompleteLogSkipped, check_same_controller, check_same_rate, load_logs, paper_split
+    from qube_koopman.identify.data import IncompleteLogSkipped, check_same_rate, load_logs, paper_split
+    from qube_koopman.identify.mixed import majority_controller
 
     if args.split:
         train_paths, test_paths = paper_split(_expand(args.logs))
@@ -312,7 +322,8 @@ def _load(args):
     if not train or not test:
         raise CliError("no complete training or test logs left")
     check_same_rate(train + test, "training and test")
-    controller = check_same_controller(train, "training")
+    # Logs of several controllers share one plant fit; the model's closed loop is the majority's.
+    controller = majority_controller([log.controller for log in train])
     return train, test, controller
 
 
@@ -358,13 +369,14 @@ def _run(args) -> int:
     if search is not None:
         from qube_koopman.identify.cli.search import search_report
 
-        result.report["search"] = search_report(search, args)
+        result.report["search"] = search_report(search, args, [log.path.name for log in train])
     write_json(out / "report.json", result.report)
     write_markdown_report(out / "report.md", result.report)
     if args.rerun:
         from qube_koopman.identify.rerun_view import write_recording
 
         write_recording(args.rerun, result)
+    _print_controllers(result.report["training_controllers"])
     _print_scores(args, result.report)
     written = ["model.json", "report.json", "report.md"]
     print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
@@ -375,6 +387,16 @@ def _what_if_controller(path: str, dt: float):
     from qube_koopman.daq.controller import load_pd_gains, pd_controller
 
     return pd_controller(load_pd_gains(path), dt, "backward-euler")
+
+
+def _print_controllers(training: dict) -> None:
+    """With training logs of several controllers: how many episodes each, and whose loop the model is."""
+    if training["n_controllers"] < 2:
+        return
+    each = ", ".join(f"controller {c['controller']}: {c['n_episodes']}" + (" (the model's closed loop)"
+                                                                          if c["model_closed_loop"] else "")
+                     for c in training["controllers"])
+    print(f"training episodes under {training['n_controllers']} controllers ({each}); one plant fitted to all")
 
 
 def _print_scores(args, report: dict) -> None:

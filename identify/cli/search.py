@@ -42,7 +42,7 @@ def load_space(path: str | None):
 
 def run_search(args, train, controller):
     """Run the search on the training logs; prints the winner's line."""
-    from qube_koopman.identify.data import group_shuffle_splits
+    from qube_koopman.identify.mixed import cross_validation_folds
     from qube_koopman.identify.search import search_liftings
 
     space = load_space(args.search_space)
@@ -51,15 +51,18 @@ def run_search(args, train, controller):
     if min(t.n_samples for t in trajs) <= window + max(space.delays) + 2:
         raise CliError(f"--estimate-window {args.estimate_window} s and {max(space.delays)} delays leave nothing "
                        "to score in the shortest training episode")
-    splits = group_shuffle_splits(len(trajs), n_splits=args.cv_splits, test_size=0.2, seed=args.cv_seed)
+    controllers = [log.controller for log in train]
+    folds = cross_validation_folds(controllers, args.cv_splits, args.cv_seed)
     probes = None
     if args.transfer == "twin":
         from qube_koopman.identify.transfer import twin_probes
 
         probes = twin_probes(trajs)
-    result = search_liftings(trajs, controller, splits=splits, window=window, space=space, n_jobs=args.n_jobs,
+    result = search_liftings(trajs, controller, splits=folds.splits, window=window, space=space, n_jobs=args.n_jobs,
                              scheduler=args.scheduler, bound=args.offset_bound, rbf_seed=args.rbf_seed,
-                             probes=probes, progress=progress)
+                             probes=probes, progress=progress,
+                             controllers=controllers if folds.kind == "leave-one-controller-out" else None)
+    result.folds = folds
     best = result.winner
     transfer = "" if best.transfer_score is None else f", transfer R^2 {best.transfer_score:.4f}"
     print(f"search: {len(result.candidates)} candidates in {result.seconds:.0f} s; winner {best.spec.label()}, "
@@ -76,8 +79,9 @@ OBJECTIVE = {
 }
 
 
-def search_report(result, args) -> dict:
-    """The search's part of report.json."""
+def search_report(result, args, names) -> dict:
+    """The search's part of report.json (``names``: the training logs')."""
+    from qube_koopman.identify.mixed import FOLD_KINDS
     from qube_koopman.identify.search import STAGES
 
     space = load_space(args.search_space)
@@ -89,7 +93,10 @@ def search_report(result, args) -> dict:
         "stages": list(STAGES),
         "space": {f.name: getattr(space, f.name) for f in fields(space) if f.name in _LISTS},
         "alphas": list(space.alphas),
-        "cv_splits": args.cv_splits, "cv_seed": args.cv_seed,
+        "cv_kind": result.folds.kind, "cv_description": FOLD_KINDS[result.folds.kind],
+        "cv_splits": len(result.folds.splits),
+        "cv_seed": args.cv_seed if result.folds.kind == "episode-grouped" else None,
+        "folds": result.folds.report(names, result.winner.cv_r2[:, result.winner.best_index]),
         "score": (f"mean R^2 of theta and alpha over each fold's validation episodes, closed-loop prediction "
                   f"from the episode's start, scored from sample {result.window} on"),
         "objective": OBJECTIVE[args.transfer],
