@@ -256,8 +256,9 @@ class CandidateResult:
 
     @property
     def score_std(self) -> float:
-        """Spread of the fold scores at the best alpha."""
-        return float(np.std(self.cv_r2[:, self.best_index]))
+        """Spread of the fold scores at the best alpha (NaN when a fold's prediction diverged)."""
+        folds = self.cv_r2[:, self.best_index]
+        return float(np.std(folds)) if np.all(np.isfinite(folds)) else float("nan")
 
     def as_dict(self) -> dict:
         """Plain data for reports (None for scores that are not finite numbers)."""

@@ -14,6 +14,8 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -51,6 +53,11 @@ def test_the_objective_is_the_lower_of_cv_and_transfer_and_ranks_by_it():
     diverged = CandidateResult(LiftingSpec(), "test", np.array([1.0]), np.full((3, 1), 0.99), 0.0,
                                np.array([[0.99], [-np.inf]]))
     assert diverged.score == -np.inf and diverged.as_dict()["transfer_r2"] is None
+    # A diverged fold: the spread is undefined, reported as null without numpy's warning on stderr.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fold_diverged = CandidateResult(LiftingSpec(), "test", np.array([1.0]), np.array([[0.99], [-np.inf]]), 0.0)
+        assert fold_diverged.as_dict()["cv_r2_std"] is None
     # Without probes, cross-validation alone (the old behaviour).
     plain = CandidateResult(LiftingSpec(), "test", np.array([1.0, 2.0]), np.array([[0.5, 0.7]]), 0.0)
     assert plain.best_alpha == 2.0 and plain.transfer_score is None and plain.as_dict()["objective"] == 0.7
