@@ -113,32 +113,39 @@ class ControllerInfo:
     gains : mapping of str to float
         The gains it was built from (e.g. :meth:`daq.controller.PdGains.as_dict`).
     kind : str
-        Controller family, e.g. ``"pd"``.
+        Controller family: ``"pd"`` (built from gains) or ``"state-space"`` (matrices given
+        in discrete time, daq/CONTROLLER_FORMAT.md).
+    provenance : mapping
+        Free-form JSON-serializable record of where the controller comes from (for a
+        state-space file: its ``[provenance]`` table, e.g. what designed it); empty for gains.
     """
 
     system: DiscreteStateSpace
     method: str
     gains: Mapping[str, float] = field(default_factory=dict)
     kind: str = "pd"
+    provenance: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.system, DiscreteStateSpace):
             raise TypeError(f"system must be a DiscreteStateSpace, got {type(self.system).__name__}")
         gains = {str(k): float(v) for k, v in dict(self.gains).items()}
         object.__setattr__(self, "gains", _plain_json(gains, "controller gains"))
+        object.__setattr__(self, "provenance", _plain_json(self.provenance, "controller provenance"))
 
     def as_dict(self) -> dict:
-        """Plain-data form: kind, method, gains and the state-space matrices."""
+        """Plain-data form: kind, method, gains, provenance and the state-space matrices."""
         return {"kind": self.kind, "method": self.method, "gains": dict(self.gains),
-                **self.system.as_dict()}
+                "provenance": dict(self.provenance), **self.system.as_dict()}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "ControllerInfo":
-        """Inverse of :meth:`as_dict`."""
+        """Inverse of :meth:`as_dict` (``provenance`` optional: empty when absent)."""
         missing = {"kind", "method", "gains"} - set(data)
         if missing:
             raise ValueError(f"controller data misses {sorted(missing)}")
-        return cls(DiscreteStateSpace.from_dict(data), data["method"], data["gains"], data["kind"])
+        return cls(DiscreteStateSpace.from_dict(data), data["method"], data["gains"], data["kind"],
+                   data.get("provenance", {}))
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,8 @@ STATUS_RECORD = "qube.status"
 _EPISODE_KEYS = ("format_version", "sample_rate_hz", "backend", "source", "start_time",
                  "software_version", "excitation", "extra")
 _CONTROLLER_KEYS = ("kind", "method", "gains", "dt", "A", "B", "C", "D")
+# Added in 1.4 (a state-space controller's provenance); absent from older logs: empty.
+_OPTIONAL_CONTROLLER_KEYS = ("provenance",)
 
 
 def _json(value) -> str:
@@ -56,6 +58,7 @@ def episode_records(meta: EpisodeMetadata) -> dict[str, dict[str, str]]:
             "gains": _json(controller["gains"]),
             "dt": repr(controller["dt"]),
             **{m: _json(controller[m]) for m in "ABCD"},
+            "provenance": _json(controller["provenance"]),
         },
     }
 
@@ -137,6 +140,7 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
             "kind": controller["kind"], "method": controller["method"],
             "gains": json.loads(controller["gains"]), "dt": float(controller["dt"]),
             **{m: json.loads(controller[m]) for m in "ABCD"},
+            **{k: json.loads(controller[k]) for k in _OPTIONAL_CONTROLLER_KEYS if k in controller},
         })
         status = records.get(STATUS_RECORD)
         timing = backend_stats = {}

@@ -24,7 +24,7 @@ __all__ = [
 ]
 
 #: Version of the episode log format; readers accept the same major version.
-FORMAT_VERSION = "1.3"
+FORMAT_VERSION = "1.4"
 
 SAMPLE_TOPIC = "/qube/sample"
 SAMPLE_SCHEMA_NAME = "qube_msgs/msg/EpisodeSample"
