@@ -25,6 +25,8 @@ __all__ = [
     "SHIPPED_CONTROLLERS",
     "controller_file",
     "load_pd_gains",
+    "pd_gains_from_table",
+    "read_controller_toml",
     "pd_controller",
     "pi_controller",
     "discretize_channels",
@@ -74,13 +76,46 @@ def controller_file(name_or_path: str | Path) -> Path:
     A name of :data:`SHIPPED_CONTROLLERS` (``"rig"``, ``"soft-theta"``) that is
     not also a file in the working folder gives the package's file (a folder of
     that name, such as episodes in ``./rig``, does not count); anything else is
-    taken as a path (and reported by :func:`load_pd_gains` if missing).
+    taken as a path (and reported by :func:`read_controller_toml` if missing).
     """
     path = Path(name_or_path)
     if str(name_or_path) in SHIPPED_CONTROLLERS and not path.is_file():
         # resources.files on the package's own name: the file is found in a wheel as in a checkout.
         return Path(str(resources.files(__package__) / SHIPPED_CONTROLLERS[str(name_or_path)]))
     return path
+
+
+def read_controller_toml(path: Path) -> dict:
+    """The TOML table of a controller file (either kind).
+
+    Raises
+    ------
+    ValueError
+        Naming the file when it cannot be read or is not TOML.
+    """
+    try:
+        return tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read controller file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (a TOML controller file is expected)") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path}: not valid TOML ({exc})") from None
+
+
+def pd_gains_from_table(data: dict, path: Path) -> PdGains:
+    """The gains of a PD gains file's table (:func:`read_controller_toml`); errors name ``path``."""
+    fields = PdGains.__dataclass_fields__
+    missing = [k for k in fields if k not in data]
+    if missing:
+        raise ValueError(f"{path}: missing gains {', '.join(missing)}")
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ValueError(f"{path}: unknown keys {', '.join(unknown)}")
+    try:
+        return PdGains(**{k: data[k] for k in fields})
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def load_pd_gains(path: str | Path) -> PdGains:
@@ -97,25 +132,7 @@ def load_pd_gains(path: str | Path) -> PdGains:
         Naming the file when it cannot be read, is not TOML or misses a gain.
     """
     path = controller_file(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read controller file ({exc.strerror or exc})") from None
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a text file (a TOML controller file is expected)") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML ({exc})") from None
-    fields = PdGains.__dataclass_fields__
-    missing = [k for k in fields if k not in data]
-    if missing:
-        raise ValueError(f"{path}: missing gains {', '.join(missing)}")
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ValueError(f"{path}: unknown keys {', '.join(unknown)}")
-    try:
-        return PdGains(**{k: data[k] for k in fields})
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+    return pd_gains_from_table(read_controller_toml(path), path)
 
 
 def discretize_channels(channels, dt: float, method: str) -> DiscreteStateSpace:

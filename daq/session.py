@@ -17,7 +17,8 @@ from typing import Callable, Sequence, overload
 import numpy as np
 
 from qube_koopman.daq.backends.base import Backend
-from qube_koopman.daq.controller import controller_file, load_pd_gains, pd_controller
+from qube_koopman.daq.controller import controller_file
+from qube_koopman.daq.controller_file import load_controller_file
 from qube_koopman.daq.episode import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings, ExcitationStream
 from qube_koopman.daq.log.names import SEED_SIGNALS
@@ -64,15 +65,19 @@ def default_controller_path() -> Path:
 
 def load_controller(path: str | Path | None = None, method: str = "backward-euler",
                     dt: float = 1.0 / 500.0) -> ControllerInfo:
-    """The PD controller of a controller.toml (the rig's by default), discretized like the rig's.
+    """The controller of a controller file (the rig's PD gains by default), as the loop runs it.
+
+    A PD gains file is discretized like the rig's (``method``); a state-space file
+    (daq/CONTROLLER_FORMAT.md) must be at the sample period ``dt``
+    (:func:`daq.controller_file.load_controller_file`).
 
     Raises
     ------
     ValueError
-        Naming the file, when it cannot be read or lacks a gain.
+        Naming the file and the problem (unreadable, a gain or key missing, a matrix's
+        shape or entries, a sample period other than ``dt``).
     """
-    gains = load_pd_gains(default_controller_path() if path is None else path)
-    return ControllerInfo(pd_controller(gains, dt, method), method, gains.as_dict(), "pd")
+    return load_controller_file(default_controller_path() if path is None else path, method, dt)
 
 
 def run_seeds(seed: int, n_episodes: int) -> tuple[np.ndarray, int]:

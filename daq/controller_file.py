@@ -1,0 +1,267 @@
+"""Controller files: PD gains or a discrete state-space controller, read into one :class:`ControllerInfo`.
+
+A controller file is TOML, of one of two kinds (daq/CONTROLLER_FORMAT.md):
+
+- a PD gains file (no ``kind`` key): ``kp_theta``, ``kd_theta``, ``kp_alpha``, ``kd_alpha``,
+  ``tau``, discretized here like the rig's (:func:`daq.controller.pd_controller`);
+- a state-space file (``format = "qube-controller/1"``, ``kind = "state-space"``): the matrices
+  A, B, C, D of a discrete controller at the loop's sample period, inline or in a sibling
+  ``.npz``, e.g. written by a controller design from an identified model.
+
+Both give the :class:`~daq.episode.ControllerInfo` the loop runs and the log records. Every
+problem is one ``ValueError`` naming the file and what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from qube_koopman.daq.controller import (QUBE_SAMPLE_PERIOD, controller_file, pd_controller,
+                                         pd_gains_from_table, read_controller_toml)
+from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+__all__ = [
+    "CONTROLLER_FORMAT",
+    "STATE_SPACE_KIND",
+    "STATE_SPACE_METHOD",
+    "TRACKING_INPUTS",
+    "load_controller_file",
+    "write_controller_file",
+]
+
+#: The ``format`` of a state-space controller file this reader reads.
+CONTROLLER_FORMAT = "qube-controller/1"
+#: The ``kind`` of a state-space controller file (and of its :class:`ControllerInfo`).
+STATE_SPACE_KIND = "state-space"
+#: The ``method`` a state-space controller is recorded with: given in discrete time, not discretized.
+STATE_SPACE_METHOD = "given"
+#: The controller's inputs, in column order of B and D: the tracking errors ``r - y``.
+TRACKING_INPUTS = ("e_theta", "e_alpha")
+
+_REQUIRED = ("format", "kind", "dt", "inputs")
+_MATRICES = ("A", "B", "C", "D")
+_KNOWN = frozenset(_REQUIRED + _MATRICES + ("matrices", "provenance"))
+
+
+def load_controller_file(path: str | Path, method: str = "backward-euler",
+                         dt: float = QUBE_SAMPLE_PERIOD) -> ControllerInfo:
+    """The controller of a controller file of either kind, as the loop runs it.
+
+    Parameters
+    ----------
+    path : str or Path
+        A controller file, or a shipped name (``"rig"``, ``"soft-theta"``; see
+        :func:`daq.controller.controller_file`).
+    method : {"backward-euler", "zoh", "tustin"}
+        Discretization of a PD gains file's derivative filters; a state-space file is
+        already discrete (recorded with method ``"given"``).
+    dt : float
+        The loop's sample period (s): a PD controller is discretized at it, a state-space
+        file must be written at it.
+
+    Returns
+    -------
+    ControllerInfo
+        kind ``"pd"`` with its gains, or ``"state-space"`` with the file's provenance.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the problem: unreadable, not TOML, a missing or unknown key, an
+        unknown kind or format, a matrix of the wrong shape or with non-finite entries, a
+        sample period other than ``dt``.
+    """
+    path = controller_file(path)
+    data = read_controller_toml(path)
+    if "kind" not in data and "format" not in data:
+        gains = pd_gains_from_table(data, path)
+        return ControllerInfo(pd_controller(gains, dt, method), method, gains.as_dict(), "pd")
+    kind = data.get("kind")
+    if kind != STATE_SPACE_KIND:
+        if kind is None:
+            raise ValueError(f"{path}: missing key kind (a state-space file has kind = \"{STATE_SPACE_KIND}\")")
+        raise ValueError(f"{path}: unknown controller kind {kind!r}; expected \"{STATE_SPACE_KIND}\" (a PD "
+                         "gains file has no kind, only kp_theta, kd_theta, kp_alpha, kd_alpha, tau)")
+    return _state_space(data, path, dt)
+
+
+def _state_space(data: dict, path: Path, dt: float) -> ControllerInfo:
+    """A state-space file's controller, every key checked."""
+    missing = [k for k in _REQUIRED if k not in data]
+    if "matrices" not in data:
+        missing += [m for m in _MATRICES if m not in data]
+    if missing:
+        raise ValueError(f"{path}: missing key{'s' if len(missing) > 1 else ''} {', '.join(missing)}")
+    unknown = sorted(set(data) - _KNOWN)
+    if unknown:
+        raise ValueError(f"{path}: unknown keys {', '.join(unknown)} (a state-space file has "
+                         f"{', '.join(sorted(_KNOWN))})")
+    if data["format"] != CONTROLLER_FORMAT:
+        raise ValueError(f"{path}: format {data['format']!r} is not supported (this reader reads "
+                         f"\"{CONTROLLER_FORMAT}\")")
+    _check_period(data["dt"], path, dt)
+    _check_inputs(data["inputs"], path)
+    A, B, C, D = _matrices(data, path)
+    _check_shapes(A, B, C, D, path)
+    provenance = data.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise ValueError(f"{path}: provenance must be a table ([provenance]), got {type(provenance).__name__}")
+    try:
+        return ControllerInfo(DiscreteStateSpace(A, B, C, D, float(data["dt"])), STATE_SPACE_METHOD, {},
+                              STATE_SPACE_KIND, json.loads(json.dumps(provenance, default=str)))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def _check_period(value: Any, path: Path, dt: float) -> None:
+    if not _is_number(value) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{path}: dt must be a positive number of seconds, got {value!r}")
+    if abs(value - dt) > 1e-9 * dt:
+        raise ValueError(f"{path}: dt {value!r} s differs from the loop's sample period {dt!r} s (a "
+                         "discrete controller runs only at the period it was designed for)")
+
+
+def _check_inputs(value: Any, path: Path) -> None:
+    inputs = tuple(value) if isinstance(value, list) else value
+    if inputs == TRACKING_INPUTS:
+        return
+    if isinstance(inputs, tuple) and inputs[:2] == TRACKING_INPUTS and inputs[2:] == ("feedforward",):
+        raise ValueError(f"{path}: inputs: a feedforward input is not supported yet (the feedforward is "
+                         f"added to the controller's output); use inputs = {list(TRACKING_INPUTS)}")
+    raise ValueError(f"{path}: inputs must be {json.dumps(list(TRACKING_INPUTS))} (the tracking errors r - y "
+                     f"of theta and alpha, the columns of B and D), got {value!r}")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _matrices(data: dict, path: Path) -> list[np.ndarray]:
+    """A, B, C, D: inline lists of rows, or the arrays of the ``matrices`` .npz beside the file."""
+    if "matrices" not in data:
+        return [_inline_matrix(data[m], m, path) for m in _MATRICES]
+    inline = [m for m in _MATRICES if m in data]
+    if inline:
+        raise ValueError(f"{path}: {', '.join(inline)} given both inline and in matrices = "
+                         f"{data['matrices']!r}: give each matrix once")
+    if not isinstance(data["matrices"], str):
+        raise ValueError(f"{path}: matrices must be the name of an .npz file, got {data['matrices']!r}")
+    npz = path.parent / data["matrices"]
+    try:
+        with np.load(npz, allow_pickle=False) as arrays:
+            loaded = {m: arrays[m] for m in _MATRICES if m in arrays.files}
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read {npz} ({exc.strerror or exc}) (matrices)") from None
+    except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path}: {npz} is not a numpy .npz of numbers ({exc}) (matrices)") from None
+    absent = [m for m in _MATRICES if m not in loaded]
+    if absent:
+        raise ValueError(f"{path}: {npz} holds no array {', '.join(absent)} (matrices)")
+    return [_numeric(loaded[m], m, path) for m in _MATRICES]
+
+
+def _inline_matrix(value: Any, name: str, path: Path) -> np.ndarray:
+    """A TOML list of rows of numbers as a float matrix."""
+    if (not isinstance(value, list) or not value or not all(isinstance(row, list) for row in value)
+            or not all(_is_number(v) for row in value for v in row)):
+        raise ValueError(f"{path}: {name} must be a matrix: a non-empty list of rows of numbers, "
+                         f"e.g. {name} = [[1.0, 0.0], [0.0, 1.0]]")
+    lengths = sorted({len(row) for row in value})
+    if len(lengths) > 1:
+        raise ValueError(f"{path}: {name} has rows of different lengths ({', '.join(map(str, lengths))})")
+    return _numeric(np.array(value, dtype=float).reshape(len(value), lengths[0]), name, path)
+
+
+def _numeric(value: np.ndarray, name: str, path: Path) -> np.ndarray:
+    """A finite 2-D float matrix, or a ValueError naming the first bad entry."""
+    if value.ndim != 2 or value.dtype.kind not in "fiu":
+        raise ValueError(f"{path}: {name} must be a 2-D matrix of numbers, got {value.ndim}-D "
+                         f"{value.dtype}")
+    value = value.astype(float)
+    bad = np.argwhere(~np.isfinite(value))
+    if len(bad):
+        i, j = bad[0]
+        raise ValueError(f"{path}: {name} has {len(bad)} non-finite entr{'y' if len(bad) == 1 else 'ies'} "
+                         f"(first: row {i}, column {j}: {value[i, j]})")
+    return value
+
+
+def _check_shapes(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, path: Path) -> None:
+    """A n x n, B n x 2, C 1 x n, D 1 x 2, with n = the rows of A."""
+    n, p = A.shape[0], len(TRACKING_INPUTS)
+    expected = {"A": (n, n), "B": (n, p), "C": (1, n), "D": (1, p)}
+    for name, value in zip(_MATRICES, (A, B, C, D)):
+        if value.shape != expected[name]:
+            rows, cols = expected[name]
+            raise ValueError(f"{path}: {name} has shape {value.shape[0]} x {value.shape[1]}, expected "
+                             f"{rows} x {cols} (A has {n} rows: {n} states; {p} inputs "
+                             f"{', '.join(TRACKING_INPUTS)}; 1 output, the voltage)")
+
+
+def write_controller_file(path: str | Path, system: DiscreteStateSpace,
+                          provenance: Mapping[str, Any] | None = None, *, npz: bool = False) -> Path:
+    """Write a state-space controller file that :func:`load_controller_file` reads back exactly.
+
+    Parameters
+    ----------
+    path : str or Path
+        The TOML file to write.
+    system : DiscreteStateSpace
+        The controller: two tracking errors in, one voltage out.
+    provenance : mapping, optional
+        Free-form ``[provenance]`` table (strings, numbers, booleans, lists, tables).
+    npz : bool, default False
+        Put the matrices in ``<path stem>.npz`` beside the file (``matrices = ...``) instead of
+        inline: a 200-state file then loads in milliseconds instead of about 0.3 s.
+
+    Returns
+    -------
+    Path
+        The TOML file written.
+    """
+    path = Path(path)
+    if system.n_inputs != len(TRACKING_INPUTS) or system.n_outputs != 1:
+        raise ValueError(f"a controller file holds 2 inputs and 1 output, got {system.n_inputs} and "
+                         f"{system.n_outputs}")
+    lines = [f"# A discrete state-space controller of qube-koopman (daq/CONTROLLER_FORMAT.md): "
+             f"{system.n_states} states", f'format = "{CONTROLLER_FORMAT}"', f'kind = "{STATE_SPACE_KIND}"',
+             f"dt = {system.dt!r}", f"inputs = {json.dumps(list(TRACKING_INPUTS))}"]
+    if npz:
+        target = path.with_suffix(".npz")
+        np.savez(target, **{m: getattr(system, m) for m in _MATRICES})
+        lines.append(f"matrices = {json.dumps(target.name)}")
+    else:
+        for m in _MATRICES:
+            rows = ",\n".join("  [" + ", ".join(repr(v) for v in row) + "]" for row in getattr(system, m).tolist())
+            lines.append(f"{m} = [\n{rows},\n]")
+    if provenance:
+        lines += ["", "[provenance]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in provenance.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _toml_key(key: str) -> str:
+    key = str(key)
+    return key if key and all(c.isascii() and (c.isalnum() or c in "_-") for c in key) else json.dumps(key)
+
+
+def _toml_value(value: Any) -> str:
+    """A TOML value for plain data (JSON's string escapes are TOML's basic-string escapes)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, Mapping):
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise ValueError(f"provenance value {value!r} is not plain data (str, number, bool, list, table)")
