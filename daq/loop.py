@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.excitation import Excitation, ExcitationStream
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.episode import ControllerInfo, EpisodeMetadata
@@ -318,16 +319,6 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
                          sink_errors=tuple(run.errors), signal=stop.signal, cause=run.cause)
 
 
-def _plain_controller(ctrl) -> tuple[list, list, float, float]:
-    """The controller as plain floats: (rows (A row, B0, B1) per state, C, D0, D1).
-
-    numpy's per-call overhead would cost more than the arithmetic of a 2-state controller.
-    """
-    rows = [(a, b[0], b[1]) for a, b in zip(ctrl.A.tolist(), ctrl.B.tolist())]
-    D0, D1 = ctrl.D[0].tolist()
-    return rows, ctrl.C[0].tolist(), D0, D1
-
-
 class _DeviceLateness:
     """Lateness of a device-paced tick: its arrival against the device's clock, anchored on tick 0.
 
@@ -393,8 +384,7 @@ def _clocking(backend: Backend, writer: SinkWriter, pacer: DeadlinePacer | None)
 def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest,
            writer: SinkWriter, pacer: DeadlinePacer | None, times: _TickTimes) -> tuple[int, str, str]:
     """The ticks of one episode; returns (ticks recorded, abort reason, cause), '' when complete."""
-    rows, C, D0, D1 = _plain_controller(plan.controller.system)
-    xc = (0.0,) * len(rows)
+    output, update = controller_step(plan.controller.system)
     n_ticks = plan.n_samples
     chunks = _excitation_chunks(plan.excitation)
     ref_theta = ref_alpha = ff = []
@@ -429,9 +419,7 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         r_theta, r_alpha = ref_theta[j], ref_alpha[j]
         e0 = r_theta - theta
         e1 = r_alpha - alpha
-        u = D0 * e0 + D1 * e1
-        for c, x in zip(C, xc):
-            u += c * x
+        u, xc = output(e0, e1)
         reason = ""
         if not (abs(theta) <= th_lim and abs(alpha) <= al_lim) or stop.requested or writer.failed is not None:
             reason, cause = _abort(theta, alpha, limits, stop, writer)
@@ -455,5 +443,5 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
             writer.wait_below(_MAX_BACKLOG)  # free-running: memory must not grow with the episode
         if reason:
             return k + 1, reason, cause
-        xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 for row, b0, b1 in rows])
+        update(e0, e1)
     return n_ticks, "", ""

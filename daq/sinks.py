@@ -63,7 +63,7 @@ class Sample(NamedTuple):
     saturation: int
     lateness: float
     compute_time: float
-    controller_state: tuple[float, ...]
+    controller_state: Sequence[float]
     device_time: float = float("nan")
 
 

@@ -1,0 +1,102 @@
+"""The controller's per-tick step in the acquisition loop, fast at any size.
+
+Each tick the loop asks for the output ``u = C x + D e`` (before writing the command) and then
+advances the state ``x <- A x + B e``, with ``e`` the two tracking errors: the convention of
+:class:`sim.lti.DiscreteStateSpace` and of the log (``controller_state[k]`` is the state that
+computed ``control_output[k]``), so :func:`sim.lti.replay_controller` recomputes the logged
+state from the log.
+
+Two realizations of the same arithmetic, chosen by size:
+
+- up to :data:`PLAIN_MAX_STATES` states (the QUBE's PD has 2), plain Python floats: numpy's
+  per-call overhead would cost more than the arithmetic;
+- above, numpy on preallocated arrays: one matrix-vector product ``[C D] [x; e]`` for the
+  output and one ``[A B] [x; e]`` for the update, no allocation but the logged copy of the
+  state (a 200-state step takes about 10-20 us; bench/bench_controller_size.py).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+__all__ = ["PLAIN_MAX_STATES", "Output", "Update", "controller_step"]
+
+#: Largest controller run on plain floats; larger ones run on numpy.
+PLAIN_MAX_STATES = 4
+
+#: ``output(e_theta, e_alpha) -> (u, x)``: the output and the state that computed it (to log).
+Output = Callable[[float, float], tuple[float, Sequence[float]]]
+#: ``update(e_theta, e_alpha)``: advance the state with this tick's errors.
+Update = Callable[[float, float], None]
+
+
+def controller_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
+    """The per-tick output and state update of a two-input, one-output controller, from zero state.
+
+    Parameters
+    ----------
+    system : DiscreteStateSpace
+        The controller: the tracking errors (theta, alpha) in, one voltage out.
+
+    Returns
+    -------
+    output : callable
+        ``output(e0, e1) -> (u, x)``: ``u = C x + D e`` and the current state ``x`` (a tuple or
+        list of floats the caller may keep: it is not changed by later ticks).
+    update : callable
+        ``update(e0, e1)``: ``x <- A x + B e``; call it after ``output`` with the same errors.
+    """
+    if system.n_inputs != 2 or system.n_outputs != 1:
+        raise ValueError(f"the loop's controller has 2 inputs and 1 output, got {system.n_inputs} and "
+                         f"{system.n_outputs}")
+    if system.n_states <= PLAIN_MAX_STATES:
+        return _plain_step(system)
+    return _numpy_step(system)
+
+
+def _plain_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
+    """The step on plain floats (the arithmetic, in its order, of the loop before numpy steps)."""
+    rows = [(a, b[0], b[1]) for a, b in zip(system.A.tolist(), system.B.tolist())]
+    C = system.C[0].tolist()
+    D0, D1 = system.D[0].tolist()
+    xc = (0.0,) * len(rows)
+
+    def output(e0: float, e1: float) -> tuple[float, tuple[float, ...]]:
+        u = D0 * e0 + D1 * e1
+        for c, x in zip(C, xc):
+            u += c * x
+        return u, xc
+
+    def update(e0: float, e1: float) -> None:
+        nonlocal xc
+        xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 for row, b0, b1 in rows])
+
+    return output, update
+
+
+def _numpy_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
+    """The step on preallocated numpy arrays: ``z = [x; e]``, ``u = [C D] z``, ``x <- [A B] z``."""
+    n = system.n_states
+    AB = np.ascontiguousarray(np.hstack([system.A, system.B]))
+    CD = np.ascontiguousarray(np.hstack([system.C, system.D])[0])
+    z = np.zeros(n + 2)
+    x = z[:n]
+    nxt = np.empty(n)
+    dot = np.dot
+
+    def output(e0: float, e1: float) -> tuple[float, list[float]]:
+        z[n] = e0
+        z[n + 1] = e1
+        return float(dot(CD, z)), x.tolist()
+
+    def update(e0: float, e1: float) -> None:
+        z[n] = e0
+        z[n + 1] = e1
+        dot(AB, z, out=nxt)
+        x[:] = nxt
+
+    return output, update
