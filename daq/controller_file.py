@@ -124,7 +124,7 @@ def _check_period(value: Any, path: Path, dt: float) -> None:
     if not _is_number(value) or not (math.isfinite(value) and value > 0):
         raise ValueError(f"{path}: dt must be a positive number of seconds, got {value!r}")
     if abs(value - dt) > 1e-9 * dt:
-        raise ValueError(f"{path}: dt {value!r} s differs from the loop's sample period {dt!r} s (a "
+        raise ValueError(f"{path}: dt {value!r} s differs from the sample period {dt!r} s of the loop and its logs (a "
                          "discrete controller runs only at the period it was designed for)")
 
 

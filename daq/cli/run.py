@@ -112,11 +112,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the same excitations as these logs (their seeds, settings and durations), "
                         "under their own controller unless --controller is given")
     p.add_argument("--controller", type=path, default=None, metavar="FILE.toml",
-                   help="controller gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau), a file or a shipped "
-                        "name: 'rig' (the gains that recorded the paper's dataset: the default) or 'soft-theta' "
-                        "(a softer arm, kp_theta 2)")
+                   help="controller file: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau) or a discrete "
+                        "state-space controller at 500 Hz (A, B, C, D; daq/CONTROLLER_FORMAT.md); a file or a "
+                        "shipped name: 'rig' (the gains that recorded the paper's dataset: the default) or "
+                        "'soft-theta' (a softer arm, kp_theta 2)")
     p.add_argument("--discretization", default="backward-euler", choices=("backward-euler", "zoh", "tustin"),
-                   help="discretization of the derivative filters (default backward-euler, as the rig ran)")
+                   help="discretization of a PD gains file's derivative filters (default backward-euler, as the "
+                        "rig ran); a state-space file is already discrete")
     p.add_argument("--realtime", action="store_true",
                    help="pace the simulator like hardware, one tick every 2 ms (default: as fast as possible)")
     p.add_argument("--rerun", nargs="?", const="", default=None, metavar="URL",
@@ -238,6 +240,13 @@ def summary_table(rows: list[tuple[str, object]], totals) -> str:
     line += f"compute p50 {_us(t.compute_p50)} us, p99 {_us(t.compute_p99)} us, max {_us(t.compute_max)} us"
     lines.append(line)
     return "\n".join(lines)
+
+
+def _controller_form(controller, args) -> str:
+    """How the controller was made, for the header line: the PD's discretization, or its kind and size."""
+    if controller.kind == "pd":
+        return args.discretization
+    return f"{controller.kind}, {controller.system.n_states} states"
 
 
 def _check_writable(folder: Path) -> None:
@@ -469,7 +478,7 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
 
     print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on "
           f"{_where(args, backend)}, seed {seed}, controller "
-          f"{args.controller or 'of the paper dataset'} ({args.discretization}), logs to {args.out}/",
+          f"{args.controller or 'of the paper dataset'} ({_controller_form(plans[0].controller, args)}), logs to {args.out}/",
           flush=True)
     mcap: McapSink = sinks[0]
     names: list[str] = []

@@ -154,10 +154,11 @@ def _parser() -> argparse.ArgumentParser:
                            "its candidates (the default with --search or --offsets); paper: from the second "
                            "sample, the paper's protocol (the default otherwise; not with --offsets)")
     pred.add_argument("--controller", type=path, metavar="FILE.toml",
-                      help="what-if: predict every test episode under this controller's gains (kp_theta, "
-                           "kd_theta, kp_alpha, kd_alpha, tau; backward Euler as on the rig) instead of its "
-                           "log's own (a file, or a shipped name: rig, soft-theta); only episodes recorded "
-                           "under it are scored")
+                      help="what-if: predict every test episode under this controller instead of its "
+                           "log's own: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau; backward Euler as "
+                           "on the rig) or a state-space file at the logs' sample period "
+                           "(daq/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
+                           "episodes recorded under it are scored")
     _add_search_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)")
@@ -384,9 +385,11 @@ def _run(args) -> int:
 
 
 def _what_if_controller(path: str, dt: float):
-    from qube_koopman.daq.controller import load_pd_gains, pd_controller
+    """The --controller file's controller at the logs' period: PD gains (discretized like the rig's)
+    or a state-space file written at that period."""
+    from qube_koopman.daq.controller_file import load_controller_file
 
-    return pd_controller(load_pd_gains(path), dt, "backward-euler")
+    return load_controller_file(path, "backward-euler", dt).system
 
 
 def _print_controllers(training: dict) -> None:
