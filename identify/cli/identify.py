@@ -337,10 +337,10 @@ def _run(args) -> int:
     _check_args(args)
     try:
         train, test, controller = _load(args)
-        out = output_dir(args.out)  # after the logs load (no empty folder for a bad one), before the fit
+        what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
+        out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
         logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
                                          len(train), len(test), args.skip)
-        what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
         offsets = (OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound)
                    if args.offsets else None)
         if offsets and min(log.trajectory.n_samples for log in test) <= offsets.window(train[0].trajectory.dt) + 2:
