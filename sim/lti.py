@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DiscreteStateSpace", "replay_controller"]
+__all__ = ["DiscreteStateSpace", "replay_controller", "padded_realization"]
 
 
 def _as_matrix(value, name: str) -> np.ndarray:
@@ -166,3 +166,36 @@ def replay_controller(controller: DiscreteStateSpace, references, measured,
     if error.ndim == 1:
         error = error[:, None]
     return controller.simulate(error, x0)
+
+
+def padded_realization(system: DiscreteStateSpace, n_states: int, seed: int = 0) -> DiscreteStateSpace:
+    """The same transfer function in ``n_states`` states, every state coupled to every other.
+
+    The extra states are stable (eigenvalues drawn in (-0.95, 0.95)), driven by the inputs and
+    absent from the output; then a random orthogonal change of coordinates mixes them with the
+    system's own. For tests and benchmarks of large controllers that must behave like a known one.
+
+    Parameters
+    ----------
+    system : DiscreteStateSpace
+        The system to realize again.
+    n_states : int
+        States of the result, at least ``system.n_states``.
+    seed : int
+        Seed of the extra states' dynamics and of the change of coordinates.
+
+    Returns
+    -------
+    DiscreteStateSpace
+    """
+    extra = n_states - system.n_states
+    if extra < 0:
+        raise ValueError(f"n_states must be at least {system.n_states}, got {n_states}")
+    rng = np.random.default_rng(seed)
+    A = np.zeros((n_states, n_states))
+    A[:system.n_states, :system.n_states] = system.A
+    A[system.n_states:, system.n_states:] = np.diag(rng.uniform(-0.95, 0.95, extra))
+    B = np.vstack([system.B, rng.standard_normal((extra, system.n_inputs))])
+    C = np.hstack([system.C, np.zeros((system.n_outputs, extra))])
+    Q, _ = np.linalg.qr(rng.standard_normal((n_states, n_states)))
+    return DiscreteStateSpace(Q @ A @ Q.T, Q @ B, C @ Q.T, system.D, system.dt)

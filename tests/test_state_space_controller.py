@@ -21,26 +21,11 @@ from qube_koopman.identify import controller_states
 from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.data import load_logs, same_system
 from qube_koopman.identify.model_file import load_model
-from qube_koopman.sim.lti import DiscreteStateSpace, replay_controller
+from qube_koopman.sim.lti import padded_realization, replay_controller
 
 RIG_PD = pd_controller(load_pd_gains("rig"))
 SOFT_PD = pd_controller(load_pd_gains("soft-theta"))
 N_EXTRA = 50
-
-
-def _augmented(pd: DiscreteStateSpace, n_extra: int, seed: int) -> DiscreteStateSpace:
-    """The PD with ``n_extra`` stable states driven by the errors but absent from the output,
-    all mixed by a random orthogonal change of coordinates: the same transfer function, every
-    state coupled to every other, the output depending on all of them."""
-    rng = np.random.default_rng(seed)
-    n = pd.n_states + n_extra
-    A = np.zeros((n, n))
-    A[:2, :2] = pd.A
-    A[2:, 2:] = np.diag(rng.uniform(-0.95, 0.95, n_extra))
-    B = np.vstack([pd.B, rng.standard_normal((n_extra, 2))])
-    C = np.hstack([pd.C, np.zeros((1, n_extra))])
-    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
-    return DiscreteStateSpace(Q @ A @ Q.T, Q @ B, C @ Q.T, pd.D, pd.dt)
 
 
 def _qube_run(out: Path, *argv) -> None:
@@ -59,7 +44,7 @@ def runs(tmp_path_factory):
     52-state realization of the same controller."""
     root = tmp_path_factory.mktemp("ss")
     files = {"ss": write_controller_file(root / "rig_ss.toml", RIG_PD, {"designed_by": "test: pd_controller(rig)"}),
-             "big": write_controller_file(root / "big.toml", _augmented(RIG_PD, N_EXTRA, 3))}
+             "big": write_controller_file(root / "big.toml", padded_realization(RIG_PD, 2 + N_EXTRA, 3))}
     _qube_run(root / "pd", "--controller", "rig")
     for name, path in files.items():
         _qube_run(root / name, "--controller", str(path))
@@ -233,7 +218,7 @@ def test_qube_identify_refuses_a_bad_what_if_file_with_exit_2(case, runs, tmp_pa
 
 
 def test_matrices_in_a_sibling_npz_load_as_inline(tmp_path):
-    big = _augmented(RIG_PD, 10, 0)
+    big = padded_realization(RIG_PD, 12, 0)
     inline = load_controller_file(write_controller_file(tmp_path / "inline.toml", big))
     npz = load_controller_file(write_controller_file(tmp_path / "npz.toml", big, npz=True))
     assert "matrices = \"npz.npz\"" in (tmp_path / "npz.toml").read_text()
