@@ -11,16 +11,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _episodes import assert_follows_controller
+from bridge_helpers import cache_home, core  # noqa: F401
 
+from qube_koopman.daq.backends.serial import SerialBackend
 from qube_koopman.daq.cli.run import main as run_main
 from qube_koopman.daq.controller import load_pd_gains, pd_controller
 from qube_koopman.daq.controller_file import load_controller_file, write_controller_file
 from qube_koopman.daq.episode import ControllerInfo
 from qube_koopman.daq.log import read_episode, write_episode
+from qube_koopman.daq.loop import run_episode
+from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+from qube_koopman.daq.sinks import McapSink
 from qube_koopman.identify import controller_states
 from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.data import load_logs, same_system
 from qube_koopman.identify.model_file import load_model
+from qube_koopman.sim.bridge import BridgeEmulator
 from qube_koopman.sim.lti import padded_realization, replay_controller
 
 RIG_PD = pd_controller(load_pd_gains("rig"))
@@ -88,6 +95,24 @@ def test_a_52_state_controller_runs_and_its_state_is_recomputed_from_the_log(run
         # (Not the PD run's samples: rounding differently, the quantized loop drifts a count apart.)
         _, pd_output = replay_controller(RIG_PD, episode.references, episode.states)
         np.testing.assert_allclose(episode.control_output, pd_output[:, 0], rtol=0, atol=1e-9)
+
+
+def test_a_52_state_controller_runs_through_the_serial_bridge_too(core, runs, tmp_path):  # noqa: F811
+    """The loop's one code path, paced by the emulated bridge (lockstep) instead of the simulator."""
+    info = load_controller_file(runs[1]["big"])
+    (plan,) = plan_episodes(info, run_seeds(1, 1)[0], excitation_settings(2.0), source="test")
+    emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=0.1)
+    backend, sink = SerialBackend(emu.start(), link_timeout=0.2), McapSink(tmp_path)
+    try:
+        result = run_episode(backend, plan, [sink])
+    finally:
+        backend.close()
+        emu.stop()
+    assert result.complete, result.reason
+    episode = read_episode(sink.paths[0])
+    assert episode.metadata.backend == "serial" and episode.metadata.controller.kind == "state-space"
+    assert len(episode) == 1000 and np.abs(episode.alpha).max() < np.radians(20), "balanced"
+    assert_follows_controller(episode, info.system)
 
 
 def test_cl_edmd_fits_the_same_plant_under_either_realization(runs, tmp_path, capsys):
