@@ -37,9 +37,16 @@ def _free_port() -> int:
 
 
 def test_no_arguments_collects_a_small_default_set_and_says_where(tmp_path, monkeypatch, capsys):
+    # The fresh seed is pinned: a drawn one can, rarely, send the twin's arm past the 90 degree safety
+    # stop (seed 214060 does, in episode 0; 200 of 200 episodes of seed 3 do not), which is the safety
+    # layer working, not this test's subject.
+    from qube_koopman.daq.cli import run
+
+    monkeypatch.setattr(run, "fresh_seed", lambda: 5)
     monkeypatch.chdir(tmp_path)
     assert main([]) == 0
     out = capsys.readouterr().out
+    assert "seed 5" in out
     files = sorted((tmp_path / "episodes").glob("*.mcap"))
     assert len(files) == 3 and all(NAME.match(f.name) for f in files)
     assert [read_episode_metadata(f).extra["episode_index"] for f in files] == [0, 1, 2]

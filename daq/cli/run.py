@@ -208,6 +208,13 @@ class _Progress:
         self.bar.close()
 
 
+def fresh_seed() -> int:
+    """A run seed from the system's entropy, when ``--seed`` is not given (printed to repeat the run)."""
+    import numpy as np
+
+    return int(np.random.SeedSequence().entropy % 1_000_000)
+
+
 def _us(value: float | None) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value * 1e6:.1f}"
 
@@ -418,7 +425,7 @@ def _run(args) -> int:
         raise _Fail(f"{args.rerun_save}: already exists; a recording is not overwritten: remove it or "
                     "choose another name (--rerun-save)")
 
-    seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 1_000_000)
+    seed = args.seed if args.seed is not None else fresh_seed()
     seeds, backend_seed = run_seeds(seed, args.episodes)
     run_id = f"qube-run seed {seed}"
     plans = plan_episodes(controller, seeds, settings, source=run_id,
