@@ -67,3 +67,12 @@ def test_one_decomposition_serves_every_alpha_and_a_rank_deficient_map_still_sol
     expected = _stacked(psi @ S.T, theta, 1e-2, S.T)
     np.testing.assert_allclose(constrained_plant_solve(snaps, S, 1e-2, slice(0, None)), expected, rtol=1e-7,
                                atol=1e-10 * np.abs(expected).max())
+
+
+def test_an_episodes_statistics_hold_only_their_small_factor():
+    # The factor is copied out of the QR's full-height R: a view would keep every episode's
+    # (snapshots x columns) array alive, and memory would grow with the data (issue 29).
+    rng = np.random.default_rng(0)
+    psi = rng.normal(size=(2000, 12))
+    stats = Snapshots.from_snapshots(rng.normal(size=(2000, 3)), psi)
+    assert stats.R.shape == (15, 15) and stats.R.base is None
