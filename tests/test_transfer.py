@@ -98,29 +98,38 @@ def _rig_controller():
     return pd_controller(load_pd_gains("rig"))
 
 
-def _soft_arm_offset_errors(real_train, params, weighted_too=True):
-    """Offset estimation errors (counts) on twin episodes under soft-theta with known zeros.
+_SOFT_ARM_TWIN = {}
 
-    Training: twin episodes under the rig's gains with exact encoder zeros (so the model's zero is
-    the true upright and estimates are absolute); test: under soft-theta, zeros drawn as the rig's.
-    """
-    rig, soft = load_pd_gains("rig"), load_pd_gains("soft-theta")
-    as_tuple = lambda g: (g.kp_theta, g.kd_theta, g.kp_alpha, g.kd_alpha, g.tau)  # noqa: E731
-    train = twin_probes(real_train, gains=[as_tuple(rig)], per_controller=8, seed=11, zero_offsets=None,
-                        params=params)
-    test = twin_probes(real_train, gains=[as_tuple(soft)], per_controller=8, seed=12, params=params)
-    plant = ClEdmd(train.controllers[0], lifting=LiftingSpec(delays=20, poly=1).steps(),
-                   alpha=1e-3).fit(train.episodes[0]).plant_model_
+
+def _soft_arm_twin(real_train, params):
+    """Twin episodes with known zeros: 8 under the rig's gains with exact zeros to train on (so the
+    model's zero is the true upright and estimates are absolute), 8 under soft-theta with zeros drawn
+    as the rig's. Made once per plant for the module."""
+    key = repr(params)
+    if key not in _SOFT_ARM_TWIN:
+        rig, soft = load_pd_gains("rig"), load_pd_gains("soft-theta")
+        as_tuple = lambda g: (g.kp_theta, g.kd_theta, g.kp_alpha, g.kd_alpha, g.tau)  # noqa: E731
+        _SOFT_ARM_TWIN[key] = (
+            twin_probes(real_train, gains=[as_tuple(rig)], per_controller=8, seed=11, zero_offsets=None,
+                        params=params),
+            twin_probes(real_train, gains=[as_tuple(soft)], per_controller=8, seed=12, params=params))
+    return _SOFT_ARM_TWIN[key]
+
+
+def _soft_arm_offset_errors(real_train, params, spec=LiftingSpec(delays=20, poly=1), unweighted=True):
+    """Offset estimation errors (counts) on twin episodes under soft-theta with known zeros."""
+    train, test = _soft_arm_twin(real_train, params)
+    plant = ClEdmd(train.controllers[0], lifting=spec.steps(), alpha=1e-3).fit(train.episodes[0]).plant_model_
     closed = close_loop(plant, test.controllers[0], [0, 1])
     errors = {}
-    for weighted in (True, False):
+    for weighted in (True, False) if unweighted else (True,):
         est = estimate_offsets_many(closed, test.episodes[0], ["alpha"], WINDOW, weighted=weighted)
         errors[weighted] = (np.array([e.values[0] for e in est]) - test.alpha_offsets[0]) / COUNT
         if weighted:
             assert all(e.status == "ok" and np.isfinite(e.std_error[0]) for e in est)
     rms = {w: float(np.sqrt(np.mean(e ** 2))) for w, e in errors.items()}
-    print(f"offset errors (counts): weighted bias {errors[True].mean():+.2f} rms {rms[True]:.2f}; "
-          f"unweighted bias {errors[False].mean():+.2f} rms {rms[False]:.2f}")
+    print(f"{spec.label()}: offset errors (counts): " + "; ".join(
+        f"{'weighted' if w else 'unweighted'} bias {e.mean():+.2f} rms {rms[w]:.2f}" for w, e in errors.items()))
     return errors, rms
 
 
@@ -147,6 +156,19 @@ def test_weighted_offsets_on_the_calibrated_twin_beat_the_unweighted_cost(real_t
     errors, rms = _soft_arm_offset_errors(real_train, None)
     assert rms[True] < 0.85 * rms[False]
     assert abs(errors[True].mean()) < abs(errors[False].mean()) and rms[True] <= 0.7
+
+
+@pytest.mark.dataset
+@pytest.mark.slow
+def test_offsets_on_the_calibrated_twin_are_unbiased_with_the_friction_lifting(real_train):
+    # The same episodes with the lifting the search chooses on the paper split (poly 3, 35 delays,
+    # the arm's friction shape): the model now has the friction the linear one lacked, and the
+    # estimate is unbiased. Measured with a 1 s window on these 12 s episodes: bias -0.12, rms 0.14
+    # counts, against -0.49 / 0.52 for the linear 20-delay model above (on whole episodes -0.05 / 0.09
+    # against -0.54 / 0.57; poly 1, 35 delays, friction: -0.21 / 0.23).
+    errors, rms = _soft_arm_offset_errors(real_train, None, LiftingSpec(delays=35, poly=3, friction=True),
+                                          unweighted=False)
+    assert abs(errors[True].mean()) <= 0.2 and rms[True] <= 0.25
 
 
 
