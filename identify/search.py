@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from qube_koopman.identify.cl_edmd import ClEdmd
-from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, Polynomial, ThinPlateRbf, Trigonometric
+from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
 from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
 from qube_koopman.identify.sweep import regularization_sweep
 from qube_koopman.identify.trajectory import Trajectory
@@ -85,15 +85,24 @@ class LiftingSpec:
     offsets: bool = False
     friction: bool = False
 
-    def steps(self, rbf_seed: int = 0) -> list:
-        """The lifting functions, in the order of ``qube-identify``'s options."""
+    def steps(self, rbf_seed: int = 0, rbf_kind: str = "thin-plate", rbf_shape: float = 1.0,
+              rbf_offset: float = 1e-3) -> list:
+        """The lifting functions, in the order of ``qube-identify``'s options.
+
+        The search's radial bases are thin-plate with the default shape and offset;
+        ``qube-identify`` builds its lifting here too, with its ``--rbf*`` options.
+        """
         steps = [Polynomial(self.poly)] if self.poly > 1 else []
         if self.trig:
             steps.append(Trigonometric(MEASURED))
         if self.delays:
             steps.append(Delay(self.delays))
-        if self.rbf:
-            steps.append(ThinPlateRbf(self.rbf, seed=rbf_seed))
+        if self.rbf and rbf_kind == "thin-plate":
+            steps.append(ThinPlateRbf(self.rbf, rbf_shape, rbf_offset, seed=rbf_seed))
+        elif self.rbf and rbf_kind == "gaussian":
+            steps.append(GaussianRbf(self.rbf, rbf_shape, seed=rbf_seed))
+        elif self.rbf:
+            raise ValueError(f"unknown RBF kind {rbf_kind!r}; expected 'thin-plate' or 'gaussian'")
         if self.friction:
             steps.append(CoulombFriction())
         if self.const:

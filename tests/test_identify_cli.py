@@ -66,6 +66,7 @@ def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
     assert r2_score(log.trajectory.x[1:], pred[1:]) == pytest.approx(report["test"]["r2_per_episode"][0], abs=1e-9)
     assert loaded["controller"].n_states == 2
     assert loaded["lifting"]["steps"][-1]["type"] == "GaussianRbf"
+    assert loaded["lifting"]["steps"][-1]["shape"] == 2.0 and len(loaded["lifting"]["steps"][-1]["centers"]) == 5
 
 
 def test_sweep_edmd_plant_scoring_and_arx(small_set, tmp_path, capsys, monkeypatch):

@@ -185,25 +185,12 @@ def _expand(items) -> list[Path]:
 
 
 def _lifting(args) -> list:
-    from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf,
-                                               Trigonometric)
+    """The lifting the options give: one builder with the search's (``LiftingSpec.steps``)."""
+    from qube_koopman.identify.search import LiftingSpec
 
-    steps = []
-    if args.poly > 1:
-        steps.append(Polynomial(args.poly))
-    if args.trig:
-        steps.append(Trigonometric((0, 1)))
-    if args.delays > 0:
-        steps.append(Delay(args.delays))
-    if args.rbf == "thin-plate":
-        steps.append(ThinPlateRbf(args.rbf_centers, args.rbf_shape, args.rbf_offset, seed=args.rbf_seed))
-    elif args.rbf == "gaussian":
-        steps.append(GaussianRbf(args.rbf_centers, args.rbf_shape, seed=args.rbf_seed))
-    if args.friction:
-        steps.append(CoulombFriction())
-    if args.const:
-        steps.append(Constant())
-    return steps
+    spec = LiftingSpec(delays=args.delays, poly=args.poly, trig=args.trig, friction=args.friction,
+                       const=args.const, rbf=0 if args.rbf == "none" else args.rbf_centers)
+    return spec.steps(args.rbf_seed, args.rbf, args.rbf_shape, args.rbf_offset)
 
 
 def _check_search_args(args) -> None:
