@@ -396,7 +396,7 @@ def remove_stale_temp_files(folder: str | os.PathLike, suffix: str = ".mcap") ->
     removed = []
     if fcntl is None or not Path(folder).is_dir():
         return removed
-    for tmp in sorted(Path(folder).glob(f".*{suffix}.*.tmp")):
+    for tmp in sorted(Path(folder).glob(_temp_name(Path(f"*{suffix}")))):  # the names _temp_file gives
         try:
             fd = os.open(tmp, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
         except OSError:  # gone, a link, unreadable: not ours to judge
