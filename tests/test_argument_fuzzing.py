@@ -308,6 +308,10 @@ FOUND = [
      "qube-identify: error: --alpha-sweep needs a finite MAX and N <= 1000, got 1 inf 3"),
     ("qube-identify", [*BASE["qube-identify"], "--poly", str(10**30)],
      f"qube-identify: error: --poly must be at most 10, got {10**30}"),
+    ("qube-identify", [*BASE["qube-identify"], "--search"], "qube-identify: error: --search cross-validates by "
+     "holding out whole training episodes: it needs at least 2 training logs, got 1"),
+    ("qube-identify", [*BASE["qube-identify"], "--alpha-sweep", "1e-3", "1", "3"], "qube-identify: error: "
+     "--alpha-sweep cross-validates by holding out whole training episodes: it needs at least 2 training logs, got 1"),
 ]
 
 

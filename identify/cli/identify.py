@@ -193,6 +193,14 @@ def _lifting(args) -> list:
     return spec.steps(args.rbf_seed, args.rbf, args.rbf_shape, args.rbf_offset)
 
 
+def _check_cross_validation(args, train) -> None:
+    """Cross-validation (--search, --alpha-sweep) holds out whole training episodes: two at least."""
+    option = "--search" if args.search else "--alpha-sweep" if args.alpha_sweep else None
+    if option and len(train) < 2:
+        raise CliError(f"{option} cross-validates by holding out whole training episodes: it needs at least 2 "
+                       f"training logs, got {len(train)} ({train[0].path})")
+
+
 def _check_search_args(args) -> None:
     chosen = [flag for flag, given in (("--poly", args.poly is not None), ("--delays", args.delays is not None),
                                        ("--trig", args.trig), ("--friction", args.friction),
@@ -324,6 +332,7 @@ def _run(args) -> int:
     _check_args(args)
     try:
         train, test, controller = _load(args)
+        _check_cross_validation(args, train)
         what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
         out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
         logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
