@@ -308,6 +308,8 @@ FOUND = [
      "qube-identify: error: --alpha-sweep needs a finite MAX and N <= 1000, got 1 inf 3"),
     ("qube-identify", [*BASE["qube-identify"], "--poly", str(10**30)],
      f"qube-identify: error: --poly must be at most 10, got {10**30}"),
+    ("qube-identify", [*BASE["qube-identify"], "--delays", str(10**30)],
+     f"qube-identify: error: --delays {10**30} needs episodes of at least {10**30 + 2} samples; "),
     ("qube-identify", [*BASE["qube-identify"], "--search"], "qube-identify: error: --search cross-validates by "
      "holding out whole training episodes: it needs at least 2 training logs, got 1"),
     ("qube-identify", [*BASE["qube-identify"], "--alpha-sweep", "1e-3", "1", "3"], "qube-identify: error: "

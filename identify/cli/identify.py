@@ -201,6 +201,14 @@ def _check_cross_validation(args, train) -> None:
                        f"training logs, got {len(train)} ({train[0].path})")
 
 
+def _check_delays(args, logs) -> None:
+    """A lifting of N delays consumes N samples of each episode and predicts from the next two."""
+    shortest = min(logs, key=lambda log: log.trajectory.n_samples)
+    if not args.search and args.delays + 2 > shortest.trajectory.n_samples:
+        raise CliError(f"--delays {args.delays} needs episodes of at least {args.delays + 2} samples; "
+                       f"{shortest.path} has {shortest.trajectory.n_samples} (after --skip {args.skip})")
+
+
 def _check_search_args(args) -> None:
     chosen = [flag for flag, given in (("--poly", args.poly is not None), ("--delays", args.delays is not None),
                                        ("--trig", args.trig), ("--friction", args.friction),
@@ -333,6 +341,7 @@ def _run(args) -> int:
     try:
         train, test, controller = _load(args)
         _check_cross_validation(args, train)
+        _check_delays(args, train + test)
         what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
         out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
         logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
