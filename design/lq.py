@@ -183,12 +183,14 @@ def realize(gain: np.ndarray, plant: LinearPlant, integral: bool) -> DiscreteSta
     n_c = (n - m) + int(integral)
     if n_c == 0:  # a static gain: one inert state
         return DiscreteStateSpace([[0.0]], np.zeros((1, m)), [[0.0]], K_s, plant.dt)
+    held = n - m  # past errors held: e_{k-1} ... e_{k-d}
     A = np.zeros((n_c, n_c))
     B = np.zeros((n_c, m))
-    B[:m] = np.eye(m) if n > m else 0.0
-    A[m:n - m, :n - 2 * m] = np.eye(n - 2 * m)
+    if held:
+        B[:m] = np.eye(m)  # e_k becomes e_{k-1}
+        A[m:held, :held - m] = np.eye(held - m)  # the older ones move down
     C = np.zeros((1, n_c))
-    C[:, :n - m] = K_s[:, m:]
+    C[:, :held] = K_s[:, m:]
     if integral:
         A[-1, -1] = 1.0
         B[-1, 0] = plant.dt
