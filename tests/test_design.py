@@ -209,3 +209,76 @@ def test_bad_weights_are_a_usage_error_naming_the_option(argv, message, tmp_path
     err = capsys.readouterr().err
     assert err == f"qube-design: error: {message}\n" or (message in err and "Traceback" not in err), err
     assert not (tmp_path / "c.toml").exists()
+
+
+# --- the command ---------------------------------------------------------------------------------------------
+
+
+def test_qube_design_writes_a_controller_file_qube_run_loads_with_its_provenance(tmp_path, capsys):
+    model = _save(tmp_path / "model.json", _pendulum_like(5, True))
+    out = tmp_path / "designed.toml"
+    assert design_main([str(model), "--out", str(out), "--episodes", "3", "--duration", "6", "--q-theta", "4"]) == 0
+    text = capsys.readouterr().out
+    for line in ("the identified plant itself: 5 delays of theta, alpha and a constant (12 states)",
+                 "weights q_theta 4, q_alpha 0.1, r_voltage 0.01, q_integral 10", "closed loop: spectral radius 0.9",
+                 "margins at the plant input: gain +", "predicted on the rig's excitation (3 episodes of 6 s",
+                 f"wrote {out}: qube-run --controller {out}"):
+        assert line in text, text
+    info = load_controller_file(out)
+    assert info.kind == "state-space" and info.system.n_states == 2 * 5 + 1
+    expected = design_lq(linear_plant(_pendulum_like(5, True)), Weights(q_theta=4.0)).controller
+    for m in "ABCD":
+        np.testing.assert_array_equal(getattr(info.system, m), getattr(expected, m))
+    p = info.provenance
+    assert p["model"] == str(model) and p["weights"]["q_theta"] == 4.0 and p["n_delays"] == 5
+    assert 0 < p["predicted"]["J"] < np.inf and p["predicted"]["episodes"] == 3 and p["spectral_radius"] < 1
+    assert set(p["margins"]) >= {"gain_margin_up_db", "gain_margin_down_db", "phase_margin_deg"}
+
+
+def test_the_folder_qube_identify_wrote_is_taken_for_its_model_and_npz_matrices_load(tmp_path, capsys):
+    folder = tmp_path / "identified"
+    folder.mkdir()
+    _save(folder / "model.json", _pendulum_like(2, False))
+    out = tmp_path / "c.toml"
+    assert design_main([str(folder), "--out", str(out), "--npz", "--episodes", "2", "--no-integral", "-q"]) == 0
+    assert f"model {folder / 'model.json'}:" in capsys.readouterr().out
+    info = load_controller_file(out)
+    assert out.with_suffix(".npz").is_file() and info.system.n_states == 4  # 2 past errors of 2 channels, no integral
+    assert info.provenance["weights"]["integral"] is False
+
+
+# --- the twin ------------------------------------------------------------------------------------------------
+
+
+def _twin_figures(folder: Path) -> dict:
+    from qube_koopman.daq.log import read_episode
+    from qube_koopman.design.predict import episode_cost
+
+    episodes = [read_episode(p) for p in sorted(folder.glob("*.mcap"))]
+    rows = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in episodes])
+    return {"complete": sum(e.metadata.status == "complete" for e in episodes), "J": rows[:, 0].mean(),
+            "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))),
+            "saturated": int(sum(e.saturation[500:].sum() for e in episodes))}
+
+
+@pytest.mark.slow
+def test_on_the_twin_a_design_from_an_identified_model_beats_the_rigs_pd(tmp_path, capsys):
+    """Issue 28 section 3, shrunk to run in CI: a model identified on 6 twin episodes (20 delays and a
+    constant), the default weights, 6 episodes under each controller on the same excitations."""
+    def run(out: str, *argv: str) -> Path:
+        assert run_main(["--episodes", argv[0], "--seed", argv[1], "--out", str(tmp_path / out), "-q", *argv[2:]]) == 0
+        return tmp_path / out
+
+    train, test = run("train", "6", "3"), run("test", "2", "4")
+    assert identify_main(["--train", *map(str, sorted(train.glob("*.mcap"))), "--test", *map(str, test.glob("*.mcap")),
+                          "--poly", "1", "--delays", "20", "--const", "--out", str(tmp_path / "model"), "-q"]) == 0
+    controller = tmp_path / "designed.toml"
+    assert design_main([str(tmp_path / "model"), "--out", str(controller), "--seed", "5", "--episodes", "6"]) == 0
+    capsys.readouterr()
+    pd, designed = _twin_figures(run("pd", "6", "5")), _twin_figures(run("designed", "6", "5", "--controller",
+                                                                          str(controller)))
+    predicted = load_controller_file(controller).provenance["predicted"]
+    assert pd["complete"] == designed["complete"] == 6
+    assert designed["J"] < 0.6 * pd["J"], (designed, pd)  # at least 40 % lower
+    assert designed["saturated"] == 0 and designed["voltage_rms"] < 1.6 * pd["voltage_rms"], (designed, pd)
+    assert abs(predicted["J"] / designed["J"] - 1) < 0.2, (predicted, designed)  # the model predicted it

@@ -20,14 +20,16 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from dataclasses import fields
 
+from qube_koopman.design.lq import Weights
 from qube_koopman.identify.cli.common import CliError, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
 __all__ = ["main"]
 
-#: Defaults of the weights (see design.lq.Weights and the README's qube-design section).
-DEFAULTS = {"q_theta": 10.0, "q_alpha": 0.1, "r_voltage": 0.01, "q_integral": 10.0}
+#: Defaults of the weights: design.lq.Weights's own.
+DEFAULTS = {f.name: f.default for f in fields(Weights) if f.name != "integral"}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -59,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _weights(args):
-    from qube_koopman.design import DesignError, Weights
+    from qube_koopman.design import DesignError
 
     try:
         return Weights(args.q_theta, args.q_alpha, args.r_voltage, 0.0 if args.no_integral else args.q_integral,
