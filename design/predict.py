@@ -111,7 +111,7 @@ def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
     with np.errstate(all="ignore"):
         x, xc = loop.simulate(np.zeros((n_ep, d + 1, plant.n_states)), np.concatenate([r, f], axis=2),
                               np.zeros((n_ep, controller.n_states)))
-        xc = np.nan_to_num(xc[:, :, :], nan=0.0)  # NaN before the history is full: the controller starts at zero
+        xc = np.nan_to_num(xc, nan=0.0)  # NaN before the history is full, where the controller is at rest
         u = xc @ controller.C.T + (r - x) @ controller.D.T + f
     rows = np.array([episode_cost(x[i, :, 0], r[i, :, 0], x[i, :, 1], u[i, :, 0], skip) for i in range(n_ep)])
     return CostPrediction(*rows.T, diverged=int(np.sum(~np.isfinite(rows[:, 0]))))

@@ -18,8 +18,8 @@ import numpy as np
 
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.plant import IDENTIFY_FLAGS, DesignError, linear_plant
-from qube_koopman.design.predict import (CostPrediction, Margins, closed_loop_eigenvalues, loop_margins,
-                                         predict_cost, rig_excitations)
+from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins, closed_loop_eigenvalues,
+                                         loop_margins, predict_cost, rig_excitations)
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["DesignReport", "design_from_model", "report_text", "provenance"]
@@ -173,8 +173,8 @@ def report_text(report: DesignReport) -> str:
         lines.append(_row("model's training one", report.training))
         ratio = report.predicted.summary()["J"] / report.training.summary()["J"]
         lines.append(f"  predicted J {100 * (ratio - 1):+.1f} % against the training controller")
-    if report.predicted.summary()["voltage_peak"] > 10:
-        lines.append("  warning: the predicted voltage exceeds the loop's 10 V clamp (saturation)")
+    if report.predicted.summary()["voltage_peak"] > VOLTAGE_LIMIT:
+        lines.append(f"  warning: the predicted voltage exceeds the loop's {VOLTAGE_LIMIT:g} V clamp (saturation)")
     return "\n".join(lines)
 
 
