@@ -8,7 +8,8 @@ import sys
 
 import pytest
 
-PACKAGES = ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.firmware_protocol"]
+PACKAGES = ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.firmware_protocol",
+            "qube_koopman.design"]
 
 
 def public_modules():
@@ -40,7 +41,8 @@ def test_every_public_function_and_class_is_documented():
     assert not missing, f"undocumented: {missing}"
 
 
-@pytest.mark.parametrize("module", ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.identify.cli.reproduce"])
+@pytest.mark.parametrize("module", ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.identify.cli.reproduce",
+                                    "qube_koopman.design", "qube_koopman.design.cli.design"])
 def test_import_has_no_heavy_side_effects(module):
     code = (f"import sys, {module}; heavy = [m for m in ('cvxpy', 'control', 'matplotlib', 'rerun', 'mcap')"
             " if m in sys.modules]; print(','.join(heavy))")
@@ -72,3 +74,14 @@ def test_the_installed_package_list_covers_every_source_folder():
     for name, folder in tool["package-dir"].items():
         assert name == f"qube_koopman.{folder}"
         assert importlib.import_module(name).__file__ == str(root / folder / "__init__.py")
+
+
+def test_imports_point_one_way_nothing_below_design_imports_it():
+    """DESIGN.md: firmware_protocol <- sim <- daq <- identify <- design; design consumes models and
+    writes controllers, so no package below it may import it (not even lazily, inside a function)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    offenders = [str(path.relative_to(root)) for top in ("firmware_protocol", "sim", "daq", "identify")
+                 for path in (root / top).rglob("*.py") if "qube_koopman.design" in path.read_text()]
+    assert not offenders

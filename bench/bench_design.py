@@ -1,0 +1,175 @@
+"""Issue 28 section 3: a controller designed by ``qube-design`` against the rig's PD on the twin.
+
+    python bench/bench_design.py MODEL.json [--seed 7] [--episodes 20] [--draws 50] [--serial lockstep|realtime]
+                                 [--out DIR]
+
+MODEL.json is a plant identified by ``qube-identify`` (the issue: the paper's 28 training
+episodes, e.g. ``qube-identify qube_logs --split paper --poly 1 --delays 35 --const --out m``).
+With the default weights it designs a controller (``qube-design``), then measures, printing each
+figure beside its target:
+
+- the PD and the design on the same ``--episodes`` twin excitations (``qube-run --seed``):
+  completion, J = mean((theta - target_theta)^2) + mean(alpha^2) after the first second, tracking,
+  alpha and voltage RMS, saturated samples, the voltage RMS of the quiet seconds 1-4;
+- the model's prediction: J predicted on the same excitations against the measured J, and the
+  closed-loop prediction of the design's episodes (the plant model under the designed controller,
+  from each log's first samples, references and feedforward) scored by R^2 per angle;
+- robustness: ``--draws`` twins with km, Lp, mp and Jh drawn uniformly within +-10 % of the
+  calibrated values and the command delay doubled, one episode each (encoder offsets drawn per
+  episode, as the twin does by default), under the design and under the PD;
+- with ``--serial``: one episode through ``qube-emulate`` (the firmware's C core; lockstep or real
+  time) and ``qube-run --backend serial``: completion and the ticks the link missed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from qube_koopman.daq.cli.run import main as run_main
+from qube_koopman.daq.log import read_episode
+from qube_koopman.design.cli.design import main as design_main
+from qube_koopman.design.predict import episode_cost
+from qube_koopman.identify.data import load_logs
+from qube_koopman.identify.model_file import load_model
+from qube_koopman.identify.scores import r2_scores
+from qube_koopman.identify.structure import close_loop
+from qube_koopman.daq.controller_file import load_controller_file
+from qube_koopman.sim.pendulum.params_file import PlantFile, load_plant, save_plant, PLANTS
+
+
+def figures(folder: Path) -> dict:
+    """Completion and the cost figures of a folder of logs (after the first second)."""
+    episodes = [read_episode(p, warn=False) for p in sorted(folder.glob("*.mcap"))]
+    done = [e for e in episodes if e.metadata.status == "complete"]
+    rows = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in done]).reshape(-1, 5)
+    return {"episodes": len(episodes), "complete": len(done), "J": float(rows[:, 0].mean()),
+            "tracking_rms": float(np.sqrt(np.mean(rows[:, 1] ** 2))), "alpha_rms": float(np.sqrt(np.mean(rows[:, 2] ** 2))),
+            "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))),
+            "saturated": int(sum(e.saturation[500:].sum() for e in done)),
+            "quiet_voltage_rms": float(np.mean([np.sqrt(np.mean(e.plant_input[500:2000] ** 2)) for e in done]))}
+
+
+def prediction_r2(model_path: Path, controller_path: Path, folder: Path) -> np.ndarray:
+    """R^2 of theta and alpha, per episode: the plant model under the controller, from each log's start."""
+    plant = load_model(model_path)["plant"]
+    loop = close_loop(plant, load_controller_file(controller_path).system)
+    logs = load_logs(sorted(folder.glob("*.mcap")))
+    scores = []
+    for log in logs:
+        predicted = loop.predict(log.trajectory)
+        true = log.trajectory.x
+        scores.append([float(r2_scores(true[1:, [c]], predicted[1:, [c]])) for c in (0, 1)])
+    return np.array(scores)
+
+
+def robustness(controller: str | None, draws: int, root: Path) -> int:
+    """Episodes completed of ``draws`` perturbed twins (one episode each), under ``controller`` (None: the PD)."""
+    base = load_plant(PLANTS / "qube_20230828.toml").params
+    rng = np.random.default_rng(2028)
+    complete = 0
+    for i in range(draws):
+        scale = rng.uniform(0.9, 1.1, 4)
+        params = replace(base, km=base.km * scale[0], Lp=base.Lp * scale[1], mp=base.mp * scale[2],
+                         Jh=base.Jh * scale[3], delay=2 * base.delay)
+        plant_file = root / f"plant_{i}.toml"
+        save_plant(plant_file, PlantFile(params, provenance={"draw": i}))
+        out = root / f"draw_{i}_{'pd' if controller is None else 'design'}"
+        argv = ["--episodes", "1", "--seed", str(1000 + i), "--plant", str(plant_file), "--out", str(out), "-q"]
+        assert run_main(argv + ([] if controller is None else ["--controller", controller])) == 0
+        complete += figures(out)["complete"]
+    return complete
+
+
+def serial_lockstep(controller: str, root: Path) -> str:
+    """One 20 s episode through the emulated bridge in lockstep (as tests/test_state_space_controller.py runs it).
+
+    The emulator (the firmware's C core) ticks when the host has answered, up to 0.1 s apart, so
+    the machine's load does not decide the outcome; what is measured is the firmware's path.
+    """
+    from qube_koopman.daq.backends.serial import SerialBackend
+    from qube_koopman.daq.loop import run_episode
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+    from qube_koopman.daq.sinks import McapSink
+    from qube_koopman.sim.bridge import BridgeEmulator
+
+    (plan,) = plan_episodes(load_controller_file(controller), run_seeds(7, 1)[0], excitation_settings(20.0),
+                            source="bench_design")
+    emulator = BridgeEmulator(seed=3, lockstep=True, lockstep_timeout=0.1)
+    (root / "serial").mkdir(exist_ok=True)
+    backend, sink = SerialBackend(emulator.start(), link_timeout=1.0), McapSink(root / "serial")
+    try:
+        result = run_episode(backend, plan, [sink])
+    finally:
+        backend.close()
+        emulator.stop()
+    episode = read_episode(sink.paths[0])
+    stats = {k: v for k, v in episode.metadata.backend_stats.items() if k != "decoder"}
+    return f"lockstep: {'complete' if result.complete else 'aborted: ' + str(result.reason)}, {len(episode)} samples, " \
+           f"link {stats}"
+
+
+def serial_realtime(controller: str, root: Path) -> str:
+    """One 20 s episode through ``qube-emulate`` at 500 Hz of wall time, both under SCHED_FIFO (needs root)."""
+    emulator = subprocess.Popen(["chrt", "-f", "30", "qube-emulate", "--seed", "3"], stdout=subprocess.PIPE,
+                                stderr=subprocess.DEVNULL, text=True)
+    try:
+        port = emulator.stdout.readline().split()[-1]
+        run = subprocess.run(["qube-run", "--backend", "serial", "--port", port, "--episodes", "1", "--seed", "7",
+                              "--controller", controller, "--out", str(root / "serial_rt"), "--rt-priority", "20"],
+                             capture_output=True, text=True, timeout=180)
+    finally:
+        emulator.terminate()
+        emulator.wait(timeout=10)
+    lines = [line for line in (run.stdout + run.stderr).splitlines() if re.search(r"complete|serial link|ticks", line)]
+    return f"real time, exit {run.returncode}\n" + "\n".join(lines)
+
+
+def main() -> None:
+    """Run the comparison and print it."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("model", type=Path)
+    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--draws", type=int, default=50)
+    p.add_argument("--serial", choices=("lockstep", "realtime"), default=None)
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args()
+    root = args.out or Path(tempfile.mkdtemp(prefix="bench_design_"))
+    root.mkdir(parents=True, exist_ok=True)
+    controller = root / "designed.toml"
+    n = str(args.episodes)
+    assert design_main([str(args.model), "--out", str(controller), "--seed", str(args.seed), "--episodes", n]) == 0
+    for name, extra in (("pd", []), ("design", ["--controller", str(controller)])):
+        assert run_main(["--episodes", n, "--seed", str(args.seed), "--out", str(root / name), "-q", *extra]) == 0
+    pd, design = figures(root / "pd"), figures(root / "design")
+    print(f"\n{'':<20}{'complete':>9}{'J':>11}{'tracking':>10}{'alpha':>9}{'voltage':>9}{'quiet V':>9}{'sat':>5}")
+    for name, f in (("rig's PD", pd), ("design", design)):
+        print(f"{name:<20}{f['complete']:>4}/{f['episodes']:<4}{f['J']:>11.3e}{f['tracking_rms']:>10.4f}"
+              f"{f['alpha_rms']:>9.4f}{f['voltage_rms']:>9.3f}{f['quiet_voltage_rms']:>9.3f}{f['saturated']:>5}")
+    print(f"J {100 * (design['J'] / pd['J'] - 1):+.1f} % (target <= -40 %), voltage RMS "
+          f"{design['voltage_rms'] / pd['voltage_rms']:.2f} x the PD's (target <= 1.45)")
+    predicted = load_controller_file(controller).provenance["predicted"]["J"]
+    r2 = prediction_r2(args.model, controller, root / "design")
+    print(f"predicted J {predicted:.3e} vs measured {design['J']:.3e}: {100 * (predicted / design['J'] - 1):+.1f} % "
+          f"(target within 15 %); closed-loop prediction R^2 theta {r2[:, 0].mean():.4f} (min {r2[:, 0].min():.4f}), "
+          f"alpha {r2[:, 1].mean():.4f} (min {r2[:, 1].min():.4f}) (target >= 0.9)")
+    if args.draws:
+        ok, ok_pd = robustness(str(controller), args.draws, root), robustness(None, args.draws, root)
+        print(f"robustness: {ok}/{args.draws} perturbed twins complete under the design (target >= 95 %), "
+              f"{ok_pd}/{args.draws} under the PD")
+    if args.serial:
+        serial = serial_realtime if args.serial == "realtime" else serial_lockstep
+        print("serial path:", serial(str(controller), root))
+    print(f"logs and files in {root}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

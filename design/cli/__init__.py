@@ -1,0 +1,1 @@
+"""The command-line tool of the design package: ``qube-design``."""

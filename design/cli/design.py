@@ -1,0 +1,105 @@
+"""``qube-design``: a controller from an identified plant model, with its predicted cost.
+
+    qube-design MODEL --out FILE.toml [--q-theta Q] [--q-alpha Q] [--r-voltage R]
+                [--q-integral Q | --no-integral] [--seed K] [--episodes N] [--duration S] [--npz]
+
+Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
+feedback on the plant's history of measurements (with integral action on the arm's tracking
+error), realizes it as a discrete controller on the tracking errors and writes it as a
+state-space controller file (daq/CONTROLLER_FORMAT.md) that ``qube-run --controller`` runs. It
+prints the plant designed on (the identified plant itself for a lifting of order-1 monomials,
+delays and a constant; its linearization at upright otherwise), the closed loop's spectral
+radius, the margins at the plant input and the cost the model predicts on the rig's excitation
+of ``qube-run --seed K --episodes N`` beside the model's training controller. A model it cannot
+design on (not a plant model, the arm's friction shape in its lifting, not stabilizable) or a
+predicted closed loop that is unstable is refused, exit 2, and nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import fields
+
+from qube_koopman.design.lq import Weights
+from qube_koopman.identify.cli.common import CliError, run_command
+from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
+
+__all__ = ["main"]
+
+#: Defaults of the weights: design.lq.Weights's own.
+DEFAULTS = {f.name: f.default for f in fields(Weights) if f.name != "integral"}
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="qube-design", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("model", type=path, metavar="MODEL.json", help="model file of qube-identify (or its --out folder)")
+    p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="controller file to write")
+    p.add_argument("--q-theta", type=float, default=DEFAULTS["q_theta"], metavar="Q",
+                   help=f"LQ weight on the arm's tracking error, per sample, rad^-2 (default {DEFAULTS['q_theta']:g})")
+    p.add_argument("--q-alpha", type=float, default=DEFAULTS["q_alpha"], metavar="Q",
+                   help=f"LQ weight on the pendulum angle, rad^-2 (default {DEFAULTS['q_alpha']:g})")
+    p.add_argument("--r-voltage", type=float, default=DEFAULTS["r_voltage"], metavar="R",
+                   help=f"LQ weight on the voltage, V^-2, > 0 (default {DEFAULTS['r_voltage']:g})")
+    integral = p.add_mutually_exclusive_group()
+    integral.add_argument("--q-integral", type=float, default=DEFAULTS["q_integral"], metavar="Q",
+                          help="LQ weight on the integral of the arm's tracking error, (rad s)^-2 "
+                               f"(default {DEFAULTS['q_integral']:g})")
+    integral.add_argument("--no-integral", action="store_true", help="no integral action on the arm")
+    p.add_argument("--seed", type=seed, default=1, metavar="K",
+                   help="predict on the excitation of qube-run --seed K (default 1)")
+    p.add_argument("--episodes", type=whole_number(1, 100), default=20, metavar="N",
+                   help="episodes of that excitation predicted (default 20)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S",
+                   help="seconds per predicted episode, 2 to 60 (default 20)")
+    p.add_argument("--npz", action="store_true",
+                   help="write the matrices to FILE.npz beside the controller file (loads faster)")
+    add_standard_options(p, "nothing to quiet")
+    return p
+
+
+def _weights(args):
+    from qube_koopman.design import DesignError
+
+    try:
+        return Weights(args.q_theta, args.q_alpha, args.r_voltage, 0.0 if args.no_integral else args.q_integral,
+                       not args.no_integral)
+    except DesignError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _run(args) -> int:
+    from qube_koopman.daq.controller_file import write_controller_file
+    from qube_koopman.design import DesignError
+    from qube_koopman.design.workflow import design_from_model, provenance, report_text
+
+    weights = _weights(args)
+    if not (math.isfinite(args.duration) and 2.0 <= args.duration <= 60.0):
+        raise CliError(f"--duration must be between 2 and 60 s, got {args.duration}")
+    if round(args.duration * 500) != args.duration * 500:
+        raise CliError(f"--duration {args.duration} s is not a whole number of 2 ms samples")
+    try:
+        report = design_from_model(args.model, weights, seed=args.seed, episodes=args.episodes,
+                                   duration=args.duration)
+    except DesignError as exc:
+        raise CliError(str(exc)) from None
+    print(report_text(report))
+    try:
+        written = write_controller_file(args.out, report.controller, provenance(report), npz=args.npz)
+    except OSError as exc:
+        raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
+    print(f"wrote {written}" + (f" and {written.with_suffix('.npz')}" if args.npz else "")
+          + f": qube-run --controller {written}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``qube-design``; returns the exit status."""
+    args = _parser().parse_args(argv)
+    return run_command("qube-design", _run, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,183 @@
+"""What a designed controller will do, from the model alone: cost on the rig's excitation, spectrum, margins.
+
+- :func:`predict_cost`: the identified plant model in closed loop with the controller
+  (``identify.structure.close_loop``, re-lifted at every step as ``qube-identify`` predicts)
+  driven by the rig's excitation of ``qube-run --seed S --episodes N`` (the same references and
+  feedforward, from upright), scored after the first second as the twin's logs are:
+  ``J = mean((theta - target_theta)^2) + mean(alpha^2)``, tracking and pendulum RMS, the
+  voltage's RMS and peak (the model does not clamp it).
+- :func:`closed_loop_eigenvalues`: the design plant (:class:`~design.plant.LinearPlant`) wrapped
+  with the controller.
+- :func:`loop_margins`: the loop broken at the plant input, ``L(z) = K(z) P(z)`` (``P``: voltage
+  to angles; ``K``: tracking errors to voltage, so that ``u = -L u`` closes it), its frequency
+  response computed by python-control and its margins by ``control.stability_margins``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from qube_koopman.daq.excitation import Excitation, generate_excitation
+from qube_koopman.daq.session import excitation_settings, run_seeds
+from qube_koopman.design.plant import LinearPlant
+from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.structure import close_loop, closed_loop_matrices
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+__all__ = ["CostPrediction", "Margins", "rig_excitations", "predict_cost", "closed_loop_eigenvalues",
+           "loop_margins", "episode_cost"]
+
+#: Samples left out of every score: the first second, as in the twin's comparisons.
+SKIP = 500
+#: The loop's voltage limit (V): a predicted voltage beyond it would saturate on the rig.
+VOLTAGE_LIMIT = 10.0
+
+
+@dataclass(frozen=True)
+class CostPrediction:
+    """Per-episode figures of a closed loop, after the first second.
+
+    Attributes
+    ----------
+    cost : ndarray
+        ``J = mean((theta - target_theta)^2) + mean(alpha^2)`` of each episode (rad^2).
+    tracking_rms, alpha_rms, voltage_rms, voltage_peak : ndarray
+        Of each episode (rad, rad, V, V).
+    diverged : int
+        Episodes whose prediction went non-finite (their figures are inf).
+    """
+
+    cost: np.ndarray
+    tracking_rms: np.ndarray
+    alpha_rms: np.ndarray
+    voltage_rms: np.ndarray
+    voltage_peak: np.ndarray
+    diverged: int
+
+    def summary(self) -> dict:
+        """Means over the episodes (RMS figures pooled as RMS), for reports."""
+        def rms(values):
+            return float(np.sqrt(np.mean(np.square(values))))
+        return {"J": float(np.mean(self.cost)), "tracking_rms": rms(self.tracking_rms),
+                "alpha_rms": rms(self.alpha_rms), "voltage_rms": rms(self.voltage_rms),
+                "voltage_peak": float(np.max(self.voltage_peak)), "diverged": self.diverged,
+                "episodes": len(self.cost)}
+
+
+def rig_excitations(seed: int, n_episodes: int, duration: float = 20.0) -> list[Excitation]:
+    """The excitations ``qube-run --seed seed --episodes n_episodes --duration duration`` runs."""
+    seeds, _ = run_seeds(seed, n_episodes)
+    settings = excitation_settings(duration)
+    return [generate_excitation(tuple(int(s) for s in triple), settings) for triple in seeds]
+
+
+def episode_cost(theta, target_theta, alpha, voltage, skip: int = SKIP) -> tuple[float, ...]:
+    """``(J, tracking RMS, alpha RMS, voltage RMS, voltage peak)`` of one episode after ``skip`` samples."""
+    tracking = np.asarray(theta, dtype=float)[skip:] - np.asarray(target_theta, dtype=float)[skip:]
+    alpha = np.asarray(alpha, dtype=float)[skip:]
+    voltage = np.asarray(voltage, dtype=float)[skip:]
+    if not (np.all(np.isfinite(tracking)) and np.all(np.isfinite(alpha)) and np.all(np.isfinite(voltage))):
+        return (np.inf,) * 5
+    return (float(np.mean(tracking ** 2) + np.mean(alpha ** 2)), float(np.sqrt(np.mean(tracking ** 2))),
+            float(np.sqrt(np.mean(alpha ** 2))), float(np.sqrt(np.mean(voltage ** 2))),
+            float(np.max(np.abs(voltage), initial=0.0)))
+
+
+def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
+                 excitations: list[Excitation], skip: int = SKIP) -> CostPrediction:
+    """The plant model under ``controller`` on each excitation, from upright, scored after ``skip`` samples.
+
+    Parameters
+    ----------
+    plant : KoopmanModel
+        The identified plant model (input: the voltage).
+    controller : DiscreteStateSpace
+        Tracking errors ``r - [theta, alpha]`` in, voltage out (before the feedforward).
+    excitations : list of Excitation
+        References and feedforward of each episode (all of one length).
+    skip : int
+        Samples left out of the figures.
+
+    Returns
+    -------
+    CostPrediction
+    """
+    loop = close_loop(plant, controller)
+    r = np.stack([np.column_stack([e.target_theta, e.target_alpha]) for e in excitations])
+    f = np.stack([np.asarray(e.feedforward, dtype=float)[:, None] for e in excitations])
+    n_ep, d = len(excitations), plant.n_delays
+    with np.errstate(all="ignore"):
+        x, xc = loop.simulate(np.zeros((n_ep, d + 1, plant.n_states)), np.concatenate([r, f], axis=2),
+                              np.zeros((n_ep, controller.n_states)))
+        xc = np.nan_to_num(xc, nan=0.0)  # NaN before the history is full, where the controller is at rest
+        u = xc @ controller.C.T + (r - x) @ controller.D.T + f
+    rows = np.array([episode_cost(x[i, :, 0], r[i, :, 0], x[i, :, 1], u[i, :, 0], skip) for i in range(n_ep)])
+    return CostPrediction(*rows.T, diverged=int(np.sum(~np.isfinite(rows[:, 0]))))
+
+
+def closed_loop_eigenvalues(plant: LinearPlant, controller: DiscreteStateSpace) -> np.ndarray:
+    """Eigenvalues of the design plant in feedback with the controller (state ``[x^c; s]``)."""
+    C_p = np.eye(plant.n_measured, plant.n_states)
+    A_f, _ = closed_loop_matrices(plant.F, plant.G, controller, C_p, 0)
+    return np.linalg.eigvals(A_f)
+
+
+@dataclass(frozen=True)
+class Margins:
+    """Margins of the loop broken at the plant input.
+
+    Attributes
+    ----------
+    gain_increase : float
+        The factor by which the loop gain may grow before instability (inf when none).
+    gain_decrease : float
+        The factor (< 1) to which it may shrink (0 when none; an unstable plant has one).
+    phase : float
+        The smallest phase margin (degrees; inf without a gain crossing).
+    phase_frequency : float
+        Where (Hz).
+    stability : float
+        ``min |1 + L|``: the distance of the Nyquist curve from -1.
+    """
+
+    gain_increase: float
+    gain_decrease: float
+    phase: float
+    phase_frequency: float
+    stability: float
+
+    def as_dict(self) -> dict:
+        """Plain data (dB for the gain margins), for reports and provenance."""
+        def db(value):
+            return float(20 * np.log10(value)) if 0 < value < np.inf else (float("inf") if value else float("-inf"))
+        return {"gain_margin_up_db": db(self.gain_increase), "gain_margin_down_db": db(self.gain_decrease),
+                "phase_margin_deg": float(self.phase), "phase_crossover_hz": float(self.phase_frequency),
+                "stability_margin": float(self.stability)}
+
+
+def loop_margins(plant: LinearPlant, controller: DiscreteStateSpace, n_points: int = 1500) -> Margins:
+    """Gain, phase and stability margins at the plant input (python-control, on a dense frequency grid).
+
+    ``control.stability_margins`` finds the crossings inside the grid; a phase crossing exactly at
+    the Nyquist frequency (where a discrete loop's response is real) is added by hand, since no
+    sign change marks it.
+    """
+    import control  # lazily: python-control imports matplotlib
+
+    loop = control.series(plant.to_control(), controller.to_control())  # P then K: L = K P
+    nyquist = np.pi / plant.dt
+    omega = np.geomspace(1e-2, nyquist, n_points)
+    response = np.asarray(control.frequency_response(loop, omega).complex).reshape(omega.shape)
+    gm, pm, _, _, wpm, _ = control.stability_margins(control.frd(response, omega, dt=plant.dt), returnall=True)
+    gm, pm, wpm = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (gm, pm, wpm))
+    at_nyquist = response[-1]
+    if at_nyquist.real < 0 and abs(at_nyquist.imag) <= 1e-9 * max(abs(at_nyquist), 1e-300):
+        gm = np.append(gm, 1 / abs(at_nyquist.real))
+    up, down = gm[gm > 1], gm[(gm < 1) & (gm > 0)]
+    i = int(np.argmin(np.abs(pm))) if len(pm) else None
+    return Margins(float(up.min()) if len(up) else np.inf, float(down.max()) if len(down) else 0.0,
+                   float(pm[i]) if i is not None else np.inf,
+                   float(wpm[i]) / (2 * np.pi) if i is not None else float("nan"),
+                   float(np.min(np.abs(1 + response))))

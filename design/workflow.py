@@ -1,0 +1,204 @@
+"""From a model file to a controller file with its predicted figures: what ``qube-design`` does.
+
+:func:`design_from_model` reads the model (``identify.model_file``), takes its plant as a shift
+register of past measurements (:mod:`design.plant`), designs the LQ controller
+(:mod:`design.lq`), checks the predicted closed loop and measures it (:mod:`design.predict`).
+:func:`report_text` and :func:`provenance` say what was done, for the terminal and for the
+controller file's ``[provenance]``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from qube_koopman.design.lq import LqDesign, Weights, design_lq
+from qube_koopman.design.plant import IDENTIFY_FLAGS, DesignError, linear_plant
+from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins, closed_loop_eigenvalues,
+                                         loop_margins, predict_cost, rig_excitations)
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+__all__ = ["DesignReport", "design_from_model", "report_text", "provenance"]
+
+
+@dataclass(frozen=True, eq=False)
+class DesignReport:
+    """A design and what the model predicts of it.
+
+    Attributes
+    ----------
+    model_path : Path
+    model : dict
+        The model file as :func:`identify.model_file.load_model` reads it.
+    design : LqDesign
+    spectral_radius : float
+        Of the design plant in closed loop with the controller.
+    open_loop_radius : float
+        Of the design plant alone.
+    margins : Margins
+        At the plant input.
+    predicted : CostPrediction
+        The plant model under the designed controller on the rig's excitation.
+    training : CostPrediction or None
+        The same under the model file's (training) controller, for comparison.
+    excitation : dict
+        ``seed``, ``episodes``, ``duration`` of the excitation predicted on.
+    """
+
+    model_path: Path
+    model: dict
+    design: LqDesign
+    spectral_radius: float
+    open_loop_radius: float
+    margins: Margins
+    predicted: CostPrediction
+    training: CostPrediction | None
+    excitation: dict
+
+    @property
+    def controller(self) -> DiscreteStateSpace:
+        """The designed controller."""
+        return self.design.controller
+
+
+def _load(path: Path) -> tuple[Path, dict]:
+    """The model file (or ``model.json`` in a ``qube-identify --out`` folder), or a DesignError naming it."""
+    from qube_koopman.identify.model_file import load_model
+
+    if path.is_dir() and (path / "model.json").is_file():
+        path = path / "model.json"
+    try:
+        model = load_model(path)
+    except ValueError as exc:
+        raise DesignError(_arx_hint(path) or str(exc)) from None
+    except (KeyError, TypeError, AttributeError, IndexError) as exc:
+        raise DesignError(f"{path}: not a readable model file (missing or malformed {exc})") from None
+    if model.get("plant") is None:
+        raise DesignError(f"{path}: the model file holds no plant model")
+    return path, model
+
+
+def _arx_hint(path: Path) -> str | None:
+    """The refusal of an ARX model file, which says how to identify a plant a design can use."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if isinstance(data, dict) and data.get("format") == "qube-arx-model":
+        return f"{path}: an ARX model; a design needs a Koopman plant model: identify it with {IDENTIFY_FLAGS}"
+    return None
+
+
+def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: int = 1, episodes: int = 20,
+                      duration: float = 20.0) -> DesignReport:
+    """Design a controller on a model file's plant and predict it.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``model.json`` of ``qube-identify``.
+    weights : Weights
+        The LQ weights.
+    seed, episodes, duration
+        The excitation the prediction runs: that of ``qube-run --seed seed --episodes episodes
+        --duration duration``.
+
+    Returns
+    -------
+    DesignReport
+
+    Raises
+    ------
+    DesignError
+        Naming the file when the model cannot be designed on (not a plant model file, a lifting
+        with the arm's friction shape, not stabilizable), or when the predicted closed loop is
+        unstable.
+    """
+    path, model = _load(Path(path))
+    try:
+        plant = linear_plant(model["plant"])
+        design = design_lq(plant, weights)
+    except DesignError as exc:
+        raise DesignError(f"{path}: {exc}") from None
+    radius = float(np.max(np.abs(closed_loop_eigenvalues(plant, design.controller))))
+    if not radius < 1:
+        raise DesignError(f"{path}: the predicted closed loop is unstable (spectral radius {radius:.6g}); "
+                          "change the weights")
+    excitations = rig_excitations(seed, episodes, duration)
+    predicted = predict_cost(model["plant"], design.controller, excitations)
+    if predicted.diverged:
+        raise DesignError(f"{path}: the plant model under the designed controller diverges on {predicted.diverged} "
+                          f"of {episodes} excitations (the linearization it was designed on does not hold); change "
+                          f"the weights or identify with {IDENTIFY_FLAGS}")
+    training = None
+    if model.get("controller") is not None and model["controller"].n_inputs == 2:
+        training = predict_cost(model["plant"], model["controller"], excitations)
+    return DesignReport(path, model, design, radius, float(np.max(np.abs(np.linalg.eigvals(plant.F)))),
+                        loop_margins(plant, design.controller), predicted, training,
+                        {"seed": seed, "episodes": episodes, "duration": duration})
+
+
+def _row(name: str, prediction: CostPrediction) -> str:
+    s = prediction.summary()
+    return (f"  {name:<24} {s['J']:>10.3e} {s['tracking_rms']:>12.4f} {s['alpha_rms']:>10.4f} "
+            f"{s['voltage_rms']:>12.3f} {s['voltage_peak']:>13.2f}")
+
+
+def report_text(report: DesignReport) -> str:
+    """What the command prints: the plant, the design, its spectrum and margins, the predicted figures."""
+    d, w, m = report.design, report.design.weights, report.margins.as_dict()
+    integral = f", q_integral {w.q_integral:g} (integral action on the arm)" if w.integral else " (no integral action)"
+    ex = report.excitation
+    lines = [
+        f"model {report.model_path}: {d.plant.note} ({d.plant.n_states} states)",
+        f"design: LQ on the plant's history; weights q_theta {w.q_theta:g}, q_alpha {w.q_alpha:g}, "
+        f"r_voltage {w.r_voltage:g}{integral}",
+        f"controller: {d.controller.n_states} states (the past {d.plant.n_delays} tracking errors of theta and alpha"
+        + (", the arm's integral)" if w.integral else ")"),
+        f"closed loop: spectral radius {report.spectral_radius:.6f} (plant alone {report.open_loop_radius:.6f})",
+        f"margins at the plant input: gain +{m['gain_margin_up_db']:.1f} dB / {m['gain_margin_down_db']:.1f} dB, "
+        f"phase {m['phase_margin_deg']:.1f} deg at {m['phase_crossover_hz']:.2f} Hz, "
+        f"stability margin min|1 + L| {m['stability_margin']:.3f}",
+        f"predicted on the rig's excitation ({ex['episodes']} episodes of {ex['duration']:g} s, as qube-run "
+        f"--seed {ex['seed']}), after the first second:",
+        f"  {'controller':<24} {'J (rad^2)':>10} {'tracking RMS':>12} {'alpha RMS':>10} {'voltage RMS':>12} "
+        f"{'voltage peak':>13}",
+        _row("designed", report.predicted),
+    ]
+    if report.training is not None:
+        lines.append(_row("model's training one", report.training))
+        ratio = report.predicted.summary()["J"] / report.training.summary()["J"]
+        lines.append(f"  predicted J {100 * (ratio - 1):+.1f} % against the training controller")
+    if report.predicted.summary()["voltage_peak"] > VOLTAGE_LIMIT:
+        lines.append(f"  warning: the predicted voltage exceeds the loop's {VOLTAGE_LIMIT:g} V clamp (saturation)")
+    return "\n".join(lines)
+
+
+def provenance(report: DesignReport) -> dict:
+    """The controller file's ``[provenance]``: model, weights, cost, margins, spectrum."""
+    from qube_koopman.sim.cli.common import package_version
+
+    out = {"designed_by": "qube-design (LQ on the identified plant's history)",
+           "software_version": f"qube-koopman {package_version()}",
+           "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+           "model": str(report.model_path), "model_method": str(report.model.get("method")),
+           "design_plant": report.design.plant.note, "n_delays": report.design.plant.n_delays,
+           "weights": report.design.weights.as_dict(),
+           "spectral_radius": report.spectral_radius, "margins": report.margins.as_dict(),
+           "excitation": report.excitation, "predicted": report.predicted.summary()}
+    if report.training is not None:
+        out["predicted_training_controller"] = report.training.summary()
+    return _finite(out)
+
+
+def _finite(value):
+    """Non-finite floats as strings (TOML has inf, but the log's JSON has not)."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    return value
