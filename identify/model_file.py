@@ -112,7 +112,7 @@ def load_model(path: str | Path) -> dict:
     path = Path(path)
     try:
         data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:  # an OSError's text would name the path again
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:  # an OSError's text would name the path again
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
         raise ValueError(f"{path}: not a readable model file ({reason})") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
