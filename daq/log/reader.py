@@ -79,6 +79,15 @@ def _parse(record_class, body) -> object:
         raise _Damaged(f"malformed {record_class.__name__} record ({exc})") from None
 
 
+class _Pending:
+    """A chunk read whole before the sample schema was known: its decompressed records."""
+
+    __slots__ = ("raw",)
+
+    def __init__(self, raw: bytes) -> None:
+        self.raw = raw
+
+
 class _Scan:
     """One pass over a file's records, collecting metadata and sample messages."""
 
@@ -196,6 +205,26 @@ class _Scan:
             raise ValueError(f"{self.where}: sample schema: {exc}") from None
         self.sample_channel = channel.id
         self.message_dtype = _message_dtype(payload_dtype(self.fields))
+        for i, block in enumerate(self.blocks):  # chunks read before the schema was known
+            if isinstance(block, _Pending):
+                decoded: list[np.ndarray] = []
+                try:
+                    self._chunk_records(block.raw, decoded)
+                except _Damaged as exc:
+                    self.gaps.append((f"a chunk read before its schema is unusable: {exc}", i))
+                    decoded = []
+                self.blocks[i] = np.concatenate(decoded) if decoded else None
+
+    def finish(self) -> None:
+        """Drop what never became samples (chunks whose schema never came, empty ones); keep gaps in place."""
+        kept, where = [], []
+        for block in self.blocks:
+            where.append(len(kept))
+            if isinstance(block, np.ndarray) and len(block):
+                kept.append(block)
+        where.append(len(kept))
+        self.gaps = sorted(((problem, where[i]) for problem, i in self.gaps), key=lambda gap: gap[1])
+        self.blocks = kept
 
     def _chunk(self, body: memoryview) -> None:
         import lz4.frame
@@ -231,6 +260,11 @@ class _Scan:
             raise _Damaged("contents fail the size or CRC check")
         blocks: list[np.ndarray] = []
         self._chunk_records(raw, blocks)
+        if self.message_dtype is None:
+            # The sample schema's chunk (the first) was damaged: keep this one's records until the
+            # summary's copy of the schema and channel comes (see _channel), in its place in order.
+            self.blocks.append(_Pending(raw))
+            return
         # Only a chunk read whole counts.
         self.blocks.extend(blocks)
 
@@ -283,6 +317,7 @@ def _scan(path: str | os.PathLike, decode_chunks: bool) -> tuple[_Scan, EpisodeM
     path = Path(path)
     scan = _Scan(str(path), decode_chunks)
     scan.run(path.read_bytes())
+    scan.finish()
     if EPISODE_RECORD not in scan.records and scan.problem:
         raise ValueError(f"{path}: unreadable episode log: {scan.problem}, before any episode metadata")
     status = scan.records.get(STATUS_RECORD)
