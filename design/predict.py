@@ -23,7 +23,7 @@ from qube_koopman.daq.excitation import Excitation, generate_excitation
 from qube_koopman.daq.session import excitation_settings, run_seeds
 from qube_koopman.design.plant import LinearPlant
 from qube_koopman.identify.model import KoopmanModel
-from qube_koopman.identify.structure import close_loop, closed_loop_matrices
+from qube_koopman.identify.structure import close_loop, closed_loop_matrices, plant_input
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["CostPrediction", "Margins", "rig_excitations", "predict_cost", "closed_loop_eigenvalues",
@@ -112,7 +112,7 @@ def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
         x, xc = loop.simulate(np.zeros((n_ep, d + 1, plant.n_states)), np.concatenate([r, f], axis=2),
                               np.zeros((n_ep, controller.n_states)))
         xc = np.nan_to_num(xc, nan=0.0)  # NaN before the history is full, where the controller is at rest
-        u = xc @ controller.C.T + (r - x) @ controller.D.T + f
+        u = plant_input(controller, xc, r, x, f)
     rows = np.array([episode_cost(x[i, :, 0], r[i, :, 0], x[i, :, 1], u[i, :, 0], skip) for i in range(n_ep)])
     return CostPrediction(*rows.T, diverged=int(np.sum(~np.isfinite(rows[:, 0]))))
 
