@@ -123,9 +123,12 @@ class _Scan:
             end = pos + 9 + length
             name = _OPNAMES.get(op, f"0x{op:02x}")
             if end > n:
-                self.problem = (f"file ends inside a {name} record at byte {pos} "
-                                f"({n - pos} of {9 + length} bytes present)")
-                return
+                problem = f"file ends inside a {name} record at byte {pos} ({n - pos} of {9 + length} bytes present)"
+                pos = self._resync(data, pos, problem, f"a {name} record at byte {pos} claims {9 + length} bytes, "
+                                   "past the end of the file")
+                if pos is None:
+                    return
+                continue
             try:
                 if op == _FOOTER:
                     if data[end:end + 8] != _MAGIC:
@@ -137,9 +140,44 @@ class _Scan:
                 if op == _CHUNK and self._framed_after(data, end):
                     self.gaps.append((problem, len(self.blocks)))
                 else:
-                    self.problem = problem
-                    return
+                    pos = self._resync(data, pos, problem, problem)
+                    if pos is None:
+                        return
+                    continue
             pos = end
+
+    def _resync(self, data: bytes, pos: int, problem: str, damage: str) -> int | None:
+        """After the record at ``pos`` broke the framing, where reading goes on: the end of the next sound chunk.
+
+        A flipped length field (a chunk's, or a message index's between two chunks) leaves no
+        way to know where the next record starts. The next chunk is found by trying each 0x06
+        byte after ``pos`` whose length frames a record and whose contents pass the CRC check
+        (a false start does not), so the samples of every chunk the damage missed are read. The
+        skipped bytes count as a gap (their samples, if any, lost), noted with ``damage``. None,
+        and ``problem`` noted, when no sound chunk follows (a cut file) or chunks are not being
+        decoded.
+        """
+        n, start = len(data), pos + 1
+        while self.decode_chunks:
+            at = data.find(bytes([_CHUNK]), start, n - 9)
+            if at < 0:
+                break
+            start = at + 1
+            (length,) = struct.unpack_from("<Q", data, at + 1)
+            end = at + 9 + length
+            if end > n or not self._framed_after(data, end) or struct.unpack_from("<I", data, at + 33)[0] == 0:
+                continue  # no CRC to vouch for a chunk found by search
+            gap, before = len(self.blocks), len(self.blocks)
+            try:
+                self._chunk(memoryview(data)[at + 9:end])
+            except _Damaged:
+                del self.blocks[before:]
+                continue
+            self.n_chunks += 1
+            self.gaps.append((f"{damage}; reading resumed at the chunk at byte {at}", gap))
+            return end
+        self.problem = problem
+        return None
 
     @staticmethod
     def _framed_after(data: bytes, end: int) -> bool:
@@ -166,7 +204,10 @@ class _Scan:
                 last = int(self.blocks[i]["seq"][0]) - 1
             else:
                 last = int(n_recorded) - 1 if n_recorded and n_recorded.isdigit() else None
-            lost = f"samples {first} to {last} lost" if last is not None else f"the samples from {first} on lost"
+            if last is None:
+                lost = f"the samples from {first} on lost"
+            else:
+                lost = f"samples {first} to {last} lost" if last >= first else "no samples lost"
             notes.append(f"{problem}; skipped: {lost}, {after} read after it")
         return notes
 
@@ -252,8 +293,8 @@ class _Scan:
                 raw = lz4.frame.decompress(packed)
             elif compression == "":
                 raw = bytes(packed)
-            else:
-                raise ValueError(f"{self.where}: unsupported chunk compression {compression!r}")
+            else:  # not written by any MCAP writer this reader knows: a damaged name, or a file it cannot read
+                raise _Damaged(f"unsupported chunk compression {compression!r}")
         except (zstandard.ZstdError, RuntimeError, MemoryError) as exc:
             raise _Damaged(f"cannot decompress ({type(exc).__name__}: {exc})") from None
         if len(raw) != size or (crc and zlib.crc32(raw) != crc):
@@ -320,30 +361,54 @@ def _scan(path: str | os.PathLike, decode_chunks: bool) -> tuple[_Scan, EpisodeM
     scan.finish()
     if EPISODE_RECORD not in scan.records and scan.problem:
         raise ValueError(f"{path}: unreadable episode log: {scan.problem}, before any episode metadata")
+    ok, jumps = _in_sequence(scan.blocks, {i for _, i in scan.gaps})
+    if not ok:
+        raise ValueError(f"{path}: sample sequence numbers are not 0, 1, 2, ... "
+                         f"(samples duplicated or out of order)")
+    scan.gaps = sorted(scan.gaps + [("records between two chunks are not what they were written as (a damaged "
+                                     "record type or length)", i) for i in jumps], key=lambda gap: gap[1])
     status = scan.records.get(STATUS_RECORD)
     if decode_chunks and status is not None and not scan.problem and not scan.gaps:
         n = sum(len(b) for b in scan.blocks)
         if status.get("n_samples") != str(n):
             scan.problem = f"status record counts {status.get('n_samples')} samples, the file holds {n}"
-    notes = scan.gap_notes(None if status is None else status.get("n_samples"))
-    note = "; ".join([*notes, *([scan.problem] if scan.problem else [])])
-    return scan, metadata_from_records(scan.records, str(path), salvage_note=note)
+    notes = [*scan.gap_notes(None if status is None else status.get("n_samples")),
+             *([scan.problem] if scan.problem else [])]
+    try:
+        return scan, metadata_from_records(scan.records, str(path), salvage_note="; ".join(notes))
+    except ValueError as exc:
+        if status is None:
+            raise
+        # The status record is written last and not CRC-checked: a flip there must not cost the samples.
+        del scan.records[STATUS_RECORD]
+        notes.append(f"the status record is unreadable ({str(exc).removeprefix(f'{path}: ')}); status unknown")
+        return scan, metadata_from_records(scan.records, str(path), salvage_note="; ".join(notes))
 
 
-def _in_sequence(blocks: list[np.ndarray], gaps: set[int]) -> bool:
-    """Sample sequence numbers 0, 1, 2, ..., jumping forward only where a damaged chunk was skipped."""
-    expected = 0
+def _in_sequence(blocks: list[np.ndarray], gaps: set[int]) -> tuple[bool, list[int]]:
+    """Whether sample sequence numbers run 0, 1, 2, ... only ever jumping forward, and where they jump.
+
+    Returns
+    -------
+    ok : bool
+        False for a duplicated or out-of-order sample, or a block not numbered consecutively.
+    jumps : list of int
+        Blocks that start past the sample expected with no skipped damage noted before them: the
+        bytes before them framed as records of another kind (a flipped record type), so their
+        samples are missing without a chunk having failed a check.
+    """
+    expected, jumps = 0, []
     for i, block in enumerate(blocks):
         seq = block["seq"]
         if len(seq) == 0:
             continue
         start = int(seq[0])
-        if not (start > expected if i in gaps else start == expected):
-            return False
-        if not np.array_equal(seq, start + np.arange(len(seq))):
-            return False
+        if start < expected or not np.array_equal(seq, start + np.arange(len(seq))):
+            return False, jumps
+        if start > expected and i not in gaps:
+            jumps.append(i)
         expected = start + len(seq)
-    return True
+    return True, jumps
 
 
 def read_episode_metadata(path: str | os.PathLike) -> EpisodeMetadata:
@@ -407,9 +472,6 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
             return blocks[0][name] if len(blocks) == 1 else np.concatenate([b[name] for b in blocks])
         if not (column("cdr_header") == _CDR_LE).all():
             raise ValueError(f"{where}: sample messages are not plain little-endian CDR")
-        if not _in_sequence(blocks, {i for _, i in scan.gaps}):
-            raise ValueError(f"{where}: sample sequence numbers are not 0, 1, 2, ... "
-                             f"(samples missing, duplicated or out of order)")
         arrays = {name: column(name) for name in (*SIGNALS, "saturation")
                   if name in present or name == "saturation"}
         state = np.column_stack([column(state_field(i)) for i in range(k)]) if k else np.empty((len(arrays["t"]), 0))
