@@ -1,7 +1,7 @@
 """Issue 28 section 3: a controller designed by ``qube-design`` against the rig's PD on the twin.
 
     python bench/bench_design.py MODEL.json [--seed 7] [--episodes 20] [--draws 50] [--serial lockstep|realtime]
-                                 [--out DIR]
+                                 [--reidentify SEED] [--out DIR]
 
 MODEL.json is a plant identified by ``qube-identify`` (the issue: the paper's 28 training
 episodes, e.g. ``qube-identify qube_logs --split paper --poly 1 --delays 35 --const --out m``).
@@ -17,6 +17,10 @@ figure beside its target:
 - robustness: ``--draws`` twins with km, Lp, mp and Jh drawn uniformly within +-10 % of the
   calibrated values and the command delay doubled, one episode each (encoder offsets drawn per
   episode, as the twin does by default), under the design and under the PD;
+- with ``--reidentify SEED`` (issue 28 section 4): 48 twin episodes of ``qube-run --seed SEED`` under
+  each controller, CL EDMD (``--poly 1 --delays 35 --const --alpha 1e-3``) on the first 28 of one
+  controller scored on the last 20 of each: the design re-identified under itself, and the plants
+  identified under the design and under the PD predicting each other's closed loops;
 - with ``--serial``: one episode through ``qube-emulate`` (the firmware's C core; lockstep or real
   time) and ``qube-run --backend serial``: completion and the ticks the link missed.
 """
@@ -24,6 +28,7 @@ figure beside its target:
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import subprocess
 import sys
@@ -132,6 +137,25 @@ def serial_realtime(controller: str, root: Path) -> str:
     return f"real time, exit {run.returncode}\n" + "\n".join(lines)
 
 
+def reidentification(controller: str, seed: int, root: Path) -> dict[str, float]:
+    """Test R^2 of CL EDMD trained on 28 episodes under one controller and tested on 20 under each."""
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    logs = {}
+    for name, extra in (("PD", []), ("design", ["--controller", controller])):
+        folder = root / f"reidentify_{name}"
+        assert run_main(["--episodes", "48", "--seed", str(seed), "--out", str(folder), "-q", *extra]) == 0
+        logs[name] = sorted(map(str, folder.glob("*.mcap")))
+    scores = {}
+    for train in logs:
+        for test in logs:
+            out = root / f"reidentify_{train}_{test}"
+            assert identify_main(["--train", *logs[train][:28], "--test", *logs[test][28:], "--poly", "1", "--delays",
+                                  "35", "--const", "--alpha", "1e-3", "--out", str(out), "-q"]) == 0
+            scores[f"{train} -> {test}"] = json.loads((out / "report.json").read_text())["test"]["r2_mean"]
+    return scores
+
+
 def main() -> None:
     """Run the comparison and print it."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -140,6 +164,7 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--draws", type=int, default=50)
     p.add_argument("--serial", choices=("lockstep", "realtime"), default=None)
+    p.add_argument("--reidentify", type=int, default=None, metavar="SEED")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_design_"))
@@ -165,6 +190,10 @@ def main() -> None:
         ok, ok_pd = robustness(str(controller), args.draws, root), robustness(None, args.draws, root)
         print(f"robustness: {ok}/{args.draws} perturbed twins complete under the design (target >= 95 %), "
               f"{ok_pd}/{args.draws} under the PD")
+    if args.reidentify is not None:
+        scores = reidentification(str(controller), args.reidentify, root)
+        print("re-identified (train -> test, 28 -> 20 episodes, target >= 0.95): "
+              + ", ".join(f"{k} {v:.4f}" for k, v in scores.items()))
     if args.serial:
         serial = serial_realtime if args.serial == "realtime" else serial_lockstep
         print("serial path:", serial(str(controller), root))

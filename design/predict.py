@@ -1,6 +1,6 @@
 """What a designed controller will do, from the model alone: cost on the rig's excitation, spectrum, margins.
 
-- :func:`predict_cost`: the identified plant model in closed loop with the controller
+- :func:`predict_loop` and :func:`predict_cost`: the identified plant model in closed loop with the controller
   (``identify.structure.close_loop``, re-lifted at every step as ``qube-identify`` predicts)
   driven by the rig's excitation of ``qube-run --seed S --episodes N`` (the same references and
   feedforward, from upright), scored after the first second as the twin's logs are:
@@ -25,8 +25,9 @@ from qube_koopman.design.plant import LinearPlant
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.structure import close_loop, closed_loop_matrices, plant_input
 from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 
-__all__ = ["CostPrediction", "Margins", "rig_excitations", "predict_cost", "closed_loop_eigenvalues",
+__all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost", "closed_loop_eigenvalues",
            "loop_margins", "episode_cost"]
 
 #: Samples left out of every score: the first second, as in the twin's comparisons.
@@ -85,9 +86,38 @@ def episode_cost(theta, target_theta, alpha, voltage, skip: int = SKIP) -> tuple
             float(np.max(np.abs(voltage), initial=0.0)))
 
 
-def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
-                 excitations: list[Excitation], skip: int = SKIP) -> CostPrediction:
-    """The plant model under ``controller`` on each excitation, from upright, scored after ``skip`` samples.
+@dataclass(frozen=True)
+class LoopTrajectories:
+    """The plant model's closed loop on each excitation, from upright: ``(n_episodes, n_samples)`` arrays.
+
+    Attributes
+    ----------
+    theta, alpha : ndarray
+        Predicted angles (rad).
+    target_theta : ndarray
+        The arm's reference (rad).
+    voltage : ndarray
+        The voltage the controller asks for, feedforward included (V; not clamped).
+    dt : float
+        Sample period (s).
+    """
+
+    theta: np.ndarray
+    alpha: np.ndarray
+    target_theta: np.ndarray
+    voltage: np.ndarray
+    dt: float
+
+    def cost(self, skip: int = SKIP) -> CostPrediction:
+        """The figures of each episode after ``skip`` samples (:func:`episode_cost`)."""
+        rows = np.array([episode_cost(self.theta[i], self.target_theta[i], self.alpha[i], self.voltage[i], skip)
+                         for i in range(len(self.theta))])
+        return CostPrediction(*rows.T, diverged=int(np.sum(~np.isfinite(rows[:, 0]))))
+
+
+def predict_loop(plant: KoopmanModel, controller: DiscreteStateSpace,
+                 excitations: list[Excitation]) -> LoopTrajectories:
+    """The plant model under ``controller`` on each excitation, from upright.
 
     Parameters
     ----------
@@ -97,12 +127,11 @@ def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
         Tracking errors ``r - [theta, alpha]`` in, voltage out (before the feedforward).
     excitations : list of Excitation
         References and feedforward of each episode (all of one length).
-    skip : int
-        Samples left out of the figures.
 
     Returns
     -------
-    CostPrediction
+    LoopTrajectories
+        Non-finite where the prediction diverged.
     """
     loop = close_loop(plant, controller)
     r = np.stack([np.column_stack([e.target_theta, e.target_alpha]) for e in excitations])
@@ -113,8 +142,14 @@ def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
                               np.zeros((n_ep, controller.n_states)))
         xc = np.nan_to_num(xc, nan=0.0)  # NaN before the history is full, where the controller is at rest
         u = plant_input(controller, xc, r, x, f)
-    rows = np.array([episode_cost(x[i, :, 0], r[i, :, 0], x[i, :, 1], u[i, :, 0], skip) for i in range(n_ep)])
-    return CostPrediction(*rows.T, diverged=int(np.sum(~np.isfinite(rows[:, 0]))))
+    return LoopTrajectories(x[:, :, 0], x[:, :, 1], r[:, :, 0], u[:, :, 0],
+                            float(plant.dt) if plant.dt is not None else SAMPLE_PERIOD)
+
+
+def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
+                 excitations: list[Excitation], skip: int = SKIP) -> CostPrediction:
+    """The figures of :func:`predict_loop`'s episodes after ``skip`` samples (:meth:`LoopTrajectories.cost`)."""
+    return predict_loop(plant, controller, excitations).cost(skip)
 
 
 def closed_loop_eigenvalues(plant: LinearPlant, controller: DiscreteStateSpace) -> np.ndarray:

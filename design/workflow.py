@@ -19,10 +19,10 @@ import numpy as np
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.plant import IDENTIFY_FLAGS, DesignError, linear_plant
 from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins, closed_loop_eigenvalues,
-                                         loop_margins, predict_cost, rig_excitations)
+                                         loop_margins, predict_cost, predict_loop, rig_excitations)
 from qube_koopman.sim.lti import DiscreteStateSpace
 
-__all__ = ["DesignReport", "design_from_model", "report_text", "provenance"]
+__all__ = ["DesignReport", "design_from_model", "report_text", "provenance", "record_design"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -193,6 +193,42 @@ def provenance(report: DesignReport) -> dict:
     if report.training is not None:
         out["predicted_training_controller"] = report.training.summary()
     return _finite(out)
+
+
+def record_design(path: str | Path, report: DesignReport, controller, n_episodes: int = 3) -> Path:
+    """Write ``qube-design --rerun``'s recording: the first episodes predicted and on the twin, the eigenvalues.
+
+    Parameters
+    ----------
+    path : str or Path
+        The .rrd file (:func:`design.recording.write_recording`).
+    report : DesignReport
+        The design; its excitation's first ``n_episodes`` are predicted and run.
+    controller : daq.episode.ControllerInfo
+        The designed controller as the loop runs it (the written controller file, loaded).
+    n_episodes : int
+        Episodes shown (at most the excitation's).
+
+    Returns
+    -------
+    Path
+    """
+    from qube_koopman.daq.episode import ControllerInfo
+    from qube_koopman.design.recording import write_recording
+    from qube_koopman.design.twin import run_on_twin
+
+    ex = report.excitation
+    n = min(n_episodes, ex["episodes"])
+    predicted = predict_loop(report.model["plant"], report.controller, rig_excitations(ex["seed"], n, ex["duration"]))
+    twin = {"twin": run_on_twin(controller, ex["seed"], n, of=ex["episodes"], duration=ex["duration"])}
+    eigenvalues = {"design": closed_loop_eigenvalues(report.design.plant, report.controller)}
+    training = report.model.get("controller")
+    if report.training is not None:
+        info = ControllerInfo(training, "as the model file records it", kind="state-space",
+                              provenance={"model": str(report.model_path)})
+        twin["twin_training"] = run_on_twin(info, ex["seed"], n, of=ex["episodes"], duration=ex["duration"])
+        eigenvalues["training"] = closed_loop_eigenvalues(report.design.plant, training)
+    return write_recording(path, predicted, twin, eigenvalues)
 
 
 def _finite(value):

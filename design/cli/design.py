@@ -2,6 +2,7 @@
 
     qube-design MODEL --out FILE.toml [--q-theta Q] [--q-alpha Q] [--r-voltage R]
                 [--q-integral Q | --no-integral] [--seed K] [--episodes N] [--duration S] [--npz]
+                [--rerun FILE.rrd [--rerun-episodes N]]
 
 Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
 feedback on the plant's history of measurements (with integral action on the arm's tracking
@@ -13,6 +14,13 @@ radius, the margins at the plant input and the cost the model predicts on the ri
 of ``qube-run --seed K --episodes N`` beside the model's training controller. A model it cannot
 design on (not a plant model, the arm's friction shape in its lifting, not stabilizable) or a
 predicted closed loop that is unstable is refused, exit 2, and nothing is written.
+
+With ``--rerun FILE.rrd`` it also runs the first episodes of that excitation on the twin (as
+``qube-run --seed K --episodes N --controller FILE.toml`` runs them, and under the model's
+training controller) and writes a rerun recording: predicted vs twin trajectories of theta,
+alpha and the voltage, and the closed-loop eigenvalues of the design and of the training
+controller beside the unit circle (``rerun FILE.rrd`` opens it; rerun-sdk is the optional
+``viz`` extra).
 """
 
 from __future__ import annotations
@@ -23,7 +31,7 @@ import sys
 from dataclasses import fields
 
 from qube_koopman.design.lq import Weights
-from qube_koopman.identify.cli.common import CliError, run_command
+from qube_koopman.identify.cli.common import CliError, check_rerun_target, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
 __all__ = ["main"]
@@ -56,6 +64,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="seconds per predicted episode, 2 to 60 (default 20)")
     p.add_argument("--npz", action="store_true",
                    help="write the matrices to FILE.npz beside the controller file (loads faster)")
+    p.add_argument("--rerun", type=path, metavar="FILE.rrd",
+                   help="also write a rerun recording: predicted vs twin trajectories, closed-loop eigenvalues")
+    p.add_argument("--rerun-episodes", type=whole_number(1, 20), default=3, metavar="N",
+                   help="episodes of the excitation the recording shows, run on the twin (default 3)")
     add_standard_options(p, "nothing to quiet")
     return p
 
@@ -76,6 +88,7 @@ def _run(args) -> int:
     from qube_koopman.design.workflow import design_from_model, provenance, report_text
 
     weights = _weights(args)
+    check_rerun_target(args.rerun)
     if not (math.isfinite(args.duration) and 2.0 <= args.duration <= 60.0):
         raise CliError(f"--duration must be between 2 and 60 s, got {args.duration}")
     if round(args.duration * 500) != args.duration * 500:
@@ -92,7 +105,22 @@ def _run(args) -> int:
         raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
     print(f"wrote {written}" + (f" and {written.with_suffix('.npz')}" if args.npz else "")
           + f": qube-run --controller {written}")
+    if args.rerun:
+        _record(args, report, written)
     return 0
+
+
+def _record(args, report, written) -> None:
+    """The --rerun recording, with the controller as qube-run loads it from the written file."""
+    from qube_koopman.daq.session import load_controller
+    from qube_koopman.design.workflow import record_design
+
+    n = min(args.rerun_episodes, args.episodes)
+    try:
+        record_design(args.rerun, report, load_controller(written), n)
+    except OSError as exc:
+        raise CliError(f"{args.rerun}: cannot write: {exc.strerror or exc}", status=1) from None
+    print(f"wrote {args.rerun}: the first {n} episodes predicted and on the twin, the closed-loop eigenvalues")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -61,6 +61,24 @@ def _standard(value):
     return value
 
 
+def check_rerun_target(path: str | Path | None, option: str = "--rerun") -> None:
+    """Refuse ``option FILE.rrd`` before any work: rerun-sdk not installed (status 1), or no such folder.
+
+    Raises
+    ------
+    CliError
+        Saying how to install the optional viewer, or naming the missing folder.
+    """
+    import importlib.util
+
+    if path is None:
+        return
+    if importlib.util.find_spec("rerun") is None:
+        raise CliError(f'{option} needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"', status=1)
+    if not Path(path).resolve().parent.is_dir():
+        raise CliError(f"{path}: folder {Path(path).parent} does not exist ({option})")
+
+
 def write_json(path: Path, data) -> None:
     """Write strict JSON (non-finite numbers as strings), whole file then rename."""
     tmp = path.with_suffix(path.suffix + ".tmp")

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import logging
 import math
 import sys
 import warnings
 from pathlib import Path
 
-from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
+from qube_koopman.identify.cli.common import CliError, check_rerun_target, output_dir, progress, run_command, write_json
 
 PROG = "qube-identify"
 
@@ -288,10 +287,7 @@ def _check_args(args) -> None:
     if not args.estimate_window <= MAX_DURATION:  # inf, 1e308: no whole number of samples (a traceback)
         raise CliError(f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got "
                        f"{args.estimate_window}")
-    if args.rerun and importlib.util.find_spec("rerun") is None:
-        raise CliError('--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"', status=1)
-    if args.rerun and not Path(args.rerun).resolve().parent.is_dir():  # before any work, not after the fit
-        raise CliError(f"{args.rerun}: folder {Path(args.rerun).parent} does not exist (--rerun)")
+    check_rerun_target(args.rerun)  # before any work, not after the fit
 
 
 def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
