@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from scipy import signal
 
 from qube_koopman.daq.log.names import SEED_SIGNALS, parse_episode_name
 
@@ -105,8 +104,10 @@ def smooth(x: np.ndarray, cutoff: float, sample_rate: float) -> np.ndarray:
     x = np.array(x, dtype=float)
     if cutoff <= 0:
         return x
+    from scipy.signal import lfilter  # here: scipy.signal takes about a second to import
+
     ratio = cutoff / sample_rate
-    return signal.lfilter([ratio / (1.0 + ratio)], [1.0, -1.0 / (1.0 + ratio)], x)
+    return lfilter([ratio / (1.0 + ratio)], [1.0, -1.0 / (1.0 + ratio)], x)
 
 
 def integrate(rate: np.ndarray, sample_rate: float) -> np.ndarray:
@@ -277,7 +278,9 @@ class _ChannelStream:
         out[:max(0, min(self.window_start, k1) - k0)] = 0.0
         active = min(k1, self.window_stop) - k0
         if active > 0 and self.smoothing:
-            out[:active], self.zi = signal.lfilter(self.b, self.a, out[:active], zi=self.zi)
+            from scipy.signal import lfilter
+
+            out[:active], self.zi = lfilter(self.b, self.a, out[:active], zi=self.zi)
         return out
 
 

@@ -39,6 +39,8 @@ __all__ = [
     "MAX_EPISODES",
     "MAX_DURATION",
     "RunResult",
+    "FATAL_CAUSES",
+    "log_outcome",
     "run_episodes",
 ]
 
@@ -189,8 +191,14 @@ class RunResult:
         return len(self.results) - self.n_complete
 
 
-# An abort for these causes ends the run: the next episode would fail the same way.
-_FATAL = ("stop", "fault", "log", "error")
+#: An abort for these causes ends the run: the next episode would fail the same way.
+FATAL_CAUSES = ("stop", "fault", "log", "error")
+
+
+def log_outcome(plan: EpisodePlan, result: EpisodeResult) -> None:
+    """Say how an episode ended (an info line of the ``qube_koopman`` log: ``qube-run -v``)."""
+    _log.info("episode %d: %s after %d of %d ticks%s", plan.index, result.status, result.n_samples,
+              plan.n_samples, f" ({result.reason})" if result.reason else "")
 
 
 def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sink], *,
@@ -233,11 +241,10 @@ def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sin
             result = run_episode(backend, plan, sinks, limits=limits, stop=stop, handle_signals=False,
                                  spin=spin, timing=timing)
             run.results.append(result)
-            _log.info("episode %d: %s after %d of %d ticks%s", plan.index, result.status, result.n_samples,
-                      plan.n_samples, f" ({result.reason})" if result.reason else "")
+            log_outcome(plan, result)
             if on_result is not None:
                 on_result(plan, result)
-            if result.cause in _FATAL:
+            if result.cause in FATAL_CAUSES:
                 run.stopped = result.reason
                 break
     run.signal = stop.signal

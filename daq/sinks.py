@@ -409,6 +409,11 @@ class LogWriteError(OSError):
         name = errno.errorcode.get(self.errno, "") if self.errno else ""
         return f"{self.path}: {self.strerror}" + (f" ({name})" if name else "")
 
+    def __reduce__(self):
+        # OSError pickles as (errno, strerror): the path would be lost on the way back from a
+        # worker process (daq.parallel).
+        return type(self), (self.path, self.cause)
+
 
 def episode_file_stem(metadata: EpisodeMetadata) -> str:
     """``qube_<date>T<time>.<ms>_<s1>_<s2>_<s3>``: start time (UTC, ISO 8601 basic) and excitation seeds

@@ -173,11 +173,28 @@ class _Series:
         if self._hist is None and self.n <= EXACT_TICKS:
             self._parts.append(np.array(values, dtype=float))
             return
+        self._histogram()
+        self._hist += np.bincount(_bin_index(values), minlength=self._hist.size)
+
+    def _histogram(self) -> None:
+        """Keep the histogram from now on, the exact values kept so far counted in it."""
         if self._hist is None:
             self._hist = np.zeros(2 * _HIST_HALF + 1, dtype=np.int64)
-            values = np.concatenate([*self._parts, values])
+            if self._parts:
+                self._hist += np.bincount(_bin_index(np.concatenate(self._parts)), minlength=self._hist.size)
             self._parts = []
-        self._hist += np.bincount(_bin_index(values), minlength=self._hist.size)
+
+    def merge(self, other: "_Series") -> None:
+        """Add the values ``other`` holds (exact values, or its histogram)."""
+        if other.n == 0:
+            return
+        if other._hist is None:
+            self.add(np.concatenate(other._parts))
+            return
+        self._histogram()
+        self._hist += other._hist
+        self.n += other.n
+        self.low, self.high = min(self.low, other.low), max(self.high, other.high)
 
     def summary(self) -> tuple[float, float, float]:
         """(p50, p99, max); NaN when empty. Exact up to :data:`EXACT_TICKS` values, else within a bin."""
@@ -229,6 +246,22 @@ class TimingRecord:
         self._lateness.add(late)
         self.overruns += int(np.count_nonzero(late + np.nan_to_num(compute[measured]) > self.period))
         self.stalls += int(np.count_nonzero(late > STALL_THRESHOLD))
+
+    def merge(self, other: "TimingRecord") -> None:
+        """Add the ticks ``other`` recorded (another process's episodes, say), as if added here.
+
+        Parameters
+        ----------
+        other : TimingRecord
+            Of the same period; left unchanged.
+        """
+        if other.period != self.period:
+            raise ValueError(f"cannot merge ticks of period {other.period} s into a record of {self.period} s")
+        self.n_ticks += other.n_ticks
+        self.overruns += other.overruns
+        self.stalls += other.stalls
+        self._lateness.merge(other._lateness)
+        self._compute.merge(other._compute)
 
     def stats(self) -> TimingStats:
         """The statistics so far."""

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from qube_koopman.daq.timing import (STALL_THRESHOLD, DeadlinePacer, quiet_interpreter, realtime_scheduling,
-                        timing_stats)
+from qube_koopman.daq.timing import (EXACT_TICKS, STALL_THRESHOLD, DeadlinePacer, TimingRecord, quiet_interpreter,
+                                     realtime_scheduling, timing_stats)
 
 
 class FakeClock:
@@ -89,6 +89,26 @@ def test_timing_stats_of_free_running_ticks_has_no_lateness():
     assert empty.n_ticks == 0 and empty.as_dict()["compute_p50"] is None
     with pytest.raises(ValueError, match="same length"):
         timing_stats(np.zeros(3), np.zeros(4), 0.002)
+
+
+@pytest.mark.parametrize("sizes", [(300, 700, 1000), (EXACT_TICKS - 10, 40, 5), (5, EXACT_TICKS + 7, 3)],
+                         ids=["exact", "into-histogram", "histogram-merged-in"])
+def test_merged_records_say_what_one_record_of_all_the_ticks_says(sizes):
+    # Episodes of worker processes (daq.parallel) are merged into the run's record: the same
+    # statistics, exact or histogram, as if every tick had been added to one record.
+    rng = np.random.default_rng(3)
+    parts = [(np.where(rng.random(n) < 0.01, np.nan, rng.exponential(4e-4, n)), rng.exponential(3e-5, n))
+             for n in sizes]
+    whole, merged = TimingRecord(0.002), TimingRecord(0.002)
+    for lateness, compute in parts:
+        whole.add(lateness, compute)
+        part = TimingRecord(0.002)
+        part.add(lateness, compute)
+        merged.merge(part)
+    assert merged.stats() == whole.stats()
+    assert merged.stats().n_ticks == sum(sizes) and merged.stats().overruns > 0
+    with pytest.raises(ValueError, match="period"):
+        merged.merge(TimingRecord(0.001))
 
 
 def test_realtime_requests_fail_gracefully_and_are_undone():

@@ -84,12 +84,37 @@ class SimBackend(Backend):
 
     def start(self) -> None:
         """Reset the pendulum upright with a fresh random perturbation and encoder zero."""
-        alpha0 = float(self._rng.uniform(-self.perturbation, self.perturbation))
+        alpha0, offset = self._start_draws()
         self._initial_state = (0.0, alpha0, 0.0, 0.0)
-        if self.zero_offsets is not None:
-            self._sim.sensor = replace(self.sensor, alpha_offset=self.zero_offsets.draw(self._rng))
+        if offset is not None:
+            self._sim.sensor = replace(self.sensor, alpha_offset=offset)
         self._y = self._sim.reset(self._initial_state)
         self._running = True
+
+    def _start_draws(self) -> tuple[float, float | None]:
+        """An episode's random start: its initial alpha and pendulum encoder zero (None: the sensor's)."""
+        alpha0 = float(self._rng.uniform(-self.perturbation, self.perturbation))
+        offset = None if self.zero_offsets is None else self.zero_offsets.draw(self._rng)
+        return alpha0, offset
+
+    def skip_episode(self) -> None:
+        """Make one episode's random draws without running it: the next :meth:`start` is the next episode's.
+
+        A copy of the backend skipped past ``k`` episodes starts episode ``k`` exactly as the
+        original does after running them (the same perturbation and encoder zero): how a worker
+        process runs episode ``k`` of a run (:mod:`daq.parallel`).
+
+        Raises
+        ------
+        ValueError
+            For a noisy sensor (``sensor.noise_std > 0``): its noise stream runs on from one
+            episode into the next, by as many ticks as each ran, so an episode's noise depends on
+            how long the ones before it lasted.
+        """
+        if self.sensor.noise_std > 0:
+            raise ValueError("a noisy sensor's noise runs on from episode to episode (by as many ticks as "
+                             "each ran): its episodes can only run one after the other")
+        self._start_draws()
 
     def read(self) -> tuple[float, float]:
         """The encoders' (theta, alpha) at the current simulated time."""

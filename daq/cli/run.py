@@ -7,9 +7,9 @@ import math
 import sys
 from pathlib import Path
 
+from qube_koopman.daq.cli.run_output import PROG
 from qube_koopman.sim.cli.common import configure_logging
 
-PROG = "qube-run"
 DEFAULT_EPISODES = 3
 DEFAULT_DURATION = 20.0
 DEFAULT_OUT = Path("episodes")
@@ -25,10 +25,11 @@ drives it. Every tick is logged: angles, references, feedforward, controller
 state and output, applied voltage, saturation, lateness and compute time.
 Safety: the command is clamped to +-10 V; an episode stops with the motor at
 0 V when |theta| > 90 deg or |alpha| > 45 deg; Ctrl-C or SIGTERM stops the
-run with the motor at 0 V and the current log closed as "aborted".
+run with the motor at 0 V and the current logs closed as "aborted".
 
 With no arguments: 3 episodes of 20 s on the simulator, as fast as the
-computer allows, into ./episodes. With --backend serial --port DEV the
+computer allows (episodes side by side on every core: --n-jobs), into
+./episodes. With --backend serial --port DEV the
 episodes run on the QUBE through the bridge firmware (or on the emulated
 bridge that qube-emulate starts), paced by the bridge's 500 Hz clock; a lost
 link or a fault reported by the bridge ends the run with the motor at 0 V and
@@ -45,6 +46,7 @@ the free space of --out is checked against what it needs.
 examples:
   qube-run                                        # 3 x 20 s on the simulator into ./episodes
   qube-run --episodes 48 --seed 1 --out data/     # a dataset the size of the paper's
+  qube-run --episodes 48 --seed 1 --n-jobs 1      # the same, one episode at a time
   qube-run --realtime --rerun                     # paced like hardware, live in a rerun viewer
   qube-run --controller gains.toml --rerun-save run.rrd
   qube-run --backend serial --port /dev/ttyACM0   # the rig, through the bridge firmware
@@ -56,13 +58,24 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _positive_int(text: str) -> int:
+def _int(text: str) -> int:
     try:
-        value = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+
+
+def _positive_int(text: str) -> int:
+    value = _int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _n_jobs(text: str) -> int:
+    value = _int(text)
+    if value == 0 or value < -1:
+        raise argparse.ArgumentTypeError(f"must be -1 (every core) or at least 1, got {value}")
     return value
 
 
@@ -121,6 +134,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "rig ran); a state-space file is already discrete")
     p.add_argument("--realtime", action="store_true",
                    help="pace the simulator like hardware, one tick every 2 ms (default: as fast as possible)")
+    p.add_argument("--n-jobs", type=_n_jobs, default=None, metavar="N",
+                   help="run the simulator's episodes N at a time, in worker processes (default -1: one per "
+                        "core); the logs, their names, seeds and samples are a serial run's, timing apart. The "
+                        "first episode runs alone, while the workers start: a setup that fails (a full disk, "
+                        "say) stops the run there, as a serial run stops. Always one at a time with --backend "
+                        "serial (one rig), --rerun, --rerun-save, --rt-cpu and --rt-priority, which refuse N > 1")
     p.add_argument("--rerun", nargs="?", const="", default=None, metavar="URL",
                    help="stream live to a rerun viewer: URL, else one listening on 127.0.0.1:9876, "
                         "else a newly spawned one (needs a display)")
@@ -165,88 +184,11 @@ class _Fail(Exception):
         self.status = status
 
 
-class _Progress:
-    """A tqdm bar on stderr counting samples over the whole run, silent when stderr is not a terminal.
-
-    A sink on the writer thread (``write`` per sample); ``episode_done`` from the main thread.
-    """
-
-    required = False
-
-    def __init__(self, n_episodes: int, samples_per_episode: int, enabled: bool) -> None:
-        from qube_koopman.sim.cli.common import progress_bar
-
-        self.n = n_episodes
-        self.per = samples_per_episode
-        self.aborted = 0
-        self.bar = progress_bar(n_episodes * samples_per_episode, unit="sample", unit_scale=True,
-                                enabled=enabled)
-        self._postfix(0)
-
-    def _postfix(self, episode: int) -> None:
-        text = f"episode {min(episode + 1, self.n)}/{self.n}"
-        self.bar.set_postfix_str(text + (f", {self.aborted} aborted" if self.aborted else ""), refresh=False)
-
-    def open(self, metadata) -> None:
-        pass
-
-    def write(self, sample) -> None:
-        self.bar.update(1)
-
-    def close(self, outcome) -> None:
-        pass
-
-    def episode_done(self, index: int, result, name: str) -> None:
-        self.aborted += not result.complete
-        self.bar.update((index + 1) * self.per - self.bar.n)  # an aborted episode counts as through
-        self._postfix(index + 1)
-        if not result.complete and not self.bar.disable:  # the summary table has it too
-            status = result.status + (f" ({result.reason})" if result.reason else "")
-            self.bar.write(f"{PROG}: episode {index + 1}/{self.n} {name}: {status}", file=sys.stderr)
-
-    def clear(self) -> None:
-        self.bar.close()
-
-
 def fresh_seed() -> int:
     """A run seed from the system's entropy, when ``--seed`` is not given (printed to repeat the run)."""
     import numpy as np
 
     return int(np.random.SeedSequence().entropy % 1_000_000)
-
-
-def _us(value: float | None) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{value * 1e6:.1f}"
-
-
-def summary_table(rows: list[tuple[str, object]], totals) -> str:
-    """The end-of-run table: one row per episode, then the whole run's timing."""
-    header = ("#", "log file", "status", "samples", "late p50 us", "p99 us", "max us", "overruns",
-              "compute p99 us")
-    lines = []
-    table = [header]
-    for i, (name, r) in enumerate(rows):
-        t = r.timing
-        table.append((str(i), name, r.status, str(r.n_samples), _us(t.lateness_p50), _us(t.lateness_p99),
-                      _us(t.lateness_max), str(t.overruns) if t.paced else "-", _us(t.compute_p99)))
-    widths = [max(len(row[j]) for row in table) for j in range(len(header))]
-    for j, row in enumerate(table):
-        lines.append("  ".join(c.ljust(w) if k < 3 else c.rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
-        if j == 0:
-            lines.append("  ".join("-" * w for w in widths))
-    for i, (name, r) in enumerate(rows):
-        if r.reason:
-            lines.append(f"episode {i}: {r.reason}")
-    t = totals
-    line = f"all {t.n_ticks} ticks: "
-    if t.paced:
-        line += (f"lateness p50 {_us(t.lateness_p50)} us, p99 {_us(t.lateness_p99)} us, max "
-                 f"{_us(t.lateness_max)} us; {t.overruns} overruns, {t.stalls} stalls > 2 ms; ")
-    else:
-        line += "free-running (no deadlines); "
-    line += f"compute p50 {_us(t.compute_p50)} us, p99 {_us(t.compute_p99)} us, max {_us(t.compute_max)} us"
-    lines.append(line)
-    return "\n".join(lines)
 
 
 def _controller_form(controller, args) -> str:
@@ -298,6 +240,30 @@ def _check_backend_options(args) -> None:
         raise _Fail("--check is for --backend serial (the pre-flight of the real rig)")
     elif args.port is not None or args.baud is not None or args.link_timeout is not None:
         raise _Fail("--port, --baud and --link-timeout are for --backend serial")
+
+
+def _jobs(args, n_episodes: int) -> int:
+    """The worker processes of the run (--n-jobs); 1: every episode in this process.
+
+    The first episode runs in this process and the others share the workers: one worker would
+    only add its start-up to a serial run. Where episodes cannot run side by side, the default
+    (and -1) mean 1, and N > 1 is refused.
+    """
+    alone = [(option, why) for option, why, given in (
+        ("--backend serial", "one rig", args.backend == "serial"),
+        ("--rerun", "one live view", args.rerun is not None),
+        ("--rerun-save", "one recording", args.rerun_save is not None),
+        ("--rt-cpu", "one pinned process", args.rt_cpu is not None),
+        ("--rt-priority", "one real-time process", args.rt_priority is not None)) if given]
+    if alone and args.n_jobs is not None and args.n_jobs > 1:
+        option, why = alone[0]
+        raise _Fail(f"--n-jobs {args.n_jobs}: {option} runs one episode at a time ({why}); leave --n-jobs out "
+                    "or give 1")
+    if alone:
+        return 1
+    from qube_koopman.daq.parallel import resolve_n_jobs
+
+    return resolve_n_jobs(-1 if args.n_jobs is None else args.n_jobs, n_episodes - 1)
 
 
 def _replay(args, rate: float):
@@ -371,23 +337,11 @@ def _preflight(backend) -> int:
 
 def _where(args, backend) -> str:
     if args.backend == "sim":
-        return f"the simulator ({'paced in real time' if args.realtime else 'free-running'})"
+        jobs = f", {args.n_jobs} worker processes" if args.n_jobs > 1 else ""
+        return f"the simulator ({'paced in real time' if args.realtime else 'free-running'}{jobs})"
     info = backend.describe()
     kind = "emulated bridge" if info.get("emulated") else "bridge"
     return f"the {kind} on {args.port} (firmware {info.get('firmware', '?')})"
-
-
-def _link_summary(results) -> str | None:
-    """One line of the serial link's counters over the run, or None for a backend without them."""
-    stats = [r.backend_stats for r in results if r.backend_stats and "telemetry" in r.backend_stats]
-    if not stats:
-        return None
-    total = {k: sum(s.get(k, 0) for s in stats)
-             for k in ("telemetry", "ticks_missed", "ticks_skipped", "frames_lost", "late_commands",
-                       "host_rejects")}
-    return (f"serial link: {total['telemetry']} telemetry frames, {total['ticks_missed']} ticks missed, "
-            f"{total['ticks_skipped']} skipped, {total['frames_lost']} frames lost, {total['host_rejects']} "
-            f"rejected, {total['late_commands']} commands late")
 
 
 def _run(args) -> int:
@@ -432,6 +386,7 @@ def _run(args) -> int:
                           extra={"run_seed": seed, "command": "qube-run"})
     if args.replay:
         plans, settings = _replay(args, rate)
+    args.n_jobs = _jobs(args, len(plans))
     backend = _make_backend(args, limits, backend_seed, rate)
     if args.check:
         return _preflight(backend)  # closes the backend
@@ -443,97 +398,69 @@ def _run(args) -> int:
         backend.close()
 
 
-def _as_logged(rows: list[tuple[str, object]], mcap) -> list[tuple[str, object]]:
-    """The summary's rows, the episode whose log failed counted by the samples its file still holds.
-
-    After a write error the loop has run more ticks than the file keeps (it is readable up to its
-    last flush); the summary gives what can be read, and both counts in the episode's reason line.
-    """
-    if mcap.error is None or not mcap.error.path.exists():
-        return rows
-    import dataclasses
-
-    from qube_koopman.daq.log import read_episode
+def _rerun_sink(args):
+    """The rerun view or recording the options ask for, or None."""
+    if args.rerun is None and args.rerun_save is None:
+        return None
+    from qube_koopman.daq.viz import RerunSink, RerunUnavailable, open_recording
 
     try:
-        readable = len(read_episode(mcap.error.path, warn=False))
-    except (OSError, ValueError):  # not even the start readable
-        readable = 0
-    return [(name, dataclasses.replace(r, n_samples=readable, reason=f"{r.reason}; the log holds the first "
-                                       f"{readable} of the {r.n_samples} samples run, marked incomplete"))
-            if name == mcap.error.path.name else (name, r) for name, r in rows]
+        recording = open_recording(live=args.rerun is not None, url=args.rerun or None, save=args.rerun_save)
+    except RerunUnavailable as exc:
+        raise _Fail(f"--rerun: {exc}", status=1) from None
+    return RerunSink(recording)
+
+
+def _worker_logging(level: int) -> None:
+    """A worker process's log lines: as this process's (``-v``, ``-q``), on the same stderr, without the banner."""
+    configure_logging(PROG, argparse.Namespace(quiet=True)).setLevel(level)
+
+
+def _episodes(args, backend, plans, mcap, sinks, limits, stop, book, timing):
+    """Run the episodes, in this process with one job, else the first here and the others in workers."""
+    if args.n_jobs == 1:
+        from qube_koopman.daq.session import run_episodes
+
+        return run_episodes(backend, plans, [mcap, *sinks], limits=limits, stop=stop, on_result=book.serial,
+                            timing=timing)
+    import functools
+    import logging
+
+    from qube_koopman.daq.parallel import run_episodes_parallel
+    from qube_koopman.sim.cli.common import LOGGER
+
+    return run_episodes_parallel(backend, plans, args.out, n_jobs=args.n_jobs, sinks=sinks, limits=limits, stop=stop,
+                                 on_result=book.parallel, timing=timing,
+                                 worker_setup=functools.partial(_worker_logging, logging.getLogger(LOGGER).level))
 
 
 def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
-    from qube_koopman.daq.loop import EpisodeResult
-    from qube_koopman.daq.session import run_episodes
+    from qube_koopman.daq.cli.run_output import EpisodeBook, RunProgress, report
+    from qube_koopman.daq.safety import StopRequest, stop_on_signals
     from qube_koopman.daq.sinks import McapSink
     from qube_koopman.daq.timing import TimingRecord, realtime_scheduling
 
-    sinks: list = [McapSink(args.out)]
-    rerun_sink = None
-    if args.rerun is not None or args.rerun_save is not None:
-        from qube_koopman.daq.viz import RerunSink, RerunUnavailable, open_recording
-
-        try:
-            recording = open_recording(live=args.rerun is not None, url=args.rerun or None,
-                                       save=args.rerun_save)
-        except RerunUnavailable as exc:
-            raise _Fail(f"--rerun: {exc}", status=1) from None
-        rerun_sink = RerunSink(recording)
-        sinks.append(rerun_sink)
-
+    mcap = McapSink(args.out)
+    rerun_sink = _rerun_sink(args)
     print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on "
           f"{_where(args, backend)}, seed {seed}, controller "
           f"{args.controller or 'of the paper dataset'} ({_controller_form(plans[0].controller, args)}), logs to {args.out}/",
           flush=True)
-    mcap: McapSink = sinks[0]
-    names: list[str] = []
-    progress = _Progress(args.episodes, settings.n_samples, enabled=not args.quiet)  # after the header line
-    sinks.append(progress)
-
-    def on_result(plan, result: EpisodeResult) -> None:
-        name = mcap.paths[-1].name if result.started and mcap.paths else "(not started)"
-        names.append(name)
-        progress.episode_done(plan.index, result, name)
-
+    progress = RunProgress(args.episodes, settings.n_samples, enabled=not args.quiet)  # after the header line
+    sinks = [*([rerun_sink] if rerun_sink is not None else []), progress]
+    book = EpisodeBook(progress, mcap)
     timing = TimingRecord(1.0 / rate)  # all episodes' ticks, in bounded memory
-    want_rt = args.rt_cpu is not None or args.rt_priority is not None
+    stop = StopRequest()
     try:
-        with realtime_scheduling(args.rt_cpu, args.rt_priority) as rt:
-            if want_rt:
+        with realtime_scheduling(args.rt_cpu, args.rt_priority) as rt, stop_on_signals(stop):
+            if args.rt_cpu is not None or args.rt_priority is not None:
                 print(f"{PROG}: real-time scheduling: {rt.describe()}", flush=True)
-            run = run_episodes(backend, plans, sinks, limits=limits, on_result=on_result, timing=timing)
+            run = _episodes(args, backend, plans, mcap, sinks, limits, stop, book, timing)
     finally:
         progress.clear()
         if rerun_sink is not None:
             rerun_sink.finish()
-
-    results = run.results
-    started = [r for r in results if r.started]
-    print(summary_table(_as_logged(list(zip(names, results)), mcap), timing.stats()))
-    link = _link_summary(results)
-    if link:
-        print(link)
-    for r in results:
-        for error in r.sink_errors:
-            if not (mcap.error is not None and error.startswith("McapSink.")):
-                print(f"{PROG}: warning: {error}", file=sys.stderr)
-    out = args.out.resolve()
-    print(f"{run.n_complete} complete, {run.n_aborted} aborted; {len(started)} episode "
-          f"log{'s' if len(started) != 1 else ''} in {out}"
-          + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else ""))
-    if run.stopped and mcap.error is None:
-        print(f"{PROG}: run stopped: {run.stopped}", file=sys.stderr)
-    if mcap.error is not None:
-        print(f"{PROG}: error: {mcap.error}: " + ("the episode was not started" if not mcap.error.path.exists()
-              else "the episode was stopped with the motor at 0 V; the samples flushed before stay "
-                   "readable, marked incomplete"), file=sys.stderr)
-    if run.signal is not None:
-        return 128 + int(run.signal)
-    # A safety stop is a recorded outcome of an episode, not an error of the run.
-    errors = [r for r in results if r.status == "aborted" and r.cause != "safety"]
-    return 0 if not errors and len(results) == len(plans) else 1
+    return report(args, run, book, timing.stats(), len(plans))
 
 
 if __name__ == "__main__":

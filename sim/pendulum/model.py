@@ -17,7 +17,6 @@ from dataclasses import dataclass, fields, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy.linalg import expm
 
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -394,6 +393,8 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
 def linear_model(params: PendulumParameters = PendulumParameters(),
                  dt: float = SAMPLE_PERIOD) -> DiscreteStateSpace:
     """The upright linearization discretized exactly under zero-order hold, measuring (theta, alpha)."""
+    from scipy.linalg import expm  # here: the simulator itself does without scipy
+
     _check_timing(dt, 1)
     A, B = linearize_upright(params)
     block = np.zeros((5, 5))
