@@ -346,7 +346,8 @@ def test_a_flipped_chunk_type_costs_that_chunk_and_the_chunks_after_it_are_read(
     read = read_quietly(path)
     kept = np.r_[0:200, 300:500]
     np.testing.assert_array_equal(read.t, episode.t[kept])
-    assert "not what they were written as" in read.metadata.salvage_note
+    # Read as a message index, its length does not match one: reading resumes at the next chunk.
+    assert f"reading resumed at the chunk at byte {chunks[3][0]}" in read.metadata.salvage_note
     assert "samples 200 to 299 lost, 200 read after it" in read.metadata.salvage_note
 
 
@@ -503,6 +504,8 @@ def _chunk_spans(path) -> list[tuple[int, int, range]]:
 @example(position=7448 / 41224, flip=1, cut=False)
 @example(position=7490 / 41224, flip=1, cut=False)
 @example(position=39627 / 41224, flip=1, cut=False)
+@example(position=6634 / 41224, flip=116, cut=False)  # a message index's length: its framing shifted into a chunk
+@example(position=6633 / 41224, flip=5, cut=False)  # a message index read as the footer
 def test_damaged_or_cut_files_give_a_prefix_or_a_value_error(tmp_path, position, flip, cut):
     # Whatever happens to the bytes, the reader returns samples it can vouch
     # for or refuses the file with a ValueError: never another exception.

@@ -37,7 +37,7 @@ __all__ = ["read_episode", "read_episode_metadata", "IncompleteEpisodeWarning"]
 
 _MAGIC = b"\x89MCAP0\r\n"
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
-_METADATA, _DATA_END = 0x0C, 0x0F
+_MESSAGE_INDEX, _METADATA, _DATA_END = 0x07, 0x0C, 0x0F
 _OPNAMES = {0x01: "Header", 0x02: "Footer", 0x03: "Schema", 0x04: "Channel", 0x05: "Message",
             0x06: "Chunk", 0x07: "MessageIndex", 0x08: "ChunkIndex", 0x09: "Attachment",
             0x0A: "AttachmentIndex", 0x0B: "Statistics", 0x0C: "Metadata", 0x0D: "MetadataIndex",
@@ -104,6 +104,8 @@ class _Scan:
         self.problem = ""
         #: Damaged chunks skipped: (what was wrong, the index in ``blocks`` the samples after it start at).
         self.gaps: list[tuple[str, int]] = []
+        #: Where the last chunk read whole ends (after the magic before any): where a resync searches from.
+        self.verified_end = len(_MAGIC)
 
     def run(self, data: bytes) -> None:
         if len(data) == 0:
@@ -131,10 +133,17 @@ class _Scan:
                 continue
             try:
                 if op == _FOOTER:
-                    if data[end:end + 8] != _MAGIC:
-                        self.problem = "file ends without the closing MCAP magic"
-                    return
+                    if data[end:end + 8] == _MAGIC and end + 8 == n:
+                        return
+                    # A cut footer, or a flipped record type read as one in the middle of the file.
+                    pos = self._resync(data, pos, "file ends without the closing MCAP magic",
+                                       f"a Footer record at byte {pos} is not at the end of the file")
+                    if pos is None:
+                        return
+                    continue
                 self._record(op, view[pos + 9:end])
+                if op == _CHUNK:
+                    self.verified_end = end
             except _Damaged as exc:
                 problem = f"{name} record at byte {pos} is unusable: {exc}"
                 if op == _CHUNK and self._framed_after(data, end):
@@ -157,7 +166,9 @@ class _Scan:
         and ``problem`` noted, when no sound chunk follows (a cut file) or chunks are not being
         decoded.
         """
-        n, start = len(data), pos + 1
+        # From the end of the last chunk read whole: a damaged length may have framed the records after
+        # it anywhere, even past the next chunk's start.
+        n, start = len(data), self.verified_end
         while self.decode_chunks:
             at = data.find(bytes([_CHUNK]), start, n - 9)
             if at < 0:
@@ -174,7 +185,9 @@ class _Scan:
                 del self.blocks[before:]
                 continue
             self.n_chunks += 1
-            self.gaps.append((f"{damage}; reading resumed at the chunk at byte {at}", gap))
+            self.verified_end = end
+            if damage:
+                self.gaps.append((f"{damage}; reading resumed at the chunk at byte {at}", gap))
             return end
         self.problem = problem
         return None
@@ -218,6 +231,11 @@ class _Scan:
             self.n_chunks += 1
             if self.decode_chunks:
                 self._chunk(body)
+        elif op == _MESSAGE_INDEX:
+            # Its length is checkable (channel, then 16-byte entries): a damaged one is caught here,
+            # not many records later when the framing it shifted finally breaks.
+            if len(body) < 6 or len(body) != 6 + struct.unpack_from("<I", body, 2)[0] or (len(body) - 6) % 16:
+                raise _Damaged("its length does not match its entries")
         elif op == _METADATA:
             record = _parse(Metadata, body)
             self.records[record.name] = record.metadata
