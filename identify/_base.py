@@ -60,14 +60,19 @@ class SnapshotEstimator(Estimator):
         return self._fit(self._setup(trajectories))
 
     def _fit(self, setup: "FitSetup") -> "SnapshotEstimator":
-        parts = [self._episode_snapshots(setup, t) for t in setup.trajectories]
+        # A generator: one controller's statistics fold as they come, never every episode's factor at once.
+        parts = (self._episode_snapshots(setup, t) for t in setup.trajectories)
         return self._finish(setup, self._statistics(setup, parts))
 
     def _setup(self, trajectories) -> "FitSetup":
         raise NotImplementedError
 
-    def _statistics(self, setup: "FitSetup", per_episode: list, indices=None):
-        """The statistics of the selected episodes (all by default), ready for ``_finish``."""
+    def _statistics(self, setup: "FitSetup", per_episode, indices=None):
+        """The statistics of the selected episodes (all by default), ready for ``_finish``.
+
+        ``per_episode`` is a list when ``indices`` selects from it, else any iterable (a generator
+        folds as it goes).
+        """
         from qube_koopman.identify.regression import Snapshots
 
         return Snapshots.total(per_episode if indices is None else [per_episode[int(j)] for j in indices])

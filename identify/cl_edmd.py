@@ -151,7 +151,7 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         """One :class:`Snapshots`; :class:`GroupedSnapshots` (per controller) for several controllers."""
         if setup.controller_groups is None:
             return super()._statistics(setup, per_episode, indices)
-        return setup.controller_groups.statistics(per_episode, indices)
+        return setup.controller_groups.statistics(list(per_episode), indices)
 
     def _finish(self, setup: FitSetup, snapshots) -> "_ClosedLoopKoopman":
         """Solve for ``self.alpha`` and set the fitted attributes."""

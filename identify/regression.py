@@ -64,9 +64,31 @@ class Snapshots:
         return cls(_triangular_factor(np.hstack([regressor, target])), regressor.shape[1], regressor.shape[0])
 
     @classmethod
-    def total(cls, parts) -> "Snapshots":
-        """Statistics of several episodes together (exact, order-independent up to rounding)."""
-        parts = list(parts)
+    def total(cls, parts, batch: int = 4) -> "Snapshots":
+        """Statistics of several episodes together (exact, order-independent up to rounding).
+
+        Parameters
+        ----------
+        parts : iterable of Snapshots
+            May be a generator: the factors are folded ``batch`` at a time into a running one,
+            so memory stays that of ``batch + 1`` factors whatever the number of episodes.
+        batch : int
+            Factors stacked per fold.
+        """
+        running: Snapshots | None = None
+        pending: list[Snapshots] = []
+        for part in parts:
+            pending.append(part)
+            if len(pending) == batch:
+                running = cls._fold(running, pending)
+                pending = []
+        if pending or running is None:
+            running = cls._fold(running, pending)
+        return running
+
+    @classmethod
+    def _fold(cls, running: "Snapshots | None", parts: list["Snapshots"]) -> "Snapshots":
+        parts = ([] if running is None else [running]) + parts
         if not parts:
             raise ValueError("no snapshot statistics to combine")
         if len(parts) == 1:

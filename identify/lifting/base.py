@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import copy
 from abc import ABC, abstractmethod
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -34,13 +34,17 @@ class LiftingFunction(ABC):
         names = tuple(names)
         self.n_features_in_ = len(names)
         self.feature_names_in_ = names
-        self._fit(list(episodes))
+        self._fit(episodes)
         self.feature_names_out_ = tuple(self._names_out(names))
         self.n_features_out_ = len(self.feature_names_out_)
         return self
 
-    def _fit(self, episodes: list[np.ndarray]) -> None:
-        """Learn what the step needs; nothing by default."""
+    def _fit(self, episodes: Sequence[np.ndarray]) -> None:
+        """Learn what the step needs; nothing by default.
+
+        ``episodes`` may be lifted only when each is asked for (:class:`Lifting` passes a lazy
+        sequence): a step that learns from the data reads them one at a time.
+        """
 
     @abstractmethod
     def _names_out(self, names: tuple[str, ...]) -> list[str]:
@@ -106,7 +110,7 @@ class Lifting:
         for step in self.steps:
             if not isinstance(step, LiftingFunction):
                 raise ValueError(f"lifting step {step!r} is not a LiftingFunction")
-        episodes = [np.asarray(e, dtype=float) for e in episodes]
+        episodes = [np.asarray(e, dtype=float) for e in episodes]  # the measured states: small
         if not episodes:
             raise ValueError("lifting needs at least one training episode")
         n_states = episodes[0].shape[1]
@@ -117,9 +121,10 @@ class Lifting:
         self.feature_names_in_ = names
         self.steps_ = []
         for step in self.steps:
-            fitted = copy.deepcopy(step).fit(episodes, names)
+            # Each step sees the episodes lifted by the steps before it, one episode at a time: holding
+            # them all (10000 x 250 features an episode) grew memory with the data (issue 29).
+            fitted = copy.deepcopy(step).fit(_LiftedEpisodes(episodes, tuple(self.steps_)), names)
             self.steps_.append(fitted)
-            episodes = [fitted.transform(e) for e in episodes]
             names = fitted.feature_names_out_
         self.feature_names_out_ = tuple(names)
         self.n_features_out_ = len(names)
@@ -141,3 +146,22 @@ class Lifting:
     def get_params(self) -> dict:
         """Constructor hyperparameters."""
         return {"steps": self.steps}
+
+
+class _LiftedEpisodes(Sequence):
+    """Episodes passed through fitted steps, each lifted when asked for and not kept."""
+
+    def __init__(self, episodes: list[np.ndarray], steps: tuple) -> None:
+        self._episodes = episodes
+        self._steps = steps
+
+    def __len__(self) -> int:
+        return len(self._episodes)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        X = self._episodes[index]
+        for step in self._steps:
+            X = step.transform(X)
+        return X

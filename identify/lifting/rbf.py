@@ -42,8 +42,9 @@ class _RadialBasis(LiftingFunction):
         else:
             from scipy.stats import qmc  # scipy.stats costs ~0.5 s to import; only RBF fits need it
 
-            data = np.concatenate(episodes, axis=0)
-            low, high = data.min(axis=0), data.max(axis=0)
+            low, high = np.full(n, np.inf), np.full(n, -np.inf)
+            for episode in episodes:  # one at a time: the box of all the data, never all the data at once
+                low, high = np.minimum(low, episode.min(axis=0)), np.maximum(high, episode.max(axis=0))
             high = np.where(high > low, high, low + 1.0)  # a constant feature still gets a box
             sample = qmc.LatinHypercube(d=n, seed=self.seed).random(self.n_centers)
             centers = qmc.scale(sample, low, high)
