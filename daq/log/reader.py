@@ -178,11 +178,10 @@ class _Scan:
             end = at + 9 + length
             if end > n or not self._framed_after(data, end) or struct.unpack_from("<I", data, at + 33)[0] == 0:
                 continue  # no CRC to vouch for a chunk found by search
-            gap, before = len(self.blocks), len(self.blocks)
+            gap = len(self.blocks)
             try:
-                self._chunk(memoryview(data)[at + 9:end])
+                self._chunk(memoryview(data)[at + 9:end])  # adds its samples only once every check passed
             except _Damaged:
-                del self.blocks[before:]
                 continue
             self.n_chunks += 1
             self.verified_end = end
