@@ -68,8 +68,8 @@ def step_times(system) -> tuple[float, float]:
     try:
         for k, (e0, e1) in enumerate(errors):
             t0 = clock()
-            output(e0, e1)
-            update(e0, e1)
+            output(e0, e1, 0.0)
+            update(e0, e1, 0.0)
             spent[k] = clock() - t0
     finally:
         gc.unfreeze()

@@ -30,6 +30,7 @@ from qube_koopman.sim.lti import DiscreteStateSpace
 __all__ = [
     "CONTROLLER_FORMAT",
     "STATE_SPACE_KIND",
+    "FEEDFORWARD_INPUTS",
     "STATE_SPACE_METHOD",
     "TRACKING_INPUTS",
     "load_controller_file",
@@ -44,6 +45,9 @@ STATE_SPACE_KIND = "state-space"
 STATE_SPACE_METHOD = "given"
 #: The controller's inputs, in column order of B and D: the tracking errors ``r - y``.
 TRACKING_INPUTS = ("e_theta", "e_alpha")
+#: The inputs of a controller that also sees the feedforward (which the loop adds to its output
+#: all the same): the tracking errors, then the feedforward.
+FEEDFORWARD_INPUTS = TRACKING_INPUTS + ("feedforward",)
 
 _REQUIRED = ("format", "kind", "dt", "inputs")
 _MATRICES = ("A", "B", "C", "D")
@@ -107,9 +111,9 @@ def _state_space(data: dict, path: Path, dt: float) -> ControllerInfo:
         raise ValueError(f"{path}: format {data['format']!r} is not supported (this reader reads "
                          f"\"{CONTROLLER_FORMAT}\")")
     _check_period(data["dt"], path, dt)
-    _check_inputs(data["inputs"], path)
+    inputs = _check_inputs(data["inputs"], path)
     A, B, C, D = _matrices(data, path)
-    _check_shapes(A, B, C, D, path)
+    _check_shapes(A, B, C, D, inputs, path)
     provenance = data.get("provenance", {})
     if not isinstance(provenance, dict):
         raise ValueError(f"{path}: provenance must be a table ([provenance]), got {type(provenance).__name__}")
@@ -128,15 +132,13 @@ def _check_period(value: Any, path: Path, dt: float) -> None:
                          "discrete controller runs only at the period it was designed for)")
 
 
-def _check_inputs(value: Any, path: Path) -> None:
+def _check_inputs(value: Any, path: Path) -> tuple[str, ...]:
     inputs = tuple(value) if isinstance(value, list) else value
-    if inputs == TRACKING_INPUTS:
-        return
-    if isinstance(inputs, tuple) and inputs[:2] == TRACKING_INPUTS and inputs[2:] == ("feedforward",):
-        raise ValueError(f"{path}: inputs: a feedforward input is not supported yet (the feedforward is "
-                         f"added to the controller's output); use inputs = {list(TRACKING_INPUTS)}")
+    if inputs in (TRACKING_INPUTS, FEEDFORWARD_INPUTS):
+        return inputs
     raise ValueError(f"{path}: inputs must be {json.dumps(list(TRACKING_INPUTS))} (the tracking errors r - y "
-                     f"of theta and alpha, the columns of B and D), got {value!r}")
+                     f"of theta and alpha, the columns of B and D) or {json.dumps(list(FEEDFORWARD_INPUTS))} "
+                     f"(the feedforward too), got {value!r}")
 
 
 def _is_number(value: Any) -> bool:
@@ -193,16 +195,17 @@ def _numeric(value: np.ndarray, name: str, path: Path) -> np.ndarray:
     return value
 
 
-def _check_shapes(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, path: Path) -> None:
-    """A n x n, B n x 2, C 1 x n, D 1 x 2, with n = the rows of A."""
-    n, p = A.shape[0], len(TRACKING_INPUTS)
+def _check_shapes(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, inputs: tuple[str, ...],
+                  path: Path) -> None:
+    """A n x n, B n x p, C 1 x n, D 1 x p, with n = the rows of A and p = the inputs."""
+    n, p = A.shape[0], len(inputs)
     expected = {"A": (n, n), "B": (n, p), "C": (1, n), "D": (1, p)}
     for name, value in zip(_MATRICES, (A, B, C, D)):
         if value.shape != expected[name]:
             rows, cols = expected[name]
             raise ValueError(f"{path}: {name} has shape {value.shape[0]} x {value.shape[1]}, expected "
                              f"{rows} x {cols} (A has {n} rows: {n} states; {p} inputs "
-                             f"{', '.join(TRACKING_INPUTS)}; 1 output, the voltage)")
+                             f"{', '.join(inputs)}; 1 output, the voltage)")
 
 
 def write_controller_file(path: str | Path, system: DiscreteStateSpace,
@@ -214,7 +217,8 @@ def write_controller_file(path: str | Path, system: DiscreteStateSpace,
     path : str or Path
         The TOML file to write.
     system : DiscreteStateSpace
-        The controller: two tracking errors in, one voltage out.
+        The controller: two tracking errors in (and the feedforward as a third input, if it
+        takes it), one voltage out.
     provenance : mapping, optional
         Free-form ``[provenance]`` table (strings, numbers, booleans, lists, tables).
     npz : bool, default False
@@ -227,12 +231,13 @@ def write_controller_file(path: str | Path, system: DiscreteStateSpace,
         The TOML file written.
     """
     path = Path(path)
-    if system.n_inputs != len(TRACKING_INPUTS) or system.n_outputs != 1:
-        raise ValueError(f"a controller file holds 2 inputs and 1 output, got {system.n_inputs} and "
-                         f"{system.n_outputs}")
+    if system.n_inputs not in (len(TRACKING_INPUTS), len(FEEDFORWARD_INPUTS)) or system.n_outputs != 1:
+        raise ValueError(f"a controller file holds 2 inputs (3 with the feedforward) and 1 output, got "
+                         f"{system.n_inputs} and {system.n_outputs}")
+    inputs = TRACKING_INPUTS if system.n_inputs == len(TRACKING_INPUTS) else FEEDFORWARD_INPUTS
     lines = [f"# A discrete state-space controller of qube-koopman (daq/CONTROLLER_FORMAT.md): "
              f"{system.n_states} states", f'format = "{CONTROLLER_FORMAT}"', f'kind = "{STATE_SPACE_KIND}"',
-             f"dt = {system.dt!r}", f"inputs = {json.dumps(list(TRACKING_INPUTS))}"]
+             f"dt = {system.dt!r}", f"inputs = {json.dumps(list(inputs))}"]
     if npz:
         target = path.with_suffix(".npz")
         np.savez(target, **{m: getattr(system, m) for m in _MATRICES})

@@ -167,9 +167,11 @@ def _wait_upright(backend: Backend, limits: SafetyLimits, stop: StopRequest,
 
 
 def _check_controller(ctrl, period: float) -> None:
-    """Refuse a controller the loop cannot run: two tracking errors in, one voltage out, at the backend's rate."""
-    if ctrl.n_inputs != 2 or ctrl.n_outputs != 1:
-        raise ValueError("the controller must map the two tracking errors (theta, alpha) to one voltage; "
+    """Refuse a controller the loop cannot run: two tracking errors (and optionally the feedforward) in, one
+    voltage out, at the backend's rate."""
+    if ctrl.n_inputs not in (2, 3) or ctrl.n_outputs != 1:
+        raise ValueError("the controller must map the two tracking errors (theta, alpha), and optionally the "
+                         "feedforward, to one voltage; "
                          f"got {ctrl.n_inputs} inputs and {ctrl.n_outputs} outputs")
     if abs(ctrl.dt - period) > 1e-9 * period:
         raise ValueError(f"controller dt {ctrl.dt} s differs from the backend's sample period {period} s")
@@ -419,14 +421,15 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         r_theta, r_alpha = ref_theta[j], ref_alpha[j]
         e0 = r_theta - theta
         e1 = r_alpha - alpha
-        u, xc = output(e0, e1)
+        f = ff[j]
+        u, xc = output(e0, e1, f)
         reason = ""
         if not (abs(theta) <= th_lim and abs(alpha) <= al_lim) or stop.requested or writer.failed is not None:
             reason, cause = _abort(theta, alpha, limits, stop, writer)
         if reason:
             v, sat = 0.0, 0
         else:
-            v = u + ff[j]
+            v = u + f
             sat = 1 if v > vmax else -1 if v < -vmax else 0
             if sat:
                 v = sat * vmax
@@ -437,11 +440,11 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         spent = clock() - t_tick
         lateness[j] = late
         compute[j] = spent
-        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, ff[j], u, v, sat, late, spent, xc,
+        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, f, u, v, sat, late, spent, xc,
                    nan if when is None else when))
         if throttle and not k & _BACKLOG_CHECK:
             writer.wait_below(_MAX_BACKLOG)  # free-running: memory must not grow with the episode
         if reason:
             return k + 1, reason, cause
-        update(e0, e1)
+        update(e0, e1, f)
     return n_ticks, "", ""

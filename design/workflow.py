@@ -135,7 +135,7 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
                           f"of {episodes} excitations (the linearization it was designed on does not hold); change "
                           f"the weights or identify with {IDENTIFY_FLAGS}")
     training = None
-    if model.get("controller") is not None and model["controller"].n_inputs == 2:
+    if model.get("controller") is not None and model["controller"].n_inputs in (2, 3):  # a QUBE loop
         training = predict_cost(model["plant"], model["controller"], excitations)
     return DesignReport(path, model, design, radius, float(np.max(np.abs(np.linalg.eigvals(plant.F)))),
                         loop_margins(plant, design.controller), predicted, training,

@@ -194,7 +194,9 @@ class ClArx(Estimator):
         n_r = trajs[0].r.shape[1]
         if ctrl.n_inputs != n_r or ctrl.n_outputs != 1:
             raise ValueError(f"CL ARX needs a single-output controller taking {n_r} errors; "
-                             f"got {ctrl.n_outputs} outputs, {ctrl.n_inputs} inputs")
+                             f"got {ctrl.n_outputs} outputs, {ctrl.n_inputs} inputs"
+                             + (" (a controller that also takes the feedforward is not supported: use CL EDMD)"
+                                if ctrl.n_inputs > n_r else ""))
         if n_r != trajs[0].x.shape[1]:
             raise ValueError(f"CL ARX feeds back every measured state: {trajs[0].x.shape[1]} states "
                              f"but {n_r} references")

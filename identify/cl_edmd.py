@@ -13,8 +13,8 @@ from qube_koopman.identify.data import same_system
 from qube_koopman.identify.mixed import ControllerGroups, distinct_controllers
 from qube_koopman.identify.regression import (GroupedSnapshots, Snapshots, constrained_plant_solve,
                                               grouped_plant_solve, ridge_solve)
-from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, output_selection,
-                                plant_input_map)
+from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, feedforward_columns,
+                                             output_selection, plant_input_map)
 from qube_koopman.identify.trajectory import Trajectory, check_trajectories
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -35,9 +35,11 @@ def _check_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: int, d
         raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
                          f"has {episode.xc.shape[1]} channels")
     references = "" if episode is None else f"{episode.r.shape[1]} references and "
-    if ctrl.n_inputs != len(measured) or (episode is not None and ctrl.n_inputs != episode.r.shape[1]):
-        raise ValueError(f"{where}the controller takes {ctrl.n_inputs} tracking errors; the data has "
-                         f"{references}{len(measured)} fed-back states")
+    n_errors = ctrl.n_inputs - (n_f if ctrl.n_inputs > len(measured) else 0)  # less a feedforward input
+    if n_errors != len(measured) or (episode is not None and n_errors != episode.r.shape[1]):
+        seen = f"{ctrl.n_inputs} inputs" if n_errors != ctrl.n_inputs else f"{ctrl.n_inputs} tracking errors"
+        raise ValueError(f"{where}the controller takes {seen}; the data has {references}{len(measured)} fed-back "
+                         f"states{f' and {n_f} feedforward channels' if n_f else ' and no feedforward'}")
     if n_f and ctrl.n_outputs != n_f:
         raise ValueError(f"{where}the controller drives {ctrl.n_outputs} plant inputs, the feedforward "
                          f"has {n_f} channels")
@@ -288,10 +290,11 @@ class ClEdmd(_ClosedLoopKoopman):
         return np.vstack([U_c, U_p @ S]), U_p
 
     def _known_controller_rows(self) -> np.ndarray:
-        """The controller rows of ``U^f``: ``[A^c, -B^c C^p, B^c, 0]``."""
-        ctrl = self.controller
-        return np.hstack([ctrl.A, -ctrl.B @ self.output_matrix_, ctrl.B,
-                          np.zeros((ctrl.n_states, self.n_feedforward_))])
+        """The controller rows of ``U^f``: ``[A^c, -B^c C^p, B^c, 0]`` (``B^c_f`` for the 0 when the
+        controller takes the feedforward)."""
+        ctrl, C_p = self.controller, self.output_matrix_
+        B_e, _, B_f, _ = feedforward_columns(ctrl, C_p.shape[0], self.n_feedforward_)
+        return np.hstack([ctrl.A, -B_e @ C_p, B_e, B_f])
 
 
 class ClEdmdKnownRows(ClEdmd):

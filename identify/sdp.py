@@ -78,17 +78,23 @@ def closed_loop_blocks(controller: DiscreteStateSpace, A_p, B_p, measured, n_fee
 
     ``[[A^c, -B^c C^p, B^c, 0], [B^p C^c, A^p - B^p D^c C^p, B^p D^c, B^p]]`` with
     ``C^p`` picking ``measured`` out of the lifted plant state; ``rows_c``
-    replaces the controller rows when they are fitted (the paper's problem).
+    replaces the controller rows when they are fitted (the paper's problem). A
+    controller that also takes the feedforward (inputs beyond the tracking errors)
+    puts its feedforward columns in the last block column: ``[B^c_f; B^p (I + D^c_f)]``.
     """
     import cvxpy as cp
 
     n_pl = A_p.shape[0]
     C_p = np.eye(n_pl)[list(measured)]
-    Ac, Bc, Cc, Dc = controller.A, controller.B, controller.C, controller.D
-    n_c, n_r = Ac.shape[0], Bc.shape[1]
-    top = rows_c if rows_c is not None else np.hstack(
-        [Ac, -Bc @ C_p, Bc, np.zeros((n_c, n_feedforward))])
-    bottom = [B_p @ Cc, A_p - B_p @ (Dc @ C_p), B_p @ Dc] + ([B_p] if n_feedforward else [])
+    n_r = len(measured)
+    Ac, Cc = controller.A, controller.C
+    Bc, Dc = controller.B[:, :n_r], controller.D[:, :n_r]  # the tracking errors' columns
+    n_c, n_u = Ac.shape[0], Cc.shape[0]
+    sees_f = controller.n_inputs > n_r
+    Bf = controller.B[:, n_r:] if sees_f else np.zeros((n_c, n_feedforward))
+    f_gain = np.eye(n_u) + (controller.D[:, n_r:] if sees_f else 0.0)  # u = ... + D^c_f f + f
+    top = rows_c if rows_c is not None else np.hstack([Ac, -Bc @ C_p, Bc, Bf])
+    bottom = [B_p @ Cc, A_p - B_p @ (Dc @ C_p), B_p @ Dc] + ([B_p @ f_gain] if n_feedforward else [])
     return cp.vstack([top if not isinstance(top, np.ndarray) else cp.Constant(top), cp.hstack(bottom)])
 
 

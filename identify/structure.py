@@ -9,6 +9,12 @@ controller input ``u^c = r - C^p theta^p``, the plant input
            [B^p C^c,  A^p - B^p D^c C^p,    B^p D^c,  B^p]]
 
 and the plant block row is ``U^p S`` with ``U^p = [A^p B^p]``.
+
+A controller may also take the feedforward as an input (daq/CONTROLLER_FORMAT.md): its
+``B^c = [B^c_e B^c_f]`` and ``D^c = [D^c_e D^c_f]`` split into the tracking errors' columns
+and the feedforward's, and the feedforward still adds to its output. Then ``B^c`` and ``D^c``
+above are the errors' columns, the last column of blocks is ``[B^c_f; B^p (I + D^c_f)]``
+(:func:`feedforward_columns`), and with ``B^c_f = 0``, ``D^c_f = 0`` it is the paper's.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ __all__ = [
     "closed_loop_matrices",
     "extract_plant_lstsq",
     "controller_states",
+    "feedforward_columns",
     "plant_input",
     "close_loop",
 ]
@@ -38,10 +45,42 @@ def output_selection(n_lifted: int, measured: Sequence[int]) -> np.ndarray:
     return np.eye(n_lifted)[measured]
 
 
-def _check_controller(controller: DiscreteStateSpace, C_p: np.ndarray) -> None:
-    if controller.n_inputs != C_p.shape[0]:
-        raise ValueError(f"the controller takes {controller.n_inputs} tracking errors but "
-                         f"{C_p.shape[0]} states are fed back")
+def _check_controller(controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforward: int = 0) -> None:
+    n_r = C_p.shape[0]
+    if controller.n_inputs == n_r:
+        return
+    if controller.n_inputs == n_r + n_feedforward and n_feedforward:
+        return
+    if controller.n_inputs > n_r and not n_feedforward:
+        raise ValueError(f"the controller takes {controller.n_inputs} inputs, the {n_r} tracking errors and the "
+                         "feedforward, but the data have no feedforward")
+    raise ValueError(f"the controller takes {controller.n_inputs} inputs but {n_r} states are fed back"
+                     + (f" and the feedforward has {n_feedforward} channels" if n_feedforward else ""))
+
+
+def feedforward_columns(controller: DiscreteStateSpace, n_errors: int, n_feedforward: int) -> tuple[np.ndarray, ...]:
+    """The controller's columns split: ``(B^c_e, D^c_e, B^c_f, D^c_f)``.
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        The controller: ``n_errors`` tracking errors in, then the feedforward if it takes it.
+    n_errors : int
+        Fed-back states (tracking-error channels).
+    n_feedforward : int
+        The loop's feedforward channels (0 without feedforward).
+
+    Returns
+    -------
+    B_e, D_e : ndarray
+        The tracking errors' columns of ``B^c`` and ``D^c``.
+    B_f, D_f : ndarray of shapes (n_c, n_feedforward), (n_u, n_feedforward)
+        The feedforward's columns, zero for a controller that does not take it.
+    """
+    B, D = controller.B, controller.D
+    if controller.n_inputs > n_errors:
+        return B[:, :n_errors], D[:, :n_errors], B[:, n_errors:], D[:, n_errors:]
+    return B, D, np.zeros((controller.n_states, n_feedforward)), np.zeros((controller.n_outputs, n_feedforward))
 
 
 def plant_input_map(controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforward: int) -> np.ndarray:
@@ -50,23 +89,24 @@ def plant_input_map(controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforwa
     ``n_feedforward`` is 0 when the loop has no feedforward input, else the
     number of plant inputs.
     """
-    _check_controller(controller, C_p)
+    _check_controller(controller, C_p, n_feedforward)
     n_c, n_p, n_r, n_u = controller.n_states, C_p.shape[1], C_p.shape[0], controller.n_outputs
     if n_feedforward not in (0, n_u):
         raise ValueError(f"feedforward has {n_feedforward} channels; the controller drives {n_u} plant inputs")
+    _, D_e, _, D_f = feedforward_columns(controller, n_r, n_feedforward)
     top = np.hstack([np.zeros((n_p, n_c)), np.eye(n_p), np.zeros((n_p, n_r + n_feedforward))])
-    bottom = np.hstack([controller.C, -controller.D @ C_p, controller.D, np.eye(n_u)[:, :n_feedforward]])
+    bottom = np.hstack([controller.C, -D_e @ C_p, D_e, np.eye(n_u)[:, :n_feedforward] + D_f])
     return np.vstack([top, bottom])
 
 
 def closed_loop_matrices(A_p: np.ndarray, B_p: np.ndarray, controller: DiscreteStateSpace,
                          C_p: np.ndarray, n_feedforward: int) -> tuple[np.ndarray, np.ndarray]:
     """Wrap a plant ``(A^p, B^p)`` with the controller: the closed-loop ``(A^f, B^f)``."""
-    _check_controller(controller, C_p)
+    _check_controller(controller, C_p, n_feedforward)
     n_c = controller.n_states
     S = plant_input_map(controller, C_p, n_feedforward)
-    Ac, Bc = controller.A, controller.B
-    controller_rows = np.hstack([Ac, -Bc @ C_p, Bc, np.zeros((n_c, n_feedforward))])
+    B_e, _, B_f, _ = feedforward_columns(controller, C_p.shape[0], n_feedforward)
+    controller_rows = np.hstack([controller.A, -B_e @ C_p, B_e, B_f])
     U_f = np.vstack([controller_rows, np.hstack([A_p, B_p]) @ S])
     n_theta = n_c + A_p.shape[0]
     return U_f[:, :n_theta], U_f[:, n_theta:]
@@ -80,36 +120,44 @@ def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np
     Re-wrapping the result with the controller does not in general give
     ``U^f`` back (paper appendix).
     """
-    _check_controller(controller, C_p)
+    _check_controller(controller, C_p, n_feedforward)
     n_c, n_p, n_r = controller.n_states, C_p.shape[1], C_p.shape[0]
     n_u = controller.n_outputs
+    _, D_e, _, D_f = feedforward_columns(controller, n_r, n_feedforward)
     rows = U_f[n_c:]
     U21 = rows[:, :n_c]
     U22 = rows[:, n_c:n_c + n_p]
     U23 = rows[:, n_c + n_p:n_c + n_p + n_r]
     U24 = rows[:, n_c + n_p + n_r:]
     blocks = np.hstack([U21, U23, U24])
-    known = np.hstack([controller.C, controller.D, np.eye(n_u)[:, :n_feedforward]])
+    known = np.hstack([controller.C, D_e, np.eye(n_u)[:, :n_feedforward] + D_f])
     B_p = blocks @ np.linalg.pinv(known)
-    A_p = U22 + B_p @ controller.D @ C_p
+    A_p = U22 + B_p @ D_e @ C_p
     return A_p, B_p
 
 
-def controller_states(controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Controller state along an episode, run from zero on the tracking error ``r - y``
-    (the states of :func:`sim.lti.replay_controller`)."""
-    return replay_controller(controller, r, y)[0]
+def controller_states(controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarray,
+                      f: np.ndarray | None = None) -> np.ndarray:
+    """Controller state along an episode, run from zero on the tracking error ``r - y`` and, for a
+    controller that takes it, the feedforward ``f`` (the states of :func:`sim.lti.replay_controller`)."""
+    return replay_controller(controller, r, y, feedforward=f)[0]
 
 
 def plant_input(controller: DiscreteStateSpace, xc: np.ndarray, r: np.ndarray, y: np.ndarray,
                 f: np.ndarray | None = None) -> np.ndarray:
-    """The plant's input recovered from closed-loop data: ``C^c x^c + D^c (r - y) + f``.
+    """The plant's input recovered from closed-loop data: ``C^c x^c + D^c (r - y) + f``
+    (``D^c [r - y; f] + f`` for a controller that takes the feedforward).
 
     Saturation of the actuator is not modelled here.
     """
     e = np.atleast_2d(np.asarray(r, dtype=float) - np.asarray(y, dtype=float))
     if e.shape[0] == 1 and np.ndim(r) == 1:
         e = e.T
+    if controller.n_inputs > e.shape[-1]:  # the controller also sees the feedforward: its last inputs
+        if f is None:
+            raise ValueError(f"the controller takes {controller.n_inputs} inputs, the tracking errors and the "
+                             "feedforward, which is not given")
+        e = np.concatenate([e, np.asarray(f, dtype=float).reshape(*e.shape[:-1], -1)], axis=-1)
     u = np.asarray(xc, dtype=float) @ controller.C.T + e @ controller.D.T
     return u if f is None else u + np.asarray(f, dtype=float).reshape(u.shape)
 

@@ -208,7 +208,7 @@ def _test_model(plant, closed, controller, log, score, what_if):
         t = log.trajectory
         if not same_system(log.controller, what_if):
             # No record under this controller: its state is run on the logged tracking errors.
-            t = replace(t, xc=controller_states(what_if, t.r, t.x[:, MEASURED]))
+            t = replace(t, xc=controller_states(what_if, t.r, t.x[:, MEASURED], t.f))
         return close_loop(plant, what_if, MEASURED), t
     # A plant model must predict the loop under any known controller: each log's own.
     return (closed if same_system(log.controller, controller) else close_loop(plant, log.controller, MEASURED),

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DiscreteStateSpace", "replay_controller", "padded_realization"]
+__all__ = ["DiscreteStateSpace", "controller_inputs", "replay_controller", "padded_realization"]
 
 
 def _as_matrix(value, name: str) -> np.ndarray:
@@ -139,33 +139,76 @@ class DiscreteStateSpace:
 
 
 def replay_controller(controller: DiscreteStateSpace, references, measured,
-                      x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      x0: np.ndarray | None = None, feedforward=None) -> tuple[np.ndarray, np.ndarray]:
     """Re-run a controller over logged samples: its state and output along the tracking error.
 
     Every controller of the project maps the tracking error ``e = references - measured``
-    (one channel per fed-back state) to the plant input; this is the one place that replays
-    it offline, from ``x0`` (zero, as on the rig, by default).
+    (one channel per fed-back state), and optionally the feedforward, to the plant input; this
+    is the one place that replays it offline, from ``x0`` (zero, as on the rig, by default).
 
     Parameters
     ----------
     controller : DiscreteStateSpace
-        The controller, ``n_inputs`` tracking-error channels in.
-    references, measured : array_like of shape (n_samples, n_inputs) or (n_samples,)
+        The controller: ``n_errors`` tracking-error channels in, then, if it has more inputs,
+        the feedforward's channels (:func:`controller_inputs`).
+    references, measured : array_like of shape (n_samples, n_errors) or (n_samples,)
         Logged references and measured outputs; 1-D for a one-channel controller.
     x0 : ndarray of shape (n_states,), optional
         Initial controller state.
+    feedforward : array_like of shape (n_samples, n_f) or (n_samples,), optional
+        Logged feedforward; needed only by a controller that takes it as an input.
 
     Returns
     -------
     states : ndarray of shape (n_samples, n_states)
         State before each sample's update.
     outputs : ndarray of shape (n_samples, n_outputs)
-        Controller output ``C x + D e`` at each sample (before any feedforward).
+        Controller output ``C x + D [e; f]`` at each sample (before the feedforward is added
+        to it).
+    """
+    return controller.simulate(controller_inputs(controller, references, measured, feedforward), x0)
+
+
+def controller_inputs(controller: DiscreteStateSpace, references, measured, feedforward=None) -> np.ndarray:
+    """A controller's input sequence: the tracking errors, then the feedforward if it takes it.
+
+    The loop always adds the feedforward to the controller's output; a controller whose inputs
+    outnumber the tracking errors also sees the feedforward itself (its last inputs), e.g. to
+    shape or cancel it (daq/CONTROLLER_FORMAT.md).
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        The controller whose inputs these are.
+    references, measured : array_like of shape (n_samples, n_errors) or (n_samples,)
+        References and measured outputs.
+    feedforward : array_like of shape (n_samples, n_f) or (n_samples,), optional
+        The feedforward; ignored by a controller of the tracking errors only.
+
+    Returns
+    -------
+    ndarray of shape (n_samples, controller.n_inputs)
+        ``r - y``, then ``f`` when the controller takes it.
+
+    Raises
+    ------
+    ValueError
+        When the controller takes the feedforward and none (or one of another width) is given.
     """
     error = np.asarray(references, dtype=float) - np.asarray(measured, dtype=float)
     if error.ndim == 1:
         error = error[:, None]
-    return controller.simulate(error, x0)
+    n_e = error.shape[1]
+    if controller.n_inputs == n_e:
+        return error
+    if feedforward is None:
+        raise ValueError(f"the controller takes {controller.n_inputs} inputs; the tracking errors have shape "
+                         f"{error.shape} and no feedforward is given")
+    f = np.asarray(feedforward, dtype=float).reshape(len(error), -1)
+    if controller.n_inputs != n_e + f.shape[1]:
+        raise ValueError(f"the controller takes {controller.n_inputs} inputs, not the {n_e} tracking errors and "
+                         f"{f.shape[1]} feedforward channel{'s' if f.shape[1] != 1 else ''} of the data")
+    return np.hstack([error, f])
 
 
 def padded_realization(system: DiscreteStateSpace, n_states: int, seed: int = 0) -> DiscreteStateSpace:

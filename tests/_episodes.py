@@ -27,10 +27,12 @@ def assert_follows_controller(ep: Episode, controller: DiscreteStateSpace = QUBE
     samples are evenly spaced from t = 0.
     """
     from qube_koopman.identify import controller_states
+    from qube_koopman.sim.lti import controller_inputs
 
-    xc = controller_states(controller, ep.references, ep.states)
+    xc = controller_states(controller, ep.references, ep.states, ep.feedforward)
     np.testing.assert_allclose(ep.controller_state, xc, rtol=0, atol=1e-10)
-    u = ep.controller_state @ controller.C[0] + ep.tracking_error @ controller.D[0]
+    inputs = controller_inputs(controller, ep.references, ep.states, ep.feedforward)
+    u = ep.controller_state @ controller.C[0] + inputs @ controller.D[0]
     np.testing.assert_allclose(ep.control_output, u, rtol=0, atol=1e-10)
     wanted = ep.control_output + ep.feedforward
     np.testing.assert_array_equal(ep.plant_input, np.clip(wanted, -max_voltage, max_voltage))

@@ -47,9 +47,12 @@ def simulate_loop(A_p, B_p, controller: DiscreteStateSpace, measured, r, f, w=No
     xc = np.zeros((n, controller.n_states))
     u = np.zeros((n, B_p.shape[1]))
     state, cstate = np.zeros(n_p), np.zeros(controller.n_states)
+    sees_f = controller.n_inputs > len(measured)  # a controller that also takes the feedforward
     for k in range(n):
         x[k], xc[k] = state, cstate
         e = r[k] - state[measured]
+        if sees_f:
+            e = np.concatenate([e, f[k]])
         u[k] = controller.C @ cstate + controller.D @ e + f[k]
         cstate = controller.A @ cstate + controller.B @ e
         state = A_p @ state + B_p @ u[k] + (0 if w is None else w[k])
@@ -78,7 +81,7 @@ def closed_loop_trajectories(A_p, B_p, controller, measured, n_episodes=4, n=400
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n_episodes):
-        r = prbs(rng, n, controller.n_inputs, 1.0)
+        r = prbs(rng, n, len(measured), 1.0)
         f = (0.3 * rng.standard_normal((n, controller.n_outputs)) if feedforward
              else np.zeros((n, controller.n_outputs)))
         w = process_noise * rng.standard_normal((n, A_p.shape[0])) if process_noise else None

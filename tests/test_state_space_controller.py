@@ -190,7 +190,9 @@ REFUSALS = {
     "unknown kind": ({"kind": '"lqr"'}, "unknown controller kind 'lqr'"),
     "format": ({"format": '"qube-controller/2"'}, "format 'qube-controller/2' is not supported"),
     "inputs": ({"inputs": '["e_alpha", "e_theta"]'}, "inputs must be [\"e_theta\", \"e_alpha\"]"),
-    "feedforward": ({"inputs": '["e_theta", "e_alpha", "feedforward"]'}, "a feedforward input is not supported yet"),
+    "feedforward columns": ({"inputs": '["e_theta", "e_alpha", "feedforward"]'},
+                            "B has shape 2 x 2, expected 2 x 3 (A has 2 rows: 2 states; 3 inputs e_theta, e_alpha, "
+                            "feedforward; 1 output, the voltage)"),
     "unknown key": ({"Q": "1"}, "unknown keys Q"),
     "npz missing": ({"matrices": '"nowhere.npz"', "A": None, "B": None, "C": None, "D": None}, "cannot read"),
     "npz and inline": ({"matrices": '"m.npz"'}, "A, B, C, D given both inline and in matrices"),

@@ -58,8 +58,8 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     state0 : array_like of shape (..., 4)
         Initial plant states; the leading shape is the batch.
     controller : DiscreteStateSpace
-        Two inputs (errors of theta and alpha), one output (V); its ``dt`` is
-        the sample period.
+        Two inputs (errors of theta and alpha), or three with the feedforward last,
+        one output (V); its ``dt`` is the sample period.
     references : array_like of shape (n_steps, ..., 2)
         target_theta and target_alpha at each step.
     feedforward : array_like of shape (n_steps, ...)
@@ -79,9 +79,9 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
         Commands before the first step, oldest first, that a transport delay
         (``params.delay``) still applies; zero volts by default.
     """
-    if controller.n_inputs != 2 or controller.n_outputs != 1:
-        raise ValueError("controller must map the two tracking errors (theta, alpha) to one voltage; "
-                         f"got {controller.n_inputs} inputs and {controller.n_outputs} outputs")
+    if controller.n_inputs not in (2, 3) or controller.n_outputs != 1:
+        raise ValueError("controller must map the two tracking errors (theta, alpha), and optionally the "
+                         f"feedforward, to one voltage; got {controller.n_inputs} inputs and {controller.n_outputs} outputs")
     _check_timing(controller.dt, n_substeps)
     if not max_voltage > 0:
         raise ValueError(f"max_voltage must be positive, got {max_voltage!r}")
@@ -106,6 +106,7 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     control = np.empty((n_steps, *batch))
     plant_input = np.empty((n_steps, *batch))
     Ac, Bc, Cc, Dc = controller.A.T, controller.B.T, controller.C[0], controller.D[0]
+    sees_feedforward = controller.n_inputs == 3
     k = _Coefficients.of(params)
     h = controller.dt / n_substeps
     whole, weights = _hold_pattern(params.delay, controller.dt, int(n_substeps))
@@ -120,6 +121,8 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     for step in range(n_steps):
         y = measure(states[step] if shift is None else states[step][..., :2] + shift, sensor, rng)
         e = r[step] - y
+        if sees_feedforward:  # the controller's third input (daq/CONTROLLER_FORMAT.md)
+            e = np.concatenate([e, f[step][..., None]], axis=-1)
         u = xc @ Cc + e @ Dc
         v = np.clip(u + f[step], -max_voltage, max_voltage)
         measurements[step], xcs[step], control[step], plant_input[step] = y, xc, u, v
