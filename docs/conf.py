@@ -15,14 +15,12 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-import re
 import shutil
-import textwrap
+import sys
 from pathlib import Path
 
-from sphinx.util import logging
-
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 
 project = "qube-koopman"
 author = "qube-koopman contributors"
@@ -39,6 +37,7 @@ extensions = [
     "sphinx.ext.autosummary",
     "numpydoc",
     "myst_parser",
+    "readme_slices",  # docs/_ext: the README's sections in the pages
 ]
 
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
@@ -102,48 +101,6 @@ def _reexports() -> dict[str, list[str]]:
 
 
 autosummary_context = {"reexports": _reexports()}
-
-
-
-# --- README sections in the pages ----------------------------------------------------------
-# A page line `% readme "START" "END"` (a MyST comment, so it shows nothing by itself) becomes the
-# README's text from the line holding START up to the line holding END (the first of each after
-# START; END "" is the end of the README), dedented. The README stays the one source of these
-# facts and its command blocks stay tested (tests/test_readme.py). A marker that is not found is
-# a warning, which fails the build under -W. Written here because Sphinx and MyST include files
-# only by line numbers or by text *after* a marker, and line numbers move with every README edit.
-_README_SLICE = re.compile(r'^% readme "([^"]+)" "([^"]*)"$', re.MULTILINE)
-# Links in the README point at files beside it: a module's source becomes its API page, other
-# files a download; format documents resolve as pages (docs/ mirrors their paths).
-_SOURCE_LINK = re.compile(r"\[([^\]]+)\]\(((?:[a-z_]+/)*[a-z_]+)\.py\)")
-_FILE_LINK = re.compile(r"\[([^\]]+)\]\((LICENSE)\)")
-_logger = logging.getLogger(__name__)
-
-
-def readme_slice(readme: str, start: str, end: str, where: str) -> str:
-    """The README's lines from the one holding ``start`` to the one holding ``end``, dedented."""
-    begin = readme.find(start)
-    if begin < 0 or readme.find(start, begin + 1) >= 0:
-        _logger.warning("%s: README marker %r %s", where, start, "not found" if begin < 0 else "is not unique")
-        return ""
-    begin = readme.rfind("\n", 0, begin) + 1
-    stop = len(readme) if not end else readme.find(end, begin + 1)
-    if stop < 0:
-        _logger.warning("%s: README marker %r not found after %r", where, end, start)
-        return ""
-    stop = readme.rfind("\n", 0, stop) + 1 if end else stop
-    text = textwrap.dedent(readme[begin:stop])
-    text = _SOURCE_LINK.sub(lambda m: f"{{py:mod}}`{m[1]} <qube_koopman.{m[2].replace('/', '.')}>`", text)
-    return _FILE_LINK.sub(lambda m: f"{{download}}`{m[1]} </../{m[2]}>`", text)
-
-
-def _expand_readme(app, docname: str, source: list[str]) -> None:
-    readme = (ROOT / "README.md").read_text()
-    source[0] = _README_SLICE.sub(lambda m: readme_slice(readme, m[1], m[2], docname), source[0])
-
-
-def setup(app):
-    app.connect("source-read", _expand_readme)
 
 
 # numpydoc (1.x) builds a Jinja environment and compiles its docstring template anew for every

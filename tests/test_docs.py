@@ -11,18 +11,48 @@ installed ``qube_koopman.*`` modules: no second interpreter, no import by file p
 from __future__ import annotations
 
 import json
+import logging
 import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from _public_api import all_modules, public_names
+from _public_api import public_names
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+import readme_slices  # noqa: E402 (the docs' own extension, docs/_ext)
 PAGES = ["index", "getting-started", "collecting", "identification", "transfer", "lifting-search", "calibration",
          "design", "formats", "NAMING", "daq/log/FORMAT", "daq/CONTROLLER_FORMAT", "identify/MODEL_FORMAT",
          "firmware_protocol/PROTOCOL", "api/index", "development"]
+
+
+README = """# Title
+
+- `cmd-a ARGS`: first item,
+  continued; see [the codec](firmware_protocol/frame.py) and [LICENSE](LICENSE).
+  - `--flag`: a nested item
+    over two lines.
+- `cmd-b`: the next item.
+"""
+
+
+def test_a_readme_slice_is_whole_lines_from_its_start_marker_to_its_end_marker():
+    text = readme_slices.expand('intro\n% readme "  - `--flag`" "- `cmd-b`"\noutro\n', README, "page")
+    assert text == "intro\n- `--flag`: a nested item\n  over two lines.\n\noutro\n"
+    whole = readme_slices.readme_slice(README, "- `cmd-a", "", "page")
+    assert whole.startswith("- `cmd-a ARGS`") and whole.endswith("the next item.\n")
+    assert "{py:mod}`the codec <qube_koopman.firmware_protocol.frame>`" in whole
+    assert "{download}`LICENSE </../LICENSE>`" in whole
+
+
+@pytest.mark.parametrize("start, end, problem", [("no such text", "", "not found"), ("item", "", "not unique"),
+                                                 ("- `cmd-a", "no such end", "not found after")])
+def test_a_readme_marker_that_does_not_fit_is_a_warning(start, end, problem, caplog):
+    with caplog.at_level(logging.WARNING):
+        assert readme_slices.readme_slice(README, start, end, "page") == ""
+    assert "page: README marker" in caplog.text and problem in caplog.text
 
 
 @pytest.fixture(scope="module")
