@@ -70,7 +70,7 @@ def stack_signals(source: Any, names: Sequence[str]) -> np.ndarray:
 
     Returns
     -------
-    ndarray of shape (*signal_shape, len(names))
+    ndarray of shape ``(*signal_shape, len(names))``
         ``(n_samples, k)`` for 1-D signals; a batch of episodes ``(n_samples, n_episodes)``
         stacks to ``(n_samples, n_episodes, k)``.
     """

@@ -30,6 +30,11 @@ def cobs_encode(data: bytes | bytearray | memoryview) -> bytes:
     -------
     bytes
         The COBS encoding, without a frame delimiter.
+
+    Examples
+    --------
+    >>> cobs_encode(b"\\x11\\x00\\x22")
+    b'\\x02\\x11\\x02"'
     """
     out = bytearray()
     runs = bytes(data).split(b"\0")
@@ -65,6 +70,11 @@ def cobs_decode(data: bytes | bytearray | memoryview) -> bytes:
     ------
     CobsError
         If ``data`` contains 0x00 or a code byte points past its end.
+
+    Examples
+    --------
+    >>> cobs_decode(b"\\x02\\x11\\x02\\x22")
+    b'\\x11\\x00"'
     """
     data = bytes(data)
     if 0 in data:

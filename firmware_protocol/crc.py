@@ -30,5 +30,14 @@ def crc16_ccitt_false(data: bytes | bytearray | memoryview, value: int = CRC_INI
     -------
     int
         The 16-bit CRC.
+
+    Examples
+    --------
+    The standard check value, and the same CRC continued over two pieces:
+
+    >>> hex(crc16_ccitt_false(b"123456789"))
+    '0x29b1'
+    >>> hex(crc16_ccitt_false(b"6789", crc16_ccitt_false(b"12345")))
+    '0x29b1'
     """
     return crc_hqx(data, value)

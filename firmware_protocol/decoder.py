@@ -62,7 +62,7 @@ class StreamDecoder:
 
     Examples
     --------
-    >>> from firmware_protocol import Hello, encode_frame
+    >>> from qube_koopman.firmware_protocol import Hello, encode_frame
     >>> decoder = StreamDecoder()
     >>> wire = encode_frame(Hello(nonce=7), seq=1, timestamp_us=0)
     >>> decoder.feed(wire[:5]), [f.message for f in decoder.feed(wire[5:])]

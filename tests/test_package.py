@@ -2,42 +2,16 @@
 
 import importlib
 import inspect
-import pkgutil
 import subprocess
 import sys
 
 import pytest
-
-PACKAGES = ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.firmware_protocol",
-            "qube_koopman.design"]
-
-
-def public_modules():
-    for name in PACKAGES:
-        pkg = importlib.import_module(name)
-        yield pkg
-        for info in pkgutil.walk_packages(pkg.__path__, prefix=f"{name}."):
-            if any(part.startswith("_") for part in info.name.split(".")):
-                continue
-            yield importlib.import_module(info.name)
+from _public_api import public_modules, public_names
 
 
 def test_every_public_function_and_class_is_documented():
-    missing = []
-    for module in public_modules():
-        if not module.__doc__:
-            missing.append(module.__name__)
-        for name, obj in vars(module).items():
-            if name.startswith("_") or getattr(obj, "__module__", None) != module.__name__:
-                continue
-            if inspect.isfunction(obj) or inspect.isclass(obj):
-                if not inspect.getdoc(obj):
-                    missing.append(f"{module.__name__}.{name}")
-                if inspect.isclass(obj):
-                    for meth_name, meth in vars(obj).items():
-                        if (not meth_name.startswith("_") and inspect.isfunction(meth)
-                                and not inspect.getdoc(meth)):
-                            missing.append(f"{module.__name__}.{name}.{meth_name}")
+    missing = [module.__name__ for module in public_modules() if not module.__doc__]
+    missing += [name for name, obj in public_names() if not inspect.getdoc(obj)]
     assert not missing, f"undocumented: {missing}"
 
 

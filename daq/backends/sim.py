@@ -1,7 +1,7 @@
 """The simulated QUBE-Servo as a backend: the ``sim.pendulum`` model behind the backend contract.
 
 Each episode starts upright with a small seeded perturbation of the
-pendulum angle, so the start gate (|alpha| < 5 deg) passes at once: a
+pendulum angle, so the start gate (``|alpha| < 5 deg``) passes at once: a
 simulated pendulum cannot be raised by hand. Measurements follow the
 dataset's conventions (alpha = 0 upright, 2048-count encoders), with the
 pendulum encoder's zero drawn a little off the true upright each episode as
@@ -28,7 +28,7 @@ from qube_koopman.sim.pendulum import (SAMPLE_PERIOD, PendulumParameters, Pendul
 
 __all__ = ["SimBackend", "DEFAULT_PERTURBATION"]
 
-#: Largest initial |alpha| (rad) by default: well inside the 5 deg start gate.
+#: Largest initial ``|alpha|`` (rad) by default: well inside the 5 deg start gate.
 DEFAULT_PERTURBATION = math.radians(2.0)
 
 

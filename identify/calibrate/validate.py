@@ -43,7 +43,7 @@ def _rates(y: np.ndarray, dt: float) -> np.ndarray:
 
 def estimate_offset(y: np.ndarray, u: np.ndarray, params: PendulumParameters, dt: float,
                     start: int, window: int, horizon: int = 100) -> float:
-    """One episode's alpha encoder offset (rad) from samples ``start .. start + window``.
+    """One episode's alpha encoder offset (rad) from samples ``start:start + window``.
 
     Multiple shooting with the physics fixed: the segments' node states and
     the offset are free (:func:`estimate_offset_many` for one episode).
@@ -53,7 +53,7 @@ def estimate_offset(y: np.ndarray, u: np.ndarray, params: PendulumParameters, dt
 
 def estimate_offset_many(ys: Sequence[np.ndarray], us: Sequence[np.ndarray], params: PendulumParameters,
                          dt: float, start: int, window: int, horizon: int = 100, max_iter: int = 40) -> np.ndarray:
-    """Each episode's alpha encoder offset (rad) from its samples ``start .. start + window``.
+    """Each episode's alpha encoder offset (rad) from its samples ``start:start + window``.
 
     One least-squares problem over all episodes, solved by the calibration's
     Levenberg-Marquardt (:func:`~qube_koopman.identify.calibrate.solver.levenberg_marquardt`):
@@ -94,7 +94,7 @@ class ReplayResult:
         Standard deviation twin / real of theta, alpha, voltage, the mean
         over the replays from start angles within an encoder count.
     balanced : ndarray (n,) of bool
-        Every replay stayed within |theta| < pi/2 and |alpha| < pi/4.
+        Every replay stayed within ``|theta| < pi/2`` and ``|alpha| < pi/4``.
     nrmse : ndarray (n,)
         Mean over theta and alpha of RMSE / max|real| (percent), the mean
         over the replays.

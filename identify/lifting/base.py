@@ -132,7 +132,7 @@ class Lifting:
         return self
 
     def transform(self, X: np.ndarray) -> np.ndarray:
-        """Lift (..., n_samples, n_states) to (..., n_samples - n_delays_, n_features_out_)."""
+        """Lift ``(..., n_samples, n_states)`` to ``(..., n_samples - n_delays_, n_features_out_)``."""
         X = np.asarray(X, dtype=float)
         if X.shape[-1] != self.n_features_in_:
             raise ValueError(f"lifting expects {self.n_features_in_} states, got {X.shape[-1]}")

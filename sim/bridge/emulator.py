@@ -59,7 +59,7 @@ from qube_koopman.sim.pendulum import PendulumParameters
 
 __all__ = ["BridgeEmulator", "DEFAULT_PERTURBATION", "DEFAULT_SPIN", "RECORD_FIELDS"]
 
-#: Largest initial |alpha| (rad) at each session start: well inside the 5 deg start gate.
+#: Largest initial ``|alpha|`` (rad) at each session start: well inside the 5 deg start gate.
 DEFAULT_PERTURBATION = math.radians(2.0)
 
 #: Spin this long before each tick deadline (s): covers the usual sleep overshoot.

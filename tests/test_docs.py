@@ -1,0 +1,121 @@
+"""The documentation site builds without a warning, covers the API, and its examples run (issue 31).
+
+The build is the one a user runs (docs/conf.py; README, "Development"): Sphinx, warnings as
+errors, one process, no network. The API reference is generated, so the test checks it against
+the packages' public names as tests/test_package.py counts them (tests/_public_api.py). Every
+``>>>`` example of every docstring, private modules included, runs as a doctest through the
+standard library's doctest (what pytest's --doctest-modules runs, here in-process on the
+installed ``qube_koopman.*`` modules: no second interpreter, no import by file path).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from _public_api import public_names
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+import readme_slices  # noqa: E402 (the docs' own extension, docs/_ext)
+PAGES = ["index", "getting-started", "collecting", "identification", "transfer", "lifting-search", "calibration",
+         "design", "formats", "NAMING", "daq/log/FORMAT", "daq/CONTROLLER_FORMAT", "identify/MODEL_FORMAT",
+         "firmware_protocol/PROTOCOL", "api/index", "development"]
+
+
+README = """# Title
+
+- `cmd-a ARGS`: first item,
+  continued; see [the codec](firmware_protocol/frame.py) and [LICENSE](LICENSE).
+  - `--flag`: a nested item
+    over two lines.
+- `cmd-b`: the next item.
+"""
+
+
+def test_a_readme_slice_is_whole_lines_from_its_start_marker_to_its_end_marker():
+    text = readme_slices.expand('intro\n% readme "  - `--flag`" "- `cmd-b`"\noutro\n', README, "page")
+    assert text == "intro\n- `--flag`: a nested item\n  over two lines.\n\noutro\n"
+    whole = readme_slices.readme_slice(README, "- `cmd-a", "", "page")
+    assert whole.startswith("- `cmd-a ARGS`") and whole.endswith("the next item.\n")
+    assert "{py:mod}`the codec <qube_koopman.firmware_protocol.frame>`" in whole
+    assert "{download}`LICENSE </../LICENSE>`" in whole
+
+
+@pytest.mark.parametrize("start, end, problem", [("no such text", "", "not found"), ("item", "", "not unique"),
+                                                 ("- `cmd-a", "no such end", "not found after")])
+def test_a_readme_marker_that_does_not_fit_is_a_warning(start, end, problem, caplog):
+    with caplog.at_level(logging.WARNING):
+        assert readme_slices.readme_slice(README, start, end, "page") == ""
+    assert "page: README marker" in caplog.text and problem in caplog.text
+
+
+@pytest.fixture(scope="module")
+def built_docs(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("docs") / "html"
+    done = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html", "-j", "1", "-q",
+                           str(ROOT / "docs"), str(out)], capture_output=True, text=True, timeout=600,
+                          stdin=subprocess.DEVNULL)
+    assert done.returncode == 0, f"sphinx-build failed:\n{done.stdout[-3000:]}\n{done.stderr[-6000:]}"
+    return out
+
+
+@pytest.mark.slow
+def test_the_docs_build_without_warnings_and_have_every_page(built_docs):
+    missing = [page for page in PAGES if not (built_docs / f"{page}.html").is_file()]
+    assert not missing
+    # the README's sections and the format documents were pulled in, not left as markers
+    for page in PAGES:
+        text = (built_docs / f"{page}.html").read_text()
+        assert "% readme" not in text and "{include}" not in text, page
+    assert "chip select (SS)" in (built_docs / "collecting.html").read_text()  # the wiring table
+    assert "Episode log format" in (built_docs / "daq/log/FORMAT.html").read_text()
+
+
+@pytest.mark.slow
+def test_every_public_name_is_in_the_api_reference(built_docs):
+    anchors = set()
+    for page in (built_docs / "api" / "generated").glob("*.html"):
+        anchors |= set(re.findall(r'id="([^"]+)"', page.read_text()))
+    names = [name for name, _ in public_names()]
+    assert len(names) > 300
+    missing = [name for name in names if name not in anchors]
+    assert not missing, f"not in the API reference: {missing}"
+
+
+# Run in a fresh interpreter outside the checkout (-P, another working folder), so an example
+# can import only what a user's install provides: `from firmware_protocol import ...` would
+# pass from the repository's root and fail for every user.
+DOCTESTS = """
+import doctest, json, sys
+sys.path.insert(0, sys.argv[1])
+from _public_api import all_modules
+finder = doctest.DocTestFinder()
+runner = doctest.DocTestRunner(verbose=False, optionflags=doctest.ELLIPSIS)
+failed, attempted, examples = [], 0, 0
+for module in all_modules(private=True):
+    for test in finder.find(module):
+        report = []
+        result = runner.run(test, out=report.append)
+        examples += len(test.examples)
+        attempted += result.attempted
+        if result.failed:
+            failed.append(test.name + ":\\n" + "".join(report))
+print(json.dumps({"failed": failed, "attempted": attempted, "examples": examples}))
+"""
+
+
+def test_every_docstring_example_runs(tmp_path):
+    done = subprocess.run([sys.executable, "-P", "-c", DOCTESTS, str(ROOT / "tests")], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert not result["failed"], "\n".join(result["failed"])
+    # examples marked `# doctest: +SKIP` count in examples, not in attempted
+    print(f"doctests: {result['attempted']} examples run ({result['examples']} in all)")
+    assert result["attempted"] >= 6
