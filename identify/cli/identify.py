@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 
 from qube_koopman.identify.cli.common import CliError, check_rerun_target, output_dir, progress, run_command, write_json
+from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
 
 PROG = "qube-identify"
 
@@ -162,6 +163,7 @@ def _parser() -> argparse.ArgumentParser:
     out = p.add_argument_group("output")
     out.add_argument("--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)")
     out.add_argument("--rerun", type=path, metavar="FILE.rrd", help="also write a rerun recording of the results")
+    add_figure_options(p)
     return p
 
 
@@ -335,7 +337,9 @@ def _run(args) -> int:
 
     _check_args(args)
     try:
+        check_figure_options(args)  # matplotlib there, before the logs load
         train, test, controller = _load(args)
+        check_figure_options(args, [log.path.name for log in test])
         _check_cross_validation(args, train)
         _check_delays(args, train + test)
         what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
@@ -372,6 +376,10 @@ def _run(args) -> int:
         from qube_koopman.identify.cli.search import search_report
 
         result.report["search"] = search_report(search, args, [log.path.name for log in train])
+    if args.figures:
+        from qube_koopman.identify.figures import identification_figures
+
+        result.report["figures"] = write_report_figures(out, identification_figures(result, args.figure_episodes))
     write_json(out / "report.json", result.report)
     write_markdown_report(out / "report.md", result.report)
     if args.rerun:
@@ -380,7 +388,7 @@ def _run(args) -> int:
         write_recording(args.rerun, result)
     _print_controllers(result.report["training_controllers"])
     _print_scores(args, result.report)
-    written = ["model.json", "report.json", "report.md"]
+    written = ["model.json", "report.json", "report.md"] + (["figures"] if args.figures else [])
     print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
     return 0
 
