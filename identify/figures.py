@@ -13,7 +13,8 @@ computed on, the models whose spectral radii it lists, the sweep's scores):
 :func:`draw` turns one into a matplotlib ``Figure`` (each curve a ``Line2D``
 whose ``gid`` is its label, so what was plotted can be read back);
 :func:`write_figures` saves each as PNG and PDF. matplotlib is imported only
-there, with the Agg backend (no display needed); :func:`require_matplotlib`
+there, figures drawn on Agg canvases without pyplot (no display needed, no global
+backend changed); :func:`require_matplotlib`
 says how to install it when it is missing. Non-finite values (a diverged
 prediction, a -inf score) are stored as NaN: matplotlib leaves a gap there.
 """
@@ -39,7 +40,7 @@ class FiguresUnavailable(ImportError):
 
 
 def require_matplotlib(option: str = "--figures") -> None:
-    """Import matplotlib with the Agg backend, or raise :class:`FiguresUnavailable`.
+    """Check that matplotlib imports, or raise :class:`FiguresUnavailable`.
 
     Parameters
     ----------
@@ -52,10 +53,9 @@ def require_matplotlib(option: str = "--figures") -> None:
         One line: the option, the missing package and the command installing it.
     """
     try:
-        import matplotlib
+        import matplotlib  # noqa: F401
     except ImportError:
         raise FiguresUnavailable(f"{option} needs matplotlib, which is optional: {INSTALL_HINT}") from None
-    matplotlib.use("Agg", force=True)
 
 
 def _finite_or_nan(values) -> np.ndarray:
@@ -194,13 +194,16 @@ def draw(data: SeriesPlot | EigenvaluePlot):
     Returns
     -------
     matplotlib.figure.Figure
-        Not attached to pyplot (no global state; garbage-collected when dropped).
+        On an Agg canvas, not attached to pyplot: no display needed, pyplot's backend (a
+        notebook's, say) left alone, garbage-collected when dropped.
     """
     require_matplotlib()
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     series = isinstance(data, SeriesPlot)
     fig = Figure(figsize=(7.0, 2.2 + 1.6 * len(data.ylabels)) if series else (5.5, 5.0), layout="constrained")
+    FigureCanvasAgg(fig)
     (_draw_series if series else _draw_eigenvalues)(data, fig)
     return fig
 

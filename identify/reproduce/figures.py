@@ -80,8 +80,9 @@ def qube_figures(results: dict) -> list[FigureSpec]:
     Parameters
     ----------
     results : dict
-        From :func:`~qube_koopman.identify.reproduce.qube.reproduce_qube`; the
-        episode figures need it run with ``figure_episode``.
+        From :func:`~qube_koopman.identify.reproduce.qube.reproduce_qube` (or
+        qube.json, read back); the episode figures need it run with
+        ``figure_episode`` (their arrays are not written to qube.json).
 
     Returns
     -------
@@ -108,6 +109,6 @@ def qube_figures(results: dict) -> list[FigureSpec]:
                          "Plant eigenvalues of the four method/scoring rows at their selected alphas "
                          "(paper: eigenvalues of the plant systems)."),
     ]
-    if results.get("figure_episode"):
+    if "measured" in results.get("figure_episode", {}):  # the arrays, not qube.json's name and index
         specs += _episode_specs(results)
     return specs
