@@ -144,11 +144,14 @@ def _synthetic_results() -> dict:
     measured = rng.normal(size=(50, 2))
     predicted = {row.key: measured + 0.01 * rng.normal(size=(50, 2)) for row in ROWS}
     predicted["edmd_plant_plant"][10:] = np.inf  # a diverged prediction
+    plant = {row.key: measured + 0.02 * rng.normal(size=(50, 2)) for row in koopman}
+    plant["cl_edmd_cl_cl"] *= np.exp(np.arange(50))[:, None]  # an unstable plant: finite, far out of range
     rows = {row.key: {"alpha": 1e-3, "r2_per_episode": [0.5, -np.inf if row.key == "edmd_plant_plant" else 0.9]}
             for row in ROWS}
     return {"sweep": sweep, "eigenvalues": eig, "rows": rows, "labels": {row.key: row.label for row in ROWS},
             "figure_episode": {"name": "ep.mcap", "index": 1, "dt": 0.002, "measured": measured,
-                               "r": rng.normal(size=(50, 2)), "f": rng.normal(size=(50, 1)), "predicted": predicted}}
+                               "r": rng.normal(size=(50, 2)), "f": rng.normal(size=(50, 1)),
+                               "u": rng.normal(size=(50, 1)), "predicted": predicted, "plant_predicted": plant}}
 
 
 def test_paper_figures_plot_the_results_arrays():
@@ -157,7 +160,8 @@ def test_paper_figures_plot_the_results_arrays():
     results = _synthetic_results()
     specs = {spec.stem: spec for spec in qube_figures(results)}
     assert set(specs) == {"spectral_radius_cl", "spectral_radius_plant", "cross_validation_cl",
-                          "cross_validation_plant", "eigenvalues_cl", "eigenvalues_plant", "inputs", "predictions_cl"}
+                          "cross_validation_plant", "eigenvalues_cl", "eigenvalues_plant", "inputs", "predictions_cl",
+                          "predictions_plant"}
     sweep = results["sweep"]
     for stem, key in (("spectral_radius_cl", "spectral_radius_closed_loop"), ("cross_validation_plant", "cv_r2_plant"),
                       ("spectral_radius_plant", "spectral_radius_plant"), ("cross_validation_cl", "cv_r2_cl")):
@@ -177,12 +181,17 @@ def test_paper_figures_plot_the_results_arrays():
     got = lines(figures_module.draw(specs["inputs"].data))
     assert np.array_equal(got["r theta"], np.column_stack([t, episode["r"][:, 0]]))
     assert np.array_equal(got["f"], np.column_stack([t, episode["f"][:, 0]]))
-    fig = figures_module.draw(specs["predictions_cl"].data)
-    for ax, j in zip(fig.axes, range(2)):
-        plotted = {line.get_gid(): line.get_xydata() for line in ax.get_lines()}
-        for key, prediction in episode["predicted"].items():
-            error = episode["measured"][:, j] - prediction[:, j]
-            assert nan_equal(plotted[results["labels"][key]][:, 1], np.where(np.isfinite(error), error, np.nan))
-        # the diverged row leaves the plot: the y range is the others'
-        others = [episode["measured"][:, j] - p[:, j] for k, p in episode["predicted"].items() if k != "edmd_plant_plant"]
-        assert ax.get_ylim() == pytest.approx((1.1 * np.min(others), 1.1 * np.max(others)))
+    for stem, which, diverged in (("predictions_cl", "predicted", "edmd_plant_plant"),
+                                  ("predictions_plant", "plant_predicted", "cl_edmd_cl_cl")):
+        fig = figures_module.draw(specs[stem].data)
+        for ax, j in zip(fig.axes, range(2)):
+            plotted = {line.get_gid(): line.get_xydata() for line in ax.get_lines()}
+            assert len(plotted) == len(episode[which])
+            for key, prediction in episode[which].items():
+                error = episode["measured"][:, j] - prediction[:, j]
+                assert nan_equal(plotted[results["labels"][key]][:, 1], np.where(np.isfinite(error), error, np.nan))
+            # the diverged row leaves the plot: the y range is the others'
+            others = [episode["measured"][:, j] - p[:, j] for k, p in episode[which].items() if k != diverged]
+            assert ax.get_ylim() == pytest.approx((1.1 * np.min(others), 1.1 * np.max(others)))
+    u = lines(figures_module.draw(specs["predictions_plant"].data))["plant input u"]
+    assert np.array_equal(u, np.column_stack([t, episode["u"][:, 0]]))

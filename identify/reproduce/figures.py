@@ -12,9 +12,12 @@ the same arrays qube.json and qube.md report:
 - ``eigenvalues_cl``, ``eigenvalues_plant``: eigenvalues of the four method/scoring
   rows' closed loops and plants at their selected alphas, with the unit circle;
 - ``predictions_cl``: the closed-loop prediction errors (measured minus predicted) of
-  that test episode by every row of the table, ARX included.
+  that test episode by every row of the table, ARX included;
+- ``predictions_plant``: the plant prediction errors of that episode (each Koopman row's
+  plant driven by the logged plant input) and the plant input itself.
 
-Not regenerated: the paper's plant prediction errors with the controller output.
+A prediction that diverges leaves the plot (the y ranges are those of the others), as in
+the paper.
 """
 
 from __future__ import annotations
@@ -54,20 +57,38 @@ def _episode_specs(results: dict) -> list[FigureSpec]:
     inputs = SeriesPlot(f"exogenous inputs of {name}", t, "time (s)", ("reference (rad)", "feedforward (V)"),
                         (Curve("r theta", episode["r"][:, 0]), Curve("r alpha", episode["r"][:, 1]),
                          Curve("f", episode["f"][:, 0], panel=1)))
-    errors = tuple(Curve(results["labels"][key], episode["measured"][:, j] - prediction[:, j], panel=j)
-                   for j in range(2) for key, prediction in episode["predicted"].items())
-    # The y ranges of the predictions that did not diverge: a diverged one leaves the plot, as in the paper.
-    kept = [c for c in errors if np.isfinite(results["rows"][_key(results, c.label)]["r2_per_episode"][episode["index"]])]
-    ylims = tuple((1.1 * min(np.nanmin(c.y) for c in kept if c.panel == j),
-                   1.1 * max(np.nanmax(c.y) for c in kept if c.panel == j)) for j in range(2)) if kept else None
-    predictions = SeriesPlot(f"closed-loop prediction errors, {name}", t, "time (s)",
-                             ("theta error (rad)", "alpha error (rad)"), errors, ylims=ylims)
+    cl = _errors_plot(results, episode, "predicted", f"closed-loop prediction errors, {name}", t)
+    plant = _errors_plot(results, episode, "plant_predicted", f"plant prediction errors, {name}", t,
+                         Curve("plant input u", episode["u"][:, 0], panel=2))
     return [FigureSpec("inputs", f"Exogenous inputs of test episode {name}: references of theta and alpha, "
                                  "feedforward voltage (paper: sample of the exogenous test inputs).", inputs),
             FigureSpec("predictions_cl", f"Closed-loop prediction errors (measured minus predicted) of test episode "
                                          f"{name} by every row of the table, each at its selected alpha; a "
                                          "diverged prediction leaves the plot (paper: prediction errors of the CL "
-                                         "systems).", predictions)]
+                                         "systems).", cl),
+            FigureSpec("predictions_plant", f"Plant prediction errors of test episode {name}: each Koopman row's "
+                                            "plant at its selected alpha driven by the logged plant input, which "
+                                            "the last panel shows; an unstable plant's prediction diverges and "
+                                            "leaves the plot (paper: prediction errors and controller output of "
+                                            "the plant systems).", plant)]
+
+
+def _errors_plot(results: dict, episode: dict, which: str, title: str, t: np.ndarray, *extra: Curve) -> SeriesPlot:
+    """Measured minus predicted angles of ``episode[which]``'s rows, on the y ranges of those that stayed finite."""
+    errors = tuple(Curve(results["labels"][key], episode["measured"][:, j] - prediction[:, j], panel=j)
+                   for j in range(2) for key, prediction in episode[which].items())
+    # Kept in range: predictions that stay finite and within ten times the measured range (an unstable
+    # plant's grows to 1e250 before it overflows).
+    scale = 10 * np.max(np.abs(episode["measured"]))
+    finite = {key for key, prediction in episode[which].items()
+              if np.all(np.isfinite(prediction)) and np.max(np.abs(prediction)) <= scale}
+    kept = [c for c in errors if _key(results, c.label) in finite]
+    ylims = tuple((1.1 * min(np.min(c.y) for c in kept if c.panel == j),
+                   1.1 * max(np.max(c.y) for c in kept if c.panel == j)) for j in range(2)) if kept else None
+    if ylims and extra:  # the extra panels keep matplotlib's own range
+        ylims += tuple((float(np.min(c.y)) - 0.1, float(np.max(c.y)) + 0.1) for c in extra)
+    labels = ("theta error (rad)", "alpha error (rad)") + (("plant input (V)",) if extra else ())
+    return SeriesPlot(title, t, "time (s)", labels, errors + extra, ylims=ylims)
 
 
 def _key(results: dict, label: str) -> str:

@@ -166,8 +166,8 @@ def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs,
 
     The sweep already fitted every alpha on all training episodes (the same statistics a
     fresh fit computes): the selected alpha's models are taken from it. The second dict:
-    the closed loop's and plant's eigenvalues, and the prediction of test episode
-    ``figure_episode`` (None: not kept).
+    the closed loop's and plant's eigenvalues, and the closed-loop and plant (from the logged
+    plant input) predictions of test episode ``figure_episode`` (None: not kept).
     """
     best = int(np.argmax(sweep.cv_r2_mean(row.scoring)))
     plant = sweep.plant_models[best]
@@ -181,7 +181,9 @@ def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs,
               "spectral_radius_closed_loop": closed.spectral_radius(),
               "spectral_radius_plant": plant.spectral_radius()}
     shown = {"closed_loop": _complex_lists(closed.eigenvalues()), "plant": _complex_lists(plant.eigenvalues()),
-             "prediction": None if figure_episode is None else predictions[figure_episode]}
+             "prediction": None if figure_episode is None else predictions[figure_episode],
+             "plant_prediction": (None if figure_episode is None
+                                  else plant.predict(test_logs[figure_episode].trajectory))}
     return scores, shown
 
 
@@ -190,11 +192,14 @@ def _complex_lists(values: np.ndarray) -> dict:
     return {"real": np.real(values).tolist(), "imag": np.imag(values).tolist()}
 
 
-def _figure_episode(log, index: int, predictions: dict) -> dict:
-    """The test episode the figures show: its signals and every row's closed-loop prediction (arrays)."""
+def _figure_episode(log, index: int, shown: dict) -> dict:
+    """The test episode the figures show: its signals, every row's closed-loop prediction and every
+    Koopman row's plant prediction (arrays)."""
     t = log.trajectory
     return {"name": log.path.name, "index": index, "dt": t.dt, "measured": t.x, "r": t.r,
-            "f": t.f.reshape(len(t.f), -1), "predicted": predictions}
+            "f": t.f.reshape(len(t.f), -1), "u": t.u.reshape(len(t.u), -1),
+            "predicted": {key: s["prediction"] for key, s in shown.items()},
+            "plant_predicted": {key: s["plant_prediction"] for key, s in shown.items() if "plant_prediction" in s}}
 
 
 def _checks(rows: dict, cl_sweep: SweepResult) -> dict:
@@ -249,7 +254,7 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
                 if (row.method, row.n_delays) == key:
                     rows[row.key], shown[row.key] = _row_scores(row, sweep, controller, test_logs, figure_episode)
     extra = {} if figure_episode is None else {"figure_episode": _figure_episode(
-        test_logs[figure_episode], figure_episode, {row.key: shown[row.key]["prediction"] for row in ROWS})}
+        test_logs[figure_episode], figure_episode, {row.key: shown[row.key] for row in ROWS})}
     return {
         "rows": {row.key: rows[row.key] for row in ROWS},
         "paper": PAPER_QUBE,
