@@ -23,9 +23,10 @@
 #    and predict those episodes with the identified plant, estimating each episode's
 #    pendulum encoder offset from its first second.
 #
-# It is stored as a jupytext "percent" script (`examples/tutorial.py`): open it in Jupyter
-# with jupytext installed (`pip install jupytext`, then *Open as notebook*), or convert it
-# with `jupytext --to ipynb examples/tutorial.py`. The test suite runs it top to bottom
+# It is stored as a jupytext "percent" script (`examples/tutorial.py`), not as .ipynb: the
+# repository keeps reviewable text with no outputs, images or execution counts in its
+# history. Open it in Jupyter with jupytext installed (`pip install jupytext`, then *Open
+# as notebook*), or convert it with `jupytext --to ipynb examples/tutorial.py`. The test suite runs it top to bottom
 # (`tests/test_tutorial.py`). To keep that quick it uses few episodes and a small lifting;
 # the parameters below can be raised for the paper's setting (28 training and 20 test
 # episodes, 180 alphas: `qube-reproduce qube`).

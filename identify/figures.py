@@ -28,7 +28,8 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["Curve", "SeriesPlot", "EigenvaluePlot", "FigureSpec", "FiguresUnavailable", "require_matplotlib",
-           "draw", "write_figures", "model_eigenvalues", "identification_figures", "choose_episodes"]
+           "draw", "write_figures", "measured_range", "model_eigenvalues", "identification_figures",
+           "choose_episodes"]
 
 INSTALL_HINT = 'pip install "qube-koopman[figures]"'
 STATE_NAMES = ("theta", "alpha")
@@ -95,9 +96,9 @@ class SeriesPlot:
         Logarithmic x axis (alpha sweeps).
     marks : dict of str to float
         Vertical lines at these x values, by label (gid ``"mark: <label>"``).
-    ylims : tuple of (float, float), optional
+    ylims : tuple of (float, float) or None, optional
         Each panel's y range (e.g. to let a diverged curve leave the plot);
-        None: matplotlib's autoscaling.
+        None (for all panels or one): matplotlib's autoscaling.
     """
 
     title: str
@@ -107,7 +108,7 @@ class SeriesPlot:
     curves: tuple[Curve, ...]
     log_x: bool = False
     marks: dict[str, float] = field(default_factory=dict)
-    ylims: tuple[tuple[float, float], ...] | None = None
+    ylims: tuple[tuple[float, float] | None, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "x", np.asarray(self.x, dtype=float))
@@ -151,7 +152,8 @@ def _draw_series(plot: SeriesPlot, fig) -> None:
         (line,) = axes[c.panel].plot(plot.x, c.y, c.style, label=c.label, linewidth=1.0)
         line.set_gid(c.label)
     for ax, ylim in zip(axes, plot.ylims or ()):
-        ax.set_ylim(*ylim)
+        if ylim is not None:
+            ax.set_ylim(*ylim)
     for ax, ylabel in zip(axes, plot.ylabels):
         for label, x in plot.marks.items():
             ax.axvline(x, color="0.4", linestyle=":", linewidth=1.0, label=label).set_gid(f"mark: {label}")
@@ -214,11 +216,25 @@ def write_figures(specs: Sequence[FigureSpec], folder: str | Path, dpi: int = 12
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     for spec in specs:
-        fig = draw(spec.data)
-        for suffix in (".png", ".pdf"):
-            fig.savefig(folder / f"{spec.stem}{suffix}", dpi=dpi)
+        # A diverged curve's huge values overflow in matplotlib's layout arithmetic: expected, not news.
+        with np.errstate(over="ignore", invalid="ignore"):
+            fig = draw(spec.data)
+            for suffix in (".png", ".pdf"):
+                fig.savefig(folder / f"{spec.stem}{suffix}", dpi=dpi)
         written.append(folder / f"{spec.stem}.png")
     return written
+
+
+def measured_range(measured: np.ndarray, predicted: np.ndarray, factor: float = 10.0) -> tuple[float, float] | None:
+    """A y range for a measured channel and its prediction: None (autoscale) while the prediction
+    stays finite and within ``factor`` times the measured peak, else the measured range with a
+    margin (the diverged prediction leaves the plot)."""
+    peak = float(np.max(np.abs(measured)))
+    if np.all(np.isfinite(predicted)) and np.max(np.abs(predicted)) <= factor * peak:
+        return None
+    lo, hi = float(np.min(measured)), float(np.max(measured))
+    margin = 0.25 * (hi - lo) or 1.0
+    return lo - margin, hi + margin
 
 
 def model_eigenvalues(model) -> np.ndarray | None:
@@ -274,9 +290,10 @@ def _trajectory_spec(result, i: int, r2: float | None, start: int) -> FigureSpec
     states = STATE_NAMES[:truth.shape[1]]
     curves = tuple(Curve(f"{s} {kind}", values[:, j], panel=j, style="-" if kind == "measured" else "--")
                    for j, s in enumerate(states) for kind, values in (("measured", truth), ("predicted", pred)))
-    score = "" if r2 is None else f", R^2 {r2:.4f}"
+    score = "" if r2 is None else f", R^2 {r2:.4f}" if abs(r2) < 1e3 else f", R^2 {r2:.3g}"
     plot = SeriesPlot(f"{name.rsplit('.', 1)[0]}{score}", t, "time (s)", tuple(f"{s} (rad)" for s in states),
-                      curves, marks={"first scored sample": float(t[start])} if start > 1 else {})
+                      curves, marks={"first scored sample": float(t[start])} if start > 1 else {},
+                      ylims=tuple(measured_range(truth[:, j], pred[:, j]) for j in range(len(states))))
     stem = "trajectory_" + name.rsplit(".", 1)[0]
     return FigureSpec(stem, f"Test episode {name}: measured and predicted angles{score} "
                             f"(scored from sample {start}).", plot)

@@ -65,7 +65,7 @@ def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, c
     start = report["scored_from_sample"]
     assert start == 500
     for name in (test_logs[1].name, test_logs[3].name):
-        fig = drawn[name.removesuffix(".mcap") + f", R^2 {report['test']['r2_per_episode'][report['scored_logs'].index(name)]:.4f}"]
+        (fig,) = [f for title, f in drawn.items() if title.startswith(name.removesuffix(".mcap") + ", R^2 ")]
         got, log = lines(fig), logs[name]
         t = np.arange(log.trajectory.n_samples) * log.trajectory.dt
         predicted = np.column_stack([got["theta predicted"][:, 1], got["alpha predicted"][:, 1]])
@@ -195,3 +195,31 @@ def test_paper_figures_plot_the_results_arrays():
             assert ax.get_ylim() == pytest.approx((1.1 * np.min(others), 1.1 * np.max(others)))
     u = lines(figures_module.draw(specs["predictions_plant"].data))["plant input u"]
     assert np.array_equal(u, np.column_stack([t, episode["u"][:, 0]]))
+
+
+def test_trajectory_figures_choose_episodes_and_keep_diverged_predictions_off_the_plot():
+    from types import SimpleNamespace
+
+    names = ["a.mcap", "b.mcap", "c.mcap"]
+    assert figures_module.choose_episodes(names, None, [0.9, 0.95, -np.inf]) == [1, 0]  # best, worst finite
+    assert figures_module.choose_episodes(names, None, [None, None, None]) == [0]
+    assert figures_module.choose_episodes(names, ["3", "a", "c.mcap"], None) == [2, 0]
+    with pytest.raises(ValueError, match="--figure-episodes d: not a test episode"):
+        figures_module.choose_episodes(names, ["d"], None)
+
+    t = np.arange(100) * 0.002
+    truth = np.column_stack([np.sin(t), 0.1 * np.cos(t)])
+    diverged = truth.copy()
+    diverged[50:, 1] = np.exp(np.arange(50.0)) * 1e200  # alpha: finite, then inf
+    result = SimpleNamespace(test_names=names[:2], test_time=[t, t], test_truth=[truth, truth],
+                             test_predictions=[truth + 0.01, diverged], closed_loop=None, plant=None,
+                             report={"scored_logs": names[:2], "test": {"r2_per_episode": [0.99, -np.inf]},
+                                     "scored_from_sample": 1})
+    specs = figures_module.identification_figures(result, ["1", "2"])
+    assert [s.stem for s in specs] == ["trajectory_a", "trajectory_b"]  # no models: no eigenvalue figure
+    good, bad = (figures_module.draw(s.data) for s in specs)
+    assert good.axes[0].get_title() == "a, R^2 0.9900" and bad.axes[0].get_title() == "b, R^2 -inf"
+    assert np.array_equal(lines(bad)["alpha predicted"][:, 1], np.where(np.isfinite(diverged[:, 1]), diverged[:, 1], np.nan))
+    lo, hi = bad.axes[1].get_ylim()  # the measured range with a margin: the diverged prediction leaves the plot
+    assert lo < truth[:, 1].min() and hi > truth[:, 1].max() and hi - lo < 1
+    assert specs[1].data.ylims[0] is None  # theta stayed in range: autoscaled

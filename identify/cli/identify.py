@@ -49,7 +49,8 @@ that of the controller with the most training episodes. Cross-validation
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
 with --score plant. Outputs in --out: model.json (see identify/MODEL_FORMAT.md),
-report.json, report.md, and with --rerun FILE.rrd a rerun recording.
+report.json, report.md, and with --rerun FILE.rrd a rerun recording;
+with --figures, PNG and PDF figures in figures/, embedded in report.md.
 """
 
 METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
