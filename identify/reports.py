@@ -119,6 +119,16 @@ def _controllers_lines(training: dict | None) -> list[str]:
     return lines
 
 
+def figures_markdown(figures: list[dict] | None) -> list[str]:
+    """A "Figures" section embedding each figure (``png``, ``pdf``: paths relative to the report; ``caption``)."""
+    if not figures:
+        return []
+    lines = ["", "## Figures", ""]
+    for f in figures:
+        lines += [f"![{Path(f['png']).stem}]({f['png']})", "", f"{f['caption']} ([PDF]({f['pdf']}))", ""]
+    return lines
+
+
 def markdown_report(report: dict) -> str:
     """report.json as a short markdown document."""
     rho = report.get("spectral_radius", {})
@@ -148,6 +158,7 @@ def markdown_report(report: dict) -> str:
         lines += _folds_table(sweep.get("folds"))
     if report.get("search"):
         lines += _search_section(report["search"])
+    lines += figures_markdown(report.get("figures"))
     return "\n".join(lines) + "\n"
 
 

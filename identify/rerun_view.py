@@ -17,15 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from qube_koopman.identify.figures import model_eigenvalues
+
 STATE_NAMES = ("theta", "alpha")
-
-
-def _eigenvalues(model) -> np.ndarray | None:
-    A = getattr(model, "A", None)
-    if A is None:  # ARX wrappers keep their state-space form in model_
-        inner = getattr(model, "model_", None) or getattr(model, "plant_", None)
-        A = None if inner is None else inner.A
-    return None if A is None else np.linalg.eigvals(np.asarray(A))
 
 
 def blueprint(result):
@@ -70,7 +64,7 @@ def write_recording(path, result) -> None:
     circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
     rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
     for kind, model in (("closed_loop", result.closed_loop), ("plant", result.plant)):
-        eig = None if model is None else _eigenvalues(model)
+        eig = None if model is None else model_eigenvalues(model)
         if eig is not None:
             rec.log(f"eigenvalues/{kind}", rr.Points2D(np.column_stack([eig.real, eig.imag]), radii=0.01),
                     static=True)

@@ -74,14 +74,21 @@ def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def qube_reproduction(qube_logs, tmp_path_factory) -> tuple[dict, str]:
-    """``qube-reproduce qube`` on the imported dataset, once per session: (qube.json, qube.md)."""
-    import json
-
+def qube_reproduction_out(qube_logs, tmp_path_factory) -> Path:
+    """``qube-reproduce qube --figures`` on the imported dataset, once per session: its output folder."""
     from qube_koopman.identify.cli.reproduce import main
 
     out = tmp_path_factory.mktemp("qube_out")
-    assert main(["qube", "--data", str(qube_logs), "--out", str(out), "-q"]) == 0
+    assert main(["qube", "--data", str(qube_logs), "--out", str(out), "--figures", "-q"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def qube_reproduction(qube_reproduction_out) -> tuple[dict, str]:
+    """The session's ``qube-reproduce qube``: (qube.json, qube.md)."""
+    import json
+
+    out = qube_reproduction_out
     return json.loads((out / "qube.json").read_text()), (out / "qube.md").read_text()
 
 

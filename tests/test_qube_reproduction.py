@@ -48,3 +48,33 @@ def test_report_files(results):
     assert all(data["checks"].values())
     assert "CL EDMD, CL reg., CL scoring" in md and "PASS" in md
     assert data["timing_s"] > 0
+
+
+def test_paper_figures_plot_qube_json(qube_reproduction_out, results):
+    """--figures: the paper's QUBE figures, written and embedded; the sweep and eigenvalue figures
+    drawn from qube.json plot its arrays (tests/test_figures.py checks each figure's data in detail)."""
+    import numpy as np
+
+    from qube_koopman.identify.figures import draw
+    from qube_koopman.identify.reproduce.figures import EIGENVALUE_ROWS, qube_figures
+
+    data, md = results
+    stems = [f["png"] for f in data["figures"]]
+    assert stems == [f"figures/{s}.png" for s in ("spectral_radius_cl", "spectral_radius_plant", "cross_validation_cl",
+                                                  "cross_validation_plant", "eigenvalues_cl", "eigenvalues_plant",
+                                                  "inputs", "predictions_cl", "predictions_plant")]
+    for f in data["figures"]:
+        assert (qube_reproduction_out / f["png"]).stat().st_size > 1000 and (qube_reproduction_out / f["pdf"]).is_file()
+        assert f"]({f['png']})" in md
+    assert data["figure_episode"]["index"] == 0 and data["figure_episode"]["name"].endswith(".mcap")
+    # each Koopman row's eigenvalues reach the spectral radii its row reports
+    for key, eig in data["eigenvalues"].items():
+        for kind in ("closed_loop", "plant"):
+            radius = np.max(np.hypot(eig[kind]["real"], eig[kind]["imag"]))
+            assert radius == pytest.approx(data["rows"][key][f"spectral_radius_{kind}"], rel=1e-9)
+    specs = {s.stem: s for s in qube_figures(data)}  # from the JSON: no episode arrays, the six others
+    cl = {line.get_gid(): line.get_xydata() for line in draw(specs["spectral_radius_cl"].data).axes[0].get_lines()}
+    assert np.array_equal(cl["CL EDMD"][:, 1], data["sweep"]["cl-edmd"]["spectral_radius_closed_loop"])
+    assert np.array_equal(cl["CL EDMD"][:, 0], data["sweep"]["alpha"])
+    eig = {line.get_gid(): line.get_xydata() for line in draw(specs["eigenvalues_cl"].data).axes[0].get_lines()}
+    assert len(eig) == len(EIGENVALUE_ROWS) + 1  # the rows and the unit circle

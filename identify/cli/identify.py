@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 
 from qube_koopman.identify.cli.common import CliError, check_rerun_target, output_dir, progress, run_command, write_json
+from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
 
 PROG = "qube-identify"
 
@@ -48,7 +49,8 @@ that of the controller with the most training episodes. Cross-validation
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
 with --score plant. Outputs in --out: model.json (see identify/MODEL_FORMAT.md),
-report.json, report.md, and with --rerun FILE.rrd a rerun recording.
+report.json, report.md, and with --rerun FILE.rrd a rerun recording;
+with --figures, PNG and PDF figures in figures/, embedded in report.md.
 """
 
 METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
@@ -162,6 +164,7 @@ def _parser() -> argparse.ArgumentParser:
     out = p.add_argument_group("output")
     out.add_argument("--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)")
     out.add_argument("--rerun", type=path, metavar="FILE.rrd", help="also write a rerun recording of the results")
+    add_figure_options(p)
     return p
 
 
@@ -335,7 +338,9 @@ def _run(args) -> int:
 
     _check_args(args)
     try:
+        check_figure_options(args)  # matplotlib there, before the logs load
         train, test, controller = _load(args)
+        check_figure_options(args, [log.path.name for log in test])
         _check_cross_validation(args, train)
         _check_delays(args, train + test)
         what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
@@ -372,6 +377,10 @@ def _run(args) -> int:
         from qube_koopman.identify.cli.search import search_report
 
         result.report["search"] = search_report(search, args, [log.path.name for log in train])
+    if args.figures:
+        from qube_koopman.identify.figures import identification_figures
+
+        result.report["figures"] = write_report_figures(out, identification_figures(result, args.figure_episodes))
     write_json(out / "report.json", result.report)
     write_markdown_report(out / "report.md", result.report)
     if args.rerun:
@@ -380,7 +389,7 @@ def _run(args) -> int:
         write_recording(args.rerun, result)
     _print_controllers(result.report["training_controllers"])
     _print_scores(args, result.report)
-    written = ["model.json", "report.json", "report.md"]
+    written = ["model.json", "report.json", "report.md"] + (["figures"] if args.figures else [])
     print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
     return 0
 

@@ -7,6 +7,7 @@ import math
 import sys
 
 from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
+from qube_koopman.identify.cli.figures import check_figure_options, write_report_figures
 
 PROG = "qube-reproduce"
 
@@ -19,13 +20,15 @@ Reproduce the closed-loop Koopman paper's results.
             paper's table, and writes OUT/duffing.json.
   qube      Section 5: the QUBE-Servo regularization study and test table from
             the imported episode logs (qube-import), beside the paper's values;
-            writes OUT/qube.json and OUT/qube.md. Unreadable or incomplete logs
-            are skipped with a warning naming each (--strict: refused).
+            writes OUT/qube.json and OUT/qube.md (with --figures, the paper's
+            QUBE figures in OUT/figures/, embedded in qube.md). Unreadable or
+            incomplete logs are skipped with a warning naming each (--strict: refused).
 """
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_standard_options, path, seed
+    from qube_koopman.identify.cli.figures import add_figure_options
+    from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
     parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -56,6 +59,10 @@ def _parser() -> argparse.ArgumentParser:
                       help="worker processes for the regularization sweeps (default: one per core; 1: none)")
     qube.add_argument("--strict", action="store_true",
                       help="refuse unreadable or incomplete logs in --data instead of skipping them")
+    group = add_figure_options(qube, episodes=False, report="qube.md")
+    group.add_argument("--figure-episode", type=whole_number(1), metavar="N",
+                       help="the test episode (1-based, of the 20) whose inputs and prediction errors are drawn "
+                            "(default 1)")
     for experiment in (duffing, qube):
         add_standard_options(experiment, subcommand=True)
     return parser
@@ -75,12 +82,14 @@ def _qube(args) -> int:
         raise CliError(f"--n-alphas must be at least 2, got {args.n_alphas}")
     if args.n_jobs == 0 or args.n_jobs < -1:
         raise CliError(f"--n-jobs must be -1 (every core) or at least 1, got {args.n_jobs}")
+    check_figure_options(args)
     out = output_dir(args.out)
     try:
         with warnings.catch_warnings():
             if args.strict:  # the first log load_logs would skip stops the study instead
                 warnings.simplefilter("error", IncompleteLogSkipped)
-            results = reproduce_qube(args.data, n_alphas=args.n_alphas, progress=progress, n_jobs=args.n_jobs)
+            results = reproduce_qube(args.data, n_alphas=args.n_alphas, progress=progress, n_jobs=args.n_jobs,
+                                     figure_episode=(args.figure_episode or 1) - 1 if args.figures else None)
     except IncompleteLogSkipped as exc:
         raise CliError(f"{str(exc).removesuffix('; skipped')}; refused because of --strict") from None
     except ValueError as exc:
@@ -89,6 +98,12 @@ def _qube(args) -> int:
     for name, ok in results["checks"].items():
         print(f"{'PASS' if ok else 'FAIL'}  {name}")
     print(f"computed in {results['timing_s']:.1f} s")
+    if args.figures:
+        from qube_koopman.identify.reproduce.figures import qube_figures
+
+        results["figures"] = write_report_figures(out, qube_figures(results))
+        episode = results.pop("figure_episode")  # arrays: drawn, not written to qube.json
+        results["figure_episode"] = {"name": episode["name"], "index": episode["index"]}
     write_json(out / "qube.json", results)
     try:
         (out / "qube.md").write_text(qube_markdown(results))

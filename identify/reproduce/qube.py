@@ -28,7 +28,7 @@ from qube_koopman.identify.scores import summarize_episodes
 from qube_koopman.identify.structure import close_loop
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 
-__all__ = ["PAPER_QUBE", "ROWS", "QubeRow", "reproduce_qube", "score_closed_loop"]
+__all__ = ["PAPER_QUBE", "ROWS", "QubeRow", "reproduce_qube", "score_closed_loop", "predict_closed_loop"]
 
 SKIP = 500
 N_ALPHAS = 180
@@ -73,11 +73,9 @@ ROWS = (
 )
 
 
-def score_closed_loop(pairs) -> dict:
-    """Closed-loop test scores over (model, trajectory) pairs (see :func:`summarize_episodes`).
-
-    The episodes of each model are predicted together (:meth:`KoopmanModel.predict_many`).
-    """
+def predict_closed_loop(pairs) -> list[np.ndarray]:
+    """Closed-loop predictions of (model, trajectory) pairs, the episodes of each model predicted
+    together (:meth:`KoopmanModel.predict_many`)."""
     pairs = list(pairs)
     predictions: list = [None] * len(pairs)
     by_model: dict[int, list[int]] = {}
@@ -86,12 +84,23 @@ def score_closed_loop(pairs) -> dict:
     for group in by_model.values():
         for i, x in zip(group, pairs[group[0]][0].predict_many([pairs[i][1] for i in group])):
             predictions[i] = x
-    return summarize_episodes([t.x for _, t in pairs], predictions)
+    return predictions
 
 
-def _arx_scores(train, test) -> dict:
+def score_closed_loop(pairs) -> dict:
+    """Closed-loop test scores over (model, trajectory) pairs (see :func:`summarize_episodes`).
+
+    The episodes of each model are predicted together (:meth:`KoopmanModel.predict_many`).
+    """
+    pairs = list(pairs)
+    return summarize_episodes([t.x for _, t in pairs], predict_closed_loop(pairs))
+
+
+def _arx_scores(train, test, figure_episode: int | None = None) -> tuple[dict, np.ndarray | None]:
     arx = Arx(ARX_LAGS, ARX_LAGS, inputs=("r", "f")).fit(train)
-    return summarize_episodes([t.x for t in test], [arx.predict(t) for t in test])
+    predictions = [arx.predict(t) for t in test]
+    return (summarize_episodes([t.x for t in test], predictions),
+            None if figure_episode is None else predictions[figure_episode])
 
 
 def _template(method: str, n_delays: int, controller):
@@ -151,11 +160,14 @@ def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1):
     return arriving()
 
 
-def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs) -> dict:
-    """Test scores of a table row's model at its selected alpha.
+def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs,
+                figure_episode: int | None = None) -> tuple[dict, dict]:
+    """Test scores of a table row's model at its selected alpha, and what its figures show.
 
     The sweep already fitted every alpha on all training episodes (the same statistics a
-    fresh fit computes): the selected alpha's models are taken from it.
+    fresh fit computes): the selected alpha's models are taken from it. The second dict:
+    the closed loop's and plant's eigenvalues, and the closed-loop and plant (from the logged
+    plant input) predictions of test episode ``figure_episode`` (None: not kept).
     """
     best = int(np.argmax(sweep.cv_r2_mean(row.scoring)))
     plant = sweep.plant_models[best]
@@ -164,9 +176,30 @@ def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs) -> dict
     # episode is predicted under the controller recorded in its own log.
     pairs = [(closed if same_system(log.controller, controller)
               else close_loop(plant, log.controller, [0, 1]), log.trajectory) for log in test_logs]
-    return {**score_closed_loop(pairs), "alpha": float(sweep.alphas[best]),
-            "spectral_radius_closed_loop": closed.spectral_radius(),
-            "spectral_radius_plant": plant.spectral_radius()}
+    predictions = predict_closed_loop(pairs)
+    scores = {**summarize_episodes([t.x for _, t in pairs], predictions), "alpha": float(sweep.alphas[best]),
+              "spectral_radius_closed_loop": closed.spectral_radius(),
+              "spectral_radius_plant": plant.spectral_radius()}
+    shown = {"closed_loop": _complex_lists(closed.eigenvalues()), "plant": _complex_lists(plant.eigenvalues()),
+             "prediction": None if figure_episode is None else predictions[figure_episode],
+             "plant_prediction": (None if figure_episode is None
+                                  else plant.predict(test_logs[figure_episode].trajectory))}
+    return scores, shown
+
+
+def _complex_lists(values: np.ndarray) -> dict:
+    """Complex numbers as JSON: {"real": [...], "imag": [...]}."""
+    return {"real": np.real(values).tolist(), "imag": np.imag(values).tolist()}
+
+
+def _figure_episode(log, index: int, shown: dict) -> dict:
+    """The test episode the figures show: its signals, every row's closed-loop prediction and every
+    Koopman row's plant prediction (arrays)."""
+    t = log.trajectory
+    return {"name": log.path.name, "index": index, "dt": t.dt, "measured": t.x, "r": t.r,
+            "f": t.f.reshape(len(t.f), -1), "u": t.u.reshape(len(t.u), -1),
+            "predicted": {key: s["prediction"] for key, s in shown.items()},
+            "plant_predicted": {key: s["plant_prediction"] for key, s in shown.items() if "plant_prediction" in s}}
 
 
 def _checks(rows: dict, cl_sweep: SweepResult) -> dict:
@@ -180,17 +213,21 @@ def _checks(rows: dict, cl_sweep: SweepResult) -> dict:
 
 
 def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
-                   progress: Callable[[str, int, int], None] | None = None, n_jobs: int = -1) -> dict:
+                   progress: Callable[[str, int, int], None] | None = None, n_jobs: int = -1,
+                   figure_episode: int | None = None) -> dict:
     """Run the study on the imported logs in ``data_dir`` (48 ``*.mcap`` files).
 
     ``n_jobs`` worker processes run the regularization sweeps (-1: one per core; 1: none).
+    ``figure_episode``: index of a test episode whose signals and predictions by every row
+    are returned under ``figure_episode`` (numpy arrays, for the figures; not JSON).
 
     Returns
     -------
     dict
         ``rows``: one entry per table row (r2_mean, r2_std, nrmse_mean,
-        nrmse_std, alpha, n_episodes); ``sweep``: alphas, CV R^2 and spectral
-        radii of both methods; ``timing_s``; ``checks``.
+        nrmse_std, alpha, n_episodes, r2_per_episode); ``sweep``: alphas, CV R^2
+        and spectral radii of both methods; ``eigenvalues``: each Koopman row's closed
+        loop and plant; ``timing_s``; ``checks``; with ``figure_episode``, that episode.
     """
     started = time.perf_counter()
     paths = find_logs(data_dir)
@@ -201,18 +238,23 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
     check_same_rate(train_logs + test_logs, "all")
     controller = check_same_controller(train_logs, "training")
     train = [log.trajectory for log in train_logs]
+    if figure_episode is not None and not 0 <= figure_episode < len(test_logs):
+        raise ValueError(f"figure episode {figure_episode + 1}: there are {len(test_logs)} test episodes")
     pending = _sweeps(train, controller, n_alphas, progress, n_jobs)
-    sweeps, rows = {}, {}
+    sweeps, rows, shown = {}, {}, {}
     with limited_blas_threads(1):
         # The workers run the sweeps meanwhile: ARX first, then each sweep's rows as it arrives.
         for row in ROWS:
             if row.method == "arx":
-                rows[row.key] = {**_arx_scores(train, [log.trajectory for log in test_logs]), "alpha": None}
+                scores, prediction = _arx_scores(train, [log.trajectory for log in test_logs], figure_episode)
+                rows[row.key], shown[row.key] = {**scores, "alpha": None}, {"prediction": prediction}
         for key, sweep in pending:
             sweeps[key] = sweep
             for row in ROWS:
                 if (row.method, row.n_delays) == key:
-                    rows[row.key] = _row_scores(row, sweep, controller, test_logs)
+                    rows[row.key], shown[row.key] = _row_scores(row, sweep, controller, test_logs, figure_episode)
+    extra = {} if figure_episode is None else {"figure_episode": _figure_episode(
+        test_logs[figure_episode], figure_episode, {row.key: shown[row.key] for row in ROWS})}
     return {
         "rows": {row.key: rows[row.key] for row in ROWS},
         "paper": PAPER_QUBE,
@@ -223,8 +265,11 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
                         "spectral_radius_plant": sw.spectral_radius_plant.tolist()}
                for (method, delays), sw in sweeps.items() if delays == N_DELAYS},
         },
+        "eigenvalues": {row.key: {k: shown[row.key][k] for k in ("closed_loop", "plant")}
+                        for row in ROWS if row.method != "arx"},
         "labels": {row.key: row.label for row in ROWS},
         "checks": _checks(rows, sweeps[("cl-edmd", N_DELAYS)]),
         "n_train": len(train), "n_test": len(test_logs), "skip": SKIP,
         "timing_s": time.perf_counter() - started,
+        **extra,
     }

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from qube_koopman.identify.reports import figures_markdown
 from qube_koopman.identify.reports import format_number as _num
 
 
@@ -50,4 +51,4 @@ Test scores are closed-loop predictions of theta and alpha over the test episode
 | EDMD (wrapped) | {min(ed['spectral_radius_closed_loop']):.6f} | {max(ed['spectral_radius_closed_loop']):.6f} | {ed['spectral_radius_plant'][0]:.4f} | {ed['spectral_radius_plant'][-1]:.4f} |
 
 Computed in {results['timing_s']:.1f} s.
-"""
+""" + "\n".join(figures_markdown(results.get("figures"))) + ("\n" if results.get("figures") else "")
