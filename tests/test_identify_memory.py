@@ -101,7 +101,8 @@ class _Generated(EpisodeSequence):
         n_c = 2 if self.controllers is None else self.controllers[i].n_states
         x = np.cumsum(rng.standard_normal((self.n_samples, 2)), axis=0) * 1e-2
         return Trajectory(x=x, r=rng.standard_normal((self.n_samples, 2)) * 1e-2,
-                          xc=rng.standard_normal((self.n_samples, n_c)), dt=0.002, name=f"e{i}")
+                          xc=rng.standard_normal((self.n_samples, n_c)), dt=0.002, name=f"e{i}",
+                          state_names=("theta", "alpha"))
 
 
 def _direct_total(estimator, setup, episodes, indices) -> Snapshots:
@@ -258,3 +259,21 @@ def test_stored_logs_identify_and_score_as_logs_in_memory(qube_logs):
     assert runs[True].test_predictions == [] and len(runs[False].test_predictions) == 2
     assert runs[True].test_names == runs[False].test_names == [f.name for f in files[28:30]]
     assert runs[True].report["test"]["n_episodes"] == 2 and "test_without_offsets" in runs[True].report
+
+
+def test_a_search_candidate_on_a_lazy_sequence_scores_as_on_a_list(monkeypatch):
+    from qube_koopman.identify import sweep
+    from qube_koopman.identify.data import group_shuffle_splits
+    from qube_koopman.identify.search import LiftingSpec, SearchData, evaluate_candidate
+
+    def data(episodes):
+        return SearchData(episodes, group_shuffle_splits(8, 2), CONTROLLER, np.array([1e-6, 1e-3, 1.0]), window=40)
+
+    spec = LiftingSpec(delays=3, poly=1, offsets=True)
+    listed = evaluate_candidate(spec, data(list(_Generated(8, 400))))
+    lazy = evaluate_candidate(spec, data(_Generated(8, 400)))
+    np.testing.assert_array_equal(lazy.cv_r2, listed.cv_r2)
+    assert np.isfinite(listed.cv_r2).sum() >= 2  # offsets estimated at the best alphas of both folds
+    # Validation episodes one at a time (as 16 of many are): the same scores (offsets converge per episode).
+    monkeypatch.setattr(sweep, "_MAX_EPISODES", 1)
+    np.testing.assert_allclose(evaluate_candidate(spec, data(_Generated(8, 400))).cv_r2, listed.cv_r2, rtol=1e-9)
