@@ -157,15 +157,11 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
             _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from,
                            keep_predictions)
         elif method in ("arx", "cl-arx"):
+            # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
             if model_path is not None:
                 Path(model_path).write_text(_arx_json(method, arx_lags, plant, closed))
-            scores = _TestScores(result, 1 if score_from is None else score_from, keep_predictions)
-            for log in test:
-                traj = log.trajectory
-                scores.add(log, traj.x, predict(traj))
-            scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, test[0].dt),
-                          test[0].dt)
+            _score_arx(predict, test, result, score_from, keep_predictions)
         else:
             raise ValueError(f"unknown method {method!r}")
     result.plant, result.closed_loop = plant, closed
@@ -319,6 +315,16 @@ def _arx(method, trajs, test, controller, lags, score, result):
                                  "ARX cannot predict another loop (use a Koopman method)")
         return model, model.closed_loop_, model.predict_closed_loop
     return model, model.closed_loop_, model.predict
+
+
+def _score_arx(predict, test, result, score_from, keep_predictions) -> None:
+    """Each test log read, predicted by ``predict`` and scored in turn."""
+    dt = test[0].dt
+    scores = _TestScores(result, 1 if score_from is None else score_from, keep_predictions)
+    for log in test:
+        traj = log.trajectory
+        scores.add(log, traj.x, predict(traj))
+    scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt), dt)
 
 
 def _arx_json(method, lags, plant, closed) -> str:
