@@ -16,7 +16,8 @@ linear in the data), peak RSS (``ru_maxrss`` of the child) and its ratio to the 
 
 Usage::
 
-    python bench/bench_identify_memory.py [--sizes 28 112 448] [--dataset DIR] [--work DIR] [-- EXTRA qube-identify OPTIONS]
+    python bench/bench_identify_memory.py [--sizes 28 112 448] [--dataset DIR] [--work DIR] [--lifting OPTIONS]
+        [-- EXTRA qube-identify OPTIONS]
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -70,8 +72,8 @@ def repeated(train: list[Path], n: int, work: Path) -> list[Path]:
     return out
 
 
-def measure(train: list[Path], test: list[Path], out: Path, extra: list[str]) -> dict:
-    argv = ["--train", *map(str, train), "--test", *map(str, test), *LIFTING, *extra, "--out", str(out), "-q"]
+def measure(train: list[Path], test: list[Path], out: Path, options: list[str]) -> dict:
+    argv = ["--train", *map(str, train), "--test", *map(str, test), *options, "--out", str(out), "-q"]
     done = subprocess.run([sys.executable, "-c", CHILD, json.dumps(argv)], capture_output=True, text=True,
                           check=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -83,6 +85,9 @@ def main() -> None:
     p.add_argument("--sizes", type=int, nargs="+", default=[28, 112, 448])
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
     p.add_argument("--work", type=Path, default=None, help="folder for the links and outputs (default: a temporary one)")
+    p.add_argument("--lifting", default=" ".join(LIFTING),
+                   help="the lifting and alpha options, in one string (default: %(default)s); e.g. the folds' "
+                        "memory: '--poly 2 --delays 20 --alpha-sweep 1e-6 1e-2 4'")
     p.add_argument("extra", nargs="*", help="more qube-identify options, after --")
     args = p.parse_args()
     if not args.dataset.is_dir():
@@ -93,7 +98,7 @@ def main() -> None:
     rows = []
     for n in args.sizes:
         started = time.perf_counter()
-        result = measure(repeated(train, n, work), test, work / f"out_{n}", args.extra)
+        result = measure(repeated(train, n, work), test, work / f"out_{n}", shlex.split(args.lifting) + args.extra)
         rows.append((n, result, time.perf_counter() - started))
         print(f"{n} episodes: {result}", flush=True)
     base = rows[0][1]
