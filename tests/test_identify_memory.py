@@ -239,6 +239,7 @@ def test_the_whole_set_checks_give_the_same_errors_on_stored_logs(tmp_path):
         assert messages[0] == messages[1] and messages[0].startswith(specs[logs[1]][0]), messages
 
 
+@pytest.mark.slow  # about 4 s: two identifications with a sweep on 4 real episodes
 def test_stored_logs_identify_and_score_as_logs_in_memory(qube_logs):
     import json
 
