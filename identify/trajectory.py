@@ -137,10 +137,13 @@ def episode_signals(episodes: Sequence, signal: str) -> Sequence:
     return [getattr(t, signal) for t in episodes]
 
 
-def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, what: str) -> Sequence[Trajectory]:
+def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, what: str,
+                       each=None) -> Sequence[Trajectory]:
     """A non-empty sequence of trajectories with the needed signals and consistent widths.
 
     A lazy sequence (:class:`EpisodeSequence`) is checked episode by episode and returned as it is.
+    ``each(i, trajectory)``, if given, checks more of every trajectory in the same pass (before
+    its signals): a stored log is read once for all the checks.
     """
     trajectories = as_episodes(trajectories)
     if not len(trajectories):
@@ -149,6 +152,8 @@ def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, wha
     for i, traj in enumerate(trajectories):
         if not isinstance(traj, Trajectory):
             raise ValueError(f"{what}: item {i} is a {type(traj).__name__}, not a Trajectory")
+        if each is not None:
+            each(i, traj)
         label = traj.name or f"#{i}"
         for key in needs:
             value = getattr(traj, key)
