@@ -15,7 +15,7 @@ from qube_koopman.identify.regression import (GroupedSnapshots, Snapshots, const
                                               grouped_plant_solve, ridge_solve)
 from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, feedforward_columns,
                                              output_selection, plant_input_map)
-from qube_koopman.identify.trajectory import Trajectory, check_trajectories
+from qube_koopman.identify.trajectory import Trajectory, as_episodes, check_trajectories, episode_signals
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
@@ -112,29 +112,34 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
         what, min_samples = type(self).__name__, lifting.n_delays + 2
-        trajs = check_trajectories(trajectories, ("x", "r"), min_samples, what)
+        trajs = as_episodes(trajectories)
+        if not len(trajs):
+            check_trajectories(trajs, ("x", "r"), min_samples, what)  # says there is none
         per_episode = self._per_episode_controllers(trajs, controllers)
         # One controller: one controller state width for all; several: each episode's own (checked below).
         needs = ("x", "r", "xc") if per_episode is None else ("x", "r")
-        trajs = check_trajectories(trajs, needs, min_samples, what)
-        with_f = [t.f is not None for t in trajs]
-        if any(with_f) and not all(with_f):
-            raise ValueError("feedforward f is present in some episodes and missing in others")
-        if all(with_f):
-            trajs = check_trajectories(trajs, needs + ("f",), min_samples, what)
-        n_f = trajs[0].f.shape[1] if all(with_f) else 0
-        m = trajs[0].x.shape[1]
+        first = trajs[0] if len(trajs) else None
+        with_f = isinstance(first, Trajectory) and first.f is not None
+
+        def same_feedforward(i: int, t: Trajectory) -> None:
+            if (t.f is not None) != with_f:
+                raise ValueError("feedforward f is present in some episodes and missing in others")
+
+        # One pass: a stored log is read once for every check.
+        trajs = check_trajectories(trajs, needs + (("f",) if with_f else ()), min_samples, what, same_feedforward)
+        n_f = first.f.shape[1] if with_f else 0
+        m = first.x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
         if any(not 0 <= i < m for i in measured):
             raise ValueError(f"measured state indices {measured} are outside 0..{m - 1}")
-        dt = trajs[0].dt
+        dt = first.dt
         if per_episode is None:  # the same widths in every episode
-            _check_controller(self.controller, measured, n_f, dt, trajs[0])
+            _check_controller(self.controller, measured, n_f, dt, first)
         else:
             _check_controller(self.controller, measured, n_f, dt)
             for t, ctrl in zip(trajs, per_episode):
                 _check_controller(ctrl, measured, n_f, dt, t)
-        lifting.fit([t.x for t in trajs], trajs[0].state_names)
+        lifting.fit(episode_signals(trajs, "x"), first.state_names)
         C_p = output_selection(lifting.n_features_out_, measured)
         groups = None if per_episode is None else ControllerGroups.of(per_episode, C_p, n_f)
         return FitSetup(trajs, lifting, dt if dt is not None else self.controller.dt,
@@ -154,6 +159,10 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         if setup.controller_groups is None:
             return super()._statistics(setup, per_episode, indices)
         return setup.controller_groups.statistics(list(per_episode), indices)
+
+    def _statistics_fold(self, setup: FitSetup):
+        """A running total per controller with several controllers (see :meth:`_statistics`)."""
+        return super()._statistics_fold(setup) if setup.controller_groups is None else setup.controller_groups.fold()
 
     def _finish(self, setup: FitSetup, snapshots) -> "_ClosedLoopKoopman":
         """Solve for ``self.alpha`` and set the fitted attributes."""
