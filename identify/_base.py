@@ -59,9 +59,13 @@ class SnapshotEstimator(Estimator):
         """
         return self._fit(self._setup(trajectories))
 
-    def _fit(self, setup: "FitSetup") -> "SnapshotEstimator":
-        # A generator: one controller's statistics fold as they come, never every episode's factor at once.
-        parts = (self._episode_snapshots(setup, t) for t in setup.trajectories)
+    def _fit(self, setup: "FitSetup", parts=None) -> "SnapshotEstimator":
+        """Solve from ``parts``: the episodes' statistics in order (default: computed here, one at a time).
+
+        A generator: one controller's statistics fold as they come, never every episode's factor at once.
+        """
+        if parts is None:
+            parts = (self._episode_snapshots(setup, t) for t in setup.trajectories)
         return self._finish(setup, self._statistics(setup, parts))
 
     def _setup(self, trajectories) -> "FitSetup":

@@ -188,7 +188,8 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
                          controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
                          progress: Callable[[int, int], None] | None = None, score_from: int = 1,
                          measured_only: bool = False, keep_fold_models: bool = False,
-                         fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None) -> SweepResult:
+                         fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None,
+                         episode_statistics: Callable | None = None) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
 
     Parameters
@@ -230,6 +231,10 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         episodes must share one controller: the fold's closed loops are that
         controller's (a closed-loop estimator's plant fitted to the fold's
         training episodes, whatever their controllers).
+    episode_statistics : callable(estimator, setup, indices), optional
+        Computes the per-episode statistics of the episodes at ``indices`` (of
+        ``trajectories``), in order, elsewhere: on a dask cluster,
+        :class:`~qube_koopman.identify.distributed.ClusterStatistics`. Default: here.
 
     Returns
     -------
@@ -237,11 +242,11 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     """
     with limited_blas_threads(1):
         return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress,
-                      (score_from, measured_only, keep_fold_models, fit_all, controllers))
+                      (score_from, measured_only, keep_fold_models, fit_all, controllers, episode_statistics))
 
 
 def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
-    start, measured_only, keep, fit_all, controllers = options
+    start, measured_only, keep, fit_all, controllers, elsewhere = options
     for s in scorings:
         check_choice(s, "scoring", SCORINGS)
     alphas = np.asarray(alphas, dtype=float)
@@ -258,7 +263,9 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     # Without the final fits only re-lifted predictions are made: the rows they recompute from
     # the predicted states need no fit (on a 40-delay search lifting, 4 rows of 370).
     partial = relift and not fit_all
-    shared = None if _learns_from_data(estimator) else _prepare(estimator, trajectories, partial, controllers)
+    everything = range(len(trajectories))
+    shared = (None if _learns_from_data(estimator)
+              else _prepare(estimator, trajectories, partial, controllers, elsewhere, everything))
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None, statistics=None if fit_all else shared)
     for i, (train, validation) in enumerate(splits):
@@ -266,7 +273,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         fold = _for_controller(estimator, held_out_by)
         if shared is None:
             setup, per_episode = _prepare(fold, [trajectories[j] for j in train], partial,
-                                          None if controllers is None else [controllers[j] for j in train])
+                                          None if controllers is None else [controllers[j] for j in train],
+                                          elsewhere, train)
             snapshots = fold._statistics(setup, per_episode)
         else:
             setup, per_episode = shared
@@ -281,7 +289,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
             progress(i + 1, total)
     if not fit_all:
         return result
-    setup, per_episode = shared if shared is not None else _prepare(estimator, trajectories, controllers=controllers)
+    setup, per_episode = shared if shared is not None else _prepare(estimator, trajectories, False, controllers,
+                                                                    elsewhere, everything)
     closed, plants = fitted_models(estimator, setup, estimator._statistics(setup, per_episode), alphas, controller,
                                    measured)
     result.closed_loop_models, result.plant_models = closed, plants
@@ -318,10 +327,12 @@ def _for_controller(estimator, controller):
     return copy.copy(estimator).set_params(controller=controller)
 
 
-def _prepare(estimator, trajectories, partial: bool = False, controllers=None):
+def _prepare(estimator, trajectories, partial: bool = False, controllers=None, elsewhere=None, indices=None):
     """Setup and per-episode statistics; ``partial``: of the rows a re-lifted prediction uses only.
 
     ``controllers``: each episode's (a closed-loop estimator's episodes under several controllers).
+    ``elsewhere(template, setup, indices)``: computes the statistics (``indices``: the episodes'
+    among the sweep's) instead of this process.
     """
     template = copy.copy(estimator)
     if isinstance(template, _ClosedLoopKoopman):
@@ -330,4 +341,6 @@ def _prepare(estimator, trajectories, partial: bool = False, controllers=None):
         setup = template._setup(trajectories)
     if partial and template._relift_rows(setup) is not None:
         setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
+    if elsewhere is not None:
+        return setup, list(elsewhere(template, setup, indices))
     return setup, [template._episode_snapshots(setup, t) for t in setup.trajectories]
