@@ -71,18 +71,20 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                         help="the values to try (default: delays 0-40 by 5, poly 1-3, const, sin/cos and friction "
                              "on/off, 0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
     search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
-                        help="worker processes for the search (default %(default)s: every core)")
+                        help="worker processes for the search (default %(default)s: every core; unused with "
+                             "--scheduler)")
     search.add_argument("--transfer", choices=["twin", "none"], default="twin",
                         help="twin (default): rank candidates by the lower of their cross-validated R^2 and their "
                              "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
                              "unlike the training one (the training excitations replayed on the calibrated twin); "
                              "none: by cross-validated R^2 alone (sees only the training controller)")
-    cluster = p.add_argument_group("dask cluster (see the README's section on clusters)")
+    cluster = p.add_argument_group("dask cluster (README: On a dask cluster)")
     cluster.add_argument("--scheduler", metavar="ADDRESS",
                          help="compute on the workers of this dask.distributed scheduler (e.g. tcp://host:8786): "
                               "the search's candidates instead of --n-jobs local processes, and the per-episode "
                               "statistics of the fit and of --alpha-sweep (results equal a local run's); the "
-                              "workers need this package at this version (checked on connecting); needs "
+                              "scheduler and the workers need this package at this version (checked on "
+                              "connecting); needs "
                               'pip install "qube-koopman[dask]"')
     cluster.add_argument("--worker-logs", choices=["ship", "shared"],
                          help="how the workers get the training logs for the statistics: ship (the default) sends "
