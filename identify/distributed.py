@@ -4,15 +4,16 @@ Two kinds of work go to the workers, and come back in the order they were sent, 
 cluster run folds exactly what a local run folds:
 
 * the lifting search's candidates (:func:`candidate_runner`; they share the loaded episodes,
-  sent to the cluster once);
+  sent to the cluster once a stage);
 * the per-episode snapshot statistics of a fit or a regularization sweep
   (:class:`ClusterStatistics`): a worker reads one training log, lifts it and returns its
-  :class:`~qube_koopman.identify.regression.Snapshots` factor (a p x p matrix); the client
+  :class:`~qube_koopman.identify.regression.Snapshots` factor (at most p x p, p the regressors and targets); the client
   folds the factors as they come back. A worker reads the log at its path when the workers
   see the client's files (``shared``), or from the bytes the client sends with the task.
 
 dask reschedules the tasks of a worker that dies on the others; the results are the same.
-Workers need this package installed, at the client's version (checked on connecting).
+The scheduler and the workers need this package installed, at the client's version (checked on
+connecting): dask unpickles the tasks on both.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ PACKAGE = "qube-koopman"
 
 
 def connect(address: str, timeout: float = 30.0):
-    """A dask client of the scheduler at ``address``, its workers checked to run this package.
+    """A dask client of the scheduler at ``address``; it and its workers checked to run this package.
 
     Parameters
     ----------
@@ -45,8 +46,8 @@ def connect(address: str, timeout: float = 30.0):
     Raises
     ------
     ValueError
-        dask.distributed missing, the scheduler unreachable, or a worker without this package
-        (or with another version of it).
+        dask.distributed missing, the scheduler unreachable, or the scheduler or a worker
+        without this package (or with another version of it).
     """
     try:
         from dask.distributed import Client
