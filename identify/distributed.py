@@ -4,7 +4,7 @@ Two kinds of work go to the workers, and come back in the order they were sent, 
 cluster run folds exactly what a local run folds:
 
 * the lifting search's candidates (:func:`candidate_runner`; they share the loaded episodes,
-  sent to the cluster once a stage);
+  sent to the cluster once);
 * the per-episode snapshot statistics of a fit or a regularization sweep
   (:class:`ClusterStatistics`): a worker reads one training log, lifts it and returns its
   :class:`~qube_koopman.identify.regression.Snapshots` factor (at most p x p, p the regressors and targets); the client
@@ -115,21 +115,25 @@ def _value(value):
     return value
 
 
-def _shared_arguments(client, calls: list[tuple[Callable, tuple, dict]]) -> list[tuple[Callable, tuple, dict]]:
+def _shared_arguments(client, calls: list[tuple[Callable, tuple, dict]],
+                      sent: dict[int, tuple]) -> list[tuple[Callable, tuple, dict]]:
     """The calls with each argument common to several of them sent once, as a task's result.
 
     Not scattered, as joblib's dask backend does: scattered data has no lineage, and a worker that
     dies with the only copy fails every call that needs it. A task's result the scheduler computes
-    again on another worker; the other workers fetch it from one that holds it.
+    again on another worker; the other workers fetch it from one that holds it. ``sent`` keeps
+    what earlier calls sent (by the argument's id: ``(argument, future)``), for later ones to reuse.
     """
     seen: dict[int, int] = {}
     for _, args, kwargs in calls:
         for value in (*args, *kwargs.values()):
             seen[id(value)] = seen.get(id(value), 0) + 1
-    common = {key: value for _, args, kwargs in calls for value in (*args, *kwargs.values())
-              if seen[(key := id(value))] > 1 and value is not None and not isinstance(value, (str, int, float))}
-    futures = {key: client.submit(_value, value, pure=False) for key, value in common.items()}
-    swap = lambda value: futures.get(id(value), value)  # noqa: E731
+    for _, args, kwargs in calls:
+        for value in (*args, *kwargs.values()):
+            common = (seen[id(value)] > 1 or id(value) in sent) and value is not None
+            if common and not isinstance(value, (str, int, float)) and id(value) not in sent:
+                sent[id(value)] = (value, client.submit(_value, value, pure=False))  # the value keeps its id
+    swap = lambda value: sent[id(value)][1] if id(value) in sent else value  # noqa: E731
     return [(fn, tuple(swap(v) for v in args), {k: swap(v) for k, v in kwargs.items()}) for fn, args, kwargs in calls]
 
 
@@ -139,10 +143,12 @@ def candidate_runner(n_jobs: int, client=None) -> Callable[[list], Iterator]:
     On ``client``'s cluster when given; else through joblib (a well-kept library) on
     ``n_jobs`` local processes (1: in this process).
     """
+    sent: dict[int, tuple] = {}  # the search's episodes, sent once for all its stages
+
     def run(calls):
         calls = list(calls)
         if client is not None:
-            yield from ordered_results(client, _shared_arguments(client, calls), ahead=len(calls) or 1)
+            yield from ordered_results(client, _shared_arguments(client, calls, sent), ahead=len(calls) or 1)
         elif n_jobs == 1:
             for fn, args, kwargs in calls:
                 yield fn(*args, **kwargs)
