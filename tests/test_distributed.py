@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
-from qube_koopman.identify import ClEdmd, Delay, Polynomial, ThinPlateRbf
+from qube_koopman.identify import ClEdmd, Delay, Edmd, Polynomial, ThinPlateRbf
 from qube_koopman.identify.data import group_shuffle_splits
 from qube_koopman.identify.distributed import ClusterStatistics, LogSource, _check_versions, _unseen, ordered_results
 from qube_koopman.identify.sweep import regularization_sweep
@@ -60,14 +60,20 @@ def test_a_sweep_with_statistics_computed_elsewhere_equals_the_local_sweep(loop,
         assert elsewhere.asked == [everything]
 
 
-def test_a_fit_from_statistics_computed_elsewhere_equals_the_fit(loop):
+@pytest.mark.parametrize("closed_loop", [True, False], ids=["CL EDMD", "EDMD"])
+def test_a_fit_from_statistics_computed_elsewhere_equals_the_fit(loop, closed_loop):
     from qube_koopman.identify.workflow import _fit
 
     trajs, controller = loop
-    estimator = ClEdmd(controller, lifting=[Polynomial(2), Delay(3)], alpha=1e-3, measured=[0])
-    here = copy.deepcopy(estimator).fit(trajs, [controller] * len(trajs))
-    there = _fit(copy.deepcopy(estimator), trajs, [controller] * len(trajs), _Elsewhere(trajs))
+    lifting = [Polynomial(2), Delay(3)]
+    estimator = ClEdmd(controller, lifting=lifting, alpha=1e-3, measured=[0]) if closed_loop else \
+        Edmd(lifting=lifting, alpha=1e-3)
+    controllers = [controller] * len(trajs) if closed_loop else None
+    here = copy.deepcopy(estimator).fit(trajs, controllers) if closed_loop else copy.deepcopy(estimator).fit(trajs)
+    elsewhere = _Elsewhere(trajs)
+    there = _fit(copy.deepcopy(estimator), trajs, controllers, elsewhere)
     np.testing.assert_array_equal(there.koopman_matrix_, here.koopman_matrix_)
+    assert elsewhere.asked == [list(range(len(trajs)))]
 
 
 @pytest.fixture
