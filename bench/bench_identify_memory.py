@@ -7,9 +7,12 @@ identified in a fresh process with the issue's lifting::
     qube-identify --train ... --test <the 20 test episodes> --poly 2 --delays 40 \\
         --rbf thin-plate --rbf-centers 50 --alpha 1e-4
 
-Printed per size: wall time, the time per training episode against the smallest size's (target:
-within 1.3, linear in the data), peak RSS (``ru_maxrss`` of the child) and its ratio to the smallest
-size's (target: 448 within 1.3 of 28: memory flat in the number of episodes).
+Printed per size: wall and CPU time (the child's user + system time: the machine is shared, and
+other processes' load changes the wall time by several times between runs), the CPU time per
+added training episode from the previous size (the run's fixed cost, imports and the 20 test
+episodes' predictions, left out) and its ratio to the first such step (target: within 1.3, time
+linear in the data), peak RSS (``ru_maxrss`` of the child) and its ratio to the smallest size's
+(target: 448 within 1.3 of 28: memory flat in the number of episodes).
 
 Usage::
 
@@ -37,8 +40,9 @@ from qube_koopman.identify.cli.identify import main
 argv = json.loads(sys.argv[1])
 start = time.perf_counter()
 status = main(argv)
+usage = resource.getrusage(resource.RUSAGE_SELF)
 print(json.dumps({"status": status, "seconds": time.perf_counter() - start,
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                  "cpu_seconds": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024}))
 """
 
 
@@ -92,14 +96,17 @@ def main() -> None:
         result = measure(repeated(train, n, work), test, work / f"out_{n}", args.extra)
         rows.append((n, result, time.perf_counter() - started))
         print(f"{n} episodes: {result}", flush=True)
-    n0, base, _ = rows[0]
-    print(f"\n{'training episodes':>18} {'wall s':>8} {'s/episode':>10} {'x smallest':>11} {'peak RSS MB':>12} "
-          f"{'x smallest':>11}")
-    for n, r, _ in rows:
-        per = r["seconds"] / n
-        print(f"{n:>18} {r['seconds']:>8.1f} {per:>10.3f} {per / (base['seconds'] / n0):>11.2f} "
+    base = rows[0][1]
+    # CPU seconds per episode added since the previous size: the fixed cost cancels.
+    steps = [None] + [(r["cpu_seconds"] - q["cpu_seconds"]) / (n - m) for (m, q, _), (n, r, _) in zip(rows, rows[1:])]
+    print(f"\n{'training episodes':>18} {'wall s':>8} {'CPU s':>8} {'CPU s/added episode':>20} {'x first step':>13} "
+          f"{'peak RSS MB':>12} {'x smallest':>11}")
+    for (n, r, _), step in zip(rows, steps):
+        per, ratio = ("", "") if step is None else (f"{step:.3f}", f"{step / steps[1]:.2f}")
+        print(f"{n:>18} {r['seconds']:>8.1f} {r['cpu_seconds']:>8.1f} {per:>20} {ratio:>13} "
               f"{r['peak_rss_mb']:>12.0f} {r['peak_rss_mb'] / base['peak_rss_mb']:>11.2f}")
-    print(f"targets: peak RSS at the largest within 1.3 x the smallest; s/episode within 1.3 x. Files in {work}")
+    print(f"targets: peak RSS at the largest within 1.3 x the smallest; CPU s per added episode within 1.3 x "
+          f"the first step's. Files in {work}")
 
 
 if __name__ == "__main__":

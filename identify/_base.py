@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,14 +60,41 @@ class SnapshotEstimator(Estimator):
         """
         return self._fit(self._setup(trajectories))
 
-    def _fit(self, setup: "FitSetup", parts=None) -> "SnapshotEstimator":
-        """Solve from ``parts``: the episodes' statistics in order (default: computed here, one at a time).
+    def _fit(self, setup: "FitSetup", elsewhere=None) -> "SnapshotEstimator":
+        """Solve from the statistics of all the setup's episodes (``elsewhere``: see :meth:`_selection_statistics`)."""
+        # Folded as the episodes come, one at a time: never every episode's factor at once.
+        return self._finish(setup, self._selection_statistics(setup, [None], elsewhere)[0])
 
-        A generator: one controller's statistics fold as they come, never every episode's factor at once.
+    def _selection_statistics(self, setup: "FitSetup", selections, elsewhere=None, indices=None) -> list:
+        """The statistics of several selections of the setup's episodes, from one pass over them.
+
+        ``selections`` are index sequences (None: every episode), e.g. each cross-validation
+        fold's training episodes. Each episode is read, lifted and factored once and folded into
+        every selection holding it: memory grows with the selections, not with the episodes.
+        An episode no selection holds is not read. Each total equals :meth:`_statistics` of its
+        selection's per-episode statistics (bit for bit, the indices in increasing order).
+        ``elsewhere(estimator, setup, ids)`` computes the episodes' statistics instead of this
+        process, in order (on a dask cluster:
+        :class:`~qube_koopman.identify.distributed.ClusterStatistics`); ``ids`` are the
+        episodes' places in ``indices`` (the setup's episodes among a larger list), or their own.
         """
-        if parts is None:
-            parts = (self._episode_snapshots(setup, t) for t in setup.trajectories)
-        return self._finish(setup, self._statistics(setup, parts))
+        members = [None if s is None else {int(j) for j in s} for s in selections]
+        folds = [self._statistics_fold(setup) for _ in selections]
+        trajectories = setup.trajectories
+        needed = [j for j in range(len(trajectories)) if any(m is None or j in m for m in members)]
+        if elsewhere is None:
+            parts = (self._episode_snapshots(setup, trajectories[j]) for j in needed)
+        else:
+            parts = elsewhere(self, setup, [j if indices is None else int(indices[j]) for j in needed])
+        for j, part in zip(needed, parts):
+            for k, m in enumerate(members):
+                if m is None or j in m:
+                    folds[k].add(j, part)
+        return [fold.total() for fold in folds]
+
+    def _statistics_fold(self, setup: "FitSetup"):
+        """A running total of episodes' statistics: ``add(episode_index, part)``, ``total()``."""
+        return _EpisodeFold()
 
     def _setup(self, trajectories) -> "FitSetup":
         raise NotImplementedError
@@ -92,6 +120,21 @@ class SnapshotEstimator(Estimator):
         return None
 
 
+class _EpisodeFold:
+    """:class:`~qube_koopman.identify.regression.SnapshotFold` taking the episode's index too."""
+
+    def __init__(self) -> None:
+        from qube_koopman.identify.regression import SnapshotFold
+
+        self._fold = SnapshotFold()
+
+    def add(self, episode: int, part) -> None:
+        self._fold.add(part)
+
+    def total(self):
+        return self._fold.total()
+
+
 def resolve_lifting(lifting) -> Lifting:
     """A Lifting from None (identity), a Lifting, or a sequence of lifting functions."""
     if lifting is None:
@@ -108,7 +151,8 @@ class FitSetup:
     Sweeps reuse one setup and per-episode snapshots across folds and alphas.
     """
 
-    trajectories: list[Trajectory]
+    #: The validated episodes: a list, or a lazy sequence read one episode at a time.
+    trajectories: Sequence[Trajectory]
     lifting: Lifting
     dt: float | None
     output_matrix: np.ndarray | None = None

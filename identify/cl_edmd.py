@@ -15,7 +15,7 @@ from qube_koopman.identify.regression import (GroupedSnapshots, Snapshots, const
                                               grouped_plant_solve, ridge_solve)
 from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, output_selection,
                                 plant_input_map)
-from qube_koopman.identify.trajectory import Trajectory, check_trajectories
+from qube_koopman.identify.trajectory import Trajectory, check_trajectories, episode_signals
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
@@ -115,12 +115,12 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         # One controller: one controller state width for all; several: each episode's own (checked below).
         needs = ("x", "r", "xc") if per_episode is None else ("x", "r")
         trajs = check_trajectories(trajs, needs, min_samples, what)
-        with_f = [t.f is not None for t in trajs]
-        if any(with_f) and not all(with_f):
+        with_f = {t.f is not None for t in trajs}
+        if len(with_f) > 1:
             raise ValueError("feedforward f is present in some episodes and missing in others")
-        if all(with_f):
+        if True in with_f:
             trajs = check_trajectories(trajs, needs + ("f",), min_samples, what)
-        n_f = trajs[0].f.shape[1] if all(with_f) else 0
+        n_f = trajs[0].f.shape[1] if True in with_f else 0
         m = trajs[0].x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
         if any(not 0 <= i < m for i in measured):
@@ -132,7 +132,7 @@ class _ClosedLoopKoopman(SnapshotEstimator):
             _check_controller(self.controller, measured, n_f, dt)
             for t, ctrl in zip(trajs, per_episode):
                 _check_controller(ctrl, measured, n_f, dt, t)
-        lifting.fit([t.x for t in trajs], trajs[0].state_names)
+        lifting.fit(episode_signals(trajs, "x"), trajs[0].state_names)
         C_p = output_selection(lifting.n_features_out_, measured)
         groups = None if per_episode is None else ControllerGroups.of(per_episode, C_p, n_f)
         return FitSetup(trajs, lifting, dt if dt is not None else self.controller.dt,
@@ -152,6 +152,10 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         if setup.controller_groups is None:
             return super()._statistics(setup, per_episode, indices)
         return setup.controller_groups.statistics(list(per_episode), indices)
+
+    def _statistics_fold(self, setup: FitSetup):
+        """A running total per controller with several controllers (see :meth:`_statistics`)."""
+        return super()._statistics_fold(setup) if setup.controller_groups is None else setup.controller_groups.fold()
 
     def _finish(self, setup: FitSetup, snapshots) -> "_ClosedLoopKoopman":
         """Solve for ``self.alpha`` and set the fitted attributes."""

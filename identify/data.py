@@ -10,10 +10,10 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.trajectory import EpisodeSequence, Trajectory
 from qube_koopman.sim.lti import DiscreteStateSpace
 
-__all__ = ["LoggedTrajectory", "load_logs", "check_same_controller", "check_same_rate",
+__all__ = ["LoggedTrajectory", "StoredLog", "LogTrajectories", "load_logs", "check_same_controller", "check_same_rate",
            "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "UnreadableLogSkipped", "same_system"]
 
 STATE_NAMES = ("theta", "alpha")
@@ -38,9 +38,87 @@ class LoggedTrajectory:
     controller: DiscreteStateSpace
     gains: dict | None = None
 
+    @property
+    def dt(self) -> float:
+        """Sample period (s)."""
+        return self.trajectory.dt
+
+    @property
+    def n_samples(self) -> int:
+        """Samples of the trajectory (after those skipped)."""
+        return self.trajectory.n_samples
+
+
+@dataclass(frozen=True, eq=False)
+class StoredLog:
+    """One episode log kept on disk: its small metadata in memory, its trajectory read when asked for.
+
+    :attr:`trajectory` reads the log again at every access (about 10 ms for 20 s at 500 Hz) and
+    keeps nothing: a fit over many episodes holds one at a time (0.6 MB each, issue 29).
+    Otherwise it stands for a :class:`LoggedTrajectory`.
+    """
+
+    path: Path
+    controller: DiscreteStateSpace
+    gains: dict | None
+    dt: float
+    n_samples: int
+    skip: int = 0
+
+    @property
+    def trajectory(self) -> Trajectory:
+        """The episode's trajectory, read from the log now (``skip`` samples dropped)."""
+        return _read(self.path, self.skip, strict=True, refusal="changed since it was first read")[0].trajectory
+
+
+class LogTrajectories(EpisodeSequence):
+    """The trajectories of logs as a lazy sequence: a stored log's is read when asked for, one at a time.
+
+    Picklable (paths and metadata): a worker reading the same files rebuilds the episodes itself.
+    """
+
+    def __init__(self, logs: Sequence[LoggedTrajectory | StoredLog]) -> None:
+        self.logs = tuple(logs)
+
+    def __len__(self) -> int:
+        return len(self.logs)
+
+    def _make(self, i: int) -> Trajectory:
+        return self.logs[i].trajectory
+
+
+def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTrajectory | None, int]:
+    """One log as a :class:`LoggedTrajectory` and its samples (None when skipped, with a warning)."""
+    from qube_koopman.daq.log import read_episode  # lazily: mcap and zstandard
+
+    if not path.is_file():
+        raise ValueError(f"{path}: no such log file")
+    try:
+        episode = read_episode(path, warn=False)
+    except (ValueError, OSError) as exc:
+        problem = str(exc).removeprefix(f"{path}: ") if isinstance(exc, ValueError) else exc.strerror or exc
+        if strict:
+            raise ValueError(f"{path}: {problem}; {refusal}") from None
+        warnings.warn(f"{path}: {problem}; skipped", UnreadableLogSkipped, stacklevel=3)
+        return None, 0
+    if not episode.is_complete:
+        reason = episode.metadata.status_reason or episode.metadata.salvage_note or episode.metadata.status
+        if strict:
+            raise ValueError(f"{path}: incomplete episode ({reason}); {refusal}")
+        warnings.warn(f"{path}: incomplete episode ({reason}); skipped", IncompleteLogSkipped, stacklevel=3)
+        return None, 0
+    if len(episode) <= skip + 2:
+        raise ValueError(f"{path}: {len(episode)} samples, too few to drop {skip} and identify")
+    traj = Trajectory(x=episode.states, u=np.asarray(episode.plant_input)[:, None], r=episode.references,
+                      f=np.asarray(episode.feedforward)[:, None], xc=episode.controller_state,
+                      name=path.name, state_names=STATE_NAMES, input_names=("u",), dt=episode.dt)
+    return LoggedTrajectory(path, traj.skip(skip), episode.controller,
+                            dict(episode.metadata.controller.gains) or None), len(episode)
+
 
 def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False, *,
-              refusal: str = "refused because of --strict") -> list[LoggedTrajectory]:
+              refusal: str = "refused because of --strict",
+              stored: bool = False) -> list[LoggedTrajectory | StoredLog]:
     """Read MCAP episode logs into trajectories, dropping ``skip`` samples at each start.
 
     Incomplete logs (aborted, or cut short and salvaged) are skipped with an
@@ -60,53 +138,39 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False, 
         What the error of a refused log ends with: why it is refused (a command that always
         refuses, without a ``--strict`` option, says so in its own words).
 
+    stored : bool, default False
+        Keep each log on disk (a :class:`StoredLog`, its trajectory read again when asked for)
+        instead of in memory: every log is read and checked now, one at a time, and memory
+        does not grow with the number of logs.
+
     Raises
     ------
     ValueError
         Naming the file: unreadable, not an episode log, incomplete with
         ``strict``, or too short for ``skip``.
     """
-    from qube_koopman.daq.log import read_episode  # lazily: mcap and zstandard
-
     if skip < 0:
         raise ValueError(f"skip must be >= 0, got {skip}")
     out = []
     for raw in paths:
         path = Path(raw)
-        if not path.is_file():
-            raise ValueError(f"{path}: no such log file")
-        try:
-            episode = read_episode(path, warn=False)
-        except (ValueError, OSError) as exc:
-            problem = str(exc).removeprefix(f"{path}: ") if isinstance(exc, ValueError) else exc.strerror or exc
-            if strict:
-                raise ValueError(f"{path}: {problem}; {refusal}") from None
-            warnings.warn(f"{path}: {problem}; skipped", UnreadableLogSkipped, stacklevel=2)
+        log, n = _read(path, skip, strict, refusal)
+        if log is None:
             continue
-        if not episode.is_complete:
-            reason = episode.metadata.status_reason or episode.metadata.salvage_note or episode.metadata.status
-            if strict:
-                raise ValueError(f"{path}: incomplete episode ({reason}); {refusal}")
-            warnings.warn(f"{path}: incomplete episode ({reason}); skipped", IncompleteLogSkipped, stacklevel=2)
-            continue
-        if len(episode) <= skip + 2:
-            raise ValueError(f"{path}: {len(episode)} samples, too few to drop {skip} and identify")
-        traj = Trajectory(x=episode.states, u=np.asarray(episode.plant_input)[:, None], r=episode.references,
-                          f=np.asarray(episode.feedforward)[:, None], xc=episode.controller_state,
-                          name=path.name, state_names=STATE_NAMES, input_names=("u",), dt=episode.dt)
-        out.append(LoggedTrajectory(path, traj.skip(skip), episode.controller,
-                                    dict(episode.metadata.controller.gains) or None))
-        _log.debug("%s: %d samples at %g Hz", path, len(episode), 1.0 / episode.dt)
+        if stored:
+            log = StoredLog(path, log.controller, log.gains, log.dt, log.n_samples, skip)
+        out.append(log)
+        _log.debug("%s: %d samples at %g Hz", path, n, 1.0 / log.dt)
     _log.info("read %d of %d episode logs", len(out), len(paths))
     return out
 
 
-def check_same_rate(logs: Sequence[LoggedTrajectory], what: str) -> float:
+def check_same_rate(logs: Sequence[LoggedTrajectory | StoredLog], what: str) -> float:
     """The common sample period of the logs; a ValueError naming the odd file otherwise."""
-    dt = logs[0].trajectory.dt
+    dt = logs[0].dt
     for log in logs[1:]:
-        if not np.isclose(log.trajectory.dt, dt, rtol=1e-9, atol=0):
-            raise ValueError(f"{log.path}: sample rate {1 / log.trajectory.dt:g} Hz differs from "
+        if not np.isclose(log.dt, dt, rtol=1e-9, atol=0):
+            raise ValueError(f"{log.path}: sample rate {1 / log.dt:g} Hz differs from "
                              f"{1 / dt:g} Hz of {logs[0].path.name} ({what} logs must share one rate)")
     return dt
 
@@ -117,7 +181,7 @@ def same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
                                  for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))))
 
 
-def check_same_controller(logs: Sequence[LoggedTrajectory], what: str) -> DiscreteStateSpace:
+def check_same_controller(logs: Sequence[LoggedTrajectory | StoredLog], what: str) -> DiscreteStateSpace:
     """The common controller of the logs; a ValueError naming the odd file otherwise."""
     controller = logs[0].controller
     for log in logs[1:]:

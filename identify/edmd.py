@@ -8,7 +8,7 @@ from qube_koopman.identify._base import FitSetup, SnapshotEstimator, pad_rows, r
 from qube_koopman.identify._checks import check_alpha
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.regression import Snapshots, ridge_solve
-from qube_koopman.identify.trajectory import Trajectory, check_trajectories
+from qube_koopman.identify.trajectory import Trajectory, check_trajectories, episode_signals
 
 __all__ = ["Edmd"]
 
@@ -46,10 +46,10 @@ class Edmd(SnapshotEstimator):
         check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
         trajs = check_trajectories(trajectories, ("x", "u"), lifting.n_delays + 2, "EDMD")
-        lifting.fit([t.x for t in trajs], trajs[0].state_names)
+        lifting.fit(episode_signals(trajs, "x"), trajs[0].state_names)
         input_lifting = None
         if self.input_lifting is not None:
-            input_lifting = resolve_lifting(self.input_lifting).fit([t.u for t in trajs], trajs[0].input_names)
+            input_lifting = resolve_lifting(self.input_lifting).fit(episode_signals(trajs, "u"), trajs[0].input_names)
             if input_lifting.n_delays_:
                 raise ValueError("input lifting must be pointwise (no delays)")
         return FitSetup(trajs, lifting, trajs[0].dt, input_lifting=input_lifting)

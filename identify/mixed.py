@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from qube_koopman.identify.data import same_system
-from qube_koopman.identify.regression import GroupedSnapshots, Snapshots
+from qube_koopman.identify.regression import GroupedSnapshots, SnapshotFold, Snapshots
 from qube_koopman.identify.structure import plant_input_map
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -101,16 +101,39 @@ class ControllerGroups:
 
     def statistics(self, per_episode: Sequence[Snapshots], indices: Sequence[int] | None = None) -> GroupedSnapshots:
         """The selected episodes' statistics merged per controller (all episodes by default)."""
-        indices = range(len(per_episode)) if indices is None else [int(i) for i in indices]
-        chosen: dict[int, list[Snapshots]] = {}
-        for i in indices:
-            chosen.setdefault(int(self.labels[i]), []).append(per_episode[i])
-        order = sorted(chosen)
+        fold = self.fold()
+        for i in range(len(per_episode)) if indices is None else indices:
+            fold.add(int(i), per_episode[int(i)])
+        return fold.total()
+
+    def fold(self) -> "GroupedFold":
+        """A running total of episodes' statistics, per controller (see :class:`GroupedFold`)."""
+        return GroupedFold(self)
+
+
+class GroupedFold:
+    """Episodes' statistics folded one at a time into their controller's running total.
+
+    Memory is that of a few factors per controller, whatever the number of episodes.
+    """
+
+    def __init__(self, groups: ControllerGroups) -> None:
+        self.groups = groups
+        self._folds: dict[int, SnapshotFold] = {}
+
+    def add(self, episode: int, part: Snapshots) -> None:
+        """Fold in the statistics of episode ``episode`` (its index: which controller ran it)."""
+        self._folds.setdefault(int(self.groups.labels[episode]), SnapshotFold()).add(part)
+
+    def total(self) -> GroupedSnapshots:
+        """The statistics of every episode added, one part per controller (in the groups' order)."""
+        order = sorted(self._folds)
         if not order:
             raise ValueError("no snapshot statistics to combine")
-        return GroupedSnapshots(tuple(Snapshots.total(chosen[g]) for g in order), tuple(self.maps[g] for g in order),
-                                tuple(slice(self.controllers[g].n_states, None) for g in order),
-                                tuple(self.controllers[g] for g in order))
+        g = self.groups
+        return GroupedSnapshots(tuple(self._folds[k].total() for k in order), tuple(g.maps[k] for k in order),
+                                tuple(slice(g.controllers[k].n_states, None) for k in order),
+                                tuple(g.controllers[k] for k in order))
 
 
 FOLD_KINDS = {

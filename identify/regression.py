@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import linalg
 
-__all__ = ["Snapshots", "GroupedSnapshots", "ridge_solve", "constrained_plant_solve", "grouped_plant_solve"]
+__all__ = ["Snapshots", "SnapshotFold", "GroupedSnapshots", "ridge_solve", "constrained_plant_solve", "grouped_plant_solve"]
 
 
 def _triangular_factor(M: np.ndarray) -> np.ndarray:
@@ -75,16 +75,10 @@ class Snapshots:
         batch : int
             Factors stacked per fold.
         """
-        running: Snapshots | None = None
-        pending: list[Snapshots] = []
+        running = SnapshotFold(batch)
         for part in parts:
-            pending.append(part)
-            if len(pending) == batch:
-                running = cls._fold(running, pending)
-                pending = []
-        if pending or running is None:
-            running = cls._fold(running, pending)
-        return running
+            running.add(part)
+        return running.total()
 
     @classmethod
     def _fold(cls, running: "Snapshots | None", parts: list["Snapshots"]) -> "Snapshots":
@@ -118,6 +112,35 @@ class Snapshots:
     def F(self) -> np.ndarray:
         """``Theta_+ Theta_+^T``."""
         return self._theta.T @ self._theta
+
+
+class SnapshotFold:
+    """A running :meth:`Snapshots.total`: parts added one at a time, folded ``batch`` at a time.
+
+    Memory is that of ``batch + 1`` factors however many parts are added: a sweep keeps one per
+    cross-validation fold and adds each episode to the folds that train on it, so its memory grows
+    with the folds, not with the episodes (issue 29). The total equals :meth:`Snapshots.total` of
+    the same parts in the same order, bit for bit.
+    """
+
+    def __init__(self, batch: int = 4) -> None:
+        self.batch = batch
+        self._running: Snapshots | None = None
+        self._pending: list[Snapshots] = []
+
+    def add(self, part: Snapshots) -> None:
+        """Fold in one part's statistics."""
+        self._pending.append(part)
+        if len(self._pending) == self.batch:
+            self._running = Snapshots._fold(self._running, self._pending)
+            self._pending = []
+
+    def total(self) -> Snapshots:
+        """The statistics of every part added (a ValueError when none was)."""
+        if self._pending or self._running is None:
+            self._running = Snapshots._fold(self._running, self._pending)
+            self._pending = []
+        return self._running
 
 
 def _lstsq(A: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ is constant, R^2 is NaN.
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import warnings
 
@@ -20,7 +20,7 @@ import numpy as np
 
 __all__ = ["ConstantChannelWarning", "r2_score", "r2_scores", "r2_scores_time_major", "r2_from_sums",
            "r2_from_residuals", "DivergedPrediction", "first_diverged_sample",
-           "summarize_episodes", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
+           "summarize_episodes", "EpisodeScore", "episode_score", "summarize_scores", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
 
 
 class ConstantChannelWarning(UserWarning):
@@ -200,6 +200,24 @@ def first_diverged_sample(y_pred: np.ndarray) -> int | None:
     return int(np.argmax(bad)) if bad.any() else None
 
 
+class EpisodeScore(NamedTuple):
+    """One test episode's scores (:func:`episode_score`): what a summary keeps of its prediction."""
+
+    r2: float
+    nrmse: float
+    #: First non-finite predicted sample (from the scored start on) when it diverged, else None.
+    diverged_at: int | None
+
+
+def episode_score(y_true: np.ndarray, y_pred: np.ndarray, start: int = 1) -> EpisodeScore:
+    """R^2 and NRMSE of one episode from sample ``start`` on, and where it diverged (see :func:`summarize_episodes`)."""
+    r2, err = r2_score(y_true[start:], y_pred[start:]), nrmse(y_true[start:], y_pred[start:])
+    if np.isfinite(r2) and np.isfinite(err):
+        return EpisodeScore(r2, err, None)
+    k = first_diverged_sample(y_pred[start:])
+    return EpisodeScore(r2, err, None if k is None else k + start)
+
+
 def summarize_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray], start: int = 1,
                        names: Sequence[str] | None = None) -> dict:
     """Test-set summary: R^2 and NRMSE per episode, their means and standard deviations.
@@ -215,14 +233,18 @@ def summarize_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray
     """
     if len(y_true) != len(y_pred) or not y_true:
         raise ValueError(f"need matching, non-empty episode lists, got {len(y_true)} and {len(y_pred)}")
-    names = [str(i) for i in range(len(y_true))] if names is None else [str(n) for n in names]
-    r2 = np.array([r2_score(t[start:], p[start:]) for t, p in zip(y_true, y_pred)])
-    err = np.array([nrmse(t[start:], p[start:]) for t, p in zip(y_true, y_pred)])
+    return summarize_scores([episode_score(t, p, start) for t, p in zip(y_true, y_pred)], names)
+
+
+def summarize_scores(scores: Sequence[EpisodeScore], names: Sequence[str] | None = None) -> dict:
+    """:func:`summarize_episodes` from each episode's :func:`episode_score`, computed as the episodes streamed by."""
+    if not scores:
+        raise ValueError("need a non-empty list of episode scores")
+    names = [str(i) for i in range(len(scores))] if names is None else [str(n) for n in names]
+    r2 = np.array([s.r2 for s in scores])
+    err = np.array([s.nrmse for s in scores])
     ok = np.isfinite(r2) & np.isfinite(err)
-    diverged = []
-    for i in np.flatnonzero(~ok):
-        k = first_diverged_sample(y_pred[i][start:])
-        diverged.append({"episode": int(i), "name": names[i], "sample": None if k is None else k + start})
+    diverged = [{"episode": int(i), "name": names[i], "sample": scores[i].diverged_at} for i in np.flatnonzero(~ok)]
     finite = bool(ok.all())
     return {"r2_mean": float(r2.mean()) if finite else -np.inf,
             "r2_std": float(r2.std()) if finite else None,

@@ -44,7 +44,7 @@ from qube_koopman.identify.distributed import candidate_runner, connect, release
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
 from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
 from qube_koopman.identify.sweep import regularization_sweep
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.trajectory import Trajectory, as_episodes
 from qube_koopman.identify.transfer import ProbeSet, probe_scores
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -322,7 +322,7 @@ class SearchResult:
 class SearchData:
     """What every candidate evaluation needs (sent once to each worker)."""
 
-    trajectories: list[Trajectory]
+    trajectories: Sequence[Trajectory]  # a list, or a lazy sequence (logs read when needed)
     splits: list[tuple[np.ndarray, np.ndarray]]
     controller: DiscreteStateSpace
     alphas: np.ndarray
@@ -360,18 +360,17 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
 def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndarray, statistics) -> np.ndarray:
     """Probe scores (episodes x alphas) of the plants fitted on all training episodes, at the best CV alphas.
 
-    The plants fit only the rows re-lifted predictions use, from the sweep's shared
-    per-episode statistics when it had them.
+    The plants fit only the rows re-lifted predictions use, from the statistics of all the
+    episodes the sweep folded with its folds' when it had them.
     """
     from qube_koopman.identify._blas import limited_blas_threads
     from qube_koopman.identify.sweep import fit_alphas, fitted_models
 
     top = np.sort(_best_alphas(cv, data.n_transfer_alphas))
     if statistics is not None:
-        setup, per_episode = statistics
+        setup, snapshots = statistics
         with limited_blas_threads(1):
-            _, plants = fitted_models(estimator, setup, estimator._statistics(setup, per_episode), data.alphas[top],
-                                      None, None)
+            _, plants = fitted_models(estimator, setup, snapshots, data.alphas[top], None, None)
     else:
         _, plants = fit_alphas(estimator, data.trajectories, data.alphas[top], relift_rows_only=True,
                                controllers=data.controllers)
@@ -393,12 +392,18 @@ def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
     """Fold scores with an alpha offset estimated on each validation episode, at the best alphas."""
     from qube_koopman.identify._blas import limited_blas_threads
 
+    from qube_koopman.identify.sweep import _MAX_EPISODES
+
     out, top = np.full_like(plain, np.nan), _best_alphas(plain, 3)
     with limited_blas_threads(1):
         for i, (closed, _, validation) in enumerate(sweep.fold_models):
-            held_out = [data.trajectories[k] for k in validation]
+            scores = {j: [] for j in top}
+            for lo in range(0, len(validation), _MAX_EPISODES):  # a few episodes read at a time
+                held_out = [data.trajectories[k] for k in validation[lo:lo + _MAX_EPISODES]]
+                for j in top:
+                    scores[j].append(scores_after_window(closed[j], held_out, data.window, True, data.bound))
             for j in top:
-                out[i, j] = np.mean(scores_after_window(closed[j], held_out, data.window, True, data.bound))
+                out[i, j] = np.mean(np.concatenate(scores[j]))
     return out
 
 
@@ -448,7 +453,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     import joblib
 
     space = space or SearchSpace()
-    data = SearchData(list(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
+    data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
                       int(window), bound, rbf_seed, probes, controllers=None if controllers is None else list(controllers))
     client = connect(scheduler, connect_timeout) if scheduler else None
     run = candidate_runner(n_jobs, client)

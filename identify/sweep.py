@@ -1,6 +1,9 @@
 """Regularization sweeps with episode-grouped cross-validation.
 
-Snapshot statistics are computed once per episode and merged per fold; each
+Snapshot statistics are computed once per episode, in one pass over the episodes
+that folds each into the running totals of the folds training on it (memory
+grows with the folds, not the episodes; the episodes may be a lazy sequence
+read one at a time); each
 alpha is then one small least-squares solve, and every alpha's model
 predicts every validation episode in one batched simulation. A lifting that
 learns from data (RBF centres) is refitted on each fold's training episodes.
@@ -30,7 +33,7 @@ from qube_koopman.identify.regression import Snapshots
 from qube_koopman.identify.scores import r2_from_residuals
 from qube_koopman.identify.simulate import simulate_chunks
 from qube_koopman.identify.structure import close_loop
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "SCORINGS"]
@@ -39,6 +42,9 @@ SCORINGS = ("cl", "plant")
 # Models simulated together: bounds their rings of permuted Koopman rows to ~64 MB (predictions
 # are scored as they come, never held whole).
 _MAX_BATCH_VALUES = 8_000_000
+# Validation episodes scored together: a fold's held-out episodes are read and simulated this many
+# at a time, so scoring memory does not grow with the data (issue 29).
+_MAX_EPISODES = 16
 
 
 @dataclass
@@ -61,10 +67,11 @@ class SweepResult:
         Every fold's models, with ``keep_fold_models``. Without ``fit_all`` (and
         with ``relift``) only the rows a re-lifted prediction uses are fitted;
         the others are NaN.
-    statistics : (setup, per-episode Snapshots), optional
-        Without ``fit_all``: the per-episode statistics every fold shared (None
-        when the lifting learns from data and each fold computed its own, and
-        with ``fit_all``, which fits the final models itself): models on all the
+    statistics : (setup, Snapshots or GroupedSnapshots), optional
+        Without ``fit_all``: the setup every fold shared and the statistics of
+        all the episodes, folded in the same pass as the folds' (None when the
+        lifting learns from data and each fold computed its own, and with
+        ``fit_all``, which fits the final models itself): models on all the
         episodes at any alpha are then one small solve each (:func:`fitted_models`).
     """
 
@@ -121,9 +128,8 @@ def fit_alphas(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[f
     if isinstance(estimator, _ClosedLoopKoopman):
         controller, measured = estimator.controller, estimator.measured
     with limited_blas_threads(1):
-        setup, per_episode = _prepare(estimator, list(trajectories), relift_rows_only, controllers)
-        return fitted_models(estimator, setup, estimator._statistics(setup, per_episode), alphas, controller,
-                             measured)
+        setup, (snapshots,) = _statistics(estimator, as_episodes(trajectories), [None], relift_rows_only, controllers)
+        return fitted_models(estimator, setup, snapshots, alphas, controller, measured)
 
 
 def _batches(n_models: int, n_values_per_model: int) -> list[slice]:
@@ -155,9 +161,23 @@ class _ResidualSums:
             self.sums[models] += np.where(diverged, np.inf, 0.0)
 
 
-def _score(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool, start: int = 1,
+def _score(models: list[KoopmanModel], episodes: Sequence[Trajectory], scoring: str, relift: bool, start: int = 1,
            measured_only: bool = False) -> np.ndarray:
-    """Mean R^2 over episodes for every model, from sample ``start`` on: shape (n_models,)."""
+    """Mean R^2 over episodes for every model, from sample ``start`` on: shape (n_models,).
+
+    The episodes are taken ``_MAX_EPISODES`` at a time (a lazy sequence is read so): memory stays
+    that of one batch however many a fold holds out.
+    """
+    totals = np.zeros(len(models))
+    for lo in range(0, len(episodes), _MAX_EPISODES):
+        batch = [episodes[j] for j in range(lo, min(lo + _MAX_EPISODES, len(episodes)))]
+        totals += _score_sums(models, batch, scoring, relift, start, measured_only)
+    return totals / len(episodes)
+
+
+def _score_sums(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool, start: int,
+                measured_only: bool) -> np.ndarray:
+    """Sum of R^2 over ``episodes`` for every model (batched by length): shape (n_models,)."""
     ref = models[0]
     d, n_p = ref.n_delays, ref.n_passthrough
     by_length: dict[int, list[Trajectory]] = {}
@@ -180,7 +200,7 @@ def _score(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str,
             sums = _ResidualSums(truth, start, sl.stop - sl.start, channels)
             simulate_chunks(A[sl], B[sl], ref.lifting, n_p, x_init, v, p0, relift, sums)
             totals[sl] += r2_from_residuals(sums.sums, truth[start:]).sum(axis=1)
-    return totals / len(episodes)
+    return totals
 
 
 def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float],
@@ -256,31 +276,34 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         controller, measured = estimator.controller, estimator.measured
     elif "cl" in scorings and controller is None:
         raise ValueError("closed-loop scoring of EDMD needs the controller to wrap its plant")
-    trajectories = list(trajectories)
+    trajectories = as_episodes(trajectories)
     if controllers is not None and len(controllers) != len(trajectories):
         raise ValueError(f"{len(controllers)} controllers for {len(trajectories)} episodes: give one per episode")
     total = len(splits) + 1
     # Without the final fits only re-lifted predictions are made: the rows they recompute from
     # the predicted states need no fit (on a 40-delay search lifting, 4 rows of 370).
     partial = relift and not fit_all
-    everything = range(len(trajectories))
-    shared = (None if _learns_from_data(estimator)
-              else _prepare(estimator, trajectories, partial, controllers, elsewhere, everything))
+    if _learns_from_data(estimator):
+        shared, per_fold = None, None
+    else:
+        # One pass over the episodes folds each into the running totals of the folds training on it
+        # (and of all of them): memory O(folds x p^2), not O(episodes x p^2) (issue 29).
+        setup, (*per_fold, everything) = _statistics(estimator, trajectories, [t for t, _ in splits] + [None],
+                                                     partial, controllers, elsewhere)
+        shared = (setup, everything)
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None, statistics=None if fit_all else shared)
     for i, (train, validation) in enumerate(splits):
         held_out_by = _fold_controller(controllers, validation, controller, i)
         fold = _for_controller(estimator, held_out_by)
         if shared is None:
-            setup, per_episode = _prepare(fold, [trajectories[j] for j in train], partial,
-                                          None if controllers is None else [controllers[j] for j in train],
-                                          elsewhere, train)
-            snapshots = fold._statistics(setup, per_episode)
+            setup, (snapshots,) = _statistics(fold, select_episodes(trajectories, train), [None], partial,
+                                              None if controllers is None else [controllers[j] for j in train],
+                                              elsewhere, train)
         else:
-            setup, per_episode = shared
-            snapshots = fold._statistics(setup, per_episode, train)
+            setup, snapshots = shared[0], per_fold[i]
         closed, plants = fitted_models(fold, setup, snapshots, alphas, held_out_by, measured)
-        held_out = [trajectories[j] for j in validation]
+        held_out = select_episodes(trajectories, validation)
         for s in scorings:
             result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start, measured_only)
         if keep:
@@ -289,10 +312,12 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
             progress(i + 1, total)
     if not fit_all:
         return result
-    setup, per_episode = shared if shared is not None else _prepare(estimator, trajectories, False, controllers,
-                                                                    elsewhere, everything)
-    closed, plants = fitted_models(estimator, setup, estimator._statistics(setup, per_episode), alphas, controller,
-                                   measured)
+    if shared is None:
+        setup, (snapshots,) = _statistics(estimator, trajectories, [None], controllers=controllers,
+                                          elsewhere=elsewhere)
+    else:
+        setup, snapshots = shared
+    closed, plants = fitted_models(estimator, setup, snapshots, alphas, controller, measured)
     result.closed_loop_models, result.plant_models = closed, plants
     result.spectral_radius_plant = np.array([m.spectral_radius() for m in plants])
     if closed[0] is not None:
@@ -327,12 +352,14 @@ def _for_controller(estimator, controller):
     return copy.copy(estimator).set_params(controller=controller)
 
 
-def _prepare(estimator, trajectories, partial: bool = False, controllers=None, elsewhere=None, indices=None):
-    """Setup and per-episode statistics; ``partial``: of the rows a re-lifted prediction uses only.
+def _statistics(estimator, trajectories, selections, partial: bool = False, controllers=None, elsewhere=None,
+                indices=None):
+    """Setup, and the statistics of each selection of the episodes (index sequences; None: all).
 
-    ``controllers``: each episode's (a closed-loop estimator's episodes under several controllers).
-    ``elsewhere(template, setup, indices)``: computes the statistics (``indices``: the episodes'
-    among the sweep's) instead of this process.
+    ``partial``: of the rows a re-lifted prediction uses only. ``controllers``: each episode's
+    (a closed-loop estimator's episodes under several controllers). One pass over the episodes
+    (:meth:`~qube_koopman.identify._base.SnapshotEstimator._selection_statistics`), their
+    statistics computed ``elsewhere`` when given (``indices``: the episodes' among the sweep's).
     """
     template = copy.copy(estimator)
     if isinstance(template, _ClosedLoopKoopman):
@@ -341,6 +368,4 @@ def _prepare(estimator, trajectories, partial: bool = False, controllers=None, e
         setup = template._setup(trajectories)
     if partial and template._relift_rows(setup) is not None:
         setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
-    if elsewhere is not None:
-        return setup, list(elsewhere(template, setup, indices))
-    return setup, [template._episode_snapshots(setup, t) for t in setup.trajectories]
+    return setup, template._selection_statistics(setup, selections, elsewhere, indices)

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Sequence
 
 import numpy as np
 
 from qube_koopman.identify._checks import as_signal
 
-__all__ = ["Trajectory", "check_trajectories"]
+__all__ = ["Trajectory", "check_trajectories", "EpisodeSequence", "as_episodes", "select_episodes", "episode_signals"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,12 +82,68 @@ class Trajectory:
         return replace(self, **cut)
 
 
-def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, what: str) -> list[Trajectory]:
-    """A non-empty list of trajectories with the needed signals and consistent widths."""
-    if isinstance(trajectories, Trajectory):
-        trajectories = [trajectories]
-    trajectories = list(trajectories)
-    if not trajectories:
+class EpisodeSequence(Sequence):
+    """Episodes made when asked for and not kept: memory holds one at a time, whatever their number.
+
+    Subclasses say how to make episode ``i`` (:meth:`_make`), e.g. by reading its log again
+    (:class:`~qube_koopman.identify.data.LogTrajectories`). Fits, sweeps and scores pass over such a
+    sequence episode by episode; a list of in-memory trajectories works the same.
+    """
+
+    def _make(self, i: int):
+        raise NotImplementedError
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self._make(i) for i in range(*index.indices(len(self)))]
+        i = int(index) + (len(self) if index < 0 else 0)
+        if not 0 <= i < len(self):
+            raise IndexError(f"episode {index} of {len(self)}")
+        return self._make(i)
+
+
+class _EpisodeView(EpisodeSequence):
+    """Some episodes of a lazy sequence (``indices``), or one signal of each (``signal``)."""
+
+    def __init__(self, base: EpisodeSequence, indices: Sequence[int] | None = None, signal: str | None = None):
+        self._base, self._indices, self._signal = base, None if indices is None else [int(i) for i in indices], signal
+
+    def __len__(self) -> int:
+        return len(self._base) if self._indices is None else len(self._indices)
+
+    def _make(self, i: int):
+        episode = self._base[i if self._indices is None else self._indices[i]]
+        return episode if self._signal is None else getattr(episode, self._signal)
+
+
+def as_episodes(episodes) -> Sequence:
+    """A sequence of episodes: lazy ones (:class:`EpisodeSequence`) as they are, anything else as a list."""
+    if isinstance(episodes, Trajectory):
+        return [episodes]
+    return episodes if isinstance(episodes, EpisodeSequence) else list(episodes)
+
+
+def select_episodes(episodes: Sequence, indices: Sequence[int]) -> Sequence:
+    """``[episodes[i] for i in indices]``, lazily for a lazy sequence (nothing read until asked for)."""
+    if isinstance(episodes, EpisodeSequence):
+        return _EpisodeView(episodes, indices=indices)
+    return [episodes[int(i)] for i in indices]
+
+
+def episode_signals(episodes: Sequence, signal: str) -> Sequence:
+    """One signal of each episode (e.g. ``"x"``), lazily for a lazy sequence."""
+    if isinstance(episodes, EpisodeSequence):
+        return _EpisodeView(episodes, signal=signal)
+    return [getattr(t, signal) for t in episodes]
+
+
+def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, what: str) -> Sequence[Trajectory]:
+    """A non-empty sequence of trajectories with the needed signals and consistent widths.
+
+    A lazy sequence (:class:`EpisodeSequence`) is checked episode by episode and returned as it is.
+    """
+    trajectories = as_episodes(trajectories)
+    if not len(trajectories):
         raise ValueError(f"{what} needs at least one trajectory")
     first = trajectories[0]
     for i, traj in enumerate(trajectories):

@@ -30,7 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.trajectory import Trajectory, as_episodes
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["ProbeSet", "DEFAULT_PROBE_GAINS", "twin_probes", "probe_scores"]
@@ -118,8 +118,8 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
     from qube_koopman.daq.controller import PdGains, pd_controller
     from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
 
-    trajectories = list(trajectories)
-    if not trajectories or per_controller < 1:
+    trajectories = as_episodes(trajectories)  # a lazy sequence stays one: only the replayed episodes are read
+    if not len(trajectories) or per_controller < 1:
         raise ValueError("probes need training episodes and at least one episode per controller")
     params = PendulumParameters() if params is None else params
     distribution = ZeroOffsetDistribution() if isinstance(zero_offsets, str) and zero_offsets == "rig" else zero_offsets

@@ -12,13 +12,13 @@ import numpy as np
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify.arx import Arx, ClArx
 from qube_koopman.identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
-from qube_koopman.identify.data import LoggedTrajectory, same_system
+from qube_koopman.identify.data import LoggedTrajectory, LogTrajectories, same_system
 from qube_koopman.identify.mixed import FOLD_KINDS, cross_validation_folds, training_controllers_report
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.stability import ClEdmdStable
 from qube_koopman.identify.model_file import lifting_to_dict, save_model
 from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets
-from qube_koopman.identify.scores import DivergedPrediction, summarize_episodes
+from qube_koopman.identify.scores import DivergedPrediction, episode_score, summarize_scores
 from qube_koopman.identify.structure import close_loop, controller_states
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 from qube_koopman.sim.lti import DiscreteStateSpace
@@ -99,7 +99,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        cv_seed: int = 1234, arx_lags: int = 10, model_path: str | Path | None = None,
                        offsets: OffsetProtocol | None = None, what_if: DiscreteStateSpace | None = None,
                        estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None,
-                       score_from: int | None = None,
+                       score_from: int | None = None, keep_predictions: bool = True,
                        episode_statistics: Callable | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
@@ -122,6 +122,11 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     :class:`~qube_koopman.identify.distributed.ClusterStatistics`). A diverged test prediction is reported by
     episode and sample with a :class:`~qube_koopman.identify.scores.DivergedPrediction`
     warning.
+
+    Logs may be :class:`~qube_koopman.identify.data.StoredLog` (read when needed): the fit, the
+    cross-validation and the test scores then read one episode at a time, and memory does not
+    grow with the number of logs. ``keep_predictions``: keep every test episode's truth and
+    prediction in the result (for a recording); without it only their scores are kept.
     """
     if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None):
         raise ValueError(f"offsets and what-if controllers need a Koopman method, not {method}")
@@ -130,7 +135,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                          "closed loop; use score='plant', or method 'cl-arx' for closed-loop scores")
     if what_if is not None and score != "cl":
         raise ValueError("a what-if controller predicts the closed loop: use score='cl'")
-    trajs = [log.trajectory for log in train]
+    trajs = LogTrajectories(train)  # read when needed, one episode at a time (stored logs)
     result = IdentificationResult(report={"method": method, "score": score,
                                           "train_logs": [log.path.name for log in train],
                                           "test_logs": [log.path.name for log in test],
@@ -153,14 +158,14 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                 save_model(model_path, method=method, alpha=result.report["alpha"], plant=plant, closed_loop=closed,
                            controller=controller, measured=MEASURED,
                            training={"logs": result.report["train_logs"]})
-            _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from)
+            _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from,
+                           keep_predictions)
         elif method in ("arx", "cl-arx"):
-            plant, closed, predictions = _arx(method, trajs, test, controller, arx_lags, score, result)
+            # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
+            plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
             if model_path is not None:
                 Path(model_path).write_text(_arx_json(method, arx_lags, plant, closed))
-            dt = test[0].trajectory.dt
-            _summarize(result, test, predictions, None, 1 if score_from is None else score_from,
-                       PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt))
+            _score_arx(predict, test, result, score_from, keep_predictions)
         else:
             raise ValueError(f"unknown method {method!r}")
     result.plant, result.closed_loop = plant, closed
@@ -170,7 +175,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
 def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result,
              options, elsewhere=None):
     cls = KOOPMAN_METHODS[method]
-    trajs, controllers = [log.trajectory for log in train], [log.controller for log in train]
+    trajs, controllers = LogTrajectories(train), [log.controller for log in train]
     make = (lambda a: cls(lifting=lifting, alpha=a, **options)) if cls is Edmd else \
         (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
     # EDMD fits the plant from its logged input, whatever the controller; the others from each episode's own.
@@ -209,7 +214,7 @@ def _fit(estimator, trajs, controllers, elsewhere):
     """Fit ``estimator``: its statistics computed here one at a time, or ``elsewhere`` (a cluster) and
     folded as they come back. ``controllers``: each episode's (None for EDMD, fitted from the logged input)."""
     setup = estimator._setup(trajs) if controllers is None else estimator._setup(trajs, controllers)
-    return estimator._fit(setup, None if elsewhere is None else elsewhere(estimator, setup, range(len(trajs))))
+    return estimator._fit(setup, elsewhere)
 
 
 def _test_model(plant, closed, controller, log, score, what_if):
@@ -227,54 +232,71 @@ def _test_model(plant, closed, controller, log, score, what_if):
             log.trajectory)
 
 
-def _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from=None):
-    dt = test[0].trajectory.dt
-    predictions, plain, estimates = [], [], []
-    for log in test:
+class _TestScores:
+    """Test episodes scored as they stream by: per-episode scores kept, predictions only when asked."""
+
+    def __init__(self, result: IdentificationResult, start: int, keep_predictions: bool) -> None:
+        self.result, self.start, self.keep = result, start, keep_predictions
+        self.names, self.scored, self.scores, self.plain_scores = [], [], [], []
+        result.test_names, result.test_truth, result.test_predictions, result.test_time = [], [], [], []
+
+    def add(self, log, truth: np.ndarray, prediction: np.ndarray, plain: np.ndarray | None = None,
+            scored: bool = True) -> None:
+        """One test episode's prediction (and without offsets, ``plain``); ``scored``: counted in the means."""
+        self.result.test_names.append(log.path.name)
+        if scored:
+            self.scored.append(log.path.name)
+            self.scores.append(episode_score(truth, prediction, self.start))
+            if plain is not None:
+                self.plain_scores.append(episode_score(truth, plain, self.start))
+        if self.keep:
+            self.result.test_truth.append(truth)
+            self.result.test_predictions.append(prediction)
+            self.result.test_time.append(np.arange(len(truth)) * log.dt)
+
+    def report(self, protocol: str, dt: float) -> None:
+        """The scores' part of the report, with a warning per diverged prediction."""
+        report = self.result.report
+        report["protocol"] = protocol
+        report["scored_from_sample"] = self.start
+        report["scored_logs"] = self.scored
+        if not self.scored:
+            report["test"] = None
+            return
+        report["test"] = summarize_scores(self.scores, self.scored)
+        _warn_diverged(report["test"], dt, "")
+        if self.plain_scores:
+            report["test_without_offsets"] = summarize_scores(self.plain_scores, self.scored)
+            _warn_diverged(report["test_without_offsets"], dt, " without offsets")
+
+
+def _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from=None,
+                   keep_predictions=True):
+    """Each test log read, predicted and scored in turn (only its scores kept, and its prediction if asked)."""
+    dt = test[0].dt
+    start = offsets.window(dt) if offsets is not None else 1 if score_from is None else score_from
+    scores, estimates = _TestScores(result, start, keep_predictions), []
+    counted = [what_if is None or same_system(log.controller, what_if) for log in test]
+    for log, scored in zip(test, counted):
         model, traj = _test_model(plant, closed, controller, log, score, what_if)
-        plain.append(model.predict(traj))
-        if offsets is None:
-            continue
-        est = estimate_offsets_many(model, [traj], offsets.channels, offsets.window(dt), offsets.bound)[0]
-        estimates.append(est)
-        predictions.append(predict_with_offsets(model, traj, est.as_mapping()) if est.plausible else plain[-1])
-    scored = test if what_if is None else [log for log in test if same_system(log.controller, what_if)]
+        plain = prediction = model.predict(traj)
+        if offsets is not None:
+            est = estimate_offsets_many(model, [traj], offsets.channels, offsets.window(dt), offsets.bound)[0]
+            estimates.append(est)
+            prediction = predict_with_offsets(model, traj, est.as_mapping()) if est.plausible else plain
+        scores.add(log, traj.x, prediction, None if offsets is None else plain, scored)
     if what_if is not None:
         result.report["what_if"] = {
-            "controller": what_if.as_dict(), "n_scored": len(scored),
-            "unscored_logs": [log.path.name for log in test if log not in scored],
+            "controller": what_if.as_dict(), "n_scored": len(scores.scored),
+            "unscored_logs": [log.path.name for log, scored in zip(test, counted) if not scored],
             "note": "test episodes are predicted under this controller; only those recorded under it are scored"}
-    keep = [i for i, log in enumerate(test) if log in scored]
     if offsets is None:
-        protocol = PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt)
-        _summarize(result, test, plain, None, 1 if score_from is None else score_from, protocol, keep)
+        scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt), dt)
         return
     names = list(offsets.channels)
     result.report["offsets"] = [{"log": log.path.name, **est.as_dict(names)} for log, est in zip(test, estimates)]
     result.report["offset_bound"] = offsets.bound
-    _summarize(result, test, predictions, plain, offsets.window(dt), offsets.describe(dt), keep)
-
-
-def _summarize(result, test, predictions, plain, start, protocol, keep=None):
-    """Scores of the kept episodes from sample ``start`` on (and without offsets on the same samples)."""
-    keep = list(range(len(test))) if keep is None else keep
-    result.test_names = [log.path.name for log in test]
-    result.test_truth = [log.trajectory.x for log in test]
-    result.test_predictions = predictions
-    result.test_time = [np.arange(log.trajectory.n_samples) * log.trajectory.dt for log in test]
-    result.report["protocol"] = protocol
-    result.report["scored_from_sample"] = start
-    result.report["scored_logs"] = [test[i].path.name for i in keep]
-    if not keep:
-        result.report["test"] = None
-        return
-    truth = [result.test_truth[i] for i in keep]
-    names = [test[i].path.name for i in keep]
-    result.report["test"] = summarize_episodes(truth, [predictions[i] for i in keep], start, names)
-    _warn_diverged(result.report["test"], test[0].trajectory.dt, "")
-    if plain is not None:
-        result.report["test_without_offsets"] = summarize_episodes(truth, [plain[i] for i in keep], start, names)
-        _warn_diverged(result.report["test_without_offsets"], test[0].trajectory.dt, " without offsets")
+    scores.report(offsets.describe(dt), dt)
 
 
 def _warn_diverged(summary: dict, dt: float, what: str) -> None:
@@ -294,7 +316,7 @@ def _arx(method, trajs, test, controller, lags, score, result):
     if method == "arx":  # plant scoring only (identify_and_score refuses score="cl")
         plant = Arx(lags, lags, inputs=("u",)).fit(trajs)
         result.report["spectral_radius"] = {"closed_loop": None, "plant": _spectral_radius(plant.model_.A)}
-        return plant, None, [plant.predict(log.trajectory) for log in test]
+        return plant, None, plant.predict
     model = ClArx(controller, lags, lags).fit(trajs)
     result.report["spectral_radius"] = {"closed_loop": _spectral_radius(model.closed_loop_.model_.A),
                                         "plant": _spectral_radius(model.plant_.A)}
@@ -303,8 +325,18 @@ def _arx(method, trajs, test, controller, lags, score, result):
             if not same_system(log.controller, controller):
                 raise ValueError(f"{log.path}: its controller differs from the training one; a closed-loop "
                                  "ARX cannot predict another loop (use a Koopman method)")
-        return model, model.closed_loop_, [model.predict_closed_loop(log.trajectory) for log in test]
-    return model, model.closed_loop_, [model.predict(log.trajectory) for log in test]
+        return model, model.closed_loop_, model.predict_closed_loop
+    return model, model.closed_loop_, model.predict
+
+
+def _score_arx(predict, test, result, score_from, keep_predictions) -> None:
+    """Each test log read, predicted by ``predict`` and scored in turn."""
+    dt = test[0].dt
+    scores = _TestScores(result, 1 if score_from is None else score_from, keep_predictions)
+    for log in test:
+        traj = log.trajectory
+        scores.add(log, traj.x, predict(traj))
+    scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt), dt)
 
 
 def _arx_json(method, lags, plant, closed) -> str:

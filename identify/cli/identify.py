@@ -215,10 +215,10 @@ def _check_cross_validation(args, train) -> None:
 
 def _check_delays(args, logs) -> None:
     """A lifting of N delays consumes N samples of each episode and predicts from the next two."""
-    shortest = min(logs, key=lambda log: log.trajectory.n_samples)
-    if not args.search and args.delays + 2 > shortest.trajectory.n_samples:
+    shortest = min(logs, key=lambda log: log.n_samples)
+    if not args.search and args.delays + 2 > shortest.n_samples:
         raise CliError(f"--delays {args.delays} needs episodes of at least {args.delays + 2} samples; "
-                       f"{shortest.path} has {shortest.trajectory.n_samples} (after --skip {args.skip})")
+                       f"{shortest.path} has {shortest.n_samples} (after --skip {args.skip})")
 
 
 def _check_search_args(args) -> None:
@@ -344,8 +344,9 @@ def _load(args):
     _check_disjoint(train_paths, test_paths)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", IncompleteLogSkipped)
-        train = load_logs(train_paths, skip=args.skip, strict=args.strict)
-        test = load_logs(test_paths, skip=args.skip, strict=args.strict)
+        # Kept on disk, read again when needed: memory does not grow with the number of logs (issue 29).
+        train = load_logs(train_paths, skip=args.skip, strict=args.strict, stored=True)
+        test = load_logs(test_paths, skip=args.skip, strict=args.strict, stored=True)
     for w in caught:
         print(f"{PROG}: warning: {w.message}", file=sys.stderr)
     if not train or not test:
@@ -384,13 +385,13 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         _check_cross_validation(args, train)
         _check_delays(args, train + test)
         statistics = _cluster_statistics(args, train, cleanup)
-        what_if = _what_if_controller(args.controller, train[0].trajectory.dt) if args.controller else None
+        what_if = _what_if_controller(args.controller, train[0].dt) if args.controller else None
         out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
         logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
                                          len(train), len(test), args.skip)
         offsets = (OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound)
                    if args.offsets else None)
-        if offsets and min(log.trajectory.n_samples for log in test) <= offsets.window(train[0].trajectory.dt) + 2:
+        if offsets and min(log.n_samples for log in test) <= offsets.window(train[0].dt) + 2:
             raise CliError(f"--estimate-window {args.estimate_window} s leaves nothing to score in the shortest "
                            "test episode")
         alphas = None if not args.alpha_sweep else np.logspace(np.log10(args.alpha_sweep[0]),
@@ -408,7 +409,8 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
             model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
-            score_from=(int(round(args.estimate_window / train[0].trajectory.dt))
+            keep_predictions=bool(args.rerun),
+            score_from=(int(round(args.estimate_window / train[0].dt))
                         if args.protocol == "window" and offsets is None else None), episode_statistics=statistics,
             estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
                                if args.max_radius is not None else None))

@@ -46,9 +46,11 @@ def run_search(args, train, controller):
     from qube_koopman.identify.search import search_liftings
 
     space = load_space(args.search_space)
-    trajs = [log.trajectory for log in train]
-    window = int(round(args.estimate_window / trajs[0].dt))
-    if min(t.n_samples for t in trajs) <= window + max(space.delays) + 2:
+    from qube_koopman.identify.data import LogTrajectories
+
+    trajs = LogTrajectories(train)  # read when needed (stored logs), not all held at once
+    window = int(round(args.estimate_window / train[0].dt))
+    if min(log.n_samples for log in train) <= window + max(space.delays) + 2:
         raise CliError(f"--estimate-window {args.estimate_window} s and {max(space.delays)} delays leave nothing "
                        "to score in the shortest training episode")
     controllers = [log.controller for log in train]
