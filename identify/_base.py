@@ -60,11 +60,12 @@ class SnapshotEstimator(Estimator):
         """
         return self._fit(self._setup(trajectories))
 
-    def _fit(self, setup: "FitSetup") -> "SnapshotEstimator":
+    def _fit(self, setup: "FitSetup", elsewhere=None) -> "SnapshotEstimator":
+        """Solve from the statistics of all the setup's episodes (``elsewhere``: see :meth:`_selection_statistics`)."""
         # Folded as the episodes come, one at a time: never every episode's factor at once.
-        return self._finish(setup, self._selection_statistics(setup, [None])[0])
+        return self._finish(setup, self._selection_statistics(setup, [None], elsewhere)[0])
 
-    def _selection_statistics(self, setup: "FitSetup", selections) -> list:
+    def _selection_statistics(self, setup: "FitSetup", selections, elsewhere=None, indices=None) -> list:
         """The statistics of several selections of the setup's episodes, from one pass over them.
 
         ``selections`` are index sequences (None: every episode), e.g. each cross-validation
@@ -72,15 +73,22 @@ class SnapshotEstimator(Estimator):
         every selection holding it: memory grows with the selections, not with the episodes.
         An episode no selection holds is not read. Each total equals :meth:`_statistics` of its
         selection's per-episode statistics (bit for bit, the indices in increasing order).
+        ``elsewhere(estimator, setup, ids)`` computes the episodes' statistics instead of this
+        process, in order (on a dask cluster:
+        :class:`~qube_koopman.identify.distributed.ClusterStatistics`); ``ids`` are the
+        episodes' places in ``indices`` (the setup's episodes among a larger list), or their own.
         """
         members = [None if s is None else {int(j) for j in s} for s in selections]
         folds = [self._statistics_fold(setup) for _ in selections]
         trajectories = setup.trajectories
-        for j in range(len(trajectories)):
-            wanted = [k for k, m in enumerate(members) if m is None or j in m]
-            if wanted:
-                part = self._episode_snapshots(setup, trajectories[j])
-                for k in wanted:
+        needed = [j for j in range(len(trajectories)) if any(m is None or j in m for m in members)]
+        if elsewhere is None:
+            parts = (self._episode_snapshots(setup, trajectories[j]) for j in needed)
+        else:
+            parts = elsewhere(self, setup, [j if indices is None else int(indices[j]) for j in needed])
+        for j, part in zip(needed, parts):
+            for k, m in enumerate(members):
+                if m is None or j in m:
                     folds[k].add(j, part)
         return [fold.total() for fold in folds]
 

@@ -26,8 +26,9 @@ The space is searched in stages, each a coordinate step from the best so far
 5. ``offsets``: the best candidates so far again, with per-episode offsets
    estimated on each validation episode and probe (at their best alphas).
 
-Candidates of a stage are independent: they run through joblib, on local
-cores (``n_jobs``) or on a dask.distributed cluster (see :func:`search_liftings`).
+Candidates of a stage are independent: they run through joblib on local
+cores (``n_jobs``), or on a dask.distributed cluster (see :func:`search_liftings` and
+:mod:`~qube_koopman.identify.distributed`).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from qube_koopman.identify.cl_edmd import ClEdmd
+from qube_koopman.identify.distributed import candidate_runner, connect, release_workers
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
 from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
 from qube_koopman.identify.sweep import regularization_sweep
@@ -405,28 +407,6 @@ def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
     return out
 
 
-def _runner(n_jobs: int, scheduler: str | None):
-    """A function mapping evaluations over candidates, in order, through joblib.
-
-    joblib (a well-kept library) gives local processes and, with ``scheduler``, the same
-    calls on a dask.distributed cluster; nothing here depends on which.
-    """
-    import joblib
-
-    def run(calls):
-        if scheduler is not None:
-            with joblib.parallel_config(backend="dask"):
-                yield from joblib.Parallel(return_as="generator")(calls)
-        elif n_jobs == 1:
-            for fn, args, kwargs in calls:
-                yield fn(*args, **kwargs)
-        else:
-            # max_nbytes=None: arguments pickled, not memory-mapped (no shared folders to track)
-            yield from joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None)(calls)
-
-    return run
-
-
 def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStateSpace, *, splits,
                     window: int, space: SearchSpace | None = None, n_jobs: int = 1, scheduler: str | None = None,
                     bound: float = DEFAULT_BOUND, rbf_seed: int = 0, probes: ProbeSet | None = None,
@@ -475,7 +455,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     space = space or SearchSpace()
     data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
                       int(window), bound, rbf_seed, probes, controllers=None if controllers is None else list(controllers))
-    client = _dask_client(scheduler, connect_timeout) if scheduler else None
+    client = connect(scheduler, connect_timeout) if scheduler else None
+    run = candidate_runner(n_jobs, client)
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window), probes=probes), set()
     try:
@@ -486,33 +467,11 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
             plain = {r.spec: r.cv_r2 for r in result.candidates}
             calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)))
                      for s in specs]
-            for done, res in enumerate(_runner(n_jobs, scheduler)(calls), start=1):
+            for done, res in enumerate(run(calls), start=1):
                 result.candidates.append(res)
                 if progress:
                     progress(f"search: {stage}", done, len(specs))
     finally:
-        if client is not None:
-            client.close()
-        _release_workers(n_jobs, scheduler)
+        release_workers(n_jobs, client)
     result.seconds = time.perf_counter() - started
     return result
-
-
-def _release_workers(n_jobs: int, scheduler: str | None) -> None:
-    """Stop joblib's reusable local workers: a search leaves no process behind it."""
-    if scheduler is None and n_jobs != 1:
-        from joblib.externals.loky import get_reusable_executor
-
-        get_reusable_executor().shutdown(wait=True)
-
-
-def _dask_client(address: str, timeout: float):
-    try:
-        from dask.distributed import Client
-    except ImportError:
-        raise ValueError('a dask scheduler needs dask.distributed, which is optional: '
-                         'pip install "qube-koopman[dask]"') from None
-    try:
-        return Client(address, timeout=timeout, set_as_default=True)
-    except (OSError, TimeoutError) as exc:
-        raise ValueError(f"{address}: cannot reach the dask scheduler ({exc})") from None

@@ -208,7 +208,8 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
                          controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
                          progress: Callable[[int, int], None] | None = None, score_from: int = 1,
                          measured_only: bool = False, keep_fold_models: bool = False,
-                         fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None) -> SweepResult:
+                         fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None,
+                         episode_statistics: Callable | None = None) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
 
     Parameters
@@ -250,6 +251,10 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         episodes must share one controller: the fold's closed loops are that
         controller's (a closed-loop estimator's plant fitted to the fold's
         training episodes, whatever their controllers).
+    episode_statistics : callable(estimator, setup, indices), optional
+        Computes the per-episode statistics of the episodes at ``indices`` (of
+        ``trajectories``), in order, elsewhere: on a dask cluster,
+        :class:`~qube_koopman.identify.distributed.ClusterStatistics`. Default: here.
 
     Returns
     -------
@@ -257,11 +262,11 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     """
     with limited_blas_threads(1):
         return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress,
-                      (score_from, measured_only, keep_fold_models, fit_all, controllers))
+                      (score_from, measured_only, keep_fold_models, fit_all, controllers, episode_statistics))
 
 
 def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
-    start, measured_only, keep, fit_all, controllers = options
+    start, measured_only, keep, fit_all, controllers, elsewhere = options
     for s in scorings:
         check_choice(s, "scoring", SCORINGS)
     alphas = np.asarray(alphas, dtype=float)
@@ -284,7 +289,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         # One pass over the episodes folds each into the running totals of the folds training on it
         # (and of all of them): memory O(folds x p^2), not O(episodes x p^2) (issue 29).
         setup, (*per_fold, everything) = _statistics(estimator, trajectories, [t for t, _ in splits] + [None],
-                                                     partial, controllers)
+                                                     partial, controllers, elsewhere)
         shared = (setup, everything)
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None, statistics=None if fit_all else shared)
@@ -293,7 +298,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         fold = _for_controller(estimator, held_out_by)
         if shared is None:
             setup, (snapshots,) = _statistics(fold, select_episodes(trajectories, train), [None], partial,
-                                              None if controllers is None else [controllers[j] for j in train])
+                                              None if controllers is None else [controllers[j] for j in train],
+                                              elsewhere, train)
         else:
             setup, snapshots = shared[0], per_fold[i]
         closed, plants = fitted_models(fold, setup, snapshots, alphas, held_out_by, measured)
@@ -307,7 +313,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     if not fit_all:
         return result
     if shared is None:
-        setup, (snapshots,) = _statistics(estimator, trajectories, [None], controllers=controllers)
+        setup, (snapshots,) = _statistics(estimator, trajectories, [None], controllers=controllers,
+                                          elsewhere=elsewhere)
     else:
         setup, snapshots = shared
     closed, plants = fitted_models(estimator, setup, snapshots, alphas, controller, measured)
@@ -345,12 +352,14 @@ def _for_controller(estimator, controller):
     return copy.copy(estimator).set_params(controller=controller)
 
 
-def _statistics(estimator, trajectories, selections, partial: bool = False, controllers=None):
+def _statistics(estimator, trajectories, selections, partial: bool = False, controllers=None, elsewhere=None,
+                indices=None):
     """Setup, and the statistics of each selection of the episodes (index sequences; None: all).
 
     ``partial``: of the rows a re-lifted prediction uses only. ``controllers``: each episode's
     (a closed-loop estimator's episodes under several controllers). One pass over the episodes
-    (:meth:`~qube_koopman.identify._base.SnapshotEstimator._selection_statistics`).
+    (:meth:`~qube_koopman.identify._base.SnapshotEstimator._selection_statistics`), their
+    statistics computed ``elsewhere`` when given (``indices``: the episodes' among the sweep's).
     """
     template = copy.copy(estimator)
     if isinstance(template, _ClosedLoopKoopman):
@@ -359,4 +368,4 @@ def _statistics(estimator, trajectories, selections, partial: bool = False, cont
         setup = template._setup(trajectories)
     if partial and template._relift_rows(setup) is not None:
         setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
-    return setup, template._selection_statistics(setup, selections)
+    return setup, template._selection_statistics(setup, selections, elsewhere, indices)

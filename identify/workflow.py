@@ -99,7 +99,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        cv_seed: int = 1234, arx_lags: int = 10, model_path: str | Path | None = None,
                        offsets: OffsetProtocol | None = None, what_if: DiscreteStateSpace | None = None,
                        estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None,
-                       score_from: int | None = None, keep_predictions: bool = True) -> IdentificationResult:
+                       score_from: int | None = None, keep_predictions: bool = True,
+                       episode_statistics: Callable | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
     Training logs may come from several controllers: each episode is fitted
@@ -116,7 +117,9 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     is predicted under that controller instead; only episodes recorded under
     it are scored. Without offsets, ``score_from`` (samples) scores the test
     episodes from that sample on instead of the paper's sample 1 (as a
-    search scores its candidates), for every method. A diverged test prediction is reported by
+    search scores its candidates), for every method. ``episode_statistics`` computes a Koopman
+    method's per-episode statistics elsewhere, for the fit and the sweep (on a dask cluster:
+    :class:`~qube_koopman.identify.distributed.ClusterStatistics`). A diverged test prediction is reported by
     episode and sample with a :class:`~qube_koopman.identify.scores.DivergedPrediction`
     warning.
 
@@ -146,7 +149,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     with limited_blas_threads(1):
         if method in KOOPMAN_METHODS:
             plant, closed = _koopman(method, lifting, train, controller, alpha, alphas, score,
-                                     cv_splits, cv_seed, progress, result, estimator_options or {})
+                                     cv_splits, cv_seed, progress, result, estimator_options or {},
+                                     episode_statistics)
             result.report["lifting"] = lifting_to_dict(plant.lifting)
             result.report["spectral_radius"] = {"closed_loop": closed.spectral_radius(),
                                                 "plant": plant.spectral_radius()}
@@ -169,18 +173,19 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
 
 
 def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result,
-             options):
+             options, elsewhere=None):
     cls = KOOPMAN_METHODS[method]
     trajs, controllers = LogTrajectories(train), [log.controller for log in train]
     make = (lambda a: cls(lifting=lifting, alpha=a, **options)) if cls is Edmd else \
         (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
     # EDMD fits the plant from its logged input, whatever the controller; the others from each episode's own.
-    fit = (lambda est: est.fit(trajs)) if cls is Edmd else (lambda est: est.fit(trajs, controllers))
+    fit = lambda est: _fit(est, trajs, None if cls is Edmd else controllers, elsewhere)  # noqa: E731
     if alphas is not None:
         folds = cross_validation_folds(controllers, cv_splits, cv_seed)
         report = (lambda done, total: progress("cross-validation", done, total)) if progress else None
         sweep = regularization_sweep(make(0.0), trajs, alphas, folds.splits, scorings=(score,), controller=controller,
-                                     measured=MEASURED, progress=report, controllers=controllers)
+                                     measured=MEASURED, progress=report, controllers=controllers,
+                                     episode_statistics=elsewhere)
         alpha = sweep.best_alpha(score)
         result.sweep = sweep
         best = int(np.flatnonzero(sweep.alphas == alpha)[0])
@@ -203,6 +208,13 @@ def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits
     plant = fitted.model_ if cls is Edmd else fitted.plant_model_
     closed = close_loop(plant, controller, MEASURED) if cls is Edmd else fitted.closed_loop_model_
     return plant, closed
+
+
+def _fit(estimator, trajs, controllers, elsewhere):
+    """Fit ``estimator``: its statistics computed here one at a time, or ``elsewhere`` (a cluster) and
+    folded as they come back. ``controllers``: each episode's (None for EDMD, fitted from the logged input)."""
+    setup = estimator._setup(trajs) if controllers is None else estimator._setup(trajs, controllers)
+    return estimator._fit(setup, elsewhere)
 
 
 def _test_model(plant, closed, controller, log, score, what_if):

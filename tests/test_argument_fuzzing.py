@@ -189,7 +189,7 @@ def stubs():
     import math
 
     from qube_koopman.daq.cli import run
-    from qube_koopman.identify import calibrate, search, transfer
+    from qube_koopman.identify import calibrate, distributed, search, transfer
     from qube_koopman.identify._checks import check_alpha
     from qube_koopman.identify.reproduce import duffing
     from qube_koopman.sim.bridge import BridgeEmulator, avr_pty
@@ -221,6 +221,7 @@ def stubs():
         mp.setattr(duffing, "reproduce_duffing", reproduce_duffing)
         mp.setattr(transfer, "twin_probes", lambda *a, **k: None)
         mp.setattr(search, "search_liftings", reached)
+        mp.setattr(distributed, "connect", reached)  # --scheduler: no waiting for a scheduler's answer
         yield
 
 

@@ -228,8 +228,8 @@ def test_blueprint_has_a_view_per_test_episode_and_per_section():
 @pytest.mark.parametrize("argv, message", [
     (["--search", "--delays", "5"], "--search chooses the lifting, alpha and offsets itself: leave out --delays"),
     (["--search", "--method", "edmd"], "--search selects CL EDMD models"),
-    (["--scheduler", "tcp://x:1"], "--scheduler, --search-space and --transfer belong to --search"),
-    (["--transfer", "none"], "--scheduler, --search-space and --transfer belong to --search"),
+    (["--search-space", "x.toml"], "--search-space and --transfer belong to --search"),
+    (["--transfer", "none"], "--search-space and --transfer belong to --search"),
     (["--offsets", "alpha", "--protocol", "paper"], "it cannot use --protocol paper"),
 ])
 def test_cli_search_refusals(log_dirs, tmp_path, capsys, argv, message):

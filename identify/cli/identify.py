@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import sys
@@ -72,15 +73,27 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                         help="the values to try (default: delays 0-40 by 5, poly 1-3, const, sin/cos and friction "
                              "on/off, 0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
     search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
-                        help="worker processes for the search (default %(default)s: every core)")
+                        help="worker processes for the search (default %(default)s: every core; unused with "
+                             "--scheduler)")
     search.add_argument("--transfer", choices=["twin", "none"], default="twin",
                         help="twin (default): rank candidates by the lower of their cross-validated R^2 and their "
                              "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
                              "unlike the training one (the training excitations replayed on the calibrated twin); "
                              "none: by cross-validated R^2 alone (sees only the training controller)")
-    search.add_argument("--scheduler", metavar="ADDRESS",
-                        help="run the search on this dask.distributed scheduler (e.g. tcp://host:8786) "
-                             'instead of local processes; needs pip install "qube-koopman[dask]"')
+    cluster = p.add_argument_group("dask cluster (README: On a dask cluster)")
+    cluster.add_argument("--scheduler", metavar="ADDRESS",
+                         help="compute on the workers of this dask.distributed scheduler (e.g. tcp://host:8786): "
+                              "the search's candidates instead of --n-jobs local processes, and the per-episode "
+                              "statistics of the fit and of --alpha-sweep (results equal a local run's); the "
+                              "scheduler and the workers need this package at this version (checked on "
+                              "connecting); needs "
+                              'pip install "qube-koopman[dask]"')
+    cluster.add_argument("--worker-logs", choices=["ship", "shared"],
+                         help="how the workers get the training logs for the statistics: ship (the default) sends "
+                              "each log's bytes with its task, for workers that cannot see this machine's files; "
+                              "shared: each worker reads the log itself at its absolute path here (a shared "
+                              "file system; checked on every worker before the fit). The search's candidates "
+                              "always carry the loaded episodes")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -226,11 +239,27 @@ def _check_search_args(args) -> None:
         raise CliError("--n-jobs must be a positive number of processes, or negative (-1: every core)")
 
 
+def _check_scheduler(address: str) -> None:
+    """A dask scheduler's address, ``[PROTOCOL://]HOST:PORT`` (an empty one would start a cluster here)."""
+    import re
+
+    found = re.fullmatch(r"(?:[a-z]+://)?(?:[\w.-]+|\[[0-9A-Fa-f:.]+\]):(\d{1,5})", address)
+    if found is None or not 0 < int(found[1]) < 65536:
+        raise CliError(f"--scheduler takes a dask scheduler's address, for example tcp://host:8786, got {address!r}")
+
+
 def _check_args(args) -> None:
     if args.search:
         _check_search_args(args)
-    elif args.scheduler or args.search_space or args.transfer != "twin":
-        raise CliError("--scheduler, --search-space and --transfer belong to --search")
+    elif args.search_space or args.transfer != "twin":
+        raise CliError("--search-space and --transfer belong to --search")
+    if args.scheduler is not None:
+        _check_scheduler(args.scheduler)
+    if args.worker_logs and not args.scheduler:
+        raise CliError("--worker-logs says how dask workers read the logs: it needs --scheduler")
+    if args.scheduler and args.method in ("arx", "cl-arx"):
+        raise CliError(f"--scheduler computes the Koopman methods' per-episode statistics; --method {args.method} "
+                       "fits here (leave out --scheduler)")
     if args.protocol == "paper" and args.offsets:
         raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
     if args.protocol is None:
@@ -331,19 +360,36 @@ def _load(args):
     return train, test, controller
 
 
+def _cluster_statistics(args, train, cleanup: contextlib.ExitStack):
+    """With --scheduler: the training logs' per-episode statistics on its workers (the client closed by ``cleanup``)."""
+    if not args.scheduler:
+        return None
+    from qube_koopman.identify.distributed import ClusterStatistics, connect
+
+    client = connect(args.scheduler)
+    cleanup.callback(client.close)
+    return ClusterStatistics(client, [log.path for log in train], args.skip, shared=args.worker_logs == "shared")
+
+
 def _run(args) -> int:
+    _check_args(args)
+    with contextlib.ExitStack() as cleanup:
+        return _identify(args, cleanup)
+
+
+def _identify(args, cleanup: contextlib.ExitStack) -> int:
     import numpy as np
 
     from qube_koopman.identify.reports import write_markdown_report
     from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
-    _check_args(args)
     try:
         check_figure_options(args)  # matplotlib there, before the logs load
         train, test, controller = _load(args)
         check_figure_options(args, [log.path.name for log in test])
         _check_cross_validation(args, train)
         _check_delays(args, train + test)
+        statistics = _cluster_statistics(args, train, cleanup)
         what_if = _what_if_controller(args.controller, train[0].dt) if args.controller else None
         out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
         logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
@@ -370,11 +416,13 @@ def _run(args) -> int:
             model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
             keep_predictions=bool(args.rerun),
             score_from=(int(round(args.estimate_window / train[0].dt))
-                        if args.protocol == "window" and offsets is None else None),
+                        if args.protocol == "window" and offsets is None else None), episode_statistics=statistics,
             estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
                                if args.max_radius is not None else None))
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if statistics is not None:  # where the training statistics were computed
+        result.report["cluster"] = {"scheduler": args.scheduler, "worker_logs": args.worker_logs or "ship"}
     if search is not None:
         from qube_koopman.identify.cli.search import search_report
 
