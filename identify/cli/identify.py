@@ -414,7 +414,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
             model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
-            keep_predictions=bool(args.rerun),
+            keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
             score_from=(int(round(args.estimate_window / train[0].dt))
                         if args.protocol == "window" and offsets is None else None), episode_statistics=statistics,
             estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
