@@ -44,7 +44,7 @@ def with_feedforward(controller: DiscreteStateSpace, b_f, d_f: float) -> Discret
 @pytest.fixture(scope="module")
 def linear():
     A_p, B_p = mass_spring_damper()
-    controller = with_feedforward(pid_position_controller(), [0.7, -0.4], -0.6)
+    controller = with_feedforward(pid_position_controller(), [0.2, 0.1], -0.5)
     return A_p, B_p, controller, closed_loop_trajectories(A_p, B_p, controller, measured=[0], n_episodes=4, seed=5)
 
 
