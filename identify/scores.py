@@ -246,10 +246,12 @@ def summarize_scores(scores: Sequence[EpisodeScore], names: Sequence[str] | None
     ok = np.isfinite(r2) & np.isfinite(err)
     diverged = [{"episode": int(i), "name": names[i], "sample": scores[i].diverged_at} for i in np.flatnonzero(~ok)]
     finite = bool(ok.all())
+    with np.errstate(over="ignore"):  # a finite but huge R^2 (a model that all but diverged): its spread is inf
+        r2_std, err_std = (float(r2.std()), float(err.std())) if finite else (None, None)
     return {"r2_mean": float(r2.mean()) if finite else -np.inf,
-            "r2_std": float(r2.std()) if finite else None,
+            "r2_std": r2_std,
             "nrmse_mean": float(err.mean()) if finite else np.inf,
-            "nrmse_std": float(err.std()) if finite else None,
+            "nrmse_std": err_std,
             "n_episodes": int(r2.size),
             "n_diverged": len(diverged), "diverged": diverged,
             "r2_mean_converged": float(r2[ok].mean()) if ok.any() else None,

@@ -72,3 +72,18 @@ def test_a_constant_true_channel_is_left_out_with_a_warning():
         bad = pred.copy()
         bad[10, 1] = np.nan
         assert r2_scores(truth, bad) == -np.inf                   # divergence anywhere still counts
+
+
+def test_a_huge_but_finite_r2_summarizes_without_an_overflow_warning():
+    """A model that all but diverged (R^2 about -1e200, as ARX's plant scores can be): the spread is
+    infinite, said without numpy's overflow warning on the user's terminal."""
+    import warnings
+
+    from qube_koopman.identify.scores import EpisodeScore, summarize_scores
+
+    scores = [EpisodeScore(-1e200, 1e99, None), EpisodeScore(0.9, 0.1, None)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        summary = summarize_scores(scores)
+    assert summary["r2_mean"] == pytest.approx(-5e199) and summary["r2_std"] == np.inf
+    assert summary["n_diverged"] == 0
