@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.sim.lti import DiscreteStateSpace, replay_controller
+from qube_koopman.sim.lti import DiscreteStateSpace, controller_inputs, replay_controller
 
 __all__ = [
     "output_selection",
@@ -150,15 +150,8 @@ def plant_input(controller: DiscreteStateSpace, xc: np.ndarray, r: np.ndarray, y
 
     Saturation of the actuator is not modelled here.
     """
-    e = np.atleast_2d(np.asarray(r, dtype=float) - np.asarray(y, dtype=float))
-    if e.shape[0] == 1 and np.ndim(r) == 1:
-        e = e.T
-    if controller.n_inputs > e.shape[-1]:  # the controller also sees the feedforward: its last inputs
-        if f is None:
-            raise ValueError(f"the controller takes {controller.n_inputs} inputs, the tracking errors and the "
-                             "feedforward, which is not given")
-        e = np.concatenate([e, np.asarray(f, dtype=float).reshape(*e.shape[:-1], -1)], axis=-1)
-    u = np.asarray(xc, dtype=float) @ controller.C.T + e @ controller.D.T
+    inputs = controller_inputs(controller, r, y, f)  # r - y, then f for a controller that takes it
+    u = np.asarray(xc, dtype=float) @ controller.C.T + inputs @ controller.D.T
     return u if f is None else u + np.asarray(f, dtype=float).reshape(u.shape)
 
 

@@ -189,14 +189,14 @@ def controller_inputs(controller: DiscreteStateSpace, references, measured, feed
     ----------
     controller : DiscreteStateSpace
         The controller whose inputs these are.
-    references, measured : array_like of shape (n_samples, n_errors) or (n_samples,)
-        References and measured outputs.
-    feedforward : array_like of shape (n_samples, n_f) or (n_samples,), optional
+    references, measured : array_like of shape (..., n_samples, n_errors) or (n_samples,)
+        References and measured outputs (any leading batch axes).
+    feedforward : array_like of shape (..., n_samples, n_f) or (..., n_samples), optional
         The feedforward; ignored by a controller of the tracking errors only.
 
     Returns
     -------
-    ndarray of shape (n_samples, controller.n_inputs)
+    ndarray of shape (..., n_samples, controller.n_inputs)
         ``r - y``, then ``f`` when the controller takes it.
 
     Raises
@@ -207,17 +207,17 @@ def controller_inputs(controller: DiscreteStateSpace, references, measured, feed
     error = np.asarray(references, dtype=float) - np.asarray(measured, dtype=float)
     if error.ndim == 1:
         error = error[:, None]
-    n_e = error.shape[1]
+    n_e = error.shape[-1]
     if controller.n_inputs == n_e:
         return error
     if feedforward is None:
         raise ValueError(f"the controller takes {controller.n_inputs} inputs; the tracking errors have shape "
                          f"{error.shape} and no feedforward is given")
-    f = np.asarray(feedforward, dtype=float).reshape(len(error), -1)
-    if controller.n_inputs != n_e + f.shape[1]:
+    f = np.asarray(feedforward, dtype=float).reshape(*error.shape[:-1], -1)
+    if controller.n_inputs != n_e + f.shape[-1]:
         raise ValueError(f"the controller takes {controller.n_inputs} inputs, not the {n_e} tracking errors and "
-                         f"{f.shape[1]} feedforward channel{'s' if f.shape[1] != 1 else ''} of the data")
-    return np.hstack([error, f])
+                         f"{f.shape[-1]} feedforward channel{'s' if f.shape[-1] != 1 else ''} of the data")
+    return np.concatenate([error, f], axis=-1)
 
 
 def padded_realization(system: DiscreteStateSpace, n_states: int, seed: int = 0) -> DiscreteStateSpace:
