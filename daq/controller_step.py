@@ -63,32 +63,17 @@ def controller_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
 
 
 def _plain_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
-    """The step on plain floats (the arithmetic, in its order, of the loop before numpy steps)."""
-    if system.n_inputs == 3:
-        return _plain_feedforward_step(system)
-    rows = [(a, b[0], b[1]) for a, b in zip(system.A.tolist(), system.B.tolist())]
+    """The step on plain floats (the arithmetic, in its order, of the loop before numpy steps).
+
+    A controller of the two errors only gets a zero feedforward column: ``0.0 * f`` is a zero,
+    and adding it changes no sum, so its samples are those of a two-input step.
+    """
+    B, D = system.B, system.D
+    if system.n_inputs == 2:
+        B, D = np.hstack([B, np.zeros((system.n_states, 1))]), np.hstack([D, [[0.0]]])
+    rows = [(a, b[0], b[1], b[2]) for a, b in zip(system.A.tolist(), B.tolist())]
     C = system.C[0].tolist()
-    D0, D1 = system.D[0].tolist()
-    xc = (0.0,) * len(rows)
-
-    def output(e0: float, e1: float, f: float) -> tuple[float, tuple[float, ...]]:
-        u = D0 * e0 + D1 * e1
-        for c, x in zip(C, xc):
-            u += c * x
-        return u, xc
-
-    def update(e0: float, e1: float, f: float) -> None:
-        nonlocal xc
-        xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 for row, b0, b1 in rows])
-
-    return output, update
-
-
-def _plain_feedforward_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
-    """:func:`_plain_step` of a controller that also takes the feedforward (its third input)."""
-    rows = [(a, b[0], b[1], b[2]) for a, b in zip(system.A.tolist(), system.B.tolist())]
-    C = system.C[0].tolist()
-    D0, D1, D2 = system.D[0].tolist()
+    D0, D1, D2 = D[0].tolist()
     xc = (0.0,) * len(rows)
 
     def output(e0: float, e1: float, f: float) -> tuple[float, tuple[float, ...]]:
