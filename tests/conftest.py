@@ -21,6 +21,8 @@ hypothesis_settings.load_profile("explore" if os.environ.get("QUBE_FUZZ_EXPLORE"
 
 DATASET_ENV = "QUBE_DATASET_DIR"
 DEFAULT_DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "qube_servo_20230828"
+SOFT_DATASET_ENV = "QUBE_SOFT_DATASET_DIR"
+DEFAULT_SOFT_DATASET = DEFAULT_DATASET.parent / "qube_servo_20230915_soft"
 DATASET_SOURCE = ("the paper's QUBE-Servo dataset (public repository decargroup/closed_loop_koopman, "
                   "folder dataset/controller_20230828, MIT licence)")
 
@@ -51,6 +53,25 @@ def qube_dataset() -> Path:
         fail(f"dataset not found: set {DATASET_ENV} or place {DATASET_SOURCE} "
                     f"at {DEFAULT_DATASET}")
     return path
+
+
+@pytest.fixture(scope="session")
+def soft_logs(tmp_path_factory) -> Path:
+    """The 10 real episodes of the same rig under the softer second controller, imported into MCAP logs."""
+    from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
+    from qube_koopman.daq.log import write_episode
+    from qube_koopman.daq.log.names import log_path
+
+    folder = Path(os.environ.get(SOFT_DATASET_ENV, DEFAULT_SOFT_DATASET))
+    files = sorted(folder.glob("*.csv")) if folder.is_dir() else []
+    if not files:
+        fail = pytest.fail if os.environ.get("CI", "").lower() == "true" else pytest.skip
+        fail(f"soft-controller dataset not found: set {SOFT_DATASET_ENV} or place it at {DEFAULT_SOFT_DATASET}")
+    out = tmp_path_factory.mktemp("soft_logs")
+    controller = load_legacy_controller(folder / "controller.toml")
+    for path in files:
+        write_episode(log_path(out, path.stem), legacy_episode(path, controller))
+    return out
 
 
 @pytest.fixture(scope="session")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,10 +16,18 @@ from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_
 
 DT = 1 / 500
 # Near the rig's calibrated values (a weaker motor with this much arm inertia lets the pendulum fall).
-TRUTH = PendulumParameters(km=0.048, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1, Jh=8e-5, delay=0.001)
+TRUTH = PendulumParameters(km=0.048, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1, Jh=8e-5, delay=0.001,
+                           Kr=7e-4)
 
 
-def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0, seed: int = 0):
+def soft_pd():
+    """The shipped second controller (soft-theta: the rig's structure with a three times softer arm)."""
+    from qube_koopman.daq.controller import controller_file, load_pd_gains, pd_controller
+
+    return pd_controller(load_pd_gains(controller_file("soft-theta")))
+
+
+def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0, seed: int = 0, controller=QUBE_PD):
     """Closed-loop episodes of the rig's excitation (active from 1 s), encoder noise and offsets."""
     rng = np.random.default_rng(seed)
     samples = int(seconds / DT)
@@ -27,7 +37,7 @@ def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0,
     ff = np.stack([e.feedforward for e in ex], axis=1)
     offsets = rng.normal(0.0025, 0.002, n)
     state0 = np.column_stack([np.zeros(n), rng.uniform(-0.02, 0.02, n), np.zeros((n, 2))])
-    run = simulate_closed_loop(state0, QUBE_PD, refs, ff, params, SensorModel(noise_std=5e-4),
+    run = simulate_closed_loop(state0, controller, refs, ff, params, SensorModel(noise_std=5e-4),
                                alpha_offsets=offsets, rng=rng)
     return ([run.measurements[:, i] for i in range(n)], [run.plant_input[:, i] for i in range(n)], offsets)
 
@@ -69,6 +79,25 @@ def test_known_parameters_are_recovered_within_two_standard_errors():
     # The one expected warning: the arm's torque constant and extra inertia are ~0.99 correlated.
     assert cal.warnings_ == [w for w in cal.warnings_ if w.startswith("km and Jh are strongly correlated")]
     assert len(cal.warnings_) <= 1
+
+
+@pytest.mark.slow
+def test_known_parameters_are_recovered_from_two_controllers_logs_at_once():
+    # Twin logs under the rig's gains and under soft-theta, fitted together (the fit is open loop:
+    # the controllers only shape the excitation). A stiffer cable than TRUTH's, as under the soft day.
+    truth = replace(TRUTH, Kr=1.2e-3)
+    rig_y, rig_u, rig_off = simulated_logs(truth, n=2, seed=1)
+    soft_y, soft_u, soft_off = simulated_logs(truth, n=2, seed=2, controller=soft_pd())
+    assert max(np.abs(y[:, 1]).max() for y in soft_y) < 0.5  # the soft loop kept the pendulum up too
+    cal = PlantCalibration(horizon=0.2, skip=0.5, stride=0.2, nominal=PendulumParameters()).fit(
+        rig_y + soft_y, rig_u + soft_u, DT)
+    # Within three asymptotic standard errors (they take the encoders' quantization for white noise).
+    for name in cal.fitted_names_:
+        fitted, value, se = getattr(cal.params_, name), getattr(truth, name), cal.standard_errors_[name]
+        assert abs(fitted - value) <= 3 * se + 1e-12, (name, fitted, value, se)
+    assert cal.standard_errors_["Kr"] < 0.05 * truth.Kr and cal.params_.Kr == pytest.approx(truth.Kr, rel=0.02)
+    np.testing.assert_array_less(np.abs(cal.alpha_offsets_ - np.concatenate([rig_off, soft_off])),
+                                 2.5 * cal.alpha_offset_errors_ + 1e-9)
 
 
 def test_cli_refuses_missing_logs_in_one_line(tmp_path, capsys):

@@ -1,4 +1,7 @@
-"""The twin calibrated on the paper's 28 training episodes, judged on its 20 test episodes.
+"""The twin calibrated on the paper's 28 training episodes and the soft controller's 10, judged on the 20 test episodes.
+
+The fit takes both controllers' logs at once (it is open loop: the logged
+voltage drives each segment); the shipped default twin is this calibration.
 
 The issue's validation targets: standard deviation ratios of theta, alpha
 and voltage within 1 +- 0.05 in closed-loop replay, every test episode
@@ -31,9 +34,16 @@ def split(qube_logs):
 
 
 @pytest.fixture(scope="module")
-def calibration(split):
-    train, _ = split
-    return PlantCalibration().fit([e.states for e in train], [e.plant_input for e in train], train[0].dt)
+def soft(soft_logs):
+    from qube_koopman.daq.log import read_episode
+
+    return [read_episode(p) for p in sorted(soft_logs.glob("*.mcap"))]
+
+
+@pytest.fixture(scope="module")
+def calibration(split, soft):
+    fitted = split[0] + soft
+    return PlantCalibration().fit([e.states for e in fitted], [e.plant_input for e in fitted], fitted[0].dt)
 
 
 @pytest.fixture(scope="module")
@@ -44,19 +54,25 @@ def replay(split, calibration):
 def test_fit_predicts_short_horizons_to_near_encoder_resolution(calibration):
     # 0.2 s open-loop segments from free node states: residuals about two counts' quantization noise
     # on average (measured 1.9 and 1.8 mrad for theta and alpha; 3.8 mrad, 4.3 of them, on the worst episode).
+    # Under the soft controller the pendulum swings more and the residual is twice the rig's (measured
+    # 3.7 and 3.3 mrad on average): what the twin still misses shows most there.
     quantization = 2 * np.pi / 2048 / np.sqrt(12)
-    assert np.all(calibration.residual_rms_.mean(axis=0) < 2.5 * quantization), calibration.residual_rms_
-    assert np.all(calibration.residual_rms_ < 5.0 * quantization), calibration.residual_rms_
-    assert calibration.cost_ > 0 and len(calibration.alpha_offsets_) == 28
-    # The motor's torque per volt is well identified and far from the workbook's.
+    rig, soft = calibration.residual_rms_[:28], calibration.residual_rms_[28:]
+    assert np.all(rig.mean(axis=0) < 2.5 * quantization), rig
+    assert np.all(rig < 5.0 * quantization), rig
+    assert np.all(soft.mean(axis=0) < 5.0 * quantization), soft
+    assert calibration.cost_ > 0 and len(calibration.alpha_offsets_) == 38
+    # The motor's torque per volt is well identified and, with the cables' spring in the model, within
+    # 5 % of the workbook's (0.0415 against 0.042; without the spring it came out 0.0486, making up
+    # for the missing load).
     se = calibration.standard_errors_["km"]
     assert se < 0.01 * calibration.params_.km
-    assert abs(calibration.params_.km - PendulumParameters.workbook().km) > 10 * se
+    assert abs(calibration.params_.km / PendulumParameters.workbook().km - 1) < 0.05
 
 
 def test_the_simulators_defaults_are_this_calibration(calibration):
-    # The shipped twin (plants/qube_20230828.toml = PendulumParameters()) is what the calibration
-    # gives on these 28 logs today, to well within its standard errors.
+    # The shipped twin (plants/qube_20230828_20230915.toml = PendulumParameters()) is what the
+    # calibration gives on these 38 logs today, to well within its standard errors.
     shipped = PendulumParameters()
     for name, se in calibration.standard_errors_.items():
         assert abs(getattr(calibration.params_, name) - getattr(shipped, name)) <= 0.1 * se + 1e-12, name
@@ -86,3 +102,18 @@ def test_calibrated_twin_replays_closer_than_the_previous_defaults(split, replay
 def test_validation_targets(replay):
     assert replay.balanced.all()
     assert np.all(np.abs(replay.std_ratio - 1.0) < 0.05)
+
+
+def test_the_cable_spring_brings_the_soft_loops_slow_arm_motion_back(soft, calibration):
+    # The soft controller's arm wanders slowly; the twin without the cables' spring (calibrated on the
+    # rig's logs alone) replayed its arm at 0.885 of the real standard deviation (0.87 below 0.5 Hz).
+    # Measured with the spring: 0.950 overall, 0.948 below 0.5 Hz.
+    from qube_koopman.identify.calibrate.spectra import slow_std_ratio
+    from qube_koopman.sim.pendulum.params_file import named_parameters
+
+    now = replay_episodes(soft, calibration.params_, n_draws=2)
+    before = replay_episodes(soft, named_parameters("calibrated-20230828"), n_draws=2)
+    assert now.balanced.all()
+    arm_now, arm_before = np.median(now.std_ratio[:, 0]), np.median(before.std_ratio[:, 0])
+    assert arm_now > arm_before + 0.04 and abs(arm_now - 1) < 0.08, (arm_now, arm_before)
+    assert abs(slow_std_ratio(now, soft[0].dt)[0] - 1) < 0.10

@@ -145,3 +145,49 @@ def test_cli_report_folder_gets_the_spectra_and_the_recording(tmp_path, capsys):
         assert "calibration.rrd not written" in err
     else:
         assert (tmp_path / "report" / "calibration.rrd").stat().st_size > 0 and "warning" not in err
+
+
+def test_band_and_slow_std_ratios_are_the_scale_in_every_band():
+    # twin = real * SCALE: every band's and the slow signals' std ratio is SCALE, whatever the spectrum.
+    from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios, slow_std_ratio
+
+    replay = synthetic_replay(n_steps=9000)
+    ratios = band_std_ratios(replay, DT)
+    assert ratios.shape == (len(STD_BANDS), 3)
+    np.testing.assert_allclose(ratios, np.tile(SCALE, (len(STD_BANDS), 1)), rtol=1e-9)
+    np.testing.assert_allclose(slow_std_ratio(replay, DT), SCALE, rtol=1e-9)
+    # A twin that only misses the slow motion: below 0.3 Hz low, the other bands 1.
+    t = np.arange(9000) * DT
+    slow = 0.3 * np.sin(2 * np.pi * 0.15 * t)[:, None, None] * np.array([1.0, 0.0, 0.0])
+    real = synthetic_replay(scale=np.ones(3), n_steps=9000)
+    missing = ReplayResult(real.std_ratio, real.balanced, real.nrmse, real.offsets, real.twin, real.real + slow)
+    ratios = band_std_ratios(missing, DT)
+    assert ratios[0, 0] < 0.2 and np.allclose(ratios[2:, 0], 1.0, atol=0.02)
+
+
+def test_the_per_controller_summary_has_a_row_per_controller_and_the_issue_bands():
+    from qube_koopman.identify.calibrate.report import controller_summary_text
+
+    text = controller_summary_text([("kp_theta 6", synthetic_replay(n_steps=9000)),
+                                    ("kp_theta 2", synthetic_replay(np.ones(3), n_steps=9000))], DT)
+    rows = [line for line in text.splitlines() if line.startswith("| kp_theta")]
+    assert len(rows) == 2
+    header = next(line for line in text.splitlines() if line.startswith("| controller"))
+    for band in ("0-0.3 Hz", "0.3-1 Hz", "1-3 Hz", "above 3 Hz", "slow (< 0.5 Hz)"):
+        assert band in header
+    assert "0.500 / 2.000 / 1.500" in rows[0] and "1.000 / 1.000 / 1.000" in rows[1]
+
+
+def test_controller_groups_follow_the_logged_controller(tmp_path):
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.daq.log import read_episode
+    from qube_koopman.identify.calibrate.validate import controller_groups
+
+    assert run_main(["--episodes", "2", "--duration", "1", "--seed", "3", "--out", str(tmp_path / "a"), "-q"]) == 0
+    assert run_main(["--episodes", "1", "--duration", "1", "--seed", "4", "--controller", "soft-theta",
+                     "--out", str(tmp_path / "b"), "-q"]) == 0
+    paths = sorted((tmp_path / "a").glob("*.mcap")) + sorted((tmp_path / "b").glob("*.mcap"))
+    episodes = [read_episode(p) for p in [paths[0], paths[2], paths[1]]]
+    groups = controller_groups(episodes)
+    assert [members for _, members in groups] == [[0, 2], [1]]
+    assert groups[0][0].startswith("kp_theta 6") and groups[1][0].startswith("kp_theta 2")

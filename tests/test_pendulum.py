@@ -31,9 +31,9 @@ def test_previous_is_the_workbook_with_hardware_fitted_damping():
 def test_defaults_are_the_calibrated_twin_with_the_workbook_masses():
     from qube_koopman.sim.pendulum.params_file import PLANTS, load_plant
     cal = PendulumParameters()
-    assert cal == load_plant(PLANTS / "qube_20230828.toml").params  # digit for digit
+    assert cal == load_plant(PLANTS / "qube_20230828_20230915.toml").params  # digit for digit
     assert (cal.Rm, cal.mr, cal.Lr, cal.mp, cal.g) == (P.Rm, P.mr, P.Lr, P.mp, P.g)
-    assert cal.Jh > 0 and cal.delay > 0 and cal.Cr > 0 and cal.dead_zone > 0
+    assert cal.Jh > 0 and cal.delay > 0 and cal.Cr > 0 and cal.dead_zone > 0 and cal.Kr > 0
 
 
 

@@ -155,7 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "an episode starts only once |alpha| < 5)")
     safety.add_argument("--plant", type=path, default=None, metavar="FILE.toml",
                         help="the simulated pendulum's physical parameters: a qube-calibrate plant file or a "
-                             "named set (default: the twin calibrated on the paper's rig, 'calibrated-20230828'; "
+                             "named set (default: the twin calibrated on the rig under two controllers, "
+                             "'calibrated-two-controllers'; 'calibrated-20230828': on the rig's gains alone; "
                              "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)")
     link = p.add_argument_group("serial bridge (--backend serial)")
     link.add_argument("--port", default=None, metavar="DEV",

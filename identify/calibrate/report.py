@@ -9,13 +9,17 @@ import numpy as np
 
 from qube_koopman.sim.pendulum.params_file import named_parameters
 
-__all__ = ["calibration_text", "validation_text", "write_report"]
+__all__ = ["calibration_text", "validation_text", "controller_summary_text", "write_report"]
 
 _log = logging.getLogger(__name__)
 
 
-def calibration_text(cal, names: list[str], seconds: float) -> str:
-    """Markdown: fitted parameters with standard errors beside the defaults, correlations, residuals."""
+def calibration_text(cal, names: list[str], seconds: float, groups: list | None = None) -> str:
+    """Markdown: fitted parameters with standard errors beside the defaults, correlations, residuals.
+
+    ``groups`` (``validate.controller_groups`` of the fitted episodes): with
+    more than one controller, a table gives each one's mean residual.
+    """
     default = named_parameters("default")
     lines = [f"## Calibration on {len(names)} episodes ({seconds:.1f} s, {cal.nfev_} model evaluations)", "",
              "| parameter | fitted | std. error | default |", "|---|---|---|---|"]
@@ -29,15 +33,25 @@ def calibration_text(cal, names: list[str], seconds: float) -> str:
     lines += ["", "| episode | alpha offset (mrad) | residual RMS theta (mrad) | alpha (mrad) |", "|---|---|---|---|"]
     for name, off, err, rms in zip(names, cal.alpha_offsets_, cal.alpha_offset_errors_, cal.residual_rms_):
         lines.append(f"| {name} | {1e3 * off:+.2f} +- {1e3 * err:.2f} | {1e3 * rms[0]:.2f} | {1e3 * rms[1]:.2f} |")
+    if groups and len(groups) > 1:
+        lines += ["", "Fit per controller (0.2 s segments of the logged voltage, open loop):", "",
+                  "| controller | episodes | residual RMS theta (mrad) | alpha (mrad) |", "|---|---|---|---|"]
+        for label, members in groups:
+            rms = cal.residual_rms_[members]
+            lines.append(f"| {label} | {len(members)} | {1e3 * rms[:, 0].mean():.2f} | {1e3 * rms[:, 1].mean():.2f} |")
     if cal.warnings_:
         lines += ["", "Warnings:", ""] + [f"- {w}" for w in cal.warnings_]
     return "\n".join(lines) + "\n"
 
 
-def validation_text(replay, open_loop: np.ndarray, names: list[str]) -> str:
-    """Markdown: closed-loop replay ratios, balance, NRMSE and 0.2 s open-loop error per episode."""
+def validation_text(replay, open_loop: np.ndarray, names: list[str], controller: str | None = None) -> str:
+    """Markdown: closed-loop replay ratios, balance, NRMSE and 0.2 s open-loop error per episode.
+
+    ``controller`` (a label) names the controller in the title when the validation has several.
+    """
     r = replay.std_ratio
-    lines = [f"## Validation on {len(names)} episodes not fitted", "",
+    under = f" under {controller}" if controller else ""
+    lines = [f"## Validation on {len(names)} episodes not fitted{under}", "",
              f"- balanced: {int(replay.balanced.sum())} of {len(names)}",
              "- std ratio twin/real, min..max (mean): " + ", ".join(
                  f"{label} {r[:, i].min():.3f}..{r[:, i].max():.3f} ({r[:, i].mean():.3f})"
@@ -54,6 +68,34 @@ def validation_text(replay, open_loop: np.ndarray, names: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def controller_summary_text(groups: list, dt: float) -> str:
+    """Markdown: per controller, the replay's median std ratios overall, of the slow motion and by band.
+
+    Parameters
+    ----------
+    groups : list of (str, validate.ReplayResult)
+        Each controller's label and the replay of its validation episodes.
+    dt : float
+        Sample period (s).
+    """
+    from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios, slow_std_ratio
+
+    bands = [f"{lo:g}-{hi:g} Hz" if np.isfinite(hi) else f"above {lo:g} Hz" for lo, hi in STD_BANDS]
+    lines = ["## Replay per controller: std ratio twin / real, median over episodes", "",
+             "Each cell gives theta / alpha / voltage. Slow: the signals low-passed at 0.5 Hz "
+             "(the arm's wander); the bands from Welch spectra (4096-sample segments).", "",
+             "| controller | episodes | balanced | overall | slow (< 0.5 Hz) | " + " | ".join(bands) + " |",
+             "|---" * (5 + len(bands)) + "|"]
+    for label, replay in groups:
+        def cell(v):
+            return " / ".join(f"{x:.3f}" for x in v)
+        band = band_std_ratios(replay, dt)
+        lines.append(f"| {label} | {len(replay.balanced)} | {int(replay.balanced.sum())} "
+                     f"| {cell(np.median(replay.std_ratio, axis=0))} | {cell(slow_std_ratio(replay, dt))} | "
+                     + " | ".join(cell(row) for row in band) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def write_report(folder: Path, text: str, validation=None, dt: float | None = None) -> list[Path]:
     """Write ``report.md`` and, with validation and rerun-sdk, ``calibration.rrd`` in ``folder``.
 
@@ -63,12 +105,14 @@ def write_report(folder: Path, text: str, validation=None, dt: float | None = No
         An existing folder.
     text : str
         The tables (:func:`calibration_text`, :func:`validation_text`).
-    validation : tuple, optional
-        ``(replay, open_loop, names)`` as for :func:`validation_text`: the
-        replay's band-power table (:func:`spectra.spectra_text`) is appended
-        to the report and the replay written to ``calibration.rrd``
-        (:func:`recording.write_recording`). Without rerun-sdk (the optional
-        ``viz`` extra) one warning says the recording was skipped.
+    validation : tuple or list of tuples, optional
+        ``(replay, open_loop, names)`` as for :func:`validation_text`, or one
+        such tuple per controller: each replay's band-power table
+        (:func:`spectra.spectra_text`) is appended to the report and the
+        replay written to ``calibration.rrd`` (the second controller's to
+        ``calibration_2.rrd``, and so on; :func:`recording.write_recording`).
+        Without rerun-sdk (the optional ``viz`` extra) one warning says the
+        recordings were skipped.
     dt : float, optional
         Sample period (s) of the replay; needed with ``validation``.
 
@@ -85,15 +129,17 @@ def write_report(folder: Path, text: str, validation=None, dt: float | None = No
         raise ValueError("write_report needs dt (the replay's sample period) with validation")
     from qube_koopman.identify.calibrate.spectra import spectra_text
 
-    replay, _, names = validation
-    path.write_text("# qube-calibrate report\n\n" + text + "\n" + spectra_text(replay, dt))
-    rrd = folder / "calibration.rrd"
+    groups = validation if isinstance(validation, list) else [validation]
+    spectra = [spectra_text(replay, dt) for replay, *_ in groups]
+    path.write_text("# qube-calibrate report\n\n" + text + "\n" + "\n".join(spectra))
+    rrds = [folder / ("calibration.rrd" if i == 0 else f"calibration_{i + 1}.rrd") for i in range(len(groups))]
     try:
         import rerun  # noqa: F401  (the optional viz extra)
     except ImportError:
         _log.warning("%s not written: rerun-sdk is not installed (the viewer is optional): "
-                     'pip install "qube-koopman[viz]" (in a checkout: pip install -e ".[viz]")', rrd)
+                     'pip install "qube-koopman[viz]" (in a checkout: pip install -e ".[viz]")',
+                     ", ".join(str(r) for r in rrds))
         return [path]
     from qube_koopman.identify.calibrate.recording import write_recording
 
-    return [path, write_recording(rrd, replay, names, dt)]
+    return [path] + [write_recording(rrd, replay, names, dt) for rrd, (replay, _, names, *_) in zip(rrds, groups)]

@@ -59,6 +59,7 @@ PHYSICAL = (
     ("dead_zone", "linear", 0.1, 0.0, 20.0),
     ("Jh", "linear", 1e-5, 0.0, 100.0),
     ("delay", "linear", 1e-3, 0.0, 4.0),
+    ("Kr", "linear", 1e-4, 0.0, 100.0),
 )
 N_PHYSICAL = len(PHYSICAL)
 OFFSET_SCALE = 1e-3  # rad per unit of the fitted offset variable

@@ -16,14 +16,20 @@ from typing import Sequence
 import numpy as np
 from scipy.signal import welch
 
-__all__ = ["CHANNELS", "BANDS", "ReplaySpectra", "replay_spectra", "band_powers", "band_power_ratios",
-           "spectra_text"]
+__all__ = ["CHANNELS", "BANDS", "STD_BANDS", "ReplaySpectra", "replay_spectra", "band_powers", "band_power_ratios",
+           "band_std_ratios", "slow_std_ratio", "spectra_text"]
 
 #: The replay's channels, in the order of the last axis of ``ReplayResult.twin`` and ``.real``.
 CHANNELS = ("theta", "alpha", "voltage")
 _UNITS = ("rad^2", "rad^2", "V^2")
 #: Frequency bands (Hz) of the report's table, each ``[low, high)``.
 BANDS = ((0.0, 1.0), (1.0, 3.0), (3.0, 10.0), (10.0, 30.0), (30.0, 100.0))
+#: Bands (Hz) of the per-controller standard deviation ratios: the arm's slow wander (below 0.3 Hz and
+#: 0.3-1 Hz) apart from the tracking of the reference (1-3 Hz) and the balancing loop (above 3 Hz).
+STD_BANDS = ((0.0, 0.3), (0.3, 1.0), (1.0, 3.0), (3.0, np.inf))
+#: Welch segment (samples) of :func:`band_std_ratios`: 4096 at 500 Hz resolves 0.12 Hz, so the band
+#: below 0.3 Hz holds two bins besides the mean's.
+STD_NPERSEG = 4096
 
 
 @dataclass(frozen=True)
@@ -111,6 +117,51 @@ def band_power_ratios(spectra: ReplaySpectra, bands: Sequence[tuple[float, float
     real, twin = spectra.mean()
     with np.errstate(divide="ignore", invalid="ignore"):
         return band_powers(spectra.frequency, twin, bands) / band_powers(spectra.frequency, real, bands)
+
+
+def band_std_ratios(replay, dt: float, bands: Sequence[tuple[float, float]] = STD_BANDS,
+                    nperseg: int = STD_NPERSEG) -> np.ndarray:
+    """Standard deviation ratio twin / real of each channel within each band: the median over episodes.
+
+    Each episode's ratio is the square root of its twin band power over its
+    real band power (Welch, :func:`replay_spectra`); the median over the
+    episodes is returned, as for the replay's overall ratios.
+
+    Parameters
+    ----------
+    replay : validate.ReplayResult
+    dt : float
+        Sample period (s).
+    bands : sequence of (float, float), optional
+        Band edges (Hz), default :data:`STD_BANDS`.
+    nperseg : int, optional
+        Welch segment length (shortened to the episode's length).
+
+    Returns
+    -------
+    ndarray (n_bands, 3)
+        Columns theta, alpha, voltage.
+    """
+    spectra = replay_spectra(replay, dt, nperseg)
+    real = band_powers(spectra.frequency, spectra.real, bands)
+    twin = band_powers(spectra.frequency, spectra.twin, bands)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.median(np.sqrt(twin / real), axis=1)
+
+
+def slow_std_ratio(replay, dt: float, cutoff: float = 0.5) -> np.ndarray:
+    """Median over episodes of the std ratio twin / real of each channel low-passed at ``cutoff`` Hz.
+
+    A second-order Butterworth filter run forwards and backwards (no phase
+    shift): the slow motion the arm's wander shows in. Returns (3,).
+    """
+    from scipy.signal import butter, sosfiltfilt
+
+    sos = butter(2, cutoff, fs=1.0 / dt, output="sos")
+    real = sosfiltfilt(sos, np.asarray(replay.real, float), axis=0)
+    twin = sosfiltfilt(sos, np.asarray(replay.twin, float), axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.median(twin.std(axis=0) / real.std(axis=0), axis=0)
 
 
 def _number(value: float, spec: str) -> str:

@@ -34,7 +34,42 @@ from qube_koopman.sim.pendulum.sensor import COUNTS_PER_REV
 
 ENCODER_COUNT = 2 * math.pi / COUNTS_PER_REV  # rad: one count of the rig's encoders
 
-__all__ = ["estimate_offset", "estimate_offset_many", "ReplayResult", "replay_episodes", "open_loop_error"]
+__all__ = ["estimate_offset", "estimate_offset_many", "ReplayResult", "replay_episodes", "open_loop_error",
+           "controller_groups", "controller_label"]
+
+
+def controller_label(episode) -> str:
+    """A short name of an episode's controller: its gains, or its kind and number of states."""
+    info = episode.metadata.controller
+    if info.gains:
+        return ", ".join(f"{k} {v:g}" for k, v in info.gains.items())
+    return f"{info.kind} controller, {info.system.A.shape[0]} states"
+
+
+def controller_groups(episodes: Sequence) -> list[tuple[str, list[int]]]:
+    """The episodes grouped by the controller they ran under (and their length), in order of first appearance.
+
+    Two episodes share a group when their controllers are the same system
+    (:func:`~qube_koopman.identify.data.same_system`) and they have as many
+    samples: :func:`replay_episodes` replays one group at a time.
+
+    Returns
+    -------
+    list of (str, list of int)
+        Each group's label (:func:`controller_label`) and its episodes' indices.
+    """
+    from qube_koopman.identify.data import same_system
+
+    groups: list[tuple[str, list[int]]] = []
+    for i, e in enumerate(episodes):
+        for _, members in groups:
+            first = episodes[members[0]]
+            if same_system(first.controller, e.controller) and len(first) == len(e):
+                members.append(i)
+                break
+        else:
+            groups.append((controller_label(e), [i]))
+    return groups
 
 
 def _rates(y: np.ndarray, dt: float) -> np.ndarray:

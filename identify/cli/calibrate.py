@@ -5,8 +5,13 @@
 Writes a plant file (``sim.pendulum.params_file``) that ``qube-run --plant``
 and ``qube-emulate --plant`` load. With ``--split paper`` the logs sorted by
 name are split as in the paper (first 28 fit, the rest validate); with
-``--validate`` the given logs are used to validate. Validation replays them in
-closed loop through the calibrated twin and predicts 0.2 s open loop; the
+``--validate`` the given logs are used to validate. The logs may come from
+several controllers: the fit is open loop (the logged voltage drives each
+segment), so it takes them all at once and gives each controller's residual;
+validation replays each controller's logs in closed loop through the
+calibrated twin, predicts 0.2 s open loop, and gives per controller the
+median standard deviation ratios, overall, of the slow motion (below
+0.5 Hz) and in the bands below 0.3, 0.3-1, 1-3 and above 3 Hz; the
 plant file's provenance then records the balanced count, the standard
 deviation ratios' minimum and maximum (theta, alpha, voltage) and the mean
 replay NRMSE.
@@ -14,7 +19,8 @@ replay NRMSE.
 ``--report DIR`` writes ``DIR/report.md``: the tables printed, and with
 validation the power in frequency bands (0-1, 1-3, 3-10, 10-30, 30-100 Hz)
 of theta, alpha and voltage, twin vs real (Welch spectra averaged over the
-validation episodes). With validation it also writes ``DIR/calibration.rrd``,
+validation episodes). With validation it also writes ``DIR/calibration.rrd``
+(one per controller: ``calibration_2.rrd``...),
 a rerun recording of each validation episode's measured and twin
 trajectories and of the spectra; that needs rerun-sdk (the optional ``viz``
 extra), without which a warning says it was skipped.
@@ -25,6 +31,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+
+import numpy as np
 
 from qube_koopman.identify.cli.common import CliError, output_dir, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, whole_number
@@ -66,7 +74,8 @@ def _read(paths):
 
 def _run(args) -> int:
     from qube_koopman.identify.calibrate import PlantCalibration
-    from qube_koopman.identify.calibrate.report import calibration_text, validation_text, write_report
+    from qube_koopman.identify.calibrate.report import calibration_text, write_report
+    from qube_koopman.identify.calibrate.validate import controller_groups
     from qube_koopman.identify.data import paper_split
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
@@ -86,25 +95,30 @@ def _run(args) -> int:
     cal.fit([e.states for e in episodes], [e.plant_input for e in episodes], episodes[0].dt)
     seconds = time.perf_counter() - started
     names = [p.name for p in fit_paths]
-    text = calibration_text(cal, names, seconds)
+    fit_groups = controller_groups(episodes)
+    text = calibration_text(cal, names, seconds, fit_groups)
     provenance = {"source": "qube-calibrate", "logs": names, "software_version": episodes[0].metadata.software_version,
                   "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                   "residual_rms_theta": float(cal.residual_rms_[:, 0].mean()),
                   "residual_rms_alpha": float(cal.residual_rms_[:, 1].mean()),
                   "horizon_s": args.horizon, "delay_samples": args.delay, "seconds": round(seconds, 1)}
+    if len(fit_groups) > 1:
+        provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
     validation, val_dt = None, None
     if val_paths:
-        from qube_koopman.identify.calibrate.validate import open_loop_error, replay_episodes
-
-        held = _read(val_paths)
-        replay, val_dt = replay_episodes(held, cal.params_), held[0].dt
-        validation = (replay, open_loop_error(held, cal.params_, replay.offsets), [p.name for p in val_paths])
-        text += "\n" + validation_text(*validation)
-        ratio = replay.std_ratio
-        provenance.update(validated_on=validation[2], balanced=int(replay.balanced.sum()),
+        validation, val_dt, summary = _validate(_read(val_paths), val_paths, cal.params_)
+        text += summary
+        replays = [v[0] for v in validation]
+        ratio = np.concatenate([r.std_ratio for r in replays])
+        provenance.update(validated_on=[p.name for p in val_paths],
+                          balanced=int(sum(r.balanced.sum() for r in replays)),
                           std_ratio_min=[round(float(v), 4) for v in ratio.min(axis=0)],
                           std_ratio_max=[round(float(v), 4) for v in ratio.max(axis=0)],
-                          replay_nrmse_percent=round(float(replay.nrmse.mean()), 3))
+                          replay_nrmse_percent=round(float(np.concatenate([r.nrmse for r in replays]).mean()), 3))
+        if len(validation) > 1 or len(fit_groups) > 1:
+            provenance.update(validation_controllers=[v[3] for v in validation],
+                              std_ratio_median_by_controller=[[round(float(x), 4) for x in
+                                                               np.median(v[0].std_ratio, axis=0)] for v in validation])
     try:
         save_plant(args.out, PlantFile(cal.params_, cal.standard_errors_, provenance))
     except OSError as exc:
@@ -113,6 +127,29 @@ def _run(args) -> int:
     if args.report is not None:
         write_report(output_dir(args.report), text, validation, val_dt)
     return 0
+
+
+def _validate(held, paths, params):
+    """Replay the held-out logs one controller at a time.
+
+    Returns the per-controller ``(replay, open_loop, names, label)`` tuples, the
+    sample period and the report's text (each controller's table, then the
+    summary across controllers).
+    """
+    from qube_koopman.identify.calibrate.report import controller_summary_text, validation_text
+    from qube_koopman.identify.calibrate.validate import controller_groups, open_loop_error, replay_episodes
+
+    groups = controller_groups(held)
+    several = len(groups) > 1
+    out, text = [], ""
+    for label, members in groups:
+        episodes = [held[i] for i in members]
+        replay = replay_episodes(episodes, params)
+        out.append((replay, open_loop_error(episodes, params, replay.offsets), [paths[i].name for i in members], label))
+        text += "\n" + validation_text(*out[-1][:3], controller=label if several else None)
+    dt = held[0].dt
+    text += "\n" + controller_summary_text([(v[3], v[0]) for v in out], dt)
+    return out, dt, text
 
 
 def main(argv: list[str] | None = None) -> int:

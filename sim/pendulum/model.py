@@ -37,11 +37,15 @@ DEFAULT_SUBSTEPS = 2
 
 @dataclass(frozen=True)
 class PendulumParameters:
-    """Physical parameters (SI units); defaults: the twin calibrated on the paper's rig.
+    """Physical parameters (SI units); defaults: the twin calibrated on the rig under two controllers.
 
-    The defaults are ``plants/qube_20230828.toml`` (``qube-calibrate`` on the
-    paper's 28 training episodes; validated by closed-loop replay of its 20
-    test episodes, see that file's provenance; a test keeps the two equal).
+    The defaults are ``plants/qube_20230828_20230915.toml`` (``qube-calibrate``
+    on the paper's 28 training episodes, under the rig's gains, and on 10
+    episodes of the same rig under a softer arm loop; validated by
+    closed-loop replay of the paper's 20 test episodes, see that file's
+    provenance; a test keeps the two equal). The twin calibrated on the
+    paper's 28 episodes alone, without the cables' spring, is the named set
+    ``calibrated-20230828`` (``sim.pendulum.params_file``).
     The Quanser workbook's values are :meth:`workbook`; the simulator's
     defaults before the calibration (workbook masses, another public
     project's hardware-fitted damping) are :meth:`previous`. Masses, arm
@@ -75,6 +79,16 @@ class PendulumParameters:
         Inertia the arm carries besides its rod (kg m^2): the motor's rotor, the
         hub, the pendulum's encoder and bearing at the arm's tip. The workbook's
         ``Jr = mr Lr^2 / 12`` leaves them out; 0 keeps its model.
+    Kr : float
+        Stiffness (N m / rad) of the cables between the arm's hub and the base
+        (the pendulum encoder's lead): they pull the arm back towards
+        ``theta_rest`` with the torque ``-Kr (theta - theta_rest)``; 0 leaves
+        them out. Under a soft arm loop this slow, position-dependent load is
+        what moves the arm (see ``docs/calibration.md``).
+    theta_rest : float
+        Arm angle (rad, the arm encoder's frame) at which the cables pull
+        nothing. The rig's operator zeroes the arm encoder with the arm at its
+        rest position, so 0 by default.
     delay : float
         Transport delay (s) from a command to the motor: over each sample the
         motor sees the command of ``delay`` seconds earlier, so a fraction of a
@@ -84,21 +98,23 @@ class PendulumParameters:
         linearization; 0 applies each command at once.
     """
 
-    # The calibrated twin, digit for digit as plants/qube_20230828.toml (tests/test_plant_file.py).
+    # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/test_plant_file.py).
     Rm: float = 8.4
-    km: float = 0.04864813046650378
+    km: float = 0.04150972435258463
     mr: float = 0.095
     Lr: float = 0.085
     mp: float = 0.024
-    Lp: float = 0.12242902564414418
+    Lp: float = 0.12229911701971229
     g: float = 9.81
-    Dr: float = 2.7494801249532958e-05
+    Dr: float = 9.546343351413476e-05
     Dp: float = 0.0
-    Cr: float = 0.000358814238994569
+    Cr: float = 0.0003462091963729839
     coulomb_speed: float = 0.05
-    dead_zone: float = 0.061651748211563454
-    Jh: float = 8.515183927191558e-05
-    delay: float = 0.001031465297751494
+    dead_zone: float = 0.05858658709331478
+    Jh: float = 5.6122785739477445e-05
+    delay: float = 0.0019376046681532208
+    Kr: float = 0.0009874412048886023
+    theta_rest: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -111,7 +127,7 @@ class PendulumParameters:
         # km = 0 (motor disconnected) and zero damping are legitimate idealizations.
         if self.coulomb_speed <= 0:
             raise ValueError(f"parameter coulomb_speed must be positive, got {self.coulomb_speed}")
-        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone", "Jh", "delay"):
+        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone", "Jh", "delay", "Kr"):
             if getattr(self, name) < 0:
                 raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
 
@@ -119,9 +135,9 @@ class PendulumParameters:
     def workbook(cls) -> "PendulumParameters":
         """All values from the Quanser QUBE-Servo 2 workbook, including its damping.
 
-        No dry friction, dead zone, hub inertia or delay: the workbook's model.
+        No dry friction, dead zone, hub inertia, cable stiffness or delay: the workbook's model.
         """
-        return cls(km=0.042, Lp=0.129, Dr=0.0015, Dp=0.0005, Cr=0.0, dead_zone=0.0, Jh=0.0, delay=0.0)
+        return cls(km=0.042, Lp=0.129, Dr=0.0015, Dp=0.0005, Cr=0.0, dead_zone=0.0, Jh=0.0, delay=0.0, Kr=0.0)
 
     @classmethod
     def previous(cls) -> "PendulumParameters":
@@ -159,6 +175,8 @@ class _Coefficients(NamedTuple):
     arm_coulomb: float = 0.0   # Cr
     inverse_coulomb_speed: float = 20.0  # 1 / coulomb_speed
     dead_zone: float = 0.0
+    arm_stiffness: float = 0.0  # Kr
+    arm_rest: float = 0.0       # theta_rest
 
     @classmethod
     def of(cls, p: PendulumParameters) -> "_Coefficients":
@@ -166,7 +184,8 @@ class _Coefficients(NamedTuple):
                    m12=p.mp * p.Lp * p.Lr / 2.0, m22=p.Jp + p.mp * p.Lp**2 / 4.0,
                    gravity=p.mp * p.Lp * p.g / 2.0, torque_per_volt=p.km / p.Rm,
                    arm_damping=p.km**2 / p.Rm + p.Dr, pendulum_damping=p.Dp,
-                   arm_coulomb=p.Cr, inverse_coulomb_speed=1.0 / p.coulomb_speed, dead_zone=p.dead_zone)
+                   arm_coulomb=p.Cr, inverse_coulomb_speed=1.0 / p.coulomb_speed, dead_zone=p.dead_zone,
+                   arm_stiffness=p.Kr, arm_rest=p.theta_rest)
 
 
 def _motor_voltage(voltage, k: _Coefficients):
@@ -178,15 +197,17 @@ def _motor_voltage(voltage, k: _Coefficients):
     return voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
 
 
-def _accelerations(s, c, theta_dot, alpha_dot, voltage, k: _Coefficients, tanh: Callable = np.tanh):
-    """(theta_ddot, alpha_ddot) from sin and cos of alpha and the motor's voltage (past the dead
-    zone, :func:`_motor_voltage`); floats or arrays alike."""
+def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: _Coefficients, tanh: Callable = np.tanh):
+    """(theta_ddot, alpha_ddot) from the arm angle, sin and cos of alpha and the motor's voltage
+    (past the dead zone, :func:`_motor_voltage`); floats or arrays alike."""
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
     r1 = (k.torque_per_volt * voltage - k.arm_damping * theta_dot
           - 2.0 * k.quarter * s * c * theta_dot * alpha_dot + k.m12 * s * alpha_dot * alpha_dot)
     if k.arm_coulomb:  # a Python branch: without friction the arithmetic is exactly as before
         r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
+    if k.arm_stiffness:  # the cables' spring; as above, exactly the old arithmetic without it
+        r1 = r1 - k.arm_stiffness * (theta - k.arm_rest)
     r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
     m11 = k.m11 + k.quarter * s * s
     m12 = k.m12 * c
@@ -202,19 +223,22 @@ def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: _Coef
     voltage = _motor_voltage(voltage, k)  # constant over the steps: the dead zone once
     tanh = math.tanh if sin is math.sin else np.tanh
     for _ in range(n):
-        a1, b1 = _accelerations(sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage, k, tanh)
+        a1, b1 = _accelerations(theta, sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage, k, tanh)
+        th2 = theta + half * theta_dot
         al2 = alpha + half * alpha_dot
         td2 = theta_dot + half * a1
         ad2 = alpha_dot + half * b1
-        a2, b2 = _accelerations(sin(al2), cos(al2), td2, ad2, voltage, k, tanh)
+        a2, b2 = _accelerations(th2, sin(al2), cos(al2), td2, ad2, voltage, k, tanh)
+        th3 = theta + half * td2
         al3 = alpha + half * ad2
         td3 = theta_dot + half * a2
         ad3 = alpha_dot + half * b2
-        a3, b3 = _accelerations(sin(al3), cos(al3), td3, ad3, voltage, k, tanh)
+        a3, b3 = _accelerations(th3, sin(al3), cos(al3), td3, ad3, voltage, k, tanh)
+        th4 = theta + h * td3
         al4 = alpha + h * ad3
         td4 = theta_dot + h * a3
         ad4 = alpha_dot + h * b3
-        a4, b4 = _accelerations(sin(al4), cos(al4), td4, ad4, voltage, k, tanh)
+        a4, b4 = _accelerations(th4, sin(al4), cos(al4), td4, ad4, voltage, k, tanh)
         theta = theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4)
         alpha = alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4)
         theta_dot = theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
@@ -277,7 +301,7 @@ def dynamics(state, voltage, params: PendulumParameters = PendulumParameters()) 
     """
     x = _as_states(state)
     k = _Coefficients.of(params)
-    theta_ddot, alpha_ddot = _accelerations(np.sin(x[..., 1]), np.cos(x[..., 1]), x[..., 2], x[..., 3],
+    theta_ddot, alpha_ddot = _accelerations(x[..., 0], np.sin(x[..., 1]), np.cos(x[..., 1]), x[..., 2], x[..., 3],
                                             _motor_voltage(np.asarray(voltage, dtype=float), k), k)
     return np.stack(np.broadcast_arrays(x[..., 2], x[..., 3], theta_ddot, alpha_ddot), axis=-1)
 
@@ -340,16 +364,17 @@ def simulate(state0, voltages, params: PendulumParameters = PendulumParameters()
 
 
 def total_energy(state, params: PendulumParameters = PendulumParameters()) -> np.ndarray:
-    """Kinetic (full inertia matrix) plus pendulum potential energy (J), zero potential level at the pivot.
+    """Kinetic (full inertia matrix) plus potential energy (J), zero potential level at the pivot.
 
-    With alpha = 0 upright the potential is ``mp g Lp / 2 cos(alpha)``.
+    With alpha = 0 upright the pendulum's potential is ``mp g Lp / 2 cos(alpha)``; the cables'
+    spring adds ``Kr (theta - theta_rest)^2 / 2``.
     """
     x = _as_states(state)
     k = _Coefficients.of(params)
     s, c = np.sin(x[..., 1]), np.cos(x[..., 1])
     td, ad = x[..., 2], x[..., 3]
     kinetic = 0.5 * ((k.m11 + k.quarter * s * s) * td * td + 2.0 * k.m12 * c * td * ad + k.m22 * ad * ad)
-    return kinetic + k.gravity * c
+    return kinetic + k.gravity * c + 0.5 * k.arm_stiffness * (x[..., 0] - k.arm_rest) ** 2
 
 
 def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tuple[np.ndarray, np.ndarray]:
@@ -373,14 +398,16 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     slope at 0 V of a dead zone is zero, which describes no motion the loop
     makes; the linearization is that of the motor outside it. The smoothed
     Coulomb torque enters through its slope at rest, ``Cr / coulomb_speed``,
-    as viscous damping of the arm.
+    as viscous damping of the arm. The cables' spring (``Kr``) enters as a
+    stiffness of the arm; the equilibrium is at ``theta = theta_rest``, so
+    the state's theta is measured from there.
     """
     k = _Coefficients.of(params)
     mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])
     # Generalized forces to first order at alpha = 0: columns (theta, alpha, theta_dot, alpha_dot).
     # The smoothed Coulomb torque's slope at rest acts as viscous damping there.
     arm_damping = k.arm_damping + k.arm_coulomb * k.inverse_coulomb_speed
-    forces = np.array([[0.0, 0.0, -arm_damping, 0.0],
+    forces = np.array([[-k.arm_stiffness, 0.0, -arm_damping, 0.0],
                        [0.0, k.gravity, 0.0, -k.pendulum_damping]])
     A = np.zeros((4, 4))
     A[0, 2] = A[1, 3] = 1.0

@@ -26,11 +26,14 @@ Unknown keys in ``[parameters]`` are an error (a misspelt ``Dr`` must not
 silently keep its default). Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
-Named parameter sets (:func:`named_parameters`): ``"calibrated-20230828"``
-(``plants/qube_20230828.toml``: ``qube-calibrate`` on the paper's 28 training
-episodes, with the arm's hub inertia and the transport delay fitted; its
-closed-loop validation on the 20 test episodes is in its provenance),
-``"default"`` (what :class:`PendulumParameters` gives: the same values),
+Named parameter sets (:func:`named_parameters`): ``"calibrated-two-controllers"``
+(``plants/qube_20230828_20230915.toml``: ``qube-calibrate`` on the paper's 28
+training episodes and on 10 episodes of the same rig under a softer arm loop,
+with the arm's cable spring ``Kr`` fitted; its closed-loop validation is in its
+provenance), ``"default"`` (what :class:`PendulumParameters` gives: the same
+values), ``"calibrated-20230828"`` (``plants/qube_20230828.toml``: the paper's
+28 training episodes alone, with the arm's hub inertia and the transport delay
+fitted and no cable spring: the default before the second controller's logs),
 ``"workbook"`` (the Quanser workbook, including its damping) and
 ``"previous"`` (workbook masses with another public project's hardware-fitted
 damping: the default before calibration, the calibration's starting point).
@@ -76,13 +79,14 @@ class PlantFile:
 
 
 #: The named parameter sets (:func:`named_parameters`).
-PARAMETER_SETS = ("default", "calibrated-20230828", "workbook", "previous")
+PARAMETER_SETS = ("default", "calibrated-two-controllers", "calibrated-20230828", "workbook", "previous")
 
 
 def named_parameters(name: str) -> PendulumParameters:
-    """A named parameter set: ``"default"``, ``"calibrated-20230828"``, ``"workbook"`` or ``"previous"``."""
+    """A named parameter set: one of :data:`PARAMETER_SETS`."""
     sets = {"default": PendulumParameters, "workbook": PendulumParameters.workbook,
             "previous": PendulumParameters.previous,
+            "calibrated-two-controllers": lambda: load_plant(PLANTS / "qube_20230828_20230915.toml").params,
             "calibrated-20230828": lambda: load_plant(PLANTS / "qube_20230828.toml").params}
     if name not in sets:
         raise ValueError(f"no parameter set named {name!r}; known: {', '.join(sets)}")

@@ -1,0 +1,76 @@
+"""The arm's cable spring (PendulumParameters.Kr, theta_rest): analytic cases of the twin's new physics."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from qube_koopman.sim.pendulum import PendulumParameters, PendulumSimulator, simulate
+from qube_koopman.sim.pendulum.model import dynamics, linearize_upright, total_energy
+
+DT = 1 / 500
+# No motor torque on the arm's motion (km = 0 removes the back-EMF), no friction, no dead zone, no delay.
+FREE = replace(PendulumParameters(), km=0.0, Dr=0.0, Dp=0.0, Cr=0.0, dead_zone=0.0, delay=0.0,
+               Kr=1e-3, theta_rest=0.05)
+
+
+def test_the_arm_alone_oscillates_at_the_springs_natural_frequency():
+    # A pendulum of negligible mass: the arm is a torsion oscillator, theta_rest + A cos(w t),
+    # w = sqrt(Kr / J), J the arm's inertia about the motor axis.
+    p = replace(FREE, mp=1e-12)
+    J = p.Jr + p.Jh + p.mp * p.Lr ** 2
+    w = math.sqrt(p.Kr / J)
+    x = simulate([p.theta_rest + 0.1, 0.0, 0.0, 0.0], np.zeros(1000), p, DT)
+    t = np.arange(1001) * DT
+    np.testing.assert_allclose(x[:, 0], p.theta_rest + 0.1 * np.cos(w * t), atol=1e-7)
+
+
+def test_a_constant_voltage_holds_the_arm_where_the_spring_balances_the_motor():
+    # Pendulum hanging (alpha = pi, damped so it settles): at rest the motor's torque
+    # km / Rm (V - dead_zone) equals the spring's Kr (theta - theta_rest) (no dry friction, which would hold
+    # the arm anywhere within its breakaway torque).
+    p = replace(PendulumParameters(), Kr=8e-4, theta_rest=-0.1, Dp=2e-4, Cr=0.0)
+    volts = 0.4
+    x = simulate([0.0, math.pi, 0.0, 0.0], np.full(15000, volts), p, DT)
+    expected = p.theta_rest + p.km / p.Rm * (volts - p.dead_zone) / p.Kr
+    assert x[-1, 0] == pytest.approx(expected, abs=1e-5)
+    assert abs(x[-1, 2]) < 1e-5
+
+
+def test_energy_with_the_spring_is_conserved_without_losses():
+    x = simulate([0.2, 0.3, 0.5, -1.0], np.zeros(1000), replace(FREE, theta_rest=0.0), DT)
+    # The pendulum starts 0.3 rad off upright and falls: energy moves between arm, spring and pendulum.
+    energy = total_energy(x, replace(FREE, theta_rest=0.0))
+    assert np.ptp(x[:, 1]) > 1.0
+    assert np.max(np.abs(energy - energy[0])) < 1e-9 * 1e3 * abs(energy[0])
+
+
+def test_the_per_tick_simulator_steps_as_the_batch_simulation():
+    p = replace(PendulumParameters(), Kr=9e-4, theta_rest=0.02)
+    volts = np.sin(np.arange(400) * 0.05)
+    batch = simulate([0.1, 0.01, 0.0, 0.0], volts, p, DT)
+    sim = PendulumSimulator(p, dt=DT)
+    sim.reset((0.1, 0.01, 0.0, 0.0))
+    for k, v in enumerate(volts):
+        sim.step(float(v))
+    np.testing.assert_allclose(sim.state, batch[-1], rtol=1e-12, atol=1e-12)
+
+
+def test_the_linearization_carries_the_springs_stiffness():
+    p = replace(PendulumParameters(), Kr=9e-4, theta_rest=0.3)
+    A, _ = linearize_upright(p)
+    h = 1e-6
+    # Finite differences of the dynamics in theta at the spring's rest angle, upright and at rest.
+    column = (dynamics([p.theta_rest + h, 0, 0, 0], 0.0, p) - dynamics([p.theta_rest - h, 0, 0, 0], 0.0, p)) / (2 * h)
+    np.testing.assert_allclose(A[:, 0], column, rtol=1e-6, atol=1e-9)
+    assert A[2, 0] < 0 and A[3, 0] > 0  # the spring pulls the arm back and, through it, tips the pendulum
+    no_spring, _ = linearize_upright(replace(p, Kr=0.0))
+    np.testing.assert_array_equal(no_spring[:, 0], 0.0)
+
+
+def test_a_negative_stiffness_is_refused():
+    with pytest.raises(ValueError, match="Kr"):
+        PendulumParameters(Kr=-1e-4)
