@@ -172,3 +172,38 @@ def test_a_calibration_under_the_rigs_gains_holds_under_another_controller(tmp_p
     ratios = re.search(r"theta ([\d.]+)\.\.([\d.]+) .*alpha ([\d.]+)\.\.([\d.]+) .*voltage ([\d.]+)\.\.([\d.]+)", out)
     assert ratios, out
     assert all(0.97 <= float(v) <= 1.03 for v in ratios.groups()), ratios.group(0)
+
+
+def test_group_weights_give_every_group_the_same_share_and_one_group_changes_nothing():
+    from qube_koopman.identify.calibrate.fit import _group_weights
+
+    episode_of_segment = np.array([0, 0, 0, 1, 1, 1, 2, 2])  # episodes 0, 1 under "a", episode 2 under "b"
+    w = _group_weights(episode_of_segment, ["a", "a", "b"])
+    share = {g: float(np.sum(w[np.isin(episode_of_segment, e)] ** 2)) for g, e in (("a", [0, 1]), ("b", [2]))}
+    assert share["a"] == pytest.approx(share["b"]) and sum(share.values()) == pytest.approx(len(w))
+    np.testing.assert_array_equal(_group_weights(episode_of_segment, ["a"] * 3), 1.0)
+    # One controller: group weighting is the plain fit, digit for digit.
+    ys, us, _ = simulated_logs(TRUTH, n=2, seconds=1.5, seed=3)
+    kwargs = dict(horizon=0.1, skip=0.5, stride=0.2, nominal=TRUTH, max_nfev=3)
+    plain = PlantCalibration(**kwargs).fit(ys, us, DT)
+    grouped = PlantCalibration(weighting="group", **kwargs).fit(ys, us, DT, ["rig", "rig"])
+    assert grouped.params_ == plain.params_ and grouped.cost_ == plain.cost_
+    with pytest.raises(ValueError, match="weighting"):
+        PlantCalibration(weighting="controllers").fit(ys, us, DT)
+    with pytest.raises(ValueError, match="one group label per episode"):
+        PlantCalibration(weighting="group").fit(ys, us, DT, ["rig"])
+
+
+@pytest.mark.slow
+def test_group_weighting_moves_the_fit_towards_the_smaller_group():
+    # Two groups of twin logs with different cable springs: weighted alike, the fitted stiffness
+    # moves from the larger group's towards the smaller one's.
+    big = [simulated_logs(replace(TRUTH, Kr=5e-4), n=1, seconds=2.5, seed=s) for s in (5, 6, 7)]
+    small = simulated_logs(replace(TRUTH, Kr=2e-3), n=1, seconds=2.5, seed=8, controller=soft_pd())
+    ys = [b[0][0] for b in big] + small[0]
+    us = [b[1][0] for b in big] + small[1]
+    kwargs = dict(horizon=0.2, skip=0.5, stride=0.2, nominal=TRUTH, max_nfev=15)
+    groups = ["rig"] * 3 + ["soft"]
+    plain = PlantCalibration(**kwargs).fit(ys, us, DT, groups)
+    weighted = PlantCalibration(weighting="group", **kwargs).fit(ys, us, DT, groups)
+    assert 5e-4 < plain.params_.Kr < weighted.params_.Kr < 2e-3

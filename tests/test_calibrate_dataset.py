@@ -3,13 +3,13 @@
 The fit takes both controllers' logs at once (it is open loop: the logged
 voltage drives each segment); the shipped default twin is this calibration.
 
-The issue's validation targets: standard deviation ratios of theta, alpha
-and voltage within 1 +- 0.05 in closed-loop replay, every test episode
-balanced. Measured with the arm's hub inertia and the transport delay fitted
-(0.2 s segments): 20 of 20 balanced, ratios theta 0.952-0.976, alpha
-0.953-1.003, voltage 0.963-1.007 (before them: 18 of 20, alpha up to 1.40). Each ratio is a mean
-over 8 replays from start angles within their encoder count: one replay's ratio moved between
-0.948 and 0.954 with a tenth of a count (the quantized loop switches at other samples).
+The validation targets: standard deviation ratios of theta, alpha and voltage within 1 +- 0.05
+in closed-loop replay of the paper's 20 test episodes, every one balanced. Measured with the
+arm's cable spring fitted on both controllers' logs: 20 of 20 balanced, ratios theta
+0.980-1.003, alpha 0.974-1.023, voltage 0.993-1.037 (the twin calibrated on the rig's 28 logs
+alone, without the spring: theta 0.952-0.976, alpha 0.953-1.003, voltage 0.963-1.007). Each
+ratio is a mean over 8 replays from start angles within their encoder count: one replay's ratio
+moved between 0.948 and 0.954 with a tenth of a count (the quantized loop switches at other samples).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Sequence
 
 import numpy as np
@@ -56,6 +56,11 @@ class PlantCalibration:
         Seconds between segment starts (default: ``2 * horizon``, every other stretch of data).
     max_nfev : int
         Iteration budget of the solver (Levenberg-Marquardt iterations).
+    weighting : {"episode", "group"}
+        With ``groups`` given to :meth:`fit` (for example each episode's
+        controller): ``"episode"`` counts every episode alike, ``"group"``
+        weights the residuals so that every group counts alike however many
+        episodes it has (each group's squared residuals sum to the same share).
     progress : bool
         Show a progress line on stderr.
 
@@ -79,7 +84,7 @@ class PlantCalibration:
 
     def __init__(self, horizon: float = 0.2, skip: float = 1.0, delay: int = 0,
                  nominal: PendulumParameters | None = None, stride: float | None = None,
-                 max_nfev: int = 40, progress: bool = False) -> None:
+                 max_nfev: int = 40, progress: bool = False, weighting: str = "episode") -> None:
         self.horizon = horizon
         self.skip = skip
         self.delay = delay
@@ -87,16 +92,27 @@ class PlantCalibration:
         self.stride = stride
         self.max_nfev = max_nfev
         self.progress = progress
+        self.weighting = weighting
 
-    def fit(self, measured: Sequence[np.ndarray], voltages: Sequence[np.ndarray], dt: float) -> "PlantCalibration":
-        """Fit to episodes: ``measured[i]`` (n_i, 2) angles, ``voltages[i]`` (n_i,) plant input (V)."""
+    def fit(self, measured: Sequence[np.ndarray], voltages: Sequence[np.ndarray], dt: float,
+            groups: Sequence | None = None) -> "PlantCalibration":
+        """Fit to episodes: ``measured[i]`` (n_i, 2) angles, ``voltages[i]`` (n_i,) plant input (V).
+
+        ``groups``: a label per episode (for example its controller), used by ``weighting="group"``.
+        """
         if len(measured) != len(voltages) or not measured:
             raise ValueError("need one voltage sequence per measured episode, and at least one episode")
+        if self.weighting not in ("episode", "group"):
+            raise ValueError(f"weighting must be 'episode' or 'group', got {self.weighting!r}")
+        if groups is not None and len(groups) != len(measured):
+            raise ValueError(f"need one group label per episode: {len(groups)} labels for {len(measured)} episodes")
         h = max(2, int(round(self.horizon / dt)))
         seg = ms.make_segments([np.asarray(y, float) for y in measured], [np.asarray(u, float) for u in voltages],
                                h, int(round(self.skip / dt)), self.delay,
                                2 * h if self.stride is None else max(1, int(round(self.stride / dt))))
         n_ep = len(measured)
+        if self.weighting == "group" and groups is not None:
+            seg = replace(seg, weight=_group_weights(seg.episode, groups))
         self.nominal_ = PendulumParameters.previous() if self.nominal is None else self.nominal
         z0 = self._start(measured, seg, n_ep, dt)
         lo, hi = self._bounds(n_ep, seg.n)
@@ -152,6 +168,8 @@ class PlantCalibration:
         self.alpha_offsets_ = offsets
         self.alpha_offset_errors_ = ms.OFFSET_SCALE * z_se[ms.N_PHYSICAL:]
         r = result.fun.reshape(seg.n, seg.horizon + 1, 2) * ENCODER_SIGMA
+        if seg.weight is not None:  # the residuals as measured, not as weighted
+            r = r / seg.weight[:, None, None]
         self.residual_rms_ = np.array([np.sqrt(np.mean(r[seg.episode == e] ** 2, axis=(0, 1)))
                                        for e in range(n_ep)])
         self.warnings_ = self._warnings(z[:ms.N_PHYSICAL], lo, hi)
@@ -178,6 +196,18 @@ class PlantCalibration:
         return {"params": asdict(self.params_), "standard_errors": dict(self.standard_errors_),
                 "alpha_offsets": self.alpha_offsets_.tolist(), "residual_rms": self.residual_rms_.tolist(),
                 "warnings": list(self.warnings_), "cost": self.cost_, "nfev": self.nfev_}
+
+
+def _group_weights(episode_of_segment: np.ndarray, groups: Sequence) -> np.ndarray:
+    """Per-segment weights under which every group's squared residuals carry the same total weight.
+
+    A group with ``m`` of the ``n`` segments gets the weight ``sqrt(n / (k m))`` (``k`` groups), so
+    that its squared residuals, summed, weigh ``n / k`` like every other group's.
+    """
+    labels = np.array([str(g) for g in groups])[episode_of_segment]
+    names, counts = np.unique(labels, return_counts=True)
+    per_group = dict(zip(names, np.sqrt(len(labels) / (len(names) * counts))))
+    return np.array([per_group[name] for name in labels])
 
 
 def _marginal_covariance(jac, q: int) -> np.ndarray:

@@ -106,6 +106,9 @@ class Segments:
         First sample of each segment in its episode.
     past : ndarray (N_PAST, n_seg) or None
         The commands before each segment, oldest first (for a transport delay).
+    weight : ndarray (n_seg,) or None
+        Each segment's residuals are multiplied by its weight (None: all 1), so
+        that groups of episodes can count alike whatever their number.
     """
 
     y: np.ndarray
@@ -113,6 +116,7 @@ class Segments:
     episode: np.ndarray
     start: np.ndarray
     past: np.ndarray | None = None
+    weight: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -173,6 +177,8 @@ def residuals(z: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumPa
     pred = simulate_segments(nodes, seg.u, to_params(phys, nominal), dt, past=seg.past)
     pred[..., 1] += offsets[seg.episode]
     r = (pred - seg.y) / sigma
+    if seg.weight is not None:
+        r = r * seg.weight[None, :, None]
     r = np.nan_to_num(r, nan=1e6, posinf=1e6, neginf=-1e6)
     return r.transpose(1, 0, 2).ravel()
 
@@ -225,7 +231,8 @@ def jacobian(z: np.ndarray, r0: np.ndarray, seg: Segments, n_episodes: int, nomi
         cols.append(base + 4 * segment_of_row + j)
         rws.append(rows)
     alpha_rows = rows[1::2]
-    data.append(np.full(alpha_rows.size, OFFSET_SCALE / sigma))
+    weight = 1.0 if seg.weight is None else seg.weight[segment_of_row[alpha_rows]]
+    data.append(np.full(alpha_rows.size, OFFSET_SCALE / sigma) * weight)
     cols.append(N_PHYSICAL + seg.episode[segment_of_row[alpha_rows]])
     rws.append(alpha_rows)
     return csr_matrix((np.concatenate(data), (np.concatenate(rws), np.concatenate(cols))),

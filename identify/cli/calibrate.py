@@ -11,7 +11,9 @@ segment), so it takes them all at once and gives each controller's residual;
 validation replays each controller's logs in closed loop through the
 calibrated twin, predicts 0.2 s open loop, and gives per controller the
 median standard deviation ratios, overall, of the slow motion (below
-0.5 Hz) and in the bands below 0.3, 0.3-1, 1-3 and above 3 Hz; the
+0.5 Hz) and in the bands below 0.3, 0.3-1, 1-3 and above 3 Hz
+(``--weighting controller`` makes each controller's logs count alike in the
+fit, however many each has); the
 plant file's provenance then records the balanced count, the standard
 deviation ratios' minimum and maximum (theta, alpha, voltage) and the mean
 replay NRMSE.
@@ -56,6 +58,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--horizon", type=float, default=0.2, metavar="S", help="shooting segment length (default 0.2)")
     p.add_argument("--delay", type=whole_number(0), default=0, metavar="N", help="transport delay in samples (default 0)")
     p.add_argument("--max-nfev", type=whole_number(1), default=40, metavar="N", help="solver iteration budget (default 40)")
+    p.add_argument("--weighting", choices=("episode", "controller"), default="episode",
+                   help="with logs of several controllers: episode (default) counts every episode alike; "
+                        "controller weights the residuals so that each controller's logs count alike")
     add_standard_options(p, "no progress line")
     return p
 
@@ -90,18 +95,21 @@ def _run(args) -> int:
         raise CliError(f"--horizon must be between 0.004 and 2 s, got {args.horizon}")
     episodes = _read(fit_paths)
     started = time.perf_counter()
+    fit_groups = controller_groups(episodes)
+    group_of = {i: label for label, members in fit_groups for i in members}
     cal = PlantCalibration(horizon=args.horizon, delay=args.delay, max_nfev=args.max_nfev,
-                           progress=not args.quiet)
-    cal.fit([e.states for e in episodes], [e.plant_input for e in episodes], episodes[0].dt)
+                           progress=not args.quiet, weighting="group" if args.weighting == "controller" else "episode")
+    cal.fit([e.states for e in episodes], [e.plant_input for e in episodes], episodes[0].dt,
+            [group_of[i] for i in range(len(episodes))])
     seconds = time.perf_counter() - started
     names = [p.name for p in fit_paths]
-    fit_groups = controller_groups(episodes)
     text = calibration_text(cal, names, seconds, fit_groups)
     provenance = {"source": "qube-calibrate", "logs": names, "software_version": episodes[0].metadata.software_version,
                   "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                   "residual_rms_theta": float(cal.residual_rms_[:, 0].mean()),
                   "residual_rms_alpha": float(cal.residual_rms_[:, 1].mean()),
-                  "horizon_s": args.horizon, "delay_samples": args.delay, "seconds": round(seconds, 1)}
+                  "horizon_s": args.horizon, "delay_samples": args.delay, "seconds": round(seconds, 1),
+                  "weighting": args.weighting}
     if len(fit_groups) > 1:
         provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
     validation, val_dt = None, None

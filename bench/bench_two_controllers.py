@@ -1,0 +1,109 @@
+"""Identify from two controllers: training set (rig only, soft only, both) x test set, on real logs.
+
+    python bench/bench_two_controllers.py [--rig DIR] [--soft DIR] [--lifting "FLAGS"] [--out DIR]
+
+``--rig``: the paper's 48 episodes (CSV files as published, or MCAP logs); ``--soft``: the same
+rig's episodes under the softer second controller (kp_theta 2, kd_theta 2, kp_alpha 35,
+kd_alpha 3). The soft episodes are split in two halves by name; every training set is scored on
+the paper's 20 test episodes and on the soft episodes it did not see:
+
+- rig only: the paper's 28 training episodes; tested on all soft episodes;
+- soft only: one half of the soft episodes; tested on the other half (both ways round);
+- both: the paper's 28 and one soft half; tested on the other half (both ways round).
+
+Each row gives mean / worst R^2 (closed-loop prediction under each test log's own controller,
+scored after the 1 s offset-estimation window) with per-episode alpha offsets and without them on
+the same samples. The lifting is fixed (``--lifting``, default: the paper-split search's winner),
+so the rows differ only in their training logs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from qube_koopman.identify.cli.identify import main as identify_main
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_LIFTING = "--poly 3 --delays 35 --friction --const --alpha 3.2e-4"
+
+
+def mcap_logs(folder: Path, out: Path) -> list[Path]:
+    """The folder's MCAP logs, or its CSV episodes imported into ``out`` (sorted by name)."""
+    logs = sorted(folder.glob("*.mcap"))
+    if logs:
+        return logs
+    from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
+    from qube_koopman.daq.log import write_episode
+    from qube_koopman.daq.log.names import log_path
+
+    controller = load_legacy_controller(folder / "controller.toml")
+    out.mkdir(parents=True, exist_ok=True)
+    for path in sorted(folder.glob("*.csv")):
+        write_episode(log_path(out, path.stem), legacy_episode(path, controller))
+    return sorted(out.glob("*.mcap"))
+
+
+def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) -> dict[str, tuple[float, float]]:
+    """{test log name: (R^2 with offsets, R^2 without)} of one fit."""
+    argv = ["--train", *map(str, train), "--test", *map(str, test), *shlex.split(lifting),
+            "--offsets", "alpha", "--out", str(out), "-q"]
+    if identify_main(argv) != 0:
+        raise SystemExit(f"qube-identify failed: {' '.join(argv)}")
+    report = json.loads((out / "report.json").read_text())
+    names = report["scored_logs"]
+    return dict(zip(names, zip(report["test"]["r2_per_episode"], report["test_without_offsets"]["r2_per_episode"])))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    shared = HERE.parents[1] / "shared" / "datasets"
+    p.add_argument("--rig", type=Path, default=Path(os.environ.get("QUBE_DATASET_DIR", shared / "qube_servo_20230828")))
+    p.add_argument("--soft", type=Path,
+                   default=Path(os.environ.get("QUBE_SOFT_DATASET_DIR", shared / "qube_servo_20230915_soft")))
+    p.add_argument("--lifting", default=DEFAULT_LIFTING, help=f"qube-identify flags (default: {DEFAULT_LIFTING})")
+    p.add_argument("--out", type=Path, default=None, help="keep the fits' reports here")
+    args = p.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = args.out or Path(tmp)
+        rig = mcap_logs(args.rig, root / "rig_logs")
+        soft = mcap_logs(args.soft, root / "soft_logs")
+        if len(rig) != 48 or len(soft) < 2:
+            raise SystemExit(f"need the paper's 48 episodes and at least 2 soft ones; got {len(rig)} and {len(soft)}")
+        train, paper_test = rig[:28], rig[28:]
+        half = len(soft) // 2
+        halves = (soft[:half], soft[half:])
+        sets = {"rig only": [(train, soft)],
+                "soft only": [(halves[0], halves[1]), (halves[1], halves[0])],
+                "both": [(train + halves[0], halves[1]), (train + halves[1], halves[0])]}
+        paper_names = {p.name for p in paper_test}
+        print(f"lifting: {args.lifting}; soft episodes: {len(soft)} (halves of {half} and {len(soft) - half})")
+        print("| training set | paper test (20), offsets | without | soft held-out, offsets | without |")
+        print("|---|---|---|---|---|")
+        for label, fits in sets.items():
+            paper, held = [], []
+            for k, (fit_logs, soft_test) in enumerate(fits):
+                scores = per_episode(fit_logs, paper_test + soft_test, args.lifting,
+                                     root / f"{label.replace(' ', '_')}_{k}")
+                paper.append([v for n, v in scores.items() if n in paper_names])
+                held += [v for n, v in scores.items() if n not in paper_names]
+            paper_mean = np.mean(np.array(paper, float), axis=0)  # each paper episode: mean over the fits
+            held = np.array(held, float)
+
+            def cell(values):
+                return f"{values.mean():.3f} / {values.min():.3f}"
+
+            print(f"| {label} | {cell(paper_mean[:, 0])} | {cell(paper_mean[:, 1])} | {cell(held[:, 0])} "
+                  f"| {cell(held[:, 1])} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
