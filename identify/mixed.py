@@ -22,7 +22,8 @@ from qube_koopman.identify.regression import GroupedSnapshots, SnapshotFold, Sna
 from qube_koopman.identify.structure import plant_input_map
 from qube_koopman.sim.lti import DiscreteStateSpace
 
-__all__ = ["ControllerGroups", "distinct_controllers", "leave_one_controller_out", "majority_controller"]
+__all__ = ["ControllerGroups", "distinct_controllers", "leave_one_controller_out", "within_controller_splits",
+           "majority_controller"]
 
 
 def distinct_controllers(controllers: Sequence[DiscreteStateSpace]) -> tuple[list[DiscreteStateSpace], np.ndarray]:
@@ -69,6 +70,33 @@ def leave_one_controller_out(labels: Sequence[int]) -> list[tuple[np.ndarray, np
     if groups.size < 2:
         raise ValueError(f"leave-one-controller-out needs episodes of at least two controllers, got {groups.size}")
     return [(np.flatnonzero(labels != g), np.flatnonzero(labels == g)) for g in groups]
+
+
+def within_controller_splits(labels: Sequence[int], n_splits: int = 3, seed: int = 1234
+                             ) -> list[tuple[np.ndarray, np.ndarray, int]]:
+    """Folds that hold out some episodes of one controller and train on all the others.
+
+    The complement of :func:`leave_one_controller_out`: each fold's validation
+    episodes ran a controller the training episodes include, so its score is
+    the same-controller one. For each controller with at least two episodes,
+    :func:`~qube_koopman.identify.data.group_shuffle_splits` (``n_splits``,
+    ``seed``) over its episodes; the other controllers' episodes always train.
+
+    Returns
+    -------
+    list of (train_indices, validation_indices, label)
+    """
+    from qube_koopman.identify.data import group_shuffle_splits
+
+    labels = np.asarray(labels)
+    out = []
+    for g in np.unique(labels):
+        own, others = np.flatnonzero(labels == g), np.flatnonzero(labels != g)
+        if own.size < 2:
+            continue
+        for train, validation in group_shuffle_splits(own.size, n_splits, seed=seed):
+            out.append((np.sort(np.concatenate([others, own[train]])), own[validation], int(g)))
+    return out
 
 
 @dataclass(frozen=True, eq=False)

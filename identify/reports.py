@@ -74,7 +74,8 @@ def _search_section(search: dict) -> list[str]:
              f"Winner: **{w['label']}**, alpha {w['alpha']:g}, cross-validated R^2 {format_number(w['cv_r2'], '.4f')}"
              + (f", transfer R^2 {format_number(w['transfer_r2'], '.4f')}" if w.get("transfer_r2") is not None else "")
              + f". {_why_it_won(search)}"
-             + (f" Refit by hand with `qube-identify ... {w['flags']}`." if w.get("flags") else ""), "",
+             + (f" Refit by hand with `qube-identify ... {w['flags']}`." if w.get("flags") else "")
+             + _same_controller_phrase(search.get("same_controller"), w), "",
              "| rank | stage | lifting | features | alpha | CV R^2 | CV R^2 std | transfer R^2 | worst probe "
              "| objective | seconds |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -84,6 +85,18 @@ def _search_section(search: dict) -> list[str]:
                      f"| {format_number(c.get('transfer_r2'), '.4f')} | {format_number(c.get('transfer_r2_worst'), '.3f')} "
                      f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} | {format_number(c['seconds'], '.1f')} |")
     return lines
+
+
+def _same_controller_phrase(same: dict | None, winner: dict) -> str:
+    """With several training controllers: the winner's three scores side by side."""
+    if not same:
+        return ""
+    each = ", ".join(f"controller {c['controller']} {format_number(c['cv_r2'], '.4f')}" for c in same["controllers"])
+    transfer = winner.get("transfer_r2")
+    return (f" Its scores side by side: same-controller R^2 {format_number(same['cv_r2'], '.4f')} ({each}; "
+            f"{same['description']}), leave-one-controller-out R^2 {format_number(winner['cv_r2'], '.4f')}"
+            + (f", twin transfer probes {format_number(transfer, '.4f')} (worst "
+               f"{format_number(winner.get('transfer_r2_worst'), '.3f')})" if transfer is not None else "") + ".")
 
 
 def _folds_phrase(cv: dict) -> str:

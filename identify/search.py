@@ -49,7 +49,7 @@ from qube_koopman.identify.transfer import ProbeSet, probe_scores
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
-           "evaluate_candidate"]
+           "evaluate_candidate", "same_controller_scores"]
 
 MEASURED = [0, 1]
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
@@ -300,6 +300,9 @@ class SearchResult:
         The transfer probes the candidates were scored on.
     folds : CrossValidationFolds, optional
         The folds, with what each holds out (set by the caller that made them).
+    same_controller : list of (int, float), optional
+        With several training controllers, the winner's scores on folds holding out
+        episodes of a controller it trained on (:func:`same_controller_scores`).
     """
 
     candidates: list[CandidateResult] = field(default_factory=list)
@@ -307,6 +310,7 @@ class SearchResult:
     seconds: float = 0.0
     probes: ProbeSet | None = None
     folds: object | None = None
+    same_controller: list | None = None
 
     def ranked(self) -> list[CandidateResult]:
         """Best :attr:`CandidateResult.score` first; ties go to the smaller lifting, then the plain protocol."""
@@ -405,6 +409,34 @@ def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
             for j in top:
                 out[i, j] = np.mean(np.concatenate(scores[j]))
     return out
+
+
+def same_controller_scores(result: CandidateResult, trajectories: Sequence[Trajectory],
+                           controller: DiscreteStateSpace, controllers: Sequence[DiscreteStateSpace], *, window: int,
+                           n_splits: int = 3, seed: int = 1234, bound: float = DEFAULT_BOUND,
+                           rbf_seed: int = 0) -> list[tuple[int, float]]:
+    """A candidate's same-controller score when the training episodes ran several controllers.
+
+    The search ranks by leave-one-controller-out folds; this scores the
+    candidate (its lifting, offset protocol and chosen alpha) on folds that
+    hold out some episodes of one controller and train on all the rest
+    (:func:`~qube_koopman.identify.mixed.within_controller_splits`), as the
+    loop a model was trained under is predicted.
+
+    Returns
+    -------
+    list of (controller label, fold R^2)
+        Labels index :func:`~qube_koopman.identify.mixed.distinct_controllers`' list.
+    """
+    from qube_koopman.identify.mixed import distinct_controllers, within_controller_splits
+
+    _, labels = distinct_controllers(controllers)
+    folds = within_controller_splits(labels, n_splits, seed)
+    data = SearchData(as_episodes(trajectories), [(tr, va) for tr, va, _ in folds], controller,
+                      np.array([result.best_alpha]), int(window), bound, rbf_seed, None,
+                      controllers=list(controllers))
+    cv = evaluate_candidate(result.spec, data).cv_r2[:, 0]
+    return [(label, float(score)) for (_, _, label), score in zip(folds, cv)]
 
 
 def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStateSpace, *, splits,

@@ -106,3 +106,28 @@ def test_single_loop_methods_refuse_two_controllers(two_controllers, tmp_path, c
     train, test = _train_test(two_controllers)
     code, _, err = run(capsys, "--train", *train, "--test", *test, "--method", "cl-arx", "--out", tmp_path)
     assert code == 2 and "--method cl-arx identifies one closed loop" in err and "these ran 2" in err
+
+
+def test_the_search_reports_the_winners_same_controller_score_beside_leave_one_controller_out(two_controllers,
+                                                                                            tmp_path, capsys):
+    from qube_koopman.identify.mixed import within_controller_splits
+
+    train, test = _train_test(two_controllers)
+    space = tmp_path / "space.toml"
+    space.write_text("delays = [5]\npoly = [1]\nconst = [true]\ntrig = [false]\nrbf = [0]\nfriction = [false]\n"
+                     "offsets = [false]\nalphas = [1e-3]\n")
+    code, _, err = run(capsys, "--train", *train, "--test", *test, "--search", "--search-space", space,
+                       "--transfer", "none", "--n-jobs", "1", "--cv-splits", "2", "--out", tmp_path / "o")
+    assert code == 0, err
+    search = json.loads((tmp_path / "o" / "report.json").read_text())["search"]
+    same = search["same_controller"]
+    # two controllers x 2 splits of their 2 episodes, each fold training on the other controller's too
+    assert [c["controller"] for c in same["controllers"]] == [1, 2]
+    assert all(len(c["folds"]) == 2 for c in same["controllers"])
+    assert same["cv_r2"] == pytest.approx(sum(sum(c["folds"]) for c in same["controllers"]) / 4, rel=1e-12)
+    assert 0 < same["cv_r2"] < 1 and same["cv_r2"] != search["winner"]["cv_r2"]
+    md = (tmp_path / "o" / "report.md").read_text()
+    assert "same-controller R^2" in md and "leave-one-controller-out R^2" in md
+    folds = within_controller_splits([0, 0, 1, 1], n_splits=2)
+    assert [(list(tr), list(va), g) for tr, va, g in folds][0][2] == 0
+    assert all(set(va) <= ({0, 1} if g == 0 else {2, 3}) and len(set(tr) | set(va)) == 4 for tr, va, g in folds)

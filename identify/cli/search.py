@@ -66,10 +66,28 @@ def run_search(args, train, controller):
                              controllers=controllers if folds.kind == "leave-one-controller-out" else None)
     result.folds = folds
     best = result.winner
+    if folds.kind == "leave-one-controller-out":
+        from qube_koopman.identify.search import same_controller_scores
+
+        result.same_controller = same_controller_scores(best, trajs, controller, controllers, window=window,
+                                                        n_splits=args.cv_splits, seed=args.cv_seed,
+                                                        bound=args.offset_bound, rbf_seed=args.rbf_seed)
     transfer = "" if best.transfer_score is None else f", transfer R^2 {best.transfer_score:.4f}"
     print(f"search: {len(result.candidates)} candidates in {result.seconds:.0f} s; winner {best.spec.label()}, "
           f"alpha {best.best_alpha:g}, cross-validated R^2 {best.cv_score:.4f}{transfer}", file=sys.stderr)
     return result
+
+
+def _same_controller_report(scores) -> dict | None:
+    """The winner's same-controller folds: the mean, and each controller's mean and folds (1-based numbers)."""
+    if not scores:
+        return None
+    by = {}
+    for label, r2 in scores:
+        by.setdefault(label + 1, []).append(r2)
+    return {"cv_r2": float(sum(r for _, r in scores) / len(scores)),
+            "description": "folds holding out 20% of one controller's training episodes, trained on all the others",
+            "controllers": [{"controller": c, "cv_r2": float(sum(v) / len(v)), "folds": v} for c, v in by.items()]}
 
 
 OBJECTIVE = {
@@ -103,6 +121,7 @@ def search_report(result, args, names) -> dict:
                   f"from the episode's start, scored from sample {result.window} on"),
         "objective": OBJECTIVE[args.transfer],
         "transfer": None if result.probes is None else result.probes.describe(),
+        "same_controller": _same_controller_report(result.same_controller),
         "seconds": result.seconds,
         "n_jobs": args.n_jobs, "scheduler": args.scheduler,
     }
