@@ -207,3 +207,22 @@ def test_group_weighting_moves_the_fit_towards_the_smaller_group():
     plain = PlantCalibration(**kwargs).fit(ys, us, DT, groups)
     weighted = PlantCalibration(weighting="group", **kwargs).fit(ys, us, DT, groups)
     assert 5e-4 < plain.params_.Kr < weighted.params_.Kr < 2e-3
+
+
+def test_cli_takes_folders_of_logs_as_every_command_does(tmp_path, capsys):
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.calibrate import main
+    from qube_koopman.sim.pendulum.params_file import load_plant
+
+    assert run_main(["--episodes", "2", "--duration", "2", "--seed", "9", "--out", str(tmp_path / "fit"), "-q"]) == 0
+    assert run_main(["--episodes", "1", "--duration", "2", "--seed", "10", "--out", str(tmp_path / "val"), "-q"]) == 0
+    assert main([str(tmp_path / "fit"), "--validate", str(tmp_path / "val"), "--out", str(tmp_path / "p.toml"),
+                 "--max-nfev", "2", "-q"]) == 0
+    plant = load_plant(tmp_path / "p.toml")
+    assert plant.provenance["logs"] == [p.name for p in sorted((tmp_path / "fit").glob("*.mcap"))]
+    assert len(plant.provenance["validated_on"]) == 1
+    (tmp_path / "empty").mkdir()
+    capsys.readouterr()
+    assert main([str(tmp_path / "empty"), "--out", str(tmp_path / "q.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "empty: folder has no .mcap logs" in err and len(err.strip().splitlines()) == 1

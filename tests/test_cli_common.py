@@ -208,3 +208,19 @@ def test_counts_out_of_range_are_usage_errors_naming_option_and_value(module, ar
         status = exc.code
     err = capsys.readouterr().err
     assert status == 2 and message in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("module", ["daq.cli.import_csv", "daq.cli.export", "daq.cli.run", "identify.cli.identify",
+                                    "identify.cli.reproduce", "identify.cli.calibrate", "design.cli.design",
+                                    "sim.cli.emulate"])
+def test_help_is_plain_text_without_restructuredtext_markup(module, capsys):
+    import importlib
+
+    main = importlib.import_module(f"qube_koopman.{module}").main
+    try:  # some commands return their status, others leave through argparse's SystemExit
+        code = main(["--help"])
+    except SystemExit as exc:
+        code = exc.code
+    assert code in (0, None)
+    out = capsys.readouterr().out
+    assert "usage:" in out and "``" not in out and ":func:" not in out and ":class:" not in out

@@ -41,7 +41,7 @@ DEFAULTS = {f.name: f.default for f in fields(Weights) if f.name != "integral"}
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="qube-design", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="qube-design", description=__doc__.split("\n\n")[0].replace("``", ""),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", type=path, metavar="MODEL.json", help="model file of qube-identify (or its --out folder)")
     p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="controller file to write")

@@ -36,21 +36,21 @@ import time
 
 import numpy as np
 
-from qube_koopman.identify.cli.common import CliError, output_dir, run_command
+from qube_koopman.identify.cli.common import CliError, expand_logs, output_dir, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, whole_number
 
 __all__ = ["main"]
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="qube-calibrate", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="qube-calibrate", description=__doc__.split("\n\n")[0].replace("``", ""),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("logs", nargs="+", type=path, help="episode logs (.mcap) to fit")
+    p.add_argument("logs", nargs="+", type=path, help="episode logs (.mcap files or folders of them) to fit")
     p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="plant file to write")
     p.add_argument("--split", choices=("none", "paper"), default="none",
                    help="paper: fit the first 28 logs by name, validate on the rest")
     p.add_argument("--validate", nargs="+", type=path, default=[], metavar="LOG",
-                   help="logs to validate on (never fitted)")
+                   help="logs (files or folders) to validate on (never fitted)")
     p.add_argument("--report", type=path, default=None, metavar="DIR",
                    help="write report.md there (the tables; with validation also band powers twin vs real) and, "
                         "with validation, calibration.rrd (rerun recording of the replayed episodes and spectra; "
@@ -84,7 +84,7 @@ def _run(args) -> int:
     from qube_koopman.identify.data import paper_split
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
-    fit_paths, val_paths = list(args.logs), list(args.validate)
+    fit_paths, val_paths = expand_logs(args.logs), expand_logs(args.validate)
     if args.split == "paper":
         try:
             fit_paths, held = paper_split(fit_paths)

@@ -137,3 +137,28 @@ def run_command(prog: str, command, args) -> int:
     except OSError as exc:  # a write or read failing at run time (a full disk...): no traceback
         fail(prog, f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
         return 1
+
+
+def expand_logs(items) -> list[Path]:
+    """Log paths from the command line: files as given, folders as the ``.mcap`` logs in them (by name).
+
+    Raises
+    ------
+    CliError
+        An item that does not exist, or a folder without logs (the message names it).
+    """
+    from qube_koopman.daq.log.names import find_logs
+
+    paths = []
+    for item in items or []:
+        path = Path(item)
+        if path.is_dir():
+            found = find_logs(path)
+            if not found:
+                raise CliError(f"{path}: folder has no .mcap logs")
+            paths.extend(found)
+        elif path.is_file():
+            paths.append(path)
+        else:
+            raise CliError(f"{path}: no such file or folder")
+    return paths

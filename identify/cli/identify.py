@@ -10,7 +10,8 @@ import sys
 import warnings
 from pathlib import Path
 
-from qube_koopman.identify.cli.common import CliError, check_rerun_target, output_dir, progress, run_command, write_json
+from qube_koopman.identify.cli.common import (CliError, check_rerun_target, expand_logs, output_dir, progress,
+                                              run_command, write_json)
 from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
 
 PROG = "qube-identify"
@@ -181,23 +182,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _expand(items) -> list[Path]:
-    from qube_koopman.daq.log.names import find_logs
-
-    paths = []
-    for item in items or []:
-        path = Path(item)
-        if path.is_dir():
-            found = find_logs(path)
-            if not found:
-                raise CliError(f"{path}: folder has no .mcap logs")
-            paths.extend(found)
-        elif path.is_file():
-            paths.append(path)
-        else:
-            raise CliError(f"{path}: no such file or folder")
-    return paths
-
 
 def _lifting(args) -> list:
     """The lifting the options give: one builder with the search's (``LiftingSpec.steps``)."""
@@ -341,9 +325,9 @@ def _load(args):
     from qube_koopman.identify.mixed import majority_controller
 
     if args.split:
-        train_paths, test_paths = paper_split(_expand(args.logs))
+        train_paths, test_paths = paper_split(expand_logs(args.logs))
     else:
-        train_paths, test_paths = _expand(args.train), _expand(args.test)
+        train_paths, test_paths = expand_logs(args.train), expand_logs(args.test)
     _check_disjoint(train_paths, test_paths)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", IncompleteLogSkipped)
