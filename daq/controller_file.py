@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+from qube_koopman.core.files import atomic_path
 
 from qube_koopman.daq.controller import (QUBE_SAMPLE_PERIOD, controller_file, pd_controller,
                                          pd_gains_from_table, read_controller_toml)
@@ -240,7 +241,8 @@ def write_controller_file(path: str | Path, system: DiscreteStateSpace,
              f"dt = {system.dt!r}", f"inputs = {json.dumps(list(inputs))}"]
     if npz:
         target = path.with_suffix(".npz")
-        np.savez(target, **{m: getattr(system, m) for m in _MATRICES})
+        with atomic_path(target) as tmp:
+            np.savez(tmp, **{m: getattr(system, m) for m in _MATRICES})
         lines.append(f"matrices = {json.dumps(target.name)}")
     else:
         for m in _MATRICES:
@@ -248,7 +250,8 @@ def write_controller_file(path: str | Path, system: DiscreteStateSpace,
             lines.append(f"{m} = [\n{rows},\n]")
     if provenance:
         lines += ["", "[provenance]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in provenance.items()]
-    path.write_text("\n".join(lines) + "\n")
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return path
 
 

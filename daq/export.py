@@ -44,6 +44,7 @@ import numpy as np
 
 from qube_koopman.daq.episode import UNITS, Episode, stack_signals
 from qube_koopman.daq.legacy_csv import LEGACY_COLUMNS, status_sidecar
+from qube_koopman.core.files import atomic_path
 
 __all__ = ["FORMATS", "ExportError", "episode_columns", "metadata_records", "episode_frame",
            "legacy_csv_bytes", "write_csv", "write_parquet", "write_mat", "export_episode"]
@@ -122,10 +123,13 @@ def write_csv(episode: Episode, path: str | Path) -> None:
         sidecar.unlink(missing_ok=True)
     else:
         meta = episode.metadata
-        sidecar.write_text(json.dumps({"status": meta.status, "reason": meta.status_reason,
+        with atomic_path(sidecar) as tmp:
+            tmp.write_text(json.dumps({"status": meta.status, "reason": meta.status_reason,
                                        "salvaged": meta.salvaged, "salvage_note": meta.salvage_note,
                                        "samples": len(episode)}, indent=2) + "\n")
-    path.write_bytes(legacy_csv_bytes(episode))
+    content = legacy_csv_bytes(episode)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(content)
 
 
 def _pyarrow():
@@ -153,7 +157,8 @@ def write_parquet(episode: Episode, path: str | Path) -> None:
     metadata = {key: json.dumps(value, separators=(",", ":")) for key, value in metadata_records(episode).items()}
     table = pa.Table.from_arrays([pa.array(v) for v in columns.values()],
                                  schema=pa.schema(fields, metadata=metadata))
-    pa.parquet.write_table(table, str(path))
+    with atomic_path(path) as tmp:
+        pa.parquet.write_table(table, str(tmp))
 
 
 def write_mat(episode: Episode, path: str | Path) -> None:
@@ -164,7 +169,8 @@ def write_mat(episode: Episode, path: str | Path) -> None:
               for name, value in episode.arrays().items()}
     records = metadata_records(episode)
     metadata = {name.split(".", 1)[1]: dict(record) for name, record in records.items()}
-    savemat(str(path), {**arrays, "metadata": metadata}, do_compression=True, oned_as="column")
+    with atomic_path(path) as tmp:
+        savemat(str(tmp), {**arrays, "metadata": metadata}, do_compression=True, oned_as="column")
 
 
 _WRITERS = {"csv": write_csv, "parquet": write_parquet, "mat": write_mat}

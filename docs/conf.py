@@ -76,7 +76,7 @@ numpydoc_class_members_toctree = False
 numpydoc_xref_param_type = False
 
 PACKAGES = ["qube_koopman.sim", "qube_koopman.firmware_protocol", "qube_koopman.daq", "qube_koopman.identify",
-            "qube_koopman.design"]
+            "qube_koopman.design", "qube_koopman.core"]
 
 
 def _reexports() -> dict[str, list[str]]:

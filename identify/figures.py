@@ -27,6 +27,8 @@ from typing import Sequence
 
 import numpy as np
 
+from qube_koopman.core.files import atomic_path
+
 __all__ = ["Curve", "SeriesPlot", "EigenvaluePlot", "FigureSpec", "FiguresUnavailable", "require_matplotlib",
            "draw", "write_figures", "measured_range", "model_eigenvalues", "identification_figures",
            "choose_episodes"]
@@ -220,7 +222,8 @@ def write_figures(specs: Sequence[FigureSpec], folder: str | Path, dpi: int = 12
         with np.errstate(over="ignore", invalid="ignore"):
             fig = draw(spec.data)
             for suffix in (".png", ".pdf"):
-                fig.savefig(folder / f"{spec.stem}{suffix}", dpi=dpi)
+                with atomic_path(folder / f"{spec.stem}{suffix}") as tmp:
+                    fig.savefig(tmp, dpi=dpi, format=suffix[1:])
         written.append(folder / f"{spec.stem}.png")
     return written
 

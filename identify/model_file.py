@@ -15,6 +15,7 @@ from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, Gau
                                            ThinPlateRbf, Trigonometric)
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.files import atomic_path
 
 __all__ = ["FORMAT", "VERSION", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model"]
 
@@ -91,7 +92,8 @@ def save_model(path: str | Path, *, method: str, alpha: float | None, plant: Koo
         "controller": None if controller is None else controller.as_dict(),
         "plant": _model_to_dict(plant), "closed_loop": _model_to_dict(closed_loop), "training": training,
     }
-    Path(path).write_text(json.dumps(data, indent=1) + "\n")
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
 
 
 def load_model(path: str | Path) -> dict:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from qube_koopman.core.files import atomic_path
+
 
 def format_number(value, spec: str) -> str:
     """``format(value, spec)``, with "-" for None and "inf"/"-inf" for infinities."""
@@ -177,4 +179,5 @@ def markdown_report(report: dict) -> str:
 
 def write_markdown_report(path: str | Path, report: dict) -> None:
     """Write :func:`markdown_report` to ``path``."""
-    Path(path).write_text(markdown_report(report))
+    with atomic_path(path) as tmp:
+        tmp.write_text(markdown_report(report))

@@ -22,6 +22,7 @@ from qube_koopman.identify.scores import DivergedPrediction, episode_score, summ
 from qube_koopman.identify.structure import close_loop, controller_states
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.files import atomic_path
 
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
 
@@ -164,7 +165,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
             # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
             if model_path is not None:
-                Path(model_path).write_text(_arx_json(method, arx_lags, plant, closed))
+                with atomic_path(model_path) as tmp:
+                    tmp.write_text(_arx_json(method, arx_lags, plant, closed))
             _score_arx(predict, test, result, score_from, keep_predictions)
         else:
             raise ValueError(f"unknown method {method!r}")

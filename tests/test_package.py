@@ -59,3 +59,14 @@ def test_imports_point_one_way_nothing_below_design_imports_it():
     offenders = [str(path.relative_to(root)) for top in ("firmware_protocol", "sim", "daq", "identify")
                  for path in (root / top).rglob("*.py") if "qube_koopman.design" in path.read_text()]
     assert not offenders
+
+
+def test_core_imports_no_other_package_of_the_toolkit():
+    """core is the lowest layer: every package may import it, it imports none of them."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    offenders = [str(path.relative_to(root)) for path in (root / "core").rglob("*.py")
+                 if any(f"qube_koopman.{top}" in path.read_text()
+                        for top in ("firmware_protocol", "sim", "daq", "identify", "design"))]
+    assert not offenders

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from qube_koopman.core.files import atomic_path
 from qube_koopman.sim.pendulum.params_file import named_parameters
 
 __all__ = ["calibration_text", "validation_text", "controller_summary_text", "write_report"]
@@ -123,7 +124,8 @@ def write_report(folder: Path, text: str, validation=None, dt: float | None = No
     """
     path = folder / "report.md"
     if validation is None:
-        path.write_text("# qube-calibrate report\n\n" + text)
+        with atomic_path(path) as tmp:
+            tmp.write_text("# qube-calibrate report\n\n" + text)
         return [path]
     if dt is None:
         raise ValueError("write_report needs dt (the replay's sample period) with validation")
@@ -131,7 +133,8 @@ def write_report(folder: Path, text: str, validation=None, dt: float | None = No
 
     groups = validation if isinstance(validation, list) else [validation]
     spectra = [spectra_text(replay, dt) for replay, *_ in groups]
-    path.write_text("# qube-calibrate report\n\n" + text + "\n" + "\n".join(spectra))
+    with atomic_path(path) as tmp:
+        tmp.write_text("# qube-calibrate report\n\n" + text + "\n" + "\n".join(spectra))
     rrds = [folder / ("calibration.rrd" if i == 0 else f"calibration_{i + 1}.rrd") for i in range(len(groups))]
     try:
         import rerun  # noqa: F401  (the optional viz extra)

@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 
 from qube_koopman.sim.cli.common import ProgressCallback, configure_logging
+from qube_koopman.core.files import atomic_path
 
 
 class CliError(Exception):
@@ -81,10 +82,10 @@ def check_rerun_target(path: str | Path | None, option: str = "--rerun") -> None
 
 def write_json(path: Path, data) -> None:
     """Write strict JSON (non-finite numbers as strings), whole file then rename."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
+    text = json.dumps(_standard(data), indent=2, allow_nan=False) + "\n"
     try:
-        tmp.write_text(json.dumps(_standard(data), indent=2, allow_nan=False) + "\n")
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
     except OSError as exc:
         raise CliError(f"{path}: cannot write: {exc.strerror or exc}", status=1) from None
 

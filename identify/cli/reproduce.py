@@ -8,6 +8,7 @@ import sys
 
 from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
 from qube_koopman.identify.cli.figures import check_figure_options, write_report_figures
+from qube_koopman.core.files import atomic_path
 
 PROG = "qube-reproduce"
 
@@ -106,7 +107,8 @@ def _qube(args) -> int:
         results["figure_episode"] = {"name": episode["name"], "index": episode["index"]}
     write_json(out / "qube.json", results)
     try:
-        (out / "qube.md").write_text(qube_markdown(results))
+        with atomic_path(out / "qube.md") as tmp:
+            tmp.write_text(qube_markdown(results))
     except OSError as exc:
         raise CliError(f"{out / 'qube.md'}: cannot write: {exc.strerror or exc}", status=1) from None
     print(f"wrote {out / 'qube.json'} and {out / 'qube.md'}")

@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 
+from qube_koopman.core.files import atomic_path
 from qube_koopman.sim.cli.common import configure_logging
 
 PROG = "qube-emulate"
@@ -124,7 +125,7 @@ def _write_outputs(emulator, args) -> list[str]:
 
     def write(path: str, fill) -> None:
         try:
-            with open(path, "w") as f:
+            with atomic_path(path) as tmp, open(tmp, "w") as f:  # whole or not at all
                 fill(f)
         except OSError as exc:  # a full disk at exit: the other file is still written
             errors.append(f"{path}: cannot write: {exc.strerror or exc}")

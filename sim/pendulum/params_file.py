@@ -47,6 +47,7 @@ from dataclasses import asdict, fields
 from pathlib import Path
 
 from qube_koopman.sim.pendulum.model import PendulumParameters
+from qube_koopman.core.files import atomic_path
 
 __all__ = ["PlantFile", "load_plant", "save_plant", "named_parameters", "plant_parameters", "PARAMETER_SETS",
            "PlantFileError", "FORMAT"]
@@ -169,4 +170,5 @@ def save_plant(path: str | Path, plant: PlantFile) -> None:
     if plant.provenance:
         lines += ["", "[provenance]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in plant.provenance.items()]
-    Path(path).write_text("\n".join(lines) + "\n")
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")

@@ -1,0 +1,176 @@
+"""Every file a command writes appears only whole: interrupted mid-write, nothing partial is left.
+
+Each writer is stopped by a KeyboardInterrupt (what Ctrl-C raises) after it has put half its
+bytes on disk: the final name must not exist (or keep its previous content), and no temporary
+file may be left beside it.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from qube_koopman.core.files import atomic_path
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".part" in p.name)
+
+
+@pytest.fixture
+def interrupt_text_writes(monkeypatch):
+    """Path.write_text / write_bytes write half their data, then raise KeyboardInterrupt."""
+    for name in ("write_text", "write_bytes"):
+        original = getattr(Path, name)
+
+        def half(self, data, *args, _original=original, **kwargs):
+            _original(self, data[:len(data) // 2], *args, **kwargs)
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(Path, name, half)
+
+
+def test_atomic_path_renames_whole_files_and_removes_interrupted_ones(tmp_path):
+    target = tmp_path / "a.txt"
+    with atomic_path(target) as tmp:
+        assert tmp.parent == tmp_path and tmp.suffix == ".txt" and tmp.name.startswith(".a.txt.")
+        tmp.write_text("first")
+    assert target.read_text() == "first"
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half of the seco")
+            raise KeyboardInterrupt
+    assert target.read_text() == "first" and _leftovers(tmp_path) == []
+    with pytest.raises(FileExistsError, match="a.txt: file exists"):
+        with atomic_path(target, overwrite=False) as tmp:
+            tmp.write_text("never")
+    assert target.read_text() == "first" and _leftovers(tmp_path) == []
+    with pytest.raises(OSError):
+        with atomic_path(tmp_path / "missing" / "b.txt"):
+            pass
+
+
+def test_atomic_files_get_the_mode_open_would_give(tmp_path):
+    old = os.umask(0o027)
+    try:
+        with atomic_path(tmp_path / "m.txt") as tmp:
+            tmp.write_text("x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(tmp_path / "m.txt").st_mode) == 0o640
+
+
+def _episode():
+    from _episodes import make_episode
+
+    return make_episode(n=400)
+
+
+@pytest.mark.parametrize("fmt", ["csv", "mat", "parquet"])
+def test_an_interrupted_export_leaves_no_partial_file(fmt, tmp_path, monkeypatch, interrupt_text_writes):
+    from qube_koopman.daq import export
+
+    if fmt == "mat":
+        import scipy.io
+
+        def savemat(name, data, **kwargs):
+            Path(name).open("wb").write(b"MATLAB 5.0 MAT-file, half")
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(scipy.io, "savemat", savemat)
+    if fmt == "parquet":
+        pq = pytest.importorskip("pyarrow.parquet")
+
+        def write_table(table, name, **kwargs):
+            Path(name).open("wb").write(b"PAR1 half")
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(pq, "write_table", write_table)
+    target = tmp_path / f"episode.{fmt}"
+    with pytest.raises(KeyboardInterrupt):
+        export._WRITERS[fmt](_episode(), target)
+    assert not target.exists() and _leftovers(tmp_path) == []
+
+
+def test_interrupted_controller_plant_and_json_files_leave_nothing(tmp_path, monkeypatch, interrupt_text_writes):
+    from qube_koopman.daq.controller_file import write_controller_file
+    from qube_koopman.identify.cli.common import write_json
+    from qube_koopman.identify import reports
+    from qube_koopman.sim.lti import DiscreteStateSpace
+    from qube_koopman.sim.pendulum import PendulumParameters
+    from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
+
+    system = DiscreteStateSpace(np.eye(2) * 0.5, np.eye(2), np.ones((1, 2)), np.ones((1, 2)), 0.002)
+    writers = {"c.toml": lambda p: write_controller_file(p, system),
+               "p.toml": lambda p: save_plant(p, PlantFile(PendulumParameters())),
+               "r.json": lambda p: write_json(p, {"a": 1.0}),
+               "r.md": lambda p: reports.write_markdown_report(p, {})}
+    monkeypatch.setattr(reports, "markdown_report", lambda report: "# a report\n" * 50)  # the writing is tested
+    for name, write in writers.items():
+        with pytest.raises(KeyboardInterrupt):
+            write(tmp_path / name)
+        assert not (tmp_path / name).exists(), name
+    # the matrices of a controller file in a sibling .npz
+
+    def savez(name, **arrays):
+        Path(name).write_bytes(b"PK half")
+
+    monkeypatch.setattr(np, "savez", savez)  # (write_bytes itself stops after half)
+    with pytest.raises(KeyboardInterrupt):
+        write_controller_file(tmp_path / "big.toml", system, npz=True)
+    assert not (tmp_path / "big.npz").exists() and not (tmp_path / "big.toml").exists()
+    assert _leftovers(tmp_path) == []
+
+
+def test_an_interrupted_figure_or_recording_leaves_nothing(tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from matplotlib.figure import Figure
+
+    from qube_koopman.identify.figures import EigenvaluePlot, FigureSpec, write_figures
+
+    def savefig(self, name, **kwargs):
+        Path(name).open("wb").write(b"\x89PNG half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Figure, "savefig", savefig)
+    spec = FigureSpec("radius", "a caption", EigenvaluePlot("eigenvalues", {"plant": np.array([0.5 + 0.1j])}))
+    with pytest.raises(KeyboardInterrupt):
+        write_figures([spec], tmp_path)
+    assert list(tmp_path.glob("radius*")) == [] and _leftovers(tmp_path) == []
+
+    rr = pytest.importorskip("rerun")
+    from qube_koopman.identify.calibrate.recording import write_recording
+    from test_calibrate_report import DT, NAMES, synthetic_replay
+
+    def flush(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rr.RecordingStream, "flush", flush)
+    with pytest.raises(KeyboardInterrupt):
+        write_recording(tmp_path / "calibration.rrd", synthetic_replay(), NAMES, DT)
+    assert not (tmp_path / "calibration.rrd").exists() and _leftovers(tmp_path) == []
+
+
+def test_an_interrupted_identification_leaves_no_partial_model_or_report(tmp_path, monkeypatch, capsys):
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    assert run_main(["--episodes", "2", "--duration", "3", "--seed", "4", "--out", str(tmp_path / "logs"), "-q"]) == 0
+    logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
+    original = Path.write_text
+
+    def half(self, data, *args, **kwargs):  # the model file is the first file written
+        original(self, data[:len(data) // 2], *args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Path, "write_text", half)
+    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--out", str(tmp_path / "m"),
+                          "-q"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+    out = tmp_path / "m"
+    assert not (out / "model.json").exists() and not (out / "report.json").exists()
+    assert not out.exists() or _leftovers(out) == []
