@@ -4,5 +4,6 @@ Nothing here imports another ``qube_koopman`` package.
 """
 
 from qube_koopman.core.files import atomic_path
+from qube_koopman.core.signals import Terminated, interrupted_status, sigterm_as_interrupt
 
-__all__ = ["atomic_path"]
+__all__ = ["atomic_path", "Terminated", "interrupted_status", "sigterm_as_interrupt"]

@@ -32,7 +32,10 @@ def atomic_path(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     ------
     Path
         A new, empty file beside ``path`` (hidden, with ``path``'s suffix, so writers that choose
-        the format by the suffix still do); write it by name, as many times as needed.
+        the format by the suffix still do); write it by name, as many times as needed. When
+        ``path`` exists and is not a regular file (a device such as ``/dev/null``, a named pipe),
+        ``path`` itself: there is nothing to replace, and renaming over it would replace the
+        device with a file. A symbolic link is followed: the file it points to is replaced.
 
     Raises
     ------
@@ -51,6 +54,11 @@ def atomic_path(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     ('whole', ['a.txt'])
     """
     path = Path(path)
+    if path.is_symlink():
+        path = path.resolve()
+    if path.exists() and not path.is_file():
+        yield path
+        return
     tmp = _new_file(path)
     try:
         yield tmp

@@ -54,6 +54,25 @@ def test_atomic_path_renames_whole_files_and_removes_interrupted_ones(tmp_path):
             pass
 
 
+def test_devices_pipes_and_links_are_written_where_they_are(tmp_path):
+    # A device is written in place (never renamed over: /dev/full stays a device and says ENOSPC).
+    with pytest.raises(OSError, match="No space left"):
+        with atomic_path("/dev/full") as target:
+            assert target == Path("/dev/full")
+            target.write_text("x")
+    assert stat.S_ISCHR(os.stat("/dev/full").st_mode)
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    with atomic_path(fifo) as target:
+        assert target == fifo
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+    (tmp_path / "real.txt").write_text("old")
+    (tmp_path / "link.txt").symlink_to(tmp_path / "real.txt")
+    with atomic_path(tmp_path / "link.txt") as tmp:
+        tmp.write_text("new")
+    assert (tmp_path / "link.txt").is_symlink() and (tmp_path / "real.txt").read_text() == "new"
+
+
 def test_atomic_files_get_the_mode_open_would_give(tmp_path):
     old = os.umask(0o027)
     try:
@@ -174,3 +193,44 @@ def test_an_interrupted_identification_leaves_no_partial_model_or_report(tmp_pat
     out = tmp_path / "m"
     assert not (out / "model.json").exists() and not (out / "report.json").exists()
     assert not out.exists() or _leftovers(out) == []
+
+
+@pytest.mark.parametrize("signum, status", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_commands_stopped_by_a_signal_say_interrupted_in_one_line(signum, status, tmp_path, monkeypatch, capsys):
+    # Each command's work is stopped by the signal (sent to the process itself, in the middle of it):
+    # one "interrupted" line, the shell's exit status, no traceback, and no folder left empty.
+    import signal
+
+    from qube_koopman.daq.cli.export import main as export_main
+    from qube_koopman.daq.cli.import_csv import main as import_main
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli import identify as identify_cli
+
+    assert run_main(["--episodes", "2", "--duration", "2", "--seed", "4", "--out", str(tmp_path / "logs"), "-q"]) == 0
+    capsys.readouterr()
+    logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
+
+    def stop(*args, **kwargs):
+        os.kill(os.getpid(), getattr(signal, signum))
+        raise AssertionError("the signal should have stopped the command")
+
+    from qube_koopman.daq import export as export_module
+    from qube_koopman.daq import legacy_csv
+    monkeypatch.setattr(export_module, "export_episode", stop)
+    monkeypatch.setattr(legacy_csv, "legacy_episode", stop)
+    monkeypatch.setattr(identify_cli, "identify_and_score", stop, raising=False)
+    monkeypatch.setattr("qube_koopman.identify.workflow.identify_and_score", stop)
+    from qube_koopman.daq.controller import controller_file
+
+    rig = controller_file("rig")
+    (tmp_path / "episode.csv").write_text("t\n")
+    runs = {"qube-export": lambda: export_main([*logs, "--format", "csv", "--out", str(tmp_path / "x")]),
+            "qube-import": lambda: import_main([str(tmp_path / "episode.csv"), "--controller", str(rig), "--out",
+                                                str(tmp_path / "y")]),
+            "qube-identify": lambda: identify_cli.main(["--train", logs[0], "--test", logs[1], "--out",
+                                                        str(tmp_path / "z" / "deep")])}
+    for name, command in runs.items():
+        assert command() == status, name
+        err = capsys.readouterr().err
+        assert err.strip().splitlines()[-1].endswith("interrupted") and "Traceback" not in err, (name, err)
+    assert not (tmp_path / "z").exists()  # qube-identify created z/deep, stopped, removed them

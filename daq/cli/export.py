@@ -60,6 +60,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage or a missing LOG)."""
+    from qube_koopman.core.signals import interrupted_status, sigterm_as_interrupt
+
+    try:
+        with sigterm_as_interrupt():
+            return _main(argv)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: every file written so far is whole
+        print(f"{PROG}: error: interrupted", file=sys.stderr)
+        return interrupted_status(exc)
+
+
+def _main(argv: list[str] | None) -> int:
+    """The command itself (:func:`main` adds the interruption handling)."""
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from qube_koopman.sim.cli.common import ProgressCallback, configure_logging
 from qube_koopman.core.files import atomic_path
+from qube_koopman.core.signals import interrupted_status, sigterm_as_interrupt
 
 
 class CliError(Exception):
@@ -37,11 +38,18 @@ def fail(prog: str, message: str) -> int:
     return 2
 
 
+#: Folders :func:`output_dir` created in this process: a command that stops before it has written
+#: anything there removes them again (:func:`run_command`), not leaving empty folders behind.
+_created: list[Path] = []
+
+
 def output_dir(path: str | Path) -> Path:
     """Create the output folder (and parents); a clear error when that is impossible."""
     path = Path(path)
+    missing = [p for p in (path, *path.parents) if not p.exists()]
     try:
         path.mkdir(parents=True, exist_ok=True)
+        _created.extend(missing)  # deepest first
     except OSError as exc:
         raise CliError(f"{path}: cannot create output folder: {exc.strerror or exc}") from None
     if not path.is_dir():
@@ -104,7 +112,8 @@ def run_command(prog: str, command, args) -> int:
     ``-v``/``-q`` ask for; ``-q`` also silences the progress bars. Exit status: the command's, 2
     for a user mistake (:class:`CliError`), 1 for a failure at run time (a :class:`CliError`
     saying so, or an ``OSError`` such as a full disk, named by its file), 130 when interrupted
-    (Ctrl-C).
+    (Ctrl-C), 143 when terminated (SIGTERM). A command that stops with an error or interrupted
+    removes the output folders it created and left empty.
     """
     configure_logging(prog, args)
     progress.enabled = not getattr(args, "quiet", False)
@@ -119,18 +128,23 @@ def run_command(prog: str, command, args) -> int:
         else:
             default_show(message, category, *rest, **kwargs)
 
+    del _created[:]
+    status = 1
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), sigterm_as_interrupt():
             warnings.simplefilter("always", IncompleteLogSkipped)
             warnings.simplefilter("always", DivergedPrediction)
             warnings.showwarning = show
-            return command(args)
+            status = command(args)
+            return status
     except CliError as exc:
         fail(prog, str(exc))
-        return exc.status
-    except KeyboardInterrupt:
+        status = exc.status
+        return status
+    except KeyboardInterrupt as exc:
         fail(prog, "interrupted")
-        return 130  # 128 + SIGINT, as qube-run
+        status = interrupted_status(exc)  # 130 for Ctrl-C, 143 for SIGTERM, as qube-run
+        return status
     except BrokenPipeError:
         # The reader went away (e.g. piped into `head`): nothing left to tell it.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -138,6 +152,19 @@ def run_command(prog: str, command, args) -> int:
     except OSError as exc:  # a write or read failing at run time (a full disk...): no traceback
         fail(prog, f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
         return 1
+    finally:
+        if status != 0:
+            _remove_empty_created()
+
+
+def _remove_empty_created() -> None:
+    """Remove the folders :func:`output_dir` created that are still empty (deepest first)."""
+    for folder in _created:
+        try:
+            folder.rmdir()  # only when empty: what the command wrote stays
+        except OSError:
+            pass
+    del _created[:]
 
 
 def expand_logs(items) -> list[Path]:
