@@ -56,13 +56,13 @@ class PlantCalibration:
         Seconds between segment starts (default: ``2 * horizon``, every other stretch of data).
     max_nfev : int
         Iteration budget of the solver (Levenberg-Marquardt iterations).
+    progress : bool
+        Show a progress line on stderr.
     weighting : {"episode", "group"}
         With ``groups`` given to :meth:`fit` (for example each episode's
         controller): ``"episode"`` counts every episode alike, ``"group"``
         weights the residuals so that every group counts alike however many
         episodes it has (each group's squared residuals sum to the same share).
-    progress : bool
-        Show a progress line on stderr.
 
     Attributes
     ----------

@@ -31,8 +31,12 @@ and voltage deviations came out 6 to 40 % too large. ``km`` and ``Jh`` are
 down best), yet both are identified to better than 1 %. Segments of 0.2 s
 (the default) rather than 0.1 s: on simulated logs the 0.1 s fit left the
 delay 2.7 standard errors short, and on the rig's logs its replay came out
-up to 7 % too quiet (0.2 s: within 5 %). The Coulomb friction's
-smoothing speed stays nominal: fitted, it ran to its lower bound without
+up to 7 % too quiet (0.2 s: within 5 %). The stiffness ``Kr`` of the cables between the arm's hub
+and the base is fitted too (bounded to [0, 0.01] N m/rad; its rest angle stays at the encoder's
+zero, where the operator starts an episode): under a soft arm loop the slow load it puts on the
+arm is what moved the arm (0.2-0.4 V of restoring voltage at the arm's excursions), and without it
+the fit made up for it with ``km`` and ``Jh`` (``km`` 0.049 without the spring, 0.039-0.042 with
+it; the workbook's 0.042). The Coulomb friction's smoothing speed stays nominal: fitted, it ran to its lower bound without
 improving the closed-loop replay (measured).
 """
 
