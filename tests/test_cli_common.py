@@ -224,3 +224,21 @@ def test_help_is_plain_text_without_restructuredtext_markup(module, capsys):
     assert code in (0, None)
     out = capsys.readouterr().out
     assert "usage:" in out and "``" not in out and ":func:" not in out and ":class:" not in out
+
+
+@pytest.mark.parametrize("module, argv", [
+    ("daq.cli.import_csv", []), ("daq.cli.export", ["x.mcap", "--format", "xlsx", "--out", "d"]),
+    ("daq.cli.run", ["--episodes", "-1"]), ("identify.cli.identify", ["--delays", "-1", "x.mcap"]),
+    ("identify.cli.reproduce", ["bogus"]), ("identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--poly"]),
+    ("design.cli.design", []), ("sim.cli.emulate", ["--drop-rate", "2"])])
+def test_usage_errors_are_one_line_in_every_command(module, argv, capsys):
+    import importlib
+
+    main = importlib.import_module(f"qube_koopman.{module}").main
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ": error: " in err[0] and "usage:" not in err[0], err

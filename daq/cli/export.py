@@ -7,6 +7,7 @@ import logging
 import sys
 import warnings
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 from qube_koopman.daq.log.names import LOG_SUFFIX
 from qube_koopman.sim.cli.common import add_standard_options, configure_logging, path
@@ -47,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     from qube_koopman.daq.export import FORMATS
 
-    parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+    parser = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("logs", nargs="+", type=path, metavar="LOG",
                         help="an episode log (.mcap), or a folder whose *.mcap files are all exported")

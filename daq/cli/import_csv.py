@@ -7,6 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 from qube_koopman.daq.log.names import log_path
 from qube_koopman.sim.cli.common import configure_logging
@@ -45,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     from qube_koopman.sim.cli.common import add_standard_options, path
 
-    parser = argparse.ArgumentParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+    parser = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sources", nargs="+", type=path, metavar="SRC",
                         help="a legacy CSV file, or a folder whose *.csv files are all imported")

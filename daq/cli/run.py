@@ -7,6 +7,7 @@ import math
 import sys
 from pathlib import Path
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.daq.cli.run_output import PROG
 from qube_koopman.sim.cli.common import configure_logging
 
@@ -51,11 +52,6 @@ examples:
   qube-run --controller gains.toml --rerun-save run.rrd
   qube-run --backend serial --port /dev/ttyACM0   # the rig, through the bridge firmware
 """
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # one line, no usage dump
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _int(text: str) -> int:
@@ -107,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     from qube_koopman.sim.cli.common import add_standard_options, path, seed
 
-    p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+    p = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--backend", default="sim", choices=("sim", "serial"),
                    help="sim: the simulated pendulum (default); serial: the bridge firmware on --port")

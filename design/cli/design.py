@@ -30,6 +30,7 @@ import math
 import sys
 from dataclasses import fields
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.design.lq import Weights
 from qube_koopman.identify.cli.common import CliError, check_rerun_target, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
@@ -41,7 +42,7 @@ DEFAULTS = {f.name: f.default for f in fields(Weights) if f.name != "integral"}
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="qube-design", description=__doc__.split("\n\n")[0].replace("``", ""),
+    p = OneLineParser(prog="qube-design", description=__doc__.split("\n\n")[0].replace("``", ""),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", type=path, metavar="MODEL.json", help="model file of qube-identify (or its --out folder)")
     p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="controller file to write")

@@ -36,6 +36,7 @@ import time
 
 import numpy as np
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.identify.cli.common import CliError, expand_logs, output_dir, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, whole_number
 
@@ -43,7 +44,7 @@ __all__ = ["main"]
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="qube-calibrate", description=__doc__.split("\n\n")[0].replace("``", ""),
+    p = OneLineParser(prog="qube-calibrate", description=__doc__.split("\n\n")[0].replace("``", ""),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("logs", nargs="+", type=path, help="episode logs (.mcap files or folders of them) to fit")
     p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="plant file to write")

@@ -10,6 +10,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.identify.cli.common import (CliError, check_rerun_target, expand_logs, output_dir, progress,
                                               run_command, write_json)
 from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
@@ -100,7 +101,7 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
 def _parser() -> argparse.ArgumentParser:
     from qube_koopman.sim.cli.common import add_version, path, seed, whole_number
 
-    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
+    p = OneLineParser(prog=PROG, description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_version(p)
     data = p.add_argument_group("data")

@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
 from qube_koopman.identify.cli.figures import check_figure_options, write_report_figures
 from qube_koopman.core.files import atomic_path
@@ -31,7 +32,7 @@ def _parser() -> argparse.ArgumentParser:
     from qube_koopman.identify.cli.figures import add_figure_options
     from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
-    parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
+    parser = OneLineParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_standard_options(parser)
     sub = parser.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")

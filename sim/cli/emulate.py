@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 
+from qube_koopman.core.cli import OneLineParser
 from qube_koopman.core.files import atomic_path
 from qube_koopman.sim.cli.common import configure_logging
 
@@ -42,11 +43,6 @@ be written at exit, 2 on a usage error.
 """
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # one line, no usage dump
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
 def _number(low: float, high: float, what: str):
     def parse(text: str) -> float:
         try:
@@ -67,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
-    p = _Parser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
+    p = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--target", choices=("host", "avr"), default="host",
                    help="host (default): the firmware core compiled for this machine; avr: the whole Uno "

@@ -1,0 +1,18 @@
+"""The command-line pieces every command shares and no package owns."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["OneLineParser"]
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line: ``<prog>: error: <problem> (see <prog> --help)``.
+
+    argparse's default prints the whole usage block (5-17 lines in these commands) before the
+    error; the exit status stays argparse's 2. Subcommands' parsers are of the same class.
+    """
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
