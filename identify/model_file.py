@@ -109,7 +109,8 @@ def load_model(path: str | Path) -> dict:
     Raises
     ------
     ValueError
-        Naming the file when it is not a model file or has another version.
+        Naming the file when it is not a model file, has another version, or a model in it
+        cannot be used (a non-finite entry in A or B, shapes that do not fit).
     """
     path = Path(path)
     try:
@@ -123,15 +124,31 @@ def load_model(path: str | Path) -> dict:
         raise ValueError(f"{path}: model format version {data.get('version')}, this software reads {VERSION}")
     lifting = lifting_from_dict(data["lifting"])
 
-    def model(entry):
+    def matrix(entry, name: str, key: str) -> np.ndarray:
+        try:
+            values = np.array(entry[key], dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: {name}.{key} is not a matrix of numbers ({exc})") from None
+        bad = np.argwhere(~np.isfinite(values))
+        if bad.size:
+            where = ", ".join(str(i) for i in bad[0])
+            raise ValueError(f"{path}: {name}.{key} has a non-finite entry ({values[tuple(bad[0])]}) at "
+                             f"[{where}]{f' and {len(bad) - 1} more' if len(bad) > 1 else ''}")
+        return values
+
+    def model(entry, name: str):
         if entry is None:
             return None
-        return KoopmanModel(np.array(entry["A"]), np.array(entry["B"]), lifting, tuple(entry["input_signals"]),
-                            n_passthrough=entry["n_passthrough"], dt=data["dt"],
-                            passthrough_names=tuple(entry["passthrough_names"]),
-                            feedback=tuple(data["measured"]) if "r" in entry["input_signals"] else ())
+        try:
+            return KoopmanModel(matrix(entry, name, "A"), matrix(entry, name, "B"), lifting,
+                                tuple(entry["input_signals"]), n_passthrough=entry["n_passthrough"], dt=data["dt"],
+                                passthrough_names=tuple(entry["passthrough_names"]),
+                                feedback=tuple(data["measured"]) if "r" in entry["input_signals"] else ())
+        except ValueError as exc:
+            message = str(exc)
+            raise ValueError(message if message.startswith(f"{path}:") else f"{path}: {name}: {message}") from None
 
     out = dict(data)
-    out.update(plant=model(data["plant"]), closed_loop=model(data["closed_loop"]),
+    out.update(plant=model(data["plant"], "plant"), closed_loop=model(data["closed_loop"], "closed_loop"),
                controller=None if data["controller"] is None else DiscreteStateSpace.from_dict(data["controller"]))
     return out

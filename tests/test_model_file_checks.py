@@ -1,0 +1,43 @@
+"""A model file that cannot be used is one error naming the file and the entry, never a traceback."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    root = tmp_path_factory.mktemp("model")
+    assert run_main(["--episodes", "2", "--duration", "3", "--seed", "4", "--out", str(root / "logs"), "-q"]) == 0
+    logs = sorted(map(str, (root / "logs").glob("*.mcap")))
+    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--poly", "1", "--out",
+                          str(root / "m"), "-q"]) == 0
+    return root / "m" / "model.json"
+
+
+def _damaged(model_file, tmp_path, change) -> str:
+    data = json.loads(model_file.read_text())
+    change(data)
+    path = tmp_path / "damaged.json"
+    path.write_text(json.dumps(data))  # json writes NaN and Infinity, as a hand-edited file may hold
+    return str(path)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["plant"]["A"][2].__setitem__(3, float("nan")), "plant.A has a non-finite entry (nan) at [2, 3]"),
+    (lambda d: d["closed_loop"]["B"][0].__setitem__(0, float("inf")), "closed_loop.B has a non-finite entry (inf) at [0, 0]"),
+    (lambda d: d["plant"]["B"].pop(), "plant: "),
+], ids=["nan", "inf", "shape"])
+def test_qube_design_refuses_an_unusable_model_in_one_line(model_file, tmp_path, capsys, change, message):
+    from qube_koopman.design.cli.design import main as design_main
+
+    path = _damaged(model_file, tmp_path, change)
+    assert design_main([path, "--out", str(tmp_path / "c.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"qube-design: error: {path}: ") and message in err[0], err
+    assert not (tmp_path / "c.toml").exists()
