@@ -41,3 +41,28 @@ def test_qube_design_refuses_an_unusable_model_in_one_line(model_file, tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"qube-design: error: {path}: ") and message in err[0], err
     assert not (tmp_path / "c.toml").exists()
+
+
+@pytest.mark.parametrize("command", ["design", "calibrate"])
+@pytest.mark.parametrize("out, message", [("missing/x.toml", "folder {tmp}/missing does not exist (--out)"),
+                                          ("afolder", "is a folder; --out names the file to write")])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(command, out, message, model_file, tmp_path,
+                                                                    capsys, monkeypatch):
+    from qube_koopman.design import workflow
+    from qube_koopman.design.cli.design import main as design_main
+    from qube_koopman.identify.calibrate import PlantCalibration
+    from qube_koopman.identify.cli.calibrate import main as calibrate_main
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work started before the output was checked")
+
+    monkeypatch.setattr(workflow, "design_from_model", no_work)
+    monkeypatch.setattr(PlantCalibration, "fit", no_work)
+    (tmp_path / "afolder").mkdir()
+    target = str(tmp_path / out)
+    logs = str(model_file.parents[1] / "logs")
+    status = design_main([str(model_file), "--out", target]) if command == "design" else \
+        calibrate_main([logs, "--out", target])
+    assert status == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(message.format(tmp=tmp_path)), err

@@ -32,7 +32,7 @@ from dataclasses import fields
 
 from qube_koopman.core.cli import OneLineParser
 from qube_koopman.design.lq import Weights
-from qube_koopman.identify.cli.common import CliError, check_rerun_target, run_command
+from qube_koopman.identify.cli.common import CliError, check_output_file, check_rerun_target, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
 __all__ = ["main"]
@@ -89,6 +89,7 @@ def _run(args) -> int:
     from qube_koopman.design.workflow import design_from_model, provenance, report_text
 
     weights = _weights(args)
+    check_output_file(args.out)  # before the design's minutes of work, not after
     check_rerun_target(args.rerun)
     if not (math.isfinite(args.duration) and 2.0 <= args.duration <= 60.0):
         raise CliError(f"--duration must be between 2 and 60 s, got {args.duration}")

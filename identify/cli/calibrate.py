@@ -37,7 +37,7 @@ import time
 import numpy as np
 
 from qube_koopman.core.cli import OneLineParser
-from qube_koopman.identify.cli.common import CliError, expand_logs, output_dir, run_command
+from qube_koopman.identify.cli.common import CliError, check_output_file, expand_logs, output_dir, run_command
 from qube_koopman.sim.cli.common import add_standard_options, path, whole_number
 
 __all__ = ["main"]
@@ -94,6 +94,7 @@ def _run(args) -> int:
         val_paths += held
     if not 0.004 <= args.horizon <= 2.0:
         raise CliError(f"--horizon must be between 0.004 and 2 s, got {args.horizon}")
+    check_output_file(args.out)  # before the fit's minute of work, not after
     episodes = _read(fit_paths)
     started = time.perf_counter()
     fit_groups = controller_groups(episodes)

@@ -57,6 +57,19 @@ def output_dir(path: str | Path) -> Path:
     return path
 
 
+def check_output_file(path: str | Path, option: str = "--out") -> None:
+    """Refuse, before any work, an output file that cannot be written: its folder missing or not
+    writable, or the name taken by a folder (a user error: exit 2, the file named)."""
+    path = Path(path)
+    folder = path.parent
+    if path.is_dir():
+        raise CliError(f"{path}: is a folder; {option} names the file to write")
+    if not folder.is_dir():
+        raise CliError(f"{path}: folder {folder} does not exist ({option})")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CliError(f"{path}: cannot write in folder {folder} ({option})")
+
+
 def _standard(value):
     """Non-finite floats as the strings "inf", "-inf", "nan": strict JSON has no such numbers."""
     if isinstance(value, float) and not math.isfinite(value):
