@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 
@@ -66,3 +67,24 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(command, ou
     assert status == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].endswith(message.format(tmp=tmp_path)), err
+
+
+def test_an_unstable_what_if_controller_is_named_with_its_spectral_radius(model_file, tmp_path, capsys):
+    from qube_koopman.daq.controller_file import write_controller_file
+    from qube_koopman.identify.cli.identify import main as identify_main
+    from qube_koopman.sim.lti import DiscreteStateSpace
+
+    logs = sorted(map(str, (model_file.parents[1] / "logs").glob("*.mcap")))
+    bad = tmp_path / "unstable.toml"
+    write_controller_file(bad, DiscreteStateSpace(1.5 * np.eye(2), np.eye(2), np.ones((1, 2)), np.zeros((1, 2)), 0.002))
+    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--controller", str(bad),
+                          "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{bad}: the controller is unstable on its own (spectral radius of A 1.5 > 1)" in err[0]
+    assert not (tmp_path / "o").exists()
+    # an integrator is a controller (a designed controller's integral action): accepted
+    integrating = tmp_path / "integral.toml"
+    write_controller_file(integrating, DiscreteStateSpace(np.eye(1), np.ones((1, 2)), np.ones((1, 1)),
+                                                          np.zeros((1, 2)), 0.002))
+    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--controller", str(integrating),
+                          "--out", str(tmp_path / "i"), "-q"]) == 0
