@@ -202,7 +202,7 @@ def test_group_weighting_moves_the_fit_towards_the_smaller_group():
     small = simulated_logs(replace(TRUTH, Kr=2e-3), n=1, seconds=2.5, seed=8, controller=soft_pd())
     ys = [b[0][0] for b in big] + small[0]
     us = [b[1][0] for b in big] + small[1]
-    kwargs = dict(horizon=0.2, skip=0.5, stride=0.2, nominal=TRUTH, max_nfev=15)
+    kwargs = dict(horizon=0.2, skip=0.5, stride=0.4, nominal=TRUTH, max_nfev=6)
     groups = ["rig"] * 3 + ["soft"]
     plain = PlantCalibration(**kwargs).fit(ys, us, DT, groups)
     weighted = PlantCalibration(weighting="group", **kwargs).fit(ys, us, DT, groups)
