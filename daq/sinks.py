@@ -198,7 +198,9 @@ class SinkWriter:
         message = f"{type(sink).__name__}.{what}: {type(exc).__name__}: {exc}"
         self.errors.append(message)
         if getattr(sink, "required", True) and self.failed is None:
-            self.failed = message
+            # The episode's reason: a log's write error says its file and the system's reason
+            # already; the sink's and the exception's class names mean nothing to a user.
+            self.failed = str(exc) if isinstance(exc, LogWriteError) else message
 
     def open(self, metadata: EpisodeMetadata) -> bool:
         """Open every sink and start the thread; False when a required sink failed to open."""

@@ -128,10 +128,14 @@ def test_too_little_free_space_refuses_to_start(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr(sinks_module.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9 - 10**6,
                                                                                           10**6))
     assert main(["--episodes", "2", "--duration", "20", "--out", str(tmp_path), "-q"]) == 1
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     assert list(tmp_path.iterdir()) == []
     assert "1.0 MB free, the episode needs about 5.0 MB (ENOSPC): the episode was not started" in err
     assert err.count("\n") == 1 and "Traceback" not in err
+    # The summary counts the logs that are there (none), and the episode's reason names no internals.
+    assert "0 complete, 1 aborted; 0 episode logs in" in captured.out, captured.out
+    assert "McapSink" not in captured.out and "LogWriteError" not in captured.out, captured.out
 
 
 def test_flipped_bytes_read_as_a_corrupted_chunk_at_its_offset(tmp_path):

@@ -176,7 +176,6 @@ def _as_logged(rows: list[tuple[str, object]], log_errors: list) -> list[tuple[s
 def report(args, run, book: EpisodeBook, totals, n_planned: int) -> int:
     """Print the summary and the closing lines of a run; its exit status (see ``qube-run --help``)."""
     results = run.results
-    started = [r for r in results if r.started]
     print(summary_table(_as_logged(list(zip(book.names, results)), book.log_errors), totals))
     link = link_summary(results)
     if link:
@@ -185,8 +184,9 @@ def report(args, run, book: EpisodeBook, totals, n_planned: int) -> int:
         for error in r.sink_errors:
             if not (book.log_errors and error.startswith("McapSink.")):
                 print(f"{PROG}: warning: {error}", file=sys.stderr)
-    print(f"{run.n_complete} complete, {run.n_aborted} aborted; {len(started)} episode "
-          f"log{'s' if len(started) != 1 else ''} in {args.out.resolve()}"
+    logs = sum(1 for name in book.names if (args.out / name).is_file())  # what is there to read, not what ran
+    print(f"{run.n_complete} complete, {run.n_aborted} aborted; {logs} episode "
+          f"log{'s' if logs != 1 else ''} in {args.out.resolve()}"
           + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else ""))
     if run.stopped and not book.log_errors:
         print(f"{PROG}: run stopped: {run.stopped}", file=sys.stderr)
