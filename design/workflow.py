@@ -22,7 +22,7 @@ from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins,
                                          loop_margins, predict_cost, predict_loop, rig_excitations)
 from qube_koopman.sim.lti import DiscreteStateSpace
 
-__all__ = ["DesignReport", "design_from_model", "report_text", "provenance", "record_design"]
+__all__ = ["DesignReport", "design_from_model", "report_text", "saturation_warning", "provenance", "record_design"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,9 +173,16 @@ def report_text(report: DesignReport) -> str:
         lines.append(_row("model's training one", report.training))
         ratio = report.predicted.summary()["J"] / report.training.summary()["J"]
         lines.append(f"  predicted J {100 * (ratio - 1):+.1f} % against the training controller")
-    if report.predicted.summary()["voltage_peak"] > VOLTAGE_LIMIT:
-        lines.append(f"  warning: the predicted voltage exceeds the loop's {VOLTAGE_LIMIT:g} V clamp (saturation)")
     return "\n".join(lines)
+
+
+def saturation_warning(report: DesignReport) -> str | None:
+    """The warning when the predicted voltage exceeds the loop's clamp (saturation), else None."""
+    peak = report.predicted.summary()["voltage_peak"]
+    if peak > VOLTAGE_LIMIT:
+        return (f"the predicted voltage peaks at {peak:.2f} V, beyond the loop's {VOLTAGE_LIMIT:g} V clamp: the "
+                "loop would saturate, which the prediction leaves out")
+    return None
 
 
 def provenance(report: DesignReport) -> dict:

@@ -88,3 +88,16 @@ def test_an_unstable_what_if_controller_is_named_with_its_spectral_radius(model_
                                                           np.zeros((1, 2)), 0.002))
     assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--controller", str(integrating),
                           "--out", str(tmp_path / "i"), "-q"]) == 0
+
+
+def test_the_designs_saturation_warning_names_the_peak_and_the_clamp():
+    # qube-design prints it as a `qube-design: warning:` line on stderr, apart from the report on stdout
+    from types import SimpleNamespace
+
+    from qube_koopman.design.workflow import saturation_warning
+
+    def report(peak):
+        return SimpleNamespace(predicted=SimpleNamespace(summary=lambda: {"voltage_peak": peak}))
+
+    assert saturation_warning(report(6.0)) is None
+    assert "peaks at 12.50 V, beyond the loop's 10 V clamp" in saturation_warning(report(12.5))

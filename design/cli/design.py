@@ -86,7 +86,7 @@ def _weights(args):
 def _run(args) -> int:
     from qube_koopman.daq.controller_file import write_controller_file
     from qube_koopman.design import DesignError
-    from qube_koopman.design.workflow import design_from_model, provenance, report_text
+    from qube_koopman.design.workflow import design_from_model, provenance, report_text, saturation_warning
 
     weights = _weights(args)
     check_output_file(args.out)  # before the design's minutes of work, not after
@@ -101,6 +101,9 @@ def _run(args) -> int:
     except DesignError as exc:
         raise CliError(str(exc)) from None
     print(report_text(report))
+    warning = saturation_warning(report)
+    if warning:
+        print(f"qube-design: warning: {warning}", file=sys.stderr)
     try:
         written = write_controller_file(args.out, report.controller, provenance(report), npz=args.npz)
     except OSError as exc:
