@@ -227,7 +227,7 @@ def _read(path: Path) -> tuple[dict[str, np.ndarray], bytes, str]:
     if bad.any():
         row, col = np.argwhere(bad)[0]
         raise LegacyCsvError(f"{path}: line {_line_of(text, row)}: column {names[col]}: "
-                             f"non-finite value {data[row, col]}")
+                             f"non-finite value {float(data[row, col])}")
     columns = {name: data[:, names.index(name)].copy() for name in LEGACY_COLUMNS}
     t = columns["t"]
     expected = np.arange(len(t)) / LEGACY_SAMPLE_RATE_HZ
@@ -235,10 +235,10 @@ def _read(path: Path) -> tuple[dict[str, np.ndarray], bytes, str]:
     if off.max() > _TIME_TOLERANCE_S:
         k = int(np.argmax(off > _TIME_TOLERANCE_S))
         raise LegacyCsvError(f"{path}: t is not evenly spaced at {LEGACY_SAMPLE_RATE_HZ:g} Hz from 0 "
-                             f"(line {_line_of(text, k)}: t = {t[k]!r}, expected {expected[k]!r})")
+                             f"(line {_line_of(text, k)}: t = {float(t[k])!r}, expected {float(expected[k])!r})")
     if not np.isin(columns["saturation"], (-1.0, 0.0, 1.0)).all():
         k = int(np.argmax(~np.isin(columns["saturation"], (-1.0, 0.0, 1.0))))
-        raise LegacyCsvError(f"{path}: line {_line_of(text, k)}: saturation {columns['saturation'][k]!r} "
+        raise LegacyCsvError(f"{path}: line {_line_of(text, k)}: saturation {float(columns['saturation'][k])!r} "
                              f"is not -1, 0 or +1")
     return columns, raw, cut
 

@@ -321,3 +321,28 @@ def test_a_file_cut_mid_line_is_imported_without_that_line_as_incomplete(cut_fro
     assert len(episode) == rows_before and not episode.is_complete
     assert episode.metadata.status == "aborted" and "legacy CSV cut short" in episode.metadata.status_reason
     np.testing.assert_array_equal(episode.theta, whole["theta"][:rows_before])
+
+
+def _gap(lines):
+    return lines[:300] + lines[550:]  # 250 samples missing, as an export of a log with a lost chunk
+
+
+def _half_saturated(lines):
+    fields = lines[20].split(",")
+    fields[-1] = " 0.5"
+    lines[20] = ",".join(fields)
+    return lines
+
+
+@pytest.mark.parametrize("edit, problem", [
+    (_gap, "t is not evenly spaced at 500 Hz from 0 (line 301: t = 1.098, expected 0.598)"),
+    (_half_saturated, "line 21: saturation 0.5 is not -1, 0 or +1"),
+], ids=["time gap", "saturation"])
+def test_refusals_quote_numbers_as_plain_numbers(synthetic_dir, edit, problem):
+    from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
+
+    path = synthetic_dir / f"{GOOD}.csv"
+    _edit_lines(path, edit)
+    with pytest.raises(LegacyCsvError) as info:
+        legacy_episode(path, load_legacy_controller(synthetic_dir / "controller.toml"))
+    assert problem in str(info.value) and "np.float64" not in str(info.value)
