@@ -209,8 +209,24 @@ class EpisodeScore(NamedTuple):
     diverged_at: int | None
 
 
+#: A prediction that leaves this many times the measured signals' range (at least 1) has diverged,
+#: finite or not: an unstable model's prediction can stay finite for seconds while it grows to
+#: 1e15 rad, and an R^2 of -1e30 says less than "diverged at sample k".
+DIVERGED_FACTOR = 1e3
+
+
 def episode_score(y_true: np.ndarray, y_pred: np.ndarray, start: int = 1) -> EpisodeScore:
-    """R^2 and NRMSE of one episode from sample ``start`` on, and where it diverged (see :func:`summarize_episodes`)."""
+    """R^2 and NRMSE of one episode from sample ``start`` on, and where it diverged (see :func:`summarize_episodes`).
+
+    A prediction diverged where it is first non-finite or beyond :data:`DIVERGED_FACTOR` times the
+    largest measured magnitude (at least 1): its R^2 is then -inf and its NRMSE inf.
+    """
+    y_true, y_pred = np.asarray(y_true, dtype=float), np.asarray(y_pred, dtype=float)
+    bound = DIVERGED_FACTOR * max(1.0, float(np.nanmax(np.abs(y_true[start:]), initial=0.0)))
+    with np.errstate(invalid="ignore"):
+        beyond = ~(np.abs(y_pred[start:].reshape(len(y_pred) - start, -1)) <= bound).all(axis=1)
+    if beyond.any():
+        return EpisodeScore(-np.inf, np.inf, int(np.argmax(beyond)) + start)
     r2, err = r2_score(y_true[start:], y_pred[start:]), nrmse(y_true[start:], y_pred[start:])
     if np.isfinite(r2) and np.isfinite(err):
         return EpisodeScore(r2, err, None)

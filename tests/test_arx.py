@@ -85,3 +85,19 @@ def test_arx_bad_orders():
         Arx(output_lags=0).fit(trajs)
     with pytest.raises(ValueError, match="not fitted"):
         Arx().predict(trajs[0])
+
+
+def test_an_arx_plant_prediction_that_blows_up_reads_as_diverged(tmp_path, capsys):
+    # ARX's open-loop plant prediction of the unstable pendulum grows to 1e15 rad while staying
+    # finite: the command says it diverged (and where), not an R^2 of thirty digits with alpha None.
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    assert run_main(["--episodes", "2", "--duration", "4", "--seed", "3", "--out", str(tmp_path / "l"), "-q"]) == 0
+    logs = sorted(map(str, (tmp_path / "l").glob("*.mcap")))
+    capsys.readouterr()
+    assert identify_main(["--train", logs[0], "--test", logs[1], "--method", "arx", "--score", "plant",
+                          "--out", str(tmp_path / "o")]) == 0
+    out, err = capsys.readouterr()
+    assert "arx, alpha -: test R^2 -inf: 1 of 1 predictions diverged (plant)" in out, out
+    assert "the prediction diverged at sample" in err and "alpha None" not in out

@@ -87,3 +87,16 @@ def test_a_huge_but_finite_r2_summarizes_without_an_overflow_warning():
         summary = summarize_scores(scores)
     assert summary["r2_mean"] == pytest.approx(-5e199) and summary["r2_std"] == np.inf
     assert summary["n_diverged"] == 0
+
+
+def test_a_prediction_that_grows_beyond_a_thousand_times_the_data_has_diverged_finite_or_not():
+    from qube_koopman.identify.scores import DIVERGED_FACTOR, episode_score
+
+    t = np.arange(400) * 0.002
+    truth = np.column_stack([0.3 * np.sin(5 * t), 0.02 * np.cos(9 * t)])
+    growing = truth + np.exp(40 * t)[:, None] * 1e-6  # finite throughout, 1e8 by the end
+    score = episode_score(truth, growing)
+    first = int(np.argmax(np.abs(growing).max(axis=1) > DIVERGED_FACTOR * 1.0))
+    assert score.r2 == -np.inf and score.nrmse == np.inf and score.diverged_at == first
+    close = truth + 0.01
+    assert np.isfinite(episode_score(truth, close).r2) and episode_score(truth, close).diverged_at is None

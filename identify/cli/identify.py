@@ -459,11 +459,20 @@ def _print_controllers(training: dict) -> None:
 def _print_scores(args, report: dict) -> None:
     t = report["test"]
     if t is None:
-        print(f"{args.method}, alpha {report['alpha']}: no test episode was recorded under --controller "
+        print(f"{args.method}, alpha {report['alpha'] if report['alpha'] is not None else '-'}: no test episode "
+              f"was recorded under --controller "
               f"{args.controller}; predictions only (nothing to score)")
         return
-    line = (f"{args.method}, alpha {report['alpha']}: test R^2 {t['r2_mean']:.4f} +- {t['r2_std'] or 0:.4f}, "
-            f"NRMSE {t['nrmse_mean']:.2f} +- {t['nrmse_std'] or 0:.2f} % over {t['n_episodes']} episodes ({args.score})")
+    alpha = "-" if report["alpha"] is None else f"{report['alpha']:g}"  # ARX has no regularization
+    if t["n_diverged"]:
+        converged = t["r2_mean_converged"]
+        scores = (f"test R^2 -inf: {t['n_diverged']} of {t['n_episodes']} predictions diverged"
+                  + (f" (the others' mean {converged:.4f})" if converged is not None else ""))
+    else:
+        scores = (f"test R^2 {t['r2_mean']:.4f} +- {t['r2_std'] or 0:.4f}, NRMSE {t['nrmse_mean']:.2f} +- "
+                  f"{t['nrmse_std'] or 0:.2f} %")
+    over = "" if t["n_diverged"] else f" over {t['n_episodes']} episodes"
+    line = f"{args.method}, alpha {alpha}: {scores}{over} ({args.score})"
     plain = report.get("test_without_offsets")
     if plain is not None:
         flagged = sum(not e["plausible"] for e in report["offsets"])
