@@ -73,3 +73,16 @@ def test_joblib_workers_are_stopped_without_tracebacks_after_the_summary(pyteste
     assert proc.returncode == 0 and "1 passed" in proc.stdout, proc.stdout + proc.stderr
     err = proc.stderr + proc.stdout.split("1 passed")[-1]
     assert "Traceback" not in err and "KeyError" not in err and "leaked" not in err, err
+
+
+def test_what_the_readme_blocks_write_in_a_clone_is_ignored_by_git():
+    import re
+    import subprocess
+
+    from readme_blocks import BLOCKS, REPO, expected_exit
+
+    outputs = {m.group(1) for block in BLOCKS for _, line in block if expected_exit(line) == 0
+               for m in re.finditer(r"--(?:out|report|rerun|rerun-save)\s+([\w./-]+)", line.split("#")[0])}
+    assert "qube_logs" in outputs and "designed.toml" in outputs
+    tracked = subprocess.run(["git", "check-ignore", *sorted(outputs)], cwd=REPO, capture_output=True, text=True)
+    assert set(tracked.stdout.split()) == outputs, sorted(outputs - set(tracked.stdout.split()))
