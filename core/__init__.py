@@ -5,6 +5,6 @@ Nothing here imports another ``qube_koopman`` package.
 
 from qube_koopman.core.cli import OneLineParser
 from qube_koopman.core.files import atomic_path
-from qube_koopman.core.signals import Terminated, interrupted_status, sigterm_as_interrupt
+from qube_koopman.core.signals import Terminated, interrupted_status, run_interruptible, sigterm_as_interrupt
 
-__all__ = ["OneLineParser", "atomic_path", "Terminated", "interrupted_status", "sigterm_as_interrupt"]
+__all__ = ["OneLineParser", "atomic_path", "Terminated", "interrupted_status", "run_interruptible", "sigterm_as_interrupt"]

@@ -9,11 +9,12 @@ exit status the shell's convention asks for: 130 (128 + SIGINT) or 143 (128 + SI
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
-__all__ = ["Terminated", "sigterm_as_interrupt", "interrupted_status"]
+__all__ = ["Terminated", "sigterm_as_interrupt", "interrupted_status", "run_interruptible"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -40,3 +41,14 @@ def sigterm_as_interrupt() -> Iterator[None]:
 def interrupted_status(exc: BaseException) -> int:
     """Exit status of a command stopped by ``exc``: 143 for SIGTERM (:class:`Terminated`), else 130."""
     return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+
+
+def run_interruptible(prog: str, command: Callable[[], int]) -> int:
+    """``command()``'s exit status; stopped by Ctrl-C or SIGTERM, one ``<prog>: error: interrupted``
+    line on stderr and 130 or 143 (:func:`interrupted_status`), no traceback."""
+    try:
+        with sigterm_as_interrupt():
+            return command()
+    except KeyboardInterrupt as exc:
+        print(f"{prog}: error: interrupted", file=sys.stderr)
+        return interrupted_status(exc)

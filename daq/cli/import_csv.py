@@ -102,14 +102,9 @@ class _Controllers:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage or a missing SRC)."""
-    from qube_koopman.core.signals import interrupted_status, sigterm_as_interrupt
+    from qube_koopman.core.signals import run_interruptible
 
-    try:
-        with sigterm_as_interrupt():
-            return _main(argv)
-    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: every file written so far is whole
-        print(f"{PROG}: error: interrupted", file=sys.stderr)
-        return interrupted_status(exc)
+    return run_interruptible(PROG, lambda: _main(argv))  # stopped: every file written so far is whole
 
 
 def _main(argv: list[str] | None) -> int:
