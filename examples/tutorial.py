@@ -23,13 +23,29 @@
 #    and predict those episodes with the identified plant, estimating each episode's
 #    pendulum encoder offset from its first second.
 #
-# It is stored as a jupytext "percent" script (`examples/tutorial.py`), not as .ipynb: the
-# repository keeps reviewable text with no outputs, images or execution counts in its
-# history. Open it in Jupyter with jupytext installed (`pip install jupytext`, then *Open
-# as notebook*), or convert it with `jupytext --to ipynb examples/tutorial.py`. The test suite runs it top to bottom
-# (`tests/test_tutorial.py`). To keep that quick it uses few episodes and a small lifting;
-# the parameters below can be raised for the paper's setting (28 training and 20 test
-# episodes, 180 alphas: `qube-reproduce qube`).
+# **What it needs.** The package with its figures (`pip install -e ".[figures]"` from the
+# repository's root) and the paper's dataset: the folder `dataset/controller_20230828` of the
+# public repository `decargroup/closed_loop_koopman` (MIT licence), 48 CSV files and their
+# `controller.toml`, anywhere on your disk. It runs in about a minute.
+#
+# **As a script**, from the repository's root (figures are saved, not shown):
+#
+#     python examples/tutorial.py DATASET_DIR [OUT_DIR]
+#
+# **As a notebook**: it is stored as a jupytext "percent" script, not as .ipynb, so the
+# repository keeps reviewable text with no outputs, images or execution counts in its history.
+# Install `pip install jupytext nbconvert ipykernel`, set `QUBE_DATASET_DIR` to the dataset's
+# folder (and `QUBE_TUTORIAL_OUT` to keep the logs and figures), then either execute it into
+# a notebook with its outputs, `jupytext --to ipynb --execute examples/tutorial.py` (writes
+# `examples/tutorial.ipynb`), or open it in Jupyter (with jupytext installed, *Open as
+# notebook*) and run it cell by cell.
+#
+# Without `OUT_DIR` / `QUBE_TUTORIAL_OUT` the logs and figures go to a temporary folder that
+# the last cell removes; with it they go there (a new or empty folder) and stay.
+#
+# The test suite runs it both ways (`tests/test_tutorial.py`). To keep that quick it uses few
+# episodes and a small lifting; the parameters below can be raised for the paper's setting
+# (28 training and 20 test episodes, 180 alphas: `qube-reproduce qube`).
 
 # %% tags=["parameters"]
 N_TRAIN = 8         # training episodes (the paper: 28)
@@ -44,33 +60,64 @@ TWIN_SECONDS = 12.0  # their length (the rig's: 20 s)
 # ## 1. Import the dataset
 #
 # The dataset is the paper's: 48 episodes of 20 s at 500 Hz under the rig's PD controller,
-# one CSV file each, with the controller's gains in `controller.toml`. It is looked for in
-# `$QUBE_DATASET_DIR`, else in `shared/datasets/qube_servo_20230828` beside the repository
-# (as the tests do). The files sorted by name are the paper's split: the first 28 train, the
-# rest test. Each is converted into an MCAP episode log, as `qube-import` does.
+# one CSV file each, with the controller's gains in `controller.toml`. Its folder is the
+# script's first argument, or `$QUBE_DATASET_DIR`; the output folder the second argument, or
+# `$QUBE_TUTORIAL_OUT`. The files sorted by name are the paper's split: the first 28 train,
+# the rest test. Each is converted into an MCAP episode log, as `qube-import` does.
 
 # %%
 import os
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
-
 from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
 from qube_koopman.daq.log import write_episode
 from qube_koopman.daq.log.names import log_path
 
-DATASET = Path(os.environ.get("QUBE_DATASET_DIR", Path.cwd().resolve().parents[1] / "shared" / "datasets"
-                              / "qube_servo_20230828"))
-csv_files = sorted(DATASET.glob("*.csv"))
-assert csv_files, f"{DATASET}: no dataset (set QUBE_DATASET_DIR)"
-work = Path(tempfile.mkdtemp(prefix="qube_tutorial_"))  # the logs and figures go here
+IN_NOTEBOOK = "ipykernel" in sys.modules  # a Jupyter kernel's argv is its own, not ours
+ARGS = [] if IN_NOTEBOOK else sys.argv[1:]
+if ARGS[:1] in (["-h"], ["--help"]) or len(ARGS) > 2:
+    raise SystemExit("usage: python examples/tutorial.py [DATASET_DIR] [OUT_DIR]\n"
+                     "  DATASET_DIR: the paper's QUBE-Servo dataset (default: $QUBE_DATASET_DIR)\n"
+                     "  OUT_DIR: a new or empty folder for the logs and figures (default: $QUBE_TUTORIAL_OUT,\n"
+                     "           else a temporary folder removed at the end)")
+DATASET = ARGS[0] if ARGS else os.environ.get("QUBE_DATASET_DIR")
+OUT = ARGS[1] if len(ARGS) > 1 else os.environ.get("QUBE_TUTORIAL_OUT")
+csv_files = sorted(Path(DATASET).glob("*.csv")) if DATASET else []
+if len(csv_files) < 28 + N_TEST or not (Path(DATASET) / "controller.toml").is_file():
+    raise SystemExit(f"{DATASET or 'no dataset given'}: not the paper's QUBE-Servo dataset (48 CSV files and "
+                     "controller.toml). Pass its folder as the first argument or set QUBE_DATASET_DIR; it is "
+                     "the folder dataset/controller_20230828 of the public repository "
+                     "decargroup/closed_loop_koopman (MIT licence).")
+DATASET = Path(DATASET)
+if OUT:
+    work = Path(OUT)  # the logs and figures go here, and stay
+    if work.exists() and any(work.iterdir()):
+        raise SystemExit(f"{work}: not empty; give a new or empty folder for the tutorial's logs and figures")
+    work.mkdir(parents=True, exist_ok=True)
+    temporary = None
+else:
+    temporary = tempfile.TemporaryDirectory(prefix="qube_tutorial_")  # removed by the last cell
+    work = Path(temporary.name)
 rig_controller = load_legacy_controller(DATASET / "controller.toml")
 for split, files in (("train", csv_files[:N_TRAIN]), ("test", csv_files[28:28 + N_TEST])):
     (work / split).mkdir()
     for csv in files:
         write_episode(log_path(work / split, csv.stem), legacy_episode(csv, rig_controller))
 print(f"{len(csv_files)} episodes in the dataset; imported {N_TRAIN} training and {N_TEST} test episodes into {work}")
+
+
+def show(png: Path) -> None:
+    """A saved figure: shown in a notebook, named in a script."""
+    if IN_NOTEBOOK:
+        from IPython.display import Image, display
+
+        display(Image(filename=str(png)))  # embedded: the notebook keeps it after the folder is gone
+    else:
+        print(f"figure: {png}")
+
 
 # %% [markdown]
 # `load_logs` reads the logs back as `LoggedTrajectory` objects: the measured angles `x`
@@ -96,7 +143,7 @@ print(f"{episode.n_samples} samples of {episode.dt} s; states {episode.state_nam
 # controller, so a plant model comes with it. The lifting: monomials of (theta, alpha) up to
 # order `POLY`, then `DELAYS` time delays, then a constant (an affine term). The paper used
 # second-order monomials and 10 delays; the linear lifting with 35 delays and a constant is
-# the one `qube-design` starts from in the README: it predicts the rig's test episodes
+# the one `qube-design` starts from (docs/design.md): it predicts the rig's test episodes
 # better and, below, transfers to another controller far better (the paper's lifting
 # scored about 0.6 there when we tried). `identify_and_score` is what `qube-identify` runs: it
 # chooses alpha among `ALPHAS` by episode-grouped cross-validation of the closed-loop
@@ -124,14 +171,12 @@ print("spectral radius: closed loop {closed_loop:.5f}, plant {plant:.5f}".format
 # one into a matplotlib figure and `write_figures` saves them as PNG and PDF.
 
 # %%
-from IPython.display import Image, display
-
 from qube_koopman.identify.figures import identification_figures, write_figures
 
 specs = identification_figures(result)
 for spec, png in zip(specs, write_figures(specs, work / "figures")):
     print(spec.caption)
-    display(Image(filename=str(png)))
+    show(png)
 
 # %% [markdown]
 # ## 4. Another controller, on the twin
@@ -147,7 +192,12 @@ from qube_koopman.daq.backends.sim import SimBackend
 from qube_koopman.daq.controller import load_pd_gains, pd_controller
 from qube_koopman.daq.episode import ControllerInfo
 from qube_koopman.daq.log import read_episode_metadata
-from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
+from qube_koopman.daq.session import (
+    excitation_settings,
+    plan_episodes,
+    run_episodes,
+    run_seeds,
+)
 from qube_koopman.daq.sinks import McapSink
 from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
 
@@ -171,7 +221,11 @@ print(f"{len(twin)} twin episodes under soft-theta; their encoder zeros (rad): {
 
 # %%
 from qube_koopman.identify import close_loop
-from qube_koopman.identify.offsets import estimate_offsets_many, predict_with_offsets_many, scores_after_window
+from qube_koopman.identify.offsets import (
+    estimate_offsets_many,
+    predict_with_offsets_many,
+    scores_after_window,
+)
 
 window = 500  # samples: 1 s
 soft_loop = close_loop(result.plant, twin[0].controller, [0, 1])
@@ -186,8 +240,10 @@ print(f"soft-theta episodes: R^2 {r2_soft_offsets:.4f} with the offsets estimate
 
 # %% [markdown]
 # The estimates are offsets from the model's own zero, which is that of the training
-# episodes: the rig's encoder zero was itself about +0.0025 rad off upright (FACTS 6a), so
-# the estimates fall about that much below the twin's injected offsets. The twin is not the
+# episodes: in the paper's dataset the pendulum's mean angle over an episode (after its first
+# second) is +0.0025 rad, with a spread of about 0.001 rad between episodes, so the rig's
+# encoder zero was itself about that far off upright, and the estimates fall about that much
+# below the twin's injected offsets. The twin is not the
 # rig either (its arm moves less under soft gains), which caps these scores below the test
 # episodes' own.
 #
@@ -206,15 +262,19 @@ plot = SeriesPlot(f"{twin[0].path.stem} under soft-theta (offset estimated)", t,
                         for kind, y in (("measured", x), ("predicted", predicted))),
                   marks={"end of the estimation window": t[window]})
 draw(plot).savefig(work / "soft_theta.png", dpi=100)
-display(Image(filename=str(work / "soft_theta.png")))
+show(work / "soft_theta.png")
 
 # %% [markdown]
 # ## Summary
 #
-# The scores of this run (the test suite checks them):
+# The scores of this run (the test suite checks them). Without an output folder of your
+# choice, the temporary one with the logs and figures is removed here.
 
 # %%
 summary = {"r2_test": round(r2_test, 4), "r2_soft_offsets": round(r2_soft_offsets, 4),
            "r2_soft_plain": round(r2_soft_plain, 4), "n_twin": len(twin),
            "offset_errors_rad": [round(est.as_mapping()[1] - zero, 5) for est, zero in zip(estimates, injected)]}
 print(summary)
+if temporary is not None:
+    temporary.cleanup()
+    print(f"removed {work} (give an output folder to keep the logs and figures)")
