@@ -29,15 +29,18 @@ __all__ = ["connect", "ordered_results", "candidate_runner", "release_workers", 
 PACKAGE = "qube-koopman"
 
 
-def connect(address: str, timeout: float = 30.0):
+def connect(address: str, timeout: float = 30.0, security=None):
     """A dask client of the scheduler at ``address``; it and its workers checked to run this package.
 
     Parameters
     ----------
     address : str
-        The scheduler, e.g. ``tcp://host:8786``.
+        The scheduler, e.g. ``tls://host:8786``.
     timeout : float
         Seconds to keep trying to reach it.
+    security : distributed.security.Security, optional
+        The client's TLS certificates, for a ``tls://`` scheduler (default: dask's configuration,
+        ``distributed.comm.tls.*``).
 
     Returns
     -------
@@ -46,8 +49,9 @@ def connect(address: str, timeout: float = 30.0):
     Raises
     ------
     ValueError
-        dask.distributed missing, the scheduler unreachable, or the scheduler or a worker
-        without this package (or with another version of it).
+        dask.distributed missing, the scheduler unreachable or refusing this client's
+        certificate, or the scheduler or a worker without this package (or with another
+        version of it).
     """
     try:
         from dask.distributed import Client
@@ -55,7 +59,7 @@ def connect(address: str, timeout: float = 30.0):
         raise ValueError('a dask scheduler needs dask.distributed, which is optional: '
                          'pip install "qube-koopman[dask]"') from None
     try:
-        client = Client(address, timeout=timeout, set_as_default=False)
+        client = Client(address, timeout=timeout, set_as_default=False, security=security)
     except (OSError, TimeoutError) as exc:
         raise ValueError(f"{address}: cannot reach the dask scheduler ({exc})") from None
     try:

@@ -444,7 +444,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                     bound: float = DEFAULT_BOUND, rbf_seed: int = 0, probes: ProbeSet | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     connect_timeout: float = 30.0,
-                    controllers: Sequence[DiscreteStateSpace] | None = None) -> SearchResult:
+                    controllers: Sequence[DiscreteStateSpace] | None = None, security=None) -> SearchResult:
     """Search the lifting space in stages (see the module docstring).
 
     Parameters
@@ -477,6 +477,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
         Each episode's controller, when they ran several: every candidate's
         plant is fitted to all of them, and each fold's closed loop is that of
         the controller its validation episodes ran.
+    security : distributed.security.Security, optional
+        The TLS certificates of a ``tls://`` ``scheduler`` (default: dask's configuration).
 
     Returns
     -------
@@ -487,7 +489,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     space = space or SearchSpace()
     data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
                       int(window), bound, rbf_seed, probes, controllers=None if controllers is None else list(controllers))
-    client = connect(scheduler, connect_timeout) if scheduler else None
+    client = connect(scheduler, connect_timeout, security) if scheduler else None
     run = candidate_runner(n_jobs, client)
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window), probes=probes), set()

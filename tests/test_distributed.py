@@ -169,7 +169,7 @@ def test_results_come_back_in_the_calls_order_and_a_calls_error_is_raised_here()
     (["--worker-logs", "shared"], "--worker-logs says how dask workers read the logs: it needs --scheduler"),
     (["--scheduler", "tcp://h:8786", "--method", "arx", "--score", "plant"],
      "--scheduler computes the Koopman methods' per-episode statistics; --method arx fits here"),
-    (["--scheduler", ""], "--scheduler takes a dask scheduler's address, for example tcp://host:8786, got ''"),
+    (["--scheduler", ""], "--scheduler takes a dask scheduler's address, for example tls://host:8786, got ''"),
     (["--scheduler", "tcp://h"], "got 'tcp://h'"),
     (["--scheduler", "h:99999"], "got 'h:99999'"),
 ])

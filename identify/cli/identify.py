@@ -11,6 +11,7 @@ import warnings
 from pathlib import Path
 
 from qube_koopman.core.cli import OneLineParser
+from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
 from qube_koopman.identify.cli.common import (CliError, check_rerun_target, expand_logs, output_dir, progress,
                                               run_command, write_json)
 from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
@@ -82,20 +83,7 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                              "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
                              "unlike the training one (the training excitations replayed on the calibrated twin); "
                              "none: by cross-validated R^2 alone (sees only the training controller)")
-    cluster = p.add_argument_group("dask cluster (README: On a dask cluster)")
-    cluster.add_argument("--scheduler", metavar="ADDRESS",
-                         help="compute on the workers of this dask.distributed scheduler (e.g. tcp://host:8786): "
-                              "the search's candidates instead of --n-jobs local processes, and the per-episode "
-                              "statistics of the fit and of --alpha-sweep (results equal a local run's); the "
-                              "scheduler and the workers need this package at this version (checked on "
-                              "connecting); needs "
-                              'pip install "qube-koopman[dask]"')
-    cluster.add_argument("--worker-logs", choices=["ship", "shared"],
-                         help="how the workers get the training logs for the statistics: ship (the default) sends "
-                              "each log's bytes with its task, for workers that cannot see this machine's files; "
-                              "shared: each worker reads the log itself at its absolute path here (a shared "
-                              "file system; checked on every worker before the fit). The search's candidates "
-                              "always carry the loaded episodes")
+    add_cluster_options(p)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -224,27 +212,17 @@ def _check_search_args(args) -> None:
         raise CliError("--n-jobs must be a positive number of processes, or negative (-1: every core)")
 
 
-def _check_scheduler(address: str) -> None:
-    """A dask scheduler's address, ``[PROTOCOL://]HOST:PORT`` (an empty one would start a cluster here)."""
-    import re
-
-    found = re.fullmatch(r"(?:[a-z]+://)?(?:[\w.-]+|\[[0-9A-Fa-f:.]+\]):(\d{1,5})", address)
-    if found is None or not 0 < int(found[1]) < 65536:
-        raise CliError(f"--scheduler takes a dask scheduler's address, for example tcp://host:8786, got {address!r}")
-
-
 def _check_args(args) -> None:
     if args.search:
         _check_search_args(args)
     elif args.search_space or args.transfer != "twin":
         raise CliError("--search-space and --transfer belong to --search")
-    if args.scheduler is not None:
-        _check_scheduler(args.scheduler)
     if args.worker_logs and not args.scheduler:
         raise CliError("--worker-logs says how dask workers read the logs: it needs --scheduler")
     if args.scheduler and args.method in ("arx", "cl-arx"):
         raise CliError(f"--scheduler computes the Koopman methods' per-episode statistics; --method {args.method} "
                        "fits here (leave out --scheduler)")
+    check_cluster_options(args, PROG)  # the address, and TLS or the loopback
     if args.protocol == "paper" and args.offsets:
         raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
     if args.protocol is None:
@@ -351,7 +329,7 @@ def _cluster_statistics(args, train, cleanup: contextlib.ExitStack):
         return None
     from qube_koopman.identify.distributed import ClusterStatistics, connect
 
-    client = connect(args.scheduler)
+    client = connect(args.scheduler, security=args.security)
     cleanup.callback(client.close)
     return ClusterStatistics(client, [log.path for log in train], args.skip, shared=args.worker_logs == "shared")
 
@@ -407,7 +385,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if statistics is not None:  # where the training statistics were computed
-        result.report["cluster"] = {"scheduler": args.scheduler, "worker_logs": args.worker_logs or "ship"}
+        result.report["cluster"] = cluster_report(args)
     if search is not None:
         from qube_koopman.identify.cli.search import search_report
 

@@ -61,8 +61,8 @@ def run_search(args, train, controller):
 
         probes = twin_probes(trajs)
     result = search_liftings(trajs, controller, splits=folds.splits, window=window, space=space, n_jobs=args.n_jobs,
-                             scheduler=args.scheduler, bound=args.offset_bound, rbf_seed=args.rbf_seed,
-                             probes=probes, progress=progress,
+                             scheduler=args.scheduler, security=args.security, bound=args.offset_bound,
+                             rbf_seed=args.rbf_seed, probes=probes, progress=progress,
                              controllers=controllers if folds.kind == "leave-one-controller-out" else None)
     result.folds = folds
     best = result.winner
