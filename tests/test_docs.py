@@ -23,9 +23,9 @@ from _public_api import public_names
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 import readme_slices  # noqa: E402 (the docs' own extension, docs/_ext)
-PAGES = ["index", "getting-started", "collecting", "identification", "transfer", "lifting-search", "calibration",
-         "design", "formats", "NAMING", "daq/log/FORMAT", "daq/CONTROLLER_FORMAT", "identify/MODEL_FORMAT",
-         "firmware_protocol/PROTOCOL", "api/index", "development"]
+PAGES = ["index", "getting-started", "collecting", "identification", "transfer", "lifting-search", "cluster",
+         "calibration", "design", "formats", "NAMING", "daq/log/FORMAT", "daq/CONTROLLER_FORMAT",
+         "identify/MODEL_FORMAT", "firmware_protocol/PROTOCOL", "api/index", "development"]
 
 
 README = """# Title
