@@ -1,11 +1,12 @@
-"""Sphinx configuration of the qube-koopman documentation (issue 31).
+"""Sphinx configuration of the qube-koopman documentation.
 
 Why Sphinx rather than MkDocs + mkdocstrings: the project's docstrings are numpydoc, which
 Sphinx renders natively (the numpydoc extension), and the libraries our users already know,
 python-control and scikit-learn, build their documentation with Sphinx + numpydoc +
 autodoc/autosummary, so the API pages look and link as theirs do. Pages are Markdown (MyST,
-myst-parser); the format documents kept beside the code (identify/MODEL_FORMAT.md, ...) and
-the README's sections are included, not copied, so there is one source for each fact.
+myst-parser); the format documents kept beside the code (identify/MODEL_FORMAT.md, ...) are
+included, not copied, so there is one source for each fact. A page may also pull a part of the
+README with a ``% readme "START" "END"`` line (docs/_ext/readme_slices.py).
 
 Build: ``python -m sphinx -W --keep-going -b html docs docs/_build/html`` (tests/test_docs.py
 runs the same). No network: intersphinx is not used (CI reaches only package registries).
