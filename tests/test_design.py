@@ -266,8 +266,8 @@ def _twin_figures(folder: Path) -> dict:
 def twin_cycle(tmp_path_factory) -> SimpleNamespace:
     """Issue 28's cycle on the twin, shrunk to run in CI: run -> identify -> design -> run.
 
-    A model identified on 6 rig-PD episodes (``--seed 3``; 35 delays and a constant, as the README's
-    cycle on the paper's data: with 20 delays the 6-episode model misses enough of the arm's slow
+    A model identified on 6 rig-PD episodes (``--seed 3``; 35 delays and a constant, as the design
+    page's cycle on the paper's data: with 20 delays the 6-episode model misses enough of the arm's slow
     dynamics that its design runs hotter, voltage RMS 1.76 V against 1.53 V), a design with
     the default weights, then 6 episodes under each controller on the same excitations (``--seed 5``)
     and 4 more under the design on new ones (``--seed 6``). The file's tests share these folders

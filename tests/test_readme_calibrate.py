@@ -1,8 +1,8 @@
-"""The README's calibration block (import -> qube-calibrate -> replays on the calibrated twin) runs as
-written.
+"""The calibration block of the documentation (import -> qube-calibrate -> replays on the calibrated
+twin) runs as written.
 
-The same check as tests/test_readme.py, in a file of its own: the block is one of the README's
-longest, and pytest-xdist (``--dist loadfile``) gives each file to one worker.
+The same check as tests/test_readme.py (exit codes and quoted figures), in a file of its own: the
+block is one of the longest, and pytest-xdist (``--dist loadfile``) gives each file to one worker.
 """
 
 from __future__ import annotations

@@ -1,13 +1,21 @@
-"""The README's design-cycle block (run -> identify -> design -> run -> identify) runs as written.
+"""The design blocks run as written: the README's example (record on the twin -> identify -> design
+-> run) and the design page's cycle on the paper's data (identify -> design -> run -> identify).
 
-The same check as tests/test_readme.py, in a file of its own: the cycle is the README's longest
-block, and pytest-xdist (``--dist loadfile``) gives each file to one worker.
+The same check as tests/test_readme.py (exit codes and quoted figures), in a file of its own: the
+cycles are the longest blocks, and pytest-xdist (``--dist loadfile``) gives each file to one worker.
 """
 
 from __future__ import annotations
 
 import pytest
-from readme_blocks import block_id, blocks_running, clone, run_block  # noqa: F401
+from readme_blocks import (  # noqa: F401
+    BLOCK_SOURCES,
+    REPO,
+    block_id,
+    blocks_running,
+    clone,
+    run_block,
+)
 
 pytestmark = [pytest.mark.slow, pytest.mark.dataset]
 
@@ -16,6 +24,8 @@ DESIGN_BLOCKS = blocks_running("qube-design")
 
 def test_the_readme_has_a_design_cycle_block():
     assert DESIGN_BLOCKS, "no README bash block runs qube-design"
+    sources = {BLOCK_SOURCES[i] for i in DESIGN_BLOCKS}
+    assert REPO / "README.md" in sources and REPO / "docs" / "design.md" in sources
 
 
 @pytest.mark.parametrize("index", DESIGN_BLOCKS, ids=block_id)
