@@ -1,6 +1,6 @@
 """Benchmark: the loop's per-tick cost of a controller, from today's PD to 200 states.
 
-Target (issue 28): a discrete state-space controller of up to 200 states runs within the
+Target: a discrete state-space controller of up to 200 states runs within the
 500 Hz loop's 2 ms budget. Rows: the rig's PD from its gains file (2 states, plain floats),
 then state-space files of 2 states (the same PD as matrices), 50, 100 and 200 states (the
 PD with stable extra states, mixed by a random orthogonal change of coordinates,

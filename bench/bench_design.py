@@ -1,4 +1,4 @@
-"""Issue 28 section 3: a controller designed by ``qube-design`` against the rig's PD on the twin.
+"""A controller designed by ``qube-design`` against the rig's PD on the twin.
 
     python bench/bench_design.py MODEL.json [--seed 7] [--episodes 20] [--draws 50] [--serial lockstep|realtime]
                                  [--reidentify SEED] [--out DIR]
@@ -17,7 +17,7 @@ figure beside its target:
 - robustness: ``--draws`` twins with km, Lp, mp and Jh drawn uniformly within +-10 % of the
   calibrated values and the command delay doubled, one episode each (encoder offsets drawn per
   episode, as the twin does by default), under the design and under the PD;
-- with ``--reidentify SEED`` (issue 28 section 4): 48 twin episodes of ``qube-run --seed SEED`` under
+- with ``--reidentify SEED``: 48 twin episodes of ``qube-run --seed SEED`` under
   each controller, CL EDMD (``--poly 1 --delays 35 --const --alpha 1e-3``) on the first 28 of one
   controller scored on the last 20 of each: the design re-identified under itself, and the plants
   identified under the design and under the PD predicting each other's closed loops;

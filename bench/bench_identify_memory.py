@@ -1,4 +1,4 @@
-"""Benchmark (issue 29): peak memory and time of ``qube-identify`` against the number of training episodes.
+"""Benchmark: peak memory and time of ``qube-identify`` against the number of training episodes.
 
 The paper's 28 training episodes (imported from the dataset) are repeated, as hard links under new
 names (``qube-identify`` reads a file named twice once), to 28, 112 and 448 episodes; each size is

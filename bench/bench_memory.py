@@ -1,6 +1,6 @@
 """Benchmark: peak memory (RSS) of a run against the number of planned episodes and their length.
 
-Target (issue 13, part 2): peak RSS flat within 10 % for 1 vs 10,000 planned
+Target: peak RSS flat within 10 % for 1 vs 10,000 planned
 episodes, and for 20 s vs 1 h episodes (sim backend, free-running, MCAP log).
 Each row runs in a fresh process (``ru_maxrss`` is a high-water mark):
 

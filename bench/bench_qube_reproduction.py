@@ -1,7 +1,7 @@
 """Speed of the QUBE-Servo reproduction against the naive per-fit, per-step approach.
 
-Target (issue 10): the whole reproduction, import excluded, in at most 15 s on
-this 2-core machine (issue 3 asked for 120 s). The sweeps run in one worker
+Target: the whole reproduction, import excluded, in at most 15 s on
+a 2-core machine. The sweeps run in one worker
 process per core; the same code in one process is timed beside it. The reference implementation solved an SDP per fit and
 predicted about 1 ms per step (36 CPU-hours for the protocol). Here the naive
 approach is: for every (fold, alpha) build the lifted snapshots and fit from

@@ -1,6 +1,6 @@
 """Benchmark: ``qube-run --n-jobs``, the paper-sized twin run on one core against several.
 
-Target (issue 29, part 3): ``qube-run --episodes 48 --seed 1`` on the simulator (the calibrated
+Target: ``qube-run --episodes 48 --seed 1`` on the simulator (the calibrated
 twin, free-running, 20 s episodes) gets faster in proportion to the cores, with the same logs.
 Each row is the median wall time of ``--repeats`` whole runs as a user starts them (a fresh
 process: start-up, the first episode alone while the workers start, the workers' imports,

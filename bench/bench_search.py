@@ -1,6 +1,6 @@
 """Speed of the lifting search (qube-identify --search) against the naive per-fit approach.
 
-Target (issue 10): the default search on the paper's 28 training episodes in at most
+Target: the default search on the paper's 28 training episodes in at most
 5 minutes on 2 cores. The search shares each lifting's statistics across folds and
 alphas and predicts every alpha's model on every validation episode in one batched
 simulation. The naive approach fits every (candidate, fold, alpha) from scratch and

@@ -1,6 +1,6 @@
 """Time of one stability-constrained CL EDMD fit, beside the same problem posed on the snapshots.
 
-Target (issue 10): one constrained fit at QUBE size (57 lifted states) in at
+Target: one constrained fit at QUBE size (57 lifted states) in at
 most 5 s on 2 cores. Three ways to the constrained plant, all from the same
 snapshot statistics (identify.stability.ClEdmdStable):
 

@@ -1,11 +1,11 @@
-"""Does the model qube-identify recommends hold under the controller the user runs next? (issue 27)
+"""Does the model qube-identify recommends hold under the controller the user runs next?
 
 Trains on the paper's 28 training episodes (real logs) and judges every model on
 twin episodes under four controllers the search never saw: soft-theta (shipped)
 and three PD gain sets written here (a softer PD, and two PDs from LQR designs on
 the twin's linearization at upright). Each judge episode's pendulum encoder zero
 is drawn as the rig shows them. Rows: the search's winner ranked by cross-validation
-alone (``--transfer none``, the behaviour before issue 27) and by the transfer-aware
+alone (``--transfer none``) and by the transfer-aware
 objective (``--transfer twin``, the default), plus fixed liftings for scale. Each
 model is refitted by hand from the flags report.md gives, then predicts every judge
 episode under its own controller, with and without offsets (``--offsets alpha``,

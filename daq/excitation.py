@@ -1,4 +1,4 @@
-"""The rig's excitation: smoothed PRBS references and feedforward (FACTS section 3).
+"""The rig's excitation: smoothed PRBS references and feedforward.
 
 Reproduces, sample for sample, the generator of the C program that recorded
 the paper's QUBE-Servo dataset, so an episode's target_theta, target_alpha and

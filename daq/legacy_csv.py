@@ -280,7 +280,8 @@ def controller_state_from_log(columns: dict[str, np.ndarray], controller: Contro
 
 
 def legacy_excitation(seeds: dict[str, int]) -> dict:
-    """Excitation seeds and settings of the legacy rig (reference FACTS section 3)."""
+    """Excitation seeds and settings of the legacy rig: the generator of the C program that ran it
+    (:mod:`qube_koopman.daq.excitation` reproduces it), seeded with the numbers in the file name."""
     return {
         "generator": "PRBS, 16-bit Fibonacci LFSR, taps 16 14 13 11, bits held for the bit period",
         "seeds": dict(seeds),

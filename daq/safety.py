@@ -1,6 +1,6 @@
 """The safety supervisor: voltage clamp, angle limits, start gate, stop on signals.
 
-The rules are the rig's (FACTS section 3): the command is clamped to
+The rules are those of the C program that ran the rig: the command is clamped to
 +-10 V; the episode stops when ``|theta| > pi/2`` or ``|alpha| > pi/4``, with 0 V
 written in the same tick; control starts only once ``|alpha| < 5 deg``; Ctrl-C
 writes 0 V. Here SIGTERM does the same as SIGINT.

@@ -53,8 +53,8 @@ MAX_EPISODES = 1_000_000
 #: (about 1.7 GB at 500 Hz for a day); see bench/bench_memory.py.
 MAX_DURATION = 86_400.0
 
-# The rig's excitation (FACTS section 3) was laid out for 20 s episodes:
-# quiet until 4 s, active until 16 s. Other lengths keep these proportions.
+# The rig's excitation was laid out for 20 s episodes: zero for the first 2000 samples,
+# active for samples 2000..7999 (quiet until 4 s, active until 16 s). Other lengths keep these proportions.
 _RIG_SECONDS = 20.0
 
 _log = logging.getLogger(__name__)

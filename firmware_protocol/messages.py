@@ -50,7 +50,8 @@ PROTOCOL_VERSION = 1
 MAX_PAYLOAD = 64
 FIRMWARE_VERSION = (1, 0, 0)
 MODULE_ID_QUBE_SERVO_2 = 777
-# The QUBE-Servo 2 amplifier saturates at 15 V (FACTS section 5).
+# The QUBE-Servo 2 amplifier saturates at 15 V (Quanser's sample code scales volts by 625/15 to
+# a PWM of +-999, 100 % of 24 V, and clamps at +-15 V; the paper's rig stayed within +-10 V).
 MAX_MILLIVOLTS = 15000
 LED_MAX = 999
 

@@ -1,7 +1,7 @@
 """The QUBE-Servo 2's 17-byte SPI transaction and its unit conversions.
 
-One full-duplex transfer per tick (1 MHz, MSB first, SPI mode 2, FACTS
-section 5). Multi-byte fields are big-endian here, unlike the host protocol.
+One full-duplex transfer per tick (1 MHz, MSB first, SPI mode 2, as Quanser's
+Arduino sample code for the QUBE-Servo 2 does it). Multi-byte fields are big-endian here, unlike the host protocol.
 
 Bytes the bridge (master) sends::
 
@@ -206,7 +206,7 @@ def motor_word(millivolts: int, enable: bool) -> int:
 
 
 def current_amps(current_raw: int) -> float:
-    """Motor current in amperes: ``(3.3 / (4 * 4095)) * (raw / 2 - 4095)`` (FACTS section 5)."""
+    """Motor current in amperes: ``(3.3 / (4 * 4095)) * (raw / 2 - 4095)`` (Quanser's sample code)."""
     return (3.3 / (4 * 4095)) * (current_raw / 2 - 4095)
 
 

@@ -6,7 +6,7 @@ tested against. Its sections and where their values come from:
 - ``crc``, ``cobs``: published reference values (CRC catalogue check value;
   the examples of the COBS article on Wikipedia), each entry naming its source.
 - ``motor_word``, ``spi_command``, ``spi_response``: bytes worked out by hand
-  from the QUBE-Servo 2 SPI description (FACTS section 5, Quanser's sample code).
+  from the QUBE-Servo 2 SPI description of Quanser's Arduino sample code.
 - ``frames``, ``rejects``, ``streams``: produced by the Python encoder when
   protocol version 1 was frozen. They pin the format down so that neither
   codec can drift; ``tests/test_protocol_codec.py`` also assembles one frame
@@ -78,7 +78,7 @@ def _motor_vectors() -> list[dict]:
 
 
 def _spi_vectors() -> tuple[list[dict], list[dict]]:
-    src = "FACTS section 5 / Quanser QUBE-Servo 2 Arduino sample code: big-endian fields"
+    src = "Quanser QUBE-Servo 2 Arduino sample code: big-endian fields"
     commands = [
         ({"write_mask": 0x1F, "led_red": 999, "led_green": 0, "led_blue": 0, "encoder0_preset": 0,
           "encoder1_preset": 0, "motor": 0x8000},

@@ -216,7 +216,9 @@ class ClEdmd(_ClosedLoopKoopman):
 
     Solves the paper's constrained problem: the plant rows of the closed-loop
     Koopman matrix are ``U^p S`` with the known controller; ``U^p`` follows
-    from ``U^p = G_2 S^T (S H_alpha S^T)^-1`` (FACTS section 1).
+    from ``U^p = G_2 S^T (S H_alpha S^T)^-1``, with ``G = Theta_+ Psi^T``, ``H_alpha = Psi Psi^T
+    + alpha I`` and ``G_2`` the plant rows of ``G``: the constrained problem separates by block
+    rows into this generalized ridge (it equals the paper's SDP to solver tolerance).
 
     Episodes recorded under several controllers (``fit(trajectories,
     controllers)``) share the plant: with controller g's statistics and map

@@ -54,7 +54,8 @@ class StoredLog:
     """One episode log kept on disk: its small metadata in memory, its trajectory read when asked for.
 
     :attr:`trajectory` reads the log again at every access (about 10 ms for 20 s at 500 Hz) and
-    keeps nothing: a fit over many episodes holds one at a time (0.6 MB each, issue 29).
+    keeps nothing: a fit over many episodes holds one at a time (0.6 MB each), so memory does not
+    grow with the number of episodes.
     Otherwise it stands for a :class:`LoggedTrajectory`.
     """
 

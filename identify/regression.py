@@ -1,6 +1,6 @@
 """Least-squares building blocks: snapshot statistics and (generalized) ridge solves.
 
-Convention (the reference code's, FACTS section 1): ``alpha`` weighs
+Convention (that of pykoop, the paper's reference code): ``alpha`` weighs
 ``||U||_F^2`` against the un-normalized sum of squared residuals, so the
 ridge solution is ``U = G (H + alpha I)^-1`` with ``G = Theta_+ Psi^T`` and
 ``H = Psi Psi^T``.
@@ -32,7 +32,7 @@ __all__ = ["Snapshots", "SnapshotFold", "GroupedSnapshots", "ridge_solve", "cons
 def _triangular_factor(M: np.ndarray) -> np.ndarray:
     # mode="r" returns the full (rows x columns) R; only its top square part is non-zero. It is
     # copied out: a slice would keep the whole (snapshots x columns) array alive behind every
-    # episode's statistics (8 MB an episode at 20 delays, issue 29).
+    # episode's statistics (8 MB an episode at 20 delays).
     return linalg.qr(M, mode="r", check_finite=False)[0][:min(M.shape)].copy()
 
 
@@ -119,7 +119,7 @@ class SnapshotFold:
 
     Memory is that of ``batch + 1`` factors however many parts are added: a sweep keeps one per
     cross-validation fold and adds each episode to the folds that train on it, so its memory grows
-    with the folds, not with the episodes (issue 29). The total equals :meth:`Snapshots.total` of
+    with the folds, not with the episodes. The total equals :meth:`Snapshots.total` of
     the same parts in the same order, bit for bit.
     """
 

@@ -102,7 +102,8 @@ def _same_controller_phrase(same: dict | None, winner: dict) -> str:
 
 
 def _folds_phrase(cv: dict) -> str:
-    """The cross-validation's folds in words (reports before issue 27 have no ``cv_kind``)."""
+    """The cross-validation's folds in words (reports written before training logs of several
+    controllers were accepted have no ``cv_kind``)."""
     if cv.get("cv_kind") == "leave-one-controller-out":
         return f"{cv['cv_splits']} leave-one-controller-out folds (each holds out one training controller's episodes)"
     return f"{cv['cv_splits']} episode-grouped splits (seed {cv['cv_seed']})"

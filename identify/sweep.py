@@ -43,7 +43,7 @@ SCORINGS = ("cl", "plant")
 # are scored as they come, never held whole).
 _MAX_BATCH_VALUES = 8_000_000
 # Validation episodes scored together: a fold's held-out episodes are read and simulated this many
-# at a time, so scoring memory does not grow with the data (issue 29).
+# at a time, so scoring memory does not grow with the data.
 _MAX_EPISODES = 16
 
 
@@ -287,7 +287,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         shared, per_fold = None, None
     else:
         # One pass over the episodes folds each into the running totals of the folds training on it
-        # (and of all of them): memory O(folds x p^2), not O(episodes x p^2) (issue 29).
+        # (and of all of them): memory O(folds x p^2), not O(episodes x p^2).
         setup, (*per_fold, everything) = _statistics(estimator, trajectories, [t for t, _ in splits] + [None],
                                                      partial, controllers, elsewhere)
         shared = (setup, everything)

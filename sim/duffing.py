@@ -1,7 +1,7 @@
 """The paper's simulated example: a Duffing oscillator under PI control.
 
-Reproduces the experiment of paper section 4 as the reference code ran it
-(FACTS section 4): forward Euler at 100 Hz, a ZOH-discretized PI controller
+Reproduces the experiment of paper section 4 as the reference code ran it:
+forward Euler at 100 Hz, a ZOH-discretized PI controller
 acting on the (noisy) measured position, a PRBS position reference with
 random dwell, coloured measurement noise on the training episodes only.
 """

@@ -9,7 +9,8 @@ from qube_koopman.sim.lti import DiscreteStateSpace
 
 RATE = 500.0
 
-# The rig's backward-Euler PD controller (FACTS section 2), written out so the
+# The rig's backward-Euler PD controller (the discretization its C program used; the paper's
+# text says ZOH), written out so the
 # tests do not depend on python-control.
 _A = 1 / 1.1
 QUBE_PD = DiscreteStateSpace(np.eye(2) * _A, np.eye(2),
@@ -22,7 +23,7 @@ def assert_follows_controller(ep: Episode, controller: DiscreteStateSpace = QUBE
     """What every backend's complete episode must satisfy, whoever measured the angles.
 
     The controller run offline from zero on the logged tracking error
-    reproduces the logged controller state and output (FACTS section 2); the
+    reproduces the logged controller state and output (to 1e-14 V on the dataset); the
     plant input is their sum with the feedforward, clamped and flagged; the
     samples are evenly spaced from t = 0.
     """

@@ -54,7 +54,7 @@ STEP = 2 * math.pi / 2048
 # --- the rig's encoder conversion ---------------------------------------------------------------
 
 def test_counts_convert_as_the_rig_did():
-    # FACTS section 3: theta = enc0 * 2 pi / 2048, alpha = wrap(enc1 * 2 pi / 2048 - pi), zero hanging down.
+    # The rig's C program: theta = enc0 * 2 pi / 2048, alpha = wrap(enc1 * 2 pi / 2048 - pi), zero hanging down.
     assert counts_to_angles(0, 1024) == (0.0, 0.0)          # upright
     assert counts_to_angles(0, 0)[1] == -math.pi             # hanging down: the counter's zero
     assert counts_to_angles(0, 2048)[1] == -math.pi          # one turn later, still hanging

@@ -54,7 +54,7 @@ def test_ridge_convention_matches_normal_equations(loop):
 
 
 def test_closed_form_equals_generalized_ridge_formula(loop):
-    """U^p = G_2 S^T (S H_alpha S^T)^-1 (FACTS section 1)."""
+    """U^p = G_2 S^T (S H_alpha S^T)^-1: the paper's constrained problem in closed form."""
     A_p, B_p, controller, trajs = loop
     noisy = [Trajectory(x=t.x + 1e-3 * np.sin(np.arange(t.n_samples))[:, None], r=t.r, f=t.f, xc=t.xc,
                         dt=t.dt) for t in trajs]

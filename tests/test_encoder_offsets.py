@@ -45,7 +45,7 @@ def test_each_episode_draws_its_own_offset_and_describes_it():
         backend.stop()
     offsets = np.array(offsets)
     assert len(set(offsets)) == len(offsets)
-    # The dataset's distribution by default (FACTS 6a): mean 0.0025, spread 0.001.
+    # The dataset's distribution by default (its mean alpha per episode): mean 0.0025, spread 0.001.
     assert offsets.mean() == pytest.approx(0.0025, abs=3 * 0.001 / math.sqrt(200))
     assert offsets.std() == pytest.approx(0.001, rel=0.2)
     assert backend.describe()["zero_offsets"] == {"mean": 0.0025, "std": 0.001}
@@ -66,5 +66,5 @@ def test_the_controller_balances_the_true_upright_not_the_measured_zero():
     tail = slice(n // 2, None)
     assert np.mean(run.states[1:][tail, 1]) == pytest.approx(0.0, abs=1e-4)
     assert np.mean(run.measurements[tail, 1]) == pytest.approx(0.01, abs=1e-4)
-    # and the arm moves to balance it: kp_theta (theta - r) = -kp_alpha * offset (FACTS 6a).
+    # and the arm moves to balance it: kp_theta (theta - r) = -kp_alpha * offset.
     assert np.mean(run.measurements[tail, 0]) == pytest.approx(-30 / 6 * 0.01, rel=0.05)

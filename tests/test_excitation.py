@@ -1,4 +1,5 @@
-"""The rig's excitation generator (daq.excitation) against FACTS section 3 and the dataset."""
+"""The rig's excitation generator (daq.excitation) against the C program that recorded the dataset
+(the settings its module docstring states) and the dataset itself."""
 
 from __future__ import annotations
 

@@ -185,7 +185,7 @@ def test_bad_files_are_refused_by_name_and_the_good_one_still_imports(synthetic_
 
 
 def test_controller_check_refuses_the_papers_zoh_discretization(synthetic_dir):
-    # The paper's text says ZOH; the rig ran backward Euler (FACTS section 2).
+    # The paper's text says ZOH; the rig ran backward Euler (it reproduces the logged output to 1e-14 V).
     zoh = load_legacy_controller(synthetic_dir / "controller.toml", method="zoh")
     with pytest.raises(LegacyCsvError, match=rf"{GOOD}\.csv: the zoh pd controller .* off by"):
         legacy_episode(synthetic_dir / f"{GOOD}.csv", zoh)

@@ -51,7 +51,7 @@ def test_the_installed_package_list_covers_every_source_folder():
 
 
 def test_imports_point_one_way_nothing_below_design_imports_it():
-    """DESIGN.md: firmware_protocol <- sim <- daq <- identify <- design; design consumes models and
+    """Dependencies point one way, firmware_protocol <- sim <- daq <- identify <- design; design consumes models and
     writes controllers, so no package below it may import it (not even lazily, inside a function)."""
     from pathlib import Path
 

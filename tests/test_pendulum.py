@@ -1,4 +1,5 @@
-"""The rotary-pendulum model, encoders and per-tick simulator (sim.pendulum) against FACTS 5 and 6."""
+"""The rotary-pendulum model, encoders and per-tick simulator (sim.pendulum) against the QUBE-Servo 2's
+encoders and the Quanser workbook's model."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from qube_koopman.sim.pendulum import (PendulumParameters, PendulumSimulator, Se
 #: The workbook's model with hardware-fitted damping (the defaults before calibration): no dry
 #: friction, dead zone, hub inertia or delay, so the analytic checks below hold exactly.
 P = PendulumParameters.previous()
-COUNT = 2 * math.pi / 2048  # encoder resolution, FACTS 5
+COUNT = 2 * math.pi / 2048  # encoder resolution: 2048 counts per revolution
 
 
 def test_previous_is_the_workbook_with_hardware_fitted_damping():
@@ -60,7 +61,7 @@ def test_parameters_reject_bad_values(changes, match):
 
 def test_linearization_has_the_familiar_magnitudes():
     A, B = linearize_upright(P)
-    # FACTS 6 / Quanser workbook: |A32| 149, |A42| 262, |B3| 50, |B4| 49 (1-based, rounded).
+    # The Quanser workbook's linearization at upright: |A32| 149, |A42| 262, |B3| 50, |B4| 49 (1-based, rounded).
     assert abs(A[2, 1]) == pytest.approx(149, rel=0.01)
     assert abs(A[3, 1]) == pytest.approx(262, rel=0.01)
     assert abs(B[2, 0]) == pytest.approx(50, rel=0.01)
@@ -84,7 +85,7 @@ def test_linearization_is_the_jacobian_of_the_dynamics():
 
 
 def test_paper_controller_stabilizes_the_linear_model():
-    # The rig's controller (FACTS 2) on the ZOH-discretized linearization: closed
+    # The rig's controller (its PD, backward Euler) on the ZOH-discretized linearization: closed
     # loop x+ = Ap x + Bp u, xc+ = Ac xc + Bc e, u = Cc xc + Dc e, e = -Cp x.
     plant = linear_model(P)
     ctrl = pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0))
@@ -114,7 +115,7 @@ def test_constant_1v_settles_at_the_back_emf_limited_speed():
     # Hanging down at rest, 1 V: steady state km V / Rm = (km^2 / Rm + Dr) w.
     x = simulate([0.0, math.pi, 0.0, 0.0], np.ones(2500), P)  # 5 s, ~10 time constants
     expected = (P.km / P.Rm) / (P.km**2 / P.Rm + P.Dr)
-    assert expected == pytest.approx(10.4, abs=0.1)  # FACTS: near 10 rad/s, not 35
+    assert expected == pytest.approx(10.4, abs=0.1)  # near 10 rad/s, not 35 (a reversed back-EMF sign gives 35)
     assert x[-1, 2] == pytest.approx(expected, rel=1e-3)
     assert np.ptp(x[-250:, 2]) < 1e-3
     assert abs(x[-1, 1] - math.pi) < 1e-3 and abs(x[-1, 3]) < 1e-3

@@ -4,7 +4,7 @@ Choice of start: each episode starts at sample 500 (after the hand-raising
 second the paper drops) from the real state there: the measured angles,
 rates from a Savitzky-Golay derivative of the measured angles, and the
 controller state the rig had (controller run from zero at t = 0 on the real
-tracking errors, FACTS 2). Starting at t = 0 instead would need the
+tracking errors). Starting at t = 0 instead would need the
 velocities the hand left the pendulum with, which the data does not show,
 and would replay the saturated derivative kick. From sample 500 on, the
 loop is closed on the simulated encoders only: the real data contributes the
@@ -89,7 +89,7 @@ def test_replay_keeps_all_48_balanced_with_realistic_spread(real, controller):
 
 @pytest.mark.slow
 def test_replay_tells_damping_values_apart(real, controller):
-    # FACTS 6: with the workbook's damping the replayed episodes fall; the test
+    # With the workbook's damping (Dr 0.0015, Dp 0.0005) the replayed episodes fall; the test
     # above would catch a model as wrong as that.
     run = replay(real, controller, PendulumParameters.workbook())
     assert not balanced(run).all()

@@ -77,7 +77,7 @@ def test_probe_scores_are_the_closed_loop_predictions_r2(real_train):
     probes = twin_probes(short, per_controller=2, seed=3)
     assert probes.n_episodes == 6 and len(probes.controllers) == 3 and probes.dropped == 0
     assert "3 probe PD controllers" in probes.describe()
-    for zeros in probes.alpha_offsets:  # drawn as the rig shows them (FACTS 6a)
+    for zeros in probes.alpha_offsets:  # drawn as the rig shows them (a few counts off upright)
         assert np.all(np.abs(zeros - 0.0025) < 0.005)
     plant = ClEdmd(_rig_controller(), lifting=LiftingSpec(delays=5, poly=1).steps(),
                    alpha=1e-3).fit(short).plant_model_

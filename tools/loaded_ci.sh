@@ -3,8 +3,8 @@
 # fresh clone of this repository's HEAD, with BURNERS `python -c "while 1: pass"`
 # processes beside them the whole time; stop at the first failure.
 #
-# This is how issue 13's "10 consecutive loaded passes" are counted, so anyone
-# can count them again. The clone sits in OUT with a `shared` link to the
+# This is how "10 consecutive loaded passes" are counted, so anyone can count
+# them again. The clone sits in OUT with a `shared` link to the
 # checkout's ../shared, exactly as CI lays it out, and gets its own virtualenv;
 # the checkout you run it from is not touched. Each run's whole output is kept
 # in OUT/run_<i>.log and one line per run goes to OUT/summary.txt: exit status,

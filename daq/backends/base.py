@@ -1,4 +1,5 @@
-"""The backend contract: the loop's only view of the hardware (DESIGN.md, Backend).
+"""The backend contract: the loop's only view of the hardware, so the simulated and serial
+backends are interchangeable and the loop does not know which it has.
 
 A backend starts, gives one sample (theta, alpha) per tick, takes one
 command (V) per tick, stops with the motor at 0 V, and reports faults by

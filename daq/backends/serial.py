@@ -1,6 +1,7 @@
 """The bridge firmware over a serial port (pyserial), behind the backend contract.
 
-The bridge owns the 500 Hz clock (DESIGN.md, Real time): :meth:`SerialBackend.read`
+The bridge owns the 500 Hz clock (it samples, streams telemetry, applies the latest
+command at its next tick and zeroes the motor if commands stop): :meth:`SerialBackend.read`
 blocks until its next TELEMETRY frame and :meth:`SerialBackend.write` answers
 with a COMMAND, which the bridge applies at its next tick. The protocol is
 ``firmware_protocol`` (PROTOCOL.md); angles come from the encoder counts

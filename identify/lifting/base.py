@@ -111,7 +111,7 @@ class Lifting:
             if not isinstance(step, LiftingFunction):
                 raise ValueError(f"lifting step {step!r} is not a LiftingFunction")
         # Not copied into a list: the episodes may be read from their logs when asked for (a list of
-        # every episode's states grows with the data, 72 MB at 448 episodes; issue 29).
+        # every episode's states grows with the data, 72 MB at 448 episodes).
         episodes = episodes if isinstance(episodes, Sequence) else list(episodes)
         if not len(episodes):
             raise ValueError("lifting needs at least one training episode")
@@ -124,7 +124,7 @@ class Lifting:
         self.steps_ = []
         for step in self.steps:
             # Each step sees the episodes lifted by the steps before it, one episode at a time: holding
-            # them all (10000 x 250 features an episode) grew memory with the data (issue 29).
+            # them all (10000 x 250 features an episode) would grow memory with the data.
             fitted = copy.deepcopy(step).fit(_LiftedEpisodes(episodes, tuple(self.steps_)), names)
             self.steps_.append(fitted)
             names = fitted.feature_names_out_

@@ -13,7 +13,7 @@ class CoulombFriction(LiftingFunction):
     """Append ``tanh((z_k - z_{k-lag}) / width)`` of one feature: the shape of dry friction.
 
     The QUBE-Servo's arm has Coulomb friction (the calibrated twin fits
-    ``Cr tanh(theta_dot / 0.05 rad/s)``, FACTS 6 and ``qube-calibrate``): a
+    ``Cr tanh(theta_dot / 0.05 rad/s)`` with ``qube-calibrate``): a
     torque of constant size against the motion. No polynomial or delay of the
     angles represents it, and a model without it misreads where the arm
     stops: under a soft arm controller the arm stops short of where an

@@ -1,4 +1,6 @@
-"""The Quanser QUBE-Servo rotary inverted pendulum (FACTS section 6).
+"""The Quanser QUBE-Servo rotary inverted pendulum: the rigid-body equations of the arm and
+pendulum driven by the DC motor, with the Quanser QUBE-Servo 2 workbook's parameters as the
+starting point (:class:`PendulumParameters`).
 
 State ``x = (theta, alpha, theta_dot, alpha_dot)``: motor-arm angle, pendulum
 angle with ``alpha = 0`` upright (the dataset's convention), and their rates;

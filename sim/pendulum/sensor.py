@@ -1,6 +1,6 @@
 """What the rig's encoders report: quantized angles, the pendulum's wrapped.
 
-The rig read two 2048-count encoders (FACTS sections 3 and 5):
+The rig read two encoders of 2048 counts per revolution (24-bit two's complement counters):
 ``theta = count0 * 2 pi / 2048`` and ``alpha = wrap(count1 * 2 pi / 2048 - pi)``
 to ``[-pi, pi)``, the pendulum's counter being zeroed hanging down, so that
 ``alpha = 0`` is upright. :func:`counts_to_angles` is that conversion (the
@@ -21,7 +21,7 @@ __all__ = ["SensorModel", "ZeroOffsetDistribution", "measure", "counts_to_angles
 
 TWO_PI = 2.0 * math.pi
 
-#: Encoder counts per revolution of the QUBE-Servo 2 (FACTS section 5).
+#: Encoder counts per revolution of the QUBE-Servo 2's encoders.
 COUNTS_PER_REV = 2048
 
 
@@ -42,8 +42,8 @@ class SensorModel:
         Encoder zero offset of the pendulum (rad): the measured alpha is the
         true one plus this, before quantization. The rig's counter is zeroed
         wherever the pendulum hung when it was reset, so the measured upright
-        is a few counts off the true one, differently each episode (FACTS
-        section 6a: about +0.0025 rad, spread 0.001, in the paper's dataset).
+        is a few counts off the true one, differently each episode (about
+        +0.0025 rad, spread 0.001, in the paper's dataset).
     """
 
     counts_per_rev: int | None = 2048
@@ -71,8 +71,8 @@ class ZeroOffsetDistribution:
     """Where the pendulum encoder's zero falls, episode by episode.
 
     Each episode's :attr:`SensorModel.alpha_offset` is drawn from a normal
-    distribution; the defaults are the paper's dataset (FACTS section 6a:
-    mean alpha over an episode +0.0025 rad, spread about 0.001 rad).
+    distribution; the defaults are the paper's dataset (the mean alpha over an
+    episode after its first second: +0.0025 rad, spread about 0.001 rad).
 
     Parameters
     ----------
@@ -136,7 +136,7 @@ def angles_to_counts(theta: float, alpha: float, counts_per_rev: int = COUNTS_PE
 
 
 def counts_to_angles(count0: int, count1: int, counts_per_rev: int = COUNTS_PER_REV) -> tuple[float, float]:
-    """The rig's angles from its raw encoder counters (FACTS section 3).
+    """The rig's angles from its raw encoder counters, as the C program that ran it computed them.
 
     ``theta = count0 * 2 pi / N`` and ``alpha = wrap(count1 * 2 pi / N - pi)``
     in ``[-pi, pi)``: the pendulum's counter was zeroed hanging down, so

@@ -1,6 +1,6 @@
 /*
- * The QUBE-Servo 2's 17-byte SPI transaction (FACTS section 5; Quanser's
- * Arduino sample code): 1 MHz, MSB first, SPI mode 2, full duplex.
+ * The QUBE-Servo 2's 17-byte SPI transaction (Quanser's Arduino sample
+ * code for the QUBE-Servo 2): 1 MHz, MSB first, SPI mode 2, full duplex.
  * Big-endian fields, unlike the host protocol. The Python twin is
  * firmware_protocol/qube_spi.py.
  */
