@@ -1,6 +1,7 @@
-"""The documentation site builds without a warning, covers the API, and its examples run (issue 31).
+"""The documentation site builds without a warning, covers the API, and its examples run; the text a
+user reads names no tracker issue and no file outside the repository.
 
-The build is the one a user runs (docs/conf.py; README, "Development"): Sphinx, warnings as
+The build is the one a user runs (docs/conf.py; the development page): Sphinx, warnings as
 errors, one process, no network. The API reference is generated, so the test checks it against
 the packages' public names as tests/test_package.py counts them (tests/_public_api.py). Every
 ``>>>`` example of every docstring, private modules included, runs as a doctest through the
@@ -22,7 +23,8 @@ from _public_api import public_names
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "docs" / "_ext"))
-import readme_slices  # noqa: E402 (the docs' own extension, docs/_ext)
+import readme_slices  # the docs' own extension, docs/_ext
+
 PAGES = ["index", "getting-started", "collecting", "identification", "transfer", "lifting-search", "cluster",
          "calibration", "design", "formats", "NAMING", "daq/log/FORMAT", "daq/CONTROLLER_FORMAT",
          "identify/MODEL_FORMAT", "firmware_protocol/PROTOCOL", "api/index", "development"]
@@ -59,7 +61,7 @@ def test_a_readme_marker_that_does_not_fit_is_a_warning(start, end, problem, cap
 def built_docs(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("docs") / "html"
     done = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html", "-j", "1", "-q",
-                           str(ROOT / "docs"), str(out)], capture_output=True, text=True, timeout=600,
+                           str(ROOT / "docs"), str(out)], check=False, capture_output=True, text=True, timeout=600,
                           stdin=subprocess.DEVNULL)
     assert done.returncode == 0, f"sphinx-build failed:\n{done.stdout[-3000:]}\n{done.stderr[-6000:]}"
     return out
@@ -111,7 +113,7 @@ print(json.dumps({"failed": failed, "attempted": attempted, "examples": examples
 
 
 def test_every_docstring_example_runs(tmp_path):
-    done = subprocess.run([sys.executable, "-P", "-c", DOCTESTS, str(ROOT / "tests")], cwd=tmp_path,
+    done = subprocess.run([sys.executable, "-P", "-c", DOCTESTS, str(ROOT / "tests")], check=False, cwd=tmp_path,
                           capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
@@ -119,3 +121,59 @@ def test_every_docstring_example_runs(tmp_path):
     # examples marked `# doctest: +SKIP` count in examples, not in attempted
     print(f"doctests: {result['attempted']} examples run ({result['examples']} in all)")
     assert result["attempted"] >= 6
+
+
+def test_every_readme_directive_of_the_pages_finds_its_text(caplog):
+    """A page's ``% readme "START" "END"`` line must find its text in the README as it is now: text
+    moved out of the README goes into the page itself, not a directive left pointing at nothing."""
+    readme = (ROOT / "README.md").read_text()
+    for page in sorted((ROOT / "docs").rglob("*.md")):
+        if "_build" in page.parts:
+            continue
+        for match in readme_slices.SLICE.finditer(page.read_text()):
+            with caplog.at_level(logging.WARNING):
+                text = readme_slices.readme_slice(readme, match[1], match[2], str(page.relative_to(ROOT)))
+            assert text and "README marker" not in caplog.text, caplog.text
+
+
+# Folders whose files users read: the packages (code, docstrings, --help texts and messages, the
+# format documents and the firmware beside them), the examples, benchmarks and tools.
+USER_FACING_FOLDERS = ("core", "daq", "design", "firmware_protocol", "identify", "sim", "examples", "bench", "tools")
+TEXT_SUFFIXES = {".py", ".md", ".rst", ".txt", ".toml", ".json", ".c", ".h", ".ino", ".sh", ".cfg"}
+#: A pointer instead of a fact: to the project's tracker (issue 27, #27) or to notes outside the
+#: repository that users do not have (FACTS.md, DESIGN.md).
+OUTSIDE_POINTER = re.compile(r"\bFACTS\b|\bDESIGN\.md\b|\b[Ii]ssues? \d+|(?<![&\w])#\d+\b")
+
+
+def _user_facing_files() -> list[Path]:
+    files = [ROOT / "README.md", ROOT / "NAMING.md", *(ROOT / "docs").rglob("*")]
+    for folder in USER_FACING_FOLDERS:
+        files += (ROOT / folder).rglob("*")
+    skipped = {"_build", "generated", "__pycache__", ".ipynb_checkpoints"}
+    return sorted(path for path in files if path.is_file() and path.suffix in TEXT_SUFFIXES
+                  and not skipped & set(path.relative_to(ROOT).parts))
+
+
+def test_user_facing_text_states_facts_instead_of_pointing_outside_the_repository():
+    files = _user_facing_files()
+    assert ROOT / "README.md" in files and ROOT / "identify" / "regression.py" in files and len(files) > 100
+    found = [f"{path.relative_to(ROOT)}:{number}: {match[0]!r}" for path in files
+             for number, line in enumerate(path.read_text(errors="replace").splitlines(), start=1)
+             for match in OUTSIDE_POINTER.finditer(line)]
+    assert not found, "pointers to issues or to notes outside the repository:\n" + "\n".join(found)
+
+
+def test_the_pointer_pattern_catches_what_it_is_for():
+    assert OUTSIDE_POINTER.search("memory does not grow (issue 29)")
+    assert OUTSIDE_POINTER.search("Issues 27 and 28")
+    assert OUTSIDE_POINTER.search("as asked in #31.")
+    assert OUTSIDE_POINTER.search("(FACTS section 5)") and OUTSIDE_POINTER.search("see DESIGN.md, Real time")
+    assert not OUTSIDE_POINTER.search("an issue with 3 episodes") and not OUTSIDE_POINTER.search("&#39;")
+
+
+def test_the_readme_docs_and_tutorial_do_not_send_users_to_the_test_layout():
+    """The datasets are found through $QUBE_DATASET_DIR (or an argument), never through the folder
+    beside the clone that the test suite and CI happen to use."""
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "examples" / "tutorial.py"]
+    found = [str(path.relative_to(ROOT)) for path in files if "../shared" in path.read_text()]
+    assert not found

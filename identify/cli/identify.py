@@ -310,7 +310,7 @@ def _load(args):
     _check_disjoint(train_paths, test_paths)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", IncompleteLogSkipped)
-        # Kept on disk, read again when needed: memory does not grow with the number of logs (issue 29).
+        # Kept on disk, read again when needed: memory does not grow with the number of logs.
         train = load_logs(train_paths, skip=args.skip, strict=args.strict, stored=True)
         test = load_logs(test_paths, skip=args.skip, strict=args.strict, stored=True)
     for w in caught:
