@@ -3,8 +3,18 @@
 Nothing here imports another ``qube_koopman`` package.
 """
 
-from qube_koopman.core.cli import OneLineParser
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.files import atomic_path, output_file_problem, output_folder_problem
 from qube_koopman.core.signals import Terminated, interrupted_status, run_interruptible, sigterm_as_interrupt
 
-__all__ = ["OneLineParser", "atomic_path", "Terminated", "interrupted_status", "run_interruptible", "sigterm_as_interrupt"]
+__all__ = [
+    "OneLineParser",
+    "Terminated",
+    "add_force_option",
+    "atomic_path",
+    "interrupted_status",
+    "output_file_problem",
+    "output_folder_problem",
+    "run_interruptible",
+    "sigterm_as_interrupt",
+]

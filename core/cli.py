@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["OneLineParser"]
+__all__ = ["OneLineParser", "add_force_option"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -16,3 +16,13 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def add_force_option(parser) -> None:
+    """``--force``, the one switch (the same in every command) that lets existing output files be replaced.
+
+    Without it a command refuses an output file that exists, before any work
+    (``qube_koopman.core.files.output_file_problem``).
+    """
+    parser.add_argument("--force", action="store_true",
+                        help="replace output files that exist (without it the command refuses them)")

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_path"]
+__all__ = ["atomic_path", "output_file_problem", "output_folder_problem"]
 
 
 @contextmanager
@@ -92,3 +92,87 @@ def _new_file(path: Path) -> Path:
         os.close(fd)
         return tmp
     raise FileExistsError(f"{path}: no free temporary name beside it")
+
+
+# The one rule every command follows for what it writes (checked before any work, so a mistake
+# costs nothing): an output that cannot be written is a user error, and an existing file is
+# replaced only when the user says so (--force). Each command turns the problem into its own
+# one-line error, exit status 2.
+
+
+def _writable_ancestor(path: Path) -> tuple[Path, bool]:
+    """The nearest existing folder at or above ``path`` and whether new entries can be made in it."""
+    for folder in (path, *path.parents):
+        if folder.exists():
+            return folder, folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
+    return Path("."), os.access(".", os.W_OK | os.X_OK)
+
+
+def output_folder_problem(path: str | Path, *, force: bool = False, files: tuple[str, ...] = ()) -> str | None:
+    """Why the output folder ``path`` cannot take a command's output, or ``None`` when it can.
+
+    Parameters
+    ----------
+    path : str or Path
+        The folder (created, with its parents, when missing).
+    force : bool
+        Existing ``files`` may be replaced.
+    files : tuple of str
+        Names of the files the command writes there, checked against existing ones.
+
+    Returns
+    -------
+    str or None
+        The problem, starting with the path: not a folder, not writable, or a file that exists.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (folder / "model.json").write_text("{}")
+    >>> output_folder_problem(folder / "new") is None
+    True
+    >>> output_folder_problem(folder, files=("model.json",)).endswith("exists (use --force to overwrite)")
+    True
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        return f"{path}: exists and is not a folder"
+    folder, writable = _writable_ancestor(path)
+    if not folder.is_dir():
+        return f"{path}: cannot create output folder: {folder} is not a folder"
+    if not writable:
+        return f"{path}: cannot write in {folder} (permission denied)"
+    if not force:
+        for name in files:
+            if (path / name).exists():
+                return f"{path / name}: exists (use --force to overwrite)"
+    return None
+
+
+def output_file_problem(path: str | Path, *, force: bool = False) -> str | None:
+    """Why the output file ``path`` cannot be written, or ``None`` when it can.
+
+    The file's folder must exist and be writable, the name must not be a folder, and an
+    existing file is replaced only with ``force``.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> output_file_problem(folder / "x.toml") is None
+    True
+    >>> output_file_problem(folder / "missing" / "x.toml").endswith("does not exist")
+    True
+    """
+    path = Path(path)
+    folder = path.parent
+    if path.is_dir():
+        return f"{path}: is a folder, not a file"
+    if not folder.is_dir():
+        return f"{path}: folder {folder} does not exist"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"{path}: cannot write in {folder} (permission denied)"
+    if path.exists() and not force and path.is_file():
+        return f"{path}: exists (use --force to overwrite)"
+    return None

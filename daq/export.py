@@ -17,7 +17,10 @@ Formats (one file per episode, named after the log: ``<log stem>.<ext>``):
     ``reason``, ``salvaged``, ``salvage_note``, ``samples``), written before
     the CSV, and ``qube-import`` gives the episode that status back; a
     complete episode's export removes a status file left there by an
-    earlier one.
+    earlier one. The layout is evenly spaced in time: a log that lost
+    samples (a damaged chunk skipped when it was read) is written with the
+    jump in ``t``, which ``qube-import`` refuses, and the export warns so
+    (:class:`CsvGapWarning`; parquet and mat keep such a log whole).
 ``parquet``
     One table per episode: every per-sample array as a float64 column
     (``saturation`` int8, ``controller_state`` as ``controller_state_0``...),
@@ -38,6 +41,7 @@ from __future__ import annotations
 
 import io
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +50,7 @@ from qube_koopman.daq.episode import UNITS, Episode, stack_signals
 from qube_koopman.daq.legacy_csv import LEGACY_COLUMNS, status_sidecar
 from qube_koopman.core.files import atomic_path
 
-__all__ = ["FORMATS", "ExportError", "episode_columns", "metadata_records", "episode_frame",
+__all__ = ["FORMATS", "CsvGapWarning", "ExportError", "episode_columns", "metadata_records", "episode_frame",
            "legacy_csv_bytes", "write_csv", "write_parquet", "write_mat", "export_episode"]
 
 #: Format name -> file extension.
@@ -55,6 +59,27 @@ FORMATS = {"csv": ".csv", "parquet": ".parquet", "mat": ".mat"}
 
 class ExportError(ValueError):
     """An episode that cannot be exported; the message names the file and the problem."""
+
+
+class CsvGapWarning(UserWarning):
+    """An episode exported to CSV with a jump in time (lost samples): ``qube-import`` will refuse the file."""
+
+
+def _time_gap(episode: Episode) -> tuple[int, float] | None:
+    """The first jump in the episode's time stamps as ``(samples missing, t before it)``, or ``None``.
+
+    A jump is a step longer than 1.5 sample periods (the median step).
+    """
+    t = np.asarray(episode.t, float)
+    if t.size < 3:
+        return None
+    steps = np.diff(t)
+    period = float(np.median(steps))
+    jumps = np.flatnonzero(steps > 1.5 * period)
+    if not jumps.size:
+        return None
+    k = int(jumps[0])
+    return int(round(steps[k] / period)) - 1, float(t[k])
 
 
 def episode_columns(episode: Episode) -> dict[str, np.ndarray]:
@@ -130,6 +155,11 @@ def write_csv(episode: Episode, path: str | Path) -> None:
     content = legacy_csv_bytes(episode)
     with atomic_path(path) as tmp:
         tmp.write_bytes(content)
+    gap = _time_gap(episode)
+    if gap is not None:
+        warnings.warn(f"{path}: {gap[0]} samples missing after t = {gap[1]:.3f} s (lost when the log was read); "
+                      "the CSV layout is evenly spaced, so qube-import will refuse this file: "
+                      "--format parquet or mat keep the episode as it is", CsvGapWarning, stacklevel=2)
 
 
 def _pyarrow():

@@ -158,3 +158,34 @@ def test_csv_of_an_episode_that_did_not_complete_carries_its_status_beside_it(le
     write_episode(tmp_path / "logs" / f"{GOOD}.mcap", complete, overwrite=True)
     assert main([str(tmp_path / "logs"), "--format", "csv", "--out", str(out), "--force", "-q"]) == 0
     assert not sidecar.exists() and (out / f"{GOOD}.csv").read_bytes() == (legacy_folder / f"{GOOD}.csv").read_bytes()
+
+
+def test_csv_of_a_log_that_lost_samples_says_qube_import_will_refuse_it(tmp_path, capsys):
+    # A damaged chunk skipped on reading leaves a jump in t; the CSV layout is evenly spaced in time,
+    # so the round trip cannot hold: the export says so (and which formats keep the episode whole).
+    from test_log import _chunks
+
+    from qube_koopman.daq.log import EpisodeWriter
+
+    episode = make_episode(500)
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    path = logs / "qube_20260101T000000_1_2_3.mcap"
+    with EpisodeWriter(path, episode.metadata, flush_interval_s=0.2) as writer:  # 100 samples a chunk
+        writer.write_samples(episode)
+    data = bytearray(path.read_bytes())
+    data[_chunks(path)[2][1] - 50] ^= 0xFF  # samples 200 to 299 lost
+    path.write_bytes(bytes(data))
+    assert main([str(logs), "--format", "csv", "--out", str(tmp_path / "csv")]) == 0
+    csv = tmp_path / "csv" / f"{path.stem}.csv"
+    t_before = float(episode.t[199])
+    assert (f"qube-export: warning: {csv}: 100 samples missing after t = {t_before:.3f} s (lost when the log was "
+            "read); the CSV layout is evenly spaced, so qube-import will refuse this file: --format parquet or mat "
+            "keep the episode as it is") in capsys.readouterr().err
+    (tmp_path / "csv" / "controller.toml").write_text("kp_theta = 6\nkd_theta = 1.8\nkp_alpha = 30\nkd_alpha = 2.5\n"
+                                                     "tau = 50\n")
+    assert import_main([str(tmp_path / "csv"), "--out", str(tmp_path / "back")]) == 1
+    assert "t is not evenly spaced" in capsys.readouterr().err
+    # mat keeps the episode as it is: no warning
+    assert main([str(logs), "--format", "mat", "--out", str(tmp_path / "mat")]) == 0
+    assert "samples missing" not in capsys.readouterr().err

@@ -79,7 +79,7 @@ def test_sweep_edmd_plant_scoring_and_arx(small_set, tmp_path, capsys, monkeypat
     assert report["alpha"] in report["sweep"]["alpha"]
     assert "cross-validation" in err
     code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                       "--method", "cl-arx")
+                       "--method", "cl-arx", "--force")  # replaces the first fit's model and reports
     assert code == 0, err
     assert 0.7 < json.loads((tmp_path / "report.json").read_text())["test"]["r2_mean"] < 0.95
 
@@ -127,7 +127,7 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     assert controllers["controllers"][1]["logs"] == ["odd.mcap"]
     assert "training episodes under 2 controllers" in out
     code, _, err = run(capsys, "--train", small_set / "train", odd / "odd.mcap", "--test", small_set / "test",
-                       "--out", tmp_path / "o", "--method", "cl-edmd-lstsq")
+                       "--out", tmp_path / "o", "--method", "cl-edmd-lstsq", "--force")
     assert code == 2 and "--method cl-edmd-lstsq identifies one closed loop" in err and "these ran 2" in err
 
     # an incomplete log is skipped with a warning, refused with --strict
@@ -136,10 +136,10 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     data = source.read_bytes()
     (cut / "cut.mcap").write_bytes(data[: len(data) // 2])
     code, _, err = run(capsys, "--train", small_set / "train", cut / "cut.mcap", "--test", small_set / "test",
-                       "--out", tmp_path / "o")
+                       "--out", tmp_path / "o", "--force")
     assert code == 0 and "cut.mcap: incomplete episode" in err and "skipped" in err
     code, _, err = run(capsys, "--train", small_set / "train", cut / "cut.mcap", "--test", small_set / "test",
-                       "--out", tmp_path / "o", "--strict")
+                       "--out", tmp_path / "o", "--strict", "--force")
     assert code == 2 and "refused because of --strict" in err
 
 

@@ -126,7 +126,7 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
     (["--perturbation", "6"], "start gate"),
     (["--alpha-limit", "2"], "start_alpha"),
     (["--rerun-save", "no/such/folder/run.rrd"], "does not exist"),
-    (["--rerun-save", "{file}"], "a_file: already exists; a recording is not overwritten: remove it or choose another name (--rerun-save)"),
+    (["--rerun-save", "{file}"], "a_file: exists (use --force to overwrite) (--rerun-save)"),
     (["--controller", "{binary}"], "binary.toml: not a text file (a TOML controller file is expected)"),
 ])
 def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, message):

@@ -62,7 +62,7 @@ def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, ca
     warned = [line for line in err.splitlines() if "warning:" in line]
     assert len(warned) == 2 and "zz_cut_header.mcap: unreadable" in warned[0] and "zz_empty.mcap: empty file" in warned[1]
     assert "qube-identify: info: 6 training and 2 test episodes" in err
-    code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o"), "--strict"])
+    code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o"), "--strict", "--force"])
     assert code == 2 and "zz_cut_header.mcap" in capsys.readouterr().err
 
 

@@ -7,7 +7,8 @@ import logging
 import sys
 import warnings
 
-from qube_koopman.core.cli import OneLineParser
+from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.files import output_folder_problem
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 from qube_koopman.daq.log.names import LOG_SUFFIX
 from qube_koopman.sim.cli.common import add_standard_options, configure_logging, path
@@ -54,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="an episode log (.mcap), or a folder whose *.mcap files are all exported")
     parser.add_argument("--format", required=True, choices=tuple(FORMATS), help="output format")
     parser.add_argument("--out", required=True, type=path, metavar="DIR", help="output folder (created if missing)")
-    parser.add_argument("--force", action="store_true", help="overwrite existing files in DIR")
+    add_force_option(parser)
     add_standard_options(parser, "no progress counter")
     return parser
 
@@ -77,8 +78,9 @@ def _main(argv: list[str] | None) -> int:
     from qube_koopman.daq.legacy_csv import status_sidecar
     from qube_koopman.daq.log import IncompleteEpisodeWarning
 
-    if args.out.exists() and not args.out.is_dir():
-        print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)
+    folder_problem = output_folder_problem(args.out)  # not a folder, read-only: before any work
+    if folder_problem:
+        print(f"{PROG}: error: {folder_problem} (--out)", file=sys.stderr)
         return 2
     problems: list[str] = []
     logs = expand_sources(args.logs, LOG_SUFFIX, problems)

@@ -7,7 +7,8 @@ import logging
 import sys
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser
+from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.files import output_folder_problem
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 from qube_koopman.daq.log.names import log_path
 from qube_koopman.sim.cli.common import configure_logging
@@ -55,9 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controller", type=path, metavar="FILE",
                         help="controller gains (TOML: kp_theta, kd_theta, kp_alpha, kd_alpha, tau) for "
                              "every file; default: the controller.toml beside each CSV file")
-    parser.add_argument("--force", action="store_true",
-                        help="overwrite existing .mcap files in DIR (by default an existing file is "
-                             "left alone and its CSV is refused)")
+    add_force_option(parser)
     add_standard_options(parser, "no progress counter")
     return parser
 
@@ -123,8 +122,9 @@ def _main(argv: list[str] | None) -> int:
 
     problems: list[str] = []
     files = expand_sources(args.sources, ".csv", problems)
-    if args.out.exists() and not args.out.is_dir():
-        print(f"{PROG}: error: {args.out}: exists and is not a folder", file=sys.stderr)
+    folder_problem = output_folder_problem(args.out)  # not a folder, read-only: before any work
+    if folder_problem:
+        print(f"{PROG}: error: {folder_problem} (--out)", file=sys.stderr)
         return 2
     progress = Progress(len(files), not args.quiet)
     for problem in problems:

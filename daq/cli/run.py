@@ -7,7 +7,8 @@ import math
 import sys
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser
+from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.files import output_file_problem
 from qube_koopman.daq.cli.run_output import PROG
 from qube_koopman.sim.cli.common import configure_logging
 
@@ -141,6 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "else a newly spawned one (needs a display)")
     p.add_argument("--rerun-save", type=path, default=None, metavar="FILE.rrd",
                    help="write a rerun recording of the run (no display needed)")
+    add_force_option(p)
     safety = p.add_argument_group("safety and simulator")
     safety.add_argument("--theta-limit", type=_positive_float, default=90.0, metavar="DEG",
                         help="stop an episode when |theta| exceeds this (default 90)")
@@ -370,11 +372,9 @@ def _run(args) -> int:
     if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:
         raise _Fail(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
-    if args.rerun_save is not None and not args.rerun_save.parent.is_dir():
-        raise _Fail(f"{args.rerun_save}: folder {args.rerun_save.parent} does not exist (--rerun-save)")
-    if args.rerun_save is not None and args.rerun_save.exists():
-        raise _Fail(f"{args.rerun_save}: already exists; a recording is not overwritten: remove it or "
-                    "choose another name (--rerun-save)")
+    problem = args.rerun_save and output_file_problem(args.rerun_save, force=args.force)
+    if problem:
+        raise _Fail(f"{problem} (--rerun-save)")
 
     seed = args.seed if args.seed is not None else fresh_seed()
     seeds, backend_seed = run_seeds(seed, args.episodes)

@@ -29,10 +29,12 @@ import argparse
 import math
 import sys
 from dataclasses import fields
+from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser
+from qube_koopman.core.cli import OneLineParser, add_force_option
 from qube_koopman.design.lq import Weights
-from qube_koopman.identify.cli.common import CliError, check_output_file, check_rerun_target, run_command
+from qube_koopman.identify.cli.common import (CliError, check_output_file, check_rerun_target,
+                                              run_command)
 from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
 __all__ = ["main"]
@@ -69,6 +71,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="also write a rerun recording: predicted vs twin trajectories, closed-loop eigenvalues")
     p.add_argument("--rerun-episodes", type=whole_number(1, 20), default=3, metavar="N",
                    help="episodes of the excitation the recording shows, run on the twin (default 3)")
+    add_force_option(p)
     add_standard_options(p, "nothing to quiet")
     return p
 
@@ -89,8 +92,10 @@ def _run(args) -> int:
     from qube_koopman.design.workflow import design_from_model, provenance, report_text, saturation_warning
 
     weights = _weights(args)
-    check_output_file(args.out)  # before the design's minutes of work, not after
-    check_rerun_target(args.rerun)
+    check_output_file(args.out, force=args.force)  # before the design's minutes of work, not after
+    if args.npz:
+        check_output_file(Path(args.out).with_suffix(".npz"), "--npz", args.force)
+    check_rerun_target(args.rerun, force=args.force)
     if not (math.isfinite(args.duration) and 2.0 <= args.duration <= 60.0):
         raise CliError(f"--duration must be between 2 and 60 s, got {args.duration}")
     if round(args.duration * 500) != args.duration * 500:

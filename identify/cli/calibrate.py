@@ -36,8 +36,9 @@ import time
 
 import numpy as np
 
-from qube_koopman.core.cli import OneLineParser
-from qube_koopman.identify.cli.common import CliError, check_output_file, expand_logs, output_dir, run_command
+from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.identify.cli.common import (CliError, check_output_file, check_output_folder,
+                                              expand_logs, output_dir, run_command)
 from qube_koopman.sim.cli.common import add_standard_options, path, whole_number
 
 __all__ = ["main"]
@@ -62,6 +63,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--weighting", choices=("episode", "controller"), default="episode",
                    help="with logs of several controllers: episode (default) counts every episode alike; "
                         "controller weights the residuals so that each controller's logs count alike")
+    add_force_option(p)
     add_standard_options(p, "no progress line")
     return p
 
@@ -94,7 +96,8 @@ def _run(args) -> int:
         val_paths += held
     if not 0.004 <= args.horizon <= 2.0:
         raise CliError(f"--horizon must be between 0.004 and 2 s, got {args.horizon}")
-    check_output_file(args.out)  # before the fit's minute of work, not after
+    check_output_file(args.out, force=args.force)  # before the fit's minute of work, not after
+    check_output_folder(args.report, ("report.md", "calibration.rrd"), "--report", args.force)
     episodes = _read(fit_paths)
     started = time.perf_counter()
     fit_groups = controller_groups(episodes)

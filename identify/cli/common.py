@@ -10,7 +10,7 @@ import warnings
 from pathlib import Path
 
 from qube_koopman.sim.cli.common import ProgressCallback, configure_logging
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.files import atomic_path, output_file_problem, output_folder_problem
 from qube_koopman.core.signals import interrupted_status, sigterm_as_interrupt
 
 
@@ -57,17 +57,29 @@ def output_dir(path: str | Path) -> Path:
     return path
 
 
-def check_output_file(path: str | Path, option: str = "--out") -> None:
+def check_output_file(path: str | Path | None, option: str = "--out", force: bool = False) -> None:
     """Refuse, before any work, an output file that cannot be written: its folder missing or not
-    writable, or the name taken by a folder (a user error: exit 2, the file named)."""
-    path = Path(path)
-    folder = path.parent
-    if path.is_dir():
+    writable, the name taken by a folder, or an existing file without ``--force`` (a user error:
+    exit 2, the file named). ``None`` (the option not given) passes."""
+    if path is None:
+        return
+    if Path(path).is_dir():
         raise CliError(f"{path}: is a folder; {option} names the file to write")
-    if not folder.is_dir():
-        raise CliError(f"{path}: folder {folder} does not exist ({option})")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise CliError(f"{path}: cannot write in folder {folder} ({option})")
+    problem = output_file_problem(path, force=force)
+    if problem:
+        raise CliError(f"{problem} ({option})")
+
+
+def check_output_folder(path: str | Path | None, files: tuple[str, ...] = (), option: str = "--out",
+                        force: bool = False) -> None:
+    """Refuse, before any work, an output folder that cannot take the command's ``files``: not a
+    folder, not writable, or one of ``files`` there already without ``--force`` (exit 2).
+    ``None`` (the option not given) passes."""
+    if path is None:
+        return
+    problem = output_folder_problem(path, force=force, files=files)
+    if problem:
+        raise CliError(f"{problem} ({option})")
 
 
 def _standard(value):
@@ -83,8 +95,9 @@ def _standard(value):
     return value
 
 
-def check_rerun_target(path: str | Path | None, option: str = "--rerun") -> None:
-    """Refuse ``option FILE.rrd`` before any work: rerun-sdk not installed (status 1), or no such folder.
+def check_rerun_target(path: str | Path | None, option: str = "--rerun", force: bool = False) -> None:
+    """Refuse ``option FILE.rrd`` before any work: rerun-sdk not installed (status 1), no such
+    folder, or (without ``force``) the file exists.
 
     Raises
     ------
@@ -97,8 +110,7 @@ def check_rerun_target(path: str | Path | None, option: str = "--rerun") -> None
         return
     if importlib.util.find_spec("rerun") is None:
         raise CliError(f'{option} needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"', status=1)
-    if not Path(path).resolve().parent.is_dir():
-        raise CliError(f"{path}: folder {Path(path).parent} does not exist ({option})")
+    check_output_file(path, option, force)
 
 
 def write_json(path: Path, data) -> None:

@@ -10,10 +10,10 @@ import sys
 import warnings
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser
+from qube_koopman.core.cli import OneLineParser, add_force_option
 from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
-from qube_koopman.identify.cli.common import (CliError, check_rerun_target, expand_logs, output_dir, progress,
-                                              run_command, write_json)
+from qube_koopman.identify.cli.common import (CliError, check_output_folder, check_rerun_target,
+                                              expand_logs, output_dir, progress, run_command, write_json)
 from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
 
 PROG = "qube-identify"
@@ -64,6 +64,8 @@ METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-
 MAX_POLY = 10
 MAX_RBF_CENTERS = 1000
 MAX_ALPHAS = 1000
+#: What every run writes in --out (figures and the search's files beside them are replaced with these).
+OUTPUT_FILES = ("model.json", "report.json", "report.md")
 
 
 def _add_search_options(p: argparse.ArgumentParser) -> None:
@@ -167,6 +169,7 @@ def _parser() -> argparse.ArgumentParser:
     out = p.add_argument_group("output")
     out.add_argument("--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)")
     out.add_argument("--rerun", type=path, metavar="FILE.rrd", help="also write a rerun recording of the results")
+    add_force_option(out)
     add_figure_options(p)
     return p
 
@@ -282,7 +285,8 @@ def _check_args(args) -> None:
     if not args.estimate_window <= MAX_DURATION:  # inf, 1e308: no whole number of samples (a traceback)
         raise CliError(f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got "
                        f"{args.estimate_window}")
-    check_rerun_target(args.rerun)  # before any work, not after the fit
+    check_rerun_target(args.rerun, force=args.force)  # before any work, not after the fit
+    check_output_folder(args.out, OUTPUT_FILES, force=args.force)
 
 
 def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:

@@ -6,8 +6,9 @@ import argparse
 import math
 import sys
 
-from qube_koopman.core.cli import OneLineParser
-from qube_koopman.identify.cli.common import CliError, output_dir, progress, run_command, write_json
+from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.identify.cli.common import (CliError, check_output_folder, output_dir, progress,
+                                              run_command, write_json)
 from qube_koopman.identify.cli.figures import check_figure_options, write_report_figures
 from qube_koopman.core.files import atomic_path
 
@@ -66,6 +67,7 @@ def _parser() -> argparse.ArgumentParser:
                        help="the test episode (1-based, of the 20) whose inputs and prediction errors are drawn "
                             "(default 1)")
     for experiment in (duffing, qube):
+        add_force_option(experiment)
         add_standard_options(experiment, subcommand=True)
     return parser
 
@@ -85,6 +87,7 @@ def _qube(args) -> int:
     if args.n_jobs == 0 or args.n_jobs < -1:
         raise CliError(f"--n-jobs must be -1 (every core) or at least 1, got {args.n_jobs}")
     check_figure_options(args)
+    check_output_folder(args.out, ("qube.json", "qube.md"), force=args.force)
     out = output_dir(args.out)
     try:
         with warnings.catch_warnings():
@@ -122,6 +125,7 @@ def _duffing(args) -> int:
     alpha = DEFAULT_ALPHA if args.alpha is None else args.alpha
     if not 0 <= alpha < math.inf:  # inf reached the fit as a traceback
         raise CliError(f"--alpha must be a finite number >= 0, got {args.alpha}")
+    check_output_folder(args.out, ("duffing.json",), force=args.force)
     out = output_dir(args.out)
     results = reproduce_duffing(seed=args.seed, alpha=alpha)
     names = {"edmd": "EDMD", "cl_edmd": "CL EDMD", "arx": "ARX", "cl_arx": "CL ARX"}

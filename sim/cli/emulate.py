@@ -6,8 +6,8 @@ import argparse
 import math
 import sys
 
-from qube_koopman.core.cli import OneLineParser
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.files import atomic_path, output_file_problem
 from qube_koopman.sim.cli.common import configure_logging
 
 PROG = "qube-emulate"
@@ -109,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="write a per-tick record (device time, applied voltage, commands) at exit "
                           "(the last 10 minutes)")
     out.add_argument("--stats", type=path, default=None, metavar="FILE.json", help="write the final counters at exit")
+    add_force_option(out)
     add_standard_options(p, "only the device path on standard output")
     return p
 
@@ -174,13 +175,11 @@ def main(argv: list[str] | None = None) -> int:
                               perturbation=math.radians(args.perturbation), start_upright=not args.hanging,
                               raise_time=args.raise_time, faults=faults, spin=args.spin / 1e6,
                               record_ticks=300_000 if args.record else 0)
-    for path in (args.record, args.stats):
-        if path is not None:
-            try:
-                open(path, "a").close()
-            except OSError as exc:
-                print(f"{PROG}: error: {path}: cannot write: {exc.strerror or exc}", file=sys.stderr)
-                return 2
+    for path, option in ((args.record, "--record"), (args.stats, "--stats")):
+        problem = path and output_file_problem(path, force=args.force)  # before the emulator starts
+        if problem:
+            print(f"{PROG}: error: {problem} ({option})", file=sys.stderr)
+            return 2
     try:
         path = emulator.open()
     except CompilerNotFound as exc:
