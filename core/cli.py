@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
-__all__ = ["OneLineParser", "add_force_option"]
+__all__ = ["OneLineParser", "add_force_option", "add_renamed_option"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -26,3 +27,17 @@ def add_force_option(parser) -> None:
     """
     parser.add_argument("--force", action="store_true",
                         help="replace output files that exist (without it the command refuses them)")
+
+
+def add_renamed_option(parser, old: str, new: str, why: str) -> None:
+    """Refuse ``old`` (an option's earlier name) in one line that gives ``new``, hidden from ``--help``.
+
+    Without it argparse would take ``old`` as an abbreviation of any longer option it begins, or
+    call it ambiguous, and the user would not learn the name.
+    """
+
+    class _Renamed(argparse.Action):
+        def __call__(self, parser: argparse.ArgumentParser, namespace: Any, values: Any, option_string=None):
+            parser.error(f"{old} is now {new} ({why})")
+
+    parser.add_argument(old, nargs="?", action=_Renamed, help=argparse.SUPPRESS)

@@ -1,4 +1,4 @@
-"""A rerun recording of a design: predicted vs twin trajectories, closed-loop eigenvalues (``qube-design --rerun``).
+"""A rerun recording of a design: predicted vs twin trajectories, closed-loop eigenvalues (``qube-design --rerun-save``).
 
 Entities, against the timeline ``time`` (seconds from the episode's start):
 ``episodes/<name>/<channel>/<kind>`` for the channels ``theta``, ``alpha`` (rad) and ``voltage``

@@ -1,4 +1,4 @@
-"""The first episodes of ``qube-run --seed S`` on the twin, held in memory: what ``qube-design --rerun`` shows.
+"""The first episodes of ``qube-run --seed S`` on the twin, held in memory: what ``qube-design --rerun-save`` shows.
 
 :func:`run_on_twin` runs a controller file (or the rig's PD) on the default simulated pendulum
 with the excitations, start perturbations, encoder zeros and sensor noise that ``qube-run
@@ -46,7 +46,7 @@ def run_on_twin(controller: ControllerInfo | str | Path | None, seed: int, n_epi
     if not isinstance(controller, ControllerInfo):
         controller = load_controller(controller)
     plans = plan_episodes(controller, seeds[:n_episodes], excitation_settings(duration),
-                          source=f"qube-design --rerun, as qube-run seed {seed}")
+                          source=f"qube-design --rerun-save, as qube-run seed {seed}")
     sink = MemorySink()
     backend = SimBackend(seed=backend_seed)
     try:

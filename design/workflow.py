@@ -203,7 +203,7 @@ def provenance(report: DesignReport) -> dict:
 
 
 def record_design(path: str | Path, report: DesignReport, controller, n_episodes: int = 3) -> Path:
-    """Write ``qube-design --rerun``'s recording: the first episodes predicted and on the twin, the eigenvalues.
+    """Write ``qube-design --rerun-save``'s recording: the first episodes predicted and on the twin, the eigenvalues.
 
     Parameters
     ----------

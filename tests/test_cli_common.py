@@ -71,10 +71,10 @@ def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(
 
     target = tmp_path / "no" / "such" / "id.rrd"
     status = main(["--train", str(tmp_path), "--test", str(tmp_path), "--out", str(tmp_path / "model"),
-                   "--rerun", str(target)])
+                   "--rerun-save", str(target)])
     assert status == 2
     assert capsys.readouterr().err == (f"qube-identify: error: {target}: folder {target.parent} does not exist "
-                                       "(--rerun)\n")
+                                       "(--rerun-save)\n")
     assert not (tmp_path / "model").exists()  # refused before the output folder, the data or the fit
 
 
@@ -242,3 +242,17 @@ def test_usage_errors_are_one_line_in_every_command(module, argv, capsys):
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and ": error: " in err[0] and "usage:" not in err[0], err
+
+
+@pytest.mark.parametrize("prog", ["qube-identify", "qube-design"])
+def test_the_earlier_rerun_file_option_names_its_new_name(prog, tmp_path, capsys):
+    # --rerun streams to a viewer in qube-run; a recording written to a file is --rerun-save everywhere.
+    from qube_koopman.design.cli.design import main as design_main
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    main = {"qube-identify": identify_main, "qube-design": design_main}[prog]
+    with pytest.raises(SystemExit) as stopped:
+        main([str(tmp_path), "--out", str(tmp_path / "x"), "--rerun", str(tmp_path / "r.rrd")])
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err == (f"{prog}: error: --rerun is now --rerun-save FILE.rrd (a file; qube-run --rerun "
+                                       f"streams to a viewer) (see {prog} --help)\n")

@@ -352,7 +352,7 @@ def _rrd_series(path: Path) -> dict[str, np.ndarray]:
 
 @pytest.mark.slow
 def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_loops_eigenvalues(twin_cycle, tmp_path):
-    """``qube-design --rerun``: the twin series are the episodes ``qube-run`` logged under each controller
+    """``qube-design --rerun-save``: the twin series are the episodes ``qube-run`` logged under each controller
     on that excitation, the predicted ones the plant model's closed loop, the eigenvalues the design
     plant's closed loops (float32 in the recording)."""
     pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
@@ -361,7 +361,7 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
     from qube_koopman.identify.model_file import load_model
 
     rrd, out = tmp_path / "design.rrd", tmp_path / "again.toml"
-    assert design_main([str(twin_cycle.model), "--out", str(out), "--seed", "5", "--episodes", "6", "--rerun", str(rrd),
+    assert design_main([str(twin_cycle.model), "--out", str(out), "--seed", "5", "--episodes", "6", "--rerun-save", str(rrd),
                         "--rerun-episodes", "1", "-q"]) == 0
     series = _rrd_series(rrd)
     assert {p for p in series if p.startswith("episodes/")} == (

@@ -37,7 +37,7 @@ def test_cl_edmd_on_a_few_real_episodes(small_set, tmp_path, capsys):
     """Band derived from the paper's data: the full 28/20 split gives 0.897 +- 0.018; with 8
     training episodes the same model scores slightly lower but above 0.85 on these 4."""
     code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test",
-                         "--out", tmp_path, "--rerun", tmp_path / "run.rrd")
+                         "--out", tmp_path, "--rerun-save", tmp_path / "run.rrd")
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["method"] == "cl-edmd" and report["alpha"] == 1e-3

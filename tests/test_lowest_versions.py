@@ -116,7 +116,7 @@ def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(lowest_venv, tm
         [bin_dir / "rerun", "rrd", "verify", tmp_path / "run.rrd"],
         # training and test logs apart: qube-identify refuses a log given as both
         [bin_dir / "qube-identify", "--train", logs, "--test", held_out, "--delays", "2", "--out", tmp_path / "model",
-         "--rerun", tmp_path / "id.rrd"],
+         "--rerun-save", tmp_path / "id.rrd"],
         [bin_dir / "qube-export", logs, "--format", "parquet", "--out", tmp_path / "pq", "-q"],
         [bin_dir / "qube-export", logs, "--format", "mat", "--out", tmp_path / "mat", "-q"],
     ]

@@ -28,7 +28,7 @@ IDENTIFY = ["--train", "logs/a.mcap", "--test", "logs/b.mcap", "--skip", "0"]
 #: command, argv with OUT where the output goes, what the command writes there (None: OUT is the file).
 SINGLE_RESULT = [
     ("qube-identify", [*IDENTIFY, "--out", "OUT"], "model.json"),
-    ("qube-identify", [*IDENTIFY, "--rerun", "OUT"], None),
+    ("qube-identify", [*IDENTIFY, "--rerun-save", "OUT"], None),
     ("qube-calibrate", ["logs/a.mcap", "--out", "OUT"], None),
     ("qube-calibrate", ["logs/a.mcap", "--out", "p.toml", "--report", "OUT"], "report.md"),
     ("qube-design", ["junk.bin", "--out", "OUT"], None),

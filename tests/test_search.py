@@ -186,7 +186,7 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
 
     code, out, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
                           "--search-space", log_dirs / "space.toml", "--n-jobs", "1", "--out", tmp_path,
-                          "--rerun", tmp_path / "id.rrd")
+                          "--rerun-save", tmp_path / "id.rrd")
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     search = report["search"]

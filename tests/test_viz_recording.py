@@ -44,9 +44,9 @@ def test_qube_identify_without_rerun_says_how_to_get_it_before_any_work(tmp_path
 
     monkeypatch.setitem(sys.modules, "rerun", None)
     status = identify_main(["--train", str(tmp_path / "nothing"), "--test", str(tmp_path / "nothing"),
-                            "--out", str(tmp_path / "out"), "--rerun", str(tmp_path / "id.rrd")])
+                            "--out", str(tmp_path / "out"), "--rerun-save", str(tmp_path / "id.rrd")])
     assert status == 1  # an optional package missing: as qube-run --rerun and qube-export --format parquet
-    assert '--rerun needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"' in capsys.readouterr().err
+    assert '--rerun-save needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"' in capsys.readouterr().err
 
 
 def test_the_packages_import_and_run_without_rerun(tmp_path):

@@ -15,7 +15,7 @@ of ``qube-run --seed K --episodes N`` beside the model's training controller. A 
 design on (not a plant model, the arm's friction shape in its lifting, not stabilizable) or a
 predicted closed loop that is unstable is refused, exit 2, and nothing is written.
 
-With ``--rerun FILE.rrd`` it also runs the first episodes of that excitation on the twin (as
+With ``--rerun-save FILE.rrd`` it also runs the first episodes of that excitation on the twin (as
 ``qube-run --seed K --episodes N --controller FILE.toml`` runs them, and under the model's
 training controller) and writes a rerun recording: predicted vs twin trajectories of theta,
 alpha and the voltage, and the closed-loop eigenvalues of the design and of the training
@@ -31,7 +31,7 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.cli import OneLineParser, add_force_option, add_renamed_option
 from qube_koopman.design.lq import Weights
 from qube_koopman.identify.cli.common import (CliError, check_output_file, check_rerun_target,
                                               run_command)
@@ -67,7 +67,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="seconds per predicted episode, 2 to 60 (default 20)")
     p.add_argument("--npz", action="store_true",
                    help="write the matrices to FILE.npz beside the controller file (loads faster)")
-    p.add_argument("--rerun", type=path, metavar="FILE.rrd",
+    add_renamed_option(p, "--rerun", "--rerun-save FILE.rrd", "a file; qube-run --rerun streams to a viewer")
+    p.add_argument("--rerun-save", dest="rerun", type=path, metavar="FILE.rrd",
                    help="also write a rerun recording: predicted vs twin trajectories, closed-loop eigenvalues")
     p.add_argument("--rerun-episodes", type=whole_number(1, 20), default=3, metavar="N",
                    help="episodes of the excitation the recording shows, run on the twin (default 3)")
@@ -95,7 +96,7 @@ def _run(args) -> int:
     check_output_file(args.out, force=args.force)  # before the design's minutes of work, not after
     if args.npz:
         check_output_file(Path(args.out).with_suffix(".npz"), "--npz", args.force)
-    check_rerun_target(args.rerun, force=args.force)
+    check_rerun_target(args.rerun, "--rerun-save", args.force)
     if not (math.isfinite(args.duration) and 2.0 <= args.duration <= 60.0):
         raise CliError(f"--duration must be between 2 and 60 s, got {args.duration}")
     if round(args.duration * 500) != args.duration * 500:
@@ -121,7 +122,7 @@ def _run(args) -> int:
 
 
 def _record(args, report, written) -> None:
-    """The --rerun recording, with the controller as qube-run loads it from the written file."""
+    """The --rerun-save recording, with the controller as qube-run loads it from the written file."""
     from qube_koopman.daq.session import load_controller
     from qube_koopman.design.workflow import record_design
 

@@ -10,7 +10,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.cli import OneLineParser, add_force_option, add_renamed_option
 from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
 from qube_koopman.identify.cli.common import (CliError, check_output_folder, check_rerun_target,
                                               expand_logs, output_dir, progress, run_command, write_json)
@@ -53,7 +53,7 @@ that of the controller with the most training episodes. Cross-validation
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
 with --score plant. Outputs in --out: model.json (see identify/MODEL_FORMAT.md),
-report.json, report.md, and with --rerun FILE.rrd a rerun recording;
+report.json, report.md, and with --rerun-save FILE.rrd a rerun recording;
 with --figures, PNG and PDF figures in figures/, embedded in report.md.
 """
 
@@ -168,7 +168,9 @@ def _parser() -> argparse.ArgumentParser:
     _add_search_options(p)
     out = p.add_argument_group("output")
     out.add_argument("--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)")
-    out.add_argument("--rerun", type=path, metavar="FILE.rrd", help="also write a rerun recording of the results")
+    out.add_argument("--rerun-save", dest="rerun", type=path, metavar="FILE.rrd",
+                     help="also write a rerun recording of the results")
+    add_renamed_option(out, "--rerun", "--rerun-save FILE.rrd", "a file; qube-run --rerun streams to a viewer")
     add_force_option(out)
     add_figure_options(p)
     return p
@@ -285,7 +287,7 @@ def _check_args(args) -> None:
     if not args.estimate_window <= MAX_DURATION:  # inf, 1e308: no whole number of samples (a traceback)
         raise CliError(f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got "
                        f"{args.estimate_window}")
-    check_rerun_target(args.rerun, force=args.force)  # before any work, not after the fit
+    check_rerun_target(args.rerun, "--rerun-save", args.force)  # before any work, not after the fit
     check_output_folder(args.out, OUTPUT_FILES, force=args.force)
 
 
