@@ -187,7 +187,7 @@ def saturation_warning(report: DesignReport) -> str | None:
 
 def provenance(report: DesignReport) -> dict:
     """The controller file's ``[provenance]``: model, weights, cost, margins, spectrum."""
-    from qube_koopman.sim.cli.common import package_version
+    from qube_koopman.core.cli import package_version
 
     out = {"designed_by": "qube-design (LQ on the identified plant's history)",
            "software_version": f"qube-koopman {package_version()}",

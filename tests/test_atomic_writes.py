@@ -117,7 +117,7 @@ def test_an_interrupted_export_leaves_no_partial_file(fmt, tmp_path, monkeypatch
 
 def test_interrupted_controller_plant_and_json_files_leave_nothing(tmp_path, monkeypatch, interrupt_text_writes):
     from qube_koopman.daq.controller_file import write_controller_file
-    from qube_koopman.identify.cli.common import write_json
+    from qube_koopman.core.command import write_json
     from qube_koopman.identify import reports
     from qube_koopman.sim.lti import DiscreteStateSpace
     from qube_koopman.sim.pendulum import PendulumParameters

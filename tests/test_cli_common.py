@@ -1,4 +1,4 @@
-"""Shared command-line plumbing (sim.cli.common): every command answers --version."""
+"""Shared command-line plumbing (core.cli, core.console, core.command): every command answers --version."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
                                           ("qube_koopman.sim.cli.emulate", "qube-emulate"),
                                           ("qube_koopman.identify.cli.reproduce", "qube-reproduce")])
 def test_version(module, prog):
-    from qube_koopman.sim.cli.common import package_version
+    from qube_koopman.core.cli import package_version
 
     proc = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True,
                           cwd=REPO, timeout=60)
@@ -26,7 +26,7 @@ def test_version(module, prog):
 
 @pytest.mark.parametrize("terminal", [True, False])
 def test_the_progress_callback_draws_on_a_terminal_only(terminal, capsys, monkeypatch):
-    from qube_koopman.sim.cli.common import ProgressCallback
+    from qube_koopman.core.console import ProgressCallback
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
     progress = ProgressCallback()
@@ -151,7 +151,7 @@ def _raises(exc):
 def test_run_command_exit_statuses_follow_the_readme_table(exc, status, line, capsys):
     import argparse
 
-    from qube_koopman.identify.cli.common import CliError, run_command
+    from qube_koopman.core.command import CliError, run_command
 
     exc = exc if exc is not None else CliError("f.txt: bad value")
     assert run_command("qube-x", _raises(exc), argparse.Namespace(quiet=True, verbose=0)) == status
@@ -162,7 +162,7 @@ def test_a_write_error_is_a_run_time_failure_naming_the_file(tmp_path, capsys, m
     import argparse
     import errno
 
-    from qube_koopman.identify.cli.common import run_command, write_json
+    from qube_koopman.core.command import run_command, write_json
 
     def full(self, *args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))

@@ -81,7 +81,7 @@ def test_q_silences_the_progress_bar_on_a_terminal(quiet, legacy_folder, tmp_pat
 
 @pytest.mark.parametrize("quiet", [False, True])
 def test_q_silences_the_identification_progress_bars(quiet, capsys, monkeypatch):
-    from qube_koopman.identify.cli.common import progress, run_command
+    from qube_koopman.core.command import progress, run_command
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
 

@@ -298,7 +298,7 @@ def _checked(argv: list[str]):
 
 def test_the_certificates_come_from_the_options_or_else_from_the_dask_configuration(certificates, files):
     import dask
-    from qube_koopman.identify.cli.common import CliError
+    from qube_koopman.core.command import CliError
 
     client, stranger = certificates["client"], certificates["stranger"]
     assert _checked(["--scheduler", "tcp://127.0.0.1:8786"]).security is None

@@ -68,9 +68,11 @@ def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, ca
 
 def test_commands_print_one_warning_line_per_skipped_log(folder, capsys):
     # qube-reproduce and qube-identify run through run_command: one line per skipped file.
-    from qube_koopman.identify.cli.common import run_command
+    from qube_koopman.core.command import run_command
+    from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS
 
-    assert run_command("qube-reproduce", lambda a: len(load_logs(sorted(folder.glob("*.mcap")))), None) == 1
+    assert run_command("qube-reproduce", lambda a: len(load_logs(sorted(folder.glob("*.mcap")))), None,
+                       one_line_warnings=ONE_LINE_WARNINGS) == 1
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 3 and all(line.startswith("qube-reproduce: warning: ") and line.endswith("; skipped") for line in err)
     assert "b_empty.mcap" in err[0] and "c_text.mcap" in err[1] and "d_header_only.mcap" in err[2]

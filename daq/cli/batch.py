@@ -13,7 +13,7 @@ class Progress:
     """A bar on stderr counting files (tqdm; silent when stderr is not a terminal), and its messages."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        from qube_koopman.sim.cli.common import progress_bar
+        from qube_koopman.core.console import progress_bar
 
         self.bar = progress_bar(total, unit="file", enabled=enabled and total > 0)
 

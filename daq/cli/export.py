@@ -7,11 +7,16 @@ import logging
 import sys
 import warnings
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.cli import (
+    OneLineParser,
+    add_force_option,
+    add_standard_options,
+    path,
+)
+from qube_koopman.core.console import configure_logging
 from qube_koopman.core.files import output_folder_problem
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 from qube_koopman.daq.log.names import LOG_SUFFIX
-from qube_koopman.sim.cli.common import add_standard_options, configure_logging, path
 
 _log = logging.getLogger(__name__)
 

@@ -8,10 +8,10 @@ import sys
 from pathlib import Path
 
 from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.console import configure_logging
 from qube_koopman.core.files import output_folder_problem
 from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
 from qube_koopman.daq.log.names import log_path
-from qube_koopman.sim.cli.common import configure_logging
 
 _log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ example:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options, path
+    from qube_koopman.core.cli import add_standard_options, path
 
     parser = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

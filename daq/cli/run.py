@@ -8,9 +8,9 @@ import sys
 from pathlib import Path
 
 from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.console import configure_logging
 from qube_koopman.core.files import output_file_problem
 from qube_koopman.daq.cli.run_output import PROG
-from qube_koopman.sim.cli.common import configure_logging
 
 DEFAULT_EPISODES = 3
 DEFAULT_DURATION = 20.0
@@ -55,62 +55,25 @@ examples:
 """
 
 
-def _int(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-
-
-def _positive_int(text: str) -> int:
-    value = _int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
-def _n_jobs(text: str) -> int:
-    value = _int(text)
-    if value == 0 or value < -1:
-        raise argparse.ArgumentTypeError(f"must be -1 (every core) or at least 1, got {value}")
-    return value
-
-
-def _float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    value = _float(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    value = _float(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be zero or positive, got {text}")
-    return abs(value)  # -0.0 reads as 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options, path, seed
+    from qube_koopman.core.cli import (
+        add_standard_options,
+        n_jobs,
+        non_negative_number,
+        path,
+        positive_number,
+        positive_whole_number,
+        seed,
+    )
 
     p = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--backend", default="sim", choices=("sim", "serial"),
                    help="sim: the simulated pendulum (default); serial: the bridge firmware on --port")
-    p.add_argument("--episodes", type=_positive_int, default=DEFAULT_EPISODES, metavar="N",
+    p.add_argument("--episodes", type=positive_whole_number, default=DEFAULT_EPISODES, metavar="N",
                    help=f"number of episodes (default {DEFAULT_EPISODES})")
-    p.add_argument("--duration", type=_positive_float, default=DEFAULT_DURATION, metavar="S",
+    p.add_argument("--duration", type=positive_number, default=DEFAULT_DURATION, metavar="S",
                    help=f"seconds per episode (default {DEFAULT_DURATION:g}; the excitation is active "
                         "from 20%% to 80%% of it, as the rig's was from 4 s to 16 s of 20 s)")
     p.add_argument("--seed", type=seed, default=None, metavar="K",
@@ -131,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "rig ran); a state-space file is already discrete")
     p.add_argument("--realtime", action="store_true",
                    help="pace the simulator like hardware, one tick every 2 ms (default: as fast as possible)")
-    p.add_argument("--n-jobs", type=_n_jobs, default=None, metavar="N",
+    p.add_argument("--n-jobs", type=n_jobs, default=None, metavar="N",
                    help="run the simulator's episodes N at a time, in worker processes (default -1: one per "
                         "core); the logs, their names, seeds and samples are a serial run's, timing apart. The "
                         "first episode runs alone, while the workers start: a setup that fails (a full disk, "
@@ -144,11 +107,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a rerun recording of the run (no display needed)")
     add_force_option(p)
     safety = p.add_argument_group("safety and simulator")
-    safety.add_argument("--theta-limit", type=_positive_float, default=90.0, metavar="DEG",
+    safety.add_argument("--theta-limit", type=positive_number, default=90.0, metavar="DEG",
                         help="stop an episode when |theta| exceeds this (default 90)")
-    safety.add_argument("--alpha-limit", type=_positive_float, default=45.0, metavar="DEG",
+    safety.add_argument("--alpha-limit", type=positive_number, default=45.0, metavar="DEG",
                         help="stop an episode when |alpha| exceeds this (default 45)")
-    safety.add_argument("--perturbation", type=_non_negative_float, default=2.0, metavar="DEG",
+    safety.add_argument("--perturbation", type=non_negative_number, default=2.0, metavar="DEG",
                         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
                              "an episode starts only once |alpha| < 5)")
     safety.add_argument("--plant", type=path, default=None, metavar="FILE.toml",
@@ -159,9 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     link = p.add_argument_group("serial bridge (--backend serial)")
     link.add_argument("--port", default=None, metavar="DEV",
                       help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
-    link.add_argument("--baud", type=_positive_int, default=None, metavar="B",
+    link.add_argument("--baud", type=positive_whole_number, default=None, metavar="B",
                       help="baud rate of a UART bridge (default 500000, the sketch's; USB CDC ignores it)")
-    link.add_argument("--link-timeout", type=_positive_float, default=None, metavar="MS",
+    link.add_argument("--link-timeout", type=positive_number, default=None, metavar="MS",
                       help="abort an episode after this long without telemetry (default 25; raise it on a "
                            "heavily loaded host, the bridge's watchdog still stops the motor after 10 ms)")
     link.add_argument("--check", action="store_true",
@@ -423,8 +386,8 @@ def _episodes(args, backend, plans, mcap, sinks, limits, stop, book, timing):
     import functools
     import logging
 
+    from qube_koopman.core.console import LOGGER
     from qube_koopman.daq.parallel import run_episodes_parallel
-    from qube_koopman.sim.cli.common import LOGGER
 
     return run_episodes_parallel(backend, plans, args.out, n_jobs=args.n_jobs, sinks=sinks, limits=limits, stop=stop,
                                  on_result=book.parallel, timing=timing,

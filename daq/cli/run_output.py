@@ -34,7 +34,7 @@ class RunProgress:
     required = False
 
     def __init__(self, n_episodes: int, samples_per_episode: int, enabled: bool) -> None:
-        from qube_koopman.sim.cli.common import progress_bar
+        from qube_koopman.core.console import progress_bar
 
         self.n = n_episodes
         self.per = samples_per_episode

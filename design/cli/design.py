@@ -31,11 +31,11 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option, add_renamed_option
+from qube_koopman.core.cli import (OneLineParser, add_force_option, add_renamed_option, add_standard_options, path,
+                                   seed, whole_number)
+from qube_koopman.core.command import CliError, check_output_file, check_rerun_target, run_command
 from qube_koopman.design.lq import Weights
-from qube_koopman.identify.cli.common import (CliError, check_output_file, check_rerun_target,
-                                              run_command)
-from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
+from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS
 
 __all__ = ["main"]
 
@@ -137,7 +137,7 @@ def _record(args, report, written) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-design``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command("qube-design", _run, args)
+    return run_command("qube-design", _run, args, one_line_warnings=ONE_LINE_WARNINGS)
 
 
 if __name__ == "__main__":

@@ -36,10 +36,9 @@ import time
 
 import numpy as np
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
-from qube_koopman.identify.cli.common import (CliError, check_output_file, check_output_folder,
-                                              expand_logs, output_dir, run_command)
-from qube_koopman.sim.cli.common import add_standard_options, path, whole_number
+from qube_koopman.core.cli import OneLineParser, add_force_option, add_standard_options, path, whole_number
+from qube_koopman.core.command import CliError, check_output_file, check_output_folder, output_dir, run_command
+from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
 
 __all__ = ["main"]
 
@@ -168,7 +167,7 @@ def _validate(held, paths, params):
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-calibrate``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command("qube-calibrate", _run, args)
+    return run_command("qube-calibrate", _run, args, one_line_warnings=ONE_LINE_WARNINGS)
 
 
 if __name__ == "__main__":

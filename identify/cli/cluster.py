@@ -14,7 +14,7 @@ import re
 import sys
 from pathlib import Path
 
-from qube_koopman.identify.cli.common import CliError
+from qube_koopman.core.command import CliError
 
 #: Address schemes whose connections are encrypted and authenticated with the certificates.
 ENCRYPTED = ("tls", "wss")
@@ -33,7 +33,7 @@ def add_cluster_options(parser: argparse.ArgumentParser) -> None:
     ----------
     parser : argparse.ArgumentParser
     """
-    from qube_koopman.sim.cli.common import path
+    from qube_koopman.core.cli import path
 
     cluster = parser.add_argument_group("dask cluster (README: On a dask cluster)")
     cluster.add_argument("--scheduler", metavar="ADDRESS",

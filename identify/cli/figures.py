@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Sequence
 
-from qube_koopman.identify.cli.common import CliError
+from qube_koopman.core.command import CliError
 
 FOLDER = "figures"
 

@@ -10,10 +10,12 @@ import sys
 import warnings
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option, add_renamed_option
+from qube_koopman.core.cli import (OneLineParser, add_force_option, add_renamed_option, add_standard_options, path,
+                                   seed, whole_number)
+from qube_koopman.core.command import (CliError, check_output_folder, check_rerun_target, output_dir, progress,
+                                       run_command, write_json)
 from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
-from qube_koopman.identify.cli.common import (CliError, check_output_folder, check_rerun_target,
-                                              expand_logs, output_dir, progress, run_command, write_json)
+from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
 from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
 
 PROG = "qube-identify"
@@ -69,8 +71,6 @@ OUTPUT_FILES = ("model.json", "report.json", "report.md")
 
 
 def _add_search_options(p: argparse.ArgumentParser) -> None:
-    from qube_koopman.sim.cli.common import path
-
     search = p.add_argument_group("lifting search")
     search.add_argument("--search", action="store_true",
                         help="choose lifting, alpha and offsets by cross-validation (see above)")
@@ -89,11 +89,9 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.sim.cli.common import add_version, path, seed, whole_number
-
     p = OneLineParser(prog=PROG, description=DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_version(p)
+    add_standard_options(p)
     data = p.add_argument_group("data")
     data.add_argument("logs", nargs="*", type=path, metavar="LOGS", help="episode logs (.mcap files or folders), with --split")
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
@@ -468,7 +466,7 @@ def _print_scores(args, report: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-identify``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command(PROG, _run, args)
+    return run_command(PROG, _run, args, one_line_warnings=ONE_LINE_WARNINGS)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -6,11 +6,11 @@ import argparse
 import math
 import sys
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
-from qube_koopman.identify.cli.common import (CliError, check_output_folder, output_dir, progress,
-                                              run_command, write_json)
-from qube_koopman.identify.cli.figures import check_figure_options, write_report_figures
+from qube_koopman.core.cli import OneLineParser, add_force_option, add_standard_options, path, seed, whole_number
+from qube_koopman.core.command import CliError, check_output_folder, output_dir, progress, run_command, write_json
 from qube_koopman.core.files import atomic_path
+from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS
+from qube_koopman.identify.cli.figures import check_figure_options, write_report_figures
 
 PROG = "qube-reproduce"
 
@@ -31,7 +31,6 @@ Reproduce the closed-loop Koopman paper's results.
 
 def _parser() -> argparse.ArgumentParser:
     from qube_koopman.identify.cli.figures import add_figure_options
-    from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
 
     parser = OneLineParser(prog=PROG, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -145,7 +144,8 @@ def _duffing(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-reproduce``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command(PROG, lambda a: {"duffing": _duffing, "qube": _qube}[a.experiment](a), args)
+    return run_command(PROG, lambda a: {"duffing": _duffing, "qube": _qube}[a.experiment](a), args,
+                       one_line_warnings=ONE_LINE_WARNINGS)
 
 if __name__ == "__main__":
     sys.exit(main())

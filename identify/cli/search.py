@@ -7,7 +7,7 @@ import tomllib
 from dataclasses import fields
 from pathlib import Path
 
-from qube_koopman.identify.cli.common import CliError, progress
+from qube_koopman.core.command import CliError, progress
 
 _LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool, "trig": bool, "offsets": bool,
           "friction": bool}

@@ -6,9 +6,9 @@ import argparse
 import math
 import sys
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.cli import OneLineParser, add_force_option, number_in
+from qube_koopman.core.console import configure_logging
 from qube_koopman.core.files import atomic_path, output_file_problem
-from qube_koopman.sim.cli.common import configure_logging
 
 PROG = "qube-emulate"
 
@@ -43,25 +43,13 @@ be written at exit, 2 on a usage error.
 """
 
 
-def _number(low: float, high: float, what: str):
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if not (math.isfinite(value) and low <= value <= high):
-            raise argparse.ArgumentTypeError(f"{what} must be in [{low:g}, {high:g}], got {text}")
-        return value
-    return parse
-
-
-_RATE = _number(0.0, 1.0, "a rate")
-_TIME = _number(0.0, 1e6, "a time")
+_RATE = number_in(0.0, 1.0, "a rate")
+_TIME = number_in(0.0, 1e6, "a time")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
-    from qube_koopman.sim.cli.common import add_standard_options, path, seed, whole_number
+    from qube_koopman.core.cli import add_standard_options, path, seed, whole_number
 
     p = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -71,20 +59,20 @@ def build_parser() -> argparse.ArgumentParser:
                         "arduino-core-avr simavr libsimavr-dev libsimavrparts1), real time, no fault injection")
     p.add_argument("--seed", type=seed, default=None, metavar="K",
                    help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
-    p.add_argument("--perturbation", type=_number(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
+    p.add_argument("--perturbation", type=number_in(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
                    help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
     p.add_argument("--plant", type=path, default=None, metavar="FILE.toml",
                    help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
                         "(default: the twin calibrated on the paper's rig; 'workbook', 'previous')")
     p.add_argument("--hanging", action="store_true",
                    help="do not raise the pendulum at each session: it stays hanging down")
-    p.add_argument("--raise-time", type=_number(0.0, 60.0, "--raise-time"), default=0.0, metavar="S",
+    p.add_argument("--raise-time", type=number_in(0.0, 60.0, "--raise-time"), default=0.0, metavar="S",
                    help="raise the pendulum from hanging over S seconds, as by hand (default 0: at once); "
                         "the host's start gate holds the motor at 0 V meanwhile")
     p.add_argument("--lockstep", action="store_true",
                    help="tick as soon as the host answers (max 10 ms apart) instead of every 2 ms of wall "
                         "time: deterministic and faster than real time, for tests")
-    p.add_argument("--spin", type=_number(0.0, 1900.0, "--spin"), default=300.0, metavar="US",
+    p.add_argument("--spin", type=number_in(0.0, 1900.0, "--spin"), default=300.0, metavar="US",
                    help="spin this long before each tick deadline (default 300 us; 0: sleep only, less CPU, "
                         "more jitter)")
     faults = p.add_argument_group("fault injection")
@@ -94,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="probability per byte, each way, of a flipped bit")
     faults.add_argument("--garbage-rate", type=_RATE, default=0.0, metavar="P",
                         help="probability per tick of a burst of random bytes to the host")
-    faults.add_argument("--latency", type=_number(0.0, 9999.0, "--latency"), default=0.0, metavar="MS",
+    faults.add_argument("--latency", type=number_in(0.0, 9999.0, "--latency"), default=0.0, metavar="MS",
                         help="added to every byte's trip, each way (ms)")
     for name, what in (("stall-at", "the QUBE reports a motor stall error"),
                        ("amp-fault-at", "the QUBE reports an amplifier fault"),
