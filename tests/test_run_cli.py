@@ -273,6 +273,22 @@ def test_signal_stops_the_motor_and_closes_the_log_aborted(tmp_path, signum):
     assert "0 complete, 1 aborted" in out and f"interrupted by {name}" in err
 
 
+@pytest.mark.parametrize("signum, status", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_before_the_episodes_is_one_interrupted_line(signum, status, tmp_path, monkeypatch, capsys):
+    # Before its episodes qube-run stops as every command does (run_command): one line, the shell's
+    # status, nothing written; during them its own handlers stop the motor (the test above).
+    from qube_koopman.daq import session
+
+    def stop(*args, **kwargs):
+        os.kill(os.getpid(), getattr(signal, signum))
+        raise AssertionError("the signal should have stopped the command")
+
+    monkeypatch.setattr(session, "plan_episodes", stop)
+    assert main(["--episodes", "1", "--duration", "2", "--out", str(tmp_path / "logs"), "-q"]) == status
+    assert capsys.readouterr().err == "qube-run: error: interrupted\n"
+    assert not (tmp_path / "logs").exists()
+
+
 @pytest.mark.parametrize("text,expected", [("0", 0.0), ("0.00", 0.0), ("0e0", 0.0), ("-0", 0.0), ("2.5", 2.5)])
 def test_non_negative_options_accept_any_spelling_of_zero(text, expected):
     from qube_koopman.daq.cli.run import build_parser

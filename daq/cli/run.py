@@ -7,7 +7,8 @@ import math
 import sys
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
+from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args
+from qube_koopman.core.command import CliError, run_command
 from qube_koopman.core.console import configure_logging
 from qube_koopman.core.files import output_file_problem
 from qube_koopman.daq.cli.run_output import PROG
@@ -138,14 +139,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-class _Fail(Exception):
-    """A user-facing error: printed as one line, exit status 1 or 2."""
-
-    def __init__(self, message: str, status: int = 2) -> None:
-        super().__init__(message)
-        self.status = status
-
-
 def fresh_seed() -> int:
     """A run seed from the system's entropy, when ``--seed`` is not given (printed to repeat the run)."""
     import numpy as np
@@ -168,40 +161,32 @@ def _check_writable(folder: Path) -> None:
         with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as exc:
-        raise _Fail(f"cannot write episode logs to {folder}: {exc.strerror or exc}") from None
+        raise CliError(f"cannot write episode logs to {folder}: {exc.strerror or exc}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-run``; returns the exit status (see ``qube-run --help``)."""
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # --help, or a usage error already explained in one line
-        return int(exc.code or 0)
-    configure_logging(PROG, args)
-    try:
-        return _run(args)
-    except _Fail as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return exc.status
-    except KeyboardInterrupt:  # only before the run's signal handlers, before anything was written
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+    args = parse_args(build_parser(), argv)
+    if isinstance(args, int):  # --help, or a usage error already explained in one line
+        return args
+    # Ctrl-C or SIGTERM reach run_command only before the episodes (nothing written yet): while
+    # they run, _collect's handlers stop them with the motor at 0 V and the logs closed as aborted.
+    return run_command(PROG, _run, args)
 
 
 def _check_backend_options(args) -> None:
     if args.backend == "serial":
         if not args.port:
-            raise _Fail("--backend serial needs --port DEV (the bridge's serial device, or the path "
+            raise CliError("--backend serial needs --port DEV (the bridge's serial device, or the path "
                         "qube-emulate prints)")
         if args.realtime:
-            raise _Fail("--realtime is for --backend sim: the bridge's clock paces the serial backend")
+            raise CliError("--realtime is for --backend sim: the bridge's clock paces the serial backend")
         if args.plant is not None:
-            raise _Fail("--plant is for --backend sim: the serial backend drives a real (or emulated) pendulum")
+            raise CliError("--plant is for --backend sim: the serial backend drives a real (or emulated) pendulum")
     elif args.check:
-        raise _Fail("--check is for --backend serial (the pre-flight of the real rig)")
+        raise CliError("--check is for --backend serial (the pre-flight of the real rig)")
     elif args.port is not None or args.baud is not None or args.link_timeout is not None:
-        raise _Fail("--port, --baud and --link-timeout are for --backend serial")
+        raise CliError("--port, --baud and --link-timeout are for --backend serial")
 
 
 def _jobs(args, n_episodes: int) -> int:
@@ -219,7 +204,7 @@ def _jobs(args, n_episodes: int) -> int:
         ("--rt-priority", "one real-time process", args.rt_priority is not None)) if given]
     if alone and args.n_jobs is not None and args.n_jobs > 1:
         option, why = alone[0]
-        raise _Fail(f"--n-jobs {args.n_jobs}: {option} runs one episode at a time ({why}); leave --n-jobs out "
+        raise CliError(f"--n-jobs {args.n_jobs}: {option} runs one episode at a time ({why}); leave --n-jobs out "
                     "or give 1")
     if alone:
         return 1
@@ -239,7 +224,7 @@ def _replay(args, rate: float):
     try:
         plans = replay_plans(args.replay, controller)
     except ValueError as exc:
-        raise _Fail(f"{exc} (--replay)") from None
+        raise CliError(f"{exc} (--replay)") from None
     args.episodes = len(plans)
     from qube_koopman.daq.excitation import ExcitationSettings
 
@@ -254,7 +239,7 @@ def _load_plant(path):
     try:
         return plant_parameters(path)
     except PlantFileError as exc:
-        raise _Fail(str(exc)) from None
+        raise CliError(str(exc)) from None
 
 
 def _make_backend(args, limits, backend_seed: int, rate: float):
@@ -275,7 +260,7 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
         backend.open()
     except BackendFault as exc:
         backend.close()
-        raise _Fail(str(exc), status=1) from None
+        raise CliError(str(exc), status=1) from None
     return backend
 
 
@@ -287,7 +272,7 @@ def _preflight(backend) -> int:
     try:
         report = preflight(backend)
     except BackendFault as exc:
-        raise _Fail(f"check failed: {exc}", status=1) from None
+        raise CliError(f"check failed: {exc}", status=1) from None
     finally:
         backend.close()
     print(f"pre-flight of the bridge on {backend.port}:\n{report.text()}")
@@ -314,30 +299,30 @@ def _run(args) -> int:
     from qube_koopman.daq.session import MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller, plan_episodes, run_seeds
 
     if args.episodes > MAX_EPISODES:
-        raise _Fail(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "
+        raise CliError(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "
                     "for more)")
     if args.duration > MAX_DURATION:
-        raise _Fail(f"--duration {args.duration:g}: at most {MAX_DURATION:g} s (24 h) per episode")
+        raise CliError(f"--duration {args.duration:g}: at most {MAX_DURATION:g} s (24 h) per episode")
     rate = 500.0
     try:
         settings = excitation_settings(args.duration, rate)
     except ValueError as exc:
-        raise _Fail(f"--duration: {exc}") from None
+        raise CliError(f"--duration: {exc}") from None
     try:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
     except ValueError as exc:
-        raise _Fail(f"{exc} (--controller)") from None
+        raise CliError(f"{exc} (--controller)") from None
     try:
         limits = SafetyLimits(theta_limit=math.radians(args.theta_limit),
                               alpha_limit=math.radians(args.alpha_limit))
     except ValueError as exc:  # the start gate above --alpha-limit (the library's radians)
-        raise _Fail(f"--alpha-limit {args.alpha_limit:g} deg: inside the start gate ({exc})") from None
+        raise CliError(f"--alpha-limit {args.alpha_limit:g} deg: inside the start gate ({exc})") from None
     if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:
-        raise _Fail(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
+        raise CliError(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
     problem = args.rerun_save and output_file_problem(args.rerun_save, force=args.force)
     if problem:
-        raise _Fail(f"{problem} (--rerun-save)")
+        raise CliError(f"{problem} (--rerun-save)")
 
     seed = args.seed if args.seed is not None else fresh_seed()
     seeds, backend_seed = run_seeds(seed, args.episodes)
@@ -367,7 +352,7 @@ def _rerun_sink(args):
     try:
         recording = open_recording(live=args.rerun is not None, url=args.rerun or None, save=args.rerun_save)
     except RerunUnavailable as exc:
-        raise _Fail(f"--rerun: {exc}", status=1) from None
+        raise CliError(f"--rerun: {exc}", status=1) from None
     return RerunSink(recording)
 
 
