@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-__all__ = ["Progress", "expand_sources", "parse_args", "summarize"]
+__all__ = ["Progress", "expand_sources", "summarize"]
 
 
 class Progress:
@@ -50,14 +49,6 @@ def expand_sources(sources: list[str], suffix: str, problems: list[str]) -> list
             problems.append(f"{path}: no such file or folder")
     unique = {f.resolve(): f for f in reversed(files)}
     return [f for f in files if unique[f.resolve()] is f]
-
-
-def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace | int:
-    """The parsed arguments, or the exit status when argparse has already answered (--help, a usage error)."""
-    try:
-        return parser.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code or 0)
 
 
 def summarize(done: str, n_done: int, n_total: int, noun: str, where: str, refused: int, problems: list[str]) -> int:

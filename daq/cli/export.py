@@ -11,11 +11,11 @@ from qube_koopman.core.cli import (
     OneLineParser,
     add_force_option,
     add_standard_options,
+    parse_args,
     path,
 )
-from qube_koopman.core.console import configure_logging
-from qube_koopman.core.files import output_folder_problem
-from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.core.command import check_output_folder, run_command
+from qube_koopman.daq.cli.batch import Progress, expand_sources, summarize
 from qube_koopman.daq.log.names import LOG_SUFFIX
 
 _log = logging.getLogger(__name__)
@@ -67,26 +67,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-export``; returns the exit status (0 all exported, 1 some refused, 2 usage or a missing LOG)."""
-    from qube_koopman.core.signals import run_interruptible
-
-    return run_interruptible(PROG, lambda: _main(argv))  # stopped: every file written so far is whole
-
-
-def _main(argv: list[str] | None) -> int:
-    """The command itself (:func:`main` adds the interruption handling)."""
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
-    configure_logging(PROG, args)
+    return run_command(PROG, _export, args)  # stopped: every file written so far is whole
 
+
+def _export(args) -> int:
+    """The command itself: each log in turn, a refused one said above the progress bar (exit 1)."""
     from qube_koopman.daq.export import ExportError, export_episode
     from qube_koopman.daq.legacy_csv import status_sidecar
     from qube_koopman.daq.log import IncompleteEpisodeWarning
 
-    folder_problem = output_folder_problem(args.out)  # not a folder, read-only: before any work
-    if folder_problem:
-        print(f"{PROG}: error: {folder_problem} (--out)", file=sys.stderr)
-        return 2
+    check_output_folder(args.out)  # not a folder, read-only: before any work
     problems: list[str] = []
     logs = expand_sources(args.logs, LOG_SUFFIX, problems)
     progress = Progress(len(logs), not args.quiet)

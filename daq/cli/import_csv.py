@@ -7,10 +7,9 @@ import logging
 import sys
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
-from qube_koopman.core.console import configure_logging
-from qube_koopman.core.files import output_folder_problem
-from qube_koopman.daq.cli.batch import Progress, expand_sources, parse_args, summarize
+from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args
+from qube_koopman.core.command import CliError, check_output_folder, run_command
+from qube_koopman.daq.cli.batch import Progress, expand_sources, summarize
 from qube_koopman.daq.log.names import log_path
 
 _log = logging.getLogger(__name__)
@@ -101,18 +100,14 @@ class _Controllers:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-import``; returns the exit status (0 all imported, 1 some refused, 2 usage or a missing SRC)."""
-    from qube_koopman.core.signals import run_interruptible
-
-    return run_interruptible(PROG, lambda: _main(argv))  # stopped: every file written so far is whole
-
-
-def _main(argv: list[str] | None) -> int:
-    """The command itself (:func:`main` adds the interruption handling)."""
     args = parse_args(build_parser(), argv)
     if isinstance(args, int):  # --help, or a usage error argparse has already explained
         return args
-    configure_logging(PROG, args)
+    return run_command(PROG, _import, args)  # stopped: every file written so far is whole
 
+
+def _import(args) -> int:
+    """The command itself: each file in turn, a refused one said above the progress bar (exit 1)."""
     from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode
     from qube_koopman.daq.log import write_episode
     from qube_koopman.daq.log.writer import remove_stale_temp_files
@@ -122,10 +117,7 @@ def _main(argv: list[str] | None) -> int:
 
     problems: list[str] = []
     files = expand_sources(args.sources, ".csv", problems)
-    folder_problem = output_folder_problem(args.out)  # not a folder, read-only: before any work
-    if folder_problem:
-        print(f"{PROG}: error: {folder_problem} (--out)", file=sys.stderr)
-        return 2
+    check_output_folder(args.out)  # not a folder, read-only: before any work
     progress = Progress(len(files), not args.quiet)
     for problem in problems:
         refuse(problem)
@@ -133,8 +125,7 @@ def _main(argv: list[str] | None) -> int:
     try:
         controller_for = _Controllers(args.controller)
     except ValueError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
+        raise CliError(str(exc)) from None
     for stale in remove_stale_temp_files(args.out):
         _log.info("%s: removed, a temporary file an interrupted import left", stale)
     imported, refused = 0, 0
