@@ -6,8 +6,8 @@ import argparse
 import math
 import sys
 
-from qube_koopman.core.cli import OneLineParser, add_force_option, number_in
-from qube_koopman.core.console import configure_logging
+from qube_koopman.core.cli import OneLineParser, add_force_option, number_in, parse_args
+from qube_koopman.core.command import CliError, run_command
 from qube_koopman.core.files import atomic_path, output_file_problem
 
 PROG = "qube-emulate"
@@ -136,13 +136,15 @@ def _write_outputs(emulator, args) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     """Run ``qube-emulate``; returns the exit status (see ``qube-emulate --help``)."""
     parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    configure_logging(PROG, args)
-    if args.target == "avr":
-        return _main_avr(args, parser)
+    args = parse_args(parser, argv)
+    if isinstance(args, int):  # --help, or a usage error argparse has already explained
+        return args
+    # Ctrl-C and SIGTERM reach run_command only before the bridge runs: while it runs they stop it (exit 0).
+    return run_command(PROG, lambda a: _main_avr(a, parser) if a.target == "avr" else _emulate(a), args)
+
+
+def _emulate(args) -> int:
+    """``qube-emulate`` (--target host): the firmware core and the simulated pendulum behind a pty."""
     import signal
 
     from qube_koopman.firmware_protocol.ccore import CompilerNotFound
@@ -157,8 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         params = plant_parameters(args.plant)
     except PlantFileError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
+        raise CliError(str(exc)) from None
     emulator = BridgeEmulator(seed=args.seed, params=params, lockstep=args.lockstep,
                               perturbation=math.radians(args.perturbation), start_upright=not args.hanging,
                               raise_time=args.raise_time, faults=faults, spin=args.spin / 1e6,
@@ -166,17 +167,13 @@ def main(argv: list[str] | None = None) -> int:
     for path, option in ((args.record, "--record"), (args.stats, "--stats")):
         problem = path and output_file_problem(path, force=args.force)  # before the emulator starts
         if problem:
-            print(f"{PROG}: error: {problem} ({option})", file=sys.stderr)
-            return 2
+            raise CliError(f"{problem} ({option})")
     try:
         path = emulator.open()
     except CompilerNotFound as exc:
-        print(f"{PROG}: error: {exc} (the emulated bridge runs the bridge firmware's C core)", file=sys.stderr)
-        return 1
+        raise CliError(f"{exc} (the emulated bridge runs the bridge firmware's C core)", status=1) from None
     except (RuntimeError, OSError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"{PROG}: error: cannot start the emulated bridge: {first}", file=sys.stderr)
-        return 1
+        raise CliError(f"cannot start the emulated bridge: {_first_line(exc)}", status=1) from None
     previous = {}
 
     def on_signal(signum, frame):
@@ -208,6 +205,11 @@ def main(argv: list[str] | None = None) -> int:
     return 1 if errors else 0
 
 
+def _first_line(exc: Exception) -> str:
+    """The first line of why the emulator could not start (a compiler's or simavr's output can be long)."""
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
 _AVR_OPTIONS = ("target", "seed", "perturbation", "hanging", "quiet", "verbose")
 
 
@@ -218,9 +220,8 @@ def _main_avr(args, parser) -> int:
     defaults = vars(parser.parse_args([]))
     extra = [k for k, v in vars(args).items() if k not in _AVR_OPTIONS and v != defaults[k]]
     if extra:
-        print(f"{PROG}: error: --target avr takes only --seed, --perturbation, --hanging and -q "
-              f"(not --{extra[0].replace('_', '-')})", file=sys.stderr)
-        return 2
+        raise CliError(f"--target avr takes only --seed, --perturbation, --hanging and -q "
+                       f"(not --{extra[0].replace('_', '-')})")
     from qube_koopman.firmware_protocol.avr import AvrToolsMissing
     from qube_koopman.sim.bridge.avr_pty import AvrPtyBridge
 
@@ -229,9 +230,7 @@ def _main_avr(args, parser) -> int:
     try:
         path = emulator.open()
     except (AvrToolsMissing, RuntimeError, OSError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"{PROG}: error: cannot start the emulated Uno: {first}", file=sys.stderr)
-        return 1
+        raise CliError(f"cannot start the emulated Uno: {_first_line(exc)}", status=1) from None
     previous = {signum: signal.signal(signum, lambda *_: emulator.request_stop())
                 for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
