@@ -70,3 +70,66 @@ def test_core_imports_no_other_package_of_the_toolkit():
                  if any(f"qube_koopman.{top}" in path.read_text()
                         for top in ("firmware_protocol", "sim", "daq", "identify", "design"))]
     assert not offenders
+
+
+# The packages from the lowest layer up: each may import those before it, none after it.
+LAYERS = ("core", "firmware_protocol", "sim", "daq", "identify", "design")
+
+
+def _modules(*tops):
+    """(path, parsed module) of every source file of the packages ``tops``."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    return [(path.relative_to(root), ast.parse(path.read_text()))
+            for top in tops for path in sorted((root / top).rglob("*.py"))]
+
+
+def test_every_import_points_down_the_layers():
+    """core imports none of the other packages, firmware_protocol only core, ... design any (imports inside
+    functions count: a lazy import upward is still a cycle)."""
+    import ast
+
+    offenders = []
+    for path, tree in _modules(*LAYERS):
+        level = LAYERS.index(path.parts[0])
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
+            for name in names:
+                parts = name.split(".")
+                if parts[0] == "qube_koopman" and len(parts) > 1 and parts[1] in LAYERS[level + 1:]:
+                    offenders.append(f"{path}:{node.lineno} imports {name}")
+    assert not offenders
+
+
+def test_every_command_is_written_with_the_toolkit_of_core():
+    """One way to write a command: core.cli, core.console and core.command hold the toolkit (the
+    parser and argument types, logging and progress, CliError and run_command), no other package
+    defines a piece of it again (nor the _Fail or fail() commands had of their own), and every
+    command's entry point runs its work through run_command."""
+    import ast
+    import tomllib
+    from pathlib import Path
+
+    from qube_koopman.core import cli, command, console
+
+    toolkit = {*cli.__all__, *console.__all__, *command.__all__, "_Fail", "fail"}
+    again = [f"{path}:{node.lineno} defines {node.name}" for path, tree in _modules(*LAYERS[1:])
+             for node in ast.walk(tree)
+             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name in toolkit]
+    assert not again
+
+    root = Path(__file__).resolve().parents[1]
+    scripts = tomllib.loads((root / "pyproject.toml").read_text())["project"]["scripts"]
+    assert len(scripts) == 8
+    without = []
+    for name, target in scripts.items():
+        module, function = target.removeprefix("qube_koopman.").split(":")
+        tree = ast.parse((root / (module.replace(".", "/") + ".py")).read_text())
+        main = next(node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == function)
+        calls = {node.func.id for node in ast.walk(main) if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
+        if "run_command" not in calls:
+            without.append(name)
+    assert not without, f"commands not run through core.command.run_command: {without}"
