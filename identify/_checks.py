@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+if TYPE_CHECKING:
+    from qube_koopman.identify.trajectory import Trajectory
 
 
 def as_signal(value, name: str, n_samples: int | None = None, n_columns: int | None = None,
@@ -46,3 +53,33 @@ def check_nonneg_int(value, name: str, minimum: int = 0) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return int(value)
+
+
+def check_loop_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: int, dt: float | None,
+                          episode: Trajectory | None = None) -> None:
+    """A controller fits the loop's signals (and, given, the episode recorded under it).
+
+    The closed-loop estimators' check (:class:`~qube_koopman.identify.cl_edmd.ClosedLoopKoopman`
+    and :class:`~qube_koopman.identify.ClEdmdSdp`): a :class:`DiscreteStateSpace` taking the
+    tracking errors of the ``measured`` states (and, when it has more inputs, the ``n_f``
+    feedforward channels), driving the ``n_f`` plant inputs, at the data's sample period ``dt``.
+    """
+    if not isinstance(ctrl, DiscreteStateSpace):
+        raise ValueError(f"controller must be a DiscreteStateSpace, got {type(ctrl).__name__}")
+    where = "" if episode is None else f"episode {episode.name or '(unnamed)'}: "
+    if episode is not None and episode.xc is None:
+        raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
+    if episode is not None and ctrl.n_states != episode.xc.shape[1]:
+        raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
+                         f"has {episode.xc.shape[1]} channels")
+    references = "" if episode is None else f"{episode.r.shape[1]} references and "
+    n_errors = ctrl.n_inputs - (n_f if ctrl.n_inputs > len(measured) else 0)  # less a feedforward input
+    if n_errors != len(measured) or (episode is not None and n_errors != episode.r.shape[1]):
+        seen = f"{ctrl.n_inputs} inputs" if n_errors != ctrl.n_inputs else f"{ctrl.n_inputs} tracking errors"
+        raise ValueError(f"{where}the controller takes {seen}; the data has {references}{len(measured)} fed-back "
+                         f"states{f' and {n_f} feedforward channels' if n_f else ' and no feedforward'}")
+    if n_f and ctrl.n_outputs != n_f:
+        raise ValueError(f"{where}the controller drives {ctrl.n_outputs} plant inputs, the feedforward "
+                         f"has {n_f} channels")
+    if dt is not None and abs(dt - ctrl.dt) > 1e-12 * ctrl.dt:
+        raise ValueError(f"{where}the data's sample period {dt} s differs from the controller's {ctrl.dt} s")

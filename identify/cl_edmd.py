@@ -7,7 +7,7 @@ from typing import Sequence
 import numpy as np
 
 from qube_koopman.identify._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
-from qube_koopman.identify._checks import check_alpha, check_choice
+from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.data import same_system
 from qube_koopman.identify.mixed import ControllerGroups, distinct_controllers
@@ -23,38 +23,15 @@ __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
 REGULARIZE = ("closed_loop", "plant")
 
 
-def _check_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: int, dt: float | None,
-                      episode: Trajectory | None = None) -> None:
-    """A controller fits the loop's signals (and, given, the episode recorded under it)."""
-    if not isinstance(ctrl, DiscreteStateSpace):
-        raise ValueError(f"controller must be a DiscreteStateSpace, got {type(ctrl).__name__}")
-    where = "" if episode is None else f"episode {episode.name or '(unnamed)'}: "
-    if episode is not None and episode.xc is None:
-        raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
-    if episode is not None and ctrl.n_states != episode.xc.shape[1]:
-        raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
-                         f"has {episode.xc.shape[1]} channels")
-    references = "" if episode is None else f"{episode.r.shape[1]} references and "
-    n_errors = ctrl.n_inputs - (n_f if ctrl.n_inputs > len(measured) else 0)  # less a feedforward input
-    if n_errors != len(measured) or (episode is not None and n_errors != episode.r.shape[1]):
-        seen = f"{ctrl.n_inputs} inputs" if n_errors != ctrl.n_inputs else f"{ctrl.n_inputs} tracking errors"
-        raise ValueError(f"{where}the controller takes {seen}; the data has {references}{len(measured)} fed-back "
-                         f"states{f' and {n_f} feedforward channels' if n_f else ' and no feedforward'}")
-    if n_f and ctrl.n_outputs != n_f:
-        raise ValueError(f"{where}the controller drives {ctrl.n_outputs} plant inputs, the feedforward "
-                         f"has {n_f} channels")
-    if dt is not None and abs(dt - ctrl.dt) > 1e-12 * ctrl.dt:
-        raise ValueError(f"{where}the data's sample period {dt} s differs from the controller's {ctrl.dt} s")
+class ClosedLoopKoopman(SnapshotEstimator):
+    """The base of the closed-loop Koopman estimators (:class:`ClEdmd`, :class:`ClEdmdLstsq`, ``ClEdmdSdp``).
 
-
-class _ClosedLoopKoopman(SnapshotEstimator):
-    """Shared data handling of the closed-loop estimators.
-
-    Data: per episode the plant states ``x``, reference ``r``, controller
-    state ``xc`` and optionally feedforward ``f`` (all episodes or none).
-    Only the plant states are lifted; ``xc``, ``r`` and ``f`` are not.
-    Episodes may come from several controllers (``fit``'s ``controllers``)
-    where the subclass allows it (``_mixed_controllers``).
+    Their shared data handling. Data: per episode the plant states ``x``, reference ``r``,
+    controller state ``xc`` and optionally feedforward ``f`` (all episodes or none). Only the
+    plant states are lifted; ``xc``, ``r`` and ``f`` are not. Episodes may come from several
+    controllers (``fit``'s ``controllers``) where the subclass allows it (``_mixed_controllers``).
+    A subclass solves for the Koopman matrices (``_solve``). The parameters ``controller``,
+    ``lifting``, ``alpha`` and ``measured`` are those of every subclass (see :class:`ClEdmd`).
     """
 
     #: Whether the plant can be fitted to episodes recorded under several controllers.
@@ -67,7 +44,7 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         self.alpha = alpha
         self.measured = measured
 
-    def fit(self, trajectories, controllers: Sequence[DiscreteStateSpace] | None = None) -> "_ClosedLoopKoopman":
+    def fit(self, trajectories, controllers: Sequence[DiscreteStateSpace] | None = None) -> ClosedLoopKoopman:
         """Fit on a list of :class:`~identify.Trajectory` (signals x, r, xc, optionally f).
 
         Parameters
@@ -134,11 +111,11 @@ class _ClosedLoopKoopman(SnapshotEstimator):
             raise ValueError(f"measured state indices {measured} are outside 0..{m - 1}")
         dt = first.dt
         if per_episode is None:  # the same widths in every episode
-            _check_controller(self.controller, measured, n_f, dt, first)
+            check_loop_controller(self.controller, measured, n_f, dt, first)
         else:
-            _check_controller(self.controller, measured, n_f, dt)
+            check_loop_controller(self.controller, measured, n_f, dt)
             for t, ctrl in zip(trajs, per_episode):
-                _check_controller(ctrl, measured, n_f, dt, t)
+                check_loop_controller(ctrl, measured, n_f, dt, t)
         lifting.fit(episode_signals(trajs, "x"), first.state_names)
         C_p = output_selection(lifting.n_features_out_, measured)
         groups = None if per_episode is None else ControllerGroups.of(per_episode, C_p, n_f)
@@ -164,7 +141,7 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         """A running total per controller with several controllers (see :meth:`_statistics`)."""
         return super()._statistics_fold(setup) if setup.controller_groups is None else setup.controller_groups.fold()
 
-    def _finish(self, setup: FitSetup, snapshots) -> "_ClosedLoopKoopman":
+    def _finish(self, setup: FitSetup, snapshots) -> ClosedLoopKoopman:
         """Solve for ``self.alpha`` and set the fitted attributes."""
         alpha = check_alpha(self.alpha)
         self.snapshots_ = snapshots
@@ -211,7 +188,7 @@ class _ClosedLoopKoopman(SnapshotEstimator):
         return self.plant_model_.predict(trajectory, relift=relift)
 
 
-class ClEdmd(_ClosedLoopKoopman):
+class ClEdmd(ClosedLoopKoopman):
     """Closed-loop EDMD, solved in exact closed form (generalized ridge).
 
     Solves the paper's constrained problem: the plant rows of the closed-loop
@@ -322,7 +299,7 @@ class ClEdmdKnownRows(ClEdmd):
         super().__init__(controller, lifting, alpha, measured, regularize, known_controller_rows)
 
 
-class ClEdmdLstsq(_ClosedLoopKoopman):
+class ClEdmdLstsq(ClosedLoopKoopman):
     """Closed-loop EDMD by least squares (paper appendix): fit ``U^f`` freely, then extract.
 
     ``B^p = [U21 U23 U24] [C^c D^c I]^+`` and ``A^p = U22 + B^p D^c C^p``.

@@ -20,8 +20,8 @@ import numpy as np
 from dataclasses import dataclass
 
 from qube_koopman.identify._base import resolve_lifting
-from qube_koopman.identify._checks import check_alpha, check_choice
-from qube_koopman.identify.cl_edmd import REGULARIZE, _check_controller, _ClosedLoopKoopman
+from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
+from qube_koopman.identify.cl_edmd import REGULARIZE, ClosedLoopKoopman
 from qube_koopman.identify.trajectory import check_trajectories
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -98,7 +98,7 @@ def closed_loop_blocks(controller: DiscreteStateSpace, A_p, B_p, measured, n_fee
     return cp.vstack([top if not isinstance(top, np.ndarray) else cp.Constant(top), cp.hstack(bottom)])
 
 
-class ClEdmdSdp(_ClosedLoopKoopman):
+class ClEdmdSdp(ClosedLoopKoopman):
     """Closed-loop EDMD as the paper's SDP: min tr(W) s.t. the Schur-complement LMI.
 
     The structural constraint is substituted (the plant rows are ``U^p S``)
@@ -159,7 +159,7 @@ class ClEdmdSdp(_ClosedLoopKoopman):
         n_f = trajs[0].f.shape[1] if all(with_f) else 0
         m = trajs[0].x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
-        _check_controller(self.controller, measured, n_f, trajs[0].dt, trajs[0])
+        check_loop_controller(self.controller, measured, n_f, trajs[0].dt, trajs[0])
         lifting.fit([t.x for t in trajs], trajs[0].state_names)
         gram = snapshot_gram(*closed_loop_snapshots(trajs, lifting, n_f))
         U_f, U_p = self._solve(gram, lifting.n_features_out_, measured, n_f, alpha, regularize)

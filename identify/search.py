@@ -396,7 +396,7 @@ def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
     """Fold scores with an alpha offset estimated on each validation episode, at the best alphas."""
     from qube_koopman.identify._blas import limited_blas_threads
 
-    from qube_koopman.identify.sweep import _MAX_EPISODES
+    from qube_koopman.identify.sweep import EPISODES_PER_BATCH as _MAX_EPISODES
 
     out, top = np.full_like(plain, np.nan), _best_alphas(plain, 3)
     with limited_blas_threads(1):

@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, Lifting, Polynomial
-from qube_koopman.identify.lifting.rbf import _RadialBasis
+from qube_koopman.identify.lifting.rbf import RadialBasis
 
 __all__ = ["simulate_batch", "simulate_chunks"]
 
@@ -208,7 +208,7 @@ class _RingLayout:
     n_p: int
     n_feat: int
     slots: int
-    rbf: _RadialBasis | None
+    rbf: RadialBasis | None
     perms: list[np.ndarray]
     centers: list[np.ndarray] | None
     centers_sq: np.ndarray | None
@@ -222,7 +222,7 @@ class _RingLayout:
         if not tail or not isinstance(tail[0], Delay):
             return None
         rest = list(tail[1:])
-        rbf = rest.pop(0) if rest and isinstance(rest[0], _RadialBasis) else None
+        rbf = rest.pop(0) if rest and isinstance(rest[0], RadialBasis) else None
         friction = []
         while rest and isinstance(rest[0], CoulombFriction):
             friction.append(rest.pop(0))

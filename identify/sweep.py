@@ -24,7 +24,7 @@ import numpy as np
 
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify._checks import check_choice
-from qube_koopman.identify.cl_edmd import _ClosedLoopKoopman
+from qube_koopman.identify.cl_edmd import ClosedLoopKoopman
 from qube_koopman.identify.data import same_system
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.mixed import distinct_controllers
@@ -44,7 +44,7 @@ SCORINGS = ("cl", "plant")
 _MAX_BATCH_VALUES = 8_000_000
 # Validation episodes scored together: a fold's held-out episodes are read and simulated this many
 # at a time, so scoring memory does not grow with the data.
-_MAX_EPISODES = 16
+EPISODES_PER_BATCH = 16
 
 
 @dataclass
@@ -125,7 +125,7 @@ def fit_alphas(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[f
     for long liftings, for models that only predict. ``controllers``: each
     episode's, for a closed-loop estimator's episodes under several controllers.
     """
-    if isinstance(estimator, _ClosedLoopKoopman):
+    if isinstance(estimator, ClosedLoopKoopman):
         controller, measured = estimator.controller, estimator.measured
     with limited_blas_threads(1):
         setup, (snapshots,) = _statistics(estimator, as_episodes(trajectories), [None], relift_rows_only, controllers)
@@ -165,12 +165,12 @@ def _score(models: list[KoopmanModel], episodes: Sequence[Trajectory], scoring: 
            measured_only: bool = False) -> np.ndarray:
     """Mean R^2 over episodes for every model, from sample ``start`` on: shape (n_models,).
 
-    The episodes are taken ``_MAX_EPISODES`` at a time (a lazy sequence is read so): memory stays
+    The episodes are taken ``EPISODES_PER_BATCH`` at a time (a lazy sequence is read so): memory stays
     that of one batch however many a fold holds out.
     """
     totals = np.zeros(len(models))
-    for lo in range(0, len(episodes), _MAX_EPISODES):
-        batch = [episodes[j] for j in range(lo, min(lo + _MAX_EPISODES, len(episodes)))]
+    for lo in range(0, len(episodes), EPISODES_PER_BATCH):
+        batch = [episodes[j] for j in range(lo, min(lo + EPISODES_PER_BATCH, len(episodes)))]
         totals += _score_sums(models, batch, scoring, relift, start, measured_only)
     return totals / len(episodes)
 
@@ -272,7 +272,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     alphas = np.asarray(alphas, dtype=float)
     if alphas.ndim != 1 or alphas.size == 0 or not np.all(np.isfinite(alphas)) or np.any(alphas < 0):
         raise ValueError("alphas must be a non-empty list of non-negative numbers")
-    if isinstance(estimator, _ClosedLoopKoopman):
+    if isinstance(estimator, ClosedLoopKoopman):
         controller, measured = estimator.controller, estimator.measured
     elif "cl" in scorings and controller is None:
         raise ValueError("closed-loop scoring of EDMD needs the controller to wrap its plant")
@@ -347,7 +347,7 @@ def _fold_controller(controllers, validation, default, fold: int):
 
 def _for_controller(estimator, controller):
     """``estimator``, or a copy whose closed loop is ``controller``'s (a closed-loop estimator's)."""
-    if not isinstance(estimator, _ClosedLoopKoopman) or same_system(estimator.controller, controller):
+    if not isinstance(estimator, ClosedLoopKoopman) or same_system(estimator.controller, controller):
         return estimator
     return copy.copy(estimator).set_params(controller=controller)
 
@@ -362,7 +362,7 @@ def _statistics(estimator, trajectories, selections, partial: bool = False, cont
     statistics computed ``elsewhere`` when given (``indices``: the episodes' among the sweep's).
     """
     template = copy.copy(estimator)
-    if isinstance(template, _ClosedLoopKoopman):
+    if isinstance(template, ClosedLoopKoopman):
         setup = template._setup(trajectories, controllers)
     else:
         setup = template._setup(trajectories)

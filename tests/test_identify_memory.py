@@ -187,7 +187,7 @@ def test_validation_episodes_scored_a_batch_at_a_time_score_as_one_by_one(monkey
     models = [ClEdmd(CONTROLLER, [Polynomial(2), Delay(3)], alpha=a).fit(episodes[:4]).closed_loop_model_
               for a in (1e-6, 1e-2)]
     whole = sweep._score(models, episodes, "cl", True, 5, True)
-    monkeypatch.setattr(sweep, "_MAX_EPISODES", 2)
+    monkeypatch.setattr(sweep, "EPISODES_PER_BATCH", 2)
     batched = sweep._score(models, episodes, "cl", True, 5, True)
     one_by_one = np.mean([sweep._score(models, [t], "cl", True, 5, True) for t in episodes], axis=0)
     np.testing.assert_allclose(batched, one_by_one, rtol=1e-12)
@@ -276,5 +276,5 @@ def test_a_search_candidate_on_a_lazy_sequence_scores_as_on_a_list(monkeypatch):
     np.testing.assert_array_equal(lazy.cv_r2, listed.cv_r2)
     assert np.isfinite(listed.cv_r2).sum() >= 2  # offsets estimated at the best alphas of both folds
     # Validation episodes one at a time (as 16 of many are): the same scores (offsets converge per episode).
-    monkeypatch.setattr(sweep, "_MAX_EPISODES", 1)
+    monkeypatch.setattr(sweep, "EPISODES_PER_BATCH", 1)
     np.testing.assert_allclose(evaluate_candidate(spec, data(_Generated(8, 400))).cv_r2, listed.cv_r2, rtol=1e-9)

@@ -10,11 +10,23 @@ from qube_koopman.identify.lifting.base import LiftingFunction
 __all__ = ["ThinPlateRbf", "GaussianRbf"]
 
 
-class _RadialBasis(LiftingFunction):
-    """Features followed by ``phi(||z - c_i||)`` for each centre ``c_i``.
+class RadialBasis(LiftingFunction):
+    """Features followed by ``phi(||z - c_i||)`` for each centre ``c_i``: the base of the RBF liftings.
 
     Centres are given explicitly or drawn by Latin-hypercube sampling
-    (``scipy.stats.qmc``) inside the bounding box of the training data.
+    (``scipy.stats.qmc``) inside the bounding box of the training data. A
+    subclass gives the kernel ``phi`` (:class:`ThinPlateRbf`, :class:`GaussianRbf`).
+
+    Parameters
+    ----------
+    n_centers : int
+        Number of centres drawn when ``centers`` is not given.
+    shape : float
+        Shape parameter ``a`` of the kernel.
+    centers : array_like of shape (n_centers, n_features), optional
+        Explicit centres.
+    seed : int, optional
+        Seed of the Latin-hypercube sampler.
     """
 
     prefix = "rbf"
@@ -75,7 +87,7 @@ class _RadialBasis(LiftingFunction):
         raise NotImplementedError
 
 
-class ThinPlateRbf(_RadialBasis):
+class ThinPlateRbf(RadialBasis):
     """Thin-plate RBF of the paper: ``(a r + d)^2 ln(a r + d)``.
 
     Parameters
@@ -106,7 +118,7 @@ class ThinPlateRbf(_RadialBasis):
         return s * s * np.log(s)
 
 
-class GaussianRbf(_RadialBasis):
+class GaussianRbf(RadialBasis):
     """Gaussian RBF ``exp(-(a r)^2)``.
 
     Parameters

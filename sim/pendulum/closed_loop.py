@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from qube_koopman.sim.lti import DiscreteStateSpace
-from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, PendulumParameters, _advance, _as_states,
-                                _check_timing, _Coefficients, _hold_pattern)
+from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, Coefficients, PendulumParameters, advance, as_states,
+                                             check_timing, hold_pattern)
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
 __all__ = ["ClosedLoopRun", "simulate_closed_loop"]
@@ -82,10 +82,10 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     if controller.n_inputs not in (2, 3) or controller.n_outputs != 1:
         raise ValueError("controller must map the two tracking errors (theta, alpha), and optionally the "
                          f"feedforward, to one voltage; got {controller.n_inputs} inputs and {controller.n_outputs} outputs")
-    _check_timing(controller.dt, n_substeps)
+    check_timing(controller.dt, n_substeps)
     if not max_voltage > 0:
         raise ValueError(f"max_voltage must be positive, got {max_voltage!r}")
-    x = _as_states(state0)
+    x = as_states(state0)
     r = np.asarray(references, dtype=float)
     f = np.asarray(feedforward, dtype=float)
     batch = x.shape[:-1]
@@ -107,9 +107,9 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     plant_input = np.empty((n_steps, *batch))
     Ac, Bc, Cc, Dc = controller.A.T, controller.B.T, controller.C[0], controller.D[0]
     sees_feedforward = controller.n_inputs == 3
-    k = _Coefficients.of(params)
+    k = Coefficients.of(params)
     h = controller.dt / n_substeps
-    whole, weights = _hold_pattern(params.delay, controller.dt, int(n_substeps))
+    whole, weights = hold_pattern(params.delay, controller.dt, int(n_substeps))
     past = np.zeros((whole + 1, *batch)) if past_voltages is None else np.asarray(past_voltages, dtype=float)
     if past.ndim != len(batch) + 1 or past.shape[0] < 1:
         raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
@@ -128,7 +128,7 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
         measurements[step], xcs[step], control[step], plant_input[step] = y, xc, u, v
         xc = xc @ Ac + e @ Bc
         history.append(v)
-        comps = _advance(comps, history[-whole - 2], history[-whole - 1], weights, h, k, np.sin, np.cos)
+        comps = advance(comps, history[-whole - 2], history[-whole - 1], weights, h, k, np.sin, np.cos)
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)

@@ -163,8 +163,12 @@ class PendulumParameters:
         return self.mp * self.Lp**2 / 12.0
 
 
-class _Coefficients(NamedTuple):
-    """The parameter combinations the equations use, computed once."""
+class Coefficients(NamedTuple):
+    """The parameter combinations the equations use, computed once (:meth:`of`).
+
+    What the integrators of this module, :class:`~qube_koopman.sim.pendulum.PendulumSimulator`
+    and :func:`~qube_koopman.sim.pendulum.simulate_closed_loop` share.
+    """
 
     m11: float     # M11 at alpha = 0: Jr + Jh + mp Lr^2
     quarter: float  # mp Lp^2 / 4: the s^2 part of M11, centrifugal coefficient
@@ -181,7 +185,8 @@ class _Coefficients(NamedTuple):
     arm_rest: float = 0.0       # theta_rest
 
     @classmethod
-    def of(cls, p: PendulumParameters) -> "_Coefficients":
+    def of(cls, p: PendulumParameters) -> Coefficients:
+        """The coefficients of a pendulum's parameters."""
         return cls(m11=p.Jr + p.Jh + p.mp * p.Lr**2, quarter=p.mp * p.Lp**2 / 4.0,
                    m12=p.mp * p.Lp * p.Lr / 2.0, m22=p.Jp + p.mp * p.Lp**2 / 4.0,
                    gravity=p.mp * p.Lp * p.g / 2.0, torque_per_volt=p.km / p.Rm,
@@ -190,7 +195,7 @@ class _Coefficients(NamedTuple):
                    arm_stiffness=p.Kr, arm_rest=p.theta_rest)
 
 
-def _motor_voltage(voltage, k: _Coefficients):
+def _motor_voltage(voltage, k: Coefficients):
     """The voltage past the amplifier's dead zone; floats or arrays alike."""
     if not k.dead_zone:
         return voltage
@@ -199,7 +204,7 @@ def _motor_voltage(voltage, k: _Coefficients):
     return voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
 
 
-def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: _Coefficients, tanh: Callable = np.tanh):
+def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, tanh: Callable = np.tanh):
     """(theta_ddot, alpha_ddot) from the arm angle, sin and cos of alpha and the motor's voltage
     (past the dead zone, :func:`_motor_voltage`); floats or arrays alike."""
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
@@ -217,7 +222,7 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: _Coefficients,
     return (k.m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
 
 
-def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: _Coefficients,
+def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coefficients,
          sin: Callable, cos: Callable):
     """``n`` classic RK4 steps of size ``h`` at constant voltage, on the four components."""
     half = 0.5 * h
@@ -249,7 +254,7 @@ def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: _Coef
 
 
 
-def _hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[float, ...]]:
+def hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[float, ...]]:
     """Whole samples of ``delay`` and, per substep, the weight of the previous command in it.
 
     A substep the switch falls inside sees the two commands averaged by the
@@ -261,8 +266,8 @@ def _hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[
     return whole, tuple(min(1.0, max(0.0, fraction * n_substeps - j)) for j in range(n_substeps))
 
 
-def _advance(comps, previous, current, weights: tuple[float, ...], h: float, k: _Coefficients,
-             sin: Callable, cos: Callable):
+def advance(comps, previous, current, weights: tuple[float, ...], h: float, k: Coefficients,
+            sin: Callable, cos: Callable):
     """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``."""
     if not any(weights):  # no fractional delay: exactly the plain zero-order hold
         return _rk4(*comps, current, h, len(weights), k, sin, cos)
@@ -270,7 +275,8 @@ def _advance(comps, previous, current, weights: tuple[float, ...], h: float, k: 
         comps = _rk4(*comps, current + w * (previous - current), h, 1, k, sin, cos)
     return comps
 
-def _as_states(state) -> np.ndarray:
+def as_states(state) -> np.ndarray:
+    """``state`` as a float array of shape (..., 4), or a ValueError naming the shape it has."""
     state = np.asarray(state, dtype=float)
     if state.ndim == 0 or state.shape[-1] != 4:
         raise ValueError("state must have shape (..., 4): theta, alpha, theta_dot, alpha_dot; "
@@ -278,7 +284,8 @@ def _as_states(state) -> np.ndarray:
     return state
 
 
-def _check_timing(dt: float, n_substeps: int) -> None:
+def check_timing(dt: float, n_substeps: int) -> None:
+    """A positive finite sample period and a positive integer number of RK4 substeps (else a ValueError)."""
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
     if isinstance(n_substeps, bool) or not isinstance(n_substeps, (int, np.integer)) or n_substeps < 1:
@@ -301,8 +308,8 @@ def dynamics(state, voltage, params: PendulumParameters = PendulumParameters()) 
     ndarray of shape (..., 4)
         theta_dot, alpha_dot, theta_ddot, alpha_ddot.
     """
-    x = _as_states(state)
-    k = _Coefficients.of(params)
+    x = as_states(state)
+    k = Coefficients.of(params)
     theta_ddot, alpha_ddot = _accelerations(x[..., 0], np.sin(x[..., 1]), np.cos(x[..., 1]), x[..., 2], x[..., 3],
                                             _motor_voltage(np.asarray(voltage, dtype=float), k), k)
     return np.stack(np.broadcast_arrays(x[..., 2], x[..., 3], theta_ddot, alpha_ddot), axis=-1)
@@ -314,10 +321,10 @@ def rk4_step(state, voltage, params: PendulumParameters = PendulumParameters(),
 
     Shapes as in :func:`dynamics`; the result has the broadcast batch shape.
     """
-    _check_timing(dt, n_substeps)
-    x = _as_states(state)
+    check_timing(dt, n_substeps)
+    x = as_states(state)
     out = _rk4(x[..., 0], x[..., 1], x[..., 2], x[..., 3], np.asarray(voltage, dtype=float),
-               dt / n_substeps, int(n_substeps), _Coefficients.of(params), np.sin, np.cos)
+               dt / n_substeps, int(n_substeps), Coefficients.of(params), np.sin, np.cos)
     return np.stack(np.broadcast_arrays(*out), axis=-1)
 
 
@@ -340,18 +347,18 @@ def simulate(state0, voltages, params: PendulumParameters = PendulumParameters()
     ndarray of shape (n_steps + 1, ..., 4)
         The state at each sample, starting with ``state0``.
     """
-    _check_timing(dt, n_substeps)
-    x = _as_states(state0)
+    check_timing(dt, n_substeps)
+    x = as_states(state0)
     voltages = np.asarray(voltages, dtype=float)
     if voltages.ndim == 0:
         raise ValueError("voltages must have a leading time axis")
     batch = np.broadcast_shapes(x.shape[:-1], voltages.shape[1:])
     out = np.empty((voltages.shape[0] + 1, *batch, 4))
     out[0] = x
-    k = _Coefficients.of(params)
+    k = Coefficients.of(params)
     comps = tuple(np.broadcast_to(x[..., i], batch) for i in range(4))
     h = dt / n_substeps
-    whole, weights = _hold_pattern(params.delay, dt, int(n_substeps))
+    whole, weights = hold_pattern(params.delay, dt, int(n_substeps))
     past = np.zeros((whole + 1, *voltages.shape[1:])) if past_voltages is None else np.asarray(past_voltages, float)
     if past.ndim != voltages.ndim:
         raise ValueError("past_voltages must have a leading time axis and the voltages' trailing shape")
@@ -360,7 +367,7 @@ def simulate(state0, voltages, params: PendulumParameters = PendulumParameters()
     for step in range(voltages.shape[0]):
         now = commands[max(0, first + step)]
         before = commands[max(0, first + step - 1)]
-        comps = _advance(comps, before, now, weights, h, k, np.sin, np.cos)
+        comps = advance(comps, before, now, weights, h, k, np.sin, np.cos)
         out[step + 1] = np.stack(np.broadcast_arrays(*comps), axis=-1)
     return out
 
@@ -371,8 +378,8 @@ def total_energy(state, params: PendulumParameters = PendulumParameters()) -> np
     With alpha = 0 upright the pendulum's potential is ``mp g Lp / 2 cos(alpha)``; the cables'
     spring adds ``Kr (theta - theta_rest)^2 / 2``.
     """
-    x = _as_states(state)
-    k = _Coefficients.of(params)
+    x = as_states(state)
+    k = Coefficients.of(params)
     s, c = np.sin(x[..., 1]), np.cos(x[..., 1])
     td, ad = x[..., 2], x[..., 3]
     kinetic = 0.5 * ((k.m11 + k.quarter * s * s) * td * td + 2.0 * k.m12 * c * td * ad + k.m22 * ad * ad)
@@ -404,7 +411,7 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     stiffness of the arm; the equilibrium is at ``theta = theta_rest``, so
     the state's theta is measured from there.
     """
-    k = _Coefficients.of(params)
+    k = Coefficients.of(params)
     mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])
     # Generalized forces to first order at alpha = 0: columns (theta, alpha, theta_dot, alpha_dot).
     # The smoothed Coulomb torque's slope at rest acts as viscous damping there.
@@ -424,7 +431,7 @@ def linear_model(params: PendulumParameters = PendulumParameters(),
     """The upright linearization discretized exactly under zero-order hold, measuring (theta, alpha)."""
     from scipy.linalg import expm  # here: the simulator itself does without scipy
 
-    _check_timing(dt, 1)
+    check_timing(dt, 1)
     A, B = linearize_upright(params)
     block = np.zeros((5, 5))
     block[:4, :4] = A

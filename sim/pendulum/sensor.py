@@ -108,8 +108,10 @@ def _angles(count0, count1, counts_per_rev: int):
     return count0 * step, (count1 % counts_per_rev - counts_per_rev // 2) * step
 
 
-def _encode(theta, alpha, counts_per_rev: int | None, floor: Callable):
-    """Quantize and wrap; plain arithmetic so floats and arrays share it."""
+def encoder_angles(theta, alpha, counts_per_rev: int | None, floor: Callable):
+    """The angles the encoders read for true angles: quantized to ``counts_per_rev`` counts a turn
+    (None: not quantized) and alpha wrapped into [-pi, pi); plain arithmetic so floats
+    (``floor=math.floor``) and arrays (``np.floor``) share it."""
     if counts_per_rev is None:
         return theta, (alpha + math.pi) % TWO_PI - math.pi
     return _angles(*_counts(theta, alpha, counts_per_rev, floor), counts_per_rev)
@@ -179,4 +181,4 @@ def measure(state, sensor: SensorModel = SensorModel(),
             raise ValueError("a noisy sensor needs rng (a numpy Generator) for reproducible noise")
         theta = theta + rng.normal(0.0, sensor.noise_std, theta.shape)
         alpha = alpha + rng.normal(0.0, sensor.noise_std, alpha.shape)
-    return np.stack(_encode(theta, alpha, sensor.counts_per_rev, np.floor), axis=-1)
+    return np.stack(encoder_angles(theta, alpha, sensor.counts_per_rev, np.floor), axis=-1)

@@ -10,9 +10,9 @@ import math
 
 import numpy as np
 
-from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, PendulumParameters, _advance,
-                                _check_timing, _Coefficients, _hold_pattern)
-from qube_koopman.sim.pendulum.sensor import SensorModel, _encode
+from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, Coefficients, PendulumParameters,
+                                             advance, check_timing, hold_pattern)
+from qube_koopman.sim.pendulum.sensor import SensorModel, encoder_angles
 
 __all__ = ["PendulumSimulator"]
 
@@ -46,7 +46,7 @@ class PendulumSimulator:
                  sensor: SensorModel = SensorModel(), dt: float = SAMPLE_PERIOD,
                  n_substeps: int = DEFAULT_SUBSTEPS, max_voltage: float | None = 15.0,
                  seed: int | None = None) -> None:
-        _check_timing(dt, n_substeps)
+        check_timing(dt, n_substeps)
         if max_voltage is not None and not (math.isfinite(max_voltage) and max_voltage > 0):
             raise ValueError(f"max_voltage must be positive or None, got {max_voltage!r}")
         self._params = params
@@ -54,9 +54,9 @@ class PendulumSimulator:
         self.dt = float(dt)
         self.n_substeps = int(n_substeps)
         self.max_voltage = math.inf if max_voltage is None else float(max_voltage)
-        self._k = _Coefficients.of(params)
+        self._k = Coefficients.of(params)
         self._h = self.dt / self.n_substeps
-        self._whole, self._weights = _hold_pattern(params.delay, self.dt, self.n_substeps)
+        self._whole, self._weights = hold_pattern(params.delay, self.dt, self.n_substeps)
         self._commands = [0.0] * (self._whole + 1)  # the last commands, oldest first (transport delay)
         self._rng = np.random.default_rng(seed)
         self._noise: list[float] = []
@@ -85,7 +85,7 @@ class PendulumSimulator:
         v = min(max(v, -self.max_voltage), self.max_voltage)
         commands = self._commands
         commands.append(v)
-        self._x = _advance(self._x, commands[-self._whole - 2], commands[-self._whole - 1], self._weights, self._h,
+        self._x = advance(self._x, commands[-self._whole - 2], commands[-self._whole - 1], self._weights, self._h,
                            self._k, math.sin, math.cos)
         del commands[0]
         self._steps += 1
@@ -99,10 +99,10 @@ class PendulumSimulator:
         bridge's ticks, a few cycles apart): the transport delay keeps its
         commands in flight, where a new simulator would start them from 0 V.
         """
-        _check_timing(dt, self.n_substeps)
+        check_timing(dt, self.n_substeps)
         self.dt = float(dt)
         self._h = self.dt / self.n_substeps
-        self._whole, self._weights = _hold_pattern(self._params.delay, self.dt, self.n_substeps)
+        self._whole, self._weights = hold_pattern(self._params.delay, self.dt, self.n_substeps)
         kept = self._commands[-(self._whole + 1):]
         self._commands = [kept[0]] * (self._whole + 1 - len(kept)) + kept
 
@@ -142,7 +142,7 @@ class PendulumSimulator:
         if self._sensor.noise_std > 0:
             theta += self._next_noise()
             alpha += self._next_noise()
-        return _encode(theta, alpha, self._sensor.counts_per_rev, math.floor)
+        return encoder_angles(theta, alpha, self._sensor.counts_per_rev, math.floor)
 
     def _next_noise(self) -> float:
         # Drawn in blocks: one Generator call per sample would cost microseconds.
