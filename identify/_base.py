@@ -2,41 +2,22 @@
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from qube_koopman.identify.lifting import Lifting
+from qube_koopman.identify.params import Params
 from qube_koopman.identify.trajectory import Trajectory
 
 
-class Estimator:
-    """Hyperparameters are constructor arguments, stored unchanged; ``fit`` returns self."""
+class Estimator(Params):
+    """Hyperparameters are constructor arguments, stored unchanged and checked by ``fit``; ``fit`` returns self.
 
-    @classmethod
-    def _param_names(cls) -> list[str]:
-        sig = inspect.signature(cls.__init__)
-        return [p for p in sig.parameters if p != "self"]
-
-    def get_params(self) -> dict:
-        """Constructor hyperparameters."""
-        return {name: getattr(self, name) for name in self._param_names()}
-
-    def set_params(self, **params) -> "Estimator":
-        """Set hyperparameters (unknown names are an error); returns self."""
-        valid = self._param_names()
-        for key, value in params.items():
-            if key not in valid:
-                raise ValueError(f"unknown parameter {key!r} for {type(self).__name__}; "
-                                 f"expected one of {', '.join(valid)}")
-            setattr(self, key, value)
-        return self
-
-    def __repr__(self) -> str:
-        params = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
-        return f"{type(self).__name__}({params})"
+    ``get_params``, ``set_params`` and :func:`~qube_koopman.identify.params.clone` as in scikit-learn
+    (:class:`~qube_koopman.identify.params.Params`).
+    """
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "model_"):

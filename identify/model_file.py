@@ -28,20 +28,21 @@ def lifting_to_dict(lifting: Lifting) -> dict:
     steps = []
     for step in lifting.steps_:
         entry = {"type": type(step).__name__}
+        # The hyperparameters as stored (an np.int64 is legal) become plain JSON numbers.
         if isinstance(step, Polynomial):
-            entry["order"] = step.order
+            entry["order"] = int(step.order)
         elif isinstance(step, Delay):
-            entry["n_delays"] = step.n_delays
+            entry["n_delays"] = int(step.n_delays)
         elif isinstance(step, Constant):
             pass
         elif isinstance(step, Trigonometric):
-            entry["features"] = list(step.features)
+            entry["features"] = list(step.features_)
         elif isinstance(step, CoulombFriction):
-            entry.update(feature=step.feature, lag=step.lag, width=step.width)
+            entry.update(feature=int(step.feature), lag=int(step.lag), width=float(step.width))
         elif isinstance(step, (ThinPlateRbf, GaussianRbf)):
-            entry.update(shape=step.shape, centers=step.centers_.tolist())
+            entry.update(shape=float(step.shape), centers=step.centers_.tolist())
             if isinstance(step, ThinPlateRbf):
-                entry["offset"] = step.offset
+                entry["offset"] = float(step.offset)
         else:
             raise ValueError(f"lifting step {type(step).__name__} cannot be saved")
         steps.append(entry)

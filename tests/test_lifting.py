@@ -107,9 +107,14 @@ def test_batched_transform_equals_per_episode(episodes):
     (lambda: ThinPlateRbf(offset=0), "offset"),
     (lambda: GaussianRbf(n_centers=0), "centres"),
 ])
-def test_bad_hyperparameters(make, match):
+def test_bad_hyperparameters(make, match, episodes):
+    step = make()  # stored unchanged: the fit checks them
     with pytest.raises(ValueError, match=match):
-        make()
+        step.fit(episodes, ["x0", "x1"])
+    with pytest.raises(ValueError, match=match):
+        Lifting([step]).fit(episodes)
+    with pytest.raises(ValueError, match=match):
+        Lifting([step]).n_delays  # noqa: B018 (what a fit reads first, before the data)
 
 
 def test_bad_explicit_centres(episodes):
@@ -137,5 +142,6 @@ def test_coulomb_friction_is_the_smoothed_sign_of_the_motion_over_its_lag(episod
     with pytest.raises(ValueError, match="needs a Delay step of at least 5"):
         Lifting([Delay(4), CoulombFriction(0, lag=5)]).fit(episodes)
     for bad in (dict(lag=0), dict(width=0.0), dict(feature=-1)):
+        step = CoulombFriction(**bad)  # stored unchanged: the fit checks them
         with pytest.raises(ValueError, match="friction"):
-            CoulombFriction(**bad)
+            Lifting([Delay(4), step]).fit(episodes)

@@ -8,14 +8,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from qube_koopman.identify.params import Params
+
 __all__ = ["LiftingFunction", "Lifting"]
 
 
-class LiftingFunction(ABC):
+class LiftingFunction(Params, ABC):
     """One lifting step: maps a window of feature vectors to new features.
 
-    Hyperparameters live in the constructor; :meth:`fit` learns from
-    training episodes and sets attributes ending in ``_``. A step that uses
+    Hyperparameters live in the constructor, stored unchanged (``get_params``,
+    ``set_params``); :meth:`fit` checks them and learns from training episodes,
+    setting attributes ending in ``_``. A step that uses
     the past consumes ``n_delays`` samples at the start of each episode.
     Every step keeps its input features first, so the first lifted features
     are always the original states.
@@ -31,6 +34,7 @@ class LiftingFunction(ABC):
         -------
         self
         """
+        self._check_params()
         names = tuple(names)
         self.n_features_in_ = len(names)
         self.feature_names_in_ = names
@@ -38,6 +42,9 @@ class LiftingFunction(ABC):
         self.feature_names_out_ = tuple(self._names_out(names))
         self.n_features_out_ = len(self.feature_names_out_)
         return self
+
+    def _check_params(self) -> None:
+        """Raise a ValueError naming a hyperparameter that cannot be used; none to check by default."""
 
     def _fit(self, episodes: Sequence[np.ndarray]) -> None:
         """Learn what the step needs; nothing by default.
@@ -58,16 +65,8 @@ class LiftingFunction(ABC):
         Leading dimensions are independent episodes (batched prediction).
         """
 
-    def __repr__(self) -> str:
-        params = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
-        return f"{type(self).__name__}({params})"
 
-    def get_params(self) -> dict:
-        """Constructor hyperparameters."""
-        return {k: v for k, v in vars(self).items() if not k.endswith("_") and not k.startswith("_")}
-
-
-class Lifting:
+class Lifting(Params):
     """Lifting functions applied in order, fitted on training episodes only.
 
     Parameters
@@ -86,12 +85,20 @@ class Lifting:
     """
 
     def __init__(self, steps: Sequence[LiftingFunction] = ()) -> None:
-        self.steps = tuple(steps)
+        self.steps = steps
+
+    def _check_steps(self) -> None:
+        """Every step is a LiftingFunction whose hyperparameters can be used (else a ValueError)."""
+        for step in self.steps:
+            if not isinstance(step, LiftingFunction):
+                raise ValueError(f"lifting step {step!r} is not a LiftingFunction")
+            step._check_params()
 
     @property
     def n_delays(self) -> int:
-        """Samples the steps consume at the start of each episode (known before fitting)."""
-        return sum(getattr(step, "n_delays", 0) for step in self.steps)
+        """Samples the steps consume at the start of each episode (known before fitting; the steps checked)."""
+        self._check_steps()
+        return sum(step.n_delays for step in self.steps)
 
     def fit(self, episodes: Sequence[np.ndarray], names: Sequence[str] | None = None) -> "Lifting":
         """Fit every step on the output of the previous one, episode by episode.
@@ -107,9 +114,7 @@ class Lifting:
         -------
         self
         """
-        for step in self.steps:
-            if not isinstance(step, LiftingFunction):
-                raise ValueError(f"lifting step {step!r} is not a LiftingFunction")
+        self._check_steps()
         # Not copied into a list: the episodes may be read from their logs when asked for (a list of
         # every episode's states grows with the data, 72 MB at 448 episodes).
         episodes = episodes if isinstance(episodes, Sequence) else list(episodes)
@@ -144,10 +149,6 @@ class Lifting:
 
     def __repr__(self) -> str:
         return f"Lifting({list(self.steps)!r})"
-
-    def get_params(self) -> dict:
-        """Constructor hyperparameters."""
-        return {"steps": self.steps}
 
 
 class _LiftedEpisodes(Sequence):

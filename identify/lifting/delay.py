@@ -22,7 +22,10 @@ class Delay(LiftingFunction):
     learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
 
     def __init__(self, n_delays: int = 1) -> None:
-        self.n_delays = check_nonneg_int(n_delays, "number of delays")
+        self.n_delays = n_delays
+
+    def _check_params(self) -> None:
+        check_nonneg_int(self.n_delays, "number of delays")
 
     def _names_out(self, names):
         return list(names) + [f"{name}[k-{i}]" for i in range(1, self.n_delays + 1) for name in names]

@@ -46,13 +46,18 @@ class CoulombFriction(LiftingFunction):
     learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
 
     def __init__(self, feature: int = 0, lag: int = 10, width: float = 0.002) -> None:
+        self.feature = feature
+        self.lag = lag
+        self.width = width
+
+    def _check_params(self) -> None:
+        feature, lag, width = self.feature, self.lag, self.width
         if isinstance(feature, bool) or not isinstance(feature, (int, np.integer)) or feature < 0:
             raise ValueError(f"friction feature must be a non-negative index, got {feature!r}")
         if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 1:
             raise ValueError(f"friction lag must be a positive number of samples, got {lag!r}")
         if not (np.isfinite(width) and width > 0):
             raise ValueError(f"friction width must be positive, got {width!r}")
-        self.feature, self.lag, self.width = int(feature), int(lag), float(width)
 
     def _fit(self, episodes):
         names = self.feature_names_in_

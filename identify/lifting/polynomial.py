@@ -26,7 +26,10 @@ class Polynomial(LiftingFunction):
     learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
 
     def __init__(self, order: int = 2) -> None:
-        self.order = check_nonneg_int(order, "polynomial order", minimum=1)
+        self.order = order
+
+    def _check_params(self) -> None:
+        check_nonneg_int(self.order, "polynomial order", minimum=1)
 
     def _fit(self, episodes):
         n = self.n_features_in_

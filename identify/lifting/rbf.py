@@ -37,12 +37,15 @@ class RadialBasis(LiftingFunction):
         return self.centers is None
 
     def __init__(self, n_centers: int = 50, shape: float = 1.0, centers=None, seed: int | None = None):
-        self.n_centers = check_nonneg_int(n_centers, "number of RBF centres", minimum=1)
-        if not (np.isfinite(shape) and shape > 0):
-            raise ValueError(f"RBF shape must be positive, got {shape!r}")
-        self.shape = float(shape)
+        self.n_centers = n_centers
+        self.shape = shape
         self.centers = centers
         self.seed = seed
+
+    def _check_params(self) -> None:
+        check_nonneg_int(self.n_centers, "number of RBF centres", minimum=1)
+        if not (np.isfinite(self.shape) and self.shape > 0):
+            raise ValueError(f"RBF shape must be positive, got {self.shape!r}")
 
     def _fit(self, episodes):
         n = self.n_features_in_
@@ -109,9 +112,12 @@ class ThinPlateRbf(RadialBasis):
     def __init__(self, n_centers: int = 50, shape: float = 1.0, offset: float = 1e-3,
                  centers=None, seed: int | None = None):
         super().__init__(n_centers, shape, centers, seed)
-        if not (np.isfinite(offset) and offset > 0):
-            raise ValueError(f"thin-plate offset must be positive, got {offset!r}")
-        self.offset = float(offset)
+        self.offset = offset
+
+    def _check_params(self) -> None:
+        super()._check_params()
+        if not (np.isfinite(self.offset) and self.offset > 0):
+            raise ValueError(f"thin-plate offset must be positive, got {self.offset!r}")
 
     def _kernel(self, dist):
         s = self.shape * dist + self.offset

@@ -29,21 +29,30 @@ class Trigonometric(LiftingFunction):
     learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
 
     def __init__(self, features: Sequence[int] = (0, 1)) -> None:
-        features = tuple(int(i) for i in features)
-        if not features or min(features) < 0 or len(set(features)) != len(features):
-            raise ValueError(f"trigonometric lifting needs distinct non-negative feature indices, got {features}")
         self.features = features
 
+    def _indices(self) -> tuple[int, ...]:
+        """``features`` as a tuple of ints, checked."""
+        features = tuple(int(i) for i in self.features)
+        if not features or min(features) < 0 or len(set(features)) != len(features):
+            raise ValueError(f"trigonometric lifting needs distinct non-negative feature indices, got {features}")
+        return features
+
+    def _check_params(self) -> None:
+        self._indices()
+
     def _fit(self, episodes):
-        if max(self.features) >= self.n_features_in_:
-            raise ValueError(f"trigonometric lifting of feature {max(self.features)}: only "
+        features = self._indices()
+        if max(features) >= self.n_features_in_:
+            raise ValueError(f"trigonometric lifting of feature {max(features)}: only "
                              f"{self.n_features_in_} features come in")
+        self.features_ = features
 
     def _names_out(self, names):
-        return (list(names) + [f"sin({names[i]})" for i in self.features]
-                + [f"cos({names[i]})" for i in self.features])
+        return (list(names) + [f"sin({names[i]})" for i in self.features_]
+                + [f"cos({names[i]})" for i in self.features_])
 
     def transform(self, X):
         X = np.asarray(X, dtype=float)
-        angles = X[..., list(self.features)]
+        angles = X[..., list(self.features_)]
         return np.concatenate([X, np.sin(angles), np.cos(angles)], axis=-1)
