@@ -15,6 +15,8 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from typing import Iterator
 
+from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT
+
 __all__ = ["SafetyLimits", "StopRequest", "stop_on_signals"]
 
 
@@ -40,8 +42,8 @@ class SafetyLimits:
     """
 
     max_voltage: float = 10.0
-    theta_limit: float = math.pi / 2
-    alpha_limit: float = math.pi / 4
+    theta_limit: float = THETA_LIMIT
+    alpha_limit: float = ALPHA_LIMIT
     start_alpha: float = math.radians(5.0)
     start_timeout: float | None = 10.0
 

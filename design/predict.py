@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.daq.excitation import Excitation, generate_excitation
 from qube_koopman.daq.session import excitation_settings, run_seeds
 from qube_koopman.design.plant import LinearPlant
@@ -30,8 +31,6 @@ from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 __all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost", "closed_loop_eigenvalues",
            "loop_margins", "episode_cost"]
 
-#: Samples left out of every score: the first second, as in the twin's comparisons.
-SKIP = 500
 #: The loop's voltage limit (V): a predicted voltage beyond it would saturate on the rig.
 VOLTAGE_LIMIT = 10.0
 
@@ -74,7 +73,7 @@ def rig_excitations(seed: int, n_episodes: int, duration: float = 20.0) -> list[
     return [generate_excitation(tuple(int(s) for s in triple), settings) for triple in seeds]
 
 
-def episode_cost(theta, target_theta, alpha, voltage, skip: int = SKIP) -> tuple[float, ...]:
+def episode_cost(theta, target_theta, alpha, voltage, skip: int = SKIP_SAMPLES) -> tuple[float, ...]:
     """``(J, tracking RMS, alpha RMS, voltage RMS, voltage peak)`` of one episode after ``skip`` samples."""
     tracking = np.asarray(theta, dtype=float)[skip:] - np.asarray(target_theta, dtype=float)[skip:]
     alpha = np.asarray(alpha, dtype=float)[skip:]
@@ -108,7 +107,7 @@ class LoopTrajectories:
     voltage: np.ndarray
     dt: float
 
-    def cost(self, skip: int = SKIP) -> CostPrediction:
+    def cost(self, skip: int = SKIP_SAMPLES) -> CostPrediction:
         """The figures of each episode after ``skip`` samples (:func:`episode_cost`)."""
         rows = np.array([episode_cost(self.theta[i], self.target_theta[i], self.alpha[i], self.voltage[i], skip)
                          for i in range(len(self.theta))])
@@ -147,7 +146,7 @@ def predict_loop(plant: KoopmanModel, controller: DiscreteStateSpace,
 
 
 def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
-                 excitations: list[Excitation], skip: int = SKIP) -> CostPrediction:
+                 excitations: list[Excitation], skip: int = SKIP_SAMPLES) -> CostPrediction:
     """The figures of :func:`predict_loop`'s episodes after ``skip`` samples (:meth:`LoopTrajectories.cost`)."""
     return predict_loop(plant, controller, excitations).cost(skip)
 

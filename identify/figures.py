@@ -28,13 +28,13 @@ from typing import Sequence
 import numpy as np
 
 from qube_koopman.core.files import atomic_path
+from qube_koopman.core.qube import STATE_NAMES
 
 __all__ = ["Curve", "SeriesPlot", "EigenvaluePlot", "FigureSpec", "FiguresUnavailable", "require_matplotlib",
            "draw", "write_figures", "measured_range", "model_eigenvalues", "identification_figures",
            "choose_episodes"]
 
 INSTALL_HINT = 'pip install "qube-koopman[figures]"'
-STATE_NAMES = ("theta", "alpha")
 UNIT_CIRCLE_POINTS = 361
 
 

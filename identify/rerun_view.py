@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 
 from qube_koopman.core.files import atomic_path
+from qube_koopman.core.qube import STATE_NAMES
 from qube_koopman.identify.figures import model_eigenvalues
 
-STATE_NAMES = ("theta", "alpha")
 
 
 def blueprint(result):

@@ -39,6 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from qube_koopman.core.qube import MEASURED
 from qube_koopman.identify.cl_edmd import ClEdmd
 from qube_koopman.identify.distributed import candidate_runner, connect, release_workers
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
@@ -51,7 +52,6 @@ from qube_koopman.sim.lti import DiscreteStateSpace
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
            "evaluate_candidate", "same_controller_scores"]
 
-MEASURED = [0, 1]
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
 FRICTION_LAG = CoulombFriction().lag  # samples: the fewest delays the friction lifting needs
 

@@ -31,6 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
+from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT  # the rig's safety stops: a probe beyond them is dropped
 from qube_koopman.identify.trajectory import Trajectory, as_episodes
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -45,7 +46,6 @@ DEFAULT_PROBE_GAINS: tuple[tuple[float, float, float, float, float], ...] = (
     (1.5, 1.2, 38.0, 3.2, 50.0),
     (4.0, 3.0, 45.0, 4.0, 50.0),
 )
-THETA_LIMIT, ALPHA_LIMIT = np.pi / 2, np.pi / 4  # the rig's safety stops: a probe beyond them is dropped
 
 
 @dataclass(frozen=True)

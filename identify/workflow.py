@@ -23,12 +23,12 @@ from qube_koopman.identify.structure import close_loop, controller_states
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 from qube_koopman.sim.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path
+from qube_koopman.core.qube import MEASURED
 
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
 
 KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows,
                    "cl-edmd-lstsq": ClEdmdLstsq, "cl-edmd-stable": ClEdmdStable}
-MEASURED = [0, 1]  # theta and alpha are both fed back on the QUBE-Servo
 # Methods whose model is one loop's (unstructured closed loop, or a constraint on one loop): one controller only.
 SINGLE_LOOP_METHODS = {"cl-arx": "--method cl-arx", "cl-edmd-lstsq": "--method cl-edmd-lstsq",
                        "cl-edmd-stable": "--max-radius (the stability-constrained fit)"}

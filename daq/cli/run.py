@@ -11,13 +11,17 @@ from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args
 from qube_koopman.core.command import CliError, run_command
 from qube_koopman.core.console import configure_logging
 from qube_koopman.core.files import output_file_problem
+from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT
 from qube_koopman.daq.cli.run_output import PROG
 
 DEFAULT_EPISODES = 3
 DEFAULT_DURATION = 20.0
 DEFAULT_OUT = Path("episodes")
+#: The safety limits' defaults in degrees, as the options take them (the rig's: 90 and 45).
+DEFAULT_THETA_LIMIT = math.degrees(THETA_LIMIT)
+DEFAULT_ALPHA_LIMIT = math.degrees(ALPHA_LIMIT)
 
-_DESCRIPTION = """\
+_DESCRIPTION = f"""\
 Run closed-loop episodes of the QUBE-Servo rotary inverted pendulum and write
 one MCAP episode log per episode (format: daq/log/FORMAT.md).
 
@@ -27,7 +31,7 @@ perturbation), the PD controller balances it while the rig's excitation
 drives it. Every tick is logged: angles, references, feedforward, controller
 state and output, applied voltage, saturation, lateness and compute time.
 Safety: the command is clamped to +-10 V; an episode stops with the motor at
-0 V when |theta| > 90 deg or |alpha| > 45 deg; Ctrl-C or SIGTERM stops the
+0 V when |theta| > {DEFAULT_THETA_LIMIT:g} deg or |alpha| > {DEFAULT_ALPHA_LIMIT:g} deg; Ctrl-C or SIGTERM stops the
 run with the motor at 0 V and the current logs closed as "aborted".
 
 With no arguments: 3 episodes of 20 s on the simulator, as fast as the
@@ -108,10 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a rerun recording of the run (no display needed)")
     add_force_option(p)
     safety = p.add_argument_group("safety and simulator")
-    safety.add_argument("--theta-limit", type=positive_number, default=90.0, metavar="DEG",
-                        help="stop an episode when |theta| exceeds this (default 90)")
-    safety.add_argument("--alpha-limit", type=positive_number, default=45.0, metavar="DEG",
-                        help="stop an episode when |alpha| exceeds this (default 45)")
+    safety.add_argument("--theta-limit", type=positive_number, default=DEFAULT_THETA_LIMIT, metavar="DEG",
+                        help=f"stop an episode when |theta| exceeds this (default {DEFAULT_THETA_LIMIT:g})")
+    safety.add_argument("--alpha-limit", type=positive_number, default=DEFAULT_ALPHA_LIMIT, metavar="DEG",
+                        help=f"stop an episode when |alpha| exceeds this (default {DEFAULT_ALPHA_LIMIT:g})")
     safety.add_argument("--perturbation", type=non_negative_number, default=2.0, metavar="DEG",
                         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
                              "an episode starts only once |alpha| < 5)")

@@ -26,6 +26,7 @@ from typing import Sequence
 import numpy as np
 from scipy.signal import savgol_filter
 
+from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
 from qube_koopman.identify.calibrate import shooting as ms
 from qube_koopman.identify.calibrate.fit import ENCODER_SIGMA
 from qube_koopman.identify.calibrate.solver import levenberg_marquardt
@@ -148,7 +149,7 @@ class ReplayResult:
     real: np.ndarray
 
 
-def replay_episodes(episodes: Sequence, params: PendulumParameters, start: int = 500,
+def replay_episodes(episodes: Sequence, params: PendulumParameters, start: int = SKIP_SAMPLES,
                     offset_window: int = 500, n_draws: int = 8, seed: int = 0) -> ReplayResult:
     """Closed-loop replay of logged episodes (``daq.episode.Episode``) through ``params``.
 
@@ -172,7 +173,7 @@ def replay_episodes(episodes: Sequence, params: PendulumParameters, start: int =
     real = np.stack([np.column_stack([y[start:], u[start:]]) for y, u in zip(ys, us)], axis=1)
     ratio = (twin.std(axis=0) / real.std(axis=0)).mean(axis=0)
     peak = np.max(np.abs(run.measurements), axis=0)
-    balanced = np.all((peak[..., 0] < math.pi / 2) & (peak[..., 1] < math.pi / 4), axis=0)
+    balanced = np.all((peak[..., 0] < THETA_LIMIT) & (peak[..., 1] < ALPHA_LIMIT), axis=0)
     rmse = np.sqrt(np.mean((twin[..., :2] - real[:, None, :, :2]) ** 2, axis=0))
     nrmse = 100 * np.mean(rmse / np.max(np.abs(real[..., :2]), axis=0), axis=(0, 2))
     return ReplayResult(ratio, balanced, nrmse, offsets, twin[:, 0], real)
@@ -198,7 +199,7 @@ def _replay_draws(episodes: Sequence, us: Sequence[np.ndarray], draws: np.ndarra
 
 
 def open_loop_error(episodes: Sequence, params: PendulumParameters, offsets: np.ndarray,
-                    horizon: float = 0.2, start: int = 500) -> np.ndarray:
+                    horizon: float = 0.2, start: int = SKIP_SAMPLES) -> np.ndarray:
     """RMS error (rad) of theta and alpha over open-loop predictions of ``horizon`` seconds.
 
     Each prediction starts from the data (measured angles less the offset,

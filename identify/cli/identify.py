@@ -14,6 +14,7 @@ from qube_koopman.core.cli import (OneLineParser, add_force_option, add_renamed_
                                    seed, whole_number)
 from qube_koopman.core.command import (CliError, check_output_folder, check_rerun_target, output_dir, progress,
                                        run_command, write_json)
+from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
 from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
 from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
@@ -97,7 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
     data.add_argument("--train", nargs="+", type=path, metavar="LOG", help="training logs (files or folders)")
     data.add_argument("--test", nargs="+", type=path, metavar="LOG", help="test logs (files or folders)")
-    data.add_argument("--skip", type=whole_number(0), default=500, metavar="N",
+    data.add_argument("--skip", type=whole_number(0), default=SKIP_SAMPLES, metavar="N",
                       help="samples dropped at the start of each episode (default %(default)s: the rig's "
                            "hand-raising second)")
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")

@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.daq.log.names import find_logs
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify.arx import Arx
@@ -30,7 +31,6 @@ from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 
 __all__ = ["PAPER_QUBE", "ROWS", "QubeRow", "reproduce_qube", "score_closed_loop", "predict_closed_loop"]
 
-SKIP = 500
 N_ALPHAS = 180
 ALPHA_RANGE = (1e-3, 1e3)
 POLY_ORDER = 2
@@ -234,7 +234,7 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
     if not paths:
         raise ValueError(f"{data_dir}: no .mcap episode logs (import the CSV dataset with qube-import first)")
     train_paths, test_paths = paper_split(paths)
-    train_logs, test_logs = load_logs(train_paths, skip=SKIP), load_logs(test_paths, skip=SKIP)
+    train_logs, test_logs = load_logs(train_paths, skip=SKIP_SAMPLES), load_logs(test_paths, skip=SKIP_SAMPLES)
     check_same_rate(train_logs + test_logs, "all")
     controller = check_same_controller(train_logs, "training")
     train = [log.trajectory for log in train_logs]
@@ -269,7 +269,7 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
                         for row in ROWS if row.method != "arx"},
         "labels": {row.key: row.label for row in ROWS},
         "checks": _checks(rows, sweeps[("cl-edmd", N_DELAYS)]),
-        "n_train": len(train), "n_test": len(test_logs), "skip": SKIP,
+        "n_train": len(train), "n_test": len(test_logs), "skip": SKIP_SAMPLES,
         "timing_s": time.perf_counter() - started,
         **extra,
     }
