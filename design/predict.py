@@ -28,7 +28,7 @@ from qube_koopman.identify.structure import close_loop, closed_loop_matrices, pl
 from qube_koopman.sim.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 
-__all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost", "closed_loop_eigenvalues",
+__all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost", "closed_loop_matrix", "closed_loop_eigenvalues",
            "loop_margins", "episode_cost"]
 
 #: The loop's voltage limit (V): a predicted voltage beyond it would saturate on the rig.
@@ -151,11 +151,28 @@ def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
     return predict_loop(plant, controller, excitations).cost(skip)
 
 
-def closed_loop_eigenvalues(plant: LinearPlant, controller: DiscreteStateSpace) -> np.ndarray:
-    """Eigenvalues of the design plant in feedback with the controller (state ``[x^c; s]``)."""
+def closed_loop_matrix(plant: LinearPlant, controller: DiscreteStateSpace) -> np.ndarray:
+    """State matrix of the design plant in feedback with the controller (state ``[x^c; s]``).
+
+    Parameters
+    ----------
+    plant : LinearPlant
+        The plant on its history.
+    controller : DiscreteStateSpace
+        The controller on the tracking errors.
+
+    Returns
+    -------
+    ndarray of shape (n, n)
+    """
     C_p = np.eye(plant.n_measured, plant.n_states)
     A_f, _ = closed_loop_matrices(plant.F, plant.G, controller, C_p, 0)
-    return np.linalg.eigvals(A_f)
+    return A_f
+
+
+def closed_loop_eigenvalues(plant: LinearPlant, controller: DiscreteStateSpace) -> np.ndarray:
+    """Eigenvalues of the design plant in feedback with the controller (state ``[x^c; s]``)."""
+    return np.linalg.eigvals(closed_loop_matrix(plant, controller))
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,9 @@ import numpy as np
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.plant import IDENTIFY_FLAGS, DesignError, linear_plant
 from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins, closed_loop_eigenvalues,
-                                         loop_margins, predict_cost, predict_loop, rig_excitations)
-from qube_koopman.sim.lti import DiscreteStateSpace
+                                         closed_loop_matrix, loop_margins, predict_cost, predict_loop,
+                                         rig_excitations)
+from qube_koopman.sim.lti import DiscreteStateSpace, spectral_radius
 
 __all__ = ["DesignReport", "design_from_model", "report_text", "saturation_warning", "provenance", "record_design"]
 
@@ -124,7 +125,7 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
         design = design_lq(plant, weights)
     except DesignError as exc:
         raise DesignError(f"{path}: {exc}") from None
-    radius = float(np.max(np.abs(closed_loop_eigenvalues(plant, design.controller))))
+    radius = spectral_radius(closed_loop_matrix(plant, design.controller))
     if not radius < 1:
         raise DesignError(f"{path}: the predicted closed loop is unstable (spectral radius {radius:.6g}); "
                           "change the weights")
@@ -137,7 +138,7 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
     training = None
     if model.get("controller") is not None and model["controller"].n_inputs in (2, 3):  # a QUBE loop
         training = predict_cost(model["plant"], model["controller"], excitations)
-    return DesignReport(path, model, design, radius, float(np.max(np.abs(np.linalg.eigvals(plant.F)))),
+    return DesignReport(path, model, design, radius, spectral_radius(plant.F),
                         loop_margins(plant, design.controller), predicted, training,
                         {"seed": seed, "episodes": episodes, "duration": duration})
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from qube_koopman.identify.lifting import Lifting
 from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.sim.lti import spectral_radius
 
 __all__ = ["KoopmanModel"]
 
@@ -103,7 +104,7 @@ class KoopmanModel:
 
     def spectral_radius(self) -> float:
         """Largest eigenvalue magnitude of ``A``; above 1 the model is unstable."""
-        return float(np.max(np.abs(self.eigenvalues())))
+        return spectral_radius(self.A)
 
     def to_state_space(self):
         """The model as a discrete ``control.StateSpace`` (outputs: the original states)."""

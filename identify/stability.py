@@ -52,7 +52,7 @@ from qube_koopman.identify._spectral import DiscProblem, least_change_into_disc
 from qube_koopman.identify._checks import check_choice
 from qube_koopman.identify.cl_edmd import ClEdmdKnownRows
 from qube_koopman.identify.regression import Snapshots, constrained_plant_solve
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace, spectral_radius
 
 __all__ = ["ClEdmdStable"]
 
@@ -140,7 +140,7 @@ class ClEdmdStable(ClEdmdKnownRows):
         U0 = constrained_plant_solve(snapshots, S, alpha, slice(n_c, None), "closed_loop")
         shift = self.center * np.eye(n_c + U0.shape[0])
         M0 = self._closed_loop_state(U0, S) - shift
-        self.unconstrained_radius_ = float(np.max(np.abs(np.linalg.eigvals(M0))))
+        self.unconstrained_radius_ = spectral_radius(M0)
         self.n_sqp_iter_ = 0
         U_p, seed = (self._solve_sqp(snapshots, S, alpha, U0) if method == "sqp" else (None, U0))
         if U_p is None:   # the LMI asked for, or the SQP did not reach the disc: seed P from its last step
@@ -228,8 +228,8 @@ def _lyapunov_certificate(M: np.ndarray, radius: float) -> np.ndarray:
         lam = np.where(outside, _SEED_FRACTION * radius * lam / np.maximum(np.abs(lam), 1e-300), lam)
         moved = np.real(V @ np.diag(lam) @ np.linalg.inv(V))
         # A defective or badly conditioned eigenbasis: scale the whole matrix instead.
-        if not np.max(np.abs(np.linalg.eigvals(moved))) < radius:
-            moved = M * (_SEED_FRACTION * radius / np.max(np.abs(np.linalg.eigvals(M))))
+        if not spectral_radius(moved) < radius:
+            moved = M * (_SEED_FRACTION * radius / spectral_radius(M))
         M = moved
     a = M / radius
     # a^T P a - P + I = 0  <=>  (a^T) P (a^T)^T - P + I = 0: scipy's form with a^T.

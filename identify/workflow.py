@@ -21,7 +21,7 @@ from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, 
 from qube_koopman.identify.scores import DivergedPrediction, episode_score, summarize_scores
 from qube_koopman.identify.structure import close_loop, controller_states
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.sim.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.files import atomic_path
 from qube_koopman.core.qube import MEASURED
 
@@ -91,7 +91,7 @@ class IdentificationResult:
 
 
 def _spectral_radius(A) -> float | None:
-    return None if A is None else float(np.max(np.abs(np.linalg.eigvals(A))))
+    return None if A is None else spectral_radius(A)
 
 
 def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[LoggedTrajectory],

@@ -11,7 +11,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DiscreteStateSpace", "controller_inputs", "replay_controller", "padded_realization"]
+__all__ = ["DiscreteStateSpace", "controller_inputs", "replay_controller", "padded_realization", "spectral_radius"]
+
+
+def spectral_radius(matrix) -> float:
+    """The largest magnitude of the eigenvalues of a square matrix: ``x[k+1] = A x[k]`` is asymptotically
+    stable when it is below 1. The one way every package computes it (models, controllers, designs).
+
+    Parameters
+    ----------
+    matrix : array_like of shape (n, n)
+        The state matrix; with n = 0 (a system without states) the radius is 0.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> spectral_radius([[0.5, 1.0], [0.0, -0.8]])
+    0.8
+    """
+    matrix = np.asarray(matrix)
+    return float(np.max(np.abs(np.linalg.eigvals(matrix)))) if matrix.size else 0.0
 
 
 def _as_matrix(value, name: str) -> np.ndarray:

@@ -415,14 +415,13 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
 def _what_if_controller(path: str, dt: float):
     """The --controller file's controller at the logs' period: PD gains (discretized like the rig's)
     or a state-space file written at that period."""
-    import numpy as np
-
     from qube_koopman.daq.controller_file import load_controller_file
+    from qube_koopman.sim.lti import spectral_radius
 
     system = load_controller_file(path, "backward-euler", dt).system
     # An integrator (eigenvalue 1, a designed controller's integral action) is a controller; a state
     # that grows on its own is not: its predictions overflow long before they say why.
-    radius = float(np.max(np.abs(np.linalg.eigvals(system.A)))) if system.A.size else 0.0
+    radius = spectral_radius(system.A)
     if radius > 1.0 + 1e-9:
         raise CliError(f"{path}: the controller is unstable on its own (spectral radius of A {radius:.6g} > 1): "
                        "its state grows without bound whatever the errors")
