@@ -5,7 +5,7 @@ Nothing here imports another ``qube_koopman`` package.
 
 from qube_koopman.core.cli import OneLineParser, add_force_option
 from qube_koopman.core.files import atomic_path, output_file_problem, output_folder_problem
-from qube_koopman.core.signals import Terminated, interrupted_status, run_interruptible, sigterm_as_interrupt
+from qube_koopman.core.signals import Terminated, interrupted_status, sigterm_as_interrupt
 
 __all__ = [
     "OneLineParser",
@@ -15,6 +15,5 @@ __all__ = [
     "interrupted_status",
     "output_file_problem",
     "output_folder_problem",
-    "run_interruptible",
     "sigterm_as_interrupt",
 ]

@@ -1,6 +1,6 @@
 """SIGTERM handled as Ctrl-C is: an exception in the main thread, so commands stop the same way.
 
-A command wraps its work in :func:`sigterm_as_interrupt`; SIGTERM then raises
+``core.command.run_command`` wraps every command's work in :func:`sigterm_as_interrupt`; SIGTERM then raises
 :class:`Terminated`, a :class:`KeyboardInterrupt`, where the work is. One ``except
 KeyboardInterrupt`` stops both, cleans up as for Ctrl-C, and :func:`interrupted_status` gives the
 exit status the shell's convention asks for: 130 (128 + SIGINT) or 143 (128 + SIGTERM).
@@ -9,12 +9,11 @@ exit status the shell's convention asks for: 130 (128 + SIGINT) or 143 (128 + SI
 from __future__ import annotations
 
 import signal
-import sys
 import threading
 from contextlib import contextmanager
-from typing import Callable, Iterator
+from typing import Iterator
 
-__all__ = ["Terminated", "sigterm_as_interrupt", "interrupted_status", "run_interruptible"]
+__all__ = ["Terminated", "sigterm_as_interrupt", "interrupted_status"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -41,14 +40,3 @@ def sigterm_as_interrupt() -> Iterator[None]:
 def interrupted_status(exc: BaseException) -> int:
     """Exit status of a command stopped by ``exc``: 143 for SIGTERM (:class:`Terminated`), else 130."""
     return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
-
-
-def run_interruptible(prog: str, command: Callable[[], int]) -> int:
-    """``command()``'s exit status; stopped by Ctrl-C or SIGTERM, one ``<prog>: error: interrupted``
-    line on stderr and 130 or 143 (:func:`interrupted_status`), no traceback."""
-    try:
-        with sigterm_as_interrupt():
-            return command()
-    except KeyboardInterrupt as exc:
-        print(f"{prog}: error: interrupted", file=sys.stderr)
-        return interrupted_status(exc)
