@@ -20,7 +20,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from .ccore import C_SOURCE_DIR, _cache_root
+from .ccore import C_SOURCE_DIR, cache_root
 
 __all__ = ["ARDUINO_AVR", "SKETCH", "AvrToolsMissing", "FirmwareSizes", "avr_tools_missing", "build_firmware",
            "cached_firmware", "firmware_sizes", "symbol_address"]
@@ -146,7 +146,7 @@ def cached_firmware(cache_dir: str | os.PathLike | None = None, *, sketch: str |
     digest = hashlib.sha256("\0".join((version, *_COMMON, *_CXX)).encode())
     for path in [*_sources(), *sorted(C_SOURCE_DIR.glob("*.h")), Path(sketch)]:
         digest.update(str(path).encode() + b"\0" + path.read_bytes())
-    root = Path(cache_dir) if cache_dir is not None else _cache_root()
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
     final = root / f"avr-{digest.hexdigest()[:16]}"
     elf = final / "qube_bridge.elf"
     if elf.is_file():

@@ -95,7 +95,12 @@ def build_library(out_dir: str | os.PathLike, *, extra_flags: tuple[str, ...] = 
     return lib
 
 
-def _cache_root() -> Path:
+def cache_root() -> Path:
+    """Where the C builds are cached: ``$XDG_CACHE_HOME/qube-koopman`` (``~/.cache/qube-koopman``).
+
+    Shared with the AVR firmware's builds (:mod:`~qube_koopman.firmware_protocol.avr`,
+    :mod:`~qube_koopman.sim.bridge.avr`); not created here.
+    """
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "qube-koopman"
 
@@ -128,7 +133,7 @@ def cached_library(cache_dir: str | os.PathLike | None = None) -> Path:
     digest = hashlib.sha256("\0".join((cc, *C_FLAGS)).encode())
     for path in sorted(C_SOURCE_DIR.glob("*.[ch]")):
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
-    root = Path(cache_dir) if cache_dir is not None else _cache_root()
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
     final = root / f"ccore-{digest.hexdigest()[:16]}" / "libqubeproto.so"
     if final.is_file():
         return final

@@ -26,7 +26,7 @@ import tempfile
 from pathlib import Path
 
 from qube_koopman.firmware_protocol.avr import F_CPU, symbol_address
-from qube_koopman.firmware_protocol.ccore import _cache_root, find_c_compiler
+from qube_koopman.firmware_protocol.ccore import cache_root, find_c_compiler
 from qube_koopman.sim.bridge.qube import EmulatedQube
 
 __all__ = ["HARNESS_SOURCE", "AvrBridge", "AvrChip", "cached_harness", "harness_missing", "RAMEND"]
@@ -57,7 +57,7 @@ def cached_harness(cache_dir: str | os.PathLike | None = None) -> Path:
                            "apt-get install simavr libsimavr-dev libsimavrparts1")
     cc = find_c_compiler()
     digest = hashlib.sha256("\0".join((cc, *_LIBS)).encode() + HARNESS_SOURCE.read_bytes())
-    root = Path(cache_dir) if cache_dir is not None else _cache_root()
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
     final = root / f"simavr-harness-{digest.hexdigest()[:16]}" / "libqubeavr.so"
     if final.is_file():
         return final
