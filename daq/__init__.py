@@ -8,7 +8,41 @@ gains (``daq.controller``), the rig's excitation (``daq.excitation``), the
 (``daq.episode``, with ``stack_signals``), the MCAP episode log (``daq.log``, format in
 ``daq/log/FORMAT.md``; file names in ``daq.log.names``), legacy CSV import (``daq.legacy_csv``), export to
 CSV, Parquet and MATLAB (``daq.export``) and the live rerun view
-(``daq.viz``). Start with ``daq.session.run_episodes`` (what ``qube-run``
-calls) to acquire, and ``daq.log.read_episode`` to read a log back.
-Imports only ``firmware_protocol`` and ``sim`` from this project.
+(``daq.viz``). Start with :func:`~qube_koopman.daq.session.run_episodes` (what ``qube-run``
+calls) to acquire, and :func:`~qube_koopman.daq.log.reader.read_episode` to read a log back.
+Imports only ``firmware_protocol``, ``sim`` and ``core`` from this project.
+
+Import what is listed here from ``qube_koopman.daq``: each name is imported from its module when
+first used, so ``import qube_koopman.daq`` loads none of them (the loop's modules do not pay
+for mcap, scipy or the exporters).
 """
+
+from qube_koopman.core.exports import lazy_exports
+
+# Each public name and the module (relative to this package) that defines it.
+_HOMES = {
+    # episodes and their logs
+    "Episode": "episode", "EpisodeMetadata": "episode", "ControllerInfo": "episode", "stack_signals": "episode",
+    "read_episode": "log", "read_episode_metadata": "log", "write_episode": "log", "EpisodeWriter": "log",
+    "IncompleteEpisodeWarning": "log", "log_path": "log.names", "find_logs": "log.names",
+    "parse_episode_name": "log.names",
+    # other formats: the legacy CSV in, CSV, Parquet and MATLAB out
+    "legacy_episode": "legacy_csv", "load_legacy_controller": "legacy_csv", "read_legacy_csv": "legacy_csv",
+    "export_episode": "export",
+    # controllers
+    "PdGains": "controller", "load_pd_gains": "controller", "pd_controller": "controller",
+    "pi_controller": "controller", "load_controller_file": "controller_file",
+    "write_controller_file": "controller_file",
+    # sessions: what qube-run runs
+    "load_controller": "session", "run_seeds": "session", "excitation_settings": "session",
+    "plan_episodes": "session", "run_episodes": "session", "RunResult": "session",
+    # one episode: the loop, its safety limits, the excitation, backends and sinks
+    "run_episode": "loop", "EpisodePlan": "loop", "EpisodeResult": "loop", "SafetyLimits": "safety",
+    "ExcitationSettings": "excitation", "generate_excitation": "excitation",
+    "Backend": "backends", "SimBackend": "backends", "SerialBackend": "backends",
+    "Sink": "sinks", "McapSink": "sinks", "MemorySink": "sinks",
+}
+
+__all__ = list(_HOMES)
+
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

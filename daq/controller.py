@@ -45,6 +45,15 @@ class PdGains:
     """Gains of the QUBE-Servo's two filtered PD channels (V/rad, V s/rad, rad/s).
 
     Each channel is ``K = -kp - kd tau s / (s + tau)`` on the tracking error.
+
+    Parameters
+    ----------
+    kp_theta, kd_theta : float
+        The arm channel's proportional (V/rad) and derivative (V s/rad) gains.
+    kp_alpha, kd_alpha : float
+        The pendulum channel's.
+    tau : float
+        The derivative filter's bandwidth (rad/s).
     """
 
     kp_theta: float
@@ -183,6 +192,20 @@ def pd_controller(gains: PdGains, dt: float = QUBE_SAMPLE_PERIOD,
 
     ``method="backward-euler"`` is what ran on the rig (it reproduces the
     dataset's control_output to 1e-14 V); the paper's text says ZOH.
+
+    Parameters
+    ----------
+    gains : PdGains
+        The two channels' gains.
+    dt : float
+        Sample period (s).
+    method : str
+        The discretization: ``"backward-euler"``, ``"zoh"`` or ``"tustin"``.
+
+    Returns
+    -------
+    DiscreteStateSpace
+        Inputs the tracking errors of theta and alpha, output the voltage.
     """
     import control
 
@@ -193,7 +216,21 @@ def pd_controller(gains: PdGains, dt: float = QUBE_SAMPLE_PERIOD,
 
 
 def pi_controller(kp: float, ki: float, dt: float, method: str = "zoh") -> DiscreteStateSpace:
-    """A SISO PI controller ``kp + ki / s`` (the Duffing example's, with kp = ki = 1)."""
+    """A SISO PI controller ``kp + ki / s`` (the Duffing example's, with kp = ki = 1).
+
+    Parameters
+    ----------
+    kp, ki : float
+        Proportional and integral gains.
+    dt : float
+        Sample period (s).
+    method : str
+        The discretization: ``"zoh"``, ``"backward-euler"`` or ``"tustin"``.
+
+    Returns
+    -------
+    DiscreteStateSpace
+    """
     import control
 
     s = control.tf("s")

@@ -161,6 +161,11 @@ def read_legacy_csv(path: str | Path) -> tuple[dict[str, np.ndarray], bytes]:
     A last line cut short (no newline after it) is dropped with a :class:`UserWarning`
     naming the file (see the module's docstring).
 
+    Parameters
+    ----------
+    path : str or Path
+        A CSV file of the dataset.
+
     Returns
     -------
     columns : dict of str to ndarray
@@ -298,6 +303,17 @@ def legacy_excitation(seeds: dict[str, int]) -> dict:
 
 def load_legacy_controller(path: str | Path, method: str = "backward-euler") -> ControllerInfo:
     """The rig's PD controller from a controller.toml (backward Euler, as the rig ran it).
+
+    Parameters
+    ----------
+    path : str or Path
+        The dataset's controller.toml.
+    method : str
+        The discretization (``"backward-euler"``, ``"zoh"``, ``"tustin"``).
+
+    Returns
+    -------
+    ControllerInfo
 
     Raises
     ------

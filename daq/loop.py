@@ -94,8 +94,10 @@ class EpisodePlan:
 class EpisodeResult(EpisodeOutcome):
     """How an episode went: its :class:`~daq.sinks.EpisodeOutcome` and more.
 
-    Attributes
+    Parameters
     ----------
+    status, reason, n_samples, timing, backend_stats
+        As for :class:`~daq.sinks.EpisodeOutcome`.
     metadata : EpisodeMetadata or None
         What the sinks were told, with the final status; None when the episode never started
         (backend failed to start, start gate not passed, stopped before).

@@ -73,6 +73,20 @@ def load_controller(path: str | Path | None = None, method: str = "backward-eule
     (daq/CONTROLLER_FORMAT.md) must be at the sample period ``dt``
     (:func:`daq.controller_file.load_controller_file`).
 
+    Parameters
+    ----------
+    path : str or Path, optional
+        A controller file of either kind (PD gains or state-space), or a shipped name
+        (``"rig"``, ``"soft-theta"``); the rig's gains when None.
+    method : str
+        The discretization of PD gains.
+    dt : float
+        The loop's sample period (s).
+
+    Returns
+    -------
+    ControllerInfo
+
     Raises
     ------
     ValueError
@@ -84,7 +98,20 @@ def load_controller(path: str | Path | None = None, method: str = "backward-eule
 
 def run_seeds(seed: int, n_episodes: int) -> tuple[np.ndarray, int]:
     """Three excitation seeds per episode (an ``(n_episodes, 3)`` int16 array) and a seed for
-    the backend, all drawn from ``seed``."""
+    the backend, all drawn from ``seed``.
+
+    Parameters
+    ----------
+    seed : int
+        The run's seed (``qube-run --seed``).
+    n_episodes : int
+        Episodes of the run.
+
+    Returns
+    -------
+    seeds : ndarray of shape (n_episodes, 3)
+    backend_seed : int
+    """
     if not 0 <= n_episodes <= MAX_EPISODES:
         raise ValueError(f"n_episodes must be in [0, {MAX_EPISODES}], got {n_episodes}")
     rng = np.random.default_rng(seed)
@@ -98,6 +125,17 @@ def excitation_settings(duration: float, sample_rate: float = 500.0) -> Excitati
     At 20 s this is exactly the rig's (active samples 2000..7999 of 10,000);
     for other lengths the active window keeps its place, 20 % to 80 % of
     the episode.
+
+    Parameters
+    ----------
+    duration : float
+        The episode's length (s).
+    sample_rate : float
+        The loop's rate (Hz).
+
+    Returns
+    -------
+    ExcitationSettings
     """
     n = round(duration * sample_rate)
     if n < 1 or abs(n - duration * sample_rate) > 1e-6:
@@ -124,6 +162,24 @@ def plan_episodes(controller: ControllerInfo, seeds: Sequence[tuple[int, int, in
     """One plan per seed triple: the rig's excitation with those seeds, under ``controller``.
 
     The plans are made one at a time, when asked for (:class:`EpisodePlans`).
+
+    Parameters
+    ----------
+    controller : ControllerInfo
+        The controller every episode runs.
+    seeds : sequence of (int, int, int)
+        Each episode's excitation seeds (:func:`run_seeds`).
+    settings : ExcitationSettings
+        The excitation (:func:`excitation_settings`).
+    source : str
+        What planned the run, recorded in each log.
+    extra : dict, optional
+        More metadata recorded in each log.
+
+    Returns
+    -------
+    EpisodePlans
+        A sequence of :class:`~qube_koopman.daq.loop.EpisodePlan`.
     """
     return EpisodePlans(controller, seeds, settings, source, extra)
 
@@ -166,7 +222,7 @@ class EpisodePlans(Sequence):
 class RunResult:
     """The episodes of a run, and whether it ended early.
 
-    Attributes
+    Parameters
     ----------
     results : list of EpisodeResult
         One per episode attempted.

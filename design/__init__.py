@@ -5,9 +5,27 @@ feedback on the plant's history with integral action on the arm), predicts the c
 it gives on the rig's excitation, and writes it as a state-space controller file that
 ``qube-run --controller`` runs. Imports go one way: ``design`` uses ``identify``, ``daq`` and
 ``sim``; none of them imports ``design``.
+
+Import what is listed here from ``qube_koopman.design``: each name is imported from its module
+when first used.
 """
 
-from qube_koopman.design.lq import LqDesign, Weights, augment, design_lq, realize
-from qube_koopman.design.plant import DesignError, LinearPlant, linear_plant
+from qube_koopman.core.exports import lazy_exports
 
-__all__ = ["DesignError", "LinearPlant", "linear_plant", "Weights", "LqDesign", "augment", "design_lq", "realize"]
+# Each public name and the module (relative to this package) that defines it.
+_HOMES = {
+    # the plant on its history
+    "DesignError": "plant", "LinearPlant": "plant", "linear_plant": "plant",
+    # the LQ design and its realization as a controller
+    "Weights": "lq", "LqDesign": "lq", "augment": "lq", "design_lq": "lq", "realize": "lq",
+    # the closed loop it predicts
+    "CostPrediction": "predict", "predict_cost": "predict", "predict_loop": "predict",
+    "closed_loop_eigenvalues": "predict", "Margins": "predict", "loop_margins": "predict",
+    # what qube-design runs, and the design run on the twin
+    "DesignReport": "workflow", "design_from_model": "workflow", "report_text": "workflow",
+    "run_on_twin": "twin",
+}
+
+__all__ = list(_HOMES)
+
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

@@ -82,11 +82,12 @@ class Weights:
 class LqDesign:
     """An LQ design and its realization.
 
-    Attributes
+    Parameters
     ----------
     plant : LinearPlant
         The plant designed on.
     weights : Weights
+        The LQ cost's weights.
     gain : ndarray of shape (1, n_plant + integral)
         ``K`` of ``u = -K [s; w]``.
     controller : DiscreteStateSpace
@@ -100,7 +101,20 @@ class LqDesign:
 
 
 def augment(plant: LinearPlant, weights: Weights) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The design system and its weights: ``(F_a, G_a, Q, R)`` on ``a = [s; w]`` (``w`` with integral action)."""
+    """The design system and its weights: ``(F_a, G_a, Q, R)`` on ``a = [s; w]`` (``w`` with integral action).
+
+    Parameters
+    ----------
+    plant : LinearPlant
+        The plant on its history.
+    weights : Weights
+        The LQ cost per sample.
+
+    Returns
+    -------
+    F_a, G_a, Q, R : ndarray
+        ``a_{k+1} = F_a a_k + G_a u_k`` and the cost ``a^T Q a + u^T R u``.
+    """
     n = plant.n_states
     q = np.zeros(n)
     q[0], q[1] = weights.q_theta, weights.q_alpha

@@ -39,7 +39,7 @@ VOLTAGE_LIMIT = 10.0
 class CostPrediction:
     """Per-episode figures of a closed loop, after the first second.
 
-    Attributes
+    Parameters
     ----------
     cost : ndarray
         ``J = mean((theta - target_theta)^2) + mean(alpha^2)`` of each episode (rad^2).
@@ -147,7 +147,23 @@ def predict_loop(plant: KoopmanModel, controller: DiscreteStateSpace,
 
 def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
                  excitations: list[Excitation], skip: int = SKIP_SAMPLES) -> CostPrediction:
-    """The figures of :func:`predict_loop`'s episodes after ``skip`` samples (:meth:`LoopTrajectories.cost`)."""
+    """The figures of :func:`predict_loop`'s episodes after ``skip`` samples (:meth:`LoopTrajectories.cost`).
+
+    Parameters
+    ----------
+    plant : KoopmanModel
+        The plant model (input ``u``).
+    controller : DiscreteStateSpace
+        The controller on the tracking errors.
+    excitations : list of Excitation
+        The episodes' references and feedforward (:func:`rig_excitations`).
+    skip : int
+        Samples left out at the start of each episode.
+
+    Returns
+    -------
+    CostPrediction
+    """
     return predict_loop(plant, controller, excitations).cost(skip)
 
 
@@ -171,7 +187,17 @@ def closed_loop_matrix(plant: LinearPlant, controller: DiscreteStateSpace) -> np
 
 
 def closed_loop_eigenvalues(plant: LinearPlant, controller: DiscreteStateSpace) -> np.ndarray:
-    """Eigenvalues of the design plant in feedback with the controller (state ``[x^c; s]``)."""
+    """Eigenvalues of the design plant in feedback with the controller (state ``[x^c; s]``).
+
+    Parameters
+    ----------
+    plant, controller
+        As for :func:`closed_loop_matrix`.
+
+    Returns
+    -------
+    ndarray of complex
+    """
     return np.linalg.eigvals(closed_loop_matrix(plant, controller))
 
 
@@ -179,7 +205,7 @@ def closed_loop_eigenvalues(plant: LinearPlant, controller: DiscreteStateSpace) 
 class Margins:
     """Margins of the loop broken at the plant input.
 
-    Attributes
+    Parameters
     ----------
     gain_increase : float
         The factor by which the loop gain may grow before instability (inf when none).
@@ -214,6 +240,17 @@ def loop_margins(plant: LinearPlant, controller: DiscreteStateSpace, n_points: i
     ``control.stability_margins`` finds the crossings inside the grid; a phase crossing exactly at
     the Nyquist frequency (where a discrete loop's response is real) is added by hand, since no
     sign change marks it.
+
+    Parameters
+    ----------
+    plant, controller
+        As for :func:`closed_loop_matrix`: the loop is ``L = K(z) P(z)``.
+    n_points : int
+        Points of the logarithmic frequency grid, up to the Nyquist frequency.
+
+    Returns
+    -------
+    Margins
     """
     import control  # lazily: python-control imports matplotlib
 

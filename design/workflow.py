@@ -30,12 +30,14 @@ __all__ = ["DesignReport", "design_from_model", "report_text", "saturation_warni
 class DesignReport:
     """A design and what the model predicts of it.
 
-    Attributes
+    Parameters
     ----------
     model_path : Path
+        The model file designed from.
     model : dict
         The model file as :func:`identify.model_file.load_model` reads it.
     design : LqDesign
+        The design.
     spectral_radius : float
         Of the design plant in closed loop with the controller.
     open_loop_radius : float
@@ -150,7 +152,17 @@ def _row(name: str, prediction: CostPrediction) -> str:
 
 
 def report_text(report: DesignReport) -> str:
-    """What the command prints: the plant, the design, its spectrum and margins, the predicted figures."""
+    """What the command prints: the plant, the design, its spectrum and margins, the predicted figures.
+
+    Parameters
+    ----------
+    report : DesignReport
+        The design (:func:`design_from_model`).
+
+    Returns
+    -------
+    str
+    """
     d, w, m = report.design, report.design.weights, report.margins.as_dict()
     integral = f", q_integral {w.q_integral:g} (integral action on the arm)" if w.integral else " (no integral action)"
     ex = report.excitation

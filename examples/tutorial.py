@@ -72,9 +72,12 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
-from qube_koopman.daq.log import write_episode
-from qube_koopman.daq.log.names import log_path
+from qube_koopman.daq import (
+    legacy_episode,
+    load_legacy_controller,
+    log_path,
+    write_episode,
+)
 
 IN_NOTEBOOK = "ipykernel" in sys.modules  # a Jupyter kernel's argv is its own, not ours
 ARGS = [] if IN_NOTEBOOK else sys.argv[1:]
@@ -126,8 +129,8 @@ def show(png: Path) -> None:
 # the pendulum was raised by hand, is dropped.
 
 # %%
-from qube_koopman.daq.log.names import find_logs
-from qube_koopman.identify.data import load_logs
+from qube_koopman.daq import find_logs
+from qube_koopman.identify import load_logs
 
 train = load_logs(find_logs(work / "train"), skip=500)
 test = load_logs(find_logs(work / "test"), skip=500)
@@ -151,8 +154,7 @@ print(f"{episode.n_samples} samples of {episode.dt} s; states {episode.state_nam
 # its initial condition, references and feedforward.
 
 # %%
-from qube_koopman.identify import Constant, Delay, Polynomial
-from qube_koopman.identify.workflow import identify_and_score
+from qube_koopman.identify import Constant, Delay, Polynomial, identify_and_score
 
 result = identify_and_score(method="cl-edmd", lifting=[Polynomial(POLY), Delay(DELAYS), Constant()], train=train, test=test,
                             controller=controller, alphas=ALPHAS, cv_splits=2)
@@ -171,7 +173,7 @@ print("spectral radius: closed loop {closed_loop:.5f}, plant {plant:.5f}".format
 # one into a matplotlib figure and `write_figures` saves them as PNG and PDF.
 
 # %%
-from qube_koopman.identify.figures import identification_figures, write_figures
+from qube_koopman.identify import identification_figures, write_figures
 
 specs = identification_figures(result)
 for spec, png in zip(specs, write_figures(specs, work / "figures")):
@@ -188,18 +190,19 @@ for spec, png in zip(specs, write_figures(specs, work / "figures")):
 # upright, drawn as on the rig (as `qube-run --controller soft-theta` does).
 
 # %%
-from qube_koopman.daq.backends.sim import SimBackend
-from qube_koopman.daq.controller import load_pd_gains, pd_controller
-from qube_koopman.daq.episode import ControllerInfo
-from qube_koopman.daq.log import read_episode_metadata
-from qube_koopman.daq.session import (
+from qube_koopman.daq import (
+    ControllerInfo,
+    McapSink,
+    SimBackend,
     excitation_settings,
+    load_pd_gains,
+    pd_controller,
     plan_episodes,
+    read_episode_metadata,
     run_episodes,
     run_seeds,
 )
-from qube_koopman.daq.sinks import McapSink
-from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
+from qube_koopman.sim import PendulumParameters, ZeroOffsetDistribution
 
 soft = load_pd_gains("soft-theta")
 soft_info = ControllerInfo(pd_controller(soft), "backward-euler", soft.as_dict(), "pd")
@@ -220,8 +223,8 @@ print(f"{len(twin)} twin episodes under soft-theta; their encoder zeros (rad): {
 # the estimate (`qube-identify --offsets alpha` does the same).
 
 # %%
-from qube_koopman.identify import close_loop
-from qube_koopman.identify.offsets import (
+from qube_koopman.identify import (
+    close_loop,
     estimate_offsets_many,
     predict_with_offsets_many,
     scores_after_window,
@@ -251,7 +254,7 @@ print(f"soft-theta episodes: R^2 {r2_soft_offsets:.4f} with the offsets estimate
 # measured and predicted angles, drawn with `draw`.
 
 # %%
-from qube_koopman.identify.figures import Curve, SeriesPlot, draw
+from qube_koopman.identify import Curve, SeriesPlot, draw
 
 predicted = predict_with_offsets_many(soft_loop, trajectories[:1], estimates[:1])[0]
 x = trajectories[0].x

@@ -20,7 +20,7 @@ __all__ = ["DecoderStats", "StreamDecoder"]
 class DecoderStats:
     """Counters of a ``StreamDecoder`` (the C decoder keeps the same ones).
 
-    Attributes
+    Parameters
     ----------
     frames : int
         Valid frames delivered.

@@ -60,7 +60,7 @@ class Reject(IntEnum):
 class Frame:
     """A decoded frame.
 
-    Attributes
+    Parameters
     ----------
     message : Message
         The payload, as its message class.
@@ -154,6 +154,11 @@ def encode_frame(message: Message, seq: int, timestamp_us: int) -> bytes:
 
 def parse_piece(piece: bytes | bytearray | memoryview) -> Frame | Reject:
     """Decode the bytes between two delimiters; never raises.
+
+    Parameters
+    ----------
+    piece : bytes-like
+        The COBS-encoded bytes of one frame, without its 0x00 delimiters.
 
     Returns
     -------

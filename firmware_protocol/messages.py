@@ -208,6 +208,11 @@ class Hello(Message):
 
     A HELLO resets the session: amplifier off, watchdog disarmed and cleared,
     tick counter zero, then telemetry every tick.
+
+    Parameters
+    ----------
+    nonce : int
+        Echoed in the reply, to pair them.
     """
 
     TYPE: ClassVar[MessageType] = MessageType.HELLO
@@ -218,7 +223,23 @@ class Hello(Message):
 
 @dataclass(frozen=True)
 class HelloReply(Message):
-    """Device to host: versions, capabilities and the current configuration."""
+    """Device to host: versions, capabilities and the current configuration.
+
+    Parameters
+    ----------
+    nonce : int
+        The HELLO's.
+    protocol_version : int
+        The protocol the firmware speaks.
+    firmware_major, firmware_minor, firmware_patch : int
+        The firmware's version.
+    capabilities : int
+        :class:`Capability` bits.
+    rate_hz, watchdog_ticks, max_millivolts : int
+        The configuration in force.
+    module_id : int
+        The last module id read over SPI (777 for a QUBE-Servo 2; 0 before the first tick).
+    """
 
     TYPE: ClassVar[MessageType] = MessageType.HELLO_REPLY
     LAYOUT: ClassVar = (
@@ -259,6 +280,15 @@ class Config(Message):
 
     The device answers with ``ConfigAck``; a refused configuration changes
     nothing.
+
+    Parameters
+    ----------
+    rate_hz : int
+        Tick rate, 10-1000 Hz and dividing 1,000,000 (a whole period in µs).
+    watchdog_ticks : int
+        Ticks without a command before the amplifier is switched off, 1-1000.
+    max_millivolts : int
+        Voltage limit, 0-15000 mV: commands beyond it are clamped.
     """
 
     TYPE: ClassVar[MessageType] = MessageType.CONFIG
@@ -276,7 +306,15 @@ class Config(Message):
 
 @dataclass(frozen=True)
 class ConfigAck(Message):
-    """Device to host: the result of a ``Config`` and the configuration now in force."""
+    """Device to host: the result of a ``Config`` and the configuration now in force.
+
+    Parameters
+    ----------
+    result : int
+        :class:`ConfigResult`: OK, or the first problem found.
+    rate_hz, watchdog_ticks, max_millivolts : int
+        The configuration in force after the request.
+    """
 
     TYPE: ClassVar[MessageType] = MessageType.CONFIG_ACK
     LAYOUT: ClassVar = (("B", None), ("H", None), ("H", None), ("H", None))
@@ -293,6 +331,15 @@ class Command(Message):
 
     The command's sequence number is its frame's ``seq``. Encoder resets are
     one-shot: they are applied at the next tick only.
+
+    Parameters
+    ----------
+    millivolts : int
+        Motor voltage, -15000..15000 mV.
+    flags : int
+        :class:`CommandFlags`: amplifier enable, encoder 0 reset, encoder 1 reset.
+    led_red, led_green, led_blue : int
+        LED colour, 0-999 each.
     """
 
     TYPE: ClassVar[MessageType] = MessageType.COMMAND
@@ -310,7 +357,29 @@ class Command(Message):
 
 @dataclass(frozen=True)
 class Telemetry(Message):
-    """Device to host, every tick: what was measured and what was applied."""
+    """Device to host, every tick: what was measured and what was applied.
+
+    Parameters
+    ----------
+    tick : int
+        Periods since the HELLO that opened the session (a gap counts lost periods).
+    encoder0, encoder1 : int
+        Motor (arm) and pendulum encoder counts, sign-extended from the QUBE's 24 bits.
+    tach_raw : int
+        The QUBE's raw 24-bit tachometer word.
+    current_raw : int
+        Raw current sense.
+    status : int
+        :class:`Status` bits.
+    last_command_seq : int
+        ``seq`` of the newest command received (0: none).
+    applied_millivolts : int
+        Voltage applied at this tick, after the limit and the watchdog.
+    motor_word : int
+        The 16-bit motor command sent to the QUBE at this tick.
+    command_age : int
+        Ticks since the newest command arrived; 0xFFFF: none yet in this session.
+    """
 
     TYPE: ClassVar[MessageType] = MessageType.TELEMETRY
     LAYOUT: ClassVar = (
@@ -332,7 +401,17 @@ class Telemetry(Message):
 
 @dataclass(frozen=True)
 class Fault(Message):
-    """Device to host: something went wrong (sent once, on the event)."""
+    """Device to host: something went wrong (sent once, on the event).
+
+    Parameters
+    ----------
+    code : int
+        :class:`FaultCode`.
+    tick : int
+        The session's tick counter at the event.
+    value : int
+        Detail, per code (PROTOCOL.md).
+    """
 
     TYPE: ClassVar[MessageType] = MessageType.FAULT
     LAYOUT: ClassVar = (("B", None), ("I", None), ("I", None))

@@ -290,7 +290,13 @@ class ClEdmdKnownRows(ClEdmd):
 
     Same plant as :class:`ClEdmd`; the closed-loop matrix is exactly that
     plant wrapped with the controller, so its controller rows do not drift.
-    Parameters as :class:`ClEdmd`, with ``known_controller_rows=True``.
+
+    Parameters
+    ----------
+    controller, lifting, alpha, measured, regularize
+        As for :class:`ClEdmd`.
+    known_controller_rows : bool
+        True (the variant's point); False makes it :class:`ClEdmd`.
     """
 
     def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,

@@ -31,7 +31,19 @@ class UnreadableLogSkipped(IncompleteLogSkipped):
 
 @dataclass(frozen=True, eq=False)
 class LoggedTrajectory:
-    """One episode log, ready for identification (``gains``: those the log's controller was built from)."""
+    """One episode log, ready for identification (what :func:`load_logs` returns, one per log).
+
+    Parameters
+    ----------
+    path : Path
+        The log.
+    trajectory : Trajectory
+        Its signals, after the samples skipped.
+    controller : DiscreteStateSpace
+        The controller the log records, as the rig ran it.
+    gains : dict, optional
+        The gains that controller was built from (a PD's), if the log records them.
+    """
 
     path: Path
     trajectory: Trajectory

@@ -70,7 +70,19 @@ def _finite_or_nan(values) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Curve:
-    """One plotted curve: a label (the ``Line2D`` gid), values against the plot's x, a panel."""
+    """One plotted curve: a label (the ``Line2D`` gid), values against the plot's x, a panel.
+
+    Parameters
+    ----------
+    label : str
+        The legend's label (and the line's gid).
+    y : ndarray of shape (n,)
+        Values against the plot's x.
+    panel : int
+        The panel it is drawn on.
+    style : str
+        A matplotlib line style.
+    """
 
     label: str
     y: np.ndarray
@@ -85,11 +97,14 @@ class Curve:
 class SeriesPlot:
     """Curves against a common x on ``len(ylabels)`` stacked panels.
 
-    Attributes
+    Parameters
     ----------
     title : str
+        The figure's title.
     x : ndarray of shape (n,)
+        The common x values.
     xlabel : str
+        The x axis' label.
     ylabels : tuple of str
         One per panel.
     curves : tuple of Curve
@@ -213,7 +228,21 @@ def draw(data: SeriesPlot | EigenvaluePlot):
 
 
 def write_figures(specs: Sequence[FigureSpec], folder: str | Path, dpi: int = 120) -> list[Path]:
-    """Draw each spec and save it as ``folder/<stem>.png`` and ``.pdf``; returns the PNG paths."""
+    """Draw each spec and save it as ``folder/<stem>.png`` and ``.pdf``; returns the PNG paths.
+
+    Parameters
+    ----------
+    specs : sequence of FigureSpec
+        The figures (:func:`identification_figures`).
+    folder : str or Path
+        Where to write them (created if missing).
+    dpi : int
+        Resolution of the PNG files.
+
+    Returns
+    -------
+    list of Path
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     written = []

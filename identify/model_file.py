@@ -86,7 +86,27 @@ def _model_to_dict(model: KoopmanModel | None) -> dict | None:
 def save_model(path: str | Path, *, method: str, alpha: float | None, plant: KoopmanModel,
                closed_loop: KoopmanModel | None, controller: DiscreteStateSpace | None,
                measured: list[int], training: dict) -> None:
-    """Write a model file (see MODEL_FORMAT.md)."""
+    """Write a model file (see MODEL_FORMAT.md), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file to write (replaced if it exists).
+    method : str
+        The identification method (``qube-identify --method``: ``"cl-edmd"``, ``"edmd"``, ...).
+    alpha : float or None
+        The Tikhonov coefficient of the fit (None for a method without one).
+    plant : KoopmanModel
+        The plant model (input ``u``); its lifting is saved with it.
+    closed_loop : KoopmanModel or None
+        The closed-loop model (inputs ``r``, ``f``), if the method identified one.
+    controller : DiscreteStateSpace or None
+        The controller of the closed loop.
+    measured : list of int
+        The fed-back plant states.
+    training : dict
+        What the model was fitted on, stored as given (JSON values).
+    """
     data = {
         "format": FORMAT, "version": VERSION, "method": method, "alpha": alpha, "dt": plant.dt,
         "lifting": lifting_to_dict(plant.lifting), "measured": list(measured),
@@ -99,6 +119,11 @@ def save_model(path: str | Path, *, method: str, alpha: float | None, plant: Koo
 
 def load_model(path: str | Path) -> dict:
     """Read a model file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A file :func:`save_model` wrote (``qube-identify --model``).
 
     Returns
     -------

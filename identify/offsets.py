@@ -70,7 +70,7 @@ class OffsetWarning(UserWarning):
 class OffsetEstimate:
     """Offsets of one episode, estimated from its first ``window`` samples.
 
-    Attributes
+    Parameters
     ----------
     channels : tuple of int
         Measured channels with an offset.
@@ -169,7 +169,20 @@ def shift_trajectory(model, trajectory: Trajectory, offsets: Mapping[int, float]
 
 def predict_with_offsets(model, trajectory: Trajectory, offsets: Mapping[int, float],
                          relift: bool = True) -> np.ndarray:
-    """Prediction of the measured states with known offsets (see the module docstring)."""
+    """Prediction of the measured states with known offsets (see the module docstring).
+
+    Parameters
+    ----------
+    model, trajectory, relift
+        As for :func:`estimate_offsets`.
+    offsets : mapping of int to float
+        Offset of each measured channel (measured = true + offset).
+
+    Returns
+    -------
+    ndarray of shape (n_samples, n_measured)
+        The predicted measured states, offsets included.
+    """
     pred = model.predict(shift_trajectory(model, trajectory, offsets), relift=relift)
     for c, value in offsets.items():
         pred[:, c] += value
@@ -301,7 +314,24 @@ def _std_error(J: np.ndarray, res: np.ndarray) -> np.ndarray:
 
 def predict_with_offsets_many(model, trajectories: Sequence[Trajectory], estimates: Sequence[OffsetEstimate],
                               relift: bool = True) -> list[np.ndarray]:
-    """:func:`predict_with_offsets` for many episodes, batched by length (implausible estimates unused)."""
+    """:func:`predict_with_offsets` for many episodes, batched by length (implausible estimates unused).
+
+    Parameters
+    ----------
+    model : KoopmanModel
+        Closed-loop model (inputs r, f) or plant model (input u).
+    trajectories : sequence of Trajectory
+        The episodes.
+    estimates : sequence of OffsetEstimate
+        Each episode's offsets (:func:`estimate_offsets_many`).
+    relift : bool
+        As in prediction.
+
+    Returns
+    -------
+    list of ndarray
+        Each episode's predicted measured states.
+    """
     out: list[np.ndarray | None] = [None] * len(trajectories)
     by_length: dict[int, list[int]] = {}
     for i, t in enumerate(trajectories):
@@ -327,6 +357,20 @@ def estimate_offsets_many(model, trajectories: Sequence[Trajectory], channels: S
     batched simulation, which is what makes cross-validation with offsets
     affordable. The residual is nearly affine in the offsets, so a few steps
     reach the Levenberg-Marquardt solution (tests compare the two).
+
+    Parameters
+    ----------
+    model, channels, window, bound, relift, weighted
+        As for :func:`estimate_offsets`.
+    trajectories : sequence of Trajectory
+        The episodes.
+    iterations : int
+        Gauss-Newton steps.
+
+    Returns
+    -------
+    list of OffsetEstimate
+        One per episode, in order.
     """
     trajectories = list(trajectories)
     if not trajectories:
@@ -388,6 +432,23 @@ def scores_after_window(model, trajectories: Sequence[Trajectory], window: int, 
     The protocol candidates and probes are scored by: the whole episode predicted from its start
     (with the offset estimated from the first ``window`` samples when ``offsets``), R^2 averaged
     over the measured states, -inf for a diverged prediction.
+
+    Parameters
+    ----------
+    model : KoopmanModel
+        Closed-loop model (inputs r, f).
+    trajectories : sequence of Trajectory
+        The episodes.
+    window : int
+        Samples of the estimation window; scored from the next one on.
+    offsets : bool
+        Estimate each episode's alpha offset from the window first.
+    bound : float
+        Plausibility bound of the estimate (:func:`estimate_offsets`).
+
+    Returns
+    -------
+    ndarray of shape (n_episodes,)
     """
     from qube_koopman.identify.scores import r2_scores
 

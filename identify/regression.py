@@ -40,7 +40,7 @@ def _triangular_factor(M: np.ndarray) -> np.ndarray:
 class Snapshots:
     """Sufficient statistics of a regression ``theta_{k+1} ~ U psi_k``.
 
-    Attributes
+    Parameters
     ----------
     R : ndarray of shape (r, n_regressors + n_targets)
         Upper-triangular factor with ``R^T R = [Psi; Theta_+] [Psi; Theta_+]^T``.
@@ -193,6 +193,19 @@ def ridge_solve(snapshots: Snapshots, alpha: float, rows: slice = slice(None)) -
 
     With ``alpha = 0`` and collinear regressors this is the minimum-norm
     (pseudoinverse) solution.
+
+    Parameters
+    ----------
+    snapshots : Snapshots
+        The regression's statistics.
+    alpha : float
+        Tikhonov coefficient on ``||U||^2`` against the un-normalized sum of squares.
+    rows : slice
+        The target rows to solve for (all by default).
+
+    Returns
+    -------
+    ndarray of shape (n_rows, n_regressors)
     """
     top = _psi_block(snapshots)
     path = _path(snapshots, ("ridge",), lambda: _RidgePath.of(snapshots._psi[top]))
@@ -215,6 +228,24 @@ def constrained_plant_solve(snapshots: Snapshots, S: np.ndarray, alpha: float, r
     closed-loop penalty, in the coordinates ``w = R_s u`` of ``S^T = Q_s R_s``
     (``||S^T u|| = ||w||``), when ``S`` has full row rank (else by least squares
     on the stacked problem).
+
+    Parameters
+    ----------
+    snapshots : Snapshots
+        The closed loop's statistics.
+    S : ndarray
+        The plant input map (:func:`~qube_koopman.identify.structure.plant_input_map`).
+    alpha : float
+        Tikhonov coefficient.
+    rows : slice
+        The plant rows of the closed-loop targets.
+    regularize : {"closed_loop", "plant"}
+        Which matrix the penalty is on.
+
+    Returns
+    -------
+    ndarray
+        ``U^p = [A^p B^p]``.
     """
     top = _psi_block(snapshots)
     block = _Block(snapshots._psi[top], snapshots._theta[top, rows], S, 1.0)

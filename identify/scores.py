@@ -139,6 +139,11 @@ def r2_score(y_true, y_pred) -> float:
 
     Constant true channels are left out with a :class:`ConstantChannelWarning`
     (NaN when every channel is constant).
+
+    Parameters
+    ----------
+    y_true, y_pred : array_like of shape (n_samples, n_states)
+        Measured and predicted states (error = true - predicted).
     """
     y_true, y_pred = _pair(y_true, y_pred)
     constant = np.flatnonzero(np.all(y_true == y_true[0], axis=0))
@@ -154,7 +159,13 @@ def _peak(y_true: np.ndarray) -> np.ndarray:
 
 
 def nrmse(y_true, y_pred) -> float:
-    """RMS error as a percentage of each state's peak amplitude, averaged over states."""
+    """RMS error as a percentage of each state's peak amplitude, averaged over states.
+
+    Parameters
+    ----------
+    y_true, y_pred : array_like of shape (n_samples, n_states)
+        Measured and predicted states (error = true - predicted).
+    """
     y_true, y_pred = _pair(y_true, y_pred)
     if not np.all(np.isfinite(y_pred)):
         return np.inf
@@ -163,7 +174,13 @@ def nrmse(y_true, y_pred) -> float:
 
 
 def normalized_mean_error(y_true, y_pred) -> float:
-    """Mean error as a percentage of each state's peak amplitude, averaged over states."""
+    """Mean error as a percentage of each state's peak amplitude, averaged over states.
+
+    Parameters
+    ----------
+    y_true, y_pred : array_like of shape (n_samples, n_states)
+        Measured and predicted states (error = true - predicted).
+    """
     y_true, y_pred = _pair(y_true, y_pred)
     if not np.all(np.isfinite(y_pred)):
         return np.inf
@@ -178,6 +195,17 @@ def score_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray],
     """Mean and standard deviation of a score over episodes.
 
     A diverged episode makes the mean (and standard deviation) infinite.
+
+    Parameters
+    ----------
+    y_true, y_pred : sequence of ndarray of shape (n_samples, n_states)
+        Each episode's measured and predicted states.
+    score : {"r2", "nrmse", "nme"}
+        The score.
+
+    Returns
+    -------
+    mean, std : float
     """
     if score not in SCORES:
         raise ValueError(f"unknown score {score!r}; expected one of {', '.join(SCORES)}")

@@ -38,7 +38,19 @@ __all__ = [
 
 
 def output_selection(n_lifted: int, measured: Sequence[int]) -> np.ndarray:
-    """``C^p``: rows of the identity picking the measured states out of the lifted plant state."""
+    """``C^p``: rows of the identity picking the measured states out of the lifted plant state.
+
+    Parameters
+    ----------
+    n_lifted : int
+        Size of the lifted plant state.
+    measured : sequence of int
+        The fed-back states' indices.
+
+    Returns
+    -------
+    ndarray of shape (len(measured), n_lifted)
+    """
     measured = list(measured)
     if any(not 0 <= i < n_lifted for i in measured):
         raise ValueError(f"measured state indices {measured} are outside 0..{n_lifted - 1}")
@@ -88,6 +100,19 @@ def plant_input_map(controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforwa
 
     ``n_feedforward`` is 0 when the loop has no feedforward input, else the
     number of plant inputs.
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        The known controller.
+    C_p : ndarray
+        The fed-back states (:func:`output_selection`).
+    n_feedforward : int
+        Feedforward channels.
+
+    Returns
+    -------
+    ndarray
     """
     _check_controller(controller, C_p, n_feedforward)
     n_c, n_p, n_r, n_u = controller.n_states, C_p.shape[1], C_p.shape[0], controller.n_outputs
@@ -101,7 +126,24 @@ def plant_input_map(controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforwa
 
 def closed_loop_matrices(A_p: np.ndarray, B_p: np.ndarray, controller: DiscreteStateSpace,
                          C_p: np.ndarray, n_feedforward: int) -> tuple[np.ndarray, np.ndarray]:
-    """Wrap a plant ``(A^p, B^p)`` with the controller: the closed-loop ``(A^f, B^f)``."""
+    """Wrap a plant ``(A^p, B^p)`` with the controller: the closed-loop ``(A^f, B^f)``.
+
+    Parameters
+    ----------
+    A_p, B_p : ndarray
+        The plant on its lifted state.
+    controller : DiscreteStateSpace
+        The controller, from the tracking error (and, with more inputs, the feedforward).
+    C_p : ndarray
+        The fed-back states (:func:`output_selection`).
+    n_feedforward : int
+        Feedforward channels (0: none).
+
+    Returns
+    -------
+    A_f, B_f : ndarray
+        The closed loop on ``[x^c; theta^p]`` with inputs ``[r; f]``.
+    """
     _check_controller(controller, C_p, n_feedforward)
     n_c = controller.n_states
     S = plant_input_map(controller, C_p, n_feedforward)
@@ -119,6 +161,21 @@ def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np
     ``B^p = [U21 U23 U24] [C^c D^c I]^+`` and ``A^p = U22 + B^p D^c C^p``.
     Re-wrapping the result with the controller does not in general give
     ``U^f`` back (paper appendix).
+
+    Parameters
+    ----------
+    U_f : ndarray
+        The closed-loop Koopman matrix, fitted freely.
+    controller : DiscreteStateSpace
+        The known controller.
+    C_p : ndarray
+        The fed-back states.
+    n_feedforward : int
+        Feedforward channels (0: none).
+
+    Returns
+    -------
+    A_p, B_p : ndarray
     """
     _check_controller(controller, C_p, n_feedforward)
     n_c, n_p, n_r = controller.n_states, C_p.shape[1], C_p.shape[0]
@@ -139,7 +196,21 @@ def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np
 def controller_states(controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarray,
                       f: np.ndarray | None = None) -> np.ndarray:
     """Controller state along an episode, run from zero on the tracking error ``r - y`` and, for a
-    controller that takes it, the feedforward ``f`` (the states of :func:`sim.lti.replay_controller`)."""
+    controller that takes it, the feedforward ``f`` (the states of :func:`sim.lti.replay_controller`).
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        The controller.
+    r, y : ndarray of shape (n_samples, n_measured)
+        References and measured states.
+    f : ndarray of shape (n_samples, n_inputs), optional
+        Feedforward.
+
+    Returns
+    -------
+    ndarray of shape (n_samples, n_controller_states)
+    """
     return replay_controller(controller, r, y, feedforward=f)[0]
 
 
@@ -149,6 +220,17 @@ def plant_input(controller: DiscreteStateSpace, xc: np.ndarray, r: np.ndarray, y
     (``D^c [r - y; f] + f`` for a controller that takes the feedforward).
 
     Saturation of the actuator is not modelled here.
+
+    Parameters
+    ----------
+    controller, r, y, f
+        As for :func:`controller_states`.
+    xc : ndarray of shape (n_samples, n_controller_states)
+        The controller's state.
+
+    Returns
+    -------
+    ndarray of shape (n_samples, n_inputs)
     """
     inputs = controller_inputs(controller, r, y, f)  # r - y, then f for a controller that takes it
     u = np.asarray(xc, dtype=float) @ controller.C.T + inputs @ controller.D.T

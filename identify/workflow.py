@@ -78,7 +78,23 @@ def window_protocol(start: int, dt: float) -> str:
 
 @dataclass
 class IdentificationResult:
-    """What a run produced: the report, the models, the test predictions."""
+    """What a run produced: the report, the models, the test predictions.
+
+    Parameters
+    ----------
+    report : dict
+        The run's figures as ``qube-identify`` writes them to its JSON report (``alpha``,
+        ``test`` scores, ``spectral_radius``, ...).
+    plant, closed_loop : KoopmanModel or None
+        The identified plant and closed loop (None where the method gives none).
+    sweep : SweepResult, optional
+        The cross-validation of alpha, when ``alphas`` were given.
+    test_names : list of str
+        The test episodes, in order.
+    test_truth, test_predictions, test_time : list of ndarray
+        Each test episode's measured and predicted states and its time axis (s) (empty without
+        ``keep_predictions``).
+    """
 
     report: dict
     plant: object = None
@@ -128,6 +144,49 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     cross-validation and the test scores then read one episode at a time, and memory does not
     grow with the number of logs. ``keep_predictions``: keep every test episode's truth and
     prediction in the result (for a recording); without it only their scores are kept.
+
+    Parameters
+    ----------
+    method : str
+        ``"cl-edmd"``, ``"cl-edmd-known-rows"``, ``"cl-edmd-lstsq"``, ``"cl-edmd-stable"``,
+        ``"edmd"``, ``"arx"`` or ``"cl-arx"`` (``qube-identify --method``).
+    lifting : sequence of LiftingFunction
+        The lifting of the plant states (the Koopman methods).
+    train, test : sequence of LoggedTrajectory
+        The training and test logs (:func:`load_logs`).
+    controller : DiscreteStateSpace
+        The controller whose closed loop the model describes.
+    alpha : float
+        The Tikhonov coefficient, when ``alphas`` is not given.
+    alphas : sequence of float, optional
+        Candidates for alpha, chosen by cross-validation on the training logs.
+    score : {"cl", "plant"}
+        Predict the test episodes in closed loop or from their plant input (and score the
+        cross-validation so).
+    cv_splits, cv_seed : int
+        The episode-grouped splits of the cross-validation and their seed.
+    arx_lags : int
+        Output and input lags of ``"arx"`` and ``"cl-arx"``.
+    model_path : str or Path, optional
+        Write the identified model there (:func:`save_model`).
+    offsets : OffsetProtocol, optional
+        Estimate each test episode's offsets from its initial window.
+    what_if : DiscreteStateSpace, optional
+        Predict every test episode under this controller instead.
+    estimator_options : dict, optional
+        More constructor arguments of the estimator (``max_radius`` of ``"cl-edmd-stable"``, ...).
+    progress : callable, optional
+        ``progress(stage, done, total)``, called as the work advances.
+    score_from : int, optional
+        Score the test episodes from this sample on (without ``offsets``).
+    keep_predictions : bool
+        Keep the test episodes' truth and predictions in the result.
+    episode_statistics : callable, optional
+        Computes the per-episode statistics elsewhere (a dask cluster).
+
+    Returns
+    -------
+    IdentificationResult
     """
     if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None):
         raise ValueError(f"offsets and what-if controllers need a Koopman method, not {method}")

@@ -29,7 +29,19 @@ __all__ = [
 
 @dataclass(frozen=True)
 class DuffingParameters:
-    """Duffing oscillator ``m x'' + b x' + k1 x + k2 x^3 = u`` (SI units)."""
+    """Duffing oscillator ``m x'' + b x' + k1 x + k2 x^3 = u`` (SI units).
+
+    Parameters
+    ----------
+    mass : float
+        ``m`` (kg).
+    damping : float
+        ``b`` (N s/m).
+    stiffness : float
+        ``k1`` (N/m).
+    hardening : float
+        ``k2`` (N/m^3).
+    """
 
     mass: float = 0.01
     damping: float = 0.1
@@ -130,7 +142,19 @@ def simulate_duffing_episode(reference: np.ndarray, controller: DiscreteStateSpa
 
 @dataclass(frozen=True, eq=False)
 class DuffingExperiment:
-    """The paper's data set: noisy training episodes and a noise-free test episode."""
+    """The paper's data set: noisy training episodes and a noise-free test episode.
+
+    Parameters
+    ----------
+    train, test : list of DuffingEpisode
+        The episodes.
+    controller : DiscreteStateSpace
+        The PI controller they ran under.
+    params : DuffingParameters
+        The oscillator.
+    seed : int
+        The seed everything was drawn from.
+    """
 
     train: list[DuffingEpisode]
     test: list[DuffingEpisode]
@@ -147,6 +171,25 @@ def duffing_experiment(seed: int = 1234, n_train: int = 10, n_test: int = 1,
 
     Training episodes carry coloured measurement noise (the controller sees
     it); test episodes are noise-free.
+
+    Parameters
+    ----------
+    seed : int
+        The seed of every random draw.
+    n_train, n_test : int
+        Training and test episodes.
+    duration_s : float
+        Length of each episode (s).
+    dt : float
+        Sample period (s).
+    noise_variance : float
+        Variance of the training episodes' measurement noise.
+    params : DuffingParameters
+        The oscillator.
+
+    Returns
+    -------
+    DuffingExperiment
     """
     if n_train < 1 or n_test < 0:
         raise ValueError(f"need at least one training episode, got n_train={n_train}, n_test={n_test}")

@@ -90,6 +90,25 @@ def test_every_public_name_is_in_the_api_reference(built_docs):
     assert not missing, f"not in the API reference: {missing}"
 
 
+@pytest.mark.slow
+def test_each_package_page_lists_the_names_the_package_exports(built_docs):
+    """The public API is package-level (``from qube_koopman.daq import read_episode``): each package's
+    page links every function and class of its ``__all__`` to where it is described."""
+    import importlib
+    import inspect
+
+    from _public_api import PACKAGES
+
+    missing = []
+    for package in PACKAGES:
+        module = importlib.import_module(package)
+        page = (built_docs / "api" / "generated" / f"{package}.html").read_text()
+        missing += [f"{package}.{name}" for name in module.__all__
+                    if (inspect.isclass(obj := getattr(module, name)) or inspect.isfunction(obj))
+                    and f'href="{obj.__module__}.html#{obj.__module__}.{obj.__qualname__}"' not in page]
+    assert not missing, f"not linked from their package's page: {missing}"
+
+
 # Run in a fresh interpreter outside the checkout (-P, another working folder), so an example
 # can import only what a user's install provides: `from firmware_protocol import ...` would
 # pass from the repository's root and fail for every user.

@@ -76,10 +76,32 @@ def parse_episode_name(path: str | Path, suffix: str) -> EpisodeName | None:
 
 
 def log_path(folder: str | Path, stem: str) -> Path:
-    """The episode log named ``stem`` in ``folder``."""
+    """The episode log named ``stem`` in ``folder``.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Where the logs are.
+    stem : str
+        The episode's name (:func:`episode_stem`), without the suffix.
+
+    Returns
+    -------
+    Path
+    """
     return Path(folder) / f"{stem}{LOG_SUFFIX}"
 
 
 def find_logs(folder: str | Path) -> list[Path]:
-    """The episode logs in ``folder``, sorted by name (so in the order they ran)."""
+    """The episode logs in ``folder``, sorted by name (so in the order they ran).
+
+    Parameters
+    ----------
+    folder : str or Path
+        Where the logs are.
+
+    Returns
+    -------
+    list of Path
+    """
     return sorted(Path(folder).glob(f"*{LOG_SUFFIX}"))

@@ -434,6 +434,15 @@ def read_episode_metadata(path: str | os.PathLike) -> EpisodeMetadata:
     Chunks are not decompressed, so a damaged chunk is not noticed here
     (:func:`read_episode` checks every one); a truncated file is.
 
+    Parameters
+    ----------
+    path : str or path-like
+        The episode log.
+
+    Returns
+    -------
+    EpisodeMetadata
+
     Raises
     ------
     ValueError

@@ -80,7 +80,7 @@ class RadialBasis(LiftingFunction):
         order of ``X``'s features (a caller may keep them permuted); ``centers_sq`` their
         squared norms. ``|x - c|^2 = |x|^2 - 2 x.c + |c|^2``: one matrix product instead of
         an (..., centres, features) difference array (20x faster in the re-lifted prediction
-        of a search). The cancellation costs ~1e-8 |x| of distance, far below the kernels'
+        of a search). The cancellation costs ~1e-8 ``|x|`` of distance, far below the kernels'
         scales and offsets.
         """
         sq = np.einsum("...i,...i->...", X, X)[..., None] - 2.0 * (X @ centers_t) + centers_sq

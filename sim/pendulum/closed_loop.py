@@ -24,7 +24,7 @@ __all__ = ["ClosedLoopRun", "simulate_closed_loop"]
 class ClosedLoopRun:
     """Result of :func:`simulate_closed_loop`; time is the first axis of every array.
 
-    Attributes
+    Parameters
     ----------
     states : ndarray of shape (n_steps + 1, ..., 4)
         True plant states, starting with the initial one.

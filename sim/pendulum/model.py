@@ -389,6 +389,11 @@ def total_energy(state, params: PendulumParameters = PendulumParameters()) -> np
 def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tuple[np.ndarray, np.ndarray]:
     """Continuous linearization ``x_dot = A x + B V`` at the upright equilibrium.
 
+    Parameters
+    ----------
+    params : PendulumParameters
+        The pendulum (the calibrated twin by default).
+
     Returns
     -------
     A : ndarray of shape (4, 4)
@@ -428,7 +433,21 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
 
 def linear_model(params: PendulumParameters = PendulumParameters(),
                  dt: float = SAMPLE_PERIOD) -> DiscreteStateSpace:
-    """The upright linearization discretized exactly under zero-order hold, measuring (theta, alpha)."""
+    """The upright linearization discretized exactly under zero-order hold, measuring (theta, alpha).
+
+    Parameters
+    ----------
+    params : PendulumParameters
+        The pendulum (the calibrated twin by default).
+    dt : float
+        Sample period (s).
+
+    Returns
+    -------
+    DiscreteStateSpace
+        State theta, alpha, theta_dot, alpha_dot (from :func:`linearize_upright`), input the
+        voltage, outputs theta and alpha.
+    """
     from scipy.linalg import expm  # here: the simulator itself does without scipy
 
     check_timing(dt, 1)

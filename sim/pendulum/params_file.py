@@ -114,6 +114,15 @@ def plant_parameters(name_or_path: str | Path | None) -> PendulumParameters:
 def load_plant(path: str | Path) -> PlantFile:
     """Read a plant file.
 
+    Parameters
+    ----------
+    path : str or Path
+        A plant file (``qube-calibrate``'s output, :func:`save_plant`).
+
+    Returns
+    -------
+    PlantFile
+
     Raises
     ------
     PlantFileError
@@ -161,7 +170,15 @@ def _toml_value(value) -> str:
 
 
 def save_plant(path: str | Path, plant: PlantFile) -> None:
-    """Write a plant file (format above); floats round-trip exactly."""
+    """Write a plant file (format above); floats round-trip exactly.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (written atomically, replaced if it exists).
+    plant : PlantFile
+        The parameters, their standard errors and provenance.
+    """
     lines = [f'format = "{FORMAT}"', "", "[parameters]"]
     lines += [f"{k} = {_toml_value(float(v))}" for k, v in asdict(plant.params).items()]
     if plant.standard_errors:
