@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_path", "output_file_problem", "output_folder_problem"]
+__all__ = ["atomic_path", "cache_root", "output_file_problem", "output_folder_problem"]
 
 
 @contextmanager
@@ -176,3 +176,13 @@ def output_file_problem(path: str | Path, *, force: bool = False) -> str | None:
     if path.exists() and not force and path.is_file():
         return f"{path}: exists (use --force to overwrite)"
     return None
+
+
+def cache_root() -> Path:
+    """The user's cache folder of the toolkit: ``$QUBE_KOOPMAN_CACHE``, else
+    ``$XDG_CACHE_HOME/qube-koopman`` (``~/.cache/qube-koopman``). Not created here."""
+    explicit = os.environ.get("QUBE_KOOPMAN_CACHE")
+    if explicit:
+        return Path(explicit)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "qube-koopman"

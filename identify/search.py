@@ -33,6 +33,7 @@ cores (``n_jobs``), or on a dask.distributed cluster (see :func:`search_liftings
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Sequence
@@ -50,10 +51,13 @@ from qube_koopman.identify.transfer import ProbeSet, probe_scores
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
-           "evaluate_candidate", "same_controller_scores"]
+           "evaluate_candidate", "same_controller_scores", "search_steps"]
 
+#: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
+TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
 FRICTION_LAG = CoulombFriction().lag  # samples: the fewest delays the friction lifting needs
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, order=True)
@@ -201,6 +205,12 @@ class CandidateResult:
         R^2 of each transfer probe episode (:mod:`~qube_koopman.identify.transfer`)
         predicted by the plant fitted on all training episodes (NaN: alpha not
         probed; -inf: diverged). None when the search has no probes.
+    timing : dict of str to float
+        Where ``seconds`` went (:data:`TIMING_KEYS`): ``statistics`` (lifting the
+        training episodes, their factors), ``fits`` (every fold's solves),
+        ``predictions`` (the folds' validation episodes), ``offsets`` (their
+        offsets estimated and predicted again), ``probe_fits`` and
+        ``probe_scoring`` (the plants on all episodes, predicting the probes).
     """
 
     spec: LiftingSpec
@@ -209,6 +219,7 @@ class CandidateResult:
     cv_r2: np.ndarray
     seconds: float
     transfer_r2: np.ndarray | None = None
+    timing: dict = field(default_factory=dict)
 
     @property
     def mean(self) -> np.ndarray:
@@ -278,7 +289,8 @@ class CandidateResult:
                "n_features": self.spec.n_features(), "alpha": self.best_alpha, "objective": number(self.score),
                "cv_r2": number(self.cv_score), "cv_r2_std": number(self.score_std),
                "transfer_r2": number(self.transfer_score), "transfer_r2_worst": number(self.transfer_worst),
-               "seconds": self.seconds, "cv_r2_by_alpha": [number(v) for v in self.mean]}
+               "seconds": self.seconds, "timing": {k: round(v, 3) for k, v in self.timing.items()},
+               "cv_r2_by_alpha": [number(v) for v in self.mean]}
         if self.transfer_r2 is not None:
             out["transfer_r2_by_alpha"] = [number(v) for v in self.transfer_mean]
         return out
@@ -303,6 +315,10 @@ class SearchResult:
     same_controller : list of (int, float), optional
         With several training controllers, the winner's scores on folds holding out
         episodes of a controller it trained on (:func:`same_controller_scores`).
+    stage_seconds : dict of str to float
+        Wall time of each stage (its candidates run side by side on ``n_jobs`` workers).
+    probe_seconds : float
+        Time the probes took to simulate (set by the caller that made them).
     """
 
     candidates: list[CandidateResult] = field(default_factory=list)
@@ -311,6 +327,23 @@ class SearchResult:
     probes: ProbeSet | None = None
     folds: object | None = None
     same_controller: list | None = None
+    stage_seconds: dict = field(default_factory=dict)
+    probe_seconds: float = 0.0
+
+    def timing(self) -> dict:
+        """Where the search's time went: per stage its wall time and its candidates' summed
+        time per kind of work (:data:`TIMING_KEYS`; with parallel workers the sums exceed
+        the wall time), and the probes' simulation."""
+        stages = {}
+        for stage, wall in self.stage_seconds.items():
+            work = dict.fromkeys(TIMING_KEYS, 0.0)
+            for r in self.candidates:
+                if r.stage == stage:
+                    for key, value in r.timing.items():
+                        work[key] = work.get(key, 0.0) + value
+            stages[stage] = {"wall": round(wall, 3), "candidates": sum(r.stage == stage for r in self.candidates),
+                             **{k: round(v, 3) for k, v in work.items()}}
+        return {"probe_simulation": round(self.probe_seconds, 3), "stages": stages, "search": round(self.seconds, 3)}
 
     def ranked(self) -> list[CandidateResult]:
         """Best :attr:`CandidateResult.score` first; ties go to the smaller lifting, then the plain protocol."""
@@ -348,28 +381,60 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     the folds again.
     """
     started = time.perf_counter()
-    estimator = ClEdmd(data.controller, lifting=spec.steps(data.rbf_seed))
+    estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
     rescore = not spec.offsets or plain is None
     sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits,
                                  scorings=("cl",) if rescore else (), score_from=data.window, measured_only=True,
                                  keep_fold_models=spec.offsets, fit_all=False, controllers=data.controllers)
+    timing = dict.fromkeys(TIMING_KEYS, 0.0) | sweep.seconds
     cv = sweep.cv_r2["cl"] if rescore else np.asarray(plain, dtype=float)
     if spec.offsets:
+        now = time.perf_counter()
         cv = _offset_scores(sweep, data, cv)
-    transfer = None if data.probes is None else _transfer_scores(estimator, spec, data, cv, sweep.statistics)
+        timing["offsets"] = time.perf_counter() - now
+    transfer = None
+    if data.probes is not None:
+        transfer = _transfer_scores(estimator, spec, data, cv, sweep.statistics, timing)
     return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started,
-                           transfer)
+                           transfer, timing)
 
 
-def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndarray, statistics) -> np.ndarray:
+def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed: int = 0) -> list:
+    """The lifting a candidate is scored with: ``spec.steps``, its RBF centres drawn once on all the
+    training episodes.
+
+    The thin-plate centres are a Latin hypercube scaled to the box the training episodes' lifted
+    states span; drawn per fold, every fold and the probes' plant would lift the episodes anew
+    (four times the statistics, on the search's slowest candidates), for boxes that differ by
+    the few samples of extreme states a fold holds out. Drawn on all the training episodes they
+    are the centres the winner's final fit draws (``qube-identify`` with the winner's flags).
+    """
+    from qube_koopman.identify.lifting import Lifting
+    from qube_koopman.identify.lifting.rbf import RadialBasis
+    from qube_koopman.identify.trajectory import episode_signals
+
+    steps = spec.steps(rbf_seed)
+    at = [i for i, step in enumerate(steps) if isinstance(step, RadialBasis)]
+    if not at:
+        return steps
+    fitted = Lifting(steps[:at[0] + 1]).fit(episode_signals(as_episodes(trajectories), "x"))
+    rbf = steps[at[0]]
+    steps[at[0]] = type(rbf)(**{**rbf.get_params(), "centers": fitted.steps_[at[0]].centers_})
+    return steps
+
+
+def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndarray, statistics,
+                     timing: dict) -> np.ndarray:
     """Probe scores (episodes x alphas) of the plants fitted on all training episodes, at the best CV alphas.
 
     The plants fit only the rows re-lifted predictions use, from the statistics of all the
-    episodes the sweep folded with its folds' when it had them.
+    episodes the sweep folded with its folds' when it had them. ``timing`` gets the time of
+    the fits (``probe_fits``) and of the predictions (``probe_scoring``).
     """
     from qube_koopman.identify._blas import limited_blas_threads
     from qube_koopman.identify.sweep import fit_alphas, fitted_models
 
+    started = time.perf_counter()
     top = np.sort(_best_alphas(cv, data.n_transfer_alphas))
     if statistics is not None:
         setup, snapshots = statistics
@@ -378,10 +443,13 @@ def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndar
     else:
         _, plants = fit_alphas(estimator, data.trajectories, data.alphas[top], relift_rows_only=True,
                                controllers=data.controllers)
+    fitted = time.perf_counter()
+    timing["probe_fits"] = fitted - started
     out = np.full((data.probes.n_episodes, data.alphas.size), np.nan)
     with limited_blas_threads(1):
         for j, plant in zip(top, plants):
             out[:, j] = probe_scores(plant, data.probes, data.window, spec.offsets, data.bound, MEASURED)
+    timing["probe_scoring"] = time.perf_counter() - fitted
     return out
 
 
@@ -495,6 +563,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     result, seen = SearchResult(window=int(window), probes=probes), set()
     try:
         for stage in STAGES:
+            stage_started = time.perf_counter()
             specs = [s for s in space.stage_candidates(stage, result.ranked()) if s not in seen]
             seen.update(specs)
             # An offsets candidate reuses its plain twin's fold scores to choose its alphas.
@@ -505,6 +574,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                 result.candidates.append(res)
                 if progress:
                     progress(f"search: {stage}", done, len(specs))
+            result.stage_seconds[stage] = time.perf_counter() - stage_started
+            _log.info("search: stage %s: %d candidates in %.1f s", stage, len(specs), result.stage_seconds[stage])
     finally:
         release_workers(n_jobs, client)
     result.seconds = time.perf_counter() - started

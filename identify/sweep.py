@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -67,6 +69,10 @@ class SweepResult:
         Every fold's models, with ``keep_fold_models``. Without ``fit_all`` (and
         with ``relift``) only the rows a re-lifted prediction uses are fitted;
         the others are NaN.
+    seconds : dict of str to float
+        Where the time went: ``statistics`` (lifting the episodes and folding their
+        factors), ``fits`` (the solves for every alpha) and ``predictions`` (the folds'
+        validation episodes predicted and scored).
     statistics : (setup, Snapshots or GroupedSnapshots), optional
         Without ``fit_all``: the setup every fold shared and the statistics of
         all the episodes, folded in the same pass as the folds' (None when the
@@ -83,6 +89,7 @@ class SweepResult:
     plant_models: list | None = None
     fold_models: list | None = None
     statistics: tuple | None = None
+    seconds: dict = field(default_factory=lambda: {"statistics": 0.0, "fits": 0.0, "predictions": 0.0})
 
     def cv_r2_mean(self, scoring: str) -> np.ndarray:
         """Mean over folds (-inf where any fold diverged)."""
@@ -283,29 +290,36 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     # Without the final fits only re-lifted predictions are made: the rows they recompute from
     # the predicted states need no fit (on a 40-delay search lifting, 4 rows of 370).
     partial = relift and not fit_all
+    result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
+                         fold_models=[] if keep else None)
+    timed = _timer(result.seconds)
     if _learns_from_data(estimator):
         shared, per_fold = None, None
     else:
         # One pass over the episodes folds each into the running totals of the folds training on it
         # (and of all of them): memory O(folds x p^2), not O(episodes x p^2).
-        setup, (*per_fold, everything) = _statistics(estimator, trajectories, [t for t, _ in splits] + [None],
-                                                     partial, controllers, elsewhere)
+        with timed("statistics"):
+            setup, (*per_fold, everything) = _statistics(estimator, trajectories, [t for t, _ in splits] + [None],
+                                                         partial, controllers, elsewhere)
         shared = (setup, everything)
-    result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
-                         fold_models=[] if keep else None, statistics=None if fit_all else shared)
+    result.statistics = None if fit_all else shared
     for i, (train, validation) in enumerate(splits):
         held_out_by = _fold_controller(controllers, validation, controller, i)
         fold = _for_controller(estimator, held_out_by)
         if shared is None:
-            setup, (snapshots,) = _statistics(fold, select_episodes(trajectories, train), [None], partial,
-                                              None if controllers is None else [controllers[j] for j in train],
-                                              elsewhere, train)
+            with timed("statistics"):
+                setup, (snapshots,) = _statistics(fold, select_episodes(trajectories, train), [None], partial,
+                                                  None if controllers is None else [controllers[j] for j in train],
+                                                  elsewhere, train)
         else:
             setup, snapshots = shared[0], per_fold[i]
-        closed, plants = fitted_models(fold, setup, snapshots, alphas, held_out_by, measured)
+        with timed("fits"):
+            closed, plants = fitted_models(fold, setup, snapshots, alphas, held_out_by, measured)
         held_out = select_episodes(trajectories, validation)
-        for s in scorings:
-            result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start, measured_only)
+        with timed("predictions"):
+            for s in scorings:
+                result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start,
+                                            measured_only)
         if keep:
             result.fold_models.append((closed, plants, np.asarray(validation)))
         if progress:
@@ -325,6 +339,20 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     if progress:
         progress(total, total)
     return result
+
+
+def _timer(seconds: dict):
+    """``with timed(key):`` adds the block's wall time to ``seconds[key]``."""
+
+    @contextmanager
+    def timed(key: str):
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            seconds[key] = seconds.get(key, 0.0) + time.perf_counter() - started
+
+    return timed
 
 
 def _learns_from_data(estimator) -> bool:

@@ -27,11 +27,12 @@ cross-validated one (:mod:`qube_koopman.identify.search`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT  # the rig's safety stops: a probe beyond them is dropped
+from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT  # the rig's safety stops: a probe beyond them is dropped
 from qube_koopman.identify.trajectory import Trajectory, as_episodes
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -87,8 +88,8 @@ class ProbeSet:
 
 
 def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[float]] = DEFAULT_PROBE_GAINS,
-                per_controller: int = 6, params=None, seed: int = 0, skip: int = 500,
-                zero_offsets="rig") -> ProbeSet:
+                per_controller: int = 6, params=None, seed: int = 0, skip: int = SKIP_SAMPLES,
+                zero_offsets="rig", cache: str | Path | None = None) -> ProbeSet:
     """Replay training excitations on the twin under probe controllers.
 
     Parameters
@@ -111,12 +112,19 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
         Where each episode's pendulum encoder zero falls: ``"rig"`` (default) as
         the paper's rig shows them (:class:`~qube_koopman.sim.pendulum.ZeroOffsetDistribution`'s
         defaults), None for exact zeros.
+    cache : str or Path, optional
+        A folder to keep probe sets in (for example ``qube_koopman.core.files.cache_root() /
+        "probes"``). The probes depend only on what is replayed (the sources' references,
+        feedforward and sample period), the twin's parameters, the controllers, the seed, the
+        skip, the zero distribution and the simulator's code: a set simulated before with all
+        of these equal is read back (:func:`probe_cache_key`), else simulated and stored whole
+        (written beside its name and renamed, so concurrent runs and interrupted writes leave
+        no partial file). An unreadable stored set is simulated again.
 
     Returns
     -------
     ProbeSet
     """
-    from qube_koopman.daq.controller import PdGains, pd_controller
     from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
 
     trajectories = as_episodes(trajectories)  # a lazy sequence stays one: only the replayed episodes are read
@@ -126,17 +134,38 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
     distribution = ZeroOffsetDistribution() if isinstance(zero_offsets, str) and zero_offsets == "rig" else zero_offsets
     if distribution is not None and not isinstance(distribution, ZeroOffsetDistribution):
         raise ValueError(f"zero_offsets must be 'rig', None or a ZeroOffsetDistribution, got {zero_offsets!r}")
+    gains = [tuple(float(v) for v in g) for g in gains]
+    sources = [[trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
+               for i in range(len(gains))]
+    path = None
+    if cache is not None:
+        key = probe_cache_key([t for group in sources for t in group], gains, per_controller, params, seed, skip,
+                              distribution)
+        path = Path(cache) / f"probes-{key}.npz"
+        stored = _read_probes(path, trajectories[0].dt)
+        if stored is not None:
+            return stored
+    probes = _simulate_probes(sources, gains, params, distribution, seed, skip)
+    if path is not None:
+        _write_probes(path, probes)
+    return probes
+
+
+def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int) -> ProbeSet:
+    """Each controller's sources run on the twin (see :func:`twin_probes`)."""
+    from qube_koopman.daq.controller import PdGains, pd_controller
+
     rng = np.random.default_rng(seed)
-    dt = trajectories[0].dt
-    out = ProbeSet([], [], [], [tuple(float(v) for v in g) for g in gains])
+    dt = sources[0][0].dt
+    per_controller = len(sources[0])
+    out = ProbeSet([], [], [], gains)
     dropped = 0
     for i, g in enumerate(out.gains):
         controller = pd_controller(PdGains(*g), dt, "backward-euler")
-        sources = [trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
         start = np.zeros((per_controller, 4))
         start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)  # hand-raised, within half a degree
         zeros = np.array([0.0 if distribution is None else distribution.draw(rng) for _ in range(per_controller)])
-        kept, kept_zeros = _run_probes(controller, sources, start, zeros, params, rng, skip, f"probe {i + 1}")
+        kept, kept_zeros = _run_probes(controller, sources[i], start, zeros, params, rng, skip, f"probe {i + 1}")
         dropped += per_controller - len(kept)
         if kept:
             out.controllers.append(controller)
@@ -145,6 +174,88 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
     if not out.controllers:
         raise ValueError("no probe episode stayed balanced on the twin")
     return ProbeSet(out.controllers, out.episodes, out.alpha_offsets, out.gains, dropped)
+
+
+#: Bump when what a stored probe set holds changes (the simulator's own code is hashed anyway).
+PROBE_CACHE_FORMAT = 1
+
+
+def probe_cache_key(sources: Sequence[Trajectory], gains, per_controller: int, params, seed: int, skip: int,
+                    distribution) -> str:
+    """A digest of everything a probe set depends on (see :func:`twin_probes`'s ``cache``).
+
+    The sources' references, feedforward, lengths and sample period, the twin's parameters, the
+    gains, the counts, the seed, the skip, the zero distribution, and the source of the modules
+    that simulate them (the pendulum and this one), so a changed simulator never reads an old set.
+    """
+    import hashlib
+    from dataclasses import asdict, is_dataclass
+
+    digest = hashlib.sha256(f"probes {PROBE_CACHE_FORMAT}".encode())
+
+    def add(*values) -> None:
+        for value in values:
+            digest.update(repr(value).encode() + b"\0")
+
+    add(gains, per_controller, seed, skip, asdict(params) if is_dataclass(params) else repr(params),
+        asdict(distribution) if is_dataclass(distribution) else repr(distribution))
+    for t in sources:
+        add(t.dt, t.n_samples)
+        for signal in (t.r, t.f):
+            digest.update(np.ascontiguousarray(signal, dtype=float).tobytes())
+    from qube_koopman.sim import pendulum
+
+    for module in sorted(Path(pendulum.__file__).parent.rglob("*.py")) + [Path(__file__)]:
+        digest.update(module.read_bytes())
+    return digest.hexdigest()[:24]
+
+
+def _write_probes(path: Path, probes: ProbeSet) -> None:
+    """Store a probe set whole (a failure to write only costs the next run the simulation)."""
+    from qube_koopman.core.files import atomic_path
+
+    arrays = {"gains": np.array(probes.gains, float), "dropped": np.array(probes.dropped)}
+    for i, (controller, episodes, zeros) in enumerate(zip(probes.controllers, probes.episodes, probes.alpha_offsets)):
+        arrays[f"c{i}_zeros"] = zeros
+        arrays[f"c{i}_names"] = np.array([t.name for t in episodes])
+        for name in ("A", "B", "C", "D"):
+            arrays[f"c{i}_{name}"] = getattr(controller, name)
+        for j, t in enumerate(episodes):
+            for name in ("x", "u", "r", "f", "xc"):
+                arrays[f"c{i}_e{j}_{name}"] = getattr(t, name)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+    except OSError as exc:
+        import logging
+
+        logging.getLogger(__name__).warning("%s: cannot store the probe set (%s); it is simulated again next time",
+                                            path, exc.strerror or exc)
+
+
+def _read_probes(path: Path, dt: float) -> ProbeSet | None:
+    """A stored probe set, or None when there is none (or it cannot be read)."""
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            gains = [tuple(float(v) for v in g) for g in data["gains"]]
+            controllers, episodes, zeros = [], [], []
+            i = 0
+            while f"c{i}_zeros" in data:
+                controllers.append(DiscreteStateSpace(*(data[f"c{i}_{name}"] for name in ("A", "B", "C", "D")), dt))
+                zeros.append(data[f"c{i}_zeros"])
+                episodes.append([Trajectory(x=data[f"c{i}_e{j}_x"], u=data[f"c{i}_e{j}_u"], r=data[f"c{i}_e{j}_r"],
+                                            f=data[f"c{i}_e{j}_f"], xc=data[f"c{i}_e{j}_xc"], dt=dt,
+                                            name=str(name), state_names=("theta", "alpha"))
+                                 for j, name in enumerate(data[f"c{i}_names"])])
+                i += 1
+            dropped = int(data["dropped"])
+    except (OSError, EOFError, KeyError, ValueError, IndexError, TypeError, zipfile.BadZipFile):
+        # missing, cut short, foreign: simulate again
+        return None
+    return ProbeSet(controllers, episodes, zeros, gains, dropped) if controllers else None
 
 
 def _run_probes(controller: DiscreteStateSpace, sources: Sequence[Trajectory], start: np.ndarray, zeros: np.ndarray,

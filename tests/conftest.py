@@ -27,6 +27,13 @@ DATASET_SOURCE = ("the paper's QUBE-Servo dataset (public repository decargroup/
                   "folder dataset/controller_20230828, MIT licence)")
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _own_cache_folder(tmp_path_factory):
+    """The toolkit's cache (twin probe sets) in the session's temporary folder, not the user's."""
+    os.environ["QUBE_KOOPMAN_CACHE"] = str(tmp_path_factory.mktemp("qube-koopman-cache"))
+    yield
+
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: one worker per CPU this process may run on.
 

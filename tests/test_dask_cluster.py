@@ -189,7 +189,7 @@ def _results(out: Path) -> tuple[dict, dict]:
 def _without_timings(value):
     """A search report's scores and choices: without wall times and how it ran (they differ between runs)."""
     if isinstance(value, dict):
-        return {k: _without_timings(v) for k, v in value.items() if k not in ("seconds", "scheduler", "n_jobs")}
+        return {k: _without_timings(v) for k, v in value.items() if k not in ("seconds", "timing", "scheduler", "n_jobs")}
     return [_without_timings(v) for v in value] if isinstance(value, list) else value
 
 

@@ -40,11 +40,12 @@ def small(qube_logs):
     return trajs, controller, splits
 
 
-def _naive_fold_score(spec, trajs, controller, splits, alpha, offsets):
+def _naive_fold_score(spec, trajs, controller, splits, alpha, offsets, steps=None):
     """Refit from scratch per fold and predict each validation episode alone (no shared statistics)."""
     scores = []
     for train, validation in splits:
-        model = ClEdmd(controller, lifting=spec.steps(), alpha=alpha).fit([trajs[i] for i in train]).closed_loop_model_
+        model = ClEdmd(controller, lifting=steps or spec.steps(), alpha=alpha).fit(
+            [trajs[i] for i in train]).closed_loop_model_
         per_episode = []
         for i in validation:
             t = trajs[i]
@@ -199,6 +200,18 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     assert winner["objective"] == max(c["objective"] for c in search["candidates"])
     assert "probe PD controllers" in search["transfer"] and "lower of the cross-validated" in search["objective"]
     assert report["alpha"] == winner["alpha"]
+    # Where the time went: each candidate's parts add up to no more than its time, the stages' walls
+    # to no more than the search's, and the probes' simulation is counted apart.
+    from qube_koopman.identify.search import STAGES, TIMING_KEYS
+
+    for c in search["candidates"]:
+        assert list(c["timing"]) == list(TIMING_KEYS) and min(c["timing"].values()) >= 0
+        assert 0 < sum(c["timing"].values()) <= c["seconds"] + 0.01
+        assert c["timing"]["probe_scoring"] > 0 and (c["timing"]["offsets"] > 0) == c["offsets"]
+    timing = search["timing"]
+    assert timing["probe_simulation"] > 0 and set(timing["stages"]) <= set(STAGES)
+    assert sum(t["candidates"] for t in timing["stages"].values()) == len(search["candidates"])
+    assert sum(t["wall"] for t in timing["stages"].values()) <= timing["search"] + 0.01
     assert report["scored_from_sample"] == 500 and "as the search scored its candidates" in report["protocol"]
     steps = [s["type"] for s in load_model(tmp_path / "model.json")["lifting"]["steps"]]
     assert ("Delay" in steps) == (winner["delays"] > 0) and ("Constant" in steps) == winner["const"]
@@ -267,3 +280,21 @@ def test_an_offsets_candidate_given_its_plain_scores_scores_the_same(small):
     spec = LiftingSpec(delays=5, poly=1, offsets=True)
     np.testing.assert_allclose(evaluate_candidate(spec, data, plain=plain.cv_r2).cv_r2,
                                evaluate_candidate(spec, data).cv_r2, rtol=1e-12)
+
+
+def test_an_rbf_candidate_equals_a_naive_refit_with_centres_drawn_on_all_training_episodes(small):
+    # The search draws the thin-plate centres once, on every training episode (the winner's final fit
+    # draws the same): each fold is then the naive refit with those centres.
+    from qube_koopman.identify.search import search_steps
+
+    trajs, controller, splits = small
+    spec = LiftingSpec(delays=2, poly=1, rbf=6)
+    alphas = np.array([1e-4, 1e-2, 1.0])
+    steps = search_steps(spec, trajs)
+    centres = steps[-1].centers
+    final = ClEdmd(controller, lifting=spec.steps(), alpha=1e-3).fit(trajs)
+    np.testing.assert_array_equal(final.plant_model_.lifting.steps_[-1].centers_, centres)
+    result = evaluate_candidate(spec, SearchData(trajs, splits, controller, alphas, WINDOW))
+    for j in np.flatnonzero(np.isfinite(result.cv_r2[0])):
+        naive = _naive_fold_score(spec, trajs, controller, splits, alphas[j], False, steps)
+        np.testing.assert_allclose(result.cv_r2[:, j], naive, rtol=1e-9, atol=1e-6)

@@ -188,3 +188,57 @@ def test_offset_status_says_flat_and_beyond_bound_aloud():
     assert row == {"alpha": 0.003, "alpha_std_error": 0.02, "plausible": True, "status": "flat",
                    "rms_before": 0.01, "rms_after": 0.005}
     assert estimate(0.003, np.inf).as_dict(["alpha"])["alpha_std_error"] is None  # strict JSON
+
+
+def _short_sources(n: int = 3, samples: int = 1200):
+    """Excitations the twin balances under every probe controller: small arm steps, no feedforward."""
+    from qube_koopman.identify.trajectory import Trajectory
+
+    t = np.arange(samples)
+    return [Trajectory(x=np.zeros((samples, 2)), u=np.zeros((samples, 1)),
+                       r=np.column_stack([0.03 * (k + 1) * np.sign(np.sin(2 * np.pi * t / 600)), np.zeros(samples)]),
+                       f=np.zeros((samples, 1)), xc=np.zeros((samples, 2)), dt=0.002, name=f"s{k}")
+            for k in range(n)]
+
+
+def test_a_cached_probe_set_is_the_simulated_one_and_changes_with_what_it_depends_on(tmp_path, monkeypatch):
+    from dataclasses import replace as changed
+
+    from qube_koopman.identify import transfer
+    from qube_koopman.sim.pendulum import PendulumParameters
+
+    sources = _short_sources()
+    first = twin_probes(sources, per_controller=1, skip=100, cache=tmp_path)
+    stored = list(tmp_path.glob("probes-*.npz"))
+    assert len(stored) == 1 and first.n_episodes == 3
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("the stored set should have been read")
+
+    with monkeypatch.context() as m:
+        m.setattr(transfer, "_simulate_probes", no_simulation)
+        again = twin_probes(sources, per_controller=1, skip=100, cache=tmp_path)
+    assert again.gains == first.gains and again.dropped == first.dropped
+    for a, b in zip(first.controllers, again.controllers):
+        assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in "ABCD") and a.dt == b.dt
+    for ea, eb, za, zb in zip(first.episodes, again.episodes, first.alpha_offsets, again.alpha_offsets):
+        assert np.array_equal(za, zb) and [t.name for t in ea] == [t.name for t in eb]
+        for ta, tb in zip(ea, eb):
+            assert all(np.array_equal(getattr(ta, k), getattr(tb, k)) for k in ("x", "u", "r", "f", "xc"))
+    # Anything it depends on changed: simulated anew, under another name.
+    other_twin = changed(PendulumParameters(), Kr=PendulumParameters().Kr + 1e-4)
+    other_excitation = [changed(sources[0], r=sources[0].r * 0.5)] + sources[1:]
+    for kwargs in ({"params": other_twin}, {"seed": 1}, {"skip": 101}, {}):
+        twin_probes(other_excitation if not kwargs else sources, per_controller=1,
+                    **({"skip": 100} | kwargs), cache=tmp_path)
+    assert len(list(tmp_path.glob("probes-*.npz"))) == 5
+
+
+def test_a_damaged_stored_probe_set_is_simulated_again(tmp_path):
+    sources = _short_sources(2)
+    first = twin_probes(sources, per_controller=1, skip=100, cache=tmp_path)
+    (stored,) = tmp_path.glob("probes-*.npz")
+    stored.write_bytes(stored.read_bytes()[:200])  # cut short, as by a full disk
+    again = twin_probes(sources, per_controller=1, skip=100, cache=tmp_path)
+    assert np.array_equal(first.episodes[0][0].x, again.episodes[0][0].x)
+    assert stored.stat().st_size > 200 and [p.name for p in tmp_path.iterdir()] == [stored.name]

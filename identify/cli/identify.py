@@ -86,6 +86,10 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                              "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
                              "unlike the training one (the training excitations replayed on the calibrated twin); "
                              "none: by cross-validated R^2 alone (sees only the training controller)")
+    search.add_argument("--no-probe-cache", dest="probe_cache", action="store_false",
+                        help="simulate the twin probes even when the same ones are in the cache (by default they "
+                             "are kept in $QUBE_KOOPMAN_CACHE, else ~/.cache/qube-koopman, and read back when the "
+                             "training excitations, the twin and the simulator are the same)")
     add_cluster_options(p)
 
 

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import logging
 import sys
+import time
 import tomllib
 from dataclasses import fields
 from pathlib import Path
 
 from qube_koopman.core.command import CliError, progress
 
+_log = logging.getLogger(__name__)
 _LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool, "trig": bool, "offsets": bool,
           "friction": bool}
 
@@ -43,7 +46,7 @@ def load_space(path: str | None):
 def run_search(args, train, controller):
     """Run the search on the training logs; prints the winner's line."""
     from qube_koopman.identify.mixed import cross_validation_folds
-    from qube_koopman.identify.search import search_liftings
+    from qube_koopman.identify.search import TIMING_KEYS, search_liftings
 
     space = load_space(args.search_space)
     from qube_koopman.identify.data import LogTrajectories
@@ -55,16 +58,26 @@ def run_search(args, train, controller):
                        "to score in the shortest training episode")
     controllers = [log.controller for log in train]
     folds = cross_validation_folds(controllers, args.cv_splits, args.cv_seed)
-    probes = None
+    probes, probe_seconds = None, 0.0
     if args.transfer == "twin":
         from qube_koopman.identify.transfer import twin_probes
 
-        probes = twin_probes(trajs)
+        from qube_koopman.core.files import cache_root
+
+        started = time.perf_counter()
+        probes = twin_probes(trajs, cache=cache_root() / "probes" if args.probe_cache else None)
+        probe_seconds = time.perf_counter() - started
+        _log.info("search: %d twin probe episodes simulated in %.1f s", probes.n_episodes, probe_seconds)
     result = search_liftings(trajs, controller, splits=folds.splits, window=window, space=space, n_jobs=args.n_jobs,
                              scheduler=args.scheduler, security=args.security, bound=args.offset_bound,
                              rbf_seed=args.rbf_seed, probes=probes, progress=progress,
                              controllers=controllers if folds.kind == "leave-one-controller-out" else None)
     result.folds = folds
+    result.probe_seconds = probe_seconds
+    _log.info("search: time per stage (wall; candidates' statistics / fits / predictions / offsets / probe fits / "
+              "probe scoring, summed over workers): %s", "; ".join(
+                  f"{stage} {t['wall']:.1f} s ({' / '.join(f'{t[k]:.1f}' for k in TIMING_KEYS)})"
+                  for stage, t in result.timing()["stages"].items()))
     best = result.winner
     if folds.kind == "leave-one-controller-out":
         from qube_koopman.identify.search import same_controller_scores
@@ -123,5 +136,6 @@ def search_report(result, args, names) -> dict:
         "transfer": None if result.probes is None else result.probes.describe(),
         "same_controller": _same_controller_report(result.same_controller),
         "seconds": result.seconds,
+        "timing": result.timing(),
         "n_jobs": args.n_jobs, "scheduler": args.scheduler,
     }
