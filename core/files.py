@@ -179,10 +179,9 @@ def output_file_problem(path: str | Path, *, force: bool = False) -> str | None:
 
 
 def cache_root() -> Path:
-    """The user's cache folder of the toolkit: ``$QUBE_KOOPMAN_CACHE``, else
-    ``$XDG_CACHE_HOME/qube-koopman`` (``~/.cache/qube-koopman``). Not created here."""
-    explicit = os.environ.get("QUBE_KOOPMAN_CACHE")
-    if explicit:
-        return Path(explicit)
+    """The toolkit's cache folder: ``$XDG_CACHE_HOME/qube-koopman`` (``~/.cache/qube-koopman``).
+
+    Builds of the bridge firmware and the search's twin probe sets are kept there; not created here.
+    """
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "qube-koopman"

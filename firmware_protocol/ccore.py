@@ -96,13 +96,14 @@ def build_library(out_dir: str | os.PathLike, *, extra_flags: tuple[str, ...] = 
 
 
 def cache_root() -> Path:
-    """Where the C builds are cached: ``$XDG_CACHE_HOME/qube-koopman`` (``~/.cache/qube-koopman``).
+    """Where the C builds are cached: :func:`qube_koopman.core.files.cache_root`.
 
     Shared with the AVR firmware's builds (:mod:`~qube_koopman.firmware_protocol.avr`,
     :mod:`~qube_koopman.sim.bridge.avr`); not created here.
     """
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "qube-koopman"
+    from qube_koopman.core.files import cache_root as toolkit_cache
+
+    return toolkit_cache()
 
 
 def cached_library(cache_dir: str | os.PathLike | None = None) -> Path:

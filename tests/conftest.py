@@ -29,8 +29,8 @@ DATASET_SOURCE = ("the paper's QUBE-Servo dataset (public repository decargroup/
 
 @pytest.fixture(autouse=True, scope="session")
 def _own_cache_folder(tmp_path_factory):
-    """The toolkit's cache (twin probe sets) in the session's temporary folder, not the user's."""
-    os.environ["QUBE_KOOPMAN_CACHE"] = str(tmp_path_factory.mktemp("qube-koopman-cache"))
+    """The search's twin probe sets cached in the session's temporary folder, not the user's."""
+    os.environ["QUBE_KOOPMAN_PROBE_CACHE"] = str(tmp_path_factory.mktemp("qube-koopman-probes"))
     yield
 
 

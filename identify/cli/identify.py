@@ -88,7 +88,7 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                              "none: by cross-validated R^2 alone (sees only the training controller)")
     search.add_argument("--no-probe-cache", dest="probe_cache", action="store_false",
                         help="simulate the twin probes even when the same ones are in the cache (by default they "
-                             "are kept in $QUBE_KOOPMAN_CACHE, else ~/.cache/qube-koopman, and read back when the "
+                             "are kept in $QUBE_KOOPMAN_PROBE_CACHE, else ~/.cache/qube-koopman/probes, and read back when the "
                              "training excitations, the twin and the simulator are the same)")
     add_cluster_options(p)
 

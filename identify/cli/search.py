@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 import tomllib
@@ -43,6 +44,14 @@ def load_space(path: str | None):
         raise CliError(f"{path}: {exc}") from None
 
 
+def probe_cache() -> Path:
+    """Where the search keeps twin probe sets: ``$QUBE_KOOPMAN_PROBE_CACHE``, else the toolkit's
+    cache folder's ``probes`` (:func:`qube_koopman.core.files.cache_root`)."""
+    from qube_koopman.core.files import cache_root
+
+    return Path(os.environ.get("QUBE_KOOPMAN_PROBE_CACHE") or cache_root() / "probes")
+
+
 def run_search(args, train, controller):
     """Run the search on the training logs; prints the winner's line."""
     from qube_koopman.identify.mixed import cross_validation_folds
@@ -62,10 +71,8 @@ def run_search(args, train, controller):
     if args.transfer == "twin":
         from qube_koopman.identify.transfer import twin_probes
 
-        from qube_koopman.core.files import cache_root
-
         started = time.perf_counter()
-        probes = twin_probes(trajs, cache=cache_root() / "probes" if args.probe_cache else None)
+        probes = twin_probes(trajs, cache=probe_cache() if args.probe_cache else None)
         probe_seconds = time.perf_counter() - started
         _log.info("search: %d twin probe episodes simulated in %.1f s", probes.n_episodes, probe_seconds)
     result = search_liftings(trajs, controller, splits=folds.splits, window=window, space=space, n_jobs=args.n_jobs,
