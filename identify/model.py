@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -11,7 +11,7 @@ from qube_koopman.identify.lifting import Lifting
 from qube_koopman.identify.trajectory import Trajectory
 from qube_koopman.sim.lti import spectral_radius
 
-__all__ = ["KoopmanModel"]
+__all__ = ["KoopmanModel", "FittedRows"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -241,3 +241,42 @@ class KoopmanModel:
             for j, i in enumerate(group):
                 out[i] = x[j]
         return out
+
+
+@dataclass(frozen=True)
+class FittedRows:
+    """The fitted rows of a partially fitted :class:`KoopmanModel`, and what rebuilds the model.
+
+    A sweep that only ranks liftings fits the rows re-lifted predictions use (the others NaN:
+    4 rows of 370 on a 40-delay search lifting); these are a few kilobytes where the model's
+    matrices are megabytes, so a search can keep them to predict with the same model again.
+
+    Parameters
+    ----------
+    A, B : ndarray
+        The model's leading rows up to its first unfitted (NaN) one.
+    n_rows : int
+        The model's number of lifted states (the rows of ``A``).
+    settings : dict
+        The model's other fields but its lifting (given back to :meth:`model`).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    n_rows: int
+    settings: dict
+
+    @classmethod
+    def of(cls, model: KoopmanModel) -> "FittedRows":
+        """The fitted rows of ``model`` (all of them when it is fully fitted)."""
+        unfitted = np.flatnonzero(~np.isfinite(model.A).all(axis=1))
+        k = int(unfitted[0]) if unfitted.size else model.A.shape[0]
+        settings = {f.name: getattr(model, f.name) for f in fields(model) if f.name not in ("A", "B", "lifting")}
+        return cls(model.A[:k].copy(), model.B[:k].copy(), model.A.shape[0], settings)
+
+    def model(self, lifting: Lifting) -> KoopmanModel:
+        """The model again, its unfitted rows NaN, with ``lifting`` (the fitted one it had)."""
+        A = np.full((self.n_rows, self.A.shape[1]), np.nan)
+        B = np.full((self.n_rows, self.B.shape[1]), np.nan)
+        A[:self.A.shape[0]], B[:self.B.shape[0]] = self.A, self.B
+        return KoopmanModel(A, B, lifting, **self.settings)

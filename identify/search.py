@@ -43,6 +43,7 @@ import numpy as np
 from qube_koopman.core.qube import MEASURED
 from qube_koopman.identify.cl_edmd import ClEdmd
 from qube_koopman.identify.distributed import candidate_runner, connect, release_workers
+from qube_koopman.identify.model import FittedRows
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
 from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
 from qube_koopman.identify.sweep import regularization_sweep
@@ -55,6 +56,8 @@ __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "sea
 
 #: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
 TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
+#: Alphas the offsets stage re-scores each candidate at (its best by plain cross-validation).
+N_OFFSET_ALPHAS = 3
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
 FRICTION_LAG = CoulombFriction().lag  # samples: the fewest delays the friction lifting needs
 _log = logging.getLogger(__name__)
@@ -187,6 +190,34 @@ class SearchSpace:
         raise ValueError(f"unknown stage {stage!r}")
 
 
+@dataclass(frozen=True)
+class Reuse:
+    """A plain candidate's models at its best alphas, for the same lifting with offsets.
+
+    The offsets stage scores the best plain candidates again with per-episode offsets, at
+    their best alphas: with these (each fold's closed loop, and the plant on all training
+    episodes, as :class:`~qube_koopman.identify.model.FittedRows`) it predicts without
+    computing any statistics again; the models are exactly the ones the plain candidate fitted.
+
+    Attributes
+    ----------
+    lifting : Lifting
+        The fitted lifting every model shares.
+    folds : list of (dict of int to FittedRows, ndarray)
+        Per fold: the closed loop at each kept alpha index, and the validation episodes.
+    plants : dict of int to FittedRows
+        The plant fitted on all training episodes at each kept alpha index.
+    """
+
+    lifting: object
+    folds: list
+    plants: dict
+
+    def covers(self, indices) -> bool:
+        """Whether models at every alpha index in ``indices`` are kept."""
+        return all(int(j) in self.plants and all(int(j) in f for f, _ in self.folds) for j in indices)
+
+
 @dataclass
 class CandidateResult:
     """Cross-validated and transfer scores of one lifting over the alpha grid.
@@ -205,6 +236,9 @@ class CandidateResult:
         R^2 of each transfer probe episode (:mod:`~qube_koopman.identify.transfer`)
         predicted by the plant fitted on all training episodes (NaN: alpha not
         probed; -inf: diverged). None when the search has no probes.
+    reuse : Reuse, optional
+        What the same lifting with offsets needs from this plain candidate (its models at
+        its best alphas), so the offsets stage does not lift the episodes again.
     timing : dict of str to float
         Where ``seconds`` went (:data:`TIMING_KEYS`): ``statistics`` (lifting the
         training episodes, their factors), ``fits`` (every fold's solves),
@@ -220,6 +254,7 @@ class CandidateResult:
     seconds: float
     transfer_r2: np.ndarray | None = None
     timing: dict = field(default_factory=dict)
+    reuse: "Reuse | None" = field(default=None, repr=False, compare=False)
 
     @property
     def mean(self) -> np.ndarray:
@@ -373,30 +408,56 @@ class SearchData:
 
 
 def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
-                       plain: np.ndarray | None = None) -> CandidateResult:
+                       plain: "np.ndarray | CandidateResult | None" = None) -> CandidateResult:
     """Cross-validate one lifting over the alpha grid (see the module docstring).
 
     With ``spec.offsets``, ``plain`` (the same lifting's fold scores without offsets,
     when already known) picks the alphas to estimate offsets at, instead of scoring
-    the folds again.
+    the folds again; given as that candidate's :class:`CandidateResult`, its models
+    (:attr:`CandidateResult.reuse`) predict again without any statistics computed.
     """
     started = time.perf_counter()
+    timing = dict.fromkeys(TIMING_KEYS, 0.0)
+    top = None if plain is None else _best_alphas(_fold_scores(plain), N_OFFSET_ALPHAS)
+    reuse = plain.reuse if isinstance(plain, CandidateResult) else None
+    if spec.offsets and reuse is not None and reuse.covers(top):
+        cv = _offset_scores(reuse.folds, reuse.lifting, data, top, timing)
+        plants = {j: rows.model(reuse.lifting) for j, rows in reuse.plants.items()}
+        transfer = None if data.probes is None else _transfer_scores(spec, data, cv, plants, timing)
+        return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv,
+                               time.perf_counter() - started, transfer, timing)
     estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
     rescore = not spec.offsets or plain is None
+    # A lifting that learns from each fold's episodes has no lifting the folds share: its models are kept whole.
+    shared = not any(getattr(step, "learns_from_data", True) for step in estimator.lifting)
     sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits,
                                  scorings=("cl",) if rescore else (), score_from=data.window, measured_only=True,
-                                 keep_fold_models=spec.offsets, fit_all=False, controllers=data.controllers)
-    timing = dict.fromkeys(TIMING_KEYS, 0.0) | sweep.seconds
-    cv = sweep.cv_r2["cl"] if rescore else np.asarray(plain, dtype=float)
+                                 keep_fold_models="rows" if shared else spec.offsets, fit_all=False,
+                                 controllers=data.controllers)
+    timing |= sweep.seconds
+    cv = sweep.cv_r2["cl"] if rescore else _fold_scores(plain)
+    lifting = None if sweep.statistics is None else sweep.statistics[0].lifting
+    folds = [({j: rows for j, rows in enumerate(closed)}, validation) for closed, _, validation in
+             sweep.fold_models or []]
     if spec.offsets:
-        now = time.perf_counter()
-        cv = _offset_scores(sweep, data, cv)
-        timing["offsets"] = time.perf_counter() - now
-    transfer = None
+        top = _best_alphas(cv, N_OFFSET_ALPHAS)
+        cv = _offset_scores(folds, lifting, data, top, timing)
+    transfer, plants = None, {}
     if data.probes is not None:
-        transfer = _transfer_scores(estimator, spec, data, cv, sweep.statistics, timing)
+        plants = _probe_plants(estimator, data, cv, sweep.statistics, timing)
+        transfer = _transfer_scores(spec, data, cv, plants, timing)
+    kept = None
+    if not spec.offsets and lifting is not None:
+        best = [int(j) for j in _best_alphas(cv, N_OFFSET_ALPHAS)]
+        kept = Reuse(lifting, [({j: f[j] for j in best}, v) for f, v in folds],
+                     {j: FittedRows.of(m) for j, m in plants.items() if j in best})
     return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started,
-                           transfer, timing)
+                           transfer, timing, kept)
+
+
+def _fold_scores(plain) -> np.ndarray:
+    """The plain fold scores, given as an array or a :class:`CandidateResult`."""
+    return np.asarray(plain.cv_r2 if isinstance(plain, CandidateResult) else plain, dtype=float)
 
 
 def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed: int = 0) -> list:
@@ -423,13 +484,12 @@ def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed
     return steps
 
 
-def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndarray, statistics,
-                     timing: dict) -> np.ndarray:
-    """Probe scores (episodes x alphas) of the plants fitted on all training episodes, at the best CV alphas.
+def _probe_plants(estimator, data: SearchData, cv: np.ndarray, statistics, timing: dict) -> dict:
+    """The plants fitted on all training episodes at the best CV alphas ({alpha index: plant}).
 
-    The plants fit only the rows re-lifted predictions use, from the statistics of all the
-    episodes the sweep folded with its folds' when it had them. ``timing`` gets the time of
-    the fits (``probe_fits``) and of the predictions (``probe_scoring``).
+    They fit only the rows re-lifted predictions use, from the statistics of all the
+    episodes the sweep folded with its folds' when it had them. ``timing["probe_fits"]``
+    gets their time.
     """
     from qube_koopman.identify._blas import limited_blas_threads
     from qube_koopman.identify.sweep import fit_alphas, fitted_models
@@ -443,13 +503,24 @@ def _transfer_scores(estimator, spec: LiftingSpec, data: SearchData, cv: np.ndar
     else:
         _, plants = fit_alphas(estimator, data.trajectories, data.alphas[top], relift_rows_only=True,
                                controllers=data.controllers)
-    fitted = time.perf_counter()
-    timing["probe_fits"] = fitted - started
+    timing["probe_fits"] = time.perf_counter() - started
+    return {int(j): plant for j, plant in zip(top, plants)}
+
+
+def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants: dict, timing: dict) -> np.ndarray:
+    """Probe scores (episodes x alphas) of ``plants`` ({alpha index: plant}) at the best CV alphas.
+
+    ``timing["probe_scoring"]`` gets their time.
+    """
+    from qube_koopman.identify._blas import limited_blas_threads
+
+    started = time.perf_counter()
+    top = np.sort(_best_alphas(cv, data.n_transfer_alphas))
     out = np.full((data.probes.n_episodes, data.alphas.size), np.nan)
     with limited_blas_threads(1):
-        for j, plant in zip(top, plants):
-            out[:, j] = probe_scores(plant, data.probes, data.window, spec.offsets, data.bound, MEASURED)
-    timing["probe_scoring"] = time.perf_counter() - fitted
+        for j in top:
+            out[:, j] = probe_scores(plants[int(j)], data.probes, data.window, spec.offsets, data.bound, MEASURED)
+    timing["probe_scoring"] = time.perf_counter() - started
     return out
 
 
@@ -460,22 +531,28 @@ def _best_alphas(cv: np.ndarray, k: int) -> np.ndarray:
     return np.argsort(-mean, kind="stable")[:min(k, mean.size)]
 
 
-def _offset_scores(sweep, data: SearchData, plain: np.ndarray) -> np.ndarray:
-    """Fold scores with an alpha offset estimated on each validation episode, at the best alphas."""
+def _offset_scores(folds: list, lifting, data: SearchData, top: np.ndarray, timing: dict) -> np.ndarray:
+    """Fold scores with an alpha offset estimated on each validation episode, at the alphas ``top``.
+
+    ``folds``: per fold, {alpha index: closed loop} and the validation episodes; the closed loops
+    are FittedRows rebuilt with ``lifting``, or models themselves when ``lifting`` is None.
+    """
     from qube_koopman.identify._blas import limited_blas_threads
+    from qube_koopman.identify.sweep import EPISODES_PER_BATCH
 
-    from qube_koopman.identify.sweep import EPISODES_PER_BATCH as _MAX_EPISODES
-
-    out, top = np.full_like(plain, np.nan), _best_alphas(plain, 3)
+    started = time.perf_counter()
+    out = np.full((len(folds), data.alphas.size), np.nan)
     with limited_blas_threads(1):
-        for i, (closed, _, validation) in enumerate(sweep.fold_models):
-            scores = {j: [] for j in top}
-            for lo in range(0, len(validation), _MAX_EPISODES):  # a few episodes read at a time
-                held_out = [data.trajectories[k] for k in validation[lo:lo + _MAX_EPISODES]]
-                for j in top:
-                    scores[j].append(scores_after_window(closed[j], held_out, data.window, True, data.bound))
-            for j in top:
+        for i, (closed, validation) in enumerate(folds):
+            models = {int(j): closed[int(j)] if lifting is None else closed[int(j)].model(lifting) for j in top}
+            scores = {j: [] for j in models}
+            for lo in range(0, len(validation), EPISODES_PER_BATCH):  # a few episodes read at a time
+                held_out = [data.trajectories[k] for k in validation[lo:lo + EPISODES_PER_BATCH]]
+                for j, model in models.items():
+                    scores[j].append(scores_after_window(model, held_out, data.window, True, data.bound))
+            for j in models:
                 out[i, j] = np.mean(np.concatenate(scores[j]))
+    timing["offsets"] = time.perf_counter() - started
     return out
 
 
@@ -566,8 +643,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
             stage_started = time.perf_counter()
             specs = [s for s in space.stage_candidates(stage, result.ranked()) if s not in seen]
             seen.update(specs)
-            # An offsets candidate reuses its plain twin's fold scores to choose its alphas.
-            plain = {r.spec: r.cv_r2 for r in result.candidates}
+            # An offsets candidate reuses its plain twin: its fold scores choose the alphas, its models predict.
+            plain = {r.spec: r for r in result.candidates}
             calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)))
                      for s in specs]
             for done, res in enumerate(run(calls), start=1):

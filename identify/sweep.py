@@ -30,7 +30,7 @@ from qube_koopman.identify.cl_edmd import ClosedLoopKoopman
 from qube_koopman.identify.data import same_system
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.mixed import distinct_controllers
-from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.model import FittedRows, KoopmanModel
 from qube_koopman.identify.regression import Snapshots
 from qube_koopman.identify.scores import r2_from_residuals
 from qube_koopman.identify.simulate import simulate_chunks
@@ -68,7 +68,9 @@ class SweepResult:
     fold_models : list of (closed-loop models, plant models, validation indices), optional
         Every fold's models, with ``keep_fold_models``. Without ``fit_all`` (and
         with ``relift``) only the rows a re-lifted prediction uses are fitted;
-        the others are NaN.
+        the others are NaN. With ``keep_fold_models="rows"`` the models are
+        :class:`~qube_koopman.identify.model.FittedRows` (their fitted rows only,
+        rebuilt with the setup's lifting ``statistics[0].lifting``).
     seconds : dict of str to float
         Where the time went: ``statistics`` (lifting the episodes and folding their
         factors), ``fits`` (the solves for every alpha) and ``predictions`` (the folds'
@@ -214,7 +216,7 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
                          splits: Sequence[tuple[np.ndarray, np.ndarray]], scorings: Sequence[str] = SCORINGS,
                          controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
                          progress: Callable[[int, int], None] | None = None, score_from: int = 1,
-                         measured_only: bool = False, keep_fold_models: bool = False,
+                         measured_only: bool = False, keep_fold_models: bool | str = False,
                          fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None,
                          episode_statistics: Callable | None = None) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
@@ -245,8 +247,9 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     measured_only : bool
         Closed-loop scoring of the measured states only (the test scores'
         measure), not of the controller states too.
-    keep_fold_models : bool
-        Keep every fold's models in :attr:`SweepResult.fold_models`.
+    keep_fold_models : bool or "rows"
+        Keep every fold's models in :attr:`SweepResult.fold_models`; ``"rows"``:
+        only their fitted rows (kilobytes where a partial model holds megabytes).
     fit_all : bool
         Also fit every alpha on all the episodes (models and spectral radii
         in the result); a search that only ranks liftings can skip it, and
@@ -321,6 +324,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
                 result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start,
                                             measured_only)
         if keep:
+            if keep == "rows":
+                closed, plants = [FittedRows.of(m) for m in closed], [FittedRows.of(m) for m in plants]
             result.fold_models.append((closed, plants, np.asarray(validation)))
         if progress:
             progress(i + 1, total)

@@ -15,6 +15,7 @@ from qube_koopman.identify.offsets import (estimate_offsets, estimate_offsets_ma
                                            predict_with_offsets_many)
 from qube_koopman.identify.scores import r2_scores
 from qube_koopman.identify.sweep import regularization_sweep
+from qube_koopman.identify.transfer import twin_probes
 from qube_koopman.identify.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace, evaluate_candidate,
                                           search_liftings)
 
@@ -280,6 +281,24 @@ def test_an_offsets_candidate_given_its_plain_scores_scores_the_same(small):
     spec = LiftingSpec(delays=5, poly=1, offsets=True)
     np.testing.assert_allclose(evaluate_candidate(spec, data, plain=plain.cv_r2).cv_r2,
                                evaluate_candidate(spec, data).cv_r2, rtol=1e-12)
+
+
+@pytest.mark.parametrize("rbf", [0, 4])
+def test_an_offsets_candidate_predicting_with_its_plain_twins_models_scores_the_same(small, rbf):
+    # The offsets stage reuses the plain candidate's fitted rows (folds and probe plants): no statistics
+    # computed, and the same scores as evaluating the offsets candidate from scratch.
+    from qube_koopman.identify.search import N_OFFSET_ALPHAS
+
+    trajs, controller, splits = small
+    probes = twin_probes(trajs[:2], per_controller=1, skip=100)
+    data = SearchData(trajs, splits, controller, np.array([1e-5, 1e-4, 1e-3, 1e-2, 1.0]), WINDOW, probes=probes)
+    plain = evaluate_candidate(LiftingSpec(delays=5, poly=1, rbf=rbf), data)
+    assert plain.reuse is not None and len(plain.reuse.plants) == N_OFFSET_ALPHAS
+    spec = LiftingSpec(delays=5, poly=1, rbf=rbf, offsets=True)
+    reused, scratch = evaluate_candidate(spec, data, plain=plain), evaluate_candidate(spec, data)
+    assert reused.timing["statistics"] == 0 and scratch.timing["statistics"] > 0
+    np.testing.assert_allclose(reused.cv_r2, scratch.cv_r2, rtol=1e-12)
+    np.testing.assert_allclose(reused.transfer_r2, scratch.transfer_r2, rtol=1e-12)
 
 
 def test_an_rbf_candidate_equals_a_naive_refit_with_centres_drawn_on_all_training_episodes(small):
