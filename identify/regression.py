@@ -90,6 +90,27 @@ class Snapshots:
         return cls(_triangular_factor(np.vstack([p.R for p in parts])), parts[0].n_regressors,
                    sum(p.q for p in parts))
 
+    def repeated(self, count: int) -> Snapshots:
+        """The statistics of ``count`` copies of these snapshots (an episode drawn ``count`` times).
+
+        ``R^T R`` of the copies stacked is ``count R^T R``: the factor scaled by ``sqrt(count)``,
+        with no new decomposition (an episode bootstrap folds its resamples so).
+        """
+        if count == 1:
+            return self
+        return Snapshots(np.sqrt(count) * self.R, self.n_regressors, self.q * int(count))
+
+    def leading(self, n_targets: int) -> Snapshots:
+        """The statistics of the first ``n_targets`` targets alone (the other target rows dropped).
+
+        The factor's columns are the regressors, then the targets; the factor of the leading
+        columns of a QR factorization is its leading block, so no new decomposition is needed.
+        """
+        k = self.n_regressors + int(n_targets)
+        if k >= self.R.shape[1]:
+            return self
+        return Snapshots(self.R[:min(self.R.shape[0], k), :k].copy(), self.n_regressors, self.q)
+
     @property
     def _psi(self) -> np.ndarray:
         return self.R[:, :self.n_regressors]

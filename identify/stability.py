@@ -127,6 +127,10 @@ class ClEdmdStable(ClEdmdKnownRows):
         self.solver = solver
         self.method = method
 
+    def _relift_rows(self, setup) -> None:
+        # The disc constrains the eigenvalues of the whole closed loop: no row can be left out of the fit.
+        return None
+
     def _closed_loop_state(self, U_p: np.ndarray, S: np.ndarray) -> np.ndarray:
         n_theta = self.controller.n_states + U_p.shape[0]
         return np.vstack([self._known_controller_rows()[:, :n_theta], (U_p @ S)[:, :n_theta]])
