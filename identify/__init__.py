@@ -32,6 +32,8 @@ _HOMES = {
     # per-episode offsets
     "OffsetEstimate": "offsets", "estimate_offsets": "offsets", "estimate_offsets_many": "offsets",
     "predict_with_offsets": "offsets", "predict_with_offsets_many": "offsets", "scores_after_window": "offsets",
+    # prediction intervals
+    "IntervalOptions": "uncertainty", "PredictionBand": "uncertainty",
     # least squares and the closed loop's structure
     "Snapshots": "regression", "ridge_solve": "regression", "constrained_plant_solve": "regression",
     "close_loop": "structure", "closed_loop_matrices": "structure", "extract_plant_lstsq": "structure",

@@ -1,0 +1,855 @@
+"""Prediction intervals: how far to trust each predicted sample of an episode.
+
+A test episode is predicted from its start for about 19 s; its interval at level ``L`` is, per
+sample ``k`` and channel ``c`` (theta, alpha),
+
+    prediction_c(k) +- k_c * sqrt(s_c(k)^2 + q_c * (1 - exp(-h / tau_c))),    h = k - n_delays,
+
+built from three pieces, each measured on data the fit did not use where it can be:
+
+- **Parameter uncertainty, by an episode bootstrap.** ``n_members`` refits on the training
+  episodes drawn with replacement (episodes, not samples: a sample's neighbours are not
+  independent, an episode of another session is). The statistics are per-episode triangular
+  factors, so a resampled fit is one pass that folds each episode's factor, scaled by the
+  square root of the times it was drawn (:meth:`~qube_koopman.identify.regression.Snapshots.repeated`),
+  into each member's running total: exactly the fit on the duplicated episodes, with no
+  episode lifted or factored twice. Members fit only the rows a re-lifted prediction uses.
+  All members predict an episode in one batched simulation; ``s_c(k)`` is their spread
+  (standard deviation). The lifting (RBF centres) is the point fit's, not resampled.
+- **Offset uncertainty.** With per-episode offsets, each estimate's standard error ``se``
+  (:class:`~qube_koopman.identify.offsets.OffsetEstimate`) is propagated through the prediction
+  linearly: the prediction's sensitivity ``S(k)`` to the offset (one more simulation at the
+  offset plus a tenth of an encoder count) adds ``(S(k) se)^2`` to ``s(k)^2``. The prediction is
+  nearly affine in the offset (the estimation relies on it too), so this is what drawing the
+  offset for every member would give, without the sampling noise of 20 draws. A standard
+  error is capped at the plausibility bound, and an estimate beyond the bound (not used)
+  counts as one bound of uncertainty: a flat cost widens the band, within what is plausible.
+- **Model error, calibrated on held-out training episodes.** The bootstrap sees only how the
+  fit varies with the data, not what the lifting cannot represent; on the paper's data that
+  is most of the error (the members' spread is about a tenth of the held-out error). The
+  training episodes are split into ``n_folds`` groups; each is held out once, predicted by an
+  ensemble (point fit and members) fitted on the others exactly as the test episodes are
+  (same protocol, offsets, scored samples). From the held-out errors ``e`` and spreads ``s``,
+  per channel, ``q_c`` and ``tau_c`` are the Gaussian maximum-likelihood fit of
+  ``e ~ N(0, s^2 + q_c (1 - exp(-h / tau_c)))``, and ``k_c`` the ``L`` quantile of
+  ``|e| / s_eff`` over every held-out sample, so the pooled held-out coverage is ``L`` whatever
+  the shape of the errors' distribution. ``1 - exp(-h / tau)`` is the growth of an AR(1)'s
+  prediction variance with the horizon (exact for a first-order loop with white noise); on
+  the rig it also absorbs the excitation's schedule (small errors in the first seconds).
+  The test set is never looked at.
+
+A prediction that diverges (non-finite, or beyond :data:`~qube_koopman.identify.scores.DIVERGED_FACTOR`
+times the measured range), or whose bootstrap member diverges, gets an infinite interval from
+that sample on, with a :class:`~qube_koopman.identify.scores.DivergedPrediction` warning: an
+unstable refit is a reason not to trust the prediction, not a narrow band.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from qube_koopman.core.files import atomic_path
+from qube_koopman.identify.data import same_system
+from qube_koopman.identify.offsets import (
+    OffsetEstimate,
+    estimate_offsets_many,
+    shift_trajectory,
+)
+from qube_koopman.identify.scores import DIVERGED_FACTOR, DivergedPrediction
+from qube_koopman.identify.simulate import simulate_chunks
+from qube_koopman.identify.structure import close_loop
+from qube_koopman.identify.trajectory import Trajectory, as_episodes, select_episodes
+from qube_koopman.sim.lti import DiscreteStateSpace
+
+__all__ = [
+    "OFFSET_STEP",
+    "BandSummary",
+    "EnsembleFit",
+    "EpisodePrediction",
+    "FoldEnsemble",
+    "IntervalCalibration",
+    "IntervalOptions",
+    "Loop",
+    "PredictionBand",
+    "bootstrap_counts",
+    "calibrate",
+    "ensemble_statistics",
+    "episode_folds",
+    "fit_ensemble",
+    "predict_episodes",
+    "prediction_band",
+    "summarize_bands",
+]
+
+#: Offset step (rad) of the sensitivity's finite difference: a tenth of an encoder count.
+OFFSET_STEP = 3e-4
+#: Episodes predicted together: one batched simulation of every member over this many.
+EPISODES_PER_BATCH = 16
+
+
+@dataclass(frozen=True)
+class IntervalOptions:
+    """How prediction intervals are made (see the module docstring).
+
+    Parameters
+    ----------
+    level : float
+        Coverage asked for, in (0, 1) (``qube-identify --interval``).
+    n_members : int
+        Bootstrap refits (at least 2).
+    n_calibration_members : int
+        Bootstrap refits of each calibration fold (at least 2): the calibration needs the spread's
+        size on the held-out episodes, not the test band itself, and each member costs a
+        prediction of every held-out episode.
+    n_folds : int
+        Groups of training episodes held out in turn for the calibration (at most one per episode).
+    n_calibration_episodes : int
+        Training episodes held out at most (drawn at random), so that the calibration's cost does not
+        grow with the training set: its few parameters per channel are fitted on thousands of samples.
+    seed : int
+        Seed of the resampling and of the folds.
+    stride : int
+        Every ``stride``-th held-out sample enters the calibration (neighbouring samples at 500 Hz
+        say nearly the same; this bounds its memory and time).
+    """
+
+    level: float = 0.95
+    n_members: int = 20
+    n_calibration_members: int = 10
+    n_folds: int = 5
+    n_calibration_episodes: int = 16
+    seed: int = 0
+    stride: int = 5
+
+    def __post_init__(self) -> None:
+        if not 0 < self.level < 1:
+            raise ValueError(f"the interval's level must be between 0 and 1, got {self.level}")
+        counts = (self.n_members, self.n_calibration_members, self.n_folds, self.n_calibration_episodes)
+        if min(int(c) for c in counts) < 2 or int(self.stride) < 1:
+            raise ValueError(f"intervals need at least 2 members, calibration members, folds and calibration episodes "
+                             f"and a stride of 1 or more, got {', '.join(str(c) for c in counts)} and {self.stride}")
+
+
+@dataclass(frozen=True, eq=False)
+class Loop:
+    """Which model of a fit predicts an episode.
+
+    Parameters
+    ----------
+    kind : {"closed", "plant", "wrapped"}
+        The fit's closed loop, its plant from the logged input, or its plant wrapped with
+        ``controller``.
+    controller : DiscreteStateSpace, optional
+        The wrapping controller (``"wrapped"``).
+    """
+
+    kind: str
+    controller: DiscreteStateSpace | None = None
+
+    @classmethod
+    def of(cls, controller: DiscreteStateSpace, fitted: DiscreteStateSpace | None, scoring: str = "cl") -> Loop:
+        """The loop predicting an episode recorded under ``controller`` by a fit whose closed loop is ``fitted``'s."""
+        if scoring == "plant":
+            return cls("plant")
+        if fitted is not None and same_system(controller, fitted):
+            return cls("closed")
+        return cls("wrapped", controller)
+
+    def model(self, closed, plant, measured: Sequence[int]):
+        """This loop's model of a fit given by its closed loop and plant."""
+        if self.kind == "plant":
+            return plant
+        if self.kind == "closed":
+            return closed
+        return close_loop(plant, self.controller, measured)
+
+    def same(self, other: Loop) -> bool:
+        """Whether the two loops use the same model."""
+        return self.kind == other.kind and (self.kind != "wrapped" or same_system(self.controller, other.controller))
+
+
+def consecutive_runs(loops: Sequence[Loop], size: int = EPISODES_PER_BATCH) -> list[list[int]]:
+    """Indices of consecutive episodes sharing a loop, at most ``size`` at a time (order kept)."""
+    runs: list[list[int]] = []
+    for i, loop in enumerate(loops):
+        if runs and len(runs[-1]) < size and loops[runs[-1][0]].same(loop):
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    return runs
+
+
+# --- the ensemble ------------------------------------------------------------------------------
+
+
+def bootstrap_counts(n_episodes: int, n_members: int, rng: np.random.Generator) -> np.ndarray:
+    """How many times each episode is drawn in each resample of ``n_episodes`` with replacement.
+
+    Returns
+    -------
+    ndarray of int of shape (n_members, n_episodes)
+        Each row sums to ``n_episodes``.
+    """
+    return rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes), size=n_members)
+
+
+def episode_folds(n_episodes: int, n_folds: int, rng: np.random.Generator,
+                  max_held_out: int | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Episodes drawn at random (``max_held_out`` at most, all by default) and split into ``n_folds`` groups
+    (at most one per episode), each held out once; each fold trains on every other episode.
+
+    Returns
+    -------
+    list of (train_indices, validation_indices)
+    """
+    held_out = rng.permutation(n_episodes)[:n_episodes if max_held_out is None else int(max_held_out)]
+    groups = np.array_split(held_out, min(int(n_folds), held_out.size))
+    return [(np.setdiff1d(np.arange(n_episodes), g), np.sort(g)) for g in groups]
+
+
+def ensemble_statistics(estimator, setup, selections: np.ndarray, elsewhere: Callable | None = None):
+    """The statistics of all the setup's episodes and of weighted selections of them, in one pass.
+
+    Each episode is lifted and factored once (here, or ``elsewhere``: see
+    :meth:`~qube_koopman.identify._base.SnapshotEstimator._selection_statistics`), folded into the
+    total of all episodes as a plain fit folds it (the same result, bit for bit), and into each
+    selection that draws it, its factor scaled by the square root of its count. With a known
+    set of rows that re-lifted predictions use (``estimator._relift_rows``), the selections keep
+    only those targets (the factor's leading block: no new decomposition).
+
+    Parameters
+    ----------
+    estimator : SnapshotEstimator
+        The estimator, its setup made (``_setup``).
+    setup : FitSetup
+        The setup of all the episodes.
+    selections : ndarray of int of shape (n_selections, n_episodes)
+        How many times each selection counts each episode (0: left out).
+    elsewhere : callable, optional
+        Computes the episodes' statistics elsewhere (a dask cluster).
+
+    Returns
+    -------
+    total : Snapshots or GroupedSnapshots
+        Of all the episodes, once each.
+    selected : list
+        Of each selection.
+    """
+    selections = np.asarray(selections, dtype=int)
+    trajectories = setup.trajectories
+    n = len(trajectories)
+    if selections.ndim != 2 or selections.shape[1] != n:
+        raise ValueError(f"selections must count each of the {n} episodes, got shape {selections.shape}")
+    partial = estimator._relift_rows(setup) is not None
+    n_lifted, m = setup.lifting.n_features_out_, setup.lifting.n_features_in_
+    total = estimator._statistics_fold(setup)
+    folds = [estimator._statistics_fold(setup) for _ in selections]
+    parts = ((estimator._episode_snapshots(setup, trajectories[j]) for j in range(n)) if elsewhere is None
+             else elsewhere(estimator, setup, list(range(n))))
+    for j, part in enumerate(parts):
+        total.add(j, part)
+        # The targets are [controller states; lifted plant states]: keep the controller's and the plant's own.
+        small = part.leading(part.R.shape[1] - part.n_regressors - n_lifted + m) if partial else part
+        for fold, count in zip(folds, selections[:, j]):
+            if count:
+                fold.add(j, small.repeated(int(count)))
+    return total.total(), [fold.total() for fold in folds]
+
+
+@dataclass
+class FoldEnsemble:
+    """One calibration fold: the episodes it holds out, its point fit and members on the others.
+
+    Parameters
+    ----------
+    validation : ndarray of int
+        The held-out episodes.
+    point : (closed, plant)
+        Fitted on the fold's other episodes once each.
+    members : list of (closed, plant)
+        Fitted on resamples of them.
+    """
+
+    validation: np.ndarray
+    point: tuple
+    members: list
+
+
+@dataclass
+class EnsembleFit:
+    """A fit on all the training episodes, its bootstrap members and the calibration folds' ensembles.
+
+    Parameters
+    ----------
+    estimator : SnapshotEstimator
+        Fitted on all the episodes, as a plain fit is.
+    members : list of (closed, plant)
+        The bootstrap refits (only the rows re-lifted predictions use; closed None for a plant
+        fit without a controller).
+    folds : list of FoldEnsemble
+    counts : ndarray of int of shape (n_members, n_episodes)
+        Each member's draw of the episodes.
+    """
+
+    estimator: object
+    members: list
+    folds: list[FoldEnsemble]
+    counts: np.ndarray
+
+
+def fit_ensemble(estimator, trajectories, options: IntervalOptions = IntervalOptions(),
+                 controllers: Sequence[DiscreteStateSpace] | None = None, controller: DiscreteStateSpace | None = None,
+                 measured: Sequence[int] | None = None, elsewhere: Callable | None = None) -> EnsembleFit:
+    """Fit ``estimator`` on all the episodes, its bootstrap members and the folds' ensembles in one pass.
+
+    Parameters
+    ----------
+    estimator : SnapshotEstimator
+        Unfitted (:class:`~qube_koopman.identify.ClEdmd`, :class:`~qube_koopman.identify.Edmd`, ...);
+        it is fitted in place, as :meth:`fit` would.
+    trajectories : sequence of Trajectory
+        The training episodes (a lazy sequence is read one episode at a time).
+    options : IntervalOptions
+        Members, folds, seed.
+    controllers : sequence of DiscreteStateSpace, optional
+        Each episode's controller (a closed-loop estimator's episodes under several).
+    controller : DiscreteStateSpace, optional
+        Wraps a plant estimator's (EDMD's) members for their closed loops.
+    measured : sequence of int, optional
+        The fed-back states, for that wrapping.
+    elsewhere : callable, optional
+        Computes the per-episode statistics elsewhere (a dask cluster).
+
+    Returns
+    -------
+    EnsembleFit
+    """
+    from qube_koopman.identify.sweep import fitted_models
+
+    trajectories = as_episodes(trajectories)
+    n = len(trajectories)
+    if n < 2:
+        raise ValueError(f"prediction intervals are calibrated on held-out training episodes: they need at least 2, "
+                         f"got {n}")
+    rng = np.random.default_rng(options.seed)
+    counts = bootstrap_counts(n, options.n_members, rng)
+    splits = episode_folds(n, options.n_folds, rng, options.n_calibration_episodes)
+    B, C = options.n_members, options.n_calibration_members
+    selections = [counts]
+    for train, _ in splits:
+        fold = np.zeros((C + 1, n), dtype=int)
+        fold[0, train] = 1
+        fold[1:, train] = bootstrap_counts(len(train), C, rng)
+        selections.append(fold)
+    setup = estimator._setup(trajectories) if controllers is None else estimator._setup(trajectories, controllers)
+    total, selected = ensemble_statistics(estimator, setup, np.vstack(selections), elsewhere)
+    rows = estimator._relift_rows(setup)
+    partial = setup if rows is None else dataclasses.replace(setup, target_rows=rows)
+
+    def refit(snapshots) -> tuple:
+        closed, plants = fitted_models(estimator, partial, snapshots, [estimator.alpha], controller, measured)
+        return closed[0], plants[0]
+
+    models = [refit(s) for s in selected]
+    estimator._finish(setup, total)
+    folds = [FoldEnsemble(validation, models[B + i * (C + 1)], models[B + i * (C + 1) + 1:B + (i + 1) * (C + 1)])
+             for i, (_, validation) in enumerate(splits)]
+    return EnsembleFit(estimator, models[:B], folds, counts)
+
+
+# --- prediction with the spread -----------------------------------------------------------------
+
+
+@dataclass
+class EpisodePrediction:
+    """One episode predicted by a point model and its members.
+
+    Parameters
+    ----------
+    prediction : ndarray of shape (n_samples, n_states)
+        The point model's (offsets added back when estimated).
+    variance : ndarray of shape (n_samples, n_states) or None
+        The members' variance plus the offsets' (None without members); infinite where a
+        member diverged.
+    plain : ndarray or None
+        With offsets: the point model's prediction without them.
+    estimate : OffsetEstimate or None
+        With offsets: the episode's.
+    """
+
+    prediction: np.ndarray
+    variance: np.ndarray | None = None
+    plain: np.ndarray | None = None
+    estimate: OffsetEstimate | None = None
+
+
+class _EnsembleSink:
+    """The point model's prediction and the members' variance, gathered chunk by chunk (time first)."""
+
+    def __init__(self, T: int, n_eps: int, m: int, n_p: int, n_models: int, d: int) -> None:
+        self.n_p, self.n_models = n_p, n_models
+        self.prediction = np.full((T, n_eps, m), np.nan)
+        self.variance = np.full((T, n_eps, m), np.inf) if n_models > 1 else None
+        if self.variance is not None:
+            self.variance[:d + 1] = 0.0
+
+    def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
+        at = slice(k0, k0 + len(chunk))
+        if models[0] == 0:
+            self.prediction[at] = chunk[:, 0, :, self.n_p:]
+        if self.variance is None:
+            return
+        if models.size < self.n_models:  # a member (or the point) diverged everywhere: no spread to trust
+            self.variance[at] = np.inf
+            return
+        with np.errstate(all="ignore"):
+            spread = np.var(chunk[:, 1:, :, self.n_p:], axis=1, ddof=1)
+        self.variance[at] = np.where(np.isfinite(spread), spread, np.inf)
+
+
+def _simulate(models: Sequence, trajectories: Sequence[Trajectory]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Every model over equally long episodes in one batch: the first model's prediction, the others' variance."""
+    point = models[0]
+    d, n_p, m = point.n_delays, point.n_passthrough, point.n_states
+    T = trajectories[0].n_samples
+    x_init = np.stack([t.x[:d + 1] for t in trajectories])
+    v = np.stack([point.inputs_of(t) for t in trajectories])
+    p0 = np.stack([t.xc[d] for t in trajectories]) if n_p else None
+    sink = _EnsembleSink(T, len(trajectories), m, n_p, len(models), d)
+    sink.prediction[:d + 1] = np.moveaxis(x_init, 1, 0)
+    simulate_chunks(np.stack([model.A for model in models]), np.stack([model.B for model in models]), point.lifting,
+                    n_p, x_init, v, p0, True, sink)
+    variance = None if sink.variance is None else np.moveaxis(sink.variance, 1, 0)
+    return np.moveaxis(sink.prediction, 1, 0), variance
+
+
+def _offset_spread(estimate: OffsetEstimate) -> np.ndarray:
+    """The standard deviation each offset counts with: its standard error, at most the bound (the bound when unused)."""
+    if not estimate.plausible or estimate.std_error is None:
+        return np.full(len(estimate.channels), estimate.bound)
+    return np.where(np.isfinite(estimate.std_error), np.minimum(estimate.std_error, estimate.bound), estimate.bound)
+
+
+def _with_offsets(model, trajectories, estimates, prediction, variance):
+    """The plain predictions; with ``variance``, the offsets' variance added to it through their sensitivities.
+
+    One batch: each episode without offsets, then (with ``variance``) each episode at its offsets
+    with one channel's moved by :data:`OFFSET_STEP`.
+    """
+    channels, n = estimates[0].channels, len(trajectories)
+    used = [{c: e.as_mapping().get(c, 0.0) for c in channels} for e in estimates]
+    moved = [] if variance is None else [{**u, c: u[c] + OFFSET_STEP} for c in channels for u in used]
+    offsets = [{}] * n + moved
+    runs, _ = _simulate([model], [shift_trajectory(model, t, o)
+                                  for t, o in zip(list(trajectories) * (len(offsets) // n), offsets)])
+    for run, o in zip(runs, offsets):
+        for c, value in o.items():
+            run[:, c] += value
+    if variance is not None:
+        spread = np.array([_offset_spread(e) for e in estimates])  # (episodes, channels)
+        for i in range(len(channels)):
+            sensitivity = (runs[n * (i + 1):n * (i + 2)] - prediction) / OFFSET_STEP
+            with np.errstate(invalid="ignore", over="ignore"):
+                variance += (sensitivity * spread[:, i, None, None]) ** 2
+    return runs[:n]
+
+
+def predict_episodes(models: Sequence, trajectories: Sequence[Trajectory], offsets=None) -> list[EpisodePrediction]:
+    """Predict episodes with a point model and its members, batched by length.
+
+    Parameters
+    ----------
+    models : sequence of KoopmanModel
+        The point model, then its members (all of one lifting and structure); the point alone
+        gives no variance.
+    trajectories : sequence of Trajectory
+        The episodes.
+    offsets : OffsetProtocol, optional
+        Estimate each episode's offsets (``channels``, ``window(dt)``, ``bound``) with the point
+        model first, predict with them, and count their uncertainty.
+
+    Returns
+    -------
+    list of EpisodePrediction
+        In the episodes' order.
+    """
+    trajectories = list(trajectories)
+    point = models[0]
+    out: list[EpisodePrediction | None] = [None] * len(trajectories)
+    by_length: dict[int, list[int]] = {}
+    for i, t in enumerate(trajectories):
+        by_length.setdefault(t.n_samples, []).append(i)
+    for group in by_length.values():
+        trajs = [trajectories[i] for i in group]
+        estimates = None
+        if offsets is not None:
+            estimates = estimate_offsets_many(point, trajs, offsets.channels, offsets.window(trajs[0].dt),
+                                              offsets.bound)
+            shifted = [shift_trajectory(point, t, e.as_mapping()) for t, e in zip(trajs, estimates)]
+        else:
+            shifted = trajs
+        prediction, variance = _simulate(models, shifted)
+        plain = None
+        if estimates is not None:
+            for j, e in enumerate(estimates):
+                for c, value in e.as_mapping().items():
+                    prediction[j, :, c] += value
+            plain = _with_offsets(point, trajs, estimates, prediction, variance)
+        for j, i in enumerate(group):
+            out[i] = EpisodePrediction(prediction[j], None if variance is None else variance[j],
+                                       None if plain is None else plain[j], None if estimates is None else estimates[j])
+    return out
+
+
+# --- calibration ---------------------------------------------------------------------------------
+
+
+def _growth(horizons: np.ndarray, timescale: float) -> np.ndarray:
+    """``1 - exp(-h / tau)`` for positive horizons, 0 at the initial condition."""
+    h = np.asarray(horizons, dtype=float)
+    return np.where(h > 0, -np.expm1(-np.maximum(h, 0.0) / timescale), 0.0)
+
+
+def _fit_channel(errors: np.ndarray, variances: np.ndarray, horizons: np.ndarray, level: float):
+    """``(q, tau, k)`` of one channel: Gaussian maximum likelihood (in log q, log tau), then the level's quantile."""
+    # ndtri: the normal quantile (scipy.stats would add half a second of imports).
+    from scipy.optimize import minimize
+    from scipy.special import ndtri
+
+    use = np.isfinite(errors) & np.isfinite(variances) & (horizons > 0)
+    e2, v, h = errors[use] ** 2, variances[use], horizons[use].astype(float)
+    if not np.any(e2 > 0):  # nothing to learn the model error from
+        return 0.0, 1.0, float(ndtri(0.5 + level / 2))
+    tiny = np.finfo(float).tiny
+
+    @np.errstate(over="ignore", under="ignore")
+    def cost(p: np.ndarray) -> tuple[float, np.ndarray]:
+        q, tau = np.exp(p)
+        decay = np.exp(-h / tau)
+        total = np.maximum(v + q * (1.0 - decay), tiny)
+        slope = (total - e2) / total ** 2  # d cost / d total, per sample
+        gradient = [np.mean(slope * q * (1.0 - decay)), np.mean(slope * -q * decay * h / tau)]
+        return float(np.mean(np.log(total) + e2 / total)), np.array(gradient)
+
+    start = [np.log(np.mean(e2)), np.log(max(float(np.median(h)) / 10, 1.0))]
+    best = minimize(cost, start, jac=True, method="L-BFGS-B", bounds=[(None, None), (np.log(1e-3), np.log(1e9))])
+    q, tau = float(np.exp(best.x[0])), float(np.exp(best.x[1]))
+    s = np.sqrt(v + q * _growth(h, tau))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(e2 > 0, np.sqrt(e2) / s, 0.0)
+    return q, tau, float(np.quantile(ratio, level, method="higher"))
+
+
+class IntervalCalibration:
+    """The band's half-width ``k_c sqrt(s^2 + q_c (1 - exp(-h / tau_c)))``, fitted on held-out errors.
+
+    Parameters
+    ----------
+    level : float
+        The coverage the factor ``k_c`` gives on the held-out samples.
+
+    Attributes
+    ----------
+    scale_ : ndarray of shape (n_states,)
+        ``q_c``, the model error's variance at long horizons (squared state units).
+    timescale_ : ndarray of shape (n_states,)
+        ``tau_c`` in samples.
+    factor_ : ndarray of shape (n_states,)
+        ``k_c``.
+    coverage_ : ndarray of shape (n_states,)
+        The held-out samples' coverage with these.
+    n_samples_ : int
+        Held-out samples (per channel) the fit used.
+    n_diverged_ : int
+        Held-out predictions that diverged (:func:`calibrate`; their samples from there are left out).
+    """
+
+    def __init__(self, level: float = 0.95) -> None:
+        self.level = level
+
+    def fit(self, errors: np.ndarray, variances: np.ndarray, horizons: np.ndarray) -> IntervalCalibration:
+        """Fit each channel on held-out samples.
+
+        Parameters
+        ----------
+        errors, variances : ndarray of shape (n, n_states)
+            Measured minus predicted, and the members' (and offsets') variance, of each sample.
+        horizons : ndarray of shape (n,)
+            Steps predicted since the initial condition (``sample - n_delays``).
+
+        Returns
+        -------
+        self
+        """
+        errors, variances = np.asarray(errors, dtype=float), np.asarray(variances, dtype=float)
+        horizons = np.asarray(horizons)
+        fits = np.array([_fit_channel(errors[:, c], variances[:, c], horizons, self.level)
+                         for c in range(errors.shape[1])])
+        self.scale_, self.timescale_, self.factor_ = fits[:, 0], fits[:, 1], fits[:, 2]
+        with np.errstate(invalid="ignore"):
+            inside = np.abs(errors) <= self.half_width(variances, horizons)
+        self.coverage_ = inside.mean(axis=0) if len(errors) else np.full(errors.shape[1], np.nan)
+        self.n_samples_ = len(errors)
+        self.n_diverged_ = 0
+        return self
+
+    def half_width(self, variances: np.ndarray, horizons: np.ndarray) -> np.ndarray:
+        """Half-widths of samples with these variances (..., n_states) at these horizons (...,)."""
+        h = np.asarray(horizons)
+        growth = np.stack([_growth(h, tau) for tau in self.timescale_], axis=-1)
+        total = np.asarray(variances, dtype=float) + self.scale_ * growth
+        with np.errstate(invalid="ignore"):
+            return np.where(np.isnan(total), np.inf, self.factor_ * np.sqrt(total))
+
+    def as_dict(self, names: Sequence[str]) -> dict:
+        """Plain data for reports, by channel name."""
+        return {name: {"scale": float(np.sqrt(q)), "timescale_samples": float(tau), "factor": float(k),
+                       "held_out_coverage": float(cov)}
+                for name, q, tau, k, cov in zip(names, self.scale_, self.timescale_, self.factor_, self.coverage_)}
+
+
+def calibrate(fit: EnsembleFit, trajectories, loops: Sequence[Loop], level: float, start: int = 1, offsets=None,
+              measured: Sequence[int] | None = None, stride: int = 5) -> IntervalCalibration:
+    """Calibrate the band on the folds' held-out episodes, predicted as test episodes are.
+
+    Parameters
+    ----------
+    fit : EnsembleFit
+        Its folds' ensembles.
+    trajectories : sequence of Trajectory
+        The training episodes the fit was made on (a lazy sequence is read a batch at a time).
+    loops : sequence of Loop
+        The loop predicting each of them.
+    level : float
+        The coverage asked for.
+    start : int
+        First scored sample of each episode (the end of the offsets' window, as the test's).
+    offsets : OffsetProtocol, optional
+        Estimate each held-out episode's offsets first, as the test episodes'.
+    measured : sequence of int, optional
+        The fed-back states (for wrapped loops).
+    stride : int
+        Every ``stride``-th scored sample is used.
+
+    Returns
+    -------
+    IntervalCalibration
+    """
+    trajectories = as_episodes(trajectories)
+    errors, variances, horizons, diverged = [], [], [], 0
+    for fold in fit.folds:
+        held_out = select_episodes(trajectories, fold.validation)
+        for run in consecutive_runs([loops[j] for j in fold.validation]):
+            loop = loops[fold.validation[run[0]]]
+            models = [loop.model(*fold.point, measured)] + [loop.model(*m, measured) for m in fold.members]
+            trajs = [held_out[i] for i in run]
+            d = models[0].n_delays
+            for t, p in zip(trajs, predict_episodes(models, trajs, offsets)):
+                # A diverged held-out prediction says nothing about the size of the errors: left out from there.
+                end = _diverged_from(p.prediction, t.x, start) or t.n_samples
+                diverged += end < t.n_samples
+                k = np.arange(max(start, d + 1), end, stride)
+                errors.append(t.x[k] - p.prediction[k])
+                variances.append(p.variance[k])
+                horizons.append(k - d)
+    calibration = IntervalCalibration(level).fit(np.concatenate(errors), np.concatenate(variances),
+                                                 np.concatenate(horizons))
+    calibration.n_diverged_ = diverged
+    return calibration
+
+
+# --- bands ------------------------------------------------------------------------------------
+
+
+@dataclass
+class PredictionBand:
+    """One episode's prediction and interval over its scored samples.
+
+    Parameters
+    ----------
+    name : str
+        The episode (its log's file name).
+    t : ndarray of shape (n,)
+        Time of each scored sample from the episode's start (s).
+    measured, predicted, lower, upper : ndarray of shape (n, n_states)
+        The band is ``lower <= measured <= upper`` at the ``level``; infinite where the
+        prediction or a bootstrap member diverged. ``measured`` is NaN for an episode recorded
+        under another controller than the one predicted (not scored).
+    level : float
+    scored : bool
+        Whether the measured states belong to the predicted loop.
+    diverged_at : int or None
+        First sample (of the episode) from which the band is infinite.
+    """
+
+    name: str
+    t: np.ndarray
+    measured: np.ndarray
+    predicted: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    level: float
+    scored: bool = True
+    diverged_at: int | None = None
+
+    def inside(self) -> np.ndarray:
+        """Whether each measured sample is within the band, per channel."""
+        with np.errstate(invalid="ignore"):
+            return (self.lower <= self.measured) & (self.measured <= self.upper)
+
+    def coverage(self) -> np.ndarray:
+        """Share of the samples within the band, per channel."""
+        return self.inside().mean(axis=0)
+
+    def mean_half_width(self) -> np.ndarray:
+        """Mean half-width per channel (inf when the band is infinite anywhere)."""
+        with np.errstate(invalid="ignore"):
+            return np.mean((self.upper - self.lower) / 2, axis=0)
+
+    def rms_error(self) -> np.ndarray:
+        """RMS of measured minus predicted per channel (inf when the prediction diverged)."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            rms = np.sqrt(np.mean((self.measured - self.predicted) ** 2, axis=0))
+        return np.where(np.isnan(rms) & self.scored, np.inf, rms)
+
+    def save(self, path: str | Path) -> None:
+        """Write the arrays to ``path`` (``.npz``: t, measured, predicted, lower, upper, level), whole or not at all."""
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, t=self.t, measured=self.measured, predicted=self.predicted, lower=self.lower,
+                     upper=self.upper, level=np.float64(self.level))
+
+
+def _diverged_from(prediction: np.ndarray, measured: np.ndarray, start: int) -> int | None:
+    """First sample from ``start`` on that is non-finite or beyond the divergence bound, or None."""
+    bound = DIVERGED_FACTOR * max(1.0, float(np.nanmax(np.abs(measured[start:]), initial=0.0)))
+    with np.errstate(invalid="ignore"):
+        beyond = ~(np.abs(prediction[start:]) <= bound).all(axis=1)
+    return int(np.argmax(beyond)) + start if beyond.any() else None
+
+
+def prediction_band(name: str, trajectory: Trajectory, prediction: EpisodePrediction, calibration: IntervalCalibration,
+                    start: int, n_delays: int, scored: bool = True) -> PredictionBand:
+    """The band of one predicted episode over its samples from ``start`` on.
+
+    A diverged prediction, or a diverged member (infinite variance), makes the band infinite
+    from there, with a :class:`~qube_koopman.identify.scores.DivergedPrediction` warning.
+
+    Parameters
+    ----------
+    name : str
+        The episode's name.
+    trajectory : Trajectory
+        Its measured signals.
+    prediction : EpisodePrediction
+        From :func:`predict_episodes` (with members).
+    calibration : IntervalCalibration
+        Fitted.
+    start : int
+        First scored sample.
+    n_delays : int
+        The model's delays (horizon = sample - n_delays).
+    scored : bool
+        Whether the measured states belong to the predicted loop (else stored as NaN).
+
+    Returns
+    -------
+    PredictionBand
+    """
+    x, pred = trajectory.x, prediction.prediction
+    k = np.arange(start, trajectory.n_samples)
+    half = calibration.half_width(prediction.variance[k], k - n_delays)
+    diverged = _diverged_from(pred, x, start)
+    infinite = ~np.isfinite(half).all(axis=1)
+    first_infinite = int(k[np.argmax(infinite)]) if infinite.any() else None
+    candidates = [s for s in (diverged, first_infinite) if s is not None]
+    at = min(candidates) if candidates else None
+    with np.errstate(invalid="ignore"):
+        lower, upper = pred[k] - half, pred[k] + half
+    if at is not None:
+        lower[k >= at], upper[k >= at] = -np.inf, np.inf
+        why = "the prediction diverged" if diverged is not None and diverged <= at else "a bootstrap refit diverged"
+        dt = trajectory.dt or 0.0
+        warnings.warn(f"{name}: the prediction interval is infinite from sample {at} ({at * dt:.2f} s): {why}",
+                      DivergedPrediction, stacklevel=2)
+    measured = x[k] if scored else np.full_like(pred[k], np.nan)
+    t = k * (trajectory.dt or 1.0)
+    return PredictionBand(name, t, measured, pred[k].copy(), lower, upper, calibration.level, scored, at)
+
+
+def _channel_dict(names: Sequence[str], values: np.ndarray) -> dict:
+    return {n: float(v) for n, v in zip(names, values)}
+
+
+class BandSummary:
+    """Coverage, mean half-width and RMS error per channel, gathered band by band (no band kept).
+
+    Parameters
+    ----------
+    names : sequence of str
+        The channels' names.
+    """
+
+    def __init__(self, names: Sequence[str]) -> None:
+        self.names = list(names)
+        self.episodes: list[dict] = []
+        m = len(self.names)
+        self._inside, self._half, self._squared = np.zeros(m), np.zeros(m), np.zeros(m)
+        self._worst, self._n, self._infinite = np.ones(m), 0, 0
+
+    def add(self, band: PredictionBand) -> None:
+        """Count one band (an unscored one is left out)."""
+        if not band.scored:
+            return
+        coverage = band.coverage()
+        self.episodes.append({"log": band.name, "coverage": _channel_dict(self.names, coverage),
+                              "mean_half_width": _channel_dict(self.names, band.mean_half_width()),
+                              "rms_error": _channel_dict(self.names, band.rms_error()),
+                              "infinite_from_sample": band.diverged_at})
+        n = len(band.t)
+        with np.errstate(invalid="ignore", over="ignore"):
+            self._inside += coverage * n
+            self._half += np.sum((band.upper - band.lower) / 2, axis=0)
+            self._squared += np.sum((band.measured - band.predicted) ** 2, axis=0)
+        self._worst = np.minimum(self._worst, coverage)
+        self._n += n
+        self._infinite += band.diverged_at is not None
+
+    def report(self) -> dict:
+        """``pooled`` (``coverage``, ``mean_half_width``, ``rms_error``, ``worst_episode_coverage``,
+        ``n_samples``, ``n_infinite``: bands infinite somewhere; None when no band was scored) and
+        ``episodes`` (one entry per scored band)."""
+        if not self._n:
+            return {"pooled": None, "episodes": self.episodes}
+        with np.errstate(invalid="ignore"):
+            rms = np.sqrt(self._squared / self._n)
+        return {"pooled": {"coverage": _channel_dict(self.names, self._inside / self._n),
+                           "mean_half_width": _channel_dict(self.names, self._half / self._n),
+                           "rms_error": _channel_dict(self.names, np.where(np.isnan(rms), np.inf, rms)),
+                           "worst_episode_coverage": _channel_dict(self.names, self._worst),
+                           "n_samples": self._n, "n_infinite": self._infinite},
+                "episodes": self.episodes}
+
+
+def summarize_bands(bands: Sequence[PredictionBand], names: Sequence[str]) -> dict:
+    """:class:`BandSummary` of ``bands``: coverage, mean half-width and RMS error per channel and episode.
+
+    Parameters
+    ----------
+    bands : sequence of PredictionBand
+    names : sequence of str
+        The channels' names.
+
+    Returns
+    -------
+    dict
+        See :meth:`BandSummary.report`.
+    """
+    summary = BandSummary(names)
+    for band in bands:
+        summary.add(band)
+    return summary.report()
