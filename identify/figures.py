@@ -6,7 +6,7 @@ computed on, the models whose spectral radii it lists, the sweep's scores):
 
 - :class:`SeriesPlot`: curves against a common x (time or alpha), on one or
   more stacked panels, with optional vertical marks (the chosen alpha, the
-  first scored sample);
+  first scored sample) and shaded bands (a prediction's interval);
 - :class:`EigenvaluePlot`: sets of eigenvalues in the complex plane with the
   unit circle.
 
@@ -30,7 +30,7 @@ import numpy as np
 from qube_koopman.core.files import atomic_path
 from qube_koopman.core.qube import STATE_NAMES
 
-__all__ = ["Curve", "SeriesPlot", "EigenvaluePlot", "FigureSpec", "FiguresUnavailable", "require_matplotlib",
+__all__ = ["Curve", "Band", "SeriesPlot", "EigenvaluePlot", "FigureSpec", "FiguresUnavailable", "require_matplotlib",
            "draw", "write_figures", "measured_range", "model_eigenvalues", "identification_figures",
            "choose_episodes"]
 
@@ -94,6 +94,30 @@ class Curve:
 
 
 @dataclass(frozen=True)
+class Band:
+    """A shaded band between two curves: a prediction's interval (the ``PolyCollection``'s gid is its label).
+
+    Parameters
+    ----------
+    label : str
+        The legend's label (and the band's gid).
+    lower, upper : ndarray of shape (n,)
+        Its edges against the plot's x; non-finite values (an infinite interval) leave a gap.
+    panel : int
+        The panel it is drawn on.
+    """
+
+    label: str
+    lower: np.ndarray
+    upper: np.ndarray
+    panel: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "lower", _finite_or_nan(self.lower))
+        object.__setattr__(self, "upper", _finite_or_nan(self.upper))
+
+
+@dataclass(frozen=True)
 class SeriesPlot:
     """Curves against a common x on ``len(ylabels)`` stacked panels.
 
@@ -116,6 +140,8 @@ class SeriesPlot:
     ylims : tuple of (float, float) or None, optional
         Each panel's y range (e.g. to let a diverged curve leave the plot);
         None (for all panels or one): matplotlib's autoscaling.
+    bands : tuple of Band
+        Shaded bands, each of length n, drawn under the curves.
     """
 
     title: str
@@ -126,13 +152,16 @@ class SeriesPlot:
     log_x: bool = False
     marks: dict[str, float] = field(default_factory=dict)
     ylims: tuple[tuple[float, float] | None, ...] | None = None
+    bands: tuple[Band, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "x", np.asarray(self.x, dtype=float))
-        for c in self.curves:
-            if c.y.shape != self.x.shape or not 0 <= c.panel < len(self.ylabels):
-                raise ValueError(f"curve {c.label!r}: shape {c.y.shape} / panel {c.panel} does not fit "
-                                 f"x of shape {self.x.shape} and {len(self.ylabels)} panel(s)")
+        for c in (*self.curves, *self.bands):
+            shape = c.y.shape if isinstance(c, Curve) else c.lower.shape
+            if shape != self.x.shape or (isinstance(c, Band) and c.upper.shape != shape) \
+                    or not 0 <= c.panel < len(self.ylabels):
+                raise ValueError(f"{type(c).__name__.lower()} {c.label!r}: shape {shape} / panel {c.panel} does not "
+                                 f"fit x of shape {self.x.shape} and {len(self.ylabels)} panel(s)")
 
     def curve(self, label: str) -> Curve:
         """The curve of this label."""
@@ -165,6 +194,9 @@ class FigureSpec:
 
 def _draw_series(plot: SeriesPlot, fig) -> None:
     axes = fig.subplots(len(plot.ylabels), 1, sharex=True, squeeze=False)[:, 0]
+    for b in plot.bands:
+        axes[b.panel].fill_between(plot.x, b.lower, b.upper, color="C1", alpha=0.25, linewidth=0,
+                                   label=b.label).set_gid(b.label)
     for c in plot.curves:
         (line,) = axes[c.panel].plot(plot.x, c.y, c.style, label=c.label, linewidth=1.0)
         line.set_gid(c.label)
@@ -316,19 +348,34 @@ def choose_episodes(names: Sequence[str], wanted: Sequence[str] | None, scores: 
     return list(dict.fromkeys(chosen))
 
 
+def _interval_bands(result, i: int, n: int, states) -> tuple[tuple[Band, ...], str]:
+    """The test episode's interval as one band per panel (full length, NaN before its scored samples), and
+    the caption's words for it."""
+    bands = getattr(result, "test_bands", None)
+    if not bands:
+        return (), ""
+    band = bands[i]
+    lower, upper = np.full((n, len(states)), np.nan), np.full((n, len(states)), np.nan)
+    lower[n - len(band.t):], upper[n - len(band.t):] = band.lower, band.upper
+    label = f"{band.level:.0%} interval"
+    return (tuple(Band(f"{s} {label}", lower[:, j], upper[:, j], panel=j) for j, s in enumerate(states)),
+            f", shaded: the prediction's {label}")
+
+
 def _trajectory_spec(result, i: int, r2: float | None, start: int) -> FigureSpec:
     name, t = result.test_names[i], result.test_time[i]
     truth, pred = result.test_truth[i], result.test_predictions[i]
     states = STATE_NAMES[:truth.shape[1]]
     curves = tuple(Curve(f"{s} {kind}", values[:, j], panel=j, style="-" if kind == "measured" else "--")
                    for j, s in enumerate(states) for kind, values in (("measured", truth), ("predicted", pred)))
+    bands, shaded = _interval_bands(result, i, len(t), states)
     score = "" if r2 is None else f", R^2 {r2:.4f}" if abs(r2) < 1e3 else f", R^2 {r2:.3g}"
     plot = SeriesPlot(f"{name.rsplit('.', 1)[0]}{score}", t, "time (s)", tuple(f"{s} (rad)" for s in states),
                       curves, marks={"first scored sample": float(t[start])} if start > 1 else {},
-                      ylims=tuple(measured_range(truth[:, j], pred[:, j]) for j in range(len(states))))
+                      ylims=tuple(measured_range(truth[:, j], pred[:, j]) for j in range(len(states))), bands=bands)
     stem = "trajectory_" + name.rsplit(".", 1)[0]
     return FigureSpec(stem, f"Test episode {name}: measured and predicted angles{score} "
-                            f"(scored from sample {start}).", plot)
+                            f"(scored from sample {start}){shaded}.", plot)
 
 
 def _eigenvalue_spec(result) -> FigureSpec | None:

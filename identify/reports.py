@@ -50,6 +50,30 @@ def _test_section(report: dict) -> list[str]:
     return lines
 
 
+def _intervals_section(intervals: dict | None) -> list[str]:
+    """The prediction intervals: pooled coverage, half-width and error per channel, and their calibration."""
+    if not intervals or not intervals.get("pooled"):
+        return []
+    pooled, calibration = intervals["pooled"], intervals["calibration"]["channels"]
+    lines = ["", "## Prediction intervals", "",
+             f"Every predicted sample's interval at level {intervals['level']:g}: {intervals['n_members']} bootstrap "
+             f"refits on the training episodes, the offsets' standard errors, and the model's error calibrated on "
+             f"{intervals['n_folds']} groups of training episodes held out in turn (never the test episodes). "
+             f"Pooled over the scored test samples ({pooled['n_samples']}"
+             + (f"; {pooled['n_infinite']} episode(s) with an infinite interval where a prediction diverged"
+                if pooled["n_infinite"] else "") + "):", "",
+             ("| channel | coverage | worst episode | mean half-width (rad) | RMS error (rad) | calibrated factor k "
+              "| model error sqrt(q) (rad) |"), "|---|---|---|---|---|---|---|"]
+    for name in pooled["coverage"]:
+        c = calibration[name]
+        lines.append(f"| {name} | {format_number(pooled['coverage'][name], '.3f')} "
+                     f"| {format_number(pooled['worst_episode_coverage'][name], '.3f')} "
+                     f"| {format_number(pooled['mean_half_width'][name], '.4f')} "
+                     f"| {format_number(pooled['rms_error'][name], '.4f')} | {format_number(c['factor'], '.2f')} "
+                     f"| {format_number(c['scale'], '.4f')} |")
+    return lines
+
+
 def _why_it_won(search: dict) -> str:
     """One sentence: the winner's scores against the best cross-validated candidate's."""
     w, candidates = search["winner"], search["candidates"]
@@ -164,6 +188,7 @@ def markdown_report(report: dict) -> str:
         lines.append(f"- what-if controller: {what_if['note']}; {len(what_if['unscored_logs'])} episode(s) predicted "
                      "without a recording to score against")
     lines += [""] + _test_section(report)
+    lines += _intervals_section(report.get("intervals"))
     sweep = report.get("sweep")
     if sweep:
         best = max(range(len(sweep["alpha"])), key=lambda i: sweep["cv_r2_mean"][i])

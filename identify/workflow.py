@@ -17,13 +17,15 @@ from qube_koopman.identify.mixed import FOLD_KINDS, cross_validation_folds, trai
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.stability import ClEdmdStable
 from qube_koopman.identify.model_file import lifting_to_dict, save_model
-from qube_koopman.identify.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets
+from qube_koopman.identify.offsets import DEFAULT_BOUND
 from qube_koopman.identify.scores import DivergedPrediction, episode_score, summarize_scores
 from qube_koopman.identify.structure import close_loop, controller_states
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
+from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, consecutive_runs,
+                                               fit_ensemble, predict_episodes, prediction_band)
 from qube_koopman.sim.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.files import atomic_path
-from qube_koopman.core.qube import MEASURED
+from qube_koopman.core.qube import MEASURED, STATE_NAMES
 
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
 
@@ -94,6 +96,9 @@ class IdentificationResult:
     test_truth, test_predictions, test_time : list of ndarray
         Each test episode's measured and predicted states and its time axis (s) (empty without
         ``keep_predictions``).
+    test_bands : list of PredictionBand
+        With ``intervals``: each test episode's interval over its scored samples (empty without
+        ``keep_predictions``).
     """
 
     report: dict
@@ -104,6 +109,7 @@ class IdentificationResult:
     test_truth: list[np.ndarray] = field(default_factory=list)
     test_predictions: list[np.ndarray] = field(default_factory=list)
     test_time: list[np.ndarray] = field(default_factory=list)
+    test_bands: list = field(default_factory=list)
 
 
 def _spectral_radius(A) -> float | None:
@@ -117,7 +123,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        offsets: OffsetProtocol | None = None, what_if: DiscreteStateSpace | None = None,
                        estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None,
                        score_from: int | None = None, keep_predictions: bool = True,
-                       episode_statistics: Callable | None = None) -> IdentificationResult:
+                       episode_statistics: Callable | None = None, intervals: IntervalOptions | None = None,
+                       predictions_folder: str | Path | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
     Training logs may come from several controllers: each episode is fitted
@@ -144,6 +151,14 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     cross-validation and the test scores then read one episode at a time, and memory does not
     grow with the number of logs. ``keep_predictions``: keep every test episode's truth and
     prediction in the result (for a recording); without it only their scores are kept.
+
+    With ``intervals`` (a Koopman method) every predicted sample of every test episode gets an
+    interval at ``intervals.level``: an episode bootstrap of the fit, the offsets' standard
+    errors, and a scale of the model's error calibrated on held-out training episodes
+    (:mod:`~qube_koopman.identify.uncertainty`); report.json's ``intervals`` gives each episode's
+    and the pooled coverage, mean half-width and RMS error per channel, and
+    ``predictions_folder`` receives one ``<log>.npz`` per test episode
+    (:meth:`~qube_koopman.identify.uncertainty.PredictionBand.save`).
 
     Parameters
     ----------
@@ -183,13 +198,17 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
         Keep the test episodes' truth and predictions in the result.
     episode_statistics : callable, optional
         Computes the per-episode statistics elsewhere (a dask cluster).
+    intervals : IntervalOptions, optional
+        Give every test prediction an interval (a Koopman method).
+    predictions_folder : str or Path, optional
+        With ``intervals``: write each test episode's prediction and interval there.
 
     Returns
     -------
     IdentificationResult
     """
-    if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None):
-        raise ValueError(f"offsets and what-if controllers need a Koopman method, not {method}")
+    if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None or intervals is not None):
+        raise ValueError(f"offsets, what-if controllers and intervals need a Koopman method, not {method}")
     if method == "arx" and score == "cl":
         raise ValueError("ARX models the plant only: its predictions come from the plant input, not the "
                          "closed loop; use score='plant', or method 'cl-arx' for closed-loop scores")
@@ -208,9 +227,9 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                          "logs of several)")
     with limited_blas_threads(1):
         if method in KOOPMAN_METHODS:
-            plant, closed = _koopman(method, lifting, train, controller, alpha, alphas, score,
-                                     cv_splits, cv_seed, progress, result, estimator_options or {},
-                                     episode_statistics)
+            plant, closed, ensemble = _koopman(method, lifting, train, controller, alpha, alphas, score,
+                                               cv_splits, cv_seed, progress, result, estimator_options or {},
+                                               episode_statistics, intervals)
             result.report["lifting"] = lifting_to_dict(plant.lifting)
             result.report["spectral_radius"] = {"closed_loop": closed.spectral_radius(),
                                                 "plant": plant.spectral_radius()}
@@ -218,8 +237,11 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                 save_model(model_path, method=method, alpha=result.report["alpha"], plant=plant, closed_loop=closed,
                            controller=controller, measured=MEASURED,
                            training={"logs": result.report["train_logs"]})
+            bands = None if ensemble is None else _test_bands(
+                ensemble, intervals, train, controller, score, offsets, _first_scored(offsets, score_from, test[0].dt),
+                result, predictions_folder, keep_predictions)
             _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from,
-                           keep_predictions)
+                           keep_predictions, bands)
         elif method in ("arx", "cl-arx"):
             # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
@@ -234,7 +256,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
 
 
 def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result,
-             options, elsewhere=None):
+             options, elsewhere=None, intervals=None):
     cls = KOOPMAN_METHODS[method]
     trajs, controllers = LogTrajectories(train), [log.controller for log in train]
     make = (lambda a: cls(lifting=lifting, alpha=a, **options)) if cls is Edmd else \
@@ -262,13 +284,19 @@ def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits
             "folds": folds.report([log.path.name for log in train], sweep.cv_r2[score][:, best]),
         }
     result.report["alpha"] = float(alpha)
-    fitted = fit(make(alpha))
+    ensemble = None
+    if intervals is None:
+        fitted = fit(make(alpha))
+    else:  # the plain fit, its bootstrap refits and the calibration folds' in one pass over the episodes
+        ensemble = fit_ensemble(make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller,
+                                MEASURED, elsewhere)
+        fitted = ensemble.estimator
     if hasattr(fitted, "unconstrained_radius_"):
         result.report["constraint"] = {**options, "unconstrained_radius": fitted.unconstrained_radius_,
                                        "solver_status": fitted.solver_status_}
     plant = fitted.model_ if cls is Edmd else fitted.plant_model_
     closed = close_loop(plant, controller, MEASURED) if cls is Edmd else fitted.closed_loop_model_
-    return plant, closed
+    return plant, closed, ensemble
 
 
 def _fit(estimator, trajs, controllers, elsewhere):
@@ -278,19 +306,26 @@ def _fit(estimator, trajs, controllers, elsewhere):
     return estimator._fit(setup, elsewhere)
 
 
-def _test_model(plant, closed, controller, log, score, what_if):
-    """The model predicting one test episode, and the trajectory it predicts from."""
-    if score == "plant":
-        return plant, log.trajectory
-    if what_if is not None:
-        t = log.trajectory
-        if not same_system(log.controller, what_if):
-            # No record under this controller: its state is run on the logged tracking errors.
-            t = replace(t, xc=controller_states(what_if, t.r, t.x[:, MEASURED], t.f))
-        return close_loop(plant, what_if, MEASURED), t
-    # A plant model must predict the loop under any known controller: each log's own.
-    return (closed if same_system(log.controller, controller) else close_loop(plant, log.controller, MEASURED),
-            log.trajectory)
+def _test_loop(controller, log, score, what_if) -> Loop:
+    """The loop predicting one test episode: the plant (plant scoring), the what-if controller's, or its own log's
+    (a plant model must predict the loop under any known controller)."""
+    if what_if is not None and score == "cl":
+        return Loop("wrapped", what_if)
+    return Loop.of(log.controller, controller, score)
+
+
+def _test_trajectory(log, what_if):
+    """The trajectory one test episode is predicted from (under a what-if controller it never ran, that
+    controller's state run on the logged tracking errors)."""
+    t = log.trajectory
+    if what_if is not None and not same_system(log.controller, what_if):
+        t = replace(t, xc=controller_states(what_if, t.r, t.x[:, MEASURED], t.f))
+    return t
+
+
+def _first_scored(offsets: OffsetProtocol | None, score_from: int | None, dt: float) -> int:
+    """The first scored sample of each test episode: after the offsets' window, ``score_from``, or the second."""
+    return offsets.window(dt) if offsets is not None else 1 if score_from is None else score_from
 
 
 class _TestScores:
@@ -332,25 +367,32 @@ class _TestScores:
 
 
 def _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from=None,
-                   keep_predictions=True):
-    """Each test log read, predicted and scored in turn (only its scores kept, and its prediction if asked)."""
+                   keep_predictions=True, bands=None):
+    """Test logs read, predicted and scored a batch at a time (only their scores kept, and their predictions
+    if asked); with ``bands``, every member of the ensemble predicts each batch in the same simulation."""
     dt = test[0].dt
-    start = offsets.window(dt) if offsets is not None else 1 if score_from is None else score_from
+    start = _first_scored(offsets, score_from, dt)
     scores, estimates = _TestScores(result, start, keep_predictions), []
     counted = [what_if is None or same_system(log.controller, what_if) for log in test]
-    for log, scored in zip(test, counted):
-        model, traj = _test_model(plant, closed, controller, log, score, what_if)
-        plain = prediction = model.predict(traj)
-        if offsets is not None:
-            est = estimate_offsets_many(model, [traj], offsets.channels, offsets.window(dt), offsets.bound)[0]
-            estimates.append(est)
-            prediction = predict_with_offsets(model, traj, est.as_mapping()) if est.plausible else plain
-        scores.add(log, traj.x, prediction, None if offsets is None else plain, scored)
+    loops = [_test_loop(controller, log, score, what_if) for log in test]
+    for run in consecutive_runs(loops):
+        loop = loops[run[0]]
+        models = [loop.model(closed, plant, MEASURED)]
+        if bands is not None:
+            models += [loop.model(*member, MEASURED) for member in bands.members]
+        trajectories = [_test_trajectory(test[i], what_if) for i in run]
+        for i, traj, predicted in zip(run, trajectories, predict_episodes(models, trajectories, offsets)):
+            estimates.append(predicted.estimate)
+            scores.add(test[i], traj.x, predicted.prediction, predicted.plain, counted[i])
+            if bands is not None:
+                bands.add(test[i], traj, predicted, counted[i], start, models[0].n_delays)
     if what_if is not None:
         result.report["what_if"] = {
             "controller": what_if.as_dict(), "n_scored": len(scores.scored),
             "unscored_logs": [log.path.name for log, scored in zip(test, counted) if not scored],
             "note": "test episodes are predicted under this controller; only those recorded under it are scored"}
+    if bands is not None:
+        bands.report()
     if offsets is None:
         scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt), dt)
         return
@@ -358,6 +400,56 @@ def _score_koopman(plant, closed, controller, test, score, offsets, what_if, res
     result.report["offsets"] = [{"log": log.path.name, **est.as_dict(names)} for log, est in zip(test, estimates)]
     result.report["offset_bound"] = offsets.bound
     scores.report(offsets.describe(dt), dt)
+
+
+#: How the intervals are made, in words (report.json's ``intervals.method``).
+INTERVAL_METHOD = ("prediction +- k_c sqrt(s_c(t)^2 + q_c (1 - exp(-h / tau_c))): s_c the spread of bootstrap refits "
+                   "on the training episodes drawn with replacement, plus the estimated offsets' standard errors "
+                   "propagated through the prediction; q_c, tau_c (Gaussian maximum likelihood) and k_c (the level's "
+                   "quantile) calibrated per channel on training episodes held out in turn, never the test episodes")
+
+
+class _TestBands:
+    """Each test episode's interval, written and summarized as the episodes stream by."""
+
+    def __init__(self, members, calibration, options, result, folder, keep, seconds):
+        self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
+        self.result, self.folder, self.seconds = result, None if folder is None else Path(folder), seconds
+        self.summary = BandSummary(STATE_NAMES)
+        self.files: list[str] = []
+
+    def add(self, log, trajectory, predicted, scored, start, n_delays) -> None:
+        """One test episode's band: saved, counted, kept with the predictions if they are."""
+        band = prediction_band(log.path.name, trajectory, predicted, self.calibration, start, n_delays, scored)
+        if self.folder is not None:
+            name = f"{log.path.stem}.npz"
+            band.save(self.folder / name)
+            self.files.append(name)
+        self.summary.add(band)
+        if self.keep:
+            self.result.test_bands.append(band)
+
+    def report(self) -> None:
+        """The intervals' part of report.json."""
+        o, cal = self.options, self.calibration
+        self.result.report["intervals"] = {
+            "level": o.level, "method": INTERVAL_METHOD, "n_members": o.n_members, "n_folds": o.n_folds,
+            "seed": o.seed, "calibration": {"n_samples": cal.n_samples_, "stride": o.stride,
+                                            "n_diverged": cal.n_diverged_,
+                                            "channels": cal.as_dict(STATE_NAMES)},
+            **self.summary.report(), "files": self.files, "seconds": self.seconds}
+
+
+def _test_bands(ensemble, options, train, controller, score, offsets, start, result, folder, keep) -> _TestBands:
+    """The intervals' calibration on the training episodes the folds held out, ready for the test episodes."""
+    import time
+
+    started = time.perf_counter()
+    loops = [Loop.of(log.controller, controller, score) for log in train]
+    calibration = calibrate(ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED,
+                            options.stride)
+    seconds = {"calibration": time.perf_counter() - started}
+    return _TestBands(ensemble.members, calibration, options, result, folder, keep, seconds)
 
 
 def _warn_diverged(summary: dict, dt: float, what: str) -> None:

@@ -75,6 +75,14 @@ def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, c
         r2 = r2_score(log.trajectory.x[start:], predicted[start:])
         assert r2 == pytest.approx(report["test"]["r2_per_episode"][report["scored_logs"].index(name)], abs=1e-12)
         assert got["mark: first scored sample"][0, 0] == pytest.approx(start * log.trajectory.dt)
+        # the interval: the band written to predictions/, shaded over the scored samples
+        band = np.load(tmp_path / "predictions" / name.replace(".mcap", ".npz"))
+        for j, state in enumerate(("theta", "alpha")):
+            (shade,) = [c for ax in fig.axes for c in ax.collections if c.get_gid() == f"{state} 95% interval"]
+            edges = np.concatenate([path.vertices for path in shade.get_paths()])
+            assert edges[:, 0].min() == pytest.approx(band["t"][0])
+            assert edges[:, 1].min() == pytest.approx(band["lower"][:, j].min())
+            assert edges[:, 1].max() == pytest.approx(band["upper"][:, j].max())
 
     # eigenvalues: the model file's, with the report's spectral radii
     got = lines(drawn["eigenvalues and the unit circle"])

@@ -151,6 +151,8 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     (["--train", ".", "--test", ".", "--method", "arx"], "models the plant only"),
     (["--train", ".", "--test", ".", "--offset-bound", "-1"], "--offset-bound must be positive, got -1.0"),
     (["--train", ".", "--test", ".", "--estimate-window", "nan"], "--estimate-window must be positive, got nan"),
+    (["--train", ".", "--test", ".", "--interval", "1"], "--interval must be a level between 0 and 1 (0: no "),
+    (["--train", ".", "--test", ".", "--method", "cl-arx", "--interval", "0.9"], "--method cl-arx has none"),
 ])
 def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -219,3 +221,31 @@ def test_protocol_window_scores_from_the_end_of_the_estimation_window(small_set,
     assert reports["paper"]["scored_from_sample"] == 1 and "the paper's" in reports["paper"]["protocol"]
     assert reports["window"]["scored_from_sample"] == 250 and "scored from sample 250" in reports["window"]["protocol"]
     assert reports["window"]["test"]["r2_per_episode"] != reports["paper"]["test"]["r2_per_episode"]
+
+
+def test_every_scored_sample_gets_an_interval_written_whole_per_test_log(small_set, tmp_path, capsys):
+    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--offsets", "alpha",
+                         "--interval-members", "4", "--out", tmp_path)
+    assert code == 0, err
+    report = json.loads((tmp_path / "report.json").read_text())
+    intervals, test_logs = report["intervals"], report["test_logs"]
+    assert intervals["level"] == 0.95 and intervals["n_members"] == 4
+    assert set(intervals["pooled"]) >= {"coverage", "mean_half_width", "rms_error", "worst_episode_coverage"}
+    assert set(intervals["calibration"]["channels"]) == {"theta", "alpha"}
+    assert [e["log"] for e in intervals["episodes"]] == test_logs
+    assert "## Prediction intervals" in (tmp_path / "report.md").read_text() and "intervals at 0.95" in out
+    files = sorted(p.name for p in (tmp_path / "predictions").iterdir())
+    assert files == sorted(name.replace(".mcap", ".npz") for name in test_logs) == sorted(intervals["files"])
+    for entry in intervals["episodes"]:
+        data = np.load(tmp_path / "predictions" / entry["log"].replace(".mcap", ".npz"))
+        assert set(data.files) == {"t", "measured", "predicted", "lower", "upper", "level"} and data["level"] == 0.95
+        n = len(data["t"])  # the samples after the offsets' 1 s window, at 500 Hz
+        assert data["t"][0] == pytest.approx(1.0) and all(data[k].shape == (n, 2) for k in ("measured", "lower"))
+        assert np.all((data["lower"] < data["predicted"]) & (data["predicted"] < data["upper"]))
+        inside = (data["lower"] <= data["measured"]) & (data["measured"] <= data["upper"])
+        assert inside.mean(axis=0).tolist() == pytest.approx([entry["coverage"]["theta"], entry["coverage"]["alpha"]])
+    # --interval 0: none computed, none written
+    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--interval", "0",
+                         "--out", tmp_path / "plain")
+    assert code == 0 and "intervals" not in json.loads((tmp_path / "plain" / "report.json").read_text())
+    assert not (tmp_path / "plain" / "predictions").exists()

@@ -29,6 +29,8 @@ IDENTIFY = ["--train", "logs/a.mcap", "--test", "logs/b.mcap", "--skip", "0"]
 SINGLE_RESULT = [
     ("qube-identify", [*IDENTIFY, "--out", "OUT"], "model.json"),
     ("qube-identify", [*IDENTIFY, "--rerun-save", "OUT"], None),
+    # The test episodes' predictions and intervals (--interval, on by default): a folder of one file per log.
+    ("qube-identify", [*IDENTIFY, "--interval", "0.9", "--out", "OUT"], "predictions"),
     ("qube-calibrate", ["logs/a.mcap", "--out", "OUT"], None),
     ("qube-calibrate", ["logs/a.mcap", "--out", "p.toml", "--report", "OUT"], "report.md"),
     ("qube-design", ["junk.bin", "--out", "OUT"], None),

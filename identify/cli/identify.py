@@ -55,9 +55,15 @@ that of the controller with the most training episodes. Cross-validation
 
 Test episodes are predicted in closed loop under the controller recorded in
 each test log (a plant model is wrapped with it), or from their plant input
-with --score plant. Outputs in --out: model.json (see identify/MODEL_FORMAT.md),
-report.json, report.md, and with --rerun-save FILE.rrd a rerun recording;
-with --figures, PNG and PDF figures in figures/, embedded in report.md.
+with --score plant. Every predicted sample gets an interval at --interval
+(default 0.95; 0: none): bootstrap refits of the model on the training
+episodes, the offsets' standard errors, and a scale of the model's error
+calibrated on training episodes held out in turn (never the test episodes).
+Outputs in --out: model.json (see identify/MODEL_FORMAT.md), report.json,
+report.md, predictions/<log>.npz (t, measured, predicted, lower, upper, level
+over the scored samples) with --interval, and with --rerun-save FILE.rrd a
+rerun recording; with --figures, PNG and PDF figures in figures/, embedded in
+report.md.
 """
 
 METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-arx")
@@ -69,6 +75,10 @@ MAX_RBF_CENTERS = 1000
 MAX_ALPHAS = 1000
 #: What every run writes in --out (figures and the search's files beside them are replaced with these).
 OUTPUT_FILES = ("model.json", "report.json", "report.md")
+#: The folder of the test episodes' predictions and intervals in --out (with --interval).
+PREDICTIONS = "predictions"
+#: --interval's level when it is not given (a Koopman method).
+DEFAULT_LEVEL = 0.95
 
 
 def _add_search_options(p: argparse.ArgumentParser) -> None:
@@ -162,6 +172,15 @@ def _parser() -> argparse.ArgumentParser:
                       help="window: score the test episodes from the end of --estimate-window, as --search scores "
                            "its candidates (the default with --search or --offsets); paper: from the second "
                            "sample, the paper's protocol (the default otherwise; not with --offsets)")
+    pred.add_argument("--interval", type=float, metavar="LEVEL",
+                      help=f"give every predicted sample an interval at this level (default {DEFAULT_LEVEL} with a "
+                           "Koopman method; 0: none): bootstrap refits, the offsets' standard errors and a model error "
+                           f"calibrated on held-out training episodes; written to OUT/{PREDICTIONS}/<log>.npz, with "
+                           "each episode's coverage in the reports")
+    pred.add_argument("--interval-members", type=whole_number(2), default=20, metavar="B",
+                      help="bootstrap refits of the intervals (default %(default)s)")
+    pred.add_argument("--interval-seed", type=seed, default=0, metavar="K",
+                      help="seed of the intervals' resampling and folds (default %(default)s)")
     pred.add_argument("--controller", type=path, metavar="FILE.toml",
                       help="what-if: predict every test episode under this controller instead of its "
                            "log's own: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau; backward Euler as "
@@ -290,8 +309,33 @@ def _check_args(args) -> None:
     if not args.estimate_window <= MAX_DURATION:  # inf, 1e308: no whole number of samples (a traceback)
         raise CliError(f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got "
                        f"{args.estimate_window}")
+    _check_interval(args)
     check_rerun_target(args.rerun, "--rerun-save", args.force)  # before any work, not after the fit
-    check_output_folder(args.out, OUTPUT_FILES, force=args.force)
+    check_output_folder(args.out, OUTPUT_FILES + ((PREDICTIONS,) if args.interval else ()), force=args.force)
+
+
+def _check_interval(args) -> None:
+    """--interval: 0 or a level in (0, 1); on by default for the Koopman methods, refused for ARX."""
+    args.interval_asked = args.interval is not None
+    koopman = args.method not in ("arx", "cl-arx")
+    if args.interval is None:
+        args.interval = DEFAULT_LEVEL if koopman else 0.0
+    if not (args.interval == 0 or 0 < args.interval < 1):
+        raise CliError(f"--interval must be a level between 0 and 1 (0: no intervals), got {args.interval}")
+    if args.interval and not koopman:
+        raise CliError(f"--interval bootstraps a Koopman method's fit; --method {args.method} has none (--interval 0)")
+
+
+def _check_interval_data(args, train) -> None:
+    """The intervals are calibrated on held-out training episodes: two at least (else off, said so)."""
+    if not args.interval or len(train) >= 2:
+        return
+    if args.interval_asked:
+        raise CliError(f"--interval calibrates on held-out training episodes: it needs at least 2 training logs, got "
+                       f"{len(train)} ({train[0].path})")
+    print(f"{PROG}: warning: one training log: no prediction intervals (they are calibrated on held-out training "
+          "episodes)", file=sys.stderr)
+    args.interval = 0.0
 
 
 def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
@@ -353,6 +397,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
     import numpy as np
 
     from qube_koopman.identify.reports import write_markdown_report
+    from qube_koopman.identify.uncertainty import IntervalOptions
     from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
     try:
@@ -360,10 +405,12 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         train, test, controller = _load(args)
         check_figure_options(args, [log.path.name for log in test])
         _check_cross_validation(args, train)
+        _check_interval_data(args, train)
         _check_delays(args, train + test)
         statistics = _cluster_statistics(args, train, cleanup)
         what_if = _what_if_controller(args.controller, train[0].dt) if args.controller else None
         out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
+        predictions = output_dir(out / PREDICTIONS) if args.interval else None
         logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
                                          len(train), len(test), args.skip)
         offsets = (OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound)
@@ -389,6 +436,8 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
             score_from=(int(round(args.estimate_window / train[0].dt))
                         if args.protocol == "window" and offsets is None else None), episode_statistics=statistics,
+            intervals=(IntervalOptions(args.interval, args.interval_members, seed=args.interval_seed)
+                       if args.interval else None), predictions_folder=predictions,
             estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
                                if args.max_radius is not None else None))
     except ValueError as exc:
@@ -411,7 +460,9 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         write_recording(args.rerun, result)
     _print_controllers(result.report["training_controllers"])
     _print_scores(args, result.report)
-    written = ["model.json", "report.json", "report.md"] + (["figures"] if args.figures else [])
+    _print_intervals(result.report.get("intervals"))
+    written = (["model.json", "report.json", "report.md"] + ([PREDICTIONS] if args.interval else [])
+               + (["figures"] if args.figures else []))
     print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
     return 0
 
@@ -465,6 +516,17 @@ def _print_scores(args, report: dict) -> None:
         line += (f" with offsets estimated; without them on the same samples R^2 {plain['r2_mean']:.4f}"
                  + (f"; {flagged} implausible estimate(s) not used" if flagged else ""))
     print(line)
+
+
+def _print_intervals(intervals: dict | None) -> None:
+    """One line: the intervals' pooled coverage and mean half-width per channel, and the worst episode's."""
+    if not intervals or not intervals.get("pooled"):
+        return
+    pooled = intervals["pooled"]
+    each = "; ".join(f"{name} coverage {pooled['coverage'][name]:.3f} (worst episode "
+                     f"{pooled['worst_episode_coverage'][name]:.3f}), mean half-width "
+                     f"{pooled['mean_half_width'][name]:.4g} rad" for name in pooled["coverage"])
+    print(f"intervals at {intervals['level']:g}: {each}")
 
 
 def main(argv: list[str] | None = None) -> int:
