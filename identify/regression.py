@@ -80,6 +80,16 @@ class Snapshots:
             running.add(part)
         return running.total()
 
+    def columns(self, regressors: list[int], targets: list[int]) -> "Snapshots":
+        """The statistics of the regression on some of these columns: exactly, from the factor alone.
+
+        ``regressors`` and ``targets`` index the regressor and target columns. A lifting whose
+        features are some of another's has its statistics so, without lifting an episode again:
+        ``M[:, c] = Q R[:, c]``, so the factor of ``R[:, c]`` is that of ``M[:, c]``.
+        """
+        cols = [int(i) for i in regressors] + [self.n_regressors + int(i) for i in targets]
+        return type(self)(_triangular_factor(self.R[:, cols]), len(regressors), self.q)
+
     @classmethod
     def _fold(cls, running: "Snapshots | None", parts: list["Snapshots"]) -> "Snapshots":
         parts = ([] if running is None else [running]) + parts

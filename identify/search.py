@@ -34,6 +34,7 @@ cores (``n_jobs``), or on a dask.distributed cluster (see :func:`search_liftings
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Sequence
@@ -52,7 +53,7 @@ from qube_koopman.identify.transfer import ProbeSet, probe_scores
 from qube_koopman.sim.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
-           "evaluate_candidate", "same_controller_scores", "search_steps"]
+           "evaluate_candidate", "same_controller_scores", "search_steps", "family_of", "family_statistics"]
 
 #: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
 TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
@@ -352,6 +353,9 @@ class SearchResult:
         episodes of a controller it trained on (:func:`same_controller_scores`).
     stage_seconds : dict of str to float
         Wall time of each stage (its candidates run side by side on ``n_jobs`` workers).
+    shared_seconds : dict of str to float
+        Of each stage's wall time, the part spent lifting its families' largest liftings
+        once (:func:`family_statistics`), before its candidates ran.
     probe_seconds : float
         Time the probes took to simulate (set by the caller that made them).
     """
@@ -364,6 +368,7 @@ class SearchResult:
     same_controller: list | None = None
     stage_seconds: dict = field(default_factory=dict)
     probe_seconds: float = 0.0
+    shared_seconds: dict = field(default_factory=dict)
 
     def timing(self) -> dict:
         """Where the search's time went: per stage its wall time and its candidates' summed
@@ -377,6 +382,7 @@ class SearchResult:
                     for key, value in r.timing.items():
                         work[key] = work.get(key, 0.0) + value
             stages[stage] = {"wall": round(wall, 3), "candidates": sum(r.stage == stage for r in self.candidates),
+                             "shared_statistics": round(self.shared_seconds.get(stage, 0.0), 3),
                              **{k: round(v, 3) for k, v in work.items()}}
         return {"probe_simulation": round(self.probe_seconds, 3), "stages": stages, "search": round(self.seconds, 3)}
 
@@ -408,13 +414,16 @@ class SearchData:
 
 
 def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
-                       plain: "np.ndarray | CandidateResult | None" = None) -> CandidateResult:
+                       plain: "np.ndarray | CandidateResult | None" = None,
+                       shared: tuple | None = None) -> CandidateResult:
     """Cross-validate one lifting over the alpha grid (see the module docstring).
 
     With ``spec.offsets``, ``plain`` (the same lifting's fold scores without offsets,
     when already known) picks the alphas to estimate offsets at, instead of scoring
     the folds again; given as that candidate's :class:`CandidateResult`, its models
     (:attr:`CandidateResult.reuse`) predict again without any statistics computed.
+    ``shared``: the fold statistics of a lifting whose features include this one's
+    (:func:`family_statistics`), from which this one's are taken exactly.
     """
     started = time.perf_counter()
     timing = dict.fromkeys(TIMING_KEYS, 0.0)
@@ -429,11 +438,11 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
     rescore = not spec.offsets or plain is None
     # A lifting that learns from each fold's episodes has no lifting the folds share: its models are kept whole.
-    shared = not any(getattr(step, "learns_from_data", True) for step in estimator.lifting)
+    subset = not any(getattr(step, "learns_from_data", True) for step in estimator.lifting)
     sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits,
                                  scorings=("cl",) if rescore else (), score_from=data.window, measured_only=True,
-                                 keep_fold_models="rows" if shared else spec.offsets, fit_all=False,
-                                 controllers=data.controllers)
+                                 keep_fold_models="rows" if subset else spec.offsets, fit_all=False,
+                                 controllers=data.controllers, shared=shared)
     timing |= sweep.seconds
     cv = sweep.cv_r2["cl"] if rescore else _fold_scores(plain)
     lifting = None if sweep.statistics is None else sweep.statistics[0].lifting
@@ -453,6 +462,36 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
                      {j: FittedRows.of(m) for j, m in plants.items() if j in best})
     return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started,
                            transfer, timing, kept)
+
+
+def family_of(spec: LiftingSpec, specs: Sequence[LiftingSpec]) -> LiftingSpec | None:
+    """The candidate among ``specs`` whose lifting holds every feature of ``spec``'s, with the most features
+    (``spec`` itself when it is the largest), when it holds another candidate too.
+
+    Monomials of a lower order, sin/cos and the constant are columns of a lifting with a
+    higher order, sin/cos and the constant at the same delays (RBFs and friction equal; RBF
+    centres depend on the features before them, so liftings with RBFs are their own family).
+    None when it shares its features with no other candidate (or has offsets: its statistics are
+    its plain twin's).
+    """
+    def holds(big: LiftingSpec, small: LiftingSpec) -> bool:
+        return (not big.offsets and not small.offsets and big.delays == small.delays and big.rbf == small.rbf == 0
+                and big.friction == small.friction and big.poly >= small.poly and big.trig >= small.trig
+                and big.const >= small.const)
+
+    containers = [s for s in specs if holds(s, spec)]
+    if not containers:
+        return None
+    head = max(containers, key=lambda s: s.n_features())
+    return head if sum(holds(head, s) for s in specs) > 1 else None
+
+
+def family_statistics(spec: LiftingSpec, data: SearchData) -> tuple:
+    """The fold statistics of ``spec``'s lifting on the search's folds (shared by its family)."""
+    from qube_koopman.identify.sweep import fold_statistics
+
+    estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
+    return fold_statistics(estimator, data.trajectories, data.splits, data.controllers)
 
 
 def _fold_scores(plain) -> np.ndarray:
@@ -631,6 +670,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     """
     import joblib
 
+    from qube_koopman.identify._blas import limited_blas_threads
+
     space = space or SearchSpace()
     data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
                       int(window), bound, rbf_seed, probes, controllers=None if controllers is None else list(controllers))
@@ -645,7 +686,20 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
             seen.update(specs)
             # An offsets candidate reuses its plain twin: its fold scores choose the alphas, its models predict.
             plain = {r.spec: r for r in result.candidates}
-            calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)))
+            # A family's largest lifting is lifted once; the others' statistics are columns of its own.
+            heads = {s: family_of(s, specs) for s in specs}
+            shared = {}
+            if data.controllers is None:
+                for head in set(h for h in heads.values() if h is not None):
+                    now = time.perf_counter()
+                    if client is not None:  # on a worker, as every lifting of the search
+                        shared[head] = next(iter(run([joblib.delayed(family_statistics)(head, data)])))
+                    else:  # here, with every core while the workers wait for it
+                        with limited_blas_threads(max(1, os.cpu_count() or 1) if n_jobs != 1 else 1):
+                            shared[head] = family_statistics(head, data)
+                    result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+            calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)),
+                                                        shared.get(heads[s]))
                      for s in specs]
             for done, res in enumerate(run(calls), start=1):
                 result.candidates.append(res)

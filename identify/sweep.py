@@ -218,7 +218,7 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
                          progress: Callable[[int, int], None] | None = None, score_from: int = 1,
                          measured_only: bool = False, keep_fold_models: bool | str = False,
                          fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None,
-                         episode_statistics: Callable | None = None) -> SweepResult:
+                         episode_statistics: Callable | None = None, shared: tuple | None = None) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
 
     Parameters
@@ -265,6 +265,11 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Computes the per-episode statistics of the episodes at ``indices`` (of
         ``trajectories``), in order, elsewhere: on a dask cluster,
         :class:`~qube_koopman.identify.distributed.ClusterStatistics`. Default: here.
+    shared : (setup, per-fold statistics, all-episode statistics), optional
+        The folds' statistics already computed, on these ``splits`` without ``fit_all``, for
+        a lifting whose features include this one's (:func:`fold_statistics` of it): this
+        lifting's are taken from them (:func:`sub_statistics`) instead of lifting the
+        episodes again, when it can (the same delays, a single controller).
 
     Returns
     -------
@@ -272,11 +277,12 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     """
     with limited_blas_threads(1):
         return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress,
-                      (score_from, measured_only, keep_fold_models, fit_all, controllers, episode_statistics))
+                      (score_from, measured_only, keep_fold_models, fit_all, controllers, episode_statistics,
+                       shared))
 
 
 def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
-    start, measured_only, keep, fit_all, controllers, elsewhere = options
+    start, measured_only, keep, fit_all, controllers, elsewhere, given = options
     for s in scorings:
         check_choice(s, "scoring", SCORINGS)
     alphas = np.asarray(alphas, dtype=float)
@@ -296,7 +302,12 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None)
     timed = _timer(result.seconds)
-    if _learns_from_data(estimator):
+    derived = None if given is None or fit_all or not relift else sub_statistics(estimator, given, controllers)
+    if derived is not None:
+        with timed("statistics"):
+            setup, per_fold, everything = derived
+        shared = (setup, everything)
+    elif _learns_from_data(estimator):
         shared, per_fold = None, None
     else:
         # One pass over the episodes folds each into the running totals of the folds training on it
@@ -344,6 +355,49 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     if progress:
         progress(total, total)
     return result
+
+
+def fold_statistics(estimator, trajectories: Sequence[Trajectory], splits: Sequence[tuple[np.ndarray, np.ndarray]],
+                    controllers: Sequence[DiscreteStateSpace] | None = None) -> tuple:
+    """What a sweep without final fits (``fit_all=False``, re-lifted) computes before it solves.
+
+    Returns ``(setup, [statistics of each fold's training episodes], statistics of all
+    episodes)``: the ``shared`` argument of :func:`regularization_sweep` for any lifting whose
+    features are some of this one's.
+    """
+    setup, (*per_fold, everything) = _statistics(estimator, as_episodes(trajectories),
+                                                 [t for t, _ in splits] + [None], True, controllers)
+    return setup, per_fold, everything
+
+
+def sub_statistics(estimator, statistics: tuple, controllers=None) -> tuple | None:
+    """``estimator``'s fold statistics taken from those of a lifting whose features include its own.
+
+    ``statistics`` is :func:`fold_statistics` of the larger lifting. Exact (a factor of the
+    selected columns, :meth:`~qube_koopman.identify.regression.Snapshots.columns`); None
+    when it cannot be done so: statistics per controller, another number of delays (other
+    snapshots), a feature the larger lifting lacks, or other leading (re-lifted) rows.
+    """
+    big_setup, per_fold, everything = statistics
+    if not isinstance(everything, Snapshots) or controllers is not None or _learns_from_data(estimator):
+        return None
+    template = copy.copy(estimator)
+    setup = template._setup(big_setup.trajectories) if not isinstance(template, ClosedLoopKoopman) else \
+        template._setup(big_setup.trajectories, None)
+    setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
+    small, big = setup.lifting, big_setup.lifting
+    if (small.n_delays_ != big.n_delays_ or setup.target_rows != big_setup.target_rows
+            or setup.n_feedforward != big_setup.n_feedforward):
+        return None
+    names, big_names = small.feature_names_out_, big.feature_names_out_
+    n_c = setup.target_rows - small.n_features_in_  # the controller's states lead the snapshots
+    if any(n not in big_names for n in names) or names[:small.n_features_in_] != big_names[:small.n_features_in_]:
+        return None
+    n_v = everything.n_regressors - n_c - len(big_names)  # references and feedforward follow the lifting
+    regressors = (list(range(n_c)) + [n_c + big_names.index(n) for n in names]
+                  + [n_c + len(big_names) + i for i in range(n_v)])
+    targets = list(range(setup.target_rows))
+    return setup, [s.columns(regressors, targets) for s in per_fold], everything.columns(regressors, targets)
 
 
 def _timer(seconds: dict):

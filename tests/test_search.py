@@ -317,3 +317,26 @@ def test_an_rbf_candidate_equals_a_naive_refit_with_centres_drawn_on_all_trainin
     for j in np.flatnonzero(np.isfinite(result.cv_r2[0])):
         naive = _naive_fold_score(spec, trajs, controller, splits, alphas[j], False, steps)
         np.testing.assert_allclose(result.cv_r2[:, j], naive, rtol=1e-9, atol=1e-6)
+
+
+def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_statistics(small):
+    # The form stage lifts its largest lifting once: the others' statistics are columns of its factor.
+    from qube_koopman.identify.search import family_of, family_statistics
+
+    trajs, controller, splits = small
+    probes = twin_probes(trajs[:2], per_controller=1, skip=100)
+    data = SearchData(trajs, splits, controller, np.array([1e-5, 1e-3, 1.0]), WINDOW, probes=probes)
+    specs = SearchSpace(poly=(1, 2), base=LiftingSpec(delays=3, poly=2)).stage_candidates("form", [])
+    head = family_of(specs[0], specs)
+    assert head == LiftingSpec(delays=3, poly=2, trig=True, const=True)
+    shared = family_statistics(head, data)
+    for spec in (LiftingSpec(delays=3, poly=1, const=True), LiftingSpec(delays=3, poly=2, trig=True), head):
+        assert family_of(spec, specs) == head
+        derived, direct = evaluate_candidate(spec, data, shared=shared), evaluate_candidate(spec, data)
+        assert derived.timing["statistics"] < direct.timing["statistics"]
+        np.testing.assert_allclose(derived.cv_r2, direct.cv_r2, rtol=1e-7)
+        np.testing.assert_allclose(derived.transfer_r2, direct.transfer_r2, rtol=1e-7)
+    # other delays, RBFs or an offsets candidate are no family of it
+    assert family_of(LiftingSpec(delays=4, poly=1), specs) is None
+    assert family_of(LiftingSpec(delays=3, poly=1, rbf=5), specs + [LiftingSpec(delays=3, poly=2, rbf=5)]) is None
+    assert family_of(LiftingSpec(delays=3, poly=1, offsets=True), specs) is None
