@@ -685,6 +685,9 @@ class PredictionBand:
         Whether the measured states belong to the predicted loop.
     diverged_at : int or None
         First sample (of the episode) from which the band is infinite.
+    calibrated_loop : bool
+        Whether the predicted loop is one the calibration's held-out episodes ran (else the model's
+        error under this loop is unknown: the band is the training loops').
     """
 
     name: str
@@ -696,6 +699,7 @@ class PredictionBand:
     level: float
     scored: bool = True
     diverged_at: int | None = None
+    calibrated_loop: bool = True
 
     def inside(self) -> np.ndarray:
         """Whether each measured sample is within the band, per channel."""
@@ -799,7 +803,7 @@ class BandSummary:
         self.episodes: list[dict] = []
         m = len(self.names)
         self._inside, self._half, self._squared = np.zeros(m), np.zeros(m), np.zeros(m)
-        self._worst, self._n, self._infinite = np.ones(m), 0, 0
+        self._worst, self._n, self._infinite, self._elsewhere = np.ones(m), 0, 0, 0
 
     def add(self, band: PredictionBand) -> None:
         """Count one band (an unscored one is left out)."""
@@ -809,7 +813,7 @@ class BandSummary:
         self.episodes.append({"log": band.name, "coverage": _channel_dict(self.names, coverage),
                               "mean_half_width": _channel_dict(self.names, band.mean_half_width()),
                               "rms_error": _channel_dict(self.names, band.rms_error()),
-                              "infinite_from_sample": band.diverged_at})
+                              "infinite_from_sample": band.diverged_at, "calibrated_loop": band.calibrated_loop})
         n = len(band.t)
         with np.errstate(invalid="ignore", over="ignore"):
             self._inside += coverage * n
@@ -818,6 +822,7 @@ class BandSummary:
         self._worst = np.minimum(self._worst, coverage)
         self._n += n
         self._infinite += band.diverged_at is not None
+        self._elsewhere += not band.calibrated_loop
 
     def report(self) -> dict:
         """``pooled`` (``coverage``, ``mean_half_width``, ``rms_error``, ``worst_episode_coverage``,
@@ -831,7 +836,8 @@ class BandSummary:
                            "mean_half_width": _channel_dict(self.names, self._half / self._n),
                            "rms_error": _channel_dict(self.names, np.where(np.isnan(rms), np.inf, rms)),
                            "worst_episode_coverage": _channel_dict(self.names, self._worst),
-                           "n_samples": self._n, "n_infinite": self._infinite},
+                           "n_samples": self._n, "n_infinite": self._infinite,
+                           "n_uncalibrated_loop": self._elsewhere},
                 "episodes": self.episodes}
 
 

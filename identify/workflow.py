@@ -385,7 +385,7 @@ def _score_koopman(plant, closed, controller, test, score, offsets, what_if, res
             estimates.append(predicted.estimate)
             scores.add(test[i], traj.x, predicted.prediction, predicted.plain, counted[i])
             if bands is not None:
-                bands.add(test[i], traj, predicted, counted[i], start, models[0].n_delays)
+                bands.add(test[i], traj, predicted, counted[i], start, models[0].n_delays, loop)
     if what_if is not None:
         result.report["what_if"] = {
             "controller": what_if.as_dict(), "n_scored": len(scores.scored),
@@ -412,15 +412,17 @@ INTERVAL_METHOD = ("prediction +- k_c sqrt(s_c(t)^2 + q_c (1 - exp(-h / tau_c)))
 class _TestBands:
     """Each test episode's interval, written and summarized as the episodes stream by."""
 
-    def __init__(self, members, calibration, options, result, folder, keep, seconds):
+    def __init__(self, members, calibration, loops, options, result, folder, keep, seconds):
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
+        self.loops = [loop for i, loop in enumerate(loops) if not any(loop.same(seen) for seen in loops[:i])]
         self.result, self.folder, self.seconds = result, None if folder is None else Path(folder), seconds
         self.summary = BandSummary(STATE_NAMES)
         self.files: list[str] = []
 
-    def add(self, log, trajectory, predicted, scored, start, n_delays) -> None:
+    def add(self, log, trajectory, predicted, scored, start, n_delays, loop) -> None:
         """One test episode's band: saved, counted, kept with the predictions if they are."""
         band = prediction_band(log.path.name, trajectory, predicted, self.calibration, start, n_delays, scored)
+        band.calibrated_loop = any(loop.same(seen) for seen in self.loops)
         if self.folder is not None:
             name = f"{log.path.stem}.npz"
             band.save(self.folder / name)
@@ -449,7 +451,7 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
     calibration = calibrate(ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED,
                             options.stride)
     seconds = {"calibration": time.perf_counter() - started}
-    return _TestBands(ensemble.members, calibration, options, result, folder, keep, seconds)
+    return _TestBands(ensemble.members, calibration, loops, options, result, folder, keep, seconds)
 
 
 def _warn_diverged(summary: dict, dt: float, what: str) -> None:

@@ -526,7 +526,10 @@ def _print_intervals(intervals: dict | None) -> None:
     each = "; ".join(f"{name} coverage {pooled['coverage'][name]:.3f} (worst episode "
                      f"{pooled['worst_episode_coverage'][name]:.3f}), mean half-width "
                      f"{pooled['mean_half_width'][name]:.4g} rad" for name in pooled["coverage"])
-    print(f"intervals at {intervals['level']:g}: {each}")
+    elsewhere = pooled.get("n_uncalibrated_loop")
+    print(f"intervals at {intervals['level']:g}: {each}"
+          + (f"; {elsewhere} episode(s) under a controller the calibration did not see: their intervals are the "
+             "training loops'" if elsewhere else ""))
 
 
 def main(argv: list[str] | None = None) -> int:
