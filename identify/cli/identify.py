@@ -327,14 +327,14 @@ def _check_interval(args) -> None:
 
 
 def _check_interval_data(args, train) -> None:
-    """The intervals are calibrated on held-out training episodes: two at least (else off, said so)."""
+    """The intervals are calibrated on held-out training episodes: two at least (else off unless asked for)."""
     if not args.interval or len(train) >= 2:
         return
     if args.interval_asked:
         raise CliError(f"--interval calibrates on held-out training episodes: it needs at least 2 training logs, got "
                        f"{len(train)} ({train[0].path})")
-    print(f"{PROG}: warning: one training log: no prediction intervals (they are calibrated on held-out training "
-          "episodes)", file=sys.stderr)
+    logging.getLogger(__name__).info("one training log: no prediction intervals (they are calibrated on held-out "
+                                     "training episodes)")
     args.interval = 0.0
 
 
