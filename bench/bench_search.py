@@ -4,10 +4,10 @@ Target: the paper-split search (28 training episodes, with the twin's transfer p
 60 s on a quiet 2-core machine, and at most 8 times a fixed fit (``--delays 20``) of the same
 logs timed in the same run. Both run as a user runs them (``qube-identify``'s ``main``, every
 core), each timed ``--repeat`` times (the median is quoted: the machine is shared). The
-search's report.json says where its time went; printed per stage: the wall time, and the
-candidates' summed time spent on statistics, fits, predictions, offsets, probe fits and probe
-scoring (summed over the workers, so the sums can exceed the wall time), and the probes'
-simulation.
+search's report.json says where its time went; printed per stage: the wall time, the time spent
+lifting the stage's shared liftings before its candidates ran, and the candidates' summed time
+spent on statistics, fits, predictions, offsets, probe fits and probe scoring (summed over the
+workers, so the sums can exceed the wall time), and the probes' simulation.
 
 Usage: python bench/bench_search.py --data DIR [--repeat N]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
@@ -59,9 +59,10 @@ def main() -> None:
     timing = report["search"]["timing"]
     print(f"\ntime of the last search (s): probes simulated in {timing['probe_simulation']:.1f}, "
           f"search {timing['search']:.1f}")
-    print(f"{'stage':<10}{'n':>3}{'wall':>8}" + "".join(f"{k:>15}" for k in TIMING_KEYS))
+    keys = ("shared_statistics", *TIMING_KEYS)
+    print(f"{'stage':<10}{'n':>3}{'wall':>8}" + "".join(f"{k:>18}" for k in keys))
     for stage, t in timing["stages"].items():
-        print(f"{stage:<10}{t['candidates']:>3}{t['wall']:>8.1f}" + "".join(f"{t[k]:>15.1f}" for k in TIMING_KEYS))
+        print(f"{stage:<10}{t['candidates']:>3}{t['wall']:>8.1f}" + "".join(f"{t[k]:>18.1f}" for k in keys))
     winner = report["search"]["winner"]
     print(f"\nwinner: {winner['label']}, alpha {winner['alpha']:g}, CV R^2 {winner['cv_r2']:.4f}, "
           f"transfer R^2 {winner['transfer_r2']:.4f}; paper test R^2 {report['test']['r2_mean']:.4f}")
