@@ -1,19 +1,23 @@
 """What every package of the toolkit needs and no single one owns (the lowest shared layer).
 
-Nothing here imports another ``qube_koopman`` package.
+Nothing here imports another ``qube_koopman`` package. The names below are imported when first
+used (:func:`~qube_koopman.core.exports.lazy_exports`): every package imports ``core``, and its
+import costs the ``__init__`` alone, not argparse, hashing or signal handling.
 """
 
-from qube_koopman.core.cli import OneLineParser, add_force_option
-from qube_koopman.core.files import atomic_path, output_file_problem, output_folder_problem
-from qube_koopman.core.signals import Terminated, interrupted_status, sigterm_as_interrupt
+from qube_koopman.core.exports import lazy_exports
 
-__all__ = [
-    "OneLineParser",
-    "Terminated",
-    "add_force_option",
-    "atomic_path",
-    "interrupted_status",
-    "output_file_problem",
-    "output_folder_problem",
-    "sigterm_as_interrupt",
-]
+#: Each public name and the module of ``core`` that defines it.
+_HOMES = {
+    "OneLineParser": "cli",
+    "add_force_option": "cli",
+    "atomic_path": "files",
+    "output_file_problem": "files",
+    "output_folder_problem": "files",
+    "Terminated": "signals",
+    "interrupted_status": "signals",
+    "sigterm_as_interrupt": "signals",
+}
+
+__all__ = sorted(_HOMES)
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)
