@@ -300,7 +300,6 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
     period = backend.sample_period
     _check_controller(plan.controller.system, period)
     stop = stop if stop is not None else StopRequest()
-    n = plan.n_samples
     paced = backend.pacing is not Pacing.NONE
 
     signals = stop_on_signals(stop) if handle_signals else nullcontext(False)

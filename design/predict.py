@@ -28,8 +28,8 @@ from qube_koopman.identify.structure import close_loop, closed_loop_matrices, pl
 from qube_koopman.sim.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 
-__all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost", "closed_loop_matrix", "closed_loop_eigenvalues",
-           "loop_margins", "episode_cost"]
+__all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost",
+           "closed_loop_matrix", "closed_loop_eigenvalues", "loop_margins", "episode_cost"]
 
 #: The loop's voltage limit (V): a predicted voltage beyond it would saturate on the rig.
 VOLTAGE_LIMIT = 10.0

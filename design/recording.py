@@ -1,4 +1,5 @@
-"""A rerun recording of a design: predicted vs twin trajectories, closed-loop eigenvalues (``qube-design --rerun-save``).
+"""A rerun recording of a design: predicted vs twin trajectories, closed-loop eigenvalues
+(``qube-design --rerun-save``).
 
 Entities, against the timeline ``time`` (seconds from the episode's start):
 ``episodes/<name>/<channel>/<kind>`` for the channels ``theta``, ``alpha`` (rad) and ``voltage``
@@ -97,8 +98,9 @@ def write_recording(path: str | Path, predicted: LoopTrajectories, twin: dict[st
         circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
         rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
         for kind, values in eigenvalues.items():
-            rec.log(f"eigenvalues/{kind}", rr.Points2D(np.column_stack([values.real, values.imag]), radii=0.005,
-                                                       colors=[_COLORS["twin" if kind == "design" else "twin_training"]]),
+            rec.log(f"eigenvalues/{kind}",
+                    rr.Points2D(np.column_stack([values.real, values.imag]), radii=0.005,
+                                colors=[_COLORS["twin" if kind == "design" else "twin_training"]]),
                     static=True)
         rec.flush()
         rec.disconnect()

@@ -229,7 +229,7 @@ def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, 
     if viol == 0.0:
         return DiscResult(U0, float(problem.distances(U0, center).max()), True, 0, 0)
     best, n_active = None, 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 - read after the loop: the iterations taken
         values, grads = _constraints(problem, U, center, target, target - band * radius)
         if not grads:
             break

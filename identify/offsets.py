@@ -126,7 +126,8 @@ class OffsetEstimate:
         return {c: float(v) for c, v in zip(self.channels, self.values)} if self.plausible else {}
 
 
-def resolve_channels(channels: Sequence[int | str], state_names: Sequence[str] | None, n_states: int) -> tuple[int, ...]:
+def resolve_channels(channels: Sequence[int | str], state_names: Sequence[str] | None,
+                     n_states: int) -> tuple[int, ...]:
     """Channel indices from indices or state names (``"alpha"``)."""
     out = []
     for c in channels:

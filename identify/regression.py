@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import linalg
 
-__all__ = ["Snapshots", "SnapshotFold", "GroupedSnapshots", "ridge_solve", "constrained_plant_solve", "grouped_plant_solve"]
+__all__ = ["Snapshots", "SnapshotFold", "GroupedSnapshots", "ridge_solve", "constrained_plant_solve",
+           "grouped_plant_solve"]
 
 
 def _triangular_factor(M: np.ndarray) -> np.ndarray:

@@ -88,7 +88,8 @@ def _why_it_won(search: dict) -> str:
         return "It has both the best objective and the best cross-validated R^2."
     return (f"The best cross-validated candidate, {by_cv['label']} (alpha {by_cv['alpha']:g}, CV R^2 "
             f"{format_number(by_cv['cv_r2'], '.4f')}), transfers worse: transfer R^2 "
-            f"{format_number(by_cv['transfer_r2'], '.4f')} (worst probe {format_number(by_cv['transfer_r2_worst'], '.3f')}) "
+            f"{format_number(by_cv['transfer_r2'], '.4f')} "
+            f"(worst probe {format_number(by_cv['transfer_r2_worst'], '.3f')}) "
             f"against the winner's {format_number(w['transfer_r2'], '.4f')} "
             f"(worst {format_number(w['transfer_r2_worst'], '.3f')}).")
 
@@ -112,8 +113,10 @@ def _search_section(search: dict) -> list[str]:
     for i, c in enumerate(search["candidates"], start=1):
         lines.append(f"| {i} | {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
                      f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c['cv_r2_std'], '.4f')} "
-                     f"| {format_number(c.get('transfer_r2'), '.4f')} | {format_number(c.get('transfer_r2_worst'), '.3f')} "
-                     f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} | {format_number(c['seconds'], '.1f')} |")
+                     f"| {format_number(c.get('transfer_r2'), '.4f')} "
+                     f"| {format_number(c.get('transfer_r2_worst'), '.3f')} "
+                     f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} "
+                     f"| {format_number(c['seconds'], '.1f')} |")
     return lines
 
 
@@ -184,7 +187,8 @@ def markdown_report(report: dict) -> str:
         f"- scoring: {'closed loop (r, f inputs)' if report['score'] == 'cl' else 'plant (u input)'}",
         f"- training episodes: {len(report['train_logs'])}; test episodes: {len(report['test_logs'])}"
         + (f" ({t['n_episodes']} scored)" if t else " (none scored)"),
-        f"- spectral radius: closed loop {format_number(rho.get('closed_loop'), '.6f')}, plant {format_number(rho.get('plant'), '.6f')}",
+        f"- spectral radius: closed loop {format_number(rho.get('closed_loop'), '.6f')}, "
+        f"plant {format_number(rho.get('plant'), '.6f')}",
     ]
     lines += _controllers_lines(report.get("training_controllers"))
     what_if = report.get("what_if")

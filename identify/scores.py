@@ -20,7 +20,8 @@ import numpy as np
 
 __all__ = ["ConstantChannelWarning", "r2_score", "r2_scores", "r2_scores_time_major", "r2_from_sums",
            "r2_from_residuals", "DivergedPrediction", "first_diverged_sample",
-           "summarize_episodes", "EpisodeScore", "episode_score", "summarize_scores", "nrmse", "normalized_mean_error", "score_episodes", "SCORES"]
+           "summarize_episodes", "EpisodeScore", "episode_score", "summarize_scores", "nrmse", "normalized_mean_error",
+           "score_episodes", "SCORES"]
 
 
 class ConstantChannelWarning(UserWarning):

@@ -44,7 +44,8 @@ from qube_koopman.core.qube import MEASURED
 from qube_koopman.identify.cl_edmd import ClEdmd
 from qube_koopman.identify.distributed import candidate_runner, connect, release_workers
 from qube_koopman.identify.model import FittedRows
-from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf, Trigonometric
+from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf,
+                                          Trigonometric)
 from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
 from qube_koopman.identify.sweep import regularization_sweep
 from qube_koopman.identify.trajectory import Trajectory, as_episodes
@@ -673,7 +674,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
 
     space = space or SearchSpace()
     data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
-                      int(window), bound, rbf_seed, probes, controllers=None if controllers is None else list(controllers))
+                      int(window), bound, rbf_seed, probes,
+                      controllers=None if controllers is None else list(controllers))
     client = connect(scheduler, connect_timeout, security) if scheduler else None
     run = candidate_runner(n_jobs, client)
     started = time.perf_counter()

@@ -157,7 +157,8 @@ class ClEdmdStable(ClEdmdKnownRows):
         return np.vstack([self._known_controller_rows(), U_p @ S]), U_p
 
     def _solve_sqp(self, snapshots: Snapshots, S: np.ndarray, alpha: float, U0: np.ndarray):
-        """The plant rows by :func:`least_change_into_disc` (None if it did not reach the disc), and its last iterate."""
+        """The plant rows by :func:`least_change_into_disc` (None if it did not reach the disc), and its last
+        iterate."""
         n_c = self.controller.n_states
         n_theta = n_c + U0.shape[0]
         # The cost is (||R_psi S^T U^T - Y||^2 + alpha ||U S||^2) / q: metric K = F^T F / q.

@@ -199,7 +199,7 @@ def _score_sums(models: list[KoopmanModel], episodes: list[Trajectory], scoring:
     channels = slice(0, None) if with_p else slice(n_p, None)
     # The memory a model's simulation holds: its ring of permuted rows (see identify.simulate).
     per_model = (n_p + ref.n_states) * A.shape[1] * (d + 1)
-    for T, group in by_length.items():
+    for _, group in by_length.items():
         x_init = np.stack([t.x[:d + 1] for t in group])
         v = np.stack([ref.inputs_of(t) for t in group])
         # Time-major truth (samples, episodes, channels), as the simulator hands its predictions.

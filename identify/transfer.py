@@ -32,7 +32,8 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT  # the rig's safety stops: a probe beyond them is dropped
+# The rig's safety stops: a probe beyond them is dropped.
+from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
 from qube_koopman.identify.trajectory import Trajectory, as_episodes
 from qube_koopman.sim.lti import DiscreteStateSpace
 

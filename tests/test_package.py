@@ -123,3 +123,22 @@ def test_every_command_is_written_with_the_toolkit_of_core():
         if "run_command" not in calls:
             without.append(name)
     assert not without, f"commands not run through core.command.run_command: {without}"
+
+
+def test_ruff_finds_nothing_in_the_packages():
+    """The linter, configured in pyproject.toml ([tool.ruff]), reports nothing on the package folders.
+    ruff is in the test extra: missing, it is an incomplete install, which fails rather than skips."""
+    import importlib.util
+    import shutil
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    if importlib.util.find_spec("ruff") is not None:
+        ruff = [sys.executable, "-m", "ruff"]
+    elif shutil.which("ruff"):
+        ruff = [shutil.which("ruff")]
+    else:
+        pytest.fail('ruff is not installed: pip install -e ".[test]"')
+    checked = subprocess.run([*ruff, "check", "--no-cache", "--config", str(root / "pyproject.toml"), *LAYERS],
+                             cwd=root, capture_output=True, text=True, timeout=300)
+    assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]

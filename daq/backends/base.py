@@ -104,3 +104,4 @@ class Backend(ABC):
 
     def close(self) -> None:
         """Release resources when no more episodes will run (default: nothing to release)."""
+        return None

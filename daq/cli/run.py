@@ -1,4 +1,5 @@
-"""``qube-run``: collect closed-loop episodes of the QUBE-Servo (simulated, or through the serial bridge) into MCAP logs."""
+"""``qube-run``: collect closed-loop episodes of the QUBE-Servo (simulated, or through the serial bridge)
+into MCAP logs."""
 
 from __future__ import annotations
 
@@ -297,10 +298,9 @@ def _where(args, backend) -> str:
 
 def _run(args) -> int:
     _check_backend_options(args)
-    import numpy as np
-
     from qube_koopman.daq.safety import SafetyLimits
-    from qube_koopman.daq.session import MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.session import (MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller,
+                                          plan_episodes, run_seeds)
 
     if args.episodes > MAX_EPISODES:
         raise CliError(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "
@@ -393,7 +393,8 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
     rerun_sink = _rerun_sink(args)
     print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on "
           f"{_where(args, backend)}, seed {seed}, controller "
-          f"{args.controller or 'of the paper dataset'} ({_controller_form(plans[0].controller, args)}), logs to {args.out}/",
+          f"{args.controller or 'of the paper dataset'} ({_controller_form(plans[0].controller, args)}), "
+          f"logs to {args.out}/",
           flush=True)
     progress = RunProgress(args.episodes, settings.n_samples, enabled=not args.quiet)  # after the header line
     sinks = [*([rerun_sink] if rerun_sink is not None else []), progress]

@@ -124,7 +124,7 @@ def summary_table(rows: list[tuple[str, object]], totals) -> str:
         lines.append("  ".join(c.ljust(w) if k < 3 else c.rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
         if j == 0:
             lines.append("  ".join("-" * w for w in widths))
-    for i, (name, r) in enumerate(rows):
+    for i, (_, r) in enumerate(rows):
         if r.reason:
             lines.append(f"episode {i}: {r.reason}")
     t = totals

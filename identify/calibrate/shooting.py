@@ -36,8 +36,8 @@ and the base is fitted too (bounded to [0, 0.01] N m/rad; its rest angle stays a
 zero, where the operator starts an episode): under a soft arm loop the slow load it puts on the
 arm is what moved the arm (0.2-0.4 V of restoring voltage at the arm's excursions), and without it
 the fit made up for it with ``km`` and ``Jh`` (``km`` 0.049 without the spring, 0.039-0.042 with
-it; the workbook's 0.042). The Coulomb friction's smoothing speed stays nominal: fitted, it ran to its lower bound without
-improving the closed-loop replay (measured).
+it; the workbook's 0.042). The Coulomb friction's smoothing speed stays nominal: fitted, it ran to its lower bound
+without improving the closed-loop replay (measured).
 """
 
 from __future__ import annotations

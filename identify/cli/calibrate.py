@@ -57,8 +57,10 @@ def _parser() -> argparse.ArgumentParser:
                         "with validation, calibration.rrd (rerun recording of the replayed episodes and spectra; "
                         "needs the viz extra)")
     p.add_argument("--horizon", type=float, default=0.2, metavar="S", help="shooting segment length (default 0.2)")
-    p.add_argument("--delay", type=whole_number(0), default=0, metavar="N", help="transport delay in samples (default 0)")
-    p.add_argument("--max-nfev", type=whole_number(1), default=40, metavar="N", help="solver iteration budget (default 40)")
+    p.add_argument("--delay", type=whole_number(0), default=0, metavar="N",
+                   help="transport delay in samples (default 0)")
+    p.add_argument("--max-nfev", type=whole_number(1), default=40, metavar="N",
+                   help="solver iteration budget (default 40)")
     p.add_argument("--weighting", choices=("episode", "controller"), default="episode",
                    help="with logs of several controllers: episode (default) counts every episode alike; "
                         "controller weights the residuals so that each controller's logs count alike")

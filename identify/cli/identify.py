@@ -98,8 +98,8 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                              "none: by cross-validated R^2 alone (sees only the training controller)")
     search.add_argument("--no-probe-cache", dest="probe_cache", action="store_false",
                         help="simulate the twin probes even when the same ones are in the cache (by default they "
-                             "are kept in $QUBE_KOOPMAN_PROBE_CACHE, else ~/.cache/qube-koopman/probes, and read back when the "
-                             "training excitations, the twin and the simulator are the same)")
+                             "are kept in $QUBE_KOOPMAN_PROBE_CACHE, else ~/.cache/qube-koopman/probes, and read "
+                             "back when the training excitations, the twin and the simulator are the same)")
     add_cluster_options(p)
 
 
@@ -108,7 +108,8 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_standard_options(p)
     data = p.add_argument_group("data")
-    data.add_argument("logs", nargs="*", type=path, metavar="LOGS", help="episode logs (.mcap files or folders), with --split")
+    data.add_argument("logs", nargs="*", type=path, metavar="LOGS",
+                      help="episode logs (.mcap files or folders), with --split")
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
     data.add_argument("--train", nargs="+", type=path, metavar="LOG", help="training logs (files or folders)")
     data.add_argument("--test", nargs="+", type=path, metavar="LOG", help="test logs (files or folders)")
@@ -122,12 +123,16 @@ def _parser() -> argparse.ArgumentParser:
     lift.add_argument("--trig", action="store_true",
                       help="append sin and cos of theta and alpha (after the monomials, before the delays)")
     lift.add_argument("--delays", type=whole_number(0), metavar="N", help="time delays (default 10)")
-    lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions")
+    lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none",
+                      help="radial basis functions")
     lift.add_argument("--rbf-centers", type=whole_number(1, MAX_RBF_CENTERS), default=50, metavar="N",
                       help=f"RBF centres, Latin hypercube (default %(default)s, at most {MAX_RBF_CENTERS})")
-    lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)")
-    lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)")
-    lift.add_argument("--rbf-seed", type=seed, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)")
+    lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A",
+                      help="RBF shape parameter (default %(default)s)")
+    lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D",
+                      help="thin-plate offset (default %(default)s)")
+    lift.add_argument("--rbf-seed", type=seed, default=0, metavar="K",
+                      help="seed of the RBF centres (default %(default)s)")
     lift.add_argument("--friction", action="store_true",
                       help="append the arm's Coulomb friction shape, tanh((theta_k - theta_k-10) / 0.002 rad), "
                            "after the RBFs (needs --delays 10 or more)")
@@ -150,7 +155,8 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--cv-seed", type=seed, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
     fit.add_argument("--score", choices=["cl", "plant"], default="cl",
                      help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
-    fit.add_argument("--arx-lags", type=whole_number(1), default=10, metavar="N", help="ARX output and input lags (default %(default)s)")
+    fit.add_argument("--arx-lags", type=whole_number(1), default=10, metavar="N",
+                     help="ARX output and input lags (default %(default)s)")
     fit.add_argument("--max-radius", type=float, metavar="R",
                      help="constrain the closed loop's eigenvalues to |lambda - C| <= R (C: --pole-center, "
                           "default 0: the spectral radius), the plant left free; CL EDMD with the controller "
@@ -189,7 +195,8 @@ def _parser() -> argparse.ArgumentParser:
                            "episodes recorded under it are scored")
     _add_search_options(p)
     out = p.add_argument_group("output")
-    out.add_argument("--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)")
+    out.add_argument("--out", type=path, default="identified", metavar="DIR",
+                     help="output folder (default %(default)s)")
     out.add_argument("--rerun-save", dest="rerun", type=path, metavar="FILE.rrd",
                      help="also write a rerun recording of the results")
     add_renamed_option(out, "--rerun", "--rerun-save FILE.rrd", "a file; qube-run --rerun streams to a viewer")
@@ -429,7 +436,8 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             offsets = OffsetProtocol(("alpha",), args.estimate_window, args.offset_bound) if args.offsets else None
             args.alpha = search.winner.best_alpha
         result = identify_and_score(
-            method=args.method, lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args), train=train, test=test, controller=controller,
+            method=args.method, lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
+            train=train, test=test, controller=controller,
             alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
             model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,

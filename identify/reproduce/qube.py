@@ -21,8 +21,8 @@ from qube_koopman.daq.log.names import find_logs
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify.arx import Arx
 from qube_koopman.identify.cl_edmd import ClEdmd
-from qube_koopman.identify.data import (check_same_controller, check_same_rate, group_shuffle_splits, load_logs, paper_split,
-                           same_system)
+from qube_koopman.identify.data import (check_same_controller, check_same_rate, group_shuffle_splits, load_logs,
+                                       paper_split, same_system)
 from qube_koopman.identify.edmd import Edmd
 from qube_koopman.identify.lifting import Delay, Polynomial
 from qube_koopman.identify.scores import summarize_episodes

@@ -30,6 +30,12 @@ def qube_markdown(results: dict) -> str:
     cl = sweep["cl-edmd"]
     ed = sweep["edmd"]
     checks = "\n".join(f"- {'PASS' if ok else 'FAIL'}: {name}" for name, ok in results["checks"].items())
+
+    def radii(label: str, method: dict) -> str:
+        """One row of the spectral radii table."""
+        closed, plant = method["spectral_radius_closed_loop"], method["spectral_radius_plant"]
+        return f"| {label} | {min(closed):.6f} | {max(closed):.6f} | {plant[0]:.4f} | {plant[-1]:.4f} |"
+
     return f"""# QUBE-Servo: paper section 5 reproduced
 
 {results['n_train']} training and {results['n_test']} test episodes, the first {results['skip']} samples
@@ -47,8 +53,8 @@ Test scores are closed-loop predictions of theta and alpha over the test episode
 
 | | closed loop, min | closed loop, max | plant, at smallest alpha | plant, at largest alpha |
 |---|---|---|---|---|
-| CL EDMD | {min(cl['spectral_radius_closed_loop']):.6f} | {max(cl['spectral_radius_closed_loop']):.6f} | {cl['spectral_radius_plant'][0]:.4f} | {cl['spectral_radius_plant'][-1]:.4f} |
-| EDMD (wrapped) | {min(ed['spectral_radius_closed_loop']):.6f} | {max(ed['spectral_radius_closed_loop']):.6f} | {ed['spectral_radius_plant'][0]:.4f} | {ed['spectral_radius_plant'][-1]:.4f} |
+{radii("CL EDMD", cl)}
+{radii("EDMD (wrapped)", ed)}
 
 Computed in {results['timing_s']:.1f} s.
 """ + "\n".join(figures_markdown(results.get("figures"))) + ("\n" if results.get("figures") else "")

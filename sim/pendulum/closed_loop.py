@@ -81,7 +81,8 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     """
     if controller.n_inputs not in (2, 3) or controller.n_outputs != 1:
         raise ValueError("controller must map the two tracking errors (theta, alpha), and optionally the "
-                         f"feedforward, to one voltage; got {controller.n_inputs} inputs and {controller.n_outputs} outputs")
+                         f"feedforward, to one voltage; got {controller.n_inputs} inputs and "
+                         f"{controller.n_outputs} outputs")
     check_timing(controller.dt, n_substeps)
     if not max_voltage > 0:
         raise ValueError(f"max_voltage must be positive, got {max_voltage!r}")
