@@ -112,7 +112,7 @@ def test_an_offset_the_window_cannot_see_widens_the_interval_within_its_bound(ar
     variance = {}
     for std_error in (1e-4, np.inf):  # a sharp estimate, and a flat cost (the status says so)
         assert _estimate(std_error).status == ("flat" if std_error == np.inf else "ok")
-        monkeypatch.setattr(uncertainty, "estimate_offsets_many", lambda *a, **k: [_estimate(std_error)])
+        monkeypatch.setattr(uncertainty, "estimate_offsets_many", lambda *a, se=std_error, **k: [_estimate(se)])
         variance[std_error] = predict_episodes(models, test[:1], _Window())[0].variance[100:]
     assert np.all(variance[np.inf] > variance[1e-4]) and np.all(np.isfinite(variance[np.inf]))
     # A feedback loop carries an offset of the fed-back channel to the prediction: at most the bound's worth.
