@@ -57,8 +57,6 @@ __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "sea
 
 #: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
 TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
-#: Alphas the offsets stage re-scores each candidate at (its best by plain cross-validation).
-N_OFFSET_ALPHAS = 3
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
 FRICTION_LAG = CoulombFriction().lag  # samples: the fewest delays the friction lifting needs
 _log = logging.getLogger(__name__)
@@ -409,6 +407,8 @@ class SearchData:
     rbf_seed: int = 0
     probes: ProbeSet | None = None
     n_transfer_alphas: int = 3
+    #: Alphas an offsets candidate is scored at: its plain twin's best (:attr:`SearchSpace.n_offset_alphas`).
+    n_offset_alphas: int = 3
     #: Each episode's controller when they ran several (None: all ran ``controller``).
     controllers: list[DiscreteStateSpace] | None = None
 
@@ -427,7 +427,7 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     """
     started = time.perf_counter()
     timing = dict.fromkeys(TIMING_KEYS, 0.0)
-    top = None if plain is None else _best_alphas(_fold_scores(plain), N_OFFSET_ALPHAS)
+    top = None if plain is None else _best_alphas(_fold_scores(plain), data.n_offset_alphas)
     reuse = plain.reuse if isinstance(plain, CandidateResult) else None
     if spec.offsets and reuse is not None and reuse.covers(top):
         cv = _offset_scores(reuse.folds, reuse.lifting, data, top, timing)
@@ -449,7 +449,7 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     folds = [({j: rows for j, rows in enumerate(closed)}, validation) for closed, _, validation in
              sweep.fold_models or []]
     if spec.offsets:
-        top = _best_alphas(cv, N_OFFSET_ALPHAS)
+        top = _best_alphas(cv, data.n_offset_alphas)
         cv = _offset_scores(folds, lifting, data, top, timing)
     transfer, plants = None, {}
     if data.probes is not None:
@@ -457,7 +457,7 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
         transfer = _transfer_scores(spec, data, cv, plants, timing)
     kept = None
     if not spec.offsets and lifting is not None:
-        best = [int(j) for j in _best_alphas(cv, N_OFFSET_ALPHAS)]
+        best = [int(j) for j in _best_alphas(cv, data.n_offset_alphas)]
         kept = Reuse(lifting, [({j: f[j] for j in best}, v) for f, v in folds],
                      {j: FittedRows.of(m) for j, m in plants.items() if j in best})
     return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started,
@@ -554,7 +554,8 @@ def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants
     from qube_koopman.identify._blas import limited_blas_threads
 
     started = time.perf_counter()
-    top = np.sort(_best_alphas(cv, data.n_transfer_alphas))
+    # The alphas with a plant: an offsets candidate predicting with its plain twin's has them at its scored alphas.
+    top = [j for j in np.sort(_best_alphas(cv, data.n_transfer_alphas)) if int(j) in plants]
     out = np.full((data.probes.n_episodes, data.alphas.size), np.nan)
     with limited_blas_threads(1):
         for j in top:
@@ -675,7 +676,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     space = space or SearchSpace()
     data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
                       int(window), bound, rbf_seed, probes,
-                      controllers=None if controllers is None else list(controllers))
+                      controllers=None if controllers is None else list(controllers),
+                      n_offset_alphas=space.n_offset_alphas)
     client = connect(scheduler, connect_timeout, security) if scheduler else None
     run = candidate_runner(n_jobs, client)
     started = time.perf_counter()

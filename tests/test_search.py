@@ -287,13 +287,11 @@ def test_an_offsets_candidate_given_its_plain_scores_scores_the_same(small):
 def test_an_offsets_candidate_predicting_with_its_plain_twins_models_scores_the_same(small, rbf):
     # The offsets stage reuses the plain candidate's fitted rows (folds and probe plants): no statistics
     # computed, and the same scores as evaluating the offsets candidate from scratch.
-    from qube_koopman.identify.search import N_OFFSET_ALPHAS
-
     trajs, controller, splits = small
     probes = twin_probes(trajs[:2], per_controller=1, skip=100)
     data = SearchData(trajs, splits, controller, np.array([1e-5, 1e-4, 1e-3, 1e-2, 1.0]), WINDOW, probes=probes)
     plain = evaluate_candidate(LiftingSpec(delays=5, poly=1, rbf=rbf), data)
-    assert plain.reuse is not None and len(plain.reuse.plants) == N_OFFSET_ALPHAS
+    assert plain.reuse is not None and len(plain.reuse.plants) == data.n_offset_alphas == 3
     spec = LiftingSpec(delays=5, poly=1, rbf=rbf, offsets=True)
     reused, scratch = evaluate_candidate(spec, data, plain=plain), evaluate_candidate(spec, data)
     assert reused.timing["statistics"] == 0 and scratch.timing["statistics"] > 0
