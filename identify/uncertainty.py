@@ -63,6 +63,7 @@ from qube_koopman.identify.offsets import (
 from qube_koopman.identify.scores import DIVERGED_FACTOR, DivergedPrediction
 from qube_koopman.identify.simulate import simulate_chunks
 from qube_koopman.identify.structure import close_loop
+from qube_koopman.identify.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
 from qube_koopman.identify.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.sim.lti import DiscreteStateSpace
 
@@ -88,8 +89,6 @@ __all__ = [
 
 #: Offset step (rad) of the sensitivity's finite difference: a tenth of an encoder count.
 OFFSET_STEP = 3e-4
-#: Episodes predicted together: one batched simulation of every member over this many.
-EPISODES_PER_BATCH = 16
 
 
 @dataclass(frozen=True)
