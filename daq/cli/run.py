@@ -9,9 +9,8 @@ import sys
 from pathlib import Path
 
 from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args
-from qube_koopman.core.command import CliError, run_command
+from qube_koopman.core.command import CliError, check_output_file, run_command
 from qube_koopman.core.console import configure_logging
-from qube_koopman.core.files import output_file_problem
 from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT
 from qube_koopman.daq.cli.run_output import PROG
 
@@ -324,9 +323,7 @@ def _run(args) -> int:
     if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:
         raise CliError(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
                     f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
-    problem = args.rerun_save and output_file_problem(args.rerun_save, force=args.force)
-    if problem:
-        raise CliError(f"{problem} (--rerun-save)")
+    check_output_file(args.rerun_save, "--rerun-save", args.force)
 
     seed = args.seed if args.seed is not None else fresh_seed()
     seeds, backend_seed = run_seeds(seed, args.episodes)

@@ -7,8 +7,8 @@ import math
 import sys
 
 from qube_koopman.core.cli import OneLineParser, add_force_option, number_in, parse_args
-from qube_koopman.core.command import CliError, run_command
-from qube_koopman.core.files import atomic_path, output_file_problem
+from qube_koopman.core.command import CliError, check_output_file, run_command
+from qube_koopman.core.files import atomic_path
 
 PROG = "qube-emulate"
 
@@ -164,10 +164,8 @@ def _emulate(args) -> int:
                               perturbation=math.radians(args.perturbation), start_upright=not args.hanging,
                               raise_time=args.raise_time, faults=faults, spin=args.spin / 1e6,
                               record_ticks=300_000 if args.record else 0)
-    for path, option in ((args.record, "--record"), (args.stats, "--stats")):
-        problem = path and output_file_problem(path, force=args.force)  # before the emulator starts
-        if problem:
-            raise CliError(f"{problem} ({option})")
+    check_output_file(args.record, "--record", args.force)  # before the emulator starts
+    check_output_file(args.stats, "--stats", args.force)
     try:
         path = emulator.open()
     except CompilerNotFound as exc:
