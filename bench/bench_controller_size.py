@@ -4,7 +4,7 @@ Target: a discrete state-space controller of up to 200 states runs within the
 500 Hz loop's 2 ms budget. Rows: the rig's PD from its gains file (2 states, plain floats),
 then state-space files of 2 states (the same PD as matrices), 50, 100 and 200 states (the
 PD with stable extra states, mixed by a random orthogonal change of coordinates,
-``sim.lti.padded_realization``: the same transfer function, so every episode balances, every
+``core.lti.padded_realization``: the same transfer function, so every episode balances, every
 state coupled to every other). Columns,
 each a median over ``--repeats`` runs:
 
@@ -93,7 +93,7 @@ def loop_times(info, seconds: float, folder: Path) -> tuple[float, float]:
 def controllers(folder: Path) -> list[tuple[str, object]]:
     """(label, ControllerInfo) of each row, the state-space ones through their files."""
     from qube_koopman.daq.controller_file import load_controller_file, write_controller_file
-    from qube_koopman.sim.lti import padded_realization
+    from qube_koopman.core.lti import padded_realization
 
     pd = load_controller_file("rig")
     rows = [("PD gains (rig)", pd)]

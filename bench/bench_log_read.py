@@ -49,7 +49,7 @@ def _synthetic_episode_file(folder: Path) -> Path:
 
     from qube_koopman.daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
     from qube_koopman.daq.log import write_episode
-    from qube_koopman.sim.lti import DiscreteStateSpace
+    from qube_koopman.core.lti import DiscreteStateSpace
 
     a = 1 / 1.1
     controller = DiscreteStateSpace(np.eye(2) * a, np.eye(2), [[7.4380165, 10.3305785]],

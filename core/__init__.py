@@ -9,6 +9,9 @@ from qube_koopman.core.exports import lazy_exports
 
 #: Each public name and the module of ``core`` that defines it.
 _HOMES = {
+    "DiscreteStateSpace": "lti",
+    "replay_controller": "lti",
+    "spectral_radius": "lti",
     "OneLineParser": "cli",
     "add_force_option": "cli",
     "atomic_path": "files",

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
     "DISCRETIZATIONS",

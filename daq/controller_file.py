@@ -26,7 +26,7 @@ from qube_koopman.core.files import atomic_path
 from qube_koopman.daq.controller import (QUBE_SAMPLE_PERIOD, controller_file, pd_controller,
                                          pd_gains_from_table, read_controller_toml)
 from qube_koopman.daq.episode import ControllerInfo
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
     "CONTROLLER_FORMAT",

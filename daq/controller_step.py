@@ -3,8 +3,8 @@
 Each tick the loop asks for the output ``u = C x + D e`` (before writing the command) and then
 advances the state ``x <- A x + B e``, with ``e`` the two tracking errors, and the tick's
 feedforward after them for a controller that takes it (daq/CONTROLLER_FORMAT.md): the convention of
-:class:`sim.lti.DiscreteStateSpace` and of the log (``controller_state[k]`` is the state that
-computed ``control_output[k]``), so :func:`sim.lti.replay_controller` recomputes the logged
+:class:`core.lti.DiscreteStateSpace` and of the log (``controller_state[k]`` is the state that
+computed ``control_output[k]``), so :func:`core.lti.replay_controller` recomputes the logged
 state from the log.
 
 Two realizations of the same arithmetic, chosen by size:
@@ -22,7 +22,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["PLAIN_MAX_STATES", "Output", "Update", "controller_step"]
 

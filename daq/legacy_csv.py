@@ -34,7 +34,7 @@ import numpy as np
 from qube_koopman.daq.episode import (REFERENCE_SIGNALS, STATE_SIGNALS, ControllerInfo, Episode, EpisodeMetadata,
                                       stack_signals)
 from qube_koopman.daq.log.names import parse_episode_name
-from qube_koopman.sim.lti import replay_controller
+from qube_koopman.core.lti import replay_controller
 
 __all__ = [
     "LEGACY_COLUMNS",

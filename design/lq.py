@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from qube_koopman.design.plant import DesignError, LinearPlant
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["Weights", "LqDesign", "augment", "design_lq", "realize"]
 

@@ -25,7 +25,7 @@ from qube_koopman.daq.session import excitation_settings, run_seeds
 from qube_koopman.design.plant import LinearPlant
 from qube_koopman.identify.model import KoopmanModel
 from qube_koopman.identify.structure import close_loop, closed_loop_matrices, plant_input
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 
 __all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost",

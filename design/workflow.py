@@ -21,7 +21,7 @@ from qube_koopman.design.plant import IDENTIFY_FLAGS, DesignError, linear_plant
 from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins, closed_loop_eigenvalues,
                                          closed_loop_matrix, loop_margins, predict_cost, predict_loop,
                                          rig_excitations)
-from qube_koopman.sim.lti import DiscreteStateSpace, spectral_radius
+from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 
 __all__ = ["DesignReport", "design_from_model", "report_text", "saturation_warning", "provenance", "record_design"]
 

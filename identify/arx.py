@@ -10,7 +10,7 @@ from qube_koopman.identify._base import Estimator
 from qube_koopman.identify._checks import check_alpha, check_nonneg_int
 from qube_koopman.identify.regression import Snapshots, ridge_solve
 from qube_koopman.identify.trajectory import Trajectory, check_trajectories
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["Arx", "ClArx"]
 

@@ -16,7 +16,7 @@ from qube_koopman.identify.regression import (GroupedSnapshots, Snapshots, const
 from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, feedforward_columns,
                                              output_selection, plant_input_map)
 from qube_koopman.identify.trajectory import Trajectory, as_episodes, check_trajectories, episode_signals
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from qube_koopman.core.qube import STATE_NAMES
 from qube_koopman.identify.trajectory import EpisodeSequence, Trajectory
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["LoggedTrajectory", "StoredLog", "LogTrajectories", "load_logs", "check_same_controller", "check_same_rate",
            "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "UnreadableLogSkipped", "same_system"]

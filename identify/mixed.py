@@ -20,7 +20,7 @@ import numpy as np
 from qube_koopman.identify.data import same_system
 from qube_koopman.identify.regression import GroupedSnapshots, SnapshotFold, Snapshots
 from qube_koopman.identify.structure import plant_input_map
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ControllerGroups", "distinct_controllers", "leave_one_controller_out", "within_controller_splits",
            "majority_controller"]

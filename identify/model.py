@@ -9,7 +9,7 @@ import numpy as np
 
 from qube_koopman.identify.lifting import Lifting
 from qube_koopman.identify.trajectory import Trajectory
-from qube_koopman.sim.lti import spectral_radius
+from qube_koopman.core.lti import spectral_radius
 
 __all__ = ["KoopmanModel", "FittedRows"]
 

@@ -14,7 +14,7 @@ import numpy as np
 from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Lifting, Polynomial,
                                            ThinPlateRbf, Trigonometric)
 from qube_koopman.identify.model import KoopmanModel
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path
 
 __all__ = ["FORMAT", "VERSION", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model"]

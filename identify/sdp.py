@@ -23,7 +23,7 @@ from qube_koopman.identify._base import resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
 from qube_koopman.identify.cl_edmd import REGULARIZE, ClosedLoopKoopman
 from qube_koopman.identify.trajectory import check_trajectories
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmdSdp", "SnapshotGram", "closed_loop_snapshots", "closed_loop_blocks"]
 

@@ -50,7 +50,7 @@ from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
 from qube_koopman.identify.sweep import regularization_sweep
 from qube_koopman.identify.trajectory import Trajectory, as_episodes
 from qube_koopman.identify.transfer import ProbeSet, probe_scores
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
            "evaluate_candidate", "same_controller_scores", "search_steps", "family_of", "family_statistics"]

@@ -52,7 +52,7 @@ from qube_koopman.identify._spectral import DiscProblem, least_change_into_disc
 from qube_koopman.identify._checks import check_choice
 from qube_koopman.identify.cl_edmd import ClEdmdKnownRows
 from qube_koopman.identify.regression import Snapshots, constrained_plant_solve
-from qube_koopman.sim.lti import DiscreteStateSpace, spectral_radius
+from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 
 __all__ = ["ClEdmdStable"]
 

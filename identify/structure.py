@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.sim.lti import DiscreteStateSpace, controller_inputs, replay_controller
+from qube_koopman.core.lti import DiscreteStateSpace, controller_inputs, replay_controller
 
 __all__ = [
     "output_selection",
@@ -196,7 +196,7 @@ def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np
 def controller_states(controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarray,
                       f: np.ndarray | None = None) -> np.ndarray:
     """Controller state along an episode, run from zero on the tracking error ``r - y`` and, for a
-    controller that takes it, the feedforward ``f`` (the states of :func:`sim.lti.replay_controller`).
+    controller that takes it, the feedforward ``f`` (the states of :func:`core.lti.replay_controller`).
 
     Parameters
     ----------

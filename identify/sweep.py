@@ -36,7 +36,7 @@ from qube_koopman.identify.scores import r2_from_residuals
 from qube_koopman.identify.simulate import simulate_chunks
 from qube_koopman.identify.structure import close_loop
 from qube_koopman.identify.trajectory import Trajectory, as_episodes, select_episodes
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "SCORINGS"]
 

@@ -35,7 +35,7 @@ import numpy as np
 # The rig's safety stops: a probe beyond them is dropped.
 from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
 from qube_koopman.identify.trajectory import Trajectory, as_episodes
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ProbeSet", "DEFAULT_PROBE_GAINS", "twin_probes", "probe_scores"]
 

@@ -65,7 +65,7 @@ from qube_koopman.identify.simulate import simulate_chunks
 from qube_koopman.identify.structure import close_loop
 from qube_koopman.identify.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
 from qube_koopman.identify.trajectory import Trajectory, as_episodes, select_episodes
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
     "OFFSET_STEP",

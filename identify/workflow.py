@@ -23,7 +23,7 @@ from qube_koopman.identify.structure import close_loop, controller_states
 from qube_koopman.identify.sweep import SweepResult, regularization_sweep
 from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, consecutive_runs,
                                                fit_ensemble, predict_episodes, prediction_band)
-from qube_koopman.sim.lti import DiscreteStateSpace, spectral_radius
+from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.files import atomic_path
 from qube_koopman.core.qube import MEASURED, STATE_NAMES
 

@@ -1,14 +1,13 @@
 """Physics and emulated hardware: the systems ``daq`` and ``identify`` run against.
 
-``sim`` owns the discrete LTI container used everywhere and the controller replay
-over logged samples (``sim.lti``), the
+``sim`` owns the
 paper's Duffing experiment (``sim.duffing``), the QUBE-Servo rotary pendulum
 model, its encoders and integrators (``sim.pendulum``), and the emulated
 bridge device that speaks ``firmware_protocol`` over a pseudo-terminal
 (``sim.bridge``, ``qube-emulate``). Start with
-:class:`~qube_koopman.sim.pendulum.simulator.PendulumSimulator` for the pendulum and
-:class:`~qube_koopman.sim.lti.DiscreteStateSpace`
-for controllers. Imports only ``firmware_protocol`` and ``core`` from this project.
+:class:`~qube_koopman.sim.pendulum.simulator.PendulumSimulator` for the pendulum
+(controllers and linear plants are :class:`~qube_koopman.core.DiscreteStateSpace`
+objects). Imports only ``firmware_protocol`` and ``core`` from this project.
 
 Import what is listed here from ``qube_koopman.sim``: each name is imported from its module when
 first used.
@@ -18,8 +17,6 @@ from qube_koopman.core.exports import lazy_exports
 
 # Each public name and the module (relative to this package) that defines it.
 _HOMES = {
-    # discrete LTI systems: controllers and linear plants
-    "DiscreteStateSpace": "lti", "replay_controller": "lti",
     # the QUBE-Servo pendulum: parameters, simulator, closed loop, encoders, linearization
     "PendulumParameters": "pendulum", "PendulumSimulator": "pendulum", "simulate_closed_loop": "pendulum",
     "ClosedLoopRun": "pendulum", "SensorModel": "pendulum", "ZeroOffsetDistribution": "pendulum",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from qube_koopman.daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 RATE = 500.0
 
@@ -28,7 +28,7 @@ def assert_follows_controller(ep: Episode, controller: DiscreteStateSpace = QUBE
     samples are evenly spaced from t = 0.
     """
     from qube_koopman.identify import controller_states
-    from qube_koopman.sim.lti import controller_inputs
+    from qube_koopman.core.lti import controller_inputs
 
     xc = controller_states(controller, ep.references, ep.states, ep.feedforward)
     np.testing.assert_allclose(ep.controller_state, xc, rtol=0, atol=1e-10)

@@ -11,7 +11,7 @@ import numpy as np
 from scipy import linalg
 
 from qube_koopman.identify import Trajectory
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 
 def mass_spring_damper(dt: float = 0.01, m: float = 1.0, c: float = 0.4, k: float = 2.0):

@@ -119,7 +119,7 @@ def test_interrupted_controller_plant_and_json_files_leave_nothing(tmp_path, mon
     from qube_koopman.daq.controller_file import write_controller_file
     from qube_koopman.core.command import write_json
     from qube_koopman.identify import reports
-    from qube_koopman.sim.lti import DiscreteStateSpace
+    from qube_koopman.core.lti import DiscreteStateSpace
     from qube_koopman.sim.pendulum import PendulumParameters
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 

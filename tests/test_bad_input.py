@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from qube_koopman.identify import Arx, ClEdmd, Delay, Edmd, Polynomial, Trajectory
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 

@@ -15,7 +15,7 @@ from qube_koopman.identify.mixed import ControllerGroups, leave_one_controller_o
 from qube_koopman.identify.regression import constrained_plant_solve, grouped_plant_solve
 from qube_koopman.identify.stability import ClEdmdStable
 from qube_koopman.identify.sweep import regularization_sweep
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 DT = 0.01

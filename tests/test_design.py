@@ -26,7 +26,7 @@ from qube_koopman.design.predict import closed_loop_eigenvalues, loop_margins
 from qube_koopman.identify import Constant, CoulombFriction, Delay, KoopmanModel, Lifting, Polynomial, close_loop
 from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.model_file import save_model
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 DT = 0.002
 NAMES = ("theta", "alpha")

@@ -27,7 +27,7 @@ from qube_koopman.identify.data import load_logs, same_system
 from qube_koopman.identify.model_file import load_model
 from qube_koopman.identify.scores import r2_score
 from qube_koopman.core.qube import MEASURED
-from qube_koopman.sim.lti import DiscreteStateSpace, controller_inputs, padded_realization
+from qube_koopman.core.lti import DiscreteStateSpace, controller_inputs, padded_realization
 
 RIG_PD = pd_controller(load_pd_gains("rig"))
 

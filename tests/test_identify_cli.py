@@ -166,7 +166,7 @@ def test_logs_with_another_sample_rate_are_refused(tmp_path):
 
     from qube_koopman.identify import Trajectory
     from qube_koopman.identify.data import LoggedTrajectory, check_same_rate
-    from qube_koopman.sim.lti import DiscreteStateSpace
+    from qube_koopman.core.lti import DiscreteStateSpace
 
     ctrl = DiscreteStateSpace([[1.0]], [[1.0]], [[1.0]], [[1.0]], 0.002)
     fast = LoggedTrajectory(Path("a.mcap"), Trajectory(x=np.zeros((5, 2)), dt=0.002), ctrl)

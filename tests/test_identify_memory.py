@@ -18,7 +18,7 @@ from qube_koopman.identify import ClEdmd, Constant, Delay, Lifting, Polynomial, 
 from qube_koopman.identify._blas import limited_blas_threads
 from qube_koopman.identify.regression import Snapshots
 from qube_koopman.identify.trajectory import EpisodeSequence
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 N_SAMPLES = 2000
 CONTROLLER = DiscreteStateSpace(np.eye(2) * 0.5, np.eye(2), -np.eye(2), np.zeros((2, 2)), dt=0.002)

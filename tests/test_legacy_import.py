@@ -21,7 +21,7 @@ from qube_koopman.daq.legacy_csv import (
 )
 from qube_koopman.daq.log import read_episode
 from qube_koopman.daq.log.names import log_path
-from qube_koopman.sim.lti import replay_controller
+from qube_koopman.core.lti import replay_controller
 
 GAINS_TOML = "kp_theta = 6.0\nkd_theta = 1.8\nkp_alpha = 30.0\nkd_alpha = 2.5\ntau = 50.0\n"
 GOOD = "qube_20230828T150615_434_696_394"

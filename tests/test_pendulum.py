@@ -263,7 +263,7 @@ def test_transport_delay_shifts_whole_samples_and_splits_fractions():
     for v in volts:
         sim.step(v)
     np.testing.assert_allclose(sim.state, simulate(x0, volts, lagging)[-1], rtol=0, atol=1e-12)
-    from qube_koopman.sim.lti import DiscreteStateSpace
+    from qube_koopman.core.lti import DiscreteStateSpace
     from qube_koopman.sim.pendulum import simulate_closed_loop
 
     silent = DiscreteStateSpace(np.zeros((1, 1)), np.zeros((1, 2)), np.zeros((1, 1)), np.zeros((1, 2)), dt)

@@ -22,7 +22,7 @@ from scipy.signal import savgol_filter
 
 from qube_koopman.daq.controller import load_pd_gains, pd_controller
 from qube_koopman.daq.episode import REFERENCE_SIGNALS, STATE_SIGNALS, stack_signals
-from qube_koopman.sim.lti import replay_controller
+from qube_koopman.core.lti import replay_controller
 from qube_koopman.sim.pendulum import PendulumParameters, simulate_closed_loop
 
 START = 500

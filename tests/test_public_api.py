@@ -111,7 +111,8 @@ def test_the_docstring_check_finds_what_it_is_for():
                                "Lifting", "Delay", "KoopmanModel", "Trajectory"}),
     ("qube_koopman.daq", {"read_episode", "write_episode", "Episode", "pd_controller", "PdGains",
                           "load_controller_file", "run_episodes", "plan_episodes"}),
-    ("qube_koopman.sim", {"PendulumParameters", "simulate_closed_loop", "DiscreteStateSpace"}),
+    ("qube_koopman.sim", {"PendulumParameters", "simulate_closed_loop", "PendulumSimulator"}),
+    ("qube_koopman.core", {"DiscreteStateSpace", "replay_controller", "spectral_radius", "atomic_path"}),
     ("qube_koopman.design", {"design_lq", "linear_plant", "design_from_model"}),
 ])
 def test_the_packages_export_what_users_import(package, names):
@@ -162,13 +163,13 @@ def test_the_private_import_scan_finds_what_it_is_for(tmp_path, monkeypatch):
     folder = tmp_path / "daq"
     folder.mkdir()
     source = folder / "mod.py"
-    source.write_text("from qube_koopman.sim.lti import _helper, DiscreteStateSpace\n"
+    source.write_text("from qube_koopman.core.lti import _helper, DiscreteStateSpace\n"
                       "from .sibling import _thing as thing\n"
                       "from qube_koopman.identify._base import Estimator\n"
                       "from qube_koopman.daq._own import fine\n"
                       "from qube_koopman.sim import __version__\n")
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
-    assert _private_imports(source) == ["daq/mod.py:1: from qube_koopman.sim.lti import _helper",
+    assert _private_imports(source) == ["daq/mod.py:1: from qube_koopman.core.lti import _helper",
                                         "daq/mod.py:2: from .sibling import _thing",
                                         "daq/mod.py:3: import of qube_koopman.identify._base, private to identify"]
 

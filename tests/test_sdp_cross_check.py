@@ -6,7 +6,7 @@ import pytest
 
 from qube_koopman.identify import ClEdmd, ClEdmdSdp, Delay, Polynomial
 from linear_loops import closed_loop_trajectories
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 
 def random_problem(seed):

@@ -13,7 +13,7 @@ from qube_koopman.daq.excitation import parse_seeds
 from qube_koopman.daq.legacy_csv import parse_legacy_name
 from qube_koopman.daq.log.names import LOG_SUFFIX, episode_stem, find_logs, log_path, parse_episode_name
 from qube_koopman.identify import controller_states
-from qube_koopman.sim.lti import DiscreteStateSpace, replay_controller
+from qube_koopman.core.lti import DiscreteStateSpace, replay_controller
 
 
 # --- the episode file-name pattern -------------------------------------------------------------

@@ -8,7 +8,7 @@ from qube_koopman.identify import stability
 from qube_koopman.identify._spectral import DiscResult
 from qube_koopman.identify.stability import ClEdmdStable
 from linear_loops import closed_loop_trajectories, prbs, simulate_loop
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 from test_sdp_cross_check import random_problem
 
 LIFTING = [Polynomial(2), Delay(1)]

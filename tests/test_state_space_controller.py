@@ -28,7 +28,7 @@ from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.data import load_logs, same_system
 from qube_koopman.identify.model_file import load_model
 from qube_koopman.sim.bridge import BridgeEmulator
-from qube_koopman.sim.lti import padded_realization, replay_controller
+from qube_koopman.core.lti import padded_realization, replay_controller
 
 RIG_PD = pd_controller(load_pd_gains("rig"))
 SOFT_PD = pd_controller(load_pd_gains("soft-theta"))

@@ -16,7 +16,7 @@ from qube_koopman.identify.sweep import fitted_models
 from qube_koopman.identify.uncertainty import (EpisodePrediction, IntervalCalibration, IntervalOptions, Loop,
                                                calibrate, ensemble_statistics, fit_ensemble, predict_episodes,
                                                prediction_band, summarize_bands)
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 
 DT = 0.01
 A_P, B_P, GAIN = 1.0, 0.1, 0.5  # x+ = x + 0.1 u + w under u = 0.5 (r - x): x+ = 0.95 x + 0.05 r + w

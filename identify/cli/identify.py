@@ -479,7 +479,7 @@ def _what_if_controller(path: str, dt: float):
     """The --controller file's controller at the logs' period: PD gains (discretized like the rig's)
     or a state-space file written at that period."""
     from qube_koopman.daq.controller_file import load_controller_file
-    from qube_koopman.sim.lti import spectral_radius
+    from qube_koopman.core.lti import spectral_radius
 
     system = load_controller_file(path, "backward-euler", dt).system
     # An integrator (eigenvalue 1, a designed controller's integral action) is a controller; a state

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from qube_koopman.sim.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, Coefficients, PendulumParameters, advance, as_states,
                                              check_timing, hold_pattern)
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
