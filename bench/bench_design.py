@@ -42,10 +42,10 @@ from qube_koopman.daq.cli.run import main as run_main
 from qube_koopman.daq.log import read_episode
 from qube_koopman.design.cli.design import main as design_main
 from qube_koopman.design.predict import episode_cost
-from qube_koopman.identify.data import load_logs
-from qube_koopman.identify.model_file import load_model
-from qube_koopman.identify.scores import r2_scores
-from qube_koopman.identify.structure import close_loop
+from qube_koopman.identify.data.logs import load_logs
+from qube_koopman.identify.models.model_file import load_model
+from qube_koopman.identify.metrics import r2_scores
+from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.daq.controller_file import load_controller_file
 from qube_koopman.sim.pendulum import PendulumParameters
 from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant

@@ -45,7 +45,7 @@ def import_dataset(out: Path) -> None:
 def naive_cost(data: Path, n_alphas: int = 2, n_validation: int = 2) -> float:
     """Seconds per (fold, alpha, scoring) evaluation of the naive approach."""
     from qube_koopman.identify import ClEdmd, Delay, Polynomial
-    from qube_koopman.identify.data import check_same_controller, group_shuffle_splits, load_logs, paper_split
+    from qube_koopman.identify.data.logs import check_same_controller, group_shuffle_splits, load_logs, paper_split
     from naive_reference import naive_predict
 
     train_paths, _ = paper_split(sorted(data.glob("*.mcap")))
@@ -78,7 +78,7 @@ def main() -> None:
             t0 = time.perf_counter()
             import_dataset(data)
             print(f"imported the dataset in {time.perf_counter() - t0:.1f} s (not counted)")
-        from qube_koopman.identify.reproduce.qube import reproduce_qube
+        from qube_koopman.reproduce.qube import reproduce_qube
 
         runs, serial = [], []
         for _ in range(3):

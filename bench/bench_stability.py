@@ -2,7 +2,7 @@
 
 Target: one constrained fit at QUBE size (57 lifted states) in at
 most 5 s on 2 cores. Three ways to the constrained plant, all from the same
-snapshot statistics (identify.stability.ClEdmdStable):
+snapshot statistics (identify.estimators.stability.ClEdmdStable):
 
 * ``method="sqp"`` (the default): least cost increase by sequential QP on
   the closed-loop eigenvalues, in the metric of the Gram factor;
@@ -40,8 +40,8 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
     """The same fixed-P constrained problem with the cost on raw snapshots; returns seconds."""
     import cvxpy as cp
 
-    from qube_koopman.identify.regression import Snapshots
-    from qube_koopman.identify.stability import _lyapunov_certificate
+    from qube_koopman.identify.estimators.regression import Snapshots
+    from qube_koopman.identify.estimators.stability import _lyapunov_certificate
 
     setup = est._setup(trajs)
     parts = [est._episode_snapshots(setup, t) for t in setup.trajectories]
@@ -52,7 +52,7 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
     est.output_matrix_, est.n_feedforward_ = setup.output_matrix, setup.n_feedforward
     S = setup.plant_input_map
     snapshots = Snapshots.total(parts)
-    from qube_koopman.identify.regression import constrained_plant_solve
+    from qube_koopman.identify.estimators.regression import constrained_plant_solve
 
     n_c = est.controller.n_states
     U0 = constrained_plant_solve(snapshots, S, est.alpha, slice(n_c, None), "closed_loop")
@@ -92,9 +92,9 @@ def main() -> None:
     from bench_qube_reproduction import import_dataset
 
     from qube_koopman.identify import ClEdmdKnownRows, Delay, Polynomial
-    from qube_koopman.identify.data import check_same_controller, load_logs, paper_split
-    from qube_koopman.identify.scores import summarize_episodes
-    from qube_koopman.identify.stability import ClEdmdStable, _plant_cost
+    from qube_koopman.identify.data.logs import check_same_controller, load_logs, paper_split
+    from qube_koopman.identify.metrics import summarize_episodes
+    from qube_koopman.identify.estimators.stability import ClEdmdStable, _plant_cost
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path)

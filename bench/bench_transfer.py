@@ -12,7 +12,7 @@ episode under its own controller, with and without offsets (``--offsets alpha``,
 1 s window), scored after the first second: mean / worst R^2 per controller.
 
 These are proxies, and they are not tuned on: the search's probe controllers
-(identify/transfer.py) are different gain sets and excitation seeds. Two training
+(identify/model_selection/transfer.py) are different gain sets and excitation seeds. Two training
 sources:
 
 - ``--train real`` (default): the paper's 28 real episodes. A model of the real

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, Polynomial
-from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.models.model import KoopmanModel
 
 __all__ = ["DesignError", "LinearPlant", "linear_plant", "IDENTIFY_FLAGS"]
 

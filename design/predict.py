@@ -1,7 +1,7 @@
 """What a designed controller will do, from the model alone: cost on the rig's excitation, spectrum, margins.
 
 - :func:`predict_loop` and :func:`predict_cost`: the identified plant model in closed loop with the controller
-  (``identify.structure.close_loop``, re-lifted at every step as ``qube-identify`` predicts)
+  (``identify.estimators.structure.close_loop``, re-lifted at every step as ``qube-identify`` predicts)
   driven by the rig's excitation of ``qube-run --seed S --episodes N`` (the same references and
   feedforward, from upright), scored after the first second as the twin's logs are:
   ``J = mean((theta - target_theta)^2) + mean(alpha^2)``, tracking and pendulum RMS, the
@@ -23,8 +23,8 @@ from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.daq.excitation import Excitation, generate_excitation
 from qube_koopman.daq.session import excitation_settings, run_seeds
 from qube_koopman.design.plant import LinearPlant
-from qube_koopman.identify.model import KoopmanModel
-from qube_koopman.identify.structure import close_loop, closed_loop_matrices, plant_input
+from qube_koopman.identify.models.model import KoopmanModel
+from qube_koopman.identify.estimators.structure import close_loop, closed_loop_matrices, plant_input
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 

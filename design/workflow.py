@@ -1,6 +1,6 @@
 """From a model file to a controller file with its predicted figures: what ``qube-design`` does.
 
-:func:`design_from_model` reads the model (``identify.model_file``), takes its plant as a shift
+:func:`design_from_model` reads the model (``identify.models.model_file``), takes its plant as a shift
 register of past measurements (:mod:`design.plant`), designs the LQ controller
 (:mod:`design.lq`), checks the predicted closed loop and measures it (:mod:`design.predict`).
 :func:`report_text` and :func:`provenance` say what was done, for the terminal and for the
@@ -35,7 +35,7 @@ class DesignReport:
     model_path : Path
         The model file designed from.
     model : dict
-        The model file as :func:`identify.model_file.load_model` reads it.
+        The model file as :func:`identify.models.model_file.load_model` reads it.
     design : LqDesign
         The design.
     spectral_radius : float
@@ -70,7 +70,7 @@ class DesignReport:
 
 def _load(path: Path) -> tuple[Path, dict]:
     """The model file (or ``model.json`` in a ``qube-identify --out`` folder), or a DesignError naming it."""
-    from qube_koopman.identify.model_file import load_model
+    from qube_koopman.identify.models.model_file import load_model
 
     if path.is_dir() and (path / "model.json").is_file():
         path = path / "model.json"

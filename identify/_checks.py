@@ -9,7 +9,7 @@ import numpy as np
 from qube_koopman.core.lti import DiscreteStateSpace
 
 if TYPE_CHECKING:
-    from qube_koopman.identify.trajectory import Trajectory
+    from qube_koopman.identify.data.trajectory import Trajectory
 
 
 def as_signal(value, name: str, n_samples: int | None = None, n_columns: int | None = None,
@@ -59,7 +59,7 @@ def check_loop_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: in
                           episode: Trajectory | None = None) -> None:
     """A controller fits the loop's signals (and, given, the episode recorded under it).
 
-    The closed-loop estimators' check (:class:`~qube_koopman.identify.cl_edmd.ClosedLoopKoopman`
+    The closed-loop estimators' check (:class:`~qube_koopman.identify.estimators.cl_edmd.ClosedLoopKoopman`
     and :class:`~qube_koopman.identify.ClEdmdSdp`): a :class:`DiscreteStateSpace` taking the
     tracking errors of the ``measured`` states (and, when it has more inputs, the ``n_f``
     feedforward channels), driving the ``n_f`` plant inputs, at the data's sample period ``dt``.

@@ -11,13 +11,13 @@ built from three pieces, each measured on data the fit did not use where it can 
   episodes drawn with replacement (episodes, not samples: a sample's neighbours are not
   independent, an episode of another session is). The statistics are per-episode triangular
   factors, so a resampled fit is one pass that folds each episode's factor, scaled by the
-  square root of the times it was drawn (:meth:`~qube_koopman.identify.regression.Snapshots.repeated`),
+  square root of the times it was drawn (:meth:`~qube_koopman.identify.estimators.regression.Snapshots.repeated`),
   into each member's running total: exactly the fit on the duplicated episodes, with no
   episode lifted or factored twice. Members fit only the rows a re-lifted prediction uses.
   All members predict an episode in one batched simulation; ``s_c(k)`` is their spread
   (standard deviation). The lifting (RBF centres) is the point fit's, not resampled.
 - **Offset uncertainty.** With per-episode offsets, each estimate's standard error ``se``
-  (:class:`~qube_koopman.identify.offsets.OffsetEstimate`) is propagated through the prediction
+  (:class:`~qube_koopman.identify.models.offsets.OffsetEstimate`) is propagated through the prediction
   linearly: the prediction's sensitivity ``S(k)`` to the offset (one more simulation at the
   offset plus a tenth of an encoder count) adds ``(S(k) se)^2`` to ``s(k)^2``. The prediction is
   nearly affine in the offset (the estimation relies on it too), so this is what drawing the
@@ -38,9 +38,9 @@ built from three pieces, each measured on data the fit did not use where it can 
   the rig it also absorbs the excitation's schedule (small errors in the first seconds).
   The test set is never looked at.
 
-A prediction that diverges (non-finite, or beyond :data:`~qube_koopman.identify.scores.DIVERGED_FACTOR`
+A prediction that diverges (non-finite, or beyond :data:`~qube_koopman.identify.metrics.DIVERGED_FACTOR`
 times the measured range), or whose bootstrap member diverges, gets an infinite interval from
-that sample on, with a :class:`~qube_koopman.identify.scores.DivergedPrediction` warning: an
+that sample on, with a :class:`~qube_koopman.identify.metrics.DivergedPrediction` warning: an
 unstable refit is a reason not to trust the prediction, not a narrow band.
 """
 
@@ -54,17 +54,17 @@ from pathlib import Path
 
 import numpy as np
 from qube_koopman.core.files import atomic_path
-from qube_koopman.identify.data import same_system
-from qube_koopman.identify.offsets import (
+from qube_koopman.identify.data.logs import same_system
+from qube_koopman.identify.models.offsets import (
     OffsetEstimate,
     estimate_offsets_many,
     shift_trajectory,
 )
-from qube_koopman.identify.scores import DIVERGED_FACTOR, DivergedPrediction
-from qube_koopman.identify.simulate import simulate_chunks
-from qube_koopman.identify.structure import close_loop
-from qube_koopman.identify.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
-from qube_koopman.identify.trajectory import Trajectory, as_episodes, select_episodes
+from qube_koopman.identify.metrics import DIVERGED_FACTOR, DivergedPrediction
+from qube_koopman.identify.models.simulate import simulate_chunks
+from qube_koopman.identify.estimators.structure import close_loop
+from qube_koopman.identify.model_selection.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
+from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
@@ -215,7 +215,7 @@ def ensemble_statistics(estimator, setup, selections: np.ndarray, elsewhere: Cal
     """The statistics of all the setup's episodes and of weighted selections of them, in one pass.
 
     Each episode is lifted and factored once (here, or ``elsewhere``: see
-    :meth:`~qube_koopman.identify._base.SnapshotEstimator._selection_statistics`), folded into the
+    :meth:`~qube_koopman.identify.estimators._base.SnapshotEstimator._selection_statistics`), folded into the
     total of all episodes as a plain fit folds it (the same result, bit for bit), and into each
     selection that draws it, its factor scaled by the square root of its count. With a known
     set of rows that re-lifted predictions use (``estimator._relift_rows``), the selections keep
@@ -328,7 +328,7 @@ def fit_ensemble(estimator, trajectories, options: IntervalOptions = IntervalOpt
     -------
     EnsembleFit
     """
-    from qube_koopman.identify.sweep import fitted_models
+    from qube_koopman.identify.model_selection.sweep import fitted_models
 
     trajectories = as_episodes(trajectories)
     n = len(trajectories)
@@ -740,7 +740,7 @@ def prediction_band(name: str, trajectory: Trajectory, prediction: EpisodePredic
     """The band of one predicted episode over its samples from ``start`` on.
 
     A diverged prediction, or a diverged member (infinite variance), makes the band infinite
-    from there, with a :class:`~qube_koopman.identify.scores.DivergedPrediction` warning.
+    from there, with a :class:`~qube_koopman.identify.metrics.DivergedPrediction` warning.
 
     Parameters
     ----------

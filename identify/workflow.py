@@ -9,18 +9,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from qube_koopman.identify._blas import limited_blas_threads
-from qube_koopman.identify.arx import Arx, ClArx
-from qube_koopman.identify.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
-from qube_koopman.identify.data import LoggedTrajectory, LogTrajectories, same_system
-from qube_koopman.identify.mixed import FOLD_KINDS, cross_validation_folds, training_controllers_report
-from qube_koopman.identify.edmd import Edmd
-from qube_koopman.identify.stability import ClEdmdStable
-from qube_koopman.identify.model_file import lifting_to_dict, save_model
-from qube_koopman.identify.offsets import DEFAULT_BOUND
-from qube_koopman.identify.scores import DivergedPrediction, episode_score, summarize_scores
-from qube_koopman.identify.structure import close_loop, controller_states
-from qube_koopman.identify.sweep import SweepResult, regularization_sweep
+from qube_koopman.core.blas import limited_blas_threads
+from qube_koopman.identify.estimators.arx import Arx, ClArx
+from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
+from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories, same_system
+from qube_koopman.identify.estimators.mixed import FOLD_KINDS, cross_validation_folds, training_controllers_report
+from qube_koopman.identify.estimators.edmd import Edmd
+from qube_koopman.identify.estimators.stability import ClEdmdStable
+from qube_koopman.identify.models.model_file import lifting_to_dict, save_model
+from qube_koopman.identify.models.offsets import DEFAULT_BOUND
+from qube_koopman.identify.metrics import DivergedPrediction, episode_score, summarize_scores
+from qube_koopman.identify.estimators.structure import close_loop, controller_states
+from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
 from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, consecutive_runs,
                                                fit_ensemble, predict_episodes, prediction_band)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
@@ -143,11 +143,11 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     episodes from that sample on instead of the paper's sample 1 (as a
     search scores its candidates), for every method. ``episode_statistics`` computes a Koopman
     method's per-episode statistics elsewhere, for the fit and the sweep (on a dask cluster:
-    :class:`~qube_koopman.identify.distributed.ClusterStatistics`). A diverged test prediction is reported by
-    episode and sample with a :class:`~qube_koopman.identify.scores.DivergedPrediction`
+    :class:`~qube_koopman.identify.model_selection.distributed.ClusterStatistics`). A diverged
+    test prediction is reported by episode and sample with a :class:`~qube_koopman.identify.metrics.DivergedPrediction`
     warning.
 
-    Logs may be :class:`~qube_koopman.identify.data.StoredLog` (read when needed): the fit, the
+    Logs may be :class:`~qube_koopman.identify.data.logs.StoredLog` (read when needed): the fit, the
     cross-validation and the test scores then read one episode at a time, and memory does not
     grow with the number of logs. ``keep_predictions``: keep every test episode's truth and
     prediction in the result (for a recording); without it only their scores are kept.

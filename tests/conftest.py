@@ -104,7 +104,7 @@ def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def qube_reproduction_out(qube_logs, tmp_path_factory) -> Path:
     """``qube-reproduce qube --figures`` on the imported dataset, once per session: its output folder."""
-    from qube_koopman.identify.cli.reproduce import main
+    from qube_koopman.reproduce.cli import main
 
     out = tmp_path_factory.mktemp("qube_out")
     assert main(["qube", "--data", str(qube_logs), "--out", str(out), "--figures", "-q"]) == 0

@@ -189,9 +189,10 @@ def stubs():
     import math
 
     from qube_koopman.daq.cli import run
-    from qube_koopman.identify import calibrate, distributed, search, transfer
+    from qube_koopman.identify import calibrate
+    from qube_koopman.identify.model_selection import distributed, search, transfer
     from qube_koopman.identify._checks import check_alpha
-    from qube_koopman.identify.reproduce import duffing
+    from qube_koopman.reproduce import duffing
     from qube_koopman.sim.bridge import BridgeEmulator, avr_pty
 
     def reached(*args, **kwargs):

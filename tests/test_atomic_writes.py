@@ -118,7 +118,7 @@ def test_an_interrupted_export_leaves_no_partial_file(fmt, tmp_path, monkeypatch
 def test_interrupted_controller_plant_and_json_files_leave_nothing(tmp_path, monkeypatch, interrupt_text_writes):
     from qube_koopman.daq.controller_file import write_controller_file
     from qube_koopman.core.command import write_json
-    from qube_koopman.identify import reports
+    from qube_koopman.identify.report import markdown as reports
     from qube_koopman.core.lti import DiscreteStateSpace
     from qube_koopman.sim.pendulum import PendulumParameters
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
@@ -149,7 +149,7 @@ def test_an_interrupted_figure_or_recording_leaves_nothing(tmp_path, monkeypatch
     pytest.importorskip("matplotlib")
     from matplotlib.figure import Figure
 
-    from qube_koopman.identify.figures import EigenvaluePlot, FigureSpec, write_figures
+    from qube_koopman.identify.report.figures import EigenvaluePlot, FigureSpec, write_figures
 
     def savefig(self, name, **kwargs):
         Path(name).open("wb").write(b"\x89PNG half")

@@ -1,10 +1,10 @@
-"""qube_koopman.identify._blas: the BLAS pools are limited inside the block and restored after it."""
+"""qube_koopman.core.blas: the BLAS pools are limited inside the block and restored after it."""
 
 from __future__ import annotations
 
 from threadpoolctl import threadpool_info
 
-from qube_koopman.identify._blas import limited_blas_threads
+from qube_koopman.core.blas import limited_blas_threads
 
 
 def _blas_threads() -> list[int]:

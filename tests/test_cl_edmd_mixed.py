@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from qube_koopman.identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Delay, Trajectory, close_loop
-from qube_koopman.identify.mixed import ControllerGroups, leave_one_controller_out, majority_controller
-from qube_koopman.identify.regression import constrained_plant_solve, grouped_plant_solve
-from qube_koopman.identify.stability import ClEdmdStable
-from qube_koopman.identify.sweep import regularization_sweep
+from qube_koopman.identify.estimators.mixed import ControllerGroups, leave_one_controller_out, majority_controller
+from qube_koopman.identify.estimators.regression import constrained_plant_solve, grouped_plant_solve
+from qube_koopman.identify.estimators.stability import ClEdmdStable
+from qube_koopman.identify.model_selection.sweep import regularization_sweep
 from qube_koopman.core.lti import DiscreteStateSpace
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 

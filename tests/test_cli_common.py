@@ -14,7 +14,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.mark.parametrize("module, prog", [("qube_koopman.daq.cli.run", "qube-run"), ("qube_koopman.daq.cli.import_csv", "qube-import"),
                                           ("qube_koopman.sim.cli.emulate", "qube-emulate"),
-                                          ("qube_koopman.identify.cli.reproduce", "qube-reproduce")])
+                                          ("qube_koopman.reproduce.cli", "qube-reproduce")])
 def test_version(module, prog):
     from qube_koopman.core.cli import package_version
 
@@ -49,7 +49,7 @@ BAD_ARGUMENTS = [  # module, program, arguments, the file the error must name fi
     ("qube_koopman.daq.cli.export", "qube-export", ["{binary}", "--format", "csv", "--out", "o", "-q"], "{binary}"),
     ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
      "{missing}"),
-    ("qube_koopman.identify.cli.reproduce", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
+    ("qube_koopman.reproduce.cli", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
     ("qube_koopman.sim.cli.emulate", "qube-emulate", ["--record", "{missing}/x.csv", "-q"], "{missing}/x.csv"),
 ]
 
@@ -82,7 +82,7 @@ def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(
 NEGATIVE_SEEDS = [
     ("qube_koopman.daq.cli.run", ["--seed", "-5", "--episodes", "1", "--duration", "0.2"], "--seed"),
     ("qube_koopman.sim.cli.emulate", ["--seed", "-5"], "--seed"),
-    ("qube_koopman.identify.cli.reproduce", ["duffing", "--seed", "-5"], "--seed"),
+    ("qube_koopman.reproduce.cli", ["duffing", "--seed", "-5"], "--seed"),
     ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--rbf", "thin-plate", "--rbf-seed", "-5"],
      "--rbf-seed"),
     ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--cv-seed", "-5"], "--cv-seed"),
@@ -125,7 +125,7 @@ def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(op
     ("qube_koopman.daq.cli.import_csv", "qube-import", ["{tmp}", "--out", "{tmp}/o"]),  # a folder without any
     ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}"]),
     ("qube_koopman.identify.cli.calibrate", "qube-calibrate", ["{missing}", "--out", "{tmp}/p.toml"]),
-    ("qube_koopman.identify.cli.reproduce", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
+    ("qube_koopman.reproduce.cli", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
 ], ids=["qube-import", "qube-export", "qube-import empty folder", "qube-identify", "qube-calibrate", "qube-reproduce"])
 def test_a_missing_input_is_a_usage_error_in_every_command(module, prog, argv, tmp_path, capsys):
     import importlib
@@ -211,7 +211,7 @@ def test_counts_out_of_range_are_usage_errors_naming_option_and_value(module, ar
 
 
 @pytest.mark.parametrize("module", ["daq.cli.import_csv", "daq.cli.export", "daq.cli.run", "identify.cli.identify",
-                                    "identify.cli.reproduce", "identify.cli.calibrate", "design.cli.design",
+                                    "reproduce.cli", "identify.cli.calibrate", "design.cli.design",
                                     "sim.cli.emulate"])
 def test_help_is_plain_text_without_restructuredtext_markup(module, capsys):
     import importlib
@@ -229,7 +229,7 @@ def test_help_is_plain_text_without_restructuredtext_markup(module, capsys):
 @pytest.mark.parametrize("module, argv", [
     ("daq.cli.import_csv", []), ("daq.cli.export", ["x.mcap", "--format", "xlsx", "--out", "d"]),
     ("daq.cli.run", ["--episodes", "-1"]), ("identify.cli.identify", ["--delays", "-1", "x.mcap"]),
-    ("identify.cli.reproduce", ["bogus"]), ("identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--poly"]),
+    ("reproduce.cli", ["bogus"]), ("identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--poly"]),
     ("design.cli.design", []), ("sim.cli.emulate", ["--drop-rate", "2"])])
 def test_usage_errors_are_one_line_in_every_command(module, argv, capsys):
     import importlib

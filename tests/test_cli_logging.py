@@ -15,7 +15,7 @@ COMMANDS = [("qube_koopman.daq.cli.run", "qube-run"), ("qube_koopman.daq.cli.imp
             ("qube_koopman.daq.cli.export", "qube-export"), ("qube_koopman.sim.cli.emulate", "qube-emulate"),
             ("qube_koopman.identify.cli.calibrate", "qube-calibrate"),
             ("qube_koopman.identify.cli.identify", "qube-identify"),
-            ("qube_koopman.identify.cli.reproduce", "qube-reproduce")]
+            ("qube_koopman.reproduce.cli", "qube-reproduce")]
 
 # A quick invocation of each command that gets past its argument parsing (and fails on a file).
 QUICK = {
@@ -112,7 +112,7 @@ def logs_with_an_empty_one(tmp_path):
 
 
 def test_qube_reproduce_strict_refuses_an_unreadable_log(logs_with_an_empty_one, tmp_path, capsys):
-    from qube_koopman.identify.cli.reproduce import main
+    from qube_koopman.reproduce.cli import main
 
     status = main(["qube", "--data", str(logs_with_an_empty_one), "--out", str(tmp_path / "o"), "--strict", "-q"])
     assert status == 2
@@ -122,7 +122,7 @@ def test_qube_reproduce_strict_refuses_an_unreadable_log(logs_with_an_empty_one,
 
 
 def test_qube_reproduce_without_strict_skips_it_with_a_warning(logs_with_an_empty_one, tmp_path, capsys):
-    from qube_koopman.identify.cli.reproduce import main
+    from qube_koopman.reproduce.cli import main
 
     status = main(["qube", "--data", str(logs_with_an_empty_one), "--out", str(tmp_path / "o"), "--n-alphas", "2",
                    "-q"])

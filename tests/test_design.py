@@ -25,7 +25,7 @@ from qube_koopman.design.cli.design import main as design_main
 from qube_koopman.design.predict import closed_loop_eigenvalues, loop_margins
 from qube_koopman.identify import Constant, CoulombFriction, Delay, KoopmanModel, Lifting, Polynomial, close_loop
 from qube_koopman.identify.cli.identify import main as identify_main
-from qube_koopman.identify.model_file import save_model
+from qube_koopman.identify.models.model_file import save_model
 from qube_koopman.core.lti import DiscreteStateSpace
 
 DT = 0.002
@@ -359,7 +359,7 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
     pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
     from qube_koopman.daq.log import read_episode
     from qube_koopman.design.predict import predict_loop, rig_excitations
-    from qube_koopman.identify.model_file import load_model
+    from qube_koopman.identify.models.model_file import load_model
 
     rrd, out = tmp_path / "design.rrd", tmp_path / "again.toml"
     assert design_main([str(twin_cycle.model), "--out", str(out), "--seed", "5", "--episodes", "6", "--rerun-save", str(rrd),

@@ -1,4 +1,4 @@
-"""identify/distributed.py's parts without a cluster of processes: statistics computed elsewhere by
+"""identify/model_selection/distributed.py's parts without a cluster of processes: statistics computed elsewhere by
 episode index, logs read from a path or from bytes, the checks that name a worker, ordered results.
 
 The real cluster (``dask scheduler`` and ``dask worker`` processes) is tests/test_dask_cluster.py's.
@@ -14,9 +14,9 @@ import pytest
 
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 from qube_koopman.identify import ClEdmd, Delay, Edmd, Polynomial, ThinPlateRbf
-from qube_koopman.identify.data import group_shuffle_splits
-from qube_koopman.identify.distributed import ClusterStatistics, LogSource, _check_versions, _unseen, ordered_results
-from qube_koopman.identify.sweep import regularization_sweep
+from qube_koopman.identify.data.logs import group_shuffle_splits
+from qube_koopman.identify.model_selection.distributed import ClusterStatistics, LogSource, _check_versions, _unseen, ordered_results
+from qube_koopman.identify.model_selection.sweep import regularization_sweep
 
 ALPHAS = [1e-6, 1e-3, 1.0]
 

@@ -181,8 +181,8 @@ def test_fast_predictor_equals_naive_relifting(loop, lifting):
 def test_every_search_lifting_takes_the_ring(loop):
     # The ring is the fast path (about 10x the history loop on the search's liftings): a lifting the
     # search can choose that fell back to the history loop would still predict right, only slowly.
-    from qube_koopman.identify.search import LiftingSpec
-    from qube_koopman.identify.simulate import _RingLayout
+    from qube_koopman.identify.model_selection.search import LiftingSpec
+    from qube_koopman.identify.models.simulate import _RingLayout
 
     *_, trajs = loop
     for spec in (LiftingSpec(delays=12, poly=3, friction=True, const=True),
@@ -211,7 +211,7 @@ def test_constant_lifting_appends_a_one_and_makes_the_model_affine(loop):
 def test_a_model_that_diverges_before_the_scored_samples_scores_minus_infinity(loop):
     # The simulator drops a model once all its predictions diverged; scoring from a later
     # sample must still see it as diverged, not as a perfect fit of samples it never produced.
-    from qube_koopman.identify.sweep import _score
+    from qube_koopman.identify.model_selection.sweep import _score
 
     *_, trajs = loop
     model = ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(2)], alpha=1e-3, measured=[0]).fit(

@@ -1,6 +1,6 @@
 """Figures (--figures): what each figure plots is the report's and the model's arrays, not pixels.
 
-Every figure is drawn by ``identify.figures.draw``; the tests record the matplotlib Figures it
+Every figure is drawn by ``identify.report.figures.draw``; the tests record the matplotlib Figures it
 returns and read the plotted arrays back from their ``Line2D`` artists (gid = curve label).
 """
 
@@ -13,9 +13,9 @@ import sys
 import numpy as np
 import pytest
 
-from qube_koopman.identify import figures as figures_module
+from qube_koopman.identify.report import figures as figures_module
 from qube_koopman.identify.cli.identify import main as qube_identify
-from qube_koopman.identify.cli.reproduce import main as qube_reproduce
+from qube_koopman.reproduce.cli import main as qube_reproduce
 from test_identify_cli import small_set  # noqa: F401  (the module fixture: 8 training, 4 test episodes)
 
 
@@ -47,9 +47,9 @@ def nan_equal(a, b) -> bool:
 @pytest.mark.slow
 def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, capsys):  # noqa: F811
     from qube_koopman.daq.log.names import find_logs
-    from qube_koopman.identify.data import load_logs
-    from qube_koopman.identify.model_file import load_model
-    from qube_koopman.identify.scores import r2_score
+    from qube_koopman.identify.data.logs import load_logs
+    from qube_koopman.identify.models.model_file import load_model
+    from qube_koopman.identify.metrics import r2_score
 
     test_logs = find_logs(small_set / "test")
     chosen = ["2", test_logs[3].name]  # a position and a file name
@@ -137,7 +137,7 @@ def test_figure_episode_options_need_figures_and_a_test_episode(small_set, tmp_p
 
 def _synthetic_results() -> dict:
     """A reproduce_qube results dict in miniature: 5 alphas, 3-state models, a 50-sample episode."""
-    from qube_koopman.identify.reproduce.qube import ROWS
+    from qube_koopman.reproduce.qube import ROWS
 
     rng = np.random.default_rng(0)
     alphas = np.logspace(-3, 3, 5).tolist()
@@ -163,7 +163,7 @@ def _synthetic_results() -> dict:
 
 
 def test_paper_figures_plot_the_results_arrays():
-    from qube_koopman.identify.reproduce.figures import EIGENVALUE_ROWS, METHODS, qube_figures
+    from qube_koopman.reproduce.figures import EIGENVALUE_ROWS, METHODS, qube_figures
 
     results = _synthetic_results()
     specs = {spec.stem: spec for spec in qube_figures(results)}

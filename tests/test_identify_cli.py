@@ -10,7 +10,7 @@ import pytest
 
 from qube_koopman.daq.log.names import find_logs
 from qube_koopman.identify.cli.identify import main
-from qube_koopman.identify.model_file import load_model
+from qube_koopman.identify.models.model_file import load_model
 
 pytestmark = pytest.mark.dataset
 
@@ -56,7 +56,7 @@ def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
                        "--delays", "3", "--rbf", "gaussian", "--rbf-centers", "5", "--rbf-shape", "2")
     assert code == 0, err
     loaded = load_model(tmp_path / "model.json")
-    from qube_koopman.identify.data import load_logs
+    from qube_koopman.identify.data.logs import load_logs
 
     log = load_logs(find_logs(small_set / "test")[:1], skip=500)[0]
     pred = loaded["closed_loop"].predict(log.trajectory)
@@ -165,7 +165,7 @@ def test_logs_with_another_sample_rate_are_refused(tmp_path):
     from pathlib import Path
 
     from qube_koopman.identify import Trajectory
-    from qube_koopman.identify.data import LoggedTrajectory, check_same_rate
+    from qube_koopman.identify.data.logs import LoggedTrajectory, check_same_rate
     from qube_koopman.core.lti import DiscreteStateSpace
 
     ctrl = DiscreteStateSpace([[1.0]], [[1.0]], [[1.0]], [[1.0]], 0.002)

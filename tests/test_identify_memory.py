@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from qube_koopman.identify import ClEdmd, Constant, Delay, Lifting, Polynomial, ThinPlateRbf, Trajectory
-from qube_koopman.identify._blas import limited_blas_threads
-from qube_koopman.identify.regression import Snapshots
-from qube_koopman.identify.trajectory import EpisodeSequence
+from qube_koopman.core.blas import limited_blas_threads
+from qube_koopman.identify.estimators.regression import Snapshots
+from qube_koopman.identify.data.trajectory import EpisodeSequence
 from qube_koopman.core.lti import DiscreteStateSpace
 
 N_SAMPLES = 2000
@@ -131,7 +131,7 @@ def test_a_fit_on_a_lazy_sequence_reads_one_episode_at_a_time():
 
 @pytest.mark.parametrize("mixed", [False, True])
 def test_fold_totals_from_one_pass_equal_direct_totals_over_each_folds_episodes(mixed):
-    from qube_koopman.identify.data import group_shuffle_splits
+    from qube_koopman.identify.data.logs import group_shuffle_splits
 
     other = DiscreteStateSpace(np.eye(3) * 0.3, np.ones((3, 2)), -np.ones((2, 3)), np.eye(2), dt=0.002)
     controllers = [CONTROLLER if i % 3 else other for i in range(10)] if mixed else None
@@ -158,13 +158,13 @@ def test_fold_totals_from_one_pass_equal_direct_totals_over_each_folds_episodes(
 
 
 def _statistics_with(estimator, episodes, splits, controllers):
-    from qube_koopman.identify.sweep import _statistics
+    from qube_koopman.identify.model_selection.sweep import _statistics
 
     return _statistics(estimator, episodes, [t for t, _ in splits] + [None], controllers=controllers)
 
 
 def test_the_folds_statistics_memory_does_not_grow_with_the_episodes():
-    from qube_koopman.identify.data import group_shuffle_splits
+    from qube_koopman.identify.data.logs import group_shuffle_splits
 
     n_samples = 300
     estimator = ClEdmd(CONTROLLER, [Polynomial(2), Delay(20), Constant()])
@@ -181,7 +181,7 @@ def test_the_folds_statistics_memory_does_not_grow_with_the_episodes():
 
 
 def test_validation_episodes_scored_a_batch_at_a_time_score_as_one_by_one(monkeypatch):
-    from qube_koopman.identify import sweep
+    from qube_koopman.identify.model_selection import sweep
 
     episodes = list(_Generated(7, 300))
     models = [ClEdmd(CONTROLLER, [Polynomial(2), Delay(3)], alpha=a).fit(episodes[:4]).closed_loop_model_
@@ -207,7 +207,7 @@ def _retained(work) -> tuple[int, object]:
 
 def test_stored_logs_keep_their_metadata_only(qube_logs):
     from qube_koopman.daq.log.names import find_logs
-    from qube_koopman.identify.data import LogTrajectories, load_logs
+    from qube_koopman.identify.data.logs import LogTrajectories, load_logs
 
     files = find_logs(qube_logs)[:8]
     held, stored = _retained(lambda: load_logs(files, skip=10, stored=True))
@@ -224,7 +224,7 @@ def test_stored_logs_keep_their_metadata_only(qube_logs):
 def test_the_whole_set_checks_give_the_same_errors_on_stored_logs(tmp_path):
     from pathlib import Path
 
-    from qube_koopman.identify.data import LoggedTrajectory, StoredLog, check_same_controller, check_same_rate
+    from qube_koopman.identify.data.logs import LoggedTrajectory, StoredLog, check_same_controller, check_same_rate
 
     other = DiscreteStateSpace(np.eye(2) * 0.25, np.eye(2), -np.eye(2), np.zeros((2, 2)), dt=0.002)
     specs = [("a.mcap", CONTROLLER, 0.002), ("b.mcap", other, 0.002), ("c.mcap", CONTROLLER, 0.004)]
@@ -244,7 +244,7 @@ def test_stored_logs_identify_and_score_as_logs_in_memory(qube_logs):
     import json
 
     from qube_koopman.daq.log.names import find_logs
-    from qube_koopman.identify.data import load_logs
+    from qube_koopman.identify.data.logs import load_logs
     from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
     files = find_logs(qube_logs)
@@ -263,9 +263,9 @@ def test_stored_logs_identify_and_score_as_logs_in_memory(qube_logs):
 
 
 def test_a_search_candidate_on_a_lazy_sequence_scores_as_on_a_list(monkeypatch):
-    from qube_koopman.identify import sweep
-    from qube_koopman.identify.data import group_shuffle_splits
-    from qube_koopman.identify.search import LiftingSpec, SearchData, evaluate_candidate
+    from qube_koopman.identify.model_selection import sweep
+    from qube_koopman.identify.data.logs import group_shuffle_splits
+    from qube_koopman.identify.model_selection.search import LiftingSpec, SearchData, evaluate_candidate
 
     def data(episodes):
         return SearchData(episodes, group_shuffle_splits(8, 2), CONTROLLER, np.array([1e-6, 1e-3, 1.0]), window=40)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from qube_koopman.identify import ClEdmd, r2_score
-from qube_koopman.identify.offsets import OffsetWarning, estimate_offsets, predict_estimating_offsets
+from qube_koopman.identify.models.offsets import OffsetWarning, estimate_offsets, predict_estimating_offsets
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 OFFSET = 0.03

@@ -134,7 +134,7 @@ def test_calibrate_design_and_reproduce_stopped_by_a_signal_say_so_in_one_line(s
 
     from qube_koopman.design import workflow
     from qube_koopman.identify import calibrate
-    from qube_koopman.identify.reproduce import duffing
+    from qube_koopman.reproduce import duffing
 
     def stop(*args, **kwargs):
         os.kill(os.getpid(), getattr(signal, signum))

@@ -15,7 +15,7 @@ def test_every_public_function_and_class_is_documented():
     assert not missing, f"undocumented: {missing}"
 
 
-@pytest.mark.parametrize("module", ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.identify.cli.reproduce",
+@pytest.mark.parametrize("module", ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.reproduce.cli",
                                     "qube_koopman.design", "qube_koopman.design.cli.design"])
 def test_import_has_no_heavy_side_effects(module):
     code = (f"import sys, {module}; heavy = [m for m in ('cvxpy', 'control', 'matplotlib', 'rerun', 'mcap')"
@@ -58,12 +58,14 @@ def test_core_imports_no_other_package_of_the_toolkit():
     root = Path(__file__).resolve().parents[1]
     offenders = [str(path.relative_to(root)) for path in (root / "core").rglob("*.py")
                  if any(f"qube_koopman.{top}" in path.read_text()
-                        for top in ("firmware_protocol", "sim", "daq", "identify", "design"))]
+                        for top in ("firmware_protocol", "sim", "daq", "identify", "design", "reproduce"))]
     assert not offenders
 
 
 # The packages from the lowest layer up: each may import those before it, none after it.
 LAYERS = ("core", "firmware_protocol", "sim", "daq", "identify", "design")
+# Applications above identify, beside design: they import the layers, and nothing imports them.
+APPLICATIONS = ("reproduce",)
 
 
 def _modules(*tops):
@@ -82,14 +84,15 @@ def test_every_import_points_down_the_layers():
     import ast
 
     offenders = []
-    for path, tree in _modules(*LAYERS):
-        level = LAYERS.index(path.parts[0])
+    for path, tree in _modules(*LAYERS, *APPLICATIONS):
+        top = path.parts[0]
+        above = (LAYERS[LAYERS.index(top) + 1:] if top in LAYERS else ("design",)) + APPLICATIONS
         for node in ast.walk(tree):
             names = ([a.name for a in node.names] if isinstance(node, ast.Import)
                      else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
             for name in names:
                 parts = name.split(".")
-                if parts[0] == "qube_koopman" and len(parts) > 1 and parts[1] in LAYERS[level + 1:]:
+                if parts[0] == "qube_koopman" and len(parts) > 1 and parts[1] in above and parts[1] != top:
                     offenders.append(f"{path}:{node.lineno} imports {name}")
     assert not offenders
 
@@ -106,7 +109,8 @@ def test_every_command_is_written_with_the_toolkit_of_core():
     from qube_koopman.core import cli, command, console
 
     toolkit = {*cli.__all__, *console.__all__, *command.__all__, "_Fail", "fail"}
-    again = [f"{path}:{node.lineno} defines {node.name}" for path, tree in _modules(*LAYERS[1:])
+    again = [f"{path}:{node.lineno} defines {node.name}"
+             for path, tree in _modules(*LAYERS[1:], *APPLICATIONS)
              for node in ast.walk(tree)
              if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name in toolkit]
     assert not again
@@ -139,6 +143,7 @@ def test_ruff_finds_nothing_in_the_packages():
         ruff = [shutil.which("ruff")]
     else:
         pytest.fail('ruff is not installed: pip install -e ".[test]"')
-    checked = subprocess.run([*ruff, "check", "--no-cache", "--config", str(root / "pyproject.toml"), *LAYERS],
+    checked = subprocess.run([*ruff, "check", "--no-cache", "--config", str(root / "pyproject.toml"),
+                              *LAYERS, *APPLICATIONS],
                              cwd=root, capture_output=True, text=True, timeout=300)
     assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]

@@ -132,7 +132,7 @@ def test_importing_a_package_imports_none_of_the_modules_it_exports_from(package
 
 def _private_imports(path: Path) -> list[str]:
     """``from M import _x`` (a private name of another module), and imports of another package's
-    private module (``qube_koopman.identify._base`` from outside identify)."""
+    private module (``qube_koopman.identify.estimators._base`` from outside identify)."""
     top = path.relative_to(ROOT).parts[0]
     found = []
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
@@ -165,13 +165,13 @@ def test_the_private_import_scan_finds_what_it_is_for(tmp_path, monkeypatch):
     source = folder / "mod.py"
     source.write_text("from qube_koopman.core.lti import _helper, DiscreteStateSpace\n"
                       "from .sibling import _thing as thing\n"
-                      "from qube_koopman.identify._base import Estimator\n"
+                      "from qube_koopman.identify.estimators._base import Estimator\n"
                       "from qube_koopman.daq._own import fine\n"
                       "from qube_koopman.sim import __version__\n")
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     assert _private_imports(source) == ["daq/mod.py:1: from qube_koopman.core.lti import _helper",
                                         "daq/mod.py:2: from .sibling import _thing",
-                                        "daq/mod.py:3: import of qube_koopman.identify._base, private to identify"]
+                                        "daq/mod.py:3: import of qube_koopman.identify.estimators._base, private to identify"]
 
 
 def test_the_tutorial_imports_from_the_packages_only():

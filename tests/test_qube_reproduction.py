@@ -55,8 +55,8 @@ def test_paper_figures_plot_qube_json(qube_reproduction_out, results):
     drawn from qube.json plot its arrays (tests/test_figures.py checks each figure's data in detail)."""
     import numpy as np
 
-    from qube_koopman.identify.figures import draw
-    from qube_koopman.identify.reproduce.figures import EIGENVALUE_ROWS, qube_figures
+    from qube_koopman.identify.report.figures import draw
+    from qube_koopman.reproduce.figures import EIGENVALUE_ROWS, qube_figures
 
     data, md = results
     stems = [f["png"] for f in data["figures"]]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import linalg
 
-from qube_koopman.identify.regression import Snapshots, constrained_plant_solve, ridge_solve
+from qube_koopman.identify.estimators.regression import Snapshots, constrained_plant_solve, ridge_solve
 
 
 def _stacked(M, Y, alpha, penalty):

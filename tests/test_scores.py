@@ -56,7 +56,7 @@ def test_bad_score_inputs():
 def test_a_constant_true_channel_is_left_out_with_a_warning():
     import warnings
 
-    from qube_koopman.identify.scores import ConstantChannelWarning, r2_scores
+    from qube_koopman.identify.metrics import ConstantChannelWarning, r2_scores
 
     t = np.linspace(0, 1, 50)
     truth = np.column_stack([np.sin(6 * t), np.full_like(t, 0.3)])
@@ -79,7 +79,7 @@ def test_a_huge_but_finite_r2_summarizes_without_an_overflow_warning():
     infinite, said without numpy's overflow warning on the user's terminal."""
     import warnings
 
-    from qube_koopman.identify.scores import EpisodeScore, summarize_scores
+    from qube_koopman.identify.metrics import EpisodeScore, summarize_scores
 
     scores = [EpisodeScore(-1e200, 1e99, None), EpisodeScore(0.9, 0.1, None)]
     with warnings.catch_warnings():
@@ -90,7 +90,7 @@ def test_a_huge_but_finite_r2_summarizes_without_an_overflow_warning():
 
 
 def test_a_prediction_that_grows_beyond_a_thousand_times_the_data_has_diverged_finite_or_not():
-    from qube_koopman.identify.scores import DIVERGED_FACTOR, episode_score
+    from qube_koopman.identify.metrics import DIVERGED_FACTOR, episode_score
 
     t = np.arange(400) * 0.002
     truth = np.column_stack([0.3 * np.sin(5 * t), 0.02 * np.cos(9 * t)])

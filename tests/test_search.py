@@ -10,13 +10,13 @@ import pytest
 
 from conftest import stop_library_daemons
 from qube_koopman.identify import ClEdmd, Lifting
-from qube_koopman.identify.data import check_same_controller, group_shuffle_splits, load_logs
-from qube_koopman.identify.offsets import (estimate_offsets, estimate_offsets_many, predict_with_offsets,
+from qube_koopman.identify.data.logs import check_same_controller, group_shuffle_splits, load_logs
+from qube_koopman.identify.models.offsets import (estimate_offsets, estimate_offsets_many, predict_with_offsets,
                                            predict_with_offsets_many)
-from qube_koopman.identify.scores import r2_scores
-from qube_koopman.identify.sweep import regularization_sweep
-from qube_koopman.identify.transfer import twin_probes
-from qube_koopman.identify.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace, evaluate_candidate,
+from qube_koopman.identify.metrics import r2_scores
+from qube_koopman.identify.model_selection.sweep import regularization_sweep
+from qube_koopman.identify.model_selection.transfer import twin_probes
+from qube_koopman.identify.model_selection.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace, evaluate_candidate,
                                           search_liftings)
 
 pytestmark = pytest.mark.dataset
@@ -184,7 +184,7 @@ def _cli(capsys, *argv):
 @pytest.mark.slow
 def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_path, capsys):
     pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
-    from qube_koopman.identify.model_file import load_model
+    from qube_koopman.identify.models.model_file import load_model
 
     code, out, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
                           "--search-space", log_dirs / "space.toml", "--n-jobs", "1", "--out", tmp_path,
@@ -203,7 +203,7 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     assert report["alpha"] == winner["alpha"]
     # Where the time went: each candidate's parts add up to no more than its time, the stages' walls
     # to no more than the search's, and the probes' simulation is counted apart.
-    from qube_koopman.identify.search import STAGES, TIMING_KEYS
+    from qube_koopman.identify.model_selection.search import STAGES, TIMING_KEYS
 
     for c in search["candidates"]:
         assert list(c["timing"]) == list(TIMING_KEYS) and min(c["timing"].values()) >= 0
@@ -227,7 +227,7 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
 
 
 def test_blueprint_has_a_view_per_test_episode_and_per_section():
-    from qube_koopman.identify.rerun_view import blueprint
+    from qube_koopman.identify.report.rerun import blueprint
     from qube_koopman.identify.workflow import IdentificationResult
 
     rrb = pytest.importorskip("rerun.blueprint", reason="the viewer is the optional viz extra")
@@ -302,7 +302,7 @@ def test_an_offsets_candidate_predicting_with_its_plain_twins_models_scores_the_
 def test_an_rbf_candidate_equals_a_naive_refit_with_centres_drawn_on_all_training_episodes(small):
     # The search draws the thin-plate centres once, on every training episode (the winner's final fit
     # draws the same): each fold is then the naive refit with those centres.
-    from qube_koopman.identify.search import search_steps
+    from qube_koopman.identify.model_selection.search import search_steps
 
     trajs, controller, splits = small
     spec = LiftingSpec(delays=2, poly=1, rbf=6)
@@ -319,7 +319,7 @@ def test_an_rbf_candidate_equals_a_naive_refit_with_centres_drawn_on_all_trainin
 
 def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_statistics(small):
     # The form stage lifts its largest lifting once: the others' statistics are columns of its factor.
-    from qube_koopman.identify.search import family_of, family_statistics
+    from qube_koopman.identify.model_selection.search import family_of, family_statistics
 
     trajs, controller, splits = small
     probes = twin_probes(trajs[:2], per_controller=1, skip=100)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from qube_koopman.identify import ClEdmdKnownRows, Delay, Polynomial, Trajectory, r2_score
-from qube_koopman.identify import stability
-from qube_koopman.identify._spectral import DiscResult
-from qube_koopman.identify.stability import ClEdmdStable
+from qube_koopman.identify.estimators import stability
+from qube_koopman.identify.estimators._spectral import DiscResult
+from qube_koopman.identify.estimators.stability import ClEdmdStable
 from linear_loops import closed_loop_trajectories, prbs, simulate_loop
 from qube_koopman.core.lti import DiscreteStateSpace
 from test_sdp_cross_check import random_problem

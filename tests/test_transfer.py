@@ -21,12 +21,12 @@ import pytest
 
 from qube_koopman.daq.controller import load_pd_gains
 from qube_koopman.identify import ClEdmd
-from qube_koopman.identify.data import load_logs
-from qube_koopman.identify.offsets import estimate_offsets_many
-from qube_koopman.identify.scores import r2_scores
-from qube_koopman.identify.search import CandidateResult, LiftingSpec, SearchResult
-from qube_koopman.identify.structure import close_loop
-from qube_koopman.identify.transfer import twin_probes, probe_scores
+from qube_koopman.identify.data.logs import load_logs
+from qube_koopman.identify.models.offsets import estimate_offsets_many
+from qube_koopman.identify.metrics import r2_scores
+from qube_koopman.identify.model_selection.search import CandidateResult, LiftingSpec, SearchResult
+from qube_koopman.identify.estimators.structure import close_loop
+from qube_koopman.identify.model_selection.transfer import twin_probes, probe_scores
 
 COUNT = 2 * math.pi / 2048
 WINDOW = 500
@@ -173,7 +173,7 @@ def test_offsets_on_the_calibrated_twin_are_unbiased_with_the_friction_lifting(r
 
 
 def test_offset_status_says_flat_and_beyond_bound_aloud():
-    from qube_koopman.identify.offsets import OffsetEstimate
+    from qube_koopman.identify.models.offsets import OffsetEstimate
 
     def estimate(value, se):
         return OffsetEstimate((1,), np.array([value]), 500, 0.05, 0.01, 0.005, np.array([se]))
@@ -192,7 +192,7 @@ def test_offset_status_says_flat_and_beyond_bound_aloud():
 
 def _short_sources(n: int = 3, samples: int = 1200):
     """Excitations the twin balances under every probe controller: small arm steps, no feedforward."""
-    from qube_koopman.identify.trajectory import Trajectory
+    from qube_koopman.identify.data.trajectory import Trajectory
 
     t = np.arange(samples)
     return [Trajectory(x=np.zeros((samples, 2)), u=np.zeros((samples, 1)),
@@ -204,7 +204,7 @@ def _short_sources(n: int = 3, samples: int = 1200):
 def test_a_cached_probe_set_is_the_simulated_one_and_changes_with_what_it_depends_on(tmp_path, monkeypatch):
     from dataclasses import replace as changed
 
-    from qube_koopman.identify import transfer
+    from qube_koopman.identify.model_selection import transfer
     from qube_koopman.sim.pendulum import PendulumParameters
 
     sources = _short_sources()

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from qube_koopman.identify import ClEdmd, Trajectory
-from qube_koopman.identify.offsets import OffsetEstimate
-from qube_koopman.identify.scores import DivergedPrediction
-from qube_koopman.identify.sweep import fitted_models
+from qube_koopman.identify.models.offsets import OffsetEstimate
+from qube_koopman.identify.metrics import DivergedPrediction
+from qube_koopman.identify.model_selection.sweep import fitted_models
 from qube_koopman.identify.uncertainty import (EpisodePrediction, IntervalCalibration, IntervalOptions, Loop,
                                                calibrate, ensemble_statistics, fit_ensemble, predict_episodes,
                                                prediction_band, summarize_bands)

@@ -9,7 +9,7 @@ import pytest
 from _episodes import make_episode
 
 from qube_koopman.daq.log import write_episode
-from qube_koopman.identify.data import IncompleteLogSkipped, UnreadableLogSkipped, load_logs
+from qube_koopman.identify.data.logs import IncompleteLogSkipped, UnreadableLogSkipped, load_logs
 
 
 @pytest.fixture

@@ -70,7 +70,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _read(paths):
-    from qube_koopman.identify.data import load_logs
+    from qube_koopman.identify.data.logs import load_logs
 
     try:
         logs = load_logs(paths, strict=True, refusal="refused: qube-calibrate fits complete, readable logs only")
@@ -85,7 +85,7 @@ def _run(args) -> int:
     from qube_koopman.identify.calibrate import PlantCalibration
     from qube_koopman.identify.calibrate.report import calibration_text, write_report
     from qube_koopman.identify.calibrate.validate import controller_groups
-    from qube_koopman.identify.data import paper_split
+    from qube_koopman.identify.data.logs import paper_split
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
     fit_paths, val_paths = expand_logs(args.logs), expand_logs(args.validate)

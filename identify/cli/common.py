@@ -7,8 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from qube_koopman.core.command import CliError
-from qube_koopman.identify.data import IncompleteLogSkipped
-from qube_koopman.identify.scores import DivergedPrediction
+from qube_koopman.identify.data.logs import IncompleteLogSkipped
+from qube_koopman.identify.metrics import DivergedPrediction
 
 __all__ = ["ONE_LINE_WARNINGS", "expand_logs"]
 

@@ -1,4 +1,4 @@
-"""The ``--figures`` options of ``qube-identify`` and ``qube-reproduce qube`` (see identify/figures.py)."""
+"""The ``--figures`` options of ``qube-identify`` and ``qube-reproduce qube`` (see identify/report/figures.py)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def add_figure_options(parser: argparse.ArgumentParser, episodes: bool = True, r
 
 def check_figure_options(args: argparse.Namespace, test_names: Sequence[str] | None = None) -> None:
     """Refuse figure options before any work: matplotlib missing (status 1), unknown episodes (status 2)."""
-    from qube_koopman.identify.figures import FiguresUnavailable, choose_episodes, require_matplotlib
+    from qube_koopman.identify.report.figures import FiguresUnavailable, choose_episodes, require_matplotlib
 
     wanted = getattr(args, "figure_episodes", None)
     for option, given in (("--figure-episodes", wanted), ("--figure-episode", getattr(args, "figure_episode", None))):
@@ -47,7 +47,7 @@ def check_figure_options(args: argparse.Namespace, test_names: Sequence[str] | N
 
 def write_report_figures(out: Path, specs) -> list[dict]:
     """Write ``specs`` in ``out/figures``; their entries for report.json (paths relative to ``out``)."""
-    from qube_koopman.identify.figures import write_figures
+    from qube_koopman.identify.report.figures import write_figures
 
     try:
         written = write_figures(specs, out / FOLDER)

@@ -208,7 +208,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _lifting(args) -> list:
     """The lifting the options give: one builder with the search's (``LiftingSpec.steps``)."""
-    from qube_koopman.identify.search import LiftingSpec
+    from qube_koopman.identify.model_selection.search import LiftingSpec
 
     spec = LiftingSpec(delays=args.delays, poly=args.poly, trig=args.trig, friction=args.friction,
                        const=args.const, rbf=0 if args.rbf == "none" else args.rbf_centers)
@@ -360,8 +360,8 @@ def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
 
 
 def _load(args):
-    from qube_koopman.identify.data import IncompleteLogSkipped, check_same_rate, load_logs, paper_split
-    from qube_koopman.identify.mixed import majority_controller
+    from qube_koopman.identify.data.logs import IncompleteLogSkipped, check_same_rate, load_logs, paper_split
+    from qube_koopman.identify.estimators.mixed import majority_controller
 
     if args.split:
         train_paths, test_paths = paper_split(expand_logs(args.logs))
@@ -387,7 +387,7 @@ def _cluster_statistics(args, train, cleanup: contextlib.ExitStack):
     """With --scheduler: the training logs' per-episode statistics on its workers (the client closed by ``cleanup``)."""
     if not args.scheduler:
         return None
-    from qube_koopman.identify.distributed import ClusterStatistics, connect
+    from qube_koopman.identify.model_selection.distributed import ClusterStatistics, connect
 
     client = connect(args.scheduler, security=args.security)
     cleanup.callback(client.close)
@@ -403,7 +403,7 @@ def _run(args) -> int:
 def _identify(args, cleanup: contextlib.ExitStack) -> int:
     import numpy as np
 
-    from qube_koopman.identify.reports import write_markdown_report
+    from qube_koopman.identify.report.markdown import write_markdown_report
     from qube_koopman.identify.uncertainty import IntervalOptions
     from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
@@ -457,13 +457,13 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
 
         result.report["search"] = search_report(search, args, [log.path.name for log in train])
     if args.figures:
-        from qube_koopman.identify.figures import identification_figures
+        from qube_koopman.identify.report.figures import identification_figures
 
         result.report["figures"] = write_report_figures(out, identification_figures(result, args.figure_episodes))
     write_json(out / "report.json", result.report)
     write_markdown_report(out / "report.md", result.report)
     if args.rerun:
-        from qube_koopman.identify.rerun_view import write_recording
+        from qube_koopman.identify.report.rerun import write_recording
 
         write_recording(args.rerun, result)
     _print_controllers(result.report["training_controllers"])

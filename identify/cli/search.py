@@ -19,7 +19,7 @@ _LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool
 
 def load_space(path: str | None):
     """The search space: the defaults, with the lists of a TOML file replacing theirs."""
-    from qube_koopman.identify.search import SearchSpace
+    from qube_koopman.identify.model_selection.search import SearchSpace
 
     if path is None:
         return SearchSpace()
@@ -54,11 +54,11 @@ def probe_cache() -> Path:
 
 def run_search(args, train, controller):
     """Run the search on the training logs; prints the winner's line."""
-    from qube_koopman.identify.mixed import cross_validation_folds
-    from qube_koopman.identify.search import TIMING_KEYS, search_liftings
+    from qube_koopman.identify.estimators.mixed import cross_validation_folds
+    from qube_koopman.identify.model_selection.search import TIMING_KEYS, search_liftings
 
     space = load_space(args.search_space)
-    from qube_koopman.identify.data import LogTrajectories
+    from qube_koopman.identify.data.logs import LogTrajectories
 
     trajs = LogTrajectories(train)  # read when needed (stored logs), not all held at once
     window = int(round(args.estimate_window / train[0].dt))
@@ -69,7 +69,7 @@ def run_search(args, train, controller):
     folds = cross_validation_folds(controllers, args.cv_splits, args.cv_seed)
     probes, probe_seconds = None, 0.0
     if args.transfer == "twin":
-        from qube_koopman.identify.transfer import twin_probes
+        from qube_koopman.identify.model_selection.transfer import twin_probes
 
         started = time.perf_counter()
         probes = twin_probes(trajs, cache=probe_cache() if args.probe_cache else None)
@@ -87,7 +87,7 @@ def run_search(args, train, controller):
                   for stage, t in result.timing()["stages"].items()))
     best = result.winner
     if folds.kind == "leave-one-controller-out":
-        from qube_koopman.identify.search import same_controller_scores
+        from qube_koopman.identify.model_selection.search import same_controller_scores
 
         result.same_controller = same_controller_scores(best, trajs, controller, controllers, window=window,
                                                         n_splits=args.cv_splits, seed=args.cv_seed,
@@ -121,8 +121,8 @@ OBJECTIVE = {
 
 def search_report(result, args, names) -> dict:
     """The search's part of report.json (``names``: the training logs')."""
-    from qube_koopman.identify.mixed import FOLD_KINDS
-    from qube_koopman.identify.search import STAGES
+    from qube_koopman.identify.estimators.mixed import FOLD_KINDS
+    from qube_koopman.identify.model_selection.search import STAGES
 
     space = load_space(args.search_space)
     return {

@@ -15,7 +15,7 @@ class Constant(LiftingFunction):
     With it a linear Koopman model becomes affine: its equilibrium is no
     longer pinned at the origin of the measured states, which matters when
     an encoder's zero is off the true equilibrium (the QUBE's pendulum encoder is, by a
-    few counts; see :mod:`qube_koopman.identify.offsets`). Put it
+    few counts; see :mod:`qube_koopman.identify.models.offsets`). Put it
     last in a pipeline: a delay step after it would stack copies of the
     same constant.
     """

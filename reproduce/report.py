@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from qube_koopman.identify.reports import figures_markdown
-from qube_koopman.identify.reports import format_number as _num
+from qube_koopman.identify.report.markdown import figures_markdown
+from qube_koopman.identify.report.markdown import format_number as _num
 
 
 def qube_table(results: dict, markdown: bool = False) -> str:

@@ -24,18 +24,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from qube_koopman.identify._blas import limited_blas_threads
+from qube_koopman.core.blas import limited_blas_threads
 from qube_koopman.identify._checks import check_choice
-from qube_koopman.identify.cl_edmd import ClosedLoopKoopman
-from qube_koopman.identify.data import same_system
-from qube_koopman.identify.edmd import Edmd
-from qube_koopman.identify.mixed import distinct_controllers
-from qube_koopman.identify.model import FittedRows, KoopmanModel
-from qube_koopman.identify.regression import Snapshots
-from qube_koopman.identify.scores import r2_from_residuals
-from qube_koopman.identify.simulate import simulate_chunks
-from qube_koopman.identify.structure import close_loop
-from qube_koopman.identify.trajectory import Trajectory, as_episodes, select_episodes
+from qube_koopman.identify.estimators.cl_edmd import ClosedLoopKoopman
+from qube_koopman.identify.data.logs import same_system
+from qube_koopman.identify.estimators.edmd import Edmd
+from qube_koopman.identify.estimators.mixed import distinct_controllers
+from qube_koopman.identify.models.model import FittedRows, KoopmanModel
+from qube_koopman.identify.estimators.regression import Snapshots
+from qube_koopman.identify.metrics import r2_from_residuals
+from qube_koopman.identify.models.simulate import simulate_chunks
+from qube_koopman.identify.estimators.structure import close_loop
+from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "SCORINGS"]
@@ -69,7 +69,7 @@ class SweepResult:
         Every fold's models, with ``keep_fold_models``. Without ``fit_all`` (and
         with ``relift``) only the rows a re-lifted prediction uses are fitted;
         the others are NaN. With ``keep_fold_models="rows"`` the models are
-        :class:`~qube_koopman.identify.model.FittedRows` (their fitted rows only,
+        :class:`~qube_koopman.identify.models.model.FittedRows` (their fitted rows only,
         rebuilt with the setup's lifting ``statistics[0].lifting``).
     seconds : dict of str to float
         Where the time went: ``statistics`` (lifting the episodes and folding their
@@ -197,7 +197,7 @@ def _score_sums(models: list[KoopmanModel], episodes: list[Trajectory], scoring:
     B = np.stack([m.B for m in models])
     with_p = scoring == "cl" and not measured_only
     channels = slice(0, None) if with_p else slice(n_p, None)
-    # The memory a model's simulation holds: its ring of permuted rows (see identify.simulate).
+    # The memory a model's simulation holds: its ring of permuted rows (see identify.models.simulate).
     per_model = (n_p + ref.n_states) * A.shape[1] * (d + 1)
     for _, group in by_length.items():
         x_init = np.stack([t.x[:d + 1] for t in group])
@@ -229,8 +229,8 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Training episodes (signals x, u, r, f, xc as the scorings need).
     alphas : sequence of float
     splits : sequence of (train_indices, validation_indices)
-        For example :func:`identify.data.group_shuffle_splits`, or with
-        several controllers :func:`identify.mixed.leave_one_controller_out`.
+        For example :func:`identify.data.logs.group_shuffle_splits`, or with
+        several controllers :func:`identify.estimators.mixed.leave_one_controller_out`.
     scorings : sequence of {"cl", "plant"}
     controller : DiscreteStateSpace, optional
         Wraps EDMD plants for closed-loop scoring (a closed-loop estimator
@@ -264,7 +264,7 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     episode_statistics : callable(estimator, setup, indices), optional
         Computes the per-episode statistics of the episodes at ``indices`` (of
         ``trajectories``), in order, elsewhere: on a dask cluster,
-        :class:`~qube_koopman.identify.distributed.ClusterStatistics`. Default: here.
+        :class:`~qube_koopman.identify.model_selection.distributed.ClusterStatistics`. Default: here.
     shared : (setup, per-fold statistics, all-episode statistics), optional
         The folds' statistics already computed, on these ``splits`` without ``fit_all``, for
         a lifting whose features include this one's (:func:`fold_statistics` of it): this
@@ -374,7 +374,7 @@ def sub_statistics(estimator, statistics: tuple, controllers=None) -> tuple | No
     """``estimator``'s fold statistics taken from those of a lifting whose features include its own.
 
     ``statistics`` is :func:`fold_statistics` of the larger lifting. Exact (a factor of the
-    selected columns, :meth:`~qube_koopman.identify.regression.Snapshots.columns`); None
+    selected columns, :meth:`~qube_koopman.identify.estimators.regression.Snapshots.columns`); None
     when it cannot be done so: statistics per controller, another number of delays (other
     snapshots), a feature the larger lifting lacks, or other leading (re-lifted) rows.
     """
@@ -415,7 +415,7 @@ def _timer(seconds: dict):
 
 
 def _learns_from_data(estimator) -> bool:
-    from qube_koopman.identify._base import resolve_lifting
+    from qube_koopman.identify.estimators._base import resolve_lifting
 
     return any(getattr(step, "learns_from_data", True) for step in resolve_lifting(estimator.lifting).steps)
 
@@ -428,7 +428,7 @@ def _fold_controller(controllers, validation, default, fold: int):
     if len(distinct) != 1:
         raise ValueError(f"fold {fold + 1}'s validation episodes were recorded under {len(distinct)} controllers; "
                          "a fold predicts one controller's loop: hold out one controller per fold "
-                         "(identify.mixed.leave_one_controller_out)")
+                         "(identify.estimators.mixed.leave_one_controller_out)")
     return distinct[0]
 
 
@@ -445,7 +445,7 @@ def _statistics(estimator, trajectories, selections, partial: bool = False, cont
 
     ``partial``: of the rows a re-lifted prediction uses only. ``controllers``: each episode's
     (a closed-loop estimator's episodes under several controllers). One pass over the episodes
-    (:meth:`~qube_koopman.identify._base.SnapshotEstimator._selection_statistics`), their
+    (:meth:`~qube_koopman.identify.estimators._base.SnapshotEstimator._selection_statistics`), their
     statistics computed ``elsewhere`` when given (``indices``: the episodes' among the sweep's).
     """
     template = copy.copy(estimator)

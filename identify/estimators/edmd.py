@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from qube_koopman.identify._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
+from qube_koopman.identify.estimators._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha
-from qube_koopman.identify.model import KoopmanModel
-from qube_koopman.identify.regression import Snapshots, ridge_solve
-from qube_koopman.identify.trajectory import Trajectory, check_trajectories, episode_signals
+from qube_koopman.identify.models.model import KoopmanModel
+from qube_koopman.identify.estimators.regression import Snapshots, ridge_solve
+from qube_koopman.identify.data.trajectory import Trajectory, check_trajectories, episode_signals
 
 __all__ = ["Edmd"]
 

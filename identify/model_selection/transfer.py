@@ -21,7 +21,7 @@ the candidate's offset protocol, scored from the end of the estimation
 window like the test episodes. Nothing of another controller's real data is
 used; the twin's own errors cap the score (a perfect model of the rig scores
 below 1 on the twin), so the search combines this score with the
-cross-validated one (:mod:`qube_koopman.identify.search`).
+cross-validated one (:mod:`qube_koopman.identify.model_selection.search`).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import numpy as np
 
 # The rig's safety stops: a probe beyond them is dropped.
 from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
-from qube_koopman.identify.trajectory import Trajectory, as_episodes
+from qube_koopman.identify.data.trajectory import Trajectory, as_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ProbeSet", "DEFAULT_PROBE_GAINS", "twin_probes", "probe_scores"]
@@ -303,8 +303,8 @@ def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: flo
     ndarray of shape (n_episodes,)
         Mean R^2 of theta and alpha per probe episode (-inf: diverged).
     """
-    from qube_koopman.identify.offsets import scores_after_window
-    from qube_koopman.identify.structure import close_loop
+    from qube_koopman.identify.models.offsets import scores_after_window
+    from qube_koopman.identify.estimators.structure import close_loop
 
     return np.concatenate([scores_after_window(close_loop(plant, controller, list(measured)), episodes, window,
                                                offsets, bound)

@@ -4,7 +4,7 @@ The plant is common to every episode; each episode's closed loop differs
 only by its known controller. A closed-loop fit keeps the snapshot
 statistics per controller (their regressors differ: the controller state's
 width and the plant input map ``S_g``) and fits one plant to all of them
-(:func:`~qube_koopman.identify.regression.grouped_plant_solve`).
+(:func:`~qube_koopman.identify.estimators.regression.grouped_plant_solve`).
 Cross-validation then holds out one controller at a time
 (:func:`leave_one_controller_out`): the question is whether the plant
 predicts a loop it was not fitted on.
@@ -17,9 +17,9 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify.data import same_system
-from qube_koopman.identify.regression import GroupedSnapshots, SnapshotFold, Snapshots
-from qube_koopman.identify.structure import plant_input_map
+from qube_koopman.identify.data.logs import same_system
+from qube_koopman.identify.estimators.regression import GroupedSnapshots, SnapshotFold, Snapshots
+from qube_koopman.identify.estimators.structure import plant_input_map
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ControllerGroups", "distinct_controllers", "leave_one_controller_out", "within_controller_splits",
@@ -29,7 +29,7 @@ __all__ = ["ControllerGroups", "distinct_controllers", "leave_one_controller_out
 def distinct_controllers(controllers: Sequence[DiscreteStateSpace]) -> tuple[list[DiscreteStateSpace], np.ndarray]:
     """The distinct controllers, in order of first appearance, and each episode's index among them.
 
-    Two controllers are the same when :func:`~qube_koopman.identify.data.same_system` says so.
+    Two controllers are the same when :func:`~qube_koopman.identify.data.logs.same_system` says so.
     """
     distinct: list[DiscreteStateSpace] = []
     labels = []
@@ -79,14 +79,14 @@ def within_controller_splits(labels: Sequence[int], n_splits: int = 3, seed: int
     The complement of :func:`leave_one_controller_out`: each fold's validation
     episodes ran a controller the training episodes include, so its score is
     the same-controller one. For each controller with at least two episodes,
-    :func:`~qube_koopman.identify.data.group_shuffle_splits` (``n_splits``,
+    :func:`~qube_koopman.identify.data.logs.group_shuffle_splits` (``n_splits``,
     ``seed``) over its episodes; the other controllers' episodes always train.
 
     Returns
     -------
     list of (train_indices, validation_indices, label)
     """
-    from qube_koopman.identify.data import group_shuffle_splits
+    from qube_koopman.identify.data.logs import group_shuffle_splits
 
     labels = np.asarray(labels)
     out = []
@@ -110,7 +110,7 @@ class ControllerGroups:
     labels : ndarray of int
         Each episode's index into ``controllers``.
     maps : tuple of ndarray
-        ``S_g`` of each controller (:func:`~qube_koopman.identify.structure.plant_input_map`).
+        ``S_g`` of each controller (:func:`~qube_koopman.identify.estimators.structure.plant_input_map`).
     """
 
     controllers: tuple[DiscreteStateSpace, ...]
@@ -205,8 +205,8 @@ class CrossValidationFolds:
 def cross_validation_folds(controllers: Sequence[DiscreteStateSpace], n_splits: int = 3,
                            seed: int = 1234) -> CrossValidationFolds:
     """Leave one controller out when the episodes ran two or more controllers; else
-    :func:`~qube_koopman.identify.data.group_shuffle_splits` (``n_splits``, ``seed``)."""
-    from qube_koopman.identify.data import group_shuffle_splits
+    :func:`~qube_koopman.identify.data.logs.group_shuffle_splits` (``n_splits``, ``seed``)."""
+    from qube_koopman.identify.data.logs import group_shuffle_splits
 
     distinct, labels = distinct_controllers(controllers)
     if len(distinct) >= 2:
@@ -218,7 +218,7 @@ def cross_validation_folds(controllers: Sequence[DiscreteStateSpace], n_splits: 
 def training_controllers_report(logs: Sequence, model_controller: DiscreteStateSpace) -> dict:
     """The training logs' controllers for a report: how many, episodes each, which one the model's loop is.
 
-    ``logs`` are :class:`~qube_koopman.identify.data.LoggedTrajectory`; controllers are numbered
+    ``logs`` are :class:`~qube_koopman.identify.data.logs.LoggedTrajectory`; controllers are numbered
     from 1 in order of first appearance.
     """
     distinct, labels = distinct_controllers([log.controller for log in logs])

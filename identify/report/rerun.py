@@ -19,7 +19,7 @@ import numpy as np
 
 from qube_koopman.core.files import atomic_path
 from qube_koopman.core.qube import STATE_NAMES
-from qube_koopman.identify.figures import model_eigenvalues
+from qube_koopman.identify.report.figures import model_eigenvalues
 
 
 

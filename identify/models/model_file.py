@@ -13,7 +13,7 @@ import numpy as np
 
 from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Lifting, Polynomial,
                                            ThinPlateRbf, Trigonometric)
-from qube_koopman.identify.model import KoopmanModel
+from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path
 

@@ -18,16 +18,16 @@ import numpy as np
 
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.daq.log.names import find_logs
-from qube_koopman.identify._blas import limited_blas_threads
-from qube_koopman.identify.arx import Arx
-from qube_koopman.identify.cl_edmd import ClEdmd
-from qube_koopman.identify.data import (check_same_controller, check_same_rate, group_shuffle_splits, load_logs,
+from qube_koopman.core.blas import limited_blas_threads
+from qube_koopman.identify.estimators.arx import Arx
+from qube_koopman.identify.estimators.cl_edmd import ClEdmd
+from qube_koopman.identify.data.logs import (check_same_controller, check_same_rate, group_shuffle_splits, load_logs,
                                        paper_split, same_system)
-from qube_koopman.identify.edmd import Edmd
+from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.lifting import Delay, Polynomial
-from qube_koopman.identify.scores import summarize_episodes
-from qube_koopman.identify.structure import close_loop
-from qube_koopman.identify.sweep import SweepResult, regularization_sweep
+from qube_koopman.identify.metrics import summarize_episodes
+from qube_koopman.identify.estimators.structure import close_loop
+from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
 
 __all__ = ["PAPER_QUBE", "ROWS", "QubeRow", "reproduce_qube", "score_closed_loop", "predict_closed_loop"]
 

@@ -7,8 +7,8 @@ under the recorded controller, and R^2 is taken from the end of the offset
 estimation window on (the same samples whether offsets are estimated or not,
 so the two protocols compare). A candidate's statistics are computed once per
 episode and merged per fold, and every alpha is then a small solve on them
-(:func:`~qube_koopman.identify.sweep.regularization_sweep`). Transfer: with
-probes (:mod:`~qube_koopman.identify.transfer`), its plant fitted on all the
+(:func:`~qube_koopman.identify.model_selection.sweep.regularization_sweep`). Transfer: with
+probes (:mod:`~qube_koopman.identify.model_selection.transfer`), its plant fitted on all the
 training episodes, wrapped with probe controllers unlike the training one,
 predicts twin episodes run under them. Candidates rank by the lower of the
 two (:attr:`CandidateResult.objective`): cross-validation under the training
@@ -28,7 +28,7 @@ The space is searched in stages, each a coordinate step from the best so far
 
 Candidates of a stage are independent: they run through joblib on local
 cores (``n_jobs``), or on a dask.distributed cluster (see :func:`search_liftings` and
-:mod:`~qube_koopman.identify.distributed`).
+:mod:`~qube_koopman.identify.model_selection.distributed`).
 """
 
 from __future__ import annotations
@@ -41,15 +41,15 @@ from typing import Callable, Sequence
 import numpy as np
 
 from qube_koopman.core.qube import MEASURED
-from qube_koopman.identify.cl_edmd import ClEdmd
-from qube_koopman.identify.distributed import candidate_runner, connect, release_workers
-from qube_koopman.identify.model import FittedRows
+from qube_koopman.identify.estimators.cl_edmd import ClEdmd
+from qube_koopman.identify.model_selection.distributed import candidate_runner, connect, release_workers
+from qube_koopman.identify.models.model import FittedRows
 from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf,
                                           Trigonometric)
-from qube_koopman.identify.offsets import DEFAULT_BOUND, scores_after_window
-from qube_koopman.identify.sweep import regularization_sweep
-from qube_koopman.identify.trajectory import Trajectory, as_episodes
-from qube_koopman.identify.transfer import ProbeSet, probe_scores
+from qube_koopman.identify.models.offsets import DEFAULT_BOUND, scores_after_window
+from qube_koopman.identify.model_selection.sweep import regularization_sweep
+from qube_koopman.identify.data.trajectory import Trajectory, as_episodes
+from qube_koopman.identify.model_selection.transfer import ProbeSet, probe_scores
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
@@ -195,7 +195,7 @@ class Reuse:
 
     The offsets stage scores the best plain candidates again with per-episode offsets, at
     their best alphas: with these (each fold's closed loop, and the plant on all training
-    episodes, as :class:`~qube_koopman.identify.model.FittedRows`) it predicts without
+    episodes, as :class:`~qube_koopman.identify.models.model.FittedRows`) it predicts without
     computing any statistics again; the models are exactly the ones the plain candidate fitted.
 
     Attributes
@@ -232,7 +232,7 @@ class CandidateResult:
     seconds : float
         Wall time of the evaluation.
     transfer_r2 : ndarray of shape (n_probe_episodes, n_alphas), optional
-        R^2 of each transfer probe episode (:mod:`~qube_koopman.identify.transfer`)
+        R^2 of each transfer probe episode (:mod:`~qube_koopman.identify.model_selection.transfer`)
         predicted by the plant fitted on all training episodes (NaN: alpha not
         probed; -inf: diverged). None when the search has no probes.
     reuse : Reuse, optional
@@ -488,7 +488,7 @@ def family_of(spec: LiftingSpec, specs: Sequence[LiftingSpec]) -> LiftingSpec | 
 
 def family_statistics(spec: LiftingSpec, data: SearchData) -> tuple:
     """The fold statistics of ``spec``'s lifting on the search's folds (shared by its family)."""
-    from qube_koopman.identify.sweep import fold_statistics
+    from qube_koopman.identify.model_selection.sweep import fold_statistics
 
     estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
     return fold_statistics(estimator, data.trajectories, data.splits, data.controllers)
@@ -511,7 +511,7 @@ def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed
     """
     from qube_koopman.identify.lifting import Lifting
     from qube_koopman.identify.lifting.rbf import RadialBasis
-    from qube_koopman.identify.trajectory import episode_signals
+    from qube_koopman.identify.data.trajectory import episode_signals
 
     steps = spec.steps(rbf_seed)
     at = [i for i, step in enumerate(steps) if isinstance(step, RadialBasis)]
@@ -530,8 +530,8 @@ def _probe_plants(estimator, data: SearchData, cv: np.ndarray, statistics, timin
     episodes the sweep folded with its folds' when it had them. ``timing["probe_fits"]``
     gets their time.
     """
-    from qube_koopman.identify._blas import limited_blas_threads
-    from qube_koopman.identify.sweep import fit_alphas, fitted_models
+    from qube_koopman.core.blas import limited_blas_threads
+    from qube_koopman.identify.model_selection.sweep import fit_alphas, fitted_models
 
     started = time.perf_counter()
     top = np.sort(_best_alphas(cv, data.n_transfer_alphas))
@@ -551,7 +551,7 @@ def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants
 
     ``timing["probe_scoring"]`` gets their time.
     """
-    from qube_koopman.identify._blas import limited_blas_threads
+    from qube_koopman.core.blas import limited_blas_threads
 
     started = time.perf_counter()
     # The alphas with a plant: an offsets candidate predicting with its plain twin's has them at its scored alphas.
@@ -577,8 +577,8 @@ def _offset_scores(folds: list, lifting, data: SearchData, top: np.ndarray, timi
     ``folds``: per fold, {alpha index: closed loop} and the validation episodes; the closed loops
     are FittedRows rebuilt with ``lifting``, or models themselves when ``lifting`` is None.
     """
-    from qube_koopman.identify._blas import limited_blas_threads
-    from qube_koopman.identify.sweep import EPISODES_PER_BATCH
+    from qube_koopman.core.blas import limited_blas_threads
+    from qube_koopman.identify.model_selection.sweep import EPISODES_PER_BATCH
 
     started = time.perf_counter()
     out = np.full((len(folds), data.alphas.size), np.nan)
@@ -605,15 +605,15 @@ def same_controller_scores(result: CandidateResult, trajectories: Sequence[Traje
     The search ranks by leave-one-controller-out folds; this scores the
     candidate (its lifting, offset protocol and chosen alpha) on folds that
     hold out some episodes of one controller and train on all the rest
-    (:func:`~qube_koopman.identify.mixed.within_controller_splits`), as the
+    (:func:`~qube_koopman.identify.estimators.mixed.within_controller_splits`), as the
     loop a model was trained under is predicted.
 
     Returns
     -------
     list of (controller label, fold R^2)
-        Labels index :func:`~qube_koopman.identify.mixed.distinct_controllers`' list.
+        Labels index :func:`~qube_koopman.identify.estimators.mixed.distinct_controllers`' list.
     """
-    from qube_koopman.identify.mixed import distinct_controllers, within_controller_splits
+    from qube_koopman.identify.estimators.mixed import distinct_controllers, within_controller_splits
 
     _, labels = distinct_controllers(controllers)
     folds = within_controller_splits(labels, n_splits, seed)
@@ -640,7 +640,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
         The candidates' closed loop.
     splits : sequence of (train_indices, validation_indices)
         Episode-grouped folds, or with several controllers
-        :func:`~qube_koopman.identify.mixed.leave_one_controller_out`'s.
+        :func:`~qube_koopman.identify.estimators.mixed.leave_one_controller_out`'s.
     window : int
         Offset estimation window in samples; every candidate is scored from
         this sample on.
@@ -651,7 +651,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
         Address of a dask.distributed scheduler to run the candidates on
         instead (needs the ``dask`` extra).
     probes : ProbeSet, optional
-        Transfer probes (:func:`~qube_koopman.identify.transfer.twin_probes`):
+        Transfer probes (:func:`~qube_koopman.identify.model_selection.transfer.twin_probes`):
         each candidate is then ranked by the lower of its cross-validated and
         its transfer R^2 (:attr:`CandidateResult.objective`); without them by
         the cross-validated R^2 alone.
@@ -671,7 +671,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     """
     import joblib
 
-    from qube_koopman.identify._blas import limited_blas_threads
+    from qube_koopman.core.blas import limited_blas_threads
 
     space = space or SearchSpace()
     data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),

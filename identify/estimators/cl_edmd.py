@@ -6,16 +6,16 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
+from qube_koopman.identify.estimators._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
-from qube_koopman.identify.model import KoopmanModel
-from qube_koopman.identify.data import same_system
-from qube_koopman.identify.mixed import ControllerGroups, distinct_controllers
-from qube_koopman.identify.regression import (GroupedSnapshots, Snapshots, constrained_plant_solve,
+from qube_koopman.identify.models.model import KoopmanModel
+from qube_koopman.identify.data.logs import same_system
+from qube_koopman.identify.estimators.mixed import ControllerGroups, distinct_controllers
+from qube_koopman.identify.estimators.regression import (GroupedSnapshots, Snapshots, constrained_plant_solve,
                                               grouped_plant_solve, ridge_solve)
-from qube_koopman.identify.structure import (close_loop, extract_plant_lstsq, feedforward_columns,
+from qube_koopman.identify.estimators.structure import (close_loop, extract_plant_lstsq, feedforward_columns,
                                              output_selection, plant_input_map)
-from qube_koopman.identify.trajectory import Trajectory, as_episodes, check_trajectories, episode_signals
+from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, check_trajectories, episode_signals
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
@@ -203,7 +203,7 @@ class ClEdmd(ClosedLoopKoopman):
     sum_g w_g ||U^p S_g||^2`` (``w_g``: g's share of the snapshots; with
     ``regularize="plant"`` the penalty is ``alpha ||U^p||^2``), which with one
     controller is the problem above
-    (:func:`~qube_koopman.identify.regression.grouped_plant_solve`). The
+    (:func:`~qube_koopman.identify.estimators.regression.grouped_plant_solve`). The
     closed loop is ``self.controller``'s: its controller rows are fitted to its
     own episodes (penalty ``alpha w_g``), or are the known controller when
     none of the episodes ran it.

@@ -258,7 +258,7 @@ def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | 
     KoopmanModel
         Closed-loop model with state ``[x^c; theta^p]`` and input ``[r; f]``.
     """
-    from qube_koopman.identify.model import KoopmanModel
+    from qube_koopman.identify.models.model import KoopmanModel
 
     if plant.n_passthrough or plant.input_signals != ("u",) or plant.input_lifting is not None:
         raise ValueError("close_loop needs a plant model whose input is the unlifted plant input u")

@@ -48,7 +48,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.data.trajectory import Trajectory
 
 __all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "estimate_offsets_many",
            "predict_with_offsets_many", "shift_trajectory", "predict_with_offsets", "predict_estimating_offsets",
@@ -451,7 +451,7 @@ def scores_after_window(model, trajectories: Sequence[Trajectory], window: int, 
     -------
     ndarray of shape (n_episodes,)
     """
-    from qube_koopman.identify.scores import r2_scores
+    from qube_koopman.identify.metrics import r2_scores
 
     trajectories = list(trajectories)
     if offsets:

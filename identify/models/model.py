@@ -8,7 +8,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from qube_koopman.identify.lifting import Lifting
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.data.trajectory import Trajectory
 from qube_koopman.core.lti import spectral_radius
 
 __all__ = ["KoopmanModel", "FittedRows"]
@@ -147,12 +147,12 @@ class KoopmanModel:
             the reference code) or propagate the lifted state linearly.
         offsets : mapping or sequence, optional
             Per-episode sensor offsets (measured = true + offset), see
-            :mod:`identify.offsets`: a mapping ``{channel: value}`` of known
+            :mod:`identify.models.offsets`: a mapping ``{channel: value}`` of known
             offsets, or channels (indices or state names such as
             ``"alpha"``) whose offsets are estimated from the first
             ``window`` samples. An implausible estimate (beyond
-            :data:`identify.offsets.DEFAULT_BOUND`) is not used, with an
-            :class:`~identify.offsets.OffsetWarning`.
+            :data:`identify.models.offsets.DEFAULT_BOUND`) is not used, with an
+            :class:`~identify.models.offsets.OffsetWarning`.
         window : int, optional
             Samples of the estimation window (needed when estimating).
 
@@ -162,7 +162,7 @@ class KoopmanModel:
             The measured states (offsets added back).
         """
         if offsets is not None:
-            from qube_koopman.identify import offsets as off
+            from qube_koopman.identify.models import offsets as off
 
             if isinstance(offsets, Mapping):
                 known = {c: float(v) for c, v in zip(
@@ -210,7 +210,7 @@ class KoopmanModel:
         p : ndarray of shape ([n_episodes,] n_samples, n_passthrough)
             NaN before sample ``n_delays``.
         """
-        from qube_koopman.identify.simulate import simulate_batch
+        from qube_koopman.identify.models.simulate import simulate_batch
 
         v = np.asarray(v, dtype=float)
         single = v.ndim == 2

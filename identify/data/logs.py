@@ -11,7 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from qube_koopman.core.qube import STATE_NAMES
-from qube_koopman.identify.trajectory import EpisodeSequence, Trajectory
+from qube_koopman.identify.data.trajectory import EpisodeSequence, Trajectory
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["LoggedTrajectory", "StoredLog", "LogTrajectories", "load_logs", "check_same_controller", "check_same_rate",

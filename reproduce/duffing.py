@@ -7,12 +7,12 @@ noise-free test episode (normalized mean and RMS error, in percent).
 
 from __future__ import annotations
 
-from qube_koopman.identify.arx import Arx, ClArx
-from qube_koopman.identify.cl_edmd import ClEdmd
-from qube_koopman.identify.edmd import Edmd
+from qube_koopman.identify.estimators.arx import Arx, ClArx
+from qube_koopman.identify.estimators.cl_edmd import ClEdmd
+from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.lifting import Delay, ThinPlateRbf
-from qube_koopman.identify.scores import normalized_mean_error, nrmse
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.metrics import normalized_mean_error, nrmse
+from qube_koopman.identify.data.trajectory import Trajectory
 from qube_koopman.sim.duffing import DuffingEpisode, duffing_experiment
 
 __all__ = ["PAPER_DUFFING", "duffing_trajectory", "duffing_lifting", "reproduce_duffing"]

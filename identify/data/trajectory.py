@@ -86,7 +86,7 @@ class EpisodeSequence(Sequence):
     """Episodes made when asked for and not kept: memory holds one at a time, whatever their number.
 
     Subclasses say how to make episode ``i`` (:meth:`_make`), e.g. by reading its log again
-    (:class:`~qube_koopman.identify.data.LogTrajectories`). Fits, sweeps and scores pass over such a
+    (:class:`~qube_koopman.identify.data.logs.LogTrajectories`). Fits, sweeps and scores pass over such a
     sequence episode by episode; a list of in-memory trajectories works the same.
     """
 

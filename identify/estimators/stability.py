@@ -32,7 +32,7 @@ certificate is conservative: on the paper's QUBE split (10 delays, alpha
 problem, the least increase of the least-squares cost (a quadratic in the
 plant rows, metric ``K = S (H + alpha I) S^T``) with every closed-loop
 eigenvalue in the disc, directly on the eigenvalues by sequential quadratic
-programming (:mod:`identify._spectral`): on the same data it moves the one
+programming (:mod:`identify.estimators._spectral`): on the same data it moves the one
 offending eigenvalue to ``rho (1 - 1e-6)`` in two linearizations, well under
 a second, and leaves R^2 unchanged to 1e-6. It is a local method; when it
 does not reach the disc the fit falls back to the LMI. Either way the result
@@ -48,10 +48,10 @@ from typing import Sequence
 import numpy as np
 from scipy import linalg
 
-from qube_koopman.identify._spectral import DiscProblem, least_change_into_disc
+from qube_koopman.identify.estimators._spectral import DiscProblem, least_change_into_disc
 from qube_koopman.identify._checks import check_choice
-from qube_koopman.identify.cl_edmd import ClEdmdKnownRows
-from qube_koopman.identify.regression import Snapshots, constrained_plant_solve
+from qube_koopman.identify.estimators.cl_edmd import ClEdmdKnownRows
+from qube_koopman.identify.estimators.regression import Snapshots, constrained_plant_solve
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 
 __all__ = ["ClEdmdStable"]

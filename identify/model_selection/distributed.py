@@ -7,9 +7,10 @@ cluster run folds exactly what a local run folds:
   sent to the cluster once);
 * the per-episode snapshot statistics of a fit or a regularization sweep
   (:class:`ClusterStatistics`): a worker reads one training log, lifts it and returns its
-  :class:`~qube_koopman.identify.regression.Snapshots` factor (at most p x p, p the regressors and targets); the client
-  folds the factors as they come back. A worker reads the log at its path when the workers
-  see the client's files (``shared``), or from the bytes the client sends with the task.
+  :class:`~qube_koopman.identify.estimators.regression.Snapshots` factor (at most p x p, p the
+  regressors and targets); the client folds the factors as they come back. A worker reads the
+  log at its path when the workers see the client's files (``shared``), or from the bytes the
+  client sends with the task.
 
 dask reschedules the tasks of a worker that dies on the others; the results are the same.
 The scheduler and the workers need this package installed, at the client's version (checked on
@@ -191,8 +192,8 @@ class LogSource:
     data: bytes | None = None
 
     def read(self, skip: int):
-        """The log's :class:`~qube_koopman.identify.trajectory.Trajectory`, as ``load_logs`` gives it."""
-        from qube_koopman.identify.data import load_logs
+        """The log's :class:`~qube_koopman.identify.data.trajectory.Trajectory`, as ``load_logs`` gives it."""
+        from qube_koopman.identify.data.logs import load_logs
 
         refusal = "the client read it complete: is it the same file on this worker?"
         if self.data is None:
@@ -208,7 +209,7 @@ class LogSource:
 
 def _episode_part(estimator, setup, source: LogSource, skip: int):
     """On a worker: one log's snapshot statistics (what the estimator's own fit computes for it)."""
-    from qube_koopman.identify._blas import limited_blas_threads
+    from qube_koopman.core.blas import limited_blas_threads
 
     with limited_blas_threads(1):
         return estimator._episode_snapshots(setup, source.read(skip))
@@ -229,7 +230,7 @@ class ClusterStatistics:
     """Per-episode snapshot statistics of training logs, computed on a dask cluster.
 
     Called as ``statistics(estimator, setup, indices)`` (the ``episode_statistics`` of
-    :func:`~qube_koopman.identify.sweep.regularization_sweep` and
+    :func:`~qube_koopman.identify.model_selection.sweep.regularization_sweep` and
     :func:`~qube_koopman.identify.workflow.identify_and_score`), it yields the statistics of
     the logs at ``indices`` in that order, each computed by a worker from its log, as the
     estimator computes them from ``setup.trajectories`` here.

@@ -266,7 +266,7 @@ def constrained_plant_solve(snapshots: Snapshots, S: np.ndarray, alpha: float, r
     snapshots : Snapshots
         The closed loop's statistics.
     S : ndarray
-        The plant input map (:func:`~qube_koopman.identify.structure.plant_input_map`).
+        The plant input map (:func:`~qube_koopman.identify.estimators.structure.plant_input_map`).
     alpha : float
         Tikhonov coefficient.
     rows : slice
@@ -290,7 +290,7 @@ class GroupedSnapshots:
 
     Each controller's episodes have their own regressor ``Psi_g = [x^c; theta^p; r; f]``
     (the controller state's width may differ) and plant input map ``S_g``
-    (:func:`~qube_koopman.identify.structure.plant_input_map`), but the plant
+    (:func:`~qube_koopman.identify.estimators.structure.plant_input_map`), but the plant
     ``U^p`` is common: :func:`grouped_plant_solve` fits it to all of them.
 
     Attributes

@@ -9,7 +9,7 @@ import numpy as np
 
 from qube_koopman.identify.lifting import Lifting
 from qube_koopman.identify.params import Params
-from qube_koopman.identify.trajectory import Trajectory
+from qube_koopman.identify.data.trajectory import Trajectory
 
 
 class Estimator(Params):
@@ -56,7 +56,7 @@ class SnapshotEstimator(Estimator):
         selection's per-episode statistics (bit for bit, the indices in increasing order).
         ``elsewhere(estimator, setup, ids)`` computes the episodes' statistics instead of this
         process, in order (on a dask cluster:
-        :class:`~qube_koopman.identify.distributed.ClusterStatistics`); ``ids`` are the
+        :class:`~qube_koopman.identify.model_selection.distributed.ClusterStatistics`); ``ids`` are the
         episodes' places in ``indices`` (the setup's episodes among a larger list), or their own.
         """
         members = [None if s is None else {int(j) for j in s} for s in selections]
@@ -86,7 +86,7 @@ class SnapshotEstimator(Estimator):
         ``per_episode`` is a list when ``indices`` selects from it, else any iterable (a generator
         folds as it goes).
         """
-        from qube_koopman.identify.regression import Snapshots
+        from qube_koopman.identify.estimators.regression import Snapshots
 
         return Snapshots.total(per_episode if indices is None else [per_episode[int(j)] for j in indices])
 
@@ -102,10 +102,10 @@ class SnapshotEstimator(Estimator):
 
 
 class _EpisodeFold:
-    """:class:`~qube_koopman.identify.regression.SnapshotFold` taking the episode's index too."""
+    """:class:`~qube_koopman.identify.estimators.regression.SnapshotFold` taking the episode's index too."""
 
     def __init__(self) -> None:
-        from qube_koopman.identify.regression import SnapshotFold
+        from qube_koopman.identify.estimators.regression import SnapshotFold
 
         self._fold = SnapshotFold()
 
@@ -144,7 +144,7 @@ class FitSetup:
     #: uses (a sweep that only scores re-lifted predictions); the other rows are NaN.
     target_rows: int | None = None
     #: Closed-loop fits of episodes under several controllers: who ran which episode
-    #: (:class:`~qube_koopman.identify.mixed.ControllerGroups`); None when all ran the estimator's.
+    #: (:class:`~qube_koopman.identify.estimators.mixed.ControllerGroups`); None when all ran the estimator's.
     controller_groups: object | None = None
 
 
