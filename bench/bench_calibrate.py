@@ -38,7 +38,7 @@ def main() -> None:
     from qube_koopman.identify.calibrate import PlantCalibration
     from qube_koopman.identify.calibrate import shooting as ms
     from qube_koopman.identify.calibrate.fit import ENCODER_SIGMA
-    from qube_koopman.identify.data.logs import paper_split
+    from qube_koopman.identify.model_selection.split import paper_split
 
     train, _ = paper_split(sorted(args.logs.glob("*.mcap")))
     episodes = [read_episode(path) for path in train[:args.episodes]]

@@ -45,7 +45,8 @@ def import_dataset(out: Path) -> None:
 def naive_cost(data: Path, n_alphas: int = 2, n_validation: int = 2) -> float:
     """Seconds per (fold, alpha, scoring) evaluation of the naive approach."""
     from qube_koopman.identify import ClEdmd, Delay, Polynomial
-    from qube_koopman.identify.data.logs import check_same_controller, group_shuffle_splits, load_logs, paper_split
+    from qube_koopman.identify.data.logs import check_same_controller, load_logs
+    from qube_koopman.identify.model_selection.split import group_shuffle_splits, paper_split
     from naive_reference import naive_predict
 
     train_paths, _ = paper_split(sorted(data.glob("*.mcap")))

@@ -92,7 +92,8 @@ def main() -> None:
     from bench_qube_reproduction import import_dataset
 
     from qube_koopman.identify import ClEdmdKnownRows, Delay, Polynomial
-    from qube_koopman.identify.data.logs import check_same_controller, load_logs, paper_split
+    from qube_koopman.identify.data.logs import check_same_controller, load_logs
+    from qube_koopman.identify.model_selection.split import paper_split
     from qube_koopman.identify.metrics import summarize_episodes
     from qube_koopman.identify.estimators.stability import ClEdmdStable, _plant_cost
 

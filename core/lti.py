@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DiscreteStateSpace", "controller_inputs", "replay_controller", "padded_realization", "spectral_radius"]
+__all__ = ["DiscreteStateSpace", "controller_inputs", "replay_controller", "padded_realization", "spectral_radius",
+           "same_system"]
 
 
 def spectral_radius(matrix) -> float:
@@ -273,3 +274,9 @@ def padded_realization(system: DiscreteStateSpace, n_states: int, seed: int = 0)
     C = np.hstack([system.C, np.zeros((system.n_outputs, extra))])
     Q, _ = np.linalg.qr(rng.standard_normal((n_states, n_states)))
     return DiscreteStateSpace(Q @ A @ Q.T, Q @ B, C @ Q.T, system.D, system.dt)
+
+
+def same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
+    """Whether two discrete systems have the same matrices and period (to 1e-12)."""
+    return (a.dt == b.dt and all(x.shape == y.shape and np.allclose(x, y, rtol=1e-12, atol=1e-12)
+                                 for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))))

@@ -29,15 +29,16 @@ _HOMES = {
     # models and model files
     "KoopmanModel": "models.model", "save_model": "models.model_file", "load_model": "models.model_file",
     # what qube-identify runs: identification, regularization sweep, lifting search, probes
-    "identify_and_score": "workflow", "IdentificationResult": "workflow",
+    "identify_and_score": "workflow", "IdentificationResult": "workflow", "run_search": "workflow",
+    "SearchOptions": "workflow", "OffsetProtocol": "workflow",
     "regularization_sweep": "model_selection.sweep",
     "search_liftings": "model_selection.search", "LiftingSpec": "model_selection.search",
-    "twin_probes": "model_selection.transfer", "probe_scores": "model_selection.transfer",
+    "twin_probes": "model_selection.transfer", "probe_scores": "metrics",
     # per-episode offsets
     "OffsetEstimate": "models.offsets", "estimate_offsets": "models.offsets",
     "estimate_offsets_many": "models.offsets",
     "predict_with_offsets": "models.offsets", "predict_with_offsets_many": "models.offsets",
-    "scores_after_window": "models.offsets",
+    "scores_after_window": "metrics",
     # prediction intervals
     "IntervalOptions": "uncertainty", "PredictionBand": "uncertainty",
     # least squares and the closed loop's structure

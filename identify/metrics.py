@@ -1,4 +1,4 @@
-"""Prediction scores, per episode and aggregated over episodes.
+"""Prediction scores, per episode and aggregated over episodes, and the search's scoring rule.
 
 All take ``y_true`` and ``y_pred`` of shape (n_samples, n_states). The error
 is ``y_true - y_pred``. A prediction with any non-finite value scores
@@ -12,16 +12,21 @@ is constant, R^2 is NaN.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Sequence
-
 import warnings
+from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
 import numpy as np
+
+from qube_koopman.identify.data.trajectory import Trajectory
+from qube_koopman.identify.models.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets_many
+
+if TYPE_CHECKING:
+    from qube_koopman.identify.model_selection.transfer import ProbeSet
 
 __all__ = ["ConstantChannelWarning", "r2_score", "r2_scores", "r2_scores_time_major", "r2_from_sums",
            "r2_from_residuals", "DivergedPrediction", "first_diverged_sample",
            "summarize_episodes", "EpisodeScore", "episode_score", "summarize_scores", "nrmse", "normalized_mean_error",
-           "score_episodes", "SCORES"]
+           "score_episodes", "SCORES", "scores_after_window", "probe_scores"]
 
 
 class ConstantChannelWarning(UserWarning):
@@ -301,3 +306,68 @@ def summarize_scores(scores: Sequence[EpisodeScore], names: Sequence[str] | None
             "n_diverged": len(diverged), "diverged": diverged,
             "r2_mean_converged": float(r2[ok].mean()) if ok.any() else None,
             "r2_per_episode": r2.tolist()}
+
+
+def scores_after_window(model, trajectories: Sequence[Trajectory], window: int, offsets: bool,
+                        bound: float = DEFAULT_BOUND) -> np.ndarray:
+    """R^2 of each episode's prediction from sample ``window`` on, its alpha offset estimated first or not.
+
+    The protocol candidates and probes are scored by: the whole episode predicted from its start
+    (with the offset estimated from the first ``window`` samples when ``offsets``), R^2 averaged
+    over the measured states, -inf for a diverged prediction.
+
+    Parameters
+    ----------
+    model : KoopmanModel
+        Closed-loop model (inputs r, f).
+    trajectories : sequence of Trajectory
+        The episodes.
+    window : int
+        Samples of the estimation window; scored from the next one on.
+    offsets : bool
+        Estimate each episode's alpha offset from the window first.
+    bound : float
+        Plausibility bound of the estimate (:func:`estimate_offsets`).
+
+    Returns
+    -------
+    ndarray of shape (n_episodes,)
+    """
+    trajectories = list(trajectories)
+    if offsets:
+        estimates = estimate_offsets_many(model, trajectories, ["alpha"], window, bound)
+        predictions = predict_with_offsets_many(model, trajectories, estimates)
+    else:
+        predictions = model.predict_many(trajectories)
+    return np.array([float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, predictions)])
+
+
+def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: float,
+                 measured: Sequence[int] = (0, 1)) -> np.ndarray:
+    """R^2 of every probe episode predicted by ``plant`` wrapped with its probe controller.
+
+    Parameters
+    ----------
+    plant : KoopmanModel
+        An identified plant (input ``u``).
+    probes : ProbeSet
+    window : int
+        Scores cover the samples from this one on (the offset estimation window's end).
+    offsets : bool
+        Estimate each probe episode's alpha offset from the window first.
+    bound : float
+        Plausibility bound of the offsets (larger estimates are not used).
+    measured : sequence of int
+        Fed-back states.
+
+    Returns
+    -------
+    ndarray of shape (n_episodes,)
+        Mean R^2 of theta and alpha per probe episode (-inf: diverged).
+    """
+    from qube_koopman.identify.metrics import scores_after_window
+    from qube_koopman.identify.estimators.structure import close_loop
+
+    return np.concatenate([scores_after_window(close_loop(plant, controller, list(measured)), episodes, window,
+                                               offsets, bound)
+                           for controller, episodes in zip(probes.controllers, probes.episodes)])

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 from qube_koopman.core.files import atomic_path
-from qube_koopman.identify.data.logs import same_system
+from qube_koopman.core.lti import same_system
 from qube_koopman.identify.models.offsets import (
     OffsetEstimate,
     estimate_offsets_many,

@@ -12,11 +12,13 @@ import numpy as np
 from qube_koopman.core.blas import limited_blas_threads
 from qube_koopman.identify.estimators.arx import Arx, ClArx
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
-from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories, same_system
-from qube_koopman.identify.estimators.mixed import FOLD_KINDS, cross_validation_folds, training_controllers_report
+from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories
+from qube_koopman.core.lti import same_system
+from qube_koopman.identify.estimators.mixed import training_controllers_report
+from qube_koopman.identify.model_selection.split import FOLD_KINDS, cross_validation_folds
 from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.stability import ClEdmdStable
-from qube_koopman.identify.models.model_file import lifting_to_dict, save_model
+from qube_koopman.identify.models.model_file import lifting_to_dict, save_arx_model, save_model
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import DivergedPrediction, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, controller_states
@@ -24,10 +26,10 @@ from qube_koopman.identify.model_selection.sweep import SweepResult, regularizat
 from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, consecutive_runs,
                                                fit_ensemble, predict_episodes, prediction_band)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
-from qube_koopman.core.files import atomic_path
 from qube_koopman.core.qube import MEASURED, STATE_NAMES
 
-__all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS"]
+__all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS", "SearchOptions",
+           "run_search"]
 
 KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows,
                    "cl-edmd-lstsq": ClEdmdLstsq, "cl-edmd-stable": ClEdmdStable}
@@ -246,8 +248,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
             # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
             if model_path is not None:
-                with atomic_path(model_path) as tmp:
-                    tmp.write_text(_arx_json(method, arx_lags, plant, closed))
+                save_arx_model(model_path, method=method, lags=arx_lags,
+                               model=plant if method == "arx" else closed)
             _score_arx(predict, test, result, score_from, keep_predictions)
         else:
             raise ValueError(f"unknown method {method!r}")
@@ -494,10 +496,105 @@ def _score_arx(predict, test, result, score_from, keep_predictions) -> None:
     scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt), dt)
 
 
-def _arx_json(method, lags, plant, closed) -> str:
-    import json
+@dataclass(frozen=True)
+class SearchOptions:
+    """How the complete lifting search runs (``qube-identify --search``'s options).
 
-    arx = plant if method == "arx" else closed
-    return json.dumps({"format": "qube-arx-model", "version": 1, "method": method, "output_lags": lags,
-                       "input_lags": lags, "inputs": list(arx.inputs), "coef": arx.coef_.tolist(),
-                       "dt": arx.dt_}, indent=1) + "\n"
+    Parameters
+    ----------
+    space : SearchSpace, optional
+        The values to try (:class:`~qube_koopman.identify.model_selection.search.SearchSpace`'s
+        defaults when None).
+    estimate_window : float
+        Offset estimation window (s); every candidate is scored from its end on.
+    offset_bound : float
+        Plausibility bound of the offset estimates (rad).
+    cv_splits, cv_seed : int
+        Episode-grouped folds with one training controller (several: one fold per controller).
+    transfer : {"twin", "none"}
+        ``"twin"`` ranks candidates by the lower of their cross-validated and twin-probe
+        transfer R^2; ``"none"`` by the cross-validated R^2 alone.
+    probe_cache : Path, optional
+        Folder of cached twin probe sets (None: simulate them every time).
+    rbf_seed : int
+        Seed of the RBF centres.
+    n_jobs : int
+        Worker processes (-1: every core); unused with ``scheduler``.
+    scheduler : str, optional
+        Address of a dask scheduler to run the candidates on.
+    security : distributed.security.Security, optional
+        The TLS settings of that scheduler.
+    """
+
+    space: object = None
+    estimate_window: float = 1.0
+    offset_bound: float = DEFAULT_BOUND
+    cv_splits: int = 3
+    cv_seed: int = 1234
+    transfer: str = "twin"
+    probe_cache: Path | None = None
+    rbf_seed: int = 0
+    n_jobs: int = -1
+    scheduler: str | None = None
+    security: object = None
+
+
+def run_search(train: Sequence[LoggedTrajectory], controller: DiscreteStateSpace,
+               options: SearchOptions = SearchOptions(), progress: Callable | None = None):
+    """The complete lifting search: folds, the twin's transfer probes, the candidates, the winner.
+
+    What ``qube-identify --search`` runs before it fits the winner on all training logs.
+
+    Parameters
+    ----------
+    train : sequence of LoggedTrajectory
+        The training logs (:func:`~qube_koopman.identify.load_logs`).
+    controller : DiscreteStateSpace
+        The closed loop's controller (with several training controllers, the majority's).
+    options : SearchOptions
+    progress : callable, optional
+        Wraps an iterable to show progress (``tqdm``-like).
+
+    Returns
+    -------
+    SearchResult
+        The candidates, the winner, the folds (``folds``), the probes' time
+        (``probe_seconds``) and, with several controllers, the winner's
+        same-controller scores (``same_controller``).
+
+    Raises
+    ------
+    ValueError
+        When the estimation window and the largest delay leave nothing to score.
+    """
+    import time
+
+    from qube_koopman.identify.model_selection.search import SearchSpace, same_controller_scores, search_liftings
+    from qube_koopman.identify.model_selection.transfer import twin_probes
+
+    space = options.space or SearchSpace()
+    trajs = LogTrajectories(train)  # read when needed (stored logs), not all held at once
+    window = int(round(options.estimate_window / train[0].dt))
+    if min(log.n_samples for log in train) <= window + max(space.delays) + 2:
+        raise ValueError(f"an estimation window of {options.estimate_window:g} s and {max(space.delays)} delays "
+                         "leave nothing to score in the shortest training episode")
+    controllers = [log.controller for log in train]
+    folds = cross_validation_folds(controllers, options.cv_splits, options.cv_seed)
+    probes, probe_seconds = None, 0.0
+    if options.transfer == "twin":
+        started = time.perf_counter()
+        probes = twin_probes(trajs, cache=options.probe_cache)
+        probe_seconds = time.perf_counter() - started
+    several = folds.kind == "leave-one-controller-out"
+    result = search_liftings(trajs, controller, splits=folds.splits, window=window, space=space,
+                             n_jobs=options.n_jobs, scheduler=options.scheduler, security=options.security,
+                             bound=options.offset_bound, rbf_seed=options.rbf_seed, probes=probes,
+                             progress=progress, controllers=controllers if several else None)
+    result.folds = folds
+    result.probe_seconds = probe_seconds
+    if several:
+        result.same_controller = same_controller_scores(result.winner, trajs, controller, controllers,
+                                                        window=window, n_splits=options.cv_splits,
+                                                        seed=options.cv_seed, bound=options.offset_bound,
+                                                        rbf_seed=options.rbf_seed)
+    return result

@@ -21,8 +21,9 @@ from qube_koopman.daq.log.names import find_logs
 from qube_koopman.core.blas import limited_blas_threads
 from qube_koopman.identify.estimators.arx import Arx
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd
-from qube_koopman.identify.data.logs import (check_same_controller, check_same_rate, group_shuffle_splits, load_logs,
-                                       paper_split, same_system)
+from qube_koopman.identify.data.logs import check_same_controller, check_same_rate, load_logs
+from qube_koopman.identify.model_selection.split import group_shuffle_splits, paper_split
+from qube_koopman.core.lti import same_system
 from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.lifting import Delay, Polynomial
 from qube_koopman.identify.metrics import summarize_episodes

@@ -19,7 +19,7 @@ import pytest
 
 from qube_koopman.identify.calibrate import PlantCalibration
 from qube_koopman.identify.calibrate.validate import replay_episodes
-from qube_koopman.identify.data.logs import paper_split
+from qube_koopman.identify.model_selection.split import paper_split
 from qube_koopman.sim.pendulum import PendulumParameters
 
 pytestmark = [pytest.mark.dataset, pytest.mark.slow]

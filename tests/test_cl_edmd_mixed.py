@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from qube_koopman.identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Delay, Trajectory, close_loop
-from qube_koopman.identify.estimators.mixed import ControllerGroups, leave_one_controller_out, majority_controller
+from qube_koopman.identify.estimators.mixed import ControllerGroups, majority_controller
+from qube_koopman.identify.model_selection.split import leave_one_controller_out
 from qube_koopman.identify.estimators.regression import constrained_plant_solve, grouped_plant_solve
 from qube_koopman.identify.estimators.stability import ClEdmdStable
 from qube_koopman.identify.model_selection.sweep import regularization_sweep

@@ -14,7 +14,7 @@ import pytest
 
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 from qube_koopman.identify import ClEdmd, Delay, Edmd, Polynomial, ThinPlateRbf
-from qube_koopman.identify.data.logs import group_shuffle_splits
+from qube_koopman.identify.model_selection.split import group_shuffle_splits
 from qube_koopman.identify.model_selection.distributed import ClusterStatistics, LogSource, _check_versions, _unseen, ordered_results
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 

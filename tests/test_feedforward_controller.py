@@ -23,7 +23,8 @@ from qube_koopman.daq.log import read_episode
 from qube_koopman.identify import (ClEdmd, close_loop, closed_loop_matrices, controller_states,
                                    extract_plant_lstsq, output_selection)
 from qube_koopman.identify.cli.identify import main as identify_main
-from qube_koopman.identify.data.logs import load_logs, same_system
+from qube_koopman.identify.data.logs import load_logs
+from qube_koopman.core.lti import same_system
 from qube_koopman.identify.models.model_file import load_model
 from qube_koopman.identify.metrics import r2_score
 from qube_koopman.core.qube import MEASURED

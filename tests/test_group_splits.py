@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from qube_koopman.identify.data.logs import group_shuffle_splits
+from qube_koopman.identify.model_selection.split import group_shuffle_splits
 
 # Written down from scikit-learn 1.9.1, GroupShuffleSplit(n_splits, test_size=..., random_state=...)
 # with one group per episode: (n_groups, n_splits, test_size, seed) -> test indices of each split.

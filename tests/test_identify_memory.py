@@ -131,7 +131,7 @@ def test_a_fit_on_a_lazy_sequence_reads_one_episode_at_a_time():
 
 @pytest.mark.parametrize("mixed", [False, True])
 def test_fold_totals_from_one_pass_equal_direct_totals_over_each_folds_episodes(mixed):
-    from qube_koopman.identify.data.logs import group_shuffle_splits
+    from qube_koopman.identify.model_selection.split import group_shuffle_splits
 
     other = DiscreteStateSpace(np.eye(3) * 0.3, np.ones((3, 2)), -np.ones((2, 3)), np.eye(2), dt=0.002)
     controllers = [CONTROLLER if i % 3 else other for i in range(10)] if mixed else None
@@ -164,7 +164,7 @@ def _statistics_with(estimator, episodes, splits, controllers):
 
 
 def test_the_folds_statistics_memory_does_not_grow_with_the_episodes():
-    from qube_koopman.identify.data.logs import group_shuffle_splits
+    from qube_koopman.identify.model_selection.split import group_shuffle_splits
 
     n_samples = 300
     estimator = ClEdmd(CONTROLLER, [Polynomial(2), Delay(20), Constant()])
@@ -264,7 +264,7 @@ def test_stored_logs_identify_and_score_as_logs_in_memory(qube_logs):
 
 def test_a_search_candidate_on_a_lazy_sequence_scores_as_on_a_list(monkeypatch):
     from qube_koopman.identify.model_selection import sweep
-    from qube_koopman.identify.data.logs import group_shuffle_splits
+    from qube_koopman.identify.model_selection.split import group_shuffle_splits
     from qube_koopman.identify.model_selection.search import LiftingSpec, SearchData, evaluate_candidate
 
     def data(episodes):

@@ -110,7 +110,7 @@ def test_single_loop_methods_refuse_two_controllers(two_controllers, tmp_path, c
 
 def test_the_search_reports_the_winners_same_controller_score_beside_leave_one_controller_out(two_controllers,
                                                                                             tmp_path, capsys):
-    from qube_koopman.identify.estimators.mixed import within_controller_splits
+    from qube_koopman.identify.model_selection.split import within_controller_splits
 
     train, test = _train_test(two_controllers)
     space = tmp_path / "space.toml"

@@ -10,7 +10,8 @@ import pytest
 
 from conftest import stop_library_daemons
 from qube_koopman.identify import ClEdmd, Lifting
-from qube_koopman.identify.data.logs import check_same_controller, group_shuffle_splits, load_logs
+from qube_koopman.identify.data.logs import check_same_controller, load_logs
+from qube_koopman.identify.model_selection.split import group_shuffle_splits
 from qube_koopman.identify.models.offsets import (estimate_offsets, estimate_offsets_many, predict_with_offsets,
                                            predict_with_offsets_many)
 from qube_koopman.identify.metrics import r2_scores
@@ -338,3 +339,27 @@ def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_
     assert family_of(LiftingSpec(delays=4, poly=1), specs) is None
     assert family_of(LiftingSpec(delays=3, poly=1, rbf=5), specs + [LiftingSpec(delays=3, poly=2, rbf=5)]) is None
     assert family_of(LiftingSpec(delays=3, poly=1, offsets=True), specs) is None
+
+
+def test_the_complete_search_runs_from_python_as_the_command_runs_it(qube_logs):
+    """identify.run_search takes an options object (no argparse Namespace): its folds are the
+    command's (cross_validation_folds of the training controllers) and its winner is what
+    search_liftings finds on those folds."""
+    from qube_koopman.identify import SearchOptions, run_search
+    from qube_koopman.identify.data.logs import LogTrajectories
+    from qube_koopman.identify.model_selection.split import cross_validation_folds
+
+    logs = load_logs(sorted(qube_logs.glob("*.mcap"))[:4], skip=500)
+    controller = check_same_controller(logs, "training")
+    options = SearchOptions(space=SMALL_SPACE, transfer="none", n_jobs=1, cv_splits=2, cv_seed=5)
+    result = run_search(logs, controller, options)
+    folds = cross_validation_folds([log.controller for log in logs], 2, 5)
+    assert result.folds.kind == "episode-grouped" and result.probes is None and result.same_controller is None
+    for mine, theirs in zip(result.folds.splits, folds.splits):
+        np.testing.assert_array_equal(mine[1], theirs[1])
+    direct = search_liftings(LogTrajectories(logs), controller, splits=folds.splits, window=500,
+                             space=SMALL_SPACE, n_jobs=1)
+    assert result.winner.spec == direct.winner.spec
+    np.testing.assert_allclose(result.winner.cv_r2, direct.winner.cv_r2, rtol=1e-12)
+    with pytest.raises(ValueError, match="leave nothing to score"):
+        run_search(logs, controller, SearchOptions(space=SMALL_SPACE, estimate_window=40.0, transfer="none"))

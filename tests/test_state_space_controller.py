@@ -25,7 +25,8 @@ from qube_koopman.daq.session import excitation_settings, plan_episodes, run_see
 from qube_koopman.daq.sinks import McapSink
 from qube_koopman.identify import controller_states
 from qube_koopman.identify.cli.identify import main as identify_main
-from qube_koopman.identify.data.logs import load_logs, same_system
+from qube_koopman.identify.data.logs import load_logs
+from qube_koopman.core.lti import same_system
 from qube_koopman.identify.models.model_file import load_model
 from qube_koopman.sim.bridge import BridgeEmulator
 from qube_koopman.core.lti import padded_realization, replay_controller

@@ -26,7 +26,8 @@ from qube_koopman.identify.models.offsets import estimate_offsets_many
 from qube_koopman.identify.metrics import r2_scores
 from qube_koopman.identify.model_selection.search import CandidateResult, LiftingSpec, SearchResult
 from qube_koopman.identify.estimators.structure import close_loop
-from qube_koopman.identify.model_selection.transfer import twin_probes, probe_scores
+from qube_koopman.identify.model_selection.transfer import twin_probes
+from qube_koopman.identify.metrics import probe_scores
 
 COUNT = 2 * math.pi / 2048
 WINDOW = 500

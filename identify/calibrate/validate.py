@@ -51,7 +51,7 @@ def controller_groups(episodes: Sequence) -> list[tuple[str, list[int]]]:
     """The episodes grouped by the controller they ran under (and their length), in order of first appearance.
 
     Two episodes share a group when their controllers are the same system
-    (:func:`~qube_koopman.identify.data.logs.same_system`) and they have as many
+    (:func:`~qube_koopman.core.lti.same_system`) and they have as many
     samples: :func:`replay_episodes` replays one group at a time.
 
     Returns
@@ -59,7 +59,7 @@ def controller_groups(episodes: Sequence) -> list[tuple[str, list[int]]]:
     list of (str, list of int)
         Each group's label (:func:`controller_label`) and its episodes' indices.
     """
-    from qube_koopman.identify.data.logs import same_system
+    from qube_koopman.core.lti import same_system
 
     groups: list[tuple[str, list[int]]] = []
     for i, e in enumerate(episodes):

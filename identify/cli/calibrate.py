@@ -85,7 +85,7 @@ def _run(args) -> int:
     from qube_koopman.identify.calibrate import PlantCalibration
     from qube_koopman.identify.calibrate.report import calibration_text, write_report
     from qube_koopman.identify.calibrate.validate import controller_groups
-    from qube_koopman.identify.data.logs import paper_split
+    from qube_koopman.identify.model_selection.split import paper_split
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
     fit_paths, val_paths = expand_logs(args.logs), expand_logs(args.validate)

@@ -360,7 +360,8 @@ def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
 
 
 def _load(args):
-    from qube_koopman.identify.data.logs import IncompleteLogSkipped, check_same_rate, load_logs, paper_split
+    from qube_koopman.identify.data.logs import IncompleteLogSkipped, check_same_rate, load_logs
+    from qube_koopman.identify.model_selection.split import paper_split
     from qube_koopman.identify.estimators.mixed import majority_controller
 
     if args.split:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import os
 import sys
-import time
 import tomllib
 from dataclasses import fields
 from pathlib import Path
@@ -52,46 +51,35 @@ def probe_cache() -> Path:
     return Path(os.environ.get("QUBE_KOOPMAN_PROBE_CACHE") or cache_root() / "probes")
 
 
+def search_options(args):
+    """The search's options from the command line's (parsed and checked) arguments."""
+    from qube_koopman.identify.workflow import SearchOptions
+
+    return SearchOptions(space=load_space(args.search_space), estimate_window=args.estimate_window,
+                         offset_bound=args.offset_bound, cv_splits=args.cv_splits, cv_seed=args.cv_seed,
+                         transfer=args.transfer, probe_cache=probe_cache() if args.probe_cache else None,
+                         rbf_seed=args.rbf_seed, n_jobs=args.n_jobs, scheduler=args.scheduler,
+                         security=args.security)
+
+
 def run_search(args, train, controller):
-    """Run the search on the training logs; prints the winner's line."""
-    from qube_koopman.identify.estimators.mixed import cross_validation_folds
-    from qube_koopman.identify.model_selection.search import TIMING_KEYS, search_liftings
+    """Run the search on the training logs (:func:`~qube_koopman.identify.workflow.run_search`); logs its
+    time per stage and prints the winner's line."""
+    from qube_koopman.identify.model_selection.search import TIMING_KEYS
+    from qube_koopman.identify.workflow import run_search as search
 
-    space = load_space(args.search_space)
-    from qube_koopman.identify.data.logs import LogTrajectories
-
-    trajs = LogTrajectories(train)  # read when needed (stored logs), not all held at once
-    window = int(round(args.estimate_window / train[0].dt))
-    if min(log.n_samples for log in train) <= window + max(space.delays) + 2:
-        raise CliError(f"--estimate-window {args.estimate_window} s and {max(space.delays)} delays leave nothing "
-                       "to score in the shortest training episode")
-    controllers = [log.controller for log in train]
-    folds = cross_validation_folds(controllers, args.cv_splits, args.cv_seed)
-    probes, probe_seconds = None, 0.0
-    if args.transfer == "twin":
-        from qube_koopman.identify.model_selection.transfer import twin_probes
-
-        started = time.perf_counter()
-        probes = twin_probes(trajs, cache=probe_cache() if args.probe_cache else None)
-        probe_seconds = time.perf_counter() - started
-        _log.info("search: %d twin probe episodes simulated in %.1f s", probes.n_episodes, probe_seconds)
-    result = search_liftings(trajs, controller, splits=folds.splits, window=window, space=space, n_jobs=args.n_jobs,
-                             scheduler=args.scheduler, security=args.security, bound=args.offset_bound,
-                             rbf_seed=args.rbf_seed, probes=probes, progress=progress,
-                             controllers=controllers if folds.kind == "leave-one-controller-out" else None)
-    result.folds = folds
-    result.probe_seconds = probe_seconds
+    try:
+        result = search(train, controller, search_options(args), progress=progress)
+    except ValueError as exc:
+        raise CliError(str(exc).replace("an estimation window of", "--estimate-window")) from None
+    if result.probes is not None:
+        _log.info("search: %d twin probe episodes simulated in %.1f s", result.probes.n_episodes,
+                  result.probe_seconds)
     _log.info("search: time per stage (wall; candidates' statistics / fits / predictions / offsets / probe fits / "
               "probe scoring, summed over workers): %s", "; ".join(
                   f"{stage} {t['wall']:.1f} s ({' / '.join(f'{t[k]:.1f}' for k in TIMING_KEYS)})"
                   for stage, t in result.timing()["stages"].items()))
     best = result.winner
-    if folds.kind == "leave-one-controller-out":
-        from qube_koopman.identify.model_selection.search import same_controller_scores
-
-        result.same_controller = same_controller_scores(best, trajs, controller, controllers, window=window,
-                                                        n_splits=args.cv_splits, seed=args.cv_seed,
-                                                        bound=args.offset_bound, rbf_seed=args.rbf_seed)
     transfer = "" if best.transfer_score is None else f", transfer R^2 {best.transfer_score:.4f}"
     print(f"search: {len(result.candidates)} candidates in {result.seconds:.0f} s; winner {best.spec.label()}, "
           f"alpha {best.best_alpha:g}, cross-validated R^2 {best.cv_score:.4f}{transfer}", file=sys.stderr)
@@ -121,7 +109,7 @@ OBJECTIVE = {
 
 def search_report(result, args, names) -> dict:
     """The search's part of report.json (``names``: the training logs')."""
-    from qube_koopman.identify.estimators.mixed import FOLD_KINDS
+    from qube_koopman.identify.model_selection.split import FOLD_KINDS
     from qube_koopman.identify.model_selection.search import STAGES
 
     space = load_space(args.search_space)

@@ -12,10 +12,10 @@ import numpy as np
 
 from qube_koopman.core.qube import STATE_NAMES
 from qube_koopman.identify.data.trajectory import EpisodeSequence, Trajectory
-from qube_koopman.core.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace, same_system
 
 __all__ = ["LoggedTrajectory", "StoredLog", "LogTrajectories", "load_logs", "check_same_controller", "check_same_rate",
-           "paper_split", "group_shuffle_splits", "IncompleteLogSkipped", "UnreadableLogSkipped", "same_system"]
+           "IncompleteLogSkipped", "UnreadableLogSkipped"]
 
 
 _log = logging.getLogger(__name__)
@@ -188,12 +188,6 @@ def check_same_rate(logs: Sequence[LoggedTrajectory | StoredLog], what: str) -> 
     return dt
 
 
-def same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
-    """Whether two discrete systems have the same matrices and period (to 1e-12)."""
-    return (a.dt == b.dt and all(x.shape == y.shape and np.allclose(x, y, rtol=1e-12, atol=1e-12)
-                                 for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))))
-
-
 def check_same_controller(logs: Sequence[LoggedTrajectory | StoredLog], what: str) -> DiscreteStateSpace:
     """The common controller of the logs; a ValueError naming the odd file otherwise."""
     controller = logs[0].controller
@@ -204,33 +198,3 @@ def check_same_controller(logs: Sequence[LoggedTrajectory | StoredLog], what: st
     return controller
 
 
-def paper_split(paths: Sequence[str | Path], n_train: int = 28) -> tuple[list[Path], list[Path]]:
-    """The paper's split: names sorted, the first ``n_train`` train, the rest test."""
-    ordered = sorted((Path(p) for p in paths), key=lambda p: p.name)
-    if len(ordered) <= n_train:
-        raise ValueError(f"the paper's split needs more than {n_train} logs, got {len(ordered)}")
-    return ordered[:n_train], ordered[n_train:]
-
-
-def group_shuffle_splits(n_groups: int, n_splits: int = 3, test_size: float = 0.2,
-                         seed: int = 1234) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Random episode-grouped splits, identical to scikit-learn's GroupShuffleSplit.
-
-    Each split holds out ``ceil(test_size * n_groups)`` episodes (6 of 28 for
-    the paper's protocol) drawn by the same ``RandomState`` permutations as
-    ``GroupShuffleSplit(n_splits, test_size=test_size, random_state=seed)``.
-
-    Returns
-    -------
-    list of (train_indices, validation_indices)
-    """
-    n_test = int(np.ceil(test_size * n_groups))
-    n_train = n_groups - n_test
-    if n_test < 1 or n_train < 1 or n_splits < 1:
-        raise ValueError(f"cannot make {n_splits} splits holding out {test_size:g} of {n_groups} episodes")
-    rng = np.random.RandomState(seed)
-    splits = []
-    for _ in range(n_splits):
-        permutation = rng.permutation(n_groups)
-        splits.append((np.sort(permutation[n_test:n_test + n_train]), np.sort(permutation[:n_test])))
-    return splits

@@ -9,7 +9,7 @@ import numpy as np
 from qube_koopman.identify.estimators._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
 from qube_koopman.identify.models.model import KoopmanModel
-from qube_koopman.identify.data.logs import same_system
+from qube_koopman.core.lti import same_system
 from qube_koopman.identify.estimators.mixed import ControllerGroups, distinct_controllers
 from qube_koopman.identify.estimators.regression import (GroupedSnapshots, Snapshots, constrained_plant_solve,
                                               grouped_plant_solve, ridge_solve)

@@ -46,10 +46,12 @@ from qube_koopman.identify.model_selection.distributed import candidate_runner, 
 from qube_koopman.identify.models.model import FittedRows
 from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf,
                                           Trigonometric)
-from qube_koopman.identify.models.offsets import DEFAULT_BOUND, scores_after_window
+from qube_koopman.identify.models.offsets import DEFAULT_BOUND
+from qube_koopman.identify.metrics import scores_after_window
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes
-from qube_koopman.identify.model_selection.transfer import ProbeSet, probe_scores
+from qube_koopman.identify.model_selection.transfer import ProbeSet
+from qube_koopman.identify.metrics import probe_scores
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
@@ -605,7 +607,7 @@ def same_controller_scores(result: CandidateResult, trajectories: Sequence[Traje
     The search ranks by leave-one-controller-out folds; this scores the
     candidate (its lifting, offset protocol and chosen alpha) on folds that
     hold out some episodes of one controller and train on all the rest
-    (:func:`~qube_koopman.identify.estimators.mixed.within_controller_splits`), as the
+    (:func:`~qube_koopman.identify.model_selection.split.within_controller_splits`), as the
     loop a model was trained under is predicted.
 
     Returns
@@ -613,7 +615,8 @@ def same_controller_scores(result: CandidateResult, trajectories: Sequence[Traje
     list of (controller label, fold R^2)
         Labels index :func:`~qube_koopman.identify.estimators.mixed.distinct_controllers`' list.
     """
-    from qube_koopman.identify.estimators.mixed import distinct_controllers, within_controller_splits
+    from qube_koopman.identify.estimators.mixed import distinct_controllers
+    from qube_koopman.identify.model_selection.split import within_controller_splits
 
     _, labels = distinct_controllers(controllers)
     folds = within_controller_splits(labels, n_splits, seed)
@@ -640,7 +643,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
         The candidates' closed loop.
     splits : sequence of (train_indices, validation_indices)
         Episode-grouped folds, or with several controllers
-        :func:`~qube_koopman.identify.estimators.mixed.leave_one_controller_out`'s.
+        :func:`~qube_koopman.identify.model_selection.split.leave_one_controller_out`'s.
     window : int
         Offset estimation window in samples; every candidate is scored from
         this sample on.

@@ -27,7 +27,7 @@ import numpy as np
 from qube_koopman.core.blas import limited_blas_threads
 from qube_koopman.identify._checks import check_choice
 from qube_koopman.identify.estimators.cl_edmd import ClosedLoopKoopman
-from qube_koopman.identify.data.logs import same_system
+from qube_koopman.core.lti import same_system
 from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.mixed import distinct_controllers
 from qube_koopman.identify.models.model import FittedRows, KoopmanModel
@@ -229,8 +229,8 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Training episodes (signals x, u, r, f, xc as the scorings need).
     alphas : sequence of float
     splits : sequence of (train_indices, validation_indices)
-        For example :func:`identify.data.logs.group_shuffle_splits`, or with
-        several controllers :func:`identify.estimators.mixed.leave_one_controller_out`.
+        For example :func:`identify.model_selection.split.group_shuffle_splits`, or with
+        several controllers :func:`identify.model_selection.split.leave_one_controller_out`.
     scorings : sequence of {"cl", "plant"}
     controller : DiscreteStateSpace, optional
         Wraps EDMD plants for closed-loop scoring (a closed-loop estimator
@@ -428,7 +428,7 @@ def _fold_controller(controllers, validation, default, fold: int):
     if len(distinct) != 1:
         raise ValueError(f"fold {fold + 1}'s validation episodes were recorded under {len(distinct)} controllers; "
                          "a fold predicts one controller's loop: hold out one controller per fold "
-                         "(identify.estimators.mixed.leave_one_controller_out)")
+                         "(identify.model_selection.split.leave_one_controller_out)")
     return distinct[0]
 
 

@@ -37,7 +37,7 @@ from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
-__all__ = ["ProbeSet", "DEFAULT_PROBE_GAINS", "twin_probes", "probe_scores"]
+__all__ = ["ProbeSet", "DEFAULT_PROBE_GAINS", "twin_probes"]
 
 #: PD gains of the probe controllers (kp_theta, kd_theta, kp_alpha, kd_alpha, tau): a softer
 #: arm, a much softer arm, and a stiffer pendulum with more damping, all balancing on the
@@ -280,32 +280,3 @@ def _run_probes(controller: DiscreteStateSpace, sources: Sequence[Trajectory], s
     return kept, np.array(kept_zeros)
 
 
-def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: float,
-                 measured: Sequence[int] = (0, 1)) -> np.ndarray:
-    """R^2 of every probe episode predicted by ``plant`` wrapped with its probe controller.
-
-    Parameters
-    ----------
-    plant : KoopmanModel
-        An identified plant (input ``u``).
-    probes : ProbeSet
-    window : int
-        Scores cover the samples from this one on (the offset estimation window's end).
-    offsets : bool
-        Estimate each probe episode's alpha offset from the window first.
-    bound : float
-        Plausibility bound of the offsets (larger estimates are not used).
-    measured : sequence of int
-        Fed-back states.
-
-    Returns
-    -------
-    ndarray of shape (n_episodes,)
-        Mean R^2 of theta and alpha per probe episode (-inf: diverged).
-    """
-    from qube_koopman.identify.models.offsets import scores_after_window
-    from qube_koopman.identify.estimators.structure import close_loop
-
-    return np.concatenate([scores_after_window(close_loop(plant, controller, list(measured)), episodes, window,
-                                               offsets, bound)
-                           for controller, episodes in zip(probes.controllers, probes.episodes)])

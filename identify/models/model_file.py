@@ -17,7 +17,8 @@ from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path
 
-__all__ = ["FORMAT", "VERSION", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model"]
+__all__ = ["FORMAT", "VERSION", "ARX_FORMAT", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model",
+           "save_arx_model"]
 
 FORMAT = "qube-koopman-model"
 VERSION = 1
@@ -113,6 +114,30 @@ def save_model(path: str | Path, *, method: str, alpha: float | None, plant: Koo
         "controller": None if controller is None else controller.as_dict(),
         "plant": _model_to_dict(plant), "closed_loop": _model_to_dict(closed_loop), "training": training,
     }
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+
+
+#: The ``format`` key of an ARX model file (MODEL_FORMAT.md).
+ARX_FORMAT = "qube-arx-model"
+
+
+def save_arx_model(path: str | Path, *, method: str, lags: int, model) -> None:
+    """Write an ARX model file (see MODEL_FORMAT.md), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file to write (replaced if it exists).
+    method : {"arx", "cl-arx"}
+        The identification method.
+    lags : int
+        The output and input lags of the fit.
+    model : Arx
+        The fitted ARX model: the plant's for ``"arx"``, the closed loop's for ``"cl-arx"``.
+    """
+    data = {"format": ARX_FORMAT, "version": 1, "method": method, "output_lags": lags, "input_lags": lags,
+            "inputs": list(model.inputs), "coef": model.coef_.tolist(), "dt": model.dt_}
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=1) + "\n")
 

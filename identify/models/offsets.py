@@ -52,7 +52,7 @@ from qube_koopman.identify.data.trajectory import Trajectory
 
 __all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "estimate_offsets_many",
            "predict_with_offsets_many", "shift_trajectory", "predict_with_offsets", "predict_estimating_offsets",
-           "resolve_channels", "channel_scales", "scores_after_window", "DEFAULT_BOUND", "SPREAD_FLOOR"]
+           "resolve_channels", "channel_scales", "DEFAULT_BOUND", "SPREAD_FLOOR"]
 
 #: Largest plausible offset (rad) by default: 16 encoder counts of the QUBE; the dataset's are ~1.
 DEFAULT_BOUND = 0.05
@@ -426,37 +426,3 @@ def predict_estimating_offsets(model, trajectory: Trajectory, channels: Sequence
     return predict_with_offsets(model, trajectory, estimate.as_mapping(), relift), estimate
 
 
-def scores_after_window(model, trajectories: Sequence[Trajectory], window: int, offsets: bool,
-                        bound: float = DEFAULT_BOUND) -> np.ndarray:
-    """R^2 of each episode's prediction from sample ``window`` on, its alpha offset estimated first or not.
-
-    The protocol candidates and probes are scored by: the whole episode predicted from its start
-    (with the offset estimated from the first ``window`` samples when ``offsets``), R^2 averaged
-    over the measured states, -inf for a diverged prediction.
-
-    Parameters
-    ----------
-    model : KoopmanModel
-        Closed-loop model (inputs r, f).
-    trajectories : sequence of Trajectory
-        The episodes.
-    window : int
-        Samples of the estimation window; scored from the next one on.
-    offsets : bool
-        Estimate each episode's alpha offset from the window first.
-    bound : float
-        Plausibility bound of the estimate (:func:`estimate_offsets`).
-
-    Returns
-    -------
-    ndarray of shape (n_episodes,)
-    """
-    from qube_koopman.identify.metrics import r2_scores
-
-    trajectories = list(trajectories)
-    if offsets:
-        estimates = estimate_offsets_many(model, trajectories, ["alpha"], window, bound)
-        predictions = predict_with_offsets_many(model, trajectories, estimates)
-    else:
-        predictions = model.predict_many(trajectories)
-    return np.array([float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, predictions)])

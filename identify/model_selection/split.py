@@ -1,0 +1,148 @@
+"""Cross-validation splits of training episodes: by episode, by controller, and the paper's split.
+
+Every split holds out whole episodes (an episode's samples are never split between
+training and validation). With one training controller the folds are random
+episode-grouped splits, identical to scikit-learn's ``GroupShuffleSplit``; with two or
+more, each fold holds out one controller (:func:`leave_one_controller_out`), the
+question a plant model answers: does it predict a loop it was not fitted on?
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from qube_koopman.core.lti import DiscreteStateSpace
+from qube_koopman.identify.estimators.mixed import distinct_controllers
+
+__all__ = ["paper_split", "group_shuffle_splits", "leave_one_controller_out", "within_controller_splits",
+           "cross_validation_folds", "CrossValidationFolds", "FOLD_KINDS"]
+
+
+def paper_split(paths: Sequence[str | Path], n_train: int = 28) -> tuple[list[Path], list[Path]]:
+    """The paper's split: names sorted, the first ``n_train`` train, the rest test."""
+    ordered = sorted((Path(p) for p in paths), key=lambda p: p.name)
+    if len(ordered) <= n_train:
+        raise ValueError(f"the paper's split needs more than {n_train} logs, got {len(ordered)}")
+    return ordered[:n_train], ordered[n_train:]
+
+
+def group_shuffle_splits(n_groups: int, n_splits: int = 3, test_size: float = 0.2,
+                         seed: int = 1234) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Random episode-grouped splits, identical to scikit-learn's GroupShuffleSplit.
+
+    Each split holds out ``ceil(test_size * n_groups)`` episodes (6 of 28 for
+    the paper's protocol) drawn by the same ``RandomState`` permutations as
+    ``GroupShuffleSplit(n_splits, test_size=test_size, random_state=seed)``.
+
+    Returns
+    -------
+    list of (train_indices, validation_indices)
+    """
+    n_test = int(np.ceil(test_size * n_groups))
+    n_train = n_groups - n_test
+    if n_test < 1 or n_train < 1 or n_splits < 1:
+        raise ValueError(f"cannot make {n_splits} splits holding out {test_size:g} of {n_groups} episodes")
+    rng = np.random.RandomState(seed)
+    splits = []
+    for _ in range(n_splits):
+        permutation = rng.permutation(n_groups)
+        splits.append((np.sort(permutation[n_test:n_test + n_train]), np.sort(permutation[:n_test])))
+    return splits
+
+
+def leave_one_controller_out(labels: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Folds holding out all episodes of one controller each, in the order of the labels' values.
+
+    Parameters
+    ----------
+    labels : sequence of int
+        Each episode's controller (for example from :func:`distinct_controllers`).
+
+    Returns
+    -------
+    list of (train_indices, validation_indices)
+        One fold per distinct label.
+    """
+    labels = np.asarray(labels)
+    groups = np.unique(labels)
+    if groups.size < 2:
+        raise ValueError(f"leave-one-controller-out needs episodes of at least two controllers, got {groups.size}")
+    return [(np.flatnonzero(labels != g), np.flatnonzero(labels == g)) for g in groups]
+
+
+def within_controller_splits(labels: Sequence[int], n_splits: int = 3, seed: int = 1234
+                             ) -> list[tuple[np.ndarray, np.ndarray, int]]:
+    """Folds that hold out some episodes of one controller and train on all the others.
+
+    The complement of :func:`leave_one_controller_out`: each fold's validation
+    episodes ran a controller the training episodes include, so its score is
+    the same-controller one. For each controller with at least two episodes,
+    :func:`group_shuffle_splits` (``n_splits``,
+    ``seed``) over its episodes; the other controllers' episodes always train.
+
+    Returns
+    -------
+    list of (train_indices, validation_indices, label)
+    """
+    labels = np.asarray(labels)
+    out = []
+    for g in np.unique(labels):
+        own, others = np.flatnonzero(labels == g), np.flatnonzero(labels != g)
+        if own.size < 2:
+            continue
+        for train, validation in group_shuffle_splits(own.size, n_splits, seed=seed):
+            out.append((np.sort(np.concatenate([others, own[train]])), own[validation], int(g)))
+    return out
+
+
+FOLD_KINDS = {
+    "leave-one-controller-out": "each fold holds out all the training episodes of one controller and predicts its "
+                                "loop with the plant fitted to the other controllers' episodes",
+    "episode-grouped": "random splits holding out 20% of the training episodes (one controller: the paper's "
+                       "protocol)",
+}
+
+
+@dataclass(frozen=True)
+class CrossValidationFolds:
+    """The folds of a cross-validation on training episodes, and what they hold out.
+
+    Attributes
+    ----------
+    kind : {"leave-one-controller-out", "episode-grouped"}
+    splits : list of (train_indices, validation_indices)
+    held_out : list of int, optional
+        Leave-one-controller-out: the controller each fold holds out (its
+        index among the distinct training controllers, in order of appearance).
+    """
+
+    kind: str
+    splits: list[tuple[np.ndarray, np.ndarray]]
+    held_out: list[int] | None = None
+
+    def report(self, names: Sequence[str], scores: Sequence[float] | None = None) -> list[dict]:
+        """Each fold for a report: what it held out (log names) and its score (None: not finite)."""
+        out = []
+        for i, (train, validation) in enumerate(self.splits):
+            fold = {"fold": i + 1, "n_train": len(train), "validation_logs": [names[j] for j in validation]}
+            if self.held_out is not None:
+                fold["held_out_controller"] = self.held_out[i] + 1
+            if scores is not None:
+                fold["cv_r2"] = float(scores[i]) if np.isfinite(scores[i]) else None
+            out.append(fold)
+        return out
+
+
+def cross_validation_folds(controllers: Sequence[DiscreteStateSpace], n_splits: int = 3,
+                           seed: int = 1234) -> CrossValidationFolds:
+    """Leave one controller out when the episodes ran two or more controllers; else
+    :func:`group_shuffle_splits` (``n_splits``, ``seed``)."""
+    distinct, labels = distinct_controllers(controllers)
+    if len(distinct) >= 2:
+        splits = leave_one_controller_out(labels)
+        return CrossValidationFolds("leave-one-controller-out", splits, [int(labels[v[0]]) for _, v in splits])
+    return CrossValidationFolds("episode-grouped", group_shuffle_splits(len(labels), n_splits, 0.2, seed))
