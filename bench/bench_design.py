@@ -95,7 +95,7 @@ def robustness(controller: str | None, draws: int, root: Path) -> int:
 
 
 def serial_lockstep(controller: str, root: Path) -> str:
-    """One 20 s episode through the emulated bridge in lockstep (as tests/test_state_space_controller.py runs it).
+    """One 20 s episode through the emulated bridge in lockstep (as tests/core/test_state_space_controller.py runs it).
 
     The emulator (the firmware's C core) ticks when the host has answered, up to 0.1 s apart, so
     the machine's load does not decide the outcome; what is measured is the firmware's path.

@@ -8,7 +8,7 @@ myst-parser); the format documents kept beside the code (identify/MODEL_FORMAT.m
 included, not copied, so there is one source for each fact. A page may also pull a part of the
 README with a ``% readme "START" "END"`` line (docs/_ext/readme_slices.py).
 
-Build: ``python -m sphinx -W --keep-going -b html docs docs/_build/html`` (tests/test_docs.py
+Build: ``python -m sphinx -W --keep-going -b html docs docs/_build/html`` (tests/docs/test_docs.py
 runs the same). No network: intersphinx is not used (CI reaches only package registries).
 """
 

@@ -1,4 +1,4 @@
-"""The packages' public names, as the project counts them (tests/test_package.py, tests/test_docs.py).
+"""The packages' public names, as the project counts them (tests/project/test_package.py, tests/docs/test_docs.py).
 
 A public module is one whose dotted name has no part starting with ``_``; its public names are
 the functions and classes it defines (not those it imports) whose names do not start with

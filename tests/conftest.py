@@ -122,8 +122,8 @@ def qube_reproduction(qube_reproduction_out) -> tuple[dict, str]:
 
 @pytest.fixture
 def legacy_folder(tmp_path):
-    """A folder with one synthetic legacy CSV episode (tests/test_legacy_import.py) and its controller.toml."""
-    from test_legacy_import import GAINS_TOML, GOOD, write_synthetic_csv
+    """A folder with one synthetic legacy CSV episode (tests/daq/test_legacy_import.py) and its controller.toml."""
+    from _legacy_csv import GAINS_TOML, GOOD, write_synthetic_csv
 
     src = tmp_path / "src"
     src.mkdir()

@@ -130,7 +130,7 @@ def blocks_of(path: Path) -> list[int]:
 
 #: Commands whose blocks are long and tested in files of their own (tests/test_readme_<name>.py).
 OWN_FILES = ("qube-design", "qube-calibrate")
-#: The other blocks (tests/test_readme.py).
+#: The other blocks (tests/docs/test_readme.py).
 OTHER_BLOCKS = [i for i in range(len(BLOCKS)) if not any(i in blocks_running(c) for c in OWN_FILES)]
 
 

@@ -4,7 +4,7 @@ A page line ``% readme "START" "END"`` (a MyST comment, so it shows nothing by i
 the README's text from the line holding START (which must occur once) up to the line holding
 END (its first occurrence after START; END "" is the end of the README), dedented, so a fact the
 README states need not be copied into a page. A marker that is not found is a warning, which
-fails the build under -W, and tests/test_docs.py checks every directive against the README as it
+fails the build under -W, and tests/docs/test_docs.py checks every directive against the README as it
 is. The README being a short landing page, the pages hold their own text and pull none of it.
 
 Written here because Sphinx's and MyST's include directives start a part only at a line number

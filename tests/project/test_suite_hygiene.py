@@ -36,7 +36,7 @@ def test_an_orphaned_grandchild_is_still_seen_as_the_suites():
 
 
 def test_a_missing_dataset_fails_under_ci(pytester, monkeypatch):
-    pytester.makeconftest(open(os.path.join(os.path.dirname(__file__), "conftest.py")).read())
+    pytester.makeconftest(open(os.path.join(os.path.dirname(os.path.dirname(__file__)), "conftest.py")).read())
     pytester.makepyfile("def test_needs(qube_dataset):\n    pass\n")
     monkeypatch.setenv("QUBE_DATASET_DIR", str(pytester.path / "none"))
     monkeypatch.setenv("CI", "true")
@@ -51,7 +51,7 @@ def test_joblib_workers_are_stopped_without_tracebacks_after_the_summary(pyteste
     # A memmapped array a worker still holds when its Parallel call ends leaves joblib a folder
     # to free at exit; stopping the trackers first made a fresh tracker print KeyError tracebacks
     # after the summary (or the old one warn of a leaked folder). conftest frees it before.
-    pytester.makeconftest(open(os.path.join(os.path.dirname(__file__), "conftest.py")).read())
+    pytester.makeconftest(open(os.path.join(os.path.dirname(os.path.dirname(__file__)), "conftest.py")).read())
     pytester.makepyfile("""
         import numpy as np
         from joblib import Parallel, delayed

@@ -22,7 +22,7 @@ import pytest
 from _public_api import PACKAGES
 from numpydoc.docscrape import NumpyDocString
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # The packages whose __all__ lists what users import (core's lists the commands' plumbing).
 USER_PACKAGES = [name for name in PACKAGES if name != "qube_koopman.core"]
 

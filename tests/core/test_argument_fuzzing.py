@@ -40,7 +40,7 @@ from hypothesis import strategies as st
 
 pytestmark = pytest.mark.slow
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 #: Values drawn for any option that takes one: out of range, non-finite, huge, empty, wrong type, and a few valid.
 NUMBERS = ["-1", "0", "nan", "inf", "-inf", "1e308", str(10**30), f"-{10**30}", "", "abc", "1.5", "-0.5",
@@ -157,7 +157,7 @@ def _argv(draw, parser: argparse.ArgumentParser, base: list[str]) -> list[str]:
 @pytest.fixture(scope="module")
 def template(tmp_path_factory) -> Path:
     """Files every example starts from: junk, folders, two real 2 s episode logs, a legacy CSV."""
-    from test_legacy_import import GAINS_TOML, GOOD, write_synthetic_csv
+    from _legacy_csv import GAINS_TOML, GOOD, write_synthetic_csv
 
     from qube_koopman.daq.backends import SimBackend
     from qube_koopman.daq.session import (excitation_settings, load_controller, plan_episodes, run_episodes,

@@ -8,7 +8,7 @@ import time
 
 import pytest
 from _episodes import make_episode
-from test_legacy_import import GOOD
+from _legacy_csv import GOOD
 
 from qube_koopman.daq.log import write_episode
 

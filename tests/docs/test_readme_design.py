@@ -1,7 +1,7 @@
 """The design blocks run as written: the README's example (record on the twin -> identify -> design
 -> run) and the design page's cycle on the paper's data (identify -> design -> run -> identify).
 
-The same check as tests/test_readme.py (exit codes and quoted figures), in a file of its own: the
+The same check as tests/docs/test_readme.py (exit codes and quoted figures), in a file of its own: the
 cycles are the longest blocks, and pytest-xdist (``--dist loadfile``) gives each file to one worker.
 """
 

@@ -163,7 +163,7 @@ def test_an_interrupted_figure_or_recording_leaves_nothing(tmp_path, monkeypatch
 
     rr = pytest.importorskip("rerun")
     from qube_koopman.identify.calibrate.recording import write_recording
-    from test_calibrate_report import DT, NAMES, synthetic_replay
+    from _calibration_replay import DT, NAMES, synthetic_replay
 
     def flush(self, *args, **kwargs):
         raise KeyboardInterrupt

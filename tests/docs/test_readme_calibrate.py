@@ -1,7 +1,7 @@
 """The calibration block of the documentation (import -> qube-calibrate -> replays on the calibrated
 twin) runs as written.
 
-The same check as tests/test_readme.py (exit codes and quoted figures), in a file of its own: the
+The same check as tests/docs/test_readme.py (exit codes and quoted figures), in a file of its own: the
 block is one of the longest, and pytest-xdist (``--dist loadfile``) gives each file to one worker.
 """
 

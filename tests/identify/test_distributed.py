@@ -1,7 +1,7 @@
 """identify/model_selection/distributed.py's parts without a cluster of processes: statistics computed elsewhere by
 episode index, logs read from a path or from bytes, the checks that name a worker, ordered results.
 
-The real cluster (``dask scheduler`` and ``dask worker`` processes) is tests/test_dask_cluster.py's.
+The real cluster (``dask scheduler`` and ``dask worker`` processes) is tests/identify/test_dask_cluster.py's.
 """
 
 from __future__ import annotations

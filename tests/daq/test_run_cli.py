@@ -21,7 +21,7 @@ from qube_koopman.daq.controller import PdGains, pd_controller
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
 from qube_koopman.daq.log import read_episode, read_episode_metadata
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 NAME = re.compile(r"^qube_\d{8}T\d{6}\.\d{3}_(\d+)_(\d+)_(\d+)(_\d+)?\.mcap$")
 
 

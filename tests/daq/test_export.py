@@ -132,7 +132,7 @@ def test_write_mat_of_an_empty_episode(tmp_path):
 def test_csv_of_an_episode_that_did_not_complete_carries_its_status_beside_it(legacy_folder, tmp_path, capsys):
     import dataclasses
 
-    from test_legacy_import import GOOD
+    from _legacy_csv import GOOD
 
     assert import_main([str(legacy_folder), "--out", str(tmp_path / "logs"), "-q"]) == 0
     complete = read_episode(tmp_path / "logs" / f"{GOOD}.mcap")

@@ -28,7 +28,7 @@ from qube_koopman.daq.log.names import LOG_SUFFIX, parse_episode_name
 from qube_koopman.daq.log.schema import parse_schema, payload_dtype
 from qube_koopman.sim.pendulum import SensorModel
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 # Four short episodes; episode 2 reaches the 20 deg arm limit (a safety stop) in a worker.
 RUN = ["--episodes", "4", "--duration", "2", "--seed", "13", "--theta-limit", "20"]
 #: The host's timing: per sample, in the episode metadata, in the status record.

@@ -502,7 +502,7 @@ def test_arduino_sketch_compiles_cleanly_for_the_uno():
     """The sketch against the real Arduino core and avr-libc, warnings as errors.
 
     (It drives the ATmega328P's registers directly, so stub headers no longer
-    describe it; tests/test_avr.py builds and runs it.)
+    describe it; tests/firmware_protocol/test_avr.py builds and runs it.)
     """
     from qube_koopman.firmware_protocol import avr
 

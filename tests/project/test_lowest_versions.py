@@ -15,12 +15,12 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PINS = ROOT / ".ci" / "lowest-versions.txt"
 # One seed of the SDP cross-check (cvxpy + clarabel: clarabel 0.6.0 failed it at closed_loop-5.0).
-SDP = "tests/test_sdp_cross_check.py::test_closed_form_equals_sdp"
-SMOKE_TESTS = ["tests/test_log.py", "tests/test_export.py", "tests/test_analytic.py", "tests/test_appendix_lstsq.py",
-               "tests/test_viz_recording.py", f"{SDP}[closed_loop-0.0-2]", f"{SDP}[closed_loop-5.0-2]",
+SDP = "tests/identify/test_sdp_cross_check.py::test_closed_form_equals_sdp"
+SMOKE_TESTS = ["tests/daq/test_log.py", "tests/daq/test_export.py", "tests/identify/test_analytic.py", "tests/identify/test_appendix_lstsq.py",
+               "tests/daq/test_viz_recording.py", f"{SDP}[closed_loop-0.0-2]", f"{SDP}[closed_loop-5.0-2]",
                f"{SDP}[plant-5.0-2]"]
 
 

@@ -7,7 +7,7 @@ client with no certificate, with another CA's, or over plain tcp:// is refused. 
 cluster: a plain tcp:// address off the loopback is refused unless ``--insecure-scheduler``,
 and each bad certificate option is a one-line error naming it.
 
-The real cluster of processes (``dask scheduler``, ``dask worker``) is tests/test_dask_cluster.py's;
+The real cluster of processes (``dask scheduler``, ``dask worker``) is tests/identify/test_dask_cluster.py's;
 the fit here runs on its logs (its ``logs`` fixture and helpers).
 """
 

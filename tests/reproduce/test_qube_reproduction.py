@@ -52,7 +52,7 @@ def test_report_files(results):
 
 def test_paper_figures_plot_qube_json(qube_reproduction_out, results):
     """--figures: the paper's QUBE figures, written and embedded; the sweep and eigenvalue figures
-    drawn from qube.json plot its arrays (tests/test_figures.py checks each figure's data in detail)."""
+    drawn from qube.json plot its arrays (tests/identify/test_figures.py checks each figure's data in detail)."""
     import numpy as np
 
     from qube_koopman.identify.report.figures import draw

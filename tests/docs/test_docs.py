@@ -3,7 +3,7 @@ user reads names no tracker issue and no file outside the repository.
 
 The build is the one a user runs (docs/conf.py; the development page): Sphinx, warnings as
 errors, one process, no network. The API reference is generated, so the test checks it against
-the packages' public names as tests/test_package.py counts them (tests/_public_api.py). Every
+the packages' public names as tests/project/test_package.py counts them (tests/_public_api.py). Every
 ``>>>`` example of every docstring, private modules included, runs as a doctest through the
 standard library's doctest (what pytest's --doctest-modules runs, here in-process on the
 installed ``qube_koopman.*`` modules: no second interpreter, no import by file path).
@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 from _public_api import public_names
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 import readme_slices  # the docs' own extension, docs/_ext
 

@@ -29,7 +29,7 @@ from qube_koopman.daq.log import (
 )
 from qube_koopman.daq.log.schema import FORMAT_VERSION, parse_schema
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def assert_prefix(read: Episode, full: Episode, n: int) -> None:

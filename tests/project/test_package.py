@@ -30,7 +30,7 @@ def test_the_installed_package_list_covers_every_source_folder():
     import tomllib
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     tool = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
     folders = {"qube_koopman." + str(init.parent.relative_to(root)).replace("/", ".")
                for top in tool["package-dir"].values() for init in (root / top).rglob("__init__.py")}
@@ -45,7 +45,7 @@ def test_imports_point_one_way_nothing_below_design_imports_it():
     writes controllers, so no package below it may import it (not even lazily, inside a function)."""
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     offenders = [str(path.relative_to(root)) for top in ("firmware_protocol", "sim", "daq", "identify")
                  for path in (root / top).rglob("*.py") if "qube_koopman.design" in path.read_text()]
     assert not offenders
@@ -55,7 +55,7 @@ def test_core_imports_no_other_package_of_the_toolkit():
     """core is the lowest layer: every package may import it, it imports none of them."""
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     offenders = [str(path.relative_to(root)) for path in (root / "core").rglob("*.py")
                  if any(f"qube_koopman.{top}" in path.read_text()
                         for top in ("firmware_protocol", "sim", "daq", "identify", "design", "reproduce"))]
@@ -73,7 +73,7 @@ def _modules(*tops):
     import ast
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     return [(path.relative_to(root), ast.parse(path.read_text()))
             for top in tops for path in sorted((root / top).rglob("*.py"))]
 
@@ -115,7 +115,7 @@ def test_every_command_is_written_with_the_toolkit_of_core():
              if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name in toolkit]
     assert not again
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     scripts = tomllib.loads((root / "pyproject.toml").read_text())["project"]["scripts"]
     assert len(scripts) == 8
     without = []
@@ -136,7 +136,7 @@ def test_ruff_finds_nothing_in_the_packages():
     import shutil
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     if importlib.util.find_spec("ruff") is not None:
         ruff = [sys.executable, "-m", "ruff"]
     elif shutil.which("ruff"):
@@ -147,3 +147,15 @@ def test_ruff_finds_nothing_in_the_packages():
                               *LAYERS, *APPLICATIONS],
                              cwd=root, capture_output=True, text=True, timeout=300)
     assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]
+
+
+def test_the_tests_are_grouped_as_the_packages_are():
+    """tests/<package>/ holds each package's tests (docs/ the documentation's runnable blocks, project/
+    the checks of the whole repository); shared fixtures and helpers sit in tests/ itself."""
+    from pathlib import Path
+
+    tests = Path(__file__).resolve().parents[1]
+    folders = {p.name for p in tests.iterdir() if p.is_dir() and not p.name.startswith((".", "_"))}
+    assert folders == {*LAYERS, *APPLICATIONS, "docs", "project"}
+    assert not list(tests.glob("test_*.py")), "a test module outside its package's folder"
+    assert all(list(tests.glob(f"{folder}/test_*.py")) for folder in folders)

@@ -9,8 +9,8 @@ compares it, and finds each number the comment quotes in what the command printe
 installed one): a line's leading ``pip install ... &&`` and ``tools/install_system_deps.sh &&``
 are dropped, and the test command itself (``python -m pytest``) is what ``.ci/run`` runs, so it
 is checked to be the same line as there instead of being run again from inside the suite. The
-blocks that run ``qube-design`` or ``qube-calibrate`` run in tests/test_readme_design.py and
-tests/test_readme_calibrate.py.
+blocks that run ``qube-design`` or ``qube-calibrate`` run in tests/docs/test_readme_design.py and
+tests/docs/test_readme_calibrate.py.
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ from qube_koopman.daq.cli.run import main
 from qube_koopman.daq.log import IncompleteEpisodeWarning, read_episode
 from qube_koopman.daq.sinks import McapSink, MemorySink
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _logs(folder: Path) -> list[Path]:
@@ -165,7 +165,7 @@ def test_qube_import_of_a_binary_file_is_one_short_line(tmp_path, capsys):
 
     src = tmp_path / "qube_20230828T120000_1_2_3.csv"
     src.write_bytes(b"\x7fELF\x02\x01\x01" + bytes(3000))
-    controller = Path(__file__).resolve().parents[1] / "daq" / "rig_controller.toml"
+    controller = Path(__file__).resolve().parents[2] / "daq" / "rig_controller.toml"
     assert import_main([str(src), "--controller", str(controller), "--out", str(tmp_path / "o"), "-q"]) == 1
     err = capsys.readouterr().err
     assert err == f"qube-import: error: {src}: not a CSV file (binary content: NUL bytes near its start)\n"
