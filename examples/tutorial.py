@@ -43,7 +43,7 @@
 # Without `OUT_DIR` / `QUBE_TUTORIAL_OUT` the logs and figures go to a temporary folder that
 # the last cell removes; with it they go there (a new or empty folder) and stay.
 #
-# The test suite runs it both ways (`tests/test_tutorial.py`). To keep that quick it uses few
+# The test suite runs it both ways (`tests/docs/test_tutorial.py`). To keep that quick it uses few
 # episodes and a small lifting; the parameters below can be raised for the paper's setting
 # (28 training and 20 test episodes, 180 alphas: `qube-reproduce qube`).
 

@@ -9,7 +9,7 @@ tested against. Its sections and where their values come from:
   from the QUBE-Servo 2 SPI description of Quanser's Arduino sample code.
 - ``frames``, ``rejects``, ``streams``: produced by the Python encoder when
   protocol version 1 was frozen. They pin the format down so that neither
-  codec can drift; ``tests/test_protocol_codec.py`` also assembles one frame
+  codec can drift; ``tests/firmware_protocol/test_protocol_codec.py`` also assembles one frame
   by hand from PROTOCOL.md to check the encoder that made them.
 
 Regenerate only for a deliberate protocol change (with a version bump):

@@ -28,7 +28,7 @@ under a soft arm controller moves ten times more than the pendulum in the
 window and carries the model's own arm errors (friction), sets the pendulum's
 offset. On eight whole twin episodes under ``soft-theta`` with known encoder
 zeros and a 1 s window, the error was measured at rms 0.80 encoder counts
-unweighted and 0.57 weighted (tests/test_transfer.py, on 12 s of each: 0.75
+unweighted and 0.57 weighted (tests/identify/test_transfer.py, on 12 s of each: 0.75
 and 0.52). Both come out low (bias -0.78
 and -0.54 counts) because the twin's arm friction, which a linear lifting
 lacks, stops the arm short of where the offset would put it; on the

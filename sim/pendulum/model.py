@@ -100,7 +100,7 @@ class PendulumParameters:
         linearization; 0 applies each command at once.
     """
 
-    # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/test_plant_file.py).
+    # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/sim/test_plant_file.py).
     Rm: float = 8.4
     km: float = 0.04150972435258463
     mr: float = 0.095
