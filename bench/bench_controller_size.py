@@ -92,14 +92,14 @@ def loop_times(info, seconds: float, folder: Path) -> tuple[float, float]:
 
 def controllers(folder: Path) -> list[tuple[str, object]]:
     """(label, ControllerInfo) of each row, the state-space ones through their files."""
-    from qube_koopman.daq.controller_file import load_controller_file, write_controller_file
+    from qube_koopman.core.controller_file import load_controller, write_controller_file
     from qube_koopman.core.lti import padded_realization
 
-    pd = load_controller_file("rig")
+    pd = load_controller("rig")
     rows = [("PD gains (rig)", pd)]
     for n in SIZES:
         path = write_controller_file(folder / f"ss_{n}.toml", padded_realization(pd.system, n))
-        rows.append(("state-space (PD as matrices)" if n == 2 else "state-space", load_controller_file(path)))
+        rows.append(("state-space (PD as matrices)" if n == 2 else "state-space", load_controller(path)))
     return rows
 
 

@@ -46,7 +46,7 @@ from qube_koopman.identify.data.logs import load_logs
 from qube_koopman.identify.models.model_file import load_model
 from qube_koopman.identify.metrics import r2_scores
 from qube_koopman.identify.estimators.structure import close_loop
-from qube_koopman.daq.controller_file import load_controller_file
+from qube_koopman.core.controller_file import load_controller
 from qube_koopman.sim.pendulum import PendulumParameters
 from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
@@ -66,7 +66,7 @@ def figures(folder: Path) -> dict:
 def prediction_r2(model_path: Path, controller_path: Path, folder: Path) -> np.ndarray:
     """R^2 of theta and alpha, per episode: the plant model under the controller, from each log's start."""
     plant = load_model(model_path)["plant"]
-    loop = close_loop(plant, load_controller_file(controller_path).system)
+    loop = close_loop(plant, load_controller(controller_path).system)
     logs = load_logs(sorted(folder.glob("*.mcap")))
     scores = []
     for log in logs:
@@ -106,7 +106,7 @@ def serial_lockstep(controller: str, root: Path) -> str:
     from qube_koopman.daq.sinks import McapSink
     from qube_koopman.sim.bridge import BridgeEmulator
 
-    (plan,) = plan_episodes(load_controller_file(controller), run_seeds(7, 1)[0], excitation_settings(20.0),
+    (plan,) = plan_episodes(load_controller(controller), run_seeds(7, 1)[0], excitation_settings(20.0),
                             source="bench_design")
     emulator = BridgeEmulator(seed=3, lockstep=True, lockstep_timeout=0.1)
     (root / "serial").mkdir(exist_ok=True)
@@ -182,7 +182,7 @@ def main() -> None:
               f"{f['alpha_rms']:>9.4f}{f['voltage_rms']:>9.3f}{f['quiet_voltage_rms']:>9.3f}{f['saturated']:>5}")
     print(f"J {100 * (design['J'] / pd['J'] - 1):+.1f} % (target <= -40 %), voltage RMS "
           f"{design['voltage_rms'] / pd['voltage_rms']:.2f} x the PD's (target <= 1.45)")
-    predicted = load_controller_file(controller).provenance["predicted"]["J"]
+    predicted = load_controller(controller).provenance["predicted"]["J"]
     r2 = prediction_r2(args.model, controller, root / "design")
     print(f"predicted J {predicted:.3e} vs measured {design['J']:.3e}: {100 * (predicted / design['J'] - 1):+.1f} % "
           f"(target within 15 %); closed-loop prediction R^2 theta {r2[:, 0].mean():.4f} (min {r2[:, 0].min():.4f}), "

@@ -47,7 +47,8 @@ def _median_seconds(fn, repeats: int) -> float:
 def _synthetic_episode_file(folder: Path) -> Path:
     import numpy as np
 
-    from qube_koopman.daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
+    from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
+    from qube_koopman.core.controller_file import ControllerInfo
     from qube_koopman.daq.log import write_episode
     from qube_koopman.core.lti import DiscreteStateSpace
 

@@ -45,7 +45,8 @@ def main(argv=None) -> int:
 
     from qube_koopman.daq.backends import SimBackend
     from qube_koopman.daq.loop import run_episode
-    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+    from qube_koopman.core.controller_file import load_controller
     from qube_koopman.daq.sinks import McapSink
     from qube_koopman.daq.timing import DEFAULT_SPIN, realtime_scheduling
 

@@ -160,7 +160,8 @@ def _serial_episode(path: str, seconds: float, out: str, timed: bool = False):
     """One episode of the loop on the serial backend at ``path``: (result, backend)."""
     from qube_koopman.daq.backends.serial import SerialBackend
     from qube_koopman.daq.loop import run_episode
-    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+    from qube_koopman.core.controller_file import load_controller
     from qube_koopman.daq.sinks import McapSink
 
     backend = type("Timed", (_TimedBackend, SerialBackend), {})(path) if timed else SerialBackend(path)

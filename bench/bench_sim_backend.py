@@ -43,7 +43,8 @@ def main(argv=None) -> int:
     from qube_koopman.daq.episode import REFERENCE_SIGNALS, stack_signals
     from qube_koopman.daq.loop import run_episode
     from qube_koopman.daq.log import read_episode
-    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+    from qube_koopman.core.controller_file import load_controller
     from qube_koopman.daq.sinks import McapSink, MemorySink
     from qube_koopman.sim.pendulum import simulate_closed_loop
 

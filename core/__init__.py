@@ -9,9 +9,17 @@ from qube_koopman.core.exports import lazy_exports
 
 #: Each public name and the module of ``core`` that defines it.
 _HOMES = {
+    "ControllerInfo": "controller_file",
+    "load_controller": "controller_file",
+    "write_controller_file": "controller_file",
+    "PdGains": "controller",
+    "pd_controller": "controller",
+    "pi_controller": "controller",
+    "load_pd_gains": "controller",
     "DiscreteStateSpace": "lti",
     "replay_controller": "lti",
     "spectral_radius": "lti",
+    "same_system": "lti",
     "OneLineParser": "cli",
     "add_force_option": "cli",
     "atomic_path": "files",

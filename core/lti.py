@@ -206,7 +206,7 @@ def controller_inputs(controller: DiscreteStateSpace, references, measured, feed
 
     The loop always adds the feedforward to the controller's output; a controller whose inputs
     outnumber the tracking errors also sees the feedforward itself (its last inputs), e.g. to
-    shape or cancel it (daq/CONTROLLER_FORMAT.md).
+    shape or cancel it (core/CONTROLLER_FORMAT.md).
 
     Parameters
     ----------

@@ -33,3 +33,8 @@ ALPHA_LIMIT = math.pi / 4
 #: while the pendulum is raised by hand to the start gate and the controller's derivative kicks
 #: (the paper drops it too).
 SKIP_SAMPLES = 500
+
+
+#: Longest episode (s): one day. An episode's plan and timing arrays take 40 bytes a tick
+#: (about 1.7 GB at 500 Hz for a day); see bench/bench_memory.py.
+MAX_DURATION = 86_400.0

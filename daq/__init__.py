@@ -1,8 +1,8 @@
 """The host side of an experiment on the QUBE-Servo: acquisition, logs and their formats.
 
 ``daq`` owns what runs and records an episode: backends (``daq.backends``:
-the simulated pendulum and the serial bridge), the controller built from
-gains (``daq.controller``), the rig's excitation (``daq.excitation``), the
+the simulated pendulum and the serial bridge; controllers and their files
+are ``core``'s), the rig's excitation (``daq.excitation``), the
 500 Hz loop with its safety supervisor and timing statistics (``daq.loop``,
 ``daq.safety``, ``daq.timing``), the episode and its metadata
 (``daq.episode``, with ``stack_signals``), the MCAP episode log (``daq.log``, format in
@@ -22,19 +22,15 @@ from qube_koopman.core.exports import lazy_exports
 # Each public name and the module (relative to this package) that defines it.
 _HOMES = {
     # episodes and their logs
-    "Episode": "episode", "EpisodeMetadata": "episode", "ControllerInfo": "episode", "stack_signals": "episode",
+    "Episode": "episode", "EpisodeMetadata": "episode", "stack_signals": "episode",
     "read_episode": "log", "read_episode_metadata": "log", "write_episode": "log", "EpisodeWriter": "log",
     "IncompleteEpisodeWarning": "log", "log_path": "log.names", "find_logs": "log.names",
     "parse_episode_name": "log.names",
     # other formats: the legacy CSV in, CSV, Parquet and MATLAB out
     "legacy_episode": "legacy_csv", "load_legacy_controller": "legacy_csv", "read_legacy_csv": "legacy_csv",
     "export_episode": "export",
-    # controllers
-    "PdGains": "controller", "load_pd_gains": "controller", "pd_controller": "controller",
-    "pi_controller": "controller", "load_controller_file": "controller_file",
-    "write_controller_file": "controller_file",
-    # sessions: what qube-run runs
-    "load_controller": "session", "run_seeds": "session", "excitation_settings": "session",
+    # sessions: what qube-run runs (controllers and their files are core's)
+    "run_seeds": "session", "excitation_settings": "session",
     "plan_episodes": "session", "run_episodes": "session", "RunResult": "session",
     # one episode: the loop, its safety limits, the excitation, backends and sinks
     "run_episode": "loop", "EpisodePlan": "loop", "EpisodeResult": "loop", "SafetyLimits": "safety",

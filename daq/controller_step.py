@@ -2,7 +2,7 @@
 
 Each tick the loop asks for the output ``u = C x + D e`` (before writing the command) and then
 advances the state ``x <- A x + B e``, with ``e`` the two tracking errors, and the tick's
-feedforward after them for a controller that takes it (daq/CONTROLLER_FORMAT.md): the convention of
+feedforward after them for a controller that takes it (core/CONTROLLER_FORMAT.md): the convention of
 :class:`core.lti.DiscreteStateSpace` and of the log (``controller_state[k]`` is the state that
 computed ``control_output[k]``), so :func:`core.lti.replay_controller` recomputes the logged
 state from the log.

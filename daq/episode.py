@@ -9,7 +9,6 @@ reads it as MCAP, ``daq.legacy_csv`` builds it from the rig's CSV files.
 from __future__ import annotations
 
 import functools
-import json
 from dataclasses import dataclass, field, fields
 from datetime import datetime
 from types import MappingProxyType
@@ -17,6 +16,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from qube_koopman.core.controller_file import ControllerInfo, plain_json
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
@@ -25,7 +25,6 @@ __all__ = [
     "STATE_SIGNALS",
     "REFERENCE_SIGNALS",
     "UNITS",
-    "ControllerInfo",
     "EpisodeMetadata",
     "Episode",
     "software_version",
@@ -87,65 +86,6 @@ def software_version() -> str:
         return f"qube-koopman {version('qube-koopman')}"
     except PackageNotFoundError:
         return "qube-koopman (not installed)"
-
-
-def _plain_json(value: Mapping[str, Any], name: str) -> dict[str, Any]:
-    # Round-trip through JSON now so a value the log cannot store fails here,
-    # where the caller can see which field, not later in the writer thread.
-    # (A plain dict, not a read-only proxy, so that episodes can be pickled.)
-    try:
-        return json.loads(json.dumps(dict(value), allow_nan=False))
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be JSON-serializable plain data: {exc}") from None
-
-
-@dataclass(frozen=True)
-class ControllerInfo:
-    """The controller that ran the episode.
-
-    Parameters
-    ----------
-    system : DiscreteStateSpace
-        Discrete controller (A^c, B^c, C^c, D^c, dt); inputs are the tracking
-        errors ``target_theta - theta`` and ``target_alpha - alpha``.
-    method : str
-        Discretization it was built with (e.g. ``"backward-euler"``).
-    gains : mapping of str to float
-        The gains it was built from (e.g. :meth:`daq.controller.PdGains.as_dict`).
-    kind : str
-        Controller family: ``"pd"`` (built from gains) or ``"state-space"`` (matrices given
-        in discrete time, daq/CONTROLLER_FORMAT.md).
-    provenance : mapping
-        Free-form JSON-serializable record of where the controller comes from (for a
-        state-space file: its ``[provenance]`` table, e.g. what designed it); empty for gains.
-    """
-
-    system: DiscreteStateSpace
-    method: str
-    gains: Mapping[str, float] = field(default_factory=dict)
-    kind: str = "pd"
-    provenance: Mapping[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.system, DiscreteStateSpace):
-            raise TypeError(f"system must be a DiscreteStateSpace, got {type(self.system).__name__}")
-        gains = {str(k): float(v) for k, v in dict(self.gains).items()}
-        object.__setattr__(self, "gains", _plain_json(gains, "controller gains"))
-        object.__setattr__(self, "provenance", _plain_json(self.provenance, "controller provenance"))
-
-    def as_dict(self) -> dict:
-        """Plain-data form: kind, method, gains, provenance and the state-space matrices."""
-        return {"kind": self.kind, "method": self.method, "gains": dict(self.gains),
-                "provenance": dict(self.provenance), **self.system.as_dict()}
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "ControllerInfo":
-        """Inverse of :meth:`as_dict` (``provenance`` optional: empty when absent)."""
-        missing = {"kind", "method", "gains"} - set(data)
-        if missing:
-            raise ValueError(f"controller data misses {sorted(missing)}")
-        return cls(DiscreteStateSpace.from_dict(data), data["method"], data["gains"], data["kind"],
-                   data.get("provenance", {}))
 
 
 @dataclass(frozen=True)
@@ -223,10 +163,10 @@ class EpisodeMetadata:
         if abs(self.controller.system.dt * rate - 1.0) > 1e-9:
             raise ValueError(f"controller dt {self.controller.system.dt} s does not match "
                              f"the sample rate {rate} Hz")
-        object.__setattr__(self, "excitation", _plain_json(self.excitation, "excitation"))
-        object.__setattr__(self, "extra", _plain_json(self.extra, "extra"))
-        object.__setattr__(self, "timing", _plain_json(self.timing, "timing"))
-        object.__setattr__(self, "backend_stats", _plain_json(self.backend_stats, "backend_stats"))
+        object.__setattr__(self, "excitation", plain_json(self.excitation, "excitation"))
+        object.__setattr__(self, "extra", plain_json(self.extra, "extra"))
+        object.__setattr__(self, "timing", plain_json(self.timing, "timing"))
+        object.__setattr__(self, "backend_stats", plain_json(self.backend_stats, "backend_stats"))
 
     @property
     def dt(self) -> float:

@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.daq.episode import (REFERENCE_SIGNALS, STATE_SIGNALS, ControllerInfo, Episode, EpisodeMetadata,
-                                      stack_signals)
+from qube_koopman.daq.episode import REFERENCE_SIGNALS, STATE_SIGNALS, Episode, EpisodeMetadata, stack_signals
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.log.names import parse_episode_name
 from qube_koopman.core.lti import replay_controller
 
@@ -320,7 +320,7 @@ def load_legacy_controller(path: str | Path, method: str = "backward-euler") -> 
     ValueError
         Naming the file, if it cannot be read or misses a gain.
     """
-    from qube_koopman.daq.controller import load_pd_gains, pd_controller  # python-control: imported lazily
+    from qube_koopman.core.controller import load_pd_gains, pd_controller  # python-control: imported lazily
 
     gains = load_pd_gains(path)
     system = pd_controller(gains, 1.0 / LEGACY_SAMPLE_RATE_HZ, method)

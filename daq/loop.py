@@ -28,7 +28,8 @@ from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
 from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.excitation import Excitation, ExcitationStream
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from qube_koopman.daq.episode import ControllerInfo, EpisodeMetadata
+from qube_koopman.daq.episode import EpisodeMetadata
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
 from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingRecord, TimingStats, quiet_interpreter
 

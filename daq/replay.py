@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
-from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings
 from qube_koopman.daq.log.names import SEED_SIGNALS
 from qube_koopman.daq.loop import EpisodePlan

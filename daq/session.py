@@ -11,15 +11,12 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Sequence, overload
 
 import numpy as np
 
 from qube_koopman.daq.backends.base import Backend
-from qube_koopman.daq.controller import controller_file
-from qube_koopman.daq.controller_file import load_controller_file
-from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings, ExcitationStream
 from qube_koopman.daq.log.names import SEED_SIGNALS
 from qube_koopman.daq.loop import EpisodePlan, EpisodeResult, run_episode
@@ -29,15 +26,12 @@ from qube_koopman.daq.timing import DEFAULT_SPIN, TimingRecord
 
 __all__ = [
     "SEED_RANGE",
-    "default_controller_path",
-    "load_controller",
     "run_seeds",
     "excitation_settings",
     "excitation_record",
     "plan_episodes",
     "EpisodePlans",
     "MAX_EPISODES",
-    "MAX_DURATION",
     "RunResult",
     "FATAL_CAUSES",
     "log_outcome",
@@ -49,51 +43,12 @@ SEED_RANGE = (1, 999)
 
 #: Most episodes one run plans (their seeds take 6 bytes each: 6 MB).
 MAX_EPISODES = 1_000_000
-#: Longest episode (s): one day. An episode's plan and timing arrays take 40 bytes a tick
-#: (about 1.7 GB at 500 Hz for a day); see bench/bench_memory.py.
-MAX_DURATION = 86_400.0
 
 # The rig's excitation was laid out for 20 s episodes: zero for the first 2000 samples,
 # active for samples 2000..7999 (quiet until 4 s, active until 16 s). Other lengths keep these proportions.
 _RIG_SECONDS = 20.0
 
 _log = logging.getLogger(__name__)
-
-
-def default_controller_path() -> Path:
-    """The controller.toml shipped with the package: the gains that recorded the paper's dataset."""
-    return controller_file("rig")
-
-
-def load_controller(path: str | Path | None = None, method: str = "backward-euler",
-                    dt: float = 1.0 / 500.0) -> ControllerInfo:
-    """The controller of a controller file (the rig's PD gains by default), as the loop runs it.
-
-    A PD gains file is discretized like the rig's (``method``); a state-space file
-    (daq/CONTROLLER_FORMAT.md) must be at the sample period ``dt``
-    (:func:`daq.controller_file.load_controller_file`).
-
-    Parameters
-    ----------
-    path : str or Path, optional
-        A controller file of either kind (PD gains or state-space), or a shipped name
-        (``"rig"``, ``"soft-theta"``); the rig's gains when None.
-    method : str
-        The discretization of PD gains.
-    dt : float
-        The loop's sample period (s).
-
-    Returns
-    -------
-    ControllerInfo
-
-    Raises
-    ------
-    ValueError
-        Naming the file and the problem (unreadable, a gain or key missing, a matrix's
-        shape or entries, a sample period other than ``dt``).
-    """
-    return load_controller_file(default_controller_path() if path is None else path, method, dt)
 
 
 def run_seeds(seed: int, n_episodes: int) -> tuple[np.ndarray, int]:

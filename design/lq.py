@@ -13,7 +13,7 @@ Realization: a state feedback on the history of the measurements is, on the hist
 tracking errors ``E_k = [e_k; ...; e_{k-d}]`` (``E = -s`` in regulation, ``E = s_ref - s`` with
 a reference), ``u_k = K_s E_k - K_w w_k``. The controller's state holds the past errors and the
 integral, ``x^c_k = [e_{k-1}; ...; e_{k-d}; w_k]``, so that ``u_k = C x^c_k + D e_k`` and
-``x^c_{k+1} = A x^c_k + B e_k`` is exactly the controller file's tick (daq/CONTROLLER_FORMAT.md):
+``x^c_{k+1} = A x^c_k + B e_k`` is exactly the controller file's tick (core/CONTROLLER_FORMAT.md):
 ``D`` = the gains on the newest errors, ``C`` = the gains on the older ones and ``-K_w``, ``A``
 shifts the errors and accumulates the integral.
 """

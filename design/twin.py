@@ -11,8 +11,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from qube_koopman.daq.backends import SimBackend
-from qube_koopman.daq.episode import ControllerInfo, Episode
-from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_episodes, run_seeds
+from qube_koopman.daq.episode import Episode
+from qube_koopman.core.controller_file import ControllerInfo
+from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
+from qube_koopman.core.controller_file import load_controller
 from qube_koopman.daq.sinks import MemorySink
 
 __all__ = ["run_on_twin"]
@@ -25,7 +27,7 @@ def run_on_twin(controller: ControllerInfo | str | Path | None, seed: int, n_epi
     Parameters
     ----------
     controller : ControllerInfo, str, Path or None
-        A controller, or a controller file (daq/CONTROLLER_FORMAT.md); None for the rig's PD.
+        A controller, or a controller file (core/CONTROLLER_FORMAT.md); None for the rig's PD.
     seed : int
         The run's seed.
     n_episodes : int

@@ -233,7 +233,7 @@ def record_design(path: str | Path, report: DesignReport, controller, n_episodes
     -------
     Path
     """
-    from qube_koopman.daq.episode import ControllerInfo
+    from qube_koopman.core.controller_file import ControllerInfo
     from qube_koopman.design.recording import write_recording
     from qube_koopman.design.twin import run_on_twin
 

@@ -190,13 +190,11 @@ for spec, png in zip(specs, write_figures(specs, work / "figures")):
 # upright, drawn as on the rig (as `qube-run --controller soft-theta` does).
 
 # %%
+from qube_koopman.core import ControllerInfo, load_pd_gains, pd_controller
 from qube_koopman.daq import (
-    ControllerInfo,
     McapSink,
     SimBackend,
     excitation_settings,
-    load_pd_gains,
-    pd_controller,
     plan_episodes,
     read_episode_metadata,
     run_episodes,

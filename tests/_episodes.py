@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from qube_koopman.daq.episode import SIGNALS, ControllerInfo, Episode, EpisodeMetadata
+from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.core.lti import DiscreteStateSpace
 
 RATE = 500.0

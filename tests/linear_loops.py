@@ -30,7 +30,7 @@ def pid_position_controller(dt: float = 0.01) -> DiscreteStateSpace:
     """
     import control
 
-    from qube_koopman.daq.controller import discretize_channels
+    from qube_koopman.core.controller import discretize_channels
 
     s = control.tf("s")
     return discretize_channels([5 + 2 / s + 20 * s / (s + 20)], dt, "backward-euler")

@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "under their own controller unless --controller is given")
     p.add_argument("--controller", type=path, default=None, metavar="FILE.toml",
                    help="controller file: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau) or a discrete "
-                        "state-space controller at 500 Hz (A, B, C, D; daq/CONTROLLER_FORMAT.md); a file or a "
+                        "state-space controller at 500 Hz (A, B, C, D; core/CONTROLLER_FORMAT.md); a file or a "
                         "shipped name: 'rig' (the gains that recorded the paper's dataset: the default) or "
                         "'soft-theta' (a softer arm, kp_theta 2)")
     p.add_argument("--discretization", default="backward-euler", choices=("backward-euler", "zoh", "tustin"),
@@ -220,7 +220,7 @@ def _jobs(args, n_episodes: int) -> int:
 def _replay(args, rate: float):
     """Plans repeating the --replay logs' excitations, and the longest one's settings (for progress)."""
     from qube_koopman.daq.replay import replay_plans
-    from qube_koopman.daq.session import load_controller
+    from qube_koopman.core.controller_file import load_controller
 
     controller = None
     if args.controller is not None:
@@ -298,8 +298,9 @@ def _where(args, backend) -> str:
 def _run(args) -> int:
     _check_backend_options(args)
     from qube_koopman.daq.safety import SafetyLimits
-    from qube_koopman.daq.session import (MAX_DURATION, MAX_EPISODES, excitation_settings, load_controller,
-                                          plan_episodes, run_seeds)
+    from qube_koopman.daq.session import MAX_EPISODES, excitation_settings, plan_episodes, run_seeds
+    from qube_koopman.core.qube import MAX_DURATION
+    from qube_koopman.core.controller_file import load_controller
 
     if args.episodes > MAX_EPISODES:
         raise CliError(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "

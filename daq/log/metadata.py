@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 from typing import Mapping
 
-from qube_koopman.daq.episode import ControllerInfo, EpisodeMetadata
+from qube_koopman.daq.episode import EpisodeMetadata
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.log.schema import FORMAT_VERSION
 
 __all__ = [

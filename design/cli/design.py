@@ -7,7 +7,7 @@
 Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
 feedback on the plant's history of measurements (with integral action on the arm's tracking
 error), realizes it as a discrete controller on the tracking errors and writes it as a
-state-space controller file (daq/CONTROLLER_FORMAT.md) that ``qube-run --controller`` runs. It
+state-space controller file (core/CONTROLLER_FORMAT.md) that ``qube-run --controller`` runs. It
 prints the plant designed on (the identified plant itself for a lifting of order-1 monomials,
 delays and a constant; its linearization at upright otherwise), the closed loop's spectral
 radius, the margins at the plant input and the cost the model predicts on the rig's excitation
@@ -88,7 +88,7 @@ def _weights(args):
 
 
 def _run(args) -> int:
-    from qube_koopman.daq.controller_file import write_controller_file
+    from qube_koopman.core.controller_file import write_controller_file
     from qube_koopman.design import DesignError
     from qube_koopman.design.workflow import design_from_model, provenance, report_text, saturation_warning
 
@@ -123,7 +123,7 @@ def _run(args) -> int:
 
 def _record(args, report, written) -> None:
     """The --rerun-save recording, with the controller as qube-run loads it from the written file."""
-    from qube_koopman.daq.session import load_controller
+    from qube_koopman.core.controller_file import load_controller
     from qube_koopman.design.workflow import record_design
 
     n = min(args.rerun_episodes, args.episodes)

@@ -70,15 +70,13 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _read(paths):
-    from qube_koopman.identify.data.logs import load_logs
+    from qube_koopman.identify.data.logs import load_logs, read_episodes
 
     try:
         logs = load_logs(paths, strict=True, refusal="refused: qube-calibrate fits complete, readable logs only")
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    from qube_koopman.daq.log import read_episode
-
-    return [read_episode(log.path, warn=False) for log in logs]
+    return read_episodes(logs)
 
 
 def _run(args) -> int:

@@ -26,7 +26,7 @@ def expand_logs(items) -> list[Path]:
     CliError
         An item that does not exist, or a folder without logs (the message names it).
     """
-    from qube_koopman.daq.log.names import find_logs
+    from qube_koopman.identify.data.logs import find_logs
 
     paths = []
     for item in items or []:

@@ -191,7 +191,7 @@ def _parser() -> argparse.ArgumentParser:
                       help="what-if: predict every test episode under this controller instead of its "
                            "log's own: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau; backward Euler as "
                            "on the rig) or a state-space file at the logs' sample period "
-                           "(daq/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
+                           "(core/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
                            "episodes recorded under it are scored")
     _add_search_options(p)
     out = p.add_argument_group("output")
@@ -311,7 +311,7 @@ def _check_args(args) -> None:
                           ("--rbf-shape", args.rbf_shape), ("--rbf-offset", args.rbf_offset)):
         if not value > 0:
             raise CliError(f"{option} must be positive, got {value}")
-    from qube_koopman.daq.session import MAX_DURATION
+    from qube_koopman.core.qube import MAX_DURATION
 
     if not args.estimate_window <= MAX_DURATION:  # inf, 1e308: no whole number of samples (a traceback)
         raise CliError(f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got "
@@ -479,10 +479,10 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
 def _what_if_controller(path: str, dt: float):
     """The --controller file's controller at the logs' period: PD gains (discretized like the rig's)
     or a state-space file written at that period."""
-    from qube_koopman.daq.controller_file import load_controller_file
+    from qube_koopman.core.controller_file import load_controller
     from qube_koopman.core.lti import spectral_radius
 
-    system = load_controller_file(path, "backward-euler", dt).system
+    system = load_controller(path, "backward-euler", dt).system
     # An integrator (eigenvalue 1, a designed controller's integral action) is a controller; a state
     # that grows on its own is not: its predictions overflow long before they say why.
     radius = spectral_radius(system.A)

@@ -1,4 +1,8 @@
-"""Episode logs as identification data: reading, checking, splitting."""
+"""Episode logs as identification data: finding, reading, checking.
+
+The only module of ``identify`` that reads ``daq``'s episode logs (lazily: mcap and
+zstandard load with the first log read).
+"""
 
 from __future__ import annotations
 
@@ -15,7 +19,7 @@ from qube_koopman.identify.data.trajectory import EpisodeSequence, Trajectory
 from qube_koopman.core.lti import DiscreteStateSpace, same_system
 
 __all__ = ["LoggedTrajectory", "StoredLog", "LogTrajectories", "load_logs", "check_same_controller", "check_same_rate",
-           "IncompleteLogSkipped", "UnreadableLogSkipped"]
+           "IncompleteLogSkipped", "UnreadableLogSkipped", "find_logs", "read_episodes"]
 
 
 _log = logging.getLogger(__name__)
@@ -198,3 +202,35 @@ def check_same_controller(logs: Sequence[LoggedTrajectory | StoredLog], what: st
     return controller
 
 
+def find_logs(folder: str | Path) -> list[Path]:
+    """The episode logs in ``folder``, sorted by name (so in the order they ran).
+
+    Parameters
+    ----------
+    folder : str or Path
+
+    Returns
+    -------
+    list of Path
+    """
+    from qube_koopman.daq.log.names import find_logs as logs_in
+
+    return logs_in(folder)
+
+
+def read_episodes(logs: Sequence[LoggedTrajectory | StoredLog]) -> list:
+    """The whole recorded episodes of ``logs`` (every signal and the metadata, as
+    :func:`qube_koopman.daq.read_episode` gives them), for work that needs more than the trajectory.
+
+    Parameters
+    ----------
+    logs : sequence of LoggedTrajectory or StoredLog
+        Logs :func:`load_logs` accepted.
+
+    Returns
+    -------
+    list of Episode
+    """
+    from qube_koopman.daq.log import read_episode
+
+    return [read_episode(log.path, warn=False) for log in logs]

@@ -10,7 +10,7 @@ controller input ``u^c = r - C^p theta^p``, the plant input
 
 and the plant block row is ``U^p S`` with ``U^p = [A^p B^p]``.
 
-A controller may also take the feedforward as an input (daq/CONTROLLER_FORMAT.md): its
+A controller may also take the feedforward as an input (core/CONTROLLER_FORMAT.md): its
 ``B^c = [B^c_e B^c_f]`` and ``D^c = [D^c_e D^c_f]`` split into the tracking errors' columns
 and the feedforward's, and the feedforward still adds to its output. Then ``B^c`` and ``D^c``
 above are the errors' columns, the last column of blocks is ``[B^c_f; B^p (I + D^c_f)]``

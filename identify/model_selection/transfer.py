@@ -154,7 +154,7 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
 
 def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int) -> ProbeSet:
     """Each controller's sources run on the twin (see :func:`twin_probes`)."""
-    from qube_koopman.daq.controller import PdGains, pd_controller
+    from qube_koopman.core.controller import PdGains, pd_controller
 
     rng = np.random.default_rng(seed)
     dt = sources[0][0].dt

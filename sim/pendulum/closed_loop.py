@@ -122,7 +122,7 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     for step in range(n_steps):
         y = measure(states[step] if shift is None else states[step][..., :2] + shift, sensor, rng)
         e = r[step] - y
-        if sees_feedforward:  # the controller's third input (daq/CONTROLLER_FORMAT.md)
+        if sees_feedforward:  # the controller's third input (core/CONTROLLER_FORMAT.md)
             e = np.concatenate([e, f[step][..., None]], axis=-1)
         u = xc @ Cc + e @ Dc
         v = np.clip(u + f[step], -max_voltage, max_voltage)

@@ -160,8 +160,8 @@ def template(tmp_path_factory) -> Path:
     from _legacy_csv import GAINS_TOML, GOOD, write_synthetic_csv
 
     from qube_koopman.daq.backends import SimBackend
-    from qube_koopman.daq.session import (excitation_settings, load_controller, plan_episodes, run_episodes,
-                                          run_seeds)
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
+    from qube_koopman.core.controller_file import load_controller
     from qube_koopman.daq.sinks import McapSink
 
     root = tmp_path_factory.mktemp("fuzz_template")

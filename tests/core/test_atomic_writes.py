@@ -116,7 +116,7 @@ def test_an_interrupted_export_leaves_no_partial_file(fmt, tmp_path, monkeypatch
 
 
 def test_interrupted_controller_plant_and_json_files_leave_nothing(tmp_path, monkeypatch, interrupt_text_writes):
-    from qube_koopman.daq.controller_file import write_controller_file
+    from qube_koopman.core.controller_file import write_controller_file
     from qube_koopman.core.command import write_json
     from qube_koopman.identify.report import markdown as reports
     from qube_koopman.core.lti import DiscreteStateSpace
@@ -220,7 +220,7 @@ def test_commands_stopped_by_a_signal_say_interrupted_in_one_line(signum, status
     monkeypatch.setattr(legacy_csv, "legacy_episode", stop)
     monkeypatch.setattr(identify_cli, "identify_and_score", stop, raising=False)
     monkeypatch.setattr("qube_koopman.identify.workflow.identify_and_score", stop)
-    from qube_koopman.daq.controller import controller_file
+    from qube_koopman.core.controller import controller_file
 
     rig = controller_file("rig")
     (tmp_path / "episode.csv").write_text("t\n")

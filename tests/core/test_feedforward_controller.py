@@ -16,8 +16,8 @@ from _episodes import assert_follows_controller
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 from qube_koopman.daq.cli.run import main as run_main
-from qube_koopman.daq.controller import load_pd_gains, pd_controller
-from qube_koopman.daq.controller_file import load_controller_file, write_controller_file
+from qube_koopman.core.controller import load_pd_gains, pd_controller
+from qube_koopman.core.controller_file import load_controller, write_controller_file
 from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.log import read_episode
 from qube_koopman.identify import (ClEdmd, close_loop, closed_loop_matrices, controller_states,
@@ -146,7 +146,7 @@ def _logs(folder: Path) -> list[Path]:
 def test_the_file_reads_back_and_the_twin_runs_it_as_written(twin):
     root, path, controller = twin
     assert 'inputs = ["e_theta", "e_alpha", "feedforward"]' in path.read_text()
-    loaded = load_controller_file(path).system
+    loaded = load_controller(path).system
     for m in "ABCD":
         np.testing.assert_array_equal(getattr(loaded, m), getattr(controller, m))
     for log in _logs(root / "ff"):

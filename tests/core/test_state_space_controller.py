@@ -16,9 +16,9 @@ from bridge_helpers import cache_home, core  # noqa: F401
 
 from qube_koopman.daq.backends.serial import SerialBackend
 from qube_koopman.daq.cli.run import main as run_main
-from qube_koopman.daq.controller import load_pd_gains, pd_controller
-from qube_koopman.daq.controller_file import load_controller_file, write_controller_file
-from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.core.controller import load_pd_gains, pd_controller
+from qube_koopman.core.controller_file import load_controller, write_controller_file
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.log import read_episode, write_episode
 from qube_koopman.daq.loop import run_episode
 from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
@@ -82,7 +82,7 @@ def test_the_rigs_pd_as_a_state_space_file_runs_sample_for_sample_like_its_gains
 
 def test_a_52_state_controller_runs_and_its_state_is_recomputed_from_the_log(runs):
     root, files = runs
-    big = load_controller_file(files["big"]).system
+    big = load_controller(files["big"]).system
     assert big.n_states == 2 + N_EXTRA and np.count_nonzero(big.C) == big.n_states
     for episode in _episodes(root / "big"):
         assert episode.is_complete and episode.controller_state.shape == (2000, 2 + N_EXTRA)
@@ -100,7 +100,7 @@ def test_a_52_state_controller_runs_and_its_state_is_recomputed_from_the_log(run
 
 def test_a_52_state_controller_runs_through_the_serial_bridge_too(core, runs, tmp_path):  # noqa: F811
     """The loop's one code path, paced by the emulated bridge (lockstep) instead of the simulator."""
-    info = load_controller_file(runs[1]["big"])
+    info = load_controller(runs[1]["big"])
     (plan,) = plan_episodes(info, run_seeds(1, 1)[0], excitation_settings(2.0), source="test")
     emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=0.1)
     backend, sink = SerialBackend(emu.start(), link_timeout=0.2), McapSink(tmp_path)
@@ -207,7 +207,7 @@ def _write(path: Path, changes: dict) -> Path:
 
 
 def test_the_documented_example_loads(tmp_path):
-    info = load_controller_file(_write(tmp_path / "ok.toml", {}))
+    info = load_controller(_write(tmp_path / "ok.toml", {}))
     assert info.kind == "state-space" and info.system.n_states == 2
     np.testing.assert_array_equal(info.system.D, [[-3.0, -4.0]])
 
@@ -217,7 +217,7 @@ def test_each_refusal_names_the_file_and_the_problem(case, tmp_path):
     changes, message = REFUSALS[case]
     path = _write(tmp_path / "bad.toml", changes)
     with pytest.raises(ValueError) as info:
-        load_controller_file(path)
+        load_controller(path)
     assert str(info.value).startswith(f"{path}: ") and message in str(info.value), str(info.value)
 
 
@@ -247,23 +247,23 @@ def test_qube_identify_refuses_a_bad_what_if_file_with_exit_2(case, runs, tmp_pa
 
 def test_matrices_in_a_sibling_npz_load_as_inline(tmp_path):
     big = padded_realization(RIG_PD, 12, 0)
-    inline = load_controller_file(write_controller_file(tmp_path / "inline.toml", big))
-    npz = load_controller_file(write_controller_file(tmp_path / "npz.toml", big, npz=True))
+    inline = load_controller(write_controller_file(tmp_path / "inline.toml", big))
+    npz = load_controller(write_controller_file(tmp_path / "npz.toml", big, npz=True))
     assert "matrices = \"npz.npz\"" in (tmp_path / "npz.toml").read_text()
     for m in "ABCD":
         np.testing.assert_array_equal(getattr(npz.system, m), getattr(big, m))
         np.testing.assert_array_equal(getattr(inline.system, m), getattr(big, m))
     np.savez(tmp_path / "npz.npz", A=big.A, B=big.B, C=big.C)
     with pytest.raises(ValueError, match=r"npz\.toml: .*npz\.npz holds no array D"):
-        load_controller_file(tmp_path / "npz.toml")
+        load_controller(tmp_path / "npz.toml")
 
 
 def test_pd_gains_files_load_as_before(tmp_path):
     for name, gains in (("rig", RIG_PD), ("soft-theta", SOFT_PD)):
-        info = load_controller_file(name)
+        info = load_controller(name)
         assert info.kind == "pd" and info.method == "backward-euler" and same_system(info.system, gains)
     with pytest.raises(ValueError, match="missing gains tau"):
-        load_controller_file(_gains(tmp_path, "tau"))
+        load_controller(_gains(tmp_path, "tau"))
 
 
 def _gains(tmp_path: Path, drop: str) -> Path:

@@ -13,7 +13,7 @@ import pytest
 from _episodes import QUBE_PD, assert_follows_controller
 
 from qube_koopman.daq.backends import Backend, BackendFault, Pacing, SimBackend
-from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.excitation import Excitation, ExcitationSettings, generate_excitation
 from qube_koopman.daq.loop import EpisodePlan, run_episode
 from qube_koopman.daq.safety import SafetyLimits, StopRequest

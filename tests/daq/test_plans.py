@@ -7,8 +7,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from qube_koopman.daq.session import (MAX_EPISODES, EpisodePlans, excitation_settings, load_controller, plan_episodes,
-                         run_seeds)
+from qube_koopman.daq.session import MAX_EPISODES, EpisodePlans, excitation_settings, plan_episodes, run_seeds
+from qube_koopman.core.controller_file import load_controller
 
 
 def test_lazy_plans_equal_the_plans_made_one_by_one():

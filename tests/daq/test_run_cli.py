@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from qube_koopman.daq.cli.run import main
-from qube_koopman.daq.controller import PdGains, pd_controller
+from qube_koopman.core.controller import PdGains, pd_controller
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
 from qube_koopman.daq.log import read_episode, read_episode_metadata
 
@@ -305,7 +305,7 @@ def test_negative_perturbation_is_refused(capsys):
 
 
 def test_shipped_controllers_by_name_and_a_file_of_that_name_wins(tmp_path, monkeypatch):
-    from qube_koopman.daq.controller import load_pd_gains
+    from qube_koopman.core.controller import load_pd_gains
 
     assert load_pd_gains("rig") == PdGains(6.0, 1.8, 30.0, 2.5, 50.0)  # the dataset's controller.toml
     assert load_pd_gains("soft-theta") == PdGains(2.0, 1.0, 35.0, 3.0, 50.0)

@@ -31,7 +31,8 @@ from qube_koopman.daq.cli.run import main
 from qube_koopman.daq.excitation import generate_excitation
 from qube_koopman.daq.log import read_episode
 from qube_koopman.daq.loop import run_episode
-from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes, run_seeds
+from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+from qube_koopman.core.controller_file import load_controller
 from qube_koopman.daq.sinks import McapSink
 from qube_koopman.firmware_protocol import (
     Command,

@@ -96,7 +96,8 @@ def test_full_disk_mid_episode_stops_the_run_and_is_never_complete(monkeypatch, 
 
 def test_full_disk_in_the_loop_commands_zero_volts_in_the_detecting_tick(monkeypatch, tmp_path):
     from qube_koopman.daq.loop import run_episode
-    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes
+    from qube_koopman.daq.session import excitation_settings, plan_episodes
+    from qube_koopman.core.controller_file import load_controller
 
     _full_disk_at(monkeypatch, 50_000)
     plan = plan_episodes(load_controller(), [(1, 2, 3)], excitation_settings(60.0))[0]
@@ -175,7 +176,8 @@ def test_a_log_failing_on_its_last_sample_is_never_recorded_complete(tmp_path):
     # Free-running, the loop is done long before the writer thread reaches the last sample:
     # the failure then shows only while the queue drains, and must still abort the episode.
     from qube_koopman.daq.loop import run_episode
-    from qube_koopman.daq.session import excitation_settings, load_controller, plan_episodes
+    from qube_koopman.daq.session import excitation_settings, plan_episodes
+    from qube_koopman.core.controller_file import load_controller
 
     plan = plan_episodes(load_controller(), [(1, 2, 3)], excitation_settings(1.0))[0]
 

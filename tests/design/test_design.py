@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from qube_koopman.daq.cli.run import main as run_main
-from qube_koopman.daq.controller_file import load_controller_file
+from qube_koopman.core.controller_file import load_controller
 from qube_koopman.design import DesignError, Weights, design_lq, linear_plant
 from qube_koopman.design.cli.design import main as design_main
 from qube_koopman.design.predict import closed_loop_eigenvalues, loop_margins
@@ -225,7 +225,7 @@ def test_qube_design_writes_a_controller_file_qube_run_loads_with_its_provenance
                  "margins at the plant input: gain +", "predicted on the rig's excitation (3 episodes of 6 s",
                  f"wrote {out}: qube-run --controller {out}"):
         assert line in text, text
-    info = load_controller_file(out)
+    info = load_controller(out)
     assert info.kind == "state-space" and info.system.n_states == 2 * 5 + 1
     expected = design_lq(linear_plant(_pendulum_like(5, True)), Weights(q_theta=4.0)).controller
     for m in "ABCD":
@@ -243,7 +243,7 @@ def test_the_folder_qube_identify_wrote_is_taken_for_its_model_and_npz_matrices_
     out = tmp_path / "c.toml"
     assert design_main([str(folder), "--out", str(out), "--npz", "--episodes", "2", "--no-integral", "-q"]) == 0
     assert f"model {folder / 'model.json'}:" in capsys.readouterr().out
-    info = load_controller_file(out)
+    info = load_controller(out)
     assert out.with_suffix(".npz").is_file() and info.system.n_states == 4  # 2 past errors of 2 channels, no integral
     assert info.provenance["weights"]["integral"] is False
 
@@ -293,7 +293,7 @@ def twin_cycle(tmp_path_factory) -> SimpleNamespace:
 def test_on_the_twin_a_design_from_an_identified_model_beats_the_rigs_pd(twin_cycle):
     """Issue 28 section 3, shrunk: J at least 40 % below the PD's on the same excitations, no saturation."""
     pd, designed = _twin_figures(twin_cycle.pd), _twin_figures(twin_cycle.designed)
-    predicted = load_controller_file(twin_cycle.controller).provenance["predicted"]
+    predicted = load_controller(twin_cycle.controller).provenance["predicted"]
     assert pd["complete"] == designed["complete"] == 6
     assert designed["J"] < 0.6 * pd["J"], (designed, pd)  # at least 40 % lower
     assert designed["saturated"] == 0 and designed["voltage_rms"] < 1.6 * pd["voltage_rms"], (designed, pd)
@@ -372,7 +372,7 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
         logged = read_episode(sorted(folder.glob("*.mcap"))[0])
         for channel, values in (("theta", logged.theta), ("alpha", logged.alpha), ("voltage", logged.plant_input)):
             np.testing.assert_array_equal(series[f"episodes/episode_00/{channel}/{kind}"], values)
-    model, controller = load_model(twin_cycle.model / "model.json"), load_controller_file(out)
+    model, controller = load_model(twin_cycle.model / "model.json"), load_controller(out)
     predicted = predict_loop(model["plant"], controller.system, rig_excitations(5, 1))
     np.testing.assert_allclose(series["episodes/episode_00/theta/predicted"], predicted.theta[0], rtol=1e-12)
     np.testing.assert_array_equal(series["episodes/episode_00/theta/target"], predicted.target_theta[0])

@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 import readme_slices  # the docs' own extension, docs/_ext
 
 PAGES = ["index", "getting-started", "collecting", "identification", "transfer", "lifting-search", "cluster",
-         "calibration", "design", "formats", "NAMING", "daq/log/FORMAT", "daq/CONTROLLER_FORMAT",
+         "calibration", "design", "formats", "NAMING", "daq/log/FORMAT", "core/CONTROLLER_FORMAT",
          "identify/MODEL_FORMAT", "firmware_protocol/PROTOCOL", "api/index", "development"]
 
 

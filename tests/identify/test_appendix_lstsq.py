@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from qube_koopman.daq.controller import load_pd_gains, pd_controller
+from qube_koopman.core.controller import load_pd_gains, pd_controller
 from qube_koopman.identify import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq, Delay, Polynomial, Trajectory, controller_states
 
 pytestmark = pytest.mark.dataset

@@ -9,7 +9,7 @@ import pytest
 from _episodes import QUBE_PD
 
 from qube_koopman.daq.backends import BackendFault, SimBackend
-from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings, ExcitationStream
 from qube_koopman.daq.loop import EpisodePlan, run_episode
 from qube_koopman.daq.session import plan_episodes, run_episodes

@@ -22,7 +22,7 @@ TRUTH = PendulumParameters(km=0.048, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, de
 
 def soft_pd():
     """The shipped second controller (soft-theta: the rig's structure with a three times softer arm)."""
-    from qube_koopman.daq.controller import controller_file, load_pd_gains, pd_controller
+    from qube_koopman.core.controller import controller_file, load_pd_gains, pd_controller
 
     return pd_controller(load_pd_gains(controller_file("soft-theta")))
 

@@ -26,7 +26,7 @@ def pd_position_controller(dt: float = DT) -> DiscreteStateSpace:
     """A PD with a filtered derivative on the position error (1 state), backward Euler."""
     import control
 
-    from qube_koopman.daq.controller import discretize_channels
+    from qube_koopman.core.controller import discretize_channels
 
     s = control.tf("s")
     return discretize_channels([8 + 3 * s * 30 / (s + 30)], dt, "backward-euler")

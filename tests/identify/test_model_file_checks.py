@@ -70,7 +70,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(command, ou
 
 
 def test_an_unstable_what_if_controller_is_named_with_its_spectral_radius(model_file, tmp_path, capsys):
-    from qube_koopman.daq.controller_file import write_controller_file
+    from qube_koopman.core.controller_file import write_controller_file
     from qube_koopman.identify.cli.identify import main as identify_main
     from qube_koopman.core.lti import DiscreteStateSpace
 

@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 from qube_koopman.daq.backends.sim import SimBackend
-from qube_koopman.daq.controller import load_pd_gains, pd_controller
-from qube_koopman.daq.episode import ControllerInfo
+from qube_koopman.core.controller import load_pd_gains, pd_controller
+from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.log import read_episode_metadata
 from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
 from qube_koopman.daq.sinks import McapSink
@@ -33,7 +33,7 @@ pytestmark = pytest.mark.slow
 
 COUNT = 2 * math.pi / 2048
 RIG = load_pd_gains("rig")
-SOFT = load_pd_gains("soft-theta")  # the shipped second controller (daq/soft_theta_controller.toml)
+SOFT = load_pd_gains("soft-theta")  # the shipped second controller (core/soft_theta_controller.toml)
 
 
 def _collect(out, gains, n, seed, zero_offsets, params=PendulumParameters.previous()):

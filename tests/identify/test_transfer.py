@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 import pytest
 
-from qube_koopman.daq.controller import load_pd_gains
+from qube_koopman.core.controller import load_pd_gains
 from qube_koopman.identify import ClEdmd
 from qube_koopman.identify.data.logs import load_logs
 from qube_koopman.identify.models.offsets import estimate_offsets_many
@@ -94,7 +94,7 @@ def test_probe_scores_are_the_closed_loop_predictions_r2(real_train):
 
 
 def _rig_controller():
-    from qube_koopman.daq.controller import pd_controller
+    from qube_koopman.core.controller import pd_controller
 
     return pd_controller(load_pd_gains("rig"))
 

@@ -97,6 +97,23 @@ def test_every_import_points_down_the_layers():
     assert not offenders
 
 
+def test_identify_reads_logs_in_its_data_package_only():
+    """Within identify, only identify/data imports daq (to read episode logs); the estimators, models,
+    model selection and commands get logs from it, and nothing in identify imports daq's real-time parts."""
+    import ast
+
+    offenders = []
+    for path, tree in _modules("identify"):
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
+            for name in names:
+                if name.startswith("qube_koopman.daq") and (path.parts[1] != "data" or not name.startswith(
+                        "qube_koopman.daq.log")):
+                    offenders.append(f"{path}:{node.lineno} imports {name}")
+    assert not offenders
+
+
 def test_every_command_is_written_with_the_toolkit_of_core():
     """One way to write a command: core.cli, core.console and core.command hold the toolkit (the
     parser and argument types, logging and progress, CliError and run_command), no other package

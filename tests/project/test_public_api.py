@@ -109,10 +109,10 @@ def test_the_docstring_check_finds_what_it_is_for():
     ("qube_koopman.identify", {"ClEdmd", "ClEdmdStable", "clone", "identify_and_score", "search_liftings",
                                "regularization_sweep", "load_logs", "twin_probes", "save_model", "load_model",
                                "Lifting", "Delay", "KoopmanModel", "Trajectory"}),
-    ("qube_koopman.daq", {"read_episode", "write_episode", "Episode", "pd_controller", "PdGains",
-                          "load_controller_file", "run_episodes", "plan_episodes"}),
+    ("qube_koopman.daq", {"read_episode", "write_episode", "Episode", "run_episodes", "plan_episodes"}),
     ("qube_koopman.sim", {"PendulumParameters", "simulate_closed_loop", "PendulumSimulator"}),
-    ("qube_koopman.core", {"DiscreteStateSpace", "replay_controller", "spectral_radius", "atomic_path"}),
+    ("qube_koopman.core", {"DiscreteStateSpace", "replay_controller", "spectral_radius", "atomic_path",
+                           "load_controller", "ControllerInfo", "pd_controller", "PdGains", "write_controller_file"}),
     ("qube_koopman.design", {"design_lq", "linear_plant", "design_from_model"}),
 ])
 def test_the_packages_export_what_users_import(package, names):

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from qube_koopman.daq.controller import pi_controller
+from qube_koopman.core.controller import pi_controller
 from qube_koopman.reproduce.cli import main
 from qube_koopman.reproduce.duffing import reproduce_duffing
 from qube_koopman.sim.duffing import coloured_noise, duffing_experiment, duffing_pi_controller, random_dwell_prbs

@@ -53,7 +53,7 @@ def test_each_episode_draws_its_own_offset_and_describes_it():
 
 def test_the_controller_balances_the_true_upright_not_the_measured_zero():
     # Measured alpha settles at the offset (the true pendulum is upright on average).
-    from qube_koopman.daq.controller import PdGains, pd_controller
+    from qube_koopman.core.controller import PdGains, pd_controller
     from qube_koopman.sim.pendulum import simulate_closed_loop
     ctrl = pd_controller(PdGains(kp_theta=6, kd_theta=1.8, kp_alpha=30, kd_alpha=2.5, tau=50))
     n = 4000

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from qube_koopman.daq.controller import PdGains, pd_controller
+from qube_koopman.core.controller import PdGains, pd_controller
 from qube_koopman.sim.pendulum import (PendulumParameters, PendulumSimulator, SensorModel, dynamics, linear_model,
                           linearize_upright, measure, rk4_step, simulate, total_energy)
 

@@ -20,7 +20,7 @@ import pytest
 from _qube_csv import load_episode
 from scipy.signal import savgol_filter
 
-from qube_koopman.daq.controller import load_pd_gains, pd_controller
+from qube_koopman.core.controller import load_pd_gains, pd_controller
 from qube_koopman.daq.episode import REFERENCE_SIGNALS, STATE_SIGNALS, stack_signals
 from qube_koopman.core.lti import replay_controller
 from qube_koopman.sim.pendulum import PendulumParameters, simulate_closed_loop

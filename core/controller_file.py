@@ -1,9 +1,9 @@
 """Controller files: PD gains or a discrete state-space controller, read into one :class:`ControllerInfo`.
 
-A controller file is TOML, of one of two kinds (daq/CONTROLLER_FORMAT.md):
+A controller file is TOML, of one of two kinds (core/CONTROLLER_FORMAT.md):
 
 - a PD gains file (no ``kind`` key): ``kp_theta``, ``kd_theta``, ``kp_alpha``, ``kd_alpha``,
-  ``tau``, discretized here like the rig's (:func:`daq.controller.pd_controller`);
+  ``tau``, discretized here like the rig's (:func:`core.controller.pd_controller`);
 - a state-space file (``format = "qube-controller/1"``, ``kind = "state-space"``): the matrices
   A, B, C, D of a discrete controller at the loop's sample period, inline or in a sibling
   ``.npz``, e.g. written by a controller design from an identified model.
@@ -17,15 +17,15 @@ from __future__ import annotations
 import json
 import math
 import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 from qube_koopman.core.files import atomic_path
 
-from qube_koopman.daq.controller import (QUBE_SAMPLE_PERIOD, controller_file, pd_controller,
+from qube_koopman.core.controller import (QUBE_SAMPLE_PERIOD, controller_file, pd_controller,
                                          pd_gains_from_table, read_controller_toml)
-from qube_koopman.daq.episode import ControllerInfo
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
@@ -34,7 +34,10 @@ __all__ = [
     "FEEDFORWARD_INPUTS",
     "STATE_SPACE_METHOD",
     "TRACKING_INPUTS",
-    "load_controller_file",
+    "load_controller",
+    "default_controller_path",
+    "ControllerInfo",
+    "plain_json",
     "write_controller_file",
 ]
 
@@ -55,15 +58,15 @@ _MATRICES = ("A", "B", "C", "D")
 _KNOWN = frozenset(_REQUIRED + _MATRICES + ("matrices", "provenance"))
 
 
-def load_controller_file(path: str | Path, method: str = "backward-euler",
-                         dt: float = QUBE_SAMPLE_PERIOD) -> ControllerInfo:
+def load_controller(path: str | Path | None = None, method: str = "backward-euler",
+                    dt: float = QUBE_SAMPLE_PERIOD) -> ControllerInfo:
     """The controller of a controller file of either kind, as the loop runs it.
 
     Parameters
     ----------
-    path : str or Path
+    path : str or Path, optional
         A controller file, or a shipped name (``"rig"``, ``"soft-theta"``; see
-        :func:`daq.controller.controller_file`).
+        :func:`core.controller.controller_file`); the rig's PD gains when None.
     method : {"backward-euler", "zoh", "tustin"}
         Discretization of a PD gains file's derivative filters; a state-space file is
         already discrete (recorded with method ``"given"``).
@@ -83,7 +86,7 @@ def load_controller_file(path: str | Path, method: str = "backward-euler",
         unknown kind or format, a matrix of the wrong shape or with non-finite entries, a
         sample period other than ``dt``.
     """
-    path = controller_file(path)
+    path = controller_file("rig" if path is None else path)
     data = read_controller_toml(path)
     if "kind" not in data and "format" not in data:
         gains = pd_gains_from_table(data, path)
@@ -211,7 +214,7 @@ def _check_shapes(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, in
 
 def write_controller_file(path: str | Path, system: DiscreteStateSpace,
                           provenance: Mapping[str, Any] | None = None, *, npz: bool = False) -> Path:
-    """Write a state-space controller file that :func:`load_controller_file` reads back exactly.
+    """Write a state-space controller file that :func:`load_controller` reads back exactly.
 
     Parameters
     ----------
@@ -236,7 +239,7 @@ def write_controller_file(path: str | Path, system: DiscreteStateSpace,
         raise ValueError(f"a controller file holds 2 inputs (3 with the feedforward) and 1 output, got "
                          f"{system.n_inputs} and {system.n_outputs}")
     inputs = TRACKING_INPUTS if system.n_inputs == len(TRACKING_INPUTS) else FEEDFORWARD_INPUTS
-    lines = [f"# A discrete state-space controller of qube-koopman (daq/CONTROLLER_FORMAT.md): "
+    lines = [f"# A discrete state-space controller of qube-koopman (core/CONTROLLER_FORMAT.md): "
              f"{system.n_states} states", f'format = "{CONTROLLER_FORMAT}"', f'kind = "{STATE_SPACE_KIND}"',
              f"dt = {system.dt!r}", f"inputs = {json.dumps(list(inputs))}"]
     if npz:
@@ -273,3 +276,68 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     raise ValueError(f"provenance value {value!r} is not plain data (str, number, bool, list, table)")
+
+
+def plain_json(value: Mapping[str, Any], name: str) -> dict[str, Any]:
+    """``value`` as plain JSON data (a dict), or a ValueError naming ``name``."""
+    # Round-trip through JSON now so a value the log cannot store fails here,
+    # where the caller can see which field, not later in the writer thread.
+    # (A plain dict, not a read-only proxy, so that episodes can be pickled.)
+    try:
+        return json.loads(json.dumps(dict(value), allow_nan=False))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be JSON-serializable plain data: {exc}") from None
+
+
+@dataclass(frozen=True)
+class ControllerInfo:
+    """The controller that ran the episode.
+
+    Parameters
+    ----------
+    system : DiscreteStateSpace
+        Discrete controller (A^c, B^c, C^c, D^c, dt); inputs are the tracking
+        errors ``target_theta - theta`` and ``target_alpha - alpha``.
+    method : str
+        Discretization it was built with (e.g. ``"backward-euler"``).
+    gains : mapping of str to float
+        The gains it was built from (e.g. :meth:`core.controller.PdGains.as_dict`).
+    kind : str
+        Controller family: ``"pd"`` (built from gains) or ``"state-space"`` (matrices given
+        in discrete time, core/CONTROLLER_FORMAT.md).
+    provenance : mapping
+        Free-form JSON-serializable record of where the controller comes from (for a
+        state-space file: its ``[provenance]`` table, e.g. what designed it); empty for gains.
+    """
+
+    system: DiscreteStateSpace
+    method: str
+    gains: Mapping[str, float] = field(default_factory=dict)
+    kind: str = "pd"
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.system, DiscreteStateSpace):
+            raise TypeError(f"system must be a DiscreteStateSpace, got {type(self.system).__name__}")
+        gains = {str(k): float(v) for k, v in dict(self.gains).items()}
+        object.__setattr__(self, "gains", plain_json(gains, "controller gains"))
+        object.__setattr__(self, "provenance", plain_json(self.provenance, "controller provenance"))
+
+    def as_dict(self) -> dict:
+        """Plain-data form: kind, method, gains, provenance and the state-space matrices."""
+        return {"kind": self.kind, "method": self.method, "gains": dict(self.gains),
+                "provenance": dict(self.provenance), **self.system.as_dict()}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "ControllerInfo":
+        """Inverse of :meth:`as_dict` (``provenance`` optional: empty when absent)."""
+        missing = {"kind", "method", "gains"} - set(data)
+        if missing:
+            raise ValueError(f"controller data misses {sorted(missing)}")
+        return cls(DiscreteStateSpace.from_dict(data), data["method"], data["gains"], data["kind"],
+                   data.get("provenance", {}))
+
+
+def default_controller_path() -> Path:
+    """The controller.toml shipped with the package: the gains that recorded the paper's dataset."""
+    return controller_file("rig")
