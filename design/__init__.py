@@ -23,6 +23,10 @@ _HOMES = {
     "closed_loop_eigenvalues": "predict", "Margins": "predict", "loop_margins": "predict",
     # what qube-design runs, and the design run on the twin
     "DesignReport": "workflow", "design_from_model": "workflow", "report_text": "workflow",
+    # the model's uncertainty: the predicted figures' interval, the robust design
+    "ModelUncertainty": "uncertainty", "model_uncertainty": "uncertainty", "member_figures": "uncertainty",
+    "FigureInterval": "uncertainty", "figure_interval": "uncertainty", "interval_from_logs": "uncertainty",
+    "RobustChoice": "uncertainty", "robust_design": "uncertainty",
     "run_on_twin": "twin",
 }
 

@@ -82,6 +82,8 @@ __all__ = [
     "ensemble_statistics",
     "episode_folds",
     "fit_ensemble",
+    "held_out_figures",
+    "loop_figures",
     "predict_episodes",
     "prediction_band",
     "summarize_bands",
@@ -858,3 +860,79 @@ def summarize_bands(bands: Sequence[PredictionBand], names: Sequence[str]) -> di
     for band in bands:
         summary.add(band)
     return summary.report()
+
+
+# --- what a design needs of the uncertainty ------------------------------------------------------
+
+
+def loop_figures(x: np.ndarray, target_theta: np.ndarray, voltage: np.ndarray, skip: int) -> np.ndarray:
+    """``[J, voltage RMS, voltage peak]`` of one episode after ``skip`` samples (inf when non-finite).
+
+    ``J = mean((theta - target_theta)^2) + mean(alpha^2)``, the cost ``qube-design`` predicts.
+
+    Parameters
+    ----------
+    x : ndarray of shape (n_samples, 2)
+        Theta and alpha (rad).
+    target_theta : ndarray of shape (n_samples,)
+        The arm's reference (rad).
+    voltage : ndarray of shape (n_samples,)
+        The plant input (V).
+    skip : int
+        Samples left out at the start.
+
+    Returns
+    -------
+    ndarray of shape (3,)
+    """
+    tracking, alpha, u = x[skip:, 0] - target_theta[skip:], x[skip:, 1], np.asarray(voltage, dtype=float)[skip:]
+    if not (np.all(np.isfinite(tracking)) and np.all(np.isfinite(alpha)) and np.all(np.isfinite(u))):
+        return np.full(3, np.inf)
+    return np.array([np.mean(tracking ** 2) + np.mean(alpha ** 2), np.sqrt(np.mean(u ** 2)),
+                     np.max(np.abs(u), initial=0.0)])
+
+
+def held_out_figures(fit: EnsembleFit, trajectories, controllers: Sequence[DiscreteStateSpace],
+                     measured: Sequence[int], skip: int) -> np.ndarray:
+    """The figures of the calibration folds' held-out episodes, measured and as their fold's point fit predicts them.
+
+    Each held-out training episode is predicted in closed loop under the controller it ran
+    (from its first samples, with its references and feedforward), by the fit on the fold's
+    other episodes; the voltage is that controller's output on the predicted angles plus the
+    feedforward. What the measured figures differ by is the model's error on an episode it
+    was not fitted on: ``qube-design`` widens its predicted cost with it.
+
+    Parameters
+    ----------
+    fit : EnsembleFit
+        Its folds' point fits.
+    trajectories : sequence of Trajectory
+        The training episodes the fit was made on.
+    controllers : sequence of DiscreteStateSpace
+        Each episode's controller.
+    measured : sequence of int
+        The fed-back states.
+    skip : int
+        Samples left out at each episode's start (:func:`loop_figures`).
+
+    Returns
+    -------
+    ndarray of shape (n_held_out, 2, 3)
+        Per held-out episode, ``[measured, predicted]`` of ``[J, voltage RMS, voltage peak]``.
+    """
+    from qube_koopman.identify.estimators.structure import controller_states, plant_input
+
+    trajectories = as_episodes(trajectories)
+    rows = []
+    for fold in fit.folds:
+        held_out = select_episodes(trajectories, fold.validation)
+        for j, t in zip(fold.validation, held_out):
+            c = controllers[j]
+            model = Loop.of(c, None).model(*fold.point, measured)
+            (predicted,) = predict_episodes([model], [t])
+            x = predicted.prediction
+            y = x[:, list(measured)]
+            with np.errstate(all="ignore"):
+                u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
+            rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u[:, 0], skip)])
+    return np.array(rows).reshape(-1, 2, 3)

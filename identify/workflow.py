@@ -18,15 +18,15 @@ from qube_koopman.identify.estimators.mixed import training_controllers_report
 from qube_koopman.identify.model_selection.split import FOLD_KINDS, cross_validation_folds
 from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.stability import ClEdmdStable
-from qube_koopman.identify.models.model_file import lifting_to_dict, save_arx_model, save_model
+from qube_koopman.identify.models.model_file import lifting_to_dict, save_arx_model, save_model, uncertainty_to_dict
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import DivergedPrediction, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
 from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, consecutive_runs,
-                                               fit_ensemble, predict_episodes, prediction_band)
+                                               fit_ensemble, held_out_figures, predict_episodes, prediction_band)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
-from qube_koopman.core.qube import MEASURED, STATE_NAMES
+from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
 
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS", "SearchOptions",
            "run_search"]
@@ -238,7 +238,9 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
             if model_path is not None:
                 save_model(model_path, method=method, alpha=result.report["alpha"], plant=plant, closed_loop=closed,
                            controller=controller, measured=MEASURED,
-                           training={"logs": result.report["train_logs"]})
+                           training={"logs": result.report["train_logs"]},
+                           uncertainty=None if ensemble is None else _design_uncertainty(ensemble, plant, train,
+                                                                                          intervals.seed))
             bands = None if ensemble is None else _test_bands(
                 ensemble, intervals, train, controller, score, offsets, _first_scored(offsets, score_from, test[0].dt),
                 result, predictions_folder, keep_predictions)
@@ -299,6 +301,15 @@ def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits
     plant = fitted.model_ if cls is Edmd else fitted.plant_model_
     closed = close_loop(plant, controller, MEASURED) if cls is Edmd else fitted.closed_loop_model_
     return plant, closed, ensemble
+
+
+def _design_uncertainty(ensemble, plant, train, seed: int) -> dict:
+    """The model file's ``uncertainty``: the bootstrap plants and the held-out episodes' figures (for qube-design)."""
+    held_out = held_out_figures(ensemble, LogTrajectories(train), [log.controller for log in train], MEASURED,
+                                SKIP_SAMPLES)
+    names = [train[j].path.name for fold in ensemble.folds for j in fold.validation]
+    return uncertainty_to_dict(plant, [member[1] for member in ensemble.members], held_out, seed=seed,
+                               skip=SKIP_SAMPLES, logs=names)
 
 
 def _fit(estimator, trajs, controllers, elsewhere):

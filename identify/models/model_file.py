@@ -18,7 +18,7 @@ from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path
 
 __all__ = ["FORMAT", "VERSION", "ARX_FORMAT", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model",
-           "save_arx_model"]
+           "save_arx_model", "uncertainty_to_dict"]
 
 FORMAT = "qube-koopman-model"
 VERSION = 1
@@ -86,7 +86,7 @@ def _model_to_dict(model: KoopmanModel | None) -> dict | None:
 
 def save_model(path: str | Path, *, method: str, alpha: float | None, plant: KoopmanModel,
                closed_loop: KoopmanModel | None, controller: DiscreteStateSpace | None,
-               measured: list[int], training: dict) -> None:
+               measured: list[int], training: dict, uncertainty: dict | None = None) -> None:
     """Write a model file (see MODEL_FORMAT.md), atomically.
 
     Parameters
@@ -107,6 +107,8 @@ def save_model(path: str | Path, *, method: str, alpha: float | None, plant: Koo
         The fed-back plant states.
     training : dict
         What the model was fitted on, stored as given (JSON values).
+    uncertainty : dict, optional
+        The fit's uncertainty for a design (:func:`uncertainty_to_dict`); left out when None.
     """
     data = {
         "format": FORMAT, "version": VERSION, "method": method, "alpha": alpha, "dt": plant.dt,
@@ -114,8 +116,46 @@ def save_model(path: str | Path, *, method: str, alpha: float | None, plant: Koo
         "controller": None if controller is None else controller.as_dict(),
         "plant": _model_to_dict(plant), "closed_loop": _model_to_dict(closed_loop), "training": training,
     }
+    if uncertainty is not None:
+        data["uncertainty"] = uncertainty
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=1) + "\n")
+
+
+def uncertainty_to_dict(plant: KoopmanModel, members: list[KoopmanModel], held_out: np.ndarray, *, seed: int,
+                        skip: int, logs: list[str] | None = None) -> dict:
+    """The ``uncertainty`` entry of a model file: bootstrap plants and held-out figures (MODEL_FORMAT.md).
+
+    Parameters
+    ----------
+    plant : KoopmanModel
+        The plant model (the point fit).
+    members : list of KoopmanModel
+        Its bootstrap refits; only the rows of the measured states are kept (the rows a re-lifted
+        prediction uses: the others are the point fit's).
+    held_out : ndarray of shape (n, 2, 3)
+        Measured and predicted ``[J, voltage RMS, voltage peak]`` of the held-out training episodes
+        (:func:`identify.uncertainty.held_out_figures`).
+    seed : int
+        The resampling's seed.
+    skip : int
+        Samples left out at each held-out episode's start.
+    logs : list of str, optional
+        The held-out episodes' names.
+
+    Returns
+    -------
+    dict
+    """
+    m = plant.n_states
+    out = {"method": "episode bootstrap", "seed": int(seed),
+           "plant_members": [{"A": member.A[:m].tolist(), "B": member.B[:m].tolist()} for member in members],
+           "held_out": {"skip_samples": int(skip), "figures": ["J", "voltage_rms", "voltage_peak"],
+                        "measured": np.asarray(held_out)[:, 0].tolist(),
+                        "predicted": np.asarray(held_out)[:, 1].tolist()}}
+    if logs is not None:
+        out["held_out"]["logs"] = list(logs)
+    return out
 
 
 #: The ``format`` key of an ARX model file (MODEL_FORMAT.md).
@@ -154,8 +194,9 @@ def load_model(path: str | Path) -> dict:
     -------
     dict
         ``plant`` and ``closed_loop`` (:class:`KoopmanModel` or None),
-        ``controller`` (:class:`DiscreteStateSpace` or None) and the file's
-        other fields as stored.
+        ``controller`` (:class:`DiscreteStateSpace` or None), ``plant_members`` (the bootstrap
+        refits of the plant as :class:`KoopmanModel`, their rows past the measured states the
+        plant's; None when the file holds none) and the file's other fields as stored.
 
     Raises
     ------
@@ -202,4 +243,23 @@ def load_model(path: str | Path) -> dict:
     out = dict(data)
     out.update(plant=model(data["plant"], "plant"), closed_loop=model(data["closed_loop"], "closed_loop"),
                controller=None if data["controller"] is None else DiscreteStateSpace.from_dict(data["controller"]))
+    out["plant_members"] = _members(data.get("uncertainty"), out["plant"], matrix, path)
     return out
+
+
+def _members(uncertainty, plant: KoopmanModel | None, matrix, path: Path) -> list[KoopmanModel] | None:
+    """The bootstrap plants of a model file's ``uncertainty`` (None when it holds none)."""
+    if not isinstance(uncertainty, dict) or not uncertainty.get("plant_members") or plant is None:
+        return None
+    m = plant.n_states
+    members = []
+    for i, entry in enumerate(uncertainty["plant_members"]):
+        name = f"uncertainty.plant_members[{i}]"
+        A_x, B_x = matrix(entry, name, "A"), matrix(entry, name, "B")
+        if A_x.shape != (m, plant.A.shape[1]) or B_x.shape != (m, plant.B.shape[1]):
+            raise ValueError(f"{path}: uncertainty.plant_members[{i}] has A {A_x.shape} and B {B_x.shape}, the plant's "
+                             f"measured rows are {(m, plant.A.shape[1])} and {(m, plant.B.shape[1])}")
+        A, B = plant.A.copy(), plant.B.copy()
+        A[:m], B[:m] = A_x, B_x
+        members.append(KoopmanModel(A, B, plant.lifting, tuple(plant.input_signals), dt=plant.dt))
+    return members

@@ -1,0 +1,128 @@
+"""The design's uncertainty: the predicted figures' interval and the robust design.
+
+- the model file: the bootstrap plants and held-out figures ``qube-identify`` writes come back as
+  plants (their rows of the measured states, the rest the point plant's);
+- the batched simulation of the members is :func:`design.predict.predict_cost`, sample for sample;
+- the interval from members equals an independent computation (a Monte Carlo of the same mixture);
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from qube_koopman.design import Weights, design_lq, linear_plant
+from qube_koopman.design.predict import predict_cost, rig_excitations
+from qube_koopman.design.uncertainty import (FIGURES, ModelUncertainty, figure_interval, member_figures,
+                                             model_uncertainty)
+from qube_koopman.identify import Constant, Delay, KoopmanModel, Lifting
+from qube_koopman.identify.models.model_file import load_model, save_model, uncertainty_to_dict
+
+NAMES = ("theta", "alpha")
+
+
+def _plant(d: int = 3, seed: int = 0) -> KoopmanModel:
+    """An unstable arm-and-pendulum-like plant over ``d`` delays and a constant, randomly perturbed."""
+    rng = np.random.default_rng(seed)
+    lifting = Lifting([Delay(d), Constant()]).fit([np.zeros((50, 2))], NAMES)
+    n = lifting.n_features_out_
+    A = np.eye(n, k=0) * 0.5
+    A[:2] = 0.0
+    A[:2, :4] = [[1.9, 0.0, -0.9, 0.0], [0.0, 2.02, 0.0, -1.0]]
+    A[:2, :2 * (d + 1)] += 0.01 * rng.standard_normal((2, 2 * (d + 1)))
+    A[:2, -1] = [1e-4, -2e-4]
+    B = np.zeros((n, 1))
+    B[:2, 0] = [2e-4, -2e-4]
+    return KoopmanModel(A, B, lifting, ("u",), dt=0.002)
+
+
+def _members(plant: KoopmanModel, n: int = 6, size: float = 1e-3) -> list[KoopmanModel]:
+    rng = np.random.default_rng(7)
+    out = []
+    for _ in range(n):
+        A, B = plant.A.copy(), plant.B.copy()
+        A[:2, :-1] *= 1 + size * rng.standard_normal(A[:2, :-1].shape)
+        B[:2] *= 1 + size * rng.standard_normal((2, 1))
+        A[2:] = np.nan  # a bootstrap refit fits only the rows a re-lifted prediction uses
+        out.append(KoopmanModel(A, B, plant.lifting, ("u",), dt=plant.dt))
+    return out
+
+
+HELD_OUT = np.array([[[1.05e-2, 1.50, 7.0], [1.00e-2, 1.45, 6.5]], [[1.51e-2, 1.55, 7.3], [1.48e-2, 1.47, 6.9]],
+                     [[1.30e-2, 1.49, 6.8], [1.31e-2, 1.44, 6.6]], [[1.42e-2, 1.52, 7.1], [1.36e-2, 1.46, 6.7]]])
+
+
+def _save(path, plant, members=None):
+    uncertainty = None if members is None else uncertainty_to_dict(plant, members, HELD_OUT, seed=3, skip=500)
+    save_model(path, method="cl-edmd", alpha=1e-3, plant=plant, closed_loop=None, controller=None, measured=[0, 1],
+               training={"logs": []}, uncertainty=uncertainty)
+    return path
+
+
+def test_the_model_file_gives_back_the_bootstrap_plants_and_the_held_out_figures(tmp_path):
+    plant = _plant()
+    members = _members(plant)
+    model = load_model(_save(tmp_path / "model.json", plant, members))
+    assert len(model["plant_members"]) == len(members)
+    for loaded, member in zip(model["plant_members"], members):
+        np.testing.assert_array_equal(loaded.A[:2], member.A[:2])
+        np.testing.assert_array_equal(loaded.B[:2], member.B[:2])
+        np.testing.assert_array_equal(loaded.A[2:], plant.A[2:])  # the rows no prediction uses: the plant's
+    uncertainty = model_uncertainty(model)
+    np.testing.assert_array_equal(uncertainty.held_out, HELD_OUT)
+    np.testing.assert_allclose(uncertainty.model_error(), np.log(HELD_OUT[:, 0] / HELD_OUT[:, 1]))
+    assert load_model(_save(tmp_path / "old.json", plant))["plant_members"] is None
+
+
+def test_the_members_batched_simulation_is_predict_cost_sample_for_sample():
+    plant = _plant(4)
+    design = design_lq(linear_plant(plant), Weights())
+    excitations = rig_excitations(2, 3, 4.0)
+    members = [plant] + [_plant(4, seed) for seed in (1, 2)]
+    figures = member_figures([linear_plant(m) for m in members], design, excitations)
+    for model, got in zip(members, figures):
+        expected = predict_cost(model, design.controller, excitations)
+        np.testing.assert_allclose(got, np.column_stack([expected.cost, expected.voltage_rms, expected.voltage_peak]),
+                                   rtol=1e-10)
+
+
+def test_the_interval_from_members_is_the_mixtures_quantiles_by_monte_carlo():
+    """Members' log-ratios shifted by the held-out errors' Student-t: the quantiles agree with 2 million draws."""
+    rng = np.random.default_rng(0)
+    nominal = np.abs(rng.normal(1.0, 0.1, (5, 3)))
+    members = nominal * np.exp(rng.normal(0, 0.02, (8, 1, 3)))
+    error = rng.normal(0.03, 0.02, (6, 3))
+    predicted = {name: 2.0 + i for i, name in enumerate(FIGURES)}
+    interval = figure_interval(predicted, nominal, members, error, 0.9)
+    pooled = np.stack([members[..., 0].mean(-1), np.sqrt((members[..., 1] ** 2).mean(-1)), members[..., 2].max(-1)], -1)
+    base = np.array([nominal[:, 0].mean(), np.sqrt((nominal[:, 1] ** 2).mean()), nominal[:, 2].max()])
+    n = len(error)
+    draws = 2_000_000
+    for i, name in enumerate(FIGURES):
+        shift = np.log(pooled[rng.integers(0, len(members), draws), i] / base[i])
+        t = rng.standard_t(n - 1, draws)
+        scale = error[:, i].std(ddof=1) * np.sqrt(1 + 1 / n)
+        samples = predicted[name] * np.exp(shift + error[:, i].mean() + scale * t)
+        lo, hi = np.quantile(samples, [0.05, 0.95])
+        assert interval.lower[name] == pytest.approx(lo, rel=2e-3)
+        assert interval.upper[name] == pytest.approx(hi, rel=2e-3)
+    alone = figure_interval(predicted, nominal, members, None, 0.9)  # the members alone: their own quantiles
+    for i, name in enumerate(FIGURES):
+        ratios = pooled[:, i] / base[i]
+        expected = predicted[name] * np.array([np.quantile(ratios, 0.05, method="lower"),
+                                               np.quantile(ratios, 0.95, method="higher")])
+        np.testing.assert_allclose([alone.lower[name], alone.upper[name]], expected, rtol=1e-12)
+    assert alone.n_held_out == 0 and "alone" in alone.sources
+
+
+def test_a_diverging_member_gives_an_infinite_upper_bound():
+    nominal = np.ones((2, 3))
+    members = np.ones((3, 2, 3))
+    members[1, 0, 0] = np.inf
+    interval = figure_interval({name: 1.0 for name in FIGURES}, nominal, members, None, 0.95)
+    assert interval.upper["J"] == np.inf and np.isfinite(interval.upper["voltage_rms"])
+
+
+def test_too_few_held_out_episodes_leave_the_model_error_out():
+    assert ModelUncertainty([], HELD_OUT[:2]).model_error() is None
+    assert ModelUncertainty([], HELD_OUT).model_error().shape == (4, 3)
