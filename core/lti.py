@@ -8,6 +8,7 @@ matrices, and identification reads them back as the known controller.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -156,7 +157,7 @@ class DiscreteStateSpace:
                 "D": self.D.tolist(), "dt": self.dt}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "DiscreteStateSpace":
+    def from_dict(cls, data: Mapping[str, Any]) -> "DiscreteStateSpace":
         """Inverse of :meth:`as_dict`."""
         missing = {"A", "B", "C", "D", "dt"} - set(data)
         if missing:

@@ -159,7 +159,7 @@ class Counters(ctypes.Structure):
 
     def as_dict(self) -> dict[str, int]:
         """Plain-data form, comparable with ``DecoderStats.as_dict()``."""
-        return {name: getattr(self, name) for name, _ in self._fields_}
+        return {name: getattr(self, name) for name, *_ in self._fields_}
 
 
 class CFrame(ctypes.Structure):
@@ -284,7 +284,7 @@ class CCore:
     def pack_message(self, message: Message) -> bytes:
         """Payload bytes from the C ``qp_pack_<type>`` (no range checks in C)."""
         struct_cls = message_struct(type(message))
-        c_msg = struct_cls(*(getattr(message, name) for name, _ in struct_cls._fields_))
+        c_msg = struct_cls(*(getattr(message, name) for name, *_ in struct_cls._fields_))
         out = (ctypes.c_uint8 * 64)()
         n = getattr(self.lib, f"qp_pack_{_snake(type(message).__name__)}")(ctypes.byref(c_msg), out)
         return bytes(out[:n])
@@ -294,11 +294,11 @@ class CCore:
         c_msg = message_struct(cls)()
         if getattr(self.lib, f"qp_unpack_{_snake(cls.__name__)}")(_buf(payload), len(payload), ctypes.byref(c_msg)):
             return None
-        return cls(*(getattr(c_msg, name) for name, _ in c_msg._fields_))
+        return cls(*(getattr(c_msg, name) for name, *_ in c_msg._fields_))
 
     def spi_pack_command(self, cmd: SpiCommand) -> bytes:
         """``qp_spi_pack_command``."""
-        c_cmd = SpiCommandStruct(*(getattr(cmd, name) for name, _ in SpiCommandStruct._fields_))
+        c_cmd = SpiCommandStruct(*(getattr(cmd, name) for name, *_ in SpiCommandStruct._fields_))
         out = (ctypes.c_uint8 * SPI_SIZE)()
         self.lib.qp_spi_pack_command(ctypes.byref(c_cmd), out)
         return bytes(out)
@@ -309,7 +309,7 @@ class CCore:
             raise ValueError(f"an SPI transaction is {SPI_SIZE} bytes, got {len(data)}")
         c_resp = SpiResponseStruct()
         self.lib.qp_spi_unpack_response(_buf(data), ctypes.byref(c_resp))
-        return SpiResponse(*(getattr(c_resp, name) for name, _ in SpiResponseStruct._fields_))
+        return SpiResponse(*(getattr(c_resp, name) for name, *_ in SpiResponseStruct._fields_))
 
 
 class CDecoder:
@@ -390,7 +390,7 @@ class CDevice:
 
     def take_output(self) -> bytes:
         """All bytes waiting for the host."""
-        chunks = []
+        chunks: list[bytes] = []
         while True:
             n = self._core.lib.qd_take_output(self._mem, self._out, len(self._out))
             if n == 0:

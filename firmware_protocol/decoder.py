@@ -54,7 +54,7 @@ class DecoderStats:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-_COUNTER = {reason: reason.name.lower() for reason in Reject if reason is not Reject.OK}
+_COUNTER: dict[Reject, str] = {reason: reason.name.lower() for reason in Reject if reason is not Reject.OK}
 
 
 class StreamDecoder:

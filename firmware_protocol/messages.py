@@ -12,9 +12,9 @@ applies). PROTOCOL.md is the normative description; the tables here and in
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, fields
+from dataclasses import Field, dataclass, fields
 from enum import IntEnum, IntFlag
-from typing import ClassVar, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 __all__ = [
     "PROTOCOL_VERSION",
@@ -154,6 +154,8 @@ class Message:
     LAYOUT: ClassVar[tuple[tuple[str, tuple[int, int] | None], ...]]
     STRUCT: ClassVar[struct.Struct]
     SIZE: ClassVar[int]
+    # Every subclass is a dataclass (the base is not: it has no fields); declared so that fields() accepts one.
+    __dataclass_fields__: ClassVar[dict[str, Field[Any]]]
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
