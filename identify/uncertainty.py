@@ -37,6 +37,16 @@ built from three pieces, each measured on data the fit did not use where it can 
   prediction variance with the horizon (exact for a first-order loop with white noise); on
   the rig it also absorbs the excitation's schedule (small errors in the first seconds).
   The test set is never looked at.
+- **Model error under loops the training never ran, calibrated on the twin's probes.** Held-out
+  training episodes ran the training controllers; another controller excites the plant
+  differently (a softer arm wanders slowly where the model is least sure), and the error there
+  is what matters for transfer. A test episode under such a loop gets ``q_c``, ``tau_c`` and
+  ``k_c`` calibrated the same way on the twin's probe episodes (training excitations replayed
+  on the calibrated twin under other controllers,
+  :func:`~qube_koopman.identify.model_selection.transfer.twin_probes`), predicted by the fit and
+  its members wrapped with each probe's controller (:func:`calibrate_on_probes`). The twin is
+  not the rig, so this error holds the twin's mismatch too; it is an estimate from data the
+  fit did not use, where the training loop's held-out error is no estimate at all.
 
 A prediction that diverges (non-finite, or beyond :data:`~qube_koopman.identify.metrics.DIVERGED_FACTOR`
 times the measured range), or whose bootstrap member diverges, gets an infinite interval from
@@ -79,6 +89,7 @@ __all__ = [
     "PredictionBand",
     "bootstrap_counts",
     "calibrate",
+    "calibrate_on_probes",
     "ensemble_statistics",
     "episode_folds",
     "fit_ensemble",
@@ -117,6 +128,10 @@ class IntervalOptions:
     stride : int
         Every ``stride``-th held-out sample enters the calibration (neighbouring samples at 500 Hz
         say nearly the same; this bounds its memory and time).
+    other_loops : {"twin", "none"}
+        How a test episode under a loop the training never ran is calibrated: on the twin's probe
+        episodes under other controllers (``"twin"``), or as the training loop's held-out
+        episodes (``"none"``, flagged in the report as a loop the calibration did not see).
     """
 
     level: float = 0.95
@@ -126,8 +141,11 @@ class IntervalOptions:
     n_calibration_episodes: int = 16
     seed: int = 0
     stride: int = 5
+    other_loops: str = "twin"
 
     def __post_init__(self) -> None:
+        if self.other_loops not in ("twin", "none"):
+            raise ValueError(f"other_loops must be 'twin' or 'none', got {self.other_loops!r}")
         if not 0 < self.level < 1:
             raise ValueError(f"the interval's level must be between 0 and 1, got {self.level}")
         counts = (self.n_members, self.n_calibration_members, self.n_folds, self.n_calibration_episodes)
@@ -664,6 +682,50 @@ def calibrate(fit: EnsembleFit, trajectories, loops: Sequence[Loop], level: floa
     return calibration
 
 
+def calibrate_on_probes(fit: EnsembleFit, probes, level: float, start: int = 1, offsets=None,
+                        measured: Sequence[int] | None = None, stride: int = 5,
+                        n_members: int | None = None) -> IntervalCalibration:
+    """Calibrate the band of loops the training never ran on the twin's probe episodes.
+
+    The probes are not training data, so the fit on all the training episodes and its members
+    predict them (each wrapped with its probe's controller) as test episodes are predicted, and
+    :func:`calibrate` fits the model error of those predictions.
+
+    Parameters
+    ----------
+    fit : EnsembleFit
+        The fit and its bootstrap members.
+    probes : ProbeSet
+        Twin episodes under probe controllers
+        (:func:`~qube_koopman.identify.model_selection.transfer.twin_probes`).
+    level : float
+        The coverage asked for.
+    start : int
+        First scored sample of each episode (the end of the offsets' window, as the test's).
+    offsets : OffsetProtocol, optional
+        Estimate each probe episode's offsets first, as the test episodes'.
+    measured : sequence of int, optional
+        The fed-back states.
+    stride : int
+        Every ``stride``-th scored sample is used.
+    n_members : int, optional
+        Members predicting the probes (all when None): the spread's size is what the
+        calibration needs, as the folds' fewer members give it.
+
+    Returns
+    -------
+    IntervalCalibration
+    """
+    estimator = fit.estimator  # a closed-loop fit's plant, or EDMD's model of the plant
+    point = (getattr(estimator, "closed_loop_model_", None), getattr(estimator, "plant_model_", estimator.model_))
+    members = fit.members if n_members is None else fit.members[:n_members]
+    episodes = [episode for group in probes.episodes for episode in group]
+    loops = [Loop("wrapped", controller) for controller, group in zip(probes.controllers, probes.episodes)
+             for _ in group]
+    on_probes = dataclasses.replace(fit, folds=[FoldEnsemble(np.arange(len(episodes)), point, members)])
+    return calibrate(on_probes, episodes, loops, level, start, offsets, measured, stride)
+
+
 # --- bands ------------------------------------------------------------------------------------
 
 
@@ -687,8 +749,10 @@ class PredictionBand:
     diverged_at : int or None
         First sample (of the episode) from which the band is infinite.
     calibrated_loop : bool
-        Whether the predicted loop is one the calibration's held-out episodes ran (else the model's
-        error under this loop is unknown: the band is the training loops').
+        Whether the predicted loop is one the calibration's held-out episodes ran.
+    calibration : {"held-out", "twin probes"}
+        What the band's model error was calibrated on: held-out training episodes, or (a loop
+        the training never ran) the twin's probe episodes under other controllers.
     """
 
     name: str
@@ -701,6 +765,7 @@ class PredictionBand:
     scored: bool = True
     diverged_at: int | None = None
     calibrated_loop: bool = True
+    calibration: str = "held-out"
 
     def inside(self) -> np.ndarray:
         """Whether each measured sample is within the band, per channel."""
@@ -804,7 +869,7 @@ class BandSummary:
         self.episodes: list[dict] = []
         m = len(self.names)
         self._inside, self._half, self._squared = np.zeros(m), np.zeros(m), np.zeros(m)
-        self._worst, self._n, self._infinite, self._elsewhere = np.ones(m), 0, 0, 0
+        self._worst, self._n, self._infinite, self._elsewhere, self._probed = np.ones(m), 0, 0, 0, 0
 
     def add(self, band: PredictionBand) -> None:
         """Count one band (an unscored one is left out)."""
@@ -814,7 +879,8 @@ class BandSummary:
         self.episodes.append({"log": band.name, "coverage": _channel_dict(self.names, coverage),
                               "mean_half_width": _channel_dict(self.names, band.mean_half_width()),
                               "rms_error": _channel_dict(self.names, band.rms_error()),
-                              "infinite_from_sample": band.diverged_at, "calibrated_loop": band.calibrated_loop})
+                              "infinite_from_sample": band.diverged_at, "calibrated_loop": band.calibrated_loop,
+                              "calibration": band.calibration})
         n = len(band.t)
         with np.errstate(invalid="ignore", over="ignore"):
             self._inside += coverage * n
@@ -823,12 +889,14 @@ class BandSummary:
         self._worst = np.minimum(self._worst, coverage)
         self._n += n
         self._infinite += band.diverged_at is not None
-        self._elsewhere += not band.calibrated_loop
+        self._elsewhere += not band.calibrated_loop and band.calibration == "held-out"
+        self._probed += band.calibration == "twin probes"
 
     def report(self) -> dict:
         """``pooled`` (``coverage``, ``mean_half_width``, ``rms_error``, ``worst_episode_coverage``,
-        ``n_samples``, ``n_infinite``: bands infinite somewhere; None when no band was scored) and
-        ``episodes`` (one entry per scored band)."""
+        ``n_samples``, ``n_infinite``: bands infinite somewhere, ``n_uncalibrated_loop``: bands of a loop
+        nothing calibrated, ``n_probe_calibrated``: bands of a loop calibrated on the twin's probes; None
+        when no band was scored) and ``episodes`` (one entry per scored band)."""
         if not self._n:
             return {"pooled": None, "episodes": self.episodes}
         with np.errstate(invalid="ignore"):
@@ -838,7 +906,7 @@ class BandSummary:
                            "rms_error": _channel_dict(self.names, np.where(np.isnan(rms), np.inf, rms)),
                            "worst_episode_coverage": _channel_dict(self.names, self._worst),
                            "n_samples": self._n, "n_infinite": self._infinite,
-                           "n_uncalibrated_loop": self._elsewhere},
+                           "n_uncalibrated_loop": self._elsewhere, "n_probe_calibrated": self._probed},
                 "episodes": self.episodes}
 
 

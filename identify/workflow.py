@@ -23,7 +23,8 @@ from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import DivergedPrediction, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
-from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, consecutive_runs,
+from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, calibrate_on_probes,
+                                               consecutive_runs,
                                                fit_ensemble, held_out_figures, predict_episodes, prediction_band)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
@@ -126,7 +127,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                        estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None,
                        score_from: int | None = None, keep_predictions: bool = True,
                        episode_statistics: Callable | None = None, intervals: IntervalOptions | None = None,
-                       predictions_folder: str | Path | None = None) -> IdentificationResult:
+                       predictions_folder: str | Path | None = None, probes=None,
+                       probe_cache: str | Path | None = None) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
     Training logs may come from several controllers: each episode is fitted
@@ -204,6 +206,12 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
         Give every test prediction an interval (a Koopman method).
     predictions_folder : str or Path, optional
         With ``intervals``: write each test episode's prediction and interval there.
+    probes : ProbeSet, optional
+        With ``intervals`` (``other_loops="twin"``): the twin's probe episodes calibrating the
+        intervals of test episodes under a loop the training never ran; simulated from the
+        training episodes when needed and not given (:func:`~qube_koopman.identify.twin_probes`).
+    probe_cache : str or Path, optional
+        Where those probes are kept between runs (``twin_probes``' ``cache``).
 
     Returns
     -------
@@ -243,7 +251,7 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                                                                                           intervals.seed))
             bands = None if ensemble is None else _test_bands(
                 ensemble, intervals, train, controller, score, offsets, _first_scored(offsets, score_from, test[0].dt),
-                result, predictions_folder, keep_predictions)
+                result, predictions_folder, keep_predictions, probes, probe_cache)
             _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from,
                            keep_predictions, bands)
         elif method in ("arx", "cl-arx"):
@@ -419,14 +427,18 @@ def _score_koopman(plant, closed, controller, test, score, offsets, what_if, res
 INTERVAL_METHOD = ("prediction +- k_c sqrt(s_c(t)^2 + q_c (1 - exp(-h / tau_c))): s_c the spread of bootstrap refits "
                    "on the training episodes drawn with replacement, plus the estimated offsets' standard errors "
                    "propagated through the prediction; q_c, tau_c (Gaussian maximum likelihood) and k_c (the level's "
-                   "quantile) calibrated per channel on training episodes held out in turn, never the test episodes")
+                   "quantile) calibrated per channel on training episodes held out in turn, never the test episodes; "
+                   "for a loop the training never ran (another controller), calibrated the same way on the twin's "
+                   "probe episodes under other controllers (other_loops 'twin')")
 
 
 class _TestBands:
     """Each test episode's interval, written and summarized as the episodes stream by."""
 
-    def __init__(self, members, calibration, loops, options, result, folder, keep, seconds):
+    def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None):
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
+        # The calibration of loops the training never ran: made when the first such episode comes.
+        self._other, self.other_calibration, self.probes = other, None, None
         self.loops = [loop for i, loop in enumerate(loops) if not any(loop.same(seen) for seen in loops[:i])]
         self.result, self.folder, self.seconds = result, None if folder is None else Path(folder), seconds
         self.summary = BandSummary(STATE_NAMES)
@@ -434,8 +446,11 @@ class _TestBands:
 
     def add(self, log, trajectory, predicted, scored, start, n_delays, loop) -> None:
         """One test episode's band: saved, counted, kept with the predictions if they are."""
-        band = prediction_band(log.path.name, trajectory, predicted, self.calibration, start, n_delays, scored)
-        band.calibrated_loop = any(loop.same(seen) for seen in self.loops)
+        seen = any(loop.same(known) for known in self.loops)
+        calibration = self.calibration if seen or self._other is None else self._calibration_elsewhere()
+        band = prediction_band(log.path.name, trajectory, predicted, calibration, start, n_delays, scored)
+        band.calibrated_loop = seen
+        band.calibration = "held-out" if calibration is self.calibration else "twin probes"
         if self.folder is not None:
             name = f"{log.path.stem}.npz"
             band.save(self.folder / name)
@@ -443,6 +458,15 @@ class _TestBands:
         self.summary.add(band)
         if self.keep:
             self.result.test_bands.append(band)
+
+    def _calibration_elsewhere(self):
+        if self.other_calibration is None:
+            import time
+
+            started = time.perf_counter()
+            self.probes, self.other_calibration = self._other()
+            self.seconds["other_loops"] = time.perf_counter() - started
+        return self.other_calibration
 
     def report(self) -> None:
         """The intervals' part of report.json."""
@@ -452,11 +476,19 @@ class _TestBands:
             "seed": o.seed, "calibration": {"n_samples": cal.n_samples_, "stride": o.stride,
                                             "n_diverged": cal.n_diverged_,
                                             "channels": cal.as_dict(STATE_NAMES)},
+            "other_loops": o.other_loops,
+            "calibration_other_loops": None if self.other_calibration is None else {
+                "probes": self.probes.describe(), "n_episodes": self.probes.n_episodes,
+                "n_samples": self.other_calibration.n_samples_, "n_diverged": self.other_calibration.n_diverged_,
+                "channels": self.other_calibration.as_dict(STATE_NAMES)},
             **self.summary.report(), "files": self.files, "seconds": self.seconds}
 
 
-def _test_bands(ensemble, options, train, controller, score, offsets, start, result, folder, keep) -> _TestBands:
-    """The intervals' calibration on the training episodes the folds held out, ready for the test episodes."""
+def _test_bands(ensemble, options, train, controller, score, offsets, start, result, folder, keep, probes=None,
+                probe_cache=None) -> _TestBands:
+    """The intervals' calibration on the training episodes the folds held out, ready for the test episodes;
+    with ``options.other_loops == "twin"``, that of loops the training never ran on the twin's probes, made
+    when a test episode needs it."""
     import time
 
     started = time.perf_counter()
@@ -464,7 +496,16 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
     calibration = calibrate(ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED,
                             options.stride)
     seconds = {"calibration": time.perf_counter() - started}
-    return _TestBands(ensemble.members, calibration, loops, options, result, folder, keep, seconds)
+
+    def on_probes():
+        from qube_koopman.identify.model_selection.transfer import twin_probes
+
+        probe_set = probes if probes is not None else twin_probes(LogTrajectories(train), cache=probe_cache)
+        return probe_set, calibrate_on_probes(ensemble, probe_set, options.level, start, offsets, MEASURED,
+                                              options.stride, options.n_calibration_members)
+
+    other = on_probes if options.other_loops == "twin" and score == "cl" else None
+    return _TestBands(ensemble.members, calibration, loops, options, result, folder, keep, seconds, other)
 
 
 def _warn_diverged(summary: dict, dt: float, what: str) -> None:

@@ -71,6 +71,10 @@ def _intervals_section(intervals: dict | None) -> list[str]:
                      f"| {format_number(pooled['mean_half_width'][name], '.4f')} "
                      f"| {format_number(pooled['rms_error'][name], '.4f')} | {format_number(c['factor'], '.2f')} "
                      f"| {format_number(c['scale'], '.4f')} |")
+    if pooled.get("n_probe_calibrated"):
+        lines += ["", (f"{pooled['n_probe_calibrated']} scored episode(s) ran a loop the training did not (another "
+                       "controller): their model error is calibrated on the twin's probe episodes under other "
+                       "controllers, not on held-out training episodes.")]
     if pooled.get("n_uncalibrated_loop"):
         lines += ["", (f"{pooled['n_uncalibrated_loop']} scored episode(s) ran a loop the calibration's held-out "
                        "episodes did not (another controller): the model's error there is unknown, and their "

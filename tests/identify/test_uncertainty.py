@@ -140,3 +140,63 @@ def test_a_diverged_prediction_gets_an_infinite_band_and_a_warning(what):
     assert np.all(np.isfinite(band.upper[:118])) and band.diverged_at == 120
     summary = summarize_bands([band], ["theta", "alpha"])
     assert summary["pooled"]["mean_half_width"]["theta"] == np.inf and summary["pooled"]["n_infinite"] == 1
+
+
+def _loop_episodes(n_episodes, gain, b_plant, seed, n_samples=300):
+    """Episodes of the first-order loop under ``u = gain (r - x)`` with the plant's input gain ``b_plant``."""
+    rng = np.random.default_rng(seed)
+    episodes = []
+    for i in range(n_episodes):
+        r = np.repeat(rng.uniform(-1, 1, n_samples // 50 + 1), 50)[:n_samples, None]
+        x = np.zeros((n_samples, 1))
+        x[0] = rng.uniform(-0.5, 0.5)
+        for k in range(n_samples - 1):
+            x[k + 1] = A_P * x[k] + b_plant * gain * (r[k, 0] - x[k, 0]) + SIGMA * rng.standard_normal()
+        episodes.append(Trajectory(x=x, r=r, f=np.zeros((n_samples, 1)), xc=np.zeros((n_samples, 1)),
+                                   name=f"g{gain}-{i}", dt=DT))
+    return episodes
+
+
+def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar1):
+    """The training loop (gain 0.5) cannot show a plant error that only another controller brings out
+    (the probes' and the test's plant has input gain 0.16, not 0.1): its held-out calibration undercovers
+    the test episodes under gain 1.5, while the calibration on probe episodes under gains 1.2 and 1.8
+    (predicted by the wrapped fit, :func:`calibrate_on_probes`) covers them at about the level."""
+    from qube_koopman.identify.model_selection.transfer import ProbeSet
+    from qube_koopman.identify.uncertainty import calibrate_on_probes
+
+    train, _ = ar1
+    level = 0.9
+    options = IntervalOptions(level, n_members=8, n_calibration_members=4, n_folds=5, stride=1)
+    fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-8), train, options)
+    held_out = calibrate(fit, train, [Loop("closed")] * len(train), level)
+
+    def controller(gain):
+        return DiscreteStateSpace([[0.0]], [[0.0]], [[0.0]], [[gain]], DT)
+
+    probes = ProbeSet([controller(1.2), controller(1.8)],
+                      [_loop_episodes(20, 1.2, 0.16, seed=3), _loop_episodes(20, 1.8, 0.16, seed=4)], [])
+    on_probes = calibrate_on_probes(fit, probes, level, stride=1)
+    # Its members' spread is the same sort as the held-out one; the model error is larger.
+    assert on_probes.scale_[0] > 1.3 * held_out.scale_[0]
+    # Independently: the same numbers from calibrate() on one fold holding out every probe episode.
+    episodes = probes.episodes[0] + probes.episodes[1]
+    loops = [Loop("wrapped", c) for c, group in zip(probes.controllers, probes.episodes) for _ in group]
+    point = (fit.estimator.closed_loop_model_, fit.estimator.plant_model_)
+    one_fold = dataclasses.replace(fit, folds=[dataclasses.replace(fit.folds[0], validation=np.arange(40),
+                                                                   point=point, members=fit.members)])
+    again = calibrate(one_fold, episodes, loops, level, stride=1)
+    np.testing.assert_allclose(on_probes.scale_, again.scale_, rtol=1e-12)
+    np.testing.assert_allclose(on_probes.factor_, again.factor_, rtol=1e-12)
+
+    test = _loop_episodes(30, 1.5, 0.16, seed=5)
+    wrapped = Loop("wrapped", controller(1.5))
+    models = [wrapped.model(*point, [0])] + [wrapped.model(*member, [0]) for member in fit.members]
+    predictions = predict_episodes(models, test)
+
+    def coverage(calibration):
+        bands = [prediction_band(t.name, t, p, calibration, 1, 0) for t, p in zip(test, predictions)]
+        return summarize_bands(bands, ["x"])["pooled"]["coverage"]["x"]
+
+    assert coverage(held_out) < level - 0.1  # 0.79 measured
+    assert abs(coverage(on_probes) - level) < 0.05  # 0.92 measured
