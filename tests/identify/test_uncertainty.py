@@ -29,6 +29,13 @@ P_CONTROLLER = DiscreteStateSpace([[0.0]], [[0.0]], [[0.0]], [[GAIN]], DT)
 def ar1_loop(n_episodes: int, n_samples: int, seed: int) -> list[Trajectory]:
     """Episodes of a first-order loop driven by white process noise: x_k given x_0 and r is Gaussian with
     variance SIGMA^2 (1 - RHO^(2k)) / (1 - RHO^2), the band's form exactly."""
+    return loop_episodes(n_episodes, GAIN, B_P, seed, n_samples, feedforward=False)
+
+
+def loop_episodes(n_episodes: int, gain: float, b_plant: float, seed: int, n_samples: int = 300,
+                  feedforward: bool = True) -> list[Trajectory]:
+    """Episodes of the first-order loop under ``u = gain (r - x)`` with the plant's input gain ``b_plant``
+    (with a zero feedforward signal when ``feedforward``: a wrapped plant's loop takes one)."""
     rng = np.random.default_rng(seed)
     episodes = []
     for i in range(n_episodes):
@@ -36,9 +43,11 @@ def ar1_loop(n_episodes: int, n_samples: int, seed: int) -> list[Trajectory]:
         x = np.zeros((n_samples, 1))
         x[0] = rng.uniform(-0.5, 0.5)
         for k in range(n_samples - 1):
-            u = GAIN * (r[k, 0] - x[k, 0])
-            x[k + 1] = A_P * x[k] + B_P * u + SIGMA * rng.standard_normal()
-        episodes.append(Trajectory(x=x, r=r, xc=np.zeros((n_samples, 1)), name=f"e{i}", dt=DT))
+            u = gain * (r[k, 0] - x[k, 0])
+            x[k + 1] = A_P * x[k] + b_plant * u + SIGMA * rng.standard_normal()
+        f = np.zeros((n_samples, 1)) if feedforward else None
+        episodes.append(Trajectory(x=x, r=r, f=f, xc=np.zeros((n_samples, 1)), name=f"g{gain}-{i}" if feedforward
+                                   else f"e{i}", dt=DT))
     return episodes
 
 
@@ -142,21 +151,6 @@ def test_a_diverged_prediction_gets_an_infinite_band_and_a_warning(what):
     assert summary["pooled"]["mean_half_width"]["theta"] == np.inf and summary["pooled"]["n_infinite"] == 1
 
 
-def _loop_episodes(n_episodes, gain, b_plant, seed, n_samples=300):
-    """Episodes of the first-order loop under ``u = gain (r - x)`` with the plant's input gain ``b_plant``."""
-    rng = np.random.default_rng(seed)
-    episodes = []
-    for i in range(n_episodes):
-        r = np.repeat(rng.uniform(-1, 1, n_samples // 50 + 1), 50)[:n_samples, None]
-        x = np.zeros((n_samples, 1))
-        x[0] = rng.uniform(-0.5, 0.5)
-        for k in range(n_samples - 1):
-            x[k + 1] = A_P * x[k] + b_plant * gain * (r[k, 0] - x[k, 0]) + SIGMA * rng.standard_normal()
-        episodes.append(Trajectory(x=x, r=r, f=np.zeros((n_samples, 1)), xc=np.zeros((n_samples, 1)),
-                                   name=f"g{gain}-{i}", dt=DT))
-    return episodes
-
-
 def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar1):
     """The training loop (gain 0.5) cannot show a plant error that only another controller brings out
     (the probes' and the test's plant has input gain 0.16, not 0.1): its held-out calibration undercovers
@@ -175,7 +169,7 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
         return DiscreteStateSpace([[0.0]], [[0.0]], [[0.0]], [[gain]], DT)
 
     probes = ProbeSet([controller(1.2), controller(1.8)],
-                      [_loop_episodes(20, 1.2, 0.16, seed=3), _loop_episodes(20, 1.8, 0.16, seed=4)], [])
+                      [loop_episodes(20, 1.2, 0.16, seed=3), loop_episodes(20, 1.8, 0.16, seed=4)], [])
     on_probes = calibrate_on_probes(fit, probes, level, stride=1)
     # Its members' spread is the same sort as the held-out one; the model error is larger.
     assert on_probes.scale_[0] > 1.3 * held_out.scale_[0]
@@ -189,7 +183,7 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     np.testing.assert_allclose(on_probes.scale_, again.scale_, rtol=1e-12)
     np.testing.assert_allclose(on_probes.factor_, again.factor_, rtol=1e-12)
 
-    test = _loop_episodes(30, 1.5, 0.16, seed=5)
+    test = loop_episodes(30, 1.5, 0.16, seed=5)
     wrapped = Loop("wrapped", controller(1.5))
     models = [wrapped.model(*point, [0])] + [wrapped.model(*member, [0]) for member in fit.members]
     predictions = predict_episodes(models, test)
