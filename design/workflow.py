@@ -18,6 +18,8 @@ import numpy as np
 
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.plant import IDENTIFY_FLAGS, DesignError, linear_plant
+from qube_koopman.design.uncertainty import (NO_MEMBERS, FigureInterval, RobustChoice, interval_from_logs,
+                                             model_uncertainty, robust_design)
 from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins, closed_loop_eigenvalues,
                                          closed_loop_matrix, loop_margins, predict_cost, predict_loop,
                                          rig_excitations)
@@ -50,6 +52,15 @@ class DesignReport:
         The same under the model file's (training) controller, for comparison.
     excitation : dict
         ``seed``, ``episodes``, ``duration`` of the excitation predicted on.
+    interval : FigureInterval or None
+        The predicted figures' interval (:mod:`design.uncertainty`); None when the model file
+        gives none (``interval_note`` says why).
+    interval_note : str or None
+        Why there is no interval.
+    robust : RobustChoice or None
+        With ``robust``: what the robust design weighed.
+    nominal : CostPrediction or None
+        With ``robust``: the nominal design's prediction, for comparison.
     """
 
     model_path: Path
@@ -61,6 +72,10 @@ class DesignReport:
     predicted: CostPrediction
     training: CostPrediction | None
     excitation: dict
+    interval: FigureInterval | None = None
+    interval_note: str | None = None
+    robust: RobustChoice | None = None
+    nominal: CostPrediction | None = None
 
     @property
     def controller(self) -> DiscreteStateSpace:
@@ -97,7 +112,7 @@ def _arx_hint(path: Path) -> str | None:
 
 
 def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: int = 1, episodes: int = 20,
-                      duration: float = 20.0) -> DesignReport:
+                      duration: float = 20.0, level: float | None = 0.95, robust: bool = False) -> DesignReport:
     """Design a controller on a model file's plant and predict it.
 
     Parameters
@@ -109,6 +124,12 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
     seed, episodes, duration
         The excitation the prediction runs: that of ``qube-run --seed seed --episodes episodes
         --duration duration``.
+    level : float or None
+        The level of the predicted figures' interval (:mod:`design.uncertainty`), from the model
+        file's bootstrap plants and held-out episodes; None for no interval.
+    robust : bool
+        Design against that uncertainty (:func:`design.uncertainty.robust_design`) instead of
+        on the point plant alone; the report keeps the nominal design's prediction beside it.
 
     Returns
     -------
@@ -122,16 +143,26 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
         unstable.
     """
     path, model = _load(Path(path))
+    excitations = rig_excitations(seed, episodes, duration)
+    uncertainty, nominal, choice = None, None, None
     try:
         plant = linear_plant(model["plant"])
         design = design_lq(plant, weights)
+        if level is not None or robust:
+            uncertainty = model_uncertainty(model)
+        if robust:
+            if uncertainty is None:
+                raise DesignError(f"--robust designs against the model's uncertainty, and {NO_MEMBERS}")
+            choice = robust_design(plant, weights, uncertainty, excitations, level or 0.95)
+            if choice.scale != 1.0:
+                nominal = predict_cost(model["plant"], design.controller, excitations)
+            design = choice.design
     except DesignError as exc:
         raise DesignError(f"{path}: {exc}") from None
     radius = spectral_radius(closed_loop_matrix(plant, design.controller))
     if not radius < 1:
         raise DesignError(f"{path}: the predicted closed loop is unstable (spectral radius {radius:.6g}); "
                           "change the weights")
-    excitations = rig_excitations(seed, episodes, duration)
     predicted = predict_cost(model["plant"], design.controller, excitations)
     if predicted.diverged:
         raise DesignError(f"{path}: the plant model under the designed controller diverges on {predicted.diverged} "
@@ -140,9 +171,15 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
     training = None
     if model.get("controller") is not None and model["controller"].n_inputs in (2, 3):  # a QUBE loop
         training = predict_cost(model["plant"], model["controller"], excitations)
+    interval, note = None, None
+    if level is not None:
+        if uncertainty is None:
+            note = NO_MEMBERS
+        else:
+            interval = interval_from_logs(uncertainty, plant, design, predicted.summary(), excitations, level)
     return DesignReport(path, model, design, radius, spectral_radius(plant.F),
                         loop_margins(plant, design.controller), predicted, training,
-                        {"seed": seed, "episodes": episodes, "duration": duration})
+                        {"seed": seed, "episodes": episodes, "duration": duration}, interval, note, choice, nominal)
 
 
 def _row(name: str, prediction: CostPrediction) -> str:
@@ -182,11 +219,39 @@ def report_text(report: DesignReport) -> str:
         f"{'voltage peak':>13}",
         _row("designed", report.predicted),
     ]
+    if report.nominal is not None:
+        lines.append(_row("nominal (not robust)", report.nominal))
     if report.training is not None:
         lines.append(_row("model's training one", report.training))
         ratio = report.predicted.summary()["J"] / report.training.summary()["J"]
         lines.append(f"  predicted J {100 * (ratio - 1):+.1f} % against the training controller")
+    lines += _interval_lines(report)
     return "\n".join(lines)
+
+
+def _interval_lines(report: DesignReport) -> list[str]:
+    """The interval's and the robust design's lines of the report."""
+    lines = []
+    iv = report.interval
+    if iv is not None:
+        lines.append(f"interval at {iv.level:g} (from {iv.sources}):")
+        for name, label, fmt in (("J", "J (rad^2)", ".3e"), ("voltage_rms", "voltage RMS (V)", ".3f"),
+                                 ("voltage_peak", "voltage peak (V)", ".2f")):
+            bounds = f"[{iv.lower[name]:{fmt}}, {iv.upper[name]:{fmt}}]"
+            lines.append(f"  {label:<17} {iv.predicted[name]:{fmt}} in {bounds}")
+    elif report.interval_note is not None:
+        lines.append(f"no interval: {report.interval_note}")
+    if report.robust is not None:
+        worst = {c["scale"]: c["worst_upper_J"] for c in report.robust.candidates}
+        tried = ", ".join(f"x{scale:g}: {value:.3e}" for scale, value in worst.items())
+        if report.nominal is None:
+            lines.append(f"robust: the nominal weights are the most robust (worst-case J over the bootstrap plants, "
+                         f"r_voltage {tried}); the design is the nominal one, at no cost in J")
+        else:
+            cost = report.predicted.summary()["J"] / report.nominal.summary()["J"] - 1
+            lines.append(f"robust: r_voltage x{report.robust.scale:g} (worst-case J over the bootstrap plants, "
+                         f"r_voltage {tried}); it costs {100 * cost:+.1f} % of predicted J against the nominal design")
+    return lines
 
 
 def saturation_warning(report: DesignReport) -> str | None:
@@ -212,6 +277,14 @@ def provenance(report: DesignReport) -> dict:
            "excitation": report.excitation, "predicted": report.predicted.summary()}
     if report.training is not None:
         out["predicted_training_controller"] = report.training.summary()
+    if report.interval is not None:
+        out["interval"] = report.interval.as_dict()
+    elif report.interval_note is not None:
+        out["interval"] = {"none": report.interval_note}
+    if report.robust is not None:
+        out["robust"] = report.robust.as_dict()
+        if report.nominal is not None:
+            out["predicted_nominal_design"] = report.nominal.summary()
     return _finite(out)
 
 
@@ -257,4 +330,6 @@ def _finite(value):
         return str(value)
     if isinstance(value, dict):
         return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
     return value

@@ -2,7 +2,7 @@
 
     qube-design MODEL --out FILE.toml [--q-theta Q] [--q-alpha Q] [--r-voltage R]
                 [--q-integral Q | --no-integral] [--seed K] [--episodes N] [--duration S] [--npz]
-                [--rerun FILE.rrd [--rerun-episodes N]]
+                [--interval LEVEL] [--robust] [--rerun FILE.rrd [--rerun-episodes N]]
 
 Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
 feedback on the plant's history of measurements (with integral action on the arm's tracking
@@ -14,6 +14,13 @@ radius, the margins at the plant input and the cost the model predicts on the ri
 of ``qube-run --seed K --episodes N`` beside the model's training controller. A model it cannot
 design on (not a plant model, the arm's friction shape in its lifting, not stabilizable) or a
 predicted closed loop that is unstable is refused, exit 2, and nothing is written.
+
+The predicted J and voltage come with an interval at ``--interval LEVEL`` (0.95; 0: none) from the
+model file's bootstrap plants and the model's error on held-out training episodes (a model file
+without them, written with ``qube-identify --interval 0`` or by an older version, gets none, and
+the report says so). ``--robust`` designs against that uncertainty: among the weights with the
+voltage weight scaled up (x1, x2, x4, x8), the design whose worst case of J over the bootstrap
+plants is lowest, and the report gives what it costs in predicted J against the nominal design.
 
 With ``--rerun-save FILE.rrd`` it also runs the first episodes of that excitation on the twin (as
 ``qube-run --seed K --episodes N --controller FILE.toml`` runs them, and under the model's
@@ -65,6 +72,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="episodes of that excitation predicted (default 20)")
     p.add_argument("--duration", type=float, default=20.0, metavar="S",
                    help="seconds per predicted episode, 2 to 60 (default 20)")
+    p.add_argument("--interval", type=float, default=0.95, metavar="LEVEL",
+                   help="give the predicted J and voltage an interval at this level, 0 for none (default 0.95)")
+    p.add_argument("--robust", action="store_true",
+                   help="design against the model's uncertainty (its bootstrap plants) and say what it costs in J")
     p.add_argument("--npz", action="store_true",
                    help="write the matrices to FILE.npz beside the controller file (loads faster)")
     add_renamed_option(p, "--rerun", "--rerun-save FILE.rrd", "a file; qube-run --rerun streams to a viewer")
@@ -101,9 +112,11 @@ def _run(args) -> int:
         raise CliError(f"--duration must be between 2 and 60 s, got {args.duration}")
     if round(args.duration * 500) != args.duration * 500:
         raise CliError(f"--duration {args.duration} s is not a whole number of 2 ms samples")
+    if not (args.interval == 0 or 0 < args.interval < 1):
+        raise CliError(f"--interval must be a level between 0 and 1 (0: no interval), got {args.interval}")
     try:
         report = design_from_model(args.model, weights, seed=args.seed, episodes=args.episodes,
-                                   duration=args.duration)
+                                   duration=args.duration, level=args.interval or None, robust=args.robust)
     except DesignError as exc:
         raise CliError(str(exc)) from None
     print(report_text(report))

@@ -4,16 +4,21 @@
   plants (their rows of the measured states, the rest the point plant's);
 - the batched simulation of the members is :func:`design.predict.predict_cost`, sample for sample;
 - the interval from members equals an independent computation (a Monte Carlo of the same mixture);
+- no members: the design says there is no interval and why, instead of failing; ``--robust`` is
+  refused with the same reason.
 """
 
 from __future__ import annotations
+
+import tomllib
 
 import numpy as np
 import pytest
 
 from qube_koopman.design import Weights, design_lq, linear_plant
+from qube_koopman.design.cli.design import main as design_main
 from qube_koopman.design.predict import predict_cost, rig_excitations
-from qube_koopman.design.uncertainty import (FIGURES, ModelUncertainty, figure_interval, member_figures,
+from qube_koopman.design.uncertainty import (FIGURES, NO_MEMBERS, ModelUncertainty, figure_interval, member_figures,
                                              model_uncertainty)
 from qube_koopman.identify import Constant, Delay, KoopmanModel, Lifting
 from qube_koopman.identify.models.model_file import load_model, save_model, uncertainty_to_dict
@@ -57,6 +62,11 @@ def _save(path, plant, members=None):
     save_model(path, method="cl-edmd", alpha=1e-3, plant=plant, closed_loop=None, controller=None, measured=[0, 1],
                training={"logs": []}, uncertainty=uncertainty)
     return path
+
+
+def _provenance(path) -> dict:
+    """The controller file's ``[provenance]`` as written."""
+    return tomllib.loads(path.read_text())["provenance"]
 
 
 def test_the_model_file_gives_back_the_bootstrap_plants_and_the_held_out_figures(tmp_path):
@@ -126,3 +136,37 @@ def test_a_diverging_member_gives_an_infinite_upper_bound():
 def test_too_few_held_out_episodes_leave_the_model_error_out():
     assert ModelUncertainty([], HELD_OUT[:2]).model_error() is None
     assert ModelUncertainty([], HELD_OUT).model_error().shape == (4, 3)
+
+
+def test_without_bootstrap_plants_the_design_says_there_is_no_interval_and_robust_is_refused(tmp_path, capsys):
+    path = _save(tmp_path / "model.json", _plant())
+    out = tmp_path / "c.toml"
+    assert design_main([str(path), "--out", str(out), "--episodes", "2", "--duration", "4"]) == 0
+    assert f"no interval: {NO_MEMBERS}" in capsys.readouterr().out
+    assert _provenance(out)["interval"] == {"none": NO_MEMBERS}
+    assert design_main([str(path), "--out", str(tmp_path / "r.toml"), "--robust", "--episodes", "2",
+                        "--duration", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "--robust designs against the model's uncertainty, and the model file holds no bootstrap plants" in err
+    assert not (tmp_path / "r.toml").exists()
+
+
+def test_with_bootstrap_plants_the_report_gives_the_interval_and_the_robust_choice(tmp_path, capsys):
+    plant = _plant()
+    path = _save(tmp_path / "model.json", plant, _members(plant))
+    out = tmp_path / "c.toml"
+    assert design_main([str(path), "--out", str(out), "--episodes", "2", "--duration", "4", "--robust",
+                        "--interval", "0.9"]) == 0
+    text = capsys.readouterr().out
+    assert "interval at 0.9 (from 6 bootstrap plants and the model's error on 4 held-out training episodes)" in text
+    assert "robust: " in text
+    p = _provenance(out)
+    J = p["interval"]["J"]
+    assert J["lower"] < J["upper"] and J["predicted"] == pytest.approx(p["predicted"]["J"])
+    assert p["robust"]["r_voltage_scale"] in (1.0, 2.0, 4.0, 8.0)
+
+
+def test_a_level_outside_zero_one_is_a_usage_error(tmp_path, capsys):
+    path = _save(tmp_path / "model.json", _plant())
+    assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--interval", "1.5"]) == 2
+    assert "--interval must be a level between 0 and 1 (0: no interval), got 1.5" in capsys.readouterr().err
