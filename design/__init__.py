@@ -21,6 +21,7 @@ _HOMES = {
     # the closed loop it predicts
     "CostPrediction": "predict", "predict_cost": "predict", "predict_loop": "predict",
     "closed_loop_eigenvalues": "predict", "Margins": "predict", "loop_margins": "predict",
+    "loop_response": "predict",
     # what qube-design runs, and the design run on the twin
     "DesignReport": "workflow", "design_from_model": "workflow", "report_text": "workflow",
     # the model's uncertainty: the predicted figures' interval, the robust design

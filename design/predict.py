@@ -29,7 +29,7 @@ from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 
 __all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost",
-           "closed_loop_matrix", "closed_loop_eigenvalues", "loop_margins", "episode_cost"]
+           "closed_loop_matrix", "closed_loop_eigenvalues", "loop_response", "loop_margins", "episode_cost"]
 
 #: The loop's voltage limit (V): a predicted voltage beyond it would saturate on the rig.
 VOLTAGE_LIMIT = 10.0
@@ -234,6 +234,41 @@ class Margins:
                 "stability_margin": float(self.stability)}
 
 
+def loop_response(plant: LinearPlant, controller: DiscreteStateSpace, omega: np.ndarray) -> np.ndarray:
+    """The loop ``L = K(z) P(z)`` broken at the plant input, at ``z = exp(j omega dt)``.
+
+    The plant from its one-step rows, ``P(z) = (z I - sum_j A_j z^-j)^-1 b`` (``A_j``: the block of
+    ``F`` on ``x_{k-j}``; a 2 x 2 solve per frequency, where the history's state space would need a
+    solve of its full size), the controller as ``C (z I - A)^-1 B + D``, solved for all the
+    frequencies at once. The same response as python-control's of the two in series.
+
+    Parameters
+    ----------
+    plant, controller
+        As for :func:`closed_loop_matrix`.
+    omega : ndarray
+        Frequencies (rad/s).
+
+    Returns
+    -------
+    ndarray of complex, shaped as ``omega``
+    """
+    omega = np.asarray(omega, dtype=float)
+    z = np.exp(1j * omega.ravel() * plant.dt)
+    m, d = plant.n_measured, plant.n_delays
+    blocks = plant.F[:m].reshape(m, d + 1, m)  # [out, j, state]: the block on x_{k-j}
+    lagged = np.einsum("wj,ojs->wos", z[:, None] ** -np.arange(d + 1), blocks)
+    P = np.linalg.solve(z[:, None, None] * np.eye(m) - lagged, np.broadcast_to(plant.G[:m], (len(z), m, 1)))
+    A, B, C, D = (np.asarray(getattr(controller, name), dtype=float) for name in "ABCD")
+    n_c = A.shape[0]
+    K = np.empty((len(z), C.shape[0], B.shape[1]), dtype=complex)
+    for start in range(0, len(z), 256):  # bounded memory: 256 systems of the controller's size at a time
+        w = z[start:start + 256]
+        resolvent = np.linalg.solve(w[:, None, None] * np.eye(n_c) - A, np.broadcast_to(B, (len(w),) + B.shape))
+        K[start:start + 256] = C @ resolvent + D
+    return (K @ P)[:, 0, 0].reshape(omega.shape)
+
+
 def loop_margins(plant: LinearPlant, controller: DiscreteStateSpace, n_points: int = 1500) -> Margins:
     """Gain, phase and stability margins at the plant input (python-control, on a dense frequency grid).
 
@@ -254,10 +289,9 @@ def loop_margins(plant: LinearPlant, controller: DiscreteStateSpace, n_points: i
     """
     import control  # lazily: python-control imports matplotlib
 
-    loop = control.series(plant.to_control(), controller.to_control())  # P then K: L = K P
     nyquist = np.pi / plant.dt
     omega = np.geomspace(1e-2, nyquist, n_points)
-    response = np.asarray(control.frequency_response(loop, omega).complex).reshape(omega.shape)
+    response = loop_response(plant, controller, omega)
     gm, pm, _, _, wpm, _ = control.stability_margins(control.frd(response, omega, dt=plant.dt), returnall=True)
     gm, pm, wpm = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (gm, pm, wpm))
     at_nyquist = response[-1]
