@@ -239,6 +239,9 @@ def _interval_lines(report: DesignReport) -> list[str]:
                                  ("voltage_peak", "voltage peak (V)", ".2f")):
             bounds = f"[{iv.lower[name]:{fmt}}, {iv.upper[name]:{fmt}}]"
             lines.append(f"  {label:<17} {iv.predicted[name]:{fmt}} in {bounds}")
+        if iv.n_held_out:
+            lines.append("  (the model's error is the training controller's: a design that feeds back harder "
+                         "draws more voltage than its interval says; see the design page)")
     elif report.interval_note is not None:
         lines.append(f"no interval: {report.interval_note}")
     if report.robust is not None:

@@ -19,7 +19,7 @@ The predicted J and voltage come with an interval at ``--interval LEVEL`` (0.95;
 model file's bootstrap plants and the model's error on held-out training episodes (a model file
 without them, written with ``qube-identify --interval 0`` or by an older version, gets none, and
 the report says so). ``--robust`` designs against that uncertainty: among the weights with the
-voltage weight scaled up (x1, x2, x4, x8), the design whose worst case of J over the bootstrap
+voltage weight scaled up (x1, x2, x4), the design whose worst case of J over the bootstrap
 plants is lowest, and the report gives what it costs in predicted J against the nominal design.
 
 With ``--rerun-save FILE.rrd`` it also runs the first episodes of that excitation on the twin (as

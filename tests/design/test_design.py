@@ -383,3 +383,52 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
     radius = {kind: np.max(np.abs(series[f"eigenvalues/{kind}"])) for kind in ("design", "training")}
     assert radius["design"] == pytest.approx(controller.provenance["spectral_radius"], abs=1e-6)
     assert radius["training"] < 1  # the rig's PD stabilizes the identified plant too
+
+
+# --- the design's uncertainty on the twin --------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_on_the_twin_the_designs_measured_cost_falls_in_its_predicted_interval(twin_cycle):
+    """Over 20 seeds (the 20 episodes of ``qube-run --seed 5 --episodes 20``, 6 s each: their cost after the
+    first second is what the interval is about, and 6 s keep the test at 6 s of twin time) the design's mean
+    measured J lies within the interval at 0.95 that its model file's bootstrap plants and held-out episodes
+    give (design.uncertainty), and the interval is not the bootstrap's alone (which misses: the bootstrap
+    plants' J spans about 1.5 %, the model's error on held-out episodes is 2 to 5 %)."""
+    from qube_koopman.design.predict import episode_cost, predict_cost, rig_excitations
+    from qube_koopman.design.twin import run_on_twin
+    from qube_koopman.design.uncertainty import interval_from_logs, model_uncertainty
+    from qube_koopman.identify.models.model_file import load_model
+
+    model = load_model(twin_cycle.model / "model.json")
+    plant = linear_plant(model["plant"])
+    design = design_lq(plant, Weights())  # the fixture's controller file, designed with the default weights
+    np.testing.assert_array_equal(design.controller.D, load_controller(twin_cycle.controller).system.D)
+    excitations = rig_excitations(5, 20, 6.0)
+    predicted = predict_cost(model["plant"], design.controller, excitations).summary()
+    interval = interval_from_logs(model_uncertainty(model), plant, design, predicted, excitations, 0.95)
+    episodes = run_on_twin(twin_cycle.controller, 5, 20, duration=6.0)
+    assert [e.metadata.status for e in episodes] == ["complete"] * 20
+    measured = np.mean([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input)[0] for e in episodes])
+    assert interval.n_members == 20 and interval.n_held_out == 6, interval.sources
+    assert interval.contains("J", measured), (measured, interval.as_dict()["J"])
+    assert interval.upper["J"] / interval.lower["J"] < 1.25, interval.as_dict()["J"]  # and says something
+
+
+@pytest.mark.slow
+def test_the_robust_design_is_the_nominal_one_when_the_bootstrap_plants_agree(twin_cycle):
+    """``--robust`` on the twin's model: the worst case of J over the bootstrap plants rises with the voltage
+    weight, and every bootstrap plant is stable under the nominal design, so it is the robust one; under the
+    perturbed twins of the design's robustness check it then completes as many episodes as the nominal one,
+    at the same J (docs/design.md gives the counts)."""
+    from qube_koopman.design.predict import rig_excitations
+    from qube_koopman.design.uncertainty import model_uncertainty, robust_design
+    from qube_koopman.identify.models.model_file import load_model
+
+    model = load_model(twin_cycle.model / "model.json")
+    plant = linear_plant(model["plant"])
+    choice = robust_design(plant, Weights(), model_uncertainty(model), rig_excitations(5, 6, 6.0))
+    worst = [c["worst_upper_J"] for c in choice.candidates]
+    assert worst == sorted(worst) and choice.scale == 1.0, choice.candidates
+    assert choice.candidates[0]["stable_members"] == 20, choice.candidates
+    np.testing.assert_array_equal(choice.design.gain, design_lq(plant, Weights()).gain)
