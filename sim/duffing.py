@@ -60,7 +60,7 @@ def duffing_pi_controller(dt: float = 0.01) -> DiscreteStateSpace:
     The realization is the reference code's (A 1, B 1, C dt, D 1): the
     integrator state accumulates the error and C scales it by the period.
     """
-    return DiscreteStateSpace([[1.0]], [[1.0]], [[dt]], [[1.0]], dt)
+    return DiscreteStateSpace(np.array([[1.0]]), np.array([[1.0]]), np.array([[dt]]), np.array([[1.0]]), dt)
 
 
 def random_dwell_prbs(n_samples: int, rng: np.random.Generator, amplitude: float = 1.0,

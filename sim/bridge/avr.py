@@ -56,6 +56,7 @@ def cached_harness(cache_dir: str | os.PathLike | None = None) -> Path:
         raise RuntimeError(f"cannot build the simavr harness, missing: {', '.join(missing)}; "
                            "apt-get install simavr libsimavr-dev libsimavrparts1")
     cc = find_c_compiler()
+    assert cc is not None  # harness_missing() found it
     digest = hashlib.sha256("\0".join((cc, *_LIBS)).encode() + HARNESS_SOURCE.read_bytes())
     root = Path(cache_dir) if cache_dir is not None else cache_root()
     final = root / f"simavr-harness-{digest.hexdigest()[:16]}" / "libqubeavr.so"
@@ -240,6 +241,7 @@ class AvrBridge:
                 self._on_select(chip.cycle)
             else:
                 sent = chip.spi_sent()
+                assert self._last_fall is not None  # select rises (2) only after it fell (1): it starts high
                 self.transactions.append((self._last_fall, chip.cycle, len(sent), self._busy_at_fall))
                 if len(sent) == len(self._reply):
                     self.qube.apply(sent)

@@ -46,7 +46,11 @@ class AvrPtyBridge:
 
     def __init__(self, *, seed: int | None = None, perturbation: float = math.radians(2.0),
                  start_upright: bool = True, slice_s: float = 0.0002) -> None:
-        self.seed = int(seed) if seed is not None else int(np.random.SeedSequence().entropy % 2**31)
+        if seed is None:
+            entropy = np.random.SeedSequence().entropy
+            assert isinstance(entropy, int)  # drawn from the OS: one int
+            seed = entropy % 2**31
+        self.seed = int(seed)
         self._rng = np.random.default_rng(self.seed)
         self.perturbation = perturbation
         self.start_upright = start_upright
@@ -63,8 +67,8 @@ class AvrPtyBridge:
 
     def open(self) -> str:
         """Build the firmware and harness if needed, reset the chip, create the pty; returns its path."""
-        self.bridge = AvrBridge(cached_firmware())
-        self.bridge.qube.place((0.0, math.pi, 0.0, 0.0))
+        self.bridge = bridge = AvrBridge(cached_firmware())
+        bridge.qube.place((0.0, math.pi, 0.0, 0.0))
         self._master, self._slave, self.path = open_raw_pty()
         return self.path
 
@@ -74,7 +78,9 @@ class AvrPtyBridge:
 
     def run(self) -> None:
         """Run until :meth:`request_stop`."""
-        bridge, chip = self.bridge, self.bridge.chip
+        bridge = self.bridge
+        assert bridge is not None, "open() first"
+        chip = bridge.chip
         start_wall, start_cycle = time.perf_counter(), chip.cycle
         while not self._stop.is_set():
             self._from_host()
@@ -97,6 +103,7 @@ class AvrPtyBridge:
             return
         if not data:
             return
+        assert self.bridge is not None  # run() after open()
         for frame in self._host.feed(data):
             if isinstance(frame.message, Hello):
                 self.sessions += 1
@@ -124,6 +131,7 @@ class AvrPtyBridge:
         """Ticks, simulated and wall time, sessions, worst lag behind the wall clock, busy fraction."""
         if self._final is not None:
             return dict(self._final)
+        assert self.bridge is not None, "open() first"
         chip = self.bridge.chip
         return dict(ticks=len(self.bridge.transactions), device_time=chip.cycle / F_CPU, wall_time=self.wall,
                     sessions=self.sessions, max_behind=self.max_behind,

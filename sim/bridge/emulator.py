@@ -48,7 +48,7 @@ import threading
 import time
 import tty
 from collections import deque
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -56,6 +56,9 @@ from qube_koopman.firmware_protocol import Capability, Command, Hello, StreamDec
 from qube_koopman.sim.bridge.faults import DelayLine, Faults, FaultyLink
 from qube_koopman.sim.bridge.qube import EmulatedQube
 from qube_koopman.sim.pendulum import PendulumParameters
+
+if TYPE_CHECKING:
+    from qube_koopman.firmware_protocol.ccore import CDevice
 
 __all__ = ["BridgeEmulator", "DEFAULT_PERTURBATION", "DEFAULT_SPIN", "RECORD_FIELDS"]
 
@@ -153,7 +156,10 @@ class BridgeEmulator:
         if not isinstance(faults, Faults):
             raise TypeError(f"faults must be a Faults, got {type(faults).__name__}")
         sequence = np.random.SeedSequence(seed)
-        self.seed = int(sequence.entropy) if seed is None else seed
+        if seed is None:
+            assert isinstance(sequence.entropy, int)  # drawn from the OS: one int
+            seed = sequence.entropy
+        self.seed = seed
         pose_seq, link_seq = sequence.spawn(2)
         self._pose_rng = np.random.default_rng(pose_seq)
         self._link = FaultyLink(faults, random.Random(int(link_seq.generate_state(1)[0])))
@@ -176,7 +182,7 @@ class BridgeEmulator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._master = self._slave = -1
-        self._dev = None
+        self._dev: CDevice | None = None  # both made by open()
         self._qube: EmulatedQube | None = None
         self.path = ""
         self.error: BaseException | None = None
@@ -216,12 +222,12 @@ class BridgeEmulator:
         from qube_koopman.firmware_protocol import ccore
 
         core = self._core if self._core is not None else ccore.CCore(ccore.cached_library())
-        self._dev = ccore.CDevice(core, Capability.EMULATED)
-        self._qube = EmulatedQube(self.params, dt=self._dev.period_us * 1e-6)
+        self._dev = dev = ccore.CDevice(core, Capability.EMULATED)
+        self._qube = qube = EmulatedQube(self.params, dt=dev.period_us * 1e-6)
         # Power-up: the pendulum hangs at rest, the counters read zero.
-        self._qube.place((0.0, math.pi, 0.0, 0.0))
+        qube.place((0.0, math.pi, 0.0, 0.0))
         self._master, self._slave, self.path = open_raw_pty()
-        self._send(self._dev.take_output(), time.perf_counter())
+        self._send(dev.take_output(), time.perf_counter())
         return self.path
 
     def start(self) -> str:
@@ -294,6 +300,7 @@ class BridgeEmulator:
             Set it to return; :meth:`request_stop` sets the emulator's own.
         """
         self.open()
+        assert self._dev is not None  # open() made it
         stop = stop if stop is not None else self._stop
         clock = time.perf_counter
         deadline = clock()
@@ -407,6 +414,7 @@ class BridgeEmulator:
                 if row is not None and row[-1] != row[-1]:
                     row[-1] = now - row[1]  # the first answer to that tick
         # Frames answered between ticks carry the last tick's time.
+        assert self._dev is not None  # bytes come only once open() made it
         self._dev.receive(data, self._last_tick_us)
         self._send(self._dev.take_output(), now)
 
@@ -445,6 +453,7 @@ class BridgeEmulator:
         if self._timed_faults and self._first_hello_us is not None and self._fire_faults(now):
             return
         dev, qube = self._dev, self._qube
+        assert dev is not None and qube is not None  # ticks run only after open() made them
         period_us = dev.period_us
         qube.set_period(period_us * 1e-6)
         if self._raise_pending:
@@ -491,6 +500,7 @@ class BridgeEmulator:
 
     def _fire_faults(self, now: float) -> bool:
         """Raise the faults whose time has come; True when the device vanished."""
+        assert self._first_hello_us is not None  # fired only after the first HELLO (_tick)
         elapsed = (self._device_us - self._first_hello_us) * 1e-6
         f = self.faults
         actions: tuple[tuple[str, float | None, Callable[[], None]], ...] = (
@@ -509,6 +519,7 @@ class BridgeEmulator:
 
     def _hold(self) -> None:
         """The firmware misses ``hold_periods`` ticks; its clock and the pendulum go on."""
+        assert self._dev is not None and self._qube is not None  # a fault of a tick: after open()
         for _ in range(self.faults.hold_periods):
             self._qube.advance()
         self._device_us += self.faults.hold_periods * self._dev.period_us

@@ -269,11 +269,13 @@ def hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[f
 def advance(comps, previous, current, weights: tuple[float, ...], h: float, k: Coefficients,
             sin: Callable, cos: Callable):
     """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``."""
+    theta, alpha, theta_dot, alpha_dot = comps
     if not any(weights):  # no fractional delay: exactly the plain zero-order hold
-        return _rk4(*comps, current, h, len(weights), k, sin, cos)
+        return _rk4(theta, alpha, theta_dot, alpha_dot, current, h, len(weights), k, sin, cos)
     for w in weights:
-        comps = _rk4(*comps, current + w * (previous - current), h, 1, k, sin, cos)
-    return comps
+        theta, alpha, theta_dot, alpha_dot = _rk4(theta, alpha, theta_dot, alpha_dot,
+                                                  current + w * (previous - current), h, 1, k, sin, cos)
+    return theta, alpha, theta_dot, alpha_dot
 
 def as_states(state) -> np.ndarray:
     """``state`` as a float array of shape (..., 4), or a ValueError naming the shape it has."""

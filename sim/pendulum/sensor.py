@@ -114,7 +114,8 @@ def encoder_angles(theta, alpha, counts_per_rev: int | None, floor: Callable):
     (``floor=math.floor``) and arrays (``np.floor``) share it."""
     if counts_per_rev is None:
         return theta, (alpha + math.pi) % TWO_PI - math.pi
-    return _angles(*_counts(theta, alpha, counts_per_rev, floor), counts_per_rev)
+    count0, count1 = _counts(theta, alpha, counts_per_rev, floor)
+    return _angles(count0, count1, counts_per_rev)
 
 
 def angles_to_counts(theta: float, alpha: float, counts_per_rev: int = COUNTS_PER_REV) -> tuple[int, int]:
