@@ -235,8 +235,9 @@ class Excitation:
     def chunks(self, size: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(target_theta, target_alpha, feedforward) ``size`` samples at a time (the last may be shorter)."""
         for k in range(0, len(self), size):
-            yield tuple(np.asarray(signal[k:k + size], dtype=float)
-                        for signal in (self.target_theta, self.target_alpha, self.feedforward))
+            theta, alpha, feedforward = (np.asarray(signal[k:k + size], dtype=float)
+                                         for signal in (self.target_theta, self.target_alpha, self.feedforward))
+            yield theta, alpha, feedforward
 
 
 class _ChannelStream:
@@ -390,4 +391,5 @@ def parse_seeds(file_name: str | Path) -> tuple[int, int, int]:
     if parsed is None:
         raise ValueError(f"{name!r} is not a dataset file name of the form "
                          "'qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_<alpha seed>_<ff seed>.csv'")
-    return tuple(parsed.seeds[k] for k in SEED_SIGNALS)
+    theta, alpha, feedforward = (parsed.seeds[k] for k in SEED_SIGNALS)
+    return theta, alpha, feedforward

@@ -28,6 +28,7 @@ import json
 import warnings
 from datetime import datetime, timedelta
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -72,7 +73,14 @@ def status_sidecar(csv_path: str | Path) -> Path:
     return Path(csv_path).with_suffix(STATUS_SIDECAR_SUFFIX)
 
 
-def _sidecar_status(path: Path) -> dict[str, str]:
+class _Status(TypedDict, total=False):
+    """EpisodeMetadata's status fields (none: a complete episode)."""
+
+    status: str
+    status_reason: str
+
+
+def _sidecar_status(path: Path) -> _Status:
     """The status an export recorded beside ``path`` as EpisodeMetadata fields; {} when there is none."""
     sidecar = status_sidecar(path)
     if not sidecar.is_file():
@@ -353,7 +361,7 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
     start_time, seeds = parse_legacy_name(path)
     columns, raw, cut = _read(path)
     state = controller_state_from_log(columns, controller, str(path))
-    status = {"status": "incomplete", "status_reason": f"legacy CSV {cut}"} if cut else _sidecar_status(path)
+    status: _Status = {"status": "incomplete", "status_reason": f"legacy CSV {cut}"} if cut else _sidecar_status(path)
     metadata = EpisodeMetadata(
         controller=controller,
         sample_rate_hz=LEGACY_SAMPLE_RATE_HZ,

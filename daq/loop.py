@@ -316,10 +316,10 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
                                  signal=stop.signal, cause=cause)
         metadata = _episode_metadata(plan, backend, limits)
         run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times)
-    outcome, timing = run.outcome, run.outcome.timing
-    metadata = replace(metadata, status=outcome.status, status_reason=run.reason, timing=timing.as_dict(),
+    outcome, stats = run.outcome, run.outcome.timing
+    metadata = replace(metadata, status=outcome.status, status_reason=run.reason, timing=stats.as_dict(),
                        backend_stats=outcome.backend_stats)
-    return EpisodeResult(outcome.status, run.reason, run.n_done, timing, outcome.backend_stats, metadata=metadata,
+    return EpisodeResult(outcome.status, run.reason, run.n_done, stats, outcome.backend_stats, metadata=metadata,
                          sink_errors=tuple(run.errors), signal=stop.signal, cause=run.cause)
 
 
@@ -335,7 +335,7 @@ class _DeviceLateness:
         self.period = period
         self.guard = min(WRITER_GUARD, 0.5 * period)
         self.t0 = 0.0
-        self.when0 = None
+        self.when0: float | None = None
 
     def __call__(self, k: int, t_tick: float, when: float | None) -> float:
         """The lateness (s) of tick ``k`` read at ``t_tick`` (host clock), device time ``when``."""
@@ -344,6 +344,7 @@ class _DeviceLateness:
             self.writer.keep_clear(self.t0, self.period, self.guard)
         if when is None:
             return t_tick - (self.t0 + k * self.period)
+        assert self.when0 is not None  # a device with a clock gave tick 0 its time too
         late = t_tick - (self.t0 + (when - self.when0))
         if late < 0:
             # Came sooner after tick 0 than the device's clock says: tick 0 was
@@ -365,7 +366,9 @@ def _abort(theta: float, alpha: float, limits: SafetyLimits, stop: StopRequest,
            writer: SinkWriter) -> tuple[str, str]:
     """Why this tick must put the motor at 0 V and end the episode: (reason, cause), or ('', '')."""
     if not (abs(theta) <= limits.theta_limit and abs(alpha) <= limits.alpha_limit):
-        return limits.violation(theta, alpha), "safety"
+        violation = limits.violation(theta, alpha)
+        assert violation is not None  # the same check
+        return violation, "safety"
     if stop.requested:
         return stop.reason, "stop"
     if writer.failed is not None:

@@ -418,7 +418,10 @@ class _RunState:
         if self.stop.requested:
             self.flags.halt(self.stop.reason, self.stop.signal)
         elif not self.halted.is_set():  # the others wait for the first's end, not its start
-            started = first.result.metadata.start_time if first.result.started else None
+            # None only when the run was stopped, an exception halted it (take): here it is an episode
+            assert isinstance(first, LoggedEpisode)
+            metadata = first.result.metadata  # None: it never started
+            started = metadata.start_time if metadata is not None else None
             self.flags.pass_turn(0, started)
 
     def finish(self) -> RunResult:

@@ -111,7 +111,7 @@ def excitation_record(seeds: Sequence[int], settings: ExcitationSettings) -> dic
     }
 
 
-def plan_episodes(controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]],
+def plan_episodes(controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]] | np.ndarray,
                   settings: ExcitationSettings, source: str = "", extra: dict | None = None
                   ) -> "EpisodePlans":
     """One plan per seed triple: the rig's excitation with those seeds, under ``controller``.
@@ -122,7 +122,7 @@ def plan_episodes(controller: ControllerInfo, seeds: Sequence[tuple[int, int, in
     ----------
     controller : ControllerInfo
         The controller every episode runs.
-    seeds : sequence of (int, int, int)
+    seeds : sequence of (int, int, int), or ndarray of shape (n_episodes, 3)
         Each episode's excitation seeds (:func:`run_seeds`).
     settings : ExcitationSettings
         The excitation (:func:`excitation_settings`).
@@ -146,7 +146,7 @@ class EpisodePlans(Sequence):
     planning one does, plus 6 MB; each plan's excitation is made a chunk at a time as its episode runs.
     """
 
-    def __init__(self, controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]],
+    def __init__(self, controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]] | np.ndarray,
                  settings: ExcitationSettings, source: str = "", extra: dict | None = None) -> None:
         self.controller = controller
         self.seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 3)

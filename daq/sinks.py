@@ -16,13 +16,16 @@ import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, NamedTuple, Protocol, Sequence, runtime_checkable
+from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
 from qube_koopman.daq.episode import Episode, EpisodeMetadata
 from qube_koopman.daq.log.names import episode_stem, log_path
 from qube_koopman.daq.timing import TimingStats
+
+if TYPE_CHECKING:
+    from qube_koopman.daq.log import EpisodeWriter
 
 _log = logging.getLogger(__name__)
 
@@ -239,6 +242,7 @@ class SinkWriter:
         self._schedule = (float(t0), float(period), float(guard))
 
     def _wait_for_window(self) -> None:
+        assert self._schedule is not None  # only a scheduled queue waits
         t0, period, guard = self._schedule
         to_deadline = period - (time.perf_counter() - t0) % period
         if to_deadline < guard:
@@ -319,7 +323,7 @@ class McapSink:
         self.flush_interval_s = flush_interval_s
         self.paths: list = []
         self.error: LogWriteError | None = None
-        self._writer = None
+        self._writer: EpisodeWriter | None = None
 
     def open(self, metadata: EpisodeMetadata) -> None:
         """Check the free space, create the episode's file and write its metadata (durable at once).
@@ -352,15 +356,17 @@ class McapSink:
 
     def write(self, sample: Sample) -> None:
         """Append one tick (flushed every ``flush_interval_s`` of data)."""
+        writer = self._writer
+        assert writer is not None, "open() first"
         try:
-            self._writer.write_sample(
+            writer.write_sample(
                 t=sample.t, theta=sample.theta, alpha=sample.alpha, target_theta=sample.target_theta,
                 target_alpha=sample.target_alpha, feedforward=sample.feedforward,
                 controller_state=sample.controller_state, control_output=sample.control_output,
                 plant_input=sample.plant_input, saturation=sample.saturation, lateness=sample.lateness,
                 compute_time=sample.compute_time, device_time=sample.device_time)
         except OSError as exc:
-            self._fail(self._writer.path, exc)
+            self._fail(writer.path, exc)
 
     def close(self, outcome: EpisodeOutcome) -> None:
         """Record the final status, timing statistics and backend counters, and close the file.
@@ -379,7 +385,7 @@ class McapSink:
         except OSError as exc:
             self._fail(writer.path, exc)
 
-    def _fail(self, path, exc: OSError):
+    def _fail(self, path, exc: OSError) -> NoReturn:
         """Record and raise the error as a :class:`LogWriteError` naming ``path``."""
         self.error = exc if isinstance(exc, LogWriteError) else LogWriteError(path, exc)
         raise self.error from None

@@ -174,16 +174,17 @@ class _Series:
         if self._hist is None and self.n <= EXACT_TICKS:
             self._parts.append(np.array(values, dtype=float))
             return
-        self._histogram()
-        self._hist += np.bincount(_bin_index(values), minlength=self._hist.size)
+        hist = self._histogram()
+        hist += np.bincount(_bin_index(values), minlength=hist.size)
 
-    def _histogram(self) -> None:
-        """Keep the histogram from now on, the exact values kept so far counted in it."""
+    def _histogram(self) -> np.ndarray:
+        """Keep the histogram from now on, the exact values kept so far counted in it; returns it."""
         if self._hist is None:
             self._hist = np.zeros(2 * _HIST_HALF + 1, dtype=np.int64)
             if self._parts:
                 self._hist += np.bincount(_bin_index(np.concatenate(self._parts)), minlength=self._hist.size)
             self._parts = []
+        return self._hist
 
     def merge(self, other: "_Series") -> None:
         """Add the values ``other`` holds (exact values, or its histogram)."""
@@ -192,8 +193,8 @@ class _Series:
         if other._hist is None:
             self.add(np.concatenate(other._parts))
             return
-        self._histogram()
-        self._hist += other._hist
+        hist = self._histogram()
+        hist += other._hist
         self.n += other.n
         self.low, self.high = min(self.low, other.low), max(self.high, other.high)
 

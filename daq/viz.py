@@ -38,7 +38,7 @@ _SERIES = {
                 ("feedforward", 1.0, "feedforward (V)")),
     "timing": (("lateness", 1e3, "lateness (ms)"), ("compute_time", 1e3, "compute time (ms)")),
 }
-_FIELDS = [(Sample._fields.index(name), scale) for series in _SERIES.values() for name, scale, _ in series]
+_FIELDS = [(name, scale) for series in _SERIES.values() for name, scale, _ in series]  # Sample's float fields
 EVENTS = "events"
 
 
@@ -202,7 +202,7 @@ class RerunSink:
     def _queue_batch(self) -> None:
         if not self._buffer:
             return
-        rows = np.array([[s[i] * scale for i, scale in _FIELDS] for s in self._buffer], dtype=float)
+        rows = np.array([[getattr(s, name) * scale for name, scale in _FIELDS] for s in self._buffer], dtype=float)
         t = self._offset + np.array([s.t for s in self._buffer])
         first = 0
         for path, series in _SERIES.items():

@@ -42,6 +42,7 @@ import math
 import os
 import time
 from collections import deque
+from typing import Any
 
 from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
 from qube_koopman.firmware_protocol import (
@@ -137,6 +138,7 @@ class SerialBackend(Backend):
 
     name = "serial"
     pacing = Pacing.DEVICE
+    _last_frame_seq: int | None  # of the last frame received (None: none this episode); see _reset_counts
 
     def __init__(self, port: str, baud: int = DEFAULT_BAUD, *, rate_hz: int = 500, watchdog_ticks: int = 5,
                  max_voltage: float = 10.0, link_timeout: float = DEFAULT_LINK_TIMEOUT,
@@ -157,7 +159,7 @@ class SerialBackend(Backend):
         self.link_timeout = float(link_timeout)
         self.handshake_timeout = float(handshake_timeout)
         self.sample_period = 1.0 / self.rate_hz
-        self._serial = None
+        self._serial: Any | None = None  # the pyserial port (untyped): open() opens it, close() drops it
         self._low_latency = "not tried"
         self._decoder = StreamDecoder()
         self._frames: deque = deque()
@@ -205,6 +207,7 @@ class SerialBackend(Backend):
     def _send(self, frame: bytes) -> None:
         import serial
 
+        assert self._serial is not None, "open() first"
         try:
             self._serial.write(frame)
         except (serial.SerialException, OSError) as exc:
@@ -216,6 +219,7 @@ class SerialBackend(Backend):
         import serial
 
         port = self._serial
+        assert port is not None, "open() first"
         while True:
             try:
                 data = port.read(max(1, port.in_waiting))
@@ -235,6 +239,7 @@ class SerialBackend(Backend):
         import serial
 
         port = self._serial
+        assert port is not None, "open() first"
         try:
             waiting = port.in_waiting
             if waiting:
@@ -250,6 +255,7 @@ class SerialBackend(Backend):
 
     def _handshake(self) -> None:
         port = self._serial
+        assert port is not None  # open() opened it
         try:
             port.reset_input_buffer()  # telemetry of an older session, or of nobody's
         except Exception:  # noqa: BLE001 - not every URL handler can; stale frames are skipped anyway
@@ -327,7 +333,7 @@ class SerialBackend(Backend):
         self._counts = dict(telemetry=0, ticks_missed=0, ticks_skipped=0, frames_lost=0, late_commands=0,
                             tx_overflows=0, device_overruns=0, device_rx_errors=0)
         self._expected_tick: int | None = None
-        self._last_frame_seq: int | None = None
+        self._last_frame_seq = None
         self._rejected_at_start = self._decoder.stats.rejected
         self._stamp: int | None = None
         self._device_us = 0
@@ -400,7 +406,7 @@ class SerialBackend(Backend):
         """
         self._faulted = False
         self._driving = self._rearm = False
-        self._rearm_seq: int | None = None
+        self._rearm_seq = None
         self._reset_counts()
         self.open()
         # Rejects while resynchronizing on an older session's stream are not this episode's.
@@ -511,7 +517,7 @@ class SerialBackend(Backend):
         if self.hello is not None:
             h = self.hello
             info.update(protocol_version=h.protocol_version, firmware=_firmware(h),
-                        capabilities=[c.name.lower() for c in Capability if h.capabilities & c],
+                        capabilities=[c.name.lower() for c in Capability if h.capabilities & c and c.name is not None],
                         emulated=bool(h.capabilities & Capability.EMULATED), module_id=h.module_id)
         return info
 

@@ -147,7 +147,9 @@ def fresh_seed() -> int:
     """A run seed from the system's entropy, when ``--seed`` is not given (printed to repeat the run)."""
     import numpy as np
 
-    return int(np.random.SeedSequence().entropy % 1_000_000)
+    entropy = np.random.SeedSequence().entropy
+    assert isinstance(entropy, int)  # drawn from the OS: one int
+    return entropy % 1_000_000
 
 
 def _controller_form(controller, args) -> str:

@@ -10,6 +10,10 @@ import dataclasses
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from qube_koopman.daq.sinks import EpisodeOutcome
 
 __all__ = ["PROG", "RunProgress", "EpisodeBook", "summary_table", "link_summary", "report"]
 
@@ -109,7 +113,7 @@ def _us(value: float | None) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value * 1e6:.1f}"
 
 
-def summary_table(rows: list[tuple[str, object]], totals) -> str:
+def summary_table(rows: list[tuple[str, EpisodeOutcome]], totals) -> str:
     """The end-of-run table: one row per episode, then the whole run's timing."""
     header = ("#", "log file", "status", "samples", "late p50 us", "p99 us", "max us", "overruns",
               "compute p99 us")
@@ -152,7 +156,7 @@ def link_summary(results) -> str | None:
             f"rejected, {total['late_commands']} commands late")
 
 
-def _as_logged(rows: list[tuple[str, object]], log_errors: list) -> list[tuple[str, object]]:
+def _as_logged(rows: list[tuple[str, EpisodeOutcome]], log_errors: list) -> list[tuple[str, EpisodeOutcome]]:
     """The summary's rows, an episode whose log failed counted by the samples its file still holds.
 
     After a write error the loop has run more ticks than the file keeps (it is readable up to its

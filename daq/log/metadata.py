@@ -84,7 +84,7 @@ def _major(version: str) -> str:
     return version.split(".", 1)[0]
 
 
-def _final_status(status: dict[str, str] | None, salvage_note: str) -> tuple[str, str]:
+def _final_status(status: Mapping[str, str] | None, salvage_note: str) -> tuple[str, str]:
     """The episode's status and reason from the status record (None when lost) and what the reader salvaged."""
     skipped = "; skipped: " in salvage_note  # a damaged chunk skipped, samples lost in the middle
     if status is not None and not skipped:

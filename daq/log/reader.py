@@ -20,6 +20,7 @@ import struct
 import warnings
 import zlib
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -32,6 +33,9 @@ from qube_koopman.daq.log.schema import (
     payload_dtype,
     state_field,
 )
+
+if TYPE_CHECKING:
+    from mcap.records import Schema
 
 __all__ = ["read_episode", "read_episode_metadata", "IncompleteEpisodeWarning"]
 
@@ -62,6 +66,7 @@ class _Damaged(Exception):
 
 def _message_dtype(payload: np.dtype) -> np.dtype:
     """A whole MCAP Message record (opcode, length, header fields, payload) as one dtype."""
+    assert payload.names is not None and payload.fields is not None  # a structured dtype (payload_dtype's)
     names = ["op", "len", "channel", "seq", "log_time", "publish_time", *payload.names]
     formats = ["u1", "<u8", "<u2", "<u4", "<u8", "<u8", *(payload.fields[n][0] for n in payload.names)]
     offsets = [0, 1, 9, 11, 15, 23, *(31 + payload.fields[n][1] for n in payload.names)]
@@ -69,12 +74,16 @@ def _message_dtype(payload: np.dtype) -> np.dtype:
                      "itemsize": 31 + payload.itemsize})
 
 
-def _parse(record_class, body) -> object:
+_Record = TypeVar("_Record")
+
+
+def _parse(record_class: type[_Record], body) -> _Record:
     from mcap.data_stream import ReadDataStream
     from mcap.exceptions import McapError
 
     try:
-        return record_class.read(ReadDataStream(io.BytesIO(bytes(body))))
+        # Each mcap record class has a static read(); their base class (the bound it would need) does not.
+        return record_class.read(ReadDataStream(io.BytesIO(bytes(body))))  # type: ignore[attr-defined]
     except (McapError, struct.error, UnicodeDecodeError, ValueError) as exc:
         raise _Damaged(f"malformed {record_class.__name__} record ({exc})") from None
 
@@ -95,11 +104,14 @@ class _Scan:
         self.where = where
         self.decode_chunks = decode_chunks
         self.records: dict[str, dict[str, str]] = {}
-        self.schemas: dict[int, object] = {}
+        self.schemas: dict[int, Schema] = {}
         self.fields: list[tuple[str, str]] | None = None
         self.sample_channel: int | None = None
         self.message_dtype: np.dtype | None = None
-        self.blocks: list[np.ndarray] = []
+        #: The chunks' sample blocks in file order while the records are read, with chunks read before the
+        #: sample schema (_Pending) and those that then failed (None); finish() keeps the samples in ``samples``.
+        self.blocks: list[np.ndarray | _Pending | None] = []
+        self.samples: list[np.ndarray] = []
         self.n_chunks = 0
         self.problem = ""
         #: Damaged chunks skipped: (what was wrong, the index in ``blocks`` the samples after it start at).
@@ -126,20 +138,22 @@ class _Scan:
             name = _OPNAMES.get(op, f"0x{op:02x}")
             if end > n:
                 problem = f"file ends inside a {name} record at byte {pos} ({n - pos} of {9 + length} bytes present)"
-                pos = self._resync(data, pos, problem, f"a {name} record at byte {pos} claims {9 + length} bytes, "
+                resumed = self._resync(data, pos, problem, f"a {name} record at byte {pos} claims {9 + length} bytes, "
                                    "past the end of the file")
-                if pos is None:
+                if resumed is None:
                     return
+                pos = resumed
                 continue
             try:
                 if op == _FOOTER:
                     if data[end:end + 8] == _MAGIC and end + 8 == n:
                         return
                     # A cut footer, or a flipped record type read as one in the middle of the file.
-                    pos = self._resync(data, pos, "file ends without the closing MCAP magic",
+                    resumed = self._resync(data, pos, "file ends without the closing MCAP magic",
                                        f"a Footer record at byte {pos} is not at the end of the file")
-                    if pos is None:
+                    if resumed is None:
                         return
+                    pos = resumed
                     continue
                 self._record(op, view[pos + 9:end])
                 if op == _CHUNK:
@@ -149,9 +163,10 @@ class _Scan:
                 if op == _CHUNK and self._framed_after(data, end):
                     self.gaps.append((problem, len(self.blocks)))
                 else:
-                    pos = self._resync(data, pos, problem, problem)
-                    if pos is None:
+                    resumed = self._resync(data, pos, problem, problem)
+                    if resumed is None:
                         return
+                    pos = resumed
                     continue
             pos = end
 
@@ -210,10 +225,11 @@ class _Scan:
         """
         notes = []
         for problem, i in self.gaps:
-            first = int(self.blocks[i - 1]["seq"][-1]) + 1 if i > 0 else 0
-            after = sum(len(b) for b in self.blocks[i:])
-            if i < len(self.blocks):
-                last = int(self.blocks[i]["seq"][0]) - 1
+            first = int(self.samples[i - 1]["seq"][-1]) + 1 if i > 0 else 0
+            after = sum(len(b) for b in self.samples[i:])
+            last: int | None
+            if i < len(self.samples):
+                last = int(self.samples[i]["seq"][0]) - 1
             else:
                 last = int(n_recorded) - 1 if n_recorded and n_recorded.isdigit() else None
             if last is None:
@@ -239,8 +255,8 @@ class _Scan:
             record = _parse(Metadata, body)
             self.records[record.name] = record.metadata
         elif op == _SCHEMA:
-            record = _parse(Schema, body)
-            self.schemas[record.id] = record
+            schema = _parse(Schema, body)
+            self.schemas[schema.id] = schema
         elif op == _CHANNEL:
             self._channel(_parse(Channel, body))
         elif op == _MESSAGE and self.decode_chunks:
@@ -274,15 +290,16 @@ class _Scan:
                 self.blocks[i] = np.concatenate(decoded) if decoded else None
 
     def finish(self) -> None:
-        """Drop what never became samples (chunks whose schema never came, empty ones); keep gaps in place."""
-        kept, where = [], []
+        """Keep the samples (drop chunks whose schema never came, empty ones) in ``samples``; gaps kept in place."""
+        kept: list[np.ndarray] = []
+        where: list[int] = []
         for block in self.blocks:
             where.append(len(kept))
             if isinstance(block, np.ndarray) and len(block):
                 kept.append(block)
         where.append(len(kept))
         self.gaps = sorted(((problem, where[i]) for problem, i in self.gaps), key=lambda gap: gap[1])
-        self.blocks = kept
+        self.samples = kept
 
     def _chunk(self, body: memoryview) -> None:
         import lz4.frame
@@ -355,11 +372,13 @@ class _Scan:
                 self._record(op, memoryview(buf)[pos + 9:end])
             pos = end
         if offsets:
+            assert self.message_dtype is not None  # offsets are kept only for the sample channel's messages
             size = self.message_dtype.itemsize
             index = np.asarray(offsets)[:, None] + np.arange(size)
             blocks.append(np.frombuffer(buf, np.uint8)[index].view(self.message_dtype).reshape(-1))
 
     def _bulk(self, buf: bytes, pos: int) -> np.ndarray | None:
+        assert self.message_dtype is not None  # called for the sample channel's messages only
         size = self.message_dtype.itemsize
         count, rest = divmod(len(buf) - pos, size)
         if rest:
@@ -378,7 +397,7 @@ def _scan(path: str | os.PathLike, decode_chunks: bool) -> tuple[_Scan, EpisodeM
     scan.finish()
     if EPISODE_RECORD not in scan.records and scan.problem:
         raise ValueError(f"{path}: unreadable episode log: {scan.problem}, before any episode metadata")
-    ok, jumps = _in_sequence(scan.blocks, {i for _, i in scan.gaps})
+    ok, jumps = _in_sequence(scan.samples, {i for _, i in scan.gaps})
     if not ok:
         raise ValueError(f"{path}: sample sequence numbers are not 0, 1, 2, ... "
                          f"(samples duplicated or out of order)")
@@ -386,7 +405,7 @@ def _scan(path: str | os.PathLike, decode_chunks: bool) -> tuple[_Scan, EpisodeM
                                      "record type or length)", i) for i in jumps], key=lambda gap: gap[1])
     status = scan.records.get(STATUS_RECORD)
     if decode_chunks and status is not None and not scan.problem and not scan.gaps:
-        n = sum(len(b) for b in scan.blocks)
+        n = sum(len(b) for b in scan.samples)
         if status.get("n_samples") != str(n):
             scan.problem = f"status record counts {status.get('n_samples')} samples, the file holds {n}"
     notes = [*scan.gap_notes(None if status is None else status.get("n_samples")),
@@ -414,7 +433,8 @@ def _in_sequence(blocks: list[np.ndarray], gaps: set[int]) -> tuple[bool, list[i
         bytes before them framed as records of another kind (a flipped record type), so their
         samples are missing without a chunk having failed a check.
     """
-    expected, jumps = 0, []
+    expected = 0
+    jumps: list[int] = []
     for i, block in enumerate(blocks):
         seq = block["seq"]
         if len(seq) == 0:
@@ -492,7 +512,7 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
                    if name not in present and name not in _ADDED_FIELDS]
         if missing:
             raise ValueError(f"{where}: sample schema misses fields {', '.join(missing)}")
-    blocks = scan.blocks
+    blocks = scan.samples
     if blocks:
         def column(name: str) -> np.ndarray:
             return blocks[0][name] if len(blocks) == 1 else np.concatenate([b[name] for b in blocks])

@@ -89,7 +89,8 @@ def payload_dtype(fields: list[tuple[str, str]]) -> np.dtype:
     Classic CDR aligns each primitive to its own size (at most 8) relative
     to the end of the encapsulation header.
     """
-    names, formats, offsets = ["cdr_header"], ["<u4"], [0]
+    names, offsets = ["cdr_header"], [0]
+    formats: list[str | np.dtype] = ["<u4"]
     pos = 0
     for name, ros_type in fields:
         dtype = np.dtype(_ROS_TYPES[ros_type])

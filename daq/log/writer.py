@@ -15,7 +15,7 @@ import numpy as np
 try:
     import fcntl
 except ImportError:  # not a POSIX system: temporary files are not locked
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]  # mypy: a module or, here, None
 
 from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
 from qube_koopman.daq.log.metadata import STATUS_RECORD, episode_records, status_record
@@ -393,7 +393,7 @@ def remove_stale_temp_files(folder: str | os.PathLike, suffix: str = ".mcap") ->
     list of Path
         The files removed.
     """
-    removed = []
+    removed: list[Path] = []
     if fcntl is None or not Path(folder).is_dir():
         return removed
     for tmp in sorted(Path(folder).glob(_temp_name(Path(f"*{suffix}")))):  # the names _temp_file gives
