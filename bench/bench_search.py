@@ -9,7 +9,7 @@ lifting the stage's shared liftings before its candidates ran, and the candidate
 spent on statistics, fits, predictions, offsets, probe fits and probe scoring (summed over the
 workers, so the sums can exceed the wall time), and the probes' simulation.
 
-Usage: python bench/bench_search.py --data DIR [--repeat N]
+Usage: python bench/bench_search.py --data DIR [--repeat N] [--no-screen]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
 """
 
@@ -42,14 +42,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder of the 48 imported .mcap logs")
     parser.add_argument("--repeat", type=int, default=1, help="runs of each, the median quoted (default 1)")
+    parser.add_argument("--no-screen", action="store_true", help="time the search without screening (every "
+                        "candidate evaluated in full, as before successive halving)")
     args = parser.parse_args()
     logs = [str(p) for p in sorted(args.data.glob("*.mcap"))]
     if len(logs) != 48:
         raise SystemExit(f"{args.data}: expected the paper's 48 logs, found {len(logs)}")
     fixed, search, report = [], [], None
+    no_screen = Path(tempfile.mkdtemp()) / "no-screen.toml"  # the default space, every candidate in full
+    no_screen.write_text("n_finalists = 0\n")
     for _ in range(args.repeat):
         fixed.append(timed_run([*logs, "--split", "paper", "--delays", "20"])[0])
-        seconds, report = timed_run([*logs, "--split", "paper", "--search"])
+        seconds, report = timed_run([*logs, "--split", "paper", "--search", *(["--search-space", str(no_screen)]
+                                                                             if args.no_screen else [])])
         search.append(seconds)
     fixed_s, search_s = statistics.median(fixed), statistics.median(search)
     print(f"{'measure':<52}{'value':>10}{'target':>12}")
@@ -60,12 +65,20 @@ def main() -> None:
     print(f"\ntime of the last search (s): probes simulated in {timing['probe_simulation']:.1f}, "
           f"search {timing['search']:.1f}")
     keys = ("shared_statistics", *TIMING_KEYS)
-    print(f"{'stage':<10}{'n':>3}{'wall':>8}" + "".join(f"{k:>18}" for k in keys))
+    print("n: candidates evaluated in full; out: screened out (their screens' time is in the sums)")
+    print(f"{'stage':<10}{'n':>3}{'out':>4}{'wall':>8}" + "".join(f"{k:>18}" for k in keys))
     for stage, t in timing["stages"].items():
-        print(f"{stage:<10}{t['candidates']:>3}{t['wall']:>8.1f}" + "".join(f"{t[k]:>18.1f}" for k in keys))
-    winner = report["search"]["winner"]
+        print(f"{stage:<10}{t['candidates']:>3}{t.get('screened_out', 0):>4}{t['wall']:>8.1f}"
+              + "".join(f"{t[k]:>18.1f}" for k in keys))
+    search = report["search"]
+    winner = search["winner"]
     print(f"\nwinner: {winner['label']}, alpha {winner['alpha']:g}, CV R^2 {winner['cv_r2']:.4f}, "
           f"transfer R^2 {winner['transfer_r2']:.4f}; paper test R^2 {report['test']['r2_mean']:.4f}")
+    if "screening" in search:
+        print(f"screening: {search['screening']['description']}")
+        for c in search["screened"]:
+            objective = "diverged" if c["objective"] is None else f"{c['objective']:.4f}"
+            print(f"  screened out ({c['stage']}): {c['label']}, screen objective {objective}")
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
 import tomllib
@@ -14,6 +15,8 @@ from qube_koopman.core.command import CliError, progress
 _log = logging.getLogger(__name__)
 _LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool, "trig": bool, "offsets": bool,
           "friction": bool}
+#: Single numbers a space file may set: how many candidates of a screened stage are evaluated in full (0: all).
+_NUMBERS = {"n_finalists": int}
 
 
 def load_space(path: str | None):
@@ -26,11 +29,16 @@ def load_space(path: str | None):
         data = tomllib.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise CliError(f"{path}: not a readable TOML search space ({exc})") from None
-    unknown = set(data) - set(_LISTS)
+    unknown = set(data) - set(_LISTS) - set(_NUMBERS)
     if unknown:
-        raise CliError(f"{path}: unknown search-space keys {sorted(unknown)}; known: {', '.join(_LISTS)}")
-    values = {}
+        raise CliError(f"{path}: unknown search-space keys {sorted(unknown)}; known: {', '.join([*_LISTS, *_NUMBERS])}")
+    values: dict = {}  # SearchSpace's fields, of several types
     for key, value in data.items():
+        if key in _NUMBERS:
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise CliError(f"{path}: {key} must be a whole number >= 0")
+            values[key] = value
+            continue
         kind = _LISTS[key]
         if not isinstance(value, list) or not value or not all(
                 isinstance(v, kind) or (kind is float and isinstance(v, int) and not isinstance(v, bool))
@@ -51,11 +59,20 @@ def probe_cache() -> Path:
     return Path(os.environ.get("QUBE_KOOPMAN_PROBE_CACHE") or cache_root() / "probes")
 
 
+def search_space(args):
+    """The space of ``--search-space`` (the defaults without it), with ``--no-screen``: no screening
+    (every candidate evaluated in full)."""
+    from dataclasses import replace
+
+    space = load_space(args.search_space)
+    return space if getattr(args, "screen", True) else replace(space, n_finalists=0)
+
+
 def search_options(args):
     """The search's options from the command line's (parsed and checked) arguments."""
     from qube_koopman.identify.workflow import SearchOptions
 
-    return SearchOptions(space=load_space(args.search_space), estimate_window=args.estimate_window,
+    return SearchOptions(space=search_space(args), estimate_window=args.estimate_window,
                          offset_bound=args.offset_bound, cv_splits=args.cv_splits, cv_seed=args.cv_seed,
                          transfer=args.transfer, probe_cache=probe_cache() if args.probe_cache else None,
                          rbf_seed=args.rbf_seed, n_jobs=args.n_jobs, scheduler=args.scheduler,
@@ -79,10 +96,15 @@ def run_search(args, train, controller):
               "probe scoring, summed over workers): %s", "; ".join(
                   f"{stage} {t['wall']:.1f} s ({' / '.join(f'{t[k]:.1f}' for k in TIMING_KEYS)})"
                   for stage, t in result.timing()["stages"].items()))
+    for r in result.screened:
+        _log.info("search: %s screened out (%s): screen objective %s", r.stage, r.spec.label(),
+                  f"{r.score:.4f}" if math.isfinite(r.score) else "diverged")
     best = result.winner
     transfer = "" if best.transfer_score is None else f", transfer R^2 {best.transfer_score:.4f}"
-    print(f"search: {len(result.candidates)} candidates in {result.seconds:.0f} s; winner {best.spec.label()}, "
-          f"alpha {best.best_alpha:g}, cross-validated R^2 {best.cv_score:.4f}{transfer}", file=sys.stderr)
+    screened = f" (and {len(result.screened)} screened out)" if result.screened else ""
+    print(f"search: {len(result.candidates)} candidates{screened} in {result.seconds:.0f} s; "
+          f"winner {best.spec.label()}, alpha {best.best_alpha:g}, cross-validated R^2 {best.cv_score:.4f}{transfer}",
+          file=sys.stderr)
     return result
 
 
@@ -90,7 +112,7 @@ def _same_controller_report(scores) -> dict | None:
     """The winner's same-controller folds: the mean, and each controller's mean and folds (1-based numbers)."""
     if not scores:
         return None
-    by = {}
+    by: dict[int, list[float]] = {}
     for label, r2 in scores:
         by.setdefault(label + 1, []).append(r2)
     return {"cv_r2": float(sum(r for _, r in scores) / len(scores)),
@@ -107,17 +129,28 @@ OBJECTIVE = {
 }
 
 
+SCREENING = ("successive halving: each candidate of a screened stage is first scored on its first {folds} "
+             "fold(s) over the alpha grid and probed at the alpha best there (its screen); the {k} best whose "
+             "screens did not diverge are evaluated in full (the other folds and probe alphas added: the same "
+             "scores as a full evaluation), the others are screened out and not ranked (--no-screen: all in full)")
+
+
 def search_report(result, args, names) -> dict:
     """The search's part of report.json (``names``: the training logs')."""
     from qube_koopman.identify.model_selection.split import FOLD_KINDS
     from qube_koopman.identify.model_selection.search import STAGES
 
-    space = load_space(args.search_space)
+    space = search_space(args)
     return {
         "winner": {**result.winner.as_dict(), "flags": " ".join(
             result.winner.spec.flags(args.rbf_seed) + ["--alpha", f"{result.winner.best_alpha:g}",
                                                         "--estimate-window", f"{args.estimate_window:g}"])},
         "candidates": [r.as_dict() for r in result.ranked()],
+        "screening": {"n_finalists": space.n_finalists, "screen_folds": space.screen_folds,
+                      "stages": list(space.screened_stages) if space.n_finalists else [],
+                      "description": SCREENING.format(folds=space.screen_folds, k=space.n_finalists)
+                      if space.n_finalists else "none: every candidate evaluated in full (--no-screen)"},
+        "screened": [r.as_dict() for r in result.screened],
         "stages": list(STAGES),
         "space": {f.name: getattr(space, f.name) for f in fields(space) if f.name in _LISTS},
         "alphas": list(space.alphas),

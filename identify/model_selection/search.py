@@ -55,12 +55,15 @@ from qube_koopman.identify.metrics import probe_scores
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
-           "evaluate_candidate", "same_controller_scores", "search_steps", "family_of", "family_statistics"]
+           "evaluate_candidate", "screen_candidate", "same_controller_scores", "search_steps", "family_of",
+           "holds_features", "delays_family", "rbf_family", "family_statistics"]
 
 #: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
 TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
 FRICTION_LAG = CoulombFriction().lag  # samples: the fewest delays the friction lifting needs
+#: Parts of the training episodes a family's shared statistics are computed in, side by side (4 episodes at least each).
+FAMILY_PARTS = 4
 _log = logging.getLogger(__name__)
 
 
@@ -163,6 +166,12 @@ class SearchSpace:
     base: LiftingSpec = LiftingSpec(delays=0, poly=2)
     n_offset_candidates: int = 3  # stage 4 re-scores this many of the best with offsets
     n_offset_alphas: int = 3      # ... each at its best alphas
+    #: Successive halving: the stages ``screened_stages`` screen their candidates (:func:`screen_candidate`)
+    #: and evaluate in full the ``n_finalists`` best whose screens did not diverge (0: every candidate
+    #: in full, no screening).
+    n_finalists: int = 3
+    screen_folds: int = 1         # folds a screen scores (the first ones)
+    screened_stages: tuple[str, ...] = ("delays", "form", "rbf")
 
     def __post_init__(self):
         for name in ("delays", "poly", "rbf", "alphas"):
@@ -171,6 +180,16 @@ class SearchSpace:
                 raise ValueError(f"search space: {name} needs non-negative values, got {values!r}")
         if min(self.poly) < 1:
             raise ValueError("search space: poly (monomial orders) starts at 1")
+        if self.n_finalists < 0 or self.screen_folds < 1:
+            raise ValueError("search space: n_finalists must be >= 0 and screen_folds >= 1")
+
+    def tries_friction(self, lead: LiftingSpec) -> bool:
+        """Whether the friction stage would try ``lead`` with the friction shape (it lacks it and has the delays)."""
+        return True in self.friction and not lead.friction and lead.delays >= FRICTION_LAG and lead.rbf == 0
+
+    def screens(self, stage: str, n_candidates: int) -> bool:
+        """Whether ``stage`` screens its ``n_candidates`` new candidates before the full evaluation."""
+        return self.n_finalists > 0 and n_candidates > 1 and stage in self.screened_stages
 
     def stage_candidates(self, stage: str, best: Sequence["CandidateResult"]) -> list[LiftingSpec]:
         """The liftings a stage tries, given the results so far (best first)."""
@@ -240,6 +259,10 @@ class CandidateResult:
     reuse : Reuse, optional
         What the same lifting with offsets needs from this plain candidate (its models at
         its best alphas), so the offsets stage does not lift the episodes again.
+    kept : tuple, optional
+        A screen's (:func:`screen_candidate`) lifting steps, its statistics (None when the
+        stage shared them) and its folds' models at every alpha: what its full evaluation
+        needs from it.
     timing : dict of str to float
         Where ``seconds`` went (:data:`TIMING_KEYS`): ``statistics`` (lifting the
         training episodes, their factors), ``fits`` (every fold's solves),
@@ -256,6 +279,7 @@ class CandidateResult:
     transfer_r2: np.ndarray | None = None
     timing: dict = field(default_factory=dict)
     reuse: "Reuse | None" = field(default=None, repr=False, compare=False)
+    kept: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def mean(self) -> np.ndarray:
@@ -358,6 +382,10 @@ class SearchResult:
         once (:func:`family_statistics`), before its candidates ran.
     probe_seconds : float
         Time the probes took to simulate (set by the caller that made them).
+    screens : list of CandidateResult
+        Every screen (:func:`screen_candidate`) of the stages that screened, finalists' included.
+    screened : list of CandidateResult
+        The screens of the candidates left out (not evaluated in full, not ranked).
     """
 
     candidates: list[CandidateResult] = field(default_factory=list)
@@ -369,6 +397,8 @@ class SearchResult:
     stage_seconds: dict = field(default_factory=dict)
     probe_seconds: float = 0.0
     shared_seconds: dict = field(default_factory=dict)
+    screens: list = field(default_factory=list)
+    screened: list = field(default_factory=list)
 
     def timing(self) -> dict:
         """Where the search's time went: per stage its wall time and its candidates' summed
@@ -377,11 +407,12 @@ class SearchResult:
         stages = {}
         for stage, wall in self.stage_seconds.items():
             work = dict.fromkeys(TIMING_KEYS, 0.0)
-            for r in self.candidates:
+            for r in self.candidates + self.screens:
                 if r.stage == stage:
                     for key, value in r.timing.items():
                         work[key] = work.get(key, 0.0) + value
             stages[stage] = {"wall": round(wall, 3), "candidates": sum(r.stage == stage for r in self.candidates),
+                             "screened_out": sum(r.stage == stage for r in self.screened),
                              "shared_statistics": round(self.shared_seconds.get(stage, 0.0), 3),
                              **{k: round(v, 3) for k, v in work.items()}}
         return {"probe_simulation": round(self.probe_seconds, 3), "stages": stages, "search": round(self.seconds, 3)}
@@ -417,7 +448,7 @@ class SearchData:
 
 def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
                        plain: "np.ndarray | CandidateResult | None" = None,
-                       shared: tuple | None = None) -> CandidateResult:
+                       shared: tuple | None = None, screen: "CandidateResult | None" = None) -> CandidateResult:
     """Cross-validate one lifting over the alpha grid (see the module docstring).
 
     With ``spec.offsets``, ``plain`` (the same lifting's fold scores without offsets,
@@ -426,7 +457,17 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     (:attr:`CandidateResult.reuse`) predict again without any statistics computed.
     ``shared``: the fold statistics of a lifting whose features include this one's
     (:func:`family_statistics`), from which this one's are taken exactly.
+    ``screen``: this lifting's screen (:func:`screen_candidate`): its lifting, its statistics
+    (when it computed them) and its scores are used again, and only the folds and probe alphas
+    it left out are scored: the same numbers as an evaluation from scratch.
     """
+    return _evaluate(spec, data, stage, plain, shared, screen)[0]
+
+
+def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tuple | None,
+              screen: "CandidateResult | None", steps: list | None = None) -> tuple:
+    """:func:`evaluate_candidate` (``steps``: its lifting, when already built), and its folds' models at every
+    alpha (per fold: {alpha index: closed loop}, validation episodes)."""
     started = time.perf_counter()
     timing = dict.fromkeys(TIMING_KEYS, 0.0)
     top = None if plain is None else _best_alphas(_fold_scores(plain), data.n_offset_alphas)
@@ -436,34 +477,189 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
         plants = {j: rows.model(reuse.lifting) for j, rows in reuse.plants.items()}
         transfer = None if data.probes is None else _transfer_scores(spec, data, cv, plants, timing)
         return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv,
-                               time.perf_counter() - started, transfer, timing)
-    estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
+                               time.perf_counter() - started, transfer, timing), []
+    screened_folds = []
+    if screen is not None:
+        steps, statistics, screened_folds = screen.kept
+        shared = statistics if statistics is not None else shared
+    elif steps is None:
+        steps = search_steps(spec, data.trajectories, data.rbf_seed)
+    estimator = ClEdmd(data.controller, lifting=steps)
+    n_screened = len(screened_folds)
+    splits = data.splits[n_screened:]
+    if shared is not None and n_screened:
+        shared = (shared[0], shared[1][n_screened:], *shared[2:])
     rescore = not spec.offsets or plain is None
     # A lifting that learns from each fold's episodes has no lifting the folds share: its models are kept whole.
     subset = not any(getattr(step, "learns_from_data", True) for step in estimator.lifting)
-    sweep = regularization_sweep(estimator, data.trajectories, data.alphas, data.splits,
+    sweep = regularization_sweep(estimator, data.trajectories, data.alphas, splits,
                                  scorings=("cl",) if rescore else (), score_from=data.window, measured_only=True,
                                  keep_fold_models="rows" if subset else spec.offsets, fit_all=False,
                                  controllers=data.controllers, shared=shared)
     timing |= sweep.seconds
     cv = sweep.cv_r2["cl"] if rescore else _fold_scores(plain)
+    if n_screened:
+        cv = np.vstack([screen.cv_r2, cv])
     lifting = None if sweep.statistics is None else sweep.statistics[0].lifting
-    folds = [({j: rows for j, rows in enumerate(closed)}, validation) for closed, _, validation in
-             sweep.fold_models or []]
+    folds = screened_folds + [({j: rows for j, rows in enumerate(closed)}, validation) for closed, _, validation in
+                              sweep.fold_models or []]
     if spec.offsets:
         top = _best_alphas(cv, data.n_offset_alphas)
         cv = _offset_scores(folds, lifting, data, top, timing)
     transfer, plants = None, {}
     if data.probes is not None:
         plants = _probe_plants(estimator, data, cv, sweep.statistics, timing)
-        transfer = _transfer_scores(spec, data, cv, plants, timing)
+        transfer = _transfer_scores(spec, data, cv, plants, timing,
+                                    None if screen is None else screen.transfer_r2)
     kept = None
     if not spec.offsets and lifting is not None:
         best = [int(j) for j in _best_alphas(cv, data.n_offset_alphas)]
         kept = Reuse(lifting, [({j: f[j] for j in best}, v) for f, v in folds],
                      {j: FittedRows.of(m) for j, m in plants.items() if j in best})
     return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started,
-                           transfer, timing, kept)
+                           transfer, timing, kept), folds
+
+
+def screen_candidate(spec: LiftingSpec, data: SearchData, stage: str = "", shared: tuple | None = None,
+                     n_folds: int = 1) -> CandidateResult:
+    """A lifting's screen: its first ``n_folds`` folds scored over the alpha grid, and its transfer at
+    the alpha that scores best on them only.
+
+    A stage gives the full evaluation (:func:`evaluate_candidate` with ``screen=``) to the
+    candidates that screen best (:attr:`SearchSpace.n_finalists`). The screen's statistics are those
+    of every fold (one pass over the episodes computes them all); it keeps them, its lifting
+    and its folds' models (:attr:`CandidateResult.kept`), so a finalist scores only the
+    other folds and the other probe alphas: the same numbers as a full evaluation from scratch.
+    ``shared``: as for :func:`evaluate_candidate` (then the screen does not keep them: the
+    stage has them).
+
+    Returns
+    -------
+    CandidateResult
+        Its ``cv_r2`` has ``n_folds`` rows; its ``transfer_r2`` one scored alpha.
+    """
+    from qube_koopman.core.blas import limited_blas_threads
+    from qube_koopman.identify.model_selection.sweep import fold_statistics
+
+    started = time.perf_counter()
+    steps = search_steps(spec, data.trajectories, data.rbf_seed)
+    own = shared is None
+    if own:
+        with limited_blas_threads(1):
+            shared = fold_statistics(ClEdmd(data.controller, lifting=steps), data.trajectories, data.splits,
+                                     data.controllers)
+    seconds = time.perf_counter() - started
+    screen_data = replace(data, splits=data.splits[:n_folds], n_transfer_alphas=1)
+    result, folds = _evaluate(spec, screen_data, stage, None, (shared[0], shared[1][:n_folds], *shared[2:]), None,
+                              steps)
+    result.timing["statistics"] += seconds
+    result.seconds = time.perf_counter() - started
+    result.reuse = None
+    result.kept = (steps, shared if own else None, folds)
+    return result
+
+
+def _finalists(screens: Sequence[CandidateResult], k: int) -> set[LiftingSpec]:
+    """The liftings of the ``k`` best screens (ranked as :meth:`SearchResult.ranked` ranks candidates)
+    that did not diverge; the best one when all did (a stage evaluates one candidate in full at least)."""
+    ranked = SearchResult(list(screens)).ranked()
+    return {r.spec for r in [r for r in ranked if np.isfinite(r.score)][:k] or ranked[:1]}
+
+
+def _shared_statistics(head: LiftingSpec, data: SearchData, run, n_parts: int) -> tuple:
+    """:func:`family_statistics` of ``head`` on the workers: in ``n_parts`` parts of the episodes, joined."""
+    import joblib
+
+    from qube_koopman.identify.model_selection.sweep import merge_fold_statistics
+
+    if n_parts <= 1:
+        return next(iter(run([joblib.delayed(family_statistics)(head, data)])))
+    parts = np.array_split(np.arange(len(data.trajectories)), n_parts)
+    return merge_fold_statistics(list(run([joblib.delayed(family_statistics)(head, data, p) for p in parts])))
+
+
+def holds_features(big: LiftingSpec, small: LiftingSpec) -> bool:
+    """Whether every feature of ``small``'s lifting is one of ``big``'s (the statistics of ``small`` are then
+    columns of ``big``'s): the same delays, no RBFs, and as much or more of the monomials, sin/cos, constant
+    and friction shape. Never for offsets candidates (their statistics are their plain twin's)."""
+    return (not big.offsets and not small.offsets and big.delays == small.delays and big.rbf == small.rbf == 0
+            and big.friction >= small.friction and big.poly >= small.poly and big.trig >= small.trig
+            and big.const >= small.const)
+
+
+def rbf_family(specs: Sequence[LiftingSpec]) -> list[LiftingSpec]:
+    """The liftings among ``specs`` with RBFs that differ in their number of centres alone, when there are
+    two at least (else none); not offsets candidates.
+
+    One lifting with every one's centres (the same features before and after them) holds all their
+    features: the RBF stage lifts its episodes once (:func:`~qube_koopman.identify.model_selection.sweep.
+    sub_statistics` takes each one's statistics from it, its RBFs renamed).
+    """
+    groups: dict[LiftingSpec, list[LiftingSpec]] = {}
+    for s in specs:
+        if s.rbf and not s.offsets:
+            groups.setdefault(replace(s, rbf=0), []).append(s)
+    return max((sorted(g, key=lambda s: s.rbf) for g in groups.values() if len(g) > 1), key=len, default=[])
+
+
+def _rbf_statistics(members: list[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
+    """Each of ``members``' fold statistics (:func:`rbf_family`), from one lifting with all their centres."""
+    import joblib
+
+    from qube_koopman.identify.lifting.rbf import RadialBasis
+    from qube_koopman.identify.model_selection.sweep import merge_fold_statistics, sub_statistics
+
+    each = [search_steps(s, data.trajectories, data.rbf_seed) for s in members]
+    at = [i for i, step in enumerate(each[0]) if isinstance(step, RadialBasis)][0]
+    rbf = each[0][at]
+    centres = np.vstack([steps[at].centers for steps in each])
+    union = list(each[0])
+    union[at] = type(rbf)(**{**rbf.get_params(), "n_centers": len(centres), "centers": centres})
+    parts = np.array_split(np.arange(len(data.trajectories)), n_parts)
+    stats = merge_fold_statistics(list(run([joblib.delayed(_statistics_of)(union, data, p) for p in parts])))
+    # The RBFs are named by their index: a member's j-th is the union's (offset + j)-th.
+    names = stats[0].lifting.feature_names_out_
+    first = len(names) - len(centres) - int(members[0].friction) - int(members[0].const)
+    out, offset = {}, 0
+    for spec, steps in zip(members, each):
+        rename = {names[first + j]: names[first + offset + j] for j in range(spec.rbf)}
+        with _one_blas_thread():
+            out[spec] = sub_statistics(ClEdmd(data.controller, lifting=steps), stats, rename=rename)
+        offset += spec.rbf
+    return out
+
+
+def _one_blas_thread():
+    from qube_koopman.core.blas import limited_blas_threads
+
+    return limited_blas_threads(1)
+
+
+def _statistics_of(steps: list, data: SearchData, episodes=None) -> tuple:
+    """:func:`family_statistics` of the lifting ``steps``."""
+    from qube_koopman.identify.model_selection.sweep import fold_statistics
+
+    with _one_blas_thread():
+        return fold_statistics(ClEdmd(data.controller, lifting=steps), data.trajectories, data.splits,
+                               data.controllers, episodes)
+
+
+def delays_family(specs: Sequence[LiftingSpec]) -> LiftingSpec | None:
+    """The lifting with the most delays among ``specs`` that differ from it in their delays alone, when
+    there are two at least (else None); not with RBFs (their centres live on the delayed state), the
+    friction shape or offsets.
+
+    A lifting with fewer delays has the same features at lags it holds: its statistics are columns of
+    the longest one's, with the snapshots of each episode's first samples added
+    (:func:`~qube_koopman.identify.model_selection.sweep.sub_statistics`): the delays stage lifts its
+    episodes once.
+    """
+    plain = [s for s in specs if not (s.rbf or s.friction or s.offsets)]
+    if not plain:
+        return None
+    longest = max(plain, key=lambda s: s.delays)
+    members = [s for s in plain if replace(s, delays=longest.delays) == longest]
+    return longest if len(members) > 1 else None
 
 
 def family_of(spec: LiftingSpec, specs: Sequence[LiftingSpec]) -> LiftingSpec | None:
@@ -488,12 +684,18 @@ def family_of(spec: LiftingSpec, specs: Sequence[LiftingSpec]) -> LiftingSpec | 
     return head if sum(holds(head, s) for s in specs) > 1 else None
 
 
-def family_statistics(spec: LiftingSpec, data: SearchData) -> tuple:
-    """The fold statistics of ``spec``'s lifting on the search's folds (shared by its family)."""
+def family_statistics(spec: LiftingSpec, data: SearchData, episodes=None) -> tuple:
+    """The fold statistics of ``spec``'s lifting on the search's folds (shared by its family).
+
+    ``episodes``: of these training episodes only (a part, joined with the others' by
+    :func:`~qube_koopman.identify.model_selection.sweep.merge_fold_statistics`).
+    """
+    from qube_koopman.core.blas import limited_blas_threads
     from qube_koopman.identify.model_selection.sweep import fold_statistics
 
     estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
-    return fold_statistics(estimator, data.trajectories, data.splits, data.controllers)
+    with limited_blas_threads(1):  # (one BLAS thread: a second one made these tall QRs 2.7 times slower on 2 cores)
+        return fold_statistics(estimator, data.trajectories, data.splits, data.controllers, episodes)
 
 
 def _fold_scores(plain) -> np.ndarray:
@@ -548,22 +750,43 @@ def _probe_plants(estimator, data: SearchData, cv: np.ndarray, statistics, timin
     return {int(j): plant for j, plant in zip(top, plants)}
 
 
-def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants: dict, timing: dict) -> np.ndarray:
+def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants: dict, timing: dict,
+                     known: np.ndarray | None = None) -> np.ndarray:
     """Probe scores (episodes x alphas) of ``plants`` ({alpha index: plant}) at the best CV alphas.
 
+    ``known``: scores already computed at some alphas (NaN elsewhere), kept. Without offsets, the
+    plants' closed loops with each probe controller are simulated together.
     ``timing["probe_scoring"]`` gets their time.
     """
     from qube_koopman.core.blas import limited_blas_threads
 
     started = time.perf_counter()
     # The alphas with a plant: an offsets candidate predicting with its plain twin's has them at its scored alphas.
-    top = [j for j in np.sort(_best_alphas(cv, data.n_transfer_alphas)) if int(j) in plants]
+    top = [int(j) for j in np.sort(_best_alphas(cv, data.n_transfer_alphas)) if int(j) in plants]
     out = np.full((data.probes.n_episodes, data.alphas.size), np.nan)
+    if known is not None:  # the columns a screen scored already (the same plants: the same numbers)
+        done = [j for j in top if not np.all(np.isnan(known[:, j]))]
+        out[:, done] = known[:, done]
+        top = [j for j in top if j not in done]
     with limited_blas_threads(1):
-        for j in top:
-            out[:, j] = probe_scores(plants[int(j)], data.probes, data.window, spec.offsets, data.bound, MEASURED)
+        if spec.offsets:
+            for j in top:
+                out[:, j] = probe_scores(plants[j], data.probes, data.window, True, data.bound, MEASURED)
+        elif top:
+            out[:, top] = _plain_probe_scores([plants[j] for j in top], data.probes, data.window)
     timing["probe_scoring"] = time.perf_counter() - started
     return out
+
+
+def _plain_probe_scores(plants: list, probes: ProbeSet, window: int) -> np.ndarray:
+    """:func:`~qube_koopman.identify.metrics.probe_scores` without offsets of several plants (one lifting),
+    each probe controller's closed loops of all of them simulated together: shape (n_episodes, n_plants)."""
+    from qube_koopman.identify.estimators.structure import close_loop
+    from qube_koopman.identify.model_selection.sweep import episode_scores
+
+    return np.concatenate([episode_scores([close_loop(p, controller, list(MEASURED)) for p in plants], episodes,
+                                          "cl", True, window, True)
+                           for controller, episodes in zip(probes.controllers, probes.episodes)], axis=1).T
 
 
 def _best_alphas(cv: np.ndarray, k: int) -> np.ndarray:
@@ -674,7 +897,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     """
     import joblib
 
-    from qube_koopman.core.blas import limited_blas_threads
+    from qube_koopman.identify.model_selection.sweep import episode_heads
 
     space = space or SearchSpace()
     data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
@@ -683,8 +906,12 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                       n_offset_alphas=space.n_offset_alphas)
     client = connect(scheduler, connect_timeout, security) if scheduler else None
     run = candidate_runner(n_jobs, client)
+    # A family's statistics are computed by parts of the episodes on the workers, joined here: as many
+    # parts whatever the workers (the same numbers on any machine).
+    n_parts = max(1, min(FAMILY_PARTS, len(data.trajectories) // 4))
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window), probes=probes), set()
+    earlier = {}  # the family heads' statistics, by head, for later stages' liftings they hold
     try:
         for stage in STAGES:
             stage_started = time.perf_counter()
@@ -696,23 +923,52 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
             heads = {s: family_of(s, specs) for s in specs}
             shared = {}
             if data.controllers is None:
-                for head in set(h for h in heads.values() if h is not None):
+                for head in sorted(set(h for h in heads.values() if h is not None)):
                     now = time.perf_counter()
-                    if client is not None:  # on a worker, as every lifting of the search
-                        shared[head] = next(iter(run([joblib.delayed(family_statistics)(head, data)])))
-                    else:  # here (one BLAS thread: a second one made these tall QRs 2.7 times slower on 2 cores)
-                        with limited_blas_threads(1):
-                            shared[head] = family_statistics(head, data)
+                    # With the friction shape too when the friction stage may try it: that stage's new
+                    # candidate (the best so far with friction) then takes its statistics from these.
+                    big = replace(head, friction=True) if space.tries_friction(head) else head
+                    earlier[big] = _shared_statistics(big, data, run, n_parts)
+                    shared.update({s: earlier[big] for s in specs if heads[s] == head})
                     result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+                longest = delays_family(specs)
+                if longest is not None:  # liftings but for their delays: the longest's statistics, and the heads
+                    now = time.perf_counter()
+                    stats = (*_shared_statistics(longest, data, run, n_parts),
+                             episode_heads(data.trajectories, longest.delays))
+                    shared.update({s: stats for s in specs if replace(s, delays=longest.delays) == longest})
+                    result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+                centres = rbf_family(specs)
+                if centres:  # liftings but for their RBF centres: one lifting holds every set of centres
+                    now = time.perf_counter()
+                    shared.update(_rbf_statistics(centres, data, run, n_parts))
+                    result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+                for s in specs:  # a lifting whose features an earlier stage's family head holds
+                    if shared.get(s) is None:
+                        shared[s] = next((v for h, v in earlier.items() if holds_features(h, s)), None)
+            screens = {}
+            if space.screens(stage, len(specs)) and data.controllers is None:
+                # Successive halving: every candidate screened cheaply, the best few evaluated in full.
+                calls = [joblib.delayed(screen_candidate)(s, data, stage, shared.get(s), space.screen_folds)
+                         for s in specs]
+                for done, res in enumerate(run(calls), start=1):
+                    screens[res.spec] = res
+                    if progress:
+                        progress(f"search: {stage} (screen)", done, len(specs))
+                finalists = _finalists(list(screens.values()), space.n_finalists)
+                result.screened += [replace(r, kept=None) for r in screens.values() if r.spec not in finalists]
+                result.screens += [replace(r, kept=None) for r in screens.values()]
+                specs = [s for s in specs if s in finalists]
             calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)),
-                                                        shared.get(heads[s]))
+                                                        shared.get(s), screens.get(s))
                      for s in specs]
             for done, res in enumerate(run(calls), start=1):
                 result.candidates.append(res)
                 if progress:
                     progress(f"search: {stage}", done, len(specs))
             result.stage_seconds[stage] = time.perf_counter() - stage_started
-            _log.info("search: stage %s: %d candidates in %.1f s", stage, len(specs), result.stage_seconds[stage])
+            _log.info("search: stage %s: %d candidates in %.1f s%s", stage, len(specs), result.stage_seconds[stage],
+                      f" ({len(screens)} screened, {len(screens) - len(specs)} left out)" if screens else "")
     finally:
         release_workers(n_jobs, client)
     result.seconds = time.perf_counter() - started

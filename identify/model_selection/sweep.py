@@ -38,7 +38,7 @@ from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
-__all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "SCORINGS"]
+__all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "episode_scores", "SCORINGS"]
 
 SCORINGS = ("cl", "plant")
 # Models simulated together: bounds their rings of permuted Koopman rows to ~64 MB (predictions
@@ -187,19 +187,48 @@ def _score(models: list[KoopmanModel], episodes: Sequence[Trajectory], scoring: 
 def _score_sums(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool, start: int,
                 measured_only: bool) -> np.ndarray:
     """Sum of R^2 over ``episodes`` for every model (batched by length): shape (n_models,)."""
+    return episode_scores(models, episodes, scoring, relift, start, measured_only).sum(axis=1)
+
+
+def episode_scores(models: Sequence[KoopmanModel], episodes: Sequence[Trajectory], scoring: str = "cl",
+                   relift: bool = True, start: int = 1, measured_only: bool = True) -> np.ndarray:
+    """R^2 of every episode predicted by every model, simulated together (one batch per episode length).
+
+    Parameters
+    ----------
+    models : sequence of KoopmanModel
+        Models sharing one lifting and structure (a sweep's alphas, or their closed loops with
+        one controller).
+    episodes : sequence of Trajectory
+    scoring : {"cl", "plant"}
+        Closed-loop prediction (inputs r, f) or plant prediction (input u).
+    relift : bool
+        Re-lift the predicted states at every step.
+    start : int
+        First scored sample of each episode.
+    measured_only : bool
+        Closed-loop scores of the measured states only, not the controller states too.
+
+    Returns
+    -------
+    ndarray of shape (n_models, n_episodes)
+        Mean R^2 over the scored channels (-inf: the prediction diverged), as
+        :func:`~qube_koopman.identify.metrics.scores_after_window` gives one model's without offsets.
+    """
     ref = models[0]
     d, n_p = ref.n_delays, ref.n_passthrough
-    by_length: dict[int, list[Trajectory]] = {}
-    for t in episodes:
-        by_length.setdefault(t.n_samples, []).append(t)
-    totals = np.zeros(len(models))
+    by_length: dict[int, list[int]] = {}
+    for i, t in enumerate(episodes):
+        by_length.setdefault(t.n_samples, []).append(i)
+    out = np.zeros((len(models), len(episodes)))
     A = np.stack([m.A for m in models])
     B = np.stack([m.B for m in models])
     with_p = scoring == "cl" and not measured_only
     channels = slice(0, None) if with_p else slice(n_p, None)
     # The memory a model's simulation holds: its ring of permuted rows (see identify.models.simulate).
     per_model = (n_p + ref.n_states) * A.shape[1] * (d + 1)
-    for _, group in by_length.items():
+    for indices in by_length.values():
+        group = [episodes[i] for i in indices]
         x_init = np.stack([t.x[:d + 1] for t in group])
         v = np.stack([ref.inputs_of(t) for t in group])
         # Time-major truth (samples, episodes, channels), as the simulator hands its predictions.
@@ -208,8 +237,8 @@ def _score_sums(models: list[KoopmanModel], episodes: list[Trajectory], scoring:
         for sl in _batches(len(models), per_model):
             sums = _ResidualSums(truth, start, sl.stop - sl.start, channels)
             simulate_chunks(A[sl], B[sl], ref.lifting, n_p, x_init, v, p0, relift, sums)
-            totals[sl] += r2_from_residuals(sums.sums, truth[start:]).sum(axis=1)
-    return totals
+            out[sl, indices] = r2_from_residuals(sums.sums, truth[start:])
+    return out
 
 
 def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float],
@@ -265,11 +294,12 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Computes the per-episode statistics of the episodes at ``indices`` (of
         ``trajectories``), in order, elsewhere: on a dask cluster,
         :class:`~qube_koopman.identify.model_selection.distributed.ClusterStatistics`. Default: here.
-    shared : (setup, per-fold statistics, all-episode statistics), optional
+    shared : (setup, per-fold statistics, all-episode statistics[, episode heads]), optional
         The folds' statistics already computed, on these ``splits`` without ``fit_all``, for
         a lifting whose features include this one's (:func:`fold_statistics` of it): this
         lifting's are taken from them (:func:`sub_statistics`) instead of lifting the
-        episodes again, when it can (the same delays, a single controller).
+        episodes again, when it can (a single controller; fewer delays with the episodes'
+        heads, :func:`episode_heads`).
 
     Returns
     -------
@@ -302,7 +332,8 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None)
     timed = _timer(result.seconds)
-    derived = None if given is None or fit_all or not relift else sub_statistics(estimator, given, controllers)
+    derived = None if given is None or fit_all or not relift else sub_statistics(estimator, given, controllers,
+                                                                                  splits)
     if derived is not None:
         with timed("statistics"):
             setup, per_fold, everything = derived
@@ -358,27 +389,67 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
 
 
 def fold_statistics(estimator, trajectories: Sequence[Trajectory], splits: Sequence[tuple[np.ndarray, np.ndarray]],
-                    controllers: Sequence[DiscreteStateSpace] | None = None) -> tuple:
+                    controllers: Sequence[DiscreteStateSpace] | None = None, episodes=None) -> tuple:
     """What a sweep without final fits (``fit_all=False``, re-lifted) computes before it solves.
 
     Returns ``(setup, [statistics of each fold's training episodes], statistics of all
     episodes)``: the ``shared`` argument of :func:`regularization_sweep` for any lifting whose
-    features are some of this one's.
+    features are some of this one's. ``episodes`` (indices): of those episodes only, a part
+    that :func:`merge_fold_statistics` joins with the others' (None where a fold trains on none
+    of them); the other episodes are not read.
     """
-    setup, (*per_fold, everything) = _statistics(estimator, as_episodes(trajectories),
-                                                 [t for t, _ in splits] + [None], True, controllers)
+    selections = [t for t, _ in splits] + [None]
+    if episodes is not None:
+        part = {int(j) for j in episodes}
+        selections = [sorted(part if s is None else part.intersection(int(j) for j in s)) for s in selections]
+    setup, totals = _statistics(estimator, as_episodes(trajectories), [s for s in selections if s is None or len(s)],
+                                True, controllers)
+    totals = iter(totals)
+    *per_fold, everything = [next(totals) if s is None or len(s) else None for s in selections]
     return setup, per_fold, everything
 
 
-def sub_statistics(estimator, statistics: tuple, controllers=None) -> tuple | None:
+def merge_fold_statistics(parts: Sequence[tuple]) -> tuple:
+    """The :func:`fold_statistics` of all the episodes from those of parts of them (one controller).
+
+    Exact up to rounding: each total is the factor of the parts' factors stacked.
+    """
+    def total(stats):
+        return Snapshots.total([s for s in stats if s is not None])
+
+    setup = parts[0][0]
+    per_fold = [total([p[1][i] for p in parts]) for i in range(len(parts[0][1]))]
+    return setup, per_fold, total([p[2] for p in parts])
+
+
+def episode_heads(trajectories: Sequence[Trajectory], n_delays: int) -> list[Trajectory]:
+    """Each episode's first ``n_delays + 1`` samples: what :func:`sub_statistics` needs to take the
+    statistics of a lifting with fewer delays from those of one with ``n_delays``."""
+    return [_first_samples(t, n_delays + 1) for t in as_episodes(trajectories)]
+
+
+def _first_samples(t: Trajectory, n: int) -> Trajectory:
+    """``t``'s first ``n`` samples."""
+    return dataclasses.replace(t, **{k: None if getattr(t, k) is None else getattr(t, k)[:n]
+                                     for k in ("x", "u", "r", "f", "xc")})
+
+
+def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None,
+                   rename: dict | None = None) -> tuple | None:
     """``estimator``'s fold statistics taken from those of a lifting whose features include its own.
 
     ``statistics`` is :func:`fold_statistics` of the larger lifting. Exact (a factor of the
     selected columns, :meth:`~qube_koopman.identify.estimators.regression.Snapshots.columns`); None
-    when it cannot be done so: statistics per controller, another number of delays (other
-    snapshots), a feature the larger lifting lacks, or other leading (re-lifted) rows.
+    when it cannot be done so: statistics per controller, a feature the larger lifting lacks, or
+    other leading (re-lifted) rows. A lifting with fewer delays has more snapshots (from an earlier
+    sample of each episode): when ``statistics`` has a fourth element, :func:`episode_heads` of the
+    episodes at the larger lifting's delays, its extra snapshots are factored from those and
+    folded in (into each fold's by its training episodes, ``splits``); without, None.
+    ``rename``: the larger lifting's names of some of this one's features (e.g. its RBFs, when the
+    larger one holds several sets of centres).
     """
-    big_setup, per_fold, everything = statistics
+    big_setup, per_fold, everything = statistics[:3]
+    heads = statistics[3] if len(statistics) > 3 else None
     if not isinstance(everything, Snapshots) or controllers is not None or _learns_from_data(estimator):
         return None
     template = copy.copy(estimator)
@@ -386,10 +457,13 @@ def sub_statistics(estimator, statistics: tuple, controllers=None) -> tuple | No
         template._setup(big_setup.trajectories, None)
     setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
     small, big = setup.lifting, big_setup.lifting
-    if (small.n_delays_ != big.n_delays_ or setup.target_rows != big_setup.target_rows
-            or setup.n_feedforward != big_setup.n_feedforward):
+    fewer = small.n_delays_ < big.n_delays_
+    if (small.n_delays_ > big.n_delays_ or (fewer and (heads is None or splits is None))
+            or setup.target_rows != big_setup.target_rows or setup.n_feedforward != big_setup.n_feedforward):
         return None
     names, big_names = small.feature_names_out_, big.feature_names_out_
+    if rename:
+        names = tuple(rename.get(n, n) for n in names)
     n_c = setup.target_rows - small.n_features_in_  # the controller's states lead the snapshots
     if any(n not in big_names for n in names) or names[:small.n_features_in_] != big_names[:small.n_features_in_]:
         return None
@@ -397,7 +471,16 @@ def sub_statistics(estimator, statistics: tuple, controllers=None) -> tuple | No
     regressors = (list(range(n_c)) + [n_c + big_names.index(n) for n in names]
                   + [n_c + len(big_names) + i for i in range(n_v)])
     targets = list(range(setup.target_rows))
-    return setup, [s.columns(regressors, targets) for s in per_fold], everything.columns(regressors, targets)
+    if not fewer:
+        return setup, [s.columns(regressors, targets) for s in per_fold], everything.columns(regressors, targets)
+    # The snapshots from sample small.n_delays_ to big.n_delays_ - 1 of each episode, which the larger lifting lacks.
+    extra = [template._episode_snapshots(setup, head) for head in heads]
+
+    def total(stats: Snapshots, members) -> Snapshots:
+        return Snapshots.total([stats.columns(regressors, targets)] + [extra[int(j)] for j in members])
+
+    return (setup, [total(s, train) for s, (train, _) in zip(per_fold, splits)],
+            total(everything, range(len(extra))))
 
 
 def _timer(seconds: dict):

@@ -121,6 +121,21 @@ def _search_section(search: dict) -> list[str]:
                      f"| {format_number(c.get('transfer_r2_worst'), '.3f')} "
                      f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} "
                      f"| {format_number(c['seconds'], '.1f')} |")
+    return lines + _screened_lines(search)
+
+
+def _screened_lines(search: dict) -> list[str]:
+    """The candidates the search's screening left out, with their screen scores (none: no lines)."""
+    screened = search.get("screened") or []
+    if not screened:
+        return []
+    lines = ["", f"Screened out, not ranked ({search['screening']['description']}):", "",
+             "| stage | lifting | features | alpha | screen CV R^2 | screen transfer R^2 | screen objective |",
+             "|---|---|---|---|---|---|---|"]
+    for c in screened:
+        lines.append(f"| {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
+                     f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c.get('transfer_r2'), '.4f')} "
+                     f"| {format_number(c.get('objective'), '.4f')} |")
     return lines
 
 

@@ -138,6 +138,47 @@ def test_search_winner_is_the_best_candidate_and_parallel_runs_agree(small):
         np.testing.assert_array_equal(a.cv_r2, b.cv_r2)
 
 
+def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(small):
+    # Successive halving: the delays and form stages score every candidate on the first fold and probe it at
+    # one alpha, then evaluate the best two in full; a finalist's scores are a full evaluation's.
+    trajs, controller, splits = small
+    probes = twin_probes(trajs[:2], per_controller=1, skip=100)
+    space = SearchSpace(delays=(0, 2, 6, 10), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0, 3, 5),
+                        alphas=(1e-5, 1e-3, 1e-1), n_finalists=2)
+    screened = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=space, probes=probes)
+    full = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=replace(space, n_finalists=0),
+                           probes=probes)
+    assert screened.winner.spec == full.winner.spec and screened.winner.best_alpha == full.winner.best_alpha
+    everything = {c.spec: c for c in full.candidates}
+    for c in screened.candidates:
+        np.testing.assert_allclose(c.cv_r2, everything[c.spec].cv_r2, rtol=1e-9)
+        np.testing.assert_allclose(c.transfer_r2, everything[c.spec].transfer_r2, rtol=1e-9)
+    left_out = {c.spec for c in screened.screened}
+    assert left_out and left_out.isdisjoint(c.spec for c in screened.candidates)
+    assert left_out | {c.spec for c in screened.candidates} == set(everything) and not full.screens
+    assert all(sum(c.stage == stage for c in screened.candidates) <= 2 for stage in ("delays", "form"))
+    for s in screened.screens:  # one fold, one probed alpha
+        assert s.cv_r2.shape[0] == 1 and np.sum(~np.isnan(s.transfer_r2).all(axis=0)) == 1
+    timing = screened.timing()["stages"]
+    assert sum(t["screened_out"] for t in timing.values()) == len(left_out)
+    # The delays stage lifted its longest lifting alone (the others' statistics are its columns, with their
+    # episodes' first snapshots added), the friction stage's candidate took its statistics from the form
+    # stage's family head (which holds the friction shape too), the RBF stage lifted one lifting with both
+    # sets of centres: the same scores as lifting the episodes anew.
+    (friction,) = [c for c in screened.candidates if c.stage == "friction" and c.spec.friction]
+    assert friction.timing["statistics"] < 0.5 * screened.timing()["stages"]["form"]["shared_statistics"]
+    assert timing["delays"]["shared_statistics"] > 0
+    data = SearchData(trajs, splits, controller, np.array(space.alphas), WINDOW, probes=probes)
+    shorter = min((c for c in screened.candidates if c.stage == "delays"), key=lambda c: c.spec.delays)
+    assert shorter.spec.delays < max(space.delays)  # its first snapshots were added to the longest lifting's
+    rbf = [c for c in screened.candidates if c.stage == "rbf" and c.spec.rbf]
+    assert rbf and timing["rbf"]["shared_statistics"] > 0
+    for c in (shorter, friction, rbf[0]):
+        scratch = evaluate_candidate(c.spec, data)
+        np.testing.assert_allclose(c.cv_r2, scratch.cv_r2, rtol=1e-7)
+        np.testing.assert_allclose(c.transfer_r2, scratch.transfer_r2, rtol=1e-7)
+
+
 @pytest.mark.slow
 def test_a_local_dask_cluster_finds_the_same_winner(small):
     distributed = pytest.importorskip("dask.distributed", reason="the dask extra is optional")
