@@ -42,10 +42,14 @@ built from three pieces, each measured on data the fit did not use where it can 
   differently (a softer arm wanders slowly where the model is least sure), and the error there
   is what matters for transfer. A test episode under such a loop gets ``q_c``, ``tau_c`` and
   ``k_c`` calibrated the same way on the twin's probe episodes (training excitations replayed
-  on the calibrated twin under other controllers,
-  :func:`~qube_koopman.identify.model_selection.transfer.twin_probes`), predicted by the fit and
-  its members wrapped with each probe's controller (:func:`calibrate_on_probes`). The twin is
-  not the rig, so this error holds the twin's mismatch too; it is an estimate from data the
+  on the calibrated twin, :func:`~qube_koopman.identify.model_selection.transfer.twin_probes`),
+  predicted by the fit and its members wrapped with each probe's controller
+  (:func:`calibrate_on_probes`): per channel, the wider (:func:`widest`) of the calibration on
+  probes under the episode's own controller (when its PD gains are known) and that on the
+  default probe controllers. The first measures this loop's error on the twin; the second keeps
+  a floor for what the twin itself gets wrong under loops the rig never ran, which no data
+  measures (with the rig's gains, the twin and the rig give the fit the same held-out error;
+  under a soft arm loop the rig's error is twice the twin's). It is an estimate from data the
   fit did not use, where the training loop's held-out error is no estimate at all.
 
 A prediction that diverges (non-finite, or beyond :data:`~qube_koopman.identify.metrics.DIVERGED_FACTOR`
@@ -90,6 +94,7 @@ __all__ = [
     "bootstrap_counts",
     "calibrate",
     "calibrate_on_probes",
+    "widest",
     "ensemble_statistics",
     "episode_folds",
     "fit_ensemble",
@@ -724,6 +729,32 @@ def calibrate_on_probes(fit: EnsembleFit, probes, level: float, start: int = 1, 
              for _ in group]
     on_probes = dataclasses.replace(fit, folds=[FoldEnsemble(np.arange(len(episodes)), point, members)])
     return calibrate(on_probes, episodes, loops, level, start, offsets, measured, stride)
+
+
+def widest(calibrations: Sequence[IntervalCalibration]) -> IntervalCalibration:
+    """Per channel, the calibration whose band is widest at long horizons (largest ``k_c sqrt(q_c)``).
+
+    Parameters
+    ----------
+    calibrations : sequence of IntervalCalibration
+        Fitted, of the same level and channels.
+
+    Returns
+    -------
+    IntervalCalibration
+        A new calibration: each channel's scale, timescale and factor from one of them (the counts
+        of samples and diverged predictions are summed).
+    """
+    calibrations = list(calibrations)
+    width = np.array([c.factor_ * np.sqrt(c.scale_) for c in calibrations])
+    pick = np.argmax(width, axis=0)
+    out = IntervalCalibration(calibrations[0].level)
+    for name in ("scale_", "timescale_", "factor_", "coverage_"):
+        values = np.array([getattr(c, name) for c in calibrations])
+        setattr(out, name, values[pick, np.arange(values.shape[1])])
+    out.n_samples_ = sum(c.n_samples_ for c in calibrations)
+    out.n_diverged_ = sum(c.n_diverged_ for c in calibrations)
+    return out
 
 
 # --- bands ------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from qube_koopman.identify.metrics import DivergedPrediction, episode_score, sum
 from qube_koopman.identify.estimators.structure import close_loop, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
 from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, calibrate_on_probes,
-                                               consecutive_runs,
+                                               consecutive_runs, widest,
                                                fit_ensemble, held_out_figures, predict_episodes, prediction_band)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
@@ -429,7 +429,8 @@ INTERVAL_METHOD = ("prediction +- k_c sqrt(s_c(t)^2 + q_c (1 - exp(-h / tau_c)))
                    "propagated through the prediction; q_c, tau_c (Gaussian maximum likelihood) and k_c (the level's "
                    "quantile) calibrated per channel on training episodes held out in turn, never the test episodes; "
                    "for a loop the training never ran (another controller), calibrated the same way on the twin's "
-                   "probe episodes under other controllers (other_loops 'twin')")
+                   "probe episodes: per channel the wider of the calibration under the loop's own controller (its PD "
+                   "gains known) and under the default probe controllers (other_loops 'twin')")
 
 
 class _TestBands:
@@ -437,8 +438,9 @@ class _TestBands:
 
     def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None):
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
-        # The calibration of loops the training never ran: made when the first such episode comes.
-        self._other, self.other_calibration, self.probes = other, None, None
+        # The calibrations of loops the training never ran, (loop, calibration, report entry) each:
+        # made when the first episode under the loop comes.
+        self._other, self.elsewhere = other, []
         self.loops = [loop for i, loop in enumerate(loops) if not any(loop.same(seen) for seen in loops[:i])]
         self.result, self.folder, self.seconds = result, None if folder is None else Path(folder), seconds
         self.summary = BandSummary(STATE_NAMES)
@@ -447,7 +449,7 @@ class _TestBands:
     def add(self, log, trajectory, predicted, scored, start, n_delays, loop) -> None:
         """One test episode's band: saved, counted, kept with the predictions if they are."""
         seen = any(loop.same(known) for known in self.loops)
-        calibration = self.calibration if seen or self._other is None else self._calibration_elsewhere()
+        calibration = self.calibration if seen or self._other is None else self._calibration_elsewhere(loop, log)
         band = prediction_band(log.path.name, trajectory, predicted, calibration, start, n_delays, scored)
         band.calibrated_loop = seen
         band.calibration = "held-out" if calibration is self.calibration else "twin probes"
@@ -459,14 +461,20 @@ class _TestBands:
         if self.keep:
             self.result.test_bands.append(band)
 
-    def _calibration_elsewhere(self):
-        if self.other_calibration is None:
-            import time
+    def _calibration_elsewhere(self, loop, log):
+        for known, calibration, _ in self.elsewhere:
+            if known.same(loop):
+                return calibration
+        import time
 
-            started = time.perf_counter()
-            self.probes, self.other_calibration = self._other()
-            self.seconds["other_loops"] = time.perf_counter() - started
-        return self.other_calibration
+        started = time.perf_counter()
+        own = loop.kind == "wrapped" and same_system(loop.controller, log.controller)
+        gains = _pd_gains(log.gains) if own else None  # a what-if's or a state-space controller's: none
+        calibration, entry = self._other(gains)
+        entry["log"] = log.path.name
+        self.elsewhere.append((loop, calibration, entry))
+        self.seconds["other_loops"] = self.seconds.get("other_loops", 0.0) + time.perf_counter() - started
+        return calibration
 
     def report(self) -> None:
         """The intervals' part of report.json."""
@@ -477,11 +485,14 @@ class _TestBands:
                                             "n_diverged": cal.n_diverged_,
                                             "channels": cal.as_dict(STATE_NAMES)},
             "other_loops": o.other_loops,
-            "calibration_other_loops": None if self.other_calibration is None else {
-                "probes": self.probes.describe(), "n_episodes": self.probes.n_episodes,
-                "n_samples": self.other_calibration.n_samples_, "n_diverged": self.other_calibration.n_diverged_,
-                "channels": self.other_calibration.as_dict(STATE_NAMES)},
+            "calibration_other_loops": [entry for _, _, entry in self.elsewhere],
             **self.summary.report(), "files": self.files, "seconds": self.seconds}
+
+
+def _pd_gains(gains: dict) -> tuple | None:
+    """(kp_theta, kd_theta, kp_alpha, kd_alpha, tau) of a log's PD gains, or None (another kind of controller)."""
+    keys = ("kp_theta", "kd_theta", "kp_alpha", "kd_alpha", "tau")
+    return tuple(float(gains[k]) for k in keys) if gains and all(k in gains for k in keys) else None
 
 
 def _test_bands(ensemble, options, train, controller, score, offsets, start, result, folder, keep, probes=None,
@@ -497,14 +508,33 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
                             options.stride)
     seconds = {"calibration": time.perf_counter() - started}
 
-    def on_probes():
-        from qube_koopman.identify.model_selection.transfer import twin_probes
+    from qube_koopman.identify.model_selection.transfer import twin_probes
 
-        probe_set = probes if probes is not None else twin_probes(LogTrajectories(train), cache=probe_cache)
-        return probe_set, calibrate_on_probes(ensemble, probe_set, options.level, start, offsets, MEASURED,
-                                              options.stride, options.n_calibration_members)
+    default = []  # the default probes' calibration, made once
 
-    other = on_probes if options.other_loops == "twin" and score == "cl" else None
+    def on_probes(probe_set):
+        return calibrate_on_probes(ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride,
+                                   options.n_calibration_members)
+
+    def elsewhere(gains):
+        """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
+        if not default:
+            # The search's probe set, the same one read back from the cache, or simulated (about 7 s) and kept.
+            probe_set = probes if probes is not None else twin_probes(LogTrajectories(train), cache=probe_cache)
+            default.append((probe_set, on_probes(probe_set)))
+        probe_set, calibration = default[0]
+        entry = {"default_probes": probe_set.describe(), "n_default_episodes": probe_set.n_episodes,
+                 "default_channels": calibration.as_dict(STATE_NAMES), "gains": gains}
+        if gains is not None:
+            own = twin_probes(LogTrajectories(train), gains=[gains], cache=probe_cache)
+            own_calibration = on_probes(own)
+            entry.update(own_probes=own.describe(), n_own_episodes=own.n_episodes,
+                         own_channels=own_calibration.as_dict(STATE_NAMES))
+            calibration = widest([own_calibration, calibration])
+        entry["channels"] = calibration.as_dict(STATE_NAMES)
+        return calibration, entry
+
+    other = elsewhere if options.other_loops == "twin" and score == "cl" else None
     return _TestBands(ensemble.members, calibration, loops, options, result, folder, keep, seconds, other)
 
 

@@ -193,9 +193,10 @@ def _parser() -> argparse.ArgumentParser:
                            "on the rig) or a state-space file at the logs' sample period "
     pred.add_argument("--interval-other-loops", choices=["twin", "none"], default="twin",
                       help="how the interval of an episode under a controller the training did not run is "
-                           "calibrated: twin (default), on the twin's probe episodes under other controllers "
-                           "(the search's probes, or simulated and cached as --no-probe-cache says); none, as the "
-                           "training loop's held-out episodes (flagged in the report)")
+                           "calibrated: twin (default), on the twin's probe episodes, per channel the wider of "
+                           "those under its own controller (PD gains known) and under the default probe "
+                           "controllers (cached as --no-probe-cache says); none, as the training loop's held-out "
+                           "episodes (flagged in the report)")
                            "(core/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
                            "episodes recorded under it are scored")
     _add_search_options(p)

@@ -56,9 +56,12 @@ def logs(tmp_path_factory):
 
 
 def _identify(root, train, test, name, *extra):
+    """qube-identify's report; without intervals, which these tests do not look at (tests/identify/
+    test_uncertainty.py and test_identify_cli.py do) and whose calibration under other loops simulates
+    twin probes."""
     out = root / name
     assert qube_identify(["--train", str(train), "--test", str(test), "--delays", "20", "--out", str(out),
-                          *extra]) == 0
+                          "--interval", "0", *extra]) == 0
     return json.loads((out / "report.json").read_text())
 
 

@@ -194,3 +194,24 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
 
     assert coverage(held_out) < level - 0.1  # 0.79 measured
     assert abs(coverage(on_probes) - level) < 0.05  # 0.92 measured
+
+
+def test_the_widest_calibration_takes_each_channel_from_the_wider_band():
+    from qube_koopman.identify.uncertainty import widest
+
+    def fitted(scale, timescale, factor):
+        c = IntervalCalibration(0.95)
+        c.scale_, c.timescale_, c.factor_ = np.array(scale), np.array(timescale), np.array(factor)
+        c.coverage_, c.n_samples_, c.n_diverged_ = np.array([0.95, 0.95]), 100, 1
+        return c
+
+    # Channel 0: 2 sqrt(0.04) = 0.4 against 1 sqrt(0.09) = 0.3; channel 1: 2 sqrt(0.01) = 0.2 against 3 sqrt(0.01).
+    a, b = fitted([0.04, 0.01], [10.0, 20.0], [2.0, 2.0]), fitted([0.09, 0.01], [30.0, 40.0], [1.0, 3.0])
+    w = widest([a, b])
+    np.testing.assert_array_equal(w.scale_, [0.04, 0.01])
+    np.testing.assert_array_equal(w.timescale_, [10.0, 40.0])
+    np.testing.assert_array_equal(w.factor_, [2.0, 3.0])
+    assert (w.n_samples_, w.n_diverged_) == (200, 2)
+    variances, horizons = np.zeros((1, 2)), np.array([10_000])
+    np.testing.assert_allclose(w.half_width(variances, horizons),
+                               np.maximum(a.half_width(variances, horizons), b.half_width(variances, horizons)))
