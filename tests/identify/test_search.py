@@ -42,6 +42,12 @@ def small(qube_logs):
     return trajs, controller, splits
 
 
+@pytest.fixture(scope="module")
+def small_probes(small):
+    """Twin probes of two of the small episodes, one per probe controller (simulated once for the module)."""
+    return twin_probes(small[0][:2], per_controller=1, skip=100)
+
+
 def _naive_fold_score(spec, trajs, controller, splits, alpha, offsets, steps=None):
     """Refit from scratch per fold and predict each validation episode alone (no shared statistics)."""
     scores = []
@@ -138,11 +144,11 @@ def test_search_winner_is_the_best_candidate_and_parallel_runs_agree(small):
         np.testing.assert_array_equal(a.cv_r2, b.cv_r2)
 
 
-def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(small):
+def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(small, small_probes):
     # Successive halving: the delays and form stages score every candidate on the first fold and probe it at
     # one alpha, then evaluate the best two in full; a finalist's scores are a full evaluation's.
     trajs, controller, splits = small
-    probes = twin_probes(trajs[:2], per_controller=1, skip=100)
+    probes = small_probes
     space = SearchSpace(delays=(0, 2, 6, 10), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0, 3, 5),
                         alphas=(1e-5, 1e-3, 1e-1), n_finalists=2)
     screened = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=space, probes=probes)
@@ -326,11 +332,11 @@ def test_an_offsets_candidate_given_its_plain_scores_scores_the_same(small):
 
 
 @pytest.mark.parametrize("rbf", [0, 4])
-def test_an_offsets_candidate_predicting_with_its_plain_twins_models_scores_the_same(small, rbf):
+def test_an_offsets_candidate_predicting_with_its_plain_twins_models_scores_the_same(small, small_probes, rbf):
     # The offsets stage reuses the plain candidate's fitted rows (folds and probe plants): no statistics
     # computed, and the same scores as evaluating the offsets candidate from scratch.
     trajs, controller, splits = small
-    probes = twin_probes(trajs[:2], per_controller=1, skip=100)
+    probes = small_probes
     data = SearchData(trajs, splits, controller, np.array([1e-5, 1e-4, 1e-3, 1e-2, 1.0]), WINDOW, probes=probes)
     plain = evaluate_candidate(LiftingSpec(delays=5, poly=1, rbf=rbf), data)
     assert plain.reuse is not None and len(plain.reuse.plants) == data.n_offset_alphas == 3
@@ -359,12 +365,12 @@ def test_an_rbf_candidate_equals_a_naive_refit_with_centres_drawn_on_all_trainin
         np.testing.assert_allclose(result.cv_r2[:, j], naive, rtol=1e-9, atol=1e-6)
 
 
-def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_statistics(small):
+def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_statistics(small, small_probes):
     # The form stage lifts its largest lifting once: the others' statistics are columns of its factor.
     from qube_koopman.identify.model_selection.search import family_of, family_statistics
 
     trajs, controller, splits = small
-    probes = twin_probes(trajs[:2], per_controller=1, skip=100)
+    probes = small_probes
     data = SearchData(trajs, splits, controller, np.array([1e-5, 1e-3, 1.0]), WINDOW, probes=probes)
     specs = SearchSpace(poly=(1, 2), base=LiftingSpec(delays=3, poly=2)).stage_candidates("form", [])
     head = family_of(specs[0], specs)
