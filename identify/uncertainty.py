@@ -1025,13 +1025,14 @@ def held_out_figures(fit: EnsembleFit, trajectories, controllers: Sequence[Discr
     rows = []
     for fold in fit.folds:
         held_out = select_episodes(trajectories, fold.validation)
-        for j, t in zip(fold.validation, held_out):
-            c = controllers[j]
-            model = Loop.of(c, None).model(*fold.point, measured)
-            (predicted,) = predict_episodes([model], [t])
-            x = predicted.prediction
-            y = x[:, list(measured)]
-            with np.errstate(all="ignore"):
-                u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
-            rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u[:, 0], skip)])
+        loops = [Loop.of(controllers[j], None) for j in fold.validation]
+        for run in consecutive_runs(loops):  # the episodes of one controller in one batch
+            c, trajs = loops[run[0]].controller, [held_out[i] for i in run]
+            for t, predicted in zip(trajs, predict_episodes([loops[run[0]].model(*fold.point, measured)], trajs)):
+                x = predicted.prediction
+                y = x[:, list(measured)]
+                with np.errstate(all="ignore"):
+                    u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
+                rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip),
+                             loop_figures(x, t.r[:, 0], u[:, 0], skip)])
     return np.array(rows).reshape(-1, 2, 3)
