@@ -170,3 +170,21 @@ def test_a_level_outside_zero_one_is_a_usage_error(tmp_path, capsys):
     path = _save(tmp_path / "model.json", _plant())
     assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--interval", "1.5"]) == 2
     assert "--interval must be a level between 0 and 1 (0: no interval), got 1.5" in capsys.readouterr().err
+
+
+def test_the_robust_design_ranks_the_candidates_by_their_worst_case_and_leaves_out_unstable_ones():
+    from dataclasses import replace
+
+    from qube_koopman.design import DesignError
+    from qube_koopman.design.uncertainty import robust_design
+
+    plant = linear_plant(_plant())
+    excitations = rig_excitations(2, 1, 3.0)
+    agreeing = ModelUncertainty([plant, plant], None)
+    # The first scale is the nominal one (it wins ties); here it is worse, so the ranking decides.
+    choice = robust_design(plant, Weights(), agreeing, excitations, scales=(4.0, 1.0))
+    assert choice.scale == 1.0 and choice.candidates[0]["worst_upper_J"] > choice.candidates[1]["worst_upper_J"]
+    assert choice.candidates[1]["stable_members"] == 2 and choice.candidates[0]["stable_members"] is None
+    strong = replace(plant, G=6 * plant.G)  # a refit whose input gain no candidate's closed loop survives
+    with pytest.raises(DesignError, match="under every candidate design a bootstrap plant's closed loop is unstable"):
+        robust_design(plant, Weights(), ModelUncertainty([plant, strong], None), excitations)
