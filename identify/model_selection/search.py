@@ -56,7 +56,7 @@ from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
            "evaluate_candidate", "screen_candidate", "same_controller_scores", "search_steps", "family_of",
-           "holds_features", "delays_family", "rbf_family", "family_statistics"]
+           "holds_features", "delays_family", "family_statistics"]
 
 #: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
 TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
@@ -488,7 +488,7 @@ def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tu
     n_screened = len(screened_folds)
     splits = data.splits[n_screened:]
     if shared is not None and n_screened:
-        shared = (shared[0], shared[1][n_screened:], *shared[2:])
+        shared = type(shared)((shared[0], shared[1][n_screened:], *shared[2:]))
     rescore = not spec.offsets or plain is None
     # A lifting that learns from each fold's episodes has no lifting the folds share: its models are kept whole.
     subset = not any(getattr(step, "learns_from_data", True) for step in estimator.lifting)
@@ -539,19 +539,19 @@ def screen_candidate(spec: LiftingSpec, data: SearchData, stage: str = "", share
         Its ``cv_r2`` has ``n_folds`` rows; its ``transfer_r2`` one scored alpha.
     """
     from qube_koopman.core.blas import limited_blas_threads
-    from qube_koopman.identify.model_selection.sweep import fold_statistics
+    from qube_koopman.identify.model_selection.sweep import OwnStatistics, fold_statistics
 
     started = time.perf_counter()
     steps = search_steps(spec, data.trajectories, data.rbf_seed)
     own = shared is None
     if own:
         with limited_blas_threads(1):
-            shared = fold_statistics(ClEdmd(data.controller, lifting=steps), data.trajectories, data.splits,
-                                     data.controllers)
+            shared = OwnStatistics(fold_statistics(ClEdmd(data.controller, lifting=steps), data.trajectories,
+                                                   data.splits, data.controllers))
     seconds = time.perf_counter() - started
     screen_data = replace(data, splits=data.splits[:n_folds], n_transfer_alphas=1)
-    result, folds = _evaluate(spec, screen_data, stage, None, (shared[0], shared[1][:n_folds], *shared[2:]), None,
-                              steps)
+    result, folds = _evaluate(spec, screen_data, stage, None,
+                              type(shared)((shared[0], shared[1][:n_folds], *shared[2:])), None, steps)
     result.timing["statistics"] += seconds
     result.seconds = time.perf_counter() - started
     result.reuse = None
@@ -585,63 +585,6 @@ def holds_features(big: LiftingSpec, small: LiftingSpec) -> bool:
     return (not big.offsets and not small.offsets and big.delays == small.delays and big.rbf == small.rbf == 0
             and big.friction >= small.friction and big.poly >= small.poly and big.trig >= small.trig
             and big.const >= small.const)
-
-
-def rbf_family(specs: Sequence[LiftingSpec]) -> list[LiftingSpec]:
-    """The liftings among ``specs`` with RBFs that differ in their number of centres alone, when there are
-    two at least (else none); not offsets candidates.
-
-    One lifting with every one's centres (the same features before and after them) holds all their
-    features: the RBF stage lifts its episodes once (:func:`~qube_koopman.identify.model_selection.sweep.
-    sub_statistics` takes each one's statistics from it, its RBFs renamed).
-    """
-    groups: dict[LiftingSpec, list[LiftingSpec]] = {}
-    for s in specs:
-        if s.rbf and not s.offsets:
-            groups.setdefault(replace(s, rbf=0), []).append(s)
-    return max((sorted(g, key=lambda s: s.rbf) for g in groups.values() if len(g) > 1), key=len, default=[])
-
-
-def _rbf_statistics(members: list[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
-    """Each of ``members``' fold statistics (:func:`rbf_family`), from one lifting with all their centres."""
-    import joblib
-
-    from qube_koopman.identify.lifting.rbf import RadialBasis
-    from qube_koopman.identify.model_selection.sweep import merge_fold_statistics, sub_statistics
-
-    each = [search_steps(s, data.trajectories, data.rbf_seed) for s in members]
-    at = [i for i, step in enumerate(each[0]) if isinstance(step, RadialBasis)][0]
-    rbf = each[0][at]
-    centres = np.vstack([steps[at].centers for steps in each])
-    union = list(each[0])
-    union[at] = type(rbf)(**{**rbf.get_params(), "n_centers": len(centres), "centers": centres})
-    parts = np.array_split(np.arange(len(data.trajectories)), n_parts)
-    stats = merge_fold_statistics(list(run([joblib.delayed(_statistics_of)(union, data, p) for p in parts])))
-    # The RBFs are named by their index: a member's j-th is the union's (offset + j)-th.
-    names = stats[0].lifting.feature_names_out_
-    first = len(names) - len(centres) - int(members[0].friction) - int(members[0].const)
-    out, offset = {}, 0
-    for spec, steps in zip(members, each):
-        rename = {names[first + j]: names[first + offset + j] for j in range(spec.rbf)}
-        with _one_blas_thread():
-            out[spec] = sub_statistics(ClEdmd(data.controller, lifting=steps), stats, rename=rename)
-        offset += spec.rbf
-    return out
-
-
-def _one_blas_thread():
-    from qube_koopman.core.blas import limited_blas_threads
-
-    return limited_blas_threads(1)
-
-
-def _statistics_of(steps: list, data: SearchData, episodes=None) -> tuple:
-    """:func:`family_statistics` of the lifting ``steps``."""
-    from qube_koopman.identify.model_selection.sweep import fold_statistics
-
-    with _one_blas_thread():
-        return fold_statistics(ClEdmd(data.controller, lifting=steps), data.trajectories, data.splits,
-                               data.controllers, episodes)
 
 
 def delays_family(specs: Sequence[LiftingSpec]) -> LiftingSpec | None:
@@ -938,19 +881,15 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                              episode_heads(data.trajectories, longest.delays))
                     shared.update({s: stats for s in specs if replace(s, delays=longest.delays) == longest})
                     result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
-                centres = rbf_family(specs)
-                if centres:  # liftings but for their RBF centres: one lifting holds every set of centres
-                    now = time.perf_counter()
-                    shared.update(_rbf_statistics(centres, data, run, n_parts))
-                    result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
                 for s in specs:  # a lifting whose features an earlier stage's family head holds
                     if shared.get(s) is None:
                         shared[s] = next((v for h, v in earlier.items() if holds_features(h, s)), None)
             screens = {}
-            if space.screens(stage, len(specs)) and data.controllers is None:
+            if space.screens(stage, len(specs)):
                 # Successive halving: every candidate screened cheaply, the best few evaluated in full.
+                # The largest first: the last to start on a worker is then a short one.
                 calls = [joblib.delayed(screen_candidate)(s, data, stage, shared.get(s), space.screen_folds)
-                         for s in specs]
+                         for s in sorted(specs, key=lambda s: -s.n_features())]
                 for done, res in enumerate(run(calls), start=1):
                     screens[res.spec] = res
                     if progress:

@@ -299,7 +299,8 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         a lifting whose features include this one's (:func:`fold_statistics` of it): this
         lifting's are taken from them (:func:`sub_statistics`) instead of lifting the
         episodes again, when it can (a single controller; fewer delays with the episodes'
-        heads, :func:`episode_heads`).
+        heads, :func:`episode_heads`). As :class:`OwnStatistics`, this very lifting's (with
+        ``controllers`` too): used as they are.
 
     Returns
     -------
@@ -332,8 +333,12 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
                          fold_models=[] if keep else None)
     timed = _timer(result.seconds)
-    derived = None if given is None or fit_all or not relift else sub_statistics(estimator, given, controllers,
-                                                                                  splits)
+    if given is None or fit_all or not relift:
+        derived = None
+    elif isinstance(given, OwnStatistics):
+        derived = tuple(given)[:3]
+    else:
+        derived = sub_statistics(estimator, given, controllers, splits)
     if derived is not None:
         with timed("statistics"):
             setup, per_fold, everything = derived
@@ -409,6 +414,11 @@ def fold_statistics(estimator, trajectories: Sequence[Trajectory], splits: Seque
     return setup, per_fold, everything
 
 
+class OwnStatistics(tuple):
+    """:func:`fold_statistics` of the very lifting (and controllers) a sweep is given them for
+    (its ``shared``): used as they are, with no columns taken."""
+
+
 def merge_fold_statistics(parts: Sequence[tuple]) -> tuple:
     """The :func:`fold_statistics` of all the episodes from those of parts of them (one controller).
 
@@ -434,8 +444,7 @@ def _first_samples(t: Trajectory, n: int) -> Trajectory:
                                      for k in ("x", "u", "r", "f", "xc")})
 
 
-def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None,
-                   rename: dict | None = None) -> tuple | None:
+def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) -> tuple | None:
     """``estimator``'s fold statistics taken from those of a lifting whose features include its own.
 
     ``statistics`` is :func:`fold_statistics` of the larger lifting. Exact (a factor of the
@@ -445,8 +454,6 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None,
     sample of each episode): when ``statistics`` has a fourth element, :func:`episode_heads` of the
     episodes at the larger lifting's delays, its extra snapshots are factored from those and
     folded in (into each fold's by its training episodes, ``splits``); without, None.
-    ``rename``: the larger lifting's names of some of this one's features (e.g. its RBFs, when the
-    larger one holds several sets of centres).
     """
     big_setup, per_fold, everything = statistics[:3]
     heads = statistics[3] if len(statistics) > 3 else None
@@ -462,8 +469,6 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None,
             or setup.target_rows != big_setup.target_rows or setup.n_feedforward != big_setup.n_feedforward):
         return None
     names, big_names = small.feature_names_out_, big.feature_names_out_
-    if rename:
-        names = tuple(rename.get(n, n) for n in names)
     n_c = setup.target_rows - small.n_features_in_  # the controller's states lead the snapshots
     if any(n not in big_names for n in names) or names[:small.n_features_in_] != big_names[:small.n_features_in_]:
         return None

@@ -17,8 +17,8 @@ from qube_koopman.identify.models.offsets import (estimate_offsets, estimate_off
 from qube_koopman.identify.metrics import r2_scores
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 from qube_koopman.identify.model_selection.transfer import twin_probes
-from qube_koopman.identify.model_selection.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace, evaluate_candidate,
-                                          search_liftings)
+from qube_koopman.identify.model_selection.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace,
+                                                          evaluate_candidate, search_liftings)
 
 pytestmark = pytest.mark.dataset
 WINDOW = 250  # 0.5 s
@@ -169,8 +169,8 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
     assert sum(t["screened_out"] for t in timing.values()) == len(left_out)
     # The delays stage lifted its longest lifting alone (the others' statistics are its columns, with their
     # episodes' first snapshots added), the friction stage's candidate took its statistics from the form
-    # stage's family head (which holds the friction shape too), the RBF stage lifted one lifting with both
-    # sets of centres: the same scores as lifting the episodes anew.
+    # stage's family head (which holds the friction shape too): the same scores as lifting the episodes anew;
+    # an RBF finalist used its screen's statistics.
     (friction,) = [c for c in screened.candidates if c.stage == "friction" and c.spec.friction]
     assert friction.timing["statistics"] < 0.5 * screened.timing()["stages"]["form"]["shared_statistics"]
     assert timing["delays"]["shared_statistics"] > 0
@@ -178,11 +178,35 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
     shorter = min((c for c in screened.candidates if c.stage == "delays"), key=lambda c: c.spec.delays)
     assert shorter.spec.delays < max(space.delays)  # its first snapshots were added to the longest lifting's
     rbf = [c for c in screened.candidates if c.stage == "rbf" and c.spec.rbf]
-    assert rbf and timing["rbf"]["shared_statistics"] > 0
+    screen = next(s for s in screened.screens if s.spec == rbf[0].spec)
+    assert rbf[0].timing["statistics"] < 0.5 * screen.timing["statistics"]
     for c in (shorter, friction, rbf[0]):
         scratch = evaluate_candidate(c.spec, data)
         np.testing.assert_allclose(c.cv_r2, scratch.cv_r2, rtol=1e-7)
         np.testing.assert_allclose(c.transfer_r2, scratch.transfer_r2, rtol=1e-7)
+
+
+def test_a_screened_search_over_two_controllers_picks_the_full_searchs_winner(small, small_probes):
+    # Leave-one-controller-out folds (the small rig episodes, and twin episodes under a probe controller):
+    # a screen scores the first controller's fold, and a finalist adds the other's to the same statistics.
+    from qube_koopman.identify.model_selection.split import leave_one_controller_out
+
+    trajs, controller, _ = small
+    other = small_probes.episodes[0]
+    controllers = [controller] * len(trajs) + [small_probes.controllers[0]] * len(other)
+    splits = leave_one_controller_out([0] * len(trajs) + [1] * len(other))
+    space = SearchSpace(delays=(0, 6, 10), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0,),
+                        alphas=(1e-5, 1e-3, 1e-1), offsets=(False,), n_finalists=2)
+    runs = [search_liftings(trajs + other, controller, splits=splits, window=WINDOW,
+                            space=replace(space, n_finalists=k), probes=small_probes, controllers=controllers)
+            for k in (2, 0)]
+    screened, full = runs
+    assert screened.screened and not full.screened
+    assert screened.winner.spec == full.winner.spec and screened.winner.best_alpha == full.winner.best_alpha
+    everything = {c.spec: c for c in full.candidates}
+    for c in screened.candidates:
+        np.testing.assert_allclose(c.cv_r2, everything[c.spec].cv_r2, rtol=1e-9)
+        np.testing.assert_allclose(c.transfer_r2, everything[c.spec].transfer_r2, rtol=1e-9)
 
 
 @pytest.mark.slow
@@ -278,7 +302,7 @@ def test_blueprint_has_a_view_per_test_episode_and_per_section():
     from qube_koopman.identify.report.rerun import blueprint
     from qube_koopman.identify.workflow import IdentificationResult
 
-    rrb = pytest.importorskip("rerun.blueprint", reason="the viewer is the optional viz extra")
+    pytest.importorskip("rerun.blueprint", reason="the viewer is the optional viz extra")
     result = IdentificationResult(report={"sweep": {"alpha": [1.0]}, "search": {"candidates": []}},
                                   test_names=["a.mcap", "b.mcap"])
     tabs = blueprint(result).root_container
