@@ -900,7 +900,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                 specs = [s for s in specs if s in finalists]
             calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)),
                                                         shared.get(s), screens.get(s))
-                     for s in specs]
+                     for s in sorted(specs, key=lambda s: -s.n_features())]  # the largest first, as the screens
             for done, res in enumerate(run(calls), start=1):
                 result.candidates.append(res)
                 if progress:
