@@ -96,6 +96,10 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
                              "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
                              "unlike the training one (the training excitations replayed on the calibrated twin); "
                              "none: by cross-validated R^2 alone (sees only the training controller)")
+    search.add_argument("--no-screen", dest="screen", action="store_false",
+                        help="evaluate every candidate in full (by default the delays, form and RBF stages screen "
+                             "theirs on one fold and one probe alpha and evaluate the 3 best in full; report.md "
+                             "lists the others with their screen scores)")
     search.add_argument("--no-probe-cache", dest="probe_cache", action="store_false",
                         help="simulate the twin probes even when the same ones are in the cache (by default they "
                              "are kept in $QUBE_KOOPMAN_PROBE_CACHE, else ~/.cache/qube-koopman/probes, and read "
