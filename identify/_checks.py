@@ -67,14 +67,18 @@ def check_loop_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: in
     if not isinstance(ctrl, DiscreteStateSpace):
         raise ValueError(f"controller must be a DiscreteStateSpace, got {type(ctrl).__name__}")
     where = "" if episode is None else f"episode {episode.name or '(unnamed)'}: "
-    if episode is not None and episode.xc is None:
-        raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
-    if episode is not None and ctrl.n_states != episode.xc.shape[1]:
-        raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
-                         f"has {episode.xc.shape[1]} channels")
-    references = "" if episode is None else f"{episode.r.shape[1]} references and "
+    n_references = None
+    if episode is not None:
+        if episode.xc is None:
+            raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
+        if ctrl.n_states != episode.xc.shape[1]:
+            raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
+                             f"has {episode.xc.shape[1]} channels")
+        assert episode.r is not None  # the estimators' check_trajectories required it
+        n_references = episode.r.shape[1]
+    references = "" if n_references is None else f"{n_references} references and "
     n_errors = ctrl.n_inputs - (n_f if ctrl.n_inputs > len(measured) else 0)  # less a feedforward input
-    if n_errors != len(measured) or (episode is not None and n_errors != episode.r.shape[1]):
+    if n_errors != len(measured) or (n_references is not None and n_errors != n_references):
         seen = f"{ctrl.n_inputs} inputs" if n_errors != ctrl.n_inputs else f"{ctrl.n_inputs} tracking errors"
         raise ValueError(f"{where}the controller takes {seen}; the data has {references}{len(measured)} fed-back "
                          f"states{f' and {n_f} feedforward channels' if n_f else ' and no feedforward'}")

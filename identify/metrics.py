@@ -294,7 +294,8 @@ def summarize_scores(scores: Sequence[EpisodeScore], names: Sequence[str] | None
     r2 = np.array([s.r2 for s in scores])
     err = np.array([s.nrmse for s in scores])
     ok = np.isfinite(r2) & np.isfinite(err)
-    diverged = [{"episode": int(i), "name": names[i], "sample": scores[i].diverged_at} for i in np.flatnonzero(~ok)]
+    diverged = [{"episode": i, "name": names[i], "sample": scores[i].diverged_at}
+                for i in map(int, np.flatnonzero(~ok))]
     finite = bool(ok.all())
     with np.errstate(over="ignore"):  # a finite but huge R^2 (a model that all but diverged): its spread is inf
         r2_std, err_std = (float(r2.std()), float(err.std())) if finite else (None, None)

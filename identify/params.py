@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import inspect
+from typing import Any
 
 __all__ = ["Params", "clone"]
 
@@ -49,7 +50,7 @@ class Params:
         dict
             Parameter name to value.
         """
-        out = {}
+        out: dict[str, Any] = {}
         for name in self._param_names():
             value = getattr(self, name)
             if deep and hasattr(value, "get_params") and not isinstance(value, type):
@@ -81,12 +82,12 @@ class Params:
                 nested.setdefault(name, {})[inner] = value
             else:
                 setattr(self, name, value)
-        for name, inner in nested.items():
+        for name, values in nested.items():
             owner = getattr(self, name)
             if not hasattr(owner, "set_params"):
                 raise ValueError(f"parameter {name!r} of {type(self).__name__} is {owner!r}, which has no "
-                                 f"parameters to set ({', '.join(f'{name}__{key}' for key in inner)})")
-            owner.set_params(**inner)
+                                 f"parameters to set ({', '.join(f'{name}__{key}' for key in values)})")
+            owner.set_params(**values)
         return self
 
     def __repr__(self) -> str:

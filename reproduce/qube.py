@@ -123,13 +123,14 @@ def _sweep_tasks(n_alphas: int) -> list[tuple[tuple[str, int], np.ndarray, tuple
         if row.method == "arx" or key in tasks:
             continue
         paper_study = row.n_alphas is None
-        tasks[key] = (key, _grid(n_alphas if paper_study else row.n_alphas),
+        tasks[key] = (key, _grid(n_alphas if row.n_alphas is None else row.n_alphas),
                       ("cl", "plant") if paper_study else ("cl",))
     return sorted(tasks.values(), key=lambda task: -task[1].size * len(task[2]))
 
 
 def _one_sweep(key, alphas, scorings, train, controller, splits) -> SweepResult:
-    return regularization_sweep(_template(*key, controller), train, alphas, splits, scorings=scorings,
+    method, n_delays = key
+    return regularization_sweep(_template(method, n_delays, controller), train, alphas, splits, scorings=scorings,
                                 controller=controller)
 
 
@@ -170,6 +171,8 @@ def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs,
     the closed loop's and plant's eigenvalues, and the closed-loop and plant (from the logged
     plant input) predictions of test episode ``figure_episode`` (None: not kept).
     """
+    # A Koopman row (ARX rows are scored apart) of a sweep that kept its models.
+    assert row.scoring is not None and sweep.plant_models is not None and sweep.closed_loop_models is not None
     best = int(np.argmax(sweep.cv_r2_mean(row.scoring)))
     plant = sweep.plant_models[best]
     closed = close_loop(plant, controller, [0, 1]) if row.method == "edmd" else sweep.closed_loop_models[best]
@@ -204,6 +207,8 @@ def _figure_episode(log, index: int, shown: dict) -> dict:
 
 
 def _checks(rows: dict, cl_sweep: SweepResult) -> dict:
+    # The CL EDMD sweep computes both radii.
+    assert cl_sweep.spectral_radius_closed_loop is not None and cl_sweep.spectral_radius_plant is not None
     return {
         "cl_edmd_r2_at_least_0.89": rows["cl_edmd_cl_cl"]["r2_mean"] >= 0.89,
         "cl_edmd_nrmse_at_most_9.2": rows["cl_edmd_cl_cl"]["nrmse_mean"] <= 9.2,

@@ -188,7 +188,10 @@ def _check_loads(security, chosen: dict[str, tuple[str, str]]) -> None:
 
     ca, _ = chosen["--tls-ca-file"]
     try:
-        ssl.create_default_context(**({"cadata": ca} if "\n" in ca else {"cafile": ca}))
+        if "\n" in ca:
+            ssl.create_default_context(cadata=ca)
+        else:
+            ssl.create_default_context(cafile=ca)
     except (ssl.SSLError, OSError) as exc:
         raise CliError(f"{_name(*chosen['--tls-ca-file'])}: not a CA certificate in PEM ({exc})") from None
     try:

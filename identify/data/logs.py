@@ -57,7 +57,9 @@ class LoggedTrajectory:
     @property
     def dt(self) -> float:
         """Sample period (s)."""
-        return self.trajectory.dt
+        dt = self.trajectory.dt
+        assert dt is not None  # _read gives a log's trajectory its sample period
+        return dt
 
     @property
     def n_samples(self) -> int:
@@ -85,7 +87,9 @@ class StoredLog:
     @property
     def trajectory(self) -> Trajectory:
         """The episode's trajectory, read from the log now (``skip`` samples dropped)."""
-        return _read(self.path, self.skip, strict=True, refusal="changed since it was first read")[0].trajectory
+        log, _ = _read(self.path, self.skip, strict=True, refusal="changed since it was first read")
+        assert log is not None  # strict: _read raises instead
+        return log.trajectory
 
 
 class LogTrajectories(EpisodeSequence):
@@ -168,15 +172,13 @@ def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False, 
     """
     if skip < 0:
         raise ValueError(f"skip must be >= 0, got {skip}")
-    out = []
+    out: list[LoggedTrajectory | StoredLog] = []
     for raw in paths:
         path = Path(raw)
         log, n = _read(path, skip, strict, refusal)
         if log is None:
             continue
-        if stored:
-            log = StoredLog(path, log.controller, log.gains, log.dt, log.n_samples, skip)
-        out.append(log)
+        out.append(StoredLog(path, log.controller, log.gains, log.dt, log.n_samples, skip) if stored else log)
         _log.debug("%s: %d samples at %g Hz", path, n, 1.0 / log.dt)
     _log.info("read %d of %d episode logs", len(out), len(paths))
     return out

@@ -77,9 +77,10 @@ class Trajectory:
 
     def skip(self, n: int) -> "Trajectory":
         """The same trajectory without its first ``n`` samples."""
-        cut = {k: None if getattr(self, k) is None else getattr(self, k)[n:]
-               for k in ("x", "u", "r", "f", "xc")}
-        return replace(self, **cut)
+        def cut(signal: np.ndarray | None) -> np.ndarray | None:
+            return None if signal is None else signal[n:]
+
+        return replace(self, x=self.x[n:], u=cut(self.u), r=cut(self.r), f=cut(self.f), xc=cut(self.xc))
 
 
 class EpisodeSequence(Sequence):

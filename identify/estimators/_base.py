@@ -4,12 +4,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Self
 
 import numpy as np
 
 from qube_koopman.identify.lifting import Lifting
 from qube_koopman.identify.params import Params
 from qube_koopman.identify.data.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from qube_koopman.identify.estimators.mixed import ControllerGroups
 
 
 class Estimator(Params):
@@ -32,7 +36,7 @@ class SnapshotEstimator(Estimator):
     steps themselves to reuse statistics across folds and alphas.
     """
 
-    def fit(self, trajectories) -> "SnapshotEstimator":
+    def fit(self, trajectories) -> Self:
         """Fit on a list of :class:`~identify.Trajectory` (the class says which signals it needs).
 
         Returns
@@ -41,7 +45,7 @@ class SnapshotEstimator(Estimator):
         """
         return self._fit(self._setup(trajectories))
 
-    def _fit(self, setup: "FitSetup", elsewhere=None) -> "SnapshotEstimator":
+    def _fit(self, setup: "FitSetup", elsewhere=None) -> Self:
         """Solve from the statistics of all the setup's episodes (``elsewhere``: see :meth:`_selection_statistics`)."""
         # Folded as the episodes come, one at a time: never every episode's factor at once.
         return self._finish(setup, self._selection_statistics(setup, [None], elsewhere)[0])
@@ -93,7 +97,7 @@ class SnapshotEstimator(Estimator):
     def _episode_snapshots(self, setup: "FitSetup", trajectory: Trajectory):
         raise NotImplementedError
 
-    def _finish(self, setup: "FitSetup", snapshots) -> "SnapshotEstimator":
+    def _finish(self, setup: "FitSetup", snapshots) -> Self:
         raise NotImplementedError
 
     def _relift_rows(self, setup: "FitSetup") -> int | None:
@@ -145,7 +149,7 @@ class FitSetup:
     target_rows: int | None = None
     #: Closed-loop fits of episodes under several controllers: who ran which episode
     #: (:class:`~qube_koopman.identify.estimators.mixed.ControllerGroups`); None when all ran the estimator's.
-    controller_groups: object | None = None
+    controller_groups: ControllerGroups | None = None
 
 
 def pad_rows(U: np.ndarray, n_rows: int) -> np.ndarray:

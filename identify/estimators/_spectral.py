@@ -106,7 +106,8 @@ def _whitening(K: np.ndarray) -> np.ndarray:
 def _groups(lam: np.ndarray, pick: np.ndarray, gap: float) -> list[list[int]]:
     """The picked eigenvalues in groups of one real eigenvalue or two (a conjugate pair, or two
     real eigenvalues closer than ``gap``: they may be about to meet and leave the real axis)."""
-    groups, used = [], set()
+    groups: list[list[int]] = []
+    used: set[int] = set()
     reals = sorted((i for i in pick if lam[i].imag == 0.0), key=lambda i: lam[i].real)
     for a, b in zip(reals, reals[1:]):
         if a not in used and b not in used and lam[b].real - lam[a].real < gap:

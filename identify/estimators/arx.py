@@ -191,6 +191,7 @@ class ClArx(Estimator):
         trajs = check_trajectories(trajectories, ("x", "r"), 2, "CL ARX")
         with_f = trajs[0].f is not None
         ctrl = self.controller
+        assert trajs[0].r is not None  # check_trajectories required it
         n_r = trajs[0].r.shape[1]
         if ctrl.n_inputs != n_r or ctrl.n_outputs != 1:
             raise ValueError(f"CL ARX needs a single-output controller taking {n_r} errors; "

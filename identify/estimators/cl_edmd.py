@@ -67,7 +67,7 @@ class ClosedLoopKoopman(SnapshotEstimator):
     def _solve(self, snapshots, S: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
-    def _per_episode_controllers(self, trajs: list[Trajectory], controllers) -> list[DiscreteStateSpace] | None:
+    def _per_episode_controllers(self, trajs: Sequence[Trajectory], controllers) -> list[DiscreteStateSpace] | None:
         """The controllers given per episode, checked; None when every episode ran ``self.controller``."""
         if not isinstance(self.controller, DiscreteStateSpace):
             raise ValueError(f"controller must be a DiscreteStateSpace, got {type(self.controller).__name__}")
@@ -104,6 +104,7 @@ class ClosedLoopKoopman(SnapshotEstimator):
 
         # One pass: a stored log is read once for every check.
         trajs = check_trajectories(trajs, needs + (("f",) if with_f else ()), min_samples, what, same_feedforward)
+        assert first is not None  # check_trajectories raised for no episodes
         n_f = first.f.shape[1] if with_f else 0
         m = first.x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
@@ -125,8 +126,10 @@ class ClosedLoopKoopman(SnapshotEstimator):
     def _episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
         """Snapshot statistics of one episode: theta = [x^c; lift(x)], upsilon = [r; f]."""
         d = setup.lifting.n_delays_
+        # _setup's check_trajectories required them (f when there is a feedforward)
+        assert t.xc is not None and t.r is not None and (t.f is not None or not setup.n_feedforward)
         theta = np.hstack([t.xc[d:], setup.lifting.transform(t.x)])
-        v = np.hstack([t.r[d:]] + ([t.f[d:]] if setup.n_feedforward else []))
+        v = np.hstack([t.r[d:]] + ([t.f[d:]] if t.f is not None and setup.n_feedforward else []))
         # A partial fit's rows count this episode's own controller states (their number may differ).
         rows = None if setup.target_rows is None else setup.target_rows - self.controller.n_states + t.xc.shape[1]
         return Snapshots.from_snapshots(theta[1:, :rows], np.hstack([theta[:-1], v[:-1]]))
@@ -144,6 +147,7 @@ class ClosedLoopKoopman(SnapshotEstimator):
     def _finish(self, setup: FitSetup, snapshots) -> ClosedLoopKoopman:
         """Solve for ``self.alpha`` and set the fitted attributes."""
         alpha = check_alpha(self.alpha)
+        assert setup.output_matrix is not None and setup.plant_input_map is not None  # _setup made them
         self.snapshots_ = snapshots
         self.output_matrix_ = setup.output_matrix
         self.n_feedforward_ = setup.n_feedforward
@@ -251,7 +255,7 @@ class ClEdmd(ClosedLoopKoopman):
         self.regularize = regularize
         self.known_controller_rows = known_controller_rows
 
-    def _relift_rows(self, setup: FitSetup) -> int:
+    def _relift_rows(self, setup: FitSetup) -> int | None:
         # Solved row by row: the controller rows and the plant states' rows alone are exact.
         return self.controller.n_states + setup.lifting.n_features_in_
 

@@ -58,6 +58,7 @@ class Edmd(SnapshotEstimator):
         """Snapshot statistics of one episode: theta = lift(x), input u (lifted if asked)."""
         d = setup.lifting.n_delays_
         z = setup.lifting.transform(t.x)
+        assert t.u is not None  # _setup's check_trajectories required it
         v = (t.u if setup.input_lifting is None else setup.input_lifting.transform(t.u))[d:]
         return Snapshots.from_snapshots(z[1:, :setup.target_rows], np.hstack([z[:-1], v[:-1]]))
 

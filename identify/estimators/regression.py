@@ -22,6 +22,7 @@ problem ``[M; sqrt(alpha) I]``, including its rank cutoff.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, TypeVar
 
 import numpy as np
 from scipy import linalg
@@ -196,7 +197,8 @@ class _RidgePath:
 
     @classmethod
     def of(cls, M: np.ndarray, back: np.ndarray | None = None) -> "_RidgePath":
-        return cls(*linalg.svd(M, full_matrices=False, check_finite=False, lapack_driver="gesdd"), back)
+        U, s, Vt = linalg.svd(M, full_matrices=False, check_finite=False, lapack_driver="gesdd")
+        return cls(U, s, Vt, back)
 
     def solve(self, Y: np.ndarray, alpha: float) -> np.ndarray:
         # The stacked problem's singular values beyond those of M (a wide M) are sqrt(alpha):
@@ -214,7 +216,11 @@ def _psi_block(snapshots: Snapshots) -> slice:
     return slice(0, min(snapshots.R.shape[0], snapshots.n_regressors))
 
 
-def _path(snapshots: Snapshots, key, build) -> _RidgePath | None:
+_Path = TypeVar("_Path")
+
+
+def _path(snapshots: Snapshots, key, build: Callable[[], _Path]) -> _Path:
+    """What ``build`` makes, made once per ``key`` and kept in ``snapshots``."""
     if key not in snapshots._paths:
         snapshots._paths[key] = build()
     return snapshots._paths[key]

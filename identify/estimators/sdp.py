@@ -13,7 +13,7 @@ cvxpy is imported only when a fit runs.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Sequence, cast
 
 import numpy as np
 
@@ -67,7 +67,8 @@ def closed_loop_snapshots(trajectories, lifting, n_feedforward: int) -> tuple[np
 
 def snapshot_gram(psi: np.ndarray, theta: np.ndarray) -> SnapshotGram:
     """Gram matrices of the snapshots from one QR factorization."""
-    R = np.linalg.qr(np.vstack([psi, theta]).T, mode="r")
+    # numpy's stubs give every mode the (Q, R) result; mode "r" returns R alone.
+    R = cast(np.ndarray, np.linalg.qr(np.vstack([psi, theta]).T, mode="r"))
     n_psi = psi.shape[0]
     R_psi, R_theta = R[:, :n_psi], R[:, n_psi:]
     return SnapshotGram(R_theta.T @ R_theta, R_theta.T @ R_psi, R_psi.T @ R_psi, R, psi.shape[1])
@@ -142,7 +143,8 @@ class ClEdmdSdp(ClosedLoopKoopman):
         self.solver = solver
         self.solver_options = solver_options
 
-    def fit(self, trajectories) -> "ClEdmdSdp":
+    # No controllers argument, unlike ClosedLoopKoopman.fit: the SDP fits its own controller's episodes only.
+    def fit(self, trajectories) -> "ClEdmdSdp":  # type: ignore[override]
         """Fit on closed-loop trajectories (signals x, r, xc, optional f), from data built here.
 
         Returns
@@ -156,20 +158,21 @@ class ClEdmdSdp(ClosedLoopKoopman):
         with_f = [t.f is not None for t in trajs]
         if any(with_f) and not all(with_f):
             raise ValueError("feedforward f is present in some episodes and missing in others")
-        n_f = trajs[0].f.shape[1] if all(with_f) else 0
+        f0 = trajs[0].f  # given in every episode or in none
+        n_f = f0.shape[1] if f0 is not None else 0
         m = trajs[0].x.shape[1]
         measured = list(range(m)) if self.measured is None else [int(i) for i in self.measured]
         check_loop_controller(self.controller, measured, n_f, trajs[0].dt, trajs[0])
         lifting.fit([t.x for t in trajs], trajs[0].state_names)
         gram = snapshot_gram(*closed_loop_snapshots(trajs, lifting, n_f))
-        U_f, U_p = self._solve(gram, lifting.n_features_out_, measured, n_f, alpha, regularize)
+        U_f, U_p = self._solve_sdp(gram, lifting.n_features_out_, measured, n_f, alpha, regularize)
         self.snapshots_ = gram
         self.output_matrix_ = np.eye(lifting.n_features_out_)[measured]
         self.n_feedforward_ = n_f
         self._set_models(U_f, U_p, lifting, n_f, trajs[0].dt if trajs[0].dt is not None else self.controller.dt)
         return self
 
-    def _solve(self, gram: SnapshotGram, n_pl: int, measured, n_f: int, alpha: float, regularize: str):
+    def _solve_sdp(self, gram: SnapshotGram, n_pl: int, measured, n_f: int, alpha: float, regularize: str):
         import cvxpy as cp
 
         solver = str(self.solver).upper()
@@ -212,6 +215,6 @@ class ClEdmdSdp(ClosedLoopKoopman):
         except cp.error.SolverError as exc:
             raise ValueError(f"SDP solver {solver} failed: {exc}") from exc
         self.solver_status_ = problem.status
-        if A_p.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
+        if A_p.value is None or B_p.value is None or problem.status not in ("optimal", "optimal_inaccurate"):
             raise ValueError(f"SDP solver {solver} ended with status {problem.status!r}")
         return np.asarray(U_f.value), np.hstack([A_p.value, B_p.value])

@@ -25,7 +25,12 @@ class LiftingFunction(Params, ABC):
     """
 
     n_delays: int = 0
-    learns_from_data: bool = True  # conservative default: refit on every fold
+
+    @property
+    def learns_from_data(self) -> bool:
+        """Whether the output depends on the training data (then refit on every fold). Conservative
+        default True; steps whose output depends on hyperparameters only set it False."""
+        return True
 
     def fit(self, episodes: Sequence[np.ndarray], names: Sequence[str]) -> "LiftingFunction":
         """Learn from training episodes (each of shape (n_samples, n_features_in)).
@@ -126,7 +131,7 @@ class Lifting(Params):
             raise ValueError(f"{len(names)} state names for {n_states} states")
         self.n_features_in_ = n_states
         self.feature_names_in_ = names
-        self.steps_ = []
+        self.steps_: list[LiftingFunction] = []
         for step in self.steps:
             # Each step sees the episodes lifted by the steps before it, one episode at a time: holding
             # them all (10000 x 250 features an episode) would grow memory with the data.

@@ -217,7 +217,7 @@ def _episode_part(estimator, setup, source: LogSource, skip: int):
 
 def _unseen(paths: Sequence[str]) -> list[tuple[str, int | None]]:
     """On a worker: the paths it cannot read as files, with their sizes there (None: missing)."""
-    out = []
+    out: list[tuple[str, int | None]] = []
     for path in paths:
         try:
             out.append((path, Path(path).stat().st_size))
@@ -270,5 +270,6 @@ class ClusterStatistics:
 
     def __call__(self, estimator, setup, indices: Iterable[int]) -> Iterator:
         light = replace(setup, trajectories=[])  # the worker reads its own episode
-        calls = ((_episode_part, (estimator, light, self.source(int(i)), self.skip), {}) for i in indices)
+        calls: Iterator[tuple[Callable, tuple, dict]] = (
+            (_episode_part, (estimator, light, self.source(int(i)), self.skip), {}) for i in indices)
         yield from ordered_results(self.client, calls)

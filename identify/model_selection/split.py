@@ -54,7 +54,7 @@ def group_shuffle_splits(n_groups: int, n_splits: int = 3, test_size: float = 0.
     return splits
 
 
-def leave_one_controller_out(labels: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+def leave_one_controller_out(labels: Sequence[int] | np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Folds holding out all episodes of one controller each, in the order of the labels' values.
 
     Parameters
@@ -67,14 +67,14 @@ def leave_one_controller_out(labels: Sequence[int]) -> list[tuple[np.ndarray, np
     list of (train_indices, validation_indices)
         One fold per distinct label.
     """
-    labels = np.asarray(labels)
-    groups = np.unique(labels)
+    ids = np.asarray(labels)
+    groups = np.unique(ids)
     if groups.size < 2:
         raise ValueError(f"leave-one-controller-out needs episodes of at least two controllers, got {groups.size}")
-    return [(np.flatnonzero(labels != g), np.flatnonzero(labels == g)) for g in groups]
+    return [(np.flatnonzero(ids != g), np.flatnonzero(ids == g)) for g in groups]
 
 
-def within_controller_splits(labels: Sequence[int], n_splits: int = 3, seed: int = 1234
+def within_controller_splits(labels: Sequence[int] | np.ndarray, n_splits: int = 3, seed: int = 1234
                              ) -> list[tuple[np.ndarray, np.ndarray, int]]:
     """Folds that hold out some episodes of one controller and train on all the others.
 
@@ -88,10 +88,10 @@ def within_controller_splits(labels: Sequence[int], n_splits: int = 3, seed: int
     -------
     list of (train_indices, validation_indices, label)
     """
-    labels = np.asarray(labels)
+    ids = np.asarray(labels)
     out = []
-    for g in np.unique(labels):
-        own, others = np.flatnonzero(labels == g), np.flatnonzero(labels != g)
+    for g in np.unique(ids):
+        own, others = np.flatnonzero(ids == g), np.flatnonzero(ids != g)
         if own.size < 2:
             continue
         for train, validation in group_shuffle_splits(own.size, n_splits, seed=seed):

@@ -229,18 +229,19 @@ class KoopmanModel:
         """
         trajectories = list(trajectories)
         p0s = [self._initial_passthrough(t) for t in trajectories]
-        out: list[np.ndarray | None] = [None] * len(trajectories)
+        out: dict[int, np.ndarray] = {}
         by_length: dict[int, list[int]] = {}
         for i, t in enumerate(trajectories):
             by_length.setdefault(t.n_samples, []).append(i)
         d = self.n_delays
         for group in by_length.values():
-            p0 = None if p0s[group[0]] is None else np.stack([p0s[i] for i in group])
+            given = [p for p in (p0s[i] for i in group) if p is not None]  # all, or none without passthrough
+            p0 = np.stack(given) if given else None
             x, _ = self.simulate(np.stack([trajectories[i].x[:d + 1] for i in group]),
                                  np.stack([self.inputs_of(trajectories[i]) for i in group]), p0, relift=relift)
             for j, i in enumerate(group):
                 out[i] = x[j]
-        return out
+        return [out[i] for i in range(len(trajectories))]
 
 
 @dataclass(frozen=True)

@@ -158,14 +158,14 @@ def shift_trajectory(model, trajectory: Trajectory, offsets: Mapping[int, float]
     o = np.zeros(trajectory.x.shape[1])
     for c, value in offsets.items():
         o[c] = value
-    changes = {"x": trajectory.x - o}
+    r = trajectory.r
     columns = _reference_columns(model, offsets)
     if columns:
-        r = trajectory.r.copy()
+        assert r is not None  # a model whose references follow the states predicts closed-loop data, which has r
+        r = r.copy()
         for col, c in columns.items():
             r[:, col] -= o[c]
-        changes["r"] = r
-    return replace(trajectory, **changes)
+    return replace(trajectory, x=trajectory.x - o, r=r)
 
 
 def predict_with_offsets(model, trajectory: Trajectory, offsets: Mapping[int, float],
@@ -191,8 +191,16 @@ def predict_with_offsets(model, trajectory: Trajectory, offsets: Mapping[int, fl
 
 
 def _head(trajectory: Trajectory, window: int) -> Trajectory:
-    return replace(trajectory, **{k: None if getattr(trajectory, k) is None else getattr(trajectory, k)[:window]
-                                  for k in ("x", "u", "r", "f", "xc")})
+    def head(signal: np.ndarray | None) -> np.ndarray | None:
+        return None if signal is None else signal[:window]
+
+    t = trajectory
+    return replace(t, x=t.x[:window], u=head(t.u), r=head(t.r), f=head(t.f), xc=head(t.xc))
+
+
+def _controller_state(t: Trajectory) -> np.ndarray:
+    assert t.xc is not None  # a model with passthrough states predicts closed-loop data, which has xc
+    return t.xc
 
 
 def _window_predictions(model, trajectory: Trajectory, channels, trials: np.ndarray, window: int,
@@ -207,7 +215,7 @@ def _batch_predictions(model, heads: Sequence[Trajectory], channels, trials: np.
     shifted = [shift_trajectory(model, h, dict(zip(channels, row))) for h, row in zip(heads, trials)]
     x_init = np.stack([t.x[:d + 1] for t in shifted])
     v = np.stack([model.inputs_of(t) for t in shifted])
-    p0 = np.stack([t.xc[d] for t in shifted]) if model.n_passthrough else None
+    p0 = np.stack([_controller_state(t)[d] for t in shifted]) if model.n_passthrough else None
     x, _ = model.simulate(x_init, v, p0, relift=relift)
     x[:, :, list(channels)] += np.asarray(trials)[:, None, :]
     return x
@@ -333,7 +341,7 @@ def predict_with_offsets_many(model, trajectories: Sequence[Trajectory], estimat
     list of ndarray
         Each episode's predicted measured states.
     """
-    out: list[np.ndarray | None] = [None] * len(trajectories)
+    out: dict[int, np.ndarray] = {}
     by_length: dict[int, list[int]] = {}
     for i, t in enumerate(trajectories):
         by_length.setdefault(t.n_samples, []).append(i)
@@ -344,7 +352,7 @@ def predict_with_offsets_many(model, trajectories: Sequence[Trajectory], estimat
         pred = _batch_predictions(model, [trajectories[i] for i in group], e0.channels, trials, relift)
         for row, i in enumerate(group):
             out[i] = pred[row]
-    return out
+    return [out[i] for i in range(len(trajectories))]
 
 
 def estimate_offsets_many(model, trajectories: Sequence[Trajectory], channels: Sequence[int | str], window: int,

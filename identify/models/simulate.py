@@ -111,6 +111,7 @@ def simulate_chunks(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthroug
     rows = n_p + m if relift else A.shape[1]
     At = np.ascontiguousarray(A[:, :rows, :].transpose(0, 2, 1))  # (models, n_lifted, rows)
     Bt = np.ascontiguousarray(B[:, :rows, :].transpose(0, 2, 1))  # (models, n_inputs, rows)
+    stepper: _Propagate | _RingStepper | _HistoryStepper
     if not relift:
         stepper = _Propagate(z, At)
     else:
@@ -262,6 +263,7 @@ class _RingLayout:
 
     def write_rbf(self, z: np.ndarray, q: int) -> None:
         """The radial basis values of the delayed vector at ring position ``q``."""
+        assert self.rbf is not None and self.centers is not None and self.centers_sq is not None  # of an RBF step
         lo, n_shift = self.n_p, self.slots * self.n_feat
         n_rbf = self.centers_sq.size
         z[..., lo + n_shift:lo + n_shift + n_rbf] = self.rbf.kernel_values(z[..., lo:lo + n_shift], self.centers[q],
@@ -270,7 +272,7 @@ class _RingLayout:
 
     def write_friction(self, z: np.ndarray, q: int) -> None:
         """The friction shapes at ring position ``q``: the age-``a`` sample sits in slot ``(q + a) % slots``."""
-        lo = self.n_p + self.slots * self.n_feat + (0 if self.rbf is None else self.centers_sq.size)
+        lo = self.n_p + self.slots * self.n_feat + (0 if self.centers_sq is None else self.centers_sq.size)
         newest = self.n_p + q * self.n_feat
         for j, (c, age, width) in enumerate(self.friction):
             past = self.n_p + ((q + age) % self.slots) * self.n_feat

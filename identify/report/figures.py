@@ -156,7 +156,8 @@ class SeriesPlot:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "x", np.asarray(self.x, dtype=float))
-        for c in (*self.curves, *self.bands):
+        drawn: tuple[Curve | Band, ...] = (*self.curves, *self.bands)
+        for c in drawn:
             shape = c.y.shape if isinstance(c, Curve) else c.lower.shape
             if shape != self.x.shape or (isinstance(c, Band) and c.upper.shape != shape) \
                     or not 0 <= c.panel < len(self.ylabels):
@@ -252,10 +253,14 @@ def draw(data: SeriesPlot | EigenvaluePlot):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    series = isinstance(data, SeriesPlot)
-    fig = Figure(figsize=(7.0, 2.2 + 1.6 * len(data.ylabels)) if series else (5.5, 5.0), layout="constrained")
-    FigureCanvasAgg(fig)
-    (_draw_series if series else _draw_eigenvalues)(data, fig)
+    if isinstance(data, SeriesPlot):
+        fig = Figure(figsize=(7.0, 2.2 + 1.6 * len(data.ylabels)), layout="constrained")
+        FigureCanvasAgg(fig)
+        _draw_series(data, fig)
+    else:
+        fig = Figure(figsize=(5.5, 5.0), layout="constrained")
+        FigureCanvasAgg(fig)
+        _draw_eigenvalues(data, fig)
     return fig
 
 
@@ -310,7 +315,8 @@ def model_eigenvalues(model) -> np.ndarray | None:
     return None if A is None else np.linalg.eigvals(np.asarray(A))
 
 
-def choose_episodes(names: Sequence[str], wanted: Sequence[str] | None, scores: Sequence[float] | None) -> list[int]:
+def choose_episodes(names: Sequence[str], wanted: Sequence[str] | None,
+                    scores: Sequence[float | None] | None) -> list[int]:
     """Indices of the test episodes to plot.
 
     Parameters
@@ -330,10 +336,10 @@ def choose_episodes(names: Sequence[str], wanted: Sequence[str] | None, scores: 
         Naming an episode that is not among the test episodes.
     """
     if wanted is None:
-        finite = [i for i, s in enumerate(scores or []) if s is not None and np.isfinite(s)]
+        finite = {i: s for i, s in enumerate(scores or []) if s is not None and np.isfinite(s)}
         if not finite:
             return [0]
-        best, worst = max(finite, key=lambda i: scores[i]), min(finite, key=lambda i: scores[i])
+        best, worst = max(finite, key=finite.__getitem__), min(finite, key=finite.__getitem__)
         return [best] if best == worst else [best, worst]
     chosen = []
     stems = [n.rsplit(".", 1)[0] for n in names]
