@@ -449,7 +449,10 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         result = identify_and_score(
             method=args.method, lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
             train=train, test=test, controller=controller,
-            alpha=1e-3 if args.alpha is None else args.alpha, alphas=alphas, score=args.score,
+            alpha=1e-3 if args.alpha is None else args.alpha, score=args.score,
+            # An ndarray, which identify_and_score handles; its annotation says Sequence[float] until
+            # workflow.py (being edited) is checked.
+            alphas=alphas,  # type: ignore[arg-type]
         from qube_koopman.identify.cli.search import probe_cache
 
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
