@@ -166,6 +166,31 @@ def test_ruff_finds_nothing_in_the_packages():
     assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]
 
 
+def test_mypy_finds_nothing_in_the_packages(tmp_path):
+    """The type checker, configured in pyproject.toml ([tool.mypy]), reports nothing on the packages.
+
+    mypy cannot follow setuptools' editable finder, so the package folders are linked into
+    ``<tmp>/qube_koopman/`` and checked there as the ``qube_koopman`` package. Its cache lives in the
+    user's cache (``core.files.cache_root() / "mypy"``), shared by every run on the machine: a cold run
+    takes about a minute, a warm one seconds."""
+    import importlib.util
+    from pathlib import Path
+
+    from qube_koopman.core.files import cache_root
+
+    if importlib.util.find_spec("mypy") is None:
+        pytest.skip('mypy is not installed: pip install -e ".[test]"')
+    root = Path(__file__).resolve().parents[2]
+    tree = tmp_path / "qube_koopman"
+    tree.mkdir()
+    for top in (*LAYERS, *APPLICATIONS):
+        (tree / top).symlink_to(root / top, target_is_directory=True)
+    checked = subprocess.run([sys.executable, "-m", "mypy", "-p", "qube_koopman", "--explicit-package-bases",
+                              "--config-file", str(root / "pyproject.toml"), "--cache-dir", str(cache_root() / "mypy")],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]
+
+
 def test_the_tests_are_grouped_as_the_packages_are():
     """tests/<package>/ holds each package's tests (docs/ the documentation's runnable blocks, project/
     the checks of the whole repository); shared fixtures and helpers sit in tests/ itself."""
