@@ -172,7 +172,7 @@ def test_mypy_finds_nothing_in_the_packages(tmp_path):
     mypy cannot follow setuptools' editable finder, so the package folders are linked into
     ``<tmp>/qube_koopman/`` and checked there as the ``qube_koopman`` package. Its cache lives in the
     user's cache (``core.files.cache_root() / "mypy"``), shared by every run on the machine: a cold run
-    takes about a minute, a warm one seconds."""
+    takes about ten seconds, a warm one under a second."""
     import importlib.util
     from pathlib import Path
 
