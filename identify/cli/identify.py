@@ -191,16 +191,16 @@ def _parser() -> argparse.ArgumentParser:
                       help="bootstrap refits of the intervals (default %(default)s)")
     pred.add_argument("--interval-seed", type=seed, default=0, metavar="K",
                       help="seed of the intervals' resampling and folds (default %(default)s)")
-    pred.add_argument("--controller", type=path, metavar="FILE.toml",
-                      help="what-if: predict every test episode under this controller instead of its "
-                           "log's own: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau; backward Euler as "
-                           "on the rig) or a state-space file at the logs' sample period "
     pred.add_argument("--interval-other-loops", choices=["twin", "none"], default="twin",
                       help="how the interval of an episode under a controller the training did not run is "
                            "calibrated: twin (default), on the twin's probe episodes, per channel the wider of "
                            "those under its own controller (PD gains known) and under the default probe "
                            "controllers (cached as --no-probe-cache says); none, as the training loop's held-out "
                            "episodes (flagged in the report)")
+    pred.add_argument("--controller", type=path, metavar="FILE.toml",
+                      help="what-if: predict every test episode under this controller instead of its "
+                           "log's own: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau; backward Euler as "
+                           "on the rig) or a state-space file at the logs' sample period "
                            "(core/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
                            "episodes recorded under it are scored")
     _add_search_options(p)
@@ -446,6 +446,8 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             args.offsets = ["alpha"] if search.winner.spec.offsets else None
             offsets = OffsetProtocol(("alpha",), args.estimate_window, args.offset_bound) if args.offsets else None
             args.alpha = search.winner.best_alpha
+        from qube_koopman.identify.cli.search import probe_cache
+
         result = identify_and_score(
             method=args.method, lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
             train=train, test=test, controller=controller,
@@ -453,8 +455,6 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             # An ndarray, which identify_and_score handles; its annotation says Sequence[float] until
             # workflow.py (being edited) is checked.
             alphas=alphas,  # type: ignore[arg-type]
-        from qube_koopman.identify.cli.search import probe_cache
-
             cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
             model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
             keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
@@ -463,12 +463,12 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             intervals=(IntervalOptions(args.interval, args.interval_members, seed=args.interval_seed,
                                        other_loops=args.interval_other_loops)
                        if args.interval else None), predictions_folder=predictions,
+            probes=None if search is None else search.probes,
+            probe_cache=probe_cache() if args.probe_cache else None,
             estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
                                if args.max_radius is not None else None))
     except ValueError as exc:
         raise CliError(str(exc)) from None
-            probes=None if search is None else search.probes,
-            probe_cache=probe_cache() if args.probe_cache else None,
     if statistics is not None:  # where the training statistics were computed
         result.report["cluster"] = cluster_report(args)
     if search is not None:
@@ -555,12 +555,12 @@ def _print_intervals(intervals: dict | None) -> None:
                      f"{pooled['mean_half_width'][name]:.4g} rad" for name in pooled["coverage"])
     elsewhere, probed = pooled.get("n_uncalibrated_loop"), pooled.get("n_probe_calibrated")
     print(f"intervals at {intervals['level']:g}: {each}"
+          + (f"; {probed} episode(s) under a controller the training did not run: calibrated on the twin's "
+             "probes" if probed else "")
           + (f"; {elsewhere} episode(s) under a controller the calibration did not see: their intervals are the "
              "training loops'" if elsewhere else ""))
 
 
-          + (f"; {probed} episode(s) under a controller the training did not run: calibrated on the twin's "
-             "probes" if probed else "")
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-identify``; returns the exit status."""
     args = _parser().parse_args(argv)
