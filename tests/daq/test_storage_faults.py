@@ -166,7 +166,7 @@ def test_qube_import_of_a_binary_file_is_one_short_line(tmp_path, capsys):
 
     src = tmp_path / "qube_20230828T120000_1_2_3.csv"
     src.write_bytes(b"\x7fELF\x02\x01\x01" + bytes(3000))
-    controller = Path(__file__).resolve().parents[2] / "daq" / "rig_controller.toml"
+    controller = Path(__file__).resolve().parents[2] / "core" / "rig_controller.toml"
     assert import_main([str(src), "--controller", str(controller), "--out", str(tmp_path / "o"), "-q"]) == 1
     err = capsys.readouterr().err
     assert err == f"qube-import: error: {src}: not a CSV file (binary content: NUL bytes near its start)\n"

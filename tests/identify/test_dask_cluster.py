@@ -213,12 +213,18 @@ def test_a_search_on_the_cluster_equals_the_local_search(cluster, logs, local_se
     _assert_same_numbers(_without_timings(reference["search"]), _without_timings(report["search"]), "search")
     _assert_same_numbers(reference_model, model, "the winner's model")
     _assert_same_numbers(reference["test"], report["test"], "test scores")
-    # The candidates ran on the workers, and so did the winner's statistics (one task a training log),
-    # and one task handed the episodes to them; each family's largest lifting was lifted there too (one
-    # task), its statistics handed to the family's candidates (one more).
-    families = sum(t["shared_statistics"] > 0 for t in report["search"]["timing"]["stages"].values())
-    assert families == 1  # the form stage's
-    assert cluster.executed() - before == len(report["search"]["candidates"]) + N_TRAIN + 1 + 2 * families
+    # The candidates ran on the workers (a screen each in the screened stages, then a full evaluation of
+    # the finalists), and so did the winner's statistics (one task a training log), and one task handed the
+    # episodes to them; each family's largest lifting was lifted there too (one task: too few episodes to
+    # split), its statistics handed to the family's candidates (one more).
+    stages = report["search"]["timing"]["stages"]
+    families = sum(t["shared_statistics"] > 0 for t in stages.values())
+    assert families == 2  # the delays stage's (the longest delays) and the form stage's
+    candidates = report["search"]["candidates"]
+    screens = sum(sum(c["stage"] == stage for c in candidates) + stages[stage]["screened_out"]
+                  for stage in report["search"]["screening"]["stages"])
+    assert screens == 7  # 4 delays, 3 forms (poly 1 and 2, with and without the constant, but the one tried)
+    assert cluster.executed() - before == len(candidates) + screens + N_TRAIN + 1 + 2 * families
 
 
 @pytest.mark.slow
