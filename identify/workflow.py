@@ -526,11 +526,15 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
         entry = {"default_probes": probe_set.describe(), "n_default_episodes": probe_set.n_episodes,
                  "default_channels": calibration.as_dict(STATE_NAMES), "gains": gains}
         if gains is not None:
-            own = twin_probes(LogTrajectories(train), gains=[gains], cache=probe_cache)
-            own_calibration = on_probes(own)
-            entry.update(own_probes=own.describe(), n_own_episodes=own.n_episodes,
-                         own_channels=own_calibration.as_dict(STATE_NAMES))
-            calibration = widest([own_calibration, calibration])
+            try:
+                own = twin_probes(LogTrajectories(train), gains=[gains], cache=probe_cache)
+            except ValueError as exc:  # e.g. no episode balanced on the twin: the default probes alone, said so
+                entry["own_probes"] = f"none: {exc}"
+            else:
+                own_calibration = on_probes(own)
+                entry.update(own_probes=own.describe(), n_own_episodes=own.n_episodes,
+                             own_channels=own_calibration.as_dict(STATE_NAMES))
+                calibration = widest([own_calibration, calibration])
         entry["channels"] = calibration.as_dict(STATE_NAMES)
         return calibration, entry
 
