@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -465,8 +466,6 @@ class _TestBands:
         for known, calibration, _ in self.elsewhere:
             if known.same(loop):
                 return calibration
-        import time
-
         started = time.perf_counter()
         own = loop.kind == "wrapped" and same_system(loop.controller, log.controller)
         gains = _pd_gains(log.gains) if own else None  # a what-if's or a state-space controller's: none
@@ -500,16 +499,11 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
     """The intervals' calibration on the training episodes the folds held out, ready for the test episodes;
     with ``options.other_loops == "twin"``, that of loops the training never ran on the twin's probes, made
     when a test episode needs it."""
-    import time
-
     started = time.perf_counter()
     loops = [Loop.of(log.controller, controller, score) for log in train]
     calibration = calibrate(ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED,
                             options.stride)
     seconds = {"calibration": time.perf_counter() - started}
-
-    from qube_koopman.identify.model_selection.transfer import twin_probes
-
     default = []  # the default probes' calibration, made once
 
     def on_probes(probe_set):
@@ -518,6 +512,8 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
 
     def elsewhere(gains):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
+        from qube_koopman.identify.model_selection.transfer import twin_probes
+
         if not default:
             # The search's probe set, the same one read back from the cache, or simulated (about 7 s) and kept.
             probe_set = probes if probes is not None else twin_probes(LogTrajectories(train), cache=probe_cache)
@@ -653,8 +649,6 @@ def run_search(train: Sequence[LoggedTrajectory], controller: DiscreteStateSpace
     ValueError
         When the estimation window and the largest delay leave nothing to score.
     """
-    import time
-
     from qube_koopman.identify.model_selection.search import SearchSpace, same_controller_scores, search_liftings
     from qube_koopman.identify.model_selection.transfer import twin_probes
 
