@@ -131,7 +131,7 @@ def augment(plant: LinearPlant, weights: Weights) -> tuple[np.ndarray, np.ndarra
 def _check_stabilizable(F: np.ndarray, G: np.ndarray) -> None:
     """PBH test on every mode at or outside the unit circle; a :class:`DesignError` naming the first that fails."""
     n = F.shape[0]
-    scale = max(np.linalg.norm(F, 2), np.linalg.norm(G, 2), 1.0)
+    scale = max(float(np.linalg.norm(F, 2)), float(np.linalg.norm(G, 2)), 1.0)
     for lam in np.linalg.eigvals(F):
         if abs(lam) < 1 - 1e-9:
             continue
@@ -200,7 +200,7 @@ def realize(gain: np.ndarray, plant: LinearPlant, integral: bool) -> DiscreteSta
     K_s = gain[:, :n]
     n_c = (n - m) + int(integral)
     if n_c == 0:  # a static gain: one inert state
-        return DiscreteStateSpace([[0.0]], np.zeros((1, m)), [[0.0]], K_s, plant.dt)
+        return DiscreteStateSpace(np.zeros((1, 1)), np.zeros((1, m)), np.zeros((1, 1)), K_s, plant.dt)
     held = n - m  # past errors held: e_{k-1} ... e_{k-d}
     A = np.zeros((n_c, n_c))
     B = np.zeros((n_c, m))

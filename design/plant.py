@@ -116,6 +116,8 @@ def linear_plant(model: KoopmanModel) -> LinearPlant:
     if any(isinstance(step, CoulombFriction) for step in steps):
         raise DesignError("its lifting holds the arm's Coulomb friction shape (--friction), whose linearization "
                           f"at rest is no model of the arm; identify the plant for a design with {IDENTIFY_FLAGS}")
+    if model.dt is None:
+        raise DesignError("the plant model has no sample period (dt): a design needs the discrete plant's")
     m, d = model.n_states, model.n_delays
     n = m * (d + 1)
     one_step = _one_step(model)

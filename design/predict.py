@@ -70,7 +70,7 @@ def rig_excitations(seed: int, n_episodes: int, duration: float = 20.0) -> list[
     """The excitations ``qube-run --seed seed --episodes n_episodes --duration duration`` runs."""
     seeds, _ = run_seeds(seed, n_episodes)
     settings = excitation_settings(duration)
-    return [generate_excitation(tuple(int(s) for s in triple), settings) for triple in seeds]
+    return [generate_excitation((int(a), int(b), int(c)), settings) for a, b, c in seeds]
 
 
 def episode_cost(theta, target_theta, alpha, voltage, skip: int = SKIP_SAMPLES) -> tuple[float, ...]:
@@ -111,7 +111,8 @@ class LoopTrajectories:
         """The figures of each episode after ``skip`` samples (:func:`episode_cost`)."""
         rows = np.array([episode_cost(self.theta[i], self.target_theta[i], self.alpha[i], self.voltage[i], skip)
                          for i in range(len(self.theta))])
-        return CostPrediction(*rows.T, diverged=int(np.sum(~np.isfinite(rows[:, 0]))))
+        return CostPrediction(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4],
+                              diverged=int(np.sum(~np.isfinite(rows[:, 0]))))
 
 
 def predict_loop(plant: KoopmanModel, controller: DiscreteStateSpace,

@@ -32,6 +32,7 @@ others do no better (see the function).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Literal, TypedDict
 
 import numpy as np
 
@@ -275,7 +276,7 @@ def figure_interval(predicted: dict, nominal: np.ndarray, members: np.ndarray, m
         if not np.all(np.isfinite(shifts[:, i])):
             lower[name], upper[name] = float(predicted[name]), float("inf")
             continue
-        if n:
+        if n and model_error is not None:  # n: the held-out episodes, none without a model error
             e = model_error[:, i]
             lo, hi = _mixture_quantiles(shifts[:, i] + np.mean(e), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n),
                                         n - 1, level)
@@ -312,6 +313,15 @@ def interval_from_logs(uncertainty: ModelUncertainty, plant: LinearPlant, design
     return figure_interval(predicted, figures[0], figures[1:], uncertainty.model_error(), level)
 
 
+class RobustCandidate(TypedDict):
+    """One voltage-weight scale a robust design tried (:attr:`RobustChoice.candidates`)."""
+
+    scale: float
+    worst_upper_J: float
+    nominal_J: float
+    stable_members: int | None
+
+
 @dataclass(frozen=True)
 class RobustChoice:
     """What :func:`robust_design` weighed.
@@ -322,8 +332,8 @@ class RobustChoice:
         The chosen design.
     scale : float
         Its voltage weight over the nominal one.
-    candidates : list of dict
-        Per scale tried: ``scale``, ``worst_upper_J`` (the members' worst J times the model error's
+    candidates : list of RobustCandidate
+        Per scale tried (a dict): ``scale``, ``worst_upper_J`` (the members' worst J times the model error's
         upper factor; inf when a member is unstable under it), ``nominal_J`` (the point plant's),
         ``stable_members`` (bootstrap plants stable under it; None when not checked: ranked after the
         chosen one).
@@ -331,11 +341,12 @@ class RobustChoice:
 
     design: LqDesign
     scale: float
-    candidates: list
+    candidates: list[RobustCandidate]
 
     def as_dict(self) -> dict:
         """Plain data, for reports: the chosen scale and, per key, each candidate's value by ``x<scale>``."""
-        keys = ("worst_upper_J", "nominal_J", "stable_members")
+        keys: tuple[Literal["worst_upper_J", "nominal_J", "stable_members"], ...] = (
+            "worst_upper_J", "nominal_J", "stable_members")
         return {"r_voltage_scale": self.scale,
                 **{key: {f"x{c['scale']:g}": c[key] for c in self.candidates if c[key] is not None} for key in keys}}
 
@@ -385,7 +396,8 @@ def robust_design(plant: LinearPlant, weights: Weights, uncertainty: ModelUncert
         _, hi = _mixture_quantiles(np.array([np.mean(e)]), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1,
                                    level)
         factor = float(np.exp(hi))
-    candidates, designs = [], []
+    candidates: list[RobustCandidate] = []
+    designs = []
     for scale in scales:
         design = design_lq(plant, replace(weights, r_voltage=weights.r_voltage * scale))
         J = np.mean(member_figures([plant] + list(uncertainty.members), design, excitations)[..., 0], axis=-1)

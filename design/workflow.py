@@ -319,7 +319,7 @@ def record_design(path: str | Path, report: DesignReport, controller, n_episodes
     twin = {"twin": run_on_twin(controller, ex["seed"], n, of=ex["episodes"], duration=ex["duration"])}
     eigenvalues = {"design": closed_loop_eigenvalues(report.design.plant, report.controller)}
     training = report.model.get("controller")
-    if report.training is not None:
+    if report.training is not None and training is not None:  # a training prediction needs the model's controller
         info = ControllerInfo(training, "as the model file records it", kind="state-space",
                               provenance={"model": str(report.model_path)})
         twin["twin_training"] = run_on_twin(info, ex["seed"], n, of=ex["episodes"], duration=ex["duration"])

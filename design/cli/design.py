@@ -89,7 +89,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _weights(args):
-    from qube_koopman.design import DesignError
+    from qube_koopman.design.plant import DesignError
 
     try:
         return Weights(args.q_theta, args.q_alpha, args.r_voltage, 0.0 if args.no_integral else args.q_integral,
@@ -100,7 +100,7 @@ def _weights(args):
 
 def _run(args) -> int:
     from qube_koopman.core.controller_file import write_controller_file
-    from qube_koopman.design import DesignError
+    from qube_koopman.design.plant import DesignError
     from qube_koopman.design.workflow import design_from_model, provenance, report_text, saturation_warning
 
     weights = _weights(args)
