@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Lifting, Polynomial,
-                                           ThinPlateRbf, Trigonometric)
+from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Lifting, LiftingFunction,
+                                           Polynomial, ThinPlateRbf, Trigonometric)
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path
@@ -28,7 +29,7 @@ def lifting_to_dict(lifting: Lifting) -> dict:
     """The fitted lifting as plain data (RBF centres included)."""
     steps = []
     for step in lifting.steps_:
-        entry = {"type": type(step).__name__}
+        entry: dict[str, Any] = {"type": type(step).__name__}
         # The hyperparameters as stored (an np.int64 is legal) become plain JSON numbers.
         if isinstance(step, Polynomial):
             entry["order"] = int(step.order)
@@ -52,7 +53,7 @@ def lifting_to_dict(lifting: Lifting) -> dict:
 
 def lifting_from_dict(data: dict) -> Lifting:
     """Rebuild a fitted lifting from :func:`lifting_to_dict` output."""
-    steps = []
+    steps: list[LiftingFunction] = []
     for entry in data["steps"]:
         kind = entry.get("type")
         if kind == "Polynomial":
@@ -148,11 +149,12 @@ def uncertainty_to_dict(plant: KoopmanModel, members: list[KoopmanModel], held_o
     dict
     """
     m = plant.n_states
-    out = {"method": "episode bootstrap", "seed": int(seed),
-           "plant_members": [{"A": member.A[:m].tolist(), "B": member.B[:m].tolist()} for member in members],
-           "held_out": {"skip_samples": int(skip), "figures": ["J", "voltage_rms", "voltage_peak"],
-                        "measured": np.asarray(held_out)[:, 0].tolist(),
-                        "predicted": np.asarray(held_out)[:, 1].tolist()}}
+    out: dict[str, Any] = {
+        "method": "episode bootstrap", "seed": int(seed),
+        "plant_members": [{"A": member.A[:m].tolist(), "B": member.B[:m].tolist()} for member in members],
+        "held_out": {"skip_samples": int(skip), "figures": ["J", "voltage_rms", "voltage_peak"],
+                     "measured": np.asarray(held_out)[:, 0].tolist(),
+                     "predicted": np.asarray(held_out)[:, 1].tolist()}}
     if logs is not None:
         out["held_out"]["logs"] = list(logs)
     return out
