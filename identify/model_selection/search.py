@@ -44,8 +44,8 @@ from qube_koopman.core.qube import MEASURED
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd
 from qube_koopman.identify.model_selection.distributed import candidate_runner, connect, release_workers
 from qube_koopman.identify.models.model import FittedRows
-from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Polynomial, ThinPlateRbf,
-                                          Trigonometric)
+from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, LiftingFunction, Polynomial,
+                                          ThinPlateRbf, Trigonometric)
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import scores_after_window
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
@@ -99,13 +99,13 @@ class LiftingSpec:
     friction: bool = False
 
     def steps(self, rbf_seed: int = 0, rbf_kind: str = "thin-plate", rbf_shape: float = 1.0,
-              rbf_offset: float = 1e-3) -> list:
+              rbf_offset: float = 1e-3) -> list[LiftingFunction]:
         """The lifting functions, in the order of ``qube-identify``'s options.
 
         The search's radial bases are thin-plate with the default shape and offset;
         ``qube-identify`` builds its lifting here too, with its ``--rbf*`` options.
         """
-        steps = [Polynomial(self.poly)] if self.poly > 1 else []
+        steps: list[LiftingFunction] = [Polynomial(self.poly)] if self.poly > 1 else []
         if self.trig:
             steps.append(Trigonometric(MEASURED))
         if self.delays:
@@ -351,8 +351,9 @@ class CandidateResult:
                "transfer_r2": number(self.transfer_score), "transfer_r2_worst": number(self.transfer_worst),
                "seconds": self.seconds, "timing": {k: round(v, 3) for k, v in self.timing.items()},
                "cv_r2_by_alpha": [number(v) for v in self.mean]}
-        if self.transfer_r2 is not None:
-            out["transfer_r2_by_alpha"] = [number(v) for v in self.transfer_mean]
+        transfer = self.transfer_mean  # None without probes
+        if transfer is not None:
+            out["transfer_r2_by_alpha"] = [number(v) for v in transfer]
         return out
 
 
@@ -472,7 +473,7 @@ def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tu
     timing = dict.fromkeys(TIMING_KEYS, 0.0)
     top = None if plain is None else _best_alphas(_fold_scores(plain), data.n_offset_alphas)
     reuse = plain.reuse if isinstance(plain, CandidateResult) else None
-    if spec.offsets and reuse is not None and reuse.covers(top):
+    if spec.offsets and reuse is not None and top is not None and reuse.covers(top):  # top: set with any plain
         cv = _offset_scores(reuse.folds, reuse.lifting, data, top, timing)
         plants = {j: rows.model(reuse.lifting) for j, rows in reuse.plants.items()}
         transfer = None if data.probes is None else _transfer_scores(spec, data, cv, plants, timing)
@@ -480,6 +481,8 @@ def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tu
                                time.perf_counter() - started, transfer, timing), []
     screened_folds = []
     if screen is not None:
+        if screen.kept is None:
+            raise ValueError(f"{spec.label()}: the screen given kept nothing (its lifting, statistics and folds)")
         steps, statistics, screened_folds = screen.kept
         shared = statistics if statistics is not None else shared
     elif steps is None:
@@ -498,7 +501,7 @@ def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tu
                                  controllers=data.controllers, shared=shared)
     timing |= sweep.seconds
     cv = sweep.cv_r2["cl"] if rescore else _fold_scores(plain)
-    if n_screened:
+    if screen is not None and n_screened:  # only a screen has screened folds
         cv = np.vstack([screen.cv_r2, cv])
     lifting = None if sweep.statistics is None else sweep.statistics[0].lifting
     folds = screened_folds + [({j: rows for j, rows in enumerate(closed)}, validation) for closed, _, validation in
@@ -544,7 +547,7 @@ def screen_candidate(spec: LiftingSpec, data: SearchData, stage: str = "", share
     started = time.perf_counter()
     steps = search_steps(spec, data.trajectories, data.rbf_seed)
     own = shared is None
-    if own:
+    if shared is None:
         with limited_blas_threads(1):
             shared = OwnStatistics(fold_statistics(ClEdmd(data.controller, lifting=steps), data.trajectories,
                                                    data.splits, data.controllers))
@@ -646,7 +649,7 @@ def _fold_scores(plain) -> np.ndarray:
     return np.asarray(plain.cv_r2 if isinstance(plain, CandidateResult) else plain, dtype=float)
 
 
-def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed: int = 0) -> list:
+def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed: int = 0) -> list[LiftingFunction]:
     """The lifting a candidate is scored with: ``spec.steps``, its RBF centres drawn once on all the
     training episodes.
 
@@ -665,8 +668,10 @@ def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed
     if not at:
         return steps
     fitted = Lifting(steps[:at[0] + 1]).fit(episode_signals(as_episodes(trajectories), "x"))
-    rbf = steps[at[0]]
-    steps[at[0]] = type(rbf)(**{**rbf.get_params(), "centers": fitted.steps_[at[0]].centers_})
+    rbf, fitted_rbf = steps[at[0]], fitted.steps_[at[0]]
+    if not isinstance(fitted_rbf, RadialBasis):  # the fitted copy of steps[at[0]], of its type
+        raise TypeError(f"the fitted lifting's step {at[0]} is a {type(fitted_rbf).__name__}, not a radial basis")
+    steps[at[0]] = type(rbf)(**{**rbf.get_params(), "centers": fitted_rbf.centers_})
     return steps
 
 
@@ -703,10 +708,13 @@ def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants
     """
     from qube_koopman.core.blas import limited_blas_threads
 
+    probes = data.probes
+    if probes is None:
+        raise ValueError("transfer scores need the search's probes (SearchData.probes)")
     started = time.perf_counter()
     # The alphas with a plant: an offsets candidate predicting with its plain twin's has them at its scored alphas.
     top = [int(j) for j in np.sort(_best_alphas(cv, data.n_transfer_alphas)) if int(j) in plants]
-    out = np.full((data.probes.n_episodes, data.alphas.size), np.nan)
+    out = np.full((probes.n_episodes, data.alphas.size), np.nan)
     if known is not None:  # the columns a screen scored already (the same plants: the same numbers)
         done = [j for j in top if not np.all(np.isnan(known[:, j]))]
         out[:, done] = known[:, done]
@@ -714,9 +722,9 @@ def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants
     with limited_blas_threads(1):
         if spec.offsets:
             for j in top:
-                out[:, j] = probe_scores(plants[j], data.probes, data.window, True, data.bound, MEASURED)
+                out[:, j] = probe_scores(plants[j], probes, data.window, True, data.bound, MEASURED)
         elif top:
-            out[:, top] = _plain_probe_scores([plants[j] for j in top], data.probes, data.window)
+            out[:, top] = _plain_probe_scores([plants[j] for j in top], probes, data.window)
     timing["probe_scoring"] = time.perf_counter() - started
     return out
 
@@ -753,7 +761,7 @@ def _offset_scores(folds: list, lifting, data: SearchData, top: np.ndarray, timi
     with limited_blas_threads(1):
         for i, (closed, validation) in enumerate(folds):
             models = {int(j): closed[int(j)] if lifting is None else closed[int(j)].model(lifting) for j in top}
-            scores = {j: [] for j in models}
+            scores: dict[int, list[np.ndarray]] = {j: [] for j in models}
             for lo in range(0, len(validation), EPISODES_PER_BATCH):  # a few episodes read at a time
                 held_out = [data.trajectories[k] for k in validation[lo:lo + EPISODES_PER_BATCH]]
                 for j, model in models.items():
@@ -854,7 +862,8 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     n_parts = max(1, min(FAMILY_PARTS, len(data.trajectories) // 4))
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window), probes=probes), set()
-    earlier = {}  # the family heads' statistics, by head, for later stages' liftings they hold
+    # The family heads' statistics, by head, for later stages' liftings they hold.
+    earlier: dict[LiftingSpec, tuple] = {}
     try:
         for stage in STAGES:
             stage_started = time.perf_counter()
@@ -864,7 +873,7 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
             plain = {r.spec: r for r in result.candidates}
             # A family's largest lifting is lifted once; the others' statistics are columns of its own.
             heads = {s: family_of(s, specs) for s in specs}
-            shared = {}
+            shared: dict[LiftingSpec, tuple | None] = {}
             if data.controllers is None:
                 for head in sorted(set(h for h in heads.values() if h is not None)):
                     now = time.perf_counter()

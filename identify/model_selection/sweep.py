@@ -102,11 +102,12 @@ class SweepResult:
         return float(self.alphas[int(np.argmax(self.cv_r2_mean(scoring)))])
 
 
-def fitted_models(template, setup, snapshots: Snapshots, alphas: Sequence[float],
-                  controller: DiscreteStateSpace | None, measured) -> tuple[list[KoopmanModel], list[KoopmanModel]]:
+def fitted_models(template, setup, snapshots: Snapshots, alphas: Sequence[float] | np.ndarray,
+                  controller: DiscreteStateSpace | None,
+                  measured) -> tuple[list[KoopmanModel | None], list[KoopmanModel]]:
     """Closed-loop and plant models of ``template`` for each alpha from shared statistics.
 
-    EDMD plants are wrapped with ``controller`` for their closed loop.
+    EDMD plants are wrapped with ``controller`` for their closed loop (None each without one).
     """
     closed, plants = [], []
     for alpha in alphas:
@@ -122,7 +123,7 @@ def fitted_models(template, setup, snapshots: Snapshots, alphas: Sequence[float]
     return closed, plants
 
 
-def fit_alphas(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float],
+def fit_alphas(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float] | np.ndarray,
                controller: DiscreteStateSpace | None = None, measured=None,
                relift_rows_only: bool = False,
                controllers: Sequence[DiscreteStateSpace] | None = None) -> tuple[list, list[KoopmanModel]]:
@@ -232,8 +233,8 @@ def episode_scores(models: Sequence[KoopmanModel], episodes: Sequence[Trajectory
         x_init = np.stack([t.x[:d + 1] for t in group])
         v = np.stack([ref.inputs_of(t) for t in group])
         # Time-major truth (samples, episodes, channels), as the simulator hands its predictions.
-        truth = np.stack([np.hstack([t.xc, t.x]) if with_p else t.x for t in group], axis=1)
-        p0 = np.stack([t.xc[d] for t in group]) if scoring == "cl" else None
+        truth = np.stack([np.hstack([_controller_states(t), t.x]) if with_p else t.x for t in group], axis=1)
+        p0 = np.stack([_controller_states(t)[d] for t in group]) if scoring == "cl" else None
         for sl in _batches(len(models), per_model):
             sums = _ResidualSums(truth, start, sl.stop - sl.start, channels)
             simulate_chunks(A[sl], B[sl], ref.lifting, n_p, x_init, v, p0, relift, sums)
@@ -241,7 +242,14 @@ def episode_scores(models: Sequence[KoopmanModel], episodes: Sequence[Trajectory
     return out
 
 
-def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float],
+def _controller_states(t: Trajectory) -> np.ndarray:
+    """``t``'s controller states, which a closed-loop score predicts from (a ValueError when it has none)."""
+    if t.xc is None:
+        raise ValueError(f"episode {t.name or '(unnamed)'}: a closed-loop score needs the controller state 'xc'")
+    return t.xc
+
+
+def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float] | np.ndarray,
                          splits: Sequence[tuple[np.ndarray, np.ndarray]], scorings: Sequence[str] = SCORINGS,
                          controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
                          progress: Callable[[int, int], None] | None = None, score_from: int = 1,
@@ -256,7 +264,7 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
         Unfitted template; its ``alpha`` is ignored.
     trajectories : sequence of Trajectory
         Training episodes (signals x, u, r, f, xc as the scorings need).
-    alphas : sequence of float
+    alphas : sequence of float (or ndarray)
     splits : sequence of (train_indices, validation_indices)
         For example :func:`identify.model_selection.split.group_shuffle_splits`, or with
         several controllers :func:`identify.model_selection.split.leave_one_controller_out`.
@@ -403,7 +411,7 @@ def fold_statistics(estimator, trajectories: Sequence[Trajectory], splits: Seque
     that :func:`merge_fold_statistics` joins with the others' (None where a fold trains on none
     of them); the other episodes are not read.
     """
-    selections = [t for t, _ in splits] + [None]
+    selections: list[np.ndarray | list[int] | None] = [t for t, _ in splits] + [None]
     if episodes is not None:
         part = {int(j) for j in episodes}
         selections = [sorted(part if s is None else part.intersection(int(j) for j in s)) for s in selections]
@@ -440,8 +448,10 @@ def episode_heads(trajectories: Sequence[Trajectory], n_delays: int) -> list[Tra
 
 def _first_samples(t: Trajectory, n: int) -> Trajectory:
     """``t``'s first ``n`` samples."""
-    return dataclasses.replace(t, **{k: None if getattr(t, k) is None else getattr(t, k)[:n]
-                                     for k in ("x", "u", "r", "f", "xc")})
+    def head(signal: np.ndarray | None) -> np.ndarray | None:
+        return None if signal is None else signal[:n]
+
+    return dataclasses.replace(t, x=t.x[:n], u=head(t.u), r=head(t.r), f=head(t.f), xc=head(t.xc))
 
 
 def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) -> tuple | None:
@@ -465,8 +475,8 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) 
     setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
     small, big = setup.lifting, big_setup.lifting
     fewer = small.n_delays_ < big.n_delays_
-    if (small.n_delays_ > big.n_delays_ or (fewer and (heads is None or splits is None))
-            or setup.target_rows != big_setup.target_rows or setup.n_feedforward != big_setup.n_feedforward):
+    if (small.n_delays_ > big.n_delays_ or setup.target_rows != big_setup.target_rows
+            or setup.n_feedforward != big_setup.n_feedforward):
         return None
     names, big_names = small.feature_names_out_, big.feature_names_out_
     n_c = setup.target_rows - small.n_features_in_  # the controller's states lead the snapshots
@@ -478,6 +488,8 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) 
     targets = list(range(setup.target_rows))
     if not fewer:
         return setup, [s.columns(regressors, targets) for s in per_fold], everything.columns(regressors, targets)
+    if heads is None or splits is None:  # fewer delays: their extra snapshots come from the heads, by the splits
+        return None
     # The snapshots from sample small.n_delays_ to big.n_delays_ - 1 of each episode, which the larger lifting lacks.
     extra = [template._episode_snapshots(setup, head) for head in heads]
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -198,8 +198,10 @@ def probe_cache_key(sources: Sequence[Trajectory], gains, per_controller: int, p
         for value in values:
             digest.update(repr(value).encode() + b"\0")
 
-    add(gains, per_controller, seed, skip, asdict(params) if is_dataclass(params) else repr(params),
-        asdict(distribution) if is_dataclass(distribution) else repr(distribution))
+    def fields(value) -> object:  # a dataclass instance's fields (its class has none to give)
+        return asdict(value) if is_dataclass(value) and not isinstance(value, type) else repr(value)
+
+    add(gains, per_controller, seed, skip, fields(params), fields(distribution))
     for t in sources:
         add(t.dt, t.n_samples)
         for signal in (t.r, t.f):
@@ -215,7 +217,8 @@ def _write_probes(path: Path, probes: ProbeSet) -> None:
     """Store a probe set whole (a failure to write only costs the next run the simulation)."""
     from qube_koopman.core.files import atomic_path
 
-    arrays = {"gains": np.array(probes.gains, float), "dropped": np.array(probes.dropped)}
+    # Any, not ndarray: np.savez's **kwds sit beside its allow_pickle: bool, which mypy checks a dict of arrays against
+    arrays: dict[str, Any] = {"gains": np.array(probes.gains, float), "dropped": np.array(probes.dropped)}
     for i, (controller, episodes, zeros) in enumerate(zip(probes.controllers, probes.episodes, probes.alpha_offsets)):
         arrays[f"c{i}_zeros"] = zeros
         arrays[f"c{i}_names"] = np.array([t.name for t in episodes])
@@ -235,9 +238,12 @@ def _write_probes(path: Path, probes: ProbeSet) -> None:
                                             path, exc.strerror or exc)
 
 
-def _read_probes(path: Path, dt: float) -> ProbeSet | None:
-    """A stored probe set, or None when there is none (or it cannot be read)."""
+def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
+    """A stored probe set, or None when there is none (or it cannot be read, or ``dt`` is None)."""
     import zipfile
+
+    if dt is None:  # its controllers cannot be made without the sample period
+        return None
 
     try:
         with np.load(path, allow_pickle=False) as data:
@@ -245,7 +251,8 @@ def _read_probes(path: Path, dt: float) -> ProbeSet | None:
             controllers, episodes, zeros = [], [], []
             i = 0
             while f"c{i}_zeros" in data:
-                controllers.append(DiscreteStateSpace(*(data[f"c{i}_{name}"] for name in ("A", "B", "C", "D")), dt))
+                A, B, C, D = (data[f"c{i}_{name}"] for name in ("A", "B", "C", "D"))
+                controllers.append(DiscreteStateSpace(A, B, C, D, dt))
                 zeros.append(data[f"c{i}_zeros"])
                 episodes.append([Trajectory(x=data[f"c{i}_e{j}_x"], u=data[f"c{i}_e{j}_u"], r=data[f"c{i}_e{j}_r"],
                                             f=data[f"c{i}_e{j}_f"], xc=data[f"c{i}_e{j}_xc"], dt=dt,
@@ -265,8 +272,9 @@ def _run_probes(controller: DiscreteStateSpace, sources: Sequence[Trajectory], s
     from qube_koopman.sim.pendulum import SensorModel, simulate_closed_loop
 
     n, k = min(t.n_samples for t in sources), len(sources)
-    r = np.stack([t.r[:n] for t in sources], axis=1)
-    f = np.stack([t.f[:n].reshape(n) for t in sources], axis=1)
+    replayed = [_replayed(t) for t in sources]
+    r = np.stack([r_t[:n] for r_t, _ in replayed], axis=1)
+    f = np.stack([f_t[:n].reshape(n) for _, f_t in replayed], axis=1)
     run = simulate_closed_loop(start, controller, r, f, params, SensorModel(), rng=rng, alpha_offsets=zeros)
     kept, kept_zeros = [], []
     for j in range(k):
@@ -280,3 +288,8 @@ def _run_probes(controller: DiscreteStateSpace, sources: Sequence[Trajectory], s
     return kept, np.array(kept_zeros)
 
 
+def _replayed(t: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """The references and feedforward of a source episode, which its probes replay."""
+    if t.r is None or t.f is None:
+        raise ValueError(f"episode {t.name!r} has no references or feedforward to replay on the twin")
+    return t.r, t.f
