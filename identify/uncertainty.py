@@ -65,6 +65,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from qube_koopman.core.files import atomic_path
@@ -80,6 +81,10 @@ from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.model_selection.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
+
+if TYPE_CHECKING:
+    from qube_koopman.identify.estimators._base import SnapshotEstimator
+    from qube_koopman.identify.models.model import KoopmanModel
 
 __all__ = [
     "OFFSET_STEP",
@@ -190,11 +195,17 @@ class Loop:
             return plant
         if self.kind == "closed":
             return closed
-        return close_loop(plant, self.controller, measured)
+        return close_loop(plant, self._wrapping(), measured)
 
     def same(self, other: Loop) -> bool:
         """Whether the two loops use the same model."""
-        return self.kind == other.kind and (self.kind != "wrapped" or same_system(self.controller, other.controller))
+        return self.kind == other.kind and (self.kind != "wrapped" or same_system(self._wrapping(), other._wrapping()))
+
+    def _wrapping(self) -> DiscreteStateSpace:
+        """The controller a ``"wrapped"`` loop wraps the plant with (a ValueError when it has none)."""
+        if self.controller is None:
+            raise ValueError(f"this {self.kind!r} loop has no controller to wrap the plant with")
+        return self.controller
 
 
 def consecutive_runs(loops: Sequence[Loop], size: int = EPISODES_PER_BATCH) -> list[list[int]]:
@@ -300,8 +311,8 @@ class FoldEnsemble:
     """
 
     validation: np.ndarray
-    point: tuple
-    members: list
+    point: tuple[KoopmanModel | None, KoopmanModel]
+    members: list[tuple[KoopmanModel | None, KoopmanModel]]
 
 
 @dataclass
@@ -320,8 +331,8 @@ class EnsembleFit:
         Each member's draw of the episodes.
     """
 
-    estimator: object
-    members: list
+    estimator: SnapshotEstimator
+    members: list[tuple[KoopmanModel | None, KoopmanModel]]
     folds: list[FoldEnsemble]
     counts: np.ndarray
 
@@ -436,6 +447,13 @@ class _EnsembleSink:
         self.variance[at] = np.where(np.isfinite(spread), spread, np.inf)
 
 
+def _controller_states(t: Trajectory) -> np.ndarray:
+    """``t``'s controller states, which a model with passthrough states predicts from (a ValueError without)."""
+    if t.xc is None:
+        raise ValueError(f"episode {t.name or '(unnamed)'}: a closed-loop prediction needs the controller state 'xc'")
+    return t.xc
+
+
 def _simulate(models: Sequence, trajectories: Sequence[Trajectory]) -> tuple[np.ndarray, np.ndarray | None]:
     """Every model over equally long episodes in one batch: the first model's prediction, the others' variance."""
     point = models[0]
@@ -443,7 +461,7 @@ def _simulate(models: Sequence, trajectories: Sequence[Trajectory]) -> tuple[np.
     T = trajectories[0].n_samples
     x_init = np.stack([t.x[:d + 1] for t in trajectories])
     v = np.stack([point.inputs_of(t) for t in trajectories])
-    p0 = np.stack([t.xc[d] for t in trajectories]) if n_p else None
+    p0 = np.stack([_controller_states(t)[d] for t in trajectories]) if n_p else None
     sink = _EnsembleSink(T, len(trajectories), m, n_p, len(models), d)
     sink.prediction[:d + 1] = np.moveaxis(x_init, 1, 0)
     simulate_chunks(np.stack([model.A for model in models]), np.stack([model.B for model in models]), point.lifting,
@@ -504,7 +522,7 @@ def predict_episodes(models: Sequence, trajectories: Sequence[Trajectory], offse
     """
     trajectories = list(trajectories)
     point = models[0]
-    out: list[EpisodePrediction | None] = [None] * len(trajectories)
+    out: dict[int, EpisodePrediction] = {}  # by the episode's index
     by_length: dict[int, list[int]] = {}
     for i, t in enumerate(trajectories):
         by_length.setdefault(t.n_samples, []).append(i)
@@ -527,7 +545,7 @@ def predict_episodes(models: Sequence, trajectories: Sequence[Trajectory], offse
         for j, i in enumerate(group):
             out[i] = EpisodePrediction(prediction[j], None if variance is None else variance[j],
                                        None if plain is None else plain[j], None if estimates is None else estimates[j])
-    return out
+    return [out[i] for i in range(len(trajectories))]
 
 
 # --- calibration ---------------------------------------------------------------------------------
@@ -679,7 +697,7 @@ def calibrate(fit: EnsembleFit, trajectories, loops: Sequence[Loop], level: floa
                 diverged += end < t.n_samples
                 k = np.arange(max(start, d + 1), end, stride)
                 errors.append(t.x[k] - p.prediction[k])
-                variances.append(p.variance[k])
+                variances.append(_members_variance(p)[k])
                 horizons.append(k - d)
     calibration = IntervalCalibration(level).fit(np.concatenate(errors), np.concatenate(variances),
                                                  np.concatenate(horizons))
@@ -825,6 +843,13 @@ class PredictionBand:
                      upper=self.upper, level=np.float64(self.level))
 
 
+def _members_variance(prediction: EpisodePrediction) -> np.ndarray:
+    """The members' variance of a prediction, which a band needs (a ValueError when it was made without members)."""
+    if prediction.variance is None:
+        raise ValueError("a band needs the members' spread: the episode was predicted without members")
+    return prediction.variance
+
+
 def _diverged_from(prediction: np.ndarray, measured: np.ndarray, start: int) -> int | None:
     """First sample from ``start`` on that is non-finite or beyond the divergence bound, or None."""
     bound = DIVERGED_FACTOR * max(1.0, float(np.nanmax(np.abs(measured[start:]), initial=0.0)))
@@ -863,7 +888,7 @@ def prediction_band(name: str, trajectory: Trajectory, prediction: EpisodePredic
     """
     x, pred = trajectory.x, prediction.prediction
     k = np.arange(start, trajectory.n_samples)
-    half = calibration.half_width(prediction.variance[k], k - n_delays)
+    half = calibration.half_width(_members_variance(prediction)[k], k - n_delays)
     diverged = _diverged_from(pred, x, start)
     infinite = ~np.isfinite(half).all(axis=1)
     first_infinite = int(k[np.argmax(infinite)]) if infinite.any() else None
@@ -1027,7 +1052,7 @@ def held_out_figures(fit: EnsembleFit, trajectories, controllers: Sequence[Discr
         held_out = select_episodes(trajectories, fold.validation)
         loops = [Loop.of(controllers[j], None) for j in fold.validation]
         for run in consecutive_runs(loops):  # the episodes of one controller in one batch
-            c, trajs = loops[run[0]].controller, [held_out[i] for i in run]
+            c, trajs = loops[run[0]]._wrapping(), [held_out[i] for i in run]  # Loop.of(..., None): always wrapped
             for t, predicted in zip(trajs, predict_episodes([loops[run[0]].model(*fold.point, measured)], trajs)):
                 x = predicted.prediction
                 y = x[:, list(measured)]

@@ -6,7 +6,7 @@ import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -21,14 +21,18 @@ from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.stability import ClEdmdStable
 from qube_koopman.identify.models.model_file import lifting_to_dict, save_arx_model, save_model, uncertainty_to_dict
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
-from qube_koopman.identify.metrics import DivergedPrediction, episode_score, summarize_scores
+from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
-from qube_koopman.identify.uncertainty import (BandSummary, IntervalOptions, Loop, calibrate, calibrate_on_probes,
-                                               consecutive_runs, widest,
+from qube_koopman.identify.uncertainty import (BandSummary, IntervalCalibration, IntervalOptions, Loop, calibrate,
+                                               calibrate_on_probes, consecutive_runs, widest,
                                                fit_ensemble, held_out_figures, predict_episodes, prediction_band)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
+
+if TYPE_CHECKING:
+    from qube_koopman.identify.model_selection.search import SearchSpace
+    from qube_koopman.identify.model_selection.transfer import ProbeSet
 
 __all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS", "SearchOptions",
            "run_search"]
@@ -248,8 +252,8 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
                 save_model(model_path, method=method, alpha=result.report["alpha"], plant=plant, closed_loop=closed,
                            controller=controller, measured=MEASURED,
                            training={"logs": result.report["train_logs"]},
-                           uncertainty=None if ensemble is None else _design_uncertainty(ensemble, plant, train,
-                                                                                          intervals.seed))
+                           uncertainty=None if ensemble is None or intervals is None else _design_uncertainty(
+                               ensemble, plant, train, intervals.seed))  # an ensemble: intervals were asked for
             bands = None if ensemble is None else _test_bands(
                 ensemble, intervals, train, controller, score, offsets, _first_scored(offsets, score_from, test[0].dt),
                 result, predictions_folder, keep_predictions, probes, probe_cache)
@@ -355,7 +359,10 @@ class _TestScores:
 
     def __init__(self, result: IdentificationResult, start: int, keep_predictions: bool) -> None:
         self.result, self.start, self.keep = result, start, keep_predictions
-        self.names, self.scored, self.scores, self.plain_scores = [], [], [], []
+        self.names: list[str] = []
+        self.scored: list[str] = []  # the scored episodes' names
+        self.scores: list[EpisodeScore] = []
+        self.plain_scores: list[EpisodeScore] = []
         result.test_names, result.test_truth, result.test_predictions, result.test_time = [], [], [], []
 
     def add(self, log, truth: np.ndarray, prediction: np.ndarray, plain: np.ndarray | None = None,
@@ -437,11 +444,12 @@ INTERVAL_METHOD = ("prediction +- k_c sqrt(s_c(t)^2 + q_c (1 - exp(-h / tau_c)))
 class _TestBands:
     """Each test episode's interval, written and summarized as the episodes stream by."""
 
-    def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None):
+    def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None) -> None:
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
         # The calibrations of loops the training never ran, (loop, calibration, report entry) each:
         # made when the first episode under the loop comes.
-        self._other, self.elsewhere = other, []
+        self._other = other
+        self.elsewhere: list[tuple[Loop, IntervalCalibration, dict]] = []
         self.loops = [loop for i, loop in enumerate(loops) if not any(loop.same(seen) for seen in loops[:i])]
         self.result, self.folder, self.seconds = result, None if folder is None else Path(folder), seconds
         self.summary = BandSummary(STATE_NAMES)
@@ -504,7 +512,7 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
     calibration = calibrate(ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED,
                             options.stride)
     seconds = {"calibration": time.perf_counter() - started}
-    default = []  # the default probes' calibration, made once
+    default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
 
     def on_probes(probe_set):
         return calibrate_on_probes(ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride,
@@ -608,7 +616,7 @@ class SearchOptions:
         The TLS settings of that scheduler.
     """
 
-    space: object = None
+    space: SearchSpace | None = None
     estimate_window: float = 1.0
     offset_bound: float = DEFAULT_BOUND
     cv_splits: int = 3

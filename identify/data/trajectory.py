@@ -106,7 +106,8 @@ class EpisodeSequence(Sequence):
 class _EpisodeView(EpisodeSequence):
     """Some episodes of a lazy sequence (``indices``), or one signal of each (``signal``)."""
 
-    def __init__(self, base: EpisodeSequence, indices: Sequence[int] | None = None, signal: str | None = None):
+    def __init__(self, base: EpisodeSequence, indices: Sequence[int] | np.ndarray | None = None,
+                 signal: str | None = None):
         self._base, self._indices, self._signal = base, None if indices is None else [int(i) for i in indices], signal
 
     def __len__(self) -> int:
@@ -124,7 +125,7 @@ def as_episodes(episodes) -> Sequence:
     return episodes if isinstance(episodes, EpisodeSequence) else list(episodes)
 
 
-def select_episodes(episodes: Sequence, indices: Sequence[int]) -> Sequence:
+def select_episodes(episodes: Sequence, indices: Sequence[int] | np.ndarray) -> Sequence:
     """``[episodes[i] for i in indices]``, lazily for a lazy sequence (nothing read until asked for)."""
     if isinstance(episodes, EpisodeSequence):
         return _EpisodeView(episodes, indices=indices)

@@ -14,6 +14,7 @@ from qube_koopman.identify.data.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from qube_koopman.identify.estimators.mixed import ControllerGroups
+    from qube_koopman.identify.models.model import KoopmanModel
 
 
 class Estimator(Params):
@@ -35,6 +36,9 @@ class SnapshotEstimator(Estimator):
     for each episode, ``_finish`` (solve for ``alpha``). Sweeps call the three
     steps themselves to reuse statistics across folds and alphas.
     """
+
+    #: The fitted model, set by ``_finish`` (a closed-loop estimator's: its closed loop).
+    model_: KoopmanModel
 
     def fit(self, trajectories) -> Self:
         """Fit on a list of :class:`~identify.Trajectory` (the class says which signals it needs).
