@@ -76,7 +76,7 @@ from qube_koopman.identify.models.offsets import (
     shift_trajectory,
 )
 from qube_koopman.identify.metrics import DIVERGED_FACTOR, DivergedPrediction
-from qube_koopman.identify.models.simulate import simulate_chunks
+from qube_koopman.identify.models.simulate import ring_capacity, simulate_chunks
 from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.model_selection.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
@@ -106,6 +106,7 @@ __all__ = [
     "held_out_figures",
     "loop_figures",
     "predict_episodes",
+    "predict_groups",
     "prediction_band",
     "summarize_bands",
 ]
@@ -470,6 +471,92 @@ def _simulate(models: Sequence, trajectories: Sequence[Trajectory]) -> tuple[np.
     return np.moveaxis(sink.prediction, 1, 0), variance
 
 
+class _GroupedSink:
+    """:class:`_EnsembleSink` for groups of equally many models, each group on its own episodes."""
+
+    def __init__(self, T: int, n_groups: int, n_eps: int, m: int, n_p: int, n_models: int) -> None:
+        self.shape, self.n_p = (n_groups, n_models), n_p
+        self.prediction = np.full((T, n_groups, n_eps, m), np.nan)
+        self.variance = np.full((T, n_groups, n_eps, m), np.inf) if n_models > 1 else None
+
+    def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
+        at = slice(k0, k0 + len(chunk))
+        grouped = chunk[..., self.n_p:].reshape((len(chunk),) + self.shape + chunk.shape[2:3] + (-1,))
+        self.prediction[at] = grouped[:, :, 0]
+        if self.variance is not None:
+            with np.errstate(all="ignore"):  # a diverged member: a non-finite spread, an infinite variance
+                spread = np.var(grouped[:, :, 1:], axis=2, ddof=1)
+            self.variance[at] = np.where(np.isfinite(spread), spread, np.inf)
+
+
+def _group_key(models: Sequence) -> tuple:
+    point = models[0]
+    return (len(models), point.A.shape, point.B.shape, point.n_passthrough, id(point.lifting))
+
+
+def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]]) -> list[list[EpisodePrediction]]:
+    """:func:`predict_episodes` (without offsets) of several ensembles, each on its own episodes, in few passes.
+
+    The calibration folds are such groups: each fold's point fit and members predict that
+    fold's held-out episodes. Predicted one group at a time, most of the time goes into
+    stepping through the samples, not into arithmetic; groups of the same shape (as many
+    models, one lifting, the same controller order) step together instead
+    (:func:`~qube_koopman.identify.models.simulate.simulate_chunks` with ``paired``). Shorter
+    episodes and smaller groups are padded (a repeated episode, zero inputs past an
+    episode's end) and the padding dropped: the predictions are each group's own.
+
+    Parameters
+    ----------
+    groups : sequence of (models, trajectories)
+        A point model then its members (all groups' models of one lifting), and the episodes
+        they predict.
+
+    Returns
+    -------
+    list of list of EpisodePrediction
+        Per group, in its episodes' order.
+    """
+    out: list[list[EpisodePrediction]] = [[] for _ in groups]
+    buckets: dict[tuple, list[int]] = {}
+    for g, (models, trajectories) in enumerate(groups):
+        if len(trajectories):
+            buckets.setdefault(_group_key(models), []).append(g)
+    batches = []
+    for same in buckets.values():  # as many groups at once as the ring loop takes
+        models = groups[same[0]][0]
+        step = max(1, ring_capacity(models[0].lifting, models[0].A.shape[1], models[0].n_passthrough) // len(models))
+        batches += [same[i:i + step] for i in range(0, len(same), step)]
+    for members in batches:
+        point = groups[members[0]][0][0]
+        d, n_p, m, M = point.n_delays, point.n_passthrough, point.n_states, len(groups[members[0]][0])
+        T = max(t.n_samples for g in members for t in groups[g][1])
+        E = max(len(groups[g][1]) for g in members)
+        x_init = np.empty((len(members), E, d + 1, m))
+        v = np.zeros((len(members), E, T, point.B.shape[1]))
+        p0 = np.zeros((len(members), E, n_p))
+        for i, g in enumerate(members):
+            models, trajectories = groups[g]
+            for e in range(E):
+                t = trajectories[min(e, len(trajectories) - 1)]
+                x_init[i, e] = t.x[:d + 1]
+                v[i, e, :t.n_samples] = models[0].inputs_of(t)
+                if n_p:
+                    p0[i, e] = _controller_states(t)[d]
+        sink = _GroupedSink(T, len(members), E, m, n_p, M)
+        sink.prediction[:d + 1] = np.moveaxis(x_init, 2, 0)
+        if sink.variance is not None:
+            sink.variance[:d + 1] = 0.0
+        A = np.stack([model.A for g in members for model in groups[g][0]])
+        B = np.stack([model.B for g in members for model in groups[g][0]])
+        simulate_chunks(A, B, point.lifting, n_p, x_init, v, p0 if n_p else None, True, sink, paired=True)
+        for i, g in enumerate(members):
+            for e, t in enumerate(groups[g][1]):
+                n = t.n_samples
+                variance = None if sink.variance is None else sink.variance[:n, i, e].copy()
+                out[g].append(EpisodePrediction(sink.prediction[:n, i, e].copy(), variance))
+    return out
+
+
 def _offset_spread(estimate: OffsetEstimate) -> np.ndarray:
     """The standard deviation each offset counts with: its standard error, at most the bound (the bound when unused)."""
     if not estimate.plausible or estimate.std_error is None:
@@ -683,22 +770,27 @@ def calibrate(fit: EnsembleFit, trajectories, loops: Sequence[Loop], level: floa
     IntervalCalibration
     """
     trajectories = as_episodes(trajectories)
-    errors, variances, horizons, diverged = [], [], [], 0
+    groups = []  # (models, held-out episodes) of every fold's runs of one loop
     for fold in fit.folds:
         held_out = select_episodes(trajectories, fold.validation)
         for run in consecutive_runs([loops[j] for j in fold.validation]):
             loop = loops[fold.validation[run[0]]]
             models = [loop.model(*fold.point, measured)] + [loop.model(*m, measured) for m in fold.members]
-            trajs = [held_out[i] for i in run]
-            d = models[0].n_delays
-            for t, p in zip(trajs, predict_episodes(models, trajs, offsets)):
-                # A diverged held-out prediction says nothing about the size of the errors: left out from there.
-                end = _diverged_from(p.prediction, t.x, start) or t.n_samples
-                diverged += end < t.n_samples
-                k = np.arange(max(start, d + 1), end, stride)
-                errors.append(t.x[k] - p.prediction[k])
-                variances.append(_members_variance(p)[k])
-                horizons.append(k - d)
+            groups.append((models, [held_out[i] for i in run]))
+    # Without offsets to estimate per episode, the folds' ensembles predict together (predict_groups).
+    predictions = (predict_groups(groups) if offsets is None
+                   else [predict_episodes(models, trajs, offsets) for models, trajs in groups])
+    errors, variances, horizons, diverged = [], [], [], 0
+    for (models, trajs), predicted in zip(groups, predictions):
+        d = models[0].n_delays
+        for t, p in zip(trajs, predicted):
+            # A diverged held-out prediction says nothing about the size of the errors: left out from there.
+            end = _diverged_from(p.prediction, t.x, start) or t.n_samples
+            diverged += end < t.n_samples
+            k = np.arange(max(start, d + 1), end, stride)
+            errors.append(t.x[k] - p.prediction[k])
+            variances.append(_members_variance(p)[k])
+            horizons.append(k - d)
     calibration = IntervalCalibration(level).fit(np.concatenate(errors), np.concatenate(variances),
                                                  np.concatenate(horizons))
     calibration.n_diverged_ = diverged
@@ -1047,17 +1139,20 @@ def held_out_figures(fit: EnsembleFit, trajectories, controllers: Sequence[Discr
     from qube_koopman.identify.estimators.structure import controller_states, plant_input
 
     trajectories = as_episodes(trajectories)
-    rows = []
+    groups, wrapping = [], []  # per fold and controller: its point fit wrapped, the episodes; the controller
     for fold in fit.folds:
         held_out = select_episodes(trajectories, fold.validation)
         loops = [Loop.of(controllers[j], None) for j in fold.validation]
         for run in consecutive_runs(loops):  # the episodes of one controller in one batch
-            c, trajs = loops[run[0]]._wrapping(), [held_out[i] for i in run]  # Loop.of(..., None): always wrapped
-            for t, predicted in zip(trajs, predict_episodes([loops[run[0]].model(*fold.point, measured)], trajs)):
-                x = predicted.prediction
-                y = x[:, list(measured)]
-                with np.errstate(all="ignore"):
-                    u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
-                rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip),
-                             loop_figures(x, t.r[:, 0], u[:, 0], skip)])
+            groups.append(([loops[run[0]].model(*fold.point, measured)], [held_out[i] for i in run]))
+            wrapping.append(loops[run[0]]._wrapping())  # Loop.of(..., None): always wrapped
+    rows = []
+    for (_, trajs), c, predictions in zip(groups, wrapping, predict_groups(groups)):
+        for t, predicted in zip(trajs, predictions):
+            x = predicted.prediction
+            y = x[:, list(measured)]
+            with np.errstate(all="ignore"):
+                u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
+            rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip),
+                         loop_figures(x, t.r[:, 0], u[:, 0], skip)])
     return np.array(rows).reshape(-1, 2, 3)

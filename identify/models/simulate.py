@@ -28,10 +28,13 @@ import numpy as np
 from qube_koopman.identify.lifting import Constant, CoulombFriction, Delay, Lifting, Polynomial
 from qube_koopman.identify.lifting.rbf import RadialBasis
 
-__all__ = ["simulate_batch", "simulate_chunks"]
+__all__ = ["ring_capacity", "simulate_batch", "simulate_chunks"]
 
 #: Samples whose input terms are computed together (bounds that array to a few MB).
 _INPUT_CHUNK = 256
+#: Passthrough rows from which the ring steps rows shared by every model in one product (below,
+#: the batched product is as fast).
+_MIN_SHARED_ROWS = 8
 #: Largest set of permuted Koopman matrices and RBF centres the ring may keep (bytes).
 _MAX_RING_BYTES = 64 * 2**20
 
@@ -87,9 +90,20 @@ def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough
     return np.moveaxis(x, 0, 2), np.moveaxis(p, 0, 2)
 
 
+def ring_capacity(lifting: Lifting, n_lifted: int, n_passthrough: int) -> int:
+    """How many models of this shape the ring loop (the fastest) takes in one batch.
+
+    It keeps a permuted copy of each model's used rows of ``A`` per delay slot; a larger batch
+    is stepped by the slower history loop. Callers that batch models of their own choosing
+    (:func:`~qube_koopman.identify.uncertainty.predict_groups`) split by this.
+    """
+    per_model = (lifting.n_delays_ + 1) * n_lifted * (n_passthrough + lifting.n_features_in_) * 8
+    return max(1, _MAX_RING_BYTES // per_model)
+
+
 def simulate_chunks(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough: int,
                     x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None, relift: bool,
-                    sink: Callable[[int, np.ndarray, np.ndarray], None]) -> None:
+                    sink: Callable[[int, np.ndarray, np.ndarray], None], paired: bool = False) -> None:
     """:func:`simulate_batch`, handing the predictions to ``sink`` by chunks of samples.
 
     ``sink(k0, chunk, models)`` receives ``chunk`` of shape (n, len(models),
@@ -101,11 +115,30 @@ def simulate_chunks(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthroug
     reused: copy what must outlive the call. A scorer that sums errors as they
     come never holds a whole prediction (memory stays flat in the episodes'
     length and the number of models).
+
+    With ``paired``, groups of models predict episodes of their own: ``x_init``, ``v`` and
+    ``p0`` have a leading axis of ``n_groups`` (``x_init`` of shape (n_groups, n_episodes,
+    n_delays + 1, n_states), ...), and the models are ``n_groups`` consecutive groups of
+    ``n_models // n_groups``. Ensembles on different episodes (the folds of a
+    cross-validation) then share one pass over the samples, and every model stays in the
+    chunks to the end (a diverged one gives non-finite samples).
     """
     d, m, n_p = lifting.n_delays_, lifting.n_features_in_, n_passthrough
-    n_models, n_eps = A.shape[0], v.shape[0]
-    p_d = np.zeros((n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
-    lifted0 = lifting.transform(x_init)[:, 0, :]
+    n_models = A.shape[0]
+    x_init = np.asarray(x_init, dtype=float)
+    if paired:
+        n_groups, n_eps = v.shape[:2]
+        if n_models % n_groups:
+            raise ValueError(f"{n_models} models do not split into {n_groups} equal groups")
+        each = n_models // n_groups  # the models of a group, on its episodes
+        p_d = np.zeros((n_groups, n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
+        lifted0 = lifting.transform(x_init.reshape((-1,) + x_init.shape[2:]))[:, 0, :].reshape(n_groups, n_eps, -1)
+        p_d, lifted0 = np.repeat(p_d, each, axis=0), np.repeat(lifted0, each, axis=0)
+        x_init = np.repeat(x_init, each, axis=0)
+    else:
+        n_eps = v.shape[0]
+        p_d = np.zeros((n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
+        lifted0 = lifting.transform(x_init)[:, 0, :]
     z = np.array(np.broadcast_to(np.concatenate([p_d, lifted0], axis=-1),
                                  (n_models, n_eps, n_p + lifted0.shape[-1])))
     rows = n_p + m if relift else A.shape[1]
@@ -116,29 +149,41 @@ def simulate_chunks(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthroug
         stepper = _Propagate(z, At)
     else:
         ring = _RingLayout.of(lifting, n_p, m, At)
-        stepper = _RingStepper(ring, z, rows) if ring is not None else _HistoryStepper(lifting, z, At, x_init, n_p)
+        if ring is not None:
+            stepper = _RingStepper(ring, z, rows)
+        else:
+            history = x_init.reshape((-1,) + x_init.shape[-2:]) if paired else x_init
+            stepper = _HistoryStepper(lifting, z, At, history, n_p, paired)
     with np.errstate(all="ignore"):
-        _run(stepper, Bt, v, d, n_p + m, sink)
+        _run(stepper, Bt, v, d, n_p + m, sink, paired)
 
 
-def _run(stepper, Bt: np.ndarray, v: np.ndarray, d: int, width: int, sink) -> None:
+def _run(stepper, Bt: np.ndarray, v: np.ndarray, d: int, width: int, sink, paired: bool = False) -> None:
     """Step from sample ``d``: input terms by chunks of samples, predictions to ``sink`` by the same chunks.
 
     A model whose every prediction has diverged by the end of a chunk is dropped from the
     rest of the run (its remaining samples would be non-finite): ``sink`` is told which
-    models, by their index, each chunk holds.
+    models, by their index, each chunk holds. Paired models (each on its own episodes) all
+    run to the end.
     """
-    T = v.shape[1]
+    T = v.shape[-2]
+    n_eps = v.shape[1] if paired else v.shape[0]
     models = np.arange(Bt.shape[0])
     buf = np.empty((_INPUT_CHUNK,) + stepper.z.shape[:2] + (width,))
     for c0 in range(d, T - 1, _INPUT_CHUNK):
         n = min(_INPUT_CHUNK, T - 1 - c0)
+        if paired:  # each group's inputs times its models' B: (groups, models per group, episodes x n, rows)
+            chunk = v[:, :, c0:c0 + n].reshape(v.shape[0], 1, -1, v.shape[-1])
+            terms = np.matmul(chunk, Bt.reshape((v.shape[0], -1) + Bt.shape[1:]))
+        else:
+            terms = np.matmul(v[:, c0:c0 + n].reshape(1, -1, v.shape[-1]), Bt)
         # Time first, so that each step adds one contiguous block.
-        u_terms = np.ascontiguousarray(np.matmul(v[:, c0:c0 + n].reshape(1, -1, v.shape[-1]), Bt).reshape(
-            Bt.shape[0], v.shape[0], n, Bt.shape[-1]).transpose(2, 0, 1, 3))
+        u_terms = np.ascontiguousarray(terms.reshape(Bt.shape[0], n_eps, n, Bt.shape[-1]).transpose(2, 0, 1, 3))
         for j in range(n):
             stepper.step(u_terms[j], buf[j])
         sink(c0 + 1, buf[:n], models)
+        if paired:
+            continue
         alive = np.isfinite(buf[n - 1]).any(axis=(1, 2))
         if not alive.all():
             if not alive.any():
@@ -171,11 +216,14 @@ class _HistoryStepper:
     applied to that history.
     """
 
-    def __init__(self, lifting: Lifting, z: np.ndarray, At: np.ndarray, x_init: np.ndarray, n_p: int) -> None:
+    def __init__(self, lifting: Lifting, z: np.ndarray, At: np.ndarray, x_init: np.ndarray, n_p: int,
+                 paired: bool = False) -> None:
         self.head, self.tail = _split_pointwise_head(lifting)
         self.z, self.At, self.n_p = z, At, n_p
         history = _apply(self.head, np.asarray(x_init, dtype=float))  # (episodes, d + 1, features)
-        self.history = np.array(np.broadcast_to(history, z.shape[:2] + history.shape[1:]))
+        if paired:  # (models x episodes, ...): each model's own episodes
+            history = history.reshape(z.shape[:2] + history.shape[1:])
+        self.history = np.array(np.broadcast_to(history, z.shape[:2] + history.shape[-2:]))
 
     def step(self, u_term: np.ndarray, out: np.ndarray) -> None:
         nxt = self.z @ self.At
@@ -211,6 +259,10 @@ class _RingLayout:
     slots: int
     rbf: RadialBasis | None
     perms: list[np.ndarray]
+    # The passthrough rows' permuted A^T when every model has the same (a known controller's state
+    # update wrapped around each fitted plant): one matrix product for all models at once; perms
+    # then hold only the plant rows. None when they differ.
+    shared: list[np.ndarray] | None
     centers: list[np.ndarray] | None
     centers_sq: np.ndarray | None
     picks: list[np.ndarray] | None
@@ -240,11 +292,16 @@ class _RingLayout:
         # Ring position q: slot s holds the sample of age (s - q) mod slots.
         order = [np.array([((s - q) % slots) * n_feat + c for s in range(slots) for c in range(n_feat)])
                  for q in range(slots)]
-        perms = [np.ascontiguousarray(At[:, np.r_[np.arange(n_p), n_p + o, np.arange(n_p + n_shift, At.shape[1])], :])
-                 for o in order]
+        rows_of = [np.r_[np.arange(n_p), n_p + o, np.arange(n_p + n_shift, At.shape[1])] for o in order]
+        shared = None
+        if n_p >= _MIN_SHARED_ROWS and At.shape[0] > 1 and np.array_equal(At[:, :, :n_p], np.broadcast_to(
+                At[:1, :, :n_p], At[:, :, :n_p].shape)):
+            shared = [np.ascontiguousarray(At[0][r][:, :n_p]) for r in rows_of]
+            At = At[:, :, n_p:]
+        perms = [np.ascontiguousarray(At[:, r, :]) for r in rows_of]
         centers = None if rbf is None else [np.ascontiguousarray(rbf.centers_[:, o].T) for o in order]
         centers_sq = None if rbf is None else np.einsum("ij,ij->i", rbf.centers_, rbf.centers_)
-        return cls(head, n_p, n_feat, slots, rbf, perms, centers, centers_sq, _monomial_picks(head, n_p, m),
+        return cls(head, n_p, n_feat, slots, rbf, perms, shared, centers, centers_sq, _monomial_picks(head, n_p, m),
                    [(f.feature, f.past_index_ // n_feat, f.width) for f in friction])
 
     def write_newest(self, z: np.ndarray, y: np.ndarray, q: int) -> None:
@@ -308,7 +365,12 @@ class _RingStepper:
 
     def step(self, u_term: np.ndarray, out: np.ndarray) -> None:
         ring, z, newest = self.ring, self.z, self.newest
-        np.matmul(z, ring.perms[self.q], out=newest)
+        if ring.shared is None:
+            np.matmul(z, ring.perms[self.q], out=newest)
+        else:  # the shared passthrough rows in one product over every model's episodes, then the plant rows
+            n_p = ring.n_p
+            newest[..., :n_p] = (z.reshape(-1, z.shape[-1]) @ ring.shared[self.q]).reshape(z.shape[:2] + (n_p,))
+            newest[..., n_p:] = np.matmul(z, ring.perms[self.q])
         newest += u_term
         out[...] = newest
         self.q = q = (self.q - 1) % ring.slots  # the oldest slot takes the newest sample

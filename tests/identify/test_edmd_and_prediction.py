@@ -222,3 +222,59 @@ def test_a_model_that_diverges_before_the_scored_samples_scores_minus_infinity(l
     assert np.isfinite(scores[0]) and scores[1] == -np.inf
     x = unstable.predict(trajs[2])
     assert not np.isfinite(x[start:]).any() and np.isfinite(x[:3]).all()
+
+
+def _random_models(n_models: int, n_lifted: int, n_inputs: int, n_p: int, seed: int, shared: bool):
+    """Contracting random Koopman matrices; the first ``n_p`` rows the same in every model when ``shared``."""
+    rng = np.random.default_rng(seed)
+    A = rng.uniform(-1, 1, (n_models, n_lifted, n_lifted)) / n_lifted
+    B = rng.uniform(-1, 1, (n_models, n_lifted, n_inputs)) / n_lifted
+    if shared:
+        A[:, :n_p], B[:, :n_p] = A[:1, :n_p], B[:1, :n_p]
+    return A, B
+
+
+@pytest.mark.parametrize("lifting", [[Polynomial(2), Delay(3), Constant()],   # the ring
+                                     [Delay(2), Polynomial(2)]])              # the history loop
+@pytest.mark.parametrize("n_p", [0, 9])  # 9 passthrough rows shared by every model: one product for all
+def test_batched_paired_and_shared_row_predictions_are_each_models_own(loop, lifting, n_p):
+    from qube_koopman.identify.models.simulate import simulate_batch, simulate_chunks
+
+    *_, trajs = loop
+    fitted = Lifting(lifting).fit([t.x for t in trajs])
+    d, n_lifted, n_in = fitted.n_delays_, n_p + fitted.n_features_out_, 2
+    A, B = _random_models(6, n_lifted, n_in, n_p, seed=4, shared=True)
+    rng = np.random.default_rng(5)
+    # Two groups of three models, each group on its own two episodes (the folds of a calibration).
+    x_init = np.stack([np.stack([t.x[k:k + d + 1] for t in trajs[:2]]) for k in (0, 7)])
+    v = rng.uniform(-1, 1, (2, 2, 120, n_in))
+    p0 = rng.uniform(-1, 1, (2, 2, n_p)) if n_p else None
+    chunks = []
+    simulate_chunks(A, B, fitted, n_p, x_init, v, p0, True,
+                    lambda k0, chunk, models: chunks.append((k0, chunk.copy(), models.copy())), paired=True)
+    paired = np.concatenate([c for _, c, _ in chunks])  # (samples, models, episodes, n_p + states)
+    assert all(m.tolist() == list(range(6)) for *_, m in chunks)
+    for i in range(6):  # each model alone on its group's episodes: no shared rows, no pairing
+        g = i // 3
+        x, p = simulate_batch(A[i:i + 1], B[i:i + 1], fitted, n_p, x_init[g], v[g], None if p0 is None else p0[g])
+        np.testing.assert_allclose(paired[:, i, :, n_p:], np.moveaxis(x[0, :, d + 1:], 1, 0), rtol=1e-10, atol=1e-12)
+        if n_p:
+            np.testing.assert_allclose(paired[:, i, :, :n_p], np.moveaxis(p[0, :, d + 1:], 1, 0), rtol=1e-10,
+                                       atol=1e-12)
+    # The shared rows' one product gives what the per-model products give (all six on one group's episodes).
+    x_all, _ = simulate_batch(A, B, fitted, n_p, x_init[0], v[0], None if p0 is None else p0[0])
+    x_one, _ = simulate_batch(A[4:5], B[4:5], fitted, n_p, x_init[0], v[0], None if p0 is None else p0[0])
+    np.testing.assert_allclose(x_all[4], x_one[0], rtol=1e-10, atol=1e-12)
+
+
+def test_the_ring_steps_shared_passthrough_rows_once_for_all_models():
+    from qube_koopman.identify.models.simulate import _RingLayout
+
+    fitted = Lifting([Polynomial(2), Delay(3)]).fit([np.random.default_rng(0).normal(size=(50, 2))])
+    n_lifted = 9 + fitted.n_features_out_
+    for shared in (True, False):
+        A, _ = _random_models(4, n_lifted, 1, 9, seed=1, shared=shared)
+        At = np.ascontiguousarray(A[:, :11, :].transpose(0, 2, 1))
+        ring = _RingLayout.of(fitted, 9, 2, At)
+        assert (ring.shared is not None) == shared
+        assert ring.perms[0].shape[-1] == (2 if shared else 11)

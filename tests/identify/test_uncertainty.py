@@ -215,3 +215,26 @@ def test_the_widest_calibration_takes_each_channel_from_the_wider_band():
     variances, horizons = np.zeros((1, 2)), np.array([10_000])
     np.testing.assert_allclose(w.half_width(variances, horizons),
                                np.maximum(a.half_width(variances, horizons), b.half_width(variances, horizons)))
+
+
+def test_the_folds_predicted_together_are_each_folds_own_predictions(ar1):
+    from qube_koopman.identify.uncertainty import predict_groups
+
+    train = ar1[0][:12]
+    fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-3), train, IntervalOptions(n_members=3, n_calibration_members=3,
+                                                                                n_folds=3))
+    shorter = dataclasses.replace(train[0], x=train[0].x[:200], r=train[0].r[:200], xc=train[0].xc[:200],
+                                  name="short")
+    groups = []
+    for i, fold in enumerate(fit.folds):  # unequal groups: one more episode (a shorter one) in the first
+        episodes = [train[j] for j in fold.validation] + ([shorter] if i == 0 else [])
+        models = [fold.point[0]] + [closed for closed, _ in fold.members]
+        groups.append((models, episodes))
+    together = predict_groups(groups)
+    for (models, episodes), predicted in zip(groups, together):
+        alone = predict_episodes(models, episodes)
+        assert len(predicted) == len(episodes)
+        for a, b, t in zip(predicted, alone, episodes):
+            assert a.prediction.shape == (t.n_samples, 1)
+            np.testing.assert_allclose(a.prediction, b.prediction, rtol=1e-10, atol=1e-13)
+            np.testing.assert_allclose(a.variance, b.variance, rtol=1e-8, atol=1e-16)
