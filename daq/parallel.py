@@ -358,7 +358,8 @@ def run_episodes_parallel(backend, plans: Sequence[EpisodePlan], out_dir: str | 
     folder = Path(tempfile.mkdtemp(prefix="qube-run-"))
     state = _RunState(plans, _Flags(folder, os.getpid()), stop, on_result, timing)
     parallel = joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None, batch_size=1)
-    args = (Path(out_dir), state.flags, limits, spin, worker_setup)
+    # Absolute: joblib may reuse workers another part of this process started in another directory.
+    args = (Path(out_dir).absolute(), state.flags, limits, spin, worker_setup)
     try:
         with stop_on_signals(stop), _relay(lambda: (stop.reason, stop.signal) if stop.requested else None,
                                            state.flags.halt):

@@ -206,3 +206,22 @@ def test_sigterm_to_the_run_stops_the_workers_episodes_with_their_logs_closed(tm
         assert np.array_equal(ep.t, np.arange(n) / 500), "no sample lost"
     assert "1 complete, 2 aborted" in out and "interrupted by SIGTERM" in err
     assert "Traceback" not in err
+
+
+def test_a_relative_out_folder_is_this_processs_even_when_joblibs_workers_started_elsewhere(tmp_path, monkeypatch):
+    # joblib's reusable workers keep the working directory they were started in: another part of
+    # the same process (a search, an earlier run from elsewhere) may have started them. The
+    # workers' episodes must still go to the folder the caller named, relative to its own cwd.
+    import joblib
+
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    # Workers started here, as the run's (the same settings: joblib reuses them) and left running.
+    started = joblib.Parallel(n_jobs=2, return_as="generator", max_nbytes=None, batch_size=1)(
+        joblib.delayed(abs)(-k) for k in range(4))
+    assert list(started) == [0, 1, 2, 3]
+    monkeypatch.chdir(tmp_path / "here")
+    assert main(["--episodes", "3", "--duration", "1", "--seed", "3", "--n-jobs", "2", "--out", "logs", "-q"]) == 0
+    assert len(_logs(tmp_path / "here" / "logs")) == 3
+    assert not (tmp_path / "elsewhere" / "logs").exists()
