@@ -494,8 +494,9 @@ def _group_key(models: Sequence) -> tuple:
     return (len(models), point.A.shape, point.B.shape, point.n_passthrough, id(point.lifting))
 
 
-def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]]) -> list[list[EpisodePrediction]]:
-    """:func:`predict_episodes` (without offsets) of several ensembles, each on its own episodes, in few passes.
+def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]],
+                   offsets=None) -> list[list[EpisodePrediction]]:
+    """:func:`predict_episodes` of several ensembles, each on its own episodes, in few passes.
 
     The calibration folds are such groups: each fold's point fit and members predict that
     fold's held-out episodes. Predicted one group at a time, most of the time goes into
@@ -503,19 +504,65 @@ def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]]) -> l
     models, one lifting, the same controller order) step together instead
     (:func:`~qube_koopman.identify.models.simulate.simulate_chunks` with ``paired``). Shorter
     episodes and smaller groups are padded (a repeated episode, zero inputs past an
-    episode's end) and the padding dropped: the predictions are each group's own.
+    episode's end) and the padding dropped: the predictions are each group's own. With
+    ``offsets``, each group's point model estimates its episodes' offsets first; the
+    predictions at them, and the offsets' sensitivities, step together again.
 
     Parameters
     ----------
     groups : sequence of (models, trajectories)
         A point model then its members (all groups' models of one lifting), and the episodes
         they predict.
+    offsets : OffsetProtocol, optional
+        As for :func:`predict_episodes`.
 
     Returns
     -------
     list of list of EpisodePrediction
         Per group, in its episodes' order.
     """
+    if offsets is None:
+        return _predict_plain_groups(groups)
+    estimates = [estimate_offsets_many(models[0], trajs, offsets.channels, offsets.window(trajs[0].dt), offsets.bound)
+                 if len(trajs) else [] for models, trajs in groups]
+    shifted = [(models, [shift_trajectory(models[0], t, e.as_mapping()) for t, e in zip(trajs, found)])
+               for (models, trajs), found in zip(groups, estimates)]
+    predicted = _predict_plain_groups(shifted)
+    for found, group in zip(estimates, predicted):
+        for e, p in zip(found, group):
+            for c, value in e.as_mapping().items():
+                p.prediction[:, c] += value
+    # Each group's point model without its offsets, then (with members) at them with one channel moved.
+    runs = []
+    for (models, trajs), found in zip(groups, estimates):
+        used = [{c: e.as_mapping().get(c, 0.0) for c in found[0].channels} for e in found] if found else []
+        moved = [] if len(models) < 2 or not found else [{**u, c: u[c] + OFFSET_STEP} for c in found[0].channels
+                                                          for u in used]
+        runs.append([{}] * len(trajs) + moved)
+    plain = _predict_plain_groups([([models[0]], [shift_trajectory(models[0], t, o) for t, o in
+                                                  zip(list(trajs) * (len(o_s) // max(len(trajs), 1)), o_s)])
+                                   for (models, trajs), o_s in zip(groups, runs)])
+    out = []
+    for (models, trajs), found, group, at, o_s in zip(groups, estimates, predicted, plain, runs):
+        n = len(trajs)
+        for run, o in zip(at, o_s):
+            for c, value in o.items():
+                run.prediction[:, c] += value
+        if len(models) > 1 and found:
+            spread = np.array([_offset_spread(e) for e in found])  # (episodes, channels)
+            for i in range(len(found[0].channels)):
+                for j, p in enumerate(group):
+                    assert p.variance is not None  # members give a variance
+                    sensitivity = (at[n * (i + 1) + j].prediction - p.prediction) / OFFSET_STEP
+                    with np.errstate(invalid="ignore", over="ignore"):
+                        p.variance += (sensitivity * spread[j, i]) ** 2
+        out.append([EpisodePrediction(p.prediction, p.variance, at[j].prediction, e)
+                    for j, (p, e) in enumerate(zip(group, found))])
+    return out
+
+
+def _predict_plain_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]]) -> list[list[EpisodePrediction]]:
+    """:func:`predict_groups` without offsets."""
     out: list[list[EpisodePrediction]] = [[] for _ in groups]
     buckets: dict[tuple, list[int]] = {}
     for g, (models, trajectories) in enumerate(groups):
@@ -777,9 +824,7 @@ def calibrate(fit: EnsembleFit, trajectories, loops: Sequence[Loop], level: floa
             loop = loops[fold.validation[run[0]]]
             models = [loop.model(*fold.point, measured)] + [loop.model(*m, measured) for m in fold.members]
             groups.append((models, [held_out[i] for i in run]))
-    # Without offsets to estimate per episode, the folds' ensembles predict together (predict_groups).
-    predictions = (predict_groups(groups) if offsets is None
-                   else [predict_episodes(models, trajs, offsets) for models, trajs in groups])
+    predictions = predict_groups(groups, offsets)  # the folds' ensembles together
     errors, variances, horizons, diverged = [], [], [], 0
     for (models, trajs), predicted in zip(groups, predictions):
         d = models[0].n_delays

@@ -312,11 +312,11 @@ class _RingLayout:
         if self.picks is None:
             slot[...] = _apply(self.head, y[..., None, self.n_p:rows])[..., 0, :]
         elif len(self.picks) == 1:  # order 1: the states themselves
-            np.copyto(slot, np.take(y, self.picks[0], axis=-1))
-        else:  # np.take: faster than fancy indexing on these small arrays
-            np.multiply(np.take(y, self.picks[0], axis=-1), np.take(y, self.picks[1], axis=-1), out=slot)
+            np.copyto(slot, y.take(self.picks[0], axis=-1))
+        else:  # ndarray.take: faster than fancy indexing on these small arrays (and than np.take's wrapper)
+            np.multiply(y.take(self.picks[0], axis=-1), y.take(self.picks[1], axis=-1), out=slot)
             for extra in self.picks[2:]:
-                slot *= np.take(y, extra, axis=-1)
+                slot *= y.take(extra, axis=-1)
 
     def write_rbf(self, z: np.ndarray, q: int) -> None:
         """The radial basis values of the delayed vector at ring position ``q``."""

@@ -217,7 +217,8 @@ def test_the_widest_calibration_takes_each_channel_from_the_wider_band():
                                np.maximum(a.half_width(variances, horizons), b.half_width(variances, horizons)))
 
 
-def test_the_folds_predicted_together_are_each_folds_own_predictions(ar1):
+@pytest.mark.parametrize("offsets", [None, _Window()], ids=["plain", "offsets"])
+def test_the_folds_predicted_together_are_each_folds_own_predictions(ar1, offsets):
     from qube_koopman.identify.uncertainty import predict_groups
 
     train = ar1[0][:12]
@@ -230,11 +231,17 @@ def test_the_folds_predicted_together_are_each_folds_own_predictions(ar1):
         episodes = [train[j] for j in fold.validation] + ([shorter] if i == 0 else [])
         models = [fold.point[0]] + [closed for closed, _ in fold.members]
         groups.append((models, episodes))
-    together = predict_groups(groups)
+    together = predict_groups(groups, offsets)
     for (models, episodes), predicted in zip(groups, together):
-        alone = predict_episodes(models, episodes)
+        alone = predict_episodes(models, episodes, offsets)
         assert len(predicted) == len(episodes)
         for a, b, t in zip(predicted, alone, episodes):
             assert a.prediction.shape == (t.n_samples, 1)
             np.testing.assert_allclose(a.prediction, b.prediction, rtol=1e-10, atol=1e-13)
             np.testing.assert_allclose(a.variance, b.variance, rtol=1e-8, atol=1e-16)
+            if offsets is None:
+                assert a.plain is None and a.estimate is None
+            else:
+                np.testing.assert_allclose(a.plain, b.plain, rtol=1e-10, atol=1e-13)
+                np.testing.assert_array_equal(a.estimate.values, b.estimate.values)
+                assert a.estimate.channels == (0,)
