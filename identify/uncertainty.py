@@ -533,7 +533,7 @@ def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]],
             for c, value in e.as_mapping().items():
                 p.prediction[:, c] += value
     # Each group's point model without its offsets, then (with members) at them with one channel moved.
-    runs = []
+    runs: list[list[dict]] = []
     for (models, trajs), found in zip(groups, estimates):
         used = [{c: e.as_mapping().get(c, 0.0) for c in found[0].channels} for e in found] if found else []
         moved = [] if len(models) < 2 or not found else [{**u, c: u[c] + OFFSET_STEP} for c in found[0].channels
