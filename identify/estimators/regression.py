@@ -26,6 +26,10 @@ from typing import Callable, TypeVar
 
 import numpy as np
 from scipy import linalg
+from scipy.linalg import lapack
+
+#: Block size of LAPACK's triangular-pentagonal QR (the fastest measured on the search's factors).
+_TPQRT_BLOCK = 16
 
 __all__ = ["Snapshots", "SnapshotFold", "GroupedSnapshots", "ridge_solve", "constrained_plant_solve",
            "grouped_plant_solve"]
@@ -36,6 +40,22 @@ def _triangular_factor(M: np.ndarray) -> np.ndarray:
     # copied out: a slice would keep the whole (snapshots x columns) array alive behind every
     # episode's statistics (8 MB an episode at 20 delays).
     return linalg.qr(M, mode="r", check_finite=False)[0][:min(M.shape)].copy()
+
+
+def _merge_triangles(factors: list[np.ndarray]) -> np.ndarray:
+    """The upper-triangular factor of square upper-triangular ``factors`` stacked.
+
+    LAPACK's triangular-pentagonal QR (``tpqrt``) folds one triangle into the running one,
+    using that both are triangular: about a fifth of the work of a QR of the stacked
+    matrix at the search's sizes (a few hundred columns), the same ``R^T R``.
+    """
+    n = factors[0].shape[1]
+    merged = np.array(factors[0], dtype=float, order="F")
+    for factor in factors[1:]:
+        merged, _, _, info = lapack.dtpqrt(n, min(_TPQRT_BLOCK, n), merged, factor, overwrite_a=1)
+        if info != 0:
+            raise ValueError(f"LAPACK dtpqrt failed (info {info})")
+    return np.triu(merged)
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,8 +119,12 @@ class Snapshots:
             raise ValueError("no snapshot statistics to combine")
         if len(parts) == 1:
             return parts[0]
-        return cls(_triangular_factor(np.vstack([p.R for p in parts])), parts[0].n_regressors,
-                   sum(p.q for p in parts))
+        n = parts[0].R.shape[1]
+        if all(p.R.shape == (n, n) for p in parts):  # square factors: merged two triangles at a time
+            R = _merge_triangles([p.R for p in parts])
+        else:  # a factor with fewer rows (fewer snapshots than columns): the stack's QR
+            R = _triangular_factor(np.vstack([p.R for p in parts]))
+        return cls(R, parts[0].n_regressors, sum(p.q for p in parts))
 
     def repeated(self, count: int) -> Snapshots:
         """The statistics of ``count`` copies of these snapshots (an episode drawn ``count`` times).

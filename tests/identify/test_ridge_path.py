@@ -76,3 +76,15 @@ def test_an_episodes_statistics_hold_only_their_small_factor():
     psi = rng.normal(size=(2000, 12))
     stats = Snapshots.from_snapshots(rng.normal(size=(2000, 3)), psi)
     assert stats.R.shape == (15, 15) and stats.R.base is None
+
+
+@pytest.mark.parametrize("q", [400, 12])  # more snapshots than columns (square factors), and fewer
+def test_folded_factors_give_the_stacked_snapshots_gram_matrix(q):
+    # Square factors are merged two triangles at a time (LAPACK tpqrt); a short episode's factor has
+    # fewer rows and takes the stacked QR. Either way R^T R is that of all the snapshots stacked.
+    rng = np.random.default_rng(3)
+    parts = [(rng.standard_normal((n, 2)), rng.standard_normal((n, 20))) for n in (q, 300, 250, 500, 350, 320)]
+    total = Snapshots.total(Snapshots.from_snapshots(y, x) for y, x in parts)
+    M = np.vstack([np.hstack([x, y]) for y, x in parts])
+    np.testing.assert_allclose(total.R.T @ total.R, M.T @ M, rtol=1e-11, atol=1e-9)
+    assert np.allclose(total.R, np.triu(total.R)) and total.q == sum(len(y) for y, _ in parts)
