@@ -44,6 +44,31 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+#: The files that take longest on 2 cores (a minute or more each in the suite), longest first. They
+#: are scheduled first, then every other file in collection order (pyproject's addopts turn off
+#: pytest-xdist's own reordering, by number of tests, which put these few-test files last and left
+#: one core idle for minutes at the end). xdist gives a worker the next file when it runs low, so
+#: the long ones started first end with the short ones filling in. A test checks the paths exist.
+LONGEST_FIRST = [
+    "tests/docs/test_readme_design.py",
+    "tests/identify/test_calibrate_dataset.py",
+    "tests/docs/test_readme.py",
+    "tests/project/test_lowest_versions.py",
+    "tests/docs/test_readme_calibrate.py",
+    "tests/sim/test_twin_equivalence.py",
+    "tests/identify/test_calibrate.py",
+    "tests/docs/test_docs.py",
+    "tests/reproduce/test_qube_reproduction.py",
+    "tests/docs/test_tutorial.py",
+]
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The longest files first (:data:`LONGEST_FIRST`), the others after them in collection order."""
+    rank = {path: i for i, path in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))  # stable: the rest keep order
+
+
 def dataset_dir() -> Path | None:
     """The dataset folder: $QUBE_DATASET_DIR, else ../shared/datasets/qube_servo_20230828."""
     path = Path(os.environ.get(DATASET_ENV, DEFAULT_DATASET))

@@ -86,3 +86,16 @@ def test_what_the_readme_blocks_write_in_a_clone_is_ignored_by_git():
     assert "qube_logs" in outputs and "designed.toml" in outputs
     tracked = subprocess.run(["git", "check-ignore", *sorted(outputs)], cwd=REPO, capture_output=True, text=True)
     assert set(tracked.stdout.split()) == outputs, sorted(outputs - set(tracked.stdout.split()))
+
+
+def test_the_longest_files_scheduled_first_exist_and_run_first():
+    from conftest import LONGEST_FIRST
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    missing = [path for path in LONGEST_FIRST if not os.path.isfile(os.path.join(root, path))]
+    assert not missing, f"tests/conftest.py LONGEST_FIRST names files that are gone: {missing}"
+    listed = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "-p",
+                             "no:cacheprovider", "tests/project/test_suite_hygiene.py", LONGEST_FIRST[-1]],
+                            cwd=root, capture_output=True, text=True, timeout=120).stdout.splitlines()
+    files = [line.split("::")[0] for line in listed if "::" in line]
+    assert files and files[0] == LONGEST_FIRST[-1], files[:3]
