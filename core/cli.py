@@ -58,8 +58,9 @@ def package_version() -> str:
         return "unknown"
 
 
-def add_standard_options(parser: argparse.ArgumentParser, quiet_help: str = "no progress bar", *,
-                         subcommand: bool = False) -> None:
+def add_standard_options(
+    parser: argparse.ArgumentParser, quiet_help: str = "no progress bar", *, subcommand: bool = False
+) -> None:
     """Give ``parser`` the options every command has: ``--version``, ``-v/--verbose``, ``-q/--quiet``.
 
     Parameters
@@ -74,12 +75,23 @@ def add_standard_options(parser: argparse.ArgumentParser, quiet_help: str = "no 
     """
     default = argparse.SUPPRESS if subcommand else None
     if not subcommand:
-        parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}",
-                            help="print the version and exit")
-    parser.add_argument("-v", "--verbose", action="count", default=default if subcommand else 0,
-                        help="say more on stderr: -v what is done (info), -vv details (debug)")
-    parser.add_argument("-q", "--quiet", action="store_true", default=default if subcommand else False,
-                        help=f"{quiet_help}; log only errors")
+        parser.add_argument(
+            "--version", action="version", version=f"%(prog)s {package_version()}", help="print the version and exit"
+        )
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=default if subcommand else 0,
+        help="say more on stderr: -v what is done (info), -vv details (debug)",
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=default if subcommand else False,
+        help=f"{quiet_help}; log only errors",
+    )
 
 
 def add_force_option(parser) -> None:
@@ -88,8 +100,9 @@ def add_force_option(parser) -> None:
     Without it a command refuses an output file that exists, before any work
     (``qube_koopman.core.files.output_file_problem``).
     """
-    parser.add_argument("--force", action="store_true",
-                        help="replace output files that exist (without it the command refuses them)")
+    parser.add_argument(
+        "--force", action="store_true", help="replace output files that exist (without it the command refuses them)"
+    )
 
 
 def add_renamed_option(parser, old: str, new: str, why: str) -> None:
@@ -133,6 +146,7 @@ def whole_number(minimum: int, maximum: int | None = None):
         ``parse(text) -> int``, raising :class:`argparse.ArgumentTypeError` (argparse then
         names the option: ``argument --seed: must be a whole number >= 0, got -5``).
     """
+
     def parse(text: str) -> int:
         value = _integer(text)
         if value < minimum or (maximum is not None and value > maximum):
@@ -222,6 +236,7 @@ def number_in(low: float, high: float, what: str):
     callable
         ``parse(text) -> float``, raising :class:`argparse.ArgumentTypeError`.
     """
+
     def parse(text: str) -> float:
         value = _float(text)
         if not (math.isfinite(value) and low <= value <= high):

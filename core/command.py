@@ -92,8 +92,9 @@ def check_output_file(path: str | Path | None, option: str = "--out", force: boo
         raise CliError(f"{problem} ({option})")
 
 
-def check_output_folder(path: str | Path | None, files: tuple[str, ...] = (), option: str = "--out",
-                        force: bool = False) -> None:
+def check_output_folder(
+    path: str | Path | None, files: tuple[str, ...] = (), option: str = "--out", force: bool = False
+) -> None:
     """Refuse, before any work, an output folder that cannot take the command's ``files``: not a
     folder, not writable, or one of ``files`` there already without ``--force`` (exit 2).
     ``None`` (the option not given) passes."""
@@ -150,8 +151,7 @@ def write_json(path: Path, data) -> None:
 progress = ProgressCallback()
 
 
-def run_command(prog: str, command: Callable, args, *,
-                one_line_warnings: tuple[type[Warning], ...] = ()) -> int:
+def run_command(prog: str, command: Callable, args, *, one_line_warnings: tuple[type[Warning], ...] = ()) -> int:
     """Run ``command(args)``: user mistakes and interruptions become one line and an exit status.
 
     Errors read ``<prog>: error: <problem>`` (the problem names the file first when there is

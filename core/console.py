@@ -89,8 +89,15 @@ def progress_bar(total: float, desc: str | None = None, unit: str = "it", enable
     """
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True,
-                disable=None if enabled else True, **options)
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit=unit,
+        file=sys.stderr,
+        dynamic_ncols=True,
+        disable=None if enabled else True,
+        **options,
+    )
 
 
 class ProgressCallback:

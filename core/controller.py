@@ -178,16 +178,15 @@ def discretize_channels(channels, dt: float, method: str) -> DiscreteStateSpace:
     i = 0
     for j, (Ab, Bb, Cb, Db) in enumerate(blocks):
         k = Ab.shape[0]
-        A[i:i + k, i:i + k] = Ab
-        B[i:i + k, j] = Bb[:, 0]
-        C[0, i:i + k] = Cb[0]
+        A[i : i + k, i : i + k] = Ab
+        B[i : i + k, j] = Bb[:, 0]
+        C[0, i : i + k] = Cb[0]
         D[0, j] = Db[0, 0]
         i += k
     return DiscreteStateSpace(A, B, C, D, dt)
 
 
-def pd_controller(gains: PdGains, dt: float = QUBE_SAMPLE_PERIOD,
-                  method: str = "backward-euler") -> DiscreteStateSpace:
+def pd_controller(gains: PdGains, dt: float = QUBE_SAMPLE_PERIOD, method: str = "backward-euler") -> DiscreteStateSpace:
     """The QUBE-Servo's two filtered PD channels (theta, alpha) as one discrete controller.
 
     ``method="backward-euler"`` is what ran on the rig (it reproduces the
@@ -210,8 +209,10 @@ def pd_controller(gains: PdGains, dt: float = QUBE_SAMPLE_PERIOD,
     import control
 
     s = control.tf("s")
-    channels = [-(kp + kd * gains.tau * s / (s + gains.tau))
-                for kp, kd in ((gains.kp_theta, gains.kd_theta), (gains.kp_alpha, gains.kd_alpha))]
+    channels = [
+        -(kp + kd * gains.tau * s / (s + gains.tau))
+        for kp, kd in ((gains.kp_theta, gains.kd_theta), (gains.kp_alpha, gains.kd_alpha))
+    ]
     return discretize_channels(channels, dt, method)
 
 

@@ -24,8 +24,13 @@ from typing import Any, Mapping
 import numpy as np
 from qube_koopman.core.files import atomic_path
 
-from qube_koopman.core.controller import (QUBE_SAMPLE_PERIOD, controller_file, pd_controller,
-                                         pd_gains_from_table, read_controller_toml)
+from qube_koopman.core.controller import (
+    QUBE_SAMPLE_PERIOD,
+    controller_file,
+    pd_controller,
+    pd_gains_from_table,
+    read_controller_toml,
+)
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
@@ -58,8 +63,9 @@ _MATRICES = ("A", "B", "C", "D")
 _KNOWN = frozenset(_REQUIRED + _MATRICES + ("matrices", "provenance"))
 
 
-def load_controller(path: str | Path | None = None, method: str = "backward-euler",
-                    dt: float = QUBE_SAMPLE_PERIOD) -> ControllerInfo:
+def load_controller(
+    path: str | Path | None = None, method: str = "backward-euler", dt: float = QUBE_SAMPLE_PERIOD
+) -> ControllerInfo:
     """The controller of a controller file of either kind, as the loop runs it.
 
     Parameters
@@ -94,9 +100,11 @@ def load_controller(path: str | Path | None = None, method: str = "backward-eule
     kind = data.get("kind")
     if kind != STATE_SPACE_KIND:
         if kind is None:
-            raise ValueError(f"{path}: missing key kind (a state-space file has kind = \"{STATE_SPACE_KIND}\")")
-        raise ValueError(f"{path}: unknown controller kind {kind!r}; expected \"{STATE_SPACE_KIND}\" (a PD "
-                         "gains file has no kind, only kp_theta, kd_theta, kp_alpha, kd_alpha, tau)")
+            raise ValueError(f'{path}: missing key kind (a state-space file has kind = "{STATE_SPACE_KIND}")')
+        raise ValueError(
+            f'{path}: unknown controller kind {kind!r}; expected "{STATE_SPACE_KIND}" (a PD '
+            "gains file has no kind, only kp_theta, kd_theta, kp_alpha, kd_alpha, tau)"
+        )
     return _state_space(data, path, dt)
 
 
@@ -109,11 +117,13 @@ def _state_space(data: dict, path: Path, dt: float) -> ControllerInfo:
         raise ValueError(f"{path}: missing key{'s' if len(missing) > 1 else ''} {', '.join(missing)}")
     unknown = sorted(set(data) - _KNOWN)
     if unknown:
-        raise ValueError(f"{path}: unknown keys {', '.join(unknown)} (a state-space file has "
-                         f"{', '.join(sorted(_KNOWN))})")
+        raise ValueError(
+            f"{path}: unknown keys {', '.join(unknown)} (a state-space file has {', '.join(sorted(_KNOWN))})"
+        )
     if data["format"] != CONTROLLER_FORMAT:
-        raise ValueError(f"{path}: format {data['format']!r} is not supported (this reader reads "
-                         f"\"{CONTROLLER_FORMAT}\")")
+        raise ValueError(
+            f'{path}: format {data["format"]!r} is not supported (this reader reads "{CONTROLLER_FORMAT}")'
+        )
     _check_period(data["dt"], path, dt)
     inputs = _check_inputs(data["inputs"], path)
     A, B, C, D = _matrices(data, path)
@@ -122,8 +132,13 @@ def _state_space(data: dict, path: Path, dt: float) -> ControllerInfo:
     if not isinstance(provenance, dict):
         raise ValueError(f"{path}: provenance must be a table ([provenance]), got {type(provenance).__name__}")
     try:
-        return ControllerInfo(DiscreteStateSpace(A, B, C, D, float(data["dt"])), STATE_SPACE_METHOD, {},
-                              STATE_SPACE_KIND, json.loads(json.dumps(provenance, default=str)))
+        return ControllerInfo(
+            DiscreteStateSpace(A, B, C, D, float(data["dt"])),
+            STATE_SPACE_METHOD,
+            {},
+            STATE_SPACE_KIND,
+            json.loads(json.dumps(provenance, default=str)),
+        )
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
 
@@ -132,17 +147,21 @@ def _check_period(value: Any, path: Path, dt: float) -> None:
     if not _is_number(value) or not (math.isfinite(value) and value > 0):
         raise ValueError(f"{path}: dt must be a positive number of seconds, got {value!r}")
     if abs(value - dt) > 1e-9 * dt:
-        raise ValueError(f"{path}: dt {value!r} s differs from the sample period {dt!r} s of the loop and its logs (a "
-                         "discrete controller runs only at the period it was designed for)")
+        raise ValueError(
+            f"{path}: dt {value!r} s differs from the sample period {dt!r} s of the loop and its logs (a "
+            "discrete controller runs only at the period it was designed for)"
+        )
 
 
 def _check_inputs(value: Any, path: Path) -> tuple[str, ...]:
     inputs = tuple(value) if isinstance(value, list) else value
     if inputs in (TRACKING_INPUTS, FEEDFORWARD_INPUTS):
         return inputs
-    raise ValueError(f"{path}: inputs must be {json.dumps(list(TRACKING_INPUTS))} (the tracking errors r - y "
-                     f"of theta and alpha, the columns of B and D) or {json.dumps(list(FEEDFORWARD_INPUTS))} "
-                     f"(the feedforward too), got {value!r}")
+    raise ValueError(
+        f"{path}: inputs must be {json.dumps(list(TRACKING_INPUTS))} (the tracking errors r - y "
+        f"of theta and alpha, the columns of B and D) or {json.dumps(list(FEEDFORWARD_INPUTS))} "
+        f"(the feedforward too), got {value!r}"
+    )
 
 
 def _is_number(value: Any) -> bool:
@@ -155,8 +174,10 @@ def _matrices(data: dict, path: Path) -> list[np.ndarray]:
         return [_inline_matrix(data[m], m, path) for m in _MATRICES]
     inline = [m for m in _MATRICES if m in data]
     if inline:
-        raise ValueError(f"{path}: {', '.join(inline)} given both inline and in matrices = "
-                         f"{data['matrices']!r}: give each matrix once")
+        raise ValueError(
+            f"{path}: {', '.join(inline)} given both inline and in matrices = "
+            f"{data['matrices']!r}: give each matrix once"
+        )
     if not isinstance(data["matrices"], str):
         raise ValueError(f"{path}: matrices must be the name of an .npz file, got {data['matrices']!r}")
     npz = path.parent / data["matrices"]
@@ -175,10 +196,16 @@ def _matrices(data: dict, path: Path) -> list[np.ndarray]:
 
 def _inline_matrix(value: Any, name: str, path: Path) -> np.ndarray:
     """A TOML list of rows of numbers as a float matrix."""
-    if (not isinstance(value, list) or not value or not all(isinstance(row, list) for row in value)
-            or not all(_is_number(v) for row in value for v in row)):
-        raise ValueError(f"{path}: {name} must be a matrix: a non-empty list of rows of numbers, "
-                         f"e.g. {name} = [[1.0, 0.0], [0.0, 1.0]]")
+    if (
+        not isinstance(value, list)
+        or not value
+        or not all(isinstance(row, list) for row in value)
+        or not all(_is_number(v) for row in value for v in row)
+    ):
+        raise ValueError(
+            f"{path}: {name} must be a matrix: a non-empty list of rows of numbers, "
+            f"e.g. {name} = [[1.0, 0.0], [0.0, 1.0]]"
+        )
     lengths = sorted({len(row) for row in value})
     if len(lengths) > 1:
         raise ValueError(f"{path}: {name} has rows of different lengths ({', '.join(map(str, lengths))})")
@@ -188,32 +215,37 @@ def _inline_matrix(value: Any, name: str, path: Path) -> np.ndarray:
 def _numeric(value: np.ndarray, name: str, path: Path) -> np.ndarray:
     """A finite 2-D float matrix, or a ValueError naming the first bad entry."""
     if value.ndim != 2 or value.dtype.kind not in "fiu":
-        raise ValueError(f"{path}: {name} must be a 2-D matrix of numbers, got {value.ndim}-D "
-                         f"{value.dtype}")
+        raise ValueError(f"{path}: {name} must be a 2-D matrix of numbers, got {value.ndim}-D {value.dtype}")
     value = value.astype(float)
     bad = np.argwhere(~np.isfinite(value))
     if len(bad):
         i, j = bad[0]
-        raise ValueError(f"{path}: {name} has {len(bad)} non-finite entr{'y' if len(bad) == 1 else 'ies'} "
-                         f"(first: row {i}, column {j}: {value[i, j]})")
+        raise ValueError(
+            f"{path}: {name} has {len(bad)} non-finite entr{'y' if len(bad) == 1 else 'ies'} "
+            f"(first: row {i}, column {j}: {value[i, j]})"
+        )
     return value
 
 
-def _check_shapes(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, inputs: tuple[str, ...],
-                  path: Path) -> None:
+def _check_shapes(
+    A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, inputs: tuple[str, ...], path: Path
+) -> None:
     """A n x n, B n x p, C 1 x n, D 1 x p, with n = the rows of A and p = the inputs."""
     n, p = A.shape[0], len(inputs)
     expected = {"A": (n, n), "B": (n, p), "C": (1, n), "D": (1, p)}
     for name, value in zip(_MATRICES, (A, B, C, D)):
         if value.shape != expected[name]:
             rows, cols = expected[name]
-            raise ValueError(f"{path}: {name} has shape {value.shape[0]} x {value.shape[1]}, expected "
-                             f"{rows} x {cols} (A has {n} rows: {n} states; {p} inputs "
-                             f"{', '.join(inputs)}; 1 output, the voltage)")
+            raise ValueError(
+                f"{path}: {name} has shape {value.shape[0]} x {value.shape[1]}, expected "
+                f"{rows} x {cols} (A has {n} rows: {n} states; {p} inputs "
+                f"{', '.join(inputs)}; 1 output, the voltage)"
+            )
 
 
-def write_controller_file(path: str | Path, system: DiscreteStateSpace,
-                          provenance: Mapping[str, Any] | None = None, *, npz: bool = False) -> Path:
+def write_controller_file(
+    path: str | Path, system: DiscreteStateSpace, provenance: Mapping[str, Any] | None = None, *, npz: bool = False
+) -> Path:
     """Write a state-space controller file that :func:`load_controller` reads back exactly.
 
     Parameters
@@ -236,12 +268,18 @@ def write_controller_file(path: str | Path, system: DiscreteStateSpace,
     """
     path = Path(path)
     if system.n_inputs not in (len(TRACKING_INPUTS), len(FEEDFORWARD_INPUTS)) or system.n_outputs != 1:
-        raise ValueError(f"a controller file holds 2 inputs (3 with the feedforward) and 1 output, got "
-                         f"{system.n_inputs} and {system.n_outputs}")
+        raise ValueError(
+            f"a controller file holds 2 inputs (3 with the feedforward) and 1 output, got "
+            f"{system.n_inputs} and {system.n_outputs}"
+        )
     inputs = TRACKING_INPUTS if system.n_inputs == len(TRACKING_INPUTS) else FEEDFORWARD_INPUTS
-    lines = [f"# A discrete state-space controller of qube-koopman (core/CONTROLLER_FORMAT.md): "
-             f"{system.n_states} states", f'format = "{CONTROLLER_FORMAT}"', f'kind = "{STATE_SPACE_KIND}"',
-             f"dt = {system.dt!r}", f"inputs = {json.dumps(list(inputs))}"]
+    lines = [
+        f"# A discrete state-space controller of qube-koopman (core/CONTROLLER_FORMAT.md): {system.n_states} states",
+        f'format = "{CONTROLLER_FORMAT}"',
+        f'kind = "{STATE_SPACE_KIND}"',
+        f"dt = {system.dt!r}",
+        f"inputs = {json.dumps(list(inputs))}",
+    ]
     if npz:
         target = path.with_suffix(".npz")
         with atomic_path(target) as tmp:
@@ -325,8 +363,13 @@ class ControllerInfo:
 
     def as_dict(self) -> dict:
         """Plain-data form: kind, method, gains, provenance and the state-space matrices."""
-        return {"kind": self.kind, "method": self.method, "gains": dict(self.gains),
-                "provenance": dict(self.provenance), **self.system.as_dict()}
+        return {
+            "kind": self.kind,
+            "method": self.method,
+            "gains": dict(self.gains),
+            "provenance": dict(self.provenance),
+            **self.system.as_dict(),
+        }
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "ControllerInfo":
@@ -334,8 +377,9 @@ class ControllerInfo:
         missing = {"kind", "method", "gains"} - set(data)
         if missing:
             raise ValueError(f"controller data misses {sorted(missing)}")
-        return cls(DiscreteStateSpace.from_dict(data), data["method"], data["gains"], data["kind"],
-                   data.get("provenance", {}))
+        return cls(
+            DiscreteStateSpace.from_dict(data), data["method"], data["gains"], data["kind"], data.get("provenance", {})
+        )
 
 
 def default_controller_path() -> Path:

@@ -12,8 +12,14 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["DiscreteStateSpace", "controller_inputs", "replay_controller", "padded_realization", "spectral_radius",
-           "same_system"]
+__all__ = [
+    "DiscreteStateSpace",
+    "controller_inputs",
+    "replay_controller",
+    "padded_realization",
+    "spectral_radius",
+    "same_system",
+]
 
 
 def spectral_radius(matrix) -> float:
@@ -93,9 +99,7 @@ class DiscreteStateSpace:
         if C.shape[1] != n:
             raise ValueError(f"C has {C.shape[1]} columns but A has {n} states")
         if D.shape != (C.shape[0], B.shape[1]):
-            raise ValueError(
-                f"D must have shape {(C.shape[0], B.shape[1])} (outputs x inputs), got {D.shape}"
-            )
+            raise ValueError(f"D must have shape {(C.shape[0], B.shape[1])} (outputs x inputs), got {D.shape}")
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
         for name, value in zip("ABCD", (A, B, C, D)):
@@ -153,8 +157,7 @@ class DiscreteStateSpace:
 
     def as_dict(self) -> dict:
         """Plain-data form (lists of lists), for logs and model files."""
-        return {"A": self.A.tolist(), "B": self.B.tolist(), "C": self.C.tolist(),
-                "D": self.D.tolist(), "dt": self.dt}
+        return {"A": self.A.tolist(), "B": self.B.tolist(), "C": self.C.tolist(), "D": self.D.tolist(), "dt": self.dt}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "DiscreteStateSpace":
@@ -171,8 +174,9 @@ class DiscreteStateSpace:
         return control.ss(self.A, self.B, self.C, self.D, self.dt)
 
 
-def replay_controller(controller: DiscreteStateSpace, references, measured,
-                      x0: np.ndarray | None = None, feedforward=None) -> tuple[np.ndarray, np.ndarray]:
+def replay_controller(
+    controller: DiscreteStateSpace, references, measured, x0: np.ndarray | None = None, feedforward=None
+) -> tuple[np.ndarray, np.ndarray]:
     """Re-run a controller over logged samples: its state and output along the tracking error.
 
     Every controller of the project maps the tracking error ``e = references - measured``
@@ -235,12 +239,16 @@ def controller_inputs(controller: DiscreteStateSpace, references, measured, feed
     if controller.n_inputs == n_e:
         return error
     if feedforward is None:
-        raise ValueError(f"the controller takes {controller.n_inputs} inputs; the tracking errors have shape "
-                         f"{error.shape} and no feedforward is given")
+        raise ValueError(
+            f"the controller takes {controller.n_inputs} inputs; the tracking errors have shape "
+            f"{error.shape} and no feedforward is given"
+        )
     f = np.asarray(feedforward, dtype=float).reshape(*error.shape[:-1], -1)
     if controller.n_inputs != n_e + f.shape[-1]:
-        raise ValueError(f"the controller takes {controller.n_inputs} inputs, not the {n_e} tracking errors and "
-                         f"{f.shape[-1]} feedforward channel{'s' if f.shape[-1] != 1 else ''} of the data")
+        raise ValueError(
+            f"the controller takes {controller.n_inputs} inputs, not the {n_e} tracking errors and "
+            f"{f.shape[-1]} feedforward channel{'s' if f.shape[-1] != 1 else ''} of the data"
+        )
     return np.concatenate([error, f], axis=-1)
 
 
@@ -269,8 +277,8 @@ def padded_realization(system: DiscreteStateSpace, n_states: int, seed: int = 0)
         raise ValueError(f"n_states must be at least {system.n_states}, got {n_states}")
     rng = np.random.default_rng(seed)
     A = np.zeros((n_states, n_states))
-    A[:system.n_states, :system.n_states] = system.A
-    A[system.n_states:, system.n_states:] = np.diag(rng.uniform(-0.95, 0.95, extra))
+    A[: system.n_states, : system.n_states] = system.A
+    A[system.n_states :, system.n_states :] = np.diag(rng.uniform(-0.95, 0.95, extra))
     B = np.vstack([system.B, rng.standard_normal((extra, system.n_inputs))])
     C = np.hstack([system.C, np.zeros((system.n_outputs, extra))])
     Q, _ = np.linalg.qr(rng.standard_normal((n_states, n_states)))
@@ -279,5 +287,7 @@ def padded_realization(system: DiscreteStateSpace, n_states: int, seed: int = 0)
 
 def same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
     """Whether two discrete systems have the same matrices and period (to 1e-12)."""
-    return (a.dt == b.dt and all(x.shape == y.shape and np.allclose(x, y, rtol=1e-12, atol=1e-12)
-                                 for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))))
+    return a.dt == b.dt and all(
+        x.shape == y.shape and np.allclose(x, y, rtol=1e-12, atol=1e-12)
+        for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))
+    )

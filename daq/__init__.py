@@ -22,21 +22,41 @@ from qube_koopman.core.exports import lazy_exports
 # Each public name and the module (relative to this package) that defines it.
 _HOMES = {
     # episodes and their logs
-    "Episode": "episode", "EpisodeMetadata": "episode", "stack_signals": "episode",
-    "read_episode": "log", "read_episode_metadata": "log", "write_episode": "log", "EpisodeWriter": "log",
-    "IncompleteEpisodeWarning": "log", "log_path": "log.names", "find_logs": "log.names",
+    "Episode": "episode",
+    "EpisodeMetadata": "episode",
+    "stack_signals": "episode",
+    "read_episode": "log",
+    "read_episode_metadata": "log",
+    "write_episode": "log",
+    "EpisodeWriter": "log",
+    "IncompleteEpisodeWarning": "log",
+    "log_path": "log.names",
+    "find_logs": "log.names",
     "parse_episode_name": "log.names",
     # other formats: the legacy CSV in, CSV, Parquet and MATLAB out
-    "legacy_episode": "legacy_csv", "load_legacy_controller": "legacy_csv", "read_legacy_csv": "legacy_csv",
+    "legacy_episode": "legacy_csv",
+    "load_legacy_controller": "legacy_csv",
+    "read_legacy_csv": "legacy_csv",
     "export_episode": "export",
     # sessions: what qube-run runs (controllers and their files are core's)
-    "run_seeds": "session", "excitation_settings": "session",
-    "plan_episodes": "session", "run_episodes": "session", "RunResult": "session",
+    "run_seeds": "session",
+    "excitation_settings": "session",
+    "plan_episodes": "session",
+    "run_episodes": "session",
+    "RunResult": "session",
     # one episode: the loop, its safety limits, the excitation, backends and sinks
-    "run_episode": "loop", "EpisodePlan": "loop", "EpisodeResult": "loop", "SafetyLimits": "safety",
-    "ExcitationSettings": "excitation", "generate_excitation": "excitation",
-    "Backend": "backends", "SimBackend": "backends", "SerialBackend": "backends",
-    "Sink": "sinks", "McapSink": "sinks", "MemorySink": "sinks",
+    "run_episode": "loop",
+    "EpisodePlan": "loop",
+    "EpisodeResult": "loop",
+    "SafetyLimits": "safety",
+    "ExcitationSettings": "excitation",
+    "generate_excitation": "excitation",
+    "Backend": "backends",
+    "SimBackend": "backends",
+    "SerialBackend": "backends",
+    "Sink": "sinks",
+    "McapSink": "sinks",
+    "MemorySink": "sinks",
 }
 
 __all__ = list(_HOMES)

@@ -55,8 +55,10 @@ def controller_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
         ``update(e0, e1, f)``: ``x <- A x + B e``; call it after ``output`` with the same inputs.
     """
     if system.n_inputs not in (2, 3) or system.n_outputs != 1:
-        raise ValueError(f"the loop's controller has 2 inputs (3 with the feedforward) and 1 output, got "
-                         f"{system.n_inputs} and {system.n_outputs}")
+        raise ValueError(
+            f"the loop's controller has 2 inputs (3 with the feedforward) and 1 output, got "
+            f"{system.n_inputs} and {system.n_outputs}"
+        )
     if system.n_states <= PLAIN_MAX_STATES:
         return _plain_step(system)
     return _numpy_step(system)
@@ -84,8 +86,7 @@ def _plain_step(system: DiscreteStateSpace) -> tuple[Output, Update]:
 
     def update(e0: float, e1: float, f: float) -> None:
         nonlocal xc
-        xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 + b2 * f
-                    for row, b0, b1, b2 in rows])
+        xc = tuple([sum([a * x for a, x in zip(row, xc)]) + b0 * e0 + b1 * e1 + b2 * f for row, b0, b1, b2 in rows])
 
     return output, update
 

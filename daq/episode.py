@@ -36,16 +36,39 @@ __all__ = [
 STATUSES = ("complete", "aborted", "incomplete")
 
 #: One-dimensional float signals of an episode, in storage order.
-SIGNALS = ("t", "theta", "alpha", "target_theta", "target_alpha", "feedforward",
-           "control_output", "plant_input", "lateness", "compute_time", "device_time")
+SIGNALS = (
+    "t",
+    "theta",
+    "alpha",
+    "target_theta",
+    "target_alpha",
+    "feedforward",
+    "control_output",
+    "plant_input",
+    "lateness",
+    "compute_time",
+    "device_time",
+)
 
 #: Units of every per-sample quantity (the controller state has the units of
 #: the controller's realization: V per (rad) for the rig's PD filters).
-UNITS = MappingProxyType({
-    "t": "s", "theta": "rad", "alpha": "rad", "target_theta": "rad", "target_alpha": "rad",
-    "feedforward": "V", "control_output": "V", "plant_input": "V", "lateness": "s",
-    "compute_time": "s", "device_time": "s", "controller_state": "rad (controller realization)", "saturation": "1",
-})
+UNITS = MappingProxyType(
+    {
+        "t": "s",
+        "theta": "rad",
+        "alpha": "rad",
+        "target_theta": "rad",
+        "target_alpha": "rad",
+        "feedforward": "V",
+        "control_output": "V",
+        "plant_input": "V",
+        "lateness": "s",
+        "compute_time": "s",
+        "device_time": "s",
+        "controller_state": "rad (controller realization)",
+        "saturation": "1",
+    }
+)
 
 #: The measured plant states (the fed-back outputs), in the controller's channel order.
 STATE_SIGNALS = ("theta", "alpha")
@@ -161,8 +184,7 @@ class EpisodeMetadata:
         except (TypeError, ValueError):
             raise ValueError(f"start_time must be an ISO 8601 date and time, got {self.start_time!r}") from None
         if abs(self.controller.system.dt * rate - 1.0) > 1e-9:
-            raise ValueError(f"controller dt {self.controller.system.dt} s does not match "
-                             f"the sample rate {rate} Hz")
+            raise ValueError(f"controller dt {self.controller.system.dt} s does not match the sample rate {rate} Hz")
         object.__setattr__(self, "excitation", plain_json(self.excitation, "excitation"))
         object.__setattr__(self, "extra", plain_json(self.extra, "extra"))
         object.__setattr__(self, "timing", plain_json(self.timing, "timing"))

@@ -146,8 +146,9 @@ class PrbsChannel:
         exact = self.bit_period * sample_rate
         n = round(exact)
         if n < 1 or abs(exact - n) > 1e-9 * max(1.0, exact):
-            raise ValueError(f"bit period {self.bit_period} s is not a whole number of samples "
-                             f"at {sample_rate} Hz ({exact} samples)")
+            raise ValueError(
+                f"bit period {self.bit_period} s is not a whole number of samples at {sample_rate} Hz ({exact} samples)"
+            )
         return n
 
 
@@ -196,8 +197,10 @@ class ExcitationSettings:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                 raise ValueError(f"{name} must be an integer number of samples, got {value!r}")
         if not 0 <= self.window_start <= self.window_stop <= self.n_samples:
-            raise ValueError("need 0 <= window_start <= window_stop <= n_samples, got "
-                             f"{self.window_start}, {self.window_stop}, {self.n_samples}")
+            raise ValueError(
+                "need 0 <= window_start <= window_stop <= n_samples, got "
+                f"{self.window_start}, {self.window_stop}, {self.n_samples}"
+            )
         for name in ("theta_rate", "alpha", "feedforward"):
             channel = getattr(self, name)
             if not isinstance(channel, PrbsChannel):
@@ -235,8 +238,10 @@ class Excitation:
     def chunks(self, size: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(target_theta, target_alpha, feedforward) ``size`` samples at a time (the last may be shorter)."""
         for k in range(0, len(self), size):
-            theta, alpha, feedforward = (np.asarray(signal[k:k + size], dtype=float)
-                                         for signal in (self.target_theta, self.target_alpha, self.feedforward))
+            theta, alpha, feedforward = (
+                np.asarray(signal[k : k + size], dtype=float)
+                for signal in (self.target_theta, self.target_alpha, self.feedforward)
+            )
             yield theta, alpha, feedforward
 
 
@@ -275,8 +280,8 @@ class _ChannelStream:
         held = min(k1, self.held_end)
         if held > k0:
             bit = np.arange(k0, held) // self.bit_samples
-            out[:held - k0] = self._levels(int(bit[0]), int(bit[-1]))[bit - bit[0]]
-        out[:max(0, min(self.window_start, k1) - k0)] = 0.0
+            out[: held - k0] = self._levels(int(bit[0]), int(bit[-1]))[bit - bit[0]]
+        out[: max(0, min(self.window_start, k1) - k0)] = 0.0
         active = min(k1, self.window_stop) - k0
         if active > 0 and self.smoothing:
             from scipy.signal import lfilter
@@ -315,8 +320,10 @@ class ExcitationStream:
         if size < 1:
             raise ValueError(f"chunk size must be positive, got {size}")
         settings = self.settings
-        channels = [_ChannelStream(seed, channel, settings) for seed, channel
-                    in zip(self.seeds, (settings.theta_rate, settings.alpha, settings.feedforward))]
+        channels = [
+            _ChannelStream(seed, channel, settings)
+            for seed, channel in zip(self.seeds, (settings.theta_rate, settings.alpha, settings.feedforward))
+        ]
         step = 1.0 / settings.sample_rate
         theta_end = 0.0
         for k0 in range(0, len(self), size):
@@ -356,8 +363,7 @@ class ExcitationStream:
         return self.whole().feedforward
 
 
-def generate_excitation(seeds: tuple[int, int, int],
-                        settings: ExcitationSettings = ExcitationSettings()) -> Excitation:
+def generate_excitation(seeds: tuple[int, int, int], settings: ExcitationSettings = ExcitationSettings()) -> Excitation:
     """The rig's references and feedforward for one episode.
 
     Parameters
@@ -389,7 +395,9 @@ def parse_seeds(file_name: str | Path) -> tuple[int, int, int]:
     name = Path(file_name).name
     parsed = parse_episode_name(name, ".csv")
     if parsed is None:
-        raise ValueError(f"{name!r} is not a dataset file name of the form "
-                         "'qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_<alpha seed>_<ff seed>.csv'")
+        raise ValueError(
+            f"{name!r} is not a dataset file name of the form "
+            "'qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_<alpha seed>_<ff seed>.csv'"
+        )
     theta, alpha, feedforward = (parsed.seeds[k] for k in SEED_SIGNALS)
     return theta, alpha, feedforward

@@ -50,8 +50,19 @@ from qube_koopman.daq.episode import UNITS, Episode, stack_signals
 from qube_koopman.daq.legacy_csv import LEGACY_COLUMNS, status_sidecar
 from qube_koopman.core.files import atomic_path
 
-__all__ = ["FORMATS", "CsvGapWarning", "ExportError", "episode_columns", "metadata_records", "episode_frame",
-           "legacy_csv_bytes", "write_csv", "write_parquet", "write_mat", "export_episode"]
+__all__ = [
+    "FORMATS",
+    "CsvGapWarning",
+    "ExportError",
+    "episode_columns",
+    "metadata_records",
+    "episode_frame",
+    "legacy_csv_bytes",
+    "write_csv",
+    "write_parquet",
+    "write_mat",
+    "export_episode",
+]
 
 #: Format name -> file extension.
 FORMATS = {"csv": ".csv", "parquet": ".parquet", "mat": ".mat"}
@@ -99,8 +110,9 @@ def metadata_records(episode: Episode) -> dict[str, dict[str, str]]:
 
     meta = episode.metadata
     records = episode_records(meta)
-    records[STATUS_RECORD] = status_record(meta.status, meta.status_reason, len(episode),
-                                           meta.timing, meta.backend_stats)
+    records[STATUS_RECORD] = status_record(
+        meta.status, meta.status_reason, len(episode), meta.timing, meta.backend_stats
+    )
     return records
 
 
@@ -149,17 +161,31 @@ def write_csv(episode: Episode, path: str | Path) -> None:
     else:
         meta = episode.metadata
         with atomic_path(sidecar) as tmp:
-            tmp.write_text(json.dumps({"status": meta.status, "reason": meta.status_reason,
-                                       "salvaged": meta.salvaged, "salvage_note": meta.salvage_note,
-                                       "samples": len(episode)}, indent=2) + "\n")
+            tmp.write_text(
+                json.dumps(
+                    {
+                        "status": meta.status,
+                        "reason": meta.status_reason,
+                        "salvaged": meta.salvaged,
+                        "salvage_note": meta.salvage_note,
+                        "samples": len(episode),
+                    },
+                    indent=2,
+                )
+                + "\n"
+            )
     content = legacy_csv_bytes(episode)
     with atomic_path(path) as tmp:
         tmp.write_bytes(content)
     gap = _time_gap(episode)
     if gap is not None:
-        warnings.warn(f"{path}: {gap[0]} samples missing after t = {gap[1]:.3f} s (lost when the log was read); "
-                      "the CSV layout is evenly spaced, so qube-import will refuse this file: "
-                      "--format parquet or mat keep the episode as it is", CsvGapWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: {gap[0]} samples missing after t = {gap[1]:.3f} s (lost when the log was read); "
+            "the CSV layout is evenly spaced, so qube-import will refuse this file: "
+            "--format parquet or mat keep the episode as it is",
+            CsvGapWarning,
+            stacklevel=2,
+        )
 
 
 def _pyarrow():
@@ -167,8 +193,9 @@ def _pyarrow():
         import pyarrow
         import pyarrow.parquet
     except ImportError:
-        raise ExportError("--format parquet needs pyarrow (pip install pyarrow; it comes with the "
-                          "[viz] extra's rerun-sdk)") from None
+        raise ExportError(
+            "--format parquet needs pyarrow (pip install pyarrow; it comes with the [viz] extra's rerun-sdk)"
+        ) from None
     return pyarrow
 
 
@@ -182,11 +209,12 @@ def write_parquet(episode: Episode, path: str | Path) -> None:
     """
     pa = _pyarrow()
     columns = episode_columns(episode)
-    fields = [pa.field(name, pa.from_numpy_dtype(value.dtype), metadata={"unit": _unit(name)})
-              for name, value in columns.items()]
+    fields = [
+        pa.field(name, pa.from_numpy_dtype(value.dtype), metadata={"unit": _unit(name)})
+        for name, value in columns.items()
+    ]
     metadata = {key: json.dumps(value, separators=(",", ":")) for key, value in metadata_records(episode).items()}
-    table = pa.Table.from_arrays([pa.array(v) for v in columns.values()],
-                                 schema=pa.schema(fields, metadata=metadata))
+    table = pa.Table.from_arrays([pa.array(v) for v in columns.values()], schema=pa.schema(fields, metadata=metadata))
     with atomic_path(path) as tmp:
         pa.parquet.write_table(table, str(tmp))
 
@@ -195,8 +223,7 @@ def write_mat(episode: Episode, path: str | Path) -> None:
     """Write the episode as a MATLAB ``.mat`` file (column vectors and a ``metadata`` struct)."""
     from scipy.io import savemat
 
-    arrays = {name: (value.reshape(-1, 1) if value.ndim == 1 else value)
-              for name, value in episode.arrays().items()}
+    arrays = {name: (value.reshape(-1, 1) if value.ndim == 1 else value) for name, value in episode.arrays().items()}
     records = metadata_records(episode)
     metadata = {name.split(".", 1)[1]: dict(record) for name, record in records.items()}
     with atomic_path(path) as tmp:

@@ -53,8 +53,17 @@ __all__ = [
     "status_sidecar",
 ]
 
-LEGACY_COLUMNS = ("t", "target_theta", "target_alpha", "theta", "alpha", "control_output",
-                  "feedforward", "plant_input", "saturation")
+LEGACY_COLUMNS = (
+    "t",
+    "target_theta",
+    "target_alpha",
+    "theta",
+    "alpha",
+    "control_output",
+    "feedforward",
+    "plant_input",
+    "saturation",
+)
 LEGACY_SAMPLE_RATE_HZ = 500.0
 #: The recomputed controller output must match the logged one this closely...
 CONTROL_TOLERANCE_V = 1e-9
@@ -93,8 +102,10 @@ def _sidecar_status(path: Path) -> _Status:
     reason = "; ".join(str(text) for text in (info.get("reason"), info.get("salvage_note")) if text)
     if status == "complete" and not info.get("salvaged"):
         return {}
-    return {"status": status if status == "aborted" else "incomplete",
-            "status_reason": reason or f"exported from a log whose status was {status}"}
+    return {
+        "status": status if status == "aborted" else "incomplete",
+        "status_reason": reason or f"exported from a log whose status was {status}",
+    }
 
 
 class LegacyCsvError(ValueError):
@@ -119,8 +130,10 @@ def parse_legacy_name(path: str | Path) -> tuple[str, dict[str, int]]:
     path = Path(path)
     name = parse_episode_name(path, ".csv")
     if name is None:
-        raise LegacyCsvError(f"{path}: file name does not follow qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_"
-                             f"<alpha seed>_<feedforward seed>.csv (it gives the start time and seeds)")
+        raise LegacyCsvError(
+            f"{path}: file name does not follow qube_<YYYYMMDD>T<HHMMSS>_<theta seed>_"
+            f"<alpha seed>_<feedforward seed>.csv (it gives the start time and seeds)"
+        )
     try:
         start = datetime.strptime(name.stamp, "%Y%m%dT%H%M%S")
     except ValueError:
@@ -199,7 +212,7 @@ def _drop_cut_line(raw: bytes) -> tuple[bytes, str]:
     """The file's whole lines, and what was dropped ("" for a file ending in a newline, as the rig's did)."""
     if raw.endswith(b"\n") or b"\n" not in raw:  # no newline at all: a header alone, refused later
         return raw, ""
-    whole = raw[:raw.rindex(b"\n") + 1]
+    whole = raw[: raw.rindex(b"\n") + 1]
     line = whole.count(b"\n") + 1
     return whole, f"cut short: its last line (line {line}) ends without a newline and was dropped"
 
@@ -219,8 +232,10 @@ def _read(path: Path) -> tuple[dict[str, np.ndarray], bytes, str]:
     names = [name.strip() for name in header.split(",")]
     missing = [c for c in LEGACY_COLUMNS if c not in names]
     if missing:
-        raise LegacyCsvError(f"{path}: missing column{'s' if len(missing) > 1 else ''} "
-                             f"{', '.join(missing)} (header: {_shorten(header)!r})")
+        raise LegacyCsvError(
+            f"{path}: missing column{'s' if len(missing) > 1 else ''} "
+            f"{', '.join(missing)} (header: {_shorten(header)!r})"
+        )
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:
         raise LegacyCsvError(f"{path}: duplicated column {', '.join(duplicated)}")
@@ -239,26 +254,35 @@ def _read(path: Path) -> tuple[dict[str, np.ndarray], bytes, str]:
     bad = ~np.isfinite(data)
     if bad.any():
         row, col = np.argwhere(bad)[0]
-        raise LegacyCsvError(f"{path}: line {_line_of(text, row)}: column {names[col]}: "
-                             f"non-finite value {float(data[row, col])}")
+        raise LegacyCsvError(
+            f"{path}: line {_line_of(text, row)}: column {names[col]}: non-finite value {float(data[row, col])}"
+        )
     columns = {name: data[:, names.index(name)].copy() for name in LEGACY_COLUMNS}
     t = columns["t"]
     expected = np.arange(len(t)) / LEGACY_SAMPLE_RATE_HZ
     off = np.abs(t - expected)
     if off.max() > _TIME_TOLERANCE_S:
         k = int(np.argmax(off > _TIME_TOLERANCE_S))
-        raise LegacyCsvError(f"{path}: t is not evenly spaced at {LEGACY_SAMPLE_RATE_HZ:g} Hz from 0 "
-                             f"(line {_line_of(text, k)}: t = {float(t[k])!r}, expected {float(expected[k])!r})")
+        raise LegacyCsvError(
+            f"{path}: t is not evenly spaced at {LEGACY_SAMPLE_RATE_HZ:g} Hz from 0 "
+            f"(line {_line_of(text, k)}: t = {float(t[k])!r}, expected {float(expected[k])!r})"
+        )
     if not np.isin(columns["saturation"], (-1.0, 0.0, 1.0)).all():
         k = int(np.argmax(~np.isin(columns["saturation"], (-1.0, 0.0, 1.0))))
-        raise LegacyCsvError(f"{path}: line {_line_of(text, k)}: saturation {float(columns['saturation'][k])!r} "
-                             f"is not -1, 0 or +1")
+        raise LegacyCsvError(
+            f"{path}: line {_line_of(text, k)}: saturation {float(columns['saturation'][k])!r} is not -1, 0 or +1"
+        )
     return columns, raw, cut
 
 
-def controller_state_from_log(columns: dict[str, np.ndarray], controller: ControllerInfo, where: str, *,
-                              tolerance: float = CONTROL_TOLERANCE_V,
-                              after_s: float = CONTROL_CHECK_AFTER_S) -> np.ndarray:
+def controller_state_from_log(
+    columns: dict[str, np.ndarray],
+    controller: ControllerInfo,
+    where: str,
+    *,
+    tolerance: float = CONTROL_TOLERANCE_V,
+    after_s: float = CONTROL_CHECK_AFTER_S,
+) -> np.ndarray:
     """Recompute the controller state and check it reproduces the logged output.
 
     The controller runs from zero state at t = 0 on the tracking error
@@ -276,8 +300,9 @@ def controller_state_from_log(columns: dict[str, np.ndarray], controller: Contro
         than ``tolerance`` volts at some t >= ``after_s``, or the file ends
         before ``after_s``.
     """
-    state, output = replay_controller(controller.system, stack_signals(columns, REFERENCE_SIGNALS),
-                                      stack_signals(columns, STATE_SIGNALS))
+    state, output = replay_controller(
+        controller.system, stack_signals(columns, REFERENCE_SIGNALS), stack_signals(columns, STATE_SIGNALS)
+    )
     checked = columns["t"] >= after_s - _TIME_TOLERANCE_S
     if not checked.any():
         raise LegacyCsvError(f"{where}: ends before t = {after_s:g} s, too short to check the controller")
@@ -288,7 +313,8 @@ def controller_state_from_log(columns: dict[str, np.ndarray], controller: Contro
             f"{where}: the {controller.method} {controller.kind} controller (gains "
             f"{', '.join(f'{k} {v:g}' for k, v in controller.gains.items())}) does not reproduce "
             f"control_output: off by {mismatch[worst]:.3g} V at t = {columns['t'][worst]:.3f} s "
-            f"(tolerance {tolerance:g} V after {after_s:g} s); wrong controller.toml?")
+            f"(tolerance {tolerance:g} V after {after_s:g} s); wrong controller.toml?"
+        )
     return state
 
 
@@ -298,14 +324,17 @@ def legacy_excitation(seeds: dict[str, int]) -> dict:
     return {
         "generator": "PRBS, 16-bit Fibonacci LFSR, taps 16 14 13 11, bits held for the bit period",
         "seeds": dict(seeds),
-        "target_theta": {"signal": "rate PRBS integrated by forward Euler", "amplitude_rad_s": 0.25,
-                         "bit_period_s": 0.25},
+        "target_theta": {
+            "signal": "rate PRBS integrated by forward Euler",
+            "amplitude_rad_s": 0.25,
+            "bit_period_s": 0.25,
+        },
         "target_alpha": {"signal": "PRBS", "amplitude_rad": 0.01, "bit_period_s": 0.1},
         "feedforward": {"signal": "PRBS", "amplitude_V": 0.5, "bit_period_s": 0.1},
         "active_samples": [2000, 8000],
         "smoothing": {"filter": "backward-Euler low-pass c / (s + c)", "c_rad_s": 200.0},
         "settings_source": "the rig's C program (decargroup/quanser_qube); the CSV holds only the seeds, "
-                           "in its file name",
+        "in its file name",
     }
 
 
@@ -369,12 +398,23 @@ def legacy_episode(path: str | Path, controller: ControllerInfo) -> Episode:
         source=f"legacy CSV {path.name}",
         start_time=start_time,
         excitation=legacy_excitation(seeds),
-        extra={"source_sha256": hashlib.sha256(raw).hexdigest(), "importer": "qube_koopman.daq.legacy_csv",
-               "plant_input_limit_V": 10.0},
+        extra={
+            "source_sha256": hashlib.sha256(raw).hexdigest(),
+            "importer": "qube_koopman.daq.legacy_csv",
+            "plant_input_limit_V": 10.0,
+        },
         **status,
     )
-    return Episode(t=columns["t"], theta=columns["theta"], alpha=columns["alpha"],
-                   target_theta=columns["target_theta"], target_alpha=columns["target_alpha"],
-                   feedforward=columns["feedforward"], controller_state=state,
-                   control_output=columns["control_output"], plant_input=columns["plant_input"],
-                   saturation=columns["saturation"], metadata=metadata)
+    return Episode(
+        t=columns["t"],
+        theta=columns["theta"],
+        alpha=columns["alpha"],
+        target_theta=columns["target_theta"],
+        target_alpha=columns["target_alpha"],
+        feedforward=columns["feedforward"],
+        controller_state=state,
+        control_output=columns["control_output"],
+        plant_input=columns["plant_input"],
+        saturation=columns["saturation"],
+        metadata=metadata,
+    )

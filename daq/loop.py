@@ -146,11 +146,13 @@ def _statistics(backend: Backend) -> dict:
         return {"error": f"statistics unavailable: {type(exc).__name__}: {exc}"}
 
 
-def _wait_upright(backend: Backend, limits: SafetyLimits, stop: StopRequest,
-                  pacer: DeadlinePacer | None) -> tuple[str, str]:
+def _wait_upright(
+    backend: Backend, limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None
+) -> tuple[str, str]:
     """Hold 0 V until |alpha| < start_alpha; ('', '') once there, else (why not, cause)."""
-    max_ticks = (math.inf if limits.start_timeout is None
-                 else max(1, round(limits.start_timeout / backend.sample_period)))
+    max_ticks = (
+        math.inf if limits.start_timeout is None else max(1, round(limits.start_timeout / backend.sample_period))
+    )
     k = 0
     if pacer is not None:
         pacer.start()
@@ -163,8 +165,11 @@ def _wait_upright(backend: Backend, limits: SafetyLimits, stop: StopRequest,
         backend.write(0.0)
         k += 1
         if k >= max_ticks:
-            return (f"not started: |alpha| stayed above {math.degrees(limits.start_alpha):.1f} deg "
-                    f"for {limits.start_timeout} s", "start")
+            return (
+                f"not started: |alpha| stayed above {math.degrees(limits.start_alpha):.1f} deg "
+                f"for {limits.start_timeout} s",
+                "start",
+            )
         if pacer is not None:
             pacer.wait(k)
 
@@ -173,15 +178,16 @@ def _check_controller(ctrl, period: float) -> None:
     """Refuse a controller the loop cannot run: two tracking errors (and optionally the feedforward) in, one
     voltage out, at the backend's rate."""
     if ctrl.n_inputs not in (2, 3) or ctrl.n_outputs != 1:
-        raise ValueError("the controller must map the two tracking errors (theta, alpha), and optionally the "
-                         "feedforward, to one voltage; "
-                         f"got {ctrl.n_inputs} inputs and {ctrl.n_outputs} outputs")
+        raise ValueError(
+            "the controller must map the two tracking errors (theta, alpha), and optionally the "
+            "feedforward, to one voltage; "
+            f"got {ctrl.n_inputs} inputs and {ctrl.n_outputs} outputs"
+        )
     if abs(ctrl.dt - period) > 1e-9 * period:
         raise ValueError(f"controller dt {ctrl.dt} s differs from the backend's sample period {period} s")
 
 
-def _start(backend: Backend, limits: SafetyLimits, stop: StopRequest,
-           pacer: DeadlinePacer | None) -> tuple[str, str]:
+def _start(backend: Backend, limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None) -> tuple[str, str]:
     """Start the backend and pass the start gate; ('', '') then, else (why not, cause) with the motor at 0 V."""
     try:
         backend.start()
@@ -196,11 +202,20 @@ def _start(backend: Backend, limits: SafetyLimits, stop: StopRequest,
 def _episode_metadata(plan: EpisodePlan, backend: Backend, limits: SafetyLimits) -> EpisodeMetadata:
     """What the sinks are told when the episode starts."""
     return EpisodeMetadata(
-        controller=plan.controller, sample_rate_hz=1.0 / backend.sample_period, backend=backend.name,
-        source=plan.source, start_time=datetime.now(timezone.utc).isoformat(),
+        controller=plan.controller,
+        sample_rate_hz=1.0 / backend.sample_period,
+        backend=backend.name,
+        source=plan.source,
+        start_time=datetime.now(timezone.utc).isoformat(),
         excitation=plan.excitation_info,
-        extra={"episode_index": plan.index, "n_planned": plan.n_samples, "backend": backend.describe(),
-               "safety": limits.as_dict(), **plan.extra})
+        extra={
+            "episode_index": plan.index,
+            "n_planned": plan.n_samples,
+            "backend": backend.describe(),
+            "safety": limits.as_dict(),
+            **plan.extra,
+        },
+    )
 
 
 class _TickTimes:
@@ -236,9 +251,16 @@ class _Logged(NamedTuple):
     errors: list
 
 
-def _run_logged(backend: Backend, plan: EpisodePlan, metadata: EpisodeMetadata, sinks: list[Sink],
-                limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None,
-                times: _TickTimes) -> _Logged:
+def _run_logged(
+    backend: Backend,
+    plan: EpisodePlan,
+    metadata: EpisodeMetadata,
+    sinks: list[Sink],
+    limits: SafetyLimits,
+    stop: StopRequest,
+    pacer: DeadlinePacer | None,
+    times: _TickTimes,
+) -> _Logged:
     """Open the sinks, run the ticks, and whatever happens zero the motor and close the sinks."""
     writer = SinkWriter(sinks)
     n_done = 0
@@ -256,8 +278,7 @@ def _run_logged(backend: Backend, plan: EpisodePlan, metadata: EpisodeMetadata, 
         _zero_motor(backend)
         times.fold(n_done)
         timing = times.record.stats() if n_done else TimingRecord(backend.sample_period).stats()
-        outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing,
-                                 _statistics(backend))
+        outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing, _statistics(backend))
         errors = writer.close(outcome)
         if writer.failed is not None and not reason:
             # The log failed after the last tick, while its queue drained: the episode is
@@ -267,10 +288,17 @@ def _run_logged(backend: Backend, plan: EpisodePlan, metadata: EpisodeMetadata, 
     return _Logged(n_done, reason, cause, outcome, errors)
 
 
-def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
-                limits: SafetyLimits = SafetyLimits(), stop: StopRequest | None = None,
-                handle_signals: bool = True, spin: float = DEFAULT_SPIN,
-                timing: TimingRecord | None = None) -> EpisodeResult:
+def run_episode(
+    backend: Backend,
+    plan: EpisodePlan,
+    sinks: list[Sink],
+    *,
+    limits: SafetyLimits = SafetyLimits(),
+    stop: StopRequest | None = None,
+    handle_signals: bool = True,
+    spin: float = DEFAULT_SPIN,
+    timing: TimingRecord | None = None,
+) -> EpisodeResult:
     """Run one episode on a backend, under the safety supervisor, into sinks.
 
     Parameters
@@ -312,15 +340,36 @@ def run_episode(backend: Backend, plan: EpisodePlan, sinks: list[Sink], *,
         times = _TickTimes(period, timing)
         reason, cause = _start(backend, limits, stop, pacer)
         if reason:
-            return EpisodeResult("aborted", reason, 0, TimingStats(0, period, paced), _statistics(backend),
-                                 signal=stop.signal, cause=cause)
+            return EpisodeResult(
+                "aborted",
+                reason,
+                0,
+                TimingStats(0, period, paced),
+                _statistics(backend),
+                signal=stop.signal,
+                cause=cause,
+            )
         metadata = _episode_metadata(plan, backend, limits)
         run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times)
     outcome, stats = run.outcome, run.outcome.timing
-    metadata = replace(metadata, status=outcome.status, status_reason=run.reason, timing=stats.as_dict(),
-                       backend_stats=outcome.backend_stats)
-    return EpisodeResult(outcome.status, run.reason, run.n_done, stats, outcome.backend_stats, metadata=metadata,
-                         sink_errors=tuple(run.errors), signal=stop.signal, cause=run.cause)
+    metadata = replace(
+        metadata,
+        status=outcome.status,
+        status_reason=run.reason,
+        timing=stats.as_dict(),
+        backend_stats=outcome.backend_stats,
+    )
+    return EpisodeResult(
+        outcome.status,
+        run.reason,
+        run.n_done,
+        stats,
+        outcome.backend_stats,
+        metadata=metadata,
+        sink_errors=tuple(run.errors),
+        signal=stop.signal,
+        cause=run.cause,
+    )
 
 
 class _DeviceLateness:
@@ -362,8 +411,7 @@ def _excitation_chunks(ex: Excitation | ExcitationStream):
         yield tuple(signal.tolist() for signal in chunk)
 
 
-def _abort(theta: float, alpha: float, limits: SafetyLimits, stop: StopRequest,
-           writer: SinkWriter) -> tuple[str, str]:
+def _abort(theta: float, alpha: float, limits: SafetyLimits, stop: StopRequest, writer: SinkWriter) -> tuple[str, str]:
     """Why this tick must put the motor at 0 V and end the episode: (reason, cause), or ('', '')."""
     if not (abs(theta) <= limits.theta_limit and abs(alpha) <= limits.alpha_limit):
         violation = limits.violation(theta, alpha)
@@ -388,8 +436,15 @@ def _clocking(backend: Backend, writer: SinkWriter, pacer: DeadlinePacer | None)
     return None, (_DeviceLateness(writer, period) if backend.pacing is Pacing.DEVICE else None)
 
 
-def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest,
-           writer: SinkWriter, pacer: DeadlinePacer | None, times: _TickTimes) -> tuple[int, str, str]:
+def _ticks(
+    backend: Backend,
+    plan: EpisodePlan,
+    limits: SafetyLimits,
+    stop: StopRequest,
+    writer: SinkWriter,
+    pacer: DeadlinePacer | None,
+    times: _TickTimes,
+) -> tuple[int, str, str]:
     """The ticks of one episode; returns (ticks recorded, abort reason, cause), '' when complete."""
     output, update = controller_step(plan.controller.system)
     n_ticks = plan.n_samples
@@ -445,8 +500,24 @@ def _ticks(backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: Stop
         spent = clock() - t_tick
         lateness[j] = late
         compute[j] = spent
-        put(Sample(k, k / rate, theta, alpha, r_theta, r_alpha, f, u, v, sat, late, spent, xc,
-                   nan if when is None else when))
+        put(
+            Sample(
+                k,
+                k / rate,
+                theta,
+                alpha,
+                r_theta,
+                r_alpha,
+                f,
+                u,
+                v,
+                sat,
+                late,
+                spent,
+                xc,
+                nan if when is None else when,
+            )
+        )
         if throttle and not k & _BACKLOG_CHECK:
             writer.wait_below(_MAX_BACKLOG)  # free-running: memory must not grow with the episode
         if reason:

@@ -185,8 +185,9 @@ class _PassTurn:
 
 
 @contextmanager
-def _relay(source: Callable[[], tuple[str, int | None] | None],
-           target: Callable[[str, int | None], None]) -> Iterator[None]:
+def _relay(
+    source: Callable[[], tuple[str, int | None] | None], target: Callable[[str, int | None], None]
+) -> Iterator[None]:
     """While the block runs, a thread looks at ``source`` every 50 ms and hands a stop it finds to ``target``."""
     done = threading.Event()
 
@@ -216,12 +217,14 @@ def _start_after(start_time: str | None) -> None:
         time.sleep(wait)
 
 
-def _run_logged(backend, plan: EpisodePlan, out_dir: Path, sinks: list, limits: SafetyLimits, stop: StopRequest,
-                spin: float) -> LoggedEpisode:
+def _run_logged(
+    backend, plan: EpisodePlan, out_dir: Path, sinks: list, limits: SafetyLimits, stop: StopRequest, spin: float
+) -> LoggedEpisode:
     """One episode into its own log in ``out_dir`` (and ``sinks``)."""
     mcap, timing = McapSink(out_dir), TimingRecord(backend.sample_period)
-    result = run_episode(backend, plan, [mcap, *sinks], limits=limits, stop=stop, handle_signals=False, spin=spin,
-                         timing=timing)
+    result = run_episode(
+        backend, plan, [mcap, *sinks], limits=limits, stop=stop, handle_signals=False, spin=spin, timing=timing
+    )
     return LoggedEpisode(result, mcap.paths[-1] if result.started and mcap.paths else None, mcap.error, timing)
 
 
@@ -256,8 +259,9 @@ def _prepare_worker(parent: int, setup: Callable[[], None] | None) -> None:
     _prepared = True
 
 
-def _in_worker(backend, plan: EpisodePlan, out_dir: Path, flags: _Flags, limits: SafetyLimits, spin: float,
-               setup) -> LoggedEpisode | Exception | None:
+def _in_worker(
+    backend, plan: EpisodePlan, out_dir: Path, flags: _Flags, limits: SafetyLimits, spin: float, setup
+) -> LoggedEpisode | Exception | None:
     """A worker's episode: at its turn, into its own log; None when the run halted before it."""
     _prepare_worker(flags.parent, setup)
     stop, last_start = StopRequest(), None
@@ -302,12 +306,20 @@ def _calls(backend, plans: Sequence[EpisodePlan], halted: threading.Event, args:
         yield call(here, _for_worker(plans[index]), *args)
 
 
-def run_episodes_parallel(backend, plans: Sequence[EpisodePlan], out_dir: str | Path, *, n_jobs: int,
-                          sinks: Sequence[Sink] = (), limits: SafetyLimits = SafetyLimits(),
-                          stop: StopRequest | None = None, spin: float = DEFAULT_SPIN,
-                          on_result: Callable[[EpisodePlan, LoggedEpisode], None] | None = None,
-                          timing: TimingRecord | None = None,
-                          worker_setup: Callable[[], None] | None = None) -> RunResult:
+def run_episodes_parallel(
+    backend,
+    plans: Sequence[EpisodePlan],
+    out_dir: str | Path,
+    *,
+    n_jobs: int,
+    sinks: Sequence[Sink] = (),
+    limits: SafetyLimits = SafetyLimits(),
+    stop: StopRequest | None = None,
+    spin: float = DEFAULT_SPIN,
+    on_result: Callable[[EpisodePlan, LoggedEpisode], None] | None = None,
+    timing: TimingRecord | None = None,
+    worker_setup: Callable[[], None] | None = None,
+) -> RunResult:
     """Run ``plans``, each episode into its own MCAP log in ``out_dir``: the first here, the others in workers.
 
     The logs are those :func:`daq.session.run_episodes` writes with an
@@ -361,8 +373,10 @@ def run_episodes_parallel(backend, plans: Sequence[EpisodePlan], out_dir: str | 
     # Absolute: joblib may reuse workers another part of this process started in another directory.
     args = (Path(out_dir).absolute(), state.flags, limits, spin, worker_setup)
     try:
-        with stop_on_signals(stop), _relay(lambda: (stop.reason, stop.signal) if stop.requested else None,
-                                           state.flags.halt):
+        with (
+            stop_on_signals(stop),
+            _relay(lambda: (stop.reason, stop.signal) if stop.requested else None, state.flags.halt),
+        ):
             with _sigint_ignored():  # the workers start now, deaf to a Ctrl-C: it reaches them as the flags
                 results = parallel(_calls(source, plans, state.halted, args))
             first = _first(backend, plans[0], Path(out_dir), sinks, limits, stop, spin)
@@ -436,8 +450,9 @@ class _RunState:
         return run
 
 
-def _first(backend, plan: EpisodePlan, out_dir: Path, sinks, limits: SafetyLimits, stop: StopRequest,
-           spin: float) -> LoggedEpisode | Exception | None:
+def _first(
+    backend, plan: EpisodePlan, out_dir: Path, sinks, limits: SafetyLimits, stop: StopRequest, spin: float
+) -> LoggedEpisode | Exception | None:
     """The first episode, in this process (None when the run was stopped before it)."""
     if stop.requested:
         return None

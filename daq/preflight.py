@@ -56,8 +56,11 @@ class PreflightReport:
 def _module_id(backend) -> CheckResult:
     found = backend.hello.module_id if backend.hello is not None else None
     ok = found == MODULE_ID_QUBE_SERVO_2
-    detail = (f"{found} (QUBE-Servo 2)" if ok
-              else f"{found}, expected {MODULE_ID_QUBE_SERVO_2}: is the QUBE powered and wired to the bridge?")
+    detail = (
+        f"{found} (QUBE-Servo 2)"
+        if ok
+        else f"{found}, expected {MODULE_ID_QUBE_SERVO_2}: is the QUBE powered and wired to the bridge?"
+    )
     return CheckResult("module id", ok, detail)
 
 
@@ -107,26 +110,46 @@ def preflight(backend, n_commands: int = 100) -> PreflightReport:
     report.round_trips = trips
     if seen:
         first, last = seen[0], seen[-1]
-        moved = [name for name, a, b in (("arm", first.encoder0, last.encoder0),
-                                         ("pendulum", first.encoder1, last.encoder1)) if a != b]
-        counting = (f"counting ({', '.join(moved)} moved)" if moved
-                    else "no motion seen (turn the arm and the pendulum by hand during the check to see them count)")
-        report.checks.append(CheckResult(
-            "encoders", True, f"read: arm {first.encoder0} -> {last.encoder0}, pendulum {first.encoder1} -> "
-                              f"{last.encoder1} counts; {counting}"))
+        moved = [
+            name
+            for name, a, b in (("arm", first.encoder0, last.encoder0), ("pendulum", first.encoder1, last.encoder1))
+            if a != b
+        ]
+        counting = (
+            f"counting ({', '.join(moved)} moved)"
+            if moved
+            else "no motion seen (turn the arm and the pendulum by hand during the check to see them count)"
+        )
+        report.checks.append(
+            CheckResult(
+                "encoders",
+                True,
+                f"read: arm {first.encoder0} -> {last.encoder0}, pendulum {first.encoder1} -> "
+                f"{last.encoder1} counts; {counting}",
+            )
+        )
     else:
         report.checks.append(CheckResult("encoders", False, f"no telemetry: {fault or 'none arrived'}"))
     enabled = any(tm.status & Status.AMP_ENABLED for tm in seen)
     if fault:
         report.checks.append(CheckResult("amplifier", False, fault))
     else:
-        report.checks.append(CheckResult("amplifier", enabled, "enabled at 0 V without a fault" if enabled
-                                         else "never reported enabled at 0 V"))
+        report.checks.append(
+            CheckResult(
+                "amplifier", enabled, "enabled at 0 V without a fault" if enabled else "never reported enabled at 0 V"
+            )
+        )
     if len(trips) >= n_commands:
-        report.checks.append(CheckResult(
-            "round trip", True, f"p50 {np.median(trips) * 1e3:.2f} ms, max {trips.max() * 1e3:.2f} ms over "
-                                f"{len(trips)} commands (sent until the telemetry of the tick that applied it)"))
+        report.checks.append(
+            CheckResult(
+                "round trip",
+                True,
+                f"p50 {np.median(trips) * 1e3:.2f} ms, max {trips.max() * 1e3:.2f} ms over "
+                f"{len(trips)} commands (sent until the telemetry of the tick that applied it)",
+            )
+        )
     else:
-        report.checks.append(CheckResult("round trip", False, f"only {len(trips)} of {n_commands} commands "
-                                                               "were seen applied"))
+        report.checks.append(
+            CheckResult("round trip", False, f"only {len(trips)} of {n_commands} commands were seen applied")
+        )
     return report

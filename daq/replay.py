@@ -22,6 +22,7 @@ from qube_koopman.daq.session import plan_episodes
 
 __all__ = ["replay_plans"]
 
+
 def _settings(meta, path: Path) -> ExcitationSettings:
     recorded = meta.excitation.get("settings")
     try:
@@ -30,8 +31,9 @@ def _settings(meta, path: Path) -> ExcitationSettings:
         raise ValueError(f"{path}: its excitation settings cannot be used ({exc})") from None
 
 
-def replay_plans(paths: Sequence[str | Path], controller: ControllerInfo | None = None,
-                 source: str = "qube-run --replay") -> list[EpisodePlan]:
+def replay_plans(
+    paths: Sequence[str | Path], controller: ControllerInfo | None = None, source: str = "qube-run --replay"
+) -> list[EpisodePlan]:
     """One plan per log: its excitation regenerated, under ``controller`` or the log's own.
 
     Raises
@@ -54,8 +56,12 @@ def replay_plans(paths: Sequence[str | Path], controller: ControllerInfo | None 
         seeds = meta.excitation.get("seeds", {})
         if not all(isinstance(seeds.get(k), int) for k in SEED_SIGNALS):
             raise ValueError(f"{path}: the log records no excitation seeds; it cannot be replayed")
-        (plan,) = plan_episodes(controller or meta.controller, [tuple(seeds[k] for k in SEED_SIGNALS)],
-                                _settings(meta, path), source=source,
-                                extra={"command": "qube-run --replay", "replay_of": path.name})
+        (plan,) = plan_episodes(
+            controller or meta.controller,
+            [tuple(seeds[k] for k in SEED_SIGNALS)],
+            _settings(meta, path),
+            source=source,
+            extra={"command": "qube-run --replay", "replay_of": path.name},
+        )
         plans.append(replace(plan, index=i))
     return plans

@@ -50,8 +50,11 @@ class SafetyLimits:
     def __post_init__(self) -> None:
         for name in ("max_voltage", "theta_limit", "alpha_limit", "start_alpha"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
-                                                                                  and value > 0):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
                 raise ValueError(f"safety limit {name} must be a positive number, got {value!r}")
         if self.start_alpha > self.alpha_limit:
             raise ValueError(f"start_alpha {self.start_alpha} must not exceed alpha_limit {self.alpha_limit}")

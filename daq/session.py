@@ -94,8 +94,7 @@ def excitation_settings(duration: float, sample_rate: float = 500.0) -> Excitati
     """
     n = round(duration * sample_rate)
     if n < 1 or abs(n - duration * sample_rate) > 1e-6:
-        raise ValueError(f"duration {duration} s is not a whole, positive number of samples at "
-                         f"{sample_rate} Hz")
+        raise ValueError(f"duration {duration} s is not a whole, positive number of samples at {sample_rate} Hz")
     start = round(n * 4.0 / _RIG_SECONDS)
     stop = round(n * 16.0 / _RIG_SECONDS)
     return ExcitationSettings(sample_rate=sample_rate, n_samples=n, window_start=start, window_stop=stop)
@@ -104,16 +103,19 @@ def excitation_settings(duration: float, sample_rate: float = 500.0) -> Excitati
 def excitation_record(seeds: Sequence[int], settings: ExcitationSettings) -> dict:
     """What the log records of an episode's excitation: enough to regenerate it exactly."""
     return {
-        "generator": "daq.excitation.generate_excitation (the rig's PRBS: 16-bit Fibonacci LFSR, "
-                     "taps 16 14 13 11)",
+        "generator": "daq.excitation.generate_excitation (the rig's PRBS: 16-bit Fibonacci LFSR, taps 16 14 13 11)",
         "seeds": dict(zip(SEED_SIGNALS, (int(s) for s in seeds))),
         "settings": settings.as_dict(),
     }
 
 
-def plan_episodes(controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]] | np.ndarray,
-                  settings: ExcitationSettings, source: str = "", extra: dict | None = None
-                  ) -> "EpisodePlans":
+def plan_episodes(
+    controller: ControllerInfo,
+    seeds: Sequence[tuple[int, int, int]] | np.ndarray,
+    settings: ExcitationSettings,
+    source: str = "",
+    extra: dict | None = None,
+) -> "EpisodePlans":
     """One plan per seed triple: the rig's excitation with those seeds, under ``controller``.
 
     The plans are made one at a time, when asked for (:class:`EpisodePlans`).
@@ -146,8 +148,14 @@ class EpisodePlans(Sequence):
     planning one does, plus 6 MB; each plan's excitation is made a chunk at a time as its episode runs.
     """
 
-    def __init__(self, controller: ControllerInfo, seeds: Sequence[tuple[int, int, int]] | np.ndarray,
-                 settings: ExcitationSettings, source: str = "", extra: dict | None = None) -> None:
+    def __init__(
+        self,
+        controller: ControllerInfo,
+        seeds: Sequence[tuple[int, int, int]] | np.ndarray,
+        settings: ExcitationSettings,
+        source: str = "",
+        extra: dict | None = None,
+    ) -> None:
         self.controller = controller
         self.seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 3)
         self.settings = settings
@@ -168,9 +176,14 @@ class EpisodePlans(Sequence):
             return [self[i] for i in range(*index.indices(len(self)))]
         i = range(len(self))[index]  # IndexError and negative indices as a list's
         s = tuple(int(v) for v in self.seeds[i])
-        return EpisodePlan(self.controller, ExcitationStream(s, self.settings),
-                           excitation_record(s, self.settings), index=i, source=self.source,
-                           extra=dict(self.extra))
+        return EpisodePlan(
+            self.controller,
+            ExcitationStream(s, self.settings),
+            excitation_record(s, self.settings),
+            index=i,
+            source=self.source,
+            extra=dict(self.extra),
+        )
 
 
 @dataclass
@@ -208,16 +221,28 @@ FATAL_CAUSES = ("stop", "fault", "log", "error")
 
 def log_outcome(plan: EpisodePlan, result: EpisodeResult) -> None:
     """Say how an episode ended (an info line of the ``qube_koopman`` log: ``qube-run -v``)."""
-    _log.info("episode %d: %s after %d of %d ticks%s", plan.index, result.status, result.n_samples,
-              plan.n_samples, f" ({result.reason})" if result.reason else "")
+    _log.info(
+        "episode %d: %s after %d of %d ticks%s",
+        plan.index,
+        result.status,
+        result.n_samples,
+        plan.n_samples,
+        f" ({result.reason})" if result.reason else "",
+    )
 
 
-def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sink], *,
-                 limits: SafetyLimits = SafetyLimits(), stop: StopRequest | None = None,
-                 spin: float = DEFAULT_SPIN,
-                 on_start: Callable[[EpisodePlan], None] | None = None,
-                 on_result: Callable[[EpisodePlan, EpisodeResult], None] | None = None,
-                 timing: TimingRecord | None = None) -> RunResult:
+def run_episodes(
+    backend: Backend,
+    plans: Sequence[EpisodePlan],
+    sinks: list[Sink],
+    *,
+    limits: SafetyLimits = SafetyLimits(),
+    stop: StopRequest | None = None,
+    spin: float = DEFAULT_SPIN,
+    on_start: Callable[[EpisodePlan], None] | None = None,
+    on_result: Callable[[EpisodePlan, EpisodeResult], None] | None = None,
+    timing: TimingRecord | None = None,
+) -> RunResult:
     """Run episodes one after the other; SIGINT/SIGTERM end the run cleanly.
 
     Signal handlers are installed for the duration of the run (restored
@@ -249,8 +274,9 @@ def run_episodes(backend: Backend, plans: Sequence[EpisodePlan], sinks: list[Sin
                 break
             if on_start is not None:
                 on_start(plan)
-            result = run_episode(backend, plan, sinks, limits=limits, stop=stop, handle_signals=False,
-                                 spin=spin, timing=timing)
+            result = run_episode(
+                backend, plan, sinks, limits=limits, stop=stop, handle_signals=False, spin=spin, timing=timing
+            )
             run.results.append(result)
             log_outcome(plan, result)
             if on_result is not None:

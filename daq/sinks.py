@@ -130,14 +130,22 @@ class MemoryEpisode:
 
         n = len(self.samples)
         n_c = self.metadata.controller.system.n_states
-        columns = {name: np.array([getattr(s, name) for s in self.samples], dtype=float)
-                   for name in SAMPLE_FIELDS if name not in ("k", "saturation", "controller_state")}
+        columns = {
+            name: np.array([getattr(s, name) for s in self.samples], dtype=float)
+            for name in SAMPLE_FIELDS
+            if name not in ("k", "saturation", "controller_state")
+        }
         state = np.array([s.controller_state for s in self.samples], dtype=float).reshape(n, n_c)
         saturation = np.array([s.saturation for s in self.samples], dtype=np.int8)
         meta = self.metadata
         if self.outcome is not None:
-            meta = replace(meta, status=self.outcome.status, status_reason=self.outcome.reason,
-                           timing=self.outcome.timing.as_dict(), backend_stats=self.outcome.backend_stats)
+            meta = replace(
+                meta,
+                status=self.outcome.status,
+                status_reason=self.outcome.reason,
+                timing=self.outcome.timing.as_dict(),
+                backend_stats=self.outcome.backend_stats,
+            )
         return Episode(**columns, controller_state=state, saturation=saturation, metadata=meta)
 
 
@@ -345,8 +353,9 @@ class McapSink:
         need = log_size_needed(int(metadata.extra.get("n_planned", 0)))
         free = shutil.disk_usage(self.out_dir).free
         if free < need:
-            self._fail(path, OSError(errno.ENOSPC, f"{free / 1e6:.1f} MB free, the episode needs about "
-                                                   f"{need / 1e6:.1f} MB"))
+            self._fail(
+                path, OSError(errno.ENOSPC, f"{free / 1e6:.1f} MB free, the episode needs about {need / 1e6:.1f} MB")
+            )
         try:
             self._writer = EpisodeWriter(path, metadata, flush_interval_s=self.flush_interval_s)
         except OSError as exc:
@@ -360,11 +369,20 @@ class McapSink:
         assert writer is not None, "open() first"
         try:
             writer.write_sample(
-                t=sample.t, theta=sample.theta, alpha=sample.alpha, target_theta=sample.target_theta,
-                target_alpha=sample.target_alpha, feedforward=sample.feedforward,
-                controller_state=sample.controller_state, control_output=sample.control_output,
-                plant_input=sample.plant_input, saturation=sample.saturation, lateness=sample.lateness,
-                compute_time=sample.compute_time, device_time=sample.device_time)
+                t=sample.t,
+                theta=sample.theta,
+                alpha=sample.alpha,
+                target_theta=sample.target_theta,
+                target_alpha=sample.target_alpha,
+                feedforward=sample.feedforward,
+                controller_state=sample.controller_state,
+                control_output=sample.control_output,
+                plant_input=sample.plant_input,
+                saturation=sample.saturation,
+                lateness=sample.lateness,
+                compute_time=sample.compute_time,
+                device_time=sample.device_time,
+            )
         except OSError as exc:
             self._fail(writer.path, exc)
 

@@ -55,9 +55,13 @@ class DeadlinePacer:
         Time source and sleep function (replaceable in tests).
     """
 
-    def __init__(self, period: float, spin: float = DEFAULT_SPIN,
-                 clock: Callable[[], float] = time.perf_counter,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(
+        self,
+        period: float,
+        spin: float = DEFAULT_SPIN,
+        clock: Callable[[], float] = time.perf_counter,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ValueError(f"period must be a positive number of seconds, got {period!r}")
         if not (math.isfinite(spin) and spin >= 0):
@@ -239,8 +243,9 @@ class TimingRecord:
         lateness = np.asarray(lateness, dtype=float)
         compute = np.asarray(compute_time, dtype=float)
         if lateness.shape != compute.shape or lateness.ndim != 1:
-            raise ValueError(f"lateness {lateness.shape} and compute_time {compute.shape} must be "
-                             "1-D arrays of the same length")
+            raise ValueError(
+                f"lateness {lateness.shape} and compute_time {compute.shape} must be 1-D arrays of the same length"
+            )
         self.n_ticks += lateness.size
         self._compute.add(compute[np.isfinite(compute)])
         measured = np.isfinite(lateness)
@@ -269,11 +274,9 @@ class TimingRecord:
         """The statistics so far."""
         c50, c99, cmax = self._compute.summary()
         if self._lateness.n == 0:
-            return TimingStats(self.n_ticks, self.period, False, compute_p50=c50, compute_p99=c99,
-                               compute_max=cmax)
+            return TimingStats(self.n_ticks, self.period, False, compute_p50=c50, compute_p99=c99, compute_max=cmax)
         l50, l99, lmax = self._lateness.summary()
-        return TimingStats(self.n_ticks, self.period, True, l50, l99, lmax, self.overruns, self.stalls,
-                           c50, c99, cmax)
+        return TimingStats(self.n_ticks, self.period, True, l50, l99, lmax, self.overruns, self.stalls, c50, c99, cmax)
 
 
 def timing_stats(lateness, compute_time, period: float) -> TimingStats:
@@ -313,8 +316,10 @@ class RealtimeReport:
 
     def describe(self) -> str:
         """One line for the user."""
-        parts = [f"pinned to CPU {self.cpu}" if self.cpu is not None else "not pinned",
-                 f"SCHED_FIFO {self.priority}" if self.priority is not None else "normal scheduling"]
+        parts = [
+            f"pinned to CPU {self.cpu}" if self.cpu is not None else "not pinned",
+            f"SCHED_FIFO {self.priority}" if self.priority is not None else "normal scheduling",
+        ]
         return ", ".join(parts) + ("" if not self.notes else " (" + "; ".join(self.notes) + ")")
 
 

@@ -34,8 +34,11 @@ DEFAULT_VIEWER_PORT = 9876
 _SERIES = {
     "theta": (("theta", 1.0, "theta (rad)"), ("target_theta", 1.0, "target_theta (rad)")),
     "alpha": (("alpha", 1.0, "alpha (rad)"), ("target_alpha", 1.0, "target_alpha (rad)")),
-    "voltage": (("control_output", 1.0, "controller output (V)"), ("plant_input", 1.0, "applied, clamped (V)"),
-                ("feedforward", 1.0, "feedforward (V)")),
+    "voltage": (
+        ("control_output", 1.0, "controller output (V)"),
+        ("plant_input", 1.0, "applied, clamped (V)"),
+        ("feedforward", 1.0, "feedforward (V)"),
+    ),
     "timing": (("lateness", 1e3, "lateness (ms)"), ("compute_time", 1e3, "compute time (ms)")),
 }
 _FIELDS = [(name, scale) for series in _SERIES.values() for name, scale, _ in series]  # Sample's float fields
@@ -86,7 +89,8 @@ def _live_sink(url: str | None, port: int):
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise RerunUnavailable(
             f"no rerun viewer is listening on 127.0.0.1:{port} and there is no display to open one; "
-            "start a viewer elsewhere and pass its address, or record with --rerun-save FILE.rrd")
+            "start a viewer elsewhere and pass its address, or record with --rerun-save FILE.rrd"
+        )
     try:
         rr.spawn(port=port, connect=False)
     except Exception as exc:  # noqa: BLE001 - any spawn failure becomes one clear message
@@ -96,9 +100,15 @@ def _live_sink(url: str | None, port: int):
     return rr.GrpcSink(_viewer_url(port))
 
 
-def open_recording(*, live: bool = False, url: str | None = None, save: str | Path | None = None,
-                   port: int = DEFAULT_VIEWER_PORT, application_id: str = "qube-run",
-                   recording_id: str | None = None):
+def open_recording(
+    *,
+    live: bool = False,
+    url: str | None = None,
+    save: str | Path | None = None,
+    port: int = DEFAULT_VIEWER_PORT,
+    application_id: str = "qube-run",
+    recording_id: str | None = None,
+):
     """A rerun recording streaming to a viewer and/or saving to an .rrd file, with the default blueprint.
 
     Parameters
@@ -122,8 +132,9 @@ def open_recording(*, live: bool = False, url: str | None = None, save: str | Pa
     try:
         import rerun as rr
     except ImportError:
-        raise RerunUnavailable('rerun-sdk is not installed (the viewer is optional): '
-                               'pip install "qube-koopman[viz]"') from None
+        raise RerunUnavailable(
+            'rerun-sdk is not installed (the viewer is optional): pip install "qube-koopman[viz]"'
+        ) from None
 
     sinks = []
     if live:
@@ -184,8 +195,10 @@ class RerunSink:
         seeds = metadata.excitation.get("seeds", {})
         self.recording.set_time("time", duration=self._offset)
         self.recording.set_time("episode", sequence=self._index)
-        self.recording.log(EVENTS, rr.TextLog(f"episode {self._index} started, seeds {seeds}, "
-                                              f"backend {metadata.backend}", level="INFO"))
+        self.recording.log(
+            EVENTS,
+            rr.TextLog(f"episode {self._index} started, seeds {seeds}, backend {metadata.backend}", level="INFO"),
+        )
 
     def write(self, sample: Sample) -> None:
         """Buffer one tick; a full batch becomes one job per plot, sent one job per later tick.
@@ -206,7 +219,7 @@ class RerunSink:
         t = self._offset + np.array([s.t for s in self._buffer])
         first = 0
         for path, series in _SERIES.items():
-            self._jobs.insert(0, (path, t, rows[:, first:first + len(series)]))
+            self._jobs.insert(0, (path, t, rows[:, first : first + len(series)]))
             first += len(series)
         self._buffer = []
 
@@ -228,8 +241,10 @@ class RerunSink:
         end = self._offset + outcome.n_samples * self._dt
         text = f"episode {self._index} {outcome.status}" + (f": {outcome.reason}" if outcome.reason else "")
         if timing.paced:
-            text += (f"; lateness p50 {timing.lateness_p50 * 1e3:.3f} ms, p99 {timing.lateness_p99 * 1e3:.3f} ms, "
-                     f"max {timing.lateness_max * 1e3:.3f} ms, {timing.overruns} overruns")
+            text += (
+                f"; lateness p50 {timing.lateness_p50 * 1e3:.3f} ms, p99 {timing.lateness_p99 * 1e3:.3f} ms, "
+                f"max {timing.lateness_max * 1e3:.3f} ms, {timing.overruns} overruns"
+            )
         self.recording.set_time("time", duration=end)
         self.recording.set_time("episode", sequence=self._index)
         self.recording.log(EVENTS, rr.TextLog(text, level="INFO" if outcome.status == "complete" else "WARN"))

@@ -15,19 +15,36 @@ from qube_koopman.core.exports import lazy_exports
 # Each public name and the module (relative to this package) that defines it.
 _HOMES = {
     # the plant on its history
-    "DesignError": "plant", "LinearPlant": "plant", "linear_plant": "plant",
+    "DesignError": "plant",
+    "LinearPlant": "plant",
+    "linear_plant": "plant",
     # the LQ design and its realization as a controller
-    "Weights": "lq", "LqDesign": "lq", "augment": "lq", "design_lq": "lq", "realize": "lq",
+    "Weights": "lq",
+    "LqDesign": "lq",
+    "augment": "lq",
+    "design_lq": "lq",
+    "realize": "lq",
     # the closed loop it predicts
-    "CostPrediction": "predict", "predict_cost": "predict", "predict_loop": "predict",
-    "closed_loop_eigenvalues": "predict", "Margins": "predict", "loop_margins": "predict",
+    "CostPrediction": "predict",
+    "predict_cost": "predict",
+    "predict_loop": "predict",
+    "closed_loop_eigenvalues": "predict",
+    "Margins": "predict",
+    "loop_margins": "predict",
     "loop_response": "predict",
     # what qube-design runs, and the design run on the twin
-    "DesignReport": "workflow", "design_from_model": "workflow", "report_text": "workflow",
+    "DesignReport": "workflow",
+    "design_from_model": "workflow",
+    "report_text": "workflow",
     # the model's uncertainty: the predicted figures' interval, the robust design
-    "ModelUncertainty": "uncertainty", "model_uncertainty": "uncertainty", "member_figures": "uncertainty",
-    "FigureInterval": "uncertainty", "figure_interval": "uncertainty", "interval_from_logs": "uncertainty",
-    "RobustChoice": "uncertainty", "robust_design": "uncertainty",
+    "ModelUncertainty": "uncertainty",
+    "model_uncertainty": "uncertainty",
+    "member_figures": "uncertainty",
+    "FigureInterval": "uncertainty",
+    "figure_interval": "uncertainty",
+    "interval_from_logs": "uncertainty",
+    "RobustChoice": "uncertainty",
+    "robust_design": "uncertainty",
     "run_on_twin": "twin",
 }
 

@@ -137,8 +137,10 @@ def _check_stabilizable(F: np.ndarray, G: np.ndarray) -> None:
             continue
         sigma = np.linalg.svd(np.hstack([lam * np.eye(n) - F, G]), compute_uv=False)[-1]
         if sigma < _PBH_TOLERANCE * scale:
-            raise DesignError(f"the plant model is not stabilizable: its mode at {_complex(lam)} (|lambda| = "
-                              f"{abs(lam):.4g}) does not respond to the voltage, so no feedback can move it")
+            raise DesignError(
+                f"the plant model is not stabilizable: its mode at {_complex(lam)} (|lambda| = "
+                f"{abs(lam):.4g}) does not respond to the voltage, so no feedback can move it"
+            )
 
 
 def _complex(value: complex) -> str:
@@ -171,8 +173,10 @@ def design_lq(plant: LinearPlant, weights: Weights = Weights()) -> LqDesign:
     try:
         K, _, _ = control.dlqr(F, G, Q, R)
     except (ValueError, np.linalg.LinAlgError, control.ControlArgument) as exc:
-        raise DesignError(f"the LQ design has no stabilizing solution ({exc}); is the plant model "
-                          "stabilizable and are the weights sensible?") from None
+        raise DesignError(
+            f"the LQ design has no stabilizing solution ({exc}); is the plant model "
+            "stabilizable and are the weights sensible?"
+        ) from None
     K = np.atleast_2d(np.asarray(K, dtype=float))
     return LqDesign(plant, weights, K, realize(K, plant, weights.integral))
 
@@ -206,7 +210,7 @@ def realize(gain: np.ndarray, plant: LinearPlant, integral: bool) -> DiscreteSta
     B = np.zeros((n_c, m))
     if held:
         B[:m] = np.eye(m)  # e_k becomes e_{k-1}
-        A[m:held, :held - m] = np.eye(held - m)  # the older ones move down
+        A[m:held, : held - m] = np.eye(held - m)  # the older ones move down
     C = np.zeros((1, n_c))
     C[:, :held] = K_s[:, m:]
     if integral:

@@ -114,8 +114,10 @@ def linear_plant(model: KoopmanModel) -> LinearPlant:
         raise DesignError(f"the plant model has {model.B.shape[1]} inputs; a design drives one voltage")
     steps = model.lifting.steps_
     if any(isinstance(step, CoulombFriction) for step in steps):
-        raise DesignError("its lifting holds the arm's Coulomb friction shape (--friction), whose linearization "
-                          f"at rest is no model of the arm; identify the plant for a design with {IDENTIFY_FLAGS}")
+        raise DesignError(
+            "its lifting holds the arm's Coulomb friction shape (--friction), whose linearization "
+            f"at rest is no model of the arm; identify the plant for a design with {IDENTIFY_FLAGS}"
+        )
     if model.dt is None:
         raise DesignError("the plant model has no sample period (dt): a design needs the discrete plant's")
     m, d = model.n_states, model.n_delays
@@ -127,8 +129,7 @@ def linear_plant(model: KoopmanModel) -> LinearPlant:
     if exact:  # affine in the history: each column is exact
         J = np.column_stack([one_step(unit) - c_x for unit in np.eye(n)])
     else:  # central differences at upright
-        J = np.column_stack([(one_step(_STEP * unit) - one_step(-_STEP * unit)) / (2 * _STEP)
-                             for unit in np.eye(n)])
+        J = np.column_stack([(one_step(_STEP * unit) - one_step(-_STEP * unit)) / (2 * _STEP) for unit in np.eye(n)])
     F = np.zeros((n, n))
     F[:m] = J
     F[m:, :-m] = np.eye(n - m)
@@ -136,10 +137,13 @@ def linear_plant(model: KoopmanModel) -> LinearPlant:
     G[:m, 0] = model.B[:m, 0]
     c = np.zeros(n)
     c[:m] = c_x
-    note = (f"the identified plant itself: {d} delays of {', '.join(model.lifting.feature_names_in_)}"
-            + (" and a constant" if np.any(c_x) else "") if exact else
-            f"the identified plant's linearization at upright (zero history, zero voltage) over {d} delays: its "
-            "lifting has nonlinear terms; for a plant a design uses exactly, identify with " + IDENTIFY_FLAGS)
+    note = (
+        f"the identified plant itself: {d} delays of {', '.join(model.lifting.feature_names_in_)}"
+        + (" and a constant" if np.any(c_x) else "")
+        if exact
+        else f"the identified plant's linearization at upright (zero history, zero voltage) over {d} delays: its "
+        "lifting has nonlinear terms; for a plant a design uses exactly, identify with " + IDENTIFY_FLAGS
+    )
     return LinearPlant(F, G, c, m, d, float(model.dt), exact, note, tuple(model.lifting.feature_names_in_))
 
 

@@ -28,8 +28,19 @@ from qube_koopman.identify.estimators.structure import close_loop, closed_loop_m
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
 
-__all__ = ["CostPrediction", "LoopTrajectories", "Margins", "rig_excitations", "predict_loop", "predict_cost",
-           "closed_loop_matrix", "closed_loop_eigenvalues", "loop_response", "loop_margins", "episode_cost"]
+__all__ = [
+    "CostPrediction",
+    "LoopTrajectories",
+    "Margins",
+    "rig_excitations",
+    "predict_loop",
+    "predict_cost",
+    "closed_loop_matrix",
+    "closed_loop_eigenvalues",
+    "loop_response",
+    "loop_margins",
+    "episode_cost",
+]
 
 #: The loop's voltage limit (V): a predicted voltage beyond it would saturate on the rig.
 VOLTAGE_LIMIT = 10.0
@@ -58,12 +69,19 @@ class CostPrediction:
 
     def summary(self) -> dict:
         """Means over the episodes (RMS figures pooled as RMS), for reports."""
+
         def rms(values):
             return float(np.sqrt(np.mean(np.square(values))))
-        return {"J": float(np.mean(self.cost)), "tracking_rms": rms(self.tracking_rms),
-                "alpha_rms": rms(self.alpha_rms), "voltage_rms": rms(self.voltage_rms),
-                "voltage_peak": float(np.max(self.voltage_peak)), "diverged": self.diverged,
-                "episodes": len(self.cost)}
+
+        return {
+            "J": float(np.mean(self.cost)),
+            "tracking_rms": rms(self.tracking_rms),
+            "alpha_rms": rms(self.alpha_rms),
+            "voltage_rms": rms(self.voltage_rms),
+            "voltage_peak": float(np.max(self.voltage_peak)),
+            "diverged": self.diverged,
+            "episodes": len(self.cost),
+        }
 
 
 def rig_excitations(seed: int, n_episodes: int, duration: float = 20.0) -> list[Excitation]:
@@ -80,9 +98,13 @@ def episode_cost(theta, target_theta, alpha, voltage, skip: int = SKIP_SAMPLES) 
     voltage = np.asarray(voltage, dtype=float)[skip:]
     if not (np.all(np.isfinite(tracking)) and np.all(np.isfinite(alpha)) and np.all(np.isfinite(voltage))):
         return (np.inf,) * 5
-    return (float(np.mean(tracking ** 2) + np.mean(alpha ** 2)), float(np.sqrt(np.mean(tracking ** 2))),
-            float(np.sqrt(np.mean(alpha ** 2))), float(np.sqrt(np.mean(voltage ** 2))),
-            float(np.max(np.abs(voltage), initial=0.0)))
+    return (
+        float(np.mean(tracking**2) + np.mean(alpha**2)),
+        float(np.sqrt(np.mean(tracking**2))),
+        float(np.sqrt(np.mean(alpha**2))),
+        float(np.sqrt(np.mean(voltage**2))),
+        float(np.max(np.abs(voltage), initial=0.0)),
+    )
 
 
 @dataclass(frozen=True)
@@ -109,14 +131,20 @@ class LoopTrajectories:
 
     def cost(self, skip: int = SKIP_SAMPLES) -> CostPrediction:
         """The figures of each episode after ``skip`` samples (:func:`episode_cost`)."""
-        rows = np.array([episode_cost(self.theta[i], self.target_theta[i], self.alpha[i], self.voltage[i], skip)
-                         for i in range(len(self.theta))])
-        return CostPrediction(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4],
-                              diverged=int(np.sum(~np.isfinite(rows[:, 0]))))
+        rows = np.array(
+            [
+                episode_cost(self.theta[i], self.target_theta[i], self.alpha[i], self.voltage[i], skip)
+                for i in range(len(self.theta))
+            ]
+        )
+        return CostPrediction(
+            rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], diverged=int(np.sum(~np.isfinite(rows[:, 0])))
+        )
 
 
-def predict_loop(plant: KoopmanModel, controller: DiscreteStateSpace,
-                 excitations: list[Excitation]) -> LoopTrajectories:
+def predict_loop(
+    plant: KoopmanModel, controller: DiscreteStateSpace, excitations: list[Excitation]
+) -> LoopTrajectories:
     """The plant model under ``controller`` on each excitation, from upright.
 
     Parameters
@@ -138,16 +166,21 @@ def predict_loop(plant: KoopmanModel, controller: DiscreteStateSpace,
     f = np.stack([np.asarray(e.feedforward, dtype=float)[:, None] for e in excitations])
     n_ep, d = len(excitations), plant.n_delays
     with np.errstate(all="ignore"):
-        x, xc = loop.simulate(np.zeros((n_ep, d + 1, plant.n_states)), np.concatenate([r, f], axis=2),
-                              np.zeros((n_ep, controller.n_states)))
+        x, xc = loop.simulate(
+            np.zeros((n_ep, d + 1, plant.n_states)),
+            np.concatenate([r, f], axis=2),
+            np.zeros((n_ep, controller.n_states)),
+        )
         xc = np.nan_to_num(xc, nan=0.0)  # NaN before the history is full, where the controller is at rest
         u = plant_input(controller, xc, r, x, f)
-    return LoopTrajectories(x[:, :, 0], x[:, :, 1], r[:, :, 0], u[:, :, 0],
-                            float(plant.dt) if plant.dt is not None else SAMPLE_PERIOD)
+    return LoopTrajectories(
+        x[:, :, 0], x[:, :, 1], r[:, :, 0], u[:, :, 0], float(plant.dt) if plant.dt is not None else SAMPLE_PERIOD
+    )
 
 
-def predict_cost(plant: KoopmanModel, controller: DiscreteStateSpace,
-                 excitations: list[Excitation], skip: int = SKIP_SAMPLES) -> CostPrediction:
+def predict_cost(
+    plant: KoopmanModel, controller: DiscreteStateSpace, excitations: list[Excitation], skip: int = SKIP_SAMPLES
+) -> CostPrediction:
     """The figures of :func:`predict_loop`'s episodes after ``skip`` samples (:meth:`LoopTrajectories.cost`).
 
     Parameters
@@ -228,11 +261,17 @@ class Margins:
 
     def as_dict(self) -> dict:
         """Plain data (dB for the gain margins), for reports and provenance."""
+
         def db(value):
             return float(20 * np.log10(value)) if 0 < value < np.inf else (float("inf") if value else float("-inf"))
-        return {"gain_margin_up_db": db(self.gain_increase), "gain_margin_down_db": db(self.gain_decrease),
-                "phase_margin_deg": float(self.phase), "phase_crossover_hz": float(self.phase_frequency),
-                "stability_margin": float(self.stability)}
+
+        return {
+            "gain_margin_up_db": db(self.gain_increase),
+            "gain_margin_down_db": db(self.gain_decrease),
+            "phase_margin_deg": float(self.phase),
+            "phase_crossover_hz": float(self.phase_frequency),
+            "stability_margin": float(self.stability),
+        }
 
 
 def loop_response(plant: LinearPlant, controller: DiscreteStateSpace, omega: np.ndarray) -> np.ndarray:
@@ -264,9 +303,9 @@ def loop_response(plant: LinearPlant, controller: DiscreteStateSpace, omega: np.
     n_c = A.shape[0]
     K = np.empty((len(z), C.shape[0], B.shape[1]), dtype=complex)
     for start in range(0, len(z), 256):  # bounded memory: 256 systems of the controller's size at a time
-        w = z[start:start + 256]
+        w = z[start : start + 256]
         resolvent = np.linalg.solve(w[:, None, None] * np.eye(n_c) - A, np.broadcast_to(B, (len(w),) + B.shape))
-        K[start:start + 256] = C @ resolvent + D
+        K[start : start + 256] = C @ resolvent + D
     return (K @ P)[:, 0, 0].reshape(omega.shape)
 
 
@@ -300,7 +339,10 @@ def loop_margins(plant: LinearPlant, controller: DiscreteStateSpace, n_points: i
         gm = np.append(gm, 1 / abs(at_nyquist.real))
     up, down = gm[gm > 1], gm[(gm < 1) & (gm > 0)]
     i = int(np.argmin(np.abs(pm))) if len(pm) else None
-    return Margins(float(up.min()) if len(up) else np.inf, float(down.max()) if len(down) else 0.0,
-                   float(pm[i]) if i is not None else np.inf,
-                   float(wpm[i]) / (2 * np.pi) if i is not None else float("nan"),
-                   float(np.min(np.abs(1 + response))))
+    return Margins(
+        float(up.min()) if len(up) else np.inf,
+        float(down.max()) if len(down) else 0.0,
+        float(pm[i]) if i is not None else np.inf,
+        float(wpm[i]) / (2 * np.pi) if i is not None else float("nan"),
+        float(np.min(np.abs(1 + response))),
+    )

@@ -30,18 +30,27 @@ __all__ = ["CHANNELS", "blueprint", "write_recording"]
 #: The plotted channels of every episode.
 CHANNELS = ("theta", "alpha", "voltage")
 #: Series colours: predicted blue, the twin under the design orange, under the training controller grey.
-_COLORS = {"predicted": (31, 119, 180), "twin": (255, 140, 0), "twin_training": (170, 170, 170),
-           "target": (0, 0, 0)}
+_COLORS = {"predicted": (31, 119, 180), "twin": (255, 140, 0), "twin_training": (170, 170, 170), "target": (0, 0, 0)}
 
 
 def blueprint(names: list[str]):
     """The layout: a tab of episodes (theta, alpha, voltage of each, one column per episode), a tab of eigenvalues."""
     import rerun.blueprint as rrb
 
-    columns = [rrb.Vertical(*(rrb.TimeSeriesView(origin=f"episodes/{name}/{channel}", name=f"{name}: {channel}")
-                              for channel in CHANNELS), name=name) for name in names]
-    tabs = rrb.Tabs(rrb.Horizontal(*columns, name="predicted vs twin (x: time)"),
-                    rrb.Spatial2DView(origin="eigenvalues", name="closed-loop eigenvalues and the unit circle"))
+    columns = [
+        rrb.Vertical(
+            *(
+                rrb.TimeSeriesView(origin=f"episodes/{name}/{channel}", name=f"{name}: {channel}")
+                for channel in CHANNELS
+            ),
+            name=name,
+        )
+        for name in names
+    ]
+    tabs = rrb.Tabs(
+        rrb.Horizontal(*columns, name="predicted vs twin (x: time)"),
+        rrb.Spatial2DView(origin="eigenvalues", name="closed-loop eigenvalues and the unit circle"),
+    )
     return rrb.Blueprint(tabs, collapse_panels=True)
 
 
@@ -50,16 +59,20 @@ def _series(rec, path: str, time, values: np.ndarray, kind: str) -> None:
 
     rec.log(path, rr.SeriesLines(colors=[_COLORS[kind]], names=[kind]), static=True)
     values = np.asarray(values, dtype=float)
-    rec.send_columns(path, indexes=[rr.TimeColumn("time", duration=time[:len(values)])],
-                     columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+    rec.send_columns(
+        path,
+        indexes=[rr.TimeColumn("time", duration=time[: len(values)])],
+        columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
+    )
 
 
 def _episode_channels(episode: Episode) -> dict[str, np.ndarray]:
     return {"theta": episode.theta, "alpha": episode.alpha, "voltage": episode.plant_input}
 
 
-def write_recording(path: str | Path, predicted: LoopTrajectories, twin: dict[str, list[Episode]],
-                    eigenvalues: dict[str, np.ndarray]) -> Path:
+def write_recording(
+    path: str | Path, predicted: LoopTrajectories, twin: dict[str, list[Episode]], eigenvalues: dict[str, np.ndarray]
+) -> Path:
     """Write the first episodes' predicted and twin trajectories, and the eigenvalues, to an .rrd file.
 
     Parameters
@@ -98,10 +111,15 @@ def write_recording(path: str | Path, predicted: LoopTrajectories, twin: dict[st
         circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
         rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
         for kind, values in eigenvalues.items():
-            rec.log(f"eigenvalues/{kind}",
-                    rr.Points2D(np.column_stack([values.real, values.imag]), radii=0.005,
-                                colors=[_COLORS["twin" if kind == "design" else "twin_training"]]),
-                    static=True)
+            rec.log(
+                f"eigenvalues/{kind}",
+                rr.Points2D(
+                    np.column_stack([values.real, values.imag]),
+                    radii=0.005,
+                    colors=[_COLORS["twin" if kind == "design" else "twin_training"]],
+                ),
+                static=True,
+            )
         rec.flush()
         rec.disconnect()
     return path

@@ -20,8 +20,13 @@ from qube_koopman.daq.sinks import MemorySink
 __all__ = ["run_on_twin"]
 
 
-def run_on_twin(controller: ControllerInfo | str | Path | None, seed: int, n_episodes: int, of: int | None = None,
-                duration: float = 20.0) -> list[Episode]:
+def run_on_twin(
+    controller: ControllerInfo | str | Path | None,
+    seed: int,
+    n_episodes: int,
+    of: int | None = None,
+    duration: float = 20.0,
+) -> list[Episode]:
     """Run the first ``n_episodes`` of ``qube-run --seed seed --episodes of --duration duration`` on the twin.
 
     Parameters
@@ -47,8 +52,12 @@ def run_on_twin(controller: ControllerInfo | str | Path | None, seed: int, n_epi
     seeds, backend_seed = run_seeds(seed, max(n_episodes, of or 0))
     if not isinstance(controller, ControllerInfo):
         controller = load_controller(controller)
-    plans = plan_episodes(controller, seeds[:n_episodes], excitation_settings(duration),
-                          source=f"qube-design --rerun-save, as qube-run seed {seed}")
+    plans = plan_episodes(
+        controller,
+        seeds[:n_episodes],
+        excitation_settings(duration),
+        source=f"qube-design --rerun-save, as qube-run seed {seed}",
+    )
     sink = MemorySink()
     backend = SimBackend(seed=backend_seed)
     try:

@@ -41,15 +41,27 @@ from qube_koopman.daq.excitation import Excitation
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.plant import DesignError, LinearPlant, linear_plant
 
-__all__ = ["FIGURES", "ModelUncertainty", "FigureInterval", "model_uncertainty", "member_figures",
-           "figure_interval", "interval_from_logs", "RobustChoice", "robust_design", "NO_MEMBERS"]
+__all__ = [
+    "FIGURES",
+    "ModelUncertainty",
+    "FigureInterval",
+    "model_uncertainty",
+    "member_figures",
+    "figure_interval",
+    "interval_from_logs",
+    "RobustChoice",
+    "robust_design",
+    "NO_MEMBERS",
+]
 
 #: The figures an interval is given for (CostPrediction.summary's keys).
 FIGURES = ("J", "voltage_rms", "voltage_peak")
 
 #: Why a model file gives no interval.
-NO_MEMBERS = ("the model file holds no bootstrap plants (identified with --interval 0, by an older version, or an "
-              "ARX model): identify it again with qube-identify (intervals on by default) for one")
+NO_MEMBERS = (
+    "the model file holds no bootstrap plants (identified with --interval 0, by an older version, or an "
+    "ARX model): identify it again with qube-identify (intervals on by default) for one"
+)
 
 #: Held-out episodes needed for the model-error term (its spread has n - 1 degrees of freedom).
 MIN_HELD_OUT = 3
@@ -99,13 +111,15 @@ def model_uncertainty(model: dict) -> ModelUncertainty | None:
     held = (model.get("uncertainty") or {}).get("held_out")
     held_out = None
     if held and held.get("measured"):
-        held_out = np.stack([np.asarray(held["measured"], dtype=float), np.asarray(held["predicted"], dtype=float)],
-                            axis=1)
+        held_out = np.stack(
+            [np.asarray(held["measured"], dtype=float), np.asarray(held["predicted"], dtype=float)], axis=1
+        )
     return ModelUncertainty([linear_plant(member) for member in members], held_out)
 
 
-def member_figures(plants: list[LinearPlant], design: LqDesign, excitations: list[Excitation],
-                   skip: int = SKIP_SAMPLES) -> np.ndarray:
+def member_figures(
+    plants: list[LinearPlant], design: LqDesign, excitations: list[Excitation], skip: int = SKIP_SAMPLES
+) -> np.ndarray:
     """``[J, voltage RMS, voltage peak]`` of each plant under the design on each excitation, from upright.
 
     The design plants in closed loop with the design's controller (its state feedback on the
@@ -154,15 +168,15 @@ def member_figures(plants: list[LinearPlant], design: LqDesign, excitations: lis
     with np.errstate(all="ignore"):
         for k in range(d, T):
             err[:, :, k] = r[None, :, k] - x[:, :, k]
-            u[:, :, k] = err[:, :, k - d:k + 1].reshape(P, E, n) @ K - K_w * w + f[None, :, k]
+            u[:, :, k] = err[:, :, k - d : k + 1].reshape(P, E, n) @ K - K_w * w + f[None, :, k]
             if integral:
                 w = w + dt * err[:, :, k, 0]
             if k + 1 < T:
-                x[:, :, k + 1] = x[:, :, k - d:k + 1].reshape(P, E, n) @ F + G * u[:, :, k, None] + c
+                x[:, :, k + 1] = x[:, :, k - d : k + 1].reshape(P, E, n) @ F + G * u[:, :, k, None] + c
         tracking = x[:, :, skip:, 0] - r[None, :, skip:, 0]
         alpha, volt = x[:, :, skip:, 1], u[:, :, skip:]
-        J = np.mean(tracking ** 2, axis=-1) + np.mean(alpha ** 2, axis=-1)
-        rms = np.sqrt(np.mean(volt ** 2, axis=-1))
+        J = np.mean(tracking**2, axis=-1) + np.mean(alpha**2, axis=-1)
+        rms = np.sqrt(np.mean(volt**2, axis=-1))
         peak = np.max(np.abs(volt), axis=-1)
     out = np.stack([J, rms, peak], axis=-1)
     return np.where(np.isfinite(out), out, np.inf)
@@ -170,8 +184,14 @@ def member_figures(plants: list[LinearPlant], design: LqDesign, excitations: lis
 
 def _pooled(per_episode: np.ndarray) -> np.ndarray:
     """``[J, voltage RMS, voltage peak]`` over the episodes (axis -2), as CostPrediction.summary pools them."""
-    return np.stack([np.mean(per_episode[..., 0], axis=-1), np.sqrt(np.mean(per_episode[..., 1] ** 2, axis=-1)),
-                     np.max(per_episode[..., 2], axis=-1)], axis=-1)
+    return np.stack(
+        [
+            np.mean(per_episode[..., 0], axis=-1),
+            np.sqrt(np.mean(per_episode[..., 1] ** 2, axis=-1)),
+            np.max(per_episode[..., 2], axis=-1),
+        ],
+        axis=-1,
+    )
 
 
 def _mixture_quantiles(shifts: np.ndarray, scale: float, dof: int | None, level: float) -> tuple[float, float]:
@@ -236,14 +256,26 @@ class FigureInterval:
 
     def as_dict(self) -> dict:
         """Plain data, for report.json and the controller file's provenance."""
-        return {"level": self.level, "sources": self.sources, "n_members": self.n_members,
-                "n_held_out": self.n_held_out,
-                **{name: {"predicted": self.predicted[name], "lower": self.lower[name], "upper": self.upper[name],
-                          "members": list(self.member_range[name])} for name in FIGURES}}
+        return {
+            "level": self.level,
+            "sources": self.sources,
+            "n_members": self.n_members,
+            "n_held_out": self.n_held_out,
+            **{
+                name: {
+                    "predicted": self.predicted[name],
+                    "lower": self.lower[name],
+                    "upper": self.upper[name],
+                    "members": list(self.member_range[name]),
+                }
+                for name in FIGURES
+            },
+        }
 
 
-def figure_interval(predicted: dict, nominal: np.ndarray, members: np.ndarray, model_error: np.ndarray | None,
-                    level: float = 0.95) -> FigureInterval:
+def figure_interval(
+    predicted: dict, nominal: np.ndarray, members: np.ndarray, model_error: np.ndarray | None, level: float = 0.95
+) -> FigureInterval:
     """The interval of each predicted figure from the members' figures and the held-out model error.
 
     Parameters
@@ -278,16 +310,23 @@ def figure_interval(predicted: dict, nominal: np.ndarray, members: np.ndarray, m
             continue
         if n and model_error is not None:  # n: the held-out episodes, none without a model error
             e = model_error[:, i]
-            lo, hi = _mixture_quantiles(shifts[:, i] + np.mean(e), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n),
-                                        n - 1, level)
+            lo, hi = _mixture_quantiles(
+                shifts[:, i] + np.mean(e), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1, level
+            )
         else:
             lo, hi = _mixture_quantiles(shifts[:, i], 0.0, None, level)
         lower[name], upper[name] = float(predicted[name] * np.exp(lo)), float(predicted[name] * np.exp(hi))
     return FigureInterval(level, {k: float(predicted[k]) for k in FIGURES}, lower, upper, len(members), n, spread)
 
 
-def interval_from_logs(uncertainty: ModelUncertainty, plant: LinearPlant, design: LqDesign, predicted: dict,
-                       excitations: list[Excitation], level: float = 0.95) -> FigureInterval:
+def interval_from_logs(
+    uncertainty: ModelUncertainty,
+    plant: LinearPlant,
+    design: LqDesign,
+    predicted: dict,
+    excitations: list[Excitation],
+    level: float = 0.95,
+) -> FigureInterval:
     """The design's figure interval: its members simulated on ``excitations`` (:func:`figure_interval`).
 
     Parameters
@@ -346,18 +385,28 @@ class RobustChoice:
     def as_dict(self) -> dict:
         """Plain data, for reports: the chosen scale and, per key, each candidate's value by ``x<scale>``."""
         keys: tuple[Literal["worst_upper_J", "nominal_J", "stable_members"], ...] = (
-            "worst_upper_J", "nominal_J", "stable_members")
-        return {"r_voltage_scale": self.scale,
-                **{key: {f"x{c['scale']:g}": c[key] for c in self.candidates if c[key] is not None} for key in keys}}
+            "worst_upper_J",
+            "nominal_J",
+            "stable_members",
+        )
+        return {
+            "r_voltage_scale": self.scale,
+            **{key: {f"x{c['scale']:g}": c[key] for c in self.candidates if c[key] is not None} for key in keys},
+        }
 
 
 #: The voltage weight's scalings a robust design tries (a larger weight: gentler gains, more margin).
 ROBUST_SCALES = (1.0, 2.0, 4.0)
 
 
-def robust_design(plant: LinearPlant, weights: Weights, uncertainty: ModelUncertainty,
-                  excitations: list[Excitation], level: float = 0.95,
-                  scales: tuple[float, ...] = ROBUST_SCALES) -> RobustChoice:
+def robust_design(
+    plant: LinearPlant,
+    weights: Weights,
+    uncertainty: ModelUncertainty,
+    excitations: list[Excitation],
+    level: float = 0.95,
+    scales: tuple[float, ...] = ROBUST_SCALES,
+) -> RobustChoice:
     """The LQ design, among the nominal weights with the voltage weight scaled up, best in the worst case.
 
     Each candidate is designed on the point plant, then scored by the worst, over the bootstrap
@@ -393,16 +442,21 @@ def robust_design(plant: LinearPlant, weights: Weights, uncertainty: ModelUncert
     if model_error is not None:
         n = len(model_error)
         e = model_error[:, 0]
-        _, hi = _mixture_quantiles(np.array([np.mean(e)]), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1,
-                                   level)
+        _, hi = _mixture_quantiles(np.array([np.mean(e)]), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1, level)
         factor = float(np.exp(hi))
     candidates: list[RobustCandidate] = []
     designs = []
     for scale in scales:
         design = design_lq(plant, replace(weights, r_voltage=weights.r_voltage * scale))
         J = np.mean(member_figures([plant] + list(uncertainty.members), design, excitations)[..., 0], axis=-1)
-        candidates.append({"scale": float(scale), "worst_upper_J": float(np.max(J[1:]) * factor),
-                           "nominal_J": float(J[0]), "stable_members": None})
+        candidates.append(
+            {
+                "scale": float(scale),
+                "worst_upper_J": float(np.max(J[1:]) * factor),
+                "nominal_J": float(J[0]),
+                "stable_members": None,
+            }
+        )
         designs.append(design)
     # Best first (the nominal first when within 1 % of the best); a candidate is out when a bootstrap plant's
     # closed loop under it is unstable, checked until one passes (the spectra cost more than the simulations).
@@ -418,5 +472,6 @@ def robust_design(plant: LinearPlant, weights: Weights, uncertainty: ModelUncert
         if stable == len(uncertainty.members):
             return RobustChoice(designs[i], candidates[i]["scale"], candidates)
         candidates[i]["worst_upper_J"] = float("inf")
-    raise DesignError("under every candidate design a bootstrap plant's closed loop is unstable or diverges; "
-                      "change the weights")
+    raise DesignError(
+        "under every candidate design a bootstrap plant's closed loop is unstable or diverges; change the weights"
+    )

@@ -18,11 +18,25 @@ import numpy as np
 
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.plant import IDENTIFY_FLAGS, DesignError, linear_plant
-from qube_koopman.design.uncertainty import (NO_MEMBERS, FigureInterval, RobustChoice, interval_from_logs,
-                                             model_uncertainty, robust_design)
-from qube_koopman.design.predict import (VOLTAGE_LIMIT, CostPrediction, Margins, closed_loop_eigenvalues,
-                                         closed_loop_matrix, loop_margins, predict_cost, predict_loop,
-                                         rig_excitations)
+from qube_koopman.design.uncertainty import (
+    NO_MEMBERS,
+    FigureInterval,
+    RobustChoice,
+    interval_from_logs,
+    model_uncertainty,
+    robust_design,
+)
+from qube_koopman.design.predict import (
+    VOLTAGE_LIMIT,
+    CostPrediction,
+    Margins,
+    closed_loop_eigenvalues,
+    closed_loop_matrix,
+    loop_margins,
+    predict_cost,
+    predict_loop,
+    rig_excitations,
+)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 
 __all__ = ["DesignReport", "design_from_model", "report_text", "saturation_warning", "provenance", "record_design"]
@@ -111,8 +125,16 @@ def _arx_hint(path: Path) -> str | None:
     return None
 
 
-def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: int = 1, episodes: int = 20,
-                      duration: float = 20.0, level: float | None = 0.95, robust: bool = False) -> DesignReport:
+def design_from_model(
+    path: str | Path,
+    weights: Weights = Weights(),
+    *,
+    seed: int = 1,
+    episodes: int = 20,
+    duration: float = 20.0,
+    level: float | None = 0.95,
+    robust: bool = False,
+) -> DesignReport:
     """Design a controller on a model file's plant and predict it.
 
     Parameters
@@ -161,13 +183,16 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
         raise DesignError(f"{path}: {exc}") from None
     radius = spectral_radius(closed_loop_matrix(plant, design.controller))
     if not radius < 1:
-        raise DesignError(f"{path}: the predicted closed loop is unstable (spectral radius {radius:.6g}); "
-                          "change the weights")
+        raise DesignError(
+            f"{path}: the predicted closed loop is unstable (spectral radius {radius:.6g}); change the weights"
+        )
     predicted = predict_cost(model["plant"], design.controller, excitations)
     if predicted.diverged:
-        raise DesignError(f"{path}: the plant model under the designed controller diverges on {predicted.diverged} "
-                          f"of {episodes} excitations (the linearization it was designed on does not hold); change "
-                          f"the weights or identify with {IDENTIFY_FLAGS}")
+        raise DesignError(
+            f"{path}: the plant model under the designed controller diverges on {predicted.diverged} "
+            f"of {episodes} excitations (the linearization it was designed on does not hold); change "
+            f"the weights or identify with {IDENTIFY_FLAGS}"
+        )
     training = None
     if model.get("controller") is not None and model["controller"].n_inputs in (2, 3):  # a QUBE loop
         training = predict_cost(model["plant"], model["controller"], excitations)
@@ -177,15 +202,29 @@ def design_from_model(path: str | Path, weights: Weights = Weights(), *, seed: i
             note = NO_MEMBERS
         else:
             interval = interval_from_logs(uncertainty, plant, design, predicted.summary(), excitations, level)
-    return DesignReport(path, model, design, radius, spectral_radius(plant.F),
-                        loop_margins(plant, design.controller), predicted, training,
-                        {"seed": seed, "episodes": episodes, "duration": duration}, interval, note, choice, nominal)
+    return DesignReport(
+        path,
+        model,
+        design,
+        radius,
+        spectral_radius(plant.F),
+        loop_margins(plant, design.controller),
+        predicted,
+        training,
+        {"seed": seed, "episodes": episodes, "duration": duration},
+        interval,
+        note,
+        choice,
+        nominal,
+    )
 
 
 def _row(name: str, prediction: CostPrediction) -> str:
     s = prediction.summary()
-    return (f"  {name:<24} {s['J']:>10.3e} {s['tracking_rms']:>12.4f} {s['alpha_rms']:>10.4f} "
-            f"{s['voltage_rms']:>12.3f} {s['voltage_peak']:>13.2f}")
+    return (
+        f"  {name:<24} {s['J']:>10.3e} {s['tracking_rms']:>12.4f} {s['alpha_rms']:>10.4f} "
+        f"{s['voltage_rms']:>12.3f} {s['voltage_peak']:>13.2f}"
+    )
 
 
 def report_text(report: DesignReport) -> str:
@@ -235,25 +274,34 @@ def _interval_lines(report: DesignReport) -> list[str]:
     iv = report.interval
     if iv is not None:
         lines.append(f"interval at {iv.level:g} (from {iv.sources}):")
-        for name, label, fmt in (("J", "J (rad^2)", ".3e"), ("voltage_rms", "voltage RMS (V)", ".3f"),
-                                 ("voltage_peak", "voltage peak (V)", ".2f")):
+        for name, label, fmt in (
+            ("J", "J (rad^2)", ".3e"),
+            ("voltage_rms", "voltage RMS (V)", ".3f"),
+            ("voltage_peak", "voltage peak (V)", ".2f"),
+        ):
             bounds = f"[{iv.lower[name]:{fmt}}, {iv.upper[name]:{fmt}}]"
             lines.append(f"  {label:<17} {iv.predicted[name]:{fmt}} in {bounds}")
         if iv.n_held_out:
-            lines.append("  (the model's error is the training controller's: a design that feeds back harder "
-                         "draws more voltage than its interval says; see the design page)")
+            lines.append(
+                "  (the model's error is the training controller's: a design that feeds back harder "
+                "draws more voltage than its interval says; see the design page)"
+            )
     elif report.interval_note is not None:
         lines.append(f"no interval: {report.interval_note}")
     if report.robust is not None:
         worst = {c["scale"]: c["worst_upper_J"] for c in report.robust.candidates}
         tried = ", ".join(f"x{scale:g}: {value:.3e}" for scale, value in worst.items())
         if report.nominal is None:
-            lines.append(f"robust: the nominal weights are the most robust (worst-case J over the bootstrap plants, "
-                         f"r_voltage {tried}); the design is the nominal one, at no cost in J")
+            lines.append(
+                f"robust: the nominal weights are the most robust (worst-case J over the bootstrap plants, "
+                f"r_voltage {tried}); the design is the nominal one, at no cost in J"
+            )
         else:
             cost = report.predicted.summary()["J"] / report.nominal.summary()["J"] - 1
-            lines.append(f"robust: r_voltage x{report.robust.scale:g} (worst-case J over the bootstrap plants, "
-                         f"r_voltage {tried}); it costs {100 * cost:+.1f} % of predicted J against the nominal design")
+            lines.append(
+                f"robust: r_voltage x{report.robust.scale:g} (worst-case J over the bootstrap plants, "
+                f"r_voltage {tried}); it costs {100 * cost:+.1f} % of predicted J against the nominal design"
+            )
     return lines
 
 
@@ -261,8 +309,10 @@ def saturation_warning(report: DesignReport) -> str | None:
     """The warning when the predicted voltage exceeds the loop's clamp (saturation), else None."""
     peak = report.predicted.summary()["voltage_peak"]
     if peak > VOLTAGE_LIMIT:
-        return (f"the predicted voltage peaks at {peak:.2f} V, beyond the loop's {VOLTAGE_LIMIT:g} V clamp: the "
-                "loop would saturate, which the prediction leaves out")
+        return (
+            f"the predicted voltage peaks at {peak:.2f} V, beyond the loop's {VOLTAGE_LIMIT:g} V clamp: the "
+            "loop would saturate, which the prediction leaves out"
+        )
     return None
 
 
@@ -270,14 +320,20 @@ def provenance(report: DesignReport) -> dict:
     """The controller file's ``[provenance]``: model, weights, cost, margins, spectrum."""
     from qube_koopman.core.cli import package_version
 
-    out = {"designed_by": "qube-design (LQ on the identified plant's history)",
-           "software_version": f"qube-koopman {package_version()}",
-           "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-           "model": str(report.model_path), "model_method": str(report.model.get("method")),
-           "design_plant": report.design.plant.note, "n_delays": report.design.plant.n_delays,
-           "weights": report.design.weights.as_dict(),
-           "spectral_radius": report.spectral_radius, "margins": report.margins.as_dict(),
-           "excitation": report.excitation, "predicted": report.predicted.summary()}
+    out = {
+        "designed_by": "qube-design (LQ on the identified plant's history)",
+        "software_version": f"qube-koopman {package_version()}",
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "model": str(report.model_path),
+        "model_method": str(report.model.get("method")),
+        "design_plant": report.design.plant.note,
+        "n_delays": report.design.plant.n_delays,
+        "weights": report.design.weights.as_dict(),
+        "spectral_radius": report.spectral_radius,
+        "margins": report.margins.as_dict(),
+        "excitation": report.excitation,
+        "predicted": report.predicted.summary(),
+    }
     if report.training is not None:
         out["predicted_training_controller"] = report.training.summary()
     if report.interval is not None:
@@ -320,8 +376,9 @@ def record_design(path: str | Path, report: DesignReport, controller, n_episodes
     eigenvalues = {"design": closed_loop_eigenvalues(report.design.plant, report.controller)}
     training = report.model.get("controller")
     if report.training is not None and training is not None:  # a training prediction needs the model's controller
-        info = ControllerInfo(training, "as the model file records it", kind="state-space",
-                              provenance={"model": str(report.model_path)})
+        info = ControllerInfo(
+            training, "as the model file records it", kind="state-space", provenance={"model": str(report.model_path)}
+        )
         twin["twin_training"] = run_on_twin(info, ex["seed"], n, of=ex["episodes"], duration=ex["duration"])
         eigenvalues["training"] = closed_loop_eigenvalues(report.design.plant, training)
     return write_recording(path, predicted, twin, eigenvalues)

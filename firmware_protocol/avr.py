@@ -22,16 +22,35 @@ from pathlib import Path
 
 from .ccore import C_SOURCE_DIR, cache_root
 
-__all__ = ["ARDUINO_AVR", "SKETCH", "AvrToolsMissing", "FirmwareSizes", "avr_tools_missing", "build_firmware",
-           "cached_firmware", "firmware_sizes", "symbol_address"]
+__all__ = [
+    "ARDUINO_AVR",
+    "SKETCH",
+    "AvrToolsMissing",
+    "FirmwareSizes",
+    "avr_tools_missing",
+    "build_firmware",
+    "cached_firmware",
+    "firmware_sizes",
+    "symbol_address",
+]
 
 ARDUINO_AVR = Path(os.environ.get("ARDUINO_AVR", "/usr/share/arduino/hardware/arduino/avr"))
 SKETCH = C_SOURCE_DIR.parent / "examples" / "qube_bridge" / "qube_bridge.ino"
 F_CPU = 16_000_000
-_COMMON = ("-mmcu=atmega328p", f"-DF_CPU={F_CPU}L", "-DARDUINO=10807", "-DARDUINO_AVR_UNO", "-DARDUINO_ARCH_AVR",
-           "-Os", "-flto", "-ffunction-sections", "-fdata-sections", "-Wall",
-           # Debian's core 1.8.7 with avr-gcc 5.4: WString.cpp needs it.
-           "-DDECIMAL_DIG=__DECIMAL_DIG__")
+_COMMON = (
+    "-mmcu=atmega328p",
+    f"-DF_CPU={F_CPU}L",
+    "-DARDUINO=10807",
+    "-DARDUINO_AVR_UNO",
+    "-DARDUINO_ARCH_AVR",
+    "-Os",
+    "-flto",
+    "-ffunction-sections",
+    "-fdata-sections",
+    "-Wall",
+    # Debian's core 1.8.7 with avr-gcc 5.4: WString.cpp needs it.
+    "-DDECIMAL_DIG=__DECIMAL_DIG__",
+)
 _CXX = ("-std=gnu++11", "-fno-exceptions", "-fno-threadsafe-statics")
 _TOOLS = ("avr-gcc", "avr-g++", "avr-gcc-ar", "avr-size", "avr-objcopy", "avr-nm")
 _INSTALL = "apt-get install gcc-avr avr-libc arduino-core-avr (or tools/install_system_deps.sh)"
@@ -51,13 +70,24 @@ def avr_tools_missing() -> list[str]:
 
 def _sources(source_dir: Path = C_SOURCE_DIR) -> list[Path]:
     core = ARDUINO_AVR / "cores" / "arduino"
-    return sorted([*core.glob("*.c"), *core.glob("*.cpp"), *core.glob("*.S"),
-                   ARDUINO_AVR / "libraries" / "SPI" / "src" / "SPI.cpp", *Path(source_dir).glob("*.c")])
+    return sorted(
+        [
+            *core.glob("*.c"),
+            *core.glob("*.cpp"),
+            *core.glob("*.S"),
+            ARDUINO_AVR / "libraries" / "SPI" / "src" / "SPI.cpp",
+            *Path(source_dir).glob("*.c"),
+        ]
+    )
 
 
 def _includes(source_dir: Path = C_SOURCE_DIR) -> tuple[str, ...]:
-    return (f"-I{ARDUINO_AVR / 'cores' / 'arduino'}", f"-I{ARDUINO_AVR / 'variants' / 'standard'}",
-            f"-I{ARDUINO_AVR / 'libraries' / 'SPI' / 'src'}", f"-I{source_dir}")
+    return (
+        f"-I{ARDUINO_AVR / 'cores' / 'arduino'}",
+        f"-I{ARDUINO_AVR / 'variants' / 'standard'}",
+        f"-I{ARDUINO_AVR / 'libraries' / 'SPI' / 'src'}",
+        f"-I{source_dir}",
+    )
 
 
 def _run(cmd: list[str]) -> None:
@@ -66,8 +96,13 @@ def _run(cmd: list[str]) -> None:
         raise RuntimeError(f"AVR build failed ({' '.join(cmd)}):\n{proc.stdout}{proc.stderr}")
 
 
-def build_firmware(out_dir: str | os.PathLike, *, sketch: str | os.PathLike = SKETCH,
-                   source_dir: str | os.PathLike = C_SOURCE_DIR, extra_flags: tuple[str, ...] = ()) -> Path:
+def build_firmware(
+    out_dir: str | os.PathLike,
+    *,
+    sketch: str | os.PathLike = SKETCH,
+    source_dir: str | os.PathLike = C_SOURCE_DIR,
+    extra_flags: tuple[str, ...] = (),
+) -> Path:
     """Compile and link the sketch for the Uno; writes ``qube_bridge.elf`` and ``.hex``.
 
     Parameters
@@ -118,8 +153,7 @@ def build_firmware(out_dir: str | os.PathLike, *, sketch: str | os.PathLike = SK
     core.unlink(missing_ok=True)
     _run(["avr-gcc-ar", "rcs", str(core), *objects[:-1]])
     elf = out / "qube_bridge.elf"
-    _run(["avr-gcc", *flags, "-fuse-linker-plugin", "-Wl,--gc-sections", "-o", str(elf), objects[-1], str(core),
-          "-lm"])
+    _run(["avr-gcc", *flags, "-fuse-linker-plugin", "-Wl,--gc-sections", "-o", str(elf), objects[-1], str(core), "-lm"])
     _run(["avr-objcopy", "-O", "ihex", "-R", ".eeprom", str(elf), str(elf.with_suffix(".hex"))])
     return elf
 

@@ -153,9 +153,20 @@ def cached_library(cache_dir: str | os.PathLike | None = None) -> Path:
 class Counters(ctypes.Structure):
     """Mirror of ``qp_counters`` (field names as in ``DecoderStats``)."""
 
-    _fields_ = [(name, ctypes.c_uint32) for name in (
-        "frames", "bad_crc", "bad_cobs", "bad_length", "bad_version", "unknown_type", "oversize",
-        "last_bad_version", "bytes_in")]
+    _fields_ = [
+        (name, ctypes.c_uint32)
+        for name in (
+            "frames",
+            "bad_crc",
+            "bad_cobs",
+            "bad_length",
+            "bad_version",
+            "unknown_type",
+            "oversize",
+            "last_bad_version",
+            "bytes_in",
+        )
+    ]
 
     def as_dict(self) -> dict[str, int]:
         """Plain-data form, comparable with ``DecoderStats.as_dict()``."""
@@ -165,13 +176,17 @@ class Counters(ctypes.Structure):
 class CFrame(ctypes.Structure):
     """Mirror of ``qp_frame``."""
 
-    _fields_ = [("version", ctypes.c_uint8), ("type", ctypes.c_uint8), ("seq", ctypes.c_uint32),
-                ("timestamp_us", ctypes.c_uint32), ("payload_len", ctypes.c_uint8),
-                ("payload", ctypes.c_uint8 * 64)]
+    _fields_ = [
+        ("version", ctypes.c_uint8),
+        ("type", ctypes.c_uint8),
+        ("seq", ctypes.c_uint32),
+        ("timestamp_us", ctypes.c_uint32),
+        ("payload_len", ctypes.c_uint8),
+        ("payload", ctypes.c_uint8 * 64),
+    ]
 
 
-_CTYPE = {"B": ctypes.c_uint8, "H": ctypes.c_uint16, "h": ctypes.c_int16, "I": ctypes.c_uint32,
-          "i": ctypes.c_int32}
+_CTYPE = {"B": ctypes.c_uint8, "H": ctypes.c_uint16, "h": ctypes.c_int16, "I": ctypes.c_uint32, "i": ctypes.c_int32}
 
 
 def _snake(name: str) -> str:
@@ -184,23 +199,38 @@ def message_struct(cls: type[Message]) -> type[ctypes.Structure]:
     The C structs declare the payload fields in payload order with the same
     fixed-width types, so the mirror follows from the Python layout.
     """
-    return type(f"qp_{_snake(cls.__name__)}", (ctypes.Structure,), {
-        "_fields_": [(name, _CTYPE[code]) for name, (code, _) in zip(cls.field_ranges(), cls.LAYOUT)]})
+    return type(
+        f"qp_{_snake(cls.__name__)}",
+        (ctypes.Structure,),
+        {"_fields_": [(name, _CTYPE[code]) for name, (code, _) in zip(cls.field_ranges(), cls.LAYOUT)]},
+    )
 
 
 class SpiCommandStruct(ctypes.Structure):
     """Mirror of ``qp_spi_command``."""
 
-    _fields_ = [("write_mask", ctypes.c_uint8), ("led_red", ctypes.c_uint16), ("led_green", ctypes.c_uint16),
-                ("led_blue", ctypes.c_uint16), ("encoder0_preset", ctypes.c_int32),
-                ("encoder1_preset", ctypes.c_int32), ("motor", ctypes.c_uint16)]
+    _fields_ = [
+        ("write_mask", ctypes.c_uint8),
+        ("led_red", ctypes.c_uint16),
+        ("led_green", ctypes.c_uint16),
+        ("led_blue", ctypes.c_uint16),
+        ("encoder0_preset", ctypes.c_int32),
+        ("encoder1_preset", ctypes.c_int32),
+        ("motor", ctypes.c_uint16),
+    ]
 
 
 class SpiResponseStruct(ctypes.Structure):
     """Mirror of ``qp_spi_response``."""
 
-    _fields_ = [("module_id", ctypes.c_uint16), ("encoder0", ctypes.c_int32), ("encoder1", ctypes.c_int32),
-                ("tach_raw", ctypes.c_uint32), ("status", ctypes.c_uint8), ("current_raw", ctypes.c_uint16)]
+    _fields_ = [
+        ("module_id", ctypes.c_uint16),
+        ("encoder0", ctypes.c_int32),
+        ("encoder1", ctypes.c_int32),
+        ("tach_raw", ctypes.c_uint32),
+        ("status", ctypes.c_uint8),
+        ("current_raw", ctypes.c_uint16),
+    ]
 
 
 def _buf(data: bytes):
@@ -222,15 +252,19 @@ class CCore:
             "qp_crc16": (ctypes.c_uint16, [ctypes.c_uint16, _U8P, ctypes.c_size_t]),
             "qp_cobs_encode": (ctypes.c_size_t, [_U8P, ctypes.c_size_t, _U8P, ctypes.c_size_t]),
             "qp_cobs_decode": (ctypes.c_long, [_U8P, ctypes.c_size_t, _U8P, ctypes.c_size_t]),
-            "qp_encode_frame": (ctypes.c_size_t, [ctypes.c_uint8, ctypes.c_uint32, ctypes.c_uint32, _U8P,
-                                                  ctypes.c_size_t, _U8P, ctypes.c_size_t]),
+            "qp_encode_frame": (
+                ctypes.c_size_t,
+                [ctypes.c_uint8, ctypes.c_uint32, ctypes.c_uint32, _U8P, ctypes.c_size_t, _U8P, ctypes.c_size_t],
+            ),
             "qp_parse_piece": (ctypes.c_int, [_U8P, ctypes.c_size_t, ctypes.POINTER(CFrame)]),
             "qp_decoder_init": (None, [ctypes.c_void_p]),
             "qp_decoder_size": (ctypes.c_size_t, []),
             "qp_decoder_counters": (ctypes.POINTER(Counters), [ctypes.c_void_p]),
             "qp_decoder_push": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_uint8, ctypes.POINTER(CFrame)]),
-            "qp_decoder_feed": (ctypes.c_size_t, [ctypes.c_void_p, _U8P, ctypes.c_size_t, ctypes.POINTER(CFrame),
-                                                  ctypes.c_size_t]),
+            "qp_decoder_feed": (
+                ctypes.c_size_t,
+                [ctypes.c_void_p, _U8P, ctypes.c_size_t, ctypes.POINTER(CFrame), ctypes.c_size_t],
+            ),
             "qp_spi_pack_command": (None, [ctypes.c_void_p, _U8P]),
             "qp_spi_unpack_response": (None, [_U8P, ctypes.c_void_p]),
             "qp_motor_word": (ctypes.c_uint16, [ctypes.c_int32, ctypes.c_int]),
@@ -331,8 +365,10 @@ class CDecoder:
             self._frames = (CFrame * max_frames)()
         frames = self._frames
         self.count = self._core.lib.qp_decoder_feed(self._mem, _buf(data), len(data), frames, max_frames)
-        return [(f.type, f.seq, f.timestamp_us, bytes(f.payload[:f.payload_len]))
-                for f in frames[:min(self.count, max_frames)]]
+        return [
+            (f.type, f.seq, f.timestamp_us, bytes(f.payload[: f.payload_len]))
+            for f in frames[: min(self.count, max_frames)]
+        ]
 
     @property
     def counters(self) -> Counters:

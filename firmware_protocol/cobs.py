@@ -87,7 +87,7 @@ def cobs_decode(data: bytes | bytearray | memoryview) -> bytes:
         stop = pos + code
         if stop > end:
             raise CobsError(f"COBS block at offset {pos} needs {code - 1} bytes, only {end - pos - 1} left")
-        out += data[pos + 1:stop]
+        out += data[pos + 1 : stop]
         pos = stop
         if code != 0xFF and pos < end:
             out.append(0)

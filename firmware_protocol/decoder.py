@@ -46,8 +46,7 @@ class DecoderStats:
     @property
     def rejected(self) -> int:
         """Total pieces rejected for any reason."""
-        return (self.bad_crc + self.bad_cobs + self.bad_length + self.bad_version
-                + self.unknown_type + self.oversize)
+        return self.bad_crc + self.bad_cobs + self.bad_length + self.bad_version + self.unknown_type + self.oversize
 
     def as_dict(self) -> dict[str, int]:
         """Plain-data form (for logs)."""

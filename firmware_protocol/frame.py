@@ -93,8 +93,15 @@ def _check_u32(name: str, value: int) -> None:
         raise ValueError(f"{name} must be an integer in [0, 2**32 - 1], got {value!r}")
 
 
-def encode_raw_frame(msg_type: int, seq: int, timestamp_us: int, payload: bytes,
-                     *, version: int = PROTOCOL_VERSION, payload_len: int | None = None) -> bytes:
+def encode_raw_frame(
+    msg_type: int,
+    seq: int,
+    timestamp_us: int,
+    payload: bytes,
+    *,
+    version: int = PROTOCOL_VERSION,
+    payload_len: int | None = None,
+) -> bytes:
     """Wire bytes of a frame from raw parts, delimiter included.
 
     The escape hatch for tests and fault injection: any type, version and

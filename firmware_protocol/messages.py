@@ -245,8 +245,16 @@ class HelloReply(Message):
 
     TYPE: ClassVar[MessageType] = MessageType.HELLO_REPLY
     LAYOUT: ClassVar = (
-        ("I", None), ("B", None), ("B", None), ("B", None), ("B", None),
-        ("I", None), ("H", None), ("H", None), ("H", None), ("H", None),
+        ("I", None),
+        ("B", None),
+        ("B", None),
+        ("B", None),
+        ("B", None),
+        ("I", None),
+        ("H", None),
+        ("H", None),
+        ("H", None),
+        ("H", None),
     )
 
     nonce: int = 0
@@ -302,8 +310,9 @@ class Config(Message):
 
     def _check(self) -> None:
         if config_problem(self.rate_hz, self.watchdog_ticks, self.max_millivolts) is ConfigResult.BAD_RATE:
-            raise ValueError(f"Config.rate_hz = {self.rate_hz} does not divide 1000000 "
-                             "(the tick period must be whole microseconds)")
+            raise ValueError(
+                f"Config.rate_hz = {self.rate_hz} does not divide 1000000 (the tick period must be whole microseconds)"
+            )
 
 
 @dataclass(frozen=True)
@@ -346,8 +355,11 @@ class Command(Message):
 
     TYPE: ClassVar[MessageType] = MessageType.COMMAND
     LAYOUT: ClassVar = (
-        ("h", (-MAX_MILLIVOLTS, MAX_MILLIVOLTS)), ("B", (0, COMMAND_FLAGS_MASK)),
-        ("H", (0, LED_MAX)), ("H", (0, LED_MAX)), ("H", (0, LED_MAX)),
+        ("h", (-MAX_MILLIVOLTS, MAX_MILLIVOLTS)),
+        ("B", (0, COMMAND_FLAGS_MASK)),
+        ("H", (0, LED_MAX)),
+        ("H", (0, LED_MAX)),
+        ("H", (0, LED_MAX)),
     )
 
     millivolts: int = 0
@@ -385,8 +397,16 @@ class Telemetry(Message):
 
     TYPE: ClassVar[MessageType] = MessageType.TELEMETRY
     LAYOUT: ClassVar = (
-        ("I", None), ("i", None), ("i", None), ("I", (0, 0xFFFFFF)), ("H", None),
-        ("H", None), ("I", None), ("h", None), ("H", None), ("H", None),
+        ("I", None),
+        ("i", None),
+        ("i", None),
+        ("I", (0, 0xFFFFFF)),
+        ("H", None),
+        ("H", None),
+        ("I", None),
+        ("h", None),
+        ("H", None),
+        ("H", None),
     )
 
     tick: int = 0

@@ -121,11 +121,11 @@ _RESPONSE_LAYOUT = (
 
 def _pack(obj, layout, head: bytes) -> bytes:
     out = bytearray(SPI_SIZE)
-    out[:len(head)] = head
+    out[: len(head)] = head
     for name, offset, width, _, (low, high) in layout:
         value = getattr(obj, name)
         _check(name, value, low, high)
-        out[offset:offset + width] = (value & ((1 << 8 * width) - 1)).to_bytes(width, "big")
+        out[offset : offset + width] = (value & ((1 << 8 * width) - 1)).to_bytes(width, "big")
     return bytes(out)
 
 
@@ -134,7 +134,7 @@ def _unpack(cls, layout, data: bytes):
         raise ValueError(f"an SPI transaction is {SPI_SIZE} bytes, got {len(data)}")
     values = {}
     for name, offset, width, signed, _ in layout:
-        value = int.from_bytes(data[offset:offset + width], "big")
+        value = int.from_bytes(data[offset : offset + width], "big")
         values[name] = _sign24(value) if signed else value
     return cls(**values)
 

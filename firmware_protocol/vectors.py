@@ -38,8 +38,11 @@ def load_vectors(path: str | Path = VECTORS_PATH) -> dict:
 
 def _crc_vectors() -> list[dict]:
     return [
-        {"data_hex": b"123456789".hex(), "crc": 0x29B1,
-         "source": "CRC-16/CCITT-FALSE check value (RevEng CRC catalogue; lammertbies.nl calculator)"},
+        {
+            "data_hex": b"123456789".hex(),
+            "crc": 0x29B1,
+            "source": "CRC-16/CCITT-FALSE check value (RevEng CRC catalogue; lammertbies.nl calculator)",
+        },
         {"data_hex": "", "crc": 0xFFFF, "source": "no data leaves the initial value"},
         {"data_hex": b"A".hex(), "crc": 0xB915, "source": "bitwise shift-register definition"},
         {"data_hex": (b"A" * 256).hex(), "crc": 0xEA0B, "source": "bitwise shift-register definition"},
@@ -49,8 +52,12 @@ def _crc_vectors() -> list[dict]:
 def _cobs_vectors() -> list[dict]:
     run = bytes(range(1, 255))
     examples = [
-        ("00", "0101"), ("0000", "010101"), ("001100", "01021101"), ("11220033", "0311220233"),
-        ("11223344", "0511223344"), ("11000000", "0211010101"),
+        ("00", "0101"),
+        ("0000", "010101"),
+        ("001100", "01021101"),
+        ("11220033", "0311220233"),
+        ("11223344", "0511223344"),
+        ("11000000", "0211010101"),
         (run.hex(), "ff" + run.hex()),
         ((b"\0" + run).hex(), "01ff" + run.hex()),
         ((run + b"\xff").hex(), "ff" + run.hex() + "02ff"),
@@ -80,32 +87,70 @@ def _motor_vectors() -> list[dict]:
 def _spi_vectors() -> tuple[list[dict], list[dict]]:
     src = "Quanser QUBE-Servo 2 Arduino sample code: big-endian fields"
     commands = [
-        ({"write_mask": 0x1F, "led_red": 999, "led_green": 0, "led_blue": 0, "encoder0_preset": 0,
-          "encoder1_preset": 0, "motor": 0x8000},
-         "01" "00" "1f" "03e7" "0000" "0000" "000000" "000000" "8000",
-         "normal mask 0b00011111, red LED 999 = 0x03E7, enabled at 0 V"),
-        ({"write_mask": 0x7F, "led_red": 0, "led_green": 999, "led_blue": 0, "encoder0_preset": 0,
-          "encoder1_preset": 0, "motor": 0x0000},
-         "01" "00" "7f" "0000" "03e7" "0000" "000000" "000000" "0000",
-         "encoder reset mask 0b01111111, both presets 0, amplifier off"),
-        ({"write_mask": 0x1F, "led_red": 1, "led_green": 2, "led_blue": 3, "encoder0_preset": -1,
-          "encoder1_preset": 0x123456, "motor": 0xFE5F},
-         "01" "00" "1f" "0001" "0002" "0003" "ffffff" "123456" "fe5f",
-         "preset -1 is 24-bit 0xFFFFFF; -10 V motor word"),
+        (
+            {
+                "write_mask": 0x1F,
+                "led_red": 999,
+                "led_green": 0,
+                "led_blue": 0,
+                "encoder0_preset": 0,
+                "encoder1_preset": 0,
+                "motor": 0x8000,
+            },
+            "01001f03e7000000000000000000008000",
+            "normal mask 0b00011111, red LED 999 = 0x03E7, enabled at 0 V",
+        ),
+        (
+            {
+                "write_mask": 0x7F,
+                "led_red": 0,
+                "led_green": 999,
+                "led_blue": 0,
+                "encoder0_preset": 0,
+                "encoder1_preset": 0,
+                "motor": 0x0000,
+            },
+            "01007f000003e700000000000000000000",
+            "encoder reset mask 0b01111111, both presets 0, amplifier off",
+        ),
+        (
+            {
+                "write_mask": 0x1F,
+                "led_red": 1,
+                "led_green": 2,
+                "led_blue": 3,
+                "encoder0_preset": -1,
+                "encoder1_preset": 0x123456,
+                "motor": 0xFE5F,
+            },
+            "01001f000100020003ffffff123456fe5f",
+            "preset -1 is 24-bit 0xFFFFFF; -10 V motor word",
+        ),
     ]
     responses = [
-        ("0309" "ffffff" "000800" "7fffff" "05" "1ffe" "000000",
-         {"module_id": 777, "encoder0": -1, "encoder1": 2048, "tach_raw": 0x7FFFFF, "status": 5,
-          "current_raw": 8190},
-         "id 777 = 0x0309; 0xFFFFFF is -1; 2048 counts = one turn; status amp fault + stall error; "
-         "current 8190 = 0 A"),
-        ("0000" "800000" "7fffff" "000000" "00" "0000" "000000",
-         {"module_id": 0, "encoder0": -8388608, "encoder1": 8388607, "tach_raw": 0, "status": 0,
-          "current_raw": 0},
-         "24-bit extremes; id 0 (no QUBE answering)"),
+        (
+            "0309ffffff0008007fffff051ffe000000",
+            {
+                "module_id": 777,
+                "encoder0": -1,
+                "encoder1": 2048,
+                "tach_raw": 0x7FFFFF,
+                "status": 5,
+                "current_raw": 8190,
+            },
+            "id 777 = 0x0309; 0xFFFFFF is -1; 2048 counts = one turn; status amp fault + stall error; "
+            "current 8190 = 0 A",
+        ),
+        (
+            "00008000007fffff000000000000000000",
+            {"module_id": 0, "encoder0": -8388608, "encoder1": 8388607, "tach_raw": 0, "status": 0, "current_raw": 0},
+            "24-bit extremes; id 0 (no QUBE answering)",
+        ),
     ]
-    return ([{"fields": f, "bytes_hex": b, "why": why, "source": src} for f, b, why in commands],
-            [{"bytes_hex": b, "fields": f, "why": why, "source": src} for b, f, why in responses])
+    return (
+        [{"fields": f, "bytes_hex": b, "why": why, "source": src} for f, b, why in commands],
+        [{"bytes_hex": b, "fields": f, "why": why, "source": src} for b, f, why in responses],
+    )
 
 
 def _frame_messages():
@@ -121,12 +166,38 @@ def _frame_messages():
         (m.Command(millivolts=-10000, flags=m.CommandFlags.AMP_ENABLE, led_green=999), 7, 123456789),
         (m.Command(millivolts=15000, flags=7, led_red=999, led_green=999, led_blue=999), 0x01000000, 0),
         (m.Command(), 0, 0),
-        (m.Telemetry(tick=42, encoder0=-1, encoder1=2048, tach_raw=0x7FFFFF, current_raw=8190,
-                     status=m.Status.AMP_ENABLED, last_command_seq=41, applied_millivolts=-2500,
-                     motor_word=0xFF98, command_age=1), 43, 84000),
-        (m.Telemetry(tick=0xFFFFFFFF, encoder0=-(1 << 31), encoder1=(1 << 31) - 1, tach_raw=0xFFFFFF,
-                     current_raw=0xFFFF, status=0xFFFF, last_command_seq=0xFFFFFFFF,
-                     applied_millivolts=-32768, motor_word=0xFFFF, command_age=0xFFFF), 0xFFFFFFFF, 0xFFFFFFFF),
+        (
+            m.Telemetry(
+                tick=42,
+                encoder0=-1,
+                encoder1=2048,
+                tach_raw=0x7FFFFF,
+                current_raw=8190,
+                status=m.Status.AMP_ENABLED,
+                last_command_seq=41,
+                applied_millivolts=-2500,
+                motor_word=0xFF98,
+                command_age=1,
+            ),
+            43,
+            84000,
+        ),
+        (
+            m.Telemetry(
+                tick=0xFFFFFFFF,
+                encoder0=-(1 << 31),
+                encoder1=(1 << 31) - 1,
+                tach_raw=0xFFFFFF,
+                current_raw=0xFFFF,
+                status=0xFFFF,
+                last_command_seq=0xFFFFFFFF,
+                applied_millivolts=-32768,
+                motor_word=0xFFFF,
+                command_age=0xFFFF,
+            ),
+            0xFFFFFFFF,
+            0xFFFFFFFF,
+        ),
         (m.Telemetry(), 0, 0),
         (m.Fault(code=m.FaultCode.WATCHDOG_TRIPPED, tick=1000, value=5), 9, 2_000_000),
     ]
@@ -137,9 +208,17 @@ def _frame_vectors() -> list[dict]:
 
     out = []
     for msg, seq, ts in _frame_messages():
-        out.append({"message": type(msg).__name__, "type": int(msg.TYPE), "seq": seq, "timestamp_us": ts,
-                    "fields": {k: int(v) for k, v in asdict(msg).items()},
-                    "payload_hex": msg.pack().hex(), "wire_hex": encode_frame(msg, seq, ts).hex()})
+        out.append(
+            {
+                "message": type(msg).__name__,
+                "type": int(msg.TYPE),
+                "seq": seq,
+                "timestamp_us": ts,
+                "fields": {k: int(v) for k, v in asdict(msg).items()},
+                "payload_hex": msg.pack().hex(),
+                "wire_hex": encode_frame(msg, seq, ts).hex(),
+            }
+        )
     return out
 
 
@@ -159,10 +238,12 @@ def _reject_vectors() -> list[dict]:
         ("COBS code points past the end", bad_cobs_body + crc_trailer(bad_cobs_body), "BAD_COBS"),
         ("version 2", encode_raw_frame(MessageType.HELLO, 1, 2, b"\1\0\0\0", version=2)[:-1], "BAD_VERSION"),
         ("version 0", encode_raw_frame(MessageType.HELLO, 1, 2, b"\1\0\0\0", version=0)[:-1], "BAD_VERSION"),
-        ("length field larger than payload",
-         encode_raw_frame(MessageType.HELLO, 1, 2, b"\1\0\0\0", payload_len=5)[:-1], "BAD_LENGTH"),
-        ("payload size wrong for the type", encode_raw_frame(MessageType.HELLO, 1, 2, b"\1\0\0")[:-1],
-         "BAD_LENGTH"),
+        (
+            "length field larger than payload",
+            encode_raw_frame(MessageType.HELLO, 1, 2, b"\1\0\0\0", payload_len=5)[:-1],
+            "BAD_LENGTH",
+        ),
+        ("payload size wrong for the type", encode_raw_frame(MessageType.HELLO, 1, 2, b"\1\0\0")[:-1], "BAD_LENGTH"),
         ("header cut short", _short_header(cobs_encode, crc_trailer), "BAD_LENGTH"),
         ("too short to be a frame", bytes((1, 0x81, 0x80)), "BAD_LENGTH"),
         ("unknown type 0x7F", encode_raw_frame(0x7F, 1, 2, b"")[:-1], "UNKNOWN_TYPE"),
@@ -186,25 +267,34 @@ def _stream_vectors() -> list[dict]:
     assert b[5] == 0x01  # a COBS code byte: one flip makes it a delimiter
     c = encode_frame(Telemetry(tick=3), 3, 30)
     rows = [
-        ("garbage, then a delimiter, then frames", b"\x13\x37\xff\x00" + a + b,
-         [a, b], {"bad_length": 1}),
-        ("frame glued to preceding garbage is lost, next one survives", b"\x55\x66" + a + c,
-         [c], {"bad_crc": 1}),
+        ("garbage, then a delimiter, then frames", b"\x13\x37\xff\x00" + a + b, [a, b], {"bad_length": 1}),
+        ("frame glued to preceding garbage is lost, next one survives", b"\x55\x66" + a + c, [c], {"bad_crc": 1}),
         ("extra delimiters are idle fill", b"\x00\x00" + a + b"\x00\x00\x00" + c, [a, c], {}),
         ("oversize run then resync", b"\x7e" * 300 + b"\x00" + b, [b], {"oversize": 1}),
-        ("corrupted frame between good ones", a + b[:5] + bytes((b[5] ^ 0x02,)) + b[6:] + c,
-         [a, c], {"bad_crc": 1}),
-        ("a flip that makes a 0x00 splits the frame; both halves rejected",
-         a + b[:5] + bytes((b[5] ^ 0x01,)) + b[6:] + c, [a, c], {"bad_length": 1, "bad_crc": 1}),
+        ("corrupted frame between good ones", a + b[:5] + bytes((b[5] ^ 0x02,)) + b[6:] + c, [a, c], {"bad_crc": 1}),
+        (
+            "a flip that makes a 0x00 splits the frame; both halves rejected",
+            a + b[:5] + bytes((b[5] ^ 0x01,)) + b[6:] + c,
+            [a, c],
+            {"bad_length": 1, "bad_crc": 1},
+        ),
         ("truncated frame at the end stays pending", a + c[:-7], [a], {}),
     ]
     out = []
     for name, stream, frames, counters in rows:
-        expected = {"frames": len(frames), "bad_crc": 0, "bad_cobs": 0, "bad_length": 0, "bad_version": 0,
-                    "unknown_type": 0, "oversize": 0}
+        expected = {
+            "frames": len(frames),
+            "bad_crc": 0,
+            "bad_cobs": 0,
+            "bad_length": 0,
+            "bad_version": 0,
+            "unknown_type": 0,
+            "oversize": 0,
+        }
         expected.update(counters)
-        out.append({"name": name, "stream_hex": stream.hex(), "frames_hex": [f.hex() for f in frames],
-                    "counters": expected})
+        out.append(
+            {"name": name, "stream_hex": stream.hex(), "frames_hex": [f.hex() for f in frames], "counters": expected}
+        )
     return out
 
 

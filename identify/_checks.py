@@ -12,8 +12,9 @@ if TYPE_CHECKING:
     from qube_koopman.identify.data.trajectory import Trajectory
 
 
-def as_signal(value, name: str, n_samples: int | None = None, n_columns: int | None = None,
-              allow_nonfinite: bool = False) -> np.ndarray:
+def as_signal(
+    value, name: str, n_samples: int | None = None, n_columns: int | None = None, allow_nonfinite: bool = False
+) -> np.ndarray:
     """A finite 2-D float array (samples x channels); 1-D input becomes one column."""
     arr = np.asarray(value, dtype=float)
     if arr.ndim == 1:
@@ -55,8 +56,9 @@ def check_nonneg_int(value, name: str, minimum: int = 0) -> int:
     return int(value)
 
 
-def check_loop_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: int, dt: float | None,
-                          episode: Trajectory | None = None) -> None:
+def check_loop_controller(
+    ctrl: DiscreteStateSpace, measured: list[int], n_f: int, dt: float | None, episode: Trajectory | None = None
+) -> None:
     """A controller fits the loop's signals (and, given, the episode recorded under it).
 
     The closed-loop estimators' check (:class:`~qube_koopman.identify.estimators.cl_edmd.ClosedLoopKoopman`
@@ -72,18 +74,23 @@ def check_loop_controller(ctrl: DiscreteStateSpace, measured: list[int], n_f: in
         if episode.xc is None:
             raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
         if ctrl.n_states != episode.xc.shape[1]:
-            raise ValueError(f"{where}the controller has {ctrl.n_states} states but the data's controller state "
-                             f"has {episode.xc.shape[1]} channels")
+            raise ValueError(
+                f"{where}the controller has {ctrl.n_states} states but the data's controller state "
+                f"has {episode.xc.shape[1]} channels"
+            )
         assert episode.r is not None  # the estimators' check_trajectories required it
         n_references = episode.r.shape[1]
     references = "" if n_references is None else f"{n_references} references and "
     n_errors = ctrl.n_inputs - (n_f if ctrl.n_inputs > len(measured) else 0)  # less a feedforward input
     if n_errors != len(measured) or (n_references is not None and n_errors != n_references):
         seen = f"{ctrl.n_inputs} inputs" if n_errors != ctrl.n_inputs else f"{ctrl.n_inputs} tracking errors"
-        raise ValueError(f"{where}the controller takes {seen}; the data has {references}{len(measured)} fed-back "
-                         f"states{f' and {n_f} feedforward channels' if n_f else ' and no feedforward'}")
+        raise ValueError(
+            f"{where}the controller takes {seen}; the data has {references}{len(measured)} fed-back "
+            f"states{f' and {n_f} feedforward channels' if n_f else ' and no feedforward'}"
+        )
     if n_f and ctrl.n_outputs != n_f:
-        raise ValueError(f"{where}the controller drives {ctrl.n_outputs} plant inputs, the feedforward "
-                         f"has {n_f} channels")
+        raise ValueError(
+            f"{where}the controller drives {ctrl.n_outputs} plant inputs, the feedforward has {n_f} channels"
+        )
     if dt is not None and abs(dt - ctrl.dt) > 1e-12 * ctrl.dt:
         raise ValueError(f"{where}the data's sample period {dt} s differs from the controller's {ctrl.dt} s")

@@ -23,10 +23,26 @@ from qube_koopman.identify.models.offsets import DEFAULT_BOUND, estimate_offsets
 if TYPE_CHECKING:
     from qube_koopman.identify.model_selection.transfer import ProbeSet
 
-__all__ = ["ConstantChannelWarning", "r2_score", "r2_scores", "r2_scores_time_major", "r2_from_sums",
-           "r2_from_residuals", "DivergedPrediction", "first_diverged_sample",
-           "summarize_episodes", "EpisodeScore", "episode_score", "summarize_scores", "nrmse", "normalized_mean_error",
-           "score_episodes", "SCORES", "scores_after_window", "probe_scores"]
+__all__ = [
+    "ConstantChannelWarning",
+    "r2_score",
+    "r2_scores",
+    "r2_scores_time_major",
+    "r2_from_sums",
+    "r2_from_residuals",
+    "DivergedPrediction",
+    "first_diverged_sample",
+    "summarize_episodes",
+    "EpisodeScore",
+    "episode_score",
+    "summarize_scores",
+    "nrmse",
+    "normalized_mean_error",
+    "score_episodes",
+    "SCORES",
+    "scores_after_window",
+    "probe_scores",
+]
 
 
 class ConstantChannelWarning(UserWarning):
@@ -114,7 +130,7 @@ def r2_scores_time_major(y_true: np.ndarray, *y_pred: np.ndarray) -> np.ndarray:
     sums, lo = [], 0
     with np.errstate(all="ignore"):
         for part in y_pred:
-            diff = part - y_true[:, None, :, lo:lo + part.shape[-1]]
+            diff = part - y_true[:, None, :, lo : lo + part.shape[-1]]
             sums.append(np.einsum("tmec,tmec->mec", diff, diff))
             lo += part.shape[-1]
     if lo != y_true.shape[-1]:
@@ -154,8 +170,11 @@ def r2_score(y_true, y_pred) -> float:
     y_true, y_pred = _pair(y_true, y_pred)
     constant = np.flatnonzero(np.all(y_true == y_true[0], axis=0))
     if constant.size:
-        warnings.warn(f"true channel(s) {constant.tolist()} are constant: R^2 is undefined there and "
-                      "left out of the average", ConstantChannelWarning, stacklevel=2)
+        warnings.warn(
+            f"true channel(s) {constant.tolist()} are constant: R^2 is undefined there and left out of the average",
+            ConstantChannelWarning,
+            stacklevel=2,
+        )
     return float(r2_scores(y_true, y_pred))
 
 
@@ -196,8 +215,9 @@ def normalized_mean_error(y_true, y_pred) -> float:
 SCORES: dict[str, Callable] = {"r2": r2_score, "nrmse": nrmse, "nme": normalized_mean_error}
 
 
-def score_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray],
-                   score: str = "r2") -> tuple[float, float]:
+def score_episodes(
+    y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray], score: str = "r2"
+) -> tuple[float, float]:
     """Mean and standard deviation of a score over episodes.
 
     A diverged episode makes the mean (and standard deviation) infinite.
@@ -268,8 +288,9 @@ def episode_score(y_true: np.ndarray, y_pred: np.ndarray, start: int = 1) -> Epi
     return EpisodeScore(r2, err, None if k is None else k + start)
 
 
-def summarize_episodes(y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray], start: int = 1,
-                       names: Sequence[str] | None = None) -> dict:
+def summarize_episodes(
+    y_true: Sequence[np.ndarray], y_pred: Sequence[np.ndarray], start: int = 1, names: Sequence[str] | None = None
+) -> dict:
     """Test-set summary: R^2 and NRMSE per episode, their means and standard deviations.
 
     Samples before ``start`` are left out (by default the first, which is the
@@ -294,23 +315,28 @@ def summarize_scores(scores: Sequence[EpisodeScore], names: Sequence[str] | None
     r2 = np.array([s.r2 for s in scores])
     err = np.array([s.nrmse for s in scores])
     ok = np.isfinite(r2) & np.isfinite(err)
-    diverged = [{"episode": i, "name": names[i], "sample": scores[i].diverged_at}
-                for i in map(int, np.flatnonzero(~ok))]
+    diverged = [
+        {"episode": i, "name": names[i], "sample": scores[i].diverged_at} for i in map(int, np.flatnonzero(~ok))
+    ]
     finite = bool(ok.all())
     with np.errstate(over="ignore"):  # a finite but huge R^2 (a model that all but diverged): its spread is inf
         r2_std, err_std = (float(r2.std()), float(err.std())) if finite else (None, None)
-    return {"r2_mean": float(r2.mean()) if finite else -np.inf,
-            "r2_std": r2_std,
-            "nrmse_mean": float(err.mean()) if finite else np.inf,
-            "nrmse_std": err_std,
-            "n_episodes": int(r2.size),
-            "n_diverged": len(diverged), "diverged": diverged,
-            "r2_mean_converged": float(r2[ok].mean()) if ok.any() else None,
-            "r2_per_episode": r2.tolist()}
+    return {
+        "r2_mean": float(r2.mean()) if finite else -np.inf,
+        "r2_std": r2_std,
+        "nrmse_mean": float(err.mean()) if finite else np.inf,
+        "nrmse_std": err_std,
+        "n_episodes": int(r2.size),
+        "n_diverged": len(diverged),
+        "diverged": diverged,
+        "r2_mean_converged": float(r2[ok].mean()) if ok.any() else None,
+        "r2_per_episode": r2.tolist(),
+    }
 
 
-def scores_after_window(model, trajectories: Sequence[Trajectory], window: int, offsets: bool,
-                        bound: float = DEFAULT_BOUND) -> np.ndarray:
+def scores_after_window(
+    model, trajectories: Sequence[Trajectory], window: int, offsets: bool, bound: float = DEFAULT_BOUND
+) -> np.ndarray:
     """R^2 of each episode's prediction from sample ``window`` on, its alpha offset estimated first or not.
 
     The protocol candidates and probes are scored by: the whole episode predicted from its start
@@ -343,8 +369,9 @@ def scores_after_window(model, trajectories: Sequence[Trajectory], window: int, 
     return np.array([float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, predictions)])
 
 
-def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: float,
-                 measured: Sequence[int] = (0, 1)) -> np.ndarray:
+def probe_scores(
+    plant, probes: ProbeSet, window: int, offsets: bool, bound: float, measured: Sequence[int] = (0, 1)
+) -> np.ndarray:
     """R^2 of every probe episode predicted by ``plant`` wrapped with its probe controller.
 
     Parameters
@@ -369,6 +396,9 @@ def probe_scores(plant, probes: ProbeSet, window: int, offsets: bool, bound: flo
     from qube_koopman.identify.metrics import scores_after_window
     from qube_koopman.identify.estimators.structure import close_loop
 
-    return np.concatenate([scores_after_window(close_loop(plant, controller, list(measured)), episodes, window,
-                                               offsets, bound)
-                           for controller, episodes in zip(probes.controllers, probes.episodes)])
+    return np.concatenate(
+        [
+            scores_after_window(close_loop(plant, controller, list(measured)), episodes, window, offsets, bound)
+            for controller, episodes in zip(probes.controllers, probes.episodes)
+        ]
+    )

@@ -76,8 +76,9 @@ class Params:
         for key, value in params.items():
             name, nest, inner = key.partition("__")
             if name not in valid:
-                raise ValueError(f"unknown parameter {name!r} for {type(self).__name__}; "
-                                 f"expected one of {', '.join(valid)}")
+                raise ValueError(
+                    f"unknown parameter {name!r} for {type(self).__name__}; expected one of {', '.join(valid)}"
+                )
             if nest:
                 nested.setdefault(name, {})[inner] = value
             else:
@@ -85,8 +86,10 @@ class Params:
         for name, values in nested.items():
             owner = getattr(self, name)
             if not hasattr(owner, "set_params"):
-                raise ValueError(f"parameter {name!r} of {type(self).__name__} is {owner!r}, which has no "
-                                 f"parameters to set ({', '.join(f'{name}__{key}' for key in values)})")
+                raise ValueError(
+                    f"parameter {name!r} of {type(self).__name__} is {owner!r}, which has no "
+                    f"parameters to set ({', '.join(f'{name}__{key}' for key in values)})"
+                )
             owner.set_params(**values)
         return self
 
@@ -140,6 +143,8 @@ def clone(estimator, *, safe: bool = True):
     stored = new.get_params(deep=False)
     for name, value in params.items():
         if stored[name] is not value:
-            raise RuntimeError(f"cannot clone {estimator!r}: {type(estimator).__name__}'s constructor does not "
-                               f"store its parameter {name!r} unchanged")
+            raise RuntimeError(
+                f"cannot clone {estimator!r}: {type(estimator).__name__}'s constructor does not "
+                f"store its parameter {name!r} unchanged"
+            )
     return new

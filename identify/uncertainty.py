@@ -161,8 +161,10 @@ class IntervalOptions:
             raise ValueError(f"the interval's level must be between 0 and 1, got {self.level}")
         counts = (self.n_members, self.n_calibration_members, self.n_folds, self.n_calibration_episodes)
         if min(int(c) for c in counts) < 2 or int(self.stride) < 1:
-            raise ValueError(f"intervals need at least 2 members, calibration members, folds and calibration episodes "
-                             f"and a stride of 1 or more, got {', '.join(str(c) for c in counts)} and {self.stride}")
+            raise ValueError(
+                f"intervals need at least 2 members, calibration members, folds and calibration episodes "
+                f"and a stride of 1 or more, got {', '.join(str(c) for c in counts)} and {self.stride}"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -234,8 +236,9 @@ def bootstrap_counts(n_episodes: int, n_members: int, rng: np.random.Generator) 
     return rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes), size=n_members)
 
 
-def episode_folds(n_episodes: int, n_folds: int, rng: np.random.Generator,
-                  max_held_out: int | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+def episode_folds(
+    n_episodes: int, n_folds: int, rng: np.random.Generator, max_held_out: int | None = None
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Episodes drawn at random (``max_held_out`` at most, all by default) and split into ``n_folds`` groups
     (at most one per episode), each held out once; each fold trains on every other episode.
 
@@ -243,7 +246,7 @@ def episode_folds(n_episodes: int, n_folds: int, rng: np.random.Generator,
     -------
     list of (train_indices, validation_indices)
     """
-    held_out = rng.permutation(n_episodes)[:n_episodes if max_held_out is None else int(max_held_out)]
+    held_out = rng.permutation(n_episodes)[: n_episodes if max_held_out is None else int(max_held_out)]
     groups = np.array_split(held_out, min(int(n_folds), held_out.size))
     return [(np.setdiff1d(np.arange(n_episodes), g), np.sort(g)) for g in groups]
 
@@ -285,8 +288,11 @@ def ensemble_statistics(estimator, setup, selections: np.ndarray, elsewhere: Cal
     n_lifted, m = setup.lifting.n_features_out_, setup.lifting.n_features_in_
     total = estimator._statistics_fold(setup)
     folds = [estimator._statistics_fold(setup) for _ in selections]
-    parts = ((estimator._episode_snapshots(setup, trajectories[j]) for j in range(n)) if elsewhere is None
-             else elsewhere(estimator, setup, list(range(n))))
+    parts = (
+        (estimator._episode_snapshots(setup, trajectories[j]) for j in range(n))
+        if elsewhere is None
+        else elsewhere(estimator, setup, list(range(n)))
+    )
     for j, part in enumerate(parts):
         total.add(j, part)
         # The targets are [controller states; lifted plant states]: keep the controller's and the plant's own.
@@ -338,9 +344,15 @@ class EnsembleFit:
     counts: np.ndarray
 
 
-def fit_ensemble(estimator, trajectories, options: IntervalOptions = IntervalOptions(),
-                 controllers: Sequence[DiscreteStateSpace] | None = None, controller: DiscreteStateSpace | None = None,
-                 measured: Sequence[int] | None = None, elsewhere: Callable | None = None) -> EnsembleFit:
+def fit_ensemble(
+    estimator,
+    trajectories,
+    options: IntervalOptions = IntervalOptions(),
+    controllers: Sequence[DiscreteStateSpace] | None = None,
+    controller: DiscreteStateSpace | None = None,
+    measured: Sequence[int] | None = None,
+    elsewhere: Callable | None = None,
+) -> EnsembleFit:
     """Fit ``estimator`` on all the episodes, its bootstrap members and the folds' ensembles in one pass.
 
     Parameters
@@ -370,8 +382,9 @@ def fit_ensemble(estimator, trajectories, options: IntervalOptions = IntervalOpt
     trajectories = as_episodes(trajectories)
     n = len(trajectories)
     if n < 2:
-        raise ValueError(f"prediction intervals are calibrated on held-out training episodes: they need at least 2, "
-                         f"got {n}")
+        raise ValueError(
+            f"prediction intervals are calibrated on held-out training episodes: they need at least 2, got {n}"
+        )
     rng = np.random.default_rng(options.seed)
     counts = bootstrap_counts(n, options.n_members, rng)
     splits = episode_folds(n, options.n_folds, rng, options.n_calibration_episodes)
@@ -393,8 +406,10 @@ def fit_ensemble(estimator, trajectories, options: IntervalOptions = IntervalOpt
 
     models = [refit(s) for s in selected]
     estimator._finish(setup, total)
-    folds = [FoldEnsemble(validation, models[B + i * (C + 1)], models[B + i * (C + 1) + 1:B + (i + 1) * (C + 1)])
-             for i, (_, validation) in enumerate(splits)]
+    folds = [
+        FoldEnsemble(validation, models[B + i * (C + 1)], models[B + i * (C + 1) + 1 : B + (i + 1) * (C + 1)])
+        for i, (_, validation) in enumerate(splits)
+    ]
     return EnsembleFit(estimator, models[:B], folds, counts)
 
 
@@ -432,19 +447,19 @@ class _EnsembleSink:
         self.prediction = np.full((T, n_eps, m), np.nan)
         self.variance = np.full((T, n_eps, m), np.inf) if n_models > 1 else None
         if self.variance is not None:
-            self.variance[:d + 1] = 0.0
+            self.variance[: d + 1] = 0.0
 
     def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
         at = slice(k0, k0 + len(chunk))
         if models[0] == 0:
-            self.prediction[at] = chunk[:, 0, :, self.n_p:]
+            self.prediction[at] = chunk[:, 0, :, self.n_p :]
         if self.variance is None:
             return
         if models.size < self.n_models:  # a member (or the point) diverged everywhere: no spread to trust
             self.variance[at] = np.inf
             return
         with np.errstate(all="ignore"):
-            spread = np.var(chunk[:, 1:, :, self.n_p:], axis=1, ddof=1)
+            spread = np.var(chunk[:, 1:, :, self.n_p :], axis=1, ddof=1)
         self.variance[at] = np.where(np.isfinite(spread), spread, np.inf)
 
 
@@ -460,13 +475,22 @@ def _simulate(models: Sequence, trajectories: Sequence[Trajectory]) -> tuple[np.
     point = models[0]
     d, n_p, m = point.n_delays, point.n_passthrough, point.n_states
     T = trajectories[0].n_samples
-    x_init = np.stack([t.x[:d + 1] for t in trajectories])
+    x_init = np.stack([t.x[: d + 1] for t in trajectories])
     v = np.stack([point.inputs_of(t) for t in trajectories])
     p0 = np.stack([_controller_states(t)[d] for t in trajectories]) if n_p else None
     sink = _EnsembleSink(T, len(trajectories), m, n_p, len(models), d)
-    sink.prediction[:d + 1] = np.moveaxis(x_init, 1, 0)
-    simulate_chunks(np.stack([model.A for model in models]), np.stack([model.B for model in models]), point.lifting,
-                    n_p, x_init, v, p0, True, sink)
+    sink.prediction[: d + 1] = np.moveaxis(x_init, 1, 0)
+    simulate_chunks(
+        np.stack([model.A for model in models]),
+        np.stack([model.B for model in models]),
+        point.lifting,
+        n_p,
+        x_init,
+        v,
+        p0,
+        True,
+        sink,
+    )
     variance = None if sink.variance is None else np.moveaxis(sink.variance, 1, 0)
     return np.moveaxis(sink.prediction, 1, 0), variance
 
@@ -481,7 +505,7 @@ class _GroupedSink:
 
     def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
         at = slice(k0, k0 + len(chunk))
-        grouped = chunk[..., self.n_p:].reshape((len(chunk),) + self.shape + chunk.shape[2:3] + (-1,))
+        grouped = chunk[..., self.n_p :].reshape((len(chunk),) + self.shape + chunk.shape[2:3] + (-1,))
         self.prediction[at] = grouped[:, :, 0]
         if self.variance is not None:
             with np.errstate(all="ignore"):  # a diverged member: a non-finite spread, an infinite variance
@@ -494,8 +518,9 @@ def _group_key(models: Sequence) -> tuple:
     return (len(models), point.A.shape, point.B.shape, point.n_passthrough, id(point.lifting))
 
 
-def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]],
-                   offsets=None) -> list[list[EpisodePrediction]]:
+def predict_groups(
+    groups: Sequence[tuple[Sequence, Sequence[Trajectory]]], offsets=None
+) -> list[list[EpisodePrediction]]:
     """:func:`predict_episodes` of several ensembles, each on its own episodes, in few passes.
 
     The calibration folds are such groups: each fold's point fit and members predict that
@@ -523,10 +548,16 @@ def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]],
     """
     if offsets is None:
         return _predict_plain_groups(groups)
-    estimates = [estimate_offsets_many(models[0], trajs, offsets.channels, offsets.window(trajs[0].dt), offsets.bound)
-                 if len(trajs) else [] for models, trajs in groups]
-    shifted = [(models, [shift_trajectory(models[0], t, e.as_mapping()) for t, e in zip(trajs, found)])
-               for (models, trajs), found in zip(groups, estimates)]
+    estimates = [
+        estimate_offsets_many(models[0], trajs, offsets.channels, offsets.window(trajs[0].dt), offsets.bound)
+        if len(trajs)
+        else []
+        for models, trajs in groups
+    ]
+    shifted = [
+        (models, [shift_trajectory(models[0], t, e.as_mapping()) for t, e in zip(trajs, found)])
+        for (models, trajs), found in zip(groups, estimates)
+    ]
     predicted = _predict_plain_groups(shifted)
     for found, group in zip(estimates, predicted):
         for e, p in zip(found, group):
@@ -536,12 +567,24 @@ def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]],
     runs: list[list[dict]] = []
     for (models, trajs), found in zip(groups, estimates):
         used = [{c: e.as_mapping().get(c, 0.0) for c in found[0].channels} for e in found] if found else []
-        moved = [] if len(models) < 2 or not found else [{**u, c: u[c] + OFFSET_STEP} for c in found[0].channels
-                                                          for u in used]
+        moved = (
+            []
+            if len(models) < 2 or not found
+            else [{**u, c: u[c] + OFFSET_STEP} for c in found[0].channels for u in used]
+        )
         runs.append([{}] * len(trajs) + moved)
-    plain = _predict_plain_groups([([models[0]], [shift_trajectory(models[0], t, o) for t, o in
-                                                  zip(list(trajs) * (len(o_s) // max(len(trajs), 1)), o_s)])
-                                   for (models, trajs), o_s in zip(groups, runs)])
+    plain = _predict_plain_groups(
+        [
+            (
+                [models[0]],
+                [
+                    shift_trajectory(models[0], t, o)
+                    for t, o in zip(list(trajs) * (len(o_s) // max(len(trajs), 1)), o_s)
+                ],
+            )
+            for (models, trajs), o_s in zip(groups, runs)
+        ]
+    )
     out = []
     for (models, trajs), found, group, at, o_s in zip(groups, estimates, predicted, plain, runs):
         n = len(trajs)
@@ -556,8 +599,12 @@ def predict_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]],
                     sensitivity = (at[n * (i + 1) + j].prediction - p.prediction) / OFFSET_STEP
                     with np.errstate(invalid="ignore", over="ignore"):
                         p.variance += (sensitivity * spread[j, i]) ** 2
-        out.append([EpisodePrediction(p.prediction, p.variance, at[j].prediction, e)
-                    for j, (p, e) in enumerate(zip(group, found))])
+        out.append(
+            [
+                EpisodePrediction(p.prediction, p.variance, at[j].prediction, e)
+                for j, (p, e) in enumerate(zip(group, found))
+            ]
+        )
     return out
 
 
@@ -572,7 +619,7 @@ def _predict_plain_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]
     for same in buckets.values():  # as many groups at once as the ring loop takes
         models = groups[same[0]][0]
         step = max(1, ring_capacity(models[0].lifting, models[0].A.shape[1], models[0].n_passthrough) // len(models))
-        batches += [same[i:i + step] for i in range(0, len(same), step)]
+        batches += [same[i : i + step] for i in range(0, len(same), step)]
     for members in batches:
         point = groups[members[0]][0][0]
         d, n_p, m, M = point.n_delays, point.n_passthrough, point.n_states, len(groups[members[0]][0])
@@ -585,14 +632,14 @@ def _predict_plain_groups(groups: Sequence[tuple[Sequence, Sequence[Trajectory]]
             models, trajectories = groups[g]
             for e in range(E):
                 t = trajectories[min(e, len(trajectories) - 1)]
-                x_init[i, e] = t.x[:d + 1]
-                v[i, e, :t.n_samples] = models[0].inputs_of(t)
+                x_init[i, e] = t.x[: d + 1]
+                v[i, e, : t.n_samples] = models[0].inputs_of(t)
                 if n_p:
                     p0[i, e] = _controller_states(t)[d]
         sink = _GroupedSink(T, len(members), E, m, n_p, M)
-        sink.prediction[:d + 1] = np.moveaxis(x_init, 2, 0)
+        sink.prediction[: d + 1] = np.moveaxis(x_init, 2, 0)
         if sink.variance is not None:
-            sink.variance[:d + 1] = 0.0
+            sink.variance[: d + 1] = 0.0
         A = np.stack([model.A for g in members for model in groups[g][0]])
         B = np.stack([model.B for g in members for model in groups[g][0]])
         simulate_chunks(A, B, point.lifting, n_p, x_init, v, p0 if n_p else None, True, sink, paired=True)
@@ -621,15 +668,16 @@ def _with_offsets(model, trajectories, estimates, prediction, variance):
     used = [{c: e.as_mapping().get(c, 0.0) for c in channels} for e in estimates]
     moved = [] if variance is None else [{**u, c: u[c] + OFFSET_STEP} for c in channels for u in used]
     offsets = [{}] * n + moved
-    runs, _ = _simulate([model], [shift_trajectory(model, t, o)
-                                  for t, o in zip(list(trajectories) * (len(offsets) // n), offsets)])
+    runs, _ = _simulate(
+        [model], [shift_trajectory(model, t, o) for t, o in zip(list(trajectories) * (len(offsets) // n), offsets)]
+    )
     for run, o in zip(runs, offsets):
         for c, value in o.items():
             run[:, c] += value
     if variance is not None:
         spread = np.array([_offset_spread(e) for e in estimates])  # (episodes, channels)
         for i in range(len(channels)):
-            sensitivity = (runs[n * (i + 1):n * (i + 2)] - prediction) / OFFSET_STEP
+            sensitivity = (runs[n * (i + 1) : n * (i + 2)] - prediction) / OFFSET_STEP
             with np.errstate(invalid="ignore", over="ignore"):
                 variance += (sensitivity * spread[:, i, None, None]) ** 2
     return runs[:n]
@@ -664,8 +712,9 @@ def predict_episodes(models: Sequence, trajectories: Sequence[Trajectory], offse
         trajs = [trajectories[i] for i in group]
         estimates = None
         if offsets is not None:
-            estimates = estimate_offsets_many(point, trajs, offsets.channels, offsets.window(trajs[0].dt),
-                                              offsets.bound)
+            estimates = estimate_offsets_many(
+                point, trajs, offsets.channels, offsets.window(trajs[0].dt), offsets.bound
+            )
             shifted = [shift_trajectory(point, t, e.as_mapping()) for t, e in zip(trajs, estimates)]
         else:
             shifted = trajs
@@ -677,8 +726,12 @@ def predict_episodes(models: Sequence, trajectories: Sequence[Trajectory], offse
                     prediction[j, :, c] += value
             plain = _with_offsets(point, trajs, estimates, prediction, variance)
         for j, i in enumerate(group):
-            out[i] = EpisodePrediction(prediction[j], None if variance is None else variance[j],
-                                       None if plain is None else plain[j], None if estimates is None else estimates[j])
+            out[i] = EpisodePrediction(
+                prediction[j],
+                None if variance is None else variance[j],
+                None if plain is None else plain[j],
+                None if estimates is None else estimates[j],
+            )
     return [out[i] for i in range(len(trajectories))]
 
 
@@ -708,7 +761,7 @@ def _fit_channel(errors: np.ndarray, variances: np.ndarray, horizons: np.ndarray
         q, tau = np.exp(p)
         decay = np.exp(-h / tau)
         total = np.maximum(v + q * (1.0 - decay), tiny)
-        slope = (total - e2) / total ** 2  # d cost / d total, per sample
+        slope = (total - e2) / total**2  # d cost / d total, per sample
         gradient = [np.mean(slope * q * (1.0 - decay)), np.mean(slope * -q * decay * h / tau)]
         return float(np.mean(np.log(total) + e2 / total)), np.array(gradient)
 
@@ -764,8 +817,9 @@ class IntervalCalibration:
         """
         errors, variances = np.asarray(errors, dtype=float), np.asarray(variances, dtype=float)
         horizons = np.asarray(horizons)
-        fits = np.array([_fit_channel(errors[:, c], variances[:, c], horizons, self.level)
-                         for c in range(errors.shape[1])])
+        fits = np.array(
+            [_fit_channel(errors[:, c], variances[:, c], horizons, self.level) for c in range(errors.shape[1])]
+        )
         self.scale_, self.timescale_, self.factor_ = fits[:, 0], fits[:, 1], fits[:, 2]
         with np.errstate(invalid="ignore"):
             inside = np.abs(errors) <= self.half_width(variances, horizons)
@@ -784,13 +838,27 @@ class IntervalCalibration:
 
     def as_dict(self, names: Sequence[str]) -> dict:
         """Plain data for reports, by channel name."""
-        return {name: {"scale": float(np.sqrt(q)), "timescale_samples": float(tau), "factor": float(k),
-                       "held_out_coverage": float(cov)}
-                for name, q, tau, k, cov in zip(names, self.scale_, self.timescale_, self.factor_, self.coverage_)}
+        return {
+            name: {
+                "scale": float(np.sqrt(q)),
+                "timescale_samples": float(tau),
+                "factor": float(k),
+                "held_out_coverage": float(cov),
+            }
+            for name, q, tau, k, cov in zip(names, self.scale_, self.timescale_, self.factor_, self.coverage_)
+        }
 
 
-def calibrate(fit: EnsembleFit, trajectories, loops: Sequence[Loop], level: float, start: int = 1, offsets=None,
-              measured: Sequence[int] | None = None, stride: int = 5) -> IntervalCalibration:
+def calibrate(
+    fit: EnsembleFit,
+    trajectories,
+    loops: Sequence[Loop],
+    level: float,
+    start: int = 1,
+    offsets=None,
+    measured: Sequence[int] | None = None,
+    stride: int = 5,
+) -> IntervalCalibration:
     """Calibrate the band on the folds' held-out episodes, predicted as test episodes are.
 
     Parameters
@@ -836,15 +904,23 @@ def calibrate(fit: EnsembleFit, trajectories, loops: Sequence[Loop], level: floa
             errors.append(t.x[k] - p.prediction[k])
             variances.append(_members_variance(p)[k])
             horizons.append(k - d)
-    calibration = IntervalCalibration(level).fit(np.concatenate(errors), np.concatenate(variances),
-                                                 np.concatenate(horizons))
+    calibration = IntervalCalibration(level).fit(
+        np.concatenate(errors), np.concatenate(variances), np.concatenate(horizons)
+    )
     calibration.n_diverged_ = diverged
     return calibration
 
 
-def calibrate_on_probes(fit: EnsembleFit, probes, level: float, start: int = 1, offsets=None,
-                        measured: Sequence[int] | None = None, stride: int = 5,
-                        n_members: int | None = None) -> IntervalCalibration:
+def calibrate_on_probes(
+    fit: EnsembleFit,
+    probes,
+    level: float,
+    start: int = 1,
+    offsets=None,
+    measured: Sequence[int] | None = None,
+    stride: int = 5,
+    n_members: int | None = None,
+) -> IntervalCalibration:
     """Calibrate the band of loops the training never ran on the twin's probe episodes.
 
     The probes are not training data, so the fit on all the training episodes and its members
@@ -880,8 +956,9 @@ def calibrate_on_probes(fit: EnsembleFit, probes, level: float, start: int = 1, 
     point = (getattr(estimator, "closed_loop_model_", None), getattr(estimator, "plant_model_", estimator.model_))
     members = fit.members if n_members is None else fit.members[:n_members]
     episodes = [episode for group in probes.episodes for episode in group]
-    loops = [Loop("wrapped", controller) for controller, group in zip(probes.controllers, probes.episodes)
-             for _ in group]
+    loops = [
+        Loop("wrapped", controller) for controller, group in zip(probes.controllers, probes.episodes) for _ in group
+    ]
     on_probes = dataclasses.replace(fit, folds=[FoldEnsemble(np.arange(len(episodes)), point, members)])
     return calibrate(on_probes, episodes, loops, level, start, offsets, measured, stride)
 
@@ -976,8 +1053,15 @@ class PredictionBand:
     def save(self, path: str | Path) -> None:
         """Write the arrays to ``path`` (``.npz``: t, measured, predicted, lower, upper, level), whole or not at all."""
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
-            np.savez(f, t=self.t, measured=self.measured, predicted=self.predicted, lower=self.lower,
-                     upper=self.upper, level=np.float64(self.level))
+            np.savez(
+                f,
+                t=self.t,
+                measured=self.measured,
+                predicted=self.predicted,
+                lower=self.lower,
+                upper=self.upper,
+                level=np.float64(self.level),
+            )
 
 
 def _members_variance(prediction: EpisodePrediction) -> np.ndarray:
@@ -995,8 +1079,15 @@ def _diverged_from(prediction: np.ndarray, measured: np.ndarray, start: int) -> 
     return int(np.argmax(beyond)) + start if beyond.any() else None
 
 
-def prediction_band(name: str, trajectory: Trajectory, prediction: EpisodePrediction, calibration: IntervalCalibration,
-                    start: int, n_delays: int, scored: bool = True) -> PredictionBand:
+def prediction_band(
+    name: str,
+    trajectory: Trajectory,
+    prediction: EpisodePrediction,
+    calibration: IntervalCalibration,
+    start: int,
+    n_delays: int,
+    scored: bool = True,
+) -> PredictionBand:
     """The band of one predicted episode over its samples from ``start`` on.
 
     A diverged prediction, or a diverged member (infinite variance), makes the band infinite
@@ -1037,8 +1128,11 @@ def prediction_band(name: str, trajectory: Trajectory, prediction: EpisodePredic
         lower[k >= at], upper[k >= at] = -np.inf, np.inf
         why = "the prediction diverged" if diverged is not None and diverged <= at else "a bootstrap refit diverged"
         dt = trajectory.dt or 0.0
-        warnings.warn(f"{name}: the prediction interval is infinite from sample {at} ({at * dt:.2f} s): {why}",
-                      DivergedPrediction, stacklevel=2)
+        warnings.warn(
+            f"{name}: the prediction interval is infinite from sample {at} ({at * dt:.2f} s): {why}",
+            DivergedPrediction,
+            stacklevel=2,
+        )
     measured = x[k] if scored else np.full_like(pred[k], np.nan)
     t = k * (trajectory.dt or 1.0)
     return PredictionBand(name, t, measured, pred[k].copy(), lower, upper, calibration.level, scored, at)
@@ -1069,11 +1163,17 @@ class BandSummary:
         if not band.scored:
             return
         coverage = band.coverage()
-        self.episodes.append({"log": band.name, "coverage": _channel_dict(self.names, coverage),
-                              "mean_half_width": _channel_dict(self.names, band.mean_half_width()),
-                              "rms_error": _channel_dict(self.names, band.rms_error()),
-                              "infinite_from_sample": band.diverged_at, "calibrated_loop": band.calibrated_loop,
-                              "calibration": band.calibration})
+        self.episodes.append(
+            {
+                "log": band.name,
+                "coverage": _channel_dict(self.names, coverage),
+                "mean_half_width": _channel_dict(self.names, band.mean_half_width()),
+                "rms_error": _channel_dict(self.names, band.rms_error()),
+                "infinite_from_sample": band.diverged_at,
+                "calibrated_loop": band.calibrated_loop,
+                "calibration": band.calibration,
+            }
+        )
         n = len(band.t)
         with np.errstate(invalid="ignore", over="ignore"):
             self._inside += coverage * n
@@ -1094,13 +1194,19 @@ class BandSummary:
             return {"pooled": None, "episodes": self.episodes}
         with np.errstate(invalid="ignore"):
             rms = np.sqrt(self._squared / self._n)
-        return {"pooled": {"coverage": _channel_dict(self.names, self._inside / self._n),
-                           "mean_half_width": _channel_dict(self.names, self._half / self._n),
-                           "rms_error": _channel_dict(self.names, np.where(np.isnan(rms), np.inf, rms)),
-                           "worst_episode_coverage": _channel_dict(self.names, self._worst),
-                           "n_samples": self._n, "n_infinite": self._infinite,
-                           "n_uncalibrated_loop": self._elsewhere, "n_probe_calibrated": self._probed},
-                "episodes": self.episodes}
+        return {
+            "pooled": {
+                "coverage": _channel_dict(self.names, self._inside / self._n),
+                "mean_half_width": _channel_dict(self.names, self._half / self._n),
+                "rms_error": _channel_dict(self.names, np.where(np.isnan(rms), np.inf, rms)),
+                "worst_episode_coverage": _channel_dict(self.names, self._worst),
+                "n_samples": self._n,
+                "n_infinite": self._infinite,
+                "n_uncalibrated_loop": self._elsewhere,
+                "n_probe_calibrated": self._probed,
+            },
+            "episodes": self.episodes,
+        }
 
 
 def summarize_bands(bands: Sequence[PredictionBand], names: Sequence[str]) -> dict:
@@ -1149,12 +1255,12 @@ def loop_figures(x: np.ndarray, target_theta: np.ndarray, voltage: np.ndarray, s
     tracking, alpha, u = x[skip:, 0] - target_theta[skip:], x[skip:, 1], np.asarray(voltage, dtype=float)[skip:]
     if not (np.all(np.isfinite(tracking)) and np.all(np.isfinite(alpha)) and np.all(np.isfinite(u))):
         return np.full(3, np.inf)
-    return np.array([np.mean(tracking ** 2) + np.mean(alpha ** 2), np.sqrt(np.mean(u ** 2)),
-                     np.max(np.abs(u), initial=0.0)])
+    return np.array([np.mean(tracking**2) + np.mean(alpha**2), np.sqrt(np.mean(u**2)), np.max(np.abs(u), initial=0.0)])
 
 
-def held_out_figures(fit: EnsembleFit, trajectories, controllers: Sequence[DiscreteStateSpace],
-                     measured: Sequence[int], skip: int) -> np.ndarray:
+def held_out_figures(
+    fit: EnsembleFit, trajectories, controllers: Sequence[DiscreteStateSpace], measured: Sequence[int], skip: int
+) -> np.ndarray:
     """The figures of the calibration folds' held-out episodes, measured and as their fold's point fit predicts them.
 
     Each held-out training episode is predicted in closed loop under the controller it ran
@@ -1198,6 +1304,5 @@ def held_out_figures(fit: EnsembleFit, trajectories, controllers: Sequence[Discr
             y = x[:, list(measured)]
             with np.errstate(all="ignore"):
                 u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
-            rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip),
-                         loop_figures(x, t.r[:, 0], u[:, 0], skip)])
+            rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u[:, 0], skip)])
     return np.array(rows).reshape(-1, 2, 3)

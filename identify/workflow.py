@@ -24,9 +24,20 @@ from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
-from qube_koopman.identify.uncertainty import (BandSummary, IntervalCalibration, IntervalOptions, Loop, calibrate,
-                                               calibrate_on_probes, consecutive_runs, widest,
-                                               fit_ensemble, held_out_figures, predict_episodes, prediction_band)
+from qube_koopman.identify.uncertainty import (
+    BandSummary,
+    IntervalCalibration,
+    IntervalOptions,
+    Loop,
+    calibrate,
+    calibrate_on_probes,
+    consecutive_runs,
+    widest,
+    fit_ensemble,
+    held_out_figures,
+    predict_episodes,
+    prediction_band,
+)
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
 
@@ -34,14 +45,28 @@ if TYPE_CHECKING:
     from qube_koopman.identify.model_selection.search import SearchSpace
     from qube_koopman.identify.model_selection.transfer import ProbeSet
 
-__all__ = ["IdentificationResult", "OffsetProtocol", "identify_and_score", "KOOPMAN_METHODS", "SearchOptions",
-           "run_search"]
+__all__ = [
+    "IdentificationResult",
+    "OffsetProtocol",
+    "identify_and_score",
+    "KOOPMAN_METHODS",
+    "SearchOptions",
+    "run_search",
+]
 
-KOOPMAN_METHODS = {"edmd": Edmd, "cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows,
-                   "cl-edmd-lstsq": ClEdmdLstsq, "cl-edmd-stable": ClEdmdStable}
+KOOPMAN_METHODS = {
+    "edmd": Edmd,
+    "cl-edmd": ClEdmd,
+    "cl-edmd-known-rows": ClEdmdKnownRows,
+    "cl-edmd-lstsq": ClEdmdLstsq,
+    "cl-edmd-stable": ClEdmdStable,
+}
 # Methods whose model is one loop's (unstructured closed loop, or a constraint on one loop): one controller only.
-SINGLE_LOOP_METHODS = {"cl-arx": "--method cl-arx", "cl-edmd-lstsq": "--method cl-edmd-lstsq",
-                       "cl-edmd-stable": "--max-radius (the stability-constrained fit)"}
+SINGLE_LOOP_METHODS = {
+    "cl-arx": "--method cl-arx",
+    "cl-edmd-lstsq": "--method cl-edmd-lstsq",
+    "cl-edmd-stable": "--max-radius (the stability-constrained fit)",
+}
 
 
 @dataclass(frozen=True)
@@ -65,25 +90,31 @@ class OffsetProtocol:
 
     def describe(self, dt: float) -> str:
         """The protocol in words, for reports."""
-        return (f"offsets of {', '.join(self.channels)} estimated on each test episode from its first "
-                f"{self.window_s:g} s ({self.window(dt)} samples) by simulation-error least squares, "
-                f"estimates beyond {self.bound:g} flagged and not used; the whole episode is predicted "
-                f"from its start and only the samples after the window are scored, with and without "
-                f"the offsets")
+        return (
+            f"offsets of {', '.join(self.channels)} estimated on each test episode from its first "
+            f"{self.window_s:g} s ({self.window(dt)} samples) by simulation-error least squares, "
+            f"estimates beyond {self.bound:g} flagged and not used; the whole episode is predicted "
+            f"from its start and only the samples after the window are scored, with and without "
+            f"the offsets"
+        )
 
     def window(self, dt: float) -> int:
         """The window in samples."""
         return int(round(self.window_s / dt))
 
 
-PAPER_PROTOCOL = ("the paper's: each test episode predicted from its initial condition, "
-                  "every sample after the first scored, no offsets")
+PAPER_PROTOCOL = (
+    "the paper's: each test episode predicted from its initial condition, "
+    "every sample after the first scored, no offsets"
+)
 
 
 def window_protocol(start: int, dt: float) -> str:
     """The plain protocol scored from the end of an estimation window, as the search scores candidates."""
-    return (f"each test episode predicted from its initial condition, no offsets, scored from sample {start} "
-            f"({start * dt:g} s: the end of the estimation window, as the search scored its candidates)")
+    return (
+        f"each test episode predicted from its initial condition, no offsets, scored from sample {start} "
+        f"({start * dt:g} s: the end of the estimation window, as the search scored its candidates)"
+    )
 
 
 @dataclass
@@ -124,16 +155,32 @@ def _spectral_radius(A) -> float | None:
     return None if A is None else spectral_radius(A)
 
 
-def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[LoggedTrajectory],
-                       test: Sequence[LoggedTrajectory], controller: DiscreteStateSpace, alpha: float = 1e-3,
-                       alphas: Sequence[float] | None = None, score: str = "cl", cv_splits: int = 3,
-                       cv_seed: int = 1234, arx_lags: int = 10, model_path: str | Path | None = None,
-                       offsets: OffsetProtocol | None = None, what_if: DiscreteStateSpace | None = None,
-                       estimator_options: dict | None = None, progress: Callable[[str, int, int], None] | None = None,
-                       score_from: int | None = None, keep_predictions: bool = True,
-                       episode_statistics: Callable | None = None, intervals: IntervalOptions | None = None,
-                       predictions_folder: str | Path | None = None, probes=None,
-                       probe_cache: str | Path | None = None) -> IdentificationResult:
+def identify_and_score(
+    *,
+    method: str,
+    lifting: Sequence,
+    train: Sequence[LoggedTrajectory],
+    test: Sequence[LoggedTrajectory],
+    controller: DiscreteStateSpace,
+    alpha: float = 1e-3,
+    alphas: Sequence[float] | None = None,
+    score: str = "cl",
+    cv_splits: int = 3,
+    cv_seed: int = 1234,
+    arx_lags: int = 10,
+    model_path: str | Path | None = None,
+    offsets: OffsetProtocol | None = None,
+    what_if: DiscreteStateSpace | None = None,
+    estimator_options: dict | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    score_from: int | None = None,
+    keep_predictions: bool = True,
+    episode_statistics: Callable | None = None,
+    intervals: IntervalOptions | None = None,
+    predictions_folder: str | Path | None = None,
+    probes=None,
+    probe_cache: str | Path | None = None,
+) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
     Training logs may come from several controllers: each episode is fitted
@@ -225,46 +272,93 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None or intervals is not None):
         raise ValueError(f"offsets, what-if controllers and intervals need a Koopman method, not {method}")
     if method == "arx" and score == "cl":
-        raise ValueError("ARX models the plant only: its predictions come from the plant input, not the "
-                         "closed loop; use score='plant', or method 'cl-arx' for closed-loop scores")
+        raise ValueError(
+            "ARX models the plant only: its predictions come from the plant input, not the "
+            "closed loop; use score='plant', or method 'cl-arx' for closed-loop scores"
+        )
     if what_if is not None and score != "cl":
         raise ValueError("a what-if controller predicts the closed loop: use score='cl'")
     trajs = LogTrajectories(train)  # read when needed, one episode at a time (stored logs)
-    result = IdentificationResult(report={"method": method, "score": score,
-                                          "train_logs": [log.path.name for log in train],
-                                          "test_logs": [log.path.name for log in test],
-                                          "controller": controller.as_dict(),
-                                          "training_controllers": training_controllers_report(train, controller)})
+    result = IdentificationResult(
+        report={
+            "method": method,
+            "score": score,
+            "train_logs": [log.path.name for log in train],
+            "test_logs": [log.path.name for log in test],
+            "controller": controller.as_dict(),
+            "training_controllers": training_controllers_report(train, controller),
+        }
+    )
     n_controllers = result.report["training_controllers"]["n_controllers"]
     if method in SINGLE_LOOP_METHODS and n_controllers > 1:
-        raise ValueError(f"{SINGLE_LOOP_METHODS[method]} identifies one closed loop: its training logs must share "
-                         f"one controller, these ran {n_controllers} (cl-edmd, cl-edmd-known-rows, edmd and arx fit "
-                         "logs of several)")
+        raise ValueError(
+            f"{SINGLE_LOOP_METHODS[method]} identifies one closed loop: its training logs must share "
+            f"one controller, these ran {n_controllers} (cl-edmd, cl-edmd-known-rows, edmd and arx fit "
+            "logs of several)"
+        )
     with limited_blas_threads(1):
         if method in KOOPMAN_METHODS:
-            plant, closed, ensemble = _koopman(method, lifting, train, controller, alpha, alphas, score,
-                                               cv_splits, cv_seed, progress, result, estimator_options or {},
-                                               episode_statistics, intervals)
+            plant, closed, ensemble = _koopman(
+                method,
+                lifting,
+                train,
+                controller,
+                alpha,
+                alphas,
+                score,
+                cv_splits,
+                cv_seed,
+                progress,
+                result,
+                estimator_options or {},
+                episode_statistics,
+                intervals,
+            )
             result.report["lifting"] = lifting_to_dict(plant.lifting)
-            result.report["spectral_radius"] = {"closed_loop": closed.spectral_radius(),
-                                                "plant": plant.spectral_radius()}
+            result.report["spectral_radius"] = {
+                "closed_loop": closed.spectral_radius(),
+                "plant": plant.spectral_radius(),
+            }
             if model_path is not None:
-                save_model(model_path, method=method, alpha=result.report["alpha"], plant=plant, closed_loop=closed,
-                           controller=controller, measured=MEASURED,
-                           training={"logs": result.report["train_logs"]},
-                           uncertainty=None if ensemble is None or intervals is None else _design_uncertainty(
-                               ensemble, plant, train, intervals.seed))  # an ensemble: intervals were asked for
-            bands = None if ensemble is None else _test_bands(
-                ensemble, intervals, train, controller, score, offsets, _first_scored(offsets, score_from, test[0].dt),
-                result, predictions_folder, keep_predictions, probes, probe_cache)
-            _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from,
-                           keep_predictions, bands)
+                save_model(
+                    model_path,
+                    method=method,
+                    alpha=result.report["alpha"],
+                    plant=plant,
+                    closed_loop=closed,
+                    controller=controller,
+                    measured=MEASURED,
+                    training={"logs": result.report["train_logs"]},
+                    uncertainty=None
+                    if ensemble is None or intervals is None
+                    else _design_uncertainty(ensemble, plant, train, intervals.seed),
+                )  # an ensemble: intervals were asked for
+            bands = (
+                None
+                if ensemble is None
+                else _test_bands(
+                    ensemble,
+                    intervals,
+                    train,
+                    controller,
+                    score,
+                    offsets,
+                    _first_scored(offsets, score_from, test[0].dt),
+                    result,
+                    predictions_folder,
+                    keep_predictions,
+                    probes,
+                    probe_cache,
+                )
+            )
+            _score_koopman(
+                plant, closed, controller, test, score, offsets, what_if, result, score_from, keep_predictions, bands
+            )
         elif method in ("arx", "cl-arx"):
             # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
             if model_path is not None:
-                save_arx_model(model_path, method=method, lags=arx_lags,
-                               model=plant if method == "arx" else closed)
+                save_arx_model(model_path, method=method, lags=arx_lags, model=plant if method == "arx" else closed)
             _score_arx(predict, test, result, score_from, keep_predictions)
         else:
             raise ValueError(f"unknown method {method!r}")
@@ -272,31 +366,60 @@ def identify_and_score(*, method: str, lifting: Sequence, train: Sequence[Logged
     return result
 
 
-def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits, cv_seed, progress, result,
-             options, elsewhere=None, intervals=None):
+def _koopman(
+    method,
+    lifting,
+    train,
+    controller,
+    alpha,
+    alphas,
+    score,
+    cv_splits,
+    cv_seed,
+    progress,
+    result,
+    options,
+    elsewhere=None,
+    intervals=None,
+):
     cls = KOOPMAN_METHODS[method]
     trajs, controllers = LogTrajectories(train), [log.controller for log in train]
-    make = (lambda a: cls(lifting=lifting, alpha=a, **options)) if cls is Edmd else \
-        (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
+    make = (
+        (lambda a: cls(lifting=lifting, alpha=a, **options))
+        if cls is Edmd
+        else (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
+    )
     # EDMD fits the plant from its logged input, whatever the controller; the others from each episode's own.
     fit = lambda est: _fit(est, trajs, None if cls is Edmd else controllers, elsewhere)  # noqa: E731
     if alphas is not None:
         folds = cross_validation_folds(controllers, cv_splits, cv_seed)
         report = (lambda done, total: progress("cross-validation", done, total)) if progress else None
-        sweep = regularization_sweep(make(0.0), trajs, alphas, folds.splits, scorings=(score,), controller=controller,
-                                     measured=MEASURED, progress=report, controllers=controllers,
-                                     episode_statistics=elsewhere)
+        sweep = regularization_sweep(
+            make(0.0),
+            trajs,
+            alphas,
+            folds.splits,
+            scorings=(score,),
+            controller=controller,
+            measured=MEASURED,
+            progress=report,
+            controllers=controllers,
+            episode_statistics=elsewhere,
+        )
         alpha = sweep.best_alpha(score)
         result.sweep = sweep
         best = int(np.flatnonzero(sweep.alphas == alpha)[0])
         result.report["sweep"] = {
             "alpha": [float(a) for a in sweep.alphas],
             "cv_r2_mean": sweep.cv_r2_mean(score).tolist(),
-            "spectral_radius_closed_loop": (None if sweep.spectral_radius_closed_loop is None
-                                            else sweep.spectral_radius_closed_loop.tolist()),
+            "spectral_radius_closed_loop": (
+                None if sweep.spectral_radius_closed_loop is None else sweep.spectral_radius_closed_loop.tolist()
+            ),
             "spectral_radius_plant": sweep.spectral_radius_plant.tolist(),
-            "cv_kind": folds.kind, "cv_description": FOLD_KINDS[folds.kind],
-            "cv_splits": len(folds.splits), "cv_seed": cv_seed if folds.kind == "episode-grouped" else None,
+            "cv_kind": folds.kind,
+            "cv_description": FOLD_KINDS[folds.kind],
+            "cv_splits": len(folds.splits),
+            "cv_seed": cv_seed if folds.kind == "episode-grouped" else None,
             "score": score,
             "folds": folds.report([log.path.name for log in train], sweep.cv_r2[score][:, best]),
         }
@@ -305,12 +428,16 @@ def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits
     if intervals is None:
         fitted = fit(make(alpha))
     else:  # the plain fit, its bootstrap refits and the calibration folds' in one pass over the episodes
-        ensemble = fit_ensemble(make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller,
-                                MEASURED, elsewhere)
+        ensemble = fit_ensemble(
+            make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller, MEASURED, elsewhere
+        )
         fitted = ensemble.estimator
     if hasattr(fitted, "unconstrained_radius_"):
-        result.report["constraint"] = {**options, "unconstrained_radius": fitted.unconstrained_radius_,
-                                       "solver_status": fitted.solver_status_}
+        result.report["constraint"] = {
+            **options,
+            "unconstrained_radius": fitted.unconstrained_radius_,
+            "solver_status": fitted.solver_status_,
+        }
     plant = fitted.model_ if cls is Edmd else fitted.plant_model_
     closed = close_loop(plant, controller, MEASURED) if cls is Edmd else fitted.closed_loop_model_
     return plant, closed, ensemble
@@ -318,11 +445,13 @@ def _koopman(method, lifting, train, controller, alpha, alphas, score, cv_splits
 
 def _design_uncertainty(ensemble, plant, train, seed: int) -> dict:
     """The model file's ``uncertainty``: the bootstrap plants and the held-out episodes' figures (for qube-design)."""
-    held_out = held_out_figures(ensemble, LogTrajectories(train), [log.controller for log in train], MEASURED,
-                                SKIP_SAMPLES)
+    held_out = held_out_figures(
+        ensemble, LogTrajectories(train), [log.controller for log in train], MEASURED, SKIP_SAMPLES
+    )
     names = [train[j].path.name for fold in ensemble.folds for j in fold.validation]
-    return uncertainty_to_dict(plant, [member[1] for member in ensemble.members], held_out, seed=seed,
-                               skip=SKIP_SAMPLES, logs=names)
+    return uncertainty_to_dict(
+        plant, [member[1] for member in ensemble.members], held_out, seed=seed, skip=SKIP_SAMPLES, logs=names
+    )
 
 
 def _fit(estimator, trajs, controllers, elsewhere):
@@ -365,8 +494,9 @@ class _TestScores:
         self.plain_scores: list[EpisodeScore] = []
         result.test_names, result.test_truth, result.test_predictions, result.test_time = [], [], [], []
 
-    def add(self, log, truth: np.ndarray, prediction: np.ndarray, plain: np.ndarray | None = None,
-            scored: bool = True) -> None:
+    def add(
+        self, log, truth: np.ndarray, prediction: np.ndarray, plain: np.ndarray | None = None, scored: bool = True
+    ) -> None:
         """One test episode's prediction (and without offsets, ``plain``); ``scored``: counted in the means."""
         self.result.test_names.append(log.path.name)
         if scored:
@@ -395,8 +525,9 @@ class _TestScores:
             _warn_diverged(report["test_without_offsets"], dt, " without offsets")
 
 
-def _score_koopman(plant, closed, controller, test, score, offsets, what_if, result, score_from=None,
-                   keep_predictions=True, bands=None):
+def _score_koopman(
+    plant, closed, controller, test, score, offsets, what_if, result, score_from=None, keep_predictions=True, bands=None
+):
     """Test logs read, predicted and scored a batch at a time (only their scores kept, and their predictions
     if asked); with ``bands``, every member of the ensemble predicts each batch in the same simulation."""
     dt = test[0].dt
@@ -417,9 +548,11 @@ def _score_koopman(plant, closed, controller, test, score, offsets, what_if, res
                 bands.add(test[i], traj, predicted, counted[i], start, models[0].n_delays, loop)
     if what_if is not None:
         result.report["what_if"] = {
-            "controller": what_if.as_dict(), "n_scored": len(scores.scored),
+            "controller": what_if.as_dict(),
+            "n_scored": len(scores.scored),
             "unscored_logs": [log.path.name for log, scored in zip(test, counted) if not scored],
-            "note": "test episodes are predicted under this controller; only those recorded under it are scored"}
+            "note": "test episodes are predicted under this controller; only those recorded under it are scored",
+        }
     if bands is not None:
         bands.report()
     if offsets is None:
@@ -432,13 +565,15 @@ def _score_koopman(plant, closed, controller, test, score, offsets, what_if, res
 
 
 #: How the intervals are made, in words (report.json's ``intervals.method``).
-INTERVAL_METHOD = ("prediction +- k_c sqrt(s_c(t)^2 + q_c (1 - exp(-h / tau_c))): s_c the spread of bootstrap refits "
-                   "on the training episodes drawn with replacement, plus the estimated offsets' standard errors "
-                   "propagated through the prediction; q_c, tau_c (Gaussian maximum likelihood) and k_c (the level's "
-                   "quantile) calibrated per channel on training episodes held out in turn, never the test episodes; "
-                   "for a loop the training never ran (another controller), calibrated the same way on the twin's "
-                   "probe episodes: per channel the wider of the calibration under the loop's own controller (its PD "
-                   "gains known) and under the default probe controllers (other_loops 'twin')")
+INTERVAL_METHOD = (
+    "prediction +- k_c sqrt(s_c(t)^2 + q_c (1 - exp(-h / tau_c))): s_c the spread of bootstrap refits "
+    "on the training episodes drawn with replacement, plus the estimated offsets' standard errors "
+    "propagated through the prediction; q_c, tau_c (Gaussian maximum likelihood) and k_c (the level's "
+    "quantile) calibrated per channel on training episodes held out in turn, never the test episodes; "
+    "for a loop the training never ran (another controller), calibrated the same way on the twin's "
+    "probe episodes: per channel the wider of the calibration under the loop's own controller (its PD "
+    "gains known) and under the default probe controllers (other_loops 'twin')"
+)
 
 
 class _TestBands:
@@ -487,13 +622,23 @@ class _TestBands:
         """The intervals' part of report.json."""
         o, cal = self.options, self.calibration
         self.result.report["intervals"] = {
-            "level": o.level, "method": INTERVAL_METHOD, "n_members": o.n_members, "n_folds": o.n_folds,
-            "seed": o.seed, "calibration": {"n_samples": cal.n_samples_, "stride": o.stride,
-                                            "n_diverged": cal.n_diverged_,
-                                            "channels": cal.as_dict(STATE_NAMES)},
+            "level": o.level,
+            "method": INTERVAL_METHOD,
+            "n_members": o.n_members,
+            "n_folds": o.n_folds,
+            "seed": o.seed,
+            "calibration": {
+                "n_samples": cal.n_samples_,
+                "stride": o.stride,
+                "n_diverged": cal.n_diverged_,
+                "channels": cal.as_dict(STATE_NAMES),
+            },
             "other_loops": o.other_loops,
             "calibration_other_loops": [entry for _, _, entry in self.elsewhere],
-            **self.summary.report(), "files": self.files, "seconds": self.seconds}
+            **self.summary.report(),
+            "files": self.files,
+            "seconds": self.seconds,
+        }
 
 
 def _pd_gains(gains: dict) -> tuple | None:
@@ -502,21 +647,24 @@ def _pd_gains(gains: dict) -> tuple | None:
     return tuple(float(gains[k]) for k in keys) if gains and all(k in gains for k in keys) else None
 
 
-def _test_bands(ensemble, options, train, controller, score, offsets, start, result, folder, keep, probes=None,
-                probe_cache=None) -> _TestBands:
+def _test_bands(
+    ensemble, options, train, controller, score, offsets, start, result, folder, keep, probes=None, probe_cache=None
+) -> _TestBands:
     """The intervals' calibration on the training episodes the folds held out, ready for the test episodes;
     with ``options.other_loops == "twin"``, that of loops the training never ran on the twin's probes, made
     when a test episode needs it."""
     started = time.perf_counter()
     loops = [Loop.of(log.controller, controller, score) for log in train]
-    calibration = calibrate(ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED,
-                            options.stride)
+    calibration = calibrate(
+        ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED, options.stride
+    )
     seconds = {"calibration": time.perf_counter() - started}
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
 
     def on_probes(probe_set):
-        return calibrate_on_probes(ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride,
-                                   options.n_calibration_members)
+        return calibrate_on_probes(
+            ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride, options.n_calibration_members
+        )
 
     def elsewhere(gains):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
@@ -527,8 +675,12 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
             probe_set = probes if probes is not None else twin_probes(LogTrajectories(train), cache=probe_cache)
             default.append((probe_set, on_probes(probe_set)))
         probe_set, calibration = default[0]
-        entry = {"default_probes": probe_set.describe(), "n_default_episodes": probe_set.n_episodes,
-                 "default_channels": calibration.as_dict(STATE_NAMES), "gains": gains}
+        entry = {
+            "default_probes": probe_set.describe(),
+            "n_default_episodes": probe_set.n_episodes,
+            "default_channels": calibration.as_dict(STATE_NAMES),
+            "gains": gains,
+        }
         if gains is not None:
             try:
                 own = twin_probes(LogTrajectories(train), gains=[gains], cache=probe_cache)
@@ -536,8 +688,11 @@ def _test_bands(ensemble, options, train, controller, score, offsets, start, res
                 entry["own_probes"] = f"none: {exc}"
             else:
                 own_calibration = on_probes(own)
-                entry.update(own_probes=own.describe(), n_own_episodes=own.n_episodes,
-                             own_channels=own_calibration.as_dict(STATE_NAMES))
+                entry.update(
+                    own_probes=own.describe(),
+                    n_own_episodes=own.n_episodes,
+                    own_channels=own_calibration.as_dict(STATE_NAMES),
+                )
                 calibration = widest([own_calibration, calibration])
         entry["channels"] = calibration.as_dict(STATE_NAMES)
         return calibration, entry
@@ -552,10 +707,14 @@ def _warn_diverged(summary: dict, dt: float, what: str) -> None:
     for d in summary["diverged"]:
         at = "" if d["sample"] is None else f" at sample {d['sample']} ({d['sample'] * dt:.2f} s)"
         mean = summary["r2_mean_converged"]
-        rest = (f"the mean over the other {others} episode(s) is {mean:.4f}" if mean is not None
-                else "no episode converged")
-        warnings.warn(f"{d['name']}: the prediction{what} diverged{at}; its R^2 is -inf and so is the test "
-                      f"mean; {rest}", DivergedPrediction, stacklevel=3)
+        rest = (
+            f"the mean over the other {others} episode(s) is {mean:.4f}" if mean is not None else "no episode converged"
+        )
+        warnings.warn(
+            f"{d['name']}: the prediction{what} diverged{at}; its R^2 is -inf and so is the test mean; {rest}",
+            DivergedPrediction,
+            stacklevel=3,
+        )
 
 
 def _arx(method, trajs, test, controller, lags, score, result):
@@ -565,13 +724,17 @@ def _arx(method, trajs, test, controller, lags, score, result):
         result.report["spectral_radius"] = {"closed_loop": None, "plant": _spectral_radius(plant.model_.A)}
         return plant, None, plant.predict
     model = ClArx(controller, lags, lags).fit(trajs)
-    result.report["spectral_radius"] = {"closed_loop": _spectral_radius(model.closed_loop_.model_.A),
-                                        "plant": _spectral_radius(model.plant_.A)}
+    result.report["spectral_radius"] = {
+        "closed_loop": _spectral_radius(model.closed_loop_.model_.A),
+        "plant": _spectral_radius(model.plant_.A),
+    }
     if score == "cl":
         for log in test:
             if not same_system(log.controller, controller):
-                raise ValueError(f"{log.path}: its controller differs from the training one; a closed-loop "
-                                 "ARX cannot predict another loop (use a Koopman method)")
+                raise ValueError(
+                    f"{log.path}: its controller differs from the training one; a closed-loop "
+                    "ARX cannot predict another loop (use a Koopman method)"
+                )
         return model, model.closed_loop_, model.predict_closed_loop
     return model, model.closed_loop_, model.predict
 
@@ -629,8 +792,12 @@ class SearchOptions:
     security: object = None
 
 
-def run_search(train: Sequence[LoggedTrajectory], controller: DiscreteStateSpace,
-               options: SearchOptions = SearchOptions(), progress: Callable | None = None):
+def run_search(
+    train: Sequence[LoggedTrajectory],
+    controller: DiscreteStateSpace,
+    options: SearchOptions = SearchOptions(),
+    progress: Callable | None = None,
+):
     """The complete lifting search: folds, the twin's transfer probes, the candidates, the winner.
 
     What ``qube-identify --search`` runs before it fits the winner on all training logs.
@@ -664,8 +831,10 @@ def run_search(train: Sequence[LoggedTrajectory], controller: DiscreteStateSpace
     trajs = LogTrajectories(train)  # read when needed (stored logs), not all held at once
     window = int(round(options.estimate_window / train[0].dt))
     if min(log.n_samples for log in train) <= window + max(space.delays) + 2:
-        raise ValueError(f"an estimation window of {options.estimate_window:g} s and {max(space.delays)} delays "
-                         "leave nothing to score in the shortest training episode")
+        raise ValueError(
+            f"an estimation window of {options.estimate_window:g} s and {max(space.delays)} delays "
+            "leave nothing to score in the shortest training episode"
+        )
     controllers = [log.controller for log in train]
     folds = cross_validation_folds(controllers, options.cv_splits, options.cv_seed)
     probes, probe_seconds = None, 0.0
@@ -674,15 +843,33 @@ def run_search(train: Sequence[LoggedTrajectory], controller: DiscreteStateSpace
         probes = twin_probes(trajs, cache=options.probe_cache)
         probe_seconds = time.perf_counter() - started
     several = folds.kind == "leave-one-controller-out"
-    result = search_liftings(trajs, controller, splits=folds.splits, window=window, space=space,
-                             n_jobs=options.n_jobs, scheduler=options.scheduler, security=options.security,
-                             bound=options.offset_bound, rbf_seed=options.rbf_seed, probes=probes,
-                             progress=progress, controllers=controllers if several else None)
+    result = search_liftings(
+        trajs,
+        controller,
+        splits=folds.splits,
+        window=window,
+        space=space,
+        n_jobs=options.n_jobs,
+        scheduler=options.scheduler,
+        security=options.security,
+        bound=options.offset_bound,
+        rbf_seed=options.rbf_seed,
+        probes=probes,
+        progress=progress,
+        controllers=controllers if several else None,
+    )
     result.folds = folds
     result.probe_seconds = probe_seconds
     if several:
-        result.same_controller = same_controller_scores(result.winner, trajs, controller, controllers,
-                                                        window=window, n_splits=options.cv_splits,
-                                                        seed=options.cv_seed, bound=options.offset_bound,
-                                                        rbf_seed=options.rbf_seed)
+        result.same_controller = same_controller_scores(
+            result.winner,
+            trajs,
+            controller,
+            controllers,
+            window=window,
+            n_splits=options.cv_splits,
+            seed=options.cv_seed,
+            bound=options.offset_bound,
+            rbf_seed=options.rbf_seed,
+        )
     return result

@@ -32,39 +32,81 @@ Reproduce the closed-loop Koopman paper's results.
 def _parser() -> argparse.ArgumentParser:
     from qube_koopman.identify.cli.figures import add_figure_options
 
-    parser = OneLineParser(prog=PROG, description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(prog=PROG, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_standard_options(parser)
     sub = parser.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
-    duffing = sub.add_parser("duffing", help="paper section 4 (simulated Duffing oscillator)",
-                             description="Paper section 4: simulate the Duffing experiment, fit four models, "
-                                         "score their plant predictions on the noise-free test episode.")
-    duffing.add_argument("--out", type=path, default="results", metavar="DIR",
-                         help="folder for duffing.json (created if missing; default: %(default)s)")
-    duffing.add_argument("--seed", type=seed, default=1234,
-                         help="seed of the whole experiment: references, noise, RBF centres (default: %(default)s)")
-    duffing.add_argument("--alpha", type=float, default=None, metavar="A",
-                         help="Tikhonov coefficient of EDMD and CL EDMD (default: 1e-6, numerically zero; "
-                              "the paper's exact 0 is ill-posed for its collinear RBF features)")
-    qube = sub.add_parser("qube", help="paper section 5 (the real QUBE-Servo dataset)",
-                          description="Paper section 5 from the 48 imported episode logs: 180-alpha "
-                                      "regularization study with cross-validation, the four method/scoring "
-                                      "combinations, closed-loop ARX, and a row beyond the paper.")
-    qube.add_argument("--data", type=path, required=True, metavar="DIR",
-                      help="folder with the imported .mcap logs (qube-import ../shared/datasets/"
-                           "qube_servo_20230828/*.csv --out DIR)")
-    qube.add_argument("--out", type=path, default="results", metavar="DIR",
-                      help="folder for qube.json and qube.md (default: %(default)s)")
-    qube.add_argument("--n-alphas", type=int, default=180, metavar="N",
-                      help="alphas in the study, log-spaced 1e-3..1e3 (default: %(default)s)")
-    qube.add_argument("--n-jobs", type=int, default=-1, metavar="N",
-                      help="worker processes for the regularization sweeps (default: one per core; 1: none)")
-    qube.add_argument("--strict", action="store_true",
-                      help="refuse unreadable or incomplete logs in --data instead of skipping them")
+    duffing = sub.add_parser(
+        "duffing",
+        help="paper section 4 (simulated Duffing oscillator)",
+        description="Paper section 4: simulate the Duffing experiment, fit four models, "
+        "score their plant predictions on the noise-free test episode.",
+    )
+    duffing.add_argument(
+        "--out",
+        type=path,
+        default="results",
+        metavar="DIR",
+        help="folder for duffing.json (created if missing; default: %(default)s)",
+    )
+    duffing.add_argument(
+        "--seed",
+        type=seed,
+        default=1234,
+        help="seed of the whole experiment: references, noise, RBF centres (default: %(default)s)",
+    )
+    duffing.add_argument(
+        "--alpha",
+        type=float,
+        default=None,
+        metavar="A",
+        help="Tikhonov coefficient of EDMD and CL EDMD (default: 1e-6, numerically zero; "
+        "the paper's exact 0 is ill-posed for its collinear RBF features)",
+    )
+    qube = sub.add_parser(
+        "qube",
+        help="paper section 5 (the real QUBE-Servo dataset)",
+        description="Paper section 5 from the 48 imported episode logs: 180-alpha "
+        "regularization study with cross-validation, the four method/scoring "
+        "combinations, closed-loop ARX, and a row beyond the paper.",
+    )
+    qube.add_argument(
+        "--data",
+        type=path,
+        required=True,
+        metavar="DIR",
+        help="folder with the imported .mcap logs (qube-import ../shared/datasets/qube_servo_20230828/*.csv --out DIR)",
+    )
+    qube.add_argument(
+        "--out",
+        type=path,
+        default="results",
+        metavar="DIR",
+        help="folder for qube.json and qube.md (default: %(default)s)",
+    )
+    qube.add_argument(
+        "--n-alphas",
+        type=int,
+        default=180,
+        metavar="N",
+        help="alphas in the study, log-spaced 1e-3..1e3 (default: %(default)s)",
+    )
+    qube.add_argument(
+        "--n-jobs",
+        type=int,
+        default=-1,
+        metavar="N",
+        help="worker processes for the regularization sweeps (default: one per core; 1: none)",
+    )
+    qube.add_argument(
+        "--strict", action="store_true", help="refuse unreadable or incomplete logs in --data instead of skipping them"
+    )
     group = add_figure_options(qube, episodes=False, report="qube.md")
-    group.add_argument("--figure-episode", type=whole_number(1), metavar="N",
-                       help="the test episode (1-based, of the 20) whose inputs and prediction errors are drawn "
-                            "(default 1)")
+    group.add_argument(
+        "--figure-episode",
+        type=whole_number(1),
+        metavar="N",
+        help="the test episode (1-based, of the 20) whose inputs and prediction errors are drawn (default 1)",
+    )
     for experiment in (duffing, qube):
         add_force_option(experiment)
         add_standard_options(experiment, subcommand=True)
@@ -92,8 +134,13 @@ def _qube(args) -> int:
         with warnings.catch_warnings():
             if args.strict:  # the first log load_logs would skip stops the study instead
                 warnings.simplefilter("error", IncompleteLogSkipped)
-            results = reproduce_qube(args.data, n_alphas=args.n_alphas, progress=progress, n_jobs=args.n_jobs,
-                                     figure_episode=(args.figure_episode or 1) - 1 if args.figures else None)
+            results = reproduce_qube(
+                args.data,
+                n_alphas=args.n_alphas,
+                progress=progress,
+                n_jobs=args.n_jobs,
+                figure_episode=(args.figure_episode or 1) - 1 if args.figures else None,
+            )
     except IncompleteLogSkipped as exc:
         raise CliError(f"{str(exc).removesuffix('; skipped')}; refused because of --strict") from None
     except ValueError as exc:
@@ -132,8 +179,10 @@ def _duffing(args) -> int:
     print(f"{'method':<10}{'mean (ours)':>13}{'mean (paper)':>14}{'RMS (ours)':>12}{'RMS (paper)':>13}")
     for key, label in names.items():
         ours, paper = results[key], PAPER_DUFFING[key]
-        print(f"{label:<10}{ours['nme_pct']:>13.2f}{paper['nme_pct']:>14.1f}"
-              f"{ours['nrmse_pct']:>12.2f}{paper['nrmse_pct']:>13.1f}")
+        print(
+            f"{label:<10}{ours['nme_pct']:>13.2f}{paper['nme_pct']:>14.1f}"
+            f"{ours['nrmse_pct']:>12.2f}{paper['nrmse_pct']:>13.1f}"
+        )
     results["paper"] = PAPER_DUFFING
     path = out / "duffing.json"
     write_json(path, results)
@@ -144,8 +193,10 @@ def _duffing(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-reproduce``; returns the exit status."""
     args = _parser().parse_args(argv)
-    return run_command(PROG, lambda a: {"duffing": _duffing, "qube": _qube}[a.experiment](a), args,
-                       one_line_warnings=ONE_LINE_WARNINGS)
+    return run_command(
+        PROG, lambda a: {"duffing": _duffing, "qube": _qube}[a.experiment](a), args, one_line_warnings=ONE_LINE_WARNINGS
+    )
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -39,9 +39,16 @@ ARX_INPUT_LAGS = 1
 
 def duffing_trajectory(episode: DuffingEpisode, name: str, dt: float) -> Trajectory:
     """An episode as identification sees it: the measured position is the plant state."""
-    return Trajectory(x=episode.measured, u=episode.force, r=episode.reference,
-                      xc=episode.controller_state, name=name, state_names=("x",),
-                      input_names=("u",), dt=dt)
+    return Trajectory(
+        x=episode.measured,
+        u=episode.force,
+        r=episode.reference,
+        xc=episode.controller_state,
+        name=name,
+        state_names=("x",),
+        input_names=("u",),
+        dt=dt,
+    )
 
 
 def duffing_lifting(seed: int):

@@ -54,7 +54,7 @@ class QubeRow:
 
     key: str
     label: str
-    method: str          # "arx", "edmd" or "cl-edmd"
+    method: str  # "arx", "edmd" or "cl-edmd"
     scoring: str | None  # CV score selecting alpha: "cl" or "plant"; None for ARX
     n_delays: int = N_DELAYS
     n_alphas: int | None = None  # None: the study's grid
@@ -69,8 +69,14 @@ ROWS = (
     QubeRow("cl_edmd_cl_cl", "CL EDMD, CL reg., CL scoring", "cl-edmd", "cl"),
     # Beyond the paper: more delays (the paper notes gains up to about 20), alpha chosen by
     # the same cross-validation on a grid of two points per decade.
-    QubeRow("cl_edmd_20_delays", f"CL EDMD, {BEYOND_DELAYS} delays (beyond the paper)", "cl-edmd", "cl",
-            n_delays=BEYOND_DELAYS, n_alphas=13),
+    QubeRow(
+        "cl_edmd_20_delays",
+        f"CL EDMD, {BEYOND_DELAYS} delays (beyond the paper)",
+        "cl-edmd",
+        "cl",
+        n_delays=BEYOND_DELAYS,
+        n_alphas=13,
+    ),
 )
 
 
@@ -100,15 +106,18 @@ def score_closed_loop(pairs) -> dict:
 def _arx_scores(train, test, figure_episode: int | None = None) -> tuple[dict, np.ndarray | None]:
     arx = Arx(ARX_LAGS, ARX_LAGS, inputs=("r", "f")).fit(train)
     predictions = [arx.predict(t) for t in test]
-    return (summarize_episodes([t.x for t in test], predictions),
-            None if figure_episode is None else predictions[figure_episode])
+    return (
+        summarize_episodes([t.x for t in test], predictions),
+        None if figure_episode is None else predictions[figure_episode],
+    )
 
 
 def _template(method: str, n_delays: int, controller):
     lifting = [Polynomial(POLY_ORDER), Delay(n_delays)]
     # The paper's problem: CL EDMD's controller rows are fitted (ridge), not fixed.
-    return (Edmd(lifting=lifting) if method == "edmd"
-            else ClEdmd(controller, lifting=lifting, known_controller_rows=False))
+    return (
+        Edmd(lifting=lifting) if method == "edmd" else ClEdmd(controller, lifting=lifting, known_controller_rows=False)
+    )
 
 
 def _grid(n: int) -> np.ndarray:
@@ -123,15 +132,19 @@ def _sweep_tasks(n_alphas: int) -> list[tuple[tuple[str, int], np.ndarray, tuple
         if row.method == "arx" or key in tasks:
             continue
         paper_study = row.n_alphas is None
-        tasks[key] = (key, _grid(n_alphas if row.n_alphas is None else row.n_alphas),
-                      ("cl", "plant") if paper_study else ("cl",))
+        tasks[key] = (
+            key,
+            _grid(n_alphas if row.n_alphas is None else row.n_alphas),
+            ("cl", "plant") if paper_study else ("cl",),
+        )
     return sorted(tasks.values(), key=lambda task: -task[1].size * len(task[2]))
 
 
 def _one_sweep(key, alphas, scorings, train, controller, splits) -> SweepResult:
     method, n_delays = key
-    return regularization_sweep(_template(method, n_delays, controller), train, alphas, splits, scorings=scorings,
-                                controller=controller)
+    return regularization_sweep(
+        _template(method, n_delays, controller), train, alphas, splits, scorings=scorings, controller=controller
+    )
 
 
 def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1):
@@ -145,13 +158,17 @@ def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1):
 
     splits = group_shuffle_splits(len(train), n_splits=3, test_size=0.2, seed=1234)
     tasks = _sweep_tasks(n_alphas)
-    calls = [joblib.delayed(_one_sweep)(key, alphas, scorings, train, controller, splits)
-             for key, alphas, scorings in tasks]
+    calls = [
+        joblib.delayed(_one_sweep)(key, alphas, scorings, train, controller, splits) for key, alphas, scorings in tasks
+    ]
     n_jobs = min(len(tasks), joblib.cpu_count() if n_jobs == -1 else max(1, n_jobs))
     # max_nbytes=None: arguments pickled, not memory-mapped (no shared folders left to track).
     # Not a generator function itself: the workers start now, not at the first result asked for.
-    results = (joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None)(calls) if n_jobs > 1
-               else (fn(*args, **kwargs) for fn, args, kwargs in calls))
+    results = (
+        joblib.Parallel(n_jobs=n_jobs, return_as="generator", max_nbytes=None)(calls)
+        if n_jobs > 1
+        else (fn(*args, **kwargs) for fn, args, kwargs in calls)
+    )
 
     def arriving():
         for done, ((key, _, _), result) in enumerate(zip(tasks, results), start=1):
@@ -162,8 +179,9 @@ def _sweeps(train, controller, n_alphas, progress, n_jobs: int = -1):
     return arriving()
 
 
-def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs,
-                figure_episode: int | None = None) -> tuple[dict, dict]:
+def _row_scores(
+    row: QubeRow, sweep: SweepResult, controller, test_logs, figure_episode: int | None = None
+) -> tuple[dict, dict]:
     """Test scores of a table row's model at its selected alpha, and what its figures show.
 
     The sweep already fitted every alpha on all training episodes (the same statistics a
@@ -178,16 +196,26 @@ def _row_scores(row: QubeRow, sweep: SweepResult, controller, test_logs,
     closed = close_loop(plant, controller, [0, 1]) if row.method == "edmd" else sweep.closed_loop_models[best]
     # A plant model must predict the loop under any known controller: each test
     # episode is predicted under the controller recorded in its own log.
-    pairs = [(closed if same_system(log.controller, controller)
-              else close_loop(plant, log.controller, [0, 1]), log.trajectory) for log in test_logs]
+    pairs = [
+        (
+            closed if same_system(log.controller, controller) else close_loop(plant, log.controller, [0, 1]),
+            log.trajectory,
+        )
+        for log in test_logs
+    ]
     predictions = predict_closed_loop(pairs)
-    scores = {**summarize_episodes([t.x for _, t in pairs], predictions), "alpha": float(sweep.alphas[best]),
-              "spectral_radius_closed_loop": closed.spectral_radius(),
-              "spectral_radius_plant": plant.spectral_radius()}
-    shown = {"closed_loop": _complex_lists(closed.eigenvalues()), "plant": _complex_lists(plant.eigenvalues()),
-             "prediction": None if figure_episode is None else predictions[figure_episode],
-             "plant_prediction": (None if figure_episode is None
-                                  else plant.predict(test_logs[figure_episode].trajectory))}
+    scores = {
+        **summarize_episodes([t.x for _, t in pairs], predictions),
+        "alpha": float(sweep.alphas[best]),
+        "spectral_radius_closed_loop": closed.spectral_radius(),
+        "spectral_radius_plant": plant.spectral_radius(),
+    }
+    shown = {
+        "closed_loop": _complex_lists(closed.eigenvalues()),
+        "plant": _complex_lists(plant.eigenvalues()),
+        "prediction": None if figure_episode is None else predictions[figure_episode],
+        "plant_prediction": (None if figure_episode is None else plant.predict(test_logs[figure_episode].trajectory)),
+    }
     return scores, shown
 
 
@@ -200,10 +228,17 @@ def _figure_episode(log, index: int, shown: dict) -> dict:
     """The test episode the figures show: its signals, every row's closed-loop prediction and every
     Koopman row's plant prediction (arrays)."""
     t = log.trajectory
-    return {"name": log.path.name, "index": index, "dt": t.dt, "measured": t.x, "r": t.r,
-            "f": t.f.reshape(len(t.f), -1), "u": t.u.reshape(len(t.u), -1),
-            "predicted": {key: s["prediction"] for key, s in shown.items()},
-            "plant_predicted": {key: s["plant_prediction"] for key, s in shown.items() if "plant_prediction" in s}}
+    return {
+        "name": log.path.name,
+        "index": index,
+        "dt": t.dt,
+        "measured": t.x,
+        "r": t.r,
+        "f": t.f.reshape(len(t.f), -1),
+        "u": t.u.reshape(len(t.u), -1),
+        "predicted": {key: s["prediction"] for key, s in shown.items()},
+        "plant_predicted": {key: s["plant_prediction"] for key, s in shown.items() if "plant_prediction" in s},
+    }
 
 
 def _checks(rows: dict, cl_sweep: SweepResult) -> dict:
@@ -218,9 +253,13 @@ def _checks(rows: dict, cl_sweep: SweepResult) -> dict:
     }
 
 
-def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
-                   progress: Callable[[str, int, int], None] | None = None, n_jobs: int = -1,
-                   figure_episode: int | None = None) -> dict:
+def reproduce_qube(
+    data_dir: str | Path,
+    n_alphas: int = N_ALPHAS,
+    progress: Callable[[str, int, int], None] | None = None,
+    n_jobs: int = -1,
+    figure_episode: int | None = None,
+) -> dict:
     """Run the study on the imported logs in ``data_dir`` (48 ``*.mcap`` files).
 
     ``n_jobs`` worker processes run the regularization sweeps (-1: one per core; 1: none).
@@ -259,23 +298,39 @@ def reproduce_qube(data_dir: str | Path, n_alphas: int = N_ALPHAS,
             for row in ROWS:
                 if (row.method, row.n_delays) == key:
                     rows[row.key], shown[row.key] = _row_scores(row, sweep, controller, test_logs, figure_episode)
-    extra = {} if figure_episode is None else {"figure_episode": _figure_episode(
-        test_logs[figure_episode], figure_episode, {row.key: shown[row.key] for row in ROWS})}
+    extra = (
+        {}
+        if figure_episode is None
+        else {
+            "figure_episode": _figure_episode(
+                test_logs[figure_episode], figure_episode, {row.key: shown[row.key] for row in ROWS}
+            )
+        }
+    )
     return {
         "rows": {row.key: rows[row.key] for row in ROWS},
         "paper": PAPER_QUBE,
         "sweep": {
             "alpha": _grid(n_alphas).tolist(),
-            **{method: {"cv_r2_cl": sw.cv_r2_mean("cl").tolist(), "cv_r2_plant": sw.cv_r2_mean("plant").tolist(),
-                        "spectral_radius_closed_loop": sw.spectral_radius_closed_loop.tolist(),
-                        "spectral_radius_plant": sw.spectral_radius_plant.tolist()}
-               for (method, delays), sw in sweeps.items() if delays == N_DELAYS},
+            **{
+                method: {
+                    "cv_r2_cl": sw.cv_r2_mean("cl").tolist(),
+                    "cv_r2_plant": sw.cv_r2_mean("plant").tolist(),
+                    "spectral_radius_closed_loop": sw.spectral_radius_closed_loop.tolist(),
+                    "spectral_radius_plant": sw.spectral_radius_plant.tolist(),
+                }
+                for (method, delays), sw in sweeps.items()
+                if delays == N_DELAYS
+            },
         },
-        "eigenvalues": {row.key: {k: shown[row.key][k] for k in ("closed_loop", "plant")}
-                        for row in ROWS if row.method != "arx"},
+        "eigenvalues": {
+            row.key: {k: shown[row.key][k] for k in ("closed_loop", "plant")} for row in ROWS if row.method != "arx"
+        },
         "labels": {row.key: row.label for row in ROWS},
         "checks": _checks(rows, sweeps[("cl-edmd", N_DELAYS)]),
-        "n_train": len(train), "n_test": len(test_logs), "skip": SKIP_SAMPLES,
+        "n_train": len(train),
+        "n_test": len(test_logs),
+        "skip": SKIP_SAMPLES,
         "timing_s": time.perf_counter() - started,
         **extra,
     }

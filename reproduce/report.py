@@ -12,9 +12,18 @@ def qube_table(results: dict, markdown: bool = False) -> str:
     lines = []
     for key, row in results["rows"].items():
         paper = results["paper"].get(key, {})
-        lines.append([results["labels"][key], _num(row["alpha"], ".3g"), _num(row["r2_mean"], ".3f"),
-                      _num(row["r2_std"], ".3f"), _num(row["nrmse_mean"], ".2f"), _num(row["nrmse_std"], ".2f"),
-                      _num(paper.get("r2_mean"), ".3f"), _num(paper.get("nrmse_mean"), ".1f")])
+        lines.append(
+            [
+                results["labels"][key],
+                _num(row["alpha"], ".3g"),
+                _num(row["r2_mean"], ".3f"),
+                _num(row["r2_std"], ".3f"),
+                _num(row["nrmse_mean"], ".2f"),
+                _num(row["nrmse_std"], ".2f"),
+                _num(paper.get("r2_mean"), ".3f"),
+                _num(paper.get("nrmse_mean"), ".1f"),
+            ]
+        )
     if markdown:
         out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         out += ["| " + " | ".join(line) + " |" for line in lines]
@@ -36,11 +45,12 @@ def qube_markdown(results: dict) -> str:
         closed, plant = method["spectral_radius_closed_loop"], method["spectral_radius_plant"]
         return f"| {label} | {min(closed):.6f} | {max(closed):.6f} | {plant[0]:.4f} | {plant[-1]:.4f} |"
 
-    return f"""# QUBE-Servo: paper section 5 reproduced
+    return (
+        f"""# QUBE-Servo: paper section 5 reproduced
 
-{results['n_train']} training and {results['n_test']} test episodes, the first {results['skip']} samples
-of each dropped; lifting: second-order monomials then delays; {len(sweep['alpha'])} alphas from
-{sweep['alpha'][0]:g} to {sweep['alpha'][-1]:g}, three episode-grouped cross-validation splits.
+{results["n_train"]} training and {results["n_test"]} test episodes, the first {results["skip"]} samples
+of each dropped; lifting: second-order monomials then delays; {len(sweep["alpha"])} alphas from
+{sweep["alpha"][0]:g} to {sweep["alpha"][-1]:g}, three episode-grouped cross-validation splits.
 Test scores are closed-loop predictions of theta and alpha over the test episodes.
 
 {qube_table(results, markdown=True)}
@@ -56,5 +66,8 @@ Test scores are closed-loop predictions of theta and alpha over the test episode
 {radii("CL EDMD", cl)}
 {radii("EDMD (wrapped)", ed)}
 
-Computed in {results['timing_s']:.1f} s.
-""" + "\n".join(figures_markdown(results.get("figures"))) + ("\n" if results.get("figures") else "")
+Computed in {results["timing_s"]:.1f} s.
+"""
+        + "\n".join(figures_markdown(results.get("figures")))
+        + ("\n" if results.get("figures") else "")
+    )

@@ -18,13 +18,22 @@ from qube_koopman.core.exports import lazy_exports
 # Each public name and the module (relative to this package) that defines it.
 _HOMES = {
     # the QUBE-Servo pendulum: parameters, simulator, closed loop, encoders, linearization
-    "PendulumParameters": "pendulum", "PendulumSimulator": "pendulum", "simulate_closed_loop": "pendulum",
-    "ClosedLoopRun": "pendulum", "SensorModel": "pendulum", "ZeroOffsetDistribution": "pendulum",
-    "linearize_upright": "pendulum", "linear_model": "pendulum",
+    "PendulumParameters": "pendulum",
+    "PendulumSimulator": "pendulum",
+    "simulate_closed_loop": "pendulum",
+    "ClosedLoopRun": "pendulum",
+    "SensorModel": "pendulum",
+    "ZeroOffsetDistribution": "pendulum",
+    "linearize_upright": "pendulum",
+    "linear_model": "pendulum",
     # plant files (qube-calibrate's output)
-    "load_plant": "pendulum.params_file", "save_plant": "pendulum.params_file", "PlantFile": "pendulum.params_file",
+    "load_plant": "pendulum.params_file",
+    "save_plant": "pendulum.params_file",
+    "PlantFile": "pendulum.params_file",
     # the paper's Duffing experiment
-    "DuffingParameters": "duffing", "DuffingExperiment": "duffing", "duffing_experiment": "duffing",
+    "DuffingParameters": "duffing",
+    "DuffingExperiment": "duffing",
+    "duffing_experiment": "duffing",
 }
 
 __all__ = list(_HOMES)

@@ -50,8 +50,7 @@ class DuffingParameters:
 
     def acceleration(self, position, velocity, force):
         """Acceleration for the given state and force."""
-        return (force - self.damping * velocity - self.stiffness * position
-                - self.hardening * position**3) / self.mass
+        return (force - self.damping * velocity - self.stiffness * position - self.hardening * position**3) / self.mass
 
 
 def duffing_pi_controller(dt: float = 0.01) -> DiscreteStateSpace:
@@ -63,8 +62,9 @@ def duffing_pi_controller(dt: float = 0.01) -> DiscreteStateSpace:
     return DiscreteStateSpace(np.array([[1.0]]), np.array([[1.0]]), np.array([[dt]]), np.array([[1.0]]), dt)
 
 
-def random_dwell_prbs(n_samples: int, rng: np.random.Generator, amplitude: float = 1.0,
-                      min_dwell: int = 29, max_dwell: int = 199) -> np.ndarray:
+def random_dwell_prbs(
+    n_samples: int, rng: np.random.Generator, amplitude: float = 1.0, min_dwell: int = 29, max_dwell: int = 199
+) -> np.ndarray:
     """Binary sequence of +-amplitude whose levels last a random number of samples.
 
     Each dwell is drawn uniformly from ``[min_dwell, max_dwell)`` samples and
@@ -79,8 +79,14 @@ def random_dwell_prbs(n_samples: int, rng: np.random.Generator, amplitude: float
     return np.repeat(levels, dwells)[:n_samples]
 
 
-def coloured_noise(n_samples: int, rng: np.random.Generator, variance: float = 0.02,
-                   order: int = 12, cutoff_hz: float = 5.0, fs_hz: float = 100.0) -> np.ndarray:
+def coloured_noise(
+    n_samples: int,
+    rng: np.random.Generator,
+    variance: float = 0.02,
+    order: int = 12,
+    cutoff_hz: float = 5.0,
+    fs_hz: float = 100.0,
+) -> np.ndarray:
     """White Gaussian noise of the given variance through a causal Butterworth low-pass."""
     white = rng.normal(0.0, np.sqrt(variance), n_samples)
     sos = signal.butter(order, cutoff_hz, btype="low", fs=fs_hz, output="sos")
@@ -105,9 +111,12 @@ class DuffingEpisode:
     noisy: bool
 
 
-def simulate_duffing_episode(reference: np.ndarray, controller: DiscreteStateSpace,
-                             noise: np.ndarray | None = None,
-                             params: DuffingParameters = DuffingParameters()) -> DuffingEpisode:
+def simulate_duffing_episode(
+    reference: np.ndarray,
+    controller: DiscreteStateSpace,
+    noise: np.ndarray | None = None,
+    params: DuffingParameters = DuffingParameters(),
+) -> DuffingEpisode:
     """Simulate one episode from rest with forward Euler at the controller's period.
 
     At sample k the controller sees ``y_k = x_k + n_k``, outputs
@@ -136,8 +145,16 @@ def simulate_duffing_episode(reference: np.ndarray, controller: DiscreteStateSpa
         force[k] = u
         state_c = Ac @ state_c + Bc * e
         p, v = p + dt * v, v + dt * params.acceleration(p, v, u)
-    return DuffingEpisode(t=np.arange(n) * dt, reference=r, measured=pos + noise, position=pos,
-                          velocity=vel, force=force, controller_state=xc, noisy=bool(np.any(noise)))
+    return DuffingEpisode(
+        t=np.arange(n) * dt,
+        reference=r,
+        measured=pos + noise,
+        position=pos,
+        velocity=vel,
+        force=force,
+        controller_state=xc,
+        noisy=bool(np.any(noise)),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,10 +180,15 @@ class DuffingExperiment:
     seed: int = 0
 
 
-def duffing_experiment(seed: int = 1234, n_train: int = 10, n_test: int = 1,
-                       duration_s: float = 10.0, dt: float = 0.01,
-                       noise_variance: float = 0.02,
-                       params: DuffingParameters = DuffingParameters()) -> DuffingExperiment:
+def duffing_experiment(
+    seed: int = 1234,
+    n_train: int = 10,
+    n_test: int = 1,
+    duration_s: float = 10.0,
+    dt: float = 0.01,
+    noise_variance: float = 0.02,
+    params: DuffingParameters = DuffingParameters(),
+) -> DuffingExperiment:
     """Generate the paper's Duffing data set (all randomness from ``seed``).
 
     Training episodes carry coloured measurement noise (the controller sees
@@ -200,7 +222,8 @@ def duffing_experiment(seed: int = 1234, n_train: int = 10, n_test: int = 1,
     episodes = []
     for i in range(n_train + n_test):
         reference = random_dwell_prbs(n, rng)
-        noise = (coloured_noise(n, rng, noise_variance, fs_hz=fs) if i < n_train else None)
+        noise = coloured_noise(n, rng, noise_variance, fs_hz=fs) if i < n_train else None
         episodes.append(simulate_duffing_episode(reference, controller, noise, params))
-    return DuffingExperiment(train=episodes[:n_train], test=episodes[n_train:],
-                             controller=controller, params=params, seed=seed)
+    return DuffingExperiment(
+        train=episodes[:n_train], test=episodes[n_train:], controller=controller, params=params, seed=seed
+    )

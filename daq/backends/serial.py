@@ -85,8 +85,10 @@ _HELLO_RETRY = 0.2
 
 def _fault_text(code: int, value: int) -> str:
     if code == FaultCode.WATCHDOG_TRIPPED:
-        return (f"bridge watchdog tripped: no command for {value} ticks, the motor was switched off "
-                "(the host fell behind or commands were lost)")
+        return (
+            f"bridge watchdog tripped: no command for {value} ticks, the motor was switched off "
+            "(the host fell behind or commands were lost)"
+        )
     if code == FaultCode.AMP_FAULT:
         return f"amplifier fault reported by the QUBE (status 0x{value:02x})"
     if code == FaultCode.STALL_ERROR:
@@ -99,8 +101,10 @@ def _fault_text(code: int, value: int) -> str:
 
 
 _STATUS_TEXT = (
-    (Status.WATCHDOG_TRIPPED, "bridge watchdog tripped: the motor was switched off (the host fell behind "
-                              "or commands were lost)"),
+    (
+        Status.WATCHDOG_TRIPPED,
+        "bridge watchdog tripped: the motor was switched off (the host fell behind or commands were lost)",
+    ),
     (Status.AMP_FAULT, "amplifier fault reported by the QUBE"),
     (Status.STALL_ERROR, "motor stall error reported by the QUBE"),
     (Status.BAD_MODULE_ID, "no QUBE-Servo 2 on the bridge's SPI bus (bad module id)"),
@@ -140,9 +144,17 @@ class SerialBackend(Backend):
     pacing = Pacing.DEVICE
     _last_frame_seq: int | None  # of the last frame received (None: none this episode); see _reset_counts
 
-    def __init__(self, port: str, baud: int = DEFAULT_BAUD, *, rate_hz: int = 500, watchdog_ticks: int = 5,
-                 max_voltage: float = 10.0, link_timeout: float = DEFAULT_LINK_TIMEOUT,
-                 handshake_timeout: float = 1.0) -> None:
+    def __init__(
+        self,
+        port: str,
+        baud: int = DEFAULT_BAUD,
+        *,
+        rate_hz: int = 500,
+        watchdog_ticks: int = 5,
+        max_voltage: float = 10.0,
+        link_timeout: float = DEFAULT_LINK_TIMEOUT,
+        handshake_timeout: float = 1.0,
+    ) -> None:
         if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
             raise ValueError(f"baud must be a positive whole number, got {baud!r}")
         Config(rate_hz=rate_hz, watchdog_ticks=watchdog_ticks).pack()  # ValueError naming a bad one
@@ -191,8 +203,9 @@ class SerialBackend(Backend):
 
         try:
             # A short read timeout: read() polls in slices of it until its own deadline.
-            port = serial.serial_for_url(self.port, baudrate=self.baud, timeout=min(0.005, self.link_timeout),
-                                         write_timeout=self.link_timeout)
+            port = serial.serial_for_url(
+                self.port, baudrate=self.baud, timeout=min(0.005, self.link_timeout), write_timeout=self.link_timeout
+            )
         except (serial.SerialException, ValueError, OSError) as exc:
             # pyserial's text ends with the path (an OSError's filename): named once, first
             raise BackendFault(f"cannot open {self.port}: {_plain(exc).removesuffix(f': {self.port!r}')}") from None
@@ -282,14 +295,19 @@ class SerialBackend(Backend):
                 reply = frame
         hello = reply.message
         if hello.protocol_version != PROTOCOL_VERSION:
-            raise BackendFault(f"the bridge on {self.port} speaks protocol version {hello.protocol_version}; "
-                               f"this host speaks version {PROTOCOL_VERSION}")
+            raise BackendFault(
+                f"the bridge on {self.port} speaks protocol version {hello.protocol_version}; "
+                f"this host speaks version {PROTOCOL_VERSION}"
+            )
         if hello.firmware_major != FIRMWARE_VERSION[0]:
-            raise BackendFault(f"bridge firmware {_firmware(hello)} is not supported: this host needs "
-                               f"{FIRMWARE_VERSION[0]}.x")
+            raise BackendFault(
+                f"bridge firmware {_firmware(hello)} is not supported: this host needs {FIRMWARE_VERSION[0]}.x"
+            )
         if (hello.capabilities & _REQUIRED) != _REQUIRED:
-            raise BackendFault(f"bridge firmware {_firmware(hello)} lacks telemetry or the watchdog "
-                               f"(capabilities 0x{hello.capabilities:x})")
+            raise BackendFault(
+                f"bridge firmware {_firmware(hello)} lacks telemetry or the watchdog "
+                f"(capabilities 0x{hello.capabilities:x})"
+            )
         self.hello = hello
         self._last_frame_seq = reply.seq
         config = Config(self.rate_hz, self.watchdog_ticks, self.max_millivolts)
@@ -297,8 +315,9 @@ class SerialBackend(Backend):
         while True:
             frame = self._next_frame(deadline)
             if frame is None:
-                raise BackendFault(f"the bridge on {self.port} answered HELLO but not CONFIG within "
-                                   f"{self.handshake_timeout:g} s")
+                raise BackendFault(
+                    f"the bridge on {self.port} answered HELLO but not CONFIG within {self.handshake_timeout:g} s"
+                )
             self._track(frame)
             if isinstance(frame.message, ConfigAck):
                 break
@@ -310,13 +329,18 @@ class SerialBackend(Backend):
         stats = self._decoder.stats
         where = f"the bridge on {self.port}"
         if stats.bad_version:
-            return (f"{where} speaks protocol version {stats.last_bad_version}; this host speaks version "
-                    f"{PROTOCOL_VERSION}: update the firmware or this software")
+            return (
+                f"{where} speaks protocol version {stats.last_bad_version}; this host speaks version "
+                f"{PROTOCOL_VERSION}: update the firmware or this software"
+            )
         if stats.rejected:
-            return (f"{where} sends bytes this host cannot decode ({stats.rejected} bad frames): is the baud "
-                    f"rate right? (--baud, now {self.baud}; the bridge sketch uses {DEFAULT_BAUD})")
-        return (f"no answer from {where} within {self.handshake_timeout:g} s: is the bridge firmware "
-                "running on that port?")
+            return (
+                f"{where} sends bytes this host cannot decode ({stats.rejected} bad frames): is the baud "
+                f"rate right? (--baud, now {self.baud}; the bridge sketch uses {DEFAULT_BAUD})"
+            )
+        return (
+            f"no answer from {where} within {self.handshake_timeout:g} s: is the bridge firmware running on that port?"
+        )
 
     def _next_seq(self) -> int:
         # Command sequence numbers start at 1: telemetry's last_command_seq 0 means "none yet".
@@ -330,8 +354,16 @@ class SerialBackend(Backend):
     # --- per frame -------------------------------------------------------------------------
 
     def _reset_counts(self) -> None:
-        self._counts = dict(telemetry=0, ticks_missed=0, ticks_skipped=0, frames_lost=0, late_commands=0,
-                            tx_overflows=0, device_overruns=0, device_rx_errors=0)
+        self._counts = dict(
+            telemetry=0,
+            ticks_missed=0,
+            ticks_skipped=0,
+            frames_lost=0,
+            late_commands=0,
+            tx_overflows=0,
+            device_overruns=0,
+            device_rx_errors=0,
+        )
         self._expected_tick: int | None = None
         self._last_frame_seq = None
         self._rejected_at_start = self._decoder.stats.rejected
@@ -354,8 +386,13 @@ class SerialBackend(Backend):
                 self._counts["device_rx_errors"] = message.value
             elif code == FaultCode.WATCHDOG_TRIPPED and not self._driving:
                 self._rearm = True
-            elif code in (FaultCode.WATCHDOG_TRIPPED, FaultCode.AMP_FAULT, FaultCode.STALL_ERROR,
-                          FaultCode.BAD_MODULE_ID, FaultCode.NOT_CONNECTED):
+            elif code in (
+                FaultCode.WATCHDOG_TRIPPED,
+                FaultCode.AMP_FAULT,
+                FaultCode.STALL_ERROR,
+                FaultCode.BAD_MODULE_ID,
+                FaultCode.NOT_CONNECTED,
+            ):
                 self._faulted = True
                 raise BackendFault(_fault_text(code, message.value))
 
@@ -371,8 +408,7 @@ class SerialBackend(Backend):
             gap = (tm.tick - self._expected_tick) & _U32
             if gap >= 1 << 31:
                 self._faulted = True
-                raise BackendFault(f"the bridge restarted its session (tick {tm.tick} after "
-                                   f"{self._expected_tick - 1})")
+                raise BackendFault(f"the bridge restarted its session (tick {tm.tick} after {self._expected_tick - 1})")
             counts["ticks_missed"] += gap
         self._expected_tick = (tm.tick + 1) & _U32
         status = tm.status
@@ -442,8 +478,7 @@ class SerialBackend(Backend):
                 return counts_to_angles(latest.encoder0, latest.encoder1)
             if not self._receive(deadline):
                 self._faulted = True
-                raise BackendFault(f"link lost: no telemetry from {self.port} for "
-                                   f"{self.link_timeout * 1e3:.0f} ms")
+                raise BackendFault(f"link lost: no telemetry from {self.port} for {self.link_timeout * 1e3:.0f} ms")
 
     def write(self, volts: float) -> None:
         """Send the command for the bridge's next tick (integer millivolts, amplifier on).
@@ -476,8 +511,7 @@ class SerialBackend(Backend):
 
     def _command_frame(self, millivolts: int, flags: int) -> bytes:
         red, green, blue = _LED_RUNNING if flags else (0, 0, 0)
-        return encode_frame(Command(millivolts, int(flags), red, green, blue), self._next_seq(),
-                            self._host_us())
+        return encode_frame(Command(millivolts, int(flags), red, green, blue), self._next_seq(), self._host_us())
 
     def stop(self) -> None:
         """Command 0 V with the amplifier off (best effort: the link may be gone); safe to call twice."""
@@ -510,15 +544,26 @@ class SerialBackend(Backend):
 
     def describe(self) -> dict:
         """Port, link settings and what the bridge said of itself at the handshake."""
-        info = {**super().describe(), "port": self.port, "baud": self.baud, "rate_hz": self.rate_hz,
-                "watchdog_ticks": self.watchdog_ticks, "max_millivolts": self.max_millivolts,
-                "link_timeout": self.link_timeout, "low_latency": self._low_latency,
-                "sample_period": self.sample_period}
+        info = {
+            **super().describe(),
+            "port": self.port,
+            "baud": self.baud,
+            "rate_hz": self.rate_hz,
+            "watchdog_ticks": self.watchdog_ticks,
+            "max_millivolts": self.max_millivolts,
+            "link_timeout": self.link_timeout,
+            "low_latency": self._low_latency,
+            "sample_period": self.sample_period,
+        }
         if self.hello is not None:
             h = self.hello
-            info.update(protocol_version=h.protocol_version, firmware=_firmware(h),
-                        capabilities=[c.name.lower() for c in Capability if h.capabilities & c and c.name is not None],
-                        emulated=bool(h.capabilities & Capability.EMULATED), module_id=h.module_id)
+            info.update(
+                protocol_version=h.protocol_version,
+                firmware=_firmware(h),
+                capabilities=[c.name.lower() for c in Capability if h.capabilities & c and c.name is not None],
+                emulated=bool(h.capabilities & Capability.EMULATED),
+                module_id=h.module_id,
+            )
         return info
 
     def statistics(self) -> dict:
@@ -536,8 +581,7 @@ class SerialBackend(Backend):
         bridge this host rejected during the episode, by reason in ``decoder``.
         """
         stats = self._decoder.stats
-        return {**self._counts, "host_rejects": stats.rejected - self._rejected_at_start,
-                "decoder": stats.as_dict()}
+        return {**self._counts, "host_rejects": stats.rejected - self._rejected_at_start, "decoder": stats.as_dict()}
 
 
 def _firmware(hello: HelloReply) -> str:

@@ -23,8 +23,13 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
-from qube_koopman.sim.pendulum import (SAMPLE_PERIOD, PendulumParameters, PendulumSimulator, SensorModel,
-                          ZeroOffsetDistribution)
+from qube_koopman.sim.pendulum import (
+    SAMPLE_PERIOD,
+    PendulumParameters,
+    PendulumSimulator,
+    SensorModel,
+    ZeroOffsetDistribution,
+)
 
 __all__ = ["SimBackend", "DEFAULT_PERTURBATION"]
 
@@ -60,11 +65,16 @@ class SimBackend(Backend):
     # Set by the instance from ``realtime``.
     pacing = Pacing.NONE
 
-    def __init__(self, params: PendulumParameters = PendulumParameters(),
-                 sensor: SensorModel = SensorModel(),
-                 zero_offsets: ZeroOffsetDistribution | None = ZeroOffsetDistribution(),
-                 perturbation: float = DEFAULT_PERTURBATION,
-                 seed: int | None = None, realtime: bool = False, dt: float = SAMPLE_PERIOD) -> None:
+    def __init__(
+        self,
+        params: PendulumParameters = PendulumParameters(),
+        sensor: SensorModel = SensorModel(),
+        zero_offsets: ZeroOffsetDistribution | None = ZeroOffsetDistribution(),
+        perturbation: float = DEFAULT_PERTURBATION,
+        seed: int | None = None,
+        realtime: bool = False,
+        dt: float = SAMPLE_PERIOD,
+    ) -> None:
         if not (math.isfinite(perturbation) and perturbation >= 0):
             raise ValueError(f"perturbation must be a non-negative angle in rad, got {perturbation!r}")
         self.params = params
@@ -112,8 +122,10 @@ class SimBackend(Backend):
             how long the ones before it lasted.
         """
         if self.sensor.noise_std > 0:
-            raise ValueError("a noisy sensor's noise runs on from episode to episode (by as many ticks as "
-                             "each ran): its episodes can only run one after the other")
+            raise ValueError(
+                "a noisy sensor's noise runs on from episode to episode (by as many ticks as "
+                "each ran): its episodes can only run one after the other"
+            )
         self._start_draws()
 
     def read(self) -> tuple[float, float]:
@@ -143,8 +155,14 @@ class SimBackend(Backend):
     def describe(self) -> dict:
         """Model, encoders (with this episode's zero offset), perturbation and initial state."""
         offsets = None if self.zero_offsets is None else asdict(self.zero_offsets)
-        return {**super().describe(), "realtime": self.realtime, "seed": self.seed,
-                "perturbation": self.perturbation, "initial_state": list(self._initial_state),
-                "params": asdict(self.params), "sensor": asdict(self._sim.sensor),
-                "zero_offsets": offsets,
-                "sample_period": self.sample_period}
+        return {
+            **super().describe(),
+            "realtime": self.realtime,
+            "seed": self.seed,
+            "perturbation": self.perturbation,
+            "initial_state": list(self._initial_state),
+            "params": asdict(self.params),
+            "sensor": asdict(self._sim.sensor),
+            "zero_offsets": offsets,
+            "sample_period": self.sample_period,
+        }

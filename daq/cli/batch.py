@@ -58,9 +58,11 @@ def summarize(done: str, n_done: int, n_total: int, noun: str, where: str, refus
     files (a usage error, as in every command; the other files still went through), else 1
     when a file was refused, else 0.
     """
-    print(f"{done} {n_done} of {n_total} {noun}{'s' if n_total != 1 else ''} {where}"
-          + (f"; {refused} refused" if refused else "")
-          + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else ""))
+    print(
+        f"{done} {n_done} of {n_total} {noun}{'s' if n_total != 1 else ''} {where}"
+        + (f"; {refused} refused" if refused else "")
+        + (f"; {len(problems)} unusable source{'s' if len(problems) > 1 else ''}" if problems else "")
+    )
     if problems:
         return 2
     return 0 if refused == 0 and n_done > 0 else 1

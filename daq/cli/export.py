@@ -54,10 +54,16 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     from qube_koopman.daq.export import FORMATS
 
-    parser = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("logs", nargs="+", type=path, metavar="LOG",
-                        help="an episode log (.mcap), or a folder whose *.mcap files are all exported")
+    parser = OneLineParser(
+        prog=PROG, description=_DESCRIPTION, epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "logs",
+        nargs="+",
+        type=path,
+        metavar="LOG",
+        help="an episode log (.mcap), or a folder whose *.mcap files are all exported",
+    )
     parser.add_argument("--format", required=True, choices=tuple(FORMATS), help="output format")
     parser.add_argument("--out", required=True, type=path, metavar="DIR", help="output folder (created if missing)")
     add_force_option(parser)
@@ -98,8 +104,11 @@ def _export(args) -> int:
             for warning in caught:
                 say("warning", str(warning.message))
             if args.format == "csv" and status_sidecar(written).exists():
-                say("warning", f"{log}: not a complete episode; its status is in {status_sidecar(written)} "
-                               "(the CSV layout has no place for it)")
+                say(
+                    "warning",
+                    f"{log}: not a complete episode; its status is in {status_sidecar(written)} "
+                    "(the CSV layout has no place for it)",
+                )
             exported += 1
             _log.info("%s: exported as %s into %s", log, args.format, args.out)
         except ExportError as exc:

@@ -46,15 +46,24 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     from qube_koopman.core.cli import add_standard_options, path
 
-    parser = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("sources", nargs="+", type=path, metavar="SRC",
-                        help="a legacy CSV file, or a folder whose *.csv files are all imported")
-    parser.add_argument("--out", required=True, type=path, metavar="DIR",
-                        help="output folder (created if missing)")
-    parser.add_argument("--controller", type=path, metavar="FILE",
-                        help="controller gains (TOML: kp_theta, kd_theta, kp_alpha, kd_alpha, tau) for "
-                             "every file; default: the controller.toml beside each CSV file")
+    parser = OneLineParser(
+        prog=PROG, description=_DESCRIPTION, epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "sources",
+        nargs="+",
+        type=path,
+        metavar="SRC",
+        help="a legacy CSV file, or a folder whose *.csv files are all imported",
+    )
+    parser.add_argument("--out", required=True, type=path, metavar="DIR", help="output folder (created if missing)")
+    parser.add_argument(
+        "--controller",
+        type=path,
+        metavar="FILE",
+        help="controller gains (TOML: kp_theta, kd_theta, kp_alpha, kd_alpha, tau) for "
+        "every file; default: the controller.toml beside each CSV file",
+    )
     add_force_option(parser)
     add_standard_options(parser, "no progress counter")
     return parser
@@ -141,8 +150,10 @@ def _import(args) -> int:
             episode = legacy_episode(csv, controller_for(csv))
             if not episode.is_complete:  # cut short, or exported from a log that did not complete
                 meta = episode.metadata
-                progress.say(f"{PROG}: warning: {csv}: {meta.status_reason.removeprefix('legacy CSV ')}; "
-                             f"imported as an {meta.status} episode of {len(episode)} samples")
+                progress.say(
+                    f"{PROG}: warning: {csv}: {meta.status_reason.removeprefix('legacy CSV ')}; "
+                    f"imported as an {meta.status} episode of {len(episode)} samples"
+                )
             args.out.mkdir(parents=True, exist_ok=True)
             write_episode(out, episode, overwrite=args.force)
             imported += 1

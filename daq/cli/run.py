@@ -72,73 +72,174 @@ def build_parser() -> argparse.ArgumentParser:
         seed,
     )
 
-    p = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
-                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--backend", default="sim", choices=("sim", "serial"),
-                   help="sim: the simulated pendulum (default); serial: the bridge firmware on --port")
-    p.add_argument("--episodes", type=positive_whole_number, default=DEFAULT_EPISODES, metavar="N",
-                   help=f"number of episodes (default {DEFAULT_EPISODES})")
-    p.add_argument("--duration", type=positive_number, default=DEFAULT_DURATION, metavar="S",
-                   help=f"seconds per episode (default {DEFAULT_DURATION:g}; the excitation is active "
-                        "from 20%% to 80%% of it, as the rig's was from 4 s to 16 s of 20 s)")
-    p.add_argument("--seed", type=seed, default=None, metavar="K",
-                   help="run seed: draws the three excitation seeds of every episode and the "
-                        "simulator's perturbations (default: a fresh one, printed so the run can be repeated)")
-    p.add_argument("--out", type=path, default=DEFAULT_OUT, metavar="DIR",
-                   help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT})")
-    p.add_argument("--replay", type=path, nargs="+", default=None, metavar="LOG",
-                   help="run the same excitations as these logs (their seeds, settings and durations), "
-                        "under their own controller unless --controller is given")
-    p.add_argument("--controller", type=path, default=None, metavar="FILE.toml",
-                   help="controller file: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau) or a discrete "
-                        "state-space controller at 500 Hz (A, B, C, D; core/CONTROLLER_FORMAT.md); a file or a "
-                        "shipped name: 'rig' (the gains that recorded the paper's dataset: the default) or "
-                        "'soft-theta' (a softer arm, kp_theta 2)")
-    p.add_argument("--discretization", default="backward-euler", choices=("backward-euler", "zoh", "tustin"),
-                   help="discretization of a PD gains file's derivative filters (default backward-euler, as the "
-                        "rig ran); a state-space file is already discrete")
-    p.add_argument("--realtime", action="store_true",
-                   help="pace the simulator like hardware, one tick every 2 ms (default: as fast as possible)")
-    p.add_argument("--n-jobs", type=n_jobs, default=None, metavar="N",
-                   help="run the simulator's episodes N at a time, in worker processes (default -1: one per "
-                        "core); the logs, their names, seeds and samples are a serial run's, timing apart. The "
-                        "first episode runs alone, while the workers start: a setup that fails (a full disk, "
-                        "say) stops the run there, as a serial run stops. Always one at a time with --backend "
-                        "serial (one rig), --rerun, --rerun-save, --rt-cpu and --rt-priority, which refuse N > 1")
-    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="URL",
-                   help="stream live to a rerun viewer: URL, else one listening on 127.0.0.1:9876, "
-                        "else a newly spawned one (needs a display)")
-    p.add_argument("--rerun-save", type=path, default=None, metavar="FILE.rrd",
-                   help="write a rerun recording of the run (no display needed)")
+    p = OneLineParser(
+        prog=PROG, description=_DESCRIPTION, epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--backend",
+        default="sim",
+        choices=("sim", "serial"),
+        help="sim: the simulated pendulum (default); serial: the bridge firmware on --port",
+    )
+    p.add_argument(
+        "--episodes",
+        type=positive_whole_number,
+        default=DEFAULT_EPISODES,
+        metavar="N",
+        help=f"number of episodes (default {DEFAULT_EPISODES})",
+    )
+    p.add_argument(
+        "--duration",
+        type=positive_number,
+        default=DEFAULT_DURATION,
+        metavar="S",
+        help=f"seconds per episode (default {DEFAULT_DURATION:g}; the excitation is active "
+        "from 20%% to 80%% of it, as the rig's was from 4 s to 16 s of 20 s)",
+    )
+    p.add_argument(
+        "--seed",
+        type=seed,
+        default=None,
+        metavar="K",
+        help="run seed: draws the three excitation seeds of every episode and the "
+        "simulator's perturbations (default: a fresh one, printed so the run can be repeated)",
+    )
+    p.add_argument(
+        "--out",
+        type=path,
+        default=DEFAULT_OUT,
+        metavar="DIR",
+        help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT})",
+    )
+    p.add_argument(
+        "--replay",
+        type=path,
+        nargs="+",
+        default=None,
+        metavar="LOG",
+        help="run the same excitations as these logs (their seeds, settings and durations), "
+        "under their own controller unless --controller is given",
+    )
+    p.add_argument(
+        "--controller",
+        type=path,
+        default=None,
+        metavar="FILE.toml",
+        help="controller file: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau) or a discrete "
+        "state-space controller at 500 Hz (A, B, C, D; core/CONTROLLER_FORMAT.md); a file or a "
+        "shipped name: 'rig' (the gains that recorded the paper's dataset: the default) or "
+        "'soft-theta' (a softer arm, kp_theta 2)",
+    )
+    p.add_argument(
+        "--discretization",
+        default="backward-euler",
+        choices=("backward-euler", "zoh", "tustin"),
+        help="discretization of a PD gains file's derivative filters (default backward-euler, as the "
+        "rig ran); a state-space file is already discrete",
+    )
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="pace the simulator like hardware, one tick every 2 ms (default: as fast as possible)",
+    )
+    p.add_argument(
+        "--n-jobs",
+        type=n_jobs,
+        default=None,
+        metavar="N",
+        help="run the simulator's episodes N at a time, in worker processes (default -1: one per "
+        "core); the logs, their names, seeds and samples are a serial run's, timing apart. The "
+        "first episode runs alone, while the workers start: a setup that fails (a full disk, "
+        "say) stops the run there, as a serial run stops. Always one at a time with --backend "
+        "serial (one rig), --rerun, --rerun-save, --rt-cpu and --rt-priority, which refuse N > 1",
+    )
+    p.add_argument(
+        "--rerun",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="URL",
+        help="stream live to a rerun viewer: URL, else one listening on 127.0.0.1:9876, "
+        "else a newly spawned one (needs a display)",
+    )
+    p.add_argument(
+        "--rerun-save",
+        type=path,
+        default=None,
+        metavar="FILE.rrd",
+        help="write a rerun recording of the run (no display needed)",
+    )
     add_force_option(p)
     safety = p.add_argument_group("safety and simulator")
-    safety.add_argument("--theta-limit", type=positive_number, default=DEFAULT_THETA_LIMIT, metavar="DEG",
-                        help=f"stop an episode when |theta| exceeds this (default {DEFAULT_THETA_LIMIT:g})")
-    safety.add_argument("--alpha-limit", type=positive_number, default=DEFAULT_ALPHA_LIMIT, metavar="DEG",
-                        help=f"stop an episode when |alpha| exceeds this (default {DEFAULT_ALPHA_LIMIT:g})")
-    safety.add_argument("--perturbation", type=non_negative_number, default=2.0, metavar="DEG",
-                        help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
-                             "an episode starts only once |alpha| < 5)")
-    safety.add_argument("--plant", type=path, default=None, metavar="FILE.toml",
-                        help="the simulated pendulum's physical parameters: a qube-calibrate plant file or a "
-                             "named set (default: the twin calibrated on the rig under two controllers, "
-                             "'calibrated-two-controllers'; 'calibrated-20230828': on the rig's gains alone; "
-                             "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)")
+    safety.add_argument(
+        "--theta-limit",
+        type=positive_number,
+        default=DEFAULT_THETA_LIMIT,
+        metavar="DEG",
+        help=f"stop an episode when |theta| exceeds this (default {DEFAULT_THETA_LIMIT:g})",
+    )
+    safety.add_argument(
+        "--alpha-limit",
+        type=positive_number,
+        default=DEFAULT_ALPHA_LIMIT,
+        metavar="DEG",
+        help=f"stop an episode when |alpha| exceeds this (default {DEFAULT_ALPHA_LIMIT:g})",
+    )
+    safety.add_argument(
+        "--perturbation",
+        type=non_negative_number,
+        default=2.0,
+        metavar="DEG",
+        help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
+        "an episode starts only once |alpha| < 5)",
+    )
+    safety.add_argument(
+        "--plant",
+        type=path,
+        default=None,
+        metavar="FILE.toml",
+        help="the simulated pendulum's physical parameters: a qube-calibrate plant file or a "
+        "named set (default: the twin calibrated on the rig under two controllers, "
+        "'calibrated-two-controllers'; 'calibrated-20230828': on the rig's gains alone; "
+        "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)",
+    )
     link = p.add_argument_group("serial bridge (--backend serial)")
-    link.add_argument("--port", default=None, metavar="DEV",
-                      help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)")
-    link.add_argument("--baud", type=positive_whole_number, default=None, metavar="B",
-                      help="baud rate of a UART bridge (default 500000, the sketch's; USB CDC ignores it)")
-    link.add_argument("--link-timeout", type=positive_number, default=None, metavar="MS",
-                      help="abort an episode after this long without telemetry (default 25; raise it on a "
-                           "heavily loaded host, the bridge's watchdog still stops the motor after 10 ms)")
-    link.add_argument("--check", action="store_true",
-                      help="pre-flight only: module id 777, encoders, amplifier enabling at 0 V and the "
-                           "round trip; exit 0 when all pass, 1 naming the failed checks")
+    link.add_argument(
+        "--port",
+        default=None,
+        metavar="DEV",
+        help="the bridge's serial device (e.g. /dev/ttyACM0, or the path qube-emulate prints)",
+    )
+    link.add_argument(
+        "--baud",
+        type=positive_whole_number,
+        default=None,
+        metavar="B",
+        help="baud rate of a UART bridge (default 500000, the sketch's; USB CDC ignores it)",
+    )
+    link.add_argument(
+        "--link-timeout",
+        type=positive_number,
+        default=None,
+        metavar="MS",
+        help="abort an episode after this long without telemetry (default 25; raise it on a "
+        "heavily loaded host, the bridge's watchdog still stops the motor after 10 ms)",
+    )
+    link.add_argument(
+        "--check",
+        action="store_true",
+        help="pre-flight only: module id 777, encoders, amplifier enabling at 0 V and the "
+        "round trip; exit 0 when all pass, 1 naming the failed checks",
+    )
     rt = p.add_argument_group("real-time scheduling (attempted only when asked; works without)")
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
-    rt.add_argument("--rt-priority", type=int, default=None, metavar="P",
-                    help="run SCHED_FIFO at priority P (1..99; needs permission)")
+    rt.add_argument(
+        "--rt-priority",
+        type=int,
+        default=None,
+        metavar="P",
+        help="run SCHED_FIFO at priority P (1..99; needs permission)",
+    )
     add_standard_options(p, "no progress bar")
     return p
 
@@ -183,8 +284,9 @@ def main(argv: list[str] | None = None) -> int:
 def _check_backend_options(args) -> None:
     if args.backend == "serial":
         if not args.port:
-            raise CliError("--backend serial needs --port DEV (the bridge's serial device, or the path "
-                        "qube-emulate prints)")
+            raise CliError(
+                "--backend serial needs --port DEV (the bridge's serial device, or the path qube-emulate prints)"
+            )
         if args.realtime:
             raise CliError("--realtime is for --backend sim: the bridge's clock paces the serial backend")
         if args.plant is not None:
@@ -202,16 +304,22 @@ def _jobs(args, n_episodes: int) -> int:
     only add its start-up to a serial run. Where episodes cannot run side by side, the default
     (and -1) mean 1, and N > 1 is refused.
     """
-    alone = [(option, why) for option, why, given in (
-        ("--backend serial", "one rig", args.backend == "serial"),
-        ("--rerun", "one live view", args.rerun is not None),
-        ("--rerun-save", "one recording", args.rerun_save is not None),
-        ("--rt-cpu", "one pinned process", args.rt_cpu is not None),
-        ("--rt-priority", "one real-time process", args.rt_priority is not None)) if given]
+    alone = [
+        (option, why)
+        for option, why, given in (
+            ("--backend serial", "one rig", args.backend == "serial"),
+            ("--rerun", "one live view", args.rerun is not None),
+            ("--rerun-save", "one recording", args.rerun_save is not None),
+            ("--rt-cpu", "one pinned process", args.rt_cpu is not None),
+            ("--rt-priority", "one real-time process", args.rt_priority is not None),
+        )
+        if given
+    ]
     if alone and args.n_jobs is not None and args.n_jobs > 1:
         option, why = alone[0]
-        raise CliError(f"--n-jobs {args.n_jobs}: {option} runs one episode at a time ({why}); leave --n-jobs out "
-                    "or give 1")
+        raise CliError(
+            f"--n-jobs {args.n_jobs}: {option} runs one episode at a time ({why}); leave --n-jobs out or give 1"
+        )
     if alone:
         return 1
     from qube_koopman.daq.parallel import resolve_n_jobs
@@ -254,14 +362,24 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
         from qube_koopman.daq.backends import SimBackend
 
         params = _load_plant(args.plant)
-        return SimBackend(params=params, perturbation=math.radians(args.perturbation), seed=backend_seed,
-                          realtime=args.realtime, dt=1.0 / rate)
+        return SimBackend(
+            params=params,
+            perturbation=math.radians(args.perturbation),
+            seed=backend_seed,
+            realtime=args.realtime,
+            dt=1.0 / rate,
+        )
     from qube_koopman.daq.backends import BackendFault
     from qube_koopman.daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
 
     link_timeout = DEFAULT_LINK_TIMEOUT if args.link_timeout is None else args.link_timeout / 1e3
-    backend = SerialBackend(args.port, args.baud or DEFAULT_BAUD, rate_hz=round(rate),
-                            max_voltage=limits.max_voltage, link_timeout=link_timeout)
+    backend = SerialBackend(
+        args.port,
+        args.baud or DEFAULT_BAUD,
+        rate_hz=round(rate),
+        max_voltage=limits.max_voltage,
+        link_timeout=link_timeout,
+    )
     try:
         backend.open()
     except BackendFault as exc:
@@ -305,8 +423,7 @@ def _run(args) -> int:
     from qube_koopman.core.controller_file import load_controller
 
     if args.episodes > MAX_EPISODES:
-        raise CliError(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run "
-                    "for more)")
+        raise CliError(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run for more)")
     if args.duration > MAX_DURATION:
         raise CliError(f"--duration {args.duration:g}: at most {MAX_DURATION:g} s (24 h) per episode")
     rate = 500.0
@@ -319,20 +436,20 @@ def _run(args) -> int:
     except ValueError as exc:
         raise CliError(f"{exc} (--controller)") from None
     try:
-        limits = SafetyLimits(theta_limit=math.radians(args.theta_limit),
-                              alpha_limit=math.radians(args.alpha_limit))
+        limits = SafetyLimits(theta_limit=math.radians(args.theta_limit), alpha_limit=math.radians(args.alpha_limit))
     except ValueError as exc:  # the start gate above --alpha-limit (the library's radians)
         raise CliError(f"--alpha-limit {args.alpha_limit:g} deg: inside the start gate ({exc})") from None
     if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:
-        raise CliError(f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
-                    f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)")
+        raise CliError(
+            f"--perturbation {args.perturbation:g} deg: the simulated pendulum must start inside "
+            f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)"
+        )
     check_output_file(args.rerun_save, "--rerun-save", args.force)
 
     seed = args.seed if args.seed is not None else fresh_seed()
     seeds, backend_seed = run_seeds(seed, args.episodes)
     run_id = f"qube-run seed {seed}"
-    plans = plan_episodes(controller, seeds, settings, source=run_id,
-                          extra={"run_seed": seed, "command": "qube-run"})
+    plans = plan_episodes(controller, seeds, settings, source=run_id, extra={"run_seed": seed, "command": "qube-run"})
     if args.replay:
         plans, settings = _replay(args, rate)
     args.n_jobs = _jobs(args, len(plans))
@@ -370,17 +487,27 @@ def _episodes(args, backend, plans, mcap, sinks, limits, stop, book, timing):
     if args.n_jobs == 1:
         from qube_koopman.daq.session import run_episodes
 
-        return run_episodes(backend, plans, [mcap, *sinks], limits=limits, stop=stop, on_result=book.serial,
-                            timing=timing)
+        return run_episodes(
+            backend, plans, [mcap, *sinks], limits=limits, stop=stop, on_result=book.serial, timing=timing
+        )
     import functools
     import logging
 
     from qube_koopman.core.console import LOGGER
     from qube_koopman.daq.parallel import run_episodes_parallel
 
-    return run_episodes_parallel(backend, plans, args.out, n_jobs=args.n_jobs, sinks=sinks, limits=limits, stop=stop,
-                                 on_result=book.parallel, timing=timing,
-                                 worker_setup=functools.partial(_worker_logging, logging.getLogger(LOGGER).level))
+    return run_episodes_parallel(
+        backend,
+        plans,
+        args.out,
+        n_jobs=args.n_jobs,
+        sinks=sinks,
+        limits=limits,
+        stop=stop,
+        on_result=book.parallel,
+        timing=timing,
+        worker_setup=functools.partial(_worker_logging, logging.getLogger(LOGGER).level),
+    )
 
 
 def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> int:
@@ -391,11 +518,13 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
 
     mcap = McapSink(args.out)
     rerun_sink = _rerun_sink(args)
-    print(f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on "
-          f"{_where(args, backend)}, seed {seed}, controller "
-          f"{args.controller or 'of the paper dataset'} ({_controller_form(plans[0].controller, args)}), "
-          f"logs to {args.out}/",
-          flush=True)
+    print(
+        f"{PROG}: {args.episodes} episode{'s' if args.episodes != 1 else ''} x {args.duration:g} s on "
+        f"{_where(args, backend)}, seed {seed}, controller "
+        f"{args.controller or 'of the paper dataset'} ({_controller_form(plans[0].controller, args)}), "
+        f"logs to {args.out}/",
+        flush=True,
+    )
     progress = RunProgress(args.episodes, settings.n_samples, enabled=not args.quiet)  # after the header line
     sinks = [*([rerun_sink] if rerun_sink is not None else []), progress]
     book = EpisodeBook(progress, mcap)

@@ -43,8 +43,7 @@ class RunProgress:
         self.n = n_episodes
         self.per = samples_per_episode
         self.aborted = 0
-        self.bar = progress_bar(n_episodes * samples_per_episode, unit="sample", unit_scale=True,
-                                enabled=enabled)
+        self.bar = progress_bar(n_episodes * samples_per_episode, unit="sample", unit_scale=True, enabled=enabled)
         self._postfix(0)
 
     def _postfix(self, episode: int) -> None:
@@ -115,14 +114,24 @@ def _us(value: float | None) -> str:
 
 def summary_table(rows: list[tuple[str, EpisodeOutcome]], totals) -> str:
     """The end-of-run table: one row per episode, then the whole run's timing."""
-    header = ("#", "log file", "status", "samples", "late p50 us", "p99 us", "max us", "overruns",
-              "compute p99 us")
+    header = ("#", "log file", "status", "samples", "late p50 us", "p99 us", "max us", "overruns", "compute p99 us")
     lines = []
     table = [header]
     for i, (name, r) in enumerate(rows):
         t = r.timing
-        table.append((str(i), name, r.status, str(r.n_samples), _us(t.lateness_p50), _us(t.lateness_p99),
-                      _us(t.lateness_max), str(t.overruns) if t.paced else "-", _us(t.compute_p99)))
+        table.append(
+            (
+                str(i),
+                name,
+                r.status,
+                str(r.n_samples),
+                _us(t.lateness_p50),
+                _us(t.lateness_p99),
+                _us(t.lateness_max),
+                str(t.overruns) if t.paced else "-",
+                _us(t.compute_p99),
+            )
+        )
     widths = [max(len(row[j]) for row in table) for j in range(len(header))]
     for j, row in enumerate(table):
         lines.append("  ".join(c.ljust(w) if k < 3 else c.rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
@@ -134,8 +143,10 @@ def summary_table(rows: list[tuple[str, EpisodeOutcome]], totals) -> str:
     t = totals
     line = f"all {t.n_ticks} ticks: "
     if t.paced:
-        line += (f"lateness p50 {_us(t.lateness_p50)} us, p99 {_us(t.lateness_p99)} us, max "
-                 f"{_us(t.lateness_max)} us; {t.overruns} overruns, {t.stalls} stalls > 2 ms; ")
+        line += (
+            f"lateness p50 {_us(t.lateness_p50)} us, p99 {_us(t.lateness_p99)} us, max "
+            f"{_us(t.lateness_max)} us; {t.overruns} overruns, {t.stalls} stalls > 2 ms; "
+        )
     else:
         line += "free-running (no deadlines); "
     line += f"compute p50 {_us(t.compute_p50)} us, p99 {_us(t.compute_p99)} us, max {_us(t.compute_max)} us"
@@ -148,12 +159,15 @@ def link_summary(results) -> str | None:
     stats = [r.backend_stats for r in results if r.backend_stats and "telemetry" in r.backend_stats]
     if not stats:
         return None
-    total = {k: sum(s.get(k, 0) for s in stats)
-             for k in ("telemetry", "ticks_missed", "ticks_skipped", "frames_lost", "late_commands",
-                       "host_rejects")}
-    return (f"serial link: {total['telemetry']} telemetry frames, {total['ticks_missed']} ticks missed, "
-            f"{total['ticks_skipped']} skipped, {total['frames_lost']} frames lost, {total['host_rejects']} "
-            f"rejected, {total['late_commands']} commands late")
+    total = {
+        k: sum(s.get(k, 0) for s in stats)
+        for k in ("telemetry", "ticks_missed", "ticks_skipped", "frames_lost", "late_commands", "host_rejects")
+    }
+    return (
+        f"serial link: {total['telemetry']} telemetry frames, {total['ticks_missed']} ticks missed, "
+        f"{total['ticks_skipped']} skipped, {total['frames_lost']} frames lost, {total['host_rejects']} "
+        f"rejected, {total['late_commands']} commands late"
+    )
 
 
 def _as_logged(rows: list[tuple[str, EpisodeOutcome]], log_errors: list) -> list[tuple[str, EpisodeOutcome]]:
@@ -171,9 +185,20 @@ def _as_logged(rows: list[tuple[str, EpisodeOutcome]], log_errors: list) -> list
             readable = len(read_episode(error.path, warn=False))
         except (OSError, ValueError):  # not even the start readable
             readable = 0
-        rows = [(name, dataclasses.replace(r, n_samples=readable, reason=f"{r.reason}; the log holds the first "
-                                           f"{readable} of the {r.n_samples} samples run, marked incomplete"))
-                if name == error.path.name else (name, r) for name, r in rows]
+        rows = [
+            (
+                name,
+                dataclasses.replace(
+                    r,
+                    n_samples=readable,
+                    reason=f"{r.reason}; the log holds the first "
+                    f"{readable} of the {r.n_samples} samples run, marked incomplete",
+                ),
+            )
+            if name == error.path.name
+            else (name, r)
+            for name, r in rows
+        ]
     return rows
 
 
@@ -189,15 +214,24 @@ def report(args, run, book: EpisodeBook, totals, n_planned: int) -> int:
             if not (book.log_errors and error.startswith("McapSink.")):
                 print(f"{PROG}: warning: {error}", file=sys.stderr)
     logs = sum(1 for name in book.names if (args.out / name).is_file())  # what is there to read, not what ran
-    print(f"{run.n_complete} complete, {run.n_aborted} aborted; {logs} episode "
-          f"log{'s' if logs != 1 else ''} in {args.out.resolve()}"
-          + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else ""))
+    print(
+        f"{run.n_complete} complete, {run.n_aborted} aborted; {logs} episode "
+        f"log{'s' if logs != 1 else ''} in {args.out.resolve()}"
+        + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else "")
+    )
     if run.stopped and not book.log_errors:
         print(f"{PROG}: run stopped: {run.stopped}", file=sys.stderr)
     for error in book.log_errors:
-        print(f"{PROG}: error: {error}: " + ("the episode was not started" if not error.path.exists()
-              else "the episode was stopped with the motor at 0 V; the samples flushed before stay "
-                   "readable, marked incomplete"), file=sys.stderr)
+        print(
+            f"{PROG}: error: {error}: "
+            + (
+                "the episode was not started"
+                if not error.path.exists()
+                else "the episode was stopped with the motor at 0 V; the samples flushed before stay "
+                "readable, marked incomplete"
+            ),
+            file=sys.stderr,
+        )
     if run.signal is not None:
         return 128 + int(run.signal)
     # A safety stop is a recorded outcome of an episode, not an error of the run.

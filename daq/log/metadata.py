@@ -28,8 +28,16 @@ CONTROLLER_RECORD = "qube.controller"
 STATUS_RECORD = "qube.status"
 
 # Written at the start, so a log cut short still says what it is.
-_EPISODE_KEYS = ("format_version", "sample_rate_hz", "backend", "source", "start_time",
-                 "software_version", "excitation", "extra")
+_EPISODE_KEYS = (
+    "format_version",
+    "sample_rate_hz",
+    "backend",
+    "source",
+    "start_time",
+    "software_version",
+    "excitation",
+    "extra",
+)
 _CONTROLLER_KEYS = ("kind", "method", "gains", "dt", "A", "B", "C", "D")
 # Added in 1.4 (a state-space controller's provenance); absent from older logs: empty.
 _OPTIONAL_CONTROLLER_KEYS = ("provenance",)
@@ -64,8 +72,9 @@ def episode_records(meta: EpisodeMetadata) -> dict[str, dict[str, str]]:
     }
 
 
-def status_record(status: str, reason: str, n_samples: int,
-                  timing: Mapping | None = None, backend_stats: Mapping | None = None) -> dict[str, str]:
+def status_record(
+    status: str, reason: str, n_samples: int, timing: Mapping | None = None, backend_stats: Mapping | None = None
+) -> dict[str, str]:
     """The record written when an episode ends (``timing``, ``backend_stats``: JSON, only when given)."""
     record = {"status": status, "reason": reason, "n_samples": str(n_samples)}
     if timing:
@@ -96,13 +105,15 @@ def _final_status(status: Mapping[str, str] | None, salvage_note: str) -> tuple[
     else:
         reason = "no final status record: the writer stopped before finishing the episode"
     if status is not None:
-        reason += (f"; the log's final status: {status.get('status', '')}"
-                   + (f" ({status['reason']})" if status.get("reason") else ""))
+        reason += f"; the log's final status: {status.get('status', '')}" + (
+            f" ({status['reason']})" if status.get("reason") else ""
+        )
     return "incomplete", reason
 
 
-def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, *,
-                          salvage_note: str = "") -> EpisodeMetadata:
+def metadata_from_records(
+    records: Mapping[str, Mapping[str, str]], where: str, *, salvage_note: str = ""
+) -> EpisodeMetadata:
     """Rebuild :class:`EpisodeMetadata` from the records of one file.
 
     Parameters
@@ -127,22 +138,27 @@ def metadata_from_records(records: Mapping[str, Mapping[str, str]], where: str, 
     episode = records[EPISODE_RECORD]
     version = episode.get("format_version", "")
     if _major(version) != _major(FORMAT_VERSION):
-        raise ValueError(f"{where}: episode log format version {version!r} is not supported "
-                         f"(this reader reads {_major(FORMAT_VERSION)}.x)")
+        raise ValueError(
+            f"{where}: episode log format version {version!r} is not supported "
+            f"(this reader reads {_major(FORMAT_VERSION)}.x)"
+        )
     if CONTROLLER_RECORD not in records:
         raise ValueError(f"{where}: no {CONTROLLER_RECORD!r} metadata record")
     controller = records[CONTROLLER_RECORD]
     try:
-        missing = [k for k in _EPISODE_KEYS if k not in episode] + \
-                  [k for k in _CONTROLLER_KEYS if k not in controller]
+        missing = [k for k in _EPISODE_KEYS if k not in episode] + [k for k in _CONTROLLER_KEYS if k not in controller]
         if missing:
             raise ValueError(f"missing metadata keys {', '.join(missing)}")
-        controller_info = ControllerInfo.from_dict({
-            "kind": controller["kind"], "method": controller["method"],
-            "gains": json.loads(controller["gains"]), "dt": float(controller["dt"]),
-            **{m: json.loads(controller[m]) for m in "ABCD"},
-            **{k: json.loads(controller[k]) for k in _OPTIONAL_CONTROLLER_KEYS if k in controller},
-        })
+        controller_info = ControllerInfo.from_dict(
+            {
+                "kind": controller["kind"],
+                "method": controller["method"],
+                "gains": json.loads(controller["gains"]),
+                "dt": float(controller["dt"]),
+                **{m: json.loads(controller[m]) for m in "ABCD"},
+                **{k: json.loads(controller[k]) for k in _OPTIONAL_CONTROLLER_KEYS if k in controller},
+            }
+        )
         status = records.get(STATUS_RECORD)
         timing = backend_stats = {}
         status_value, reason = _final_status(status, salvage_note)

@@ -13,8 +13,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Mapping, NamedTuple
 
-__all__ = ["LOG_SUFFIX", "SEED_SIGNALS", "EpisodeName", "episode_stem", "parse_episode_name",
-           "log_path", "find_logs"]
+__all__ = ["LOG_SUFFIX", "SEED_SIGNALS", "EpisodeName", "episode_stem", "parse_episode_name", "log_path", "find_logs"]
 
 #: Suffix of an episode log.
 LOG_SUFFIX = ".mcap"

@@ -42,10 +42,23 @@ __all__ = ["read_episode", "read_episode_metadata", "IncompleteEpisodeWarning"]
 _MAGIC = b"\x89MCAP0\r\n"
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 _MESSAGE_INDEX, _METADATA, _DATA_END = 0x07, 0x0C, 0x0F
-_OPNAMES = {0x01: "Header", 0x02: "Footer", 0x03: "Schema", 0x04: "Channel", 0x05: "Message",
-            0x06: "Chunk", 0x07: "MessageIndex", 0x08: "ChunkIndex", 0x09: "Attachment",
-            0x0A: "AttachmentIndex", 0x0B: "Statistics", 0x0C: "Metadata", 0x0D: "MetadataIndex",
-            0x0E: "SummaryOffset", 0x0F: "DataEnd"}
+_OPNAMES = {
+    0x01: "Header",
+    0x02: "Footer",
+    0x03: "Schema",
+    0x04: "Channel",
+    0x05: "Message",
+    0x06: "Chunk",
+    0x07: "MessageIndex",
+    0x08: "ChunkIndex",
+    0x09: "Attachment",
+    0x0A: "AttachmentIndex",
+    0x0B: "Statistics",
+    0x0C: "Metadata",
+    0x0D: "MetadataIndex",
+    0x0E: "SummaryOffset",
+    0x0F: "DataEnd",
+}
 _RECORD_HEAD = struct.Struct("<BQ")
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
 _CDR_LE = int.from_bytes(CDR_LE_HEADER, "little")
@@ -55,6 +68,7 @@ _ADDED_FIELDS = frozenset({"device_time"})  # 1.3
 
 #: Largest uncompressed/stored size ratio a chunk may claim before it counts as damaged.
 _MAX_EXPANSION = 100_000
+
 
 class IncompleteEpisodeWarning(UserWarning):
     """A log was cut short or damaged; the episode read holds its readable prefix."""
@@ -70,8 +84,7 @@ def _message_dtype(payload: np.dtype) -> np.dtype:
     names = ["op", "len", "channel", "seq", "log_time", "publish_time", *payload.names]
     formats = ["u1", "<u8", "<u2", "<u4", "<u8", "<u8", *(payload.fields[n][0] for n in payload.names)]
     offsets = [0, 1, 9, 11, 15, 23, *(31 + payload.fields[n][1] for n in payload.names)]
-    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                     "itemsize": 31 + payload.itemsize})
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": 31 + payload.itemsize})
 
 
 _Record = TypeVar("_Record")
@@ -138,24 +151,32 @@ class _Scan:
             name = _OPNAMES.get(op, f"0x{op:02x}")
             if end > n:
                 problem = f"file ends inside a {name} record at byte {pos} ({n - pos} of {9 + length} bytes present)"
-                resumed = self._resync(data, pos, problem, f"a {name} record at byte {pos} claims {9 + length} bytes, "
-                                   "past the end of the file")
+                resumed = self._resync(
+                    data,
+                    pos,
+                    problem,
+                    f"a {name} record at byte {pos} claims {9 + length} bytes, past the end of the file",
+                )
                 if resumed is None:
                     return
                 pos = resumed
                 continue
             try:
                 if op == _FOOTER:
-                    if data[end:end + 8] == _MAGIC and end + 8 == n:
+                    if data[end : end + 8] == _MAGIC and end + 8 == n:
                         return
                     # A cut footer, or a flipped record type read as one in the middle of the file.
-                    resumed = self._resync(data, pos, "file ends without the closing MCAP magic",
-                                       f"a Footer record at byte {pos} is not at the end of the file")
+                    resumed = self._resync(
+                        data,
+                        pos,
+                        "file ends without the closing MCAP magic",
+                        f"a Footer record at byte {pos} is not at the end of the file",
+                    )
                     if resumed is None:
                         return
                     pos = resumed
                     continue
-                self._record(op, view[pos + 9:end])
+                self._record(op, view[pos + 9 : end])
                 if op == _CHUNK:
                     self.verified_end = end
             except _Damaged as exc:
@@ -195,7 +216,7 @@ class _Scan:
                 continue  # no CRC to vouch for a chunk found by search
             gap = len(self.blocks)
             try:
-                self._chunk(memoryview(data)[at + 9:end])  # adds its samples only once every check passed
+                self._chunk(memoryview(data)[at + 9 : end])  # adds its samples only once every check passed
             except _Damaged:
                 continue
             self.n_chunks += 1
@@ -271,8 +292,10 @@ class _Scan:
             return
         schema = self.schemas.get(channel.schema_id)
         if schema is None or schema.encoding != "ros2msg" or channel.message_encoding != "cdr":
-            raise ValueError(f"{self.where}: channel {SAMPLE_TOPIC} is not ros2msg/cdr with its "
-                             f"schema; this is not an episode log this reader understands")
+            raise ValueError(
+                f"{self.where}: channel {SAMPLE_TOPIC} is not ros2msg/cdr with its "
+                f"schema; this is not an episode log this reader understands"
+            )
         try:
             self.fields = parse_schema(schema.data.decode())
         except (UnicodeDecodeError, ValueError) as exc:
@@ -307,14 +330,14 @@ class _Scan:
 
         try:
             _, _, size, crc, clen = _CHUNK_HEAD.unpack_from(body, 0)
-            compression = bytes(body[32:32 + clen]).decode()
+            compression = bytes(body[32 : 32 + clen]).decode()
             (records_len,) = struct.unpack_from("<Q", body, 32 + clen)
         except (struct.error, UnicodeDecodeError) as exc:
             raise _Damaged(f"malformed chunk header ({exc})") from None
         start = 40 + clen
         if start + records_len > len(body):
             raise _Damaged("records overrun the chunk")
-        packed = body[start:start + records_len]
+        packed = body[start : start + records_len]
         # A damaged size field must not make the decompressor reserve gigabytes (hypothesis found
         # a flipped byte that did: MemoryError). The bound is far above any real chunk's
         # expansion; past it the chunk counts as damaged, like a failed CRC.
@@ -358,8 +381,9 @@ class _Scan:
                 (channel,) = struct.unpack_from("<H", buf, pos + 9)
                 if channel == self.sample_channel:
                     if end - pos != self.message_dtype.itemsize:
-                        raise _Damaged(f"sample message of {length} bytes, the schema needs "
-                                       f"{self.message_dtype.itemsize - 9}")
+                        raise _Damaged(
+                            f"sample message of {length} bytes, the schema needs {self.message_dtype.itemsize - 9}"
+                        )
                     if not tried_bulk:
                         # Usually the rest of the chunk is sample messages only: view them all at once.
                         tried_bulk = True
@@ -369,7 +393,7 @@ class _Scan:
                             return
                     offsets.append(pos)
             elif op in (_SCHEMA, _CHANNEL, _METADATA):
-                self._record(op, memoryview(buf)[pos + 9:end])
+                self._record(op, memoryview(buf)[pos + 9 : end])
             pos = end
         if offsets:
             assert self.message_dtype is not None  # offsets are kept only for the sample channel's messages
@@ -384,8 +408,11 @@ class _Scan:
         if rest:
             return None
         block = np.frombuffer(buf, self.message_dtype, count, pos)
-        if ((block["op"] == _MESSAGE).all() and (block["len"] == size - 9).all()
-                and (block["channel"] == self.sample_channel).all()):
+        if (
+            (block["op"] == _MESSAGE).all()
+            and (block["len"] == size - 9).all()
+            and (block["channel"] == self.sample_channel).all()
+        ):
             return block
         return None
 
@@ -399,17 +426,24 @@ def _scan(path: str | os.PathLike, decode_chunks: bool) -> tuple[_Scan, EpisodeM
         raise ValueError(f"{path}: unreadable episode log: {scan.problem}, before any episode metadata")
     ok, jumps = _in_sequence(scan.samples, {i for _, i in scan.gaps})
     if not ok:
-        raise ValueError(f"{path}: sample sequence numbers are not 0, 1, 2, ... "
-                         f"(samples duplicated or out of order)")
-    scan.gaps = sorted(scan.gaps + [("records between two chunks are not what they were written as (a damaged "
-                                     "record type or length)", i) for i in jumps], key=lambda gap: gap[1])
+        raise ValueError(f"{path}: sample sequence numbers are not 0, 1, 2, ... (samples duplicated or out of order)")
+    scan.gaps = sorted(
+        scan.gaps
+        + [
+            ("records between two chunks are not what they were written as (a damaged record type or length)", i)
+            for i in jumps
+        ],
+        key=lambda gap: gap[1],
+    )
     status = scan.records.get(STATUS_RECORD)
     if decode_chunks and status is not None and not scan.problem and not scan.gaps:
         n = sum(len(b) for b in scan.samples)
         if status.get("n_samples") != str(n):
             scan.problem = f"status record counts {status.get('n_samples')} samples, the file holds {n}"
-    notes = [*scan.gap_notes(None if status is None else status.get("n_samples")),
-             *([scan.problem] if scan.problem else [])]
+    notes = [
+        *scan.gap_notes(None if status is None else status.get("n_samples")),
+        *([scan.problem] if scan.problem else []),
+    ]
     try:
         return scan, metadata_from_records(scan.records, str(path), salvage_note="; ".join(notes))
     except ValueError as exc:
@@ -508,18 +542,22 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
     k = meta.controller.system.n_states
     present = set(SIGNALS) if scan.fields is None else set(dict(scan.fields))
     if scan.fields is not None:
-        missing = [name for name in (*SIGNALS, *map(state_field, range(k)), "saturation")
-                   if name not in present and name not in _ADDED_FIELDS]
+        missing = [
+            name
+            for name in (*SIGNALS, *map(state_field, range(k)), "saturation")
+            if name not in present and name not in _ADDED_FIELDS
+        ]
         if missing:
             raise ValueError(f"{where}: sample schema misses fields {', '.join(missing)}")
     blocks = scan.samples
     if blocks:
+
         def column(name: str) -> np.ndarray:
             return blocks[0][name] if len(blocks) == 1 else np.concatenate([b[name] for b in blocks])
+
         if not (column("cdr_header") == _CDR_LE).all():
             raise ValueError(f"{where}: sample messages are not plain little-endian CDR")
-        arrays = {name: column(name) for name in (*SIGNALS, "saturation")
-                  if name in present or name == "saturation"}
+        arrays = {name: column(name) for name in (*SIGNALS, "saturation") if name in present or name == "saturation"}
         state = np.column_stack([column(state_field(i)) for i in range(k)]) if k else np.empty((len(arrays["t"]), 0))
     else:
         arrays = {name: np.empty(0) for name in SIGNALS}
@@ -527,6 +565,9 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
         state = np.empty((0, k))
     episode = Episode(metadata=meta, controller_state=state, **arrays)
     if meta.salvaged and warn:
-        warnings.warn(f"{where}: {meta.salvage_note}; read {len(episode)} samples "
-                      f"(status {meta.status})", IncompleteEpisodeWarning, stacklevel=2)
+        warnings.warn(
+            f"{where}: {meta.salvage_note}; read {len(episode)} samples (status {meta.status})",
+            IncompleteEpisodeWarning,
+            stacklevel=2,
+        )
     return episode

@@ -34,9 +34,19 @@ CDR_LE_HEADER = b"\x00\x01\x00\x00"
 
 # ros2msg primitive types the reader understands, with their numpy types.
 _ROS_TYPES = {
-    "float64": "<f8", "float32": "<f4", "int8": "i1", "uint8": "u1", "int16": "<i2",
-    "uint16": "<u2", "int32": "<i4", "uint32": "<u4", "int64": "<i8", "uint64": "<u8",
-    "bool": "?", "byte": "u1", "char": "u1",
+    "float64": "<f8",
+    "float32": "<f4",
+    "int8": "i1",
+    "uint8": "u1",
+    "int16": "<i2",
+    "uint16": "<u2",
+    "int32": "<i4",
+    "uint32": "<u4",
+    "int64": "<i8",
+    "uint64": "<u8",
+    "bool": "?",
+    "byte": "u1",
+    "char": "u1",
 }
 
 
@@ -47,15 +57,19 @@ def state_field(i: int) -> str:
 
 def sample_fields(n_controller_states: int) -> list[tuple[str, str]]:
     """Fields of one sample message as (name, ros2msg type), in wire order."""
-    return ([(name, "float64") for name in SIGNALS]
-            + [(state_field(i), "float64") for i in range(n_controller_states)]
-            + [("saturation", "int8")])
+    return (
+        [(name, "float64") for name in SIGNALS]
+        + [(state_field(i), "float64") for i in range(n_controller_states)]
+        + [("saturation", "int8")]
+    )
 
 
 def schema_text(n_controller_states: int) -> str:
     """The ros2msg definition of one sample message."""
-    lines = [f"# One tick of a QUBE-Servo episode (episode log format {FORMAT_VERSION}).",
-             "# Units: s, rad, V; controller_state_i in the controller's realization."]
+    lines = [
+        f"# One tick of a QUBE-Servo episode (episode log format {FORMAT_VERSION}).",
+        "# Units: s, rad, V; controller_state_i in the controller's realization.",
+    ]
     for name, ros_type in sample_fields(n_controller_states):
         unit = UNITS["controller_state" if name.startswith("controller_state_") else name]
         lines.append(f"{ros_type} {name}  # {unit}")

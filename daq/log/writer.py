@@ -90,9 +90,16 @@ class EpisodeWriter:
     ...     log.finish("aborted", "pendulum fell: |alpha| > pi/4")
     """
 
-    def __init__(self, path: str | os.PathLike, metadata: EpisodeMetadata, *,
-                 flush_interval_s: float | None = 0.5, compression: str = "zstd",
-                 overwrite: bool = False, fsync: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        metadata: EpisodeMetadata,
+        *,
+        flush_interval_s: float | None = 0.5,
+        compression: str = "zstd",
+        overwrite: bool = False,
+        fsync: bool = False,
+    ) -> None:
         from mcap.writer import CompressionType, Writer
 
         if compression not in COMPRESSIONS:
@@ -102,8 +109,9 @@ class EpisodeWriter:
         self.path = Path(path)
         self.metadata = metadata
         self._n_states = metadata.controller.system.n_states
-        self._flush_every = (None if flush_interval_s is None
-                             else max(1, round(flush_interval_s * metadata.sample_rate_hz)))
+        self._flush_every = (
+            None if flush_interval_s is None else max(1, round(flush_interval_s * metadata.sample_rate_hz))
+        )
         self._fsync = fsync
         self._epoch_ns = _epoch_ns(metadata.start_time)
         fields = sample_fields(self._n_states)
@@ -126,12 +134,16 @@ class EpisodeWriter:
             raise
 
     def _start(self, metadata: EpisodeMetadata, compression: str, Writer, CompressionType) -> None:
-        self._mcap = Writer(self._file, compression={
-            "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE,
-        }[compression])
+        self._mcap = Writer(
+            self._file,
+            compression={
+                "zstd": CompressionType.ZSTD,
+                "lz4": CompressionType.LZ4,
+                "none": CompressionType.NONE,
+            }[compression],
+        )
         self._mcap.start(profile="", library=f"qube-koopman daq.log {FORMAT_VERSION}")
-        schema_id = self._mcap.register_schema(SAMPLE_SCHEMA_NAME, "ros2msg",
-                                               schema_text(self._n_states).encode())
+        schema_id = self._mcap.register_schema(SAMPLE_SCHEMA_NAME, "ros2msg", schema_text(self._n_states).encode())
         self._channel = self._mcap.register_channel(SAMPLE_TOPIC, "cdr", schema_id)
         for name, record in episode_records(metadata).items():
             self._mcap.add_metadata(name, record)
@@ -161,10 +173,23 @@ class EpisodeWriter:
         if self._flush_every is not None and self._since_flush >= self._flush_every:
             self.flush()
 
-    def write_sample(self, *, t: float, theta: float, alpha: float, target_theta: float,
-                     target_alpha: float, feedforward: float, controller_state, control_output: float,
-                     plant_input: float, saturation: int, lateness: float = float("nan"),
-                     compute_time: float = float("nan"), device_time: float = float("nan")) -> None:
+    def write_sample(
+        self,
+        *,
+        t: float,
+        theta: float,
+        alpha: float,
+        target_theta: float,
+        target_alpha: float,
+        feedforward: float,
+        controller_state,
+        control_output: float,
+        plant_input: float,
+        saturation: int,
+        lateness: float = float("nan"),
+        compute_time: float = float("nan"),
+        device_time: float = float("nan"),
+    ) -> None:
         """Append one tick (units as in :class:`daq.episode.Episode`).
 
         Raises
@@ -181,17 +206,31 @@ class EpisodeWriter:
             raise ValueError(f"saturation must be -1, 0 or +1, got {saturation!r}")
         if not np.isfinite(t):
             raise ValueError(f"t must be finite, got {t!r}")
-        payload = self._struct.pack(CDR_LE_HEADER, t, theta, alpha, target_theta, target_alpha,
-                                    feedforward, control_output, plant_input, lateness,
-                                    compute_time, device_time, *state, int(saturation))
+        payload = self._struct.pack(
+            CDR_LE_HEADER,
+            t,
+            theta,
+            alpha,
+            target_theta,
+            target_alpha,
+            feedforward,
+            control_output,
+            plant_input,
+            lateness,
+            compute_time,
+            device_time,
+            *state,
+            int(saturation),
+        )
         self._add(payload, self._epoch_ns + round(t * 1e9))
 
     def write_samples(self, episode: Episode) -> None:
         """Append all samples of an episode (its metadata is not written)."""
         self._check_open()
         if episode.controller_state.shape[1] != self._n_states:
-            raise ValueError(f"episode has {episode.controller_state.shape[1]} controller states, "
-                             f"the log {self._n_states}")
+            raise ValueError(
+                f"episode has {episode.controller_state.shape[1]} controller states, the log {self._n_states}"
+            )
         if not np.isfinite(episode.t).all():
             raise ValueError("t must be finite")
         # Pack every payload at once; only the per-message MCAP call stays in Python.
@@ -206,7 +245,7 @@ class EpisodeWriter:
         size = self._dtype.itemsize
         log_times = (self._epoch_ns + np.round(episode.t * 1e9).astype(np.int64)).tolist()
         for k, log_time in enumerate(log_times):
-            self._add(raw[k * size:(k + 1) * size], log_time)
+            self._add(raw[k * size : (k + 1) * size], log_time)
 
     def flush(self) -> None:
         """Close the chunk in progress and push everything written so far to the OS."""
@@ -216,8 +255,13 @@ class EpisodeWriter:
         if self._fsync:
             os.fsync(self._file.fileno())
 
-    def finish(self, status: str = "complete", reason: str = "", timing: Mapping | None = None,
-               backend_stats: Mapping | None = None) -> None:
+    def finish(
+        self,
+        status: str = "complete",
+        reason: str = "",
+        timing: Mapping | None = None,
+        backend_stats: Mapping | None = None,
+    ) -> None:
         """Record the final status and close the file.
 
         Parameters
@@ -275,8 +319,9 @@ class EpisodeWriter:
             self.finish("aborted", f"{exc_type.__name__}: {exc}")
 
 
-def write_episode(path: str | os.PathLike, episode: Episode, *, overwrite: bool = False,
-                  compression: str = "zstd") -> Path:
+def write_episode(
+    path: str | os.PathLike, episode: Episode, *, overwrite: bool = False, compression: str = "zstd"
+) -> Path:
     """Write a whole episode to ``path`` at once.
 
     The file appears only when complete (written beside it, then linked or

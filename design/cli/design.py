@@ -38,8 +38,15 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
-from qube_koopman.core.cli import (OneLineParser, add_force_option, add_renamed_option, add_standard_options, path,
-                                   seed, whole_number)
+from qube_koopman.core.cli import (
+    OneLineParser,
+    add_force_option,
+    add_renamed_option,
+    add_standard_options,
+    path,
+    seed,
+    whole_number,
+)
 from qube_koopman.core.command import CliError, check_output_file, check_rerun_target, run_command
 from qube_koopman.design.lq import Weights
 from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS
@@ -51,38 +58,86 @@ DEFAULTS = {f.name: f.default for f in fields(Weights) if f.name != "integral"}
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog="qube-design", description=__doc__.split("\n\n")[0].replace("``", ""),
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = OneLineParser(
+        prog="qube-design",
+        description=__doc__.split("\n\n")[0].replace("``", ""),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("model", type=path, metavar="MODEL.json", help="model file of qube-identify (or its --out folder)")
     p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="controller file to write")
-    p.add_argument("--q-theta", type=float, default=DEFAULTS["q_theta"], metavar="Q",
-                   help=f"LQ weight on the arm's tracking error, per sample, rad^-2 (default {DEFAULTS['q_theta']:g})")
-    p.add_argument("--q-alpha", type=float, default=DEFAULTS["q_alpha"], metavar="Q",
-                   help=f"LQ weight on the pendulum angle, rad^-2 (default {DEFAULTS['q_alpha']:g})")
-    p.add_argument("--r-voltage", type=float, default=DEFAULTS["r_voltage"], metavar="R",
-                   help=f"LQ weight on the voltage, V^-2, > 0 (default {DEFAULTS['r_voltage']:g})")
+    p.add_argument(
+        "--q-theta",
+        type=float,
+        default=DEFAULTS["q_theta"],
+        metavar="Q",
+        help=f"LQ weight on the arm's tracking error, per sample, rad^-2 (default {DEFAULTS['q_theta']:g})",
+    )
+    p.add_argument(
+        "--q-alpha",
+        type=float,
+        default=DEFAULTS["q_alpha"],
+        metavar="Q",
+        help=f"LQ weight on the pendulum angle, rad^-2 (default {DEFAULTS['q_alpha']:g})",
+    )
+    p.add_argument(
+        "--r-voltage",
+        type=float,
+        default=DEFAULTS["r_voltage"],
+        metavar="R",
+        help=f"LQ weight on the voltage, V^-2, > 0 (default {DEFAULTS['r_voltage']:g})",
+    )
     integral = p.add_mutually_exclusive_group()
-    integral.add_argument("--q-integral", type=float, default=DEFAULTS["q_integral"], metavar="Q",
-                          help="LQ weight on the integral of the arm's tracking error, (rad s)^-2 "
-                               f"(default {DEFAULTS['q_integral']:g})")
+    integral.add_argument(
+        "--q-integral",
+        type=float,
+        default=DEFAULTS["q_integral"],
+        metavar="Q",
+        help=f"LQ weight on the integral of the arm's tracking error, (rad s)^-2 (default {DEFAULTS['q_integral']:g})",
+    )
     integral.add_argument("--no-integral", action="store_true", help="no integral action on the arm")
-    p.add_argument("--seed", type=seed, default=1, metavar="K",
-                   help="predict on the excitation of qube-run --seed K (default 1)")
-    p.add_argument("--episodes", type=whole_number(1, 100), default=20, metavar="N",
-                   help="episodes of that excitation predicted (default 20)")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S",
-                   help="seconds per predicted episode, 2 to 60 (default 20)")
-    p.add_argument("--interval", type=float, default=0.95, metavar="LEVEL",
-                   help="give the predicted J and voltage an interval at this level, 0 for none (default 0.95)")
-    p.add_argument("--robust", action="store_true",
-                   help="design against the model's uncertainty (its bootstrap plants) and say what it costs in J")
-    p.add_argument("--npz", action="store_true",
-                   help="write the matrices to FILE.npz beside the controller file (loads faster)")
+    p.add_argument(
+        "--seed", type=seed, default=1, metavar="K", help="predict on the excitation of qube-run --seed K (default 1)"
+    )
+    p.add_argument(
+        "--episodes",
+        type=whole_number(1, 100),
+        default=20,
+        metavar="N",
+        help="episodes of that excitation predicted (default 20)",
+    )
+    p.add_argument(
+        "--duration", type=float, default=20.0, metavar="S", help="seconds per predicted episode, 2 to 60 (default 20)"
+    )
+    p.add_argument(
+        "--interval",
+        type=float,
+        default=0.95,
+        metavar="LEVEL",
+        help="give the predicted J and voltage an interval at this level, 0 for none (default 0.95)",
+    )
+    p.add_argument(
+        "--robust",
+        action="store_true",
+        help="design against the model's uncertainty (its bootstrap plants) and say what it costs in J",
+    )
+    p.add_argument(
+        "--npz", action="store_true", help="write the matrices to FILE.npz beside the controller file (loads faster)"
+    )
     add_renamed_option(p, "--rerun", "--rerun-save FILE.rrd", "a file; qube-run --rerun streams to a viewer")
-    p.add_argument("--rerun-save", dest="rerun", type=path, metavar="FILE.rrd",
-                   help="also write a rerun recording: predicted vs twin trajectories, closed-loop eigenvalues")
-    p.add_argument("--rerun-episodes", type=whole_number(1, 20), default=3, metavar="N",
-                   help="episodes of the excitation the recording shows, run on the twin (default 3)")
+    p.add_argument(
+        "--rerun-save",
+        dest="rerun",
+        type=path,
+        metavar="FILE.rrd",
+        help="also write a rerun recording: predicted vs twin trajectories, closed-loop eigenvalues",
+    )
+    p.add_argument(
+        "--rerun-episodes",
+        type=whole_number(1, 20),
+        default=3,
+        metavar="N",
+        help="episodes of the excitation the recording shows, run on the twin (default 3)",
+    )
     add_force_option(p)
     add_standard_options(p, "nothing to quiet")
     return p
@@ -92,8 +147,13 @@ def _weights(args):
     from qube_koopman.design.plant import DesignError
 
     try:
-        return Weights(args.q_theta, args.q_alpha, args.r_voltage, 0.0 if args.no_integral else args.q_integral,
-                       not args.no_integral)
+        return Weights(
+            args.q_theta,
+            args.q_alpha,
+            args.r_voltage,
+            0.0 if args.no_integral else args.q_integral,
+            not args.no_integral,
+        )
     except DesignError as exc:
         raise CliError(str(exc)) from None
 
@@ -115,8 +175,15 @@ def _run(args) -> int:
     if not (args.interval == 0 or 0 < args.interval < 1):
         raise CliError(f"--interval must be a level between 0 and 1 (0: no interval), got {args.interval}")
     try:
-        report = design_from_model(args.model, weights, seed=args.seed, episodes=args.episodes,
-                                   duration=args.duration, level=args.interval or None, robust=args.robust)
+        report = design_from_model(
+            args.model,
+            weights,
+            seed=args.seed,
+            episodes=args.episodes,
+            duration=args.duration,
+            level=args.interval or None,
+            robust=args.robust,
+        )
     except DesignError as exc:
         raise CliError(str(exc)) from None
     print(report_text(report))
@@ -127,8 +194,11 @@ def _run(args) -> int:
         written = write_controller_file(args.out, report.controller, provenance(report), npz=args.npz)
     except OSError as exc:
         raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
-    print(f"wrote {written}" + (f" and {written.with_suffix('.npz')}" if args.npz else "")
-          + f": qube-run --controller {written}")
+    print(
+        f"wrote {written}"
+        + (f" and {written.with_suffix('.npz')}" if args.npz else "")
+        + f": qube-run --controller {written}"
+    )
     if args.rerun:
         _record(args, report, written)
     return 0

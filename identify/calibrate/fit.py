@@ -29,8 +29,13 @@ class _Progress:
     def __call__(self, iteration: int, cost: float) -> None:
         if self.enabled:
             filled = min(30, 30 * iteration // self.budget)
-            print(f"\rcalibrating [{'#' * filled}{'.' * (30 - filled)}] iteration {iteration}/{self.budget}, "
-                  f"cost {cost:.5g}", end="", file=sys.stderr, flush=True)
+            print(
+                f"\rcalibrating [{'#' * filled}{'.' * (30 - filled)}] iteration {iteration}/{self.budget}, "
+                f"cost {cost:.5g}",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def done(self) -> None:
         if self.enabled:
@@ -82,9 +87,17 @@ class PlantCalibration:
     cost_, nfev_ : float, int
     """
 
-    def __init__(self, horizon: float = 0.2, skip: float = 1.0, delay: int = 0,
-                 nominal: PendulumParameters | None = None, stride: float | None = None,
-                 max_nfev: int = 40, progress: bool = False, weighting: str = "episode") -> None:
+    def __init__(
+        self,
+        horizon: float = 0.2,
+        skip: float = 1.0,
+        delay: int = 0,
+        nominal: PendulumParameters | None = None,
+        stride: float | None = None,
+        max_nfev: int = 40,
+        progress: bool = False,
+        weighting: str = "episode",
+    ) -> None:
         self.horizon = horizon
         self.skip = skip
         self.delay = delay
@@ -94,8 +107,9 @@ class PlantCalibration:
         self.progress = progress
         self.weighting = weighting
 
-    def fit(self, measured: Sequence[np.ndarray], voltages: Sequence[np.ndarray], dt: float,
-            groups: Sequence | None = None) -> "PlantCalibration":
+    def fit(
+        self, measured: Sequence[np.ndarray], voltages: Sequence[np.ndarray], dt: float, groups: Sequence | None = None
+    ) -> "PlantCalibration":
         """Fit to episodes: ``measured[i]`` (n_i, 2) angles, ``voltages[i]`` (n_i,) plant input (V).
 
         ``groups``: a label per episode (for example its controller), used by ``weighting="group"``.
@@ -107,9 +121,14 @@ class PlantCalibration:
         if groups is not None and len(groups) != len(measured):
             raise ValueError(f"need one group label per episode: {len(groups)} labels for {len(measured)} episodes")
         h = max(2, int(round(self.horizon / dt)))
-        seg = ms.make_segments([np.asarray(y, float) for y in measured], [np.asarray(u, float) for u in voltages],
-                               h, int(round(self.skip / dt)), self.delay,
-                               2 * h if self.stride is None else max(1, int(round(self.stride / dt))))
+        seg = ms.make_segments(
+            [np.asarray(y, float) for y in measured],
+            [np.asarray(u, float) for u in voltages],
+            h,
+            int(round(self.skip / dt)),
+            self.delay,
+            2 * h if self.stride is None else max(1, int(round(self.stride / dt))),
+        )
         n_ep = len(measured)
         if self.weighting == "group" and groups is not None:
             seg = replace(seg, weight=_group_weights(seg.episode, groups))
@@ -132,8 +151,9 @@ class PlantCalibration:
 
     def _start(self, measured, seg: ms.Segments, n_ep: int, dt: float) -> np.ndarray:
         """Nominal parameters, offsets = mean measured alpha, nodes from smoothed data."""
-        offsets = np.array([np.mean(np.asarray(y)[seg.start[seg.episode == e].min():, 1])
-                            for e, y in enumerate(measured)])
+        offsets = np.array(
+            [np.mean(np.asarray(y)[seg.start[seg.episode == e].min() :, 1]) for e, y in enumerate(measured)]
+        )
         rates = [savgol_filter(np.asarray(y, float), 21, 2, deriv=1, delta=dt, axis=0) for y in measured]
         nodes = np.empty((seg.n, 4))
         nodes[:, :2] = seg.y[0]
@@ -163,16 +183,15 @@ class PlantCalibration:
         for i, (name, kind, scale, _, _) in enumerate(ms.PHYSICAL):
             value = getattr(self.params_, name)
             self.standard_errors_[name] = float(abs(value) * z_se[i] if kind == "log" else scale * z_se[i])
-        d = np.sqrt(np.maximum(np.diag(cov)[:ms.N_PHYSICAL], 1e-300))
-        self.correlation_ = cov[:ms.N_PHYSICAL, :ms.N_PHYSICAL] / np.outer(d, d)
+        d = np.sqrt(np.maximum(np.diag(cov)[: ms.N_PHYSICAL], 1e-300))
+        self.correlation_ = cov[: ms.N_PHYSICAL, : ms.N_PHYSICAL] / np.outer(d, d)
         self.alpha_offsets_ = offsets
-        self.alpha_offset_errors_ = ms.OFFSET_SCALE * z_se[ms.N_PHYSICAL:]
+        self.alpha_offset_errors_ = ms.OFFSET_SCALE * z_se[ms.N_PHYSICAL :]
         r = result.fun.reshape(seg.n, seg.horizon + 1, 2) * ENCODER_SIGMA
         if seg.weight is not None:  # the residuals as measured, not as weighted
             r = r / seg.weight[:, None, None]
-        self.residual_rms_ = np.array([np.sqrt(np.mean(r[seg.episode == e] ** 2, axis=(0, 1)))
-                                       for e in range(n_ep)])
-        self.warnings_ = self._warnings(z[:ms.N_PHYSICAL], lo, hi)
+        self.residual_rms_ = np.array([np.sqrt(np.mean(r[seg.episode == e] ** 2, axis=(0, 1))) for e in range(n_ep)])
+        self.warnings_ = self._warnings(z[: ms.N_PHYSICAL], lo, hi)
 
     def _warnings(self, z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> list[str]:
         out = []
@@ -187,15 +206,23 @@ class PlantCalibration:
         for i in range(n):
             for j in range(i + 1, n):
                 if abs(self.correlation_[i, j]) > 0.95:
-                    out.append(f"{self.fitted_names_[i]} and {self.fitted_names_[j]} are strongly correlated "
-                               f"({self.correlation_[i, j]:+.3f}): only a combination of them is well identified")
+                    out.append(
+                        f"{self.fitted_names_[i]} and {self.fitted_names_[j]} are strongly correlated "
+                        f"({self.correlation_[i, j]:+.3f}): only a combination of them is well identified"
+                    )
         return out
 
     def summary(self) -> dict:
         """Plain data for reports and provenance."""
-        return {"params": asdict(self.params_), "standard_errors": dict(self.standard_errors_),
-                "alpha_offsets": self.alpha_offsets_.tolist(), "residual_rms": self.residual_rms_.tolist(),
-                "warnings": list(self.warnings_), "cost": self.cost_, "nfev": self.nfev_}
+        return {
+            "params": asdict(self.params_),
+            "standard_errors": dict(self.standard_errors_),
+            "alpha_offsets": self.alpha_offsets_.tolist(),
+            "residual_rms": self.residual_rms_.tolist(),
+            "warnings": list(self.warnings_),
+            "cost": self.cost_,
+            "nfev": self.nfev_,
+        }
 
 
 def _group_weights(episode_of_segment: np.ndarray, groups: Sequence) -> np.ndarray:

@@ -52,14 +52,25 @@ def blueprint(parts: list[str], names: list[str] | None = None):
     """
     import rerun.blueprint as rrb
 
-    cells = [rrb.Vertical(*(rrb.TimeSeriesView(origin=f"validation/{part}/{channel}", name=f"{title}: {channel}")
-                            for channel in CHANNELS), name=title)
-             for part, title in zip(parts, names or parts)]
-    spectra = [rrb.TimeSeriesView(origin=f"spectra/{channel}", name=f"{channel}: log10 PSD, real vs twin")
-               for channel in CHANNELS]
+    cells = [
+        rrb.Vertical(
+            *(
+                rrb.TimeSeriesView(origin=f"validation/{part}/{channel}", name=f"{title}: {channel}")
+                for channel in CHANNELS
+            ),
+            name=title,
+        )
+        for part, title in zip(parts, names or parts)
+    ]
+    spectra = [
+        rrb.TimeSeriesView(origin=f"spectra/{channel}", name=f"{channel}: log10 PSD, real vs twin")
+        for channel in CHANNELS
+    ]
     spectra.append(rrb.TimeSeriesView(origin="spectra/frequency_hz", name="bin frequency (Hz)"))
-    tabs = rrb.Tabs(rrb.Grid(*cells, name="validation episodes: real vs twin (x: time)"),
-                    rrb.Grid(*spectra, name="power spectra (x: frequency_bin or frequency_millihertz)"))
+    tabs = rrb.Tabs(
+        rrb.Grid(*cells, name="validation episodes: real vs twin (x: time)"),
+        rrb.Grid(*spectra, name="power spectra (x: frequency_bin or frequency_millihertz)"),
+    )
     return rrb.Blueprint(tabs, rrb.TimePanel(timeline="time", state="collapsed"), collapse_panels=True)
 
 
@@ -67,8 +78,9 @@ def _send(rec, path: str, indexes, values: np.ndarray) -> None:
     import rerun as rr
 
     values = np.asarray(values, dtype=float)
-    rec.send_columns(path, indexes=indexes,
-                     columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+    rec.send_columns(
+        path, indexes=indexes, columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan))
+    )
 
 
 def _style(rec, path: str, kind: str) -> None:
@@ -114,8 +126,10 @@ def write_recording(path: str | Path, replay, names: list[str], dt: float, npers
                     _style(rec, f"validation/{part}/{channel}/{kind}", kind)
                     _send(rec, f"validation/{part}/{channel}/{kind}", time, data[:, i, j])
         spectra = replay_spectra(replay, dt, nperseg)
-        bins = [rr.TimeColumn("frequency_bin", sequence=np.arange(len(spectra.frequency))),
-                rr.TimeColumn("frequency_millihertz", sequence=np.round(1e3 * spectra.frequency).astype(np.int64))]
+        bins = [
+            rr.TimeColumn("frequency_bin", sequence=np.arange(len(spectra.frequency))),
+            rr.TimeColumn("frequency_millihertz", sequence=np.round(1e3 * spectra.frequency).astype(np.int64)),
+        ]
         _send(rec, "spectra/frequency_hz", bins, spectra.frequency)
         with np.errstate(divide="ignore", invalid="ignore"):
             for kind, psd in zip(("real", "twin"), spectra.mean()):

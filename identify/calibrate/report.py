@@ -22,21 +22,37 @@ def calibration_text(cal, names: list[str], seconds: float, groups: list | None 
     more than one controller, a table gives each one's mean residual.
     """
     default = named_parameters("default")
-    lines = [f"## Calibration on {len(names)} episodes ({seconds:.1f} s, {cal.nfev_} model evaluations)", "",
-             "| parameter | fitted | std. error | default |", "|---|---|---|---|"]
+    lines = [
+        f"## Calibration on {len(names)} episodes ({seconds:.1f} s, {cal.nfev_} model evaluations)",
+        "",
+        "| parameter | fitted | std. error | default |",
+        "|---|---|---|---|",
+    ]
     for name in cal.fitted_names_:
-        lines.append(f"| {name} | {getattr(cal.params_, name):.5g} | {cal.standard_errors_[name]:.2g} "
-                     f"| {getattr(default, name):.5g} |")
-    lines += ["", "Correlation of the fitted parameters:", "",
-              "| | " + " | ".join(cal.fitted_names_) + " |", "|---" * (len(cal.fitted_names_) + 1) + "|"]
+        lines.append(
+            f"| {name} | {getattr(cal.params_, name):.5g} | {cal.standard_errors_[name]:.2g} "
+            f"| {getattr(default, name):.5g} |"
+        )
+    lines += [
+        "",
+        "Correlation of the fitted parameters:",
+        "",
+        "| | " + " | ".join(cal.fitted_names_) + " |",
+        "|---" * (len(cal.fitted_names_) + 1) + "|",
+    ]
     for name, row in zip(cal.fitted_names_, cal.correlation_):
         lines.append(f"| {name} | " + " | ".join(f"{v:+.2f}" for v in row) + " |")
     lines += ["", "| episode | alpha offset (mrad) | residual RMS theta (mrad) | alpha (mrad) |", "|---|---|---|---|"]
     for name, off, err, rms in zip(names, cal.alpha_offsets_, cal.alpha_offset_errors_, cal.residual_rms_):
         lines.append(f"| {name} | {1e3 * off:+.2f} +- {1e3 * err:.2f} | {1e3 * rms[0]:.2f} | {1e3 * rms[1]:.2f} |")
     if groups and len(groups) > 1:
-        lines += ["", "Fit per controller (0.2 s segments of the logged voltage, open loop):", "",
-                  "| controller | episodes | residual RMS theta (mrad) | alpha (mrad) |", "|---|---|---|---|"]
+        lines += [
+            "",
+            "Fit per controller (0.2 s segments of the logged voltage, open loop):",
+            "",
+            "| controller | episodes | residual RMS theta (mrad) | alpha (mrad) |",
+            "|---|---|---|---|",
+        ]
         for label, members in groups:
             rms = cal.residual_rms_[members]
             lines.append(f"| {label} | {len(members)} | {1e3 * rms[:, 0].mean():.2f} | {1e3 * rms[:, 1].mean():.2f} |")
@@ -52,20 +68,29 @@ def validation_text(replay, open_loop: np.ndarray, names: list[str], controller:
     """
     r = replay.std_ratio
     under = f" under {controller}" if controller else ""
-    lines = [f"## Validation on {len(names)} episodes not fitted{under}", "",
-             f"- balanced: {int(replay.balanced.sum())} of {len(names)}",
-             "- std ratio twin/real, min..max (mean): " + ", ".join(
-                 f"{label} {r[:, i].min():.3f}..{r[:, i].max():.3f} ({r[:, i].mean():.3f})"
-                 for i, label in enumerate(("theta", "alpha", "voltage"))),
-             f"- closed-loop replay NRMSE: {replay.nrmse.mean():.2f} +- {replay.nrmse.std():.2f} %",
-             f"- open-loop 0.2 s prediction RMS error: theta {1e3 * open_loop[:, 0].mean():.2f} mrad, "
-             f"alpha {1e3 * open_loop[:, 1].mean():.2f} mrad", "",
-             "| episode | balanced | std ratio theta | alpha | voltage | replay NRMSE (%) | offset (mrad) "
-             "| open-loop RMS theta, alpha (mrad) |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"## Validation on {len(names)} episodes not fitted{under}",
+        "",
+        f"- balanced: {int(replay.balanced.sum())} of {len(names)}",
+        "- std ratio twin/real, min..max (mean): "
+        + ", ".join(
+            f"{label} {r[:, i].min():.3f}..{r[:, i].max():.3f} ({r[:, i].mean():.3f})"
+            for i, label in enumerate(("theta", "alpha", "voltage"))
+        ),
+        f"- closed-loop replay NRMSE: {replay.nrmse.mean():.2f} +- {replay.nrmse.std():.2f} %",
+        f"- open-loop 0.2 s prediction RMS error: theta {1e3 * open_loop[:, 0].mean():.2f} mrad, "
+        f"alpha {1e3 * open_loop[:, 1].mean():.2f} mrad",
+        "",
+        "| episode | balanced | std ratio theta | alpha | voltage | replay NRMSE (%) | offset (mrad) "
+        "| open-loop RMS theta, alpha (mrad) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for i, name in enumerate(names):
-        lines.append(f"| {name} | {'yes' if replay.balanced[i] else 'NO'} | {r[i, 0]:.3f} | {r[i, 1]:.3f} "
-                     f"| {r[i, 2]:.3f} | {replay.nrmse[i]:.2f} | {1e3 * replay.offsets[i]:+.2f} "
-                     f"| {1e3 * open_loop[i, 0]:.2f}, {1e3 * open_loop[i, 1]:.2f} |")
+        lines.append(
+            f"| {name} | {'yes' if replay.balanced[i] else 'NO'} | {r[i, 0]:.3f} | {r[i, 1]:.3f} "
+            f"| {r[i, 2]:.3f} | {replay.nrmse[i]:.2f} | {1e3 * replay.offsets[i]:+.2f} "
+            f"| {1e3 * open_loop[i, 0]:.2f}, {1e3 * open_loop[i, 1]:.2f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -82,18 +107,27 @@ def controller_summary_text(groups: list, dt: float) -> str:
     from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios, slow_std_ratio
 
     bands = [f"{lo:g}-{hi:g} Hz" if np.isfinite(hi) else f"above {lo:g} Hz" for lo, hi in STD_BANDS]
-    lines = ["## Replay per controller: std ratio twin / real, median over episodes", "",
-             "Each cell gives theta / alpha / voltage. Slow: the signals low-passed at 0.5 Hz "
-             "(the arm's wander); the bands from Welch spectra (4096-sample segments).", "",
-             "| controller | episodes | balanced | overall | slow (< 0.5 Hz) | " + " | ".join(bands) + " |",
-             "|---" * (5 + len(bands)) + "|"]
+    lines = [
+        "## Replay per controller: std ratio twin / real, median over episodes",
+        "",
+        "Each cell gives theta / alpha / voltage. Slow: the signals low-passed at 0.5 Hz "
+        "(the arm's wander); the bands from Welch spectra (4096-sample segments).",
+        "",
+        "| controller | episodes | balanced | overall | slow (< 0.5 Hz) | " + " | ".join(bands) + " |",
+        "|---" * (5 + len(bands)) + "|",
+    ]
     for label, replay in groups:
+
         def cell(v):
             return " / ".join(f"{x:.3f}" for x in v)
+
         band = band_std_ratios(replay, dt)
-        lines.append(f"| {label} | {len(replay.balanced)} | {int(replay.balanced.sum())} "
-                     f"| {cell(np.median(replay.std_ratio, axis=0))} | {cell(slow_std_ratio(replay, dt))} | "
-                     + " | ".join(cell(row) for row in band) + " |")
+        lines.append(
+            f"| {label} | {len(replay.balanced)} | {int(replay.balanced.sum())} "
+            f"| {cell(np.median(replay.std_ratio, axis=0))} | {cell(slow_std_ratio(replay, dt))} | "
+            + " | ".join(cell(row) for row in band)
+            + " |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -139,9 +173,11 @@ def write_report(folder: Path, text: str, validation=None, dt: float | None = No
     try:
         import rerun  # noqa: F401  (the optional viz extra)
     except ImportError:
-        _log.warning("%s not written: rerun-sdk is not installed (the viewer is optional): "
-                     'pip install "qube-koopman[viz]" (in a checkout: pip install -e ".[viz]")',
-                     ", ".join(str(r) for r in rrds))
+        _log.warning(
+            "%s not written: rerun-sdk is not installed (the viewer is optional): "
+            'pip install "qube-koopman[viz]" (in a checkout: pip install -e ".[viz]")',
+            ", ".join(str(r) for r in rrds),
+        )
         return [path]
     from qube_koopman.identify.calibrate.recording import write_recording
 

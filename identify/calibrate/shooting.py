@@ -49,8 +49,16 @@ from scipy.sparse import lil_matrix
 
 from qube_koopman.sim.pendulum import PendulumParameters, simulate
 
-__all__ = ["PHYSICAL", "Segments", "make_segments", "to_params", "from_params", "residuals",
-           "sparsity", "simulate_segments"]
+__all__ = [
+    "PHYSICAL",
+    "Segments",
+    "make_segments",
+    "to_params",
+    "from_params",
+    "residuals",
+    "sparsity",
+    "simulate_segments",
+]
 
 #: Fitted physical parameters: (name, kind, scale, lower, upper). "log": value = nominal exp(z);
 #: "linear": value = scale z. Bounds are in the fitted variable z.
@@ -67,7 +75,7 @@ PHYSICAL = (
 )
 N_PHYSICAL = len(PHYSICAL)
 OFFSET_SCALE = 1e-3  # rad per unit of the fitted offset variable
-RATE_SCALE = 1.0     # node rates are fitted in rad/s
+RATE_SCALE = 1.0  # node rates are fitted in rad/s
 #: Commands kept before each segment's start: a transport delay up to its bound (4 ms) still applies them.
 N_PAST = 3
 
@@ -131,8 +139,14 @@ class Segments:
         return self.u.shape[0]
 
 
-def make_segments(measured: list[np.ndarray], voltages: list[np.ndarray], horizon: int, skip: int,
-                  delay: int = 0, stride: int | None = None) -> Segments:
+def make_segments(
+    measured: list[np.ndarray],
+    voltages: list[np.ndarray],
+    horizon: int,
+    skip: int,
+    delay: int = 0,
+    stride: int | None = None,
+) -> Segments:
     """Cut episodes into segments of ``horizon`` samples, every ``stride`` samples from ``skip``.
 
     ``delay`` whole samples of transport delay: the voltage logged at sample
@@ -141,22 +155,29 @@ def make_segments(measured: list[np.ndarray], voltages: list[np.ndarray], horizo
     stride = horizon if stride is None else stride
     ys, us, pasts, eps, starts = [], [], [], [], []
     for e, (y, u) in enumerate(zip(measured, voltages)):
-        u = np.concatenate([np.zeros(delay), u[:len(u) - delay]]) if delay else u
+        u = np.concatenate([np.zeros(delay), u[: len(u) - delay]]) if delay else u
         padded = np.concatenate([np.zeros(N_PAST), u])  # zero volts before the log's start
         for k in range(max(skip, delay), len(y) - horizon, stride):
-            ys.append(y[k:k + horizon + 1])
-            us.append(u[k:k + horizon])
-            pasts.append(padded[k:k + N_PAST])
+            ys.append(y[k : k + horizon + 1])
+            us.append(u[k : k + horizon])
+            pasts.append(padded[k : k + N_PAST])
             eps.append(e)
             starts.append(k)
     if not ys:
         raise ValueError(f"no segment of {horizon} samples fits after skipping {skip}")
-    return Segments(np.stack(ys, axis=1), np.stack(us, axis=1), np.array(eps), np.array(starts),
-                    np.stack(pasts, axis=1))
+    return Segments(
+        np.stack(ys, axis=1), np.stack(us, axis=1), np.array(eps), np.array(starts), np.stack(pasts, axis=1)
+    )
 
 
-def simulate_segments(nodes: np.ndarray, u: np.ndarray, params: PendulumParameters,
-                      dt: float, n_substeps: int = 2, past: np.ndarray | None = None) -> np.ndarray:
+def simulate_segments(
+    nodes: np.ndarray,
+    u: np.ndarray,
+    params: PendulumParameters,
+    dt: float,
+    n_substeps: int = 2,
+    past: np.ndarray | None = None,
+) -> np.ndarray:
     """Angles (horizon + 1, n_seg, 2) from node states (n_seg, 4) under voltages (horizon, n_seg).
 
     ``past`` (n_past, n_seg): the commands before each segment, which a transport delay still applies.
@@ -168,14 +189,15 @@ def simulate_segments(nodes: np.ndarray, u: np.ndarray, params: PendulumParamete
 def unpack(z: np.ndarray, n_episodes: int, n_seg: int):
     """(physical variables, offsets in rad, node states (n_seg, 4)) from the full variable vector."""
     phys = z[:N_PHYSICAL]
-    offsets = OFFSET_SCALE * z[N_PHYSICAL:N_PHYSICAL + n_episodes]
-    nodes = z[N_PHYSICAL + n_episodes:].reshape(n_seg, 4).copy()
+    offsets = OFFSET_SCALE * z[N_PHYSICAL : N_PHYSICAL + n_episodes]
+    nodes = z[N_PHYSICAL + n_episodes :].reshape(n_seg, 4).copy()
     nodes[:, 2:] *= RATE_SCALE
     return phys, offsets, nodes
 
 
-def residuals(z: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumParameters,
-              dt: float, sigma: float) -> np.ndarray:
+def residuals(
+    z: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumParameters, dt: float, sigma: float
+) -> np.ndarray:
     """Scaled prediction errors, ordered (segment, sample, angle)."""
     phys, offsets, nodes = unpack(z, n_episodes, seg.n)
     pred = simulate_segments(nodes, seg.u, to_params(phys, nominal), dt, past=seg.past)
@@ -204,8 +226,16 @@ def sparsity(seg: Segments, n_episodes: int):
     return pattern.tocsr()
 
 
-def jacobian(z: np.ndarray, r0: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumParameters,
-             dt: float, sigma: float, physics: bool = True):
+def jacobian(
+    z: np.ndarray,
+    r0: np.ndarray,
+    seg: Segments,
+    n_episodes: int,
+    nominal: PendulumParameters,
+    dt: float,
+    sigma: float,
+    physics: bool = True,
+):
     """Sparse Jacobian of :func:`residuals` in the :func:`sparsity` pattern, by grouped differences.
 
     One residual evaluation per physical variable and four for all the
@@ -230,7 +260,7 @@ def jacobian(z: np.ndarray, r0: np.ndarray, seg: Segments, n_episodes: int, nomi
         rws.append(rows)
     for j in range(4):
         zj = z.copy()
-        zj[base + j::4] += 1e-6
+        zj[base + j :: 4] += 1e-6
         data.append((residuals(zj, seg, n_episodes, nominal, dt, sigma) - r0) / 1e-6)
         cols.append(base + 4 * segment_of_row + j)
         rws.append(rows)
@@ -239,5 +269,6 @@ def jacobian(z: np.ndarray, r0: np.ndarray, seg: Segments, n_episodes: int, nomi
     data.append(np.full(alpha_rows.size, OFFSET_SCALE / sigma) * weight)
     cols.append(N_PHYSICAL + seg.episode[segment_of_row[alpha_rows]])
     rws.append(alpha_rows)
-    return csr_matrix((np.concatenate(data), (np.concatenate(rws), np.concatenate(cols))),
-                      shape=(n_res, base + 4 * seg.n))
+    return csr_matrix(
+        (np.concatenate(data), (np.concatenate(rws), np.concatenate(cols))), shape=(n_res, base + 4 * seg.n)
+    )

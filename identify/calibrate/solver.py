@@ -26,8 +26,16 @@ class LmResult:
         self.nfev, self.nit, self.converged = nfev, nit, converged
 
 
-def levenberg_marquardt(fun: Callable, jac: Callable, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                        max_iter: int = 40, ftol: float = 1e-7, callback: Callable | None = None) -> LmResult:
+def levenberg_marquardt(
+    fun: Callable,
+    jac: Callable,
+    x0: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    max_iter: int = 40,
+    ftol: float = 1e-7,
+    callback: Callable | None = None,
+) -> LmResult:
     """Minimize ``0.5 ||fun(x)||^2`` within bounds (steps projected onto them).
 
     ``jac(x, r)`` returns the sparse Jacobian at ``x`` (``r = fun(x)``).

@@ -16,8 +16,18 @@ from typing import Sequence
 import numpy as np
 from scipy.signal import welch
 
-__all__ = ["CHANNELS", "BANDS", "STD_BANDS", "ReplaySpectra", "replay_spectra", "band_powers", "band_power_ratios",
-           "band_std_ratios", "slow_std_ratio", "spectra_text"]
+__all__ = [
+    "CHANNELS",
+    "BANDS",
+    "STD_BANDS",
+    "ReplaySpectra",
+    "replay_spectra",
+    "band_powers",
+    "band_power_ratios",
+    "band_std_ratios",
+    "slow_std_ratio",
+    "spectra_text",
+]
 
 #: The replay's channels, in the order of the last axis of ``ReplayResult.twin`` and ``.real``.
 CHANNELS = ("theta", "alpha", "voltage")
@@ -119,8 +129,9 @@ def band_power_ratios(spectra: ReplaySpectra, bands: Sequence[tuple[float, float
         return band_powers(spectra.frequency, twin, bands) / band_powers(spectra.frequency, real, bands)
 
 
-def band_std_ratios(replay, dt: float, bands: Sequence[tuple[float, float]] = STD_BANDS,
-                    nperseg: int = STD_NPERSEG) -> np.ndarray:
+def band_std_ratios(
+    replay, dt: float, bands: Sequence[tuple[float, float]] = STD_BANDS, nperseg: int = STD_NPERSEG
+) -> np.ndarray:
     """Standard deviation ratio twin / real of each channel within each band: the median over episodes.
 
     Each episode's ratio is the square root of its twin band power over its
@@ -191,14 +202,24 @@ def spectra_text(replay, dt: float, bands: Sequence[tuple[float, float]] = BANDS
     real, twin = (band_powers(spectra.frequency, p, bands) for p in spectra.mean())
     ratio = band_power_ratios(spectra, bands)
     n_episodes = spectra.real.shape[1]
-    lines = [f"## Power spectra of the replay, twin vs real ({n_episodes} episodes)", "",
-             f"Welch, {spectra.nperseg}-sample Hann segments at {1 / dt:g} Hz "
-             f"(resolution {1 / (dt * spectra.nperseg):.3g} Hz); band power is the PSD "
-             "integrated over the band, averaged over the episodes; twin/real is the ratio of those averages."]
+    lines = [
+        f"## Power spectra of the replay, twin vs real ({n_episodes} episodes)",
+        "",
+        f"Welch, {spectra.nperseg}-sample Hann segments at {1 / dt:g} Hz "
+        f"(resolution {1 / (dt * spectra.nperseg):.3g} Hz); band power is the PSD "
+        "integrated over the band, averaged over the episodes; twin/real is the ratio of those averages.",
+    ]
     for j, (channel, unit) in enumerate(zip(CHANNELS, _UNITS)):
-        lines += ["", f"### {channel}", "", f"| band (Hz) | real ({unit}) | twin ({unit}) | twin/real |",
-                  "|---|---|---|---|"]
+        lines += [
+            "",
+            f"### {channel}",
+            "",
+            f"| band (Hz) | real ({unit}) | twin ({unit}) | twin/real |",
+            "|---|---|---|---|",
+        ]
         for b, (low, high) in enumerate(bands):
-            lines.append(f"| {low:g}-{high:g} | {_number(real[b, j], '.3g')} | {_number(twin[b, j], '.3g')} "
-                         f"| {_number(ratio[b, j], '.3f')} |")
+            lines.append(
+                f"| {low:g}-{high:g} | {_number(real[b, j], '.3g')} | {_number(twin[b, j], '.3g')} "
+                f"| {_number(ratio[b, j], '.3f')} |"
+            )
     return "\n".join(lines) + "\n"

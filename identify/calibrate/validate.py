@@ -35,8 +35,15 @@ from qube_koopman.sim.pendulum.sensor import COUNTS_PER_REV
 
 ENCODER_COUNT = 2 * math.pi / COUNTS_PER_REV  # rad: one count of the rig's encoders
 
-__all__ = ["estimate_offset", "estimate_offset_many", "ReplayResult", "replay_episodes", "open_loop_error",
-           "controller_groups", "controller_label"]
+__all__ = [
+    "estimate_offset",
+    "estimate_offset_many",
+    "ReplayResult",
+    "replay_episodes",
+    "open_loop_error",
+    "controller_groups",
+    "controller_label",
+]
 
 
 def controller_label(episode) -> str:
@@ -77,8 +84,9 @@ def _rates(y: np.ndarray, dt: float) -> np.ndarray:
     return savgol_filter(np.asarray(y, float), 21, 2, deriv=1, delta=dt, axis=0)
 
 
-def estimate_offset(y: np.ndarray, u: np.ndarray, params: PendulumParameters, dt: float,
-                    start: int, window: int, horizon: int = 100) -> float:
+def estimate_offset(
+    y: np.ndarray, u: np.ndarray, params: PendulumParameters, dt: float, start: int, window: int, horizon: int = 100
+) -> float:
     """One episode's alpha encoder offset (rad) from samples ``start:start + window``.
 
     Multiple shooting with the physics fixed: the segments' node states and
@@ -87,8 +95,16 @@ def estimate_offset(y: np.ndarray, u: np.ndarray, params: PendulumParameters, dt
     return float(estimate_offset_many([y], [u], params, dt, start, window, horizon)[0])
 
 
-def estimate_offset_many(ys: Sequence[np.ndarray], us: Sequence[np.ndarray], params: PendulumParameters,
-                         dt: float, start: int, window: int, horizon: int = 100, max_iter: int = 40) -> np.ndarray:
+def estimate_offset_many(
+    ys: Sequence[np.ndarray],
+    us: Sequence[np.ndarray],
+    params: PendulumParameters,
+    dt: float,
+    start: int,
+    window: int,
+    horizon: int = 100,
+    max_iter: int = 40,
+) -> np.ndarray:
     """Each episode's alpha encoder offset (rad) from its samples ``start:start + window``.
 
     One least-squares problem over all episodes, solved by the calibration's
@@ -104,7 +120,7 @@ def estimate_offset_many(ys: Sequence[np.ndarray], us: Sequence[np.ndarray], par
     rates = [_rates(y, dt) for y in ys]
     nodes = np.concatenate([seg.y[0], np.stack([rates[e][k] for e, k in zip(seg.episode, seg.start)])], axis=1)
     phys = ms.from_params(params, params)
-    offset0 = np.array([np.mean(y[start:start + window, 1]) for y in ys])
+    offset0 = np.array([np.mean(y[start : start + window, 1]) for y in ys])
     nodes[:, 1] -= offset0[seg.episode]
     z0 = np.concatenate([offset0 / ms.OFFSET_SCALE, nodes.ravel()])
 
@@ -113,7 +129,7 @@ def estimate_offset_many(ys: Sequence[np.ndarray], us: Sequence[np.ndarray], par
 
     def jac(z, r):
         full = ms.jacobian(np.concatenate([phys, z]), r, seg, n, params, dt, ENCODER_SIGMA, physics=False)
-        return full[:, ms.N_PHYSICAL:]
+        return full[:, ms.N_PHYSICAL :]
 
     unbounded = np.full(z0.size, np.inf)
     result = levenberg_marquardt(fun, jac, z0, -unbounded, unbounded, max_iter=max_iter, ftol=1e-10)
@@ -149,8 +165,14 @@ class ReplayResult:
     real: np.ndarray
 
 
-def replay_episodes(episodes: Sequence, params: PendulumParameters, start: int = SKIP_SAMPLES,
-                    offset_window: int = 500, n_draws: int = 8, seed: int = 0) -> ReplayResult:
+def replay_episodes(
+    episodes: Sequence,
+    params: PendulumParameters,
+    start: int = SKIP_SAMPLES,
+    offset_window: int = 500,
+    n_draws: int = 8,
+    seed: int = 0,
+) -> ReplayResult:
     """Closed-loop replay of logged episodes (``daq.episode.Episode``) through ``params``.
 
     All episodes must share the controller and length. Each episode is
@@ -179,8 +201,14 @@ def replay_episodes(episodes: Sequence, params: PendulumParameters, start: int =
     return ReplayResult(ratio, balanced, nrmse, offsets, twin[:, 0], real)
 
 
-def _replay_draws(episodes: Sequence, us: Sequence[np.ndarray], draws: np.ndarray, offsets: np.ndarray,
-                  params: PendulumParameters, start: int):
+def _replay_draws(
+    episodes: Sequence,
+    us: Sequence[np.ndarray],
+    draws: np.ndarray,
+    offsets: np.ndarray,
+    params: PendulumParameters,
+    start: int,
+):
     """The closed loop from start states ``draws`` (n_draws, n_episodes, 4), one batch."""
     shape = draws.shape[:2]
 
@@ -191,15 +219,23 @@ def _replay_draws(episodes: Sequence, us: Sequence[np.ndarray], draws: np.ndarra
     ff = np.stack([np.asarray(e.feedforward, float)[start:] for e in episodes], axis=1)
     xc0 = np.stack([np.asarray(e.controller_state, float)[start] for e in episodes])
     max_v = float(np.max(np.abs(np.concatenate(us)))) if episodes else 10.0
-    past = np.stack([u[max(0, start - ms.N_PAST):start] for u in us], axis=1)
-    return simulate_closed_loop(draws, episodes[0].controller, per_draw(refs), per_draw(ff), params,
-                                controller_state0=np.broadcast_to(xc0, (*shape, xc0.shape[-1])),
-                                max_voltage=max(max_v, 1e-3), alpha_offsets=np.broadcast_to(offsets, shape),
-                                past_voltages=per_draw(past) if len(past) else None)
+    past = np.stack([u[max(0, start - ms.N_PAST) : start] for u in us], axis=1)
+    return simulate_closed_loop(
+        draws,
+        episodes[0].controller,
+        per_draw(refs),
+        per_draw(ff),
+        params,
+        controller_state0=np.broadcast_to(xc0, (*shape, xc0.shape[-1])),
+        max_voltage=max(max_v, 1e-3),
+        alpha_offsets=np.broadcast_to(offsets, shape),
+        past_voltages=per_draw(past) if len(past) else None,
+    )
 
 
-def open_loop_error(episodes: Sequence, params: PendulumParameters, offsets: np.ndarray,
-                    horizon: float = 0.2, start: int = SKIP_SAMPLES) -> np.ndarray:
+def open_loop_error(
+    episodes: Sequence, params: PendulumParameters, offsets: np.ndarray, horizon: float = 0.2, start: int = SKIP_SAMPLES
+) -> np.ndarray:
     """RMS error (rad) of theta and alpha over open-loop predictions of ``horizon`` seconds.
 
     Each prediction starts from the data (measured angles less the offset,

@@ -44,26 +44,50 @@ __all__ = ["main"]
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog="qube-calibrate", description=__doc__.split("\n\n")[0].replace("``", ""),
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = OneLineParser(
+        prog="qube-calibrate",
+        description=__doc__.split("\n\n")[0].replace("``", ""),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("logs", nargs="+", type=path, help="episode logs (.mcap files or folders of them) to fit")
     p.add_argument("--out", type=path, required=True, metavar="FILE.toml", help="plant file to write")
-    p.add_argument("--split", choices=("none", "paper"), default="none",
-                   help="paper: fit the first 28 logs by name, validate on the rest")
-    p.add_argument("--validate", nargs="+", type=path, default=[], metavar="LOG",
-                   help="logs (files or folders) to validate on (never fitted)")
-    p.add_argument("--report", type=path, default=None, metavar="DIR",
-                   help="write report.md there (the tables; with validation also band powers twin vs real) and, "
-                        "with validation, calibration.rrd (rerun recording of the replayed episodes and spectra; "
-                        "needs the viz extra)")
+    p.add_argument(
+        "--split",
+        choices=("none", "paper"),
+        default="none",
+        help="paper: fit the first 28 logs by name, validate on the rest",
+    )
+    p.add_argument(
+        "--validate",
+        nargs="+",
+        type=path,
+        default=[],
+        metavar="LOG",
+        help="logs (files or folders) to validate on (never fitted)",
+    )
+    p.add_argument(
+        "--report",
+        type=path,
+        default=None,
+        metavar="DIR",
+        help="write report.md there (the tables; with validation also band powers twin vs real) and, "
+        "with validation, calibration.rrd (rerun recording of the replayed episodes and spectra; "
+        "needs the viz extra)",
+    )
     p.add_argument("--horizon", type=float, default=0.2, metavar="S", help="shooting segment length (default 0.2)")
-    p.add_argument("--delay", type=whole_number(0), default=0, metavar="N",
-                   help="transport delay in samples (default 0)")
-    p.add_argument("--max-nfev", type=whole_number(1), default=40, metavar="N",
-                   help="solver iteration budget (default 40)")
-    p.add_argument("--weighting", choices=("episode", "controller"), default="episode",
-                   help="with logs of several controllers: episode (default) counts every episode alike; "
-                        "controller weights the residuals so that each controller's logs count alike")
+    p.add_argument(
+        "--delay", type=whole_number(0), default=0, metavar="N", help="transport delay in samples (default 0)"
+    )
+    p.add_argument(
+        "--max-nfev", type=whole_number(1), default=40, metavar="N", help="solver iteration budget (default 40)"
+    )
+    p.add_argument(
+        "--weighting",
+        choices=("episode", "controller"),
+        default="episode",
+        help="with logs of several controllers: episode (default) counts every episode alike; "
+        "controller weights the residuals so that each controller's logs count alike",
+    )
     add_force_option(p)
     add_standard_options(p, "no progress line")
     return p
@@ -101,19 +125,34 @@ def _run(args) -> int:
     started = time.perf_counter()
     fit_groups = controller_groups(episodes)
     group_of = {i: label for label, members in fit_groups for i in members}
-    cal = PlantCalibration(horizon=args.horizon, delay=args.delay, max_nfev=args.max_nfev,
-                           progress=not args.quiet, weighting="group" if args.weighting == "controller" else "episode")
-    cal.fit([e.states for e in episodes], [e.plant_input for e in episodes], episodes[0].dt,
-            [group_of[i] for i in range(len(episodes))])
+    cal = PlantCalibration(
+        horizon=args.horizon,
+        delay=args.delay,
+        max_nfev=args.max_nfev,
+        progress=not args.quiet,
+        weighting="group" if args.weighting == "controller" else "episode",
+    )
+    cal.fit(
+        [e.states for e in episodes],
+        [e.plant_input for e in episodes],
+        episodes[0].dt,
+        [group_of[i] for i in range(len(episodes))],
+    )
     seconds = time.perf_counter() - started
     names = [p.name for p in fit_paths]
     text = calibration_text(cal, names, seconds, fit_groups)
-    provenance = {"source": "qube-calibrate", "logs": names, "software_version": episodes[0].metadata.software_version,
-                  "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                  "residual_rms_theta": float(cal.residual_rms_[:, 0].mean()),
-                  "residual_rms_alpha": float(cal.residual_rms_[:, 1].mean()),
-                  "horizon_s": args.horizon, "delay_samples": args.delay, "seconds": round(seconds, 1),
-                  "weighting": args.weighting}
+    provenance = {
+        "source": "qube-calibrate",
+        "logs": names,
+        "software_version": episodes[0].metadata.software_version,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "residual_rms_theta": float(cal.residual_rms_[:, 0].mean()),
+        "residual_rms_alpha": float(cal.residual_rms_[:, 1].mean()),
+        "horizon_s": args.horizon,
+        "delay_samples": args.delay,
+        "seconds": round(seconds, 1),
+        "weighting": args.weighting,
+    }
     if len(fit_groups) > 1:
         provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
     validation, val_dt = None, None
@@ -122,15 +161,20 @@ def _run(args) -> int:
         text += summary
         replays = [v[0] for v in validation]
         ratio = np.concatenate([r.std_ratio for r in replays])
-        provenance.update(validated_on=[p.name for p in val_paths],
-                          balanced=int(sum(r.balanced.sum() for r in replays)),
-                          std_ratio_min=[round(float(v), 4) for v in ratio.min(axis=0)],
-                          std_ratio_max=[round(float(v), 4) for v in ratio.max(axis=0)],
-                          replay_nrmse_percent=round(float(np.concatenate([r.nrmse for r in replays]).mean()), 3))
+        provenance.update(
+            validated_on=[p.name for p in val_paths],
+            balanced=int(sum(r.balanced.sum() for r in replays)),
+            std_ratio_min=[round(float(v), 4) for v in ratio.min(axis=0)],
+            std_ratio_max=[round(float(v), 4) for v in ratio.max(axis=0)],
+            replay_nrmse_percent=round(float(np.concatenate([r.nrmse for r in replays]).mean()), 3),
+        )
         if len(validation) > 1 or len(fit_groups) > 1:
-            provenance.update(validation_controllers=[v[3] for v in validation],
-                              std_ratio_median_by_controller=[[round(float(x), 4) for x in
-                                                               np.median(v[0].std_ratio, axis=0)] for v in validation])
+            provenance.update(
+                validation_controllers=[v[3] for v in validation],
+                std_ratio_median_by_controller=[
+                    [round(float(x), 4) for x in np.median(v[0].std_ratio, axis=0)] for v in validation
+                ],
+            )
     try:
         save_plant(args.out, PlantFile(cal.params_, cal.standard_errors_, provenance))
     except OSError as exc:

@@ -13,14 +13,21 @@ FOLDER = "figures"
 
 def add_figure_options(parser: argparse.ArgumentParser, episodes: bool = True, report: str = "report.md"):
     """Add ``--figures`` (and ``--figure-episodes``) to ``parser``; returns their argument group."""
-    group = parser.add_argument_group("figures (needs matplotlib: pip install \"qube-koopman[figures]\")")
-    group.add_argument("--figures", action="store_true",
-                       help=f"also write figures as PNG and PDF in OUT/{FOLDER}/, embedded in {report}")
+    group = parser.add_argument_group('figures (needs matplotlib: pip install "qube-koopman[figures]")')
+    group.add_argument(
+        "--figures",
+        action="store_true",
+        help=f"also write figures as PNG and PDF in OUT/{FOLDER}/, embedded in {report}",
+    )
     if episodes:
-        group.add_argument("--figure-episodes", nargs="+", metavar="EPISODE",
-                           help="test episodes whose measured and predicted trajectories are drawn: 1-based "
-                                "positions among the test logs or their file names (default: the best and the "
-                                "worst scored)")
+        group.add_argument(
+            "--figure-episodes",
+            nargs="+",
+            metavar="EPISODE",
+            help="test episodes whose measured and predicted trajectories are drawn: 1-based "
+            "positions among the test logs or their file names (default: the best and the "
+            "worst scored)",
+        )
     return group
 
 
@@ -52,7 +59,10 @@ def write_report_figures(out: Path, specs) -> list[dict]:
     try:
         written = write_figures(specs, out / FOLDER)
     except OSError as exc:
-        raise CliError(f"{exc.filename or out / FOLDER}: cannot write a figure: {exc.strerror or exc}",
-                       status=1) from None
-    return [{"png": f"{FOLDER}/{png.name}", "pdf": f"{FOLDER}/{png.stem}.pdf", "caption": spec.caption}
-            for spec, png in zip(specs, written)]
+        raise CliError(
+            f"{exc.filename or out / FOLDER}: cannot write a figure: {exc.strerror or exc}", status=1
+        ) from None
+    return [
+        {"png": f"{FOLDER}/{png.name}", "pdf": f"{FOLDER}/{png.stem}.pdf", "caption": spec.caption}
+        for spec, png in zip(specs, written)
+    ]

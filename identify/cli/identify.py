@@ -10,10 +10,24 @@ import sys
 import warnings
 from pathlib import Path
 
-from qube_koopman.core.cli import (OneLineParser, add_force_option, add_renamed_option, add_standard_options, path,
-                                   seed, whole_number)
-from qube_koopman.core.command import (CliError, check_output_folder, check_rerun_target, output_dir, progress,
-                                       run_command, write_json)
+from qube_koopman.core.cli import (
+    OneLineParser,
+    add_force_option,
+    add_renamed_option,
+    add_standard_options,
+    path,
+    seed,
+    whole_number,
+)
+from qube_koopman.core.command import (
+    CliError,
+    check_output_folder,
+    check_rerun_target,
+    output_dir,
+    progress,
+    run_command,
+    write_json,
+)
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
 from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
@@ -83,145 +97,267 @@ DEFAULT_LEVEL = 0.95
 
 def _add_search_options(p: argparse.ArgumentParser) -> None:
     search = p.add_argument_group("lifting search")
-    search.add_argument("--search", action="store_true",
-                        help="choose lifting, alpha and offsets by cross-validation (see above)")
-    search.add_argument("--search-space", type=path, metavar="FILE.toml",
-                        help="the values to try (default: delays 0-40 by 5, poly 1-3, const, sin/cos and friction "
-                             "on/off, 0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)")
-    search.add_argument("--n-jobs", type=int, default=-1, metavar="N",
-                        help="worker processes for the search (default %(default)s: every core; unused with "
-                             "--scheduler)")
-    search.add_argument("--transfer", choices=["twin", "none"], default="twin",
-                        help="twin (default): rank candidates by the lower of their cross-validated R^2 and their "
-                             "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
-                             "unlike the training one (the training excitations replayed on the calibrated twin); "
-                             "none: by cross-validated R^2 alone (sees only the training controller)")
-    search.add_argument("--no-screen", dest="screen", action="store_false",
-                        help="evaluate every candidate in full (by default the delays, form and RBF stages screen "
-                             "theirs on one fold and one probe alpha and evaluate the 3 best in full; report.md "
-                             "lists the others with their screen scores)")
-    search.add_argument("--no-probe-cache", dest="probe_cache", action="store_false",
-                        help="simulate the twin probes even when the same ones are in the cache (by default they "
-                             "are kept in $QUBE_KOOPMAN_PROBE_CACHE, else ~/.cache/qube-koopman/probes, and read "
-                             "back when the training excitations, the twin and the simulator are the same)")
+    search.add_argument(
+        "--search", action="store_true", help="choose lifting, alpha and offsets by cross-validation (see above)"
+    )
+    search.add_argument(
+        "--search-space",
+        type=path,
+        metavar="FILE.toml",
+        help="the values to try (default: delays 0-40 by 5, poly 1-3, const, sin/cos and friction "
+        "on/off, 0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)",
+    )
+    search.add_argument(
+        "--n-jobs",
+        type=int,
+        default=-1,
+        metavar="N",
+        help="worker processes for the search (default %(default)s: every core; unused with --scheduler)",
+    )
+    search.add_argument(
+        "--transfer",
+        choices=["twin", "none"],
+        default="twin",
+        help="twin (default): rank candidates by the lower of their cross-validated R^2 and their "
+        "transfer R^2, the plant predicting twin episodes under three probe PD controllers "
+        "unlike the training one (the training excitations replayed on the calibrated twin); "
+        "none: by cross-validated R^2 alone (sees only the training controller)",
+    )
+    search.add_argument(
+        "--no-screen",
+        dest="screen",
+        action="store_false",
+        help="evaluate every candidate in full (by default the delays, form and RBF stages screen "
+        "theirs on one fold and one probe alpha and evaluate the 3 best in full; report.md "
+        "lists the others with their screen scores)",
+    )
+    search.add_argument(
+        "--no-probe-cache",
+        dest="probe_cache",
+        action="store_false",
+        help="simulate the twin probes even when the same ones are in the cache (by default they "
+        "are kept in $QUBE_KOOPMAN_PROBE_CACHE, else ~/.cache/qube-koopman/probes, and read "
+        "back when the training excitations, the twin and the simulator are the same)",
+    )
     add_cluster_options(p)
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog=PROG, description=DESCRIPTION,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = OneLineParser(prog=PROG, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_standard_options(p)
     data = p.add_argument_group("data")
-    data.add_argument("logs", nargs="*", type=path, metavar="LOGS",
-                      help="episode logs (.mcap files or folders), with --split")
+    data.add_argument(
+        "logs", nargs="*", type=path, metavar="LOGS", help="episode logs (.mcap files or folders), with --split"
+    )
     data.add_argument("--split", choices=["paper"], help="paper: names sorted, first 28 train, the rest test")
     data.add_argument("--train", nargs="+", type=path, metavar="LOG", help="training logs (files or folders)")
     data.add_argument("--test", nargs="+", type=path, metavar="LOG", help="test logs (files or folders)")
-    data.add_argument("--skip", type=whole_number(0), default=SKIP_SAMPLES, metavar="N",
-                      help="samples dropped at the start of each episode (default %(default)s: the rig's "
-                           "hand-raising second)")
+    data.add_argument(
+        "--skip",
+        type=whole_number(0),
+        default=SKIP_SAMPLES,
+        metavar="N",
+        help="samples dropped at the start of each episode (default %(default)s: the rig's hand-raising second)",
+    )
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
     lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
-    lift.add_argument("--poly", type=whole_number(1), metavar="ORDER",
-                      help=f"monomial order (1: none; default 2; at most {MAX_POLY})")
-    lift.add_argument("--trig", action="store_true",
-                      help="append sin and cos of theta and alpha (after the monomials, before the delays)")
+    lift.add_argument(
+        "--poly", type=whole_number(1), metavar="ORDER", help=f"monomial order (1: none; default 2; at most {MAX_POLY})"
+    )
+    lift.add_argument(
+        "--trig",
+        action="store_true",
+        help="append sin and cos of theta and alpha (after the monomials, before the delays)",
+    )
     lift.add_argument("--delays", type=whole_number(0), metavar="N", help="time delays (default 10)")
-    lift.add_argument("--rbf", choices=["none", "thin-plate", "gaussian"], default="none",
-                      help="radial basis functions")
-    lift.add_argument("--rbf-centers", type=whole_number(1, MAX_RBF_CENTERS), default=50, metavar="N",
-                      help=f"RBF centres, Latin hypercube (default %(default)s, at most {MAX_RBF_CENTERS})")
-    lift.add_argument("--rbf-shape", type=float, default=1.0, metavar="A",
-                      help="RBF shape parameter (default %(default)s)")
-    lift.add_argument("--rbf-offset", type=float, default=1e-3, metavar="D",
-                      help="thin-plate offset (default %(default)s)")
-    lift.add_argument("--rbf-seed", type=seed, default=0, metavar="K",
-                      help="seed of the RBF centres (default %(default)s)")
-    lift.add_argument("--friction", action="store_true",
-                      help="append the arm's Coulomb friction shape, tanh((theta_k - theta_k-10) / 0.002 rad), "
-                           "after the RBFs (needs --delays 10 or more)")
-    lift.add_argument("--const", action="store_true",
-                      help="append a constant lifting function (an affine term: the model's equilibrium is "
-                           "not pinned at the measured zero)")
+    lift.add_argument(
+        "--rbf", choices=["none", "thin-plate", "gaussian"], default="none", help="radial basis functions"
+    )
+    lift.add_argument(
+        "--rbf-centers",
+        type=whole_number(1, MAX_RBF_CENTERS),
+        default=50,
+        metavar="N",
+        help=f"RBF centres, Latin hypercube (default %(default)s, at most {MAX_RBF_CENTERS})",
+    )
+    lift.add_argument(
+        "--rbf-shape", type=float, default=1.0, metavar="A", help="RBF shape parameter (default %(default)s)"
+    )
+    lift.add_argument(
+        "--rbf-offset", type=float, default=1e-3, metavar="D", help="thin-plate offset (default %(default)s)"
+    )
+    lift.add_argument(
+        "--rbf-seed", type=seed, default=0, metavar="K", help="seed of the RBF centres (default %(default)s)"
+    )
+    lift.add_argument(
+        "--friction",
+        action="store_true",
+        help="append the arm's Coulomb friction shape, tanh((theta_k - theta_k-10) / 0.002 rad), "
+        "after the RBFs (needs --delays 10 or more)",
+    )
+    lift.add_argument(
+        "--const",
+        action="store_true",
+        help="append a constant lifting function (an affine term: the model's equilibrium is "
+        "not pinned at the measured zero)",
+    )
     fit = p.add_argument_group("identification")
-    fit.add_argument("--method", choices=METHODS, default="cl-edmd",
-                     help="cl-edmd: the paper's CL EDMD (controller rows of the closed-loop matrix fitted); "
-                          "cl-edmd-known-rows: the same plant, controller rows fixed to the known controller; "
-                          "default: %(default)s")
+    fit.add_argument(
+        "--method",
+        choices=METHODS,
+        default="cl-edmd",
+        help="cl-edmd: the paper's CL EDMD (controller rows of the closed-loop matrix fitted); "
+        "cl-edmd-known-rows: the same plant, controller rows fixed to the known controller; "
+        "default: %(default)s",
+    )
     reg = fit.add_mutually_exclusive_group()
     reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
-    reg.add_argument("--alpha-sweep", nargs=3, metavar=("MIN", "MAX", "N"),
-                     help="choose alpha among N log-spaced values by cross-validation: episode-grouped, or "
-                          "leave-one-controller-out when the training logs ran two or more controllers")
-    fit.add_argument("--cv-splits", type=whole_number(1), default=3, metavar="K",
-                     help="random splits holding out 20%% of the training episodes (default %(default)s; with "
-                          "training logs of several controllers the folds leave one controller out instead)")
+    reg.add_argument(
+        "--alpha-sweep",
+        nargs=3,
+        metavar=("MIN", "MAX", "N"),
+        help="choose alpha among N log-spaced values by cross-validation: episode-grouped, or "
+        "leave-one-controller-out when the training logs ran two or more controllers",
+    )
+    fit.add_argument(
+        "--cv-splits",
+        type=whole_number(1),
+        default=3,
+        metavar="K",
+        help="random splits holding out 20%% of the training episodes (default %(default)s; with "
+        "training logs of several controllers the folds leave one controller out instead)",
+    )
     fit.add_argument("--cv-seed", type=seed, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
-    fit.add_argument("--score", choices=["cl", "plant"], default="cl",
-                     help="closed-loop or plant predictions, for selection and test scores (default %(default)s)")
-    fit.add_argument("--arx-lags", type=whole_number(1), default=10, metavar="N",
-                     help="ARX output and input lags (default %(default)s)")
-    fit.add_argument("--max-radius", type=float, metavar="R",
-                     help="constrain the closed loop's eigenvalues to |lambda - C| <= R (C: --pole-center, "
-                          "default 0: the spectral radius), the plant left free; CL EDMD with the controller "
-                          "rows known, solved as an LMI with cvxpy + Clarabel")
-    fit.add_argument("--pole-center", type=float, default=0.0, metavar="C",
-                     help="centre of the eigenvalue disc of --max-radius (default %(default)s)")
+    fit.add_argument(
+        "--score",
+        choices=["cl", "plant"],
+        default="cl",
+        help="closed-loop or plant predictions, for selection and test scores (default %(default)s)",
+    )
+    fit.add_argument(
+        "--arx-lags",
+        type=whole_number(1),
+        default=10,
+        metavar="N",
+        help="ARX output and input lags (default %(default)s)",
+    )
+    fit.add_argument(
+        "--max-radius",
+        type=float,
+        metavar="R",
+        help="constrain the closed loop's eigenvalues to |lambda - C| <= R (C: --pole-center, "
+        "default 0: the spectral radius), the plant left free; CL EDMD with the controller "
+        "rows known, solved as an LMI with cvxpy + Clarabel",
+    )
+    fit.add_argument(
+        "--pole-center",
+        type=float,
+        default=0.0,
+        metavar="C",
+        help="centre of the eigenvalue disc of --max-radius (default %(default)s)",
+    )
     pred = p.add_argument_group("prediction of the test episodes")
-    pred.add_argument("--offsets", nargs="+", choices=["theta", "alpha"], metavar="CHANNEL",
-                      help="estimate a constant sensor offset of these channels on each test episode from its "
-                           "first --estimate-window seconds, then predict with it (for example: alpha, whose "
-                           "encoder zero is a few counts off upright); scores then cover the samples after the "
-                           "window, beside the plain prediction's on the same samples. Default: none (the "
-                           "paper's protocol)")
-    pred.add_argument("--estimate-window", type=float, default=1.0, metavar="S",
-                      help="offset estimation window in seconds (default %(default)s)")
-    pred.add_argument("--offset-bound", type=float, default=0.05, metavar="RAD",
-                      help="estimates beyond this are flagged in the report and not used (default %(default)s)")
-    pred.add_argument("--protocol", choices=["paper", "window"],
-                      help="window: score the test episodes from the end of --estimate-window, as --search scores "
-                           "its candidates (the default with --search or --offsets); paper: from the second "
-                           "sample, the paper's protocol (the default otherwise; not with --offsets)")
-    pred.add_argument("--interval", type=float, metavar="LEVEL",
-                      help=f"give every predicted sample an interval at this level (default {DEFAULT_LEVEL} with a "
-                           "Koopman method; 0: none): bootstrap refits, the offsets' standard errors and a model error "
-                           f"calibrated on held-out training episodes; written to OUT/{PREDICTIONS}/<log>.npz, with "
-                           "each episode's coverage in the reports")
-    pred.add_argument("--interval-members", type=whole_number(2), default=20, metavar="B",
-                      help="bootstrap refits of the intervals (default %(default)s)")
-    pred.add_argument("--interval-seed", type=seed, default=0, metavar="K",
-                      help="seed of the intervals' resampling and folds (default %(default)s)")
-    pred.add_argument("--interval-other-loops", choices=["twin", "none"], default="twin",
-                      help="how the interval of an episode under a controller the training did not run is "
-                           "calibrated: twin (default), on the twin's probe episodes, per channel the wider of "
-                           "those under its own controller (PD gains known) and under the default probe "
-                           "controllers (cached as --no-probe-cache says); none, as the training loop's held-out "
-                           "episodes (flagged in the report)")
-    pred.add_argument("--controller", type=path, metavar="FILE.toml",
-                      help="what-if: predict every test episode under this controller instead of its "
-                           "log's own: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau; backward Euler as "
-                           "on the rig) or a state-space file at the logs' sample period "
-                           "(core/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
-                           "episodes recorded under it are scored")
+    pred.add_argument(
+        "--offsets",
+        nargs="+",
+        choices=["theta", "alpha"],
+        metavar="CHANNEL",
+        help="estimate a constant sensor offset of these channels on each test episode from its "
+        "first --estimate-window seconds, then predict with it (for example: alpha, whose "
+        "encoder zero is a few counts off upright); scores then cover the samples after the "
+        "window, beside the plain prediction's on the same samples. Default: none (the "
+        "paper's protocol)",
+    )
+    pred.add_argument(
+        "--estimate-window",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="offset estimation window in seconds (default %(default)s)",
+    )
+    pred.add_argument(
+        "--offset-bound",
+        type=float,
+        default=0.05,
+        metavar="RAD",
+        help="estimates beyond this are flagged in the report and not used (default %(default)s)",
+    )
+    pred.add_argument(
+        "--protocol",
+        choices=["paper", "window"],
+        help="window: score the test episodes from the end of --estimate-window, as --search scores "
+        "its candidates (the default with --search or --offsets); paper: from the second "
+        "sample, the paper's protocol (the default otherwise; not with --offsets)",
+    )
+    pred.add_argument(
+        "--interval",
+        type=float,
+        metavar="LEVEL",
+        help=f"give every predicted sample an interval at this level (default {DEFAULT_LEVEL} with a "
+        "Koopman method; 0: none): bootstrap refits, the offsets' standard errors and a model error "
+        f"calibrated on held-out training episodes; written to OUT/{PREDICTIONS}/<log>.npz, with "
+        "each episode's coverage in the reports",
+    )
+    pred.add_argument(
+        "--interval-members",
+        type=whole_number(2),
+        default=20,
+        metavar="B",
+        help="bootstrap refits of the intervals (default %(default)s)",
+    )
+    pred.add_argument(
+        "--interval-seed",
+        type=seed,
+        default=0,
+        metavar="K",
+        help="seed of the intervals' resampling and folds (default %(default)s)",
+    )
+    pred.add_argument(
+        "--interval-other-loops",
+        choices=["twin", "none"],
+        default="twin",
+        help="how the interval of an episode under a controller the training did not run is "
+        "calibrated: twin (default), on the twin's probe episodes, per channel the wider of "
+        "those under its own controller (PD gains known) and under the default probe "
+        "controllers (cached as --no-probe-cache says); none, as the training loop's held-out "
+        "episodes (flagged in the report)",
+    )
+    pred.add_argument(
+        "--controller",
+        type=path,
+        metavar="FILE.toml",
+        help="what-if: predict every test episode under this controller instead of its "
+        "log's own: PD gains (kp_theta, kd_theta, kp_alpha, kd_alpha, tau; backward Euler as "
+        "on the rig) or a state-space file at the logs' sample period "
+        "(core/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
+        "episodes recorded under it are scored",
+    )
     _add_search_options(p)
     out = p.add_argument_group("output")
-    out.add_argument("--out", type=path, default="identified", metavar="DIR",
-                     help="output folder (default %(default)s)")
-    out.add_argument("--rerun-save", dest="rerun", type=path, metavar="FILE.rrd",
-                     help="also write a rerun recording of the results")
+    out.add_argument(
+        "--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)"
+    )
+    out.add_argument(
+        "--rerun-save", dest="rerun", type=path, metavar="FILE.rrd", help="also write a rerun recording of the results"
+    )
     add_renamed_option(out, "--rerun", "--rerun-save FILE.rrd", "a file; qube-run --rerun streams to a viewer")
     add_force_option(out)
     add_figure_options(p)
     return p
 
 
-
 def _lifting(args) -> list:
     """The lifting the options give: one builder with the search's (``LiftingSpec.steps``)."""
     from qube_koopman.identify.model_selection.search import LiftingSpec
 
-    spec = LiftingSpec(delays=args.delays, poly=args.poly, trig=args.trig, friction=args.friction,
-                       const=args.const, rbf=0 if args.rbf == "none" else args.rbf_centers)
+    spec = LiftingSpec(
+        delays=args.delays,
+        poly=args.poly,
+        trig=args.trig,
+        friction=args.friction,
+        const=args.const,
+        rbf=0 if args.rbf == "none" else args.rbf_centers,
+    )
     return spec.steps(args.rbf_seed, args.rbf, args.rbf_shape, args.rbf_offset)
 
 
@@ -229,25 +365,39 @@ def _check_cross_validation(args, train) -> None:
     """Cross-validation (--search, --alpha-sweep) holds out whole training episodes: two at least."""
     option = "--search" if args.search else "--alpha-sweep" if args.alpha_sweep else None
     if option and len(train) < 2:
-        raise CliError(f"{option} cross-validates by holding out whole training episodes: it needs at least 2 "
-                       f"training logs, got {len(train)} ({train[0].path})")
+        raise CliError(
+            f"{option} cross-validates by holding out whole training episodes: it needs at least 2 "
+            f"training logs, got {len(train)} ({train[0].path})"
+        )
 
 
 def _check_delays(args, logs) -> None:
     """A lifting of N delays consumes N samples of each episode and predicts from the next two."""
     shortest = min(logs, key=lambda log: log.n_samples)
     if not args.search and args.delays + 2 > shortest.n_samples:
-        raise CliError(f"--delays {args.delays} needs episodes of at least {args.delays + 2} samples; "
-                       f"{shortest.path} has {shortest.n_samples} (after --skip {args.skip})")
+        raise CliError(
+            f"--delays {args.delays} needs episodes of at least {args.delays + 2} samples; "
+            f"{shortest.path} has {shortest.n_samples} (after --skip {args.skip})"
+        )
 
 
 def _check_search_args(args) -> None:
-    chosen = [flag for flag, given in (("--poly", args.poly is not None), ("--delays", args.delays is not None),
-                                       ("--trig", args.trig), ("--friction", args.friction),
-                                       ("--rbf", args.rbf != "none"), ("--const", args.const),
-                                       ("--alpha", args.alpha is not None), ("--alpha-sweep", args.alpha_sweep),
-                                       ("--offsets", args.offsets), ("--max-radius", args.max_radius is not None))
-              if given]
+    chosen = [
+        flag
+        for flag, given in (
+            ("--poly", args.poly is not None),
+            ("--delays", args.delays is not None),
+            ("--trig", args.trig),
+            ("--friction", args.friction),
+            ("--rbf", args.rbf != "none"),
+            ("--const", args.const),
+            ("--alpha", args.alpha is not None),
+            ("--alpha-sweep", args.alpha_sweep),
+            ("--offsets", args.offsets),
+            ("--max-radius", args.max_radius is not None),
+        )
+        if given
+    ]
     if chosen:
         raise CliError(f"--search chooses the lifting, alpha and offsets itself: leave out {', '.join(chosen)}")
     if args.method != "cl-edmd" or args.score != "cl":
@@ -264,8 +414,10 @@ def _check_args(args) -> None:
     if args.worker_logs and not args.scheduler:
         raise CliError("--worker-logs says how dask workers read the logs: it needs --scheduler")
     if args.scheduler and args.method in ("arx", "cl-arx"):
-        raise CliError(f"--scheduler computes the Koopman methods' per-episode statistics; --method {args.method} "
-                       "fits here (leave out --scheduler)")
+        raise CliError(
+            f"--scheduler computes the Koopman methods' per-episode statistics; --method {args.method} "
+            "fits here (leave out --scheduler)"
+        )
     check_cluster_options(args, PROG)  # the address, and TLS or the loopback
     if args.protocol == "paper" and args.offsets:
         raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
@@ -286,16 +438,19 @@ def _check_args(args) -> None:
 
         lag = CoulombFriction().lag
         if args.delays < lag:
-            raise CliError(f"--friction measures the arm's motion over {lag} samples: it needs --delays {lag} or "
-                           f"more, got --delays {args.delays}")
+            raise CliError(
+                f"--friction measures the arm's motion over {lag} samples: it needs --delays {lag} or "
+                f"more, got --delays {args.delays}"
+            )
     if args.alpha is not None and not 0 <= args.alpha < math.inf:
         raise CliError(f"--alpha must be a finite number >= 0, got {args.alpha}")
     if args.alpha_sweep:
         try:
             lo, hi, n = float(args.alpha_sweep[0]), float(args.alpha_sweep[1]), int(args.alpha_sweep[2])
         except ValueError:
-            raise CliError(f"--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30, got "
-                           f"{' '.join(args.alpha_sweep)}") from None
+            raise CliError(
+                f"--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30, got {' '.join(args.alpha_sweep)}"
+            ) from None
         if not (0 < lo < hi) or n < 2:
             raise CliError(f"--alpha-sweep needs 0 < MIN < MAX and N >= 2, got {' '.join(args.alpha_sweep)}")
         if hi == math.inf or n > MAX_ALPHAS:
@@ -317,15 +472,20 @@ def _check_args(args) -> None:
         if args.method != "cl-edmd" or args.alpha_sweep:
             raise CliError("--max-radius constrains a single CL EDMD fit (--method cl-edmd, no --alpha-sweep)")
         args.method = "cl-edmd-stable"
-    for option, value in (("--estimate-window", args.estimate_window), ("--offset-bound", args.offset_bound),
-                          ("--rbf-shape", args.rbf_shape), ("--rbf-offset", args.rbf_offset)):
+    for option, value in (
+        ("--estimate-window", args.estimate_window),
+        ("--offset-bound", args.offset_bound),
+        ("--rbf-shape", args.rbf_shape),
+        ("--rbf-offset", args.rbf_offset),
+    ):
         if not value > 0:
             raise CliError(f"{option} must be positive, got {value}")
     from qube_koopman.core.qube import MAX_DURATION
 
     if not args.estimate_window <= MAX_DURATION:  # inf, 1e308: no whole number of samples (a traceback)
-        raise CliError(f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got "
-                       f"{args.estimate_window}")
+        raise CliError(
+            f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got {args.estimate_window}"
+        )
     _check_interval(args)
     check_rerun_target(args.rerun, "--rerun-save", args.force)  # before any work, not after the fit
     check_output_folder(args.out, OUTPUT_FILES + ((PREDICTIONS,) if args.interval else ()), force=args.force)
@@ -348,15 +508,19 @@ def _check_interval_data(args, train) -> None:
     if not args.interval or len(train) >= 2:
         return
     if args.interval_asked:
-        raise CliError(f"--interval calibrates on held-out training episodes: it needs at least 2 training logs, got "
-                       f"{len(train)} ({train[0].path})")
-    logging.getLogger(__name__).info("one training log: no prediction intervals (they are calibrated on held-out "
-                                     "training episodes)")
+        raise CliError(
+            f"--interval calibrates on held-out training episodes: it needs at least 2 training logs, got "
+            f"{len(train)} ({train[0].path})"
+        )
+    logging.getLogger(__name__).info(
+        "one training log: no prediction intervals (they are calibrated on held-out training episodes)"
+    )
     args.interval = 0.0
 
 
 def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
     """Refuse a log among both the training and the test logs: its test score would be meaningless."""
+
     def key(path: Path):
         info = path.stat()
         return info.st_dev, info.st_ino  # the same file by any name (a link, another path)
@@ -365,8 +529,10 @@ def _check_disjoint(train_paths: list[Path], test_paths: list[Path]) -> None:
     both = list(dict.fromkeys(str(p) for p in test_paths if key(p) in training))
     if both:
         more = f" and {len(both) - 3} more" if len(both) > 3 else ""
-        raise CliError(f"{', '.join(both[:3])}{more}: among both the training and the test logs (a test "
-                       "score on training data means nothing)")
+        raise CliError(
+            f"{', '.join(both[:3])}{more}: among both the training and the test logs (a test "
+            "score on training data means nothing)"
+        )
 
 
 def _load(args):
@@ -429,15 +595,19 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         what_if = _what_if_controller(args.controller, train[0].dt) if args.controller else None
         out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
         predictions = output_dir(out / PREDICTIONS) if args.interval else None
-        logging.getLogger(__name__).info("%d training and %d test episodes, %d samples dropped from each",
-                                         len(train), len(test), args.skip)
-        offsets = (OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound)
-                   if args.offsets else None)
+        logging.getLogger(__name__).info(
+            "%d training and %d test episodes, %d samples dropped from each", len(train), len(test), args.skip
+        )
+        offsets = OffsetProtocol(tuple(args.offsets), args.estimate_window, args.offset_bound) if args.offsets else None
         if offsets and min(log.n_samples for log in test) <= offsets.window(train[0].dt) + 2:
-            raise CliError(f"--estimate-window {args.estimate_window} s leaves nothing to score in the shortest "
-                           "test episode")
-        alphas = None if not args.alpha_sweep else np.logspace(np.log10(args.alpha_sweep[0]),
-                                                               np.log10(args.alpha_sweep[1]), args.alpha_sweep[2])
+            raise CliError(
+                f"--estimate-window {args.estimate_window} s leaves nothing to score in the shortest test episode"
+            )
+        alphas = (
+            None
+            if not args.alpha_sweep
+            else np.logspace(np.log10(args.alpha_sweep[0]), np.log10(args.alpha_sweep[1]), args.alpha_sweep[2])
+        )
         search = None
         if args.search:
             from qube_koopman.identify.cli.search import run_search
@@ -449,24 +619,44 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         from qube_koopman.identify.cli.search import probe_cache
 
         result = identify_and_score(
-            method=args.method, lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
-            train=train, test=test, controller=controller,
-            alpha=1e-3 if args.alpha is None else args.alpha, score=args.score,
+            method=args.method,
+            lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
+            train=train,
+            test=test,
+            controller=controller,
+            alpha=1e-3 if args.alpha is None else args.alpha,
+            score=args.score,
             # An ndarray, which identify_and_score handles; its annotation says Sequence[float] until
             # workflow.py (being edited) is checked.
             alphas=alphas,  # type: ignore[arg-type]
-            cv_splits=args.cv_splits, cv_seed=args.cv_seed, arx_lags=args.arx_lags,
-            model_path=out / "model.json", offsets=offsets, what_if=what_if, progress=progress,
+            cv_splits=args.cv_splits,
+            cv_seed=args.cv_seed,
+            arx_lags=args.arx_lags,
+            model_path=out / "model.json",
+            offsets=offsets,
+            what_if=what_if,
+            progress=progress,
             keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
-            score_from=(int(round(args.estimate_window / train[0].dt))
-                        if args.protocol == "window" and offsets is None else None), episode_statistics=statistics,
-            intervals=(IntervalOptions(args.interval, args.interval_members, seed=args.interval_seed,
-                                       other_loops=args.interval_other_loops)
-                       if args.interval else None), predictions_folder=predictions,
+            score_from=(
+                int(round(args.estimate_window / train[0].dt))
+                if args.protocol == "window" and offsets is None
+                else None
+            ),
+            episode_statistics=statistics,
+            intervals=(
+                IntervalOptions(
+                    args.interval, args.interval_members, seed=args.interval_seed, other_loops=args.interval_other_loops
+                )
+                if args.interval
+                else None
+            ),
+            predictions_folder=predictions,
             probes=None if search is None else search.probes,
             probe_cache=probe_cache() if args.probe_cache else None,
-            estimator_options=({"max_radius": args.max_radius, "center": args.pole_center}
-                               if args.max_radius is not None else None))
+            estimator_options=(
+                {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
+            ),
+        )
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if statistics is not None:  # where the training statistics were computed
@@ -488,8 +678,11 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
     _print_controllers(result.report["training_controllers"])
     _print_scores(args, result.report)
     _print_intervals(result.report.get("intervals"))
-    written = (["model.json", "report.json", "report.md"] + ([PREDICTIONS] if args.interval else [])
-               + (["figures"] if args.figures else []))
+    written = (
+        ["model.json", "report.json", "report.md"]
+        + ([PREDICTIONS] if args.interval else [])
+        + (["figures"] if args.figures else [])
+    )
     print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
     return 0
 
@@ -505,8 +698,10 @@ def _what_if_controller(path: str, dt: float):
     # that grows on its own is not: its predictions overflow long before they say why.
     radius = spectral_radius(system.A)
     if radius > 1.0 + 1e-9:
-        raise CliError(f"{path}: the controller is unstable on its own (spectral radius of A {radius:.6g} > 1): "
-                       "its state grows without bound whatever the errors")
+        raise CliError(
+            f"{path}: the controller is unstable on its own (spectral radius of A {radius:.6g} > 1): "
+            "its state grows without bound whatever the errors"
+        )
     return system
 
 
@@ -514,34 +709,42 @@ def _print_controllers(training: dict) -> None:
     """With training logs of several controllers: how many episodes each, and whose loop the model is."""
     if training["n_controllers"] < 2:
         return
-    each = ", ".join(f"controller {c['controller']}: {c['n_episodes']}" + (" (the model's closed loop)"
-                                                                          if c["model_closed_loop"] else "")
-                     for c in training["controllers"])
+    each = ", ".join(
+        f"controller {c['controller']}: {c['n_episodes']}"
+        + (" (the model's closed loop)" if c["model_closed_loop"] else "")
+        for c in training["controllers"]
+    )
     print(f"training episodes under {training['n_controllers']} controllers ({each}); one plant fitted to all")
 
 
 def _print_scores(args, report: dict) -> None:
     t = report["test"]
     if t is None:
-        print(f"{args.method}, alpha {report['alpha'] if report['alpha'] is not None else '-'}: no test episode "
-              f"was recorded under --controller "
-              f"{args.controller}; predictions only (nothing to score)")
+        print(
+            f"{args.method}, alpha {report['alpha'] if report['alpha'] is not None else '-'}: no test episode "
+            f"was recorded under --controller "
+            f"{args.controller}; predictions only (nothing to score)"
+        )
         return
     alpha = "-" if report["alpha"] is None else f"{report['alpha']:g}"  # ARX has no regularization
     if t["n_diverged"]:
         converged = t["r2_mean_converged"]
-        scores = (f"test R^2 -inf: {t['n_diverged']} of {t['n_episodes']} predictions diverged"
-                  + (f" (the others' mean {converged:.4f})" if converged is not None else ""))
+        scores = f"test R^2 -inf: {t['n_diverged']} of {t['n_episodes']} predictions diverged" + (
+            f" (the others' mean {converged:.4f})" if converged is not None else ""
+        )
     else:
-        scores = (f"test R^2 {t['r2_mean']:.4f} +- {t['r2_std'] or 0:.4f}, NRMSE {t['nrmse_mean']:.2f} +- "
-                  f"{t['nrmse_std'] or 0:.2f} %")
+        scores = (
+            f"test R^2 {t['r2_mean']:.4f} +- {t['r2_std'] or 0:.4f}, NRMSE {t['nrmse_mean']:.2f} +- "
+            f"{t['nrmse_std'] or 0:.2f} %"
+        )
     over = "" if t["n_diverged"] else f" over {t['n_episodes']} episodes"
     line = f"{args.method}, alpha {alpha}: {scores}{over} ({args.score})"
     plain = report.get("test_without_offsets")
     if plain is not None:
         flagged = sum(not e["plausible"] for e in report["offsets"])
-        line += (f" with offsets estimated; without them on the same samples R^2 {plain['r2_mean']:.4f}"
-                 + (f"; {flagged} implausible estimate(s) not used" if flagged else ""))
+        line += f" with offsets estimated; without them on the same samples R^2 {plain['r2_mean']:.4f}" + (
+            f"; {flagged} implausible estimate(s) not used" if flagged else ""
+        )
     print(line)
 
 
@@ -550,21 +753,34 @@ def _print_intervals(intervals: dict | None) -> None:
     if not intervals or not intervals.get("pooled"):
         return
     pooled = intervals["pooled"]
-    each = "; ".join(f"{name} coverage {pooled['coverage'][name]:.3f} (worst episode "
-                     f"{pooled['worst_episode_coverage'][name]:.3f}), mean half-width "
-                     f"{pooled['mean_half_width'][name]:.4g} rad" for name in pooled["coverage"])
+    each = "; ".join(
+        f"{name} coverage {pooled['coverage'][name]:.3f} (worst episode "
+        f"{pooled['worst_episode_coverage'][name]:.3f}), mean half-width "
+        f"{pooled['mean_half_width'][name]:.4g} rad"
+        for name in pooled["coverage"]
+    )
     elsewhere, probed = pooled.get("n_uncalibrated_loop"), pooled.get("n_probe_calibrated")
-    print(f"intervals at {intervals['level']:g}: {each}"
-          + (f"; {probed} episode(s) under a controller the training did not run: calibrated on the twin's "
-             "probes" if probed else "")
-          + (f"; {elsewhere} episode(s) under a controller the calibration did not see: their intervals are the "
-             "training loops'" if elsewhere else ""))
+    print(
+        f"intervals at {intervals['level']:g}: {each}"
+        + (
+            f"; {probed} episode(s) under a controller the training did not run: calibrated on the twin's probes"
+            if probed
+            else ""
+        )
+        + (
+            f"; {elsewhere} episode(s) under a controller the calibration did not see: their intervals are the "
+            "training loops'"
+            if elsewhere
+            else ""
+        )
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``qube-identify``; returns the exit status."""
     args = _parser().parse_args(argv)
     return run_command(PROG, _run, args, one_line_warnings=ONE_LINE_WARNINGS)
+
 
 if __name__ == "__main__":
     sys.exit(main())

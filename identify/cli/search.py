@@ -13,8 +13,16 @@ from pathlib import Path
 from qube_koopman.core.command import CliError, progress
 
 _log = logging.getLogger(__name__)
-_LISTS = {"delays": int, "poly": int, "rbf": int, "alphas": float, "const": bool, "trig": bool, "offsets": bool,
-          "friction": bool}
+_LISTS = {
+    "delays": int,
+    "poly": int,
+    "rbf": int,
+    "alphas": float,
+    "const": bool,
+    "trig": bool,
+    "offsets": bool,
+    "friction": bool,
+}
 #: Single numbers a space file may set: how many candidates of a screened stage are evaluated in full (0: all).
 _NUMBERS = {"n_finalists": int}
 
@@ -40,9 +48,14 @@ def load_space(path: str | None):
             values[key] = value
             continue
         kind = _LISTS[key]
-        if not isinstance(value, list) or not value or not all(
-                isinstance(v, kind) or (kind is float and isinstance(v, int) and not isinstance(v, bool))
-                for v in value) or (kind is int and any(isinstance(v, bool) for v in value)):
+        if (
+            not isinstance(value, list)
+            or not value
+            or not all(
+                isinstance(v, kind) or (kind is float and isinstance(v, int) and not isinstance(v, bool)) for v in value
+            )
+            or (kind is int and any(isinstance(v, bool) for v in value))
+        ):
             raise CliError(f"{path}: {key} must be a non-empty list of {kind.__name__} values")
         values[key] = tuple(kind(v) for v in value)
     try:
@@ -72,11 +85,19 @@ def search_options(args):
     """The search's options from the command line's (parsed and checked) arguments."""
     from qube_koopman.identify.workflow import SearchOptions
 
-    return SearchOptions(space=search_space(args), estimate_window=args.estimate_window,
-                         offset_bound=args.offset_bound, cv_splits=args.cv_splits, cv_seed=args.cv_seed,
-                         transfer=args.transfer, probe_cache=probe_cache() if args.probe_cache else None,
-                         rbf_seed=args.rbf_seed, n_jobs=args.n_jobs, scheduler=args.scheduler,
-                         security=args.security)
+    return SearchOptions(
+        space=search_space(args),
+        estimate_window=args.estimate_window,
+        offset_bound=args.offset_bound,
+        cv_splits=args.cv_splits,
+        cv_seed=args.cv_seed,
+        transfer=args.transfer,
+        probe_cache=probe_cache() if args.probe_cache else None,
+        rbf_seed=args.rbf_seed,
+        n_jobs=args.n_jobs,
+        scheduler=args.scheduler,
+        security=args.security,
+    )
 
 
 def run_search(args, train, controller):
@@ -90,21 +111,30 @@ def run_search(args, train, controller):
     except ValueError as exc:
         raise CliError(str(exc).replace("an estimation window of", "--estimate-window")) from None
     if result.probes is not None:
-        _log.info("search: %d twin probe episodes simulated in %.1f s", result.probes.n_episodes,
-                  result.probe_seconds)
-    _log.info("search: time per stage (wall; candidates' statistics / fits / predictions / offsets / probe fits / "
-              "probe scoring, summed over workers): %s", "; ".join(
-                  f"{stage} {t['wall']:.1f} s ({' / '.join(f'{t[k]:.1f}' for k in TIMING_KEYS)})"
-                  for stage, t in result.timing()["stages"].items()))
+        _log.info("search: %d twin probe episodes simulated in %.1f s", result.probes.n_episodes, result.probe_seconds)
+    _log.info(
+        "search: time per stage (wall; candidates' statistics / fits / predictions / offsets / probe fits / "
+        "probe scoring, summed over workers): %s",
+        "; ".join(
+            f"{stage} {t['wall']:.1f} s ({' / '.join(f'{t[k]:.1f}' for k in TIMING_KEYS)})"
+            for stage, t in result.timing()["stages"].items()
+        ),
+    )
     for r in result.screened:
-        _log.info("search: %s screened out (%s): screen objective %s", r.stage, r.spec.label(),
-                  f"{r.score:.4f}" if math.isfinite(r.score) else "diverged")
+        _log.info(
+            "search: %s screened out (%s): screen objective %s",
+            r.stage,
+            r.spec.label(),
+            f"{r.score:.4f}" if math.isfinite(r.score) else "diverged",
+        )
     best = result.winner
     transfer = "" if best.transfer_score is None else f", transfer R^2 {best.transfer_score:.4f}"
     screened = f" (and {len(result.screened)} screened out)" if result.screened else ""
-    print(f"search: {len(result.candidates)} candidates{screened} in {result.seconds:.0f} s; "
-          f"winner {best.spec.label()}, alpha {best.best_alpha:g}, cross-validated R^2 {best.cv_score:.4f}{transfer}",
-          file=sys.stderr)
+    print(
+        f"search: {len(result.candidates)} candidates{screened} in {result.seconds:.0f} s; "
+        f"winner {best.spec.label()}, alpha {best.best_alpha:g}, cross-validated R^2 {best.cv_score:.4f}{transfer}",
+        file=sys.stderr,
+    )
     return result
 
 
@@ -115,24 +145,30 @@ def _same_controller_report(scores) -> dict | None:
     by: dict[int, list[float]] = {}
     for label, r2 in scores:
         by.setdefault(label + 1, []).append(r2)
-    return {"cv_r2": float(sum(r for _, r in scores) / len(scores)),
-            "description": "folds holding out 20% of one controller's training episodes, trained on all the others",
-            "controllers": [{"controller": c, "cv_r2": float(sum(v) / len(v)), "folds": v} for c, v in by.items()]}
+    return {
+        "cv_r2": float(sum(r for _, r in scores) / len(scores)),
+        "description": "folds holding out 20% of one controller's training episodes, trained on all the others",
+        "controllers": [{"controller": c, "cv_r2": float(sum(v) / len(v)), "folds": v} for c, v in by.items()],
+    }
 
 
 OBJECTIVE = {
-    "twin": ("the lower of the cross-validated R^2 (the training controller) and the transfer R^2 (the plant "
-             "wrapped with each probe controller predicting the twin's probe episodes, with the candidate's "
-             "offset protocol, scored from the same sample): a model must predict both the loop it was trained "
-             "under and loops it was not"),
+    "twin": (
+        "the lower of the cross-validated R^2 (the training controller) and the transfer R^2 (the plant "
+        "wrapped with each probe controller predicting the twin's probe episodes, with the candidate's "
+        "offset protocol, scored from the same sample): a model must predict both the loop it was trained "
+        "under and loops it was not"
+    ),
     "none": "the cross-validated R^2 alone (it sees only the training controller)",
 }
 
 
-SCREENING = ("successive halving: each candidate of a screened stage is first scored on its first {folds} "
-             "fold(s) over the alpha grid and probed at the alpha best there (its screen); the {k} best whose "
-             "screens did not diverge are evaluated in full (the other folds and probe alphas added: the same "
-             "scores as a full evaluation), the others are screened out and not ranked (--no-screen: all in full)")
+SCREENING = (
+    "successive halving: each candidate of a screened stage is first scored on its first {folds} "
+    "fold(s) over the alpha grid and probed at the alpha best there (its screen); the {k} best whose "
+    "screens did not diverge are evaluated in full (the other folds and probe alphas added: the same "
+    "scores as a full evaluation), the others are screened out and not ranked (--no-screen: all in full)"
+)
 
 
 def search_report(result, args, names) -> dict:
@@ -142,28 +178,40 @@ def search_report(result, args, names) -> dict:
 
     space = search_space(args)
     return {
-        "winner": {**result.winner.as_dict(), "flags": " ".join(
-            result.winner.spec.flags(args.rbf_seed) + ["--alpha", f"{result.winner.best_alpha:g}",
-                                                        "--estimate-window", f"{args.estimate_window:g}"])},
+        "winner": {
+            **result.winner.as_dict(),
+            "flags": " ".join(
+                result.winner.spec.flags(args.rbf_seed)
+                + ["--alpha", f"{result.winner.best_alpha:g}", "--estimate-window", f"{args.estimate_window:g}"]
+            ),
+        },
         "candidates": [r.as_dict() for r in result.ranked()],
-        "screening": {"n_finalists": space.n_finalists, "screen_folds": space.screen_folds,
-                      "stages": list(space.screened_stages) if space.n_finalists else [],
-                      "description": SCREENING.format(folds=space.screen_folds, k=space.n_finalists)
-                      if space.n_finalists else "none: every candidate evaluated in full (--no-screen)"},
+        "screening": {
+            "n_finalists": space.n_finalists,
+            "screen_folds": space.screen_folds,
+            "stages": list(space.screened_stages) if space.n_finalists else [],
+            "description": SCREENING.format(folds=space.screen_folds, k=space.n_finalists)
+            if space.n_finalists
+            else "none: every candidate evaluated in full (--no-screen)",
+        },
         "screened": [r.as_dict() for r in result.screened],
         "stages": list(STAGES),
         "space": {f.name: getattr(space, f.name) for f in fields(space) if f.name in _LISTS},
         "alphas": list(space.alphas),
-        "cv_kind": result.folds.kind, "cv_description": FOLD_KINDS[result.folds.kind],
+        "cv_kind": result.folds.kind,
+        "cv_description": FOLD_KINDS[result.folds.kind],
         "cv_splits": len(result.folds.splits),
         "cv_seed": args.cv_seed if result.folds.kind == "episode-grouped" else None,
         "folds": result.folds.report(names, result.winner.cv_r2[:, result.winner.best_index]),
-        "score": (f"mean R^2 of theta and alpha over each fold's validation episodes, closed-loop prediction "
-                  f"from the episode's start, scored from sample {result.window} on"),
+        "score": (
+            f"mean R^2 of theta and alpha over each fold's validation episodes, closed-loop prediction "
+            f"from the episode's start, scored from sample {result.window} on"
+        ),
         "objective": OBJECTIVE[args.transfer],
         "transfer": None if result.probes is None else result.probes.describe(),
         "same_controller": _same_controller_report(result.same_controller),
         "seconds": result.seconds,
         "timing": result.timing(),
-        "n_jobs": args.n_jobs, "scheduler": args.scheduler,
+        "n_jobs": args.n_jobs,
+        "scheduler": args.scheduler,
     }

@@ -18,8 +18,18 @@ from qube_koopman.core.qube import STATE_NAMES
 from qube_koopman.identify.data.trajectory import EpisodeSequence, Trajectory
 from qube_koopman.core.lti import DiscreteStateSpace, same_system
 
-__all__ = ["LoggedTrajectory", "StoredLog", "LogTrajectories", "load_logs", "check_same_controller", "check_same_rate",
-           "IncompleteLogSkipped", "UnreadableLogSkipped", "find_logs", "read_episodes"]
+__all__ = [
+    "LoggedTrajectory",
+    "StoredLog",
+    "LogTrajectories",
+    "load_logs",
+    "check_same_controller",
+    "check_same_rate",
+    "IncompleteLogSkipped",
+    "UnreadableLogSkipped",
+    "find_logs",
+    "read_episodes",
+]
 
 
 _log = logging.getLogger(__name__)
@@ -130,16 +140,30 @@ def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTraj
         return None, 0
     if len(episode) <= skip + 2:
         raise ValueError(f"{path}: {len(episode)} samples, too few to drop {skip} and identify")
-    traj = Trajectory(x=episode.states, u=np.asarray(episode.plant_input)[:, None], r=episode.references,
-                      f=np.asarray(episode.feedforward)[:, None], xc=episode.controller_state,
-                      name=path.name, state_names=STATE_NAMES, input_names=("u",), dt=episode.dt)
-    return LoggedTrajectory(path, traj.skip(skip), episode.controller,
-                            dict(episode.metadata.controller.gains) or None), len(episode)
+    traj = Trajectory(
+        x=episode.states,
+        u=np.asarray(episode.plant_input)[:, None],
+        r=episode.references,
+        f=np.asarray(episode.feedforward)[:, None],
+        xc=episode.controller_state,
+        name=path.name,
+        state_names=STATE_NAMES,
+        input_names=("u",),
+        dt=episode.dt,
+    )
+    return LoggedTrajectory(
+        path, traj.skip(skip), episode.controller, dict(episode.metadata.controller.gains) or None
+    ), len(episode)
 
 
-def load_logs(paths: Sequence[str | Path], skip: int = 0, strict: bool = False, *,
-              refusal: str = "refused because of --strict",
-              stored: bool = False) -> list[LoggedTrajectory | StoredLog]:
+def load_logs(
+    paths: Sequence[str | Path],
+    skip: int = 0,
+    strict: bool = False,
+    *,
+    refusal: str = "refused because of --strict",
+    stored: bool = False,
+) -> list[LoggedTrajectory | StoredLog]:
     """Read MCAP episode logs into trajectories, dropping ``skip`` samples at each start.
 
     Incomplete logs (aborted, or cut short and salvaged) are skipped with an
@@ -189,8 +213,10 @@ def check_same_rate(logs: Sequence[LoggedTrajectory | StoredLog], what: str) -> 
     dt = logs[0].dt
     for log in logs[1:]:
         if not np.isclose(log.dt, dt, rtol=1e-9, atol=0):
-            raise ValueError(f"{log.path}: sample rate {1 / log.dt:g} Hz differs from "
-                             f"{1 / dt:g} Hz of {logs[0].path.name} ({what} logs must share one rate)")
+            raise ValueError(
+                f"{log.path}: sample rate {1 / log.dt:g} Hz differs from "
+                f"{1 / dt:g} Hz of {logs[0].path.name} ({what} logs must share one rate)"
+            )
     return dt
 
 
@@ -199,8 +225,10 @@ def check_same_controller(logs: Sequence[LoggedTrajectory | StoredLog], what: st
     controller = logs[0].controller
     for log in logs[1:]:
         if not same_system(log.controller, controller):
-            raise ValueError(f"{log.path}: its controller differs from that of {logs[0].path.name} "
-                             f"({what} logs must share one controller)")
+            raise ValueError(
+                f"{log.path}: its controller differs from that of {logs[0].path.name} "
+                f"({what} logs must share one controller)"
+            )
     return controller
 
 

@@ -77,6 +77,7 @@ class Trajectory:
 
     def skip(self, n: int) -> "Trajectory":
         """The same trajectory without its first ``n`` samples."""
+
         def cut(signal: np.ndarray | None) -> np.ndarray | None:
             return None if signal is None else signal[n:]
 
@@ -106,8 +107,9 @@ class EpisodeSequence(Sequence):
 class _EpisodeView(EpisodeSequence):
     """Some episodes of a lazy sequence (``indices``), or one signal of each (``signal``)."""
 
-    def __init__(self, base: EpisodeSequence, indices: Sequence[int] | np.ndarray | None = None,
-                 signal: str | None = None):
+    def __init__(
+        self, base: EpisodeSequence, indices: Sequence[int] | np.ndarray | None = None, signal: str | None = None
+    ):
         self._base, self._indices, self._signal = base, None if indices is None else [int(i) for i in indices], signal
 
     def __len__(self) -> int:
@@ -139,8 +141,9 @@ def episode_signals(episodes: Sequence, signal: str) -> Sequence:
     return [getattr(t, signal) for t in episodes]
 
 
-def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, what: str,
-                       each=None) -> Sequence[Trajectory]:
+def check_trajectories(
+    trajectories, needs: Sequence[str], min_samples: int, what: str, each=None
+) -> Sequence[Trajectory]:
     """A non-empty sequence of trajectories with the needed signals and consistent widths.
 
     A lazy sequence (:class:`EpisodeSequence`) is checked episode by episode and returned as it is.
@@ -163,11 +166,14 @@ def check_trajectories(trajectories, needs: Sequence[str], min_samples: int, wha
                 raise ValueError(f"{what} needs signal {key!r}, missing in trajectory {label}")
             ref = getattr(first, key)
             if value.shape[1] != ref.shape[1]:
-                raise ValueError(f"trajectory {label}: {key} has {value.shape[1]} channels, "
-                                 f"the first trajectory has {ref.shape[1]}")
+                raise ValueError(
+                    f"trajectory {label}: {key} has {value.shape[1]} channels, the first trajectory has {ref.shape[1]}"
+                )
         if traj.dt != first.dt:
             raise ValueError(f"trajectory {label} has sample period {traj.dt}, the first has {first.dt}")
         if traj.n_samples < min_samples:
-            raise ValueError(f"trajectory {label} has {traj.n_samples} samples; {what} needs at least "
-                             f"{min_samples} (delays plus two)")
+            raise ValueError(
+                f"trajectory {label} has {traj.n_samples} samples; {what} needs at least "
+                f"{min_samples} (delays plus two)"
+            )
     return trajectories

@@ -121,8 +121,7 @@ def _groups(lam: np.ndarray, pick: np.ndarray, gap: float) -> list[list[int]]:
     return groups
 
 
-def _group_constraints(problem: DiscProblem, A: np.ndarray, lam: np.ndarray, group: list[int],
-                       rho: float):
+def _group_constraints(problem: DiscProblem, A: np.ndarray, lam: np.ndarray, group: list[int], rho: float):
     """Linearized "the group's eigenvalues in the disc |z| <= rho": rows (value, gradient in U),
     each meaning ``value + <gradient, dU> <= 0``.
 
@@ -137,8 +136,10 @@ def _group_constraints(problem: DiscProblem, A: np.ndarray, lam: np.ndarray, gro
     chosen = lam[group]
 
     def select(re, im):
-        return bool(np.argmin(np.abs(lam - complex(re, im))) in group or
-                    np.min(np.abs(chosen - complex(re, im))) < 1e-9 * (1.0 + abs(complex(re, im))))
+        return bool(
+            np.argmin(np.abs(lam - complex(re, im))) in group
+            or np.min(np.abs(chosen - complex(re, im))) < 1e-9 * (1.0 + abs(complex(re, im)))
+        )
 
     T, Q, sdim = linalg.schur(A, output="real", sort=select)
     k = len(group)
@@ -148,7 +149,7 @@ def _group_constraints(problem: DiscProblem, A: np.ndarray, lam: np.ndarray, gro
     Yt = np.hstack([np.eye(k), R]) @ Q.T
     left, right = Yt[:, problem.rows].T, (problem.S @ Q[:, :k]).T
 
-    def grad(C):   # gradient of trace(C^T T11) in U
+    def grad(C):  # gradient of trace(C^T T11) in U
         return left @ C @ right
 
     B = T[:k, :k]
@@ -157,9 +158,13 @@ def _group_constraints(problem: DiscProblem, A: np.ndarray, lam: np.ndarray, gro
         return [(t - rho, grad(np.ones((1, 1)))), (-t - rho, -grad(np.ones((1, 1))))]
     s, p = np.trace(B), np.linalg.det(B)
     gs = grad(np.eye(2))
-    gp = grad(np.array([[B[1, 1], -B[1, 0]], [-B[0, 1], B[0, 0]]]))   # adj(B)^T
-    return [(p - rho ** 2, gp), (-p - rho ** 2, -gp),
-            (s - rho - p / rho, gs - gp / rho), (-s - rho - p / rho, -gs - gp / rho)]
+    gp = grad(np.array([[B[1, 1], -B[1, 0]], [-B[0, 1], B[0, 0]]]))  # adj(B)^T
+    return [
+        (p - rho**2, gp),
+        (-p - rho**2, -gp),
+        (s - rho - p / rho, gs - gp / rho),
+        (-s - rho - p / rho, -gs - gp / rho),
+    ]
 
 
 def _constraints(problem: DiscProblem, U: np.ndarray, center: float, rho: float, floor: float):
@@ -189,9 +194,16 @@ def _least_distance(G: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, float]:
     return -r[:-1] / r[-1], 2.0 * float(u.max(initial=0.0)) / abs(r[-1])
 
 
-def least_change_into_disc(problem: DiscProblem, U0: np.ndarray, radius: float, center: float = 0.0,
-                           margin: float = 1e-9, band: float = 1e-2, max_iter: int = 100,
-                           rtol: float = 1e-4) -> DiscResult:
+def least_change_into_disc(
+    problem: DiscProblem,
+    U0: np.ndarray,
+    radius: float,
+    center: float = 0.0,
+    margin: float = 1e-9,
+    band: float = 1e-2,
+    max_iter: int = 100,
+    rtol: float = 1e-4,
+) -> DiscResult:
     """Smallest ``trace((U - U0) K (U - U0)^T)`` with every eigenvalue of ``A(U)`` in the disc.
 
     Parameters

@@ -49,8 +49,9 @@ class Arx(Estimator):
         ``[A_1 ... A_na B_1 ... B_nb]``.
     """
 
-    def __init__(self, output_lags: int = 1, input_lags: int = 1, inputs: tuple[str, ...] = ("u",),
-                 alpha: float = 0.0) -> None:
+    def __init__(
+        self, output_lags: int = 1, input_lags: int = 1, inputs: tuple[str, ...] = ("u",), alpha: float = 0.0
+    ) -> None:
         self.output_lags = output_lags
         self.input_lags = input_lags
         self.inputs = inputs
@@ -63,7 +64,7 @@ class Arx(Estimator):
     def _regressors(self, y: np.ndarray, v: np.ndarray) -> np.ndarray:
         na, nb, n = self.output_lags, self.input_lags, y.shape[0]
         lag = self._lag
-        cols = [y[lag - i:n - i] for i in range(1, na + 1)] + [v[lag - j:n - j] for j in range(1, nb + 1)]
+        cols = [y[lag - i : n - i] for i in range(1, na + 1)] + [v[lag - j : n - j] for j in range(1, nb + 1)]
         return np.hstack(cols)
 
     def fit(self, trajectories) -> "Arx":
@@ -81,7 +82,7 @@ class Arx(Estimator):
         parts = []
         for t in trajs:
             y, v = t.x, _stack(t, signals)
-            parts.append(Snapshots.from_snapshots(y[self._lag:], self._regressors(y, v)))
+            parts.append(Snapshots.from_snapshots(y[self._lag :], self._regressors(y, v)))
         snapshots = Snapshots.total(parts)
         self.coef_ = ridge_solve(snapshots, alpha)
         self.n_outputs_ = trajs[0].x.shape[1]
@@ -99,15 +100,15 @@ class Arx(Estimator):
         n = na * m + (nb - 1) * p
         A = np.zeros((n, n))
         B = np.zeros((n, p))
-        A_blocks = self.coef_[:, :na * m]
-        B_blocks = self.coef_[:, na * m:]
-        A[:m, :na * m] = A_blocks
-        A[:m, na * m:] = B_blocks[:, p:]
+        A_blocks = self.coef_[:, : na * m]
+        B_blocks = self.coef_[:, na * m :]
+        A[:m, : na * m] = A_blocks
+        A[:m, na * m :] = B_blocks[:, p:]
         B[:m] = B_blocks[:, :p]
-        A[m:na * m, :(na - 1) * m] = np.eye((na - 1) * m)
+        A[m : na * m, : (na - 1) * m] = np.eye((na - 1) * m)
         if nb > 1:
-            B[na * m:na * m + p] = np.eye(p)
-            A[na * m + p:, na * m:n - p] = np.eye((nb - 2) * p)
+            B[na * m : na * m + p] = np.eye(p)
+            A[na * m + p :, na * m : n - p] = np.eye((nb - 2) * p)
         C = np.zeros((m, n))
         C[:, :m] = np.eye(m)
         return DiscreteStateSpace(A, B, C, np.zeros((m, p)), self.dt_ or 1.0)
@@ -118,17 +119,19 @@ class Arx(Estimator):
         y, v = trajectory.x, _stack(trajectory, tuple(self.inputs))
         lag = self._lag
         if y.shape[0] < lag + 1 or y.shape[1] != self.n_outputs_ or v.shape[1] != self.n_inputs_:
-            raise ValueError(f"trajectory {trajectory.name!r} does not fit this ARX model "
-                             f"({self.n_outputs_} outputs, {self.n_inputs_} inputs, {lag} lags)")
+            raise ValueError(
+                f"trajectory {trajectory.name!r} does not fit this ARX model "
+                f"({self.n_outputs_} outputs, {self.n_inputs_} inputs, {lag} lags)"
+            )
         na, nb = self.output_lags, self.input_lags
         out = np.empty_like(y)
         out[:lag] = y[:lag]
-        coef_y = self.coef_[:, :na * self.n_outputs_]
-        coef_v = self.coef_[:, na * self.n_outputs_:]
-        v_reg = np.hstack([v[lag - j:v.shape[0] - j] for j in range(1, nb + 1)]) @ coef_v.T
+        coef_y = self.coef_[:, : na * self.n_outputs_]
+        coef_v = self.coef_[:, na * self.n_outputs_ :]
+        v_reg = np.hstack([v[lag - j : v.shape[0] - j] for j in range(1, nb + 1)]) @ coef_v.T
         with np.errstate(all="ignore"):
             for k in range(lag, y.shape[0]):
-                past = out[k - na:k][::-1].reshape(-1)
+                past = out[k - na : k][::-1].reshape(-1)
                 out[k] = coef_y @ past + v_reg[k - lag]
         return out
 
@@ -174,8 +177,9 @@ class ClArx(Estimator):
         Recovered plant from ``u`` to the measured states (non-minimal).
     """
 
-    def __init__(self, controller: DiscreteStateSpace, output_lags: int = 1, input_lags: int = 1,
-                 alpha: float = 0.0) -> None:
+    def __init__(
+        self, controller: DiscreteStateSpace, output_lags: int = 1, input_lags: int = 1, alpha: float = 0.0
+    ) -> None:
         self.controller = controller
         self.output_lags = output_lags
         self.input_lags = input_lags
@@ -194,13 +198,19 @@ class ClArx(Estimator):
         assert trajs[0].r is not None  # check_trajectories required it
         n_r = trajs[0].r.shape[1]
         if ctrl.n_inputs != n_r or ctrl.n_outputs != 1:
-            raise ValueError(f"CL ARX needs a single-output controller taking {n_r} errors; "
-                             f"got {ctrl.n_outputs} outputs, {ctrl.n_inputs} inputs"
-                             + (" (a controller that also takes the feedforward is not supported: use CL EDMD)"
-                                if ctrl.n_inputs > n_r else ""))
+            raise ValueError(
+                f"CL ARX needs a single-output controller taking {n_r} errors; "
+                f"got {ctrl.n_outputs} outputs, {ctrl.n_inputs} inputs"
+                + (
+                    " (a controller that also takes the feedforward is not supported: use CL EDMD)"
+                    if ctrl.n_inputs > n_r
+                    else ""
+                )
+            )
         if n_r != trajs[0].x.shape[1]:
-            raise ValueError(f"CL ARX feeds back every measured state: {trajs[0].x.shape[1]} states "
-                             f"but {n_r} references")
+            raise ValueError(
+                f"CL ARX feeds back every measured state: {trajs[0].x.shape[1]} states but {n_r} references"
+            )
         if not with_f and n_r != 1:
             raise ValueError("without feedforward CL ARX recovers only a SISO plant")
         inputs = ("r", "f") if with_f else ("r",)
@@ -236,8 +246,10 @@ class ClArx(Estimator):
         A, C = np.atleast_2d(self.plant_.A), np.atleast_2d(self.plant_.C)
         n_hist = max(self.closed_loop_._lag, A.shape[0])
         if trajectory.n_samples <= n_hist:
-            raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; the recovered "
-                             f"plant needs more than {n_hist} (its initial history)")
+            raise ValueError(
+                f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; the recovered "
+                f"plant needs more than {n_hist} (its initial history)"
+            )
         u, y = trajectory.u[:, 0], trajectory.x
         with np.errstate(all="ignore"):
             forced = np.asarray(control.forced_response(self.plant_, U=u).outputs, dtype=float).reshape(len(u), -1)
@@ -246,8 +258,7 @@ class ClArx(Estimator):
                 rows.append(C @ M)
                 M = A @ M
             x0 = np.linalg.lstsq(np.vstack(rows), (y[:n_hist] - forced[:n_hist]).reshape(-1), rcond=None)[0]
-            out = np.asarray(control.forced_response(self.plant_, U=u, X0=x0).outputs,
-                             dtype=float).reshape(len(u), -1)
+            out = np.asarray(control.forced_response(self.plant_, U=u, X0=x0).outputs, dtype=float).reshape(len(u), -1)
         out[:n_hist] = y[:n_hist]
         return out
 

@@ -11,10 +11,20 @@ from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import same_system
 from qube_koopman.identify.estimators.mixed import ControllerGroups, distinct_controllers
-from qube_koopman.identify.estimators.regression import (GroupedSnapshots, Snapshots, constrained_plant_solve,
-                                              grouped_plant_solve, ridge_solve)
-from qube_koopman.identify.estimators.structure import (close_loop, extract_plant_lstsq, feedforward_columns,
-                                             output_selection, plant_input_map)
+from qube_koopman.identify.estimators.regression import (
+    GroupedSnapshots,
+    Snapshots,
+    constrained_plant_solve,
+    grouped_plant_solve,
+    ridge_solve,
+)
+from qube_koopman.identify.estimators.structure import (
+    close_loop,
+    extract_plant_lstsq,
+    feedforward_columns,
+    output_selection,
+    plant_input_map,
+)
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, check_trajectories, episode_signals
 from qube_koopman.core.lti import DiscreteStateSpace
 
@@ -37,8 +47,9 @@ class ClosedLoopKoopman(SnapshotEstimator):
     #: Whether the plant can be fitted to episodes recorded under several controllers.
     _mixed_controllers = False
 
-    def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
-                 measured: Sequence[int] | None = None) -> None:
+    def __init__(
+        self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0, measured: Sequence[int] | None = None
+    ) -> None:
         self.controller = controller
         self.lifting = lifting
         self.alpha = alpha
@@ -80,8 +91,10 @@ class ClosedLoopKoopman(SnapshotEstimator):
         if len(distinct) == 1 and same_system(distinct[0], self.controller):
             return None
         if not self._mixed_controllers:
-            raise ValueError(f"{type(self).__name__} fits episodes of one controller, its own; these were "
-                             f"recorded under {len(distinct)} controller(s) (ClEdmd fits several)")
+            raise ValueError(
+                f"{type(self).__name__} fits episodes of one controller, its own; these were "
+                f"recorded under {len(distinct)} controller(s) (ClEdmd fits several)"
+            )
         return controllers
 
     def _setup(self, trajectories, controllers: Sequence[DiscreteStateSpace] | None = None) -> FitSetup:
@@ -120,8 +133,15 @@ class ClosedLoopKoopman(SnapshotEstimator):
         lifting.fit(episode_signals(trajs, "x"), first.state_names)
         C_p = output_selection(lifting.n_features_out_, measured)
         groups = None if per_episode is None else ControllerGroups.of(per_episode, C_p, n_f)
-        return FitSetup(trajs, lifting, dt if dt is not None else self.controller.dt,
-                        C_p, plant_input_map(self.controller, C_p, n_f), n_f, controller_groups=groups)
+        return FitSetup(
+            trajs,
+            lifting,
+            dt if dt is not None else self.controller.dt,
+            C_p,
+            plant_input_map(self.controller, C_p, n_f),
+            n_f,
+            controller_groups=groups,
+        )
 
     def _episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
         """Snapshot statistics of one episode: theta = [x^c; lift(x)], upsilon = [r; f]."""
@@ -154,8 +174,11 @@ class ClosedLoopKoopman(SnapshotEstimator):
         # The statistics' controllers (a fold's may lack the setup's); the closed loop is self.controller's.
         grouped = isinstance(snapshots, GroupedSnapshots)
         self.training_controllers_ = snapshots.controllers if grouped else (self.controller,)
-        self.plant_input_map_ = (plant_input_map(self.controller, setup.output_matrix, setup.n_feedforward)
-                                 if grouped else setup.plant_input_map)
+        self.plant_input_map_ = (
+            plant_input_map(self.controller, setup.output_matrix, setup.n_feedforward)
+            if grouped
+            else setup.plant_input_map
+        )
         U_f, U_p = self._solve(snapshots, self.plant_input_map_, alpha)
         self._set_models(U_f, U_p, setup.lifting, setup.n_feedforward, setup.dt)
         return self
@@ -168,9 +191,15 @@ class ClosedLoopKoopman(SnapshotEstimator):
         self.koopman_matrix_ = U_f
         self.plant_koopman_matrix_ = U_p
         feedback = tuple(range(lifting.n_features_in_)) if self.measured is None else tuple(self.measured)
-        self.closed_loop_model_ = KoopmanModel(U_f[:, :n_theta], U_f[:, n_theta:], lifting,
-                                               ("r", "f") if n_f else ("r",), n_passthrough=n_c, dt=dt,
-                                               feedback=feedback)
+        self.closed_loop_model_ = KoopmanModel(
+            U_f[:, :n_theta],
+            U_f[:, n_theta:],
+            lifting,
+            ("r", "f") if n_f else ("r",),
+            n_passthrough=n_c,
+            dt=dt,
+            feedback=feedback,
+        )
         self.plant_model_ = KoopmanModel(U_p[:, :n_theta_p], U_p[:, n_theta_p:], lifting, ("u",), dt=dt)
         self.model_ = self.closed_loop_model_
 
@@ -178,8 +207,9 @@ class ClosedLoopKoopman(SnapshotEstimator):
         """The identified plant closed with a controller (the training one by default)."""
         self._check_fitted()
         measured = list(range(self.plant_model_.n_states)) if self.measured is None else self.measured
-        return close_loop(self.plant_model_, controller or self.controller, measured,
-                          feedforward=bool(self.n_feedforward_))
+        return close_loop(
+            self.plant_model_, controller or self.controller, measured, feedforward=bool(self.n_feedforward_)
+        )
 
     def predict(self, trajectory: Trajectory, relift: bool = True) -> np.ndarray:
         """Closed-loop prediction of the plant states of one episode (inputs ``r``, ``f``)."""
@@ -248,9 +278,15 @@ class ClEdmd(ClosedLoopKoopman):
         The distinct controllers of the training episodes.
     """
 
-    def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
-                 measured: Sequence[int] | None = None, regularize: str = "closed_loop",
-                 known_controller_rows: bool = False) -> None:
+    def __init__(
+        self,
+        controller: DiscreteStateSpace,
+        lifting=None,
+        alpha: float = 0.0,
+        measured: Sequence[int] | None = None,
+        regularize: str = "closed_loop",
+        known_controller_rows: bool = False,
+    ) -> None:
         super().__init__(controller, lifting, alpha, measured)
         self.regularize = regularize
         self.known_controller_rows = known_controller_rows
@@ -266,8 +302,11 @@ class ClEdmd(ClosedLoopKoopman):
         n_c = self.controller.n_states
         if isinstance(snapshots, GroupedSnapshots):
             U_p = grouped_plant_solve(snapshots, alpha, regularize)
-            own = [(part, w) for part, w, ctrl in zip(snapshots.parts, snapshots.weights, snapshots.controllers)
-                   if same_system(ctrl, self.controller)]
+            own = [
+                (part, w)
+                for part, w, ctrl in zip(snapshots.parts, snapshots.weights, snapshots.controllers)
+                if same_system(ctrl, self.controller)
+            ]
         else:
             U_p = constrained_plant_solve(snapshots, S, alpha, slice(n_c, None), regularize)
             own = [(snapshots, 1.0)]
@@ -303,9 +342,15 @@ class ClEdmdKnownRows(ClEdmd):
         True (the variant's point); False makes it :class:`ClEdmd`.
     """
 
-    def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
-                 measured: Sequence[int] | None = None, regularize: str = "closed_loop",
-                 known_controller_rows: bool = True) -> None:
+    def __init__(
+        self,
+        controller: DiscreteStateSpace,
+        lifting=None,
+        alpha: float = 0.0,
+        measured: Sequence[int] | None = None,
+        regularize: str = "closed_loop",
+        known_controller_rows: bool = True,
+    ) -> None:
         super().__init__(controller, lifting, alpha, measured, regularize, known_controller_rows)
 
 

@@ -60,7 +60,7 @@ class Edmd(SnapshotEstimator):
         z = setup.lifting.transform(t.x)
         assert t.u is not None  # _setup's check_trajectories required it
         v = (t.u if setup.input_lifting is None else setup.input_lifting.transform(t.u))[d:]
-        return Snapshots.from_snapshots(z[1:, :setup.target_rows], np.hstack([z[:-1], v[:-1]]))
+        return Snapshots.from_snapshots(z[1:, : setup.target_rows], np.hstack([z[:-1], v[:-1]]))
 
     def _relift_rows(self, setup: FitSetup) -> int:
         return setup.lifting.n_features_in_
@@ -71,8 +71,9 @@ class Edmd(SnapshotEstimator):
         U = pad_rows(ridge_solve(snapshots, check_alpha(self.alpha)), n_z)  # a partial fit's missing rows
         self.snapshots_ = snapshots
         self.koopman_matrix_ = U
-        self.model_ = KoopmanModel(U[:, :n_z], U[:, n_z:], setup.lifting, ("u",),
-                                   input_lifting=setup.input_lifting, dt=setup.dt)
+        self.model_ = KoopmanModel(
+            U[:, :n_z], U[:, n_z:], setup.lifting, ("u",), input_lifting=setup.input_lifting, dt=setup.dt
+        )
         return self
 
     def predict(self, trajectory: Trajectory, relift: bool = True) -> np.ndarray:

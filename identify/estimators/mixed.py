@@ -22,8 +22,13 @@ from qube_koopman.identify.estimators.regression import GroupedSnapshots, Snapsh
 from qube_koopman.identify.estimators.structure import plant_input_map
 from qube_koopman.core.lti import DiscreteStateSpace
 
-__all__ = ["ControllerGroups", "GroupedFold", "distinct_controllers", "majority_controller",
-           "training_controllers_report"]
+__all__ = [
+    "ControllerGroups",
+    "GroupedFold",
+    "distinct_controllers",
+    "majority_controller",
+    "training_controllers_report",
+]
 
 
 def distinct_controllers(controllers: Sequence[DiscreteStateSpace]) -> tuple[list[DiscreteStateSpace], np.ndarray]:
@@ -112,9 +117,12 @@ class GroupedFold:
         if not order:
             raise ValueError("no snapshot statistics to combine")
         g = self.groups
-        return GroupedSnapshots(tuple(self._folds[k].total() for k in order), tuple(g.maps[k] for k in order),
-                                tuple(slice(g.controllers[k].n_states, None) for k in order),
-                                tuple(g.controllers[k] for k in order))
+        return GroupedSnapshots(
+            tuple(self._folds[k].total() for k in order),
+            tuple(g.maps[k] for k in order),
+            tuple(slice(g.controllers[k].n_states, None) for k in order),
+            tuple(g.controllers[k] for k in order),
+        )
 
 
 def training_controllers_report(logs: Sequence, model_controller: DiscreteStateSpace) -> dict:
@@ -127,10 +135,20 @@ def training_controllers_report(logs: Sequence, model_controller: DiscreteStateS
     entries = []
     for g, ctrl in enumerate(distinct):
         mine = [log for log, label in zip(logs, labels) if label == g]
-        entries.append({"controller": g + 1, "n_episodes": len(mine), "gains": mine[0].gains,
-                        "model_closed_loop": same_system(ctrl, model_controller),
-                        "logs": [log.path.name for log in mine], "matrices": ctrl.as_dict()})
-    note = ("one controller: the model's closed loop is its loop" if len(distinct) == 1 else
-            "one plant fitted to the episodes of all; the saved model's closed loop is that of the "
-            "controller with the most training episodes (the first to appear among ties)")
+        entries.append(
+            {
+                "controller": g + 1,
+                "n_episodes": len(mine),
+                "gains": mine[0].gains,
+                "model_closed_loop": same_system(ctrl, model_controller),
+                "logs": [log.path.name for log in mine],
+                "matrices": ctrl.as_dict(),
+            }
+        )
+    note = (
+        "one controller: the model's closed loop is its loop"
+        if len(distinct) == 1
+        else "one plant fitted to the episodes of all; the saved model's closed loop is that of the "
+        "controller with the most training episodes (the first to appear among ties)"
+    )
     return {"n_controllers": len(distinct), "controllers": entries, "note": note}

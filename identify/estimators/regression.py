@@ -31,15 +31,21 @@ from scipy.linalg import lapack
 #: Block size of LAPACK's triangular-pentagonal QR (the fastest measured on the search's factors).
 _TPQRT_BLOCK = 16
 
-__all__ = ["Snapshots", "SnapshotFold", "GroupedSnapshots", "ridge_solve", "constrained_plant_solve",
-           "grouped_plant_solve"]
+__all__ = [
+    "Snapshots",
+    "SnapshotFold",
+    "GroupedSnapshots",
+    "ridge_solve",
+    "constrained_plant_solve",
+    "grouped_plant_solve",
+]
 
 
 def _triangular_factor(M: np.ndarray) -> np.ndarray:
     # mode="r" returns the full (rows x columns) R; only its top square part is non-zero. It is
     # copied out: a slice would keep the whole (snapshots x columns) array alive behind every
     # episode's statistics (8 MB an episode at 20 delays).
-    return linalg.qr(M, mode="r", check_finite=False)[0][:min(M.shape)].copy()
+    return linalg.qr(M, mode="r", check_finite=False)[0][: min(M.shape)].copy()
 
 
 def _merge_triangles(factors: list[np.ndarray]) -> np.ndarray:
@@ -145,15 +151,15 @@ class Snapshots:
         k = self.n_regressors + int(n_targets)
         if k >= self.R.shape[1]:
             return self
-        return Snapshots(self.R[:min(self.R.shape[0], k), :k].copy(), self.n_regressors, self.q)
+        return Snapshots(self.R[: min(self.R.shape[0], k), :k].copy(), self.n_regressors, self.q)
 
     @property
     def _psi(self) -> np.ndarray:
-        return self.R[:, :self.n_regressors]
+        return self.R[:, : self.n_regressors]
 
     @property
     def _theta(self) -> np.ndarray:
-        return self.R[:, self.n_regressors:]
+        return self.R[:, self.n_regressors :]
 
     @property
     def G(self) -> np.ndarray:
@@ -274,8 +280,9 @@ def ridge_solve(snapshots: Snapshots, alpha: float, rows: slice = slice(None)) -
     return path.solve(snapshots._theta[top, rows], alpha).T
 
 
-def constrained_plant_solve(snapshots: Snapshots, S: np.ndarray, alpha: float, rows: slice,
-                            regularize: str = "closed_loop") -> np.ndarray:
+def constrained_plant_solve(
+    snapshots: Snapshots, S: np.ndarray, alpha: float, rows: slice, regularize: str = "closed_loop"
+) -> np.ndarray:
     """Exact solution of the paper's constrained CL EDMD problem for the plant rows.
 
     The plant rows of the closed-loop Koopman matrix are ``U^p S``, so
@@ -420,5 +427,6 @@ def _closed_loop_path(blocks: list[_Block]) -> _RidgePath | None:
     if len(blocks) == 1:
         return _RidgePath.of(blocks[0].R_psi @ Q_p, R_p)
     at = np.cumsum([0] + [b.S.shape[1] for b in blocks])
-    return _RidgePath.of(np.vstack([b.R_psi @ (Q_p[at[g]:at[g + 1]] / np.sqrt(b.weight))
-                                    for g, b in enumerate(blocks)]), R_p)
+    return _RidgePath.of(
+        np.vstack([b.R_psi @ (Q_p[at[g] : at[g + 1]] / np.sqrt(b.weight)) for g, b in enumerate(blocks)]), R_p
+    )

@@ -135,9 +135,16 @@ class ClEdmdSdp(ClosedLoopKoopman):
         The solver's final status.
     """
 
-    def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
-                 measured: Sequence[int] | None = None, regularize: str = "closed_loop",
-                 solver: str = "CLARABEL", solver_options: dict | None = None) -> None:
+    def __init__(
+        self,
+        controller: DiscreteStateSpace,
+        lifting=None,
+        alpha: float = 0.0,
+        measured: Sequence[int] | None = None,
+        regularize: str = "closed_loop",
+        solver: str = "CLARABEL",
+        solver_options: dict | None = None,
+    ) -> None:
         super().__init__(controller, lifting, alpha, measured)
         self.regularize = regularize
         self.solver = solver
@@ -177,8 +184,7 @@ class ClEdmdSdp(ClosedLoopKoopman):
 
         solver = str(self.solver).upper()
         if solver not in cp.installed_solvers():
-            raise ValueError(f"solver {self.solver!r} is not installed; cvxpy has "
-                             f"{', '.join(cp.installed_solvers())}")
+            raise ValueError(f"solver {self.solver!r} is not installed; cvxpy has {', '.join(cp.installed_solvers())}")
         q = gram.q
         # The paper's 1/q scaling keeps the problem well conditioned; the minimizer is unchanged.
         F, G, H = gram.F / q, gram.G / q, gram.H / q
@@ -192,12 +198,11 @@ class ClEdmdSdp(ClosedLoopKoopman):
             R = np.linalg.cholesky(H_alpha + 1e-12 * np.trace(H_alpha) / n_psi * np.eye(n_psi))
 
         W = cp.Variable((n_theta, n_theta), symmetric=True)
-        U_c = cp.Variable((n_c, n_psi))   # the paper leaves the controller rows free
+        U_c = cp.Variable((n_c, n_psi))  # the paper leaves the controller rows free
         A_p, B_p = cp.Variable((n_pl, n_pl)), cp.Variable((n_pl, n_u))
         U_f = closed_loop_blocks(self.controller, A_p, B_p, measured, n_f, rows_c=U_c)
         cross = U_f @ G.T
-        lmi = cp.bmat([[-W + F - cross - cross.T, U_f @ R],
-                       [R.T @ U_f.T, -np.eye(n_psi)]])
+        lmi = cp.bmat([[-W + F - cross - cross.T, U_f @ R], [R.T @ U_f.T, -np.eye(n_psi)]])
         # The LMI block is symmetric by construction; symmetrize the expression so the
         # cone constraint is imposed on the whole matrix, not only its symmetric part.
         # W >= 0 is implied by the LMI; stating it again makes the problem degenerate when a

@@ -117,9 +117,18 @@ class ClEdmdStable(ClEdmdKnownRows):
 
     _mixed_controllers = False  # its cost and metric are written for one controller's statistics
 
-    def __init__(self, controller: DiscreteStateSpace, lifting=None, alpha: float = 0.0,
-                 measured: Sequence[int] | None = None, max_radius: float = 1.0, center: float = 0.0,
-                 n_iter: int = 2, solver: str = "CLARABEL", method: str = "sqp") -> None:
+    def __init__(
+        self,
+        controller: DiscreteStateSpace,
+        lifting=None,
+        alpha: float = 0.0,
+        measured: Sequence[int] | None = None,
+        max_radius: float = 1.0,
+        center: float = 0.0,
+        n_iter: int = 2,
+        solver: str = "CLARABEL",
+        method: str = "sqp",
+    ) -> None:
         super().__init__(controller, lifting, alpha, measured)
         self.max_radius = max_radius
         self.center = center
@@ -137,8 +146,9 @@ class ClEdmdStable(ClEdmdKnownRows):
 
     def _solve(self, snapshots: Snapshots, S: np.ndarray, alpha: float):
         if not (np.isfinite(self.max_radius) and self.max_radius > 0 and np.isfinite(self.center)):
-            raise ValueError(f"the disc needs a positive radius and a finite centre, got "
-                             f"{self.max_radius!r}, {self.center!r}")
+            raise ValueError(
+                f"the disc needs a positive radius and a finite centre, got {self.max_radius!r}, {self.center!r}"
+            )
         method = check_choice(self.method, "method", METHODS)
         n_c = self.controller.n_states
         U0 = constrained_plant_solve(snapshots, S, alpha, slice(n_c, None), "closed_loop")
@@ -146,8 +156,8 @@ class ClEdmdStable(ClEdmdKnownRows):
         M0 = self._closed_loop_state(U0, S) - shift
         self.unconstrained_radius_ = spectral_radius(M0)
         self.n_sqp_iter_ = 0
-        U_p, seed = (self._solve_sqp(snapshots, S, alpha, U0) if method == "sqp" else (None, U0))
-        if U_p is None:   # the LMI asked for, or the SQP did not reach the disc: seed P from its last step
+        U_p, seed = self._solve_sqp(snapshots, S, alpha, U0) if method == "sqp" else (None, U0)
+        if U_p is None:  # the LMI asked for, or the SQP did not reach the disc: seed P from its last step
             U_p = self._solve_lmi(snapshots, S, alpha, self._closed_loop_state(seed, S) - shift, shift)
             self.method_ = "lmi"
         else:
@@ -162,10 +172,11 @@ class ClEdmdStable(ClEdmdKnownRows):
         n_c = self.controller.n_states
         n_theta = n_c + U0.shape[0]
         # The cost is (||R_psi S^T U^T - Y||^2 + alpha ||U S||^2) / q: metric K = F^T F / q.
-        F = np.vstack([snapshots.R[:, :snapshots.n_regressors] @ S.T, np.sqrt(alpha) * S.T])
+        F = np.vstack([snapshots.R[:, : snapshots.n_regressors] @ S.T, np.sqrt(alpha) * S.T])
         A0 = np.vstack([self._known_controller_rows()[:, :n_theta], np.zeros((U0.shape[0], n_theta))])
-        problem = DiscProblem(A0 - self.center * np.eye(n_theta), slice(n_c, None), S[:, :n_theta],
-                              F.T @ F / snapshots.q)
+        problem = DiscProblem(
+            A0 - self.center * np.eye(n_theta), slice(n_c, None), S[:, :n_theta], F.T @ F / snapshots.q
+        )
         result = least_change_into_disc(problem, U0, self.max_radius, 0.0, margin=_SQP_MARGIN)
         self.n_sqp_iter_ = result.n_iter
         return (result.U if result.converged and result.radius <= self.max_radius else None), result.U
@@ -186,8 +197,8 @@ class ClEdmdStable(ClEdmdKnownRows):
         import cvxpy as cp
 
         n_c = self.controller.n_states
-        R_psi = snapshots.R[:, :snapshots.n_regressors]
-        Y = snapshots.R[:, snapshots.n_regressors + n_c:]   # plant rows of the targets
+        R_psi = snapshots.R[:, : snapshots.n_regressors]
+        Y = snapshots.R[:, snapshots.n_regressors + n_c :]  # plant rows of the targets
         n_pl, n_s = Y.shape[1], S.shape[0]
         U_p = cp.Variable((n_pl, n_s))
         rows = U_p @ S
@@ -205,7 +216,7 @@ class ClEdmdStable(ClEdmdKnownRows):
         PE = P[:, n_c:]
         W = cp.Variable((n_theta, n_s))
         PM = P @ M_c + W @ S[:, :n_theta]
-        rho2 = self.max_radius ** 2
+        rho2 = self.max_radius**2
         lmi = cp.bmat([[rho2 * P, PM.T], [PM, P]])
         constraints = [W == PE @ U_p, 0.5 * (lmi + lmi.T) >> _MARGIN * np.eye(2 * n_theta)]
         problem = cp.Problem(cp.Minimize(cost), constraints)
@@ -246,8 +257,8 @@ def _lyapunov_certificate(M: np.ndarray, radius: float) -> np.ndarray:
 def _plant_cost(snapshots: Snapshots, S: np.ndarray, alpha: float, U_p: np.ndarray, n_c: int) -> float:
     """``(||Theta_2 - U^p S Psi||^2 + alpha ||U^p S||^2) / q`` from the triangular factor."""
     rows = U_p @ S
-    residual = snapshots.R[:, :snapshots.n_regressors] @ rows.T - snapshots.R[:, snapshots.n_regressors + n_c:]
-    return float((np.sum(residual ** 2) + alpha * np.sum(rows ** 2)) / snapshots.q)
+    residual = snapshots.R[:, : snapshots.n_regressors] @ rows.T - snapshots.R[:, snapshots.n_regressors + n_c :]
+    return float((np.sum(residual**2) + alpha * np.sum(rows**2)) / snapshots.q)
 
 
 def _certificate(M: np.ndarray, radius: float) -> np.ndarray | None:
@@ -264,11 +275,11 @@ def _certificate(M: np.ndarray, radius: float) -> np.ndarray | None:
     a = M / radius
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", linalg.LinAlgWarning)
-        P = linalg.solve_discrete_lyapunov(a.T, np.eye(M.shape[0]) / radius ** 2)
+        P = linalg.solve_discrete_lyapunov(a.T, np.eye(M.shape[0]) / radius**2)
     P = 0.5 * (P + P.T)
     if not np.all(np.isfinite(P)):
         return None
-    residual = np.linalg.norm(M.T @ P @ M - radius ** 2 * P + np.eye(M.shape[0]))
-    if residual > 1e-8 * radius ** 2 * np.linalg.norm(P) or np.linalg.eigvalsh(P)[0] <= 0:
+    residual = np.linalg.norm(M.T @ P @ M - radius**2 * P + np.eye(M.shape[0]))
+    if residual > 1e-8 * radius**2 * np.linalg.norm(P) or np.linalg.eigvalsh(P)[0] <= 0:
         return None
     return P

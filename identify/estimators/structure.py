@@ -64,10 +64,14 @@ def _check_controller(controller: DiscreteStateSpace, C_p: np.ndarray, n_feedfor
     if controller.n_inputs == n_r + n_feedforward and n_feedforward:
         return
     if controller.n_inputs > n_r and not n_feedforward:
-        raise ValueError(f"the controller takes {controller.n_inputs} inputs, the {n_r} tracking errors and the "
-                         "feedforward, but the data have no feedforward")
-    raise ValueError(f"the controller takes {controller.n_inputs} inputs but {n_r} states are fed back"
-                     + (f" and the feedforward has {n_feedforward} channels" if n_feedforward else ""))
+        raise ValueError(
+            f"the controller takes {controller.n_inputs} inputs, the {n_r} tracking errors and the "
+            "feedforward, but the data have no feedforward"
+        )
+    raise ValueError(
+        f"the controller takes {controller.n_inputs} inputs but {n_r} states are fed back"
+        + (f" and the feedforward has {n_feedforward} channels" if n_feedforward else "")
+    )
 
 
 def feedforward_columns(controller: DiscreteStateSpace, n_errors: int, n_feedforward: int) -> tuple[np.ndarray, ...]:
@@ -124,8 +128,9 @@ def plant_input_map(controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforwa
     return np.vstack([top, bottom])
 
 
-def closed_loop_matrices(A_p: np.ndarray, B_p: np.ndarray, controller: DiscreteStateSpace,
-                         C_p: np.ndarray, n_feedforward: int) -> tuple[np.ndarray, np.ndarray]:
+def closed_loop_matrices(
+    A_p: np.ndarray, B_p: np.ndarray, controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforward: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Wrap a plant ``(A^p, B^p)`` with the controller: the closed-loop ``(A^f, B^f)``.
 
     Parameters
@@ -154,8 +159,9 @@ def closed_loop_matrices(A_p: np.ndarray, B_p: np.ndarray, controller: DiscreteS
     return U_f[:, :n_theta], U_f[:, n_theta:]
 
 
-def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np.ndarray,
-                        n_feedforward: int) -> tuple[np.ndarray, np.ndarray]:
+def extract_plant_lstsq(
+    U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np.ndarray, n_feedforward: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The paper's least-squares plant extraction (eqs. lstsq_Bp, constr_Ap).
 
     ``B^p = [U21 U23 U24] [C^c D^c I]^+`` and ``A^p = U22 + B^p D^c C^p``.
@@ -183,9 +189,9 @@ def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np
     _, D_e, _, D_f = feedforward_columns(controller, n_r, n_feedforward)
     rows = U_f[n_c:]
     U21 = rows[:, :n_c]
-    U22 = rows[:, n_c:n_c + n_p]
-    U23 = rows[:, n_c + n_p:n_c + n_p + n_r]
-    U24 = rows[:, n_c + n_p + n_r:]
+    U22 = rows[:, n_c : n_c + n_p]
+    U23 = rows[:, n_c + n_p : n_c + n_p + n_r]
+    U24 = rows[:, n_c + n_p + n_r :]
     blocks = np.hstack([U21, U23, U24])
     known = np.hstack([controller.C, D_e, np.eye(n_u)[:, :n_feedforward] + D_f])
     B_p = blocks @ np.linalg.pinv(known)
@@ -193,8 +199,9 @@ def extract_plant_lstsq(U_f: np.ndarray, controller: DiscreteStateSpace, C_p: np
     return A_p, B_p
 
 
-def controller_states(controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarray,
-                      f: np.ndarray | None = None) -> np.ndarray:
+def controller_states(
+    controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarray, f: np.ndarray | None = None
+) -> np.ndarray:
     """Controller state along an episode, run from zero on the tracking error ``r - y`` and, for a
     controller that takes it, the feedforward ``f`` (the states of :func:`core.lti.replay_controller`).
 
@@ -214,8 +221,9 @@ def controller_states(controller: DiscreteStateSpace, r: np.ndarray, y: np.ndarr
     return replay_controller(controller, r, y, feedforward=f)[0]
 
 
-def plant_input(controller: DiscreteStateSpace, xc: np.ndarray, r: np.ndarray, y: np.ndarray,
-                f: np.ndarray | None = None) -> np.ndarray:
+def plant_input(
+    controller: DiscreteStateSpace, xc: np.ndarray, r: np.ndarray, y: np.ndarray, f: np.ndarray | None = None
+) -> np.ndarray:
     """The plant's input recovered from closed-loop data: ``C^c x^c + D^c (r - y) + f``
     (``D^c [r - y; f] + f`` for a controller that takes the feedforward).
 
@@ -237,8 +245,7 @@ def plant_input(controller: DiscreteStateSpace, xc: np.ndarray, r: np.ndarray, y
     return u if f is None else u + np.asarray(f, dtype=float).reshape(u.shape)
 
 
-def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | None = None,
-               feedforward: bool = True):
+def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | None = None, feedforward: bool = True):
     """Wrap an identified plant model with a known controller.
 
     Parameters
@@ -263,12 +270,17 @@ def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | 
     if plant.n_passthrough or plant.input_signals != ("u",) or plant.input_lifting is not None:
         raise ValueError("close_loop needs a plant model whose input is the unlifted plant input u")
     if plant.B.shape[1] != controller.n_outputs:
-        raise ValueError(f"the plant takes {plant.B.shape[1]} inputs, the controller drives "
-                         f"{controller.n_outputs}")
+        raise ValueError(f"the plant takes {plant.B.shape[1]} inputs, the controller drives {controller.n_outputs}")
     measured = list(range(plant.n_states)) if measured is None else list(measured)
     C_p = output_selection(plant.A.shape[0], measured)
     n_f = controller.n_outputs if feedforward else 0
     A_f, B_f = closed_loop_matrices(plant.A, plant.B, controller, C_p, n_f)
-    return KoopmanModel(A_f, B_f, plant.lifting, ("r", "f") if feedforward else ("r",),
-                        n_passthrough=controller.n_states, dt=plant.dt if plant.dt is not None else controller.dt,
-                        feedback=tuple(measured))
+    return KoopmanModel(
+        A_f,
+        B_f,
+        plant.lifting,
+        ("r", "f") if feedforward else ("r",),
+        n_passthrough=controller.n_states,
+        dt=plant.dt if plant.dt is not None else controller.dt,
+        feedback=tuple(measured),
+    )

@@ -8,5 +8,14 @@ from qube_koopman.identify.lifting.polynomial import Polynomial
 from qube_koopman.identify.lifting.rbf import GaussianRbf, ThinPlateRbf
 from qube_koopman.identify.lifting.trig import Trigonometric
 
-__all__ = ["Lifting", "LiftingFunction", "Constant", "Polynomial", "Delay", "ThinPlateRbf", "GaussianRbf",
-           "Trigonometric", "CoulombFriction"]
+__all__ = [
+    "Lifting",
+    "LiftingFunction",
+    "Constant",
+    "Polynomial",
+    "Delay",
+    "ThinPlateRbf",
+    "GaussianRbf",
+    "Trigonometric",
+    "CoulombFriction",
+]

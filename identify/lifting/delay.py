@@ -36,4 +36,4 @@ class Delay(LiftingFunction):
         n = X.shape[-2]
         if n <= d:
             raise ValueError(f"{n} samples are too few for {d} delays")
-        return np.concatenate([X[..., d - i:n - i, :] for i in range(d + 1)], axis=-1)
+        return np.concatenate([X[..., d - i : n - i, :] for i in range(d + 1)], axis=-1)

@@ -65,8 +65,10 @@ class CoulombFriction(LiftingFunction):
             raise ValueError(f"friction of feature {self.feature}: only {len(names)} features come in")
         past = f"{names[self.feature]}[k-{self.lag}]"
         if past not in names:
-            raise ValueError(f"friction over {self.lag} samples needs a Delay step of at least {self.lag} "
-                             f"before it (no feature {past!r})")
+            raise ValueError(
+                f"friction over {self.lag} samples needs a Delay step of at least {self.lag} "
+                f"before it (no feature {past!r})"
+            )
         self.past_index_ = names.index(past)
 
     def _names_out(self, names):

@@ -33,8 +33,7 @@ class Polynomial(LiftingFunction):
 
     def _fit(self, episodes):
         n = self.n_features_in_
-        self.monomials_ = tuple(c for d in range(1, self.order + 1)
-                                for c in combinations_with_replacement(range(n), d))
+        self.monomials_ = tuple(c for d in range(1, self.order + 1) for c in combinations_with_replacement(range(n), d))
 
     def _names_out(self, names):
         out = []

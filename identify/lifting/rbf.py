@@ -52,8 +52,7 @@ class RadialBasis(LiftingFunction):
         if self.centers is not None:
             centers = np.atleast_2d(np.asarray(self.centers, dtype=float))
             if centers.shape[1] != n or not np.all(np.isfinite(centers)):
-                raise ValueError(f"RBF centres must be a finite array of shape (n_centers, {n}), "
-                                 f"got {centers.shape}")
+                raise ValueError(f"RBF centres must be a finite array of shape (n_centers, {n}), got {centers.shape}")
         else:
             from scipy.stats import qmc  # scipy.stats costs ~0.5 s to import; only RBF fits need it
 
@@ -109,8 +108,9 @@ class ThinPlateRbf(RadialBasis):
 
     prefix = "tps"
 
-    def __init__(self, n_centers: int = 50, shape: float = 1.0, offset: float = 1e-3,
-                 centers=None, seed: int | None = None):
+    def __init__(
+        self, n_centers: int = 50, shape: float = 1.0, offset: float = 1e-3, centers=None, seed: int | None = None
+    ):
         super().__init__(n_centers, shape, centers, seed)
         self.offset = offset
 
@@ -142,4 +142,4 @@ class GaussianRbf(RadialBasis):
     prefix = "gauss"
 
     def _kernel(self, dist):
-        return np.exp(-(self.shape * dist) ** 2)
+        return np.exp(-((self.shape * dist) ** 2))

@@ -44,13 +44,13 @@ class Trigonometric(LiftingFunction):
     def _fit(self, episodes):
         features = self._indices()
         if max(features) >= self.n_features_in_:
-            raise ValueError(f"trigonometric lifting of feature {max(features)}: only "
-                             f"{self.n_features_in_} features come in")
+            raise ValueError(
+                f"trigonometric lifting of feature {max(features)}: only {self.n_features_in_} features come in"
+            )
         self.features_ = features
 
     def _names_out(self, names):
-        return (list(names) + [f"sin({names[i]})" for i in self.features_]
-                + [f"cos({names[i]})" for i in self.features_])
+        return list(names) + [f"sin({names[i]})" for i in self.features_] + [f"cos({names[i]})" for i in self.features_]
 
     def transform(self, X):
         X = np.asarray(X, dtype=float)

@@ -57,8 +57,9 @@ def connect(address: str, timeout: float = 30.0, security=None):
     try:
         from dask.distributed import Client
     except ImportError:
-        raise ValueError('a dask scheduler needs dask.distributed, which is optional: '
-                         'pip install "qube-koopman[dask]"') from None
+        raise ValueError(
+            'a dask scheduler needs dask.distributed, which is optional: pip install "qube-koopman[dask]"'
+        ) from None
     try:
         client = Client(address, timeout=timeout, set_as_default=False, security=security)
     except (OSError, TimeoutError) as exc:
@@ -84,11 +85,14 @@ def _check_versions(client, address: str) -> None:
     theirs.update((f"worker {w}", v) for w, v in sorted(client.run(version, PACKAGE, on_error="return").items()))
     for who, found in theirs.items():
         if isinstance(found, BaseException):
-            raise ValueError(f"{address}: {who} cannot find {PACKAGE} ({found!r}); install it on the scheduler "
-                             "and every worker")
+            raise ValueError(
+                f"{address}: {who} cannot find {PACKAGE} ({found!r}); install it on the scheduler and every worker"
+            )
         if found != mine:
-            raise ValueError(f"{address}: {who} runs {PACKAGE} {found}, this client {mine}; install the same "
-                             "version on the scheduler and every worker")
+            raise ValueError(
+                f"{address}: {who} runs {PACKAGE} {found}, this client {mine}; install the same "
+                "version on the scheduler and every worker"
+            )
 
 
 def _answer(call, *args):
@@ -120,8 +124,9 @@ def _value(value):
     return value
 
 
-def _shared_arguments(client, calls: list[tuple[Callable, tuple, dict]],
-                      sent: dict[int, tuple]) -> list[tuple[Callable, tuple, dict]]:
+def _shared_arguments(
+    client, calls: list[tuple[Callable, tuple, dict]], sent: dict[int, tuple]
+) -> list[tuple[Callable, tuple, dict]]:
     """The calls with each argument common to several of them sent once, as a task's result.
 
     Not scattered, as joblib's dask backend does: scattered data has no lineage, and a worker that
@@ -259,9 +264,11 @@ class ClusterStatistics:
             for (path, size), mine in zip(seen, sizes):
                 if size != mine:
                     found = "no such file" if size is None else f"{size} bytes, here {mine}"
-                    raise ValueError(f"{path}: not readable as the same file on dask worker {worker} ({found}); "
-                                     "the workers must see the logs at the same paths, or let the logs be "
-                                     "shipped to them")
+                    raise ValueError(
+                        f"{path}: not readable as the same file on dask worker {worker} ({found}); "
+                        "the workers must see the logs at the same paths, or let the logs be "
+                        "shipped to them"
+                    )
 
     def source(self, index: int) -> LogSource:
         """What a worker gets of log ``index``."""
@@ -271,5 +278,6 @@ class ClusterStatistics:
     def __call__(self, estimator, setup, indices: Iterable[int]) -> Iterator:
         light = replace(setup, trajectories=[])  # the worker reads its own episode
         calls: Iterator[tuple[Callable, tuple, dict]] = (
-            (_episode_part, (estimator, light, self.source(int(i)), self.skip), {}) for i in indices)
+            (_episode_part, (estimator, light, self.source(int(i)), self.skip), {}) for i in indices
+        )
         yield from ordered_results(self.client, calls)

@@ -44,8 +44,16 @@ from qube_koopman.core.qube import MEASURED
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd
 from qube_koopman.identify.model_selection.distributed import candidate_runner, connect, release_workers
 from qube_koopman.identify.models.model import FittedRows
-from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, LiftingFunction, Polynomial,
-                                          ThinPlateRbf, Trigonometric)
+from qube_koopman.identify.lifting import (
+    Constant,
+    CoulombFriction,
+    Delay,
+    GaussianRbf,
+    LiftingFunction,
+    Polynomial,
+    ThinPlateRbf,
+    Trigonometric,
+)
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import scores_after_window
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
@@ -54,9 +62,21 @@ from qube_koopman.identify.model_selection.transfer import ProbeSet
 from qube_koopman.identify.metrics import probe_scores
 from qube_koopman.core.lti import DiscreteStateSpace
 
-__all__ = ["LiftingSpec", "SearchSpace", "CandidateResult", "SearchResult", "search_liftings",
-           "evaluate_candidate", "screen_candidate", "same_controller_scores", "search_steps", "family_of",
-           "holds_features", "delays_family", "family_statistics"]
+__all__ = [
+    "LiftingSpec",
+    "SearchSpace",
+    "CandidateResult",
+    "SearchResult",
+    "search_liftings",
+    "evaluate_candidate",
+    "screen_candidate",
+    "same_controller_scores",
+    "search_steps",
+    "family_of",
+    "holds_features",
+    "delays_family",
+    "family_statistics",
+]
 
 #: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
 TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
@@ -98,8 +118,9 @@ class LiftingSpec:
     offsets: bool = False
     friction: bool = False
 
-    def steps(self, rbf_seed: int = 0, rbf_kind: str = "thin-plate", rbf_shape: float = 1.0,
-              rbf_offset: float = 1e-3) -> list[LiftingFunction]:
+    def steps(
+        self, rbf_seed: int = 0, rbf_kind: str = "thin-plate", rbf_shape: float = 1.0, rbf_offset: float = 1e-3
+    ) -> list[LiftingFunction]:
         """The lifting functions, in the order of ``qube-identify``'s options.
 
         The search's radial bases are thin-plate with the default shape and offset;
@@ -134,9 +155,14 @@ class LiftingSpec:
         out = ["--poly", str(self.poly)] + (["--trig"] if self.trig else []) + ["--delays", str(self.delays)]
         if self.rbf:
             out += ["--rbf", "thin-plate", "--rbf-centers", str(self.rbf)] + (
-                ["--rbf-seed", str(rbf_seed)] if rbf_seed else [])
-        return (out + (["--friction"] if self.friction else []) + (["--const"] if self.const else [])
-                + (["--offsets", "alpha"] if self.offsets else []))
+                ["--rbf-seed", str(rbf_seed)] if rbf_seed else []
+            )
+        return (
+            out
+            + (["--friction"] if self.friction else [])
+            + (["--const"] if self.const else [])
+            + (["--offsets", "alpha"] if self.offsets else [])
+        )
 
     def label(self) -> str:
         """A short readable name, e.g. ``"poly 2, 20 delays, const, offsets"``."""
@@ -165,12 +191,12 @@ class SearchSpace:
     friction: tuple[bool, ...] = (False, True)
     base: LiftingSpec = LiftingSpec(delays=0, poly=2)
     n_offset_candidates: int = 3  # stage 4 re-scores this many of the best with offsets
-    n_offset_alphas: int = 3      # ... each at its best alphas
+    n_offset_alphas: int = 3  # ... each at its best alphas
     #: Successive halving: the stages ``screened_stages`` screen their candidates (:func:`screen_candidate`)
     #: and evaluate in full the ``n_finalists`` best whose screens did not diverge (0: every candidate
     #: in full, no screening).
     n_finalists: int = 3
-    screen_folds: int = 1         # folds a screen scores (the first ones)
+    screen_folds: int = 1  # folds a screen scores (the first ones)
     screened_stages: tuple[str, ...] = ("delays", "form", "rbf")
 
     def __post_init__(self):
@@ -197,8 +223,7 @@ class SearchSpace:
         if stage == "delays":
             return [replace(self.base, delays=d) for d in self.delays]
         if stage == "form":
-            return [replace(lead, poly=p, const=c, trig=t) for p in self.poly for c in self.const
-                    for t in self.trig]
+            return [replace(lead, poly=p, const=c, trig=t) for p in self.poly for c in self.const for t in self.trig]
         if stage == "friction":
             return [replace(lead, friction=f) for f in self.friction if not f or lead.delays >= FRICTION_LAG]
         if stage == "rbf":
@@ -206,7 +231,7 @@ class SearchSpace:
         if stage == "offsets":
             if True not in self.offsets:
                 return []
-            return [replace(r.spec, offsets=True) for r in best[:self.n_offset_candidates]]
+            return [replace(r.spec, offsets=True) for r in best[: self.n_offset_candidates]]
         raise ValueError(f"unknown stage {stage!r}")
 
 
@@ -345,12 +370,21 @@ class CandidateResult:
     def as_dict(self) -> dict:
         """Plain data for reports (None for scores that are not finite numbers)."""
         number = lambda v: None if v is None or not np.isfinite(v) else float(v)  # noqa: E731
-        out = {**asdict(self.spec), "label": self.spec.label(), "stage": self.stage,
-               "n_features": self.spec.n_features(), "alpha": self.best_alpha, "objective": number(self.score),
-               "cv_r2": number(self.cv_score), "cv_r2_std": number(self.score_std),
-               "transfer_r2": number(self.transfer_score), "transfer_r2_worst": number(self.transfer_worst),
-               "seconds": self.seconds, "timing": {k: round(v, 3) for k, v in self.timing.items()},
-               "cv_r2_by_alpha": [number(v) for v in self.mean]}
+        out = {
+            **asdict(self.spec),
+            "label": self.spec.label(),
+            "stage": self.stage,
+            "n_features": self.spec.n_features(),
+            "alpha": self.best_alpha,
+            "objective": number(self.score),
+            "cv_r2": number(self.cv_score),
+            "cv_r2_std": number(self.score_std),
+            "transfer_r2": number(self.transfer_score),
+            "transfer_r2_worst": number(self.transfer_worst),
+            "seconds": self.seconds,
+            "timing": {k: round(v, 3) for k, v in self.timing.items()},
+            "cv_r2_by_alpha": [number(v) for v in self.mean],
+        }
         transfer = self.transfer_mean  # None without probes
         if transfer is not None:
             out["transfer_r2_by_alpha"] = [number(v) for v in transfer]
@@ -412,10 +446,13 @@ class SearchResult:
                 if r.stage == stage:
                     for key, value in r.timing.items():
                         work[key] = work.get(key, 0.0) + value
-            stages[stage] = {"wall": round(wall, 3), "candidates": sum(r.stage == stage for r in self.candidates),
-                             "screened_out": sum(r.stage == stage for r in self.screened),
-                             "shared_statistics": round(self.shared_seconds.get(stage, 0.0), 3),
-                             **{k: round(v, 3) for k, v in work.items()}}
+            stages[stage] = {
+                "wall": round(wall, 3),
+                "candidates": sum(r.stage == stage for r in self.candidates),
+                "screened_out": sum(r.stage == stage for r in self.screened),
+                "shared_statistics": round(self.shared_seconds.get(stage, 0.0), 3),
+                **{k: round(v, 3) for k, v in work.items()},
+            }
         return {"probe_simulation": round(self.probe_seconds, 3), "stages": stages, "search": round(self.seconds, 3)}
 
     def ranked(self) -> list[CandidateResult]:
@@ -447,9 +484,14 @@ class SearchData:
     controllers: list[DiscreteStateSpace] | None = None
 
 
-def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
-                       plain: "np.ndarray | CandidateResult | None" = None,
-                       shared: tuple | None = None, screen: "CandidateResult | None" = None) -> CandidateResult:
+def evaluate_candidate(
+    spec: LiftingSpec,
+    data: SearchData,
+    stage: str = "",
+    plain: "np.ndarray | CandidateResult | None" = None,
+    shared: tuple | None = None,
+    screen: "CandidateResult | None" = None,
+) -> CandidateResult:
     """Cross-validate one lifting over the alpha grid (see the module docstring).
 
     With ``spec.offsets``, ``plain`` (the same lifting's fold scores without offsets,
@@ -465,8 +507,15 @@ def evaluate_candidate(spec: LiftingSpec, data: SearchData, stage: str = "",
     return _evaluate(spec, data, stage, plain, shared, screen)[0]
 
 
-def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tuple | None,
-              screen: "CandidateResult | None", steps: list | None = None) -> tuple:
+def _evaluate(
+    spec: LiftingSpec,
+    data: SearchData,
+    stage: str,
+    plain,
+    shared: tuple | None,
+    screen: "CandidateResult | None",
+    steps: list | None = None,
+) -> tuple:
     """:func:`evaluate_candidate` (``steps``: its lifting, when already built), and its folds' models at every
     alpha (per fold: {alpha index: closed loop}, validation episodes)."""
     started = time.perf_counter()
@@ -477,8 +526,9 @@ def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tu
         cv = _offset_scores(reuse.folds, reuse.lifting, data, top, timing)
         plants = {j: rows.model(reuse.lifting) for j, rows in reuse.plants.items()}
         transfer = None if data.probes is None else _transfer_scores(spec, data, cv, plants, timing)
-        return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv,
-                               time.perf_counter() - started, transfer, timing), []
+        return CandidateResult(
+            spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started, transfer, timing
+        ), []
     screened_folds = []
     if screen is not None:
         if screen.kept is None:
@@ -495,36 +545,50 @@ def _evaluate(spec: LiftingSpec, data: SearchData, stage: str, plain, shared: tu
     rescore = not spec.offsets or plain is None
     # A lifting that learns from each fold's episodes has no lifting the folds share: its models are kept whole.
     subset = not any(getattr(step, "learns_from_data", True) for step in estimator.lifting)
-    sweep = regularization_sweep(estimator, data.trajectories, data.alphas, splits,
-                                 scorings=("cl",) if rescore else (), score_from=data.window, measured_only=True,
-                                 keep_fold_models="rows" if subset else spec.offsets, fit_all=False,
-                                 controllers=data.controllers, shared=shared)
+    sweep = regularization_sweep(
+        estimator,
+        data.trajectories,
+        data.alphas,
+        splits,
+        scorings=("cl",) if rescore else (),
+        score_from=data.window,
+        measured_only=True,
+        keep_fold_models="rows" if subset else spec.offsets,
+        fit_all=False,
+        controllers=data.controllers,
+        shared=shared,
+    )
     timing |= sweep.seconds
     cv = sweep.cv_r2["cl"] if rescore else _fold_scores(plain)
     if screen is not None and n_screened:  # only a screen has screened folds
         cv = np.vstack([screen.cv_r2, cv])
     lifting = None if sweep.statistics is None else sweep.statistics[0].lifting
-    folds = screened_folds + [({j: rows for j, rows in enumerate(closed)}, validation) for closed, _, validation in
-                              sweep.fold_models or []]
+    folds = screened_folds + [
+        ({j: rows for j, rows in enumerate(closed)}, validation) for closed, _, validation in sweep.fold_models or []
+    ]
     if spec.offsets:
         top = _best_alphas(cv, data.n_offset_alphas)
         cv = _offset_scores(folds, lifting, data, top, timing)
     transfer, plants = None, {}
     if data.probes is not None:
         plants = _probe_plants(estimator, data, cv, sweep.statistics, timing)
-        transfer = _transfer_scores(spec, data, cv, plants, timing,
-                                    None if screen is None else screen.transfer_r2)
+        transfer = _transfer_scores(spec, data, cv, plants, timing, None if screen is None else screen.transfer_r2)
     kept = None
     if not spec.offsets and lifting is not None:
         best = [int(j) for j in _best_alphas(cv, data.n_offset_alphas)]
-        kept = Reuse(lifting, [({j: f[j] for j in best}, v) for f, v in folds],
-                     {j: FittedRows.of(m) for j, m in plants.items() if j in best})
-    return CandidateResult(spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started,
-                           transfer, timing, kept), folds
+        kept = Reuse(
+            lifting,
+            [({j: f[j] for j in best}, v) for f, v in folds],
+            {j: FittedRows.of(m) for j, m in plants.items() if j in best},
+        )
+    return CandidateResult(
+        spec, stage, np.asarray(data.alphas, dtype=float), cv, time.perf_counter() - started, transfer, timing, kept
+    ), folds
 
 
-def screen_candidate(spec: LiftingSpec, data: SearchData, stage: str = "", shared: tuple | None = None,
-                     n_folds: int = 1) -> CandidateResult:
+def screen_candidate(
+    spec: LiftingSpec, data: SearchData, stage: str = "", shared: tuple | None = None, n_folds: int = 1
+) -> CandidateResult:
     """A lifting's screen: its first ``n_folds`` folds scored over the alpha grid, and its transfer at
     the alpha that scores best on them only.
 
@@ -549,12 +613,16 @@ def screen_candidate(spec: LiftingSpec, data: SearchData, stage: str = "", share
     own = shared is None
     if shared is None:
         with limited_blas_threads(1):
-            shared = OwnStatistics(fold_statistics(ClEdmd(data.controller, lifting=steps), data.trajectories,
-                                                   data.splits, data.controllers))
+            shared = OwnStatistics(
+                fold_statistics(
+                    ClEdmd(data.controller, lifting=steps), data.trajectories, data.splits, data.controllers
+                )
+            )
     seconds = time.perf_counter() - started
     screen_data = replace(data, splits=data.splits[:n_folds], n_transfer_alphas=1)
-    result, folds = _evaluate(spec, screen_data, stage, None,
-                              type(shared)((shared[0], shared[1][:n_folds], *shared[2:])), None, steps)
+    result, folds = _evaluate(
+        spec, screen_data, stage, None, type(shared)((shared[0], shared[1][:n_folds], *shared[2:])), None, steps
+    )
     result.timing["statistics"] += seconds
     result.seconds = time.perf_counter() - started
     result.reuse = None
@@ -585,9 +653,16 @@ def holds_features(big: LiftingSpec, small: LiftingSpec) -> bool:
     """Whether every feature of ``small``'s lifting is one of ``big``'s (the statistics of ``small`` are then
     columns of ``big``'s): the same delays, no RBFs, and as much or more of the monomials, sin/cos, constant
     and friction shape. Never for offsets candidates (their statistics are their plain twin's)."""
-    return (not big.offsets and not small.offsets and big.delays == small.delays and big.rbf == small.rbf == 0
-            and big.friction >= small.friction and big.poly >= small.poly and big.trig >= small.trig
-            and big.const >= small.const)
+    return (
+        not big.offsets
+        and not small.offsets
+        and big.delays == small.delays
+        and big.rbf == small.rbf == 0
+        and big.friction >= small.friction
+        and big.poly >= small.poly
+        and big.trig >= small.trig
+        and big.const >= small.const
+    )
 
 
 def delays_family(specs: Sequence[LiftingSpec]) -> LiftingSpec | None:
@@ -618,10 +693,18 @@ def family_of(spec: LiftingSpec, specs: Sequence[LiftingSpec]) -> LiftingSpec | 
     None when it shares its features with no other candidate (or has offsets: its statistics are
     its plain twin's).
     """
+
     def holds(big: LiftingSpec, small: LiftingSpec) -> bool:
-        return (not big.offsets and not small.offsets and big.delays == small.delays and big.rbf == small.rbf == 0
-                and big.friction == small.friction and big.poly >= small.poly and big.trig >= small.trig
-                and big.const >= small.const)
+        return (
+            not big.offsets
+            and not small.offsets
+            and big.delays == small.delays
+            and big.rbf == small.rbf == 0
+            and big.friction == small.friction
+            and big.poly >= small.poly
+            and big.trig >= small.trig
+            and big.const >= small.const
+        )
 
     containers = [s for s in specs if holds(s, spec)]
     if not containers:
@@ -667,7 +750,7 @@ def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed
     at = [i for i, step in enumerate(steps) if isinstance(step, RadialBasis)]
     if not at:
         return steps
-    fitted = Lifting(steps[:at[0] + 1]).fit(episode_signals(as_episodes(trajectories), "x"))
+    fitted = Lifting(steps[: at[0] + 1]).fit(episode_signals(as_episodes(trajectories), "x"))
     rbf, fitted_rbf = steps[at[0]], fitted.steps_[at[0]]
     if not isinstance(fitted_rbf, RadialBasis):  # the fitted copy of steps[at[0]], of its type
         raise TypeError(f"the fitted lifting's step {at[0]} is a {type(fitted_rbf).__name__}, not a radial basis")
@@ -692,14 +775,16 @@ def _probe_plants(estimator, data: SearchData, cv: np.ndarray, statistics, timin
         with limited_blas_threads(1):
             _, plants = fitted_models(estimator, setup, snapshots, data.alphas[top], None, None)
     else:
-        _, plants = fit_alphas(estimator, data.trajectories, data.alphas[top], relift_rows_only=True,
-                               controllers=data.controllers)
+        _, plants = fit_alphas(
+            estimator, data.trajectories, data.alphas[top], relift_rows_only=True, controllers=data.controllers
+        )
     timing["probe_fits"] = time.perf_counter() - started
     return {int(j): plant for j, plant in zip(top, plants)}
 
 
-def _transfer_scores(spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants: dict, timing: dict,
-                     known: np.ndarray | None = None) -> np.ndarray:
+def _transfer_scores(
+    spec: LiftingSpec, data: SearchData, cv: np.ndarray, plants: dict, timing: dict, known: np.ndarray | None = None
+) -> np.ndarray:
     """Probe scores (episodes x alphas) of ``plants`` ({alpha index: plant}) at the best CV alphas.
 
     ``known``: scores already computed at some alphas (NaN elsewhere), kept. Without offsets, the
@@ -735,16 +820,22 @@ def _plain_probe_scores(plants: list, probes: ProbeSet, window: int) -> np.ndarr
     from qube_koopman.identify.estimators.structure import close_loop
     from qube_koopman.identify.model_selection.sweep import episode_scores
 
-    return np.concatenate([episode_scores([close_loop(p, controller, list(MEASURED)) for p in plants], episodes,
-                                          "cl", True, window, True)
-                           for controller, episodes in zip(probes.controllers, probes.episodes)], axis=1).T
+    return np.concatenate(
+        [
+            episode_scores(
+                [close_loop(p, controller, list(MEASURED)) for p in plants], episodes, "cl", True, window, True
+            )
+            for controller, episodes in zip(probes.controllers, probes.episodes)
+        ],
+        axis=1,
+    ).T
 
 
 def _best_alphas(cv: np.ndarray, k: int) -> np.ndarray:
     """Indices of the ``k`` best alphas by mean fold score (-inf where a fold diverged), best first."""
     mean = cv.mean(axis=0)
     mean = np.where(np.isfinite(mean), mean, -np.inf)
-    return np.argsort(-mean, kind="stable")[:min(k, mean.size)]
+    return np.argsort(-mean, kind="stable")[: min(k, mean.size)]
 
 
 def _offset_scores(folds: list, lifting, data: SearchData, top: np.ndarray, timing: dict) -> np.ndarray:
@@ -763,7 +854,7 @@ def _offset_scores(folds: list, lifting, data: SearchData, top: np.ndarray, timi
             models = {int(j): closed[int(j)] if lifting is None else closed[int(j)].model(lifting) for j in top}
             scores: dict[int, list[np.ndarray]] = {j: [] for j in models}
             for lo in range(0, len(validation), EPISODES_PER_BATCH):  # a few episodes read at a time
-                held_out = [data.trajectories[k] for k in validation[lo:lo + EPISODES_PER_BATCH]]
+                held_out = [data.trajectories[k] for k in validation[lo : lo + EPISODES_PER_BATCH]]
                 for j, model in models.items():
                     scores[j].append(scores_after_window(model, held_out, data.window, True, data.bound))
             for j in models:
@@ -772,10 +863,18 @@ def _offset_scores(folds: list, lifting, data: SearchData, top: np.ndarray, timi
     return out
 
 
-def same_controller_scores(result: CandidateResult, trajectories: Sequence[Trajectory],
-                           controller: DiscreteStateSpace, controllers: Sequence[DiscreteStateSpace], *, window: int,
-                           n_splits: int = 3, seed: int = 1234, bound: float = DEFAULT_BOUND,
-                           rbf_seed: int = 0) -> list[tuple[int, float]]:
+def same_controller_scores(
+    result: CandidateResult,
+    trajectories: Sequence[Trajectory],
+    controller: DiscreteStateSpace,
+    controllers: Sequence[DiscreteStateSpace],
+    *,
+    window: int,
+    n_splits: int = 3,
+    seed: int = 1234,
+    bound: float = DEFAULT_BOUND,
+    rbf_seed: int = 0,
+) -> list[tuple[int, float]]:
     """A candidate's same-controller score when the training episodes ran several controllers.
 
     The search ranks by leave-one-controller-out folds; this scores the
@@ -794,19 +893,38 @@ def same_controller_scores(result: CandidateResult, trajectories: Sequence[Traje
 
     _, labels = distinct_controllers(controllers)
     folds = within_controller_splits(labels, n_splits, seed)
-    data = SearchData(as_episodes(trajectories), [(tr, va) for tr, va, _ in folds], controller,
-                      np.array([result.best_alpha]), int(window), bound, rbf_seed, None,
-                      controllers=list(controllers))
+    data = SearchData(
+        as_episodes(trajectories),
+        [(tr, va) for tr, va, _ in folds],
+        controller,
+        np.array([result.best_alpha]),
+        int(window),
+        bound,
+        rbf_seed,
+        None,
+        controllers=list(controllers),
+    )
     cv = evaluate_candidate(result.spec, data).cv_r2[:, 0]
     return [(label, float(score)) for (_, _, label), score in zip(folds, cv)]
 
 
-def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStateSpace, *, splits,
-                    window: int, space: SearchSpace | None = None, n_jobs: int = 1, scheduler: str | None = None,
-                    bound: float = DEFAULT_BOUND, rbf_seed: int = 0, probes: ProbeSet | None = None,
-                    progress: Callable[[str, int, int], None] | None = None,
-                    connect_timeout: float = 30.0,
-                    controllers: Sequence[DiscreteStateSpace] | None = None, security=None) -> SearchResult:
+def search_liftings(
+    trajectories: Sequence[Trajectory],
+    controller: DiscreteStateSpace,
+    *,
+    splits,
+    window: int,
+    space: SearchSpace | None = None,
+    n_jobs: int = 1,
+    scheduler: str | None = None,
+    bound: float = DEFAULT_BOUND,
+    rbf_seed: int = 0,
+    probes: ProbeSet | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    connect_timeout: float = 30.0,
+    controllers: Sequence[DiscreteStateSpace] | None = None,
+    security=None,
+) -> SearchResult:
     """Search the lifting space in stages (see the module docstring).
 
     Parameters
@@ -851,10 +969,18 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
     from qube_koopman.identify.model_selection.sweep import episode_heads
 
     space = space or SearchSpace()
-    data = SearchData(as_episodes(trajectories), list(splits), controller, np.asarray(space.alphas, dtype=float),
-                      int(window), bound, rbf_seed, probes,
-                      controllers=None if controllers is None else list(controllers),
-                      n_offset_alphas=space.n_offset_alphas)
+    data = SearchData(
+        as_episodes(trajectories),
+        list(splits),
+        controller,
+        np.asarray(space.alphas, dtype=float),
+        int(window),
+        bound,
+        rbf_seed,
+        probes,
+        controllers=None if controllers is None else list(controllers),
+        n_offset_alphas=space.n_offset_alphas,
+    )
     client = connect(scheduler, connect_timeout, security) if scheduler else None
     run = candidate_runner(n_jobs, client)
     # A family's statistics are computed by parts of the episodes on the workers, joined here: as many
@@ -886,8 +1012,10 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                 longest = delays_family(specs)
                 if longest is not None:  # liftings but for their delays: the longest's statistics, and the heads
                     now = time.perf_counter()
-                    stats = (*_shared_statistics(longest, data, run, n_parts),
-                             episode_heads(data.trajectories, longest.delays))
+                    stats = (
+                        *_shared_statistics(longest, data, run, n_parts),
+                        episode_heads(data.trajectories, longest.delays),
+                    )
                     shared.update({s: stats for s in specs if replace(s, delays=longest.delays) == longest})
                     result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
                 for s in specs:  # a lifting whose features an earlier stage's family head holds
@@ -897,8 +1025,10 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
             if space.screens(stage, len(specs)):
                 # Successive halving: every candidate screened cheaply, the best few evaluated in full.
                 # The largest first: the last to start on a worker is then a short one.
-                calls = [joblib.delayed(screen_candidate)(s, data, stage, shared.get(s), space.screen_folds)
-                         for s in sorted(specs, key=lambda s: -s.n_features())]
+                calls = [
+                    joblib.delayed(screen_candidate)(s, data, stage, shared.get(s), space.screen_folds)
+                    for s in sorted(specs, key=lambda s: -s.n_features())
+                ]
                 for done, res in enumerate(run(calls), start=1):
                     screens[res.spec] = res
                     if progress:
@@ -907,16 +1037,24 @@ def search_liftings(trajectories: Sequence[Trajectory], controller: DiscreteStat
                 result.screened += [replace(r, kept=None) for r in screens.values() if r.spec not in finalists]
                 result.screens += [replace(r, kept=None) for r in screens.values()]
                 specs = [s for s in specs if s in finalists]
-            calls = [joblib.delayed(evaluate_candidate)(s, data, stage, plain.get(replace(s, offsets=False)),
-                                                        shared.get(s), screens.get(s))
-                     for s in sorted(specs, key=lambda s: -s.n_features())]  # the largest first, as the screens
+            calls = [
+                joblib.delayed(evaluate_candidate)(
+                    s, data, stage, plain.get(replace(s, offsets=False)), shared.get(s), screens.get(s)
+                )
+                for s in sorted(specs, key=lambda s: -s.n_features())
+            ]  # the largest first, as the screens
             for done, res in enumerate(run(calls), start=1):
                 result.candidates.append(res)
                 if progress:
                     progress(f"search: {stage}", done, len(specs))
             result.stage_seconds[stage] = time.perf_counter() - stage_started
-            _log.info("search: stage %s: %d candidates in %.1f s%s", stage, len(specs), result.stage_seconds[stage],
-                      f" ({len(screens)} screened, {len(screens) - len(specs)} left out)" if screens else "")
+            _log.info(
+                "search: stage %s: %d candidates in %.1f s%s",
+                stage,
+                len(specs),
+                result.stage_seconds[stage],
+                f" ({len(screens)} screened, {len(screens) - len(specs)} left out)" if screens else "",
+            )
     finally:
         release_workers(n_jobs, client)
     result.seconds = time.perf_counter() - started

@@ -18,8 +18,15 @@ import numpy as np
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.identify.estimators.mixed import distinct_controllers
 
-__all__ = ["paper_split", "group_shuffle_splits", "leave_one_controller_out", "within_controller_splits",
-           "cross_validation_folds", "CrossValidationFolds", "FOLD_KINDS"]
+__all__ = [
+    "paper_split",
+    "group_shuffle_splits",
+    "leave_one_controller_out",
+    "within_controller_splits",
+    "cross_validation_folds",
+    "CrossValidationFolds",
+    "FOLD_KINDS",
+]
 
 
 def paper_split(paths: Sequence[str | Path], n_train: int = 28) -> tuple[list[Path], list[Path]]:
@@ -30,8 +37,9 @@ def paper_split(paths: Sequence[str | Path], n_train: int = 28) -> tuple[list[Pa
     return ordered[:n_train], ordered[n_train:]
 
 
-def group_shuffle_splits(n_groups: int, n_splits: int = 3, test_size: float = 0.2,
-                         seed: int = 1234) -> list[tuple[np.ndarray, np.ndarray]]:
+def group_shuffle_splits(
+    n_groups: int, n_splits: int = 3, test_size: float = 0.2, seed: int = 1234
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Random episode-grouped splits, identical to scikit-learn's GroupShuffleSplit.
 
     Each split holds out ``ceil(test_size * n_groups)`` episodes (6 of 28 for
@@ -50,7 +58,7 @@ def group_shuffle_splits(n_groups: int, n_splits: int = 3, test_size: float = 0.
     splits = []
     for _ in range(n_splits):
         permutation = rng.permutation(n_groups)
-        splits.append((np.sort(permutation[n_test:n_test + n_train]), np.sort(permutation[:n_test])))
+        splits.append((np.sort(permutation[n_test : n_test + n_train]), np.sort(permutation[:n_test])))
     return splits
 
 
@@ -74,8 +82,9 @@ def leave_one_controller_out(labels: Sequence[int] | np.ndarray) -> list[tuple[n
     return [(np.flatnonzero(ids != g), np.flatnonzero(ids == g)) for g in groups]
 
 
-def within_controller_splits(labels: Sequence[int] | np.ndarray, n_splits: int = 3, seed: int = 1234
-                             ) -> list[tuple[np.ndarray, np.ndarray, int]]:
+def within_controller_splits(
+    labels: Sequence[int] | np.ndarray, n_splits: int = 3, seed: int = 1234
+) -> list[tuple[np.ndarray, np.ndarray, int]]:
     """Folds that hold out some episodes of one controller and train on all the others.
 
     The complement of :func:`leave_one_controller_out`: each fold's validation
@@ -101,9 +110,8 @@ def within_controller_splits(labels: Sequence[int] | np.ndarray, n_splits: int =
 
 FOLD_KINDS = {
     "leave-one-controller-out": "each fold holds out all the training episodes of one controller and predicts its "
-                                "loop with the plant fitted to the other controllers' episodes",
-    "episode-grouped": "random splits holding out 20% of the training episodes (one controller: the paper's "
-                       "protocol)",
+    "loop with the plant fitted to the other controllers' episodes",
+    "episode-grouped": "random splits holding out 20% of the training episodes (one controller: the paper's protocol)",
 }
 
 
@@ -137,8 +145,9 @@ class CrossValidationFolds:
         return out
 
 
-def cross_validation_folds(controllers: Sequence[DiscreteStateSpace], n_splits: int = 3,
-                           seed: int = 1234) -> CrossValidationFolds:
+def cross_validation_folds(
+    controllers: Sequence[DiscreteStateSpace], n_splits: int = 3, seed: int = 1234
+) -> CrossValidationFolds:
     """Leave one controller out when the episodes ran two or more controllers; else
     :func:`group_shuffle_splits` (``n_splits``, ``seed``)."""
     distinct, labels = distinct_controllers(controllers)

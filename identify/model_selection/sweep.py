@@ -102,9 +102,14 @@ class SweepResult:
         return float(self.alphas[int(np.argmax(self.cv_r2_mean(scoring)))])
 
 
-def fitted_models(template, setup, snapshots: Snapshots, alphas: Sequence[float] | np.ndarray,
-                  controller: DiscreteStateSpace | None,
-                  measured) -> tuple[list[KoopmanModel | None], list[KoopmanModel]]:
+def fitted_models(
+    template,
+    setup,
+    snapshots: Snapshots,
+    alphas: Sequence[float] | np.ndarray,
+    controller: DiscreteStateSpace | None,
+    measured,
+) -> tuple[list[KoopmanModel | None], list[KoopmanModel]]:
     """Closed-loop and plant models of ``template`` for each alpha from shared statistics.
 
     EDMD plants are wrapped with ``controller`` for their closed loop (None each without one).
@@ -123,10 +128,15 @@ def fitted_models(template, setup, snapshots: Snapshots, alphas: Sequence[float]
     return closed, plants
 
 
-def fit_alphas(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float] | np.ndarray,
-               controller: DiscreteStateSpace | None = None, measured=None,
-               relift_rows_only: bool = False,
-               controllers: Sequence[DiscreteStateSpace] | None = None) -> tuple[list, list[KoopmanModel]]:
+def fit_alphas(
+    estimator,
+    trajectories: Sequence[Trajectory],
+    alphas: Sequence[float] | np.ndarray,
+    controller: DiscreteStateSpace | None = None,
+    measured=None,
+    relift_rows_only: bool = False,
+    controllers: Sequence[DiscreteStateSpace] | None = None,
+) -> tuple[list, list[KoopmanModel]]:
     """Closed-loop and plant models of ``estimator`` fitted on all ``trajectories``, one per alpha.
 
     The statistics are computed once and shared by every alpha (as in a sweep).
@@ -162,7 +172,7 @@ class _ResidualSums:
     def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
         lo, hi = max(k0, self.start), k0 + len(chunk)
         if lo < hi:
-            diff = chunk[lo - k0:, ..., self.channels] - self.truth[lo:hi, None]
+            diff = chunk[lo - k0 :, ..., self.channels] - self.truth[lo:hi, None]
             self.sums[models] += np.einsum("tmec,tmec->mec", diff, diff)
         else:
             # Not scored yet, but a prediction diverged here stays diverged (its model may leave
@@ -171,8 +181,14 @@ class _ResidualSums:
             self.sums[models] += np.where(diverged, np.inf, 0.0)
 
 
-def _score(models: list[KoopmanModel], episodes: Sequence[Trajectory], scoring: str, relift: bool, start: int = 1,
-           measured_only: bool = False) -> np.ndarray:
+def _score(
+    models: list[KoopmanModel],
+    episodes: Sequence[Trajectory],
+    scoring: str,
+    relift: bool,
+    start: int = 1,
+    measured_only: bool = False,
+) -> np.ndarray:
     """Mean R^2 over episodes for every model, from sample ``start`` on: shape (n_models,).
 
     The episodes are taken ``EPISODES_PER_BATCH`` at a time (a lazy sequence is read so): memory stays
@@ -185,14 +201,21 @@ def _score(models: list[KoopmanModel], episodes: Sequence[Trajectory], scoring: 
     return totals / len(episodes)
 
 
-def _score_sums(models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool, start: int,
-                measured_only: bool) -> np.ndarray:
+def _score_sums(
+    models: list[KoopmanModel], episodes: list[Trajectory], scoring: str, relift: bool, start: int, measured_only: bool
+) -> np.ndarray:
     """Sum of R^2 over ``episodes`` for every model (batched by length): shape (n_models,)."""
     return episode_scores(models, episodes, scoring, relift, start, measured_only).sum(axis=1)
 
 
-def episode_scores(models: Sequence[KoopmanModel], episodes: Sequence[Trajectory], scoring: str = "cl",
-                   relift: bool = True, start: int = 1, measured_only: bool = True) -> np.ndarray:
+def episode_scores(
+    models: Sequence[KoopmanModel],
+    episodes: Sequence[Trajectory],
+    scoring: str = "cl",
+    relift: bool = True,
+    start: int = 1,
+    measured_only: bool = True,
+) -> np.ndarray:
     """R^2 of every episode predicted by every model, simulated together (one batch per episode length).
 
     Parameters
@@ -230,7 +253,7 @@ def episode_scores(models: Sequence[KoopmanModel], episodes: Sequence[Trajectory
     per_model = (n_p + ref.n_states) * A.shape[1] * (d + 1)
     for indices in by_length.values():
         group = [episodes[i] for i in indices]
-        x_init = np.stack([t.x[:d + 1] for t in group])
+        x_init = np.stack([t.x[: d + 1] for t in group])
         v = np.stack([ref.inputs_of(t) for t in group])
         # Time-major truth (samples, episodes, channels), as the simulator hands its predictions.
         truth = np.stack([np.hstack([_controller_states(t), t.x]) if with_p else t.x for t in group], axis=1)
@@ -249,13 +272,24 @@ def _controller_states(t: Trajectory) -> np.ndarray:
     return t.xc
 
 
-def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: Sequence[float] | np.ndarray,
-                         splits: Sequence[tuple[np.ndarray, np.ndarray]], scorings: Sequence[str] = SCORINGS,
-                         controller: DiscreteStateSpace | None = None, measured=None, relift: bool = True,
-                         progress: Callable[[int, int], None] | None = None, score_from: int = 1,
-                         measured_only: bool = False, keep_fold_models: bool | str = False,
-                         fit_all: bool = True, controllers: Sequence[DiscreteStateSpace] | None = None,
-                         episode_statistics: Callable | None = None, shared: tuple | None = None) -> SweepResult:
+def regularization_sweep(
+    estimator,
+    trajectories: Sequence[Trajectory],
+    alphas: Sequence[float] | np.ndarray,
+    splits: Sequence[tuple[np.ndarray, np.ndarray]],
+    scorings: Sequence[str] = SCORINGS,
+    controller: DiscreteStateSpace | None = None,
+    measured=None,
+    relift: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+    score_from: int = 1,
+    measured_only: bool = False,
+    keep_fold_models: bool | str = False,
+    fit_all: bool = True,
+    controllers: Sequence[DiscreteStateSpace] | None = None,
+    episode_statistics: Callable | None = None,
+    shared: tuple | None = None,
+) -> SweepResult:
     """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
 
     Parameters
@@ -315,9 +349,18 @@ def regularization_sweep(estimator, trajectories: Sequence[Trajectory], alphas: 
     SweepResult
     """
     with limited_blas_threads(1):
-        return _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress,
-                      (score_from, measured_only, keep_fold_models, fit_all, controllers, episode_statistics,
-                       shared))
+        return _sweep(
+            estimator,
+            trajectories,
+            alphas,
+            splits,
+            scorings,
+            controller,
+            measured,
+            relift,
+            progress,
+            (score_from, measured_only, keep_fold_models, fit_all, controllers, episode_statistics, shared),
+        )
 
 
 def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
@@ -338,8 +381,9 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     # Without the final fits only re-lifted predictions are made: the rows they recompute from
     # the predicted states need no fit (on a 40-delay search lifting, 4 rows of 370).
     partial = relift and not fit_all
-    result = SweepResult(alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings},
-                         fold_models=[] if keep else None)
+    result = SweepResult(
+        alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings}, fold_models=[] if keep else None
+    )
     timed = _timer(result.seconds)
     if given is None or fit_all or not relift:
         derived = None
@@ -357,8 +401,9 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         # One pass over the episodes folds each into the running totals of the folds training on it
         # (and of all of them): memory O(folds x p^2), not O(episodes x p^2).
         with timed("statistics"):
-            setup, (*per_fold, everything) = _statistics(estimator, trajectories, [t for t, _ in splits] + [None],
-                                                         partial, controllers, elsewhere)
+            setup, (*per_fold, everything) = _statistics(
+                estimator, trajectories, [t for t, _ in splits] + [None], partial, controllers, elsewhere
+            )
         shared = (setup, everything)
     result.statistics = None if fit_all else shared
     for i, (train, validation) in enumerate(splits):
@@ -366,9 +411,15 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         fold = _for_controller(estimator, held_out_by)
         if shared is None:
             with timed("statistics"):
-                setup, (snapshots,) = _statistics(fold, select_episodes(trajectories, train), [None], partial,
-                                                  None if controllers is None else [controllers[j] for j in train],
-                                                  elsewhere, train)
+                setup, (snapshots,) = _statistics(
+                    fold,
+                    select_episodes(trajectories, train),
+                    [None],
+                    partial,
+                    None if controllers is None else [controllers[j] for j in train],
+                    elsewhere,
+                    train,
+                )
         else:
             setup, snapshots = shared[0], per_fold[i]
         with timed("fits"):
@@ -376,8 +427,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
         held_out = select_episodes(trajectories, validation)
         with timed("predictions"):
             for s in scorings:
-                result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start,
-                                            measured_only)
+                result.cv_r2[s][i] = _score(closed if s == "cl" else plants, held_out, s, relift, start, measured_only)
         if keep:
             if keep == "rows":
                 closed, plants = [FittedRows.of(m) for m in closed], [FittedRows.of(m) for m in plants]
@@ -387,8 +437,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     if not fit_all:
         return result
     if shared is None:
-        setup, (snapshots,) = _statistics(estimator, trajectories, [None], controllers=controllers,
-                                          elsewhere=elsewhere)
+        setup, (snapshots,) = _statistics(estimator, trajectories, [None], controllers=controllers, elsewhere=elsewhere)
     else:
         setup, snapshots = shared
     closed, plants = fitted_models(estimator, setup, snapshots, alphas, controller, measured)
@@ -401,8 +450,13 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     return result
 
 
-def fold_statistics(estimator, trajectories: Sequence[Trajectory], splits: Sequence[tuple[np.ndarray, np.ndarray]],
-                    controllers: Sequence[DiscreteStateSpace] | None = None, episodes=None) -> tuple:
+def fold_statistics(
+    estimator,
+    trajectories: Sequence[Trajectory],
+    splits: Sequence[tuple[np.ndarray, np.ndarray]],
+    controllers: Sequence[DiscreteStateSpace] | None = None,
+    episodes=None,
+) -> tuple:
     """What a sweep without final fits (``fit_all=False``, re-lifted) computes before it solves.
 
     Returns ``(setup, [statistics of each fold's training episodes], statistics of all
@@ -415,8 +469,9 @@ def fold_statistics(estimator, trajectories: Sequence[Trajectory], splits: Seque
     if episodes is not None:
         part = {int(j) for j in episodes}
         selections = [sorted(part if s is None else part.intersection(int(j) for j in s)) for s in selections]
-    setup, totals = _statistics(estimator, as_episodes(trajectories), [s for s in selections if s is None or len(s)],
-                                True, controllers)
+    setup, totals = _statistics(
+        estimator, as_episodes(trajectories), [s for s in selections if s is None or len(s)], True, controllers
+    )
     totals = iter(totals)
     *per_fold, everything = [next(totals) if s is None or len(s) else None for s in selections]
     return setup, per_fold, everything
@@ -432,6 +487,7 @@ def merge_fold_statistics(parts: Sequence[tuple]) -> tuple:
 
     Exact up to rounding: each total is the factor of the parts' factors stacked.
     """
+
     def total(stats):
         return Snapshots.total([s for s in stats if s is not None])
 
@@ -448,6 +504,7 @@ def episode_heads(trajectories: Sequence[Trajectory], n_delays: int) -> list[Tra
 
 def _first_samples(t: Trajectory, n: int) -> Trajectory:
     """``t``'s first ``n`` samples."""
+
     def head(signal: np.ndarray | None) -> np.ndarray | None:
         return None if signal is None else signal[:n]
 
@@ -470,21 +527,28 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) 
     if not isinstance(everything, Snapshots) or controllers is not None or _learns_from_data(estimator):
         return None
     template = copy.copy(estimator)
-    setup = template._setup(big_setup.trajectories) if not isinstance(template, ClosedLoopKoopman) else \
-        template._setup(big_setup.trajectories, None)
+    setup = (
+        template._setup(big_setup.trajectories)
+        if not isinstance(template, ClosedLoopKoopman)
+        else template._setup(big_setup.trajectories, None)
+    )
     setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
     small, big = setup.lifting, big_setup.lifting
     fewer = small.n_delays_ < big.n_delays_
-    if (small.n_delays_ > big.n_delays_ or setup.target_rows != big_setup.target_rows
-            or setup.n_feedforward != big_setup.n_feedforward):
+    if (
+        small.n_delays_ > big.n_delays_
+        or setup.target_rows != big_setup.target_rows
+        or setup.n_feedforward != big_setup.n_feedforward
+    ):
         return None
     names, big_names = small.feature_names_out_, big.feature_names_out_
     n_c = setup.target_rows - small.n_features_in_  # the controller's states lead the snapshots
-    if any(n not in big_names for n in names) or names[:small.n_features_in_] != big_names[:small.n_features_in_]:
+    if any(n not in big_names for n in names) or names[: small.n_features_in_] != big_names[: small.n_features_in_]:
         return None
     n_v = everything.n_regressors - n_c - len(big_names)  # references and feedforward follow the lifting
-    regressors = (list(range(n_c)) + [n_c + big_names.index(n) for n in names]
-                  + [n_c + len(big_names) + i for i in range(n_v)])
+    regressors = (
+        list(range(n_c)) + [n_c + big_names.index(n) for n in names] + [n_c + len(big_names) + i for i in range(n_v)]
+    )
     targets = list(range(setup.target_rows))
     if not fewer:
         return setup, [s.columns(regressors, targets) for s in per_fold], everything.columns(regressors, targets)
@@ -496,8 +560,7 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) 
     def total(stats: Snapshots, members) -> Snapshots:
         return Snapshots.total([stats.columns(regressors, targets)] + [extra[int(j)] for j in members])
 
-    return (setup, [total(s, train) for s, (train, _) in zip(per_fold, splits)],
-            total(everything, range(len(extra))))
+    return (setup, [total(s, train) for s, (train, _) in zip(per_fold, splits)], total(everything, range(len(extra))))
 
 
 def _timer(seconds: dict):
@@ -526,9 +589,11 @@ def _fold_controller(controllers, validation, default, fold: int):
         return default
     distinct, _ = distinct_controllers([controllers[j] for j in validation])
     if len(distinct) != 1:
-        raise ValueError(f"fold {fold + 1}'s validation episodes were recorded under {len(distinct)} controllers; "
-                         "a fold predicts one controller's loop: hold out one controller per fold "
-                         "(identify.model_selection.split.leave_one_controller_out)")
+        raise ValueError(
+            f"fold {fold + 1}'s validation episodes were recorded under {len(distinct)} controllers; "
+            "a fold predicts one controller's loop: hold out one controller per fold "
+            "(identify.model_selection.split.leave_one_controller_out)"
+        )
     return distinct[0]
 
 
@@ -539,8 +604,9 @@ def _for_controller(estimator, controller):
     return copy.copy(estimator).set_params(controller=controller)
 
 
-def _statistics(estimator, trajectories, selections, partial: bool = False, controllers=None, elsewhere=None,
-                indices=None):
+def _statistics(
+    estimator, trajectories, selections, partial: bool = False, controllers=None, elsewhere=None, indices=None
+):
     """Setup, and the statistics of each selection of the episodes (index sequences; None: all).
 
     ``partial``: of the rows a re-lifted prediction uses only. ``controllers``: each episode's

@@ -81,16 +81,26 @@ class ProbeSet:
 
     def describe(self) -> str:
         """The probe set in words, for reports."""
-        gains = "; ".join("kp_theta {:g}, kd_theta {:g}, kp_alpha {:g}, kd_alpha {:g}".format(*g[:4])
-                          for g in self.gains)
-        return (f"{self.n_episodes} twin episodes (the training episodes' excitations replayed on the calibrated "
-                f"twin, encoder zeros drawn as on the rig) under {len(self.controllers)} probe PD controllers "
-                f"({gains})" + (f"; {self.dropped} fell and were dropped" if self.dropped else ""))
+        gains = "; ".join(
+            "kp_theta {:g}, kd_theta {:g}, kp_alpha {:g}, kd_alpha {:g}".format(*g[:4]) for g in self.gains
+        )
+        return (
+            f"{self.n_episodes} twin episodes (the training episodes' excitations replayed on the calibrated "
+            f"twin, encoder zeros drawn as on the rig) under {len(self.controllers)} probe PD controllers "
+            f"({gains})" + (f"; {self.dropped} fell and were dropped" if self.dropped else "")
+        )
 
 
-def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[float]] = DEFAULT_PROBE_GAINS,
-                per_controller: int = 6, params=None, seed: int = 0, skip: int = SKIP_SAMPLES,
-                zero_offsets="rig", cache: str | Path | None = None) -> ProbeSet:
+def twin_probes(
+    trajectories: Sequence[Trajectory],
+    gains: Sequence[Sequence[float]] = DEFAULT_PROBE_GAINS,
+    per_controller: int = 6,
+    params=None,
+    seed: int = 0,
+    skip: int = SKIP_SAMPLES,
+    zero_offsets="rig",
+    cache: str | Path | None = None,
+) -> ProbeSet:
     """Replay training excitations on the twin under probe controllers.
 
     Parameters
@@ -136,12 +146,15 @@ def twin_probes(trajectories: Sequence[Trajectory], gains: Sequence[Sequence[flo
     if distribution is not None and not isinstance(distribution, ZeroOffsetDistribution):
         raise ValueError(f"zero_offsets must be 'rig', None or a ZeroOffsetDistribution, got {zero_offsets!r}")
     gains = [tuple(float(v) for v in g) for g in gains]
-    sources = [[trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
-               for i in range(len(gains))]
+    sources = [
+        [trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
+        for i in range(len(gains))
+    ]
     path = None
     if cache is not None:
-        key = probe_cache_key([t for group in sources for t in group], gains, per_controller, params, seed, skip,
-                              distribution)
+        key = probe_cache_key(
+            [t for group in sources for t in group], gains, per_controller, params, seed, skip, distribution
+        )
         path = Path(cache) / f"probes-{key}.npz"
         stored = _read_probes(path, trajectories[0].dt)
         if stored is not None:
@@ -181,8 +194,9 @@ def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int)
 PROBE_CACHE_FORMAT = 1
 
 
-def probe_cache_key(sources: Sequence[Trajectory], gains, per_controller: int, params, seed: int, skip: int,
-                    distribution) -> str:
+def probe_cache_key(
+    sources: Sequence[Trajectory], gains, per_controller: int, params, seed: int, skip: int, distribution
+) -> str:
     """A digest of everything a probe set depends on (see :func:`twin_probes`'s ``cache``).
 
     The sources' references, feedforward, lengths and sample period, the twin's parameters, the
@@ -234,8 +248,9 @@ def _write_probes(path: Path, probes: ProbeSet) -> None:
     except OSError as exc:
         import logging
 
-        logging.getLogger(__name__).warning("%s: cannot store the probe set (%s); it is simulated again next time",
-                                            path, exc.strerror or exc)
+        logging.getLogger(__name__).warning(
+            "%s: cannot store the probe set (%s); it is simulated again next time", path, exc.strerror or exc
+        )
 
 
 def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
@@ -254,10 +269,21 @@ def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
                 A, B, C, D = (data[f"c{i}_{name}"] for name in ("A", "B", "C", "D"))
                 controllers.append(DiscreteStateSpace(A, B, C, D, dt))
                 zeros.append(data[f"c{i}_zeros"])
-                episodes.append([Trajectory(x=data[f"c{i}_e{j}_x"], u=data[f"c{i}_e{j}_u"], r=data[f"c{i}_e{j}_r"],
-                                            f=data[f"c{i}_e{j}_f"], xc=data[f"c{i}_e{j}_xc"], dt=dt,
-                                            name=str(name), state_names=("theta", "alpha"))
-                                 for j, name in enumerate(data[f"c{i}_names"])])
+                episodes.append(
+                    [
+                        Trajectory(
+                            x=data[f"c{i}_e{j}_x"],
+                            u=data[f"c{i}_e{j}_u"],
+                            r=data[f"c{i}_e{j}_r"],
+                            f=data[f"c{i}_e{j}_f"],
+                            xc=data[f"c{i}_e{j}_xc"],
+                            dt=dt,
+                            name=str(name),
+                            state_names=("theta", "alpha"),
+                        )
+                        for j, name in enumerate(data[f"c{i}_names"])
+                    ]
+                )
                 i += 1
             dropped = int(data["dropped"])
     except (OSError, EOFError, KeyError, ValueError, IndexError, TypeError, zipfile.BadZipFile):
@@ -266,8 +292,16 @@ def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
     return ProbeSet(controllers, episodes, zeros, gains, dropped) if controllers else None
 
 
-def _run_probes(controller: DiscreteStateSpace, sources: Sequence[Trajectory], start: np.ndarray, zeros: np.ndarray,
-                params, rng: np.random.Generator, skip: int, label: str) -> tuple[list[Trajectory], np.ndarray]:
+def _run_probes(
+    controller: DiscreteStateSpace,
+    sources: Sequence[Trajectory],
+    start: np.ndarray,
+    zeros: np.ndarray,
+    params,
+    rng: np.random.Generator,
+    skip: int,
+    label: str,
+) -> tuple[list[Trajectory], np.ndarray]:
     """The sources' excitations under ``controller`` on the twin from ``start``, one batch; those that stayed up."""
     from qube_koopman.sim.pendulum import SensorModel, simulate_closed_loop
 
@@ -281,9 +315,18 @@ def _run_probes(controller: DiscreteStateSpace, sources: Sequence[Trajectory], s
         y = run.measurements[:, j]
         if np.any(np.abs(y[:, 0]) > THETA_LIMIT) or np.any(np.abs(y[:, 1]) > ALPHA_LIMIT):
             continue
-        kept.append(Trajectory(x=y[skip:], u=run.plant_input[skip:, j, None], r=r[skip:, j], f=f[skip:, j, None],
-                               xc=run.controller_states[skip:, j], dt=controller.dt, name=f"{label}.{j + 1}",
-                               state_names=("theta", "alpha")))
+        kept.append(
+            Trajectory(
+                x=y[skip:],
+                u=run.plant_input[skip:, j, None],
+                r=r[skip:, j],
+                f=f[skip:, j, None],
+                xc=run.controller_states[skip:, j],
+                dt=controller.dt,
+                name=f"{label}.{j + 1}",
+                state_names=("theta", "alpha"),
+            )
+        )
         kept_zeros.append(zeros[j])
     return kept, np.array(kept_zeros)
 

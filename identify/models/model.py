@@ -90,7 +90,7 @@ class KoopmanModel:
     def C(self) -> np.ndarray:
         """Output matrix picking the original plant states out of the lifted state."""
         C = np.zeros((self.n_states, self.A.shape[0]))
-        C[:, self.n_passthrough:self.n_passthrough + self.n_states] = np.eye(self.n_states)
+        C[:, self.n_passthrough : self.n_passthrough + self.n_states] = np.eye(self.n_states)
         return C
 
     @property
@@ -125,13 +125,18 @@ class KoopmanModel:
         if self.input_lifting is not None:
             v = self.input_lifting.transform(v)
         if v.shape[1] != self.B.shape[1]:
-            raise ValueError(f"trajectory {trajectory.name!r} gives {v.shape[1]} inputs, "
-                             f"the model takes {self.B.shape[1]}")
+            raise ValueError(
+                f"trajectory {trajectory.name!r} gives {v.shape[1]} inputs, the model takes {self.B.shape[1]}"
+            )
         return v
 
-    def predict(self, trajectory: Trajectory, relift: bool = True,
-                offsets: Mapping[int, float] | Sequence[int | str] | None = None,
-                window: int | None = None) -> np.ndarray:
+    def predict(
+        self,
+        trajectory: Trajectory,
+        relift: bool = True,
+        offsets: Mapping[int, float] | Sequence[int | str] | None = None,
+        window: int | None = None,
+    ) -> np.ndarray:
         """Predict the plant states of one episode from its initial condition and inputs.
 
         The first ``n_delays + 1`` samples are the initial condition (copied);
@@ -165,8 +170,12 @@ class KoopmanModel:
             from qube_koopman.identify.models import offsets as off
 
             if isinstance(offsets, Mapping):
-                known = {c: float(v) for c, v in zip(
-                    off.resolve_channels(list(offsets), trajectory.state_names, self.n_states), offsets.values())}
+                known = {
+                    c: float(v)
+                    for c, v in zip(
+                        off.resolve_channels(list(offsets), trajectory.state_names, self.n_states), offsets.values()
+                    )
+                }
                 return off.predict_with_offsets(self, trajectory, known, relift)
             if window is None:
                 raise ValueError("estimating offsets needs window (samples from the start)")
@@ -177,20 +186,24 @@ class KoopmanModel:
         """Check that ``trajectory`` can be predicted; its controller state at sample ``n_delays``."""
         d = self.n_delays
         if trajectory.n_samples < d + 2:
-            raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; "
-                             f"prediction needs at least {d + 2}")
+            raise ValueError(
+                f"trajectory {trajectory.name!r} has {trajectory.n_samples} samples; prediction needs at least {d + 2}"
+            )
         if trajectory.x.shape[1] != self.n_states:
-            raise ValueError(f"trajectory {trajectory.name!r} has {trajectory.x.shape[1]} states, "
-                             f"the model {self.n_states}")
+            raise ValueError(
+                f"trajectory {trajectory.name!r} has {trajectory.x.shape[1]} states, the model {self.n_states}"
+            )
         if not self.n_passthrough:
             return None
         if trajectory.xc is None or trajectory.xc.shape[1] != self.n_passthrough:
-            raise ValueError(f"trajectory {trajectory.name!r} needs a controller state of "
-                             f"{self.n_passthrough} channels")
+            raise ValueError(
+                f"trajectory {trajectory.name!r} needs a controller state of {self.n_passthrough} channels"
+            )
         return trajectory.xc[d]
 
-    def simulate(self, x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None = None,
-                 relift: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def simulate(
+        self, x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None = None, relift: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Prediction from arrays for one or several episodes.
 
         Parameters
@@ -217,8 +230,16 @@ class KoopmanModel:
         if single:
             x_init, v = np.asarray(x_init)[None], v[None]
             p0 = None if p0 is None else np.asarray(p0)[None]
-        x, p = simulate_batch(self.A[None], self.B[None], self.lifting, self.n_passthrough,
-                              np.asarray(x_init, dtype=float), v, p0, relift=relift)
+        x, p = simulate_batch(
+            self.A[None],
+            self.B[None],
+            self.lifting,
+            self.n_passthrough,
+            np.asarray(x_init, dtype=float),
+            v,
+            p0,
+            relift=relift,
+        )
         return (x[0, 0], p[0, 0]) if single else (x[0], p[0])
 
     def predict_many(self, trajectories: Sequence[Trajectory], relift: bool = True) -> list[np.ndarray]:
@@ -237,8 +258,12 @@ class KoopmanModel:
         for group in by_length.values():
             given = [p for p in (p0s[i] for i in group) if p is not None]  # all, or none without passthrough
             p0 = np.stack(given) if given else None
-            x, _ = self.simulate(np.stack([trajectories[i].x[:d + 1] for i in group]),
-                                 np.stack([self.inputs_of(trajectories[i]) for i in group]), p0, relift=relift)
+            x, _ = self.simulate(
+                np.stack([trajectories[i].x[: d + 1] for i in group]),
+                np.stack([self.inputs_of(trajectories[i]) for i in group]),
+                p0,
+                relift=relift,
+            )
             for j, i in enumerate(group):
                 out[i] = x[j]
         return [out[i] for i in range(len(trajectories))]
@@ -279,5 +304,5 @@ class FittedRows:
         """The model again, its unfitted rows NaN, with ``lifting`` (the fitted one it had)."""
         A = np.full((self.n_rows, self.A.shape[1]), np.nan)
         B = np.full((self.n_rows, self.B.shape[1]), np.nan)
-        A[:self.A.shape[0]], B[:self.B.shape[0]] = self.A, self.B
+        A[: self.A.shape[0]], B[: self.B.shape[0]] = self.A, self.B
         return KoopmanModel(A, B, lifting, **self.settings)

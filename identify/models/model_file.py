@@ -12,14 +12,32 @@ from typing import Any
 
 import numpy as np
 
-from qube_koopman.identify.lifting import (Constant, CoulombFriction, Delay, GaussianRbf, Lifting, LiftingFunction,
-                                           Polynomial, ThinPlateRbf, Trigonometric)
+from qube_koopman.identify.lifting import (
+    Constant,
+    CoulombFriction,
+    Delay,
+    GaussianRbf,
+    Lifting,
+    LiftingFunction,
+    Polynomial,
+    ThinPlateRbf,
+    Trigonometric,
+)
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path
 
-__all__ = ["FORMAT", "VERSION", "ARX_FORMAT", "lifting_to_dict", "lifting_from_dict", "save_model", "load_model",
-           "save_arx_model", "uncertainty_to_dict"]
+__all__ = [
+    "FORMAT",
+    "VERSION",
+    "ARX_FORMAT",
+    "lifting_to_dict",
+    "lifting_from_dict",
+    "save_model",
+    "load_model",
+    "save_arx_model",
+    "uncertainty_to_dict",
+]
 
 FORMAT = "qube-koopman-model"
 VERSION = 1
@@ -81,13 +99,27 @@ def lifting_from_dict(data: dict) -> Lifting:
 def _model_to_dict(model: KoopmanModel | None) -> dict | None:
     if model is None:
         return None
-    return {"A": model.A.tolist(), "B": model.B.tolist(), "input_signals": list(model.input_signals),
-            "n_passthrough": model.n_passthrough, "passthrough_names": list(model.passthrough_names)}
+    return {
+        "A": model.A.tolist(),
+        "B": model.B.tolist(),
+        "input_signals": list(model.input_signals),
+        "n_passthrough": model.n_passthrough,
+        "passthrough_names": list(model.passthrough_names),
+    }
 
 
-def save_model(path: str | Path, *, method: str, alpha: float | None, plant: KoopmanModel,
-               closed_loop: KoopmanModel | None, controller: DiscreteStateSpace | None,
-               measured: list[int], training: dict, uncertainty: dict | None = None) -> None:
+def save_model(
+    path: str | Path,
+    *,
+    method: str,
+    alpha: float | None,
+    plant: KoopmanModel,
+    closed_loop: KoopmanModel | None,
+    controller: DiscreteStateSpace | None,
+    measured: list[int],
+    training: dict,
+    uncertainty: dict | None = None,
+) -> None:
     """Write a model file (see MODEL_FORMAT.md), atomically.
 
     Parameters
@@ -112,10 +144,17 @@ def save_model(path: str | Path, *, method: str, alpha: float | None, plant: Koo
         The fit's uncertainty for a design (:func:`uncertainty_to_dict`); left out when None.
     """
     data = {
-        "format": FORMAT, "version": VERSION, "method": method, "alpha": alpha, "dt": plant.dt,
-        "lifting": lifting_to_dict(plant.lifting), "measured": list(measured),
+        "format": FORMAT,
+        "version": VERSION,
+        "method": method,
+        "alpha": alpha,
+        "dt": plant.dt,
+        "lifting": lifting_to_dict(plant.lifting),
+        "measured": list(measured),
         "controller": None if controller is None else controller.as_dict(),
-        "plant": _model_to_dict(plant), "closed_loop": _model_to_dict(closed_loop), "training": training,
+        "plant": _model_to_dict(plant),
+        "closed_loop": _model_to_dict(closed_loop),
+        "training": training,
     }
     if uncertainty is not None:
         data["uncertainty"] = uncertainty
@@ -123,8 +162,15 @@ def save_model(path: str | Path, *, method: str, alpha: float | None, plant: Koo
         tmp.write_text(json.dumps(data, indent=1) + "\n")
 
 
-def uncertainty_to_dict(plant: KoopmanModel, members: list[KoopmanModel], held_out: np.ndarray, *, seed: int,
-                        skip: int, logs: list[str] | None = None) -> dict:
+def uncertainty_to_dict(
+    plant: KoopmanModel,
+    members: list[KoopmanModel],
+    held_out: np.ndarray,
+    *,
+    seed: int,
+    skip: int,
+    logs: list[str] | None = None,
+) -> dict:
     """The ``uncertainty`` entry of a model file: bootstrap plants and held-out figures (MODEL_FORMAT.md).
 
     Parameters
@@ -150,11 +196,16 @@ def uncertainty_to_dict(plant: KoopmanModel, members: list[KoopmanModel], held_o
     """
     m = plant.n_states
     out: dict[str, Any] = {
-        "method": "episode bootstrap", "seed": int(seed),
+        "method": "episode bootstrap",
+        "seed": int(seed),
         "plant_members": [{"A": member.A[:m].tolist(), "B": member.B[:m].tolist()} for member in members],
-        "held_out": {"skip_samples": int(skip), "figures": ["J", "voltage_rms", "voltage_peak"],
-                     "measured": np.asarray(held_out)[:, 0].tolist(),
-                     "predicted": np.asarray(held_out)[:, 1].tolist()}}
+        "held_out": {
+            "skip_samples": int(skip),
+            "figures": ["J", "voltage_rms", "voltage_peak"],
+            "measured": np.asarray(held_out)[:, 0].tolist(),
+            "predicted": np.asarray(held_out)[:, 1].tolist(),
+        },
+    }
     if logs is not None:
         out["held_out"]["logs"] = list(logs)
     return out
@@ -178,8 +229,16 @@ def save_arx_model(path: str | Path, *, method: str, lags: int, model) -> None:
     model : Arx
         The fitted ARX model: the plant's for ``"arx"``, the closed loop's for ``"cl-arx"``.
     """
-    data = {"format": ARX_FORMAT, "version": 1, "method": method, "output_lags": lags, "input_lags": lags,
-            "inputs": list(model.inputs), "coef": model.coef_.tolist(), "dt": model.dt_}
+    data = {
+        "format": ARX_FORMAT,
+        "version": 1,
+        "method": method,
+        "output_lags": lags,
+        "input_lags": lags,
+        "inputs": list(model.inputs),
+        "coef": model.coef_.tolist(),
+        "dt": model.dt_,
+    }
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=1) + "\n")
 
@@ -226,25 +285,36 @@ def load_model(path: str | Path) -> dict:
         bad = np.argwhere(~np.isfinite(values))
         if bad.size:
             where = ", ".join(str(i) for i in bad[0])
-            raise ValueError(f"{path}: {name}.{key} has a non-finite entry ({values[tuple(bad[0])]}) at "
-                             f"[{where}]{f' and {len(bad) - 1} more' if len(bad) > 1 else ''}")
+            raise ValueError(
+                f"{path}: {name}.{key} has a non-finite entry ({values[tuple(bad[0])]}) at "
+                f"[{where}]{f' and {len(bad) - 1} more' if len(bad) > 1 else ''}"
+            )
         return values
 
     def model(entry, name: str):
         if entry is None:
             return None
         try:
-            return KoopmanModel(matrix(entry, name, "A"), matrix(entry, name, "B"), lifting,
-                                tuple(entry["input_signals"]), n_passthrough=entry["n_passthrough"], dt=data["dt"],
-                                passthrough_names=tuple(entry["passthrough_names"]),
-                                feedback=tuple(data["measured"]) if "r" in entry["input_signals"] else ())
+            return KoopmanModel(
+                matrix(entry, name, "A"),
+                matrix(entry, name, "B"),
+                lifting,
+                tuple(entry["input_signals"]),
+                n_passthrough=entry["n_passthrough"],
+                dt=data["dt"],
+                passthrough_names=tuple(entry["passthrough_names"]),
+                feedback=tuple(data["measured"]) if "r" in entry["input_signals"] else (),
+            )
         except ValueError as exc:
             message = str(exc)
             raise ValueError(message if message.startswith(f"{path}:") else f"{path}: {name}: {message}") from None
 
     out = dict(data)
-    out.update(plant=model(data["plant"], "plant"), closed_loop=model(data["closed_loop"], "closed_loop"),
-               controller=None if data["controller"] is None else DiscreteStateSpace.from_dict(data["controller"]))
+    out.update(
+        plant=model(data["plant"], "plant"),
+        closed_loop=model(data["closed_loop"], "closed_loop"),
+        controller=None if data["controller"] is None else DiscreteStateSpace.from_dict(data["controller"]),
+    )
     out["plant_members"] = _members(data.get("uncertainty"), out["plant"], matrix, path)
     return out
 
@@ -259,8 +329,10 @@ def _members(uncertainty, plant: KoopmanModel | None, matrix, path: Path) -> lis
         name = f"uncertainty.plant_members[{i}]"
         A_x, B_x = matrix(entry, name, "A"), matrix(entry, name, "B")
         if A_x.shape != (m, plant.A.shape[1]) or B_x.shape != (m, plant.B.shape[1]):
-            raise ValueError(f"{path}: uncertainty.plant_members[{i}] has A {A_x.shape} and B {B_x.shape}, the plant's "
-                             f"measured rows are {(m, plant.A.shape[1])} and {(m, plant.B.shape[1])}")
+            raise ValueError(
+                f"{path}: uncertainty.plant_members[{i}] has A {A_x.shape} and B {B_x.shape}, the plant's "
+                f"measured rows are {(m, plant.A.shape[1])} and {(m, plant.B.shape[1])}"
+            )
         A, B = plant.A.copy(), plant.B.copy()
         A[:m], B[:m] = A_x, B_x
         members.append(KoopmanModel(A, B, plant.lifting, tuple(plant.input_signals), dt=plant.dt))

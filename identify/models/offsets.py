@@ -50,9 +50,20 @@ import numpy as np
 
 from qube_koopman.identify.data.trajectory import Trajectory
 
-__all__ = ["OffsetEstimate", "OffsetWarning", "estimate_offsets", "estimate_offsets_many",
-           "predict_with_offsets_many", "shift_trajectory", "predict_with_offsets", "predict_estimating_offsets",
-           "resolve_channels", "channel_scales", "DEFAULT_BOUND", "SPREAD_FLOOR"]
+__all__ = [
+    "OffsetEstimate",
+    "OffsetWarning",
+    "estimate_offsets",
+    "estimate_offsets_many",
+    "predict_with_offsets_many",
+    "shift_trajectory",
+    "predict_with_offsets",
+    "predict_estimating_offsets",
+    "resolve_channels",
+    "channel_scales",
+    "DEFAULT_BOUND",
+    "SPREAD_FLOOR",
+]
 
 #: Largest plausible offset (rad) by default: 16 encoder counts of the QUBE; the dataset's are ~1.
 DEFAULT_BOUND = 0.05
@@ -114,20 +125,28 @@ class OffsetEstimate:
     def as_dict(self, names: Sequence[str] | None = None) -> dict:
         """Plain data for reports: each offset and its standard error by channel name, the status."""
         names = [str(c) for c in self.channels] if names is None else list(names)
-        se = [None] * len(names) if self.std_error is None else [
-            float(e) if np.isfinite(e) else None for e in self.std_error]
-        return {**{n: float(v) for n, v in zip(names, self.values)},
-                **{f"{n}_std_error": e for n, e in zip(names, se)},
-                "plausible": self.plausible, "status": self.status,
-                "rms_before": self.rms_before, "rms_after": self.rms_after}
+        se = (
+            [None] * len(names)
+            if self.std_error is None
+            else [float(e) if np.isfinite(e) else None for e in self.std_error]
+        )
+        return {
+            **{n: float(v) for n, v in zip(names, self.values)},
+            **{f"{n}_std_error": e for n, e in zip(names, se)},
+            "plausible": self.plausible,
+            "status": self.status,
+            "rms_before": self.rms_before,
+            "rms_after": self.rms_after,
+        }
 
     def as_mapping(self) -> dict[int, float]:
         """``{channel: offset}``; empty when implausible (then no offset is applied)."""
         return {c: float(v) for c, v in zip(self.channels, self.values)} if self.plausible else {}
 
 
-def resolve_channels(channels: Sequence[int | str], state_names: Sequence[str] | None,
-                     n_states: int) -> tuple[int, ...]:
+def resolve_channels(
+    channels: Sequence[int | str], state_names: Sequence[str] | None, n_states: int
+) -> tuple[int, ...]:
     """Channel indices from indices or state names (``"alpha"``)."""
     out = []
     for c in channels:
@@ -168,8 +187,9 @@ def shift_trajectory(model, trajectory: Trajectory, offsets: Mapping[int, float]
     return replace(trajectory, x=trajectory.x - o, r=r)
 
 
-def predict_with_offsets(model, trajectory: Trajectory, offsets: Mapping[int, float],
-                         relift: bool = True) -> np.ndarray:
+def predict_with_offsets(
+    model, trajectory: Trajectory, offsets: Mapping[int, float], relift: bool = True
+) -> np.ndarray:
     """Prediction of the measured states with known offsets (see the module docstring).
 
     Parameters
@@ -203,8 +223,9 @@ def _controller_state(t: Trajectory) -> np.ndarray:
     return t.xc
 
 
-def _window_predictions(model, trajectory: Trajectory, channels, trials: np.ndarray, window: int,
-                        relift: bool) -> np.ndarray:
+def _window_predictions(
+    model, trajectory: Trajectory, channels, trials: np.ndarray, window: int, relift: bool
+) -> np.ndarray:
     """Measured-state predictions of the first ``window`` samples for each row of offsets in ``trials``."""
     return _batch_predictions(model, [_head(trajectory, window)] * len(trials), channels, trials, relift)
 
@@ -213,7 +234,7 @@ def _batch_predictions(model, heads: Sequence[Trajectory], channels, trials: np.
     """Predictions of equally long episode heads, ``heads[i]`` with the offsets ``trials[i]``: one batch."""
     d = model.n_delays
     shifted = [shift_trajectory(model, h, dict(zip(channels, row))) for h, row in zip(heads, trials)]
-    x_init = np.stack([t.x[:d + 1] for t in shifted])
+    x_init = np.stack([t.x[: d + 1] for t in shifted])
     v = np.stack([model.inputs_of(t) for t in shifted])
     p0 = np.stack([_controller_state(t)[d] for t in shifted]) if model.n_passthrough else None
     x, _ = model.simulate(x_init, v, p0, relift=relift)
@@ -221,8 +242,15 @@ def _batch_predictions(model, heads: Sequence[Trajectory], channels, trials: np.
     return x
 
 
-def estimate_offsets(model, trajectory: Trajectory, channels: Sequence[int | str], window: int,
-                     bound: float = DEFAULT_BOUND, relift: bool = True, weighted: bool = True) -> OffsetEstimate:
+def estimate_offsets(
+    model,
+    trajectory: Trajectory,
+    channels: Sequence[int | str],
+    window: int,
+    bound: float = DEFAULT_BOUND,
+    relift: bool = True,
+    weighted: bool = True,
+) -> OffsetEstimate:
     """Estimate constant offsets of ``channels`` from the first ``window`` samples.
 
     Parameters
@@ -254,17 +282,19 @@ def estimate_offsets(model, trajectory: Trajectory, channels: Sequence[int | str
     d = model.n_delays
     window = int(window)
     if not d + 3 <= window <= trajectory.n_samples:
-        raise ValueError(f"trajectory {trajectory.name!r}: the estimation window must hold between {d + 3} "
-                         f"and {trajectory.n_samples} samples, got {window}")
+        raise ValueError(
+            f"trajectory {trajectory.name!r}: the estimation window must hold between {d + 3} "
+            f"and {trajectory.n_samples} samples, got {window}"
+        )
     if not (np.isfinite(bound) and bound > 0):
         raise ValueError(f"the offset bound must be positive, got {bound!r}")
-    truth = trajectory.x[d + 1:window]
+    truth = trajectory.x[d + 1 : window]
     scale = channel_scales(truth) if weighted else np.ones(truth.shape[1])
     k = len(channels)
     trials_of = lambda o: np.vstack([o, o + _STEP * np.eye(k)])  # noqa: E731 (one line, used twice)
 
     def residuals(pred: np.ndarray) -> np.ndarray:
-        res = ((truth - pred[..., d + 1:, :]) * scale).reshape(pred.shape[0], -1)
+        res = ((truth - pred[..., d + 1 :, :]) * scale).reshape(pred.shape[0], -1)
         return np.where(np.isfinite(res), res, _DIVERGED)
 
     def fun(o):
@@ -278,8 +308,15 @@ def estimate_offsets(model, trajectory: Trajectory, channels: Sequence[int | str
     before = fun(start)
     fit = least_squares(fun, start, jac=jac, method="lm", xtol=1e-10, ftol=1e-12, max_nfev=50)
     raw_rms = lambda r: _raw_rms(r.reshape(-1, scale.size), scale)  # noqa: E731
-    return OffsetEstimate(channels, np.asarray(fit.x, dtype=float), window, float(bound), raw_rms(before),
-                          raw_rms(fit.fun), _std_error(fit.jac.T, fit.fun))
+    return OffsetEstimate(
+        channels,
+        np.asarray(fit.x, dtype=float),
+        window,
+        float(bound),
+        raw_rms(before),
+        raw_rms(fit.fun),
+        _std_error(fit.jac.T, fit.fun),
+    )
 
 
 #: Smallest spread a channel's weight uses (rad): a channel at rest over the window (a tenth
@@ -321,8 +358,9 @@ def _std_error(J: np.ndarray, res: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(se), se, np.inf)
 
 
-def predict_with_offsets_many(model, trajectories: Sequence[Trajectory], estimates: Sequence[OffsetEstimate],
-                              relift: bool = True) -> list[np.ndarray]:
+def predict_with_offsets_many(
+    model, trajectories: Sequence[Trajectory], estimates: Sequence[OffsetEstimate], relift: bool = True
+) -> list[np.ndarray]:
     """:func:`predict_with_offsets` for many episodes, batched by length (implausible estimates unused).
 
     Parameters
@@ -347,17 +385,25 @@ def predict_with_offsets_many(model, trajectories: Sequence[Trajectory], estimat
         by_length.setdefault(t.n_samples, []).append(i)
     for group in by_length.values():
         e0 = estimates[group[0]]
-        trials = np.array([estimates[i].values if estimates[i].plausible else np.zeros(len(e0.channels))
-                           for i in group])
+        trials = np.array(
+            [estimates[i].values if estimates[i].plausible else np.zeros(len(e0.channels)) for i in group]
+        )
         pred = _batch_predictions(model, [trajectories[i] for i in group], e0.channels, trials, relift)
         for row, i in enumerate(group):
             out[i] = pred[row]
     return [out[i] for i in range(len(trajectories))]
 
 
-def estimate_offsets_many(model, trajectories: Sequence[Trajectory], channels: Sequence[int | str], window: int,
-                          bound: float = DEFAULT_BOUND, relift: bool = True, iterations: int = 8,
-                          weighted: bool = True) -> list[OffsetEstimate]:
+def estimate_offsets_many(
+    model,
+    trajectories: Sequence[Trajectory],
+    channels: Sequence[int | str],
+    window: int,
+    bound: float = DEFAULT_BOUND,
+    relift: bool = True,
+    iterations: int = 8,
+    weighted: bool = True,
+) -> list[OffsetEstimate]:
     """:func:`estimate_offsets` for many episodes at once, by Gauss-Newton steps batched over them.
 
     The problem per episode is the same (the window's simulation error in a
@@ -387,19 +433,20 @@ def estimate_offsets_many(model, trajectories: Sequence[Trajectory], channels: S
     channels = resolve_channels(channels, trajectories[0].state_names, trajectories[0].x.shape[1])
     d, k, window = model.n_delays, len(channels), int(window)
     if not all(d + 3 <= window <= t.n_samples for t in trajectories):
-        raise ValueError(f"the estimation window must hold between {d + 3} samples and every episode's length, "
-                         f"got {window}")
+        raise ValueError(
+            f"the estimation window must hold between {d + 3} samples and every episode's length, got {window}"
+        )
     heads = [_head(t, window) for t in trajectories]
-    truth = np.stack([t.x[d + 1:window] for t in heads])  # (episodes, samples, states)
+    truth = np.stack([t.x[d + 1 : window] for t in heads])  # (episodes, samples, states)
     scale = channel_scales(truth) if weighted else np.ones(truth.shape[::2])  # (episodes, states)
     values = np.zeros((len(heads), k))
 
     def residuals(offsets: np.ndarray) -> np.ndarray:  # (episodes, trials, residuals), weighted
         trials = offsets.reshape(-1, k)
-        pred = _batch_predictions(model, [h for h in heads for _ in range(offsets.shape[1])], channels, trials,
-                                  relift)
-        res = (truth.repeat(offsets.shape[1], axis=0) - pred[:, d + 1:, :]) * scale.repeat(offsets.shape[1],
-                                                                                         axis=0)[:, None]
+        pred = _batch_predictions(model, [h for h in heads for _ in range(offsets.shape[1])], channels, trials, relift)
+        res = (truth.repeat(offsets.shape[1], axis=0) - pred[:, d + 1 :, :]) * scale.repeat(offsets.shape[1], axis=0)[
+            :, None
+        ]
         return np.where(np.isfinite(res), res, _DIVERGED).reshape(len(heads), offsets.shape[1], -1)
 
     perturbations = np.concatenate([np.zeros((1, k)), _STEP * np.eye(k)])[None]
@@ -414,14 +461,28 @@ def estimate_offsets_many(model, trajectories: Sequence[Trajectory], channels: S
     res = residuals(values[:, None, :] + perturbations)
     after, J = res[:, 0], (res[:, 1:] - res[:, :1]) / _STEP
     n_states = truth.shape[-1]
-    return [OffsetEstimate(channels, values[i].copy(), window, float(bound),
-                           _raw_rms(before[i].reshape(-1, n_states), scale[i]),
-                           _raw_rms(after[i].reshape(-1, n_states), scale[i]), _std_error(J[i], after[i]))
-            for i in range(len(heads))]
+    return [
+        OffsetEstimate(
+            channels,
+            values[i].copy(),
+            window,
+            float(bound),
+            _raw_rms(before[i].reshape(-1, n_states), scale[i]),
+            _raw_rms(after[i].reshape(-1, n_states), scale[i]),
+            _std_error(J[i], after[i]),
+        )
+        for i in range(len(heads))
+    ]
 
 
-def predict_estimating_offsets(model, trajectory: Trajectory, channels: Sequence[int | str], window: int,
-                               bound: float = DEFAULT_BOUND, relift: bool = True) -> tuple[np.ndarray, OffsetEstimate]:
+def predict_estimating_offsets(
+    model,
+    trajectory: Trajectory,
+    channels: Sequence[int | str],
+    window: int,
+    bound: float = DEFAULT_BOUND,
+    relift: bool = True,
+) -> tuple[np.ndarray, OffsetEstimate]:
     """Estimate the offsets from the window, then predict the whole episode with them.
 
     An implausible estimate (beyond ``bound``) is not used: the prediction
@@ -429,8 +490,10 @@ def predict_estimating_offsets(model, trajectory: Trajectory, channels: Sequence
     """
     estimate = estimate_offsets(model, trajectory, channels, window, bound, relift)
     if not estimate.plausible:
-        warnings.warn(f"trajectory {trajectory.name!r}: estimated offsets {estimate.values.tolist()} exceed "
-                      f"the plausibility bound {bound:g}; not used", OffsetWarning, stacklevel=2)
+        warnings.warn(
+            f"trajectory {trajectory.name!r}: estimated offsets {estimate.values.tolist()} exceed "
+            f"the plausibility bound {bound:g}; not used",
+            OffsetWarning,
+            stacklevel=2,
+        )
     return predict_with_offsets(model, trajectory, estimate.as_mapping(), relift), estimate
-
-

@@ -39,9 +39,16 @@ _MIN_SHARED_ROWS = 8
 _MAX_RING_BYTES = 64 * 2**20
 
 
-def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough: int,
-                   x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None = None,
-                   relift: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def simulate_batch(
+    A: np.ndarray,
+    B: np.ndarray,
+    lifting: Lifting,
+    n_passthrough: int,
+    x_init: np.ndarray,
+    v: np.ndarray,
+    p0: np.ndarray | None = None,
+    relift: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
     """Predict every episode with every model.
 
     Parameters
@@ -75,16 +82,16 @@ def simulate_batch(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough
     # Time-major storage: each chunk writes one contiguous block.
     x = np.full((T, n_models, n_eps, m), np.nan)
     p = np.full((T, n_models, n_eps, n_p), np.nan)
-    x[:d + 1] = np.moveaxis(np.asarray(x_init, dtype=float), 1, 0)[:, None]
+    x[: d + 1] = np.moveaxis(np.asarray(x_init, dtype=float), 1, 0)[:, None]
     p[d] = np.zeros((n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
 
     def store(k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
         if models.size == n_models:
-            x[k0:k0 + len(chunk)] = chunk[..., n_p:]
-            p[k0:k0 + len(chunk)] = chunk[..., :n_p]
+            x[k0 : k0 + len(chunk)] = chunk[..., n_p:]
+            p[k0 : k0 + len(chunk)] = chunk[..., :n_p]
         else:  # the others diverged: their samples stay NaN
-            x[k0:k0 + len(chunk), models] = chunk[..., n_p:]
-            p[k0:k0 + len(chunk), models] = chunk[..., :n_p]
+            x[k0 : k0 + len(chunk), models] = chunk[..., n_p:]
+            p[k0 : k0 + len(chunk), models] = chunk[..., :n_p]
 
     simulate_chunks(A, B, lifting, n_passthrough, x_init, v, p0, relift, store)
     return np.moveaxis(x, 0, 2), np.moveaxis(p, 0, 2)
@@ -101,9 +108,18 @@ def ring_capacity(lifting: Lifting, n_lifted: int, n_passthrough: int) -> int:
     return max(1, _MAX_RING_BYTES // per_model)
 
 
-def simulate_chunks(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthrough: int,
-                    x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | None, relift: bool,
-                    sink: Callable[[int, np.ndarray, np.ndarray], None], paired: bool = False) -> None:
+def simulate_chunks(
+    A: np.ndarray,
+    B: np.ndarray,
+    lifting: Lifting,
+    n_passthrough: int,
+    x_init: np.ndarray,
+    v: np.ndarray,
+    p0: np.ndarray | None,
+    relift: bool,
+    sink: Callable[[int, np.ndarray, np.ndarray], None],
+    paired: bool = False,
+) -> None:
     """:func:`simulate_batch`, handing the predictions to ``sink`` by chunks of samples.
 
     ``sink(k0, chunk, models)`` receives ``chunk`` of shape (n, len(models),
@@ -139,8 +155,7 @@ def simulate_chunks(A: np.ndarray, B: np.ndarray, lifting: Lifting, n_passthroug
         n_eps = v.shape[0]
         p_d = np.zeros((n_eps, n_p)) if p0 is None else np.asarray(p0, dtype=float)
         lifted0 = lifting.transform(x_init)[:, 0, :]
-    z = np.array(np.broadcast_to(np.concatenate([p_d, lifted0], axis=-1),
-                                 (n_models, n_eps, n_p + lifted0.shape[-1])))
+    z = np.array(np.broadcast_to(np.concatenate([p_d, lifted0], axis=-1), (n_models, n_eps, n_p + lifted0.shape[-1])))
     rows = n_p + m if relift else A.shape[1]
     At = np.ascontiguousarray(A[:, :rows, :].transpose(0, 2, 1))  # (models, n_lifted, rows)
     Bt = np.ascontiguousarray(B[:, :rows, :].transpose(0, 2, 1))  # (models, n_inputs, rows)
@@ -173,10 +188,10 @@ def _run(stepper, Bt: np.ndarray, v: np.ndarray, d: int, width: int, sink, paire
     for c0 in range(d, T - 1, _INPUT_CHUNK):
         n = min(_INPUT_CHUNK, T - 1 - c0)
         if paired:  # each group's inputs times its models' B: (groups, models per group, episodes x n, rows)
-            chunk = v[:, :, c0:c0 + n].reshape(v.shape[0], 1, -1, v.shape[-1])
+            chunk = v[:, :, c0 : c0 + n].reshape(v.shape[0], 1, -1, v.shape[-1])
             terms = np.matmul(chunk, Bt.reshape((v.shape[0], -1) + Bt.shape[1:]))
         else:
-            terms = np.matmul(v[:, c0:c0 + n].reshape(1, -1, v.shape[-1]), Bt)
+            terms = np.matmul(v[:, c0 : c0 + n].reshape(1, -1, v.shape[-1]), Bt)
         # Time first, so that each step adds one contiguous block.
         u_terms = np.ascontiguousarray(terms.reshape(Bt.shape[0], n_eps, n, Bt.shape[-1]).transpose(2, 0, 1, 3))
         for j in range(n):
@@ -201,7 +216,7 @@ class _Propagate:
     def step(self, u_term: np.ndarray, out: np.ndarray) -> None:
         self.z = self.z @ self.At
         self.z += u_term
-        out[...] = self.z[..., :out.shape[-1]]
+        out[...] = self.z[..., : out.shape[-1]]
 
     def keep(self, models: np.ndarray) -> None:
         """Only these models from now on (a boolean mask over the current ones)."""
@@ -216,8 +231,9 @@ class _HistoryStepper:
     applied to that history.
     """
 
-    def __init__(self, lifting: Lifting, z: np.ndarray, At: np.ndarray, x_init: np.ndarray, n_p: int,
-                 paired: bool = False) -> None:
+    def __init__(
+        self, lifting: Lifting, z: np.ndarray, At: np.ndarray, x_init: np.ndarray, n_p: int, paired: bool = False
+    ) -> None:
         self.head, self.tail = _split_pointwise_head(lifting)
         self.z, self.At, self.n_p = z, At, n_p
         history = _apply(self.head, np.asarray(x_init, dtype=float))  # (episodes, d + 1, features)
@@ -231,8 +247,8 @@ class _HistoryStepper:
         out[...] = nxt
         history = self.history
         history[..., :-1, :] = history[..., 1:, :]
-        history[..., -1, :] = _apply(self.head, nxt[..., None, self.n_p:])[..., 0, :]
-        self.z = np.concatenate([nxt[..., :self.n_p], _apply(self.tail, history)[..., 0, :]], axis=-1)
+        history[..., -1, :] = _apply(self.head, nxt[..., None, self.n_p :])[..., 0, :]
+        self.z = np.concatenate([nxt[..., : self.n_p], _apply(self.tail, history)[..., 0, :]], axis=-1)
 
     def keep(self, models: np.ndarray) -> None:
         """Only these models from now on (a boolean mask over the current ones)."""
@@ -290,27 +306,43 @@ class _RingLayout:
         if slots * (At.nbytes + n_shift * n_rbf * 8) > _MAX_RING_BYTES:
             return None
         # Ring position q: slot s holds the sample of age (s - q) mod slots.
-        order = [np.array([((s - q) % slots) * n_feat + c for s in range(slots) for c in range(n_feat)])
-                 for q in range(slots)]
+        order = [
+            np.array([((s - q) % slots) * n_feat + c for s in range(slots) for c in range(n_feat)])
+            for q in range(slots)
+        ]
         rows_of = [np.r_[np.arange(n_p), n_p + o, np.arange(n_p + n_shift, At.shape[1])] for o in order]
         shared = None
-        if n_p >= _MIN_SHARED_ROWS and At.shape[0] > 1 and np.array_equal(At[:, :, :n_p], np.broadcast_to(
-                At[:1, :, :n_p], At[:, :, :n_p].shape)):
+        if (
+            n_p >= _MIN_SHARED_ROWS
+            and At.shape[0] > 1
+            and np.array_equal(At[:, :, :n_p], np.broadcast_to(At[:1, :, :n_p], At[:, :, :n_p].shape))
+        ):
             shared = [np.ascontiguousarray(At[0][r][:, :n_p]) for r in rows_of]
             At = At[:, :, n_p:]
         perms = [np.ascontiguousarray(At[:, r, :]) for r in rows_of]
         centers = None if rbf is None else [np.ascontiguousarray(rbf.centers_[:, o].T) for o in order]
         centers_sq = None if rbf is None else np.einsum("ij,ij->i", rbf.centers_, rbf.centers_)
-        return cls(head, n_p, n_feat, slots, rbf, perms, shared, centers, centers_sq, _monomial_picks(head, n_p, m),
-                   [(f.feature, f.past_index_ // n_feat, f.width) for f in friction])
+        return cls(
+            head,
+            n_p,
+            n_feat,
+            slots,
+            rbf,
+            perms,
+            shared,
+            centers,
+            centers_sq,
+            _monomial_picks(head, n_p, m),
+            [(f.feature, f.past_index_ // n_feat, f.width) for f in friction],
+        )
 
     def write_newest(self, z: np.ndarray, y: np.ndarray, q: int) -> None:
         """The newest sample's pointwise features (from ``y``: its rows, then ones) into slot ``q``."""
         lo = self.n_p + q * self.n_feat
-        slot = z[..., lo:lo + self.n_feat]
+        slot = z[..., lo : lo + self.n_feat]
         rows = y.shape[-1] - 1
         if self.picks is None:
-            slot[...] = _apply(self.head, y[..., None, self.n_p:rows])[..., 0, :]
+            slot[...] = _apply(self.head, y[..., None, self.n_p : rows])[..., 0, :]
         elif len(self.picks) == 1:  # order 1: the states themselves
             np.copyto(slot, y.take(self.picks[0], axis=-1))
         else:  # ndarray.take: faster than fancy indexing on these small arrays (and than np.take's wrapper)
@@ -323,9 +355,9 @@ class _RingLayout:
         assert self.rbf is not None and self.centers is not None and self.centers_sq is not None  # of an RBF step
         lo, n_shift = self.n_p, self.slots * self.n_feat
         n_rbf = self.centers_sq.size
-        z[..., lo + n_shift:lo + n_shift + n_rbf] = self.rbf.kernel_values(z[..., lo:lo + n_shift], self.centers[q],
-                                                                           self.centers_sq)
-
+        z[..., lo + n_shift : lo + n_shift + n_rbf] = self.rbf.kernel_values(
+            z[..., lo : lo + n_shift], self.centers[q], self.centers_sq
+        )
 
     def write_friction(self, z: np.ndarray, q: int) -> None:
         """The friction shapes at ring position ``q``: the age-``a`` sample sits in slot ``(q + a) % slots``."""
@@ -379,7 +411,7 @@ class _RingStepper:
             ring.write_rbf(z, q)
         if ring.friction:
             ring.write_friction(z, q)
-        z[..., :ring.n_p] = newest[..., :ring.n_p]
+        z[..., : ring.n_p] = newest[..., : ring.n_p]
 
     def keep(self, models: np.ndarray) -> None:
         """Only these models from now on (a boolean mask over the current ones)."""

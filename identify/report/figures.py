@@ -30,9 +30,21 @@ import numpy as np
 from qube_koopman.core.files import atomic_path
 from qube_koopman.core.qube import STATE_NAMES
 
-__all__ = ["Curve", "Band", "SeriesPlot", "EigenvaluePlot", "FigureSpec", "FiguresUnavailable", "require_matplotlib",
-           "draw", "write_figures", "measured_range", "model_eigenvalues", "identification_figures",
-           "choose_episodes"]
+__all__ = [
+    "Curve",
+    "Band",
+    "SeriesPlot",
+    "EigenvaluePlot",
+    "FigureSpec",
+    "FiguresUnavailable",
+    "require_matplotlib",
+    "draw",
+    "write_figures",
+    "measured_range",
+    "model_eigenvalues",
+    "identification_figures",
+    "choose_episodes",
+]
 
 INSTALL_HINT = 'pip install "qube-koopman[figures]"'
 UNIT_CIRCLE_POINTS = 361
@@ -159,10 +171,15 @@ class SeriesPlot:
         drawn: tuple[Curve | Band, ...] = (*self.curves, *self.bands)
         for c in drawn:
             shape = c.y.shape if isinstance(c, Curve) else c.lower.shape
-            if shape != self.x.shape or (isinstance(c, Band) and c.upper.shape != shape) \
-                    or not 0 <= c.panel < len(self.ylabels):
-                raise ValueError(f"{type(c).__name__.lower()} {c.label!r}: shape {shape} / panel {c.panel} does not "
-                                 f"fit x of shape {self.x.shape} and {len(self.ylabels)} panel(s)")
+            if (
+                shape != self.x.shape
+                or (isinstance(c, Band) and c.upper.shape != shape)
+                or not 0 <= c.panel < len(self.ylabels)
+            ):
+                raise ValueError(
+                    f"{type(c).__name__.lower()} {c.label!r}: shape {shape} / panel {c.panel} does not "
+                    f"fit x of shape {self.x.shape} and {len(self.ylabels)} panel(s)"
+                )
 
     def curve(self, label: str) -> Curve:
         """The curve of this label."""
@@ -196,8 +213,9 @@ class FigureSpec:
 def _draw_series(plot: SeriesPlot, fig) -> None:
     axes = fig.subplots(len(plot.ylabels), 1, sharex=True, squeeze=False)[:, 0]
     for b in plot.bands:
-        axes[b.panel].fill_between(plot.x, b.lower, b.upper, color="C1", alpha=0.25, linewidth=0,
-                                   label=b.label).set_gid(b.label)
+        axes[b.panel].fill_between(
+            plot.x, b.lower, b.upper, color="C1", alpha=0.25, linewidth=0, label=b.label
+        ).set_gid(b.label)
     for c in plot.curves:
         (line,) = axes[c.panel].plot(plot.x, c.y, c.style, label=c.label, linewidth=1.0)
         line.set_gid(c.label)
@@ -225,8 +243,15 @@ def _draw_eigenvalues(plot: EigenvaluePlot, fig) -> None:
     markers = "ox+^sv"
     for i, (label, eig) in enumerate(plot.sets.items()):
         eig = np.asarray(eig, dtype=complex)
-        (line,) = ax.plot(eig.real, eig.imag, linestyle="none", marker=markers[i % len(markers)],
-                          fillstyle="none", markersize=5, label=f"{label} (radius {np.max(np.abs(eig)):.4f})")
+        (line,) = ax.plot(
+            eig.real,
+            eig.imag,
+            linestyle="none",
+            marker=markers[i % len(markers)],
+            fillstyle="none",
+            markersize=5,
+            label=f"{label} (radius {np.max(np.abs(eig)):.4f})",
+        )
         line.set_gid(label)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("real part")
@@ -315,8 +340,9 @@ def model_eigenvalues(model) -> np.ndarray | None:
     return None if A is None else np.linalg.eigvals(np.asarray(A))
 
 
-def choose_episodes(names: Sequence[str], wanted: Sequence[str] | None,
-                    scores: Sequence[float | None] | None) -> list[int]:
+def choose_episodes(
+    names: Sequence[str], wanted: Sequence[str] | None, scores: Sequence[float | None] | None
+) -> list[int]:
     """Indices of the test episodes to plot.
 
     Parameters
@@ -349,8 +375,10 @@ def choose_episodes(names: Sequence[str], wanted: Sequence[str] | None,
         elif w in names or w in stems:
             chosen.append(names.index(w) if w in names else stems.index(w))
         else:
-            raise ValueError(f"--figure-episodes {w}: not a test episode (a position 1 to {len(names)} or a "
-                             f"test log's name, e.g. {names[0]})")
+            raise ValueError(
+                f"--figure-episodes {w}: not a test episode (a position 1 to {len(names)} or a "
+                f"test log's name, e.g. {names[0]})"
+            )
     return list(dict.fromkeys(chosen))
 
 
@@ -362,46 +390,77 @@ def _interval_bands(result, i: int, n: int, states) -> tuple[tuple[Band, ...], s
         return (), ""
     band = bands[i]
     lower, upper = np.full((n, len(states)), np.nan), np.full((n, len(states)), np.nan)
-    lower[n - len(band.t):], upper[n - len(band.t):] = band.lower, band.upper
+    lower[n - len(band.t) :], upper[n - len(band.t) :] = band.lower, band.upper
     label = f"{band.level:.0%} interval"
-    return (tuple(Band(f"{s} {label}", lower[:, j], upper[:, j], panel=j) for j, s in enumerate(states)),
-            f", shaded: the prediction's {label}")
+    return (
+        tuple(Band(f"{s} {label}", lower[:, j], upper[:, j], panel=j) for j, s in enumerate(states)),
+        f", shaded: the prediction's {label}",
+    )
 
 
 def _trajectory_spec(result, i: int, r2: float | None, start: int) -> FigureSpec:
     name, t = result.test_names[i], result.test_time[i]
     truth, pred = result.test_truth[i], result.test_predictions[i]
-    states = STATE_NAMES[:truth.shape[1]]
-    curves = tuple(Curve(f"{s} {kind}", values[:, j], panel=j, style="-" if kind == "measured" else "--")
-                   for j, s in enumerate(states) for kind, values in (("measured", truth), ("predicted", pred)))
+    states = STATE_NAMES[: truth.shape[1]]
+    curves = tuple(
+        Curve(f"{s} {kind}", values[:, j], panel=j, style="-" if kind == "measured" else "--")
+        for j, s in enumerate(states)
+        for kind, values in (("measured", truth), ("predicted", pred))
+    )
     bands, shaded = _interval_bands(result, i, len(t), states)
     score = "" if r2 is None else f", R^2 {r2:.4f}" if abs(r2) < 1e3 else f", R^2 {r2:.3g}"
-    plot = SeriesPlot(f"{name.rsplit('.', 1)[0]}{score}", t, "time (s)", tuple(f"{s} (rad)" for s in states),
-                      curves, marks={"first scored sample": float(t[start])} if start > 1 else {},
-                      ylims=tuple(measured_range(truth[:, j], pred[:, j]) for j in range(len(states))), bands=bands)
+    plot = SeriesPlot(
+        f"{name.rsplit('.', 1)[0]}{score}",
+        t,
+        "time (s)",
+        tuple(f"{s} (rad)" for s in states),
+        curves,
+        marks={"first scored sample": float(t[start])} if start > 1 else {},
+        ylims=tuple(measured_range(truth[:, j], pred[:, j]) for j in range(len(states))),
+        bands=bands,
+    )
     stem = "trajectory_" + name.rsplit(".", 1)[0]
-    return FigureSpec(stem, f"Test episode {name}: measured and predicted angles{score} "
-                            f"(scored from sample {start}){shaded}.", plot)
+    return FigureSpec(
+        stem, f"Test episode {name}: measured and predicted angles{score} (scored from sample {start}){shaded}.", plot
+    )
 
 
 def _eigenvalue_spec(result) -> FigureSpec | None:
-    sets = {label: eig for label, model in (("closed loop", result.closed_loop), ("plant", result.plant))
-            if model is not None and (eig := model_eigenvalues(model)) is not None}
+    sets = {
+        label: eig
+        for label, model in (("closed loop", result.closed_loop), ("plant", result.plant))
+        if model is not None and (eig := model_eigenvalues(model)) is not None
+    }
     if not sets:
         return None
-    return FigureSpec("eigenvalues", "Eigenvalues of the identified closed loop and plant, with the unit circle.",
-                      EigenvaluePlot("eigenvalues and the unit circle", sets))
+    return FigureSpec(
+        "eigenvalues",
+        "Eigenvalues of the identified closed loop and plant, with the unit circle.",
+        EigenvaluePlot("eigenvalues and the unit circle", sets),
+    )
 
 
 def _sweep_spec(sweep: dict, alpha: float) -> FigureSpec:
-    radii = [Curve(f"spectral radius, {label}", sweep[key], panel=1)
-             for key, label in (("spectral_radius_closed_loop", "closed loop"), ("spectral_radius_plant", "plant"))
-             if sweep.get(key) is not None]
-    plot = SeriesPlot("regularization sweep", sweep["alpha"], "alpha", ("CV R^2", "spectral radius"),
-                      (Curve("CV R^2", sweep["cv_r2_mean"], style="o-"), *radii), log_x=True,
-                      marks={"chosen alpha": alpha})
-    return FigureSpec("alpha_sweep", f"Cross-validated R^2 ({sweep.get('score', 'cl')} scoring) and spectral radii "
-                                     f"against alpha; the chosen alpha {alpha:g} marked.", plot)
+    radii = [
+        Curve(f"spectral radius, {label}", sweep[key], panel=1)
+        for key, label in (("spectral_radius_closed_loop", "closed loop"), ("spectral_radius_plant", "plant"))
+        if sweep.get(key) is not None
+    ]
+    plot = SeriesPlot(
+        "regularization sweep",
+        sweep["alpha"],
+        "alpha",
+        ("CV R^2", "spectral radius"),
+        (Curve("CV R^2", sweep["cv_r2_mean"], style="o-"), *radii),
+        log_x=True,
+        marks={"chosen alpha": alpha},
+    )
+    return FigureSpec(
+        "alpha_sweep",
+        f"Cross-validated R^2 ({sweep.get('score', 'cl')} scoring) and spectral radii "
+        f"against alpha; the chosen alpha {alpha:g} marked.",
+        plot,
+    )
 
 
 def identification_figures(result, episodes: Sequence[str] | None = None) -> list[FigureSpec]:

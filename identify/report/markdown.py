@@ -18,8 +18,10 @@ def format_number(value, spec: str) -> str:
 
 
 def _score_row(label: str, t: dict) -> str:
-    return (f"| {label} | {format_number(t['r2_mean'], '.4f')} | {format_number(t['r2_std'], '.4f')} "
-            f"| {format_number(t['nrmse_mean'], '.2f')} | {format_number(t['nrmse_std'], '.2f')} |")
+    return (
+        f"| {label} | {format_number(t['r2_mean'], '.4f')} | {format_number(t['r2_std'], '.4f')} "
+        f"| {format_number(t['nrmse_mean'], '.2f')} | {format_number(t['nrmse_std'], '.2f')} |"
+    )
 
 
 def _test_section(report: dict) -> list[str]:
@@ -28,8 +30,11 @@ def _test_section(report: dict) -> list[str]:
     if t is None:
         return lines + ["No test episode was recorded under the what-if controller: nothing to score.", ""]
     plain = report.get("test_without_offsets")
-    lines += ["| prediction | R^2 mean | R^2 std | NRMSE mean (%) | NRMSE std (%) |", "|---|---|---|---|---|",
-              _score_row("with estimated offsets" if plain else "as identified", t)]
+    lines += [
+        "| prediction | R^2 mean | R^2 std | NRMSE mean (%) | NRMSE std (%) |",
+        "|---|---|---|---|---|",
+        _score_row("with estimated offsets" if plain else "as identified", t),
+    ]
     if plain:
         lines.append(_score_row("without offsets, same samples", plain))
     scored = report.get("scored_logs", report["test_logs"])
@@ -40,11 +45,16 @@ def _test_section(report: dict) -> list[str]:
         row = f"| {name} | {format_number(t['r2_per_episode'][i], '.4f')} |"
         if plain:
             e = offsets[name]
-            values = ", ".join(f"{k} {v:+.5f}" + (f" ± {e[k + '_std_error']:.5f}" if e.get(k + "_std_error") else "")
-                               for k, v in e.items() if isinstance(v, float) and k not in (
-                                   "rms_before", "rms_after") and not k.endswith("_std_error"))
-            used = {"ok": "yes", "flat": "yes, but the cost is flat: poorly determined",
-                    "beyond bound": "NO: beyond the bound " + format(report["offset_bound"], "g")}[e["status"]]
+            values = ", ".join(
+                f"{k} {v:+.5f}" + (f" ± {e[k + '_std_error']:.5f}" if e.get(k + "_std_error") else "")
+                for k, v in e.items()
+                if isinstance(v, float) and k not in ("rms_before", "rms_after") and not k.endswith("_std_error")
+            )
+            used = {
+                "ok": "yes",
+                "flat": "yes, but the cost is flat: poorly determined",
+                "beyond bound": "NO: beyond the bound " + format(report["offset_bound"], "g"),
+            }[e["status"]]
             row += f" {format_number(plain['r2_per_episode'][i], '.4f')} | {values} ({used}) |"
         lines.append(row)
     return lines
@@ -55,30 +65,54 @@ def _intervals_section(intervals: dict | None) -> list[str]:
     if not intervals or not intervals.get("pooled"):
         return []
     pooled, calibration = intervals["pooled"], intervals["calibration"]["channels"]
-    lines = ["", "## Prediction intervals", "",
-             f"Every predicted sample's interval at level {intervals['level']:g}: {intervals['n_members']} bootstrap "
-             f"refits on the training episodes, the offsets' standard errors, and the model's error calibrated on "
-             f"{intervals['n_folds']} groups of training episodes held out in turn (never the test episodes). "
-             f"Pooled over the scored test samples ({pooled['n_samples']}"
-             + (f"; {pooled['n_infinite']} episode(s) with an infinite interval where a prediction diverged"
-                if pooled["n_infinite"] else "") + "):", "",
-             ("| channel | coverage | worst episode | mean half-width (rad) | RMS error (rad) | calibrated factor k "
-              "| model error sqrt(q) (rad) |"), "|---|---|---|---|---|---|---|"]
+    lines = [
+        "",
+        "## Prediction intervals",
+        "",
+        f"Every predicted sample's interval at level {intervals['level']:g}: {intervals['n_members']} bootstrap "
+        f"refits on the training episodes, the offsets' standard errors, and the model's error calibrated on "
+        f"{intervals['n_folds']} groups of training episodes held out in turn (never the test episodes). "
+        f"Pooled over the scored test samples ({pooled['n_samples']}"
+        + (
+            f"; {pooled['n_infinite']} episode(s) with an infinite interval where a prediction diverged"
+            if pooled["n_infinite"]
+            else ""
+        )
+        + "):",
+        "",
+        (
+            "| channel | coverage | worst episode | mean half-width (rad) | RMS error (rad) | calibrated factor k "
+            "| model error sqrt(q) (rad) |"
+        ),
+        "|---|---|---|---|---|---|---|",
+    ]
     for name in pooled["coverage"]:
         c = calibration[name]
-        lines.append(f"| {name} | {format_number(pooled['coverage'][name], '.3f')} "
-                     f"| {format_number(pooled['worst_episode_coverage'][name], '.3f')} "
-                     f"| {format_number(pooled['mean_half_width'][name], '.4f')} "
-                     f"| {format_number(pooled['rms_error'][name], '.4f')} | {format_number(c['factor'], '.2f')} "
-                     f"| {format_number(c['scale'], '.4f')} |")
+        lines.append(
+            f"| {name} | {format_number(pooled['coverage'][name], '.3f')} "
+            f"| {format_number(pooled['worst_episode_coverage'][name], '.3f')} "
+            f"| {format_number(pooled['mean_half_width'][name], '.4f')} "
+            f"| {format_number(pooled['rms_error'][name], '.4f')} | {format_number(c['factor'], '.2f')} "
+            f"| {format_number(c['scale'], '.4f')} |"
+        )
     if pooled.get("n_probe_calibrated"):
-        lines += ["", (f"{pooled['n_probe_calibrated']} scored episode(s) ran a loop the training did not (another "
-                       "controller): their model error is calibrated on the twin's probe episodes under other "
-                       "controllers, not on held-out training episodes.")]
+        lines += [
+            "",
+            (
+                f"{pooled['n_probe_calibrated']} scored episode(s) ran a loop the training did not (another "
+                "controller): their model error is calibrated on the twin's probe episodes under other "
+                "controllers, not on held-out training episodes."
+            ),
+        ]
     if pooled.get("n_uncalibrated_loop"):
-        lines += ["", (f"{pooled['n_uncalibrated_loop']} scored episode(s) ran a loop the calibration's held-out "
-                       "episodes did not (another controller): the model's error there is unknown, and their "
-                       "intervals are the training loops'.")]
+        lines += [
+            "",
+            (
+                f"{pooled['n_uncalibrated_loop']} scored episode(s) ran a loop the calibration's held-out "
+                "episodes did not (another controller): the model's error there is unknown, and their "
+                "intervals are the training loops'."
+            ),
+        ]
     return lines
 
 
@@ -90,37 +124,48 @@ def _why_it_won(search: dict) -> str:
     by_cv = max(candidates, key=lambda c: -math.inf if c["cv_r2"] is None else c["cv_r2"])
     if by_cv["label"] == w["label"] and by_cv["alpha"] == w["alpha"]:
         return "It has both the best objective and the best cross-validated R^2."
-    return (f"The best cross-validated candidate, {by_cv['label']} (alpha {by_cv['alpha']:g}, CV R^2 "
-            f"{format_number(by_cv['cv_r2'], '.4f')}), transfers worse: transfer R^2 "
-            f"{format_number(by_cv['transfer_r2'], '.4f')} "
-            f"(worst probe {format_number(by_cv['transfer_r2_worst'], '.3f')}) "
-            f"against the winner's {format_number(w['transfer_r2'], '.4f')} "
-            f"(worst {format_number(w['transfer_r2_worst'], '.3f')}).")
+    return (
+        f"The best cross-validated candidate, {by_cv['label']} (alpha {by_cv['alpha']:g}, CV R^2 "
+        f"{format_number(by_cv['cv_r2'], '.4f')}), transfers worse: transfer R^2 "
+        f"{format_number(by_cv['transfer_r2'], '.4f')} "
+        f"(worst probe {format_number(by_cv['transfer_r2_worst'], '.3f')}) "
+        f"against the winner's {format_number(w['transfer_r2'], '.4f')} "
+        f"(worst {format_number(w['transfer_r2_worst'], '.3f')})."
+    )
 
 
 def _search_section(search: dict) -> list[str]:
     w = search["winner"]
-    lines = ["", "## Lifting search", "",
-             f"{len(search['candidates'])} candidates in {format_number(search['seconds'], '.0f')} s, "
-             f"{_folds_phrase(search)} of the training episodes; "
-             f"score: {search['score']}. Stages: {', '.join(search['stages'])}.", "",
-             f"Ranked by {search.get('objective', 'the cross-validated R^2')}."
-             + (f" Transfer probes: {search['transfer']}." if search.get("transfer") else ""), "",
-             f"Winner: **{w['label']}**, alpha {w['alpha']:g}, cross-validated R^2 {format_number(w['cv_r2'], '.4f')}"
-             + (f", transfer R^2 {format_number(w['transfer_r2'], '.4f')}" if w.get("transfer_r2") is not None else "")
-             + f". {_why_it_won(search)}"
-             + (f" Refit by hand with `qube-identify ... {w['flags']}`." if w.get("flags") else "")
-             + _same_controller_phrase(search.get("same_controller"), w), "",
-             "| rank | stage | lifting | features | alpha | CV R^2 | CV R^2 std | transfer R^2 | worst probe "
-             "| objective | seconds |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "",
+        "## Lifting search",
+        "",
+        f"{len(search['candidates'])} candidates in {format_number(search['seconds'], '.0f')} s, "
+        f"{_folds_phrase(search)} of the training episodes; "
+        f"score: {search['score']}. Stages: {', '.join(search['stages'])}.",
+        "",
+        f"Ranked by {search.get('objective', 'the cross-validated R^2')}."
+        + (f" Transfer probes: {search['transfer']}." if search.get("transfer") else ""),
+        "",
+        f"Winner: **{w['label']}**, alpha {w['alpha']:g}, cross-validated R^2 {format_number(w['cv_r2'], '.4f')}"
+        + (f", transfer R^2 {format_number(w['transfer_r2'], '.4f')}" if w.get("transfer_r2") is not None else "")
+        + f". {_why_it_won(search)}"
+        + (f" Refit by hand with `qube-identify ... {w['flags']}`." if w.get("flags") else "")
+        + _same_controller_phrase(search.get("same_controller"), w),
+        "",
+        "| rank | stage | lifting | features | alpha | CV R^2 | CV R^2 std | transfer R^2 | worst probe "
+        "| objective | seconds |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for i, c in enumerate(search["candidates"], start=1):
-        lines.append(f"| {i} | {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
-                     f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c['cv_r2_std'], '.4f')} "
-                     f"| {format_number(c.get('transfer_r2'), '.4f')} "
-                     f"| {format_number(c.get('transfer_r2_worst'), '.3f')} "
-                     f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} "
-                     f"| {format_number(c['seconds'], '.1f')} |")
+        lines.append(
+            f"| {i} | {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
+            f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c['cv_r2_std'], '.4f')} "
+            f"| {format_number(c.get('transfer_r2'), '.4f')} "
+            f"| {format_number(c.get('transfer_r2_worst'), '.3f')} "
+            f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} "
+            f"| {format_number(c['seconds'], '.1f')} |"
+        )
     return lines + _screened_lines(search)
 
 
@@ -129,13 +174,19 @@ def _screened_lines(search: dict) -> list[str]:
     screened = search.get("screened") or []
     if not screened:
         return []
-    lines = ["", f"Screened out, not ranked ({search['screening']['description']}):", "",
-             "| stage | lifting | features | alpha | screen CV R^2 | screen transfer R^2 | screen objective |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "",
+        f"Screened out, not ranked ({search['screening']['description']}):",
+        "",
+        "| stage | lifting | features | alpha | screen CV R^2 | screen transfer R^2 | screen objective |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for c in screened:
-        lines.append(f"| {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
-                     f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c.get('transfer_r2'), '.4f')} "
-                     f"| {format_number(c.get('objective'), '.4f')} |")
+        lines.append(
+            f"| {c['stage']} | {c['label']} | {c['n_features']} | {c['alpha']:g} "
+            f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c.get('transfer_r2'), '.4f')} "
+            f"| {format_number(c.get('objective'), '.4f')} |"
+        )
     return lines
 
 
@@ -145,10 +196,17 @@ def _same_controller_phrase(same: dict | None, winner: dict) -> str:
         return ""
     each = ", ".join(f"controller {c['controller']} {format_number(c['cv_r2'], '.4f')}" for c in same["controllers"])
     transfer = winner.get("transfer_r2")
-    return (f" Its scores side by side: same-controller R^2 {format_number(same['cv_r2'], '.4f')} ({each}; "
-            f"{same['description']}), leave-one-controller-out R^2 {format_number(winner['cv_r2'], '.4f')}"
-            + (f", twin transfer probes {format_number(transfer, '.4f')} (worst "
-               f"{format_number(winner.get('transfer_r2_worst'), '.3f')})" if transfer is not None else "") + ".")
+    return (
+        f" Its scores side by side: same-controller R^2 {format_number(same['cv_r2'], '.4f')} ({each}; "
+        f"{same['description']}), leave-one-controller-out R^2 {format_number(winner['cv_r2'], '.4f')}"
+        + (
+            f", twin transfer probes {format_number(transfer, '.4f')} (worst "
+            f"{format_number(winner.get('transfer_r2_worst'), '.3f')})"
+            if transfer is not None
+            else ""
+        )
+        + "."
+    )
 
 
 def _folds_phrase(cv: dict) -> str:
@@ -167,7 +225,7 @@ def _folds_table(folds: list | None) -> list[str]:
     lines = ["", "| fold | held out | training episodes | CV R^2 at the chosen alpha |", "|---|---|---|---|"]
     for f in folds:
         n = len(f["validation_logs"])
-        held = (f"controller {f['held_out_controller']} ({n} episodes)" if by_controller else f"{n} episodes")
+        held = f"controller {f['held_out_controller']} ({n} episodes)" if by_controller else f"{n} episodes"
         lines.append(f"| {f['fold']} | {held} | {f['n_train']} | {format_number(f.get('cv_r2'), '.4f')} |")
     return lines
 
@@ -179,9 +237,11 @@ def _controllers_lines(training: dict | None) -> list[str]:
     lines = [f"- training controllers: {training['n_controllers']} ({training['note']})"]
     for c in training["controllers"]:
         gains = ", ".join(f"{k} {v:g}" for k, v in (c.get("gains") or {}).items())
-        lines.append(f"  - controller {c['controller']}: {c['n_episodes']} episodes"
-                     + (f", gains {gains}" if gains else "")
-                     + ("; the model's closed loop" if c["model_closed_loop"] else ""))
+        lines.append(
+            f"  - controller {c['controller']}: {c['n_episodes']} episodes"
+            + (f", gains {gains}" if gains else "")
+            + ("; the model's closed loop" if c["model_closed_loop"] else "")
+        )
     return lines
 
 
@@ -212,17 +272,23 @@ def markdown_report(report: dict) -> str:
     lines += _controllers_lines(report.get("training_controllers"))
     what_if = report.get("what_if")
     if what_if:
-        lines.append(f"- what-if controller: {what_if['note']}; {len(what_if['unscored_logs'])} episode(s) predicted "
-                     "without a recording to score against")
+        lines.append(
+            f"- what-if controller: {what_if['note']}; {len(what_if['unscored_logs'])} episode(s) predicted "
+            "without a recording to score against"
+        )
     lines += [""] + _test_section(report)
     lines += _intervals_section(report.get("intervals"))
     sweep = report.get("sweep")
     if sweep:
         best = max(range(len(sweep["alpha"])), key=lambda i: sweep["cv_r2_mean"][i])
-        lines += ["", "## Regularization sweep", "",
-                  f"{len(sweep['alpha'])} alphas from {sweep['alpha'][0]:g} to {sweep['alpha'][-1]:g}, "
-                  f"{_folds_phrase(sweep)}; best cross-validated R^2 "
-                  f"{format_number(sweep['cv_r2_mean'][best], '.4f')} at alpha {sweep['alpha'][best]:g}."]
+        lines += [
+            "",
+            "## Regularization sweep",
+            "",
+            f"{len(sweep['alpha'])} alphas from {sweep['alpha'][0]:g} to {sweep['alpha'][-1]:g}, "
+            f"{_folds_phrase(sweep)}; best cross-validated R^2 "
+            f"{format_number(sweep['cv_r2_mean'][best], '.4f')} at alpha {sweep['alpha'][best]:g}.",
+        ]
         lines += _folds_table(sweep.get("folds"))
     if report.get("search"):
         lines += _search_section(report["search"])

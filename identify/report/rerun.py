@@ -22,15 +22,18 @@ from qube_koopman.core.qube import STATE_NAMES
 from qube_koopman.identify.report.figures import model_eigenvalues
 
 
-
 def blueprint(result):
     """The recording's layout: tabs of test trajectories, eigenvalues, alpha sweep, lifting search."""
     import rerun.blueprint as rrb
 
-    episodes = [rrb.TimeSeriesView(origin=f"test/{name.rsplit('.', 1)[0]}", name=name.rsplit(".", 1)[0])
-                for name in result.test_names]
-    tabs = [rrb.Grid(*episodes, name="test episodes: measured vs predicted"),
-            rrb.Spatial2DView(origin="eigenvalues", name="eigenvalues and the unit circle")]
+    episodes = [
+        rrb.TimeSeriesView(origin=f"test/{name.rsplit('.', 1)[0]}", name=name.rsplit(".", 1)[0])
+        for name in result.test_names
+    ]
+    tabs = [
+        rrb.Grid(*episodes, name="test episodes: measured vs predicted"),
+        rrb.Spatial2DView(origin="eigenvalues", name="eigenvalues and the unit circle"),
+    ]
     if result.report.get("sweep"):
         tabs.append(rrb.TimeSeriesView(origin="sweep", name="alpha sweep (x: alpha index)"))
     if result.report.get("search"):
@@ -45,8 +48,11 @@ def _log_search(rec, search: dict) -> None:
     if not stage:
         return
     values = np.array([np.nan if c["cv_r2"] is None else c["cv_r2"] for c in stage], dtype=float)
-    rec.send_columns("search/cv_r2", indexes=[rr.TimeColumn("delays", sequence=[c["delays"] for c in stage])],
-                     columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+    rec.send_columns(
+        "search/cv_r2",
+        indexes=[rr.TimeColumn("delays", sequence=[c["delays"] for c in stage])],
+        columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
+    )
 
 
 def write_recording(path, result) -> None:
@@ -56,31 +62,42 @@ def write_recording(path, result) -> None:
     with atomic_path(path) as tmp:  # whole or not at all
         rec = rr.RecordingStream("qube-identify")
         rec.save(str(tmp), default_blueprint=blueprint(result))
-        for name, t, truth, pred in zip(result.test_names, result.test_time, result.test_truth,
-                                        result.test_predictions):
+        for name, t, truth, pred in zip(
+            result.test_names, result.test_time, result.test_truth, result.test_predictions
+        ):
             stem = name.rsplit(".", 1)[0]
-            for j, state in enumerate(STATE_NAMES[:truth.shape[1]]):
+            for j, state in enumerate(STATE_NAMES[: truth.shape[1]]):
                 for kind, values in (("measured", truth[:, j]), ("predicted", pred[:, j])):
-                    rec.send_columns(f"test/{stem}/{state}/{kind}", indexes=[rr.TimeColumn("time", duration=t)],
-                                     columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+                    rec.send_columns(
+                        f"test/{stem}/{state}/{kind}",
+                        indexes=[rr.TimeColumn("time", duration=t)],
+                        columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
+                    )
         circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
         rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
         for kind, model in (("closed_loop", result.closed_loop), ("plant", result.plant)):
             eig = None if model is None else model_eigenvalues(model)
             if eig is not None:
-                rec.log(f"eigenvalues/{kind}", rr.Points2D(np.column_stack([eig.real, eig.imag]), radii=0.01),
-                        static=True)
+                rec.log(
+                    f"eigenvalues/{kind}", rr.Points2D(np.column_stack([eig.real, eig.imag]), radii=0.01), static=True
+                )
         sweep = result.report.get("sweep")
         if sweep:
             index = rr.TimeColumn("alpha_index", sequence=np.arange(len(sweep["alpha"])))
-            series = {"log10_alpha": np.log10(sweep["alpha"]), "cv_r2": sweep["cv_r2_mean"],
-                      "spectral_radius_closed_loop": sweep["spectral_radius_closed_loop"],
-                      "spectral_radius_plant": sweep["spectral_radius_plant"]}
+            series = {
+                "log10_alpha": np.log10(sweep["alpha"]),
+                "cv_r2": sweep["cv_r2_mean"],
+                "spectral_radius_closed_loop": sweep["spectral_radius_closed_loop"],
+                "spectral_radius_plant": sweep["spectral_radius_plant"],
+            }
             for key, values in series.items():
                 if values is not None:
                     values = np.asarray(values, dtype=float)
-                    rec.send_columns(f"sweep/{key}", indexes=[index],
-                                     columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)))
+                    rec.send_columns(
+                        f"sweep/{key}",
+                        indexes=[index],
+                        columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
+                    )
         if result.report.get("search"):
             _log_search(rec, result.report["search"])
         rec.flush()

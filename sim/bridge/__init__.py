@@ -10,5 +10,12 @@ from qube_koopman.sim.bridge.emulator import DEFAULT_PERTURBATION, RECORD_FIELDS
 from qube_koopman.sim.bridge.faults import DelayLine, Faults, FaultyLink
 from qube_koopman.sim.bridge.qube import EmulatedQube
 
-__all__ = ["BridgeEmulator", "DEFAULT_PERTURBATION", "RECORD_FIELDS", "DelayLine", "EmulatedQube", "Faults",
-           "FaultyLink"]
+__all__ = [
+    "BridgeEmulator",
+    "DEFAULT_PERTURBATION",
+    "RECORD_FIELDS",
+    "DelayLine",
+    "EmulatedQube",
+    "Faults",
+    "FaultyLink",
+]

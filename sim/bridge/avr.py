@@ -53,8 +53,10 @@ def cached_harness(cache_dir: str | os.PathLike | None = None) -> Path:
     """Build ``avr_harness.c`` against the system's simavr once per source version; return the library."""
     missing = harness_missing()
     if missing:
-        raise RuntimeError(f"cannot build the simavr harness, missing: {', '.join(missing)}; "
-                           "apt-get install simavr libsimavr-dev libsimavrparts1")
+        raise RuntimeError(
+            f"cannot build the simavr harness, missing: {', '.join(missing)}; "
+            "apt-get install simavr libsimavr-dev libsimavrparts1"
+        )
     cc = find_c_compiler()
     assert cc is not None  # harness_missing() found it
     digest = hashlib.sha256("\0".join((cc, *_LIBS)).encode() + HARNESS_SOURCE.read_bytes())
@@ -155,8 +157,7 @@ class AvrChip:
 
     def push(self, data: bytes) -> None:
         """Bytes to UART0's receive pin, one frame time apart at the baud rate the firmware set."""
-        self._lib.qh_push_rx(self._h, (ctypes.c_uint8 * max(1, len(data))).from_buffer_copy(data or b"\0"),
-                             len(data))
+        self._lib.qh_push_rx(self._h, (ctypes.c_uint8 * max(1, len(data))).from_buffer_copy(data or b"\0"), len(data))
 
     def pull(self) -> bytes:
         """Bytes UART0 has sent since the last call."""
@@ -215,8 +216,9 @@ class AvrBridge:
         The harness library.
     """
 
-    def __init__(self, elf: str | os.PathLike, qube: EmulatedQube | None = None,
-                 harness: str | os.PathLike | None = None) -> None:
+    def __init__(
+        self, elf: str | os.PathLike, qube: EmulatedQube | None = None, harness: str | os.PathLike | None = None
+    ) -> None:
         self.chip = AvrChip(elf, harness)
         self.qube = qube if qube is not None else EmulatedQube()
         # (cycle at CS fall, cycle at CS rise, bytes, busy cycles at CS fall) of each transaction

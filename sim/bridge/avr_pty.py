@@ -44,8 +44,14 @@ class AvrPtyBridge:
         Simulated time run between two looks at the pseudo-terminal (s).
     """
 
-    def __init__(self, *, seed: int | None = None, perturbation: float = math.radians(2.0),
-                 start_upright: bool = True, slice_s: float = 0.0002) -> None:
+    def __init__(
+        self,
+        *,
+        seed: int | None = None,
+        perturbation: float = math.radians(2.0),
+        start_upright: bool = True,
+        slice_s: float = 0.0002,
+    ) -> None:
         if seed is None:
             entropy = np.random.SeedSequence().entropy
             assert isinstance(entropy, int)  # drawn from the OS: one int
@@ -133,6 +139,11 @@ class AvrPtyBridge:
             return dict(self._final)
         assert self.bridge is not None, "open() first"
         chip = self.bridge.chip
-        return dict(ticks=len(self.bridge.transactions), device_time=chip.cycle / F_CPU, wall_time=self.wall,
-                    sessions=self.sessions, max_behind=self.max_behind,
-                    busy=chip.busy_cycles / max(1, chip.cycle))
+        return dict(
+            ticks=len(self.bridge.transactions),
+            device_time=chip.cycle / F_CPU,
+            wall_time=self.wall,
+            sessions=self.sessions,
+            max_behind=self.max_behind,
+            busy=chip.busy_cycles / max(1, chip.cycle),
+        )

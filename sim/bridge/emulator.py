@@ -69,8 +69,17 @@ DEFAULT_PERTURBATION = math.radians(2.0)
 DEFAULT_SPIN = 300e-6
 
 #: Per-tick record kept when ``record_ticks > 0`` (see :meth:`BridgeEmulator.record`).
-RECORD_FIELDS = ("device_us", "wall", "lateness", "volts", "amp_enabled", "command_seq", "command_mv", "session",
-                 "answer")
+RECORD_FIELDS = (
+    "device_us",
+    "wall",
+    "lateness",
+    "volts",
+    "amp_enabled",
+    "command_seq",
+    "command_mv",
+    "session",
+    "answer",
+)
 
 # Output waiting for a host that does not read is dropped beyond this (bytes),
 # as a real USB serial link drops what nobody collects.
@@ -141,10 +150,21 @@ class BridgeEmulator:
         cache by ``firmware_protocol.ccore.cached_library`` when opened.
     """
 
-    def __init__(self, *, seed: int | None = None, lockstep: bool = False, lockstep_timeout: float = 0.01,
-                 perturbation: float = DEFAULT_PERTURBATION, start_upright: bool = True,
-                 raise_time: float = 0.0, faults: Faults = Faults(), params: PendulumParameters = PendulumParameters(),
-                 spin: float = DEFAULT_SPIN, record_ticks: int = 0, core=None) -> None:
+    def __init__(
+        self,
+        *,
+        seed: int | None = None,
+        lockstep: bool = False,
+        lockstep_timeout: float = 0.01,
+        perturbation: float = DEFAULT_PERTURBATION,
+        start_upright: bool = True,
+        raise_time: float = 0.0,
+        faults: Faults = Faults(),
+        params: PendulumParameters = PendulumParameters(),
+        spin: float = DEFAULT_SPIN,
+        record_ticks: int = 0,
+        core=None,
+    ) -> None:
         if not (math.isfinite(perturbation) and 0 <= perturbation < math.pi / 2):
             raise ValueError(f"perturbation must be an angle in [0, pi/2) rad, got {perturbation!r}")
         if not (math.isfinite(lockstep_timeout) and lockstep_timeout > 0):
@@ -196,15 +216,27 @@ class BridgeEmulator:
         self._raise_pending = False
         self._first_hello_us: int | None = None
         self._fired: set[str] = set()
-        self._timed_faults = any(t is not None for t in (faults.stall_at, faults.amp_fault_at,
-                                                          faults.silence_at, faults.vanish_at, faults.hold_at))
+        self._timed_faults = any(
+            t is not None
+            for t in (faults.stall_at, faults.amp_fault_at, faults.silence_at, faults.vanish_at, faults.hold_at)
+        )
         self._silent = False
         self._command_seq = 0
         self._command_mv = 0
         self._last_row: list | None = None
         self.initial_states: list[tuple[float, float, float, float]] = []
-        self._counts = dict(ticks=0, sessions=0, commands=0, late_ticks=0, slips=0, missed_periods=0,
-                            bytes_in=0, bytes_out=0, bytes_discarded=0, bytes_silenced=0)
+        self._counts = dict(
+            ticks=0,
+            sessions=0,
+            commands=0,
+            late_ticks=0,
+            slips=0,
+            missed_periods=0,
+            bytes_in=0,
+            bytes_out=0,
+            bytes_discarded=0,
+            bytes_silenced=0,
+        )
         self._max_lateness = 0.0
 
     # --- lifecycle -------------------------------------------------------------------------
@@ -440,7 +472,7 @@ class BridgeEmulator:
         if not pending:
             return
         try:
-            del pending[:os.write(self._master, pending)]
+            del pending[: os.write(self._master, pending)]
         except (BlockingIOError, InterruptedError):
             pass
         if len(pending) > _MAX_PENDING:
@@ -474,8 +506,17 @@ class BridgeEmulator:
         if lateness > self._max_lateness:
             self._max_lateness = lateness
         if self._record is not None:
-            self._last_row = [self._device_us, now, lateness, qube.volts, qube.enabled, self._command_seq,
-                              self._command_mv, self._counts["sessions"], math.nan]
+            self._last_row = [
+                self._device_us,
+                now,
+                lateness,
+                qube.volts,
+                qube.enabled,
+                self._command_seq,
+                self._command_mv,
+                self._counts["sessions"],
+                math.nan,
+            ]
             self._record.append(self._last_row)
         self._counts["ticks"] += 1
         self._last_tick_us = self._device_us
@@ -537,10 +578,17 @@ class BridgeEmulator:
 
     def stats(self) -> dict:
         """Counters so far: ticks, sessions, late ticks caught up, schedule slips, bytes, faults injected."""
-        return {**self._counts, "max_lateness": self._max_lateness, "device_time": self.device_time,
-                "seed": self.seed, "lockstep": self.lockstep, **self._link.counters(),
-                "host_frames": self._mirror.stats.frames, "host_rejects": self._mirror.stats.rejected,
-                "faults_fired": sorted(self._fired)}
+        return {
+            **self._counts,
+            "max_lateness": self._max_lateness,
+            "device_time": self.device_time,
+            "seed": self.seed,
+            "lockstep": self.lockstep,
+            **self._link.counters(),
+            "host_frames": self._mirror.stats.frames,
+            "host_rejects": self._mirror.stats.rejected,
+            "faults_fired": sorted(self._fired),
+        }
 
     def record(self) -> dict[str, np.ndarray]:
         """The per-tick record (fields :data:`RECORD_FIELDS`), oldest first.

@@ -79,8 +79,7 @@ class Faults:
             raise ValueError(f"hold_periods must be an integer in [1, 100000], got {self.hold_periods!r}")
         for name in ("stall_at", "amp_fault_at", "silence_at", "vanish_at", "hold_at"):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value)
-                                          and value >= 0):
+            if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a non-negative time in s, got {value!r}")
 
     def as_dict(self) -> dict:
@@ -147,7 +146,7 @@ class FaultyLink:
                     self.frames_dropped += 1
                 else:
                     parts.append(piece + b"\0")
-            tail = data[data.rfind(b"\0") + 1:]
+            tail = data[data.rfind(b"\0") + 1 :]
             parts.append(tail)
         else:
             parts.append(data)
@@ -155,8 +154,11 @@ class FaultyLink:
 
     def counters(self) -> dict[str, int]:
         """What was done so far, as plain data."""
-        return {"frames_dropped": self.frames_dropped, "bytes_corrupted": self.bytes_corrupted,
-                "garbage_bursts": self.garbage_bursts}
+        return {
+            "frames_dropped": self.frames_dropped,
+            "bytes_corrupted": self.bytes_corrupted,
+            "garbage_bursts": self.garbage_bursts,
+        }
 
 
 class DelayLine:

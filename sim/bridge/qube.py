@@ -64,8 +64,12 @@ class EmulatedQube:
         the firmware report the QUBE absent).
     """
 
-    def __init__(self, params: PendulumParameters = PendulumParameters(), dt: float = SAMPLE_PERIOD,
-                 module_id: int = MODULE_ID_QUBE_SERVO_2) -> None:
+    def __init__(
+        self,
+        params: PendulumParameters = PendulumParameters(),
+        dt: float = SAMPLE_PERIOD,
+        module_id: int = MODULE_ID_QUBE_SERVO_2,
+    ) -> None:
         self.params = params
         self.module_id = module_id
         # Exact angles: the counters quantize, once, in transfer().

@@ -51,51 +51,107 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (also documents the options)."""
     from qube_koopman.core.cli import add_standard_options, path, seed, whole_number
 
-    p = OneLineParser(prog=PROG, description=_DESCRIPTION, epilog=_EPILOG,
-                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--target", choices=("host", "avr"), default="host",
-                   help="host (default): the firmware core compiled for this machine; avr: the whole Uno "
-                        "sketch on an emulated ATmega328P (simavr; Debian packages gcc-avr avr-libc "
-                        "arduino-core-avr simavr libsimavr-dev libsimavrparts1), real time, no fault injection")
-    p.add_argument("--seed", type=seed, default=None, metavar="K",
-                   help="seeds the start tilts and the injected faults (default: a fresh one, printed)")
-    p.add_argument("--perturbation", type=number_in(0.0, 4.9, "the tilt"), default=2.0, metavar="DEG",
-                   help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)")
-    p.add_argument("--plant", type=path, default=None, metavar="FILE.toml",
-                   help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
-                        "(default: the twin calibrated on the paper's rig; 'workbook', 'previous')")
-    p.add_argument("--hanging", action="store_true",
-                   help="do not raise the pendulum at each session: it stays hanging down")
-    p.add_argument("--raise-time", type=number_in(0.0, 60.0, "--raise-time"), default=0.0, metavar="S",
-                   help="raise the pendulum from hanging over S seconds, as by hand (default 0: at once); "
-                        "the host's start gate holds the motor at 0 V meanwhile")
-    p.add_argument("--lockstep", action="store_true",
-                   help="tick as soon as the host answers (max 10 ms apart) instead of every 2 ms of wall "
-                        "time: deterministic and faster than real time, for tests")
-    p.add_argument("--spin", type=number_in(0.0, 1900.0, "--spin"), default=300.0, metavar="US",
-                   help="spin this long before each tick deadline (default 300 us; 0: sleep only, less CPU, "
-                        "more jitter)")
+    p = OneLineParser(
+        prog=PROG, description=_DESCRIPTION, epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--target",
+        choices=("host", "avr"),
+        default="host",
+        help="host (default): the firmware core compiled for this machine; avr: the whole Uno "
+        "sketch on an emulated ATmega328P (simavr; Debian packages gcc-avr avr-libc "
+        "arduino-core-avr simavr libsimavr-dev libsimavrparts1), real time, no fault injection",
+    )
+    p.add_argument(
+        "--seed",
+        type=seed,
+        default=None,
+        metavar="K",
+        help="seeds the start tilts and the injected faults (default: a fresh one, printed)",
+    )
+    p.add_argument(
+        "--perturbation",
+        type=number_in(0.0, 4.9, "the tilt"),
+        default=2.0,
+        metavar="DEG",
+        help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)",
+    )
+    p.add_argument(
+        "--plant",
+        type=path,
+        default=None,
+        metavar="FILE.toml",
+        help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
+        "(default: the twin calibrated on the paper's rig; 'workbook', 'previous')",
+    )
+    p.add_argument(
+        "--hanging", action="store_true", help="do not raise the pendulum at each session: it stays hanging down"
+    )
+    p.add_argument(
+        "--raise-time",
+        type=number_in(0.0, 60.0, "--raise-time"),
+        default=0.0,
+        metavar="S",
+        help="raise the pendulum from hanging over S seconds, as by hand (default 0: at once); "
+        "the host's start gate holds the motor at 0 V meanwhile",
+    )
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="tick as soon as the host answers (max 10 ms apart) instead of every 2 ms of wall "
+        "time: deterministic and faster than real time, for tests",
+    )
+    p.add_argument(
+        "--spin",
+        type=number_in(0.0, 1900.0, "--spin"),
+        default=300.0,
+        metavar="US",
+        help="spin this long before each tick deadline (default 300 us; 0: sleep only, less CPU, more jitter)",
+    )
     faults = p.add_argument_group("fault injection")
-    faults.add_argument("--drop-rate", type=_RATE, default=0.0, metavar="P",
-                        help="fraction of frames to the host dropped")
-    faults.add_argument("--corrupt-rate", type=_RATE, default=0.0, metavar="P",
-                        help="probability per byte, each way, of a flipped bit")
-    faults.add_argument("--garbage-rate", type=_RATE, default=0.0, metavar="P",
-                        help="probability per tick of a burst of random bytes to the host")
-    faults.add_argument("--latency", type=number_in(0.0, 9999.0, "--latency"), default=0.0, metavar="MS",
-                        help="added to every byte's trip, each way (ms)")
-    for name, what in (("stall-at", "the QUBE reports a motor stall error"),
-                       ("amp-fault-at", "the QUBE reports an amplifier fault"),
-                       ("silence-at", "the bridge stops sending (the port stays open)"),
-                       ("vanish-at", "the device disappears (the pseudo-terminal is closed)"),
-                       ("hold-at", "the firmware is held for --hold-periods periods (periods lost)")):
+    faults.add_argument(
+        "--drop-rate", type=_RATE, default=0.0, metavar="P", help="fraction of frames to the host dropped"
+    )
+    faults.add_argument(
+        "--corrupt-rate", type=_RATE, default=0.0, metavar="P", help="probability per byte, each way, of a flipped bit"
+    )
+    faults.add_argument(
+        "--garbage-rate",
+        type=_RATE,
+        default=0.0,
+        metavar="P",
+        help="probability per tick of a burst of random bytes to the host",
+    )
+    faults.add_argument(
+        "--latency",
+        type=number_in(0.0, 9999.0, "--latency"),
+        default=0.0,
+        metavar="MS",
+        help="added to every byte's trip, each way (ms)",
+    )
+    for name, what in (
+        ("stall-at", "the QUBE reports a motor stall error"),
+        ("amp-fault-at", "the QUBE reports an amplifier fault"),
+        ("silence-at", "the bridge stops sending (the port stays open)"),
+        ("vanish-at", "the device disappears (the pseudo-terminal is closed)"),
+        ("hold-at", "the firmware is held for --hold-periods periods (periods lost)"),
+    ):
         faults.add_argument(f"--{name}", type=_TIME, default=None, metavar="S", help=f"{what} at S")
-    faults.add_argument("--hold-periods", type=whole_number(1, 100_000), default=10, metavar="N",
-                        help="periods the --hold-at hold lasts (default 10)")
+    faults.add_argument(
+        "--hold-periods",
+        type=whole_number(1, 100_000),
+        default=10,
+        metavar="N",
+        help="periods the --hold-at hold lasts (default 10)",
+    )
     out = p.add_argument_group("output")
-    out.add_argument("--record", type=path, default=None, metavar="FILE.csv",
-                     help="write a per-tick record (device time, applied voltage, commands) at exit "
-                          "(the last 10 minutes)")
+    out.add_argument(
+        "--record",
+        type=path,
+        default=None,
+        metavar="FILE.csv",
+        help="write a per-tick record (device time, applied voltage, commands) at exit (the last 10 minutes)",
+    )
     out.add_argument("--stats", type=path, default=None, metavar="FILE.json", help="write the final counters at exit")
     add_force_option(out)
     add_standard_options(p, "only the device path on standard output")
@@ -116,9 +172,19 @@ def _write_outputs(emulator, args) -> list[str]:
             errors.append(f"{path}: cannot write: {exc.strerror or exc}")
 
     if args.stats:
-        write(args.stats, lambda f: json.dump(
-            {"stats": emulator.stats(), "faults": emulator.faults.as_dict(), "vanished_at": emulator.vanished_at,
-             "events": [{"device_us": d, "wall": w, "event": e} for d, w, e in emulator.events]}, f, indent=1))
+        write(
+            args.stats,
+            lambda f: json.dump(
+                {
+                    "stats": emulator.stats(),
+                    "faults": emulator.faults.as_dict(),
+                    "vanished_at": emulator.vanished_at,
+                    "events": [{"device_us": d, "wall": w, "event": e} for d, w, e in emulator.events],
+                },
+                f,
+                indent=1,
+            ),
+        )
     if args.record:
         from qube_koopman.sim.bridge import RECORD_FIELDS
 
@@ -150,20 +216,35 @@ def _emulate(args) -> int:
     from qube_koopman.firmware_protocol.ccore import CompilerNotFound
     from qube_koopman.sim.bridge import BridgeEmulator, Faults
 
-    faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate, garbage_rate=args.garbage_rate,
-                    latency=args.latency / 1e3, stall_at=args.stall_at, amp_fault_at=args.amp_fault_at,
-                    silence_at=args.silence_at, vanish_at=args.vanish_at, hold_at=args.hold_at,
-                    hold_periods=args.hold_periods)
+    faults = Faults(
+        drop_rate=args.drop_rate,
+        corrupt_rate=args.corrupt_rate,
+        garbage_rate=args.garbage_rate,
+        latency=args.latency / 1e3,
+        stall_at=args.stall_at,
+        amp_fault_at=args.amp_fault_at,
+        silence_at=args.silence_at,
+        vanish_at=args.vanish_at,
+        hold_at=args.hold_at,
+        hold_periods=args.hold_periods,
+    )
     from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_parameters
 
     try:
         params = plant_parameters(args.plant)
     except PlantFileError as exc:
         raise CliError(str(exc)) from None
-    emulator = BridgeEmulator(seed=args.seed, params=params, lockstep=args.lockstep,
-                              perturbation=math.radians(args.perturbation), start_upright=not args.hanging,
-                              raise_time=args.raise_time, faults=faults, spin=args.spin / 1e6,
-                              record_ticks=300_000 if args.record else 0)
+    emulator = BridgeEmulator(
+        seed=args.seed,
+        params=params,
+        lockstep=args.lockstep,
+        perturbation=math.radians(args.perturbation),
+        start_upright=not args.hanging,
+        raise_time=args.raise_time,
+        faults=faults,
+        spin=args.spin / 1e6,
+        record_ticks=300_000 if args.record else 0,
+    )
     check_output_file(args.record, "--record", args.force)  # before the emulator starts
     check_output_file(args.stats, "--stats", args.force)
     try:
@@ -183,8 +264,12 @@ def _emulate(args) -> int:
         print(path, flush=True)
         if not args.quiet:
             mode = "lockstep" if args.lockstep else "real time, 500 Hz"
-            print(f"{PROG}: emulated QUBE-Servo bridge on {path} ({mode}, seed {emulator.seed}); try "
-                  f"qube-run --backend serial --port {path}; Ctrl-C to stop", file=sys.stderr, flush=True)
+            print(
+                f"{PROG}: emulated QUBE-Servo bridge on {path} ({mode}, seed {emulator.seed}); try "
+                f"qube-run --backend serial --port {path}; Ctrl-C to stop",
+                file=sys.stderr,
+                flush=True,
+            )
         emulator.run()
     finally:
         for signum, handler in previous.items():
@@ -196,10 +281,13 @@ def _emulate(args) -> int:
     if not args.quiet:
         s = emulator.stats()
         end = "vanished as asked" if emulator.vanished_at is not None else "stopped"
-        print(f"{PROG}: {end} after {s['ticks']} ticks ({s['device_time']:.1f} s of device time), "
-              f"{s['sessions']} session(s), {s['commands']} commands, {s['late_ticks']} ticks caught up late, "
-              f"{s['slips']} schedule restarts "
-              f"(max lateness {s['max_lateness'] * 1e3:.1f} ms)", file=sys.stderr)
+        print(
+            f"{PROG}: {end} after {s['ticks']} ticks ({s['device_time']:.1f} s of device time), "
+            f"{s['sessions']} session(s), {s['commands']} commands, {s['late_ticks']} ticks caught up late, "
+            f"{s['slips']} schedule restarts "
+            f"(max lateness {s['max_lateness'] * 1e3:.1f} ms)",
+            file=sys.stderr,
+        )
     return 1 if errors else 0
 
 
@@ -218,25 +306,31 @@ def _main_avr(args, parser) -> int:
     defaults = vars(parser.parse_args([]))
     extra = [k for k, v in vars(args).items() if k not in _AVR_OPTIONS and v != defaults[k]]
     if extra:
-        raise CliError(f"--target avr takes only --seed, --perturbation, --hanging and -q "
-                       f"(not --{extra[0].replace('_', '-')})")
+        raise CliError(
+            f"--target avr takes only --seed, --perturbation, --hanging and -q (not --{extra[0].replace('_', '-')})"
+        )
     from qube_koopman.firmware_protocol.avr import AvrToolsMissing
     from qube_koopman.sim.bridge.avr_pty import AvrPtyBridge
 
-    emulator = AvrPtyBridge(seed=args.seed, perturbation=math.radians(args.perturbation),
-                            start_upright=not args.hanging)
+    emulator = AvrPtyBridge(
+        seed=args.seed, perturbation=math.radians(args.perturbation), start_upright=not args.hanging
+    )
     try:
         path = emulator.open()
     except (AvrToolsMissing, RuntimeError, OSError) as exc:
         raise CliError(f"cannot start the emulated Uno: {_first_line(exc)}", status=1) from None
-    previous = {signum: signal.signal(signum, lambda *_: emulator.request_stop())
-                for signum in (signal.SIGINT, signal.SIGTERM)}
+    previous = {
+        signum: signal.signal(signum, lambda *_: emulator.request_stop()) for signum in (signal.SIGINT, signal.SIGTERM)
+    }
     try:
         print(path, flush=True)
         if not args.quiet:
-            print(f"{PROG}: bridge sketch on an emulated ATmega328P (simavr) on {path} (real time, seed "
-                  f"{emulator.seed}); try qube-run --backend serial --port {path}; Ctrl-C to stop",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{PROG}: bridge sketch on an emulated ATmega328P (simavr) on {path} (real time, seed "
+                f"{emulator.seed}); try qube-run --backend serial --port {path}; Ctrl-C to stop",
+                file=sys.stderr,
+                flush=True,
+            )
         emulator.run()
     finally:
         for signum, handler in previous.items():
@@ -244,9 +338,12 @@ def _main_avr(args, parser) -> int:
         emulator.close()
     if not args.quiet:
         s = emulator.stats()
-        print(f"{PROG}: stopped after {s['ticks']} ticks ({s['device_time']:.1f} s of device time in "
-              f"{s['wall_time']:.1f} s), {s['sessions']} session(s), CPU busy {100 * s['busy']:.0f} %, "
-              f"at most {s['max_behind'] * 1e3:.1f} ms behind the wall clock", file=sys.stderr)
+        print(
+            f"{PROG}: stopped after {s['ticks']} ticks ({s['device_time']:.1f} s of device time in "
+            f"{s['wall_time']:.1f} s), {s['sessions']} session(s), CPU busy {100 * s['busy']:.0f} %, "
+            f"at most {s['max_behind'] * 1e3:.1f} ms behind the wall clock",
+            file=sys.stderr,
+        )
     return 0
 
 

@@ -1,8 +1,16 @@
 """The QUBE-Servo rotary inverted pendulum: model, encoders and a per-tick simulator."""
 
 from qube_koopman.sim.pendulum.closed_loop import ClosedLoopRun, simulate_closed_loop
-from qube_koopman.sim.pendulum.model import (SAMPLE_PERIOD, PendulumParameters, dynamics, linear_model,
-                                linearize_upright, rk4_step, simulate, total_energy)
+from qube_koopman.sim.pendulum.model import (
+    SAMPLE_PERIOD,
+    PendulumParameters,
+    dynamics,
+    linear_model,
+    linearize_upright,
+    rk4_step,
+    simulate,
+    total_energy,
+)
 from qube_koopman.sim.pendulum.sensor import SensorModel, ZeroOffsetDistribution, measure
 from qube_koopman.sim.pendulum.simulator import PendulumSimulator
 

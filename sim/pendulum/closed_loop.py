@@ -13,8 +13,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from qube_koopman.core.lti import DiscreteStateSpace
-from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, Coefficients, PendulumParameters, advance, as_states,
-                                             check_timing, hold_pattern)
+from qube_koopman.sim.pendulum.model import (
+    DEFAULT_SUBSTEPS,
+    Coefficients,
+    PendulumParameters,
+    advance,
+    as_states,
+    check_timing,
+    hold_pattern,
+)
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
 __all__ = ["ClosedLoopRun", "simulate_closed_loop"]
@@ -45,12 +52,20 @@ class ClosedLoopRun:
     plant_input: np.ndarray
 
 
-def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, feedforward,
-                         params: PendulumParameters = PendulumParameters(),
-                         sensor: SensorModel = SensorModel(), controller_state0=None,
-                         max_voltage: float = 10.0, n_substeps: int = DEFAULT_SUBSTEPS,
-                         rng: np.random.Generator | None = None, alpha_offsets=None,
-                         past_voltages=None) -> ClosedLoopRun:
+def simulate_closed_loop(
+    state0,
+    controller: DiscreteStateSpace,
+    references,
+    feedforward,
+    params: PendulumParameters = PendulumParameters(),
+    sensor: SensorModel = SensorModel(),
+    controller_state0=None,
+    max_voltage: float = 10.0,
+    n_substeps: int = DEFAULT_SUBSTEPS,
+    rng: np.random.Generator | None = None,
+    alpha_offsets=None,
+    past_voltages=None,
+) -> ClosedLoopRun:
     """Run the pendulum under a controller on the tracking error, for a batch of episodes.
 
     Parameters
@@ -80,9 +95,11 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
         (``params.delay``) still applies; zero volts by default.
     """
     if controller.n_inputs not in (2, 3) or controller.n_outputs != 1:
-        raise ValueError("controller must map the two tracking errors (theta, alpha), and optionally the "
-                         f"feedforward, to one voltage; got {controller.n_inputs} inputs and "
-                         f"{controller.n_outputs} outputs")
+        raise ValueError(
+            "controller must map the two tracking errors (theta, alpha), and optionally the "
+            f"feedforward, to one voltage; got {controller.n_inputs} inputs and "
+            f"{controller.n_outputs} outputs"
+        )
     check_timing(controller.dt, n_substeps)
     if not max_voltage > 0:
         raise ValueError(f"max_voltage must be positive, got {max_voltage!r}")
@@ -92,9 +109,11 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     batch = x.shape[:-1]
     n_steps = r.shape[0] if r.ndim else 0
     if r.shape != (n_steps, *batch, 2) or f.shape != (n_steps, *batch):
-        raise ValueError(f"for {n_steps} steps of a batch {batch}, references must have shape "
-                         f"{(n_steps, *batch, 2)} and feedforward {(n_steps, *batch)}; "
-                         f"got {r.shape} and {f.shape}")
+        raise ValueError(
+            f"for {n_steps} steps of a batch {batch}, references must have shape "
+            f"{(n_steps, *batch, 2)} and feedforward {(n_steps, *batch)}; "
+            f"got {r.shape} and {f.shape}"
+        )
     n_c = controller.n_states
     xc = np.zeros((*batch, n_c)) if controller_state0 is None else np.array(controller_state0, dtype=float)
     if xc.shape != (*batch, n_c):
@@ -114,11 +133,14 @@ def simulate_closed_loop(state0, controller: DiscreteStateSpace, references, fee
     past = np.zeros((whole + 1, *batch)) if past_voltages is None else np.asarray(past_voltages, dtype=float)
     if past.ndim != len(batch) + 1 or past.shape[0] < 1:
         raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
-    history = list(np.broadcast_to(past, (past.shape[0], *batch))[-(whole + 1):])
+    history = list(np.broadcast_to(past, (past.shape[0], *batch))[-(whole + 1) :])
     history = [history[0]] * (whole + 1 - len(history)) + history  # oldest first, whole + 1 commands
     comps = tuple(x[..., i] for i in range(4))
-    shift = None if alpha_offsets is None else np.stack(np.broadcast_arrays(
-        0.0, np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)), axis=-1)
+    shift = (
+        None
+        if alpha_offsets is None
+        else np.stack(np.broadcast_arrays(0.0, np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)), axis=-1)
+    )
     for step in range(n_steps):
         y = measure(states[step] if shift is None else states[step][..., :2] + shift, sensor, rng)
         e = r[step] - y

@@ -170,29 +170,38 @@ class Coefficients(NamedTuple):
     and :func:`~qube_koopman.sim.pendulum.simulate_closed_loop` share.
     """
 
-    m11: float     # M11 at alpha = 0: Jr + Jh + mp Lr^2
+    m11: float  # M11 at alpha = 0: Jr + Jh + mp Lr^2
     quarter: float  # mp Lp^2 / 4: the s^2 part of M11, centrifugal coefficient
-    m12: float     # mp Lp Lr / 2: M12 / cos(alpha)
-    m22: float     # Jp + mp Lp^2 / 4
+    m12: float  # mp Lp Lr / 2: M12 / cos(alpha)
+    m22: float  # Jp + mp Lp^2 / 4
     gravity: float  # mp Lp g / 2
     torque_per_volt: float  # km / Rm
-    arm_damping: float      # km^2 / Rm (back-EMF) + Dr
+    arm_damping: float  # km^2 / Rm (back-EMF) + Dr
     pendulum_damping: float  # Dp
-    arm_coulomb: float = 0.0   # Cr
+    arm_coulomb: float = 0.0  # Cr
     inverse_coulomb_speed: float = 20.0  # 1 / coulomb_speed
     dead_zone: float = 0.0
     arm_stiffness: float = 0.0  # Kr
-    arm_rest: float = 0.0       # theta_rest
+    arm_rest: float = 0.0  # theta_rest
 
     @classmethod
     def of(cls, p: PendulumParameters) -> Coefficients:
         """The coefficients of a pendulum's parameters."""
-        return cls(m11=p.Jr + p.Jh + p.mp * p.Lr**2, quarter=p.mp * p.Lp**2 / 4.0,
-                   m12=p.mp * p.Lp * p.Lr / 2.0, m22=p.Jp + p.mp * p.Lp**2 / 4.0,
-                   gravity=p.mp * p.Lp * p.g / 2.0, torque_per_volt=p.km / p.Rm,
-                   arm_damping=p.km**2 / p.Rm + p.Dr, pendulum_damping=p.Dp,
-                   arm_coulomb=p.Cr, inverse_coulomb_speed=1.0 / p.coulomb_speed, dead_zone=p.dead_zone,
-                   arm_stiffness=p.Kr, arm_rest=p.theta_rest)
+        return cls(
+            m11=p.Jr + p.Jh + p.mp * p.Lr**2,
+            quarter=p.mp * p.Lp**2 / 4.0,
+            m12=p.mp * p.Lp * p.Lr / 2.0,
+            m22=p.Jp + p.mp * p.Lp**2 / 4.0,
+            gravity=p.mp * p.Lp * p.g / 2.0,
+            torque_per_volt=p.km / p.Rm,
+            arm_damping=p.km**2 / p.Rm + p.Dr,
+            pendulum_damping=p.Dp,
+            arm_coulomb=p.Cr,
+            inverse_coulomb_speed=1.0 / p.coulomb_speed,
+            dead_zone=p.dead_zone,
+            arm_stiffness=p.Kr,
+            arm_rest=p.theta_rest,
+        )
 
 
 def _motor_voltage(voltage, k: Coefficients):
@@ -209,8 +218,12 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
     (past the dead zone, :func:`_motor_voltage`); floats or arrays alike."""
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
-    r1 = (k.torque_per_volt * voltage - k.arm_damping * theta_dot
-          - 2.0 * k.quarter * s * c * theta_dot * alpha_dot + k.m12 * s * alpha_dot * alpha_dot)
+    r1 = (
+        k.torque_per_volt * voltage
+        - k.arm_damping * theta_dot
+        - 2.0 * k.quarter * s * c * theta_dot * alpha_dot
+        + k.m12 * s * alpha_dot * alpha_dot
+    )
     if k.arm_coulomb:  # a Python branch: without friction the arithmetic is exactly as before
         r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
     if k.arm_stiffness:  # the cables' spring; as above, exactly the old arithmetic without it
@@ -222,8 +235,7 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
     return (k.m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
 
 
-def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coefficients,
-         sin: Callable, cos: Callable):
+def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coefficients, sin: Callable, cos: Callable):
     """``n`` classic RK4 steps of size ``h`` at constant voltage, on the four components."""
     half = 0.5 * h
     sixth = h / 6.0
@@ -253,7 +265,6 @@ def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coeff
     return theta, alpha, theta_dot, alpha_dot
 
 
-
 def hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[float, ...]]:
     """Whole samples of ``delay`` and, per substep, the weight of the previous command in it.
 
@@ -266,23 +277,25 @@ def hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[f
     return whole, tuple(min(1.0, max(0.0, fraction * n_substeps - j)) for j in range(n_substeps))
 
 
-def advance(comps, previous, current, weights: tuple[float, ...], h: float, k: Coefficients,
-            sin: Callable, cos: Callable):
+def advance(
+    comps, previous, current, weights: tuple[float, ...], h: float, k: Coefficients, sin: Callable, cos: Callable
+):
     """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``."""
     theta, alpha, theta_dot, alpha_dot = comps
     if not any(weights):  # no fractional delay: exactly the plain zero-order hold
         return _rk4(theta, alpha, theta_dot, alpha_dot, current, h, len(weights), k, sin, cos)
     for w in weights:
-        theta, alpha, theta_dot, alpha_dot = _rk4(theta, alpha, theta_dot, alpha_dot,
-                                                  current + w * (previous - current), h, 1, k, sin, cos)
+        theta, alpha, theta_dot, alpha_dot = _rk4(
+            theta, alpha, theta_dot, alpha_dot, current + w * (previous - current), h, 1, k, sin, cos
+        )
     return theta, alpha, theta_dot, alpha_dot
+
 
 def as_states(state) -> np.ndarray:
     """``state`` as a float array of shape (..., 4), or a ValueError naming the shape it has."""
     state = np.asarray(state, dtype=float)
     if state.ndim == 0 or state.shape[-1] != 4:
-        raise ValueError("state must have shape (..., 4): theta, alpha, theta_dot, alpha_dot; "
-                         f"got {state.shape}")
+        raise ValueError(f"state must have shape (..., 4): theta, alpha, theta_dot, alpha_dot; got {state.shape}")
     return state
 
 
@@ -312,26 +325,54 @@ def dynamics(state, voltage, params: PendulumParameters = PendulumParameters()) 
     """
     x = as_states(state)
     k = Coefficients.of(params)
-    theta_ddot, alpha_ddot = _accelerations(x[..., 0], np.sin(x[..., 1]), np.cos(x[..., 1]), x[..., 2], x[..., 3],
-                                            _motor_voltage(np.asarray(voltage, dtype=float), k), k)
+    theta_ddot, alpha_ddot = _accelerations(
+        x[..., 0],
+        np.sin(x[..., 1]),
+        np.cos(x[..., 1]),
+        x[..., 2],
+        x[..., 3],
+        _motor_voltage(np.asarray(voltage, dtype=float), k),
+        k,
+    )
     return np.stack(np.broadcast_arrays(x[..., 2], x[..., 3], theta_ddot, alpha_ddot), axis=-1)
 
 
-def rk4_step(state, voltage, params: PendulumParameters = PendulumParameters(),
-             dt: float = SAMPLE_PERIOD, n_substeps: int = DEFAULT_SUBSTEPS) -> np.ndarray:
+def rk4_step(
+    state,
+    voltage,
+    params: PendulumParameters = PendulumParameters(),
+    dt: float = SAMPLE_PERIOD,
+    n_substeps: int = DEFAULT_SUBSTEPS,
+) -> np.ndarray:
     """Advance by ``dt`` under a constant (zero-order-held) voltage with ``n_substeps`` RK4 steps.
 
     Shapes as in :func:`dynamics`; the result has the broadcast batch shape.
     """
     check_timing(dt, n_substeps)
     x = as_states(state)
-    out = _rk4(x[..., 0], x[..., 1], x[..., 2], x[..., 3], np.asarray(voltage, dtype=float),
-               dt / n_substeps, int(n_substeps), Coefficients.of(params), np.sin, np.cos)
+    out = _rk4(
+        x[..., 0],
+        x[..., 1],
+        x[..., 2],
+        x[..., 3],
+        np.asarray(voltage, dtype=float),
+        dt / n_substeps,
+        int(n_substeps),
+        Coefficients.of(params),
+        np.sin,
+        np.cos,
+    )
     return np.stack(np.broadcast_arrays(*out), axis=-1)
 
 
-def simulate(state0, voltages, params: PendulumParameters = PendulumParameters(),
-             dt: float = SAMPLE_PERIOD, n_substeps: int = DEFAULT_SUBSTEPS, past_voltages=None) -> np.ndarray:
+def simulate(
+    state0,
+    voltages,
+    params: PendulumParameters = PendulumParameters(),
+    dt: float = SAMPLE_PERIOD,
+    n_substeps: int = DEFAULT_SUBSTEPS,
+    past_voltages=None,
+) -> np.ndarray:
     """Open-loop trajectory under a sequence of zero-order-held voltages.
 
     Parameters
@@ -423,8 +464,7 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     # Generalized forces to first order at alpha = 0: columns (theta, alpha, theta_dot, alpha_dot).
     # The smoothed Coulomb torque's slope at rest acts as viscous damping there.
     arm_damping = k.arm_damping + k.arm_coulomb * k.inverse_coulomb_speed
-    forces = np.array([[-k.arm_stiffness, 0.0, -arm_damping, 0.0],
-                       [0.0, k.gravity, 0.0, -k.pendulum_damping]])
+    forces = np.array([[-k.arm_stiffness, 0.0, -arm_damping, 0.0], [0.0, k.gravity, 0.0, -k.pendulum_damping]])
     A = np.zeros((4, 4))
     A[0, 2] = A[1, 3] = 1.0
     A[2:] = np.linalg.solve(mass, forces)
@@ -433,8 +473,7 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     return A, B
 
 
-def linear_model(params: PendulumParameters = PendulumParameters(),
-                 dt: float = SAMPLE_PERIOD) -> DiscreteStateSpace:
+def linear_model(params: PendulumParameters = PendulumParameters(), dt: float = SAMPLE_PERIOD) -> DiscreteStateSpace:
     """The upright linearization discretized exactly under zero-order hold, measuring (theta, alpha).
 
     Parameters

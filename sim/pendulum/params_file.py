@@ -49,8 +49,16 @@ from pathlib import Path
 from qube_koopman.sim.pendulum.model import PendulumParameters
 from qube_koopman.core.files import atomic_path
 
-__all__ = ["PlantFile", "load_plant", "save_plant", "named_parameters", "plant_parameters", "PARAMETER_SETS",
-           "PlantFileError", "FORMAT"]
+__all__ = [
+    "PlantFile",
+    "load_plant",
+    "save_plant",
+    "named_parameters",
+    "plant_parameters",
+    "PARAMETER_SETS",
+    "PlantFileError",
+    "FORMAT",
+]
 
 FORMAT = "qube-plant/1"
 
@@ -72,8 +80,9 @@ class PlantFile:
     provenance : dict
     """
 
-    def __init__(self, params: PendulumParameters, standard_errors: dict | None = None,
-                 provenance: dict | None = None) -> None:
+    def __init__(
+        self, params: PendulumParameters, standard_errors: dict | None = None, provenance: dict | None = None
+    ) -> None:
         self.params = params
         self.standard_errors = dict(standard_errors or {})
         self.provenance = dict(provenance or {})
@@ -85,10 +94,13 @@ PARAMETER_SETS = ("default", "calibrated-two-controllers", "calibrated-20230828"
 
 def named_parameters(name: str) -> PendulumParameters:
     """A named parameter set: one of :data:`PARAMETER_SETS`."""
-    sets = {"default": PendulumParameters, "workbook": PendulumParameters.workbook,
-            "previous": PendulumParameters.previous,
-            "calibrated-two-controllers": lambda: load_plant(PLANTS / "qube_20230828_20230915.toml").params,
-            "calibrated-20230828": lambda: load_plant(PLANTS / "qube_20230828.toml").params}
+    sets = {
+        "default": PendulumParameters,
+        "workbook": PendulumParameters.workbook,
+        "previous": PendulumParameters.previous,
+        "calibrated-two-controllers": lambda: load_plant(PLANTS / "qube_20230828_20230915.toml").params,
+        "calibrated-20230828": lambda: load_plant(PLANTS / "qube_20230828.toml").params,
+    }
     if name not in sets:
         raise ValueError(f"no parameter set named {name!r}; known: {', '.join(sets)}")
     return sets[name]()

@@ -52,8 +52,7 @@ class SensorModel:
 
     def __post_init__(self) -> None:
         cpr = self.counts_per_rev
-        if cpr is not None and (isinstance(cpr, bool) or not isinstance(cpr, (int, np.integer))
-                                or cpr < 2 or cpr % 2):
+        if cpr is not None and (isinstance(cpr, bool) or not isinstance(cpr, (int, np.integer)) or cpr < 2 or cpr % 2):
             raise ValueError(f"counts_per_rev must be an even integer >= 2 or None, got {cpr!r}")
         if not (math.isfinite(self.noise_std) and self.noise_std >= 0):
             raise ValueError(f"noise_std must be a non-negative number of radians, got {self.noise_std!r}")
@@ -156,8 +155,7 @@ def counts_to_angles(count0: int, count1: int, counts_per_rev: int = COUNTS_PER_
     return _angles(count0, count1, counts_per_rev)
 
 
-def measure(state, sensor: SensorModel = SensorModel(),
-            rng: np.random.Generator | None = None) -> np.ndarray:
+def measure(state, sensor: SensorModel = SensorModel(), rng: np.random.Generator | None = None) -> np.ndarray:
     """Encoder readings for states.
 
     Parameters

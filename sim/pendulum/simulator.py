@@ -10,8 +10,15 @@ import math
 
 import numpy as np
 
-from qube_koopman.sim.pendulum.model import (DEFAULT_SUBSTEPS, SAMPLE_PERIOD, Coefficients, PendulumParameters,
-                                             advance, check_timing, hold_pattern)
+from qube_koopman.sim.pendulum.model import (
+    DEFAULT_SUBSTEPS,
+    SAMPLE_PERIOD,
+    Coefficients,
+    PendulumParameters,
+    advance,
+    check_timing,
+    hold_pattern,
+)
 from qube_koopman.sim.pendulum.sensor import SensorModel, encoder_angles
 
 __all__ = ["PendulumSimulator"]
@@ -42,10 +49,15 @@ class PendulumSimulator:
         Seed of the measurement noise.
     """
 
-    def __init__(self, params: PendulumParameters = PendulumParameters(),
-                 sensor: SensorModel = SensorModel(), dt: float = SAMPLE_PERIOD,
-                 n_substeps: int = DEFAULT_SUBSTEPS, max_voltage: float | None = 15.0,
-                 seed: int | None = None) -> None:
+    def __init__(
+        self,
+        params: PendulumParameters = PendulumParameters(),
+        sensor: SensorModel = SensorModel(),
+        dt: float = SAMPLE_PERIOD,
+        n_substeps: int = DEFAULT_SUBSTEPS,
+        max_voltage: float | None = 15.0,
+        seed: int | None = None,
+    ) -> None:
         check_timing(dt, n_substeps)
         if max_voltage is not None and not (math.isfinite(max_voltage) and max_voltage > 0):
             raise ValueError(f"max_voltage must be positive or None, got {max_voltage!r}")
@@ -69,8 +81,7 @@ class PendulumSimulator:
         """Set the state (theta, alpha, theta_dot, alpha_dot) and time zero; return its measurement."""
         values = tuple(float(v) for v in np.asarray(state, dtype=float).reshape(-1))
         if len(values) != 4 or not all(math.isfinite(v) for v in values):
-            raise ValueError("state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), "
-                             f"got {state!r}")
+            raise ValueError(f"state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), got {state!r}")
         self._x = values
         self._steps = 0
         self._commands = [0.0] * (self._whole + 1)
@@ -85,8 +96,16 @@ class PendulumSimulator:
         v = min(max(v, -self.max_voltage), self.max_voltage)
         commands = self._commands
         commands.append(v)
-        self._x = advance(self._x, commands[-self._whole - 2], commands[-self._whole - 1], self._weights, self._h,
-                           self._k, math.sin, math.cos)
+        self._x = advance(
+            self._x,
+            commands[-self._whole - 2],
+            commands[-self._whole - 1],
+            self._weights,
+            self._h,
+            self._k,
+            math.sin,
+            math.cos,
+        )
         del commands[0]
         self._steps += 1
         self._y = self._measure()
@@ -103,7 +122,7 @@ class PendulumSimulator:
         self.dt = float(dt)
         self._h = self.dt / self.n_substeps
         self._whole, self._weights = hold_pattern(self._params.delay, self.dt, self.n_substeps)
-        kept = self._commands[-(self._whole + 1):]
+        kept = self._commands[-(self._whole + 1) :]
         self._commands = [kept[0]] * (self._whole + 1 - len(kept)) + kept
 
     @property

@@ -146,21 +146,35 @@ def test_every_command_is_written_with_the_toolkit_of_core():
     assert not without, f"commands not run through core.command.run_command: {without}"
 
 
-def test_ruff_finds_nothing_in_the_packages():
-    """The linter, configured in pyproject.toml ([tool.ruff]), reports nothing on the package folders.
-    ruff is in the test extra: missing, it is an incomplete install, which fails rather than skips."""
+def _ruff() -> list[str]:
+    """How to run ruff (in the test extra: missing, it is an incomplete install, which fails rather than skips)."""
     import importlib.util
     import shutil
+
+    if importlib.util.find_spec("ruff") is not None:
+        return [sys.executable, "-m", "ruff"]
+    if shutil.which("ruff"):
+        return [str(shutil.which("ruff"))]
+    pytest.fail('ruff is not installed: pip install -e ".[test]"')
+
+
+def test_ruff_formats_the_packages_as_they_are():
+    """The formatter (``ruff format``, pyproject.toml's [tool.ruff]) would change nothing in the package folders."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    if importlib.util.find_spec("ruff") is not None:
-        ruff = [sys.executable, "-m", "ruff"]
-    elif shutil.which("ruff"):
-        ruff = [shutil.which("ruff")]
-    else:
-        pytest.fail('ruff is not installed: pip install -e ".[test]"')
-    checked = subprocess.run([*ruff, "check", "--no-cache", "--config", str(root / "pyproject.toml"),
+    checked = subprocess.run([*_ruff(), "format", "--check", "--no-cache", "--config", str(root / "pyproject.toml"),
+                              *LAYERS, *APPLICATIONS], cwd=root, capture_output=True, text=True, timeout=300)
+    assert checked.returncode == 0, "run `ruff format` on:\n" + checked.stdout[-8000:] + checked.stderr[-2000:]
+
+
+def test_ruff_finds_nothing_in_the_packages():
+    """The linter, configured in pyproject.toml ([tool.ruff]), reports nothing on the package folders.
+    ruff is in the test extra: missing, it is an incomplete install, which fails rather than skips."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    checked = subprocess.run([*_ruff(), "check", "--no-cache", "--config", str(root / "pyproject.toml"),
                               *LAYERS, *APPLICATIONS],
                              cwd=root, capture_output=True, text=True, timeout=300)
     assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]
