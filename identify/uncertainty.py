@@ -439,30 +439,6 @@ class EpisodePrediction:
     estimate: OffsetEstimate | None = None
 
 
-class _EnsembleSink:
-    """The point model's prediction and the members' variance, gathered chunk by chunk (time first)."""
-
-    def __init__(self, T: int, n_eps: int, m: int, n_p: int, n_models: int, d: int) -> None:
-        self.n_p, self.n_models = n_p, n_models
-        self.prediction = np.full((T, n_eps, m), np.nan)
-        self.variance = np.full((T, n_eps, m), np.inf) if n_models > 1 else None
-        if self.variance is not None:
-            self.variance[: d + 1] = 0.0
-
-    def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
-        at = slice(k0, k0 + len(chunk))
-        if models[0] == 0:
-            self.prediction[at] = chunk[:, 0, :, self.n_p :]
-        if self.variance is None:
-            return
-        if models.size < self.n_models:  # a member (or the point) diverged everywhere: no spread to trust
-            self.variance[at] = np.inf
-            return
-        with np.errstate(all="ignore"):
-            spread = np.var(chunk[:, 1:, :, self.n_p :], axis=1, ddof=1)
-        self.variance[at] = np.where(np.isfinite(spread), spread, np.inf)
-
-
 def _controller_states(t: Trajectory) -> np.ndarray:
     """``t``'s controller states, which a model with passthrough states predicts from (a ValueError without)."""
     if t.xc is None:
@@ -470,33 +446,9 @@ def _controller_states(t: Trajectory) -> np.ndarray:
     return t.xc
 
 
-def _simulate(models: Sequence, trajectories: Sequence[Trajectory]) -> tuple[np.ndarray, np.ndarray | None]:
-    """Every model over equally long episodes in one batch: the first model's prediction, the others' variance."""
-    point = models[0]
-    d, n_p, m = point.n_delays, point.n_passthrough, point.n_states
-    T = trajectories[0].n_samples
-    x_init = np.stack([t.x[: d + 1] for t in trajectories])
-    v = np.stack([point.inputs_of(t) for t in trajectories])
-    p0 = np.stack([_controller_states(t)[d] for t in trajectories]) if n_p else None
-    sink = _EnsembleSink(T, len(trajectories), m, n_p, len(models), d)
-    sink.prediction[: d + 1] = np.moveaxis(x_init, 1, 0)
-    simulate_chunks(
-        np.stack([model.A for model in models]),
-        np.stack([model.B for model in models]),
-        point.lifting,
-        n_p,
-        x_init,
-        v,
-        p0,
-        True,
-        sink,
-    )
-    variance = None if sink.variance is None else np.moveaxis(sink.variance, 1, 0)
-    return np.moveaxis(sink.prediction, 1, 0), variance
-
-
 class _GroupedSink:
-    """:class:`_EnsembleSink` for groups of equally many models, each group on its own episodes."""
+    """Per group of equally many models, each on its own episodes: the point model's prediction and the
+    members' variance, gathered chunk by chunk (time first)."""
 
     def __init__(self, T: int, n_groups: int, n_eps: int, m: int, n_p: int, n_models: int) -> None:
         self.shape, self.n_p = (n_groups, n_models), n_p
@@ -658,33 +610,8 @@ def _offset_spread(estimate: OffsetEstimate) -> np.ndarray:
     return np.where(np.isfinite(estimate.std_error), np.minimum(estimate.std_error, estimate.bound), estimate.bound)
 
 
-def _with_offsets(model, trajectories, estimates, prediction, variance):
-    """The plain predictions; with ``variance``, the offsets' variance added to it through their sensitivities.
-
-    One batch: each episode without offsets, then (with ``variance``) each episode at its offsets
-    with one channel's moved by :data:`OFFSET_STEP`.
-    """
-    channels, n = estimates[0].channels, len(trajectories)
-    used = [{c: e.as_mapping().get(c, 0.0) for c in channels} for e in estimates]
-    moved = [] if variance is None else [{**u, c: u[c] + OFFSET_STEP} for c in channels for u in used]
-    offsets = [{}] * n + moved
-    runs, _ = _simulate(
-        [model], [shift_trajectory(model, t, o) for t, o in zip(list(trajectories) * (len(offsets) // n), offsets)]
-    )
-    for run, o in zip(runs, offsets):
-        for c, value in o.items():
-            run[:, c] += value
-    if variance is not None:
-        spread = np.array([_offset_spread(e) for e in estimates])  # (episodes, channels)
-        for i in range(len(channels)):
-            sensitivity = (runs[n * (i + 1) : n * (i + 2)] - prediction) / OFFSET_STEP
-            with np.errstate(invalid="ignore", over="ignore"):
-                variance += (sensitivity * spread[:, i, None, None]) ** 2
-    return runs[:n]
-
-
 def predict_episodes(models: Sequence, trajectories: Sequence[Trajectory], offsets=None) -> list[EpisodePrediction]:
-    """Predict episodes with a point model and its members, batched by length.
+    """Predict episodes with a point model and its members, in one batch (:func:`predict_groups`, one group).
 
     Parameters
     ----------
@@ -702,37 +629,7 @@ def predict_episodes(models: Sequence, trajectories: Sequence[Trajectory], offse
     list of EpisodePrediction
         In the episodes' order.
     """
-    trajectories = list(trajectories)
-    point = models[0]
-    out: dict[int, EpisodePrediction] = {}  # by the episode's index
-    by_length: dict[int, list[int]] = {}
-    for i, t in enumerate(trajectories):
-        by_length.setdefault(t.n_samples, []).append(i)
-    for group in by_length.values():
-        trajs = [trajectories[i] for i in group]
-        estimates = None
-        if offsets is not None:
-            estimates = estimate_offsets_many(
-                point, trajs, offsets.channels, offsets.window(trajs[0].dt), offsets.bound
-            )
-            shifted = [shift_trajectory(point, t, e.as_mapping()) for t, e in zip(trajs, estimates)]
-        else:
-            shifted = trajs
-        prediction, variance = _simulate(models, shifted)
-        plain = None
-        if estimates is not None:
-            for j, e in enumerate(estimates):
-                for c, value in e.as_mapping().items():
-                    prediction[j, :, c] += value
-            plain = _with_offsets(point, trajs, estimates, prediction, variance)
-        for j, i in enumerate(group):
-            out[i] = EpisodePrediction(
-                prediction[j],
-                None if variance is None else variance[j],
-                None if plain is None else plain[j],
-                None if estimates is None else estimates[j],
-            )
-    return [out[i] for i in range(len(trajectories))]
+    return predict_groups([(models, list(trajectories))], offsets)[0]
 
 
 # --- calibration ---------------------------------------------------------------------------------
