@@ -48,6 +48,29 @@ def _triangular_factor(M: np.ndarray) -> np.ndarray:
     return linalg.qr(M, mode="r", check_finite=False)[0][: min(M.shape)].copy()
 
 
+def _copied_columns(target: np.ndarray, regressor: np.ndarray) -> np.ndarray:
+    """For each target column, the index of a regressor column equal to it in every row (-1: none).
+
+    Two weighted sums of each column pick the candidates (equal columns give equal sums up to
+    the rounding of their order); equality is then checked exactly, so a missed or a false
+    candidate costs time, never a wrong factor.
+    """
+    copies = np.full(target.shape[1], -1)
+    if not target.shape[1] or not regressor.shape[1]:
+        return copies
+    w = np.random.default_rng(0).standard_normal((2, target.shape[0]))
+    with np.errstate(all="ignore"):
+        sums_t, sums_r = w @ target, w @ regressor
+        size_t, size_r = np.abs(w) @ np.abs(target), np.abs(w) @ np.abs(regressor)
+        close = np.all(
+            np.abs(sums_t[:, :, None] - sums_r[:, None, :]) <= 1e-10 * (size_t[:, :, None] + size_r[:, None, :]), axis=0
+        )
+    for i, j in zip(*np.nonzero(close)):
+        if copies[i] < 0 and np.array_equal(target[:, i], regressor[:, j]):
+            copies[i] = j
+    return copies
+
+
 def _merge_triangles(factors: list[np.ndarray]) -> np.ndarray:
     """The upper-triangular factor of square upper-triangular ``factors`` stacked.
 
@@ -86,10 +109,31 @@ class Snapshots:
 
     @classmethod
     def from_snapshots(cls, target: np.ndarray, regressor: np.ndarray) -> "Snapshots":
-        """Statistics of one episode: row k of ``target`` follows row k of ``regressor``."""
+        """Statistics of one episode: row k of ``target`` follows row k of ``regressor``.
+
+        A target column equal to a regressor column in every snapshot (with delays, the lifted
+        state's older slots at k + 1 are its newer slots at k; the constant is itself) is not
+        factored again: only the regressors and the other targets are, and such a column of the
+        factor is its regressor's column (``Q^T y = Q^T psi_j = R e_j``; its residual is zero).
+        The factor is the same up to rounding, at a quarter of the work for a full delayed fit
+        (half the columns are copies).
+        """
         if target.shape[0] != regressor.shape[0]:
             raise ValueError(f"{target.shape[0]} targets for {regressor.shape[0]} regressors")
-        return cls(_triangular_factor(np.hstack([regressor, target])), regressor.shape[1], regressor.shape[0])
+        q, n_r, n_t = regressor.shape[0], regressor.shape[1], target.shape[1]
+        copies = _copied_columns(target, regressor)
+        unique = np.flatnonzero(copies < 0)
+        if unique.size == n_t or q < n_r + unique.size:  # nothing to save, or a factor with fewer rows than columns
+            return cls(_triangular_factor(np.hstack([regressor, target])), n_r, q)
+        small = _triangular_factor(np.hstack([regressor, target[:, unique]]))
+        # Rows and columns of the small factor go where their columns are in [regressors, targets]: upper
+        # triangular still, with zero rows where the copies are.
+        at = np.concatenate([np.arange(n_r), n_r + unique])
+        R = np.zeros((n_r + n_t, n_r + n_t))
+        R[np.ix_(at, at)] = small
+        copied = np.flatnonzero(copies >= 0)
+        R[:n_r, n_r + copied] = small[:n_r, copies[copied]]
+        return cls(R, n_r, q)
 
     @classmethod
     def total(cls, parts, batch: int = 4) -> "Snapshots":

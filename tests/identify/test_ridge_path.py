@@ -88,3 +88,27 @@ def test_folded_factors_give_the_stacked_snapshots_gram_matrix(q):
     M = np.vstack([np.hstack([x, y]) for y, x in parts])
     np.testing.assert_allclose(total.R.T @ total.R, M.T @ M, rtol=1e-11, atol=1e-9)
     assert np.allclose(total.R, np.triu(total.R)) and total.q == sum(len(y) for y, _ in parts)
+
+
+@pytest.mark.parametrize("q", [400, 20])  # square factors, and fewer snapshots than columns (factored whole)
+def test_targets_that_copy_regressors_take_their_factor_columns(q):
+    # With delays most of the next lifted state is the current one's slots moved along: those target
+    # columns equal regressor columns and are not factored again. The factor still gives the stacked
+    # snapshots' Gram matrix, its leading blocks too, and the same solves as a factor of everything.
+    rng = np.random.default_rng(5)
+    psi = rng.standard_normal((q, 30))
+    near = psi[:, 7].copy()
+    near[q // 2] += 1e-12  # one sample off: not a copy
+    theta = np.hstack([rng.standard_normal((q, 2)), psi[:, 3:15], near[:, None], rng.standard_normal((q, 1)), psi[:, :1]])
+    snaps = Snapshots.from_snapshots(theta, psi)
+    M = np.hstack([psi, theta])
+    np.testing.assert_allclose(snaps.R.T @ snaps.R, M.T @ M, rtol=1e-11, atol=1e-9)
+    assert np.allclose(snaps.R, np.triu(snaps.R))
+    lead = snaps.leading(3)
+    np.testing.assert_allclose(lead.R.T @ lead.R, M[:, :33].T @ M[:, :33], rtol=1e-11, atol=1e-9)
+    full = Snapshots(linalg.qr(M, mode="economic")[1], 30, q)
+    for alpha in (0.0, 1e-3, 1.0):
+        np.testing.assert_allclose(ridge_solve(snaps, alpha), ridge_solve(full, alpha), rtol=1e-8, atol=1e-10)
+    # The 13 copies' rows of the factor are zero when it is square (factored without them).
+    zero_rows = int(np.sum(~snaps.R.any(axis=1)))
+    assert zero_rows == (13 if q > 50 else 0)
