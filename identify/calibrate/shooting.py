@@ -247,28 +247,32 @@ def jacobian(
 
     per_seg = 2 * (seg.horizon + 1)
     n_res = seg.n * per_seg
-    rows = np.arange(n_res)
-    segment_of_row = rows // per_seg
     base = N_PHYSICAL + n_episodes
-    data, cols, rws = [], [], []
-    for i in range(N_PHYSICAL if physics else 0):
+    n_phys = N_PHYSICAL if physics else 0
+    phys_data = np.empty((n_res, n_phys))
+    for i in range(n_phys):
         step = 1e-6 * max(1.0, abs(z[i]))
         zi = z.copy()
         zi[i] += step
-        data.append((residuals(zi, seg, n_episodes, nominal, dt, sigma) - r0) / step)
-        cols.append(np.full(n_res, i))
-        rws.append(rows)
+        phys_data[:, i] = (residuals(zi, seg, n_episodes, nominal, dt, sigma) - r0) / step
+    node_data = np.empty((n_res, 4))
     for j in range(4):
         zj = z.copy()
         zj[base + j :: 4] += 1e-6
-        data.append((residuals(zj, seg, n_episodes, nominal, dt, sigma) - r0) / 1e-6)
-        cols.append(base + 4 * segment_of_row + j)
-        rws.append(rows)
-    alpha_rows = rows[1::2]
-    weight = 1.0 if seg.weight is None else seg.weight[segment_of_row[alpha_rows]]
-    data.append(np.full(alpha_rows.size, OFFSET_SCALE / sigma) * weight)
-    cols.append(N_PHYSICAL + seg.episode[segment_of_row[alpha_rows]])
-    rws.append(alpha_rows)
-    return csr_matrix(
-        (np.concatenate(data), (np.concatenate(rws), np.concatenate(cols))), shape=(n_res, base + 4 * seg.n)
+        node_data[:, j] = (residuals(zj, seg, n_episodes, nominal, dt, sigma) - r0) / 1e-6
+    # Built in CSR directly: each pair of rows (a sample's theta, then its alpha) holds the physical
+    # columns, the episode's offset (alpha only) and the segment's four nodes, in the ascending column
+    # order scipy's conversion from (row, column) triplets gave (the same matrix, bit for bit); that
+    # conversion took 5 of the 58 s of a fit on the dataset's 38 calibration logs (profiled).
+    segment_of_pair = np.arange(n_res // 2) // (seg.horizon + 1)
+    weight = 1.0 if seg.weight is None else seg.weight[segment_of_pair]
+    offset_data = np.full(segment_of_pair.size, OFFSET_SCALE / sigma) * weight
+    phys_cols = np.broadcast_to(np.arange(n_phys), (segment_of_pair.size, n_phys))
+    node_cols = base + 4 * segment_of_pair[:, None] + np.arange(4)
+    offset_cols = (N_PHYSICAL + seg.episode[segment_of_pair])[:, None]
+    cols = np.concatenate([phys_cols, node_cols, phys_cols, offset_cols, node_cols], axis=1)
+    data = np.concatenate(
+        [phys_data[0::2], node_data[0::2], phys_data[1::2], offset_data[:, None], node_data[1::2]], axis=1
     )
+    indptr = np.concatenate([[0], np.cumsum(np.tile([n_phys + 4, n_phys + 5], segment_of_pair.size))])
+    return csr_matrix((data.ravel(), cols.ravel(), indptr), shape=(n_res, base + 4 * seg.n))
