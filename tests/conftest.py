@@ -112,28 +112,60 @@ def qube_csv_files(qube_dataset: Path) -> list[Path]:
     return sorted(qube_dataset.glob("*.csv"))
 
 
+def made_once(tmp_path_factory, name: str, make) -> Path:
+    """The folder ``name`` that ``make(folder)`` fills, made once for the whole session.
+
+    pytest-xdist runs each worker in a process of its own, where a session-scoped fixture is made
+    again: every worker imported the dataset (6 s) and ran ``qube-reproduce`` (20 s) when files
+    needing them went to both. The workers' temporary folders share a parent; the first worker to
+    need the folder makes it there under a lock, and the others wait for it and read it. Nothing in
+    the suite writes into these folders (within one worker they were already shared by every test).
+    """
+    import fcntl
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # this run's workers' folders are gw0, gw1, ... in it
+    folder, done = root / name, root / f"{name}.done"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, also if make raises
+        if not done.exists():
+            if folder.exists():  # a worker's make that failed left it half written
+                import shutil
+
+                shutil.rmtree(folder)
+            folder.mkdir()
+            make(folder)
+            done.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
-    """All 48 episodes imported into MCAP logs once per session (about 6 s)."""
-    from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
-    from qube_koopman.daq.log import write_episode
-    from qube_koopman.daq.log.names import log_path
+    """All 48 episodes imported into MCAP logs once per session (about 6 s), shared by the workers."""
 
-    out = tmp_path_factory.mktemp("qube_logs")
-    controller = load_legacy_controller(qube_csv_files[0].parent / "controller.toml")
-    for path in qube_csv_files:
-        write_episode(log_path(out, path.stem), legacy_episode(path, controller))
-    return out
+    def make(out: Path) -> None:
+        from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
+        from qube_koopman.daq.log import write_episode
+        from qube_koopman.daq.log.names import log_path
+
+        controller = load_legacy_controller(qube_csv_files[0].parent / "controller.toml")
+        for path in qube_csv_files:
+            write_episode(log_path(out, path.stem), legacy_episode(path, controller))
+
+    return made_once(tmp_path_factory, "qube_logs", make)
 
 
 @pytest.fixture(scope="session")
 def qube_reproduction_out(qube_logs, tmp_path_factory) -> Path:
     """``qube-reproduce qube --figures`` on the imported dataset, once per session: its output folder."""
-    from qube_koopman.reproduce.cli import main
 
-    out = tmp_path_factory.mktemp("qube_out")
-    assert main(["qube", "--data", str(qube_logs), "--out", str(out), "--figures", "-q"]) == 0
-    return out
+    def make(out: Path) -> None:
+        from qube_koopman.reproduce.cli import main
+
+        assert main(["qube", "--data", str(qube_logs), "--out", str(out), "--figures", "-q"]) == 0
+
+    return made_once(tmp_path_factory, "qube_out", make)
 
 
 @pytest.fixture(scope="session")
