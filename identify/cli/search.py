@@ -23,8 +23,9 @@ _LISTS = {
     "offsets": bool,
     "friction": bool,
 }
-#: Single numbers a space file may set: how many candidates of a screened stage are evaluated in full (0: all).
-_NUMBERS = {"n_finalists": int}
+#: Single values a space file may set: how many candidates of a screened stage are evaluated in full (0: all),
+#: and whether a finalist must beat the stage's lead scored as a screen.
+_NUMBERS = {"n_finalists": int, "screen_against_lead": bool}
 
 
 def load_space(path: str | None):
@@ -42,6 +43,11 @@ def load_space(path: str | None):
         raise CliError(f"{path}: unknown search-space keys {sorted(unknown)}; known: {', '.join([*_LISTS, *_NUMBERS])}")
     values: dict = {}  # SearchSpace's fields, of several types
     for key, value in data.items():
+        if key in _NUMBERS and _NUMBERS[key] is bool:
+            if not isinstance(value, bool):
+                raise CliError(f"{path}: {key} must be true or false")
+            values[key] = value
+            continue
         if key in _NUMBERS:
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise CliError(f"{path}: {key} must be a whole number >= 0")
@@ -166,8 +172,12 @@ OBJECTIVE = {
 SCREENING = (
     "successive halving: each candidate of a screened stage is first scored on its first {folds} "
     "fold(s) over the alpha grid and probed at the alpha best there (its screen); the {k} best whose "
-    "screens did not diverge are evaluated in full (the other folds and probe alphas added: the same "
+    "screens did not diverge{lead} are evaluated in full (the other folds and probe alphas added: the same "
     "scores as a full evaluation), the others are screened out and not ranked (--no-screen: all in full)"
+)
+SCREENING_LEAD = (
+    " and, after the first stage, beat the stage's lead (the best candidate so far) scored on the same "
+    "folds and probes (screen_against_lead = false in the --search-space file: the best whatever the lead)"
 )
 
 
@@ -189,10 +199,14 @@ def search_report(result, args, names) -> dict:
         "screening": {
             "n_finalists": space.n_finalists,
             "screen_folds": space.screen_folds,
+            "screen_against_lead": space.screen_against_lead,
             "stages": list(space.screened_stages) if space.n_finalists else [],
-            "description": SCREENING.format(folds=space.screen_folds, k=space.n_finalists)
+            "description": SCREENING.format(
+                folds=space.screen_folds, k=space.n_finalists, lead=SCREENING_LEAD if space.screen_against_lead else ""
+            )
             if space.n_finalists
             else "none: every candidate evaluated in full (--no-screen)",
+            "lead_screen_objective": {stage: float(bar) for stage, bar in result.screen_bars.items()},
         },
         "screened": [r.as_dict() for r in result.screened],
         "stages": list(STAGES),

@@ -70,6 +70,7 @@ __all__ = [
     "search_liftings",
     "evaluate_candidate",
     "screen_candidate",
+    "screen_bar",
     "same_controller_scores",
     "search_steps",
     "family_of",
@@ -198,6 +199,9 @@ class SearchSpace:
     n_finalists: int = 3
     screen_folds: int = 1  # folds a screen scores (the first ones)
     screened_stages: tuple[str, ...] = ("delays", "form", "rbf")
+    #: After the first stage a finalist's screen must also beat the stage's lead scored as a screen
+    #: (:func:`screen_bar`); False: the ``n_finalists`` best screens go on whatever the lead scored.
+    screen_against_lead: bool = True
 
     def __post_init__(self):
         for name in ("delays", "poly", "rbf", "alphas"):
@@ -421,6 +425,9 @@ class SearchResult:
         Every screen (:func:`screen_candidate`) of the stages that screened, finalists' included.
     screened : list of CandidateResult
         The screens of the candidates left out (not evaluated in full, not ranked).
+    screen_bars : dict of str to float
+        Per screened stage after the first, the lead's score on the screens' folds (:func:`screen_bar`),
+        which a finalist's screen beat.
     """
 
     candidates: list[CandidateResult] = field(default_factory=list)
@@ -434,6 +441,7 @@ class SearchResult:
     shared_seconds: dict = field(default_factory=dict)
     screens: list = field(default_factory=list)
     screened: list = field(default_factory=list)
+    screen_bars: dict = field(default_factory=dict)
 
     def timing(self) -> dict:
         """Where the search's time went: per stage its wall time and its candidates' summed
@@ -630,11 +638,34 @@ def screen_candidate(
     return result
 
 
-def _finalists(screens: Sequence[CandidateResult], k: int) -> set[LiftingSpec]:
+def _finalists(screens: Sequence[CandidateResult], k: int, bar: float | None = None) -> set[LiftingSpec]:
     """The liftings of the ``k`` best screens (ranked as :meth:`SearchResult.ranked` ranks candidates)
-    that did not diverge; the best one when all did (a stage evaluates one candidate in full at least)."""
+    that did not diverge and, with a ``bar`` (:func:`screen_bar`), score above it.
+
+    Without a bar, the best one when all diverged (the first stage evaluates one candidate in full at
+    least); with one, none when none beats it: the stage's lead stays the best so far.
+    """
     ranked = SearchResult(list(screens)).ranked()
-    return {r.spec for r in [r for r in ranked if np.isfinite(r.score)][:k] or ranked[:1]}
+    passed = [r for r in ranked if np.isfinite(r.score) and (bar is None or r.score > bar)][:k]
+    return {r.spec for r in (passed or (ranked[:1] if bar is None else []))}
+
+
+def screen_bar(lead: CandidateResult, n_folds: int) -> float:
+    """What a screened candidate must beat to be evaluated in full: the stage's lead (the best candidate
+    so far, which every candidate of the stage varies) scored as a screen is, on the first ``n_folds``
+    folds and the probes, at the alphas it was probed at.
+
+    Successive halving with the incumbent among the arms: a screen that scores below the lead on the
+    same folds and probes is not evaluated further. The transfer R^2, the lower of the two on the
+    rig's data, does not depend on the folds (the probes' plant is fitted on every training episode),
+    so a screen sees most of what decides the ranking. The lead counts the best of the alphas it was
+    probed at (up to :attr:`SearchData.n_transfer_alphas`), a screen its one.
+    """
+    cv = lead.cv_r2[:n_folds].mean(axis=0)
+    cv = np.where(np.isnan(cv), -np.inf, cv)
+    transfer = lead.transfer_mean
+    objective = cv if transfer is None else np.minimum(cv, transfer)
+    return float(np.max(objective))
 
 
 def _shared_statistics(head: LiftingSpec, data: SearchData, run, n_parts: int) -> tuple:
@@ -647,6 +678,27 @@ def _shared_statistics(head: LiftingSpec, data: SearchData, run, n_parts: int) -
         return next(iter(run([joblib.delayed(family_statistics)(head, data)])))
     parts = np.array_split(np.arange(len(data.trajectories)), n_parts)
     return merge_fold_statistics(list(run([joblib.delayed(family_statistics)(head, data, p) for p in parts])))
+
+
+def _own_statistics(specs: Sequence[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
+    """Each lifting's own fold statistics (:func:`family_statistics`), every one in ``n_parts`` parts of the
+    episodes, all the parts side by side on the workers: {spec: OwnStatistics}.
+
+    For a screened stage's candidates that share no family (the RBF stage's): a screen that lifted
+    its own episodes left a worker idle while the last screens ran (three RBF screens on two
+    workers took two rounds of a whole screen each).
+    """
+    import joblib
+
+    from qube_koopman.identify.model_selection.sweep import OwnStatistics, merge_fold_statistics
+
+    parts = np.array_split(np.arange(len(data.trajectories)), max(1, n_parts))
+    calls = [joblib.delayed(family_statistics)(s, data, p) for s in specs for p in parts]
+    done = list(run(calls))
+    return {
+        s: OwnStatistics(merge_fold_statistics(done[i * len(parts) : (i + 1) * len(parts)]))
+        for i, s in enumerate(specs)
+    }
 
 
 def holds_features(big: LiftingSpec, small: LiftingSpec) -> bool:
@@ -1022,6 +1074,11 @@ def search_liftings(
                     if shared.get(s) is None:
                         shared[s] = next((v for h, v in earlier.items() if holds_features(h, s)), None)
             screens = {}
+            alone = [s for s in specs if shared.get(s) is None]
+            if data.controllers is None and space.screens(stage, len(specs)) and len(alone) > 1:
+                now = time.perf_counter()
+                shared.update(_own_statistics(alone, data, run, n_parts))
+                result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
             if space.screens(stage, len(specs)):
                 # Successive halving: every candidate screened cheaply, the best few evaluated in full.
                 # The largest first: the last to start on a worker is then a short one.
@@ -1033,7 +1090,11 @@ def search_liftings(
                     screens[res.spec] = res
                     if progress:
                         progress(f"search: {stage} (screen)", done, len(specs))
-                finalists = _finalists(list(screens.values()), space.n_finalists)
+                lead = result.ranked()[0] if result.candidates and space.screen_against_lead else None
+                bar = None if lead is None else screen_bar(lead, space.screen_folds)
+                if bar is not None:
+                    result.screen_bars[stage] = bar
+                finalists = _finalists(list(screens.values()), space.n_finalists, bar)
                 result.screened += [replace(r, kept=None) for r in screens.values() if r.spec not in finalists]
                 result.screens += [replace(r, kept=None) for r in screens.values()]
                 specs = [s for s in specs if s in finalists]

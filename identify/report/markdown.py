@@ -187,6 +187,10 @@ def _screened_lines(search: dict) -> list[str]:
             f"| {format_number(c['cv_r2'], '.4f')} | {format_number(c.get('transfer_r2'), '.4f')} "
             f"| {format_number(c.get('objective'), '.4f')} |"
         )
+    bars = search["screening"].get("lead_screen_objective") or {}
+    if bars:
+        each = ", ".join(f"{stage} {format_number(bar, '.4f')}" for stage, bar in bars.items())
+        lines += ["", f"The stage's lead scored as a screen (what a finalist's screen beat): {each}."]
     return lines
 
 

@@ -18,7 +18,7 @@ from qube_koopman.identify.metrics import r2_scores
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 from qube_koopman.identify.model_selection.transfer import twin_probes
 from qube_koopman.identify.model_selection.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace,
-                                                          evaluate_candidate, search_liftings)
+                                                          _finalists, evaluate_candidate, screen_bar, search_liftings)
 
 pytestmark = pytest.mark.dataset
 WINDOW = 250  # 0.5 s
@@ -146,11 +146,12 @@ def test_search_winner_is_the_best_candidate_and_parallel_runs_agree(small):
 
 def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(small, small_probes):
     # Successive halving: the delays and form stages score every candidate on the first fold and probe it at
-    # one alpha, then evaluate the best two in full; a finalist's scores are a full evaluation's.
+    # one alpha, then evaluate the best two in full; a finalist's scores are a full evaluation's. (Without
+    # the lead's bar, so that the RBF stage has finalists whatever they screen; the bar is tested below.)
     trajs, controller, splits = small
     probes = small_probes
     space = SearchSpace(delays=(0, 2, 6, 10), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0, 3, 5),
-                        alphas=(1e-5, 1e-3, 1e-1), n_finalists=2)
+                        alphas=(1e-5, 1e-3, 1e-1), n_finalists=2, screen_against_lead=False)
     screened = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=space, probes=probes)
     full = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=replace(space, n_finalists=0),
                            probes=probes)
@@ -170,7 +171,8 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
     # The delays stage lifted its longest lifting alone (the others' statistics are its columns, with their
     # episodes' first snapshots added), the friction stage's candidate took its statistics from the form
     # stage's family head (which holds the friction shape too): the same scores as lifting the episodes anew;
-    # an RBF finalist used its screen's statistics.
+    # the RBF candidates' own statistics were computed for the stage by parts of the episodes side by side, and
+    # a finalist lifted nothing again.
     (friction,) = [c for c in screened.candidates if c.stage == "friction" and c.spec.friction]
     assert friction.timing["statistics"] < 0.5 * screened.timing()["stages"]["form"]["shared_statistics"]
     assert timing["delays"]["shared_statistics"] > 0
@@ -180,10 +182,31 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
     rbf = [c for c in screened.candidates if c.stage == "rbf" and c.spec.rbf]
     screen = next(s for s in screened.screens if s.spec == rbf[0].spec)
     assert rbf[0].timing["statistics"] < 0.5 * screen.timing["statistics"]
+    assert timing["rbf"]["shared_statistics"] > 2 * screen.timing["statistics"]
     for c in (shorter, friction, rbf[0]):
         scratch = evaluate_candidate(c.spec, data)
         np.testing.assert_allclose(c.cv_r2, scratch.cv_r2, rtol=1e-7)
         np.testing.assert_allclose(c.transfer_r2, scratch.transfer_r2, rtol=1e-7)
+
+
+def test_a_screen_goes_on_when_it_beats_the_stages_lead_scored_on_the_same_folds():
+    alphas = np.array([1e-4, 1e-2, 1.0])
+    # The lead: fold scores over the alphas (first fold first), probed at two alphas.
+    lead = CandidateResult(LiftingSpec(10, 2), "delays", alphas, np.array([[0.97, 0.99, 0.90], [0.80, 0.99, 0.95]]),
+                           0.0, transfer_r2=np.array([[0.95, np.nan, 0.99], [0.93, np.nan, 0.97]]))
+    # Its first fold alone with its probes: min(0.97, 0.94) at 1e-4, min(0.90, 0.98) at 1.0: 0.94.
+    assert screen_bar(lead, 1) == pytest.approx(0.94)
+    assert screen_bar(lead, 2) == pytest.approx(0.925)  # both folds: min(0.885, 0.94) at 1e-4, min(0.925, 0.98) at 1.0
+
+    def screen(poly, cv, transfer):
+        return CandidateResult(LiftingSpec(10, poly), "form", alphas, np.array([[cv, cv, cv]]), 0.0,
+                               transfer_r2=np.array([[np.nan, transfer, np.nan]]))
+
+    screens = [screen(1, 0.99, 0.95), screen(3, 0.99, 0.93), screen(2, 0.99, -np.inf)]
+    assert _finalists(screens, 3) == {LiftingSpec(10, 1), LiftingSpec(10, 3)}  # the diverged one left out
+    assert _finalists(screens, 3, bar=0.94) == {LiftingSpec(10, 1)}
+    assert _finalists(screens, 3, bar=0.96) == set()  # none beats the lead: the lead stays the best so far
+    assert _finalists(screens[2:], 3) == {LiftingSpec(10, 2)}  # no bar: one in full at least
 
 
 def test_a_screened_search_over_two_controllers_picks_the_full_searchs_winner(small, small_probes):
@@ -207,6 +230,12 @@ def test_a_screened_search_over_two_controllers_picks_the_full_searchs_winner(sm
     for c in screened.candidates:
         np.testing.assert_allclose(c.cv_r2, everything[c.spec].cv_r2, rtol=1e-9)
         np.testing.assert_allclose(c.transfer_r2, everything[c.spec].transfer_r2, rtol=1e-9)
+    # After the first stage a finalist beat the lead scored on the screen's fold and probes (the bar).
+    assert set(screened.screen_bars) == {"form"}
+    screens = {s.spec: s for s in screened.screens}
+    for c in screened.candidates:
+        if c.stage == "form":
+            assert screens[c.spec].score > screened.screen_bars["form"]
 
 
 @pytest.mark.slow
@@ -264,7 +293,11 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     search = report["search"]
-    assert len(search["candidates"]) == 4  # delays 0, 2; then const on/off at the best (one repeats)
+    # delays 0, 2; then const on/off at the best: the form stage's screens go on only above the lead's bar.
+    assert len(search["candidates"]) + len(search["screened"]) == 4
+    bar = search["screening"]["lead_screen_objective"]["form"]
+    for c in search["screened"]:
+        assert c["stage"] == "form" and (c["objective"] is None or c["objective"] <= bar)
     winner = search["winner"]
     assert {k: v for k, v in winner.items() if k != "flags"} == search["candidates"][0]
     # Ranked by the lower of the cross-validated and the transfer R^2 (the default --transfer twin).
