@@ -163,7 +163,7 @@ def identify_and_score(
     test: Sequence[LoggedTrajectory],
     controller: DiscreteStateSpace,
     alpha: float = 1e-3,
-    alphas: Sequence[float] | None = None,
+    alphas: Sequence[float] | np.ndarray | None = None,
     score: str = "cl",
     cv_splits: int = 3,
     cv_seed: int = 1234,
@@ -229,7 +229,7 @@ def identify_and_score(
         The controller whose closed loop the model describes.
     alpha : float
         The Tikhonov coefficient, when ``alphas`` is not given.
-    alphas : sequence of float, optional
+    alphas : sequence of float or ndarray, optional
         Candidates for alpha, chosen by cross-validation on the training logs.
     score : {"cl", "plant"}
         Predict the test episodes in closed loop or from their plant input (and score the

@@ -626,9 +626,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             controller=controller,
             alpha=1e-3 if args.alpha is None else args.alpha,
             score=args.score,
-            # An ndarray, which identify_and_score handles; its annotation says Sequence[float] until
-            # workflow.py (being edited) is checked.
-            alphas=alphas,  # type: ignore[arg-type]
+            alphas=alphas,
             cv_splits=args.cv_splits,
             cv_seed=args.cv_seed,
             arx_lags=args.arx_lags,
