@@ -44,7 +44,7 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-#: The files that take longest on 2 cores (a minute or more each in the suite), longest first. They
+#: The files that take longest on 2 cores (half a minute or more each in the suite), longest first. They
 #: are scheduled first, then every other file in collection order (pyproject's addopts turn off
 #: pytest-xdist's own reordering, by number of tests, which put these few-test files last and left
 #: one core idle for minutes at the end). xdist gives a worker the next file when it runs low, so
@@ -55,11 +55,11 @@ LONGEST_FIRST = [
     "tests/docs/test_readme.py",
     "tests/project/test_lowest_versions.py",
     "tests/docs/test_readme_calibrate.py",
-    "tests/sim/test_twin_equivalence.py",
+    "tests/identify/test_search.py",
     "tests/identify/test_calibrate.py",
+    "tests/design/test_design.py",
+    "tests/sim/test_twin_equivalence.py",
     "tests/docs/test_docs.py",
-    "tests/reproduce/test_qube_reproduction.py",
-    "tests/docs/test_tutorial.py",
 ]
 
 
