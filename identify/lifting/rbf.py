@@ -10,6 +10,15 @@ from qube_koopman.identify.lifting.base import LiftingFunction
 __all__ = ["ThinPlateRbf", "GaussianRbf"]
 
 
+def data_box(episodes, n_features: int) -> tuple[np.ndarray, np.ndarray]:
+    """The box the episodes' features span (low, high), each episode read once and never all at once; a
+    constant feature gets a box of width 1."""
+    low, high = np.full(n_features, np.inf), np.full(n_features, -np.inf)
+    for episode in episodes:
+        low, high = np.minimum(low, episode.min(axis=0)), np.maximum(high, episode.max(axis=0))
+    return low, np.where(high > low, high, low + 1.0)
+
+
 class RadialBasis(LiftingFunction):
     """Features followed by ``phi(||z - c_i||)`` for each centre ``c_i``: the base of the RBF liftings.
 
@@ -54,15 +63,17 @@ class RadialBasis(LiftingFunction):
             if centers.shape[1] != n or not np.all(np.isfinite(centers)):
                 raise ValueError(f"RBF centres must be a finite array of shape (n_centers, {n}), got {centers.shape}")
         else:
-            from scipy.stats import qmc  # scipy.stats costs ~0.5 s to import; only RBF fits need it
-
-            low, high = np.full(n, np.inf), np.full(n, -np.inf)
-            for episode in episodes:  # one at a time: the box of all the data, never all the data at once
-                low, high = np.minimum(low, episode.min(axis=0)), np.maximum(high, episode.max(axis=0))
-            high = np.where(high > low, high, low + 1.0)  # a constant feature still gets a box
-            sample = qmc.LatinHypercube(d=n, seed=self.seed).random(self.n_centers)
-            centers = qmc.scale(sample, low, high)
+            centers = self.centers_in(*data_box(episodes, n))
         self.centers_ = centers
+
+    def centers_in(self, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+        """The centres this basis draws in the box ``[low, high]`` (:func:`data_box`): a Latin hypercube of its
+        seed, scaled to the box; what :meth:`fit` draws without explicit centres."""
+        from scipy.stats import qmc  # scipy.stats costs ~0.5 s to import; only RBF fits need it
+
+        self._check_params()
+        sample = qmc.LatinHypercube(d=len(low), seed=self.seed).random(self.n_centers)
+        return qmc.scale(sample, low, high)
 
     def _names_out(self, names):
         return list(names) + [f"{self.prefix}{i}" for i in range(len(self.centers_))]

@@ -33,6 +33,7 @@ cores (``n_jobs``), or on a dask.distributed cluster (see :func:`search_liftings
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -617,7 +618,12 @@ def screen_candidate(
     from qube_koopman.identify.model_selection.sweep import OwnStatistics, fold_statistics
 
     started = time.perf_counter()
-    steps = search_steps(spec, data.trajectories, data.rbf_seed)
+    # Statistics of this very lifting hold its steps (RBF centres drawn already).
+    steps = (
+        list(shared[0].lifting.steps)
+        if isinstance(shared, OwnStatistics)
+        else search_steps(spec, data.trajectories, data.rbf_seed)
+    )
     own = shared is None
     if shared is None:
         with limited_blas_threads(1):
@@ -678,6 +684,89 @@ def _shared_statistics(head: LiftingSpec, data: SearchData, run, n_parts: int) -
         return next(iter(run([joblib.delayed(family_statistics)(head, data)])))
     parts = np.array_split(np.arange(len(data.trajectories)), n_parts)
     return merge_fold_statistics(list(run([joblib.delayed(family_statistics)(head, data, p) for p in parts])))
+
+
+class RadialBases(LiftingFunction):
+    """Several radial bases of the same features side by side: the features, then each basis's kernel values.
+
+    The RBF stage's candidates differ in their radial basis alone; the statistics of this lifting hold
+    each one's (its basis's block of columns with the features before and after it), for one
+    factorization of the episodes instead of one per candidate. Not a lifting to predict with.
+
+    Parameters
+    ----------
+    bases : sequence of RadialBasis
+        With explicit centres (:func:`search_steps` gives them so).
+    """
+
+    learns_from_data = False
+
+    def __init__(self, bases: Sequence = ()) -> None:
+        self.bases = bases
+
+    def _fit(self, episodes) -> None:
+        self.bases_ = [copy.deepcopy(b).fit(episodes, self.feature_names_in_) for b in self.bases]
+
+    def _names_out(self, names):
+        return list(names) + [f"{b.prefix}{k}_{i}" for k, b in enumerate(self.bases_) for i in range(len(b.centers_))]
+
+    def transform(self, X):
+        X = np.asarray(X, dtype=float)
+        blocks = [b.kernel_values(X, b.centers_.T, np.einsum("ij,ij->i", b.centers_, b.centers_)) for b in self.bases_]
+        return np.concatenate([X, *blocks], axis=-1)
+
+
+def _radial_family(specs: Sequence[LiftingSpec], data: SearchData) -> tuple[list, dict, dict]:
+    """The lifting holding every one of ``specs``' (which differ in their RBF centres alone: a :class:`RadialBases`
+    in place of the radial basis), where each one's features are among its features, and each one's lifting."""
+    from qube_koopman.identify.lifting import Lifting
+    from qube_koopman.identify.lifting.rbf import RadialBasis
+
+    box = rbf_box(specs[0], data.trajectories)  # the same for all: they differ in their RBF alone
+    steps = {s: search_steps(s, data.trajectories, data.rbf_seed, box) for s in specs}
+    first = steps[specs[0]]
+    at = next(i for i, step in enumerate(first) if isinstance(step, RadialBasis))
+    union = first[:at] + [RadialBases([steps[s][at] for s in specs])] + first[at + 1 :]
+    sample = [data.trajectories[0].x]
+    n_before = Lifting(first[:at]).fit(sample).n_features_out_
+    n_union = Lifting(union).fit(sample).n_features_out_
+    sizes = [int(s.rbf) for s in specs]  # each draws as many centres
+    after = list(range(n_before + sum(sizes), n_union))  # the friction shapes and the constant
+    columns = {}
+    for k, s in enumerate(specs):
+        start = n_before + sum(sizes[:k])
+        columns[s] = list(range(n_before)) + list(range(start, start + sizes[k])) + after
+    return union, columns, steps
+
+
+def _family_part(steps: list, data: SearchData, episodes) -> tuple:
+    """:func:`family_statistics` of a lifting given as its steps."""
+    from qube_koopman.core.blas import limited_blas_threads
+    from qube_koopman.identify.model_selection.sweep import fold_statistics
+
+    with limited_blas_threads(1):
+        return fold_statistics(
+            ClEdmd(data.controller, lifting=steps), data.trajectories, data.splits, data.controllers, episodes
+        )
+
+
+def _radial_statistics(specs: Sequence[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
+    """The fold statistics of liftings that differ in their radial basis alone, from one factorization of the
+    episodes with every basis side by side (:class:`RadialBases`), in ``n_parts`` parts on the workers."""
+    import joblib
+
+    from qube_koopman.identify.model_selection.sweep import OwnStatistics, merge_fold_statistics, sub_statistics
+
+    union, columns, steps = _radial_family(specs, data)
+    parts = np.array_split(np.arange(len(data.trajectories)), max(1, n_parts))
+    merged = merge_fold_statistics(list(run([joblib.delayed(_family_part)(union, data, p) for p in parts])))
+    out = {}
+    for s in specs:
+        taken = sub_statistics(ClEdmd(data.controller, lifting=steps[s]), merged, columns=columns[s])
+        if taken is None:
+            raise ValueError(f"{s.label()}: its statistics are not columns of its RBF family's")
+        out[s] = OwnStatistics(taken)
+    return out
 
 
 def _own_statistics(specs: Sequence[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
@@ -784,7 +873,28 @@ def _fold_scores(plain) -> np.ndarray:
     return np.asarray(plain.cv_r2 if isinstance(plain, CandidateResult) else plain, dtype=float)
 
 
-def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed: int = 0) -> list[LiftingFunction]:
+def rbf_box(spec: LiftingSpec, trajectories: Sequence[Trajectory]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box the training episodes span in the features ``spec``'s radial basis sees (None without one):
+    where :func:`search_steps` draws its centres. Liftings that differ in their RBF alone share it."""
+    from qube_koopman.identify.lifting import Lifting
+    from qube_koopman.identify.lifting.rbf import RadialBasis, data_box
+    from qube_koopman.identify.data.trajectory import episode_signals
+
+    steps = spec.steps()
+    at = [i for i, step in enumerate(steps) if isinstance(step, RadialBasis)]
+    if not at:
+        return None
+    episodes = episode_signals(as_episodes(trajectories), "x")
+    head = Lifting(steps[: at[0]]).fit(episodes[:1])
+    return data_box((head.transform(x) for x in episodes), head.n_features_out_)
+
+
+def search_steps(
+    spec: LiftingSpec,
+    trajectories: Sequence[Trajectory],
+    rbf_seed: int = 0,
+    box: tuple[np.ndarray, np.ndarray] | None = None,
+) -> list[LiftingFunction]:
     """The lifting a candidate is scored with: ``spec.steps``, its RBF centres drawn once on all the
     training episodes.
 
@@ -792,21 +902,21 @@ def search_steps(spec: LiftingSpec, trajectories: Sequence[Trajectory], rbf_seed
     states span; drawn per fold, every fold and the probes' plant would lift the episodes anew
     (four times the statistics, on the search's slowest candidates), for boxes that differ by
     the few samples of extreme states a fold holds out. Drawn on all the training episodes they
-    are the centres the winner's final fit draws (``qube-identify`` with the winner's flags).
+    are the centres the winner's final fit draws (``qube-identify`` with the winner's flags). ``box``: the
+    episodes' box (:func:`rbf_box`) when already known.
     """
-    from qube_koopman.identify.lifting import Lifting
     from qube_koopman.identify.lifting.rbf import RadialBasis
-    from qube_koopman.identify.data.trajectory import episode_signals
 
     steps = spec.steps(rbf_seed)
     at = [i for i, step in enumerate(steps) if isinstance(step, RadialBasis)]
     if not at:
         return steps
-    fitted = Lifting(steps[: at[0] + 1]).fit(episode_signals(as_episodes(trajectories), "x"))
-    rbf, fitted_rbf = steps[at[0]], fitted.steps_[at[0]]
-    if not isinstance(fitted_rbf, RadialBasis):  # the fitted copy of steps[at[0]], of its type
-        raise TypeError(f"the fitted lifting's step {at[0]} is a {type(fitted_rbf).__name__}, not a radial basis")
-    steps[at[0]] = type(rbf)(**{**rbf.get_params(), "centers": fitted_rbf.centers_})
+    rbf = steps[at[0]]
+    assert isinstance(rbf, RadialBasis)  # found so above
+    found = rbf_box(spec, trajectories) if box is None else box
+    assert found is not None  # spec has a radial basis
+    low, high = found
+    steps[at[0]] = type(rbf)(**{**rbf.get_params(), "centers": rbf.centers_in(low, high)})
     return steps
 
 
@@ -1077,7 +1187,13 @@ def search_liftings(
             alone = [s for s in specs if shared.get(s) is None]
             if data.controllers is None and space.screens(stage, len(specs)) and len(alone) > 1:
                 now = time.perf_counter()
-                shared.update(_own_statistics(alone, data, run, n_parts))
+                radial = [s for s in alone if s.rbf and replace(s, rbf=0) == replace(alone[0], rbf=0)]
+                radial = radial if len(radial) > 1 else []
+                if radial:  # the RBF stage: one factorization for every number of centres
+                    shared.update(_radial_statistics(radial, data, run, n_parts))
+                rest = [s for s in alone if s not in radial]
+                if rest:
+                    shared.update(_own_statistics(rest, data, run, n_parts))
                 result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
             if space.screens(stage, len(specs)):
                 # Successive halving: every candidate screened cheaply, the best few evaluated in full.

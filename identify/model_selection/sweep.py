@@ -511,7 +511,9 @@ def _first_samples(t: Trajectory, n: int) -> Trajectory:
     return dataclasses.replace(t, x=t.x[:n], u=head(t.u), r=head(t.r), f=head(t.f), xc=head(t.xc))
 
 
-def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) -> tuple | None:
+def sub_statistics(
+    estimator, statistics: tuple, controllers=None, splits=None, columns: Sequence[int] | None = None
+) -> tuple | None:
     """``estimator``'s fold statistics taken from those of a lifting whose features include its own.
 
     ``statistics`` is :func:`fold_statistics` of the larger lifting. Exact (a factor of the
@@ -520,7 +522,9 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) 
     other leading (re-lifted) rows. A lifting with fewer delays has more snapshots (from an earlier
     sample of each episode): when ``statistics`` has a fourth element, :func:`episode_heads` of the
     episodes at the larger lifting's delays, its extra snapshots are factored from those and
-    folded in (into each fold's by its training episodes, ``splits``); without, None.
+    folded in (into each fold's by its training episodes, ``splits``); without, None. ``columns``: the
+    column of each of this lifting's features among the larger lifting's, where their names do not say
+    (several radial bases side by side name their centres alike); by default found by name.
     """
     big_setup, per_fold, everything = statistics[:3]
     heads = statistics[3] if len(statistics) > 3 else None
@@ -543,12 +547,14 @@ def sub_statistics(estimator, statistics: tuple, controllers=None, splits=None) 
         return None
     names, big_names = small.feature_names_out_, big.feature_names_out_
     n_c = setup.target_rows - small.n_features_in_  # the controller's states lead the snapshots
-    if any(n not in big_names for n in names) or names[: small.n_features_in_] != big_names[: small.n_features_in_]:
-        return None
+    if columns is None:
+        if any(n not in big_names for n in names) or names[: small.n_features_in_] != big_names[: small.n_features_in_]:
+            return None
+        columns = [big_names.index(n) for n in names]
+    elif len(columns) != len(names) or list(columns[: small.n_features_in_]) != list(range(small.n_features_in_)):
+        raise ValueError(f"columns must place the {len(names)} features, the states first, got {list(columns)}")
     n_v = everything.n_regressors - n_c - len(big_names)  # references and feedforward follow the lifting
-    regressors = (
-        list(range(n_c)) + [n_c + big_names.index(n) for n in names] + [n_c + len(big_names) + i for i in range(n_v)]
-    )
+    regressors = list(range(n_c)) + [n_c + int(c) for c in columns] + [n_c + len(big_names) + i for i in range(n_v)]
     targets = list(range(setup.target_rows))
     if not fewer:
         return setup, [s.columns(regressors, targets) for s in per_fold], everything.columns(regressors, targets)

@@ -209,6 +209,30 @@ def test_a_screen_goes_on_when_it_beats_the_stages_lead_scored_on_the_same_folds
     assert _finalists(screens[2:], 3) == {LiftingSpec(10, 2)}  # no bar: one in full at least
 
 
+def test_rbf_candidates_take_their_statistics_from_one_factorization_with_every_basis(small):
+    # The RBF stage lifts its episodes once, every basis side by side (RadialBases); each candidate's fold
+    # statistics are columns of that factor: the same Gram matrices as its own lifting's.
+    from qube_koopman.identify.model_selection.search import _radial_statistics, family_statistics
+    from qube_koopman.identify.model_selection.sweep import OwnStatistics
+
+    trajs, controller, splits = small
+    data = SearchData(trajs, splits, controller, np.array([1e-3]), WINDOW)
+    specs = [LiftingSpec(10, 2, rbf=3, const=True, friction=True), LiftingSpec(10, 2, rbf=5, const=True, friction=True)]
+
+    def run(calls):
+        return [fn(*args, **kwargs) for fn, args, kwargs in calls]
+
+    taken = _radial_statistics(specs, data, run, n_parts=2)
+    for spec in specs:
+        assert isinstance(taken[spec], OwnStatistics)
+        setup, per_fold, everything = family_statistics(spec, data)
+        assert taken[spec][0].lifting.feature_names_out_ == setup.lifting.feature_names_out_
+        for mine, own in zip([*taken[spec][1], taken[spec][2]], [*per_fold, everything]):
+            assert mine.R.shape == own.R.shape and mine.q == own.q
+            np.testing.assert_allclose(mine.R.T @ mine.R, own.R.T @ own.R, rtol=1e-9,
+                                       atol=1e-9 * np.abs(own.R).max() ** 2)
+
+
 def test_a_screened_search_over_two_controllers_picks_the_full_searchs_winner(small, small_probes):
     # Leave-one-controller-out folds (the small rig episodes, and twin episodes under a probe controller):
     # a screen scores the first controller's fold, and a finalist adds the other's to the same statistics.
