@@ -33,7 +33,6 @@ cores (``n_jobs``), or on a dask.distributed cluster (see :func:`search_liftings
 
 from __future__ import annotations
 
-import copy
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -686,39 +685,10 @@ def _shared_statistics(head: LiftingSpec, data: SearchData, run, n_parts: int) -
     return merge_fold_statistics(list(run([joblib.delayed(family_statistics)(head, data, p) for p in parts])))
 
 
-class RadialBases(LiftingFunction):
-    """Several radial bases of the same features side by side: the features, then each basis's kernel values.
-
-    The RBF stage's candidates differ in their radial basis alone; the statistics of this lifting hold
-    each one's (its basis's block of columns with the features before and after it), for one
-    factorization of the episodes instead of one per candidate. Not a lifting to predict with.
-
-    Parameters
-    ----------
-    bases : sequence of RadialBasis
-        With explicit centres (:func:`search_steps` gives them so).
-    """
-
-    learns_from_data = False
-
-    def __init__(self, bases: Sequence = ()) -> None:
-        self.bases = bases
-
-    def _fit(self, episodes) -> None:
-        self.bases_ = [copy.deepcopy(b).fit(episodes, self.feature_names_in_) for b in self.bases]
-
-    def _names_out(self, names):
-        return list(names) + [f"{b.prefix}{k}_{i}" for k, b in enumerate(self.bases_) for i in range(len(b.centers_))]
-
-    def transform(self, X):
-        X = np.asarray(X, dtype=float)
-        blocks = [b.kernel_values(X, b.centers_.T, np.einsum("ij,ij->i", b.centers_, b.centers_)) for b in self.bases_]
-        return np.concatenate([X, *blocks], axis=-1)
-
-
 def _radial_family(specs: Sequence[LiftingSpec], data: SearchData) -> tuple[list, dict, dict]:
-    """The lifting holding every one of ``specs``' (which differ in their RBF centres alone: a :class:`RadialBases`
-    in place of the radial basis), where each one's features are among its features, and each one's lifting."""
+    """The lifting holding every one of ``specs``' (which differ in their RBF centres alone: one radial basis of
+    the same kernel with all their centres, one candidate's after the other's), where each one's features are
+    among its features, and each one's lifting."""
     from qube_koopman.identify.lifting import Lifting
     from qube_koopman.identify.lifting.rbf import RadialBasis
 
@@ -726,7 +696,10 @@ def _radial_family(specs: Sequence[LiftingSpec], data: SearchData) -> tuple[list
     steps = {s: search_steps(s, data.trajectories, data.rbf_seed, box) for s in specs}
     first = steps[specs[0]]
     at = next(i for i, step in enumerate(first) if isinstance(step, RadialBasis))
-    union = first[:at] + [RadialBases([steps[s][at] for s in specs])] + first[at + 1 :]
+    bases = [steps[s][at] for s in specs]
+    centers = np.vstack([b.centers for b in bases])
+    union = first[:at] + [type(bases[0])(**{**bases[0].get_params(), "n_centers": len(centers), "centers": centers})]
+    union += first[at + 1 :]
     sample = [data.trajectories[0].x]
     n_before = Lifting(first[:at]).fit(sample).n_features_out_
     n_union = Lifting(union).fit(sample).n_features_out_
@@ -751,8 +724,8 @@ def _family_part(steps: list, data: SearchData, episodes) -> tuple:
 
 
 def _radial_statistics(specs: Sequence[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
-    """The fold statistics of liftings that differ in their radial basis alone, from one factorization of the
-    episodes with every basis side by side (:class:`RadialBases`), in ``n_parts`` parts on the workers."""
+    """The fold statistics of liftings that differ in their RBF centres alone (the search's are thin-plate of one
+    shape), from one factorization of the episodes with all their centres, in ``n_parts`` parts on the workers."""
     import joblib
 
     from qube_koopman.identify.model_selection.sweep import OwnStatistics, merge_fold_statistics, sub_statistics

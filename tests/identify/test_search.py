@@ -210,7 +210,7 @@ def test_a_screen_goes_on_when_it_beats_the_stages_lead_scored_on_the_same_folds
 
 
 def test_rbf_candidates_take_their_statistics_from_one_factorization_with_every_basis(small):
-    # The RBF stage lifts its episodes once, every basis side by side (RadialBases); each candidate's fold
+    # The RBF stage lifts its episodes once, with every candidate's centres in one basis; each candidate's fold
     # statistics are columns of that factor: the same Gram matrices as its own lifting's.
     from qube_koopman.identify.model_selection.search import _radial_statistics, family_statistics
     from qube_koopman.identify.model_selection.sweep import OwnStatistics
