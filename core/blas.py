@@ -21,3 +21,12 @@ def limited_blas_threads(n: int = 1):
 
     with threadpool_limits(limits=n, user_api="blas"):
         yield
+
+
+def blas_threads() -> int:
+    """The most threads any loaded BLAS may use now (1 inside :func:`limited_blas_threads`)."""
+    import numpy  # noqa: F401  (make sure the libraries are loaded)
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import threadpool_info
+
+    return max([int(pool["num_threads"]) for pool in threadpool_info() if pool.get("user_api") == "blas"] or [1])

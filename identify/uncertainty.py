@@ -77,6 +77,7 @@ from qube_koopman.identify.models.offsets import (
 )
 from qube_koopman.identify.metrics import DIVERGED_FACTOR, DivergedPrediction
 from qube_koopman.identify.models.simulate import ring_capacity, simulate_chunks
+from qube_koopman.identify.estimators._base import episode_statistics
 from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.model_selection.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
@@ -289,7 +290,7 @@ def ensemble_statistics(estimator, setup, selections: np.ndarray, elsewhere: Cal
     total = estimator._statistics_fold(setup)
     folds = [estimator._statistics_fold(setup) for _ in selections]
     parts = (
-        (estimator._episode_snapshots(setup, trajectories[j]) for j in range(n))
+        episode_statistics(estimator, setup, range(n))
         if elsewhere is None
         else elsewhere(estimator, setup, list(range(n)))
     )

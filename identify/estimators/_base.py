@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Self
 
@@ -72,7 +73,7 @@ class SnapshotEstimator(Estimator):
         trajectories = setup.trajectories
         needed = [j for j in range(len(trajectories)) if any(m is None or j in m for m in members)]
         if elsewhere is None:
-            parts = (self._episode_snapshots(setup, trajectories[j]) for j in needed)
+            parts = episode_statistics(self, setup, needed)
         else:
             parts = elsewhere(self, setup, [j if indices is None else int(indices[j]) for j in needed])
         for j, part in zip(needed, parts):
@@ -107,6 +108,39 @@ class SnapshotEstimator(Estimator):
     def _relift_rows(self, setup: "FitSetup") -> int | None:
         """Leading lifted states a re-lifted prediction produces (it recomputes the rest), if known."""
         return None
+
+
+def episode_statistics(estimator: SnapshotEstimator, setup: "FitSetup", indices: Sequence[int]) -> Iterator:
+    """The statistics of the setup's episodes at ``indices``, in that order, computed side by side.
+
+    As many episodes at a time as threads the BLAS may use here, each read, lifted and factored
+    with one BLAS thread: two tall QR factorizations at once on two cores take 0.6 times as long
+    as one after the other on two BLAS threads each (measured on the search winner's lifting, 28
+    episodes: 3.5 against 5.5 s), and each gives the same factor bit for bit wherever it runs.
+    Inside :func:`~qube_koopman.core.blas.limited_blas_threads` (a search's workers) they come one
+    at a time. At most twice the threads' episodes are held ahead of the caller.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from qube_koopman.core.blas import blas_threads, limited_blas_threads
+
+    trajectories = setup.trajectories
+    n = min(blas_threads(), len(indices))
+    if n <= 1:
+        yield from (estimator._episode_snapshots(setup, trajectories[j]) for j in indices)
+        return
+
+    def one(j: int):
+        return estimator._episode_snapshots(setup, trajectories[j])
+
+    with limited_blas_threads(1), ThreadPoolExecutor(n, thread_name_prefix="episode-statistics") as pool:
+        pending: deque = deque()
+        for j in indices:
+            pending.append(pool.submit(one, j))
+            if len(pending) >= 2 * n:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 class _EpisodeFold:
