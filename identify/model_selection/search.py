@@ -696,7 +696,7 @@ def _radial_family(specs: Sequence[LiftingSpec], data: SearchData) -> tuple[list
     steps = {s: search_steps(s, data.trajectories, data.rbf_seed, box) for s in specs}
     first = steps[specs[0]]
     at = next(i for i, step in enumerate(first) if isinstance(step, RadialBasis))
-    bases = [steps[s][at] for s in specs]
+    bases = [b for b in (steps[s][at] for s in specs) if isinstance(b, RadialBasis)]
     centers = np.vstack([b.centers for b in bases])
     union = first[:at] + [type(bases[0])(**{**bases[0].get_params(), "n_centers": len(centers), "centers": centers})]
     union += first[at + 1 :]
