@@ -735,32 +735,11 @@ def _radial_statistics(specs: Sequence[LiftingSpec], data: SearchData, run, n_pa
     merged = merge_fold_statistics(list(run([joblib.delayed(_family_part)(union, data, p) for p in parts])))
     out = {}
     for s in specs:
-        taken = sub_statistics(ClEdmd(data.controller, lifting=steps[s]), merged, columns=columns[s])
+        taken = sub_statistics(ClEdmd(data.controller, lifting=steps[s]), merged, data.controllers, columns=columns[s])
         if taken is None:
             raise ValueError(f"{s.label()}: its statistics are not columns of its RBF family's")
         out[s] = OwnStatistics(taken)
     return out
-
-
-def _own_statistics(specs: Sequence[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
-    """Each lifting's own fold statistics (:func:`family_statistics`), every one in ``n_parts`` parts of the
-    episodes, all the parts side by side on the workers: {spec: OwnStatistics}.
-
-    For a screened stage's candidates that share no family (the RBF stage's): a screen that lifted
-    its own episodes left a worker idle while the last screens ran (three RBF screens on two
-    workers took two rounds of a whole screen each).
-    """
-    import joblib
-
-    from qube_koopman.identify.model_selection.sweep import OwnStatistics, merge_fold_statistics
-
-    parts = np.array_split(np.arange(len(data.trajectories)), max(1, n_parts))
-    calls = [joblib.delayed(family_statistics)(s, data, p) for s in specs for p in parts]
-    done = list(run(calls))
-    return {
-        s: OwnStatistics(merge_fold_statistics(done[i * len(parts) : (i + 1) * len(parts)]))
-        for i, s in enumerate(specs)
-    }
 
 
 def holds_features(big: LiftingSpec, small: LiftingSpec) -> bool:
@@ -1135,38 +1114,34 @@ def search_liftings(
             # A family's largest lifting is lifted once; the others' statistics are columns of its own.
             heads = {s: family_of(s, specs) for s in specs}
             shared: dict[LiftingSpec, tuple | None] = {}
-            if data.controllers is None:
-                for head in sorted(set(h for h in heads.values() if h is not None)):
-                    now = time.perf_counter()
-                    # With the friction shape too when the friction stage may try it: that stage's new
-                    # candidate (the best so far with friction) then takes its statistics from these.
-                    big = replace(head, friction=True) if space.tries_friction(head) else head
-                    earlier[big] = _shared_statistics(big, data, run, n_parts)
-                    shared.update({s: earlier[big] for s in specs if heads[s] == head})
-                    result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
-                longest = delays_family(specs)
-                if longest is not None:  # liftings but for their delays: the longest's statistics, and the heads
-                    now = time.perf_counter()
-                    stats = (
-                        *_shared_statistics(longest, data, run, n_parts),
-                        episode_heads(data.trajectories, longest.delays),
-                    )
-                    shared.update({s: stats for s in specs if replace(s, delays=longest.delays) == longest})
-                    result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
-                for s in specs:  # a lifting whose features an earlier stage's family head holds
-                    if shared.get(s) is None:
-                        shared[s] = next((v for h, v in earlier.items() if holds_features(h, s)), None)
+            for head in sorted(set(h for h in heads.values() if h is not None)):
+                now = time.perf_counter()
+                # With the friction shape too when the friction stage may try it: that stage's new
+                # candidate (the best so far with friction) then takes its statistics from these.
+                big = replace(head, friction=True) if space.tries_friction(head) else head
+                earlier[big] = _shared_statistics(big, data, run, n_parts)
+                shared.update({s: earlier[big] for s in specs if heads[s] == head})
+                result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+            # With several controllers a lifting with fewer delays lifts its own (sub_statistics takes columns per
+            # controller, not the extra first snapshots).
+            longest = delays_family(specs) if data.controllers is None else None
+            if longest is not None:  # liftings but for their delays: the longest's statistics, and the heads
+                now = time.perf_counter()
+                stats = (
+                    *_shared_statistics(longest, data, run, n_parts),
+                    episode_heads(data.trajectories, longest.delays),
+                )
+                shared.update({s: stats for s in specs if replace(s, delays=longest.delays) == longest})
+                result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+            for s in specs:  # a lifting whose features an earlier stage's family head holds
+                if shared.get(s) is None:
+                    shared[s] = next((v for h, v in earlier.items() if holds_features(h, s)), None)
             screens = {}
             alone = [s for s in specs if shared.get(s) is None]
-            if data.controllers is None and space.screens(stage, len(specs)) and len(alone) > 1:
+            radial = [s for s in alone if s.rbf and replace(s, rbf=0) == replace(alone[0], rbf=0)]
+            if len(radial) > 1:  # the RBF stage: one factorization for every number of centres, in parts
                 now = time.perf_counter()
-                radial = [s for s in alone if s.rbf and replace(s, rbf=0) == replace(alone[0], rbf=0)]
-                radial = radial if len(radial) > 1 else []
-                if radial:  # the RBF stage: one factorization for every number of centres
-                    shared.update(_radial_statistics(radial, data, run, n_parts))
-                rest = [s for s in alone if s not in radial]
-                if rest:
-                    shared.update(_own_statistics(rest, data, run, n_parts))
+                shared.update(_radial_statistics(radial, data, run, n_parts))
                 result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
             if space.screens(stage, len(specs)):
                 # Successive halving: every candidate screened cheaply, the best few evaluated in full.

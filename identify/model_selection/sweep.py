@@ -31,7 +31,7 @@ from qube_koopman.core.lti import same_system
 from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.mixed import distinct_controllers
 from qube_koopman.identify.models.model import FittedRows, KoopmanModel
-from qube_koopman.identify.estimators.regression import Snapshots
+from qube_koopman.identify.estimators.regression import GroupedSnapshots, Snapshots
 from qube_koopman.identify.metrics import r2_from_residuals
 from qube_koopman.identify.models.simulate import simulate_chunks
 from qube_koopman.identify.estimators.structure import close_loop
@@ -483,15 +483,34 @@ class OwnStatistics(tuple):
 
 
 def merge_fold_statistics(parts: Sequence[tuple]) -> tuple:
-    """The :func:`fold_statistics` of all the episodes from those of parts of them (one controller).
+    """The :func:`fold_statistics` of all the episodes from those of parts of them (per controller when several).
 
     Exact up to rounding: each total is the factor of the parts' factors stacked.
     """
 
-    def total(stats):
-        return Snapshots.total([s for s in stats if s is not None])
-
     setup = parts[0][0]
+
+    def total(stats):
+        stats = [s for s in stats if s is not None]
+        if not isinstance(stats[0], GroupedSnapshots):
+            return Snapshots.total(stats)
+        # Per controller, in the setup's order (that of a pass over all the episodes); a part may lack some.
+        order = [
+            c
+            for c in setup.controller_groups.controllers
+            if any(same_system(c, k) for s in stats for k in s.controllers)
+        ]
+        merged = []
+        for ctrl in order:
+            mine = [
+                (p, m, r, k)
+                for s in stats
+                for p, m, r, k in zip(s.parts, s.maps, s.plant_rows, s.controllers)
+                if same_system(k, ctrl)
+            ]
+            merged.append((Snapshots.total([p for p, _, _, _ in mine]), *mine[0][1:]))
+        return GroupedSnapshots(*(tuple(column) for column in zip(*merged)))
+
     per_fold = [total([p[1][i] for p in parts]) for i in range(len(parts[0][1]))]
     return setup, per_fold, total([p[2] for p in parts])
 
@@ -517,24 +536,28 @@ def sub_statistics(
     """``estimator``'s fold statistics taken from those of a lifting whose features include its own.
 
     ``statistics`` is :func:`fold_statistics` of the larger lifting. Exact (a factor of the
-    selected columns, :meth:`~qube_koopman.identify.estimators.regression.Snapshots.columns`); None
-    when it cannot be done so: statistics per controller, a feature the larger lifting lacks, or
-    other leading (re-lifted) rows. A lifting with fewer delays has more snapshots (from an earlier
-    sample of each episode): when ``statistics`` has a fourth element, :func:`episode_heads` of the
-    episodes at the larger lifting's delays, its extra snapshots are factored from those and
-    folded in (into each fold's by its training episodes, ``splits``); without, None. ``columns``: the
-    column of each of this lifting's features among the larger lifting's, where their names do not say
-    (several radial bases side by side name their centres alike); by default found by name.
+    selected columns, :meth:`~qube_koopman.identify.estimators.regression.Snapshots.columns`, of each
+    controller's part when ``controllers`` are given); None when it cannot be done so: a feature the
+    larger lifting lacks, other leading (re-lifted) rows, or fewer delays with several controllers.
+    A lifting with fewer delays has more snapshots (from an earlier sample of each episode): when
+    ``statistics`` has a fourth element, :func:`episode_heads` of the episodes at the larger
+    lifting's delays, its extra snapshots are factored from those and folded in (into each fold's
+    by its training episodes, ``splits``); without, None. ``columns``: the column of each of this
+    lifting's features among the larger lifting's, where their names do not say (the RBF stage's
+    candidates, all of whose centres one basis holds, name them alike); by default found by name.
     """
     big_setup, per_fold, everything = statistics[:3]
     heads = statistics[3] if len(statistics) > 3 else None
-    if not isinstance(everything, Snapshots) or controllers is not None or _learns_from_data(estimator):
+    grouped = isinstance(everything, GroupedSnapshots)  # per controller: a part each
+    if not (grouped or isinstance(everything, Snapshots)) or grouped != (controllers is not None):
+        return None
+    if _learns_from_data(estimator):
         return None
     template = copy.copy(estimator)
     setup = (
         template._setup(big_setup.trajectories)
         if not isinstance(template, ClosedLoopKoopman)
-        else template._setup(big_setup.trajectories, None)
+        else template._setup(big_setup.trajectories, controllers)
     )
     setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
     small, big = setup.lifting, big_setup.lifting
@@ -553,6 +576,14 @@ def sub_statistics(
         columns = [big_names.index(n) for n in names]
     elif len(columns) != len(names) or list(columns[: small.n_features_in_]) != list(range(small.n_features_in_)):
         raise ValueError(f"columns must place the {len(names)} features, the states first, got {list(columns)}")
+    if grouped:  # each controller's part: its own controller states lead, its own map
+        if fewer:
+            return None
+        return (
+            setup,
+            [_grouped_columns(p, columns, len(big_names), setup) for p in per_fold],
+            _grouped_columns(everything, columns, len(big_names), setup),
+        )
     n_v = everything.n_regressors - n_c - len(big_names)  # references and feedforward follow the lifting
     regressors = list(range(n_c)) + [n_c + int(c) for c in columns] + [n_c + len(big_names) + i for i in range(n_v)]
     targets = list(range(setup.target_rows))
@@ -567,6 +598,22 @@ def sub_statistics(
         return Snapshots.total([stats.columns(regressors, targets)] + [extra[int(j)] for j in members])
 
     return (setup, [total(s, train) for s, (train, _) in zip(per_fold, splits)], total(everything, range(len(extra))))
+
+
+def _grouped_columns(stats: GroupedSnapshots, columns: Sequence[int], n_big: int, setup) -> GroupedSnapshots:
+    """:func:`sub_statistics` of each controller's part: its regressors ``[x^c_g; lifted; r; f]`` and targets
+    ``[x^c_g; states]`` taken at ``columns`` of the larger lifting's ``n_big`` features, each part's map
+    (:func:`~qube_koopman.identify.estimators.structure.plant_input_map`) that of the smaller lifting."""
+    groups = setup.controller_groups
+    n_in = setup.lifting.n_features_in_
+    parts, maps = [], []
+    for part, ctrl in zip(stats.parts, stats.controllers):
+        n_c = ctrl.n_states
+        n_v = part.n_regressors - n_c - n_big
+        regressors = list(range(n_c)) + [n_c + int(c) for c in columns] + [n_c + n_big + i for i in range(n_v)]
+        parts.append(part.columns(regressors, list(range(n_c + n_in))))
+        maps.append(next(m for c, m in zip(groups.controllers, groups.maps) if same_system(c, ctrl)))
+    return GroupedSnapshots(tuple(parts), tuple(maps), stats.plant_rows, stats.controllers)
 
 
 def _timer(seconds: dict):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import stop_library_daemons
+from qube_koopman.core.lti import same_system
 from qube_koopman.identify import ClEdmd, Lifting
 from qube_koopman.identify.data.logs import check_same_controller, load_logs
 from qube_koopman.identify.model_selection.split import group_shuffle_splits
@@ -231,6 +232,39 @@ def test_rbf_candidates_take_their_statistics_from_one_factorization_with_every_
             assert mine.R.shape == own.R.shape and mine.q == own.q
             np.testing.assert_allclose(mine.R.T @ mine.R, own.R.T @ own.R, rtol=1e-9,
                                        atol=1e-9 * np.abs(own.R).max() ** 2)
+
+
+def test_with_two_controllers_a_familys_statistics_are_each_controllers_columns(small, small_probes):
+    # Several training controllers: the family head's statistics (merged from parts of the episodes, per
+    # controller) hold a smaller lifting's, taken per controller's part: the same as lifting it anew.
+    from qube_koopman.identify.model_selection.search import family_statistics, search_steps
+    from qube_koopman.identify.model_selection.split import leave_one_controller_out
+    from qube_koopman.identify.model_selection.sweep import merge_fold_statistics, sub_statistics
+
+    trajs, controller, _ = small
+    other = small_probes.episodes[0]
+    controllers = [controller] * len(trajs) + [small_probes.controllers[0]] * len(other)
+    splits = leave_one_controller_out([0] * len(trajs) + [1] * len(other))
+    data = SearchData(trajs + other, splits, controller, np.array([1e-3]), WINDOW, controllers=controllers)
+    head, member = LiftingSpec(6, 2, const=True), LiftingSpec(6, 1)
+
+    def assert_same(a, b):
+        assert [same_system(x, y) for x, y in zip(a.controllers, b.controllers)] == [True] * len(b.controllers)
+        for p, q, m, n in zip(a.parts, b.parts, a.maps, b.maps):
+            np.testing.assert_allclose(p.R.T @ p.R, q.R.T @ q.R, rtol=1e-9, atol=1e-9 * np.abs(q.R).max() ** 2)
+            np.testing.assert_array_equal(m, n)
+        assert len(a.parts) == len(b.parts) and a.plant_rows == b.plant_rows
+
+    whole = family_statistics(head, data)
+    # The first part holds the rig's episodes alone: merged per controller, in the setup's order.
+    merged = merge_fold_statistics([family_statistics(head, data, p) for p in (range(5), range(5, len(controllers)))])
+    for a, b in zip([*merged[1], merged[2]], [*whole[1], whole[2]]):
+        assert_same(a, b)
+    taken = sub_statistics(ClEdmd(controller, lifting=search_steps(member, data.trajectories)), whole, controllers)
+    own = family_statistics(member, data)
+    assert taken is not None and len(taken[2].parts) == 2
+    for a, b in zip([*taken[1], taken[2]], [*own[1], own[2]]):
+        assert_same(a, b)
 
 
 def test_a_screened_search_over_two_controllers_picks_the_full_searchs_winner(small, small_probes):
