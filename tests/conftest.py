@@ -34,6 +34,25 @@ def _own_cache_folder(tmp_path_factory):
     yield
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _ctrl_c_as_python_sets_it():
+    """SIGINT raises KeyboardInterrupt, as Python sets it up when it starts from a terminal.
+
+    A shell without job control starts a background command (``tools/loaded_ci.sh &``, a CI step
+    run with ``&``) with SIGINT ignored, and Python keeps an ignored SIGINT ignored: the tests that
+    send the process a SIGINT to stop a command would then see nothing arrive. The commands'
+    handling of Ctrl-C is what they check, not how the suite was started.
+    """
+    import signal
+
+    before = signal.getsignal(signal.SIGINT)
+    if before == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    if before == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, before)
+
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: one worker per CPU this process may run on.
 
