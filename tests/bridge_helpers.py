@@ -107,9 +107,12 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
     A host stalled past the bridge's watchdog (10 ms) loses its episode to the watchdog; a
     stalled emulator process, to link loss or, once the emulated chip catches up on the time
     it lost, to the watchdog. Either counts as a stall only when it was measured: ticks more
-    than 2 ms late in the host's own log (``timing.stalls``), or the emulated chip more than
-    half the watchdog (5 ms) behind the wall clock by its own report (a quiet machine: under
-    4 ms); the worst lateness is given.
+    than 2 ms late in the host's own log (``timing.stalls``), a tick whose work the host's log
+    measured at more than 2 ms (``timing.compute_max``; a tick's work takes about 0.2 ms at its
+    99th percentile: the process was held up inside it, which leaves the next tick on time but
+    the bridge without a command for as long), or the emulated chip more than half the watchdog
+    (5 ms) behind the wall clock by its own report (a quiet machine: under 4 ms); the worst
+    lateness or work is given.
     """
     from qube_koopman.daq.log import read_episode
 
@@ -124,6 +127,8 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
         if (meta.timing.get("stalls") or 0) > 0:
             lost.append(f"{meta.timing['stalls']} late ticks, worst {meta.timing['lateness_max'] * 1e3:.1f} ms "
                         f"({cause})")
+        elif (meta.timing.get("compute_max") or 0.0) > 2e-3:
+            lost.append(f"a tick's work held up {meta.timing['compute_max'] * 1e3:.1f} ms ({cause})")
         elif behind > 5.0:
             lost.append(f"the emulated chip up to {behind:.1f} ms behind the wall clock ({cause})")
     return lost
