@@ -675,14 +675,19 @@ def screen_bar(lead: CandidateResult, n_folds: int) -> float:
 
 def _shared_statistics(head: LiftingSpec, data: SearchData, run, n_parts: int) -> tuple:
     """:func:`family_statistics` of ``head`` on the workers: in ``n_parts`` parts of the episodes, joined."""
+    return _statistics_by_parts(search_steps(head, data.trajectories, data.rbf_seed), data, run, n_parts)
+
+
+def _statistics_by_parts(steps: list, data: SearchData, run, n_parts: int) -> tuple:
+    """The fold statistics of the lifting ``steps`` on the workers: in ``n_parts`` parts of the episodes, joined."""
     import joblib
 
     from qube_koopman.identify.model_selection.sweep import merge_fold_statistics
 
     if n_parts <= 1:
-        return next(iter(run([joblib.delayed(family_statistics)(head, data)])))
+        return next(iter(run([joblib.delayed(_family_part)(steps, data)])))
     parts = np.array_split(np.arange(len(data.trajectories)), n_parts)
-    return merge_fold_statistics(list(run([joblib.delayed(family_statistics)(head, data, p) for p in parts])))
+    return merge_fold_statistics(list(run([joblib.delayed(_family_part)(steps, data, p) for p in parts])))
 
 
 def _radial_family(specs: Sequence[LiftingSpec], data: SearchData) -> tuple[list, dict, dict]:
@@ -712,12 +717,12 @@ def _radial_family(specs: Sequence[LiftingSpec], data: SearchData) -> tuple[list
     return union, columns, steps
 
 
-def _family_part(steps: list, data: SearchData, episodes) -> tuple:
+def _family_part(steps: list, data: SearchData, episodes=None) -> tuple:
     """:func:`family_statistics` of a lifting given as its steps."""
     from qube_koopman.core.blas import limited_blas_threads
     from qube_koopman.identify.model_selection.sweep import fold_statistics
 
-    with limited_blas_threads(1):
+    with limited_blas_threads(1):  # (one BLAS thread: a second one made these tall QRs 2.7 times slower on 2 cores)
         return fold_statistics(
             ClEdmd(data.controller, lifting=steps), data.trajectories, data.splits, data.controllers, episodes
         )
@@ -726,13 +731,10 @@ def _family_part(steps: list, data: SearchData, episodes) -> tuple:
 def _radial_statistics(specs: Sequence[LiftingSpec], data: SearchData, run, n_parts: int) -> dict:
     """The fold statistics of liftings that differ in their RBF centres alone (the search's are thin-plate of one
     shape), from one factorization of the episodes with all their centres, in ``n_parts`` parts on the workers."""
-    import joblib
-
-    from qube_koopman.identify.model_selection.sweep import OwnStatistics, merge_fold_statistics, sub_statistics
+    from qube_koopman.identify.model_selection.sweep import OwnStatistics, sub_statistics
 
     union, columns, steps = _radial_family(specs, data)
-    parts = np.array_split(np.arange(len(data.trajectories)), max(1, n_parts))
-    merged = merge_fold_statistics(list(run([joblib.delayed(_family_part)(union, data, p) for p in parts])))
+    merged = _statistics_by_parts(union, data, run, n_parts)
     out = {}
     for s in specs:
         taken = sub_statistics(ClEdmd(data.controller, lifting=steps[s]), merged, data.controllers, columns=columns[s])
@@ -812,12 +814,7 @@ def family_statistics(spec: LiftingSpec, data: SearchData, episodes=None) -> tup
     ``episodes``: of these training episodes only (a part, joined with the others' by
     :func:`~qube_koopman.identify.model_selection.sweep.merge_fold_statistics`).
     """
-    from qube_koopman.core.blas import limited_blas_threads
-    from qube_koopman.identify.model_selection.sweep import fold_statistics
-
-    estimator = ClEdmd(data.controller, lifting=search_steps(spec, data.trajectories, data.rbf_seed))
-    with limited_blas_threads(1):  # (one BLAS thread: a second one made these tall QRs 2.7 times slower on 2 cores)
-        return fold_statistics(estimator, data.trajectories, data.splits, data.controllers, episodes)
+    return _family_part(search_steps(spec, data.trajectories, data.rbf_seed), data, episodes)
 
 
 def _fold_scores(plain) -> np.ndarray:

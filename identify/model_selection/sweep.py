@@ -584,11 +584,16 @@ def sub_statistics(
             [_grouped_columns(p, columns, len(big_names), setup) for p in per_fold],
             _grouped_columns(everything, columns, len(big_names), setup),
         )
+    n_in = small.n_features_in_
+    if not fewer:
+        return (
+            setup,
+            [_taken_columns(s, n_c, columns, len(big_names), n_in) for s in per_fold],
+            _taken_columns(everything, n_c, columns, len(big_names), n_in),
+        )
     n_v = everything.n_regressors - n_c - len(big_names)  # references and feedforward follow the lifting
     regressors = list(range(n_c)) + [n_c + int(c) for c in columns] + [n_c + len(big_names) + i for i in range(n_v)]
     targets = list(range(setup.target_rows))
-    if not fewer:
-        return setup, [s.columns(regressors, targets) for s in per_fold], everything.columns(regressors, targets)
     if heads is None or splits is None:  # fewer delays: their extra snapshots come from the heads, by the splits
         return None
     # The snapshots from sample small.n_delays_ to big.n_delays_ - 1 of each episode, which the larger lifting lacks.
@@ -600,6 +605,15 @@ def sub_statistics(
     return (setup, [total(s, train) for s, (train, _) in zip(per_fold, splits)], total(everything, range(len(extra))))
 
 
+def _taken_columns(stats: Snapshots, n_c: int, columns: Sequence[int], n_big: int, n_in: int) -> Snapshots:
+    """The statistics of a smaller lifting from a larger one's (``n_big`` features): regressors ``[x^c; lifted;
+    r; f]`` with the lifted features at ``columns``, targets ``[x^c; states]`` (``n_c`` controller states, ``n_in``
+    states)."""
+    n_v = stats.n_regressors - n_c - n_big  # references and feedforward follow the lifting
+    regressors = list(range(n_c)) + [n_c + int(c) for c in columns] + [n_c + n_big + i for i in range(n_v)]
+    return stats.columns(regressors, list(range(n_c + n_in)))
+
+
 def _grouped_columns(stats: GroupedSnapshots, columns: Sequence[int], n_big: int, setup) -> GroupedSnapshots:
     """:func:`sub_statistics` of each controller's part: its regressors ``[x^c_g; lifted; r; f]`` and targets
     ``[x^c_g; states]`` taken at ``columns`` of the larger lifting's ``n_big`` features, each part's map
@@ -608,10 +622,7 @@ def _grouped_columns(stats: GroupedSnapshots, columns: Sequence[int], n_big: int
     n_in = setup.lifting.n_features_in_
     parts, maps = [], []
     for part, ctrl in zip(stats.parts, stats.controllers):
-        n_c = ctrl.n_states
-        n_v = part.n_regressors - n_c - n_big
-        regressors = list(range(n_c)) + [n_c + int(c) for c in columns] + [n_c + n_big + i for i in range(n_v)]
-        parts.append(part.columns(regressors, list(range(n_c + n_in))))
+        parts.append(_taken_columns(part, ctrl.n_states, columns, n_big, n_in))
         maps.append(next(m for c, m in zip(groups.controllers, groups.maps) if same_system(c, ctrl)))
     return GroupedSnapshots(tuple(parts), tuple(maps), stats.plant_rows, stats.controllers)
 
