@@ -102,20 +102,20 @@ class PendulumParameters:
 
     # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/sim/test_plant_file.py).
     Rm: float = 8.4
-    km: float = 0.04150972435258463
+    km: float = 0.0434562417464848
     mr: float = 0.095
     Lr: float = 0.085
     mp: float = 0.024
-    Lp: float = 0.12229911701971229
+    Lp: float = 0.1221849497859961
     g: float = 9.81
-    Dr: float = 9.546343351413476e-05
+    Dr: float = 8.97670099790551e-05
     Dp: float = 0.0
-    Cr: float = 0.0003462091963729839
+    Cr: float = 0.0003588329452832376
     coulomb_speed: float = 0.05
-    dead_zone: float = 0.05858658709331478
-    Jh: float = 5.6122785739477445e-05
-    delay: float = 0.0019376046681532208
-    Kr: float = 0.0009874412048886023
+    dead_zone: float = 0.06039981436526427
+    Jh: float = 6.461526828709835e-05
+    delay: float = 0.0019277080983392402
+    Kr: float = 0.0010123202324460432
     theta_rest: float = 0.0
 
     def __post_init__(self) -> None:
