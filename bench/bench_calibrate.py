@@ -55,7 +55,7 @@ def main() -> None:
     z0 = cal._start(ys, seg, len(ys), dt)
     lo, hi = cal._bounds(len(ys), seg.n)
     started = time.perf_counter()
-    ref = least_squares(lambda z: ms.residuals(z, seg, len(ys), cal.nominal, dt, ENCODER_SIGMA),
+    ref = least_squares(lambda z: ms.residuals(z, seg, len(ys), cal.nominal_, dt, ENCODER_SIGMA),
                         np.clip(z0, lo, hi), jac_sparsity=ms.sparsity(seg, len(ys)), bounds=(lo, hi),
                         method="trf", tr_solver="lsmr", x_scale="jac", max_nfev=args.reference_iterations)
     reference = time.perf_counter() - started

@@ -70,14 +70,14 @@ PHYSICAL = (
     ("Dp", "linear", 1e-5, 0.0, 100.0),
     ("dead_zone", "linear", 0.1, 0.0, 20.0),
     ("Jh", "linear", 1e-5, 0.0, 100.0),
-    ("delay", "linear", 1e-3, 0.0, 4.0),
+    ("delay", "linear", 1e-3, 0.0, 10.0),
     ("Kr", "linear", 1e-4, 0.0, 100.0),
 )
 N_PHYSICAL = len(PHYSICAL)
 OFFSET_SCALE = 1e-3  # rad per unit of the fitted offset variable
 RATE_SCALE = 1.0  # node rates are fitted in rad/s
-#: Commands kept before each segment's start: a transport delay up to its bound (4 ms) still applies them.
-N_PAST = 3
+#: Commands kept before each segment's start: a transport delay up to its bound (10 ms) still applies them.
+N_PAST = 6
 
 
 def to_params(z: np.ndarray, nominal: PendulumParameters) -> PendulumParameters:

@@ -226,3 +226,15 @@ def test_cli_takes_folders_of_logs_as_every_command_does(tmp_path, capsys):
     assert main([str(tmp_path / "empty"), "--out", str(tmp_path / "q.toml")]) == 2
     err = capsys.readouterr().err
     assert "empty: folder has no .mcap logs" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_a_host_latency_of_two_and_a_half_samples_is_recovered():
+    # One session of the rig's soft-controller logs ran with 4.9 ms from command to motor (the other
+    # with 1.9 ms): the host's latency, beyond the 4 ms the fit was once bounded to.
+    truth = replace(TRUTH, delay=0.005)
+    ys, us, _ = simulated_logs(truth, n=2, seed=3, controller=soft_pd())
+    assert max(np.abs(y[:, 1]).max() for y in ys) < 0.5  # the slower loop kept the pendulum up
+    cal = PlantCalibration(horizon=0.2, skip=0.5, stride=0.2, nominal=PendulumParameters()).fit(ys, us, DT)
+    se = cal.standard_errors_["delay"]
+    assert abs(cal.params_.delay - truth.delay) <= 3 * se + 1e-12 and se < 2e-4, (cal.params_.delay, se)
