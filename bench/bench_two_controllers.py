@@ -62,13 +62,18 @@ def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) ->
     return dict(zip(names, zip(report["test"]["r2_per_episode"], report["test_without_offsets"]["r2_per_episode"])))
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def data_arguments(p: argparse.ArgumentParser) -> None:
+    """``--rig``, ``--soft`` (the two datasets' folders) and ``--lifting``, shared with bench_loop_delay.py."""
     shared = HERE.parents[1] / "shared" / "datasets"
     p.add_argument("--rig", type=Path, default=Path(os.environ.get("QUBE_DATASET_DIR", shared / "qube_servo_20230828")))
     p.add_argument("--soft", type=Path,
                    default=Path(os.environ.get("QUBE_SOFT_DATASET_DIR", shared / "qube_servo_20230915_soft")))
     p.add_argument("--lifting", default=DEFAULT_LIFTING, help=f"qube-identify flags (default: {DEFAULT_LIFTING})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    data_arguments(p)
     p.add_argument("--out", type=Path, default=None, help="keep the fits' reports here")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:

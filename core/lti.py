@@ -19,6 +19,7 @@ __all__ = [
     "padded_realization",
     "spectral_radius",
     "same_system",
+    "with_output_delay",
 ]
 
 
@@ -291,3 +292,60 @@ def same_system(a: DiscreteStateSpace, b: DiscreteStateSpace) -> bool:
         x.shape == y.shape and np.allclose(x, y, rtol=1e-12, atol=1e-12)
         for x, y in zip((a.A, a.B, a.C, a.D), (b.A, b.B, b.C, b.D))
     )
+
+
+def with_output_delay(system: DiscreteStateSpace, samples: float) -> DiscreteStateSpace:
+    """``system`` followed by a delay of ``samples`` sample periods (a fraction interpolates).
+
+    The output is ``(1 - w) y(k - n) + w y(k - n - 1)`` with ``n`` the whole samples and ``w`` the
+    fraction: the average over a sample of a command held ``samples`` periods late, as the
+    simulated pendulum applies its transport delay (``PendulumParameters.delay``). The states
+    are ``system``'s, then its past outputs ``y(k - 1), ..., y(k - n - 1)`` (none past ``y(k - n)``
+    when ``w`` is 0), newest first: a loop's controller wrapped so models the host's latency
+    between computing a command and the motor receiving it.
+
+    Parameters
+    ----------
+    system : DiscreteStateSpace
+        The system whose output is delayed.
+    samples : float
+        The delay in sample periods, 0 or more.
+
+    Returns
+    -------
+    DiscreteStateSpace
+        With ``system.n_states + n_past * system.n_outputs`` states.
+
+    Examples
+    --------
+    A gain of 2 delayed by one and a half samples:
+
+    >>> gain = DiscreteStateSpace(A=np.zeros((0, 0)), B=np.zeros((0, 1)), C=np.zeros((1, 0)), D=[[2.0]], dt=0.002)
+    >>> _, y = with_output_delay(gain, 1.5).simulate([[1.0], [0.0], [0.0], [0.0]])
+    >>> y.ravel().tolist()
+    [0.0, 1.0, 1.0, 0.0]
+    """
+    samples = float(samples)
+    if not (np.isfinite(samples) and samples >= 0):
+        raise ValueError(f"the delay must be a finite number of samples, 0 or more, got {samples}")
+    whole = int(np.floor(samples))
+    fraction = samples - whole
+    n_past = whole + (fraction > 0)
+    n, q, p = system.n_states, system.n_outputs, system.n_inputs
+    A = np.zeros((n + n_past * q, n + n_past * q))
+    B = np.zeros((n + n_past * q, p))
+    A[:n, :n], B[:n] = system.A, system.B
+    if n_past:
+        A[n : n + q, :n], B[n : n + q] = system.C, system.D  # the newest past output: y(k)
+        for j in range(1, n_past):  # older ones shift down
+            A[n + j * q : n + (j + 1) * q, n + (j - 1) * q : n + j * q] = np.eye(q)
+    C, D = np.zeros((q, A.shape[0])), np.zeros((q, p))
+    for age, weight in ((whole, 1.0 - fraction), (whole + 1, fraction)):
+        if weight == 0:
+            continue
+        if age == 0:
+            C[:, :n] += weight * system.C
+            D += weight * system.D
+        else:
+            C[:, n + (age - 1) * q : n + age * q] += weight * np.eye(q)
+    return DiscreteStateSpace(A, B, C, D, system.dt)
