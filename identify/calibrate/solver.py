@@ -36,7 +36,10 @@ def levenberg_marquardt(
     ftol: float = 1e-7,
     callback: Callable | None = None,
 ) -> LmResult:
-    """Minimize ``0.5 ||fun(x)||^2`` within bounds (steps projected onto them).
+    """Minimize ``0.5 ||fun(x)||^2`` within bounds.
+
+    A variable at a bound that the gradient pushes out of the box stays out of the step (:func:`_free`);
+    the step of the others is projected onto the bounds.
 
     ``jac(x, r)`` returns the sparse Jacobian at ``x`` (``r = fun(x)``).
     Stops when an accepted step lowers the cost by less than ``ftol`` relatively.
