@@ -1119,9 +1119,7 @@ def search_liftings(
                 earlier[big] = _shared_statistics(big, data, run, n_parts)
                 shared.update({s: earlier[big] for s in specs if heads[s] == head})
                 result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
-            # With several controllers a lifting with fewer delays lifts its own (sub_statistics takes columns per
-            # controller, not the extra first snapshots).
-            longest = delays_family(specs) if data.controllers is None else None
+            longest = delays_family(specs)
             if longest is not None:  # liftings but for their delays: the longest's statistics, and the heads
                 now = time.perf_counter()
                 stats = (

@@ -538,13 +538,14 @@ def sub_statistics(
     ``statistics`` is :func:`fold_statistics` of the larger lifting. Exact (a factor of the
     selected columns, :meth:`~qube_koopman.identify.estimators.regression.Snapshots.columns`, of each
     controller's part when ``controllers`` are given); None when it cannot be done so: a feature the
-    larger lifting lacks, other leading (re-lifted) rows, or fewer delays with several controllers.
+    larger lifting lacks, or other leading (re-lifted) rows.
     A lifting with fewer delays has more snapshots (from an earlier sample of each episode): when
     ``statistics`` has a fourth element, :func:`episode_heads` of the episodes at the larger
     lifting's delays, its extra snapshots are factored from those and folded in (into each fold's
-    by its training episodes, ``splits``); without, None. ``columns``: the column of each of this
-    lifting's features among the larger lifting's, where their names do not say (the RBF stage's
-    candidates, all of whose centres one basis holds, name them alike); by default found by name.
+    by its training episodes, ``splits``, and into its controller's part); without, None.
+    ``columns``: the column of each of this lifting's features among the larger lifting's, where
+    their names do not say (the RBF stage's candidates, all of whose centres one basis holds, name
+    them alike); by default found by name.
     """
     big_setup, per_fold, everything = statistics[:3]
     heads = statistics[3] if len(statistics) > 3 else None
@@ -577,12 +578,17 @@ def sub_statistics(
     elif len(columns) != len(names) or list(columns[: small.n_features_in_]) != list(range(small.n_features_in_)):
         raise ValueError(f"columns must place the {len(names)} features, the states first, got {list(columns)}")
     if grouped:  # each controller's part: its own controller states lead, its own map
-        if fewer:
+        taken = [_grouped_columns(p, columns, len(big_names), setup) for p in per_fold]
+        whole = _grouped_columns(everything, columns, len(big_names), setup)
+        if not fewer:
+            return setup, taken, whole
+        if heads is None or splits is None:
             return None
+        extra = [template._episode_snapshots(setup, head) for head in heads]
         return (
             setup,
-            [_grouped_columns(p, columns, len(big_names), setup) for p in per_fold],
-            _grouped_columns(everything, columns, len(big_names), setup),
+            [_with_extra_snapshots(s, extra, train, setup) for s, (train, _) in zip(taken, splits)],
+            _with_extra_snapshots(whole, extra, range(len(extra)), setup),
         )
     n_in = small.n_features_in_
     if not fewer:
@@ -625,6 +631,22 @@ def _grouped_columns(stats: GroupedSnapshots, columns: Sequence[int], n_big: int
         parts.append(_taken_columns(part, ctrl.n_states, columns, n_big, n_in))
         maps.append(next(m for c, m in zip(groups.controllers, groups.maps) if same_system(c, ctrl)))
     return GroupedSnapshots(tuple(parts), tuple(maps), stats.plant_rows, stats.controllers)
+
+
+def _with_extra_snapshots(stats: GroupedSnapshots, extra: Sequence, members, setup) -> GroupedSnapshots:
+    """``stats`` with the snapshots ``extra[j]`` of each episode ``j`` of ``members`` folded into its controller's
+    part (a lifting with fewer delays has them from an earlier sample of each episode, :func:`sub_statistics`)."""
+    groups = setup.controller_groups
+    by_controller: dict[int, list] = {}
+    for j in members:
+        by_controller.setdefault(int(groups.labels[int(j)]), []).append(extra[int(j)])
+    parts = []
+    for part, ctrl in zip(stats.parts, stats.controllers):
+        k = next(i for i, c in enumerate(groups.controllers) if same_system(c, ctrl))
+        parts.append(Snapshots.total([part] + by_controller.pop(k, [])))
+    if by_controller:
+        raise ValueError("episodes of a controller the statistics have no part for")
+    return GroupedSnapshots(tuple(parts), stats.maps, stats.plant_rows, stats.controllers)
 
 
 def _timer(seconds: dict):

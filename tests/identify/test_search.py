@@ -239,7 +239,7 @@ def test_with_two_controllers_a_familys_statistics_are_each_controllers_columns(
     # controller) hold a smaller lifting's, taken per controller's part: the same as lifting it anew.
     from qube_koopman.identify.model_selection.search import family_statistics, search_steps
     from qube_koopman.identify.model_selection.split import leave_one_controller_out
-    from qube_koopman.identify.model_selection.sweep import merge_fold_statistics, sub_statistics
+    from qube_koopman.identify.model_selection.sweep import episode_heads, merge_fold_statistics, sub_statistics
 
     trajs, controller, _ = small
     other = small_probes.episodes[0]
@@ -263,6 +263,16 @@ def test_with_two_controllers_a_familys_statistics_are_each_controllers_columns(
     taken = sub_statistics(ClEdmd(controller, lifting=search_steps(member, data.trajectories)), whole, controllers)
     own = family_statistics(member, data)
     assert taken is not None and len(taken[2].parts) == 2
+    for a, b in zip([*taken[1], taken[2]], [*own[1], own[2]]):
+        assert_same(a, b)
+    # Fewer delays: the extra first snapshots of each episode, factored from its head, go to its
+    # controller's part (and to each fold that trains on it).
+    fewer = LiftingSpec(3, 2, const=True)
+    estimator = ClEdmd(controller, lifting=search_steps(fewer, data.trajectories))
+    assert sub_statistics(estimator, whole, controllers, splits) is None  # no heads: cannot
+    taken = sub_statistics(estimator, (*whole, episode_heads(data.trajectories, head.delays)), controllers, splits)
+    own = family_statistics(fewer, data)
+    assert taken is not None
     for a, b in zip([*taken[1], taken[2]], [*own[1], own[2]]):
         assert_same(a, b)
 
