@@ -99,17 +99,17 @@ def main(argv: list[str] | None = None) -> int:
     chosen, fixed, free = [], [], []
     for i, log in enumerate(logs):
         x = log.trajectory.x
-        window_error = []
+        window_error, estimated = [], []  # with the offset estimated over the longer window
         for j, e in enumerate(extra):
             scores[i, j] = r2_score(x[WINDOW:], predict_with_delay(plant, log, e, WINDOW)[WINDOW:])
-            pred = predict_with_delay(plant, log, e, estimate)
-            window_error.append(np.sum(np.mean((x[WINDOW:estimate] - pred[WINDOW:estimate]) ** 2, axis=0)
+            estimated.append(predict_with_delay(plant, log, e, estimate))
+            window_error.append(np.sum(np.mean((x[WINDOW:estimate] - estimated[j][WINDOW:estimate]) ** 2, axis=0)
                                        / np.var(x[WINDOW:estimate], axis=0)))
-            if e == 0:
-                fixed.append(r2_score(x[estimate:], pred[estimate:]))
-        best = extra[int(np.argmin(window_error))]
-        chosen.append(best)
-        free.append(r2_score(x[estimate:], predict_with_delay(plant, log, best, estimate)[estimate:]))
+        best = int(np.argmin(window_error))
+        chosen.append(extra[best])
+        free.append(r2_score(x[estimate:], estimated[best][estimate:]))
+        none = estimated[extra.index(0.0)] if 0.0 in extra else predict_with_delay(plant, log, 0.0, estimate)
+        fixed.append(r2_score(x[estimate:], none[estimate:]))
         print(f"| {names[i]} | {sessions[i] + 1} | " + " | ".join(f"{s:.3f}" for s in scores[i]) + " |")
     for s in sorted(set(sessions)):
         rows = np.array(sessions) == s

@@ -125,14 +125,14 @@ def episode_statistics(estimator: SnapshotEstimator, setup: "FitSetup", indices:
     from qube_koopman.core.blas import blas_threads, limited_blas_threads
 
     trajectories = setup.trajectories
-    n = min(blas_threads(), len(indices))
-    if n <= 1:
-        yield from (estimator._episode_snapshots(setup, trajectories[j]) for j in indices)
-        return
 
     def one(j: int):
         return estimator._episode_snapshots(setup, trajectories[j])
 
+    n = min(blas_threads(), len(indices))
+    if n <= 1:
+        yield from map(one, indices)
+        return
     with limited_blas_threads(1), ThreadPoolExecutor(n, thread_name_prefix="episode-statistics") as pool:
         pending: deque = deque()
         for j in indices:

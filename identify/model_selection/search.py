@@ -1077,7 +1077,7 @@ def search_liftings(
     """
     import joblib
 
-    from qube_koopman.identify.model_selection.sweep import episode_heads
+    from qube_koopman.identify.model_selection.sweep import _timer, episode_heads
 
     space = space or SearchSpace()
     data = SearchData(
@@ -1099,6 +1099,7 @@ def search_liftings(
     n_parts = max(1, min(FAMILY_PARTS, len(data.trajectories) // 4))
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window), probes=probes), set()
+    sharing = _timer(result.shared_seconds)  # the time each stage spends on statistics shared by its candidates
     # The family heads' statistics, by head, for later stages' liftings they hold.
     earlier: dict[LiftingSpec, tuple] = {}
     try:
@@ -1112,22 +1113,20 @@ def search_liftings(
             heads = {s: family_of(s, specs) for s in specs}
             shared: dict[LiftingSpec, tuple | None] = {}
             for head in sorted(set(h for h in heads.values() if h is not None)):
-                now = time.perf_counter()
-                # With the friction shape too when the friction stage may try it: that stage's new
-                # candidate (the best so far with friction) then takes its statistics from these.
-                big = replace(head, friction=True) if space.tries_friction(head) else head
-                earlier[big] = _shared_statistics(big, data, run, n_parts)
-                shared.update({s: earlier[big] for s in specs if heads[s] == head})
-                result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+                with sharing(stage):
+                    # With the friction shape too when the friction stage may try it: that stage's new
+                    # candidate (the best so far with friction) then takes its statistics from these.
+                    big = replace(head, friction=True) if space.tries_friction(head) else head
+                    earlier[big] = _shared_statistics(big, data, run, n_parts)
+                    shared.update({s: earlier[big] for s in specs if heads[s] == head})
             longest = delays_family(specs)
             if longest is not None:  # liftings but for their delays: the longest's statistics, and the heads
-                now = time.perf_counter()
-                stats = (
-                    *_shared_statistics(longest, data, run, n_parts),
-                    episode_heads(data.trajectories, longest.delays),
-                )
-                shared.update({s: stats for s in specs if replace(s, delays=longest.delays) == longest})
-                result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+                with sharing(stage):
+                    stats = (
+                        *_shared_statistics(longest, data, run, n_parts),
+                        episode_heads(data.trajectories, longest.delays),
+                    )
+                    shared.update({s: stats for s in specs if replace(s, delays=longest.delays) == longest})
             for s in specs:  # a lifting whose features an earlier stage's family head holds
                 if shared.get(s) is None:
                     shared[s] = next((v for h, v in earlier.items() if holds_features(h, s)), None)
@@ -1135,9 +1134,8 @@ def search_liftings(
             alone = [s for s in specs if shared.get(s) is None]
             radial = [s for s in alone if s.rbf and replace(s, rbf=0) == replace(alone[0], rbf=0)]
             if len(radial) > 1:  # the RBF stage: one factorization for every number of centres, in parts
-                now = time.perf_counter()
-                shared.update(_radial_statistics(radial, data, run, n_parts))
-                result.shared_seconds[stage] = result.shared_seconds.get(stage, 0.0) + time.perf_counter() - now
+                with sharing(stage):
+                    shared.update(_radial_statistics(radial, data, run, n_parts))
             if space.screens(stage, len(specs)):
                 # Successive halving: every candidate screened cheaply, the best few evaluated in full.
                 # The largest first: the last to start on a worker is then a short one.

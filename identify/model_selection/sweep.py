@@ -577,38 +577,30 @@ def sub_statistics(
         columns = [big_names.index(n) for n in names]
     elif len(columns) != len(names) or list(columns[: small.n_features_in_]) != list(range(small.n_features_in_)):
         raise ValueError(f"columns must place the {len(names)} features, the states first, got {list(columns)}")
-    if grouped:  # each controller's part: its own controller states lead, its own map
-        taken = [_grouped_columns(p, columns, len(big_names), setup) for p in per_fold]
-        whole = _grouped_columns(everything, columns, len(big_names), setup)
-        if not fewer:
-            return setup, taken, whole
-        if heads is None or splits is None:
-            return None
-        extra = [template._episode_snapshots(setup, head) for head in heads]
-        return (
-            setup,
-            [_with_extra_snapshots(s, extra, train, setup) for s, (train, _) in zip(taken, splits)],
-            _with_extra_snapshots(whole, extra, range(len(extra)), setup),
-        )
-    n_in = small.n_features_in_
-    if not fewer:
-        return (
-            setup,
-            [_taken_columns(s, n_c, columns, len(big_names), n_in) for s in per_fold],
-            _taken_columns(everything, n_c, columns, len(big_names), n_in),
-        )
-    n_v = everything.n_regressors - n_c - len(big_names)  # references and feedforward follow the lifting
-    regressors = list(range(n_c)) + [n_c + int(c) for c in columns] + [n_c + len(big_names) + i for i in range(n_v)]
-    targets = list(range(setup.target_rows))
-    if heads is None or splits is None:  # fewer delays: their extra snapshots come from the heads, by the splits
+    if fewer and (heads is None or splits is None):  # their extra snapshots come from the heads, by the splits
         return None
+    n_in = small.n_features_in_
+
+    def take(stats):
+        """The smaller lifting's columns (of each controller's part: its own controller states lead, its own map)."""
+        if grouped:
+            return _grouped_columns(stats, columns, len(big_names), setup)
+        return _taken_columns(stats, n_c, columns, len(big_names), n_in)
+
+    taken, whole = [take(s) for s in per_fold], take(everything)
+    if not fewer:
+        return setup, taken, whole
+    assert heads is not None and splits is not None  # checked above
     # The snapshots from sample small.n_delays_ to big.n_delays_ - 1 of each episode, which the larger lifting lacks.
     extra = [template._episode_snapshots(setup, head) for head in heads]
 
-    def total(stats: Snapshots, members) -> Snapshots:
-        return Snapshots.total([stats.columns(regressors, targets)] + [extra[int(j)] for j in members])
+    def add(stats, members):
+        """``stats`` with the extra snapshots of the episodes ``members`` (into their controllers' parts)."""
+        if grouped:
+            return _with_extra_snapshots(stats, extra, members, setup)
+        return Snapshots.total([stats] + [extra[int(j)] for j in members])
 
-    return (setup, [total(s, train) for s, (train, _) in zip(per_fold, splits)], total(everything, range(len(extra))))
+    return setup, [add(s, train) for s, (train, _) in zip(taken, splits)], add(whole, range(len(extra)))
 
 
 def _taken_columns(stats: Snapshots, n_c: int, columns: Sequence[int], n_big: int, n_in: int) -> Snapshots:
