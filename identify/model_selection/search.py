@@ -1077,7 +1077,7 @@ def search_liftings(
     """
     import joblib
 
-    from qube_koopman.identify.model_selection.sweep import _timer, episode_heads
+    from qube_koopman.identify.model_selection.sweep import episode_heads, seconds_timer
 
     space = space or SearchSpace()
     data = SearchData(
@@ -1099,7 +1099,7 @@ def search_liftings(
     n_parts = max(1, min(FAMILY_PARTS, len(data.trajectories) // 4))
     started = time.perf_counter()
     result, seen = SearchResult(window=int(window), probes=probes), set()
-    sharing = _timer(result.shared_seconds)  # the time each stage spends on statistics shared by its candidates
+    sharing = seconds_timer(result.shared_seconds)  # the time each stage spends on statistics shared by its candidates
     # The family heads' statistics, by head, for later stages' liftings they hold.
     earlier: dict[LiftingSpec, tuple] = {}
     try:

@@ -384,7 +384,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     result = SweepResult(
         alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings}, fold_models=[] if keep else None
     )
-    timed = _timer(result.seconds)
+    timed = seconds_timer(result.seconds)
     if given is None or fit_all or not relift:
         derived = None
     elif isinstance(given, OwnStatistics):
@@ -641,7 +641,7 @@ def _with_extra_snapshots(stats: GroupedSnapshots, extra: Sequence, members, set
     return GroupedSnapshots(tuple(parts), stats.maps, stats.plant_rows, stats.controllers)
 
 
-def _timer(seconds: dict):
+def seconds_timer(seconds: dict):
     """``with timed(key):`` adds the block's wall time to ``seconds[key]``."""
 
     @contextmanager
