@@ -756,6 +756,7 @@ def calibrate(
     offsets=None,
     measured: Sequence[int] | None = None,
     stride: int = 5,
+    points: dict[int, tuple[Trajectory, np.ndarray]] | None = None,
 ) -> IntervalCalibration:
     """Calibrate the band on the folds' held-out episodes, predicted as test episodes are.
 
@@ -777,20 +778,32 @@ def calibrate(
         The fed-back states (for wrapped loops).
     stride : int
         Every ``stride``-th scored sample is used.
+    points : dict, optional
+        Filled with ``{index: (trajectory, prediction)}`` of the held-out episodes predicted in
+        closed loop (not under a ``"plant"`` loop): the prediction by the fold's point fit,
+        without offsets. :func:`held_out_figures` takes them instead of predicting again.
 
     Returns
     -------
     IntervalCalibration
     """
     trajectories = as_episodes(trajectories)
-    groups = []  # (models, held-out episodes) of every fold's runs of one loop
+    groups, indices = [], []  # (models, held-out episodes) of every fold's runs of one loop; their indices
     for fold in fit.folds:
         held_out = select_episodes(trajectories, fold.validation)
         for run in consecutive_runs([loops[j] for j in fold.validation]):
             loop = loops[fold.validation[run[0]]]
             models = [loop.model(*fold.point, measured)] + [loop.model(*m, measured) for m in fold.members]
             groups.append((models, [held_out[i] for i in run]))
+            indices.append([int(fold.validation[i]) for i in run])
     predictions = predict_groups(groups, offsets)  # the folds' ensembles together
+    if points is not None:
+        for idx, (_, trajs), predicted in zip(indices, groups, predictions):
+            points.update(
+                (j, (t, p.prediction if p.plain is None else p.plain))
+                for j, t, p in zip(idx, trajs, predicted)
+                if loops[j].kind != "plant"
+            )
     errors, variances, horizons, diverged = [], [], [], 0
     for (models, trajs), predicted in zip(groups, predictions):
         d = models[0].n_delays
@@ -1157,7 +1170,12 @@ def loop_figures(x: np.ndarray, target_theta: np.ndarray, voltage: np.ndarray, s
 
 
 def held_out_figures(
-    fit: EnsembleFit, trajectories, controllers: Sequence[DiscreteStateSpace], measured: Sequence[int], skip: int
+    fit: EnsembleFit,
+    trajectories,
+    controllers: Sequence[DiscreteStateSpace],
+    measured: Sequence[int],
+    skip: int,
+    points: dict[int, tuple[Trajectory, np.ndarray]] | None = None,
 ) -> np.ndarray:
     """The figures of the calibration folds' held-out episodes, measured and as their fold's point fit predicts them.
 
@@ -1179,6 +1197,11 @@ def held_out_figures(
         The fed-back states.
     skip : int
         Samples left out at each episode's start (:func:`loop_figures`).
+    points : dict, optional
+        Held-out episodes already predicted, ``{index: (trajectory, prediction)}``
+        (:func:`calibrate`'s ``points``: the fold's fitted closed loop, which is its plant
+        wrapped with the controller the fit knew, to rounding: 5e-5 rad apart on the paper's
+        folds); the other held-out episodes are predicted here.
 
     Returns
     -------
@@ -1188,19 +1211,22 @@ def held_out_figures(
     from qube_koopman.identify.estimators.structure import controller_states, plant_input
 
     trajectories = as_episodes(trajectories)
-    groups, wrapping = [], []  # per fold and controller: its point fit wrapped, the episodes; the controller
+    found = {} if points is None else dict(points)
+    groups, indices = [], []  # per fold and controller: its point fit wrapped, the episodes; their indices
     for fold in fit.folds:
-        held_out = select_episodes(trajectories, fold.validation)
-        loops = [Loop.of(controllers[j], None) for j in fold.validation]
+        missing = [int(j) for j in fold.validation if int(j) not in found]
+        held_out = select_episodes(trajectories, missing)
+        loops = [Loop.of(controllers[j], None) for j in missing]
         for run in consecutive_runs(loops):  # the episodes of one controller in one batch
             groups.append(([loops[run[0]].model(*fold.point, measured)], [held_out[i] for i in run]))
-            wrapping.append(loops[run[0]]._wrapping())  # Loop.of(..., None): always wrapped
+            indices.append([missing[i] for i in run])
+    for idx, (_, trajs), predicted in zip(indices, groups, predict_groups(groups) if groups else []):
+        found.update((j, (t, p.prediction)) for j, t, p in zip(idx, trajs, predicted))
     rows = []
-    for (_, trajs), c, predictions in zip(groups, wrapping, predict_groups(groups)):
-        for t, predicted in zip(trajs, predictions):
-            x = predicted.prediction
-            y = x[:, list(measured)]
-            with np.errstate(all="ignore"):
-                u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
-            rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u[:, 0], skip)])
+    for j in (int(j) for fold in fit.folds for j in fold.validation):
+        t, x = found[j]
+        c, y = controllers[j], x[:, list(measured)]
+        with np.errstate(all="ignore"):
+            u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
+        rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u[:, 0], skip)])
     return np.array(rows).reshape(-1, 2, 3)

@@ -319,20 +319,8 @@ def identify_and_score(
                 "closed_loop": closed.spectral_radius(),
                 "plant": plant.spectral_radius(),
             }
-            if model_path is not None:
-                save_model(
-                    model_path,
-                    method=method,
-                    alpha=result.report["alpha"],
-                    plant=plant,
-                    closed_loop=closed,
-                    controller=controller,
-                    measured=MEASURED,
-                    training={"logs": result.report["train_logs"]},
-                    uncertainty=None
-                    if ensemble is None or intervals is None
-                    else _design_uncertainty(ensemble, plant, train, intervals.seed),
-                )  # an ensemble: intervals were asked for
+            # The calibration's held-out predictions, which the model file's design figures reuse.
+            held_out: dict = {}
             bands = (
                 None
                 if ensemble is None
@@ -349,8 +337,24 @@ def identify_and_score(
                     keep_predictions,
                     probes,
                     probe_cache,
+                    held_out,
                 )
             )
+            if model_path is not None:
+                save_model(
+                    model_path,
+                    method=method,
+                    alpha=result.report["alpha"],
+                    plant=plant,
+                    closed_loop=closed,
+                    controller=controller,
+                    measured=MEASURED,
+                    training={"logs": result.report["train_logs"]},
+                    uncertainty=None
+                    if ensemble is None or intervals is None
+                    else _design_uncertainty(ensemble, plant, train, intervals.seed, held_out),
+                )  # an ensemble: intervals were asked for
+            held_out.clear()
             _score_koopman(
                 plant, closed, controller, test, score, offsets, what_if, result, score_from, keep_predictions, bands
             )
@@ -443,10 +447,11 @@ def _koopman(
     return plant, closed, ensemble
 
 
-def _design_uncertainty(ensemble, plant, train, seed: int) -> dict:
-    """The model file's ``uncertainty``: the bootstrap plants and the held-out episodes' figures (for qube-design)."""
+def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None = None) -> dict:
+    """The model file's ``uncertainty``: the bootstrap plants and the held-out episodes' figures (for qube-design);
+    ``points``: held-out episodes the intervals' calibration predicted already."""
     held_out = held_out_figures(
-        ensemble, LogTrajectories(train), [log.controller for log in train], MEASURED, SKIP_SAMPLES
+        ensemble, LogTrajectories(train), [log.controller for log in train], MEASURED, SKIP_SAMPLES, points
     )
     names = [train[j].path.name for fold in ensemble.folds for j in fold.validation]
     return uncertainty_to_dict(
@@ -648,15 +653,28 @@ def _pd_gains(gains: dict) -> tuple | None:
 
 
 def _test_bands(
-    ensemble, options, train, controller, score, offsets, start, result, folder, keep, probes=None, probe_cache=None
+    ensemble,
+    options,
+    train,
+    controller,
+    score,
+    offsets,
+    start,
+    result,
+    folder,
+    keep,
+    probes=None,
+    probe_cache=None,
+    points: dict | None = None,
 ) -> _TestBands:
     """The intervals' calibration on the training episodes the folds held out, ready for the test episodes;
     with ``options.other_loops == "twin"``, that of loops the training never ran on the twin's probes, made
-    when a test episode needs it."""
+    when a test episode needs it. ``points`` is filled with the held-out closed-loop predictions
+    (:func:`~qube_koopman.identify.uncertainty.calibrate`)."""
     started = time.perf_counter()
     loops = [Loop.of(log.controller, controller, score) for log in train]
     calibration = calibrate(
-        ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED, options.stride
+        ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED, options.stride, points
     )
     seconds = {"calibration": time.perf_counter() - started}
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once

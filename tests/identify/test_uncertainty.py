@@ -245,3 +245,50 @@ def test_the_folds_predicted_together_are_each_folds_own_predictions(ar1, offset
                 np.testing.assert_allclose(a.plain, b.plain, rtol=1e-10, atol=1e-13)
                 np.testing.assert_allclose(a.estimate.values, b.estimate.values, rtol=1e-9)  # batch shapes: rounding
                 assert a.estimate.channels == (0,)
+
+
+def _two_state_loop(n_episodes: int, n_samples: int, seed: int) -> list[Trajectory]:
+    """An arm (integrator, fed back) and a stable second state it drives, with feedforward and input logged:
+    what held_out_figures' J and voltage need."""
+    rng = np.random.default_rng(seed)
+    episodes = []
+    for i in range(n_episodes):
+        r = np.repeat(rng.uniform(-1, 1, n_samples // 50 + 1), 50)[:n_samples, None]
+        f = 0.05 * rng.standard_normal((n_samples, 1))
+        x, u = np.zeros((n_samples, 2)), np.zeros((n_samples, 1))
+        for k in range(n_samples - 1):
+            u[k] = GAIN * (r[k, 0] - x[k, 0]) + f[k, 0]
+            x[k + 1] = [x[k, 0] + B_P * u[k, 0], 0.9 * x[k, 1] + 0.05 * u[k, 0]] + SIGMA * rng.standard_normal(2)
+        u[-1] = GAIN * (r[-1, 0] - x[-1, 0]) + f[-1, 0]
+        episodes.append(Trajectory(x=x, u=u, r=r, f=f, xc=np.zeros((n_samples, 1)), name=f"two-{i}", dt=DT))
+    return episodes
+
+
+@pytest.mark.parametrize("offsets", [None, _Window()], ids=["plain", "offsets"])
+def test_the_design_figures_reuse_the_calibrations_held_out_predictions(offsets):
+    """calibrate() hands its held-out closed-loop predictions (without offsets) to held_out_figures, which then
+    predicts nothing again: the same figures as its own predictions by the plant wrapped with each episode's
+    controller, to the rounding between the fitted closed loop and that wrapping. Under a "plant" loop
+    calibrate's predictions are not closed-loop ones and are not handed on."""
+    from qube_koopman.identify import uncertainty
+
+    train = _two_state_loop(12, 300, seed=7)
+    controllers = [P_CONTROLLER] * len(train)
+    fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-3, measured=[0]), train,
+                       IntervalOptions(n_members=3, n_calibration_members=3, n_folds=3))
+    expected = uncertainty.held_out_figures(fit, train, controllers, [0], 20)
+    points: dict = {}
+    calibrate(fit, train, [Loop("closed")] * len(train), 0.9, 60, offsets, [0], points=points)
+    held_out = sorted(int(j) for fold in fit.folds for j in fold.validation)
+    assert sorted(points) == held_out
+    original = uncertainty.predict_groups
+    try:
+        uncertainty.predict_groups = None  # nothing left to predict: calling it would fail
+        reused = uncertainty.held_out_figures(fit, train, controllers, [0], 20, points)
+    finally:
+        uncertainty.predict_groups = original
+    assert np.all(np.isfinite(expected))
+    np.testing.assert_allclose(reused, expected, rtol=1e-6)
+    plant_points: dict = {}
+    calibrate(fit, train, [Loop("plant")] * len(train), 0.9, 60, None, [0], points=plant_points)
+    assert plant_points == {}
