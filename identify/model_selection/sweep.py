@@ -31,7 +31,7 @@ from qube_koopman.core.lti import same_system
 from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.mixed import distinct_controllers
 from qube_koopman.identify.models.model import FittedRows, KoopmanModel
-from qube_koopman.identify.estimators.regression import GroupedSnapshots, Snapshots
+from qube_koopman.identify.estimators.regression import GroupedSnapshots, Snapshots, solved_for_many_alphas
 from qube_koopman.identify.metrics import r2_from_residuals
 from qube_koopman.identify.models.simulate import simulate_chunks
 from qube_koopman.identify.estimators.structure import close_loop
@@ -115,6 +115,8 @@ def fitted_models(
     EDMD plants are wrapped with ``controller`` for their closed loop (None each without one).
     """
     closed, plants = [], []
+    if len(alphas) > 1:
+        solved_for_many_alphas(snapshots)
     for alpha in alphas:
         est = copy.copy(template)
         est.alpha = float(alpha)

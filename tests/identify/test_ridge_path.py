@@ -1,4 +1,5 @@
-"""The ridge solves from one SVD per factor equal LAPACK's least squares on the stacked problem."""
+"""The ridge solves equal LAPACK's least squares on the stacked problem: from one SVD per factor (a sweep's
+statistics, solved for many alphas) and by a QR of the regularized problem (statistics solved for one)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,17 @@ import numpy as np
 import pytest
 from scipy import linalg
 
-from qube_koopman.identify.estimators.regression import Snapshots, constrained_plant_solve, ridge_solve
+from qube_koopman.identify.estimators.regression import (Snapshots, constrained_plant_solve, ridge_solve,
+                                                         solved_for_many_alphas)
+
+PATHS = ["one-alpha", "many-alphas"]
+
+
+def _statistics(theta, psi, path):
+    snaps = Snapshots.from_snapshots(theta, psi)
+    if path == "many-alphas":
+        solved_for_many_alphas(snaps)
+    return snaps
 
 
 def _stacked(M, Y, alpha, penalty):
@@ -28,11 +39,12 @@ def _objective(U, psi, theta, alpha):
     return np.sum((theta - psi @ U.T) ** 2) + alpha * np.sum(U ** 2)
 
 
+@pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("q, collinear", [(400, False), (400, True), (12, False)])  # tall, rank deficient, wide
 @pytest.mark.parametrize("alpha", [0.0, 1e-9, 1e-3, 10.0])
-def test_ridge_equals_least_squares_on_the_stacked_problem(q, collinear, alpha):
+def test_ridge_equals_least_squares_on_the_stacked_problem(q, collinear, alpha, path):
     psi, theta = _data(q, 20, 5, collinear)
-    snaps = Snapshots.from_snapshots(theta, psi)
+    snaps = _statistics(theta, psi, path)
     expected = _stacked(psi, theta, alpha, np.eye(20))
     got = ridge_solve(snaps, alpha)
     assert _objective(got, psi, theta, alpha) == pytest.approx(_objective(expected, psi, theta, alpha), rel=1e-10)
@@ -43,16 +55,30 @@ def test_ridge_equals_least_squares_on_the_stacked_problem(q, collinear, alpha):
     np.testing.assert_allclose(ridge_solve(snaps, alpha, rows), got[rows], rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("regularize", ["closed_loop", "plant"])
 @pytest.mark.parametrize("alpha", [0.0, 1e-6, 1e-1])
-def test_constrained_solve_equals_least_squares_on_the_stacked_problem(regularize, alpha):
+def test_constrained_solve_equals_least_squares_on_the_stacked_problem(regularize, alpha, path):
     psi, theta = _data(300, 12, 6, False, seed=1)
     S = np.random.default_rng(2).standard_normal((9, 12))  # full row rank
-    snaps = Snapshots.from_snapshots(theta, psi)
+    snaps = _statistics(theta, psi, path)
     penalty = S.T if regularize == "closed_loop" else np.eye(9)
     expected = _stacked(psi @ S.T, theta[:, 2:], alpha, penalty)
     got = constrained_plant_solve(snaps, S, alpha, slice(2, None), regularize)
     np.testing.assert_allclose(got, expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
+
+
+def test_statistics_solved_for_one_alpha_take_the_qr_and_a_second_alpha_the_svd():
+    """The first alpha is solved without the SVD (none is made); a second builds it, and both paths give the
+    stacked least squares; a sweep's statistics build it at once."""
+    psi, theta = _data(400, 20, 5, False, seed=5)
+    snaps = Snapshots.from_snapshots(theta, psi)
+    for alpha, without_svd in ((1e-3, True), (1e-3, True), (10.0, False), (1e-3, False)):
+        np.testing.assert_allclose(ridge_solve(snaps, alpha), _stacked(psi, theta, alpha, np.eye(20)), rtol=1e-8)
+        assert (snaps._paths[("ridge",)]._svd is None) == without_svd
+    swept = _statistics(theta, psi, "many-alphas")
+    ridge_solve(swept, 1e-3)
+    assert swept._paths[("ridge",)]._svd is not None
 
 
 def test_one_decomposition_serves_every_alpha_and_a_rank_deficient_map_still_solves():
