@@ -260,8 +260,11 @@ def identify_and_score(
         With ``intervals``: write each test episode's prediction and interval there.
     probes : ProbeSet, optional
         With ``intervals`` (``other_loops="twin"``): the twin's probe episodes calibrating the
-        intervals of test episodes under a loop the training never ran; simulated from the
-        training episodes when needed and not given (:func:`~qube_koopman.identify.twin_probes`).
+        intervals of test episodes under a loop the training never ran; when needed and not
+        given, simulated from the training episodes on the twin as the rig's sessions differed
+        (:func:`~qube_koopman.identify.twin_probes` on
+        :func:`~qube_koopman.identify.model_selection.transfer.session_twins`; a search's
+        transfer probes run on the calibrated twin alone and are not these).
     probe_cache : str or Path, optional
         Where those probes are kept between runs (``twin_probes``' ``cache``).
 
@@ -652,6 +655,12 @@ def _pd_gains(gains: dict) -> tuple | None:
     return tuple(float(gains[k]) for k in keys) if gains and all(k in gains for k in keys) else None
 
 
+#: Probe episodes per controller calibrating the intervals of loops the training never ran: three on
+#: each of the six session twins. A batch of 18 simulates in the time of 6 (the loop's steps cost, not
+#: the episodes), and with 6 the soft controller's band moved by a third between two draws of them.
+INTERVAL_PROBES = 18
+
+
 def _test_bands(
     ensemble,
     options,
@@ -686,11 +695,17 @@ def _test_bands(
 
     def elsewhere(gains):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
-        from qube_koopman.identify.model_selection.transfer import twin_probes
+        from qube_koopman.identify.model_selection.transfer import session_twins, twin_probes
 
         if not default:
-            # The search's probe set, the same one read back from the cache, or simulated (about 7 s) and kept.
-            probe_set = probes if probes is not None else twin_probes(LogTrajectories(train), cache=probe_cache)
+            # The probe set given, the same one read back from the cache, or simulated (about 7 s) and kept.
+            probe_set = (
+                probes
+                if probes is not None
+                else twin_probes(
+                    LogTrajectories(train), per_controller=INTERVAL_PROBES, params=session_twins(), cache=probe_cache
+                )
+            )
             default.append((probe_set, on_probes(probe_set)))
         probe_set, calibration = default[0]
         entry = {
@@ -701,7 +716,13 @@ def _test_bands(
         }
         if gains is not None:
             try:
-                own = twin_probes(LogTrajectories(train), gains=[gains], cache=probe_cache)
+                own = twin_probes(
+                    LogTrajectories(train),
+                    gains=[gains],
+                    per_controller=INTERVAL_PROBES,
+                    params=session_twins(),
+                    cache=probe_cache,
+                )
             except ValueError as exc:  # e.g. no episode balanced on the twin: the default probes alone, said so
                 entry["own_probes"] = f"none: {exc}"
             else:

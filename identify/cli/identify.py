@@ -649,7 +649,6 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
                 else None
             ),
             predictions_folder=predictions,
-            probes=None if search is None else search.probes,
             probe_cache=probe_cache() if args.probe_cache else None,
             estimator_options=(
                 {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None

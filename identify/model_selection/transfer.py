@@ -37,7 +37,14 @@ from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
-__all__ = ["ProbeSet", "DEFAULT_PROBE_GAINS", "twin_probes"]
+__all__ = [
+    "ProbeSet",
+    "DEFAULT_PROBE_GAINS",
+    "SESSION_DELAYS",
+    "CABLE_STIFFNESS_FACTORS",
+    "session_twins",
+    "twin_probes",
+]
 
 #: PD gains of the probe controllers (kp_theta, kd_theta, kp_alpha, kd_alpha, tau): a softer
 #: arm, a much softer arm, and a stiffer pendulum with more damping, all balancing on the
@@ -48,6 +55,42 @@ DEFAULT_PROBE_GAINS: tuple[tuple[float, float, float, float, float], ...] = (
     (1.5, 1.2, 38.0, 3.2, 50.0),
     (4.0, 3.0, 45.0, 4.0, 50.0),
 )
+
+#: Command delays (s) the rig's sessions ran with, each session's logs calibrated alone: the
+#: paper's training episodes 0.99 ms, the soft controller's earlier session 1.87 ms, its later
+#: one 4.94 ms (the host's latency, after the controller; docs/transfer.md).
+SESSION_DELAYS: tuple[float, ...] = (1.0e-3, 1.9e-3, 4.9e-3)
+#: The cables' stiffness relative to the twin's: the two recording days' logs want stiffnesses
+#: about three times apart (docs/calibration.md), so a factor sqrt(3) either side of the twin's.
+CABLE_STIFFNESS_FACTORS: tuple[float, ...] = (3.0**-0.5, 3.0**0.5)
+
+
+def session_twins(params=None) -> list:
+    """The twin as the rig's recording sessions differed: one per command delay of
+    :data:`SESSION_DELAYS` and cable stiffness of :data:`CABLE_STIFFNESS_FACTORS` (six).
+
+    What varied between the sessions of the same rig, measured: the host's latency and the
+    cables' pull; the rest of the physics calibrates the same on every session. The intervals'
+    probes of loops the training never ran run on these (an episode each in turn,
+    :func:`twin_probes`' ``params``): a model error that depends on the session is then in
+    the band, where the one calibrated twin would leave it out (on the soft controller's
+    later, slower session, the band covered its alpha 0.63 of the time on the search's lifting).
+
+    Parameters
+    ----------
+    params : PendulumParameters, optional
+        The twin (the calibrated default when None).
+
+    Returns
+    -------
+    list of PendulumParameters
+    """
+    from dataclasses import replace
+
+    from qube_koopman.sim.pendulum import PendulumParameters
+
+    params = PendulumParameters() if params is None else params
+    return [replace(params, delay=d, Kr=params.Kr * k) for d in SESSION_DELAYS for k in CABLE_STIFFNESS_FACTORS]
 
 
 @dataclass(frozen=True)
@@ -66,6 +109,8 @@ class ProbeSet:
         The probe controllers' PD gains.
     dropped : int
         Episodes that reached a safety stop on the twin (not probes).
+    n_twins : int
+        The twins the episodes ran on in turn (1: the calibrated twin; :func:`session_twins`: 6).
     """
 
     controllers: list[DiscreteStateSpace]
@@ -73,6 +118,7 @@ class ProbeSet:
     alpha_offsets: list[np.ndarray]
     gains: list[tuple] = field(default_factory=list)
     dropped: int = 0
+    n_twins: int = 1
 
     @property
     def n_episodes(self) -> int:
@@ -84,9 +130,14 @@ class ProbeSet:
         gains = "; ".join(
             "kp_theta {:g}, kd_theta {:g}, kp_alpha {:g}, kd_alpha {:g}".format(*g[:4]) for g in self.gains
         )
+        twin = (
+            "the calibrated twin"
+            if self.n_twins == 1
+            else f"{self.n_twins} variants of the calibrated twin in turn (as the rig's sessions differed)"
+        )
         return (
-            f"{self.n_episodes} twin episodes (the training episodes' excitations replayed on the calibrated "
-            f"twin, encoder zeros drawn as on the rig) under {len(self.controllers)} probe PD controllers "
+            f"{self.n_episodes} twin episodes (the training episodes' excitations replayed on {twin}, "
+            f"encoder zeros drawn as on the rig) under {len(self.controllers)} probe PD controllers "
             f"({gains})" + (f"; {self.dropped} fell and were dropped" if self.dropped else "")
         )
 
@@ -113,8 +164,9 @@ def twin_probes(
         The probe PD controllers (backward Euler, as the rig ran).
     per_controller : int
         Episodes per probe controller.
-    params : PendulumParameters, optional
-        The twin's physics; the calibrated default when None.
+    params : PendulumParameters or sequence of them, optional
+        The twin's physics; the calibrated default when None. A sequence (for example
+        :func:`session_twins`): each controller's episodes run on them in turn.
     seed : int
         Draws the start perturbations, the encoder zeros and the sensor noise.
     skip : int
@@ -142,6 +194,10 @@ def twin_probes(
     if not len(trajectories) or per_controller < 1:
         raise ValueError("probes need training episodes and at least one episode per controller")
     params = PendulumParameters() if params is None else params
+    if not isinstance(params, PendulumParameters):
+        params = tuple(params)
+        if not params or not all(isinstance(p, PendulumParameters) for p in params):
+            raise ValueError("params must be PendulumParameters or a non-empty sequence of them")
     distribution = ZeroOffsetDistribution() if isinstance(zero_offsets, str) and zero_offsets == "rig" else zero_offsets
     if distribution is not None and not isinstance(distribution, ZeroOffsetDistribution):
         raise ValueError(f"zero_offsets must be 'rig', None or a ZeroOffsetDistribution, got {zero_offsets!r}")
@@ -172,6 +228,7 @@ def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int)
     rng = np.random.default_rng(seed)
     dt = sources[0][0].dt
     per_controller = len(sources[0])
+    twins = params if isinstance(params, tuple) else None  # one per episode in turn
     out = ProbeSet([], [], [], gains)
     dropped = 0
     for i, g in enumerate(out.gains):
@@ -179,7 +236,8 @@ def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int)
         start = np.zeros((per_controller, 4))
         start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)  # hand-raised, within half a degree
         zeros = np.array([0.0 if distribution is None else distribution.draw(rng) for _ in range(per_controller)])
-        kept, kept_zeros = _run_probes(controller, sources[i], start, zeros, params, rng, skip, f"probe {i + 1}")
+        each = params if twins is None else [twins[j % len(twins)] for j in range(per_controller)]
+        kept, kept_zeros = _run_probes(controller, sources[i], start, zeros, each, rng, skip, f"probe {i + 1}")
         dropped += per_controller - len(kept)
         if kept:
             out.controllers.append(controller)
@@ -187,11 +245,12 @@ def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int)
             out.alpha_offsets.append(kept_zeros)
     if not out.controllers:
         raise ValueError("no probe episode stayed balanced on the twin")
-    return ProbeSet(out.controllers, out.episodes, out.alpha_offsets, out.gains, dropped)
+    n_twins = 1 if twins is None else len(twins)
+    return ProbeSet(out.controllers, out.episodes, out.alpha_offsets, out.gains, dropped, n_twins)
 
 
 #: Bump when what a stored probe set holds changes (the simulator's own code is hashed anyway).
-PROBE_CACHE_FORMAT = 1
+PROBE_CACHE_FORMAT = 2
 
 
 def probe_cache_key(
@@ -232,7 +291,11 @@ def _write_probes(path: Path, probes: ProbeSet) -> None:
     from qube_koopman.core.files import atomic_path
 
     # Any, not ndarray: np.savez's **kwds sit beside its allow_pickle: bool, which mypy checks a dict of arrays against
-    arrays: dict[str, Any] = {"gains": np.array(probes.gains, float), "dropped": np.array(probes.dropped)}
+    arrays: dict[str, Any] = {
+        "gains": np.array(probes.gains, float),
+        "dropped": np.array(probes.dropped),
+        "n_twins": np.array(probes.n_twins),
+    }
     for i, (controller, episodes, zeros) in enumerate(zip(probes.controllers, probes.episodes, probes.alpha_offsets)):
         arrays[f"c{i}_zeros"] = zeros
         arrays[f"c{i}_names"] = np.array([t.name for t in episodes])
@@ -285,11 +348,11 @@ def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
                     ]
                 )
                 i += 1
-            dropped = int(data["dropped"])
+            dropped, n_twins = int(data["dropped"]), int(data["n_twins"])
     except (OSError, EOFError, KeyError, ValueError, IndexError, TypeError, zipfile.BadZipFile):
         # missing, cut short, foreign: simulate again
         return None
-    return ProbeSet(controllers, episodes, zeros, gains, dropped) if controllers else None
+    return ProbeSet(controllers, episodes, zeros, gains, dropped, n_twins) if controllers else None
 
 
 def _run_probes(

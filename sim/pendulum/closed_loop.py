@@ -9,6 +9,7 @@ tracking error to the controller, add the feedforward, clip, hold the voltage.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -57,7 +58,7 @@ def simulate_closed_loop(
     controller: DiscreteStateSpace,
     references,
     feedforward,
-    params: PendulumParameters = PendulumParameters(),
+    params: PendulumParameters | Sequence[PendulumParameters] = PendulumParameters(),
     sensor: SensorModel = SensorModel(),
     controller_state0=None,
     max_voltage: float = 10.0,
@@ -79,7 +80,11 @@ def simulate_closed_loop(
         target_theta and target_alpha at each step.
     feedforward : array_like of shape (n_steps, ...)
         Voltage added to the controller output.
-    params, sensor : model and encoder settings.
+    params : PendulumParameters, or a sequence of them
+        The pendulum, or one per episode of the batch (in its C order): the episodes'
+        physics and delays may differ, and still run as one batch.
+    sensor : SensorModel
+        Encoder settings.
     controller_state0 : array_like of shape (..., n_c), optional
         Zero by default.
     max_voltage : float
@@ -127,9 +132,8 @@ def simulate_closed_loop(
     plant_input = np.empty((n_steps, *batch))
     Ac, Bc, Cc, Dc = controller.A.T, controller.B.T, controller.C[0], controller.D[0]
     sees_feedforward = controller.n_inputs == 3
-    k = Coefficients.of(params)
     h = controller.dt / n_substeps
-    whole, weights = hold_pattern(params.delay, controller.dt, int(n_substeps))
+    k, whole, weights, wholes = _per_episode(params, batch, controller.dt, int(n_substeps))
     past = np.zeros((whole + 1, *batch)) if past_voltages is None else np.asarray(past_voltages, dtype=float)
     if past.ndim != len(batch) + 1 or past.shape[0] < 1:
         raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
@@ -151,7 +155,34 @@ def simulate_closed_loop(
         measurements[step], xcs[step], control[step], plant_input[step] = y, xc, u, v
         xc = xc @ Ac + e @ Bc
         history.append(v)
-        comps = advance(comps, history[-whole - 2], history[-whole - 1], weights, h, k, np.sin, np.cos)
+        if wholes is None:
+            previous, current = history[-whole - 2], history[-whole - 1]
+        else:  # each episode's own whole samples of delay back
+            held = np.stack(history)
+            previous = np.take_along_axis(held, (len(history) - wholes - 2)[None], 0)[0]
+            current = np.take_along_axis(held, (len(history) - wholes - 1)[None], 0)[0]
+        comps = advance(comps, previous, current, weights, h, k, np.sin, np.cos)
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)
+
+
+def _per_episode(params, batch: tuple[int, ...], dt: float, n_substeps: int):
+    """The coefficients and hold pattern of one pendulum, or of one per episode (:func:`simulate_closed_loop`).
+
+    Returns ``(k, whole, weights, wholes)``: ``whole`` the most whole samples of delay, ``weights``
+    per substep (floats, or arrays over the batch), ``wholes`` each episode's whole samples (None when
+    they are all ``whole``).
+    """
+    if isinstance(params, PendulumParameters):
+        whole, weights = hold_pattern(params.delay, dt, n_substeps)
+        return Coefficients.of(params), whole, weights, None
+    params = list(params)
+    k = Coefficients.per_episode(params, batch)
+    patterns = [hold_pattern(p.delay, dt, n_substeps) for p in params]
+    wholes = np.array([w for w, _ in patterns]).reshape(batch)
+    table = np.array([w for _, w in patterns])  # (episodes, substeps)
+    same = bool(np.all(table == table[:1]))  # floats then, as for one pendulum; else arrays in every substep
+    weights = tuple(float(c[0]) if same else c.reshape(batch) for c in table.T)
+    whole = int(wholes.max(initial=0))
+    return k, whole, weights, None if np.all(wholes == whole) else wholes

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -203,10 +203,28 @@ class Coefficients(NamedTuple):
             arm_rest=p.theta_rest,
         )
 
+    @classmethod
+    def per_episode(cls, params: Sequence[PendulumParameters], batch: tuple[int, ...]) -> Coefficients:
+        """The coefficients of one pendulum per episode of a batch: each field an array of shape ``batch``
+        (``params`` in the batch's C order), or a float where every pendulum has the same value."""
+        each = [cls.of(p) for p in params]
+        if len(each) != math.prod(batch):
+            raise ValueError(f"{len(each)} parameter sets for a batch of {batch}: give one per episode")
+        values: dict[str, Any] = {}  # floats, or arrays over the batch (the arithmetic takes either)
+        for name in cls._fields:
+            column = np.array([getattr(c, name) for c in each], dtype=float)
+            values[name] = float(column[0]) if np.all(column == column[0]) else column.reshape(batch)
+        return cls(**values)
+
+
+def _on(value) -> bool:
+    """Whether a coefficient is non-zero anywhere (a float, or an array of one per episode)."""
+    return bool(value.any()) if isinstance(value, np.ndarray) else bool(value)
+
 
 def _motor_voltage(voltage, k: Coefficients):
     """The voltage past the amplifier's dead zone; floats or arrays alike."""
-    if not k.dead_zone:
+    if not _on(k.dead_zone):
         return voltage
     if isinstance(voltage, float):  # the per-tick simulator: numpy's clip costs microseconds a call
         return voltage - min(max(voltage, -k.dead_zone), k.dead_zone)
@@ -224,9 +242,9 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
         - 2.0 * k.quarter * s * c * theta_dot * alpha_dot
         + k.m12 * s * alpha_dot * alpha_dot
     )
-    if k.arm_coulomb:  # a Python branch: without friction the arithmetic is exactly as before
+    if _on(k.arm_coulomb):  # a Python branch: without friction the arithmetic is exactly as before
         r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
-    if k.arm_stiffness:  # the cables' spring; as above, exactly the old arithmetic without it
+    if _on(k.arm_stiffness):  # the cables' spring; as above, exactly the old arithmetic without it
         r1 = r1 - k.arm_stiffness * (theta - k.arm_rest)
     r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
     m11 = k.m11 + k.quarter * s * s
@@ -282,7 +300,9 @@ def advance(
 ):
     """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``."""
     theta, alpha, theta_dot, alpha_dot = comps
-    if not any(weights):  # no fractional delay: exactly the plain zero-order hold
+    # (Weights are floats, or arrays of one per episode when the episodes' delays differ.)
+    fractional = any(w.any() for w in weights) if isinstance(weights[0], np.ndarray) else any(weights)
+    if not fractional:  # no fractional delay: exactly the plain zero-order hold
         return _rk4(theta, alpha, theta_dot, alpha_dot, current, h, len(weights), k, sin, cos)
     for w in weights:
         theta, alpha, theta_dot, alpha_dot = _rk4(

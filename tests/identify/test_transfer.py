@@ -243,3 +243,33 @@ def test_a_damaged_stored_probe_set_is_simulated_again(tmp_path):
     again = twin_probes(sources, per_controller=1, skip=100, cache=tmp_path)
     assert np.array_equal(first.episodes[0][0].x, again.episodes[0][0].x)
     assert stored.stat().st_size > 200 and [p.name for p in tmp_path.iterdir()] == [stored.name]
+
+
+def test_probes_on_session_twins_run_each_episode_on_its_own_twin(tmp_path):
+    """Each controller's j-th probe runs on the j-th twin in turn, in one batch: bit for bit the episode a batch
+    of that twin alone gives (same starts, zeros and excitations), and different from the calibrated twin's
+    where the twin differs. The set says how many twins it ran on, also when read back from the cache."""
+    from qube_koopman.identify.model_selection.transfer import session_twins
+    from qube_koopman.sim.pendulum import PendulumParameters
+
+    sources = _short_sources(4)
+    twins = session_twins()
+    assert len(twins) == 6 and len({(t.delay, t.Kr) for t in twins}) == 6
+    assert {t.delay for t in twins} == {1.0e-3, 1.9e-3, 4.9e-3}
+    assert all(replace(t, delay=PendulumParameters().delay, Kr=PendulumParameters().Kr) == PendulumParameters()
+               for t in twins)  # only the delay and the cables vary
+    mixed = [twins[0], twins[5]]  # 1.0 ms and the softer cables; 4.9 ms and the stiffer
+    varied = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=mixed, skip=100,
+                         cache=tmp_path)
+    assert varied.n_twins == 2 and "2 variants" in varied.describe()
+    for k, twin in enumerate(mixed):
+        alone = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=twin, skip=100)
+        assert alone.n_twins == 1
+        for j in (k, k + 2):
+            np.testing.assert_array_equal(varied.episodes[0][j].x, alone.episodes[0][j].x)
+            np.testing.assert_array_equal(varied.episodes[0][j].u, alone.episodes[0][j].u)
+    nominal = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, skip=100)
+    assert not np.array_equal(varied.episodes[0][1].u, nominal.episodes[0][1].u)
+    again = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=mixed, skip=100,
+                        cache=tmp_path)
+    assert again.n_twins == 2 and np.array_equal(again.episodes[0][3].x, varied.episodes[0][3].x)

@@ -333,3 +333,37 @@ def test_a_new_period_keeps_the_commands_in_flight():
     assert jittery._commands == [float(volts[-1])]
     with pytest.raises(ValueError, match="dt"):
         jittery.set_period(-1.0)
+
+
+def test_a_batch_of_pendulums_each_with_its_own_physics_and_delay_runs_as_each_alone():
+    """simulate_closed_loop with one parameter set per episode (delays of whole and fractional samples,
+    cable stiffness and damping differing): each episode as the batch of that pendulum alone gives it (exact
+    angles: the encoders' rounding would turn a last-bit difference of the batch's arithmetic into counts)."""
+    from dataclasses import replace
+
+    from qube_koopman.core.controller import PdGains, pd_controller
+    from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
+
+    controller = pd_controller(PdGains(2.0, 2.0, 35.0, 3.0, 50.0), 0.002, "backward-euler")
+    base = PendulumParameters()
+    params = [replace(base, delay=d, Kr=base.Kr * s, Dr=base.Dr * s)
+              for d, s in ((1.0e-3, 0.5), (4.9e-3, 2.0), (2.0e-3, 1.0), (0.0, 1.5))]
+    n, rng = 1500, np.random.default_rng(3)
+    refs = np.zeros((n, 4, 2))
+    refs[:, :, 0] = np.repeat(rng.uniform(-0.2, 0.2, (n // 300, 4)), 300, axis=0)
+    ff = 0.1 * rng.standard_normal((n, 4))
+    x0 = np.zeros((4, 4))
+    x0[:, 1] = rng.normal(0, 0.005, 4)
+    past = rng.normal(0, 0.5, (3, 4))
+    exact = SensorModel(counts_per_rev=None)
+    batch = simulate_closed_loop(x0, controller, refs, ff, params, exact, past_voltages=past)
+    assert np.abs(batch.states[..., 1]).max() < 0.3  # every episode stays balanced
+    for j, p in enumerate(params):
+        alone = simulate_closed_loop(x0[j:j + 1], controller, refs[:, j:j + 1], ff[:, j:j + 1], p, exact,
+                                     past_voltages=past[:, j:j + 1])
+        np.testing.assert_allclose(batch.states[:, j], alone.states[:, 0], rtol=0, atol=1e-11)
+        np.testing.assert_allclose(batch.plant_input[:, j], alone.plant_input[:, 0], rtol=0, atol=1e-11)
+    # The delay matters: the 4.9 ms pendulum's run is not the 1 ms one's.
+    assert np.abs(batch.states[:, 1] - simulate_closed_loop(x0[1:2], controller, refs[:, 1:2], ff[:, 1:2],
+                                                            replace(params[1], delay=1.0e-3), exact,
+                                                            past_voltages=past[:, 1:2]).states[:, 0]).max() > 1e-4
