@@ -317,7 +317,8 @@ def _parser() -> argparse.ArgumentParser:
         choices=["twin", "none"],
         default="twin",
         help="how the interval of an episode under a controller the training did not run is "
-        "calibrated: twin (default), on the twin's probe episodes, per channel the wider of "
+        "calibrated: twin (default), on the twin's probe episodes (run on six variants of the "
+        "twin, as the rig's sessions differed in command delay and cable stiffness), per channel the wider of "
         "those under its own controller (PD gains known) and under the default probe "
         "controllers (cached as --no-probe-cache says); none, as the training loop's held-out "
         "episodes (flagged in the report)",
