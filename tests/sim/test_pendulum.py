@@ -348,9 +348,9 @@ def test_a_batch_of_pendulums_each_with_its_own_physics_and_delay_runs_as_each_a
     base = PendulumParameters()
     params = [replace(base, delay=d, Kr=base.Kr * s, Dr=base.Dr * s)
               for d, s in ((1.0e-3, 0.5), (4.9e-3, 2.0), (2.0e-3, 1.0), (0.0, 1.5))]
-    n, rng = 1500, np.random.default_rng(3)
+    n, rng = 800, np.random.default_rng(3)
     refs = np.zeros((n, 4, 2))
-    refs[:, :, 0] = np.repeat(rng.uniform(-0.2, 0.2, (n // 300, 4)), 300, axis=0)
+    refs[:, :, 0] = np.repeat(rng.uniform(-0.2, 0.2, (n // 200, 4)), 200, axis=0)
     ff = 0.1 * rng.standard_normal((n, 4))
     x0 = np.zeros((4, 4))
     x0[:, 1] = rng.normal(0, 0.005, 4)
