@@ -56,6 +56,9 @@ def figures(folder: Path) -> dict:
     episodes = [read_episode(p, warn=False) for p in sorted(folder.glob("*.mcap"))]
     done = [e for e in episodes if e.metadata.status == "complete"]
     rows = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in done]).reshape(-1, 5)
+    if not done:  # every episode stopped (a perturbed twin's draw): no cost to average
+        return {"episodes": len(episodes), "complete": 0, "J": np.nan, "tracking_rms": np.nan, "alpha_rms": np.nan,
+                "voltage_rms": np.nan, "saturated": 0, "quiet_voltage_rms": np.nan}
     return {"episodes": len(episodes), "complete": len(done), "J": float(rows[:, 0].mean()),
             "tracking_rms": float(np.sqrt(np.mean(rows[:, 1] ** 2))), "alpha_rms": float(np.sqrt(np.mean(rows[:, 2] ** 2))),
             "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))),
