@@ -166,3 +166,22 @@ def test_a_plant_trained_on_both_controllers_predicts_each_loop_better_than_the_
     # over both loops it beats either single-controller plant
     average = {k: (v["rig"] + v["soft"]) / 2 for k, v in mean.items()}
     assert average["both"] > max(average["rig"], average["soft"]), mean
+
+
+def test_an_episode_under_a_loop_the_training_never_ran_gets_its_band_from_the_session_twins(
+        two_controllers, tmp_path, capsys):
+    """Trained on the rig's loop alone, the soft-theta episode's interval is calibrated on probes run on the six
+    session twins in turn (default probe controllers and its own PD gains, 18 episodes each), and the report
+    says so; the rig's own episode keeps the held-out calibration."""
+    train, test = two_controllers["rig"][:2], [two_controllers["rig"][2], two_controllers["soft-theta"][2]]
+    code, out, err = run(capsys, "--train", *train, "--test", *test, "--delays", "5", "--interval-members", "4",
+                         "--out", tmp_path)
+    assert code == 0, err
+    intervals = json.loads((tmp_path / "report.json").read_text())["intervals"]
+    assert [(e["calibrated_loop"], e["calibration"]) for e in intervals["episodes"]] == [
+        (True, "held-out"), (False, "twin probes")]
+    (entry,) = intervals["calibration_other_loops"]
+    assert "6 variants of the calibrated twin" in entry["default_probes"] and "6 variants" in entry["own_probes"]
+    assert 3 * 18 - 6 <= entry["n_default_episodes"] <= 3 * 18 and 12 <= entry["n_own_episodes"] <= 18
+    assert entry["gains"][0] == 2.0  # soft-theta's kp_theta: its own gains probed
+    assert "calibrated on the twin's probes" in out
