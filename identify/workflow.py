@@ -697,15 +697,18 @@ def _test_bands(
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
         from qube_koopman.identify.model_selection.transfer import session_twins, twin_probes
 
+        def on_session_twins(**gains):
+            return twin_probes(
+                LogTrajectories(train),
+                per_controller=INTERVAL_PROBES,
+                params=session_twins(),
+                cache=probe_cache,
+                **gains,
+            )
+
         if not default:
             # The probe set given, the same one read back from the cache, or simulated (about 7 s) and kept.
-            probe_set = (
-                probes
-                if probes is not None
-                else twin_probes(
-                    LogTrajectories(train), per_controller=INTERVAL_PROBES, params=session_twins(), cache=probe_cache
-                )
-            )
+            probe_set = probes if probes is not None else on_session_twins()
             default.append((probe_set, on_probes(probe_set)))
         probe_set, calibration = default[0]
         entry = {
@@ -716,13 +719,7 @@ def _test_bands(
         }
         if gains is not None:
             try:
-                own = twin_probes(
-                    LogTrajectories(train),
-                    gains=[gains],
-                    per_controller=INTERVAL_PROBES,
-                    params=session_twins(),
-                    cache=probe_cache,
-                )
+                own = on_session_twins(gains=[gains])
             except ValueError as exc:  # e.g. no episode balanced on the twin: the default probes alone, said so
                 entry["own_probes"] = f"none: {exc}"
             else:

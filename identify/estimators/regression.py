@@ -280,15 +280,12 @@ class _RidgePath:
     (:func:`solved_for_many_alphas`) and builds the SVD at its first solve.
     """
 
-    def __init__(self, M: np.ndarray, back: np.ndarray | None = None, many_alphas: bool = False) -> None:
-        self.M, self.back, self.many_alphas = M, back, many_alphas  # back: upper triangular, u = back^-1 w
+    def __init__(self, M: np.ndarray, back: np.ndarray | None = None) -> None:
+        self.M, self.back = M, back  # back: upper triangular, u = back^-1 w
+        self.many_alphas = False  # set by _path for statistics a sweep marked
         self._svd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._alpha: float | None = None  # the one alpha solved directly so far
         self._scale = float(np.linalg.norm(M))  # bounds the largest singular value
-
-    @classmethod
-    def of(cls, M: np.ndarray, back: np.ndarray | None = None, many_alphas: bool = False) -> "_RidgePath":
-        return cls(M, back, many_alphas)
 
     def solve(self, Y: np.ndarray, alpha: float) -> np.ndarray:
         if not self.many_alphas and self._svd is None and self._alpha in (None, alpha) and self._direct(alpha):
@@ -345,15 +342,18 @@ def _psi_block(snapshots: Snapshots) -> slice:
     return slice(0, min(snapshots.R.shape[0], snapshots.n_regressors))
 
 
-_Path = TypeVar("_Path")
+_Path = TypeVar("_Path", bound="_RidgePath | None")
 
 
-def _path(snapshots, key, build: Callable[[bool], _Path]) -> _Path:
-    """What ``build`` makes (told whether a sweep marked the statistics), made once per ``key`` and kept in
-    ``snapshots``."""
+def _path(snapshots, key, build: Callable[[], _Path]) -> _Path:
+    """What ``build`` makes, made once per ``key`` and kept in ``snapshots``; told to build its SVD at once
+    when a sweep marked the statistics (:func:`solved_for_many_alphas`), before or after it was made."""
     if key not in snapshots._paths:
-        snapshots._paths[key] = build(bool(snapshots._paths.get(_MANY_ALPHAS)))
-    return snapshots._paths[key]
+        snapshots._paths[key] = build()
+    path = snapshots._paths[key]
+    if path is not None and snapshots._paths.get(_MANY_ALPHAS):
+        path.many_alphas = True
+    return path
 
 
 def ridge_solve(snapshots: Snapshots, alpha: float, rows: slice = slice(None)) -> np.ndarray:
@@ -376,7 +376,7 @@ def ridge_solve(snapshots: Snapshots, alpha: float, rows: slice = slice(None)) -
     ndarray of shape (n_rows, n_regressors)
     """
     top = _psi_block(snapshots)
-    path = _path(snapshots, ("ridge",), lambda many: _RidgePath.of(snapshots._psi[top], many_alphas=many))
+    path = _path(snapshots, ("ridge",), lambda: _RidgePath(snapshots._psi[top]))
     return path.solve(snapshots._theta[top, rows], alpha).T
 
 
@@ -508,9 +508,8 @@ def _plant_solve(blocks: list[_Block], owner, key, alpha: float, regularize: str
         raise ValueError(f"unknown regularize {regularize!r}; expected 'closed_loop' or 'plant'")
     Y = _stack([b.Y for b in blocks])
     if regularize == "plant":
-        stacked = lambda many: _RidgePath.of(_stack([b.R_psi @ b.S.T for b in blocks]), many_alphas=many)  # noqa: E731
-        return _path(owner, key, stacked).solve(Y, alpha).T
-    path = _path(owner, key, lambda many: _closed_loop_path(blocks, many))
+        return _path(owner, key, lambda: _RidgePath(_stack([b.R_psi @ b.S.T for b in blocks]))).solve(Y, alpha).T
+    path = _path(owner, key, lambda: _closed_loop_path(blocks))
     if path is not None:
         return path.solve(Y, alpha).T
     P = _stack([b.penalty for b in blocks])
@@ -518,7 +517,7 @@ def _plant_solve(blocks: list[_Block], owner, key, alpha: float, regularize: str
     return _lstsq(A, np.vstack([Y, np.zeros((P.shape[0], Y.shape[1]))])).T
 
 
-def _closed_loop_path(blocks: list[_Block], many_alphas: bool = False) -> _RidgePath | None:
+def _closed_loop_path(blocks: list[_Block]) -> _RidgePath | None:
     """The closed-loop penalty's path in ``w = R_p u`` (None when the penalty ``P`` is rank deficient)."""
     P = _stack([b.penalty for b in blocks])
     Q_p, R_p = linalg.qr(P, mode="economic", check_finite=False)
@@ -526,10 +525,8 @@ def _closed_loop_path(blocks: list[_Block], many_alphas: bool = False) -> _Ridge
     if not diag.size or diag.min() <= np.finfo(float).eps * P.shape[0] * diag.max():
         return None
     if len(blocks) == 1:
-        return _RidgePath.of(blocks[0].R_psi @ Q_p, R_p, many_alphas)
+        return _RidgePath(blocks[0].R_psi @ Q_p, R_p)
     at = np.cumsum([0] + [b.S.shape[1] for b in blocks])
-    return _RidgePath.of(
-        np.vstack([b.R_psi @ (Q_p[at[g] : at[g + 1]] / np.sqrt(b.weight)) for g, b in enumerate(blocks)]),
-        R_p,
-        many_alphas,
+    return _RidgePath(
+        np.vstack([b.R_psi @ (Q_p[at[g] : at[g + 1]] / np.sqrt(b.weight)) for g, b in enumerate(blocks)]), R_p
     )
