@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import asdict, replace
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -78,6 +78,12 @@ class PlantCalibration:
         Of the fitted physical parameters (asymptotic, from the Jacobian).
     correlation_ : ndarray (n_fitted, n_fitted)
     fitted_names_ : list of str
+    setup_values_ : dict of str to dict of str to float
+        With ``setups`` given to :meth:`fit`: per setup parameter (``Kr``, ``delay``), its value
+        fitted for each of its setups (labels), the rest of the physics shared;
+        ``setup_errors_`` their standard errors. ``params_`` then holds, for such a
+        parameter, the median over its setups (of the logarithms for the stiffness, a scale):
+        the central guess for a setup no log shows. Empty without setups.
     alpha_offsets_ : ndarray (n_episodes,)
         Pendulum encoder zero offsets (rad); ``alpha_offset_errors_`` their standard errors.
     residual_rms_ : ndarray (n_episodes, 2)
@@ -108,18 +114,35 @@ class PlantCalibration:
         self.weighting = weighting
 
     def fit(
-        self, measured: Sequence[np.ndarray], voltages: Sequence[np.ndarray], dt: float, groups: Sequence | None = None
+        self,
+        measured: Sequence[np.ndarray],
+        voltages: Sequence[np.ndarray],
+        dt: float,
+        groups: Sequence | None = None,
+        setups: Mapping[str, Sequence] | None = None,
     ) -> "PlantCalibration":
         """Fit to episodes: ``measured[i]`` (n_i, 2) angles, ``voltages[i]`` (n_i,) plant input (V).
 
         ``groups``: a label per episode (for example its controller), used by ``weighting="group"``.
+        ``setups``: per parameter of :data:`~qube_koopman.identify.calibrate.shooting.SETUP_PARAMETERS`,
+        a label per episode (the cables' stiffness ``Kr``: its recording day; the ``delay``: its
+        session): each setup gets its own value, the rest of the physics is shared
+        (:attr:`setup_values_`).
         """
         if len(measured) != len(voltages) or not measured:
             raise ValueError("need one voltage sequence per measured episode, and at least one episode")
         if self.weighting not in ("episode", "group"):
             raise ValueError(f"weighting must be 'episode' or 'group', got {self.weighting!r}")
-        if groups is not None and len(groups) != len(measured):
-            raise ValueError(f"need one group label per episode: {len(groups)} labels for {len(measured)} episodes")
+        setups = dict(setups or {})
+        unknown = sorted(set(setups) - set(ms.SETUP_PARAMETERS))
+        if unknown:
+            may = ", ".join(ms.SETUP_PARAMETERS)
+            raise ValueError(f"no setup may have its own {', '.join(unknown)}; these may: {may}")
+        for name, labels in (("group", groups), *((f"{k} setup", v) for k, v in setups.items())):
+            if labels is not None and len(labels) != len(measured):
+                raise ValueError(
+                    f"need one {name} label per episode: {len(labels)} labels for {len(measured)} episodes"
+                )
         h = max(2, int(round(self.horizon / dt)))
         seg = ms.make_segments(
             [np.asarray(y, float) for y in measured],
@@ -132,9 +155,21 @@ class PlantCalibration:
         n_ep = len(measured)
         if self.weighting == "group" and groups is not None:
             seg = replace(seg, weight=_group_weights(seg.episode, groups))
+        distinct = {name: sorted({str(v) for v in labels}) for name, labels in setups.items()}
+        self.setup_labels_ = {name: labels for name, labels in distinct.items() if len(labels) > 1}
+        if self.setup_labels_:
+            index = {name: {label: i for i, label in enumerate(labels)} for name, labels in self.setup_labels_.items()}
+            seg = replace(
+                seg,
+                setups={
+                    name: np.array([index[name][str(setups[name][e])] for e in seg.episode])
+                    for name in ms.SETUP_PARAMETERS
+                    if name in index
+                },
+            )
         self.nominal_ = PendulumParameters.previous() if self.nominal is None else self.nominal
         z0 = self._start(measured, seg, n_ep, dt)
-        lo, hi = self._bounds(n_ep, seg.n)
+        lo, hi = self._bounds(n_ep, seg.n, seg)
         z0 = np.clip(z0, lo, hi)
         progress = _Progress(self.progress, self.max_nfev)
 
@@ -160,24 +195,31 @@ class PlantCalibration:
         nodes[:, 1] -= offsets[seg.episode]
         nodes[:, 2:] = np.stack([rates[e][k] for e, k in zip(seg.episode, seg.start)]) / ms.RATE_SCALE
         phys = ms.from_params(self.nominal_, self.nominal_)
-        return np.concatenate([phys, offsets / ms.OFFSET_SCALE, nodes.ravel()])
+        setups = [phys[ms.PHYSICAL_NAMES.index(name)] for name, _ in ms.setup_variables(seg)]  # from the nominal
+        return np.concatenate([phys, setups, offsets / ms.OFFSET_SCALE, nodes.ravel()])
 
     @staticmethod
-    def _bounds(n_ep: int, n_seg: int) -> tuple[np.ndarray, np.ndarray]:
-        plo, phi = ms.physical_bounds()
+    def _bounds(n_ep: int, n_seg: int, seg: ms.Segments | None = None) -> tuple[np.ndarray, np.ndarray]:
+        plo, phi = ms.physical_bounds(seg)
         lo = np.concatenate([plo, np.full(n_ep, -100.0), np.full(4 * n_seg, -np.inf)])
         hi = np.concatenate([phi, np.full(n_ep, 100.0), np.full(4 * n_seg, np.inf)])
         return lo, hi
 
     def _store(self, result, seg: ms.Segments, n_ep: int, lo: np.ndarray, hi: np.ndarray) -> None:
         z = result.x
-        phys, offsets, _ = ms.unpack(z, n_ep, seg.n)
+        n_x = ms.n_setup_variables(seg)
+        n_phys = ms.N_PHYSICAL + n_x
+        phys, offsets, _ = ms.unpack(z, n_ep, seg.n, n_x)
         self.params_ = ms.to_params(phys, self.nominal_)
         self.cost_, self.nfev_ = float(result.cost), int(result.nfev)
         n_res, n_var = result.jac.shape
         s2 = 2 * result.cost / max(1, n_res - n_var)
-        cov = _marginal_covariance(result.jac, ms.N_PHYSICAL + n_ep) * s2
+        cov = _marginal_covariance(result.jac, n_phys + n_ep) * s2
         z_se = np.sqrt(np.maximum(np.diag(cov), 0))
+        self.setup_values_: dict[str, dict[str, float]] = {}
+        self.setup_errors_: dict[str, dict[str, float]] = {}
+        if n_x:
+            self._central_setups(phys, z_se, cov, seg)
         self.fitted_names_ = [p[0] for p in ms.PHYSICAL]
         self.standard_errors_ = {}
         for i, (name, kind, scale, _, _) in enumerate(ms.PHYSICAL):
@@ -186,12 +228,42 @@ class PlantCalibration:
         d = np.sqrt(np.maximum(np.diag(cov)[: ms.N_PHYSICAL], 1e-300))
         self.correlation_ = cov[: ms.N_PHYSICAL, : ms.N_PHYSICAL] / np.outer(d, d)
         self.alpha_offsets_ = offsets
-        self.alpha_offset_errors_ = ms.OFFSET_SCALE * z_se[ms.N_PHYSICAL :]
+        self.alpha_offset_errors_ = ms.OFFSET_SCALE * z_se[n_phys:]
         r = result.fun.reshape(seg.n, seg.horizon + 1, 2) * ENCODER_SIGMA
         if seg.weight is not None:  # the residuals as measured, not as weighted
             r = r / seg.weight[:, None, None]
         self.residual_rms_ = np.array([np.sqrt(np.mean(r[seg.episode == e] ** 2, axis=(0, 1))) for e in range(n_ep)])
         self.warnings_ = self._warnings(z[: ms.N_PHYSICAL], lo, hi)
+
+    def _central_setups(self, phys: np.ndarray, z_se: np.ndarray, cov: np.ndarray, seg: ms.Segments) -> None:
+        """Each setup's values and errors (:attr:`setup_values_`), and the central ones into ``params_``.
+
+        Median over the setups (of the logarithms for a scale, the stiffness), so a setup far off
+        does not drag the guess for one no log shows; its standard error is the median setup's,
+        or for an even count the delta method's of the mean of the two middle ones (their estimates
+        nearly independent). Written into ``z_se`` at the parameter's physical variable.
+        """
+        values = ms.setup_values(phys, seg)
+        errors = ms.setup_values(z_se[: len(phys)], seg)  # the same (linear) scale maps the errors
+        extra = {key: ms.N_PHYSICAL + j for j, key in enumerate(ms.setup_variables(seg))}
+        central = {}
+        for name, v in values.items():
+            i = ms.PHYSICAL_NAMES.index(name)
+            labels = self.setup_labels_[name]
+            self.setup_values_[name] = dict(zip(labels, v.tolist()))
+            self.setup_errors_[name] = dict(zip(labels, errors[name].tolist()))
+            log = name == "Kr"
+            key = np.log(np.maximum(v, 1e-300)) if log else v
+            order = np.argsort(key, kind="stable")
+            middle = order[(len(v) - 1) // 2 : len(v) // 2 + 1]  # one, or the two middle setups
+            variables = [i if s == 0 else extra[name, int(s)] for s in middle]
+            c = cov[np.ix_(variables, variables)] * ms.PHYSICAL[i][2] ** 2
+            if log:
+                c = c / np.outer(v[middle], v[middle])
+            spread = np.sqrt(max(float(np.sum(c)), 0.0)) / len(middle)
+            central[name] = float(np.exp(np.mean(key[middle])) if log else np.mean(v[middle]))
+            z_se[i] = (central[name] * spread if log else spread) / ms.PHYSICAL[i][2]
+        self.params_ = replace(self.params_, **central)
 
     def _warnings(self, z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> list[str]:
         out = []
@@ -220,6 +292,7 @@ class PlantCalibration:
             "alpha_offsets": self.alpha_offsets_.tolist(),
             "residual_rms": self.residual_rms_.tolist(),
             "warnings": list(self.warnings_),
+            "setup_values": {k: dict(v) for k, v in self.setup_values_.items()},
             "cost": self.cost_,
             "nfev": self.nfev_,
         }

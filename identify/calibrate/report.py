@@ -15,6 +15,17 @@ __all__ = ["calibration_text", "validation_text", "controller_summary_text", "wr
 _log = logging.getLogger(__name__)
 
 
+def _volt(params) -> float:
+    """N m of motor torque per volt at stall (``km / Rm``): a torque in the voltage that holds it."""
+    return params.km / params.Rm
+
+
+def _which(setups: dict) -> str:
+    """What the setups hold, in words."""
+    words = {"Kr": "the cables' stiffness Kr per recording day", "delay": "the command delay per session"}
+    return " and ".join(words.get(name, name) for name in setups)
+
+
 def calibration_text(cal, names: list[str], seconds: float, groups: list | None = None) -> str:
     """Markdown: fitted parameters with standard errors beside the defaults, correlations, residuals.
 
@@ -33,6 +44,21 @@ def calibration_text(cal, names: list[str], seconds: float, groups: list | None 
             f"| {name} | {getattr(cal.params_, name):.5g} | {cal.standard_errors_[name]:.2g} "
             f"| {getattr(default, name):.5g} |"
         )
+    setups = getattr(cal, "setup_values_", {})
+    if setups:
+        lines += [
+            "",
+            f"Per setup, the rest of the physics shared ({_which(setups)}); the table above gives the median "
+            "setup's (of the logarithms for Kr), the twin of a setup no log shows:",
+            "",
+            "| parameter | setup | fitted | std. error | |",
+            "|---|---|---|---|---|",
+        ]
+        for name, values in setups.items():
+            for label, value in values.items():
+                volts = f"{value / _volt(cal.params_):.3f} V/rad at the motor"
+                note = volts if name == "Kr" else f"{1e3 * value:.2f} ms"
+                lines.append(f"| {name} | {label} | {value:.4g} | {cal.setup_errors_[name][label]:.2g} | {note} |")
     lines += [
         "",
         "Correlation of the fitted parameters:",

@@ -37,8 +37,14 @@ and the base is fitted too (bounded to [0, 0.01] N m/rad; its rest angle stays a
 zero, where the operator starts an episode): under a soft arm loop the slow load it puts on the
 arm is what moved the arm (0.2-0.4 V of restoring voltage at the arm's excursions), and without it
 the fit made up for it with ``km`` and ``Jh`` (``km`` 0.050 without the spring, 0.042-0.044 with
-it; the workbook's 0.042). The Coulomb friction's smoothing speed stays nominal: fitted, it ran to its lower bound
-without improving the closed-loop replay (measured).
+it; the workbook's 0.042). Two of the parameters belong to a setup rather than to the rig:
+the cables' stiffness (dressed anew each time the rig is set up: the two recording days' logs
+want 0.14 and 0.34 V/rad) and the delay (the host's latency: 1.0, 1.9 and 4.9 ms in three
+sessions). Segments may carry, per such parameter, the setup they were recorded in
+(:attr:`Segments.setups`); each setup after the first then gets its own value, a variable after
+the physical ones (the first keeps the physical variable), and the rest is shared. The Coulomb friction's
+smoothing speed stays nominal: fitted, it ran to its lower bound without improving the closed-loop
+replay (measured).
 """
 
 from __future__ import annotations
@@ -52,6 +58,11 @@ from qube_koopman.sim.pendulum import PendulumParameters, simulate
 
 __all__ = [
     "PHYSICAL",
+    "PHYSICAL_NAMES",
+    "SETUP_PARAMETERS",
+    "n_setup_variables",
+    "setup_variables",
+    "setup_values",
     "Segments",
     "make_segments",
     "to_params",
@@ -98,9 +109,42 @@ def from_params(params: PendulumParameters, nominal: PendulumParameters) -> np.n
     return np.array(z)
 
 
-def physical_bounds() -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper bounds of the fitted physical variables."""
-    return np.array([p[3] for p in PHYSICAL]), np.array([p[4] for p in PHYSICAL])
+#: The fitted physical parameters' names, in :data:`PHYSICAL`'s order.
+PHYSICAL_NAMES = tuple(p[0] for p in PHYSICAL)
+#: The parameters a setup may have its own value of (:attr:`Segments.setups`).
+SETUP_PARAMETERS = ("Kr", "delay")
+
+
+def physical_bounds(seg: "Segments | None" = None) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds of the fitted physical variables (and of the segments' setups' ones)."""
+    rows = [PHYSICAL[PHYSICAL_NAMES.index(name)] for name, _ in setup_variables(seg)]
+    return np.array([p[3] for p in (*PHYSICAL, *rows)]), np.array([p[4] for p in (*PHYSICAL, *rows)])
+
+
+def setup_variables(seg: "Segments | None") -> list[tuple[str, int]]:
+    """The variables the segments' setups add after the physical ones: (parameter, setup) for every setup
+    of each parameter after its first (in :data:`SETUP_PARAMETERS`' order)."""
+    if seg is None or not seg.setups:
+        return []
+    return [(n, s) for n in SETUP_PARAMETERS if n in seg.setups for s in range(1, int(seg.setups[n].max()) + 1)]
+
+
+def n_setup_variables(seg: "Segments") -> int:
+    """How many variables the segments' setups add after the physical ones."""
+    return len(setup_variables(seg))
+
+
+def setup_values(phys: np.ndarray, seg: "Segments") -> dict[str, np.ndarray]:
+    """Per setup parameter, its value (SI units) in each of its setups, from the physical block
+    (``phys``: the physical variables, then the setups')."""
+    out = {}
+    extra = dict(zip(setup_variables(seg), phys[N_PHYSICAL:]))
+    for name in SETUP_PARAMETERS:
+        if seg.setups and name in seg.setups:
+            i = PHYSICAL_NAMES.index(name)
+            z = [phys[i]] + [extra[name, s] for s in range(1, int(seg.setups[name].max()) + 1)]
+            out[name] = PHYSICAL[i][2] * np.asarray(z, dtype=float)  # both are "linear" variables
+    return out
 
 
 @dataclass(frozen=True)
@@ -122,6 +166,9 @@ class Segments:
     weight : ndarray (n_seg,) or None
         Each segment's residuals are multiplied by its weight (None: all 1), so
         that groups of episodes can count alike whatever their number.
+    setups : dict of str to ndarray of int (n_seg,), optional
+        Per parameter of :data:`SETUP_PARAMETERS`, each segment's setup (0, 1, ...), whose value of
+        that parameter it simulates with; a parameter left out is shared.
     """
 
     y: np.ndarray
@@ -130,6 +177,7 @@ class Segments:
     start: np.ndarray
     past: np.ndarray | None = None
     weight: np.ndarray | None = None
+    setups: dict | None = None
 
     @property
     def n(self) -> int:
@@ -174,7 +222,7 @@ def make_segments(
 def simulate_segments(
     nodes: np.ndarray,
     u: np.ndarray,
-    params: PendulumParameters,
+    params: PendulumParameters | list[PendulumParameters],
     dt: float,
     n_substeps: int = 2,
     past: np.ndarray | None = None,
@@ -182,16 +230,21 @@ def simulate_segments(
     """Angles (horizon + 1, n_seg, 2) from node states (n_seg, 4) under voltages (horizon, n_seg).
 
     ``past`` (n_past, n_seg): the commands before each segment, which a transport delay still applies.
+    ``params``: the pendulum, or one per segment.
     """
     with np.errstate(over="ignore", invalid="ignore"):
         return simulate(nodes, u, params, dt, n_substeps, past_voltages=past)[..., :2]
 
 
-def unpack(z: np.ndarray, n_episodes: int, n_seg: int):
-    """(physical variables, offsets in rad, node states (n_seg, 4)) from the full variable vector."""
-    phys = z[:N_PHYSICAL]
-    offsets = OFFSET_SCALE * z[N_PHYSICAL : N_PHYSICAL + n_episodes]
-    nodes = z[N_PHYSICAL + n_episodes :].reshape(n_seg, 4).copy()
+def unpack(z: np.ndarray, n_episodes: int, n_seg: int, n_extra: int = 0):
+    """(physical variables, offsets in rad, node states (n_seg, 4)) from the full variable vector.
+
+    The physical variables include the ``n_extra`` setups' ones after :data:`PHYSICAL`'s.
+    """
+    n_phys = N_PHYSICAL + n_extra
+    phys = z[:n_phys]
+    offsets = OFFSET_SCALE * z[n_phys : n_phys + n_episodes]
+    nodes = z[n_phys + n_episodes :].reshape(n_seg, 4).copy()
     nodes[:, 2:] *= RATE_SCALE
     return phys, offsets, nodes
 
@@ -200,8 +253,18 @@ def residuals(
     z: np.ndarray, seg: Segments, n_episodes: int, nominal: PendulumParameters, dt: float, sigma: float
 ) -> np.ndarray:
     """Scaled prediction errors, ordered (segment, sample, angle)."""
-    phys, offsets, nodes = unpack(z, n_episodes, seg.n)
-    pred = simulate_segments(nodes, seg.u, to_params(phys, nominal), dt, past=seg.past)
+    n_extra = n_setup_variables(seg)
+    phys, offsets, nodes = unpack(z, n_episodes, seg.n, n_extra)
+    params = to_params(phys, nominal)
+    if not seg.setups:
+        pred = simulate_segments(nodes, seg.u, params, dt, past=seg.past)
+    else:  # every segment with its setups' values, in one batch
+        values = setup_values(phys, seg)
+        names = list(values)
+        which = np.column_stack([seg.setups[name] for name in names])
+        combinations, index = np.unique(which, axis=0, return_inverse=True)
+        twins = [replace(params, **{n: float(values[n][c]) for n, c in zip(names, row)}) for row in combinations]
+        pred = simulate_segments(nodes, seg.u, [twins[i] for i in index.ravel()], dt, past=seg.past)
     pred[..., 1] += offsets[seg.episode]
     r = (pred - seg.y) / sigma
     if seg.weight is not None:
@@ -215,15 +278,16 @@ def sparsity(seg: Segments, n_episodes: int):
     residuals, a node its segment's residuals."""
     per_seg = 2 * (seg.horizon + 1)
     n_res = seg.n * per_seg
-    n_var = N_PHYSICAL + n_episodes + 4 * seg.n
+    n_phys = N_PHYSICAL + n_setup_variables(seg)
+    n_var = n_phys + n_episodes + 4 * seg.n
     pattern = lil_matrix((n_res, n_var), dtype=np.int8)
-    pattern[:, :N_PHYSICAL] = 1
+    pattern[:, :n_phys] = 1
     rows = np.arange(n_res)
     segment_of_row = rows // per_seg
     alpha_rows = rows[rows % 2 == 1]
-    pattern[alpha_rows, N_PHYSICAL + seg.episode[segment_of_row[alpha_rows]]] = 1
+    pattern[alpha_rows, n_phys + seg.episode[segment_of_row[alpha_rows]]] = 1
     for j in range(4):
-        pattern[rows, N_PHYSICAL + n_episodes + 4 * segment_of_row + j] = 1
+        pattern[rows, n_phys + n_episodes + 4 * segment_of_row + j] = 1
     return pattern.tocsr()
 
 
@@ -248,8 +312,9 @@ def jacobian(
 
     per_seg = 2 * (seg.horizon + 1)
     n_res = seg.n * per_seg
-    base = N_PHYSICAL + n_episodes
-    n_phys = N_PHYSICAL if physics else 0
+    n_all = N_PHYSICAL + n_setup_variables(seg)  # the physical block, with the setups' variables
+    base = n_all + n_episodes
+    n_phys = n_all if physics else 0
     phys_data = np.empty((n_res, n_phys))
     for i in range(n_phys):
         step = 1e-6 * max(1.0, abs(z[i]))
@@ -270,7 +335,7 @@ def jacobian(
     offset_data = np.full(segment_of_pair.size, OFFSET_SCALE / sigma) * weight
     phys_cols = np.broadcast_to(np.arange(n_phys), (segment_of_pair.size, n_phys))
     node_cols = base + 4 * segment_of_pair[:, None] + np.arange(4)
-    offset_cols = (N_PHYSICAL + seg.episode[segment_of_pair])[:, None]
+    offset_cols = (n_all + seg.episode[segment_of_pair])[:, None]
     cols = np.concatenate([phys_cols, node_cols, phys_cols, offset_cols, node_cols], axis=1)
     data = np.concatenate(
         [phys_data[0::2], node_data[0::2], phys_data[1::2], offset_data[:, None], node_data[1::2]], axis=1

@@ -43,6 +43,7 @@ __all__ = [
     "open_loop_error",
     "controller_groups",
     "controller_label",
+    "per_episode_params",
 ]
 
 
@@ -78,6 +79,18 @@ def controller_groups(episodes: Sequence) -> list[tuple[str, list[int]]]:
         else:
             groups.append((controller_label(e), [i]))
     return groups
+
+
+def per_episode_params(
+    params: PendulumParameters | Sequence[PendulumParameters], n_episodes: int
+) -> list[PendulumParameters]:
+    """The twin of each of ``n_episodes`` episodes: ``params`` repeated, or checked to be one per episode."""
+    if isinstance(params, PendulumParameters):
+        return [params] * n_episodes
+    each = list(params)
+    if len(each) != n_episodes:
+        raise ValueError(f"{len(each)} parameter sets for {n_episodes} episodes: give one, or one per episode")
+    return each
 
 
 def _rates(y: np.ndarray, dt: float) -> np.ndarray:
@@ -167,7 +180,7 @@ class ReplayResult:
 
 def replay_episodes(
     episodes: Sequence,
-    params: PendulumParameters,
+    params: PendulumParameters | Sequence[PendulumParameters],
     start: int = SKIP_SAMPLES,
     offset_window: int = 500,
     n_draws: int = 8,
@@ -175,8 +188,9 @@ def replay_episodes(
 ) -> ReplayResult:
     """Closed-loop replay of logged episodes (``daq.episode.Episode``) through ``params``.
 
-    All episodes must share the controller and length. Each episode is
-    replayed ``n_draws`` times from start angles drawn within the encoder
+    All episodes must share the controller and length. ``params`` is the twin, or one per
+    episode (each episode's setup: :meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.params_for`).
+    Each episode is replayed ``n_draws`` times from start angles drawn within the encoder
     count they were measured in (seeded by ``seed``; the first draw is the
     measured start): ``std_ratio`` and ``nrmse`` are means over the draws,
     ``balanced`` requires every draw to stay up, ``twin`` is the first draw.
@@ -186,7 +200,14 @@ def replay_episodes(
     dt = episodes[0].dt
     ys = [np.asarray(e.states, float) for e in episodes]
     us = [np.asarray(e.plant_input, float) for e in episodes]
-    offsets = estimate_offset_many(ys, us, params, dt, start, offset_window)
+    each = per_episode_params(params, len(episodes))
+    offsets = np.empty(len(episodes))
+    for pendulum in dict.fromkeys(each):  # the episodes of one twin share one offset problem
+        rows = [i for i, p in enumerate(each) if p == pendulum]
+        offsets[rows] = estimate_offset_many(
+            [ys[i] for i in rows], [us[i] for i in rows], pendulum, dt, start, offset_window
+        )
+    params = each[0] if len(set(each)) == 1 else each
     state0 = np.stack([np.concatenate([y[start] - [0.0, o], _rates(y, dt)[start]]) for y, o in zip(ys, offsets)])
     draws = np.repeat(state0[None], n_draws, axis=0)
     draws[1:, :, :2] += np.random.default_rng(seed).uniform(-0.5, 0.5, (n_draws - 1, len(ys), 2)) * ENCODER_COUNT
@@ -206,7 +227,7 @@ def _replay_draws(
     us: Sequence[np.ndarray],
     draws: np.ndarray,
     offsets: np.ndarray,
-    params: PendulumParameters,
+    params: PendulumParameters | Sequence[PendulumParameters],
     start: int,
 ):
     """The closed loop from start states ``draws`` (n_draws, n_episodes, 4), one batch."""
@@ -220,6 +241,8 @@ def _replay_draws(
     xc0 = np.stack([np.asarray(e.controller_state, float)[start] for e in episodes])
     max_v = float(np.max(np.abs(np.concatenate(us)))) if episodes else 10.0
     past = np.stack([u[max(0, start - ms.N_PAST) : start] for u in us], axis=1)
+    if not isinstance(params, PendulumParameters):  # one per episode: the batch is (draw, episode)
+        params = [p for _ in range(shape[0]) for p in params]
     return simulate_closed_loop(
         draws,
         episodes[0].controller,
@@ -234,22 +257,26 @@ def _replay_draws(
 
 
 def open_loop_error(
-    episodes: Sequence, params: PendulumParameters, offsets: np.ndarray, horizon: float = 0.2, start: int = SKIP_SAMPLES
+    episodes: Sequence,
+    params: PendulumParameters | Sequence[PendulumParameters],
+    offsets: np.ndarray,
+    horizon: float = 0.2,
+    start: int = SKIP_SAMPLES,
 ) -> np.ndarray:
     """RMS error (rad) of theta and alpha over open-loop predictions of ``horizon`` seconds.
 
     Each prediction starts from the data (measured angles less the offset,
     Savitzky-Golay rates) every ``horizon`` seconds and is driven by the
-    logged voltage. Returns (n_episodes, 2).
+    logged voltage; ``params`` the twin or one per episode. Returns (n_episodes, 2).
     """
     dt = episodes[0].dt
     h = int(round(horizon / dt))
     out = []
-    for e, o in zip(episodes, offsets):
+    for e, o, twin in zip(episodes, offsets, per_episode_params(params, len(episodes))):
         y, u = np.asarray(e.states, float), np.asarray(e.plant_input, float)
         seg = ms.make_segments([y], [u], h, start)
         nodes = np.concatenate([seg.y[0] - [0.0, o], _rates(y, dt)[seg.start]], axis=1)
-        pred = ms.simulate_segments(nodes, seg.u, params, dt, past=seg.past)
+        pred = ms.simulate_segments(nodes, seg.u, twin, dt, past=seg.past)
         pred[..., 1] += o
         out.append(np.sqrt(np.mean((pred - seg.y) ** 2, axis=(0, 1))))
     return np.array(out)

@@ -13,7 +13,10 @@ calibrated twin, predicts 0.2 s open loop, and gives per controller the
 median standard deviation ratios, overall, of the slow motion (below
 0.5 Hz) and in the bands below 0.3, 0.3-1, 1-3 and above 3 Hz
 (``--weighting controller`` makes each controller's logs count alike in the
-fit, however many each has); the
+fit, however many each has). What changes between recordings is fitted per
+setup, the rest of the physics once (``--setups``): by default the cables'
+stiffness per recording day, which the plant file keeps beside the central
+value and a replay of a log of that day uses; the
 plant file's provenance then records the balanced count, the standard
 deviation ratios' minimum and maximum (theta, alpha, voltage) and the mean
 replay NRMSE.
@@ -88,6 +91,16 @@ def _parser() -> argparse.ArgumentParser:
         help="with logs of several controllers: episode (default) counts every episode alike; "
         "controller weights the residuals so that each controller's logs count alike",
     )
+    p.add_argument(
+        "--setups",
+        choices=("cables", "cables-and-delay", "none"),
+        default="cables",
+        help="what changes between recordings gets a value per setup, the rest of the physics is shared: "
+        "cables (default): the stiffness of the cables between the arm's hub and the base per recording "
+        "day (they are dressed anew when the rig is set up); cables-and-delay: also the command delay per "
+        "recording session (logs started less than 10 minutes apart: the host's latency); none: one value "
+        "of each for all logs. A replay of a log recorded then uses its setups' values",
+    )
     add_force_option(p)
     add_standard_options(p, "no progress line")
     return p
@@ -137,6 +150,13 @@ def _run(args) -> int:
         [e.plant_input for e in episodes],
         episodes[0].dt,
         [group_of[i] for i in range(len(episodes))],
+        _setups(episodes, args.setups),
+    )
+    plant = PlantFile(
+        cal.params_,
+        cal.standard_errors_,
+        setups=_by_setup(cal.setup_values_),
+        setup_standard_errors=_by_setup(cal.setup_errors_),
     )
     seconds = time.perf_counter() - started
     names = [p.name for p in fit_paths]
@@ -152,12 +172,13 @@ def _run(args) -> int:
         "delay_samples": args.delay,
         "seconds": round(seconds, 1),
         "weighting": args.weighting,
+        "setups": args.setups,
     }
     if len(fit_groups) > 1:
         provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
     validation, val_dt = None, None
     if val_paths:
-        validation, val_dt, summary = _validate(_read(val_paths), val_paths, cal.params_)
+        validation, val_dt, summary = _validate(_read(val_paths), val_paths, plant)
         text += summary
         replays = [v[0] for v in validation]
         ratio = np.concatenate([r.std_ratio for r in replays])
@@ -175,8 +196,9 @@ def _run(args) -> int:
                     [round(float(x), 4) for x in np.median(v[0].std_ratio, axis=0)] for v in validation
                 ],
             )
+    plant.provenance = provenance
     try:
-        save_plant(args.out, PlantFile(cal.params_, cal.standard_errors_, provenance))
+        save_plant(args.out, plant)
     except OSError as exc:
         raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
     print(text)
@@ -185,8 +207,25 @@ def _run(args) -> int:
     return 0
 
 
-def _validate(held, paths, params):
-    """Replay the held-out logs one controller at a time.
+def _setups(episodes, which: str) -> dict:
+    """Each episode's setups (``--setups``): its recording day for the cables, its session for the delay."""
+    from qube_koopman.sim.pendulum.params_file import setup_labels
+
+    labels = setup_labels([e.metadata.start_time for e in episodes])
+    return {"cables-and-delay": labels, "cables": {"Kr": labels["Kr"]}, "none": {}}[which]
+
+
+def _by_setup(per_parameter: dict) -> dict:
+    """``{parameter: {setup: value}}`` turned into the plant file's ``{setup: {parameter: value}}``."""
+    out: dict = {}
+    for name, values in per_parameter.items():
+        for label, value in values.items():
+            out.setdefault(label, {})[name] = value
+    return out
+
+
+def _validate(held, paths, plant):
+    """Replay the held-out logs one controller at a time, each log on its day's twin (``plant.params_for``).
 
     Returns the per-controller ``(replay, open_loop, names, label)`` tuples, the
     sample period and the report's text (each controller's table, then the
@@ -197,9 +236,11 @@ def _validate(held, paths, params):
 
     groups = controller_groups(held)
     several = len(groups) > 1
+    twins = plant.params_for_logs([e.metadata.start_time for e in held])
     out, text = [], ""
     for label, members in groups:
         episodes = [held[i] for i in members]
+        params = [twins[i] for i in members]
         replay = replay_episodes(episodes, params)
         out.append((replay, open_loop_error(episodes, params, replay.offsets), [paths[i].name for i in members], label))
         text += "\n" + validation_text(*out[-1][:3], controller=label if several else None)

@@ -61,7 +61,8 @@ DEFAULT_PROBE_GAINS: tuple[tuple[float, float, float, float, float], ...] = (
 #: one 4.94 ms (the host's latency, after the controller; docs/transfer.md).
 SESSION_DELAYS: tuple[float, ...] = (1.0e-3, 1.9e-3, 4.9e-3)
 #: The cables' stiffness relative to the twin's: the two recording days' logs want stiffnesses
-#: about three times apart (docs/calibration.md), so a factor sqrt(3) either side of the twin's.
+#: 2.4 times apart (0.65 and 1.54 times the twin's, their geometric mean: docs/calibration.md), so a
+#: factor sqrt(3) either side of the twin's spans them.
 CABLE_STIFFNESS_FACTORS: tuple[float, ...] = (3.0**-0.5, 3.0**0.5)
 
 

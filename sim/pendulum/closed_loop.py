@@ -16,12 +16,11 @@ import numpy as np
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.model import (
     DEFAULT_SUBSTEPS,
-    Coefficients,
     PendulumParameters,
     advance,
     as_states,
     check_timing,
-    hold_pattern,
+    coefficients_and_hold,
 )
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
@@ -133,7 +132,7 @@ def simulate_closed_loop(
     Ac, Bc, Cc, Dc = controller.A.T, controller.B.T, controller.C[0], controller.D[0]
     sees_feedforward = controller.n_inputs == 3
     h = controller.dt / n_substeps
-    k, whole, weights, wholes = _per_episode(params, batch, controller.dt, int(n_substeps))
+    k, whole, weights, wholes = coefficients_and_hold(params, batch, controller.dt, int(n_substeps))
     past = np.zeros((whole + 1, *batch)) if past_voltages is None else np.asarray(past_voltages, dtype=float)
     if past.ndim != len(batch) + 1 or past.shape[0] < 1:
         raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
@@ -165,24 +164,3 @@ def simulate_closed_loop(
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)
-
-
-def _per_episode(params, batch: tuple[int, ...], dt: float, n_substeps: int):
-    """The coefficients and hold pattern of one pendulum, or of one per episode (:func:`simulate_closed_loop`).
-
-    Returns ``(k, whole, weights, wholes)``: ``whole`` the most whole samples of delay, ``weights``
-    per substep (floats, or arrays over the batch), ``wholes`` each episode's whole samples (None when
-    they are all ``whole``).
-    """
-    if isinstance(params, PendulumParameters):
-        whole, weights = hold_pattern(params.delay, dt, n_substeps)
-        return Coefficients.of(params), whole, weights, None
-    params = list(params)
-    k = Coefficients.per_episode(params, batch)
-    patterns = [hold_pattern(p.delay, dt, n_substeps) for p in params]
-    wholes = np.array([w for w, _ in patterns]).reshape(batch)
-    table = np.array([w for _, w in patterns])  # (episodes, substeps)
-    same = bool(np.all(table == table[:1]))  # floats then, as for one pendulum; else arrays in every substep
-    weights = tuple(float(c[0]) if same else c.reshape(batch) for c in table.T)
-    whole = int(wholes.max(initial=0))
-    return k, whole, weights, None if np.all(wholes == whole) else wholes

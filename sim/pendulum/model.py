@@ -102,20 +102,20 @@ class PendulumParameters:
 
     # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/sim/test_plant_file.py).
     Rm: float = 8.4
-    km: float = 0.0434562417464848
+    km: float = 0.04541293046813323
     mr: float = 0.095
     Lr: float = 0.085
     mp: float = 0.024
-    Lp: float = 0.1221849497859961
+    Lp: float = 0.12220645231530083
     g: float = 9.81
-    Dr: float = 8.97670099790551e-05
+    Dr: float = 8.232134784403778e-05
     Dp: float = 0.0
-    Cr: float = 0.0003588329452832376
+    Cr: float = 0.0003858062543870657
     coulomb_speed: float = 0.05
-    dead_zone: float = 0.06039981436526427
-    Jh: float = 6.461526828709835e-05
-    delay: float = 0.0019277080983392402
-    Kr: float = 0.0010123202324460432
+    dead_zone: float = 0.054824290776112096
+    Jh: float = 7.319837927598009e-05
+    delay: float = 0.0019406426055590645
+    Kr: float = 0.0011298971870841643
     theta_rest: float = 0.0
 
     def __post_init__(self) -> None:
@@ -207,7 +207,8 @@ class Coefficients(NamedTuple):
     def per_episode(cls, params: Sequence[PendulumParameters], batch: tuple[int, ...]) -> Coefficients:
         """The coefficients of one pendulum per episode of a batch: each field an array of shape ``batch``
         (``params`` in the batch's C order), or a float where every pendulum has the same value."""
-        each = [cls.of(p) for p in params]
+        unique = {p: cls.of(p) for p in params}  # a batch of segments shares a few pendulums
+        each = [unique[p] for p in params]
         if len(each) != math.prod(batch):
             raise ValueError(f"{len(each)} parameter sets for a batch of {batch}: give one per episode")
         values: dict[str, Any] = {}  # floats, or arrays over the batch (the arithmetic takes either)
@@ -293,6 +294,29 @@ def hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[f
     whole = int(math.floor(samples + 1e-12))
     fraction = max(0.0, samples - whole)
     return whole, tuple(min(1.0, max(0.0, fraction * n_substeps - j)) for j in range(n_substeps))
+
+
+def coefficients_and_hold(params, batch: tuple[int, ...], dt: float, n_substeps: int):
+    """The coefficients and hold pattern of one pendulum, or of one per episode of a batch (:func:`simulate`,
+    :func:`~qube_koopman.sim.pendulum.simulate_closed_loop`).
+
+    Returns ``(k, whole, weights, wholes)``: ``whole`` the most whole samples of delay, ``weights``
+    per substep (floats, or arrays over the batch), ``wholes`` each episode's whole samples (None when
+    they are all ``whole``).
+    """
+    if isinstance(params, PendulumParameters):
+        whole, weights = hold_pattern(params.delay, dt, n_substeps)
+        return Coefficients.of(params), whole, weights, None
+    params = list(params)
+    k = Coefficients.per_episode(params, batch)
+    by_delay = {d: hold_pattern(d, dt, n_substeps) for d in {p.delay for p in params}}
+    patterns = [by_delay[p.delay] for p in params]
+    wholes = np.array([w for w, _ in patterns]).reshape(batch)
+    table = np.array([w for _, w in patterns])  # (episodes, substeps)
+    same = bool(np.all(table == table[:1]))  # floats then, as for one pendulum; else arrays in every substep
+    weights = tuple(float(c[0]) if same else c.reshape(batch) for c in table.T)
+    whole = int(wholes.max(initial=0))
+    return k, whole, weights, None if np.all(wholes == whole) else wholes
 
 
 def advance(
@@ -388,7 +412,7 @@ def rk4_step(
 def simulate(
     state0,
     voltages,
-    params: PendulumParameters = PendulumParameters(),
+    params: PendulumParameters | Sequence[PendulumParameters] = PendulumParameters(),
     dt: float = SAMPLE_PERIOD,
     n_substeps: int = DEFAULT_SUBSTEPS,
     past_voltages=None,
@@ -401,6 +425,9 @@ def simulate(
         Initial state(s).
     voltages : array_like of shape (n_steps, ...)
         Voltage over each sample period; trailing shape broadcastable to the batch.
+    params : PendulumParameters, or a sequence of them
+        The pendulum, or one per element of the batch (in its C order): a multiple-shooting fit
+        simulates each setup's segments with its own cables and delay, all in one batch.
     past_voltages : array_like of shape (n_past, ...), optional
         Commands before the first sample, oldest first: with a transport delay
         (``params.delay``) the motor still sees them; zero volts by default.
@@ -418,18 +445,24 @@ def simulate(
     batch = np.broadcast_shapes(x.shape[:-1], voltages.shape[1:])
     out = np.empty((voltages.shape[0] + 1, *batch, 4))
     out[0] = x
-    k = Coefficients.of(params)
     comps = tuple(np.broadcast_to(x[..., i], batch) for i in range(4))
     h = dt / n_substeps
-    whole, weights = hold_pattern(params.delay, dt, int(n_substeps))
+    k, whole, weights, wholes = coefficients_and_hold(params, batch, dt, int(n_substeps))
     past = np.zeros((whole + 1, *voltages.shape[1:])) if past_voltages is None else np.asarray(past_voltages, float)
     if past.ndim != voltages.ndim:
         raise ValueError("past_voltages must have a leading time axis and the voltages' trailing shape")
     commands = np.concatenate([np.broadcast_to(past, (past.shape[0], *voltages.shape[1:])), voltages])
     first = past.shape[0] - whole
+    if wholes is not None:  # each episode's own whole samples of delay back: commands over the whole batch
+        commands = np.broadcast_to(commands, (commands.shape[0], *batch))
+        own = past.shape[0] - wholes
     for step in range(voltages.shape[0]):
-        now = commands[max(0, first + step)]
-        before = commands[max(0, first + step - 1)]
+        if wholes is None:
+            now = commands[max(0, first + step)]
+            before = commands[max(0, first + step - 1)]
+        else:
+            now = np.take_along_axis(commands, np.maximum(own + step, 0)[None], 0)[0]
+            before = np.take_along_axis(commands, np.maximum(own + step - 1, 0)[None], 0)[0]
         comps = advance(comps, before, now, weights, h, k, np.sin, np.cos)
         out[step + 1] = np.stack(np.broadcast_arrays(*comps), axis=-1)
     return out

@@ -15,6 +15,15 @@
     [standard_errors]       # optional: one standard error per fitted parameter
     km = 0.0003
 
+    [setups."2023-09-15"]   # optional: what differed on a day the rig was set up (logs of that day)
+    Kr = 0.0017             # PendulumParameters fields; the others are [parameters]'s
+
+    [setups."2023-09-15 15:19:11-15:23:27"]   # a session: logs started within 10 min of its span
+    delay = 0.0049
+
+    [setup_standard_errors."2023-09-15"]
+    Kr = 4e-6
+
     [provenance]            # optional, free-form: where the numbers came from
     source = "qube-calibrate"
     logs = ["episodes/ep_001.mcap", ...]
@@ -22,8 +31,15 @@
     created = "2026-11-23T11:00:00+00:00"
     residual_rms = 0.0012
 
-Unknown keys in ``[parameters]`` are an error (a misspelt ``Dr`` must not
-silently keep its default). Values are TOML floats or integers; provenance
+Unknown keys in ``[parameters]`` and ``[setups.*]`` are an error (a misspelt ``Dr`` must not
+silently keep its default). A setup is what differed when the logs were recorded: the cables
+between the arm's hub and the base are dressed anew each time the rig is set up (a day: the
+two recording days' logs want stiffnesses 2.4 times apart), the host's latency from a command to
+the motor changes with the session (1.0, 1.9 and 4.9 ms in three). ``qube-calibrate`` fits those per day and
+per session with the rest of the physics shared; a replay of a log recorded then uses them
+(:meth:`PlantFile.params_for`), and ``[parameters]`` holds the central guess for a day or
+session no log shows.
+Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
 Named parameter sets (:func:`named_parameters`): ``"calibrated-two-controllers"``
@@ -43,14 +59,19 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import asdict, fields
+from dataclasses import asdict, fields, replace
 from pathlib import Path
+from typing import Sequence
 
 from qube_koopman.sim.pendulum.model import PendulumParameters
 from qube_koopman.core.files import atomic_path
 
 __all__ = [
     "PlantFile",
+    "SESSION_GAP",
+    "recording_day",
+    "recording_sessions",
+    "setup_labels",
     "load_plant",
     "save_plant",
     "named_parameters",
@@ -61,6 +82,83 @@ __all__ = [
 ]
 
 FORMAT = "qube-plant/1"
+
+#: Seconds between two logs' starts beyond which the second starts a new recording session.
+SESSION_GAP = 600.0
+
+_DAY = "%Y-%m-%d"
+_TIME = "%Y-%m-%dT%H:%M:%S"
+
+
+def recording_day(start_time: str | None) -> str:
+    """The day (``YYYY-MM-DD``) of a log's start time (ISO 8601); "unknown" without a readable one."""
+    started = _started(start_time)
+    return "unknown" if started is None else started.strftime(_DAY)
+
+
+def recording_sessions(start_times: Sequence[str | None]) -> list[str]:
+    """Each log's recording session: logs whose starts follow each other within :data:`SESSION_GAP`.
+
+    Parameters
+    ----------
+    start_times : sequence of str
+        The logs' start times (ISO 8601, as logged), in any order.
+
+    Returns
+    -------
+    list of str
+        Per log, its session's label ``"YYYY-MM-DD HH:MM:SS-HH:MM:SS"`` (its first and last logs'
+        starts), or "unknown" for a log without a readable start time.
+    """
+    started = [_started(t) for t in start_times]
+    order = sorted((t, i) for i, t in enumerate(started) if t is not None)
+    labels = ["unknown"] * len(started)
+    groups: list[list[tuple]] = []
+    for t, i in order:
+        if groups and (t - groups[-1][-1][0]).total_seconds() <= SESSION_GAP:
+            groups[-1].append((t, i))
+        else:
+            groups.append([(t, i)])
+    for group in groups:
+        first, last = group[0][0], group[-1][0]
+        label = f"{first:%Y-%m-%d %H:%M:%S}-{last:%H:%M:%S}"
+        for _, i in group:
+            labels[i] = label
+    return labels
+
+
+def setup_labels(start_times: Sequence[str | None]) -> dict[str, list[str]]:
+    """The setups of logs started at ``start_times``, as ``qube-calibrate --setups cables-and-delay`` fits them.
+
+    Returns
+    -------
+    dict
+        ``{"Kr": each log's recording day, "delay": each log's recording session}``: the cables are
+        dressed anew when the rig is set up, the host's latency changes with the session.
+    """
+    return {"Kr": [recording_day(t) for t in start_times], "delay": recording_sessions(start_times)}
+
+
+def _started(start_time: str | None):
+    from datetime import datetime
+
+    try:
+        return datetime.strptime(str(start_time or "")[:19], _TIME)
+    except ValueError:
+        return None
+
+
+def _session_span(label: str):
+    """The first and last starts of a session label, or None for a label that is not one (a day)."""
+    from datetime import datetime
+
+    try:
+        first = datetime.strptime(label[:19], "%Y-%m-%d %H:%M:%S")
+        last = datetime.strptime(label[:10] + " " + label[20:], "%Y-%m-%d %H:%M:%S")
+    except ValueError:
+        return None
+    return (first, last) if len(label) == 28 and label[19] == "-" else None
+
 
 #: Shipped plant files.
 PLANTS = Path(__file__).resolve().parent / "plants"
@@ -78,14 +176,89 @@ class PlantFile:
     params : PendulumParameters
     standard_errors : dict of str to float
     provenance : dict
+    setups : dict of str to dict of str to float, optional
+        Per setup (a recording day, ``YYYY-MM-DD``), the parameters that differed that day.
+    setup_standard_errors : dict of str to dict of str to float, optional
+        Their standard errors.
     """
 
     def __init__(
-        self, params: PendulumParameters, standard_errors: dict | None = None, provenance: dict | None = None
+        self,
+        params: PendulumParameters,
+        standard_errors: dict | None = None,
+        provenance: dict | None = None,
+        setups: dict | None = None,
+        setup_standard_errors: dict | None = None,
     ) -> None:
         self.params = params
         self.standard_errors = dict(standard_errors or {})
         self.provenance = dict(provenance or {})
+        self.setups = {str(k): dict(v) for k, v in (setups or {}).items()}
+        self.setup_standard_errors = {str(k): dict(v) for k, v in (setup_standard_errors or {}).items()}
+
+    def params_for(self, start_time: str | None) -> PendulumParameters:
+        """The twin of a log that started at ``start_time``: :attr:`params` with the values of its setups.
+
+        Its day's (a setup labelled ``YYYY-MM-DD``) and its session's (a setup labelled
+        ``"YYYY-MM-DD HH:MM:SS-HH:MM:SS"`` whose span the start falls in, give or take
+        :data:`SESSION_GAP`), where the file has them; :meth:`params_for_logs` for several logs.
+
+        Parameters
+        ----------
+        start_time : str or None
+            The log's start (ISO 8601, as logged); None or a time no setup covers gives :attr:`params`.
+
+        Returns
+        -------
+        PendulumParameters
+        """
+        return self.params_for_logs([start_time])[0]
+
+    def params_for_logs(self, start_times: Sequence[str | None]) -> list[PendulumParameters]:
+        """The twin of each of several logs: :meth:`params_for`, their sessions found together.
+
+        Logs that follow each other within :data:`SESSION_GAP` are one session, as
+        :func:`recording_sessions` finds them, and so are they with a session of the file
+        they reach: a log recorded 15 minutes after the fitted ones, with others between, is of
+        their session (nearest in time if its chain reaches two).
+
+        Parameters
+        ----------
+        start_times : sequence of str or None
+            The logs' starts (ISO 8601, as logged).
+
+        Returns
+        -------
+        list of PendulumParameters
+        """
+        started = [_started(t) for t in start_times]
+        sessions = {label: span for label in self.setups if (span := _session_span(label)) is not None}
+        # Spans in time (a log's is its start), chained while the next begins within the gap of the chain's end.
+        spans = sorted(
+            [(t, t, i, None) for i, t in enumerate(started) if t is not None]
+            + [(first, last, -1, label) for label, (first, last) in sessions.items()]
+        )
+        session_of: dict[int, str] = {}
+        chain: list[tuple] = []
+        for span in [*spans, None]:  # a None closes the last chain
+            if span is not None and chain and (span[0] - max(c[1] for c in chain)).total_seconds() <= SESSION_GAP:
+                chain.append(span)
+                continue
+            known = [c for c in chain if c[3] is not None]
+            for t, _, i, label in chain:
+                if label is None and known:
+                    nearest = min(known, key=lambda k: max((k[0] - t).total_seconds(), (t - k[1]).total_seconds()))
+                    session_of[i] = nearest[3]
+            chain = [] if span is None else [span]
+        out = []
+        for i, t in enumerate(started):
+            if t is None:
+                out.append(self.params)
+                continue
+            values = {k: float(v) for k, v in self.setups.get(t.strftime(_DAY), {}).items()}
+            values.update({k: float(v) for k, v in self.setups.get(session_of.get(i, ""), {}).items()})
+            out.append(replace(self.params, **values) if values else self.params)
+        return out
 
 
 #: The named parameter sets (:func:`named_parameters`).
@@ -149,19 +322,37 @@ def load_plant(path: str | Path) -> PlantFile:
         raise PlantFileError(f"{path}: not a TOML file ({exc})") from None
     if data.get("format") != FORMAT:
         raise PlantFileError(f"{path}: format must be {FORMAT!r}, got {data.get('format')!r}")
-    values = data.get("parameters", {})
+    values = _numbers(path, data.get("parameters", {}), "")
+    try:
+        params = PendulumParameters(**values)
+    except ValueError as exc:
+        raise PlantFileError(f"{path}: {exc}") from None
+    setups = {str(day): _numbers(path, table, f"setup {day}: ") for day, table in data.get("setups", {}).items()}
+    plant = PlantFile(
+        params, data.get("standard_errors", {}), data.get("provenance", {}), setups, data.get("setup_standard_errors")
+    )
+    for day, table in setups.items():
+        try:
+            replace(params, **table)
+        except ValueError as exc:
+            raise PlantFileError(f"{path}: setup {day}: {exc}") from None
+    return plant
+
+
+def _numbers(path: Path, values, where: str) -> dict[str, float]:
+    """A table of PendulumParameters fields and numbers, checked (the message names the file and the key)."""
+    if not isinstance(values, dict):
+        raise PlantFileError(f"{path}: {where}must be a table of parameters, got {values!r}")
     known = {f.name for f in fields(PendulumParameters)}
     unknown = sorted(set(values) - known)
     if unknown:
-        raise PlantFileError(f"{path}: unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        raise PlantFileError(
+            f"{path}: {where}unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
+        )
     for name, value in values.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise PlantFileError(f"{path}: parameter {name} must be a number, got {value!r}")
-    try:
-        params = PendulumParameters(**{k: float(v) for k, v in values.items()})
-    except ValueError as exc:
-        raise PlantFileError(f"{path}: {exc}") from None
-    return PlantFile(params, data.get("standard_errors", {}), data.get("provenance", {}))
+            raise PlantFileError(f"{path}: {where}parameter {name} must be a number, got {value!r}")
+    return {k: float(v) for k, v in values.items()}
 
 
 def _toml_value(value) -> str:
@@ -189,13 +380,17 @@ def save_plant(path: str | Path, plant: PlantFile) -> None:
     path : str or Path
         The file (written atomically, replaced if it exists).
     plant : PlantFile
-        The parameters, their standard errors and provenance.
+        The parameters, their standard errors, the setups' and provenance.
     """
     lines = [f'format = "{FORMAT}"', "", "[parameters]"]
     lines += [f"{k} = {_toml_value(float(v))}" for k, v in asdict(plant.params).items()]
     if plant.standard_errors:
         lines += ["", "[standard_errors]"]
         lines += [f"{k} = {_toml_value(float(v))}" for k, v in plant.standard_errors.items()]
+    for name, tables in (("setups", plant.setups), ("setup_standard_errors", plant.setup_standard_errors)):
+        for day, table in tables.items():
+            lines += ["", f"[{name}.{_toml_value(str(day))}]"]
+            lines += [f"{k} = {_toml_value(float(v))}" for k, v in table.items()]
     if plant.provenance:
         lines += ["", "[provenance]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in plant.provenance.items()]

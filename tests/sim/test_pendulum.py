@@ -367,3 +367,21 @@ def test_a_batch_of_pendulums_each_with_its_own_physics_and_delay_runs_as_each_a
     assert np.abs(batch.states[:, 1] - simulate_closed_loop(x0[1:2], controller, refs[:, 1:2], ff[:, 1:2],
                                                             replace(params[1], delay=1.0e-3), exact,
                                                             past_voltages=past[:, 1:2]).states[:, 0]).max() > 1e-4
+
+
+def test_one_pendulum_per_batch_element_is_each_simulated_alone():
+    # What a multiple-shooting fit with setups runs: segments of different cables and delays (whole
+    # and fractional samples apart) in one batch, each as if simulated on its own.
+    from dataclasses import replace
+
+    pendulums = [replace(PendulumParameters(), Kr=kr, delay=d) for kr, d in ((7e-4, 1e-3), (1.8e-3, 4.3e-3), (1e-3, 0.0))]
+    rng = np.random.default_rng(3)
+    state0 = np.column_stack([rng.normal(0, 0.05, 3), rng.normal(0, 0.02, 3), np.zeros((3, 2))])
+    volts = rng.normal(0, 1.0, (200, 3))
+    past = rng.normal(0, 1.0, (4, 3))
+    batch = simulate(state0, volts, pendulums, past_voltages=past)
+    for i, p in enumerate(pendulums):
+        alone = simulate(state0[i], volts[:, i], p, past_voltages=past[:, i])
+        np.testing.assert_allclose(batch[:, i], alone, rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match="3 parameter sets for a batch of \\(2,\\)"):
+        simulate(state0[:2], volts[:, :2], pendulums)

@@ -25,6 +25,51 @@ def test_round_trip_keeps_every_value_and_the_provenance(tmp_path):
     assert back.provenance == plant.provenance
 
 
+def test_setups_round_trip_and_give_each_logs_twin(tmp_path):
+    params = PendulumParameters(Kr=1e-3, delay=1.9e-3)
+    setups = {"2023-08-28": {"Kr": 7e-4}, "2023-09-15": {"Kr": 2e-3},
+              "2023-09-15 15:19:11-15:23:27": {"delay": 4.9e-3}, "2023-08-28 16:11:55-16:49:02": {"delay": 1e-3}}
+    plant = PlantFile(params, {"Kr": 2e-6}, {"source": "test"}, setups, {"2023-09-15": {"Kr": 4e-6}})
+    save_plant(tmp_path / "p.toml", plant)
+    back = load_plant(tmp_path / "p.toml")
+    assert back.setups == plant.setups and back.setup_standard_errors == plant.setup_standard_errors
+    # A log of a session: its day's cables and its session's delay, a session reaching 10 minutes
+    # either side of its logs' starts.
+    assert back.params_for("2023-09-15T15:20:16") == replace(params, Kr=2e-3, delay=4.9e-3)
+    assert back.params_for("2023-09-15T15:33:00") == replace(params, Kr=2e-3, delay=4.9e-3)
+    assert back.params_for("2023-09-15T15:34:00") == replace(params, Kr=2e-3)
+    assert back.params_for("2023-09-15T15:09:10") == replace(params, Kr=2e-3)
+    assert back.params_for("2023-08-28T16:30:00.123") == replace(params, Kr=7e-4, delay=1e-3)
+    # Logs together: a session reaches as far as its logs follow each other within 10 minutes.
+    later = ["2023-09-15T15:30:00", "2023-09-15T15:39:00", "2023-09-15T15:48:00", "2023-09-15T16:30:00"]
+    assert [p.delay for p in back.params_for_logs(later)] == [4.9e-3, 4.9e-3, 4.9e-3, 1.9e-3]
+    # A day the calibration did not see, or no start time: the central twin.
+    assert back.params_for("2024-01-01T10:00:00") == back.params_for(None) == back.params_for("soon") == params
+
+
+def test_recording_sessions_follow_the_gap_between_starts():
+    from qube_koopman.sim.pendulum.params_file import recording_day, recording_sessions
+
+    starts = ["2023-09-15T15:19:11", "2023-09-15T14:54:50", "2023-09-15T15:04:50", "2023-09-15T15:23:27", None]
+    assert recording_sessions(starts) == ["2023-09-15 15:19:11-15:23:27", "2023-09-15 14:54:50-15:04:50",
+                                          "2023-09-15 14:54:50-15:04:50", "2023-09-15 15:19:11-15:23:27", "unknown"]
+    assert recording_day("2023-09-15T15:19:11") == "2023-09-15" and recording_day(None) == "unknown"
+
+
+@pytest.mark.parametrize("table, message", [
+    ('[setups."2023-09-15"]\nKrr = 0.001\n', "setup 2023-09-15: unknown parameter(s) Krr"),
+    ('[setups."2023-09-15"]\nKr = -0.001\n', "setup 2023-09-15: parameter Kr must be non-negative"),
+    ('[setups."2023-09-15"]\nKr = "x"\n', "setup 2023-09-15: parameter Kr must be a number"),
+    ('[setups]\nday = 1.0\n', "setup day: must be a table"),
+])
+def test_bad_setups_name_the_file_the_day_and_the_problem(tmp_path, table, message):
+    path = tmp_path / "p.toml"
+    path.write_text('format = "qube-plant/1"\n[parameters]\nKr = 0.001\n' + table)
+    with pytest.raises(PlantFileError, match=r"p\.toml") as info:
+        load_plant(path)
+    assert message in str(info.value)
+
+
 def test_missing_parameters_keep_their_defaults(tmp_path):
     (tmp_path / "p.toml").write_text('format = "qube-plant/1"\n[parameters]\nDr = 0.001\n')
     assert load_plant(tmp_path / "p.toml").params == PendulumParameters(Dr=0.001)
