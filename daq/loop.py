@@ -20,7 +20,7 @@ import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -76,6 +76,9 @@ class EpisodePlan:
         Run identifier recorded in the log.
     extra : dict
         Further provenance recorded in the log.
+    plant : PendulumParameters, optional
+        On a simulated backend, the pendulum this episode runs (``qube-run --replay``: the replayed
+        log's twin, with its recording day's cables); None: the backend's.
     """
 
     controller: ControllerInfo
@@ -84,6 +87,7 @@ class EpisodePlan:
     index: int = 0
     source: str = ""
     extra: dict = field(default_factory=dict)
+    plant: Any = None
 
     @property
     def n_samples(self) -> int:
@@ -338,6 +342,8 @@ def run_episode(
     with signals, quiet:
         pacer = DeadlinePacer(period, spin) if backend.pacing is Pacing.LOOP else None
         times = _TickTimes(period, timing)
+        if plan.plant is not None and hasattr(backend, "use_plant"):
+            backend.use_plant(plan.plant)
         reason, cause = _start(backend, limits, stop, pacer)
         if reason:
             return EpisodeResult(

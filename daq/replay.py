@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings
@@ -32,9 +32,16 @@ def _settings(meta, path: Path) -> ExcitationSettings:
 
 
 def replay_plans(
-    paths: Sequence[str | Path], controller: ControllerInfo | None = None, source: str = "qube-run --replay"
+    paths: Sequence[str | Path],
+    controller: ControllerInfo | None = None,
+    source: str = "qube-run --replay",
+    twins: Callable[[list], list] | None = None,
 ) -> list[EpisodePlan]:
     """One plan per log: its excitation regenerated, under ``controller`` or the log's own.
+
+    ``twins`` maps the logs' start times to the pendulum each replays on (a plant file's
+    :meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.params_for_logs`: each log's
+    recording day's cables), set as the plans' ``plant``; None leaves the backend's.
 
     Raises
     ------
@@ -43,7 +50,7 @@ def replay_plans(
     """
     from qube_koopman.daq.log import read_episode_metadata
 
-    plans = []
+    plans, starts = [], []
     for i, raw in enumerate(paths):
         path = Path(raw)
         try:
@@ -64,4 +71,7 @@ def replay_plans(
             extra={"command": "qube-run --replay", "replay_of": path.name},
         )
         plans.append(replace(plan, index=i))
+        starts.append(meta.start_time)
+    if twins is not None:
+        plans = [replace(plan, plant=twin) for plan, twin in zip(plans, twins(starts))]
     return plans

@@ -92,6 +92,11 @@ class SimBackend(Backend):
         self._initial_state = (0.0, 0.0, 0.0, 0.0)
         self._running = False
 
+    def use_plant(self, params: PendulumParameters) -> None:
+        """Simulate ``params`` from the next :meth:`start` on (a replayed log's own twin: its day's cables)."""
+        self.params = params
+        self._sim.params = params
+
     def start(self) -> None:
         """Reset the pendulum upright with a fresh random perturbation and encoder zero."""
         alpha0, offset = self._start_draws()

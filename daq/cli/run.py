@@ -118,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="LOG",
         help="run the same excitations as these logs (their seeds, settings and durations), "
-        "under their own controller unless --controller is given",
+        "under their own controller unless --controller is given; on the simulator each on its "
+        "recording day's twin when the plant file (--plant, or the shipped one) has that day's cables",
     )
     p.add_argument(
         "--controller",
@@ -335,8 +336,11 @@ def _replay(args, rate: float):
     controller = None
     if args.controller is not None:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
+    twins = None
+    if args.backend == "sim":  # each log on its recording day's twin, when the plant file knows the day
+        twins = _load_plant_file(args.plant).params_for_logs
     try:
-        plans = replay_plans(args.replay, controller)
+        plans = replay_plans(args.replay, controller, twins=twins)
     except ValueError as exc:
         raise CliError(f"{exc} (--replay)") from None
     args.episodes = len(plans)
@@ -348,10 +352,15 @@ def _replay(args, rate: float):
 
 def _load_plant(path):
     """The --plant file's parameters (the defaults without one); a one-line error when unreadable."""
-    from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_parameters
+    return _load_plant_file(path).params
+
+
+def _load_plant_file(path):
+    """The --plant file (the shipped twin's without one), with its setups; a one-line error when unreadable."""
+    from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_file
 
     try:
-        return plant_parameters(path)
+        return plant_file(path)
     except PlantFileError as exc:
         raise CliError(str(exc)) from None
 

@@ -75,6 +75,7 @@ __all__ = [
     "load_plant",
     "save_plant",
     "named_parameters",
+    "plant_file",
     "plant_parameters",
     "PARAMETER_SETS",
     "PlantFileError",
@@ -294,6 +295,25 @@ def plant_parameters(name_or_path: str | Path | None) -> PendulumParameters:
     if str(name_or_path) in PARAMETER_SETS and not Path(name_or_path).exists():
         return named_parameters(str(name_or_path))
     return load_plant(name_or_path).params
+
+
+def plant_file(name_or_path: str | Path | None) -> PlantFile:
+    """What ``--plant`` names, with its setups: :func:`plant_parameters` as a :class:`PlantFile`.
+
+    None and ``"default"`` give the shipped twin's file (its recording days' cables), a named set
+    without a file its parameters alone (no setups).
+
+    Raises
+    ------
+    PlantFileError
+        The file cannot be read (the message names it).
+    """
+    named = name_or_path is not None and str(name_or_path) in PARAMETER_SETS and not Path(name_or_path).exists()
+    if name_or_path is None or (named and str(name_or_path) in ("default", "calibrated-two-controllers")):
+        return load_plant(PLANTS / "qube_20230828_20230915.toml")
+    if named:
+        return PlantFile(named_parameters(str(name_or_path)))
+    return load_plant(name_or_path)
 
 
 def load_plant(path: str | Path) -> PlantFile:

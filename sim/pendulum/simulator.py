@@ -127,8 +127,16 @@ class PendulumSimulator:
 
     @property
     def params(self) -> PendulumParameters:
-        """The model's parameters (fixed at construction: the integrator precomputes from them)."""
+        """The model's parameters; settable between episodes (a replayed log's day's cables, say):
+        the integrator's coefficients follow, the commands in flight start again from 0 V."""
         return self._params
+
+    @params.setter
+    def params(self, params: PendulumParameters) -> None:
+        self._params = params
+        self._k = Coefficients.of(params)
+        self._whole, self._weights = hold_pattern(params.delay, self.dt, self.n_substeps)
+        self._commands = [0.0] * (self._whole + 1)
 
     @property
     def sensor(self) -> SensorModel:

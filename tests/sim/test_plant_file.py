@@ -175,6 +175,37 @@ def test_replay_repeats_the_logged_excitations_under_another_plant(tmp_path, cap
     assert "junk.mcap" in err and "Traceback" not in err
 
 
+def test_replay_runs_each_log_on_its_recording_days_cables(tmp_path):
+    # A plant file that knows the logs' day (their cables dressed stiffer that day): each replay runs
+    # that day's twin and records it; a day the file does not know runs its central twin.
+    from qube_koopman.sim.pendulum.params_file import recording_day
+
+    assert run_main(["--episodes", "2", "--duration", "1", "--seed", "4", "--out", str(tmp_path / "a"), "-q"]) == 0
+    logs = sorted(map(str, (tmp_path / "a").glob("*.mcap")))
+    day = recording_day(read_episode(logs[0]).metadata.start_time)
+    central = PendulumParameters(Kr=1e-3)
+    save_plant(tmp_path / "days.toml", PlantFile(central, setups={day: {"Kr": 3e-3}, "2001-01-01": {"Kr": 5e-4}}))
+    save_plant(tmp_path / "other.toml", PlantFile(central, setups={"2001-01-01": {"Kr": 5e-4}}))
+    for plant, expected in (("days.toml", 3e-3), ("other.toml", 1e-3)):
+        out = tmp_path / plant.removesuffix(".toml")
+        assert run_main(["--replay", *logs, "--plant", str(tmp_path / plant), "--out", str(out), "-q"]) == 0
+        recorded = [read_episode(p).metadata.extra["backend"]["params"]["Kr"] for p in sorted(out.glob("*.mcap"))]
+        assert recorded == [expected, expected], plant
+
+
+def test_a_simulator_given_another_pendulum_between_episodes_runs_it_as_a_new_one():
+    from qube_koopman.daq.backends import SimBackend
+
+    stiff = replace(PendulumParameters(), Kr=3e-3, delay=4e-3)
+    switched, fresh = SimBackend(seed=3), SimBackend(params=stiff, seed=3)
+    switched.use_plant(stiff)
+    for backend in (switched, fresh):
+        backend.start()
+        for _ in range(200):
+            backend.write(0.5)
+    assert switched.read() == fresh.read() and switched.describe()["params"] == fresh.describe()["params"]
+
+
 def test_dead_zone_swallows_small_voltages_and_is_off_in_the_workbook_model():
     base = PendulumParameters.previous()
     x0 = np.array([0.0, math.pi, 0.0, 0.0])
