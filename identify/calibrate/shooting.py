@@ -37,14 +37,15 @@ and the base is fitted too (bounded to [0, 0.01] N m/rad; its rest angle stays a
 zero, where the operator starts an episode): under a soft arm loop the slow load it puts on the
 arm is what moved the arm (0.2-0.4 V of restoring voltage at the arm's excursions), and without it
 the fit made up for it with ``km`` and ``Jh`` (``km`` 0.050 without the spring, 0.042-0.044 with
-it; the workbook's 0.042). Two of the parameters belong to a setup rather than to the rig:
-the cables' stiffness (dressed anew each time the rig is set up: the two recording days' logs
-want 0.14 and 0.34 V/rad) and the delay (the host's latency: 1.0, 1.9 and 4.9 ms in three
-sessions). Segments may carry, per such parameter, the setup they were recorded in
-(:attr:`Segments.setups`); each setup after the first then gets its own value, a variable after
-the physical ones (the first keeps the physical variable), and the rest is shared. The Coulomb friction's
-smoothing speed stays nominal: fitted, it ran to its lower bound without improving the closed-loop
-replay (measured).
+one stiffness for all logs, 0.045 with one per recording day; the workbook's 0.042). Two of the
+parameters belong to a setup rather than to the rig: the cables' stiffness (dressed anew each
+time the rig is set up: the two recording days' logs want 0.135 and 0.323 V/rad) and the delay
+(the host's latency: 0.8-1.1 ms in three sessions, 4.3 ms in the soft controller's later one).
+Segments may carry, per such parameter, the setup they were recorded in (:attr:`Segments.setups`);
+each setup after the first then gets its own value, a variable after the physical ones (the
+first keeps the physical variable), and the rest is shared. The Coulomb friction's smoothing
+speed stays nominal: fitted, it ran to its lower bound without improving the closed-loop replay
+(measured).
 """
 
 from __future__ import annotations

@@ -86,7 +86,9 @@ class PendulumParameters:
         (the pendulum encoder's lead): they pull the arm back towards
         ``theta_rest`` with the torque ``-Kr (theta - theta_rest)``; 0 leaves
         them out. Under a soft arm loop this slow, position-dependent load is
-        what moves the arm (see ``docs/calibration.md``).
+        what moves the arm (see ``docs/calibration.md``). The cables are dressed anew
+        each day the rig is set up: the default is the geometric mean of the two
+        recording days' stiffnesses, which the plant file keeps (its setups).
     theta_rest : float
         Arm angle (rad, the arm encoder's frame) at which the cables pull
         nothing. The rig's operator zeroes the arm encoder with the arm at its
