@@ -8,16 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from qube_koopman.core.files import atomic_path
+from qube_koopman.sim.pendulum.model import Coefficients
 from qube_koopman.sim.pendulum.params_file import named_parameters
 
 __all__ = ["calibration_text", "validation_text", "controller_summary_text", "write_report"]
 
 _log = logging.getLogger(__name__)
-
-
-def _volt(params) -> float:
-    """N m of motor torque per volt at stall (``km / Rm``): a torque in the voltage that holds it."""
-    return params.km / params.Rm
 
 
 def _which(setups: dict) -> str:
@@ -56,7 +52,7 @@ def calibration_text(cal, names: list[str], seconds: float, groups: list | None 
         ]
         for name, values in setups.items():
             for label, value in values.items():
-                volts = f"{value / _volt(cal.params_):.3f} V/rad at the motor"
+                volts = f"{value / Coefficients.of(cal.params_).torque_per_volt:.3f} V/rad at the motor"
                 note = volts if name == "Kr" else f"{1e3 * value:.2f} ms"
                 lines.append(f"| {name} | {label} | {value:.4g} | {cal.setup_errors_[name][label]:.2g} | {note} |")
     lines += [

@@ -89,6 +89,7 @@ SESSION_GAP = 600.0
 
 _DAY = "%Y-%m-%d"
 _TIME = "%Y-%m-%dT%H:%M:%S"
+_SESSION_TIME = "%Y-%m-%d %H:%M:%S"  # a session label's first start
 
 
 def recording_day(start_time: str | None) -> str:
@@ -112,20 +113,27 @@ def recording_sessions(start_times: Sequence[str | None]) -> list[str]:
         starts), or "unknown" for a log without a readable start time.
     """
     started = [_started(t) for t in start_times]
-    order = sorted((t, i) for i, t in enumerate(started) if t is not None)
     labels = ["unknown"] * len(started)
-    groups: list[list[tuple]] = []
-    for t, i in order:
-        if groups and (t - groups[-1][-1][0]).total_seconds() <= SESSION_GAP:
-            groups[-1].append((t, i))
-        else:
-            groups.append([(t, i)])
-    for group in groups:
-        first, last = group[0][0], group[-1][0]
-        label = f"{first:%Y-%m-%d %H:%M:%S}-{last:%H:%M:%S}"
-        for _, i in group:
+    for chain in _chains([(t, t, i) for i, t in enumerate(started) if t is not None]):
+        label = f"{chain[0][0]:{_SESSION_TIME}}-{chain[-1][0]:%H:%M:%S}"
+        for _, _, i in chain:
             labels[i] = label
     return labels
+
+
+def _chains(spans: list[tuple]) -> list[list[tuple]]:
+    """``(start, end, ...)`` spans in time grouped as sessions: sorted by start, each joining the chain
+    before it while it begins within :data:`SESSION_GAP` of that chain's latest end."""
+    chains: list[list[tuple]] = []
+    end = None
+    for span in sorted(spans, key=lambda s: (s[0], s[1])):
+        if chains and (span[0] - end).total_seconds() <= SESSION_GAP:
+            chains[-1].append(span)
+            end = max(end, span[1])
+        else:
+            chains.append([span])
+            end = span[1]
+    return chains
 
 
 def setup_labels(start_times: Sequence[str | None]) -> dict[str, list[str]]:
@@ -154,8 +162,8 @@ def _session_span(label: str):
     from datetime import datetime
 
     try:
-        first = datetime.strptime(label[:19], "%Y-%m-%d %H:%M:%S")
-        last = datetime.strptime(label[:10] + " " + label[20:], "%Y-%m-%d %H:%M:%S")
+        first = datetime.strptime(label[:19], _SESSION_TIME)
+        last = datetime.strptime(label[:10] + " " + label[20:], _SESSION_TIME)
     except ValueError:
         return None
     return (first, last) if len(label) == 28 and label[19] == "-" else None
@@ -234,23 +242,16 @@ class PlantFile:
         """
         started = [_started(t) for t in start_times]
         sessions = {label: span for label in self.setups if (span := _session_span(label)) is not None}
-        # Spans in time (a log's is its start), chained while the next begins within the gap of the chain's end.
-        spans = sorted(
-            [(t, t, i, None) for i, t in enumerate(started) if t is not None]
-            + [(first, last, -1, label) for label, (first, last) in sessions.items()]
-        )
+        # The logs (a span each: its start) and the file's sessions, chained as recording_sessions chains logs.
+        spans = [(t, t, i, "") for i, t in enumerate(started) if t is not None]
+        spans += [(first, last, -1, label) for label, (first, last) in sessions.items()]
         session_of: dict[int, str] = {}
-        chain: list[tuple] = []
-        for span in [*spans, None]:  # a None closes the last chain
-            if span is not None and chain and (span[0] - max(c[1] for c in chain)).total_seconds() <= SESSION_GAP:
-                chain.append(span)
-                continue
-            known = [c for c in chain if c[3] is not None]
+        for chain in _chains(spans):
+            known = [c for c in chain if c[3]]
             for t, _, i, label in chain:
-                if label is None and known:
+                if not label and known:
                     nearest = min(known, key=lambda k: max((k[0] - t).total_seconds(), (t - k[1]).total_seconds()))
                     session_of[i] = nearest[3]
-            chain = [] if span is None else [span]
         out = []
         for i, t in enumerate(started):
             if t is None:
@@ -290,11 +291,9 @@ def plant_parameters(name_or_path: str | Path | None) -> PendulumParameters:
     PlantFileError
         The file cannot be read (the message names it).
     """
-    if name_or_path is None:
+    if name_or_path is None:  # the shipped twin's values, without reading its file
         return PendulumParameters()
-    if str(name_or_path) in PARAMETER_SETS and not Path(name_or_path).exists():
-        return named_parameters(str(name_or_path))
-    return load_plant(name_or_path).params
+    return plant_file(name_or_path).params
 
 
 def plant_file(name_or_path: str | Path | None) -> PlantFile:
