@@ -9,7 +9,7 @@ import numpy as np
 from qube_koopman.core.lti import DiscreteStateSpace
 
 if TYPE_CHECKING:
-    from qube_koopman.identify.data.trajectory import Trajectory
+    from qube_koopman.identify.data.trajectory import EpisodeShape, Trajectory
 
 
 def as_signal(
@@ -57,7 +57,11 @@ def check_nonneg_int(value, name: str, minimum: int = 0) -> int:
 
 
 def check_loop_controller(
-    ctrl: DiscreteStateSpace, measured: list[int], n_f: int, dt: float | None, episode: Trajectory | None = None
+    ctrl: DiscreteStateSpace,
+    measured: list[int],
+    n_f: int,
+    dt: float | None,
+    episode: Trajectory | EpisodeShape | None = None,
 ) -> None:
     """A controller fits the loop's signals (and, given, the episode recorded under it).
 
@@ -71,15 +75,15 @@ def check_loop_controller(
     where = "" if episode is None else f"episode {episode.name or '(unnamed)'}: "
     n_references = None
     if episode is not None:
-        if episode.xc is None:
+        n_xc = episode.width("xc")
+        if n_xc is None:
             raise ValueError(f"{where}closed-loop data need the controller state 'xc'")
-        if ctrl.n_states != episode.xc.shape[1]:
+        if ctrl.n_states != n_xc:
             raise ValueError(
-                f"{where}the controller has {ctrl.n_states} states but the data's controller state "
-                f"has {episode.xc.shape[1]} channels"
+                f"{where}the controller has {ctrl.n_states} states but the data's controller state has {n_xc} channels"
             )
-        assert episode.r is not None  # the estimators' check_trajectories required it
-        n_references = episode.r.shape[1]
+        n_references = episode.width("r")
+        assert n_references is not None  # the estimators' check_trajectories required it
     references = "" if n_references is None else f"{n_references} references and "
     n_errors = ctrl.n_inputs - (n_f if ctrl.n_inputs > len(measured) else 0)  # less a feedforward input
     if n_errors != len(measured) or (n_references is not None and n_errors != n_references):

@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from qube_koopman.core.qube import STATE_NAMES
-from qube_koopman.identify.data.trajectory import EpisodeSequence, Trajectory
+from qube_koopman.identify.data.trajectory import EpisodeSequence, EpisodeShape, Trajectory
 from qube_koopman.core.lti import DiscreteStateSpace, same_system
 
 __all__ = [
@@ -93,6 +93,8 @@ class StoredLog:
     dt: float
     n_samples: int
     skip: int = 0
+    #: Its trajectory's name, length and signal widths, as first read (checks read these, not the log).
+    shape: EpisodeShape | None = None
 
     @property
     def trajectory(self) -> Trajectory:
@@ -116,6 +118,10 @@ class LogTrajectories(EpisodeSequence):
 
     def _make(self, i: int) -> Trajectory:
         return self.logs[i].trajectory
+
+    def shapes(self) -> list[EpisodeShape] | None:
+        shapes = [log.shape if isinstance(log, StoredLog) else log.trajectory.shape() for log in self.logs]
+        return None if any(shape is None for shape in shapes) else shapes  # type: ignore[return-value]
 
 
 def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTrajectory | None, int]:
@@ -202,7 +208,11 @@ def load_logs(
         log, n = _read(path, skip, strict, refusal)
         if log is None:
             continue
-        out.append(StoredLog(path, log.controller, log.gains, log.dt, log.n_samples, skip) if stored else log)
+        out.append(
+            StoredLog(path, log.controller, log.gains, log.dt, log.n_samples, skip, log.trajectory.shape())
+            if stored
+            else log
+        )
         _log.debug("%s: %d samples at %g Hz", path, n, 1.0 / log.dt)
     _log.info("read %d of %d episode logs", len(out), len(paths))
     return out

@@ -9,7 +9,18 @@ import numpy as np
 
 from qube_koopman.identify._checks import as_signal
 
-__all__ = ["Trajectory", "check_trajectories", "EpisodeSequence", "as_episodes", "select_episodes", "episode_signals"]
+__all__ = [
+    "Trajectory",
+    "EpisodeShape",
+    "check_trajectories",
+    "EpisodeSequence",
+    "as_episodes",
+    "select_episodes",
+    "episode_signals",
+]
+
+#: The signals a trajectory may have, besides its states ``x``.
+SIGNALS = ("u", "r", "f", "xc")
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,6 +94,42 @@ class Trajectory:
 
         return replace(self, x=self.x[n:], u=cut(self.u), r=cut(self.r), f=cut(self.f), xc=cut(self.xc))
 
+    def width(self, signal: str) -> int | None:
+        """Channels of ``signal`` (``"x"``, ``"u"``, ``"r"``, ``"f"`` or ``"xc"``), None when it has none."""
+        value = getattr(self, signal)
+        return None if value is None else value.shape[1]
+
+    def shape(self) -> "EpisodeShape":
+        """What checks of this trajectory look at, without its samples."""
+        return EpisodeShape(self.name, self.dt, self.n_samples, {key: self.width(key) for key in ("x", *SIGNALS)})
+
+
+@dataclass(frozen=True)
+class EpisodeShape:
+    """An episode's name, sample period, length and signal widths: what the data checks read.
+
+    A lazy sequence that knows its episodes' shapes (:meth:`EpisodeSequence.shapes`) is checked
+    from them, without reading every episode again at every fit.
+
+    Parameters
+    ----------
+    name : str
+    dt : float or None
+        Sample period in seconds.
+    n_samples : int
+    widths : dict
+        Channels per signal (``"x"``, ``"u"``, ``"r"``, ``"f"``, ``"xc"``), None for a missing one.
+    """
+
+    name: str
+    dt: float | None
+    n_samples: int
+    widths: dict
+
+    def width(self, signal: str) -> int | None:
+        """Channels of ``signal``, None when the episode has none (as :meth:`Trajectory.width`)."""
+        return self.widths.get(signal)
+
 
 class EpisodeSequence(Sequence):
     """Episodes made when asked for and not kept: memory holds one at a time, whatever their number.
@@ -94,6 +141,10 @@ class EpisodeSequence(Sequence):
 
     def _make(self, i: int):
         raise NotImplementedError
+
+    def shapes(self) -> "list[EpisodeShape] | None":
+        """Every episode's :class:`EpisodeShape` when known without reading the episodes, else None."""
+        return None
 
     def __getitem__(self, index):
         if isinstance(index, slice):
@@ -119,6 +170,10 @@ class _EpisodeView(EpisodeSequence):
         episode = self._base[i if self._indices is None else self._indices[i]]
         return episode if self._signal is None else getattr(episode, self._signal)
 
+    def shapes(self) -> "list[EpisodeShape] | None":
+        shapes = None if self._signal is not None else self._base.shapes()
+        return shapes if shapes is None or self._indices is None else [shapes[i] for i in self._indices]
+
 
 def as_episodes(episodes) -> Sequence:
     """A sequence of episodes: lazy ones (:class:`EpisodeSequence`) as they are, anything else as a list."""
@@ -141,34 +196,44 @@ def episode_signals(episodes: Sequence, signal: str) -> Sequence:
     return [getattr(t, signal) for t in episodes]
 
 
+def described_episodes(episodes: Sequence) -> "Sequence[Trajectory | EpisodeShape]":
+    """The episodes' shapes when a lazy sequence knows them (nothing read), else the episodes themselves.
+
+    Checks that look only at names, sample periods, lengths and signal widths (``.name``,
+    ``.dt``, ``.n_samples``, ``.width(signal)``) pass over either.
+    """
+    shapes = episodes.shapes() if isinstance(episodes, EpisodeSequence) else None
+    return episodes if shapes is None else shapes
+
+
 def check_trajectories(
     trajectories, needs: Sequence[str], min_samples: int, what: str, each=None
 ) -> Sequence[Trajectory]:
     """A non-empty sequence of trajectories with the needed signals and consistent widths.
 
-    A lazy sequence (:class:`EpisodeSequence`) is checked episode by episode and returned as it is.
-    ``each(i, trajectory)``, if given, checks more of every trajectory in the same pass (before
-    its signals): a stored log is read once for all the checks.
+    A lazy sequence (:class:`EpisodeSequence`) is checked episode by episode and returned as it is;
+    one that knows its episodes' shapes (:meth:`EpisodeSequence.shapes`) is checked from them,
+    nothing read. ``each(i, episode)``, if given, checks more of every episode in the same pass
+    (before its signals), from what :func:`described_episodes` gives: a stored log is read at
+    most once for all the checks.
     """
     trajectories = as_episodes(trajectories)
     if not len(trajectories):
         raise ValueError(f"{what} needs at least one trajectory")
-    first = trajectories[0]
-    for i, traj in enumerate(trajectories):
-        if not isinstance(traj, Trajectory):
+    described = described_episodes(trajectories)
+    first = described[0]
+    for i, traj in enumerate(described):
+        if not isinstance(traj, (Trajectory, EpisodeShape)):
             raise ValueError(f"{what}: item {i} is a {type(traj).__name__}, not a Trajectory")
         if each is not None:
             each(i, traj)
         label = traj.name or f"#{i}"
         for key in needs:
-            value = getattr(traj, key)
-            if value is None:
+            width, ref = traj.width(key), first.width(key)
+            if width is None:
                 raise ValueError(f"{what} needs signal {key!r}, missing in trajectory {label}")
-            ref = getattr(first, key)
-            if value.shape[1] != ref.shape[1]:
-                raise ValueError(
-                    f"trajectory {label}: {key} has {value.shape[1]} channels, the first trajectory has {ref.shape[1]}"
-                )
+            if width != ref:
+                raise ValueError(f"trajectory {label}: {key} has {width} channels, the first trajectory has {ref}")
         if traj.dt != first.dt:
             raise ValueError(f"trajectory {label} has sample period {traj.dt}, the first has {first.dt}")
         if traj.n_samples < min_samples:

@@ -25,7 +25,14 @@ from qube_koopman.identify.estimators.structure import (
     output_selection,
     plant_input_map,
 )
-from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, check_trajectories, episode_signals
+from qube_koopman.identify.data.trajectory import (
+    EpisodeShape,
+    Trajectory,
+    as_episodes,
+    check_trajectories,
+    described_episodes,
+    episode_signals,
+)
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = ["ClEdmd", "ClEdmdKnownRows", "ClEdmdLstsq"]
@@ -111,8 +118,8 @@ class ClosedLoopKoopman(SnapshotEstimator):
         first = trajs[0] if len(trajs) else None
         with_f = isinstance(first, Trajectory) and first.f is not None
 
-        def same_feedforward(i: int, t: Trajectory) -> None:
-            if (t.f is not None) != with_f:
+        def same_feedforward(i: int, t: Trajectory | EpisodeShape) -> None:
+            if (t.width("f") is not None) != with_f:
                 raise ValueError("feedforward f is present in some episodes and missing in others")
 
         # One pass: a stored log is read once for every check.
@@ -128,7 +135,7 @@ class ClosedLoopKoopman(SnapshotEstimator):
             check_loop_controller(self.controller, measured, n_f, dt, first)
         else:
             check_loop_controller(self.controller, measured, n_f, dt)
-            for t, ctrl in zip(trajs, per_episode):
+            for t, ctrl in zip(described_episodes(trajs), per_episode):
                 check_loop_controller(ctrl, measured, n_f, dt, t)
         lifting.fit(episode_signals(trajs, "x"), first.state_names)
         C_p = output_selection(lifting.n_features_out_, measured)

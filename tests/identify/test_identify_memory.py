@@ -9,6 +9,7 @@ the measure is the arrays', deterministic and independent of the machine's load.
 from __future__ import annotations
 
 import tracemalloc
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -278,3 +279,65 @@ def test_a_search_candidate_on_a_lazy_sequence_scores_as_on_a_list(monkeypatch):
     # Validation episodes one at a time (as 16 of many are): the same scores (offsets converge per episode).
     monkeypatch.setattr(sweep, "EPISODES_PER_BATCH", 1)
     np.testing.assert_allclose(evaluate_candidate(spec, data(_Generated(8, 400))).cv_r2, listed.cv_r2, rtol=1e-9)
+
+
+class _Described(_Generated):
+    """Generated episodes that know their shapes, as stored logs do; ``made`` counts the episodes made."""
+
+    def __init__(self, episodes: list[Trajectory]) -> None:
+        super().__init__(len(episodes))
+        self.episodes, self.made = episodes, 0
+
+    def _make(self, i: int) -> Trajectory:
+        self.made += 1
+        return self.episodes[i]
+
+    def shapes(self):
+        return [t.shape() for t in self.episodes]
+
+
+def _bad_sets() -> dict[str, list[Trajectory]]:
+    """Episode sets the fit's checks refuse, each for one reason."""
+    good = list(_Generated(3))
+    return {
+        "no controller state": [good[0], replace(good[1], xc=None), good[2]],
+        "a wider controller state": [good[0], good[1], replace(good[2], xc=np.zeros((N_SAMPLES, 3)))],
+        "another sample period": [good[0], replace(good[1], dt=0.004), good[2]],
+        "too short": [good[0], good[1], good[2].skip(N_SAMPLES - 5)],
+        "feedforward in some only": [good[0], replace(good[1], f=np.zeros((N_SAMPLES, 1))), good[2]],
+    }
+
+
+@pytest.mark.parametrize("case", list(_bad_sets()))
+def test_a_sequence_that_knows_its_shapes_is_refused_as_its_episodes_are(case):
+    episodes = _bad_sets()[case]
+    messages = []
+    for data in (episodes, _Described(episodes)):
+        with pytest.raises(ValueError) as caught:
+            ClEdmd(CONTROLLER, [Polynomial(1), Delay(10)], alpha=1e-6).fit(data)
+        messages.append(str(caught.value))
+    assert messages[0] == messages[1], messages
+
+
+def test_a_fit_on_a_sequence_that_knows_its_shapes_reads_each_episode_once_for_its_statistics():
+    episodes = list(_Generated(6))
+    described = _Described(episodes)
+    fitted = ClEdmd(CONTROLLER, [Polynomial(2), Delay(10), Constant()], alpha=1e-6).fit(described)
+    # The first episode twice to set up (the fit's widths and names, the lifting's), then each once for
+    # the statistics: the checks read the shapes, where they read every episode again before.
+    assert described.made == len(episodes) + 2, described.made
+    listed = ClEdmd(CONTROLLER, [Polynomial(2), Delay(10), Constant()], alpha=1e-6).fit(episodes)
+    np.testing.assert_array_equal(fitted.koopman_matrix_, listed.koopman_matrix_)
+
+
+def test_stored_logs_know_their_shapes_as_read(qube_logs):
+    from qube_koopman.daq.log.names import find_logs
+    from qube_koopman.identify.data.logs import LogTrajectories, StoredLog, load_logs
+
+    files = find_logs(qube_logs)[:3]
+    stored = LogTrajectories(load_logs(files, skip=10, stored=True))
+    assert stored.shapes() == [t.shape() for t in stored]
+    assert stored.shapes()[0].width("xc") == stored[0].xc.shape[1] and stored.shapes()[0].width("u") == 1
+    # A stored log made without its shape (an older caller's) leaves the sequence to be read.
+    bare = LogTrajectories([replace(log, shape=None) for log in stored.logs] + [])
+    assert isinstance(bare.logs[0], StoredLog) and bare.shapes() is None
