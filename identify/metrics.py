@@ -18,7 +18,13 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 import numpy as np
 
 from qube_koopman.identify.data.trajectory import Trajectory
-from qube_koopman.identify.models.offsets import DEFAULT_BOUND, estimate_offsets_many, predict_with_offsets_many
+from qube_koopman.identify.models.offsets import (
+    DEFAULT_BOUND,
+    estimate_offsets_many,
+    estimate_offsets_models,
+    predict_with_offsets_many,
+    predict_with_offsets_models,
+)
 
 if TYPE_CHECKING:
     from qube_koopman.identify.model_selection.transfer import ProbeSet
@@ -41,6 +47,7 @@ __all__ = [
     "score_episodes",
     "SCORES",
     "scores_after_window",
+    "scores_after_window_models",
     "probe_scores",
 ]
 
@@ -367,6 +374,19 @@ def scores_after_window(
     else:
         predictions = model.predict_many(trajectories)
     return np.array([float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, predictions)])
+
+
+def scores_after_window_models(
+    models: Sequence, trajectories: Sequence[Trajectory], window: int, bound: float = DEFAULT_BOUND
+) -> np.ndarray:
+    """:func:`scores_after_window` with offsets of several closed-loop models (one lifting and structure) on
+    the same episodes, their estimates and predictions batched over the models: shape (n_models, n_episodes)."""
+    trajectories = list(trajectories)
+    estimates = estimate_offsets_models(models, trajectories, ["alpha"], window, bound)
+    predictions = predict_with_offsets_models(models, trajectories, estimates)
+    return np.array(
+        [[float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, each)] for each in predictions]
+    ).reshape(len(models), len(trajectories))
 
 
 def probe_scores(

@@ -55,11 +55,10 @@ from qube_koopman.identify.lifting import (
     Trigonometric,
 )
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
-from qube_koopman.identify.metrics import scores_after_window
+from qube_koopman.identify.metrics import scores_after_window_models
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes
 from qube_koopman.identify.model_selection.transfer import ProbeSet
-from qube_koopman.identify.metrics import probe_scores
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
@@ -916,9 +915,8 @@ def _transfer_scores(
         out[:, done] = known[:, done]
         top = [j for j in top if j not in done]
     with limited_blas_threads(1):
-        if spec.offsets:
-            for j in top:
-                out[:, j] = probe_scores(plants[j], probes, data.window, True, data.bound, MEASURED)
+        if spec.offsets and top:
+            out[:, top] = _offset_probe_scores([plants[j] for j in top], probes, data.window, data.bound)
         elif top:
             out[:, top] = _plain_probe_scores([plants[j] for j in top], probes, data.window)
     timing["probe_scoring"] = time.perf_counter() - started
@@ -927,14 +925,26 @@ def _transfer_scores(
 
 def _plain_probe_scores(plants: list, probes: ProbeSet, window: int) -> np.ndarray:
     """:func:`~qube_koopman.identify.metrics.probe_scores` without offsets of several plants (one lifting),
-    each probe controller's closed loops of all of them simulated together: shape (n_episodes, n_plants)."""
+    every probe controller's closed loops of all of them simulated together: shape (n_episodes, n_plants)."""
     from qube_koopman.identify.estimators.structure import close_loop
-    from qube_koopman.identify.model_selection.sweep import episode_scores
+    from qube_koopman.identify.model_selection.sweep import grouped_episode_scores
+
+    groups = [
+        ([close_loop(p, controller, list(MEASURED)) for p in plants], episodes)
+        for controller, episodes in zip(probes.controllers, probes.episodes)
+    ]
+    return np.concatenate(grouped_episode_scores(groups, "cl", window, True), axis=1).T
+
+
+def _offset_probe_scores(plants: list, probes: ProbeSet, window: int, bound: float) -> np.ndarray:
+    """:func:`~qube_koopman.identify.metrics.probe_scores` with offsets of several plants (one lifting), each
+    probe controller's closed loops of all of them estimated and predicted together: shape (n_episodes, n_plants)."""
+    from qube_koopman.identify.estimators.structure import close_loop
 
     return np.concatenate(
         [
-            episode_scores(
-                [close_loop(p, controller, list(MEASURED)) for p in plants], episodes, "cl", True, window, True
+            scores_after_window_models(
+                [close_loop(p, controller, list(MEASURED)) for p in plants], episodes, window, bound
             )
             for controller, episodes in zip(probes.controllers, probes.episodes)
         ],
@@ -963,13 +973,11 @@ def _offset_scores(folds: list, lifting, data: SearchData, top: np.ndarray, timi
     with limited_blas_threads(1):
         for i, (closed, validation) in enumerate(folds):
             models = {int(j): closed[int(j)] if lifting is None else closed[int(j)].model(lifting) for j in top}
-            scores: dict[int, list[np.ndarray]] = {j: [] for j in models}
+            scores = []
             for lo in range(0, len(validation), EPISODES_PER_BATCH):  # a few episodes read at a time
                 held_out = [data.trajectories[k] for k in validation[lo : lo + EPISODES_PER_BATCH]]
-                for j, model in models.items():
-                    scores[j].append(scores_after_window(model, held_out, data.window, True, data.bound))
-            for j in models:
-                out[i, j] = np.mean(np.concatenate(scores[j]))
+                scores.append(scores_after_window_models(list(models.values()), held_out, data.window, data.bound))
+            out[i, list(models)] = np.concatenate(scores, axis=1).mean(axis=1)
     timing["offsets"] = time.perf_counter() - started
     return out
 

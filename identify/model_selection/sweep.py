@@ -167,13 +167,20 @@ class _ResidualSums:
     Samples before the first prediction are the initial condition itself: no error.
     """
 
-    def __init__(self, truth: np.ndarray, start: int, n_models: int, channels: slice) -> None:
-        self.truth, self.start, self.channels = truth, start, channels
-        self.sums = np.zeros((n_models,) + truth.shape[1:])
+    def __init__(self, truth: np.ndarray, start: int, n_models: int, channels: slice, groups: int = 0) -> None:
+        """``groups``: paired groups of models (see :func:`grouped_episode_scores`); ``truth`` is then
+        (samples, groups, episodes, channels), each group's ``n_models // groups`` models on its own."""
+        self.truth, self.start, self.channels, self.groups = truth, start, channels, groups
+        self.sums = np.zeros((n_models,) + truth.shape[-2:])
 
     def __call__(self, k0: int, chunk: np.ndarray, models: np.ndarray) -> None:
         lo, hi = max(k0, self.start), k0 + len(chunk)
-        if lo < hi:
+        if lo < hi and self.groups:  # every model stays to the end: each group's against its own truth
+            part = chunk[lo - k0 :, ..., self.channels]
+            part = part.reshape((part.shape[0], self.groups, -1) + part.shape[2:])
+            diff = part - self.truth[lo:hi, :, None]
+            self.sums += np.einsum("tgmec,tgmec->gmec", diff, diff).reshape(self.sums.shape)
+        elif lo < hi:
             diff = chunk[lo - k0 :, ..., self.channels] - self.truth[lo:hi, None]
             self.sums[models] += np.einsum("tmec,tmec->mec", diff, diff)
         else:
@@ -264,6 +271,72 @@ def episode_scores(
             sums = _ResidualSums(truth, start, sl.stop - sl.start, channels)
             simulate_chunks(A[sl], B[sl], ref.lifting, n_p, x_init, v, p0, relift, sums)
             out[sl, indices] = r2_from_residuals(sums.sums, truth[start:])
+    return out
+
+
+def grouped_episode_scores(
+    groups: Sequence[tuple[Sequence[KoopmanModel], Sequence[Trajectory]]],
+    scoring: str = "cl",
+    start: int = 1,
+    measured_only: bool = True,
+) -> list[np.ndarray]:
+    """:func:`episode_scores` (re-lifted) of several groups of models, each on its own episodes.
+
+    The probe controllers' closed loops are such groups: each controller's loops of a few plants
+    predict that controller's episodes. Scored one group at a time, a group of one or two models
+    costs the simulator's per-sample overhead, not arithmetic; groups step together instead
+    (:func:`~qube_koopman.identify.models.simulate.simulate_chunks` with ``paired``), one batch per
+    episode length, a group with fewer episodes of that length padded with its first one (the
+    padding's scores dropped). The scores are each group's own, as :func:`episode_scores` gives them.
+
+    Parameters
+    ----------
+    groups : sequence of (models, episodes)
+        Every group has as many models, all of one lifting and structure (controllers of one order).
+    scoring, start, measured_only
+        As for :func:`episode_scores`.
+
+    Returns
+    -------
+    list of ndarray of shape (n_models, n_episodes)
+        Per group.
+    """
+    n_models = {len(models) for models, _ in groups}
+    if len(n_models) != 1:
+        raise ValueError(f"groups of {sorted(n_models)} models: grouped scores need as many models in each")
+    out = [np.zeros((len(models), len(episodes))) for models, episodes in groups]
+    ref = groups[0][0][0]
+    d, n_p, M = ref.n_delays, ref.n_passthrough, n_models.pop()
+    with_p = scoring == "cl" and not measured_only
+    channels = slice(0, None) if with_p else slice(n_p, None)
+    by_length: dict[int, dict[int, list[int]]] = {}  # length -> group -> its episodes of that length
+    for g, (_, episodes) in enumerate(groups):
+        for i, t in enumerate(episodes):
+            by_length.setdefault(t.n_samples, {}).setdefault(g, []).append(i)
+    per_model = (n_p + ref.n_states) * ref.A.shape[0] * (d + 1)
+    for members in by_length.values():
+        for sl in _batches(len(members), per_model * M):
+            chosen = list(members.items())[sl]
+            E = max(len(indices) for _, indices in chosen)
+            padded = [[groups[g][1][indices[min(e, len(indices) - 1)]] for e in range(E)] for g, indices in chosen]
+            inputs = [groups[g][0][0] for g, _ in chosen]  # each group's models share their inputs' shape
+            x_init = np.stack([[t.x[: d + 1] for t in ts] for ts in padded])
+            v = np.stack([[model.inputs_of(t) for t in ts] for model, ts in zip(inputs, padded)])
+            truth = np.stack(
+                [
+                    np.stack([np.hstack([_controller_states(t), t.x]) if with_p else t.x for t in ts], axis=1)
+                    for ts in padded
+                ],
+                axis=1,
+            )
+            p0 = np.stack([[_controller_states(t)[d] for t in ts] for ts in padded]) if scoring == "cl" else None
+            A = np.stack([m.A for g, _ in chosen for m in groups[g][0]])
+            B = np.stack([m.B for g, _ in chosen for m in groups[g][0]])
+            sums = _ResidualSums(truth, start, len(A), channels, groups=len(chosen))
+            simulate_chunks(A, B, ref.lifting, n_p, x_init, v, p0, True, sums, paired=True)
+            for k, (g, indices) in enumerate(chosen):
+                scores = r2_from_residuals(sums.sums[k * M : (k + 1) * M], truth[start:, k])
+                out[g][:, indices] = scores[:, : len(indices)]
     return out
 
 

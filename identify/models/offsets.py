@@ -55,7 +55,9 @@ __all__ = [
     "OffsetWarning",
     "estimate_offsets",
     "estimate_offsets_many",
+    "estimate_offsets_models",
     "predict_with_offsets_many",
+    "predict_with_offsets_models",
     "shift_trajectory",
     "predict_with_offsets",
     "predict_estimating_offsets",
@@ -242,6 +244,40 @@ def _batch_predictions(model, heads: Sequence[Trajectory], channels, trials: np.
     return x
 
 
+def _models_predictions(
+    models: Sequence, heads: Sequence[Trajectory], channels, trials: np.ndarray, relift: bool
+) -> np.ndarray:
+    """:func:`_batch_predictions` of several models (one lifting and structure), each with its own
+    offsets ``trials[i]`` (shape (n_models, n_heads, n_channels)): one paired batch, shape
+    (n_models, n_heads, n_samples, n_states). One model: :func:`_batch_predictions` itself."""
+    from qube_koopman.identify.models.simulate import simulate_chunks
+
+    if len(models) == 1:
+        return _batch_predictions(models[0], heads, channels, trials[0], relift)[None]
+    ref = models[0]
+    d, n_p, m = ref.n_delays, ref.n_passthrough, ref.n_states
+    shifted = [
+        [shift_trajectory(model, h, dict(zip(channels, row))) for h, row in zip(heads, rows)]
+        for model, rows in zip(models, trials)
+    ]
+    x_init = np.stack([[t.x[: d + 1] for t in ts] for ts in shifted])
+    v = np.stack([[model.inputs_of(t) for t in ts] for model, ts in zip(models, shifted)])
+    p0 = np.stack([[_controller_state(t)[d] for t in ts] for ts in shifted]) if n_p else None
+    T = v.shape[2]
+    x = np.full((T, len(models), len(heads), m), np.nan)  # time-major, as the chunks come
+    x[: d + 1] = np.moveaxis(x_init, 2, 0)
+
+    def store(k0: int, chunk: np.ndarray, _models: np.ndarray) -> None:  # paired: every model to the end
+        x[k0 : k0 + len(chunk)] = chunk[..., n_p:]
+
+    A = np.stack([model.A for model in models])
+    B = np.stack([model.B for model in models])
+    simulate_chunks(A, B, ref.lifting, n_p, x_init, v, p0, relift, store, paired=True)
+    x = np.moveaxis(x, 0, 2)
+    x[..., list(channels)] += np.asarray(trials)[:, :, None, :]
+    return x
+
+
 def estimate_offsets(
     model,
     trajectory: Trajectory,
@@ -379,19 +415,38 @@ def predict_with_offsets_many(
     list of ndarray
         Each episode's predicted measured states.
     """
-    out: dict[int, np.ndarray] = {}
+    return predict_with_offsets_models([model], trajectories, [estimates], relift)[0]
+
+
+def predict_with_offsets_models(
+    models: Sequence,
+    trajectories: Sequence[Trajectory],
+    estimates: Sequence[Sequence[OffsetEstimate]],
+    relift: bool = True,
+) -> list[list[np.ndarray]]:
+    """:func:`predict_with_offsets_many` of several models (one lifting and structure) on the same episodes,
+    each with its own estimates (``estimates[i]``: model ``i``'s, per episode): one paired batch per length.
+
+    Returns
+    -------
+    list of list of ndarray
+        Per model, each episode's predicted measured states.
+    """
+    models = list(models)
+    out: list[dict[int, np.ndarray]] = [{} for _ in models]
     by_length: dict[int, list[int]] = {}
     for i, t in enumerate(trajectories):
         by_length.setdefault(t.n_samples, []).append(i)
     for group in by_length.values():
-        e0 = estimates[group[0]]
+        e0 = estimates[0][group[0]]
         trials = np.array(
-            [estimates[i].values if estimates[i].plausible else np.zeros(len(e0.channels)) for i in group]
+            [[e[i].values if e[i].plausible else np.zeros(len(e0.channels)) for i in group] for e in estimates]
         )
-        pred = _batch_predictions(model, [trajectories[i] for i in group], e0.channels, trials, relift)
-        for row, i in enumerate(group):
-            out[i] = pred[row]
-    return [out[i] for i in range(len(trajectories))]
+        pred = _models_predictions(models, [trajectories[i] for i in group], e0.channels, trials, relift)
+        for g in range(len(models)):
+            for row, i in enumerate(group):
+                out[g][i] = pred[g, row]
+    return [[found[i] for i in range(len(trajectories))] for found in out]
 
 
 def estimate_offsets_many(
@@ -427,11 +482,44 @@ def estimate_offsets_many(
     list of OffsetEstimate
         One per episode, in order.
     """
+    return estimate_offsets_models([model], trajectories, channels, window, bound, relift, iterations, weighted)[0]
+
+
+def estimate_offsets_models(
+    models: Sequence,
+    trajectories: Sequence[Trajectory],
+    channels: Sequence[int | str],
+    window: int,
+    bound: float = DEFAULT_BOUND,
+    relift: bool = True,
+    iterations: int = 8,
+    weighted: bool = True,
+) -> list[list[OffsetEstimate]]:
+    """:func:`estimate_offsets_many` of several models on the same episodes, their steps batched over the models too.
+
+    A search scores a few alphas' models on each fold's episodes: each Gauss-Newton step
+    predicts every (model, episode) pair's window in one paired simulation, where one model at
+    a time would pay the simulator's per-sample cost once per model. Each pair's estimate is
+    that of :func:`estimate_offsets_many` with its model alone, up to rounding.
+
+    Parameters
+    ----------
+    models : sequence of KoopmanModel
+        Of one lifting and structure (the alphas of one candidate, or their closed loops with one controller).
+    trajectories, channels, window, bound, relift, iterations, weighted
+        As for :func:`estimate_offsets_many`.
+
+    Returns
+    -------
+    list of list of OffsetEstimate
+        Per model, one per episode in order.
+    """
     trajectories = list(trajectories)
+    models = list(models)
     if not trajectories:
-        return []
+        return [[] for _ in models]
     channels = resolve_channels(channels, trajectories[0].state_names, trajectories[0].x.shape[1])
-    d, k, window = model.n_delays, len(channels), int(window)
+    d, k, window = models[0].n_delays, len(channels), int(window)
     if not all(d + 3 <= window <= t.n_samples for t in trajectories):
         raise ValueError(
             f"the estimation window must hold between {d + 3} samples and every episode's length, got {window}"
@@ -439,39 +527,42 @@ def estimate_offsets_many(
     heads = [_head(t, window) for t in trajectories]
     truth = np.stack([t.x[d + 1 : window] for t in heads])  # (episodes, samples, states)
     scale = channel_scales(truth) if weighted else np.ones(truth.shape[::2])  # (episodes, states)
-    values = np.zeros((len(heads), k))
+    n_models, n_eps = len(models), len(heads)
+    values = np.zeros((n_models, n_eps, k))
 
-    def residuals(offsets: np.ndarray) -> np.ndarray:  # (episodes, trials, residuals), weighted
-        trials = offsets.reshape(-1, k)
-        pred = _batch_predictions(model, [h for h in heads for _ in range(offsets.shape[1])], channels, trials, relift)
-        res = (truth.repeat(offsets.shape[1], axis=0) - pred[:, d + 1 :, :]) * scale.repeat(offsets.shape[1], axis=0)[
-            :, None
-        ]
-        return np.where(np.isfinite(res), res, _DIVERGED).reshape(len(heads), offsets.shape[1], -1)
+    def residuals(offsets: np.ndarray) -> np.ndarray:  # (models, episodes, trials, residuals), weighted
+        n_trials = offsets.shape[2]
+        trials = offsets.reshape(n_models, -1, k)
+        pred = _models_predictions(models, [h for h in heads for _ in range(n_trials)], channels, trials, relift)
+        res = (truth.repeat(n_trials, axis=0) - pred[:, :, d + 1 :, :]) * scale.repeat(n_trials, axis=0)[:, None]
+        return np.where(np.isfinite(res), res, _DIVERGED).reshape(n_models, n_eps, n_trials, -1)
 
-    perturbations = np.concatenate([np.zeros((1, k)), _STEP * np.eye(k)])[None]
-    before = residuals(values[:, None, :])[:, 0]
+    perturbations = np.concatenate([np.zeros((1, k)), _STEP * np.eye(k)])[None, None]
+    before = residuals(values[:, :, None, :])[:, :, 0]
     for _ in range(iterations):
-        res = residuals(values[:, None, :] + perturbations)
-        J = (res[:, 1:] - res[:, :1]) / _STEP  # (episodes, k, residuals)
-        step = np.linalg.solve(J @ J.transpose(0, 2, 1) + 1e-12 * np.eye(k), -(J @ res[:, 0, :, None]))[..., 0]
+        res = residuals(values[:, :, None, :] + perturbations)
+        J = (res[:, :, 1:] - res[:, :, :1]) / _STEP  # (models, episodes, k, residuals)
+        step = np.linalg.solve(J @ np.swapaxes(J, -1, -2) + 1e-12 * np.eye(k), -(J @ res[:, :, 0, :, None]))[..., 0]
         values += step
         if np.max(np.abs(step)) < 1e-10:
             break
-    res = residuals(values[:, None, :] + perturbations)
-    after, J = res[:, 0], (res[:, 1:] - res[:, :1]) / _STEP
+    res = residuals(values[:, :, None, :] + perturbations)
+    after, J = res[:, :, 0], (res[:, :, 1:] - res[:, :, :1]) / _STEP
     n_states = truth.shape[-1]
     return [
-        OffsetEstimate(
-            channels,
-            values[i].copy(),
-            window,
-            float(bound),
-            _raw_rms(before[i].reshape(-1, n_states), scale[i]),
-            _raw_rms(after[i].reshape(-1, n_states), scale[i]),
-            _std_error(J[i], after[i]),
-        )
-        for i in range(len(heads))
+        [
+            OffsetEstimate(
+                channels,
+                values[g, i].copy(),
+                window,
+                float(bound),
+                _raw_rms(before[g, i].reshape(-1, n_states), scale[i]),
+                _raw_rms(after[g, i].reshape(-1, n_states), scale[i]),
+                _std_error(J[g, i], after[g, i]),
+            )
+            for i in range(n_eps)
+        ]
+        for g in range(n_models)
     ]
 
 

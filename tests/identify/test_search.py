@@ -13,9 +13,10 @@ from qube_koopman.core.lti import same_system
 from qube_koopman.identify import ClEdmd, Lifting
 from qube_koopman.identify.data.logs import check_same_controller, load_logs
 from qube_koopman.identify.model_selection.split import group_shuffle_splits
-from qube_koopman.identify.models.offsets import (estimate_offsets, estimate_offsets_many, predict_with_offsets,
-                                           predict_with_offsets_many)
-from qube_koopman.identify.metrics import r2_scores
+from qube_koopman.identify.models.offsets import (estimate_offsets, estimate_offsets_many, estimate_offsets_models,
+                                                  predict_with_offsets, predict_with_offsets_many,
+                                                  predict_with_offsets_models)
+from qube_koopman.identify.metrics import r2_scores, scores_after_window, scores_after_window_models
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 from qube_koopman.identify.model_selection.transfer import twin_probes
 from qube_koopman.identify.model_selection.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace,
@@ -95,6 +96,26 @@ def test_batched_offset_estimates_equal_levenberg_marquardt(small):
         assert est.rms_after <= lm.rms_after * (1 + 1e-6) and est.rms_after < est.rms_before
     for t, pred, est in zip(shifted, predict_with_offsets_many(model, shifted, many), many):
         np.testing.assert_allclose(pred, predict_with_offsets(model, t, est.as_mapping()), atol=1e-12)
+
+
+def test_offsets_of_several_models_batched_equal_each_model_alone(small):
+    trajs, controller, _ = small
+    models = [ClEdmd(controller, lifting=LiftingSpec(delays=4).steps(), alpha=a).fit(trajs[:6]).closed_loop_model_
+              for a in (1e-4, 1e-2, 1.0)]
+    shifted = [replace(t, x=t.x + [0.0, o], r=t.r + [0.0, o]) for t, o in zip(trajs[6:], (0.004, -0.003))]
+    together = estimate_offsets_models(models, shifted, ["alpha"], WINDOW)
+    predicted = predict_with_offsets_models(models, shifted, together)
+    scores = scores_after_window_models(models, shifted, WINDOW)
+    assert scores.shape == (3, 2)
+    for model, found, preds, score in zip(models, together, predicted, scores):
+        alone = estimate_offsets_many(model, shifted, ["alpha"], WINDOW)
+        for a, b in zip(found, alone):
+            # Gauss-Newton steps until every pair has converged: the same minimum to well below a count
+            np.testing.assert_allclose(a.values, b.values, atol=1e-9)
+            np.testing.assert_allclose([a.rms_after, *a.std_error], [b.rms_after, *b.std_error], rtol=1e-6)
+        for t, pred, est in zip(shifted, preds, found):
+            np.testing.assert_allclose(pred, predict_with_offsets(model, t, est.as_mapping()), atol=1e-12)
+        np.testing.assert_allclose(score, scores_after_window(model, shifted, WINDOW, True), rtol=1e-9)
 
 
 @pytest.mark.parametrize("spec", [LiftingSpec(0, 1), LiftingSpec(5, 3, trig=True, const=True),
