@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_path", "cache_root", "output_file_problem", "output_folder_problem"]
+__all__ = ["atomic_path", "cache_root", "output_file_problem", "output_folder_problem", "trim_cache"]
 
 
 @contextmanager
@@ -185,3 +185,39 @@ def cache_root() -> Path:
     """
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "qube-koopman"
+
+
+def trim_cache(folder: Path, pattern: str, max_bytes: int, keep: Path | None = None) -> list[Path]:
+    """Delete the least recently used files matching ``pattern`` in ``folder`` until they hold at most ``max_bytes``.
+
+    A cache's readers mark a file used by touching it (its modification time); the oldest go
+    first. ``keep`` (the entry just written) is never deleted, even when it alone is larger. A
+    file that vanishes or cannot be deleted meanwhile (another run trimming, a read-only
+    folder) is passed over: a cache that cannot be trimmed only takes more room.
+
+    Returns
+    -------
+    list of Path
+        The files deleted.
+    """
+    entries = []
+    for path in folder.glob(pattern):
+        try:
+            stat = path.stat()
+        except OSError:
+            continue
+        entries.append((stat.st_mtime, stat.st_size, path))
+    total = sum(size for _, size, _ in entries)
+    deleted = []
+    for _, size, path in sorted(entries, key=lambda e: e[0]):
+        if total <= max_bytes:
+            break
+        if keep is not None and path == keep:
+            continue
+        try:
+            path.unlink()
+        except OSError:
+            continue
+        total -= size
+        deleted.append(path)
+    return deleted

@@ -26,6 +26,7 @@ cross-validated one (:mod:`qube_koopman.identify.model_selection.search`).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -183,7 +184,8 @@ def twin_probes(
         skip, the zero distribution and the simulator's code: a set simulated before with all
         of these equal is read back (:func:`probe_cache_key`), else simulated and stored whole
         (written beside its name and renamed, so concurrent runs and interrupted writes leave
-        no partial file). An unreadable stored set is simulated again.
+        no partial file). An unreadable stored set is simulated again. The folder keeps at most
+        :data:`PROBE_CACHE_BYTES`: storing a set deletes the least recently used beyond it.
 
     Returns
     -------
@@ -250,6 +252,10 @@ def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int)
     return ProbeSet(out.controllers, out.episodes, out.alpha_offsets, out.gains, dropped, n_twins)
 
 
+#: The most a probe cache folder holds (bytes): beyond it, the sets least recently used are deleted
+#: when a new one is stored. A set is 3-30 MB (6-54 episodes of 20 s): some twenty sets.
+PROBE_CACHE_BYTES = 512 * 2**20
+
 #: Bump when what a stored probe set holds changes (the simulator's own code is hashed anyway).
 PROBE_CACHE_FORMAT = 2
 
@@ -289,7 +295,7 @@ def probe_cache_key(
 
 def _write_probes(path: Path, probes: ProbeSet) -> None:
     """Store a probe set whole (a failure to write only costs the next run the simulation)."""
-    from qube_koopman.core.files import atomic_path
+    from qube_koopman.core.files import atomic_path, trim_cache
 
     # Any, not ndarray: np.savez's **kwds sit beside its allow_pickle: bool, which mypy checks a dict of arrays against
     arrays: dict[str, Any] = {
@@ -309,6 +315,7 @@ def _write_probes(path: Path, probes: ProbeSet) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, **arrays)
+        trim_cache(path.parent, "probes-*.npz", PROBE_CACHE_BYTES, keep=path)
     except OSError as exc:
         import logging
 
@@ -353,6 +360,10 @@ def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
     except (OSError, EOFError, KeyError, ValueError, IndexError, TypeError, zipfile.BadZipFile):
         # missing, cut short, foreign: simulate again
         return None
+    try:
+        os.utime(path)  # used now: the cache's trimming deletes the least recently used first
+    except OSError:
+        pass
     return ProbeSet(controllers, episodes, zeros, gains, dropped, n_twins) if controllers else None
 
 

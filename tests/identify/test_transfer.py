@@ -273,3 +273,28 @@ def test_probes_on_session_twins_run_each_episode_on_its_own_twin(tmp_path):
     again = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=mixed, skip=100,
                         cache=tmp_path)
     assert again.n_twins == 2 and np.array_equal(again.episodes[0][3].x, varied.episodes[0][3].x)
+
+
+def test_the_probe_cache_stays_within_its_size_and_keeps_what_was_used_last(tmp_path, monkeypatch):
+    import os
+    import time
+
+    from qube_koopman.identify.model_selection import transfer
+
+    sources = _short_sources(2)
+
+    def stored_set(seed: int):
+        before = set(tmp_path.glob("probes-*.npz"))
+        twin_probes(sources, per_controller=1, skip=100, seed=seed, cache=tmp_path)
+        return (set(tmp_path.glob("probes-*.npz")) - before).pop()
+
+    first = stored_set(0)
+    os.utime(first, (1000.0, 1000.0))  # long unused ...
+    twin_probes(sources, per_controller=1, skip=100, seed=0, cache=tmp_path)  # ... then read: used now
+    assert first.stat().st_mtime > 1000.0
+    monkeypatch.setattr(transfer, "PROBE_CACHE_BYTES", int(2.5 * first.stat().st_size))
+    second = stored_set(1)
+    time.sleep(0.01)
+    twin_probes(sources, per_controller=1, skip=100, seed=0, cache=tmp_path)  # the first used again, after the second
+    third = stored_set(2)  # three do not fit: the least recently used (the second) makes room
+    assert sorted(tmp_path.glob("probes-*.npz")) == sorted([first, third]) and not second.exists()
