@@ -93,6 +93,14 @@ class PendulumParameters:
         Arm angle (rad, the arm encoder's frame) at which the cables pull
         nothing. The rig's operator zeroes the arm encoder with the arm at its
         rest position, so 0 by default.
+    cable_softening : float
+        How much the cables' pull softens as the arm swings out (1/rad^2): with
+        ``c = sqrt(cable_softening)`` the torque is ``-Kr tanh(c (theta - theta_rest)) / c``,
+        ``-Kr (x - cable_softening x^3 / 3 + ...)`` for a small excursion ``x``,
+        levelling off at ``Kr / c`` beyond about ``1 / c`` rad (the cables run taut, or
+        slide in their clamp); 0 keeps the spring linear. Run backwards on the logs,
+        the equations without a spring leave a restoring load that levels off near
+        half a radian on both recording days, each with its own stiffness.
     delay : float
         Transport delay (s) from a command to the motor: over each sample the
         motor sees the command of ``delay`` seconds earlier, so a fraction of a
@@ -104,21 +112,22 @@ class PendulumParameters:
 
     # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/sim/test_plant_file.py).
     Rm: float = 8.4
-    km: float = 0.04541293046813323
+    km: float = 0.04505359568232016
     mr: float = 0.095
     Lr: float = 0.085
     mp: float = 0.024
-    Lp: float = 0.12220645231530083
+    Lp: float = 0.12223205698242418
     g: float = 9.81
-    Dr: float = 8.232134784403778e-05
+    Dr: float = 8.867554899102735e-05
     Dp: float = 0.0
-    Cr: float = 0.0003858062543870657
+    Cr: float = 0.0003627336054856109
     coulomb_speed: float = 0.05
-    dead_zone: float = 0.054824290776112096
-    Jh: float = 7.319837927598009e-05
-    delay: float = 0.0019406426055590645
-    Kr: float = 0.0011298971870841643
+    dead_zone: float = 0.05707664365795987
+    Jh: float = 7.144631339550861e-05
+    delay: float = 0.0019205957951428947
+    Kr: float = 0.0017220506155276078
     theta_rest: float = 0.0
+    cable_softening: float = 5.222446194296446
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -131,7 +140,7 @@ class PendulumParameters:
         # km = 0 (motor disconnected) and zero damping are legitimate idealizations.
         if self.coulomb_speed <= 0:
             raise ValueError(f"parameter coulomb_speed must be positive, got {self.coulomb_speed}")
-        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone", "Jh", "delay", "Kr"):
+        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone", "Jh", "delay", "Kr", "cable_softening"):
             if getattr(self, name) < 0:
                 raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
 
@@ -141,7 +150,18 @@ class PendulumParameters:
 
         No dry friction, dead zone, hub inertia, cable stiffness or delay: the workbook's model.
         """
-        return cls(km=0.042, Lp=0.129, Dr=0.0015, Dp=0.0005, Cr=0.0, dead_zone=0.0, Jh=0.0, delay=0.0, Kr=0.0)
+        return cls(
+            km=0.042,
+            Lp=0.129,
+            Dr=0.0015,
+            Dp=0.0005,
+            Cr=0.0,
+            dead_zone=0.0,
+            Jh=0.0,
+            delay=0.0,
+            Kr=0.0,
+            cable_softening=0.0,
+        )
 
     @classmethod
     def previous(cls) -> "PendulumParameters":
@@ -185,6 +205,7 @@ class Coefficients(NamedTuple):
     dead_zone: float = 0.0
     arm_stiffness: float = 0.0  # Kr
     arm_rest: float = 0.0  # theta_rest
+    cable_curvature: float = 0.0  # sqrt(cable_softening)
 
     @classmethod
     def of(cls, p: PendulumParameters) -> Coefficients:
@@ -203,6 +224,7 @@ class Coefficients(NamedTuple):
             dead_zone=p.dead_zone,
             arm_stiffness=p.Kr,
             arm_rest=p.theta_rest,
+            cable_curvature=math.sqrt(p.cable_softening),
         )
 
     @classmethod
@@ -234,6 +256,16 @@ def _motor_voltage(voltage, k: Coefficients):
     return voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
 
 
+def _cable_stretch(x, curvature, tanh: Callable = np.tanh):
+    """The cables' pull per unit stiffness at the arm's excursion ``x``: ``tanh(c x) / c``, ``x`` where ``c`` is 0."""
+    if not _on(curvature):
+        return x
+    if isinstance(curvature, np.ndarray):  # one pendulum per episode: some may keep a linear spring
+        safe = np.where(curvature > 0, curvature, 1.0)
+        return np.where(curvature > 0, np.tanh(safe * x) / safe, x)
+    return tanh(curvature * x) / curvature
+
+
 def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, tanh: Callable = np.tanh):
     """(theta_ddot, alpha_ddot) from the arm angle, sin and cos of alpha and the motor's voltage
     (past the dead zone, :func:`_motor_voltage`); floats or arrays alike."""
@@ -248,7 +280,7 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
     if _on(k.arm_coulomb):  # a Python branch: without friction the arithmetic is exactly as before
         r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
     if _on(k.arm_stiffness):  # the cables' spring; as above, exactly the old arithmetic without it
-        r1 = r1 - k.arm_stiffness * (theta - k.arm_rest)
+        r1 = r1 - k.arm_stiffness * _cable_stretch(theta - k.arm_rest, k.cable_curvature, tanh)
     r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
     m11 = k.m11 + k.quarter * s * s
     m12 = k.m12 * c
@@ -474,14 +506,23 @@ def total_energy(state, params: PendulumParameters = PendulumParameters()) -> np
     """Kinetic (full inertia matrix) plus potential energy (J), zero potential level at the pivot.
 
     With alpha = 0 upright the pendulum's potential is ``mp g Lp / 2 cos(alpha)``; the cables'
-    spring adds ``Kr (theta - theta_rest)^2 / 2``.
+    spring adds ``Kr (theta - theta_rest)^2 / 2``, or with a ``cable_softening`` ``c^2``,
+    ``Kr log(cosh(c (theta - theta_rest))) / c^2`` (the work of its levelling pull).
     """
     x = as_states(state)
     k = Coefficients.of(params)
     s, c = np.sin(x[..., 1]), np.cos(x[..., 1])
     td, ad = x[..., 2], x[..., 3]
     kinetic = 0.5 * ((k.m11 + k.quarter * s * s) * td * td + 2.0 * k.m12 * c * td * ad + k.m22 * ad * ad)
-    return kinetic + k.gravity * c + 0.5 * k.arm_stiffness * (x[..., 0] - k.arm_rest) ** 2
+    stretch, curvature = x[..., 0] - k.arm_rest, k.cable_curvature
+    # log cosh(y) = |y| + log1p(exp(-2|y|)) - log 2: no overflow at large stretches
+    spring = (
+        0.5 * stretch**2
+        if not curvature
+        else (np.abs(curvature * stretch) + np.log1p(np.exp(-2 * np.abs(curvature * stretch))) - np.log(2.0))
+        / curvature**2
+    )
+    return kinetic + k.gravity * c + k.arm_stiffness * spring
 
 
 def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tuple[np.ndarray, np.ndarray]:
@@ -511,8 +552,8 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     makes; the linearization is that of the motor outside it. The smoothed
     Coulomb torque enters through its slope at rest, ``Cr / coulomb_speed``,
     as viscous damping of the arm. The cables' spring (``Kr``) enters as a
-    stiffness of the arm; the equilibrium is at ``theta = theta_rest``, so
-    the state's theta is measured from there.
+    stiffness of the arm (its slope at rest, whatever its ``cable_softening``); the
+    equilibrium is at ``theta = theta_rest``, so the state's theta is measured from there.
     """
     k = Coefficients.of(params)
     mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])

@@ -119,7 +119,7 @@ def test_the_summary_says_the_same_but_the_timing(runs):
 
     serial, parallel = (outcome(runs[jobs][1]) for jobs in (1, 2))
     assert serial == parallel
-    assert serial[2] == "aborted 792" and "3 complete, 1 aborted" in serial  # the default twin's safety stop
+    assert serial[2] == "aborted 791" and "3 complete, 1 aborted" in serial  # the default twin's safety stop
     assert "2 worker processes" in runs[2][1] and "processes" not in runs[1][1]
 
 

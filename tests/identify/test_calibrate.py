@@ -16,8 +16,9 @@ from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_
 
 DT = 1 / 500
 # Near the rig's calibrated values (a weaker motor with this much arm inertia lets the pendulum fall).
+# A linear cable spring unless a test gives it the softening the rig's cables show.
 TRUTH = PendulumParameters(km=0.048, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1, Jh=8e-5, delay=0.001,
-                           Kr=7e-4)
+                           Kr=7e-4, cable_softening=0.0)
 
 
 def soft_pd():
@@ -100,11 +101,15 @@ def test_sparse_jacobian_with_setups_matches_dense_differences():
 
 @pytest.mark.slow
 def test_known_parameters_are_recovered_within_two_standard_errors():
-    ys, us, offsets = simulated_logs(TRUTH)
+    # The cables' pull softening as the rig's does (levelling off near 0.45 rad): the arm's excursions
+    # under the rig's gains (up to 0.95 rad here) pin it down with the rest.
+    known = replace(TRUTH, cable_softening=5.0)
+    ys, us, offsets = simulated_logs(known)
     assert max(np.abs(y[:, 1]).max() for y in ys) < 0.5  # the simulated rig stayed up
     cal = PlantCalibration(horizon=0.2, skip=0.5, stride=0.2, nominal=PendulumParameters()).fit(ys, us, DT)
+    assert "cable_softening" in cal.fitted_names_
     for name in cal.fitted_names_:
-        fitted, truth, se = getattr(cal.params_, name), getattr(TRUTH, name), cal.standard_errors_[name]
+        fitted, truth, se = getattr(cal.params_, name), getattr(known, name), cal.standard_errors_[name]
         assert abs(fitted - truth) <= 2 * se + 1e-12, (name, fitted, truth, se)
         assert se < 0.2 * truth, (name, se)  # identified, not merely uncertain
     np.testing.assert_array_less(np.abs(cal.alpha_offsets_ - offsets), 2 * cal.alpha_offset_errors_ + 1e-9)
@@ -140,9 +145,10 @@ def test_each_days_cables_and_each_sessions_delay_are_recovered_with_the_rest_of
     # other (under soft-theta), and on the second day two sessions whose host ran with different
     # latencies. Fitted per setup, each day's stiffness and each session's delay come back within three
     # standard errors and the other parameters are the shared truth's; one stiffness for all lands in
-    # between, off both, which is what the twin fitted on both days' logs did.
-    truth = [replace(TRUTH, Kr=6e-4, delay=1e-3), replace(TRUTH, Kr=2e-3, delay=2e-3),
-             replace(TRUTH, Kr=2e-3, delay=5e-3)]
+    # between, off both, which is what the twin fitted on both days' logs did. The cables' pull softens
+    # alike on both days (one softening, as the rig's logs show): it comes back with the shared physics.
+    truth = [replace(TRUTH, Kr=6e-4, delay=1e-3, cable_softening=5.0), replace(TRUTH, Kr=2e-3, delay=2e-3,
+             cable_softening=5.0), replace(TRUTH, Kr=2e-3, delay=5e-3, cable_softening=5.0)]
     logs = [simulated_logs(truth[0], n=2, seed=1), simulated_logs(truth[1], n=1, seed=2, controller=soft_pd()),
             simulated_logs(truth[2], n=1, seed=3, controller=soft_pd())]
     ys = [y for log in logs for y in log[0]]
@@ -158,10 +164,12 @@ def test_each_days_cables_and_each_sessions_delay_are_recovered_with_the_rest_of
             assert abs(fitted - value) <= 3 * se and se < 0.05 * value, (name, label, fitted, se)
     # The shared physics within 3.5 asymptotic standard errors (they take the encoders' quantization for
     # white noise: measured at most 3.2 of them).
+    assert "cable_softening" in cal.fitted_names_
     for name in cal.fitted_names_:
         if name not in expected:
-            fitted, value, se = getattr(cal.params_, name), getattr(TRUTH, name), cal.standard_errors_[name]
+            fitted, value, se = getattr(cal.params_, name), getattr(truth[0], name), cal.standard_errors_[name]
             assert abs(fitted - value) <= 3.5 * se + 1e-12, (name, fitted, value, se)
+    assert cal.standard_errors_["cable_softening"] < 0.2 * 5.0
     # The central twin (a setup no log shows): the median setup's (of the logarithms for the stiffness).
     assert cal.params_.Kr == pytest.approx(np.sqrt(np.prod(list(cal.setup_values_["Kr"].values()))), rel=1e-12)
     assert cal.params_.delay == cal.setup_values_["delay"]["b"]
@@ -278,13 +286,14 @@ def test_group_weights_give_every_group_the_same_share_and_one_group_changes_not
 
 @pytest.mark.slow
 def test_group_weighting_moves_the_fit_towards_the_smaller_group():
-    # Two groups of twin logs with different cable springs: weighted alike, the fitted stiffness
-    # moves from the larger group's towards the smaller one's.
-    big = [simulated_logs(replace(TRUTH, Kr=5e-4), n=1, seconds=2.5, seed=s) for s in (5, 6, 7)]
-    small = simulated_logs(replace(TRUTH, Kr=2e-3), n=1, seconds=2.5, seed=8, controller=soft_pd())
+    # Two groups of twin logs with different cable springs (softening alike): weighted alike, the fitted
+    # stiffness moves from the larger group's towards the smaller one's.
+    truth = replace(TRUTH, cable_softening=5.0)
+    big = [simulated_logs(replace(truth, Kr=5e-4), n=1, seconds=2.5, seed=s) for s in (5, 6, 7)]
+    small = simulated_logs(replace(truth, Kr=2e-3), n=1, seconds=2.5, seed=8, controller=soft_pd())
     ys = [b[0][0] for b in big] + small[0]
     us = [b[1][0] for b in big] + small[1]
-    kwargs = dict(horizon=0.2, skip=0.5, stride=0.4, nominal=TRUTH, max_nfev=6)
+    kwargs = dict(horizon=0.2, skip=0.5, stride=0.4, nominal=truth, max_nfev=6)
     groups = ["rig"] * 3 + ["soft"]
     plain = PlantCalibration(**kwargs).fit(ys, us, DT, groups)
     weighted = PlantCalibration(weighting="group", **kwargs).fit(ys, us, DT, groups)
