@@ -286,8 +286,8 @@ def grouped_episode_scores(
     predict that controller's episodes. Scored one group at a time, a group of one or two models
     costs the simulator's per-sample overhead, not arithmetic; groups step together instead
     (:func:`~qube_koopman.identify.models.simulate.simulate_chunks` with ``paired``), one batch per
-    episode length, a group with fewer episodes of that length padded with its first one (the
-    padding's scores dropped). The scores are each group's own, as :func:`episode_scores` gives them.
+    episode length, a group with fewer episodes of that length padded by repeating its last one
+    (the padding's scores dropped). The scores are each group's own, as :func:`episode_scores` gives them.
 
     Parameters
     ----------
