@@ -1,9 +1,9 @@
 """Plant parameter files: the simulator's physical parameters as TOML, with provenance.
 
 ``qube-calibrate`` writes them, ``qube-run --plant FILE`` and
-``qube-emulate --plant FILE`` read them. The format (version 1)::
+``qube-emulate --plant FILE`` read them. The format (version 2)::
 
-    format = "qube-plant/1"
+    format = "qube-plant/2"
 
     [parameters]            # PendulumParameters fields, SI units; missing ones keep their defaults
     Rm = 8.4
@@ -30,6 +30,9 @@
     software_version = "..."
     created = "2026-11-23T11:00:00+00:00"
     residual_rms = 0.0012
+
+Version 1 is version 2 before the cables' pull could level off: a version-1 file without
+``cable_softening`` is read with 0 (the linear spring it was fitted with), not with the default.
 
 Unknown keys in ``[parameters]`` and ``[setups.*]`` are an error (a misspelt ``Dr`` must not
 silently keep its default). A setup is what differed when the logs were recorded: the cables
@@ -82,7 +85,9 @@ __all__ = [
     "FORMAT",
 ]
 
-FORMAT = "qube-plant/1"
+FORMAT = "qube-plant/2"
+#: Earlier formats still read, with what each lacked (the physics it was written with).
+_OLDER_FORMATS = {"qube-plant/1": {"cable_softening": 0.0}}
 
 #: Seconds between two logs' starts beyond which the second starts a new recording session.
 SESSION_GAP = 600.0
@@ -339,9 +344,12 @@ def load_plant(path: str | Path) -> PlantFile:
         raise PlantFileError(f"{path}: cannot read plant file ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{path}: not a TOML file ({exc})") from None
-    if data.get("format") != FORMAT:
-        raise PlantFileError(f"{path}: format must be {FORMAT!r}, got {data.get('format')!r}")
-    values = _numbers(path, data.get("parameters", {}), "")
+    version = data.get("format")
+    if version != FORMAT and version not in _OLDER_FORMATS:
+        raise PlantFileError(
+            f"{path}: format must be {FORMAT!r} (or {', '.join(map(repr, _OLDER_FORMATS))}), got {version!r}"
+        )
+    values = _OLDER_FORMATS.get(version, {}) | _numbers(path, data.get("parameters", {}), "")
     try:
         params = PendulumParameters(**values)
     except ValueError as exc:

@@ -57,8 +57,22 @@ def test_recording_sessions_follow_the_gap_between_starts():
 
 
 def test_missing_parameters_keep_their_defaults(tmp_path):
-    (tmp_path / "p.toml").write_text('format = "qube-plant/1"\n[parameters]\nDr = 0.001\n')
+    (tmp_path / "p.toml").write_text('format = "qube-plant/2"\n[parameters]\nDr = 0.001\n')
     assert load_plant(tmp_path / "p.toml").params == PendulumParameters(Dr=0.001)
+
+
+def test_a_version_1_file_keeps_the_linear_cable_spring_it_was_fitted_with(tmp_path):
+    # Written before the cables' pull could level off: its Kr is a linear spring's, and reading it
+    # with today's default softening would change the twin it describes without a word.
+    (tmp_path / "old.toml").write_text('format = "qube-plant/1"\n[parameters]\nKr = 0.0011\n')
+    old = load_plant(tmp_path / "old.toml").params
+    assert old == PendulumParameters(Kr=0.0011, cable_softening=0.0)
+    assert PendulumParameters().cable_softening > 0  # the default, which a version-2 file would keep
+    (tmp_path / "given.toml").write_text('format = "qube-plant/1"\n[parameters]\ncable_softening = 3.0\n')
+    assert load_plant(tmp_path / "given.toml").params.cable_softening == 3.0
+    save_plant(tmp_path / "new.toml", PlantFile(old, {}, {}))
+    assert (tmp_path / "new.toml").read_text().startswith('format = "qube-plant/2"')
+    assert load_plant(tmp_path / "new.toml").params == old
 
 
 @pytest.mark.parametrize("text, message", [
