@@ -18,13 +18,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 import numpy as np
 
 from qube_koopman.identify.data.trajectory import Trajectory
-from qube_koopman.identify.models.offsets import (
-    DEFAULT_BOUND,
-    estimate_offsets_many,
-    estimate_offsets_models,
-    predict_with_offsets_many,
-    predict_with_offsets_models,
-)
+from qube_koopman.identify.models.offsets import DEFAULT_BOUND, estimate_offsets_models, predict_with_offsets_models
 
 if TYPE_CHECKING:
     from qube_koopman.identify.model_selection.transfer import ProbeSet
@@ -367,12 +361,14 @@ def scores_after_window(
     -------
     ndarray of shape (n_episodes,)
     """
-    trajectories = list(trajectories)
     if offsets:
-        estimates = estimate_offsets_many(model, trajectories, ["alpha"], window, bound)
-        predictions = predict_with_offsets_many(model, trajectories, estimates)
-    else:
-        predictions = model.predict_many(trajectories)
+        return scores_after_window_models([model], trajectories, window, bound)[0]
+    trajectories = list(trajectories)
+    return _scores_from(trajectories, model.predict_many(trajectories), window)
+
+
+def _scores_from(trajectories: list[Trajectory], predictions, window: int) -> np.ndarray:
+    """Each episode's R^2 of its prediction from sample ``window`` on."""
     return np.array([float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, predictions)])
 
 
@@ -384,9 +380,9 @@ def scores_after_window_models(
     trajectories = list(trajectories)
     estimates = estimate_offsets_models(models, trajectories, ["alpha"], window, bound)
     predictions = predict_with_offsets_models(models, trajectories, estimates)
-    return np.array(
-        [[float(r2_scores(t.x[window:], p[window:])) for t, p in zip(trajectories, each)] for each in predictions]
-    ).reshape(len(models), len(trajectories))
+    return np.array([_scores_from(trajectories, each, window) for each in predictions]).reshape(
+        len(models), len(trajectories)
+    )
 
 
 def probe_scores(

@@ -926,30 +926,28 @@ def _transfer_scores(
 def _plain_probe_scores(plants: list, probes: ProbeSet, window: int) -> np.ndarray:
     """:func:`~qube_koopman.identify.metrics.probe_scores` without offsets of several plants (one lifting),
     every probe controller's closed loops of all of them simulated together: shape (n_episodes, n_plants)."""
-    from qube_koopman.identify.estimators.structure import close_loop
     from qube_koopman.identify.model_selection.sweep import grouped_episode_scores
 
-    groups = [
-        ([close_loop(p, controller, list(MEASURED)) for p in plants], episodes)
-        for controller, episodes in zip(probes.controllers, probes.episodes)
-    ]
-    return np.concatenate(grouped_episode_scores(groups, "cl", window, True), axis=1).T
+    return np.concatenate(grouped_episode_scores(_probe_loops(plants, probes), "cl", window, True), axis=1).T
 
 
 def _offset_probe_scores(plants: list, probes: ProbeSet, window: int, bound: float) -> np.ndarray:
     """:func:`~qube_koopman.identify.metrics.probe_scores` with offsets of several plants (one lifting), each
     probe controller's closed loops of all of them estimated and predicted together: shape (n_episodes, n_plants)."""
-    from qube_koopman.identify.estimators.structure import close_loop
-
     return np.concatenate(
-        [
-            scores_after_window_models(
-                [close_loop(p, controller, list(MEASURED)) for p in plants], episodes, window, bound
-            )
-            for controller, episodes in zip(probes.controllers, probes.episodes)
-        ],
+        [scores_after_window_models(loops, held, window, bound) for loops, held in _probe_loops(plants, probes)],
         axis=1,
     ).T
+
+
+def _probe_loops(plants: list, probes: ProbeSet) -> list[tuple[list, list]]:
+    """Per probe controller: the plants' closed loops with it, and its probe episodes."""
+    from qube_koopman.identify.estimators.structure import close_loop
+
+    return [
+        ([close_loop(p, controller, list(MEASURED)) for p in plants], episodes)
+        for controller, episodes in zip(probes.controllers, probes.episodes)
+    ]
 
 
 def _best_alphas(cv: np.ndarray, k: int) -> np.ndarray:
