@@ -14,21 +14,25 @@ Episodes under another controller than the training's are calibrated on the twin
 calibration instead. Targets (held-out data): pooled coverage within 0.90-0.98, no episode below
 0.80, mean half-width at most 2.5 times the RMS error.
 
-Measured with the default lifting (2 shared cores), coverage, worst episode, half-width / RMS error:
+Measured with the default lifting (2 shared cores, the twin whose cables' pull levels off),
+coverage, worst episode, half-width / RMS error:
 
 | test episodes | theta | alpha |
 |---|---|---|
 | paper test (rig loop) | 0.956, 0.901, ratio 2.09 | 0.959, 0.926, ratio 2.14 |
-| soft controller (real) | 0.965, 0.729, ratio 2.18 | 0.940, 0.858, ratio 1.96 |
-| twin, soft-theta | 0.895, 0.706, ratio 1.61 | 0.982, 0.951, ratio 2.45 |
-| twin, softer-pd | 0.995, 0.974, ratio 3.18 | 0.954, 0.917, ratio 2.08 |
-| twin, lqr-q1 | 0.998, 0.993, ratio 3.39 | 0.950, 0.924, ratio 2.14 |
-| twin, lqr-q3 | 0.999, 0.993, ratio 4.01 | 0.948, 0.911, ratio 2.08 |
+| soft controller (real) | 0.968, 0.740, ratio 2.17 | 0.964, 0.899, ratio 2.13 |
+| twin, soft-theta | 0.954, 0.848, ratio 2.07 | 0.992, 0.975, ratio 2.87 |
+| twin, softer-pd | 0.997, 0.985, ratio 3.12 | 0.961, 0.925, ratio 2.17 |
+| twin, lqr-q1 | 0.999, 0.995, ratio 3.47 | 0.931, 0.894, ratio 1.94 |
+| twin, lqr-q3 | 0.999, 0.994, ratio 3.89 | 0.924, 0.882, ratio 1.85 |
 
-Calibrated on the own controller's probes alone (no floor from the default probes), the twin's
-sets cover 0.92-0.95 at about twice the RMS error, but the real soft episodes only 0.83 (theta,
-worst 0.46): the twin errs less than the rig under that loop. The floor keeps the real episodes
-covered and makes theta's band 3-4 times the error under the stiffer twin loops.
+The judge sets run the one calibrated twin while the probes that calibrate their bands run its six
+session variants (command delay and cables, as the rig's sessions differed), so theta's band is 3-4
+times the error under the stiffer loops: honest for the rig's sessions, wider than one twin needs.
+With the search's lifting (``--flags "--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25
+--friction --alpha 1e-5"``) one episode of 20 under softer-pd and one under lqr-q3 get an infinite band
+from 13 s and 16.5 s on (a bootstrap refit at that small alpha diverges under those loops); the
+half-width is then given over the other episodes.
 
 Usage: python bench/bench_intervals.py --data DIR_WITH_48_MCAP_LOGS [--soft DIR_WITH_SOFT_LOGS]
        [--flags "--poly 2 --delays 10 --alpha 1e-3"] [--other-loops twin|none] [--out DIR]
@@ -43,18 +47,33 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_transfer import judge_sets, run  # noqa: E402  (the judge controllers and their twin episodes)
 
 
 def coverage_row(report: dict) -> list[str]:
-    """Per channel: pooled coverage, worst episode, half-width / RMS error (their ratio)."""
-    pooled = report["intervals"]["pooled"]
+    """Per channel: pooled coverage, worst episode, half-width / RMS error (their ratio).
+
+    An episode whose band turns infinite (a bootstrap refit diverging under its loop) makes the pooled
+    half-width infinite: the half-width is then the mean over the other episodes, and the cell says how
+    many were left out.
+    """
+    intervals = report["intervals"]
+    pooled = intervals["pooled"]
+    # JSON has no infinity: an infinite half-width is written "inf"
+    finite = [e for e in intervals["episodes"] if "inf" not in map(str, e["mean_half_width"].values())]
     cells = []
     for name in pooled["coverage"]:
-        half, rms = pooled["mean_half_width"][name], pooled["rms_error"][name]
+        half, rms = float(pooled["mean_half_width"][name]), float(pooled["rms_error"][name])
+        note = ""
+        if not np.isfinite(half):
+            half = float(np.mean([e["mean_half_width"][name] for e in finite]))
+            rms = float(np.sqrt(np.mean([e["rms_error"][name] ** 2 for e in finite])))
+            note = f", {len(intervals['episodes']) - len(finite)} infinite"
         cells.append(f"{pooled['coverage'][name]:.3f}, {pooled['worst_episode_coverage'][name]:.3f}, "
-                     f"{half:.4f} / {rms:.4f} ({half / rms:.2f})")
+                     f"{half:.4f} / {rms:.4f} ({half / rms:.2f}{note})")
     return cells
 
 
