@@ -149,9 +149,15 @@ def cross_validation_folds(
     controllers: Sequence[DiscreteStateSpace], n_splits: int = 3, seed: int = 1234
 ) -> CrossValidationFolds:
     """Leave one controller out when the episodes ran two or more controllers; else
-    :func:`group_shuffle_splits` (``n_splits``, ``seed``)."""
+    :func:`group_shuffle_splits` (``n_splits``, ``seed``).
+
+    Leave-one-controller-out folds come in the order of the fewest held-out episodes first (ties in
+    the controllers' order): a search screens its candidates on the first fold, which is then the
+    cheapest to predict, and with a new controller's few episodes beside many of the rig's, the one
+    that asks the question the user has, the new loop predicted by a plant fitted to the others.
+    """
     distinct, labels = distinct_controllers(controllers)
     if len(distinct) >= 2:
-        splits = leave_one_controller_out(labels)
+        splits = sorted(leave_one_controller_out(labels), key=lambda split: len(split[1]))  # stable: ties keep order
         return CrossValidationFolds("leave-one-controller-out", splits, [int(labels[v[0]]) for _, v in splits])
     return CrossValidationFolds("episode-grouped", group_shuffle_splits(len(labels), n_splits, 0.2, seed))

@@ -33,3 +33,19 @@ def test_splits_equal_scikit_learn_when_it_is_installed(config):
     for (train, validation), (exp_train, exp_validation) in zip(ours, expected):
         np.testing.assert_array_equal(validation, np.sort(exp_validation))
         np.testing.assert_array_equal(train, np.sort(exp_train))
+
+
+def test_leave_one_controller_out_folds_hold_out_the_fewest_episodes_first():
+    """A search screens on the first fold: with a new controller's few episodes beside the rig's many,
+    that fold holds out the few (the cheapest to predict); equal counts keep the controllers' order."""
+    from qube_koopman.core.controller import load_pd_gains, pd_controller
+    from qube_koopman.identify.model_selection.split import cross_validation_folds
+
+    rig, soft = pd_controller(load_pd_gains("rig")), pd_controller(load_pd_gains("soft-theta"))
+    folds = cross_validation_folds([rig] * 5 + [soft] * 2)
+    assert folds.kind == "leave-one-controller-out"
+    assert [v.tolist() for _, v in folds.splits] == [[5, 6], [0, 1, 2, 3, 4]]
+    assert [t.tolist() for t, _ in folds.splits] == [[0, 1, 2, 3, 4], [5, 6]]
+    assert folds.held_out == [1, 0]  # the soft controller's fold first
+    tied = cross_validation_folds([soft, rig, soft, rig])
+    assert tied.held_out == [0, 1] and [v.tolist() for _, v in tied.splits] == [[0, 2], [1, 3]]
