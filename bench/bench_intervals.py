@@ -34,8 +34,14 @@ With the search's lifting (``--flags "--poly 1 --trig --delays 35 --rbf thin-pla
 from 13 s and 16.5 s on (a bootstrap refit at that small alpha diverges under those loops); the
 half-width is then given over the other episodes.
 
+With ``--judge-twins sessions`` (each judge's 20 episodes spread over the six session variants) the
+default lifting gives theta 0.947-1.000 at 1.9-4.3 times the error and alpha 0.958-0.992 at 2.1-2.8
+(0.958-0.960 under the three stiffer loops); the search's lifting theta 0.969-1.000 at 2.3-5.0 and
+alpha 0.957-0.999 at 2.2-4.1.
+
 Usage: python bench/bench_intervals.py --data DIR_WITH_48_MCAP_LOGS [--soft DIR_WITH_SOFT_LOGS]
        [--flags "--poly 2 --delays 10 --alpha 1e-3"] [--other-loops twin|none] [--out DIR]
+       [--judge-twins calibrated|sessions|both]
 (import the datasets first with qube-import). About 5 minutes on 2 cores.
 """
 
@@ -50,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_transfer import judge_sets, run  # noqa: E402  (the judge controllers and their twin episodes)
+from bench_transfer import JUDGES, judge_sets, run  # noqa: E402  (the judge controllers and their twin episodes)
 
 
 def coverage_row(report: dict) -> list[str]:
@@ -77,6 +83,35 @@ def coverage_row(report: dict) -> list[str]:
     return cells
 
 
+def session_judge_sets(root: Path, judges: dict[str, Path], per_judge: int = 20) -> dict[str, Path]:
+    """Twin episodes under each judge controller spread over the twin's six session variants (the command
+    delays and cable stiffnesses the rig's sessions showed, ``session_twins``): the judge episodes then
+    vary between sessions as the rig's did, which is what the probes calibrate the band for. The
+    controllers are those of ``judges`` (their folders hold the controller files ``judge_sets`` wrote);
+    seeds 201..., each variant its own."""
+    from qube_koopman.identify.model_selection.transfer import session_twins
+    from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
+
+    twins = session_twins()
+    counts = [len(part) for part in np.array_split(np.arange(per_judge), len(twins))]
+    plants = []
+    for k, params in enumerate(twins):
+        plants.append(root / f"session_twin_{k}.toml")
+        save_plant(plants[-1], PlantFile(params, provenance={"note": f"session variant {k} of the default twin"}))
+    out = {}
+    for j, name in enumerate(judges):
+        gains = JUDGES[name]
+        controller = gains if isinstance(gains, str) else str(root / f"{name}.toml")
+        folder = root / f"sessions_{name}"
+        for k, (plant, n) in enumerate(zip(plants, counts)):
+            part = folder / f"twin_{k}"
+            if not part.exists():
+                run("qube-run", "--episodes", str(n), "--seed", str(201 + 10 * j + k), "--controller", controller,
+                    "--plant", plant, "--out", part, "-q")
+        out[name] = folder
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder of the 48 imported .mcap logs")
@@ -84,6 +119,9 @@ def main() -> None:
     parser.add_argument("--flags", default="--poly 2 --delays 10 --alpha 1e-3", help="the lifting's flags")
     parser.add_argument("--other-loops", choices=("twin", "none"), default="twin")
     parser.add_argument("--out", type=Path, help="working folder (default: a temporary one)")
+    parser.add_argument("--judge-twins", choices=("calibrated", "sessions", "both"), default="calibrated",
+                        help="run the judge episodes on the calibrated twin (default), spread over its six "
+                        "session variants, or both")
     args = parser.parse_args()
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_intervals_"))
     root.mkdir(parents=True, exist_ok=True)
@@ -92,7 +130,12 @@ def main() -> None:
     tests = {"paper test (rig loop)": paper_test}
     if args.soft is not None:
         tests["soft controller (real)"] = sorted(args.soft.glob("*.mcap"))
-    tests.update({f"twin, {name}": sorted(folder.glob("*.mcap")) for name, folder in judge_sets(root).items()})
+    judges = judge_sets(root)
+    if args.judge_twins in ("calibrated", "both"):
+        tests.update({f"twin, {name}": sorted(folder.glob("*.mcap")) for name, folder in judges.items()})
+    if args.judge_twins in ("sessions", "both"):
+        tests.update({f"session twins, {name}": sorted(folder.rglob("*.mcap"))
+                      for name, folder in session_judge_sets(root, judges).items()})
     print(f"lifting {args.flags}, --offsets alpha, intervals at 0.95, other loops: {args.other_loops}\n")
     print("| test episodes | theta: coverage, worst, half-width / RMS | alpha: coverage, worst, half-width / RMS |")
     print("|---|---|---|")
