@@ -9,7 +9,11 @@ lifting the stage's shared liftings before its candidates ran, and the candidate
 spent on statistics, fits, predictions, offsets, probe fits and probe scoring (summed over the
 workers, so the sums can exceed the wall time), and the probes' simulation.
 
-Usage: python bench/bench_search.py --data DIR [--repeat N] [--no-screen]
+With ``--soft DIR`` (the soft-controller episodes as .mcap logs) it also times the searches over two
+controllers' logs against a fixed fit of the same logs, in the same run: the paper's 28 training
+episodes with the first five soft episodes (tested on the other five), then with the last five.
+
+Usage: python bench/bench_search.py --data DIR [--soft DIR] [--repeat N] [--no-screen]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
 """
 
@@ -38,10 +42,29 @@ def timed_run(argv: list[str]) -> tuple[float, dict]:
         return seconds, json.loads((out / "report.json").read_text())
 
 
+def mixed_searches(rig_train: list[str], soft: list[str], repeat: int) -> None:
+    """The searches over the rig's training logs and half the soft ones, each beside a fixed fit of the
+    same logs timed in the same run (the ratio the search must keep with two controllers)."""
+    if len(soft) < 4:
+        raise SystemExit(f"--soft: expected the soft controller's episodes, found {len(soft)}")
+    half = len(soft) // 2
+    print(f"\n{'two controllers (rig 28 + soft half)':<40}{'fixed':>8}{'search':>9}{'ratio':>8}  winner, test R^2")
+    for label, train, test in (("+ first half, test the second", soft[:half], soft[half:]),
+                               ("+ second half, test the first", soft[half:], soft[:half])):
+        argv = ["--train", *rig_train, *train, "--test", *test]
+        fixed = statistics.median(timed_run([*argv, "--delays", "20"])[0] for _ in range(repeat))
+        runs = [timed_run([*argv, "--search"]) for _ in range(repeat)]
+        seconds, report = statistics.median(r[0] for r in runs), runs[-1][1]
+        print(f"{label:<40}{fixed:>6.1f} s{seconds:>7.1f} s{seconds / fixed:>7.1f}x  "
+              f"{report['search']['winner']['label']}, {report['test']['r2_mean']:.4f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder of the 48 imported .mcap logs")
     parser.add_argument("--repeat", type=int, default=1, help="runs of each, the median quoted (default 1)")
+    parser.add_argument("--soft", type=Path, help="folder of the soft-controller .mcap logs: also time the "
+                        "searches over both controllers' logs")
     parser.add_argument("--no-screen", action="store_true", help="time the search without screening (every "
                         "candidate evaluated in full, as before successive halving)")
     args = parser.parse_args()
@@ -70,6 +93,8 @@ def main() -> None:
     for stage, t in timing["stages"].items():
         print(f"{stage:<10}{t['candidates']:>3}{t.get('screened_out', 0):>4}{t['wall']:>8.1f}"
               + "".join(f"{t[k]:>18.1f}" for k in keys))
+    if args.soft is not None:
+        mixed_searches(logs[:28], sorted(str(p) for p in args.soft.glob("*.mcap")), args.repeat)
     search = report["search"]
     winner = search["winner"]
     print(f"\nwinner: {winner['label']}, alpha {winner['alpha']:g}, CV R^2 {winner['cv_r2']:.4f}, "
