@@ -20,6 +20,8 @@ Usage: python bench/bench_search.py --data DIR [--soft DIR] [--repeat N] [--no-s
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import statistics
 import tempfile
@@ -35,7 +37,8 @@ def timed_run(argv: list[str]) -> tuple[float, dict]:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
         started = time.perf_counter()
-        status = identify_main([*argv, "--out", str(out), "-q"])
+        with contextlib.redirect_stdout(io.StringIO()):  # the command's summary lines: the table says it
+            status = identify_main([*argv, "--out", str(out), "-q"])
         seconds = time.perf_counter() - started
         if status != 0:
             raise SystemExit(f"qube-identify {' '.join(argv)} failed with exit status {status}")
