@@ -14,7 +14,7 @@ from qube_koopman.core.blas import limited_blas_threads
 from qube_koopman.identify.estimators.arx import Arx, ClArx
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories
-from qube_koopman.core.lti import same_system
+from qube_koopman.core.lti import same_system, with_output_delay
 from qube_koopman.identify.estimators.mixed import training_controllers_report
 from qube_koopman.identify.model_selection.split import FOLD_KINDS, cross_validation_folds
 from qube_koopman.identify.estimators.edmd import Edmd
@@ -22,7 +22,7 @@ from qube_koopman.identify.estimators.stability import ClEdmdStable
 from qube_koopman.identify.models.model_file import lifting_to_dict, save_arx_model, save_model, uncertainty_to_dict
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
-from qube_koopman.identify.estimators.structure import close_loop, controller_states
+from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
 from qube_koopman.identify.uncertainty import (
     BandSummary,
@@ -180,6 +180,7 @@ def identify_and_score(
     predictions_folder: str | Path | None = None,
     probes=None,
     probe_cache: str | Path | None = None,
+    command_delay: float = 0.0,
 ) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
@@ -267,6 +268,10 @@ def identify_and_score(
         transfer probes run on the calibrated twin alone and are not these).
     probe_cache : str or Path, optional
         Where those probes are kept between runs (``twin_probes``' ``cache``).
+    command_delay : float
+        Predict every test episode's loop with its command reaching the plant this many sample
+        periods later than in the training logs (:func:`~qube_koopman.identify.estimators.structure.command_delayed`):
+        a host with more latency. Closed-loop scoring of a Koopman method only.
 
     Returns
     -------
@@ -281,6 +286,10 @@ def identify_and_score(
         )
     if what_if is not None and score != "cl":
         raise ValueError("a what-if controller predicts the closed loop: use score='cl'")
+    if command_delay and (score != "cl" or method not in KOOPMAN_METHODS):
+        raise ValueError("a command delay changes the predicted loop: it needs closed-loop scores of a Koopman method")
+    if not (np.isfinite(command_delay) and command_delay >= 0):
+        raise ValueError(f"the command delay must be 0 or more sample periods, got {command_delay}")
     trajs = LogTrajectories(train)  # read when needed, one episode at a time (stored logs)
     result = IdentificationResult(
         report={
@@ -358,9 +367,8 @@ def identify_and_score(
                     else _design_uncertainty(ensemble, plant, train, intervals.seed, held_out),
                 )  # an ensemble: intervals were asked for
             held_out.clear()
-            _score_koopman(
-                plant, closed, controller, test, score, offsets, what_if, result, score_from, keep_predictions, bands
-            )
+            predicted_loops = _TestLoops(controller, score, what_if, command_delay)
+            _score_koopman(plant, closed, predicted_loops, test, offsets, result, score_from, keep_predictions, bands)
         elif method in ("arx", "cl-arx"):
             # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
@@ -469,21 +477,42 @@ def _fit(estimator, trajs, controllers, elsewhere):
     return estimator._fit(setup, elsewhere)
 
 
-def _test_loop(controller, log, score, what_if) -> Loop:
-    """The loop predicting one test episode: the plant (plant scoring), the what-if controller's, or its own log's
-    (a plant model must predict the loop under any known controller)."""
-    if what_if is not None and score == "cl":
-        return Loop("wrapped", what_if)
-    return Loop.of(log.controller, controller, score)
+@dataclass(frozen=True)
+class _TestLoops:
+    """How each test episode's loop is predicted: under its own log's controller or ``what_if``, with the
+    command held ``command_delay`` samples late, by the fit's closed loop (``controller``'s) or its plant."""
 
+    controller: DiscreteStateSpace
+    score: str
+    what_if: DiscreteStateSpace | None = None
+    command_delay: float = 0.0
 
-def _test_trajectory(log, what_if):
-    """The trajectory one test episode is predicted from (under a what-if controller it never ran, that
-    controller's state run on the logged tracking errors)."""
-    t = log.trajectory
-    if what_if is not None and not same_system(log.controller, what_if):
-        t = replace(t, xc=controller_states(what_if, t.r, t.x[:, MEASURED], t.f))
-    return t
+    def loop(self, log) -> Loop:
+        """The loop predicting one test episode: the plant (plant scoring), the what-if controller's, or its own
+        log's (a plant model must predict the loop under any known controller); with a command delay, that
+        controller followed by the delay."""
+        if self.command_delay:
+            running = log.controller if self.what_if is None else self.what_if
+            return Loop("wrapped", with_output_delay(running, self.command_delay))
+        if self.what_if is not None and self.score == "cl":
+            return Loop("wrapped", self.what_if)
+        return Loop.of(log.controller, self.controller, self.score)
+
+    def trajectory(self, log):
+        """The trajectory one test episode is predicted from (under a what-if controller it never ran, that
+        controller's state run on the logged tracking errors; with a command delay, the delay's states and the
+        feedforward held as late: :func:`command_delayed`)."""
+        t, running = log.trajectory, log.controller
+        if self.what_if is not None and not same_system(log.controller, self.what_if):
+            t, running = replace(t, xc=controller_states(self.what_if, t.r, t.x[:, MEASURED], t.f)), self.what_if
+        if self.command_delay:
+            _, xc, f = command_delayed(running, self.command_delay, t.xc, t.r, t.x[:, MEASURED], t.f)
+            t = replace(t, xc=xc, f=f)
+        return t
+
+    def scored(self, log) -> bool:
+        """Whether the episode is scored: only those recorded under a what-if controller are."""
+        return self.what_if is None or same_system(log.controller, self.what_if)
 
 
 def _first_scored(offsets: OffsetProtocol | None, score_from: int | None, dt: float) -> int:
@@ -534,29 +563,36 @@ class _TestScores:
 
 
 def _score_koopman(
-    plant, closed, controller, test, score, offsets, what_if, result, score_from=None, keep_predictions=True, bands=None
+    plant, closed, how: _TestLoops, test, offsets, result, score_from=None, keep_predictions=True, bands=None
 ):
     """Test logs read, predicted and scored a batch at a time (only their scores kept, and their predictions
     if asked); with ``bands``, every member of the ensemble predicts each batch in the same simulation."""
     dt = test[0].dt
     start = _first_scored(offsets, score_from, dt)
     scores, estimates = _TestScores(result, start, keep_predictions), []
-    counted = [what_if is None or same_system(log.controller, what_if) for log in test]
-    loops = [_test_loop(controller, log, score, what_if) for log in test]
+    counted = [how.scored(log) for log in test]
+    loops = [how.loop(log) for log in test]
     for run in consecutive_runs(loops):
         loop = loops[run[0]]
         models = [loop.model(closed, plant, MEASURED)]
         if bands is not None:
-            models += [loop.model(*member, MEASURED) for member in bands.members]
-        trajectories = [_test_trajectory(test[i], what_if) for i in run]
-        for i, traj, predicted in zip(run, trajectories, predict_episodes(models, trajectories, offsets)):
-            estimates.append(predicted.estimate)
-            scores.add(test[i], traj.x, predicted.prediction, predicted.plain, counted[i])
+            models += [loop.model(closed_m, plant_m, MEASURED) for closed_m, plant_m in bands.members]
+        trajectories = [how.trajectory(test[i]) for i in run]
+        for i, traj, episode in zip(run, trajectories, predict_episodes(models, trajectories, offsets)):
+            estimates.append(episode.estimate)
+            scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
             if bands is not None:
-                bands.add(test[i], traj, predicted, counted[i], start, models[0].n_delays, loop)
-    if what_if is not None:
+                bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop)
+    if how.command_delay:
+        result.report["command_delay"] = {
+            "samples": float(how.command_delay),
+            "seconds": float(how.command_delay) * dt,
+            "note": "every test episode's loop predicted with its command reaching the plant this much later "
+            "than in the training logs (the feedforward held as late)",
+        }
+    if how.what_if is not None:
         result.report["what_if"] = {
-            "controller": what_if.as_dict(),
+            "controller": how.what_if.as_dict(),
             "n_scored": len(scores.scored),
             "unscored_logs": [log.path.name for log, scored in zip(test, counted) if not scored],
             "note": "test episodes are predicted under this controller; only those recorded under it are scored",
@@ -567,7 +603,11 @@ def _score_koopman(
         scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt), dt)
         return
     names = list(offsets.channels)
-    result.report["offsets"] = [{"log": log.path.name, **est.as_dict(names)} for log, est in zip(test, estimates)]
+    result.report["offsets"] = [
+        {"log": log.path.name, **est.as_dict(names)}
+        for log, est in zip(test, estimates)
+        if est is not None  # every episode's, with offsets estimated
+    ]
     result.report["offset_bound"] = offsets.bound
     scores.report(offsets.describe(dt), dt)
 

@@ -15,6 +15,7 @@ from qube_koopman.core.cli import (
     add_force_option,
     add_renamed_option,
     add_standard_options,
+    finite_number,
     path,
     seed,
     whole_number,
@@ -333,6 +334,15 @@ def _parser() -> argparse.ArgumentParser:
         "(core/CONTROLLER_FORMAT.md); a file, or a shipped name: rig, soft-theta; only "
         "episodes recorded under it are scored",
     )
+    pred.add_argument(
+        "--command-delay",
+        type=finite_number,
+        default=0.0,
+        metavar="MS",
+        help="predict every test episode's loop with its command reaching the motor this many "
+        "milliseconds later than in the training logs (a host with more latency; the feedforward "
+        "held as late): a what-if of the loop's timing, alone or with --controller (default 0)",
+    )
     _add_search_options(p)
     out = p.add_argument_group("output")
     out.add_argument(
@@ -420,6 +430,10 @@ def _check_args(args) -> None:
             "fits here (leave out --scheduler)"
         )
     check_cluster_options(args, PROG)  # the address, and TLS or the loopback
+    if args.command_delay < 0:
+        raise CliError(f"--command-delay must be 0 or more milliseconds, got {args.command_delay:g}")
+    if args.command_delay and (args.score != "cl" or args.method in ("arx", "cl-arx")):
+        raise CliError("--command-delay changes the predicted loop: it needs --score cl and a Koopman method")
     if args.protocol == "paper" and args.offsets:
         raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
     if args.protocol is None:
@@ -651,6 +665,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             ),
             predictions_folder=predictions,
             probe_cache=probe_cache() if args.probe_cache else None,
+            command_delay=args.command_delay * 1e-3 / train[0].dt,
             estimator_options=(
                 {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
             ),

@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.core.lti import DiscreteStateSpace, controller_inputs, replay_controller
+from qube_koopman.core.lti import DiscreteStateSpace, controller_inputs, replay_controller, with_output_delay
 
 __all__ = [
     "output_selection",
@@ -33,6 +33,7 @@ __all__ = [
     "controller_states",
     "feedforward_columns",
     "plant_input",
+    "command_delayed",
     "close_loop",
 ]
 
@@ -243,6 +244,63 @@ def plant_input(
     inputs = controller_inputs(controller, r, y, f)  # r - y, then f for a controller that takes it
     u = np.asarray(xc, dtype=float) @ controller.C.T + inputs @ controller.D.T
     return u if f is None else u + np.asarray(f, dtype=float).reshape(u.shape)
+
+
+def _later(signal: np.ndarray, samples: float) -> np.ndarray:
+    """``signal`` held ``samples`` later (a fraction interpolates, as :func:`~qube_koopman.core.lti.with_output_delay`
+    holds; the first value before the start)."""
+    whole, w = int(np.floor(samples)), samples - np.floor(samples)
+    index = np.arange(len(signal))
+    return (1 - w) * signal[np.maximum(index - whole, 0)] + w * signal[np.maximum(index - whole - 1, 0)]
+
+
+def command_delayed(
+    controller: DiscreteStateSpace,
+    samples: float,
+    xc: np.ndarray,
+    r: np.ndarray,
+    y: np.ndarray,
+    f: np.ndarray | None = None,
+) -> tuple[DiscreteStateSpace, np.ndarray, np.ndarray | None]:
+    """A loop whose command reaches the plant ``samples`` periods later: the controller, its states and
+    the feedforward that predict it.
+
+    The command (the controller's output plus the feedforward) is held late as the simulated
+    pendulum holds its transport delay: the controller is followed by
+    :func:`~qube_koopman.core.lti.with_output_delay`, whose extra states are its past outputs along
+    the episode, and the feedforward, which the loop adds after the controller, is held as late.
+    :func:`close_loop` with the returned controller then predicts the loop with the extra delay.
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        From the tracking errors to the plant input (not one that takes the feedforward itself).
+    samples : float
+        The extra delay in sample periods, 0 or more.
+    xc : ndarray of shape (n_samples, n_controller_states)
+        The controller's states along the episode.
+    r, y, f
+        As for :func:`controller_states`.
+
+    Returns
+    -------
+    controller : DiscreteStateSpace
+        The controller followed by the delay.
+    xc : ndarray
+        Its states along the episode: ``xc``, then its past outputs, newest first.
+    f : ndarray or None
+        The feedforward held ``samples`` later.
+    """
+    if controller.n_inputs != np.shape(r)[1]:
+        raise ValueError(
+            "a command delay needs a controller of the tracking errors alone; this one takes the feedforward too"
+        )
+    delayed = with_output_delay(controller, samples)
+    output = plant_input(controller, xc, r, y)  # the controller's own output, before the feedforward
+    n_past = (delayed.n_states - controller.n_states) // controller.n_outputs
+    past = [_later(output, j) for j in range(1, n_past + 1)]
+    held = None if f is None else _later(np.asarray(f, dtype=float), samples)
+    return delayed, np.hstack([np.asarray(xc, dtype=float), *past]), held
 
 
 def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | None = None, feedforward: bool = True):

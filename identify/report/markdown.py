@@ -280,6 +280,12 @@ def markdown_report(report: dict) -> str:
             f"- what-if controller: {what_if['note']}; {len(what_if['unscored_logs'])} episode(s) predicted "
             "without a recording to score against"
         )
+    delay = report.get("command_delay")
+    if delay:
+        lines.append(
+            f"- command delay: {delay['seconds'] * 1e3:g} ms ({delay['samples']:g} samples): {delay['note']} "
+            f"(`--command-delay {delay['seconds'] * 1e3:g}`)"
+        )
     lines += [""] + _test_section(report)
     lines += _intervals_section(report.get("intervals"))
     sweep = report.get("sweep")
