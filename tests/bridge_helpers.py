@@ -96,9 +96,11 @@ def stop_process(proc: subprocess.Popen, timeout: float = 10.0) -> tuple[str, st
 
 
 def _emulator_behind_ms(emulator_err: str) -> float:
-    """How far the emulated chip fell behind the wall clock, as ``qube-emulate --target avr`` reports it."""
-    found = re.search(r"at most ([0-9.]+) ms behind the wall clock", emulator_err)
-    return float(found.group(1)) if found else 0.0
+    """How far the emulated bridge fell behind the wall clock by its own clock, as ``qube-emulate`` reports it
+    when it stops: ``--target avr`` its chip's worst lag, the emulated core its ticks' worst lateness
+    against their deadlines (a process held up past the watchdog shows there, not in the host's log)."""
+    found = re.search(r"at most ([0-9.]+) ms behind the wall clock|max lateness ([0-9.]+) ms", emulator_err)
+    return float(found.group(1) or found.group(2)) if found else 0.0
 
 
 def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
@@ -110,9 +112,9 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
     than 2 ms late in the host's own log (``timing.stalls``), a tick whose work the host's log
     measured at more than 2 ms (``timing.compute_max``; a tick's work takes about 0.2 ms at its
     99th percentile: the process was held up inside it, which leaves the next tick on time but
-    the bridge without a command for as long), or the emulated chip more than half the watchdog
-    (5 ms) behind the wall clock by its own report (a quiet machine: under 4 ms); the worst
-    lateness or work is given.
+    the bridge without a command for as long), or the emulated bridge (the chip, or the emulated
+    core's ticks) more than half the watchdog (5 ms) behind the wall clock by its own report (a
+    quiet machine: under 4 ms); the worst lateness or work is given.
     """
     from qube_koopman.daq.log import read_episode
 
@@ -130,7 +132,7 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
         elif (meta.timing.get("compute_max") or 0.0) > 2e-3:
             lost.append(f"a tick's work held up {meta.timing['compute_max'] * 1e3:.1f} ms ({cause})")
         elif behind > 5.0:
-            lost.append(f"the emulated chip up to {behind:.1f} ms behind the wall clock ({cause})")
+            lost.append(f"the emulated bridge up to {behind:.1f} ms behind the wall clock ({cause})")
     return lost
 
 

@@ -508,3 +508,17 @@ def test_qube_run_in_real_time(env, tmp_path, capsys):
         assert link["ticks_missed"] == 0 and link["frames_lost"] == 0 and link["host_rejects"] == 0
         assert ep.metadata.timing["paced"] is True
     assert "3 session(s)" in emulator_err, "one to connect, one per episode"
+
+
+def test_a_real_time_run_counts_the_emulators_own_lateness_as_a_measured_stall():
+    """Both emulators' stop reports are read for how far they fell behind the wall clock by their own clock
+    (an emulator process held up past the bridge's watchdog loses the host's episode while the host's log
+    shows it on time), and nothing is read from a report that says neither."""
+    from bridge_helpers import _emulator_behind_ms
+
+    core_report = ("qube-emulate: stopped after 1000 ticks (2.0 s of device time), 1 session(s), 990 commands, "
+                   "3 ticks caught up late, 0 schedule restarts (max lateness 12.5 ms)")
+    avr_report = "qube-emulate: stopped after 1000 ticks (...), at most 0.8 ms behind the wall clock"
+    assert _emulator_behind_ms(core_report) == 12.5
+    assert _emulator_behind_ms(avr_report) == 0.8
+    assert _emulator_behind_ms("qube-emulate: error: no such port") == 0.0
