@@ -30,11 +30,10 @@ from pathlib import Path
 import numpy as np
 from bench_two_controllers import data_arguments, mcap_logs
 
-from qube_koopman.core.lti import with_output_delay
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.data.logs import load_logs
-from qube_koopman.identify.estimators.structure import close_loop
+from qube_koopman.identify.estimators.structure import close_loop, command_delayed
 from qube_koopman.identify.metrics import r2_score
 from qube_koopman.identify.models.model_file import load_model
 
@@ -42,22 +41,12 @@ MEASURED = (0, 1)
 WINDOW = 500  # the offsets' estimation window: the first second after the skipped one
 
 
-def later(signal: np.ndarray, samples: float) -> np.ndarray:
-    """``signal`` held ``samples`` later (a fraction interpolates; the first value before the start)."""
-    whole, w = int(np.floor(samples)), samples - np.floor(samples)
-    index = np.arange(len(signal))
-    return (1 - w) * signal[np.maximum(index - whole, 0)] + w * signal[np.maximum(index - whole - 1, 0)]
-
-
 def predict_with_delay(plant, log, samples: float, window: int) -> np.ndarray:
-    """The episode predicted by ``plant`` under its own controller held ``samples`` late."""
+    """The episode predicted by ``plant`` under its own controller held ``samples`` late (on these logs the
+    controller's output recomputed from its states is the logged plant input less the feedforward)."""
     t = log.trajectory
-    delayed = with_output_delay(log.controller, samples)
-    output = t.u - t.f  # the controller's output as logged: the plant input less the feedforward
-    n_past = (delayed.n_states - log.controller.n_states) // output.shape[1]
-    past = [later(output, j) for j in range(1, n_past + 1)]  # y(k - 1), ..., newest first
-    shifted = replace(t, xc=np.hstack([t.xc, *past]), f=later(t.f, samples))
-    return close_loop(plant, delayed, MEASURED).predict(shifted, offsets=["alpha"], window=window)
+    delayed, xc, f = command_delayed(log.controller, samples, t.xc, t.r, t.x[:, list(MEASURED)], t.f)
+    return close_loop(plant, delayed, MEASURED).predict(replace(t, xc=xc, f=f), offsets=["alpha"], window=window)
 
 
 def session_of(names: list[str]) -> list[int]:
