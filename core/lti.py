@@ -124,35 +124,48 @@ class DiscreteStateSpace:
         return self.C.shape[0]
 
     def simulate(self, u: np.ndarray, x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Run the system over an input sequence.
+        """Run the system over an input sequence, or over a batch of them at once.
 
         Parameters
         ----------
-        u : ndarray of shape (n_samples, n_inputs)
-            Input at each sample.
-        x0 : ndarray of shape (n_states,), optional
-            Initial state; zero by default.
+        u : ndarray of shape (..., n_samples, n_inputs)
+            Input at each sample; leading axes run as a batch of independent sequences
+            (one pass over the samples for all of them).
+        x0 : ndarray of shape (n_states,) or (..., n_states), optional
+            Initial state (one for all sequences, or one each); zero by default.
 
         Returns
         -------
-        x : ndarray of shape (n_samples, n_states)
-            State at each sample (``x[0] = x0``), before that sample's update.
-        y : ndarray of shape (n_samples, n_outputs)
+        x : ndarray of shape (..., n_samples, n_states)
+            State at each sample (``x[..., 0, :] = x0``), before that sample's update.
+        y : ndarray of shape (..., n_samples, n_outputs)
             Output at each sample.
         """
         u = np.asarray(u, dtype=float)
         if u.ndim == 1 and self.n_inputs == 1:
             u = u[:, None]
-        if u.ndim != 2 or u.shape[1] != self.n_inputs:
-            raise ValueError(f"u must have shape (n_samples, {self.n_inputs}), got {u.shape}")
-        x = np.empty((u.shape[0], self.n_states))
-        state = np.zeros(self.n_states) if x0 is None else np.asarray(x0, dtype=float).reshape(self.n_states)
+        if u.ndim < 2 or u.shape[-1] != self.n_inputs:
+            raise ValueError(f"u must have shape (..., n_samples, {self.n_inputs}), got {u.shape}")
+        batch = u.shape[:-2]
+        x = np.empty(u.shape[:-1] + (self.n_states,))
+        if x0 is None:
+            state = np.zeros(batch + (self.n_states,))
+        else:
+            x0 = np.asarray(x0, dtype=float)
+            x0 = x0.reshape(self.n_states) if x0.size == self.n_states else x0.reshape(x0.shape[:-1] + (self.n_states,))
+            state = np.array(np.broadcast_to(x0, batch + (self.n_states,)))
         # B u for all samples at once; the recursion itself is inherently sequential.
         bu = u @ self.B.T
         A = self.A
-        for k in range(u.shape[0]):
-            x[k] = state
-            state = A @ state + bu[k]
+        if not batch:
+            for k in range(u.shape[0]):
+                x[k] = state
+                state = A @ state + bu[k]
+        else:  # every sequence in one step: the per-sample cost is Python's, not the arithmetic's
+            At = np.ascontiguousarray(A.T)
+            for k in range(u.shape[-2]):
+                x[..., k, :] = state
+                state = state @ At + bu[..., k, :]
         y = x @ self.C.T + u @ self.D.T
         return x, y
 
@@ -189,18 +202,19 @@ def replay_controller(
     controller : DiscreteStateSpace
         The controller: ``n_errors`` tracking-error channels in, then, if it has more inputs,
         the feedforward's channels (:func:`controller_inputs`).
-    references, measured : array_like of shape (n_samples, n_errors) or (n_samples,)
-        Logged references and measured outputs; 1-D for a one-channel controller.
+    references, measured : array_like of shape (..., n_samples, n_errors) or (n_samples,)
+        Logged references and measured outputs; 1-D for a one-channel controller. Leading
+        axes replay a batch of episodes of equal length in one pass.
     x0 : ndarray of shape (n_states,), optional
         Initial controller state.
-    feedforward : array_like of shape (n_samples, n_f) or (n_samples,), optional
+    feedforward : array_like of shape (..., n_samples, n_f) or (n_samples,), optional
         Logged feedforward; needed only by a controller that takes it as an input.
 
     Returns
     -------
-    states : ndarray of shape (n_samples, n_states)
+    states : ndarray of shape (..., n_samples, n_states)
         State before each sample's update.
-    outputs : ndarray of shape (n_samples, n_outputs)
+    outputs : ndarray of shape (..., n_samples, n_outputs)
         Controller output ``C x + D [e; f]`` at each sample (before the feedforward is added
         to it).
     """

@@ -1227,11 +1227,28 @@ def held_out_figures(
             indices.append([missing[i] for i in run])
     for idx, (_, trajs), predicted in zip(indices, groups, predict_groups(groups) if groups else []):
         found.update((j, (t, p.prediction)) for j, t, p in zip(idx, trajs, predicted))
-    rows = []
-    for j in (int(j) for fold in fit.folds for j in fold.validation):
-        t, x = found[j]
-        c, y = controllers[j], x[:, list(measured)]
+    order = [int(j) for fold in fit.folds for j in fold.validation]
+    rows: dict[int, list[np.ndarray]] = {}
+    # The predicted voltage: each controller replayed on its episodes' predicted angles, all of them in
+    # one pass over the samples (padded to the longest; the replay is causal, the padding comes after).
+    for run in consecutive_runs([Loop("wrapped", controllers[j]) for j in order], size=len(order)):
+        same = [order[i] for i in run]
+        c, n = controllers[same[0]], max(len(found[j][1]) for j in same)
+        r = _stacked([found[j][0].r for j in same], n)
+        y = _stacked([found[j][1][:, list(measured)] for j in same], n)
+        f = None if found[same[0]][0].f is None else _stacked([found[j][0].f for j in same], n)
         with np.errstate(all="ignore"):
-            u = plant_input(c, np.nan_to_num(controller_states(c, t.r, np.nan_to_num(y), t.f)), t.r, y, t.f)
-        rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u[:, 0], skip)])
-    return np.array(rows).reshape(-1, 2, 3)
+            u = plant_input(c, np.nan_to_num(controller_states(c, r, np.nan_to_num(y), f)), r, y, f)
+        for b, j in enumerate(same):
+            t, x = found[j]
+            u_j = u[b, : len(x), 0]
+            rows[j] = [loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u_j, skip)]
+    return np.array([rows[j] for j in order]).reshape(-1, 2, 3)
+
+
+def _stacked(arrays: Sequence[np.ndarray], n: int) -> np.ndarray:
+    """``arrays`` (each of ``n`` samples or fewer) zero-padded to ``n`` samples and stacked on a new first axis."""
+    out = np.zeros((len(arrays), n) + np.shape(arrays[0])[1:])
+    for b, a in enumerate(arrays):
+        out[b, : len(a)] = a
+    return out

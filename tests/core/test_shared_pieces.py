@@ -90,6 +90,25 @@ def test_replay_controller_takes_one_channel_as_1d_and_a_starting_state():
         replay_controller(QUBE_PD, np.ones(4), np.zeros(4))
 
 
+def test_replay_controller_runs_a_batch_of_episodes_as_each_alone():
+    """Leading axes replay episodes side by side in one pass; each is the replay of that episode alone,
+    and the starting state is one for all or one each."""
+    rng = np.random.default_rng(5)
+    r, y = rng.normal(size=(3, 40, 2)), rng.normal(size=(3, 40, 2))
+    x, u = replay_controller(QUBE_PD, r, y)
+    assert x.shape == (3, 40, QUBE_PD.n_states) and u.shape == (3, 40, QUBE_PD.n_outputs)
+    for b in range(3):
+        alone_x, alone_u = replay_controller(QUBE_PD, r[b], y[b])
+        np.testing.assert_allclose(x[b], alone_x, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(u[b], alone_u, rtol=1e-13, atol=1e-13)
+    starts = rng.normal(size=(3, QUBE_PD.n_states))
+    x_each, _ = replay_controller(QUBE_PD, r, y, x0=starts)
+    for b in range(3):
+        np.testing.assert_allclose(x_each[b], replay_controller(QUBE_PD, r[b], y[b], x0=starts[b])[0], atol=1e-13)
+    shared, _ = replay_controller(QUBE_PD, r, y, x0=starts[0])
+    np.testing.assert_allclose(shared[2], replay_controller(QUBE_PD, r[2], y[2], x0=starts[0])[0], atol=1e-13)
+
+
 # --- signal stacking ------------------------------------------------------------------------------
 
 def test_stack_signals_reads_items_or_attributes_column_per_name():
