@@ -396,22 +396,25 @@ class _RingStepper:
         self.newest = self.y[..., :rows]
 
     def step(self, u_term: np.ndarray, out: np.ndarray) -> None:
-        ring, z, newest = self.ring, self.z, self.newest
+        ring, z = self.ring, self.z
+        # The sample is computed in ``out`` (contiguous: the product and the sum run without a
+        # strided copy), then copied beside ``y``'s column of ones for the features.
         if ring.shared is None:
-            np.matmul(z, ring.perms[self.q], out=newest)
+            np.matmul(z, ring.perms[self.q], out=out)
         else:  # the shared passthrough rows in one product over every model's episodes, then the plant rows
             n_p = ring.n_p
-            newest[..., :n_p] = (z.reshape(-1, z.shape[-1]) @ ring.shared[self.q]).reshape(z.shape[:2] + (n_p,))
-            newest[..., n_p:] = np.matmul(z, ring.perms[self.q])
-        newest += u_term
-        out[...] = newest
+            out[..., :n_p] = (z.reshape(-1, z.shape[-1]) @ ring.shared[self.q]).reshape(z.shape[:2] + (n_p,))
+            out[..., n_p:] = np.matmul(z, ring.perms[self.q])
+        out += u_term
+        newest = self.newest
+        newest[...] = out
         self.q = q = (self.q - 1) % ring.slots  # the oldest slot takes the newest sample
         ring.write_newest(z, self.y, q)
         if ring.rbf is not None:
             ring.write_rbf(z, q)
         if ring.friction:
             ring.write_friction(z, q)
-        z[..., : ring.n_p] = newest[..., : ring.n_p]
+        z[..., : ring.n_p] = out[..., : ring.n_p]
 
     def keep(self, models: np.ndarray) -> None:
         """Only these models from now on (a boolean mask over the current ones)."""
