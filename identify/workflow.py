@@ -730,7 +730,7 @@ def _test_bands(
 
     def on_probes(probe_set):
         return calibrate_on_probes(
-            ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride, options.n_calibration_members
+            ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride, options.n_probe_members
         )
 
     def elsewhere(gains):

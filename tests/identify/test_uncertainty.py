@@ -196,6 +196,27 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     assert abs(coverage(on_probes) - level) < 0.05  # 0.92 measured
 
 
+def test_the_probes_take_their_own_number_of_members_and_the_calibration_folds_theirs(ar1, monkeypatch):
+    """The folds' ensembles have ``n_calibration_members`` refits each; the probes are predicted by the
+    first ``n_probe_members`` of the fit's members (a loop the training never ran needs more of them);
+    the fit's own members do not depend on either."""
+    import qube_koopman.identify.uncertainty as uncertainty
+
+    train = ar1[0][:12]
+    options = IntervalOptions(0.9, n_members=6, n_calibration_members=2, n_probe_members=5, n_folds=3)
+    fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-6), train, options)
+    assert len(fit.members) == 6 and all(len(fold.members) == 2 for fold in fit.folds)
+    more = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-6), train, dataclasses.replace(options, n_calibration_members=3))
+    np.testing.assert_array_equal(more.counts, fit.counts)
+    seen = []
+    monkeypatch.setattr(uncertainty, "calibrate", lambda on_probes, *a, **k: seen.append(on_probes.folds[0].members))
+    probes = dataclasses.make_dataclass("Probes", ["controllers", "episodes"])([P_CONTROLLER], [train[:2]])
+    uncertainty.calibrate_on_probes(fit, probes, 0.9, n_members=options.n_probe_members)
+    assert seen[0] == fit.members[:5]
+    with pytest.raises(ValueError, match="probe members"):
+        IntervalOptions(n_probe_members=1)
+
+
 def test_the_widest_calibration_takes_each_channel_from_the_wider_band():
     from qube_koopman.identify.uncertainty import widest
 
