@@ -12,6 +12,15 @@ test); with ``--soft DIR`` also both trained on the paper's 28 and tested on the
 episodes (a loop the training never ran: its band is calibrated on the twin's probe episodes, read
 from the probe cache after the first run); with ``--search`` the search itself on the paper's split.
 
+Measured (2 shared cores of an AMD EPYC, median of 3; without, with, added; the calibrations' time):
+
+| case | without | with | added | calibrations |
+|---|---|---|---|---|
+| default lifting, paper test | 2.4 s | 3.5 s | 44 % | held-out 0.4 s |
+| search's lifting, paper test | 9.1 s | 24.1 s | 163 % | held-out 6.2 s |
+| default lifting, soft episodes | 1.8 s | 5.1 s | 189 % | held-out 0.5 s, probes 2.1 s |
+| search's lifting, soft episodes | 10.5 s | 38.6 s | 269 % | held-out 6.0 s, probes 17.9 s |
+
 Usage: python bench/bench_interval_cost.py --data DIR [--soft DIR] [--repeat N] [--search]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
 """
