@@ -20,6 +20,7 @@ Measured (2 shared cores of an AMD EPYC, median of 3; without, with, added; the 
 | search's lifting, paper test | 9.1 s | 24.1 s | 163 % | held-out 6.2 s |
 | default lifting, soft episodes | 1.8 s | 5.1 s | 189 % | held-out 0.5 s, probes 2.1 s |
 | search's lifting, soft episodes | 10.5 s | 38.6 s | 269 % | held-out 6.0 s, probes 17.9 s |
+| search, paper split (``--search``, one run each) | 78.3 s | 91.4 s | 17 % | held-out 5.6 s |
 
 Usage: python bench/bench_interval_cost.py --data DIR [--soft DIR] [--repeat N] [--search]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
