@@ -157,7 +157,7 @@ class DiscreteStateSpace:
         # B u for all samples at once; the recursion itself is inherently sequential.
         bu = u @ self.B.T
         A = self.A
-        if not batch:
+        if not batch:  # one sequence: the product as it always ran (a batch's may round a last bit apart)
             for k in range(u.shape[0]):
                 x[k] = state
                 state = A @ state + bu[k]
