@@ -2,7 +2,7 @@
 
 Every controller maps the tracking error ``e = r - y`` (one channel per fed-back
 state) to one plant input, as the sum of one SISO block per channel. Blocks
-are discretized with python-control (no slycot needed: only SISO conversions)
+are discretized as python-control's ``sample_system`` does (``_sample_block``)
 and each first-order block is scaled to ``B = 1``, the realization the rig
 and the reference code used, so logged controller states match theirs. The rig's
 PD derivative filter was discretized by backward Euler, not the zero-order hold the paper's
@@ -34,7 +34,7 @@ __all__ = [
     "discretize_channels",
 ]
 
-# Our names -> scipy.signal.cont2discrete's (used by control.sample_system).
+# Our names -> scipy.signal.cont2discrete's (which control.sample_system uses, and _sample_block follows).
 DISCRETIZATIONS = {"backward-euler": "backward_diff", "zoh": "zoh", "tustin": "bilinear"}
 
 QUBE_SAMPLE_PERIOD = 1.0 / 500.0
@@ -160,23 +160,90 @@ def discretize_channels(channels, dt: float, method: str) -> DiscreteStateSpace:
     """
     import control  # lazily: python-control imports matplotlib
 
-    if method not in DISCRETIZATIONS:
-        raise ValueError(f"unknown discretization {method!r}; expected one of {', '.join(DISCRETIZATIONS)}")
+    _check_method(method)
     blocks = []
     for channel in channels:
-        sys = control.sample_system(control.ss(channel), dt, method=DISCRETIZATIONS[method])
-        A, B, C, D = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (sys.A, sys.B, sys.C, sys.D))
+        sys = control.ss(channel)
+        blocks.append(tuple(np.atleast_2d(np.asarray(m, dtype=float)) for m in (sys.A, sys.B, sys.C, sys.D)))
+    return _discrete_sum(blocks, dt, method)
+
+
+def _check_method(method: str) -> None:
+    if method not in DISCRETIZATIONS:
+        raise ValueError(f"unknown discretization {method!r}; expected one of {', '.join(DISCRETIZATIONS)}")
+
+
+def _sample_block(A, B, C, D, dt: float, method: str) -> tuple[np.ndarray, ...]:
+    """One continuous block ``(A, B, C, D)`` discretized as ``scipy.signal.cont2discrete`` does.
+
+    The same formulas as SciPy's (and so python-control's ``sample_system``): the zero-order
+    hold from the matrix exponential of ``[[A, B], [0, 0]] dt``, backward Euler and Tustin as
+    the generalized bilinear transform with alpha 1 and 1/2. Written here because importing
+    python-control (which imports scipy.signal and matplotlib) takes longer than a one-episode
+    ``qube-run`` simulates, and every command that builds a PD controller paid it;
+    tests/core/test_controller.py holds it to python-control's result.
+
+    Parameters
+    ----------
+    A, B, C, D : array_like
+        The continuous block (2-D).
+    dt : float
+        Sample period in seconds.
+    method : {"backward-euler", "zoh", "tustin"}
+        The discretization.
+
+    Returns
+    -------
+    tuple of ndarray
+        The discrete ``(A, B, C, D)``.
+    """
+    from scipy import linalg
+
+    _check_method(method)
+    A, B, C, D = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (A, B, C, D))
+    n, m = B.shape
+    if method == "zoh":
+        exponential = linalg.expm(dt * np.block([[A, B], [np.zeros((m, n)), np.zeros((m, m))]]))[:n]
+        return exponential[:, :n], exponential[:, n:], C, D
+    weight = 1.0 if method == "backward-euler" else 0.5  # scipy's gbt alpha
+    ima = np.eye(n) - weight * dt * A
+    Ad = linalg.solve(ima, np.eye(n) + (1.0 - weight) * dt * A)
+    Bd = linalg.solve(ima, dt * B)
+    Cd = linalg.solve(ima.T, C.T).T
+    return Ad, Bd, Cd, D + weight * (C @ Bd)
+
+
+def _first_order(pole: float, residue: float, feedthrough: float) -> tuple:
+    """The block ``feedthrough + residue / (s - pole)``: one state, or none when ``residue`` is 0 (a
+    static gain, as python-control's transfer-function arithmetic leaves it)."""
+    if residue == 0:
+        return _static([[feedthrough]])
+    return [[pole]], [[1.0]], [[residue]], [[feedthrough]]
+
+
+def _static(D) -> tuple:
+    """A block without states: the gain ``D`` (1 x 1)."""
+    return np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), np.atleast_2d(np.asarray(D, dtype=float))
+
+
+def _discrete_sum(blocks, dt: float, method: str) -> DiscreteStateSpace:
+    """Continuous SISO blocks ``(A, B, C, D)``, each discretized (first-order ones scaled to
+    ``B = 1``, the rig's realization) and summed into one controller with an input per block."""
+    _check_method(method)
+    discrete = []
+    for block in blocks:
+        A, B, C, D = _sample_block(block[0], block[1], block[2], block[3], dt, method) if np.size(block[0]) else block
         if A.shape == (1, 1) and B[0, 0] != 0:
             # Scale the state so that B = 1 (same transfer function, the rig's realization).
             C, B = C * B[0, 0], np.ones((1, 1))
-        blocks.append((A, B, C, D))
-    n = sum(b[0].shape[0] for b in blocks)
+        discrete.append((A, B, C, D))
+    n = sum(b[0].shape[0] for b in discrete)
     A = np.zeros((n, n))
-    B = np.zeros((n, len(blocks)))
+    B = np.zeros((n, len(discrete)))
     C = np.zeros((1, n))
-    D = np.zeros((1, len(blocks)))
+    D = np.zeros((1, len(discrete)))
     i = 0
-    for j, (Ab, Bb, Cb, Db) in enumerate(blocks):
+    for j, (Ab, Bb, Cb, Db) in enumerate(discrete):
         k = Ab.shape[0]
         A[i : i + k, i : i + k] = Ab
         B[i : i + k, j] = Bb[:, 0]
@@ -206,14 +273,13 @@ def pd_controller(gains: PdGains, dt: float = QUBE_SAMPLE_PERIOD, method: str = 
     DiscreteStateSpace
         Inputs the tracking errors of theta and alpha, output the voltage.
     """
-    import control
-
-    s = control.tf("s")
-    channels = [
-        -(kp + kd * gains.tau * s / (s + gains.tau))
+    # -(kp + kd tau s / (s + tau)) = -(kp + kd tau) + kd tau^2 / (s + tau): one state per channel
+    tau = gains.tau
+    blocks = [
+        _first_order(-tau, kd * tau**2, -(kp + kd * tau))
         for kp, kd in ((gains.kp_theta, gains.kd_theta), (gains.kp_alpha, gains.kd_alpha))
     ]
-    return discretize_channels(channels, dt, method)
+    return _discrete_sum(blocks, dt, method)
 
 
 def pi_controller(kp: float, ki: float, dt: float, method: str = "zoh") -> DiscreteStateSpace:
@@ -232,7 +298,4 @@ def pi_controller(kp: float, ki: float, dt: float, method: str = "zoh") -> Discr
     -------
     DiscreteStateSpace
     """
-    import control
-
-    s = control.tf("s")
-    return discretize_channels([kp + ki / s], dt, method)
+    return _discrete_sum([_first_order(0.0, ki, kp)], dt, method)  # kp + ki / s

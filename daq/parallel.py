@@ -287,7 +287,7 @@ def _release_workers() -> None:
 
 def _for_worker(plan: EpisodePlan) -> EpisodePlan:
     """The plan with its excitation made here when it is short (the same values, bit for bit): a
-    worker then never imports scipy.signal, a second of its start-up."""
+    worker then does not make it again."""
     if isinstance(plan.excitation, ExcitationStream) and len(plan.excitation) <= _MADE_HERE:
         return replace(plan, excitation=plan.excitation.whole())
     return plan

@@ -110,6 +110,17 @@ def test_smoothing_step_response_is_the_backward_euler_low_pass():
     np.testing.assert_array_equal(smooth(np.arange(3.0), 0.0, FS), np.arange(3.0))
 
 
+@pytest.mark.parametrize("cutoff", [1.0, 20.0, 200.0])
+def test_smoothing_is_scipys_lfilter_bit_for_bit(cutoff):
+    """smooth() filters in a Python loop (no scipy.signal import at start-up): the same roundings."""
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(int(cutoff))
+    x = rng.normal(size=5000) * np.repeat(rng.normal(size=50), 100)
+    ratio = cutoff / FS
+    np.testing.assert_array_equal(smooth(x, cutoff, FS), lfilter([ratio / (1.0 + ratio)], [1.0, -1.0 / (1.0 + ratio)], x))
+
+
 def test_integrate_is_forward_euler_from_zero():
     rate = np.full(6, 2.0)
     # out[0] = 0 regardless of in[0]; then out[i] = out[i-1] + in[i] T.
