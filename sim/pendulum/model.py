@@ -318,6 +318,89 @@ def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coeff
     return theta, alpha, theta_dot, alpha_dot
 
 
+def scalar_rk4(k: Coefficients) -> Callable:
+    """:func:`_rk4` for one pendulum in Python floats, its coefficients and branches bound once.
+
+    ``rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n)`` does the same operations in the
+    same order as ``_rk4(..., k, math.sin, math.cos)``, so it returns the same floats, bit for bit
+    (tests/sim/test_pendulum.py); the per-tick simulator steps 500 times a simulated second and
+    spent most of each step looking up coefficients and testing which terms are on.
+    """
+    m11_0, quarter, m12_0, m22, gravity = k.m11, k.quarter, k.m12, k.m22, k.gravity
+    torque, damping, pendulum_damping = k.torque_per_volt, k.arm_damping, k.pendulum_damping
+    two_quarter = 2.0 * quarter  # the first product of the arithmetic's left-to-right 2.0 * quarter * s ...
+    coulomb, inverse_speed = k.arm_coulomb, k.inverse_coulomb_speed
+    stiffness, rest, curvature = k.arm_stiffness, k.arm_rest, k.cable_curvature
+    dead_zone = k.dead_zone
+    has_coulomb, has_spring, has_curve, has_dead_zone = (
+        bool(coulomb),
+        bool(stiffness),
+        bool(curvature),
+        bool(dead_zone),
+    )
+    sin, cos, tanh = math.sin, math.cos, math.tanh
+
+    def accelerations(theta, s, c, theta_dot, alpha_dot, voltage):
+        r1 = (
+            torque * voltage
+            - damping * theta_dot
+            - two_quarter * s * c * theta_dot * alpha_dot
+            + m12_0 * s * alpha_dot * alpha_dot
+        )
+        if has_coulomb:
+            r1 = r1 - coulomb * tanh(theta_dot * inverse_speed)
+        if has_spring:
+            x = theta - rest
+            r1 = r1 - stiffness * (tanh(curvature * x) / curvature if has_curve else x)
+        r2 = -pendulum_damping * alpha_dot + quarter * s * c * theta_dot * theta_dot + gravity * s
+        m11 = m11_0 + quarter * s * s
+        m12 = m12_0 * c
+        det = m11 * m22 - m12 * m12
+        return (m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
+
+    def rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n):
+        half = 0.5 * h
+        sixth = h / 6.0
+        if has_dead_zone:
+            voltage = voltage - min(max(voltage, -dead_zone), dead_zone)
+        for _ in range(n):
+            a1, b1 = accelerations(theta, sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage)
+            th2 = theta + half * theta_dot
+            al2 = alpha + half * alpha_dot
+            td2 = theta_dot + half * a1
+            ad2 = alpha_dot + half * b1
+            a2, b2 = accelerations(th2, sin(al2), cos(al2), td2, ad2, voltage)
+            th3 = theta + half * td2
+            al3 = alpha + half * ad2
+            td3 = theta_dot + half * a2
+            ad3 = alpha_dot + half * b2
+            a3, b3 = accelerations(th3, sin(al3), cos(al3), td3, ad3, voltage)
+            th4 = theta + h * td3
+            al4 = alpha + h * ad3
+            td4 = theta_dot + h * a3
+            ad4 = alpha_dot + h * b3
+            a4, b4 = accelerations(th4, sin(al4), cos(al4), td4, ad4, voltage)
+            theta = theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4)
+            alpha = alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4)
+            theta_dot = theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            alpha_dot = alpha_dot + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+        return theta, alpha, theta_dot, alpha_dot
+
+    return rk4
+
+
+def advance_scalar(comps, previous: float, current: float, weights: tuple[float, ...], h: float, rk4: Callable):
+    """:func:`advance` of one pendulum in Python floats with its :func:`scalar_rk4`."""
+    theta, alpha, theta_dot, alpha_dot = comps
+    if not any(weights):
+        return rk4(theta, alpha, theta_dot, alpha_dot, current, h, len(weights))
+    for w in weights:
+        theta, alpha, theta_dot, alpha_dot = rk4(
+            theta, alpha, theta_dot, alpha_dot, current + w * (previous - current), h, 1
+        )
+    return theta, alpha, theta_dot, alpha_dot
+
+
 def hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[float, ...]]:
     """Whole samples of ``delay`` and, per substep, the weight of the previous command in it.
 

@@ -15,9 +15,10 @@ from qube_koopman.sim.pendulum.model import (
     SAMPLE_PERIOD,
     Coefficients,
     PendulumParameters,
-    advance,
+    advance_scalar,
     check_timing,
     hold_pattern,
+    scalar_rk4,
 )
 from qube_koopman.sim.pendulum.sensor import SensorModel, encoder_angles
 
@@ -67,6 +68,7 @@ class PendulumSimulator:
         self.n_substeps = int(n_substeps)
         self.max_voltage = math.inf if max_voltage is None else float(max_voltage)
         self._k = Coefficients.of(params)
+        self._rk4 = scalar_rk4(self._k)
         self._h = self.dt / self.n_substeps
         self._whole, self._weights = hold_pattern(params.delay, self.dt, self.n_substeps)
         self._commands = [0.0] * (self._whole + 1)  # the last commands, oldest first (transport delay)
@@ -96,15 +98,8 @@ class PendulumSimulator:
         v = min(max(v, -self.max_voltage), self.max_voltage)
         commands = self._commands
         commands.append(v)
-        self._x = advance(
-            self._x,
-            commands[-self._whole - 2],
-            commands[-self._whole - 1],
-            self._weights,
-            self._h,
-            self._k,
-            math.sin,
-            math.cos,
+        self._x = advance_scalar(
+            self._x, commands[-self._whole - 2], commands[-self._whole - 1], self._weights, self._h, self._rk4
         )
         del commands[0]
         self._steps += 1
@@ -135,6 +130,7 @@ class PendulumSimulator:
     def params(self, params: PendulumParameters) -> None:
         self._params = params
         self._k = Coefficients.of(params)
+        self._rk4 = scalar_rk4(self._k)
         self._whole, self._weights = hold_pattern(params.delay, self.dt, self.n_substeps)
         self._commands = [0.0] * (self._whole + 1)
 

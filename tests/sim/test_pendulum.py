@@ -160,6 +160,25 @@ def test_more_substeps_converge():
     assert errors[1] < 1e-5
 
 
+@pytest.mark.parametrize("changes", [{}, dict(Cr=0.0), dict(Kr=0.0), dict(cable_softening=0.0), dict(dead_zone=0.3),
+                                     dict(Cr=0.0, Kr=0.0, dead_zone=0.0)])
+def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):
+    """The simulator's float integrator (its coefficients bound once) against the general one that
+    batches and the calibration use: the same floats for every combination of the optional terms."""
+    from qube_koopman.sim.pendulum.model import Coefficients, _rk4, advance, advance_scalar, scalar_rk4
+
+    k = Coefficients.of(dataclasses.replace(PendulumParameters(), **changes))
+    rk4 = scalar_rk4(k)
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        x = tuple(float(v) for v in rng.normal(size=4) * [0.5, 0.3, 3.0, 5.0])
+        volts = float(rng.normal() * 5.0)
+        assert rk4(*x, volts, 1e-3, 2) == _rk4(*x, volts, 1e-3, 2, k, math.sin, math.cos)
+        weights = (1.0, 0.4)  # a fractional delay: the previous command held into the second substep
+        assert advance_scalar(x, -volts, volts, weights, 1e-3, rk4) == advance(x, -volts, volts, weights, 1e-3, k,
+                                                                                math.sin, math.cos)
+
+
 def test_batches_match_single_states():
     rng = np.random.default_rng(0)
     states = rng.normal(size=(3, 5, 4))
