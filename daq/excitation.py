@@ -24,6 +24,8 @@ How the rig built each signal (checked against all 48 dataset files):
 
 from __future__ import annotations
 
+import sys
+
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Iterator
@@ -108,16 +110,34 @@ def smooth(x: np.ndarray, cutoff: float, sample_rate: float) -> np.ndarray:
     return _low_pass(ratio / (1.0 + ratio), 1.0 / (1.0 + ratio), x, 0.0)[0]
 
 
-def _low_pass(gain: float, pole: float, x: np.ndarray, previous: float) -> tuple[np.ndarray, float]:
+#: Longest signal the low-pass filters in a Python loop (:func:`_low_pass`): 100,000 samples take
+#: about 50 ms there, and importing scipy.signal about 1-2 s.
+_LOOP_SAMPLES = 100_000
+
+
+def _low_pass(gain: float, pole: float, x: np.ndarray, previous: float, long: bool = False) -> tuple[np.ndarray, float]:
     """``y[k] = gain x[k] + pole y[k-1]`` from ``y[-1] = previous``; the outputs and the last one.
 
     The products and sums of ``scipy.signal.lfilter([gain], [1, -pole], x)``, bit for bit
-    (tests/daq/test_excitation.py), in a loop of Python floats: an episode's 10,000 samples take
-    about 5 ms, and importing scipy.signal took 1-2 s of every ``qube-run``'s start-up.
+    (tests/daq/test_excitation.py), in a loop of Python floats for an ordinary episode (its
+    10,000 samples take about 5 ms; importing scipy.signal took 1-2 s of every ``qube-run``'s
+    start-up), by lfilter itself for a signal longer than ``_LOOP_SAMPLES`` (or ``long``:
+    chunks of one) or once scipy.signal is imported anyway.
     """
+    x = np.asarray(x, dtype=float)
+    if long or len(x) > _LOOP_SAMPLES or "scipy.signal" in sys.modules:
+        from scipy.signal import lfilter
+
+        out = lfilter([gain], [1.0, -pole], x, zi=[pole * previous])[0]
+        return out, float(out[-1]) if len(out) else previous
+    return _loop_low_pass(gain, pole, x, previous)
+
+
+def _loop_low_pass(gain: float, pole: float, x: np.ndarray, previous: float) -> tuple[np.ndarray, float]:
+    """:func:`_low_pass` in a loop of Python floats."""
     out = np.empty(len(x))
     y = previous
-    for k, value in enumerate(np.asarray(x, dtype=float).tolist()):
+    for k, value in enumerate(x.tolist()):
         y = gain * value + pole * y
         out[k] = y
     return out, y
@@ -273,6 +293,7 @@ class _ChannelStream:
         self.smoothing = settings.smoothing_cutoff > 0
         self.gain, self.pole = ratio / (1.0 + ratio), 1.0 / (1.0 + ratio)  # as smooth() computes them
         self.previous = 0.0
+        self.long = self.window_stop - self.window_start > _LOOP_SAMPLES  # filtered by lfilter, chunk by chunk
         self.next_bit = 0
         self.level = 0.0
 
@@ -297,7 +318,7 @@ class _ChannelStream:
         out[: max(0, min(self.window_start, k1) - k0)] = 0.0
         active = min(k1, self.window_stop) - k0
         if active > 0 and self.smoothing:
-            out[:active], self.previous = _low_pass(self.gain, self.pole, out[:active], self.previous)
+            out[:active], self.previous = _low_pass(self.gain, self.pole, out[:active], self.previous, self.long)
         return out
 
 
@@ -322,6 +343,8 @@ class ExcitationStream:
             lfsr_bits(seed, 0)
         self.seeds = tuple(int(seed) for seed in seeds)
         self.settings = settings
+        if settings.smoothing_cutoff > 0 and settings.window_stop - settings.window_start > _LOOP_SAMPLES:
+            import scipy.signal  # noqa: F401  (a long stream's filter: imported as it is made, not as it streams)
 
     def __len__(self) -> int:
         return self.settings.n_samples

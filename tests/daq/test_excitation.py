@@ -112,13 +112,22 @@ def test_smoothing_step_response_is_the_backward_euler_low_pass():
 
 @pytest.mark.parametrize("cutoff", [1.0, 20.0, 200.0])
 def test_smoothing_is_scipys_lfilter_bit_for_bit(cutoff):
-    """smooth() filters in a Python loop (no scipy.signal import at start-up): the same roundings."""
+    """An episode's smoothing runs in a Python loop (no scipy.signal import at start-up), a long
+    signal's in lfilter: the same roundings either way, from rest or from a chunk's last output."""
     from scipy.signal import lfilter
+
+    from qube_koopman.daq.excitation import _loop_low_pass, _low_pass
 
     rng = np.random.default_rng(int(cutoff))
     x = rng.normal(size=5000) * np.repeat(rng.normal(size=50), 100)
     ratio = cutoff / FS
-    np.testing.assert_array_equal(smooth(x, cutoff, FS), lfilter([ratio / (1.0 + ratio)], [1.0, -1.0 / (1.0 + ratio)], x))
+    gain, pole = ratio / (1.0 + ratio), 1.0 / (1.0 + ratio)
+    reference = lfilter([gain], [1.0, -pole], x)
+    for low_pass in (_loop_low_pass, lambda *a: _low_pass(*a, long=True)):
+        first, last = low_pass(gain, pole, x[:1234], 0.0)
+        second, _ = low_pass(gain, pole, x[1234:], last)
+        np.testing.assert_array_equal(np.concatenate([first, second]), reference)
+    np.testing.assert_array_equal(smooth(x, cutoff, FS), reference)
 
 
 def test_integrate_is_forward_euler_from_zero():
