@@ -185,15 +185,24 @@ def _run(stepper, Bt: np.ndarray, v: np.ndarray, d: int, width: int, sink, paire
     n_eps = v.shape[1] if paired else v.shape[0]
     models = np.arange(Bt.shape[0])
     buf = np.empty((_INPUT_CHUNK,) + stepper.z.shape[:2] + (width,))
+    # The input terms of a chunk and their time-first copy, in two buffers kept for the run: fresh
+    # arrays of this size (up to a few hundred MB for an ensemble) were mapped and page-faulted in
+    # anew at every chunk.
+    size = _INPUT_CHUNK * Bt.shape[0] * n_eps * Bt.shape[-1]
+    terms_buffer, u_buffer = np.empty(size), np.empty(size)
     for c0 in range(d, T - 1, _INPUT_CHUNK):
         n = min(_INPUT_CHUNK, T - 1 - c0)
+        shape = (Bt.shape[0], n_eps * n, Bt.shape[-1])
+        terms = terms_buffer[: np.prod(shape)].reshape(shape)
         if paired:  # each group's inputs times its models' B: (groups, models per group, episodes x n, rows)
             chunk = v[:, :, c0 : c0 + n].reshape(v.shape[0], 1, -1, v.shape[-1])
-            terms = np.matmul(chunk, Bt.reshape((v.shape[0], -1) + Bt.shape[1:]))
+            grouped = (v.shape[0], -1)
+            np.matmul(chunk, Bt.reshape(grouped + Bt.shape[1:]), out=terms.reshape(grouped + shape[1:]))
         else:
-            terms = np.matmul(v[:, c0 : c0 + n].reshape(1, -1, v.shape[-1]), Bt)
+            np.matmul(v[:, c0 : c0 + n].reshape(1, -1, v.shape[-1]), Bt, out=terms)
         # Time first, so that each step adds one contiguous block.
-        u_terms = np.ascontiguousarray(terms.reshape(Bt.shape[0], n_eps, n, Bt.shape[-1]).transpose(2, 0, 1, 3))
+        u_terms = u_buffer[: terms.size].reshape(n, Bt.shape[0], n_eps, Bt.shape[-1])
+        np.copyto(u_terms, terms.reshape(Bt.shape[0], n_eps, n, Bt.shape[-1]).transpose(2, 0, 1, 3))
         for j in range(n):
             stepper.step(u_terms[j], buf[j])
         sink(c0 + 1, buf[:n], models)
