@@ -181,7 +181,7 @@ def _sample_block(A, B, C, D, dt: float, method: str) -> tuple[np.ndarray, ...]:
     the generalized bilinear transform with alpha 1 and 1/2. Written here because importing
     python-control (which imports scipy.signal and matplotlib) takes longer than a one-episode
     ``qube-run`` simulates, and every command that builds a PD controller paid it;
-    tests/core/test_controller.py holds it to python-control's result.
+    tests/core/test_controller_discretization.py holds it to python-control's result.
 
     Parameters
     ----------
