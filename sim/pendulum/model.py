@@ -15,6 +15,7 @@ tests) and plain Python floats (:class:`PendulumSimulator`, called once per
 from __future__ import annotations
 
 import math
+from functools import partial
 from dataclasses import dataclass, fields, replace
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -290,27 +291,35 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
 
 def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coefficients, sin: Callable, cos: Callable):
     """``n`` classic RK4 steps of size ``h`` at constant voltage, on the four components."""
+    tanh = math.tanh if sin is math.sin else np.tanh
+    voltage = _motor_voltage(voltage, k)  # constant over the steps: the dead zone once
+    return _rk4_steps(
+        theta, alpha, theta_dot, alpha_dot, voltage, h, n, partial(_accelerations, k=k, tanh=tanh), sin, cos
+    )
+
+
+def _rk4_steps(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, accelerations: Callable, sin, cos):
+    """:func:`_rk4`'s steps with the voltage past the dead zone and ``accelerations(theta, sin alpha, cos alpha,
+    theta_dot, alpha_dot, voltage)``."""
     half = 0.5 * h
     sixth = h / 6.0
-    voltage = _motor_voltage(voltage, k)  # constant over the steps: the dead zone once
-    tanh = math.tanh if sin is math.sin else np.tanh
     for _ in range(n):
-        a1, b1 = _accelerations(theta, sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage, k, tanh)
+        a1, b1 = accelerations(theta, sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage)
         th2 = theta + half * theta_dot
         al2 = alpha + half * alpha_dot
         td2 = theta_dot + half * a1
         ad2 = alpha_dot + half * b1
-        a2, b2 = _accelerations(th2, sin(al2), cos(al2), td2, ad2, voltage, k, tanh)
+        a2, b2 = accelerations(th2, sin(al2), cos(al2), td2, ad2, voltage)
         th3 = theta + half * td2
         al3 = alpha + half * ad2
         td3 = theta_dot + half * a2
         ad3 = alpha_dot + half * b2
-        a3, b3 = _accelerations(th3, sin(al3), cos(al3), td3, ad3, voltage, k, tanh)
+        a3, b3 = accelerations(th3, sin(al3), cos(al3), td3, ad3, voltage)
         th4 = theta + h * td3
         al4 = alpha + h * ad3
         td4 = theta_dot + h * a3
         ad4 = alpha_dot + h * b3
-        a4, b4 = _accelerations(th4, sin(al4), cos(al4), td4, ad4, voltage, k, tanh)
+        a4, b4 = accelerations(th4, sin(al4), cos(al4), td4, ad4, voltage)
         theta = theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4)
         alpha = alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4)
         theta_dot = theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
@@ -322,9 +331,10 @@ def scalar_rk4(k: Coefficients) -> Callable:
     """:func:`_rk4` for one pendulum in Python floats, its coefficients and branches bound once.
 
     ``rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n)`` does the same operations in the
-    same order as ``_rk4(..., k, math.sin, math.cos)``, so it returns the same floats, bit for bit
-    (tests/sim/test_pendulum.py); the per-tick simulator steps 500 times a simulated second and
-    spent most of each step looking up coefficients and testing which terms are on.
+    same order as ``_rk4(..., k, math.sin, math.cos)`` (the same :func:`_rk4_steps`), so it returns
+    the same floats, bit for bit (tests/sim/test_pendulum.py); the per-tick simulator steps 500
+    times a simulated second and spent most of each step looking up coefficients and testing which
+    terms are on.
     """
     m11_0, quarter, m12_0, m22, gravity = k.m11, k.quarter, k.m12, k.m22, k.gravity
     torque, damping, pendulum_damping = k.torque_per_volt, k.arm_damping, k.pendulum_damping
@@ -359,46 +369,11 @@ def scalar_rk4(k: Coefficients) -> Callable:
         return (m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
 
     def rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n):
-        half = 0.5 * h
-        sixth = h / 6.0
         if has_dead_zone:
             voltage = voltage - min(max(voltage, -dead_zone), dead_zone)
-        for _ in range(n):
-            a1, b1 = accelerations(theta, sin(alpha), cos(alpha), theta_dot, alpha_dot, voltage)
-            th2 = theta + half * theta_dot
-            al2 = alpha + half * alpha_dot
-            td2 = theta_dot + half * a1
-            ad2 = alpha_dot + half * b1
-            a2, b2 = accelerations(th2, sin(al2), cos(al2), td2, ad2, voltage)
-            th3 = theta + half * td2
-            al3 = alpha + half * ad2
-            td3 = theta_dot + half * a2
-            ad3 = alpha_dot + half * b2
-            a3, b3 = accelerations(th3, sin(al3), cos(al3), td3, ad3, voltage)
-            th4 = theta + h * td3
-            al4 = alpha + h * ad3
-            td4 = theta_dot + h * a3
-            ad4 = alpha_dot + h * b3
-            a4, b4 = accelerations(th4, sin(al4), cos(al4), td4, ad4, voltage)
-            theta = theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4)
-            alpha = alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4)
-            theta_dot = theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            alpha_dot = alpha_dot + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
-        return theta, alpha, theta_dot, alpha_dot
+        return _rk4_steps(theta, alpha, theta_dot, alpha_dot, voltage, h, n, accelerations, sin, cos)
 
     return rk4
-
-
-def advance_scalar(comps, previous: float, current: float, weights: tuple[float, ...], h: float, rk4: Callable):
-    """:func:`advance` of one pendulum in Python floats with its :func:`scalar_rk4`."""
-    theta, alpha, theta_dot, alpha_dot = comps
-    if not any(weights):
-        return rk4(theta, alpha, theta_dot, alpha_dot, current, h, len(weights))
-    for w in weights:
-        theta, alpha, theta_dot, alpha_dot = rk4(
-            theta, alpha, theta_dot, alpha_dot, current + w * (previous - current), h, 1
-        )
-    return theta, alpha, theta_dot, alpha_dot
 
 
 def hold_pattern(delay: float, dt: float, n_substeps: int) -> tuple[int, tuple[float, ...]]:
@@ -437,17 +412,30 @@ def coefficients_and_hold(params, batch: tuple[int, ...], dt: float, n_substeps:
 
 
 def advance(
-    comps, previous, current, weights: tuple[float, ...], h: float, k: Coefficients, sin: Callable, cos: Callable
+    comps,
+    previous,
+    current,
+    weights: tuple[float, ...],
+    h: float,
+    k: Coefficients,
+    sin: Callable,
+    cos: Callable,
+    rk4: Callable | None = None,
 ):
-    """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``."""
+    """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``.
+
+    ``rk4``: ``k``'s :func:`scalar_rk4`, for one pendulum in Python floats (the same floats, faster).
+    """
+    if rk4 is None:
+        rk4 = partial(_rk4, k=k, sin=sin, cos=cos)
     theta, alpha, theta_dot, alpha_dot = comps
     # (Weights are floats, or arrays of one per episode when the episodes' delays differ.)
     fractional = any(w.any() for w in weights) if isinstance(weights[0], np.ndarray) else any(weights)
     if not fractional:  # no fractional delay: exactly the plain zero-order hold
-        return _rk4(theta, alpha, theta_dot, alpha_dot, current, h, len(weights), k, sin, cos)
+        return rk4(theta, alpha, theta_dot, alpha_dot, current, h, len(weights))
     for w in weights:
-        theta, alpha, theta_dot, alpha_dot = _rk4(
-            theta, alpha, theta_dot, alpha_dot, current + w * (previous - current), h, 1, k, sin, cos
+        theta, alpha, theta_dot, alpha_dot = rk4(
+            theta, alpha, theta_dot, alpha_dot, current + w * (previous - current), h, 1
         )
     return theta, alpha, theta_dot, alpha_dot
 

@@ -15,7 +15,7 @@ from qube_koopman.sim.pendulum.model import (
     SAMPLE_PERIOD,
     Coefficients,
     PendulumParameters,
-    advance_scalar,
+    advance,
     check_timing,
     hold_pattern,
     scalar_rk4,
@@ -98,8 +98,16 @@ class PendulumSimulator:
         v = min(max(v, -self.max_voltage), self.max_voltage)
         commands = self._commands
         commands.append(v)
-        self._x = advance_scalar(
-            self._x, commands[-self._whole - 2], commands[-self._whole - 1], self._weights, self._h, self._rk4
+        self._x = advance(
+            self._x,
+            commands[-self._whole - 2],
+            commands[-self._whole - 1],
+            self._weights,
+            self._h,
+            self._k,
+            math.sin,
+            math.cos,
+            self._rk4,
         )
         del commands[0]
         self._steps += 1

@@ -165,7 +165,7 @@ def test_more_substeps_converge():
 def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):
     """The simulator's float integrator (its coefficients bound once) against the general one that
     batches and the calibration use: the same floats for every combination of the optional terms."""
-    from qube_koopman.sim.pendulum.model import Coefficients, _rk4, advance, advance_scalar, scalar_rk4
+    from qube_koopman.sim.pendulum.model import Coefficients, _rk4, advance, scalar_rk4
 
     k = Coefficients.of(dataclasses.replace(PendulumParameters(), **changes))
     rk4 = scalar_rk4(k)
@@ -175,8 +175,8 @@ def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):
         volts = float(rng.normal() * 5.0)
         assert rk4(*x, volts, 1e-3, 2) == _rk4(*x, volts, 1e-3, 2, k, math.sin, math.cos)
         weights = (1.0, 0.4)  # a fractional delay: the previous command held into the second substep
-        assert advance_scalar(x, -volts, volts, weights, 1e-3, rk4) == advance(x, -volts, volts, weights, 1e-3, k,
-                                                                                math.sin, math.cos)
+        assert advance(x, -volts, volts, weights, 1e-3, k, math.sin, math.cos, rk4) == advance(
+            x, -volts, volts, weights, 1e-3, k, math.sin, math.cos)
 
 
 def test_batches_match_single_states():
