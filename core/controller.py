@@ -160,7 +160,6 @@ def discretize_channels(channels, dt: float, method: str) -> DiscreteStateSpace:
     """
     import control  # lazily: python-control imports matplotlib
 
-    _check_method(method)
     blocks = []
     for channel in channels:
         sys = control.ss(channel)

@@ -133,6 +133,11 @@ def _low_pass(gain: float, pole: float, x: np.ndarray, previous: float, long: bo
     return _loop_low_pass(gain, pole, x, previous)
 
 
+def _long_window(settings: "ExcitationSettings") -> bool:
+    """Whether the excitation's window is smoothed by lfilter rather than the loop (``_LOOP_SAMPLES``)."""
+    return settings.window_stop - settings.window_start > _LOOP_SAMPLES
+
+
 def _loop_low_pass(gain: float, pole: float, x: np.ndarray, previous: float) -> tuple[np.ndarray, float]:
     """:func:`_low_pass` in a loop of Python floats."""
     out = np.empty(len(x))
@@ -293,7 +298,7 @@ class _ChannelStream:
         self.smoothing = settings.smoothing_cutoff > 0
         self.gain, self.pole = ratio / (1.0 + ratio), 1.0 / (1.0 + ratio)  # as smooth() computes them
         self.previous = 0.0
-        self.long = self.window_stop - self.window_start > _LOOP_SAMPLES  # filtered by lfilter, chunk by chunk
+        self.long = _long_window(settings)  # filtered by lfilter, chunk by chunk
         self.next_bit = 0
         self.level = 0.0
 
@@ -343,7 +348,7 @@ class ExcitationStream:
             lfsr_bits(seed, 0)
         self.seeds = tuple(int(seed) for seed in seeds)
         self.settings = settings
-        if settings.smoothing_cutoff > 0 and settings.window_stop - settings.window_start > _LOOP_SAMPLES:
+        if settings.smoothing_cutoff > 0 and _long_window(settings):
             import scipy.signal  # noqa: F401  (a long stream's filter: imported as it is made, not as it streams)
 
     def __len__(self) -> int:
