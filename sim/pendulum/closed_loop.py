@@ -18,6 +18,7 @@ from qube_koopman.sim.pendulum.model import (
     DEFAULT_SUBSTEPS,
     PendulumParameters,
     advance,
+    array_rk4,
     as_states,
     check_timing,
     coefficients_and_hold,
@@ -54,7 +55,7 @@ class ClosedLoopRun:
 
 def simulate_closed_loop(
     state0,
-    controller: DiscreteStateSpace,
+    controller: DiscreteStateSpace | Sequence[DiscreteStateSpace],
     references,
     feedforward,
     params: PendulumParameters | Sequence[PendulumParameters] = PendulumParameters(),
@@ -72,9 +73,12 @@ def simulate_closed_loop(
     ----------
     state0 : array_like of shape (..., 4)
         Initial plant states; the leading shape is the batch.
-    controller : DiscreteStateSpace
+    controller : DiscreteStateSpace, or a sequence of them
         Two inputs (errors of theta and alpha), or three with the feedforward last,
-        one output (V); its ``dt`` is the sample period.
+        one output (V); its ``dt`` is the sample period. A sequence gives one per
+        episode of a one-dimensional batch, all of one order, inputs and sample period:
+        the episodes of several controllers then run as one batch (each controller's
+        episodes exactly as a batch of their own would run them).
     references : array_like of shape (n_steps, ..., 2)
         target_theta and target_alpha at each step.
     feedforward : array_like of shape (n_steps, ...)
@@ -98,6 +102,9 @@ def simulate_closed_loop(
         Commands before the first step, oldest first, that a transport delay
         (``params.delay``) still applies; zero volts by default.
     """
+    controllers = None if isinstance(controller, DiscreteStateSpace) else list(controller)
+    if controllers is not None:
+        controller = _check_per_episode(controllers)
     if controller.n_inputs not in (2, 3) or controller.n_outputs != 1:
         raise ValueError(
             "controller must map the two tracking errors (theta, alpha), and optionally the "
@@ -118,6 +125,8 @@ def simulate_closed_loop(
             f"{(n_steps, *batch, 2)} and feedforward {(n_steps, *batch)}; "
             f"got {r.shape} and {f.shape}"
         )
+    if controllers is not None and (len(batch) != 1 or len(controllers) != batch[0]):
+        raise ValueError(f"{len(controllers)} controllers for a batch of {batch}: give one per episode of a 1-D batch")
     n_c = controller.n_states
     xc = np.zeros((*batch, n_c)) if controller_state0 is None else np.array(controller_state0, dtype=float)
     if xc.shape != (*batch, n_c):
@@ -129,10 +138,12 @@ def simulate_closed_loop(
     xcs = np.empty((n_steps, *batch, n_c))
     control = np.empty((n_steps, *batch))
     plant_input = np.empty((n_steps, *batch))
-    Ac, Bc, Cc, Dc = controller.A.T, controller.B.T, controller.C[0], controller.D[0]
+    steps = _controller_steps([controller] if controllers is None else controllers)
+    Ac, Bc, Cc, Dc = steps[0][1]
     sees_feedforward = controller.n_inputs == 3
     h = controller.dt / n_substeps
     k, whole, weights, wholes = coefficients_and_hold(params, batch, controller.dt, int(n_substeps))
+    rk4 = array_rk4(k)
     past = np.zeros((whole + 1, *batch)) if past_voltages is None else np.asarray(past_voltages, dtype=float)
     if past.ndim != len(batch) + 1 or past.shape[0] < 1:
         raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
@@ -149,10 +160,20 @@ def simulate_closed_loop(
         e = r[step] - y
         if sees_feedforward:  # the controller's third input (core/CONTROLLER_FORMAT.md)
             e = np.concatenate([e, f[step][..., None]], axis=-1)
-        u = xc @ Cc + e @ Dc
-        v = np.clip(u + f[step], -max_voltage, max_voltage)
-        measurements[step], xcs[step], control[step], plant_input[step] = y, xc, u, v
-        xc = xc @ Ac + e @ Bc
+        if len(steps) == 1:  # one controller: its products over the whole batch
+            u = xc @ Cc + e @ Dc
+            v = np.clip(u + f[step], -max_voltage, max_voltage)
+            measurements[step], xcs[step], control[step], plant_input[step] = y, xc, u, v
+            xc = xc @ Ac + e @ Bc
+        else:  # each controller on its own episodes, with the products a batch of them alone would take
+            xcs[step], nxt = xc, np.empty_like(xc)
+            u = control[step]
+            for rows, (A, B, C, D) in steps:
+                u[rows] = xc[rows] @ C + e[rows] @ D
+                nxt[rows] = xc[rows] @ A + e[rows] @ B
+            v = np.clip(u + f[step], -max_voltage, max_voltage)
+            measurements[step], plant_input[step] = y, v
+            xc = nxt
         history.append(v)
         if wholes is None:
             previous, current = history[-whole - 2], history[-whole - 1]
@@ -160,7 +181,38 @@ def simulate_closed_loop(
             held = np.stack(history)
             previous = np.take_along_axis(held, (len(history) - wholes - 2)[None], 0)[0]
             current = np.take_along_axis(held, (len(history) - wholes - 1)[None], 0)[0]
-        comps = advance(comps, previous, current, weights, h, k, np.sin, np.cos)
+        comps = advance(comps, previous, current, weights, h, k, np.sin, np.cos, rk4)
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)
+
+
+def _check_per_episode(controllers: list) -> DiscreteStateSpace:
+    """The first of one controller per episode, once they are checked to run as one batch."""
+    if not controllers or not all(isinstance(c, DiscreteStateSpace) for c in controllers):
+        raise ValueError("controller must be a DiscreteStateSpace or a non-empty sequence of them, one per episode")
+    first = controllers[0]
+    for c in controllers[1:]:
+        if (c.n_states, c.n_inputs, c.n_outputs, c.dt) != (first.n_states, first.n_inputs, first.n_outputs, first.dt):
+            raise ValueError(
+                "controllers of one batch must share their order, inputs, outputs and sample period; got "
+                f"{first.n_states} states, {first.n_inputs} inputs, dt {first.dt} "
+                f"and {c.n_states}, {c.n_inputs}, dt {c.dt}"
+            )
+    return first
+
+
+def _controller_steps(controllers: list) -> list:
+    """``[(rows, (A^T, B^T, C[0], D[0])), ...]``: each distinct controller's episodes (a slice where they are
+    consecutive) and the matrices of its update and output."""
+    groups: dict[int, list[int]] = {}
+    for j, c in enumerate(controllers):
+        groups.setdefault(id(c), []).append(j)
+    steps = []
+    for indices in groups.values():
+        c = controllers[indices[0]]
+        rows = slice(indices[0], indices[-1] + 1) if indices[-1] - indices[0] + 1 == len(indices) else np.array(indices)
+        steps.append((rows, (c.A.T, c.B.T, c.C[0], c.D[0])))
+    if len(steps) == 1:
+        steps = [(slice(None), steps[0][1])]
+    return steps

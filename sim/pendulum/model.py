@@ -257,19 +257,27 @@ def _motor_voltage(voltage, k: Coefficients):
     return voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
 
 
-def _cable_stretch(x, curvature, tanh: Callable = np.tanh):
-    """The cables' pull per unit stiffness at the arm's excursion ``x``: ``tanh(c x) / c``, ``x`` where ``c`` is 0."""
+def _cable_stretch(k: Coefficients, tanh: Callable = np.tanh) -> Callable | None:
+    """The cables' pull per unit stiffness as a function of the arm's excursion ``x``: ``tanh(c x) / c``,
+    ``x`` where ``c`` is 0; None without cables. Its branches are chosen, and an array of one
+    curvature per episode is made safe to divide by, once for every step of a simulation."""
+    if not _on(k.arm_stiffness):
+        return None
+    curvature = k.cable_curvature
     if not _on(curvature):
-        return x
+        return lambda x: x
     if isinstance(curvature, np.ndarray):  # one pendulum per episode: some may keep a linear spring
-        safe = np.where(curvature > 0, curvature, 1.0)
-        return np.where(curvature > 0, np.tanh(safe * x) / safe, x)
-    return tanh(curvature * x) / curvature
+        curved = curvature > 0
+        safe = np.where(curved, curvature, 1.0)
+        return lambda x: np.where(curved, np.tanh(safe * x) / safe, x)
+    return lambda x: tanh(curvature * x) / curvature
 
 
-def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, tanh: Callable = np.tanh):
+def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, tanh: Callable = np.tanh, terms=None):
     """(theta_ddot, alpha_ddot) from the arm angle, sin and cos of alpha and the motor's voltage
-    (past the dead zone, :func:`_motor_voltage`); floats or arrays alike."""
+    (past the dead zone, :func:`_motor_voltage`); floats or arrays alike. ``terms``: :func:`_terms`
+    of ``k`` and ``tanh``, when bound once for many calls."""
+    coulomb, stretch = _terms(k, tanh) if terms is None else terms
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
     r1 = (
@@ -278,15 +286,20 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
         - 2.0 * k.quarter * s * c * theta_dot * alpha_dot
         + k.m12 * s * alpha_dot * alpha_dot
     )
-    if _on(k.arm_coulomb):  # a Python branch: without friction the arithmetic is exactly as before
+    if coulomb:  # a Python branch: without friction the arithmetic is exactly as before
         r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
-    if _on(k.arm_stiffness):  # the cables' spring; as above, exactly the old arithmetic without it
-        r1 = r1 - k.arm_stiffness * _cable_stretch(theta - k.arm_rest, k.cable_curvature, tanh)
+    if stretch is not None:  # the cables' spring; as above, exactly the old arithmetic without it
+        r1 = r1 - k.arm_stiffness * stretch(theta - k.arm_rest)
     r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
     m11 = k.m11 + k.quarter * s * s
     m12 = k.m12 * c
     det = m11 * k.m22 - m12 * m12
     return (k.m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
+
+
+def _terms(k: Coefficients, tanh: Callable) -> tuple[bool, Callable | None]:
+    """Which optional terms :func:`_accelerations` adds: Coulomb friction, and the cables' pull."""
+    return _on(k.arm_coulomb), _cable_stretch(k, tanh)
 
 
 def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coefficients, sin: Callable, cos: Callable):
@@ -296,6 +309,22 @@ def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coeff
     return _rk4_steps(
         theta, alpha, theta_dot, alpha_dot, voltage, h, n, partial(_accelerations, k=k, tanh=tanh), sin, cos
     )
+
+
+def array_rk4(k: Coefficients) -> Callable:
+    """:func:`_rk4` with numpy's functions for one pendulum or one per episode (arrays), the terms bound once.
+
+    ``rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n)`` returns what ``_rk4(..., k, np.sin,
+    np.cos)`` does, bit for bit: the same arithmetic, without testing at every stage which terms
+    are on (at a few episodes a batch's step costs numpy's per-call overhead, not arithmetic).
+    """
+    accelerations = partial(_accelerations, k=k, tanh=np.tanh, terms=_terms(k, np.tanh))
+
+    def rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n):
+        voltage = _motor_voltage(voltage, k)
+        return _rk4_steps(theta, alpha, theta_dot, alpha_dot, voltage, h, n, accelerations, np.sin, np.cos)
+
+    return rk4
 
 
 def _rk4_steps(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, accelerations: Callable, sin, cos):
@@ -553,6 +582,7 @@ def simulate(
     comps = tuple(np.broadcast_to(x[..., i], batch) for i in range(4))
     h = dt / n_substeps
     k, whole, weights, wholes = coefficients_and_hold(params, batch, dt, int(n_substeps))
+    rk4 = array_rk4(k)
     past = np.zeros((whole + 1, *voltages.shape[1:])) if past_voltages is None else np.asarray(past_voltages, float)
     if past.ndim != voltages.ndim:
         raise ValueError("past_voltages must have a leading time axis and the voltages' trailing shape")
@@ -568,7 +598,7 @@ def simulate(
         else:
             now = np.take_along_axis(commands, np.maximum(own + step, 0)[None], 0)[0]
             before = np.take_along_axis(commands, np.maximum(own + step - 1, 0)[None], 0)[0]
-        comps = advance(comps, before, now, weights, h, k, np.sin, np.cos)
+        comps = advance(comps, before, now, weights, h, k, np.sin, np.cos, rk4)
         out[step + 1] = np.stack(np.broadcast_arrays(*comps), axis=-1)
     return out
 

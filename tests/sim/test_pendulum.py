@@ -388,6 +388,48 @@ def test_a_batch_of_pendulums_each_with_its_own_physics_and_delay_runs_as_each_a
                                                             past_voltages=past[:, 1:2]).states[:, 0]).max() > 1e-4
 
 
+
+def test_several_controllers_episodes_in_one_batch_run_as_each_controllers_batch_alone():
+    """simulate_closed_loop with one controller per episode (three PD controllers, a filtered derivative
+    each, their episodes interleaved and on session twins of their own): every controller's episodes
+    are, bit for bit, what a batch of that controller's episodes alone gives (the probe sets rely on it:
+    their cache holds what either way simulated)."""
+    from dataclasses import replace
+
+    from qube_koopman.core.controller import PdGains, pd_controller
+    from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
+
+    gains = [(6.0, 1.8, 30.0, 2.5, 50.0), (2.0, 2.0, 35.0, 3.0, 50.0), (4.0, 1.0, 35.0, 3.0, 40.0)]
+    controllers = [pd_controller(PdGains(*g), 0.002, "backward-euler") for g in gains]
+    base = PendulumParameters()
+    twins = [replace(base, delay=1.0e-3), replace(base, delay=2.9e-3, Kr=1.5 * base.Kr)]
+    n, rng = 600, np.random.default_rng(5)
+    order = [0, 1, 2, 0, 1, 2]  # controller of each episode, not consecutive
+    refs = np.zeros((n, 6, 2))
+    refs[:, :, 0] = np.repeat(rng.uniform(-0.1, 0.1, (n // 150, 6)), 150, axis=0)
+    ff = 0.02 * rng.standard_normal((n, 6))
+    x0 = np.zeros((6, 4))
+    x0[:, 1] = rng.normal(0, 0.005, 6)
+    zeros = rng.normal(0, 0.003, 6)
+    params = [twins[j % 2] for j in range(6)]
+    batch = simulate_closed_loop(x0, [controllers[i] for i in order], refs, ff, params, SensorModel(),
+                                 alpha_offsets=zeros)
+    assert np.abs(batch.states[..., 1]).max() < 0.3  # every episode stays balanced
+    for i, controller in enumerate(controllers):
+        mine = [j for j, c in enumerate(order) if c == i]
+        alone = simulate_closed_loop(x0[mine], controller, refs[:, mine], ff[:, mine], [params[j] for j in mine],
+                                     SensorModel(), alpha_offsets=zeros[mine])
+        for name in ("states", "measurements", "controller_states", "control_output", "plant_input"):
+            np.testing.assert_array_equal(getattr(batch, name)[:, mine], getattr(alone, name), err_msg=name)
+    # The controllers matter: the same episodes under the first controller alone differ.
+    under_first = simulate_closed_loop(x0, controllers[0], refs, ff, params, SensorModel(), alpha_offsets=zeros)
+    assert np.abs(under_first.plant_input[:, 1] - batch.plant_input[:, 1]).max() > 0.01
+    with pytest.raises(ValueError, match="one per episode"):
+        simulate_closed_loop(x0, controllers, refs, ff, params)
+    with pytest.raises(ValueError, match="share their order"):
+        simulate_closed_loop(x0[:2], [controllers[0], pd_controller(PdGains(*gains[0]), 0.004, "backward-euler")],
+                             refs[:, :2], ff[:, :2])
+
 def test_one_pendulum_per_batch_element_is_each_simulated_alone():
     # What a multiple-shooting fit with setups runs: segments of different cables and delays (whole
     # and fractional samples apart) in one batch, each as if simulated on its own.
