@@ -735,21 +735,28 @@ def _test_bands(
 
     def elsewhere(gains):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
-        from qube_koopman.identify.model_selection.transfer import session_twins, twin_probes
+        from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS, session_twins, twin_probe_sets
 
-        def on_session_twins(**gains):
-            return twin_probes(
+        def on_session_twins(*gain_sets):
+            return twin_probe_sets(
                 LogTrajectories(train),
+                gain_sets,
                 per_controller=INTERVAL_PROBES,
                 params=session_twins(),
                 cache=probe_cache,
-                **gains,
             )
 
+        own = None
         if not default:
-            # The probe set given, the same one read back from the cache, or simulated (about 7 s) and kept.
-            probe_set = probes if probes is not None else on_session_twins()
+            # The probe set given, the same one read back from the cache, or simulated and kept; the first
+            # loop's own probes with it, in the same batch (the twin's step costs little more for both).
+            wanted = ([] if probes is not None else [DEFAULT_PROBE_GAINS]) + ([] if gains is None else [[gains]])
+            sets = on_session_twins(*wanted) if wanted else []
+            probe_set = probes if probes is not None else sets.pop(0)
+            if not probe_set.controllers:
+                raise ValueError("no probe episode stayed balanced on the twin")
             default.append((probe_set, on_probes(probe_set)))
+            own = sets[0] if sets else None
         probe_set, calibration = default[0]
         entry = {
             "default_probes": probe_set.describe(),
@@ -759,17 +766,20 @@ def _test_bands(
         }
         if gains is not None:
             try:
-                own = on_session_twins(gains=[gains])
-            except ValueError as exc:  # e.g. no episode balanced on the twin: the default probes alone, said so
+                own = own if own is not None else on_session_twins([gains])[0]
+            except ValueError as exc:  # e.g. excitations the twin cannot replay: the default probes alone, said so
                 entry["own_probes"] = f"none: {exc}"
             else:
-                own_calibration = on_probes(own)
-                entry.update(
-                    own_probes=own.describe(),
-                    n_own_episodes=own.n_episodes,
-                    own_channels=own_calibration.as_dict(STATE_NAMES),
-                )
-                calibration = widest([own_calibration, calibration])
+                if not own.controllers:
+                    entry["own_probes"] = "none: no probe episode stayed balanced on the twin"
+                else:
+                    own_calibration = on_probes(own)
+                    entry.update(
+                        own_probes=own.describe(),
+                        n_own_episodes=own.n_episodes,
+                        own_channels=own_calibration.as_dict(STATE_NAMES),
+                    )
+                    calibration = widest([own_calibration, calibration])
         entry["channels"] = calibration.as_dict(STATE_NAMES)
         return calibration, entry
 

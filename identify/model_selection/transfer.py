@@ -45,6 +45,7 @@ __all__ = [
     "CABLE_STIFFNESS_FACTORS",
     "session_twins",
     "twin_probes",
+    "twin_probe_sets",
 ]
 
 #: PD gains of the probe controllers (kp_theta, kd_theta, kp_alpha, kd_alpha, tau): a softer
@@ -191,6 +192,31 @@ def twin_probes(
     -------
     ProbeSet
     """
+
+    (probes,) = twin_probe_sets(trajectories, [gains], per_controller, params, seed, skip, zero_offsets, cache)
+    if not probes.controllers:
+        raise ValueError("no probe episode stayed balanced on the twin")
+    return probes
+
+
+def twin_probe_sets(
+    trajectories: Sequence[Trajectory],
+    gain_sets: Sequence[Sequence[Sequence[float]]],
+    per_controller: int = 6,
+    params=None,
+    seed: int = 0,
+    skip: int = SKIP_SAMPLES,
+    zero_offsets="rig",
+    cache: str | Path | None = None,
+) -> list[ProbeSet]:
+    """:func:`twin_probes` of several sets of probe controllers, one set per entry of ``gain_sets``.
+
+    Each set is what :func:`twin_probes` gives it (the same draws, the same cache entry); those not
+    in the cache are simulated in one batch, which costs little more than the largest alone (a
+    twin's step at a few dozen episodes is numpy's per-call overhead). A set none of whose
+    episodes stayed balanced has no controllers (and is not stored) where :func:`twin_probes`
+    raises a ValueError.
+    """
     from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
 
     trajectories = as_episodes(trajectories)  # a lazy sequence stays one: only the replayed episodes are read
@@ -204,59 +230,81 @@ def twin_probes(
     distribution = ZeroOffsetDistribution() if isinstance(zero_offsets, str) and zero_offsets == "rig" else zero_offsets
     if distribution is not None and not isinstance(distribution, ZeroOffsetDistribution):
         raise ValueError(f"zero_offsets must be 'rig', None or a ZeroOffsetDistribution, got {zero_offsets!r}")
-    gains = [tuple(float(v) for v in g) for g in gains]
-    sources = [
-        [trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
-        for i in range(len(gains))
-    ]
-    path = None
-    if cache is not None:
-        key = probe_cache_key(
-            [t for group in sources for t in group], gains, per_controller, params, seed, skip, distribution
+    found: list[ProbeSet | None] = []
+    missing = []  # (set, its gains, its sources, where to store it)
+    for n, gains in enumerate(gain_sets):
+        gains = [tuple(float(v) for v in g) for g in gains]
+        sources = [
+            [trajectories[(i * per_controller + j) % len(trajectories)] for j in range(per_controller)]
+            for i in range(len(gains))
+        ]
+        path = None
+        if cache is not None:
+            key = probe_cache_key(
+                [t for group in sources for t in group], gains, per_controller, params, seed, skip, distribution
+            )
+            path = Path(cache) / f"probes-{key}.npz"
+        stored = None if path is None else _read_probes(path, trajectories[0].dt)
+        found.append(stored)
+        if stored is None:
+            missing.append((n, gains, sources, path))
+    if missing:
+        simulated = _simulate_probes(
+            [(sources, gains) for _, gains, sources, _ in missing], params, distribution, seed, skip
         )
-        path = Path(cache) / f"probes-{key}.npz"
-        stored = _read_probes(path, trajectories[0].dt)
-        if stored is not None:
-            return stored
-    probes = _simulate_probes(sources, gains, params, distribution, seed, skip)
-    if path is not None:
-        _write_probes(path, probes)
-    return probes
+        for (n, _, _, path), probes in zip(missing, simulated):
+            found[n] = probes
+            if path is not None and probes.controllers:
+                _write_probes(path, probes)
+    return [probes for probes in found if probes is not None]
 
 
-def _simulate_probes(sources, gains, params, distribution, seed: int, skip: int) -> ProbeSet:
-    """Each controller's sources run on the twin (see :func:`twin_probes`), every controller's in one batch.
+def _simulate_probes(requests, params, distribution, seed: int, skip: int) -> list[ProbeSet]:
+    """The probe sets ``requests`` (``(sources of each controller, the controllers' gains)``) on the twin
+    (see :func:`twin_probes`), every controller's episodes of every set in one batch.
 
-    The twin's step costs numpy's per-call overhead more than arithmetic at a few episodes, so the
-    probe controllers' episodes step together: each controller's exactly as a batch of its own.
+    The twin's step costs numpy's per-call overhead more than arithmetic at a few dozen episodes, so
+    the probe controllers' episodes step together: each controller's exactly as a batch of its own.
+    Each set draws its start angles and encoder zeros from its own generator seeded ``seed``, as when
+    it ran alone.
     """
     from qube_koopman.core.controller import PdGains, pd_controller
 
-    rng = np.random.default_rng(seed)
-    dt = sources[0][0].dt
-    per_controller = len(sources[0])
     twins = params if isinstance(params, tuple) else None  # one per episode in turn
-    out = ProbeSet([], [], [], [tuple(g) for g in gains])
-    controllers, starts, zeros = [], [], []
-    for g in out.gains:  # the draws in the order each controller's run made them
-        controllers.append(pd_controller(PdGains(*g), dt, "backward-euler"))
-        start = np.zeros((per_controller, 4))
-        start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)  # hand-raised, within half a degree
-        starts.append(start)
-        zeros.append(np.array([0.0 if distribution is None else distribution.draw(rng) for _ in range(per_controller)]))
-    each = params if twins is None else [twins[j % len(twins)] for j in range(per_controller)]
-    runs = _run_probes(controllers, sources, starts, zeros, each, rng, skip)
-    dropped = 0
-    for controller, (kept, kept_zeros) in zip(controllers, runs):
-        dropped += per_controller - len(kept)
-        if kept:
-            out.controllers.append(controller)
-            out.episodes.append(kept)
-            out.alpha_offsets.append(kept_zeros)
-    if not out.controllers:
-        raise ValueError("no probe episode stayed balanced on the twin")
-    n_twins = 1 if twins is None else len(twins)
-    return ProbeSet(out.controllers, out.episodes, out.alpha_offsets, out.gains, dropped, n_twins)
+    controllers, sources, starts, zeros, each, labels = [], [], [], [], [], []
+    for set_sources, gains in requests:
+        rng = np.random.default_rng(seed)
+        dt, per_controller = set_sources[0][0].dt, len(set_sources[0])
+        for i, (g, group) in enumerate(zip(gains, set_sources)):  # the draws in the order each run made them
+            controllers.append(pd_controller(PdGains(*g), dt, "backward-euler"))
+            labels.append(f"probe {i + 1}")
+            sources.append(group)
+            start = np.zeros((per_controller, 4))
+            start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)  # hand-raised, within half a degree
+            starts.append(start)
+            zeros.append(
+                np.array([0.0 if distribution is None else distribution.draw(rng) for _ in range(per_controller)])
+            )
+            each.append(
+                [params] * per_controller if twins is None else [twins[j % len(twins)] for j in range(per_controller)]
+            )
+    runs = iter(_run_probes(controllers, sources, starts, zeros, each, labels, skip))
+    chosen = iter(controllers)
+    out = []
+    for set_sources, gains in requests:
+        kept_by = [next(runs) for _ in gains]
+        mine = [(c, kept, z) for c, (kept, z) in zip([next(chosen) for _ in gains], kept_by) if kept]
+        out.append(
+            ProbeSet(
+                [c for c, _, _ in mine],
+                [kept for _, kept, _ in mine],
+                [z for _, _, z in mine],
+                [tuple(g) for g in gains],
+                sum(len(set_sources[0]) - len(kept) for kept, _ in kept_by),
+                1 if twins is None else len(twins),
+            )
+        )
+    return out
 
 
 #: The most a probe cache folder holds (bytes): beyond it, the sets least recently used are deleted
@@ -379,16 +427,43 @@ def _run_probes(
     sources: Sequence[Sequence[Trajectory]],
     starts: Sequence[np.ndarray],
     zeros: Sequence[np.ndarray],
-    params,
-    rng: np.random.Generator,
+    params: Sequence[Sequence],
+    labels: Sequence[str],
     skip: int,
 ) -> list[tuple[list[Trajectory], np.ndarray]]:
-    """Each controller's sources' excitations under it on the twin from its ``starts``, all in one batch;
-    per controller, the episodes that stayed up (named ``probe i.j``) and their zeros.
+    """Each controller's sources' excitations under it on the twin from its ``starts`` (``params``: each
+    episode's pendulum); per controller, the episodes that stayed up (named ``label.j``) and their zeros.
 
-    ``params``: one pendulum, or one per episode of a controller's (the same for each). A controller's
-    episodes run as long as its shortest source; a shorter group's excitation is held at its last
-    sample to the batch's end, and those samples are dropped.
+    The controllers of one order and inputs run in one batch (:func:`_run_batch`); a PD loop without a
+    derivative gain has fewer states than one with.
+    """
+    shapes: dict[tuple[int, int], list[int]] = {}
+    for i, c in enumerate(controllers):
+        shapes.setdefault((c.n_states, c.n_inputs), []).append(i)
+    out: list = [None] * len(controllers)
+    for chosen in shapes.values():
+        runs = _run_batch(
+            *([values[i] for i in chosen] for values in (controllers, sources, starts, zeros, params, labels)), skip
+        )
+        for i, run in zip(chosen, runs):
+            out[i] = run
+    return out
+
+
+def _run_batch(
+    controllers: Sequence[DiscreteStateSpace],
+    sources: Sequence[Sequence[Trajectory]],
+    starts: Sequence[np.ndarray],
+    zeros: Sequence[np.ndarray],
+    params: Sequence[Sequence],
+    labels: Sequence[str],
+    skip: int,
+) -> list[tuple[list[Trajectory], np.ndarray]]:
+    """:func:`_run_probes` of controllers of one order and inputs, in one batch.
+
+    A controller's episodes run as long as its shortest source; a shorter group's excitation is
+    held at its last sample to the batch's end, and those samples are dropped. The sensor draws no
+    noise: no generator is used.
     """
     from qube_koopman.sim.pendulum import SensorModel, simulate_closed_loop
 
@@ -401,42 +476,40 @@ def _run_probes(
             r.append(np.concatenate([r_t[:m], np.repeat(r_t[m - 1 : m], n - m, axis=0)]))
             f_t = f_t[:m].reshape(m)
             f.append(np.concatenate([f_t, np.repeat(f_t[-1:], n - m)]))
-    k = len(sources[0])
-    per_episode = [c for c in controllers for _ in range(k)]
-    each = params if not isinstance(params, list) else params * len(controllers)
+    per_episode = [c for c, group in zip(controllers, sources) for _ in group]
     references, feedforward = np.stack(r, axis=1), np.stack(f, axis=1)
+    pendulums = [p for each in params for p in each]
     run = simulate_closed_loop(
         np.concatenate(starts),
         per_episode,
         references,
         feedforward,
-        each,
+        pendulums[0] if all(p is pendulums[0] for p in pendulums) else pendulums,  # one: its floats
         SensorModel(),
-        rng=rng,
         alpha_offsets=np.concatenate(zeros),
     )
-    out = []
-    for i, (controller, m) in enumerate(zip(controllers, lengths)):
+    out, col = [], 0
+    for controller, group, m, z, label in zip(controllers, sources, lengths, zeros, labels):
         kept, kept_zeros = [], []
-        for j in range(k):
-            col = i * k + j
-            y = run.measurements[:m, col]
+        for j in range(len(group)):
+            y = run.measurements[:m, col + j]
             if np.any(np.abs(y[:, 0]) > THETA_LIMIT) or np.any(np.abs(y[:, 1]) > ALPHA_LIMIT):
                 continue
             kept.append(
                 Trajectory(
                     x=y[skip:],
-                    u=run.plant_input[skip:m, col, None],
-                    r=references[skip:m, col],
-                    f=feedforward[skip:m, col, None],
-                    xc=run.controller_states[skip:m, col],
+                    u=run.plant_input[skip:m, col + j, None],
+                    r=references[skip:m, col + j],
+                    f=feedforward[skip:m, col + j, None],
+                    xc=run.controller_states[skip:m, col + j],
                     dt=controller.dt,
-                    name=f"probe {i + 1}.{j + 1}",
+                    name=f"{label}.{j + 1}",
                     state_names=("theta", "alpha"),
                 )
             )
-            kept_zeros.append(zeros[i][j])
+            kept_zeros.append(z[j])
         out.append((kept, np.array(kept_zeros)))
+        col += len(group)
     return out
 
 

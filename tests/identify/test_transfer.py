@@ -275,6 +275,45 @@ def test_probes_on_session_twins_run_each_episode_on_its_own_twin(tmp_path):
     assert again.n_twins == 2 and np.array_equal(again.episodes[0][3].x, varied.episodes[0][3].x)
 
 
+def test_probe_sets_simulated_together_are_each_set_simulated_alone(tmp_path, monkeypatch):
+    """twin_probe_sets runs the sets' controllers in one batch: each set is bit for bit what twin_probes gives it
+    alone (its own draws, sources of another length included), stored under the name twin_probes reads; a set
+    none of whose episodes stays up comes back empty, where twin_probes says so."""
+    from qube_koopman.identify.model_selection import transfer
+    from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS, session_twins, twin_probe_sets
+
+    sources = _short_sources(3) + [replace(t, name="short") for t in _short_sources(1, samples=900)]
+    soft, falling = [(2.0, 2.0, 35.0, 3.0, 50.0)], [(0.0, 0.0, 1.0, 0.0, 50.0)]  # no derivative: fewer states
+    twins = session_twins()[:2]
+    sets = [DEFAULT_PROBE_GAINS, soft, falling]
+    together = twin_probe_sets(sources, sets, per_controller=2, params=twins, skip=100, cache=tmp_path)
+    assert len(together) == 3 and not together[2].controllers and together[2].dropped == 2
+    with pytest.raises(ValueError, match="stayed balanced"):
+        twin_probes(sources, gains=falling, per_controller=2, params=twins, skip=100)
+    # A controller runs as long as its shortest source (900 samples, less the 100 skipped), the others on.
+    assert [{len(t.x) for t in e} for e in together[0].episodes] == [{1100}, {800}, {1100}]
+    for gains, joint in zip(sets[:2], together):
+        alone = twin_probes(sources, gains=gains, per_controller=2, params=twins, skip=100)
+        assert (joint.gains, joint.dropped, joint.n_twins) == (alone.gains, alone.dropped, alone.n_twins)
+        for a, b in zip(joint.controllers, alone.controllers):
+            assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in "ABCD")
+        for ea, eb, za, zb in zip(joint.episodes, alone.episodes, joint.alpha_offsets, alone.alpha_offsets):
+            np.testing.assert_array_equal(za, zb)
+            assert [t.name for t in ea] == [t.name for t in eb]
+            for ta, tb in zip(ea, eb):
+                for k in ("x", "u", "r", "f", "xc"):
+                    np.testing.assert_array_equal(getattr(ta, k), getattr(tb, k), err_msg=k)
+    assert len(list(tmp_path.glob("probes-*.npz"))) == 2  # the empty set is not stored
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("the stored sets should have been read")
+
+    monkeypatch.setattr(transfer, "_simulate_probes", no_simulation)
+    for gains, joint in zip(sets[:2], together):
+        again = twin_probes(sources, gains=gains, per_controller=2, params=twins, skip=100, cache=tmp_path)
+        np.testing.assert_array_equal(again.episodes[-1][-1].u, joint.episodes[-1][-1].u)
+
+
 def test_the_probe_cache_stays_within_its_size_and_keeps_what_was_used_last(tmp_path, monkeypatch):
     import os
     import time
