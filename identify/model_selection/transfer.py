@@ -29,7 +29,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -259,6 +259,18 @@ def twin_probe_sets(
     return [probes for probes in found if probes is not None]
 
 
+class _ProbeRun(NamedTuple):
+    """One probe controller's episodes to run: its sources' excitations from ``start`` (one row per
+    episode), each with its pendulum encoder zero and its pendulum, named ``label.j``."""
+
+    controller: DiscreteStateSpace
+    sources: Sequence[Trajectory]
+    start: np.ndarray
+    zeros: np.ndarray
+    pendulums: list
+    label: str
+
+
 def _simulate_probes(requests, params, distribution, seed: int, skip: int) -> list[ProbeSet]:
     """The probe sets ``requests`` (``(sources of each controller, the controllers' gains)``) on the twin
     (see :func:`twin_probes`), every controller's episodes of every set in one batch.
@@ -271,36 +283,29 @@ def _simulate_probes(requests, params, distribution, seed: int, skip: int) -> li
     from qube_koopman.core.controller import PdGains, pd_controller
 
     twins = params if isinstance(params, tuple) else None  # one per episode in turn
-    controllers, sources, starts, zeros, each, labels = [], [], [], [], [], []
+    todo: list[_ProbeRun] = []
     for set_sources, gains in requests:
         rng = np.random.default_rng(seed)
         dt, per_controller = set_sources[0][0].dt, len(set_sources[0])
         for i, (g, group) in enumerate(zip(gains, set_sources)):  # the draws in the order each run made them
-            controllers.append(pd_controller(PdGains(*g), dt, "backward-euler"))
-            labels.append(f"probe {i + 1}")
-            sources.append(group)
             start = np.zeros((per_controller, 4))
             start[:, 1] = rng.normal(0.0, np.deg2rad(0.5), per_controller)  # hand-raised, within half a degree
-            starts.append(start)
-            zeros.append(
-                np.array([0.0 if distribution is None else distribution.draw(rng) for _ in range(per_controller)])
-            )
-            each.append(
-                [params] * per_controller if twins is None else [twins[j % len(twins)] for j in range(per_controller)]
-            )
-    runs = iter(_run_probes(controllers, sources, starts, zeros, each, labels, skip))
-    chosen = iter(controllers)
+            zeros = np.array([0.0 if distribution is None else distribution.draw(rng) for _ in range(per_controller)])
+            pendulums = [params if twins is None else twins[j % len(twins)] for j in range(per_controller)]
+            controller = pd_controller(PdGains(*g), dt, "backward-euler")
+            todo.append(_ProbeRun(controller, group, start, zeros, pendulums, f"probe {i + 1}"))
+    runs = iter(zip(todo, _run_probes(todo, skip)))
     out = []
-    for set_sources, gains in requests:
+    for _, gains in requests:
         kept_by = [next(runs) for _ in gains]
-        mine = [(c, kept, z) for c, (kept, z) in zip([next(chosen) for _ in gains], kept_by) if kept]
+        mine = [(run.controller, kept, z) for run, (kept, z) in kept_by if kept]
         out.append(
             ProbeSet(
                 [c for c, _, _ in mine],
                 [kept for _, kept, _ in mine],
                 [z for _, _, z in mine],
                 [tuple(g) for g in gains],
-                sum(len(set_sources[0]) - len(kept) for kept, _ in kept_by),
+                sum(len(run.sources) - len(kept) for run, (kept, _) in kept_by),
                 1 if twins is None else len(twins),
             )
         )
@@ -422,43 +427,23 @@ def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
     return ProbeSet(controllers, episodes, zeros, gains, dropped, n_twins) if controllers else None
 
 
-def _run_probes(
-    controllers: Sequence[DiscreteStateSpace],
-    sources: Sequence[Sequence[Trajectory]],
-    starts: Sequence[np.ndarray],
-    zeros: Sequence[np.ndarray],
-    params: Sequence[Sequence],
-    labels: Sequence[str],
-    skip: int,
-) -> list[tuple[list[Trajectory], np.ndarray]]:
-    """Each controller's sources' excitations under it on the twin from its ``starts`` (``params``: each
-    episode's pendulum); per controller, the episodes that stayed up (named ``label.j``) and their zeros.
+def _run_probes(todo: Sequence[_ProbeRun], skip: int) -> list[tuple[list[Trajectory], np.ndarray]]:
+    """Each controller's run on the twin; per controller, the episodes that stayed up and their zeros.
 
     The controllers of one order and inputs run in one batch (:func:`_run_batch`); a PD loop without a
     derivative gain has fewer states than one with.
     """
     shapes: dict[tuple[int, int], list[int]] = {}
-    for i, c in enumerate(controllers):
-        shapes.setdefault((c.n_states, c.n_inputs), []).append(i)
-    out: list = [None] * len(controllers)
+    for i, run in enumerate(todo):
+        shapes.setdefault((run.controller.n_states, run.controller.n_inputs), []).append(i)
+    out: list = [None] * len(todo)
     for chosen in shapes.values():
-        runs = _run_batch(
-            *([values[i] for i in chosen] for values in (controllers, sources, starts, zeros, params, labels)), skip
-        )
-        for i, run in zip(chosen, runs):
-            out[i] = run
+        for i, result in zip(chosen, _run_batch([todo[i] for i in chosen], skip)):
+            out[i] = result
     return out
 
 
-def _run_batch(
-    controllers: Sequence[DiscreteStateSpace],
-    sources: Sequence[Sequence[Trajectory]],
-    starts: Sequence[np.ndarray],
-    zeros: Sequence[np.ndarray],
-    params: Sequence[Sequence],
-    labels: Sequence[str],
-    skip: int,
-) -> list[tuple[list[Trajectory], np.ndarray]]:
+def _run_batch(todo: Sequence[_ProbeRun], skip: int) -> list[tuple[list[Trajectory], np.ndarray]]:
     """:func:`_run_probes` of controllers of one order and inputs, in one batch.
 
     A controller's episodes run as long as its shortest source; a shorter group's excitation is
@@ -467,49 +452,48 @@ def _run_batch(
     """
     from qube_koopman.sim.pendulum import SensorModel, simulate_closed_loop
 
-    lengths = [min(t.n_samples for t in group) for group in sources]
+    lengths = [min(t.n_samples for t in run.sources) for run in todo]
     n = max(lengths)
     r, f = [], []
-    for group, m in zip(sources, lengths):
-        for t in group:
+    for run, m in zip(todo, lengths):
+        for t in run.sources:
             r_t, f_t = _replayed(t)
             r.append(np.concatenate([r_t[:m], np.repeat(r_t[m - 1 : m], n - m, axis=0)]))
             f_t = f_t[:m].reshape(m)
             f.append(np.concatenate([f_t, np.repeat(f_t[-1:], n - m)]))
-    per_episode = [c for c, group in zip(controllers, sources) for _ in group]
     references, feedforward = np.stack(r, axis=1), np.stack(f, axis=1)
-    pendulums = [p for each in params for p in each]
-    run = simulate_closed_loop(
-        np.concatenate(starts),
-        per_episode,
+    pendulums = [p for run in todo for p in run.pendulums]
+    simulated = simulate_closed_loop(
+        np.concatenate([run.start for run in todo]),
+        [run.controller for run in todo for _ in run.sources],
         references,
         feedforward,
         pendulums[0] if all(p is pendulums[0] for p in pendulums) else pendulums,  # one: its floats
         SensorModel(),
-        alpha_offsets=np.concatenate(zeros),
+        alpha_offsets=np.concatenate([run.zeros for run in todo]),
     )
     out, col = [], 0
-    for controller, group, m, z, label in zip(controllers, sources, lengths, zeros, labels):
+    for run, m in zip(todo, lengths):
         kept, kept_zeros = [], []
-        for j in range(len(group)):
-            y = run.measurements[:m, col + j]
+        for j in range(len(run.sources)):
+            y = simulated.measurements[:m, col + j]
             if np.any(np.abs(y[:, 0]) > THETA_LIMIT) or np.any(np.abs(y[:, 1]) > ALPHA_LIMIT):
                 continue
             kept.append(
                 Trajectory(
                     x=y[skip:],
-                    u=run.plant_input[skip:m, col + j, None],
+                    u=simulated.plant_input[skip:m, col + j, None],
                     r=references[skip:m, col + j],
                     f=feedforward[skip:m, col + j, None],
-                    xc=run.controller_states[skip:m, col + j],
-                    dt=controller.dt,
-                    name=f"{label}.{j + 1}",
+                    xc=simulated.controller_states[skip:m, col + j],
+                    dt=run.controller.dt,
+                    name=f"{run.label}.{j + 1}",
                     state_names=("theta", "alpha"),
                 )
             )
-            kept_zeros.append(z[j])
+            kept_zeros.append(run.zeros[j])
         out.append((kept, np.array(kept_zeros)))
-        col += len(group)
+        col += len(run.sources)
     return out
 
 
