@@ -102,16 +102,20 @@ def simulate_closed_loop(
         Commands before the first step, oldest first, that a transport delay
         (``params.delay``) still applies; zero volts by default.
     """
-    controllers = None if isinstance(controller, DiscreteStateSpace) else list(controller)
-    if controllers is not None:
-        controller = _check_per_episode(controllers)
-    if controller.n_inputs not in (2, 3) or controller.n_outputs != 1:
+    # The one controller, or the first of one per episode (all of its order, inputs and sample period).
+    controllers: list[DiscreteStateSpace] | None = None
+    if isinstance(controller, DiscreteStateSpace):
+        system = controller
+    else:
+        controllers = list(controller)
+        system = _check_per_episode(controllers)
+    if system.n_inputs not in (2, 3) or system.n_outputs != 1:
         raise ValueError(
             "controller must map the two tracking errors (theta, alpha), and optionally the "
-            f"feedforward, to one voltage; got {controller.n_inputs} inputs and "
-            f"{controller.n_outputs} outputs"
+            f"feedforward, to one voltage; got {system.n_inputs} inputs and "
+            f"{system.n_outputs} outputs"
         )
-    check_timing(controller.dt, n_substeps)
+    check_timing(system.dt, n_substeps)
     if not max_voltage > 0:
         raise ValueError(f"max_voltage must be positive, got {max_voltage!r}")
     x = as_states(state0)
@@ -127,7 +131,7 @@ def simulate_closed_loop(
         )
     if controllers is not None and (len(batch) != 1 or len(controllers) != batch[0]):
         raise ValueError(f"{len(controllers)} controllers for a batch of {batch}: give one per episode of a 1-D batch")
-    n_c = controller.n_states
+    n_c = system.n_states
     xc = np.zeros((*batch, n_c)) if controller_state0 is None else np.array(controller_state0, dtype=float)
     if xc.shape != (*batch, n_c):
         raise ValueError(f"controller_state0 must have shape {(*batch, n_c)}, got {xc.shape}")
@@ -138,11 +142,11 @@ def simulate_closed_loop(
     xcs = np.empty((n_steps, *batch, n_c))
     control = np.empty((n_steps, *batch))
     plant_input = np.empty((n_steps, *batch))
-    steps = _controller_steps([controller] if controllers is None else controllers)
+    steps = _controller_steps([system] if controllers is None else controllers)
     Ac, Bc, Cc, Dc = steps[0][1]
-    sees_feedforward = controller.n_inputs == 3
-    h = controller.dt / n_substeps
-    k, whole, weights, wholes = coefficients_and_hold(params, batch, controller.dt, int(n_substeps))
+    sees_feedforward = system.n_inputs == 3
+    h = system.dt / n_substeps
+    k, whole, weights, wholes = coefficients_and_hold(params, batch, system.dt, int(n_substeps))
     rk4 = array_rk4(k)
     past = np.zeros((whole + 1, *batch)) if past_voltages is None else np.asarray(past_voltages, dtype=float)
     if past.ndim != len(batch) + 1 or past.shape[0] < 1:
