@@ -4,9 +4,16 @@ Measures, against the issue's target (at most 2 minutes on 2 cores):
 
 - wall time of :class:`identify.calibrate.PlantCalibration` on the training
   episodes (the paper's split), its iterations and final residual;
+- the same fit with the Jacobian by forward differences (a simulation per parameter, the way it
+  was computed before the simulation's forward sensitivities), timed in the same run: the ratio,
+  and how far its parameters are from ours in standard errors;
 - time per iteration of the reference approach, scipy's ``least_squares``
   (trf, LSMR trust-region solver, the same residuals and ``jac_sparsity``
   pattern), over a few iterations, and the ratio to ours.
+
+Measured (2 shared cores of an AMD EPYC, one run): the 28 training episodes in 44.9 s with the
+sensitivities against 74.9 s by differences (1.7x), the same 40 evaluations, the parameters within
+0.0003 standard errors of each other.
 
 Usage::
 
@@ -49,6 +56,12 @@ def main() -> None:
     ours = time.perf_counter() - started
     ours_per_iteration = ours / max(1, cal.nfev_)  # per trial step (accepted or rejected), Jacobian included
 
+    started = time.perf_counter()
+    differences = PlantCalibration(jacobian="differences").fit(ys, us, dt)
+    by_differences = time.perf_counter() - started
+    apart = max(abs(getattr(cal.params_, name) - getattr(differences.params_, name)) / se
+                for name, se in cal.standard_errors_.items() if se > 0)
+
     # The reference: scipy's trust-region least squares on the same problem, from the same start.
     h = int(round(cal.horizon / dt))
     seg = ms.make_segments(ys, us, h, int(round(cal.skip / dt)), 0, 2 * h)
@@ -65,6 +78,10 @@ def main() -> None:
     print(f"| calibration, {len(episodes)} episodes | {ours:.1f} s ({cal.nfev_} evaluations) | <= 120 s |")
     print(f"| residual RMS theta, alpha | {1e3 * cal.residual_rms_[:, 0].mean():.2f}, "
           f"{1e3 * cal.residual_rms_[:, 1].mean():.2f} mrad | |")
+    print(f"| the same fit, Jacobian by forward differences | {by_differences:.1f} s "
+          f"({differences.nfev_} evaluations) | |")
+    print(f"| ratio differences / sensitivities | {by_differences / ours:.1f} | |")
+    print(f"| largest parameter difference between the two | {apart:.2g} standard errors | |")
     print(f"| time per trial step (with its Jacobian): ours | {ours_per_iteration:.2f} s | |")
     print(f"| time per iteration: scipy trf+lsmr (reference, {ref.nfev} iterations) | "
           f"{reference_per_iteration:.2f} s | |")

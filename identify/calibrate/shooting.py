@@ -260,16 +260,8 @@ def residuals(
     """Scaled prediction errors, ordered (segment, sample, angle)."""
     n_extra = n_setup_variables(seg)
     phys, offsets, nodes = unpack(z, n_episodes, seg.n, n_extra)
-    params = to_params(phys, nominal)
-    if not seg.setups:
-        pred = simulate_segments(nodes, seg.u, params, dt, past=seg.past)
-    else:  # every segment with its setups' values, in one batch
-        values = setup_values(phys, seg)
-        names = list(values)
-        which = np.column_stack([seg.setups[name] for name in names])
-        combinations, index = np.unique(which, axis=0, return_inverse=True)
-        twins = [replace(params, **{n: float(values[n][c]) for n, c in zip(names, row)}) for row in combinations]
-        pred = simulate_segments(nodes, seg.u, [twins[i] for i in index.ravel()], dt, past=seg.past)
+    # With setups every segment simulates with its setups' values, all in one batch.
+    pred = simulate_segments(nodes, seg.u, _segment_twins(phys, seg, nominal), dt, past=seg.past)
     pred[..., 1] += offsets[seg.episode]
     r = (pred - seg.y) / sigma
     if seg.weight is not None:
@@ -305,19 +297,31 @@ def jacobian(
     dt: float,
     sigma: float,
     physics: bool = True,
+    method: str = "tangents",
 ):
-    """Sparse Jacobian of :func:`residuals` in the :func:`sparsity` pattern, by grouped differences.
+    """Sparse Jacobian of :func:`residuals` in the :func:`sparsity` pattern.
 
-    One residual evaluation per physical variable and four for all the
-    nodes at once (a node touches only its own segment); the offsets enter
-    linearly and need none. ``physics=False``: the physical variables are
-    held fixed and their columns left empty (no evaluation for them).
+    ``method="tangents"`` (the default): the simulation's forward sensitivities
+    (:func:`~qube_koopman.sim.pendulum.sensitivity.simulate_tangents`), every node and physical
+    variable along one simulation; ``"differences"``: forward differences, one residual evaluation
+    per physical variable and four for all the nodes at once (a node touches only its own segment).
+    The offsets enter linearly and need neither. ``physics=False``: the physical variables are held
+    fixed and their columns left empty.
     """
-    from scipy.sparse import csr_matrix
-
-    per_seg = 2 * (seg.horizon + 1)
-    n_res = seg.n * per_seg
     n_all = N_PHYSICAL + n_setup_variables(seg)  # the physical block, with the setups' variables
+    if method == "tangents":
+        phys_data, node_data = _tangent_columns(z, seg, n_episodes, nominal, dt, sigma, physics)
+    elif method == "differences":
+        phys_data, node_data = _difference_columns(z, r0, seg, n_episodes, nominal, dt, sigma, physics)
+    else:
+        raise ValueError(f"unknown Jacobian method {method!r}; expected 'tangents' or 'differences'")
+    return _assemble(seg, n_episodes, n_all, phys_data, node_data, sigma)
+
+
+def _difference_columns(z, r0, seg: Segments, n_episodes: int, nominal, dt: float, sigma: float, physics: bool):
+    """The physical variables' and the nodes' columns of the Jacobian by forward differences."""
+    n_res = seg.n * 2 * (seg.horizon + 1)
+    n_all = N_PHYSICAL + n_setup_variables(seg)
     base = n_all + n_episodes
     n_phys = n_all if physics else 0
     phys_data = np.empty((n_res, n_phys))
@@ -331,6 +335,92 @@ def jacobian(
         zj = z.copy()
         zj[base + j :: 4] += 1e-6
         node_data[:, j] = (residuals(zj, seg, n_episodes, nominal, dt, sigma) - r0) / 1e-6
+    return phys_data, node_data
+
+
+def _coefficient_row(p: PendulumParameters) -> np.ndarray:
+    """A pendulum's coefficients in :data:`~qube_koopman.sim.pendulum.sensitivity.FIELDS`' order."""
+    from qube_koopman.sim.pendulum.model import Coefficients
+    from qube_koopman.sim.pendulum.sensitivity import FIELDS
+
+    k = Coefficients.of(p)._asdict()
+    k["cable_softening"] = p.cable_softening
+    return np.array([k[name] for name in FIELDS], dtype=float)
+
+
+def _segment_twins(phys: np.ndarray, seg: Segments, nominal: PendulumParameters):
+    """The pendulum each segment simulates with (one, or a list of one per segment, as :func:`residuals`)."""
+    params = to_params(phys, nominal)
+    if not seg.setups:
+        return params
+    values = setup_values(phys, seg)
+    names = list(values)
+    which = np.column_stack([seg.setups[name] for name in names])
+    combinations, index = np.unique(which, axis=0, return_inverse=True)
+    twins = [replace(params, **{n: float(values[n][c]) for n, c in zip(names, row)}) for row in combinations]
+    return [twins[i] for i in index.ravel()]
+
+
+def _tangent_columns(z, seg: Segments, n_episodes: int, nominal, dt: float, sigma: float, physics: bool):
+    """The physical variables' and the nodes' columns of the Jacobian from the simulation's tangents.
+
+    A variable's direction is the derivative of the coefficients and the delay of the segments it
+    moves (central differences of the cheap map from the variables to the coefficients); a setup's
+    own variable, and the physical one of a parameter that setups share out, move only their
+    setup's segments.
+    """
+    from qube_koopman.sim.pendulum.sensitivity import FIELDS, Directions, simulate_tangents
+
+    n_extra = n_setup_variables(seg)
+    n_all = N_PHYSICAL + n_extra
+    phys, _, nodes = unpack(z, n_episodes, seg.n, n_extra)
+    twins = _segment_twins(phys, seg, nominal)
+    n_phys = n_all if physics else 0
+    n_dir = 4 + n_phys
+    state = np.zeros((n_dir, 4))
+    state[np.arange(4), np.arange(4)] = [1.0, 1.0, RATE_SCALE, RATE_SCALE]
+    coefficients = np.zeros((n_dir, len(FIELDS)))
+    delay = np.zeros(n_dir)
+    mask = np.ones((n_dir, seg.n)) if seg.setups else None
+    extra = setup_variables(seg)
+    lower = physical_bounds(seg)[0]
+    for i in range(n_phys):
+        # The setup this variable is the value of (None: every segment's), and a segment showing it.
+        name, setup = (PHYSICAL_NAMES[i], 0) if i < N_PHYSICAL else extra[i - N_PHYSICAL]
+        owner = seg.setups.get(name) if seg.setups else None
+        shows = np.flatnonzero(owner == setup) if owner is not None else np.array([0])
+        if shows.size == 0:
+            continue
+        step = 1e-6 * max(1.0, abs(z[i]))
+        up, down = phys.copy(), phys.copy()
+        up[i] += step
+        down[i] = max(down[i] - step, lower[i])  # central, but forward at the lower bound (Cr = 0 is one)
+        p_up, p_down = (_segment_twins(v, seg, nominal) for v in (up, down))
+        if isinstance(p_up, list):
+            p_up, p_down = p_up[shows[0]], p_down[shows[0]]
+        coefficients[4 + i] = (_coefficient_row(p_up) - _coefficient_row(p_down)) / (up[i] - down[i])
+        delay[4 + i] = (p_up.delay - p_down.delay) / (up[i] - down[i])
+        if owner is not None and mask is not None:
+            mask[4 + i] = owner == setup
+    with np.errstate(over="ignore", invalid="ignore"):
+        _, tangents = simulate_tangents(
+            nodes, seg.u, twins, Directions(state, coefficients, delay, mask), dt, past_voltages=seg.past
+        )
+    # (sample, direction, segment, angle) to the residuals' rows (segment, sample, angle) by direction.
+    columns = tangents.transpose(2, 0, 3, 1).reshape(-1, n_dir) / sigma
+    if seg.weight is not None:
+        columns *= np.repeat(seg.weight, 2 * (seg.horizon + 1))[:, None]
+    columns[~np.isfinite(columns)] = 0.0  # a diverged segment's residuals are clamped: flat
+    return columns[:, 4:], columns[:, :4]
+
+
+def _assemble(seg: Segments, n_episodes: int, n_all: int, phys_data: np.ndarray, node_data: np.ndarray, sigma: float):
+    """The Jacobian in CSR from its physical and node columns, and the offsets' (exact) ones."""
+    from scipy.sparse import csr_matrix
+
+    n_res = seg.n * 2 * (seg.horizon + 1)
+    n_phys = phys_data.shape[1]
+    base = n_all + n_episodes
     # Built in CSR directly: each pair of rows (a sample's theta, then its alpha) holds the physical
     # columns, the episode's offset (alpha only) and the segment's four nodes, in the ascending column
     # order scipy's conversion from (row, column) triplets gave (the same matrix, bit for bit); that

@@ -50,11 +50,11 @@ def test_parameter_map_round_trips():
     assert asdict(ms.to_params(z, PendulumParameters())) == pytest.approx(asdict(TRUTH), rel=1e-12, abs=0)
 
 
-def jacobian_matches_dense_differences(z, seg):
-    """The residuals at ``z`` and their dense forward differences, which the sparse Jacobian matches
-    within its pattern."""
+def jacobian_matches_dense_differences(z, seg, method="tangents"):
+    """The residuals at ``z`` and their dense forward differences, which the sparse Jacobian (by the
+    simulation's tangents, or by grouped differences) matches within its pattern."""
     r0 = ms.residuals(z, seg, 2, PendulumParameters(), DT, 1e-3)
-    J = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3).toarray()
+    J = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3, method=method).toarray()
     dense = np.empty_like(J)
     for j in range(z.size):
         zj = z.copy()
@@ -65,16 +65,41 @@ def jacobian_matches_dense_differences(z, seg):
     return r0, dense
 
 
-def test_sparse_jacobian_matches_dense_differences():
+@pytest.mark.parametrize("method", ["tangents", "differences"])
+@pytest.mark.parametrize("softening", [0.0, 5.0])  # a linear spring, and the rig's levelling pull
+def test_sparse_jacobian_matches_dense_differences(method, softening):
     ys, us, _ = simulated_logs(TRUTH, n=2, seconds=1.0)
     seg = ms.make_segments(ys, us, horizon=10, skip=300, stride=40)
     rng = np.random.default_rng(1)
-    z = np.concatenate([ms.from_params(TRUTH, PendulumParameters()), [2.0, 3.0],
+    # A fractional delay (1.7 samples) and a dead zone the voltage crosses: every term of the model is on.
+    params = replace(TRUTH, cable_softening=softening, delay=0.0034, dead_zone=0.3)
+    z = np.concatenate([ms.from_params(params, PendulumParameters()), [2.0, 3.0],
                         (np.column_stack([seg.y[0], rng.normal(0, 0.1, (seg.n, 2))])).ravel()])
-    jacobian_matches_dense_differences(z, seg)
+    assert np.mean(np.abs(seg.u) < params.dead_zone) > 0.05
+    jacobian_matches_dense_differences(z, seg, method)
 
 
-def test_sparse_jacobian_with_setups_matches_dense_differences():
+def test_jacobian_methods_agree_to_the_differences_rounding_on_the_datasets_scale():
+    # The simulation's tangents and forward differences are two independent computations of the same
+    # columns: they agree to the differences' truncation and rounding (about 1e-6 of a column's scale),
+    # every physical variable and node, with per-segment weights and two setups.
+    ys, us, _ = simulated_logs(replace(TRUTH, cable_softening=5.0), n=2, seconds=2.0)
+    seg = ms.make_segments(ys, us, horizon=100, skip=250)
+    seg = replace(seg, setups={"Kr": seg.episode.copy()}, weight=np.linspace(0.5, 1.5, seg.n))
+    rng = np.random.default_rng(2)
+    z = np.concatenate([ms.from_params(replace(TRUTH, cable_softening=5.0), PendulumParameters()), [12.0],
+                        [2.0, 3.0], (np.column_stack([seg.y[0], rng.normal(0, 0.3, (seg.n, 2))])).ravel()])
+    r0 = ms.residuals(z, seg, 2, PendulumParameters(), DT, 1e-3)
+    tangents = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3).toarray()
+    differences = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3, method="differences").toarray()
+    scale = np.abs(differences).max(axis=0)
+    assert np.all(np.abs(tangents - differences).max(axis=0) <= 2e-5 * np.maximum(scale, 1e-12))
+    with pytest.raises(ValueError, match="unknown Jacobian method"):
+        ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3, method="adjoint")
+
+
+@pytest.mark.parametrize("method", ["tangents", "differences"])
+def test_sparse_jacobian_with_setups_matches_dense_differences(method):
     # Two setups: the second episode's segments simulate with their own cables' stiffness and delay,
     # two variables after the physical ones that touch only them.
     ys, us, _ = simulated_logs(TRUTH, n=2, seconds=1.0)
@@ -84,7 +109,7 @@ def test_sparse_jacobian_with_setups_matches_dense_differences():
     rng = np.random.default_rng(1)
     z = np.concatenate([ms.from_params(TRUTH, PendulumParameters()), [25.0, 2.5], [2.0, 3.0],
                         (np.column_stack([seg.y[0], rng.normal(0, 0.1, (seg.n, 2))])).ravel()])
-    r0, dense = jacobian_matches_dense_differences(z, seg)
+    r0, dense = jacobian_matches_dense_differences(z, seg, method)
     for extra in (ms.N_PHYSICAL, ms.N_PHYSICAL + 1):
         column = dense[:, extra].reshape(seg.n, -1)
         assert np.all(column[seg.episode == 0] == 0) and np.abs(column[seg.episode == 1]).max() > 0
@@ -329,3 +354,16 @@ def test_a_host_latency_of_two_and_a_half_samples_is_recovered():
     cal = PlantCalibration(horizon=0.2, skip=0.5, stride=0.2, nominal=PendulumParameters()).fit(ys, us, DT)
     se = cal.standard_errors_["delay"]
     assert abs(cal.params_.delay - truth.delay) <= 3 * se + 1e-12 and se < 2e-4, (cal.params_.delay, se)
+
+
+def test_a_fit_by_differences_lands_where_the_fit_by_tangents_does():
+    # The two Jacobians differ by the differences' rounding: the solver takes the same steps, and the
+    # fitted parameters agree far within their standard errors.
+    ys, us, _ = simulated_logs(TRUTH, n=2, seconds=2.0)
+    fits = [PlantCalibration(skip=0.5, max_nfev=4, nominal=PendulumParameters(), jacobian=method).fit(ys, us, DT)
+            for method in ("tangents", "differences")]
+    assert fits[0].nfev_ == fits[1].nfev_
+    for name, se in fits[0].standard_errors_.items():
+        assert abs(getattr(fits[0].params_, name) - getattr(fits[1].params_, name)) <= 0.01 * se + 1e-12, name
+    with pytest.raises(ValueError, match="jacobian must be"):
+        PlantCalibration(jacobian="adjoint").fit(ys, us, DT)

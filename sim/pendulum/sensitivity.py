@@ -1,0 +1,312 @@
+"""How :func:`~qube_koopman.sim.pendulum.model.simulate`'s angles change with the initial state and the
+coefficients: its RK4 differentiated step by step (forward sensitivities, the tangent-linear model).
+
+A multiple-shooting calibration needs the Jacobian of every segment's predicted angles with respect to
+the segment's initial state and the shared parameters at every iteration. Finite differences cost a
+whole simulation per parameter (about 15 a Jacobian); the tangents of all of them ride along one
+simulation here: each RK4 stage's accelerations are differentiated analytically once (the partial
+derivatives are arrays over the segments), and every direction's tangent is then a few multiply-adds
+of them. The equations differentiated are :func:`~qube_koopman.sim.pendulum.model._accelerations`'
+(a test compares the tangents with finite differences of :func:`simulate` with every optional term on).
+
+A direction is an initial-state tangent and a derivative of the coefficients
+(:data:`FIELDS`; the cables' softening ``c^2`` stands for their curvature ``c``, as in the parameters)
+and of the transport delay, optionally restricted to some of the segments (a setup's own value).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from qube_koopman.sim.pendulum.model import (
+    SAMPLE_PERIOD,
+    Coefficients,
+    PendulumParameters,
+    as_states,
+    check_timing,
+    coefficients_and_hold,
+)
+
+__all__ = ["FIELDS", "Directions", "simulate_tangents"]
+
+#: The coefficients a direction may move, in the order of :attr:`Directions.coefficients`' columns.
+#: ``cable_softening`` is the square of :class:`Coefficients`' ``cable_curvature``.
+FIELDS = (
+    "m11",
+    "quarter",
+    "m12",
+    "m22",
+    "gravity",
+    "torque_per_volt",
+    "arm_damping",
+    "pendulum_damping",
+    "arm_coulomb",
+    "inverse_coulomb_speed",
+    "dead_zone",
+    "arm_stiffness",
+    "arm_rest",
+    "cable_softening",
+)
+_DEAD_ZONE = FIELDS.index("dead_zone")
+
+
+@dataclass(frozen=True)
+class Directions:
+    """The directions whose tangents :func:`simulate_tangents` propagates.
+
+    Attributes
+    ----------
+    state : ndarray (n_dir, 4)
+        Each direction's tangent of the initial state (the same for every segment).
+    coefficients : ndarray (n_dir, len(FIELDS))
+        Each direction's derivative of the coefficients (:data:`FIELDS`).
+    delay : ndarray (n_dir,)
+        Each direction's derivative of the transport delay (s).
+    mask : ndarray (n_dir, n_seg) or None
+        Which segments a direction's coefficients and delay move (1) or not (0), for a value of one
+        setup's segments only; None: every direction moves every segment.
+    """
+
+    state: np.ndarray
+    coefficients: np.ndarray
+    delay: np.ndarray
+    mask: np.ndarray | None = None
+
+    @property
+    def n(self) -> int:
+        return self.state.shape[0]
+
+
+def _stretch_and_slopes(x, k: Coefficients):
+    """The cables' pull per unit stiffness ``S(x) = tanh(c x) / c`` (``x`` where ``c`` is 0), its slope in
+    ``x`` and its derivative in the softening ``c^2``: ``(x S' - S) / (2 c^2)``, ``-x^3 / 3`` as ``c x`` goes to 0."""
+    c = k.cable_curvature
+    if isinstance(c, np.ndarray):  # one curvature per segment: some may keep a linear spring
+        curved = c > 0
+        sigma = c * c
+        safe = np.where(curved, c, 1.0)
+        t = np.tanh(safe * x)
+        stretch, slope = np.where(curved, t / safe, x), np.where(curved, 1.0 - t * t, 1.0)
+    elif c > 0:
+        sigma = c * c
+        t = np.tanh(c * x)
+        stretch, slope = t / c, 1.0 - t * t
+    else:
+        return x, np.ones_like(x), -(x**3) / 3.0
+    small = sigma * x * x < 1e-6
+    by_softening = np.where(small, -(x**3) / 3.0, (x * slope - stretch) / (2.0 * np.where(small, 1.0, sigma)))
+    return stretch, slope, by_softening
+
+
+def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients, active: np.ndarray):
+    """The accelerations (a, b) of :func:`~qube_koopman.sim.pendulum.model._accelerations` at one RK4 stage,
+    their partial derivatives in the state and the motor voltage (``(a_x, b_x)``, each a list of five
+    arrays: theta, alpha, theta_dot, alpha_dot, voltage), and in the ``active`` coefficients
+    (``(len(active), n_seg)`` arrays for a and b)."""
+    s, c = np.sin(alpha), np.cos(alpha)
+    sc = s * c
+    friction = np.tanh(theta_dot * k.inverse_coulomb_speed)
+    friction_slope = 1.0 - friction * friction
+    x = theta - k.arm_rest
+    stretch, stretch_slope, by_softening = _stretch_and_slopes(x, k)
+    q, m12k = k.quarter, k.m12
+    r1 = (
+        k.torque_per_volt * motor_voltage
+        - k.arm_damping * theta_dot
+        - 2.0 * q * sc * theta_dot * alpha_dot
+        + m12k * s * alpha_dot * alpha_dot
+        - k.arm_coulomb * friction
+        - k.arm_stiffness * stretch
+    )
+    r2 = -k.pendulum_damping * alpha_dot + q * sc * theta_dot * theta_dot + k.gravity * s
+    m11 = k.m11 + q * s * s
+    m12 = m12k * c
+    m22 = k.m22
+    inv = 1.0 / (m11 * m22 - m12 * m12)
+    a = (m22 * r1 - m12 * r2) * inv
+    b = (m11 * r2 - m12 * r1) * inv
+    # d a = A1 d r1 + A2 d r2 + A11 d m11 + A12 d m12 + A22 d m22 (b alike): the quotient rule.
+    A1, A2 = m22 * inv, -m12 * inv
+    A11, A12, A22 = -a * m22 * inv, (2.0 * a * m12 - r2) * inv, (r1 - a * m11) * inv
+    B1, B2 = -m12 * inv, m11 * inv
+    B11, B12, B22 = (r2 - b * m22) * inv, (2.0 * b * m12 - r1) * inv, -b * m11 * inv
+    cos2 = c * c - s * s
+    r1_theta = -k.arm_stiffness * stretch_slope
+    r1_alpha = -2.0 * q * cos2 * theta_dot * alpha_dot + m12k * c * alpha_dot * alpha_dot
+    r2_alpha = q * cos2 * theta_dot * theta_dot + k.gravity * c
+    m11_alpha, m12_alpha = 2.0 * q * sc, -m12k * s
+    r1_theta_dot = -k.arm_damping - 2.0 * q * sc * alpha_dot - k.arm_coulomb * k.inverse_coulomb_speed * friction_slope
+    r2_theta_dot = 2.0 * q * sc * theta_dot
+    r1_alpha_dot = -2.0 * q * sc * theta_dot + 2.0 * m12k * s * alpha_dot
+    r2_alpha_dot = -k.pendulum_damping
+
+    def along(c1, c2, c11, c12):  # an acceleration's partials in the state and the voltage, by its quotient rule
+        return [
+            c1 * r1_theta,
+            c1 * r1_alpha + c2 * r2_alpha + c11 * m11_alpha + c12 * m12_alpha,
+            c1 * r1_theta_dot + c2 * r2_theta_dot,
+            c1 * r1_alpha_dot + c2 * r2_alpha_dot,
+            c1 * k.torque_per_volt,
+        ]
+
+    a_x, b_x = along(A1, A2, A11, A12), along(B1, B2, B11, B12)
+    # Per coefficient: its (d r1, d r2, d m11, d m12, d m22), None for a zero; made for the active ones only.
+    by_field = {
+        "m11": lambda: (None, None, 1.0, None, None),
+        "quarter": lambda: (-2.0 * sc * theta_dot * alpha_dot, sc * theta_dot * theta_dot, s * s, None, None),
+        "m12": lambda: (s * alpha_dot * alpha_dot, None, None, c, None),
+        "m22": lambda: (None, None, None, None, 1.0),
+        "gravity": lambda: (None, s, None, None, None),
+        "torque_per_volt": lambda: (motor_voltage, None, None, None, None),
+        "arm_damping": lambda: (-theta_dot, None, None, None, None),
+        "pendulum_damping": lambda: (None, -alpha_dot, None, None, None),
+        "arm_coulomb": lambda: (-friction, None, None, None, None),
+        "inverse_coulomb_speed": lambda: (-k.arm_coulomb * friction_slope * theta_dot, None, None, None, None),
+        "arm_stiffness": lambda: (-stretch, None, None, None, None),
+        "arm_rest": lambda: (k.arm_stiffness * stretch_slope, None, None, None, None),
+        "cable_softening": lambda: (-k.arm_stiffness * by_softening, None, None, None, None),
+    }
+    a_rows, b_rows = [], []
+    for field in active:
+        terms = [
+            (d, ca, cb)
+            for d, ca, cb in zip(by_field[FIELDS[field]](), (A1, A2, A11, A12, A22), (B1, B2, B11, B12, B22))
+            if d is not None
+        ]
+        a_rows.append(sum(ca * d for d, ca, _ in terms))
+        b_rows.append(sum(cb * d for d, _, cb in terms))
+    shape = (0,) + np.shape(a)
+    a_k = np.stack(np.broadcast_arrays(*a_rows, a)[:-1]) if a_rows else np.zeros(shape)
+    b_k = np.stack(np.broadcast_arrays(*b_rows, b)[:-1]) if b_rows else np.zeros(shape)
+    return a, b, a_x, b_x, a_k, b_k
+
+
+def simulate_tangents(
+    state0,
+    voltages,
+    params: PendulumParameters | list[PendulumParameters],
+    directions: Directions,
+    dt: float = SAMPLE_PERIOD,
+    n_substeps: int = 2,
+    past_voltages=None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The angles of :func:`~qube_koopman.sim.pendulum.model.simulate` and their tangents along ``directions``.
+
+    Parameters
+    ----------
+    state0 : array_like (n_seg, 4)
+    voltages : array_like (n_steps, n_seg)
+    params : PendulumParameters, or one per segment
+    directions : Directions
+    dt, n_substeps, past_voltages
+        As for :func:`~qube_koopman.sim.pendulum.model.simulate`.
+
+    Returns
+    -------
+    angles : ndarray (n_steps + 1, n_seg, 2)
+    tangents : ndarray (n_steps + 1, n_dir, n_seg, 2)
+        The derivative of the angles along each direction.
+    """
+    check_timing(dt, n_substeps)
+    x0 = as_states(state0)
+    u = np.asarray(voltages, dtype=float)
+    n_steps, n_seg = u.shape
+    x0 = np.broadcast_to(x0, (n_seg, 4))
+    k, whole, weights, wholes = coefficients_and_hold(params, (n_seg,), dt, int(n_substeps))
+    k = k._replace(dead_zone=np.asarray(k.dead_zone, dtype=float))
+    delays = np.array([p.delay for p in params]) if isinstance(params, list) else np.full(n_seg, params.delay)
+    h = dt / n_substeps
+    past = np.zeros((whole + 1, n_seg)) if past_voltages is None else np.asarray(past_voltages, float)
+    commands = np.concatenate([np.broadcast_to(past, (past.shape[0], n_seg)), u])
+    own = past.shape[0] - (np.full(n_seg, whole) if wholes is None else wholes)
+    # d(weight of the previous command in substep j) / d(delay): n / dt while the switch is inside it.
+    fraction = delays / dt - np.floor(delays / dt + 1e-12)
+    weight_slopes = [
+        np.where((fraction * n_substeps - j >= 0) & (fraction * n_substeps - j < 1), n_substeps / dt, 0.0)
+        for j in range(n_substeps)
+    ]
+    n_dir = directions.n
+    mask = directions.mask
+    active = np.flatnonzero(np.any(directions.coefficients != 0, axis=0))
+    active = active[active != _DEAD_ZONE]  # the dead zone moves the motor's voltage (below)
+    gain = directions.coefficients[:, active]  # (n_dir, n_active)
+    moved = np.flatnonzero((directions.delay != 0) | (directions.coefficients[:, _DEAD_ZONE] != 0))
+    comps = [x0[:, i].copy() for i in range(4)]
+    tang = [np.repeat(directions.state[:, i : i + 1], n_seg, axis=1).astype(float) for i in range(4)]
+    angles = np.empty((n_steps + 1, n_seg, 2))
+    tangents = np.empty((n_steps + 1, n_dir, n_seg, 2))
+    angles[0] = x0[:, :2]
+    tangents[0, ..., 0], tangents[0, ..., 1] = tang[0], tang[1]
+    rows = np.arange(n_seg)
+    for step in range(n_steps):
+        now = commands[np.maximum(own + step, 0), rows]
+        before = commands[np.maximum(own + step - 1, 0), rows]
+        for j, w in enumerate(weights):
+            voltage = now + w * (before - now)
+            outside = np.abs(voltage) > k.dead_zone
+            motor = voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
+            # The motor voltage's tangent, in the directions that move it (delay, dead zone).
+            d_motor = np.zeros((moved.size, n_seg))
+            if moved.size:
+                d_voltage = directions.delay[moved, None] * weight_slopes[j] * (before - now)
+                d_zone = -np.sign(voltage) * directions.coefficients[moved, _DEAD_ZONE, None]
+                d_motor = np.where(outside, d_voltage + d_zone, 0.0)
+                if mask is not None:
+                    d_motor = d_motor * mask[moved]
+            comps, tang = _rk4_tangent(comps, tang, motor, d_motor, moved, h, k, active, gain, mask)
+        angles[step + 1, :, 0], angles[step + 1, :, 1] = comps[0], comps[1]
+        tangents[step + 1, ..., 0], tangents[step + 1, ..., 1] = tang[0], tang[1]
+    return angles, tangents
+
+
+def _rk4_tangent(comps, tang, motor, d_motor, moved, h, k, active, gain, mask):
+    """One RK4 substep of the state and of every direction's tangent."""
+    half, sixth = 0.5 * h, h / 6.0
+    theta, alpha, theta_dot, alpha_dot = comps
+    t_th, t_al, t_td, t_ad = tang
+
+    def stage(th, al, td, ad, dth, dal, dtd, dad):
+        a, b, a_x, b_x, a_k, b_k = _partials(th, al, td, ad, motor, k, active)
+        da = a_x[0] * dth + a_x[1] * dal + a_x[2] * dtd + a_x[3] * dad
+        db = b_x[0] * dth + b_x[1] * dal + b_x[2] * dtd + b_x[3] * dad
+        if active.size:
+            pa, pb = gain @ a_k, gain @ b_k
+            if mask is not None:
+                pa, pb = pa * mask, pb * mask
+            da, db = da + pa, db + pb
+        if moved.size:
+            da[moved] += a_x[4] * d_motor
+            db[moved] += b_x[4] * d_motor
+        return a, b, da, db
+
+    a1, b1, da1, db1 = stage(theta, alpha, theta_dot, alpha_dot, t_th, t_al, t_td, t_ad)
+    th2, al2 = theta + half * theta_dot, alpha + half * alpha_dot
+    td2, ad2 = theta_dot + half * a1, alpha_dot + half * b1
+    dth2, dal2 = t_th + half * t_td, t_al + half * t_ad
+    dtd2, dad2 = t_td + half * da1, t_ad + half * db1
+    a2, b2, da2, db2 = stage(th2, al2, td2, ad2, dth2, dal2, dtd2, dad2)
+    th3, al3 = theta + half * td2, alpha + half * ad2
+    td3, ad3 = theta_dot + half * a2, alpha_dot + half * b2
+    dth3, dal3 = t_th + half * dtd2, t_al + half * dad2
+    dtd3, dad3 = t_td + half * da2, t_ad + half * db2
+    a3, b3, da3, db3 = stage(th3, al3, td3, ad3, dth3, dal3, dtd3, dad3)
+    th4, al4 = theta + h * td3, alpha + h * ad3
+    td4, ad4 = theta_dot + h * a3, alpha_dot + h * b3
+    dth4, dal4 = t_th + h * dtd3, t_al + h * dad3
+    dtd4, dad4 = t_td + h * da3, t_ad + h * db3
+    a4, b4, da4, db4 = stage(th4, al4, td4, ad4, dth4, dal4, dtd4, dad4)
+    comps = [
+        theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4),
+        alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4),
+        theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4),
+        alpha_dot + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4),
+    ]
+    tang = [
+        t_th + sixth * (t_td + 2.0 * dtd2 + 2.0 * dtd3 + dtd4),
+        t_al + sixth * (t_ad + 2.0 * dad2 + 2.0 * dad3 + dad4),
+        t_td + sixth * (da1 + 2.0 * da2 + 2.0 * da3 + da4),
+        t_ad + sixth * (db1 + 2.0 * db2 + 2.0 * db3 + db4),
+    ]
+    return comps, tang

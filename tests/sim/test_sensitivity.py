@@ -1,0 +1,75 @@
+"""The simulator's forward sensitivities (sim.pendulum.sensitivity) against differences of its simulation."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from qube_koopman.sim.pendulum import PendulumParameters, simulate
+from qube_koopman.sim.pendulum.model import Coefficients
+from qube_koopman.sim.pendulum.sensitivity import FIELDS, Directions, simulate_tangents
+
+DT = 1 / 500
+#: Every optional term on: Coulomb friction, a dead zone the voltage crosses, a fractional delay (1.6
+#: samples), the cables' levelling pull away from the encoder's zero.
+PARAMS = replace(PendulumParameters(), Cr=4e-4, dead_zone=0.2, delay=0.0032, Kr=2e-3, cable_softening=4.0,
+                 theta_rest=0.05, Dp=3e-5)
+
+
+def _case(n_seg: int = 6, n_steps: int = 80):
+    rng = np.random.default_rng(3)
+    state0 = np.column_stack([rng.normal(0, 0.3, n_seg), rng.normal(0, 0.05, n_seg), rng.normal(0, 1, (n_seg, 2))])
+    voltages = rng.normal(0, 1.0, (n_steps, n_seg))
+    past = rng.normal(0, 1.0, (6, n_seg))
+    return state0, voltages, past
+
+
+def _differences(state0, voltages, past, params_of, step=1e-6):
+    """Forward difference of the angles of ``simulate`` as ``params_of(h)`` and the state move by ``h``."""
+    (s0, p0), (s1, p1) = params_of(0.0), params_of(step)
+    base = simulate(state0 + s0, voltages, p0, DT, past_voltages=past)[..., :2]
+    return (simulate(state0 + s1, voltages, p1, DT, past_voltages=past)[..., :2] - base) / step
+
+
+def _row(p: PendulumParameters) -> np.ndarray:
+    k = Coefficients.of(p)._asdict()
+    k["cable_softening"] = p.cable_softening
+    return np.array([k[name] for name in FIELDS])
+
+
+@pytest.mark.parametrize("name", ["km", "Lp", "Jh", "Cr", "dead_zone", "Kr", "cable_softening", "coulomb_speed"])
+def test_each_parameters_tangent_is_the_simulations_difference(name):
+    state0, voltages, past = _case()
+    value = getattr(PARAMS, name)
+    step = 1e-6 * value
+    moved = replace(PARAMS, **{name: value + step})
+    directions = Directions(np.zeros((1, 4)), ((_row(moved) - _row(PARAMS)) / step)[None], np.zeros(1))
+    angles, tangents = simulate_tangents(state0, voltages, PARAMS, directions, DT, past_voltages=past)
+    # The same trajectory (its own arithmetic, so to rounding)
+    np.testing.assert_allclose(angles, simulate(state0, voltages, PARAMS, DT, past_voltages=past)[..., :2],
+                               rtol=0, atol=1e-12)
+    expected = _differences(state0, voltages, past, lambda h: (0.0, replace(PARAMS, **{name: value + h * value})))
+    expected /= value  # per unit of the parameter (the step was relative)
+    assert np.abs(expected).max() > 0  # the parameter moves the angles
+    np.testing.assert_allclose(tangents[:, 0], expected, rtol=0, atol=2e-5 * np.abs(expected).max())
+
+
+def test_state_and_delay_tangents_and_a_mask_that_keeps_a_direction_to_some_segments():
+    state0, voltages, past = _case()
+    n_seg = state0.shape[0]
+    mask = np.ones((6, n_seg))
+    mask[5, ::2] = 0.0  # the delay's direction moves the odd segments only
+    delay = np.zeros(6)
+    delay[4] = delay[5] = 1.0
+    directions = Directions(np.vstack([np.eye(4), np.zeros((2, 4))]), np.zeros((6, len(FIELDS))), delay, mask)
+    _, tangents = simulate_tangents(state0, voltages, PARAMS, directions, DT, past_voltages=past)
+    for j in range(4):
+        unit = np.eye(4)[j]
+        expected = _differences(state0, voltages, past, lambda h, unit=unit: (h * unit, PARAMS))
+        np.testing.assert_allclose(tangents[:, j], expected, rtol=0, atol=2e-5 * np.abs(expected).max())
+    expected = _differences(state0, voltages, past, lambda h: (0.0, replace(PARAMS, delay=PARAMS.delay + h)), 1e-9)
+    np.testing.assert_allclose(tangents[:, 4], expected, rtol=0, atol=1e-4 * np.abs(expected).max())
+    np.testing.assert_array_equal(tangents[:, 5, ::2], 0.0)
+    np.testing.assert_array_equal(tangents[:, 5, 1::2], tangents[:, 4, 1::2])
