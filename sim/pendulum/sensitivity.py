@@ -17,10 +17,12 @@ and of the transport delay, optionally restricted to some of the segments (a set
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 from qube_koopman.sim.pendulum.model import (
+    DEFAULT_SUBSTEPS,
     SAMPLE_PERIOD,
     Coefficients,
     PendulumParameters,
@@ -186,10 +188,10 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
 def simulate_tangents(
     state0,
     voltages,
-    params: PendulumParameters | list[PendulumParameters],
+    params: PendulumParameters | Sequence[PendulumParameters],
     directions: Directions,
     dt: float = SAMPLE_PERIOD,
-    n_substeps: int = 2,
+    n_substeps: int = DEFAULT_SUBSTEPS,
     past_voltages=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The angles of :func:`~qube_koopman.sim.pendulum.model.simulate` and their tangents along ``directions``.
@@ -214,9 +216,13 @@ def simulate_tangents(
     u = np.asarray(voltages, dtype=float)
     n_steps, n_seg = u.shape
     x0 = np.broadcast_to(x0, (n_seg, 4))
+    if not isinstance(params, PendulumParameters):
+        params = list(params)
+    delays = (
+        np.full(n_seg, params.delay) if isinstance(params, PendulumParameters) else np.array([p.delay for p in params])
+    )
     k, whole, weights, wholes = coefficients_and_hold(params, (n_seg,), dt, int(n_substeps))
     k = k._replace(dead_zone=np.asarray(k.dead_zone, dtype=float))
-    delays = np.array([p.delay for p in params]) if isinstance(params, list) else np.full(n_seg, params.delay)
     h = dt / n_substeps
     past = np.zeros((whole + 1, n_seg)) if past_voltages is None else np.asarray(past_voltages, float)
     commands = np.concatenate([np.broadcast_to(past, (past.shape[0], n_seg)), u])
