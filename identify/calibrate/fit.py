@@ -189,7 +189,10 @@ class PlantCalibration:
         def jac(z, r):
             return ms.jacobian(z, r, seg, n_ep, self.nominal_, dt, ENCODER_SIGMA, method=self.jacobian)
 
-        result = levenberg_marquardt(fun, jac, z0, lo, hi, max_iter=self.max_nfev, callback=progress)
+        def normal(J):
+            return ms.normal_matrix(J, seg, n_ep)
+
+        result = levenberg_marquardt(fun, jac, z0, lo, hi, max_iter=self.max_nfev, callback=progress, normal=normal)
         progress.done()
         self._store(result, seg, n_ep, lo, hi)
         return self
@@ -224,7 +227,7 @@ class PlantCalibration:
         self.cost_, self.nfev_ = float(result.cost), int(result.nfev)
         n_res, n_var = result.jac.shape
         s2 = 2 * result.cost / max(1, n_res - n_var)
-        cov = _marginal_covariance(result.jac, n_phys + n_ep) * s2
+        cov = _marginal_covariance(ms.normal_matrix(result.jac, seg, n_ep), n_phys + n_ep) * s2
         z_se = np.sqrt(np.maximum(np.diag(cov), 0))
         self.setup_values_: dict[str, dict[str, float]] = {}
         self.setup_errors_: dict[str, dict[str, float]] = {}
@@ -320,9 +323,8 @@ def _group_weights(episode_of_segment: np.ndarray, groups: Sequence) -> np.ndarr
     return np.array([per_group[name] for name in labels])
 
 
-def _marginal_covariance(jac, q: int) -> np.ndarray:
-    """The top-left q x q block of (J^T J)^-1 for a sparse J (the nodes marginalized out)."""
-    jtj = (jac.T @ jac).tocsc()
+def _marginal_covariance(jtj, q: int) -> np.ndarray:
+    """The top-left q x q block of (J^T J)^-1 from the sparse normal matrix ``jtj`` (the nodes marginalized out)."""
     n = jtj.shape[0]
     jtj = jtj + 1e-12 * jtj.diagonal().max() * _identity(n)
     lu = splu(jtj)

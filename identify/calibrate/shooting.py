@@ -73,6 +73,8 @@ __all__ = [
     "from_params",
     "residuals",
     "sparsity",
+    "jacobian",
+    "normal_matrix",
     "simulate_segments",
 ]
 
@@ -437,3 +439,61 @@ def _assemble(seg: Segments, n_episodes: int, n_all: int, phys_data: np.ndarray,
     )
     indptr = np.concatenate([[0], np.cumsum(np.tile([n_phys + 4, n_phys + 5], segment_of_pair.size))])
     return csr_matrix((data.ravel(), cols.ravel(), indptr), shape=(n_res, base + 4 * seg.n))
+
+
+def normal_matrix(jac, seg: Segments, n_episodes: int):
+    """``J^T J`` (CSC) of a :func:`jacobian`, from its arrow shape.
+
+    Every entry of ``J^T J`` is a sum over the rows of one segment (the node blocks, their coupling
+    to the physics and to the episode's offset) or of the segments summed (the physics' block, an
+    offset's), and a segment's pairs of rows (theta, then alpha) hold the same columns: one batched
+    product of each segment's pairs with themselves gives them all. scipy's general sparse product
+    of the same matrix took 0.26 s of a 38-log fit's 2.5 s iteration (measured). ``jac`` must be
+    laid out as :func:`jacobian` lays it out.
+    """
+    from scipy.sparse import coo_matrix
+
+    n_all = N_PHYSICAL + n_setup_variables(seg)
+    width = jac.indptr[2] - jac.indptr[0]  # a pair's entries: theta's n_phys + 4, alpha's n_phys + 5
+    n_phys = (width - 9) // 2
+    pairs = jac.data.reshape(seg.n, seg.horizon + 1, width)
+    products = np.matmul(pairs.transpose(0, 2, 1), pairs)  # (segment, width, width)
+    theta_phys, theta_nodes = np.arange(n_phys), n_phys + np.arange(4)
+    alpha_phys, offset, alpha_nodes = n_phys + 4 + np.arange(n_phys), 2 * n_phys + 4, 2 * n_phys + 5 + np.arange(4)
+
+    def block(a_theta, b_theta, a_alpha, b_alpha):  # the theta rows' and the alpha rows' sums, per segment
+        return products[:, a_theta[:, None], b_theta] + products[:, a_alpha[:, None], b_alpha]
+
+    pp = block(theta_phys, theta_phys, alpha_phys, alpha_phys).sum(axis=0)
+    pn = block(theta_phys, theta_nodes, alpha_phys, alpha_nodes)  # (segment, n_phys, 4)
+    nn = block(theta_nodes, theta_nodes, alpha_nodes, alpha_nodes)  # (segment, 4, 4)
+    po, on, oo = products[:, alpha_phys, offset], products[:, offset, alpha_nodes], products[:, offset, offset]
+    po_episode, oo_episode = np.zeros((n_episodes, n_phys)), np.zeros(n_episodes)
+    np.add.at(po_episode, seg.episode, po)
+    np.add.at(oo_episode, seg.episode, oo)
+    nodes = n_all + n_episodes + 4 * np.arange(seg.n)[:, None] + np.arange(4)  # (segment, 4)
+    offsets = n_all + np.arange(n_episodes)
+    phys = np.arange(n_phys)
+    # The blocks off the diagonal, each entered on both sides; then the diagonal blocks.
+    off_diagonal = [
+        (np.broadcast_to(phys[None, :, None], pn.shape), np.broadcast_to(nodes[:, None, :], pn.shape), pn),
+        (np.broadcast_to(phys, po_episode.shape), np.broadcast_to(offsets[:, None], po_episode.shape), po_episode),
+        (np.broadcast_to((n_all + seg.episode)[:, None], on.shape), nodes, on),
+    ]
+    diagonal = [
+        (np.repeat(phys, n_phys), np.tile(phys, n_phys), pp),
+        (offsets, offsets, oo_episode),
+        (np.broadcast_to(nodes[:, :, None], nn.shape), np.broadcast_to(nodes[:, None, :], nn.shape), nn),
+    ]
+    rows = [r.ravel() for r, _, _ in off_diagonal] + [c.ravel() for _, c, _ in off_diagonal]
+    cols = [c.ravel() for _, c, _ in off_diagonal] + [r.ravel() for r, _, _ in off_diagonal]
+    values = [v.ravel() for _, _, v in off_diagonal] * 2
+    rows += [r.ravel() for r, _, _ in diagonal]
+    cols += [c.ravel() for _, c, _ in diagonal]
+    values += [v.ravel() for _, _, v in diagonal]
+    n_var = n_all + n_episodes + 4 * seg.n
+    normal = coo_matrix(
+        (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(n_var, n_var)
+    ).tocsc()
+    normal.eliminate_zeros()  # a setup's variable is zero on the other setups' segments: as the general product
+    return normal

@@ -35,13 +35,15 @@ def levenberg_marquardt(
     max_iter: int = 40,
     ftol: float = 1e-7,
     callback: Callable | None = None,
+    normal: Callable | None = None,
 ) -> LmResult:
     """Minimize ``0.5 ||fun(x)||^2`` within bounds.
 
     A variable at a bound that the gradient pushes out of the box stays out of the step (:func:`_free`);
     the step of the others is projected onto the bounds.
 
-    ``jac(x, r)`` returns the sparse Jacobian at ``x`` (``r = fun(x)``).
+    ``jac(x, r)`` returns the sparse Jacobian at ``x`` (``r = fun(x)``); ``normal(J)``, when given, its
+    normal matrix ``J^T J`` in CSC (a problem's structure may compute it faster than a general product).
     Stops when an accepted step lowers the cost by less than ``ftol`` relatively.
     """
     x = np.clip(x0, lower, upper)
@@ -50,7 +52,7 @@ def levenberg_marquardt(
     nfev, lam, converged, it = 1, 1e-3, False, 0
     for it in range(1, max_iter + 1):
         J = jac(x, r)
-        JtJ = (J.T @ J).tocsc()
+        JtJ = (J.T @ J).tocsc() if normal is None else normal(J)
         g = J.T @ r
         d = np.maximum(JtJ.diagonal(), 1e-12 * max(1.0, JtJ.diagonal().max()))
         free = _free(x, g, lower, upper)

@@ -96,6 +96,11 @@ def test_jacobian_methods_agree_to_the_differences_rounding_on_the_datasets_scal
     assert np.all(np.abs(tangents - differences).max(axis=0) <= 2e-5 * np.maximum(scale, 1e-12))
     with pytest.raises(ValueError, match="unknown Jacobian method"):
         ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3, method="adjoint")
+    # Its normal matrix from the arrow's blocks is the general sparse product's, the same entries.
+    J = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3)
+    general, blocks = (J.T @ J).tocsc(), ms.normal_matrix(J, seg, 2)
+    assert blocks.nnz == general.nnz
+    np.testing.assert_allclose(blocks.toarray(), general.toarray(), rtol=1e-12, atol=1e-12 * abs(general).max())
 
 
 @pytest.mark.parametrize("method", ["tangents", "differences"])
