@@ -270,8 +270,6 @@ def simulate_tangents(
 def _rk4_tangent(comps, tang, motor, d_motor, moved, h, k, active, gain, mask):
     """One RK4 substep of the state and of every direction's tangent."""
     half, sixth = 0.5 * h, h / 6.0
-    theta, alpha, theta_dot, alpha_dot = comps
-    t_th, t_al, t_td, t_ad = tang
 
     def stage(th, al, td, ad, dth, dal, dtd, dad):
         a, b, a_x, b_x, a_k, b_k = _partials(th, al, td, ad, motor, k, active)
@@ -287,32 +285,16 @@ def _rk4_tangent(comps, tang, motor, d_motor, moved, h, k, active, gain, mask):
             db[moved] += b_x[4] * d_motor
         return a, b, da, db
 
-    a1, b1, da1, db1 = stage(theta, alpha, theta_dot, alpha_dot, t_th, t_al, t_td, t_ad)
-    th2, al2 = theta + half * theta_dot, alpha + half * alpha_dot
-    td2, ad2 = theta_dot + half * a1, alpha_dot + half * b1
-    dth2, dal2 = t_th + half * t_td, t_al + half * t_ad
-    dtd2, dad2 = t_td + half * da1, t_ad + half * db1
-    a2, b2, da2, db2 = stage(th2, al2, td2, ad2, dth2, dal2, dtd2, dad2)
-    th3, al3 = theta + half * td2, alpha + half * ad2
-    td3, ad3 = theta_dot + half * a2, alpha_dot + half * b2
-    dth3, dal3 = t_th + half * dtd2, t_al + half * dad2
-    dtd3, dad3 = t_td + half * da2, t_ad + half * db2
-    a3, b3, da3, db3 = stage(th3, al3, td3, ad3, dth3, dal3, dtd3, dad3)
-    th4, al4 = theta + h * td3, alpha + h * ad3
-    td4, ad4 = theta_dot + h * a3, alpha_dot + h * b3
-    dth4, dal4 = t_th + h * dtd3, t_al + h * dad3
-    dtd4, dad4 = t_td + h * da3, t_ad + h * db3
-    a4, b4, da4, db4 = stage(th4, al4, td4, ad4, dth4, dal4, dtd4, dad4)
-    comps = [
-        theta + sixth * (theta_dot + 2.0 * td2 + 2.0 * td3 + td4),
-        alpha + sixth * (alpha_dot + 2.0 * ad2 + 2.0 * ad3 + ad4),
-        theta_dot + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4),
-        alpha_dot + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4),
-    ]
-    tang = [
-        t_th + sixth * (t_td + 2.0 * dtd2 + 2.0 * dtd3 + dtd4),
-        t_al + sixth * (t_ad + 2.0 * dad2 + 2.0 * dad3 + dad4),
-        t_td + sixth * (da1 + 2.0 * da2 + 2.0 * da3 + da4),
-        t_ad + sixth * (db1 + 2.0 * db2 + 2.0 * db3 + db4),
-    ]
-    return comps, tang
+    # The state and the tangents are one system of eight components whose slope is (velocities,
+    # accelerations) of each: classic RK4 on it, its stages' arithmetic as the model's _rk4_steps.
+    def slope(y):
+        a, b, da, db = stage(*y)
+        return [y[2], y[3], a, b, y[6], y[7], da, db]
+
+    y0 = [*comps, *tang]
+    k1 = slope(y0)
+    k2 = slope([y + half * k for y, k in zip(y0, k1)])
+    k3 = slope([y + half * k for y, k in zip(y0, k2)])
+    k4 = slope([y + h * k for y, k in zip(y0, k3)])
+    out = [y + sixth * (s1 + 2.0 * s2 + 2.0 * s3 + s4) for y, s1, s2, s3, s4 in zip(y0, k1, k2, k3, k4)]
+    return out[:4], out[4:]
