@@ -278,3 +278,37 @@ def test_the_ring_steps_shared_passthrough_rows_once_for_all_models():
         ring = _RingLayout.of(fitted, 9, 2, At)
         assert (ring.shared is not None) == shared
         assert ring.perms[0].shape[-1] == (2 if shared else 11)
+
+
+@pytest.mark.parametrize("lifting", [
+    [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],
+    [Delay(4), ThinPlateRbf(5, seed=3), CoulombFriction(0, 3, 0.05), CoulombFriction(1, 1, 0.1), Constant()],
+])
+@pytest.mark.parametrize("shared", [False, True])
+def test_a_loop_of_many_states_shifts_its_delayed_features_and_predicts_as_relifting_does(loop, lifting, shared):
+    # A controller of many states (a designed one) makes the ring keep one copy of A^T and shift the
+    # delayed features instead of rotating through a permuted copy per slot: the same predictions.
+    from naive_reference import naive_predict
+    from qube_koopman.identify.models.model import KoopmanModel
+    from qube_koopman.identify.models.simulate import _SHIFT_FROM_ROWS, _RingLayout, simulate_batch
+
+    *_, trajs = loop
+    fitted = Lifting(lifting).fit([t.x for t in trajs])
+    n_p, m, d = 9, fitted.n_features_in_, fitted.n_delays_
+    assert n_p + m >= _SHIFT_FROM_ROWS
+    A, B = _random_models(3, n_p + fitted.n_features_out_, 2, n_p, seed=6, shared=shared)
+    A *= 0.5  # a thin-plate basis grows with the state: keep these random loops bounded
+    At = np.ascontiguousarray(A[:, :n_p + m, :].transpose(0, 2, 1))
+    ring = _RingLayout.of(fitted, n_p, m, At)
+    assert ring is not None and ring.shift and len(ring.perms) == 1 and (ring.shared is not None) == shared
+    assert not _RingLayout.of(fitted, 0, m, np.ascontiguousarray(At[:, n_p:, n_p:])).shift  # the rig's size: the ring
+    rng = np.random.default_rng(7)
+    x_init = np.stack([t.x[:d + 1] for t in trajs[:2]])
+    v = rng.uniform(-0.2, 0.2, (2, 80, 2))
+    p0 = rng.uniform(-0.2, 0.2, (2, n_p))
+    x, _ = simulate_batch(A, B, fitted, n_p, x_init, v, p0)
+    assert np.isfinite(x).all()
+    for i in range(3):
+        model = KoopmanModel(A[i], B[i], fitted, ("r", "f"), n_passthrough=n_p)
+        for e in range(2):
+            np.testing.assert_allclose(x[i, e], naive_predict(model, x_init[e], v[e], p0[e]), rtol=1e-10, atol=1e-12)
