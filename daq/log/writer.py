@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import secrets
 import stat
@@ -18,6 +19,7 @@ except ImportError:  # not a POSIX system: temporary files are not locked
     fcntl = None  # type: ignore[assignment]  # mypy: a module or, here, None
 
 from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
+from qube_koopman.daq.log.mcap_writer import BlockWriter
 from qube_koopman.daq.log.metadata import STATUS_RECORD, episode_records, status_record
 from qube_koopman.daq.log.schema import (
     CDR_LE_HEADER,
@@ -33,6 +35,8 @@ from qube_koopman.daq.log.schema import (
 __all__ = ["EpisodeWriter", "write_episode", "remove_stale_temp_files", "COMPRESSIONS"]
 
 COMPRESSIONS = ("zstd", "lz4", "none")
+#: Samples held before they go to the MCAP writer when no flush comes sooner (``flush_interval_s=None``).
+_BLOCK = 1024
 
 
 def _epoch_ns(start_time: str) -> int:
@@ -100,8 +104,6 @@ class EpisodeWriter:
         overwrite: bool = False,
         fsync: bool = False,
     ) -> None:
-        from mcap.writer import CompressionType, Writer
-
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         if flush_interval_s is not None and not flush_interval_s > 0:
@@ -122,7 +124,7 @@ class EpisodeWriter:
         assert self._struct.size == self._dtype.itemsize
         self._file: IO[bytes] = open(self.path, "wb" if overwrite else "xb")
         try:
-            self._start(metadata, compression, Writer, CompressionType)
+            self._start(metadata, compression)
         except BaseException:
             # A file whose header never reached the disk (a full disk, a size limit) is no log:
             # nothing is left behind that a reader would have to reject.
@@ -133,15 +135,11 @@ class EpisodeWriter:
             self.path.unlink(missing_ok=True)
             raise
 
-    def _start(self, metadata: EpisodeMetadata, compression: str, Writer, CompressionType) -> None:
-        self._mcap = Writer(
-            self._file,
-            compression={
-                "zstd": CompressionType.ZSTD,
-                "lz4": CompressionType.LZ4,
-                "none": CompressionType.NONE,
-            }[compression],
-        )
+    def _start(self, metadata: EpisodeMetadata, compression: str) -> None:
+        # mcap's Writer's file, with the messages packed in blocks (daq/log/mcap_writer.py says why).
+        self._mcap = BlockWriter(self._file, compression)
+        self._pending_payloads = bytearray()
+        self._pending_times: list[int] = []
         self._mcap.start(profile="", library=f"qube-koopman daq.log {FORMAT_VERSION}")
         schema_id = self._mcap.register_schema(SAMPLE_SCHEMA_NAME, "ros2msg", schema_text(self._n_states).encode())
         self._channel = self._mcap.register_channel(SAMPLE_TOPIC, "cdr", schema_id)
@@ -167,11 +165,24 @@ class EpisodeWriter:
             raise RuntimeError(f"{self.path}: episode log already finished")
 
     def _add(self, payload: bytes, log_time: int) -> None:
-        self._mcap.add_message(self._channel, log_time, payload, log_time, self._n)
+        # Held until the next flush (or a block's worth): the MCAP writer packs them together.
+        self._pending_payloads += payload
+        self._pending_times.append(log_time)
         self._n += 1
         self._since_flush += 1
         if self._flush_every is not None and self._since_flush >= self._flush_every:
             self.flush()
+        elif len(self._pending_times) >= _BLOCK:
+            self._hand_over()
+
+    def _hand_over(self) -> None:
+        """The held samples to the MCAP writer (which closes a chunk at its size, as mcap's does)."""
+        n = len(self._pending_times)
+        if n:
+            payloads = np.frombuffer(bytes(self._pending_payloads), np.uint8).reshape(n, -1)
+            self._mcap.add_messages(self._channel, self._n - n, self._pending_times, payloads)
+            self._pending_payloads.clear()
+            self._pending_times.clear()
 
     def write_sample(
         self,
@@ -199,29 +210,33 @@ class EpisodeWriter:
             or saturation is not -1, 0 or +1.
         """
         self._check_open()
-        state = tuple(float(v) for v in np.ravel(controller_state))
+        # The loop's controllers give a tuple or a list of floats (struct takes them as they are).
+        state = controller_state if type(controller_state) in (tuple, list) else np.ravel(controller_state).tolist()
         if len(state) != self._n_states:
             raise ValueError(f"controller_state must have {self._n_states} values, got {len(state)}")
         if saturation not in (-1, 0, 1):
             raise ValueError(f"saturation must be -1, 0 or +1, got {saturation!r}")
-        if not np.isfinite(t):
+        if not math.isfinite(t):
             raise ValueError(f"t must be finite, got {t!r}")
-        payload = self._struct.pack(
-            CDR_LE_HEADER,
-            t,
-            theta,
-            alpha,
-            target_theta,
-            target_alpha,
-            feedforward,
-            control_output,
-            plant_input,
-            lateness,
-            compute_time,
-            device_time,
-            *state,
-            int(saturation),
-        )
+        try:
+            payload = self._struct.pack(
+                CDR_LE_HEADER,
+                t,
+                theta,
+                alpha,
+                target_theta,
+                target_alpha,
+                feedforward,
+                control_output,
+                plant_input,
+                lateness,
+                compute_time,
+                device_time,
+                *state,
+                int(saturation),
+            )
+        except struct.error as exc:  # a value that is not a number
+            raise ValueError(f"a sample's values must be numbers: {exc}") from None
         self._add(payload, self._epoch_ns + round(t * 1e9))
 
     def write_samples(self, episode: Episode) -> None:
@@ -241,15 +256,25 @@ class EpisodeWriter:
         for i in range(self._n_states):
             block[state_field(i)] = episode.controller_state[:, i]
         block["saturation"] = episode.saturation
-        raw = block.tobytes()
-        size = self._dtype.itemsize
-        log_times = (self._epoch_ns + np.round(episode.t * 1e9).astype(np.int64)).tolist()
-        for k, log_time in enumerate(log_times):
-            self._add(raw[k * size : (k + 1) * size], log_time)
+        payloads = block.view(np.uint8).reshape(len(block), self._dtype.itemsize)
+        log_times = self._epoch_ns + np.round(episode.t * 1e9).astype(np.int64)
+        self._hand_over()
+        k = 0
+        while k < len(block):  # chunks closed where sample-by-sample writing closes them
+            take = len(block) - k
+            if self._flush_every is not None:
+                take = min(take, self._flush_every - self._since_flush)
+            self._mcap.add_messages(self._channel, self._n, log_times[k : k + take], payloads[k : k + take])
+            self._n += take
+            self._since_flush += take
+            k += take
+            if self._flush_every is not None and self._since_flush >= self._flush_every:
+                self.flush()
 
     def flush(self) -> None:
         """Close the chunk in progress and push everything written so far to the OS."""
         self._check_open()
+        self._hand_over()
         self._mcap.flush()
         self._since_flush = 0
         if self._fsync:
