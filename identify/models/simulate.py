@@ -107,13 +107,14 @@ def simulate_batch(
 def ring_capacity(lifting: Lifting, n_lifted: int, n_passthrough: int) -> int:
     """How many models of this shape the ring loop (the fastest) takes in one batch.
 
-    It keeps a permuted copy of each model's used rows of ``A`` per delay slot (one copy for a
-    loop of many rows, whose delayed features it shifts instead); a larger batch is stepped by
-    the slower history loop. Callers that batch models of their own choosing
-    (:func:`~qube_koopman.identify.uncertainty.predict_groups`) split by this.
+    It keeps a permuted copy of each model's used rows of ``A`` per delay slot; a larger batch
+    is stepped by the slower history loop. Callers that batch models of their own choosing
+    (:func:`~qube_koopman.identify.uncertainty.predict_groups`) split by this. A loop of many
+    rows keeps one copy (it shifts its delayed features instead) and would take more models,
+    but the batch's per-sample buffers grow with them (models x episodes x rows): its batches
+    stay this size.
     """
-    rows = n_passthrough + lifting.n_features_in_
-    per_model = (1 if rows >= _SHIFT_FROM_ROWS else lifting.n_delays_ + 1) * n_lifted * rows * 8
+    per_model = (lifting.n_delays_ + 1) * n_lifted * (n_passthrough + lifting.n_features_in_) * 8
     return max(1, _MAX_RING_BYTES // per_model)
 
 
