@@ -19,8 +19,10 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["BlockWriter", "CHUNK_SIZE", "message_records"]
+__all__ = ["BlockWriter", "CHUNK_SIZE", "COMPRESSIONS", "message_records"]
 
+#: The chunks' compressions.
+COMPRESSIONS = ("zstd", "lz4", "none")
 #: Uncompressed bytes after which a chunk is closed (mcap's ``Writer`` default).
 CHUNK_SIZE = 1024 * 1024
 _MAGIC = struct.pack("<8B", 137, 77, 67, 65, 80, 48, 13, 10)
@@ -120,8 +122,8 @@ class BlockWriter:
     def __init__(self, stream: IO[bytes], compression: str = "zstd") -> None:
         from mcap.records import Statistics
 
-        if compression not in ("zstd", "lz4", "none"):
-            raise ValueError(f"compression must be zstd, lz4 or none, got {compression!r}")
+        if compression not in COMPRESSIONS:
+            raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         self._stream = stream
         self._compression = compression
         self._schemas: list[Any] = []

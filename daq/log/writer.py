@@ -19,7 +19,7 @@ except ImportError:  # not a POSIX system: temporary files are not locked
     fcntl = None  # type: ignore[assignment]  # mypy: a module or, here, None
 
 from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
-from qube_koopman.daq.log.mcap_writer import BlockWriter
+from qube_koopman.daq.log.mcap_writer import COMPRESSIONS, BlockWriter
 from qube_koopman.daq.log.metadata import STATUS_RECORD, episode_records, status_record
 from qube_koopman.daq.log.schema import (
     CDR_LE_HEADER,
@@ -32,9 +32,8 @@ from qube_koopman.daq.log.schema import (
     state_field,
 )
 
-__all__ = ["EpisodeWriter", "write_episode", "remove_stale_temp_files", "COMPRESSIONS"]
+__all__ = ["EpisodeWriter", "write_episode", "remove_stale_temp_files"]
 
-COMPRESSIONS = ("zstd", "lz4", "none")
 #: Samples held before they go to the MCAP writer when no flush comes sooner (``flush_interval_s=None``).
 _BLOCK = 1024
 
