@@ -67,6 +67,9 @@ autodoc_default_options = {
     "member-order": "bysource",
 }
 autodoc_typehints = "none"  # the numpydoc Parameters sections give the types
+# The code annotates; it has no type comments, and looking for them re-read and re-parsed the
+# source of every documented function (a sixth of the build's time).
+autodoc_use_type_comments = False
 autodoc_class_signature = "mixed"
 
 # numpydoc: no per-class member tables (autodoc lists the members; the tables would need stub

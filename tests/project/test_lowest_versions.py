@@ -60,8 +60,27 @@ def _run(args: list, cwd: Path, timeout: float = 600) -> subprocess.CompletedPro
     return subprocess.run([str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
 
 
+def _unreachable(done: subprocess.CompletedProcess) -> bool:
+    return done.returncode != 0 and bool(re.search(r"(?i)connection|network is unreachable|temporary failure",
+                                                   done.stdout + done.stderr))
+
+
 @pytest.fixture(scope="module")
-def lowest_venv(tmp_path_factory) -> Path:
+def built_wheel(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """The wheel built from this checkout by pip (verbose, for the build's warnings), once for the
+    module: the venv below installs this file rather than building it a second time."""
+    tmp_path = tmp_path_factory.mktemp("wheel")
+    built = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--disable-pip-version-check", "-v",
+                  "-w", tmp_path, ROOT], tmp_path)
+    if _unreachable(built):
+        pytest.skip("PyPI not reachable (the build backend comes from it)")
+    assert built.returncode == 0, built.stderr[-3000:]
+    (wheel,) = tmp_path.glob("qube_koopman-*.whl")
+    return wheel, built
+
+
+@pytest.fixture(scope="module")
+def lowest_venv(tmp_path_factory, built_wheel) -> Path:
     """A fresh venv with the wheel built from this checkout, the lowest allowed versions, and
     PyPI's own `identify` (pre-commit's dependency, whose import name the project must not take)."""
     tmp_path = tmp_path_factory.mktemp("lowest")
@@ -72,9 +91,8 @@ def lowest_venv(tmp_path_factory) -> Path:
     # (pytest, hypothesis, pytest-xdist for the addopts): the test extra's documentation, notebook,
     # linter and cluster tools have no floor here, and installing them took most of this test's time.
     install = _run([python, "-m", "pip", "install", "--disable-pip-version-check", "--only-binary", ":all:",
-                    "-c", PINS, f"{ROOT}[viz]", *SMOKE_RUNNER, "identify"], tmp_path, timeout=900)
-    if install.returncode != 0 and re.search(r"(?i)connection|network is unreachable|temporary failure",
-                                             install.stdout + install.stderr):
+                    "-c", PINS, f"{built_wheel[0]}[viz]", *SMOKE_RUNNER, "identify"], tmp_path, timeout=900)
+    if _unreachable(install):
         pytest.skip(f"PyPI not reachable: {install.stderr.strip().splitlines()[-1]}")
     assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
     return env_dir
@@ -137,17 +155,11 @@ def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(lowest_venv, tm
 
 @pytest.mark.slow
 @pytest.mark.network
-def test_the_wheel_builds_without_deprecation_warnings_and_carries_the_licence(tmp_path):
-    built = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--disable-pip-version-check", "-v",
-                  "-w", tmp_path, ROOT], tmp_path)
-    if built.returncode != 0 and re.search(r"(?i)connection|network is unreachable|temporary failure",
-                                           built.stdout + built.stderr):
-        pytest.skip("PyPI not reachable (the build backend comes from it)")
-    assert built.returncode == 0, built.stderr[-3000:]
+def test_the_wheel_builds_without_deprecation_warnings_and_carries_the_licence(built_wheel):
+    wheel, built = built_wheel
     assert "deprecat" not in (built.stdout + built.stderr).lower()
     import zipfile
 
-    (wheel,) = tmp_path.glob("qube_koopman-*.whl")
     with zipfile.ZipFile(wheel) as archive:
         metadata = archive.read(next(n for n in archive.namelist() if n.endswith(".dist-info/METADATA"))).decode()
         licence = [n for n in archive.namelist() if n.endswith("licenses/LICENSE")]
