@@ -19,6 +19,7 @@ _HOMES = {
     "Trajectory": "data.trajectory",
     "LoggedTrajectory": "data.logs",
     "load_logs": "data.logs",
+    "session_delays": "data.sessions",
     # liftings
     "Lifting": "lifting",
     "LiftingFunction": "lifting",
@@ -75,6 +76,7 @@ _HOMES = {
     "plant_input_map": "estimators.structure",
     "controller_states": "estimators.structure",
     "plant_input": "estimators.structure",
+    "with_command_delay": "estimators.structure",
     # scores
     "r2_score": "metrics",
     "nrmse": "metrics",

@@ -343,6 +343,16 @@ def _parser() -> argparse.ArgumentParser:
         "milliseconds later than in the training logs (a host with more latency; the feedforward "
         "held as late): a what-if of the loop's timing, alone or with --controller (default 0)",
     )
+    pred.add_argument(
+        "--session-delays",
+        type=path,
+        default=None,
+        metavar="PLANT.toml",
+        help="a plant file of qube-calibrate --setups cables-and-delay (a command delay per recording "
+        "session): every training and test log's loop is its session's, its command reaching the motor "
+        "its session's delay after the controller computed it, counted above the least delay among "
+        "the logs' sessions; a plant fitted to logs of several sessions then sees each loop as it ran",
+    )
     _add_search_options(p)
     out = p.add_argument_group("output")
     out.add_argument(
@@ -434,6 +444,25 @@ def _check_args(args) -> None:
         raise CliError(f"--command-delay must be 0 or more milliseconds, got {args.command_delay:g}")
     if args.command_delay and (args.score != "cl" or args.method in ("arx", "cl-arx")):
         raise CliError("--command-delay changes the predicted loop: it needs --score cl and a Koopman method")
+    if args.session_delays and args.method in ("arx", "cl-arx"):
+        raise CliError("--session-delays changes the logs' loops: it needs a Koopman method")
+    if args.session_delays and (args.search or args.alpha_sweep):
+        # Cross-validation holds out a controller's episodes together, and a fold's predictions
+        # (with their offsets, screens and kept models) are of one loop; its sessions' are several.
+        raise CliError(
+            f"--session-delays fits one lifting at one --alpha: {'--search' if args.search else '--alpha-sweep'} "
+            "cross-validates on folds of one loop each, and a controller's sessions are several loops"
+        )
+    if args.session_delays and args.controller:
+        raise CliError(
+            "--session-delays predicts each test log under its own session's loop; a --controller what-if "
+            "would score only logs of its controller in the least delayed session: give the what-if's "
+            "latency with --command-delay instead"
+        )
+    if args.session_delays and args.scheduler:
+        raise CliError(
+            "--session-delays needs the logs' loops built here: the cluster's workers read the logs as recorded"
+        )
     if args.protocol == "paper" and args.offsets:
         raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
     if args.protocol is None:
@@ -570,9 +599,30 @@ def _load(args):
     if not train or not test:
         raise CliError("no complete training or test logs left")
     check_same_rate(train + test, "training and test")
+    sessions = None
+    if args.session_delays:
+        train, test, sessions = _session_delayed(args.session_delays, train, test)
     # Logs of several controllers share one plant fit; the model's closed loop is the majority's.
     controller = majority_controller([log.controller for log in train])
-    return train, test, controller
+    return train, test, controller, sessions
+
+
+def _session_delayed(plant, train, test):
+    """The logs' loops with their sessions' command delays (--session-delays), and what report.json says of them."""
+    from qube_koopman.identify.data.sessions import session_delays
+    from qube_koopman.identify.estimators.structure import with_command_delay
+
+    logs = train + test
+    delays = session_delays([log.path for log in logs], plant)
+    reference = float(delays.min())
+    dt = logs[0].dt
+    delayed = [with_command_delay(log, (d - reference) / dt) for log, d in zip(logs, delays)]
+    report = {
+        "plant": str(plant),
+        "reference_ms": reference * 1e3,
+        "extra_ms": {log.path.name: float(d - reference) * 1e3 for log, d in zip(logs, delays)},
+    }
+    return delayed[: len(train)], delayed[len(train) :], report
 
 
 def _cluster_statistics(args, train, cleanup: contextlib.ExitStack):
@@ -601,7 +651,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
 
     try:
         check_figure_options(args)  # matplotlib there, before the logs load
-        train, test, controller = _load(args)
+        train, test, controller, sessions = _load(args)
         check_figure_options(args, [log.path.name for log in test])
         _check_cross_validation(args, train)
         _check_interval_data(args, train)
@@ -672,6 +722,8 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if sessions is not None:
+        result.report["session_delays"] = sessions
     if statistics is not None:  # where the training statistics were computed
         result.report["cluster"] = cluster_report(args)
     if search is not None:
@@ -688,7 +740,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         from qube_koopman.identify.report.rerun import write_recording
 
         write_recording(args.rerun, result)
-    _print_controllers(result.report["training_controllers"])
+    _print_controllers(result.report["training_controllers"], sessions is not None)
     _print_scores(args, result.report)
     _print_intervals(result.report.get("intervals"))
     written = (
@@ -718,9 +770,21 @@ def _what_if_controller(path: str, dt: float):
     return system
 
 
-def _print_controllers(training: dict) -> None:
-    """With training logs of several controllers: how many episodes each, and whose loop the model is."""
+def _print_controllers(training: dict, sessions: bool = False) -> None:
+    """With training logs of several controllers: how many episodes each, and whose loop the model is
+    (``sessions``: the loops of --session-delays, a controller with a session's command delay each)."""
     if training["n_controllers"] < 2:
+        return
+    if sessions:
+        each = ", ".join(
+            f"loop {c['controller']}: {c['n_episodes']}"
+            + (" (the model's closed loop)" if c["model_closed_loop"] else "")
+            for c in training["controllers"]
+        )
+        print(
+            f"training episodes in {training['n_controllers']} loops, a controller with its session's command "
+            f"delay each ({each}); one plant fitted to all"
+        )
         return
     each = ", ".join(
         f"controller {c['controller']}: {c['n_episodes']}"

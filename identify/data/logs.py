@@ -10,7 +10,7 @@ import logging
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -54,15 +54,20 @@ class LoggedTrajectory:
     trajectory : Trajectory
         Its signals, after the samples skipped.
     controller : DiscreteStateSpace
-        The controller the log records, as the rig ran it.
+        The controller the log records, as the rig ran it (or the loop's as it ran, when
+        ``recorded_controller`` is given).
     gains : dict, optional
         The gains that controller was built from (a PD's), if the log records them.
+    recorded_controller : DiscreteStateSpace, optional
+        The controller the log records, when ``controller`` is the loop's instead (a session's
+        command delay after it: :func:`~qube_koopman.identify.estimators.structure.with_command_delay`).
     """
 
     path: Path
     trajectory: Trajectory
     controller: DiscreteStateSpace
     gains: dict | None = None
+    recorded_controller: DiscreteStateSpace | None = None
 
     @property
     def dt(self) -> float:
@@ -95,13 +100,20 @@ class StoredLog:
     skip: int = 0
     #: Its trajectory's name, length and signal widths, as first read (checks read these, not the log).
     shape: EpisodeShape | None = None
+    #: Applied to the trajectory at every read: how the loop the log ran differs from what it
+    #: records (a session's command delay: :func:`~qube_koopman.identify.estimators.structure.with_command_delay`).
+    #: A module-level function or a ``functools.partial`` of one, so that the log still pickles.
+    adjust: Callable[[Trajectory], Trajectory] | None = None
+    #: The controller the log records, when :attr:`controller` is the loop's as it ran (as for
+    #: :class:`LoggedTrajectory`).
+    recorded_controller: DiscreteStateSpace | None = None
 
     @property
     def trajectory(self) -> Trajectory:
         """The episode's trajectory, read from the log now (``skip`` samples dropped)."""
         log, _ = _read(self.path, self.skip, strict=True, refusal="changed since it was first read")
         assert log is not None  # strict: _read raises instead
-        return log.trajectory
+        return log.trajectory if self.adjust is None else self.adjust(log.trajectory)
 
 
 class LogTrajectories(EpisodeSequence):

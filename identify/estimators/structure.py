@@ -19,11 +19,18 @@ above are the errors' columns, the last column of blocks is ``[B^c_f; B^p (I + D
 
 from __future__ import annotations
 
-from typing import Sequence
+from dataclasses import replace
+from functools import partial
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from qube_koopman.core.lti import DiscreteStateSpace, controller_inputs, replay_controller, with_output_delay
+from qube_koopman.core.qube import MEASURED
+
+if TYPE_CHECKING:
+    from qube_koopman.identify.data.logs import LoggedTrajectory, StoredLog
+    from qube_koopman.identify.data.trajectory import Trajectory
 
 __all__ = [
     "output_selection",
@@ -34,6 +41,7 @@ __all__ = [
     "feedforward_columns",
     "plant_input",
     "command_delayed",
+    "with_command_delay",
     "close_loop",
 ]
 
@@ -301,6 +309,56 @@ def command_delayed(
     past = [_later(output, j) for j in range(1, n_past + 1)]
     held = None if f is None else _later(np.asarray(f, dtype=float), samples)
     return delayed, np.hstack([np.asarray(xc, dtype=float), *past]), held
+
+
+def _delayed_trajectory(t: Trajectory, controller: DiscreteStateSpace, samples: float) -> Trajectory:
+    """A log's trajectory as :func:`with_command_delay`'s loop sees it (its plant input held as late)."""
+    if t.xc is None or t.r is None:
+        raise ValueError(f"{t.name}: a command delay needs the loop's references and controller states")
+    _, xc, f = command_delayed(controller, samples, t.xc, t.r, t.x[:, MEASURED], t.f)
+    return replace(t, xc=xc, f=f, u=_later(np.asarray(t.u, dtype=float), samples))
+
+
+def with_command_delay(log: LoggedTrajectory | StoredLog, samples: float) -> LoggedTrajectory | StoredLog:
+    """The loop a log ran, when its commands reached the motor ``samples`` periods later than logged.
+
+    A host's latency between computing a command and the motor receiving it differs between
+    recording sessions (a slower USB write); a plant identified from logs of several sessions
+    (or predicting another session's loop) sees each log's loop as it ran: its controller
+    followed by the delay (:func:`command_delayed`, whose extra states are the controller's
+    past outputs along the episode), the feedforward held as late, and the plant input the
+    command as it reached the motor. A log with no extra delay comes back as it is.
+
+    Parameters
+    ----------
+    log : LoggedTrajectory or StoredLog
+        As :func:`~qube_koopman.identify.data.logs.load_logs` returns it (a stored log's delay is
+        applied at every read).
+    samples : float
+        The extra delay in sample periods, 0 or more.
+
+    Returns
+    -------
+    LoggedTrajectory or StoredLog
+        The same kind of log, with the delayed controller and its trajectory.
+    """
+    from qube_koopman.identify.data.logs import StoredLog
+
+    samples = float(samples)
+    if not (np.isfinite(samples) and samples >= 0):
+        raise ValueError(f"{log.path}: the command delay must be 0 or more sample periods, got {samples}")
+    if samples == 0:
+        return log
+    delayed = with_output_delay(log.controller, samples)
+    adjust = partial(_delayed_trajectory, controller=log.controller, samples=samples)
+    if log.recorded_controller is not None:
+        raise ValueError(f"{log.path}: its loop is already delayed; delay it once, by the whole delay")
+    if isinstance(log, StoredLog):
+        shape = log.shape
+        if shape is not None:
+            shape = replace(shape, widths={**shape.widths, "xc": delayed.n_states})
+        return replace(log, controller=delayed, shape=shape, adjust=adjust, recorded_controller=log.controller)
+    return replace(log, controller=delayed, trajectory=adjust(log.trajectory), recorded_controller=log.controller)
 
 
 def close_loop(plant, controller: DiscreteStateSpace, measured: Sequence[int] | None = None, feedforward: bool = True):

@@ -234,6 +234,21 @@ def _folds_table(folds: list | None) -> list[str]:
     return lines
 
 
+def _session_delay_lines(sessions: dict | None) -> list[str]:
+    """With --session-delays: each distinct extra command delay and how many logs have it."""
+    if not sessions:
+        return []
+    counts: dict[float, int] = {}
+    for extra in sessions["extra_ms"].values():
+        counts[round(extra, 3)] = counts.get(round(extra, 3), 0) + 1
+    each = ", ".join(f"{extra:g} ms ({n} log{'s' if n > 1 else ''})" for extra, n in sorted(counts.items()))
+    return [
+        f"- each log's loop is its recording session's (`--session-delays {sessions['plant']}`): its command "
+        f"reached the motor this much later than in the session of least delay ({sessions['reference_ms']:.3g} ms): "
+        f"{each}; report.json lists the logs"
+    ]
+
+
 def _controllers_lines(training: dict | None) -> list[str]:
     """The training controllers: how many, episodes each, whose closed loop the model is."""
     if not training:
@@ -286,6 +301,7 @@ def markdown_report(report: dict) -> str:
             f"- command delay: {delay['seconds'] * 1e3:g} ms ({delay['samples']:g} samples): {delay['note']} "
             f"(`--command-delay {delay['seconds'] * 1e3:g}`)"
         )
+    lines += _session_delay_lines(report.get("session_delays"))
     lines += [""] + _test_section(report)
     lines += _intervals_section(report.get("intervals"))
     sweep = report.get("sweep")

@@ -12,13 +12,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from _twin_logs import collect_pd_logs
 
 from qube_koopman.core.controller import load_pd_gains, pd_controller
-from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.core.lti import DiscreteStateSpace
-from qube_koopman.daq.backends.sim import SimBackend
-from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
-from qube_koopman.daq.sinks import McapSink
 from qube_koopman.identify.cli.identify import main as qube_identify
 from qube_koopman.identify.estimators.structure import command_delayed, plant_input
 from qube_koopman.sim.pendulum import PendulumParameters
@@ -70,12 +67,7 @@ def test_a_controller_taking_the_feedforward_and_a_negative_delay_are_refused():
 
 
 def _collect(out, params, n, seed, duration=20.0):
-    info = ControllerInfo(pd_controller(RIG), "backward-euler", RIG.as_dict(), "pd")
-    seeds, backend_seed = run_seeds(seed, n)
-    out.mkdir(parents=True)
-    run_episodes(SimBackend(params, seed=backend_seed), plan_episodes(info, seeds, excitation_settings(duration),
-                                                                     source="test"), [McapSink(out)])
-    return out
+    return collect_pd_logs(out, RIG, n, seed, params, duration=duration)
 
 
 @pytest.mark.slow

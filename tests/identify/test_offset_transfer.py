@@ -19,13 +19,10 @@ import math
 
 import numpy as np
 import pytest
+from _twin_logs import collect_pd_logs
 
-from qube_koopman.daq.backends.sim import SimBackend
-from qube_koopman.core.controller import load_pd_gains, pd_controller
-from qube_koopman.core.controller_file import ControllerInfo
+from qube_koopman.core.controller import load_pd_gains
 from qube_koopman.daq.log import read_episode_metadata
-from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
-from qube_koopman.daq.sinks import McapSink
 from qube_koopman.identify.cli.identify import main as qube_identify
 from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
 
@@ -37,12 +34,7 @@ SOFT = load_pd_gains("soft-theta")  # the shipped second controller (core/soft_t
 
 
 def _collect(out, gains, n, seed, zero_offsets, params=PendulumParameters.previous()):
-    info = ControllerInfo(pd_controller(gains), "backward-euler", gains.as_dict(), "pd")
-    seeds, backend_seed = run_seeds(seed, n)
-    out.mkdir(parents=True)
-    run_episodes(SimBackend(params, seed=backend_seed, zero_offsets=zero_offsets),
-                 plan_episodes(info, seeds, excitation_settings(20.0), source="test"), [McapSink(out)])
-    return out
+    return collect_pd_logs(out, gains, n, seed, params, zero_offsets=zero_offsets)
 
 
 @pytest.fixture(scope="module")

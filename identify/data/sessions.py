@@ -1,0 +1,50 @@
+"""Each log's recording session, and the command delay a plant file calibrated per session gives it.
+
+``qube-calibrate --setups cables-and-delay`` fits the host's command delay once per recording
+session (logs started less than 10 minutes apart). :func:`session_delays` reads such a plant
+file and gives each log the delay of the session it was recorded in (logs reach a session as
+the twin's replay finds them: :meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.params_for_logs`),
+so that a plant identified from several sessions' logs sees each loop as it ran
+(:func:`~qube_koopman.identify.estimators.structure.with_command_delay`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["session_delays"]
+
+
+def session_delays(logs: Sequence[str | Path], plant: str | Path) -> np.ndarray:
+    """Each log's command delay (seconds) in a plant file with a delay per recording session.
+
+    Parameters
+    ----------
+    logs : sequence of str or Path
+        Episode logs (their start times place them in sessions).
+    plant : str or Path
+        A plant file written by ``qube-calibrate --setups cables-and-delay``. A log of no session
+        the file knows gets the file's shared delay.
+
+    Returns
+    -------
+    ndarray of shape (len(logs),)
+
+    Raises
+    ------
+    ValueError
+        Naming the file: not a plant file, or one without a delay per session.
+    """
+    from qube_koopman.daq.log import read_episode_metadata  # lazily: mcap
+    from qube_koopman.sim.pendulum.params_file import load_plant
+
+    plant_file = load_plant(plant)
+    if not any("delay" in values for values in plant_file.setups.values()):
+        raise ValueError(
+            f"{plant}: no command delay per recording session (write one with qube-calibrate --setups cables-and-delay)"
+        )
+    starts = [read_episode_metadata(Path(log)).start_time for log in logs]
+    return np.array([params.delay for params in plant_file.params_for_logs(starts)])
