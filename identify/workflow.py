@@ -13,7 +13,7 @@ import numpy as np
 from qube_koopman.core.blas import limited_blas_threads
 from qube_koopman.identify.estimators.arx import Arx, ClArx
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
-from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories
+from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories, recorded_controllers
 from qube_koopman.core.lti import same_system, with_output_delay
 from qube_koopman.identify.estimators.mixed import training_controllers_report
 from qube_koopman.identify.model_selection.split import FOLD_KINDS, cross_validation_folds
@@ -407,7 +407,11 @@ def _koopman(
     # EDMD fits the plant from its logged input, whatever the controller; the others from each episode's own.
     fit = lambda est: _fit(est, trajs, None if cls is Edmd else controllers, elsewhere)  # noqa: E731
     if alphas is not None:
-        folds = cross_validation_folds(controllers, cv_splits, cv_seed)
+        # Folds hold out a recorded controller's episodes together, one loop per fold (with_command_delay).
+        recorded = recorded_controllers(train)
+        folds = cross_validation_folds(
+            recorded or controllers, cv_splits, cv_seed, None if recorded is None else controllers
+        )
         report = (lambda done, total: progress("cross-validation", done, total)) if progress else None
         sweep = regularization_sweep(
             make(0.0),
@@ -922,7 +926,11 @@ def run_search(
             "leave nothing to score in the shortest training episode"
         )
     controllers = [log.controller for log in train]
-    folds = cross_validation_folds(controllers, options.cv_splits, options.cv_seed)
+    # Folds hold out a recorded controller's episodes together, one loop per fold (its sessions' loops,
+    # each with its own command delay, are several: with_command_delay); each episode runs its own loop.
+    recorded = recorded_controllers(train)
+    loops = None if recorded is None else controllers
+    folds = cross_validation_folds(recorded or controllers, options.cv_splits, options.cv_seed, loops)
     probes, probe_seconds = None, 0.0
     if options.transfer == "twin":
         started = time.perf_counter()
@@ -942,7 +950,7 @@ def run_search(
         rbf_seed=options.rbf_seed,
         probes=probes,
         progress=progress,
-        controllers=controllers if several else None,
+        controllers=controllers if several or loops is not None else None,
     )
     result.folds = folds
     result.probe_seconds = probe_seconds
@@ -951,7 +959,8 @@ def run_search(
             result.winner,
             trajs,
             controller,
-            controllers,
+            recorded or controllers,
+            loops=loops,
             window=window,
             n_splits=options.cv_splits,
             seed=options.cv_seed,

@@ -446,13 +446,6 @@ def _check_args(args) -> None:
         raise CliError("--command-delay changes the predicted loop: it needs --score cl and a Koopman method")
     if args.session_delays and args.method in ("arx", "cl-arx"):
         raise CliError("--session-delays changes the logs' loops: it needs a Koopman method")
-    if args.session_delays and (args.search or args.alpha_sweep):
-        # Cross-validation holds out a controller's episodes together, and a fold's predictions
-        # (with their offsets, screens and kept models) are of one loop; its sessions' are several.
-        raise CliError(
-            f"--session-delays fits one lifting at one --alpha: {'--search' if args.search else '--alpha-sweep'} "
-            "cross-validates on folds of one loop each, and a controller's sessions are several loops"
-        )
     if args.session_delays and args.controller:
         raise CliError(
             "--session-delays predicts each test log under its own session's loop; a --controller what-if "

@@ -25,6 +25,7 @@ __all__ = [
     "load_logs",
     "check_same_controller",
     "check_same_rate",
+    "recorded_controllers",
     "IncompleteLogSkipped",
     "UnreadableLogSkipped",
     "find_logs",
@@ -228,6 +229,14 @@ def load_logs(
         _log.debug("%s: %d samples at %g Hz", path, n, 1.0 / log.dt)
     _log.info("read %d of %d episode logs", len(out), len(paths))
     return out
+
+
+def recorded_controllers(logs: Sequence[LoggedTrajectory | StoredLog]) -> list[DiscreteStateSpace] | None:
+    """The controller each log records, when some log's loop is not its controller alone (its
+    :attr:`~LoggedTrajectory.recorded_controller` is given); None when every log's is."""
+    if all(log.recorded_controller is None for log in logs):
+        return None
+    return [log.controller if log.recorded_controller is None else log.recorded_controller for log in logs]
 
 
 def check_same_rate(logs: Sequence[LoggedTrajectory | StoredLog], what: str) -> float:

@@ -991,6 +991,7 @@ def same_controller_scores(
     seed: int = 1234,
     bound: float = DEFAULT_BOUND,
     rbf_seed: int = 0,
+    loops: Sequence[DiscreteStateSpace] | None = None,
 ) -> list[tuple[int, float]]:
     """A candidate's same-controller score when the training episodes ran several controllers.
 
@@ -1000,16 +1001,22 @@ def same_controller_scores(
     (:func:`~qube_koopman.identify.model_selection.split.within_controller_splits`), as the
     loop a model was trained under is predicted.
 
+    ``loops``: each episode's loop when it is not its controller alone (a session's command delay
+    after it); a fold whose validation episodes ran several loops is scored as one fold per loop.
+
     Returns
     -------
     list of (controller label, fold R^2)
         Labels index :func:`~qube_koopman.identify.estimators.mixed.distinct_controllers`' list.
     """
     from qube_koopman.identify.estimators.mixed import distinct_controllers
-    from qube_koopman.identify.model_selection.split import within_controller_splits
+    from qube_koopman.identify.model_selection.split import split_by_loop, within_controller_splits
 
     _, labels = distinct_controllers(controllers)
     folds = within_controller_splits(labels, n_splits, seed)
+    if loops is not None:
+        loop_labels = distinct_controllers(loops)[1]
+        folds = [(tr, va, label) for tr0, va0, label in folds for tr, va in split_by_loop([(tr0, va0)], loop_labels)]
     data = SearchData(
         as_episodes(trajectories),
         [(tr, va) for tr, va, _ in folds],
@@ -1019,7 +1026,7 @@ def same_controller_scores(
         bound,
         rbf_seed,
         None,
-        controllers=list(controllers),
+        controllers=list(controllers if loops is None else loops),
     )
     cv = evaluate_candidate(result.spec, data).cv_r2[:, 0]
     return [(label, float(score)) for (_, _, label), score in zip(folds, cv)]

@@ -24,6 +24,7 @@ __all__ = [
     "leave_one_controller_out",
     "within_controller_splits",
     "cross_validation_folds",
+    "split_by_loop",
     "CrossValidationFolds",
     "FOLD_KINDS",
 ]
@@ -146,7 +147,10 @@ class CrossValidationFolds:
 
 
 def cross_validation_folds(
-    controllers: Sequence[DiscreteStateSpace], n_splits: int = 3, seed: int = 1234
+    controllers: Sequence[DiscreteStateSpace],
+    n_splits: int = 3,
+    seed: int = 1234,
+    loops: Sequence[DiscreteStateSpace] | None = None,
 ) -> CrossValidationFolds:
     """Leave one controller out when the episodes ran two or more controllers; else
     :func:`group_shuffle_splits` (``n_splits``, ``seed``).
@@ -155,9 +159,46 @@ def cross_validation_folds(
     the controllers' order): a search screens its candidates on the first fold, which is then the
     cheapest to predict, and with a new controller's few episodes beside many of the rig's, the one
     that asks the question the user has, the new loop predicted by a plant fitted to the others.
+
+    ``loops``: each episode's loop, when it is not its controller alone (a recording session's
+    command delay after it: :func:`~qube_koopman.identify.estimators.structure.with_command_delay`).
+    The folds are drawn from ``controllers`` as above; a fold whose validation episodes ran several
+    loops becomes one fold per loop (:func:`split_by_loop`), since a fold predicts one loop.
     """
     distinct, labels = distinct_controllers(controllers)
     if len(distinct) >= 2:
         splits = sorted(leave_one_controller_out(labels), key=lambda split: len(split[1]))  # stable: ties keep order
-        return CrossValidationFolds("leave-one-controller-out", splits, [int(labels[v[0]]) for _, v in splits])
-    return CrossValidationFolds("episode-grouped", group_shuffle_splits(len(labels), n_splits, 0.2, seed))
+        folds = CrossValidationFolds("leave-one-controller-out", splits, [int(labels[v[0]]) for _, v in splits])
+    else:
+        folds = CrossValidationFolds("episode-grouped", group_shuffle_splits(len(labels), n_splits, 0.2, seed))
+    if loops is None:
+        return folds
+    loop_labels = distinct_controllers(loops)[1]
+    parts = [split_by_loop([split], loop_labels) for split in folds.splits]
+    held_out = None if folds.held_out is None else [c for c, p in zip(folds.held_out, parts) for _ in p]
+    return CrossValidationFolds(folds.kind, [s for p in parts for s in p], held_out)
+
+
+def split_by_loop(
+    splits: Sequence[tuple[np.ndarray, np.ndarray]], loop_labels: Sequence[int] | np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each split whose validation episodes ran several loops as one split per loop, the training the same.
+
+    Parameters
+    ----------
+    splits : sequence of (train_indices, validation_indices)
+    loop_labels : sequence of int
+        Each episode's loop (for example from :func:`distinct_controllers` of the loops).
+
+    Returns
+    -------
+    list of (train_indices, validation_indices)
+        In the splits' order; a split's loops in the order of their labels.
+    """
+    ids = np.asarray(loop_labels)
+    out = []
+    for train, validation in splits:
+        validation = np.asarray(validation)
+        for loop in np.unique(ids[validation]):
+            out.append((np.asarray(train), validation[ids[validation] == loop]))
+    return out

@@ -49,3 +49,33 @@ def test_leave_one_controller_out_folds_hold_out_the_fewest_episodes_first():
     assert folds.held_out == [1, 0]  # the soft controller's fold first
     tied = cross_validation_folds([soft, rig, soft, rig])
     assert tied.held_out == [0, 1] and [v.tolist() for _, v in tied.splits] == [[0, 2], [1, 3]]
+
+
+def test_a_fold_of_several_loops_becomes_a_fold_per_loop_with_the_same_training_episodes():
+    """A controller's sessions with different command delays are several loops: folds are drawn by
+    controller, then each fold's validation episodes split by loop (a fold predicts one loop)."""
+    from qube_koopman.core.controller import load_pd_gains, pd_controller
+    from qube_koopman.core.lti import with_output_delay
+    from qube_koopman.identify.model_selection.split import cross_validation_folds, split_by_loop
+
+    rig, soft = pd_controller(load_pd_gains("rig")), pd_controller(load_pd_gains("soft-theta"))
+    late = with_output_delay(soft, 1.7)
+    recorded = [rig] * 4 + [soft] * 4
+    loops = [rig] * 4 + [soft, late, soft, late]
+    folds = cross_validation_folds(recorded, loops=loops)
+    assert folds.kind == "leave-one-controller-out"
+    assert [v.tolist() for _, v in folds.splits] == [[0, 1, 2, 3], [4, 6], [5, 7]]
+    assert [t.tolist() for t, _ in folds.splits] == [[4, 5, 6, 7], [0, 1, 2, 3], [0, 1, 2, 3]]
+    assert folds.held_out == [0, 1, 1]
+    # Loops equal to the controllers change nothing; one controller's random splits split too.
+    plain = cross_validation_folds(recorded)
+    same = cross_validation_folds(recorded, loops=recorded)
+    assert [(t.tolist(), v.tolist()) for t, v in same.splits] == [(t.tolist(), v.tolist()) for t, v in plain.splits]
+    one = cross_validation_folds([soft] * 10, n_splits=2, seed=3, loops=[soft, late] * 5)
+    drawn = cross_validation_folds([soft] * 10, n_splits=2, seed=3)
+    assert one.kind == "episode-grouped" and len(one.splits) >= len(drawn.splits)
+    assert [sorted(np.concatenate([v for t, v in one.splits if t.tolist() == t0.tolist()]).tolist())
+            for t0, _ in drawn.splits] == [sorted(v.tolist()) for _, v in drawn.splits]
+    assert all(len({j % 2 for j in v}) == 1 for _, v in one.splits)  # each fold of one loop
+    parts = split_by_loop([(np.array([0]), np.array([3, 1, 2]))], [0, 1, 0, 1])
+    assert [(t.tolist(), v.tolist()) for t, v in parts] == [([0], [2]), ([0], [3, 1])]
