@@ -193,6 +193,7 @@ def search_report(result, args, names) -> dict:
             "flags": " ".join(
                 result.winner.spec.flags(args.rbf_seed)
                 + ["--alpha", f"{result.winner.best_alpha:g}", "--estimate-window", f"{args.estimate_window:g}"]
+                + (["--session-delays", str(args.session_delays)] if args.session_delays else [])
             ),
         },
         "candidates": [r.as_dict() for r in result.ranked()],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from pathlib import Path
 
 from qube_koopman.core.files import atomic_path
@@ -238,9 +239,7 @@ def _session_delay_lines(sessions: dict | None) -> list[str]:
     """With --session-delays: each distinct extra command delay and how many logs have it."""
     if not sessions:
         return []
-    counts: dict[float, int] = {}
-    for extra in sessions["extra_ms"].values():
-        counts[round(extra, 3)] = counts.get(round(extra, 3), 0) + 1
+    counts = Counter(round(extra, 3) for extra in sessions["extra_ms"].values())
     each = ", ".join(f"{extra:g} ms ({n} log{'s' if n > 1 else ''})" for extra, n in sorted(counts.items()))
     return [
         f"- each log's loop is its recording session's (`--session-delays {sessions['plant']}`): its command "
