@@ -768,23 +768,17 @@ def _print_controllers(training: dict, sessions: bool = False) -> None:
     (``sessions``: the loops of --session-delays, a controller with a session's command delay each)."""
     if training["n_controllers"] < 2:
         return
-    if sessions:
-        each = ", ".join(
-            f"loop {c['controller']}: {c['n_episodes']}"
-            + (" (the model's closed loop)" if c["model_closed_loop"] else "")
-            for c in training["controllers"]
-        )
-        print(
-            f"training episodes in {training['n_controllers']} loops, a controller with its session's command "
-            f"delay each ({each}); one plant fitted to all"
-        )
-        return
+    word = "loop" if sessions else "controller"
     each = ", ".join(
-        f"controller {c['controller']}: {c['n_episodes']}"
+        f"{word} {c['controller']}: {c['n_episodes']}"
         + (" (the model's closed loop)" if c["model_closed_loop"] else "")
         for c in training["controllers"]
     )
-    print(f"training episodes under {training['n_controllers']} controllers ({each}); one plant fitted to all")
+    n = training["n_controllers"]
+    under = (
+        f"in {n} loops, a controller with its session's command delay each" if sessions else f"under {n} controllers"
+    )
+    print(f"training episodes {under} ({each}); one plant fitted to all")
 
 
 def _print_scores(args, report: dict) -> None:
