@@ -15,6 +15,10 @@ Measured (2 shared cores of an AMD EPYC, one run each, the same day): the 28 tra
 37.3 s with the sensitivities against 56.7 s by differences (1.5x), the same 40 evaluations, the
 parameters within 0.0003 standard errors of each other; both build ``J^T J`` from the Jacobian's
 arrow shape, and before that (differences, and scipy's general sparse product) the fit took 74.9 s.
+Since the solver reuses a Jacobian for a step its linear model predicted well (a chord step,
+``identify/calibrate/solver.py``): 17.1 s (23 evaluations, 11 Jacobians) against 42.0 s (40
+evaluations, 27 Jacobians) for the same solver without chord steps in the same hour, the cost
+equal to nine digits; by differences 27.6 s (1.6x), within 0.00023 standard errors.
 
 Usage::
 
@@ -76,11 +80,12 @@ def main() -> None:
     reference_per_iteration = reference / max(1, ref.nfev)
 
     print(f"| measure | value | target |\n|---|---|---|")
-    print(f"| calibration, {len(episodes)} episodes | {ours:.1f} s ({cal.nfev_} evaluations) | <= 120 s |")
+    print(f"| calibration, {len(episodes)} episodes | {ours:.1f} s ({cal.nfev_} evaluations, {cal.njev_} Jacobians) "
+          "| <= 120 s |")
     print(f"| residual RMS theta, alpha | {1e3 * cal.residual_rms_[:, 0].mean():.2f}, "
           f"{1e3 * cal.residual_rms_[:, 1].mean():.2f} mrad | |")
     print(f"| the same fit, Jacobian by forward differences | {by_differences:.1f} s "
-          f"({differences.nfev_} evaluations) | |")
+          f"({differences.nfev_} evaluations, {differences.njev_} Jacobians) | |")
     print(f"| ratio differences / sensitivities | {by_differences / ours:.1f} | |")
     print(f"| largest parameter difference between the two | {apart:.2g} standard errors | |")
     print(f"| time per trial step (with its Jacobian): ours | {ours_per_iteration:.2f} s | |")

@@ -96,7 +96,10 @@ class PlantCalibration:
         RMS prediction error (rad) of theta and alpha over each episode's segments.
     warnings_ : list of str
         Parameters at a bound or poorly identified.
-    cost_, nfev_ : float, int
+    cost_, nfev_, njev_ : float, int, int
+        The final cost (half the weighted sum of squares), the residual evaluations and the Jacobians
+        computed (the solver reuses a Jacobian for a step its linear model predicted well:
+        :mod:`~qube_koopman.identify.calibrate.solver`).
     """
 
     def __init__(
@@ -224,7 +227,7 @@ class PlantCalibration:
         n_phys = ms.N_PHYSICAL + n_x
         phys, offsets, _ = ms.unpack(z, n_ep, seg.n, n_x)
         self.params_ = ms.to_params(phys, self.nominal_)
-        self.cost_, self.nfev_ = float(result.cost), int(result.nfev)
+        self.cost_, self.nfev_, self.njev_ = float(result.cost), int(result.nfev), int(result.njev)
         n_res, n_var = result.jac.shape
         s2 = 2 * result.cost / max(1, n_res - n_var)
         cov = _marginal_covariance(ms.normal_matrix(result.jac, seg, n_ep), n_phys + n_ep) * s2
@@ -308,6 +311,7 @@ class PlantCalibration:
             "setup_values": {k: dict(v) for k, v in self.setup_values_.items()},
             "cost": self.cost_,
             "nfev": self.nfev_,
+            "njev": self.njev_,
         }
 
 

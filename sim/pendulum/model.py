@@ -113,22 +113,22 @@ class PendulumParameters:
 
     # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/sim/test_plant_file.py).
     Rm: float = 8.4
-    km: float = 0.04505359568232016
+    km: float = 0.04505335427627018
     mr: float = 0.095
     Lr: float = 0.085
     mp: float = 0.024
-    Lp: float = 0.12223205698242418
+    Lp: float = 0.12223216720629967
     g: float = 9.81
-    Dr: float = 8.867554899102735e-05
+    Dr: float = 8.872190654623753e-05
     Dp: float = 0.0
-    Cr: float = 0.0003627336054856109
+    Cr: float = 0.0003627548810353709
     coulomb_speed: float = 0.05
-    dead_zone: float = 0.05707664365795987
-    Jh: float = 7.144631339550861e-05
-    delay: float = 0.0019205957951428947
-    Kr: float = 0.0017220506155276078
+    dead_zone: float = 0.05707221350721789
+    Jh: float = 7.144547692374224e-05
+    delay: float = 0.0019214211423907773
+    Kr: float = 0.0017220261358053956
     theta_rest: float = 0.0
-    cable_softening: float = 5.222446194296446
+    cable_softening: float = 5.221923496189218
 
     def __post_init__(self) -> None:
         for f in fields(self):

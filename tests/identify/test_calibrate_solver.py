@@ -74,3 +74,24 @@ def test_a_variable_leaves_its_bound_when_the_gradient_pulls_it_in():
     x0 = np.array([10.0, -10.0, 0.0, 0.0, 0.0])  # two variables at bounds, both pulled inwards
     result = levenberg_marquardt(lambda x: A @ x - b, lambda x, r: csr_matrix(A), x0, lower, upper, ftol=1e-14)
     np.testing.assert_allclose(result.x, np.linalg.lstsq(A, b, rcond=None)[0], atol=1e-7)
+
+
+def test_chord_steps_reuse_well_predicted_jacobians_and_reach_the_known_minimum():
+    # Rosenbrock's curved valley as least squares (minimum (1, 1), cost 0): the steps the linear model
+    # predicts well let the next step reuse their Jacobian, so fewer Jacobians than steps are computed
+    # (the returned one at the minimum included), and the fit still ends on the analytic minimum.
+    calls = []
+
+    def fun(x):
+        return np.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+
+    def jac(x, r):
+        calls.append(x.copy())
+        return csr_matrix(np.array([[-20.0 * x[0], 10.0], [-1.0, 0.0]]))
+
+    bounds = np.full(2, -5.0), np.full(2, 5.0)
+    result = levenberg_marquardt(fun, jac, np.array([-1.2, 1.0]), *bounds, max_iter=200, ftol=1e-15)
+    np.testing.assert_allclose(result.x, [1.0, 1.0], atol=1e-6)
+    assert result.converged and result.cost < 1e-12
+    assert result.njev == len(calls) < result.nit + 1, (result.njev, result.nit)
+    np.testing.assert_array_equal(calls[-1], result.x)  # the Jacobian returned is the minimum's
