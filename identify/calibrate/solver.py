@@ -18,11 +18,11 @@ decides (if it cannot lower the cost either, the chord step's point is the minim
 Where a fit crawls along a valley, this is what it saves (the torque constant against the hub's
 inertia, correlated +0.99, on the rig's logs): on the paper's 28 training episodes the same
 minimum (the cost equal to nine digits) with 11 Jacobians in 17 steps instead of 27 in 26 (the
-last Jacobian at the minimum counted; 16 against 45 s in the solver); on the 38 logs of both controllers with each session's delay and
-each day's cables, a cost lower by 4e-7 with 17 Jacobians in 21 steps instead of 27 in 26 (49
-against 78 s). A fit that converges in a few steps takes as many Jacobians as before (the 38
-logs with each day's cables: 12 either way, in 18 steps instead of 11, with 4 more residual
-evaluations), and lands on a lower cost (by 4e-8).
+last Jacobian at the minimum counted; 16 against 45 s in the solver); on the 38 logs of both
+controllers with each session's delay and each day's cables, a cost lower by 4e-7 with 17
+Jacobians in 21 steps instead of 27 in 26 (49 against 78 s). A fit that converges in a few steps
+takes as many Jacobians as before (the 38 logs with each day's cables: 12 either way, in 18 steps
+instead of 11, with 4 more residual evaluations), and lands on a lower cost (by 4e-8).
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ def levenberg_marquardt(
             if lowered or chord:  # a chord step that fails is dropped for a fresh Jacobian, the damping kept
                 break
             if confirming:  # the fresh step cannot lower the cost either: the chord step's point is the minimum
-                return LmResult(x, r, jac(x, r), cost, nfev, it, True, njev + 1)
+                return LmResult(x, r, J, cost, nfev, it, True, njev)  # (J is this point's)
             lam *= 5.0
             if lam > 1e12:
                 return LmResult(x, r, J, cost, nfev, it, True, njev)
