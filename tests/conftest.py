@@ -29,8 +29,16 @@ DATASET_SOURCE = ("the paper's QUBE-Servo dataset (public repository decargroup/
 
 @pytest.fixture(autouse=True, scope="session")
 def _own_cache_folder(tmp_path_factory):
-    """The search's twin probe sets cached in the session's temporary folder, not the user's."""
-    os.environ["QUBE_KOOPMAN_PROBE_CACHE"] = str(tmp_path_factory.mktemp("qube-koopman-probes"))
+    """The search's twin probe sets cached in the session's temporary folder, not the user's.
+
+    One folder for all of pytest-xdist's workers (their own temporary folders share a parent): a
+    probe set one worker simulated (several seconds each) is read back by the others, as
+    concurrent commands share the user's cache (written whole and renamed: no partial file).
+    """
+    base = tmp_path_factory.getbasetemp()
+    folder = base.parent / "qube-koopman-probes" if os.environ.get("PYTEST_XDIST_WORKER") else base / "probes"
+    folder.mkdir(exist_ok=True)
+    os.environ["QUBE_KOOPMAN_PROBE_CACHE"] = str(folder)
     yield
 
 

@@ -7,8 +7,11 @@ zstandard load with the first log read).
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import warnings
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -87,9 +90,10 @@ class LoggedTrajectory:
 class StoredLog:
     """One episode log kept on disk: its small metadata in memory, its trajectory read when asked for.
 
-    :attr:`trajectory` reads the log again at every access (about 10 ms for 20 s at 500 Hz) and
-    keeps nothing: a fit over many episodes holds one at a time (0.6 MB each), so memory does not
-    grow with the number of episodes.
+    :attr:`trajectory` reads the log again at every access (about 10 ms for 20 s at 500 Hz), unless
+    the process's small cache of decoded logs still holds it (:data:`LOG_CACHE_BYTES`): a fit over
+    many episodes holds one at a time beside that cache (0.6 MB each), so memory does not grow with
+    the number of episodes.
     Otherwise it stands for a :class:`LoggedTrajectory`.
     """
 
@@ -137,12 +141,87 @@ class LogTrajectories(EpisodeSequence):
         return None if any(shape is None for shape in shapes) else shapes  # type: ignore[return-value]
 
 
-def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTrajectory | None, int]:
-    """One log as a :class:`LoggedTrajectory` and its samples (None when skipped, with a warning)."""
-    from qube_koopman.daq.log import read_episode  # lazily: mcap and zstandard
+#: Bytes of decoded logs a process keeps for their next read (``$QUBE_KOOPMAN_LOG_CACHE_MB``
+#: megabytes when set; 0 turns the cache off). A fit reads each training log several times (the
+#: lifting's fit, the statistics, the intervals' refits) and a search once per stage: decoding
+#: is most of a read's 10-30 ms, and the paper's 48 logs take 29 MB decoded. The budget is a
+#: constant, so memory still does not grow with the number of logs; beyond it the least
+#: recently read are dropped. An entry holds for the file as it was: a file changed since
+#: (its size, modification time or inode) is read again, and checked again.
+LOG_CACHE_BYTES = 64 * 2**20
 
+# Least recently read first: key -> (log, samples, bytes). Written read-only, as every caller gets
+# the same arrays. Threads fold episodes' statistics in parallel, hence the lock.
+_CACHE: OrderedDict[tuple, tuple[LoggedTrajectory, int, int]] = OrderedDict()
+_CACHE_LOCK = threading.Lock()
+
+
+def _cache_budget() -> int:
+    value = os.environ.get("QUBE_KOOPMAN_LOG_CACHE_MB")
+    if value is None:
+        return LOG_CACHE_BYTES
+    try:
+        return max(0, int(float(value) * 2**20))
+    except ValueError:
+        return LOG_CACHE_BYTES  # a malformed value: the default, rather than failing a fit over it
+
+
+def clear_log_cache() -> None:
+    """Forget every decoded log this process keeps (:data:`LOG_CACHE_BYTES`)."""
+    with _CACHE_LOCK:
+        _CACHE.clear()
+
+
+def _cache_key(path: Path, skip: int) -> tuple | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (os.path.abspath(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, skip)
+
+
+def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTrajectory | None, int]:
+    """One log as a :class:`LoggedTrajectory` and its samples (None when skipped, with a warning),
+    from the cache of decoded logs when it holds the file as it is now."""
     if not path.is_file():
         raise ValueError(f"{path}: no such log file")
+    key = _cache_key(path, skip)
+    hit = None
+    if key is not None:
+        with _CACHE_LOCK:
+            hit = _CACHE.get(key)
+            if hit is not None:
+                _CACHE.move_to_end(key)
+    if hit is not None:
+        cached, n, _ = hit  # the caller's own path (messages name the file as given) and gains
+        return replace(cached, path=path, gains=None if cached.gains is None else dict(cached.gains)), n
+    log, n = _decode(path, skip, strict, refusal)
+    budget = _cache_budget()
+    if log is not None and key is not None and budget > 0 and _cache_key(path, skip) == key:
+        size = _read_only(log.trajectory)
+        with _CACHE_LOCK:
+            _CACHE[key] = (log, n, size)
+            total = sum(entry[2] for entry in _CACHE.values())
+            while _CACHE and total > budget:
+                total -= _CACHE.popitem(last=False)[1][2]
+    return log, n
+
+
+def _read_only(traj: Trajectory) -> int:
+    """Mark a cached trajectory's arrays read-only; the bytes they hold."""
+    size = 0
+    for name in ("x", "u", "r", "f", "xc"):
+        value = getattr(traj, name)
+        if value is not None:
+            value.flags.writeable = False
+            size += value.nbytes
+    return size
+
+
+def _decode(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTrajectory | None, int]:
+    """One log read from its file (see :func:`_read`)."""
+    from qube_koopman.daq.log import read_episode  # lazily: mcap and zstandard
+
     try:
         episode = read_episode(path, warn=False)
     except (ValueError, OSError) as exc:

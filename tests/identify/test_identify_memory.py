@@ -206,10 +206,13 @@ def _retained(work) -> tuple[int, object]:
         tracemalloc.stop()
 
 
-def test_stored_logs_keep_their_metadata_only(qube_logs):
+def test_stored_logs_keep_their_metadata_only(qube_logs, monkeypatch):
     from qube_koopman.daq.log.names import find_logs
-    from qube_koopman.identify.data.logs import LogTrajectories, load_logs
+    from qube_koopman.identify.data.logs import LogTrajectories, clear_log_cache, load_logs
 
+    # The stored logs themselves, without the process's cache of decoded logs (bounded: next test)
+    monkeypatch.setenv("QUBE_KOOPMAN_LOG_CACHE_MB", "0")
+    clear_log_cache()
     files = find_logs(qube_logs)[:8]
     # One log read first: the reader imports mcap, zstandard and lz4 at its first read (about 150 kB of
     # modules), which counted here when no earlier test of this worker had read a log.
@@ -223,6 +226,46 @@ def test_stored_logs_keep_their_metadata_only(qube_logs):
         for key in ("x", "u", "r", "f", "xc"):
             np.testing.assert_array_equal(getattr(a.trajectory, key), getattr(b.trajectory, key))
     assert [t.name for t in LogTrajectories(stored)] == [f.name for f in files]
+
+
+def test_the_cache_of_decoded_logs_keeps_to_its_budget_and_reads_a_changed_file_again(qube_logs, tmp_path,
+                                                                                       monkeypatch):
+    import shutil
+
+    from qube_koopman.daq.log.names import find_logs
+    from qube_koopman.identify.data import logs as logs_module
+    from qube_koopman.identify.data.logs import clear_log_cache, load_logs
+
+    files = find_logs(qube_logs)[:8]
+    monkeypatch.setenv("QUBE_KOOPMAN_LOG_CACHE_MB", "0")
+    clear_log_cache()
+    fresh = load_logs(files, skip=10)  # decoded from the files, nothing kept
+    episode = sum(getattr(fresh[0].trajectory, k).nbytes for k in ("x", "u", "r", "f", "xc"))
+    monkeypatch.setenv("QUBE_KOOPMAN_LOG_CACHE_MB", str(2.5 * episode / 2**20))  # room for two episodes
+    decoded = []
+    monkeypatch.setattr(logs_module, "_decode", lambda *a, _d=logs_module._decode: decoded.append(a[0]) or _d(*a))
+    held, stored = _retained(lambda: load_logs(files, skip=10, stored=True))
+    assert len(decoded) == 8 and 1.5 * episode < held < 2.5 * episode, (held, episode)  # the last two kept
+    for a, b in zip(stored, fresh):
+        for key in ("x", "u", "r", "f", "xc"):
+            np.testing.assert_array_equal(getattr(a.trajectory, key), getattr(b.trajectory, key))
+    # Read again in the same order, each pushed out one of the last two before its turn came (a pass
+    # over more logs than the budget holds decodes them all); the last one read is then kept
+    assert decoded[8:] == list(files), decoded[8:]
+    for _ in range(2):
+        again = stored[-1].trajectory
+    assert len(decoded) == 16
+    assert not again.x.flags.writeable  # every reader gets the same arrays: none may write to them
+
+    # A file changed since it was cached (another episode copied over it) is decoded again
+    copy = tmp_path / files[-1].name
+    shutil.copy(files[-1], copy)
+    (log,) = load_logs([copy], skip=10, stored=True)
+    np.testing.assert_array_equal(log.trajectory.x, fresh[-1].trajectory.x)
+    shutil.copy(files[0], copy)
+    np.testing.assert_array_equal(log.trajectory.x, fresh[0].trajectory.x)
+    assert decoded[-1] == copy
+    clear_log_cache()
 
 
 def test_the_whole_set_checks_give_the_same_errors_on_stored_logs(tmp_path):
