@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, replace
@@ -145,15 +146,23 @@ class LogTrajectories(EpisodeSequence):
 #: megabytes when set; 0 turns the cache off). A fit reads each training log several times (the
 #: lifting's fit, the statistics, the intervals' refits) and a search once per stage: decoding
 #: is most of a read's 10-30 ms, and the paper's 48 logs take 29 MB decoded. The budget is a
-#: constant, so memory still does not grow with the number of logs; beyond it the least
-#: recently read are dropped. An entry holds for the file as it was: a file changed since
-#: (its size, modification time or inode) is read again, and checked again.
+#: constant, so memory still does not grow with the number of logs. An entry holds for the file
+#: as it was: a file changed since (its size, modification time or inode) is read again, and
+#: checked again.
 LOG_CACHE_BYTES = 64 * 2**20
 
-# Least recently read first: key -> (log, samples, bytes). Written read-only, as every caller gets
-# the same arrays. Threads fold episodes' statistics in parallel, hence the lock.
-_CACHE: OrderedDict[tuple, tuple[LoggedTrajectory, int, int]] = OrderedDict()
+#: A full cache makes room only by dropping logs not read for this long (s); otherwise it keeps
+#: what it holds and the new log is not kept. Written by hand rather than functools' LRU cache
+#: for this: passes over more logs than the budget holds would have each log pushed out before
+#: its next read, decoding them all every pass, where keeping the first ones saves their share.
+#: Logs a finished fit left behind (a notebook's earlier dataset) go after this long.
+LOG_CACHE_IDLE_S = 30.0
+
+# Least recently read first: key -> (log, samples, bytes, last read on _clock). Written read-only, as
+# every caller gets the same arrays. Threads fold episodes' statistics in parallel, hence the lock.
+_CACHE: OrderedDict[tuple, tuple[LoggedTrajectory, int, int, float]] = OrderedDict()
 _CACHE_LOCK = threading.Lock()
+_clock = time.monotonic
 
 
 def _cache_budget() -> int:
@@ -191,31 +200,42 @@ def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTraj
         with _CACHE_LOCK:
             hit = _CACHE.get(key)
             if hit is not None:
+                _CACHE[key] = (*hit[:3], _clock())
                 _CACHE.move_to_end(key)
     if hit is not None:
-        cached, n, _ = hit  # the caller's own path (messages name the file as given) and gains
+        cached, n = hit[:2]  # the caller's own path (messages name the file as given) and gains
         return replace(cached, path=path, gains=None if cached.gains is None else dict(cached.gains)), n
     log, n = _decode(path, skip, strict, refusal)
-    budget = _cache_budget()
-    if log is not None and key is not None and budget > 0 and _cache_key(path, skip) == key:
-        size = _read_only(log.trajectory)
-        with _CACHE_LOCK:
-            _CACHE[key] = (log, n, size)
-            total = sum(entry[2] for entry in _CACHE.values())
-            while _CACHE and total > budget:
-                total -= _CACHE.popitem(last=False)[1][2]
+    if log is not None:
+        _read_only(log.trajectory)  # kept or not, alike: a reader that writes to them fails every time
+        if key is not None and _cache_key(path, skip) == key:
+            _keep(key, log, n)
     return log, n
 
 
-def _read_only(traj: Trajectory) -> int:
-    """Mark a cached trajectory's arrays read-only; the bytes they hold."""
-    size = 0
+def _keep(key: tuple, log: LoggedTrajectory, n: int) -> None:
+    """Keep a decoded log if the budget has room, or gets it from logs idle for :data:`LOG_CACHE_IDLE_S`."""
+    budget = _cache_budget()
+    t = log.trajectory
+    size = sum(a.nbytes for a in (t.x, t.u, t.r, t.f, t.xc) if a is not None)
+    if size > budget:
+        return
+    with _CACHE_LOCK:
+        now, total = _clock(), sum(entry[2] for entry in _CACHE.values())
+        while _CACHE and total + size > budget:
+            oldest = next(iter(_CACHE))
+            if now - _CACHE[oldest][3] < LOG_CACHE_IDLE_S:
+                return  # least recently read first: every other one was read more recently
+            total -= _CACHE.pop(oldest)[2]
+        _CACHE[key] = (log, n, size, now)
+
+
+def _read_only(traj: Trajectory) -> None:
+    """Mark a read log's arrays read-only (a cached log's reach every reader of the file)."""
     for name in ("x", "u", "r", "f", "xc"):
         value = getattr(traj, name)
         if value is not None:
             value.flags.writeable = False
-            size += value.nbytes
-    return size
 
 
 def _decode(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTrajectory | None, int]:

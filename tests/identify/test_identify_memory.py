@@ -244,17 +244,25 @@ def test_the_cache_of_decoded_logs_keeps_to_its_budget_and_reads_a_changed_file_
     monkeypatch.setenv("QUBE_KOOPMAN_LOG_CACHE_MB", str(2.5 * episode / 2**20))  # room for two episodes
     decoded = []
     monkeypatch.setattr(logs_module, "_decode", lambda *a, _d=logs_module._decode: decoded.append(a[0]) or _d(*a))
+    clock = [1000.0]
+    monkeypatch.setattr(logs_module, "_clock", lambda: clock[0])
     held, stored = _retained(lambda: load_logs(files, skip=10, stored=True))
-    assert len(decoded) == 8 and 1.5 * episode < held < 2.5 * episode, (held, episode)  # the last two kept
+    assert len(decoded) == 8 and 1.5 * episode < held < 2.5 * episode, (held, episode)  # two kept
     for a, b in zip(stored, fresh):
+        read = a.trajectory
         for key in ("x", "u", "r", "f", "xc"):
-            np.testing.assert_array_equal(getattr(a.trajectory, key), getattr(b.trajectory, key))
-    # Read again in the same order, each pushed out one of the last two before its turn came (a pass
-    # over more logs than the budget holds decodes them all); the last one read is then kept
-    assert decoded[8:] == list(files), decoded[8:]
+            np.testing.assert_array_equal(getattr(read, key), getattr(b.trajectory, key))
+    # Read again in the same order: the first two from memory, the others decoded and not kept, as
+    # the two were read too recently to make room (least recently used, each would have pushed out
+    # the next one due and this pass decoded all eight)
+    assert decoded[8:] == list(files[2:]), decoded[8:]
+    clock[0] += logs_module.LOG_CACHE_IDLE_S + 1  # later on, a log read now takes an idle one's place
     for _ in range(2):
         again = stored[-1].trajectory
-    assert len(decoded) == 16
+    assert decoded[14:] == [files[-1]]
+    stored[1].trajectory
+    stored[0].trajectory
+    assert decoded[15:] == [files[0]], decoded[15:]  # the first one went, the second is still there
     assert not again.x.flags.writeable  # every reader gets the same arrays: none may write to them
 
     # A file changed since it was cached (another episode copied over it) is decoded again
