@@ -214,7 +214,7 @@ def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTraj
 
 
 def _keep(key: tuple, log: LoggedTrajectory, n: int) -> None:
-    """Keep a decoded log if the budget has room, or gets it from logs idle for :data:`LOG_CACHE_IDLE_S`."""
+    """Keep a decoded log if the budget has room, or if logs idle for :data:`LOG_CACHE_IDLE_S` can make it."""
     budget = _cache_budget()
     t = log.trajectory
     size = sum(a.nbytes for a in (t.x, t.u, t.r, t.f, t.xc) if a is not None)
