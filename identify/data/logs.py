@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from qube_koopman.core.qube import STATE_NAMES
-from qube_koopman.identify.data.trajectory import EpisodeSequence, EpisodeShape, Trajectory
+from qube_koopman.identify.data.trajectory import SIGNALS, EpisodeSequence, EpisodeShape, Trajectory
 from qube_koopman.core.lti import DiscreteStateSpace, same_system
 
 __all__ = [
@@ -216,8 +216,7 @@ def _read(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTraj
 def _keep(key: tuple, log: LoggedTrajectory, n: int) -> None:
     """Keep a decoded log if the budget has room, or if logs idle for :data:`LOG_CACHE_IDLE_S` can make it."""
     budget = _cache_budget()
-    t = log.trajectory
-    size = sum(a.nbytes for a in (t.x, t.u, t.r, t.f, t.xc) if a is not None)
+    size = sum(a.nbytes for a in _arrays(log.trajectory))
     if size > budget:
         return
     with _CACHE_LOCK:
@@ -230,12 +229,15 @@ def _keep(key: tuple, log: LoggedTrajectory, n: int) -> None:
         _CACHE[key] = (log, n, size, now)
 
 
+def _arrays(traj: Trajectory) -> list[np.ndarray]:
+    """A trajectory's signals that it has (the states and :data:`~qube_koopman.identify.data.trajectory.SIGNALS`)."""
+    return [a for a in (getattr(traj, name) for name in ("x", *SIGNALS)) if a is not None]
+
+
 def _read_only(traj: Trajectory) -> None:
     """Mark a read log's arrays read-only (a cached log's reach every reader of the file)."""
-    for name in ("x", "u", "r", "f", "xc"):
-        value = getattr(traj, name)
-        if value is not None:
-            value.flags.writeable = False
+    for a in _arrays(traj):
+        a.flags.writeable = False
 
 
 def _decode(path: Path, skip: int, strict: bool, refusal: str) -> tuple[LoggedTrajectory | None, int]:
