@@ -62,6 +62,10 @@ _HOMES = {
     "predict_with_offsets": "models.offsets",
     "predict_with_offsets_many": "models.offsets",
     "scores_after_window": "metrics",
+    # a test loop's command delay
+    "DelayEstimate": "models.latency",
+    "estimate_command_delays": "models.latency",
+    "session_neighbours": "data.sessions",
     # prediction intervals
     "IntervalOptions": "uncertainty",
     "PredictionBand": "uncertainty",

@@ -180,7 +180,7 @@ def identify_and_score(
     predictions_folder: str | Path | None = None,
     probes=None,
     probe_cache: str | Path | None = None,
-    command_delay: float = 0.0,
+    command_delay: float | str = 0.0,
 ) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
@@ -268,10 +268,13 @@ def identify_and_score(
         transfer probes run on the calibrated twin alone and are not these).
     probe_cache : str or Path, optional
         Where those probes are kept between runs (``twin_probes``' ``cache``).
-    command_delay : float
+    command_delay : float or "estimate"
         Predict every test episode's loop with its command reaching the plant this many sample
         periods later than in the training logs (:func:`~qube_koopman.identify.estimators.structure.command_delayed`):
-        a host with more latency. Closed-loop scoring of a Koopman method only.
+        a host with more latency. ``"estimate"``: each test episode's own extra delay, estimated
+        from the other test logs of its recording session
+        (:func:`~qube_koopman.identify.models.latency.estimate_command_delays`; report.json's
+        ``command_delay`` lists them). Closed-loop scoring of a Koopman method only.
 
     Returns
     -------
@@ -288,7 +291,10 @@ def identify_and_score(
         raise ValueError("a what-if controller predicts the closed loop: use score='cl'")
     if command_delay and (score != "cl" or method not in KOOPMAN_METHODS):
         raise ValueError("a command delay changes the predicted loop: it needs closed-loop scores of a Koopman method")
-    if not (np.isfinite(command_delay) and command_delay >= 0):
+    if isinstance(command_delay, str):
+        if command_delay != "estimate":
+            raise ValueError(f"the command delay is a number of sample periods or 'estimate', got {command_delay!r}")
+    elif not (np.isfinite(command_delay) and command_delay >= 0):
         raise ValueError(f"the command delay must be 0 or more sample periods, got {command_delay}")
     trajs = LogTrajectories(train)  # read when needed, one episode at a time (stored logs)
     result = IdentificationResult(
@@ -367,7 +373,12 @@ def identify_and_score(
                     else _design_uncertainty(ensemble, plant, train, intervals.seed, held_out),
                 )  # an ensemble: intervals were asked for
             held_out.clear()
-            predicted_loops = _TestLoops(controller, score, what_if, command_delay)
+            if command_delay == "estimate":
+                start = _first_scored(offsets, score_from, test[0].dt)
+                estimated = _estimated_delays(plant, train, test, max(start, SKIP_SAMPLES), result)
+                predicted_loops = _TestLoops(controller, score, what_if, per_log=estimated)
+            else:
+                predicted_loops = _TestLoops(controller, score, what_if, float(command_delay))
             _score_koopman(plant, closed, predicted_loops, test, offsets, result, score_from, keep_predictions, bands)
         elif method in ("arx", "cl-arx"):
             # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
@@ -490,14 +501,19 @@ class _TestLoops:
     score: str
     what_if: DiscreteStateSpace | None = None
     command_delay: float = 0.0
+    per_log: dict = field(default_factory=dict)  # a log's path -> its own command delay (estimated)
+
+    def delay(self, log) -> float:
+        """The command delay (samples) of one test episode's loop."""
+        return self.per_log.get(log.path, self.command_delay)
 
     def loop(self, log) -> Loop:
         """The loop predicting one test episode: the plant (plant scoring), the what-if controller's, or its own
         log's (a plant model must predict the loop under any known controller); with a command delay, that
         controller followed by the delay."""
-        if self.command_delay:
+        if self.delay(log):
             running = log.controller if self.what_if is None else self.what_if
-            return Loop("wrapped", with_output_delay(running, self.command_delay))
+            return Loop("wrapped", with_output_delay(running, self.delay(log)))
         if self.what_if is not None and self.score == "cl":
             return Loop("wrapped", self.what_if)
         return Loop.of(log.controller, self.controller, self.score)
@@ -509,14 +525,54 @@ class _TestLoops:
         t, running = log.trajectory, log.controller
         if self.what_if is not None and not same_system(log.controller, self.what_if):
             t, running = replace(t, xc=controller_states(self.what_if, t.r, t.x[:, MEASURED], t.f)), self.what_if
-        if self.command_delay:
-            _, xc, f = command_delayed(running, self.command_delay, t.xc, t.r, t.x[:, MEASURED], t.f)
+        if self.delay(log):
+            _, xc, f = command_delayed(running, self.delay(log), t.xc, t.r, t.x[:, MEASURED], t.f)
             t = replace(t, xc=xc, f=f)
         return t
 
     def scored(self, log) -> bool:
         """Whether the episode is scored: only those recorded under a what-if controller are."""
         return self.what_if is None or same_system(log.controller, self.what_if)
+
+
+def _estimated_delays(plant, train, test, skip: int, result) -> dict:
+    """Each test log's extra command delay (samples) over the training logs', estimated from the other test logs
+    of its session (:mod:`~qube_koopman.identify.models.latency`), rounded to a quarter sample: the estimate's own
+    precision, so that a session's logs share one loop (one batched prediction, one interval calibration)."""
+    from qube_koopman.identify.data.sessions import session_neighbours
+    from qube_koopman.identify.models import latency
+
+    dt = test[0].dt
+    neighbours = session_neighbours([log.path for log in test], latency.NEIGHBOURS)
+    picked = np.unique(np.linspace(0, len(train) - 1, min(len(train), latency.REFERENCE_LOGS)).round().astype(int))
+    ordered = sorted(range(len(train)), key=lambda i: train[i].path.name)
+    if any(neighbours):
+        reference, estimates = latency.estimate_command_delays(
+            plant,
+            LogTrajectories([train[ordered[i]] for i in picked]),
+            LogTrajectories(test),
+            neighbours,
+            skip,
+        )
+    else:  # no test log has another of its session: nothing to estimate from
+        reference, estimates = None, [latency.DelayEstimate(0.0, None, []) for _ in test]
+    delays = {log.path: round(4 * e.samples) / 4 for log, e in zip(test, estimates)}
+    result.report["command_delay"] = {
+        "estimated": True,
+        "reference_samples": reference,
+        "logs": [
+            {
+                "log": log.path.name,
+                "samples": delays[log.path],
+                "seconds": delays[log.path] * dt,
+                "raw_samples": e.raw,
+                "neighbours": [test[j].path.name for j in e.neighbours],
+            }
+            for log, e in zip(test, estimates)
+        ],
+        "note": latency.NOTE,
+    }
+    return delays
 
 
 def _first_scored(offsets: OffsetProtocol | None, score_from: int | None, dt: float) -> int:
@@ -587,7 +643,7 @@ def _score_koopman(
             scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
             if bands is not None:
                 bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop)
-    if how.command_delay:
+    if how.command_delay and not how.per_log:
         result.report["command_delay"] = {
             "samples": float(how.command_delay),
             "seconds": float(how.command_delay) * dt,

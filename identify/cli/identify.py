@@ -336,12 +336,16 @@ def _parser() -> argparse.ArgumentParser:
     )
     pred.add_argument(
         "--command-delay",
-        type=finite_number,
-        default=0.0,
-        metavar="MS",
+        type=_command_delay,
+        default=None,
+        metavar="MS|estimate",
         help="predict every test episode's loop with its command reaching the motor this many "
         "milliseconds later than in the training logs (a host with more latency; the feedforward "
-        "held as late): a what-if of the loop's timing, alone or with --controller (default 0)",
+        "held as late): a what-if of the loop's timing, alone or with --controller. estimate: each "
+        "test loop's own extra delay, from how the identified plant's 40 ms predictions line up with "
+        "the logged voltage on up to four other test logs of its recording session (never the log's "
+        "own samples), rounded to 0.5 ms; listed in the reports. Default: estimate with the window "
+        "protocol (--search, --offsets) unless --session-delays or --controller is given, else 0",
     )
     pred.add_argument(
         "--session-delays",
@@ -427,6 +431,16 @@ def _check_search_args(args) -> None:
         raise CliError("--n-jobs must be a positive number of processes, or negative (-1: every core)")
 
 
+def _command_delay(text: str) -> float | str:
+    """``--command-delay``'s type: milliseconds, or ``estimate``."""
+    if text == "estimate":
+        return text
+    try:
+        return finite_number(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a number of milliseconds nor 'estimate'") from None
+
+
 def _check_args(args) -> None:
     if args.search:
         _check_search_args(args)
@@ -440,10 +454,12 @@ def _check_args(args) -> None:
             "fits here (leave out --scheduler)"
         )
     check_cluster_options(args, PROG)  # the address, and TLS or the loopback
-    if args.command_delay < 0:
+    if isinstance(args.command_delay, float) and args.command_delay < 0:
         raise CliError(f"--command-delay must be 0 or more milliseconds, got {args.command_delay:g}")
     if args.command_delay and (args.score != "cl" or args.method in ("arx", "cl-arx")):
         raise CliError("--command-delay changes the predicted loop: it needs --score cl and a Koopman method")
+    if args.command_delay == "estimate" and args.session_delays:
+        raise CliError("--session-delays gives every test log its session's delay: leave out --command-delay estimate")
     if args.session_delays and args.method in ("arx", "cl-arx"):
         raise CliError("--session-delays changes the logs' loops: it needs a Koopman method")
     if args.session_delays and args.controller:
@@ -460,6 +476,9 @@ def _check_args(args) -> None:
         raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
     if args.protocol is None:
         args.protocol = "window" if args.search or args.offsets else "paper"
+    if args.command_delay is None:  # the window protocol estimates the test loops' nuisances: offsets and latency
+        estimate = args.protocol == "window" and args.score == "cl" and args.method not in ("arx", "cl-arx")
+        args.command_delay = "estimate" if estimate and not (args.session_delays or args.controller) else 0.0
     args.poly = 2 if args.poly is None else args.poly
     args.delays = 10 if args.delays is None else args.delays
     if args.poly > MAX_POLY:  # 10**30: the monomials were never all listed
@@ -708,7 +727,9 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             ),
             predictions_folder=predictions,
             probe_cache=probe_cache() if args.probe_cache else None,
-            command_delay=args.command_delay * 1e-3 / train[0].dt,
+            command_delay=(
+                args.command_delay if args.command_delay == "estimate" else args.command_delay * 1e-3 / train[0].dt
+            ),
             estimator_options=(
                 {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
             ),

@@ -15,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["session_delays"]
+__all__ = ["session_delays", "session_neighbours"]
 
 
 def session_delays(logs: Sequence[str | Path], plant: str | Path) -> np.ndarray:
@@ -48,3 +48,42 @@ def session_delays(logs: Sequence[str | Path], plant: str | Path) -> np.ndarray:
         )
     starts = [read_episode_metadata(Path(log)).start_time for log in logs]
     return np.array([params.delay for params in plant_file.params_for_logs(starts)])
+
+
+def session_neighbours(logs: Sequence[str | Path], k: int) -> list[list[int]]:
+    """Per log, up to ``k`` other logs of its recording session, the nearest in start time first.
+
+    Sessions are logs started within ten minutes of each other, as the twin's calibration per
+    session finds them (:func:`~qube_koopman.sim.pendulum.params_file.recording_sessions`). A log
+    without a readable start time has no session and no neighbours.
+
+    Parameters
+    ----------
+    logs : sequence of str or Path
+        Episode logs.
+    k : int
+        Neighbours at most.
+
+    Returns
+    -------
+    list of list of int
+        Indices into ``logs``.
+    """
+    from datetime import datetime
+
+    from qube_koopman.daq.log import read_episode_metadata  # lazily: mcap
+    from qube_koopman.sim.pendulum.params_file import recording_sessions
+
+    starts = [read_episode_metadata(Path(log)).start_time for log in logs]
+    labels = recording_sessions(starts)
+    # recording_sessions read the same seconds-resolution start (it labels unreadable ones "unknown").
+    seconds = [
+        datetime.fromisoformat(t[:19]).timestamp() if label != "unknown" else 0.0 for t, label in zip(starts, labels)
+    ]
+    return [
+        sorted(
+            (j for j in range(len(logs)) if j != i and label != "unknown" and labels[j] == label),
+            key=lambda j: (abs(seconds[j] - seconds[i]), j),
+        )[:k]
+        for i, label in enumerate(labels)
+    ]

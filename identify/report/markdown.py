@@ -295,7 +295,9 @@ def markdown_report(report: dict) -> str:
             "without a recording to score against"
         )
     delay = report.get("command_delay")
-    if delay:
+    if delay and delay.get("estimated"):
+        lines += _estimated_delay_lines(delay)
+    elif delay:
         lines.append(
             f"- command delay: {delay['seconds'] * 1e3:g} ms ({delay['samples']:g} samples): {delay['note']} "
             f"(`--command-delay {delay['seconds'] * 1e3:g}`)"
@@ -319,6 +321,20 @@ def markdown_report(report: dict) -> str:
         lines += _search_section(report["search"])
     lines += figures_markdown(report.get("figures"))
     return "\n".join(lines) + "\n"
+
+
+def _estimated_delay_lines(delay: dict) -> list[str]:
+    """The estimated command delays of the test loops, grouped by value."""
+    groups: dict[float, list[str]] = {}
+    for entry in delay["logs"]:
+        groups.setdefault(entry["seconds"] * 1e3, []).append(entry["log"])
+    unestimated = [e["log"] for e in delay["logs"] if e["raw_samples"] is None]
+    parts = [f"{ms:g} ms: {len(logs)} log(s)" for ms, logs in sorted(groups.items())]
+    return [
+        f"- command delay of the test loops, estimated (`--command-delay estimate`): {'; '.join(parts)}"
+        + (f"; {len(unestimated)} alone in their session, not estimated" if unestimated else "")
+        + f". {delay['note'][0].upper()}{delay['note'][1:]}."
+    ]
 
 
 def write_markdown_report(path: str | Path, report: dict) -> None:

@@ -156,7 +156,8 @@ def test_real_logs_of_two_sessions_predict_the_slower_sessions_episodes_better_w
     lifting = ["--poly", "1", "--trig", "--delays", "30", "--friction", "--alpha", "1e-4", "--offsets", "alpha",
                "--interval", "0", "-q"]
     reports = {}
-    for name, extra in (("as recorded", []), ("with delays", ["--session-delays", str(plant)])):
+    # As recorded: no latency of any session, neither the file's nor one estimated from the test logs.
+    for name, extra in (("as recorded", ["--command-delay", "0"]), ("with delays", ["--session-delays", str(plant)])):
         out = tmp_path / name.replace(" ", "_")
         assert qube_identify(["--train", *map(str, train), "--test", *map(str, test), *lifting, *extra,
                               "--out", str(out)]) == 0
