@@ -344,8 +344,9 @@ def _parser() -> argparse.ArgumentParser:
         "held as late): a what-if of the loop's timing, alone or with --controller. estimate: each "
         "test loop's own extra delay, from how the identified plant's 40 ms predictions line up with "
         "the logged voltage on up to four other test logs of its recording session (never the log's "
-        "own samples), rounded to 0.5 ms; listed in the reports. Default: estimate with the window "
-        "protocol (--search, --offsets) unless --session-delays or --controller is given, else 0",
+        "own samples), rounded to a quarter sample (0.5 ms at 500 Hz); listed in the reports. Default: "
+        "estimate with the window protocol (--search, --offsets) unless --session-delays or --controller "
+        "is given, else 0",
     )
     pred.add_argument(
         "--session-delays",

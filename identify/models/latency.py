@@ -43,7 +43,7 @@ import numpy as np
 
 from qube_koopman.identify.data.trajectory import Trajectory
 
-__all__ = ["DelayEstimate", "apparent_delay", "delay_errors", "estimate_command_delays"]
+__all__ = ["DelayEstimate", "apparent_delay", "delay_errors", "estimate_command_delays", "held_late"]
 
 #: Trial delays in sample periods: whole samples, 0 to 5 (10 ms at 500 Hz). The error is smooth in the
 #: delay, and the parabola through the best whole sample and its neighbours (:func:`apparent_delay`) lands
