@@ -76,6 +76,10 @@ def test_the_plant_finds_a_slower_sessions_extra_delay_on_twin_logs(tmp_path):
     # Alone in its session, a log gets none, said as not estimated.
     _, alone = estimate_command_delays(fit.plant, [train[0].trajectory], [test[3].trajectory], [[]], skip=250)
     assert alone[0].samples == 0.0 and alone[0].raw is None
+    # Episodes too short for one prediction after the skipped samples: none estimated, and no error.
+    short = [log.trajectory for log in test[3:5]]
+    reference, none = estimate_command_delays(fit.plant, short, short, [[1], [0]], skip=10_000)
+    assert reference is None and [(e.samples, e.raw) for e in none] == [(0.0, None), (0.0, None)]
 
 
 @pytest.mark.dataset
