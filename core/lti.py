@@ -20,6 +20,7 @@ __all__ = [
     "spectral_radius",
     "same_system",
     "with_output_delay",
+    "held_late",
 ]
 
 
@@ -363,3 +364,30 @@ def with_output_delay(system: DiscreteStateSpace, samples: float) -> DiscreteSta
         else:
             C[:, n + (age - 1) * q : n + age * q] += weight * np.eye(q)
     return DiscreteStateSpace(A, B, C, D, system.dt)
+
+
+def held_late(signal: np.ndarray, samples: float) -> np.ndarray:
+    """A signal held ``samples`` periods late: ``(1 - w) s(k - n) + w s(k - n - 1)``, as
+    :func:`with_output_delay` delays an output (``n`` whole samples, ``w`` the fraction), the first
+    value standing in before the start.
+
+    Parameters
+    ----------
+    signal : ndarray of shape (n_samples, ...)
+        Sampled along its first axis.
+    samples : float
+        The delay in sample periods, 0 or more.
+
+    Returns
+    -------
+    ndarray
+        The same shape.
+
+    Examples
+    --------
+    >>> held_late(np.array([1.0, 2.0, 3.0, 4.0]), 1.5).tolist()
+    [1.0, 1.0, 1.5, 2.5]
+    """
+    whole, w = int(np.floor(samples)), samples - np.floor(samples)
+    index = np.arange(len(signal))
+    return (1 - w) * signal[np.maximum(index - whole, 0)] + w * signal[np.maximum(index - whole - 1, 0)]

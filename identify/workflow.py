@@ -643,7 +643,7 @@ def _score_koopman(
             scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
             if bands is not None:
                 bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop)
-    if how.command_delay and not how.per_log:
+    if how.command_delay:
         result.report["command_delay"] = {
             "samples": float(how.command_delay),
             "seconds": float(how.command_delay) * dt,

@@ -38,7 +38,6 @@ def session_delays(logs: Sequence[str | Path], plant: str | Path) -> np.ndarray:
     ValueError
         Naming the file: not a plant file, or one without a delay per session.
     """
-    from qube_koopman.daq.log import read_episode_metadata  # lazily: mcap
     from qube_koopman.sim.pendulum.params_file import load_plant
 
     plant_file = load_plant(plant)
@@ -46,8 +45,14 @@ def session_delays(logs: Sequence[str | Path], plant: str | Path) -> np.ndarray:
         raise ValueError(
             f"{plant}: no command delay per recording session (write one with qube-calibrate --setups cables-and-delay)"
         )
-    starts = [read_episode_metadata(Path(log)).start_time for log in logs]
-    return np.array([params.delay for params in plant_file.params_for_logs(starts)])
+    return np.array([params.delay for params in plant_file.params_for_logs(_start_times(logs))])
+
+
+def _start_times(logs: Sequence[str | Path]) -> list[str | None]:
+    """The logs' start times as logged (their metadata only)."""
+    from qube_koopman.daq.log import read_episode_metadata  # lazily: mcap
+
+    return [read_episode_metadata(Path(log)).start_time for log in logs]
 
 
 def session_neighbours(logs: Sequence[str | Path], k: int) -> list[list[int]]:
@@ -69,21 +74,15 @@ def session_neighbours(logs: Sequence[str | Path], k: int) -> list[list[int]]:
     list of list of int
         Indices into ``logs``.
     """
-    from datetime import datetime
+    from qube_koopman.sim.pendulum.params_file import recording_sessions, recording_start
 
-    from qube_koopman.daq.log import read_episode_metadata  # lazily: mcap
-    from qube_koopman.sim.pendulum.params_file import recording_sessions
-
-    starts = [read_episode_metadata(Path(log)).start_time for log in logs]
+    starts = _start_times(logs)
     labels = recording_sessions(starts)
-    # recording_sessions read the same seconds-resolution start (it labels unreadable ones "unknown").
-    seconds = [
-        datetime.fromisoformat(t[:19]).timestamp() if label != "unknown" else 0.0 for t, label in zip(starts, labels)
-    ]
+    started = [recording_start(t) for t in starts]  # None exactly where the label is "unknown"
     return [
         sorted(
-            (j for j in range(len(logs)) if j != i and label != "unknown" and labels[j] == label),
-            key=lambda j: (abs(seconds[j] - seconds[i]), j),
+            (j for j in range(len(logs)) if j != i and started[i] is not None and labels[j] == label),
+            key=lambda j: (abs((started[j] - started[i]).total_seconds()), j),
         )[:k]
         for i, label in enumerate(labels)
     ]

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from qube_koopman.core.lti import DiscreteStateSpace, controller_inputs, replay_controller, with_output_delay
+from qube_koopman.core.lti import DiscreteStateSpace, controller_inputs, held_late, replay_controller, with_output_delay
 from qube_koopman.core.qube import MEASURED
 
 if TYPE_CHECKING:
@@ -254,14 +254,6 @@ def plant_input(
     return u if f is None else u + np.asarray(f, dtype=float).reshape(u.shape)
 
 
-def _later(signal: np.ndarray, samples: float) -> np.ndarray:
-    """``signal`` held ``samples`` later (a fraction interpolates, as :func:`~qube_koopman.core.lti.with_output_delay`
-    holds; the first value before the start)."""
-    whole, w = int(np.floor(samples)), samples - np.floor(samples)
-    index = np.arange(len(signal))
-    return (1 - w) * signal[np.maximum(index - whole, 0)] + w * signal[np.maximum(index - whole - 1, 0)]
-
-
 def command_delayed(
     controller: DiscreteStateSpace,
     samples: float,
@@ -306,8 +298,8 @@ def command_delayed(
     delayed = with_output_delay(controller, samples)
     output = plant_input(controller, xc, r, y)  # the controller's own output, before the feedforward
     n_past = (delayed.n_states - controller.n_states) // controller.n_outputs
-    past = [_later(output, j) for j in range(1, n_past + 1)]
-    held = None if f is None else _later(np.asarray(f, dtype=float), samples)
+    past = [held_late(output, j) for j in range(1, n_past + 1)]
+    held = None if f is None else held_late(np.asarray(f, dtype=float), samples)
     return delayed, np.hstack([np.asarray(xc, dtype=float), *past]), held
 
 
@@ -316,7 +308,7 @@ def _delayed_trajectory(t: Trajectory, controller: DiscreteStateSpace, samples: 
     if t.xc is None or t.r is None:
         raise ValueError(f"{t.name}: a command delay needs the loop's references and controller states")
     _, xc, f = command_delayed(controller, samples, t.xc, t.r, t.x[:, MEASURED], t.f)
-    return replace(t, xc=xc, f=f, u=_later(np.asarray(t.u, dtype=float), samples))
+    return replace(t, xc=xc, f=f, u=held_late(np.asarray(t.u, dtype=float), samples))
 
 
 def with_command_delay(log: LoggedTrajectory | StoredLog, samples: float) -> LoggedTrajectory | StoredLog:

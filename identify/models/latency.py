@@ -6,18 +6,18 @@ same controller ran about 1.7 samples (3.4 ms) later in one session than in anot
 identified from the training logs carries their sessions' latency, and predicts a loop that
 ran later as better damped than it was.
 
-What the logs show of it: the plant model predicts the measured angles a few tens of
-milliseconds ahead from their measured history and the logged voltage. Held ``d`` samples late
-(a fraction interpolates, as :func:`~qube_koopman.core.lti.with_output_delay` delays a command),
-the voltage meets the angles' response where the plant's timing has it; the ``d`` that predicts
-best is the log's *apparent* delay. On the training logs themselves it is not zero (the model's
-bias sits there too: 0.6-1.1 samples on the rig's training logs for the search's rig-only lifting,
-0.89 pooled over eight), so a test loop's extra delay is its apparent delay minus the training
-logs' (the reference). On the paper's data, with that lifting: the 20 test episodes (another
-session than the training's) come out 0.08-0.25 samples *below* the reference (no extra delay),
-the softer controller's earlier session +0.36-0.43 and its later one +1.64-1.77. The difference
-between the two, 1.3-1.4 samples, is near the 1.7 samples (3.4 ms) the twin's calibration per
-session finds between them.
+What the logs show of it: the plant model predicts the measured angles a few tens of milliseconds
+ahead from their measured history and the logged voltage. Held ``d`` samples late
+(:func:`~qube_koopman.core.lti.held_late`: a fraction interpolates, as
+:func:`~qube_koopman.core.lti.with_output_delay` delays a command), the voltage meets the angles'
+response where the plant's timing has it; the ``d`` that predicts best is the log's *apparent*
+delay. On the training logs themselves it is not zero (the model's bias sits there too: 0.6-1.1
+samples on the rig's training logs for the search's rig-only lifting, 0.89 pooled over eight), so a
+test loop's extra delay is its apparent delay minus the training logs' (the reference). On the
+paper's data, with that lifting: the 20 test episodes (another session than the training's) come out
+0.08-0.25 samples *below* the reference (no extra delay), the softer controller's earlier session
++0.36-0.43 and its later one +1.64-1.77. The difference between the two, 1.3-1.4 samples, is near
+the 1.7 samples (3.4 ms) the twin's calibration per session finds between them.
 
 The estimate for one test log never uses that log's samples: it pools the curves of up to
 :data:`NEIGHBOURS` other test logs of its session (the nearest in start time, so a latency that
@@ -41,9 +41,10 @@ from typing import Sequence
 
 import numpy as np
 
+from qube_koopman.core.lti import held_late
 from qube_koopman.identify.data.trajectory import Trajectory
 
-__all__ = ["DelayEstimate", "apparent_delay", "delay_errors", "estimate_command_delays", "held_late"]
+__all__ = ["DelayEstimate", "apparent_delay", "delay_errors", "estimate_command_delays"]
 
 #: Trial delays in sample periods: whole samples, 0 to 5 (10 ms at 500 Hz). The error is smooth in the
 #: delay, and the parabola through the best whole sample and its neighbours (:func:`apparent_delay`) lands
@@ -64,15 +65,6 @@ NOTE = (
     "four other test logs of its recording session, minus that on the training logs, clipped at zero and rounded "
     "to a quarter sample; a log alone in its session gets none"
 )
-
-
-def held_late(u: np.ndarray, samples: float) -> np.ndarray:
-    """``u`` held ``samples`` periods late: ``(1 - w) u(k - n) + w u(k - n - 1)``, the first value before the start."""
-    n = int(np.floor(samples))
-    w = samples - n
-    padded = np.concatenate([np.repeat(u[:1], n + 1, axis=0), u])
-    late = padded[1 : 1 + len(u)]  # u(k - n)
-    return late if w == 0 else (1.0 - w) * late + w * padded[: len(u)]
 
 
 def delay_errors(

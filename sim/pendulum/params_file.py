@@ -74,6 +74,7 @@ __all__ = [
     "SESSION_GAP",
     "recording_day",
     "recording_sessions",
+    "recording_start",
     "setup_labels",
     "load_plant",
     "save_plant",
@@ -99,7 +100,7 @@ _SESSION_TIME = "%Y-%m-%d %H:%M:%S"  # a session label's first start
 
 def recording_day(start_time: str | None) -> str:
     """The day (``YYYY-MM-DD``) of a log's start time (ISO 8601); "unknown" without a readable one."""
-    started = _started(start_time)
+    started = recording_start(start_time)
     return "unknown" if started is None else started.strftime(_DAY)
 
 
@@ -117,7 +118,7 @@ def recording_sessions(start_times: Sequence[str | None]) -> list[str]:
         Per log, its session's label ``"YYYY-MM-DD HH:MM:SS-HH:MM:SS"`` (its first and last logs'
         starts), or "unknown" for a log without a readable start time.
     """
-    started = [_started(t) for t in start_times]
+    started = [recording_start(t) for t in start_times]
     labels = ["unknown"] * len(started)
     for chain in _chains([(t, t, i) for i, t in enumerate(started) if t is not None]):
         label = f"{chain[0][0]:{_SESSION_TIME}}-{chain[-1][0]:%H:%M:%S}"
@@ -153,7 +154,9 @@ def setup_labels(start_times: Sequence[str | None]) -> dict[str, list[str]]:
     return {"Kr": [recording_day(t) for t in start_times], "delay": recording_sessions(start_times)}
 
 
-def _started(start_time: str | None):
+def recording_start(start_time: str | None):
+    """A log's start time (ISO 8601, as logged) as a ``datetime`` to the second; None without a readable one
+    (the logs :func:`recording_sessions` puts in no session)."""
     from datetime import datetime
 
     try:
@@ -245,7 +248,7 @@ class PlantFile:
         -------
         list of PendulumParameters
         """
-        started = [_started(t) for t in start_times]
+        started = [recording_start(t) for t in start_times]
         sessions = {label: span for label in self.setups if (span := _session_span(label)) is not None}
         # The logs (a span each: its start) and the file's sessions, chained as recording_sessions chains logs.
         spans = [(t, t, i, "") for i, t in enumerate(started) if t is not None]

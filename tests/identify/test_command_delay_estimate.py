@@ -17,7 +17,7 @@ import pytest
 from _twin_logs import collect_pd_logs
 
 from qube_koopman.core.controller import load_pd_gains
-from qube_koopman.core.lti import DiscreteStateSpace, with_output_delay
+from qube_koopman.core.lti import DiscreteStateSpace, held_late, with_output_delay
 from qube_koopman.identify.cli.identify import main as qube_identify
 from qube_koopman.identify.data.logs import load_logs
 from qube_koopman.identify.data.sessions import session_neighbours
@@ -26,7 +26,6 @@ from qube_koopman.identify.models.latency import (
     DELAY_GRID,
     apparent_delay,
     estimate_command_delays,
-    held_late,
 )
 from qube_koopman.identify.workflow import identify_and_score
 from qube_koopman.sim.pendulum import PendulumParameters
