@@ -15,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["session_delays", "session_neighbours"]
+__all__ = ["order_neighbours", "session_delays", "session_neighbours"]
 
 
 def session_delays(logs: Sequence[str | Path], plant: str | Path) -> np.ndarray:
@@ -56,11 +56,11 @@ def _start_times(logs: Sequence[str | Path]) -> list[str | None]:
 
 
 def session_neighbours(logs: Sequence[str | Path], k: int) -> list[list[int]]:
-    """Per log, up to ``k`` other logs of its recording session, the nearest in start time first.
+    """Per log, up to ``k`` other logs of its recording session, the nearest in recording order first.
 
     Sessions are logs started within ten minutes of each other, as the twin's calibration per
     session finds them (:func:`~qube_koopman.sim.pendulum.params_file.recording_sessions`). A log
-    without a readable start time has no session and no neighbours.
+    without a readable start time has no session and no neighbours. See :func:`order_neighbours`.
 
     Parameters
     ----------
@@ -74,15 +74,45 @@ def session_neighbours(logs: Sequence[str | Path], k: int) -> list[list[int]]:
     list of list of int
         Indices into ``logs``.
     """
+    return order_neighbours(_start_times(logs), [Path(log).name for log in logs], k)
+
+
+def order_neighbours(starts: Sequence[str | None], names: Sequence[str], k: int) -> list[list[int]]:
+    """Per log, up to ``k`` other logs of its session, the nearest in recording order first.
+
+    The logs of a session are ordered by their start times (ties by the start time as logged,
+    then by name) and each log's neighbours are the ones recorded just before and after it: at
+    equal distance in that order the earlier first, so ``k = 4`` takes two on each side where the
+    session has them. The order, not the seconds between starts, decides: the twin's episodes run
+    in parallel start within seconds of each other in an order ``qube-run`` keeps, and a choice by
+    seconds changed with the machine's load from one recording of the same episodes to the next.
+
+    Parameters
+    ----------
+    starts : sequence of str or None
+        The logs' start times as logged (ISO 8601).
+    names : sequence of str
+        The logs' names (the last tie-break).
+    k : int
+        Neighbours at most.
+
+    Returns
+    -------
+    list of list of int
+        Indices into ``starts``.
+    """
     from qube_koopman.sim.pendulum.params_file import recording_sessions, recording_start
 
-    starts = _start_times(logs)
     labels = recording_sessions(starts)
     started = [recording_start(t) for t in starts]  # None exactly where the label is "unknown"
+    known = [j for j in range(len(starts)) if started[j] is not None]
+    rank = {j: r for r, j in enumerate(sorted(known, key=lambda j: (started[j], str(starts[j]), names[j], j)))}
     return [
         sorted(
-            (j for j in range(len(logs)) if j != i and started[i] is not None and labels[j] == label),
-            key=lambda j: (abs((started[j] - started[i]).total_seconds()), j),
+            (j for j in known if j != i and labels[j] == label),
+            key=lambda j: (abs(rank[j] - rank[i]), rank[j]),
         )[:k]
+        if started[i] is not None
+        else []
         for i, label in enumerate(labels)
     ]

@@ -20,8 +20,8 @@ paper's data, with that lifting: the 20 test episodes (another session than the 
 the 1.7 samples (3.4 ms) the twin's calibration per session finds between them.
 
 The estimate for one test log never uses that log's samples: it pools the curves of up to
-:data:`NEIGHBOURS` other test logs of its session (the nearest in start time, so a latency that
-changes within a session is followed), as the offsets' window keeps the estimation off the scored
+:data:`NEIGHBOURS` other test logs of its session (the ones recorded just before and after it, so a
+latency that changes within a session is followed), as the offsets' window keeps the estimation off the scored
 samples. One log's own apparent delay spreads about 0.25 samples around its session's; four
 neighbours bring that to about 0.12 samples (0.25 ms), within which the predictions hardly change
 (near the best delay, R^2 moves by 0.004 at most across half a sample). A log alone in its session gets no extra delay,

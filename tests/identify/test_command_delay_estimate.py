@@ -20,7 +20,7 @@ from qube_koopman.core.controller import load_pd_gains
 from qube_koopman.core.lti import DiscreteStateSpace, held_late, with_output_delay
 from qube_koopman.identify.cli.identify import main as qube_identify
 from qube_koopman.identify.data.logs import load_logs
-from qube_koopman.identify.data.sessions import session_neighbours
+from qube_koopman.identify.data.sessions import order_neighbours, session_neighbours
 from qube_koopman.identify.model_selection.search import LiftingSpec
 from qube_koopman.identify.models.latency import (
     DELAY_GRID,
@@ -82,13 +82,31 @@ def test_the_plant_finds_a_slower_sessions_extra_delay_on_twin_logs(tmp_path):
 
 
 @pytest.mark.dataset
-def test_a_logs_neighbours_are_the_nearest_others_of_its_recording_session(soft_logs, qube_logs):
+def test_a_logs_neighbours_are_the_others_of_its_session_recorded_just_before_and_after_it(soft_logs, qube_logs):
     soft = sorted(soft_logs.glob("*.mcap"))  # two sessions of five, 20 minutes apart
     rig = sorted(qube_logs.glob("*.mcap"))[-3:]
     neighbours = session_neighbours([*soft, *rig], 2)
-    assert neighbours[:10] == [[1, 2], [0, 2], [1, 3], [4, 2], [3, 2], [6, 7], [5, 7], [8, 6], [7, 9], [8, 7]]
+    assert neighbours[:10] == [[1, 2], [0, 2], [1, 3], [2, 4], [3, 2], [6, 7], [5, 7], [6, 8], [7, 9], [8, 7]]
     assert neighbours[10:] == [[11, 12], [10, 12], [11, 10]]
     assert session_neighbours(soft[:1], 4) == [[]]
+    assert session_neighbours(soft, 4)[2] == [1, 3, 0, 4]  # two on each side, the nearer first
+
+
+def test_the_neighbours_follow_the_recording_order_not_the_seconds_between_starts():
+    # The twin's episodes run in parallel start within seconds of each other, in an order qube-run keeps
+    # from one recording to the next; the seconds between them move with the machine's load. Two
+    # recordings of the same eight episodes, their starts spaced differently: the same neighbours.
+    names = [f"qube_ep{k}.mcap" for k in range(8)]
+    first = [f"2026-11-28T16:20:{s:02d}" for s in (16, 16, 17, 19, 19, 20, 25, 26)]
+    second = [f"2026-11-28T16:20:{s:02d}" for s in (16, 18, 18, 18, 21, 24, 24, 24)]
+    one, other = order_neighbours(first, names, 4), order_neighbours(second, names, 4)
+    assert one == other
+    assert one[0] == [1, 2, 3, 4] and one[4] == [3, 5, 2, 6] and one[7] == [6, 5, 4, 3]
+    # Starts that tie to the second are ordered as logged (milliseconds), then by name; a log of
+    # another session (more than ten minutes later) or without a start time is no one's neighbour.
+    ms = ["2026-11-28T16:20:16.900", "2026-11-28T16:20:16.100", "2026-11-28T16:20:16.500", "2026-11-28T16:40:00", None]
+    assert order_neighbours(ms, ["a", "b", "c", "d", "e"], 1) == [[2], [2], [1], [], []]
+    assert order_neighbours(["2026-11-28T16:20:16"] * 3, ["c", "a", "b"], 1) == [[2], [2], [1]]
 
 
 @pytest.mark.slow
