@@ -83,15 +83,20 @@ def calibration_text(cal, names: list[str], seconds: float, groups: list | None 
     return "\n".join(lines) + "\n"
 
 
-def validation_text(replay, open_loop: np.ndarray, names: list[str], controller: str | None = None) -> str:
+def validation_text(
+    replay, open_loop: np.ndarray, names: list[str], controller: str | None = None, fitted: int = 0
+) -> str:
     """Markdown: closed-loop replay ratios, balance, NRMSE and 0.2 s open-loop error per episode.
 
     ``controller`` (a label) names the controller in the title when the validation has several.
+    ``fitted`` counts the episodes that the fit used too: the title then says their replay is
+    not a held-out check.
     """
     r = replay.std_ratio
     under = f" under {controller}" if controller else ""
+    held = "not fitted" if not fitted else f"({fitted} of them fitted too: not held out)"
     lines = [
-        f"## Validation on {len(names)} episodes not fitted{under}",
+        f"## Validation on {len(names)} episodes {held}{under}",
         "",
         f"- balanced: {int(replay.balanced.sum())} of {len(names)}",
         "- std ratio twin/real, min..max (mean): "

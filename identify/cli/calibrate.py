@@ -34,6 +34,7 @@ extra), without which a warning says it was skipped.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 
@@ -42,6 +43,8 @@ import numpy as np
 from qube_koopman.core.cli import OneLineParser, add_force_option, add_standard_options, path, whole_number
 from qube_koopman.core.command import CliError, check_output_file, check_output_folder, output_dir, run_command
 from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["main"]
 
@@ -178,12 +181,22 @@ def _run(args) -> int:
         provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
     validation, val_dt = None, None
     if val_paths:
-        validation, val_dt, summary = _validate(_read(val_paths), val_paths, plant)
+        refitted = _also_fitted(val_paths, fit_paths)
+        validation, val_dt, summary = _validate(_read(val_paths), val_paths, plant, set(refitted))
         text += summary
         replays = [v[0] for v in validation]
         ratio = np.concatenate([r.std_ratio for r in replays])
+        if refitted:
+            shown = ", ".join(p.name for p in refitted[:3]) + (", ..." if len(refitted) > 3 else "")
+            _log.warning(
+                "%d of the %d validation logs are fitted too (%s): their replay is not a held-out check",
+                len(refitted),
+                len(val_paths),
+                shown,
+            )
         provenance.update(
             validated_on=[p.name for p in val_paths],
+            validated_also_fitted=len(refitted),
             balanced=int(sum(r.balanced.sum() for r in replays)),
             std_ratio_min=[round(float(v), 4) for v in ratio.min(axis=0)],
             std_ratio_max=[round(float(v), 4) for v in ratio.max(axis=0)],
@@ -224,9 +237,16 @@ def _by_setup(per_parameter: dict) -> dict:
     return out
 
 
-def _validate(held, paths, plant):
+def _also_fitted(val_paths, fit_paths) -> list:
+    """The validation logs that are fit logs too (the same file, however it was named)."""
+    fitted = {p.resolve() for p in fit_paths}
+    return [p for p in val_paths if p.resolve() in fitted]
+
+
+def _validate(held, paths, plant, refitted=frozenset()):
     """Replay the held-out logs one controller at a time, each log on its day's twin (``plant.params_for``).
 
+    ``refitted`` holds the paths of those logs that the fit used too: their tables say so.
     Returns the per-controller ``(replay, open_loop, names, label)`` tuples, the
     sample period and the report's text (each controller's table, then the
     summary across controllers).
@@ -243,7 +263,8 @@ def _validate(held, paths, plant):
         params = [twins[i] for i in members]
         replay = replay_episodes(episodes, params)
         out.append((replay, open_loop_error(episodes, params, replay.offsets), [paths[i].name for i in members], label))
-        text += "\n" + validation_text(*out[-1][:3], controller=label if several else None)
+        fitted = sum(paths[i] in refitted for i in members)
+        text += "\n" + validation_text(*out[-1][:3], controller=label if several else None, fitted=fitted)
     dt = held[0].dt
     text += "\n" + controller_summary_text([(v[3], v[0]) for v in out], dt)
     return out, dt, text

@@ -132,6 +132,26 @@ def test_cli_report_folder_gets_the_spectra_and_the_recording(tmp_path, capsys):
         assert (tmp_path / "report" / "calibration.rrd").stat().st_size > 0 and "warning" not in err
 
 
+def test_validation_logs_that_were_fitted_are_not_called_held_out(tmp_path, capsys):
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.calibrate import main
+    from qube_koopman.sim.pendulum.params_file import load_plant
+
+    assert run_main(["--episodes", "2", "--duration", "3", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
+    logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
+    capsys.readouterr()
+    # The first log fitted and validated (named through another path), the second only validated.
+    again = str(tmp_path / "logs" / ".." / "logs" / logs[0].rsplit("/", 1)[1])
+    assert main([logs[0], "--validate", again, logs[1], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "2",
+                 "--report", str(tmp_path / "report")]) == 0
+    err = capsys.readouterr().err
+    assert "1 of the 2 validation logs are fitted too" in err and "not a held-out check" in err
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "## Validation on 2 episodes (1 of them fitted too: not held out)" in report
+    assert "not fitted" not in report
+    assert load_plant(tmp_path / "plant.toml").provenance["validated_also_fitted"] == 1
+
+
 def test_band_and_slow_std_ratios_are_the_scale_in_every_band():
     # twin = real * SCALE: every band's and the slow signals' std ratio is SCALE, whatever the spectrum.
     from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios, slow_std_ratio
