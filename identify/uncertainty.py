@@ -714,7 +714,13 @@ class IntervalCalibration:
         Held-out samples (per channel) the fit used.
     n_diverged_ : int
         Held-out predictions that diverged (:func:`calibrate`; their samples from there are left out).
+    parts_ : tuple of IntervalCalibration
+        Set by :func:`widest`: the calibrations whose widest band, at each horizon, this one's is
+        (``scale_``, ``timescale_`` and ``factor_`` are then those of the band widest at long horizons,
+        for the reports); empty for a calibration fitted on its own.
     """
+
+    parts_: tuple = ()
 
     def __init__(self, level: float = 0.95) -> None:
         self.level = level
@@ -748,6 +754,8 @@ class IntervalCalibration:
 
     def half_width(self, variances: np.ndarray, horizons: np.ndarray) -> np.ndarray:
         """Half-widths of samples with these variances (..., n_states) at these horizons (...,)."""
+        if self.parts_:
+            return np.maximum.reduce([part.half_width(variances, horizons) for part in self.parts_])
         h = np.asarray(horizons)
         growth = np.stack([_growth(h, tau) for tau in self.timescale_], axis=-1)
         total = np.asarray(variances, dtype=float) + self.scale_ * growth
@@ -895,7 +903,13 @@ def calibrate_on_probes(
 
 
 def widest(calibrations: Sequence[IntervalCalibration]) -> IntervalCalibration:
-    """Per channel, the calibration whose band is widest at long horizons (largest ``k_c sqrt(q_c)``).
+    """Per channel and horizon, the widest of the calibrations' bands.
+
+    A band that grows slowly to a wide limit can be the narrower one over the horizons an episode
+    lasts (a timescale of 19 s against 5 s on a 20 s episode), so the band is the widest at each
+    horizon, not the one widest at long horizons alone. The reports' numbers (``scale_``,
+    ``timescale_``, ``factor_``) are, per channel, those of the band widest at long horizons
+    (largest ``k_c sqrt(q_c)``).
 
     Parameters
     ----------
@@ -905,8 +919,9 @@ def widest(calibrations: Sequence[IntervalCalibration]) -> IntervalCalibration:
     Returns
     -------
     IntervalCalibration
-        A new calibration: each channel's scale, timescale and factor from one of them (the counts
-        of samples and diverged predictions are summed).
+        A new calibration: its half-width the calibrations' largest at each horizon (``parts_``), each
+        channel's scale, timescale and factor from the one widest at long horizons (the counts of
+        samples and diverged predictions are summed).
     """
     calibrations = list(calibrations)
     width = np.array([c.factor_ * np.sqrt(c.scale_) for c in calibrations])
@@ -917,6 +932,7 @@ def widest(calibrations: Sequence[IntervalCalibration]) -> IntervalCalibration:
         setattr(out, name, values[pick, np.arange(values.shape[1])])
     out.n_samples_ = sum(c.n_samples_ for c in calibrations)
     out.n_diverged_ = sum(c.n_diverged_ for c in calibrations)
+    out.parts_ = tuple(part for c in calibrations for part in (c.parts_ or (c,)))
     return out
 
 

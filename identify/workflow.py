@@ -530,9 +530,13 @@ class _TestLoops:
             t = replace(t, xc=xc, f=f)
         return t
 
+    def runs_own(self, log) -> bool:
+        """Whether the episode's loop runs its own log's controller (no what-if, or the what-if is the log's)."""
+        return self.what_if is None or same_system(log.controller, self.what_if)
+
     def scored(self, log) -> bool:
         """Whether the episode is scored: only those recorded under a what-if controller are."""
-        return self.what_if is None or same_system(log.controller, self.what_if)
+        return self.runs_own(log)
 
 
 def _estimated_delays(plant, train, test, skip: int, result) -> dict:
@@ -642,7 +646,7 @@ def _score_koopman(
             estimates.append(episode.estimate)
             scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
             if bands is not None:
-                bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop)
+                bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop, how.runs_own(test[i]))
     if how.command_delay:
         result.report["command_delay"] = {
             "samples": float(how.command_delay),
@@ -679,8 +683,8 @@ INTERVAL_METHOD = (
     "propagated through the prediction; q_c, tau_c (Gaussian maximum likelihood) and k_c (the level's "
     "quantile) calibrated per channel on training episodes held out in turn, never the test episodes; "
     "for a loop the training never ran (another controller), calibrated the same way on the twin's "
-    "probe episodes: per channel the wider of the calibration under the loop's own controller (its PD "
-    "gains known) and under the default probe controllers (other_loops 'twin')"
+    "probe episodes: per channel and horizon the wider of the bands calibrated under the loop's own "
+    "controller (its PD gains known) and under the default probe controllers (other_loops 'twin')"
 )
 
 
@@ -698,10 +702,11 @@ class _TestBands:
         self.summary = BandSummary(STATE_NAMES)
         self.files: list[str] = []
 
-    def add(self, log, trajectory, predicted, scored, start, n_delays, loop) -> None:
-        """One test episode's band: saved, counted, kept with the predictions if they are."""
+    def add(self, log, trajectory, predicted, scored, start, n_delays, loop, own: bool = True) -> None:
+        """One test episode's band: saved, counted, kept with the predictions if they are. ``own``: the loop
+        runs the log's own controller (perhaps with a command delay), not a what-if's."""
         seen = any(loop.same(known) for known in self.loops)
-        calibration = self.calibration if seen or self._other is None else self._calibration_elsewhere(loop, log)
+        calibration = self.calibration if seen or self._other is None else self._calibration_elsewhere(loop, log, own)
         band = prediction_band(log.path.name, trajectory, predicted, calibration, start, n_delays, scored)
         band.calibrated_loop = seen
         band.calibration = "held-out" if calibration is self.calibration else "twin probes"
@@ -713,13 +718,15 @@ class _TestBands:
         if self.keep:
             self.result.test_bands.append(band)
 
-    def _calibration_elsewhere(self, loop, log):
+    def _calibration_elsewhere(self, loop, log, own: bool):
         for known, calibration, _ in self.elsewhere:
             if known.same(loop):
                 return calibration
         started = time.perf_counter()
-        own = loop.kind == "wrapped" and same_system(loop.controller, log.controller)
-        gains = _pd_gains(log.gains) if own else None  # a what-if's or a state-space controller's: none
+        # The log's own PD gains, also when its loop is predicted with a command delay (the delayed
+        # controller is not the log's, but the probes of its gains measure the model's error under it);
+        # a what-if's, the plant's or a state-space controller's loop: none.
+        gains = _pd_gains(log.gains) if own and loop.kind == "wrapped" else None
         calibration, entry = self._other(gains)
         entry["log"] = log.path.name
         self.elsewhere.append((loop, calibration, entry))
@@ -787,6 +794,7 @@ def _test_bands(
     )
     seconds = {"calibration": time.perf_counter() - started}
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
+    by_gains: dict[tuple, tuple] = {}  # gains -> (their probes or why none, their calibration or None)
 
     def on_probes(probe_set):
         return calibrate_on_probes(
@@ -825,21 +833,27 @@ def _test_bands(
             "gains": gains,
         }
         if gains is not None:
-            try:
-                own = own if own is not None else on_session_twins([gains])[0]
-            except ValueError as exc:  # e.g. excitations the twin cannot replay: the default probes alone, said so
-                entry["own_probes"] = f"none: {exc}"
-            else:
-                if not own.controllers:
-                    entry["own_probes"] = "none: no probe episode stayed balanced on the twin"
+            if gains not in by_gains:  # made once per gains: loops that differ by a command delay share them
+                try:
+                    own = own if own is not None else on_session_twins([gains])[0]
+                except ValueError as exc:  # e.g. excitations the twin cannot replay: the default probes alone, said so
+                    by_gains[gains] = (f"none: {exc}", None)
                 else:
-                    own_calibration = on_probes(own)
-                    entry.update(
-                        own_probes=own.describe(),
-                        n_own_episodes=own.n_episodes,
-                        own_channels=own_calibration.as_dict(STATE_NAMES),
+                    by_gains[gains] = (
+                        (own, on_probes(own))
+                        if own.controllers
+                        else ("none: no probe episode stayed balanced on the twin", None)
                     )
-                    calibration = widest([own_calibration, calibration])
+            own, own_calibration = by_gains[gains]
+            if own_calibration is None:
+                entry["own_probes"] = own
+            else:
+                entry.update(
+                    own_probes=own.describe(),
+                    n_own_episodes=own.n_episodes,
+                    own_channels=own_calibration.as_dict(STATE_NAMES),
+                )
+                calibration = widest([own_calibration, calibration])
         entry["channels"] = calibration.as_dict(STATE_NAMES)
         return calibration, entry
 

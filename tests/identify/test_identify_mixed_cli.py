@@ -185,3 +185,20 @@ def test_an_episode_under_a_loop_the_training_never_ran_gets_its_band_from_the_s
     assert 3 * 18 - 6 <= entry["n_default_episodes"] <= 3 * 18 and 12 <= entry["n_own_episodes"] <= 18
     assert entry["gains"][0] == 2.0  # soft-theta's kp_theta: its own gains probed
     assert "calibrated on the twin's probes" in out
+
+
+def test_a_loop_predicted_with_a_command_delay_keeps_its_own_gains_probes(two_controllers, tmp_path, capsys):
+    """With the test loops predicted 2 ms later than the training's (``--command-delay 2``), each episode's loop
+    is its own controller followed by the delay: a loop the training never ran, whose band still comes from the
+    probes of its own PD gains beside the default probes (the delayed controller is not the log's, but its gains
+    are; without them the band under a stiffer loop than the probes' was a third too narrow). The rig's and the
+    soft-theta episode each get their own gains' probes."""
+    train, test = two_controllers["rig"][:2], [two_controllers["rig"][2], two_controllers["soft-theta"][2]]
+    code, out, err = run(capsys, "--train", *train, "--test", *test, "--delays", "5", "--interval-members", "4",
+                         "--command-delay", "2", "--out", tmp_path)
+    assert code == 0, err
+    intervals = json.loads((tmp_path / "report.json").read_text())["intervals"]
+    assert [e["calibration"] for e in intervals["episodes"]] == ["twin probes", "twin probes"]
+    rig, soft = intervals["calibration_other_loops"]
+    assert rig["gains"][0] == 6.0 and soft["gains"][0] == 2.0  # kp_theta of each log's own controller
+    assert "6 variants" in rig["own_probes"] and "6 variants" in soft["own_probes"]

@@ -233,9 +233,18 @@ def test_the_widest_calibration_takes_each_channel_from_the_wider_band():
     np.testing.assert_array_equal(w.timescale_, [10.0, 40.0])
     np.testing.assert_array_equal(w.factor_, [2.0, 3.0])
     assert (w.n_samples_, w.n_diverged_) == (200, 2)
-    variances, horizons = np.zeros((1, 2)), np.array([10_000])
+    variances, horizons = np.zeros((5, 2)), np.array([1, 10, 100, 1_000, 10_000])
     np.testing.assert_allclose(w.half_width(variances, horizons),
                                np.maximum(a.half_width(variances, horizons), b.half_width(variances, horizons)))
+    # A band that grows slowly to the wider limit (c: 2 sqrt(0.04) = 0.4 after 1000 samples) is the narrower
+    # one at short horizons (d: 1.2 sqrt(0.09) = 0.36 after 10): the widest band is d's there, c's far out.
+    c, d = fitted([0.04, 0.01], [1000.0, 20.0], [2.0, 2.0]), fitted([0.09, 0.01], [10.0, 20.0], [1.2, 1.0])
+    w = widest([c, d])
+    assert w.factor_[0] == 2.0 and w.timescale_[0] == 1000.0  # the report's numbers: widest far out
+    near, far = w.half_width(np.zeros((2, 2)), np.array([100, 100_000]))
+    assert near[0] == pytest.approx(d.half_width(np.zeros(2), np.array(100))[0]) and near[0] > 0.35
+    assert far[0] == pytest.approx(0.4)
+    assert len(widest([w, a]).parts_) == 3  # nested: the parts, not the combination
 
 
 @pytest.mark.parametrize("offsets", [None, _Window()], ids=["plain", "offsets"])
