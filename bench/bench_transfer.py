@@ -33,10 +33,12 @@ Measured with ``--train twin`` (2 cores, shared; with offsets, mean / worst of 2
 | poly 2, 20 delays | 0.950 / 0.861 | 0.979 / 0.967 | 0.973 / 0.953 | 0.970 / 0.945 |
 | poly 1, 20 delays, const | 0.956 / 0.870 | 0.980 / 0.969 | 0.980 / 0.973 | 0.974 / 0.970 |
 
-With ``--train real`` (the twin whose cables' pull levels off) the transfer-aware winner (poly 1,
-sin/cos, 35 delays, 25 RBF, friction, offsets, alpha 1e-5) scores 0.985 / 0.969, 0.991 / 0.974,
-0.961 / 0.944, 0.948 / 0.924; the cross-validation winner (poly 1, sin/cos, 40 delays, 50 RBF,
-friction, alpha 1e-3) 0.985 / 0.962, 0.989 / 0.936, 0.963 / 0.947, 0.949 / 0.928.
+With ``--train real`` (the default twin: the cables per day, the delay per session) the
+transfer-aware winner (poly 1, sin/cos, 35 delays, 25 RBF, friction, offsets, alpha 1e-5) scores
+0.984 / 0.946, 0.992 / 0.973, 0.980 / 0.963, 0.972 / 0.947; the cross-validation winner (poly 1,
+sin/cos, 40 delays, 50 RBF, friction, alpha 1e-3) 0.985 / 0.949, 0.989 / 0.930, 0.982 / 0.967,
+0.975 / 0.947 (on the twin with one delay of 1.9 ms: 0.985 / 0.969, 0.991 / 0.974, 0.961 / 0.944,
+0.948 / 0.924 and 0.985 / 0.962, 0.989 / 0.936, 0.963 / 0.947, 0.949 / 0.928).
 
 Usage: python bench/bench_transfer.py [--train real --data DIR_WITH_48_MCAP_LOGS | --train twin]
        [--out DIR] [--n-jobs 2]

@@ -39,7 +39,7 @@ arm is what moved the arm (0.2-0.4 V of restoring voltage at the arm's excursion
 the fit made up for it with ``km`` and ``Jh`` (``km`` 0.050 without the spring, 0.042-0.044 with
 one stiffness for all logs, 0.045 with one per recording day; the workbook's 0.042). Two of the
 parameters belong to a setup rather than to the rig: the cables' stiffness (dressed anew each
-time the rig is set up: the two recording days' logs want 0.19 and 0.55 V/rad at rest) and the delay
+time the rig is set up: the two recording days' logs want 0.19 and 0.59 V/rad at rest) and the delay
 (the host's latency: 0.8-1.1 ms in three sessions, 4.3 ms in the soft controller's later one).
 Segments may carry, per such parameter, the setup they were recorded in (:attr:`Segments.setups`);
 each setup after the first then gets its own value, a variable after the physical ones (the

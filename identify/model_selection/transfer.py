@@ -58,12 +58,14 @@ DEFAULT_PROBE_GAINS: tuple[tuple[float, float, float, float, float], ...] = (
     (4.0, 3.0, 45.0, 4.0, 50.0),
 )
 
-#: Command delays (s) the rig's sessions ran with, each session's logs calibrated alone: the
-#: paper's training episodes 0.99 ms, the soft controller's earlier session 1.87 ms, its later
-#: one 4.94 ms (the host's latency, after the controller; docs/transfer.md).
-SESSION_DELAYS: tuple[float, ...] = (1.0e-3, 1.9e-3, 4.9e-3)
+#: Command delays (s) the rig's sessions ran with, as the shipped twin's calibration fitted them
+#: with the rest of its physics (a delay per recording session): the least, the median and the
+#: largest of its sessions' (0.62, 1.27 and 1.42, 4.14 ms: the host's latency, after the
+#: controller; docs/calibration.md). Delays fitted with other physics (each session alone: 1.0, 1.9
+#: and 4.9 ms) would put the twin's loops later than the twin's own sessions ran.
+SESSION_DELAYS: tuple[float, ...] = (0.6e-3, 1.35e-3, 4.1e-3)
 #: The cables' stiffness relative to the twin's: the two recording days' logs want stiffnesses
-#: 2.4 times apart (0.65 and 1.54 times the twin's, their geometric mean: docs/calibration.md), so a
+#: 3.1 times apart (0.56 and 1.77 times the twin's, their geometric mean: docs/calibration.md), so a
 #: factor sqrt(3) either side of the twin's spans them.
 CABLE_STIFFNESS_FACTORS: tuple[float, ...] = (3.0**-0.5, 3.0**0.5)
 

@@ -113,22 +113,22 @@ class PendulumParameters:
 
     # The calibrated twin, digit for digit as plants/qube_20230828_20230915.toml (tests/sim/test_plant_file.py).
     Rm: float = 8.4
-    km: float = 0.04505335427627018
+    km: float = 0.043454588905303834
     mr: float = 0.095
     Lr: float = 0.085
     mp: float = 0.024
-    Lp: float = 0.12223216720629967
+    Lp: float = 0.12237129252750036
     g: float = 9.81
-    Dr: float = 8.872190654623753e-05
+    Dr: float = 4.3218138967563495e-05
     Dp: float = 0.0
-    Cr: float = 0.0003627548810353709
+    Cr: float = 0.00040048485875993534
     coulomb_speed: float = 0.05
-    dead_zone: float = 0.05707221350721789
-    Jh: float = 7.144547692374224e-05
-    delay: float = 0.0019214211423907773
-    Kr: float = 0.0017220261358053956
+    dead_zone: float = 0.04545963558672975
+    Jh: float = 6.531913563680526e-05
+    delay: float = 0.0013464229902617549
+    Kr: float = 0.0017123295002048101
     theta_rest: float = 0.0
-    cable_softening: float = 5.221923496189218
+    cable_softening: float = 5.179489002800374
 
     def __post_init__(self) -> None:
         for f in fields(self):
