@@ -191,7 +191,7 @@ def test_a_loop_predicted_with_a_command_delay_keeps_its_own_gains_probes(two_co
     """With the test loops predicted 2 ms later than the training's (``--command-delay 2``), each episode's loop
     is its own controller followed by the delay: a loop the training never ran, whose band still comes from the
     probes of its own PD gains beside the default probes (the delayed controller is not the log's, but its gains
-    are; without them the band under a stiffer loop than the probes' was a third too narrow). The rig's and the
+    are; without them alpha's band under the stiffest judge loop was half as wide as with them). The rig's and the
     soft-theta episode each get their own gains' probes."""
     train, test = two_controllers["rig"][:2], [two_controllers["rig"][2], two_controllers["soft-theta"][2]]
     code, out, err = run(capsys, "--train", *train, "--test", *test, "--delays", "5", "--interval-members", "4",
