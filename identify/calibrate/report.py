@@ -70,7 +70,7 @@ def calibration_text(cal, names: list[str], seconds: float, groups: list | None 
     if groups and len(groups) > 1:
         lines += [
             "",
-            "Fit per controller (0.2 s segments of the logged voltage, open loop):",
+            f"Fit per controller ({cal.horizon:g} s segments of the logged voltage, open loop):",
             "",
             "| controller | episodes | residual RMS theta (mrad) | alpha (mrad) |",
             "|---|---|---|---|",

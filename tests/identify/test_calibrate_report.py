@@ -152,6 +152,20 @@ def test_validation_logs_that_were_fitted_are_not_called_held_out(tmp_path, caps
     assert load_plant(tmp_path / "plant.toml").provenance["validated_also_fitted"] == 1
 
 
+def test_the_per_controller_fit_table_names_the_segments_length(tmp_path, capsys):
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.calibrate import main
+
+    for name, extra in (("rig", []), ("soft", ["--controller", "soft-theta"])):
+        assert run_main(["--episodes", "1", "--duration", "3", "--seed", "5", "--out", str(tmp_path / name), "-q",
+                         *extra]) == 0
+    logs = sorted(map(str, tmp_path.glob("*/*.mcap")))
+    capsys.readouterr()
+    assert main([*logs, "--horizon", "0.1", "--out", str(tmp_path / "plant.toml"), "--max-nfev", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "Fit per controller (0.1 s segments of the logged voltage, open loop):" in out
+
+
 def test_band_and_slow_std_ratios_are_the_scale_in_every_band():
     # twin = real * SCALE: every band's and the slow signals' std ratio is SCALE, whatever the spectrum.
     from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios, slow_std_ratio
