@@ -78,7 +78,7 @@ class EpisodePlan:
         Further provenance recorded in the log.
     plant : PendulumParameters, optional
         On a simulated backend, the pendulum this episode runs (``qube-run --replay``: the replayed
-        log's twin, with its recording day's cables); None: the backend's.
+        log's twin, with its recording day's cables and its session's delay); None: the backend's.
     """
 
     controller: ControllerInfo

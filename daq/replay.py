@@ -41,7 +41,8 @@ def replay_plans(
 
     ``twins`` maps the logs' start times to the pendulum each replays on (a plant file's
     :meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.params_for_logs`: each log's
-    recording day's cables), set as the plans' ``plant``; None leaves the backend's.
+    recording day's cables and its session's delay), set as the plans' ``plant``; None leaves the
+    backend's.
 
     Raises
     ------

@@ -119,7 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="LOG",
         help="run the same excitations as these logs (their seeds, settings and durations), "
         "under their own controller unless --controller is given; on the simulator each on its "
-        "recording day's twin when the plant file (--plant, or the shipped one) has that day's cables",
+        "recording day's and session's twin when the plant file (--plant, or the shipped one) has that "
+        "day's cables and that session's command delay",
     )
     p.add_argument(
         "--controller",
