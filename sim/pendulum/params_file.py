@@ -37,8 +37,8 @@ Version 1 is version 2 before the cables' pull could level off: a version-1 file
 Unknown keys in ``[parameters]`` and ``[setups.*]`` are an error (a misspelt ``Dr`` must not
 silently keep its default). A setup is what differed when the logs were recorded: the cables
 between the arm's hub and the base are dressed anew each time the rig is set up (a day: the
-two recording days' logs want stiffnesses 2.4 times apart), the host's latency from a command to
-the motor changes with the session (1.0, 1.9 and 4.9 ms in three). ``qube-calibrate`` fits those per day and
+two recording days' logs want stiffnesses 3.1 times apart), the host's latency from a command to
+the motor changes with the session (0.6 to 4.1 ms in four). ``qube-calibrate`` fits those per day and
 per session with the rest of the physics shared; a replay of a log recorded then uses them
 (:meth:`PlantFile.params_for`), and ``[parameters]`` holds the central guess for a day or
 session no log shows.
@@ -48,11 +48,12 @@ values are strings, numbers, booleans or lists of those.
 Named parameter sets (:func:`named_parameters`): ``"calibrated-two-controllers"``
 (``plants/qube_20230828_20230915.toml``: ``qube-calibrate`` on the paper's 28
 training episodes and on 10 episodes of the same rig under a softer arm loop,
-with the arm's cable spring ``Kr`` fitted; its closed-loop validation is in its
-provenance), ``"default"`` (what :class:`PendulumParameters` gives: the same
-values), ``"calibrated-20230828"`` (``plants/qube_20230828.toml``: the paper's
-28 training episodes alone, with the arm's hub inertia and the transport delay
-fitted and no cable spring: the default before the second controller's logs),
+with the arm's cable spring ``Kr`` fitted per recording day and the command delay per
+recording session; its closed-loop validation is in its provenance), ``"default"`` (what
+:class:`PendulumParameters` gives: the same values), ``"calibrated-20230828"``
+(``plants/qube_20230828.toml``: the paper's 28 training episodes alone, with the arm's hub
+inertia and the transport delay fitted and no cable spring: the default before the second
+controller's logs),
 ``"workbook"`` (the Quanser workbook, including its damping) and
 ``"previous"`` (workbook masses with another public project's hardware-fitted
 damping: the default before calibration, the calibration's starting point).
@@ -194,7 +195,8 @@ class PlantFile:
     standard_errors : dict of str to float
     provenance : dict
     setups : dict of str to dict of str to float, optional
-        Per setup (a recording day, ``YYYY-MM-DD``), the parameters that differed that day.
+        Per setup (a recording day, ``YYYY-MM-DD``, or a recording session,
+        ``YYYY-MM-DD HH:MM:SS-HH:MM:SS``), the parameters that differed then.
     setup_standard_errors : dict of str to dict of str to float, optional
         Their standard errors.
     """
@@ -307,8 +309,8 @@ def plant_parameters(name_or_path: str | Path | None) -> PendulumParameters:
 def plant_file(name_or_path: str | Path | None) -> PlantFile:
     """What ``--plant`` names, with its setups: :func:`plant_parameters` as a :class:`PlantFile`.
 
-    None and ``"default"`` give the shipped twin's file (its recording days' cables), a named set
-    without a file its parameters alone (no setups).
+    None and ``"default"`` give the shipped twin's file (its recording days' cables and sessions'
+    delays), a named set without a file its parameters alone (no setups).
 
     Raises
     ------
