@@ -794,25 +794,40 @@ def _test_bands(
     )
     seconds = {"calibration": time.perf_counter() - started}
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
-    by_gains: dict[tuple, tuple] = {}  # gains -> (their probes or why none, their calibration or None)
+    by_gains: dict[tuple, tuple] = {}  # gains -> (their calibration or None, the report's fields on them)
 
     def on_probes(probe_set):
         return calibrate_on_probes(
             ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride, options.n_probe_members
         )
 
+    def on_session_twins(*gain_sets):
+        from qube_koopman.identify.model_selection.transfer import session_twins, twin_probe_sets
+
+        return twin_probe_sets(
+            LogTrajectories(train), gain_sets, per_controller=INTERVAL_PROBES, params=session_twins(), cache=probe_cache
+        )
+
+    def own_calibration_of(gains, own):
+        """The calibration on the probes of a loop's own PD gains (``own``: those probes, when simulated
+        already) and the report's fields on them; None and why, when there are none."""
+        try:
+            own = own if own is not None else on_session_twins([gains])[0]
+        except ValueError as exc:  # e.g. excitations the twin cannot replay: the default probes alone, said so
+            return None, {"own_probes": f"none: {exc}"}
+        if not own.controllers:
+            return None, {"own_probes": "none: no probe episode stayed balanced on the twin"}
+        own_calibration = on_probes(own)
+        fields = {
+            "own_probes": own.describe(),
+            "n_own_episodes": own.n_episodes,
+            "own_channels": own_calibration.as_dict(STATE_NAMES),
+        }
+        return own_calibration, fields
+
     def elsewhere(gains):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
-        from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS, session_twins, twin_probe_sets
-
-        def on_session_twins(*gain_sets):
-            return twin_probe_sets(
-                LogTrajectories(train),
-                gain_sets,
-                per_controller=INTERVAL_PROBES,
-                params=session_twins(),
-                cache=probe_cache,
-            )
+        from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS
 
         own = None
         if not default:
@@ -834,25 +849,10 @@ def _test_bands(
         }
         if gains is not None:
             if gains not in by_gains:  # made once per gains: loops that differ by a command delay share them
-                try:
-                    own = own if own is not None else on_session_twins([gains])[0]
-                except ValueError as exc:  # e.g. excitations the twin cannot replay: the default probes alone, said so
-                    by_gains[gains] = (f"none: {exc}", None)
-                else:
-                    by_gains[gains] = (
-                        (own, on_probes(own))
-                        if own.controllers
-                        else ("none: no probe episode stayed balanced on the twin", None)
-                    )
-            own, own_calibration = by_gains[gains]
-            if own_calibration is None:
-                entry["own_probes"] = own
-            else:
-                entry.update(
-                    own_probes=own.describe(),
-                    n_own_episodes=own.n_episodes,
-                    own_channels=own_calibration.as_dict(STATE_NAMES),
-                )
+                by_gains[gains] = own_calibration_of(gains, own)
+            own_calibration, fields = by_gains[gains]
+            entry.update(fields)
+            if own_calibration is not None:
                 calibration = widest([own_calibration, calibration])
         entry["channels"] = calibration.as_dict(STATE_NAMES)
         return calibration, entry
