@@ -200,14 +200,16 @@ def estimate_offset_closed_loop(
     params : PendulumParameters or sequence of them
         The twin, or one per episode.
     start, window : int
-        The window's first sample and its length (samples).
+        The window's first sample and its length (samples; at most what the shortest episode holds
+        after ``start``).
 
     Returns
     -------
     ndarray of shape (n_episodes,)
     """
-    if not 2 <= window <= min(len(e) for e in episodes) - start:
-        raise ValueError(f"the offset window must hold 2 samples or more after sample {start}, got {window}")
+    window = min(int(window), min(len(e) for e in episodes) - start)  # a shorter log: what it holds
+    if window < 2:
+        raise ValueError(f"the offset window needs 2 samples or more after sample {start} of every episode")
     dt = episodes[0].dt
     ys = [np.asarray(e.states, float) for e in episodes]
     us = [np.asarray(e.plant_input, float) for e in episodes]

@@ -46,6 +46,9 @@ from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
 
 _log = logging.getLogger(__name__)
 
+#: The open-loop prediction the validation makes of each held-out log (s): ``open_loop_error``'s default.
+OPEN_LOOP_HORIZON = 0.2
+
 __all__ = ["main"]
 
 
@@ -109,14 +112,25 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _read(paths):
+def _read(paths, segment: float, role: str):
+    """The logs' episodes, each long enough for ``role``: the first second skipped, then ``segment`` seconds."""
+    from qube_koopman.core.qube import SKIP_SAMPLES
     from qube_koopman.identify.data.logs import load_logs, read_episodes
 
     try:
         logs = load_logs(paths, strict=True, refusal="refused: qube-calibrate fits complete, readable logs only")
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    return read_episodes(logs)
+    episodes = read_episodes(logs)
+    for log_path, episode in zip(paths, episodes):
+        need = SKIP_SAMPLES + int(round(segment / episode.dt)) + 1
+        if len(episode) < need:
+            raise CliError(
+                f"{log_path}: {len(episode)} samples ({len(episode) * episode.dt:.2f} s), too short to {role}: "
+                f"qube-calibrate skips the first {SKIP_SAMPLES * episode.dt:g} s of a log and needs "
+                f"{segment:g} s after it ({need} samples)"
+            )
+    return episodes
 
 
 def _run(args) -> int:
@@ -137,7 +151,8 @@ def _run(args) -> int:
         raise CliError(f"--horizon must be between 0.004 and 2 s, got {args.horizon}")
     check_output_file(args.out, force=args.force)  # before the fit's minute of work, not after
     check_output_folder(args.report, ("report.md", "calibration.rrd"), "--report", args.force)
-    episodes = _read(fit_paths)
+    episodes = _read(fit_paths, args.horizon, "fit")
+    held = _read(val_paths, OPEN_LOOP_HORIZON, "validate") if val_paths else []  # refused before the fit, not after
     started = time.perf_counter()
     fit_groups = controller_groups(episodes)
     group_of = {i: label for label, members in fit_groups for i in members}
@@ -182,7 +197,7 @@ def _run(args) -> int:
     validation, val_dt = None, None
     if val_paths:
         refitted = _also_fitted(val_paths, fit_paths)
-        validation, val_dt, summary = _validate(_read(val_paths), val_paths, plant, set(refitted))
+        validation, val_dt, summary = _validate(held, val_paths, plant, set(refitted))
         text += summary
         replays = [v[0] for v in validation]
         ratio = np.concatenate([r.std_ratio for r in replays])
@@ -262,7 +277,8 @@ def _validate(held, paths, plant, refitted=frozenset()):
         episodes = [held[i] for i in members]
         params = [twins[i] for i in members]
         replay = replay_episodes(episodes, params)
-        out.append((replay, open_loop_error(episodes, params, replay.offsets), [paths[i].name for i in members], label))
+        open_loop = open_loop_error(episodes, params, replay.offsets, OPEN_LOOP_HORIZON)
+        out.append((replay, open_loop, [paths[i].name for i in members], label))
         fitted = sum(paths[i] in refitted for i in members)
         text += "\n" + validation_text(*out[-1][:3], controller=label if several else None, fitted=fitted)
     dt = held[0].dt

@@ -246,6 +246,24 @@ def test_cli_writes_a_plant_file_qube_run_accepts_and_a_report(tmp_path):
                      "--out", str(tmp_path / "again"), "-q"]) == 0
 
 
+
+def test_cli_refuses_a_log_too_short_to_fit_or_validate_before_the_fit(tmp_path, capsys):
+    # The first second is skipped, then a fit needs one segment (--horizon) and a validation a 0.2 s
+    # open-loop prediction: a shorter log is named with its length, exit 2, before the minute of fitting.
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.calibrate import main
+
+    for name, seconds in (("long", "3"), ("short", "0.8")):
+        argv = ["--episodes", "1", "--duration", seconds, "--seed", "5", "--out", str(tmp_path / name), "-q"]
+        assert run_main(argv) == 0
+    long, short = (str(next((tmp_path / n).glob("*.mcap"))) for n in ("long", "short"))
+    capsys.readouterr()
+    for argv in ([short], [long, "--validate", short]):
+        assert main([*argv, "--out", str(tmp_path / "plant.toml"), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert short in err and "too short" in err and "Traceback" not in err, err
+    assert not (tmp_path / "plant.toml").exists()
+
 def test_offsets_estimated_together_are_each_episodes_own_and_recover_the_injected_ones():
     # With the physics fixed the batched problem is separable: each episode's offset is its own
     # problem's minimizer. Cross-checked against MINPACK's Levenberg-Marquardt (scipy, dense
@@ -292,8 +310,11 @@ def test_closed_loop_offsets_recover_the_twins_encoder_zeros(tmp_path, controlle
     found = estimate_offset_closed_loop(episodes, PendulumParameters())
     errors = (found - truth) / ENCODER_COUNT
     assert np.all(np.abs(errors) <= 0.5) and np.sqrt(np.mean(errors**2)) <= 0.25, errors
+    # A window longer than the logs takes what they hold (a short validation log is replayed, not refused).
+    np.testing.assert_array_equal(estimate_offset_closed_loop(episodes, PendulumParameters(), window=10_000),
+                                  estimate_offset_closed_loop(episodes, PendulumParameters(), window=1000))
     with pytest.raises(ValueError, match="window"):
-        estimate_offset_closed_loop(episodes, PendulumParameters(), window=10_000)
+        estimate_offset_closed_loop(episodes, PendulumParameters(), start=1499)
 
 @pytest.mark.slow
 def test_a_calibration_under_the_rigs_gains_holds_under_another_controller(tmp_path, capsys):
