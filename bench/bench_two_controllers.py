@@ -25,6 +25,8 @@ so the rows differ only in their training logs.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import os
 import shlex
@@ -61,7 +63,9 @@ def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) ->
     """{test log name: (R^2 with offsets, R^2 without)} of one fit."""
     argv = ["--train", *map(str, train), "--test", *map(str, test), *shlex.split(lifting),
             "--offsets", "alpha", "--out", str(out), "-q"]
-    if identify_main(argv) != 0:
+    with contextlib.redirect_stdout(io.StringIO()):  # its summary lines: the table says it
+        status = identify_main(argv)
+    if status != 0:
         raise SystemExit(f"qube-identify failed: {' '.join(argv)}")
     report = json.loads((out / "report.json").read_text())
     names = report["scored_logs"]
