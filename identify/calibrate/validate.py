@@ -178,8 +178,8 @@ def estimate_offset_closed_loop(
     ``start:start + window`` best matches the log.
 
     The cost is the replay's squared theta and alpha errors over the window, each channel weighted
-    by one over its spread there (as :func:`~qube_koopman.identify.models.offsets.channel_scales`
-    weights a model's). The replay closes on quantized encoders, so the cost is rough at the scale
+    by one over its spread there (:func:`~qube_koopman.identify.models.offsets.channel_scales`, as a
+    model's estimate weighs them). The replay closes on quantized encoders, so the cost is rough at the scale
     of a tenth of a count, and Gauss-Newton steps on it wandered by a count on the rig's stiff loop
     (measured): instead every episode is replayed at :data:`COARSE_OFFSETS`, then at
     :data:`FINE_STEPS` around the best, all episodes and offsets of a stage in one batch, and the
@@ -210,11 +210,13 @@ def estimate_offset_closed_loop(
     window = min(int(window), min(len(e) for e in episodes) - start)  # a shorter log: what it holds
     if window < 2:
         raise ValueError(f"the offset window needs 2 samples or more after sample {start} of every episode")
+    from qube_koopman.identify.models.offsets import channel_scales
+
     dt = episodes[0].dt
     ys = [np.asarray(e.states, float) for e in episodes]
     us = [np.asarray(e.plant_input, float) for e in episodes]
     real = np.stack([y[start + 1 : start + window] for y in ys], axis=1)  # (samples, episodes, 2)
-    weight = 1.0 / np.maximum(real.std(axis=0), 1e-4)  # (episodes, 2): as channel_scales' SPREAD_FLOOR
+    weight = channel_scales(np.moveaxis(real, 1, 0))  # (episodes, 2): a model's estimate weighs them alike
     first = np.stack([np.concatenate([y[start], _rates(y, dt)[start]]) for y in ys])  # (episodes, 4)
 
     def costs(trials: np.ndarray) -> np.ndarray:  # (n_trials, episodes) offsets -> their costs
