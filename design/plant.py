@@ -82,6 +82,23 @@ class LinearPlant:
         """States of the history, ``n_measured * (n_delays + 1)``."""
         return self.F.shape[0]
 
+    def frequency_response(self, frequencies: np.ndarray) -> np.ndarray:
+        """The plant from the voltage to the measured states at ``z = exp(2 pi j f dt)``, per frequency ``f`` (Hz).
+
+        From its one-step rows, ``P(z) = (z I - sum_j A_j z^-j)^-1 b`` (``A_j``: the block of ``F`` on
+        ``x_{k-j}``): a solve of the measured states' size per frequency, where the history's state
+        space would need one of its full size. The same response as python-control's.
+
+        Returns
+        -------
+        ndarray of complex, shape (n_f, n_measured, 1)
+        """
+        z = np.exp(2j * np.pi * np.asarray(frequencies, dtype=float).ravel() * self.dt)
+        m, d = self.n_measured, self.n_delays
+        blocks = self.F[:m].reshape(m, d + 1, m)  # [out, j, state]: the block on x_{k-j}
+        lagged = np.einsum("wj,ojs->wos", z[:, None] ** -np.arange(d + 1), blocks)
+        return np.linalg.solve(z[:, None, None] * np.eye(m) - lagged, np.broadcast_to(self.G[:m], (len(z), m, 1)))
+
     def to_control(self):
         """The plant from the voltage to the measured states, a discrete ``control.StateSpace``."""
         import control  # lazily: python-control imports matplotlib

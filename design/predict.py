@@ -277,10 +277,9 @@ class Margins:
 def loop_response(plant: LinearPlant, controller: DiscreteStateSpace, omega: np.ndarray) -> np.ndarray:
     """The loop ``L = K(z) P(z)`` broken at the plant input, at ``z = exp(j omega dt)``.
 
-    The plant from its one-step rows, ``P(z) = (z I - sum_j A_j z^-j)^-1 b`` (``A_j``: the block of
-    ``F`` on ``x_{k-j}``; a 2 x 2 solve per frequency, where the history's state space would need a
-    solve of its full size), the controller as ``C (z I - A)^-1 B + D``, solved for all the
-    frequencies at once. The same response as python-control's of the two in series.
+    The plant's (:meth:`~design.plant.LinearPlant.frequency_response`) times the controller's
+    (:meth:`~core.lti.DiscreteStateSpace.frequency_response`): the same response as python-control's
+    of the two in series.
 
     Parameters
     ----------
@@ -294,18 +293,9 @@ def loop_response(plant: LinearPlant, controller: DiscreteStateSpace, omega: np.
     ndarray of complex, shaped as ``omega``
     """
     omega = np.asarray(omega, dtype=float)
-    z = np.exp(1j * omega.ravel() * plant.dt)
-    m, d = plant.n_measured, plant.n_delays
-    blocks = plant.F[:m].reshape(m, d + 1, m)  # [out, j, state]: the block on x_{k-j}
-    lagged = np.einsum("wj,ojs->wos", z[:, None] ** -np.arange(d + 1), blocks)
-    P = np.linalg.solve(z[:, None, None] * np.eye(m) - lagged, np.broadcast_to(plant.G[:m], (len(z), m, 1)))
-    A, B, C, D = (np.asarray(getattr(controller, name), dtype=float) for name in "ABCD")
-    n_c = A.shape[0]
-    K = np.empty((len(z), C.shape[0], B.shape[1]), dtype=complex)
-    for start in range(0, len(z), 256):  # bounded memory: 256 systems of the controller's size at a time
-        w = z[start : start + 256]
-        resolvent = np.linalg.solve(w[:, None, None] * np.eye(n_c) - A, np.broadcast_to(B, (len(w),) + B.shape))
-        K[start : start + 256] = C @ resolvent + D
+    frequencies = omega.ravel() / (2 * np.pi)
+    P = plant.frequency_response(frequencies)
+    K = controller.frequency_response(frequencies)
     return (K @ P)[:, 0, 0].reshape(omega.shape)
 
 
