@@ -39,7 +39,9 @@ import numpy as np
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.daq.excitation import Excitation
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
+from qube_koopman.design.error_transfer import loop_spectra, propagate_error
 from qube_koopman.design.plant import DesignError, LinearPlant, linear_plant
+from qube_koopman.identify.uncertainty.spectra import ErrorSpectra
 
 __all__ = [
     "FIGURES",
@@ -77,10 +79,13 @@ class ModelUncertainty:
         The design plants of the bootstrap refits.
     held_out : ndarray of shape (n, 2, 3) or None
         Measured and predicted ``[J, voltage RMS, voltage peak]`` of the held-out training episodes.
+    spectra : ErrorSpectra or None
+        Their prediction error's band spectra (None in a file written before they were kept).
     """
 
     members: list
     held_out: np.ndarray | None
+    spectra: ErrorSpectra | None = None
 
     def model_error(self) -> np.ndarray | None:
         """Log-ratios measured / predicted of the held-out episodes, (n, 3); None when fewer than 3 are finite."""
@@ -109,12 +114,14 @@ def model_uncertainty(model: dict) -> ModelUncertainty | None:
     if not members:
         return None
     held = (model.get("uncertainty") or {}).get("held_out")
-    held_out = None
+    held_out, spectra = None, None
     if held and held.get("measured"):
         held_out = np.stack(
             [np.asarray(held["measured"], dtype=float), np.asarray(held["predicted"], dtype=float)], axis=1
         )
-    return ModelUncertainty([linear_plant(member) for member in members], held_out)
+        if held.get("error_spectra"):
+            spectra = ErrorSpectra.from_dict(held["error_spectra"])
+    return ModelUncertainty([linear_plant(member) for member in members], held_out, spectra)
 
 
 def member_figures(
@@ -144,6 +151,14 @@ def member_figures(
     ndarray of shape (n_plants, n_episodes, 3)
         Inf where a prediction diverged.
     """
+    x, u, r = _member_runs(plants, design, excitations)
+    return _run_figures(x, u, r, skip)
+
+
+def _member_runs(
+    plants: list[LinearPlant], design: LqDesign, excitations: list[Excitation]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`member_figures`' simulation: states (P, E, T, m), voltage (P, E, T), references (E, T, m)."""
     m, d = plants[0].n_measured, plants[0].n_delays
     n = m * (d + 1)
     if any(p.n_states != n for p in plants):
@@ -173,6 +188,12 @@ def member_figures(
                 w = w + dt * err[:, :, k, 0]
             if k + 1 < T:
                 x[:, :, k + 1] = x[:, :, k - d : k + 1].reshape(P, E, n) @ F + G * u[:, :, k, None] + c
+    return x, u, r
+
+
+def _run_figures(x: np.ndarray, u: np.ndarray, r: np.ndarray, skip: int) -> np.ndarray:
+    """``[J, voltage RMS, voltage peak]`` (P, E, 3) of :func:`_member_runs`' runs after ``skip`` samples."""
+    with np.errstate(all="ignore"):
         tracking = x[:, :, skip:, 0] - r[None, :, skip:, 0]
         alpha, volt = x[:, :, skip:, 1], u[:, :, skip:]
         J = np.mean(tracking**2, axis=-1) + np.mean(alpha**2, axis=-1)
@@ -232,6 +253,13 @@ class FigureInterval:
         Held-out episodes the model-error term came from (0: none, the members alone).
     member_range : dict
         Smallest and largest figure over the members, by figure.
+    expected : dict
+        The predicted figures with the model's mean error: propagated through the designed loop
+        (``propagated``) or as the held-out episodes' mean ratio; the predicted figures without
+        held-out episodes.
+    propagated : bool
+        Whether the held-out error of J and the voltage's RMS was propagated through the designed loop
+        (:mod:`~design.error_transfer`) rather than taken as the training controller's ratio.
     """
 
     level: float
@@ -241,6 +269,8 @@ class FigureInterval:
     n_members: int
     n_held_out: int
     member_range: dict
+    expected: dict
+    propagated: bool = False
 
     @property
     def sources(self) -> str:
@@ -248,7 +278,8 @@ class FigureInterval:
         members = f"{self.n_members} bootstrap plants"
         if not self.n_held_out:
             return f"{members} alone (too few held-out episodes for the model's error)"
-        return f"{members} and the model's error on {self.n_held_out} held-out training episodes"
+        how = ", propagated through the designed loop" if self.propagated else ""
+        return f"{members} and the model's error on {self.n_held_out} held-out training episodes{how}"
 
     def contains(self, figure: str, value: float) -> bool:
         """Whether ``value`` lies within the interval of ``figure``."""
@@ -261,9 +292,11 @@ class FigureInterval:
             "sources": self.sources,
             "n_members": self.n_members,
             "n_held_out": self.n_held_out,
+            "propagated": self.propagated,
             **{
                 name: {
                     "predicted": self.predicted[name],
+                    "expected": self.expected[name],
                     "lower": self.lower[name],
                     "upper": self.upper[name],
                     "members": list(self.member_range[name]),
@@ -274,7 +307,12 @@ class FigureInterval:
 
 
 def figure_interval(
-    predicted: dict, nominal: np.ndarray, members: np.ndarray, model_error: np.ndarray | None, level: float = 0.95
+    predicted: dict,
+    nominal: np.ndarray,
+    members: np.ndarray,
+    model_error: np.ndarray | None,
+    level: float = 0.95,
+    shift: np.ndarray | None = None,
 ) -> FigureInterval:
     """The interval of each predicted figure from the members' figures and the held-out model error.
 
@@ -287,9 +325,14 @@ def figure_interval(
     members : ndarray of shape (n_members, n_episodes, 3)
         The members' figures.
     model_error : ndarray of shape (n, 3) or None
-        Log-ratios measured / predicted of held-out episodes (:meth:`ModelUncertainty.model_error`).
+        Log-ratios of held-out episodes: measured / predicted (:meth:`ModelUncertainty.model_error`),
+        or, for the figures ``shift`` moves, measured / expected
+        (:attr:`~design.error_transfer.PropagatedError.residuals`).
     level : float
         The interval's level, in (0, 1).
+    shift : ndarray of shape (3,), optional
+        ``log(expected / predicted)`` of each figure: the model's error propagated through the
+        designed loop (:func:`~design.error_transfer.propagate_error`); zero where none is.
 
     Returns
     -------
@@ -301,22 +344,53 @@ def figure_interval(
     base, pooled = _pooled(nominal), _pooled(members)
     with np.errstate(all="ignore"):
         shifts = np.log(pooled / base)
-    lower, upper, spread = {}, {}, {}
+    moved = np.zeros(len(FIGURES)) if shift is None else np.asarray(shift, dtype=float)
+    lower, upper, spread, expected = {}, {}, {}, {}
     n = 0 if model_error is None else len(model_error)
     for i, name in enumerate(FIGURES):
         spread[name] = (float(np.min(pooled[:, i])), float(np.max(pooled[:, i])))
+        centre = moved[i] + (float(np.mean(model_error[:, i])) if n and model_error is not None else 0.0)
+        expected[name] = float(predicted[name] * np.exp(centre))
         if not np.all(np.isfinite(shifts[:, i])):
             lower[name], upper[name] = float(predicted[name]), float("inf")
             continue
         if n and model_error is not None:  # n: the held-out episodes, none without a model error
             e = model_error[:, i]
             lo, hi = _mixture_quantiles(
-                shifts[:, i] + np.mean(e), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1, level
+                shifts[:, i] + centre, float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1, level
             )
         else:
-            lo, hi = _mixture_quantiles(shifts[:, i], 0.0, None, level)
+            lo, hi = _mixture_quantiles(shifts[:, i] + moved[i], 0.0, None, level)
         lower[name], upper[name] = float(predicted[name] * np.exp(lo)), float(predicted[name] * np.exp(hi))
-    return FigureInterval(level, {k: float(predicted[k]) for k in FIGURES}, lower, upper, len(members), n, spread)
+    return FigureInterval(
+        level,
+        {k: float(predicted[k]) for k in FIGURES},
+        lower,
+        upper,
+        len(members),
+        n,
+        spread,
+        expected,
+        propagated=shift is not None,
+    )
+
+
+def _propagated(uncertainty: ModelUncertainty, plant: LinearPlant, design: LqDesign, x, u, r):
+    """The held-out error propagated through the design (:func:`~design.error_transfer.propagate_error`) on the
+    point plant's runs ``x[0], u[0]`` of :func:`_member_runs`, as ``(model_error, shift)`` for
+    :func:`figure_interval`; None when the model file keeps no spectra or too few held-out episodes."""
+    model_error = uncertainty.model_error()
+    spectra, held_out = uncertainty.spectra, uncertainty.held_out
+    if spectra is None or held_out is None or model_error is None or spectra.n_episodes != len(held_out):
+        return None
+    uu, eu = loop_spectra(x[0, :, :, 0], r[:, :, 0], x[0, :, :, 1], u[0], spectra.edges, spectra.dt, SKIP_SAMPLES)
+    figures = _pooled(_run_figures(x[:1], u[:1], r, SKIP_SAMPLES))[0]
+    found = propagate_error(spectra, held_out, plant, design.controller, uu, eu, (figures[0], figures[1]))
+    residuals = np.column_stack([found.residuals, np.log(held_out[:, 0, 2] / held_out[:, 1, 2])])
+    residuals = residuals[np.all(np.isfinite(residuals), axis=1)]
+    if len(residuals) < MIN_HELD_OUT or not np.all(np.isfinite(found.shift)):
+        return None
+    return residuals, np.array([found.shift[0], found.shift[1], 0.0])
 
 
 def interval_from_logs(
@@ -348,8 +422,13 @@ def interval_from_logs(
     -------
     FigureInterval
     """
-    figures = member_figures([plant] + list(uncertainty.members), design, excitations)
-    return figure_interval(predicted, figures[0], figures[1:], uncertainty.model_error(), level)
+    x, u, r = _member_runs([plant] + list(uncertainty.members), design, excitations)
+    figures = _run_figures(x, u, r, SKIP_SAMPLES)
+    propagated = _propagated(uncertainty, plant, design, x, u, r)
+    if propagated is None:
+        return figure_interval(predicted, figures[0], figures[1:], uncertainty.model_error(), level)
+    model_error, shift = propagated
+    return figure_interval(predicted, figures[0], figures[1:], model_error, level, shift)
 
 
 class RobustCandidate(TypedDict):
@@ -411,7 +490,8 @@ def robust_design(
 
     Each candidate is designed on the point plant, then scored by the worst, over the bootstrap
     plants, of their J times the upper factor of the model's held-out error at ``level``
-    (:func:`figure_interval`'s model-error term); a candidate under which a bootstrap plant's
+    (:func:`figure_interval`'s model-error term, propagated through the candidate's loop when the
+    model file keeps the error's spectra); a candidate under which a bootstrap plant's
     closed loop is unstable (spectral radius) or diverges is out. The nominal weights win ties
     (within 1 %).
 
@@ -437,18 +517,28 @@ def robust_design(
     from qube_koopman.core.lti import spectral_radius
     from qube_koopman.design.predict import closed_loop_matrix
 
-    model_error = uncertainty.model_error()
-    factor = 1.0
-    if model_error is not None:
-        n = len(model_error)
-        e = model_error[:, 0]
-        _, hi = _mixture_quantiles(np.array([np.mean(e)]), float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1, level)
-        factor = float(np.exp(hi))
+    def upper_factor(model_error: np.ndarray | None, shift: float = 0.0) -> float:
+        """``exp`` of the upper quantile of J's model error at ``level`` (1 without one)."""
+        if model_error is None:
+            return 1.0
+        n, e = len(model_error), model_error[:, 0]
+        centre = np.array([shift + np.mean(e)])
+        _, hi = _mixture_quantiles(centre, float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1, level)
+        return float(np.exp(hi))
+
     candidates: list[RobustCandidate] = []
     designs = []
     for scale in scales:
         design = design_lq(plant, replace(weights, r_voltage=weights.r_voltage * scale))
-        J = np.mean(member_figures([plant] + list(uncertainty.members), design, excitations)[..., 0], axis=-1)
+        x, u, r = _member_runs([plant] + list(uncertainty.members), design, excitations)
+        J = np.mean(_run_figures(x, u, r, SKIP_SAMPLES)[..., 0], axis=-1)
+        # The model's error under this candidate: propagated through its loop when the file keeps the spectra.
+        propagated = _propagated(uncertainty, plant, design, x, u, r)
+        factor = (
+            upper_factor(uncertainty.model_error())
+            if propagated is None
+            else upper_factor(propagated[0], float(propagated[1][0]))
+        )
         candidates.append(
             {
                 "scale": float(scale),

@@ -280,11 +280,13 @@ def _interval_lines(report: DesignReport) -> list[str]:
             ("voltage_peak", "voltage peak (V)", ".2f"),
         ):
             bounds = f"[{iv.lower[name]:{fmt}}, {iv.upper[name]:{fmt}}]"
-            lines.append(f"  {label:<17} {iv.predicted[name]:{fmt}} in {bounds}")
-        if iv.n_held_out:
+            expected = f"  (with the model's error {iv.expected[name]:{fmt}})" if iv.n_held_out else ""
+            lines.append(f"  {label:<17} {iv.predicted[name]:{fmt}} in {bounds}{expected}")
+        if iv.n_held_out and not iv.propagated:
             lines.append(
-                "  (the model's error is the training controller's: a design that feeds back harder "
-                "draws more voltage than its interval says; see the design page)"
+                "  (the model's error is the training controller's ratio: the model file keeps no spectra of it to "
+                "propagate through the design, and a design that feeds back harder draws more voltage than this "
+                "interval says; identify the plant again for them)"
             )
     elif report.interval_note is not None:
         lines.append(f"no interval: {report.interval_note}")

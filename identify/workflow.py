@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from qube_koopman.core.blas import limited_blas_threads
+from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.identify.estimators.arx import Arx, ClArx
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories, recorded_controllers
@@ -24,6 +25,7 @@ from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
+from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty import (
     BandSummary,
     IntervalCalibration,
@@ -35,6 +37,8 @@ from qube_koopman.identify.uncertainty import (
     widest,
     fit_ensemble,
     held_out_figures,
+    held_out_loops,
+    references,
     predict_episodes,
     prediction_band,
 )
@@ -474,14 +478,33 @@ def _koopman(
 
 
 def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None = None) -> dict:
-    """The model file's ``uncertainty``: the bootstrap plants and the held-out episodes' figures (for qube-design);
-    ``points``: held-out episodes the intervals' calibration predicted already."""
-    held_out = held_out_figures(
-        ensemble, LogTrajectories(train), [log.controller for log in train], MEASURED, SKIP_SAMPLES, points
-    )
-    names = [train[j].path.name for fold in ensemble.folds for j in fold.validation]
+    """The model file's ``uncertainty``: the bootstrap plants, the held-out episodes' figures and their error's
+    spectra (for qube-design); ``points``: held-out episodes the intervals' calibration predicted already."""
+    controllers = [log.controller for log in train]
+    loops = held_out_loops(ensemble, LogTrajectories(train), controllers, MEASURED, points)
+    held_out = held_out_figures(ensemble, None, controllers, MEASURED, SKIP_SAMPLES, loops=loops)
+    order = [j for fold in ensemble.folds for j in fold.validation]
+    dt = loops[0][0].dt if loops[0][0].dt is not None else plant.dt
+    spectra = None
+    if all(len(x) > SKIP_SAMPLES + 1 for _, x, _ in loops):  # else nothing past the skipped start to take spectra of
+        spectra = error_spectra(
+            [t.x for t, _, _ in loops],
+            [x for _, x, _ in loops],
+            [u for _, _, u in loops],
+            [references(t)[:, 0] for t, _, _ in loops],
+            [controllers[j] for j in order],
+            float(dt if dt is not None else QUBE_SAMPLE_PERIOD),
+            SKIP_SAMPLES,
+        ).as_dict()
+    names = [train[j].path.name for j in order]
     return uncertainty_to_dict(
-        plant, [member[1] for member in ensemble.members], held_out, seed=seed, skip=SKIP_SAMPLES, logs=names
+        plant,
+        [member[1] for member in ensemble.members],
+        held_out,
+        seed=seed,
+        skip=SKIP_SAMPLES,
+        logs=names,
+        spectra=spectra,
     )
 
 

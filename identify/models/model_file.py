@@ -7,6 +7,7 @@ as the fitted one did.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,17 @@ __all__ = [
 
 FORMAT = "qube-koopman-model"
 VERSION = 1
+
+
+#: An innermost JSON list of numbers, as ``json.dumps(..., indent=1)`` spreads it over one line per number.
+_NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][-+0-9.eE]*(?:,\s*-?[0-9][-+0-9.eE]*)*)\s*\]")
+
+
+def _dumps(data: dict) -> str:
+    """``data`` as indented JSON with each innermost list of numbers on one line (a matrix by rows): a third
+    of the size of one number per line, and a file that reads as the matrices it holds."""
+    text = json.dumps(data, indent=1)
+    return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]", text) + "\n"
 
 
 def lifting_to_dict(lifting: Lifting) -> dict:
@@ -159,7 +171,7 @@ def save_model(
     if uncertainty is not None:
         data["uncertainty"] = uncertainty
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        tmp.write_text(_dumps(data))
 
 
 def uncertainty_to_dict(
@@ -170,6 +182,7 @@ def uncertainty_to_dict(
     seed: int,
     skip: int,
     logs: list[str] | None = None,
+    spectra: dict | None = None,
 ) -> dict:
     """The ``uncertainty`` entry of a model file: bootstrap plants and held-out figures (MODEL_FORMAT.md).
 
@@ -189,6 +202,9 @@ def uncertainty_to_dict(
         Samples left out at each held-out episode's start.
     logs : list of str, optional
         The held-out episodes' names.
+    spectra : dict, optional
+        Their prediction error's band spectra
+        (:meth:`identify.uncertainty.spectra.ErrorSpectra.as_dict`).
 
     Returns
     -------
@@ -208,6 +224,8 @@ def uncertainty_to_dict(
     }
     if logs is not None:
         out["held_out"]["logs"] = list(logs)
+    if spectra is not None:
+        out["held_out"]["error_spectra"] = spectra
     return out
 
 
@@ -240,7 +258,7 @@ def save_arx_model(path: str | Path, *, method: str, lags: int, model) -> None:
         "dt": model.dt_,
     }
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        tmp.write_text(_dumps(data))
 
 
 def load_model(path: str | Path) -> dict:

@@ -392,7 +392,7 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
 def test_on_the_twin_the_designs_measured_cost_falls_in_its_predicted_interval(twin_cycle):
     """Over 20 seeds (the 20 episodes of ``qube-run --seed 5 --episodes 20``, 6 s each: their cost after the
     first second is what the interval is about, and 6 s keep the test at 6 s of twin time) the design's mean
-    measured J lies within the interval at 0.95 that its model file's bootstrap plants and held-out episodes
+    measured J and its voltage RMS lie within the interval at 0.95 that its model file's bootstrap plants and held-out episodes
     give (design.uncertainty), and the interval is not the bootstrap's alone (which misses: the bootstrap
     plants' J spans about 1.5 %, the model's error on held-out episodes is 2 to 5 %)."""
     from qube_koopman.design.predict import episode_cost, predict_cost, rig_excitations
@@ -409,10 +409,19 @@ def test_on_the_twin_the_designs_measured_cost_falls_in_its_predicted_interval(t
     interval = interval_from_logs(model_uncertainty(model), plant, design, predicted, excitations, 0.95)
     episodes = run_on_twin(twin_cycle.controller, 5, 20, duration=6.0)
     assert [e.metadata.status for e in episodes] == ["complete"] * 20
-    measured = np.mean([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input)[0] for e in episodes])
-    assert interval.n_members == 20 and interval.n_held_out == 6, interval.sources
+    costs = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in episodes])
+    measured, voltage = np.mean(costs[:, 0]), np.sqrt(np.mean(costs[:, 3] ** 2))
+    assert interval.n_members == 20 and interval.n_held_out == 6 and interval.propagated, interval.sources
+    # The spectra the propagation starts from add up to what the held-out figures say (two computations).
+    held = model["uncertainty"]["held_out"]
+    spectra = model_uncertainty(model).spectra
+    np.testing.assert_allclose(spectra.input.sum(axis=1), np.asarray(held["predicted"])[:, 1] ** 2, rtol=1e-5)
     assert interval.contains("J", measured), (measured, interval.as_dict()["J"])
     assert interval.upper["J"] / interval.lower["J"] < 1.25, interval.as_dict()["J"]  # and says something
+    # The voltage too: the held-out error propagated through the design's loop, which turns more of the
+    # sensors' noise into voltage than the PD the held-out episodes ran (the PD's ratio alone missed it).
+    assert interval.contains("voltage_rms", voltage), (voltage, interval.as_dict()["voltage_rms"])
+    assert interval.upper["voltage_rms"] / interval.lower["voltage_rms"] < 1.25, interval.as_dict()["voltage_rms"]
 
 
 @pytest.mark.slow

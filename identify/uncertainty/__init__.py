@@ -110,6 +110,8 @@ __all__ = [
     "episode_folds",
     "fit_ensemble",
     "held_out_figures",
+    "held_out_loops",
+    "references",
     "loop_figures",
     "predict_episodes",
     "predict_groups",
@@ -1205,21 +1207,19 @@ def loop_figures(x: np.ndarray, target_theta: np.ndarray, voltage: np.ndarray, s
     return np.array([np.mean(tracking**2) + np.mean(alpha**2), np.sqrt(np.mean(u**2)), np.max(np.abs(u), initial=0.0)])
 
 
-def held_out_figures(
+def held_out_loops(
     fit: EnsembleFit,
     trajectories,
     controllers: Sequence[DiscreteStateSpace],
     measured: Sequence[int],
-    skip: int,
     points: dict[int, tuple[Trajectory, np.ndarray]] | None = None,
-) -> np.ndarray:
-    """The figures of the calibration folds' held-out episodes, measured and as their fold's point fit predicts them.
+) -> list[tuple[Trajectory, np.ndarray, np.ndarray]]:
+    """The calibration folds' held-out episodes, each predicted in closed loop by its fold's point fit.
 
     Each held-out training episode is predicted in closed loop under the controller it ran
     (from its first samples, with its references and feedforward), by the fit on the fold's
     other episodes; the voltage is that controller's output on the predicted angles plus the
-    feedforward. What the measured figures differ by is the model's error on an episode it
-    was not fitted on: ``qube-design`` widens its predicted cost with it.
+    feedforward.
 
     Parameters
     ----------
@@ -1231,8 +1231,6 @@ def held_out_figures(
         Each episode's controller.
     measured : sequence of int
         The fed-back states.
-    skip : int
-        Samples left out at each episode's start (:func:`loop_figures`).
     points : dict, optional
         Held-out episodes already predicted, ``{index: (trajectory, prediction)}``
         (:func:`calibrate`'s ``points``: the fold's fitted closed loop, which is its plant
@@ -1241,8 +1239,8 @@ def held_out_figures(
 
     Returns
     -------
-    ndarray of shape (n_held_out, 2, 3)
-        Per held-out episode, ``[measured, predicted]`` of ``[J, voltage RMS, voltage peak]``.
+    list of (Trajectory, ndarray, ndarray)
+        In the folds' order: the episode, its predicted states (n_samples, n_states) and voltage (n_samples,).
     """
     from qube_koopman.identify.estimators.structure import controller_states, plant_input
 
@@ -1259,7 +1257,7 @@ def held_out_figures(
     for idx, (_, trajs), predicted in zip(indices, groups, predict_groups(groups) if groups else []):
         found.update((j, (t, p.prediction)) for j, t, p in zip(idx, trajs, predicted))
     order = [int(j) for fold in fit.folds for j in fold.validation]
-    rows: dict[int, list[np.ndarray]] = {}
+    voltages: dict[int, np.ndarray] = {}
     # The predicted voltage: each controller replayed on its episodes' predicted angles, all of them in
     # one pass over the samples (padded to the longest; the replay is causal, the padding comes after).
     for run in consecutive_runs([Loop("wrapped", controllers[j]) for j in order], size=len(order)):
@@ -1271,10 +1269,62 @@ def held_out_figures(
         with np.errstate(all="ignore"):
             u = plant_input(c, np.nan_to_num(controller_states(c, r, np.nan_to_num(y), f)), r, y, f)
         for b, j in enumerate(same):
-            t, x = found[j]
-            u_j = u[b, : len(x), 0]
-            rows[j] = [loop_figures(t.x, t.r[:, 0], t.u[:, 0], skip), loop_figures(x, t.r[:, 0], u_j, skip)]
-    return np.array([rows[j] for j in order]).reshape(-1, 2, 3)
+            voltages[j] = u[b, : len(found[j][1]), 0]
+    return [(found[j][0], found[j][1], voltages[j]) for j in order]
+
+
+def held_out_figures(
+    fit: EnsembleFit,
+    trajectories,
+    controllers: Sequence[DiscreteStateSpace],
+    measured: Sequence[int],
+    skip: int,
+    points: dict[int, tuple[Trajectory, np.ndarray]] | None = None,
+    loops: list[tuple[Trajectory, np.ndarray, np.ndarray]] | None = None,
+) -> np.ndarray:
+    """The figures of the calibration folds' held-out episodes, measured and as their fold's point fit predicts them.
+
+    What the measured figures differ by is the model's error on an episode it was not fitted
+    on: ``qube-design`` widens its predicted cost with it.
+
+    Parameters
+    ----------
+    fit, trajectories, controllers, measured, points
+        As for :func:`held_out_loops`.
+    skip : int
+        Samples left out at each episode's start (:func:`loop_figures`).
+    loops : list, optional
+        :func:`held_out_loops`' result, when already computed.
+
+    Returns
+    -------
+    ndarray of shape (n_held_out, 2, 3)
+        Per held-out episode, ``[measured, predicted]`` of ``[J, voltage RMS, voltage peak]``.
+    """
+    if loops is None:
+        loops = held_out_loops(fit, trajectories, controllers, measured, points)
+    rows = [
+        [
+            loop_figures(t.x, references(t)[:, 0], _logged_input(t)[:, 0], skip),
+            loop_figures(x, references(t)[:, 0], u, skip),
+        ]
+        for t, x, u in loops
+    ]
+    return np.array(rows).reshape(-1, 2, 3)
+
+
+def _logged_input(t: Trajectory) -> np.ndarray:
+    """``t``'s logged plant input ``u`` (a ValueError without)."""
+    if t.u is None:
+        raise ValueError(f"episode {t.name or '(unnamed)'}: its measured figures need the logged input 'u'")
+    return t.u
+
+
+def references(t: Trajectory) -> np.ndarray:
+    """``t``'s references ``r``, which a closed-loop figure scores against (a ValueError without)."""
+    if t.r is None:
+        raise ValueError(f"episode {t.name or '(unnamed)'}: a closed-loop figure needs its references 'r'")
+    return t.r
 
 
 def _stacked(arrays: Sequence[np.ndarray], n: int) -> np.ndarray:
