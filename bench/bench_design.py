@@ -11,8 +11,9 @@ figure beside its target:
 - the PD and the design on the same ``--episodes`` twin excitations (``qube-run --seed``):
   completion, J = mean((theta - target_theta)^2) + mean(alpha^2) after the first second, tracking,
   alpha and voltage RMS, saturated samples, the voltage RMS of the quiet seconds 1-4;
-- the model's prediction: J predicted on the same excitations against the measured J, and the
-  closed-loop prediction of the design's episodes (the plant model under the designed controller,
+- the model's prediction: J predicted on the same excitations against the measured J, the
+  interval of J and of the voltage's RMS and peak (``qube-design --interval 0.95``) against the
+  twin's, and the closed-loop prediction of the design's episodes (the plant model under the designed controller,
   from each log's first samples, references and feedforward) scored by R^2 per angle;
 - robustness: ``--draws`` twins with km, Lp, mp and Jh drawn uniformly within +-10 % of the
   calibrated values and the command delay doubled, one episode each (encoder offsets drawn per
@@ -58,10 +59,10 @@ def figures(folder: Path) -> dict:
     rows = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in done]).reshape(-1, 5)
     if not done:  # every episode stopped (a perturbed twin's draw): no cost to average
         return {"episodes": len(episodes), "complete": 0, "J": np.nan, "tracking_rms": np.nan, "alpha_rms": np.nan,
-                "voltage_rms": np.nan, "saturated": 0, "quiet_voltage_rms": np.nan}
+                "voltage_rms": np.nan, "voltage_peak": np.nan, "saturated": 0, "quiet_voltage_rms": np.nan}
     return {"episodes": len(episodes), "complete": len(done), "J": float(rows[:, 0].mean()),
             "tracking_rms": float(np.sqrt(np.mean(rows[:, 1] ** 2))), "alpha_rms": float(np.sqrt(np.mean(rows[:, 2] ** 2))),
-            "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))),
+            "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))), "voltage_peak": float(rows[:, 4].max()),
             "saturated": int(sum(e.saturation[500:].sum() for e in done)),
             "quiet_voltage_rms": float(np.mean([np.sqrt(np.mean(e.plant_input[500:2000] ** 2)) for e in done]))}
 
@@ -190,6 +191,13 @@ def main() -> None:
     print(f"predicted J {predicted:.3e} vs measured {design['J']:.3e}: {100 * (predicted / design['J'] - 1):+.1f} % "
           f"(target within 15 %); closed-loop prediction R^2 theta {r2[:, 0].mean():.4f} (min {r2[:, 0].min():.4f}), "
           f"alpha {r2[:, 1].mean():.4f} (min {r2[:, 1].min():.4f}) (target >= 0.9)")
+    interval = load_controller(controller).provenance.get("interval", {})
+    for name, label in (("J", "J"), ("voltage_rms", "voltage RMS"), ("voltage_peak", "voltage peak")):
+        if name in interval:
+            iv, measured = interval[name], design[name]
+            inside = "inside" if iv["lower"] <= measured <= iv["upper"] else "OUTSIDE"
+            print(f"{label}: predicted {iv['predicted']:.4g}, with the model's error {iv['expected']:.4g}, interval "
+                  f"{iv['lower']:.4g} to {iv['upper']:.4g} at {interval['level']:g}; twin {measured:.4g} ({inside})")
     if args.draws:
         ok, ok_pd = robustness(str(controller), args.draws, root), robustness(None, args.draws, root)
         print(f"robustness: {ok}/{args.draws} perturbed twins complete under the design (target >= 95 %), "

@@ -16,9 +16,10 @@ design on (not a plant model, the arm's friction shape in its lifting, not stabi
 predicted closed loop that is unstable is refused, exit 2, and nothing is written.
 
 The predicted J and voltage come with an interval at ``--interval LEVEL`` (0.95; 0: none) from the
-model file's bootstrap plants and the model's error on held-out training episodes (a model file
-without them, written with ``qube-identify --interval 0`` or by an older version, gets none, and
-the report says so). ``--robust`` designs against that uncertainty: among the weights with the
+model file's bootstrap plants and the model's error on held-out training episodes, that error
+propagated through the designed loop (the figures "with the model's error" are its expectation; a
+model file without them, written with ``qube-identify --interval 0`` or by an older version, gets
+none, and the report says so). ``--robust`` designs against that uncertainty: among the weights with the
 voltage weight scaled up (x1, x2, x4), the design whose worst case of J over the bootstrap
 plants is lowest, and the report gives what it costs in predicted J against the nominal design.
 
