@@ -10,19 +10,23 @@ the design (J, the voltage's RMS and peak, over the predicted excitation):
   under the designed controller on the same excitations (:func:`member_figures`, one batched
   simulation), as log-ratios ``b_i = log(F_i / F_0)`` to the point plant's ``F_0`` simulated the
   same way;
-- **model error**: the log-ratios ``e_j = log(measured_j / predicted_j)`` of the held-out
-  episodes (what the model misses on an episode it was not fitted on: unmodelled dynamics,
-  sensor noise, encoder zeros), their mean ``m`` and standard deviation ``s`` over ``n``
-  episodes; a new episode's is Student-t, ``m + s sqrt(1 + 1/n) T_{n-1}``;
+- **model error**: what the model misses on an episode it was not fitted on (unmodelled
+  dynamics, sensor noise, encoder zeros). The held-out episodes ran the training controller, not
+  the design, and a design that feeds back harder turns more of that error into voltage; so their
+  error's spectra (kept in the model file) are propagated through the designed loop
+  (:mod:`~design.error_transfer`): the design's J and voltage RMS *expected* with the error are
+  ``F exp(c)``, and each held-out episode's ``e_j = log(measured_j / expected_j)`` under its own
+  controller is what the propagation leaves unexplained. The voltage's peak (no mean square) takes
+  ``c = 0`` and ``e_j = log(measured_j / predicted_j)``, as J and the voltage's RMS do from a model
+  file without the spectra. Their mean ``m`` and standard deviation ``s`` over ``n`` episodes give a
+  new episode's as Student-t, ``m + s sqrt(1 + 1/n) T_{n-1}`` (relative errors: they transfer
+  between loops better than absolute ones);
 - the interval at level ``L``: the central ``L`` quantiles of the mixture over members of
-  ``b_i + m + s sqrt(1 + 1/n) T_{n-1}``, applied to the predicted figure:
+  ``c + b_i + m + s sqrt(1 + 1/n) T_{n-1}``, applied to the predicted figure:
   ``F exp(lower) .. F exp(upper)``.
 
-The held-out episodes ran the training controller, not the design: their error is the model's
-on a loop it has seen. The relative error is used because it transfers between loops better than
-the absolute one (a looser loop's cost is larger, and so is the error on it). The interval is
-for one episode's figure; it is used for the mean over the predicted episodes as well, since
-the model's error is mostly shared by the episodes (a bias, not noise that averages out).
+The interval is for one episode's figure; it is used for the mean over the predicted episodes as
+well, since the model's error is mostly shared by the episodes (a bias, not noise that averages out).
 
 :func:`robust_design` chooses, among LQ designs whose voltage weight is the nominal one scaled up,
 the one whose worst case over the members' upper bounds of J is lowest, the nominal one when the
