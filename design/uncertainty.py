@@ -124,7 +124,15 @@ def model_uncertainty(model: dict) -> ModelUncertainty | None:
             [np.asarray(held["measured"], dtype=float), np.asarray(held["predicted"], dtype=float)], axis=1
         )
         if held.get("error_spectra"):
-            spectra = ErrorSpectra.from_dict(held["error_spectra"])
+            try:
+                spectra = ErrorSpectra.from_dict(held["error_spectra"])
+            except ValueError as exc:
+                raise DesignError(f"uncertainty.held_out.error_spectra: {exc}") from None
+            if spectra.n_episodes != len(held_out):
+                raise DesignError(
+                    f"uncertainty.held_out.error_spectra holds {spectra.n_episodes} episodes, its figures "
+                    f"{len(held_out)}"
+                )
     return ModelUncertainty([linear_plant(member) for member in members], held_out, spectra)
 
 

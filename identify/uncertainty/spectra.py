@@ -138,24 +138,70 @@ class ErrorSpectra:
 
     @classmethod
     def from_dict(cls, data: dict) -> ErrorSpectra:
-        """Inverse of :meth:`as_dict`."""
+        """Inverse of :meth:`as_dict`.
 
-        def complex_array(name: str) -> np.ndarray:
-            return np.asarray(data[name]["re"], dtype=float) + 1j * np.asarray(data[name]["im"], dtype=float)
+        Raises
+        ------
+        ValueError
+            Naming the entry, when one is missing, non-finite or of a shape that does not fit the others.
+        """
 
-        packed = complex_array("error")
+        def real(name: str) -> np.ndarray:
+            if name not in data:
+                raise ValueError(f"{name} is missing")
+            try:
+                value = np.asarray(data[name], dtype=float)
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} is not an array of numbers") from None
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"{name} has a non-finite entry")
+            return value
+
+        def complex_array(name: str, shape: tuple) -> np.ndarray:
+            if not isinstance(data.get(name), dict):
+                raise ValueError(f"{name} is missing (an object of re and im)")
+            parts = data[name]
+            try:
+                re, im = np.asarray(parts["re"], dtype=float), np.asarray(parts["im"], dtype=float)
+            except (KeyError, TypeError, ValueError):
+                raise ValueError(f"{name} must hold re and im of shape {shape}") from None
+            if re.shape != shape or im.shape != shape:
+                raise ValueError(f"{name} must hold re and im of shape {shape}, not {re.shape} and {im.shape}")
+            if not (np.all(np.isfinite(re)) and np.all(np.isfinite(im))):
+                raise ValueError(f"{name} has a non-finite entry")
+            return re + 1j * im
+
+        try:
+            dt = float(data.get("dt", np.nan))
+            edges, centres, power = real("edges_hz"), real("centres_hz"), real("input")
+            if not dt > 0:
+                raise ValueError("dt must be a positive sample period")
+            n_b = len(centres)
+            if edges.shape != (n_b + 1,) or power.ndim != 2 or power.shape[1] != n_b:
+                raise ValueError(
+                    f"edges_hz {edges.shape}, centres_hz ({n_b},) and input {power.shape} disagree on the bands"
+                )
+            n = power.shape[0]
+            index = np.asarray(data.get("controller_of_episode", []))
+            responses = data.get("controllers", {}).get("re") if isinstance(data.get("controllers"), dict) else None
+            k = len(responses) if isinstance(responses, list) else 0
+            if index.shape != (n,) or index.dtype.kind not in "iu" or np.any(index < 0) or np.any(index >= k):
+                raise ValueError(f"controller_of_episode must give each of the {n} episodes one of {k} controllers")
+            packed = complex_array("error", (n, n_b, 3))
+        except (TypeError, AttributeError) as exc:
+            raise ValueError(f"malformed ({exc})") from None
         error = np.empty(packed.shape[:-1] + (2, 2), dtype=complex)
         error[..., 0, 0], error[..., 1, 1] = packed[..., 0], packed[..., 1]
         error[..., 0, 1], error[..., 1, 0] = packed[..., 2], np.conj(packed[..., 2])
         return cls(
-            edges=np.asarray(data["edges_hz"], dtype=float),
-            centres=np.asarray(data["centres_hz"], dtype=float),
-            controller=complex_array("controllers")[np.asarray(data["controller_of_episode"], dtype=int)],
+            edges=edges,
+            centres=centres,
+            controller=complex_array("controllers", (k, n_b, 2))[index],
             error=error,
-            error_input=complex_array("error_input"),
-            input=np.asarray(data["input"], dtype=float),
-            tracking_input=complex_array("tracking_input"),
-            dt=float(data["dt"]),
+            error_input=complex_array("error_input", (n, n_b, 2)),
+            input=power,
+            tracking_input=complex_array("tracking_input", (n, n_b, 2)),
+            dt=dt,
         )
 
     @property

@@ -22,6 +22,8 @@ from qube_koopman.design.uncertainty import (FIGURES, NO_MEMBERS, ModelUncertain
                                              model_uncertainty)
 from qube_koopman.identify import Constant, Delay, KoopmanModel, Lifting
 from qube_koopman.identify.models.model_file import load_model, save_model, uncertainty_to_dict
+from qube_koopman.identify.uncertainty.spectra import error_spectra
+from qube_koopman.core.lti import DiscreteStateSpace
 
 NAMES = ("theta", "alpha")
 
@@ -57,8 +59,21 @@ HELD_OUT = np.array([[[1.05e-2, 1.50, 7.0], [1.00e-2, 1.45, 6.5]], [[1.51e-2, 1.
                      [[1.30e-2, 1.49, 6.8], [1.31e-2, 1.44, 6.6]], [[1.42e-2, 1.52, 7.1], [1.36e-2, 1.46, 6.7]]])
 
 
-def _save(path, plant, members=None):
-    uncertainty = None if members is None else uncertainty_to_dict(plant, members, HELD_OUT, seed=3, skip=500)
+def _spectra(n: int = len(HELD_OUT)) -> dict:
+    """Error spectra of ``n`` made-up held-out episodes (3 s each) under a static PD."""
+    rng = np.random.default_rng(5)
+    measured = [rng.standard_normal((1500, 2)).cumsum(axis=0) * 1e-3 for _ in range(n)]
+    predicted = [x + 1e-3 * rng.standard_normal(x.shape) for x in measured]
+    voltage = [rng.standard_normal(1500) for _ in range(n)]
+    target = [np.zeros(1500)] * n
+    pd = DiscreteStateSpace(np.zeros((1, 1)), np.zeros((1, 2)), np.zeros((1, 1)), [[-5.0, -30.0]], 0.002)
+    return error_spectra(measured, predicted, voltage, target, [pd] * n, 0.002, 500).as_dict()
+
+
+def _save(path, plant, members=None, spectra=None):
+    uncertainty = (
+        None if members is None else uncertainty_to_dict(plant, members, HELD_OUT, seed=3, skip=500, spectra=spectra)
+    )
     save_model(path, method="cl-edmd", alpha=1e-3, plant=plant, closed_loop=None, controller=None, measured=[0, 1],
                training={"logs": []}, uncertainty=uncertainty)
     return path
@@ -164,6 +179,39 @@ def test_with_bootstrap_plants_the_report_gives_the_interval_and_the_robust_choi
     J = p["interval"]["J"]
     assert J["lower"] < J["upper"] and J["predicted"] == pytest.approx(p["predicted"]["J"])
     assert p["robust"]["r_voltage_scale"] in (1.0, 2.0, 4.0, 8.0)
+
+
+def test_with_the_error_spectra_the_report_says_the_error_is_propagated(tmp_path, capsys):
+    plant = _plant()
+    path = _save(tmp_path / "model.json", plant, _members(plant), _spectra())
+    out = tmp_path / "c.toml"
+    assert design_main([str(path), "--out", str(out), "--episodes", "2", "--duration", "4"]) == 0
+    text = capsys.readouterr().out
+    assert "held-out training episodes, propagated through the designed loop)" in text
+    assert "training controller's ratio" not in text
+    interval = _provenance(out)["interval"]
+    assert interval["propagated"] is True
+    for name in ("J", "voltage_rms", "voltage_peak"):
+        figure = interval[name]
+        assert 0 < figure["lower"] < figure["upper"] < np.inf and np.isfinite(figure["expected"]), (name, figure)
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda s: s.pop("input"), "input is missing"),
+    (lambda s: s["error"]["re"].pop(), "error must hold re and im of shape (4, "),
+    (lambda s: s.__setitem__("controller_of_episode", [0, 0, 0, 3]), "controller_of_episode must give each of the 4"),
+    (lambda s: s["edges_hz"].__setitem__(1, float("nan")), "edges_hz has a non-finite entry"),
+    (lambda s: s.__setitem__("error_input", [1.0]), "error_input is missing (an object of re and im)"),
+], ids=["missing", "shape", "index", "nan", "type"])
+def test_damaged_error_spectra_are_one_error_naming_the_entry(tmp_path, capsys, damage, message):
+    plant = _plant()
+    spectra = _spectra()
+    damage(spectra)
+    path = _save(tmp_path / "model.json", plant, _members(plant), spectra)
+    assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--episodes", "2", "--duration", "4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{path}: uncertainty.held_out.error_spectra: {message}" in err[0], err
+    assert not (tmp_path / "c.toml").exists()
 
 
 def test_a_level_outside_zero_one_is_a_usage_error(tmp_path, capsys):
