@@ -1,7 +1,7 @@
 """A controller designed by ``qube-design`` against the rig's PD on the twin.
 
     python bench/bench_design.py MODEL.json [--seed 7] [--episodes 20] [--draws 50] [--serial lockstep|realtime]
-                                 [--reidentify SEED] [--out DIR]
+                                 [--reidentify SEED] [--other-logs DIR] [--out DIR]
 
 MODEL.json is a plant identified by ``qube-identify`` (the issue: the paper's 28 training
 episodes, e.g. ``qube-identify qube_logs --split paper --poly 1 --delays 35 --const --out m``).
@@ -22,6 +22,10 @@ figure beside its target:
   each controller, CL EDMD (``--poly 1 --delays 35 --const --alpha 1e-3``) on the first 28 of one
   controller scored on the last 20 of each: the design re-identified under itself, and the plants
   identified under the design and under the PD predicting each other's closed loops;
+- with ``--other-logs DIR``: real (or twin) logs of another controller, each predicted by the model under
+  its own controller from the log's start: measured J and voltage RMS against the prediction, the
+  prediction with the training controller's held-out ratio, and with the held-out error propagated
+  through that controller (design.error_transfer);
 - with ``--serial``: one episode through ``qube-emulate`` (the firmware's C core; lockstep or real
   time) and ``qube-run --backend serial``: completion and the ticks the link missed.
 """
@@ -161,6 +165,40 @@ def reidentification(controller: str, seed: int, root: Path) -> dict[str, float]
     return scores
 
 
+def other_controller(model_path: Path, folder: Path) -> str:
+    """Measured, predicted, ratio-corrected and propagated J and voltage RMS of logs of another controller."""
+    from qube_koopman.design import linear_plant
+    from qube_koopman.design.error_transfer import loop_spectra, propagate_error
+    from qube_koopman.design.uncertainty import model_uncertainty
+    from qube_koopman.identify.estimators.structure import controller_states, plant_input
+    from qube_koopman.identify.uncertainty import loop_figures
+
+    model = load_model(model_path)
+    plant, uncertainty = model["plant"], model_uncertainty(model)
+    if uncertainty is None or uncertainty.spectra is None or uncertainty.held_out is None:
+        raise SystemExit(f"{model_path}: no held-out error spectra (identify it with intervals, the default)")
+    rows, runs = [], []
+    logs = load_logs(sorted(folder.glob("*.mcap")))
+    for log in logs:
+        t, c = log.trajectory, log.controller
+        x = close_loop(plant, c).predict(t)
+        f = None if t.f is None else t.f[None]
+        u = plant_input(c, controller_states(c, t.r[None], x[None], f), t.r[None], x[None], f)[0, :, 0]
+        rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], 500), loop_figures(x, t.r[:, 0], u, 500)])
+        runs.append((x[:, 0], t.r[:, 0], x[:, 1], u))
+    rows, n = np.array(rows), min(len(run[0]) for run in runs)
+    uu, eu = loop_spectra(*(np.array([run[i][:n] for run in runs]) for i in range(4)), uncertainty.spectra.edges,
+                          uncertainty.spectra.dt, 500)
+    J, V = rows[:, 1, 0].mean(), np.sqrt(np.mean(rows[:, 1, 1] ** 2))
+    found = propagate_error(uncertainty.spectra, uncertainty.held_out, linear_plant(plant), logs[0].controller, uu,
+                            eu, (J, V))
+    ratio = np.exp(np.mean(np.log(uncertainty.held_out[:, 0, :2] / uncertainty.held_out[:, 1, :2]), axis=0))
+    return (f"{len(logs)} logs of {folder}: J measured {rows[:, 0, 0].mean():.4g}, predicted {J:.4g}, with the "
+            f"ratio {J * ratio[0]:.4g}, propagated {J * np.exp(found.shift[0]):.4g}; voltage RMS measured "
+            f"{np.sqrt(np.mean(rows[:, 0, 1] ** 2)):.4g}, predicted {V:.4g}, with the ratio {V * ratio[1]:.4g}, "
+            f"propagated {V * np.exp(found.shift[1]):.4g}")
+
+
 def main() -> None:
     """Run the comparison and print it."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -171,7 +209,10 @@ def main() -> None:
     p.add_argument("--serial", choices=("lockstep", "realtime"), default=None)
     p.add_argument("--reidentify", type=int, default=None, metavar="SEED")
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--other-logs", type=Path, default=None, metavar="DIR")
     args = p.parse_args()
+    if args.other_logs is not None:
+        print(other_controller(args.model, args.other_logs))
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_design_"))
     root.mkdir(parents=True, exist_ok=True)
     controller = root / "designed.toml"
