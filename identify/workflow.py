@@ -485,8 +485,7 @@ def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None =
     held_out = held_out_figures(ensemble, None, controllers, MEASURED, SKIP_SAMPLES, loops=loops)
     order = [j for fold in ensemble.folds for j in fold.validation]
     dt = loops[0][0].dt if loops[0][0].dt is not None else plant.dt
-    spectra = None
-    if all(len(x) > SKIP_SAMPLES + 1 for _, x, _ in loops):  # else nothing past the skipped start to take spectra of
+    try:
         spectra = error_spectra(
             [t.x for t, _, _ in loops],
             [x for _, x, _ in loops],
@@ -496,6 +495,8 @@ def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None =
             float(dt if dt is not None else QUBE_SAMPLE_PERIOD),
             SKIP_SAMPLES,
         ).as_dict()
+    except ValueError:  # an episode too short, or a held-out prediction that diverged: qube-design takes the ratio
+        spectra = None
     names = [train[j].path.name for j in order]
     return uncertainty_to_dict(
         plant,

@@ -274,11 +274,14 @@ def error_spectra(
     Raises
     ------
     ValueError
-        When an episode has fewer than 2 samples past ``skip``.
+        When an episode has fewer than 2 samples past ``skip``, or its prediction diverged.
     """
     lengths = [len(x) - skip for x in measured]
     if min(lengths, default=0) < 2:
         raise ValueError(f"held-out error spectra need 2 samples or more past the first {skip} of each episode")
+    for i, (x, p, u) in enumerate(zip(measured, predicted, voltage)):
+        if not (np.all(np.isfinite(x[skip:])) and np.all(np.isfinite(p[skip:])) and np.all(np.isfinite(u[skip:]))):
+            raise ValueError(f"held-out episode {i}: its prediction diverged (non-finite), no spectrum to take")
     edges = _merged_edges(lengths, dt)
     centres = _centres(edges)
     parts: dict[str, list] = {name: [] for name in ("controller", "error", "error_input", "input", "tracking_input")}

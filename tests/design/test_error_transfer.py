@@ -86,6 +86,18 @@ def test_the_bands_add_up_to_the_mean_squares_and_survive_the_model_file():
     np.testing.assert_allclose(band_sums(edges, 0.002, a, a).sum(axis=0).real, a.T @ a / len(a), rtol=1e-10)
 
 
+def test_no_spectra_of_a_diverged_or_too_short_held_out_prediction():
+    x = np.zeros((600, 2))
+    diverged = x.copy()
+    diverged[550:] = np.nan
+    args = ([np.zeros(600)], [np.zeros(600)])
+    pd = design_lq(linear_plant(_plant(d=3)), Weights()).controller
+    with pytest.raises(ValueError, match="held-out episode 0: its prediction diverged"):
+        error_spectra([x], [diverged], *args, [pd], 0.002, SKIP)
+    with pytest.raises(ValueError, match="2 samples or more past the first 500"):
+        error_spectra([x[:501]], [x[:501]], [np.zeros(501)], [np.zeros(501)], [pd], 0.002, SKIP)
+
+
 def test_the_spectra_come_back_from_the_model_file(loops):
     spectra = loops[4]
     again = ErrorSpectra.from_dict(spectra.as_dict())
