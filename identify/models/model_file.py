@@ -44,13 +44,15 @@ FORMAT = "qube-koopman-model"
 VERSION = 1
 
 
-#: An innermost JSON list of numbers, as ``json.dumps(..., indent=1)`` spreads it over one line per number.
-_NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][-+0-9.eE]*(?:,\s*-?[0-9][-+0-9.eE]*)*)\s*\]")
+#: An innermost JSON list of numbers, as ``json.dumps(..., indent=1)`` spreads it over one line per number (real
+#: line breaks: a string's are escaped, so text that looks like a list is never touched).
+_NUMBER_LIST = re.compile(r"\[\n\s*(-?[0-9][-+0-9.eE]*(?:,\n\s*-?[0-9][-+0-9.eE]*)*)\n\s*\]")
 
 
 def _dumps(data: dict) -> str:
-    """``data`` as indented JSON with each innermost list of numbers on one line (a matrix by rows): a third
-    of the size of one number per line, and a file that reads as the matrices it holds."""
+    """``data`` as indented JSON with each innermost list of numbers on one line (a matrix by rows): a file
+    that reads as the matrices it holds, and smaller (340 instead of 406 kB for a plant of 35 delays with
+    its bootstrap refits)."""
     text = json.dumps(data, indent=1)
     return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]", text) + "\n"
 

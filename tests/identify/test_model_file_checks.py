@@ -101,3 +101,17 @@ def test_the_designs_saturation_warning_names_the_peak_and_the_clamp():
 
     assert saturation_warning(report(6.0)) is None
     assert "peaks at 12.50 V, beyond the loop's 10 V clamp" in saturation_warning(report(12.5))
+
+
+def test_the_model_file_writes_a_matrix_by_rows_and_leaves_text_as_it_is():
+    """Each innermost list of numbers on one line; a string that reads like a list (a log's name, a note) is
+    never rewritten, and the file loads back to the same data."""
+    from qube_koopman.identify.models.model_file import _dumps
+
+    data = {"A": [[1.0, -2e-05, 3], [4, 5, 6]], "note": "x [1,2] y", "logs": ["[3,4]", "b"], "n": [float("nan"), 1.0],
+            "empty": [], "one": [0]}
+    text = _dumps(data)
+    assert "  [1.0, -2e-05, 3],\n  [4, 5, 6]\n" in text and '"one": [0]' in text
+    back = json.loads(text)
+    assert back["note"] == "x [1,2] y" and back["logs"] == ["[3,4]", "b"] and back["A"] == data["A"]
+    assert np.isnan(back["n"][0]) and back["n"][1] == 1.0 and back["empty"] == []
