@@ -36,8 +36,8 @@ from qube_koopman.identify.uncertainty import (
     consecutive_runs,
     widest,
     fit_ensemble,
-    held_out_figures,
     held_out_loops,
+    loops_figures,
     references,
     predict_episodes,
     prediction_band,
@@ -482,7 +482,7 @@ def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None =
     spectra (for qube-design); ``points``: held-out episodes the intervals' calibration predicted already."""
     controllers = [log.controller for log in train]
     loops = held_out_loops(ensemble, LogTrajectories(train), controllers, MEASURED, points)
-    held_out = held_out_figures(ensemble, None, controllers, MEASURED, SKIP_SAMPLES, loops=loops)
+    held_out = loops_figures(loops, SKIP_SAMPLES)
     order = [j for fold in ensemble.folds for j in fold.validation]
     dt = loops[0][0].dt if loops[0][0].dt is not None else plant.dt
     try:

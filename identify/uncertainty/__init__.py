@@ -111,6 +111,7 @@ __all__ = [
     "fit_ensemble",
     "held_out_figures",
     "held_out_loops",
+    "loops_figures",
     "references",
     "loop_figures",
     "predict_episodes",
@@ -1280,7 +1281,6 @@ def held_out_figures(
     measured: Sequence[int],
     skip: int,
     points: dict[int, tuple[Trajectory, np.ndarray]] | None = None,
-    loops: list[tuple[Trajectory, np.ndarray, np.ndarray]] | None = None,
 ) -> np.ndarray:
     """The figures of the calibration folds' held-out episodes, measured and as their fold's point fit predicts them.
 
@@ -1293,16 +1293,18 @@ def held_out_figures(
         As for :func:`held_out_loops`.
     skip : int
         Samples left out at each episode's start (:func:`loop_figures`).
-    loops : list, optional
-        :func:`held_out_loops`' result, when already computed.
 
     Returns
     -------
     ndarray of shape (n_held_out, 2, 3)
         Per held-out episode, ``[measured, predicted]`` of ``[J, voltage RMS, voltage peak]``.
     """
-    if loops is None:
-        loops = held_out_loops(fit, trajectories, controllers, measured, points)
+    return loops_figures(held_out_loops(fit, trajectories, controllers, measured, points), skip)
+
+
+def loops_figures(loops: Sequence[tuple[Trajectory, np.ndarray, np.ndarray]], skip: int) -> np.ndarray:
+    """``[measured, predicted]`` of ``[J, voltage RMS, voltage peak]`` (n, 2, 3) of :func:`held_out_loops`' episodes,
+    after ``skip`` samples (:func:`loop_figures`)."""
     rows = [
         [
             loop_figures(t.x, references(t)[:, 0], _logged_input(t)[:, 0], skip),
