@@ -46,6 +46,7 @@ __all__ = [
     "estimate_offset_many",
     "estimate_offset_closed_loop",
     "COARSE_OFFSETS",
+    "OPEN_LOOP_HORIZON",
     "FINE_STEPS",
     "ReplayResult",
     "replay_episodes",
@@ -160,6 +161,9 @@ def estimate_offset_many(
     result = levenberg_marquardt(fun, jac, z0, -unbounded, unbounded, max_iter=max_iter, ftol=1e-10)
     return result.x[:n] * ms.OFFSET_SCALE
 
+
+#: The open-loop prediction :func:`open_loop_error` makes of each episode by default (s).
+OPEN_LOOP_HORIZON = 0.2
 
 #: The offsets (rad) :func:`estimate_offset_closed_loop` tries first: 2 mrad apart (two thirds of an encoder
 #: count) up to 40 mrad (13 counts) either side of zero; a plausible zero is a few counts off.
@@ -352,7 +356,7 @@ def open_loop_error(
     episodes: Sequence,
     params: PendulumParameters | Sequence[PendulumParameters],
     offsets: np.ndarray,
-    horizon: float = 0.2,
+    horizon: float = OPEN_LOOP_HORIZON,
     start: int = SKIP_SAMPLES,
 ) -> np.ndarray:
     """RMS error (rad) of theta and alpha over open-loop predictions of ``horizon`` seconds.

@@ -46,9 +46,6 @@ from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
 
 _log = logging.getLogger(__name__)
 
-#: The open-loop prediction the validation makes of each held-out log (s): ``open_loop_error``'s default.
-OPEN_LOOP_HORIZON = 0.2
-
 __all__ = ["main"]
 
 
@@ -136,7 +133,7 @@ def _read(paths, segment: float, role: str):
 def _run(args) -> int:
     from qube_koopman.identify.calibrate import PlantCalibration
     from qube_koopman.identify.calibrate.report import calibration_text, write_report
-    from qube_koopman.identify.calibrate.validate import controller_groups
+    from qube_koopman.identify.calibrate.validate import OPEN_LOOP_HORIZON, controller_groups
     from qube_koopman.identify.model_selection.split import paper_split
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
@@ -267,7 +264,12 @@ def _validate(held, paths, plant, refitted=frozenset()):
     summary across controllers).
     """
     from qube_koopman.identify.calibrate.report import controller_summary_text, validation_text
-    from qube_koopman.identify.calibrate.validate import controller_groups, open_loop_error, replay_episodes
+    from qube_koopman.identify.calibrate.validate import (
+        OPEN_LOOP_HORIZON,
+        controller_groups,
+        open_loop_error,
+        replay_episodes,
+    )
 
     groups = controller_groups(held)
     several = len(groups) > 1
