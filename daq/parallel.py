@@ -42,6 +42,7 @@ from itertools import count
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
+from qube_koopman.core.parallel import resolve_n_jobs
 from qube_koopman.daq.excitation import ExcitationStream
 from qube_koopman.daq.loop import EpisodePlan, EpisodeResult, run_episode
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
@@ -58,35 +59,6 @@ _RELAY_POLL = 0.05
 # Longest excitation (samples) sent to a worker made (24 bytes a sample: 25 MB); longer ones
 # are made by the worker, a chunk at a time.
 _MADE_HERE = 1 << 20
-
-
-def resolve_n_jobs(n_jobs: int, n_episodes: int) -> int:
-    """Worker processes for ``n_episodes`` episodes, joblib's convention: -1 for every core.
-
-    Parameters
-    ----------
-    n_jobs : int
-        -1 (every core this process may run on: ``joblib.cpu_count()``, which honours the
-        affinity mask and cgroup quotas) or a positive count.
-    n_episodes : int
-        Episodes to run: never more workers than these, and at least one.
-
-    Returns
-    -------
-    int
-
-    Raises
-    ------
-    ValueError
-        For 0 or a value below -1.
-    """
-    if n_jobs == 0 or n_jobs < -1:
-        raise ValueError(f"n_jobs must be -1 (every core) or at least 1, got {n_jobs}")
-    if n_jobs == -1:
-        import joblib
-
-        n_jobs = joblib.cpu_count()
-    return max(1, min(n_jobs, n_episodes))
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
-from qube_koopman.core.blas import limited_blas_threads
+from qube_koopman.core.blas import episode_threads, limited_blas_threads
+from qube_koopman.core.parallel import resolve_n_jobs
 from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.identify.estimators.arx import Arx, ClArx
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
@@ -185,6 +186,7 @@ def identify_and_score(
     probes=None,
     probe_cache: str | Path | None = None,
     command_delay: float | str = 0.0,
+    n_threads: int = -1,
 ) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
@@ -279,6 +281,10 @@ def identify_and_score(
         from the other test logs of its recording session
         (:func:`~qube_koopman.identify.models.latency.estimate_command_delays`; report.json's
         ``command_delay`` lists them). Closed-loop scoring of a Koopman method only.
+    n_threads : int
+        Training episodes factored side by side (-1: one per core this process may run on), each
+        with one BLAS thread (:func:`~qube_koopman.core.blas.episode_threads`): the same model
+        whatever the count.
 
     Returns
     -------
@@ -318,7 +324,7 @@ def identify_and_score(
             f"one controller, these ran {n_controllers} (cl-edmd, cl-edmd-known-rows, edmd and arx fit "
             "logs of several)"
         )
-    with limited_blas_threads(1):
+    with limited_blas_threads(1), episode_threads(resolve_n_jobs(n_threads, len(train))):
         if method in KOOPMAN_METHODS:
             plant, closed, ensemble = _koopman(
                 method,

@@ -16,6 +16,7 @@ from qube_koopman.core.cli import (
     add_renamed_option,
     add_standard_options,
     finite_number,
+    n_jobs,
     path,
     seed,
     whole_number,
@@ -109,13 +110,6 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
         "on/off, 0/25/50/100 RBF centres, alpha 1e-6 to 1e2 at two per decade, offsets on/off)",
     )
     search.add_argument(
-        "--n-jobs",
-        type=int,
-        default=-1,
-        metavar="N",
-        help="worker processes for the search (default %(default)s: every core; unused with --scheduler)",
-    )
-    search.add_argument(
         "--transfer",
         choices=["twin", "none"],
         default="twin",
@@ -203,6 +197,15 @@ def _parser() -> argparse.ArgumentParser:
         "not pinned at the measured zero)",
     )
     fit = p.add_argument_group("identification")
+    fit.add_argument(
+        "--n-jobs",
+        type=n_jobs,
+        default=-1,
+        metavar="N",
+        help="cores to use: the search's worker processes, and the threads that factor a fit's "
+        "training episodes side by side (default %(default)s: every core; the model is the same "
+        "whatever N; unused with --scheduler)",
+    )
     fit.add_argument(
         "--method",
         choices=METHODS,
@@ -428,8 +431,6 @@ def _check_search_args(args) -> None:
         raise CliError(f"--search chooses the lifting, alpha and offsets itself: leave out {', '.join(chosen)}")
     if args.method != "cl-edmd" or args.score != "cl":
         raise CliError("--search selects CL EDMD models scored in closed loop (--method cl-edmd, --score cl)")
-    if args.n_jobs == 0:
-        raise CliError("--n-jobs must be a positive number of processes, or negative (-1: every core)")
 
 
 def _command_delay(text: str) -> float | str:
@@ -731,6 +732,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             command_delay=(
                 args.command_delay if args.command_delay == "estimate" else args.command_delay * 1e-3 / train[0].dt
             ),
+            n_threads=args.n_jobs,
             estimator_options=(
                 {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
             ),

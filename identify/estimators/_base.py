@@ -113,23 +113,25 @@ class SnapshotEstimator(Estimator):
 def episode_statistics(estimator: SnapshotEstimator, setup: "FitSetup", indices: Sequence[int]) -> Iterator:
     """The statistics of the setup's episodes at ``indices``, in that order, computed side by side.
 
-    As many episodes at a time as threads the BLAS may use here, each read, lifted and factored
-    with one BLAS thread: two tall QR factorizations at once on two cores take 0.6 times as long
-    as one after the other on two BLAS threads each (measured on the search winner's lifting, 28
-    episodes: 3.5 against 5.5 s), and each gives the same factor bit for bit wherever it runs.
-    Inside :func:`~qube_koopman.core.blas.limited_blas_threads` (a search's workers) they come one
-    at a time. At most twice the threads' episodes are held ahead of the caller.
+    As many episodes at a time as :func:`~qube_koopman.core.blas.episode_thread_count` gives
+    (:func:`~qube_koopman.core.blas.episode_threads` inside one, else the threads the BLAS may use
+    here), each read, lifted and factored with one BLAS thread: two tall QR factorizations at once
+    on two cores take 0.6 times as long as one after the other on two BLAS threads each (measured
+    on the search winner's lifting, 28 episodes: 3.5 against 5.5 s), and each gives the same
+    factor bit for bit wherever it runs.
+    Inside :func:`~qube_koopman.core.blas.limited_blas_threads` alone (a search's workers) they come
+    one at a time. At most twice the threads' episodes are held ahead of the caller.
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from qube_koopman.core.blas import blas_threads, limited_blas_threads
+    from qube_koopman.core.blas import episode_thread_count, limited_blas_threads
 
     trajectories = setup.trajectories
 
     def one(j: int):
         return estimator._episode_snapshots(setup, trajectories[j])
 
-    n = min(blas_threads(), len(indices))
+    n = min(episode_thread_count(), len(indices))
     if n <= 1:
         yield from map(one, indices)
         return

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from threadpoolctl import threadpool_info
 
 from qube_koopman.core.blas import limited_blas_threads
@@ -60,3 +61,69 @@ def test_episode_statistics_run_side_by_side_in_order_and_as_one_at_a_time():
         in_order = list(episode_statistics(est, setup, [3, 1]))
     assert [s.R.tobytes() for s in in_order] == [alone[3].R.tobytes(), alone[1].R.tobytes()]
     assert {name for name, _ in seen} == {threading.current_thread().name}
+
+
+def test_episode_threads_lift_the_limit_for_the_episodes_alone():
+    # qube-identify fits inside a one-thread BLAS limit (its many small products) and still factors its
+    # training episodes side by side: episode_threads(n) gives them n threads, each with one BLAS thread;
+    # outside it (a search's worker processes) the BLAS limit decides, as before.
+    import threading
+
+    import pytest
+
+    from qube_koopman.core.blas import episode_thread_count, episode_threads
+
+    with limited_blas_threads(1):
+        assert episode_thread_count() == 1
+        with episode_threads(3):
+            assert episode_thread_count() == 3 and _blas_threads() == [1] * len(_blas_threads())
+            seen = []
+            thread = threading.Thread(target=lambda: seen.append(episode_thread_count()))
+            thread.start()
+            thread.join()
+            assert seen == [1]  # a context of its own: another thread's fits are not widened
+        assert episode_thread_count() == 1
+    with pytest.raises(ValueError, match="1 thread or more, got 0"):
+        with episode_threads(0):
+            pass
+
+
+@pytest.mark.slow  # about 3 s: four fits of 4 real episodes
+def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_same(qube_logs):
+    import threading
+
+    import numpy as np
+
+    from qube_koopman.daq.log.names import find_logs
+    from qube_koopman.identify import ClEdmd
+    from qube_koopman.identify.data.logs import load_logs
+    from qube_koopman.identify.lifting import Constant, Delay, Polynomial
+    from qube_koopman.identify.uncertainty import IntervalOptions
+    from qube_koopman.identify.workflow import identify_and_score
+
+    files = find_logs(qube_logs)
+    train, test = load_logs(files[:4], skip=500), load_logs(files[28:29], skip=500)
+    factor = ClEdmd._episode_snapshots
+    runs, threads = {}, {}
+    for n, intervals in ((1, None), (2, None), (1, IntervalOptions(0.95, 3)), (2, IntervalOptions(0.95, 3))):
+        seen = set()
+
+        def recorded(self, setup, t):
+            seen.add(threading.current_thread().name.split("_")[0])
+            return factor(self, setup, t)
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(ClEdmd, "_episode_snapshots", recorded)
+            runs[n, intervals is None] = identify_and_score(
+                method="cl-edmd", lifting=[Polynomial(2), Delay(5), Constant()], train=train, test=test,
+                controller=train[0].controller, alpha=1e-3, intervals=intervals, n_threads=n,
+            )
+        threads[n, intervals is None] = seen
+    main = threading.current_thread().name
+    for plain in (True, False):
+        assert threads[1, plain] == {main} and threads[2, plain] == {"episode-statistics"}
+        one, two = runs[1, plain], runs[2, plain]
+        np.testing.assert_array_equal(one.plant.A, two.plant.A)
+        np.testing.assert_array_equal(one.plant.B, two.plant.B)
+        assert one.report["test"] == two.report["test"]
+    assert runs[1, False].report["intervals"]["pooled"] == runs[2, False].report["intervals"]["pooled"]
