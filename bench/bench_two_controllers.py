@@ -16,6 +16,15 @@ the paper's 20 test episodes and on the soft episodes it did not see:
   of this lifting can be expected to beat. What it leaves is what the logged references, the
   first second and this lifting do not determine (the arm's slow wander under the soft gains).
 
+Below the table, what that in-sample arm error is made of: its share below 0.3 Hz, its RMS in
+each third of the scored samples (an error of the initial state would fade; a disturbance does
+not), and how much of it any linear time-invariant response to the excitation could explain: a
+FIR filter of the logged arm reference and feedforward (1, 3 and 6 s long, at 25 Hz), fitted on
+the other episodes and scored on each one (leave one episode out; the median share of the error's
+energy it removes, overall and below 0.3 Hz). A share near zero says the error is not a response
+to anything the model is given; as a control, the same FIR is scored on the error plus a response
+to the reference (the reference low-passed at 0.2 Hz, scaled to the error's RMS).
+
 Each row gives mean / worst R^2 (closed-loop prediction under each test log's own controller,
 scored after the 1 s offset-estimation window) with per-episode alpha offsets and without them on
 the same samples. The lifting is fixed (``--lifting``, default: the paper-split search's winner),
@@ -38,6 +47,11 @@ from pathlib import Path
 import numpy as np
 
 from qube_koopman.identify.cli.identify import main as identify_main
+
+#: The analysis' sample rate (Hz): the 500 Hz logs decimated by 20, for FIRs of a few seconds.
+ANALYSIS_RATE = 25.0
+#: Where the arm error counts as slow (Hz).
+SLOW_HZ = 0.3
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_LIFTING = "--poly 3 --delays 35 --friction --const --alpha 3.2e-4"
@@ -70,6 +84,83 @@ def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) ->
     report = json.loads((out / "report.json").read_text())
     names = report["scored_logs"]
     return dict(zip(names, zip(report["test"]["r2_per_episode"], report["test_without_offsets"]["r2_per_episode"])))
+
+
+def arm_errors(predictions: Path, logs: list[Path]) -> list[dict[str, np.ndarray]]:
+    """Per episode, at :data:`ANALYSIS_RATE`: the arm's prediction error, its reference and feedforward.
+
+    ``predictions``: a ``qube-identify`` run's predictions folder (one ``.npz`` per test log, over the
+    scored samples); ``logs``: those test logs.
+    """
+    from scipy import signal
+
+    from qube_koopman.core.qube import SKIP_SAMPLES
+    from qube_koopman.identify.data.logs import load_logs
+
+    def decimated(x: np.ndarray) -> np.ndarray:
+        return signal.decimate(signal.decimate(x, 4, ftype="fir"), 5, ftype="fir")
+
+    episodes = []
+    for log in load_logs(logs, skip=SKIP_SAMPLES):
+        saved = np.load(predictions / f"{log.path.stem}.npz")
+        t = log.trajectory
+        scored = slice(int(round(saved["t"][0] / log.dt)), int(round(saved["t"][0] / log.dt)) + len(saved["t"]))
+        if not np.array_equal(t.x[scored, 0], saved["measured"][:, 0]):
+            raise SystemExit(f"{log.path.name}: its prediction file does not line up with the log")
+        error = saved["measured"][:, 0] - saved["predicted"][:, 0]
+        episodes.append({"error": error, "reference": t.r[scored, 0], "feedforward": t.f[scored, 0]})
+    return [{k: decimated(v) for k, v in e.items()} for e in episodes]
+
+
+def _lagged(x: np.ndarray, taps: int) -> np.ndarray:
+    out = np.zeros((len(x), taps))
+    for k in range(taps):
+        out[k:, k] = x[: len(x) - k]
+    return out
+
+
+def excitation_share(episodes: list[dict[str, np.ndarray]], seconds: float) -> tuple[float, float]:
+    """Median share of each episode's arm-error energy (overall, below :data:`SLOW_HZ`) that a FIR of
+    the reference and feedforward, ``seconds`` long and fitted on the other episodes, removes."""
+    from scipy import signal
+
+    b, a = signal.butter(2, SLOW_HZ / (ANALYSIS_RATE / 2))
+    taps = int(round(seconds * ANALYSIS_RATE)) + 1
+    X = [np.column_stack([_lagged(e["reference"], taps), _lagged(e["feedforward"], taps), np.ones(len(e["error"]))])
+         for e in episodes]
+    y = [e["error"] for e in episodes]
+    overall, slow = [], []
+    for j in range(len(episodes)):
+        others = [i for i in range(len(episodes)) if i != j]
+        w = np.linalg.lstsq(np.vstack([X[i] for i in others]), np.concatenate([y[i] for i in others]), rcond=None)[0]
+        left = y[j] - X[j] @ w
+        overall.append(1 - np.sum(left**2) / np.sum(y[j] ** 2))
+        slow.append(1 - np.sum(signal.filtfilt(b, a, left) ** 2) / np.sum(signal.filtfilt(b, a, y[j]) ** 2))
+    return float(np.median(overall)), float(np.median(slow))
+
+
+def print_error_analysis(episodes: list[dict[str, np.ndarray]]) -> None:
+    """The lines below the table (see the module's docstring)."""
+    from scipy import signal
+
+    b, a = signal.butter(2, SLOW_HZ / (ANALYSIS_RATE / 2))
+    slow = [np.var(signal.filtfilt(b, a, e["error"])) / np.var(e["error"]) for e in episodes]
+    thirds = np.median([[np.sqrt(np.mean(part**2)) for part in np.array_split(e["error"], 3)] for e in episodes], 0)
+    print(f"\nin-sample arm error: median share of its variance below {SLOW_HZ:g} Hz {np.median(slow):.2f}; "
+          f"median RMS by third of the scored samples {' / '.join(f'{v:.4f}' for v in thirds)} rad")
+    for seconds in (1.0, 3.0, 6.0):
+        overall, below = excitation_share(episodes, seconds)
+        print(f"a {seconds:g} s FIR of the reference and feedforward, fitted on the other episodes, removes "
+              f"{overall:+.3f} of its energy ({below:+.3f} below {SLOW_HZ:g} Hz)", flush=True)
+    # The control: an error that is a response to the reference (low-passed at 0.2 Hz, its RMS the error's).
+    b, a = signal.butter(1, 0.2 / (ANALYSIS_RATE / 2))
+    control = []
+    for e in episodes:
+        response = signal.lfilter(b, a, e["reference"])
+        control.append({**e, "error": e["error"] + response * np.std(e["error"]) / np.std(response)})
+    overall, below = excitation_share(control, 3.0)
+    print(f"control: the error plus a response to the reference of the same RMS; the 3 s FIR removes {overall:+.3f} "
+          f"({below:+.3f} below {SLOW_HZ:g} Hz)", flush=True)
 
 
 def data_arguments(p: argparse.ArgumentParser) -> None:
@@ -126,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| both, scored in sample (28 + {len(soft)}; a ceiling, not a transfer score) | - | - "
               f"| {fitted[:, 0].mean():.3f} / {fitted[:, 0].min():.3f} "
               f"| {fitted[:, 1].mean():.3f} / {fitted[:, 1].min():.3f} |", flush=True)
+        print_error_analysis(arm_errors(root / "in_sample" / "predictions", sorted(copies.glob("*.mcap"))))
     return 0
 
 
