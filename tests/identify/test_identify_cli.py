@@ -161,6 +161,18 @@ def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monk
     assert not list(tmp_path.iterdir())  # no empty output folder left behind
 
 
+@pytest.mark.parametrize("argv", [["--n-jobs", "0"], ["--search", "--n-jobs", "-2"]])
+def test_n_jobs_is_checked_for_fits_and_searches_alike(tmp_path, capsys, argv, monkeypatch):
+    # --n-jobs gives a fit's threads as well as the search's processes: one check (the shared type) for both.
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["--train", ".", "--test", ".", *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert f"argument --n-jobs: must be -1 (every core) or at least 1, got {argv[-1]}" in err
+    assert not list(tmp_path.iterdir())
+
+
 def test_logs_with_another_sample_rate_are_refused(tmp_path):
     from pathlib import Path
 
