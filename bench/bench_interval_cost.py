@@ -12,22 +12,27 @@ test); with ``--soft DIR`` also both trained on the paper's 28 and tested on the
 episodes (a loop the training never ran: its band is calibrated on the twin's probe episodes, read
 from the probe cache after the first run); with ``--search`` the search itself on the paper's split.
 
-Measured (2 quiet cores of an AMD EPYC, median of 3; without, with, added; the calibrations' time;
-the default twin with a delay per recording session, so the soft episodes' bands also take their
-own gains' probes):
+Measured (2 quiet cores of an AMD EPYC, median of 3, ``--members 5``; without, with, added; the
+calibrations' time; then the same with 5 bootstrap refits instead of 20; the default twin with a delay
+per recording session, so the soft episodes' bands also take their own gains' probes):
 
-| case | without | with | added | calibrations |
-|---|---|---|---|---|
-| default lifting, paper test | 0.8 s | 1.5 s | 87 % | held-out 0.2 s |
-| search's lifting, paper test | 5.8 s | 11.9 s | 104 % | held-out 2.7 s |
-| default lifting, soft episodes | 0.5 s | 1.7 s | 209 % | held-out 0.2 s, probes 0.7 s |
-| search's lifting, soft episodes | 7.0 s | 21.8 s | 210 % | held-out 2.8 s, probes 7.9 s |
-| search, paper split (``--search``) | 38.7 s | 45.3 s | 17 % | held-out 2.5 s |
+| case | without | with | added | calibrations | 5 refits: with, added |
+|---|---|---|---|---|---|
+| default lifting, paper test | 0.5 s | 1.2 s | 159 % | held-out 0.2 s | 0.9 s, 102 % |
+| search's lifting, paper test | 5.5 s | 12.1 s | 120 % | held-out 2.9 s | 9.4 s, 71 % |
+| default lifting, soft episodes | 0.4 s | 1.9 s | 332 % | held-out 0.2 s, probes 1.0 s | 1.4 s, 207 % |
+| search's lifting, soft episodes | 7.0 s | 22.1 s | 214 % | held-out 3.6 s, probes 9.3 s | 18.8 s, 168 % |
+| search, paper split (``--search``) | 46.6 s | 51.1 s | 10 % | held-out 2.6 s | |
 
-The search meets the target; a single fit does not: its bootstrap refits' predictions of every test
-episode and the held-out calibration cost about as much as the fit itself.
+The search meets the target; a single fit does not. Fewer refits barely move the bands (paper test,
+search's lifting: pooled coverage 0.968 / 0.956 with 20, 0.959 / 0.953 with 5, 0.966 / 0.953 with 2,
+at 8.5 s), but the held-out calibration alone, a prediction of the training episodes held out in
+turn, costs about half of a fit without intervals.
 
-Usage: python bench/bench_interval_cost.py --data DIR [--soft DIR] [--repeat N] [--search]
+With ``--members B [B ...]`` each fit is also timed with B bootstrap refits instead of the default 20,
+a row each with its pooled coverage: what trimming that source of the band saves and costs.
+
+Usage: python bench/bench_interval_cost.py --data DIR [--soft DIR] [--repeat N] [--search] [--members B ...]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
 """
 
@@ -46,18 +51,31 @@ SEARCH_LIFTING = ("--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25
                   "--offsets alpha")
 
 
-def measure(label: str, argv: list[str], repeat: int) -> None:
-    """Time ``argv`` without and with intervals, alternating; print the medians and what was added."""
+def measure(label: str, argv: list[str], repeat: int, members: list[int] | None = None) -> None:
+    """Time ``argv`` without and with intervals, alternating; print the medians and what was added.
+
+    ``members``: also with these numbers of bootstrap refits (``--interval-members``), a row each.
+    """
     timed_run([*argv, "--interval", "0"])  # warm-up: imports and the probe cache, not counted
-    without, with_, report = [], [], {}
+    variants = [(label, [])] + [(f"  {m} members", ["--interval-members", str(m)]) for m in members or []]
+    without: list[float] = []
+    with_: dict[str, list[float]] = {name: [] for name, _ in variants}
+    reports: dict[str, dict] = {}
     for _ in range(repeat):
         without.append(timed_run([*argv, "--interval", "0"])[0])
-        seconds, report = timed_run(argv)
-        with_.append(seconds)
-    plain, banded = statistics.median(without), statistics.median(with_)
-    spent = report.get("intervals", {}).get("seconds", {})
-    parts = ", ".join(f"{k} {v:.1f} s" for k, v in spent.items())
-    print(f"{label:<44}{plain:>8.1f} s{banded:>8.1f} s{100 * (banded / plain - 1):>8.0f} %   {parts}", flush=True)
+        for name, flags in variants:
+            seconds, reports[name] = timed_run([*argv, *flags])
+            with_[name].append(seconds)
+    plain = statistics.median(without)
+    for name, _ in variants:
+        banded = statistics.median(with_[name])
+        intervals = reports[name].get("intervals", {})
+        parts = ", ".join(f"{k} {v:.1f} s" for k, v in intervals.get("seconds", {}).items())
+        pooled = intervals.get("pooled", {})
+        coverage = " / ".join(f"{v:.3f}" for v in pooled.get("coverage", {}).values())
+        worst = " / ".join(f"{v:.3f}" for v in pooled.get("worst_episode_coverage", {}).values())
+        print(f"{name:<44}{plain:>8.1f} s{banded:>8.1f} s{100 * (banded / plain - 1):>8.0f} %   {parts}; "
+              f"coverage {coverage} (worst {worst})", flush=True)
 
 
 def main() -> None:
@@ -67,6 +85,8 @@ def main() -> None:
                         "tested on them (their bands calibrated on the twin's probes)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, the median quoted (default 3)")
     parser.add_argument("--search", action="store_true", help="also time the search (minutes per run)")
+    parser.add_argument("--members", type=int, nargs="+", metavar="B", help="also time each fit's intervals with "
+                        "B bootstrap refits (--interval-members) instead of the default, a row each")
     args = parser.parse_args()
     logs = [str(p) for p in sorted(args.data.glob("*.mcap"))]
     if len(logs) != 48:
@@ -78,13 +98,14 @@ def main() -> None:
     if args.soft is not None and not soft:
         raise SystemExit(f"{args.soft}: no .mcap logs")
     print(f"median of {args.repeat}; target: intervals add at most 20 %")
-    print(f"{'case':<44}{'without':>10}{'with':>10}{'added':>10}   the intervals' calibrations")
+    print(f"{'case':<44}{'without':>10}{'with':>10}{'added':>10}   the intervals' calibrations; pooled coverage "
+          "theta / alpha (worst episode)")
     cases = [("default lifting, paper test", []), ("search's lifting, paper test", SEARCH_LIFTING.split())]
     for label, flags in cases:
-        measure(label, ["--train", *train, "--test", *test, *flags], args.repeat)
+        measure(label, ["--train", *train, "--test", *test, *flags], args.repeat, args.members)
     for label, flags in cases if soft else []:
         measure(label.replace("paper test", "soft episodes"), ["--train", *train, "--test", *soft, *flags],
-                args.repeat)
+                args.repeat, args.members)
     if args.search:
         measure("search, paper split", [*logs, "--split", "paper", "--search"], args.repeat)
 
