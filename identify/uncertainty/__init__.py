@@ -695,6 +695,10 @@ def _fit_channel(errors: np.ndarray, variances: np.ndarray, horizons: np.ndarray
     return q, tau, float(np.quantile(ratio, level, method="higher"))
 
 
+#: Horizons (samples predicted) at which reports give a calibration's half-width (0.2, 2 and 20 s at 500 Hz).
+REPORTED_HORIZONS = (100, 1000, 10000)
+
+
 class IntervalCalibration:
     """The band's half-width ``k_c sqrt(s^2 + q_c (1 - exp(-h / tau_c)))``, fitted on held-out errors.
 
@@ -766,15 +770,27 @@ class IntervalCalibration:
             return np.where(np.isnan(total), np.inf, self.factor_ * np.sqrt(total))
 
     def as_dict(self, names: Sequence[str]) -> dict:
-        """Plain data for reports, by channel name."""
+        """Plain data for reports, by channel name.
+
+        ``model_error_half_width``: the band's half-width without refits or offsets (``s = 0``) after
+        :data:`REPORTED_HORIZONS` samples predicted. It is what the band is at those horizons, whatever
+        the parameters: an error that grows as a random walk over every horizon the calibration saw
+        fits ``q`` and ``tau`` both at their largest (the variance ``q h / tau``), a scale of metres
+        and a timescale of years that mean nothing alone.
+        """
+        h = np.array(REPORTED_HORIZONS, dtype=float)
+        widths = self.half_width(np.zeros((h.size, len(self.scale_))), h)
         return {
             name: {
                 "scale": float(np.sqrt(q)),
                 "timescale_samples": float(tau),
                 "factor": float(k),
                 "held_out_coverage": float(cov),
+                "model_error_half_width": {str(n): float(w) for n, w in zip(REPORTED_HORIZONS, widths[:, c])},
             }
-            for name, q, tau, k, cov in zip(names, self.scale_, self.timescale_, self.factor_, self.coverage_)
+            for c, (name, q, tau, k, cov) in enumerate(
+                zip(names, self.scale_, self.timescale_, self.factor_, self.coverage_)
+            )
         }
 
 

@@ -247,6 +247,32 @@ def test_the_widest_calibration_takes_each_channel_from_the_wider_band():
     assert len(widest([w, a]).parts_) == 3  # nested: the parts, not the combination
 
 
+def test_a_random_walk_error_is_reported_by_the_bands_width_at_the_horizons_not_its_parameters():
+    # An error whose variance grows as sigma^2 h over every horizon seen never levels off: the fit pushes
+    # q and tau to their largest (only q / tau is known). The report still says what the band is: at
+    # h samples, k sigma sqrt(h), k the 95 % quantile (1.96 for a Gaussian), within the sampling noise.
+    rng = np.random.default_rng(3)
+    sigma, n = 1e-3, 20_000
+    horizons = rng.integers(1, 10_001, n)
+    errors = sigma * np.sqrt(horizons)[:, None] * rng.standard_normal((n, 2))
+    calibration = IntervalCalibration(0.95).fit(errors, np.zeros((n, 2)), horizons)
+    assert calibration.timescale_[0] > 1e5  # far beyond the horizons: the random-walk limit
+    report = calibration.as_dict(["theta", "alpha"])["theta"]
+    assert report["scale"] > 10 * sigma * np.sqrt(10_000)  # alone, a scale far beyond any error seen
+    for h, width in report["model_error_half_width"].items():
+        assert width == pytest.approx(1.96 * sigma * np.sqrt(int(h)), rel=0.08), h
+    # A widest combination reports its own band at each horizon (the wider part there).
+    from qube_koopman.identify.uncertainty import REPORTED_HORIZONS, widest
+
+    short = IntervalCalibration(0.95).fit(0.05 * rng.standard_normal((n, 2)), np.zeros((n, 2)), horizons)
+    both = widest([calibration, short]).as_dict(["theta", "alpha"])["theta"]["model_error_half_width"]
+    for h in REPORTED_HORIZONS:
+        parts = [c.as_dict(["theta", "alpha"])["theta"]["model_error_half_width"][str(h)] for c in (calibration, short)]
+        assert both[str(h)] == max(parts)
+    walk = report["model_error_half_width"]
+    assert both["100"] > walk["100"] and both["10000"] == walk["10000"]
+
+
 @pytest.mark.parametrize("offsets", [None, _Window()], ids=["plain", "offsets"])
 def test_the_folds_predicted_together_are_each_folds_own_predictions(ar1, offsets):
     from qube_koopman.identify.uncertainty import predict_groups
