@@ -5,7 +5,7 @@ from __future__ import annotations
 __all__ = ["resolve_n_jobs"]
 
 
-def resolve_n_jobs(n_jobs: int, n_episodes: int) -> int:
+def resolve_n_jobs(n_jobs: int, n_episodes: int, name: str = "n_jobs") -> int:
     """Workers (processes or threads) for ``n_episodes`` episodes, joblib's convention: -1 for every core.
 
     Parameters
@@ -15,6 +15,8 @@ def resolve_n_jobs(n_jobs: int, n_episodes: int) -> int:
         affinity mask and cgroup quotas) or a positive count.
     n_episodes : int
         Episodes to run: never more workers than these, and at least one.
+    name : str
+        The caller's name for ``n_jobs``, in the error.
 
     Returns
     -------
@@ -26,7 +28,7 @@ def resolve_n_jobs(n_jobs: int, n_episodes: int) -> int:
         For 0 or a value below -1.
     """
     if n_jobs == 0 or n_jobs < -1:
-        raise ValueError(f"n_jobs must be -1 (every core) or at least 1, got {n_jobs}")
+        raise ValueError(f"{name} must be -1 (every core) or at least 1, got {n_jobs}")
     if n_jobs == -1:
         import joblib
 

@@ -324,7 +324,7 @@ def identify_and_score(
             f"one controller, these ran {n_controllers} (cl-edmd, cl-edmd-known-rows, edmd and arx fit "
             "logs of several)"
         )
-    with limited_blas_threads(1), episode_threads(resolve_n_jobs(n_threads, len(train))):
+    with limited_blas_threads(1), episode_threads(resolve_n_jobs(n_threads, len(train), "n_threads")):
         if method in KOOPMAN_METHODS:
             plant, closed, ensemble = _koopman(
                 method,

@@ -775,8 +775,8 @@ class IntervalCalibration:
         ``model_error_half_width``: the band's half-width without refits or offsets (``s = 0``) after
         :data:`REPORTED_HORIZONS` samples predicted. It is what the band is at those horizons, whatever
         the parameters: an error that grows as a random walk over every horizon the calibration saw
-        fits ``q`` and ``tau`` both at their largest (the variance ``q h / tau``), a scale of metres
-        and a timescale of years that mean nothing alone.
+        fits ``q`` and ``tau`` both at their largest (the variance ``q h / tau``), a scale of many
+        radians and a timescale of weeks that mean nothing alone.
         """
         h = np.array(REPORTED_HORIZONS, dtype=float)
         widths = self.half_width(np.zeros((h.size, len(self.scale_))), h)

@@ -127,3 +127,6 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
         np.testing.assert_array_equal(one.plant.B, two.plant.B)
         assert one.report["test"] == two.report["test"]
     assert runs[1, False].report["intervals"]["pooled"] == runs[2, False].report["intervals"]["pooled"]
+    with pytest.raises(ValueError, match="n_threads must be -1 \\(every core\\) or at least 1, got 0"):
+        identify_and_score(method="cl-edmd", lifting=[Polynomial(1)], train=train, test=test,
+                           controller=train[0].controller, n_threads=0)
