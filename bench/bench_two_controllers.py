@@ -104,7 +104,8 @@ def arm_errors(predictions: Path, logs: list[Path]) -> list[dict[str, np.ndarray
     for log in load_logs(logs, skip=SKIP_SAMPLES):
         saved = np.load(predictions / f"{log.path.stem}.npz")
         t = log.trajectory
-        scored = slice(int(round(saved["t"][0] / log.dt)), int(round(saved["t"][0] / log.dt)) + len(saved["t"]))
+        first = int(round(saved["t"][0] / log.dt))
+        scored = slice(first, first + len(saved["t"]))
         if not np.array_equal(t.x[scored, 0], saved["measured"][:, 0]):
             raise SystemExit(f"{log.path.name}: its prediction file does not line up with the log")
         error = saved["measured"][:, 0] - saved["predicted"][:, 0]
