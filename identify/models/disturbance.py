@@ -1,0 +1,641 @@
+"""A disturbance model, its Kalman filter, and predictions that use the measurements.
+
+A Koopman model predicts what the excitation causes. What it leaves on the real rig is a slow
+disturbance that no response to the references explains. This module models it as a state
+driven by white noise (a random walk, or a first-order process when its pole is below 1) that
+enters the model where the physics puts it, estimates it from the measurements with a
+steady-state Kalman filter, and predicts K samples ahead from every sample with the
+measurements up to it.
+
+The model, in innovations form
+------------------------------
+The lifted state of a delay-embedding model is a function of the measured history, so the
+one-step predictor from the measurements (the prediction-error method's predictor, as for an
+ARX model) is ``y_{k+1} = C (A z_k + B v_k + E d_k) + e_{k+1}`` with ``z_k`` the lifting of the
+measured ``y`` up to sample ``k`` (and the logged controller state), ``v_k`` the known inputs,
+``e`` white innovations of covariance ``R``, and the disturbance
+
+    d_{k+1} = pole d_k + w_k,   var(w) = q.
+
+Its Kalman filter corrects the lifted state by lifting the new measurement (the innovations
+form's gain on the history), and the disturbance by ``d_{k|k} = d_{k|k-1} + L (y_k - y_{k|k-1})``
+with the steady-state gain ``L`` of the scalar system ``(pole, G = C E)`` (python-control's
+``dlqe``). ``q`` and ``R`` are the Gaussian maximum-likelihood estimates on the training
+episodes' one-step residuals (:func:`fit_disturbance`).
+
+The entry points
+----------------
+- ``"input"``: a load at the plant input, in volts (``E`` the plant input's column of ``B``:
+  the feedforward's of a closed loop, whose plant input is the controller's output plus the
+  feedforward). On the QUBE-Servo, a torque on the arm (its cable, the motor's friction).
+- ``"theta"``, ``"alpha"``: a rate added to that angle's equation (``E`` the unit vector of the
+  angle's lifted coordinate): the angle creeps as an encoder that slips or an arm pulled by its
+  cable at a random rate would.
+
+:func:`compare_entries` fits each on the same residuals; their likelihoods say which the data
+support (each has one disturbance state and the same number of parameters).
+
+K-step predictions
+------------------
+:func:`predict_ahead` starts a prediction at every ``stride``-th sample from the measured
+history, the logged controller state and the filtered disturbance, and runs the model (re-lifted
+as its free-run prediction is) ``K`` samples under the known inputs with the disturbance's
+forecast ``pole^j d_{k|k}``: the closed loop's prediction includes the controller's reaction to
+the estimated disturbance. With ``K = 0`` it is the filtered estimate (the measurement itself in
+innovations form); with a zero gain, its prediction from the first window is the free-run one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from qube_koopman.identify.data.trajectory import Trajectory
+from qube_koopman.identify.models.model import KoopmanModel
+
+__all__ = [
+    "ENTRIES",
+    "DisturbanceModel",
+    "KStepData",
+    "NotDetectable",
+    "augmented_detectable",
+    "compare_entries",
+    "disturbance_direction",
+    "filter_disturbance",
+    "fit_disturbance",
+    "load_response",
+    "one_step_residuals",
+    "prediction_errors",
+    "predict_ahead",
+    "steady_state_gain",
+]
+
+#: Where a disturbance may enter: a load at the plant input, or a rate on one angle's equation.
+ENTRIES = ("input", "theta", "alpha")
+#: The measured channels' names, in the model's state order.
+_CHANNELS = ("theta", "alpha")
+
+
+class NotDetectable(ValueError):
+    """The model augmented with the disturbance is not detectable: the filter could not estimate it."""
+
+
+@dataclass(frozen=True)
+class DisturbanceModel:
+    """A disturbance state, where it enters, its statistics and its Kalman filter's gain.
+
+    Parameters
+    ----------
+    entry : str
+        Where it enters (one of :data:`ENTRIES`).
+    pole : float
+        ``d_{k+1} = pole d_k + w_k``: 1 for a random walk (integrated white noise).
+    q : float
+        Variance of ``w`` per sample (volts squared for ``"input"``, rad squared otherwise).
+    R : ndarray of shape (n_outputs, n_outputs)
+        Covariance of the one-step innovations (the measurement noise and what the model misses
+        in one sample).
+    gain : ndarray of shape (n_outputs,)
+        The steady-state filter's gain: ``d_{k|k} = d_{k|k-1} + gain @ innovation``.
+    log_likelihood : float
+        Gaussian log-likelihood of the training residuals (per sample).
+    n_samples : int
+        Training residuals it was estimated from.
+    """
+
+    entry: str
+    pole: float
+    q: float
+    R: np.ndarray
+    gain: np.ndarray
+    log_likelihood: float = float("nan")
+    n_samples: int = 0
+
+    def as_dict(self) -> dict:
+        """The model file's ``disturbance`` entry (JSON values)."""
+        return {
+            "entry": self.entry,
+            "kind": "random-walk" if self.pole == 1.0 else "first-order",
+            "pole": float(self.pole),
+            "q": float(self.q),
+            "R": np.asarray(self.R, dtype=float).tolist(),
+            "gain": np.asarray(self.gain, dtype=float).tolist(),
+            "log_likelihood_per_sample": float(self.log_likelihood),
+            "n_samples": int(self.n_samples),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "DisturbanceModel":
+        """The model back from :meth:`as_dict` (a ValueError naming what is wrong)."""
+        try:
+            entry, pole, q = str(data["entry"]), float(data["pole"]), float(data["q"])
+            R = np.asarray(data["R"], dtype=float)
+            gain = np.asarray(data["gain"], dtype=float)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"the disturbance model is incomplete or not numbers ({exc})") from None
+        if entry not in ENTRIES:
+            raise ValueError(f"unknown disturbance entry {entry!r} (one of {', '.join(ENTRIES)})")
+        n = gain.shape[0] if gain.ndim == 1 else -1
+        if R.shape != (n, n) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(gain))):
+            raise ValueError(f"the disturbance's R {R.shape} and gain {gain.shape} do not fit or are not finite")
+        if not (0.0 <= pole <= 1.0 and np.isfinite(q) and q >= 0):
+            raise ValueError(f"the disturbance's pole {pole} must be in [0, 1] and q {q} finite, 0 or more")
+        return cls(
+            entry,
+            pole,
+            q,
+            R,
+            gain,
+            float(data.get("log_likelihood_per_sample", float("nan"))),
+            int(data.get("n_samples", 0)),
+        )
+
+    def with_gain(self, gain: np.ndarray) -> "DisturbanceModel":
+        """The same model with another filter gain (zero: the free-run prediction)."""
+        return DisturbanceModel(self.entry, self.pole, self.q, self.R, np.asarray(gain, dtype=float))
+
+
+def disturbance_direction(model: KoopmanModel, entry: str) -> np.ndarray:
+    """``E``: how a unit disturbance at ``entry`` moves the lifted state in one sample.
+
+    ``"input"`` is the plant input's column of ``B`` (a plant model's ``u``; a closed loop's
+    feedforward, which is added to the controller's output), ``"theta"`` and ``"alpha"`` the unit
+    vector of that angle's lifted coordinate.
+    """
+    E = np.zeros(model.A.shape[0])
+    if entry == "input":
+        if model.input_signals == ("u",):
+            E[:] = model.B[:, 0]
+        elif model.input_signals and model.input_signals[-1] == "f":
+            E[:] = model.B[:, -1]
+        else:
+            raise ValueError(f"a model with inputs {model.input_signals} has no plant input for a load to enter")
+    elif entry in _CHANNELS:
+        E[model.n_passthrough + _CHANNELS.index(entry)] = 1.0
+    else:
+        raise ValueError(f"unknown disturbance entry {entry!r} (one of {', '.join(ENTRIES)})")
+    return E
+
+
+def augmented_detectable(model: KoopmanModel, E: np.ndarray, pole: float = 1.0, rtol: float = 1e-9) -> bool:
+    """Whether the lifted model augmented with disturbance states ``E`` stays detectable.
+
+    The rank condition of offset-free estimation (Pannocchia & Rawlings): with ``(A, C)``
+    detectable, the augmented ``([[A, E], [0, pole I]], [C, 0])`` is detectable exactly when
+    ``[[A - pole I, E], [C, 0]]`` has full column rank; at ``pole = 1`` this also needs no more
+    disturbances than measured outputs. The filter reads the disturbance from the one-step
+    innovations, so ``C E`` (its effect on the next measurement) must have full column rank too.
+    """
+    E = np.asarray(E, dtype=float).reshape(model.A.shape[0], -1)
+    n_z, n_d = E.shape
+    C = model.C
+    M = np.block([[model.A - pole * np.eye(n_z), E], [C, np.zeros((C.shape[0], n_d))]])
+    s = np.linalg.svd(M, compute_uv=False)
+    G = C @ E
+    g = np.linalg.svd(G, compute_uv=False)
+    scale = max(1.0, float(np.max(np.abs(M))))
+    return bool(s[-1] > rtol * scale * max(M.shape) and g.size and g[-1] > rtol * max(1.0, float(np.abs(G).max())))
+
+
+def steady_state_gain(G: np.ndarray, pole: float, q: float, R: np.ndarray) -> tuple[np.ndarray, float]:
+    """The steady-state Kalman filter of ``d_{k+1} = pole d_k + w``, ``r_k = G d_k + e_k``.
+
+    Returns the filtered gain ``L`` (``d_{k|k} = d_{k|k-1} + L (r_k - G d_{k|k-1})``) and the
+    predicted variance ``P`` (``var(d_k - d_{k|k-1})``), the positive root of the scalar Riccati
+    equation ``P = pole^2 P - pole^2 P^2 G' S^-1 G + q``, ``S = G P G' + R``. Python-control's
+    ``dlqe`` gives the same gain (solve_discrete_are); this closed form avoids its cost inside the
+    likelihood's search.
+    """
+    G = np.asarray(G, dtype=float).reshape(-1)
+    R = np.asarray(R, dtype=float)
+    gamma = float(G @ np.linalg.solve(R, G))  # G' R^-1 G
+    a2 = pole * pole
+    if q <= 0 or gamma <= 0:
+        return np.zeros_like(G), 0.0
+    # With S^-1 by the matrix inversion lemma, G'S^-1G = gamma / (1 + gamma P): the Riccati equation is
+    # gamma P^2 + (1 - a2 - q gamma) P - q = 0.
+    b = 1.0 - a2 - q * gamma
+    P = (-b + np.sqrt(b * b + 4.0 * gamma * q)) / (2.0 * gamma)
+    L = P * np.linalg.solve(R, G) / (1.0 + gamma * P)
+    return L, float(P)
+
+
+def one_step_residuals(model: KoopmanModel, trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """The one-step residuals from the measurements, and the one-step predictions.
+
+    ``r_{k+1} = y_{k+1} - C (A z_k + B v_k)`` with ``z_k`` the lifting of the measured history
+    up to ``k`` (and the logged controller state), for ``k`` from the first lifted sample on.
+
+    Returns
+    -------
+    residuals, predictions : ndarray of shape (n_samples, n_states)
+        Row ``k`` holds sample ``k``'s residual and prediction; NaN up to sample ``n_delays``.
+    """
+    model._initial_passthrough(trajectory)  # checks the trajectory's shape
+    d, n_p, m = model.n_delays, model.n_passthrough, model.n_states
+    z = model.lifting.transform(np.asarray(trajectory.x, dtype=float))  # sample k = d + j
+    if n_p:
+        z = np.hstack([np.asarray(trajectory.xc, dtype=float)[d:], z])
+    v = model.inputs_of(trajectory)[d:]
+    rows = slice(n_p, n_p + m)
+    predicted = z[:-1] @ model.A[rows].T + v[:-1] @ model.B[rows].T
+    out_p = np.full((trajectory.n_samples, m), np.nan)
+    out_p[d + 1 :] = predicted
+    return np.asarray(trajectory.x, dtype=float) - out_p, out_p
+
+
+def filter_disturbance(residuals: np.ndarray, G: np.ndarray, pole: float, gain: np.ndarray) -> tuple:
+    """The steady-state filter run on one episode's one-step residuals.
+
+    Parameters
+    ----------
+    residuals : ndarray of shape (n_samples, n_outputs)
+        :func:`one_step_residuals` (NaN before the first).
+    G : ndarray of shape (n_outputs,)
+        ``C E``.
+    pole : float
+    gain : ndarray of shape (n_outputs,)
+
+    Returns
+    -------
+    filtered : ndarray of shape (n_samples,)
+        ``d_{k|k}`` (the disturbance in the step from ``k`` to ``k+1``; 0 before the first residual).
+    innovations : ndarray of shape (n_samples, n_outputs)
+        ``r_k - G d_{k|k-1}`` (NaN where there is no residual).
+    """
+    from scipy.signal import lfilter  # a first-order recursion over every sample, in C
+
+    r = np.asarray(residuals, dtype=float)
+    n = r.shape[0]
+    ok = np.flatnonzero(np.all(np.isfinite(r), axis=1))
+    filtered = np.zeros(n)
+    innovations = np.full_like(r, np.nan)
+    if not ok.size:
+        return filtered, innovations
+    first = int(ok[0])
+    rr = np.nan_to_num(r[first:])
+    G = np.asarray(G, dtype=float).reshape(-1)
+    gain = np.asarray(gain, dtype=float).reshape(-1)
+    # The residual r_k carries d_{k-1} (the step from k-1 to k): predicted d_{k-1|k-1}-based value
+    # p_k = pole * f_{k-1}, filtered f_k = p_k + L (r_k - G p_k) = pole (1 - L G) f_{k-1} + L r_k, f_{first-1} = 0.
+    beta = pole * (1.0 - float(gain @ G))
+    f = lfilter([1.0], [1.0, -beta], rr @ gain)
+    predicted = np.concatenate([[0.0], pole * f[:-1]])
+    innovations[first:] = rr - predicted[:, None] * G[None, :]
+    filtered[first:] = pole * f  # d_{k|k}: the step from k to k+1
+    return filtered, innovations
+
+
+def _neg_log_likelihood(params, residuals, G, pole, fit_pole):
+    """Minus the Gaussian log-likelihood per sample of the steady-state filter's innovations."""
+    log_q, log_r1, log_r2, rho = params[:4]
+    if fit_pole:
+        pole = 1.0 / (1.0 + np.exp(-params[4]))
+    s1, s2 = np.exp(0.5 * log_r1), np.exp(0.5 * log_r2)
+    c = 0.999 * np.tanh(rho)  # a correlation, kept off +-1 (a singular R)
+    R = np.array([[s1 * s1, c * s1 * s2], [c * s1 * s2, s2 * s2]])
+    if not np.all(np.isfinite(R)) or abs(log_q) > 700:
+        return np.inf
+    L, P = steady_state_gain(G, pole, float(np.exp(log_q)), R)
+    S = np.outer(G, G) * P + R
+    S_inv = np.linalg.inv(S)
+    _, logdet = np.linalg.slogdet(S)
+    total, count = 0.0, 0
+    for r in residuals:
+        _, e = filter_disturbance(r, G, pole, L)
+        e = e[np.all(np.isfinite(e), axis=1)]
+        total += float(np.einsum("ij,jk,ik->", e, S_inv, e))
+        count += len(e)
+    return 0.5 * (total / count + logdet + 2 * np.log(2 * np.pi))
+
+
+def load_response(model: KoopmanModel, E: np.ndarray, pole: float, horizons: Sequence[int]) -> np.ndarray:
+    """``S_K``: the measured states ``K`` samples after a unit disturbance (decaying as ``pole^j``) starts.
+
+    From the lifted linear map (the disturbance's effect is small beside the state's, so its
+    propagation is linear). Returns an array of shape ``(len(horizons), n_states)``.
+    """
+    K_max = max(int(K) for K in horizons)
+    z = np.zeros(model.A.shape[0])
+    out = np.zeros((K_max + 1, model.n_states))
+    for j in range(K_max):
+        z = model.A @ z + E * pole**j
+        out[j + 1] = model.C @ z
+    return out[[int(K) for K in horizons]]
+
+
+def _q_grid(G: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Candidate ``q``: from a disturbance whose one-step effect is 1e-8 of the innovations' to 1e2 of it."""
+    scale = float(np.min(np.diag(R) / np.maximum(G**2, 1e-300)))
+    return scale * np.logspace(-8, 2, 21)
+
+
+def fit_disturbance(
+    model: KoopmanModel,
+    trajectories: Sequence[Trajectory],
+    entry: str = "input",
+    *,
+    horizons: Sequence[int] = (50, 500),
+    pole: float = 1.0,
+    skip: int = 0,
+    stride: int | None = None,
+    q: float | None = None,
+    method: str = "prediction",
+    data: KStepData | None = None,
+) -> DisturbanceModel:
+    """Estimate a disturbance's statistics and its filter's gain from training episodes.
+
+    ``R`` is the covariance of the training episodes' one-step residuals
+    (:func:`one_step_residuals`). ``q`` is chosen by one of two criteria:
+
+    - ``"prediction"`` (default): the ``q`` whose filter predicts the training episodes best
+      ``horizons`` samples ahead (the sum over horizons and channels of the squared errors, each
+      channel's divided by its variance, as R^2 weighs it), over a grid of 21 values from
+      ``q = 0`` up. The prediction-error method's criterion at the horizons that are scored: a
+      slow load moves the next sample by far less than the encoders' quantization, so a one-step
+      criterion hardly sees it.
+    - ``"likelihood"``: Gaussian maximum likelihood of the steady-state filter's one-step
+      innovations, in ``log q``, ``log R`` and the innovations' correlation: consistent when the
+      model is exact and its one-step residuals white.
+
+    Parameters
+    ----------
+    model : KoopmanModel
+        The model predicting the episodes (a closed loop with its controller state logged, or a
+        plant with its input).
+    trajectories : sequence of Trajectory
+        Training episodes.
+    entry : str
+        Where the disturbance enters (:data:`ENTRIES`).
+    horizons : sequence of int
+        The prediction criterion's horizons (samples).
+    pole : float
+        ``d_{k+1} = pole d_k + w``: 1 for a random walk.
+    skip : int
+        Samples left out at each episode's start (a transient).
+    stride : int, optional
+        The prediction criterion starts a prediction every ``stride`` samples (default: a tenth
+        of the longest horizon).
+    q : float, optional
+        Use this ``q`` (``R`` still estimated): the choice made by hand.
+    method : {"prediction", "likelihood"}
+    data : KStepData, optional
+        The episodes' predictions without a disturbance, when already simulated (their
+        ``horizons``, ``skip`` and stride are then used).
+
+    Returns
+    -------
+    DisturbanceModel
+
+    Raises
+    ------
+    NotDetectable
+        When the model augmented with the disturbance is not detectable.
+    """
+    if model.n_states != 2:
+        raise ValueError(f"a disturbance model needs the two measured angles, the model has {model.n_states} states")
+    if method not in ("prediction", "likelihood"):
+        raise ValueError(f"unknown criterion {method!r}: 'prediction' or 'likelihood'")
+    E = disturbance_direction(model, entry)
+    if not augmented_detectable(model, E, pole):
+        raise NotDetectable(
+            f"the model augmented with a disturbance at {entry!r} is not detectable: the measurements "
+            "cannot tell the disturbance from the model's state (the rank of [[A - pole I, E], [C, 0]] or of C E "
+            "falls short)"
+        )
+    G = model.C @ E
+    trajectories = list(trajectories)
+    residuals = []
+    for t in trajectories:
+        r, _ = one_step_residuals(model, t)
+        r[: max(skip, 0)] = np.nan
+        residuals.append(r)
+    stacked = np.concatenate([r[np.all(np.isfinite(r), axis=1)] for r in residuals])
+    if len(stacked) < 10:
+        raise ValueError("too few one-step residuals to estimate a disturbance model")
+    R = np.cov(stacked.T)
+    if method == "likelihood":
+        return _maximum_likelihood(entry, residuals, G, pole, R, len(stacked))
+    if q is None:
+        if data is None:
+            data = KStepData.of(model, trajectories, horizons, skip, stride)
+        q = _best_prediction_q(model, data, entry, G, pole, R)
+    L, _ = steady_state_gain(G, pole, q, R)
+    return DisturbanceModel(entry, float(pole), float(q), R, L, float("nan"), int(len(stacked)))
+
+
+@dataclass
+class KStepData:
+    """Training episodes' K-step predictions without a disturbance, and their one-step residuals.
+
+    Simulated once (:meth:`of`), then shared by every candidate disturbance model a fit or a
+    comparison of entry points scores (:func:`prediction_errors`).
+    """
+
+    horizons: list[int]
+    skip: int
+    truths: list[np.ndarray]
+    bases: list[dict[int, np.ndarray]]
+    residuals: list[np.ndarray]
+
+    @classmethod
+    def of(
+        cls,
+        model: KoopmanModel,
+        trajectories: Sequence[Trajectory],
+        horizons: Sequence[int],
+        skip: int = 0,
+        stride: int | None = None,
+    ) -> "KStepData":
+        """Predict every episode ``horizons`` ahead every ``stride`` samples (a tenth of the longest horizon)."""
+        horizons = [int(K) for K in horizons]
+        stride = max(1, max(horizons) // 10) if stride is None else int(stride)
+        truths, bases, residuals = [], [], []
+        for t in trajectories:
+            truths.append(np.asarray(t.x, dtype=float))
+            bases.append(predict_ahead(model, None, t, horizons, stride))
+            residuals.append(one_step_residuals(model, t)[0])
+        return cls(horizons, skip, truths, bases, residuals)
+
+
+def prediction_errors(model: KoopmanModel, data: KStepData, candidates: Sequence[DisturbanceModel]) -> np.ndarray:
+    """Each candidate's squared K-step errors on ``data``'s episodes, each channel's divided by its variance.
+
+    A candidate's filtered disturbance adds its response ``S_K d_{k|k}`` (:func:`load_response`,
+    linear in the disturbance) to the predictions without one, so that many candidates cost
+    little more than one.
+
+    Returns
+    -------
+    ndarray of shape (n_candidates, n_horizons, n_states)
+    """
+    horizons, skip = data.horizons, data.skip
+    out = np.zeros((len(candidates), len(horizons), model.n_states))
+    total_var = np.zeros(model.n_states)
+    responses, directions = {}, {}
+    for cand in candidates:
+        if cand.entry not in directions:
+            directions[cand.entry] = model.C @ disturbance_direction(model, cand.entry)
+        if (cand.entry, cand.pole) not in responses:
+            E = disturbance_direction(model, cand.entry)
+            responses[cand.entry, cand.pole] = load_response(model, E, cand.pole, horizons)
+    for x, base, residuals in zip(data.truths, data.bases, data.residuals):
+        total_var += x[skip:].var(axis=0) * max(len(x) - skip, 1)
+        for c, cand in enumerate(candidates):
+            dhat, _ = filter_disturbance(residuals, directions[cand.entry], cand.pole, cand.gain)
+            for h, K in enumerate(horizons):
+                ends = np.flatnonzero(np.all(np.isfinite(base[K]), axis=1))
+                ends = ends[ends - K >= skip]
+                err = x[ends] - base[K][ends] - dhat[ends - K, None] * responses[cand.entry, cand.pole][h][None, :]
+                out[c, h] += np.sum(err**2, axis=0)
+    return out / np.maximum(total_var, 1e-300)
+
+
+def _best_prediction_q(model, data: KStepData, entry, G, pole, R) -> float:
+    """The grid's ``q`` (0 included) whose filter predicts ``data``'s episodes best at its horizons."""
+    grid = np.concatenate([[0.0], _q_grid(G, R)])
+    candidates = [DisturbanceModel(entry, pole, q, R, steady_state_gain(G, pole, q, R)[0]) for q in grid]
+    cost = prediction_errors(model, data, candidates).sum(axis=(1, 2))
+    return float(grid[int(np.argmin(cost))])
+
+
+def _maximum_likelihood(entry, residuals, G, pole, R0, n_samples) -> DisturbanceModel:
+    """One-step Gaussian maximum likelihood in log q, log R and the innovations' correlation."""
+    from scipy.optimize import minimize
+
+    s1, s2 = np.sqrt(np.diag(R0))
+    rho0 = np.arctanh(np.clip(R0[0, 1] / (s1 * s2), -0.99, 0.99))
+    q0 = float(np.min(np.diag(R0) / np.maximum(G**2, 1e-300))) * 1e-4
+    rest = [np.log(R0[0, 0]), np.log(R0[1, 1]), rho0]
+    # A start from a coarse grid in log q (R at the residuals' covariance), then every parameter.
+    starts = [np.log(q0) + shift for shift in np.arange(-12.0, 13.0, 3.0)]
+    log_q0 = min(starts, key=lambda lq: _neg_log_likelihood([lq, *rest], residuals, G, pole, False))
+    best = minimize(
+        _neg_log_likelihood,
+        np.array([log_q0, *rest]),
+        args=(residuals, G, pole, False),
+        method="L-BFGS-B",  # smooth in these coordinates: quasi-Newton steps converge in tens of evaluations
+    )
+    assert best is not None
+    log_q, log_r1, log_r2, rho = best.x
+    s1, s2, c = np.exp(0.5 * log_r1), np.exp(0.5 * log_r2), 0.999 * np.tanh(rho)
+    R = np.array([[s1 * s1, c * s1 * s2], [c * s1 * s2, s2 * s2]])
+    q = float(np.exp(log_q))
+    L, _ = steady_state_gain(G, pole, q, R)
+    return DisturbanceModel(entry, float(pole), q, R, L, float(-best.fun), int(n_samples))
+
+
+def compare_entries(
+    model: KoopmanModel,
+    trajectories: Sequence[Trajectory],
+    entries: Sequence[str] = ENTRIES,
+    *,
+    horizons: Sequence[int] = (50, 500),
+    skip: int = 0,
+    stride: int | None = None,
+) -> dict[str, tuple[DisturbanceModel, float]]:
+    """Each entry point's disturbance model fitted on the same episodes, with its K-step cost.
+
+    The cost is :func:`prediction_errors` summed over horizons and channels (without a
+    disturbance: ``entry "none"``'s); the entry with the lowest is the one the data support.
+    A non-detectable entry is left out.
+    """
+    data = KStepData.of(model, trajectories, horizons, skip, stride)
+    out: dict[str, tuple[DisturbanceModel, float]] = {}
+    for entry in entries:
+        try:
+            fitted = fit_disturbance(model, trajectories, entry, skip=skip, data=data)
+        except NotDetectable:
+            continue
+        out[entry] = (fitted, float(prediction_errors(model, data, [fitted]).sum()))
+    return out
+
+
+def predict_ahead(
+    model: KoopmanModel,
+    disturbance: DisturbanceModel | None,
+    trajectory: Trajectory,
+    horizons: Sequence[int],
+    stride: int | Sequence[int] = 1,
+    relift: bool = True,
+) -> dict[int, np.ndarray]:
+    """Predict every ``stride``-th sample ``K`` samples ahead from the measurements up to it.
+
+    Parameters
+    ----------
+    model : KoopmanModel
+        The loop (or plant) predicting the episode.
+    disturbance : DisturbanceModel or None
+        Its disturbance model; None predicts from the measured history alone (no disturbance).
+    trajectory : Trajectory
+        The episode: its measurements, inputs and (closed loop) logged controller state.
+    horizons : sequence of int
+        ``K`` in samples (0: the filtered estimate).
+    stride : int or sequence of int
+        Start a prediction at every ``stride``-th sample from ``n_delays`` on (per horizon).
+    relift : bool
+        Re-lift the predicted states at every step (as :meth:`KoopmanModel.predict` does).
+
+    Returns
+    -------
+    dict of int to ndarray of shape (n_samples, n_states)
+        For each horizon, sample ``k + K`` holds the prediction started at ``k``; NaN where no
+        prediction ends (before ``n_delays + K``, or between strided starts).
+    """
+    d, n = model.n_delays, trajectory.n_samples
+    x = np.asarray(trajectory.x, dtype=float)
+    v = model.inputs_of(trajectory)
+    strides = [stride] * len(horizons) if np.ndim(stride) == 0 else list(stride)  # type: ignore[arg-type]
+    if disturbance is not None:
+        E = disturbance_direction(model, disturbance.entry)
+        residuals, _ = one_step_residuals(model, trajectory)
+        dhat, _ = filter_disturbance(residuals, model.C @ E, disturbance.pole, disturbance.gain)
+    out: dict[int, np.ndarray] = {}
+    for K, s in zip(horizons, strides):
+        K, s = int(K), max(1, int(s))
+        pred = np.full((n, model.n_states), np.nan)
+        starts = np.arange(d, n - K, s)
+        if K == 0 or not starts.size:
+            if K == 0:
+                pred[starts] = x[starts]
+            out[K] = pred
+            continue
+        idx = starts[:, None] + np.arange(-d, K + 1)[None, :]  # each window: history, then K steps
+        x_init = x[idx[:, : d + 1]]
+        vv = v[idx]  # (n_starts, d + 1 + K, n_inputs)
+        p0 = None if not model.n_passthrough else np.asarray(trajectory.xc, dtype=float)[starts]
+        if disturbance is not None and disturbance.entry == "input" and np.any(dhat[starts]):
+            forecast = dhat[starts][:, None] * disturbance.pole ** np.arange(K + 1)[None, :]
+            vv = vv.copy()
+            vv[:, d:, -1] += forecast  # the load adds to the plant input (a closed loop's feedforward)
+            xs, _ = model.simulate(x_init, vv, p0, relift=relift)
+        elif disturbance is not None and disturbance.entry != "input" and np.any(dhat[starts]):
+            xs = _simulate_with_rate(model, disturbance, x_init, vv, p0, dhat[starts], K, relift)
+        else:
+            xs, _ = model.simulate(x_init, vv, p0, relift=relift)
+        pred[starts + K] = xs[:, d + K]
+        out[K] = pred
+    return out
+
+
+def _simulate_with_rate(model, disturbance, x_init, v, p0, d0, K, relift):
+    """The windows simulated with a rate disturbance on one angle's equation (a model with one more input)."""
+    E = disturbance_direction(model, disturbance.entry)
+    augmented = KoopmanModel(
+        model.A,
+        np.hstack([model.B, E[:, None]]),
+        model.lifting,
+        model.input_signals,
+        model.n_passthrough,
+        model.input_lifting,
+        model.dt,
+        model.passthrough_names,
+        model.feedback,
+    )
+    forecast = d0[:, None] * disturbance.pole ** np.arange(K + 1)[None, :]
+    extra = np.zeros(v.shape[:2] + (1,))
+    extra[:, -(K + 1) :, 0] = forecast
+    xs, _ = augmented.simulate(x_init, np.concatenate([v, extra], axis=2), p0, relift=relift)
+    return xs
