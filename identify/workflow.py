@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from qube_koopman.core.blas import episode_threads, limited_blas_threads
+from qube_koopman.core.files import atomic_path
 from qube_koopman.core.parallel import resolve_n_jobs
 from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.identify.estimators.arx import Arx, ClArx
@@ -23,6 +24,7 @@ from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.stability import ClEdmdStable
 from qube_koopman.identify.models.model_file import lifting_to_dict, save_arx_model, save_model, uncertainty_to_dict
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
+from qube_koopman.identify.models.kstep import AheadOptions, AheadScores, fit_training_disturbance
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
@@ -187,6 +189,7 @@ def identify_and_score(
     probe_cache: str | Path | None = None,
     command_delay: float | str = 0.0,
     n_threads: int = -1,
+    ahead: AheadOptions | None = None,
 ) -> IdentificationResult:
     """Fit ``method`` on the training logs and score it on the test logs.
 
@@ -285,13 +288,22 @@ def identify_and_score(
         Training episodes factored side by side (-1: one per core this process may run on), each
         with one BLAS thread (:func:`~qube_koopman.core.blas.episode_threads`): the same model
         whatever the count.
+    ahead : AheadOptions, optional
+        A Koopman method: fit a disturbance model on the training episodes, store it in the model
+        file, and score every test episode at these horizons with the measurements up to each
+        start (:mod:`~qube_koopman.identify.models.kstep`; report.json's ``ahead``); with
+        ``predictions_folder``, each episode's ``<log>.npz`` gains ``ahead_<h>``.
 
     Returns
     -------
     IdentificationResult
     """
-    if method not in KOOPMAN_METHODS and (offsets is not None or what_if is not None or intervals is not None):
-        raise ValueError(f"offsets, what-if controllers and intervals need a Koopman method, not {method}")
+    if method not in KOOPMAN_METHODS and (
+        offsets is not None or what_if is not None or intervals is not None or ahead is not None
+    ):
+        raise ValueError(
+            f"offsets, what-if controllers, intervals and K-step predictions need a Koopman method, not {method}"
+        )
     if method == "arx" and score == "cl":
         raise ValueError(
             "ARX models the plant only: its predictions come from the plant input, not the "
@@ -368,6 +380,12 @@ def identify_and_score(
                     held_out,
                 )
             )
+            disturbance, ahead_scores = None, None
+            if ahead is not None:
+                disturbance, result.report["disturbance"] = _training_disturbance(
+                    closed if score == "cl" else plant, train, controller, score, ahead
+                )
+                ahead_scores = AheadScores(ahead, disturbance, _first_scored(offsets, score_from, test[0].dt))
             if model_path is not None:
                 save_model(
                     model_path,
@@ -381,6 +399,7 @@ def identify_and_score(
                     uncertainty=None
                     if ensemble is None or intervals is None
                     else _design_uncertainty(ensemble, plant, train, intervals.seed, held_out),
+                    disturbance=disturbance,
                 )  # an ensemble: intervals were asked for
             held_out.clear()
             if command_delay == "estimate":
@@ -389,7 +408,13 @@ def identify_and_score(
                 predicted_loops = _TestLoops(controller, score, what_if, per_log=estimated)
             else:
                 predicted_loops = _TestLoops(controller, score, what_if, float(command_delay))
-            _score_koopman(plant, closed, predicted_loops, test, offsets, result, score_from, keep_predictions, bands)
+            _score_koopman(
+                plant, closed, predicted_loops, test, offsets, result, score_from, keep_predictions, bands, ahead_scores
+            )
+            if ahead_scores is not None:
+                result.report["ahead"] = ahead_scores.report()
+                if predictions_folder is not None:
+                    _save_ahead(Path(predictions_folder), test, ahead_scores)
         elif method in ("arx", "cl-arx"):
             # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
@@ -657,7 +682,16 @@ class _TestScores:
 
 
 def _score_koopman(
-    plant, closed, how: _TestLoops, test, offsets, result, score_from=None, keep_predictions=True, bands=None
+    plant,
+    closed,
+    how: _TestLoops,
+    test,
+    offsets,
+    result,
+    score_from=None,
+    keep_predictions=True,
+    bands=None,
+    ahead=None,
 ):
     """Test logs read, predicted and scored a batch at a time (only their scores kept, and their predictions
     if asked); with ``bands``, every member of the ensemble predicts each batch in the same simulation."""
@@ -675,6 +709,8 @@ def _score_koopman(
         for i, traj, episode in zip(run, trajectories, predict_episodes(models, trajectories, offsets)):
             estimates.append(episode.estimate)
             scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
+            if ahead is not None and counted[i]:
+                ahead.add(test[i].path.name, models[0], traj, _offset_vector(episode.estimate, traj.x.shape[1]))
             if bands is not None:
                 bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop, how.runs_own(test[i]))
     if how.command_delay:
@@ -704,6 +740,40 @@ def _score_koopman(
     ]
     result.report["offset_bound"] = offsets.bound
     scores.report(offsets.describe(dt), dt)
+
+
+def _training_disturbance(model, train, controller, score, options: AheadOptions):
+    """The disturbance model fitted on the training episodes the model's own loop ran (all, scoring the plant)."""
+    own = [log.trajectory for log in train if score == "plant" or Loop.of(log.controller, controller).kind == "closed"]
+    return fit_training_disturbance(model, own or [log.trajectory for log in train], options)
+
+
+def _offset_vector(estimate, n_states: int) -> np.ndarray | None:
+    """An episode's estimated offsets as one value per state (None without offsets)."""
+    if estimate is None:
+        return None
+    values = np.zeros(n_states)
+    values[list(estimate.channels)] = estimate.values
+    return values
+
+
+def _save_ahead(folder: Path, test, ahead: AheadScores) -> None:
+    """Each scored test episode's K-step predictions into its ``<log>.npz`` (written beside its band, or alone)."""
+    for log in test:
+        kept = ahead.predictions.get(log.path.name)
+        if kept is None:
+            continue
+        path = folder / f"{log.path.stem}.npz"
+        arrays: dict = {}
+        if path.exists():
+            with np.load(path) as old:
+                arrays = {key: old[key] for key in old.files}
+        else:
+            x = np.asarray(log.trajectory.x, dtype=float)
+            arrays = {"t": np.arange(len(x)) * log.dt, "measured": x}
+        arrays.update(kept)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **arrays)
 
 
 #: How the intervals are made, in words (report.json's ``intervals.method``).

@@ -18,6 +18,7 @@ from qube_koopman.core.cli import (
     finite_number,
     n_jobs,
     path,
+    positive_number,
     seed,
     whole_number,
 )
@@ -135,6 +136,17 @@ def _add_search_options(p: argparse.ArgumentParser) -> None:
         "back when the training excitations, the twin and the simulator are the same)",
     )
     add_cluster_options(p)
+
+
+def _horizons(text: str) -> tuple[float, ...]:
+    """``--horizon``: seconds, comma-separated, each 0 or more."""
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"horizons are seconds separated by commas (0.1,1), got {text!r}") from None
+    if not values or any(not (v >= 0 and v < 1e4) for v in values):
+        raise argparse.ArgumentTypeError(f"horizons are seconds from 0 to 10000, got {text!r}")
+    return values
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -271,6 +283,31 @@ def _parser() -> argparse.ArgumentParser:
         "encoder zero is a few counts off upright); scores then cover the samples after the "
         "window, beside the plain prediction's on the same samples. Default: none (the "
         "paper's protocol)",
+    )
+    pred.add_argument(
+        "--horizon",
+        type=_horizons,
+        metavar="S[,S...]",
+        help="also predict every test episode these seconds ahead from the measurements up to each start "
+        "(for example 0.1,1), with a disturbance model fitted on the training episodes and its Kalman "
+        "filter (stored in model.json); report.json's 'ahead' and report.md give R^2 and RMS error per "
+        "horizon and channel beside the free run, and predictions/<log>.npz gains ahead_<S>. Default: "
+        "free run only",
+    )
+    pred.add_argument(
+        "--disturbance",
+        choices=["auto", "none", "input", "theta", "alpha"],
+        default="auto",
+        help="with --horizon, where the disturbance enters: a load at the plant input (input), a rate on an "
+        "angle's equation (theta, alpha), none, or auto: the one that predicts the training episodes best at "
+        "the horizons (default %(default)s)",
+    )
+    pred.add_argument(
+        "--disturbance-q",
+        type=positive_number,
+        metavar="Q",
+        help="with --horizon, the disturbance's variance per sample, set by hand (default: chosen on the "
+        "training episodes; report.json's 'disturbance' says which)",
     )
     pred.add_argument(
         "--estimate-window",
@@ -660,6 +697,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
     import numpy as np
 
     from qube_koopman.identify.report.markdown import write_markdown_report
+    from qube_koopman.identify.models.kstep import AheadOptions
     from qube_koopman.identify.uncertainty import IntervalOptions
     from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
@@ -673,7 +711,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         statistics = _cluster_statistics(args, train, cleanup)
         what_if = _what_if_controller(args.controller, train[0].dt) if args.controller else None
         out = output_dir(args.out)  # after the logs and --controller load (no empty folder for a bad one)
-        predictions = output_dir(out / PREDICTIONS) if args.interval else None
+        predictions = output_dir(out / PREDICTIONS) if args.interval or args.horizon else None
         logging.getLogger(__name__).info(
             "%d training and %d test episodes, %d samples dropped from each", len(train), len(test), args.skip
         )
@@ -733,6 +771,11 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
                 args.command_delay if args.command_delay == "estimate" else args.command_delay * 1e-3 / train[0].dt
             ),
             n_threads=args.n_jobs,
+            ahead=(
+                None
+                if args.horizon is None
+                else AheadOptions(args.horizon, entry=args.disturbance, q=args.disturbance_q)
+            ),
             estimator_options=(
                 {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
             ),
@@ -760,6 +803,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
     _print_controllers(result.report["training_controllers"], sessions is not None)
     _print_scores(args, result.report)
     _print_intervals(result.report.get("intervals"))
+    _print_ahead(result.report.get("ahead"), result.report.get("disturbance"))
     written = (
         ["model.json", "report.json", "report.md"]
         + ([PREDICTIONS] if args.interval else [])
@@ -834,6 +878,17 @@ def _print_scores(args, report: dict) -> None:
             f"; {flagged} implausible estimate(s) not used" if flagged else ""
         )
     print(line)
+
+
+def _print_ahead(ahead: dict | None, disturbance: dict | None) -> None:
+    """One line: each horizon's mean R^2 per channel, and the disturbance model behind them."""
+    if not ahead or not ahead.get("horizons"):
+        return
+    each = "; ".join(
+        f"{label} s ahead R^2 " + " / ".join(f"{v:.4f}" for v in h["r2_mean"]) for label, h in ahead["horizons"].items()
+    )
+    entry = (disturbance or {}).get("entry", "none")
+    print(f"K-step (theta / alpha, disturbance {entry}): {each}")
 
 
 def _print_intervals(intervals: dict | None) -> None:

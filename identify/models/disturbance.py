@@ -587,14 +587,14 @@ def predict_ahead(
     d, n = model.n_delays, trajectory.n_samples
     x = np.asarray(trajectory.x, dtype=float)
     v = model.inputs_of(trajectory)
-    strides = [stride] * len(horizons) if np.ndim(stride) == 0 else list(stride)  # type: ignore[arg-type]
+    strides: list[int] = [int(stride)] * len(horizons) if isinstance(stride, (int, np.integer)) else list(stride)
     if disturbance is not None:
         E = disturbance_direction(model, disturbance.entry)
         residuals, _ = one_step_residuals(model, trajectory)
         dhat, _ = filter_disturbance(residuals, model.C @ E, disturbance.pole, disturbance.gain)
     out: dict[int, np.ndarray] = {}
-    for K, s in zip(horizons, strides):
-        K, s = int(K), max(1, int(s))
+    for K_given, s_given in zip(horizons, strides):
+        K, s = int(K_given), max(1, int(s_given))
         pred = np.full((n, model.n_states), np.nan)
         starts = np.arange(d, n - K, s)
         if K == 0 or not starts.size:

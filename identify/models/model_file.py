@@ -133,6 +133,7 @@ def save_model(
     measured: list[int],
     training: dict,
     uncertainty: dict | None = None,
+    disturbance=None,
 ) -> None:
     """Write a model file (see MODEL_FORMAT.md), atomically.
 
@@ -156,6 +157,9 @@ def save_model(
         What the model was fitted on, stored as given (JSON values).
     uncertainty : dict, optional
         The fit's uncertainty for a design (:func:`uncertainty_to_dict`); left out when None.
+    disturbance : DisturbanceModel, optional
+        The disturbance model and its Kalman filter's gain
+        (:class:`~qube_koopman.identify.models.disturbance.DisturbanceModel`); left out when None.
     """
     data = {
         "format": FORMAT,
@@ -172,6 +176,8 @@ def save_model(
     }
     if uncertainty is not None:
         data["uncertainty"] = uncertainty
+    if disturbance is not None:
+        data["disturbance"] = disturbance.as_dict()
     with atomic_path(path) as tmp:
         tmp.write_text(_dumps(data))
 
@@ -277,7 +283,9 @@ def load_model(path: str | Path) -> dict:
         ``plant`` and ``closed_loop`` (:class:`KoopmanModel` or None),
         ``controller`` (:class:`DiscreteStateSpace` or None), ``plant_members`` (the bootstrap
         refits of the plant as :class:`KoopmanModel`, their rows past the measured states the
-        plant's; None when the file holds none) and the file's other fields as stored.
+        plant's; None when the file holds none), ``disturbance`` (its
+        :class:`~qube_koopman.identify.models.disturbance.DisturbanceModel`, or None) and the
+        file's other fields as stored.
 
     Raises
     ------
@@ -336,6 +344,14 @@ def load_model(path: str | Path) -> dict:
         controller=None if data["controller"] is None else DiscreteStateSpace.from_dict(data["controller"]),
     )
     out["plant_members"] = _members(data.get("uncertainty"), out["plant"], matrix, path)
+    out["disturbance"] = None
+    if data.get("disturbance") is not None:
+        from qube_koopman.identify.models.disturbance import DisturbanceModel
+
+        try:
+            out["disturbance"] = DisturbanceModel.from_dict(data["disturbance"])
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise ValueError(f"{path}: disturbance: {exc}") from None
     return out
 
 

@@ -305,6 +305,7 @@ def markdown_report(report: dict) -> str:
     lines += _session_delay_lines(report.get("session_delays"))
     lines += [""] + _test_section(report)
     lines += _intervals_section(report.get("intervals"))
+    lines += _ahead_section(report.get("ahead"), report.get("disturbance"), t)
     sweep = report.get("sweep")
     if sweep:
         best = max(range(len(sweep["alpha"])), key=lambda i: sweep["cv_r2_mean"][i])
@@ -321,6 +322,42 @@ def markdown_report(report: dict) -> str:
         lines += _search_section(report["search"])
     lines += figures_markdown(report.get("figures"))
     return "\n".join(lines) + "\n"
+
+
+def _ahead_section(ahead: dict | None, disturbance: dict | None, test: dict | None) -> list[str]:
+    """K-step predictions: R^2 and RMS error per horizon and channel, beside the free run; the disturbance model."""
+    if not ahead or not ahead.get("horizons"):
+        return []
+    lines = ["", "## Predictions that use the measurements", ""]
+    d = disturbance or {}
+    costs = d.get("training_cost", {})
+    lines.append(
+        f"Disturbance: {d.get('entry', 'none')} ({d.get('why', '')}). Training K-step cost by entry point: "
+        + ", ".join(f"{k} {format_number(v, '.4g')}" for k, v in costs.items())
+        + "."
+    )
+    if d.get("model"):
+        m = d["model"]
+        lines.append(
+            f"Its {m['kind']} has q {format_number(m['q'], '.3g')} per sample and filter gain "
+            f"[{', '.join(format_number(g, '.3g') for g in m['gain'])}] (theta, alpha)."
+        )
+    lines += [
+        "",
+        "| horizon | R^2 theta (worst) | R^2 alpha (worst) | RMS theta | RMS alpha |",
+        "|---|---|---|---|---|",
+    ]
+    for label, h in ahead["horizons"].items():
+        r2, worst, rms = h["r2_mean"], h["r2_worst"], h["rms_mean"]
+        lines.append(
+            f"| {label} s | {format_number(r2[0], '.4f')} ({format_number(worst[0], '.4f')}) | "
+            f"{format_number(r2[1], '.4f')} ({format_number(worst[1], '.4f')}) | "
+            f"{format_number(rms[0], '.4g')} | {format_number(rms[1], '.4g')} |"
+        )
+    if test:
+        lines.append(f"| free run | R^2 mean {format_number(test.get('r2_mean'), '.4f')} (both channels) | | | |")
+    lines += ["", ahead["note"] + "."]
+    return lines
 
 
 def _estimated_delay_lines(delay: dict) -> list[str]:

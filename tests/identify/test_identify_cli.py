@@ -4,6 +4,7 @@ import json
 import os
 import shutil
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -261,3 +262,32 @@ def test_every_scored_sample_gets_an_interval_written_whole_per_test_log(small_s
                          "--out", tmp_path / "plain")
     assert code == 0 and "intervals" not in json.loads((tmp_path / "plain" / "report.json").read_text())
     assert not (tmp_path / "plain" / "predictions").exists()
+
+
+def test_horizons_score_k_step_predictions_and_the_model_file_carries_the_filter(small_set, tmp_path, capsys):
+    """--horizon: a disturbance model fitted on the training episodes, stored in model.json, and every test
+    episode predicted ahead from its measurements; the scores are those of the saved ahead_<h> arrays."""
+    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
+                         "--delays", "5", "--interval", "0", "--horizon", "0.1,0.5")
+    assert code == 0, err
+    assert "K-step (theta / alpha, disturbance" in out and "0.1 s ahead R^2" in out
+    report = json.loads((tmp_path / "report.json").read_text())
+    ahead = report["ahead"]["horizons"]
+    assert set(ahead) == {"0.1", "0.5"}
+    # With the measurements the short horizon predicts better than the long one, and both better than the free run.
+    assert ahead["0.1"]["r2_mean"][0] > ahead["0.5"]["r2_mean"][0] > report["test"]["r2_mean"]
+    assert report["disturbance"]["entry"] in ("none", "input", "theta", "alpha")
+    assert "none" in report["disturbance"]["training_cost"]
+    loaded = load_model(tmp_path / "model.json")
+    if report["disturbance"]["entry"] != "none":
+        assert loaded["disturbance"].entry == report["disturbance"]["entry"]
+    else:
+        assert loaded["disturbance"] is None
+    first = report["ahead"]["horizons"]["0.1"]["episodes"][0]
+    saved = np.load(tmp_path / "predictions" / (Path(first["log"]).stem + ".npz"))
+    measured, pred = saved["measured"], saved["ahead_0.1"]
+    ok = np.all(np.isfinite(pred), axis=1) & (np.arange(len(pred)) >= report["scored_from_sample"])
+    rms = np.sqrt(np.mean((measured[ok] - pred[ok]) ** 2, axis=0))
+    np.testing.assert_allclose(rms, first["rms"], rtol=1e-12)
+    assert np.isnan(pred[:50]).all()  # nothing predicted 0.1 s ahead before the first start plus 0.1 s
+    assert "Predictions that use the measurements" in (tmp_path / "report.md").read_text()

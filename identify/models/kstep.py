@@ -1,0 +1,189 @@
+"""K-step scores: a fit's disturbance model and its test episodes predicted at horizons.
+
+What ``qube-identify --horizon`` runs after a fit: :func:`fit_training_disturbance` estimates the
+disturbance model on the training episodes (each entry point's, the best kept), and
+:class:`AheadScores` predicts every test episode at each horizon with the measurements up to
+each start (:func:`~qube_koopman.identify.models.disturbance.predict_ahead`), scores it as the
+free-run prediction is scored (R^2 and RMS error per channel from the first scored sample), and
+keeps each episode's predictions for its predictions file (``ahead_<h>``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from qube_koopman.identify.data.trajectory import Trajectory
+from qube_koopman.identify.models import disturbance as dm
+from qube_koopman.identify.models.model import KoopmanModel
+
+__all__ = ["AheadOptions", "AheadScores", "fit_training_disturbance", "horizon_label"]
+
+#: Starts per horizon: one every this fraction of the horizon (at least one sample apart), so that a long
+#: horizon's predictions cost about as much as a short one's while every horizon scores hundreds of starts.
+STARTS_PER_HORIZON = 20
+
+
+def horizon_label(seconds: float) -> str:
+    """A horizon's name in files and reports: ``0.1``, ``1`` (seconds, as given)."""
+    return f"{seconds:g}"
+
+
+@dataclass(frozen=True)
+class AheadOptions:
+    """K-step predictions of a fit (``qube-identify --horizon``).
+
+    Parameters
+    ----------
+    horizons : tuple of float
+        Seconds ahead.
+    entry : str
+        Where the disturbance enters (:data:`~qube_koopman.identify.models.disturbance.ENTRIES`), or
+        ``"auto"``: each is fitted and the one whose filter predicts the training episodes best at
+        the horizons is kept (``"none"`` when none beats predicting without a disturbance).
+    q : float, optional
+        The disturbance's variance per sample, set by hand (``R`` and the gain still estimated).
+    """
+
+    horizons: tuple[float, ...] = (0.1, 1.0)
+    entry: str = "auto"
+    q: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.horizons or any(not (np.isfinite(h) and h >= 0) for h in self.horizons):
+            raise ValueError(f"horizons are seconds, 0 or more, got {self.horizons}")
+        if self.entry not in ("auto", "none", *dm.ENTRIES):
+            raise ValueError(f"unknown disturbance entry {self.entry!r} (auto, none, {', '.join(dm.ENTRIES)})")
+
+    def samples(self, dt: float) -> list[int]:
+        """The horizons in samples."""
+        return [int(round(h / dt)) for h in self.horizons]
+
+    def strides(self, dt: float) -> list[int]:
+        """Samples between the starts of each horizon's predictions."""
+        return [max(1, K // STARTS_PER_HORIZON) for K in self.samples(dt)]
+
+
+def fit_training_disturbance(
+    model: KoopmanModel, train: Sequence[Trajectory], options: AheadOptions, skip: int = 0
+) -> tuple[dm.DisturbanceModel | None, dict]:
+    """The disturbance model of a fit, from its training episodes, and the report's account of the choice.
+
+    Returns
+    -------
+    disturbance : DisturbanceModel or None
+        None when no entry point predicts the training episodes better than none (or ``"none"``).
+    report : dict
+        Each entry's K-step cost on the training episodes (without a disturbance: ``"none"``), the
+        entry kept and why.
+    """
+    dt = model.dt if model.dt is not None else train[0].dt
+    assert dt is not None, "a model or an episode gives the sample period"
+    horizons = [max(1, K) for K in options.samples(dt)]
+    if options.entry == "none":
+        return None, {"entry": "none", "why": "no disturbance model asked for (--disturbance none)"}
+    data = dm.KStepData.of(model, train, horizons, skip, max(1, max(horizons) // 10))
+    none = dm.DisturbanceModel("input", 1.0, 0.0, np.eye(model.n_states), np.zeros(model.n_states))
+    costs = {"none": float(dm.prediction_errors(model, data, [none]).sum())}
+    fitted: dict[str, dm.DisturbanceModel] = {}
+    refused: dict[str, str] = {}
+    for entry in dm.ENTRIES if options.entry == "auto" else (options.entry,):
+        try:
+            fitted[entry] = dm.fit_disturbance(model, train, entry, q=options.q, data=data)
+        except (dm.NotDetectable, ValueError) as exc:
+            refused[entry] = str(exc)
+            continue
+        costs[entry] = float(dm.prediction_errors(model, data, [fitted[entry]]).sum())
+    if options.entry != "auto" and options.entry in refused:
+        raise ValueError(refused[options.entry])
+    best = min(costs, key=lambda k: costs[k]) if options.entry == "auto" else options.entry
+    report = {
+        "entry": best,
+        "criterion": "the training episodes' squared K-step errors at the scored horizons, each channel's "
+        "divided by its variance, summed (lower is better)",
+        "training_cost": costs,
+        "refused": refused,
+        "why": (
+            f"{best} predicts the training episodes best at {', '.join(horizon_label(h) for h in options.horizons)} s"
+            if options.entry == "auto"
+            else f"{best} asked for (--disturbance {best})"
+        ),
+    }
+    if best == "none":
+        return None, report
+    report["model"] = fitted[best].as_dict()
+    return fitted[best], report
+
+
+@dataclass
+class AheadScores:
+    """Test episodes' K-step predictions and scores, added as they stream by."""
+
+    options: AheadOptions
+    disturbance: dm.DisturbanceModel | None
+    start: int
+    keep: bool = True
+    per_horizon: dict[str, list[dict]] = field(default_factory=dict)
+    predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+    def add(self, name: str, model: KoopmanModel, trajectory: Trajectory, offsets: np.ndarray | None = None) -> None:
+        """Predict and score one test episode (``offsets``: its sensor offsets, measured = true + offset)."""
+        dt = model.dt if model.dt is not None else trajectory.dt
+        assert dt is not None, "a model or an episode gives the sample period"
+        t = trajectory
+        if offsets is not None:  # the model runs on the true states: offsets out of the history, back in after
+            from dataclasses import replace
+
+            t = replace(trajectory, x=np.asarray(trajectory.x, dtype=float) - offsets[None, :])
+        samples = self.options.samples(dt)
+        ahead = dm.predict_ahead(model, self.disturbance, t, samples, self.options.strides(dt))
+        kept = {}
+        for h, K in zip(self.options.horizons, samples):
+            pred = ahead[K] if offsets is None else ahead[K] + offsets[None, :]
+            label = horizon_label(h)
+            kept[f"ahead_{label}"] = pred
+            self.per_horizon.setdefault(label, []).append(_score(name, trajectory.x, pred, self.start))
+        if self.keep:
+            self.predictions[name] = kept
+
+    def report(self) -> dict:
+        """report.json's ``ahead``: per horizon and channel, the mean and worst R^2 and the RMS error."""
+        out: dict = {
+            "disturbance": None if self.disturbance is None else self.disturbance.as_dict(),
+            "horizons": {},
+            "note": "each scored sample predicted from the measurements up to h seconds before it (a start every "
+            f"1/{STARTS_PER_HORIZON} of the horizon), under the known inputs and controller, with the disturbance "
+            "filtered from the measurements",
+        }
+        for label, rows in self.per_horizon.items():
+            r2 = np.array([row["r2"] for row in rows])
+            rms = np.array([row["rms"] for row in rows])
+            out["horizons"][label] = {
+                "seconds": float(label),
+                "r2_mean": np.nanmean(r2, axis=0).tolist(),
+                "r2_worst": np.nanmin(r2, axis=0).tolist(),
+                "rms_mean": np.nanmean(rms, axis=0).tolist(),
+                "episodes": rows,
+            }
+        return out
+
+
+def _score(name: str, truth: np.ndarray, pred: np.ndarray, start: int) -> dict:
+    """R^2 and RMS error per channel of the predicted samples from ``start`` on."""
+    truth = np.asarray(truth, dtype=float)
+    rows = np.arange(truth.shape[0]) >= start
+    ok = rows & np.all(np.isfinite(pred), axis=1)
+    if not np.any(ok):
+        nan = [float("nan")] * truth.shape[1]
+        return {"log": name, "r2": nan, "rms": nan, "n_samples": 0}
+    err = truth[ok] - pred[ok]
+    var = truth[rows].var(axis=0)
+    r2 = 1.0 - np.mean(err**2, axis=0) / np.where(var > 0, var, np.nan)
+    return {
+        "log": name,
+        "r2": r2.tolist(),
+        "rms": np.sqrt(np.mean(err**2, axis=0)).tolist(),
+        "n_samples": int(np.sum(ok)),
+    }
