@@ -297,6 +297,9 @@ def run_swing_up(
             backend.write(0.0)
             return report("failed", violation, k)
         max_theta = max(max_theta, abs(theta))
+        if k == max_ticks:
+            backend.write(0.0)
+            return report("failed", sup.timeout_reason(), k)
         if k:
             theta_dot = pole * theta_dot + gain * (theta - theta_prev)
             alpha_dot = pole * alpha_dot + gain * wrap_angle(alpha - alpha_prev)
@@ -329,5 +332,4 @@ def run_swing_up(
         volts = min(max(u, -vmax), vmax) if math.isfinite(u) else 0.0
         backend.write(volts)
         max_volts = max(max_volts, abs(volts))
-    backend.write(0.0)
-    return report("failed", sup.timeout_reason(), max_ticks + 1)
+    raise AssertionError("unreachable: the last tick gives up")  # pragma: no cover

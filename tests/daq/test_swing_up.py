@@ -3,15 +3,23 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
 
-from qube_koopman.daq.swing_up import EnergyController
+from qube_koopman.core.controller_file import load_controller
+from qube_koopman.daq.backends import SimBackend
+from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
+from qube_koopman.daq.loop import EpisodePlan, run_episode
+from qube_koopman.daq.safety import StopRequest, SwingUpLimits
+from qube_koopman.daq.session import FATAL_CAUSES
+from qube_koopman.daq.sinks import MemorySink
+from qube_koopman.daq.swing_up import EnergyController, SwingUp
 from qube_koopman.sim.pendulum import PendulumParameters, dynamics, total_energy
 
 PARAMS = PendulumParameters()
+CONTROLLER = load_controller(None, "backward-euler", 1.0 / 500.0)  # the rig's PD
 
 
 def test_energy_is_the_models_pendulum_energy():
@@ -75,3 +83,100 @@ def test_energy_controller_centers_the_arm_and_kicks_a_pendulum_at_rest():
     assert still.acceleration(0.3, 0.0, -0.5, 0.0) == pytest.approx(
         -still.centering_kp * 0.3 + still.centering_kd * 0.5
     )
+
+
+# --- the supervisor's swing-up limits, through the loop -------------------------------------------
+
+
+class _Recording(SimBackend):
+    """The simulator hanging at rest, recording each tick's reading and command."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(start="hanging", seed=3, **kwargs)
+        self.reads: list[tuple[float, float]] = []
+        self.writes: list[float] = []
+
+    def read(self):
+        y = super().read()
+        self.reads.append(y)
+        return y
+
+    def write(self, volts: float) -> None:
+        super().write(volts)
+        self.writes.append(volts)  # a command the stopped simulator refuses is not recorded
+
+
+@dataclass(frozen=True)
+class _Push(EnergyController):
+    """A faulty swing-up controller: a constant voltage, whatever the state."""
+
+    volts: float = 8.0
+
+    def voltage(self, theta, alpha, theta_dot, alpha_dot):
+        return self.volts
+
+
+def _plan(swing: SwingUp, n: int = 500) -> EpisodePlan:
+    settings = ExcitationSettings(n_samples=n, window_start=n // 5, window_stop=4 * n // 5)
+    return EpisodePlan(CONTROLLER, generate_excitation((1, 2, 3), settings), swing_up=swing)
+
+
+def test_supervisor_stops_a_swing_up_that_pushes_the_arm_past_its_limit():
+    """The arm's swing-up limit: 0 V in the tick whose reading is past it, the reason in the log,
+    which holds no samples; the run goes on (the cause is not fatal)."""
+    backend = _Recording()
+    sink = MemorySink()
+    limit = math.radians(60.0)
+    swing = SwingUp(energy=_Push(), limits=SwingUpLimits(arm_limit=limit, time_limit=5.0))
+    result = run_episode(backend, _plan(swing), [sink])
+    assert result.status == "aborted" and result.cause == "swing-up"
+    assert result.cause not in FATAL_CAUSES
+    assert "|theta|" in result.reason and "swing-up" in result.reason
+    past = [i for i, (theta, _) in enumerate(backend.reads) if abs(theta) > limit]
+    assert past and past[0] == len(backend.reads) - 1  # stopped at the first reading past the limit
+    assert set(backend.writes[past[0] :]) == {0.0}  # ... with 0 V in that tick
+    assert all(v == 8.0 for v in backend.writes[: past[0]])  # the voltage asked for until then
+    (episode,) = sink.episodes
+    assert episode.samples == [] and episode.outcome.status == "aborted"
+    assert episode.outcome.reason == result.reason
+    swung = episode.metadata.extra["swing_up"]
+    assert swung["outcome"] == "failed" and swung["reason"] == result.reason
+    assert swung["max_abs_theta"] <= limit  # the readings before the stop
+
+
+def test_supervisor_clamps_the_swing_up_voltage():
+    backend = _Recording()
+    swing = SwingUp(energy=_Push(volts=50.0), limits=SwingUpLimits(max_voltage=3.0, time_limit=0.5))
+    run_episode(backend, _plan(swing), [MemorySink()])
+    assert max(abs(v) for v in backend.writes) == 3.0
+
+
+def test_supervisor_gives_up_a_swing_up_after_its_time_limit():
+    """A controller that never swings the pendulum up: after the time limit (counted in ticks) 0 V, and the
+    log says the swing-up gave up."""
+    backend = _Recording()
+    sink = MemorySink()
+    swing = SwingUp(energy=_Push(volts=0.0), limits=SwingUpLimits(time_limit=0.5))
+    result = run_episode(backend, _plan(swing), [sink])
+    assert result.cause == "swing-up" and "gave up" in result.reason and "0.5 s" in result.reason
+    assert len(backend.reads) == 251  # ticks 0..249 ran the controller, tick 250 put 0 V
+    assert backend.writes[250:] and set(backend.writes[250:]) == {0.0}  # (the loop's stop writes 0 V again)
+    assert sink.episodes[0].metadata.extra["swing_up"]["duration"] == pytest.approx(0.5)
+
+
+def test_stop_during_a_swing_up_puts_0_v_in_the_tick_that_sees_it():
+    stop = StopRequest()
+
+    class Stopping(_Recording):
+        def read(self):
+            if len(self.reads) == 100:
+                stop.request("interrupted by SIGINT", 2)
+            return super().read()
+
+    backend = Stopping()
+    sink = MemorySink()
+    result = run_episode(backend, _plan(SwingUp(energy=_Push(volts=1.0))), [sink], stop=stop)
+    assert result.cause == "stop" and "swing-up" in result.reason
+    assert len(backend.reads) == 101 and backend.writes[:100] == [1.0] * 100
+    assert set(backend.writes[100:]) == {0.0}
+    assert sink.episodes == []  # stopped before the episode: no log, as at the start gate
