@@ -180,3 +180,44 @@ def test_stop_during_a_swing_up_puts_0_v_in_the_tick_that_sees_it():
     assert len(backend.reads) == 101 and backend.writes[:100] == [1.0] * 100
     assert set(backend.writes[100:]) == {0.0}
     assert sink.episodes == []  # stopped before the episode: no log, as at the start gate
+
+
+# --- qube-run --swing-up on the simulator ----------------------------------------------------------
+
+
+def test_qube_run_swing_up_records_complete_episodes_after_the_catch(tmp_path, capsys):
+    """Three seeds from hanging at rest: each swung up, caught and settled within the limits, then the
+    recorded episode complete, its samples inside the clamp and the arm's limit, started as an
+    upright episode starts (controller state zero, the pendulum near upright) and driven by the same
+    excitation as a run without the swing-up."""
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.daq.log import read_episode
+
+    common = ["--episodes", "3", "--seed", "4", "--duration", "2", "--n-jobs", "1", "-q"]
+    assert main([*common, "--swing-up", "--out", str(tmp_path / "up")]) == 0
+    assert "3 complete, 0 aborted" in capsys.readouterr().out
+    assert main([*common, "--out", str(tmp_path / "upright")]) == 0
+    swung = [read_episode(p) for p in sorted((tmp_path / "up").glob("*.mcap"))]
+    upright = [read_episode(p) for p in sorted((tmp_path / "upright").glob("*.mcap"))]
+    assert len(swung) == len(upright) == 3
+    for episode, plain in zip(swung, upright):
+        meta = episode.metadata
+        report = meta.extra["swing_up"]
+        assert meta.status == "complete" and len(episode.t) == 1000
+        assert meta.extra["backend"]["start"] == "hanging"
+        assert report["outcome"] == "settled" and report["n_catches"] >= 1
+        assert report["duration"] <= 10.0
+        assert report["max_abs_theta"] < math.pi / 2 and report["max_abs_voltage"] <= 10.0
+        assert np.max(np.abs(episode.plant_input)) <= 10.0
+        assert np.max(np.abs(episode.theta)) < math.pi / 2
+        assert abs(episode.alpha[0]) < math.radians(5.0) and abs(episode.theta[0]) < 0.1
+        assert np.all(episode.controller_state[0] == 0.0)
+        for signal in ("target_theta", "target_alpha", "feedforward"):
+            np.testing.assert_array_equal(getattr(episode, signal), getattr(plain, signal))
+
+
+def test_qube_run_swing_up_options_need_swing_up(tmp_path, capsys):
+    from qube_koopman.daq.cli.run import main
+
+    assert main(["--catch-angle", "10", "--out", str(tmp_path)]) == 2
+    assert "--catch-angle is for --swing-up" in capsys.readouterr().err
