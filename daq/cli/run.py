@@ -372,8 +372,9 @@ def _jobs(args, n_episodes: int) -> int:
     return resolve_n_jobs(-1 if args.n_jobs is None else args.n_jobs, n_episodes - 1)
 
 
-def _replay(args, rate: float):
-    """Plans repeating the --replay logs' excitations, and the longest one's settings (for progress)."""
+def _replay(args, rate: float, swing_up=None):
+    """Plans repeating the --replay logs' excitations (each swung up first with ``swing_up``), and the
+    longest one's settings (for progress)."""
     from qube_koopman.daq.replay import replay_plans
     from qube_koopman.core.controller_file import load_controller
 
@@ -387,6 +388,10 @@ def _replay(args, rate: float):
         plans = replay_plans(args.replay, controller, twins=twins)
     except ValueError as exc:
         raise CliError(f"{exc} (--replay)") from None
+    if swing_up is not None:
+        from dataclasses import replace
+
+        plans = [replace(plan, swing_up=swing_up) for plan in plans]
     args.episodes = len(plans)
     from qube_koopman.daq.excitation import ExcitationSettings
 
@@ -508,11 +513,7 @@ def _run(args) -> int:
         controller, seeds, settings, source=run_id, extra={"run_seed": seed, "command": "qube-run"}, swing_up=swing_up
     )
     if args.replay:
-        plans, settings = _replay(args, rate)
-        if swing_up is not None:
-            from dataclasses import replace
-
-            plans = [replace(plan, swing_up=swing_up) for plan in plans]
+        plans, settings = _replay(args, rate, swing_up)
     args.n_jobs = _jobs(args, len(plans))
     backend = _make_backend(args, limits, backend_seed, rate)
     if args.check:

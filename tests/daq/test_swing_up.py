@@ -221,3 +221,21 @@ def test_qube_run_swing_up_options_need_swing_up(tmp_path, capsys):
 
     assert main(["--catch-angle", "10", "--out", str(tmp_path)]) == 2
     assert "--catch-angle is for --swing-up" in capsys.readouterr().err
+
+
+def test_qube_run_failed_swing_up_writes_a_log_that_says_why(tmp_path, capsys):
+    """A swing-up that runs out of time: 0 V, a log without samples, closed aborted with the reason (exit 0:
+    the supervisor's recorded outcome, as a safety stop); the next episode swings up again."""
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.daq.log import read_episode
+
+    args = ["--swing-up", "--swing-up-time", "1", "--episodes", "2", "--seed", "1", "--duration", "2", "-q"]
+    assert main([*args, "--n-jobs", "1", "--out", str(tmp_path)]) == 0
+    assert "0 complete, 2 aborted" in capsys.readouterr().out
+    logs = [read_episode(p) for p in sorted(tmp_path.glob("*.mcap"))]
+    assert len(logs) == 2
+    for episode in logs:
+        assert len(episode.t) == 0 and episode.metadata.status == "aborted"
+        assert episode.metadata.status_reason == "swing-up gave up: not caught and settled within 1 s"
+        report = episode.metadata.extra["swing_up"]
+        assert report["outcome"] == "failed" and report["duration"] == pytest.approx(1.0)
