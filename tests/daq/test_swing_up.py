@@ -8,6 +8,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
+from bridge_helpers import cache_home, core  # noqa: F401 (fixtures)
+
 from qube_koopman.core.controller_file import load_controller
 from qube_koopman.daq.backends import SimBackend
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
@@ -239,3 +241,40 @@ def test_qube_run_failed_swing_up_writes_a_log_that_says_why(tmp_path, capsys):
         assert episode.metadata.status_reason == "swing-up gave up: not caught and settled within 1 s"
         report = episode.metadata.extra["swing_up"]
         assert report["outcome"] == "failed" and report["duration"] == pytest.approx(1.0)
+
+
+# --- over the serial link: the emulated bridge ------------------------------------------------------
+
+
+def test_swing_up_over_the_serial_link(core, tmp_path):  # noqa: F811 (the fixture)
+    """The same phase over --backend serial, paced by the bridge's telemetry (lockstep): the emulated
+    pendulum left hanging at the session's start is swung up, caught and settled within the limits,
+    then the episode is recorded complete."""
+    import time
+
+    from qube_koopman.daq.backends.serial import SerialBackend
+    from qube_koopman.daq.log import read_episode
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+    from qube_koopman.daq.sinks import McapSink
+    from qube_koopman.sim.bridge import BridgeEmulator
+
+    emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=0.1, start_upright=False)
+    path = emu.start()
+    backend = SerialBackend(path, link_timeout=0.2)
+    sink = McapSink(tmp_path)
+    seeds, _ = run_seeds(1, 1)
+    (plan,) = plan_episodes(CONTROLLER, seeds, excitation_settings(2.0), source="test", swing_up=SwingUp())
+    try:
+        result = run_episode(backend, plan, [sink])
+    finally:
+        backend.close()
+        time.sleep(0.05)
+        emu.stop()
+    assert result.complete, result.reason
+    episode = read_episode(sink.paths[0])
+    report = episode.metadata.extra["swing_up"]
+    assert report["outcome"] == "settled" and report["catch_time"] > 1.0  # it started far from upright
+    assert report["duration"] <= 10.0
+    assert report["max_abs_theta"] < math.pi / 2 and report["max_abs_voltage"] <= 10.0
+    assert len(episode.t) == 1000 and np.max(np.abs(episode.plant_input)) <= 10.0
+    assert abs(episode.alpha[0]) < math.radians(5.0)
