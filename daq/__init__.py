@@ -4,7 +4,7 @@
 the simulated pendulum and the serial bridge; controllers and their files
 are ``core``'s), the rig's excitation (``daq.excitation``), the
 500 Hz loop with its safety supervisor and timing statistics (``daq.loop``,
-``daq.safety``, ``daq.timing``), the episode and its metadata
+``daq.safety``, ``daq.timing``), the swing-up before an episode (``daq.swing_up``), the episode and its metadata
 (``daq.episode``, with ``stack_signals``), the MCAP episode log (``daq.log``, format in
 ``daq/log/FORMAT.md``; file names in ``daq.log.names``), legacy CSV import (``daq.legacy_csv``), export to
 CSV, Parquet and MATLAB (``daq.export``) and the live rerun view
@@ -49,6 +49,10 @@ _HOMES = {
     "EpisodePlan": "loop",
     "EpisodeResult": "loop",
     "SafetyLimits": "safety",
+    # the swing-up before an episode: its settings, energy controller and the supervisor's limits
+    "SwingUp": "swing_up",
+    "EnergyController": "swing_up",
+    "SwingUpLimits": "safety",
     "ExcitationSettings": "excitation",
     "generate_excitation": "excitation",
     "Backend": "backends",

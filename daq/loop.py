@@ -5,6 +5,12 @@ nothing), read the sample, check safety, run the controller, saturate,
 write the command, hand the sample to the writer thread. The controller
 state is kept and logged every tick.
 
+An episode whose plan has a swing-up (:mod:`daq.swing_up`) starts with that phase instead of the
+start gate: the same backend, tick by tick, under the supervisor's swing-up limits. Its samples
+are not the episode's: the episode's sample 0 is the tick after the pendulum has settled, with the
+controller from zero state as after the start gate. A swing-up that fails still writes the
+episode's log, with no samples and the reason (status ``aborted``).
+
 Aborts (a safety limit, SIGINT/SIGTERM, a log that cannot be written) put
 the motor at 0 V in the tick that sees them, and that tick is logged with
 ``plant_input = 0`` (what was applied). A backend fault ends the episode
@@ -31,13 +37,14 @@ from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.episode import EpisodeMetadata
 from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
+from qube_koopman.daq.swing_up import SwingUp, SwingUpReport, run_swing_up
 from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingRecord, TimingStats, quiet_interpreter
 
 __all__ = ["ABORT_CAUSES", "EpisodePlan", "EpisodeResult", "run_episode", "REALTIME_SWITCH_INTERVAL"]
 
 #: Why an episode can end early: a safety limit, a stop request (signal),
-#: a backend fault, a sink (log) failure, the start gate, or an error in the loop.
-ABORT_CAUSES = ("safety", "stop", "fault", "log", "start", "error")
+#: a backend fault, a sink (log) failure, the start gate, a swing-up that failed, or an error in the loop.
+ABORT_CAUSES = ("safety", "stop", "fault", "log", "start", "swing-up", "error")
 
 #: GIL switch interval (s) while a paced episode runs: the loop thread, waking
 #: from its sleep, waits at most this long for the writer thread to yield.
@@ -79,6 +86,9 @@ class EpisodePlan:
     plant : PendulumParameters, optional
         On a simulated backend, the pendulum this episode runs (``qube-run --replay``: the replayed
         log's twin, with its recording day's cables and its session's delay); None: the backend's.
+    swing_up : SwingUp, optional
+        Swing the pendulum up from hanging before the episode (instead of waiting for it to be
+        raised to the start gate); None: the start gate.
     """
 
     controller: ControllerInfo
@@ -88,6 +98,7 @@ class EpisodePlan:
     source: str = ""
     extra: dict = field(default_factory=dict)
     plant: Any = None
+    swing_up: SwingUp | None = None
 
     @property
     def n_samples(self) -> int:
@@ -191,20 +202,34 @@ def _check_controller(ctrl, period: float) -> None:
         raise ValueError(f"controller dt {ctrl.dt} s differs from the backend's sample period {period} s")
 
 
-def _start(backend: Backend, limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None) -> tuple[str, str]:
-    """Start the backend and pass the start gate; ('', '') then, else (why not, cause) with the motor at 0 V."""
+def _start(
+    backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None
+) -> tuple[str, str, SwingUpReport | None]:
+    """Start the backend and pass the start gate, or swing the pendulum up; ('', '', report) then,
+    else (why not, cause, report) with the motor at 0 V. The report is the swing-up's (None without)."""
+    report = None
     try:
         backend.start()
-        reason, cause = _wait_upright(backend, limits, stop, pacer)
+        if plan.swing_up is None:
+            reason, cause = _wait_upright(backend, limits, stop, pacer)
+        else:
+            report = run_swing_up(backend, plan.controller.system, plan.swing_up, limits, stop, pacer)
+            reason = report.reason
+            cause = "" if report.settled else "stop" if report.outcome == "stopped" else "swing-up"
     except BackendFault as exc:
         reason, cause = f"backend fault before the start: {exc}", "fault"
     if reason:
         _zero_motor(backend)
-    return reason, cause
+    return reason, cause, report
 
 
-def _episode_metadata(plan: EpisodePlan, backend: Backend, limits: SafetyLimits) -> EpisodeMetadata:
+def _episode_metadata(
+    plan: EpisodePlan, backend: Backend, limits: SafetyLimits, swing: SwingUpReport | None = None
+) -> EpisodeMetadata:
     """What the sinks are told when the episode starts."""
+    swing_up = {}
+    if plan.swing_up is not None and swing is not None:
+        swing_up = {"swing_up": {**swing.as_dict(), "settings": plan.swing_up.as_dict()}}
     return EpisodeMetadata(
         controller=plan.controller,
         sample_rate_hz=1.0 / backend.sample_period,
@@ -217,6 +242,7 @@ def _episode_metadata(plan: EpisodePlan, backend: Backend, limits: SafetyLimits)
             "n_planned": plan.n_samples,
             "backend": backend.describe(),
             "safety": limits.as_dict(),
+            **swing_up,
             **plan.extra,
         },
     )
@@ -264,14 +290,21 @@ def _run_logged(
     stop: StopRequest,
     pacer: DeadlinePacer | None,
     times: _TickTimes,
+    refused: tuple[str, str] = ("", ""),
 ) -> _Logged:
-    """Open the sinks, run the ticks, and whatever happens zero the motor and close the sinks."""
+    """Open the sinks, run the ticks, and whatever happens zero the motor and close the sinks.
+
+    ``refused``: (reason, cause) of an episode that cannot start (a failed swing-up): its log is
+    opened and closed aborted with that reason, without a tick.
+    """
     writer = SinkWriter(sinks)
     n_done = 0
     reason = cause = ""
     try:
         if not writer.open(metadata):
             reason, cause = f"log failed: {writer.failed}", "log"
+        elif refused[0]:
+            reason, cause = refused
         else:
             n_done, reason, cause = _ticks(backend, plan, limits, stop, writer, pacer, times)
     except BaseException as exc:
@@ -344,8 +377,8 @@ def run_episode(
         times = _TickTimes(period, timing)
         if plan.plant is not None and hasattr(backend, "use_plant"):
             backend.use_plant(plan.plant)
-        reason, cause = _start(backend, limits, stop, pacer)
-        if reason:
+        reason, cause, swing = _start(backend, plan, limits, stop, pacer)
+        if reason and cause != "swing-up":
             return EpisodeResult(
                 "aborted",
                 reason,
@@ -355,8 +388,8 @@ def run_episode(
                 signal=stop.signal,
                 cause=cause,
             )
-        metadata = _episode_metadata(plan, backend, limits)
-        run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times)
+        metadata = _episode_metadata(plan, backend, limits, swing)
+        run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times, (reason, cause))
     outcome, stats = run.outcome, run.outcome.timing
     metadata = replace(
         metadata,

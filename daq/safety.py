@@ -4,6 +4,10 @@ The rules are those of the C program that ran the rig: the command is clamped to
 +-10 V; the episode stops when ``|theta| > pi/2`` or ``|alpha| > pi/4``, with 0 V
 written in the same tick; control starts only once ``|alpha| < 5 deg``; Ctrl-C
 writes 0 V. Here SIGTERM does the same as SIGINT.
+
+While an episode's pendulum is swung up (:mod:`daq.swing_up`) the pendulum limit cannot apply:
+the supervisor then enforces :class:`SwingUpLimits` instead (the arm angle, the voltage and a time
+limit), with 0 V in the tick that sees a breach.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from typing import Iterator
 
 from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT
 
-__all__ = ["SafetyLimits", "StopRequest", "stop_on_signals"]
+__all__ = ["SafetyLimits", "StopRequest", "SwingUpLimits", "stop_on_signals"]
 
 
 @dataclass(frozen=True)
@@ -77,6 +81,53 @@ class SafetyLimits:
         if not abs(alpha) <= self.alpha_limit:
             return f"safety stop: |alpha| = {abs(alpha):.3f} rad > {self.alpha_limit:.3f} rad"
         return None
+
+
+@dataclass(frozen=True)
+class SwingUpLimits:
+    """The supervisor's limits while a pendulum is swung up (rad, V, s).
+
+    Parameters
+    ----------
+    arm_limit : float
+        Give up, with 0 V, when ``|theta|`` exceeds it (the episode's arm limit, 90 deg, by
+        default).
+    max_voltage : float
+        The swing-up's commands are clamped to ``+-max_voltage`` (the rig's 10 V by default).
+    time_limit : float
+        Give up, with 0 V, when the pendulum has not been caught and settled after this many
+        seconds of samples (counted in ticks).
+    """
+
+    arm_limit: float = THETA_LIMIT
+    max_voltage: float = 10.0
+    time_limit: float = 20.0
+
+    def __post_init__(self) -> None:
+        for name in ("arm_limit", "max_voltage", "time_limit"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
+                raise ValueError(f"swing-up limit {name} must be a positive number, got {value!r}")
+
+    def as_dict(self) -> dict:
+        """Plain-data form, for episode metadata."""
+        return asdict(self)
+
+    def violation(self, theta: float, alpha: float) -> str | None:
+        """Why the measured angles end the swing-up, or None; NaN readings count as violations."""
+        if not abs(theta) <= self.arm_limit:
+            return f"swing-up stopped: |theta| = {abs(theta):.3f} rad > {self.arm_limit:.3f} rad"
+        if not math.isfinite(alpha):
+            return f"swing-up stopped: alpha reads {alpha}"
+        return None
+
+    def timeout_reason(self) -> str:
+        """Why a swing-up that ran out of time ended."""
+        return f"swing-up gave up: not caught and settled within {self.time_limit:g} s"
 
 
 class StopRequest:

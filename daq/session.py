@@ -22,6 +22,7 @@ from qube_koopman.daq.log.names import SEED_SIGNALS
 from qube_koopman.daq.loop import EpisodePlan, EpisodeResult, run_episode
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.sinks import Sink
+from qube_koopman.daq.swing_up import SwingUp
 from qube_koopman.daq.timing import DEFAULT_SPIN, TimingRecord
 
 __all__ = [
@@ -115,6 +116,7 @@ def plan_episodes(
     settings: ExcitationSettings,
     source: str = "",
     extra: dict | None = None,
+    swing_up: SwingUp | None = None,
 ) -> "EpisodePlans":
     """One plan per seed triple: the rig's excitation with those seeds, under ``controller``.
 
@@ -132,13 +134,15 @@ def plan_episodes(
         What planned the run, recorded in each log.
     extra : dict, optional
         More metadata recorded in each log.
+    swing_up : SwingUp, optional
+        Start every episode by swinging the pendulum up from hanging (:mod:`daq.swing_up`).
 
     Returns
     -------
     EpisodePlans
         A sequence of :class:`~qube_koopman.daq.loop.EpisodePlan`.
     """
-    return EpisodePlans(controller, seeds, settings, source, extra)
+    return EpisodePlans(controller, seeds, settings, source, extra, swing_up)
 
 
 class EpisodePlans(Sequence):
@@ -155,8 +159,10 @@ class EpisodePlans(Sequence):
         settings: ExcitationSettings,
         source: str = "",
         extra: dict | None = None,
+        swing_up: SwingUp | None = None,
     ) -> None:
         self.controller = controller
+        self.swing_up = swing_up
         self.seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 3)
         self.settings = settings
         self.source = source
@@ -183,6 +189,7 @@ class EpisodePlans(Sequence):
             index=i,
             source=self.source,
             extra=dict(self.extra),
+            swing_up=self.swing_up,
         )
 
 
@@ -215,7 +222,8 @@ class RunResult:
         return len(self.results) - self.n_complete
 
 
-#: An abort for these causes ends the run: the next episode would fail the same way.
+#: An abort for these causes ends the run: the next episode would fail the same way. (A safety stop
+#: or a failed swing-up does not: the next episode's swing-up starts from where the pendulum fell.)
 FATAL_CAUSES = ("stop", "fault", "log", "error")
 
 

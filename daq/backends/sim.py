@@ -2,7 +2,9 @@
 
 Each episode starts upright with a small seeded perturbation of the
 pendulum angle, so the start gate (``|alpha| < 5 deg``) passes at once: a
-simulated pendulum cannot be raised by hand. Measurements follow the
+simulated pendulum cannot be raised by hand. With ``start="hanging"`` it
+starts hanging instead (the same perturbation about the bottom), for an
+episode that swings it up (``qube-run --swing-up``). Measurements follow the
 dataset's conventions (alpha = 0 upright, 2048-count encoders), with the
 pendulum encoder's zero drawn a little off the true upright each episode as
 on the rig (:class:`~sim.pendulum.ZeroOffsetDistribution`); the episode's
@@ -31,10 +33,13 @@ from qube_koopman.sim.pendulum import (
     ZeroOffsetDistribution,
 )
 
-__all__ = ["SimBackend", "DEFAULT_PERTURBATION"]
+__all__ = ["SimBackend", "DEFAULT_PERTURBATION", "STARTS"]
 
 #: Largest initial ``|alpha|`` (rad) by default: well inside the 5 deg start gate.
 DEFAULT_PERTURBATION = math.radians(2.0)
+
+#: Where an episode's pendulum starts: upright (raised, as by hand) or hanging at rest (to be swung up).
+STARTS = ("upright", "hanging")
 
 
 class SimBackend(Backend):
@@ -59,6 +64,9 @@ class SimBackend(Backend):
         as fast as possible.
     dt : float
         Sample period (s).
+    start : {"upright", "hanging"}
+        Where each episode's pendulum starts: upright (alpha = the perturbation), or hanging
+        (alpha = pi + the perturbation) for an episode that swings it up.
     """
 
     name = "sim"
@@ -74,7 +82,10 @@ class SimBackend(Backend):
         seed: int | None = None,
         realtime: bool = False,
         dt: float = SAMPLE_PERIOD,
+        start: str = "upright",
     ) -> None:
+        if start not in STARTS:
+            raise ValueError(f"start must be one of {', '.join(STARTS)}, got {start!r}")
         if not (math.isfinite(perturbation) and perturbation >= 0):
             raise ValueError(f"perturbation must be a non-negative angle in rad, got {perturbation!r}")
         self.params = params
@@ -85,6 +96,7 @@ class SimBackend(Backend):
         self.realtime = bool(realtime)
         self.pacing = Pacing.LOOP if realtime else Pacing.NONE
         self.sample_period = float(dt)
+        self.start_at = start
         self._rng = np.random.default_rng(seed)
         noise_seed = int(self._rng.integers(2**63))
         self._sim = PendulumSimulator(params, sensor, dt=dt, seed=noise_seed)
@@ -98,8 +110,10 @@ class SimBackend(Backend):
         self._sim.params = params
 
     def start(self) -> None:
-        """Reset the pendulum upright with a fresh random perturbation and encoder zero."""
+        """Reset the pendulum at rest, upright or hanging, with a fresh random perturbation and encoder zero."""
         alpha0, offset = self._start_draws()
+        if self.start_at == "hanging":
+            alpha0 += math.pi
         self._initial_state = (0.0, alpha0, 0.0, 0.0)
         if offset is not None:
             self._sim.sensor = replace(self.sensor, alpha_offset=offset)
@@ -165,6 +179,7 @@ class SimBackend(Backend):
             "realtime": self.realtime,
             "seed": self.seed,
             "perturbation": self.perturbation,
+            "start": self.start_at,
             "initial_state": list(self._initial_state),
             "params": asdict(self.params),
             "sensor": asdict(self._sim.sensor),

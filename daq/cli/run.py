@@ -20,6 +20,10 @@ DEFAULT_OUT = Path("episodes")
 #: The safety limits' defaults in degrees, as the options take them (the rig's: 90 and 45).
 DEFAULT_THETA_LIMIT = math.degrees(THETA_LIMIT)
 DEFAULT_ALPHA_LIMIT = math.degrees(ALPHA_LIMIT)
+#: --swing-up's defaults: the catch angle (deg), the time limit (s) and the voltage clamp (V).
+DEFAULT_CATCH_ANGLE = 20.0
+DEFAULT_SWING_UP_TIME = 20.0
+DEFAULT_SWING_UP_VOLTAGE = 10.0
 
 _DESCRIPTION = f"""\
 Run closed-loop episodes of the QUBE-Servo rotary inverted pendulum and write
@@ -34,6 +38,16 @@ Safety: the command is clamped to +-10 V; an episode stops with the motor at
 0 V when |theta| > {DEFAULT_THETA_LIMIT:g} deg or |alpha| > {DEFAULT_ALPHA_LIMIT:g} deg; Ctrl-C or SIGTERM stops the
 run with the motor at 0 V and the current logs closed as "aborted".
 
+With --swing-up each episode starts from the pendulum hanging (the simulator's
+hangs at rest): an energy-based swing-up brings it up, the PD controller
+catches it within --catch-angle of upright and, once it has settled, the
+recorded episode starts, its samples those of an episode started upright. The
+swing-up is not in the samples; its outcome is in the log's metadata. While it
+runs the supervisor's swing-up limits hold: |theta| within --theta-limit, the
+command within +-{DEFAULT_SWING_UP_VOLTAGE:g} V (--swing-up-voltage), and a time limit
+(--swing-up-time) after which it gives up with 0 V; a failed swing-up writes a
+log without samples that says why, and the next episode swings up again.
+
 With no arguments: 3 episodes of 20 s on the simulator, as fast as the
 computer allows (episodes side by side on every core: --n-jobs), into
 ./episodes. With --backend serial --port DEV the
@@ -44,8 +58,8 @@ the log closed as "aborted" with the reason.
 """
 
 _EPILOG = """\
-exit status: 0 when every episode completed or was stopped by the safety limits
-(a recorded outcome, counted in the summary); 1 when one was aborted by a fault,
+exit status: 0 when every episode completed or was stopped by the safety limits,
+its swing-up's included (a recorded outcome, counted in the summary); 1 when one was aborted by a fault,
 a log write error (the file and the error are named) or another run error; 2 on
 a usage error; 130 / 143 when stopped by SIGINT / SIGTERM. Before each episode
 the free space of --out is checked against what it needs.
@@ -55,6 +69,7 @@ examples:
   qube-run --episodes 48 --seed 1 --out data/     # a dataset the size of the paper's
   qube-run --episodes 48 --seed 1 --n-jobs 1      # the same, one episode at a time
   qube-run --realtime --rerun                     # paced like hardware, live in a rerun viewer
+  qube-run --swing-up                             # each episode swung up from hanging first
   qube-run --controller gains.toml --rerun-save run.rrd
   qube-run --backend serial --port /dev/ttyACM0   # the rig, through the bridge firmware
 """
@@ -195,6 +210,34 @@ def build_parser() -> argparse.ArgumentParser:
         help="the simulated pendulum starts at rest with |alpha| up to this (default 2; "
         "an episode starts only once |alpha| < 5)",
     )
+    swing = p.add_argument_group("swing-up (--swing-up)")
+    swing.add_argument(
+        "--swing-up",
+        action="store_true",
+        help="start each episode from the pendulum hanging: swing it up, catch it, wait until it has "
+        "settled, then record (the simulator's pendulum starts hanging at rest)",
+    )
+    swing.add_argument(
+        "--catch-angle",
+        type=positive_number,
+        default=None,
+        metavar="DEG",
+        help=f"the PD controller takes over within this of upright (default {DEFAULT_CATCH_ANGLE:g})",
+    )
+    swing.add_argument(
+        "--swing-up-time",
+        type=positive_number,
+        default=None,
+        metavar="S",
+        help=f"give up, with 0 V, when not caught and settled after this (default {DEFAULT_SWING_UP_TIME:g})",
+    )
+    swing.add_argument(
+        "--swing-up-voltage",
+        type=positive_number,
+        default=None,
+        metavar="V",
+        help=f"clamp of the swing-up's commands (default {DEFAULT_SWING_UP_VOLTAGE:g}, at most the rig's 10)",
+    )
     safety.add_argument(
         "--plant",
         type=path,
@@ -329,8 +372,9 @@ def _jobs(args, n_episodes: int) -> int:
     return resolve_n_jobs(-1 if args.n_jobs is None else args.n_jobs, n_episodes - 1)
 
 
-def _replay(args, rate: float):
-    """Plans repeating the --replay logs' excitations, and the longest one's settings (for progress)."""
+def _replay(args, rate: float, swing_up=None):
+    """Plans repeating the --replay logs' excitations (each swung up first with ``swing_up``), and the
+    longest one's settings (for progress)."""
     from qube_koopman.daq.replay import replay_plans
     from qube_koopman.core.controller_file import load_controller
 
@@ -344,6 +388,10 @@ def _replay(args, rate: float):
         plans = replay_plans(args.replay, controller, twins=twins)
     except ValueError as exc:
         raise CliError(f"{exc} (--replay)") from None
+    if swing_up is not None:
+        from dataclasses import replace
+
+        plans = [replace(plan, swing_up=swing_up) for plan in plans]
     args.episodes = len(plans)
     from qube_koopman.daq.excitation import ExcitationSettings
 
@@ -378,6 +426,7 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
             seed=backend_seed,
             realtime=args.realtime,
             dt=1.0 / rate,
+            start="hanging" if args.swing_up else "upright",
         )
     from qube_koopman.daq.backends import BackendFault
     from qube_koopman.daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
@@ -456,12 +505,15 @@ def _run(args) -> int:
         )
     check_output_file(args.rerun_save, "--rerun-save", args.force)
 
+    swing_up = _swing_up(args, limits)
     seed = args.seed if args.seed is not None else fresh_seed()
     seeds, backend_seed = run_seeds(seed, args.episodes)
     run_id = f"qube-run seed {seed}"
-    plans = plan_episodes(controller, seeds, settings, source=run_id, extra={"run_seed": seed, "command": "qube-run"})
+    plans = plan_episodes(
+        controller, seeds, settings, source=run_id, extra={"run_seed": seed, "command": "qube-run"}, swing_up=swing_up
+    )
     if args.replay:
-        plans, settings = _replay(args, rate)
+        plans, settings = _replay(args, rate, swing_up)
     args.n_jobs = _jobs(args, len(plans))
     backend = _make_backend(args, limits, backend_seed, rate)
     if args.check:
@@ -472,6 +524,44 @@ def _run(args) -> int:
         return _collect(args, backend, plans, settings, limits, seed, rate)
     finally:
         backend.close()
+
+
+def _swing_up(args, limits):
+    """The --swing-up settings (None without it); the swing-up options alone are refused."""
+    given = [
+        option
+        for option, value in (
+            ("--catch-angle", args.catch_angle),
+            ("--swing-up-time", args.swing_up_time),
+            ("--swing-up-voltage", args.swing_up_voltage),
+        )
+        if value is not None
+    ]
+    if not args.swing_up:
+        if given:
+            raise CliError(f"{given[0]} is for --swing-up")
+        return None
+    from qube_koopman.daq.safety import SwingUpLimits
+    from qube_koopman.daq.swing_up import EnergyController, SwingUp
+
+    catch = DEFAULT_CATCH_ANGLE if args.catch_angle is None else args.catch_angle
+    if math.radians(catch) >= limits.alpha_limit:
+        raise CliError(f"--catch-angle {catch:g} deg: must be inside --alpha-limit ({args.alpha_limit:g} deg)")
+    volts = DEFAULT_SWING_UP_VOLTAGE if args.swing_up_voltage is None else args.swing_up_voltage
+    if volts > limits.max_voltage:
+        raise CliError(f"--swing-up-voltage {volts:g}: at most the clamp, {limits.max_voltage:g} V")
+    # On the simulator the energy controller's model is the simulated pendulum; on the rig, the twin.
+    params = _load_plant(args.plant) if args.backend == "sim" else None
+    energy = EnergyController() if params is None else EnergyController(params)
+    return SwingUp(
+        energy=energy,
+        limits=SwingUpLimits(
+            arm_limit=limits.theta_limit,
+            max_voltage=volts,
+            time_limit=DEFAULT_SWING_UP_TIME if args.swing_up_time is None else args.swing_up_time,
+        ),
+        catch_angle=math.radians(catch),
+    )
 
 
 def _rerun_sink(args):

@@ -234,6 +234,7 @@ def report(args, run, book: EpisodeBook, totals, n_planned: int) -> int:
         )
     if run.signal is not None:
         return 128 + int(run.signal)
-    # A safety stop is a recorded outcome of an episode, not an error of the run.
-    errors = [r for r in results if r.status == "aborted" and r.cause != "safety"]
+    # A safety stop, or a swing-up the supervisor gave up, is a recorded outcome of an episode, not an
+    # error of the run.
+    errors = [r for r in results if r.status == "aborted" and r.cause not in ("safety", "swing-up")]
     return 0 if not errors and len(results) == n_planned else 1

@@ -1,0 +1,280 @@
+"""The swing-up (daq.swing_up): the energy controller, the supervisor's swing-up limits, the phase."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+
+from bridge_helpers import cache_home, core  # noqa: F401 (fixtures)
+
+from qube_koopman.core.controller_file import load_controller
+from qube_koopman.daq.backends import SimBackend
+from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
+from qube_koopman.daq.loop import EpisodePlan, run_episode
+from qube_koopman.daq.safety import StopRequest, SwingUpLimits
+from qube_koopman.daq.session import FATAL_CAUSES
+from qube_koopman.daq.sinks import MemorySink
+from qube_koopman.daq.swing_up import EnergyController, SwingUp
+from qube_koopman.sim.pendulum import PendulumParameters, dynamics, total_energy
+
+PARAMS = PendulumParameters()
+CONTROLLER = load_controller(None, "backward-euler", 1.0 / 500.0)  # the rig's PD
+
+
+def test_energy_is_the_models_pendulum_energy():
+    """Upright at rest E0 = mp Lp g / 2, hanging at rest -E0; and at any (alpha, alpha_dot) with the arm
+    at rest at its zero, the model's total energy (kinetic with the full inertia matrix, the spring
+    unstretched)."""
+    ctrl = EnergyController(PARAMS)
+    e0 = PARAMS.mp * PARAMS.Lp * PARAMS.g / 2.0
+    assert ctrl.reference_energy == pytest.approx(e0, rel=1e-15)
+    assert ctrl.energy(0.0, 0.0) == pytest.approx(e0, rel=1e-15)
+    assert ctrl.energy(math.pi, 0.0) == pytest.approx(-e0, rel=1e-15)
+    # The workbook's pendulum: 0.024 kg, 0.129 m -> 0.0151850 J (worked by hand: 0.024 * 0.129 * 9.81 / 2).
+    assert EnergyController(PendulumParameters.workbook()).reference_energy == pytest.approx(0.01518588, rel=1e-6)
+    rng = np.random.default_rng(0)
+    for alpha, alpha_dot in zip(rng.uniform(-math.pi, math.pi, 50), rng.uniform(-20, 20, 50)):
+        state = [PARAMS.theta_rest, alpha, 0.0, alpha_dot]
+        assert ctrl.energy(alpha, alpha_dot) == pytest.approx(float(total_energy(state, PARAMS)), rel=1e-12, abs=1e-15)
+
+
+def _pendulum_energy_rate(state, volts, params=PARAMS) -> float:
+    """dE/dt of the pendulum's energy along the model's own equations under ``volts``."""
+    _, alpha, _, alpha_dot = state
+    alpha_ddot = dynamics(state, volts, params)[3]
+    inertia = params.Jp + params.mp * params.Lp**2 / 4.0
+    return inertia * alpha_dot * alpha_ddot - params.mp * params.Lp * params.g / 2.0 * math.sin(alpha) * alpha_dot
+
+
+@pytest.mark.parametrize("params", [PARAMS, PendulumParameters.workbook()], ids=["twin", "workbook"])
+def test_energy_controller_pumps_energy_towards_the_upright(params):
+    """With the arm at rest at its zero (the centering term then asks nothing), the voltage the
+    controller gives makes the model's pendulum energy rise while it is below E0 and fall above,
+    at the rate the acceleration it asks for predicts: -(mp Lp Lr / 2) a alpha_dot cos(alpha), less
+    what the pendulum's own friction takes (Dp alpha_dot^2: none in the twin)."""
+    ctrl = EnergyController(params, energy_margin=0.0)
+    rng = np.random.default_rng(1)
+    below = above = 0
+    for alpha, alpha_dot in zip(rng.uniform(-math.pi, math.pi, 400), rng.uniform(-15, 15, 400)):
+        state = np.array([params.theta_rest, alpha, 0.0, alpha_dot])
+        volts = ctrl.voltage(*state)
+        assert abs(volts) <= 10.0  # inside the clamp at this saturation: the rate is the one asked for
+        rate = _pendulum_energy_rate(state, volts, params)
+        a = ctrl.acceleration(*state)
+        friction = params.Dp * alpha_dot**2
+        pumped = -(params.mp * params.Lp * params.Lr / 2.0) * a * alpha_dot * math.cos(alpha)
+        assert rate == pytest.approx(pumped - friction, rel=1e-6, abs=1e-12)
+        if ctrl.energy(alpha, alpha_dot) < ctrl.reference_energy:
+            below += 1
+            assert rate + friction >= 0.0
+        else:
+            above += 1
+            assert rate + friction <= 0.0
+    assert below > 100 and above > 50
+
+
+def test_energy_controller_centers_the_arm_and_kicks_a_pendulum_at_rest():
+    """Hanging at rest (sign(0) taken as +1) it pushes; with the pendulum upright at rest it only
+    centres the arm: the acceleration is -kp theta - kd theta_dot."""
+    ctrl = EnergyController(PARAMS)
+    assert ctrl.acceleration(0.0, math.pi, 0.0, 0.0) != 0.0
+    still = replace(ctrl, energy_margin=0.0)
+    assert still.acceleration(0.3, 0.0, -0.5, 0.0) == pytest.approx(
+        -still.centering_kp * 0.3 + still.centering_kd * 0.5
+    )
+
+
+# --- the supervisor's swing-up limits, through the loop -------------------------------------------
+
+
+class _Recording(SimBackend):
+    """The simulator hanging at rest, recording each tick's reading and command."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(start="hanging", seed=3, **kwargs)
+        self.reads: list[tuple[float, float]] = []
+        self.writes: list[float] = []
+
+    def read(self):
+        y = super().read()
+        self.reads.append(y)
+        return y
+
+    def write(self, volts: float) -> None:
+        super().write(volts)
+        self.writes.append(volts)  # a command the stopped simulator refuses is not recorded
+
+
+@dataclass(frozen=True)
+class _Push(EnergyController):
+    """A faulty swing-up controller: a constant voltage, whatever the state."""
+
+    volts: float = 8.0
+
+    def voltage(self, theta, alpha, theta_dot, alpha_dot):
+        return self.volts
+
+
+def _plan(swing: SwingUp, n: int = 500) -> EpisodePlan:
+    settings = ExcitationSettings(n_samples=n, window_start=n // 5, window_stop=4 * n // 5)
+    return EpisodePlan(CONTROLLER, generate_excitation((1, 2, 3), settings), swing_up=swing)
+
+
+def test_supervisor_stops_a_swing_up_that_pushes_the_arm_past_its_limit():
+    """The arm's swing-up limit: 0 V in the tick whose reading is past it, the reason in the log,
+    which holds no samples; the run goes on (the cause is not fatal)."""
+    backend = _Recording()
+    sink = MemorySink()
+    limit = math.radians(60.0)
+    swing = SwingUp(energy=_Push(), limits=SwingUpLimits(arm_limit=limit, time_limit=5.0))
+    result = run_episode(backend, _plan(swing), [sink])
+    assert result.status == "aborted" and result.cause == "swing-up"
+    assert result.cause not in FATAL_CAUSES
+    assert "|theta|" in result.reason and "swing-up" in result.reason
+    past = [i for i, (theta, _) in enumerate(backend.reads) if abs(theta) > limit]
+    assert past and past[0] == len(backend.reads) - 1  # stopped at the first reading past the limit
+    assert set(backend.writes[past[0] :]) == {0.0}  # ... with 0 V in that tick
+    assert all(v == 8.0 for v in backend.writes[: past[0]])  # the voltage asked for until then
+    (episode,) = sink.episodes
+    assert episode.samples == [] and episode.outcome.status == "aborted"
+    assert episode.outcome.reason == result.reason
+    swung = episode.metadata.extra["swing_up"]
+    assert swung["outcome"] == "failed" and swung["reason"] == result.reason
+    assert swung["max_abs_theta"] <= limit  # the readings before the stop
+
+
+def test_supervisor_clamps_the_swing_up_voltage():
+    backend = _Recording()
+    swing = SwingUp(energy=_Push(volts=50.0), limits=SwingUpLimits(max_voltage=3.0, time_limit=0.5))
+    run_episode(backend, _plan(swing), [MemorySink()])
+    assert max(abs(v) for v in backend.writes) == 3.0
+
+
+def test_supervisor_gives_up_a_swing_up_after_its_time_limit():
+    """A controller that never swings the pendulum up: after the time limit (counted in ticks) 0 V, and the
+    log says the swing-up gave up."""
+    backend = _Recording()
+    sink = MemorySink()
+    swing = SwingUp(energy=_Push(volts=0.0), limits=SwingUpLimits(time_limit=0.5))
+    result = run_episode(backend, _plan(swing), [sink])
+    assert result.cause == "swing-up" and "gave up" in result.reason and "0.5 s" in result.reason
+    assert len(backend.reads) == 251  # ticks 0..249 ran the controller, tick 250 put 0 V
+    assert backend.writes[250:] and set(backend.writes[250:]) == {0.0}  # (the loop's stop writes 0 V again)
+    assert sink.episodes[0].metadata.extra["swing_up"]["duration"] == pytest.approx(0.5)
+
+
+def test_stop_during_a_swing_up_puts_0_v_in_the_tick_that_sees_it():
+    stop = StopRequest()
+
+    class Stopping(_Recording):
+        def read(self):
+            if len(self.reads) == 100:
+                stop.request("interrupted by SIGINT", 2)
+            return super().read()
+
+    backend = Stopping()
+    sink = MemorySink()
+    result = run_episode(backend, _plan(SwingUp(energy=_Push(volts=1.0))), [sink], stop=stop)
+    assert result.cause == "stop" and "swing-up" in result.reason
+    assert len(backend.reads) == 101 and backend.writes[:100] == [1.0] * 100
+    assert set(backend.writes[100:]) == {0.0}
+    assert sink.episodes == []  # stopped before the episode: no log, as at the start gate
+
+
+# --- qube-run --swing-up on the simulator ----------------------------------------------------------
+
+
+def test_qube_run_swing_up_records_complete_episodes_after_the_catch(tmp_path, capsys):
+    """Three seeds from hanging at rest: each swung up, caught and settled within the limits, then the
+    recorded episode complete, its samples inside the clamp and the arm's limit, started as an
+    upright episode starts (controller state zero, the pendulum near upright) and driven by the same
+    excitation as a run without the swing-up."""
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.daq.log import read_episode
+
+    common = ["--episodes", "3", "--seed", "4", "--duration", "2", "--n-jobs", "1", "-q"]
+    assert main([*common, "--swing-up", "--out", str(tmp_path / "up")]) == 0
+    assert "3 complete, 0 aborted" in capsys.readouterr().out
+    assert main([*common, "--out", str(tmp_path / "upright")]) == 0
+    swung = [read_episode(p) for p in sorted((tmp_path / "up").glob("*.mcap"))]
+    upright = [read_episode(p) for p in sorted((tmp_path / "upright").glob("*.mcap"))]
+    assert len(swung) == len(upright) == 3
+    for episode, plain in zip(swung, upright):
+        meta = episode.metadata
+        report = meta.extra["swing_up"]
+        assert meta.status == "complete" and len(episode.t) == 1000
+        assert meta.extra["backend"]["start"] == "hanging"
+        assert report["outcome"] == "settled" and report["n_catches"] >= 1
+        assert report["duration"] <= 10.0
+        assert report["max_abs_theta"] < math.pi / 2 and report["max_abs_voltage"] <= 10.0
+        assert np.max(np.abs(episode.plant_input)) <= 10.0
+        assert np.max(np.abs(episode.theta)) < math.pi / 2
+        assert abs(episode.alpha[0]) < math.radians(5.0) and abs(episode.theta[0]) < 0.1
+        assert np.all(episode.controller_state[0] == 0.0)
+        for signal in ("target_theta", "target_alpha", "feedforward"):
+            np.testing.assert_array_equal(getattr(episode, signal), getattr(plain, signal))
+
+
+def test_qube_run_swing_up_options_need_swing_up(tmp_path, capsys):
+    from qube_koopman.daq.cli.run import main
+
+    assert main(["--catch-angle", "10", "--out", str(tmp_path)]) == 2
+    assert "--catch-angle is for --swing-up" in capsys.readouterr().err
+
+
+def test_qube_run_failed_swing_up_writes_a_log_that_says_why(tmp_path, capsys):
+    """A swing-up that runs out of time: 0 V, a log without samples, closed aborted with the reason (exit 0:
+    the supervisor's recorded outcome, as a safety stop); the next episode swings up again."""
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.daq.log import read_episode
+
+    args = ["--swing-up", "--swing-up-time", "1", "--episodes", "2", "--seed", "1", "--duration", "2", "-q"]
+    assert main([*args, "--n-jobs", "1", "--out", str(tmp_path)]) == 0
+    assert "0 complete, 2 aborted" in capsys.readouterr().out
+    logs = [read_episode(p) for p in sorted(tmp_path.glob("*.mcap"))]
+    assert len(logs) == 2
+    for episode in logs:
+        assert len(episode.t) == 0 and episode.metadata.status == "aborted"
+        assert episode.metadata.status_reason == "swing-up gave up: not caught and settled within 1 s"
+        report = episode.metadata.extra["swing_up"]
+        assert report["outcome"] == "failed" and report["duration"] == pytest.approx(1.0)
+
+
+# --- over the serial link: the emulated bridge ------------------------------------------------------
+
+
+def test_swing_up_over_the_serial_link(core, tmp_path):  # noqa: F811 (the fixture)
+    """The same phase over --backend serial, paced by the bridge's telemetry (lockstep): the emulated
+    pendulum left hanging at the session's start is swung up, caught and settled within the limits,
+    then the episode is recorded complete."""
+    import time
+
+    from qube_koopman.daq.backends.serial import SerialBackend
+    from qube_koopman.daq.log import read_episode
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+    from qube_koopman.daq.sinks import McapSink
+    from qube_koopman.sim.bridge import BridgeEmulator
+
+    emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=0.1, start_upright=False)
+    path = emu.start()
+    backend = SerialBackend(path, link_timeout=0.2)
+    sink = McapSink(tmp_path)
+    seeds, _ = run_seeds(1, 1)
+    (plan,) = plan_episodes(CONTROLLER, seeds, excitation_settings(2.0), source="test", swing_up=SwingUp())
+    try:
+        result = run_episode(backend, plan, [sink])
+    finally:
+        backend.close()
+        time.sleep(0.05)
+        emu.stop()
+    assert result.complete, result.reason
+    episode = read_episode(sink.paths[0])
+    report = episode.metadata.extra["swing_up"]
+    assert report["outcome"] == "settled" and report["catch_time"] > 1.0  # it started far from upright
+    assert report["duration"] <= 10.0
+    assert report["max_abs_theta"] < math.pi / 2 and report["max_abs_voltage"] <= 10.0
+    assert len(episode.t) == 1000 and np.max(np.abs(episode.plant_input)) <= 10.0
+    assert abs(episode.alpha[0]) < math.radians(5.0)
