@@ -710,7 +710,7 @@ def _score_koopman(
             estimates.append(episode.estimate)
             scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
             if ahead is not None and counted[i]:
-                ahead.add(test[i].path.name, models[0], traj, _offset_vector(episode.estimate, traj.x.shape[1]))
+                ahead.add(test[i].path.name, models[0], traj, _offset_mapping(episode.estimate))
             if bands is not None:
                 bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop, how.runs_own(test[i]))
     if how.command_delay:
@@ -748,13 +748,9 @@ def _training_disturbance(model, train, controller, score, options: AheadOptions
     return fit_training_disturbance(model, own or [log.trajectory for log in train], options)
 
 
-def _offset_vector(estimate, n_states: int) -> np.ndarray | None:
-    """An episode's estimated offsets as one value per state (None without offsets)."""
-    if estimate is None:
-        return None
-    values = np.zeros(n_states)
-    values[list(estimate.channels)] = estimate.values
-    return values
+def _offset_mapping(estimate) -> dict[int, float] | None:
+    """An episode's estimated offsets by channel (None without offsets; empty when implausible, so unused)."""
+    return None if estimate is None else estimate.as_mapping()
 
 
 def _save_ahead(folder: Path, test, ahead: AheadScores) -> None:

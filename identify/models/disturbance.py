@@ -61,6 +61,7 @@ __all__ = [
     "KStepData",
     "NotDetectable",
     "augmented_detectable",
+    "disturbance_detectable",
     "compare_entries",
     "disturbance_direction",
     "filter_disturbance",
@@ -179,24 +180,38 @@ def disturbance_direction(model: KoopmanModel, entry: str) -> np.ndarray:
     return E
 
 
-def augmented_detectable(model: KoopmanModel, E: np.ndarray, pole: float = 1.0, rtol: float = 1e-9) -> bool:
-    """Whether the lifted model augmented with disturbance states ``E`` stays detectable.
+def disturbance_detectable(model: KoopmanModel, E: np.ndarray, rtol: float = 1e-9) -> bool:
+    """Whether the filter of this module can estimate disturbances entering along ``E``.
 
-    The rank condition of offset-free estimation (Pannocchia & Rawlings): with ``(A, C)``
-    detectable, the augmented ``([[A, E], [0, pole I]], [C, 0])`` is detectable exactly when
-    ``[[A - pole I, E], [C, 0]]`` has full column rank; at ``pole = 1`` this also needs no more
-    disturbances than measured outputs. The filter reads the disturbance from the one-step
-    innovations, so ``C E`` (its effect on the next measurement) must have full column rank too.
+    In innovations form the lifted state is the lifting of the measured history (measured, not
+    estimated), so the augmented model's only unknown state is the disturbance, and it is read
+    from the next measurement through ``G = C E``: the augmented model is detectable exactly when
+    ``C E`` has full column rank (at most as many disturbances as measured channels, each moving
+    them). A lifting's own modes that the outputs do not see (a constant feature's eigenvalue at
+    1) do not matter here, as they do for a filter that estimates the whole lifted state
+    (:func:`augmented_detectable`).
+    """
+    G = model.C @ np.asarray(E, dtype=float).reshape(model.A.shape[0], -1)
+    g = np.linalg.svd(G, compute_uv=False)
+    return bool(g.size and G.shape[1] <= G.shape[0] and g[-1] > rtol * max(1.0, float(np.abs(G).max())))
+
+
+def augmented_detectable(model: KoopmanModel, E: np.ndarray, pole: float = 1.0, rtol: float = 1e-9) -> bool:
+    """The rank condition of offset-free estimation, for a filter of the whole lifted state from the outputs.
+
+    Pannocchia & Rawlings: with ``(A, C)`` detectable, the augmented
+    ``([[A, E], [0, pole I]], [C, 0])`` is detectable exactly when ``[[A - pole I, E], [C, 0]]`` has
+    full column rank (at ``pole = 1`` it needs no more disturbances than measured outputs). A
+    controller that estimates the lifted state from the two angles alone (rather than lifting
+    their measured history) needs this.
     """
     E = np.asarray(E, dtype=float).reshape(model.A.shape[0], -1)
     n_z, n_d = E.shape
     C = model.C
     M = np.block([[model.A - pole * np.eye(n_z), E], [C, np.zeros((C.shape[0], n_d))]])
     s = np.linalg.svd(M, compute_uv=False)
-    G = C @ E
-    g = np.linalg.svd(G, compute_uv=False)
     scale = max(1.0, float(np.max(np.abs(M))))
-    return bool(s[-1] > rtol * scale * max(M.shape) and g.size and g[-1] > rtol * max(1.0, float(np.abs(G).max())))
+    return bool(s[-1] > rtol * scale * max(M.shape)) and disturbance_detectable(model, E, rtol)
 
 
 def steady_state_gain(G: np.ndarray, pole: float, q: float, R: np.ndarray) -> tuple[np.ndarray, float]:
@@ -399,11 +414,10 @@ def fit_disturbance(
     if method not in ("prediction", "likelihood"):
         raise ValueError(f"unknown criterion {method!r}: 'prediction' or 'likelihood'")
     E = disturbance_direction(model, entry)
-    if not augmented_detectable(model, E, pole):
+    if not disturbance_detectable(model, E):
         raise NotDetectable(
-            f"the model augmented with a disturbance at {entry!r} is not detectable: the measurements "
-            "cannot tell the disturbance from the model's state (the rank of [[A - pole I, E], [C, 0]] or of C E "
-            "falls short)"
+            f"the model augmented with a disturbance at {entry!r} is not detectable: it does not move the "
+            "measured angles (C E, its effect on the next measurement, has rank 0)"
         )
     G = model.C @ E
     trajectories = list(trajectories)

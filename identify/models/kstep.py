@@ -11,13 +11,14 @@ keeps each episode's predictions for its predictions file (``ahead_<h>``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from qube_koopman.identify.data.trajectory import Trajectory
 from qube_koopman.identify.models import disturbance as dm
 from qube_koopman.identify.models.model import KoopmanModel
+from qube_koopman.identify.models.offsets import shift_trajectory
 
 __all__ = ["AheadOptions", "AheadScores", "fit_training_disturbance", "horizon_label"]
 
@@ -128,20 +129,26 @@ class AheadScores:
     per_horizon: dict[str, list[dict]] = field(default_factory=dict)
     predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
-    def add(self, name: str, model: KoopmanModel, trajectory: Trajectory, offsets: np.ndarray | None = None) -> None:
-        """Predict and score one test episode (``offsets``: its sensor offsets, measured = true + offset)."""
+    def add(
+        self, name: str, model: KoopmanModel, trajectory: Trajectory, offsets: Mapping[int, float] | None = None
+    ) -> None:
+        """Predict and score one test episode (``offsets``: its sensor offsets by channel, measured = true + offset).
+
+        With offsets the model runs in true coordinates, as
+        :func:`~qube_koopman.identify.models.offsets.predict_with_offsets` does: the offset channels and
+        their references shifted, the offsets added back to the predictions.
+        """
         dt = model.dt if model.dt is not None else trajectory.dt
         assert dt is not None, "a model or an episode gives the sample period"
-        t = trajectory
-        if offsets is not None:  # the model runs on the true states: offsets out of the history, back in after
-            from dataclasses import replace
-
-            t = replace(trajectory, x=np.asarray(trajectory.x, dtype=float) - offsets[None, :])
+        shift = np.zeros(trajectory.x.shape[1])
+        for c, value in (offsets or {}).items():
+            shift[c] = value
+        t = shift_trajectory(model, trajectory, offsets) if offsets else trajectory
         samples = self.options.samples(dt)
         ahead = dm.predict_ahead(model, self.disturbance, t, samples, self.options.strides(dt))
         kept = {}
         for h, K in zip(self.options.horizons, samples):
-            pred = ahead[K] if offsets is None else ahead[K] + offsets[None, :]
+            pred = ahead[K] + shift[None, :]
             label = horizon_label(h)
             kept[f"ahead_{label}"] = pred
             self.per_horizon.setdefault(label, []).append(_score(name, trajectory.x, pred, self.start))

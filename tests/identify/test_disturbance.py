@@ -181,8 +181,18 @@ def test_a_non_detectable_augmentation_is_refused():
     E = np.zeros(A.shape[0])
     E[0] = 1.0
     assert not dm.augmented_detectable(hidden, E)
+    assert not dm.disturbance_detectable(hidden, E)
     assert dm.augmented_detectable(model, dm.disturbance_direction(model, "input"))
     assert dm.augmented_detectable(model, dm.disturbance_direction(model, "theta"))
+    # A lifting with a constant feature has a mode at 1 the outputs never see: a filter of the whole lifted
+    # state fails the rank condition, the innovations form (the lifted state measured) does not.
+    constant = _loop_model()
+    A = constant.A.copy()
+    A[:, -1], A[-1, :], A[-1, -1] = 0.0, 0.0, 1.0
+    constant = KoopmanModel(A, constant.B, constant.lifting, ("r", "f"), n_passthrough=1, dt=0.002)
+    E = dm.disturbance_direction(constant, "input")
+    assert not dm.augmented_detectable(constant, E)
+    assert dm.disturbance_detectable(constant, E)
 
 
 def test_the_model_round_trips_through_its_dict_and_damage_is_named():
