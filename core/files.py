@@ -7,13 +7,215 @@ previous file or the new one, never a mixture, since the rename is atomic on POS
 
 from __future__ import annotations
 
+import errno
+import json
 import os
 import secrets
+import stat
+import tomllib
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
-__all__ = ["atomic_path", "cache_root", "output_file_problem", "output_folder_problem", "trim_cache"]
+__all__ = [
+    "MAX_NESTING",
+    "atomic_path",
+    "cache_root",
+    "check_nesting",
+    "loads_json",
+    "loads_toml",
+    "npz_shapes",
+    "output_file_problem",
+    "output_folder_problem",
+    "read_bounded_bytes",
+    "read_bounded_text",
+    "trim_cache",
+]
+
+#: The deepest nesting of lists and tables a file read by the toolkit may have: every format it
+#: reads is a few levels deep, and a parser or writer that recurses must not be asked for more.
+MAX_NESTING = 64
+
+_KINDS = (
+    (stat.S_ISFIFO, "a named pipe"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def read_bounded_bytes(path: str | Path, max_bytes: int, what: str = "file") -> bytes:
+    """The bytes of the regular file ``path``, refused before reading when it is larger than ``max_bytes``.
+
+    A named pipe, a device or a socket is refused without waiting on it (opened non-blocking,
+    checked on the open descriptor): reading one could block forever or never end.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    max_bytes : int
+        The largest size accepted.
+    what : str
+        What the file is, for the message (``"controller file"``).
+
+    Returns
+    -------
+    bytes
+        The whole file.
+
+    Raises
+    ------
+    ValueError
+        Starting with the path: not a regular file, or larger than ``max_bytes``.
+    OSError
+        The file cannot be opened or read (missing, a folder, no permission), its
+        ``filename`` the path.
+
+    Examples
+    --------
+    >>> read_bounded_bytes("/dev/zero", 10, "controller file")
+    Traceback (most recent call last):
+    ...
+    ValueError: /dev/zero: a character device, not a regular file: not read as the controller file
+    """
+    path = Path(path)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    with os.fdopen(fd, "rb") as file:
+        info = os.fstat(fd)
+        if stat.S_ISDIR(info.st_mode):
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+        if not stat.S_ISREG(info.st_mode):
+            kind = next((name for test, name in _KINDS if test(info.st_mode)), "a special file")
+            raise ValueError(f"{path}: {kind}, not a regular file: not read as the {what}")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{path}: {info.st_size} bytes; the largest {what} read is {max_bytes} bytes")
+        os.set_blocking(fd, True)
+        data = file.read(max_bytes + 1)
+    if len(data) > max_bytes:  # it grew meanwhile
+        raise ValueError(f"{path}: grew past {max_bytes} bytes while read; the largest {what} read is that")
+    return data
+
+
+def read_bounded_text(path: str | Path, max_bytes: int, what: str = "file") -> str:
+    """:func:`read_bounded_bytes` decoded as UTF-8 (:class:`UnicodeDecodeError` when it is not text)."""
+    return read_bounded_bytes(path, max_bytes, what).decode("utf-8")
+
+
+def check_nesting(value: Any, where: str | Path, max_depth: int = MAX_NESTING) -> Any:
+    """``value`` (parsed JSON or TOML) unchanged, or a ValueError when it nests deeper than ``max_depth``.
+
+    Walks the data with a stack of its own, never recursing, so any depth is measured.
+
+    Examples
+    --------
+    >>> deep = []
+    >>> for _ in range(100):
+    ...     deep = [deep]
+    >>> check_nesting(deep, "x.json")
+    Traceback (most recent call last):
+    ...
+    ValueError: x.json: lists and tables nested more than 64 levels deep
+    """
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, (list, tuple)) else ()
+        for child in children:
+            if isinstance(child, (dict, list, tuple)):
+                if depth + 1 > max_depth:
+                    raise _too_deep(where, max_depth)
+                stack.append((child, depth + 1))
+    return value
+
+
+def _too_deep(where: str | Path, max_depth: int) -> ValueError:
+    return ValueError(f"{where}: lists and tables nested more than {max_depth} levels deep")
+
+
+def loads_json(text: str | bytes, where: str | Path, max_depth: int = MAX_NESTING) -> Any:
+    """``json.loads(text)``, nesting bounded (:func:`check_nesting`), errors as :class:`ValueError`.
+
+    A parse too deep for Python's stack is the same ValueError naming ``where``; a syntax error is
+    :class:`json.JSONDecodeError` (a ValueError) as ``json.loads`` gives it.
+    """
+    try:
+        value = json.loads(text)
+    except RecursionError:
+        raise _too_deep(where, max_depth) from None
+    return check_nesting(value, where, max_depth)
+
+
+def loads_toml(text: str, where: str | Path, max_depth: int = MAX_NESTING) -> dict:
+    """``tomllib.loads(text)``, nesting bounded as :func:`loads_json`'s.
+
+    Raises
+    ------
+    ValueError
+        Naming ``where``: nested too deep.
+    tomllib.TOMLDecodeError
+        Not TOML.
+    """
+    try:
+        value = tomllib.loads(text)
+    except RecursionError:
+        raise _too_deep(where, max_depth) from None
+    return check_nesting(value, where, max_depth)
+
+
+def npz_shapes(path: str | Path, max_bytes: int, what: str = ".npz file") -> dict[str, tuple[tuple[int, ...], Any]]:
+    """The shape and dtype of each array of the ``.npz`` file ``path``, read from the headers alone.
+
+    So that a small compressed file cannot make its reader allocate what its header declares
+    before the size is checked: nothing is decompressed but each array's header.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (a regular file, at most ``max_bytes`` on disk, each array at most
+        ``max_bytes`` once loaded).
+    max_bytes : int
+        The largest file, and the largest array it may declare.
+    what : str
+        What the file is, for the messages.
+
+    Returns
+    -------
+    dict
+        Array name -> (shape, dtype).
+
+    Raises
+    ------
+    ValueError
+        Starting with the path: not a regular file, too large, not an .npz, or an array larger
+        than ``max_bytes``.
+    OSError
+        The file cannot be read.
+    """
+    import numpy as np
+
+    path = Path(path)
+    read_bounded_bytes(path, max_bytes, what)  # the file itself: regular and bounded
+    shapes = {}
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for name in archive.namelist():
+                with archive.open(name) as member:
+                    version = np.lib.format.read_magic(member)
+                    if version not in readers:
+                        raise ValueError(f"array format version {version} is not read here")
+                    shapes[name.removesuffix(".npy")] = readers[version](member)
+    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: not a numpy .npz file ({exc})") from None
+    out = {}
+    for key, (shape, _, dtype) in shapes.items():
+        if int(np.prod(shape, dtype=object)) * dtype.itemsize > max_bytes:
+            shown = " x ".join(map(str, shape))
+            raise ValueError(f"{path}: array {key} declares {shown} entries, more than the {what} may hold")
+        out[key] = (tuple(shape), dtype)
+    return out
 
 
 @contextmanager

@@ -68,7 +68,7 @@ from pathlib import Path
 from typing import Sequence
 
 from qube_koopman.sim.pendulum.model import PendulumParameters
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.files import atomic_path, loads_toml, read_bounded_text
 
 __all__ = [
     "PlantFile",
@@ -85,9 +85,12 @@ __all__ = [
     "PARAMETER_SETS",
     "PlantFileError",
     "FORMAT",
+    "MAX_PLANT_BYTES",
 ]
 
 FORMAT = "qube-plant/2"
+#: The largest plant file read (a few tables of numbers, a table per recording day).
+MAX_PLANT_BYTES = 16 * 2**20
 #: Earlier formats still read, with what each lacked (the physics it was written with).
 _OLDER_FORMATS = {"qube-plant/1": {"cable_softening": 0.0}}
 
@@ -344,11 +347,13 @@ def load_plant(path: str | Path) -> PlantFile:
     """
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = loads_toml(read_bounded_text(path, MAX_PLANT_BYTES, "plant file"), path)
     except OSError as exc:
         raise PlantFileError(f"{path}: cannot read plant file ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{path}: not a TOML file ({exc})") from None
+    except ValueError as exc:  # a FIFO, a device, too large or nested too deep: the message names the file
+        raise PlantFileError(str(exc)) from None
     version = data.get("format")
     if version != FORMAT and version not in _OLDER_FORMATS:
         raise PlantFileError(
