@@ -211,3 +211,17 @@ def test_qube_run_never_waits_on_a_named_pipe_given_as_a_log(tmp_path, capsys):
     os.mkfifo(tmp_path / "log.mcap")
     assert main(["--replay", str(tmp_path / "log.mcap"), "--out", str(tmp_path / "runs"), "-q"]) == 2
     assert "log.mcap: cannot read the episode log (a named pipe, not a regular file" in capsys.readouterr().err
+
+
+def test_qube_run_refuses_to_replay_a_log_whose_seeds_are_not_64_bit(tmp_path, capsys):
+    from _episodes import make_episode
+
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.daq.log import write_episode
+
+    seeds = {"target_theta": 2**80, "target_alpha": 1, "feedforward": 2}
+    write_episode(tmp_path / "log.mcap", make_episode(400, excitation={"seeds": seeds}))
+    assert main(["--replay", str(tmp_path / "log.mcap"), "--out", str(tmp_path / "runs"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"qube-run: error: {tmp_path / 'log.mcap'}: excitation seeds [{2**80}, 1, 2] are not 64-bit "
+                   "integers (qube-run records such seeds only); it cannot be replayed (--replay)\n")
