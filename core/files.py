@@ -20,6 +20,7 @@ from typing import Any, Iterator
 
 __all__ = [
     "MAX_NESTING",
+    "StagedFiles",
     "atomic_path",
     "cache_root",
     "check_nesting",
@@ -277,6 +278,70 @@ def atomic_path(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
                 os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+class StagedFiles:
+    """Several files of one folder written under hidden names and moved into place together.
+
+    A command whose outputs belong together (a model and its reports) writes each to
+    :meth:`path` and calls :meth:`commit` once all are written: a failure before then (a full
+    disk, a folder made read-only) leaves the folder as it was, none of the new files in it and
+    the staged ones removed (on leaving the ``with`` block, or by :meth:`discard`).
+
+    Parameters
+    ----------
+    folder : str or Path
+        The existing folder the files go to.
+    names : iterable of str
+        The final names of the files.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> with StagedFiles(folder, ["a.json", "b.md"]) as staged:
+    ...     _ = staged.path("a.json").write_text("{}")
+    ...     _ = staged.path("b.md").write_text("# b")
+    ...     staged.commit()
+    >>> sorted(p.name for p in folder.iterdir())
+    ['a.json', 'b.md']
+    """
+
+    def __init__(self, folder: str | Path, names) -> None:
+        self.folder = Path(folder)
+        token = secrets.token_hex(4)
+        self._staged = {name: self.folder / f".{name}.{token}.staged{Path(name).suffix}" for name in names}
+
+    def path(self, name: str) -> Path:
+        """Where to write the file ``name`` until :meth:`commit`."""
+        return self._staged[name]
+
+    def final_path(self, filename: str | Path | None) -> Path | None:
+        """The final file a staged path stands for (or :func:`atomic_path`'s temporary file beside it); else None."""
+        if filename is None:
+            return None
+        given = Path(filename)
+        for name, staged in self._staged.items():
+            if given == staged or (given.parent == staged.parent and given.name.startswith(f".{staged.name}.")):
+                return self.folder / name
+        return None
+
+    def commit(self) -> None:
+        """Move every staged file that was written to its final name (replacing what was there)."""
+        for name, staged in self._staged.items():
+            if staged.exists():
+                os.replace(staged, self.folder / name)
+
+    def discard(self) -> None:
+        """Remove the staged files not committed."""
+        for staged in self._staged.values():
+            staged.unlink(missing_ok=True)
+
+    def __enter__(self) -> "StagedFiles":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.discard()
 
 
 def _new_file(path: Path) -> Path:

@@ -138,3 +138,33 @@ def test_qube_design_refuses_a_deeply_nested_or_special_model_file_in_one_line(t
         assert design_main([str(path), "--out", str(tmp_path / "c.toml")]) == 2
         err = capsys.readouterr().err
         assert err == f"qube-design: error: {path}: {message}\n"
+
+
+def test_a_write_error_names_the_file_and_leaves_the_folder_as_it_was(model_file, tmp_path, capsys, monkeypatch):
+    # The disk fills while report.md is written: model.json and report.json, written before it, must
+    # not be left without it (nor replace the previous run's files); the error names report.md.
+    import errno
+    import os
+    import shutil
+
+    import qube_koopman.identify.report.markdown as markdown
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    out = tmp_path / "m"
+    shutil.copytree(model_file.parent, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+
+    def full_disk(path, report):
+        tmp = path.with_name(f".{path.name}.0123.part.md")
+        tmp.write_text("half a rep")
+        tmp.unlink()
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
+
+    monkeypatch.setattr(markdown, "write_markdown_report", full_disk)
+    logs = sorted(map(str, (model_file.parent.parent / "logs").glob("*.mcap")))
+    capsys.readouterr()
+    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--poly", "1", "--out", str(out),
+                          "--force", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err == f"qube-identify: error: {out / 'report.md'}: cannot write: No space left on device; nothing written\n"
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before  # no staged file left either
