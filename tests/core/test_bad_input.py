@@ -225,3 +225,17 @@ def test_qube_run_refuses_to_replay_a_log_whose_seeds_are_not_64_bit(tmp_path, c
     err = capsys.readouterr().err
     assert err == (f"qube-run: error: {tmp_path / 'log.mcap'}: excitation seeds [{2**80}, 1, 2] are not 64-bit "
                    "integers (qube-run records such seeds only); it cannot be replayed (--replay)\n")
+
+
+@pytest.mark.parametrize("command", ["export", "import"])
+def test_qube_export_and_import_never_read_a_named_pipe(tmp_path, capsys, command):
+    import os
+
+    from qube_koopman.daq.cli.export import main as export_main
+    from qube_koopman.daq.cli.import_csv import main as import_main
+
+    pipe = tmp_path / ("log.mcap" if command == "export" else "qube_20230828T120000_1_2_3.csv")
+    os.mkfifo(pipe)
+    argv = [str(pipe), "--out", str(tmp_path / "out")] + (["--format", "csv"] if command == "export" else [])
+    assert (export_main if command == "export" else import_main)(argv) == 2
+    assert f"qube-{command}: error: {pipe}: not a regular file or folder\n" in capsys.readouterr().err
