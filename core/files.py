@@ -119,10 +119,12 @@ def check_nesting(value: Any, where: str | Path, max_depth: int = MAX_NESTING) -
     ...
     ValueError: x.json: lists and tables nested more than 64 levels deep
     """
-    stack = [(value, 1)]
+    stack = [(value, 1)] if isinstance(value, (dict, list, tuple)) else []
     while stack:
         item, depth = stack.pop()
-        children = item.values() if isinstance(item, dict) else item if isinstance(item, (list, tuple)) else ()
+        children = item.values() if isinstance(item, dict) else item
+        if not any(issubclass(kind, (dict, list, tuple)) for kind in set(map(type, children))):
+            continue  # a row of numbers or strings: the types of its entries, counted in C, say so
         for child in children:
             if isinstance(child, (dict, list, tuple)):
                 if depth + 1 > max_depth:
