@@ -82,8 +82,18 @@ def read_bounded_bytes(path: str | Path, max_bytes: int, what: str = "file") -> 
     ValueError: /dev/zero: a character device, not a regular file: not read as the controller file
     """
     path = Path(path)
+    with _open_regular(path, max_bytes, what) as file:
+        data = file.read(max_bytes + 1)
+    if len(data) > max_bytes:  # it grew meanwhile
+        raise ValueError(f"{path}: grew past {max_bytes} bytes while read; the largest {what} read is that")
+    return data
+
+
+def _open_regular(path: Path, max_bytes: int, what: str):
+    """``path`` opened for reading (binary, blocking) once checked to be a regular file of at most ``max_bytes``."""
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    with os.fdopen(fd, "rb") as file:
+    file = os.fdopen(fd, "rb")
+    try:
         info = os.fstat(fd)
         if stat.S_ISDIR(info.st_mode):
             raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
@@ -93,10 +103,10 @@ def read_bounded_bytes(path: str | Path, max_bytes: int, what: str = "file") -> 
         if info.st_size > max_bytes:
             raise ValueError(f"{path}: {info.st_size} bytes; the largest {what} read is {max_bytes} bytes")
         os.set_blocking(fd, True)
-        data = file.read(max_bytes + 1)
-    if len(data) > max_bytes:  # it grew meanwhile
-        raise ValueError(f"{path}: grew past {max_bytes} bytes while read; the largest {what} read is that")
-    return data
+    except BaseException:
+        file.close()
+        raise
+    return file
 
 
 def read_bounded_text(path: str | Path, max_bytes: int, what: str = "file") -> str:
@@ -199,19 +209,19 @@ def npz_shapes(path: str | Path, max_bytes: int, what: str = ".npz file") -> dic
     import numpy as np
 
     path = Path(path)
-    read_bounded_bytes(path, max_bytes, what)  # the file itself: regular and bounded
     shapes = {}
     readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
-    try:
-        with zipfile.ZipFile(path) as archive:
-            for name in archive.namelist():
-                with archive.open(name) as member:
-                    version = np.lib.format.read_magic(member)
-                    if version not in readers:
-                        raise ValueError(f"array format version {version} is not read here")
-                    shapes[name.removesuffix(".npy")] = readers[version](member)
-    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as exc:
-        raise ValueError(f"{path}: not a numpy .npz file ({exc})") from None
+    with _open_regular(path, max_bytes, what) as file:  # a regular file of at most max_bytes, or a ValueError
+        try:
+            with zipfile.ZipFile(file) as archive:
+                for name in archive.namelist():
+                    with archive.open(name) as member:
+                        version = np.lib.format.read_magic(member)
+                        if version not in readers:
+                            raise ValueError(f"array format version {version} is not read here")
+                        shapes[name.removesuffix(".npy")] = readers[version](member)
+        except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as exc:
+            raise ValueError(f"{path}: not a numpy .npz file ({exc})") from None
     out = {}
     for key, (shape, _, dtype) in shapes.items():
         if int(np.prod(shape, dtype=object)) * dtype.itemsize > max_bytes:
