@@ -180,6 +180,8 @@ _STATE_SPACE = 'format = "qube-controller/1"\nkind = "state-space"\ndt = 0.002\n
     ("deep", "{c}: lists and tables nested more than 64 levels deep (--controller)"),
     ("npz", "{c}: {d}/m.npz: array A declares 40000 x 40000 entries, more than the controller's matrices file "
             "may hold (matrices) (--controller)"),
+    ("npz-pipe", "{c}: {d}/m.npz: a named pipe, not a regular file: not read as the controller's matrices file "
+                 "(matrices) (--controller)"),
 ])
 def test_qube_run_refuses_a_crafted_controller_file_in_one_line(tmp_path, capsys, case, message):
     import os
@@ -192,8 +194,11 @@ def test_qube_run_refuses_a_crafted_controller_file_in_one_line(tmp_path, capsys
     elif case == "deep":
         controller.write_text(_STATE_SPACE + "A = [[1.0]]\nB = [[1.0, 1.0]]\nC = [[1.0]]\nD = [[0.0, 0.0]]\n"
                               f"[provenance]\nx = {_deep()}\n")
-    elif case == "npz":
-        _npz_declaring(tmp_path / "m.npz", (40000, 40000))  # 12.8 GB once loaded
+    elif case.startswith("npz"):
+        if case == "npz":
+            _npz_declaring(tmp_path / "m.npz", (40000, 40000))  # 12.8 GB once loaded
+        else:
+            os.mkfifo(tmp_path / "m.npz")
         controller.write_text(_STATE_SPACE + 'matrices = "m.npz"\n')
     else:
         controller = case
