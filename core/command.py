@@ -136,14 +136,17 @@ def _standard(value):
     return value
 
 
-def write_json(path: Path, data) -> None:
-    """Write strict JSON (non-finite numbers as strings), whole file then rename."""
+def write_json(path: Path, data, *, shown: str | Path | None = None) -> None:
+    """Write strict JSON (non-finite numbers as strings), whole file then rename.
+
+    ``shown`` is the file an error names (default ``path``): the final name of a staged file.
+    """
     text = json.dumps(_standard(data), indent=2, allow_nan=False) + "\n"
     try:
         with atomic_path(path) as tmp:
             tmp.write_text(text)
     except OSError as exc:
-        raise CliError(f"{path}: cannot write: {exc.strerror or exc}", status=1) from None
+        raise CliError(f"{shown or path}: cannot write: {exc.strerror or exc}", status=1) from None
 
 
 #: The ``progress(label, done, total)`` callback the library's long steps report to: a tqdm bar

@@ -19,10 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from qube_koopman.core.files import loads_toml, read_bounded_text
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
     "DISCRETIZATIONS",
+    "MAX_CONTROLLER_BYTES",
     "PdGains",
     "SHIPPED_CONTROLLERS",
     "controller_file",
@@ -38,6 +40,8 @@ __all__ = [
 DISCRETIZATIONS = {"backward-euler": "backward_diff", "zoh": "zoh", "tustin": "bilinear"}
 
 QUBE_SAMPLE_PERIOD = 1.0 / 500.0
+#: The largest controller file read (a 2000-state controller written inline is about 100 MB).
+MAX_CONTROLLER_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -104,8 +108,9 @@ def read_controller_toml(path: Path) -> dict:
     ValueError
         Naming the file when it cannot be read or is not TOML.
     """
+    # A FIFO, a device, a file over MAX_CONTROLLER_BYTES or nested too deep: a ValueError naming the file.
     try:
-        return tomllib.loads(path.read_text())
+        return loads_toml(read_bounded_text(path, MAX_CONTROLLER_BYTES, "controller file"), path)
     except OSError as exc:
         raise ValueError(f"{path}: cannot read controller file ({exc.strerror or exc})") from None
     except UnicodeDecodeError:

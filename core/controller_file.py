@@ -22,9 +22,10 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.files import atomic_path, npz_shapes
 
 from qube_koopman.core.controller import (
+    MAX_CONTROLLER_BYTES,
     QUBE_SAMPLE_PERIOD,
     controller_file,
     pd_controller,
@@ -181,6 +182,12 @@ def _matrices(data: dict, path: Path) -> list[np.ndarray]:
     if not isinstance(data["matrices"], str):
         raise ValueError(f"{path}: matrices must be the name of an .npz file, got {data['matrices']!r}")
     npz = path.parent / data["matrices"]
+    try:  # the file and the size of each array it declares, before loading any
+        npz_shapes(npz, MAX_CONTROLLER_BYTES, "controller's matrices file")
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read {npz} ({exc.strerror or exc}) (matrices)") from None
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc} (matrices)") from None
     try:
         with np.load(npz, allow_pickle=False) as arrays:
             loaded = {m: arrays[m] for m in _MATRICES if m in arrays.files}

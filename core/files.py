@@ -7,13 +7,228 @@ previous file or the new one, never a mixture, since the rename is atomic on POS
 
 from __future__ import annotations
 
+import errno
+import json
 import os
 import secrets
+import stat
+import tomllib
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
-__all__ = ["atomic_path", "cache_root", "output_file_problem", "output_folder_problem", "trim_cache"]
+__all__ = [
+    "MAX_NESTING",
+    "StagedFiles",
+    "atomic_path",
+    "cache_root",
+    "check_nesting",
+    "loads_json",
+    "loads_toml",
+    "npz_shapes",
+    "output_file_problem",
+    "output_folder_problem",
+    "read_bounded_bytes",
+    "read_bounded_text",
+    "trim_cache",
+]
+
+#: The deepest nesting of lists and tables a file read by the toolkit may have: every format it
+#: reads is a few levels deep, and a parser or writer that recurses must not be asked for more.
+MAX_NESTING = 64
+
+_KINDS = (
+    (stat.S_ISFIFO, "a named pipe"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def read_bounded_bytes(path: str | Path, max_bytes: int, what: str = "file") -> bytes:
+    """The bytes of the regular file ``path``, refused before reading when it is larger than ``max_bytes``.
+
+    A named pipe, a device or a socket is refused without waiting on it (opened non-blocking,
+    checked on the open descriptor): reading one could block forever or never end.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    max_bytes : int
+        The largest size accepted.
+    what : str
+        What the file is, for the message (``"controller file"``).
+
+    Returns
+    -------
+    bytes
+        The whole file.
+
+    Raises
+    ------
+    ValueError
+        Starting with the path: not a regular file, or larger than ``max_bytes``.
+    OSError
+        The file cannot be opened or read (missing, a folder, no permission), its
+        ``filename`` the path.
+
+    Examples
+    --------
+    >>> read_bounded_bytes("/dev/zero", 10, "controller file")
+    Traceback (most recent call last):
+    ...
+    ValueError: /dev/zero: a character device, not a regular file: not read as the controller file
+    """
+    path = Path(path)
+    with _open_regular(path, max_bytes, what) as file:
+        data = file.read(max_bytes + 1)
+    if len(data) > max_bytes:  # it grew meanwhile
+        raise ValueError(f"{path}: grew past {max_bytes} bytes while read; the largest {what} read is that")
+    return data
+
+
+def _open_regular(path: Path, max_bytes: int, what: str):
+    """``path`` opened for reading (binary, blocking) once checked to be a regular file of at most ``max_bytes``."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    file = os.fdopen(fd, "rb")
+    try:
+        info = os.fstat(fd)
+        if stat.S_ISDIR(info.st_mode):
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+        if not stat.S_ISREG(info.st_mode):
+            kind = next((name for test, name in _KINDS if test(info.st_mode)), "a special file")
+            raise ValueError(f"{path}: {kind}, not a regular file: not read as the {what}")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{path}: {info.st_size} bytes; the largest {what} read is {max_bytes} bytes")
+        os.set_blocking(fd, True)
+    except BaseException:
+        file.close()
+        raise
+    return file
+
+
+def read_bounded_text(path: str | Path, max_bytes: int, what: str = "file") -> str:
+    """:func:`read_bounded_bytes` decoded as UTF-8 (:class:`UnicodeDecodeError` when it is not text)."""
+    return read_bounded_bytes(path, max_bytes, what).decode("utf-8")
+
+
+def check_nesting(value: Any, where: str | Path, max_depth: int = MAX_NESTING) -> Any:
+    """``value`` (parsed JSON or TOML) unchanged, or a ValueError when it nests deeper than ``max_depth``.
+
+    Walks the data with a stack of its own, never recursing, so any depth is measured.
+
+    Examples
+    --------
+    >>> deep = []
+    >>> for _ in range(100):
+    ...     deep = [deep]
+    >>> check_nesting(deep, "x.json")
+    Traceback (most recent call last):
+    ...
+    ValueError: x.json: lists and tables nested more than 64 levels deep
+    """
+    stack = [(value, 1)] if isinstance(value, (dict, list, tuple)) else []
+    while stack:
+        item, depth = stack.pop()
+        children = item.values() if isinstance(item, dict) else item
+        if not any(issubclass(kind, (dict, list, tuple)) for kind in set(map(type, children))):
+            continue  # a row of numbers or strings: the types of its entries, counted in C, say so
+        for child in children:
+            if isinstance(child, (dict, list, tuple)):
+                if depth + 1 > max_depth:
+                    raise _too_deep(where, max_depth)
+                stack.append((child, depth + 1))
+    return value
+
+
+def _too_deep(where: str | Path, max_depth: int) -> ValueError:
+    return ValueError(f"{where}: lists and tables nested more than {max_depth} levels deep")
+
+
+def loads_json(text: str | bytes, where: str | Path, max_depth: int = MAX_NESTING) -> Any:
+    """``json.loads(text)``, nesting bounded (:func:`check_nesting`), errors as :class:`ValueError`.
+
+    A parse too deep for Python's stack is the same ValueError naming ``where``; a syntax error is
+    :class:`json.JSONDecodeError` (a ValueError) as ``json.loads`` gives it.
+    """
+    try:
+        value = json.loads(text)
+    except RecursionError:
+        raise _too_deep(where, max_depth) from None
+    return check_nesting(value, where, max_depth)
+
+
+def loads_toml(text: str, where: str | Path, max_depth: int = MAX_NESTING) -> dict:
+    """``tomllib.loads(text)``, nesting bounded as :func:`loads_json`'s.
+
+    Raises
+    ------
+    ValueError
+        Naming ``where``: nested too deep.
+    tomllib.TOMLDecodeError
+        Not TOML.
+    """
+    try:
+        value = tomllib.loads(text)
+    except RecursionError:
+        raise _too_deep(where, max_depth) from None
+    return check_nesting(value, where, max_depth)
+
+
+def npz_shapes(path: str | Path, max_bytes: int, what: str = ".npz file") -> dict[str, tuple[tuple[int, ...], Any]]:
+    """The shape and dtype of each array of the ``.npz`` file ``path``, read from the headers alone.
+
+    So that a small compressed file cannot make its reader allocate what its header declares
+    before the size is checked: nothing is decompressed but each array's header.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (a regular file, at most ``max_bytes`` on disk, each array at most
+        ``max_bytes`` once loaded).
+    max_bytes : int
+        The largest file, and the largest array it may declare.
+    what : str
+        What the file is, for the messages.
+
+    Returns
+    -------
+    dict
+        Array name -> (shape, dtype).
+
+    Raises
+    ------
+    ValueError
+        Starting with the path: not a regular file, too large, not an .npz, or an array larger
+        than ``max_bytes``.
+    OSError
+        The file cannot be read.
+    """
+    import numpy as np
+
+    path = Path(path)
+    shapes = {}
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    with _open_regular(path, max_bytes, what) as file:  # a regular file of at most max_bytes, or a ValueError
+        try:
+            with zipfile.ZipFile(file) as archive:
+                for name in archive.namelist():
+                    with archive.open(name) as member:
+                        version = np.lib.format.read_magic(member)
+                        if version not in readers:
+                            raise ValueError(f"array format version {version} is not read here")
+                        shapes[name.removesuffix(".npy")] = readers[version](member)
+        except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as exc:
+            raise ValueError(f"{path}: not a numpy .npz file ({exc})") from None
+    out = {}
+    for key, (shape, _, dtype) in shapes.items():
+        if int(np.prod(shape, dtype=object)) * dtype.itemsize > max_bytes:
+            shown = " x ".join(map(str, shape))
+            raise ValueError(f"{path}: array {key} declares {shown} entries, more than the {what} may hold")
+        out[key] = (tuple(shape), dtype)
+    return out
 
 
 @contextmanager
@@ -75,6 +290,70 @@ def atomic_path(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
                 os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+class StagedFiles:
+    """Several files of one folder written under hidden names and moved into place together.
+
+    A command whose outputs belong together (a model and its reports) writes each to
+    :meth:`path` and calls :meth:`commit` once all are written: a failure before then (a full
+    disk, a folder made read-only) leaves the folder as it was, none of the new files in it and
+    the staged ones removed (on leaving the ``with`` block, or by :meth:`discard`).
+
+    Parameters
+    ----------
+    folder : str or Path
+        The existing folder the files go to.
+    names : iterable of str
+        The final names of the files.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> with StagedFiles(folder, ["a.json", "b.md"]) as staged:
+    ...     _ = staged.path("a.json").write_text("{}")
+    ...     _ = staged.path("b.md").write_text("# b")
+    ...     staged.commit()
+    >>> sorted(p.name for p in folder.iterdir())
+    ['a.json', 'b.md']
+    """
+
+    def __init__(self, folder: str | Path, names) -> None:
+        self.folder = Path(folder)
+        token = secrets.token_hex(4)
+        self._staged = {name: self.folder / f".{name}.{token}.staged{Path(name).suffix}" for name in names}
+
+    def path(self, name: str) -> Path:
+        """Where to write the file ``name`` until :meth:`commit`."""
+        return self._staged[name]
+
+    def final_path(self, filename: str | Path | None) -> Path | None:
+        """The final file a staged path stands for (or :func:`atomic_path`'s temporary file beside it); else None."""
+        if filename is None:
+            return None
+        given = Path(filename)
+        for name, staged in self._staged.items():
+            if given == staged or (given.parent == staged.parent and given.name.startswith(f".{staged.name}.")):
+                return self.folder / name
+        return None
+
+    def commit(self) -> None:
+        """Move every staged file that was written to its final name (replacing what was there)."""
+        for name, staged in self._staged.items():
+            if staged.exists():
+                os.replace(staged, self.folder / name)
+
+    def discard(self) -> None:
+        """Remove the staged files not committed."""
+        for staged in self._staged.values():
+            staged.unlink(missing_ok=True)
+
+    def __enter__(self) -> "StagedFiles":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.discard()
 
 
 def _new_file(path: Path) -> Path:

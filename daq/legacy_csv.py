@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import warnings
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -34,6 +33,7 @@ import numpy as np
 
 from qube_koopman.daq.episode import REFERENCE_SIGNALS, STATE_SIGNALS, Episode, EpisodeMetadata, stack_signals
 from qube_koopman.core.controller_file import ControllerInfo
+from qube_koopman.core.files import loads_json, read_bounded_bytes, read_bounded_text
 from qube_koopman.daq.log.names import parse_episode_name
 from qube_koopman.core.lti import replay_controller
 
@@ -65,6 +65,8 @@ LEGACY_COLUMNS = (
     "saturation",
 )
 LEGACY_SAMPLE_RATE_HZ = 500.0
+#: The largest CSV log (or status file beside it) read whole: an hour at 500 Hz is about 300 MB.
+_MAX_CSV_BYTES = 2**31
 #: The recomputed controller output must match the logged one this closely...
 CONTROL_TOLERANCE_V = 1e-9
 #: ...from this time on (the first second is the hand-raising transient).
@@ -95,7 +97,7 @@ def _sidecar_status(path: Path) -> _Status:
     if not sidecar.is_file():
         return {}
     try:
-        info = json.loads(sidecar.read_text())
+        info = loads_json(read_bounded_text(sidecar, _MAX_CSV_BYTES, "status file"), sidecar)
         status = info["status"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise LegacyCsvError(f"{path}: its status file {sidecar.name} is unreadable ({exc})") from None
@@ -220,9 +222,11 @@ def _drop_cut_line(raw: bytes) -> tuple[bytes, str]:
 def _read(path: Path) -> tuple[dict[str, np.ndarray], bytes, str]:
     """:func:`read_legacy_csv`, and what was dropped from a file cut short ("" when nothing)."""
     try:
-        raw = path.read_bytes()
+        raw = read_bounded_bytes(path, _MAX_CSV_BYTES, "CSV log")
     except OSError as exc:
         raise LegacyCsvError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except ValueError as exc:  # a FIFO, a device or too large: the message names the file
+        raise LegacyCsvError(str(exc)) from None
     if b"\0" in raw[:4096]:
         raise LegacyCsvError(f"{path}: not a CSV file (binary content: NUL bytes near its start)")
     text = raw.decode("utf-8", errors="replace")

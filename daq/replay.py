@@ -64,6 +64,11 @@ def replay_plans(
         seeds = meta.excitation.get("seeds", {})
         if not all(isinstance(seeds.get(k), int) for k in SEED_SIGNALS):
             raise ValueError(f"{path}: the log records no excitation seeds; it cannot be replayed")
+        if not all(-(2**63) <= seeds[k] < 2**63 for k in SEED_SIGNALS):
+            raise ValueError(
+                f"{path}: excitation seeds {[seeds[k] for k in SEED_SIGNALS]} are not 64-bit integers "
+                "(qube-run records such seeds only); it cannot be replayed"
+            )
         (plan,) = plan_episodes(
             controller or meta.controller,
             [tuple(seeds[k] for k in SEED_SIGNALS)],

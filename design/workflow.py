@@ -9,7 +9,6 @@ controller file's ``[provenance]``.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +36,7 @@ from qube_koopman.design.predict import (
     predict_loop,
     rig_excitations,
 )
+from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 
 __all__ = ["DesignReport", "design_from_model", "report_text", "saturation_warning", "provenance", "record_design"]
@@ -111,13 +111,21 @@ def _load(path: Path) -> tuple[Path, dict]:
         raise DesignError(f"{path}: not a readable model file (missing or malformed {exc})") from None
     if model.get("plant") is None:
         raise DesignError(f"{path}: the model file holds no plant model")
+    if abs(model["dt"] - QUBE_SAMPLE_PERIOD) > 1e-9 * QUBE_SAMPLE_PERIOD:
+        raise DesignError(
+            f"{path}: sample period {model['dt']!r} s, not the loop's {QUBE_SAMPLE_PERIOD!r} s: a controller "
+            "designed on it would not run (a discrete controller runs only at the period it was designed for)"
+        )
     return path, model
 
 
 def _arx_hint(path: Path) -> str | None:
     """The refusal of an ARX model file, which says how to identify a plant a design can use."""
+    from qube_koopman.core.files import loads_json, read_bounded_text
+    from qube_koopman.identify.models.model_file import MAX_MODEL_BYTES
+
     try:
-        data = json.loads(path.read_text())
+        data = loads_json(read_bounded_text(path, MAX_MODEL_BYTES, "model file"), path)
     except (OSError, ValueError):
         return None
     if isinstance(data, dict) and data.get("format") == "qube-arx-model":

@@ -45,6 +45,8 @@ def expand_sources(sources: list[str], suffix: str, problems: list[str]) -> list
             files.extend(found)
         elif path.is_file():
             files.append(path)
+        elif path.exists():  # a named pipe, a device: never read (it could block or never end)
+            problems.append(f"{path}: not a regular file or folder")
         else:
             problems.append(f"{path}: no such file or folder")
     unique = {f.resolve(): f for f in reversed(files)}

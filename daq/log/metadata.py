@@ -11,7 +11,8 @@ import json
 from typing import Mapping
 
 from qube_koopman.daq.episode import EpisodeMetadata
-from qube_koopman.core.controller_file import ControllerInfo
+from qube_koopman.core.controller_file import STATE_SPACE_KIND, ControllerInfo
+from qube_koopman.core.files import loads_json
 from qube_koopman.daq.log.schema import FORMAT_VERSION
 
 __all__ = [
@@ -41,6 +42,15 @@ _EPISODE_KEYS = (
 _CONTROLLER_KEYS = ("kind", "method", "gains", "dt", "A", "B", "C", "D")
 # Added in 1.4 (a state-space controller's provenance); absent from older logs: empty.
 _OPTIONAL_CONTROLLER_KEYS = ("provenance",)
+
+
+#: The kinds of controller the loop runs, and so the kinds a log may record (core/controller_file.py).
+_CONTROLLER_KINDS = ("pd", STATE_SPACE_KIND)
+
+
+def _parse(text: str):
+    """A metadata value's JSON, nesting bounded (a ValueError, not a RecursionError, for a crafted one)."""
+    return loads_json(text, "a metadata value")
 
 
 def _json(value) -> str:
@@ -149,14 +159,19 @@ def metadata_from_records(
         missing = [k for k in _EPISODE_KEYS if k not in episode] + [k for k in _CONTROLLER_KEYS if k not in controller]
         if missing:
             raise ValueError(f"missing metadata keys {', '.join(missing)}")
+        if controller["kind"] not in _CONTROLLER_KINDS:
+            raise ValueError(
+                f"unknown controller kind {controller['kind']!r} (a log records one of "
+                f"{', '.join(map(repr, _CONTROLLER_KINDS))})"
+            )
         controller_info = ControllerInfo.from_dict(
             {
                 "kind": controller["kind"],
                 "method": controller["method"],
-                "gains": json.loads(controller["gains"]),
+                "gains": _parse(controller["gains"]),
                 "dt": float(controller["dt"]),
-                **{m: json.loads(controller[m]) for m in "ABCD"},
-                **{k: json.loads(controller[k]) for k in _OPTIONAL_CONTROLLER_KEYS if k in controller},
+                **{m: _parse(controller[m]) for m in "ABCD"},
+                **{k: _parse(controller[k]) for k in _OPTIONAL_CONTROLLER_KEYS if k in controller},
             }
         )
         status = records.get(STATUS_RECORD)
@@ -164,23 +179,23 @@ def metadata_from_records(
         status_value, reason = _final_status(status, salvage_note)
         if status is not None:
             if "timing" in status:
-                timing = json.loads(status["timing"])
+                timing = _parse(status["timing"])
             if "backend_stats" in status:
-                backend_stats = json.loads(status["backend_stats"])
+                backend_stats = _parse(status["backend_stats"])
         return EpisodeMetadata(
             controller=controller_info,
             sample_rate_hz=float(episode["sample_rate_hz"]),
             backend=episode["backend"],
             source=episode["source"],
             start_time=episode["start_time"],
-            excitation=json.loads(episode["excitation"]),
+            excitation=_parse(episode["excitation"]),
             software_version=episode["software_version"],
             status=status_value,
             status_reason=reason,
             salvaged=bool(salvage_note),
             salvage_note=salvage_note,
             log_format_version=version,
-            extra=json.loads(episode["extra"]),
+            extra=_parse(episode["extra"]),
             timing=timing,
             backend_stats=backend_stats,
         )

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
+from qube_koopman.core.files import read_bounded_bytes
 from qube_koopman.daq.episode import SIGNALS, Episode, EpisodeMetadata
 from qube_koopman.daq.log.metadata import EPISODE_RECORD, STATUS_RECORD, metadata_from_records
 from qube_koopman.daq.log.schema import (
@@ -40,6 +41,8 @@ if TYPE_CHECKING:
 __all__ = ["read_episode", "read_episode_metadata", "IncompleteEpisodeWarning"]
 
 _MAGIC = b"\x89MCAP0\r\n"
+#: The largest log read whole (an hour at 500 Hz is about 30 MB): no FIFO, device or absurd file.
+_MAX_LOG_BYTES = 4 * 2**30
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 _MESSAGE_INDEX, _METADATA, _DATA_END = 0x07, 0x0C, 0x0F
 _OPNAMES = {
@@ -420,7 +423,7 @@ class _Scan:
 def _scan(path: str | os.PathLike, decode_chunks: bool) -> tuple[_Scan, EpisodeMetadata]:
     path = Path(path)
     scan = _Scan(str(path), decode_chunks)
-    scan.run(path.read_bytes())
+    scan.run(read_bounded_bytes(path, _MAX_LOG_BYTES, "episode log"))
     scan.finish()
     if EPISODE_RECORD not in scan.records and scan.problem:
         raise ValueError(f"{path}: unreadable episode log: {scan.problem}, before any episode metadata")

@@ -228,6 +228,7 @@ class PlantCalibration:
         phys, offsets, _ = ms.unpack(z, n_ep, seg.n, n_x)
         self.params_ = ms.to_params(phys, self.nominal_)
         self.cost_, self.nfev_, self.njev_ = float(result.cost), int(result.nfev), int(result.njev)
+        self.converged_ = bool(result.converged)
         n_res, n_var = result.jac.shape
         s2 = 2 * result.cost / max(1, n_res - n_var)
         cov = _marginal_covariance(ms.normal_matrix(result.jac, seg, n_ep), n_phys + n_ep) * s2

@@ -46,6 +46,9 @@ from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
 
 _log = logging.getLogger(__name__)
 
+#: The longest transport delay --delay takes (samples; 1 s at 500 Hz).
+_MAX_DELAY_SAMPLES = 500
+
 __all__ = ["main"]
 
 
@@ -120,6 +123,7 @@ def _read(paths, segment: float, role: str):
         raise CliError(str(exc)) from None
     episodes = read_episodes(logs)
     for log_path, episode in zip(paths, episodes):
+        _check_measurements(log_path, episode)
         need = SKIP_SAMPLES + int(round(segment / episode.dt)) + 1
         if len(episode) < need:
             raise CliError(
@@ -128,6 +132,26 @@ def _read(paths, segment: float, role: str):
                 f"{segment:g} s after it ({need} samples)"
             )
     return episodes
+
+
+#: The largest angle (rad) and voltage (V) a log's sample may hold: the rig's encoders count a few
+#: turns at most and its amplifier gives 10 V; a value past these is a damaged or crafted log.
+_LARGEST_ANGLE, _LARGEST_VOLTAGE = 100.0, 100.0
+
+
+def _check_measurements(path, episode) -> None:
+    """Refuse a log whose angles or voltage are non-finite or absurd (they would make the fit's arithmetic overflow)."""
+    for name, values, largest in (
+        ("theta", episode.states[:, 0], _LARGEST_ANGLE),
+        ("alpha", episode.states[:, 1], _LARGEST_ANGLE),
+        ("voltage", episode.plant_input, _LARGEST_VOLTAGE),
+    ):
+        bad = np.flatnonzero(~(np.abs(values) <= largest))  # NaN included
+        if bad.size:
+            raise CliError(
+                f"{path}: {name} at sample {bad[0]} is {float(values[bad[0]])!r} ({bad.size} sample"
+                f"{'s' if bad.size > 1 else ''} beyond +-{largest:g}); refused: qube-calibrate fits measured logs only"
+            )
 
 
 def _run(args) -> int:
@@ -146,6 +170,11 @@ def _run(args) -> int:
         val_paths += held
     if not 0.004 <= args.horizon <= 2.0:
         raise CliError(f"--horizon must be between 0.004 and 2 s, got {args.horizon}")
+    if args.delay > _MAX_DELAY_SAMPLES:
+        raise CliError(
+            f"--delay must be at most {_MAX_DELAY_SAMPLES} samples (the QUBE's transport delay is a few), "
+            f"got {args.delay}"
+        )
     check_output_file(args.out, force=args.force)  # before the fit's minute of work, not after
     check_output_folder(args.report, ("report.md", "calibration.rrd"), "--report", args.force)
     episodes = _read(fit_paths, args.horizon, "fit")
@@ -222,14 +251,36 @@ def _run(args) -> int:
                 ],
             )
     plant.provenance = provenance
+    _check_finite(cal, args.out)
     try:
         save_plant(args.out, plant)
     except OSError as exc:
         raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
     print(text)
+    if not cal.converged_:
+        _log.warning(
+            "the fit did not converge within --max-nfev %d steps (its cost was still falling): %s holds the last "
+            "step's parameters; run again with a larger --max-nfev to finish it",
+            args.max_nfev,
+            args.out,
+        )
+    print(f"wrote {args.out}: qube-run --plant {args.out}")
     if args.report is not None:
         write_report(output_dir(args.report), text, validation, val_dt)
     return 0
+
+
+def _check_finite(cal, out) -> None:
+    """Refuse to write a plant whose fitted values or standard errors are not finite numbers."""
+    values = {name: getattr(cal.params_, name) for name in cal.standard_errors_}
+    bad = [f"{name} = {value}" for name, value in values.items() if not np.isfinite(value)]
+    bad += [f"standard error of {name} = {se}" for name, se in cal.standard_errors_.items() if not np.isfinite(se)]
+    if bad:
+        raise CliError(
+            f"{out}: not written: the fit gave {', '.join(bad[:3])}{' ...' if len(bad) > 3 else ''} "
+            "(the logs do not determine the parameters)",
+            status=1,
+        )
 
 
 def _setups(episodes, which: str) -> dict:

@@ -688,12 +688,23 @@ def _cluster_statistics(args, train, cleanup: contextlib.ExitStack):
 
 
 def _run(args) -> int:
+    from qube_koopman.core.files import StagedFiles
+
     _check_args(args)
+    # model.json and its reports are written under hidden names and moved into place together once
+    # all are written: a write that fails (a full disk, a folder made read-only) leaves none of them.
     with contextlib.ExitStack() as cleanup:
-        return _identify(args, cleanup)
+        staged = cleanup.enter_context(StagedFiles(args.out, OUTPUT_FILES))
+        try:
+            return _identify(args, cleanup, staged)
+        except OSError as exc:
+            final = staged.final_path(exc.filename)
+            if final is None:
+                raise
+            raise CliError(f"{final}: cannot write: {exc.strerror or exc}; nothing written", status=1) from None
 
 
-def _identify(args, cleanup: contextlib.ExitStack) -> int:
+def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
     import numpy as np
 
     from qube_koopman.identify.report.markdown import write_markdown_report
@@ -747,7 +758,7 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
             cv_splits=args.cv_splits,
             cv_seed=args.cv_seed,
             arx_lags=args.arx_lags,
-            model_path=out / "model.json",
+            model_path=staged.path("model.json"),
             offsets=offsets,
             what_if=what_if,
             progress=progress,
@@ -794,8 +805,9 @@ def _identify(args, cleanup: contextlib.ExitStack) -> int:
         from qube_koopman.identify.report.figures import identification_figures
 
         result.report["figures"] = write_report_figures(out, identification_figures(result, args.figure_episodes))
-    write_json(out / "report.json", result.report)
-    write_markdown_report(out / "report.md", result.report)
+    write_json(staged.path("report.json"), result.report, shown=out / "report.json")
+    write_markdown_report(staged.path("report.md"), result.report)
+    staged.commit()
     if args.rerun:
         from qube_koopman.identify.report.rerun import write_recording
 

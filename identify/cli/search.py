@@ -11,6 +11,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from qube_koopman.core.command import CliError, progress
+from qube_koopman.core.files import loads_toml, read_bounded_text
 
 _log = logging.getLogger(__name__)
 _LISTS = {
@@ -28,6 +29,10 @@ _LISTS = {
 _NUMBERS = {"n_finalists": int, "screen_against_lead": bool}
 
 
+#: The largest search-space file read (a few lists of numbers).
+MAX_SPACE_BYTES = 2**20
+
+
 def load_space(path: str | None):
     """The search space: the defaults, with the lists of a TOML file replacing theirs."""
     from qube_koopman.identify.model_selection.search import SearchSpace
@@ -35,9 +40,12 @@ def load_space(path: str | None):
     if path is None:
         return SearchSpace()
     try:
-        data = tomllib.loads(Path(path).read_text())
+        text = read_bounded_text(path, MAX_SPACE_BYTES, "search space")
+        data = loads_toml(text, path)
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise CliError(f"{path}: not a readable TOML search space ({exc})") from None
+    except ValueError as exc:  # a FIFO, a device, too large or nested too deep: the message names the file
+        raise CliError(str(exc)) from None
     unknown = set(data) - set(_LISTS) - set(_NUMBERS)
     if unknown:
         raise CliError(f"{path}: unknown search-space keys {sorted(unknown)}; known: {', '.join([*_LISTS, *_NUMBERS])}")

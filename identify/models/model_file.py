@@ -7,6 +7,7 @@ as the fitted one did.
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -26,12 +27,15 @@ from qube_koopman.identify.lifting import (
 )
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import DiscreteStateSpace
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.files import atomic_path, loads_json, read_bounded_text
 
 __all__ = [
     "FORMAT",
     "VERSION",
     "ARX_FORMAT",
+    "MAX_DELAYS",
+    "MAX_MODEL_BYTES",
+    "MAX_POLYNOMIAL_ORDER",
     "lifting_to_dict",
     "lifting_from_dict",
     "save_model",
@@ -42,6 +46,12 @@ __all__ = [
 
 FORMAT = "qube-koopman-model"
 VERSION = 1
+#: The most delays a model file's lifting may ask for (20 s of samples at 500 Hz).
+MAX_DELAYS = 10_000
+#: The highest polynomial order a model file's lifting may ask for.
+MAX_POLYNOMIAL_ORDER = 10
+#: The largest model file read (a 300-state plant with 100 bootstrap refits is about 300 MB).
+MAX_MODEL_BYTES = 2**30
 
 
 #: An innermost JSON list of numbers, as ``json.dumps(..., indent=1)`` spreads it over one line per number (real
@@ -84,14 +94,18 @@ def lifting_to_dict(lifting: Lifting) -> dict:
 
 
 def lifting_from_dict(data: dict) -> Lifting:
-    """Rebuild a fitted lifting from :func:`lifting_to_dict` output."""
+    """Rebuild a fitted lifting from :func:`lifting_to_dict` output.
+
+    The sizes a file may ask for are bounded before anything is allocated: at most
+    :data:`MAX_DELAYS` delays and polynomial order :data:`MAX_POLYNOMIAL_ORDER`.
+    """
     steps: list[LiftingFunction] = []
     for entry in data["steps"]:
         kind = entry.get("type")
         if kind == "Polynomial":
-            steps.append(Polynomial(entry["order"]))
+            steps.append(Polynomial(_bounded(entry["order"], "polynomial order", MAX_POLYNOMIAL_ORDER)))
         elif kind == "Delay":
-            steps.append(Delay(entry["n_delays"]))
+            steps.append(Delay(_bounded(entry["n_delays"], "number of delays", MAX_DELAYS)))
         elif kind == "Constant":
             steps.append(Constant())
         elif kind == "Trigonometric":
@@ -108,6 +122,13 @@ def lifting_from_dict(data: dict) -> Lifting:
     names = data["state_names"]
     # Every step is now determined by its parameters; fitting only records the names.
     return lifting.fit([np.zeros((lifting.n_delays + 2, len(names)))], names)
+
+
+def _bounded(value, name: str, largest: int):
+    """``value`` unchanged when it is not an integer larger than ``largest`` (its own checks come later)."""
+    if isinstance(value, int) and value > largest:
+        raise ValueError(f"{name} {value} is more than this reader takes ({largest})")
+    return value
 
 
 def _model_to_dict(model: KoopmanModel | None) -> dict | None:
@@ -294,8 +315,8 @@ def load_model(path: str | Path) -> dict:
         cannot be used (a non-finite entry in A or B, shapes that do not fit).
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
+    try:  # a FIFO, a device, a file over MAX_MODEL_BYTES or nested too deep: a ValueError naming it
+        data = loads_json(read_bounded_text(path, MAX_MODEL_BYTES, "model file"), path)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:  # an OSError's text would name the path again
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
         raise ValueError(f"{path}: not a readable model file ({reason})") from None
@@ -303,7 +324,13 @@ def load_model(path: str | Path) -> dict:
         raise ValueError(f"{path}: not a {FORMAT} file")
     if data.get("version") != VERSION:
         raise ValueError(f"{path}: model format version {data.get('version')}, this software reads {VERSION}")
-    lifting = lifting_from_dict(data["lifting"])
+    dt = data.get("dt")
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"{path}: dt must be a positive number of seconds (the sample period), got {dt!r}")
+    try:
+        lifting = lifting_from_dict(data["lifting"])
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise ValueError(f"{path}: lifting: {exc}") from None
 
     def matrix(entry, name: str, key: str) -> np.ndarray:
         try:

@@ -32,9 +32,18 @@ __all__ = [
     "linearize_upright",
     "linear_model",
     "SAMPLE_PERIOD",
+    "MAX_PARAMETER",
+    "MIN_POSITIVE_PARAMETER",
+    "MAX_DELAY",
 ]
 
 SAMPLE_PERIOD = 1.0 / 500.0
+#: The largest size of any parameter (SI units): past it the model's own arithmetic overflows.
+MAX_PARAMETER = 1e6
+#: The smallest resistance, mass, length or Coulomb speed: the model divides by them.
+MIN_POSITIVE_PARAMETER = 1e-15
+#: The longest transport delay (s): the simulator keeps that many seconds of commands.
+MAX_DELAY = 1.0
 DEFAULT_SUBSTEPS = 2
 
 
@@ -144,6 +153,20 @@ class PendulumParameters:
         for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone", "Jh", "delay", "Kr", "cable_softening"):
             if getattr(self, name) < 0:
                 raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
+        # Beyond these the arithmetic of the model itself overflows (km**2 / Rm, a delay buffer of
+        # delay / dt samples): no pendulum's parameter comes near them in SI units.
+        for f in fields(self):
+            if abs(getattr(self, f.name)) > MAX_PARAMETER:
+                raise ValueError(
+                    f"parameter {f.name} must be at most {MAX_PARAMETER:g} in size, got {getattr(self, f.name)}"
+                )
+        for name in ("Rm", "mr", "Lr", "mp", "Lp", "coulomb_speed"):
+            if getattr(self, name) < MIN_POSITIVE_PARAMETER:
+                raise ValueError(
+                    f"parameter {name} must be at least {MIN_POSITIVE_PARAMETER:g}, got {getattr(self, name)}"
+                )
+        if self.delay > MAX_DELAY:
+            raise ValueError(f"parameter delay must be at most {MAX_DELAY:g} s, got {self.delay}")
 
     @classmethod
     def workbook(cls) -> "PendulumParameters":

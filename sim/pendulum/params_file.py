@@ -35,13 +35,16 @@ Version 1 is version 2 before the cables' pull could level off: a version-1 file
 ``cable_softening`` is read with 0 (the linear spring it was fitted with), not with the default.
 
 Unknown keys in ``[parameters]`` and ``[setups.*]`` are an error (a misspelt ``Dr`` must not
-silently keep its default). A setup is what differed when the logs were recorded: the cables
-between the arm's hub and the base are dressed anew each time the rig is set up (a day: the
-two recording days' logs want stiffnesses 3.1 times apart), the host's latency from a command to
-the motor changes with the session (0.6 to 4.1 ms in four). ``qube-calibrate`` fits those per day and
-per session with the rest of the physics shared; a replay of a log recorded then uses them
-(:meth:`PlantFile.params_for`), and ``[parameters]`` holds the central guess for a day or
-session no log shows.
+silently keep its default), and so are values the model's arithmetic cannot take: a size over 1e6, a
+resistance, mass, length or Coulomb speed under 1e-15, a delay over 1 s
+(:class:`~qube_koopman.sim.pendulum.model.PendulumParameters`); a file over 16 MiB, nested more than
+64 levels deep, or a named pipe or device is refused unread. A setup is what differed when the logs
+were recorded: the cables between the arm's hub and the base are dressed anew each time the rig is
+set up (a day: the two recording days' logs want stiffnesses 3.1 times apart), the host's latency
+from a command to the motor changes with the session (0.6 to 4.1 ms in four). ``qube-calibrate``
+fits those per day and per session with the rest of the physics shared; a replay of a log recorded
+then uses them (:meth:`PlantFile.params_for`), and ``[parameters]`` holds the central guess for a
+day or session no log shows.
 Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
@@ -68,7 +71,7 @@ from pathlib import Path
 from typing import Sequence
 
 from qube_koopman.sim.pendulum.model import PendulumParameters
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.files import atomic_path, loads_toml, read_bounded_text
 
 __all__ = [
     "PlantFile",
@@ -85,9 +88,12 @@ __all__ = [
     "PARAMETER_SETS",
     "PlantFileError",
     "FORMAT",
+    "MAX_PLANT_BYTES",
 ]
 
 FORMAT = "qube-plant/2"
+#: The largest plant file read (a few tables of numbers, a table per recording day).
+MAX_PLANT_BYTES = 16 * 2**20
 #: Earlier formats still read, with what each lacked (the physics it was written with).
 _OLDER_FORMATS = {"qube-plant/1": {"cable_softening": 0.0}}
 
@@ -344,11 +350,13 @@ def load_plant(path: str | Path) -> PlantFile:
     """
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = loads_toml(read_bounded_text(path, MAX_PLANT_BYTES, "plant file"), path)
     except OSError as exc:
         raise PlantFileError(f"{path}: cannot read plant file ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{path}: not a TOML file ({exc})") from None
+    except ValueError as exc:  # a FIFO, a device, too large or nested too deep: the message names the file
+        raise PlantFileError(str(exc)) from None
     version = data.get("format")
     if version != FORMAT and version not in _OLDER_FORMATS:
         raise PlantFileError(

@@ -86,3 +86,35 @@ def test_qube_calibrate_refuses_an_unreadable_log_without_naming_an_option_it_la
     assert capsys.readouterr().err == (f"qube-calibrate: error: {folder / 'b_empty.mcap'}: empty file, not an MCAP "
                                        "episode log; refused: qube-calibrate fits complete, readable logs only\n")
     assert not (tmp_path / "p.toml").exists()
+
+
+def _deeply_nested_log(path, depth: int = 100_000) -> None:
+    """A log whose metadata value ``extra`` nests ``depth`` lists deep (written as a string of the same length)."""
+    placeholder = "A" * (2 * depth - 2)
+    write_episode(path, make_episode(400, seed=2, extra={"x": placeholder}))
+    raw = path.read_bytes()
+    assert raw.count(f'"{placeholder}"'.encode()) == 1
+    path.write_bytes(raw.replace(f'"{placeholder}"'.encode(), b"[" * depth + b"]" * depth))
+
+
+def test_a_log_with_crafted_metadata_is_skipped_with_a_warning(folder):
+    # Deeply nested metadata, or a controller of a kind the loop never runs: unreadable, not a traceback.
+    import numpy as np
+
+    from qube_koopman.core.controller_file import ControllerInfo
+    from qube_koopman.core.lti import DiscreteStateSpace
+
+    _deeply_nested_log(folder / "e_deep.mcap")
+    neural = ControllerInfo(DiscreteStateSpace(np.eye(2), np.ones((2, 2)), np.ones((1, 2)), np.zeros((1, 2)), 0.002),
+                            "given", kind="neural")
+    write_episode(folder / "f_neural.mcap", make_episode(400, seed=3, controller=neural))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        logs = load_logs([folder / "a_good.mcap", folder / "e_deep.mcap", folder / "f_neural.mcap"])
+    assert [log.path.name for log in logs] == ["a_good.mcap"]
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 2, messages
+    assert messages[0] == (f"{folder / 'e_deep.mcap'}: malformed episode metadata: a metadata value: lists and "
+                           "tables nested more than 64 levels deep; skipped")
+    assert messages[1] == (f"{folder / 'f_neural.mcap'}: malformed episode metadata: unknown controller kind "
+                           "'neural' (a log records one of 'pd', 'state-space'); skipped")

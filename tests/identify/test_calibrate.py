@@ -264,6 +264,59 @@ def test_cli_refuses_a_log_too_short_to_fit_or_validate_before_the_fit(tmp_path,
         assert short in err and "too short" in err and "Traceback" not in err, err
     assert not (tmp_path / "plant.toml").exists()
 
+@pytest.fixture
+def one_log(tmp_path):
+    from qube_koopman.daq.cli.run import main as run_main
+
+    assert run_main(["--episodes", "1", "--duration", "2", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
+    return next((tmp_path / "logs").glob("*.mcap"))
+
+
+def test_cli_refuses_an_absurd_delay_or_measurement_in_one_line_before_the_fit(one_log, tmp_path, capsys):
+    # A delay of 1e8 samples asked for gigabytes; alpha = 1e300 overflowed the fit into a plant of
+    # infinite standard errors, written with exit 0.
+    from qube_koopman.daq.log import read_episode, write_episode
+    from qube_koopman.identify.cli.calibrate import main
+
+    episode = read_episode(one_log)
+    alpha = episode.alpha.copy()
+    alpha[800] = 1e300
+    write_episode(tmp_path / "crafted.mcap", replace(episode, alpha=alpha))
+    capsys.readouterr()
+    for argv, message in (([str(one_log), "--delay", "100000000"], "error: --delay must be at most 500 samples"),
+                          ([str(tmp_path / "crafted.mcap")], f"error: {tmp_path / 'crafted.mcap'}: alpha at sample 800 "
+                                                              "is 1e+300 (1 sample beyond +-100); refused")):
+        assert main([*argv, "--out", str(tmp_path / "p.toml"), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and message in err, err
+    assert not (tmp_path / "p.toml").exists()
+
+
+def test_cli_warns_that_a_fit_stopped_by_max_nfev_did_not_converge_and_names_the_file(one_log, tmp_path, capsys):
+    from qube_koopman.identify.cli.calibrate import main
+
+    capsys.readouterr()
+    out = tmp_path / "p.toml"
+    assert main([str(one_log), "--out", str(out), "--max-nfev", "1"]) == 0  # (-q would silence the warning)
+    captured = capsys.readouterr()
+    assert ("qube-calibrate: warning: the fit did not converge within --max-nfev 1 steps (its cost was still "
+            f"falling): {out} holds the last step's parameters; run again with a larger --max-nfev") in captured.err
+    assert captured.out.endswith(f"wrote {out}: qube-run --plant {out}\n") and out.exists()
+
+
+def test_cli_never_writes_a_plant_of_non_finite_values():
+    from types import SimpleNamespace
+
+    from qube_koopman.core.command import CliError
+    from qube_koopman.identify.cli.calibrate import _check_finite
+
+    fit = SimpleNamespace(params_=PendulumParameters(), standard_errors_={"km": float("inf"), "Dr": 1e-5})
+    with pytest.raises(CliError, match=r"^p\.toml: not written: the fit gave standard error of km = inf") as info:
+        _check_finite(fit, "p.toml")
+    assert info.value.status == 1
+    _check_finite(SimpleNamespace(params_=PendulumParameters(), standard_errors_={"km": 1e-3}), "p.toml")
+
+
 def test_offsets_estimated_together_are_each_episodes_own_and_recover_the_injected_ones():
     # With the physics fixed the batched problem is separable: each episode's offset is its own
     # problem's minimizer. Cross-checked against MINPACK's Levenberg-Marquardt (scipy, dense

@@ -33,7 +33,13 @@ def _damaged(model_file, tmp_path, change) -> str:
     (lambda d: d["plant"]["A"][2].__setitem__(3, float("nan")), "plant.A has a non-finite entry (nan) at [2, 3]"),
     (lambda d: d["closed_loop"]["B"][0].__setitem__(0, float("inf")), "closed_loop.B has a non-finite entry (inf) at [0, 0]"),
     (lambda d: d["plant"]["B"].pop(), "plant: "),
-], ids=["nan", "inf", "shape"])
+    (lambda d: d["lifting"]["steps"][0].__setitem__("n_delays", 10**9),
+     "lifting: number of delays 1000000000 is more than this reader takes (10000)"),
+    (lambda d: d["lifting"]["steps"][0].__setitem__("n_delays", 1e9), "lifting: number of delays must be an integer"),
+    (lambda d: d.__setitem__("dt", float("nan")), "dt must be a positive number of seconds (the sample period), "
+                                                  "got nan"),
+    (lambda d: d.__setitem__("dt", 0.01), "sample period 0.01 s, not the loop's 0.002 s"),
+], ids=["nan", "inf", "shape", "huge-delays", "float-delays", "dt-nan", "dt-other"])
 def test_qube_design_refuses_an_unusable_model_in_one_line(model_file, tmp_path, capsys, change, message):
     from qube_koopman.design.cli.design import main as design_main
 
@@ -115,3 +121,50 @@ def test_the_model_file_writes_a_matrix_by_rows_and_leaves_text_as_it_is():
     back = json.loads(text)
     assert back["note"] == "x [1,2] y" and back["logs"] == ["[3,4]", "b"] and back["A"] == data["A"]
     assert np.isnan(back["n"][0]) and back["n"][1] == 1.0 and back["empty"] == []
+
+
+def test_qube_design_refuses_a_deeply_nested_or_special_model_file_in_one_line(tmp_path, capsys):
+    # A parser that recurses is never asked for 100000 levels; a named pipe is never waited on.
+    import os
+
+    from qube_koopman.design.cli.design import main as design_main
+
+    deep = tmp_path / "deep.json"
+    deep.write_text('{"format": "qube-koopman-model", "version": 1, "x": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    pipe = tmp_path / "pipe.json"
+    os.mkfifo(pipe)
+    for path, message in [(deep, "lists and tables nested more than 64 levels deep"),
+                          (pipe, "a named pipe, not a regular file: not read as the model file")]:
+        assert design_main([str(path), "--out", str(tmp_path / "c.toml")]) == 2
+        err = capsys.readouterr().err
+        assert err == f"qube-design: error: {path}: {message}\n"
+
+
+def test_a_write_error_names_the_file_and_leaves_the_folder_as_it_was(model_file, tmp_path, capsys, monkeypatch):
+    # The disk fills while report.md is written: model.json and report.json, written before it, must
+    # not be left without it (nor replace the previous run's files); the error names report.md.
+    import errno
+    import os
+    import shutil
+
+    import qube_koopman.identify.report.markdown as markdown
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    out = tmp_path / "m"
+    shutil.copytree(model_file.parent, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+
+    def full_disk(path, report):
+        tmp = path.with_name(f".{path.name}.0123.part.md")
+        tmp.write_text("half a rep")
+        tmp.unlink()
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
+
+    monkeypatch.setattr(markdown, "write_markdown_report", full_disk)
+    logs = sorted(map(str, (model_file.parent.parent / "logs").glob("*.mcap")))
+    capsys.readouterr()
+    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--poly", "1", "--out", str(out),
+                          "--force", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err == f"qube-identify: error: {out / 'report.md'}: cannot write: No space left on device; nothing written\n"
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before  # no staged file left either

@@ -465,7 +465,8 @@ def test_cli_search_refusals(log_dirs, tmp_path, capsys, argv, message):
 def test_cli_search_space_file_errors_name_the_file(log_dirs, tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     for text, problem in (("delays = [", "not a readable TOML"), ("depth = [1]", "unknown search-space keys"),
-                          ("delays = [1.5]", "delays must be a non-empty list of int")):
+                          ("delays = [1.5]", "delays must be a non-empty list of int"),
+                          ("delays = " + "[" * 100_000 + "]" * 100_000, "nested more than 64 levels deep")):
         bad.write_text(text)
         code, _, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
                             "--search-space", bad, "--out", tmp_path / "o")

@@ -81,6 +81,11 @@ def test_a_version_1_file_keeps_the_linear_cable_spring_it_was_fitted_with(tmp_p
     ('format = "qube-plant/1"\n[parameters]\nRm = "8"\n', "Rm must be a number"),
     ('[parameters]\nRm = 8.0\n', "format must be"),
     ('format = = 1', "not a TOML file"),
+    ('format = "qube-plant/2"\n[parameters]\nkm = 1e300\n', "parameter km must be at most 1e+06 in size, got 1e+300"),
+    ('format = "qube-plant/2"\n[parameters]\nRm = 1e-300\n', "parameter Rm must be at least 1e-15, got 1e-300"),
+    ('format = "qube-plant/2"\n[parameters]\ndelay = 1e5\n', "parameter delay must be at most 1 s, got 100000.0"),
+    pytest.param('format = "qube-plant/2"\n[provenance]\nx = ' + "[" * 100_000 + "]" * 100_000,
+                 "nested more than 64 levels deep", id="nested-100000-deep"),
     *((f'format = "qube-plant/1"\n[parameters]\nKr = 0.001\n{table}', message) for table, message in [
         ('[setups."2023-09-15"]\nKrr = 0.001\n', "setup 2023-09-15: unknown parameter(s) Krr"),
         ('[setups."2023-09-15"]\nKr = -0.001\n', "setup 2023-09-15: parameter Kr must be non-negative"),
