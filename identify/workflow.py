@@ -518,8 +518,8 @@ def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None =
 def _fit(estimator, trajs, controllers, elsewhere):
     """Fit ``estimator``: its statistics computed here one at a time, or ``elsewhere`` (a cluster) and
     folded as they come back. ``controllers``: each episode's (None for EDMD, fitted from the logged input)."""
-    setup = estimator._setup(trajs) if controllers is None else estimator._setup(trajs, controllers)
-    return estimator._fit(setup, elsewhere)
+    setup = estimator.setup_fit(trajs) if controllers is None else estimator.setup_fit(trajs, controllers)
+    return estimator.fit_setup(setup, elsewhere)
 
 
 @dataclass(frozen=True)

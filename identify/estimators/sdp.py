@@ -19,7 +19,7 @@ import numpy as np
 
 from dataclasses import dataclass
 
-from qube_koopman.identify.estimators._base import resolve_lifting
+from qube_koopman.identify.estimators.base import resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
 from qube_koopman.identify.estimators.cl_edmd import REGULARIZE, ClosedLoopKoopman
 from qube_koopman.identify.data.trajectory import check_trajectories

@@ -82,14 +82,14 @@ from qube_koopman.identify.models.offsets import (
 )
 from qube_koopman.identify.metrics import DIVERGED_FACTOR, DivergedPrediction
 from qube_koopman.identify.models.simulate import ring_capacity, simulate_chunks
-from qube_koopman.identify.estimators._base import episode_statistics
+from qube_koopman.identify.estimators.base import episode_statistics
 from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.model_selection.sweep import EPISODES_PER_BATCH  # episodes read and simulated together
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
 if TYPE_CHECKING:
-    from qube_koopman.identify.estimators._base import SnapshotEstimator
+    from qube_koopman.identify.estimators.base import SnapshotEstimator
     from qube_koopman.identify.models.model import KoopmanModel
 
 __all__ = [
@@ -279,16 +279,16 @@ def ensemble_statistics(estimator, setup, selections: np.ndarray, elsewhere: Cal
     """The statistics of all the setup's episodes and of weighted selections of them, in one pass.
 
     Each episode is lifted and factored once (here, or ``elsewhere``: see
-    :meth:`~qube_koopman.identify.estimators._base.SnapshotEstimator._selection_statistics`), folded into the
+    :meth:`~qube_koopman.identify.estimators.base.SnapshotEstimator.selection_statistics`), folded into the
     total of all episodes as a plain fit folds it (the same result, bit for bit), and into each
     selection that draws it, its factor scaled by the square root of its count. With a known
-    set of rows that re-lifted predictions use (``estimator._relift_rows``), the selections keep
+    set of rows that re-lifted predictions use (``estimator.relift_rows``), the selections keep
     only those targets (the factor's leading block: no new decomposition).
 
     Parameters
     ----------
     estimator : SnapshotEstimator
-        The estimator, its setup made (``_setup``).
+        The estimator, its setup made (``setup_fit``).
     setup : FitSetup
         The setup of all the episodes.
     selections : ndarray of int of shape (n_selections, n_episodes)
@@ -308,10 +308,10 @@ def ensemble_statistics(estimator, setup, selections: np.ndarray, elsewhere: Cal
     n = len(trajectories)
     if selections.ndim != 2 or selections.shape[1] != n:
         raise ValueError(f"selections must count each of the {n} episodes, got shape {selections.shape}")
-    partial = estimator._relift_rows(setup) is not None
+    partial = estimator.relift_rows(setup) is not None
     n_lifted, m = setup.lifting.n_features_out_, setup.lifting.n_features_in_
-    total = estimator._statistics_fold(setup)
-    folds = [estimator._statistics_fold(setup) for _ in selections]
+    total = estimator.statistics_fold(setup)
+    folds = [estimator.statistics_fold(setup) for _ in selections]
     parts = (
         episode_statistics(estimator, setup, range(n))
         if elsewhere is None
@@ -419,9 +419,9 @@ def fit_ensemble(
         fold[0, train] = 1
         fold[1:, train] = bootstrap_counts(len(train), C, rng)
         selections.append(fold)
-    setup = estimator._setup(trajectories) if controllers is None else estimator._setup(trajectories, controllers)
+    setup = estimator.setup_fit(trajectories) if controllers is None else estimator.setup_fit(trajectories, controllers)
     total, selected = ensemble_statistics(estimator, setup, np.vstack(selections), elsewhere)
-    rows = estimator._relift_rows(setup)
+    rows = estimator.relift_rows(setup)
     partial = setup if rows is None else dataclasses.replace(setup, target_rows=rows)
 
     def refit(snapshots) -> tuple:
@@ -429,7 +429,7 @@ def fit_ensemble(
         return closed[0], plants[0]
 
     models = [refit(s) for s in selected]
-    estimator._finish(setup, total)
+    estimator.finish_fit(setup, total)
     folds = [
         FoldEnsemble(validation, models[B + i * (C + 1)], models[B + i * (C + 1) + 1 : B + (i + 1) * (C + 1)])
         for i, (_, validation) in enumerate(splits)

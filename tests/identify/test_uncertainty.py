@@ -85,16 +85,16 @@ def test_the_bootstrap_weighted_factors_are_a_fit_on_the_duplicated_episodes(ar1
     train = ar1[0][:6]
     counts = np.array([[2, 0, 1, 3, 0, 0]])
     estimator = ClEdmd(P_CONTROLLER, alpha=1e-3)
-    setup = estimator._setup(train)
+    setup = estimator.setup_fit(train)
     total, (selected,) = ensemble_statistics(estimator, setup, counts)
-    partial = dataclasses.replace(setup, target_rows=estimator._relift_rows(setup))
+    partial = dataclasses.replace(setup, target_rows=estimator.relift_rows(setup))
     closed, _ = fitted_models(estimator, partial, selected, [1e-3], None, None)
     duplicated = [t for t, c in zip(train, counts[0]) for _ in range(c)]
     direct = ClEdmd(P_CONTROLLER, alpha=1e-3).fit(duplicated).closed_loop_model_
-    rows = estimator._relift_rows(setup)  # the members fit only the rows a re-lifted prediction uses
+    rows = estimator.relift_rows(setup)  # the members fit only the rows a re-lifted prediction uses
     np.testing.assert_allclose(closed[0].koopman_matrix[:rows], direct.koopman_matrix[:rows], rtol=1e-9, atol=1e-12)
     # The total of all the episodes is the plain fit's, bit for bit.
-    estimator._finish(setup, total)
+    estimator.finish_fit(setup, total)
     np.testing.assert_array_equal(estimator.koopman_matrix_,
                                   ClEdmd(P_CONTROLLER, alpha=1e-3).fit(train).koopman_matrix_)
 
