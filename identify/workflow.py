@@ -29,6 +29,7 @@ from qube_koopman.identify.model_selection.sweep import SweepResult, regularizat
 from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty import (
     BandSummary,
+    CalibrationOptions,
     IntervalCalibration,
     IntervalOptions,
     Loop,
@@ -819,17 +820,14 @@ def _test_bands(
     (:func:`~qube_koopman.identify.uncertainty.calibrate`)."""
     started = time.perf_counter()
     loops = [Loop.of(log.controller, controller, score) for log in train]
-    calibration = calibrate(
-        ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED, options.stride, points
-    )
+    scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
+    calibration = calibrate(ensemble, LogTrajectories(train), loops, scoring, points)
     seconds = {"calibration": time.perf_counter() - started}
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
     by_gains: dict[tuple, tuple] = {}  # gains -> (their calibration or None, the report's fields on them)
 
     def on_probes(probe_set):
-        return calibrate_on_probes(
-            ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride, options.n_probe_members
-        )
+        return calibrate_on_probes(ensemble, probe_set, scoring, options.n_probe_members)
 
     def on_session_twins(*gain_sets):
         from qube_koopman.identify.model_selection.transfer import session_twins, twin_probe_sets
