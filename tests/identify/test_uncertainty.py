@@ -14,8 +14,8 @@ from qube_koopman.identify.models.offsets import OffsetEstimate
 from qube_koopman.identify.metrics import DivergedPrediction
 from qube_koopman.identify.model_selection.sweep import fitted_models
 from qube_koopman.identify.uncertainty import (CalibrationOptions, EpisodePrediction, IntervalCalibration,
-                                               IntervalOptions, Loop, calibrate, ensemble_statistics, fit_ensemble, predict_episodes,
-                                               prediction_band, summarize_bands)
+                                               IntervalOptions, Loop, calibrate, ensemble_statistics, fit_ensemble,
+                                               predict_episodes, prediction_band, summarize_bands)
 from qube_koopman.core.lti import DiscreteStateSpace
 
 DT = 0.01
