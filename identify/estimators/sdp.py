@@ -179,6 +179,12 @@ class ClEdmdSdp(ClosedLoopKoopman):
         self._set_models(U_f, U_p, lifting, n_f, trajs[0].dt if trajs[0].dt is not None else self.controller.dt)
         return self
 
+    def _solve(self, snapshots, S: np.ndarray, alpha: float):
+        raise NotImplementedError(
+            "ClEdmdSdp solves its SDP on the snapshots' Gram matrix, which fit builds: it fits with fit only, "
+            "not from per-episode statistics (finish_fit)"
+        )
+
     def _solve_sdp(self, gram: SnapshotGram, n_pl: int, measured, n_f: int, alpha: float, regularize: str):
         import cvxpy as cp
 
