@@ -272,6 +272,20 @@ def episode_statistics(estimator: SnapshotEstimator, setup: "FitSetup", indices:
     factor bit for bit wherever it runs.
     Inside :func:`~qube_koopman.core.blas.limited_blas_threads` alone (a search's workers) they come
     one at a time. At most twice the threads' episodes are held ahead of the caller.
+
+    Parameters
+    ----------
+    estimator : SnapshotEstimator
+        Computes each episode's statistics (:meth:`SnapshotEstimator.episode_snapshots`).
+    setup : FitSetup
+        Its setup, which holds the episodes.
+    indices : sequence of int
+        The episodes, by their places in ``setup.trajectories``.
+
+    Yields
+    ------
+    Snapshots
+        Each episode's statistics, in the order of ``indices``.
     """
     from concurrent.futures import ThreadPoolExecutor
 
