@@ -43,8 +43,8 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
     from qube_koopman.identify.estimators.regression import Snapshots
     from qube_koopman.identify.estimators.stability import _lyapunov_certificate
 
-    setup = est._setup(trajs)
-    parts = [est._episode_snapshots(setup, t) for t in setup.trajectories]
+    setup = est.setup_fit(trajs)
+    parts = [est.episode_snapshots(setup, t) for t in setup.trajectories]
     d = setup.lifting.n_delays_
     psi = np.vstack([np.hstack([t.xc[d:-1], setup.lifting.transform(t.x)[:-1], t.r[d:-1], t.f[d:-1]])
                      for t in setup.trajectories])[:n_snapshots]

@@ -1,14 +1,13 @@
 """Identification of Koopman models of feedback-controlled systems.
 
-Estimators follow scikit-learn's conventions (hyperparameters in the
-constructor, stored unchanged and checked by ``fit``; ``fit`` returns self,
-learned attributes end in ``_``; ``get_params``, ``set_params`` and
-:func:`~qube_koopman.identify.params.clone`). Data come as
-:class:`~qube_koopman.identify.Trajectory` objects, one per episode
-(:func:`~qube_koopman.identify.load_logs` reads them from episode logs); see NAMING.md for
-the symbols. Import what is listed here from ``qube_koopman.identify``: each name
-is imported from its module when first used, so heavy libraries (scipy,
-cvxpy, python-control, matplotlib) load only when used.
+Estimators follow scikit-learn's conventions (hyperparameters in the constructor, stored unchanged
+and checked by ``fit``; ``fit`` returns self, learned attributes end in ``_``; ``get_params``,
+``set_params`` and :func:`~qube_koopman.identify.params.clone`); the least-squares ones also fit
+from per-episode statistics (:class:`~qube_koopman.identify.SnapshotEstimator`). Data come as
+:class:`~qube_koopman.identify.Trajectory` objects, one per episode (:func:`~qube_koopman.identify.load_logs`
+reads them from episode logs); see NAMING.md for the symbols. Import what is listed here from
+``qube_koopman.identify``: each name is imported from its module when first used, so heavy
+libraries (scipy, cvxpy, python-control, matplotlib) load only when used.
 """
 
 from qube_koopman.core.exports import lazy_exports
@@ -40,6 +39,8 @@ _HOMES = {
     "Arx": "estimators.arx",
     "ClArx": "estimators.arx",
     "clone": "params",
+    "SnapshotEstimator": "estimators.base",  # the statistics protocol: setup_fit, episode_snapshots, ...
+    "FitSetup": "estimators.base",
     # models and model files
     "KoopmanModel": "models.model",
     "save_model": "models.model_file",

@@ -4,7 +4,7 @@ As ``sklearn.base.BaseEstimator``: an object's parameters are its constructor's 
 unchanged under their own names (checked by ``fit``, never by ``__init__``); ``get_params(deep=True)``
 also lists the parameters of parameters that have some, as ``lifting__steps``; ``set_params`` takes
 the same keys; :func:`clone` builds a new unfitted object from deep copies of the parameters.
-Estimators (``identify.estimators._base.Estimator``), liftings and lifting functions share it.
+Estimators (``identify.estimators.base.Estimator``), liftings and lifting functions share it.
 """
 
 from __future__ import annotations

@@ -31,6 +31,7 @@ from qube_koopman.identify.model_selection.sweep import SweepResult, regularizat
 from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty import (
     BandSummary,
+    CalibrationOptions,
     IntervalCalibration,
     IntervalOptions,
     Loop,
@@ -543,8 +544,8 @@ def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None =
 def _fit(estimator, trajs, controllers, elsewhere):
     """Fit ``estimator``: its statistics computed here one at a time, or ``elsewhere`` (a cluster) and
     folded as they come back. ``controllers``: each episode's (None for EDMD, fitted from the logged input)."""
-    setup = estimator._setup(trajs) if controllers is None else estimator._setup(trajs, controllers)
-    return estimator._fit(setup, elsewhere)
+    setup = estimator.setup_fit(trajs) if controllers is None else estimator.setup_fit(trajs, controllers)
+    return estimator.fit_setup(setup, elsewhere)
 
 
 @dataclass(frozen=True)
@@ -885,17 +886,14 @@ def _test_bands(
     (:func:`~qube_koopman.identify.uncertainty.calibrate`)."""
     started = time.perf_counter()
     loops = [Loop.of(log.controller, controller, score) for log in train]
-    calibration = calibrate(
-        ensemble, LogTrajectories(train), loops, options.level, start, offsets, MEASURED, options.stride, points
-    )
+    scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
+    calibration = calibrate(ensemble, LogTrajectories(train), loops, scoring, points)
     seconds = {"calibration": time.perf_counter() - started}
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
     by_gains: dict[tuple, tuple] = {}  # gains -> (their calibration or None, the report's fields on them)
 
     def on_probes(probe_set):
-        return calibrate_on_probes(
-            ensemble, probe_set, options.level, start, offsets, MEASURED, options.stride, options.n_probe_members
-        )
+        return calibrate_on_probes(ensemble, probe_set, scoring, options.n_probe_members)
 
     def on_session_twins(*gain_sets):
         from qube_koopman.identify.model_selection.transfer import session_twins, twin_probe_sets

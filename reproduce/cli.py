@@ -9,8 +9,8 @@ import sys
 from qube_koopman.core.cli import OneLineParser, add_force_option, add_standard_options, path, seed, whole_number
 from qube_koopman.core.command import CliError, check_output_folder, output_dir, progress, run_command, write_json
 from qube_koopman.core.files import atomic_path
-from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS
-from qube_koopman.identify.cli.figures import check_figure_options, write_report_figures
+from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
+from qube_koopman.identify.report.figure_options import check_figure_options, write_report_figures
 
 PROG = "qube-reproduce"
 
@@ -30,7 +30,7 @@ Reproduce the closed-loop Koopman paper's results.
 
 
 def _parser() -> argparse.ArgumentParser:
-    from qube_koopman.identify.cli.figures import add_figure_options
+    from qube_koopman.identify.report.figure_options import add_figure_options
 
     parser = OneLineParser(prog=PROG, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_standard_options(parser)

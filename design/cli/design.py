@@ -50,7 +50,7 @@ from qube_koopman.core.cli import (
 )
 from qube_koopman.core.command import CliError, check_output_file, check_rerun_target, run_command
 from qube_koopman.design.lq import Weights
-from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS
+from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
 
 __all__ = ["main"]
 

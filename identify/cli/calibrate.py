@@ -42,7 +42,8 @@ import numpy as np
 
 from qube_koopman.core.cli import OneLineParser, add_force_option, add_standard_options, path, whole_number
 from qube_koopman.core.command import CliError, check_output_file, check_output_folder, output_dir, run_command
-from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
+from qube_koopman.identify.cli.common import expand_logs
+from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
 
 _log = logging.getLogger(__name__)
 

@@ -1,21 +1,15 @@
-"""What the identification commands (qube-identify, qube-calibrate, qube-reproduce) and qube-design
-share beyond the command toolkit (:mod:`qube_koopman.core.command`): their one-line warnings and
-the logs named on their command lines."""
+"""What identify's own commands (qube-identify, qube-calibrate) share beyond the command toolkit
+(:mod:`qube_koopman.core.command`): the logs named on their command lines. What the applications
+above identify share with them is in identify itself
+(:mod:`~qube_koopman.identify.command_warnings`, :mod:`~qube_koopman.identify.report.figure_options`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from qube_koopman.core.command import CliError
-from qube_koopman.identify.data.logs import IncompleteLogSkipped
-from qube_koopman.identify.metrics import DivergedPrediction
 
-__all__ = ["ONE_LINE_WARNINGS", "expand_logs"]
-
-#: The warnings these commands print as one ``<prog>: warning:`` line (``run_command``'s
-#: ``one_line_warnings``): a log left out of the data (incomplete or unreadable), a test
-#: prediction that diverged.
-ONE_LINE_WARNINGS = (IncompleteLogSkipped, DivergedPrediction)
+__all__ = ["expand_logs"]
 
 
 def expand_logs(items) -> list[Path]:

@@ -33,8 +33,9 @@ from qube_koopman.core.command import (
 )
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
-from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS, expand_logs
-from qube_koopman.identify.cli.figures import add_figure_options, check_figure_options, write_report_figures
+from qube_koopman.identify.cli.common import expand_logs
+from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
+from qube_koopman.identify.report.figure_options import add_figure_options, check_figure_options, write_report_figures
 
 PROG = "qube-identify"
 

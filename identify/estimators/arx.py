@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify.estimators._base import Estimator
+from qube_koopman.identify.estimators.base import Estimator
 from qube_koopman.identify._checks import check_alpha, check_nonneg_int
 from qube_koopman.identify.estimators.regression import Snapshots, ridge_solve
 from qube_koopman.identify.data.trajectory import Trajectory, check_trajectories

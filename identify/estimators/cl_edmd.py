@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify.estimators._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
+from qube_koopman.identify.estimators.base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import same_system
@@ -79,7 +79,7 @@ class ClosedLoopKoopman(SnapshotEstimator):
         -------
         self
         """
-        return self._fit(self._setup(trajectories, controllers))
+        return self.fit_setup(self.setup_fit(trajectories, controllers))
 
     # subclasses: return (U_f, U_p) from the statistics
     def _solve(self, snapshots, S: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
@@ -104,8 +104,21 @@ class ClosedLoopKoopman(SnapshotEstimator):
             )
         return controllers
 
-    def _setup(self, trajectories, controllers: Sequence[DiscreteStateSpace] | None = None) -> FitSetup:
-        """Validate the data and the controllers, fit the lifting."""
+    def setup_fit(self, trajectories, controllers: Sequence[DiscreteStateSpace] | None = None) -> FitSetup:
+        """Validate the data and the controllers, fit the lifting: the first step of a fit.
+
+        Parameters
+        ----------
+        trajectories : sequence of Trajectory
+            The episodes (signals x, r, xc, optionally f).
+        controllers : sequence of DiscreteStateSpace, optional
+            The controller each episode was recorded under, as in :meth:`fit`.
+
+        Returns
+        -------
+        FitSetup
+            What every other step of the statistics protocol takes.
+        """
         check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
         what, min_samples = type(self).__name__, lifting.n_delays + 2
@@ -150,10 +163,23 @@ class ClosedLoopKoopman(SnapshotEstimator):
             controller_groups=groups,
         )
 
-    def _episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
-        """Snapshot statistics of one episode: theta = [x^c; lift(x)], upsilon = [r; f]."""
+    def episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
+        """Snapshot statistics of one episode: theta = [x^c; lift(x)], upsilon = [r; f].
+
+        Parameters
+        ----------
+        setup : FitSetup
+            From :meth:`setup_fit`.
+        t : Trajectory
+            An episode with the signals of the setup's episodes.
+
+        Returns
+        -------
+        Snapshots
+            Its statistics, for a fold's ``add``.
+        """
         d = setup.lifting.n_delays_
-        # _setup's check_trajectories required them (f when there is a feedforward)
+        # setup_fit's check_trajectories required them (f when there is a feedforward)
         assert t.xc is not None and t.r is not None and (t.f is not None or not setup.n_feedforward)
         theta = np.hstack([t.xc[d:], setup.lifting.transform(t.x)])
         v = np.hstack([t.r[d:]] + ([t.f[d:]] if t.f is not None and setup.n_feedforward else []))
@@ -161,20 +187,32 @@ class ClosedLoopKoopman(SnapshotEstimator):
         rows = None if setup.target_rows is None else setup.target_rows - self.controller.n_states + t.xc.shape[1]
         return Snapshots.from_snapshots(theta[1:, :rows], np.hstack([theta[:-1], v[:-1]]))
 
-    def _statistics(self, setup: FitSetup, per_episode: list, indices=None):
+    def total_statistics(self, setup: FitSetup, per_episode: list, indices=None):
         """One :class:`Snapshots`; :class:`GroupedSnapshots` (per controller) for several controllers."""
         if setup.controller_groups is None:
-            return super()._statistics(setup, per_episode, indices)
+            return super().total_statistics(setup, per_episode, indices)
         return setup.controller_groups.statistics(list(per_episode), indices)
 
-    def _statistics_fold(self, setup: FitSetup):
-        """A running total per controller with several controllers (see :meth:`_statistics`)."""
-        return super()._statistics_fold(setup) if setup.controller_groups is None else setup.controller_groups.fold()
+    def statistics_fold(self, setup: FitSetup):
+        """A running total per controller with several controllers (see :meth:`total_statistics`)."""
+        return super().statistics_fold(setup) if setup.controller_groups is None else setup.controller_groups.fold()
 
-    def _finish(self, setup: FitSetup, snapshots) -> ClosedLoopKoopman:
-        """Solve for ``self.alpha`` and set the fitted attributes."""
+    def finish_fit(self, setup: FitSetup, snapshots) -> ClosedLoopKoopman:
+        """Solve for ``self.alpha`` and set the fitted attributes.
+
+        Parameters
+        ----------
+        setup : FitSetup
+            From :meth:`setup_fit`.
+        snapshots : Snapshots or GroupedSnapshots
+            A fold's ``total()``.
+
+        Returns
+        -------
+        self
+        """
         alpha = check_alpha(self.alpha)
-        assert setup.output_matrix is not None and setup.plant_input_map is not None  # _setup made them
+        assert setup.output_matrix is not None and setup.plant_input_map is not None  # setup_fit made them
         self.snapshots_ = snapshots
         self.output_matrix_ = setup.output_matrix
         self.n_feedforward_ = setup.n_feedforward
@@ -298,7 +336,7 @@ class ClEdmd(ClosedLoopKoopman):
         self.regularize = regularize
         self.known_controller_rows = known_controller_rows
 
-    def _relift_rows(self, setup: FitSetup) -> int | None:
+    def relift_rows(self, setup: FitSetup) -> int | None:
         # Solved row by row: the controller rows and the plant states' rows alone are exact.
         return self.controller.n_states + setup.lifting.n_features_in_
 

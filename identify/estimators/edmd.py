@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from qube_koopman.identify.estimators._base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
+from qube_koopman.identify.estimators.base import FitSetup, SnapshotEstimator, pad_rows, resolve_lifting
 from qube_koopman.identify._checks import check_alpha
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.identify.estimators.regression import Snapshots, ridge_solve
@@ -41,8 +41,19 @@ class Edmd(SnapshotEstimator):
         self.alpha = alpha
         self.input_lifting = input_lifting
 
-    def _setup(self, trajectories) -> FitSetup:
-        """Validate the data, fit the state and input liftings."""
+    def setup_fit(self, trajectories) -> FitSetup:
+        """Validate the data, fit the state and input liftings: the first step of a fit.
+
+        Parameters
+        ----------
+        trajectories : sequence of Trajectory
+            The episodes (signals x, u).
+
+        Returns
+        -------
+        FitSetup
+            What every other step of the statistics protocol takes.
+        """
         check_alpha(self.alpha)
         lifting = resolve_lifting(self.lifting)
         trajs = check_trajectories(trajectories, ("x", "u"), lifting.n_delays + 2, "EDMD")
@@ -54,19 +65,45 @@ class Edmd(SnapshotEstimator):
                 raise ValueError("input lifting must be pointwise (no delays)")
         return FitSetup(trajs, lifting, trajs[0].dt, input_lifting=input_lifting)
 
-    def _episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
-        """Snapshot statistics of one episode: theta = lift(x), input u (lifted if asked)."""
+    def episode_snapshots(self, setup: FitSetup, t: Trajectory) -> Snapshots:
+        """Snapshot statistics of one episode: theta = lift(x), input u (lifted if asked).
+
+        Parameters
+        ----------
+        setup : FitSetup
+            From :meth:`setup_fit`.
+        t : Trajectory
+            An episode with the signals of the setup's episodes.
+
+        Returns
+        -------
+        Snapshots
+            Its statistics, for a fold's ``add``.
+        """
         d = setup.lifting.n_delays_
         z = setup.lifting.transform(t.x)
-        assert t.u is not None  # _setup's check_trajectories required it
+        assert t.u is not None  # setup_fit's check_trajectories required it
         v = (t.u if setup.input_lifting is None else setup.input_lifting.transform(t.u))[d:]
         return Snapshots.from_snapshots(z[1:, : setup.target_rows], np.hstack([z[:-1], v[:-1]]))
 
-    def _relift_rows(self, setup: FitSetup) -> int:
+    def relift_rows(self, setup: FitSetup) -> int:
+        """The measured states: a re-lifted prediction recomputes the rest (see the base class)."""
         return setup.lifting.n_features_in_
 
-    def _finish(self, setup: FitSetup, snapshots: Snapshots) -> "Edmd":
-        """Solve for ``self.alpha`` and set the fitted attributes."""
+    def finish_fit(self, setup: FitSetup, snapshots: Snapshots) -> "Edmd":
+        """Solve for ``self.alpha`` and set the fitted attributes.
+
+        Parameters
+        ----------
+        setup : FitSetup
+            From :meth:`setup_fit`.
+        snapshots : Snapshots
+            A fold's ``total()``.
+
+        Returns
+        -------
+        self
+        """
         n_z = setup.lifting.n_features_out_
         U = pad_rows(ridge_solve(snapshots, check_alpha(self.alpha)), n_z)  # a partial fit's missing rows
         self.snapshots_ = snapshots

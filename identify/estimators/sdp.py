@@ -19,7 +19,7 @@ import numpy as np
 
 from dataclasses import dataclass
 
-from qube_koopman.identify.estimators._base import resolve_lifting
+from qube_koopman.identify.estimators.base import resolve_lifting
 from qube_koopman.identify._checks import check_alpha, check_choice, check_loop_controller
 from qube_koopman.identify.estimators.cl_edmd import REGULARIZE, ClosedLoopKoopman
 from qube_koopman.identify.data.trajectory import check_trajectories
@@ -178,6 +178,12 @@ class ClEdmdSdp(ClosedLoopKoopman):
         self.n_feedforward_ = n_f
         self._set_models(U_f, U_p, lifting, n_f, trajs[0].dt if trajs[0].dt is not None else self.controller.dt)
         return self
+
+    def _solve(self, snapshots, S: np.ndarray, alpha: float):
+        raise NotImplementedError(
+            "ClEdmdSdp solves its SDP on the snapshots' Gram matrix, which fit builds: it fits with fit only, "
+            "not from per-episode statistics (finish_fit)"
+        )
 
     def _solve_sdp(self, gram: SnapshotGram, n_pl: int, measured, n_f: int, alpha: float, regularize: str):
         import cvxpy as cp

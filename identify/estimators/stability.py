@@ -136,7 +136,7 @@ class ClEdmdStable(ClEdmdKnownRows):
         self.solver = solver
         self.method = method
 
-    def _relift_rows(self, setup) -> None:
+    def relift_rows(self, setup) -> None:
         # The disc constrains the eigenvalues of the whole closed loop: no row can be left out of the fit.
         return None
 

@@ -217,7 +217,7 @@ def _episode_part(estimator, setup, source: LogSource, skip: int):
     from qube_koopman.core.blas import limited_blas_threads
 
     with limited_blas_threads(1):
-        return estimator._episode_snapshots(setup, source.read(skip))
+        return estimator.episode_snapshots(setup, source.read(skip))
 
 
 def _unseen(paths: Sequence[str]) -> list[tuple[str, int | None]]:

@@ -122,7 +122,7 @@ def fitted_models(
     for alpha in alphas:
         est = copy.copy(template)
         est.alpha = float(alpha)
-        est._finish(setup, snapshots)
+        est.finish_fit(setup, snapshots)
         if isinstance(est, Edmd):
             plants.append(est.model_)
             closed.append(close_loop(est.model_, controller, measured) if controller is not None else None)
@@ -633,11 +633,11 @@ def sub_statistics(
         return None
     template = copy.copy(estimator)
     setup = (
-        template._setup(big_setup.trajectories)
+        template.setup_fit(big_setup.trajectories)
         if not isinstance(template, ClosedLoopKoopman)
-        else template._setup(big_setup.trajectories, controllers)
+        else template.setup_fit(big_setup.trajectories, controllers)
     )
-    setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
+    setup = dataclasses.replace(setup, target_rows=template.relift_rows(setup))
     small, big = setup.lifting, big_setup.lifting
     fewer = small.n_delays_ < big.n_delays_
     if (
@@ -669,7 +669,7 @@ def sub_statistics(
         return setup, taken, whole
     assert heads is not None and splits is not None  # checked above
     # The snapshots from sample small.n_delays_ to big.n_delays_ - 1 of each episode, which the larger lifting lacks.
-    extra = [template._episode_snapshots(setup, head) for head in heads]
+    extra = [template.episode_snapshots(setup, head) for head in heads]
 
     def add(stats, members):
         """``stats`` with the extra snapshots of the episodes ``members`` (into their controllers' parts)."""
@@ -733,7 +733,7 @@ def seconds_timer(seconds: dict):
 
 
 def _learns_from_data(estimator) -> bool:
-    from qube_koopman.identify.estimators._base import resolve_lifting
+    from qube_koopman.identify.estimators.base import resolve_lifting
 
     return any(getattr(step, "learns_from_data", True) for step in resolve_lifting(estimator.lifting).steps)
 
@@ -766,14 +766,14 @@ def _statistics(
 
     ``partial``: of the rows a re-lifted prediction uses only. ``controllers``: each episode's
     (a closed-loop estimator's episodes under several controllers). One pass over the episodes
-    (:meth:`~qube_koopman.identify.estimators._base.SnapshotEstimator._selection_statistics`), their
+    (:meth:`~qube_koopman.identify.estimators.base.SnapshotEstimator.selection_statistics`), their
     statistics computed ``elsewhere`` when given (``indices``: the episodes' among the sweep's).
     """
     template = copy.copy(estimator)
     if isinstance(template, ClosedLoopKoopman):
-        setup = template._setup(trajectories, controllers)
+        setup = template.setup_fit(trajectories, controllers)
     else:
-        setup = template._setup(trajectories)
-    if partial and template._relift_rows(setup) is not None:
-        setup = dataclasses.replace(setup, target_rows=template._relift_rows(setup))
-    return setup, template._selection_statistics(setup, selections, elsewhere, indices)
+        setup = template.setup_fit(trajectories)
+    if partial and template.relift_rows(setup) is not None:
+        setup = dataclasses.replace(setup, target_rows=template.relift_rows(setup))
+    return setup, template.selection_statistics(setup, selections, elsewhere, indices)

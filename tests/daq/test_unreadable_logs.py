@@ -69,7 +69,7 @@ def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, ca
 def test_commands_print_one_warning_line_per_skipped_log(folder, capsys):
     # qube-reproduce and qube-identify run through run_command: one line per skipped file.
     from qube_koopman.core.command import run_command
-    from qube_koopman.identify.cli.common import ONE_LINE_WARNINGS
+    from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
 
     assert run_command("qube-reproduce", lambda a: len(load_logs(sorted(folder.glob("*.mcap")))), None,
                        one_line_warnings=ONE_LINE_WARNINGS) == 1

@@ -142,6 +142,30 @@ def test_every_docstring_example_runs(tmp_path):
     assert result["attempted"] >= 6
 
 
+def _pycon_blocks(text: str) -> list[str]:
+    """The ``pycon`` blocks of a page: Python sessions (``>>>``) a reader can paste."""
+    return re.findall(r"^```pycon\n(.*?)^```", text, re.S | re.M)
+
+
+def test_every_python_session_of_the_pages_runs():
+    """A page's ``pycon`` blocks run as doctests (the statistics protocol's on the identification page)."""
+    import doctest
+
+    parser, runner = doctest.DocTestParser(), doctest.DocTestRunner(optionflags=doctest.ELLIPSIS)
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    blocks = [(page, block) for page in pages for block in _pycon_blocks(page.read_text())]
+    assert any(page.name == "identification.md" for page, _ in blocks)
+    for i, (page, block) in enumerate(blocks):
+        runner.run(parser.get_doctest(block, {}, f"{page.name}[{i}]", str(page), 0))
+    result = runner.summarize(verbose=False)
+    assert result.failed == 0 and result.attempted > 0
+
+
+def test_the_session_blocks_are_found_whole():
+    text = "# Page\n\n```pycon\n>>> 1 + 1\n2\n```\n\n```python\nx = 1\n```\n"
+    assert _pycon_blocks(text) == [">>> 1 + 1\n2\n"]
+
+
 def test_every_readme_directive_of_the_pages_finds_its_text(caplog):
     """A page's ``% readme "START" "END"`` line must find its text in the README as it is now: text
     moved out of the README goes into the page itself, not a directive left pointing at nothing."""

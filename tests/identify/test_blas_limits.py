@@ -33,7 +33,7 @@ def test_episode_statistics_run_side_by_side_in_order_and_as_one_at_a_time():
 
     import qube_koopman.core.blas as blas
     from qube_koopman.identify import ClEdmd
-    from qube_koopman.identify.estimators._base import episode_statistics
+    from qube_koopman.identify.estimators.base import episode_statistics
     from qube_koopman.identify.lifting import Delay, Polynomial
     from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
@@ -41,23 +41,23 @@ def test_episode_statistics_run_side_by_side_in_order_and_as_one_at_a_time():
     controller = pid_position_controller()
     trajs = closed_loop_trajectories(A_p, B_p, controller, [0], n_episodes=7, n=300, seed=4)
     est = ClEdmd(controller, lifting=[Polynomial(2), Delay(3)], measured=[0])
-    setup = est._setup(trajs)
+    setup = est.setup_fit(trajs)
     with limited_blas_threads(1):
-        alone = [est._episode_snapshots(setup, t) for t in trajs]
+        alone = [est.episode_snapshots(setup, t) for t in trajs]
     seen = []
-    factor = est._episode_snapshots
+    factor = est.episode_snapshots
 
     def recorded(setup, t):
         seen.append((threading.current_thread().name, _blas_threads()))
         return factor(setup, t)
 
-    with mock.patch.object(est, "_episode_snapshots", recorded), mock.patch.object(blas, "blas_threads", lambda: 2):
+    with mock.patch.object(est, "episode_snapshots", recorded), mock.patch.object(blas, "blas_threads", lambda: 2):
         side_by_side = list(episode_statistics(est, setup, range(len(trajs))))
     assert all(np.array_equal(a.R, b.R) for a, b in zip(alone, side_by_side)) and len(side_by_side) == len(trajs)
     assert {name.split("_")[0] for name, _ in seen} == {"episode-statistics"}
     assert all(set(threads) == {1} for _, threads in seen)
     seen.clear()
-    with limited_blas_threads(1), mock.patch.object(est, "_episode_snapshots", recorded):
+    with limited_blas_threads(1), mock.patch.object(est, "episode_snapshots", recorded):
         in_order = list(episode_statistics(est, setup, [3, 1]))
     assert [s.R.tobytes() for s in in_order] == [alone[3].R.tobytes(), alone[1].R.tobytes()]
     assert {name for name, _ in seen} == {threading.current_thread().name}
@@ -103,7 +103,7 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
 
     files = find_logs(qube_logs)
     train, test = load_logs(files[:4], skip=500), load_logs(files[28:29], skip=500)
-    factor = ClEdmd._episode_snapshots
+    factor = ClEdmd.episode_snapshots
     runs, threads = {}, {}
     for n, intervals in ((1, None), (2, None), (1, IntervalOptions(0.95, 3)), (2, IntervalOptions(0.95, 3))):
         seen = set()
@@ -113,7 +113,7 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
             return factor(self, setup, t)
 
         with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(ClEdmd, "_episode_snapshots", recorded)
+            patch.setattr(ClEdmd, "episode_snapshots", recorded)
             runs[n, intervals is None] = identify_and_score(
                 method="cl-edmd", lifting=[Polynomial(2), Delay(5), Constant()], train=train, test=test,
                 controller=train[0].controller, alpha=1e-3, intervals=intervals, n_threads=n,

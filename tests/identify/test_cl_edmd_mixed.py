@@ -143,9 +143,9 @@ def test_grouped_solve_of_one_group_is_the_single_solve_bit_for_bit(noisy_mixed,
     pid, _, trajs, controllers = noisy_mixed
     mine = [t for t, c in zip(trajs, controllers) if c is pid]
     est = ClEdmd(pid, measured=[0])
-    setup = est._setup(mine)
-    parts = [est._episode_snapshots(setup, t) for t in mine]
-    single = est._statistics(setup, parts)
+    setup = est.setup_fit(mine)
+    parts = [est.episode_snapshots(setup, t) for t in mine]
+    single = est.total_statistics(setup, parts)
     grouped = ControllerGroups.of([pid] * len(mine), setup.output_matrix, setup.n_feedforward).statistics(parts)
     for alpha in (0.0, 1e-3, 10.0):
         np.testing.assert_array_equal(

@@ -38,7 +38,7 @@ class _Elsewhere:
         indices = [int(i) for i in indices]
         self.asked.append(indices)
         assert not setup.trajectories or len(setup.trajectories) == len(indices)
-        return (estimator._episode_snapshots(setup, self.trajectories[i]) for i in indices)
+        return (estimator.episode_snapshots(setup, self.trajectories[i]) for i in indices)
 
 
 @pytest.mark.parametrize("lifting", [[Polynomial(2), Delay(3)], [ThinPlateRbf(6, seed=1), Delay(2)]],

@@ -249,3 +249,43 @@ def test_an_estimator_with_a_bad_lifting_fails_at_fit_with_the_same_message(make
 
 def test_lifting_function_is_the_abstract_base():
     assert inspect.isabstract(LiftingFunction)
+
+
+def _snapshot_estimator(cls):
+    """A least-squares estimator of ``cls`` with a lifting whose fit does not depend on the episodes."""
+    lifting = [Polynomial(2), Delay(2)]
+    if cls is Edmd:
+        return Edmd(lifting=lifting, alpha=1e-3)
+    return cls(CONTROLLER, lifting=lifting, alpha=1e-3)
+
+
+@pytest.mark.parametrize("cls", [cls for cls in ESTIMATORS if issubclass(cls, identify.SnapshotEstimator)
+                                 and cls is not ClEdmdSdp], ids=lambda cls: cls.__name__)
+def test_the_statistics_protocol_fits_as_fit_does_and_adds_an_episode_to_refit(cls, data):
+    """setup_fit, episode_snapshots folded into statistics_fold, finish_fit: ``fit`` itself; an episode
+    added to the running total after a first fit refits as a fit on every episode (live identification)."""
+    fitted = _snapshot_estimator(cls).fit(data)
+    estimator = _snapshot_estimator(cls)
+    setup = estimator.setup_fit(data[:2])
+    assert isinstance(setup, identify.FitSetup)
+    fold = estimator.statistics_fold(setup)
+    for index, trajectory in enumerate(setup.trajectories):
+        fold.add(index, estimator.episode_snapshots(setup, trajectory))
+    assert estimator.finish_fit(setup, fold.total()) is estimator
+    first = estimator.koopman_matrix_.copy()
+    np.testing.assert_array_equal(first, _snapshot_estimator(cls).fit(data[:2]).koopman_matrix_)
+    fold.add(2, estimator.episode_snapshots(setup, data[2]))
+    estimator.finish_fit(setup, fold.total())
+    assert not np.allclose(estimator.koopman_matrix_, first)
+    np.testing.assert_allclose(estimator.koopman_matrix_, fitted.koopman_matrix_, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(_snapshot_estimator(cls).fit_setup(setup).koopman_matrix_, first)
+
+
+def test_the_sdp_reference_says_it_fits_with_fit_only(data):
+    """ClEdmdSdp solves on a Gram matrix its fit builds: finish_fit refuses with a message saying so."""
+    estimator = _snapshot_estimator(ClEdmdSdp)
+    setup = estimator.setup_fit(data)
+    fold = estimator.statistics_fold(setup)
+    fold.add(0, estimator.episode_snapshots(setup, data[0]))
+    with pytest.raises(NotImplementedError, match="fits with fit only"):
+        estimator.finish_fit(setup, fold.total())

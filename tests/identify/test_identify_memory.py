@@ -108,7 +108,7 @@ class _Generated(EpisodeSequence):
 
 def _direct_total(estimator, setup, episodes, indices) -> Snapshots:
     """The chosen episodes' statistics as sums of their Gram matrices (no factor folded)."""
-    parts = [estimator._episode_snapshots(setup, episodes[int(j)]) for j in indices]
+    parts = [estimator.episode_snapshots(setup, episodes[int(j)]) for j in indices]
     return SimpleNamespace(q=sum(p.q for p in parts), **{k: sum(getattr(p, k) for p in parts) for k in "HGF"})
 
 
@@ -151,9 +151,9 @@ def test_fold_totals_from_one_pass_equal_direct_totals_over_each_folds_episodes(
     if not mixed:
         _assert_same_statistics(everything, _direct_total(estimator, setup, episodes, range(10)), 1e-10)
     # ... and bit for bit what the per-episode list the sweeps kept before gave.
-    per_episode = [estimator._episode_snapshots(setup, t) for t in episodes]
+    per_episode = [estimator.episode_snapshots(setup, t) for t in episodes]
     for (train, _), fold in zip(splits, folds):
-        before = estimator._statistics(setup, per_episode, train)
+        before = estimator.total_statistics(setup, per_episode, train)
         for new, old in zip(getattr(fold, "parts", [fold]), getattr(before, "parts", [before])):
             np.testing.assert_array_equal(new.R, old.R)
 
@@ -170,7 +170,7 @@ def test_the_folds_statistics_memory_does_not_grow_with_the_episodes():
     n_samples = 300
     estimator = ClEdmd(CONTROLLER, [Polynomial(2), Delay(20), Constant()])
     setup, _ = _statistics_with(estimator, _Generated(2, n_samples), [([0], [1])], None)
-    factor = estimator._episode_snapshots(setup, _Generated(1, n_samples)[0]).R.nbytes
+    factor = estimator.episode_snapshots(setup, _Generated(1, n_samples)[0]).R.nbytes
 
     def run(n):
         return lambda: _statistics_with(estimator, _Generated(n, n_samples), group_shuffle_splits(n, 3), None)

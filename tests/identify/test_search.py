@@ -178,7 +178,7 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
     # what is shared is counted, not timed (a timing ratio fails on a loaded machine). A lifting with fewer
     # delays lifts only each episode's first samples (the snapshots the longest lifting lacks).
     lifted: list[int] = []
-    own = ClEdmd._episode_snapshots
+    own = ClEdmd.episode_snapshots
 
     def counted(self, setup, trajectory):
         if trajectory.n_samples > 100:
@@ -186,7 +186,7 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
         return own(self, setup, trajectory)
 
     with monkeypatch.context() as m:
-        m.setattr(ClEdmd, "_episode_snapshots", counted)
+        m.setattr(ClEdmd, "episode_snapshots", counted)
         screened = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=space, probes=probes)
     full = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=replace(space, n_finalists=0),
                            probes=probes)
@@ -542,8 +542,8 @@ def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_
     assert head == LiftingSpec(delays=3, poly=2, trig=True, const=True)
     shared = family_statistics(head, data)
     lifted = []  # episodes lifted (counted, not timed: a timing comparison fails on a loaded machine)
-    own = ClEdmd._episode_snapshots
-    monkeypatch.setattr(ClEdmd, "_episode_snapshots", lambda self, setup, t: lifted.append(t) or own(self, setup, t))
+    own = ClEdmd.episode_snapshots
+    monkeypatch.setattr(ClEdmd, "episode_snapshots", lambda self, setup, t: lifted.append(t) or own(self, setup, t))
     for spec in (LiftingSpec(delays=3, poly=1, const=True), LiftingSpec(delays=3, poly=2, trig=True), head):
         assert family_of(spec, specs) == head
         derived = evaluate_candidate(spec, data, shared=shared)

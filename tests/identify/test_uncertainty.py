@@ -13,9 +13,9 @@ from qube_koopman.identify import ClEdmd, Trajectory
 from qube_koopman.identify.models.offsets import OffsetEstimate
 from qube_koopman.identify.metrics import DivergedPrediction
 from qube_koopman.identify.model_selection.sweep import fitted_models
-from qube_koopman.identify.uncertainty import (EpisodePrediction, IntervalCalibration, IntervalOptions, Loop,
-                                               calibrate, ensemble_statistics, fit_ensemble, predict_episodes,
-                                               prediction_band, summarize_bands)
+from qube_koopman.identify.uncertainty import (CalibrationOptions, EpisodePrediction, IntervalCalibration,
+                                               IntervalOptions, Loop, calibrate, ensemble_statistics, fit_ensemble,
+                                               predict_episodes, prediction_band, summarize_bands)
 from qube_koopman.core.lti import DiscreteStateSpace
 
 DT = 0.01
@@ -69,7 +69,7 @@ def test_intervals_cover_a_first_order_loop_at_the_level_and_match_its_predictiv
     level = 0.9
     options = IntervalOptions(level, n_members=8, n_calibration_members=4, n_folds=5, stride=1)
     fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-8), train, options)
-    calibration = calibrate(fit, train, [Loop("closed")] * len(train), level)
+    calibration = calibrate(fit, train, [Loop("closed")] * len(train), CalibrationOptions(level))
     pooled = summarize_bands(_bands(fit, calibration, test), ["x"])["pooled"]
     assert abs(pooled["coverage"]["x"] - level) < 0.03
     # The band's growth is the loop's: tau = -1 / (2 ln rho) samples (loosely: each episode's first few tens of
@@ -85,16 +85,16 @@ def test_the_bootstrap_weighted_factors_are_a_fit_on_the_duplicated_episodes(ar1
     train = ar1[0][:6]
     counts = np.array([[2, 0, 1, 3, 0, 0]])
     estimator = ClEdmd(P_CONTROLLER, alpha=1e-3)
-    setup = estimator._setup(train)
+    setup = estimator.setup_fit(train)
     total, (selected,) = ensemble_statistics(estimator, setup, counts)
-    partial = dataclasses.replace(setup, target_rows=estimator._relift_rows(setup))
+    partial = dataclasses.replace(setup, target_rows=estimator.relift_rows(setup))
     closed, _ = fitted_models(estimator, partial, selected, [1e-3], None, None)
     duplicated = [t for t, c in zip(train, counts[0]) for _ in range(c)]
     direct = ClEdmd(P_CONTROLLER, alpha=1e-3).fit(duplicated).closed_loop_model_
-    rows = estimator._relift_rows(setup)  # the members fit only the rows a re-lifted prediction uses
+    rows = estimator.relift_rows(setup)  # the members fit only the rows a re-lifted prediction uses
     np.testing.assert_allclose(closed[0].koopman_matrix[:rows], direct.koopman_matrix[:rows], rtol=1e-9, atol=1e-12)
     # The total of all the episodes is the plain fit's, bit for bit.
-    estimator._finish(setup, total)
+    estimator.finish_fit(setup, total)
     np.testing.assert_array_equal(estimator.koopman_matrix_,
                                   ClEdmd(P_CONTROLLER, alpha=1e-3).fit(train).koopman_matrix_)
 
@@ -113,7 +113,7 @@ class _Window:
 
 
 def test_an_offset_the_window_cannot_see_widens_the_interval_within_its_bound(ar1, monkeypatch):
-    from qube_koopman.identify import uncertainty
+    from qube_koopman.identify.uncertainty import prediction
 
     train, test = ar1
     fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-8), train[:10], IntervalOptions(n_members=4))
@@ -121,7 +121,7 @@ def test_an_offset_the_window_cannot_see_widens_the_interval_within_its_bound(ar
     variance = {}
     for std_error in (1e-4, np.inf):  # a sharp estimate, and a flat cost (the status says so)
         assert _estimate(std_error).status == ("flat" if std_error == np.inf else "ok")
-        monkeypatch.setattr(uncertainty, "estimate_offsets_many", lambda *a, se=std_error, **k: [_estimate(se)])
+        monkeypatch.setattr(prediction, "estimate_offsets_many", lambda *a, se=std_error, **k: [_estimate(se)])
         variance[std_error] = predict_episodes(models, test[:1], _Window())[0].variance[100:]
     assert np.all(variance[np.inf] > variance[1e-4]) and np.all(np.isfinite(variance[np.inf]))
     # A feedback loop carries an offset of the fed-back channel to the prediction: at most the bound's worth.
@@ -163,14 +163,14 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     level = 0.9
     options = IntervalOptions(level, n_members=8, n_calibration_members=4, n_folds=5, stride=1)
     fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-8), train, options)
-    held_out = calibrate(fit, train, [Loop("closed")] * len(train), level)
+    held_out = calibrate(fit, train, [Loop("closed")] * len(train), CalibrationOptions(level))
 
     def controller(gain):
         return DiscreteStateSpace([[0.0]], [[0.0]], [[0.0]], [[gain]], DT)
 
     probes = ProbeSet([controller(1.2), controller(1.8)],
                       [loop_episodes(20, 1.2, 0.16, seed=3), loop_episodes(20, 1.8, 0.16, seed=4)], [])
-    on_probes = calibrate_on_probes(fit, probes, level, stride=1)
+    on_probes = calibrate_on_probes(fit, probes, CalibrationOptions(level, stride=1))
     # Its members' spread is the same sort as the held-out one; the model error is larger.
     assert on_probes.scale_[0] > 1.3 * held_out.scale_[0]
     # Independently: the same numbers from calibrate() on one fold holding out every probe episode.
@@ -179,7 +179,7 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     point = (fit.estimator.closed_loop_model_, fit.estimator.plant_model_)
     one_fold = dataclasses.replace(fit, folds=[dataclasses.replace(fit.folds[0], validation=np.arange(40),
                                                                    point=point, members=fit.members)])
-    again = calibrate(one_fold, episodes, loops, level, stride=1)
+    again = calibrate(one_fold, episodes, loops, CalibrationOptions(level, stride=1))
     np.testing.assert_allclose(on_probes.scale_, again.scale_, rtol=1e-12)
     np.testing.assert_allclose(on_probes.factor_, again.factor_, rtol=1e-12)
 
@@ -200,7 +200,7 @@ def test_the_probes_take_their_own_number_of_members_and_the_calibration_folds_t
     """The folds' ensembles have ``n_calibration_members`` refits each; the probes are predicted by the
     first ``n_probe_members`` of the fit's members (a loop the training never ran needs more of them);
     the fit's own members do not depend on either."""
-    import qube_koopman.identify.uncertainty as uncertainty
+    import qube_koopman.identify.uncertainty.calibration as calibration
 
     train = ar1[0][:12]
     options = IntervalOptions(0.9, n_members=6, n_calibration_members=2, n_probe_members=5, n_folds=3)
@@ -209,9 +209,9 @@ def test_the_probes_take_their_own_number_of_members_and_the_calibration_folds_t
     more = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-6), train, dataclasses.replace(options, n_calibration_members=3))
     np.testing.assert_array_equal(more.counts, fit.counts)
     seen = []
-    monkeypatch.setattr(uncertainty, "calibrate", lambda on_probes, *a, **k: seen.append(on_probes.folds[0].members))
+    monkeypatch.setattr(calibration, "calibrate", lambda on_probes, *a, **k: seen.append(on_probes.folds[0].members))
     probes = dataclasses.make_dataclass("Probes", ["controllers", "episodes"])([P_CONTROLLER], [train[:2]])
-    uncertainty.calibrate_on_probes(fit, probes, 0.9, n_members=options.n_probe_members)
+    calibration.calibrate_on_probes(fit, probes, CalibrationOptions(0.9), n_members=options.n_probe_members)
     assert seen[0] == fit.members[:5]
     with pytest.raises(ValueError, match="probe members"):
         IntervalOptions(n_probe_members=1)
@@ -326,25 +326,25 @@ def test_the_design_figures_reuse_the_calibrations_held_out_predictions(offsets)
     predicts nothing again: the same figures as its own predictions by the plant wrapped with each episode's
     controller, to the rounding between the fitted closed loop and that wrapping. Under a "plant" loop
     calibrate's predictions are not closed-loop ones and are not handed on."""
-    from qube_koopman.identify import uncertainty
+    from qube_koopman.identify.uncertainty import held_out
 
     train = _two_state_loop(12, 300, seed=7)
     controllers = [P_CONTROLLER] * len(train)
     fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-3, measured=[0]), train,
                        IntervalOptions(n_members=3, n_calibration_members=3, n_folds=3))
-    expected = uncertainty.held_out_figures(fit, train, controllers, [0], 20)
+    expected = held_out.held_out_figures(fit, train, controllers, [0], 20)
     points: dict = {}
-    calibrate(fit, train, [Loop("closed")] * len(train), 0.9, 60, offsets, [0], points=points)
-    held_out = sorted(int(j) for fold in fit.folds for j in fold.validation)
-    assert sorted(points) == held_out
-    original = uncertainty.predict_groups
+    calibrate(fit, train, [Loop("closed")] * len(train), CalibrationOptions(0.9, 60, offsets, [0]), points=points)
+    held_out_episodes = sorted(int(j) for fold in fit.folds for j in fold.validation)
+    assert sorted(points) == held_out_episodes
+    original = held_out.predict_groups
     try:
-        uncertainty.predict_groups = None  # nothing left to predict: calling it would fail
-        reused = uncertainty.held_out_figures(fit, train, controllers, [0], 20, points)
+        held_out.predict_groups = None  # nothing left to predict: calling it would fail
+        reused = held_out.held_out_figures(fit, train, controllers, [0], 20, points)
     finally:
-        uncertainty.predict_groups = original
+        held_out.predict_groups = original
     assert np.all(np.isfinite(expected))
     np.testing.assert_allclose(reused, expected, rtol=1e-6)
     plant_points: dict = {}
-    calibrate(fit, train, [Loop("plant")] * len(train), 0.9, 60, None, [0], points=plant_points)
+    calibrate(fit, train, [Loop("plant")] * len(train), CalibrationOptions(0.9, 60, None, [0]), points=plant_points)
     assert plant_points == {}

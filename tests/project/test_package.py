@@ -97,6 +97,91 @@ def test_every_import_points_down_the_layers():
     assert not offenders
 
 
+def test_the_applications_share_no_command_helper_of_identify_cli():
+    """identify.cli is identify's own commands; what design and reproduce share with them lives in the lowest
+    package that owns it (identify.command_warnings, identify.report.figure_options; core for the toolkit)."""
+    import ast
+
+    offenders = []
+    for path, tree in _modules(*(top for top in LAYERS + APPLICATIONS if top != "identify")):
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
+            offenders += [f"{path}:{node.lineno} imports {name}" for name in names
+                          if name == "qube_koopman.identify.cli" or name.startswith("qube_koopman.identify.cli.")]
+    assert not offenders
+
+
+#: The most lines a package's __init__.py holds: it lists and re-exports, the code lives in modules.
+MAX_INIT_LINES = 100
+
+
+def _long_inits(root) -> list[str]:
+    """Every __init__.py under ``root`` (hidden folders and build output aside) longer than MAX_INIT_LINES."""
+    found = []
+    for path in sorted(root.rglob("__init__.py")):
+        relative = path.relative_to(root)
+        if any(part.startswith((".", "_build")) or part.endswith(".egg-info") for part in relative.parts[:-1]):
+            continue
+        n = len(path.read_text().splitlines())
+        if n > MAX_INIT_LINES:
+            found.append(f"{relative}: {n} lines")
+    return found
+
+
+def test_no_package_init_is_over_100_lines():
+    from pathlib import Path
+
+    offenders = _long_inits(Path(__file__).resolve().parents[2])
+    assert not offenders, f"an __init__.py only re-exports (at most {MAX_INIT_LINES} lines): {offenders}"
+
+
+def test_the_init_length_check_finds_what_it_is_for(tmp_path):
+    (tmp_path / "pkg" / "sub").mkdir(parents=True)
+    (tmp_path / ".venv" / "lib").mkdir(parents=True)
+    (tmp_path / "pkg" / "__init__.py").write_text("x = 1\n" * 100)
+    (tmp_path / "pkg" / "sub" / "__init__.py").write_text("x = 1\n" * 101)
+    (tmp_path / ".venv" / "lib" / "__init__.py").write_text("x = 1\n" * 500)
+    assert _long_inits(tmp_path) == ["pkg/sub/__init__.py: 101 lines"]
+
+
+#: identify/uncertainty's functions: at most this many lines and parameters (more: an options object).
+MAX_FUNCTION_LINES, MAX_PARAMETERS = 80, 8
+
+
+def _long_functions(tree, path) -> list[str]:
+    """Functions (and methods, ``self``/``cls`` not counted) longer than MAX_FUNCTION_LINES or taking
+    more than MAX_PARAMETERS parameters."""
+    import ast
+
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        args = node.args
+        params = [*args.posonlyargs, *args.args, *args.kwonlyargs] + [a for a in (args.vararg, args.kwarg) if a]
+        n_params = len([p for p in params if p.arg not in ("self", "cls")])
+        n_lines = node.end_lineno - node.lineno + 1
+        if n_lines > MAX_FUNCTION_LINES or n_params > MAX_PARAMETERS:
+            found.append(f"{path}:{node.lineno} {node.name}: {n_lines} lines, {n_params} parameters")
+    return found
+
+
+def test_the_uncertainty_functions_are_short_and_take_few_parameters():
+    offenders = [hit for path, tree in _modules("identify/uncertainty") for hit in _long_functions(tree, path)]
+    assert not offenders
+
+
+def test_the_function_size_check_finds_what_it_is_for():
+    import ast
+
+    many = "def many(self, a, b, c, d, e, f, g, h, *, i):\n    return a\n"
+    eight = "def eight(self, a, b, c, d, e, f, g, h):\n    return a\n"
+    long = "def long():\n" + "    x = 1\n" * 79 + "    return x\n"
+    assert _long_functions(ast.parse(many + eight + long), "m.py") == [
+        "m.py:1 many: 2 lines, 9 parameters", "m.py:5 long: 81 lines, 0 parameters"]
+
+
 def test_identify_reads_logs_in_its_data_package_only():
     """Within identify, only identify/data imports daq (to read episode logs); the estimators, models,
     model selection and commands get logs from it, and nothing in identify imports daq's real-time parts."""

@@ -130,26 +130,46 @@ def test_importing_a_package_imports_none_of_the_modules_it_exports_from(package
     assert loaded == ""
 
 
+def _imported_module(path: Path, node: ast.ImportFrom) -> str:
+    """The absolute name of the module ``from M import ...`` names (a relative import resolved)."""
+    if not node.level:
+        return node.module or ""
+    package = ["qube_koopman", *path.relative_to(ROOT).parent.parts]
+    base = package[: len(package) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
 def _private_imports(path: Path) -> list[str]:
-    """``from M import _x`` (a private name of another module), and imports of another package's
-    private module (``qube_koopman.identify.estimators._base`` from outside identify)."""
-    top = path.relative_to(ROOT).parts[0]
+    """``from M import _x`` (a private name of another module), and imports of a private module from
+    outside the package that holds it (``qube_koopman.identify.estimators._base`` from outside identify,
+    or from identify/uncertainty: only identify/estimators may import it)."""
+    relative = path.relative_to(ROOT)
+    here = ("qube_koopman", *relative.parent.parts)
+    top = relative.parts[0]
     found = []
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.ImportFrom):
-            found += [f"{path.relative_to(ROOT)}:{node.lineno}: from {'.' * node.level}{node.module or ''} "
+            found += [f"{relative}:{node.lineno}: from {'.' * node.level}{node.module or ''} "
                       f"import {alias.name}" for alias in node.names
                       if alias.name.startswith("_") and not alias.name.startswith("__")]
-            modules = [node.module or ""]
+            modules = [_imported_module(path, node)]
         elif isinstance(node, ast.Import):
             modules = [alias.name for alias in node.names]
         else:
             continue
         for module in modules:
             parts = module.split(".")
-            if parts[0] == "qube_koopman" and len(parts) > 1 and parts[1] != top \
-                    and any(part.startswith("_") for part in parts[2:]):
-                found.append(f"{path.relative_to(ROOT)}:{node.lineno}: import of {module}, private to {parts[1]}")
+            if parts[0] != "qube_koopman" or len(parts) < 3:
+                continue
+            private = [i for i, part in enumerate(parts) if i >= 2 and part.startswith("_")
+                       and not part.startswith("__")]
+            if not private:
+                continue
+            owner = tuple(parts[: private[0]])  # the package holding the private module
+            if parts[1] != top:
+                found.append(f"{relative}:{node.lineno}: import of {module}, private to {parts[1]}")
+            elif here[: len(owner)] != owner:
+                found.append(f"{relative}:{node.lineno}: import of {module}, private to {'/'.join(owner[1:])}")
     return found
 
 
@@ -172,6 +192,91 @@ def test_the_private_import_scan_finds_what_it_is_for(tmp_path, monkeypatch):
     assert _private_imports(source) == ["daq/mod.py:1: from qube_koopman.core.lti import _helper",
                                         "daq/mod.py:2: from .sibling import _thing",
                                         "daq/mod.py:3: import of qube_koopman.identify.estimators._base, private to identify"]
+
+
+def test_the_private_import_scan_finds_a_private_module_of_another_subpackage(tmp_path, monkeypatch):
+    """Inside a package too: a private module is private to the folder holding it."""
+    (tmp_path / "identify" / "uncertainty").mkdir(parents=True)
+    (tmp_path / "identify" / "estimators").mkdir()
+    outside = tmp_path / "identify" / "uncertainty" / "mod.py"
+    outside.write_text("from qube_koopman.identify.estimators._base import episode_statistics\n"
+                       "import qube_koopman.identify.estimators._base\n"
+                       "from ..estimators._base import FitSetup\n"
+                       "from qube_koopman.identify._checks import check_alpha\n"
+                       "from qube_koopman.identify.uncertainty._own import fine\n"
+                       "from ._own import fine_too\n")
+    inside = tmp_path / "identify" / "estimators" / "mod.py"
+    inside.write_text("from qube_koopman.identify.estimators._base import FitSetup\nfrom ._base import Estimator\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    private = "private to identify/estimators"
+    assert _private_imports(outside) == [
+        f"identify/uncertainty/mod.py:1: import of qube_koopman.identify.estimators._base, {private}",
+        f"identify/uncertainty/mod.py:2: import of qube_koopman.identify.estimators._base, {private}",
+        f"identify/uncertainty/mod.py:3: import of qube_koopman.identify.estimators._base, {private}"]
+    assert _private_imports(inside) == []
+
+
+def _private_members(tree: ast.AST) -> set[str]:
+    """The private methods and instance attributes (``self._x = ...``) the classes of a module define."""
+    names = set()
+    for cls in (node for node in ast.walk(tree) if isinstance(node, ast.ClassDef)):
+        names |= {node.name for node in cls.body if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))}
+        names |= {node.attr for node in ast.walk(cls) if isinstance(node, ast.Attribute)
+                  and isinstance(node.ctx, ast.Store) and isinstance(node.value, ast.Name) and node.value.id == "self"}
+    return {name for name in names if name.startswith("_") and not name.startswith("__")}
+
+
+def _foreign_private_uses(files: list[Path]) -> list[str]:
+    """``obj._x`` where ``_x`` is a private method or attribute that classes of other modules define
+    and this module's classes do not (``self._x``, ``cls._x`` and ``super()._x`` are the object's
+    own). Static, so by name: a module defining a member of the same name is not checked for it."""
+    trees = {path: ast.parse(path.read_text(), filename=str(path)) for path in files}
+    own = {path: _private_members(tree) for path, tree in trees.items()}
+    defined_in: dict[str, list[Path]] = {}
+    for path, names in own.items():
+        for name in names:
+            defined_in.setdefault(name, []).append(path)
+    found = []
+    for path, tree in trees.items():
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.Attribute) or node.attr not in defined_in or node.attr in own[path]:
+                continue
+            value = node.value
+            if isinstance(value, ast.Name) and value.id in ("self", "cls"):
+                continue
+            if isinstance(value, ast.Call) and isinstance(value.func, ast.Name) and value.func.id == "super":
+                continue
+            homes = ", ".join(sorted(str(home.relative_to(ROOT)) for home in defined_in[node.attr]))
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno}: .{node.attr}, private to {homes}")
+    return sorted(found)
+
+
+def test_no_module_uses_a_private_method_or_attribute_of_another_modules_objects():
+    """The estimators' statistics protocol (setup_fit, episode_snapshots, statistics_fold, finish_fit)
+    is public; the sweep, the search, the bootstrap and the cluster runner use nothing private of them."""
+    files = [path for folder in _package_folders() for path in sorted(folder.rglob("*.py"))]
+    offenders = _foreign_private_uses(files)
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_private_member_scan_finds_what_it_is_for(tmp_path, monkeypatch):
+    (tmp_path / "identify").mkdir()
+    estimator = tmp_path / "identify" / "estimator.py"
+    estimator.write_text("class Estimator:\n"
+                         "    def __init__(self):\n        self._cache = None\n"
+                         "    def _setup(self, data):\n        return self._cache\n"
+                         "    def setup_fit(self, data):\n        return self._setup(data)\n"
+                         "class Child(Estimator):\n"
+                         "    def _setup(self, data):\n        return super()._setup(data)\n")
+    sweep = tmp_path / "identify" / "sweep.py"
+    sweep.write_text("def sweep(estimator, data):\n"
+                     "    estimator._setup(data)\n"
+                     "    print(estimator._cache)\n"
+                     "    return estimator.setup_fit(data)\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    assert _foreign_private_uses([estimator, sweep]) == [
+        "identify/sweep.py:2: ._setup, private to identify/estimator.py",
+        "identify/sweep.py:3: ._cache, private to identify/estimator.py"]
 
 
 def test_the_tutorial_imports_from_the_packages_only():

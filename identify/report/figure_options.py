@@ -1,4 +1,7 @@
-"""The ``--figures`` options of ``qube-identify`` and ``qube-reproduce qube`` (see identify/report/figures.py)."""
+"""The ``--figures`` options of ``qube-identify`` and ``qube-reproduce qube``: adding them, checking them before
+any work, writing the figures they ask for (drawn by :mod:`~qube_koopman.identify.report.figures`).
+
+Here, beside the figures, rather than in ``identify.cli``: the applications above identify share them."""
 
 from __future__ import annotations
 
@@ -8,6 +11,9 @@ from typing import Sequence
 
 from qube_koopman.core.command import CliError
 
+__all__ = ["FOLDER", "add_figure_options", "check_figure_options", "write_report_figures"]
+
+#: The output folder's sub-folder the figures go to.
 FOLDER = "figures"
 
 
