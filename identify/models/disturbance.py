@@ -248,7 +248,7 @@ def one_step_residuals(model: KoopmanModel, trajectory: Trajectory) -> tuple[np.
     residuals, predictions : ndarray of shape (n_samples, n_states)
         Row ``k`` holds sample ``k``'s residual and prediction; NaN up to sample ``n_delays``.
     """
-    model._initial_passthrough(trajectory)  # checks the trajectory's shape
+    model.check_trajectory(trajectory)
     d, n_p, m = model.n_delays, model.n_passthrough, model.n_states
     z = model.lifting.transform(np.asarray(trajectory.x, dtype=float))  # sample k = d + j
     if n_p:

@@ -182,6 +182,11 @@ class KoopmanModel:
             return off.predict_estimating_offsets(self, trajectory, offsets, window, relift=relift)[0]
         return self.predict_many([trajectory], relift=relift)[0]
 
+    def check_trajectory(self, trajectory: Trajectory) -> None:
+        """Refuse (ValueError naming it) a trajectory this model cannot predict: too short, other states, no
+        controller state where the model has one."""
+        self._initial_passthrough(trajectory)
+
     def _initial_passthrough(self, trajectory: Trajectory) -> np.ndarray | None:
         """Check that ``trajectory`` can be predicted; its controller state at sample ``n_delays``."""
         d = self.n_delays
