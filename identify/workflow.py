@@ -707,13 +707,20 @@ def _score_koopman(
         if bands is not None:
             models += [loop.model(closed_m, plant_m, MEASURED) for closed_m, plant_m in bands.members]
         trajectories = [how.trajectory(test[i]) for i in run]
-        for i, traj, episode in zip(run, trajectories, predict_episodes(models, trajectories, offsets)):
+        predicted = predict_episodes(models, trajectories, offsets)
+        for i, traj, episode in zip(run, trajectories, predicted):
             estimates.append(episode.estimate)
             scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
-            if ahead is not None and counted[i]:
-                ahead.add(test[i].path.name, models[0], traj, _offset_mapping(episode.estimate))
             if bands is not None:
                 bands.add(test[i], traj, episode, counted[i], start, models[0].n_delays, loop, how.runs_own(test[i]))
+        if ahead is not None:
+            scored = [j for j, i in enumerate(run) if counted[i]]
+            ahead.add_many(
+                [test[run[j]].path.name for j in scored],
+                models[0],
+                [trajectories[j] for j in scored],
+                [_offset_mapping(predicted[j].estimate) for j in scored],
+            )
     if how.command_delay:
         result.report["command_delay"] = {
             "samples": float(how.command_delay),

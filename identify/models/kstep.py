@@ -22,10 +22,6 @@ from qube_koopman.identify.models.offsets import shift_trajectory
 
 __all__ = ["AheadOptions", "AheadScores", "fit_training_disturbance", "horizon_label"]
 
-#: Starts per horizon: one every this fraction of the horizon (at least one sample apart), so that a long
-#: horizon's predictions cost about as much as a short one's while every horizon scores hundreds of starts.
-STARTS_PER_HORIZON = 20
-
 
 def horizon_label(seconds: float) -> str:
     """A horizon's name in files and reports: ``0.1``, ``1`` (seconds, as given)."""
@@ -62,10 +58,6 @@ class AheadOptions:
         """The horizons in samples."""
         return [int(round(h / dt)) for h in self.horizons]
 
-    def strides(self, dt: float) -> list[int]:
-        """Samples between the starts of each horizon's predictions."""
-        return [max(1, K // STARTS_PER_HORIZON) for K in self.samples(dt)]
-
 
 def fit_training_disturbance(
     model: KoopmanModel, train: Sequence[Trajectory], options: AheadOptions, skip: int = 0
@@ -85,7 +77,7 @@ def fit_training_disturbance(
     horizons = [max(1, K) for K in options.samples(dt)]
     if options.entry == "none":
         return None, {"entry": "none", "why": "no disturbance model asked for (--disturbance none)"}
-    data = dm.KStepData.of(model, train, horizons, skip, max(1, max(horizons) // 10))
+    data = dm.KStepData.of(model, train, horizons, skip)
     none = dm.DisturbanceModel("input", 1.0, 0.0, np.eye(model.n_states), np.zeros(model.n_states))
     costs = {"none": float(dm.prediction_errors(model, data, [none]).sum())}
     fitted: dict[str, dm.DisturbanceModel] = {}
@@ -129,40 +121,52 @@ class AheadScores:
     per_horizon: dict[str, list[dict]] = field(default_factory=dict)
     predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
-    def add(
-        self, name: str, model: KoopmanModel, trajectory: Trajectory, offsets: Mapping[int, float] | None = None
+    def add_many(
+        self,
+        names: Sequence[str],
+        model: KoopmanModel,
+        trajectories: Sequence[Trajectory],
+        offsets: Sequence[Mapping[int, float] | None],
     ) -> None:
-        """Predict and score one test episode (``offsets``: its sensor offsets by channel, measured = true + offset).
+        """Predict and score test episodes of one loop in one batch (``offsets``: each one's sensor offsets by
+        channel, measured = true + offset, or None).
 
         With offsets the model runs in true coordinates, as
         :func:`~qube_koopman.identify.models.offsets.predict_with_offsets` does: the offset channels and
         their references shifted, the offsets added back to the predictions.
         """
-        dt = model.dt if model.dt is not None else trajectory.dt
+        if not trajectories:
+            return
+        dt = model.dt if model.dt is not None else trajectories[0].dt
         assert dt is not None, "a model or an episode gives the sample period"
-        shift = np.zeros(trajectory.x.shape[1])
-        for c, value in (offsets or {}).items():
-            shift[c] = value
-        t = shift_trajectory(model, trajectory, offsets) if offsets else trajectory
         samples = self.options.samples(dt)
-        ahead = dm.predict_ahead(model, self.disturbance, t, samples, self.options.strides(dt))
-        kept = {}
-        for h, K in zip(self.options.horizons, samples):
-            pred = ahead[K] + shift[None, :]
-            label = horizon_label(h)
-            kept[f"ahead_{label}"] = pred
-            self.per_horizon.setdefault(label, []).append(_score(name, trajectory.x, pred, self.start))
-        if self.keep:
-            self.predictions[name] = kept
+        shifts, shifted = [], []
+        for t, o in zip(trajectories, offsets):
+            shift = np.zeros(t.x.shape[1])
+            for c, value in (o or {}).items():
+                shift[c] = value
+            shifts.append(shift)
+            shifted.append(shift_trajectory(model, t, o) if o else t)
+        strides = [[dm.starts_stride(t.n_samples, model.n_delays, K, dm.N_STARTS) for K in samples] for t in shifted]
+        ahead = dm.predict_ahead_many(model, self.disturbance, shifted, samples, strides)
+        for name, t, shift, predicted in zip(names, trajectories, shifts, ahead):
+            kept = {}
+            for h, K in zip(self.options.horizons, samples):
+                pred = predicted[K] + shift[None, :]
+                label = horizon_label(h)
+                kept[f"ahead_{label}"] = pred
+                self.per_horizon.setdefault(label, []).append(_score(name, t.x, pred, self.start))
+            if self.keep:
+                self.predictions[name] = kept
 
     def report(self) -> dict:
         """report.json's ``ahead``: per horizon and channel, the mean and worst R^2 and the RMS error."""
         out: dict = {
             "disturbance": None if self.disturbance is None else self.disturbance.as_dict(),
             "horizons": {},
-            "note": "each scored sample predicted from the measurements up to h seconds before it (a start every "
-            f"1/{STARTS_PER_HORIZON} of the horizon), under the known inputs and controller, with the disturbance "
-            "filtered from the measurements",
+            "note": "each scored sample predicted from the measurements up to h seconds before it (about "
+            f"{dm.N_STARTS} starts per episode and horizon), under the known inputs and controller, with the "
+            "disturbance filtered from the measurements",
         }
         for label, rows in self.per_horizon.items():
             r2 = np.array([row["r2"] for row in rows])
