@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -234,3 +236,32 @@ def test_commands_stopped_by_a_signal_say_interrupted_in_one_line(signum, status
         err = capsys.readouterr().err
         assert err.strip().splitlines()[-1].endswith("interrupted") and "Traceback" not in err, (name, err)
     assert not (tmp_path / "z").exists()  # qube-identify created z/deep, stopped, removed them
+
+
+def _writer_stopped_mid_write(target: Path) -> subprocess.Popen:
+    """A process inside ``atomic_path(target)`` with half a file written, waiting for its stdin."""
+    code = ("import sys; from qube_koopman.core.files import atomic_path\n"
+            f"with atomic_path({str(target)!r}) as tmp:\n"
+            "    tmp.write_bytes(b'half a file'); print(tmp, flush=True); sys.stdin.read()\n")
+    return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+
+def test_the_next_write_removes_the_parts_killed_writers_left_never_a_live_ones(tmp_path):
+    target = tmp_path / "run.rrd"
+    killed, live = _writer_stopped_mid_write(target), _writer_stopped_mid_write(target)
+    try:
+        killed_part, live_part = Path(killed.stdout.readline().strip()), Path(live.stdout.readline().strip())
+        killed.kill()  # SIGKILL: no finally runs, the part stays
+        killed.wait(timeout=30)
+        other = tmp_path / ".notes.txt.1a2b3c4d.part.txt"  # another file's: not this write's business
+        other.write_text("x")
+        assert killed_part.exists() and live_part.exists()
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"whole")
+        assert not killed_part.exists(), "the killed writer's part is removed by the next write"
+        assert live_part.exists() and other.exists(), "a live writer's part (and another file's) is kept"
+        assert target.read_bytes() == b"whole"
+    finally:
+        live.communicate("", timeout=30)
+        killed.wait(timeout=30)
+    assert live.returncode == 0 and target.read_bytes() == b"half a file" and not live_part.exists()
