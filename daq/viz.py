@@ -12,6 +12,10 @@ started, episodes back to back); the ``episode`` timeline numbers them.
 The default blueprint shows theta and alpha against their references, the
 voltages (controller output, applied input, feedforward) and the loop's
 timing (lateness and compute time per tick), plus a log of episode events.
+
+A saved recording is kept in memory and written whole when the run ends
+(:class:`core.rrd.RrdFile`, which says why); a viewer is streamed to live.
+Neither can stop or hang the run: a failure is reported when it ends.
 """
 
 from __future__ import annotations
@@ -22,12 +26,24 @@ from pathlib import Path
 
 import numpy as np
 
+from qube_koopman.core.rrd import RrdFile, import_rerun
 from qube_koopman.daq.episode import EpisodeMetadata
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample
 
-__all__ = ["DEFAULT_VIEWER_PORT", "RerunUnavailable", "blueprint", "open_recording", "RerunSink"]
+__all__ = [
+    "DEFAULT_VIEWER_PORT",
+    "RecordingFailed",
+    "RerunUnavailable",
+    "RunRecording",
+    "blueprint",
+    "open_recording",
+    "RerunSink",
+]
 
 DEFAULT_VIEWER_PORT = 9876
+#: The longest the end of a run waits for a viewer to take what was sent (s); the SDK then gives
+#: up a connection that never came within a few seconds more.
+LIVE_FLUSH_TIMEOUT_S = 10.0
 
 # entity path -> series on it: (Sample field, scale, legend name). One send_columns
 # call per entity and batch: every call holds the interpreter for a while.
@@ -47,6 +63,10 @@ EVENTS = "events"
 
 class RerunUnavailable(RuntimeError):
     """No rerun viewer to stream to (the message says what to do instead)."""
+
+
+class RecordingFailed(RuntimeError):
+    """The run's recording could not be written, or its viewer did not take it (one line naming which)."""
 
 
 def blueprint():
@@ -119,9 +139,14 @@ def open_recording(
     url : str, optional
         Viewer address, e.g. ``rerun+http://host:9876/proxy``.
     save : path, optional
-        Also write the recording to this .rrd file (headless).
+        Also write the recording to this .rrd file (headless), whole, when
+        :meth:`RunRecording.finish` is called.
     port : int
         Local viewer port.
+
+    Returns
+    -------
+    RunRecording
 
     Raises
     ------
@@ -130,22 +155,85 @@ def open_recording(
         reached or started.
     """
     try:
-        import rerun as rr
+        rr = import_rerun()
     except ImportError:
         raise RerunUnavailable(
             'rerun-sdk is not installed (the viewer is optional): pip install "qube-koopman[viz]"'
         ) from None
-
-    sinks = []
-    if live:
-        sinks.append(_live_sink(url, port))
-    if save is not None:
-        sinks.append(rr.FileSink(str(save)))
-    if not sinks:
+    if not live and save is None:
         raise ValueError("open_recording needs live=True or a save path")
-    rec = rr.RecordingStream(application_id, recording_id=recording_id)
-    rec.set_sinks(*sinks, default_blueprint=blueprint())
-    return rec
+    stream = None
+    if live:
+        stream = rr.RecordingStream(application_id, recording_id=recording_id)
+        stream.set_sinks(_live_sink(url, port), default_blueprint=blueprint())
+    rrd = None
+    if save is not None:
+        rrd = RrdFile(save, application_id, blueprint=blueprint(), recording_id=_same_id(stream, recording_id))
+    return RunRecording(stream, rrd)
+
+
+def _same_id(stream, recording_id: str | None) -> str | None:
+    """The recording id a second stream takes to show as the same recording as ``stream``."""
+    return recording_id if stream is None else stream.get_recording_id()
+
+
+class RunRecording:
+    """A run's rerun recording: a live stream to a viewer, a file written whole at the end, or both.
+
+    Takes the calls :class:`RerunSink` makes (``log``, ``send_columns``, ``set_time``) and sends
+    each to both.
+
+    Parameters
+    ----------
+    live : rerun.RecordingStream or None
+        The stream to a viewer.
+    rrd : core.rrd.RrdFile or None
+        The file.
+    """
+
+    def __init__(self, live=None, rrd: RrdFile | None = None) -> None:
+        self.live = live
+        self.rrd = rrd
+        self._streams = [s for s in (live, None if rrd is None else rrd.recording) if s is not None]
+
+    def log(self, *args, **kwargs) -> None:
+        """``rerun.RecordingStream.log`` on every stream."""
+        for stream in self._streams:
+            stream.log(*args, **kwargs)
+
+    def send_columns(self, *args, **kwargs) -> None:
+        """``rerun.RecordingStream.send_columns`` on every stream."""
+        for stream in self._streams:
+            stream.send_columns(*args, **kwargs)
+
+    def set_time(self, *args, **kwargs) -> None:
+        """``rerun.RecordingStream.set_time`` on every stream."""
+        for stream in self._streams:
+            stream.set_time(*args, **kwargs)
+
+    def finish(self, timeout: float = LIVE_FLUSH_TIMEOUT_S) -> None:
+        """Hand the viewer what is left (waiting at most ``timeout`` s) and write the file whole.
+
+        Raises
+        ------
+        RecordingFailed
+            The viewer did not take the recording, or the file could not be written (then no
+            file is left under its name); both are tried whatever the other did.
+        """
+        problems = []
+        if self.live is not None:
+            try:
+                self.live.flush(timeout_sec=timeout)
+            except RuntimeError as exc:  # no viewer (any more), or a timeout
+                problems.append(f"--rerun: the viewer did not take the recording: {exc}")
+            self.live.disconnect()  # gives up an unreachable viewer within seconds
+        if self.rrd is not None:
+            try:
+                self.rrd.save()
+            except OSError as exc:
+                problems.append(f"{exc.filename}: {exc.strerror}; the rerun recording was not written")
+        if problems:
+            raise RecordingFailed("; ".join(problems))
 
 
 class RerunSink:
@@ -252,6 +340,15 @@ class RerunSink:
         self._index += 1
 
     def finish(self) -> None:
-        """Flush and close the recording (the .rrd file is complete after this)."""
-        self.recording.flush()
+        """End the recording: the viewer has been sent everything and the .rrd file is written whole.
+
+        Raises
+        ------
+        RecordingFailed
+            A :class:`RunRecording` that failed (the file not written, the viewer gone).
+        """
+        if isinstance(self.recording, RunRecording):
+            self.recording.finish()
+            return
+        self.recording.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
         self.recording.disconnect()
