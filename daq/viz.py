@@ -13,9 +13,10 @@ The default blueprint shows theta and alpha against their references, the
 voltages (controller output, applied input, feedforward) and the loop's
 timing (lateness and compute time per tick), plus a log of episode events.
 
-A saved recording is kept in memory and written whole when the run ends
-(:class:`core.rrd.RrdFile`, which says why); a viewer is streamed to live.
-Neither can stop or hang the run: a failure is reported when it ends.
+A saved recording is written by a child process as the run goes and renamed
+into place, whole, when the run ends (:class:`core.rrd.RrdProcess`, which says
+why); a viewer is streamed to live. Neither can stop or hang the run: a
+failure is reported when it ends.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.core.rrd import RrdFile, import_rerun
+from qube_koopman.core.rrd import RrdProcess, apply_op, import_rerun
 from qube_koopman.daq.episode import EpisodeMetadata
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample
 
@@ -168,51 +169,53 @@ def open_recording(
         stream.set_sinks(_live_sink(url, port), default_blueprint=blueprint())
     rrd = None
     if save is not None:
-        rrd = RrdFile(save, application_id, blueprint=blueprint(), recording_id=_same_id(stream, recording_id))
+        same_id = recording_id if stream is None else stream.get_recording_id()  # one recording in the viewer
+        rrd = RrdProcess(save, application_id, blueprint=f"{__name__}:blueprint", recording_id=same_id)
     return RunRecording(stream, rrd)
 
 
-def _same_id(stream, recording_id: str | None) -> str | None:
-    """The recording id a second stream takes to show as the same recording as ``stream``."""
-    return recording_id if stream is None else stream.get_recording_id()
-
-
 class RunRecording:
-    """A run's rerun recording: a live stream to a viewer, a file written whole at the end, or both.
+    """A run's rerun recording: a live stream to a viewer, a file written as the run goes, or both.
 
-    Takes the calls :class:`RerunSink` makes (``log``, ``send_columns``, ``set_time``) and sends
-    each to both.
+    Takes :class:`core.rrd.RrdProcess`'s calls (``log``, ``set_time``, ``send_scalars``) and
+    sends each to both.
 
     Parameters
     ----------
     live : rerun.RecordingStream or None
         The stream to a viewer.
-    rrd : core.rrd.RrdFile or None
+    rrd : core.rrd.RrdProcess or None
         The file.
     """
 
-    def __init__(self, live=None, rrd: RrdFile | None = None) -> None:
+    def __init__(self, live=None, rrd: RrdProcess | None = None) -> None:
         self.live = live
         self.rrd = rrd
-        self._streams = [s for s in (live, None if rrd is None else rrd.recording) if s is not None]
 
-    def log(self, *args, **kwargs) -> None:
-        """``rerun.RecordingStream.log`` on every stream."""
-        for stream in self._streams:
-            stream.log(*args, **kwargs)
+    def _apply(self, op: tuple) -> None:
+        if self.live is not None:
+            apply_op(import_rerun(), self.live, op)
 
-    def send_columns(self, *args, **kwargs) -> None:
-        """``rerun.RecordingStream.send_columns`` on every stream."""
-        for stream in self._streams:
-            stream.send_columns(*args, **kwargs)
+    def log(self, entity: str, archetype: str, *, static: bool = False, **kwargs) -> None:
+        """Log ``rerun.<archetype>(**kwargs)`` at ``entity``."""
+        self._apply(("log", entity, archetype, kwargs, static))
+        if self.rrd is not None:
+            self.rrd.log(entity, archetype, static=static, **kwargs)
 
-    def set_time(self, *args, **kwargs) -> None:
-        """``rerun.RecordingStream.set_time`` on every stream."""
-        for stream in self._streams:
-            stream.set_time(*args, **kwargs)
+    def set_time(self, timeline: str, **kwargs) -> None:
+        """Set the time of what is logged next on ``timeline``."""
+        self._apply(("set_time", timeline, kwargs))
+        if self.rrd is not None:
+            self.rrd.set_time(timeline, **kwargs)
+
+    def send_scalars(self, entity: str, indexes: list[tuple], values) -> None:
+        """Scalars at ``entity`` against ``(timeline, kind, array)`` time columns."""
+        self._apply(("scalars", entity, indexes, values))
+        if self.rrd is not None:
+            self.rrd.send_scalars(entity, indexes, values)
 
     def finish(self, timeout: float = LIVE_FLUSH_TIMEOUT_S) -> None:
-        """Hand the viewer what is left (waiting at most ``timeout`` s) and write the file whole.
+        """Hand the viewer what is left (waiting at most ``timeout`` s) and complete the file.
 
         Raises
         ------
@@ -229,7 +232,7 @@ class RunRecording:
             self.live.disconnect()  # gives up an unreachable viewer within seconds
         if self.rrd is not None:
             try:
-                self.rrd.save()
+                self.rrd.close()
             except OSError as exc:
                 problems.append(f"{exc.filename}: {exc.strerror}; the rerun recording was not written")
         if problems:
@@ -244,8 +247,8 @@ class RerunSink:
 
     Parameters
     ----------
-    recording : rerun.RecordingStream
-        From :func:`open_recording` (or any recording stream).
+    recording : RunRecording
+        From :func:`open_recording`.
     batch_seconds : float
         Send the buffered samples every this many seconds of data.
     """
@@ -264,16 +267,12 @@ class RerunSink:
         self._styled = False
 
     def _style(self) -> None:
-        import rerun as rr
-
         for path, series in _SERIES.items():
-            self.recording.log(path, rr.SeriesLines(names=[label for _, _, label in series]), static=True)
+            self.recording.log(path, "SeriesLines", static=True, names=[label for _, _, label in series])
         self._styled = True
 
     def open(self, metadata: EpisodeMetadata) -> None:
         """Mark the episode's start on the event log."""
-        import rerun as rr
-
         if not self._styled:
             self._style()
         self._dt = metadata.dt
@@ -283,10 +282,8 @@ class RerunSink:
         seeds = metadata.excitation.get("seeds", {})
         self.recording.set_time("time", duration=self._offset)
         self.recording.set_time("episode", sequence=self._index)
-        self.recording.log(
-            EVENTS,
-            rr.TextLog(f"episode {self._index} started, seeds {seeds}, backend {metadata.backend}", level="INFO"),
-        )
+        text = f"episode {self._index} started, seeds {seeds}, backend {metadata.backend}"
+        self.recording.log(EVENTS, "TextLog", text=text, level="INFO")
 
     def write(self, sample: Sample) -> None:
         """Buffer one tick; a full batch becomes one job per plot, sent one job per later tick.
@@ -312,16 +309,12 @@ class RerunSink:
         self._buffer = []
 
     def _send(self, job) -> None:
-        import rerun as rr
-
         path, t, block = job
-        indexes = [rr.TimeColumn("time", duration=t), rr.TimeColumn("episode", sequence=np.full(t.size, self._index))]
-        self.recording.send_columns(path, indexes=indexes, columns=rr.Scalars.columns(scalars=block))
+        indexes = [("time", "duration", t), ("episode", "sequence", np.full(t.size, self._index))]
+        self.recording.send_scalars(path, indexes, block)
 
     def close(self, outcome: EpisodeOutcome) -> None:
         """Send what is buffered and log how the episode ended, with its timing."""
-        import rerun as rr
-
         self._queue_batch()
         while self._jobs:
             self._send(self._jobs.pop())
@@ -335,20 +328,16 @@ class RerunSink:
             )
         self.recording.set_time("time", duration=end)
         self.recording.set_time("episode", sequence=self._index)
-        self.recording.log(EVENTS, rr.TextLog(text, level="INFO" if outcome.status == "complete" else "WARN"))
+        self.recording.log(EVENTS, "TextLog", text=text, level="INFO" if outcome.status == "complete" else "WARN")
         self._offset = end
         self._index += 1
 
     def finish(self) -> None:
-        """End the recording: the viewer has been sent everything and the .rrd file is written whole.
+        """End the recording: the viewer has been sent everything and the .rrd file is complete.
 
         Raises
         ------
         RecordingFailed
-            A :class:`RunRecording` that failed (the file not written, the viewer gone).
+            The file could not be written, or the viewer did not take the run.
         """
-        if isinstance(self.recording, RunRecording):
-            self.recording.finish()
-            return
-        self.recording.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
-        self.recording.disconnect()
+        self.recording.finish()

@@ -117,3 +117,25 @@ def test_a_full_disk_is_an_error_naming_the_recording_and_leaves_nothing(tmp_pat
         rrd.save()
     assert (caught.value.errno, caught.value.filename) == (errno.ENOSPC, str(tmp_path / "x.rrd"))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_recordings_writer_ends_when_its_command_is_killed(tmp_path):
+    # A command killed outright (here after its writer's disk refused the data): the child that
+    # writes the recording sees its input end and exits by itself, file complete or not.
+    psutil = pytest.importorskip("psutil")
+    code = ("import os, signal, sys, numpy as np\n"
+            "from qube_koopman.core.rrd import RrdProcess\n"
+            f"rrd = RrdProcess({str(tmp_path / 'x.rrd')!r}, 'qube-test')\n"
+            "for i in range(200):\n"
+            "    rrd.send_scalars(f'a/{i}', [('time', 'duration', np.arange(500) * 0.002)], np.random.rand(500))\n"
+            "print(rrd._child.pid, flush=True)\n"
+            "sys.stdin.read()\n")
+    killed = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                              preexec_fn=_limited(20_000))
+    try:
+        child = psutil.Process(int(killed.stdout.readline()))
+    finally:
+        killed.kill()
+        killed.wait(timeout=30)
+    child.wait(timeout=TIMEOUT_S)  # psutil.TimeoutExpired: the writer outlived its command
+    assert [p.name for p in tmp_path.iterdir() if p.name == "x.rrd"] == []
