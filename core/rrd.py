@@ -63,8 +63,8 @@ class RrdFile:
     Log to :attr:`recording` (a ``rerun.RecordingStream``); nothing reaches the disk before
     :meth:`save`. A process stopped before (even by SIGKILL) leaves no file under ``path``; one
     stopped while saving leaves at most a locked temporary file, removed by the next write of
-    ``path``. The encoded recording stays in memory until saved (about 70 kB per second of a
-    ``qube-run`` episode).
+    ``path``. The recording stays in memory until saved: for one made at once; one that grows
+    with a run takes :class:`RrdProcess`.
 
     Parameters
     ----------
