@@ -198,6 +198,9 @@ class RrdProcess:
             env=env,
             start_new_session=True,
         )
+        stdin, stdout, stderr = self._child.stdin, self._child.stdout, self._child.stderr
+        assert stdin is not None and stdout is not None and stderr is not None  # each asked for as a pipe
+        self._stdin, self._stdout, self._stderr = stdin, stdout, stderr
         self._queue.put(("open", str(tmp), application_id, recording_id, blueprint))
         self._pump = threading.Thread(target=self._send_all, name="rrd-pipe", daemon=True)
         self._pump.start()
@@ -215,7 +218,7 @@ class RrdProcess:
             self._problem = "the recording fell behind the run"
 
     def _send_all(self) -> None:
-        stdin = self._child.stdin
+        stdin = self._stdin
         try:
             while (op := self._queue.get()) is not None:
                 if self._problem is not None:
@@ -231,7 +234,7 @@ class RrdProcess:
                 pass
 
     def _listen(self) -> None:
-        for line in self._child.stderr:
+        for line in self._stderr:
             text = line.decode(errors="replace")
             self._errors.append(text)
             if "ERROR" in text or "os error" in text:
@@ -282,9 +285,9 @@ class RrdProcess:
         self._child.wait()
         self._pump.join()
         self._listener.join()
-        out = self._child.stdout.read()
-        self._child.stdout.close()
-        self._child.stderr.close()
+        out = self._stdout.read()
+        self._stdout.close()
+        self._stderr.close()
         error = _child_error(out, "".join(self._errors), self._child.returncode)
         if self._problem is None and error is None:
             self._stack.close()  # renames the temporary file into place
