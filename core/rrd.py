@@ -189,15 +189,19 @@ class RrdProcess:
         self._stack = ExitStack()
         tmp = self._stack.enter_context(atomic_path(self.path))
         env = dict(os.environ, RUST_LOG="error")  # the child's errors say what failed; they are read, not shown
-        self._child = subprocess.Popen(
-            [sys.executable, "-c", "from qube_koopman.core.rrd import _child_main; _child_main()"],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            bufsize=0,
-            env=env,
-            start_new_session=True,
-        )
+        try:
+            self._child = subprocess.Popen(
+                [sys.executable, "-c", "from qube_koopman.core.rrd import _child_main; _child_main()"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                bufsize=0,
+                env=env,
+                start_new_session=True,
+            )
+        except BaseException:
+            self._stack.__exit__(OSError, None, None)  # no child: no temporary file either
+            raise
         stdin, stdout, stderr = self._child.stdin, self._child.stdout, self._child.stderr
         assert stdin is not None and stdout is not None and stderr is not None  # each asked for as a pipe
         self._stdin, self._stdout, self._stderr = stdin, stdout, stderr
