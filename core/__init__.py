@@ -23,6 +23,7 @@ _HOMES = {
     "OneLineParser": "cli",
     "add_force_option": "cli",
     "atomic_path": "files",
+    "remove_stale_parts": "files",
     "limited_blas_threads": "blas",
     "output_file_problem": "files",
     "output_folder_problem": "files",

@@ -3,6 +3,11 @@
 A command stopped by Ctrl-C, SIGTERM or an error while it writes leaves no partial file under
 the final name (and no temporary file: it is removed on the way out); a reader sees either the
 previous file or the new one, never a mixture, since the rename is atomic on POSIX file systems.
+
+A process killed outright (SIGKILL, a power cut) cannot remove its temporary file: the next write
+of the same file removes it (:func:`remove_stale_parts`). Each writer holds its temporary file
+under an advisory lock (``flock``) while it lives, so a temporary file another live process is
+writing is never taken for a stale one.
 """
 
 from __future__ import annotations
@@ -18,6 +23,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
+try:
+    import fcntl
+except ImportError:  # not a POSIX system: temporary files are then never taken for stale
+    fcntl = None  # type: ignore[assignment]  # mypy: a module or, here, None
+
 __all__ = [
     "MAX_NESTING",
     "StagedFiles",
@@ -31,6 +41,7 @@ __all__ = [
     "output_folder_problem",
     "read_bounded_bytes",
     "read_bounded_text",
+    "remove_stale_parts",
     "trim_cache",
 ]
 
@@ -274,7 +285,8 @@ def atomic_path(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     if path.exists() and not path.is_file():
         yield path
         return
-    tmp = _new_file(path)
+    remove_stale_parts(path)
+    fd, tmp = _new_file(path)
     try:
         yield tmp
         if overwrite:
@@ -290,6 +302,7 @@ def atomic_path(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
                 os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+        os.close(fd)  # releases the lock
 
 
 class StagedFiles:
@@ -356,21 +369,93 @@ class StagedFiles:
         self.discard()
 
 
-def _new_file(path: Path) -> Path:
-    """A new, empty hidden file beside ``path``, created as :func:`open` creates one.
+def _part_name(path: Path, tag: str) -> str:
+    return f".{path.name}.{tag}.part{path.suffix}"
+
+
+def _new_file(path: Path) -> tuple[int, Path]:
+    """A new, empty hidden file beside ``path``, created as :func:`open` creates one, as ``(fd, path)``.
 
     Mode 0666 less the umask (``tempfile.mkstemp`` makes 0600 whatever the umask, and the
-    file keeps its mode when renamed into place), exclusively under a fresh random name.
+    file keeps its mode when renamed into place), exclusively under a fresh random name, and
+    held under a shared ``flock`` until ``fd`` is closed: :func:`remove_stale_parts` takes only
+    files no process holds. A cleaner that removed it in the instant between its creation and
+    its lock is seen (the name no longer leads to it): another name is tried.
     """
     for _ in range(100):
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part{path.suffix}")
+        tmp = path.with_name(_part_name(path, secrets.token_hex(4)))
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+            fd = os.open(tmp, os.O_RDONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
         except FileExistsError:
             continue
+        if fcntl is not None:
+            try:  # waits only while a cleaner holds it, an instant; then the name is checked below
+                fcntl.flock(fd, fcntl.LOCK_SH)
+            except OSError:  # a file system without locks: then never taken for stale either
+                pass
+        if _same_file(tmp, fd):
+            return fd, tmp
         os.close(fd)
-        return tmp
     raise FileExistsError(f"{path}: no free temporary name beside it")
+
+
+def _same_file(path: Path, fd: int) -> bool:
+    """Whether ``path`` still names the file open as ``fd``."""
+    try:
+        named, held = os.stat(path), os.fstat(fd)
+    except FileNotFoundError:
+        return False
+    return (named.st_dev, named.st_ino) == (held.st_dev, held.st_ino)
+
+
+def remove_stale_parts(path: str | Path) -> list[Path]:
+    """Remove the temporary files of ``path`` that writers killed before their end left; return them.
+
+    Only hidden ``.<name>.<tag>.part<suffix>`` regular files beside ``path`` (the names
+    :func:`atomic_path` gives) are candidates, and of those only the ones no live process holds
+    locked (every writer locks its temporary file as it creates it, and the lock goes with the
+    process): a file another run is writing now is never removed, however old. Without ``fcntl``
+    (not a POSIX system) nothing is removed; a file that cannot be removed is passed over.
+
+    Parameters
+    ----------
+    path : str or Path
+        The final file.
+
+    Returns
+    -------
+    list of Path
+        The files removed.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (folder / ".run.rrd.1a2b3c4d.part.rrd").write_bytes(b"RRF2")  # a writer killed mid-write
+    >>> [p.name for p in remove_stale_parts(folder / "run.rrd")], sorted(folder.iterdir())
+    (['.run.rrd.1a2b3c4d.part.rrd'], [])
+    """
+    path = Path(path)
+    removed: list[Path] = []
+    if fcntl is None or not path.parent.is_dir():
+        return removed
+    for tmp in sorted(path.parent.glob(_part_name(path, "*"))):
+        try:
+            fd = os.open(tmp, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
+        except OSError:  # gone, a link, unreadable: not ours to judge
+            continue
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                continue
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # OSError: a live writer holds it
+            if _same_file(tmp, fd):
+                os.unlink(tmp)
+                removed.append(tmp)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return removed
 
 
 # The one rule every command follows for what it writes (checked before any work, so a mistake

@@ -12,6 +12,11 @@ started, episodes back to back); the ``episode`` timeline numbers them.
 The default blueprint shows theta and alpha against their references, the
 voltages (controller output, applied input, feedforward) and the loop's
 timing (lateness and compute time per tick), plus a log of episode events.
+
+A saved recording is written by a child process as the run goes and renamed
+into place, whole, when the run ends (:class:`core.rrd.RrdProcess`, which says
+why); a viewer is streamed to live. Neither can stop or hang the run: a
+failure is reported when it ends.
 """
 
 from __future__ import annotations
@@ -22,12 +27,24 @@ from pathlib import Path
 
 import numpy as np
 
+from qube_koopman.core.rrd import RrdProcess, apply_op, import_rerun
 from qube_koopman.daq.episode import EpisodeMetadata
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample
 
-__all__ = ["DEFAULT_VIEWER_PORT", "RerunUnavailable", "blueprint", "open_recording", "RerunSink"]
+__all__ = [
+    "DEFAULT_VIEWER_PORT",
+    "RecordingFailed",
+    "RerunUnavailable",
+    "RunRecording",
+    "blueprint",
+    "open_recording",
+    "RerunSink",
+]
 
 DEFAULT_VIEWER_PORT = 9876
+#: The longest the end of a run waits for a viewer to take what was sent (s); the SDK then gives
+#: up a connection that never came within a few seconds more.
+LIVE_FLUSH_TIMEOUT_S = 10.0
 
 # entity path -> series on it: (Sample field, scale, legend name). One send_columns
 # call per entity and batch: every call holds the interpreter for a while.
@@ -47,6 +64,10 @@ EVENTS = "events"
 
 class RerunUnavailable(RuntimeError):
     """No rerun viewer to stream to (the message says what to do instead)."""
+
+
+class RecordingFailed(RuntimeError):
+    """The run's recording could not be written, or its viewer did not take it (one line naming which)."""
 
 
 def blueprint():
@@ -119,9 +140,14 @@ def open_recording(
     url : str, optional
         Viewer address, e.g. ``rerun+http://host:9876/proxy``.
     save : path, optional
-        Also write the recording to this .rrd file (headless).
+        Also write the recording to this .rrd file (headless), whole, when
+        :meth:`RunRecording.finish` is called.
     port : int
         Local viewer port.
+
+    Returns
+    -------
+    RunRecording
 
     Raises
     ------
@@ -130,22 +156,87 @@ def open_recording(
         reached or started.
     """
     try:
-        import rerun as rr
+        rr = import_rerun()
     except ImportError:
         raise RerunUnavailable(
             'rerun-sdk is not installed (the viewer is optional): pip install "qube-koopman[viz]"'
         ) from None
-
-    sinks = []
-    if live:
-        sinks.append(_live_sink(url, port))
-    if save is not None:
-        sinks.append(rr.FileSink(str(save)))
-    if not sinks:
+    if not live and save is None:
         raise ValueError("open_recording needs live=True or a save path")
-    rec = rr.RecordingStream(application_id, recording_id=recording_id)
-    rec.set_sinks(*sinks, default_blueprint=blueprint())
-    return rec
+    stream = None
+    if live:
+        stream = rr.RecordingStream(application_id, recording_id=recording_id)
+        stream.set_sinks(_live_sink(url, port), default_blueprint=blueprint())
+    rrd = None
+    if save is not None:
+        same_id = recording_id if stream is None else stream.get_recording_id()  # one recording in the viewer
+        rrd = RrdProcess(save, application_id, blueprint=f"{__name__}:blueprint", recording_id=same_id)
+    return RunRecording(stream, rrd)
+
+
+class RunRecording:
+    """A run's rerun recording: a live stream to a viewer, a file written as the run goes, or both.
+
+    Takes :class:`core.rrd.RrdProcess`'s calls (``log``, ``set_time``, ``send_scalars``) and
+    sends each to both.
+
+    Parameters
+    ----------
+    live : rerun.RecordingStream or None
+        The stream to a viewer.
+    rrd : core.rrd.RrdProcess or None
+        The file.
+    """
+
+    def __init__(self, live=None, rrd: RrdProcess | None = None) -> None:
+        self.live = live
+        self.rrd = rrd
+
+    def _apply(self, op: tuple) -> None:
+        if self.live is not None:
+            apply_op(import_rerun(), self.live, op)
+
+    def log(self, entity: str, archetype: str, *, static: bool = False, **kwargs) -> None:
+        """Log ``rerun.<archetype>(**kwargs)`` at ``entity``."""
+        self._apply(("log", entity, archetype, kwargs, static))
+        if self.rrd is not None:
+            self.rrd.log(entity, archetype, static=static, **kwargs)
+
+    def set_time(self, timeline: str, **kwargs) -> None:
+        """Set the time of what is logged next on ``timeline``."""
+        self._apply(("set_time", timeline, kwargs))
+        if self.rrd is not None:
+            self.rrd.set_time(timeline, **kwargs)
+
+    def send_scalars(self, entity: str, indexes: list[tuple], values) -> None:
+        """Scalars at ``entity`` against ``(timeline, kind, array)`` time columns."""
+        self._apply(("scalars", entity, indexes, values))
+        if self.rrd is not None:
+            self.rrd.send_scalars(entity, indexes, values)
+
+    def finish(self, timeout: float = LIVE_FLUSH_TIMEOUT_S) -> None:
+        """Hand the viewer what is left (waiting at most ``timeout`` s) and complete the file.
+
+        Raises
+        ------
+        RecordingFailed
+            The viewer did not take the recording, or the file could not be written (then no
+            file is left under its name); both are tried whatever the other did.
+        """
+        problems = []
+        if self.live is not None:
+            try:
+                self.live.flush(timeout_sec=timeout)
+            except RuntimeError as exc:  # no viewer (any more), or a timeout
+                problems.append(f"--rerun: the viewer did not take the recording: {exc}")
+            self.live.disconnect()  # gives up an unreachable viewer within seconds
+        if self.rrd is not None:
+            try:
+                self.rrd.close()
+            except OSError as exc:
+                problems.append(f"{exc.filename}: {exc.strerror}; the rerun recording was not written")
+        if problems:
+            raise RecordingFailed("; ".join(problems))
 
 
 class RerunSink:
@@ -156,8 +247,8 @@ class RerunSink:
 
     Parameters
     ----------
-    recording : rerun.RecordingStream
-        From :func:`open_recording` (or any recording stream).
+    recording : RunRecording
+        From :func:`open_recording`.
     batch_seconds : float
         Send the buffered samples every this many seconds of data.
     """
@@ -176,16 +267,12 @@ class RerunSink:
         self._styled = False
 
     def _style(self) -> None:
-        import rerun as rr
-
         for path, series in _SERIES.items():
-            self.recording.log(path, rr.SeriesLines(names=[label for _, _, label in series]), static=True)
+            self.recording.log(path, "SeriesLines", static=True, names=[label for _, _, label in series])
         self._styled = True
 
     def open(self, metadata: EpisodeMetadata) -> None:
         """Mark the episode's start on the event log."""
-        import rerun as rr
-
         if not self._styled:
             self._style()
         self._dt = metadata.dt
@@ -195,10 +282,8 @@ class RerunSink:
         seeds = metadata.excitation.get("seeds", {})
         self.recording.set_time("time", duration=self._offset)
         self.recording.set_time("episode", sequence=self._index)
-        self.recording.log(
-            EVENTS,
-            rr.TextLog(f"episode {self._index} started, seeds {seeds}, backend {metadata.backend}", level="INFO"),
-        )
+        text = f"episode {self._index} started, seeds {seeds}, backend {metadata.backend}"
+        self.recording.log(EVENTS, "TextLog", text=text, level="INFO")
 
     def write(self, sample: Sample) -> None:
         """Buffer one tick; a full batch becomes one job per plot, sent one job per later tick.
@@ -224,16 +309,12 @@ class RerunSink:
         self._buffer = []
 
     def _send(self, job) -> None:
-        import rerun as rr
-
         path, t, block = job
-        indexes = [rr.TimeColumn("time", duration=t), rr.TimeColumn("episode", sequence=np.full(t.size, self._index))]
-        self.recording.send_columns(path, indexes=indexes, columns=rr.Scalars.columns(scalars=block))
+        indexes = [("time", "duration", t), ("episode", "sequence", np.full(t.size, self._index))]
+        self.recording.send_scalars(path, indexes, block)
 
     def close(self, outcome: EpisodeOutcome) -> None:
         """Send what is buffered and log how the episode ended, with its timing."""
-        import rerun as rr
-
         self._queue_batch()
         while self._jobs:
             self._send(self._jobs.pop())
@@ -247,11 +328,16 @@ class RerunSink:
             )
         self.recording.set_time("time", duration=end)
         self.recording.set_time("episode", sequence=self._index)
-        self.recording.log(EVENTS, rr.TextLog(text, level="INFO" if outcome.status == "complete" else "WARN"))
+        self.recording.log(EVENTS, "TextLog", text=text, level="INFO" if outcome.status == "complete" else "WARN")
         self._offset = end
         self._index += 1
 
     def finish(self) -> None:
-        """Flush and close the recording (the .rrd file is complete after this)."""
-        self.recording.flush()
-        self.recording.disconnect()
+        """End the recording: the viewer has been sent everything and the .rrd file is complete.
+
+        Raises
+        ------
+        RecordingFailed
+            The file could not be written, or the viewer did not take the run.
+        """
+        self.recording.finish()

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.rrd import RrdFile, import_rerun
 from qube_koopman.daq.episode import Episode
 from qube_koopman.design.predict import LoopTrajectories
 
@@ -91,35 +91,32 @@ def write_recording(
     Path
         ``path``.
     """
-    import rerun as rr
-
     n = max((len(episodes) for episodes in twin.values()), default=0)
     names = [f"episode_{i:02d}" for i in range(n)]
     path = Path(path)
-    with atomic_path(path) as tmp:  # whole or not at all
-        rec = rr.RecordingStream("qube-design")
-        rec.save(str(tmp), default_blueprint=blueprint(names))
-        time = np.arange(predicted.theta.shape[1]) * predicted.dt
-        for i, name in enumerate(names):
-            _series(rec, f"episodes/{name}/theta/target", time, predicted.target_theta[i], "target")
-            for channel, values in zip(CHANNELS, (predicted.theta, predicted.alpha, predicted.voltage)):
-                _series(rec, f"episodes/{name}/{channel}/predicted", time, values[i], "predicted")
-            for kind, episodes in twin.items():
-                if i < len(episodes):
-                    for channel, values in _episode_channels(episodes[i]).items():
-                        _series(rec, f"episodes/{name}/{channel}/{kind}", time, values, kind)
-        circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
-        rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
-        for kind, values in eigenvalues.items():
-            rec.log(
-                f"eigenvalues/{kind}",
-                rr.Points2D(
-                    np.column_stack([values.real, values.imag]),
-                    radii=0.005,
-                    colors=[_COLORS["twin" if kind == "design" else "twin_training"]],
-                ),
-                static=True,
-            )
-        rec.flush()
-        rec.disconnect()
+    rr = import_rerun()
+    rrd = RrdFile(path, "qube-design", blueprint=blueprint(names))  # whole or not at all
+    rec = rrd.recording
+    time = np.arange(predicted.theta.shape[1]) * predicted.dt
+    for i, name in enumerate(names):
+        _series(rec, f"episodes/{name}/theta/target", time, predicted.target_theta[i], "target")
+        for channel, values in zip(CHANNELS, (predicted.theta, predicted.alpha, predicted.voltage)):
+            _series(rec, f"episodes/{name}/{channel}/predicted", time, values[i], "predicted")
+        for kind, episodes in twin.items():
+            if i < len(episodes):
+                for channel, values in _episode_channels(episodes[i]).items():
+                    _series(rec, f"episodes/{name}/{channel}/{kind}", time, values, kind)
+    circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
+    rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
+    for kind, values in eigenvalues.items():
+        rec.log(
+            f"eigenvalues/{kind}",
+            rr.Points2D(
+                np.column_stack([values.real, values.imag]),
+                radii=0.005,
+                colors=[_COLORS["twin" if kind == "design" else "twin_training"]],
+            ),
+            static=True,
+        )
+    rrd.save()
     return path

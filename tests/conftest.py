@@ -87,6 +87,7 @@ LONGEST_FIRST = [
     "tests/design/test_design.py",
     "tests/sim/test_twin_equivalence.py",
     "tests/docs/test_docs.py",
+    "tests/core/test_rerun_recordings.py",
 ]
 
 

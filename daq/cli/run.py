@@ -637,9 +637,22 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
             run = _episodes(args, backend, plans, mcap, sinks, limits, stop, book, timing)
     finally:
         progress.clear()
-        if rerun_sink is not None:
-            rerun_sink.finish()
-    return report(args, run, book, timing.stats(), len(plans))
+        recording_problem = _finish_rerun(rerun_sink)
+    # The summary whatever became of the recording: the logs are there.
+    return report(args, run, book, timing.stats(), len(plans), recording_problem)
+
+
+def _finish_rerun(rerun_sink) -> str | None:
+    """End the rerun view or recording; what went wrong with it, or None."""
+    if rerun_sink is None:
+        return None
+    from qube_koopman.daq.viz import RecordingFailed
+
+    try:
+        rerun_sink.finish()
+    except RecordingFailed as exc:
+        return str(exc)
+    return None
 
 
 if __name__ == "__main__":

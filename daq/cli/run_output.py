@@ -202,8 +202,11 @@ def _as_logged(rows: list[tuple[str, EpisodeOutcome]], log_errors: list) -> list
     return rows
 
 
-def report(args, run, book: EpisodeBook, totals, n_planned: int) -> int:
-    """Print the summary and the closing lines of a run; its exit status (see ``qube-run --help``)."""
+def report(args, run, book: EpisodeBook, totals, n_planned: int, recording_problem: str | None = None) -> int:
+    """Print the summary and the closing lines of a run; its exit status (see ``qube-run --help``).
+
+    ``recording_problem``: why the rerun recording or view failed (an error line, exit status 1).
+    """
     results = run.results
     print(summary_table(_as_logged(list(zip(book.names, results)), book.log_errors), totals))
     link = link_summary(results)
@@ -217,7 +220,7 @@ def report(args, run, book: EpisodeBook, totals, n_planned: int) -> int:
     print(
         f"{run.n_complete} complete, {run.n_aborted} aborted; {logs} episode "
         f"log{'s' if logs != 1 else ''} in {args.out.resolve()}"
-        + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save else "")
+        + (f"; rerun recording in {args.rerun_save.resolve()}" if args.rerun_save and not recording_problem else "")
     )
     if run.stopped and not book.log_errors:
         print(f"{PROG}: run stopped: {run.stopped}", file=sys.stderr)
@@ -232,8 +235,12 @@ def report(args, run, book: EpisodeBook, totals, n_planned: int) -> int:
             ),
             file=sys.stderr,
         )
+    if recording_problem:
+        print(f"{PROG}: error: {recording_problem}", file=sys.stderr)
     if run.signal is not None:
         return 128 + int(run.signal)
+    if recording_problem:
+        return 1
     # A safety stop, or a swing-up the supervisor gave up, is a recorded outcome of an episode, not an
     # error of the run.
     errors = [r for r in results if r.status == "aborted" and r.cause not in ("safety", "swing-up")]

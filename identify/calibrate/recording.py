@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.rrd import RrdFile, import_rerun
 from qube_koopman.identify.calibrate.spectra import CHANNELS, replay_spectra
 
 __all__ = ["blueprint", "episode_paths", "write_recording"]
@@ -110,32 +110,29 @@ def write_recording(path: str | Path, replay, names: list[str], dt: float, npers
     Path
         ``path``.
     """
-    import rerun as rr
-
     if len(names) != replay.real.shape[1]:
         raise ValueError(f"{len(names)} names for {replay.real.shape[1]} replayed episodes")
+    rr = import_rerun()
     parts = episode_paths(names)
     path = Path(path)
-    with atomic_path(path) as tmp:  # whole or not at all
-        rec = rr.RecordingStream("qube-calibrate")
-        rec.save(str(tmp), default_blueprint=blueprint(parts, [Path(str(n)).stem for n in names]))
-        time = [rr.TimeColumn("time", duration=np.arange(replay.real.shape[0]) * dt)]
-        for i, part in enumerate(parts):
+    rrd = RrdFile(path, "qube-calibrate", blueprint=blueprint(parts, [Path(str(n)).stem for n in names]))
+    rec = rrd.recording
+    time = [rr.TimeColumn("time", duration=np.arange(replay.real.shape[0]) * dt)]
+    for i, part in enumerate(parts):
+        for j, channel in enumerate(CHANNELS):
+            for kind, data in (("real", replay.real), ("twin", replay.twin)):
+                _style(rec, f"validation/{part}/{channel}/{kind}", kind)
+                _send(rec, f"validation/{part}/{channel}/{kind}", time, data[:, i, j])
+    spectra = replay_spectra(replay, dt, nperseg)
+    bins = [
+        rr.TimeColumn("frequency_bin", sequence=np.arange(len(spectra.frequency))),
+        rr.TimeColumn("frequency_millihertz", sequence=np.round(1e3 * spectra.frequency).astype(np.int64)),
+    ]
+    _send(rec, "spectra/frequency_hz", bins, spectra.frequency)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for kind, psd in zip(("real", "twin"), spectra.mean()):
             for j, channel in enumerate(CHANNELS):
-                for kind, data in (("real", replay.real), ("twin", replay.twin)):
-                    _style(rec, f"validation/{part}/{channel}/{kind}", kind)
-                    _send(rec, f"validation/{part}/{channel}/{kind}", time, data[:, i, j])
-        spectra = replay_spectra(replay, dt, nperseg)
-        bins = [
-            rr.TimeColumn("frequency_bin", sequence=np.arange(len(spectra.frequency))),
-            rr.TimeColumn("frequency_millihertz", sequence=np.round(1e3 * spectra.frequency).astype(np.int64)),
-        ]
-        _send(rec, "spectra/frequency_hz", bins, spectra.frequency)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for kind, psd in zip(("real", "twin"), spectra.mean()):
-                for j, channel in enumerate(CHANNELS):
-                    _style(rec, f"spectra/{channel}/{kind}", kind)
-                    _send(rec, f"spectra/{channel}/{kind}", bins, np.log10(psd[:, j]))
-        rec.flush()
-        rec.disconnect()
+                _style(rec, f"spectra/{channel}/{kind}", kind)
+                _send(rec, f"spectra/{channel}/{kind}", bins, np.log10(psd[:, j]))
+    rrd.save()  # whole or not at all
     return path

@@ -809,21 +809,32 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
     write_json(staged.path("report.json"), result.report, shown=out / "report.json")
     write_markdown_report(staged.path("report.md"), result.report)
     staged.commit()
-    if args.rerun:
-        from qube_koopman.identify.report.rerun import write_recording
-
-        write_recording(args.rerun, result)
     _print_controllers(result.report["training_controllers"], sessions is not None)
     _print_scores(args, result.report)
     _print_intervals(result.report.get("intervals"))
     _print_ahead(result.report.get("ahead"), result.report.get("disturbance"))
     written = (
         ["model.json", "report.json", "report.md"]
-        + ([PREDICTIONS] if args.interval else [])
+        + ([PREDICTIONS] if args.interval or args.horizon else [])
         + (["figures"] if args.figures else [])
     )
-    print(f"wrote {', '.join(str(out / w) for w in written)}" + (f" and {args.rerun}" if args.rerun else ""))
+    problem = _record(args.rerun, result) if args.rerun else None
+    recorded = f" and {args.rerun}" if args.rerun and not problem else ""
+    print(f"wrote {', '.join(str(out / w) for w in written)}{recorded}")
+    if problem:  # after the scores and the files written: the model is there whatever became of the recording
+        raise CliError(problem, status=1)
     return 0
+
+
+def _record(path, result) -> str | None:
+    """Write the --rerun-save recording; why it could not be written, or None."""
+    from qube_koopman.identify.report.rerun import write_recording
+
+    try:
+        write_recording(path, result)
+    except OSError as exc:
+        return f"{exc.filename or path}: {exc.strerror or exc}; the rerun recording was not written"
+    return None
 
 
 def _what_if_controller(path: str, dt: float):

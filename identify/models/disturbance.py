@@ -80,6 +80,8 @@ ENTRIES = ("input", "theta", "alpha")
 #: Starts per episode and horizon of the K-step scores: an R^2 estimated from a few hundred predictions
 #: differs from the every-sample one by far less than episodes differ.
 N_STARTS = 200
+#: The fewest starts per episode and horizon (a 1 s horizon of a 20 s episode: 25 starts, 1.25 free runs of steps).
+MIN_STARTS = 25
 #: Windows simulated together: their lifted states stay in the cache (a batch of 5600 windows of a 107-state
 #: lifting stepped five times slower per window than batches of a few hundred).
 _WINDOWS_PER_BATCH = 256
@@ -618,8 +620,11 @@ def predict_ahead(
 
 
 def starts_stride(n_samples: int, n_delays: int, horizon: int, n_starts: int) -> int:
-    """The stride that starts about ``n_starts`` predictions ``horizon`` ahead in an episode (at least 1)."""
-    return max(1, (n_samples - n_delays - horizon) // max(1, n_starts))
+    """The stride of the predictions ``horizon`` ahead in an episode: about ``n_starts`` of them, fewer for a long
+    horizon so that they step no more samples than the episode has (one free run), never fewer than
+    :data:`MIN_STARTS`."""
+    n = max(MIN_STARTS, min(n_starts, n_samples // max(1, horizon)))
+    return max(1, (n_samples - n_delays - horizon) // n)
 
 
 def predict_ahead_many(

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from qube_koopman.core.files import atomic_path
+from qube_koopman.core.rrd import RrdFile, import_rerun
 from qube_koopman.core.qube import STATE_NAMES
 from qube_koopman.identify.report.figures import model_eigenvalues
 
@@ -56,49 +56,46 @@ def _log_search(rec, search: dict) -> None:
 
 
 def write_recording(path, result) -> None:
-    """Write ``result`` (an :class:`identify.workflow.IdentificationResult`) to an .rrd file."""
-    import rerun as rr
+    """Write ``result`` (an :class:`identify.workflow.IdentificationResult`) to an .rrd file.
 
-    with atomic_path(path) as tmp:  # whole or not at all
-        rec = rr.RecordingStream("qube-identify")
-        rec.save(str(tmp), default_blueprint=blueprint(result))
-        for name, t, truth, pred in zip(
-            result.test_names, result.test_time, result.test_truth, result.test_predictions
-        ):
-            stem = name.rsplit(".", 1)[0]
-            for j, state in enumerate(STATE_NAMES[: truth.shape[1]]):
-                for kind, values in (("measured", truth[:, j]), ("predicted", pred[:, j])):
-                    rec.send_columns(
-                        f"test/{stem}/{state}/{kind}",
-                        indexes=[rr.TimeColumn("time", duration=t)],
-                        columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
-                    )
-        circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
-        rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
-        for kind, model in (("closed_loop", result.closed_loop), ("plant", result.plant)):
-            eig = None if model is None else model_eigenvalues(model)
-            if eig is not None:
-                rec.log(
-                    f"eigenvalues/{kind}", rr.Points2D(np.column_stack([eig.real, eig.imag]), radii=0.01), static=True
+    The file appears whole or not at all (:class:`core.rrd.RrdFile`); ``OSError`` naming ``path``
+    when it cannot be written.
+    """
+    rr = import_rerun()
+    rrd = RrdFile(path, "qube-identify", blueprint=blueprint(result))  # whole or not at all
+    rec = rrd.recording
+    for name, t, truth, pred in zip(result.test_names, result.test_time, result.test_truth, result.test_predictions):
+        stem = name.rsplit(".", 1)[0]
+        for j, state in enumerate(STATE_NAMES[: truth.shape[1]]):
+            for kind, values in (("measured", truth[:, j]), ("predicted", pred[:, j])):
+                rec.send_columns(
+                    f"test/{stem}/{state}/{kind}",
+                    indexes=[rr.TimeColumn("time", duration=t)],
+                    columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
                 )
-        sweep = result.report.get("sweep")
-        if sweep:
-            index = rr.TimeColumn("alpha_index", sequence=np.arange(len(sweep["alpha"])))
-            series = {
-                "log10_alpha": np.log10(sweep["alpha"]),
-                "cv_r2": sweep["cv_r2_mean"],
-                "spectral_radius_closed_loop": sweep["spectral_radius_closed_loop"],
-                "spectral_radius_plant": sweep["spectral_radius_plant"],
-            }
-            for key, values in series.items():
-                if values is not None:
-                    values = np.asarray(values, dtype=float)
-                    rec.send_columns(
-                        f"sweep/{key}",
-                        indexes=[index],
-                        columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
-                    )
-        if result.report.get("search"):
-            _log_search(rec, result.report["search"])
-        rec.flush()
-        rec.disconnect()
+    circle = np.exp(1j * np.linspace(0, 2 * np.pi, 181))
+    rec.log("eigenvalues/unit_circle", rr.LineStrips2D([np.column_stack([circle.real, circle.imag])]), static=True)
+    for kind, model in (("closed_loop", result.closed_loop), ("plant", result.plant)):
+        eig = None if model is None else model_eigenvalues(model)
+        if eig is not None:
+            rec.log(f"eigenvalues/{kind}", rr.Points2D(np.column_stack([eig.real, eig.imag]), radii=0.01), static=True)
+    sweep = result.report.get("sweep")
+    if sweep:
+        index = rr.TimeColumn("alpha_index", sequence=np.arange(len(sweep["alpha"])))
+        series = {
+            "log10_alpha": np.log10(sweep["alpha"]),
+            "cv_r2": sweep["cv_r2_mean"],
+            "spectral_radius_closed_loop": sweep["spectral_radius_closed_loop"],
+            "spectral_radius_plant": sweep["spectral_radius_plant"],
+        }
+        for key, values in series.items():
+            if values is not None:
+                values = np.asarray(values, dtype=float)
+                rec.send_columns(
+                    f"sweep/{key}",
+                    indexes=[index],
+                    columns=rr.Scalars.columns(scalars=np.where(np.isfinite(values), values, np.nan)),
+                )
+    if result.report.get("search"):
+        _log_search(rec, result.report["search"])
+    rrd.save()

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -161,14 +163,15 @@ def test_an_interrupted_figure_or_recording_leaves_nothing(tmp_path, monkeypatch
         write_figures([spec], tmp_path)
     assert list(tmp_path.glob("radius*")) == [] and _leftovers(tmp_path) == []
 
-    rr = pytest.importorskip("rerun")
+    pytest.importorskip("rerun")
     from qube_koopman.identify.calibrate.recording import write_recording
     from _calibration_replay import DT, NAMES, synthetic_replay
 
-    def flush(self, *args, **kwargs):
+    def half(self, data):  # the recording's bytes half on disk when Ctrl-C comes
+        self.open("wb").write(data[: len(data) // 2])
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(rr.RecordingStream, "flush", flush)
+    monkeypatch.setattr(Path, "write_bytes", half)
     with pytest.raises(KeyboardInterrupt):
         write_recording(tmp_path / "calibration.rrd", synthetic_replay(), NAMES, DT)
     assert not (tmp_path / "calibration.rrd").exists() and _leftovers(tmp_path) == []
@@ -234,3 +237,32 @@ def test_commands_stopped_by_a_signal_say_interrupted_in_one_line(signum, status
         err = capsys.readouterr().err
         assert err.strip().splitlines()[-1].endswith("interrupted") and "Traceback" not in err, (name, err)
     assert not (tmp_path / "z").exists()  # qube-identify created z/deep, stopped, removed them
+
+
+def _writer_stopped_mid_write(target: Path) -> subprocess.Popen:
+    """A process inside ``atomic_path(target)`` with half a file written, waiting for its stdin."""
+    code = ("import sys; from qube_koopman.core.files import atomic_path\n"
+            f"with atomic_path({str(target)!r}) as tmp:\n"
+            "    tmp.write_bytes(b'half a file'); print(tmp, flush=True); sys.stdin.read()\n")
+    return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+
+def test_the_next_write_removes_the_parts_killed_writers_left_never_a_live_ones(tmp_path):
+    target = tmp_path / "run.rrd"
+    killed, live = _writer_stopped_mid_write(target), _writer_stopped_mid_write(target)
+    try:
+        killed_part, live_part = Path(killed.stdout.readline().strip()), Path(live.stdout.readline().strip())
+        killed.kill()  # SIGKILL: no finally runs, the part stays
+        killed.wait(timeout=30)
+        other = tmp_path / ".notes.txt.1a2b3c4d.part.txt"  # another file's: not this write's business
+        other.write_text("x")
+        assert killed_part.exists() and live_part.exists()
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"whole")
+        assert not killed_part.exists(), "the killed writer's part is removed by the next write"
+        assert live_part.exists() and other.exists(), "a live writer's part (and another file's) is kept"
+        assert target.read_bytes() == b"whole"
+    finally:
+        live.communicate("", timeout=30)
+        killed.wait(timeout=30)
+    assert live.returncode == 0 and target.read_bytes() == b"half a file" and not live_part.exists()

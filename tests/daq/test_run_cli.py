@@ -190,6 +190,22 @@ def test_rerun_without_a_viewer_or_display_fails_cleanly(tmp_path, capsys, monke
     assert not list(tmp_path.glob("*.mcap"))
 
 
+@pytest.mark.slow  # the SDK gives up an unreachable viewer after about 10 s
+def test_rerun_to_a_viewer_that_is_not_there_is_one_line_after_the_summary(tmp_path):
+    pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
+    with socket.socket() as probe:  # a port nothing listens on once closed
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    code = "import sys; from qube_koopman.daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.run([sys.executable, "-c", code, "--rerun", f"rerun+http://127.0.0.1:{port}/proxy",
+                           "--episodes", "1", "--duration", "1", "--out", str(tmp_path), "-q"],
+                          capture_output=True, text=True, timeout=120)
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and len(err) == 1, proc.stderr  # no traceback, none of the SDK's own lines
+    assert err[0].startswith("qube-run: error: --rerun: the viewer did not take the recording: "), err
+    assert "1 complete, 0 aborted; 1 episode log in" in proc.stdout and len(list(tmp_path.glob("*.mcap"))) == 1
+
+
 def test_rerun_streams_to_a_listening_server(tmp_path):
     if shutil.which("rerun") is None:
         pytest.skip("the rerun command (from rerun-sdk) is not on PATH")

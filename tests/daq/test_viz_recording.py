@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -57,3 +58,23 @@ def test_the_packages_import_and_run_without_rerun(tmp_path):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert len(list(tmp_path.glob("*.mcap"))) == 1
+
+
+def test_a_run_killed_mid_episode_leaves_no_recording_under_its_name(tmp_path):
+    # SIGKILL runs no cleanup: whatever is under the final name then is what a viewer would open.
+    pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
+    rrd, out = tmp_path / "run.rrd", tmp_path / "ep"
+    code = "import sys; from qube_koopman.daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
+    run = subprocess.Popen([sys.executable, "-c", code, "--episodes", "1", "--duration", "60", "--realtime",
+                            "--out", str(out), "--rerun-save", str(rrd), "-q"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out.is_dir() and any(out.iterdir())):  # the episode is being logged: the recording is open
+            assert run.poll() is None and time.monotonic() < deadline, "the run did not start its episode"
+            time.sleep(0.05)
+    finally:
+        run.kill()
+        run.wait(timeout=30)
+    assert run.returncode == -9
+    assert not rrd.exists(), "a recording under its final name would be one without its end"
