@@ -491,20 +491,23 @@ class KStepData:
         return cls(horizons, skip, truths, bases, residuals)
 
 
-def prediction_errors(model: KoopmanModel, data: KStepData, candidates: Sequence[DisturbanceModel]) -> np.ndarray:
-    """Each candidate's squared K-step errors on ``data``'s episodes, each channel's divided by its variance.
+def prediction_errors(
+    model: KoopmanModel, data: KStepData, candidates: Sequence[DisturbanceModel], per_episode: bool = False
+) -> np.ndarray:
+    """Each candidate's K-step errors on ``data``'s episodes: ``1 - R^2`` per horizon and channel.
 
-    A candidate's filtered disturbance adds its response ``S_K d_{k|k}`` (:func:`load_response`,
-    linear in the disturbance) to the predictions without one, so that many candidates cost
-    little more than one.
+    The mean squared error of the predictions ``K`` ahead divided by the episode's variance of the
+    channel (from ``data.skip`` on), averaged over the episodes. A candidate's filtered disturbance
+    adds its response ``S_K d_{k|k}`` (:func:`load_response`, linear in the disturbance) to the
+    predictions without one, so that many candidates cost little more than one.
 
     Returns
     -------
-    ndarray of shape (n_candidates, n_horizons, n_states)
+    ndarray of shape (n_candidates, n_horizons, n_states), or (n_candidates, n_episodes, n_horizons,
+    n_states) with ``per_episode``
     """
     horizons, skip = data.horizons, data.skip
-    out = np.zeros((len(candidates), len(horizons), model.n_states))
-    total_var = np.zeros(model.n_states)
+    out = np.zeros((len(candidates), len(data.truths), len(horizons), model.n_states))
     responses, directions = {}, {}
     for cand in candidates:
         if cand.entry not in directions:
@@ -512,16 +515,18 @@ def prediction_errors(model: KoopmanModel, data: KStepData, candidates: Sequence
         if (cand.entry, cand.pole) not in responses:
             E = disturbance_direction(model, cand.entry)
             responses[cand.entry, cand.pole] = load_response(model, E, cand.pole, horizons)
-    for x, base, residuals in zip(data.truths, data.bases, data.residuals):
-        total_var += x[skip:].var(axis=0) * max(len(x) - skip, 1)
+    for i, (x, base, residuals) in enumerate(zip(data.truths, data.bases, data.residuals)):
+        var = np.maximum(x[skip:].var(axis=0), 1e-300)
         for c, cand in enumerate(candidates):
             dhat, _ = filter_disturbance(residuals, directions[cand.entry], cand.pole, cand.gain)
             for h, K in enumerate(horizons):
                 ends = np.flatnonzero(np.all(np.isfinite(base[K]), axis=1))
                 ends = ends[ends - K >= skip]
+                if not ends.size:
+                    continue
                 err = x[ends] - base[K][ends] - dhat[ends - K, None] * responses[cand.entry, cand.pole][h][None, :]
-                out[c, h] += np.sum(err**2, axis=0)
-    return out / np.maximum(total_var, 1e-300)
+                out[c, i, h] = np.mean(err**2, axis=0) / var
+    return out if per_episode else out.mean(axis=1)
 
 
 def _best_prediction_q(model, data: KStepData, entry, G, pole, R) -> float:

@@ -64,6 +64,16 @@ class AheadOptions:
         return [int(round(h / dt)) for h in self.horizons]
 
 
+def _sign_test_count(n: int, level: float = 0.05) -> int:
+    """The fewest of ``n`` episodes that must improve for a one-sided sign test to reject chance at ``level``."""
+    from scipy.stats import binom
+
+    for k in range(n + 1):
+        if binom.sf(k - 1, n, 0.5) <= level:
+            return k
+    return n + 1
+
+
 def fit_training_disturbance(
     model: KoopmanModel, train: Sequence[Trajectory], options: AheadOptions, skip: int = 0
 ) -> tuple[dm.DisturbanceModel | None, dict]:
@@ -87,7 +97,7 @@ def fit_training_disturbance(
         train = [train[int(i)] for i in np.linspace(0, len(train) - 1, MAX_EPISODES).round()]
     data = dm.KStepData.of(model, train, horizons, skip)
     none = dm.DisturbanceModel("input", 1.0, 0.0, np.eye(model.n_states), np.zeros(model.n_states))
-    costs = {"none": float(dm.prediction_errors(model, data, [none]).sum())}
+    per_episode = {"none": dm.prediction_errors(model, data, [none], per_episode=True)[0].sum(axis=(1, 2))}
     fitted: dict[str, dm.DisturbanceModel] = {}
     refused: dict[str, str] = {}
     for entry in dm.ENTRIES if options.entry == "auto" else (options.entry,):
@@ -96,21 +106,36 @@ def fit_training_disturbance(
         except (dm.NotDetectable, ValueError) as exc:
             refused[entry] = str(exc)
             continue
-        costs[entry] = float(dm.prediction_errors(model, data, [fitted[entry]]).sum())
+        per_episode[entry] = dm.prediction_errors(model, data, [fitted[entry]], per_episode=True)[0].sum(axis=(1, 2))
     if options.entry != "auto" and options.entry in refused:
         raise ValueError(refused[options.entry])
-    best = min(costs, key=lambda k: costs[k]) if options.entry == "auto" else options.entry
+    costs = {k: float(v.mean()) for k, v in per_episode.items()}
+    better = {k: int(np.sum(v < per_episode["none"])) for k, v in per_episode.items() if k != "none"}
+    n = len(train)
+    # The data support an entry when it predicts better on more training episodes than chance would give
+    # (a one-sided sign test at 5 %: 7 of 8, 15 of 20); of those, the lowest cost wins.
+    needed = _sign_test_count(n)
+    supported = [k for k in better if better[k] >= needed]
+    if options.entry == "auto":
+        best = min(supported, key=lambda k: costs[k]) if supported else "none"
+        why = (
+            f"{best} predicts the training episodes best at {', '.join(horizon_label(h) for h in options.horizons)} "
+            f"s, better than none on {better[best]} of {n}"
+            if best != "none"
+            else f"no entry predicts better than none on {needed} or more of the {n} training episodes"
+        )
+    else:
+        best, why = options.entry, f"{options.entry} asked for (--disturbance {options.entry})"
     report = {
         "entry": best,
-        "criterion": "the training episodes' squared K-step errors at the scored horizons, each channel's "
-        "divided by its variance, summed (lower is better)",
+        "criterion": "1 - R^2 of the training episodes' predictions at the scored horizons, summed over horizons "
+        "and channels, averaged over episodes (lower is better); an entry is supported when it predicts better "
+        f"than none on at least {needed} of the {n} episodes (a one-sided sign test at 5 %)",
         "training_cost": costs,
+        "episodes_better": better,
+        "training_episodes": n,
         "refused": refused,
-        "why": (
-            f"{best} predicts the training episodes best at {', '.join(horizon_label(h) for h in options.horizons)} s"
-            if options.entry == "auto"
-            else f"{best} asked for (--disturbance {best})"
-        ),
+        "why": why,
     }
     if best == "none":
         return None, report

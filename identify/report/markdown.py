@@ -331,9 +331,14 @@ def _ahead_section(ahead: dict | None, disturbance: dict | None, test: dict | No
     lines = ["", "## Predictions that use the measurements", ""]
     d = disturbance or {}
     costs = d.get("training_cost", {})
+    better, n = d.get("episodes_better", {}), d.get("training_episodes")
     lines.append(
-        f"Disturbance: {d.get('entry', 'none')} ({d.get('why', '')}). Training K-step cost by entry point: "
-        + ", ".join(f"{k} {format_number(v, '.4g')}" for k, v in costs.items())
+        f"Disturbance: {d.get('entry', 'none')} ({d.get('why', '')}). Training K-step cost (1 - R^2 summed over "
+        "horizons and channels) by entry point: "
+        + ", ".join(
+            f"{k} {format_number(v, '.4g')}" + (f" (better on {better[k]} of {n} episodes)" if k in better else "")
+            for k, v in costs.items()
+        )
         + "."
     )
     if d.get("model"):
