@@ -66,6 +66,7 @@ def simulate_closed_loop(
     rng: np.random.Generator | None = None,
     alpha_offsets=None,
     past_voltages=None,
+    load=None,
 ) -> ClosedLoopRun:
     """Run the pendulum under a controller on the tracking error, for a batch of episodes.
 
@@ -101,6 +102,11 @@ def simulate_closed_loop(
     past_voltages : array_like of shape (n_past, ...), optional
         Commands before the first step, oldest first, that a transport delay
         (``params.delay``) still applies; zero volts by default.
+    load : array_like of shape (n_steps, ...), optional
+        A torque on the arm over each step, in volts at the motor past the amplifier's dead zone
+        (the torque ``km / Rm`` times it): a random load's samples
+        (:meth:`~qube_koopman.sim.pendulum.load.RandomLoad.sample`). None: no load, exactly the
+        arithmetic without one.
     """
     # The one controller, or the first of one per episode (all of its order, inputs and sample period).
     controllers: list[DiscreteStateSpace] | None = None
@@ -153,6 +159,12 @@ def simulate_closed_loop(
         raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
     history = list(np.broadcast_to(past, (past.shape[0], *batch))[-(whole + 1) :])
     history = [history[0]] * (whole + 1 - len(history)) + history  # oldest first, whole + 1 commands
+    if load is not None:
+        load = np.asarray(load, dtype=float)
+        if load.shape != (n_steps, *batch):
+            raise ValueError(
+                f"load must have shape {(n_steps, *batch)} (a torque per step and episode), got {load.shape}"
+            )
     comps = tuple(x[..., i] for i in range(4))
     shift = (
         None
@@ -185,7 +197,9 @@ def simulate_closed_loop(
             held = np.stack(history)
             previous = np.take_along_axis(held, (len(history) - wholes - 2)[None], 0)[0]
             current = np.take_along_axis(held, (len(history) - wholes - 1)[None], 0)[0]
-        comps = advance(comps, previous, current, weights, h, k, np.sin, np.cos, rk4)
+        comps = advance(
+            comps, previous, current, weights, h, k, np.sin, np.cos, rk4, None if load is None else load[step]
+        )
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)

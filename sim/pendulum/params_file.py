@@ -24,6 +24,14 @@
     [setup_standard_errors."2023-09-15"]
     Kr = 4e-6
 
+    [load]                  # optional: a random torque on the arm (absent: none)
+    diffusion = 0.03        # V/sqrt(s) at the motor: the std of its change over 1 s
+    time_constant = 2.5     # s: first-order (Ornstein-Uhlenbeck); inf: a random walk
+
+    [load_standard_errors]  # optional: the load's standard errors
+    diffusion = 0.002
+    time_constant = 0.3
+
     [provenance]            # optional, free-form: where the numbers came from
     source = "qube-calibrate"
     logs = ["episodes/ep_001.mcap", ...]
@@ -45,6 +53,11 @@ from a command to the motor changes with the session (0.6 to 4.1 ms in four). ``
 fits those per day and per session with the rest of the physics shared; a replay of a log recorded
 then uses them (:meth:`PlantFile.params_for`), and ``[parameters]`` holds the central guess for a
 day or session no log shows.
+The ``[load]`` table is the arm's random load (:class:`~qube_koopman.sim.pendulum.load.RandomLoad`):
+a torque in volts at the motor, past the amplifier's dead zone (``km / Rm`` N m per volt), whose
+statistics ``qube-calibrate`` estimates from the arm's equation run backwards on the logs. A file
+without it simulates no load, exactly as before the table existed; ``qube-run --no-load`` leaves it
+out. Its keys are ``diffusion`` and ``time_constant``, nothing else.
 Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
@@ -70,6 +83,7 @@ from dataclasses import asdict, fields, replace
 from pathlib import Path
 from typing import Sequence
 
+from qube_koopman.sim.pendulum.load import RandomLoad
 from qube_koopman.sim.pendulum.model import PendulumParameters
 from qube_koopman.core.files import atomic_path, loads_toml, read_bounded_text
 
@@ -96,6 +110,9 @@ FORMAT = "qube-plant/2"
 MAX_PLANT_BYTES = 16 * 2**20
 #: Earlier formats still read, with what each lacked (the physics it was written with).
 _OLDER_FORMATS = {"qube-plant/1": {"cable_softening": 0.0}}
+
+#: The keys of the ``[load]`` table (:class:`RandomLoad`'s fields).
+_LOAD_KEYS = ("diffusion", "time_constant")
 
 #: Seconds between two logs' starts beyond which the second starts a new recording session.
 SESSION_GAP = 600.0
@@ -205,6 +222,10 @@ class PlantFile:
         ``YYYY-MM-DD HH:MM:SS-HH:MM:SS``), the parameters that differed then.
     setup_standard_errors : dict of str to dict of str to float, optional
         Their standard errors.
+    load : RandomLoad, optional
+        The random torque on the arm (the ``[load]`` table); None: no load.
+    load_standard_errors : dict of str to float, optional
+        Its parameters' standard errors.
     """
 
     def __init__(
@@ -214,8 +235,12 @@ class PlantFile:
         provenance: dict | None = None,
         setups: dict | None = None,
         setup_standard_errors: dict | None = None,
+        load: RandomLoad | None = None,
+        load_standard_errors: dict | None = None,
     ) -> None:
         self.params = params
+        self.load = load
+        self.load_standard_errors = dict(load_standard_errors or {})
         self.standard_errors = dict(standard_errors or {})
         self.provenance = dict(provenance or {})
         self.setups = {str(k): dict(v) for k, v in (setups or {}).items()}
@@ -368,8 +393,15 @@ def load_plant(path: str | Path) -> PlantFile:
     except ValueError as exc:
         raise PlantFileError(f"{path}: {exc}") from None
     setups = {str(day): _numbers(path, table, f"setup {day}: ") for day, table in data.get("setups", {}).items()}
+    load, load_errors = _load_table(path, data)
     plant = PlantFile(
-        params, data.get("standard_errors", {}), data.get("provenance", {}), setups, data.get("setup_standard_errors")
+        params,
+        data.get("standard_errors", {}),
+        data.get("provenance", {}),
+        setups,
+        data.get("setup_standard_errors"),
+        load,
+        load_errors,
     )
     for day, table in setups.items():
         try:
@@ -377,6 +409,32 @@ def load_plant(path: str | Path) -> PlantFile:
         except ValueError as exc:
             raise PlantFileError(f"{path}: setup {day}: {exc}") from None
     return plant
+
+
+def _load_table(path: Path, data: dict) -> tuple[RandomLoad | None, dict]:
+    """The ``[load]`` table as a :class:`RandomLoad` (None without one) and its standard errors, checked."""
+    errors = data.get("load_standard_errors", {})
+    if "load" not in data:
+        return None, {}
+    out = []
+    for name, table in (("load", data["load"]), ("load_standard_errors", errors)):
+        if not isinstance(table, dict):
+            raise PlantFileError(f"{path}: [{name}] must be a table (diffusion, time_constant), got {table!r}")
+        unknown = sorted(set(table) - set(_LOAD_KEYS))
+        if unknown:
+            raise PlantFileError(
+                f"{path}: [{name}]: unknown key(s) {', '.join(unknown)}; known: {', '.join(_LOAD_KEYS)}"
+            )
+        for key, value in table.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise PlantFileError(f"{path}: [{name}]: {key} must be a number, got {value!r}")
+        out.append({k: float(v) for k, v in table.items()})
+    if "diffusion" not in out[0]:
+        raise PlantFileError(f"{path}: [load]: diffusion (V/sqrt(s)) is missing")
+    try:
+        return RandomLoad(**out[0]), out[1]
+    except ValueError as exc:
+        raise PlantFileError(f"{path}: [load]: {exc}") from None
 
 
 def _numbers(path: Path, values, where: str) -> dict[str, float]:
@@ -431,6 +489,12 @@ def save_plant(path: str | Path, plant: PlantFile) -> None:
         for day, table in tables.items():
             lines += ["", f"[{name}.{_toml_value(str(day))}]"]
             lines += [f"{k} = {_toml_value(float(v))}" for k, v in table.items()]
+    if plant.load is not None:
+        lines += ["", "[load]"]
+        lines += [f"{k} = {_toml_value(float(getattr(plant.load, k)))}" for k in _LOAD_KEYS]
+        if plant.load_standard_errors:
+            lines += ["", "[load_standard_errors]"]
+            lines += [f"{k} = {_toml_value(float(v))}" for k, v in plant.load_standard_errors.items()]
     if plant.provenance:
         lines += ["", "[provenance]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in plant.provenance.items()]
