@@ -116,6 +116,11 @@ class SimBackend(Backend):
         self.params = params
         self._sim.params = params
 
+    def use_load(self, load: RandomLoad | None) -> None:
+        """Run with ``load`` on the arm from the next :meth:`start` on (a replayed log's day's load); None: none."""
+        self.load = load
+        self._sim.load = load
+
     def start(self) -> None:
         """Reset the pendulum at rest, upright or hanging, with a fresh random perturbation and encoder zero."""
         alpha0, offset, load_seed = self._start_draws()

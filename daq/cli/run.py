@@ -389,11 +389,14 @@ def _replay(args, rate: float, swing_up=None):
     controller = None
     if args.controller is not None:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
-    twins = None
+    twins = loads = None
     if args.backend == "sim":  # each log on its recording day's twin, when the plant file knows the day
-        twins = _load_plant_file(args.plant).params_for_logs
+        plant = _load_plant_file(args.plant)
+        twins = plant.params_for_logs
+        if plant.load is not None and not args.no_load:  # and with its day's load, when the file has one
+            loads = plant.loads_for_logs
     try:
-        plans = replay_plans(args.replay, controller, twins=twins)
+        plans = replay_plans(args.replay, controller, twins=twins, loads=loads)
     except ValueError as exc:
         raise CliError(f"{exc} (--replay)") from None
     if swing_up is not None:

@@ -32,6 +32,13 @@
     diffusion = 0.002
     time_constant = 0.3
 
+    [load_setups."2023-09-15"]   # optional: a recording day's own load (its logs replay with it)
+    diffusion = 0.09
+    time_constant = 0.55
+
+    [load_setup_standard_errors."2023-09-15"]
+    diffusion = 0.02
+
     [provenance]            # optional, free-form: where the numbers came from
     source = "qube-calibrate"
     logs = ["episodes/ep_001.mcap", ...]
@@ -57,7 +64,9 @@ The ``[load]`` table is the arm's random load (:class:`~qube_koopman.sim.pendulu
 a torque in volts at the motor, past the amplifier's dead zone (``km / Rm`` N m per volt), whose
 statistics ``qube-calibrate`` estimates from the arm's equation run backwards on the logs. A file
 without it simulates no load, exactly as before the table existed; ``qube-run --no-load`` leaves it
-out. Its keys are ``diffusion`` and ``time_constant``, nothing else.
+out. Its keys are ``diffusion`` and ``time_constant``, nothing else; ``[load_setups.DAY]`` holds a
+recording day's own load (the rig's load differed between its recording days, as its cables did),
+which a replay of a log of that day uses (:meth:`PlantFile.loads_for_logs`).
 Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
@@ -226,7 +235,26 @@ class PlantFile:
         The random torque on the arm (the ``[load]`` table); None: no load.
     load_standard_errors : dict of str to float, optional
         Its parameters' standard errors.
+    load_setups : dict of str to RandomLoad, optional
+        A recording day's (``YYYY-MM-DD``) own load.
+    load_setup_standard_errors : dict of str to dict of str to float, optional
+        Their standard errors.
     """
+
+    def loads_for_logs(self, start_times: Sequence[str | None]) -> list[RandomLoad | None]:
+        """The random load of each log's replay: its recording day's (``load_setups``) or the central one.
+
+        Parameters
+        ----------
+        start_times : sequence of str or None
+            The logs' starts (ISO 8601, as logged).
+
+        Returns
+        -------
+        list of RandomLoad or None
+            None where the file has no load.
+        """
+        return [self.load_setups.get(recording_day(t), self.load) for t in start_times]
 
     def __init__(
         self,
@@ -237,10 +265,16 @@ class PlantFile:
         setup_standard_errors: dict | None = None,
         load: RandomLoad | None = None,
         load_standard_errors: dict | None = None,
+        load_setups: dict | None = None,
+        load_setup_standard_errors: dict | None = None,
     ) -> None:
         self.params = params
         self.load = load
         self.load_standard_errors = dict(load_standard_errors or {})
+        self.load_setups = {str(k): v for k, v in (load_setups or {}).items()}
+        self.load_setup_standard_errors = {str(k): dict(v) for k, v in (load_setup_standard_errors or {}).items()}
+        if self.load_setups and load is None:
+            raise ValueError("a recording day's load (load_setups) needs the central load beside it")
         self.standard_errors = dict(standard_errors or {})
         self.provenance = dict(provenance or {})
         self.setups = {str(k): dict(v) for k, v in (setups or {}).items()}
@@ -393,7 +427,20 @@ def load_plant(path: str | Path) -> PlantFile:
     except ValueError as exc:
         raise PlantFileError(f"{path}: {exc}") from None
     setups = {str(day): _numbers(path, table, f"setup {day}: ") for day, table in data.get("setups", {}).items()}
-    load, load_errors = _load_table(path, data)
+    load, load_errors = _load_table(path, data, "load", "load_standard_errors")
+    load_setups, load_setup_errors = {}, {}
+    for name in ("load_setups", "load_setup_standard_errors"):
+        if not isinstance(data.get(name, {}), dict):
+            raise PlantFileError(f"{path}: [{name}] must hold a table per recording day, got {data[name]!r}")
+    for day in data.get("load_setups", {}):
+        errors = data.get("load_setup_standard_errors", {}).get(day, {})
+        load_setups[day], errors = _load_table(
+            path, {"load": data["load_setups"][day], "errors": errors}, "load", "errors", f"load_setups.{day}"
+        )
+        if errors:
+            load_setup_errors[day] = errors
+    if load_setups and load is None:
+        raise PlantFileError(f"{path}: [load_setups] needs a [load] table beside it (the central load)")
     plant = PlantFile(
         params,
         data.get("standard_errors", {}),
@@ -402,6 +449,8 @@ def load_plant(path: str | Path) -> PlantFile:
         data.get("setup_standard_errors"),
         load,
         load_errors,
+        load_setups,
+        load_setup_errors,
     )
     for day, table in setups.items():
         try:
@@ -411,13 +460,16 @@ def load_plant(path: str | Path) -> PlantFile:
     return plant
 
 
-def _load_table(path: Path, data: dict) -> tuple[RandomLoad | None, dict]:
-    """The ``[load]`` table as a :class:`RandomLoad` (None without one) and its standard errors, checked."""
-    errors = data.get("load_standard_errors", {})
-    if "load" not in data:
+def _load_table(
+    path: Path, data: dict, key: str, errors_key: str, title: str = "load"
+) -> tuple[RandomLoad | None, dict]:
+    """The ``data[key]`` table as a :class:`RandomLoad` (None without one) and ``data[errors_key]``, its
+    standard errors, checked; messages name the table ``[title]``."""
+    errors = data.get(errors_key, {})
+    if key not in data:
         return None, {}
     out = []
-    for name, table in (("load", data["load"]), ("load_standard_errors", errors)):
+    for name, table in ((title, data[key]), (f"{title} standard errors", errors)):
         if not isinstance(table, dict):
             raise PlantFileError(f"{path}: [{name}] must be a table (diffusion, time_constant), got {table!r}")
         unknown = sorted(set(table) - set(_LOAD_KEYS))
@@ -430,11 +482,11 @@ def _load_table(path: Path, data: dict) -> tuple[RandomLoad | None, dict]:
                 raise PlantFileError(f"{path}: [{name}]: {key} must be a number, got {value!r}")
         out.append({k: float(v) for k, v in table.items()})
     if "diffusion" not in out[0]:
-        raise PlantFileError(f"{path}: [load]: diffusion (V/sqrt(s)) is missing")
+        raise PlantFileError(f"{path}: [{title}]: diffusion (V/sqrt(s)) is missing")
     try:
         return RandomLoad(**out[0]), out[1]
     except ValueError as exc:
-        raise PlantFileError(f"{path}: [load]: {exc}") from None
+        raise PlantFileError(f"{path}: [{title}]: {exc}") from None
 
 
 def _numbers(path: Path, values, where: str) -> dict[str, float]:
@@ -495,6 +547,13 @@ def save_plant(path: str | Path, plant: PlantFile) -> None:
         if plant.load_standard_errors:
             lines += ["", "[load_standard_errors]"]
             lines += [f"{k} = {_toml_value(float(v))}" for k, v in plant.load_standard_errors.items()]
+        for day, load in plant.load_setups.items():
+            lines += ["", f"[load_setups.{_toml_value(str(day))}]"]
+            lines += [f"{k} = {_toml_value(float(getattr(load, k)))}" for k in _LOAD_KEYS]
+        for day, table in plant.load_setup_standard_errors.items():
+            if table:
+                lines += ["", f"[load_setup_standard_errors.{_toml_value(str(day))}]"]
+                lines += [f"{k} = {_toml_value(float(v))}" for k, v in table.items()]
     if plant.provenance:
         lines += ["", "[provenance]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in plant.provenance.items()]

@@ -92,8 +92,15 @@ class PendulumSimulator:
 
     @property
     def load(self) -> RandomLoad | None:
-        """The random load on the arm (None: none)."""
+        """The random load on the arm (None: none); settable between episodes, from the next
+        :meth:`reset` on (its ``load_seed``, else the current seed)."""
         return self._load
+
+    @load.setter
+    def load(self, load: RandomLoad | None) -> None:
+        seed = 0 if self._load_stream is None else self._load_stream.seed
+        self._load = load
+        self._load_stream = None if load is None else LoadStream(load, self.dt, seed)
 
     @property
     def load_seed(self) -> int | None:
