@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from _episodes import QUBE_PD
-from qube_koopman.sim.pendulum import LoadStream, PendulumParameters, PendulumSimulator, RandomLoad, simulate_closed_loop
+from qube_koopman.sim.pendulum import (
+    LoadStream,
+    PendulumParameters,
+    PendulumSimulator,
+    RandomLoad,
+    simulate_closed_loop,
+)
 from qube_koopman.sim.pendulum.params_file import PlantFile, PlantFileError, load_plant, plant_file, save_plant
 
 DT = 1 / 500
