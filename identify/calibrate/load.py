@@ -6,9 +6,14 @@ modelled term explains (:func:`reconstruct_load`): in volts at the motor, past t
 
     d = (M11 theta_ddot + M12 alpha_ddot - r1(V = 0)) / (km / Rm) - V_motor,
 
-the accelerations and rates from a Savitzky-Golay filter of the encoders. Its slow part is the
+the accelerations and rates by central differences of the encoders smoothed by a Savitzky-Golay
+filter, ``V_motor`` the commands as the motor saw them (the transport delay, the dead zone), smoothed
+alike. Its slow part is the
 load the twin lacks; its fast part is the differentiated encoders' noise and what the twin gets
-slightly wrong at the loop's frequencies. :func:`fit_load` fits, by the Whittle likelihood of the
+slightly wrong at the loop's frequencies. The floor is a torque too: on the rig's logs it is 50 times
+what the same reconstruction leaves on the twin's replays of them (1.5e-4 against 3e-6 V^2/Hz), so the
+fitted load keeps it (:class:`~qube_koopman.sim.pendulum.load.RandomLoad`'s ``floor``, flat up to the
+fitted band's edge, where the logs stop telling it apart). :func:`fit_load` fits, by the Whittle likelihood of the
 episodes' periodograms below :data:`FIT_BAND` Hz, a first-order (Ornstein-Uhlenbeck) load plus a
 white floor, and a random walk plus a floor for comparison:
 
@@ -39,17 +44,22 @@ __all__ = ["FIT_BAND", "LoadFit", "reconstruct_load", "reconstruct_balance", "fi
 #: The band (Hz) whose periodogram bins the load's fit uses: above it the reconstruction is the
 #: differentiated encoders and the loop's fast dynamics, not a load.
 FIT_BAND = 1.0
-#: Savitzky-Golay window (samples) and order of the rates and accelerations: flat to about 5 Hz.
+#: Savitzky-Golay window (samples) and order of the smoothing: flat to about 5 Hz.
 _SG_WINDOW, _SG_ORDER = 51, 3
 #: Equivalent noise bandwidth of the Hann window, in bins.
 _HANN_ENBW = 1.5
 
 
+def _smooth(x: np.ndarray) -> np.ndarray:
+    """The one low-pass every signal of the reconstruction sees (encoders and voltage alike), so that a step
+    of the command and the arm's answer to it cancel as they do in the equation."""
+    return savgol_filter(x, _SG_WINDOW, _SG_ORDER, axis=0)
+
+
 def _derivatives(y: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    return (
-        savgol_filter(y, _SG_WINDOW, _SG_ORDER, deriv=1, delta=dt, axis=0),
-        savgol_filter(y, _SG_WINDOW, _SG_ORDER, deriv=2, delta=dt, axis=0),
-    )
+    """Rates and accelerations of the smoothed angles (central differences: exact at the frequencies fitted)."""
+    rate = np.gradient(y, dt, axis=0)
+    return rate, np.gradient(rate, dt, axis=0)
 
 
 def reconstruct_load(
@@ -77,8 +87,8 @@ def reconstruct_load(
     """
     k = Coefficients.of(params)
     y = np.asarray(states, float)[start:].copy()
-    u = np.asarray(voltage, float)[start:]
     y[:, 1] -= y[:, 1].mean()
+    y = _smooth(y)
     d1, d2 = _derivatives(y, dt)
     theta, alpha = y[:, 0], y[:, 1]
     td, ad, tdd, add = d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1]
@@ -90,8 +100,23 @@ def reconstruct_load(
         x = theta - k.arm_rest
         curve = k.cable_curvature
         known = known - k.arm_stiffness * (np.tanh(curve * x) / curve if curve else x)
-    motor = u - np.clip(u, -k.dead_zone, k.dead_zone)
-    return (inertia - known) / k.torque_per_volt - motor
+    return (inertia - known) / k.torque_per_volt - _motor_voltage(np.asarray(voltage, float), params, dt, start)
+
+
+def _motor_voltage(u: np.ndarray, params: PendulumParameters, dt: float, start: int) -> np.ndarray:
+    """What the motor saw around each sample from ``start``: the commands ``params.delay`` earlier (a fraction
+    of a sample splits the sample between two), past the dead zone, averaged over the samples either side
+    (a centred acceleration sees both)."""
+    samples = params.delay / dt
+    whole = int(math.floor(samples + 1e-12))
+    fraction = max(0.0, samples - whole)
+    padded = np.concatenate([np.full(whole + 2, u[0]), u])
+    now = padded[2 : len(padded) - whole]  # u[k - whole]
+    before = padded[1 : len(padded) - whole - 1]  # u[k - whole - 1]
+    held = (1 - fraction) * now + fraction * before
+    held = held - np.clip(held, -params.dead_zone, params.dead_zone)
+    centred = 0.5 * (held + np.concatenate([held[:1], held[:-1]]))
+    return _smooth(centred[start:])
 
 
 def reconstruct_balance(
@@ -103,6 +128,7 @@ def reconstruct_balance(
     k = Coefficients.of(params)
     y = np.asarray(states, float)[start:].copy()
     y[:, 1] -= y[:, 1].mean()
+    y = _smooth(y)
     d1, d2 = _derivatives(y, dt)
     alpha = y[:, 1]
     td, ad, tdd, add = d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1]
@@ -205,14 +231,18 @@ def fit_load(loads: Sequence[np.ndarray], dt: float, band: float = FIT_BAND) -> 
     sos = butter(2, 0.3, fs=1.0 / dt, output="sos")
     slow = math.sqrt(float(np.mean([np.var(sosfiltfilt(sos, np.asarray(d, float))) for d in loads])))
     likelihood = {"first-order": ll_ou, "random-walk": ll_rw}
-    if ll_rw > ll_ou:  # the walk explains the bins at least as well with one parameter fewer
+    if ll_rw > ll_ou + 1e-9 * abs(ll_ou):  # the walk explains the bins better (a tie: no load either way)
         q = math.exp(z_rw[0])
-        return LoadFit(
-            RandomLoad(q), {"diffusion": q * math.sqrt(cov_rw[0, 0])}, math.exp(z_rw[1]), likelihood, f.size, slow
-        )
-    q, tau = math.exp(z_ou[0]), math.exp(z_ou[1])
-    errors = {"diffusion": q * math.sqrt(cov_ou[0, 0]), "time_constant": tau * math.sqrt(cov_ou[1, 1])}
-    return LoadFit(RandomLoad(q, tau), errors, math.exp(z_ou[2]), likelihood, f.size, slow)
+        floor = math.exp(z_rw[1])
+        errors = {"diffusion": q * math.sqrt(cov_rw[0, 0]), "floor": floor * math.sqrt(cov_rw[1, 1])}
+        return LoadFit(RandomLoad(q, floor=floor, floor_corner=band), errors, floor, likelihood, f.size, slow)
+    q, tau, floor = (math.exp(v) for v in z_ou)
+    errors = {
+        "diffusion": q * math.sqrt(cov_ou[0, 0]),
+        "time_constant": tau * math.sqrt(cov_ou[1, 1]),
+        "floor": floor * math.sqrt(cov_ou[2, 2]),
+    }
+    return LoadFit(RandomLoad(q, tau, floor, band), errors, floor, likelihood, f.size, slow)
 
 
 def load_text(fits: dict) -> str:

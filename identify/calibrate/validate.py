@@ -287,6 +287,7 @@ def replay_episodes(
     n_draws: int = 8,
     seed: int = 0,
     load: RandomLoad | Sequence[RandomLoad | None] | None = None,
+    alpha_drift: RandomLoad | None = None,
 ) -> ReplayResult:
     """Closed-loop replay of logged episodes (``daq.episode.Episode``) through ``params``.
 
@@ -302,6 +303,8 @@ def replay_episodes(
     ``load``: a random torque on the arm (:class:`~qube_koopman.sim.pendulum.load.RandomLoad`), or
     one per episode (None for none): each replay draws its own load, seeded by ``seed``, so the
     scores are means over ``n_draws`` loads too. None: no load, exactly as before loads existed.
+    ``alpha_drift``: instead (or besides), a pendulum encoder zero that drifts as such a process
+    (its values in rad): the alternative entry point the calibration's evidence weighs.
     """
     if n_draws < 1:
         raise ValueError(f"n_draws must be at least 1, got {n_draws}")
@@ -325,7 +328,11 @@ def replay_episodes(
             [np.zeros((n_steps, n_draws)) if d is None else d.sample(n_steps, dt, rng, (n_draws,)) for d in each_load],
             axis=2,
         )
-    run = _replay_draws(episodes, us, draws, offsets, params, start, load=loads)
+    drift = None
+    if alpha_drift is not None:
+        n_steps = min(len(y) for y in ys) - start
+        drift = alpha_drift.sample(n_steps, dt, np.random.default_rng([seed, 2]), (n_draws, len(ys)))
+    run = _replay_draws(episodes, us, draws, offsets, params, start, load=loads, alpha_drift=drift)
     twin = np.concatenate([run.measurements, run.plant_input[..., None]], axis=-1)  # (time, draw, episode, 3)
     real = np.stack([np.column_stack([y[start:], u[start:]]) for y, u in zip(ys, us)], axis=1)
     ratio = (twin.std(axis=0) / real.std(axis=0)).mean(axis=0)
@@ -345,6 +352,7 @@ def _replay_draws(
     start: int,
     stop: int | None = None,
     load: np.ndarray | None = None,
+    alpha_drift: np.ndarray | None = None,
 ):
     """The closed loop from start states ``draws`` (n_draws, n_episodes, 4), one batch, over samples
     ``start:stop``; ``offsets`` broadcast to (n_draws, n_episodes); ``load`` (n_steps, n_draws,
@@ -372,6 +380,7 @@ def _replay_draws(
         alpha_offsets=np.broadcast_to(offsets, shape),
         past_voltages=per_draw(past) if len(past) else None,
         load=load,
+        alpha_drift=alpha_drift,
     )
 
 

@@ -67,6 +67,7 @@ def simulate_closed_loop(
     alpha_offsets=None,
     past_voltages=None,
     load=None,
+    alpha_drift=None,
 ) -> ClosedLoopRun:
     """Run the pendulum under a controller on the tracking error, for a batch of episodes.
 
@@ -107,6 +108,10 @@ def simulate_closed_loop(
         (the torque ``km / Rm`` times it): a random load's samples
         (:meth:`~qube_koopman.sim.pendulum.load.RandomLoad.sample`). None: no load, exactly the
         arithmetic without one.
+    alpha_drift : array_like of shape (n_steps, ...), optional
+        A pendulum encoder zero that moves during the episode (rad), added to ``alpha_offsets`` at
+        each step: the alternative to a load on the arm that the calibration's evidence weighs
+        (``docs/calibration.md``). None: a constant zero.
     """
     # The one controller, or the first of one per episode (all of its order, inputs and sample period).
     controllers: list[DiscreteStateSpace] | None = None
@@ -165,6 +170,12 @@ def simulate_closed_loop(
             raise ValueError(
                 f"load must have shape {(n_steps, *batch)} (a torque per step and episode), got {load.shape}"
             )
+    if alpha_drift is not None:
+        alpha_drift = np.asarray(alpha_drift, dtype=float)
+        if alpha_drift.shape != (n_steps, *batch):
+            raise ValueError(f"alpha_drift must have shape {(n_steps, *batch)}, got {alpha_drift.shape}")
+        base = 0.0 if alpha_offsets is None else np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)
+        drift_shift = np.stack(np.broadcast_arrays(0.0, base + alpha_drift), axis=-1)  # (n_steps, *batch, 2)
     comps = tuple(x[..., i] for i in range(4))
     shift = (
         None
@@ -172,6 +183,8 @@ def simulate_closed_loop(
         else np.stack(np.broadcast_arrays(0.0, np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)), axis=-1)
     )
     for step in range(n_steps):
+        if alpha_drift is not None:
+            shift = drift_shift[step]
         y = measure(states[step] if shift is None else states[step][..., :2] + shift, sensor, rng)
         e = r[step] - y
         if sees_feedforward:  # the controller's third input (core/CONTROLLER_FORMAT.md)

@@ -45,13 +45,23 @@ class RandomLoad:
     time_constant : float
         ``tau`` (s) over which the load forgets itself (first-order process); ``math.inf`` for a
         random walk.
+    floor : float
+        A faster part beside it (V^2/Hz, one-sided): its power spectral density, flat up to
+        ``floor_corner``, falling as ``1 / f^2`` above (a second first-order process, of time
+        constant ``1 / (2 pi floor_corner)``). Run backwards on the rig's logs, the arm's equation
+        leaves such a flat torque below 1 Hz, 50 times what it leaves on the twin's replays of the
+        same logs; above 1 Hz the logs cannot tell it from the twin's own small errors. 0: none.
+    floor_corner : float
+        Where the faster part's spectrum bends down (Hz).
     """
 
     diffusion: float
     time_constant: float = math.inf
+    floor: float = 0.0
+    floor_corner: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("diffusion", "time_constant"):
+        for name in ("diffusion", "time_constant", "floor", "floor_corner"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
                 raise ValueError(f"load {name} must be a number, got {value!r}")
@@ -64,6 +74,12 @@ class RandomLoad:
                 f"load time_constant must be positive seconds (at most {_MAX_TIME_CONSTANT:g}, or inf for a "
                 f"random walk), got {self.time_constant}"
             )
+        if not (0 <= self.floor <= _MAX_DIFFUSION):
+            raise ValueError(f"load floor must be between 0 and {_MAX_DIFFUSION:g} V^2/Hz, got {self.floor}")
+        if not (0 < self.floor_corner <= _MAX_DIFFUSION):
+            raise ValueError(
+                f"load floor_corner must be positive Hz (at most {_MAX_DIFFUSION:g}), got {self.floor_corner}"
+            )
 
     @property
     def kind(self) -> str:
@@ -75,13 +91,20 @@ class RandomLoad:
         """Stationary standard deviation (V) of a first-order load, ``q sqrt(tau / 2)``; inf for a random walk."""
         return self.diffusion * math.sqrt(self.time_constant / 2.0)
 
+    @property
+    def floor_time_constant(self) -> float:
+        """The faster part's time constant (s), ``1 / (2 pi floor_corner)``."""
+        return 1.0 / (2.0 * math.pi * self.floor_corner)
+
     def coefficients(self, dt: float) -> tuple[float, float, float]:
         """``(a, b, s0)``: ``d[k+1] = a d[k] + b w[k]`` with ``w`` standard normal, sampled exactly at ``dt``;
-        ``s0`` the standard deviation of ``d[0]`` (stationary; 0 for a random walk)."""
-        if math.isinf(self.time_constant):
-            return 1.0, self.diffusion * math.sqrt(dt), 0.0
-        a = math.exp(-dt / self.time_constant)
-        return a, self.std * math.sqrt(-math.expm1(-2.0 * dt / self.time_constant)), self.std
+        ``s0`` the standard deviation of ``d[0]`` (stationary; 0 for a random walk). The slow part's."""
+        return _first_order(self.diffusion, self.time_constant, dt)
+
+    def floor_coefficients(self, dt: float) -> tuple[float, float, float]:
+        """:meth:`coefficients` of the faster part (``floor``): its spectrum's level ``2 q^2 tau^2`` is the floor."""
+        tau = self.floor_time_constant
+        return _first_order(math.sqrt(self.floor / 2.0) / tau, tau, dt)
 
     def sample(self, n_steps: int, dt: float, rng: np.random.Generator, batch: tuple[int, ...] = ()) -> np.ndarray:
         """``n_steps`` samples of independent loads, one per element of ``batch``: shape (n_steps, *batch).
@@ -89,21 +112,36 @@ class RandomLoad:
         The same generator state gives the same loads (:class:`LoadStream` draws the same numbers
         one sample at a time).
         """
-        a, b, s0 = self.coefficients(dt)
         out = np.empty((n_steps, *batch))
         if n_steps == 0:
             return out
-        d = s0 * rng.standard_normal(batch)
-        w = rng.standard_normal((n_steps - 1, *batch)) * b
-        out[0] = d
+        parts = [self.coefficients(dt)] + ([self.floor_coefficients(dt)] if self.floor else [])
+        a = np.array([c[0] for c in parts])
+        d = np.stack([c[2] * rng.standard_normal(batch) for c in parts], axis=-1)
+        w = rng.standard_normal((n_steps - 1, *batch, len(parts))) * np.array([c[1] for c in parts])
+        out[0] = d.sum(axis=-1)
         for k in range(n_steps - 1):
             d = a * d + w[k]
-            out[k + 1] = d
+            out[k + 1] = d.sum(axis=-1)
         return out
 
     def to_dict(self) -> dict:
         """The load's settings as a log's metadata records them."""
-        return {"kind": self.kind, "diffusion": self.diffusion, "time_constant": self.time_constant}
+        return {
+            "kind": self.kind,
+            "diffusion": self.diffusion,
+            "time_constant": self.time_constant,
+            "floor": self.floor,
+            "floor_corner": self.floor_corner,
+        }
+
+
+def _first_order(q: float, tau: float, dt: float) -> tuple[float, float, float]:
+    """``(a, b, s0)`` of ``dd = -d / tau dt + q dW`` sampled exactly at ``dt`` (a random walk for infinite ``tau``)."""
+    if math.isinf(tau):
+        return 1.0, q * math.sqrt(dt), 0.0
+    std = q * math.sqrt(tau / 2.0)
+    return math.exp(-dt / tau), std * math.sqrt(-math.expm1(-2.0 * dt / tau)), std
 
 
 class LoadStream:
@@ -122,14 +160,20 @@ class LoadStream:
         self.load = load
         self.seed = int(seed)
         self._rng = np.random.default_rng(self.seed)
+        self._fast = bool(load.floor)
         self._a, self._b, s0 = load.coefficients(dt)
-        self._value = float(s0 * self._rng.standard_normal())
-        self._noise: list[float] = []
+        self._slow = float(s0 * self._rng.standard_normal())
+        self._af, self._bf, sf = load.floor_coefficients(dt) if self._fast else (0.0, 0.0, 0.0)
+        self._quick = float(sf * self._rng.standard_normal()) if self._fast else 0.0
+        self._value = self._slow + self._quick if self._fast else self._slow
+        self._noise: list = []
         self._at = 0
 
     def set_period(self, dt: float) -> None:
         """Sample at ``dt`` from the next sample on, keeping the current value."""
         self._a, self._b, _ = self.load.coefficients(dt)
+        if self._fast:
+            self._af, self._bf, _ = self.load.floor_coefficients(dt)
         self._noise, self._at = [], 0
 
     @property
@@ -140,8 +184,15 @@ class LoadStream:
     def advance(self) -> float:
         """Move on to the next sample; returns its load."""
         if self._at == len(self._noise):
-            self._noise = (self._rng.standard_normal(_BLOCK) * self._b).tolist()
+            shape = (_BLOCK, 2) if self._fast else (_BLOCK, 1)
+            self._noise = self._rng.standard_normal(shape).tolist()
             self._at = 0
-        self._value = self._a * self._value + self._noise[self._at]
+        w = self._noise[self._at]
         self._at += 1
+        self._slow = self._a * self._slow + self._b * w[0]
+        if not self._fast:
+            self._value = self._slow
+            return self._value
+        self._quick = self._af * self._quick + self._bf * w[1]
+        self._value = self._slow + self._quick
         return self._value

@@ -27,6 +27,8 @@
     [load]                  # optional: a random torque on the arm (absent: none)
     diffusion = 0.03        # V/sqrt(s) at the motor: the std of its change over 1 s
     time_constant = 2.5     # s: first-order (Ornstein-Uhlenbeck); inf: a random walk
+    floor = 0.0002          # V^2/Hz: a faster part, flat up to floor_corner (optional, default 0)
+    floor_corner = 1.0      # Hz (optional, default 1)
 
     [load_standard_errors]  # optional: the load's standard errors
     diffusion = 0.002
@@ -64,9 +66,9 @@ The ``[load]`` table is the arm's random load (:class:`~qube_koopman.sim.pendulu
 a torque in volts at the motor, past the amplifier's dead zone (``km / Rm`` N m per volt), whose
 statistics ``qube-calibrate`` estimates from the arm's equation run backwards on the logs. A file
 without it simulates no load, exactly as before the table existed; ``qube-run --no-load`` leaves it
-out. Its keys are ``diffusion`` and ``time_constant``, nothing else; ``[load_setups.DAY]`` holds a
-recording day's own load (the rig's load differed between its recording days, as its cables did),
-which a replay of a log of that day uses (:meth:`PlantFile.loads_for_logs`).
+out. Its keys are ``diffusion``, ``time_constant``, ``floor`` and ``floor_corner``, nothing else;
+``[load_setups.DAY]`` holds a recording day's own load (the rig's load differed between its
+recording days, as its cables did), which a replay of a log of that day uses (:meth:`PlantFile.loads_for_logs`).
 Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
@@ -121,7 +123,7 @@ MAX_PLANT_BYTES = 16 * 2**20
 _OLDER_FORMATS = {"qube-plant/1": {"cable_softening": 0.0}}
 
 #: The keys of the ``[load]`` table (:class:`RandomLoad`'s fields).
-_LOAD_KEYS = ("diffusion", "time_constant")
+_LOAD_KEYS = ("diffusion", "time_constant", "floor", "floor_corner")
 
 #: Seconds between two logs' starts beyond which the second starts a new recording session.
 SESSION_GAP = 600.0

@@ -38,8 +38,21 @@ def test_a_random_walk_starts_at_zero_and_its_variance_grows_by_the_diffusion_sq
     assert d[-1].var() == pytest.approx(0.2**2 * 2.0, rel=0.06)  # 1000 steps: 2 s
 
 
-def test_the_per_tick_stream_draws_the_samples_of_a_batch_of_one():
-    load = RandomLoad(0.05, 1.5)
+def test_the_floor_is_a_faster_part_flat_up_to_its_corner():
+    """Its variance is the flat level times (pi / 2) its corner; its spectrum below the corner is the level's
+    first-order roll-off, ``floor / (1 + (f / corner)^2)``."""
+    floor = RandomLoad(0.0, 1.0, floor=2e-4, floor_corner=1.0)
+    d = floor.sample(40000, DT, np.random.default_rng(3), (20,))
+    assert d.var() == pytest.approx(2e-4 * math.pi / 2, rel=0.05)
+    from scipy.signal import welch
+
+    f, p = welch(d, fs=1 / DT, nperseg=20000, axis=0)
+    band = (f > 0.05) & (f < 0.5)  # ~1000 periodogram estimates: their mean within 0.1 of the level
+    assert p[band].mean() == pytest.approx(np.mean(2e-4 / (1 + f[band] ** 2)), rel=0.1)
+
+
+@pytest.mark.parametrize("load", [RandomLoad(0.05, 1.5), RandomLoad(0.05, 1.5, floor=2e-4), RandomLoad(0.1)])
+def test_the_per_tick_stream_draws_the_samples_of_a_batch_of_one(load):
     batch = load.sample(9000, DT, np.random.default_rng(7))  # past two of the stream's blocks
     stream = LoadStream(load, DT, 7)
     ticks = [stream.value] + [stream.advance() for _ in range(8999)]
