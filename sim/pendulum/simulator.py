@@ -114,8 +114,9 @@ class PendulumSimulator:
         seed and restarts its samples).
         """
         if self._load is not None:
-            seed = self._load_stream.seed if load_seed is None else load_seed
-            self._load_stream = LoadStream(self._load, self.dt, seed)
+            if load_seed is None:
+                load_seed = 0 if self._load_stream is None else self._load_stream.seed
+            self._load_stream = LoadStream(self._load, self.dt, load_seed)
         values = tuple(float(v) for v in np.asarray(state, dtype=float).reshape(-1))
         if len(values) != 4 or not all(math.isfinite(v) for v in values):
             raise ValueError(f"state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), got {state!r}")
