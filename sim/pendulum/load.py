@@ -107,7 +107,7 @@ class RandomLoad:
         return _first_order(math.sqrt(self.floor / 2.0) / tau, tau, dt)
 
     def sample(self, n_steps: int, dt: float, rng: np.random.Generator, batch: tuple[int, ...] = ()) -> np.ndarray:
-        """``n_steps`` samples of independent loads, one per element of ``batch``: shape (n_steps, *batch).
+        """``n_steps`` samples of independent loads, one per element of ``batch``: shape ``(n_steps, *batch)``.
 
         The same generator state gives the same loads (:class:`LoadStream` draws the same numbers
         one sample at a time).
