@@ -86,6 +86,9 @@ class EpisodePlan:
     plant : PendulumParameters, optional
         On a simulated backend, the pendulum this episode runs (``qube-run --replay``: the replayed
         log's twin, with its recording day's cables and its session's delay); None: the backend's.
+    load : RandomLoad, optional
+        On a simulated backend, the random load on the arm this episode runs with (``qube-run --replay``:
+        the replayed log's recording day's load); None: the backend's.
     swing_up : SwingUp, optional
         Swing the pendulum up from hanging before the episode (instead of waiting for it to be
         raised to the start gate); None: the start gate.
@@ -99,6 +102,7 @@ class EpisodePlan:
     extra: dict = field(default_factory=dict)
     plant: Any = None
     swing_up: SwingUp | None = None
+    load: Any = None
 
     @property
     def n_samples(self) -> int:
@@ -377,6 +381,8 @@ def run_episode(
         times = _TickTimes(period, timing)
         if plan.plant is not None and hasattr(backend, "use_plant"):
             backend.use_plant(plan.plant)
+        if plan.load is not None and hasattr(backend, "use_load"):
+            backend.use_load(plan.load)
         reason, cause, swing = _start(backend, plan, limits, stop, pacer)
         if reason and cause != "swing-up":
             return EpisodeResult(

@@ -36,13 +36,16 @@ def replay_plans(
     controller: ControllerInfo | None = None,
     source: str = "qube-run --replay",
     twins: Callable[[list], list] | None = None,
+    loads: Callable[[list], list] | None = None,
 ) -> list[EpisodePlan]:
     """One plan per log: its excitation regenerated, under ``controller`` or the log's own.
 
     ``twins`` maps the logs' start times to the pendulum each replays on (a plant file's
     :meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.params_for_logs`: each log's
     recording day's cables and its session's delay), set as the plans' ``plant``; None leaves the
-    backend's.
+    backend's. ``loads`` likewise maps them to each replay's random load on the arm (a plant file's
+    :meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.loads_for_logs`: each log's recording
+    day's load), set as the plans' ``load``.
 
     Raises
     ------
@@ -80,4 +83,6 @@ def replay_plans(
         starts.append(meta.start_time)
     if twins is not None:
         plans = [replace(plan, plant=twin) for plan, twin in zip(plans, twins(starts))]
+    if loads is not None:
+        plans = [replace(plan, load=load) for plan, load in zip(plans, loads(starts))]
     return plans

@@ -29,6 +29,7 @@ from qube_koopman.sim.pendulum import (
     SAMPLE_PERIOD,
     PendulumParameters,
     PendulumSimulator,
+    RandomLoad,
     SensorModel,
     ZeroOffsetDistribution,
 )
@@ -67,6 +68,10 @@ class SimBackend(Backend):
     start : {"upright", "hanging"}
         Where each episode's pendulum starts: upright (alpha = the perturbation), or hanging
         (alpha = pi + the perturbation) for an episode that swings it up.
+    load : RandomLoad, optional
+        A random torque on the arm (a plant file's ``[load]``); each episode's load has its own
+        seed, drawn after the episode's other draws (so without a load every draw is as before),
+        and the log records it (``extra.backend.load``). None: no load.
     """
 
     name = "sim"
@@ -83,6 +88,7 @@ class SimBackend(Backend):
         realtime: bool = False,
         dt: float = SAMPLE_PERIOD,
         start: str = "upright",
+        load: RandomLoad | None = None,
     ) -> None:
         if start not in STARTS:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, got {start!r}")
@@ -99,7 +105,8 @@ class SimBackend(Backend):
         self.start_at = start
         self._rng = np.random.default_rng(seed)
         noise_seed = int(self._rng.integers(2**63))
-        self._sim = PendulumSimulator(params, sensor, dt=dt, seed=noise_seed)
+        self.load = load
+        self._sim = PendulumSimulator(params, sensor, dt=dt, seed=noise_seed, load=load)
         self._y = self._sim.measurement
         self._initial_state = (0.0, 0.0, 0.0, 0.0)
         self._running = False
@@ -109,22 +116,29 @@ class SimBackend(Backend):
         self.params = params
         self._sim.params = params
 
+    def use_load(self, load: RandomLoad | None) -> None:
+        """Run with ``load`` on the arm from the next :meth:`start` on (a replayed log's day's load); None: none."""
+        self.load = load
+        self._sim.load = load
+
     def start(self) -> None:
         """Reset the pendulum at rest, upright or hanging, with a fresh random perturbation and encoder zero."""
-        alpha0, offset = self._start_draws()
+        alpha0, offset, load_seed = self._start_draws()
         if self.start_at == "hanging":
             alpha0 += math.pi
         self._initial_state = (0.0, alpha0, 0.0, 0.0)
         if offset is not None:
             self._sim.sensor = replace(self.sensor, alpha_offset=offset)
-        self._y = self._sim.reset(self._initial_state)
+        self._y = self._sim.reset(self._initial_state, load_seed=load_seed)
         self._running = True
 
-    def _start_draws(self) -> tuple[float, float | None]:
-        """An episode's random start: its initial alpha and pendulum encoder zero (None: the sensor's)."""
+    def _start_draws(self) -> tuple[float, float | None, int | None]:
+        """An episode's random start: its initial alpha, pendulum encoder zero (None: the sensor's) and
+        load seed (None without a load: no draw, so a run without a load draws as before loads existed)."""
         alpha0 = float(self._rng.uniform(-self.perturbation, self.perturbation))
         offset = None if self.zero_offsets is None else self.zero_offsets.draw(self._rng)
-        return alpha0, offset
+        load_seed = None if self.load is None else int(self._rng.integers(2**63))
+        return alpha0, offset, load_seed
 
     def skip_episode(self) -> None:
         """Make one episode's random draws without running it: the next :meth:`start` is the next episode's.
@@ -184,5 +198,6 @@ class SimBackend(Backend):
             "params": asdict(self.params),
             "sensor": asdict(self._sim.sensor),
             "zero_offsets": offsets,
+            "load": None if self.load is None else {**self.load.to_dict(), "seed": self._sim.load_seed},
             "sample_period": self.sample_period,
         }

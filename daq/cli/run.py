@@ -248,6 +248,12 @@ def build_parser() -> argparse.ArgumentParser:
         "'calibrated-two-controllers'; 'calibrated-20230828': on the rig's gains alone; "
         "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)",
     )
+    safety.add_argument(
+        "--no-load",
+        action="store_true",
+        help="leave out the plant file's random load on the arm (its [load] table): the twin without "
+        "it, exactly as a plant file without the table (the shipped twin has none)",
+    )
     link = p.add_argument_group("serial bridge (--backend serial)")
     link.add_argument(
         "--port",
@@ -336,6 +342,8 @@ def _check_backend_options(args) -> None:
             raise CliError("--realtime is for --backend sim: the bridge's clock paces the serial backend")
         if args.plant is not None:
             raise CliError("--plant is for --backend sim: the serial backend drives a real (or emulated) pendulum")
+        if args.no_load:
+            raise CliError("--no-load is for --backend sim: the serial backend drives a real (or emulated) pendulum")
     elif args.check:
         raise CliError("--check is for --backend serial (the pre-flight of the real rig)")
     elif args.port is not None or args.baud is not None or args.link_timeout is not None:
@@ -381,11 +389,14 @@ def _replay(args, rate: float, swing_up=None):
     controller = None
     if args.controller is not None:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
-    twins = None
+    twins = loads = None
     if args.backend == "sim":  # each log on its recording day's twin, when the plant file knows the day
-        twins = _load_plant_file(args.plant).params_for_logs
+        plant = _load_plant_file(args.plant)
+        twins = plant.params_for_logs
+        if plant.load is not None and not args.no_load:  # and with its day's load, when the file has one
+            loads = plant.loads_for_logs
     try:
-        plans = replay_plans(args.replay, controller, twins=twins)
+        plans = replay_plans(args.replay, controller, twins=twins, loads=loads)
     except ValueError as exc:
         raise CliError(f"{exc} (--replay)") from None
     if swing_up is not None:
@@ -419,9 +430,10 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
     if args.backend == "sim":
         from qube_koopman.daq.backends import SimBackend
 
-        params = _load_plant(args.plant)
+        plant = _load_plant_file(args.plant)
         return SimBackend(
-            params=params,
+            params=plant.params,
+            load=None if args.no_load else plant.load,
             perturbation=math.radians(args.perturbation),
             seed=backend_seed,
             realtime=args.realtime,

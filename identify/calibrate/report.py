@@ -158,6 +158,45 @@ def controller_summary_text(groups: list, dt: float) -> str:
     return "\n".join(lines) + "\n"
 
 
+def load_bands_text(groups: list, dt: float) -> str:
+    """Markdown: per controller, the replay's std ratios overall and by band with the random load off and on.
+
+    Parameters
+    ----------
+    groups : list of (str, validate.ReplayResult, validate.ReplayResult)
+        Each controller's label and the replays of its validation episodes without and with the load;
+        every band's twin power is the mean over the replays (their start angles, and the load's
+        draws), the ratio the median over episodes.
+    dt : float
+        Sample period (s).
+    """
+    from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios
+
+    bands = [f"{lo:g}-{hi:g} Hz" if np.isfinite(hi) else f"above {lo:g} Hz" for lo, hi in STD_BANDS]
+    lines = [
+        "## Replay with the arm's random load: std ratio twin / real, median over episodes",
+        "",
+        "Each cell gives theta / alpha / voltage; each episode's twin band power is the mean over its "
+        "replays (each with its own draw of the load).",
+        "",
+        "| controller | load | overall | " + " | ".join(bands) + " |",
+        "|---" * (3 + len(bands)) + "|",
+    ]
+
+    def cell(v):
+        return " / ".join(f"{x:.3f}" for x in v)
+
+    for label, off, on in groups:
+        for name, replay in (("off", off), ("on", on)):
+            band = band_std_ratios(replay, dt, all_draws=True)
+            lines.append(
+                f"| {label} | {name} | {cell(np.median(replay.std_ratio, axis=0))} | "
+                + " | ".join(cell(row) for row in band)
+                + " |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 def write_report(folder: Path, text: str, validation=None, dt: float | None = None) -> list[Path]:
     """Write ``report.md`` and, with validation and rerun-sdk, ``calibration.rrd`` in ``folder``.
 

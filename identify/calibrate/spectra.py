@@ -130,7 +130,11 @@ def band_power_ratios(spectra: ReplaySpectra, bands: Sequence[tuple[float, float
 
 
 def band_std_ratios(
-    replay, dt: float, bands: Sequence[tuple[float, float]] = STD_BANDS, nperseg: int = STD_NPERSEG
+    replay,
+    dt: float,
+    bands: Sequence[tuple[float, float]] = STD_BANDS,
+    nperseg: int = STD_NPERSEG,
+    all_draws: bool = False,
 ) -> np.ndarray:
     """Standard deviation ratio twin / real of each channel within each band: the median over episodes.
 
@@ -147,6 +151,9 @@ def band_std_ratios(
         Band edges (Hz), default :data:`STD_BANDS`.
     nperseg : int, optional
         Welch segment length (shortened to the episode's length).
+    all_draws : bool, optional
+        Average each episode's twin band power over all its replays (``replay.twins``: the draws of
+        start angle and of a random load) before the ratio; by default the first replay's.
 
     Returns
     -------
@@ -156,6 +163,10 @@ def band_std_ratios(
     spectra = replay_spectra(replay, dt, nperseg)
     real = band_powers(spectra.frequency, spectra.real, bands)
     twin = band_powers(spectra.frequency, spectra.twin, bands)
+    if all_draws and getattr(replay, "twins", None) is not None:  # every replay's band power, averaged
+        n = min(int(nperseg), replay.real.shape[0])
+        frequency, psd = welch(np.asarray(replay.twins, float), fs=1.0 / dt, nperseg=n, axis=0)
+        twin = band_powers(frequency, psd, bands).mean(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.median(np.sqrt(twin / real), axis=1)
 

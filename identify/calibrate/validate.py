@@ -36,7 +36,7 @@ from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
 from qube_koopman.identify.calibrate import shooting as ms
 from qube_koopman.identify.calibrate.fit import ENCODER_SIGMA
 from qube_koopman.identify.calibrate.solver import levenberg_marquardt
-from qube_koopman.sim.pendulum import PendulumParameters, simulate_closed_loop
+from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad, simulate_closed_loop
 from qube_koopman.sim.pendulum.sensor import COUNTS_PER_REV
 
 ENCODER_COUNT = 2 * math.pi / COUNTS_PER_REV  # rad: one count of the rig's encoders
@@ -265,6 +265,9 @@ class ReplayResult:
     twin : ndarray (n_steps, n, 3)
         The twin's theta, alpha (measured) and voltage of the replay from the
         measured start; ``real`` the log's.
+    twins : ndarray (n_steps, n_draws, n, 3) or None
+        Every replay's (``twin`` is the first); :func:`~qube_koopman.identify.calibrate.spectra.band_std_ratios`
+        averages the band powers over them.
     """
 
     std_ratio: np.ndarray
@@ -273,6 +276,7 @@ class ReplayResult:
     offsets: np.ndarray
     twin: np.ndarray
     real: np.ndarray
+    twins: np.ndarray | None = None
 
 
 def replay_episodes(
@@ -282,6 +286,8 @@ def replay_episodes(
     offset_window: int = 500,
     n_draws: int = 8,
     seed: int = 0,
+    load: RandomLoad | Sequence[RandomLoad | None] | None = None,
+    alpha_drift: RandomLoad | None = None,
 ) -> ReplayResult:
     """Closed-loop replay of logged episodes (``daq.episode.Episode``) through ``params``.
 
@@ -292,7 +298,13 @@ def replay_episodes(
     measured start): ``std_ratio`` and ``nrmse`` are means over the draws,
     ``balanced`` requires every draw to stay up, ``twin`` is the first draw. Each episode's
     pendulum encoder offset is the closed loop's over its first ``offset_window`` samples from
-    ``start`` (:func:`estimate_offset_closed_loop`).
+    ``start`` (:func:`estimate_offset_closed_loop`, without a load).
+
+    ``load``: a random torque on the arm (:class:`~qube_koopman.sim.pendulum.load.RandomLoad`), or
+    one per episode (None for none): each replay draws its own load, seeded by ``seed``, so the
+    scores are means over ``n_draws`` loads too. None: no load, exactly as before loads existed.
+    ``alpha_drift``: instead (or besides), a pendulum encoder zero that drifts as such a process
+    (its values in rad): the alternative entry point the calibration's evidence weighs.
     """
     if n_draws < 1:
         raise ValueError(f"n_draws must be at least 1, got {n_draws}")
@@ -305,7 +317,22 @@ def replay_episodes(
     state0 = np.stack([np.concatenate([y[start] - [0.0, o], _rates(y, dt)[start]]) for y, o in zip(ys, offsets)])
     draws = np.repeat(state0[None], n_draws, axis=0)
     draws[1:, :, :2] += np.random.default_rng(seed).uniform(-0.5, 0.5, (n_draws - 1, len(ys), 2)) * ENCODER_COUNT
-    run = _replay_draws(episodes, us, draws, offsets, params, start)
+    loads = None
+    if load is not None:
+        each_load = [load] * len(ys) if isinstance(load, RandomLoad) else list(load)
+        if len(each_load) != len(ys):
+            raise ValueError(f"{len(each_load)} loads for {len(ys)} episodes: give one, or one per episode")
+        n_steps = min(len(y) for y in ys) - start
+        rng = np.random.default_rng([seed, 1])  # a stream of its own: the start draws stay as without a load
+        loads = np.stack(
+            [np.zeros((n_steps, n_draws)) if d is None else d.sample(n_steps, dt, rng, (n_draws,)) for d in each_load],
+            axis=2,
+        )
+    drift = None
+    if alpha_drift is not None:
+        n_steps = min(len(y) for y in ys) - start
+        drift = alpha_drift.sample(n_steps, dt, np.random.default_rng([seed, 2]), (n_draws, len(ys)))
+    run = _replay_draws(episodes, us, draws, offsets, params, start, load=loads, alpha_drift=drift)
     twin = np.concatenate([run.measurements, run.plant_input[..., None]], axis=-1)  # (time, draw, episode, 3)
     real = np.stack([np.column_stack([y[start:], u[start:]]) for y, u in zip(ys, us)], axis=1)
     ratio = (twin.std(axis=0) / real.std(axis=0)).mean(axis=0)
@@ -313,7 +340,7 @@ def replay_episodes(
     balanced = np.all((peak[..., 0] < THETA_LIMIT) & (peak[..., 1] < ALPHA_LIMIT), axis=0)
     rmse = np.sqrt(np.mean((twin[..., :2] - real[:, None, :, :2]) ** 2, axis=0))
     nrmse = 100 * np.mean(rmse / np.max(np.abs(real[..., :2]), axis=0), axis=(0, 2))
-    return ReplayResult(ratio, balanced, nrmse, offsets, twin[:, 0], real)
+    return ReplayResult(ratio, balanced, nrmse, offsets, twin[:, 0], real, twin)
 
 
 def _replay_draws(
@@ -324,9 +351,12 @@ def _replay_draws(
     params: PendulumParameters | Sequence[PendulumParameters],
     start: int,
     stop: int | None = None,
+    load: np.ndarray | None = None,
+    alpha_drift: np.ndarray | None = None,
 ):
     """The closed loop from start states ``draws`` (n_draws, n_episodes, 4), one batch, over samples
-    ``start:stop``; ``offsets`` broadcast to (n_draws, n_episodes)."""
+    ``start:stop``; ``offsets`` broadcast to (n_draws, n_episodes); ``load`` (n_steps, n_draws,
+    n_episodes) a torque on the arm (V at the motor) or None."""
     shape = draws.shape[:2]
 
     def per_draw(a: np.ndarray) -> np.ndarray:  # (time, episode, ...) -> (time, draw, episode, ...)
@@ -349,6 +379,8 @@ def _replay_draws(
         max_voltage=max(max_v, 1e-3),
         alpha_offsets=np.broadcast_to(offsets, shape),
         past_voltages=per_draw(past) if len(past) else None,
+        load=load,
+        alpha_drift=alpha_drift,
     )
 
 

@@ -108,6 +108,14 @@ def _parser() -> argparse.ArgumentParser:
         "recording session (logs started less than 10 minutes apart: the host's latency); none: one value "
         "of each for all logs. A replay of a log recorded then uses its setups' values",
     )
+    p.add_argument(
+        "--load",
+        action="store_true",
+        help="also estimate the arm's random load (a slow torque at the motor, first-order or random walk) "
+        "from the fitted logs, per recording day and over all of them, by the arm's equation run backwards "
+        "and a spectral fit; write it into the plant file's [load] tables, and with validation replay the "
+        "held-out logs with it too (band table, load off beside on)",
+    )
     add_force_option(p)
     add_standard_options(p, "no progress line")
     return p
@@ -206,6 +214,8 @@ def _run(args) -> int:
     seconds = time.perf_counter() - started
     names = [p.name for p in fit_paths]
     text = calibration_text(cal, names, seconds, fit_groups)
+    if args.load:
+        text += "\n" + _fit_loads(episodes, plant)
     provenance = {
         "source": "qube-calibrate",
         "logs": names,
@@ -271,6 +281,33 @@ def _run(args) -> int:
     return 0
 
 
+def _fit_loads(episodes, plant) -> str:
+    """Estimate the arm's random load from the fitted logs (each on its own twin) into ``plant``: over all
+    of them (``[load]``) and per recording day (``[load_setups]``, with two days or more); the report's text."""
+    from qube_koopman.identify.calibrate.load import fit_load, load_text, reconstruct_load
+    from qube_koopman.sim.pendulum.params_file import recording_day
+
+    starts = [e.metadata.start_time for e in episodes]
+    twins = plant.params_for_logs(starts)
+    loads = [reconstruct_load(e.states, e.plant_input, p, e.dt) for e, p in zip(episodes, twins)]
+    days: dict[str, list[int]] = {}
+    for i, t in enumerate(starts):
+        days.setdefault(recording_day(t), []).append(i)
+    dt = episodes[0].dt
+    try:
+        fits = {f"all {len(loads)} logs": fit_load(loads, dt)}
+        if len(days) > 1:
+            fits.update({day: fit_load([loads[i] for i in members], dt) for day, members in days.items()})
+    except ValueError as exc:
+        raise CliError(f"--load: {exc}") from None
+    central = next(iter(fits.values()))
+    plant.load, plant.load_standard_errors = central.load, central.standard_errors
+    if len(days) > 1:
+        plant.load_setups = {day: fits[day].load for day in days}
+        plant.load_setup_standard_errors = {day: fits[day].standard_errors for day in days}
+    return load_text(fits)
+
+
 def _check_finite(cal, out) -> None:
     """Refuse to write a plant whose fitted values or standard errors are not finite numbers."""
     values = {name: getattr(cal.params_, name) for name in cal.standard_errors_}
@@ -326,7 +363,8 @@ def _validate(held, paths, plant, refitted=frozenset()):
     groups = controller_groups(held)
     several = len(groups) > 1
     twins = plant.params_for_logs([e.metadata.start_time for e in held])
-    out, text = [], ""
+    loads = plant.loads_for_logs([e.metadata.start_time for e in held])
+    out, text, with_load = [], "", []
     for label, members in groups:
         episodes = [held[i] for i in members]
         params = [twins[i] for i in members]
@@ -335,8 +373,14 @@ def _validate(held, paths, plant, refitted=frozenset()):
         out.append((replay, open_loop, [paths[i].name for i in members], label))
         fitted = sum(paths[i] in refitted for i in members)
         text += "\n" + validation_text(*out[-1][:3], controller=label if several else None, fitted=fitted)
+        if plant.load is not None:
+            with_load.append((label, replay, replay_episodes(episodes, params, load=[loads[i] for i in members])))
     dt = held[0].dt
     text += "\n" + controller_summary_text([(v[3], v[0]) for v in out], dt)
+    if with_load:
+        from qube_koopman.identify.calibrate.report import load_bands_text
+
+        text += "\n" + load_bands_text(with_load, dt)
     return out, dt, text
 
 

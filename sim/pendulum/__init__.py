@@ -1,6 +1,7 @@
 """The QUBE-Servo rotary inverted pendulum: model, encoders and a per-tick simulator."""
 
 from qube_koopman.sim.pendulum.closed_loop import ClosedLoopRun, simulate_closed_loop
+from qube_koopman.sim.pendulum.load import LoadStream, RandomLoad
 from qube_koopman.sim.pendulum.model import (
     SAMPLE_PERIOD,
     PendulumParameters,
@@ -16,6 +17,8 @@ from qube_koopman.sim.pendulum.simulator import PendulumSimulator
 
 __all__ = [
     "ClosedLoopRun",
+    "LoadStream",
+    "RandomLoad",
     "SAMPLE_PERIOD",
     "PendulumParameters",
     "PendulumSimulator",

@@ -66,6 +66,8 @@ def simulate_closed_loop(
     rng: np.random.Generator | None = None,
     alpha_offsets=None,
     past_voltages=None,
+    load=None,
+    alpha_drift=None,
 ) -> ClosedLoopRun:
     """Run the pendulum under a controller on the tracking error, for a batch of episodes.
 
@@ -101,6 +103,15 @@ def simulate_closed_loop(
     past_voltages : array_like of shape (n_past, ...), optional
         Commands before the first step, oldest first, that a transport delay
         (``params.delay``) still applies; zero volts by default.
+    load : array_like of shape (n_steps, ...), optional
+        A torque on the arm over each step, in volts at the motor past the amplifier's dead zone
+        (the torque ``km / Rm`` times it): a random load's samples
+        (:meth:`~qube_koopman.sim.pendulum.load.RandomLoad.sample`). None: no load, exactly the
+        arithmetic without one.
+    alpha_drift : array_like of shape (n_steps, ...), optional
+        A pendulum encoder zero that moves during the episode (rad), added to ``alpha_offsets`` at
+        each step: the alternative to a load on the arm that the calibration's evidence weighs
+        (``docs/calibration.md``). None: a constant zero.
     """
     # The one controller, or the first of one per episode (all of its order, inputs and sample period).
     controllers: list[DiscreteStateSpace] | None = None
@@ -153,6 +164,18 @@ def simulate_closed_loop(
         raise ValueError(f"past_voltages must have shape (n_past, *{batch}), got {past.shape}")
     history = list(np.broadcast_to(past, (past.shape[0], *batch))[-(whole + 1) :])
     history = [history[0]] * (whole + 1 - len(history)) + history  # oldest first, whole + 1 commands
+    if load is not None:
+        load = np.asarray(load, dtype=float)
+        if load.shape != (n_steps, *batch):
+            raise ValueError(
+                f"load must have shape {(n_steps, *batch)} (a torque per step and episode), got {load.shape}"
+            )
+    if alpha_drift is not None:
+        alpha_drift = np.asarray(alpha_drift, dtype=float)
+        if alpha_drift.shape != (n_steps, *batch):
+            raise ValueError(f"alpha_drift must have shape {(n_steps, *batch)}, got {alpha_drift.shape}")
+        base = 0.0 if alpha_offsets is None else np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)
+        drift_shift = np.stack(np.broadcast_arrays(0.0, base + alpha_drift), axis=-1)  # (n_steps, *batch, 2)
     comps = tuple(x[..., i] for i in range(4))
     shift = (
         None
@@ -160,6 +183,8 @@ def simulate_closed_loop(
         else np.stack(np.broadcast_arrays(0.0, np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)), axis=-1)
     )
     for step in range(n_steps):
+        if alpha_drift is not None:
+            shift = drift_shift[step]
         y = measure(states[step] if shift is None else states[step][..., :2] + shift, sensor, rng)
         e = r[step] - y
         if sees_feedforward:  # the controller's third input (core/CONTROLLER_FORMAT.md)
@@ -185,7 +210,9 @@ def simulate_closed_loop(
             held = np.stack(history)
             previous = np.take_along_axis(held, (len(history) - wholes - 2)[None], 0)[0]
             current = np.take_along_axis(held, (len(history) - wholes - 1)[None], 0)[0]
-        comps = advance(comps, previous, current, weights, h, k, np.sin, np.cos, rk4)
+        comps = advance(
+            comps, previous, current, weights, h, k, np.sin, np.cos, rk4, None if load is None else load[step]
+        )
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)

@@ -340,11 +340,14 @@ def array_rk4(k: Coefficients) -> Callable:
     ``rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n)`` returns what ``_rk4(..., k, np.sin,
     np.cos)`` does, bit for bit: the same arithmetic, without testing at every stage which terms
     are on (at a few episodes a batch's step costs numpy's per-call overhead, not arithmetic).
+    ``rk4(..., load=d)`` adds a torque on the arm, ``d`` volts at the motor past the dead zone.
     """
     accelerations = partial(_accelerations, k=k, tanh=np.tanh, terms=_terms(k, np.tanh))
 
-    def rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n):
+    def rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n, load=None):
         voltage = _motor_voltage(voltage, k)
+        if load is not None:  # a random torque on the arm (volts at the motor): past the dead zone
+            voltage = voltage + load
         return _rk4_steps(theta, alpha, theta_dot, alpha_dot, voltage, h, n, accelerations, np.sin, np.cos)
 
     return rk4
@@ -384,7 +387,8 @@ def scalar_rk4(k: Coefficients) -> Callable:
 
     ``rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n)`` does the same operations in the
     same order as ``_rk4(..., k, math.sin, math.cos)`` (the same :func:`_rk4_steps`), so it returns
-    the same floats, bit for bit (tests/sim/test_pendulum.py); the per-tick simulator steps 500
+    the same floats, bit for bit (tests/sim/test_pendulum.py); ``rk4(..., load=d)`` adds a torque on
+    the arm, ``d`` volts at the motor past the dead zone. The per-tick simulator steps 500
     times a simulated second and spent most of each step looking up coefficients and testing which
     terms are on.
     """
@@ -420,9 +424,11 @@ def scalar_rk4(k: Coefficients) -> Callable:
         det = m11 * m22 - m12 * m12
         return (m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
 
-    def rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n):
+    def rk4(theta, alpha, theta_dot, alpha_dot, voltage, h, n, load=None):
         if has_dead_zone:
             voltage = voltage - min(max(voltage, -dead_zone), dead_zone)
+        if load is not None:
+            voltage = voltage + load
         return _rk4_steps(theta, alpha, theta_dot, alpha_dot, voltage, h, n, accelerations, sin, cos)
 
     return rk4
@@ -473,13 +479,21 @@ def advance(
     sin: Callable,
     cos: Callable,
     rk4: Callable | None = None,
+    load=None,
 ):
     """One sample of ``len(weights)`` RK4 substeps: ``previous`` command held first, then ``current``.
 
-    ``rk4``: ``k``'s :func:`scalar_rk4`, for one pendulum in Python floats (the same floats, faster).
+    ``rk4``: ``k``'s :func:`scalar_rk4` or :func:`array_rk4` (the same floats, faster). ``load``: a
+    torque on the arm over the sample, in volts at the motor past the dead zone
+    (:class:`~qube_koopman.sim.pendulum.load.RandomLoad`; needs ``rk4``); None: exactly the
+    arithmetic without it.
     """
     if rk4 is None:
+        if load is not None:
+            raise ValueError("a load needs the integrator of scalar_rk4 or array_rk4")
         rk4 = partial(_rk4, k=k, sin=sin, cos=cos)
+    if load is not None:  # the same integrator with the load bound: each substep sees it
+        rk4 = partial(rk4, load=load)
     theta, alpha, theta_dot, alpha_dot = comps
     # (Weights are floats, or arrays of one per episode when the episodes' delays differ.)
     fractional = any(w.any() for w in weights) if isinstance(weights[0], np.ndarray) else any(weights)

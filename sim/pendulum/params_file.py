@@ -24,6 +24,23 @@
     [setup_standard_errors."2023-09-15"]
     Kr = 4e-6
 
+    [load]                  # optional: a random torque on the arm (absent: none)
+    diffusion = 0.03        # V/sqrt(s) at the motor: the std of its change over 1 s
+    time_constant = 2.5     # s: first-order (Ornstein-Uhlenbeck); inf: a random walk
+    floor = 0.0002          # V^2/Hz: a faster part, flat up to floor_corner (optional, default 0)
+    floor_corner = 1.0      # Hz (optional, default 1)
+
+    [load_standard_errors]  # optional: the load's standard errors
+    diffusion = 0.002
+    time_constant = 0.3
+
+    [load_setups."2023-09-15"]   # optional: a recording day's own load (its logs replay with it)
+    diffusion = 0.09
+    time_constant = 0.55
+
+    [load_setup_standard_errors."2023-09-15"]
+    diffusion = 0.02
+
     [provenance]            # optional, free-form: where the numbers came from
     source = "qube-calibrate"
     logs = ["episodes/ep_001.mcap", ...]
@@ -45,6 +62,13 @@ from a command to the motor changes with the session (0.6 to 4.1 ms in four). ``
 fits those per day and per session with the rest of the physics shared; a replay of a log recorded
 then uses them (:meth:`PlantFile.params_for`), and ``[parameters]`` holds the central guess for a
 day or session no log shows.
+The ``[load]`` table is the arm's random load (:class:`~qube_koopman.sim.pendulum.load.RandomLoad`):
+a torque in volts at the motor, past the amplifier's dead zone (``km / Rm`` N m per volt), whose
+statistics ``qube-calibrate`` estimates from the arm's equation run backwards on the logs. A file
+without it simulates no load, exactly as before the table existed; ``qube-run --no-load`` leaves it
+out. Its keys are ``diffusion``, ``time_constant``, ``floor`` and ``floor_corner``, nothing else;
+``[load_setups.DAY]`` holds a recording day's own load (the rig's load differed between its
+recording days, as its cables did), which a replay of a log of that day uses (:meth:`PlantFile.loads_for_logs`).
 Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
@@ -70,6 +94,7 @@ from dataclasses import asdict, fields, replace
 from pathlib import Path
 from typing import Sequence
 
+from qube_koopman.sim.pendulum.load import RandomLoad
 from qube_koopman.sim.pendulum.model import PendulumParameters
 from qube_koopman.core.files import atomic_path, loads_toml, read_bounded_text
 
@@ -96,6 +121,9 @@ FORMAT = "qube-plant/2"
 MAX_PLANT_BYTES = 16 * 2**20
 #: Earlier formats still read, with what each lacked (the physics it was written with).
 _OLDER_FORMATS = {"qube-plant/1": {"cable_softening": 0.0}}
+
+#: The keys of the ``[load]`` table (:class:`RandomLoad`'s fields).
+_LOAD_KEYS = ("diffusion", "time_constant", "floor", "floor_corner")
 
 #: Seconds between two logs' starts beyond which the second starts a new recording session.
 SESSION_GAP = 600.0
@@ -205,7 +233,30 @@ class PlantFile:
         ``YYYY-MM-DD HH:MM:SS-HH:MM:SS``), the parameters that differed then.
     setup_standard_errors : dict of str to dict of str to float, optional
         Their standard errors.
+    load : RandomLoad, optional
+        The random torque on the arm (the ``[load]`` table); None: no load.
+    load_standard_errors : dict of str to float, optional
+        Its parameters' standard errors.
+    load_setups : dict of str to RandomLoad, optional
+        A recording day's (``YYYY-MM-DD``) own load.
+    load_setup_standard_errors : dict of str to dict of str to float, optional
+        Their standard errors.
     """
+
+    def loads_for_logs(self, start_times: Sequence[str | None]) -> list[RandomLoad | None]:
+        """The random load of each log's replay: its recording day's (``load_setups``) or the central one.
+
+        Parameters
+        ----------
+        start_times : sequence of str or None
+            The logs' starts (ISO 8601, as logged).
+
+        Returns
+        -------
+        list of RandomLoad or None
+            None where the file has no load.
+        """
+        return [self.load_setups.get(recording_day(t), self.load) for t in start_times]
 
     def __init__(
         self,
@@ -214,8 +265,18 @@ class PlantFile:
         provenance: dict | None = None,
         setups: dict | None = None,
         setup_standard_errors: dict | None = None,
+        load: RandomLoad | None = None,
+        load_standard_errors: dict | None = None,
+        load_setups: dict | None = None,
+        load_setup_standard_errors: dict | None = None,
     ) -> None:
         self.params = params
+        self.load = load
+        self.load_standard_errors = dict(load_standard_errors or {})
+        self.load_setups = {str(k): v for k, v in (load_setups or {}).items()}
+        self.load_setup_standard_errors = {str(k): dict(v) for k, v in (load_setup_standard_errors or {}).items()}
+        if self.load_setups and load is None:
+            raise ValueError("a recording day's load (load_setups) needs the central load beside it")
         self.standard_errors = dict(standard_errors or {})
         self.provenance = dict(provenance or {})
         self.setups = {str(k): dict(v) for k, v in (setups or {}).items()}
@@ -368,8 +429,30 @@ def load_plant(path: str | Path) -> PlantFile:
     except ValueError as exc:
         raise PlantFileError(f"{path}: {exc}") from None
     setups = {str(day): _numbers(path, table, f"setup {day}: ") for day, table in data.get("setups", {}).items()}
+    load, load_errors = _load_table(path, data, "load", "load_standard_errors")
+    load_setups, load_setup_errors = {}, {}
+    for name in ("load_setups", "load_setup_standard_errors"):
+        if not isinstance(data.get(name, {}), dict):
+            raise PlantFileError(f"{path}: [{name}] must hold a table per recording day, got {data[name]!r}")
+    for day in data.get("load_setups", {}):
+        errors = data.get("load_setup_standard_errors", {}).get(day, {})
+        load_setups[day], errors = _load_table(
+            path, {"load": data["load_setups"][day], "errors": errors}, "load", "errors", f"load_setups.{day}"
+        )
+        if errors:
+            load_setup_errors[day] = errors
+    if load_setups and load is None:
+        raise PlantFileError(f"{path}: [load_setups] needs a [load] table beside it (the central load)")
     plant = PlantFile(
-        params, data.get("standard_errors", {}), data.get("provenance", {}), setups, data.get("setup_standard_errors")
+        params,
+        data.get("standard_errors", {}),
+        data.get("provenance", {}),
+        setups,
+        data.get("setup_standard_errors"),
+        load,
+        load_errors,
+        load_setups,
+        load_setup_errors,
     )
     for day, table in setups.items():
         try:
@@ -377,6 +460,35 @@ def load_plant(path: str | Path) -> PlantFile:
         except ValueError as exc:
             raise PlantFileError(f"{path}: setup {day}: {exc}") from None
     return plant
+
+
+def _load_table(
+    path: Path, data: dict, key: str, errors_key: str, title: str = "load"
+) -> tuple[RandomLoad | None, dict]:
+    """The ``data[key]`` table as a :class:`RandomLoad` (None without one) and ``data[errors_key]``, its
+    standard errors, checked; messages name the table ``[title]``."""
+    errors = data.get(errors_key, {})
+    if key not in data:
+        return None, {}
+    out = []
+    for name, table in ((title, data[key]), (f"{title} standard errors", errors)):
+        if not isinstance(table, dict):
+            raise PlantFileError(f"{path}: [{name}] must be a table (diffusion, time_constant), got {table!r}")
+        unknown = sorted(set(table) - set(_LOAD_KEYS))
+        if unknown:
+            raise PlantFileError(
+                f"{path}: [{name}]: unknown key(s) {', '.join(unknown)}; known: {', '.join(_LOAD_KEYS)}"
+            )
+        for key, value in table.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise PlantFileError(f"{path}: [{name}]: {key} must be a number, got {value!r}")
+        out.append({k: float(v) for k, v in table.items()})
+    if "diffusion" not in out[0]:
+        raise PlantFileError(f"{path}: [{title}]: diffusion (V/sqrt(s)) is missing")
+    try:
+        return RandomLoad(**out[0]), out[1]
+    except ValueError as exc:
+        raise PlantFileError(f"{path}: [{title}]: {exc}") from None
 
 
 def _numbers(path: Path, values, where: str) -> dict[str, float]:
@@ -431,6 +543,19 @@ def save_plant(path: str | Path, plant: PlantFile) -> None:
         for day, table in tables.items():
             lines += ["", f"[{name}.{_toml_value(str(day))}]"]
             lines += [f"{k} = {_toml_value(float(v))}" for k, v in table.items()]
+    if plant.load is not None:
+        lines += ["", "[load]"]
+        lines += [f"{k} = {_toml_value(float(getattr(plant.load, k)))}" for k in _LOAD_KEYS]
+        if plant.load_standard_errors:
+            lines += ["", "[load_standard_errors]"]
+            lines += [f"{k} = {_toml_value(float(v))}" for k, v in plant.load_standard_errors.items()]
+        for day, load in plant.load_setups.items():
+            lines += ["", f"[load_setups.{_toml_value(str(day))}]"]
+            lines += [f"{k} = {_toml_value(float(getattr(load, k)))}" for k in _LOAD_KEYS]
+        for day, table in plant.load_setup_standard_errors.items():
+            if table:
+                lines += ["", f"[load_setup_standard_errors.{_toml_value(str(day))}]"]
+                lines += [f"{k} = {_toml_value(float(v))}" for k, v in table.items()]
     if plant.provenance:
         lines += ["", "[provenance]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in plant.provenance.items()]

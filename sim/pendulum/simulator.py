@@ -20,6 +20,7 @@ from qube_koopman.sim.pendulum.model import (
     hold_pattern,
     scalar_rk4,
 )
+from qube_koopman.sim.pendulum.load import LoadStream, RandomLoad
 from qube_koopman.sim.pendulum.sensor import SensorModel, encoder_angles
 
 __all__ = ["PendulumSimulator"]
@@ -48,6 +49,12 @@ class PendulumSimulator:
         None for no limit.
     seed : int, optional
         Seed of the measurement noise.
+    load : RandomLoad, optional
+        A random torque on the arm (:mod:`~qube_koopman.sim.pendulum.load`); None: none, the
+        arithmetic exactly as without one. Its samples restart from ``load_seed`` at each
+        :meth:`reset`.
+    load_seed : int
+        The load's seed (:meth:`reset` takes a new one for each episode).
     """
 
     def __init__(
@@ -58,6 +65,8 @@ class PendulumSimulator:
         n_substeps: int = DEFAULT_SUBSTEPS,
         max_voltage: float | None = 15.0,
         seed: int | None = None,
+        load: RandomLoad | None = None,
+        load_seed: int = 0,
     ) -> None:
         check_timing(dt, n_substeps)
         if max_voltage is not None and not (math.isfinite(max_voltage) and max_voltage > 0):
@@ -77,10 +86,37 @@ class PendulumSimulator:
         self._noise_at = 0
         self._x = (0.0, 0.0, 0.0, 0.0)
         self._steps = 0
+        self._load = load
+        self._load_stream = None if load is None else LoadStream(load, self.dt, load_seed)
         self._y = self._measure()
 
-    def reset(self, state=(0.0, 0.0, 0.0, 0.0)) -> tuple[float, float]:
-        """Set the state (theta, alpha, theta_dot, alpha_dot) and time zero; return its measurement."""
+    @property
+    def load(self) -> RandomLoad | None:
+        """The random load on the arm (None: none); settable between episodes, from the next
+        :meth:`reset` on (its ``load_seed``, else the current seed)."""
+        return self._load
+
+    @load.setter
+    def load(self, load: RandomLoad | None) -> None:
+        seed = 0 if self._load_stream is None else self._load_stream.seed
+        self._load = load
+        self._load_stream = None if load is None else LoadStream(load, self.dt, seed)
+
+    @property
+    def load_seed(self) -> int | None:
+        """The seed of the current episode's load (None without a load)."""
+        return None if self._load_stream is None else self._load_stream.seed
+
+    def reset(self, state=(0.0, 0.0, 0.0, 0.0), load_seed: int | None = None) -> tuple[float, float]:
+        """Set the state (theta, alpha, theta_dot, alpha_dot) and time zero; return its measurement.
+
+        ``load_seed``: the new episode's load seed (a load restarts from it; None keeps the current
+        seed and restarts its samples).
+        """
+        if self._load is not None:
+            if load_seed is None:
+                load_seed = 0 if self._load_stream is None else self._load_stream.seed
+            self._load_stream = LoadStream(self._load, self.dt, load_seed)
         values = tuple(float(v) for v in np.asarray(state, dtype=float).reshape(-1))
         if len(values) != 4 or not all(math.isfinite(v) for v in values):
             raise ValueError(f"state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), got {state!r}")
@@ -108,7 +144,10 @@ class PendulumSimulator:
             math.sin,
             math.cos,
             self._rk4,
+            None if self._load_stream is None else self._load_stream.value,
         )
+        if self._load_stream is not None:
+            self._load_stream.advance()
         del commands[0]
         self._steps += 1
         self._y = self._measure()
@@ -125,6 +164,8 @@ class PendulumSimulator:
         self.dt = float(dt)
         self._h = self.dt / self.n_substeps
         self._whole, self._weights = hold_pattern(self._params.delay, self.dt, self.n_substeps)
+        if self._load_stream is not None:
+            self._load_stream.set_period(self.dt)
         kept = self._commands[-(self._whole + 1) :]
         self._commands = [kept[0]] * (self._whole + 1 - len(kept)) + kept
 

@@ -1,0 +1,274 @@
+"""The arm's random load: reconstructed from the logs by the arm's equation, its statistics by a spectral fit.
+
+With the rest of the physics calibrated, the arm's equation solved for the torque that
+reproduces the measured arm and pendulum motion under the measured voltage leaves what no
+modelled term explains (:func:`reconstruct_load`): in volts at the motor, past the dead zone,
+
+    d = (M11 theta_ddot + M12 alpha_ddot - r1(V = 0)) / (km / Rm) - V_motor,
+
+the accelerations and rates by central differences of the encoders smoothed by a Savitzky-Golay
+filter, ``V_motor`` the commands as the motor saw them (the transport delay, the dead zone), smoothed
+alike. Its slow part is the
+load the twin lacks; its fast part is the differentiated encoders' noise and what the twin gets
+slightly wrong at the loop's frequencies. The floor is a torque too: on the rig's logs it is 50 times
+what the same reconstruction leaves on the twin's replays of them (1.5e-4 against 3e-6 V^2/Hz), so the
+fitted load keeps it (:class:`~qube_koopman.sim.pendulum.load.RandomLoad`'s ``floor``, flat up to the
+fitted band's edge, where the logs stop telling it apart). :func:`fit_load` fits, by the Whittle likelihood of the
+episodes' periodograms below :data:`FIT_BAND` Hz, a first-order (Ornstein-Uhlenbeck) load plus a
+white floor, and a random walk plus a floor for comparison:
+
+    S(f) = 2 q^2 tau^2 / (1 + (2 pi f tau)^2) + n0        (first order)
+    S(f) = 2 q^2 / (2 pi f)^2 + n0                        (random walk)
+
+one-sided, V^2/Hz. The standard errors are the Whittle likelihood's (its Fisher information,
+divided by the Hann window's equivalent noise bandwidth in bins, 1.5: neighbouring bins of a
+windowed periodogram are not independent).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import minimize
+from scipy.signal import savgol_filter, welch
+
+from qube_koopman.core.qube import SKIP_SAMPLES
+from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad
+from qube_koopman.sim.pendulum.model import Coefficients
+
+__all__ = ["FIT_BAND", "LoadFit", "reconstruct_load", "reconstruct_balance", "fit_load", "load_text"]
+
+#: The band (Hz) whose periodogram bins the load's fit uses: above it the reconstruction is the
+#: differentiated encoders and the loop's fast dynamics, not a load.
+FIT_BAND = 1.0
+#: Savitzky-Golay window (samples) and order of the smoothing: flat to about 5 Hz.
+_SG_WINDOW, _SG_ORDER = 51, 3
+#: Equivalent noise bandwidth of the Hann window, in bins.
+_HANN_ENBW = 1.5
+
+
+def _smooth(x: np.ndarray) -> np.ndarray:
+    """The one low-pass every signal of the reconstruction sees (encoders and voltage alike), so that a step
+    of the command and the arm's answer to it cancel as they do in the equation."""
+    return savgol_filter(x, _SG_WINDOW, _SG_ORDER, axis=0)
+
+
+def _derivatives(y: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rates and accelerations of the smoothed angles (central differences: exact at the frequencies fitted)."""
+    rate = np.gradient(y, dt, axis=0)
+    return rate, np.gradient(rate, dt, axis=0)
+
+
+def reconstruct_load(
+    states: np.ndarray, voltage: np.ndarray, params: PendulumParameters, dt: float, start: int = SKIP_SAMPLES
+) -> np.ndarray:
+    """The torque on the arm (V at the motor) that the modelled terms leave, sample by sample from ``start``.
+
+    Parameters
+    ----------
+    states : ndarray (n, 2)
+        Measured theta and alpha (rad); alpha's zero is taken as its mean from ``start`` (a constant
+        offset hardly moves the arm's equation).
+    voltage : ndarray (n,)
+        The plant input (V).
+    params : PendulumParameters
+        The calibrated twin (its cables, friction, dead zone, inertia).
+    dt : float
+        Sample period (s).
+    start : int
+        First sample used (the first second, with the derivative kick, is skipped).
+
+    Returns
+    -------
+    ndarray (n - start,)
+    """
+    k = Coefficients.of(params)
+    y = np.asarray(states, float)[start:].copy()
+    y[:, 1] -= y[:, 1].mean()
+    y = _smooth(y)
+    d1, d2 = _derivatives(y, dt)
+    theta, alpha = y[:, 0], y[:, 1]
+    td, ad, tdd, add = d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1]
+    s, c = np.sin(alpha), np.cos(alpha)
+    inertia = (k.m11 + k.quarter * s * s) * tdd + k.m12 * c * add
+    known = -k.arm_damping * td - 2.0 * k.quarter * s * c * td * ad + k.m12 * s * ad * ad
+    known = known - k.arm_coulomb * np.tanh(td * k.inverse_coulomb_speed)
+    if k.arm_stiffness:
+        x = theta - k.arm_rest
+        curve = k.cable_curvature
+        known = known - k.arm_stiffness * (np.tanh(curve * x) / curve if curve else x)
+    return (inertia - known) / k.torque_per_volt - _motor_voltage(np.asarray(voltage, float), params, dt, start)
+
+
+def _motor_voltage(u: np.ndarray, params: PendulumParameters, dt: float, start: int) -> np.ndarray:
+    """What the motor saw around each sample from ``start``: the commands ``params.delay`` earlier (a fraction
+    of a sample splits the sample between two), past the dead zone, averaged over the samples either side
+    (a centred acceleration sees both)."""
+    samples = params.delay / dt
+    whole = int(math.floor(samples + 1e-12))
+    fraction = max(0.0, samples - whole)
+    padded = np.concatenate([np.full(whole + 2, u[0]), u])
+    now = padded[2 : len(padded) - whole]  # u[k - whole]
+    before = padded[1 : len(padded) - whole - 1]  # u[k - whole - 1]
+    held = (1 - fraction) * now + fraction * before
+    held = held - np.clip(held, -params.dead_zone, params.dead_zone)
+    centred = 0.5 * (held + np.concatenate([held[:1], held[:-1]]))
+    return _smooth(centred[start:])
+
+
+def reconstruct_balance(
+    states: np.ndarray, params: PendulumParameters, dt: float, start: int = SKIP_SAMPLES
+) -> np.ndarray:
+    """The pendulum encoder's zero (rad) that the pendulum's equation implies, sample by sample from ``start``:
+    the measured alpha less the angle at which gravity balances the measured accelerations. A
+    drifting pendulum zero (the alternative to a load on the arm) shows here."""
+    k = Coefficients.of(params)
+    y = np.asarray(states, float)[start:].copy()
+    y[:, 1] -= y[:, 1].mean()
+    y = _smooth(y)
+    d1, d2 = _derivatives(y, dt)
+    alpha = y[:, 1]
+    td, ad, tdd, add = d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1]
+    s, c = np.sin(alpha), np.cos(alpha)
+    needed = k.m12 * c * tdd + k.m22 * add + k.pendulum_damping * ad - k.quarter * s * c * td * td
+    return alpha - np.arcsin(np.clip(needed / k.gravity, -1.0, 1.0))
+
+
+@dataclass(frozen=True)
+class LoadFit:
+    """A fitted load (:func:`fit_load`).
+
+    Attributes
+    ----------
+    load : RandomLoad
+        The first-order load (or the random walk, when its likelihood is higher).
+    standard_errors : dict
+        ``diffusion`` and ``time_constant`` (V/sqrt(s), s); ``time_constant`` absent for a random walk.
+    floor : float
+        The white floor (V^2/Hz) fitted beside it.
+    log_likelihood : dict
+        Whittle log-likelihood of ``"first-order"`` and ``"random-walk"`` (each with its floor).
+    n_bins : int
+        Periodogram bins used (over all episodes).
+    slow_std : float
+        Root mean square over the episodes of the reconstruction's standard deviation below 0.3 Hz (V).
+    """
+
+    load: RandomLoad
+    standard_errors: dict
+    floor: float
+    log_likelihood: dict
+    n_bins: int
+    slow_std: float
+
+
+def _periodograms(loads: Sequence[np.ndarray], dt: float, band: float):
+    """Frequencies and Hann-windowed periodograms (one-sided, V^2/Hz) of the bins in (0, band], stacked."""
+    fs, ps = [], []
+    for d in loads:
+        f, p = welch(np.asarray(d, float), fs=1.0 / dt, nperseg=len(d), window="hann", detrend="constant")
+        keep = (f > 0) & (f <= band)
+        fs.append(f[keep])
+        ps.append(p[keep])
+    return np.concatenate(fs), np.concatenate(ps)
+
+
+def _spectrum(z: np.ndarray, f: np.ndarray, walk: bool) -> np.ndarray:
+    w = 2 * np.pi * f
+    if walk:
+        log_q, log_n = z
+        return 2 * np.exp(2 * log_q) / w**2 + np.exp(log_n)
+    log_q, log_tau, log_n = z
+    tau = np.exp(log_tau)
+    return 2 * np.exp(2 * log_q) * tau**2 / (1 + (w * tau) ** 2) + np.exp(log_n)
+
+
+def _whittle(f: np.ndarray, p: np.ndarray, walk: bool, z0: np.ndarray):
+    def cost(z):
+        s = _spectrum(z, f, walk)
+        return float(np.sum(np.log(s) + p / s))
+
+    best = minimize(cost, z0, method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 4000})
+    best = minimize(cost, best.x, method="BFGS")
+    # Fisher information of the Whittle likelihood: sum of the gradients of log S, by differences.
+    grads = []
+    for i in range(len(best.x)):
+        step = np.zeros_like(best.x)
+        step[i] = 1e-5
+        grads.append((np.log(_spectrum(best.x + step, f, walk)) - np.log(_spectrum(best.x - step, f, walk))) / 2e-5)
+    g = np.array(grads)
+    info = g @ g.T / _HANN_ENBW
+    return best.x, -best.fun, np.linalg.pinv(info)  # pinv: a floor fitted to nothing leaves a flat direction
+
+
+def fit_load(loads: Sequence[np.ndarray], dt: float, band: float = FIT_BAND) -> LoadFit:
+    """Fit the statistics of a random load to reconstructed loads (:func:`reconstruct_load`), one per episode.
+
+    Parameters
+    ----------
+    loads : sequence of ndarray
+        Each episode's reconstruction (V).
+    dt : float
+        Sample period (s).
+    band : float
+        Highest frequency (Hz) fitted.
+
+    Returns
+    -------
+    LoadFit
+    """
+    from scipy.signal import butter, sosfiltfilt
+
+    f, p = _periodograms(loads, dt, band)
+    if f.size < 4:
+        raise ValueError(f"{f.size} periodogram bins below {band:g} Hz: the logs are too short to fit a load")
+    level = float(np.median(p))
+    z_ou, ll_ou, cov_ou = _whittle(f, p, False, np.array([0.5 * math.log(level), 0.0, math.log(level / 4)]))
+    z_rw, ll_rw, cov_rw = _whittle(f, p, True, np.array([0.5 * math.log(level), math.log(level / 4)]))
+    sos = butter(2, 0.3, fs=1.0 / dt, output="sos")
+    slow = math.sqrt(float(np.mean([np.var(sosfiltfilt(sos, np.asarray(d, float))) for d in loads])))
+    likelihood = {"first-order": ll_ou, "random-walk": ll_rw}
+    if ll_rw > ll_ou + 1e-9 * abs(ll_ou):  # the walk explains the bins better (a tie: no load either way)
+        q = math.exp(z_rw[0])
+        floor = math.exp(z_rw[1])
+        errors = {"diffusion": q * math.sqrt(cov_rw[0, 0]), "floor": floor * math.sqrt(cov_rw[1, 1])}
+        return LoadFit(RandomLoad(q, floor=floor, floor_corner=band), errors, floor, likelihood, f.size, slow)
+    q, tau, floor = (math.exp(v) for v in z_ou)
+    errors = {
+        "diffusion": q * math.sqrt(cov_ou[0, 0]),
+        "time_constant": tau * math.sqrt(cov_ou[1, 1]),
+        "floor": floor * math.sqrt(cov_ou[2, 2]),
+    }
+    return LoadFit(RandomLoad(q, tau, floor, band), errors, floor, likelihood, f.size, slow)
+
+
+def load_text(fits: dict) -> str:
+    """The fitted loads as the report's markdown: one row per group of logs (all of them, each recording day)."""
+    lines = [
+        "## The arm's random load",
+        "",
+        "The arm's equation run backwards on the fitted logs leaves a slow torque (V at the motor); its",
+        f"periodograms below {FIT_BAND:g} Hz fitted by the Whittle likelihood (first-order load + white floor, and a",
+        "random walk + floor for comparison):",
+        "",
+        "| logs | kind | diffusion q (V/sqrt(s)) | time constant (s) | std (V) | floor (V^2/Hz) "
+        "| slow std < 0.3 Hz (V) | log-lik first-order - walk |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for label, fit in fits.items():
+        se = fit.standard_errors
+        tau = (
+            "inf"
+            if fit.load.kind == "random-walk"
+            else f"{fit.load.time_constant:.3g} +- {se.get('time_constant', float('nan')):.2g}"
+        )
+        std = "-" if fit.load.kind == "random-walk" else f"{fit.load.std:.4f}"
+        gain = fit.log_likelihood["first-order"] - fit.log_likelihood["random-walk"]
+        lines.append(
+            f"| {label} | {fit.load.kind} | {fit.load.diffusion:.4f} +- {se['diffusion']:.2g} | {tau} | {std} "
+            f"| {fit.floor:.2e} | {fit.slow_std:.4f} | {gain:+.1f} |"
+        )
+    return "\n".join(lines) + "\n"
