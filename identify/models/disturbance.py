@@ -515,16 +515,28 @@ def prediction_errors(
         if (cand.entry, cand.pole) not in responses:
             E = disturbance_direction(model, cand.entry)
             responses[cand.entry, cand.pole] = load_response(model, E, cand.pole, horizons)
+    from scipy.signal import lfilter
+
     for i, (x, base, residuals) in enumerate(zip(data.truths, data.bases, data.residuals)):
         var = np.maximum(x[skip:].var(axis=0), 1e-300)
+        ok = np.flatnonzero(np.all(np.isfinite(residuals), axis=1))
+        first = int(ok[0]) if ok.size else len(x)
+        rr = np.nan_to_num(residuals[first:])
+        ends_of, misses = {}, {}
+        for h, K in enumerate(horizons):
+            ends = np.flatnonzero(np.all(np.isfinite(base[K]), axis=1))
+            ends_of[h] = ends[ends - K >= skip]
+            misses[h] = x[ends_of[h]] - base[K][ends_of[h]]
         for c, cand in enumerate(candidates):
-            dhat, _ = filter_disturbance(residuals, directions[cand.entry], cand.pole, cand.gain)
+            # filter_disturbance's recursion, its filtered estimate alone (the innovations are not needed here)
+            dhat = np.zeros(len(x))
+            if rr.size and np.any(cand.gain):
+                beta = cand.pole * (1.0 - float(cand.gain @ directions[cand.entry]))
+                dhat[first:] = cand.pole * lfilter([1.0], [1.0, -beta], rr @ cand.gain)
             for h, K in enumerate(horizons):
-                ends = np.flatnonzero(np.all(np.isfinite(base[K]), axis=1))
-                ends = ends[ends - K >= skip]
-                if not ends.size:
+                if not ends_of[h].size:
                     continue
-                err = x[ends] - base[K][ends] - dhat[ends - K, None] * responses[cand.entry, cand.pole][h][None, :]
+                err = misses[h] - dhat[ends_of[h] - K, None] * responses[cand.entry, cand.pole][h][None, :]
                 out[c, i, h] = np.mean(err**2, axis=0) / var
     return out if per_episode else out.mean(axis=1)
 
