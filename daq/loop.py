@@ -496,9 +496,15 @@ def _ticks(
             v, sat = 0.0, 0
         else:
             v = u + f
-            sat = 1 if v > vmax else -1 if v < -vmax else 0
-            if sat:
-                v = sat * vmax
+            if v - v != 0.0:  # nan or +-inf (a call per tick saved)
+                # Every backend the same: 0 V this tick, logged as applied, and the episode ends on a
+                # fault (the bridge would otherwise switch its amplifier off and carry on silently).
+                reason, cause = f"controller fault: its output is {float(u)!r}, not a voltage; 0 V applied", "fault"
+                v, sat = 0.0, 0
+            else:
+                sat = 1 if v > vmax else -1 if v < -vmax else 0
+                if sat:
+                    v = sat * vmax
         try:
             write(v)
         except BackendFault as exc:

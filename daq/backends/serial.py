@@ -526,13 +526,19 @@ class SerialBackend(Backend):
         Raises
         ------
         BackendFault
-            When the command cannot be sent.
+            When the command cannot be sent, or is not finite (the amplifier is then
+            commanded off first).
         """
         if not self._running:
             raise BackendFault("serial backend written before start() or after stop()")
-        if self._faulted or not math.isfinite(volts):
+        if self._faulted:
             self._command(0, 0)
             return
+        if not math.isfinite(volts):
+            # As the simulator: a fault, not a silent amplifier-off command the episode carries on past.
+            self._faulted = True
+            self._command(0, 0)
+            raise BackendFault(f"the command is not a voltage ({volts!r}): the amplifier was switched off")
         mv = max(-self.max_millivolts, min(self.max_millivolts, int(round(volts * 1000.0))))
         rearm = b""
         if self._rearm:

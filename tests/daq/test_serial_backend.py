@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 import pytest
-from _episodes import assert_follows_controller
+from _episodes import assert_follows_controller, nan_controller
 from bridge_helpers import (  # noqa: F401
     FakeDevice,
     HostWait,
@@ -72,9 +72,9 @@ from qube_koopman.sim.pendulum.sensor import angles_to_counts, counts_to_angles
 CONTROLLER = load_controller()
 
 
-def _plan(seconds: float = 4.0, seed: int = 1):
+def _plan(seconds: float = 4.0, seed: int = 1, controller=CONTROLLER):
     seeds, _ = run_seeds(seed, 1)
-    return plan_episodes(CONTROLLER, seeds, excitation_settings(seconds), source="test")[0]
+    return plan_episodes(controller, seeds, excitation_settings(seconds), source="test")[0]
 
 
 class TimedBackend(SerialBackend):
@@ -99,7 +99,7 @@ class TimedBackend(SerialBackend):
 
 
 def _run(core, tmp_path, faults=Faults(), seconds=4.0, lockstep_timeout=0.02, link_timeout=0.2,
-         backend_cls=SerialBackend, wait=None):
+         backend_cls=SerialBackend, wait=None, controller=CONTROLLER):
     """One episode in lockstep into an MCAP log: (result, episode read back, emulator, backend).
 
     The lockstep timeout runs on the host's waiting (``wait``), the link timeout on the device clock.
@@ -112,7 +112,7 @@ def _run(core, tmp_path, faults=Faults(), seconds=4.0, lockstep_timeout=0.02, li
     backend.emu = emu
     sink = McapSink(tmp_path)
     try:
-        result = run_episode(backend, _plan(seconds), [sink])
+        result = run_episode(backend, _plan(seconds, controller=controller), [sink])
     finally:
         backend.close()
         _until_applied(emu, backend.last_command_seq)  # the amplifier-off command reaches the device's record
@@ -436,6 +436,35 @@ def test_trip_bits_sent_before_the_rearm_arrived_are_ignored_but_not_later_ones(
         received = dev.wait_for(lambda got: sum(isinstance(f.message, Command) for f in got) == 5)
     commands = [(f.seq, f.message.millivolts, f.message.flags) for f in received if isinstance(f.message, Command)]
     assert commands == [(3, 0, 1), (4, 0, 0), (5, 2000, 1), (6, 2000, 1), (7, 0, 0)]
+
+
+def test_a_non_finite_controller_output_is_a_fault_with_zero_volts_applied(core, tmp_path):
+    # As on the simulator (test_loop.py): a fault naming the output, 0 V applied and logged, the
+    # amplifier off; not a silent amplifier-off command the episode carries on past.
+    result, ep, emu, _ = _run(core, tmp_path, controller=nan_controller())
+    assert result.cause == "fault" and result.reason == "controller fault: its output is nan, not a voltage; 0 V applied"
+    assert ep.metadata.status == "aborted" and ep.metadata.status_reason == result.reason and len(ep) < 20
+    assert ep.plant_input[-1] == 0.0 and np.isfinite(ep.plant_input).all(), "the log holds what was applied"
+    rec, _ = _session_ticks(emu)
+    driven = rec["amp_enabled"] & (rec["command_seq"] > 0)
+    assert driven.any() and not rec["amp_enabled"][-1] and rec["volts"][-1] == 0.0
+    assert np.all(rec["command_mv"][np.flatnonzero(driven)[-1] + 1:] == 0), "0 V from the fault on"
+
+
+def test_a_non_finite_command_is_refused_with_the_amplifier_off():
+    import os
+
+    with _scripted_bridge() as dev:
+        backend = SerialBackend(dev.path, link_timeout=0.5)
+        backend.start()
+        os.write(dev.master, _tm(12, 0))
+        backend.read()
+        with pytest.raises(BackendFault, match=r"the command is not a voltage \(nan\)"):
+            backend.write(math.nan)
+        backend.close()
+        received = dev.wait_for(lambda got: sum(isinstance(f.message, Command) for f in got) == 2)
+    commands = [(f.message.millivolts, f.message.flags) for f in received if isinstance(f.message, Command)]
+    assert commands == [(0, 0), (0, 0)], "amplifier off, then stop()'s"
 
 
 # --- sequence tracking, exactly -----------------------------------------------------------------
