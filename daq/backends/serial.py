@@ -214,11 +214,23 @@ class SerialBackend(Backend):
         import serial
 
         try:
-            # A short read timeout: read() polls in slices of it until its own deadline.
+            # A short read timeout: read() polls in slices of it until its own deadline. Exclusive
+            # (an advisory lock every pyserial program takes): a second qube-run on the same port
+            # must fail, not take the rig over in the middle of an episode.
             port = serial.serial_for_url(
-                self.port, baudrate=self.baud, timeout=min(0.005, self.link_timeout), write_timeout=self.link_timeout
+                self.port,
+                baudrate=self.baud,
+                timeout=min(0.005, self.link_timeout),
+                write_timeout=self.link_timeout,
+                exclusive=True,
             )
-        except (serial.SerialException, ValueError, OSError) as exc:
+        except serial.SerialException as exc:
+            if "exclusively lock" in str(exc):
+                raise BackendFault(
+                    f"cannot open {self.port}: another program is using it (a qube-run, or a serial terminal)"
+                ) from None
+            raise BackendFault(f"cannot open {self.port}: {_plain(exc).removesuffix(f': {self.port!r}')}") from None
+        except (ValueError, OSError) as exc:
             # pyserial's text ends with the path (an OSError's filename): named once, first
             raise BackendFault(f"cannot open {self.port}: {_plain(exc).removesuffix(f': {self.port!r}')}") from None
         try:

@@ -8,7 +8,7 @@ import math
 import sys
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args
+from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args, whole_number
 from qube_koopman.core.command import CliError, check_output_file, run_command
 from qube_koopman.core.console import configure_logging
 from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT
@@ -237,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument(
         "--rt-priority",
-        type=int,
+        type=whole_number(1, 99),
         default=None,
         metavar="P",
         help="run SCHED_FIFO at priority P (1..99; needs permission)",

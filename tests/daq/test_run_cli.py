@@ -329,3 +329,13 @@ def test_a_replay_log_that_cannot_be_read_is_named_once_and_first(content, probl
     assert main(["--replay", str(log), "--out", str(tmp_path / "o"), "-q"]) == 2
     assert capsys.readouterr().err == (f"qube-run: error: {log}: cannot read the episode log ({problem}) "
                                        "(--replay)\n")
+
+
+@pytest.mark.parametrize("value", ["0", "100", "-1"])
+def test_rt_priority_out_of_its_range_is_a_one_line_usage_error(value, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["--rt-priority", value, "--episodes", "1", "--duration", "1", "--out", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    said = f"argument --rt-priority: must be a whole number in [1, 99], got {value}"
+    assert err == f"qube-run: error: {said} (see qube-run --help)\n"
+    assert not out.exists()

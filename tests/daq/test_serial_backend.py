@@ -442,7 +442,8 @@ def test_a_non_finite_controller_output_is_a_fault_with_zero_volts_applied(core,
     # As on the simulator (test_loop.py): a fault naming the output, 0 V applied and logged, the
     # amplifier off; not a silent amplifier-off command the episode carries on past.
     result, ep, emu, _ = _run(core, tmp_path, controller=nan_controller())
-    assert result.cause == "fault" and result.reason == "controller fault: its output is nan, not a voltage; 0 V applied"
+    assert result.cause == "fault"
+    assert result.reason == "controller fault: its output is nan, not a voltage; 0 V applied"
     assert ep.metadata.status == "aborted" and ep.metadata.status_reason == result.reason and len(ep) < 20
     assert ep.plant_input[-1] == 0.0 and np.isfinite(ep.plant_input).all(), "the log holds what was applied"
     rec, _ = _session_ticks(emu)
@@ -578,6 +579,27 @@ def test_unknown_port_is_a_clear_fault():
     with pytest.raises(BackendFault) as caught:
         SerialBackend("/nonexistent/tty").open()
     assert str(caught.value) == "cannot open /nonexistent/tty: No such file or directory"  # the path once
+
+
+def test_a_port_in_use_is_refused_in_one_line_naming_it(tmp_path, capsys):
+    # The first holder keeps the rig: a second qube-run on the same port fails at once, whatever it asks.
+    with _scripted_bridge() as dev:
+        first = SerialBackend(dev.path)
+        first.open()
+        try:
+            with pytest.raises(BackendFault) as caught:
+                SerialBackend(dev.path).open()
+            said = f"cannot open {dev.path}: another program is using it (a qube-run, or a serial terminal)"
+            assert str(caught.value) == said
+            status = main(["--backend", "serial", "--port", dev.path, "--out", str(tmp_path / "out"), "-q"])
+            err = capsys.readouterr().err
+            assert status == 1 and err == f"qube-run: error: {said}\n"
+        finally:
+            first.close()
+        again = SerialBackend(dev.path)
+        again.open()  # free again once the first let it go
+        again.close()
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("bad", [dict(baud=0), dict(rate_hz=333), dict(max_voltage=20.0),
