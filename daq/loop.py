@@ -15,6 +15,7 @@ reach the sinks, which are closed with status ``aborted`` and the reason.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from contextlib import nullcontext
@@ -31,9 +32,18 @@ from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
 from qube_koopman.daq.episode import EpisodeMetadata
 from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
-from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingRecord, TimingStats, quiet_interpreter
+from qube_koopman.daq.timing import (
+    DEFAULT_SPIN,
+    DEVICE_STALL_THRESHOLD,
+    DeadlinePacer,
+    TimingRecord,
+    TimingStats,
+    quiet_interpreter,
+)
 
 __all__ = ["ABORT_CAUSES", "EpisodePlan", "EpisodeResult", "run_episode", "REALTIME_SWITCH_INTERVAL"]
+
+_log = logging.getLogger(__name__)
 
 #: Why an episode can end early: a safety limit, a stop request (signal),
 #: a backend fault, a sink (log) failure, the start gate, or an error in the loop.
@@ -236,6 +246,11 @@ class _TickTimes:
         self._records = [self.record] + ([also] if also is not None else [])
         self._n = 0
 
+    def device_stall(self, t: float, held: float) -> None:
+        """The device held its ticks ``held`` seconds before the sample at ``t`` (see :class:`TimingStats`)."""
+        for record in self._records:
+            record.device_stall(t, held)
+
     def fold(self, n_ticks: int) -> None:
         """Add the ticks buffered since the last fold, up to ``n_ticks`` ticks in all."""
         rest = n_ticks - self._n
@@ -282,6 +297,16 @@ def _run_logged(
         _zero_motor(backend)
         times.fold(n_done)
         timing = times.record.stats() if n_done else TimingRecord(backend.sample_period).stats()
+        if timing.device_stalls:
+            _log.warning(
+                "episode %d: the %s backend's device stalled %d time(s), %.0f ms at most (the first before "
+                "t = %.3f s): the ticks it held back are missing from the log",
+                plan.index,
+                backend.name,
+                timing.device_stalls,
+                timing.device_stall_max * 1e3,
+                timing.device_stall_first,
+            )
         outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing, _statistics(backend))
         errors = writer.close(outcome)
         if writer.failed is not None and not reason:
@@ -466,6 +491,7 @@ def _ticks(
     throttle = backend.pacing is Pacing.NONE
     device_time = backend.device_time
     lateness, compute = times.lateness, times.compute
+    last_when, stalled = math.inf, backend.sample_period + DEVICE_STALL_THRESHOLD
 
     for k in range(n_ticks):
         j = k & _CHUNK_MASK
@@ -480,6 +506,10 @@ def _ticks(
         except BackendFault as exc:
             return k, f"backend fault: {exc}", "fault"
         when = device_time()  # logged per sample (format 1.3): the device's gaps stay visible
+        if when is not None:
+            if when - last_when > stalled:
+                times.device_stall(k / rate, when - last_when - backend.sample_period)
+            last_when = when
         if wait is None:
             t_tick = clock()
             if device_lateness is not None:

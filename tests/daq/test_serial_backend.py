@@ -246,6 +246,7 @@ def test_garbage_and_corrupted_frames_are_survived_and_counted(core, tmp_path):
     link = ep.metadata.backend_stats
     assert link["ticks_missed"] > 0 and link["frames_lost"] > 0, "dropped and rejected telemetry is counted"
     assert link["host_rejects"] > 0 and link["decoder"]["bad_crc"] > 0
+    assert ep.metadata.timing["device_stalls"] == 0, "a frame lost now and then is no stall"
     assert link["device_rx_errors"] > 0, "corrupted commands, rejected by the bridge, are reported by it"
     # Every frame lost shows as a gap: frames dropped on purpose are a lower bound.
     assert link["frames_lost"] >= 1
@@ -314,6 +315,23 @@ def test_firmware_held_for_periods_shows_the_gap_in_the_logged_device_time(core,
     assert ep.metadata.backend_stats["device_overruns"] == 7
     # The tick counter skipped the lost periods with the clock; no frame was lost on the link.
     assert ep.metadata.backend_stats["ticks_missed"] == 7 and ep.metadata.backend_stats["frames_lost"] == 0
+
+
+def test_a_62_ms_bridge_hold_is_a_stall_in_the_timing_with_a_warning(core, tmp_path, caplog):
+    # No telemetry for 62 ms, well inside the 200 ms link timeout: the episode goes on, but its log
+    # misses 31 ticks. Not only counted as missed ticks: a device stall in the episode's timing (its
+    # duration on the bridge's clock, where the host's lateness cannot see it), and a warning.
+    with caplog.at_level("WARNING", logger="qube_koopman"):
+        result, ep, _, _ = _run(core, tmp_path, Faults(hold_at=1.0, hold_periods=31), seconds=2.0)
+    assert result.complete, result.reason
+    timing = ep.metadata.timing
+    assert timing["device_stalls"] == 1 and ep.metadata.backend_stats["ticks_missed"] == 31
+    assert timing["device_stall_max"] == pytest.approx(0.062, abs=1e-9) == timing["device_stall_time"]
+    k = int(np.flatnonzero(np.diff(ep.device_time) > 0.003)[0]) + 1  # the sample after the hold
+    assert timing["device_stall_first"] == pytest.approx(k / 500)
+    said = [r.getMessage() for r in caplog.records if "stalled" in r.getMessage()]
+    assert said == [f"episode 0: the serial backend's device stalled 1 time(s), 62 ms at most (the first before "
+                    f"t = {k / 500:.3f} s): the ticks it held back are missing from the log"]
 
 
 def test_host_falling_behind_trips_the_watchdog_and_aborts(core, tmp_path):
