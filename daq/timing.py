@@ -17,7 +17,7 @@ import os
 import sys
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -307,19 +307,19 @@ class TimingRecord:
     def stats(self) -> TimingStats:
         """The statistics so far."""
         c50, c99, cmax = self._compute.summary()
-        device = dict(
+        if self._lateness.n == 0:
+            stats = TimingStats(self.n_ticks, self.period, False, compute_p50=c50, compute_p99=c99, compute_max=cmax)
+        else:
+            l50, l99, lmax = self._lateness.summary()
+            stats = TimingStats(
+                self.n_ticks, self.period, True, l50, l99, lmax, self.overruns, self.stalls, c50, c99, cmax
+            )
+        return replace(
+            stats,
             device_stalls=self.device_stalls,
             device_stall_time=self.device_stall_time,
             device_stall_max=self.device_stall_max,
             device_stall_first=self.device_stall_first,
-        )
-        if self._lateness.n == 0:
-            return TimingStats(
-                self.n_ticks, self.period, False, compute_p50=c50, compute_p99=c99, compute_max=cmax, **device
-            )
-        l50, l99, lmax = self._lateness.summary()
-        return TimingStats(
-            self.n_ticks, self.period, True, l50, l99, lmax, self.overruns, self.stalls, c50, c99, cmax, **device
         )
 
 
