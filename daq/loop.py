@@ -21,6 +21,7 @@ reach the sinks, which are closed with status ``aborted`` and the reason.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from contextlib import nullcontext
@@ -38,9 +39,18 @@ from qube_koopman.daq.episode import EpisodeMetadata
 from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
 from qube_koopman.daq.swing_up import SwingUp, SwingUpReport, run_swing_up
-from qube_koopman.daq.timing import DEFAULT_SPIN, DeadlinePacer, TimingRecord, TimingStats, quiet_interpreter
+from qube_koopman.daq.timing import (
+    DEFAULT_SPIN,
+    DEVICE_STALL_THRESHOLD,
+    DeadlinePacer,
+    TimingRecord,
+    TimingStats,
+    quiet_interpreter,
+)
 
 __all__ = ["ABORT_CAUSES", "EpisodePlan", "EpisodeResult", "run_episode", "REALTIME_SWITCH_INTERVAL"]
+
+_log = logging.getLogger(__name__)
 
 #: Why an episode can end early: a safety limit, a stop request (signal),
 #: a backend fault, a sink (log) failure, the start gate, a swing-up that failed, or an error in the loop.
@@ -266,6 +276,11 @@ class _TickTimes:
         self._records = [self.record] + ([also] if also is not None else [])
         self._n = 0
 
+    def device_stall(self, t: float, held: float) -> None:
+        """The device held its ticks ``held`` seconds before the sample at ``t`` (see :class:`TimingStats`)."""
+        for record in self._records:
+            record.device_stall(t, held)
+
     def fold(self, n_ticks: int) -> None:
         """Add the ticks buffered since the last fold, up to ``n_ticks`` ticks in all."""
         rest = n_ticks - self._n
@@ -319,6 +334,16 @@ def _run_logged(
         _zero_motor(backend)
         times.fold(n_done)
         timing = times.record.stats() if n_done else TimingRecord(backend.sample_period).stats()
+        if timing.device_stalls:
+            _log.warning(
+                "episode %d: the %s backend's device stalled %d time(s), %.0f ms at most (the first before "
+                "t = %.3f s): the ticks it held back are missing from the log",
+                plan.index,
+                backend.name,
+                timing.device_stalls,
+                timing.device_stall_max * 1e3,
+                timing.device_stall_first,
+            )
         outcome = EpisodeOutcome("aborted" if reason else "complete", reason, n_done, timing, _statistics(backend))
         errors = writer.close(outcome)
         if writer.failed is not None and not reason:
@@ -505,6 +530,7 @@ def _ticks(
     throttle = backend.pacing is Pacing.NONE
     device_time = backend.device_time
     lateness, compute = times.lateness, times.compute
+    last_when, stalled = math.inf, backend.sample_period + DEVICE_STALL_THRESHOLD
 
     for k in range(n_ticks):
         j = k & _CHUNK_MASK
@@ -519,6 +545,10 @@ def _ticks(
         except BackendFault as exc:
             return k, f"backend fault: {exc}", "fault"
         when = device_time()  # logged per sample (format 1.3): the device's gaps stay visible
+        if when is not None:
+            if when - last_when > stalled:
+                times.device_stall(k / rate, when - last_when - backend.sample_period)
+            last_when = when
         if wait is None:
             t_tick = clock()
             if device_lateness is not None:
@@ -535,9 +565,15 @@ def _ticks(
             v, sat = 0.0, 0
         else:
             v = u + f
-            sat = 1 if v > vmax else -1 if v < -vmax else 0
-            if sat:
-                v = sat * vmax
+            if v - v != 0.0:  # nan or +-inf (a call per tick saved)
+                # Every backend the same: 0 V this tick, logged as applied, and the episode ends on a
+                # fault (the bridge would otherwise switch its amplifier off and carry on silently).
+                reason, cause = f"controller fault: its output is {float(u)!r}, not a voltage; 0 V applied", "fault"
+                v, sat = 0.0, 0
+            else:
+                sat = 1 if v > vmax else -1 if v < -vmax else 0
+                if sat:
+                    v = sat * vmax
         try:
             write(v)
         except BackendFault as exc:

@@ -56,6 +56,8 @@ __all__ = ["LoggedEpisode", "resolve_n_jobs", "run_episodes_parallel"]
 _TURN_POLL = 0.002
 # Seconds between two looks of a stop relay (this process -> the flags -> the workers).
 _RELAY_POLL = 0.05
+# Seconds between a worker's looks at whether the run's process is still its parent.
+_PARENT_POLL = 0.1
 # Longest excitation (samples) sent to a worker made (24 bytes a sample: 25 MB); longer ones
 # are made by the worker, a chunk at a time.
 _MADE_HERE = 1 << 20
@@ -217,15 +219,39 @@ def _sigint_ignored() -> Iterator[None]:
 
 
 _prepared = False
+# Held while a worker runs an episode: a worker whose parent died ends once its episode has.
+_episode_lock = threading.Lock()
+
+
+def _exit_with_parent(parent: int) -> None:
+    """In a worker: end the process once ``parent`` (the run's process) is no longer its parent.
+
+    A run killed outright (SIGKILL) cannot stop its workers, and loky's workers wait for work on
+    pipes that they themselves hold open, so they would wait forever. Polled rather than asked
+    of the kernel (Linux's PR_SET_PDEATHSIG): that signal comes when the *thread* that started
+    the worker ends, and loky starts its workers from threads of its own that come and go, and
+    it does not exist elsewhere. A running episode is let end first: it sees the orphaning
+    through the run's flags within 50 ms and closes its log as aborted.
+    """
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(_PARENT_POLL)
+        with _episode_lock:
+            os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 def _prepare_worker(parent: int, setup: Callable[[], None] | None) -> None:
     """Once in a worker process: ignore SIGINT between episodes (the run's stop comes through the
-    flags; a Ctrl-C reaches every process of the terminal), and run the caller's ``setup``."""
+    flags; a Ctrl-C reaches every process of the terminal), end with the run's process, and run
+    the caller's ``setup``."""
     global _prepared
     if _prepared or os.getpid() == parent:  # joblib runs n_jobs=1 in this very process
         return
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _exit_with_parent(parent)
     if setup is not None:
         setup()
     _prepared = True
@@ -238,7 +264,7 @@ def _in_worker(
     _prepare_worker(flags.parent, setup)
     stop, last_start = StopRequest(), None
     try:
-        with stop_on_signals(stop), _relay(flags.stop_request, stop.request):
+        with _episode_lock, stop_on_signals(stop), _relay(flags.stop_request, stop.request):
             last_start = flags.wait_turn(plan.index)
             if flags.halted():
                 return None

@@ -17,7 +17,7 @@ import os
 import sys
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -40,6 +40,11 @@ DEFAULT_SPIN = 300e-6
 
 #: A tick this late (s) is counted as a stall (VM steal, page fault...), not hidden.
 STALL_THRESHOLD = 2e-3
+
+#: A device that keeps the clock (the bridge) with no tick reaching the host for this much more
+#: than a period (s) has stalled (:attr:`TimingStats.device_stalls`): five periods, the bridge's
+#: watchdog span; a frame or two lost on the link are counted as missed ticks only.
+DEVICE_STALL_THRESHOLD = 10e-3
 
 
 class DeadlinePacer:
@@ -116,6 +121,14 @@ class TimingStats:
         Ticks that started more than :data:`STALL_THRESHOLD` late.
     compute_p50, compute_p99, compute_max : float
         Time from the tick's start to its command being written (s).
+    device_stalls : int
+        Times a device that keeps the clock (the bridge) went silent for more than one period
+        while its clock ran on: the ticks in between are missing from the log, and the host's
+        lateness does not show it (it is measured on that clock).
+    device_stall_time, device_stall_max : float
+        Their total and longest duration (s): the time their missing ticks span.
+    device_stall_first : float or None
+        Episode time (s) of the sample after the first one (None: none).
     """
 
     n_ticks: int
@@ -129,6 +142,10 @@ class TimingStats:
     compute_p50: float = math.nan
     compute_p99: float = math.nan
     compute_max: float = math.nan
+    device_stalls: int = 0
+    device_stall_time: float = 0.0
+    device_stall_max: float = 0.0
+    device_stall_first: float | None = None
 
     def as_dict(self) -> dict:
         """Plain-data form (None where not measured: JSON has no NaN), for logs and summaries."""
@@ -235,6 +252,10 @@ class TimingRecord:
         self.n_ticks = 0
         self.overruns = 0
         self.stalls = 0
+        self.device_stalls = 0
+        self.device_stall_time = 0.0
+        self.device_stall_max = 0.0
+        self.device_stall_first: float | None = None
         self._lateness = _Series()
         self._compute = _Series()
 
@@ -254,6 +275,14 @@ class TimingRecord:
         self.overruns += int(np.count_nonzero(late + np.nan_to_num(compute[measured]) > self.period))
         self.stalls += int(np.count_nonzero(late > STALL_THRESHOLD))
 
+    def device_stall(self, t: float, held: float) -> None:
+        """The device's clock ran ``held`` seconds past a period without a tick reaching the host, before time ``t``."""
+        self.device_stalls += 1
+        self.device_stall_time += held
+        self.device_stall_max = max(self.device_stall_max, held)
+        if self.device_stall_first is None:
+            self.device_stall_first = t
+
     def merge(self, other: "TimingRecord") -> None:
         """Add the ticks ``other`` recorded (another process's episodes, say), as if added here.
 
@@ -267,6 +296,11 @@ class TimingRecord:
         self.n_ticks += other.n_ticks
         self.overruns += other.overruns
         self.stalls += other.stalls
+        self.device_stalls += other.device_stalls
+        self.device_stall_time += other.device_stall_time
+        self.device_stall_max = max(self.device_stall_max, other.device_stall_max)
+        if self.device_stall_first is None:
+            self.device_stall_first = other.device_stall_first
         self._lateness.merge(other._lateness)
         self._compute.merge(other._compute)
 
@@ -274,9 +308,19 @@ class TimingRecord:
         """The statistics so far."""
         c50, c99, cmax = self._compute.summary()
         if self._lateness.n == 0:
-            return TimingStats(self.n_ticks, self.period, False, compute_p50=c50, compute_p99=c99, compute_max=cmax)
-        l50, l99, lmax = self._lateness.summary()
-        return TimingStats(self.n_ticks, self.period, True, l50, l99, lmax, self.overruns, self.stalls, c50, c99, cmax)
+            stats = TimingStats(self.n_ticks, self.period, False, compute_p50=c50, compute_p99=c99, compute_max=cmax)
+        else:
+            l50, l99, lmax = self._lateness.summary()
+            stats = TimingStats(
+                self.n_ticks, self.period, True, l50, l99, lmax, self.overruns, self.stalls, c50, c99, cmax
+            )
+        return replace(
+            stats,
+            device_stalls=self.device_stalls,
+            device_stall_time=self.device_stall_time,
+            device_stall_max=self.device_stall_max,
+            device_stall_first=self.device_stall_first,
+        )
 
 
 def timing_stats(lateness, compute_time, period: float) -> TimingStats:

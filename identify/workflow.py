@@ -19,6 +19,7 @@ from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, Cl
 from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories, recorded_controllers
 from qube_koopman.core.lti import same_system, with_output_delay
 from qube_koopman.identify.estimators.mixed import training_controllers_report
+from qube_koopman.identify.model_selection.distributed import DEFAULT_WORKER_TIMEOUT
 from qube_koopman.identify.model_selection.split import FOLD_KINDS, cross_validation_folds
 from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.stability import ClEdmdStable
@@ -1038,6 +1039,9 @@ class SearchOptions:
         Address of a dask scheduler to run the candidates on.
     security : distributed.security.Security, optional
         The TLS settings of that scheduler.
+    worker_timeout : float
+        Seconds that scheduler's cluster may have no worker, results awaited, before the
+        search gives up.
     """
 
     space: SearchSpace | None = None
@@ -1051,6 +1055,7 @@ class SearchOptions:
     n_jobs: int = -1
     scheduler: str | None = None
     security: object = None
+    worker_timeout: float = DEFAULT_WORKER_TIMEOUT
 
 
 def run_search(
@@ -1117,6 +1122,7 @@ def run_search(
         n_jobs=options.n_jobs,
         scheduler=options.scheduler,
         security=options.security,
+        worker_timeout=options.worker_timeout,
         bound=options.offset_bound,
         rbf_seed=options.rbf_seed,
         probes=probes,

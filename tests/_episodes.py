@@ -71,3 +71,14 @@ def sample(k: int) -> dict:
     return dict(t=k / RATE, theta=np.sin(0.01 * k), alpha=np.cos(0.02 * k), target_theta=0.1 * k,
                 target_alpha=-0.1 * k, feedforward=0.5, controller_state=(k, -k), control_output=1.0 * k,
                 plant_input=2.0 * k, saturation=k % 3 - 1, lateness=1e-6 * k, compute_time=2e-6)
+
+
+def nan_controller() -> ControllerInfo:
+    """A state-space controller whose output becomes NaN a few ticks after any non-zero error.
+
+    Its two states grow by 1e300 a tick with opposite signs: their sum, the output, reads 0 V until
+    they overflow to +inf and -inf, then nan (as any diverging controller's can).
+    """
+    system = DiscreteStateSpace(np.diag([1e300, 1e300]), np.array([[1.0, 1.0], [-1.0, -1.0]]),
+                                np.array([[1.0, 1.0]]), np.zeros((1, 2)), dt=0.002)
+    return ControllerInfo(system, "given", {}, kind="state-space")

@@ -232,3 +232,125 @@ class FakeDevice:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+# --- lockstep that a loaded machine cannot break ------------------------------------------------
+
+class HostWait:
+    """The time a test host has spent waiting on the bridge's port with nothing to read, nor coming.
+
+    The clock a lockstep :class:`~sim.bridge.BridgeEmulator` measures its ``lockstep_timeout`` on in
+    these tests (``lockstep_clock=wait``). A read of the port that came back empty adds the port's
+    read timeout, however long the machine held the host, and only when the host has read every
+    byte the bridge sent and the bridge has read every byte the host sent (a pseudo-terminal hands
+    bytes on a moment later, longer on a loaded machine: an empty read then is not a lost frame). So the clock does not move while the host
+    is held up (between a read and its answer, or in the middle of a read), nor while the bridge's
+    bytes are on their way; only while the host runs and waits for a frame that will not come.
+    The bridge then ticks unanswered only for a lost frame (or a host that does not answer that
+    tick, as at its start gate), never ahead of a host the machine was slow to run; and the host's
+    link timeout, measured on the bridge's device clock (:func:`device_clock`), runs out only after
+    that many ticks' telemetry never arrived.
+    """
+
+    def __init__(self) -> None:
+        self.waited = 0.0
+        self.port = None
+        self.written = 0  # bytes the host wrote to the port (see wrote)
+
+    def wrote(self, n: int) -> None:
+        """The host wrote ``n`` bytes (counted by :meth:`watch` for ``port.write``)."""
+        self.written += n
+
+    def __call__(self) -> float:
+        return self.waited
+
+    def watch(self, port, emu) -> None:
+        """Count ``port``'s empty reads (a pyserial port with a read timeout) against ``emu``'s output."""
+        read, reset, write = port.read, port.reset_input_buffer, port.write
+        self.port = port
+        got = [0, 0]  # bytes the host read, bytes the bridge had sent before them (since the last reset)
+        taken = emu.stats()["bytes_in"] - self.written  # the bridge's count when this host had written 0
+
+        def sent() -> int:
+            stats = emu.stats()
+            return stats["bytes_out"] - stats["bytes_discarded"]
+
+        def counted(size: int = 1) -> bytes:
+            data = read(size)
+            got[0] += len(data)
+            if not data and got[0] >= sent() - got[1] and emu.stats()["bytes_in"] - taken >= self.written:
+                self.waited += port.timeout
+            return data
+
+        def writes(data) -> int | None:
+            self.wrote(len(data))
+            return write(data)
+
+        def resets() -> None:
+            reset()
+            got[:] = [0, sent()]  # what the bridge sent until now was dropped, or is read on top: never owed
+
+        port.read, port.reset_input_buffer, port.write = counted, resets, writes
+        got[1] = sent() - port.in_waiting
+
+    def hold(self, emu, ticks: int, limit: float = 60.0) -> None:
+        """The host is held while the bridge ticks ``ticks`` times on its own (a slow log open, a stall).
+
+        Each tick is let through by one lockstep timeout of waiting. Then, until every byte the bridge
+        sent meanwhile can be read from the host's port (a pseudo-terminal hands them on a moment
+        later): the host, released, must find the newest telemetry there, as after a real pause,
+        not answer an older one. ``limit`` seconds of wall time is only a guard against a bridge
+        that stopped (a failure), never reached by a working one.
+        """
+        import time
+
+        deadline = time.monotonic() + limit
+
+        def until(done, what):
+            while not done():
+                assert emu.running and time.monotonic() < deadline, what
+                time.sleep(0.001)
+
+        queued, sent = self.port.in_waiting if self.port is not None else 0, emu.stats()["bytes_out"]
+        for _ in range(ticks):
+            ticked = emu.stats()["ticks"]
+            self.waited += emu.lockstep_timeout
+            until(lambda ticked=ticked: emu.stats()["ticks"] > ticked, "the bridge stopped ticking")
+        if self.port is not None:
+            arrived = queued + emu.stats()["bytes_out"] - sent
+            until(lambda: self.port.in_waiting >= arrived, "the bridge's bytes never reached the host")
+
+
+def device_clock(emu):
+    """The emulator's device clock (s) for a host's timeouts; infinite once its device is gone or it failed.
+
+    Device time advances only as the bridge ticks and each tick sends telemetry, so a timeout on it
+    runs out only when that many ticks' telemetry never reached the host, however slowly the machine
+    ran either of them. A bridge that stopped ticking would freeze it: infinity then ends the wait.
+    """
+    import math
+
+    return lambda: emu.device_time if emu.running and emu.error is None else math.inf
+
+
+def lockstep_backend(emu, wait: HostWait, backend_cls=None, **kwargs):
+    """A serial backend on ``emu``'s port whose timeouts run on the device clock and whose waits move ``wait``."""
+    from qube_koopman.daq.backends.serial import SerialBackend
+
+    backend = (backend_cls or SerialBackend)(emu.path, clock=device_clock(emu), **kwargs)
+    open_port = backend._open_port
+
+    def watched():
+        port = open_port()
+        wait.watch(port, emu)
+        return port
+
+    backend._open_port = watched
+    write_fd = backend._write_fd  # the backend's writes that do not go through port.write
+
+    def counted(fd, frame):
+        wait.wrote(len(frame))
+        return write_fd(fd, frame)
+
+    backend._write_fd = counted
+    return backend

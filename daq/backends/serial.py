@@ -40,9 +40,10 @@ from __future__ import annotations
 
 import math
 import os
+import select
 import time
 from collections import deque
-from typing import Any
+from typing import Any, Callable
 
 from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
 from qube_koopman.firmware_protocol import (
@@ -138,6 +139,13 @@ class SerialBackend(Backend):
         Seconds without telemetry that count as a lost link.
     handshake_timeout : float
         Seconds to wait for the bridge's replies to HELLO and CONFIG.
+    clock : callable
+        The clock both timeouts are measured on (s, any origin); the wall
+        clock by default. A test whose emulated bridge runs in its process
+        passes the bridge's device clock: device time advances only as the
+        bridge ticks, and every tick sends telemetry, so a host held up by a
+        loaded machine (the bridge's ticks then wait in the port) is never
+        taken for a lost link.
     """
 
     name = "serial"
@@ -154,6 +162,7 @@ class SerialBackend(Backend):
         max_voltage: float = 10.0,
         link_timeout: float = DEFAULT_LINK_TIMEOUT,
         handshake_timeout: float = 1.0,
+        clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
             raise ValueError(f"baud must be a positive whole number, got {baud!r}")
@@ -170,9 +179,11 @@ class SerialBackend(Backend):
         self.max_millivolts = int(round(max_voltage * 1000))
         self.link_timeout = float(link_timeout)
         self.handshake_timeout = float(handshake_timeout)
+        self._clock = clock
         self.sample_period = 1.0 / self.rate_hz
         self._serial: Any | None = None  # the pyserial port (untyped): open() opens it, close() drops it
         self._low_latency = "not tried"
+        self._fd: int | None = None  # the port's own descriptor, when writes may go to it (see _send)
         self._decoder = StreamDecoder()
         self._frames: deque = deque()
         self.hello: HelloReply | None = None
@@ -196,17 +207,30 @@ class SerialBackend(Backend):
         """
         if self._serial is None:
             self._serial = self._open_port()
+            self._fd = _plain_fd(self._serial)
         self._handshake()
 
     def _open_port(self):
         import serial
 
         try:
-            # A short read timeout: read() polls in slices of it until its own deadline.
+            # A short read timeout: read() polls in slices of it until its own deadline. Exclusive
+            # (an advisory lock every pyserial program takes): a second qube-run on the same port
+            # must fail, not take the rig over in the middle of an episode.
             port = serial.serial_for_url(
-                self.port, baudrate=self.baud, timeout=min(0.005, self.link_timeout), write_timeout=self.link_timeout
+                self.port,
+                baudrate=self.baud,
+                timeout=min(0.005, self.link_timeout),
+                write_timeout=self.link_timeout,
+                exclusive=True,
             )
-        except (serial.SerialException, ValueError, OSError) as exc:
+        except serial.SerialException as exc:
+            if "exclusively lock" in str(exc):
+                raise BackendFault(
+                    f"cannot open {self.port}: another program is using it (a qube-run, or a serial terminal)"
+                ) from None
+            raise BackendFault(f"cannot open {self.port}: {_plain(exc).removesuffix(f': {self.port!r}')}") from None
+        except (ValueError, OSError) as exc:
             # pyserial's text ends with the path (an OSError's filename): named once, first
             raise BackendFault(f"cannot open {self.port}: {_plain(exc).removesuffix(f': {self.port!r}')}") from None
         try:
@@ -222,10 +246,36 @@ class SerialBackend(Backend):
 
         assert self._serial is not None, "open() first"
         try:
-            self._serial.write(frame)
+            if self._fd is None:
+                self._serial.write(frame)
+            else:
+                self._write_fd(self._fd, frame)
         except (serial.SerialException, OSError) as exc:
             self._faulted = True
             raise BackendFault(f"link lost: cannot write to {self.port}: {_plain(exc)}") from None
+
+    def _write_fd(self, fd: int, frame: bytes) -> None:
+        """Write all of ``frame`` to the port's non-blocking descriptor within ``link_timeout``.
+
+        pyserial's own write timeout also fires after every byte went out when the process was
+        held up (a loaded machine) inside the call for longer than the timeout. Here the time is
+        looked at only after a write that left bytes behind: a device that stops taking them
+        fails, a host merely held up does not.
+        """
+        view = memoryview(frame)
+        deadline = None
+        while view:
+            try:
+                view = view[os.write(fd, view) :]
+            except BlockingIOError:
+                pass
+            if not view:
+                return
+            now = self._clock()
+            deadline = now + self.link_timeout if deadline is None else deadline
+            if now >= deadline:
+                raise OSError(f"the device took no bytes for {self.link_timeout * 1e3:.0f} ms")
+            select.select([], [fd], [], 0.001)
 
     def _receive(self, deadline: float) -> bool:
         """Decode what arrives until a frame is queued or ``deadline``; False on timeout."""
@@ -244,7 +294,7 @@ class SerialBackend(Backend):
                 if frames:
                     self._frames.extend(frames)
                     return True
-            if time.perf_counter() >= deadline:
+            if self._clock() >= deadline:
                 return False
 
     def _drain(self) -> None:
@@ -275,12 +325,12 @@ class SerialBackend(Backend):
             pass
         self._decoder.reset()
         self._frames.clear()
-        start = time.perf_counter()
+        start = self._clock()
         deadline = start + self.handshake_timeout
         reply = None
         next_hello = start
         while reply is None:
-            now = time.perf_counter()
+            now = self._clock()
             if now >= deadline:
                 raise BackendFault(self._no_answer())
             if now >= next_hello:
@@ -459,7 +509,7 @@ class SerialBackend(Backend):
         """
         if not self._running:
             raise BackendFault("serial backend read before start() or after stop()")
-        deadline = time.perf_counter() + self.link_timeout
+        deadline = self._clock() + self.link_timeout
         latest = None
         while True:
             # Everything already here is processed (faults, gaps) and the newest
@@ -488,13 +538,19 @@ class SerialBackend(Backend):
         Raises
         ------
         BackendFault
-            When the command cannot be sent.
+            When the command cannot be sent, or is not finite (the amplifier is then
+            commanded off first).
         """
         if not self._running:
             raise BackendFault("serial backend written before start() or after stop()")
-        if self._faulted or not math.isfinite(volts):
+        if self._faulted:
             self._command(0, 0)
             return
+        if not math.isfinite(volts):
+            # As the simulator: a fault, not a silent amplifier-off command the episode carries on past.
+            self._faulted = True
+            self._command(0, 0)
+            raise BackendFault(f"the command is not a voltage ({volts!r}): the amplifier was switched off")
         mv = max(-self.max_millivolts, min(self.max_millivolts, int(round(volts * 1000.0))))
         rearm = b""
         if self._rearm:
@@ -526,7 +582,7 @@ class SerialBackend(Backend):
     def close(self) -> None:
         """Stop and release the port."""
         self.stop()
-        port, self._serial = self._serial, None
+        port, self._serial, self._fd = self._serial, None, None
         if port is not None:
             try:
                 port.close()
@@ -582,6 +638,19 @@ class SerialBackend(Backend):
         """
         stats = self._decoder.stats
         return {**self._counts, "host_rejects": stats.rejected - self._rejected_at_start, "decoder": stats.as_dict()}
+
+
+def _plain_fd(port) -> int | None:
+    """The descriptor of a plain POSIX pyserial port (None for URL handlers that add to its writes)."""
+    import serial
+
+    posix = getattr(serial, "serialposix", None)
+    if posix is None or type(port).write is not posix.Serial.write:
+        return None
+    try:
+        return port.fileno()
+    except (AttributeError, OSError, serial.SerialException):
+        return None
 
 
 def _firmware(hello: HelloReply) -> str:

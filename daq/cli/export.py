@@ -14,7 +14,7 @@ from qube_koopman.core.cli import (
     parse_args,
     path,
 )
-from qube_koopman.core.command import check_output_folder, run_command
+from qube_koopman.core.command import check_output_folder, output_dir, run_command
 from qube_koopman.daq.cli.batch import Progress, expand_sources, summarize
 from qube_koopman.daq.log.names import LOG_SUFFIX
 
@@ -88,6 +88,9 @@ def _export(args) -> int:
     check_output_folder(args.out)  # not a folder, read-only: before any work
     problems: list[str] = []
     logs = expand_sources(args.logs, LOG_SUFFIX, problems)
+    # Made here, through the toolkit: a folder it made is removed again if nothing could be
+    # written into it (every log refused, or Ctrl-C before the first file).
+    output_dir(args.out)
     progress = Progress(len(logs), not args.quiet)
 
     def say(kind: str, message: str) -> None:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args
-from qube_koopman.core.command import CliError, check_output_folder, run_command
+from qube_koopman.core.command import CliError, check_output_folder, output_dir, run_command
 from qube_koopman.daq.cli.batch import Progress, expand_sources, summarize
 from qube_koopman.daq.log.names import log_path
 
@@ -154,7 +154,9 @@ def _import(args) -> int:
                     f"{PROG}: warning: {csv}: {meta.status_reason.removeprefix('legacy CSV ')}; "
                     f"imported as an {meta.status} episode of {len(episode)} samples"
                 )
-            args.out.mkdir(parents=True, exist_ok=True)
+            # Through the toolkit: a folder it made is removed again if the command ends with
+            # nothing written into it (the write failed, or Ctrl-C during it).
+            output_dir(args.out)
             write_episode(out, episode, overwrite=args.force)
             imported += 1
             _log.info("%s: imported into %s", csv, out)

@@ -8,8 +8,8 @@ import math
 import sys
 from pathlib import Path
 
-from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args
-from qube_koopman.core.command import CliError, check_output_file, run_command
+from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args, whole_number
+from qube_koopman.core.command import CliError, check_output_file, output_dir, run_command
 from qube_koopman.core.console import configure_logging
 from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT
 from qube_koopman.daq.cli.run_output import PROG
@@ -124,7 +124,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=path,
         default=DEFAULT_OUT,
         metavar="DIR",
-        help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT})",
+        help=f"folder for the episode logs, created if missing (default ./{DEFAULT_OUT}); one that "
+        "already holds episode logs is refused unless --append",
+    )
+    p.add_argument(
+        "--append",
+        action="store_true",
+        help="add this run's logs to an --out folder that already holds episode logs (whatever reads "
+        "the folder then reads both runs': qube-identify trains on every log in it)",
     )
     p.add_argument(
         "--replay",
@@ -286,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")
     rt.add_argument(
         "--rt-priority",
-        type=int,
+        type=whole_number(1, 99),
         default=None,
         metavar="P",
         help="run SCHED_FIFO at priority P (1..99; needs permission)",
@@ -311,9 +318,28 @@ def _controller_form(controller, args) -> str:
     return f"{controller.kind}, {controller.system.n_states} states"
 
 
+def _check_not_adding(folder: Path, append: bool) -> None:
+    """Refuse an --out folder holding episode logs already, unless --append: a second run would
+    mix its logs with the first's without a word, and whatever reads the folder reads both."""
+    from qube_koopman.daq.log.names import find_logs
+
+    if append or not folder.is_dir():
+        return
+    found = len(find_logs(folder))
+    if found:
+        raise CliError(
+            f"{folder}: already holds {found} episode log{'s' if found != 1 else ''}; add --append to add "
+            "this run's to them, or give another --out"
+        )
+
+
 def _check_writable(folder: Path) -> None:
     import tempfile
 
+    try:
+        output_dir(folder)  # a folder it creates goes again if the run fails before writing a log
+    except CliError:
+        pass  # said below, in the run's words
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=folder):
@@ -516,6 +542,8 @@ def _run(args) -> int:
             f"the {math.degrees(limits.start_alpha):g} deg start gate (it cannot be raised by hand)"
         )
     check_output_file(args.rerun_save, "--rerun-save", args.force)
+    if not args.check:  # a check writes no log
+        _check_not_adding(args.out, args.append)
 
     swing_up = _swing_up(args, limits)
     seed = args.seed if args.seed is not None else fresh_seed()

@@ -35,7 +35,8 @@ def add_cluster_options(parser: argparse.ArgumentParser) -> None:
     ----------
     parser : argparse.ArgumentParser
     """
-    from qube_koopman.core.cli import path
+    from qube_koopman.core.cli import path, positive_number
+    from qube_koopman.identify.model_selection.distributed import DEFAULT_WORKER_TIMEOUT
 
     cluster = parser.add_argument_group("dask cluster (README: On a dask cluster)")
     cluster.add_argument(
@@ -77,6 +78,15 @@ def add_cluster_options(parser: argparse.ArgumentParser) -> None:
         help="accept a plain tcp:// --scheduler off the loopback, on a private network where "
         "everyone who can reach the scheduler's and the workers' ports is trusted to run "
         "code on them (a warning is printed)",
+    )
+    cluster.add_argument(
+        "--worker-timeout",
+        type=positive_number,
+        default=DEFAULT_WORKER_TIMEOUT,
+        metavar="S",
+        help="with --scheduler: give up, exit status 1, when the cluster has had no worker for this "
+        "long while results are awaited (every worker stopped, none came back; default "
+        f"{DEFAULT_WORKER_TIMEOUT:g})",
     )
     cluster.add_argument(
         "--worker-logs",

@@ -33,6 +33,7 @@ from qube_koopman.core.command import (
 )
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.identify.cli.cluster import add_cluster_options, check_cluster_options, cluster_report
+from qube_koopman.identify.model_selection.distributed import NoWorkersError
 from qube_koopman.identify.cli.common import expand_logs
 from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
 from qube_koopman.identify.report.figure_options import add_figure_options, check_figure_options, write_report_figures
@@ -685,7 +686,13 @@ def _cluster_statistics(args, train, cleanup: contextlib.ExitStack):
 
     client = connect(args.scheduler, security=args.security)
     cleanup.callback(client.close)
-    return ClusterStatistics(client, [log.path for log in train], args.skip, shared=args.worker_logs == "shared")
+    return ClusterStatistics(
+        client,
+        [log.path for log in train],
+        args.skip,
+        shared=args.worker_logs == "shared",
+        worker_timeout=args.worker_timeout,
+    )
 
 
 def _run(args) -> int:
@@ -794,6 +801,8 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    except NoWorkersError as exc:
+        raise CliError(str(exc), status=1) from None
     if sessions is not None:
         result.report["session_delays"] = sessions
     if statistics is not None:  # where the training statistics were computed

@@ -111,6 +111,7 @@ def search_options(args):
         n_jobs=args.n_jobs,
         scheduler=args.scheduler,
         security=args.security,
+        worker_timeout=args.worker_timeout,
     )
 
 

@@ -13,6 +13,9 @@ cluster run folds exactly what a local run folds:
   client sends with the task.
 
 dask reschedules the tasks of a worker that dies on the others; the results are the same.
+When the cluster has had no worker at all for ``worker_timeout`` seconds (default
+:data:`DEFAULT_WORKER_TIMEOUT`) while results are awaited, the client gives up
+(:class:`NoWorkersError`) rather than wait for workers that may never come back.
 The scheduler and the workers need this package installed, at the client's version (checked on
 connecting): dask unpickles the tasks on both.
 """
@@ -20,14 +23,35 @@ connecting): dask unpickles the tasks on both.
 from __future__ import annotations
 
 import tempfile
+import time
 from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
-__all__ = ["connect", "ordered_results", "candidate_runner", "release_workers", "LogSource", "ClusterStatistics"]
+__all__ = [
+    "connect",
+    "ordered_results",
+    "candidate_runner",
+    "release_workers",
+    "LogSource",
+    "ClusterStatistics",
+    "NoWorkersError",
+    "DEFAULT_WORKER_TIMEOUT",
+]
 
 PACKAGE = "qube-koopman"
+
+#: Seconds without any worker on the cluster, results still awaited, before the client gives up.
+#: Long enough for a nanny to restart a worker or a cluster manager to replace lost ones.
+DEFAULT_WORKER_TIMEOUT = 120.0
+
+# Seconds between two looks at the cluster's workers while a result is awaited.
+_WORKER_POLL = 1.0
+
+
+class NoWorkersError(TimeoutError):
+    """The cluster has had no worker for the worker timeout while results were awaited."""
 
 
 def connect(address: str, timeout: float = 30.0, security=None):
@@ -103,20 +127,56 @@ def _answer(call, *args):
         return exc
 
 
-def ordered_results(client, calls: Iterable[tuple[Callable, tuple, dict]], ahead: int | None = None) -> Iterator:
+def ordered_results(
+    client,
+    calls: Iterable[tuple[Callable, tuple, dict]],
+    ahead: int | None = None,
+    worker_timeout: float = DEFAULT_WORKER_TIMEOUT,
+) -> Iterator:
     """Run ``(function, args, kwargs)`` calls on the cluster; yield their results in the calls' order.
 
     At most ``ahead`` calls are in flight (default: twice the cluster's threads), so a long
     stream of calls holds a bounded number of results. A call's exception is raised here.
+
+    Raises
+    ------
+    NoWorkersError
+        The cluster had no worker for ``worker_timeout`` seconds while a result was awaited
+        (every worker died, none came back).
     """
     ahead = ahead or max(2, 2 * sum(client.nthreads().values()))
     pending: deque = deque()
     for fn, args, kwargs in calls:
         pending.append(client.submit(fn, *args, pure=False, **kwargs))
         if len(pending) >= ahead:
-            yield pending.popleft().result()
+            yield _result(client, pending.popleft(), len(pending) + 1, worker_timeout)
     while pending:
-        yield pending.popleft().result()
+        yield _result(client, pending.popleft(), len(pending) + 1, worker_timeout)
+
+
+def _result(client, future, waiting: int, worker_timeout: float):
+    """``future``'s result; :class:`NoWorkersError` once the cluster has had no worker for ``worker_timeout`` s.
+
+    dask keeps a task whose workers all died waiting for a new one, for ever: the client
+    looks at the workers every second meanwhile.
+    """
+    since = None  # when the cluster was first seen without a worker
+    while True:
+        try:
+            return future.result(timeout=_WORKER_POLL)
+        except TimeoutError:
+            if future.done():
+                raise  # the call's own
+            now = time.monotonic()
+            if client.nthreads():
+                since = None
+            elif since is None:
+                since = now
+            elif now - since >= worker_timeout:
+                raise NoWorkersError(
+                    f"{client.scheduler.address}: no dask worker for {worker_timeout:g} s with {waiting} "
+                    "task(s) waiting (did every worker stop?); gave up (--worker-timeout)"
+                ) from None
 
 
 def _value(value):
@@ -147,10 +207,13 @@ def _shared_arguments(
     return [(fn, tuple(swap(v) for v in args), {k: swap(v) for k, v in kwargs.items()}) for fn, args, kwargs in calls]
 
 
-def candidate_runner(n_jobs: int, client=None) -> Callable[[list], Iterator]:
+def candidate_runner(
+    n_jobs: int, client=None, worker_timeout: float = DEFAULT_WORKER_TIMEOUT
+) -> Callable[[list], Iterator]:
     """A function mapping ``joblib.delayed`` calls to their results, in order.
 
-    On ``client``'s cluster when given; else through joblib (a well-kept library) on
+    On ``client``'s cluster when given (giving up after ``worker_timeout`` s without a
+    worker, see :func:`ordered_results`); else through joblib (a well-kept library) on
     ``n_jobs`` local processes (1: in this process).
     """
     sent: dict[int, tuple] = {}  # the search's episodes, sent once for all its stages
@@ -158,7 +221,9 @@ def candidate_runner(n_jobs: int, client=None) -> Callable[[list], Iterator]:
     def run(calls):
         calls = list(calls)
         if client is not None:
-            yield from ordered_results(client, _shared_arguments(client, calls, sent), ahead=len(calls) or 1)
+            yield from ordered_results(
+                client, _shared_arguments(client, calls, sent), ahead=len(calls) or 1, worker_timeout=worker_timeout
+            )
         elif n_jobs == 1:
             for fn, args, kwargs in calls:
                 yield fn(*args, **kwargs)
@@ -250,10 +315,20 @@ class ClusterStatistics:
     shared : bool
         The workers read the logs at these (absolute) paths; checked on every worker now
         connected. Otherwise each task carries its log's bytes.
+    worker_timeout : float
+        Seconds without any worker, results awaited, before giving up (:class:`NoWorkersError`).
     """
 
-    def __init__(self, client, paths: Sequence[str | Path], skip: int, shared: bool = False) -> None:
+    def __init__(
+        self,
+        client,
+        paths: Sequence[str | Path],
+        skip: int,
+        shared: bool = False,
+        worker_timeout: float = DEFAULT_WORKER_TIMEOUT,
+    ) -> None:
         self.client, self.skip, self.shared = client, int(skip), shared
+        self.worker_timeout = float(worker_timeout)
         self.paths = [str(Path(p).resolve()) for p in paths]
         if shared:
             self._check_shared()
@@ -280,4 +355,4 @@ class ClusterStatistics:
         calls: Iterator[tuple[Callable, tuple, dict]] = (
             (_episode_part, (estimator, light, self.source(int(i)), self.skip), {}) for i in indices
         )
-        yield from ordered_results(self.client, calls)
+        yield from ordered_results(self.client, calls, worker_timeout=self.worker_timeout)

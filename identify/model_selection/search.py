@@ -42,7 +42,12 @@ import numpy as np
 
 from qube_koopman.core.qube import MEASURED
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd
-from qube_koopman.identify.model_selection.distributed import candidate_runner, connect, release_workers
+from qube_koopman.identify.model_selection.distributed import (
+    DEFAULT_WORKER_TIMEOUT,
+    candidate_runner,
+    connect,
+    release_workers,
+)
 from qube_koopman.identify.models.model import FittedRows
 from qube_koopman.identify.lifting import (
     Constant,
@@ -1048,6 +1053,7 @@ def search_liftings(
     connect_timeout: float = 30.0,
     controllers: Sequence[DiscreteStateSpace] | None = None,
     security=None,
+    worker_timeout: float = DEFAULT_WORKER_TIMEOUT,
 ) -> SearchResult:
     """Search the lifting space in stages (see the module docstring).
 
@@ -1083,6 +1089,9 @@ def search_liftings(
         the controller its validation episodes ran.
     security : distributed.security.Security, optional
         The TLS certificates of a ``tls://`` ``scheduler`` (default: dask's configuration).
+    worker_timeout : float
+        Seconds the ``scheduler``'s cluster may have no worker, results awaited, before the
+        search gives up (:class:`~qube_koopman.identify.model_selection.distributed.NoWorkersError`).
 
     Returns
     -------
@@ -1106,7 +1115,7 @@ def search_liftings(
         n_offset_alphas=space.n_offset_alphas,
     )
     client = connect(scheduler, connect_timeout, security) if scheduler else None
-    run = candidate_runner(n_jobs, client)
+    run = candidate_runner(n_jobs, client, worker_timeout)
     # A family's statistics are computed by parts of the episodes on the workers, joined here: as many
     # parts whatever the workers (the same numbers on any machine).
     n_parts = max(1, min(FAMILY_PARTS, len(data.trajectories) // 4))

@@ -28,6 +28,11 @@ Ticks are paced in one of two ways:
   start gate opens), so the timeout must stay below the host's link timeout.
   As long as the host answers within it, the run does not depend on
   scheduling noise, and it goes faster than real time; for tests.
+  ``lockstep_clock`` measures that timeout on another clock than the wall's:
+  a test host in the same process passes the time it has spent waiting on
+  the port with nothing to read, so that the bridge ticks unanswered only
+  while the host waits for it (a lost frame), never because a loaded
+  machine held the host up between its read and its answer.
 
 Each HELLO (a host opening a session) puts the pendulum back upright at
 rest with a seeded perturbation of alpha, as a person raises the real one by
@@ -89,6 +94,8 @@ _POLL = 0.05
 # Periods a late emulator catches up back to back; beyond, it restarts its schedule.
 # Below the default watchdog (5): a burst alone must not trip it.
 _MAX_BURST = 3
+# Lockstep on a clock of the caller's: how often (s) it is looked at while no host bytes come.
+_LOCKSTEP_SLICE = 0.001
 
 
 def open_raw_pty() -> tuple[int, int, str]:
@@ -127,6 +134,10 @@ class BridgeEmulator:
     lockstep_timeout : float
         In lockstep, tick anyway after this many seconds without an answer
         (keep it below the host's link timeout, 25 ms for the serial backend).
+    lockstep_clock : callable, optional
+        The clock ``lockstep_timeout`` is measured on (s, any origin); by
+        default the wall clock. Tests pass the time their host has spent
+        waiting for telemetry (see the module docstring).
     perturbation : float
         Each session starts at rest with alpha uniform in
         ``[-perturbation, perturbation]`` (rad).
@@ -156,6 +167,7 @@ class BridgeEmulator:
         seed: int | None = None,
         lockstep: bool = False,
         lockstep_timeout: float = 0.01,
+        lockstep_clock: Callable[[], float] | None = None,
         perturbation: float = DEFAULT_PERTURBATION,
         start_upright: bool = True,
         raise_time: float = 0.0,
@@ -185,6 +197,7 @@ class BridgeEmulator:
         self._link = FaultyLink(faults, random.Random(int(link_seq.generate_state(1)[0])))
         self.lockstep = bool(lockstep)
         self.lockstep_timeout = float(lockstep_timeout)
+        self.lockstep_clock = lockstep_clock
         self.perturbation = float(perturbation)
         self.start_upright = bool(start_upright)
         self.raise_time = float(raise_time)
@@ -335,18 +348,19 @@ class BridgeEmulator:
         assert self._dev is not None  # open() made it
         stop = stop if stop is not None else self._stop
         clock = time.perf_counter
+        pace = self.lockstep_clock or clock
         deadline = clock()
-        last_wall = deadline
+        last_tick = pace()
         while not stop.is_set() and self._master >= 0:
             period = self._dev.period_us * 1e-6
             if self.lockstep and self._session:
-                now, lateness = self._wait_answer(last_wall + self.lockstep_timeout, stop), math.nan
+                now, lateness = self._wait_answer(last_tick, stop), math.nan
             else:
                 now, lateness = self._wait_deadline(deadline, stop)
             if stop.is_set():
                 break
             self._tick(now, lateness)
-            last_wall = now
+            last_tick = pace()
             deadline += period
             if self.lockstep:
                 deadline = now + period
@@ -379,14 +393,21 @@ class BridgeEmulator:
                         self._read_host(clock())
         return clock(), math.nan
 
-    def _wait_answer(self, limit: float, stop: threading.Event) -> float:
-        """Lockstep: wait until the host has answered the last telemetry, or ``limit``."""
+    def _wait_answer(self, last_tick: float, stop: threading.Event) -> float:
+        """Lockstep: wait until the host has answered the last telemetry, or the lockstep timeout.
+
+        ``last_tick`` is the lockstep clock's reading at the last tick; the timeout is read anew
+        each time (a test may change it while the emulator runs).
+        """
         clock = time.perf_counter
+        pace = self.lockstep_clock
         while self._awaiting and not stop.is_set():
             now = clock()
-            if now >= limit:
+            if (pace() if pace is not None else now) >= last_tick + self.lockstep_timeout:
                 break
-            timeout = min(limit - now, self._next_release() - now, _POLL)
+            # On another clock than the wall's, its time cannot be slept to: look again soon.
+            slice_ = _LOCKSTEP_SLICE if pace is not None else last_tick + self.lockstep_timeout - now
+            timeout = min(slice_, self._next_release() - now, _POLL)
             ready, _, _ = select.select([self._master], [], [], max(timeout, 0.0))
             self._service(clock(), bool(ready))
         return clock()
@@ -417,6 +438,8 @@ class BridgeEmulator:
                 raise
             if not data:
                 return
+            # Stamped when read: a caller's ``now`` may be a tick's start, before these bytes came.
+            now = max(now, time.perf_counter())
             self._counts["bytes_in"] += len(data)
             data = self._link.incoming(data)
             if self._in_delay is not None:

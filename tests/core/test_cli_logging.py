@@ -65,7 +65,7 @@ def test_v_and_vv_show_the_work_of_a_real_run(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "qube-run: info: episode 0: complete after 100 of 100 ticks" in err
     assert "debug" not in err
-    assert main(["--episodes", "1", "--duration", "0.2", "--out", str(tmp_path), "-vv"]) == 0
+    assert main(["--episodes", "1", "--duration", "0.2", "--out", str(tmp_path), "--append", "-vv"]) == 0
     assert "qube-run: debug: writing " in capsys.readouterr().err
 
 

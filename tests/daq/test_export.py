@@ -189,3 +189,17 @@ def test_csv_of_a_log_that_lost_samples_says_qube_import_will_refuse_it(tmp_path
     # mat keeps the episode as it is: no warning
     assert main([str(logs), "--format", "mat", "--out", str(tmp_path / "mat")]) == 0
     assert "samples missing" not in capsys.readouterr().err
+
+
+def test_a_failed_export_leaves_no_folder_it_made(log, tmp_path, monkeypatch, capsys):
+    import qube_koopman.daq.export as export_module
+
+    def full_disk(episode, out):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setitem(export_module._WRITERS, "csv", full_disk)
+    path, _ = log
+    out = tmp_path / "new" / "out"
+    assert main([str(path), "--format", "csv", "--out", str(out)]) == 1
+    assert "No space left on device" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists(), "the folders it made are gone"

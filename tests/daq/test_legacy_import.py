@@ -325,3 +325,16 @@ def test_refusals_quote_numbers_as_plain_numbers(synthetic_dir, edit, problem):
     with pytest.raises(LegacyCsvError) as info:
         legacy_episode(path, load_legacy_controller(synthetic_dir / "controller.toml"))
     assert problem in str(info.value) and "np.float64" not in str(info.value)
+
+
+def test_a_failed_import_leaves_no_folder_it_made(synthetic_dir, tmp_path, monkeypatch, capsys):
+    import qube_koopman.daq.log as log_module
+
+    def full_disk(path, episode, overwrite=False):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(log_module, "write_episode", full_disk)
+    out = tmp_path / "new" / "out"
+    assert main([str(synthetic_dir / f"{GOOD}.csv"), "--out", str(out)]) == 1
+    assert "No space left on device" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists(), "the folders it made are gone"

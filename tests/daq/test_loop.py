@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from _episodes import QUBE_PD, assert_follows_controller
+from _episodes import QUBE_PD, assert_follows_controller, nan_controller
 
 from qube_koopman.daq.backends import Backend, BackendFault, Pacing, SimBackend
 from qube_koopman.core.controller_file import ControllerInfo
@@ -445,3 +445,34 @@ def test_controller_must_match_the_backend():
                            "backward-euler", RIG_GAINS)
     with pytest.raises(ValueError, match="sample period"):
         run_episode(ScriptedBackend([(0.0, 0.0)]), EpisodePlan(wrong, _plan(5).excitation), [])
+
+
+# --- a controller whose output is not a voltage --------------------------------------------------
+
+def test_a_non_finite_controller_output_is_a_fault_with_zero_volts_applied_and_logged():
+    # On every backend alike (the serial one: test_serial_backend.py), not left to the backend to refuse.
+    backend = ScriptedBackend([(0.0, 0.01)] * 50)
+    sink = MemorySink()
+    plan = _plan(40)
+    result = run_episode(backend, EpisodePlan(nan_controller(), plan.excitation, plan.excitation_info), [sink])
+    assert result.status == "aborted" and result.cause == "fault"
+    assert result.reason == "controller fault: its output is nan, not a voltage; 0 V applied"
+    ep = sink.episodes[0].episode()
+    assert ep.metadata.status_reason == result.reason and math.isnan(ep.control_output[-1])
+    assert ep.plant_input[-1] == 0.0 and np.isfinite(ep.plant_input).all(), "the log holds what was applied"
+    assert backend.writes[-1] == 0.0 and all(math.isfinite(v) for v in backend.writes) and backend.stopped == 1
+    assert len(ep) == len(backend.writes) - 1 < 10  # the episode's commands, then stop()'s 0 V
+
+
+def test_qube_run_on_the_simulator_fails_on_a_non_finite_controller_output(tmp_path, capsys):
+    from qube_koopman.core.controller_file import write_controller_file
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.daq.log import read_episode
+
+    path = write_controller_file(tmp_path / "F.toml", nan_controller().system)
+    status = main(["--controller", str(path), "--out", str(tmp_path / "out"), "--episodes", "1", "--duration",
+                   "1", "-q"])
+    err = capsys.readouterr().err
+    assert status == 1 and "controller fault: its output is nan" in err and "Traceback" not in err
+    ep = read_episode(next((tmp_path / "out").glob("*.mcap")))
+    assert ep.plant_input[-1] == 0.0 and np.isfinite(ep.plant_input).all()

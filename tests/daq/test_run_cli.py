@@ -333,7 +333,7 @@ def test_shipped_controllers_by_name_and_a_file_of_that_name_wins(tmp_path, monk
     # A folder named like a shipped controller (episodes in ./rig, say) is not a controller file.
     assert main(["--episodes", "1", "--duration", "2", "--out", "rig", "-q"]) == 0
     assert load_pd_gains("rig") == PdGains(6.0, 1.8, 30.0, 2.5, 50.0)
-    assert main(["--episodes", "1", "--duration", "2", "--out", "rig", "-q"]) == 0
+    assert main(["--episodes", "1", "--duration", "2", "--out", "rig", "--append", "-q"]) == 0
 
 
 @pytest.mark.parametrize("content, problem", [(None, "No such file or directory"),
@@ -345,3 +345,51 @@ def test_a_replay_log_that_cannot_be_read_is_named_once_and_first(content, probl
     assert main(["--replay", str(log), "--out", str(tmp_path / "o"), "-q"]) == 2
     assert capsys.readouterr().err == (f"qube-run: error: {log}: cannot read the episode log ({problem}) "
                                        "(--replay)\n")
+
+
+@pytest.mark.parametrize("value", ["0", "100", "-1"])
+def test_rt_priority_out_of_its_range_is_a_one_line_usage_error(value, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["--rt-priority", value, "--episodes", "1", "--duration", "1", "--out", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    said = f"argument --rt-priority: must be a whole number in [1, 99], got {value}"
+    assert err == f"qube-run: error: {said} (see qube-run --help)\n"
+    assert not out.exists()
+
+
+def test_an_out_folder_with_logs_is_refused_unless_append(tmp_path, capsys):
+    out = tmp_path / "runs"
+    assert main(["--episodes", "2", "--duration", "0.2", "--out", str(out), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["--episodes", "1", "--duration", "0.2", "--out", str(out), "-q"]) == 2
+    assert capsys.readouterr().err == (f"qube-run: error: {out}: already holds 2 episode logs; add --append to add "
+                                       "this run's to them, or give another --out\n")
+    assert len(list(out.glob("*.mcap"))) == 2
+    assert main(["--episodes", "1", "--duration", "0.2", "--out", str(out), "--append", "-q"]) == 0
+    assert len(list(out.glob("*.mcap"))) == 3
+    (empty := tmp_path / "empty").mkdir()
+    (empty / "notes.txt").write_text("no logs here")
+    assert main(["--episodes", "1", "--duration", "0.2", "--out", str(empty), "-q"]) == 0
+
+
+def test_a_run_that_fails_before_any_log_leaves_no_folder_it_made(tmp_path, capsys):
+    # A bridge that answers the handshake, then sends no telemetry: the link is lost at the start gate,
+    # before any episode log. The folders the run made for its logs go again; one that was there stays.
+    from bridge_helpers import FakeDevice
+
+    from qube_koopman.firmware_protocol import Config, ConfigAck, Hello, HelloReply, encode_frame
+
+    def respond(frame):
+        if isinstance(frame.message, Hello):
+            return encode_frame(HelloReply(nonce=frame.message.nonce, capabilities=0x7F, module_id=777), 1, 0)
+        if isinstance(frame.message, Config):
+            return encode_frame(ConfigAck(), 2, 0)
+        return b""
+
+    (kept := tmp_path / "kept").mkdir()
+    for out in (tmp_path / "a" / "b", kept):
+        with FakeDevice(respond) as dev:
+            status = main(["--backend", "serial", "--port", dev.path, "--episodes", "1", "--out", str(out), "-q"])
+        assert status == 1 and "link lost" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists(), "the folders it made are gone"
+    assert kept.is_dir() and not list(kept.iterdir())

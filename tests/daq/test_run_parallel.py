@@ -10,6 +10,7 @@ by record in the MCAP files themselves.
 from __future__ import annotations
 
 import copy
+import os
 import re
 import signal
 import subprocess
@@ -206,6 +207,73 @@ def test_sigterm_to_the_run_stops_the_workers_episodes_with_their_logs_closed(tm
         assert np.array_equal(ep.t, np.arange(n) / 500), "no sample lost"
     assert "1 complete, 2 aborted" in out and "interrupted by SIGTERM" in err
     assert "Traceback" not in err
+
+
+def _alive_descendants(root: int) -> set[int]:
+    """Pids of the live (not zombie) processes under ``root``, from /proc."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()
+            if fields[0] != "Z":
+                parents[int(entry.name)] = int(fields[1])
+    found, frontier = set(), [root]
+    while frontier:
+        pid = frontier.pop()
+        children = {c for c, p in parents.items() if p == pid} - found
+        found |= children
+        frontier += children
+    return found
+
+
+def _gone(pid: int) -> bool:
+    """Whether ``pid`` has ended (reaping it if it was handed to this process, the suite's subreaper)."""
+    try:
+        os.waitpid(pid, os.WNOHANG)
+    except ChildProcessError:
+        pass
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return stat[stat.rindex(")") + 2] == "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from /proc")
+def test_sigkill_of_the_run_leaves_no_worker_behind(tmp_path):
+    # SIGKILL: the run cannot tell its workers anything. They see their parent gone and end, a running
+    # episode first closing its log as aborted (within 50 ms); within a few seconds all are gone.
+    proc = subprocess.Popen([sys.executable, "-m", "qube_koopman.daq.cli.run", "--realtime", "--episodes", "4",
+                             "--duration", "3", "--seed", "5", "--n-jobs", "2", "--out", str(tmp_path), "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while len(_logs(tmp_path)) < 3:  # the first episode here, then two in the workers
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no worker started an episode in 60 s"
+            time.sleep(0.05)
+        workers = _alive_descendants(proc.pid)
+        assert len(workers) >= 2, workers
+        proc.kill()
+        proc.wait(10)
+        deadline = time.monotonic() + 5
+        while not all(_gone(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        left = {pid for pid in workers if not _gone(pid)}
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)  # this test's own leftovers, by pid, so the suite goes on clean
+    assert not left, f"{len(left)} of the run's {len(workers)} processes outlived it by 5 s"
+    for path in _logs(tmp_path)[1:]:
+        meta = read_episode(path).metadata  # warns if anything was salvaged: it must not be
+        assert meta.status == "aborted" and meta.status_reason == "the run's process ended"
 
 
 def test_a_relative_out_folder_is_this_processs_even_when_joblibs_workers_started_elsewhere(tmp_path, monkeypatch):

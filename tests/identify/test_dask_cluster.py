@@ -303,3 +303,67 @@ def _runs(story: list) -> tuple[int, str]:
     """How many times the scheduler sent a task to a worker, and its last state (from its story)."""
     # A story's transitions are (key, start, finish, ...) tuples.
     return sum(t[2] == "processing" for t in story), story[-1][2] if story else ""
+
+
+def _kill_workers(cluster: Cluster) -> None:
+    """SIGKILL every worker of ``cluster`` (this test's processes, by their ids) and wait until the scheduler knows."""
+    for worker in cluster.workers:
+        worker.send_signal(signal.SIGKILL)
+    for worker in cluster.workers:
+        assert worker.wait(timeout=30) == -signal.SIGKILL
+    deadline = time.monotonic() + STARTUP
+    while cluster.client.nthreads():
+        assert time.monotonic() < deadline, "the scheduler still counts the killed workers"
+        time.sleep(0.1)
+
+
+def test_results_give_up_once_every_worker_died_mid_task(own_cluster):
+    from qube_koopman.identify.model_selection.distributed import NoWorkersError, ordered_results
+
+    cluster = own_cluster
+    results = ordered_results(cluster.client, [(time.sleep, (600.0,), {}) for _ in range(4)], worker_timeout=2.0)
+    failure: list = []
+
+    def consume():
+        try:
+            next(results)
+        except NoWorkersError as exc:
+            failure.append((time.monotonic(), exc))
+
+    import threading
+
+    waiting = threading.Thread(target=consume, daemon=True)
+    waiting.start()
+    deadline = time.monotonic() + STARTUP
+    while sum(map(len, cluster.client.processing().values())) < 2:  # both workers busy with a 600 s task
+        assert time.monotonic() < deadline, "the tasks never started"
+        time.sleep(0.05)
+    _kill_workers(cluster)
+    gone = time.monotonic()
+    waiting.join(RUN)
+    assert failure, "still waiting for workers that will not come"
+    when, exc = failure[0]
+    assert when - gone >= 2.0 - 1e-3, "gave up before the timeout (the scheduler saw no worker from `gone` on)"
+    assert str(exc) == (f"{cluster.address}: no dask worker for 2 s with 4 task(s) waiting (did every worker "
+                        "stop?); gave up (--worker-timeout)")
+
+
+def test_qube_identify_gives_up_in_one_line_when_the_cluster_has_no_worker(own_cluster, logs, tmp_path):
+    cluster = own_cluster
+    _kill_workers(cluster)
+    proc = subprocess.run([sys.executable, "-m", "qube_koopman.identify.cli.identify",
+                           *_argv(logs, tmp_path / "out", "--scheduler", cluster.address, "--worker-timeout", "2")],
+                          capture_output=True, text=True, timeout=RUN)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith(f"qube-identify: error: {cluster.address}: no dask worker for 2 s with ")
+    assert "(--worker-timeout)" in proc.stderr
+
+
+def test_worker_timeout_is_in_the_help(capsys):
+    from qube_koopman.identify.cli.identify import main
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--worker-timeout S" in text and "no worker for this long" in text and "default 120" in text
