@@ -27,7 +27,7 @@ from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.models.kstep import AheadOptions, AheadScores, fit_training_disturbance
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
-from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
+from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep, warn_at_grid_edge
 from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty import (
     BandSummary,
@@ -473,6 +473,7 @@ def _koopman(
             episode_statistics=elsewhere,
         )
         alpha = sweep.best_alpha(score)
+        warn_at_grid_edge(sweep.alphas, alpha)
         result.sweep = sweep
         best = int(np.flatnonzero(sweep.alphas == alpha)[0])
         result.report["sweep"] = {

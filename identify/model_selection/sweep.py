@@ -18,6 +18,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -38,7 +39,16 @@ from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
-__all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "episode_scores", "SCORINGS"]
+__all__ = [
+    "AlphaAtGridEdge",
+    "warn_at_grid_edge",
+    "SweepResult",
+    "regularization_sweep",
+    "fitted_models",
+    "fit_alphas",
+    "episode_scores",
+    "SCORINGS",
+]
 
 SCORINGS = ("cl", "plant")
 # Models simulated together: bounds their rings of permuted Koopman rows to ~64 MB (predictions
@@ -102,6 +112,32 @@ class SweepResult:
     def best_alpha(self, scoring: str) -> float:
         """The alpha with the highest mean cross-validated R^2 (the smallest among ties)."""
         return float(self.alphas[int(np.argmax(self.cv_r2_mean(scoring)))])
+
+
+class AlphaAtGridEdge(UserWarning):
+    """The sweep's best alpha is the first or last of its grid: the best may lie beyond it."""
+
+
+def warn_at_grid_edge(alphas: Sequence[float] | np.ndarray, best: float) -> None:
+    """Warn (:class:`AlphaAtGridEdge`) when ``best`` is the smallest or largest of ``alphas``.
+
+    Parameters
+    ----------
+    alphas : sequence of float
+        The sweep's grid.
+    best : float
+        The alpha the sweep chose.
+    """
+    grid = np.sort(np.asarray(alphas, dtype=float))
+    if len(grid) < 2 or grid[0] < best < grid[-1]:
+        return
+    edge = "smallest" if best <= grid[0] else "largest"
+    warnings.warn(
+        f"the sweep's best alpha {best:g} is the {edge} of its grid ({grid[0]:g} to {grid[-1]:g}): the best may lie "
+        "beyond it; widen the sweep (--alpha-sweep MIN MAX N)",
+        AlphaAtGridEdge,
+        stacklevel=2,
+    )
 
 
 def fitted_models(
