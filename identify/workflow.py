@@ -485,7 +485,7 @@ def _koopman(
             episode_statistics=elsewhere,
         )
         alpha = sweep.best_alpha(score)
-        warn_at_grid_edge(sweep.alphas, alpha)
+        warn_at_grid_edge(sweep.alphas, alpha, sweep.cv_r2_mean(score))
         result.sweep = sweep
         best = int(np.flatnonzero(sweep.alphas == alpha)[0])
         result.report["sweep"] = {

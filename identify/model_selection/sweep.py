@@ -41,6 +41,7 @@ from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
     "AlphaAtGridEdge",
+    "FLAT_R2",
     "warn_at_grid_edge",
     "SweepResult",
     "regularization_sweep",
@@ -118,7 +119,12 @@ class AlphaAtGridEdge(UserWarning):
     """The sweep's best alpha is the first or last of its grid: the best may lie beyond it."""
 
 
-def warn_at_grid_edge(alphas: Sequence[float] | np.ndarray, best: float) -> None:
+#: A cross-validated R^2 that changes by less than this between a grid's edge and its neighbour is flat there: a
+#: wider grid would gain about as little, so the edge is no reason to warn.
+FLAT_R2 = 1e-4
+
+
+def warn_at_grid_edge(alphas: Sequence[float] | np.ndarray, best: float, scores=None) -> None:
     """Warn (:class:`AlphaAtGridEdge`) when ``best`` is the smallest or largest of ``alphas``.
 
     Parameters
@@ -127,14 +133,24 @@ def warn_at_grid_edge(alphas: Sequence[float] | np.ndarray, best: float) -> None
         The sweep's grid.
     best : float
         The alpha the sweep chose.
+    scores : sequence of float, optional
+        The cross-validated score of each alpha (in the order of ``alphas``): no warning when the edge's beats
+        its neighbour's by less than :data:`FLAT_R2` (the score is flat there).
     """
-    grid = np.sort(np.asarray(alphas, dtype=float))
+    order = np.argsort(np.asarray(alphas, dtype=float))
+    grid = np.asarray(alphas, dtype=float)[order]
     if len(grid) < 2 or grid[0] < best < grid[-1]:
         return
-    edge = "smallest" if best <= grid[0] else "largest"
+    lower = best <= grid[0]
+    if scores is not None:
+        ranked = np.asarray(scores, dtype=float)[order]
+        edge, neighbour = (ranked[0], ranked[1]) if lower else (ranked[-1], ranked[-2])
+        if np.isfinite(neighbour) and edge - neighbour < FLAT_R2:
+            return
     warnings.warn(
-        f"the sweep's best alpha {best:g} is the {edge} of its grid ({grid[0]:g} to {grid[-1]:g}): the best may lie "
-        "beyond it; widen the sweep (--alpha-sweep MIN MAX N)",
+        f"the sweep's best alpha {best:g} is the {'smallest' if lower else 'largest'} of its grid ({grid[0]:g} to "
+        f"{grid[-1]:g}) and its score still rises there: the best may lie beyond it; widen the sweep "
+        "(--alpha-sweep MIN MAX N)",
         AlphaAtGridEdge,
         stacklevel=2,
     )

@@ -48,12 +48,23 @@ def test_a_sweep_whose_best_alpha_is_its_grids_edge_says_to_widen_it(qube_logs, 
             shutil.copy(path, tmp_path / name / path.name)
     code = identify_main([
         "--train", str(tmp_path / "train"), "--test", str(tmp_path / "test"), "--out", str(tmp_path / "out"),
-        "--alpha-sweep", "1e-3", "1e-2", "2", "--cv-splits", "2", "--quiet",
-    ])  # two alphas: the best is always an edge
+        "--alpha-sweep", "10", "100", "2", "--cv-splits", "2", "--quiet",
+    ])  # two alphas, both too large: the smaller is the best, and the score still rises there
     err = capsys.readouterr().err
     assert code == 0, err
     lines = [line for line in err.splitlines() if "the sweep's best alpha" in line]
-    assert len(lines) == 1 and lines[0].startswith("qube-identify: warning: the sweep's best alpha 0.0")
-    assert "of its grid (0.001 to 0.01): the best may lie beyond it; widen the sweep (--alpha-sweep MIN MAX N)" in (
-        lines[0]
-    )
+    assert lines == [
+        "qube-identify: warning: the sweep's best alpha 10 is the smallest of its grid (10 to 100) and its score "
+        "still rises there: the best may lie beyond it; widen the sweep (--alpha-sweep MIN MAX N)"
+    ]
+
+
+def test_an_edge_where_the_score_is_flat_is_no_reason_to_warn():
+    from qube_koopman.identify.model_selection.sweep import FLAT_R2, AlphaAtGridEdge, warn_at_grid_edge
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_at_grid_edge([1e-5, 1e-3, 1e-1], 1e-5, [0.98066, 0.98066 - FLAT_R2 / 2, 0.977])
+        warn_at_grid_edge([1e-5, 1e-3, 1e-1], 1e-3, [0.97, 0.98, 0.977])
+    with pytest.warns(AlphaAtGridEdge, match="largest of its grid"):
+        warn_at_grid_edge([1e-1, 1e-3, 1e-5], 1e-1, [0.99, 0.98, 0.97])
