@@ -129,12 +129,14 @@ def episode_frame(episode: Episode):
     Raises
     ------
     ImportError
-        If pandas is not installed (it is optional: ``pip install pandas``).
+        If pandas is not installed (it is optional: ``pip install "qube-koopman[pandas]"``).
     """
     try:
         import pandas as pd
     except ImportError:
-        raise ImportError("episode_frame needs pandas, which is optional: pip install pandas") from None
+        raise ImportError(
+            'episode_frame needs pandas, which is optional: pip install "qube-koopman[pandas]" (or pip install pandas)'
+        ) from None
     columns = episode_columns(episode)
     frame = pd.DataFrame(columns)
     frame.attrs["metadata"] = metadata_records(episode)

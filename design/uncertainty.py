@@ -272,6 +272,10 @@ class FigureInterval:
     propagated : bool
         Whether the held-out error of J and the voltage's RMS was propagated through the designed loop
         (:mod:`~design.error_transfer`) rather than taken as the training controller's ratio.
+    median : dict, optional
+        The interval's median, by figure (inf when a member diverged). The interval is of the loop's figure
+        over the bootstrap plants with the model's error, so neither ``predicted`` (the point plant) nor
+        ``expected`` need lie inside it; its median does.
     """
 
     level: float
@@ -283,6 +287,7 @@ class FigureInterval:
     member_range: dict
     expected: dict
     propagated: bool = False
+    median: dict | None = None
 
     @property
     def sources(self) -> str:
@@ -311,6 +316,7 @@ class FigureInterval:
                     "expected": self.expected[name],
                     "lower": self.lower[name],
                     "upper": self.upper[name],
+                    "median": None if self.median is None else self.median[name],
                     "members": list(self.member_range[name]),
                 }
                 for name in FIGURES
@@ -357,23 +363,25 @@ def figure_interval(
     with np.errstate(all="ignore"):
         shifts = np.log(pooled / base)
     moved = np.zeros(len(FIGURES)) if shift is None else np.asarray(shift, dtype=float)
-    lower, upper, spread, expected = {}, {}, {}, {}
+    lower, upper, spread, expected, median = {}, {}, {}, {}, {}
     n = 0 if model_error is None else len(model_error)
     for i, name in enumerate(FIGURES):
         spread[name] = (float(np.min(pooled[:, i])), float(np.max(pooled[:, i])))
         centre = moved[i] + (float(np.mean(model_error[:, i])) if n and model_error is not None else 0.0)
         expected[name] = float(predicted[name] * np.exp(centre))
         if not np.all(np.isfinite(shifts[:, i])):
-            lower[name], upper[name] = float(predicted[name]), float("inf")
+            lower[name], upper[name], median[name] = float(predicted[name]), float("inf"), float("inf")
             continue
         if n and model_error is not None:  # n: the held-out episodes, none without a model error
             e = model_error[:, i]
-            lo, hi = _mixture_quantiles(
-                shifts[:, i] + centre, float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n), n - 1, level
-            )
+            scale = float(np.std(e, ddof=1)) * np.sqrt(1 + 1 / n)
+            lo, hi = _mixture_quantiles(shifts[:, i] + centre, scale, n - 1, level)
+            mid = _mixture_quantiles(shifts[:, i] + centre, scale, n - 1, 0.0)[0]
         else:
             lo, hi = _mixture_quantiles(shifts[:, i] + moved[i], 0.0, None, level)
+            mid = float(np.median(shifts[:, i] + moved[i]))
         lower[name], upper[name] = float(predicted[name] * np.exp(lo)), float(predicted[name] * np.exp(hi))
+        median[name] = float(predicted[name] * np.exp(mid))
     return FigureInterval(
         level,
         {k: float(predicted[k]) for k in FIGURES},
@@ -384,6 +392,7 @@ def figure_interval(
         spread,
         expected,
         propagated=shift is not None,
+        median=median,
     )
 
 

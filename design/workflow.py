@@ -282,14 +282,13 @@ def _interval_lines(report: DesignReport) -> list[str]:
     iv = report.interval
     if iv is not None:
         lines.append(f"interval at {iv.level:g} (from {iv.sources}):")
+        percent = f"{100 * iv.level:g} %"
         for name, label, fmt in (
             ("J", "J (rad^2)", ".3e"),
             ("voltage_rms", "voltage RMS (V)", ".3f"),
             ("voltage_peak", "voltage peak (V)", ".2f"),
         ):
-            bounds = f"[{iv.lower[name]:{fmt}}, {iv.upper[name]:{fmt}}]"
-            expected = f"  (with the model's error {iv.expected[name]:{fmt}})" if iv.n_held_out else ""
-            lines.append(f"  {label:<17} {iv.predicted[name]:{fmt}} in {bounds}{expected}")
+            lines.append(f"  {label:<17} {_figure_with_interval(iv, name, fmt, percent)}")
         if iv.n_held_out and not iv.propagated:
             lines.append(
                 "  (the model's error is the training controller's ratio: the model file keeps no spectra of it to "
@@ -313,6 +312,22 @@ def _interval_lines(report: DesignReport) -> list[str]:
                 f"r_voltage {tried}); it costs {100 * cost:+.1f} % of predicted J against the nominal design"
             )
     return lines
+
+
+def _figure_with_interval(iv: FigureInterval, name: str, fmt: str, percent: str) -> str:
+    """One figure's line: the point plant's prediction, the same with the model's error, and the interval of the
+    loop's figure (over the bootstrap plants, with the model's error) with its median; it says so when the point
+    plant's prediction lies outside that interval."""
+    predicted, lower, upper = iv.predicted[name], iv.lower[name], iv.upper[name]
+    text = f"predicted {predicted:{fmt}} (the point model)"
+    if iv.n_held_out:
+        text += f", {iv.expected[name]:{fmt}} with the model's error"
+    text += f"; {percent} interval of the loop's figure {lower:{fmt}} to {upper:{fmt}}"
+    if iv.median is not None and np.isfinite(iv.median[name]):
+        text += f", its median {iv.median[name]:{fmt}}"
+    if predicted < lower or predicted > upper:
+        text += f" (the point model's prediction lies {'below' if predicted < lower else 'above'} it)"
+    return text
 
 
 def saturation_warning(report: DesignReport) -> str | None:

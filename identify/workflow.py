@@ -15,6 +15,7 @@ from qube_koopman.core.files import atomic_path
 from qube_koopman.core.parallel import resolve_n_jobs
 from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.identify.estimators.arx import Arx, ClArx
+from qube_koopman.identify.estimators.base import episode_statistics as statistics_here
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows, ClEdmdLstsq
 from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories, recorded_controllers
 from qube_koopman.core.lti import same_system, with_output_delay
@@ -28,7 +29,7 @@ from qube_koopman.identify.models.offsets import DEFAULT_BOUND
 from qube_koopman.identify.models.kstep import AheadOptions, AheadScores, fit_training_disturbance
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
-from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep
+from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep, warn_at_grid_edge
 from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty import (
     BandSummary,
@@ -411,7 +412,17 @@ def identify_and_score(
             else:
                 predicted_loops = _TestLoops(controller, score, what_if, float(command_delay))
             _score_koopman(
-                plant, closed, predicted_loops, test, offsets, result, score_from, keep_predictions, bands, ahead_scores
+                plant,
+                closed,
+                predicted_loops,
+                test,
+                offsets,
+                result,
+                score_from,
+                keep_predictions,
+                bands,
+                ahead_scores,
+                progress,
             )
             if ahead_scores is not None:
                 result.report["ahead"] = ahead_scores.report()
@@ -422,7 +433,7 @@ def identify_and_score(
             plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
             if model_path is not None:
                 save_arx_model(model_path, method=method, lags=arx_lags, model=plant if method == "arx" else closed)
-            _score_arx(predict, test, result, score_from, keep_predictions)
+            _score_arx(predict, test, result, score_from, keep_predictions, progress)
         else:
             raise ValueError(f"unknown method {method!r}")
     result.plant, result.closed_loop = plant, closed
@@ -453,7 +464,8 @@ def _koopman(
         else (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
     )
     # EDMD fits the plant from its logged input, whatever the controller; the others from each episode's own.
-    fit = lambda est: _fit(est, trajs, None if cls is Edmd else controllers, elsewhere)  # noqa: E731
+    counted = _counted_statistics(elsewhere, progress, "fit: training episodes")
+    fit = lambda est: _fit(est, trajs, None if cls is Edmd else controllers, counted)  # noqa: E731
     if alphas is not None:
         # Folds hold out a recorded controller's episodes together, one loop per fold (with_command_delay).
         recorded = recorded_controllers(train)
@@ -474,6 +486,7 @@ def _koopman(
             episode_statistics=elsewhere,
         )
         alpha = sweep.best_alpha(score)
+        warn_at_grid_edge(sweep.alphas, alpha, sweep.cv_r2_mean(score))
         result.sweep = sweep
         best = int(np.flatnonzero(sweep.alphas == alpha)[0])
         result.report["sweep"] = {
@@ -496,7 +509,7 @@ def _koopman(
         fitted = fit(make(alpha))
     else:  # the plain fit, its bootstrap refits and the calibration folds' in one pass over the episodes
         ensemble = fit_ensemble(
-            make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller, MEASURED, elsewhere
+            make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller, MEASURED, counted
         )
         fitted = ensemble.estimator
     if hasattr(fitted, "unconstrained_radius_"):
@@ -540,6 +553,24 @@ def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None =
         logs=names,
         spectra=spectra,
     )
+
+
+def _counted_statistics(elsewhere, progress, label: str):
+    """``elsewhere`` (None: :func:`~qube_koopman.identify.estimators.base.episode_statistics` here) with
+    ``progress(label, done, total)`` as each episode's statistics come back; ``elsewhere`` itself without
+    ``progress``."""
+    if progress is None:
+        return elsewhere
+
+    def compute(estimator, setup, ids):
+        ids = list(ids)
+        parts = statistics_here(estimator, setup, ids) if elsewhere is None else elsewhere(estimator, setup, ids)
+        progress(label, 0, len(ids))
+        for done, part in enumerate(parts, 1):
+            progress(label, done, len(ids))  # before the yield: a consumer that zips stops after the last
+            yield part
+
+    return compute
 
 
 def _fit(estimator, trajs, controllers, elsewhere):
@@ -644,8 +675,13 @@ def _first_scored(offsets: OffsetProtocol | None, score_from: int | None, dt: fl
 class _TestScores:
     """Test episodes scored as they stream by: per-episode scores kept, predictions only when asked."""
 
-    def __init__(self, result: IdentificationResult, start: int, keep_predictions: bool) -> None:
+    def __init__(
+        self, result: IdentificationResult, start: int, keep_predictions: bool, progress=None, total: int = 0
+    ) -> None:
         self.result, self.start, self.keep = result, start, keep_predictions
+        self.progress, self.total = progress, total
+        if progress is not None:
+            progress("test episodes", 0, total)
         self.names: list[str] = []
         self.scored: list[str] = []  # the scored episodes' names
         self.scores: list[EpisodeScore] = []
@@ -666,6 +702,8 @@ class _TestScores:
             self.result.test_truth.append(truth)
             self.result.test_predictions.append(prediction)
             self.result.test_time.append(np.arange(len(truth)) * log.dt)
+        if self.progress is not None:
+            self.progress("test episodes", len(self.result.test_names), self.total)
 
     def report(self, protocol: str, dt: float) -> None:
         """The scores' part of the report, with a warning per diverged prediction."""
@@ -694,12 +732,13 @@ def _score_koopman(
     keep_predictions=True,
     bands=None,
     ahead=None,
+    progress=None,
 ):
     """Test logs read, predicted and scored a batch at a time (only their scores kept, and their predictions
     if asked); with ``bands``, every member of the ensemble predicts each batch in the same simulation."""
     dt = test[0].dt
     start = _first_scored(offsets, score_from, dt)
-    scores, estimates = _TestScores(result, start, keep_predictions), []
+    scores, estimates = _TestScores(result, start, keep_predictions, progress, len(test)), []
     counted = [how.scored(log) for log in test]
     loops = [how.loop(log) for log in test]
     for run in consecutive_runs(loops):
@@ -1001,10 +1040,10 @@ def _arx(method, trajs, test, controller, lags, score, result):
     return model, model.closed_loop_, model.predict
 
 
-def _score_arx(predict, test, result, score_from, keep_predictions) -> None:
+def _score_arx(predict, test, result, score_from, keep_predictions, progress=None) -> None:
     """Each test log read, predicted by ``predict`` and scored in turn."""
     dt = test[0].dt
-    scores = _TestScores(result, 1 if score_from is None else score_from, keep_predictions)
+    scores = _TestScores(result, 1 if score_from is None else score_from, keep_predictions, progress, len(test))
     for log in test:
         traj = log.trajectory
         scores.add(log, traj.x, predict(traj))

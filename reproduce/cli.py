@@ -74,7 +74,8 @@ def _parser() -> argparse.ArgumentParser:
         type=path,
         required=True,
         metavar="DIR",
-        help="folder with the imported .mcap logs (qube-import ../shared/datasets/qube_servo_20230828/*.csv --out DIR)",
+        help="folder with the imported .mcap logs (qube-import DATASET_DIR --out DIR, DATASET_DIR the paper's CSV "
+        "folder)",
     )
     qube.add_argument(
         "--out",

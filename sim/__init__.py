@@ -26,6 +26,7 @@ _HOMES = {
     "ZeroOffsetDistribution": "pendulum",
     "linearize_upright": "pendulum",
     "linear_model": "pendulum",
+    "linear_loop_radius": "pendulum",
     # plant files (qube-calibrate's output)
     "load_plant": "pendulum.params_file",
     "save_plant": "pendulum.params_file",

@@ -37,8 +37,9 @@ exit status: 0 when every file was imported, 1 when any was refused,
 2 on a usage error (also a SRC that does not exist or a folder without CSV
 files; the other files are still imported).
 
-example:
-  qube-import ../shared/datasets/qube_servo_20230828 --out episodes/
+example (DATASET_DIR: the paper's dataset, folder dataset/controller_20230828 of the repository
+decargroup/closed_loop_koopman):
+  qube-import DATASET_DIR --out qube_logs/
 """
 
 

@@ -38,7 +38,7 @@ def add_cluster_options(parser: argparse.ArgumentParser) -> None:
     from qube_koopman.core.cli import path, positive_number
     from qube_koopman.identify.model_selection.distributed import DEFAULT_WORKER_TIMEOUT
 
-    cluster = parser.add_argument_group("dask cluster (README: On a dask cluster)")
+    cluster = parser.add_argument_group("dask cluster (the documentation's page: A dask cluster, docs/cluster.md)")
     cluster.add_argument(
         "--scheduler",
         metavar="ADDRESS",
@@ -180,8 +180,8 @@ def check_cluster_options(args: argparse.Namespace, prog: str) -> None:
         )
         if not args.insecure_scheduler:
             raise CliError(
-                f"--scheduler {risk}; use tls:// with --tls-ca-file, --tls-cert and --tls-key (README: "
-                "On a dask cluster), or --insecure-scheduler on a trusted private network"
+                f"--scheduler {risk}; use tls:// with --tls-ca-file, --tls-cert and --tls-key (the documentation's "
+                "page: A dask cluster, docs/cluster.md), or --insecure-scheduler on a trusted private network"
             )
         print(f"{prog}: warning: --insecure-scheduler: {risk}", file=sys.stderr)
 

@@ -9,6 +9,7 @@ question a plant model answers: does it predict a loop it was not fitted on?
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -20,6 +21,8 @@ from qube_koopman.identify.estimators.mixed import distinct_controllers
 
 __all__ = [
     "paper_split",
+    "PaperSplitWarning",
+    "PAPER_LOGS",
     "group_shuffle_splits",
     "leave_one_controller_out",
     "within_controller_splits",
@@ -30,11 +33,30 @@ __all__ = [
 ]
 
 
+#: The paper's logs: its split trains on the first 28 of them, sorted by name, and tests on the other 20.
+PAPER_LOGS = 48
+
+
+class PaperSplitWarning(UserWarning):
+    """The paper's split given other than the paper's 48 logs: it still splits them, and says how."""
+
+
 def paper_split(paths: Sequence[str | Path], n_train: int = 28) -> tuple[list[Path], list[Path]]:
-    """The paper's split: names sorted, the first ``n_train`` train, the rest test."""
+    """The paper's split: names sorted, the first ``n_train`` train, the rest test.
+
+    Warns (:class:`PaperSplitWarning`) when given other than the paper's 48 logs: the split is then
+    not the paper's, though it is made the same way.
+    """
     ordered = sorted((Path(p) for p in paths), key=lambda p: p.name)
     if len(ordered) <= n_train:
         raise ValueError(f"the paper's split needs more than {n_train} logs, got {len(ordered)}")
+    if len(ordered) != PAPER_LOGS:
+        warnings.warn(
+            f"the paper's split is for its {PAPER_LOGS} logs, got {len(ordered)}: the first {n_train} names "
+            f"sorted train, the other {len(ordered) - n_train} test",
+            PaperSplitWarning,
+            stacklevel=2,
+        )
     return ordered[:n_train], ordered[n_train:]
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -38,7 +39,17 @@ from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.core.lti import DiscreteStateSpace
 
-__all__ = ["SweepResult", "regularization_sweep", "fitted_models", "fit_alphas", "episode_scores", "SCORINGS"]
+__all__ = [
+    "AlphaAtGridEdge",
+    "FLAT_R2",
+    "warn_at_grid_edge",
+    "SweepResult",
+    "regularization_sweep",
+    "fitted_models",
+    "fit_alphas",
+    "episode_scores",
+    "SCORINGS",
+]
 
 SCORINGS = ("cl", "plant")
 # Models simulated together: bounds their rings of permuted Koopman rows to ~64 MB (predictions
@@ -102,6 +113,47 @@ class SweepResult:
     def best_alpha(self, scoring: str) -> float:
         """The alpha with the highest mean cross-validated R^2 (the smallest among ties)."""
         return float(self.alphas[int(np.argmax(self.cv_r2_mean(scoring)))])
+
+
+class AlphaAtGridEdge(UserWarning):
+    """The sweep's best alpha is the first or last of its grid: the best may lie beyond it."""
+
+
+#: A cross-validated R^2 that changes by less than this between a grid's edge and its neighbour is flat there: a
+#: wider grid would gain about as little, so the edge is no reason to warn.
+FLAT_R2 = 1e-4
+
+
+def warn_at_grid_edge(alphas: Sequence[float] | np.ndarray, best: float, scores=None) -> None:
+    """Warn (:class:`AlphaAtGridEdge`) when ``best`` is the smallest or largest of ``alphas``.
+
+    Parameters
+    ----------
+    alphas : sequence of float
+        The sweep's grid.
+    best : float
+        The alpha the sweep chose.
+    scores : sequence of float, optional
+        The cross-validated score of each alpha (in the order of ``alphas``): no warning when the edge's beats
+        its neighbour's by less than :data:`FLAT_R2` (the score is flat there).
+    """
+    order = np.argsort(np.asarray(alphas, dtype=float))
+    grid = np.asarray(alphas, dtype=float)[order]
+    if len(grid) < 2 or grid[0] < best < grid[-1]:
+        return
+    lower = best <= grid[0]
+    if scores is not None:
+        ranked = np.asarray(scores, dtype=float)[order]
+        edge, neighbour = (ranked[0], ranked[1]) if lower else (ranked[-1], ranked[-2])
+        if np.isfinite(neighbour) and edge - neighbour < FLAT_R2:
+            return
+    warnings.warn(
+        f"the sweep's best alpha {best:g} is the {'smallest' if lower else 'largest'} of its grid ({grid[0]:g} to "
+        f"{grid[-1]:g}) and its score still rises there: the best may lie beyond it; widen the sweep "
+        "(--alpha-sweep MIN MAX N)",
+        AlphaAtGridEdge,
+        stacklevel=2,
+    )
 
 
 def fitted_models(

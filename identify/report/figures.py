@@ -233,7 +233,7 @@ def _draw_series(plot: SeriesPlot, fig) -> None:
         if n_labels:
             ax.legend(fontsize="small" if n_labels < 4 else "x-small", ncols=1 if n_labels < 4 else 2, loc="best")
     axes[-1].set_xlabel(plot.xlabel)
-    axes[0].set_title(plot.title)
+    _fitted_title(axes[0], plot.title)
 
 
 def _draw_eigenvalues(plot: EigenvaluePlot, fig) -> None:
@@ -258,7 +258,22 @@ def _draw_eigenvalues(plot: EigenvaluePlot, fig) -> None:
     ax.set_ylabel("imaginary part")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small", loc="upper left", framealpha=0.9)
-    ax.set_title(plot.title)
+    _fitted_title(ax, plot.title)
+
+
+#: The smallest font (points) a title shrinks to so that it fits the figure's width.
+MIN_TITLE_POINTS = 7.0
+
+
+def _fitted_title(ax, title: str) -> None:
+    """``ax``'s title, its font made smaller (down to :data:`MIN_TITLE_POINTS`) when it is wider than the figure:
+    a long episode name ran past both edges and was cut off (the layout makes room above a title, not beside it)."""
+    text = ax.set_title(title)
+    fig = ax.get_figure()
+    width = text.get_window_extent(fig.canvas.get_renderer()).width
+    room = 0.96 * fig.bbox.width
+    if width > room:
+        text.set_fontsize(max(MIN_TITLE_POINTS, text.get_fontsize() * room / width))
 
 
 def draw(data: SeriesPlot | EigenvaluePlot):

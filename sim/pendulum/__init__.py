@@ -1,6 +1,6 @@
 """The QUBE-Servo rotary inverted pendulum: model, encoders and a per-tick simulator."""
 
-from qube_koopman.sim.pendulum.closed_loop import ClosedLoopRun, simulate_closed_loop
+from qube_koopman.sim.pendulum.closed_loop import ClosedLoopRun, linear_loop_radius, simulate_closed_loop
 from qube_koopman.sim.pendulum.load import LoadStream, RandomLoad
 from qube_koopman.sim.pendulum.model import (
     SAMPLE_PERIOD,
@@ -25,6 +25,7 @@ __all__ = [
     "SensorModel",
     "ZeroOffsetDistribution",
     "dynamics",
+    "linear_loop_radius",
     "linear_model",
     "linearize_upright",
     "measure",

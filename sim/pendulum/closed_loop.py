@@ -13,7 +13,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.core.lti import DiscreteStateSpace
+from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius, with_output_delay
 from qube_koopman.sim.pendulum.model import (
     DEFAULT_SUBSTEPS,
     PendulumParameters,
@@ -22,10 +22,11 @@ from qube_koopman.sim.pendulum.model import (
     as_states,
     check_timing,
     coefficients_and_hold,
+    linear_model,
 )
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
-__all__ = ["ClosedLoopRun", "simulate_closed_loop"]
+__all__ = ["ClosedLoopRun", "simulate_closed_loop", "linear_loop_radius"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -247,3 +248,44 @@ def _controller_steps(controllers: list) -> list:
     if len(steps) == 1:
         steps = [(slice(None), steps[0][1])]
     return steps
+
+
+def linear_loop_radius(controller: DiscreteStateSpace, params: PendulumParameters | None = None) -> float:
+    """The spectral radius of ``controller`` closed around the pendulum's linearization at upright.
+
+    The loop is the one :func:`simulate_closed_loop` runs (the command from the tick's reading, held over the
+    tick), with the plant's transport delay (``params.delay``) on the command. The arm's smoothed Coulomb
+    friction is left out: its slope at rest, which :func:`~qube_koopman.sim.pendulum.model.linearize_upright`
+    takes as viscous damping, holds only within ``coulomb_speed`` of rest, where a moving loop spends little
+    time, and with it the calibrated twin's linearization calls the rig's own PD unstable (1.0029) where the
+    twin and the rig balance under it (0.9919 without).
+
+    Parameters
+    ----------
+    controller : DiscreteStateSpace
+        A controller of the tracking errors (theta, alpha) giving the voltage, ``u = C xc + D (r - y)``.
+    params : PendulumParameters, optional
+        The pendulum (the calibrated twin by default).
+
+    Returns
+    -------
+    float
+        Above 1: the loop diverges from upright.
+    """
+    import dataclasses
+
+    params = PendulumParameters() if params is None else params
+    plant = linear_model(dataclasses.replace(params, Cr=0.0), controller.dt)
+    ctrl = with_output_delay(controller, params.delay / controller.dt) if params.delay else controller
+    if ctrl.n_inputs != plant.n_outputs or ctrl.n_outputs != plant.n_inputs:
+        raise ValueError(
+            f"the controller takes {ctrl.n_inputs} inputs and gives {ctrl.n_outputs} outputs; the pendulum's loop "
+            f"needs {plant.n_outputs} (theta, alpha) and {plant.n_inputs} (the voltage)"
+        )
+    loop = np.block(
+        [
+            [plant.A - plant.B @ ctrl.D @ plant.C, plant.B @ ctrl.C],
+            [-ctrl.B @ plant.C, ctrl.A],
+        ]
+    )
+    return float(spectral_radius(loop))

@@ -256,3 +256,52 @@ def test_the_earlier_rerun_file_option_names_its_new_name(prog, tmp_path, capsys
     assert stopped.value.code == 2
     assert capsys.readouterr().err == (f"{prog}: error: --rerun is now --rerun-save FILE.rrd (a file; qube-run --rerun "
                                        f"streams to a viewer) (see {prog} --help)\n")
+
+
+def _every_help() -> dict:
+    """Every console script's --help (and qube-reproduce's experiments'), by command line."""
+    import importlib
+    import tomllib
+    from contextlib import redirect_stdout
+    from io import StringIO
+    from pathlib import Path
+
+    scripts = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())["project"]["scripts"]
+    out = {}
+    for name, target in scripts.items():
+        module, func = target.split(":")
+        main = getattr(importlib.import_module(module), func)
+        for argv in (["--help"], ["qube", "--help"], ["duffing", "--help"]) if name == "qube-reproduce" else (
+                ["--help"],):
+            text = StringIO()
+            try:
+                with redirect_stdout(text):
+                    main(argv)
+            except SystemExit:
+                pass
+            out[" ".join([name, *argv])] = text.getvalue()
+    return out
+
+
+def test_no_help_names_a_missing_section_or_a_development_path():
+    """A user has neither the developers' folders nor a README section that is not there; and the examples import
+    the real dataset into a folder of its own, not qube-run's default ./episodes."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).parents[2]
+    headings = {line.lstrip("#").strip() for line in (root / "README.md").read_text().splitlines()
+                if line.startswith("#")}
+    helps = _every_help()
+    assert len(helps) >= 10
+    for command, text in helps.items():
+        assert "usage:" in text, command
+        flat = " ".join(text.split())
+        for section in re.findall(r"README: ([^),;]+)", flat):
+            assert section.strip() in headings, (command, section)
+        for page in re.findall(r"docs/[\w-]+\.md", flat):
+            assert (root / page).is_file(), (command, page)
+        for dev in ("../shared", "shared/datasets", "/work/", "qube_servo_2023"):
+            assert dev not in flat, (command, dev)
+        for line in re.findall(r"qube-import [^\n]*", flat):
+            assert not re.search(r"--out (\./)?episodes\b", line), (command, line)

@@ -122,6 +122,21 @@ def test_episode_frame_without_pandas_says_it_is_optional(log, monkeypatch):
         episode_frame(log[1])
 
 
+def test_episode_frame_without_pandas_names_the_extra_that_installs_it(log, monkeypatch):
+    import tomllib
+    from pathlib import Path
+
+    from qube_koopman.daq.export import episode_frame
+
+    extras = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"]
+    assert any(r.startswith("pandas>=") for r in extras["pandas"]) and any(r.startswith("pandas") for r in extras["test"])
+    monkeypatch.setitem(sys.modules, "pandas", None)
+    with pytest.raises(ImportError) as caught:
+        episode_frame(log[1])
+    assert 'pip install "qube-koopman[pandas]"' in str(caught.value) and "\n" not in str(caught.value)
+
+
 def test_write_mat_of_an_empty_episode(tmp_path):
     from scipy.io import loadmat
 

@@ -196,6 +196,26 @@ def test_with_the_error_spectra_the_report_says_the_error_is_propagated(tmp_path
         assert 0 < figure["lower"] < figure["upper"] < np.inf and np.isfinite(figure["expected"]), (name, figure)
 
 
+def test_each_figure_line_says_what_its_numbers_are_and_its_interval_holds_the_expected_figure(tmp_path, capsys):
+    """The point prediction can lie outside the interval (the interval is of the loop's figure, moved by the model's
+    error): the line names each number and says where the prediction lies rather than "X in [a, b]"."""
+    import re
+
+    plant = _plant()
+    path = _save(tmp_path / "model.json", plant, _members(plant), _spectra())
+    assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--episodes", "2", "--duration", "4"]) == 0
+    text = capsys.readouterr().out
+    pattern = re.compile(r"predicted (\S+) \(the point model\), (\S+) with the model's error; "
+                         r"95 % interval of the loop's figure (\S+) to (\S+), its median (\S+?)"
+                         r"(?: \(the point model's prediction lies (below|above) it\))?$")
+    found = [m for line in text.splitlines() if (m := pattern.search(line))]
+    assert len(found) == 3, text
+    for m in found:
+        predicted, expected, lower, upper, median = (float(m.group(i)) for i in range(1, 6))
+        assert lower <= median <= upper and np.isfinite(expected)
+        assert m.group(6) == ("below" if predicted < lower else "above" if predicted > upper else None), m.group(0)
+
+
 @pytest.mark.parametrize("damage, message", [
     (lambda s: s.pop("input"), "input is missing"),
     (lambda s: s["error"]["re"].pop(), "error must hold re and im of shape (4, "),

@@ -231,3 +231,19 @@ def test_trajectory_figures_choose_episodes_and_keep_diverged_predictions_off_th
     lo, hi = bad.axes[1].get_ylim()  # the measured range with a margin: the diverged prediction leaves the plot
     assert lo < truth[:, 1].min() and hi > truth[:, 1].max() and hi - lo < 1
     assert specs[1].data.ylims[0] is None  # theta stayed in range: autoscaled
+
+
+def test_a_long_title_fits_the_figure():
+    """An episode's name in a series plot's title ran past both edges of the saved figure."""
+    pytest.importorskip("matplotlib")
+    from qube_koopman.identify import Curve, SeriesPlot, draw
+
+    t = np.linspace(0.0, 1.0, 50)
+    title = "qube_20261201T235548.995_837_262_110 under soft-theta (offset estimated), a little longer still"
+    plot = SeriesPlot(title, t, "time (s)", ("theta (rad)", "alpha (rad)"),
+                      (Curve("theta", t, panel=0), Curve("alpha", -t, panel=1)))
+    fig = draw(plot)
+    fig.canvas.draw()
+    box = fig.axes[0].title.get_window_extent(fig.canvas.get_renderer())
+    assert fig.axes[0].get_title() == title
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height, (box, fig.bbox)
