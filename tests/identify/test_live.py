@@ -1,0 +1,111 @@
+"""The incremental identifier equals qube-identify's batch fit; the live sink scores held out; the stop rule."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from qube_koopman.identify.data.logs import load_logs
+from qube_koopman.identify.live import IncrementalIdentifier, LiveIdentification, StopRule
+from qube_koopman.identify.model_selection.search import LiftingSpec
+from qube_koopman.identify.models.model_file import load_model
+
+
+@pytest.fixture(scope="module")
+def episodes(tmp_path_factory):
+    """Four short training episodes and one test episode on the simulator."""
+    from qube_koopman.daq.cli.run import main as run_main
+
+    root = tmp_path_factory.mktemp("live")
+    for folder, n, seed in (("train", 4, 1), ("test", 1, 2)):
+        argv = ["--episodes", str(n), "--duration", "5", "--seed", str(seed), "--n-jobs", "1", "-q"]
+        assert run_main([*argv, "--out", str(root / folder)]) == 0
+    return sorted((root / "train").glob("*.mcap")), root
+
+
+def _batch(paths, root, flags, name):
+    from qube_koopman.identify.cli.identify import main as identify_main
+
+    out = root / name
+    argv = ["--train", *map(str, paths), "--test", str(root / "test"), "--interval", "0", "--out", str(out), "-q"]
+    assert identify_main([*argv, *flags]) == 0
+    return load_model(out / "model.json")
+
+
+def _same(mine, batch) -> None:
+    for key, model in (("plant", mine.plant_model_), ("closed_loop", mine.model_)):
+        for name in "AB":
+            ours, theirs = getattr(model, name), getattr(batch[key], name)
+            assert ours.shape == theirs.shape
+            np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max())
+
+
+def test_added_episodes_equal_the_batch_fit(episodes):
+    """After each of N episodes added one at a time, the model is qube-identify's on those N logs."""
+    paths, root = episodes
+    ident = IncrementalIdentifier(LiftingSpec(delays=10, poly=2).steps(), alpha=1e-3)
+    for n, path in enumerate(paths, 1):
+        ident.add(load_logs([path], skip=500)[0])
+        if n in (2, len(paths)):
+            _same(ident, _batch(paths[:n], root, [], f"batch{n}"))
+
+
+def test_rbf_centres_refit_exactly_at_the_end(episodes):
+    """RBF centres drawn in the first episode's box while adding; refit_exact gives the batch fit of all."""
+    paths, root = episodes
+    flags = ["--poly", "1", "--delays", "3", "--rbf", "thin-plate", "--rbf-centers", "5", "--alpha", "1e-5"]
+    lifting = LiftingSpec(delays=3, poly=1, rbf=5).steps(0, "thin-plate")
+    ident = IncrementalIdentifier(lifting, alpha=1e-5)
+    for path in paths:
+        ident.add(load_logs([path], skip=500)[0])
+    batch = _batch(paths, root, flags, "batch_rbf")
+    assert not np.allclose(ident.model_.A, batch["closed_loop"].A)  # centres of the first box only
+    _same(ident.refit_exact(skip=500), batch)
+
+
+class _Mcap:
+    def __init__(self) -> None:
+        self.paths: list = []
+
+
+class _Outcome:
+    status = "complete"
+
+
+class _Stop:
+    requested = False
+    reason = ""
+
+
+def test_sink_scores_each_episode_with_the_model_of_the_ones_before(episodes):
+    """The first episode is not scored; the k-th is predicted by the fit of the k-1 before it (held out)."""
+    paths, _ = episodes
+    lifting = LiftingSpec(delays=10, poly=2).steps()
+    mcap, stop = _Mcap(), _Stop()
+    sink = LiveIdentification(IncrementalIdentifier(lifting), mcap, StopRule(until=-np.inf, patience=2), stop=stop)
+    for path in paths:
+        mcap.paths.append(path)
+        sink.close(_Outcome())
+    scores = sink.finish()
+    assert [s.index for s in scores] == [0, 1, 2, 3] and scores[0].score is None
+    reference = IncrementalIdentifier(lifting)
+    for path in paths[:2]:
+        reference.add(load_logs([path], skip=500)[0])
+    assert scores[2].score.r2 == reference.score(load_logs([paths[2]], skip=500)[0]).r2
+    assert sink.stop_reason is not None  # met after the third episode's score (two scores at -inf or more)
+    sink.close(_Outcome())  # the next episode's close asks the run to stop
+    assert stop.requested and stop.reason.startswith("identified:")
+
+
+def test_until_stops_after_patience_scores_above_the_target():
+    rule = StopRule(until=0.98, patience=3)
+    decisions = [rule.add(r2) for r2 in (0.5, 0.985, 0.99, 0.97, 0.981, 0.99, 0.985)]
+    assert decisions[:6] == [None] * 6  # 0.97 broke the first run of three
+    assert decisions[6] is not None and "0.98" in decisions[6]
+
+
+def test_plateau_stops_when_the_last_window_no_longer_improves():
+    rule = StopRule(plateau=True, window=3, tolerance=1e-3, min_scored=5)
+    decisions = [rule.add(r2) for r2 in (0.5, 0.8, 0.9, 0.95, 0.96, 0.9605, 0.9601, 0.959)]
+    assert decisions[:7] == [None] * 7  # the window's best 0.9605 still beat the earlier best 0.95 by 0.0105
+    assert decisions[7] is not None and "plateau" in decisions[7]
