@@ -16,10 +16,11 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from qube_koopman.core.blas import limited_blas_threads
 from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES
 from qube_koopman.identify.data.logs import LoggedTrajectory, LogTrajectories, load_logs
 from qube_koopman.identify.estimators.cl_edmd import ClEdmd, ClEdmdKnownRows
@@ -80,9 +81,9 @@ class IncrementalIdentifier:
         self.method = method
         self.alpha = alpha
         self.logs_: list[Path] = []
-        self._estimator = None
-        self._setup = None
-        self._fold = None
+        self._estimator: Any = None
+        self._setup: Any = None
+        self._fold: Any = None
 
     def _make(self, controller):
         cls = LIVE_METHODS[self.method]
@@ -269,6 +270,10 @@ class LiveIdentification:
         ``on_score(LiveScore)`` on the worker thread after each episode (console lines, a view).
     keep_predictions : bool
         Keep each score's predicted and measured states.
+    max_behind : int, optional
+        ``close`` waits until at most this many episodes wait to be scored and added (0: the episode just
+        closed is scored before ``close`` returns, and the stop rule is met on the episode that meets it);
+        None: never waits (a loop paced by a clock, which must not be held up).
     """
 
     required = False
@@ -282,6 +287,7 @@ class LiveIdentification:
         skip: int = SKIP_SAMPLES,
         on_score: Callable[[LiveScore], None] | None = None,
         keep_predictions: bool = False,
+        max_behind: int | None = None,
     ) -> None:
         self.identifier = identifier
         self.paths = paths
@@ -290,6 +296,9 @@ class LiveIdentification:
         self.skip = skip
         self.on_score = on_score
         self.keep_predictions = keep_predictions
+        self.max_behind = max_behind
+        self._pending = 0
+        self._done = threading.Condition()
         self.scores: list[LiveScore] = []
         self.errors: list[str] = []
         self.stop_reason: str | None = None
@@ -306,7 +315,13 @@ class LiveIdentification:
     def close(self, outcome) -> None:
         """Queue a complete episode's log; ask the run to stop when the rule has been met."""
         if outcome.status == "complete" and self.paths.paths:
+            with self._done:
+                self._pending += 1
             self._queue.put(Path(self.paths.paths[-1]))
+            behind = self.max_behind
+            if behind is not None:
+                with self._done:
+                    self._done.wait_for(lambda: self._pending <= behind or not self._thread.is_alive())
         self._ask_stop()
 
     def _ask_stop(self) -> None:
@@ -315,14 +330,20 @@ class LiveIdentification:
             self.stop.requested = True
 
     def _work(self) -> None:
-        while True:
-            path = self._queue.get()
-            if path is None:
-                return
-            try:
-                self._one(path)
-            except Exception as exc:  # noqa: BLE001 - reported with the run's summary, the recording goes on
-                self.errors.append(f"{path}: {exc}")
+        # One BLAS thread: a refit takes one core, never the loop's.
+        with limited_blas_threads(1):
+            while True:
+                path = self._queue.get()
+                if path is None:
+                    return
+                try:
+                    self._one(path)
+                except Exception as exc:  # noqa: BLE001 - reported with the run's summary, the recording goes on
+                    self.errors.append(f"{path}: {exc}")
+                finally:
+                    with self._done:
+                        self._pending -= 1
+                        self._done.notify_all()
 
     def _one(self, path: Path) -> None:
         start = time.thread_time()
@@ -330,6 +351,7 @@ class LiveIdentification:
         if not logs:
             return
         log = logs[0]
+        assert isinstance(log, LoggedTrajectory)  # read now (not stored)
         ident = self.identifier
         score = prediction = None
         if ident.n_episodes_:

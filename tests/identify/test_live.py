@@ -109,3 +109,35 @@ def test_plateau_stops_when_the_last_window_no_longer_improves():
     decisions = [rule.add(r2) for r2 in (0.5, 0.8, 0.9, 0.95, 0.96, 0.9605, 0.9601, 0.959)]
     assert decisions[:7] == [None] * 7  # the window's best 0.9605 still beat the earlier best 0.95 by 0.0105
     assert decisions[7] is not None and "plateau" in decisions[7]
+
+
+def test_qube_run_identify_until_stops_and_writes_the_batch_model(tmp_path, episodes):
+    """qube-run --identify --until on the simulator: one line per episode, the run stops on the episode
+    that meets the rule (exit 0), and OUT/model/model.json is qube-identify's fit of the logs it holds."""
+    import json
+
+    from qube_koopman.daq.cli.run import main as run_main
+
+    out = tmp_path / "run"
+    argv = ["--episodes", "12", "--duration", "5", "--seed", "3", "--out", str(out), "-q"]
+    assert run_main([*argv, "--identify", "--delays 10", "--until", "0.8"]) == 0
+    report = json.loads((out / "model" / "report.json").read_text())
+    r2 = [e["r2"] for e in report["live"]["episodes"]]
+    assert r2[0] is None and report["live"]["stopped"].startswith("held-out R^2 at least 0.8")
+    assert min(r2[-3:]) >= 0.8 and not all(r >= 0.8 for r in r2[-4:-1])  # stopped on the first run of three
+    logs = sorted(out.glob("*.mcap"))
+    assert len(logs) == len(r2) < 12 and report["train_logs"] == [p.name for p in logs]
+    batch = _batch(logs, episodes[1], ["--delays", "10"], "batch_run")
+    mine = load_model(out / "model" / "model.json")
+    for key in ("plant", "closed_loop"):
+        np.testing.assert_allclose(mine[key].A, batch[key].A, rtol=1e-9, atol=1e-12)
+
+
+def test_identify_options_alone_and_search_flags_are_refused(tmp_path, capsys):
+    from qube_koopman.daq.cli.run import main as run_main
+
+    assert run_main(["--until", "0.9", "--out", str(tmp_path / "a")]) == 2
+    assert run_main(["--identify=--search", "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert "--until is for --identify" in err and "--search is not for a fit" in err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
