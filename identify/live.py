@@ -30,7 +30,7 @@ from qube_koopman.identify.lifting import GaussianRbf, ThinPlateRbf
 from qube_koopman.identify.metrics import EpisodeScore, episode_score
 from qube_koopman.identify.uncertainty import Loop, predict_episodes
 
-__all__ = ["IncrementalIdentifier", "LiveIdentification", "LiveScore", "StopRule", "LIVE_METHODS"]
+__all__ = ["IncrementalIdentifier", "LiveIdentification", "LiveScore", "StopRule", "LIVE_METHODS", "score_and_add"]
 
 #: The methods an incremental fit supports (``qube-identify --method``).
 LIVE_METHODS = {"cl-edmd": ClEdmd, "cl-edmd-known-rows": ClEdmdKnownRows, "edmd": Edmd}
@@ -274,6 +274,10 @@ class LiveIdentification:
         ``close`` waits until at most this many episodes wait to be scored and added (0: the episode just
         closed is scored before ``close`` returns, and the stop rule is met on the episode that meets it);
         None: never waits (a loop paced by a clock, which must not be held up).
+    worker : {"thread", "process"}
+        Where episodes are read, scored and added: on this sink's thread, or in one worker process (started
+        with ``spawn``) that holds the identifier, so the refits never compete with the loop for this
+        process's interpreter; the thread then only waits for its answers.
     """
 
     required = False
@@ -288,6 +292,7 @@ class LiveIdentification:
         on_score: Callable[[LiveScore], None] | None = None,
         keep_predictions: bool = False,
         max_behind: int | None = None,
+        worker: str = "thread",
     ) -> None:
         self.identifier = identifier
         self.paths = paths
@@ -302,6 +307,16 @@ class LiveIdentification:
         self.scores: list[LiveScore] = []
         self.errors: list[str] = []
         self.stop_reason: str | None = None
+        if worker not in ("thread", "process"):
+            raise ValueError(f"worker must be 'thread' or 'process', got {worker!r}")
+        self._pool: Any = None
+        if worker == "process":
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._pool = ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker, initargs=(identifier,)
+            )
         self._queue: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._work, name="live-identification", daemon=True)
         self._thread.start()
@@ -346,36 +361,74 @@ class LiveIdentification:
                         self._done.notify_all()
 
     def _one(self, path: Path) -> None:
-        start = time.thread_time()
-        logs = load_logs([path], skip=self.skip)
-        if not logs:
+        if self._pool is None:
+            live = score_and_add(self.identifier, path, self.skip, self.keep_predictions)
+        else:
+            live = self._pool.submit(_score_and_add_in_worker, path, self.skip, self.keep_predictions).result()
+        if live is None:
             return
-        log = logs[0]
-        assert isinstance(log, LoggedTrajectory)  # read now (not stored)
-        ident = self.identifier
-        score = prediction = None
-        if ident.n_episodes_:
-            prediction = ident.predict(log)
-            score = episode_score(log.trajectory.x[:, MEASURED], prediction, 1)
-        ident.add(log)
-        keep = self.keep_predictions and prediction is not None
-        live = LiveScore(
-            path,
-            ident.n_episodes_ - 1,
-            score,
-            time.thread_time() - start,
-            prediction if keep else None,
-            log.trajectory.x[:, MEASURED] if keep else None,
-        )
         self.scores.append(live)
-        if score is not None and self.stop_reason is None:
-            self.stop_reason = self.rule.add(score.r2)
+        if live.score is not None and self.stop_reason is None:
+            self.stop_reason = self.rule.add(live.score.r2)
         if self.on_score is not None:
             self.on_score(live)
 
     def finish(self) -> list[LiveScore]:
-        """Wait for the queued episodes to be scored and added; the scores, in episode order."""
+        """Wait for the queued episodes to be scored and added; the scores, in episode order.
+
+        With a worker process, :attr:`identifier` is then the worker's (every episode added), and the process ends.
+        """
         if self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()
+        if self._pool is not None:
+            try:
+                self.identifier = self._pool.submit(_identifier_in_worker).result()
+            finally:
+                self._pool.shutdown()
+                self._pool = None
         return list(self.scores)
+
+
+def score_and_add(ident: IncrementalIdentifier, path: Path, skip: int, keep: bool = False) -> LiveScore | None:
+    """Read one log, score it with ``ident``'s model (none for the first episode), then add it to ``ident``.
+
+    None when the log is not a complete episode. The CPU time is that of the calling thread.
+    """
+    start = time.thread_time()
+    logs = load_logs([path], skip=skip)
+    if not logs:
+        return None
+    log = logs[0]
+    assert isinstance(log, LoggedTrajectory)  # read now (not stored)
+    score = prediction = None
+    if ident.n_episodes_:
+        prediction = ident.predict(log)
+        score = episode_score(log.trajectory.x[:, MEASURED], prediction, 1)
+    ident.add(log)
+    keep = keep and prediction is not None
+    return LiveScore(
+        path,
+        ident.n_episodes_ - 1,
+        score,
+        time.thread_time() - start,
+        prediction if keep else None,
+        log.trajectory.x[:, MEASURED] if keep else None,
+    )
+
+
+# The worker process's identifier (worker="process"): one process, one identifier.
+_WORKER: dict = {}
+
+
+def _start_worker(identifier: IncrementalIdentifier) -> None:
+    _WORKER["identifier"] = identifier
+
+
+def _score_and_add_in_worker(path: Path, skip: int, keep: bool) -> LiveScore | None:
+    with limited_blas_threads(1):  # one core: the other is the loop's
+        return score_and_add(_WORKER["identifier"], path, skip, keep)
+
+
+def _identifier_in_worker() -> IncrementalIdentifier:
+    return _WORKER["identifier"]

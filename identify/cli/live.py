@@ -87,6 +87,7 @@ class LiveExtension:
 
         check_output_folder(Path(args.out) / MODEL_FOLDER, OUTPUT_FILES, force=args.force)
         fit = self.fit
+        paced = args.backend != "sim" or args.realtime
         rule = StopRule(
             until=args.until,
             plateau=args.plateau,
@@ -102,9 +103,11 @@ class LiveExtension:
             stop=stop,
             skip=fit.skip,
             on_score=self._print,
-            # A free-running simulator has no deadline to miss: each episode is scored before the next starts
-            # (the stop rule then stops on the episode that meets it). A paced loop never waits.
-            max_behind=0 if args.backend == "sim" and not args.realtime else None,
+            # A free-running simulator has no deadline to miss: each episode is scored on a thread before the next
+            # starts (the stop rule then stops on the episode that meets it). A paced loop never waits, and its
+            # refits run in a worker process: never in the loop's interpreter.
+            max_behind=None if paced else 0,
+            worker="process" if paced else "thread",
         )
         return [self.sink]
 

@@ -141,3 +141,20 @@ def test_identify_options_alone_and_search_flags_are_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--until is for --identify" in err and "--search is not for a fit" in err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_worker_process_scores_and_adds_as_the_thread_does(episodes):
+    """worker="process": the same held-out scores, and the worker's identifier comes back with every episode."""
+    paths, _ = episodes
+    lifting = LiftingSpec(delays=10, poly=2).steps()
+    results = {}
+    for worker in ("thread", "process"):
+        mcap = _Mcap()
+        sink = LiveIdentification(IncrementalIdentifier(lifting), mcap, skip=500, worker=worker)
+        for path in paths:
+            mcap.paths.append(path)
+            sink.close(_Outcome())
+        results[worker] = ([None if s.score is None else s.score.r2 for s in sink.finish()], sink.identifier)
+    assert results["process"][0] == results["thread"][0]
+    assert results["process"][1].n_episodes_ == len(paths)
+    np.testing.assert_array_equal(results["process"][1].model_.A, results["thread"][1].model_.A)
