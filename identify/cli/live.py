@@ -8,6 +8,7 @@ sink made here (:class:`~qube_koopman.identify.live.LiveIdentification`).
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,8 @@ PROTOCOL = (
 )
 #: The plateau rule's window and tolerance (--plateau).
 PLATEAU_WINDOW, PLATEAU_TOLERANCE, PLATEAU_MIN_SCORED = 5, 1e-3, 10
+#: The console's trend: the median held-out R^2 of this many last episodes.
+TREND = 5
 #: --until's run of episodes at or above the target.
 UNTIL_PATIENCE = 3
 
@@ -115,8 +118,8 @@ class LiveExtension:
         if live.score is None:
             print(f"identify: {live.log.name}: the model's first episode ({live.cpu_seconds:.2f} s CPU)", flush=True)
             return
-        r2 = [s.score.r2 for s in self.sink.scores if s.score is not None]
-        trend = f"; last {min(5, len(r2))} mean {sum(r2[-5:]) / len(r2[-5:]):.4f}" if len(r2) > 1 else ""
+        r2 = [s.score.r2 for s in self.sink.scores if s.score is not None][-TREND:]
+        trend = f"; median of the last {len(r2)} {statistics.median(r2):.4f}" if len(r2) > 1 else ""
         print(
             f"identify: {live.log.name}: held-out R^2 {live.score.r2:.4f}, NRMSE {live.score.nrmse:.2f} % "
             f"(model of {live.index} episodes{trend}; added in {live.cpu_seconds:.2f} s CPU)",
@@ -145,8 +148,8 @@ class LiveExtension:
         write_model(folder, self.fit, ident)
         write_json(folder / "report.json", report)
         _write_markdown(folder / "report.md", report)
-        held = report["live"]["held_out"]
-        mean = "" if held is None else f", held-out R^2 mean {held['r2_mean']:.4f} over {held['n_episodes']}"
+        r2 = [s.score.r2 for s in scores if s.score is not None]
+        mean = f", held-out R^2 median {statistics.median(r2):.4f} over {len(r2)}" if r2 else ""
         print(
             f"identify: model of {ident.n_episodes_} episodes{mean}; wrote {folder}/model.json, report.json, report.md"
         )
