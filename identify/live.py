@@ -317,6 +317,9 @@ class LiveIdentification:
             self._pool = ProcessPoolExecutor(
                 1, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker, initargs=(identifier,)
             )
+            # Started now, not at the first episode's end: it inherits this process's scheduling as it is before
+            # the run (a real-time policy or a pinned CPU set for the loop afterwards is the loop's alone).
+            self._pool.submit(_ready).result()
         self._queue: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._work, name="live-identification", daemon=True)
         self._thread.start()
@@ -423,6 +426,10 @@ _WORKER: dict = {}
 
 def _start_worker(identifier: IncrementalIdentifier) -> None:
     _WORKER["identifier"] = identifier
+
+
+def _ready() -> bool:
+    return True
 
 
 def _score_and_add_in_worker(path: Path, skip: int, keep: bool) -> LiveScore | None:
