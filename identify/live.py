@@ -193,6 +193,10 @@ class LiveScore:
     prediction : ndarray or None
         The predicted measured states (for a view of predicted against measured).
     measured : ndarray or None
+    dt : float or None
+        The sample period (s).
+    first_sample : int
+        The log's sample the arrays start at (the samples skipped).
     """
 
     log: Path
@@ -201,6 +205,8 @@ class LiveScore:
     cpu_seconds: float
     prediction: np.ndarray | None = None
     measured: np.ndarray | None = None
+    dt: float | None = None
+    first_sample: int = 0
 
     def as_dict(self) -> dict:
         """report.json's entry."""
@@ -417,6 +423,8 @@ def score_and_add(ident: IncrementalIdentifier, path: Path, skip: int, keep: boo
         time.thread_time() - start,
         prediction if keep else None,
         log.trajectory.x[:, MEASURED] if keep else None,
+        log.dt,
+        skip,
     )
 
 

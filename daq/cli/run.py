@@ -650,7 +650,8 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
     )
     progress = RunProgress(args.episodes, settings.n_samples, enabled=not args.quiet)  # after the header line
     stop = StopRequest()
-    added = [sink for ext in args.extensions for sink in ext.start(args, mcap, stop)]
+    view = None if rerun_sink is None else rerun_sink.recording
+    added = [sink for ext in args.extensions for sink in ext.start(args, mcap, stop, view)]
     sinks = [*([rerun_sink] if rerun_sink is not None else []), progress, *added]
     book = EpisodeBook(progress, mcap)
     timing = TimingRecord(1.0 / rate)  # all episodes' ticks, in bounded memory

@@ -30,10 +30,11 @@ class RunExtension(Protocol):
     def active(self, args: argparse.Namespace) -> bool:
         """Whether the command line asked for it (its options alone may be refused here: raise ``CliError``)."""
 
-    def start(self, args: argparse.Namespace, logs, stop) -> list:
+    def start(self, args: argparse.Namespace, logs, stop, recording=None) -> list:
         """Sinks for every episode, made before the first: ``logs`` is the episode log sink (``paths``: the logs
         written, closed before these sinks), ``stop`` the run's stop request (set between episodes, it ends the
-        run before the next)."""
+        run before the next), ``recording`` the run's rerun view or recording (``--rerun``, ``--rerun-save``) or
+        None; its ``send_scalars`` and static ``log`` calls may come from any thread."""
 
     def finish(self, args: argparse.Namespace) -> None:
         """After the episodes (their summary printed): print, write files; a ``CliError`` sets the exit status."""

@@ -15,7 +15,7 @@ from typing import Any
 
 from qube_koopman.core.command import CliError, check_output_folder, output_dir, write_json
 
-__all__ = ["LiveExtension", "MODEL_FOLDER", "PROTOCOL"]
+__all__ = ["LiveExtension", "MODEL_FOLDER", "PROTOCOL", "send_view", "write_model"]
 
 #: The folder of --out the final model is written to.
 MODEL_FOLDER = "model"
@@ -27,6 +27,8 @@ PROTOCOL = (
 )
 #: The plateau rule's window and tolerance (--plateau).
 PLATEAU_WINDOW, PLATEAU_TOLERANCE, PLATEAU_MIN_SCORED = 5, 1e-3, 10
+#: The rerun view's entities (predicted against measured per episode, the score's curve).
+VIEW = "identify"
 #: The console's trend: the median held-out R^2 of this many last episodes.
 TREND = 5
 #: --until's run of episodes at or above the target.
@@ -40,6 +42,7 @@ class LiveExtension:
 
     def __init__(self) -> None:
         self.sink: Any = None  # the LiveIdentification of the run
+        self.recording: Any = None  # the run's rerun view or recording (--rerun, --rerun-save)
         self.fit: Any = None  # the --identify options (live_fit_options)
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
@@ -83,13 +86,16 @@ class LiveExtension:
         self.fit = live_fit_options(args.identify)
         return True
 
-    def start(self, args: argparse.Namespace, logs, stop) -> list:
-        """The sink scoring and adding each episode on its own thread."""
+    def start(self, args: argparse.Namespace, logs, stop, recording=None) -> list:
+        """The sink scoring and adding each episode off the loop's thread; with ``recording``, its view too."""
         from qube_koopman.identify.cli.identify import OUTPUT_FILES
         from qube_koopman.identify.live import IncrementalIdentifier, LiveIdentification, StopRule
 
         check_output_folder(Path(args.out) / MODEL_FOLDER, OUTPUT_FILES, force=args.force)
         fit = self.fit
+        self.recording = recording
+        if recording is not None:
+            recording.log(f"{VIEW}/r2", "SeriesLines", static=True, names=["held-out R^2"])
         paced = args.backend != "sim" or args.realtime
         rule = StopRule(
             until=args.until,
@@ -105,7 +111,8 @@ class LiveExtension:
             rule,
             stop=stop,
             skip=fit.skip,
-            on_score=self._print,
+            on_score=self._on_score,
+            keep_predictions=recording is not None,
             # A free-running simulator has no deadline to miss: each episode is scored on a thread before the next
             # starts (the stop rule then stops on the episode that meets it). A paced loop never waits, and its
             # refits run in a worker process: never in the loop's interpreter.
@@ -113,6 +120,11 @@ class LiveExtension:
             worker="process" if paced else "thread",
         )
         return [self.sink]
+
+    def _on_score(self, live) -> None:
+        self._print(live)
+        if self.recording is not None and live.score is not None:
+            send_view(self.recording, live)
 
     def _print(self, live) -> None:
         if live.score is None:
@@ -153,6 +165,27 @@ class LiveExtension:
         print(
             f"identify: model of {ident.n_episodes_} episodes{mean}; wrote {folder}/model.json, report.json, report.md"
         )
+
+
+def send_view(recording, live) -> None:
+    """One scored episode in the rerun view: its measured and predicted angles (entity
+    ``identify/episodes/<n>/<angle>``, timeline ``episode_time``) and its score on the curve ``identify/r2``
+    (timeline ``identify_episode``: the complete episodes' count)."""
+    import numpy as np
+
+    from qube_koopman.core.qube import MEASURED, STATE_NAMES
+
+    if live.prediction is None or live.measured is None:
+        return
+    n = len(live.measured)
+    t = (live.first_sample + np.arange(n)) * (live.dt or 0.002)
+    for j, channel in enumerate(MEASURED):
+        path = f"{VIEW}/episodes/{live.index}/{STATE_NAMES[channel]}"
+        recording.log(path, "SeriesLines", static=True, names=["measured", "predicted"])
+        block = np.column_stack([live.measured[:, j], live.prediction[:, j]])
+        recording.send_scalars(path, [("episode_time", "duration", t)], block)
+    r2 = np.array([[live.score.r2 if np.isfinite(live.score.r2) else np.nan]])
+    recording.send_scalars(f"{VIEW}/r2", [("identify_episode", "sequence", np.array([live.index]))], r2)
 
 
 def write_model(folder: Path, fit, ident) -> None:

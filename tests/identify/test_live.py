@@ -158,3 +158,22 @@ def test_a_worker_process_scores_and_adds_as_the_thread_does(episodes):
     assert results["process"][0] == results["thread"][0]
     assert results["process"][1].n_episodes_ == len(paths)
     np.testing.assert_array_equal(results["process"][1].model_.A, results["thread"][1].model_.A)
+
+
+def test_the_rerun_recording_shows_predicted_against_measured_and_the_score_curve(tmp_path):
+    """--rerun-save: each scored episode's measured and predicted angles, and one point of the R^2 curve each."""
+    chunk_module = pytest.importorskip("rerun.chunk")
+    from qube_koopman.daq.cli.run import main as run_main
+
+    rrd, out = tmp_path / "run.rrd", tmp_path / "run"
+    argv = ["--episodes", "3", "--duration", "5", "--seed", "3", "--out", str(out), "--rerun-save", str(rrd), "-q"]
+    assert run_main([*argv, "--identify", "--delays 10"]) == 0
+    rows: dict[str, int] = {}
+    for chunk in chunk_module.RrdReader(str(rrd)).stream():
+        if not chunk.is_static:
+            rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    n = 2500 - 500  # an episode's samples after the skipped ones
+    for k in (1, 2):  # the first episode has no model before it
+        assert rows[f"/identify/episodes/{k}/theta"] == rows[f"/identify/episodes/{k}/alpha"] == n
+    assert "/identify/episodes/0/theta" not in rows and rows["/identify/r2"] == 2
+    assert rows["/theta"] == 3 * 2500  # the run's own view is all there
