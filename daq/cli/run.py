@@ -298,8 +298,17 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="run SCHED_FIFO at priority P (1..99; needs permission)",
     )
+    for extension in _extensions():
+        extension.add_arguments(p)
     add_standard_options(p, "no progress bar")
     return p
+
+
+def _extensions() -> list:
+    """The options packages above daq add to qube-run (:mod:`~qube_koopman.daq.cli.run_extensions`)."""
+    from qube_koopman.daq.cli.run_extensions import run_extensions
+
+    return run_extensions()
 
 
 def fresh_seed() -> int:
@@ -391,6 +400,7 @@ def _jobs(args, n_episodes: int) -> int:
             ("--rerun-save", "one recording", args.rerun_save is not None),
             ("--rt-cpu", "one pinned process", args.rt_cpu is not None),
             ("--rt-priority", "one real-time process", args.rt_priority is not None),
+            *((ext.option, "one model kept up to date", True) for ext in args.extensions),
         )
         if given
     ]
@@ -514,6 +524,7 @@ def _where(args, backend) -> str:
 
 def _run(args) -> int:
     _check_backend_options(args)
+    args.extensions = [ext for ext in _extensions() if ext.active(args)]
     from qube_koopman.daq.safety import SafetyLimits
     from qube_koopman.daq.session import MAX_EPISODES, excitation_settings, plan_episodes, run_seeds
     from qube_koopman.core.qube import MAX_DURATION
@@ -666,10 +677,12 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
         flush=True,
     )
     progress = RunProgress(args.episodes, settings.n_samples, enabled=not args.quiet)  # after the header line
-    sinks = [*([rerun_sink] if rerun_sink is not None else []), progress]
+    stop = StopRequest()
+    view = None if rerun_sink is None else rerun_sink.recording
+    added = [sink for ext in args.extensions for sink in ext.start(args, mcap, stop, view)]
+    sinks = [*([rerun_sink] if rerun_sink is not None else []), progress, *added]
     book = EpisodeBook(progress, mcap)
     timing = TimingRecord(1.0 / rate)  # all episodes' ticks, in bounded memory
-    stop = StopRequest()
     try:
         with realtime_scheduling(args.rt_cpu, args.rt_priority) as rt, stop_on_signals(stop):
             if args.rt_cpu is not None or args.rt_priority is not None:
@@ -678,8 +691,13 @@ def _collect(args, backend, plans, settings, limits, seed: int, rate: float) -> 
     finally:
         progress.clear()
         recording_problem = _finish_rerun(rerun_sink)
-    # The summary whatever became of the recording: the logs are there.
-    return report(args, run, book, timing.stats(), len(plans), recording_problem)
+    # The summary whatever became of the recording: the logs are there. A run an extension ended (its goal
+    # reached) ran as planned.
+    ended = any(ext.ended_run() for ext in args.extensions)
+    status = report(args, run, book, timing.stats(), len(run.results) if ended else len(plans), recording_problem)
+    for ext in args.extensions:
+        ext.finish(args)
+    return status
 
 
 def _finish_rerun(rerun_sink) -> str | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import logging
 import math
 import sys
@@ -427,6 +428,72 @@ def _lifting(args) -> list:
         rbf=0 if args.rbf == "none" else args.rbf_centers,
     )
     return spec.steps(args.rbf_seed, args.rbf, args.rbf_shape, args.rbf_offset)
+
+
+#: What a fit from episodes added one at a time takes of qube-identify's options (qube-run --identify).
+LIVE_FIT_OPTIONS = (
+    "--poly, --trig, --delays, --rbf, --rbf-centers, --rbf-shape, --rbf-offset, --rbf-seed, --friction, "
+    "--const, --method (cl-edmd, cl-edmd-known-rows, edmd), --alpha, --skip"
+)
+
+
+def live_fit_options(text: str, option: str = "--identify") -> argparse.Namespace:
+    """qube-identify's lifting and fit options from one string (``"--poly 1 --delays 35 --const"``), checked.
+
+    The result has ``lifting`` (the lifting functions), ``method``, ``alpha`` and ``skip``. Options beyond
+    :data:`LIVE_FIT_OPTIONS` (the data, the search, cross-validation, offsets, intervals, outputs) are refused
+    with a one-line :class:`CliError` naming ``option``.
+    """
+    import shlex
+
+    try:
+        tokens = shlex.split(text)
+    except ValueError as exc:
+        raise CliError(f"{option} {text!r}: {exc}") from None
+    parser = _parser()
+    defaults = vars(parser.parse_args(["--train", ".", "--test", "."]))
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
+            args = parser.parse_args([*tokens, "--train", ".", "--test", "."])
+    except SystemExit:
+        errors = [
+            line.split(": error: ", 1)[1].split(" (see ")[0]
+            for line in said.getvalue().splitlines()
+            if ": error: " in line
+        ]
+        problem = errors[0] if errors else "qube-identify --help describes them"
+        raise CliError(f"{option} {text!r}: {problem} (it takes {LIVE_FIT_OPTIONS})") from None
+    allowed = {"poly", "trig", "delays", "rbf", "rbf_centers", "rbf_shape", "rbf_offset", "rbf_seed", "friction"}
+    allowed |= {"const", "method", "alpha", "skip"}
+    other = sorted(k for k, v in vars(args).items() if k not in allowed and v != defaults[k])
+    if other:
+        raise CliError(
+            f"{option}: --{other[0].replace('_', '-')} is not for a fit from episodes added one at a time "
+            f"(it takes {LIVE_FIT_OPTIONS})"
+        )
+    from qube_koopman.identify.live import LIVE_METHODS
+
+    if args.method not in LIVE_METHODS:
+        raise CliError(f"{option}: --method {args.method}: an incremental fit takes {', '.join(LIVE_METHODS)}")
+    args.poly = 2 if args.poly is None else args.poly
+    args.delays = 10 if args.delays is None else args.delays
+    if args.poly > MAX_POLY:
+        raise CliError(f"{option}: --poly must be at most {MAX_POLY}, got {args.poly}")
+    if args.alpha is None:
+        args.alpha = 1e-3
+    if not 0 <= args.alpha < math.inf:
+        raise CliError(f"{option}: --alpha must be a finite number >= 0, got {args.alpha}")
+    if args.friction:
+        from qube_koopman.identify.lifting import CoulombFriction
+
+        if args.delays < CoulombFriction().lag:
+            raise CliError(f"{option}: --friction needs --delays {CoulombFriction().lag} or more")
+    try:
+        args.lifting = _lifting(args)
+    except ValueError as exc:
+        raise CliError(f"{option}: {exc}") from None
+    return args
 
 
 def _check_cross_validation(args, train) -> None:
