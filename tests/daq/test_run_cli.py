@@ -345,3 +345,16 @@ def test_a_replay_log_that_cannot_be_read_is_named_once_and_first(content, probl
     assert main(["--replay", str(log), "--out", str(tmp_path / "o"), "-q"]) == 2
     assert capsys.readouterr().err == (f"qube-run: error: {log}: cannot read the episode log ({problem}) "
                                        "(--replay)\n")
+
+
+def test_max_voltage_lowers_the_clamp_for_any_controller(tmp_path, capsys):
+    out = tmp_path / "low"
+    assert main(["--episodes", "1", "--duration", "4", "--seed", "2", "--max-voltage", "0.8", "--out", str(out),
+                 "--n-jobs", "1", "-q"]) == 0
+    episode = read_episode(next(out.glob("*.mcap")))
+    assert episode.metadata.extra["safety"]["max_voltage"] == 0.8
+    assert np.max(np.abs(episode.plant_input)) == pytest.approx(0.8) and episode.saturation.any()
+    clipped = np.clip(episode.control_output + episode.feedforward, -0.8, 0.8)
+    np.testing.assert_array_equal(episode.plant_input[episode.saturation != 0], clipped[episode.saturation != 0])
+    assert main(["--max-voltage", "12", "--out", str(tmp_path / "x")]) == 2
+    assert "--max-voltage 12: at most the rig's 10 V" in capsys.readouterr().err
