@@ -20,9 +20,11 @@ Two solvers of the same problem (``solver`` setting):
 
 - ``"newton"`` (the default): a projected Newton method on the box (Bertsekas' two-metric
   projection) with the penalty's generalized Hessian, warm-started from the previous plan shifted
-  by one tick. On the condensed problem of the default horizon it takes 1-3 iterations and about
-  40-60 us a tick; OSQP, warm-started, about 3 times that (bench/bench_mpc.py prints both): its
-  per-call overhead and ADMM iterations cost more than a few Cholesky factors of an N x N matrix.
+  by one tick. Kept because it is faster at the same accuracy: in ``qube-run``'s loop on the twin
+  (bench/bench_mpc.py, 71-state plant, horizon 20) it takes 1 iteration at p99 and about 50 us a
+  tick (p50; p99 110 us of CPU time), OSQP warm-started on the same QP about 50 iterations and
+  twice that (p50 104 us, p99 198 us): its per-call overhead and ADMM iterations cost more than a
+  Cholesky factor of an N x N matrix, which a tick with nothing binding does not even need.
 - ``"osqp"``: OSQP on the same QP with one slack per predicted step, warm-started.
 
 A tick whose solve does not finish within its budget (``time_budget``, s, checked between

@@ -145,6 +145,10 @@ def test_qube_design_mpc_writes_a_file_qube_run_runs_on_the_twin_within_its_volt
         assert np.all(record["solve_time"] > 0) and np.all(record["solve_time"] <= e.compute_time)
         assert np.all(np.isin(record["solver_status"], (0, 1, 2, 3)))
         assert np.mean(record["solver_status"] == 0) > 0.9
+    # a log keeps the MPC's settings, not its model: a replay needs the controller file
+    log = str(sorted(runs.glob("*.mcap"))[0])
+    assert run_main(["--replay", log, "--out", str(tmp_path / "replayed"), "-q"]) == 2
+    assert "recorded under a controller of kind 'mpc'" in capsys.readouterr().err
 
 
 def test_qube_design_refuses_mpc_settings_without_mpc(twin_model, tmp_path, capsys):
