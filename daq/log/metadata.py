@@ -161,7 +161,9 @@ def metadata_from_records(
         missing = [k for k in _EPISODE_KEYS if k not in episode] + [k for k in _CONTROLLER_KEYS if k not in controller]
         if missing:
             raise ValueError(f"missing metadata keys {', '.join(missing)}")
-        kinds = _CONTROLLER_KINDS + registered_controller_kinds()
+        kinds: tuple[str, ...] = _CONTROLLER_KINDS
+        if controller["kind"] not in kinds:  # the entry points are scanned only for a kind beyond the built-in ones
+            kinds += registered_controller_kinds()
         if controller["kind"] not in kinds:
             raise ValueError(
                 f"unknown controller kind {controller['kind']!r} (a log records one of {', '.join(map(repr, kinds))})"
