@@ -12,6 +12,8 @@ _HOMES = {
     "ControllerInfo": "controller_file",
     "load_controller": "controller_file",
     "write_controller_file": "controller_file",
+    "register_controller_kind": "controller_file",
+    "registered_controller_kinds": "controller_file",
     "PdGains": "controller",
     "pd_controller": "controller",
     "pi_controller": "controller",

@@ -10,6 +10,13 @@ A controller file is TOML, of one of two kinds (core/CONTROLLER_FORMAT.md):
 
 Both give the :class:`~daq.episode.ControllerInfo` the loop runs and the log records. Every
 problem is one ``ValueError`` naming the file and what is wrong with it.
+
+Further kinds (a controller beyond LTI, such as ``qube-design --mpc``'s model predictive
+controller) are registered by the package that builds them, which this layer does not import:
+through a Python entry point of the group :data:`CONTROLLER_KINDS_GROUP` (name: the kind,
+value: a builder), or at run time by :func:`register_controller_kind`. A builder takes the
+file's table, its path and the loop's sample period and returns the :class:`ControllerInfo`,
+whose ``runtime`` the loop then runs (see :class:`ControllerInfo`).
 """
 
 from __future__ import annotations
@@ -18,8 +25,9 @@ import json
 import math
 import zipfile
 from dataclasses import dataclass, field
+from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 from qube_koopman.core.files import atomic_path, npz_shapes
@@ -36,7 +44,10 @@ from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
     "CONTROLLER_FORMAT",
+    "CONTROLLER_KINDS_GROUP",
     "STATE_SPACE_KIND",
+    "register_controller_kind",
+    "registered_controller_kinds",
     "FEEDFORWARD_INPUTS",
     "STATE_SPACE_METHOD",
     "TRACKING_INPUTS",
@@ -44,6 +55,7 @@ __all__ = [
     "default_controller_path",
     "ControllerInfo",
     "plain_json",
+    "toml_value",
     "write_controller_file",
 ]
 
@@ -58,6 +70,12 @@ TRACKING_INPUTS = ("e_theta", "e_alpha")
 #: The inputs of a controller that also sees the feedforward (which the loop adds to its output
 #: all the same): the tracking errors, then the feedforward.
 FEEDFORWARD_INPUTS = TRACKING_INPUTS + ("feedforward",)
+
+#: The entry-point group through which a package registers a controller file's kind.
+CONTROLLER_KINDS_GROUP = "qube_koopman.controller_kinds"
+
+#: Builders registered at run time (:func:`register_controller_kind`), by kind.
+_BUILDERS: dict[str, Callable[[dict, Path, float], "ControllerInfo"]] = {}
 
 _REQUIRED = ("format", "kind", "dt", "inputs")
 _MATRICES = ("A", "B", "C", "D")
@@ -102,11 +120,49 @@ def load_controller(
     if kind != STATE_SPACE_KIND:
         if kind is None:
             raise ValueError(f'{path}: missing key kind (a state-space file has kind = "{STATE_SPACE_KIND}")')
-        raise ValueError(
-            f'{path}: unknown controller kind {kind!r}; expected "{STATE_SPACE_KIND}" (a PD '
-            "gains file has no kind, only kp_theta, kd_theta, kp_alpha, kd_alpha, tau)"
-        )
+        builder = _builder(kind) if isinstance(kind, str) else None
+        if builder is None:
+            others = "".join(f', "{k}"' for k in registered_controller_kinds())
+            raise ValueError(
+                f'{path}: unknown controller kind {kind!r}; expected "{STATE_SPACE_KIND}"{others} (a PD '
+                "gains file has no kind, only kp_theta, kd_theta, kp_alpha, kd_alpha, tau)"
+            )
+        if data.get("format") != CONTROLLER_FORMAT:
+            raise ValueError(
+                f'{path}: format {data.get("format")!r} is not supported (this reader reads "{CONTROLLER_FORMAT}")'
+            )
+        _check_period(data.get("dt"), path, dt)
+        return builder(data, path, dt)
     return _state_space(data, path, dt)
+
+
+def register_controller_kind(kind: str, builder: Callable[[dict, Path, float], "ControllerInfo"]) -> None:
+    """Register the builder of a controller file's ``kind`` (beside the entry points of :data:`CONTROLLER_KINDS_GROUP`).
+
+    Parameters
+    ----------
+    kind : str
+        The file's ``kind``.
+    builder : callable
+        ``builder(table, path, dt) -> ControllerInfo``; every problem a ``ValueError`` naming ``path``.
+    """
+    if kind == STATE_SPACE_KIND or kind == "pd":
+        raise ValueError(f"controller kind {kind!r} is built in")
+    _BUILDERS[kind] = builder
+
+
+def registered_controller_kinds() -> tuple[str, ...]:
+    """The kinds registered beyond the built-in ones (entry points and :func:`register_controller_kind`), sorted."""
+    return tuple(sorted(set(_BUILDERS) | {ep.name for ep in entry_points(group=CONTROLLER_KINDS_GROUP)}))
+
+
+def _builder(kind: str):
+    if kind in _BUILDERS:
+        return _BUILDERS[kind]
+    for ep in entry_points(group=CONTROLLER_KINDS_GROUP):
+        if ep.name == kind:
+            return ep.load()
+    return None
 
 
 def _state_space(data: dict, path: Path, dt: float) -> ControllerInfo:
@@ -297,7 +353,7 @@ def write_controller_file(
             rows = ",\n".join("  [" + ", ".join(repr(v) for v in row) + "]" for row in getattr(system, m).tolist())
             lines.append(f"{m} = [\n{rows},\n]")
     if provenance:
-        lines += ["", "[provenance]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in provenance.items()]
+        lines += ["", "[provenance]"] + [f"{_toml_key(k)} = {toml_value(v)}" for k, v in provenance.items()]
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     return path
@@ -308,8 +364,19 @@ def _toml_key(key: str) -> str:
     return key if key and all(c.isascii() and (c.isalnum() or c in "_-") for c in key) else json.dumps(key)
 
 
-def _toml_value(value: Any) -> str:
-    """A TOML value for plain data (JSON's string escapes are TOML's basic-string escapes)."""
+def toml_value(value: Any) -> str:
+    """A TOML value for plain data (JSON's string escapes are TOML's basic-string escapes).
+
+    Floats are written with ``repr``, so they read back bit for bit.
+
+    Parameters
+    ----------
+    value : str, int, float, bool, mapping or sequence of them
+
+    Returns
+    -------
+    str
+    """
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, (int, float)):
@@ -317,9 +384,9 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, str):
         return json.dumps(value)
     if isinstance(value, Mapping):
-        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
+        return "{" + ", ".join(f"{_toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     raise ValueError(f"provenance value {value!r} is not plain data (str, number, bool, list, table)")
 
 
@@ -353,6 +420,19 @@ class ControllerInfo:
     provenance : mapping
         Free-form JSON-serializable record of where the controller comes from (for a
         state-space file: its ``[provenance]`` table, e.g. what designed it); empty for gains.
+    settings : mapping
+        A registered kind's run-time settings (plain data, recorded in the log); empty for the
+        built-in kinds.
+    tick_fields : tuple of str
+        Names of the per-tick record the controller gives (``runtime.tick_record``), which the
+        log keeps as sample fields; empty for an LTI controller.
+    runtime : object, optional
+        A controller beyond LTI: ``runtime.step()`` gives a fresh ``(output, update)`` pair per
+        episode, ``output(e_theta, e_alpha, feedforward, target_theta) -> (u, state)`` and
+        ``update(e_theta, e_alpha, feedforward)``, and after each ``output``
+        ``runtime.tick_record`` holds that tick's values of ``tick_fields``. Its ``state`` has
+        ``system``'s size: ``system`` is then the LTI controller that gives the same state (and,
+        for the MPC, the output without active constraints). None: the loop runs ``system``.
     """
 
     system: DiscreteStateSpace
@@ -360,6 +440,9 @@ class ControllerInfo:
     gains: Mapping[str, float] = field(default_factory=dict)
     kind: str = "pd"
     provenance: Mapping[str, Any] = field(default_factory=dict)
+    settings: Mapping[str, Any] = field(default_factory=dict)
+    tick_fields: tuple[str, ...] = ()
+    runtime: Any = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.system, DiscreteStateSpace):
@@ -367,25 +450,39 @@ class ControllerInfo:
         gains = {str(k): float(v) for k, v in dict(self.gains).items()}
         object.__setattr__(self, "gains", plain_json(gains, "controller gains"))
         object.__setattr__(self, "provenance", plain_json(self.provenance, "controller provenance"))
+        object.__setattr__(self, "settings", plain_json(self.settings, "controller settings"))
+        object.__setattr__(self, "tick_fields", tuple(str(name) for name in self.tick_fields))
 
     def as_dict(self) -> dict:
-        """Plain-data form: kind, method, gains, provenance and the state-space matrices."""
+        """Plain-data form: kind, method, gains, provenance, the state-space matrices (and settings, tick fields)."""
+        extra: dict[str, Any] = {}  # only a registered kind has them: the built-in kinds' dicts stay as they were
+        if self.settings:
+            extra["settings"] = dict(self.settings)
+        if self.tick_fields:
+            extra["tick_fields"] = list(self.tick_fields)
         return {
             "kind": self.kind,
             "method": self.method,
             "gains": dict(self.gains),
             "provenance": dict(self.provenance),
+            **extra,
             **self.system.as_dict(),
         }
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "ControllerInfo":
-        """Inverse of :meth:`as_dict` (``provenance`` optional: empty when absent)."""
+        """Inverse of :meth:`as_dict` (``provenance``, ``settings``, ``tick_fields`` optional; no runtime)."""
         missing = {"kind", "method", "gains"} - set(data)
         if missing:
             raise ValueError(f"controller data misses {sorted(missing)}")
         return cls(
-            DiscreteStateSpace.from_dict(data), data["method"], data["gains"], data["kind"], data.get("provenance", {})
+            DiscreteStateSpace.from_dict(data),
+            data["method"],
+            data["gains"],
+            data["kind"],
+            data.get("provenance", {}),
+            data.get("settings", {}),
+            tuple(data.get("tick_fields", ())),
         )
 
 

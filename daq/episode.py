@@ -237,6 +237,10 @@ class Episode:
         the session; NaN where the backend has no device clock (the simulator,
         imported data, logs older than format 1.3). A gap between consecutive
         values larger than ``dt`` shows periods the device lost.
+    controller_record : array_like of shape (n, len(metadata.controller.tick_fields)), optional
+        The controller's per-tick record (a controller beyond LTI: the MPC's solver status,
+        iterations, solve time, ...), one column per ``metadata.controller.tick_fields``;
+        empty (n x 0) for an LTI controller.
 
     Raises
     ------
@@ -259,6 +263,7 @@ class Episode:
     lateness: np.ndarray | None = None
     compute_time: np.ndarray | None = None
     device_time: np.ndarray | None = None
+    controller_record: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = np.shape(self.t)[0] if np.ndim(self.t) == 1 else None
@@ -271,6 +276,11 @@ class Episode:
         k = self.metadata.controller.system.n_states
         state = np.asarray(self.controller_state, dtype=np.float64)
         self._store("controller_state", state.reshape(0, k) if n == 0 and state.size == 0 else state, (n, k))
+        n_tick = len(self.metadata.controller.tick_fields)
+        record = np.empty((n, 0)) if self.controller_record is None else np.asarray(self.controller_record, float)
+        self._store(
+            "controller_record", record.reshape(0, n_tick) if n == 0 and record.size == 0 else record, (n, n_tick)
+        )
         sat = np.asarray(self.saturation)
         if sat.shape == (n,) and not np.isin(sat, (-1, 0, 1)).all():
             raise ValueError("saturation must hold only -1, 0 and +1")

@@ -99,6 +99,8 @@ def episode_columns(episode: Episode) -> dict[str, np.ndarray]:
     for name, value in episode.arrays().items():
         if name == "controller_state":
             columns.update({f"controller_state_{i}": value[:, i] for i in range(value.shape[1])})
+        elif name == "controller_record":  # a controller beyond LTI's per-tick record, by its field names
+            columns.update(dict(zip(episode.metadata.controller.tick_fields, value.T)))
         else:
             columns[name] = value
     return columns
@@ -117,7 +119,9 @@ def metadata_records(episode: Episode) -> dict[str, dict[str, str]]:
 
 
 def _unit(column: str) -> str:
-    return UNITS["controller_state" if column.startswith("controller_state_") else column]
+    if column.startswith("controller_state_"):
+        return UNITS["controller_state"]
+    return UNITS.get(column, "")  # a controller's per-tick record: its units are the controller's
 
 
 def episode_frame(episode: Episode):

@@ -516,7 +516,13 @@ def _ticks(
     times: _TickTimes,
 ) -> tuple[int, str, str]:
     """The ticks of one episode; returns (ticks recorded, abort reason, cause), '' when complete."""
-    output, update = controller_step(plan.controller.system)
+    runtime = plan.controller.runtime
+    if runtime is None:
+        output, update = controller_step(plan.controller.system)
+        tick_output = None
+    else:  # a controller beyond LTI (core/controller_file.py): it also sees the arm's reference
+        tick_output, update = runtime.step()
+    record = ()
     n_ticks = plan.n_samples
     chunks = _excitation_chunks(plan.excitation)
     ref_theta = ref_alpha = ff = []
@@ -557,7 +563,11 @@ def _ticks(
         e0 = r_theta - theta
         e1 = r_alpha - alpha
         f = ff[j]
-        u, xc = output(e0, e1, f)
+        if tick_output is None:
+            u, xc = output(e0, e1, f)
+        else:
+            u, xc = tick_output(e0, e1, f, r_theta)
+            record = runtime.tick_record
         reason = ""
         if not (abs(theta) <= th_lim and abs(alpha) <= al_lim) or stop.requested or writer.failed is not None:
             reason, cause = _abort(theta, alpha, limits, stop, writer)
@@ -597,6 +607,7 @@ def _ticks(
                 spent,
                 xc,
                 nan if when is None else when,
+                record,
             )
         )
         if throttle and not k & _BACKLOG_CHECK:

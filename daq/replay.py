@@ -50,7 +50,8 @@ def replay_plans(
     Raises
     ------
     ValueError
-        Naming the file: unreadable, without excitation seeds, or with unusable settings.
+        Naming the file: unreadable, without excitation seeds, with unusable settings, or recorded
+        under a controller beyond LTI (an MPC) when no ``controller`` is given.
     """
     from qube_koopman.daq.log import read_episode_metadata
 
@@ -71,6 +72,12 @@ def replay_plans(
             raise ValueError(
                 f"{path}: excitation seeds {[seeds[k] for k in SEED_SIGNALS]} are not 64-bit integers "
                 "(qube-run records such seeds only); it cannot be replayed"
+            )
+        if controller is None and meta.controller.tick_fields:
+            # a log keeps a controller beyond LTI's settings, not all it runs on (its model's matrices)
+            raise ValueError(
+                f"{path}: recorded under a controller of kind {meta.controller.kind!r}, which a log does not hold "
+                "whole; give its controller file with --controller"
             )
         (plan,) = plan_episodes(
             controller or meta.controller,

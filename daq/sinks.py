@@ -51,7 +51,8 @@ class Sample(NamedTuple):
     ``control_output`` (before that tick's update). ``saturation`` is -1, 0
     or +1 when ``plant_input`` was clipped at the lower limit, not clipped,
     or clipped at the upper limit. ``device_time`` is the device's clock
-    at the sample (s), NaN when the backend has none.
+    at the sample (s), NaN when the backend has none. ``controller_record`` is the per-tick
+    record of a controller beyond LTI (``ControllerInfo.tick_fields``), empty for an LTI one.
     """
 
     k: int
@@ -68,6 +69,7 @@ class Sample(NamedTuple):
     compute_time: float
     controller_state: Sequence[float]
     device_time: float = float("nan")
+    controller_record: Sequence[float] = ()
 
 
 SAMPLE_FIELDS = Sample._fields
@@ -133,10 +135,12 @@ class MemoryEpisode:
         columns = {
             name: np.array([getattr(s, name) for s in self.samples], dtype=float)
             for name in SAMPLE_FIELDS
-            if name not in ("k", "saturation", "controller_state")
+            if name not in ("k", "saturation", "controller_state", "controller_record")
         }
         state = np.array([s.controller_state for s in self.samples], dtype=float).reshape(n, n_c)
         saturation = np.array([s.saturation for s in self.samples], dtype=np.int8)
+        n_r = len(self.metadata.controller.tick_fields)
+        record = np.array([s.controller_record for s in self.samples], dtype=float).reshape(n, n_r)
         meta = self.metadata
         if self.outcome is not None:
             meta = replace(
@@ -146,7 +150,9 @@ class MemoryEpisode:
                 timing=self.outcome.timing.as_dict(),
                 backend_stats=self.outcome.backend_stats,
             )
-        return Episode(**columns, controller_state=state, saturation=saturation, metadata=meta)
+        return Episode(
+            **columns, controller_state=state, controller_record=record, saturation=saturation, metadata=meta
+        )
 
 
 class MemorySink:
@@ -382,6 +388,7 @@ class McapSink:
                 lateness=sample.lateness,
                 compute_time=sample.compute_time,
                 device_time=sample.device_time,
+                controller_record=sample.controller_record,
             )
         except OSError as exc:
             self._fail(writer.path, exc)

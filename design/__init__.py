@@ -24,6 +24,11 @@ _HOMES = {
     "augment": "lq",
     "design_lq": "lq",
     "realize": "lq",
+    # the model predictive controller
+    "MpcSettings": "mpc",
+    "MpcProblem": "mpc",
+    "build_problem": "mpc",
+    "MpcRuntime": "mpc",
     # the closed loop it predicts
     "CostPrediction": "predict",
     "predict_cost": "predict",

@@ -39,7 +39,15 @@ from qube_koopman.design.predict import (
 from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 
-__all__ = ["DesignReport", "design_from_model", "report_text", "saturation_warning", "provenance", "record_design"]
+__all__ = [
+    "DesignReport",
+    "design_from_model",
+    "report_text",
+    "saturation_warning",
+    "provenance",
+    "record_design",
+    "write_mpc",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -418,3 +426,32 @@ def _finite(value):
     if isinstance(value, (list, tuple)):
         return [_finite(v) for v in value]
     return value
+
+
+def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
+    """Write the MPC on the report's plant and weights (``qube-design --mpc``): kind ``mpc``, with the provenance.
+
+    Parameters
+    ----------
+    path : str or Path
+        The controller file.
+    report : DesignReport
+        The LQ design (:func:`design_from_model`): its plant and weights; its Riccati cost is the
+        MPC's terminal cost.
+    settings : design.mpc.MpcSettings
+
+    Returns
+    -------
+    Path
+    """
+    import control  # lazily: python-control imports matplotlib
+
+    from qube_koopman.design.lq import augment
+    from qube_koopman.design.mpc_file import write_mpc_file
+
+    plant, weights = report.design.plant, report.design.weights
+    P, _, _ = control.dare(*augment(plant, weights))
+    out = provenance(report)
+    out["designed_by"] = "qube-design --mpc (condensed linear MPC on the identified plant's history)"
+    out["lq_predicted"] = out.pop("predicted")  # the LQ design's: the MPC's law while no constraint binds
+    return write_mpc_file(path, plant, weights, np.asarray(P), settings, out)

@@ -34,7 +34,7 @@ perturbation), the PD controller balances it while the rig's excitation
 (PRBS references and feedforward, three seeds per episode drawn from --seed)
 drives it. Every tick is logged: angles, references, feedforward, controller
 state and output, applied voltage, saturation, lateness and compute time.
-Safety: the command is clamped to +-10 V; an episode stops with the motor at
+Safety: the command is clamped to +-10 V (lower: --max-voltage); an episode stops with the motor at
 0 V when |theta| > {DEFAULT_THETA_LIMIT:g} deg or |alpha| > {DEFAULT_ALPHA_LIMIT:g} deg; Ctrl-C or SIGTERM stops the
 run with the motor at 0 V and the current logs closed as "aborted".
 
@@ -201,6 +201,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_THETA_LIMIT,
         metavar="DEG",
         help=f"stop an episode when |theta| exceeds this (default {DEFAULT_THETA_LIMIT:g})",
+    )
+    safety.add_argument(
+        "--max-voltage",
+        type=positive_number,
+        default=10.0,
+        metavar="V",
+        help="clamp the command to +-V, at most the rig's 10 V (default 10), whatever the controller: a "
+        "linear design run clipped at an MPC's voltage limit",
     )
     safety.add_argument(
         "--alpha-limit",
@@ -543,8 +551,14 @@ def _run(args) -> int:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
     except ValueError as exc:
         raise CliError(f"{exc} (--controller)") from None
+    if args.max_voltage > 10.0:
+        raise CliError(f"--max-voltage {args.max_voltage:g}: at most the rig's 10 V")
     try:
-        limits = SafetyLimits(theta_limit=math.radians(args.theta_limit), alpha_limit=math.radians(args.alpha_limit))
+        limits = SafetyLimits(
+            max_voltage=args.max_voltage,
+            theta_limit=math.radians(args.theta_limit),
+            alpha_limit=math.radians(args.alpha_limit),
+        )
     except ValueError as exc:  # the start gate above --alpha-limit (the library's radians)
         raise CliError(f"--alpha-limit {args.alpha_limit:g} deg: inside the start gate ({exc})") from None
     if args.backend == "sim" and math.radians(args.perturbation) >= limits.start_alpha:

@@ -11,7 +11,7 @@ import json
 from typing import Mapping
 
 from qube_koopman.daq.episode import EpisodeMetadata
-from qube_koopman.core.controller_file import STATE_SPACE_KIND, ControllerInfo
+from qube_koopman.core.controller_file import STATE_SPACE_KIND, ControllerInfo, registered_controller_kinds
 from qube_koopman.core.files import loads_json
 from qube_koopman.daq.log.schema import FORMAT_VERSION
 
@@ -40,8 +40,9 @@ _EPISODE_KEYS = (
     "extra",
 )
 _CONTROLLER_KEYS = ("kind", "method", "gains", "dt", "A", "B", "C", "D")
-# Added in 1.4 (a state-space controller's provenance); absent from older logs: empty.
-_OPTIONAL_CONTROLLER_KEYS = ("provenance",)
+# Added in 1.4 (a state-space controller's provenance); absent from older logs: empty. Added in 1.5
+# (a registered kind's settings and the names of its per-tick record).
+_OPTIONAL_CONTROLLER_KEYS = ("provenance", "settings", "tick_fields")
 
 
 #: The kinds of controller the loop runs, and so the kinds a log may record (core/controller_file.py).
@@ -78,6 +79,7 @@ def episode_records(meta: EpisodeMetadata) -> dict[str, dict[str, str]]:
             "dt": repr(controller["dt"]),
             **{m: _json(controller[m]) for m in "ABCD"},
             "provenance": _json(controller["provenance"]),
+            **{k: _json(controller[k]) for k in ("settings", "tick_fields") if k in controller},
         },
     }
 
@@ -159,10 +161,12 @@ def metadata_from_records(
         missing = [k for k in _EPISODE_KEYS if k not in episode] + [k for k in _CONTROLLER_KEYS if k not in controller]
         if missing:
             raise ValueError(f"missing metadata keys {', '.join(missing)}")
-        if controller["kind"] not in _CONTROLLER_KINDS:
+        kinds: tuple[str, ...] = _CONTROLLER_KINDS
+        if controller["kind"] not in kinds:  # the entry points are scanned only for a kind beyond the built-in ones
+            kinds += registered_controller_kinds()
+        if controller["kind"] not in kinds:
             raise ValueError(
-                f"unknown controller kind {controller['kind']!r} (a log records one of "
-                f"{', '.join(map(repr, _CONTROLLER_KINDS))})"
+                f"unknown controller kind {controller['kind']!r} (a log records one of {', '.join(map(repr, kinds))})"
             )
         controller_info = ControllerInfo.from_dict(
             {

@@ -543,11 +543,12 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
     scan, meta = _scan(path, decode_chunks=True)
     where = str(path)
     k = meta.controller.system.n_states
+    ticks = meta.controller.tick_fields
     present = set(SIGNALS) if scan.fields is None else set(dict(scan.fields))
     if scan.fields is not None:
         missing = [
             name
-            for name in (*SIGNALS, *map(state_field, range(k)), "saturation")
+            for name in (*SIGNALS, *map(state_field, range(k)), *ticks, "saturation")
             if name not in present and name not in _ADDED_FIELDS
         ]
         if missing:
@@ -562,11 +563,13 @@ def read_episode(path: str | os.PathLike, *, warn: bool = True) -> Episode:
             raise ValueError(f"{where}: sample messages are not plain little-endian CDR")
         arrays = {name: column(name) for name in (*SIGNALS, "saturation") if name in present or name == "saturation"}
         state = np.column_stack([column(state_field(i)) for i in range(k)]) if k else np.empty((len(arrays["t"]), 0))
+        record = np.column_stack([column(name) for name in ticks]) if ticks else None
     else:
         arrays = {name: np.empty(0) for name in SIGNALS}
         arrays["saturation"] = np.empty(0, np.int8)
         state = np.empty((0, k))
-    episode = Episode(metadata=meta, controller_state=state, **arrays)
+        record = np.empty((0, len(ticks))) if ticks else None
+    episode = Episode(metadata=meta, controller_state=state, controller_record=record, **arrays)
     if meta.salvaged and warn:
         warnings.warn(
             f"{where}: {meta.salvage_note}; read {len(episode)} samples (status {meta.status})",

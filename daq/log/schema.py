@@ -24,7 +24,7 @@ __all__ = [
 ]
 
 #: Version of the episode log format; readers accept the same major version.
-FORMAT_VERSION = "1.4"
+FORMAT_VERSION = "1.5"
 
 SAMPLE_TOPIC = "/qube/sample"
 SAMPLE_SCHEMA_NAME = "qube_msgs/msg/EpisodeSample"
@@ -55,23 +55,31 @@ def state_field(i: int) -> str:
     return f"controller_state_{i}"
 
 
-def sample_fields(n_controller_states: int) -> list[tuple[str, str]]:
-    """Fields of one sample message as (name, ros2msg type), in wire order."""
+def sample_fields(n_controller_states: int, tick_fields: tuple[str, ...] = ()) -> list[tuple[str, str]]:
+    """Fields of one sample message as (name, ros2msg type), in wire order.
+
+    ``tick_fields``: the per-tick record of a controller beyond LTI (e.g. the MPC's solver status),
+    float64 fields after the controller's state (added in 1.5).
+    """
     return (
         [(name, "float64") for name in SIGNALS]
         + [(state_field(i), "float64") for i in range(n_controller_states)]
+        + [(name, "float64") for name in tick_fields]
         + [("saturation", "int8")]
     )
 
 
-def schema_text(n_controller_states: int) -> str:
+def schema_text(n_controller_states: int, tick_fields: tuple[str, ...] = ()) -> str:
     """The ros2msg definition of one sample message."""
     lines = [
         f"# One tick of a QUBE-Servo episode (episode log format {FORMAT_VERSION}).",
         "# Units: s, rad, V; controller_state_i in the controller's realization.",
     ]
-    for name, ros_type in sample_fields(n_controller_states):
-        unit = UNITS["controller_state" if name.startswith("controller_state_") else name]
+    for name, ros_type in sample_fields(n_controller_states, tick_fields):
+        if name.startswith("controller_state_"):
+            unit = UNITS["controller_state"]
+        else:
+            unit = UNITS.get(name, "the controller's per-tick record")
         lines.append(f"{ros_type} {name}  # {unit}")
     return "\n".join(lines) + "\n"
 

@@ -110,12 +110,13 @@ class EpisodeWriter:
         self.path = Path(path)
         self.metadata = metadata
         self._n_states = metadata.controller.system.n_states
+        self._tick_fields = tuple(metadata.controller.tick_fields)
         self._flush_every = (
             None if flush_interval_s is None else max(1, round(flush_interval_s * metadata.sample_rate_hz))
         )
         self._fsync = fsync
         self._epoch_ns = _epoch_ns(metadata.start_time)
-        fields = sample_fields(self._n_states)
+        fields = sample_fields(self._n_states, self._tick_fields)
         self._dtype = payload_dtype(fields)
         # "<" packs without padding; valid because payload_dtype has none for
         # this field order (float64s first, the int8 last).
@@ -140,7 +141,9 @@ class EpisodeWriter:
         self._pending_payloads = bytearray()
         self._pending_times: list[int] = []
         self._mcap.start(profile="", library=f"qube-koopman daq.log {FORMAT_VERSION}")
-        schema_id = self._mcap.register_schema(SAMPLE_SCHEMA_NAME, "ros2msg", schema_text(self._n_states).encode())
+        schema_id = self._mcap.register_schema(
+            SAMPLE_SCHEMA_NAME, "ros2msg", schema_text(self._n_states, self._tick_fields).encode()
+        )
         self._channel = self._mcap.register_channel(SAMPLE_TOPIC, "cdr", schema_id)
         for name, record in episode_records(metadata).items():
             self._mcap.add_metadata(name, record)
@@ -199,8 +202,10 @@ class EpisodeWriter:
         lateness: float = float("nan"),
         compute_time: float = float("nan"),
         device_time: float = float("nan"),
+        controller_record=(),
     ) -> None:
-        """Append one tick (units as in :class:`daq.episode.Episode`).
+        """Append one tick (units as in :class:`daq.episode.Episode`; ``controller_record``: the controller's
+        per-tick record, one value per ``metadata.controller.tick_fields``).
 
         Raises
         ------
@@ -213,6 +218,10 @@ class EpisodeWriter:
         state = controller_state if type(controller_state) in (tuple, list) else np.ravel(controller_state).tolist()
         if len(state) != self._n_states:
             raise ValueError(f"controller_state must have {self._n_states} values, got {len(state)}")
+        if len(controller_record) != len(self._tick_fields):
+            raise ValueError(
+                f"controller_record must have {len(self._tick_fields)} values, got {len(controller_record)}"
+            )
         if saturation not in (-1, 0, 1):
             raise ValueError(f"saturation must be -1, 0 or +1, got {saturation!r}")
         if not math.isfinite(t):
@@ -232,6 +241,7 @@ class EpisodeWriter:
                 compute_time,
                 device_time,
                 *state,
+                *controller_record,
                 int(saturation),
             )
         except struct.error as exc:  # a value that is not a number
@@ -254,6 +264,9 @@ class EpisodeWriter:
             block[name] = getattr(episode, name)
         for i in range(self._n_states):
             block[state_field(i)] = episode.controller_state[:, i]
+        record = np.asarray(episode.controller_record)  # an episode always holds one (n x 0 for LTI)
+        for i, name in enumerate(self._tick_fields):
+            block[name] = record[:, i]
         block["saturation"] = episode.saturation
         payloads = block.view(np.uint8).reshape(len(block), self._dtype.itemsize)
         log_times = self._epoch_ns + np.round(episode.t * 1e9).astype(np.int64)

@@ -3,6 +3,7 @@
     qube-design MODEL --out FILE.toml [--q-theta Q] [--q-alpha Q] [--r-voltage R]
                 [--q-integral Q | --no-integral] [--seed K] [--episodes N] [--duration S] [--npz]
                 [--interval LEVEL] [--robust] [--rerun FILE.rrd [--rerun-episodes N]]
+                [--mpc [--voltage-limit V] [--horizon N]]
 
 Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
 feedback on the plant's history of measurements (with integral action on the arm's tracking
@@ -22,6 +23,13 @@ model file without them, written with ``qube-identify --interval 0`` or by an ol
 none, and the report says so). ``--robust`` designs against that uncertainty: among the weights with the
 voltage weight scaled up (x1, x2, x4), the design whose worst case of J over the bootstrap
 plants is lowest, and the report gives what it costs in predicted J against the nominal design.
+
+With ``--mpc`` it writes a model predictive controller instead (a controller file of kind
+``mpc``): on the same plant and with the same weights, over ``--horizon N`` ticks (default 20),
+the LQ design's Riccati cost as the terminal cost (so that without active constraints it is that
+LQ design), the voltage kept within ``--voltage-limit V`` (default the rig's 10 V) and the arm
+kept within 0.2 rad of the safety stop (a soft bound: a penalty, so every tick's problem is
+feasible). The report above it is the LQ design's, the MPC's law while no constraint binds.
 
 With ``--rerun-save FILE.rrd`` it also runs the first episodes of that excitation on the twin (as
 ``qube-run --seed K --episodes N --controller FILE.toml`` runs them, and under the model's
@@ -139,6 +147,22 @@ def _parser() -> argparse.ArgumentParser:
         metavar="N",
         help="episodes of the excitation the recording shows, run on the twin (default 3)",
     )
+    mpc = p.add_argument_group("model predictive control")
+    mpc.add_argument("--mpc", action="store_true", help="write a model predictive controller (kind mpc)")
+    mpc.add_argument(
+        "--voltage-limit",
+        type=float,
+        default=None,
+        metavar="V",
+        help="with --mpc: keep |V| within this, up to the rig's 10 V (default 10)",
+    )
+    mpc.add_argument(
+        "--horizon",
+        type=whole_number(1, 200),
+        default=None,
+        metavar="N",
+        help="with --mpc: inputs predicted, ticks of 2 ms (default 20)",
+    )
     add_force_option(p)
     add_standard_options(p, "nothing to quiet")
     return p
@@ -159,12 +183,32 @@ def _weights(args):
         raise CliError(str(exc)) from None
 
 
+def _mpc_settings(args):
+    """The MPC's settings with --mpc, else None (--voltage-limit and --horizon refused without it)."""
+    from qube_koopman.design.mpc import MpcSettings
+    from qube_koopman.design.plant import DesignError
+
+    if not args.mpc:
+        for name in ("voltage_limit", "horizon"):
+            if getattr(args, name) is not None:
+                raise CliError(f"--{name.replace('_', '-')} is a setting of --mpc")
+        return None
+    if args.npz or args.robust or args.rerun:
+        raise CliError("--mpc writes its matrices in the file and takes no --npz, --robust or --rerun-save")
+    values = {"voltage_limit": args.voltage_limit, "horizon": args.horizon}
+    try:
+        return MpcSettings(**{k: v for k, v in values.items() if v is not None})
+    except DesignError as exc:
+        raise CliError(str(exc)) from None
+
+
 def _run(args) -> int:
     from qube_koopman.core.controller_file import write_controller_file
     from qube_koopman.design.plant import DesignError
     from qube_koopman.design.workflow import design_from_model, provenance, report_text, saturation_warning
 
     weights = _weights(args)
+    settings = _mpc_settings(args)
     check_output_file(args.out, force=args.force)  # before the design's minutes of work, not after
     if args.npz:
         check_output_file(Path(args.out).with_suffix(".npz"), "--npz", args.force)
@@ -192,7 +236,14 @@ def _run(args) -> int:
     if warning:
         print(f"qube-design: warning: {warning}", file=sys.stderr)
     try:
-        written = write_controller_file(args.out, report.controller, provenance(report), npz=args.npz)
+        if settings is not None:
+            from qube_koopman.design.workflow import write_mpc
+
+            written = write_mpc(args.out, report, settings)
+        else:
+            written = write_controller_file(args.out, report.controller, provenance(report), npz=args.npz)
+    except DesignError as exc:
+        raise CliError(str(exc)) from None
     except OSError as exc:
         raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
     print(

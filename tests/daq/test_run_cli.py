@@ -393,3 +393,16 @@ def test_a_run_that_fails_before_any_log_leaves_no_folder_it_made(tmp_path, caps
         assert status == 1 and "link lost" in capsys.readouterr().err
     assert not (tmp_path / "a").exists(), "the folders it made are gone"
     assert kept.is_dir() and not list(kept.iterdir())
+
+
+def test_max_voltage_lowers_the_clamp_for_any_controller(tmp_path, capsys):
+    out = tmp_path / "low"
+    assert main(["--episodes", "1", "--duration", "4", "--seed", "2", "--max-voltage", "0.8", "--out", str(out),
+                 "--n-jobs", "1", "-q"]) == 0
+    episode = read_episode(next(out.glob("*.mcap")))
+    assert episode.metadata.extra["safety"]["max_voltage"] == 0.8
+    assert np.max(np.abs(episode.plant_input)) == pytest.approx(0.8) and episode.saturation.any()
+    clipped = np.clip(episode.control_output + episode.feedforward, -0.8, 0.8)
+    np.testing.assert_array_equal(episode.plant_input[episode.saturation != 0], clipped[episode.saturation != 0])
+    assert main(["--max-voltage", "12", "--out", str(tmp_path / "x")]) == 2
+    assert "--max-voltage 12: at most the rig's 10 V" in capsys.readouterr().err

@@ -117,4 +117,4 @@ def test_a_log_with_crafted_metadata_is_skipped_with_a_warning(folder):
     assert messages[0] == (f"{folder / 'e_deep.mcap'}: malformed episode metadata: a metadata value: lists and "
                            "tables nested more than 64 levels deep; skipped")
     assert messages[1] == (f"{folder / 'f_neural.mcap'}: malformed episode metadata: unknown controller kind "
-                           "'neural' (a log records one of 'pd', 'state-space'); skipped")
+                           "'neural' (a log records one of 'pd', 'state-space', 'mpc'); skipped")

@@ -1,0 +1,193 @@
+"""The MPC of ``qube-design --mpc`` on the twin: its solve time per tick, and its cost against the LQ design clipped.
+
+    python bench/bench_mpc.py [MODEL.json] [--seeds 5,6,7] [--episodes 2] [--duration 10] [--voltage-limit V]
+                              [--horizons 10,20,40] [--out DIR]
+
+MODEL.json is a plant identified by ``qube-identify`` (without one, the bench identifies one on 6
+twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design page's cycle). It prints:
+
+- the solve time per tick in ``qube-run``'s loop on the twin (free-running, one process, the
+  default weights, the voltage limit below) for each horizon: p50 / p99 / max against the targets
+  (p99 <= 0.5 ms, max <= 1.5 ms at the default horizon), the ticks out of the budget (fallbacks),
+  the ticks with an active constraint, the tick's compute time p99; at the default horizon also
+  with OSQP (warm-started) on the same problem, the reference solver;
+- the twin's J = mean((theta - target_theta)^2) + mean(alpha^2) after the first second, per seed,
+  of the MPC and of the LQ design of the same weights run clipped at the same limit
+  (``qube-run --max-voltage``), beside the LQ unclipped; the limit is, unless given, 0.7 times the
+  LQ's voltage peak on those excitations (so that the limit binds).
+
+Timing is the host's: on a machine shared with other work the tails (p99, max) of the loop's
+(wall-clock) solve time are the machine's as much as the solver's; the bench therefore also runs
+the logged ticks' inputs through the controller again and times each solve in the thread's CPU
+time (the solver's own cost), and the iterations per tick do not depend on the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from qube_koopman.core.controller_file import load_controller
+from qube_koopman.daq.cli.run import main as _run_main
+from qube_koopman.daq.log import read_episode
+from qube_koopman.design.cli.design import main as _design_main
+from qube_koopman.design.predict import episode_cost
+from qube_koopman.identify.cli.identify import main as _identify_main
+
+TARGET_P99 = 0.5e-3
+TARGET_MAX = 1.5e-3
+
+
+def _quiet(command):
+    """The command with its terminal output swallowed (the bench prints its own table)."""
+
+    def run(argv):
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            return command(argv)
+
+    return run
+
+
+run_main, design_main, identify_main = _quiet(_run_main), _quiet(_design_main), _quiet(_identify_main)
+
+
+def _cpu_solve_times(controller: Path, episodes: list) -> np.ndarray:
+    """The solve time per tick in the thread's CPU time: the logged ticks' inputs through the controller again.
+
+    The loop's solve time is wall time, preemption by the machine's other work included; this one is
+    the solver's own cost on the same ticks (same inputs, same warm starts, no budget).
+    """
+    info = load_controller(controller)
+    runtime = info.runtime
+    runtime.clock = time.thread_time
+    times = []
+    for e in episodes:
+        output, update = runtime.step()
+        err = e.references - e.states
+        for k in range(len(e)):
+            output(err[k, 0], err[k, 1], e.feedforward[k], e.target_theta[k])
+            times.append(runtime.tick_record[2])
+            update(err[k, 0], err[k, 1], e.feedforward[k])
+    return np.array(times)
+
+
+def _run(out: Path, controller: Path, seed: int, episodes: int, duration: float, *extra: str) -> list:
+    argv = ["--controller", str(controller), "--episodes", str(episodes), "--duration", f"{duration:g}"]
+    run_main([*argv, "--seed", str(seed), "--out", str(out), "--n-jobs", "1", "-q", *extra])
+    return [read_episode(p) for p in sorted(out.glob("*.mcap"))]
+
+
+def _cost(episodes: list) -> tuple[float, int, float]:
+    """(mean J over the complete episodes, complete episodes, voltage peak)."""
+    done = [e for e in episodes if e.metadata.status == "complete"]
+    J = [episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input)[0] for e in done]
+    peak = max((float(np.max(np.abs(e.plant_input))) for e in episodes if len(e)), default=0.0)
+    return (float(np.mean(J)) if J else float("nan")), len(done), peak
+
+
+def _model(root: Path) -> Path:
+    for out, n, seed in (("train", 6, 3), ("test", 2, 4)):
+        run_main(["--episodes", str(n), "--seed", str(seed), "--out", str(root / out), "-q"])
+    identify_main(
+        [
+            "--train",
+            *map(str, sorted((root / "train").glob("*.mcap"))),
+            "--test",
+            *map(str, (root / "test").glob("*.mcap")),
+            "--poly",
+            "1",
+            "--delays",
+            "35",
+            "--const",
+            "--out",
+            str(root / "model"),
+            "-q",
+        ]
+    )
+    return root / "model" / "model.json"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("model", nargs="?", type=Path)
+    p.add_argument("--seeds", default="5,6,7")
+    p.add_argument("--episodes", type=int, default=2)
+    p.add_argument("--duration", type=float, default=10.0)
+    p.add_argument("--voltage-limit", type=float, default=None)
+    p.add_argument("--horizons", default="10,20,40")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    root = args.out or Path(tempfile.mkdtemp(prefix="bench_mpc_"))
+    root.mkdir(parents=True, exist_ok=True)
+    model = args.model or _model(root)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    horizons = [int(h) for h in args.horizons.split(",")]
+    quiet = ["--episodes", "2", "--duration", "4", "--interval", "0", "-q", "--force"]
+
+    lq = root / "lq.toml"
+    design_main([str(model), "--out", str(lq), *quiet])
+    lq_runs = {s: _run(root / f"lq_{s}", lq, s, args.episodes, args.duration) for s in seeds}
+    lq_peak = max(_cost(runs)[2] for runs in lq_runs.values())
+    limit = args.voltage_limit or round(0.7 * lq_peak, 1)
+    print(f"model {model}; the LQ design's voltage peak on the twin {lq_peak:.2f} V; voltage limit {limit:g} V")
+    print(f"seeds {seeds}, {args.episodes} episodes of {args.duration:g} s each, free-running, one process\n")
+
+    print("solve time per tick in the loop (target at the default horizon 20: p99 <= 0.5 ms, max <= 1.5 ms)")
+    header = (
+        f"{'horizon':>7} {'solver':>7} {'wall p50/p99/max us':>20} {'CPU p50/p99/max us':>19} {'iter p99':>8} "
+        f"{'fallback':>8} {'active %':>8} {'compute p99 us':>14} {'J':>10}"
+    )
+    print(header)
+    mpc_files = {}
+    for N in horizons:
+        for solver in ("newton", "osqp") if N == 20 else ("newton",):
+            f = root / f"mpc_{N}_{solver}.toml"
+            design_main(
+                [str(model), "--mpc", "--horizon", str(N), "--voltage-limit", f"{limit:g}", "--out", str(f), *quiet]
+            )
+            if solver != "newton":
+                f.write_text(re.sub(r'solver = "newton"', f'solver = "{solver}"', f.read_text()))
+            mpc_files[(N, solver)] = f
+            episodes = _run(root / f"mpc_{N}_{solver}_{seeds[0]}", f, seeds[0], args.episodes, args.duration)
+            rec = np.vstack([e.controller_record for e in episodes])
+            fields = episodes[0].metadata.controller.tick_fields
+            r = dict(zip(fields, rec.T))
+            t = r["solve_time"]
+            compute = np.concatenate([e.compute_time for e in episodes])
+            J = _cost(episodes)[0]
+            cpu = _cpu_solve_times(f, episodes)
+            ok = N != 20 or (np.percentile(t, 99) <= TARGET_P99 and t.max() <= TARGET_MAX)
+            wall = "/".join(f"{1e6 * v:.0f}" for v in (np.percentile(t, 50), np.percentile(t, 99), t.max()))
+            own = "/".join(f"{1e6 * v:.0f}" for v in (np.percentile(cpu, 50), np.percentile(cpu, 99), cpu.max()))
+            print(
+                f"{N:>7} {solver:>7} {wall:>20} {own:>19} {np.percentile(r['solver_iterations'], 99):>8.0f} "
+                f"{int(r['fallback'].sum()):>8d} {100 * r['constraint_active'].mean():>8.1f} "
+                f"{1e6 * np.percentile(compute, 99):>14.0f} {J:>10.3e}" + ("" if ok else "  (wall time over target)")
+            )
+
+    print(f"\ntwin J per seed at {limit:g} V (complete episodes of {args.episodes}); MPC horizon 20")
+    print(f"{'seed':>5} {'MPC J':>10} {'LQ clipped J':>13} {'MPC/LQc':>8} {'LQ 10 V J':>10} {'MPC peak V':>10}")
+    ratios = []
+    for s in seeds:
+        mpc = _cost(_run(root / f"mpc_J_{s}", mpc_files[(20, "newton")], s, args.episodes, args.duration))
+        clipped = _cost(_run(root / f"lqc_{s}", lq, s, args.episodes, args.duration, "--max-voltage", f"{limit:g}"))
+        free = _cost(lq_runs[s])
+        ratios.append(mpc[0] / clipped[0])
+        print(
+            f"{s:>5} {mpc[0]:>10.3e} ({mpc[1]}) {clipped[0]:>10.3e} ({clipped[1]}) {ratios[-1]:>8.3f} "
+            f"{free[0]:>10.3e} {mpc[2]:>10.2f}"
+        )
+    print(f"MPC J / clipped LQ J: mean {np.mean(ratios):.3f} over {len(seeds)} seeds")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

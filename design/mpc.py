@@ -1,0 +1,490 @@
+"""A condensed linear model predictive controller on the identified plant's history.
+
+The prediction model is the LQ design's (:func:`design.lq.augment`): the plant as a shift register
+of its last ``d + 1`` measurements and the integral of the arm's tracking error, in the
+coordinates of the tracking errors, ``z_k = [s_k - s_ref; w_k]`` (``s_ref``: the references held
+over the horizon), ``z_{k+1} = F_a z_k + G_a u_k``. Over a horizon of ``N`` inputs
+``U = [u_0 .. u_{N-1}]`` the predicted states are ``Z = Phi z_0 + Gamma U``, built once (the
+condensed form), and the tick's problem is a QP in ``U`` alone::
+
+    minimize    sum_{i<N} z_i' Q z_i + u_i' R u_i + z_N' P z_N  +  rho sum_i (slack_i)^2
+    subject to  -V - f <= u_i <= V - f                    (the voltage limit; f the feedforward)
+                |theta_i| <= theta_max + slack_i, i = 1..N  (the arm inside a margin of the stop)
+
+``Q``, ``R`` are the LQ weights; ``P`` the infinite-horizon LQ's Riccati solution, so that without
+active constraints the MPC's first input is the LQ gain's ``u = -K z`` exactly. The arm's bound is
+soft: the slack's quadratic penalty, minimized out, is ``rho max(0, |theta_i| - theta_max)^2``, so
+the problem is a box-constrained QP with a piecewise quadratic term and always feasible.
+
+Two solvers of the same problem (``solver`` setting):
+
+- ``"newton"`` (the default): a projected Newton method on the box (Bertsekas' two-metric
+  projection) with the penalty's generalized Hessian, warm-started from the previous plan shifted
+  by one tick. Kept because it is faster at the same accuracy: in ``qube-run``'s loop on the twin
+  (bench/bench_mpc.py, 71-state plant, horizon 20) it takes 1 iteration at p99 and about 50 us a
+  tick (p50; p99 110 us of CPU time), OSQP warm-started on the same QP about 50 iterations and
+  twice that (p50 104 us, p99 198 us): its per-call overhead and ADMM iterations cost more than a
+  Cholesky factor of an N x N matrix, which a tick with nothing binding does not even need.
+- ``"osqp"``: OSQP on the same QP with one slack per predicted step, warm-started.
+
+A tick whose solve does not finish within its budget (``time_budget``, s, checked between
+iterations; OSQP's own ``time_limit``) or fails applies a fallback: the previous plan's next input,
+or with no plan the LQ gain, clipped to the limit; the controller counts those ticks.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from qube_koopman.core.qube import THETA_LIMIT
+from qube_koopman.design.lq import Weights, augment
+from qube_koopman.design.plant import DesignError, LinearPlant
+
+__all__ = [
+    "MpcSettings",
+    "MpcProblem",
+    "SolveResult",
+    "build_problem",
+    "solve_newton",
+    "OsqpSolver",
+    "MpcRuntime",
+    "SOLVER_STATUS",
+]
+
+#: The solve's status codes, as the log records them per tick.
+SOLVER_STATUS = {"solved": 0, "max_iterations": 1, "timeout": 2, "failed": 3}
+
+
+@dataclass(frozen=True)
+class MpcSettings:
+    """The MPC's horizon, limits and solver settings.
+
+    Parameters
+    ----------
+    horizon : int
+        Inputs predicted, ``N``. The default, 20 ticks (40 ms), covers the pendulum's unstable
+        time constant (about 0.1 s) partly; the terminal LQ cost carries the rest, and a solve
+        stays well inside the tick's budget.
+    voltage_limit : float
+        ``|V| <=`` this (V); the rig's clamp is 10 V.
+    theta_margin : float
+        The arm is kept within ``THETA_LIMIT - theta_margin`` (rad) of upright, softly.
+    theta_penalty : float
+        ``rho``: the quadratic penalty per rad^2 of the arm's excess.
+    solver : {"newton", "osqp"}
+        The QP solver.
+    max_iterations : int
+        Of the projected Newton method (OSQP: its own ``max_iter`` is 50 times this).
+    tolerance : float
+        Optimality: the projected gradient's largest entry (newton), or OSQP's eps_abs/eps_rel.
+    time_budget : float
+        Seconds a solve may take before the tick applies the fallback.
+    """
+
+    horizon: int = 20
+    voltage_limit: float = 10.0
+    theta_margin: float = 0.2
+    theta_penalty: float = 1e4
+    solver: str = "newton"
+    max_iterations: int = 20
+    tolerance: float = 1e-7
+    time_budget: float = 1.0e-3
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.horizon, int) and 1 <= self.horizon <= 200):
+            raise DesignError(f"--horizon must be a whole number of ticks from 1 to 200, got {self.horizon!r}")
+        if not (math.isfinite(self.voltage_limit) and 0 < self.voltage_limit <= 10.0):
+            raise DesignError(f"--voltage-limit must be above 0 and at most the rig's 10 V, got {self.voltage_limit!r}")
+        if not (0 <= self.theta_margin < THETA_LIMIT):
+            raise DesignError(f"the arm's margin must be in [0, {THETA_LIMIT:.4g}) rad, got {self.theta_margin!r}")
+        if self.solver not in ("newton", "osqp"):
+            raise DesignError(f'the MPC solver must be "newton" or "osqp", got {self.solver!r}')
+        if not (self.theta_penalty > 0 and self.tolerance > 0 and self.time_budget > 0 and self.max_iterations >= 1):
+            raise DesignError("the MPC's penalty, tolerance, time budget and iterations must be positive")
+
+    def as_dict(self) -> dict:
+        """Plain data, for the controller file."""
+        return asdict(self)
+
+
+@dataclass(frozen=True, eq=False)
+class MpcProblem:
+    """The condensed problem: what a tick needs to set up its QP from ``z_0``.
+
+    Parameters
+    ----------
+    H : ndarray (N, N)
+        The Hessian of the cost in ``U`` (without the penalty), ``2 (Gamma' Qb Gamma + Rb)`` halved: the
+        cost is ``1/2 U' H U + (G_z z_0)' U``.
+    G_z : ndarray (N, n_z)
+        The linear term's map from ``z_0``.
+    theta_U : ndarray (N, N)
+        The predicted arm angles ``theta_1..N - r_theta = theta_U U + theta_z z_0``.
+    theta_z : ndarray (N, n_z)
+    gain : ndarray (1, n_z)
+        The LQ gain of the same weights (``u = -K z``), the fallback with no plan.
+    theta_max : float
+        The arm's soft bound (rad).
+    settings : MpcSettings
+    """
+
+    H: np.ndarray
+    G_z: np.ndarray
+    theta_U: np.ndarray
+    theta_z: np.ndarray
+    gain: np.ndarray
+    theta_max: float
+    settings: MpcSettings
+
+    @property
+    def horizon(self) -> int:
+        """``N``."""
+        return self.H.shape[0]
+
+
+def build_problem(plant: LinearPlant, weights: Weights, settings: MpcSettings = MpcSettings()) -> MpcProblem:
+    """Condense the MPC on the LQ design's system once: prediction matrices, Hessian, terminal cost.
+
+    Parameters
+    ----------
+    plant : LinearPlant
+    weights : Weights
+        The stage cost (the LQ design's).
+    settings : MpcSettings
+
+    Returns
+    -------
+    MpcProblem
+    """
+    import control  # lazily: python-control imports matplotlib
+
+    F, G, Q, R = augment(plant, weights)
+    try:
+        P, _, K = control.dare(F, G, Q, R)
+    except (ValueError, np.linalg.LinAlgError, control.ControlArgument) as exc:
+        raise DesignError(f"the MPC's terminal cost has no stabilizing Riccati solution ({exc})") from None
+    return condense(F, G, Q, R, np.asarray(P), np.atleast_2d(np.asarray(K, dtype=float)), settings)
+
+
+def condense(
+    F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray, K: np.ndarray, settings: MpcSettings
+) -> MpcProblem:
+    """The condensed problem of ``z+ = F z + G u`` with stage cost ``Q``, ``R``, terminal ``P`` (state 0: theta)."""
+    N, n = settings.horizon, F.shape[0]
+    Phi = np.empty((N + 1, n, n))
+    Phi[0] = np.eye(n)
+    for i in range(N):
+        Phi[i + 1] = F @ Phi[i]
+    Gamma = np.zeros((N + 1, n, N))  # z_i = Phi_i z_0 + Gamma_i U
+    for i in range(1, N + 1):
+        Gamma[i, :, :i] = np.concatenate([Phi[i - 1 - j] @ G for j in range(i)], axis=1)
+    weights = [Q] * N + [P]
+    H = float(R[0, 0]) * np.eye(N)
+    G_z = np.zeros((N, n))
+    for i in range(1, N + 1):
+        WG = weights[i] @ Gamma[i]
+        H += Gamma[i].T @ WG
+        G_z += WG.T @ Phi[i]
+    H = 0.5 * (H + H.T)
+    theta_max = THETA_LIMIT - settings.theta_margin
+    return MpcProblem(H, G_z, Gamma[1:, 0, :].copy(), Phi[1:, 0, :].copy(), K, theta_max, settings)
+
+
+@dataclass
+class SolveResult:
+    """One solve: the plan, its status, iterations, time and whether a constraint binds."""
+
+    U: np.ndarray
+    status: str
+    iterations: int
+    seconds: float
+    active: bool
+
+
+def solve_newton(
+    H: np.ndarray,
+    g: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    M: np.ndarray,
+    m_lo: np.ndarray,
+    m_hi: np.ndarray,
+    rho: float,
+    U0: np.ndarray,
+    *,
+    max_iterations: int = 20,
+    tolerance: float = 1e-7,
+    deadline: float = math.inf,
+    clock=time.perf_counter,
+    Hinv: np.ndarray | None = None,
+) -> SolveResult:
+    """Minimize ``1/2 U'HU + g'U + rho/2 |max(0, MU - m_hi)|^2 + rho/2 |max(0, m_lo - MU)|^2`` on ``lo <= U <= hi``.
+
+    A projected Newton method (Bertsekas' two-metric projection): the variables at a bound whose
+    gradient pushes outwards are held, Newton's step with the generalized Hessian on the others,
+    a projected Armijo search (a projected gradient step where Newton's does not descend).
+    ``Hinv``, ``H``'s inverse, saves the factorization on the ticks where nothing binds.
+    ``rho/2`` times the squared excess is what a slack with penalty ``rho/2 slack^2`` leaves once
+    minimized out.
+
+    Returns
+    -------
+    SolveResult
+        Status ``solved`` when the projected gradient is below ``tolerance``, ``max_iterations``,
+        or ``timeout`` when ``clock()`` passed ``deadline`` between iterations (the best plan so
+        far is returned in every case).
+    """
+    t0 = clock()
+    U = np.clip(U0, lo, hi)
+    MT = M.T
+    scale = tolerance * (1.0 + float(np.max(np.abs(g))))
+    lipschitz = None  # of the gradient, for a projected gradient step when Newton's does not descend
+
+    def value_grad(U):
+        y = M @ U
+        over = np.maximum(y - m_hi, 0.0) - np.maximum(m_lo - y, 0.0)  # the excess, signed
+        HU = H @ U
+        return 0.5 * (U @ HU) + g @ U + 0.5 * rho * (over @ over), HU + g + rho * (MT @ over), over != 0.0
+
+    val, grad, pen = value_grad(U)
+    status, it = "max_iterations", 0
+    for it in range(max_iterations + 1):
+        held = ((U <= lo) & (grad > 0)) | ((U >= hi) & (grad < 0))
+        anyheld = held.any()
+        pg = np.where(held, 0.0, grad) if anyheld else grad
+        if np.max(np.abs(pg)) <= scale:
+            status = "solved"
+            break
+        if it == max_iterations:
+            break
+        if clock() > deadline:
+            status = "timeout"
+            break
+        anypen = pen.any()
+        if not anyheld and not anypen and Hinv is not None:  # the usual tick: nothing binds
+            d = -(Hinv @ grad)
+        else:
+            free = ~held
+            Hf = H[np.ix_(free, free)] if anyheld else H.copy()
+            if anypen:
+                Mp = M[pen][:, free] if anyheld else M[pen]
+                Hf += rho * (Mp.T @ Mp)
+            d = np.zeros_like(U)
+            d[free] = -np.linalg.solve(Hf, grad[free])
+        for _ in range(2):  # Newton's step, else a projected gradient step (which always descends)
+            step = 1.0
+            for _ in range(20):  # projected Armijo search
+                trial = np.clip(U + step * d, lo, hi)
+                tval, tgrad, tpen = value_grad(trial)
+                if tval <= val + 1e-4 * (grad @ (trial - U)) + 1e-13 * (1.0 + abs(val)):
+                    break
+                step *= 0.5
+            else:
+                if lipschitz is None:
+                    lipschitz = float(np.linalg.norm(H, 2) + rho * np.linalg.norm(M, 2) ** 2)
+                d = -grad / lipschitz
+                continue
+            break
+        else:
+            status = "failed"
+            break
+        U, val, grad, pen = trial, tval, tgrad, tpen
+    active = bool(pen.any() or np.any(U <= lo) or np.any(U >= hi))
+    return SolveResult(U, status, it, clock() - t0, active)
+
+
+class OsqpSolver:
+    """OSQP on the tick's QP with a slack per predicted step; set up once, updated and warm-started each tick.
+
+    Variables ``[U; e]`` (``e >= 0`` the slacks), cost ``1/2 U'HU + g'U + rho/2 e'e``, constraints
+    ``lo <= U <= hi``, ``MU - e <= m_hi``, ``MU + e >= m_lo``, ``e >= 0``.
+    """
+
+    def __init__(self, problem: MpcProblem) -> None:
+        import osqp
+        import scipy.sparse as sp
+
+        s = problem.settings
+        N = problem.horizon
+        rho = s.theta_penalty
+        P = sp.block_diag([sp.csc_matrix(np.triu(problem.H)), rho * sp.eye(N)], format="csc")
+        M = problem.theta_U
+        A = sp.vstack(
+            [
+                sp.hstack([sp.eye(N), sp.csc_matrix((N, N))]),
+                sp.hstack([sp.csc_matrix(M), -sp.eye(N)]),
+                sp.hstack([sp.csc_matrix(M), sp.eye(N)]),
+                sp.hstack([sp.csc_matrix((N, N)), sp.eye(N)]),
+            ],
+            format="csc",
+        )
+        self.N = N
+        big = 1e20
+        self._inf = big
+        self.solver = osqp.OSQP()
+        self.solver.setup(
+            P,
+            np.zeros(2 * N),
+            A,
+            -big * np.ones(4 * N),
+            big * np.ones(4 * N),
+            verbose=False,
+            warm_starting=True,
+            polishing=True,
+            eps_abs=s.tolerance,
+            eps_rel=s.tolerance,
+            max_iter=50 * s.max_iterations,
+            time_limit=s.time_budget,
+        )
+
+    def solve(self, g, lo, hi, m_lo, m_hi, U0) -> SolveResult:
+        """The tick's QP; ``U0`` the warm start."""
+        t0 = time.perf_counter()
+        N, big = self.N, self._inf
+        q = np.concatenate([g, np.zeros(N)])
+        lower = np.concatenate([lo, -big * np.ones(N), m_lo, np.zeros(N)])
+        upper = np.concatenate([hi, m_hi, big * np.ones(N), big * np.ones(N)])
+        self.solver.update(q=q, l=lower, u=upper)
+        self.solver.warm_start(x=np.concatenate([U0, np.zeros(N)]))
+        res = self.solver.solve(raise_error=False)
+        name = str(res.info.status).lower()
+        status = (
+            "solved"
+            if name.startswith("solved") and "inaccurate" not in name
+            else "timeout"
+            if "time" in name
+            else "max_iterations"
+            if "max" in name
+            else "failed"
+        )
+        U = np.asarray(res.x[:N], dtype=float) if res.x is not None else np.full(N, np.nan)
+        if not np.all(np.isfinite(U)):
+            status, U = "failed", np.zeros(N)
+        slack = np.asarray(res.x[N:]) if res.x is not None else np.zeros(N)
+        active = bool(np.any(slack > 1e-6) or np.any(U <= lo + 1e-6) or np.any(U >= hi - 1e-6))
+        return SolveResult(U, status, int(res.info.iter), time.perf_counter() - t0, active)
+
+
+class MpcRuntime:
+    """The MPC as the loop runs it: ``output`` then ``update`` each tick, and the tick's solver record.
+
+    ``output(e_theta, e_alpha, f, r_theta)`` also takes the arm's reference: the arm's bound is on
+    ``theta`` itself, and the tracking error alone does not give it.
+
+    The controller's state is the LQ realization's (:func:`design.lq.realize`): the past tracking
+    errors ``e_{k-1} .. e_{k-d}`` and the arm's integral ``w_k``, which with the tick's error give
+    ``z_k = [-E_k; w_k]``. Its state update is linear (the log's ``A``, ``B`` replay it); the
+    output is the QP's first input.
+
+    Parameters
+    ----------
+    problem : MpcProblem
+    n_delays : int
+        Past samples in the plant's history.
+    integral : bool
+        Whether ``z`` ends with the arm's integral.
+    dt : float
+    clock : callable
+        The clock the budget is measured on (``time.perf_counter``; a test passes its own).
+    """
+
+    #: The per-tick record's fields (the log's sample fields for this kind).
+    TICK_FIELDS = ("solver_status", "solver_iterations", "solve_time", "constraint_active", "fallback")
+
+    def __init__(self, problem: MpcProblem, n_delays: int, integral: bool, dt: float, clock=time.perf_counter) -> None:
+        self.problem = problem
+        self.n_delays = n_delays
+        self.integral = integral
+        self.dt = dt
+        self.clock = clock
+        self.n_fallbacks = 0
+        self.n_ticks = 0
+        self.tick_record: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+        #: The plan the last tick left: its first entry is the input that tick applied.
+        self.plan: np.ndarray | None = None
+        self._osqp = OsqpSolver(problem) if problem.settings.solver == "osqp" else None
+
+    def step(self):
+        """Fresh ``(output, update)`` of the loop's controller interface, from zero state (one per episode)."""
+        p, s = self.problem, self.problem.settings
+        N, m, d = p.horizon, 2, self.n_delays
+        n_z = p.G_z.shape[1]
+        z = np.zeros(n_z)
+        held = np.zeros(m * d)  # e_{k-1} .. e_{k-d}
+        w = [0.0]
+        self.plan = None
+        V, rho = s.voltage_limit, s.theta_penalty
+        K = p.gain[0]
+        Hinv = np.linalg.inv(p.H)
+        code = SOLVER_STATUS
+        self.n_fallbacks = self.n_ticks = 0
+
+        def output(e0: float, e1: float, f: float, r_theta: float = 0.0):
+            z[0], z[1] = -e0, -e1
+            z[m : m + m * d] = -held
+            if self.integral:
+                z[-1] = w[0]
+            state = held.tolist() + ([w[0]] if self.integral else [])
+            lo = np.full(N, -V - f)
+            hi = np.full(N, V - f)
+            g = p.G_z @ z
+            mz = p.theta_z @ z  # theta_i - r_theta = theta_U U + mz
+            m_hi = p.theta_max - r_theta - mz
+            m_lo = -p.theta_max - r_theta - mz
+            U0 = np.zeros(N) if self.plan is None else np.append(self.plan[1:], self.plan[-1])
+            t0 = self.clock()
+            try:
+                if self._osqp is not None:
+                    res = self._osqp.solve(g, lo, hi, m_lo, m_hi, U0)
+                else:
+                    res = solve_newton(
+                        p.H,
+                        g,
+                        lo,
+                        hi,
+                        p.theta_U,
+                        m_lo,
+                        m_hi,
+                        rho,
+                        U0,
+                        max_iterations=s.max_iterations,
+                        tolerance=s.tolerance,
+                        deadline=t0 + s.time_budget,
+                        clock=self.clock,
+                        Hinv=Hinv,
+                    )
+            except Exception:  # noqa: BLE001 - a solver error must not stop the motor's commands
+                res = SolveResult(np.zeros(N), "failed", 0, self.clock() - t0, False)
+            seconds = self.clock() - t0
+            fallback = res.status != "solved" or seconds > s.time_budget
+            if fallback:
+                self.n_fallbacks += 1
+                if self.plan is not None:
+                    u = float(np.clip(self.plan[1] if N > 1 else self.plan[0], lo[0], hi[0]))
+                    self.plan = U0
+                else:
+                    u = float(np.clip(-K @ z, lo[0], hi[0]))
+            else:
+                u = float(res.U[0])
+                self.plan = res.U
+            self.n_ticks += 1
+            self.tick_record = (
+                float(code.get(res.status, 3)),
+                float(res.iterations),
+                seconds,
+                float(res.active),
+                float(fallback),
+            )
+            return u, state
+
+        def update(e0: float, e1: float, f: float) -> None:
+            if d:
+                held[m:] = held[:-m]
+                held[0], held[1] = e0, e1
+            w[0] += self.dt * e0
+
+        return output, update
