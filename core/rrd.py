@@ -36,7 +36,7 @@ from pathlib import Path
 
 from qube_koopman.core.files import atomic_path
 
-__all__ = ["FLUSH_TIMEOUT_S", "RrdFile", "RrdProcess", "apply_op", "import_rerun"]
+__all__ = ["FLUSH_TIMEOUT_S", "RrdFile", "RrdProcess", "apply_op", "flush_recording", "import_rerun", "read_stream"]
 
 #: The longest a recording's encoding may take to finish (it is in memory: seconds at most).
 FLUSH_TIMEOUT_S = 60.0
@@ -55,6 +55,24 @@ def import_rerun():
     """
     os.environ.setdefault("RUST_LOG", "off")  # read by the SDK's first import
     return importlib.import_module("rerun")
+
+
+def flush_recording(recording, timeout: float) -> None:
+    """``recording.flush`` within ``timeout`` seconds where the SDK can bound it (``timeout_sec``, in recent
+    releases); the oldest release this toolkit allows (0.24) flushes without a bound."""
+    try:
+        recording.flush(timeout_sec=timeout)
+    except TypeError:  # no timeout_sec: an older rerun-sdk
+        recording.flush(blocking=True)
+
+
+def read_stream(stream, timeout: float) -> bytes | None:
+    """A binary stream's bytes, flushed first (within ``timeout`` where the SDK can bound it, as
+    :func:`flush_recording`)."""
+    try:
+        return stream.read(flush=True, flush_timeout_sec=timeout)
+    except TypeError:  # no flush_timeout_sec: an older rerun-sdk
+        return stream.read(flush=True)
 
 
 class RrdFile:
@@ -112,7 +130,7 @@ class RrdFile:
             left under that name or beside it.
         """
         try:
-            data = self._stream.read(flush=True, flush_timeout_sec=timeout)
+            data = read_stream(self._stream, timeout)
         except RuntimeError as exc:  # the SDK's timeout
             raise OSError(
                 errno.ETIMEDOUT, f"the rerun recording could not be finished: {exc}", str(self.path)
@@ -335,7 +353,7 @@ def _child_main() -> None:
             except EOFError:
                 break
             apply_op(rr, recording, op)
-        recording.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        flush_recording(recording, FLUSH_TIMEOUT_S)
         recording.disconnect()
     except BaseException as exc:  # noqa: BLE001 - any failure is the parent's to report
         status, message = 1, f"{exc}\n".encode()

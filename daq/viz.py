@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.core.rrd import RrdProcess, apply_op, import_rerun
+from qube_koopman.core.rrd import RrdProcess, apply_op, flush_recording, import_rerun
 from qube_koopman.daq.episode import EpisodeMetadata
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample
 
@@ -226,7 +226,7 @@ class RunRecording:
         problems = []
         if self.live is not None:
             try:
-                self.live.flush(timeout_sec=timeout)
+                flush_recording(self.live, timeout)
             except RuntimeError as exc:  # no viewer (any more), or a timeout
                 problems.append(f"--rerun: the viewer did not take the recording: {exc}")
             self.live.disconnect()  # gives up an unreachable viewer within seconds

@@ -317,10 +317,15 @@ def test_firmware_held_for_periods_shows_the_gap_in_the_logged_device_time(core,
     assert ep.metadata.backend_stats["ticks_missed"] == 7 and ep.metadata.backend_stats["frames_lost"] == 0
 
 
-def test_a_62_ms_bridge_hold_is_a_stall_in_the_timing_with_a_warning(core, tmp_path, caplog):
+def test_a_62_ms_bridge_hold_is_a_stall_in_the_timing_with_a_warning(core, tmp_path, caplog, monkeypatch):
     # No telemetry for 62 ms, well inside the 200 ms link timeout: the episode goes on, but its log
     # misses 31 ticks. Not only counted as missed ticks: a device stall in the episode's timing (its
     # duration on the bridge's clock, where the host's lateness cannot see it), and a warning.
+    # A command run earlier in this worker stops the package's logger propagating (it owns stderr): caplog
+    # listens at the root, so let the records through for this test.
+    import logging
+
+    monkeypatch.setattr(logging.getLogger("qube_koopman"), "propagate", True)
     with caplog.at_level("WARNING", logger="qube_koopman"):
         result, ep, _, _ = _run(core, tmp_path, Faults(hold_at=1.0, hold_periods=31), seconds=2.0)
     assert result.complete, result.reason

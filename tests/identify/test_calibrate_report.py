@@ -129,7 +129,9 @@ def test_cli_report_folder_gets_the_spectra_and_the_recording(tmp_path, capsys):
     except ImportError:
         assert "calibration.rrd not written" in err
     else:
-        assert (tmp_path / "report" / "calibration.rrd").stat().st_size > 0 and "warning" not in err
+        # No warning but the fit's own (stopped by --max-nfev 4, on purpose: a quick test).
+            warnings = [line for line in err.splitlines() if "warning" in line and "did not converge" not in line]
+            assert (tmp_path / "report" / "calibration.rrd").stat().st_size > 0 and not warnings, err
 
 
 def test_validation_logs_that_were_fitted_are_not_called_held_out(tmp_path, capsys):
