@@ -51,6 +51,20 @@ SEARCH_LIFTING = ("--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25
                   "--offsets alpha")
 
 
+def bench_logs(data: Path, soft_folder: Path | None, repeat: int) -> tuple[list[str], list[str], list[str], list[str]]:
+    """The paper's 48 logs, its 28 training and 20 test logs, and the soft controller's logs (a SystemExit naming
+    what is wrong: another count of logs, an empty soft folder, fewer than one repeat)."""
+    logs = [str(p) for p in sorted(data.glob("*.mcap"))]
+    if len(logs) != 48:
+        raise SystemExit(f"{data}: expected the paper's 48 logs, found {len(logs)}")
+    if repeat < 1:
+        raise SystemExit("--repeat must be at least 1")
+    soft = [] if soft_folder is None else [str(p) for p in sorted(soft_folder.glob("*.mcap"))]
+    if soft_folder is not None and not soft:
+        raise SystemExit(f"{soft_folder}: no .mcap logs")
+    return logs, logs[:28], logs[28:], soft
+
+
 def measure(label: str, argv: list[str], repeat: int, members: list[int] | None = None) -> None:
     """Time ``argv`` without and with intervals, alternating; print the medians and what was added.
 
@@ -88,15 +102,7 @@ def main() -> None:
     parser.add_argument("--members", type=int, nargs="+", metavar="B", help="also time each fit's intervals with "
                         "B bootstrap refits (--interval-members) instead of the default, a row each")
     args = parser.parse_args()
-    logs = [str(p) for p in sorted(args.data.glob("*.mcap"))]
-    if len(logs) != 48:
-        raise SystemExit(f"{args.data}: expected the paper's 48 logs, found {len(logs)}")
-    if args.repeat < 1:
-        raise SystemExit("--repeat must be at least 1")
-    train, test = logs[:28], logs[28:]
-    soft = [] if args.soft is None else [str(p) for p in sorted(args.soft.glob("*.mcap"))]
-    if args.soft is not None and not soft:
-        raise SystemExit(f"{args.soft}: no .mcap logs")
+    logs, train, test, soft = bench_logs(args.data, args.soft, args.repeat)
     print(f"median of {args.repeat}; target: intervals add at most 20 %")
     print(f"{'case':<44}{'without':>10}{'with':>10}{'added':>10}   the intervals' calibrations; pooled coverage "
           "theta / alpha (worst episode)")

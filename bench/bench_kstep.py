@@ -26,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_search import timed_run  # noqa: E402  (one qube-identify run in this process: seconds, report.json)
-from bench_interval_cost import SEARCH_LIFTING  # noqa: E402
+from bench_interval_cost import SEARCH_LIFTING, bench_logs  # noqa: E402
 
 HORIZONS = "0.1,1"
 
@@ -72,15 +72,7 @@ def main() -> None:
     parser.add_argument("--entry", choices=["input", "theta", "alpha", "none"], help="the disturbance's entry point "
                         "(--disturbance); default: chosen on the training episodes")
     args = parser.parse_args()
-    logs = [str(p) for p in sorted(args.data.glob("*.mcap"))]
-    if len(logs) != 48:
-        raise SystemExit(f"{args.data}: expected the paper's 48 logs, found {len(logs)}")
-    if args.repeat < 1:
-        raise SystemExit("--repeat must be at least 1")
-    train, test = logs[:28], logs[28:]
-    soft = [] if args.soft is None else [str(p) for p in sorted(args.soft.glob("*.mcap"))]
-    if args.soft is not None and not soft:
-        raise SystemExit(f"{args.soft}: no .mcap logs")
+    _, train, test, soft = bench_logs(args.data, args.soft, args.repeat)
     print(f"median of {args.repeat}; target: --horizon {HORIZONS} adds at most 50 %")
     print(f"{'case':<40}{'without':>10}{'with':>10}{'added':>9}")
     cases = [("default lifting, paper test", []), ("search's lifting, paper test", SEARCH_LIFTING.split())]

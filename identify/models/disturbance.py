@@ -313,11 +313,9 @@ def filter_disturbance(residuals: np.ndarray, G: np.ndarray, pole: float, gain: 
     return filtered, innovations
 
 
-def _neg_log_likelihood(params, residuals, G, pole, fit_pole):
+def _neg_log_likelihood(params, residuals, G, pole):
     """Minus the Gaussian log-likelihood per sample of the steady-state filter's innovations."""
     log_q, log_r1, log_r2, rho = params[:4]
-    if fit_pole:
-        pole = 1.0 / (1.0 + np.exp(-params[4]))
     s1, s2 = np.exp(0.5 * log_r1), np.exp(0.5 * log_r2)
     c = 0.999 * np.tanh(rho)  # a correlation, kept off +-1 (a singular R)
     R = np.array([[s1 * s1, c * s1 * s2], [c * s1 * s2, s2 * s2]])
@@ -559,11 +557,11 @@ def _maximum_likelihood(entry, residuals, G, pole, R0, n_samples) -> Disturbance
     rest = [np.log(R0[0, 0]), np.log(R0[1, 1]), rho0]
     # A start from a coarse grid in log q (R at the residuals' covariance), then every parameter.
     starts = [np.log(q0) + shift for shift in np.arange(-12.0, 13.0, 3.0)]
-    log_q0 = min(starts, key=lambda lq: _neg_log_likelihood([lq, *rest], residuals, G, pole, False))
+    log_q0 = min(starts, key=lambda lq: _neg_log_likelihood([lq, *rest], residuals, G, pole))
     best = minimize(
         _neg_log_likelihood,
         np.array([log_q0, *rest]),
-        args=(residuals, G, pole, False),
+        args=(residuals, G, pole),
         method="L-BFGS-B",  # smooth in these coordinates: quasi-Newton steps converge in tens of evaluations
     )
     assert best is not None
