@@ -26,7 +26,13 @@ from qube_koopman.identify.estimators.edmd import Edmd
 from qube_koopman.identify.estimators.stability import ClEdmdStable
 from qube_koopman.identify.models.model_file import lifting_to_dict, save_arx_model, save_model, uncertainty_to_dict
 from qube_koopman.identify.models.offsets import DEFAULT_BOUND
-from qube_koopman.identify.models.kstep import AheadOptions, AheadScores, fit_training_disturbance
+from qube_koopman.identify.models.kstep import (
+    MAX_EPISODES,
+    AheadOptions,
+    AheadScores,
+    fit_training_disturbance,
+    spread,
+)
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep, warn_at_grid_edge
@@ -388,7 +394,9 @@ def identify_and_score(
                 disturbance, result.report["disturbance"] = _training_disturbance(
                     closed if score == "cl" else plant, train, controller, score, ahead
                 )
-                ahead_scores = AheadScores(ahead, disturbance, _first_scored(offsets, score_from, test[0].dt))
+                ahead_scores = AheadScores(
+                    ahead, disturbance, _first_scored(offsets, score_from, test[0].dt), predictions_folder is not None
+                )
             if model_path is not None:
                 save_model(
                     model_path,
@@ -792,8 +800,11 @@ def _score_koopman(
 
 def _training_disturbance(model, train, controller, score, options: AheadOptions):
     """The disturbance model fitted on the training episodes the model's own loop ran (all, scoring the plant)."""
-    own = [log.trajectory for log in train if score == "plant" or Loop.of(log.controller, controller).kind == "closed"]
-    return fit_training_disturbance(model, own or [log.trajectory for log in train], options)
+    own = [log for log in train if score == "plant" or Loop.of(log.controller, controller).kind == "closed"]
+    # Only the episodes the estimate uses are read (stored logs stay on disk).
+    return fit_training_disturbance(
+        model, [log.trajectory for log in spread(own or list(train), MAX_EPISODES)], options
+    )
 
 
 def _offset_mapping(estimate) -> dict[int, float] | None:

@@ -20,7 +20,7 @@ from qube_koopman.identify.models import disturbance as dm
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.identify.models.offsets import shift_trajectory
 
-__all__ = ["AheadOptions", "AheadScores", "MAX_EPISODES", "fit_training_disturbance", "horizon_label"]
+__all__ = ["AheadOptions", "AheadScores", "MAX_EPISODES", "fit_training_disturbance", "horizon_label", "spread"]
 
 #: Training episodes the disturbance model is estimated on, evenly spread: 8 of the paper's 28 give 80,000
 #: one-step residuals for R and 1,600 K-step predictions per horizon for the choice of q and entry, at
@@ -64,6 +64,13 @@ class AheadOptions:
         return [int(round(h / dt)) for h in self.horizons]
 
 
+def spread(items: list, n: int) -> list:
+    """At most ``n`` of ``items``, evenly spread over them (their sessions, their days), in order."""
+    if len(items) <= n:
+        return list(items)
+    return [items[int(i)] for i in np.linspace(0, len(items) - 1, n).round()]
+
+
 def _sign_test_count(n: int, level: float = 0.05) -> int:
     """The fewest of ``n`` episodes that must improve for a one-sided sign test to reject chance at ``level``."""
     from scipy.stats import binom
@@ -92,9 +99,7 @@ def fit_training_disturbance(
     horizons = [max(1, K) for K in options.samples(dt)]
     if options.entry == "none":
         return None, {"entry": "none", "why": "no disturbance model asked for (--disturbance none)"}
-    train = list(train)
-    if len(train) > MAX_EPISODES:  # evenly spread over the training episodes (their sessions, their days)
-        train = [train[int(i)] for i in np.linspace(0, len(train) - 1, MAX_EPISODES).round()]
+    train = spread(list(train), MAX_EPISODES)
     data = dm.KStepData.of(model, train, horizons, skip)
     none = dm.DisturbanceModel("input", 1.0, 0.0, np.eye(model.n_states), np.zeros(model.n_states))
     per_episode = {"none": dm.prediction_errors(model, data, [none], per_episode=True)[0].sum(axis=(1, 2))}
