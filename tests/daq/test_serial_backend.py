@@ -317,24 +317,36 @@ def test_firmware_held_for_periods_shows_the_gap_in_the_logged_device_time(core,
     assert ep.metadata.backend_stats["ticks_missed"] == 7 and ep.metadata.backend_stats["frames_lost"] == 0
 
 
-def test_a_62_ms_bridge_hold_is_a_stall_in_the_timing_with_a_warning(core, tmp_path, caplog, monkeypatch):
+def test_a_62_ms_bridge_hold_is_a_stall_in_the_timing_with_a_warning(core, tmp_path):
     # No telemetry for 62 ms, well inside the 200 ms link timeout: the episode goes on, but its log
     # misses 31 ticks. Not only counted as missed ticks: a device stall in the episode's timing (its
     # duration on the bridge's clock, where the host's lateness cannot see it), and a warning.
-    # A command run earlier in this worker stops the package's logger propagating (it owns stderr): caplog
-    # listens at the root, so let the records through for this test.
+    # The warning is caught by a handler on the package's logger itself: a command run earlier in this
+    # worker may have stopped that logger propagating to the root (it owns stderr) or raised its level.
     import logging
 
-    monkeypatch.setattr(logging.getLogger("qube_koopman"), "propagate", True)
-    with caplog.at_level("WARNING", logger="qube_koopman"):
+    said: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if "stalled" in record.getMessage():
+                said.append(record.getMessage())
+
+    logger, handler = logging.getLogger("qube_koopman"), Keep(logging.WARNING)
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING)
+    try:
         result, ep, _, _ = _run(core, tmp_path, Faults(hold_at=1.0, hold_periods=31), seconds=2.0)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
     assert result.complete, result.reason
     timing = ep.metadata.timing
     assert timing["device_stalls"] == 1 and ep.metadata.backend_stats["ticks_missed"] == 31
     assert timing["device_stall_max"] == pytest.approx(0.062, abs=1e-9) == timing["device_stall_time"]
     k = int(np.flatnonzero(np.diff(ep.device_time) > 0.003)[0]) + 1  # the sample after the hold
     assert timing["device_stall_first"] == pytest.approx(k / 500)
-    said = [r.getMessage() for r in caplog.records if "stalled" in r.getMessage()]
     assert said == [f"episode 0: the serial backend's device stalled 1 time(s), 62 ms at most (the first before "
                     f"t = {k / 500:.3f} s): the ticks it held back are missing from the log"]
 
