@@ -89,7 +89,8 @@ def fit_training_disturbance(
     Returns
     -------
     disturbance : DisturbanceModel or None
-        None when no entry point predicts the training episodes better than none (or ``"none"``).
+        None when no entry is supported (better than none on more training episodes than chance
+        gives, a one-sided sign test at 5 %) or the options ask for ``"none"``.
     report : dict
         Each entry's K-step cost on the training episodes (without a disturbance: ``"none"``), the
         entry kept and why.
