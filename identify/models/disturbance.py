@@ -290,7 +290,6 @@ def filter_disturbance(residuals: np.ndarray, G: np.ndarray, pole: float, gain: 
     innovations : ndarray of shape (n_samples, n_outputs)
         ``r_k - G d_{k|k-1}`` (NaN where there is no residual).
     """
-    from scipy.signal import lfilter  # a first-order recursion over every sample, in C
 
     r = np.asarray(residuals, dtype=float)
     n = r.shape[0]
@@ -305,12 +304,21 @@ def filter_disturbance(residuals: np.ndarray, G: np.ndarray, pole: float, gain: 
     gain = np.asarray(gain, dtype=float).reshape(-1)
     # The residual r_k carries d_{k-1} (the step from k-1 to k): predicted d_{k-1|k-1}-based value
     # p_k = pole * f_{k-1}, filtered f_k = p_k + L (r_k - G p_k) = pole (1 - L G) f_{k-1} + L r_k, f_{first-1} = 0.
-    beta = pole * (1.0 - float(gain @ G))
-    f = lfilter([1.0], [1.0, -beta], rr @ gain)
+    f = _filter_recursion(rr, G, pole, gain)
     predicted = np.concatenate([[0.0], pole * f[:-1]])
     innovations[first:] = rr - predicted[:, None] * G[None, :]
     filtered[first:] = pole * f  # d_{k|k}: the step from k to k+1
     return filtered, innovations
+
+
+def _filter_recursion(rr: np.ndarray, G: np.ndarray, pole: float, gain: np.ndarray) -> np.ndarray:
+    """``f_k``, the filtered estimate of the disturbance each residual row of ``rr`` carries (rows from the first
+    residual on, NaN-free): ``f_k = pole (1 - L G) f_{k-1} + L r_k``, ``f_{-1} = 0``, a first-order recursion run
+    in C."""
+    from scipy.signal import lfilter
+
+    beta = pole * (1.0 - float(gain @ G))
+    return lfilter([1.0], [1.0, -beta], rr @ gain)
 
 
 def _neg_log_likelihood(params, residuals, G, pole):
@@ -513,8 +521,6 @@ def prediction_errors(
         if (cand.entry, cand.pole) not in responses:
             E = disturbance_direction(model, cand.entry)
             responses[cand.entry, cand.pole] = load_response(model, E, cand.pole, horizons)
-    from scipy.signal import lfilter
-
     for i, (x, base, residuals) in enumerate(zip(data.truths, data.bases, data.residuals)):
         var = np.maximum(x[skip:].var(axis=0), 1e-300)
         ok = np.flatnonzero(np.all(np.isfinite(residuals), axis=1))
@@ -529,8 +535,7 @@ def prediction_errors(
             # filter_disturbance's recursion, its filtered estimate alone (the innovations are not needed here)
             dhat = np.zeros(len(x))
             if rr.size and np.any(cand.gain):
-                beta = cand.pole * (1.0 - float(cand.gain @ directions[cand.entry]))
-                dhat[first:] = cand.pole * lfilter([1.0], [1.0, -beta], rr @ cand.gain)
+                dhat[first:] = cand.pole * _filter_recursion(rr, directions[cand.entry], cand.pole, cand.gain)
             for h, K in enumerate(horizons):
                 if not ends_of[h].size:
                     continue
