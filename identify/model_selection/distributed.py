@@ -166,7 +166,9 @@ def _result(client, future, waiting: int, worker_timeout: float):
             return future.result(timeout=_WORKER_POLL)
         except TimeoutError:
             if future.done():
-                raise  # the call's own
+                # The call's own error, or a result that came just after the wait gave up (a loaded
+                # machine): asked again, the future answers at once either way.
+                return future.result()
             now = time.monotonic()
             if client.nthreads():
                 since = None
