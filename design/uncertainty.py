@@ -40,7 +40,7 @@ from typing import Literal, TypedDict
 
 import numpy as np
 
-from qube_koopman.core.qube import SKIP_SAMPLES
+from qube_koopman.core.qube import SKIP_SAMPLES, loop_cost
 from qube_koopman.daq.excitation import Excitation
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.error_transfer import loop_spectra, propagate_error
@@ -206,9 +206,8 @@ def _member_runs(
 def _run_figures(x: np.ndarray, u: np.ndarray, r: np.ndarray, skip: int) -> np.ndarray:
     """``[J, voltage RMS, voltage peak]`` (P, E, 3) of :func:`_member_runs`' runs after ``skip`` samples."""
     with np.errstate(all="ignore"):
-        tracking = x[:, :, skip:, 0] - r[None, :, skip:, 0]
-        alpha, volt = x[:, :, skip:, 1], u[:, :, skip:]
-        J = np.mean(tracking**2, axis=-1) + np.mean(alpha**2, axis=-1)
+        J = loop_cost(x[..., 0], r[None, ..., 0], x[..., 1], skip)
+        volt = u[:, :, skip:]
         rms = np.sqrt(np.mean(volt**2, axis=-1))
         peak = np.max(np.abs(volt), axis=-1)
     out = np.stack([J, rms, peak], axis=-1)

@@ -256,3 +256,30 @@ def test_the_robust_design_ranks_the_candidates_by_their_worst_case_and_leaves_o
     strong = replace(plant, G=6 * plant.G)  # a refit whose input gain no candidate's closed loop survives
     with pytest.raises(DesignError, match="under every candidate design a bootstrap plant's closed loop is unstable"):
         robust_design(plant, Weights(), ModelUncertainty([plant, strong], None), excitations)
+
+
+def test_j_has_one_definition_and_the_design_reports_it(tmp_path):
+    """J = mean((theta - target_theta)^2) + mean(alpha^2) after the skip is core.qube.loop_cost alone: the design's
+    predicted J, the bootstrap plants' batched J and identify's held-out J are its values."""
+    from qube_koopman.core.qube import loop_cost
+    from qube_koopman.design.predict import episode_cost, predict_loop
+    from qube_koopman.design.workflow import design_from_model
+    from qube_koopman.identify.uncertainty import loop_figures
+
+    # Its definition, by hand: tracking errors (1, -1) and alpha (2, 0) after one skipped sample.
+    assert loop_cost([9.0, 1.0, 2.0], [0.0, 0.0, 3.0], [9.0, 2.0, 0.0], skip=1) == 1.0 + 2.0
+    plant = _plant()
+    report = design_from_model(_save(tmp_path / "model.json", plant), episodes=2, duration=3.0)
+    loop = predict_loop(plant, report.controller, rig_excitations(1, 2, 3.0))
+    J = np.array([loop_cost(loop.theta[i], loop.target_theta[i], loop.alpha[i]) for i in range(2)])
+    assert np.all(J > 0)
+    np.testing.assert_array_equal(report.predicted.cost, J)  # what the design reports, to the bit
+    assert report.predicted.summary()["J"] == float(np.mean(J))
+    # Over episodes at once (the batched simulations' form): the same sums, to rounding.
+    np.testing.assert_allclose(loop_cost(loop.theta, loop.target_theta, loop.alpha), J, rtol=1e-12)
+    batched = member_figures([linear_plant(plant)], report.design, rig_excitations(1, 2, 3.0))[0, :, 0]
+    np.testing.assert_allclose(batched, J, rtol=1e-9)
+    for i in range(2):
+        assert episode_cost(loop.theta[i], loop.target_theta[i], loop.alpha[i], loop.voltage[i])[0] == J[i]
+        x = np.column_stack([loop.theta[i], loop.alpha[i]])
+        assert loop_figures(x, loop.target_theta[i], loop.voltage[i], 500)[0] == J[i]
