@@ -88,15 +88,15 @@ def test_the_model_file_gives_back_the_bootstrap_plants_and_the_held_out_figures
     plant = _plant()
     members = _members(plant)
     model = load_model(_save(tmp_path / "model.json", plant, members))
-    assert len(model["plant_members"]) == len(members)
-    for loaded, member in zip(model["plant_members"], members):
+    assert len(model.plant_members) == len(members)
+    for loaded, member in zip(model.plant_members, members):
         np.testing.assert_array_equal(loaded.A[:2], member.A[:2])
         np.testing.assert_array_equal(loaded.B[:2], member.B[:2])
         np.testing.assert_array_equal(loaded.A[2:], plant.A[2:])  # the rows no prediction uses: the plant's
     uncertainty = model_uncertainty(model)
     np.testing.assert_array_equal(uncertainty.held_out, HELD_OUT)
     np.testing.assert_allclose(uncertainty.model_error(), np.log(HELD_OUT[:, 0] / HELD_OUT[:, 1]))
-    assert load_model(_save(tmp_path / "old.json", plant))["plant_members"] is None
+    assert load_model(_save(tmp_path / "old.json", plant)).plant_members is None
 
 
 def test_the_members_batched_simulation_is_predict_cost_sample_for_sample():
