@@ -234,6 +234,24 @@ def test_damaged_error_spectra_are_one_error_naming_the_entry(tmp_path, capsys, 
     assert not (tmp_path / "c.toml").exists()
 
 
+@pytest.mark.parametrize("damage, message", [
+    (lambda h: h["predicted"].pop(), "uncertainty.held_out: 4 measured rows, 3 predicted"),
+    (lambda h: h.__setitem__("measured", [[1.0, 2.0]] * 4), "uncertainty.held_out.measured must be rows of 3 numbers"),
+    (lambda h: h.__setitem__("predicted", "none"), "uncertainty.held_out.predicted must be rows of 3 numbers"),
+], ids=["rows", "columns", "type"])
+def test_damaged_held_out_figures_are_one_error_naming_the_entry(tmp_path, capsys, damage, message):
+    import json
+
+    plant = _plant()
+    path = _save(tmp_path / "model.json", plant, _members(plant))
+    data = json.loads(path.read_text())
+    damage(data["uncertainty"]["held_out"])
+    path.write_text(json.dumps(data))
+    assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--episodes", "2", "--duration", "4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{path}: {message}" in err[0], err
+
+
 def test_a_level_outside_zero_one_is_a_usage_error(tmp_path, capsys):
     path = _save(tmp_path / "model.json", _plant())
     assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--interval", "1.5"]) == 2
