@@ -41,7 +41,6 @@ __all__ = [
     "lifting_from_dict",
     "save_model",
     "load_model",
-    "IdentifiedModel",
     "save_arx_model",
     "uncertainty_to_dict",
 ]
