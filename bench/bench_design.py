@@ -73,7 +73,7 @@ def figures(folder: Path) -> dict:
 
 def prediction_r2(model_path: Path, controller_path: Path, folder: Path) -> np.ndarray:
     """R^2 of theta and alpha, per episode: the plant model under the controller, from each log's start."""
-    plant = load_model(model_path)["plant"]
+    plant = load_model(model_path).plant
     loop = close_loop(plant, load_controller(controller_path).system)
     logs = load_logs(sorted(folder.glob("*.mcap")))
     scores = []
@@ -174,7 +174,7 @@ def other_controller(model_path: Path, folder: Path) -> str:
     from qube_koopman.identify.uncertainty import loop_figures
 
     model = load_model(model_path)
-    plant, uncertainty = model["plant"], model_uncertainty(model)
+    plant, uncertainty = model.plant, model_uncertainty(model)
     if uncertainty is None or uncertainty.spectra is None or uncertainty.held_out is None:
         raise SystemExit(f"{model_path}: no held-out error spectra (identify it with intervals, the default)")
     rows, runs = [], []

@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                "--interval", "0", "--out", str(root / "fit"), "-q"]
         if identify_main(fit) != 0:
             raise SystemExit("qube-identify failed")
-        plant = load_model(root / "fit" / "model.json")["plant"]
+        plant = load_model(root / "fit" / "model.json").plant
         logs = load_logs(soft, skip=SKIP_SAMPLES)
     names = [log.path.name for log in logs]
     sessions = session_of(names)

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["ALPHA_LIMIT", "MEASURED", "SKIP_SAMPLES", "STATE_NAMES", "THETA_LIMIT"]
+import numpy as np
+
+__all__ = ["ALPHA_LIMIT", "MEASURED", "SKIP_SAMPLES", "STATE_NAMES", "THETA_LIMIT", "loop_cost"]
 
 #: The measured states, in the order of every log, trajectory and model: the arm angle theta and
 #: the pendulum angle alpha (rad; alpha 0 upright).
@@ -33,6 +35,29 @@ ALPHA_LIMIT = math.pi / 4
 #: while the pendulum is raised by hand to the start gate and the controller's derivative kicks
 #: (the paper drops it too).
 SKIP_SAMPLES = 500
+
+
+def loop_cost(theta, target_theta, alpha, skip: int = SKIP_SAMPLES) -> np.ndarray:
+    """The loop's cost J of each episode after ``skip`` samples: ``mean((theta - target_theta)^2) + mean(alpha^2)``.
+
+    The one definition of J (rad^2): what ``qube-design`` predicts of a design and its interval, and
+    what the identification's held-out episodes measure and predict for that interval.
+
+    Parameters
+    ----------
+    theta, target_theta, alpha : array_like
+        The arm's angle, its reference and the pendulum's angle (rad), time along the last axis;
+        any leading axes (episodes, plants) broadcast.
+    skip : int
+        Samples left out at each episode's start.
+
+    Returns
+    -------
+    ndarray
+        Of the broadcast leading shape (a 0-d array for one episode); non-finite where the angles are.
+    """
+    tracking = np.asarray(theta, dtype=float)[..., skip:] - np.asarray(target_theta, dtype=float)[..., skip:]
+    return np.mean(tracking**2, axis=-1) + np.mean(np.asarray(alpha, dtype=float)[..., skip:] ** 2, axis=-1)
 
 
 #: Longest episode (s): one day. An episode's plan and timing arrays take 40 bytes a tick

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from qube_koopman.core.qube import SKIP_SAMPLES
+from qube_koopman.core.qube import SKIP_SAMPLES, loop_cost
 from qube_koopman.daq.excitation import Excitation, generate_excitation
 from qube_koopman.daq.session import excitation_settings, run_seeds
 from qube_koopman.design.plant import LinearPlant
@@ -92,16 +92,19 @@ def rig_excitations(seed: int, n_episodes: int, duration: float = 20.0) -> list[
 
 
 def episode_cost(theta, target_theta, alpha, voltage, skip: int = SKIP_SAMPLES) -> tuple[float, ...]:
-    """``(J, tracking RMS, alpha RMS, voltage RMS, voltage peak)`` of one episode after ``skip`` samples."""
+    """``(J, tracking RMS, alpha RMS, voltage RMS, voltage peak)`` of one episode after ``skip`` samples.
+
+    J is :func:`~qube_koopman.core.qube.loop_cost`; all five are inf when a signal is not finite.
+    """
     tracking = np.asarray(theta, dtype=float)[skip:] - np.asarray(target_theta, dtype=float)[skip:]
-    alpha = np.asarray(alpha, dtype=float)[skip:]
+    pendulum = np.asarray(alpha, dtype=float)[skip:]
     voltage = np.asarray(voltage, dtype=float)[skip:]
-    if not (np.all(np.isfinite(tracking)) and np.all(np.isfinite(alpha)) and np.all(np.isfinite(voltage))):
+    if not (np.all(np.isfinite(tracking)) and np.all(np.isfinite(pendulum)) and np.all(np.isfinite(voltage))):
         return (np.inf,) * 5
     return (
-        float(np.mean(tracking**2) + np.mean(alpha**2)),
+        float(loop_cost(theta, target_theta, alpha, skip)),
         float(np.sqrt(np.mean(tracking**2))),
-        float(np.sqrt(np.mean(alpha**2))),
+        float(np.sqrt(np.mean(pendulum**2))),
         float(np.sqrt(np.mean(voltage**2))),
         float(np.max(np.abs(voltage), initial=0.0)),
     )

@@ -40,11 +40,12 @@ from typing import Literal, TypedDict
 
 import numpy as np
 
-from qube_koopman.core.qube import SKIP_SAMPLES
+from qube_koopman.core.qube import SKIP_SAMPLES, loop_cost
 from qube_koopman.daq.excitation import Excitation
 from qube_koopman.design.lq import LqDesign, Weights, design_lq
 from qube_koopman.design.error_transfer import loop_spectra, propagate_error
 from qube_koopman.design.plant import DesignError, LinearPlant, linear_plant
+from qube_koopman.identify.models.identified import IdentifiedModel
 from qube_koopman.identify.uncertainty.spectra import ErrorSpectra
 
 __all__ = [
@@ -101,12 +102,12 @@ class ModelUncertainty:
         return ratios if len(ratios) >= MIN_HELD_OUT else None
 
 
-def model_uncertainty(model: dict) -> ModelUncertainty | None:
+def model_uncertainty(model: IdentifiedModel) -> ModelUncertainty | None:
     """The uncertainty a loaded model file holds (:func:`identify.models.model_file.load_model`), or None.
 
     Parameters
     ----------
-    model : dict
+    model : IdentifiedModel
         The loaded model file.
 
     Returns
@@ -114,25 +115,14 @@ def model_uncertainty(model: dict) -> ModelUncertainty | None:
     ModelUncertainty or None
         None when the file holds no bootstrap plants.
     """
-    members = model.get("plant_members")
-    if not members:
+    members = model.plant_members
+    if not members or model.uncertainty is None:
         return None
-    held = (model.get("uncertainty") or {}).get("held_out")
+    held = model.uncertainty.held_out
     held_out, spectra = None, None
-    if held and held.get("measured"):
-        held_out = np.stack(
-            [np.asarray(held["measured"], dtype=float), np.asarray(held["predicted"], dtype=float)], axis=1
-        )
-        if held.get("error_spectra"):
-            try:
-                spectra = ErrorSpectra.from_dict(held["error_spectra"])
-            except ValueError as exc:
-                raise DesignError(f"uncertainty.held_out.error_spectra: {exc}") from None
-            if spectra.n_episodes != len(held_out):
-                raise DesignError(
-                    f"uncertainty.held_out.error_spectra holds {spectra.n_episodes} episodes, its figures "
-                    f"{len(held_out)}"
-                )
+    if held is not None and held.n_episodes:
+        held_out = np.stack([held.measured, held.predicted], axis=1)
+        spectra = held.error_spectra
     return ModelUncertainty([linear_plant(member) for member in members], held_out, spectra)
 
 
@@ -206,9 +196,8 @@ def _member_runs(
 def _run_figures(x: np.ndarray, u: np.ndarray, r: np.ndarray, skip: int) -> np.ndarray:
     """``[J, voltage RMS, voltage peak]`` (P, E, 3) of :func:`_member_runs`' runs after ``skip`` samples."""
     with np.errstate(all="ignore"):
-        tracking = x[:, :, skip:, 0] - r[None, :, skip:, 0]
-        alpha, volt = x[:, :, skip:, 1], u[:, :, skip:]
-        J = np.mean(tracking**2, axis=-1) + np.mean(alpha**2, axis=-1)
+        J = loop_cost(x[..., 0], r[None, ..., 0], x[..., 1], skip)
+        volt = u[:, :, skip:]
         rms = np.sqrt(np.mean(volt**2, axis=-1))
         peak = np.max(np.abs(volt), axis=-1)
     out = np.stack([J, rms, peak], axis=-1)

@@ -38,6 +38,7 @@ from qube_koopman.design.predict import (
 )
 from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
+from qube_koopman.identify.models.identified import IdentifiedModel
 
 __all__ = [
     "DesignReport",
@@ -58,7 +59,7 @@ class DesignReport:
     ----------
     model_path : Path
         The model file designed from.
-    model : dict
+    model : IdentifiedModel
         The model file as :func:`identify.models.model_file.load_model` reads it.
     design : LqDesign
         The design.
@@ -86,7 +87,7 @@ class DesignReport:
     """
 
     model_path: Path
-    model: dict
+    model: IdentifiedModel
     design: LqDesign
     spectral_radius: float
     open_loop_radius: float
@@ -105,7 +106,7 @@ class DesignReport:
         return self.design.controller
 
 
-def _load(path: Path) -> tuple[Path, dict]:
+def _load(path: Path) -> tuple[Path, IdentifiedModel]:
     """The model file (or ``model.json`` in a ``qube-identify --out`` folder), or a DesignError naming it."""
     from qube_koopman.identify.models.model_file import load_model
 
@@ -117,11 +118,9 @@ def _load(path: Path) -> tuple[Path, dict]:
         raise DesignError(_arx_hint(path) or str(exc)) from None
     except (KeyError, TypeError, AttributeError, IndexError) as exc:
         raise DesignError(f"{path}: not a readable model file (missing or malformed {exc})") from None
-    if model.get("plant") is None:
-        raise DesignError(f"{path}: the model file holds no plant model")
-    if abs(model["dt"] - QUBE_SAMPLE_PERIOD) > 1e-9 * QUBE_SAMPLE_PERIOD:
+    if abs(model.dt - QUBE_SAMPLE_PERIOD) > 1e-9 * QUBE_SAMPLE_PERIOD:
         raise DesignError(
-            f"{path}: sample period {model['dt']!r} s, not the loop's {QUBE_SAMPLE_PERIOD!r} s: a controller "
+            f"{path}: sample period {model.dt!r} s, not the loop's {QUBE_SAMPLE_PERIOD!r} s: a controller "
             "designed on it would not run (a discrete controller runs only at the period it was designed for)"
         )
     return path, model
@@ -184,7 +183,7 @@ def design_from_model(
     excitations = rig_excitations(seed, episodes, duration)
     uncertainty, nominal, choice = None, None, None
     try:
-        plant = linear_plant(model["plant"])
+        plant = linear_plant(model.plant)
         design = design_lq(plant, weights)
         if level is not None or robust:
             uncertainty = model_uncertainty(model)
@@ -193,7 +192,7 @@ def design_from_model(
                 raise DesignError(f"--robust designs against the model's uncertainty, and {NO_MEMBERS}")
             choice = robust_design(plant, weights, uncertainty, excitations, level or 0.95)
             if choice.scale != 1.0:
-                nominal = predict_cost(model["plant"], design.controller, excitations)
+                nominal = predict_cost(model.plant, design.controller, excitations)
             design = choice.design
     except DesignError as exc:
         raise DesignError(f"{path}: {exc}") from None
@@ -202,7 +201,7 @@ def design_from_model(
         raise DesignError(
             f"{path}: the predicted closed loop is unstable (spectral radius {radius:.6g}); change the weights"
         )
-    predicted = predict_cost(model["plant"], design.controller, excitations)
+    predicted = predict_cost(model.plant, design.controller, excitations)
     if predicted.diverged:
         raise DesignError(
             f"{path}: the plant model under the designed controller diverges on {predicted.diverged} "
@@ -210,8 +209,8 @@ def design_from_model(
             f"the weights or identify with {IDENTIFY_FLAGS}"
         )
     training = None
-    if model.get("controller") is not None and model["controller"].n_inputs in (2, 3):  # a QUBE loop
-        training = predict_cost(model["plant"], model["controller"], excitations)
+    if model.controller is not None and model.controller.n_inputs in (2, 3):  # a QUBE loop
+        training = predict_cost(model.plant, model.controller, excitations)
     interval, note = None, None
     if level is not None:
         if uncertainty is None:
@@ -358,7 +357,7 @@ def provenance(report: DesignReport) -> dict:
         "software_version": f"qube-koopman {package_version()}",
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "model": str(report.model_path),
-        "model_method": str(report.model.get("method")),
+        "model_method": str(report.model.method),
         "design_plant": report.design.plant.note,
         "n_delays": report.design.plant.n_delays,
         "weights": report.design.weights.as_dict(),
@@ -404,10 +403,10 @@ def record_design(path: str | Path, report: DesignReport, controller, n_episodes
 
     ex = report.excitation
     n = min(n_episodes, ex["episodes"])
-    predicted = predict_loop(report.model["plant"], report.controller, rig_excitations(ex["seed"], n, ex["duration"]))
+    predicted = predict_loop(report.model.plant, report.controller, rig_excitations(ex["seed"], n, ex["duration"]))
     twin = {"twin": run_on_twin(controller, ex["seed"], n, of=ex["episodes"], duration=ex["duration"])}
     eigenvalues = {"design": closed_loop_eigenvalues(report.design.plant, report.controller)}
-    training = report.model.get("controller")
+    training = report.model.controller
     if report.training is not None and training is not None:  # a training prediction needs the model's controller
         info = ControllerInfo(
             training, "as the model file records it", kind="state-space", provenance={"model": str(report.model_path)}

@@ -45,6 +45,7 @@ _HOMES = {
     "KoopmanModel": "models.model",
     "save_model": "models.model_file",
     "load_model": "models.model_file",
+    "IdentifiedModel": "models.identified",
     # what qube-identify runs: identification, regularization sweep, lifting search, probes
     "identify_and_score": "workflow",
     "IdentificationResult": "workflow",
@@ -96,5 +97,4 @@ _HOMES = {
 }
 
 __all__ = list(_HOMES)
-
 __getattr__, __dir__ = lazy_exports(__name__, _HOMES)

@@ -25,6 +25,7 @@ from qube_koopman.identify.lifting import (
     ThinPlateRbf,
     Trigonometric,
 )
+from qube_koopman.identify.models.identified import FitUncertainty, HeldOutFigures, IdentifiedModel
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.core.files import atomic_path, loads_json, read_bounded_text
@@ -52,6 +53,8 @@ MAX_DELAYS = 10_000
 MAX_POLYNOMIAL_ORDER = 10
 #: The largest model file read (a 300-state plant with 100 bootstrap refits is about 300 MB).
 MAX_MODEL_BYTES = 2**30
+#: The columns of the held-out figures (``uncertainty.held_out.figures``).
+HELD_OUT_FIGURES = ("J", "voltage_rms", "voltage_peak")
 
 
 #: An innermost JSON list of numbers, as ``json.dumps(..., indent=1)`` spreads it over one line per number (real
@@ -146,13 +149,13 @@ def _model_to_dict(model: KoopmanModel | None) -> dict | None:
 def save_model(
     path: str | Path,
     *,
-    method: str,
+    method: str | None,
     alpha: float | None,
     plant: KoopmanModel,
     closed_loop: KoopmanModel | None,
     controller: DiscreteStateSpace | None,
     measured: list[int],
-    training: dict,
+    training: dict | None,
     uncertainty: dict | None = None,
     disturbance=None,
 ) -> None:
@@ -162,7 +165,7 @@ def save_model(
     ----------
     path : str or Path
         The file to write (replaced if it exists).
-    method : str
+    method : str or None
         The identification method (``qube-identify --method``: ``"cl-edmd"``, ``"edmd"``, ...).
     alpha : float or None
         The Tikhonov coefficient of the fit (None for a method without one).
@@ -174,7 +177,7 @@ def save_model(
         The controller of the closed loop.
     measured : list of int
         The fed-back plant states.
-    training : dict
+    training : dict or None
         What the model was fitted on, stored as given (JSON values).
     uncertainty : dict, optional
         The fit's uncertainty for a design (:func:`uncertainty_to_dict`); left out when None.
@@ -206,12 +209,13 @@ def save_model(
 def uncertainty_to_dict(
     plant: KoopmanModel,
     members: list[KoopmanModel],
-    held_out: np.ndarray,
+    held_out: np.ndarray | None,
     *,
-    seed: int,
-    skip: int,
+    seed: int | None,
+    skip: int | None,
     logs: list[str] | None = None,
     spectra: dict | None = None,
+    method: str = "episode bootstrap",
 ) -> dict:
     """The ``uncertainty`` entry of a model file: bootstrap plants and held-out figures (MODEL_FORMAT.md).
 
@@ -222,18 +226,20 @@ def uncertainty_to_dict(
     members : list of KoopmanModel
         Its bootstrap refits; only the rows of the measured states are kept (the rows a re-lifted
         prediction uses: the others are the point fit's).
-    held_out : ndarray of shape (n, 2, 3)
+    held_out : ndarray of shape (n, 2, 3) or None
         Measured and predicted ``[J, voltage RMS, voltage peak]`` of the held-out training episodes
-        (:func:`identify.uncertainty.held_out_figures`).
-    seed : int
+        (:func:`identify.uncertainty.held_out_figures`); None leaves ``held_out`` out.
+    seed : int or None
         The resampling's seed.
-    skip : int
+    skip : int or None
         Samples left out at each held-out episode's start.
     logs : list of str, optional
         The held-out episodes' names.
     spectra : dict, optional
         Their prediction error's band spectra
         (:meth:`identify.uncertainty.spectra.ErrorSpectra.as_dict`).
+    method : str
+        How the members were drawn.
 
     Returns
     -------
@@ -241,15 +247,17 @@ def uncertainty_to_dict(
     """
     m = plant.n_states
     out: dict[str, Any] = {
-        "method": "episode bootstrap",
-        "seed": int(seed),
+        "method": method,
+        "seed": None if seed is None else int(seed),
         "plant_members": [{"A": member.A[:m].tolist(), "B": member.B[:m].tolist()} for member in members],
-        "held_out": {
-            "skip_samples": int(skip),
-            "figures": ["J", "voltage_rms", "voltage_peak"],
-            "measured": np.asarray(held_out)[:, 0].tolist(),
-            "predicted": np.asarray(held_out)[:, 1].tolist(),
-        },
+    }
+    if held_out is None:
+        return out
+    out["held_out"] = {
+        "skip_samples": None if skip is None else int(skip),
+        "figures": list(HELD_OUT_FIGURES),
+        "measured": np.asarray(held_out)[:, 0].tolist(),
+        "predicted": np.asarray(held_out)[:, 1].tolist(),
     }
     if logs is not None:
         out["held_out"]["logs"] = list(logs)
@@ -290,7 +298,7 @@ def save_arx_model(path: str | Path, *, method: str, lags: int, model) -> None:
         tmp.write_text(_dumps(data))
 
 
-def load_model(path: str | Path) -> dict:
+def load_model(path: str | Path) -> IdentifiedModel:
     """Read a model file.
 
     Parameters
@@ -300,19 +308,20 @@ def load_model(path: str | Path) -> dict:
 
     Returns
     -------
-    dict
-        ``plant`` and ``closed_loop`` (:class:`KoopmanModel` or None),
-        ``controller`` (:class:`DiscreteStateSpace` or None), ``plant_members`` (the bootstrap
-        refits of the plant as :class:`KoopmanModel`, their rows past the measured states the
-        plant's; None when the file holds none), ``disturbance`` (its
-        :class:`~qube_koopman.identify.models.disturbance.DisturbanceModel`, or None) and the
-        file's other fields as stored.
+    IdentifiedModel
+        Its models ready to predict: ``plant`` and ``closed_loop`` (:class:`KoopmanModel`; the
+        closed loop None when the method identified none),
+        ``controller`` (:class:`DiscreteStateSpace` or None), ``uncertainty`` (the bootstrap refits
+        of the plant as :class:`KoopmanModel`, their rows past the measured states the plant's, and
+        the held-out figures; None when the file holds none), ``disturbance`` (its
+        :class:`~qube_koopman.identify.models.disturbance.DisturbanceModel`, or None).
 
     Raises
     ------
     ValueError
-        Naming the file when it is not a model file, has another version, or a model in it
-        cannot be used (a non-finite entry in A or B, shapes that do not fit).
+        Naming the file when it is not a model file, has another version, holds no plant, or a model in it
+        cannot be used (a non-finite entry in A or B, shapes that do not fit, damaged held-out
+        figures or error spectra).
     """
     path = Path(path)
     try:  # a FIFO, a device, a file over MAX_MODEL_BYTES or nested too deep: a ValueError naming it
@@ -364,31 +373,53 @@ def load_model(path: str | Path) -> dict:
             message = str(exc)
             raise ValueError(message if message.startswith(f"{path}:") else f"{path}: {name}: {message}") from None
 
-    out = dict(data)
-    out.update(
-        plant=model(data["plant"], "plant"),
+    plant = model(data["plant"], "plant")
+    if plant is None:
+        raise ValueError(f"{path}: the model file holds no plant model")
+    return IdentifiedModel(
+        method=data.get("method"),
+        alpha=data.get("alpha"),
+        dt=dt,
+        lifting=lifting,
+        measured=tuple(data.get("measured") or ()),
+        plant=plant,
         closed_loop=model(data["closed_loop"], "closed_loop"),
         controller=None if data["controller"] is None else DiscreteStateSpace.from_dict(data["controller"]),
+        training=data.get("training"),
+        uncertainty=_uncertainty(data.get("uncertainty"), plant, matrix, path),
+        disturbance=_disturbance(data.get("disturbance"), path),
     )
-    out["plant_members"] = _members(data.get("uncertainty"), out["plant"], matrix, path)
-    out["disturbance"] = None
-    if data.get("disturbance") is not None:
-        from qube_koopman.identify.models.disturbance import DisturbanceModel
-
-        try:
-            out["disturbance"] = DisturbanceModel.from_dict(data["disturbance"])
-        except (ValueError, TypeError, AttributeError) as exc:
-            raise ValueError(f"{path}: disturbance: {exc}") from None
-    return out
 
 
-def _members(uncertainty, plant: KoopmanModel | None, matrix, path: Path) -> list[KoopmanModel] | None:
-    """The bootstrap plants of a model file's ``uncertainty`` (None when it holds none)."""
-    if not isinstance(uncertainty, dict) or not uncertainty.get("plant_members") or plant is None:
+def _disturbance(entry, path: Path):
+    """The model file's ``disturbance`` (None when it holds none)."""
+    if entry is None:
         return None
+    from qube_koopman.identify.models.disturbance import DisturbanceModel
+
+    try:
+        return DisturbanceModel.from_dict(entry)
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{path}: disturbance: {exc}") from None
+
+
+def _uncertainty(entry, plant: KoopmanModel, matrix, path: Path) -> FitUncertainty | None:
+    """The model file's ``uncertainty`` (None when it holds none)."""
+    if not isinstance(entry, dict):
+        return None
+    return FitUncertainty(
+        plant_members=_members(entry.get("plant_members") or [], plant, matrix, path),
+        held_out=_held_out(entry.get("held_out"), path),
+        seed=entry.get("seed"),
+        method=entry.get("method", "episode bootstrap"),
+    )
+
+
+def _members(entries: list, plant: KoopmanModel, matrix, path: Path) -> tuple[KoopmanModel, ...]:
+    """The bootstrap plants of a model file's ``uncertainty.plant_members``."""
     m = plant.n_states
     members = []
-    for i, entry in enumerate(uncertainty["plant_members"]):
+    for i, entry in enumerate(entries):
         name = f"uncertainty.plant_members[{i}]"
         A_x, B_x = matrix(entry, name, "A"), matrix(entry, name, "B")
         if A_x.shape != (m, plant.A.shape[1]) or B_x.shape != (m, plant.B.shape[1]):
@@ -399,4 +430,45 @@ def _members(uncertainty, plant: KoopmanModel | None, matrix, path: Path) -> lis
         A, B = plant.A.copy(), plant.B.copy()
         A[:m], B[:m] = A_x, B_x
         members.append(KoopmanModel(A, B, plant.lifting, tuple(plant.input_signals), dt=plant.dt))
-    return members
+    return tuple(members)
+
+
+def _held_out(entry, path: Path) -> HeldOutFigures | None:
+    """The model file's ``uncertainty.held_out`` (None when it holds none)."""
+    if not entry:
+        return None
+    name = "uncertainty.held_out"
+    k = len(HELD_OUT_FIGURES)
+
+    def rows(key: str) -> np.ndarray:
+        try:
+            values = np.asarray(entry.get(key) or np.empty((0, k)), dtype=float)
+        except (TypeError, ValueError):
+            values = np.empty(0)
+        if values.ndim != 2 or values.shape[1] != k:
+            raise ValueError(f"{path}: {name}.{key} must be rows of {k} numbers ({', '.join(HELD_OUT_FIGURES)})")
+        return values
+
+    measured, predicted = rows("measured"), rows("predicted")
+    if measured.shape != predicted.shape:
+        raise ValueError(f"{path}: {name}: {len(measured)} measured rows, {len(predicted)} predicted")
+    spectra = None
+    if entry.get("error_spectra"):
+        from qube_koopman.identify.uncertainty.spectra import ErrorSpectra
+
+        try:
+            spectra = ErrorSpectra.from_dict(entry["error_spectra"])
+        except ValueError as exc:
+            raise ValueError(f"{path}: {name}.error_spectra: {exc}") from None
+        if measured.size and spectra.n_episodes != len(measured):
+            raise ValueError(
+                f"{path}: {name}.error_spectra holds {spectra.n_episodes} episodes, its figures {len(measured)}"
+            )
+    logs = entry.get("logs")
+    return HeldOutFigures(
+        measured=measured,
+        predicted=predicted,
+        skip_samples=entry.get("skip_samples"),
+        logs=None if logs is None else tuple(logs),
+        error_spectra=spectra,
+    )

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 from qube_koopman.core.lti import DiscreteStateSpace
+from qube_koopman.core.qube import loop_cost
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.identify.uncertainty.ensemble import EnsembleFit
 from qube_koopman.identify.uncertainty.loops import Loop, consecutive_runs
@@ -19,7 +20,7 @@ __all__ = ["held_out_figures", "held_out_loops", "loop_figures", "loops_figures"
 def loop_figures(x: np.ndarray, target_theta: np.ndarray, voltage: np.ndarray, skip: int) -> np.ndarray:
     """``[J, voltage RMS, voltage peak]`` of one episode after ``skip`` samples (inf when non-finite).
 
-    ``J = mean((theta - target_theta)^2) + mean(alpha^2)``, the cost ``qube-design`` predicts.
+    J is :func:`~qube_koopman.core.qube.loop_cost`, the cost ``qube-design`` predicts.
 
     Parameters
     ----------
@@ -39,7 +40,9 @@ def loop_figures(x: np.ndarray, target_theta: np.ndarray, voltage: np.ndarray, s
     tracking, alpha, u = x[skip:, 0] - target_theta[skip:], x[skip:, 1], np.asarray(voltage, dtype=float)[skip:]
     if not (np.all(np.isfinite(tracking)) and np.all(np.isfinite(alpha)) and np.all(np.isfinite(u))):
         return np.full(3, np.inf)
-    return np.array([np.mean(tracking**2) + np.mean(alpha**2), np.sqrt(np.mean(u**2)), np.max(np.abs(u), initial=0.0)])
+    return np.array(
+        [loop_cost(x[:, 0], target_theta, x[:, 1], skip), np.sqrt(np.mean(u**2)), np.max(np.abs(u), initial=0.0)]
+    )
 
 
 def held_out_loops(

@@ -170,7 +170,7 @@ def test_a_plant_identified_under_the_pd_predicts_the_loop_under_the_feedforward
     assert identify_main(argv) == 0, capsys.readouterr().err
     scored = json.loads((tmp_path / "m" / "report.json").read_text())["test"]["r2_mean"]
     assert scored > 0.95
-    plant = load_model(tmp_path / "m" / "model.json")["plant"]
+    plant = load_model(tmp_path / "m" / "model.json").plant
     (log,) = load_logs([ff[1]])
     t = log.trajectory
     right = r2_score(t.x, close_loop(plant, controller, MEASURED).predict(t))
@@ -191,6 +191,6 @@ def test_cl_edmd_on_the_feedforward_controllers_logs_records_its_three_inputs(tw
     argv = ["--train", str(ff[0]), "--test", str(ff[1]), *FLAGS, "--out", str(tmp_path / "m"), "-q"]
     assert identify_main(argv) == 0, capsys.readouterr().err
     model = load_model(tmp_path / "m" / "model.json")
-    assert same_system(model["controller"], controller)
+    assert same_system(model.controller, controller)
     report = json.loads((tmp_path / "m" / "report.json").read_text())
     assert report["test"]["r2_mean"] > 0.95

@@ -135,8 +135,8 @@ def test_cl_edmd_fits_the_same_plant_under_either_realization(runs, tmp_path, ca
         argv = ["--train", str(logs[0]), "--test", str(logs[1]), "--delays", "2", "--out", str(tmp_path / name), "-q"]
         assert identify_main(argv) == 0, capsys.readouterr().err
         model = load_model(tmp_path / name / "model.json")
-        assert model["controller"].n_states == (2 if name == "pd" else 2 + N_EXTRA)
-        plants[name] = model["plant"]
+        assert model.controller.n_states == (2 if name == "pd" else 2 + N_EXTRA)
+        plants[name] = model.plant
     np.testing.assert_allclose(plants["big"].A, plants["pd"].A, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(plants["big"].B, plants["pd"].B, rtol=1e-6, atol=1e-8)
 

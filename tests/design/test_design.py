@@ -373,11 +373,11 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
         for channel, values in (("theta", logged.theta), ("alpha", logged.alpha), ("voltage", logged.plant_input)):
             np.testing.assert_array_equal(series[f"episodes/episode_00/{channel}/{kind}"], values)
     model, controller = load_model(twin_cycle.model / "model.json"), load_controller(out)
-    predicted = predict_loop(model["plant"], controller.system, rig_excitations(5, 1))
+    predicted = predict_loop(model.plant, controller.system, rig_excitations(5, 1))
     np.testing.assert_allclose(series["episodes/episode_00/theta/predicted"], predicted.theta[0], rtol=1e-12)
     np.testing.assert_array_equal(series["episodes/episode_00/theta/target"], predicted.target_theta[0])
-    plant = linear_plant(model["plant"])
-    for kind, system in (("design", controller.system), ("training", model["controller"])):
+    plant = linear_plant(model.plant)
+    for kind, system in (("design", controller.system), ("training", model.controller)):
         expected = closed_loop_eigenvalues(plant, system)
         np.testing.assert_allclose(series[f"eigenvalues/{kind}"], expected, atol=1e-6)
     radius = {kind: np.max(np.abs(series[f"eigenvalues/{kind}"])) for kind in ("design", "training")}
@@ -401,11 +401,11 @@ def test_on_the_twin_the_designs_measured_cost_falls_in_its_predicted_interval(t
     from qube_koopman.identify.models.model_file import load_model
 
     model = load_model(twin_cycle.model / "model.json")
-    plant = linear_plant(model["plant"])
+    plant = linear_plant(model.plant)
     design = design_lq(plant, Weights())  # the fixture's controller file, designed with the default weights
     np.testing.assert_array_equal(design.controller.D, load_controller(twin_cycle.controller).system.D)
     excitations = rig_excitations(5, 20, 6.0)
-    predicted = predict_cost(model["plant"], design.controller, excitations).summary()
+    predicted = predict_cost(model.plant, design.controller, excitations).summary()
     interval = interval_from_logs(model_uncertainty(model), plant, design, predicted, excitations, 0.95)
     episodes = run_on_twin(twin_cycle.controller, 5, 20, duration=6.0)
     assert [e.metadata.status for e in episodes] == ["complete"] * 20
@@ -413,9 +413,9 @@ def test_on_the_twin_the_designs_measured_cost_falls_in_its_predicted_interval(t
     measured, voltage = np.mean(costs[:, 0]), np.sqrt(np.mean(costs[:, 3] ** 2))
     assert interval.n_members == 20 and interval.n_held_out == 6 and interval.propagated, interval.sources
     # The spectra the propagation starts from add up to what the held-out figures say (two computations).
-    held = model["uncertainty"]["held_out"]
+    held = model.uncertainty.held_out
     spectra = model_uncertainty(model).spectra
-    np.testing.assert_allclose(spectra.input.sum(axis=1), np.asarray(held["predicted"])[:, 1] ** 2, rtol=1e-5)
+    np.testing.assert_allclose(spectra.input.sum(axis=1), held.predicted[:, 1] ** 2, rtol=1e-5)
     assert interval.contains("J", measured), (measured, interval.as_dict()["J"])
     assert interval.upper["J"] / interval.lower["J"] < 1.25, interval.as_dict()["J"]  # and says something
     # The voltage too: the held-out error propagated through the design's loop, which turns more of the
@@ -435,7 +435,7 @@ def test_the_robust_design_is_the_nominal_one_when_the_bootstrap_plants_agree(tw
     from qube_koopman.identify.models.model_file import load_model
 
     model = load_model(twin_cycle.model / "model.json")
-    plant = linear_plant(model["plant"])
+    plant = linear_plant(model.plant)
     choice = robust_design(plant, Weights(), model_uncertainty(model), rig_excitations(5, 6, 6.0))
     worst = [c["worst_upper_J"] for c in choice.candidates]
     assert worst == sorted(worst) and choice.scale == 1.0, choice.candidates

@@ -88,15 +88,15 @@ def test_the_model_file_gives_back_the_bootstrap_plants_and_the_held_out_figures
     plant = _plant()
     members = _members(plant)
     model = load_model(_save(tmp_path / "model.json", plant, members))
-    assert len(model["plant_members"]) == len(members)
-    for loaded, member in zip(model["plant_members"], members):
+    assert len(model.plant_members) == len(members)
+    for loaded, member in zip(model.plant_members, members):
         np.testing.assert_array_equal(loaded.A[:2], member.A[:2])
         np.testing.assert_array_equal(loaded.B[:2], member.B[:2])
         np.testing.assert_array_equal(loaded.A[2:], plant.A[2:])  # the rows no prediction uses: the plant's
     uncertainty = model_uncertainty(model)
     np.testing.assert_array_equal(uncertainty.held_out, HELD_OUT)
     np.testing.assert_allclose(uncertainty.model_error(), np.log(HELD_OUT[:, 0] / HELD_OUT[:, 1]))
-    assert load_model(_save(tmp_path / "old.json", plant))["plant_members"] is None
+    assert load_model(_save(tmp_path / "old.json", plant)).plant_members is None
 
 
 def test_the_members_batched_simulation_is_predict_cost_sample_for_sample():
@@ -234,6 +234,24 @@ def test_damaged_error_spectra_are_one_error_naming_the_entry(tmp_path, capsys, 
     assert not (tmp_path / "c.toml").exists()
 
 
+@pytest.mark.parametrize("damage, message", [
+    (lambda h: h["predicted"].pop(), "uncertainty.held_out: 4 measured rows, 3 predicted"),
+    (lambda h: h.__setitem__("measured", [[1.0, 2.0]] * 4), "uncertainty.held_out.measured must be rows of 3 numbers"),
+    (lambda h: h.__setitem__("predicted", "none"), "uncertainty.held_out.predicted must be rows of 3 numbers"),
+], ids=["rows", "columns", "type"])
+def test_damaged_held_out_figures_are_one_error_naming_the_entry(tmp_path, capsys, damage, message):
+    import json
+
+    plant = _plant()
+    path = _save(tmp_path / "model.json", plant, _members(plant))
+    data = json.loads(path.read_text())
+    damage(data["uncertainty"]["held_out"])
+    path.write_text(json.dumps(data))
+    assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--episodes", "2", "--duration", "4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{path}: {message}" in err[0], err
+
+
 def test_a_level_outside_zero_one_is_a_usage_error(tmp_path, capsys):
     path = _save(tmp_path / "model.json", _plant())
     assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--interval", "1.5"]) == 2
@@ -256,3 +274,30 @@ def test_the_robust_design_ranks_the_candidates_by_their_worst_case_and_leaves_o
     strong = replace(plant, G=6 * plant.G)  # a refit whose input gain no candidate's closed loop survives
     with pytest.raises(DesignError, match="under every candidate design a bootstrap plant's closed loop is unstable"):
         robust_design(plant, Weights(), ModelUncertainty([plant, strong], None), excitations)
+
+
+def test_j_has_one_definition_and_the_design_reports_it(tmp_path):
+    """J = mean((theta - target_theta)^2) + mean(alpha^2) after the skip is core.qube.loop_cost alone: the design's
+    predicted J, the bootstrap plants' batched J and identify's held-out J are its values."""
+    from qube_koopman.core.qube import loop_cost
+    from qube_koopman.design.predict import episode_cost, predict_loop
+    from qube_koopman.design.workflow import design_from_model
+    from qube_koopman.identify.uncertainty import loop_figures
+
+    # Its definition, by hand: tracking errors (1, -1) and alpha (2, 0) after one skipped sample.
+    assert loop_cost([9.0, 1.0, 2.0], [0.0, 0.0, 3.0], [9.0, 2.0, 0.0], skip=1) == 1.0 + 2.0
+    plant = _plant()
+    report = design_from_model(_save(tmp_path / "model.json", plant), episodes=2, duration=3.0)
+    loop = predict_loop(plant, report.controller, rig_excitations(1, 2, 3.0))
+    J = np.array([loop_cost(loop.theta[i], loop.target_theta[i], loop.alpha[i]) for i in range(2)])
+    assert np.all(J > 0)
+    np.testing.assert_array_equal(report.predicted.cost, J)  # what the design reports, to the bit
+    assert report.predicted.summary()["J"] == float(np.mean(J))
+    # Over episodes at once (the batched simulations' form): the same sums, to rounding.
+    np.testing.assert_allclose(loop_cost(loop.theta, loop.target_theta, loop.alpha), J, rtol=1e-12)
+    batched = member_figures([linear_plant(plant)], report.design, rig_excitations(1, 2, 3.0))[0, :, 0]
+    np.testing.assert_allclose(batched, J, rtol=1e-9)
+    for i in range(2):
+        assert episode_cost(loop.theta[i], loop.target_theta[i], loop.alpha[i], loop.voltage[i])[0] == J[i]
+        x = np.column_stack([loop.theta[i], loop.alpha[i]])
+        assert loop_figures(x, loop.target_theta[i], loop.voltage[i], 500)[0] == J[i]

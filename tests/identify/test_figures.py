@@ -87,7 +87,7 @@ def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, c
     # eigenvalues: the model file's, with the report's spectral radii
     got = lines(drawn["eigenvalues and the unit circle"])
     for label, kind in (("closed loop", "closed_loop"), ("plant", "plant")):
-        expected = np.linalg.eigvals(model[kind].A)
+        expected = np.linalg.eigvals(getattr(model, kind).A)
         plotted = got[label][:, 0] + 1j * got[label][:, 1]
         np.testing.assert_allclose(np.sort_complex(plotted), np.sort_complex(expected), atol=1e-9)
         assert np.max(np.abs(plotted)) == pytest.approx(report["spectral_radius"][kind], rel=1e-9)

@@ -60,14 +60,41 @@ def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
     from qube_koopman.identify.data.logs import load_logs
 
     log = load_logs(find_logs(small_set / "test")[:1], skip=500)[0]
-    pred = loaded["closed_loop"].predict(log.trajectory)
+    pred = loaded.closed_loop.predict(log.trajectory)
     from qube_koopman.identify import r2_score
 
     report = json.loads((tmp_path / "report.json").read_text())
     assert r2_score(log.trajectory.x[1:], pred[1:]) == pytest.approx(report["test"]["r2_per_episode"][0], abs=1e-9)
-    assert loaded["controller"].n_states == 2
-    assert loaded["lifting"]["steps"][-1]["type"] == "GaussianRbf"
-    assert loaded["lifting"]["steps"][-1]["shape"] == 2.0 and len(loaded["lifting"]["steps"][-1]["centers"]) == 5
+    assert loaded.controller.n_states == 2
+    assert type(loaded.lifting.steps_[-1]).__name__ == "GaussianRbf"
+    assert loaded.lifting.steps_[-1].shape == 2.0 and len(loaded.lifting.steps_[-1].centers_) == 5
+    loaded.save(tmp_path / "again.json")  # the RBF centres and the bootstrap plants of a nonlinear lifting
+    assert (tmp_path / "again.json").read_bytes() == (tmp_path / "model.json").read_bytes()
+
+
+def test_a_loaded_model_file_is_written_back_byte_for_byte(small_set, tmp_path, capsys):
+    """load_model's IdentifiedModel holds all the file holds: its save writes the fit's model.json again, byte for
+    byte (the bootstrap plants, the held-out figures and their error spectra; a disturbance too)."""
+    from dataclasses import replace
+
+    from qube_koopman.identify.models.disturbance import DisturbanceModel
+
+    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
+                       "--delays", "5", "--const", "--interval-members", "3")
+    assert code == 0, err
+    written = (tmp_path / "model.json").read_bytes()
+    loaded = load_model(tmp_path / "model.json")
+    assert len(loaded.plant_members) == 3 and loaded.uncertainty.held_out.error_spectra is not None
+    assert loaded.uncertainty.held_out.measured.shape == (8, 3) and len(loaded.uncertainty.held_out.logs) == 8
+    loaded.save(tmp_path / "again.json")
+    assert (tmp_path / "again.json").read_bytes() == written
+    disturbance = DisturbanceModel("theta", 0.99, 1e-7, np.array([[1e-6, 2e-8], [2e-8, 3e-6]]), np.array([0.1, -0.02]),
+                                   -3.5, 1200)
+    replace(loaded, disturbance=disturbance).save(tmp_path / "with.json")
+    again = load_model(tmp_path / "with.json")
+    assert again.disturbance.as_dict() == disturbance.as_dict()
+    again.save(tmp_path / "with_again.json")
+    assert (tmp_path / "with_again.json").read_bytes() == (tmp_path / "with.json").read_bytes()
 
 
 def test_sweep_edmd_plant_scoring_and_arx(small_set, tmp_path, capsys, monkeypatch):
@@ -280,9 +307,9 @@ def test_horizons_score_k_step_predictions_and_the_model_file_carries_the_filter
     assert "none" in report["disturbance"]["training_cost"]
     loaded = load_model(tmp_path / "model.json")
     if report["disturbance"]["entry"] != "none":
-        assert loaded["disturbance"].entry == report["disturbance"]["entry"]
+        assert loaded.disturbance.entry == report["disturbance"]["entry"]
     else:
-        assert loaded["disturbance"] is None
+        assert loaded.disturbance is None
     first = report["ahead"]["horizons"]["0.1"]["episodes"][0]
     saved = np.load(tmp_path / "predictions" / (Path(first["log"]).stem + ".npz"))
     measured, pred = saved["measured"], saved["ahead_0.1"]

@@ -35,7 +35,7 @@ def _batch(paths, root, flags, name):
 def _same(mine, batch) -> None:
     for key, model in (("plant", mine.plant_model_), ("closed_loop", mine.model_)):
         for name in "AB":
-            ours, theirs = getattr(model, name), getattr(batch[key], name)
+            ours, theirs = getattr(model, name), getattr(getattr(batch, key), name)
             assert ours.shape == theirs.shape
             np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max())
 
@@ -59,7 +59,7 @@ def test_rbf_centres_refit_exactly_at_the_end(episodes):
     for path in paths:
         ident.add(load_logs([path], skip=500)[0])
     batch = _batch(paths, root, flags, "batch_rbf")
-    assert not np.allclose(ident.model_.A, batch["closed_loop"].A)  # centres of the first box only
+    assert not np.allclose(ident.model_.A, batch.closed_loop.A)  # centres of the first box only
     _same(ident.refit_exact(skip=500), batch)
 
 
@@ -130,7 +130,7 @@ def test_qube_run_identify_until_stops_and_writes_the_batch_model(tmp_path, epis
     batch = _batch(logs, episodes[1], ["--delays", "10"], "batch_run")
     mine = load_model(out / "model" / "model.json")
     for key in ("plant", "closed_loop"):
-        np.testing.assert_allclose(mine[key].A, batch[key].A, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(getattr(mine, key).A, getattr(batch, key).A, rtol=1e-9, atol=1e-12)
 
 
 def test_identify_options_alone_and_search_flags_are_refused(tmp_path, capsys):

@@ -39,7 +39,8 @@ def _damaged(model_file, tmp_path, change) -> str:
     (lambda d: d.__setitem__("dt", float("nan")), "dt must be a positive number of seconds (the sample period), "
                                                   "got nan"),
     (lambda d: d.__setitem__("dt", 0.01), "sample period 0.01 s, not the loop's 0.002 s"),
-], ids=["nan", "inf", "shape", "huge-delays", "float-delays", "dt-nan", "dt-other"])
+    (lambda d: d.__setitem__("plant", None), "the model file holds no plant model"),
+], ids=["nan", "inf", "shape", "huge-delays", "float-delays", "dt-nan", "dt-other", "no-plant"])
 def test_qube_design_refuses_an_unusable_model_in_one_line(model_file, tmp_path, capsys, change, message):
     from qube_koopman.design.cli.design import main as design_main
 

@@ -425,7 +425,7 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     assert sum(t["candidates"] for t in timing["stages"].values()) == len(search["candidates"])
     assert sum(t["wall"] for t in timing["stages"].values()) <= timing["search"] + 0.01
     assert report["scored_from_sample"] == 500 and "as the search scored its candidates" in report["protocol"]
-    steps = [s["type"] for s in load_model(tmp_path / "model.json")["lifting"]["steps"]]
+    steps = [type(s).__name__ for s in load_model(tmp_path / "model.json").lifting.steps_]
     assert ("Delay" in steps) == (winner["delays"] > 0) and ("Constant" in steps) == winner["const"]
     table = (tmp_path / "report.md").read_text()
     assert "## Lifting search" in table and all(c["label"] in table for c in search["candidates"])

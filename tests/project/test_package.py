@@ -300,3 +300,47 @@ def test_the_tests_are_grouped_as_the_packages_are():
     assert folders == {*LAYERS, *APPLICATIONS, "docs", "project"}
     assert not list(tests.glob("test_*.py")), "a test module outside its package's folder"
     assert all(list(tests.glob(f"{folder}/test_*.py")) for folder in folders)
+
+
+#: Keys only a model file holds: a subscript or ``.get`` with one reads the file's dict, not the typed model.
+MODEL_FILE_KEYS = {"plant", "closed_loop", "plant_members", "uncertainty", "held_out", "error_spectra", "disturbance",
+                   "lifting"}
+
+
+def _model_dict_reads(tree, path) -> list[str]:
+    """Every ``model[...]`` / ``model.get(...)`` (``model`` a name or an attribute) and every subscript or ``.get``
+    with a model file's key in ``tree``: the reads of a model file as a dict."""
+    import ast
+
+    def is_model(node) -> bool:
+        return (isinstance(node, ast.Name) and node.id == "model") or (isinstance(node, ast.Attribute)
+                                                                      and node.attr == "model")
+
+    def is_key(node) -> bool:
+        return isinstance(node, ast.Constant) and node.value in MODEL_FILE_KEYS
+
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Subscript) and (is_model(node.value) or is_key(node.slice)):
+            found.append(f"{path}:{node.lineno} {ast.unparse(node)}")
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get"
+              and (is_model(node.func.value) or (node.args and is_key(node.args[0])))):
+            found.append(f"{path}:{node.lineno} {ast.unparse(node)}")
+    return found
+
+
+def test_design_reads_the_identified_model_by_its_attributes_never_as_a_dict():
+    """design takes what identify fitted as one typed object (identify.models.identified.IdentifiedModel, what
+    load_model returns): no ``model["plant"]``, ``model.get("controller")`` or ``held["measured"]`` in it."""
+    offenders = [hit for path, tree in _modules("design") for hit in _model_dict_reads(tree, path)]
+    assert not offenders
+
+
+def test_the_model_dict_check_finds_what_it_is_for():
+    import ast
+
+    code = ('a = model["plant"]\nb = report.model.get("controller")\nc = data.get("uncertainty")\n'
+            'd = held["held_out"]\ne = model.plant\nf = out["predicted"]\n')
+    assert _model_dict_reads(ast.parse(code), "m.py") == [
+        "m.py:1 model['plant']", "m.py:2 report.model.get('controller')", "m.py:3 data.get('uncertainty')",
+        "m.py:4 held['held_out']"]

@@ -108,7 +108,7 @@ def test_the_docstring_check_finds_what_it_is_for():
 @pytest.mark.parametrize("package, names", [
     ("qube_koopman.identify", {"ClEdmd", "ClEdmdStable", "clone", "identify_and_score", "search_liftings",
                                "regularization_sweep", "load_logs", "twin_probes", "save_model", "load_model",
-                               "Lifting", "Delay", "KoopmanModel", "Trajectory"}),
+                               "IdentifiedModel", "Lifting", "Delay", "KoopmanModel", "Trajectory"}),
     ("qube_koopman.daq", {"read_episode", "write_episode", "Episode", "run_episodes", "plan_episodes"}),
     ("qube_koopman.sim", {"PendulumParameters", "simulate_closed_loop", "PendulumSimulator"}),
     ("qube_koopman.core", {"DiscreteStateSpace", "replay_controller", "spectral_radius", "atomic_path",
