@@ -433,8 +433,11 @@ def offset_free_settings(report: DesignReport, settings):
     """The MPC's settings with ``offset_free`` as the model file allows it, and a line saying which.
 
     Offset-free control (``settings.offset_free``, what ``qube-design --mpc`` asks for unless
-    ``--no-offset-free``) needs the model file's disturbance model, a random walk; without one the
-    MPC is the same as before.
+    ``--no-offset-free``) needs the model file's disturbance model: a random-walk load at the plant
+    input with a nonzero gain. A rate on theta or alpha is estimated and logged but not used: the
+    arm integrates a rate, so the steady state that balances it is far from where the plant rests
+    under a load (on the twin, 0.1 rad of arm offset under 0.3 V). Without one the MPC is the one
+    without a disturbance model.
 
     Parameters
     ----------
@@ -466,6 +469,13 @@ def offset_free_settings(report: DesignReport, settings):
     where = "a load at the plant input (V)" if disturbance.entry == "input" else f"a rate on {disturbance.entry}"
     if not settings.offset_free:
         return settings, f"offset-free: off (--no-offset-free): the MPC records its estimate of {where} per tick"
+    if disturbance.entry != "input":
+        line = (
+            f"offset-free: off: the model file's disturbance is {where}, and offset-free control needs a load at the "
+            "plant input (qube-identify --disturbance input): the arm integrates a rate, and the steady state that "
+            "balances one is not where the plant rests under a load; the MPC records its estimate per tick"
+        )
+        return replace(settings, offset_free=False), line
     if disturbance.pole != 1.0:
         line = (
             f"offset-free: off: the model file's disturbance is first-order (pole {disturbance.pole:g}), not a "

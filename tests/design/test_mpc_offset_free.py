@@ -173,6 +173,33 @@ def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_th
         assert str(info.value).startswith(str(bad))
 
 
+@pytest.mark.parametrize(
+    "entry, pole, gain, wanted, on, says",
+    [
+        ("input", 1.0, [1.0, -1.0], True, True, "offset-free: on: the MPC estimates a load at the plant input"),
+        ("input", 1.0, [1.0, -1.0], False, False, "offset-free: off (--no-offset-free)"),
+        ("input", 1.0, [0.0, 0.0], True, False, "has a zero gain"),
+        ("input", 0.99, [1.0, -1.0], True, False, "is first-order (pole 0.99)"),
+        ("theta", 1.0, [1.0, -1.0], True, False, "is a rate on theta, and offset-free control needs a load"),
+        ("alpha", 1.0, [1.0, -1.0], True, False, "is a rate on alpha, and offset-free control needs a load"),
+        (None, 1.0, [1.0, -1.0], True, False, "the model file has no disturbance model"),
+    ],
+)
+def test_qube_design_turns_offset_free_control_on_only_for_a_random_walk_load_with_a_gain(
+    entry, pole, gain, wanted, on, says
+):
+    from types import SimpleNamespace
+
+    from qube_koopman.design.workflow import offset_free_settings
+    from qube_koopman.identify.models.disturbance import DisturbanceModel
+
+    model = None if entry is None else DisturbanceModel(entry, pole, 1e-5, np.eye(2), np.array(gain))
+    settings, line = offset_free_settings(
+        SimpleNamespace(model={"disturbance": model}), MpcSettings(offset_free=wanted)
+    )
+    assert settings.offset_free is on and says in line
+
+
 def test_no_offset_free_is_a_setting_of_mpc(models, tmp_path, capsys):
     assert design_main([str(models["with"]), "--no-offset-free", "--out", str(tmp_path / "x.toml")]) == 2
     assert "--no-offset-free is a setting of --mpc" in capsys.readouterr().err
