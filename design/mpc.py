@@ -27,6 +27,13 @@ Two solvers of the same problem (``solver`` setting):
   Cholesky factor of an N x N matrix, which a tick with nothing binding does not even need.
 - ``"osqp"``: OSQP on the same QP with one slack per predicted step, warm-started.
 
+Offset-free control (``settings.offset_free``, :class:`MpcDisturbance`): with the model file's
+disturbance model, each tick filters the disturbance from the measurements with that model's
+steady-state Kalman gain, predicts it constant over the horizon and solves the same QP about the
+steady state it implies (the arm at its reference, the voltage cancelling the load): a constant
+load leaves no offset, which without the arm's integral it otherwise does (Pannocchia & Rawlings
+2003; Maeder, Borrelli & Morari 2009).
+
 A tick whose solve does not finish within its budget (``time_budget``, s, checked between
 iterations; OSQP's own ``time_limit``) or fails applies a fallback: the previous plan's next input,
 or with no plan the LQ gain, clipped to the limit; the controller counts those ticks.
@@ -44,11 +51,12 @@ import numpy as np
 from qube_koopman.core.qube import THETA_LIMIT
 from qube_koopman.design.lq import Weights, augment
 from qube_koopman.design.plant import DesignError, LinearPlant
+from qube_koopman.identify.models.disturbance import ENTRIES as DISTURBANCE_ENTRIES
+from qube_koopman.identify.models.disturbance import DisturbanceModel
 
 __all__ = [
     "MpcSettings",
     "MpcDisturbance",
-    "DISTURBANCE_ENTRIES",
     "model_disturbance",
     "mpc_disturbance",
     "MpcProblem",
@@ -59,9 +67,6 @@ __all__ = [
     "MpcRuntime",
     "SOLVER_STATUS",
 ]
-
-#: Where an estimated disturbance enters: a load at the plant input (V), a rate on theta or alpha (rad per tick).
-DISTURBANCE_ENTRIES = ("input", "theta", "alpha")
 
 #: The solve's status codes, as the log records them per tick.
 SOLVER_STATUS = {"solved": 0, "max_iterations": 1, "timeout": 2, "failed": 3}
@@ -126,8 +131,8 @@ class MpcSettings:
         return asdict(self)
 
 
-def model_disturbance(model) -> Any:
-    """The loaded model file's disturbance model (``DisturbanceModel``), or None: the MPC's one read of the model.
+def model_disturbance(model: Any) -> DisturbanceModel | None:
+    """The loaded model file's disturbance model, or None: the one read of the model file the MPC makes.
 
     Parameters
     ----------
@@ -223,14 +228,14 @@ class MpcDisturbance:
         return {"entry": self.entry, "pole": float(self.pole), "gain": [float(v) for v in self.gain]}
 
 
-def mpc_disturbance(plant: LinearPlant, disturbance: Any) -> MpcDisturbance:
+def mpc_disturbance(plant: LinearPlant, disturbance: DisturbanceModel) -> MpcDisturbance:
     """The model file's disturbance model on the design plant (its affine term left out): what the MPC estimates.
 
     Parameters
     ----------
     plant : LinearPlant
-    disturbance : identify.models.disturbance.DisturbanceModel
-        Its ``entry``, ``pole`` and ``gain`` are used as they are.
+    disturbance : DisturbanceModel
+        The model file's; its ``entry``, ``pole`` and ``gain`` are used as they are.
 
     Returns
     -------
