@@ -29,6 +29,7 @@ _HOMES = {
     "MpcProblem": "mpc",
     "build_problem": "mpc",
     "MpcRuntime": "mpc",
+    "MpcDisturbance": "mpc",
     # the closed loop it predicts
     "CostPrediction": "predict",
     "predict_cost": "predict",

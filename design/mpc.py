@@ -27,6 +27,13 @@ Two solvers of the same problem (``solver`` setting):
   Cholesky factor of an N x N matrix, which a tick with nothing binding does not even need.
 - ``"osqp"``: OSQP on the same QP with one slack per predicted step, warm-started.
 
+Offset-free control (``settings.offset_free``, :class:`MpcDisturbance`): with the model file's
+disturbance model, each tick filters the disturbance from the measurements with that model's
+steady-state Kalman gain, predicts it constant over the horizon and solves the same QP about the
+steady state it implies (the arm at its reference, the voltage cancelling the load): a constant
+load leaves no offset, which without the arm's integral it otherwise does (Pannocchia & Rawlings
+2003; Maeder, Borrelli & Morari 2009).
+
 A tick whose solve does not finish within its budget (``time_budget``, s, checked between
 iterations; OSQP's own ``time_limit``) or fails applies a fallback: the previous plan's next input,
 or with no plan the LQ gain, clipped to the limit; the controller counts those ticks.
@@ -37,15 +44,21 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
 from qube_koopman.core.qube import THETA_LIMIT
 from qube_koopman.design.lq import Weights, augment
 from qube_koopman.design.plant import DesignError, LinearPlant
+from qube_koopman.identify.models.disturbance import ENTRIES as DISTURBANCE_ENTRIES
+from qube_koopman.identify.models.disturbance import DisturbanceModel
 
 __all__ = [
     "MpcSettings",
+    "MpcDisturbance",
+    "model_disturbance",
+    "mpc_disturbance",
     "MpcProblem",
     "SolveResult",
     "build_problem",
@@ -83,6 +96,10 @@ class MpcSettings:
         Optimality: the projected gradient's largest entry (newton), or OSQP's eps_abs/eps_rel.
     time_budget : float
         Seconds a solve may take before the tick applies the fallback.
+    offset_free : bool
+        Use the estimated disturbance (:class:`MpcDisturbance`) in the prediction and the
+        steady-state target: the arm tracks its reference with no offset under a constant load.
+        Needs the controller's disturbance model; without one the MPC is the same either way.
     """
 
     horizon: int = 20
@@ -93,6 +110,7 @@ class MpcSettings:
     max_iterations: int = 20
     tolerance: float = 1e-7
     time_budget: float = 1.0e-3
+    offset_free: bool = False
 
     def __post_init__(self) -> None:
         if not (isinstance(self.horizon, int) and 1 <= self.horizon <= 200):
@@ -105,10 +123,132 @@ class MpcSettings:
             raise DesignError(f'the MPC solver must be "newton" or "osqp", got {self.solver!r}')
         if not (self.theta_penalty > 0 and self.tolerance > 0 and self.time_budget > 0 and self.max_iterations >= 1):
             raise DesignError("the MPC's penalty, tolerance, time budget and iterations must be positive")
+        if not isinstance(self.offset_free, bool):
+            raise DesignError(f"offset_free must be true or false, got {self.offset_free!r}")
 
     def as_dict(self) -> dict:
         """Plain data, for the controller file."""
         return asdict(self)
+
+
+def model_disturbance(model: Any) -> DisturbanceModel | None:
+    """The loaded model file's disturbance model, or None: the one read of the model file the MPC makes.
+
+    Parameters
+    ----------
+    model : dict
+        What :func:`identify.models.model_file.load_model` returns.
+    """
+    return model.get("disturbance")
+
+
+@dataclass(frozen=True, eq=False)
+class MpcDisturbance:
+    """The disturbance an MPC estimates each tick: where it enters, the plant it is estimated on, the filter's gain.
+
+    The model file's disturbance model (``identify.models.disturbance``; nothing refitted) on the
+    design plant ``x_{k+1} = F_x s_k + b v_k + E_x d_k`` (``s_k`` the measured history, ``v_k`` the
+    plant input: the controller's output plus the feedforward), with ``E_x = b`` for a load at the
+    plant input (``d`` in volts) and the angle's unit vector for a rate on theta or alpha (rad per
+    tick). The plant's affine term (a ``Constant`` lifting step) is left out, as the LQ design and
+    the MPC's prediction leave it: the estimate takes up what of it a disturbance along ``E_x``
+    explains. (Kept, the model's constant, a fit to closed-loop episodes, sets a target the plant
+    does not rest at: on the twin an offset of 0.01 rad with no load at all.) Each tick, from the
+    one-step residual ``r_k = x_k - (F_x s_{k-1} + b v_{k-1})``, the steady-state Kalman filter in
+    innovations form
+    (:func:`identify.models.disturbance.filter_disturbance`, the same recursion)::
+
+        p_k = pole f_{k-1},   f_k = p_k + L (r_k - G p_k),   d_k = pole f_k      (G = E_x)
+
+    Parameters
+    ----------
+    entry : {"input", "theta", "alpha"}
+    pole : float
+        ``d_{k+1} = pole d_k + w_k``; offset-free control needs a random walk (1).
+    gain : ndarray of shape (2,)
+        ``L``, the model file's.
+    rows : ndarray of shape (2, n)
+        ``F_x``, the plant's one-step map on its history (newest sample first).
+    input : ndarray of shape (2,)
+        ``b``.
+    """
+
+    entry: str
+    pole: float
+    gain: np.ndarray
+    rows: np.ndarray
+    input: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.entry not in DISTURBANCE_ENTRIES:
+            raise DesignError(f"unknown disturbance entry {self.entry!r} (one of {', '.join(DISTURBANCE_ENTRIES)})")
+        m = len(self.input)
+        if np.shape(self.gain) != (m,) or np.shape(self.rows)[0] != m:
+            raise DesignError(f"the disturbance's gain must have {m} entries, one per measured angle")
+        if not (0.0 <= self.pole <= 1.0) or not np.all(np.isfinite(self.gain)):
+            raise DesignError(f"the disturbance's pole {self.pole!r} must be in [0, 1] and its gain finite")
+
+    @property
+    def direction(self) -> np.ndarray:
+        """``E_x = G``: a unit disturbance's effect on the next measurement."""
+        if self.entry == "input":
+            return np.asarray(self.input, dtype=float)
+        E = np.zeros(len(self.input))
+        E[DISTURBANCE_ENTRIES.index(self.entry) - 1] = 1.0
+        return E
+
+    def target_map(self) -> np.ndarray:
+        """``T`` (2 x 2): the steady state ``[alpha_ss, v_ss] = T @ [r_theta, d]`` with the arm at its reference.
+
+        Solves ``(I - sum_j A_j) x_ss = b v_ss + E_x d`` for ``x_ss = [r_theta, alpha_ss]``
+        (``A_j``: ``F_x``'s block on ``x_{k-j}``), the target calculation of offset-free MPC
+        (Pannocchia & Rawlings 2003): the arm at its reference, the pendulum and the voltage where
+        the plant, under the constant disturbance, rests.
+
+        Raises
+        ------
+        DesignError
+            When the plant has no such steady state (the voltage and the pendulum cannot hold the arm).
+        """
+        m = len(self.input)
+        rows = np.asarray(self.rows, dtype=float)
+        A_sum = rows.reshape(m, -1, m).sum(axis=1)
+        I_A = np.eye(m) - A_sum
+        M = np.column_stack([I_A[:, 1], -np.asarray(self.input, dtype=float)])
+        if np.linalg.cond(M) > 1e12:
+            raise DesignError(
+                "offset-free MPC: the plant has no steady state with the arm at its reference (the pendulum "
+                "and the voltage cannot balance a constant disturbance); design with --no-offset-free"
+            )
+        rhs = np.column_stack([-I_A[:, 0], self.direction])
+        return np.linalg.solve(M, rhs)
+
+    def as_dict(self) -> dict:
+        """The controller file's ``disturbance`` table (the plant's rows are the file's ``plant_rows``)."""
+        return {"entry": self.entry, "pole": float(self.pole), "gain": [float(v) for v in self.gain]}
+
+
+def mpc_disturbance(plant: LinearPlant, disturbance: DisturbanceModel) -> MpcDisturbance:
+    """The model file's disturbance model on the design plant (its affine term left out): what the MPC estimates.
+
+    Parameters
+    ----------
+    plant : LinearPlant
+    disturbance : DisturbanceModel
+        The model file's; its ``entry``, ``pole`` and ``gain`` are used as they are.
+
+    Returns
+    -------
+    MpcDisturbance
+    """
+    m = plant.n_measured
+    return MpcDisturbance(
+        str(disturbance.entry),
+        float(disturbance.pole),
+        np.asarray(disturbance.gain, dtype=float).reshape(-1),
+        plant.F[:m].copy(),
+        plant.G[:m, 0].copy(),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -380,6 +520,17 @@ class MpcRuntime:
     ``z_k = [-E_k; w_k]``. Its state update is linear (the log's ``A``, ``B`` replay it); the
     output is the QP's first input.
 
+    With a ``disturbance``, each tick also filters the disturbance from the measurements
+    (``theta = r_theta - e_theta``, ``alpha = -e_alpha``: the pendulum's reference is upright) and
+    the plant input the previous tick applied (its output plus the feedforward), and records the
+    estimate. With ``settings.offset_free`` the tick uses it (offset-free MPC, Pannocchia &
+    Rawlings 2003; Maeder, Borrelli & Morari 2009): the prediction carries the estimate, held
+    constant over the horizon as a random walk's forecast is, and the QP is solved about the
+    steady state it implies (:meth:`MpcDisturbance.target_map`): the arm at its reference, the
+    pendulum at ``alpha_ss`` and the plant input at ``v_ss``. In those deviations the condensed
+    problem is the same (``z`` with ``alpha_ss`` taken off the pendulum's history, the inputs and
+    their bounds shifted by ``v_ss - f``), so a tick costs the filter's few products more.
+
     Parameters
     ----------
     problem : MpcProblem
@@ -390,22 +541,50 @@ class MpcRuntime:
     dt : float
     clock : callable
         The clock the budget is measured on (``time.perf_counter``; a test passes its own).
+    disturbance : MpcDisturbance, optional
+        The disturbance model; None: none, the MPC exactly as without one.
     """
 
     #: The per-tick record's fields (the log's sample fields for this kind).
     TICK_FIELDS = ("solver_status", "solver_iterations", "solve_time", "constraint_active", "fallback")
+    #: The field added when the controller estimates a disturbance: ``d_{k|k}`` (V at the plant input, or
+    #: rad per tick on the angle).
+    DISTURBANCE_FIELD = "disturbance"
 
-    def __init__(self, problem: MpcProblem, n_delays: int, integral: bool, dt: float, clock=time.perf_counter) -> None:
+    def __init__(
+        self,
+        problem: MpcProblem,
+        n_delays: int,
+        integral: bool,
+        dt: float,
+        clock=time.perf_counter,
+        disturbance: MpcDisturbance | None = None,
+    ) -> None:
         self.problem = problem
         self.n_delays = n_delays
         self.integral = integral
         self.dt = dt
         self.clock = clock
+        self.disturbance = disturbance
+        self.offset_free = disturbance is not None and problem.settings.offset_free
+        if problem.settings.offset_free and disturbance is None:
+            raise DesignError("offset-free MPC needs a disturbance model (qube-identify --horizon ... --disturbance)")
+        if self.offset_free:
+            assert disturbance is not None
+            if disturbance.pole != 1.0:
+                raise DesignError(
+                    f"offset-free MPC needs a random-walk disturbance (pole 1); this one's pole is {disturbance.pole:g}"
+                )
+            self._target = disturbance.target_map()
+        #: The per-tick record's fields: :attr:`TICK_FIELDS`, and the disturbance estimate with a disturbance model.
+        self.tick_fields = self.TICK_FIELDS + ((self.DISTURBANCE_FIELD,) if disturbance is not None else ())
         self.n_fallbacks = 0
         self.n_ticks = 0
-        self.tick_record: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+        self.tick_record: tuple[float, ...] = (0.0,) * len(self.tick_fields)
         #: The plan the last tick left: its first entry is the input that tick applied.
         self.plan: np.ndarray | None = None
+        #: The last tick's disturbance estimate ``d_{k|k}`` (0 without a disturbance model).
+        self.estimate = 0.0
         self._osqp = OsqpSolver(problem) if problem.settings.solver == "osqp" else None
 
     def step(self):
@@ -422,6 +601,17 @@ class MpcRuntime:
         Hinv = np.linalg.inv(p.H)
         code = SOLVER_STATUS
         self.n_fallbacks = self.n_ticks = 0
+        self.estimate = 0.0
+        est = self.disturbance
+        offset_free = self.offset_free
+        if est is not None:
+            rows, b = np.asarray(est.rows), np.asarray(est.input)
+            G, L, pole = est.direction, np.asarray(est.gain), float(est.pole)
+            LG = float(L @ G)
+            history = np.zeros(m * (d + 1))  # x_k .. x_{k-d}, newest first, once update has run
+            # filt: f_{k-1}; predicted: x_k's one-step prediction (None until the history is full)
+            kf = {"filt": 0.0, "predicted": None, "x": np.zeros(m), "u": 0.0, "filled": 0}
+            alpha_at = slice(1, m * (d + 1), m)  # the pendulum's entries of z's history
 
         def output(e0: float, e1: float, f: float, r_theta: float = 0.0):
             z[0], z[1] = -e0, -e1
@@ -431,15 +621,33 @@ class MpcRuntime:
             state = held.tolist() + ([w[0]] if self.integral else [])
             lo = np.full(N, -V - f)
             hi = np.full(N, V - f)
-            g = p.G_z @ z
-            mz = p.theta_z @ z  # theta_i - r_theta = theta_U U + mz
+            shift = 0.0
+            zz = z
+            if est is not None:
+                x = kf["x"]
+                x[0], x[1] = r_theta - e0, -e1
+                predicted = kf["predicted"]
+                if predicted is not None:  # the filter, as identify's filter_disturbance runs it
+                    prior = pole * kf["filt"]
+                    kf["filt"] = prior + float(L @ (x - predicted)) - LG * prior
+                self.estimate = dhat = pole * kf["filt"]
+                if offset_free:
+                    T = self._target
+                    alpha_ss = T[0, 0] * r_theta + T[0, 1] * dhat
+                    shift = T[1, 0] * r_theta + T[1, 1] * dhat - f  # the output's steady state
+                    zz = z.copy()
+                    zz[alpha_at] -= alpha_ss
+                    lo -= shift
+                    hi -= shift
+            g = p.G_z @ zz
+            mz = p.theta_z @ zz  # theta_i - r_theta = theta_U U + mz
             m_hi = p.theta_max - r_theta - mz
             m_lo = -p.theta_max - r_theta - mz
             U0 = np.zeros(N) if self.plan is None else np.append(self.plan[1:], self.plan[-1])
             t0 = self.clock()
             try:
                 if self._osqp is not None:
-                    res = self._osqp.solve(g, lo, hi, m_lo, m_hi, U0)
+                    res = self._osqp.solve(g, lo, hi, m_lo, m_hi, U0 - shift)
                 else:
                     res = solve_newton(
                         p.H,
@@ -450,7 +658,7 @@ class MpcRuntime:
                         m_lo,
                         m_hi,
                         rho,
-                        U0,
+                        U0 - shift,
                         max_iterations=s.max_iterations,
                         tolerance=s.tolerance,
                         deadline=t0 + s.time_budget,
@@ -464,21 +672,24 @@ class MpcRuntime:
             if fallback:
                 self.n_fallbacks += 1
                 if self.plan is not None:
-                    u = float(np.clip(self.plan[1] if N > 1 else self.plan[0], lo[0], hi[0]))
+                    u = float(np.clip(self.plan[1] if N > 1 else self.plan[0], lo[0] + shift, hi[0] + shift))
                     self.plan = U0
                 else:
-                    u = float(np.clip(-K @ z, lo[0], hi[0]))
+                    u = float(np.clip(shift - K @ zz, lo[0] + shift, hi[0] + shift))
             else:
-                u = float(res.U[0])
-                self.plan = res.U
+                u = float(res.U[0] + shift)
+                self.plan = res.U + shift if offset_free else res.U
             self.n_ticks += 1
-            self.tick_record = (
+            record = (
                 float(code.get(res.status, 3)),
                 float(res.iterations),
                 seconds,
                 float(res.active),
                 float(fallback),
             )
+            self.tick_record = record if est is None else record + (self.estimate,)
+            if est is not None:
+                kf["u"] = u + f  # the plant input this tick applies
             return u, state
 
         def update(e0: float, e1: float, f: float) -> None:
@@ -486,5 +697,11 @@ class MpcRuntime:
                 held[m:] = held[:-m]
                 held[0], held[1] = e0, e1
             w[0] += self.dt * e0
+            if est is not None:  # x_{k+1}'s one-step prediction, off the next tick's path
+                history[m:] = history[:-m]
+                history[:m] = kf["x"]
+                kf["filled"] += 1
+                if kf["filled"] > d:
+                    kf["predicted"] = rows @ history + b * kf["u"]
 
         return output, update

@@ -9,6 +9,11 @@ point ``mpc`` of the group ``qube_koopman.controller_kinds`` (pyproject.toml), s
 problem again (a few milliseconds) and returns a :class:`~core.controller_file.ControllerInfo`
 whose ``system`` is the LQ realization of the same weights (the controller's state, which the
 log records, and its output when no constraint binds) and whose ``runtime`` is the MPC.
+
+With a disturbance model (the model file's, :class:`design.mpc.MpcDisturbance`) the file also
+holds its ``disturbance`` table (entry, pole, the Kalman filter's gain); ``settings.offset_free``
+says whether the MPC uses the estimate or only records it. A file without the table is the MPC
+without a disturbance model, exactly.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from qube_koopman.core.controller_file import (
 )
 from qube_koopman.core.files import atomic_path
 from qube_koopman.design.lq import Weights, augment, realize
-from qube_koopman.design.mpc import MpcRuntime, MpcSettings, condense
+from qube_koopman.design.mpc import MpcDisturbance, MpcRuntime, MpcSettings, condense
 from qube_koopman.design.plant import DesignError, LinearPlant
 
 __all__ = ["MPC_KIND", "write_mpc_file", "build_mpc_controller", "mpc_controller"]
@@ -39,6 +44,9 @@ _KEYS = frozenset(
     {"format", "kind", "dt", "inputs", "n_delays", "plant_rows", "plant_input", "terminal_cost", "weights", "settings"}
     | {"provenance"}
 )
+#: Keys a file has only with a disturbance model.
+_DISTURBANCE_KEYS = frozenset({"disturbance"})
+_OPTIONAL = frozenset({"provenance"}) | _DISTURBANCE_KEYS
 
 
 def _plant(rows: np.ndarray, b: np.ndarray, n_delays: int, dt: float) -> LinearPlant:
@@ -54,7 +62,12 @@ def _plant(rows: np.ndarray, b: np.ndarray, n_delays: int, dt: float) -> LinearP
 
 
 def mpc_controller(
-    plant: LinearPlant, weights: Weights, P: np.ndarray, settings: MpcSettings, provenance: Mapping[str, Any] = {}
+    plant: LinearPlant,
+    weights: Weights,
+    P: np.ndarray,
+    settings: MpcSettings,
+    provenance: Mapping[str, Any] = {},
+    disturbance: MpcDisturbance | None = None,
 ) -> ControllerInfo:
     """The controller the loop runs: the LQ realization as its state and its output without constraints, the MPC.
 
@@ -66,6 +79,8 @@ def mpc_controller(
         The terminal cost (the infinite-horizon LQ's Riccati solution on :func:`design.lq.augment`'s system).
     settings : MpcSettings
     provenance : mapping
+    disturbance : MpcDisturbance, optional
+        The disturbance the MPC estimates each tick (and, with ``settings.offset_free``, rejects).
 
     Returns
     -------
@@ -75,21 +90,28 @@ def mpc_controller(
     F, G, Q, R = augment(plant, weights)
     K = np.linalg.solve(R + G.T @ P @ G, G.T @ P @ F)
     problem = condense(F, G, Q, R, P, K, settings)
-    runtime = MpcRuntime(problem, plant.n_delays, weights.integral, plant.dt)
+    runtime = MpcRuntime(problem, plant.n_delays, weights.integral, plant.dt, disturbance=disturbance)
+    extra = {} if disturbance is None else {"disturbance": disturbance.as_dict()}
     return ControllerInfo(
         realize(K, plant, weights.integral),
         "given",
         {},
         MPC_KIND,
         dict(provenance),
-        {"weights": weights.as_dict(), **settings.as_dict()},
-        MpcRuntime.TICK_FIELDS,
+        {"weights": weights.as_dict(), **settings.as_dict(), **extra},
+        runtime.tick_fields,
         runtime,
     )
 
 
 def write_mpc_file(
-    path: str | Path, plant: LinearPlant, weights: Weights, P: np.ndarray, settings: MpcSettings, provenance=None
+    path: str | Path,
+    plant: LinearPlant,
+    weights: Weights,
+    P: np.ndarray,
+    settings: MpcSettings,
+    provenance=None,
+    disturbance: MpcDisturbance | None = None,
 ) -> Path:
     """Write the MPC's controller file, which :func:`core.controller_file.load_controller` reads back exactly.
 
@@ -103,6 +125,8 @@ def write_mpc_file(
         The terminal cost.
     settings : MpcSettings
     provenance : mapping, optional
+    disturbance : MpcDisturbance, optional
+        Written as the ``disturbance`` table (its plant is ``plant``'s).
 
     Returns
     -------
@@ -127,6 +151,8 @@ def write_mpc_file(
         f"weights = {toml_value(weights.as_dict())}",
         f"settings = {toml_value(settings.as_dict())}",
     ]
+    if disturbance is not None:
+        lines.append(f"disturbance = {toml_value(disturbance.as_dict())}")
     if provenance:
         lines += ["", "[provenance]"] + [f"{json.dumps(str(k))} = {toml_value(v)}" for k, v in provenance.items()]
     with atomic_path(path) as tmp:
@@ -143,12 +169,13 @@ def build_mpc_controller(data: dict, path: Path, dt: float) -> ControllerInfo:
         Naming the file: a missing or unknown key, a matrix of the wrong shape or not finite, bad
         weights or settings.
     """
-    missing = sorted(_KEYS - {"provenance"} - set(data))
+    missing = sorted(_KEYS - _OPTIONAL - set(data))
     if missing:
         raise ValueError(f"{path}: missing key{'s' if len(missing) > 1 else ''} {', '.join(missing)}")
-    unknown = sorted(set(data) - _KEYS)
+    unknown = sorted(set(data) - _KEYS - _DISTURBANCE_KEYS)
     if unknown:
-        raise ValueError(f"{path}: unknown keys {', '.join(unknown)} (an mpc file has {', '.join(sorted(_KEYS))})")
+        known = ", ".join(sorted(_KEYS | _DISTURBANCE_KEYS))
+        raise ValueError(f"{path}: unknown keys {', '.join(unknown)} (an mpc file has {known})")
     if tuple(data["inputs"]) != TRACKING_INPUTS:
         raise ValueError(f"{path}: inputs must be {json.dumps(list(TRACKING_INPUTS))}, got {data['inputs']!r}")
     d = data["n_delays"]
@@ -170,7 +197,26 @@ def build_mpc_controller(data: dict, path: Path, dt: float) -> ControllerInfo:
     provenance = data.get("provenance", {})
     if not isinstance(provenance, dict):
         raise ValueError(f"{path}: provenance must be a table ([provenance])")
-    return mpc_controller(_plant(rows, b, d, float(data["dt"])), weights, P, settings, provenance)
+    plant = _plant(rows, b, d, float(data["dt"]))
+    disturbance = None
+    if "disturbance" in data:
+        table = data["disturbance"]
+        if not isinstance(table, dict) or set(table) != {"entry", "pole", "gain"}:
+            raise ValueError(f"{path}: disturbance must be a table of entry, pole and gain")
+        try:
+            disturbance = MpcDisturbance(
+                str(table["entry"]),
+                float(table["pole"]),
+                _array(table["gain"], "disturbance.gain", (2,), path),
+                rows,
+                b,
+            )
+        except (TypeError, DesignError) as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    try:
+        return mpc_controller(plant, weights, P, settings, provenance, disturbance)
+    except DesignError as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def _array(value: Any, name: str, shape: tuple[int, ...], path: Path) -> np.ndarray:

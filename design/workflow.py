@@ -48,6 +48,7 @@ __all__ = [
     "provenance",
     "record_design",
     "write_mpc",
+    "offset_free_settings",
 ]
 
 
@@ -427,8 +428,71 @@ def _finite(value):
     return value
 
 
+def offset_free_settings(report: DesignReport, settings):
+    """The MPC's settings with ``offset_free`` as the model file allows it, and a line saying which.
+
+    Offset-free control (``settings.offset_free``, what ``qube-design --mpc`` asks for unless
+    ``--no-offset-free``) needs the model file's disturbance model: a random-walk load at the plant
+    input with a nonzero gain. A rate on theta or alpha is estimated and logged but not used: the
+    arm integrates a rate, so the steady state that balances it is far from where the plant rests
+    under a load (on the twin, 0.1 rad of arm offset under 0.3 V). Without one the MPC is the one
+    without a disturbance model.
+
+    Parameters
+    ----------
+    report : DesignReport
+    settings : design.mpc.MpcSettings
+
+    Returns
+    -------
+    settings : design.mpc.MpcSettings
+    line : str
+    """
+    from dataclasses import replace
+
+    from qube_koopman.design.mpc import model_disturbance
+
+    disturbance = model_disturbance(report.model)
+    if disturbance is None:
+        line = (
+            "offset-free: off: the model file has no disturbance model (qube-identify --horizon S[,S...] "
+            "--disturbance ...), so the MPC is as without one"
+        )
+        return replace(settings, offset_free=False), line
+    if not np.any(np.asarray(disturbance.gain, dtype=float)):
+        line = (
+            "offset-free: off: the model file's disturbance model has a zero gain (q = 0: the training episodes "
+            "show no disturbance), so the MPC is as without one"
+        )
+        return replace(settings, offset_free=False), line
+    where = "a load at the plant input (V)" if disturbance.entry == "input" else f"a rate on {disturbance.entry}"
+    if not settings.offset_free:
+        return settings, f"offset-free: off (--no-offset-free): the MPC records its estimate of {where} per tick"
+    if disturbance.entry != "input":
+        line = (
+            f"offset-free: off: the model file's disturbance is {where}, and offset-free control needs a load at the "
+            "plant input (qube-identify --disturbance input): the arm integrates a rate, and the steady state that "
+            "balances one is not where the plant rests under a load; the MPC records its estimate per tick"
+        )
+        return replace(settings, offset_free=False), line
+    if disturbance.pole != 1.0:
+        line = (
+            f"offset-free: off: the model file's disturbance is first-order (pole {disturbance.pole:g}), not a "
+            f"random walk; the MPC records its estimate of {where} per tick"
+        )
+        return replace(settings, offset_free=False), line
+    line = (
+        f"offset-free: on: the MPC estimates {where} each tick with the model file's Kalman filter and holds "
+        "the arm at its reference under a constant one (--no-offset-free: off)"
+    )
+    return settings, line
+
+
 def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
     """Write the MPC on the report's plant and weights (``qube-design --mpc``): kind ``mpc``, with the provenance.
+
+    The model file's disturbance model, when it has one, goes in the file (the MPC estimates it
+    each tick, and with ``settings.offset_free`` rejects it: :func:`offset_free_settings`).
 
     Parameters
     ----------
@@ -442,15 +506,28 @@ def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
     Returns
     -------
     Path
+
+    Raises
+    ------
+    DesignError
+        When ``settings.offset_free`` and the model file has no random-walk disturbance, or the plant
+        no steady state with the arm at its reference under it.
     """
     import control  # lazily: python-control imports matplotlib
 
     from qube_koopman.design.lq import augment
+    from qube_koopman.design.mpc import model_disturbance, mpc_disturbance
     from qube_koopman.design.mpc_file import write_mpc_file
 
     plant, weights = report.design.plant, report.design.weights
+    model = model_disturbance(report.model)
+    disturbance = None if model is None or not np.any(model.gain) else mpc_disturbance(plant, model)
+    if settings.offset_free:
+        if disturbance is None or disturbance.pole != 1.0:
+            raise DesignError("offset-free MPC needs the model file's random-walk disturbance model")
+        disturbance.target_map()  # the steady state exists, or a DesignError says why
     P, _, _ = control.dare(*augment(plant, weights))
     out = provenance(report)
     out["designed_by"] = "qube-design --mpc (condensed linear MPC on the identified plant's history)"
     out["lq_predicted"] = out.pop("predicted")  # the LQ design's: the MPC's law while no constraint binds
-    return write_mpc_file(path, plant, weights, np.asarray(P), settings, out)
+    return write_mpc_file(path, plant, weights, np.asarray(P), settings, out, disturbance)

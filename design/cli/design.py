@@ -3,7 +3,7 @@
     qube-design MODEL --out FILE.toml [--q-theta Q] [--q-alpha Q] [--r-voltage R]
                 [--q-integral Q | --no-integral] [--seed K] [--episodes N] [--duration S] [--npz]
                 [--interval LEVEL] [--robust] [--rerun FILE.rrd [--rerun-episodes N]]
-                [--mpc [--voltage-limit V] [--horizon N]]
+                [--mpc [--voltage-limit V] [--horizon N] [--no-offset-free]]
 
 Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
 feedback on the plant's history of measurements (with integral action on the arm's tracking
@@ -29,7 +29,12 @@ With ``--mpc`` it writes a model predictive controller instead (a controller fil
 the LQ design's Riccati cost as the terminal cost (so that without active constraints it is that
 LQ design), the voltage kept within ``--voltage-limit V`` (default the rig's 10 V) and the arm
 kept within 0.2 rad of the safety stop (a soft bound: a penalty, so every tick's problem is
-feasible). The report above it is the LQ design's, the MPC's law while no constraint binds.
+feasible). The report above it is the LQ design's, the MPC's law while no constraint binds. When
+the model file has a disturbance model (``qube-identify --horizon S[,S...]``), the MPC estimates
+the disturbance each tick with its Kalman filter and is offset-free: the prediction carries the
+estimate and the steady-state target moves the voltage so that the arm tracks its reference with
+no offset under a constant load (``--no-offset-free``: the estimate is only logged). A line says
+which.
 
 With ``--rerun-save FILE.rrd`` it also runs the first episodes of that excitation on the twin (as
 ``qube-run --seed K --episodes N --controller FILE.toml`` runs them, and under the model's
@@ -163,6 +168,12 @@ def _parser() -> argparse.ArgumentParser:
         metavar="N",
         help="with --mpc: inputs predicted, ticks of 2 ms (default 20)",
     )
+    mpc.add_argument(
+        "--no-offset-free",
+        action="store_true",
+        help="with --mpc: do not use the model file's disturbance estimate (offset-free control is on when the "
+        "model file has a disturbance model, qube-identify --horizon)",
+    )
     add_force_option(p)
     add_standard_options(p, "nothing to quiet")
     return p
@@ -192,10 +203,12 @@ def _mpc_settings(args):
         for name in ("voltage_limit", "horizon"):
             if getattr(args, name) is not None:
                 raise CliError(f"--{name.replace('_', '-')} is a setting of --mpc")
+        if args.no_offset_free:
+            raise CliError("--no-offset-free is a setting of --mpc")
         return None
     if args.npz or args.robust or args.rerun:
         raise CliError("--mpc writes its matrices in the file and takes no --npz, --robust or --rerun-save")
-    values = {"voltage_limit": args.voltage_limit, "horizon": args.horizon}
+    values = {"voltage_limit": args.voltage_limit, "horizon": args.horizon, "offset_free": not args.no_offset_free}
     try:
         return MpcSettings(**{k: v for k, v in values.items() if v is not None})
     except DesignError as exc:
@@ -237,8 +250,10 @@ def _run(args) -> int:
         print(f"qube-design: warning: {warning}", file=sys.stderr)
     try:
         if settings is not None:
-            from qube_koopman.design.workflow import write_mpc
+            from qube_koopman.design.workflow import offset_free_settings, write_mpc
 
+            settings, line = offset_free_settings(report, settings)
+            print(line)
             written = write_mpc(args.out, report, settings)
         else:
             written = write_controller_file(args.out, report.controller, provenance(report), npz=args.npz)

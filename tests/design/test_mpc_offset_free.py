@@ -1,0 +1,219 @@
+"""Offset-free MPC: the model file's disturbance filtered each tick and used in the target; on the twin under a
+constant load the arm stays at its reference where the MPC without it does not; without a disturbance model the
+MPC is the one it was."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from qube_koopman.core.controller_file import load_controller
+from qube_koopman.daq.cli.run import main as run_main
+from qube_koopman.daq.log import read_episode
+from qube_koopman.design import Weights, linear_plant
+from qube_koopman.design.cli.design import main as design_main
+from qube_koopman.design.mpc import MpcDisturbance, MpcRuntime, MpcSettings, build_problem
+from qube_koopman.identify.cli.identify import main as identify_main
+from qube_koopman.identify.models.disturbance import filter_disturbance
+from qube_koopman.sim.pendulum.simulator import PendulumSimulator
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_design import _pendulum_like  # noqa: E402
+
+DT = 0.002
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory) -> dict[str, Path]:
+    """A plant identified on 3 rig-PD episodes of the twin (10 delays and a constant), with a load at the plant
+    input as its disturbance model (q set: the twin's episodes have no load to estimate it from), and without."""
+    root = tmp_path_factory.mktemp("offset_free")
+    for out, n, seed in (("train", 3, 3), ("test", 1, 4)):
+        argv = ["--episodes", str(n), "--duration", "8", "--seed", str(seed), "--out", str(root / out), "-q"]
+        assert run_main([*argv, "--n-jobs", "1"]) == 0
+    logs = ["--train", *map(str, sorted((root / "train").glob("*.mcap"))), "--test", str(root / "test")]
+    fit = ["--poly", "1", "--delays", "10", "--const", "--interval", "0", "-q"]
+    horizon = ["--horizon", "0.1,1", "--disturbance", "input", "--disturbance-q", "1e-5"]
+    assert identify_main([*logs, *fit, *horizon, "--out", str(root / "with")]) == 0
+    assert identify_main([*logs, *fit, "--out", str(root / "without")]) == 0
+    return {"with": root / "with", "without": root / "without", "root": root}
+
+
+def _design(model: Path, out: Path, *flags: str) -> Path:
+    argv = [str(model), "--mpc", *flags, "--out", str(out), "--episodes", "1", "--duration", "2", "--interval", "0"]
+    assert design_main(argv) == 0
+    # the host's load must not decide a test: no tick falls back for being slow
+    out.write_text(out.read_text().replace("time_budget = 0.001", "time_budget = 10.0"))
+    return out
+
+
+def _twin_loop(path: Path, load: float, seconds: float = 4.0, load_from: float = 0.5):
+    """The controller file on the twin, ``load`` volts added at the plant input from ``load_from`` s on (the
+    controller does not see it): theta, alpha, the controller's output and its disturbance estimate per tick."""
+    runtime = load_controller(path).runtime
+    out, upd = runtime.step()
+    sim = PendulumSimulator(seed=0)
+    theta, alpha = sim.reset((0.0, 0.02, 0.0, 0.0))
+    n = round(seconds / DT)
+    rec = np.zeros((n, 4))
+    for k in range(n):
+        e0, e1 = -theta, -alpha
+        u, _ = out(e0, e1, 0.0, 0.0)
+        rec[k] = theta, alpha, u, runtime.estimate
+        theta, alpha = sim.step(u + (load if k * DT >= load_from else 0.0))
+        upd(e0, e1, 0.0)
+    assert runtime.n_fallbacks == 0
+    return rec
+
+
+def test_under_a_constant_load_the_offset_free_mpc_holds_the_arm_at_its_reference(models, tmp_path, capsys):
+    # without the arm's integral the MPC without a disturbance estimate has nothing to remove a load's offset
+    on = _design(models["with"], tmp_path / "on.toml", "--no-integral")
+    assert "offset-free: on" in capsys.readouterr().out
+    off = _design(models["with"], tmp_path / "off.toml", "--no-integral", "--no-offset-free")
+    assert "offset-free: off (--no-offset-free)" in capsys.readouterr().out
+    load = 0.5
+    with_estimate, without = _twin_loop(on, load), _twin_loop(off, load)
+    last = slice(-750, None)  # the last 1.5 s
+    offset_off = abs(np.mean(without[last, 0]))
+    offset_on = abs(np.mean(with_estimate[last, 0]))
+    assert offset_off > 0.01  # rad: the load pushes the arm off
+    assert offset_on < 0.1 * offset_off
+    # the estimate converges to the load (both controllers estimate it; one uses it)
+    for rec in (with_estimate, without):
+        assert np.mean(rec[last, 3]) == pytest.approx(load, rel=0.2)
+    assert abs(np.mean(with_estimate[: round(0.5 / DT), 3])) < 0.1 * load  # no load yet: none estimated
+    # the offset-free MPC's steady state cancels the load: its voltage is the load's opposite
+    assert np.mean(with_estimate[last, 2]) == pytest.approx(-load, rel=0.2)
+
+
+def test_the_estimate_is_identifys_kalman_filter_on_the_same_residuals(models, tmp_path):
+    path = _design(models["with"], tmp_path / "on.toml")
+    rec = _twin_loop(path, 0.3, seconds=2.0)
+    info = load_controller(path)
+    d = info.runtime.disturbance
+    n_d = info.runtime.n_delays
+    x = rec[:, :2]
+    v = rec[:, 2]  # the plant input the controller applied (no feedforward; the load is not the controller's)
+    residuals = np.full_like(x, np.nan)
+    for k in range(n_d + 1, len(x)):
+        s = x[k - 1 - n_d : k][::-1].ravel()
+        residuals[k] = x[k] - (d.rows @ s + d.input * v[k - 1])
+    filtered, _ = filter_disturbance(residuals, d.direction, d.pole, d.gain)
+    np.testing.assert_allclose(rec[:, 3], filtered, rtol=1e-9, atol=1e-12)
+    assert info.settings["offset_free"] is True
+    assert info.settings["disturbance"]["entry"] == "input"
+
+
+def test_without_a_disturbance_model_the_mpc_is_unchanged(models, tmp_path, capsys):
+    path = _design(models["without"], tmp_path / "plain.toml")
+    assert "offset-free: off: the model file has no disturbance model" in capsys.readouterr().out
+    text = path.read_text()
+    assert "disturbance" not in text and "offset_free = false" in text
+    info = load_controller(path)
+    assert info.runtime.disturbance is None
+    assert info.tick_fields == ("solver_status", "solver_iterations", "solve_time", "constraint_active", "fallback")
+    # a file written before offset-free control existed (no offset_free setting) loads as the same controller
+    old = tmp_path / "old.toml"
+    old.write_text(text.replace(", offset_free = false", ""))
+    assert load_controller(old).settings == info.settings
+
+
+def test_without_a_disturbance_model_the_outputs_are_the_ones_before_offset_free_control(tmp_path):
+    # recorded with the MPC as it was before the disturbance estimate (the voltage limit binds on half the ticks)
+    plant = linear_plant(_pendulum_like(3, False))
+    p = build_problem(plant, Weights(), MpcSettings(horizon=15, voltage_limit=2.0, time_budget=10.0))
+    out, upd = MpcRuntime(p, plant.n_delays, True, plant.dt).step()
+    rng = np.random.default_rng(3)
+    us = []
+    for k in range(200):
+        e0, e1 = 0.05 * rng.standard_normal(2)
+        f = 0.3 * np.sin(k / 20)
+        us.append(out(e0, e1, f, 0.1)[0])
+        upd(e0, e1, f)
+    before = [2.0, -2.1028693422366356, -2.179541643231187, 2.083824649459678, 2.150421538453759]
+    assert [us[k] for k in (0, 7, 50, 120, 199)] == pytest.approx(before, rel=1e-9)
+
+
+def test_the_estimate_does_not_change_the_mpc_without_offset_free_control():
+    plant = linear_plant(_pendulum_like(3, False))
+    p = build_problem(plant, Weights(), MpcSettings(horizon=15, voltage_limit=2.0, time_budget=10.0))
+    m = plant.n_measured
+    disturbance = MpcDisturbance("input", 1.0, np.array([3.0, -2.0]), plant.F[:m], plant.G[:m, 0])
+    plain = MpcRuntime(p, plant.n_delays, True, plant.dt)
+    estimating = MpcRuntime(p, plant.n_delays, True, plant.dt, disturbance=disturbance)
+    assert estimating.tick_fields == plain.tick_fields + ("disturbance",)
+    (out_a, upd_a), (out_b, upd_b) = plain.step(), estimating.step()
+    rng = np.random.default_rng(4)
+    for _ in range(100):
+        e0, e1 = 0.05 * rng.standard_normal(2)
+        assert out_a(e0, e1, 0.1, 0.0) == out_b(e0, e1, 0.1, 0.0)
+        same = (0, 1, 3, 4)  # all but the solve time
+        assert [estimating.tick_record[i] for i in same] == [plain.tick_record[i] for i in same]
+        upd_a(e0, e1, 0.1)
+        upd_b(e0, e1, 0.1)
+    assert estimating.estimate != 0.0
+
+
+def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_the_file(models, tmp_path):
+    path = _design(models["with"], tmp_path / "on.toml")
+    text = path.read_text()
+    bad = tmp_path / "bad.toml"
+    for edit, message in (
+        (text.replace('entry = "input"', 'entry = "torque"'), "unknown disturbance entry 'torque'"),
+        (text.replace("pole = 1.0", "pole = 0.9"), "offset-free MPC needs a random-walk disturbance"),
+        ("\n".join(line for line in text.splitlines() if not line.startswith("disturbance")), "needs a disturbance"),
+    ):
+        bad.write_text(edit)
+        with pytest.raises(ValueError, match=message) as info:
+            load_controller(bad)
+        assert str(info.value).startswith(str(bad))
+
+
+@pytest.mark.parametrize(
+    "entry, pole, gain, wanted, on, says",
+    [
+        ("input", 1.0, [1.0, -1.0], True, True, "offset-free: on: the MPC estimates a load at the plant input"),
+        ("input", 1.0, [1.0, -1.0], False, False, "offset-free: off (--no-offset-free)"),
+        ("input", 1.0, [0.0, 0.0], True, False, "has a zero gain"),
+        ("input", 0.99, [1.0, -1.0], True, False, "is first-order (pole 0.99)"),
+        ("theta", 1.0, [1.0, -1.0], True, False, "is a rate on theta, and offset-free control needs a load"),
+        ("alpha", 1.0, [1.0, -1.0], True, False, "is a rate on alpha, and offset-free control needs a load"),
+        (None, 1.0, [1.0, -1.0], True, False, "the model file has no disturbance model"),
+    ],
+)
+def test_qube_design_turns_offset_free_control_on_only_for_a_random_walk_load_with_a_gain(
+    entry, pole, gain, wanted, on, says
+):
+    from types import SimpleNamespace
+
+    from qube_koopman.design.workflow import offset_free_settings
+    from qube_koopman.identify.models.disturbance import DisturbanceModel
+
+    model = None if entry is None else DisturbanceModel(entry, pole, 1e-5, np.eye(2), np.array(gain))
+    settings, line = offset_free_settings(
+        SimpleNamespace(model={"disturbance": model}), MpcSettings(offset_free=wanted)
+    )
+    assert settings.offset_free is on and says in line
+
+
+def test_no_offset_free_is_a_setting_of_mpc(models, tmp_path, capsys):
+    assert design_main([str(models["with"]), "--no-offset-free", "--out", str(tmp_path / "x.toml")]) == 2
+    assert "--no-offset-free is a setting of --mpc" in capsys.readouterr().err
+
+
+def test_qube_run_logs_the_disturbance_estimate_per_tick(models, tmp_path):
+    path = _design(models["with"], tmp_path / "on.toml")
+    runs = tmp_path / "runs"
+    argv = ["--controller", str(path), "--episodes", "1", "--duration", "3", "--seed", "5", "--out", str(runs)]
+    assert run_main([*argv, "--n-jobs", "1", "-q"]) == 0
+    (log,) = sorted(runs.glob("*.mcap"))
+    e = read_episode(log)
+    c = e.metadata.controller
+    assert c.tick_fields[-1] == "disturbance" and c.settings["offset_free"] is True
+    estimate = e.controller_record[:, -1]
+    assert np.all(np.isfinite(estimate)) and np.any(estimate != 0.0)
+    assert np.max(np.abs(estimate)) < 0.5  # V: the twin has no load; the estimate is the model's small error
