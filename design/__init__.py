@@ -51,6 +51,10 @@ _HOMES = {
     "RobustChoice": "uncertainty",
     "robust_design": "uncertainty",
     "run_on_twin": "twin",
+    # episodes run under a design against its prediction (qube-compare)
+    "RunComparison": "compare",
+    "compare_runs": "compare",
+    "comparison_text": "compare",
 }
 
 __all__ = list(_HOMES)

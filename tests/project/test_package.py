@@ -219,7 +219,7 @@ def test_every_command_is_written_with_the_toolkit_of_core():
 
     root = Path(__file__).resolve().parents[2]
     scripts = tomllib.loads((root / "pyproject.toml").read_text())["project"]["scripts"]
-    assert len(scripts) == 8
+    assert len(scripts) == 9
     without = []
     for name, target in scripts.items():
         module, function = target.removeprefix("qube_koopman.").split(":")
