@@ -167,7 +167,8 @@ def _episodes(paths: Sequence[Path], info: ControllerInfo, controller_path: Path
             settings = ExcitationSettings() if settings is None else ExcitationSettings.from_dict(settings)
         except (TypeError, ValueError) as exc:
             raise DesignError(f"{path}: its excitation settings cannot be used ({exc})") from None
-        excitation = generate_excitation(tuple(int(seeds[k]) for k in SEED_SIGNALS), settings)
+        a, b, c = (int(seeds[k]) for k in SEED_SIGNALS)
+        excitation = generate_excitation((a, b, c), settings)
         if len(excitation.target_theta) != len(episode.theta):
             raise DesignError(f"{path}: {len(episode.theta)} samples, its excitation {len(excitation.target_theta)}")
         episodes.append(episode)
@@ -226,7 +227,8 @@ def compare_runs(
     plant_model, plant, design = _redesign(info, provenance, controller_path, model_path, model_data)
     predicted = predict_cost(plant_model, design.controller, excitations).summary()
     rows = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in episodes])
-    measured = CostPrediction(*rows.T, diverged=int(np.sum(~np.isfinite(rows[:, 0])))).summary()
+    J, tracking, alpha, voltage, peak = rows.T
+    measured = CostPrediction(J, tracking, alpha, voltage, peak, diverged=int(np.sum(~np.isfinite(J)))).summary()
     interval = _interval(provenance, model_data, plant, design, predicted, excitations)
     return RunComparison(
         controller_path,
