@@ -9,7 +9,7 @@ exactly the logs' excitations (their recorded seeds and settings) with the inter
 and prints, for J, the arm's tracking RMS and the voltage's RMS (after each episode's first second), the
 measured figure, the predicted one, the interval, and whether the measured figure lies inside. Episodes the
 safety supervisor stopped are left out and counted. A log recorded under another controller, or a
-controller file qube-design did not write, is one line, exit 1.
+controller file qube-design did not write, is one line naming it, exit 1.
 """
 
 from __future__ import annotations
@@ -28,7 +28,9 @@ PROG = "qube-compare"
 
 _EPILOG = """\
 exit status: 0 when the comparison was printed, whether or not the measured figures lie inside their
-intervals; 1 when a file is not what it should be (named); 2 on a usage error.
+intervals; 1 when a file cannot be compared (named: a log of another controller, a controller file
+qube-design did not write, a model file missing or not the one designed on); 2 on a usage error or
+a file or folder that does not exist.
 
 examples:
   qube-design twin_plant --out designed.toml --seed 7
@@ -69,12 +71,12 @@ def _logs(items: list[Path]) -> list[Path]:
         if item.is_dir():
             found = find_logs(item)
             if not found:
-                raise CliError(f"{item}: folder has no .mcap logs", status=1)
+                raise CliError(f"{item}: folder has no .mcap logs")
             paths.extend(found)
         elif item.is_file():
             paths.append(item)
         else:
-            raise CliError(f"{item}: no such file or folder", status=1)
+            raise CliError(f"{item}: no such file or folder")
     return paths
 
 
@@ -83,7 +85,7 @@ def _run(args) -> int:
     from qube_koopman.design.plant import DesignError
 
     if not args.controller.is_file():
-        raise CliError(f"{args.controller}: no such controller file", status=1)
+        raise CliError(f"{args.controller}: no such controller file")
     logs = _logs(args.logs)
     try:
         comparison = compare_runs(args.controller, logs, model=args.model)
