@@ -115,6 +115,8 @@ def _model(provenance: dict, controller_path: Path, model: str | Path | None) ->
                 return path, load_model(path)
             except ValueError as exc:
                 raise DesignError(str(exc)) from None
+    if model is not None:
+        raise DesignError(f"{model}: no such model file (--model)")
     raise DesignError(
         f"{controller_path}: its model file {candidates[0]} is not there (nor beside the controller file); give "
         "it with --model"

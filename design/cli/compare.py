@@ -86,6 +86,8 @@ def _run(args) -> int:
 
     if not args.controller.is_file():
         raise CliError(f"{args.controller}: no such controller file")
+    if args.model is not None and not args.model.exists():
+        raise CliError(f"{args.model}: no such model file (--model)")
     logs = _logs(args.logs)
     try:
         comparison = compare_runs(args.controller, logs, model=args.model)

@@ -145,6 +145,8 @@ def test_bad_input_is_one_line_naming_the_file(designed, tmp_path, capsys):
     assert compare_main([str(moved), *map(str, logs), "--model", str(other)]) == 1
     assert _one_line(capsys) == f"{moved}: designed again from {other} with its weights, it is another controller: " \
                                 "the model file is not the one it was designed on"
+    assert compare_main([str(moved), *map(str, logs), "--model", str(tmp_path / "none.json")]) == 2
+    assert _one_line(capsys) == f"{tmp_path / 'none.json'}: no such model file (--model)"
     assert compare_main([str(moved), *map(str, logs), "--model", str(designed.parent / "model.json")]) == 0
     assert compare_main([str(designed), str(tmp_path / "nothing")]) == 2  # a usage error, as in every command
     assert _one_line(capsys) == f"{tmp_path / 'nothing'}: no such file or folder"
