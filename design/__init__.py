@@ -52,6 +52,13 @@ _HOMES = {
     "RobustChoice": "uncertainty",
     "robust_design": "uncertainty",
     "run_on_twin": "twin",
+    # the design's frequency responses (qube-design --figures)
+    "FrequencyFigures": "frequency",
+    "write_frequency_figures": "frequency",
+    # episodes run under a design against its prediction (qube-compare)
+    "RunComparison": "compare",
+    "compare_runs": "compare",
+    "comparison_text": "compare",
 }
 
 __all__ = list(_HOMES)

@@ -44,7 +44,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Any
 
 import numpy as np
 
@@ -53,6 +52,7 @@ from qube_koopman.design.lq import Weights, augment
 from qube_koopman.design.plant import DesignError, LinearPlant
 from qube_koopman.identify.models.disturbance import ENTRIES as DISTURBANCE_ENTRIES
 from qube_koopman.identify.models.disturbance import DisturbanceModel
+from qube_koopman.identify.models.identified import IdentifiedModel
 
 __all__ = [
     "MpcSettings",
@@ -131,15 +131,15 @@ class MpcSettings:
         return asdict(self)
 
 
-def model_disturbance(model: Any) -> DisturbanceModel | None:
+def model_disturbance(model: IdentifiedModel) -> DisturbanceModel | None:
     """The loaded model file's disturbance model, or None: the one read of the model file the MPC makes.
 
     Parameters
     ----------
-    model : dict
+    model : IdentifiedModel
         What :func:`identify.models.model_file.load_model` returns.
     """
-    return model.get("disturbance")
+    return model.disturbance
 
 
 @dataclass(frozen=True, eq=False)

@@ -155,6 +155,13 @@ def build_parser() -> argparse.ArgumentParser:
         "'soft-theta' (a softer arm, kp_theta 2)",
     )
     p.add_argument(
+        "--run-unstable",
+        action="store_true",
+        help="run on the rig (--backend serial) a --controller file that destabilises the twin's loop "
+        "linearized at upright, which is refused without it; on the simulator such a file runs with a warning "
+        "(a linear controller only: PD gains or state space)",
+    )
+    p.add_argument(
         "--discretization",
         default="backward-euler",
         choices=("backward-euler", "zoh", "tustin"),
@@ -551,6 +558,7 @@ def _run(args) -> int:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
     except ValueError as exc:
         raise CliError(f"{exc} (--controller)") from None
+    _check_on_twin(args, controller)
     if args.max_voltage > 10.0:
         raise CliError(f"--max-voltage {args.max_voltage:g}: at most the rig's 10 V")
     try:
@@ -589,6 +597,22 @@ def _run(args) -> int:
         return _collect(args, backend, plans, settings, limits, seed, rate)
     finally:
         backend.close()
+
+
+def _check_on_twin(args, controller) -> None:
+    """A --controller file checked on the twin's loop linearized at upright before anything runs: on the rig a
+    diverging loop is refused (exit 2) unless --run-unstable, on the simulator a warning line; kinds beyond LTI
+    (the MPC) are not judged. The shipped gains (no --controller) balance the twin, and a pre-flight runs none."""
+    if args.run_unstable and args.backend != "serial":
+        raise CliError("--run-unstable is for --backend serial: the simulator runs such a controller with a warning")
+    if args.controller is None or args.check:
+        return
+    from qube_koopman.daq.twin_check import check_controller_file_on_twin
+
+    params = _load_plant(args.plant) if args.backend == "sim" else None  # the simulator: the plant it runs
+    warning = check_controller_file_on_twin(controller, str(args.controller), args.backend, args.run_unstable, params)
+    if warning:
+        print(f"{PROG}: warning: {warning}", file=sys.stderr, flush=True)
 
 
 def _swing_up(args, limits):

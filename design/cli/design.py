@@ -3,7 +3,7 @@
     qube-design MODEL --out FILE.toml [--q-theta Q] [--q-alpha Q] [--r-voltage R]
                 [--q-integral Q | --no-integral] [--seed K] [--episodes N] [--duration S] [--npz]
                 [--interval LEVEL] [--robust] [--rerun FILE.rrd [--rerun-episodes N]]
-                [--mpc [--voltage-limit V] [--horizon N] [--no-offset-free]]
+                [--mpc [--voltage-limit V] [--horizon N] [--no-offset-free]] [--figures DIR]
 
 Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
 feedback on the plant's history of measurements (with integral action on the arm's tracking
@@ -36,6 +36,11 @@ estimate and the steady-state target moves the voltage so that the arm tracks it
 no offset under a constant load (``--no-offset-free``: the estimate is only logged). A line says
 which.
 
+With ``--figures DIR`` it also writes the design's frequency responses into DIR, named after the
+controller file: ``STEM_bode.png``, Bode plots of the identified plant (voltage to each angle), of the
+controller (each tracking error to the voltage) and of the loop broken at the plant input, and
+``STEM_margins.png``, the loop's Bode plot with its crossings and its margins in the title (those printed).
+
 With ``--rerun-save FILE.rrd`` it also runs the first episodes of that excitation on the twin (as
 ``qube-run --seed K --episodes N --controller FILE.toml`` runs them, and under the model's
 training controller) and writes a rerun recording: predicted vs twin trajectories of theta,
@@ -61,7 +66,13 @@ from qube_koopman.core.cli import (
     seed,
     whole_number,
 )
-from qube_koopman.core.command import CliError, check_output_file, check_rerun_target, run_command
+from qube_koopman.core.command import (
+    CliError,
+    check_output_file,
+    check_output_folder,
+    check_rerun_target,
+    run_command,
+)
 from qube_koopman.design.lq import Weights
 from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
 
@@ -152,6 +163,14 @@ def _parser() -> argparse.ArgumentParser:
         metavar="N",
         help="episodes of the excitation the recording shows, run on the twin (default 3)",
     )
+    p.add_argument(
+        "--figures",
+        type=path,
+        default=None,
+        metavar="DIR",
+        help="also write Bode plots of the plant, the controller and the loop at the plant input, and the loop's "
+        "margins, as DIR/STEM_bode.png and DIR/STEM_margins.png (STEM: the controller file's)",
+    )
     mpc = p.add_argument_group("model predictive control")
     mpc.add_argument("--mpc", action="store_true", help="write a model predictive controller (kind mpc)")
     mpc.add_argument(
@@ -226,6 +245,8 @@ def _run(args) -> int:
     if args.npz:
         check_output_file(Path(args.out).with_suffix(".npz"), "--npz", args.force)
     check_rerun_target(args.rerun, "--rerun-save", args.force)
+    if args.figures is not None:
+        check_output_folder(args.figures, tuple(f.name for f in _figure_files(args)), "--figures", args.force)
     if not (math.isfinite(args.duration) and 2.0 <= args.duration <= 60.0):
         raise CliError(f"--duration must be between 2 and 60 s, got {args.duration}")
     if round(args.duration * 500) != args.duration * 500:
@@ -268,7 +289,31 @@ def _run(args) -> int:
     )
     if args.rerun:
         _record(args, report, written)
+    if args.figures is not None:
+        _figures(args, report)
     return 0
+
+
+def _figure_files(args) -> list[Path]:
+    """The files --figures writes (none without it)."""
+    if args.figures is None:
+        return []
+    stem = Path(args.out).stem
+    return [args.figures / f"{stem}_bode.png", args.figures / f"{stem}_margins.png"]
+
+
+def _figures(args, report) -> None:
+    """The --figures files: Bode plots of the plant, the controller and the loop, and the loop's margins."""
+    from qube_koopman.design.frequency import write_frequency_figures
+
+    try:
+        figures = write_frequency_figures(args.figures, Path(args.out).stem, report.design.plant, report.controller)
+    except OSError as exc:
+        raise CliError(f"{args.figures}: cannot write: {exc.strerror or exc}", status=1) from None
+    print(
+        f"wrote {figures.bode} (Bode plots of the plant, the controller and the loop) and {figures.margins_figure} "
+        "(the loop's margins)"
+    )
 
 
 def _record(args, report, written) -> None:

@@ -406,3 +406,63 @@ def test_max_voltage_lowers_the_clamp_for_any_controller(tmp_path, capsys):
     np.testing.assert_array_equal(episode.plant_input[episode.saturation != 0], clipped[episode.saturation != 0])
     assert main(["--max-voltage", "12", "--out", str(tmp_path / "x")]) == 2
     assert "--max-voltage 12: at most the rig's 10 V" in capsys.readouterr().err
+
+
+# --- a controller file checked on the twin before it runs ----------------------------------------------------
+
+#: The rig's gains with the pendulum's proportional gain turned round: the twin's linearized loop diverges
+#: (spectral radius 1.053).
+_FLIPPED = "kp_theta = 6.0\nkd_theta = 1.8\nkp_alpha = -30.0\nkd_alpha = 2.5\ntau = 50.0\n"
+
+
+def test_a_controller_destabilising_the_twin_is_refused_on_the_rig_before_the_port_is_opened(tmp_path, capsys):
+    bad = tmp_path / "flipped.toml"
+    bad.write_text(_FLIPPED)
+    port = tmp_path / "no-such-device"  # never opened: the refusal comes first
+    out = tmp_path / "runs"
+    argv = ["--backend", "serial", "--port", str(port), "--controller", str(bad), "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == (f"qube-run: error: {bad}: the controller destabilises the twin's loop linearized at upright "
+                   "(spectral radius 1.0535 > 1): refused on the rig; --run-unstable runs it anyway\n")
+    assert not out.exists()
+    # --run-unstable lifts the refusal: a warning, then the run goes on to the port (missing here: exit 1)
+    assert main([*argv, "--run-unstable"]) == 1
+    err = capsys.readouterr().err
+    warning, error = err.splitlines()
+    assert warning.startswith(f"qube-run: warning: {bad}: the controller destabilises") and "--run-unstable asks" in warning
+    assert str(port) in error and "destabilises" not in error
+
+
+def test_a_controller_destabilising_the_twin_runs_on_the_simulator_with_a_warning(tmp_path, capsys):
+    bad = tmp_path / "flipped.toml"
+    bad.write_text(_FLIPPED)
+    out = tmp_path / "runs"
+    assert main(["--controller", str(bad), "--episodes", "1", "--duration", "2", "--seed", "1", "--out", str(out),
+                 "-q"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"qube-run: warning: {bad}: the controller destabilises the twin's")
+    assert len(list(out.glob("*.mcap"))) == 1
+    assert main(["--run-unstable", "--controller", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "--run-unstable is for --backend serial" in capsys.readouterr().err
+
+
+def test_a_stable_controller_file_runs_without_a_word_and_a_kind_beyond_lti_is_not_judged(tmp_path, capsys):
+    from qube_koopman.core.controller_file import ControllerInfo, write_controller_file
+    from qube_koopman.core.lti import DiscreteStateSpace
+    from qube_koopman.daq.twin_check import check_controller_file_on_twin, judged_system
+
+    rig = pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0))
+    # the rig's PD with a feedforward input that cancels the feedforward: judged on its tracking-error columns
+    with_f = DiscreteStateSpace(rig.A, np.hstack([rig.B, np.zeros((rig.n_states, 1))]), rig.C,
+                                np.hstack([rig.D, [[-1.0]]]), rig.dt)
+    path = write_controller_file(tmp_path / "rig_ff.toml", with_f)
+    assert main(["--controller", str(path), "--episodes", "1", "--duration", "2", "--seed", "1",
+                 "--out", str(tmp_path / "runs"), "-q"]) == 0
+    assert capsys.readouterr().err == ""
+    flipped = pd_controller(PdGains(6.0, 1.8, -30.0, 2.5, 50.0))
+    judged = ControllerInfo(flipped, "given", kind="state-space")
+    assert judged_system(judged) is flipped
+    assert check_controller_file_on_twin(judged, "f.toml", "sim").startswith("f.toml: the controller destabilises")
+    beyond = ControllerInfo(flipped, "given", kind="mpc", runtime=object())  # an MPC's loop is not its system's
+    assert judged_system(beyond) is None and check_controller_file_on_twin(beyond, "m.toml", "serial") is None

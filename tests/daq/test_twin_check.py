@@ -1,5 +1,5 @@
 """A controller file is checked on the twin's linearized loop before qube-run runs it: refused on the rig when the
-loop diverges (unless --force), a warning on the simulator; the shipped controllers pass."""
+loop diverges (unless --run-unstable), a warning on the simulator; the shipped controllers pass."""
 
 import pytest
 
@@ -32,10 +32,10 @@ def test_a_diverging_controller_is_refused_on_the_rig_and_a_warning_on_the_simul
         check_controller_on_twin(controller, "bad.toml", "serial")
     message = str(caught.value)
     assert message.startswith("bad.toml: the controller destabilises the twin's loop linearized at upright "
-                              f"(spectral radius {radius:.4f} > 1): refused on the rig; --force runs it anyway")
+                              f"(spectral radius {radius:.4f} > 1): refused on the rig; --run-unstable runs it anyway")
     assert caught.value.status == 2 and "\n" not in message
     assert check_controller_on_twin(controller, "bad.toml", "sim").startswith("bad.toml: the controller destabilises")
-    assert "as --force asks" in check_controller_on_twin(controller, "bad.toml", "serial", force=True)
+    assert "as --run-unstable asks" in check_controller_on_twin(controller, "bad.toml", "serial", run_unstable=True)
 
 
 def test_the_linearized_loop_leaves_the_coulomb_slope_out_and_checks_shapes():

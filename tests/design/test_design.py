@@ -441,3 +441,40 @@ def test_the_robust_design_is_the_nominal_one_when_the_bootstrap_plants_agree(tw
     assert worst == sorted(worst) and choice.scale == 1.0, choice.candidates
     assert choice.candidates[0]["stable_members"] == 20, choice.candidates
     np.testing.assert_array_equal(choice.design.gain, design_lq(plant, Weights()).gain)
+
+
+# --- the design's runs against its prediction (qube-compare) ---------------------------------------------------
+
+
+@pytest.mark.slow
+def test_qube_compare_finds_the_designs_twin_runs_inside_the_interval_it_predicted(twin_cycle, tmp_path, capsys):
+    """The fixture's 6 episodes under the design on the excitation it was designed on (``--seed 5``), then 2 short
+    twin episodes of another run (``--seed 8 --duration 6``): each compared with the prediction made again from
+    the controller file's provenance, on the logs' own excitations; a log of the rig's PD is refused."""
+    from qube_koopman.design.cli.compare import main as compare_main
+    from qube_koopman.design.compare import compare_runs
+
+    provenance = load_controller(twin_cycle.controller).provenance
+    same = compare_runs(twin_cycle.controller, sorted(twin_cycle.designed.glob("*.mcap")))
+    assert same.design_excitation and len(same.logs) == 6
+    assert same.predicted["J"] == pytest.approx(provenance["predicted"]["J"], rel=1e-9)
+    assert (same.interval.lower["J"], same.interval.upper["J"]) == pytest.approx(
+        (provenance["interval"]["J"]["lower"], provenance["interval"]["J"]["upper"]), rel=1e-9)
+    assert same.inside("J") and same.inside("voltage_rms"), (same.measured, same.interval.as_dict())
+
+    short = tmp_path / "short"
+    assert run_main(["--backend", "sim", "--episodes", "2", "--seed", "8", "--duration", "6", "--controller",
+                     str(twin_cycle.controller), "--out", str(short), "-q"]) == 0
+    capsys.readouterr()
+    assert compare_main([str(twin_cycle.controller), str(short)]) == 0
+    text = capsys.readouterr().out
+    assert "2 episodes compared, after the first second, predicted by the model on the logs' excitations" in text
+    other = compare_runs(twin_cycle.controller, sorted(short.glob("*.mcap")))
+    lower, upper = other.interval.lower["J"], other.interval.upper["J"]
+    assert 0.9 * lower <= other.measured["J"] <= 1.1 * upper, (other.measured["J"], lower, upper)
+    assert other.predicted["J"] != pytest.approx(same.predicted["J"], rel=1e-3)  # another excitation, predicted anew
+
+    pd_log = sorted(twin_cycle.pd.glob("*.mcap"))[0]
+    assert compare_main([str(twin_cycle.controller), str(pd_log)]) == 1
+    assert capsys.readouterr().err == (f"qube-compare: error: {pd_log}: recorded under another controller (pd, 2 "
+                                       f"states), not {twin_cycle.controller}\n")

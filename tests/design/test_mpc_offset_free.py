@@ -195,7 +195,7 @@ def test_qube_design_turns_offset_free_control_on_only_for_a_random_walk_load_wi
 
     model = None if entry is None else DisturbanceModel(entry, pole, 1e-5, np.eye(2), np.array(gain))
     settings, line = offset_free_settings(
-        SimpleNamespace(model={"disturbance": model}), MpcSettings(offset_free=wanted)
+        SimpleNamespace(model=SimpleNamespace(disturbance=model)), MpcSettings(offset_free=wanted)
     )
     assert settings.offset_free is on and says in line
 
