@@ -507,7 +507,7 @@ def _koopman(
             "cv_kind": folds.kind,
             "cv_description": FOLD_KINDS[folds.kind],
             "cv_splits": len(folds.splits),
-            "cv_seed": cv_seed if folds.kind == "episode-grouped" else None,
+            "cv_seed": None if folds.kind == "leave-one-controller-out" else cv_seed,
             "score": score,
             "folds": folds.report([log.path.name for log in train], sweep.cv_r2[score][:, best]),
         }
@@ -1162,7 +1162,7 @@ def run_search(
         started = time.perf_counter()
         probes = twin_probes(trajs, cache=options.probe_cache)
         probe_seconds = time.perf_counter() - started
-    several = folds.kind == "leave-one-controller-out"
+    several = folds.kind == "per-controller"
     result = search_liftings(
         trajs,
         controller,

@@ -225,7 +225,7 @@ def search_report(result, args, names) -> dict:
         "cv_kind": result.folds.kind,
         "cv_description": FOLD_KINDS[result.folds.kind],
         "cv_splits": len(result.folds.splits),
-        "cv_seed": args.cv_seed if result.folds.kind == "episode-grouped" else None,
+        "cv_seed": None if result.folds.kind == "leave-one-controller-out" else args.cv_seed,
         "folds": result.folds.report(names, result.winner.cv_r2[:, result.winner.best_index]),
         "score": (
             f"mean R^2 of theta and alpha over each fold's validation episodes, closed-loop prediction "

@@ -203,7 +203,7 @@ def _same_controller_phrase(same: dict | None, winner: dict) -> str:
     transfer = winner.get("transfer_r2")
     return (
         f" Its scores side by side: same-controller R^2 {format_number(same['cv_r2'], '.4f')} ({each}; "
-        f"{same['description']}), leave-one-controller-out R^2 {format_number(winner['cv_r2'], '.4f')}"
+        f"{same['description']}), per-controller folds' R^2 {format_number(winner['cv_r2'], '.4f')}"
         + (
             f", twin transfer probes {format_number(transfer, '.4f')} (worst "
             f"{format_number(winner.get('transfer_r2_worst'), '.3f')})"
@@ -219,6 +219,11 @@ def _folds_phrase(cv: dict) -> str:
     controllers were accepted have no ``cv_kind``)."""
     if cv.get("cv_kind") == "leave-one-controller-out":
         return f"{cv['cv_splits']} leave-one-controller-out folds (each holds out one training controller's episodes)"
+    if cv.get("cv_kind") == "per-controller":
+        return (
+            f"{cv['cv_splits']} per-controller folds (as many for each training controller: one holding out all its "
+            "episodes when the others are at least half of them, the others 20% of its episodes)"
+        )
     return f"{cv['cv_splits']} episode-grouped splits (seed {cv['cv_seed']})"
 
 

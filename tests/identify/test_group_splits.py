@@ -35,20 +35,29 @@ def test_splits_equal_scikit_learn_when_it_is_installed(config):
         np.testing.assert_array_equal(train, np.sort(exp_train))
 
 
-def test_leave_one_controller_out_folds_hold_out_the_fewest_episodes_first():
+def test_per_controller_folds_hold_out_a_new_controller_whole_first_and_weigh_each_controller_the_same():
     """A search screens on the first fold: with a new controller's few episodes beside the rig's many,
-    that fold holds out the few (the cheapest to predict); equal counts keep the controllers' order."""
+    that fold holds out the few whole (the cheapest to predict, the new loop predicted by a plant fitted to
+    the rest). The rig's whole would leave the few alone to train on: its folds hold out a part of it
+    instead. Every controller has as many folds (the mean weighs them the same), each training on at least
+    half of the episodes; equal counts keep the controllers' order."""
     from qube_koopman.core.controller import load_pd_gains, pd_controller
     from qube_koopman.identify.model_selection.split import cross_validation_folds
 
     rig, soft = pd_controller(load_pd_gains("rig")), pd_controller(load_pd_gains("soft-theta"))
     folds = cross_validation_folds([rig] * 5 + [soft] * 2)
-    assert folds.kind == "leave-one-controller-out"
-    assert [v.tolist() for _, v in folds.splits] == [[5, 6], [0, 1, 2, 3, 4]]
-    assert [t.tolist() for t, _ in folds.splits] == [[0, 1, 2, 3, 4], [5, 6]]
-    assert folds.held_out == [1, 0]  # the soft controller's fold first
+    assert folds.kind == "per-controller"
+    assert folds.held_out == [1, 0, 0, 0, 1, 1]  # the soft controller's whole fold first
+    (train, validation), *rest = folds.splits
+    assert validation.tolist() == [5, 6] and train.tolist() == [0, 1, 2, 3, 4]
+    for (train, validation), held in zip(rest, folds.held_out[1:]):
+        own = {0, 1, 2, 3, 4} if held == 0 else {5, 6}
+        assert len(validation) == 1 and set(validation) <= own, "a part of its controller's episodes"
+        assert sorted(set(train) | set(validation)) == list(range(7)), "trained on all the rest"
+    assert all(2 * len(train) >= 7 for train, _ in folds.splits)
     tied = cross_validation_folds([soft, rig, soft, rig])
-    assert tied.held_out == [0, 1] and [v.tolist() for _, v in tied.splits] == [[0, 2], [1, 3]]
+    assert tied.held_out == [0, 1, 0, 0, 1, 1]
+    assert [v.tolist() for _, v in tied.splits[:2]] == [[0, 2], [1, 3]]
 
 
 def test_a_fold_of_several_loops_becomes_a_fold_per_loop_with_the_same_training_episodes():
@@ -63,10 +72,11 @@ def test_a_fold_of_several_loops_becomes_a_fold_per_loop_with_the_same_training_
     recorded = [rig] * 4 + [soft] * 4
     loops = [rig] * 4 + [soft, late, soft, late]
     folds = cross_validation_folds(recorded, loops=loops)
-    assert folds.kind == "leave-one-controller-out"
-    assert [v.tolist() for _, v in folds.splits] == [[0, 1, 2, 3], [4, 6], [5, 7]]
-    assert [t.tolist() for t, _ in folds.splits] == [[4, 5, 6, 7], [0, 1, 2, 3], [0, 1, 2, 3]]
-    assert folds.held_out == [0, 1, 1]
+    assert folds.kind == "per-controller"
+    assert [v.tolist() for _, v in folds.splits[:3]] == [[0, 1, 2, 3], [4, 6], [5, 7]]
+    assert [t.tolist() for t, _ in folds.splits[:3]] == [[4, 5, 6, 7], [0, 1, 2, 3], [0, 1, 2, 3]]
+    assert folds.held_out == [0, 1, 1, 0, 0, 1, 1]  # then each controller's folds holding out one episode
+    assert all(len(v) == 1 and len(t) == 7 for t, v in folds.splits[3:])
     # Loops equal to the controllers change nothing; one controller's random splits split too.
     plain = cross_validation_folds(recorded)
     same = cross_validation_folds(recorded, loops=recorded)

@@ -57,20 +57,24 @@ def test_alpha_sweep_leaves_one_controller_out(two_controllers, tmp_path, capsys
     # a tie: the first controller to appear (the rig's) is the model's closed loop
     assert [c["model_closed_loop"] for c in controllers["controllers"]] == [True, False]
     sweep = report["sweep"]
-    assert sweep["cv_kind"] == "leave-one-controller-out" and sweep["cv_splits"] == 2 and sweep["cv_seed"] is None
+    # per controller 3 folds: its 2 episodes held out whole (the other's are half of the 4), then one of them twice
+    assert sweep["cv_kind"] == "per-controller" and sweep["cv_splits"] == 6 and sweep["cv_seed"] == 1234
     names = {name: [p.name for p in paths[:2]] for name, paths in two_controllers.items()}
-    assert [(f["held_out_controller"], f["validation_logs"], f["n_train"]) for f in sweep["folds"]] == [
+    assert [(f["held_out_controller"], f["validation_logs"], f["n_train"]) for f in sweep["folds"][:2]] == [
         (1, names["rig"], 2), (2, names["soft-theta"], 2)]
+    assert [f["held_out_controller"] for f in sweep["folds"][2:]] == [1, 1, 2, 2]
+    for f, name in zip(sweep["folds"][2:], ("rig", "rig", "soft-theta", "soft-theta")):
+        assert f["n_train"] == 3 and len(f["validation_logs"]) == 1 and f["validation_logs"][0] in names[name]
     best = sweep["alpha"].index(report["alpha"])
     fold_scores = [f["cv_r2"] for f in sweep["folds"]]
-    assert sum(fold_scores) / 2 == pytest.approx(sweep["cv_r2_mean"][best], rel=1e-12)
+    assert sum(fold_scores) / 6 == pytest.approx(sweep["cv_r2_mean"][best], rel=1e-12)
     assert min(fold_scores) > 0  # each controller's loop predicted by a plant fitted to the other's episodes
     # the identified plant predicts both controllers' test episodes, each under its own log's controller
     assert report["scored_logs"] == [p.name for p in test]
     assert min(report["test"]["r2_per_episode"]) > MIN_TEST_R2
     assert "training episodes under 2 controllers (controller 1: 2 (the model's closed loop), controller 2: 2)" in out
     md = (tmp_path / "report.md").read_text()
-    assert "2 leave-one-controller-out folds" in md and "| 2 | controller 2 (2 episodes) | 2 |" in md
+    assert "6 per-controller folds" in md and "| 2 | controller 2 (2 episodes) | 2 |" in md
     assert "controller 2: 2 episodes, gains kp_theta 2" in md
 
 
@@ -86,7 +90,7 @@ def test_one_controller_keeps_episode_grouped_splits(two_controllers, tmp_path, 
     assert report["training_controllers"]["n_controllers"] == 1
 
 
-def test_search_leaves_one_controller_out(two_controllers, tmp_path, capsys):
+def test_search_scores_per_controller_folds(two_controllers, tmp_path, capsys):
     train, test = _train_test(two_controllers)
     space = tmp_path / "space.toml"
     space.write_text("delays = [0, 5]\npoly = [2]\nconst = [false]\ntrig = [false]\nrbf = [0]\nfriction = [false]\n"
@@ -95,11 +99,11 @@ def test_search_leaves_one_controller_out(two_controllers, tmp_path, capsys):
                        "--transfer", "none", "--n-jobs", "1", "--out", tmp_path / "o")
     assert code == 0, err
     search = json.loads((tmp_path / "o" / "report.json").read_text())["search"]
-    assert search["cv_kind"] == "leave-one-controller-out"
-    assert [f["held_out_controller"] for f in search["folds"]] == [1, 2]
+    assert search["cv_kind"] == "per-controller"
+    assert [f["held_out_controller"] for f in search["folds"]] == [1, 2, 1, 1, 2, 2]
     winner = search["winner"]
-    assert sum(f["cv_r2"] for f in search["folds"]) / 2 == pytest.approx(winner["cv_r2"], rel=1e-12)
-    assert "leave-one-controller-out folds" in (tmp_path / "o" / "report.md").read_text()
+    assert sum(f["cv_r2"] for f in search["folds"]) / 6 == pytest.approx(winner["cv_r2"], rel=1e-12)
+    assert "per-controller folds" in (tmp_path / "o" / "report.md").read_text()
 
 
 def test_single_loop_methods_refuse_two_controllers(two_controllers, tmp_path, capsys):
@@ -127,7 +131,7 @@ def test_the_search_reports_the_winners_same_controller_score_beside_leave_one_c
     assert same["cv_r2"] == pytest.approx(sum(sum(c["folds"]) for c in same["controllers"]) / 4, rel=1e-12)
     assert 0 < same["cv_r2"] < 1 and same["cv_r2"] != search["winner"]["cv_r2"]
     md = (tmp_path / "o" / "report.md").read_text()
-    assert "same-controller R^2" in md and "leave-one-controller-out R^2" in md
+    assert "same-controller R^2" in md and "per-controller folds' R^2" in md
     folds = within_controller_splits([0, 0, 1, 1], n_splits=2)
     assert [(list(tr), list(va), g) for tr, va, g in folds][0][2] == 0
     assert all(set(va) <= ({0, 1} if g == 0 else {2, 3}) and len(set(tr) | set(va)) == 4 for tr, va, g in folds)
