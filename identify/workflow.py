@@ -37,6 +37,12 @@ from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, epis
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep, warn_at_grid_edge
 from qube_koopman.identify.uncertainty.spectra import error_spectra
+from qube_koopman.identify.uncertainty.filter_band import (
+    AheadBand,
+    calibrate_filter,
+    fold_fits,
+    residual_model,
+)
 from qube_koopman.identify.uncertainty import (
     BandSummary,
     CalibrationOptions,
@@ -370,9 +376,31 @@ def identify_and_score(
             }
             # The calibration's held-out predictions, which the model file's design figures reuse.
             held_out: dict = {}
+            disturbance, ahead_scores = None, None
+            filtered = intervals is not None and intervals.method == "disturbance"
+            if ahead is not None or filtered:
+                disturbance, result.report["disturbance"] = _training_disturbance(
+                    closed if score == "cl" else plant, train, controller, score, ahead or AheadOptions()
+                )
             bands = (
                 None
                 if ensemble is None
+                else _filter_bands(
+                    ensemble,
+                    intervals,
+                    train,
+                    controller,
+                    score,
+                    offsets,
+                    _first_scored(offsets, score_from, test[0].dt),
+                    result,
+                    predictions_folder,
+                    keep_predictions,
+                    (closed, plant),
+                    disturbance,
+                    ahead,
+                )
+                if filtered
                 else _test_bands(
                     ensemble,
                     intervals,
@@ -389,13 +417,13 @@ def identify_and_score(
                     held_out,
                 )
             )
-            disturbance, ahead_scores = None, None
             if ahead is not None:
-                disturbance, result.report["disturbance"] = _training_disturbance(
-                    closed if score == "cl" else plant, train, controller, score, ahead
-                )
                 ahead_scores = AheadScores(
-                    ahead, disturbance, _first_scored(offsets, score_from, test[0].dt), predictions_folder is not None
+                    ahead,
+                    disturbance,
+                    _first_scored(offsets, score_from, test[0].dt),
+                    predictions_folder is not None,
+                    None if bands is None or not filtered else bands.ahead_band,
                 )
             if model_path is not None:
                 save_model(
@@ -408,7 +436,7 @@ def identify_and_score(
                     measured=MEASURED,
                     training={"logs": result.report["train_logs"]},
                     uncertainty=None
-                    if ensemble is None or intervals is None
+                    if ensemble is None or intervals is None or filtered  # no bootstrap plants
                     else _design_uncertainty(ensemble, plant, train, intervals.seed, held_out),
                     disturbance=disturbance,
                 )  # an ensemble: intervals were asked for
@@ -516,7 +544,7 @@ def _koopman(
     if intervals is None:
         fitted = fit(make(alpha))
     else:  # the plain fit, its bootstrap refits and the calibration folds' in one pass over the episodes
-        ensemble = fit_ensemble(
+        ensemble = (fold_fits if intervals.method == "disturbance" else fit_ensemble)(
             make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller, MEASURED, counted
         )
         fitted = ensemble.estimator
@@ -846,6 +874,11 @@ INTERVAL_METHOD = (
 class _TestBands:
     """Each test episode's interval, written and summarized as the episodes stream by."""
 
+    #: How a loop the training never ran is calibrated (each band's ``calibration``).
+    other_calibration = "twin probes"
+    #: The K-step predictions' band (the filter's), or None.
+    ahead_band = None
+
     def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None) -> None:
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
         # The calibrations of loops the training never ran, (loop, calibration, report entry) each:
@@ -864,7 +897,7 @@ class _TestBands:
         calibration = self.calibration if seen or self._other is None else self._calibration_elsewhere(loop, log, own)
         band = prediction_band(log.path.name, trajectory, predicted, calibration, start, n_delays, scored)
         band.calibrated_loop = seen
-        band.calibration = "held-out" if calibration is self.calibration else "twin probes"
+        band.calibration = "held-out" if calibration is self.calibration else self.other_calibration
         if self.folder is not None:
             name = f"{log.path.stem}.npz"
             band.save(self.folder / name)
@@ -882,7 +915,7 @@ class _TestBands:
         # controller is not the log's, but the probes of its gains measure the model's error under it);
         # a what-if's, the plant's or a state-space controller's loop: none.
         gains = _pd_gains(log.gains) if own and loop.kind == "wrapped" else None
-        calibration, entry = self._other(gains)
+        calibration, entry = self._other(gains, loop)
         entry["log"] = log.path.name
         self.elsewhere.append((loop, calibration, entry))
         self.seconds["other_loops"] = self.seconds.get("other_loops", 0.0) + time.perf_counter() - started
@@ -977,7 +1010,7 @@ def _test_bands(
         }
         return own_calibration, fields
 
-    def elsewhere(gains):
+    def elsewhere(gains, loop=None):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
         from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS
 
@@ -1011,6 +1044,70 @@ def _test_bands(
 
     other = elsewhere if options.other_loops == "twin" and score == "cl" else None
     return _TestBands(ensemble.members, calibration, loops, options, result, folder, keep, seconds, other)
+
+
+#: How the filter's intervals are made, in words (report.json's ``intervals.method`` with ``method`` disturbance).
+FILTER_INTERVAL_METHOD = (
+    "prediction +- k_c sqrt(V_c(h) + q_c (1 - exp(-h / tau_c))): V_c(h) the prediction error variance of the "
+    "disturbance model's Kalman filter h samples from the prediction's start (the innovations' covariance "
+    "propagated through the loop's response, re-lifted, to an innovation and to the disturbance estimate it "
+    "moves), in place of the bootstrap refits' spread; q_c, tau_c and k_c calibrated per channel on training "
+    "episodes held out in turn (one refit per fold, no bootstrap refits); a loop the training never ran keeps "
+    "the calibration with its own loop's V_c(h); K-step predictions get k_{c,K} sqrt(V_c(K)), k_{c,K} the "
+    "level's quantile on the held-out episodes' K-step predictions"
+)
+
+
+class _FilterBands(_TestBands):
+    """:class:`_TestBands` of the disturbance filter's band (:mod:`~qube_koopman.identify.uncertainty.filter_band`)."""
+
+    other_calibration = "held-out, the loop's own filter variance"
+
+    def report(self) -> None:
+        super().report()
+        entry = self.result.report["intervals"]
+        entry.update(
+            {
+                "interval_method": "disturbance",
+                "method": FILTER_INTERVAL_METHOD,
+                "n_members": 0,
+                "other_loops": "the loop's own filter variance",
+                "filter": self.filter_report,
+            }
+        )
+
+
+def _filter_bands(
+    fit, options, train, controller, score, offsets, start, result, folder, keep, models, disturbance, ahead
+) -> _TestBands:
+    """The disturbance filter's bands (``options.method == "disturbance"``): calibrated on the folds' held-out
+    training episodes; a loop the training never ran gets its own filter variance, the same calibration."""
+    started = time.perf_counter()
+    closed, plant = models
+    model = closed if score == "cl" else plant
+    if disturbance is None:  # no entry supported: the filter of the measured history alone
+        disturbance = residual_model(model, [log.trajectory for log in spread(list(train), MAX_EPISODES)])
+    loops = [Loop.of(log.controller, controller, score) for log in train]
+    scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
+    dt = model.dt if model.dt is not None else train[0].dt
+    horizons = [] if ahead is None else [max(1, K) for K in ahead.samples(dt)]
+    calibration = calibrate_filter(fit, LogTrajectories(train), loops, scoring, disturbance, model, horizons)
+    seconds = {"calibration": time.perf_counter() - started}
+    band = AheadBand(calibration, disturbance, model)
+
+    def elsewhere(gains, loop):
+        own = calibration.for_loop(band.variance(loop.model(closed, plant, MEASURED)))
+        return own, {"gains": gains, "channels": own.as_dict(STATE_NAMES)}
+
+    bands = _FilterBands([], calibration, loops, options, result, folder, keep, seconds, elsewhere)
+    bands.ahead_band = band
+    bands.filter_report = {
+        "innovations_covariance": np.asarray(disturbance.R, dtype=float).tolist(),
+        "disturbance_entry": disturbance.entry if disturbance.q > 0 else "none",
+        "why": "the disturbance model's filter variance, calibrated on held-out training episodes without "
+        "bootstrap refits (--interval-method disturbance)",
+    }
+    return bands
 
 
 def _warn_diverged(summary: dict, dt: float, what: str) -> None:

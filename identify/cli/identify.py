@@ -350,6 +350,15 @@ def _parser() -> argparse.ArgumentParser:
         help="bootstrap refits of the intervals (default %(default)s)",
     )
     pred.add_argument(
+        "--interval-method",
+        choices=["bootstrap", "disturbance"],
+        default="bootstrap",
+        help="the intervals' source of uncertainty: bootstrap (default), the spread of bootstrap refits with a "
+        "model error calibrated on held-out training episodes; disturbance, the disturbance model's Kalman "
+        "filter variance (fitted on the training episodes, as --horizon does) calibrated the same way, without "
+        "bootstrap refits, and with --horizon bands for the K-step predictions too (ahead_<S>_lower/upper)",
+    )
+    pred.add_argument(
         "--interval-seed",
         type=seed,
         default=0,
@@ -846,7 +855,11 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
             episode_statistics=statistics,
             intervals=(
                 IntervalOptions(
-                    args.interval, args.interval_members, seed=args.interval_seed, other_loops=args.interval_other_loops
+                    args.interval,
+                    args.interval_members,
+                    seed=args.interval_seed,
+                    other_loops=args.interval_other_loops,
+                    method=args.interval_method,
                 )
                 if args.interval
                 else None

@@ -49,6 +49,7 @@ from qube_koopman.identify.uncertainty.loops import Loop, consecutive_runs
 from qube_koopman.identify.uncertainty.prediction import diverged_from, predict_groups
 
 __all__ = [
+    "AheadBand",
     "FilterCalibration",
     "FilterVariance",
     "LINEARIZED_STEPS",
@@ -57,6 +58,7 @@ __all__ = [
     "fold_fits",
     "innovation_covariance",
     "innovation_responses",
+    "residual_model",
 ]
 
 #: Samples over which the loop's response to an innovation is simulated (4 s at 500 Hz: the QUBE's
@@ -368,7 +370,7 @@ def calibrate_filter(
         ratios = []
         for models, trajs in groups:
             strides = [[dm.starts_stride(t.n_samples, models[0].n_delays, K, CALIBRATION_STARTS)] for t in trajs]
-            predicted = dm.predict_ahead_many(models[0], disturbance, trajs, [K], strides)
+            predicted = dm.predict_ahead_many(_relifted_rows(models[0]), disturbance, trajs, [K], strides)
             for t, pred in zip(trajs, predicted):
                 rows = np.arange(t.n_samples) >= max(options.start, models[0].n_delays + K)
                 ok = rows & np.all(np.isfinite(pred[K]), axis=1)
@@ -378,3 +380,70 @@ def calibrate_filter(
         calibration.ahead_factors_[K] = factor
         calibration.ahead_coverage_[K] = (r <= factor).mean(axis=0)
     return calibration
+
+
+def _relifted_rows(model: KoopmanModel) -> KoopmanModel:
+    """A fold's fit with the rows a re-lifted prediction does not use (left NaN: not fitted) set to zero, so that
+    the filter's ``C E`` (a selection of rows) is finite."""
+    if np.all(np.isfinite(model.A)) and np.all(np.isfinite(model.B)):
+        return model
+    return KoopmanModel(
+        np.nan_to_num(model.A),
+        np.nan_to_num(model.B),
+        model.lifting,
+        model.input_signals,
+        model.n_passthrough,
+        model.input_lifting,
+        model.dt,
+        model.passthrough_names,
+        model.feedback,
+    )
+
+
+def residual_model(model: KoopmanModel, trajectories) -> dm.DisturbanceModel:
+    """A filter without a disturbance: ``R`` the training episodes' one-step residual covariance, ``q = 0``
+    (the band of a fit whose training episodes support no disturbance model)."""
+    stacked = []
+    for t in as_episodes(trajectories):
+        r = dm.one_step_residuals(model, t)[0]
+        stacked.append(r[np.all(np.isfinite(r), axis=1)])
+    residuals = np.concatenate(stacked)
+    if len(residuals) < 10:
+        raise ValueError("too few one-step residuals to estimate the filter's innovations")
+    return dm.DisturbanceModel("input", 1.0, 0.0, np.atleast_2d(np.cov(residuals.T)), np.zeros(model.n_states))
+
+
+class AheadBand:
+    """The K-step predictions' half-width of any loop: ``k_{c,K} sqrt(V_K)``, ``V`` that loop's (made once each).
+
+    Parameters
+    ----------
+    calibration : FilterCalibration
+        Fitted, with its ``ahead_factors_``.
+    disturbance : DisturbanceModel
+        The filter the predictions run.
+    model : KoopmanModel, optional
+        The loop the calibration was made for (its ``variance_`` then reused).
+    """
+
+    def __init__(
+        self, calibration: FilterCalibration, disturbance: dm.DisturbanceModel, model: KoopmanModel | None = None
+    ) -> None:
+        self.calibration, self.disturbance = calibration, disturbance
+        self._variances: dict[bytes, FilterVariance] = {}
+        if model is not None:
+            self._variances[self._key(model)] = calibration.variance_
+
+    @staticmethod
+    def _key(model: KoopmanModel) -> bytes:
+        return np.ascontiguousarray(model.A).tobytes() + np.ascontiguousarray(model.B).tobytes()
+
+    def variance(self, model: KoopmanModel) -> FilterVariance:
+        """``V`` of this loop (the calibration's own for its loop)."""
+        key = self._key(model)
+        if key not in self._variances:
+            self._variances[key] = filter_variance(model, self.disturbance)
+        return self._variances[key]
+
+    def __call__(self, model: KoopmanModel, K: int) -> np.ndarray:
+        return self.calibration.for_loop(self.variance(model)).ahead_half_width(K)
