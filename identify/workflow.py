@@ -45,6 +45,7 @@ from qube_koopman.identify.uncertainty.filter_band import (
 )
 from qube_koopman.identify.uncertainty import (
     BandSummary,
+    FoldEnsemble,
     CalibrationOptions,
     IntervalCalibration,
     IntervalOptions,
@@ -378,9 +379,9 @@ def identify_and_score(
             held_out: dict = {}
             disturbance, ahead_scores = None, None
             filtered = intervals is not None and intervals.method == "disturbance"
-            if ahead is not None or filtered:
+            if ahead is not None:
                 disturbance, result.report["disturbance"] = _training_disturbance(
-                    closed if score == "cl" else plant, train, controller, score, ahead or AheadOptions()
+                    closed if score == "cl" else plant, train, controller, score, ahead
                 )
             bands = (
                 None
@@ -399,6 +400,8 @@ def identify_and_score(
                     (closed, plant),
                     disturbance,
                     ahead,
+                    probes,
+                    probe_cache,
                 )
                 if filtered
                 else _test_bands(
@@ -1066,7 +1069,7 @@ FILTER_INTERVAL_METHOD = (
 class _FilterBands(_TestBands):
     """:class:`_TestBands` of the disturbance filter's band (:mod:`~qube_koopman.identify.uncertainty.filter_band`)."""
 
-    other_calibration = "held-out, the loop's own filter variance"
+    other_calibration = "twin probes, the loop's own filter variance"
 
     def report(self) -> None:
         super().report()
@@ -1076,21 +1079,39 @@ class _FilterBands(_TestBands):
                 "interval_method": "disturbance",
                 "method": FILTER_INTERVAL_METHOD,
                 "n_members": 0,
-                "other_loops": "the loop's own filter variance",
+                "other_loops": self.options.other_loops,
                 "filter": self.filter_report,
             }
         )
 
 
 def _filter_bands(
-    fit, options, train, controller, score, offsets, start, result, folder, keep, models, disturbance, ahead
+    fit,
+    options,
+    train,
+    controller,
+    score,
+    offsets,
+    start,
+    result,
+    folder,
+    keep,
+    models,
+    disturbance,
+    ahead,
+    probes=None,
+    probe_cache=None,
 ) -> _TestBands:
     """The disturbance filter's bands (``options.method == "disturbance"``): calibrated on the folds' held-out
-    training episodes; a loop the training never ran gets its own filter variance, the same calibration."""
+    training episodes; a loop the training never ran gets its own filter variance, calibrated as the bootstrap
+    band's is (``other_loops "twin"``: on the twin's probe episodes, the point fit predicting them, each probe
+    loop's own variance; per channel and horizon the wider of the default probes' and the loop's own gains')
+    or with the training loop's calibration (``"none"``)."""
     started = time.perf_counter()
     closed, plant = models
     model = closed if score == "cl" else plant
-    if disturbance is None:  # no entry supported: the filter of the measured history alone
+    # Without --horizon (no disturbance model fitted) or none supported: the filter of the measured history alone.
+    if disturbance is None:
         disturbance = residual_model(model, [log.trajectory for log in spread(list(train), MAX_EPISODES)])
     loops = [Loop.of(log.controller, controller, score) for log in train]
     scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
@@ -1100,9 +1121,52 @@ def _filter_bands(
     seconds = {"calibration": time.perf_counter() - started}
     band = AheadBand(calibration, disturbance, model)
 
+    default: list = []  # the default probes' calibration, made once (before its loop's variance)
+
+    def on_probes(probe_set):
+        episodes = [episode for group in probe_set.episodes for episode in group]
+        loops = [Loop("wrapped", c) for c, group in zip(probe_set.controllers, probe_set.episodes) for _ in group]
+        on = replace(fit, members=[], folds=[FoldEnsemble(np.arange(len(episodes)), (closed, plant), [])])
+        return calibrate_filter(on, episodes, loops, scoring, disturbance, model, variance_of=band.variance)
+
     def elsewhere(gains, loop):
-        own = calibration.for_loop(band.variance(loop.model(closed, plant, MEASURED)))
-        return own, {"gains": gains, "channels": own.as_dict(STATE_NAMES)}
+        own_variance = band.variance(loop.model(closed, plant, MEASURED))
+        if options.other_loops != "twin" or score != "cl":
+            own = calibration.for_loop(own_variance)
+            return own, {"gains": gains, "channels": own.as_dict(STATE_NAMES), "calibration": "held-out"}
+        from qube_koopman.identify.model_selection.transfer import (
+            DEFAULT_PROBE_GAINS,
+            session_twins,
+            twin_probe_sets,
+        )
+
+        wanted = ([] if probes is not None or default else [DEFAULT_PROBE_GAINS]) + ([] if gains is None else [[gains]])
+        sets = (
+            twin_probe_sets(
+                LogTrajectories(train),
+                wanted,
+                per_controller=INTERVAL_PROBES,
+                params=session_twins(),
+                cache=probe_cache,
+            )
+            if wanted
+            else []
+        )
+        if not default:
+            probe_set = probes if probes is not None else sets.pop(0)
+            if not probe_set.controllers:
+                raise ValueError("no probe episode stayed balanced on the twin")
+            default.append((probe_set, on_probes(probe_set)))
+        parts = [default[0][1]] + [on_probes(own) for own in sets if own.controllers]
+        combined = widest([part.for_loop(own_variance) for part in parts])
+        combined.uses_spread = False  # its parts are the filter's
+        entry = {
+            "default_probes": default[0][0].describe(),
+            "gains": gains,
+            "own_probes": "yes" if len(parts) > 1 else "none",
+            "channels": combined.as_dict(STATE_NAMES),
+        }
+        return combined, entry
 
     bands = _FilterBands([], calibration, loops, options, result, folder, keep, seconds, elsewhere)
     bands.ahead_band = band

@@ -355,8 +355,9 @@ def _parser() -> argparse.ArgumentParser:
         default="bootstrap",
         help="the intervals' source of uncertainty: bootstrap (default), the spread of bootstrap refits with a "
         "model error calibrated on held-out training episodes; disturbance, the disturbance model's Kalman "
-        "filter variance (fitted on the training episodes, as --horizon does) calibrated the same way, without "
-        "bootstrap refits, and with --horizon bands for the K-step predictions too (ahead_<S>_lower/upper)",
+        "filter variance calibrated the same way, without bootstrap refits (the disturbance model --horizon fits; "
+        "without --horizon, the filter of the measured history alone), and with --horizon bands for the K-step "
+        "predictions too (ahead_<S>_lower/upper)",
     )
     pred.add_argument(
         "--interval-seed",

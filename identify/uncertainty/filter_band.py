@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -197,10 +197,16 @@ class FilterCalibration(IntervalCalibration):
         self.model_error = model_error
 
     def fit_filter(
-        self, errors: np.ndarray, variances: np.ndarray, horizons: np.ndarray, variance: FilterVariance
+        self,
+        errors: np.ndarray,
+        variances: np.ndarray,
+        horizons: np.ndarray,
+        variance: FilterVariance,
+        filter_variances: np.ndarray | None = None,
     ) -> FilterCalibration:
         """Fit on held-out samples: their errors, other variances (offsets'; zeros without) and horizons, with the
-        filter's variance ``variance`` of the loop that predicted them.
+        filter's variance ``variance`` of the loop that predicted them (``filter_variances``: each sample's own,
+        when they ran several loops; ``variance`` is then the loop the bands are for).
 
         Returns
         -------
@@ -208,7 +214,8 @@ class FilterCalibration(IntervalCalibration):
         """
         errors, horizons = np.asarray(errors, dtype=float), np.asarray(horizons)
         self.variance_ = variance
-        total = np.asarray(variances, dtype=float) + variance(horizons)
+        own = variance(horizons) if filter_variances is None else np.asarray(filter_variances, dtype=float)
+        total = np.asarray(variances, dtype=float) + own
         if self.model_error:
             plain = IntervalCalibration(self.level).fit(errors, total, horizons)
             self.scale_, self.timescale_, self.factor_ = plain.scale_, plain.timescale_, plain.factor_
@@ -222,7 +229,7 @@ class FilterCalibration(IntervalCalibration):
             self.scale_, self.timescale_ = np.zeros(errors.shape[1]), np.ones(errors.shape[1])
             self.factor_ = np.array(factor)
         with np.errstate(invalid="ignore"):
-            inside = np.abs(errors) <= self.half_width(variances, horizons)
+            inside = np.abs(errors) <= IntervalCalibration.half_width(self, total, horizons)
         self.coverage_ = inside.mean(axis=0) if len(errors) else np.full(errors.shape[1], np.nan)
         self.n_samples_, self.n_diverged_ = len(errors), 0
         return self
@@ -314,6 +321,7 @@ def calibrate_filter(
     model: KoopmanModel,
     ahead: Sequence[int] = (),
     model_error: bool = True,
+    variance_of: Callable[[KoopmanModel], FilterVariance] | None = None,
 ) -> FilterCalibration:
     """Calibrate the filter's band on the folds' held-out episodes, predicted as test episodes are.
 
@@ -336,6 +344,9 @@ def calibrate_filter(
         Horizons (samples) of K-step predictions to calibrate (``k_{c,K}``).
     model_error : bool
         See :class:`FilterCalibration`.
+    variance_of : callable, optional
+        Each group's loop's ``V`` (the twin's probes under other controllers); by default every held-out
+        episode's is ``model``'s (the folds' fits differ from it by a few episodes).
 
     Returns
     -------
@@ -350,7 +361,7 @@ def calibrate_filter(
             loop = loops[fold.validation[run[0]]]
             groups.append(([loop.model(*fold.point, options.measured)], [held_out[i] for i in run]))
     predictions = predict_groups(groups, options.offsets)
-    errors, others, horizons, diverged = [], [], [], 0
+    errors, others, horizons, own, diverged = [], [], [], [], 0
     for (models, trajs), predicted in zip(groups, predictions):
         d = models[0].n_delays
         for t, p in zip(trajs, predicted):
@@ -360,9 +371,10 @@ def calibrate_filter(
             errors.append(t.x[k] - p.prediction[k])
             others.append(np.zeros_like(errors[-1]) if p.variance is None else p.variance[k])
             horizons.append(k - d)
+            own.append((variance if variance_of is None else variance_of(models[0]))(k - d))
     h = np.concatenate(horizons)
     calibration = FilterCalibration(options.level, model_error).fit_filter(
-        np.concatenate(errors), np.concatenate(others), h, variance
+        np.concatenate(errors), np.concatenate(others), h, variance, np.concatenate(own)
     )
     calibration.n_diverged_ = diverged
     calibration.ahead_factors_, calibration.ahead_coverage_ = {}, {}
