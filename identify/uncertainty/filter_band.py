@@ -61,11 +61,11 @@ __all__ = [
     "residual_model",
 ]
 
-#: Samples over which the loop's response to an innovation is simulated (4 s at 500 Hz: the QUBE's
+#: Samples over which the loop's response to an innovation is simulated (2 s at 500 Hz: the QUBE's
 #: balancing loops settle within about 1 s); beyond, it is held at its last value.
-LINEARIZED_STEPS = 2000
+LINEARIZED_STEPS = 1000
 #: Starts per held-out episode of the K-step calibration (the level's quantile of a few thousand ratios).
-CALIBRATION_STARTS = 40
+CALIBRATION_STARTS = 20
 
 
 def innovation_covariance(model: KoopmanModel, disturbance: dm.DisturbanceModel | None) -> np.ndarray:
@@ -353,7 +353,7 @@ def calibrate_filter(
     FilterCalibration
     """
     trajectories = as_episodes(trajectories)
-    variance = filter_variance(model, disturbance)
+    variance = filter_variance(model, disturbance) if variance_of is None else variance_of(model)
     groups = []
     for fold in fit.folds:
         held_out = select_episodes(trajectories, fold.validation)
