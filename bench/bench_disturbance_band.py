@@ -17,22 +17,22 @@ Cases: the paper's 28 training episodes (``--split paper``) tested on its 20 tes
 the soft controller's 10 (``--soft DIR``: a loop the training never ran); the default lifting, and
 with ``--search-lifting`` also the search's.
 
-Measured (2 shared cores, one run each, 0.95; theta / alpha; half-width over RMS error; seconds added
-to a run without intervals, whose time is in brackets):
+Measured (2 cores shared with other work, one run each, so the seconds are rough and the bands exact;
+theta / alpha; the seconds each band adds to the run without intervals):
 
 | case | band | pooled coverage | worst episode | half-width / RMS | added |
 |---|---|---|---|---|---|
-| default lifting, paper test [4.4 s] | bootstrap | 0.955 / 0.960 | 0.906 / 0.929 | 2.04 / 2.12 | +1.8 s |
-| | disturbance | 0.953 / 0.956 | 0.905 / 0.926 | 2.13 / 2.18 | +1.0 s |
-| default lifting, soft episodes | bootstrap | 0.913 / 0.953 | 0.774 / 0.880 | 1.66 / 2.11 | (twin probes) |
-| | disturbance | 0.810 / 0.936 | 0.576 / 0.857 | 1.30 / 1.99 | |
-| search's lifting, paper test | bootstrap | SEE_SP_B |
-| | disturbance | 0.967 / 0.956 | 0.920 / 0.912 | SEE_SP_D |
-| search's lifting, soft episodes | bootstrap | SEE_SS_B |
-| | disturbance | SEE_SS_D |
+| default lifting, paper test | bootstrap | 0.955 / 0.960 | 0.906 / 0.929 | 2.04 / 2.12 | +176 % |
+| | disturbance | 0.953 / 0.956 | 0.905 / 0.926 | 2.13 / 2.18 | +21 % |
+| default lifting, soft episodes | bootstrap | 0.913 / 0.953 | 0.774 / 0.880 | 1.66 / 2.11 | +247 % |
+| | disturbance | 0.896 / 0.970 | 0.759 / 0.909 | 1.67 / 2.40 | +90 % |
+| search's lifting, paper test | bootstrap | 0.968 / 0.956 | 0.924 / 0.911 | 2.03 / 1.89 | +83 % |
+| | disturbance | 0.965 / 0.956 | 0.913 / 0.911 | 2.03 / 1.90 | +19 % |
+| search's lifting, soft episodes | bootstrap | 0.960 / 0.979 | 0.898 / 0.889 | 2.09 / 2.50 | |
+| | disturbance | 0.979 / 0.985 | 0.902 / 0.917 | 2.36 / 2.93 | |
 
-K-step bands of the filter (default lifting, paper test): 0.1 s ahead 0.961 / 0.962 (worst 0.938 /
-0.938), 1 s ahead 0.958 / 0.963 (worst 0.885 / 0.885), half-width 2.1-2.3 x the RMS error.
+The filter's K-step bands (``--horizon``; default lifting, paper test): 0.1 s ahead 0.961 / 0.962
+(worst 0.938 / 0.938), 1 s ahead 0.958 / 0.963 (worst 0.885 / 0.885), half-width 2.1-2.3 x the RMS error.
 
 Usage: python bench/bench_disturbance_band.py --data DIR [--soft DIR] [--repeat N] [--search-lifting] [--horizon]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
