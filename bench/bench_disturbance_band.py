@@ -124,8 +124,10 @@ def main() -> None:
     args = parser.parse_args()
     _, train, test, soft = bench_logs(args.data, args.soft, args.repeat)
     extra = ["--horizon", "0.1,1"] if args.horizon else []
-    print(f"median of {args.repeat}; targets: pooled 0.90-0.98, every episode >= 0.85, half-width <= 2.5 x RMS, "
-          "<= +30 % of the run")
+    print(
+        f"median of {args.repeat}; targets: pooled 0.90-0.98, every episode >= 0.85, half-width <= 2.5 x RMS, "
+        "<= +30 % of the run"
+    )
     cases = [("default lifting", [])] + ([("search's lifting", SEARCH_LIFTING.split())] if args.search_lifting else [])
     for label, flags in cases:
         measure(f"{label}, paper test", ["--train", *train, "--test", *test, *flags, *extra], args.repeat)
