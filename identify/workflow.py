@@ -882,7 +882,7 @@ class _TestBands:
     #: How a loop the training never ran is calibrated (each band's ``calibration``).
     other_calibration = "twin probes"
     #: The K-step predictions' band (the filter's), or None.
-    ahead_band = None
+    ahead_band: AheadBand | None = None
 
     def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None) -> None:
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
@@ -1070,6 +1070,7 @@ class _FilterBands(_TestBands):
     """:class:`_TestBands` of the disturbance filter's band (:mod:`~qube_koopman.identify.uncertainty.filter_band`)."""
 
     other_calibration = "twin probes, the loop's own filter variance"
+    filter_report: dict
 
     def report(self) -> None:
         super().report()

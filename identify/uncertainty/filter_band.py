@@ -191,6 +191,9 @@ class FilterCalibration(IntervalCalibration):
 
     #: The band needs no bootstrap members: a prediction without them has a zero spread here.
     uses_spread = False
+    variance_: FilterVariance
+    ahead_factors_: dict[int, np.ndarray]
+    ahead_coverage_: dict[int, np.ndarray]
 
     def __init__(self, level: float = 0.95, model_error: bool = True) -> None:
         super().__init__(level)
@@ -320,7 +323,6 @@ def calibrate_filter(
     disturbance: dm.DisturbanceModel | None,
     model: KoopmanModel,
     ahead: Sequence[int] = (),
-    model_error: bool = True,
     variance_of: Callable[[KoopmanModel], FilterVariance] | None = None,
 ) -> FilterCalibration:
     """Calibrate the filter's band on the folds' held-out episodes, predicted as test episodes are.
@@ -342,8 +344,6 @@ def calibrate_filter(
         The loop whose bands the calibration makes (the fit on all the episodes): its ``V(h)``.
     ahead : sequence of int
         Horizons (samples) of K-step predictions to calibrate (``k_{c,K}``).
-    model_error : bool
-        See :class:`FilterCalibration`.
     variance_of : callable, optional
         Each group's loop's ``V`` (the twin's probes under other controllers); by default every held-out
         episode's is ``model``'s (the folds' fits differ from it by a few episodes).
@@ -373,25 +373,31 @@ def calibrate_filter(
             horizons.append(k - d)
             own.append((variance if variance_of is None else variance_of(models[0]))(k - d))
     h = np.concatenate(horizons)
-    calibration = FilterCalibration(options.level, model_error).fit_filter(
+    calibration = FilterCalibration(options.level).fit_filter(
         np.concatenate(errors), np.concatenate(others), h, variance, np.concatenate(own)
     )
     calibration.n_diverged_ = diverged
     calibration.ahead_factors_, calibration.ahead_coverage_ = {}, {}
     for K in [int(K) for K in ahead if int(K) > 0]:
-        ratios = []
-        for models, trajs in groups:
-            strides = [[dm.starts_stride(t.n_samples, models[0].n_delays, K, CALIBRATION_STARTS)] for t in trajs]
-            predicted = dm.predict_ahead_many(_relifted_rows(models[0]), disturbance, trajs, [K], strides)
-            for t, pred in zip(trajs, predicted):
-                rows = np.arange(t.n_samples) >= max(options.start, models[0].n_delays + K)
-                ok = rows & np.all(np.isfinite(pred[K]), axis=1)
-                ratios.append(np.abs(t.x[ok] - pred[K][ok]) / np.sqrt(variance(np.array(K))))
-        r = np.concatenate(ratios) if ratios else np.zeros((0, model.n_states))
-        factor = np.array([np.quantile(r[:, c], options.level, method="higher") for c in range(r.shape[1])])
-        calibration.ahead_factors_[K] = factor
-        calibration.ahead_coverage_[K] = (r <= factor).mean(axis=0)
+        _calibrate_ahead(calibration, groups, disturbance, K, options)
     return calibration
+
+
+def _calibrate_ahead(calibration: FilterCalibration, groups, disturbance, K: int, options: CalibrationOptions) -> None:
+    """``k_{c,K}``: the level's quantile of ``|e| / sqrt(V_K)`` over the groups' held-out K-step predictions."""
+    ratios = []
+    sd = np.sqrt(calibration.variance_(np.array(K)))
+    for models, trajs in groups:
+        strides = [[dm.starts_stride(t.n_samples, models[0].n_delays, K, CALIBRATION_STARTS)] for t in trajs]
+        ahead = dm.predict_ahead_many(_relifted_rows(models[0]), disturbance, trajs, [K], strides)
+        for t, pred in zip(trajs, ahead):
+            rows = np.arange(t.n_samples) >= max(options.start, models[0].n_delays + K)
+            ok = rows & np.all(np.isfinite(pred[K]), axis=1)
+            ratios.append(np.abs(t.x[ok] - pred[K][ok]) / sd)
+    r = np.concatenate(ratios) if ratios else np.zeros((0, sd.size))
+    factor = np.array([np.quantile(r[:, c], options.level, method="higher") for c in range(r.shape[1])])
+    calibration.ahead_factors_[K] = factor
+    calibration.ahead_coverage_[K] = (r <= factor).mean(axis=0)
 
 
 def _relifted_rows(model: KoopmanModel) -> KoopmanModel:
