@@ -932,8 +932,7 @@ class _TestBands:
         self.result.report["intervals"] = {
             "level": o.level,
             "interval_method": "bootstrap",
-            "why": "the default (--interval-method): on the paper's data it covers the soft controller's episodes "
-            "better than the filter's band, whose calibration sees only the training loop",
+            "why": "IntervalOptions' method 'bootstrap'",
             "method": INTERVAL_METHOD,
             "n_members": o.n_members,
             "n_folds": o.n_folds,
@@ -1078,6 +1077,7 @@ class _FilterBands(_TestBands):
         entry.update(
             {
                 "interval_method": "disturbance",
+                "why": "IntervalOptions' method 'disturbance'",
                 "method": FILTER_INTERVAL_METHOD,
                 "n_members": 0,
                 "other_loops": self.options.other_loops,
@@ -1174,8 +1174,7 @@ def _filter_bands(
     bands.filter_report = {
         "innovations_covariance": np.asarray(disturbance.R, dtype=float).tolist(),
         "disturbance_entry": disturbance.entry if disturbance.q > 0 else "none",
-        "why": "the disturbance model's filter variance, calibrated on held-out training episodes without "
-        "bootstrap refits (--interval-method disturbance)",
+        "why": "IntervalOptions' method 'disturbance'",
     }
     return bands
 
