@@ -64,6 +64,11 @@ __all__ = [
 #: Samples over which the loop's response to an innovation is simulated (2 s at 500 Hz: the QUBE's
 #: balancing loops settle within about 1 s); beyond, it is held at its last value.
 LINEARIZED_STEPS = 1000
+#: Calibration folds and held-out episodes at most (fewer than the bootstrap band's: each fold's refit folds
+#: every other episode's statistics again, and each held-out episode is predicted; the few parameters per channel
+#: are fitted on thousands of samples either way).
+FILTER_FOLDS = 3
+FILTER_HELD_OUT = 12
 #: Starts per held-out episode of the K-step calibration (the level's quantile of a few thousand ratios).
 CALIBRATION_STARTS = 20
 
@@ -298,7 +303,9 @@ def fold_fits(
         )
     rng = np.random.default_rng(options.seed)
     bootstrap_counts(n, options.n_members, rng)  # the same folds as the bootstrap band's (the same draws first)
-    splits = episode_folds(n, options.n_folds, rng, options.n_calibration_episodes)
+    splits = episode_folds(
+        n, min(options.n_folds, FILTER_FOLDS), rng, min(options.n_calibration_episodes, FILTER_HELD_OUT)
+    )
     selections = np.zeros((len(splits), n), dtype=int)
     for i, (train, _) in enumerate(splits):
         selections[i, train] = 1
