@@ -17,22 +17,23 @@ Cases: the paper's 28 training episodes (``--split paper``) tested on its 20 tes
 the soft controller's 10 (``--soft DIR``: a loop the training never ran); the default lifting, and
 with ``--search-lifting`` also the search's.
 
-Measured (2 cores shared with other work, one run each, so the seconds are rough and the bands exact;
-theta / alpha; the seconds each band adds to the run without intervals):
+Measured (2 cores shared with other work; the paper test's medians of 3, the soft episodes' single
+runs, so the seconds are rough and the bands exact; theta / alpha; the seconds each band adds to the
+run without intervals):
 
 | case | band | pooled coverage | worst episode | half-width / RMS | added |
 |---|---|---|---|---|---|
-| default lifting, paper test | bootstrap | 0.955 / 0.960 | 0.906 / 0.929 | 2.04 / 2.12 | +176 % |
-| | disturbance | 0.953 / 0.956 | 0.905 / 0.926 | 2.13 / 2.18 | +21 % |
-| default lifting, soft episodes | bootstrap | 0.913 / 0.953 | 0.774 / 0.880 | 1.66 / 2.11 | +247 % |
-| | disturbance | 0.896 / 0.970 | 0.759 / 0.909 | 1.67 / 2.40 | +90 % |
-| search's lifting, paper test | bootstrap | 0.968 / 0.956 | 0.924 / 0.911 | 2.03 / 1.89 | +83 % |
-| | disturbance | 0.965 / 0.956 | 0.913 / 0.911 | 2.03 / 1.90 | +19 % |
-| search's lifting, soft episodes | bootstrap | 0.960 / 0.979 | 0.898 / 0.889 | 2.09 / 2.50 | |
-| | disturbance | 0.979 / 0.985 | 0.902 / 0.917 | 2.36 / 2.93 | |
+| default lifting, paper test | bootstrap | 0.955 / 0.960 | 0.906 / 0.929 | 2.04 / 2.12 | +87 % |
+| | disturbance | 0.953 / 0.956 | 0.906 / 0.926 | 2.14 / 2.19 | +16 % |
+| default lifting, soft episodes | bootstrap | 0.913 / 0.953 | 0.774 / 0.880 | 1.66 / 2.11 | +91 % |
+| | disturbance | 0.896 / 0.970 | 0.759 / 0.909 | 1.67 / 2.40 | +42 % |
+| search's lifting, paper test | bootstrap | 0.968 / 0.956 | 0.924 / 0.911 | 2.03 / 1.89 | +82 % |
+| | disturbance | 0.966 / 0.955 | 0.914 / 0.911 | 2.04 / 1.90 | +12 % |
+| search's lifting, soft episodes | bootstrap | 0.960 / 0.979 | 0.898 / 0.889 | 2.09 / 2.50 | +108 % |
+| | disturbance | 0.979 / 0.985 | 0.902 / 0.917 | 2.36 / 2.93 | +56 % |
 
-The filter's K-step bands (``--horizon``; default lifting, paper test): 0.1 s ahead 0.961 / 0.962
-(worst 0.938 / 0.938), 1 s ahead 0.958 / 0.963 (worst 0.885 / 0.885), half-width 2.1-2.3 x the RMS error.
+The filter's K-step bands (``--horizon``; default lifting, paper test): 0.1 s ahead 0.976 / 0.973
+(worst 0.953 / 0.953), 1 s ahead 0.958 / 0.965 (worst 0.885 / 0.885), half-width 2.1-2.4 x the RMS error.
 
 Usage: python bench/bench_disturbance_band.py --data DIR [--soft DIR] [--repeat N] [--search-lifting] [--horizon]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)

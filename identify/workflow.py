@@ -1070,6 +1070,7 @@ class _FilterBands(_TestBands):
 
     other_calibration = "twin probes, the loop's own filter variance"
     filter_report: dict
+    n_folds: int
 
     def report(self) -> None:
         super().report()
@@ -1077,6 +1078,7 @@ class _FilterBands(_TestBands):
         entry.update(
             {
                 "interval_method": "disturbance",
+                "n_folds": self.n_folds,
                 "why": "IntervalOptions' method 'disturbance'",
                 "method": FILTER_INTERVAL_METHOD,
                 "n_members": 0,
@@ -1170,7 +1172,7 @@ def _filter_bands(
         return combined, entry
 
     bands = _FilterBands([], calibration, loops, options, result, folder, keep, seconds, elsewhere)
-    bands.ahead_band = band
+    bands.ahead_band, bands.n_folds = band, len(fit.folds)
     bands.filter_report = {
         "innovations_covariance": np.asarray(disturbance.R, dtype=float).tolist(),
         "disturbance_entry": disturbance.entry if disturbance.q > 0 else "none",

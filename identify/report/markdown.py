@@ -364,6 +364,9 @@ def _ahead_section(ahead: dict | None, disturbance: dict | None, test: dict | No
             f"{format_number(r2[1], '.4f')} ({format_number(worst[1], '.4f')}) | "
             f"{format_number(rms[0], '.4g')} | {format_number(rms[1], '.4g')} |"
         )
+    if test:
+        lines.append(f"| free run | R^2 mean {format_number(test.get('r2_mean'), '.4f')} (both channels) | | | |")
+    lines += ["", ahead["note"] + "."]
     banded = {label: h["band"] for label, h in ahead["horizons"].items() if h.get("band")}
     if banded:
         lines += [
@@ -380,9 +383,6 @@ def _ahead_section(ahead: dict | None, disturbance: dict | None, test: dict | No
                 f"{format_number(cov[1], '.3f')} ({format_number(worst[1], '.3f')}) | "
                 f"{format_number(half[0], '.4g')} | {format_number(half[1], '.4g')} |"
             )
-    if test:
-        lines.append(f"| free run | R^2 mean {format_number(test.get('r2_mean'), '.4f')} (both channels) | | | |")
-    lines += ["", ahead["note"] + "."]
     return lines
 
 
