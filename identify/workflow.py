@@ -40,12 +40,12 @@ from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty.filter_band import (
     AheadBand,
     calibrate_filter,
+    calibrate_filter_on_probes,
     fold_fits,
     residual_model,
 )
 from qube_koopman.identify.uncertainty import (
     BandSummary,
-    FoldEnsemble,
     CalibrationOptions,
     IntervalCalibration,
     IntervalOptions,
@@ -1120,17 +1120,14 @@ def _filter_bands(
     scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
     dt = model.dt if model.dt is not None else train[0].dt
     horizons = [] if ahead is None else [max(1, K) for K in ahead.samples(dt)]
-    calibration = calibrate_filter(fit, LogTrajectories(train), loops, scoring, disturbance, model, horizons)
+    calibration = calibrate_filter(fit.folds, LogTrajectories(train), loops, scoring, disturbance, model, horizons)
     seconds = {"calibration": time.perf_counter() - started}
     band = AheadBand(calibration, disturbance, model)
 
     default: list = []  # the default probes' calibration, made once (before its loop's variance)
 
     def on_probes(probe_set):
-        episodes = [episode for group in probe_set.episodes for episode in group]
-        loops = [Loop("wrapped", c) for c, group in zip(probe_set.controllers, probe_set.episodes) for _ in group]
-        on = replace(fit, members=[], folds=[FoldEnsemble(np.arange(len(episodes)), (closed, plant), [])])
-        return calibrate_filter(on, episodes, loops, scoring, disturbance, model, variance_of=band.variance)
+        return calibrate_filter_on_probes((closed, plant), probe_set, scoring, disturbance, model, band.variance)
 
     def elsewhere(gains, loop):
         own_variance = band.variance(loop.model(closed, plant, MEASURED))

@@ -55,6 +55,7 @@ __all__ = [
     "FilterVariance",
     "LINEARIZED_STEPS",
     "calibrate_filter",
+    "calibrate_filter_on_probes",
     "filter_variance",
     "fold_fits",
     "innovation_covariance",
@@ -324,7 +325,7 @@ def fold_fits(
 
 
 def calibrate_filter(
-    fit: EnsembleFit,
+    folds: Sequence[FoldEnsemble],
     trajectories,
     loops: Sequence[Loop],
     options: CalibrationOptions,
@@ -337,8 +338,8 @@ def calibrate_filter(
 
     Parameters
     ----------
-    fit : EnsembleFit
-        Its folds' point fits (:func:`fold_fits`, or a bootstrap ensemble's).
+    folds : sequence of FoldEnsemble
+        Their held-out episodes and point fits (:func:`fold_fits`' ``folds``, or a bootstrap ensemble's).
     trajectories : sequence of Trajectory
         The training episodes.
     loops : sequence of Loop
@@ -363,7 +364,7 @@ def calibrate_filter(
     trajectories = as_episodes(trajectories)
     variance = filter_variance(model, disturbance) if variance_of is None else variance_of(model)
     groups = []
-    for fold in fit.folds:
+    for fold in folds:
         held_out = select_episodes(trajectories, fold.validation)
         for run in consecutive_runs([loops[j] for j in fold.validation]):
             loop = loops[fold.validation[run[0]]]
@@ -389,6 +390,27 @@ def calibrate_filter(
     for K in [int(K) for K in ahead if int(K) > 0]:
         _calibrate_ahead(calibration, groups, disturbance, K, options)
     return calibration
+
+
+def calibrate_filter_on_probes(
+    point: tuple,
+    probes,
+    options: CalibrationOptions,
+    disturbance: dm.DisturbanceModel,
+    model: KoopmanModel,
+    variance_of: Callable[[KoopmanModel], FilterVariance],
+) -> FilterCalibration:
+    """Calibrate the filter's band of loops the training never ran on the twin's probe episodes.
+
+    As :func:`~qube_koopman.identify.uncertainty.calibration.calibrate_on_probes`: the fit on all the
+    training episodes (``point``: closed loop, plant) predicts each probe episode wrapped with its probe's
+    controller, as test episodes are predicted; each probe loop's samples get that loop's ``V``
+    (``variance_of``), and ``model``'s is the calibration's until :meth:`FilterCalibration.for_loop`.
+    """
+    episodes = [episode for group in probes.episodes for episode in group]
+    loops = [Loop("wrapped", c) for c, group in zip(probes.controllers, probes.episodes) for _ in group]
+    fold = FoldEnsemble(np.arange(len(episodes)), point, [])
+    return calibrate_filter([fold], episodes, loops, options, disturbance, model, variance_of=variance_of)
 
 
 def _calibrate_ahead(calibration: FilterCalibration, groups, disturbance, K: int, options: CalibrationOptions) -> None:
