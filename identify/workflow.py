@@ -240,7 +240,10 @@ def identify_and_score(
     (:mod:`~qube_koopman.identify.uncertainty`); report.json's ``intervals`` gives each episode's
     and the pooled coverage, mean half-width and RMS error per channel, and
     ``predictions_folder`` receives one ``<log>.npz`` per test episode
-    (:meth:`~qube_koopman.identify.uncertainty.PredictionBand.save`).
+    (:meth:`~qube_koopman.identify.uncertainty.PredictionBand.save`). With ``intervals.method ==
+    "disturbance"`` the band is the disturbance filter's variance instead of the bootstrap's spread
+    (:mod:`~qube_koopman.identify.uncertainty.filter_band`), and with ``ahead`` the K-step predictions
+    get bands too.
 
     Parameters
     ----------
