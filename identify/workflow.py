@@ -37,6 +37,13 @@ from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, epis
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
 from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep, warn_at_grid_edge
 from qube_koopman.identify.uncertainty.spectra import error_spectra
+from qube_koopman.identify.uncertainty.filter_band import (
+    AheadBand,
+    calibrate_filter,
+    calibrate_filter_on_probes,
+    fold_fits,
+    residual_model,
+)
 from qube_koopman.identify.uncertainty import (
     BandSummary,
     CalibrationOptions,
@@ -233,7 +240,10 @@ def identify_and_score(
     (:mod:`~qube_koopman.identify.uncertainty`); report.json's ``intervals`` gives each episode's
     and the pooled coverage, mean half-width and RMS error per channel, and
     ``predictions_folder`` receives one ``<log>.npz`` per test episode
-    (:meth:`~qube_koopman.identify.uncertainty.PredictionBand.save`).
+    (:meth:`~qube_koopman.identify.uncertainty.PredictionBand.save`). With ``intervals.method ==
+    "disturbance"`` the band is the disturbance filter's variance instead of the bootstrap's spread
+    (:mod:`~qube_koopman.identify.uncertainty.filter_band`), and with ``ahead`` the K-step predictions
+    get bands too.
 
     Parameters
     ----------
@@ -370,9 +380,33 @@ def identify_and_score(
             }
             # The calibration's held-out predictions, which the model file's design figures reuse.
             held_out: dict = {}
+            disturbance, ahead_scores = None, None
+            filtered = intervals is not None and intervals.method == "disturbance"
+            if ahead is not None:
+                disturbance, result.report["disturbance"] = _training_disturbance(
+                    closed if score == "cl" else plant, train, controller, score, ahead
+                )
             bands = (
                 None
                 if ensemble is None
+                else _filter_bands(
+                    ensemble,
+                    intervals,
+                    train,
+                    controller,
+                    score,
+                    offsets,
+                    _first_scored(offsets, score_from, test[0].dt),
+                    result,
+                    predictions_folder,
+                    keep_predictions,
+                    (closed, plant),
+                    disturbance,
+                    ahead,
+                    probes,
+                    probe_cache,
+                )
+                if filtered
                 else _test_bands(
                     ensemble,
                     intervals,
@@ -389,13 +423,13 @@ def identify_and_score(
                     held_out,
                 )
             )
-            disturbance, ahead_scores = None, None
             if ahead is not None:
-                disturbance, result.report["disturbance"] = _training_disturbance(
-                    closed if score == "cl" else plant, train, controller, score, ahead
-                )
                 ahead_scores = AheadScores(
-                    ahead, disturbance, _first_scored(offsets, score_from, test[0].dt), predictions_folder is not None
+                    ahead,
+                    disturbance,
+                    _first_scored(offsets, score_from, test[0].dt),
+                    predictions_folder is not None,
+                    None if bands is None or not filtered else bands.ahead_band,
                 )
             if model_path is not None:
                 save_model(
@@ -408,7 +442,7 @@ def identify_and_score(
                     measured=MEASURED,
                     training={"logs": result.report["train_logs"]},
                     uncertainty=None
-                    if ensemble is None or intervals is None
+                    if ensemble is None or intervals is None or filtered  # no bootstrap plants
                     else _design_uncertainty(ensemble, plant, train, intervals.seed, held_out),
                     disturbance=disturbance,
                 )  # an ensemble: intervals were asked for
@@ -516,7 +550,7 @@ def _koopman(
     if intervals is None:
         fitted = fit(make(alpha))
     else:  # the plain fit, its bootstrap refits and the calibration folds' in one pass over the episodes
-        ensemble = fit_ensemble(
+        ensemble = (fold_fits if intervals.method == "disturbance" else fit_ensemble)(
             make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller, MEASURED, counted
         )
         fitted = ensemble.estimator
@@ -820,13 +854,15 @@ def _save_ahead(folder: Path, test, ahead: AheadScores) -> None:
             continue
         path = folder / f"{log.path.stem}.npz"
         arrays: dict = {}
-        if path.exists():
+        first = 0
+        if path.exists():  # the band's file: its samples start at the first scored one, the same rows kept here
             with np.load(path) as old:
                 arrays = {key: old[key] for key in old.files}
+            first = int(round(float(arrays["t"][0]) / log.dt)) if len(arrays.get("t", ())) else 0
         else:
             x = np.asarray(log.trajectory.x, dtype=float)
             arrays = {"t": np.arange(len(x)) * log.dt, "measured": x}
-        arrays.update(kept)
+        arrays.update({key: value[first:] for key, value in kept.items()})
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, **arrays)
 
@@ -846,6 +882,11 @@ INTERVAL_METHOD = (
 class _TestBands:
     """Each test episode's interval, written and summarized as the episodes stream by."""
 
+    #: How a loop the training never ran is calibrated (each band's ``calibration``).
+    other_calibration = "twin probes"
+    #: The K-step predictions' band (the filter's), or None.
+    ahead_band: AheadBand | None = None
+
     def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None) -> None:
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
         # The calibrations of loops the training never ran, (loop, calibration, report entry) each:
@@ -864,7 +905,7 @@ class _TestBands:
         calibration = self.calibration if seen or self._other is None else self._calibration_elsewhere(loop, log, own)
         band = prediction_band(log.path.name, trajectory, predicted, calibration, start, n_delays, scored)
         band.calibrated_loop = seen
-        band.calibration = "held-out" if calibration is self.calibration else "twin probes"
+        band.calibration = "held-out" if calibration is self.calibration else self.other_calibration
         if self.folder is not None:
             name = f"{log.path.stem}.npz"
             band.save(self.folder / name)
@@ -882,7 +923,7 @@ class _TestBands:
         # controller is not the log's, but the probes of its gains measure the model's error under it);
         # a what-if's, the plant's or a state-space controller's loop: none.
         gains = _pd_gains(log.gains) if own and loop.kind == "wrapped" else None
-        calibration, entry = self._other(gains)
+        calibration, entry = self._other(gains, loop)
         entry["log"] = log.path.name
         self.elsewhere.append((loop, calibration, entry))
         self.seconds["other_loops"] = self.seconds.get("other_loops", 0.0) + time.perf_counter() - started
@@ -893,6 +934,8 @@ class _TestBands:
         o, cal = self.options, self.calibration
         self.result.report["intervals"] = {
             "level": o.level,
+            "interval_method": "bootstrap",
+            "why": "IntervalOptions' method 'bootstrap'",
             "method": INTERVAL_METHOD,
             "n_members": o.n_members,
             "n_folds": o.n_folds,
@@ -977,7 +1020,7 @@ def _test_bands(
         }
         return own_calibration, fields
 
-    def elsewhere(gains):
+    def elsewhere(gains, loop=None):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
         from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS
 
@@ -1011,6 +1054,131 @@ def _test_bands(
 
     other = elsewhere if options.other_loops == "twin" and score == "cl" else None
     return _TestBands(ensemble.members, calibration, loops, options, result, folder, keep, seconds, other)
+
+
+#: How the filter's intervals are made, in words (report.json's ``intervals.method`` with ``method`` disturbance).
+FILTER_INTERVAL_METHOD = (
+    "prediction +- k_c sqrt(V_c(h) + q_c (1 - exp(-h / tau_c))): V_c(h) the prediction error variance of the "
+    "disturbance model's Kalman filter h samples from the prediction's start (the innovations' covariance "
+    "propagated through the loop's response, re-lifted, to an innovation and to the disturbance estimate it "
+    "moves), in place of the bootstrap refits' spread; q_c, tau_c and k_c calibrated per channel on training "
+    "episodes held out in turn (one refit per fold, no bootstrap refits); a loop the training never ran keeps "
+    "the calibration with its own loop's V_c(h); K-step predictions get k_{c,K} sqrt(V_c(K)), k_{c,K} the "
+    "level's quantile on the held-out episodes' K-step predictions"
+)
+
+
+class _FilterBands(_TestBands):
+    """:class:`_TestBands` of the disturbance filter's band (:mod:`~qube_koopman.identify.uncertainty.filter_band`)."""
+
+    other_calibration = "twin probes, the loop's own filter variance"
+    filter_report: dict
+    n_folds: int
+
+    def report(self) -> None:
+        super().report()
+        entry = self.result.report["intervals"]
+        entry.update(
+            {
+                "interval_method": "disturbance",
+                "n_folds": self.n_folds,
+                "why": "IntervalOptions' method 'disturbance'",
+                "method": FILTER_INTERVAL_METHOD,
+                "n_members": 0,
+                "other_loops": self.options.other_loops,
+                "filter": self.filter_report,
+            }
+        )
+
+
+def _filter_bands(
+    fit,
+    options,
+    train,
+    controller,
+    score,
+    offsets,
+    start,
+    result,
+    folder,
+    keep,
+    models,
+    disturbance,
+    ahead,
+    probes=None,
+    probe_cache=None,
+) -> _TestBands:
+    """The disturbance filter's bands (``options.method == "disturbance"``): calibrated on the folds' held-out
+    training episodes; a loop the training never ran gets its own filter variance, calibrated as the bootstrap
+    band's is (``other_loops "twin"``: on the twin's probe episodes, the point fit predicting them, each probe
+    loop's own variance; per channel and horizon the wider of the default probes' and the loop's own gains')
+    or with the training loop's calibration (``"none"``)."""
+    started = time.perf_counter()
+    closed, plant = models
+    model = closed if score == "cl" else plant
+    # Without --horizon (no disturbance model fitted) or none supported: the filter of the measured history alone.
+    if disturbance is None:
+        disturbance = residual_model(model, [log.trajectory for log in spread(list(train), MAX_EPISODES)])
+    loops = [Loop.of(log.controller, controller, score) for log in train]
+    scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
+    dt = model.dt if model.dt is not None else train[0].dt
+    horizons = [] if ahead is None else [max(1, K) for K in ahead.samples(dt)]
+    calibration = calibrate_filter(fit.folds, LogTrajectories(train), loops, scoring, disturbance, model, horizons)
+    seconds = {"calibration": time.perf_counter() - started}
+    band = AheadBand(calibration, disturbance, model)
+
+    default: list = []  # the default probes' calibration, made once (before its loop's variance)
+
+    def on_probes(probe_set):
+        return calibrate_filter_on_probes((closed, plant), probe_set, scoring, disturbance, model, band.variance)
+
+    def elsewhere(gains, loop):
+        own_variance = band.variance(loop.model(closed, plant, MEASURED))
+        if options.other_loops != "twin" or score != "cl":
+            own = calibration.for_loop(own_variance)
+            return own, {"gains": gains, "channels": own.as_dict(STATE_NAMES), "calibration": "held-out"}
+        from qube_koopman.identify.model_selection.transfer import (
+            DEFAULT_PROBE_GAINS,
+            session_twins,
+            twin_probe_sets,
+        )
+
+        wanted = ([] if probes is not None or default else [DEFAULT_PROBE_GAINS]) + ([] if gains is None else [[gains]])
+        sets = (
+            twin_probe_sets(
+                LogTrajectories(train),
+                wanted,
+                per_controller=INTERVAL_PROBES,
+                params=session_twins(),
+                cache=probe_cache,
+            )
+            if wanted
+            else []
+        )
+        if not default:
+            probe_set = probes if probes is not None else sets.pop(0)
+            if not probe_set.controllers:
+                raise ValueError("no probe episode stayed balanced on the twin")
+            default.append((probe_set, on_probes(probe_set)))
+        parts = [default[0][1]] + [on_probes(own) for own in sets if own.controllers]
+        combined = widest([part.for_loop(own_variance) for part in parts])
+        combined.uses_spread = False  # its parts are the filter's
+        entry = {
+            "default_probes": default[0][0].describe(),
+            "gains": gains,
+            "own_probes": "yes" if len(parts) > 1 else "none",
+            "channels": combined.as_dict(STATE_NAMES),
+        }
+        return combined, entry
+
+    bands = _FilterBands([], calibration, loops, options, result, folder, keep, seconds, elsewhere)
+    bands.ahead_band, bands.n_folds = band, len(fit.folds)
+    bands.filter_report = {
+        "innovations_covariance": np.asarray(disturbance.R, dtype=float).tolist(),
+        "disturbance_entry": disturbance.entry if disturbance.q > 0 else "none",
+        "why": "IntervalOptions' method 'disturbance'",
+    }
+    return bands
 
 
 def _warn_diverged(summary: dict, dt: float, what: str) -> None:

@@ -350,6 +350,18 @@ def _parser() -> argparse.ArgumentParser:
         help="bootstrap refits of the intervals (default %(default)s)",
     )
     pred.add_argument(
+        "--interval-method",
+        choices=["auto", "bootstrap", "disturbance"],
+        default="auto",
+        help="the intervals' source of uncertainty: bootstrap, the spread of bootstrap refits with a "
+        "model error calibrated on held-out training episodes (model.json keeps the refits for qube-design); "
+        "disturbance, the disturbance model's Kalman "
+        "filter variance calibrated the same way, without bootstrap refits (the disturbance model --horizon fits; "
+        "without --horizon, the filter of the measured history alone), and with --horizon bands for the K-step "
+        "predictions too (ahead_<S>_lower/upper); auto (default): disturbance with --horizon, bootstrap without; "
+        "report.json's intervals say which and why",
+    )
+    pred.add_argument(
         "--interval-seed",
         type=seed,
         default=0,
@@ -655,6 +667,22 @@ def _check_args(args) -> None:
     check_output_folder(args.out, OUTPUT_FILES + ((PREDICTIONS,) if args.interval else ()), force=args.force)
 
 
+def _interval_method(args) -> tuple[str, str]:
+    """--interval-method resolved (auto: the filter's band with --horizon, the bootstrap's without) and why."""
+    if args.interval_method != "auto":
+        return args.interval_method, f"asked for (--interval-method {args.interval_method})"
+    if args.horizon is not None:
+        return "disturbance", (
+            "the default with --horizon: on the paper's data the disturbance filter's band covers the test episodes "
+            "as the bootstrap band does (pooled 0.953 / 0.956 against 0.955 / 0.960 with the default lifting) "
+            "for about a fifth of its added time, and bands the K-step predictions too"
+        )
+    return "bootstrap", (
+        "the default without --horizon: the bootstrap refits also give model.json the plants qube-design "
+        "takes (--interval-method disturbance: the filter's band, cheaper, without them)"
+    )
+
+
 def _check_interval(args) -> None:
     """--interval: 0 or a level in (0, 1); on by default for the Koopman methods, refused for ARX."""
     args.interval_asked = args.interval is not None
@@ -846,7 +874,11 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
             episode_statistics=statistics,
             intervals=(
                 IntervalOptions(
-                    args.interval, args.interval_members, seed=args.interval_seed, other_loops=args.interval_other_loops
+                    args.interval,
+                    args.interval_members,
+                    seed=args.interval_seed,
+                    other_loops=args.interval_other_loops,
+                    method=_interval_method(args)[0],
                 )
                 if args.interval
                 else None
@@ -870,6 +902,8 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
         raise CliError(str(exc)) from None
     except NoWorkersError as exc:
         raise CliError(str(exc), status=1) from None
+    if "intervals" in result.report:
+        result.report["intervals"]["why"] = _interval_method(args)[1]
     if sessions is not None:
         result.report["session_delays"] = sessions
     if statistics is not None:  # where the training statistics were computed

@@ -11,7 +11,7 @@ keeps each episode's predictions for its predictions file (``ahead_<h>``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -151,12 +151,18 @@ def fit_training_disturbance(
 
 @dataclass
 class AheadScores:
-    """Test episodes' K-step predictions and scores, added as they stream by."""
+    """Test episodes' K-step predictions and scores, added as they stream by.
+
+    ``band``, when given, is the half-width per channel of a loop's predictions ``K`` samples ahead
+    (``band(model, K)``, :meth:`~qube_koopman.identify.uncertainty.filter_band.FilterCalibration.ahead_half_width`):
+    each episode's predictions then get ``ahead_<h>_lower`` and ``_upper`` and its coverage is scored.
+    """
 
     options: AheadOptions
     disturbance: dm.DisturbanceModel | None
     start: int
     keep: bool = True
+    band: Callable[[KoopmanModel, int], np.ndarray] | None = None
     per_horizon: dict[str, list[dict]] = field(default_factory=dict)
     predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
@@ -194,7 +200,12 @@ class AheadScores:
                 pred = predicted[K] + shift[None, :]
                 label = horizon_label(h)
                 kept[f"ahead_{label}"] = pred
-                self.per_horizon.setdefault(label, []).append(_score(name, t.x, pred, self.start))
+                row = _score(name, t.x, pred, self.start)
+                if self.band is not None and K > 0:
+                    half = np.asarray(self.band(model, K), dtype=float)
+                    kept[f"ahead_{label}_lower"], kept[f"ahead_{label}_upper"] = pred - half, pred + half
+                    row.update(_coverage(t.x, pred, half, self.start))
+                self.per_horizon.setdefault(label, []).append(row)
             if self.keep:
                 self.predictions[name] = kept
 
@@ -217,7 +228,25 @@ class AheadScores:
                 "rms_mean": np.nanmean(rms, axis=0).tolist(),
                 "episodes": rows,
             }
+            banded = [row for row in rows if "coverage" in row and row["n_samples"]]
+            if banded:
+                n = np.array([row["n_samples"] for row in banded], dtype=float)[:, None]
+                cov = np.array([row["coverage"] for row in banded])
+                out["horizons"][label]["band"] = {
+                    "coverage": (np.sum(cov * n, axis=0) / n.sum()).tolist(),
+                    "worst_episode_coverage": cov.min(axis=0).tolist(),
+                    "half_width": banded[0]["half_width"],
+                }
         return out
+
+
+def _coverage(truth: np.ndarray, pred: np.ndarray, half: np.ndarray, start: int) -> dict:
+    """The share per channel of the predicted samples from ``start`` on inside ``pred +- half``."""
+    truth = np.asarray(truth, dtype=float)
+    ok = (np.arange(truth.shape[0]) >= start) & np.all(np.isfinite(pred), axis=1)
+    inside = np.abs(truth[ok] - pred[ok]) <= half
+    nan = [float("nan")] * truth.shape[1]
+    return {"coverage": inside.mean(axis=0).tolist() if np.any(ok) else nan, "half_width": half.tolist()}
 
 
 def _score(name: str, truth: np.ndarray, pred: np.ndarray, start: int) -> dict:

@@ -66,13 +66,18 @@ def _intervals_section(intervals: dict | None) -> list[str]:
     if not intervals or not intervals.get("pooled"):
         return []
     pooled, calibration = intervals["pooled"], intervals["calibration"]["channels"]
+    source = (
+        "the disturbance model's Kalman filter variance (no bootstrap refits)"
+        if intervals.get("interval_method") == "disturbance"
+        else f"{intervals['n_members']} bootstrap refits on the training episodes, the offsets' standard errors"
+    )
     lines = [
         "",
         "## Prediction intervals",
         "",
-        f"Every predicted sample's interval at level {intervals['level']:g}: {intervals['n_members']} bootstrap "
-        f"refits on the training episodes, the offsets' standard errors, and the model's error calibrated on "
-        f"{intervals['n_folds']} groups of training episodes held out in turn (never the test episodes). "
+        f"Every predicted sample's interval at level {intervals['level']:g}: {source}, and the model's error "
+        f"calibrated on {intervals['n_folds']} groups of training episodes held out in turn (never the test "
+        f"episodes). Method: {intervals.get('interval_method', 'bootstrap')} ({intervals.get('why', '')}). "
         f"Pooled over the scored test samples ({pooled['n_samples']}"
         + (
             f"; {pooled['n_infinite']} episode(s) with an infinite interval where a prediction diverged"
@@ -367,6 +372,22 @@ def _ahead_section(ahead: dict | None, disturbance: dict | None, test: dict | No
     if test:
         lines.append(f"| free run | R^2 mean {format_number(test.get('r2_mean'), '.4f')} (both channels) | | | |")
     lines += ["", ahead["note"] + "."]
+    banded = {label: h["band"] for label, h in ahead["horizons"].items() if h.get("band")}
+    if banded:
+        lines += [
+            "",
+            "Their bands (the filter's variance, calibrated on held-out training episodes):",
+            "",
+            "| horizon | coverage theta (worst) | coverage alpha (worst) | half-width theta | half-width alpha |",
+            "|---|---|---|---|---|",
+        ]
+        for label, b in banded.items():
+            cov, worst, half = b["coverage"], b["worst_episode_coverage"], b["half_width"]
+            lines.append(
+                f"| {label} s | {format_number(cov[0], '.3f')} ({format_number(worst[0], '.3f')}) | "
+                f"{format_number(cov[1], '.3f')} ({format_number(worst[1], '.3f')}) | "
+                f"{format_number(half[0], '.4g')} | {format_number(half[1], '.4g')} |"
+            )
     return lines
 
 

@@ -189,7 +189,9 @@ def prediction_band(
     """
     x, pred = trajectory.x, prediction.prediction
     k = np.arange(start, trajectory.n_samples)
-    half = calibration.half_width(members_variance(prediction)[k], k - n_delays)
+    # A calibration that does not use the members' spread (the filter's band) takes a prediction without them.
+    spread = np.zeros_like(pred) if prediction.variance is None and not calibration.uses_spread else None
+    half = calibration.half_width((members_variance(prediction) if spread is None else spread)[k], k - n_delays)
     diverged = diverged_from(pred, x, start)
     infinite = ~np.isfinite(half).all(axis=1)
     first_infinite = int(k[np.argmax(infinite)]) if infinite.any() else None

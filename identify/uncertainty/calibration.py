@@ -93,6 +93,8 @@ class IntervalCalibration:
     """
 
     parts_: tuple = ()
+    #: Its band widens with the bootstrap members' spread: a prediction without members has none to give.
+    uses_spread = True
 
     def __init__(self, level: float = 0.95) -> None:
         self.level = level

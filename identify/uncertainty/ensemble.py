@@ -21,12 +21,17 @@ if TYPE_CHECKING:
 __all__ = [
     "EnsembleFit",
     "FoldEnsemble",
+    "INTERVAL_METHODS",
     "IntervalOptions",
     "bootstrap_counts",
     "ensemble_statistics",
     "episode_folds",
     "fit_ensemble",
 ]
+
+
+#: How a band may be made (:class:`IntervalOptions`' ``method``).
+INTERVAL_METHODS = ("bootstrap", "disturbance")
 
 
 @dataclass(frozen=True)
@@ -65,6 +70,11 @@ class IntervalOptions:
         How a test episode under a loop the training never ran is calibrated: on the twin's probe
         episodes under other controllers (``"twin"``), or as the training loop's held-out
         episodes (``"none"``, flagged in the report as a loop the calibration did not see).
+    method : {"bootstrap", "disturbance"}
+        The band's source of the prediction's uncertainty: the bootstrap refits' spread (and the
+        twin's probes for other loops), or the disturbance model's Kalman filter variance
+        (:mod:`~qube_koopman.identify.uncertainty.filter_band`: no bootstrap refits, one refit per
+        calibration fold).
     """
 
     level: float = 0.95
@@ -76,8 +86,11 @@ class IntervalOptions:
     seed: int = 0
     stride: int = 5
     other_loops: str = "twin"
+    method: str = "bootstrap"
 
     def __post_init__(self) -> None:
+        if self.method not in INTERVAL_METHODS:
+            raise ValueError(f"the interval method must be one of {', '.join(INTERVAL_METHODS)}, got {self.method!r}")
         if self.other_loops not in ("twin", "none"):
             raise ValueError(f"other_loops must be 'twin' or 'none', got {self.other_loops!r}")
         if not 0 < self.level < 1:

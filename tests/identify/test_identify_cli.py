@@ -318,3 +318,40 @@ def test_horizons_score_k_step_predictions_and_the_model_file_carries_the_filter
     np.testing.assert_allclose(rms, first["rms"], rtol=1e-12)
     assert np.isnan(pred[:50]).all()  # nothing predicted 0.1 s ahead before the first start plus 0.1 s
     assert "Predictions that use the measurements" in (tmp_path / "report.md").read_text()
+
+
+def test_the_disturbance_filter_s_intervals_band_the_free_run_and_the_k_step_predictions(small_set, tmp_path, capsys):
+    """With --horizon the default --interval-method is the disturbance filter's: no bootstrap refits, report.json
+    says which method made the bands and why, and the K-step predictions get bands whose saved bounds give the
+    reported coverage; --interval-method bootstrap is obeyed."""
+    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
+                         "--delays", "5", "--horizon", "0.1")
+    assert code == 0, err
+    report = json.loads((tmp_path / "report.json").read_text())
+    intervals = report["intervals"]
+    assert intervals["interval_method"] == "disturbance" and intervals["n_members"] == 0
+    assert "Kalman filter" in intervals["method"] and "default with --horizon" in intervals["why"]
+    assert "uncertainty" not in json.loads((tmp_path / "model.json").read_text())  # no bootstrap plants
+    assert 0.8 <= intervals["pooled"]["coverage"]["theta"] <= 1.0
+    assert "filter_sd" in intervals["calibration"]["channels"]["theta"]
+    assert "Method: disturbance" in (tmp_path / "report.md").read_text()
+    band = report["ahead"]["horizons"]["0.1"]["band"]
+    first = report["ahead"]["horizons"]["0.1"]["episodes"][0]
+    saved = np.load(tmp_path / "predictions" / (Path(first["log"]).stem + ".npz"))
+    lower, pred, upper = saved["ahead_0.1_lower"], saved["ahead_0.1"], saved["ahead_0.1_upper"]
+    # beside the free run's band, from the first scored sample on, row for row
+    assert pred.shape == saved["measured"].shape == saved["lower"].shape
+    assert saved["t"][0] == pytest.approx(report["scored_from_sample"] * 0.002)
+    ok = np.all(np.isfinite(pred), axis=1)
+    assert np.all((lower[ok] < pred[ok]) & (pred[ok] < upper[ok]))
+    np.testing.assert_allclose((upper[ok] - pred[ok])[0], band["half_width"])
+    inside = (lower[ok] <= saved["measured"][ok]) & (saved["measured"][ok] <= upper[ok])
+    np.testing.assert_allclose(inside.mean(axis=0), first["coverage"])
+    # Asked for, the bootstrap band is made with --horizon too, and says so.
+    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path / "b",
+                       "--delays", "5", "--interval-members", "2", "--horizon", "0.1", "--interval-method", "bootstrap")
+    assert code == 0, err
+    bootstrap = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert bootstrap["intervals"]["interval_method"] == "bootstrap" and bootstrap["intervals"]["n_members"] == 2
+    assert bootstrap["intervals"]["why"] == "asked for (--interval-method bootstrap)"
+    assert "band" not in bootstrap["ahead"]["horizons"]["0.1"]
