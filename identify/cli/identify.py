@@ -55,8 +55,8 @@ With --search the lifting, alpha and offset protocol are chosen on the
 training episodes only, in stages (delays; monomial order x constant x sin/cos;
 friction on/off; RBF centres; offsets on the best few). Each candidate is scored twice: by
 episode-grouped cross-validation (closed-loop prediction under the training
-controller, from the end of the --estimate-window on; leave-one-controller-out
-with training logs of several controllers) and, with --transfer twin
+controller, from the end of the --estimate-window on; with training logs of
+several controllers as many folds per controller, one holding it out whole) and, with --transfer twin
 (the default), by transfer: its plant, wrapped with three probe PD controllers
 unlike the training one, predicts twin episodes (the training excitations
 replayed on the calibrated twin under those controllers). Candidates rank by
@@ -236,7 +236,7 @@ def _parser() -> argparse.ArgumentParser:
         nargs=3,
         metavar=("MIN", "MAX", "N"),
         help="choose alpha among N log-spaced values by cross-validation: episode-grouped, or "
-        "leave-one-controller-out when the training logs ran two or more controllers",
+        "per controller when the training logs ran two or more controllers (--cv-splits folds each)",
     )
     fit.add_argument(
         "--cv-splits",
@@ -244,7 +244,8 @@ def _parser() -> argparse.ArgumentParser:
         default=3,
         metavar="K",
         help="random splits holding out 20%% of the training episodes (default %(default)s; with "
-        "training logs of several controllers the folds leave one controller out instead)",
+        "training logs of several controllers, K folds per controller: the first holds it out whole when the "
+        "others are at least half of the episodes)",
     )
     fit.add_argument("--cv-seed", type=seed, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
     fit.add_argument(

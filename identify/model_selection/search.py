@@ -1000,7 +1000,8 @@ def same_controller_scores(
 ) -> list[tuple[int, float]]:
     """A candidate's same-controller score when the training episodes ran several controllers.
 
-    The search ranks by leave-one-controller-out folds; this scores the
+    The search ranks by per-controller folds
+    (:func:`~qube_koopman.identify.model_selection.split.per_controller_splits`); this scores the
     candidate (its lifting, offset protocol and chosen alpha) on folds that
     hold out some episodes of one controller and train on all the rest
     (:func:`~qube_koopman.identify.model_selection.split.within_controller_splits`), as the

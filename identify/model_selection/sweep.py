@@ -9,8 +9,8 @@ predicts every validation episode in one batched simulation. A lifting that
 learns from data (RBF centres) is refitted on each fold's training episodes.
 Episodes of several controllers (``controllers``) are grouped per controller
 in the statistics; each fold's closed loops are those of the controller its
-validation episodes ran (leave-one-controller-out folds: one the fold's
-plant was not fitted to).
+validation episodes ran (a per-controller fold that holds out a whole
+controller: one the fold's plant was not fitted to).
 """
 
 from __future__ import annotations

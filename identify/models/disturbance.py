@@ -13,7 +13,8 @@ The lifted state of a delay-embedding model is a function of the measured histor
 one-step predictor from the measurements (the prediction-error method's predictor, as for an
 ARX model) is ``y_{k+1} = C (A z_k + B v_k + E d_k) + e_{k+1}`` with ``z_k`` the lifting of the
 measured ``y`` up to sample ``k`` (and the logged controller state), ``v_k`` the known inputs,
-``e`` white innovations of covariance ``R``, and the disturbance
+``e`` white noise of covariance ``R`` (the measurement noise and what the model misses in one
+sample), and the disturbance
 
     d_{k+1} = pole d_k + w_k,   var(w) = q.
 
@@ -106,8 +107,10 @@ class DisturbanceModel:
     q : float
         Variance of ``w`` per sample (volts squared for ``"input"``, rad squared otherwise).
     R : ndarray of shape (n_outputs, n_outputs)
-        Covariance of the one-step innovations (the measurement noise and what the model misses
-        in one sample).
+        Covariance of ``e``, the one-step noise besides the disturbance (the measurement noise and
+        what the model misses in one sample), estimated as the training residuals' covariance; the
+        filter's innovations have covariance ``R + P G G^T`` (``P`` the disturbance's steady-state
+        prediction variance), ``R`` itself when ``q = 0``.
     gain : ndarray of shape (n_outputs,)
         The steady-state filter's gain: ``d_{k|k} = d_{k|k-1} + gain @ innovation``.
     log_likelihood : float
