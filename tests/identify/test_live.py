@@ -177,3 +177,21 @@ def test_the_rerun_recording_shows_predicted_against_measured_and_the_score_curv
         assert rows[f"/identify/episodes/{k}/theta"] == rows[f"/identify/episodes/{k}/alpha"] == n
     assert "/identify/episodes/0/theta" not in rows and rows["/identify/r2"] == 2
     assert rows["/theta"] == 3 * 2500  # the run's own view is all there
+
+
+def test_identify_without_flags_keeps_a_lifting_that_reaches_the_rigs_ceiling_and_stops_at_0_98(tmp_path):
+    """Bare --identify: the run's report names the lifting it kept (LIVE_DEFAULT_FLAGS, not qube-identify's
+    paper default that levels off near 0.85 on the twin) and --until 0.98 ends the run within a few episodes."""
+    import json
+
+    from qube_koopman.daq.cli.run import main as run_main
+    from qube_koopman.identify.cli.live import LIVE_DEFAULT_FLAGS
+
+    out = tmp_path / "run"
+    argv = ["--episodes", "10", "--duration", "8", "--seed", "21", "--out", str(out), "-q"]
+    assert run_main([*argv, "--identify", "--until", "0.98"]) == 0
+    report = json.loads((out / "model" / "report.json").read_text())
+    assert report["live"]["flags"] == LIVE_DEFAULT_FLAGS
+    r2 = [e["r2"] for e in report["live"]["episodes"]]
+    assert report["live"]["stopped"].startswith("held-out R^2 at least 0.98") and len(r2) < 10, r2  # before the plan
+    assert f"flags `{LIVE_DEFAULT_FLAGS}`" in (out / "model" / "report.md").read_text()
