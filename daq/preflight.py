@@ -3,9 +3,14 @@
 Before the first episode on a real QUBE-Servo 2: the bridge answers, the
 module on its SPI bus is a QUBE-Servo 2 (module id 777), both encoders are
 read (and counting, if someone turns the arm or the pendulum meanwhile), the
-amplifier enables on a zero-volt command without a fault, and the round trip
+amplifier enables on a zero-volt command without a fault, the round trip
 of a command (sent until the telemetry of the tick that applied it arrives)
-is measured. No voltage other than 0 V is ever commanded.
+is measured, and the motor's sign is tried: with the pendulum hanging at rest,
+:data:`MOTOR_CHECK_VOLTS` for :data:`MOTOR_CHECK_PUSH` ticks must turn the arm
+the way theta grows (a few degrees, then 0 V). That push is the only voltage
+other than 0 V ever commanded, and it is not commanded unless the pendulum hangs.
+Last, the host stops commanding: the bridge's watchdog must switch the motor off
+and report it within :data:`WATCHDOG_WAIT` ticks.
 """
 
 from __future__ import annotations
@@ -19,7 +24,17 @@ from qube_koopman.daq.backends.base import BackendFault
 from qube_koopman.firmware_protocol import Status
 from qube_koopman.firmware_protocol.messages import MODULE_ID_QUBE_SERVO_2
 
-__all__ = ["CheckResult", "PreflightReport", "preflight"]
+__all__ = ["CheckResult", "MOTOR_CHECK_VOLTS", "PreflightReport", "preflight"]
+
+#: The motor check's push (V) and its length and the coast after it (ticks of 2 ms): on the QUBE-Servo 2 the
+#: arm turns about 0.1 rad (30 counts) this way, against a tenth of that for the check to tell the sign.
+MOTOR_CHECK_VOLTS, MOTOR_CHECK_PUSH, MOTOR_CHECK_COAST = 1.0, 20, 50
+#: Arm counts the push must move it by, either way, to tell the motor's sign (a count is 3.1 mrad).
+MOTOR_CHECK_COUNTS = 3
+#: The pendulum hangs when it is within this of straight down (rad): the motor check's condition.
+HANGING_WITHIN = 0.5
+#: Ticks the host reads without commanding for the watchdog check (the bridge's timeout is 1-1000, 5 by default).
+WATCHDOG_WAIT = 50
 
 
 @dataclass(frozen=True)
@@ -103,8 +118,12 @@ def preflight(backend, n_commands: int = 100) -> PreflightReport:
     report = PreflightReport()
     report.checks.append(_module_id(backend))
     backend.start()
+    motor = watchdog = None
     try:
         seen, trips, fault = _exchange(backend, n_commands)
+        if not fault and seen:
+            motor = _motor_sign(backend)
+            watchdog = _watchdog(backend)
     finally:
         backend.stop()
     report.round_trips = trips
@@ -152,4 +171,61 @@ def preflight(backend, n_commands: int = 100) -> PreflightReport:
         report.checks.append(
             CheckResult("round trip", False, f"only {len(trips)} of {n_commands} commands were seen applied")
         )
+    report.checks += [check for check in (motor, watchdog) if check is not None]
     return report
+
+
+def _watchdog(backend) -> CheckResult:
+    """Stop commanding (the amplifier on, 0 V): the bridge's watchdog must trip and say so."""
+    try:
+        for _ in range(WATCHDOG_WAIT):
+            backend.read()
+    except BackendFault as exc:
+        ok = "watchdog tripped" in str(exc)
+        return CheckResult("watchdog", ok, str(exc) if ok else f"another fault came first: {exc}")
+    timeout = backend.watchdog_ticks
+    return CheckResult("watchdog", False, f"no trip in {WATCHDOG_WAIT} ticks without a command (timeout {timeout})")
+
+
+def _motor_sign(backend) -> CheckResult:
+    """Push the arm with :data:`MOTOR_CHECK_VOLTS`, then 0 V: theta must grow (the pendulum hanging at rest)."""
+    import math
+
+    from qube_koopman.sim.pendulum.sensor import COUNTS_PER_REV
+
+    _, alpha = backend.read()
+    if abs(abs(alpha) - math.pi) > HANGING_WITHIN:
+        return CheckResult(
+            "motor sign",
+            False,
+            f"not tried: the pendulum is at {math.degrees(alpha):.0f} deg, not hanging (let it hang at rest, "
+            "then check again)",
+        )
+    start = backend.last_telemetry.encoder0
+    try:
+        for tick in range(MOTOR_CHECK_PUSH + MOTOR_CHECK_COAST):
+            backend.write(MOTOR_CHECK_VOLTS if tick < MOTOR_CHECK_PUSH else 0.0)
+            backend.read()
+        backend.write(0.0)
+    except BackendFault as exc:
+        return CheckResult("motor sign", False, f"the push failed: {exc}")
+    moved = backend.last_telemetry.encoder0 - start
+    radians = moved * 2 * math.pi / COUNTS_PER_REV
+    if moved >= MOTOR_CHECK_COUNTS:
+        return CheckResult(
+            "motor sign",
+            True,
+            f"{MOTOR_CHECK_VOLTS:g} V turned the arm {radians:+.3f} rad ({moved:+d} counts): theta grows",
+        )
+    if moved <= -MOTOR_CHECK_COUNTS:
+        return CheckResult(
+            "motor sign",
+            False,
+            f"{MOTOR_CHECK_VOLTS:g} V turned the arm {radians:+.3f} rad ({moved:+d} counts), the wrong way: the "
+            "motor's leads or the arm encoder's direction are reversed (theta must grow with a positive voltage)",
+        )
+    return CheckResult(
+        "motor sign",
+        False,
+        f"{MOTOR_CHECK_VOLTS:g} V moved the arm {moved:+d} counts: is the amplifier powered and the arm free?",
+    )

@@ -301,8 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
     link.add_argument(
         "--check",
         action="store_true",
-        help="pre-flight only: module id 777, encoders, amplifier enabling at 0 V and the "
-        "round trip; exit 0 when all pass, 1 naming the failed checks",
+        help="pre-flight only, the pendulum hanging at rest: module id 777, encoders, amplifier enabling at 0 V, "
+        "the round trip, the motor's sign (1 V for 40 ms turns the arm a few degrees) and the bridge's watchdog; "
+        "exit 0 when all pass, 1 naming the failed checks",
     )
     rt = p.add_argument_group("real-time scheduling (attempted only when asked; works without)")
     rt.add_argument("--rt-cpu", type=int, default=None, metavar="N", help="pin the process to CPU N")

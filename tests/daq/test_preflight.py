@@ -21,15 +21,19 @@ def test_check_passes_on_the_emulated_rig_and_reports_the_round_trip(env, tmp_pa
     # grants it, as on a busy lab PC (a loaded run with the suite on both cores and two burners
     # saw only 98 of 100 commands applied without it).
     rt = granted_rt_priority()
-    proc, path = start_emulator(env, "-q", rt_priority=rt)
+    proc, path = start_emulator(env, "-q", "--hanging", rt_priority=rt)  # as a check finds the rig: hanging
     try:
         run = _check(env, path, rt)
     finally:
         stop_process(proc)
     assert run.returncode == 0, run.stderr
     out = run.stdout
-    for name in ("module id: 777", "encoders: read", "amplifier: enabled at 0 V", "round trip: p50"):
+    for name in ("module id: 777", "encoders: read", "amplifier: enabled at 0 V", "round trip: p50", "motor sign: 1 V",
+                 "watchdog: bridge watchdog tripped: no command for 5 ticks"):
         assert f"ok   {name}" in out, out
+    # The push turns the emulated arm the way theta grows, by about what the motor's physics gives (0.1 rad).
+    turned = float(re.search(r"turned the arm \+([\d.]+) rad", out).group(1))
+    assert 0.03 < turned < 0.3, out
     p50, worst = map(float, re.search(r"p50 ([\d.]+) ms, max ([\d.]+) ms over 100 commands", out).groups())
     # A command is applied at the bridge's next tick: its telemetry comes within about a period.
     assert 0.0 < p50 <= worst and p50 < 20.0, out
@@ -49,3 +53,13 @@ def test_check_fails_naming_the_amplifier_on_a_fault(env):
 def test_check_is_for_the_serial_backend(capsys):
     assert main(["--check"]) == 2
     assert "--check is for --backend serial" in capsys.readouterr().err
+
+
+def test_the_motor_is_not_pushed_unless_the_pendulum_hangs(env):
+    proc, path = start_emulator(env, "-q")  # raised at once, as for an episode
+    try:
+        run = _check(env, path)
+    finally:
+        stop_process(proc)
+    assert run.returncode == 1 and "check failed: motor sign" in run.stderr, run.stderr
+    assert "FAIL motor sign: not tried: the pendulum is at" in run.stdout and "not hanging" in run.stdout
