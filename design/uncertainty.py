@@ -66,8 +66,9 @@ FIGURES = ("J", "voltage_rms", "voltage_peak")
 
 #: Why a model file gives no interval.
 NO_MEMBERS = (
-    "the model file holds no bootstrap plants (identified with --interval 0, by an older version, or an "
-    "ARX model): identify it again with qube-identify (intervals on by default) for one"
+    "the model file holds no bootstrap plants (identified with --interval 0, with the disturbance filter's band "
+    "(--interval-method disturbance, the default with --horizon), by an older version, or an ARX model): identify "
+    "it again with qube-identify --interval-method bootstrap for one"
 )
 
 #: Held-out episodes needed for the model-error term (its spread has n - 1 degrees of freedom).
