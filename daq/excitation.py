@@ -32,6 +32,7 @@ from typing import Iterator
 
 import numpy as np
 
+from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.daq.log.names import SEED_SIGNALS, parse_episode_name
 
 __all__ = [
@@ -216,7 +217,7 @@ class ExcitationSettings:
         (0.4 on the rig). Zero or negative disables smoothing.
     """
 
-    sample_rate: float = 500.0
+    sample_rate: float = 1.0 / QUBE_SAMPLE_PERIOD
     n_samples: int = 10_000
     window_start: int = 2000
     window_stop: int = 8000

@@ -20,6 +20,8 @@ from __future__ import annotations
 import enum
 from abc import ABC, abstractmethod
 
+from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
+
 __all__ = ["Backend", "BackendFault", "Pacing"]
 
 
@@ -50,7 +52,7 @@ class Backend(ABC):
 
     name: str = "backend"
     pacing: Pacing = Pacing.NONE
-    sample_period: float = 1.0 / 500.0
+    sample_period: float = QUBE_SAMPLE_PERIOD
 
     @abstractmethod
     def start(self) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 from qube_koopman.core.cli import OneLineParser, add_force_option, parse_args, whole_number
 from qube_koopman.core.command import CliError, check_output_file, output_dir, run_command
 from qube_koopman.core.console import configure_logging
+from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.core.qube import ALPHA_LIMIT, THETA_LIMIT
 from qube_koopman.daq.cli.run_output import PROG
 
@@ -550,7 +551,7 @@ def _run(args) -> int:
         raise CliError(f"--episodes {args.episodes}: at most {MAX_EPISODES:,} in one run (start another run for more)")
     if args.duration > MAX_DURATION:
         raise CliError(f"--duration {args.duration:g}: at most {MAX_DURATION:g} s (24 h) per episode")
-    rate = 500.0
+    rate = 1.0 / QUBE_SAMPLE_PERIOD
     try:
         settings = excitation_settings(args.duration, rate)
     except ValueError as exc:

@@ -21,6 +21,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
+from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.core.lti import DiscreteStateSpace
 
 __all__ = [
@@ -37,7 +38,8 @@ __all__ = [
     "MAX_DELAY",
 ]
 
-SAMPLE_PERIOD = 1.0 / 500.0
+#: The simulator's step: the rig's sample period, defined once (core.controller.QUBE_SAMPLE_PERIOD).
+SAMPLE_PERIOD = QUBE_SAMPLE_PERIOD
 #: The largest size of any parameter (SI units): past it the model's own arithmetic overflows.
 MAX_PARAMETER = 1e6
 #: The smallest resistance, mass, length or Coulomb speed: the model divides by them.
