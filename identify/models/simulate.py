@@ -1,5 +1,10 @@
 """Batched prediction: many linear Koopman models on many episodes at once.
 
+Not the twin's closed loop (``sim.pendulum.closed_loop``, nonlinear physics) nor the rig's
+(``daq.loop``, a backend tick by tick): this steps identified models, whose state is the lifting,
+already closed with their controller (``estimators.structure.close_loop`` builds that loop's
+matrices; it simulates nothing).
+
 One implementation serves a single prediction and a regularization sweep
 (one model per alpha, every validation episode). When the state is re-lifted
 at every step only the rows of ``A`` and ``B`` that produce the passthrough

@@ -4,6 +4,12 @@ Vectorized over episodes: every step advances the whole batch at once, so
 replaying the dataset's 48 episodes costs one Python loop over time, not 48.
 The loop does what the rig's did each tick: read the encoders, feed the
 tracking error to the controller, add the feedforward, clip, hold the voltage.
+
+Why it is not ``daq.loop``: that loop runs one episode through a backend tick by tick, as on
+the rig (pacing, safety, logging, any controller kind); this one steps the twin's nonlinear
+physics for many episodes at once with a linear controller, for calibration and replays where
+nothing is logged and nothing waits. ``identify.models.simulate`` predicts with identified
+linear models, not with this physics.
 """
 
 from __future__ import annotations
