@@ -242,9 +242,9 @@ def cross_validation_folds(
     if loops is None:
         return folds
     loop_labels = distinct_controllers(loops)[1]
-    parts = [split_by_loop([split], loop_labels) for split in folds.splits]
-    held_out = None if folds.held_out is None else [c for c, p in zip(folds.held_out, parts) for _ in p]
-    return CrossValidationFolds(folds.kind, [s for p in parts for s in p], held_out)
+    by_loop = [split_by_loop([split], loop_labels) for split in folds.splits]
+    held_out = None if folds.held_out is None else [c for c, p in zip(folds.held_out, by_loop) for _ in p]
+    return CrossValidationFolds(folds.kind, [s for p in by_loop for s in p], held_out)
 
 
 def split_by_loop(
