@@ -814,7 +814,14 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
     from qube_koopman.identify.report.markdown import write_markdown_report
     from qube_koopman.identify.models.kstep import AheadOptions
     from qube_koopman.identify.uncertainty import IntervalOptions
-    from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
+    from qube_koopman.identify.workflow import (
+        FitOptions,
+        IdentifyOptions,
+        OffsetProtocol,
+        OutputOptions,
+        ScoreOptions,
+        identify_and_score,
+    )
 
     try:
         check_figure_options(args)  # matplotlib there, before the logs load
@@ -850,29 +857,33 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
             args.alpha = search.winner.best_alpha
         from qube_koopman.identify.cli.search import probe_cache
 
-        result = identify_and_score(
-            method=args.method,
-            lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
-            train=train,
-            test=test,
-            controller=controller,
-            alpha=1e-3 if args.alpha is None else args.alpha,
-            score=args.score,
-            alphas=alphas,
-            cv_splits=args.cv_splits,
-            cv_seed=args.cv_seed,
-            arx_lags=args.arx_lags,
-            model_path=staged.path("model.json"),
-            offsets=offsets,
-            what_if=what_if,
-            progress=progress,
-            keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
-            score_from=(
-                int(round(args.estimate_window / train[0].dt))
-                if args.protocol == "window" and offsets is None
-                else None
+        options = IdentifyOptions(
+            fit=FitOptions(
+                method=args.method,
+                lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
+                alpha=1e-3 if args.alpha is None else args.alpha,
+                alphas=alphas,
+                cv_splits=args.cv_splits,
+                cv_seed=args.cv_seed,
+                arx_lags=args.arx_lags,
+                estimator_options=(
+                    {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
+                ),
+                n_threads=args.n_jobs,
             ),
-            episode_statistics=statistics,
+            scoring=ScoreOptions(
+                score=args.score,
+                offsets=offsets,
+                score_from=(
+                    int(round(args.estimate_window / train[0].dt))
+                    if args.protocol == "window" and offsets is None
+                    else None
+                ),
+                what_if=what_if,
+                command_delay=(
+                    args.command_delay if args.command_delay == "estimate" else args.command_delay * 1e-3 / train[0].dt
+                ),
+            ),
             intervals=(
                 IntervalOptions(
                     args.interval,
@@ -884,21 +895,19 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
                 if args.interval
                 else None
             ),
-            predictions_folder=predictions,
             probe_cache=probe_cache() if args.probe_cache else None,
-            command_delay=(
-                args.command_delay if args.command_delay == "estimate" else args.command_delay * 1e-3 / train[0].dt
-            ),
-            n_threads=args.n_jobs,
             ahead=(
                 None
                 if args.horizon is None
                 else AheadOptions(args.horizon, entry=args.disturbance, q=args.disturbance_q)
             ),
-            estimator_options=(
-                {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
+            output=OutputOptions(
+                model_path=staged.path("model.json"),
+                predictions_folder=predictions,
+                keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
             ),
         )
+        result = identify_and_score(train, test, controller, options, progress=progress, episode_statistics=statistics)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     except NoWorkersError as exc:
