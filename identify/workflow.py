@@ -6,7 +6,7 @@ import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -65,6 +65,7 @@ from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
 
 if TYPE_CHECKING:
+    from qube_koopman.identify.models.model import KoopmanModel
     from qube_koopman.identify.model_selection.search import SearchSpace
     from qube_koopman.identify.model_selection.transfer import ProbeSet
 
@@ -444,9 +445,9 @@ def _new_result(train, test, controller, options: IdentifyOptions) -> Identifica
 class _KoopmanFit:
     """A Koopman method's fit: the plant, its closed loop, and with intervals the ensemble of refits."""
 
-    plant: object
-    closed: object
-    ensemble: object = None
+    plant: KoopmanModel
+    closed: KoopmanModel
+    ensemble: Any = None
 
     def model(self, score: str):
         """The model scored: the closed loop (``score="cl"``) or the plant."""
@@ -538,7 +539,7 @@ def _fit_koopman(fit: FitOptions, train, controller, score, intervals, result, p
     return _KoopmanFit(plant, closed, ensemble)
 
 
-def _select_alpha(estimator, train, controller, fit: FitOptions, score, result, progress, elsewhere) -> float:
+def _select_alpha(estimator, train, controller, fit, score, result, progress, elsewhere):
     """Alpha among ``fit.alphas``, the best cross-validated ``score``; the sweep kept in ``result``."""
     controllers = [log.controller for log in train]
     # Folds hold out a recorded controller's episodes together, one loop per fold (with_command_delay).
@@ -580,9 +581,7 @@ def _select_alpha(estimator, train, controller, fit: FitOptions, score, result, 
     return alpha
 
 
-def _write_koopman_model(
-    options: IdentifyOptions, fitted: _KoopmanFit, controller, train, result, disturbance, held_out
-):
+def _write_koopman_model(options, fitted, controller, train, result, disturbance, held_out):
     """The model file; with bootstrap intervals, the bootstrap plants and the held-out episodes' figures in it
     (``held_out``: the predictions the calibration made already)."""
     intervals, ensemble = options.intervals, fitted.ensemble
@@ -1019,6 +1018,7 @@ def _test_bands(ensemble, options: IdentifyOptions, train, controller, start, re
     (:func:`~qube_koopman.identify.uncertainty.calibrate`)."""
     started = time.perf_counter()
     intervals, score = options.intervals, options.scoring.score
+    assert intervals is not None  # bands are made only with intervals
     loops = [Loop.of(log.controller, controller, score) for log in train]
     scoring = CalibrationOptions(intervals.level, start, options.scoring.offsets, MEASURED, intervals.stride)
     calibration = calibrate(ensemble, LogTrajectories(train), loops, scoring, points)
@@ -1139,6 +1139,7 @@ def _filter_bands(fitted: _KoopmanFit, options: IdentifyOptions, train, controll
     or with the training loop's calibration (``"none"``)."""
     started = time.perf_counter()
     intervals, score, ahead = options.intervals, options.scoring.score, options.ahead
+    assert intervals is not None  # bands are made only with intervals
     closed, plant = fitted.closed, fitted.plant
     model = fitted.model(score)
     # Without --horizon (no disturbance model fitted) or none supported: the filter of the measured history alone.
@@ -1372,9 +1373,9 @@ def run_search(
 
 def _search_folds(train, options: SearchOptions) -> tuple:
     """The search's folds, the recorded controllers (None: every log's loop is its controller alone), each
-    episode's controller, and the loops the folds hold out. A recorded controller's episodes are held out together, one loop per fold (its
-    sessions' loops, each with its own command delay, are several: with_command_delay); each episode runs its own
-    loop."""
+    episode's controller, and the loops the folds hold out. A recorded controller's episodes are held out
+    together, one loop per fold (its sessions' loops, each with its own command delay, are several:
+    with_command_delay); each episode runs its own loop."""
     controllers = [log.controller for log in train]
     recorded = recorded_controllers(train)
     loops = None if recorded is None else controllers
