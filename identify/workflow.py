@@ -157,14 +157,14 @@ class IdentificationResult:
     plant, closed_loop : KoopmanModel or None
         The identified plant and closed loop (None where the method gives none).
     sweep : SweepResult, optional
-        The cross-validation of alpha, when ``alphas`` were given.
+        The cross-validation of alpha, when ``FitOptions.alphas`` were given.
     test_names : list of str
         The test episodes, in order.
     test_truth, test_predictions, test_time : list of ndarray
         Each test episode's measured and predicted states and its time axis (s) (empty without
-        ``keep_predictions``).
+        ``OutputOptions.keep_predictions``).
     test_bands : list of PredictionBand
-        With ``intervals``: each test episode's interval over its scored samples (empty without
+        With intervals: each test episode's interval over its scored samples (empty without
         ``keep_predictions``).
     """
 
