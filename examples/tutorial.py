@@ -154,10 +154,10 @@ print(f"{episode.n_samples} samples of {episode.dt} s; states {episode.state_nam
 # its initial condition, references and feedforward.
 
 # %%
-from qube_koopman.identify import Constant, Delay, Polynomial, identify_and_score
+from qube_koopman.identify import Constant, Delay, FitOptions, IdentifyOptions, Polynomial, identify_and_score
 
-result = identify_and_score(method="cl-edmd", lifting=[Polynomial(POLY), Delay(DELAYS), Constant()], train=train, test=test,
-                            controller=controller, alphas=ALPHAS, cv_splits=2)
+fit = FitOptions("cl-edmd", [Polynomial(POLY), Delay(DELAYS), Constant()], alphas=ALPHAS, cv_splits=2)
+result = identify_and_score(train, test, controller, IdentifyOptions(fit))
 r2_test = result.report["test"]["r2_mean"]
 print(f"alpha {result.report['alpha']:g}: test R^2 {r2_test:.4f} over {result.report['test']['n_episodes']} episodes")
 print("spectral radius: closed loop {closed_loop:.5f}, plant {plant:.5f}".format(**result.report["spectral_radius"]))

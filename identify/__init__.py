@@ -47,11 +47,10 @@ _HOMES = {
     "load_model": "models.model_file",
     "IdentifiedModel": "models.identified",
     # what qube-identify runs: identification, regularization sweep, lifting search, probes
-    "identify_and_score": "workflow",
-    "IdentificationResult": "workflow",
-    "run_search": "workflow",
-    "SearchOptions": "workflow",
-    "OffsetProtocol": "workflow",
+    **dict.fromkeys(
+        ("identify_and_score", "IdentifyOptions", "FitOptions", "ScoreOptions", "OutputOptions"), "workflow"
+    ),
+    **dict.fromkeys(("IdentificationResult", "OffsetProtocol", "run_search", "SearchOptions"), "workflow"),
     "regularization_sweep": "model_selection.sweep",
     "search_liftings": "model_selection.search",
     "LiftingSpec": "model_selection.search",

@@ -6,7 +6,7 @@ import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -65,12 +65,17 @@ from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius
 from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
 
 if TYPE_CHECKING:
+    from qube_koopman.identify.models.model import KoopmanModel
     from qube_koopman.identify.model_selection.search import SearchSpace
     from qube_koopman.identify.model_selection.transfer import ProbeSet
 
 __all__ = [
+    "FitOptions",
     "IdentificationResult",
+    "IdentifyOptions",
     "OffsetProtocol",
+    "OutputOptions",
+    "ScoreOptions",
     "identify_and_score",
     "KOOPMAN_METHODS",
     "SearchOptions",
@@ -152,14 +157,14 @@ class IdentificationResult:
     plant, closed_loop : KoopmanModel or None
         The identified plant and closed loop (None where the method gives none).
     sweep : SweepResult, optional
-        The cross-validation of alpha, when ``alphas`` were given.
+        The cross-validation of alpha, when ``FitOptions.alphas`` were given.
     test_names : list of str
         The test episodes, in order.
     test_truth, test_predictions, test_time : list of ndarray
         Each test episode's measured and predicted states and its time axis (s) (empty without
-        ``keep_predictions``).
+        ``OutputOptions.keep_predictions``).
     test_bands : list of PredictionBand
-        With ``intervals``: each test episode's interval over its scored samples (empty without
+        With intervals: each test episode's interval over its scored samples (empty without
         ``keep_predictions``).
     """
 
@@ -178,72 +183,9 @@ def _spectral_radius(A) -> float | None:
     return None if A is None else spectral_radius(A)
 
 
-def identify_and_score(
-    *,
-    method: str,
-    lifting: Sequence,
-    train: Sequence[LoggedTrajectory],
-    test: Sequence[LoggedTrajectory],
-    controller: DiscreteStateSpace,
-    alpha: float = 1e-3,
-    alphas: Sequence[float] | np.ndarray | None = None,
-    score: str = "cl",
-    cv_splits: int = 3,
-    cv_seed: int = 1234,
-    arx_lags: int = 10,
-    model_path: str | Path | None = None,
-    offsets: OffsetProtocol | None = None,
-    what_if: DiscreteStateSpace | None = None,
-    estimator_options: dict | None = None,
-    progress: Callable[[str, int, int], None] | None = None,
-    score_from: int | None = None,
-    keep_predictions: bool = True,
-    episode_statistics: Callable | None = None,
-    intervals: IntervalOptions | None = None,
-    predictions_folder: str | Path | None = None,
-    probes=None,
-    probe_cache: str | Path | None = None,
-    command_delay: float | str = 0.0,
-    n_threads: int = -1,
-    ahead: AheadOptions | None = None,
-) -> IdentificationResult:
-    """Fit ``method`` on the training logs and score it on the test logs.
-
-    Training logs may come from several controllers: each episode is fitted
-    with its own log's controller (one plant for all), and ``controller`` is
-    the one whose closed loop the model describes (qube-identify: the
-    majority's). With ``alphas`` the regularization is chosen by
-    cross-validation on the training logs with the same ``score``: folds
-    leave one controller out when the logs ran two or more, else
-    episode-grouped random splits (``cv_splits``, ``cv_seed``). Test
-    episodes are predicted in closed loop under their own log's controller
-    (``score="cl"``) or from their plant input (``score="plant"``). With
-    ``offsets`` each test episode's offsets are estimated from its initial
-    window (see :class:`OffsetProtocol`). With ``what_if`` every test episode
-    is predicted under that controller instead; only episodes recorded under
-    it are scored. Without offsets, ``score_from`` (samples) scores the test
-    episodes from that sample on instead of the paper's sample 1 (as a
-    search scores its candidates), for every method. ``episode_statistics`` computes a Koopman
-    method's per-episode statistics elsewhere, for the fit and the sweep (on a dask cluster:
-    :class:`~qube_koopman.identify.model_selection.distributed.ClusterStatistics`). A diverged
-    test prediction is reported by episode and sample with a :class:`~qube_koopman.identify.metrics.DivergedPrediction`
-    warning.
-
-    Logs may be :class:`~qube_koopman.identify.data.logs.StoredLog` (read when needed): the fit, the
-    cross-validation and the test scores then read one episode at a time, and memory does not
-    grow with the number of logs. ``keep_predictions``: keep every test episode's truth and
-    prediction in the result (for a recording); without it only their scores are kept.
-
-    With ``intervals`` (a Koopman method) every predicted sample of every test episode gets an
-    interval at ``intervals.level``: an episode bootstrap of the fit, the offsets' standard
-    errors, and a scale of the model's error calibrated on held-out training episodes
-    (:mod:`~qube_koopman.identify.uncertainty`); report.json's ``intervals`` gives each episode's
-    and the pooled coverage, mean half-width and RMS error per channel, and
-    ``predictions_folder`` receives one ``<log>.npz`` per test episode
-    (:meth:`~qube_koopman.identify.uncertainty.PredictionBand.save`). With ``intervals.method ==
-    "disturbance"`` the band is the disturbance filter's variance instead of the bootstrap's spread
-    (:mod:`~qube_koopman.identify.uncertainty.filter_band`), and with ``ahead`` the K-step predictions
-    get bands too.
+@dataclass(frozen=True)
+class FitOptions:
+    """How the model is fitted: the method, its lifting and its regularization.
 
     Parameters
     ----------
@@ -252,50 +194,52 @@ def identify_and_score(
         ``"edmd"``, ``"arx"`` or ``"cl-arx"`` (``qube-identify --method``).
     lifting : sequence of LiftingFunction
         The lifting of the plant states (the Koopman methods).
-    train, test : sequence of LoggedTrajectory
-        The training and test logs (:func:`load_logs`).
-    controller : DiscreteStateSpace
-        The controller whose closed loop the model describes.
     alpha : float
         The Tikhonov coefficient, when ``alphas`` is not given.
     alphas : sequence of float or ndarray, optional
-        Candidates for alpha, chosen by cross-validation on the training logs.
-    score : {"cl", "plant"}
-        Predict the test episodes in closed loop or from their plant input (and score the
-        cross-validation so).
+        Candidates for alpha, chosen by cross-validation on the training logs with the test
+        episodes' scoring: folds leave one controller out when the logs ran two or more, else
+        episode-grouped random splits (``cv_splits``, ``cv_seed``).
     cv_splits, cv_seed : int
         The episode-grouped splits of the cross-validation and their seed.
     arx_lags : int
         Output and input lags of ``"arx"`` and ``"cl-arx"``.
-    model_path : str or Path, optional
-        Write the identified model there (:func:`save_model`).
-    offsets : OffsetProtocol, optional
-        Estimate each test episode's offsets from its initial window.
-    what_if : DiscreteStateSpace, optional
-        Predict every test episode under this controller instead.
     estimator_options : dict, optional
         More constructor arguments of the estimator (``max_radius`` of ``"cl-edmd-stable"``, ...).
-    progress : callable, optional
-        ``progress(stage, done, total)``, called as the work advances.
+    n_threads : int
+        Training episodes factored side by side (-1: one per core this process may run on), each
+        with one BLAS thread (:func:`~qube_koopman.core.blas.episode_threads`): the same model
+        whatever the count.
+    """
+
+    method: str
+    lifting: Sequence = ()
+    alpha: float = 1e-3
+    alphas: Sequence[float] | np.ndarray | None = None
+    cv_splits: int = 3
+    cv_seed: int = 1234
+    arx_lags: int = 10
+    estimator_options: dict | None = None
+    n_threads: int = -1
+
+
+@dataclass(frozen=True)
+class ScoreOptions:
+    """How the test episodes are predicted and scored.
+
+    Parameters
+    ----------
+    score : {"cl", "plant"}
+        Predict the test episodes in closed loop under their own log's controller, or from their
+        plant input (and score the cross-validation so).
+    offsets : OffsetProtocol, optional
+        Estimate each test episode's offsets from its initial window.
     score_from : int, optional
-        Score the test episodes from this sample on (without ``offsets``).
-    keep_predictions : bool
-        Keep the test episodes' truth and predictions in the result.
-    episode_statistics : callable, optional
-        Computes the per-episode statistics elsewhere (a dask cluster).
-    intervals : IntervalOptions, optional
-        Give every test prediction an interval (a Koopman method).
-    predictions_folder : str or Path, optional
-        With ``intervals``: write each test episode's prediction and interval there.
-    probes : ProbeSet, optional
-        With ``intervals`` (``other_loops="twin"``): the twin's probe episodes calibrating the
-        intervals of test episodes under a loop the training never ran; when needed and not
-        given, simulated from the training episodes on the twin as the rig's sessions differed
-        (:func:`~qube_koopman.identify.twin_probes` on
-        :func:`~qube_koopman.identify.model_selection.transfer.session_twins`; a search's
-        transfer probes run on the calibrated twin alone and are not these).
-    probe_cache : str or Path, optional
-        Where those probes are kept between runs (``twin_probes``' ``cache``).
+        Without ``offsets``: score the test episodes from this sample on instead of the paper's
+        sample 1 (as a search scores its candidates), for every method.
+    what_if : DiscreteStateSpace, optional
+        Predict every test episode under this controller instead; only episodes recorded under it
+        are scored.
     command_delay : float or "estimate"
         Predict every test episode's loop with its command reaching the plant this many sample
         periods later than in the training logs (:func:`~qube_koopman.identify.estimators.structure.command_delayed`):
@@ -303,45 +247,184 @@ def identify_and_score(
         from the other test logs of its recording session
         (:func:`~qube_koopman.identify.models.latency.estimate_command_delays`; report.json's
         ``command_delay`` lists them). Closed-loop scoring of a Koopman method only.
-    n_threads : int
-        Training episodes factored side by side (-1: one per core this process may run on), each
-        with one BLAS thread (:func:`~qube_koopman.core.blas.episode_threads`): the same model
-        whatever the count.
+    """
+
+    score: str = "cl"
+    offsets: OffsetProtocol | None = None
+    score_from: int | None = None
+    what_if: DiscreteStateSpace | None = None
+    command_delay: float | str = 0.0
+
+    def first_scored(self, dt: float) -> int:
+        """The first scored sample of each test episode: after the offsets' window, ``score_from``, or the second."""
+        return _first_scored(self.offsets, self.score_from, dt)
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    """What a run writes and keeps.
+
+    Parameters
+    ----------
+    model_path : str or Path, optional
+        Write the identified model there (:func:`save_model`).
+    predictions_folder : str or Path, optional
+        With intervals or K-step predictions: write each test episode's prediction, interval and
+        K-step predictions there (``<log>.npz``).
+    keep_predictions : bool
+        Keep every test episode's truth and prediction in the result (for a recording); without it
+        only their scores are kept.
+    """
+
+    model_path: str | Path | None = None
+    predictions_folder: str | Path | None = None
+    keep_predictions: bool = True
+
+
+@dataclass(frozen=True)
+class IdentifyOptions:
+    """Everything :func:`identify_and_score` is asked to do, checked together when made.
+
+    Parameters
+    ----------
+    fit : FitOptions
+        The method, its lifting and its regularization.
+    scoring : ScoreOptions
+        How the test episodes are predicted and scored.
+    intervals : IntervalOptions, optional
+        Give every test prediction an interval (a Koopman method).
+    probe_cache : str or Path, optional
+        With ``intervals``: where the twin's probe episodes calibrating the intervals of loops the
+        training never ran are kept between runs (``twin_probes``' ``cache``).
     ahead : AheadOptions, optional
         A Koopman method: fit a disturbance model on the training episodes, store it in the model
         file, and score every test episode at these horizons with the measurements up to each
-        start (:mod:`~qube_koopman.identify.models.kstep`; report.json's ``ahead``); with
-        ``predictions_folder``, each episode's ``<log>.npz`` gains ``ahead_<h>``.
+        start (:mod:`~qube_koopman.identify.models.kstep`; report.json's ``ahead``).
+    output : OutputOptions
+        What is written and kept.
+
+    Raises
+    ------
+    ValueError
+        When the options contradict one another (offsets, a what-if controller, intervals, K-step
+        predictions or a command delay with a method or scoring that cannot have them).
+    """
+
+    fit: FitOptions
+    scoring: ScoreOptions = field(default_factory=ScoreOptions)
+    intervals: IntervalOptions | None = None
+    probe_cache: str | Path | None = None
+    ahead: AheadOptions | None = None
+    output: OutputOptions = field(default_factory=OutputOptions)
+
+    def __post_init__(self) -> None:
+        method, score, delay = self.fit.method, self.scoring.score, self.scoring.command_delay
+        koopman = method in KOOPMAN_METHODS
+        if not koopman and (
+            self.scoring.offsets is not None
+            or self.scoring.what_if is not None
+            or self.intervals is not None
+            or self.ahead is not None
+        ):
+            raise ValueError(
+                f"offsets, what-if controllers, intervals and K-step predictions need a Koopman method, not {method}"
+            )
+        if method == "arx" and score == "cl":
+            raise ValueError(
+                "ARX models the plant only: its predictions come from the plant input, not the "
+                "closed loop; use score='plant', or method 'cl-arx' for closed-loop scores"
+            )
+        if self.scoring.what_if is not None and score != "cl":
+            raise ValueError("a what-if controller predicts the closed loop: use score='cl'")
+        if delay and (score != "cl" or not koopman):
+            raise ValueError(
+                "a command delay changes the predicted loop: it needs closed-loop scores of a Koopman method"
+            )
+        if isinstance(delay, str):
+            if delay != "estimate":
+                raise ValueError(f"the command delay is a number of sample periods or 'estimate', got {delay!r}")
+        elif not (np.isfinite(delay) and delay >= 0):
+            raise ValueError(f"the command delay must be 0 or more sample periods, got {delay}")
+        if not koopman and method not in ("arx", "cl-arx"):
+            raise ValueError(f"unknown method {method!r}")
+
+    @property
+    def filtered(self) -> bool:
+        """Whether the intervals are the disturbance filter's (not the bootstrap's)."""
+        return self.intervals is not None and self.intervals.method == "disturbance"
+
+
+def identify_and_score(
+    train: Sequence[LoggedTrajectory],
+    test: Sequence[LoggedTrajectory],
+    controller: DiscreteStateSpace,
+    options: IdentifyOptions,
+    *,
+    progress: Callable[[str, int, int], None] | None = None,
+    episode_statistics: Callable | None = None,
+    probes: ProbeSet | None = None,
+) -> IdentificationResult:
+    """Fit ``options.fit``'s method on the training logs and score it on the test logs.
+
+    Training logs may come from several controllers: each episode is fitted with its own log's
+    controller (one plant for all), and ``controller`` is the one whose closed loop the model
+    describes (qube-identify: the majority's). The stages, in order: the fit (and the choice of
+    alpha), the intervals' calibration, the model file, the test scores, the K-step predictions.
+    A diverged test prediction is reported by episode and sample with a
+    :class:`~qube_koopman.identify.metrics.DivergedPrediction` warning.
+
+    Logs may be :class:`~qube_koopman.identify.data.logs.StoredLog` (read when needed): the fit, the
+    cross-validation and the test scores then read one episode at a time, and memory does not grow
+    with the number of logs.
+
+    With ``options.intervals`` every predicted sample of every test episode gets an interval: an
+    episode bootstrap of the fit, the offsets' standard errors, and a scale of the model's error
+    calibrated on held-out training episodes (:mod:`~qube_koopman.identify.uncertainty`), or with
+    ``method == "disturbance"`` the disturbance filter's variance
+    (:mod:`~qube_koopman.identify.uncertainty.filter_band`); report.json's ``intervals`` gives each
+    episode's and the pooled coverage, mean half-width and RMS error per channel.
+
+    Parameters
+    ----------
+    train, test : sequence of LoggedTrajectory
+        The training and test logs (:func:`load_logs`).
+    controller : DiscreteStateSpace
+        The controller whose closed loop the model describes.
+    options : IdentifyOptions
+        What to fit, how to score, what to write.
+    progress : callable, optional
+        ``progress(stage, done, total)``, called as the work advances.
+    episode_statistics : callable, optional
+        Computes a Koopman method's per-episode statistics elsewhere, for the fit and the sweep (on
+        a dask cluster: :class:`~qube_koopman.identify.model_selection.distributed.ClusterStatistics`).
+    probes : ProbeSet, optional
+        With intervals (``other_loops="twin"``): the twin's probe episodes calibrating the
+        intervals of test episodes under a loop the training never ran; when needed and not given,
+        simulated from the training episodes on the twin as the rig's sessions differed (a
+        search's transfer probes run on the calibrated twin alone and are not these).
 
     Returns
     -------
     IdentificationResult
     """
-    if method not in KOOPMAN_METHODS and (
-        offsets is not None or what_if is not None or intervals is not None or ahead is not None
-    ):
-        raise ValueError(
-            f"offsets, what-if controllers, intervals and K-step predictions need a Koopman method, not {method}"
-        )
-    if method == "arx" and score == "cl":
-        raise ValueError(
-            "ARX models the plant only: its predictions come from the plant input, not the "
-            "closed loop; use score='plant', or method 'cl-arx' for closed-loop scores"
-        )
-    if what_if is not None and score != "cl":
-        raise ValueError("a what-if controller predicts the closed loop: use score='cl'")
-    if command_delay and (score != "cl" or method not in KOOPMAN_METHODS):
-        raise ValueError("a command delay changes the predicted loop: it needs closed-loop scores of a Koopman method")
-    if isinstance(command_delay, str):
-        if command_delay != "estimate":
-            raise ValueError(f"the command delay is a number of sample periods or 'estimate', got {command_delay!r}")
-    elif not (np.isfinite(command_delay) and command_delay >= 0):
-        raise ValueError(f"the command delay must be 0 or more sample periods, got {command_delay}")
-    trajs = LogTrajectories(train)  # read when needed, one episode at a time (stored logs)
+    result = _new_result(train, test, controller, options)
+    with limited_blas_threads(1), episode_threads(resolve_n_jobs(options.fit.n_threads, len(train), "n_threads")):
+        if options.fit.method in KOOPMAN_METHODS:
+            fitted = _identify_koopman(train, test, controller, options, result, progress, episode_statistics, probes)
+            plant, closed = fitted.plant, fitted.closed
+        else:
+            plant, closed = _identify_arx(train, test, controller, options, result, progress)
+    result.plant, result.closed_loop = plant, closed
+    return result
+
+
+def _new_result(train, test, controller, options: IdentifyOptions) -> IdentificationResult:
+    """The result with the run's inputs reported; refuses a one-loop method on logs of several controllers."""
+    method = options.fit.method
     result = IdentificationResult(
         report={
             "method": method,
-            "score": score,
+            "score": options.scoring.score,
             "train_logs": [log.path.name for log in train],
             "test_logs": [log.path.name for log in test],
             "controller": controller.as_dict(),
@@ -355,203 +438,92 @@ def identify_and_score(
             f"one controller, these ran {n_controllers} (cl-edmd, cl-edmd-known-rows, edmd and arx fit "
             "logs of several)"
         )
-    with limited_blas_threads(1), episode_threads(resolve_n_jobs(n_threads, len(train), "n_threads")):
-        if method in KOOPMAN_METHODS:
-            plant, closed, ensemble = _koopman(
-                method,
-                lifting,
-                train,
-                controller,
-                alpha,
-                alphas,
-                score,
-                cv_splits,
-                cv_seed,
-                progress,
-                result,
-                estimator_options or {},
-                episode_statistics,
-                intervals,
-            )
-            result.report["lifting"] = lifting_to_dict(plant.lifting)
-            result.report["spectral_radius"] = {
-                "closed_loop": closed.spectral_radius(),
-                "plant": plant.spectral_radius(),
-            }
-            # The calibration's held-out predictions, which the model file's design figures reuse.
-            held_out: dict = {}
-            disturbance, ahead_scores = None, None
-            filtered = intervals is not None and intervals.method == "disturbance"
-            if ahead is not None:
-                disturbance, result.report["disturbance"] = _training_disturbance(
-                    closed if score == "cl" else plant, train, controller, score, ahead
-                )
-            bands = (
-                None
-                if ensemble is None
-                else _filter_bands(
-                    ensemble,
-                    intervals,
-                    train,
-                    controller,
-                    score,
-                    offsets,
-                    _first_scored(offsets, score_from, test[0].dt),
-                    result,
-                    predictions_folder,
-                    keep_predictions,
-                    (closed, plant),
-                    disturbance,
-                    ahead,
-                    probes,
-                    probe_cache,
-                )
-                if filtered
-                else _test_bands(
-                    ensemble,
-                    intervals,
-                    train,
-                    controller,
-                    score,
-                    offsets,
-                    _first_scored(offsets, score_from, test[0].dt),
-                    result,
-                    predictions_folder,
-                    keep_predictions,
-                    probes,
-                    probe_cache,
-                    held_out,
-                )
-            )
-            if ahead is not None:
-                ahead_scores = AheadScores(
-                    ahead,
-                    disturbance,
-                    _first_scored(offsets, score_from, test[0].dt),
-                    predictions_folder is not None,
-                    None if bands is None or not filtered else bands.ahead_band,
-                )
-            if model_path is not None:
-                save_model(
-                    model_path,
-                    method=method,
-                    alpha=result.report["alpha"],
-                    plant=plant,
-                    closed_loop=closed,
-                    controller=controller,
-                    measured=MEASURED,
-                    training={"logs": result.report["train_logs"]},
-                    uncertainty=None
-                    if ensemble is None or intervals is None or filtered  # no bootstrap plants
-                    else _design_uncertainty(ensemble, plant, train, intervals.seed, held_out),
-                    disturbance=disturbance,
-                )  # an ensemble: intervals were asked for
-            held_out.clear()
-            if command_delay == "estimate":
-                start = _first_scored(offsets, score_from, test[0].dt)
-                estimated = _estimated_delays(plant, train, test, max(start, SKIP_SAMPLES), result)
-                predicted_loops = _TestLoops(controller, score, what_if, per_log=estimated)
-            else:
-                predicted_loops = _TestLoops(controller, score, what_if, float(command_delay))
-            _score_koopman(
-                plant,
-                closed,
-                predicted_loops,
-                test,
-                offsets,
-                result,
-                score_from,
-                keep_predictions,
-                bands,
-                ahead_scores,
-                progress,
-            )
-            if ahead_scores is not None:
-                result.report["ahead"] = ahead_scores.report()
-                if predictions_folder is not None:
-                    _save_ahead(Path(predictions_folder), test, ahead_scores)
-        elif method in ("arx", "cl-arx"):
-            # ARX fits from every training episode at once (not streamed: a baseline, small liftings).
-            plant, closed, predict = _arx(method, list(trajs), test, controller, arx_lags, score, result)
-            if model_path is not None:
-                save_arx_model(model_path, method=method, lags=arx_lags, model=plant if method == "arx" else closed)
-            _score_arx(predict, test, result, score_from, keep_predictions, progress)
-        else:
-            raise ValueError(f"unknown method {method!r}")
-    result.plant, result.closed_loop = plant, closed
     return result
 
 
-def _koopman(
-    method,
-    lifting,
-    train,
-    controller,
-    alpha,
-    alphas,
-    score,
-    cv_splits,
-    cv_seed,
-    progress,
-    result,
-    options,
-    elsewhere=None,
-    intervals=None,
-):
-    cls = KOOPMAN_METHODS[method]
+@dataclass(frozen=True)
+class _KoopmanFit:
+    """A Koopman method's fit: the plant, its closed loop, and with intervals the ensemble of refits."""
+
+    plant: KoopmanModel
+    closed: KoopmanModel
+    ensemble: Any = None
+
+    def model(self, score: str):
+        """The model scored: the closed loop (``score="cl"``) or the plant."""
+        return self.closed if score == "cl" else self.plant
+
+
+def _identify_koopman(train, test, controller, options: IdentifyOptions, result, progress, elsewhere, probes):
+    """A Koopman method's stages: fit, intervals' calibration, model file, test scores, K-step predictions."""
+    scoring, output = options.scoring, options.output
+    fitted = _fit_koopman(options.fit, train, controller, scoring.score, options.intervals, result, progress, elsewhere)
+    start = scoring.first_scored(test[0].dt)
+    held_out: dict = {}  # the calibration's held-out predictions, which the model file's design figures reuse
+    disturbance = None
+    if options.ahead is not None:
+        disturbance, result.report["disturbance"] = _training_disturbance(
+            fitted.model(scoring.score), train, controller, scoring.score, options.ahead
+        )
+    bands = None
+    if fitted.ensemble is not None and options.filtered:
+        bands = _filter_bands(fitted, options, train, controller, start, result, probes, disturbance)
+    elif fitted.ensemble is not None:
+        bands = _test_bands(fitted.ensemble, options, train, controller, start, result, probes, held_out)
+    ahead_scores = None
+    if options.ahead is not None:
+        ahead_band = None if bands is None or not options.filtered else bands.ahead_band
+        ahead_scores = AheadScores(options.ahead, disturbance, start, output.predictions_folder is not None, ahead_band)
+    if output.model_path is not None:
+        _write_koopman_model(options, fitted, controller, train, result, disturbance, held_out)
+    held_out.clear()
+    loops = _predicted_loops(fitted.plant, train, test, controller, scoring, start, result)
+    scores = _TestScores(result, start, output.keep_predictions, progress, len(test))
+    _score_koopman(fitted, loops, test, scoring, scores, bands, ahead_scores)
+    if ahead_scores is not None:
+        result.report["ahead"] = ahead_scores.report()
+        if output.predictions_folder is not None:
+            _save_ahead(Path(output.predictions_folder), test, ahead_scores)
+    return fitted
+
+
+def _identify_arx(train, test, controller, options: IdentifyOptions, result, progress):
+    """ARX's stages: fit from every training episode at once (not streamed: a baseline, small liftings),
+    model file, test scores."""
+    fit, scoring = options.fit, options.scoring
+    trajs = list(LogTrajectories(train))
+    plant, closed, predict = _arx(fit.method, trajs, test, controller, fit.arx_lags, scoring.score, result)
+    if options.output.model_path is not None:
+        model = plant if fit.method == "arx" else closed
+        save_arx_model(options.output.model_path, method=fit.method, lags=fit.arx_lags, model=model)
+    _score_arx(predict, test, result, scoring.score_from, options.output.keep_predictions, progress)
+    return plant, closed
+
+
+def _fit_koopman(fit: FitOptions, train, controller, score, intervals, result, progress, elsewhere) -> _KoopmanFit:
+    """The fit on every training episode (alpha chosen by cross-validation when ``fit.alphas`` are given);
+    with ``intervals``, its refits too, in the same pass over the episodes."""
+    cls = KOOPMAN_METHODS[fit.method]
+    options = fit.estimator_options or {}
     trajs, controllers = LogTrajectories(train), [log.controller for log in train]
     make = (
-        (lambda a: cls(lifting=lifting, alpha=a, **options))
+        (lambda a: cls(lifting=fit.lifting, alpha=a, **options))
         if cls is Edmd
-        else (lambda a: cls(controller, lifting=lifting, alpha=a, **options))
+        else (lambda a: cls(controller, lifting=fit.lifting, alpha=a, **options))
     )
     # EDMD fits the plant from its logged input, whatever the controller; the others from each episode's own.
+    own = None if cls is Edmd else controllers
     counted = _counted_statistics(elsewhere, progress, "fit: training episodes")
-    fit = lambda est: _fit(est, trajs, None if cls is Edmd else controllers, counted)  # noqa: E731
-    if alphas is not None:
-        # Folds hold out a recorded controller's episodes together, one loop per fold (with_command_delay).
-        recorded = recorded_controllers(train)
-        folds = cross_validation_folds(
-            recorded or controllers, cv_splits, cv_seed, None if recorded is None else controllers
-        )
-        report = (lambda done, total: progress("cross-validation", done, total)) if progress else None
-        sweep = regularization_sweep(
-            make(0.0),
-            trajs,
-            alphas,
-            folds.splits,
-            scorings=(score,),
-            controller=controller,
-            measured=MEASURED,
-            progress=report,
-            controllers=controllers,
-            episode_statistics=elsewhere,
-        )
-        alpha = sweep.best_alpha(score)
-        warn_at_grid_edge(sweep.alphas, alpha, sweep.cv_r2_mean(score))
-        result.sweep = sweep
-        best = int(np.flatnonzero(sweep.alphas == alpha)[0])
-        result.report["sweep"] = {
-            "alpha": [float(a) for a in sweep.alphas],
-            "cv_r2_mean": sweep.cv_r2_mean(score).tolist(),
-            "spectral_radius_closed_loop": (
-                None if sweep.spectral_radius_closed_loop is None else sweep.spectral_radius_closed_loop.tolist()
-            ),
-            "spectral_radius_plant": sweep.spectral_radius_plant.tolist(),
-            "cv_kind": folds.kind,
-            "cv_description": FOLD_KINDS[folds.kind],
-            "cv_splits": len(folds.splits),
-            "cv_seed": None if folds.kind == "leave-one-controller-out" else cv_seed,
-            "score": score,
-            "folds": folds.report([log.path.name for log in train], sweep.cv_r2[score][:, best]),
-        }
+    alpha = fit.alpha
+    if fit.alphas is not None:
+        alpha = _select_alpha(make(0.0), train, controller, fit, score, result, progress, elsewhere)
     result.report["alpha"] = float(alpha)
     ensemble = None
     if intervals is None:
-        fitted = fit(make(alpha))
+        fitted = _fit(make(alpha), trajs, own, counted)
     else:  # the plain fit, its bootstrap refits and the calibration folds' in one pass over the episodes
         ensemble = (fold_fits if intervals.method == "disturbance" else fit_ensemble)(
-            make(alpha), trajs, intervals, None if cls is Edmd else controllers, controller, MEASURED, counted
+            make(alpha), trajs, intervals, own, controller, MEASURED, counted
         )
         fitted = ensemble.estimator
     if hasattr(fitted, "unconstrained_radius_"):
@@ -562,7 +534,79 @@ def _koopman(
         }
     plant = fitted.model_ if cls is Edmd else fitted.plant_model_
     closed = close_loop(plant, controller, MEASURED) if cls is Edmd else fitted.closed_loop_model_
-    return plant, closed, ensemble
+    result.report["lifting"] = lifting_to_dict(plant.lifting)
+    result.report["spectral_radius"] = {"closed_loop": closed.spectral_radius(), "plant": plant.spectral_radius()}
+    return _KoopmanFit(plant, closed, ensemble)
+
+
+def _select_alpha(estimator, train, controller, fit, score, result, progress, elsewhere):
+    """Alpha among ``fit.alphas``, the best cross-validated ``score``; the sweep kept in ``result``."""
+    controllers = [log.controller for log in train]
+    # Folds hold out a recorded controller's episodes together, one loop per fold (with_command_delay).
+    recorded = recorded_controllers(train)
+    folds = cross_validation_folds(
+        recorded or controllers, fit.cv_splits, fit.cv_seed, None if recorded is None else controllers
+    )
+    report = (lambda done, total: progress("cross-validation", done, total)) if progress else None
+    sweep = regularization_sweep(
+        estimator,
+        LogTrajectories(train),
+        fit.alphas,
+        folds.splits,
+        scorings=(score,),
+        controller=controller,
+        measured=MEASURED,
+        progress=report,
+        controllers=controllers,
+        episode_statistics=elsewhere,
+    )
+    alpha = sweep.best_alpha(score)
+    warn_at_grid_edge(sweep.alphas, alpha, sweep.cv_r2_mean(score))
+    result.sweep = sweep
+    best = int(np.flatnonzero(sweep.alphas == alpha)[0])
+    result.report["sweep"] = {
+        "alpha": [float(a) for a in sweep.alphas],
+        "cv_r2_mean": sweep.cv_r2_mean(score).tolist(),
+        "spectral_radius_closed_loop": (
+            None if sweep.spectral_radius_closed_loop is None else sweep.spectral_radius_closed_loop.tolist()
+        ),
+        "spectral_radius_plant": sweep.spectral_radius_plant.tolist(),
+        "cv_kind": folds.kind,
+        "cv_description": FOLD_KINDS[folds.kind],
+        "cv_splits": len(folds.splits),
+        "cv_seed": None if folds.kind == "leave-one-controller-out" else fit.cv_seed,
+        "score": score,
+        "folds": folds.report([log.path.name for log in train], sweep.cv_r2[score][:, best]),
+    }
+    return alpha
+
+
+def _write_koopman_model(options, fitted, controller, train, result, disturbance, held_out):
+    """The model file; with bootstrap intervals, the bootstrap plants and the held-out episodes' figures in it
+    (``held_out``: the predictions the calibration made already)."""
+    intervals, ensemble = options.intervals, fitted.ensemble
+    no_plants = ensemble is None or intervals is None or options.filtered  # no bootstrap plants
+    save_model(
+        options.output.model_path,
+        method=options.fit.method,
+        alpha=result.report["alpha"],
+        plant=fitted.plant,
+        closed_loop=fitted.closed,
+        controller=controller,
+        measured=MEASURED,
+        training={"logs": result.report["train_logs"]},
+        uncertainty=None if no_plants else _design_uncertainty(ensemble, fitted.plant, train, intervals.seed, held_out),
+        disturbance=disturbance,
+    )
+
+
+def _predicted_loops(plant, train, test, controller, scoring: ScoreOptions, start: int, result) -> _TestLoops:
+    """How each test episode's loop is predicted; with ``command_delay="estimate"``, each test log's delay
+    estimated (and reported) first."""
+    if scoring.command_delay == "estimate":
+        estimated = _estimated_delays(plant, train, test, max(start, SKIP_SAMPLES), result)
+        return _TestLoops(controller, scoring.score, scoring.what_if, per_log=estimated)
+    return _TestLoops(controller, scoring.score, scoring.what_if, float(scoring.command_delay))
 
 
 def _design_uncertainty(ensemble, plant, train, seed: int, points: dict | None = None) -> dict:
@@ -763,33 +807,19 @@ class _TestScores:
             _warn_diverged(report["test_without_offsets"], dt, " without offsets")
 
 
-def _score_koopman(
-    plant,
-    closed,
-    how: _TestLoops,
-    test,
-    offsets,
-    result,
-    score_from=None,
-    keep_predictions=True,
-    bands=None,
-    ahead=None,
-    progress=None,
-):
+def _score_koopman(fitted: _KoopmanFit, how: _TestLoops, test, scoring: ScoreOptions, scores, bands=None, ahead=None):
     """Test logs read, predicted and scored a batch at a time (only their scores kept, and their predictions
     if asked); with ``bands``, every member of the ensemble predicts each batch in the same simulation."""
-    dt = test[0].dt
-    start = _first_scored(offsets, score_from, dt)
-    scores, estimates = _TestScores(result, start, keep_predictions, progress, len(test)), []
+    start, estimates = scores.start, []
     counted = [how.scored(log) for log in test]
     loops = [how.loop(log) for log in test]
     for run in consecutive_runs(loops):
         loop = loops[run[0]]
-        models = [loop.model(closed, plant, MEASURED)]
+        models = [loop.model(fitted.closed, fitted.plant, MEASURED)]
         if bands is not None:
             models += [loop.model(closed_m, plant_m, MEASURED) for closed_m, plant_m in bands.members]
         trajectories = [how.trajectory(test[i]) for i in run]
-        predicted = predict_episodes(models, trajectories, offsets)
+        predicted = predict_episodes(models, trajectories, scoring.offsets)
         for i, traj, episode in zip(run, trajectories, predicted):
             estimates.append(episode.estimate)
             scores.add(test[i], traj.x, episode.prediction, episode.plain, counted[i])
@@ -803,32 +833,44 @@ def _score_koopman(
                 [trajectories[j] for j in scored],
                 [_offset_mapping(predicted[j].estimate) for j in scored],
             )
+    _report_loops(how, test, counted, scores)
+    if bands is not None:
+        bands.report()
+    _report_scores(scoring, test, estimates, scores)
+
+
+def _report_loops(how: _TestLoops, test, counted: list[bool], scores) -> None:
+    """The report's ``command_delay`` (a given one) and ``what_if``: how the test loops differ from the logs'."""
+    report, dt = scores.result.report, test[0].dt
     if how.command_delay:
-        result.report["command_delay"] = {
+        report["command_delay"] = {
             "samples": float(how.command_delay),
             "seconds": float(how.command_delay) * dt,
             "note": "every test episode's loop predicted with its command reaching the plant this much later "
             "than in the training logs (the feedforward held as late)",
         }
     if how.what_if is not None:
-        result.report["what_if"] = {
+        report["what_if"] = {
             "controller": how.what_if.as_dict(),
             "n_scored": len(scores.scored),
             "unscored_logs": [log.path.name for log, scored in zip(test, counted) if not scored],
             "note": "test episodes are predicted under this controller; only those recorded under it are scored",
         }
-    if bands is not None:
-        bands.report()
+
+
+def _report_scores(scoring: ScoreOptions, test, estimates: list, scores) -> None:
+    """The test scores' part of the report, with each episode's offsets when they were estimated."""
+    dt, offsets, score_from = test[0].dt, scoring.offsets, scoring.score_from
     if offsets is None:
         scores.report(PAPER_PROTOCOL if score_from is None else window_protocol(score_from, dt), dt)
         return
     names = list(offsets.channels)
-    result.report["offsets"] = [
+    scores.result.report["offsets"] = [
         {"log": log.path.name, **est.as_dict(names)}
         for log, est in zip(test, estimates)
         if est is not None  # every episode's, with offsets estimated
     ]
-    result.report["offset_bound"] = offsets.bound
+    scores.result.report["offset_bound"] = offsets.bound
     scores.report(offsets.describe(dt), dt)
 
 
@@ -887,7 +929,10 @@ class _TestBands:
     #: The K-step predictions' band (the filter's), or None.
     ahead_band: AheadBand | None = None
 
-    def __init__(self, members, calibration, loops, options, result, folder, keep, seconds, other=None) -> None:
+    def __init__(
+        self, members, calibration, loops, options, result, output: OutputOptions, seconds, other=None
+    ) -> None:
+        folder, keep = output.predictions_folder, output.keep_predictions
         self.members, self.calibration, self.options, self.keep = members, calibration, options, keep
         # The calibrations of loops the training never ran, (loop, calibration, report entry) each:
         # made when the first episode under the loop comes.
@@ -966,59 +1011,26 @@ def _pd_gains(gains: dict) -> tuple | None:
 INTERVAL_PROBES = 18
 
 
-def _test_bands(
-    ensemble,
-    options,
-    train,
-    controller,
-    score,
-    offsets,
-    start,
-    result,
-    folder,
-    keep,
-    probes=None,
-    probe_cache=None,
-    points: dict | None = None,
-) -> _TestBands:
+def _test_bands(ensemble, options: IdentifyOptions, train, controller, start, result, probes, points) -> _TestBands:
     """The intervals' calibration on the training episodes the folds held out, ready for the test episodes;
-    with ``options.other_loops == "twin"``, that of loops the training never ran on the twin's probes, made
-    when a test episode needs it. ``points`` is filled with the held-out closed-loop predictions
+    with ``options.intervals.other_loops == "twin"``, that of loops the training never ran on the twin's probes,
+    made when a test episode needs it. ``points`` is filled with the held-out closed-loop predictions
     (:func:`~qube_koopman.identify.uncertainty.calibrate`)."""
     started = time.perf_counter()
+    intervals, score = options.intervals, options.scoring.score
+    assert intervals is not None  # bands are made only with intervals
     loops = [Loop.of(log.controller, controller, score) for log in train]
-    scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
+    scoring = CalibrationOptions(intervals.level, start, options.scoring.offsets, MEASURED, intervals.stride)
     calibration = calibrate(ensemble, LogTrajectories(train), loops, scoring, points)
     seconds = {"calibration": time.perf_counter() - started}
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
     by_gains: dict[tuple, tuple] = {}  # gains -> (their calibration or None, the report's fields on them)
 
     def on_probes(probe_set):
-        return calibrate_on_probes(ensemble, probe_set, scoring, options.n_probe_members)
+        return calibrate_on_probes(ensemble, probe_set, scoring, intervals.n_probe_members)
 
     def on_session_twins(*gain_sets):
-        from qube_koopman.identify.model_selection.transfer import session_twins, twin_probe_sets
-
-        return twin_probe_sets(
-            LogTrajectories(train), gain_sets, per_controller=INTERVAL_PROBES, params=session_twins(), cache=probe_cache
-        )
-
-    def own_calibration_of(gains, own):
-        """The calibration on the probes of a loop's own PD gains (``own``: those probes, when simulated
-        already) and the report's fields on them; None and why, when there are none."""
-        try:
-            own = own if own is not None else on_session_twins([gains])[0]
-        except ValueError as exc:  # e.g. excitations the twin cannot replay: the default probes alone, said so
-            return None, {"own_probes": f"none: {exc}"}
-        if not own.controllers:
-            return None, {"own_probes": "none: no probe episode stayed balanced on the twin"}
-        own_calibration = on_probes(own)
-        fields = {
-            "own_probes": own.describe(),
-            "n_own_episodes": own.n_episodes,
-            "own_channels": own_calibration.as_dict(STATE_NAMES),
-        }
-        return own_calibration, fields
+        return _interval_probe_sets(train, gain_sets, options.probe_cache)
 
     def elsewhere(gains, loop=None):
         """The calibration of a loop the training never ran (``gains``: its PD gains, when known)."""
@@ -1044,7 +1056,7 @@ def _test_bands(
         }
         if gains is not None:
             if gains not in by_gains:  # made once per gains: loops that differ by a command delay share them
-                by_gains[gains] = own_calibration_of(gains, own)
+                by_gains[gains] = _own_calibration(gains, own, on_session_twins, on_probes)
             own_calibration, fields = by_gains[gains]
             entry.update(fields)
             if own_calibration is not None:
@@ -1052,8 +1064,36 @@ def _test_bands(
         entry["channels"] = calibration.as_dict(STATE_NAMES)
         return calibration, entry
 
-    other = elsewhere if options.other_loops == "twin" and score == "cl" else None
-    return _TestBands(ensemble.members, calibration, loops, options, result, folder, keep, seconds, other)
+    other = elsewhere if intervals.other_loops == "twin" and score == "cl" else None
+    return _TestBands(ensemble.members, calibration, loops, intervals, result, options.output, seconds, other)
+
+
+def _interval_probe_sets(train, gain_sets, cache) -> list:
+    """The twin's probe sets of ``gain_sets`` calibrating the intervals of loops the training never ran,
+    simulated from the training episodes on each session's twin (or read from ``cache``)."""
+    from qube_koopman.identify.model_selection.transfer import session_twins, twin_probe_sets
+
+    return twin_probe_sets(
+        LogTrajectories(train), gain_sets, per_controller=INTERVAL_PROBES, params=session_twins(), cache=cache
+    )
+
+
+def _own_calibration(gains, own, on_session_twins, on_probes) -> tuple:
+    """The calibration on the probes of a loop's own PD gains (``own``: those probes, when simulated
+    already) and the report's fields on them; None and why, when there are none."""
+    try:
+        own = own if own is not None else on_session_twins([gains])[0]
+    except ValueError as exc:  # e.g. excitations the twin cannot replay: the default probes alone, said so
+        return None, {"own_probes": f"none: {exc}"}
+    if not own.controllers:
+        return None, {"own_probes": "none: no probe episode stayed balanced on the twin"}
+    own_calibration = on_probes(own)
+    fields = {
+        "own_probes": own.describe(),
+        "n_own_episodes": own.n_episodes,
+        "own_channels": own_calibration.as_dict(STATE_NAMES),
+    }
+    return own_calibration, fields
 
 
 #: How the filter's intervals are made, in words (report.json's ``intervals.method`` with ``method`` disturbance).
@@ -1091,39 +1131,26 @@ class _FilterBands(_TestBands):
         )
 
 
-def _filter_bands(
-    fit,
-    options,
-    train,
-    controller,
-    score,
-    offsets,
-    start,
-    result,
-    folder,
-    keep,
-    models,
-    disturbance,
-    ahead,
-    probes=None,
-    probe_cache=None,
-) -> _TestBands:
-    """The disturbance filter's bands (``options.method == "disturbance"``): calibrated on the folds' held-out
-    training episodes; a loop the training never ran gets its own filter variance, calibrated as the bootstrap
-    band's is (``other_loops "twin"``: on the twin's probe episodes, the point fit predicting them, each probe
-    loop's own variance; per channel and horizon the wider of the default probes' and the loop's own gains')
+def _filter_bands(fitted: _KoopmanFit, options: IdentifyOptions, train, controller, start, result, probes, disturbance):
+    """The disturbance filter's bands (``options.intervals.method == "disturbance"``): calibrated on the folds'
+    held-out training episodes; a loop the training never ran gets its own filter variance, calibrated as the
+    bootstrap band's is (``other_loops "twin"``: on the twin's probe episodes, the point fit predicting them, each
+    probe loop's own variance; per channel and horizon the wider of the default probes' and the loop's own gains')
     or with the training loop's calibration (``"none"``)."""
     started = time.perf_counter()
-    closed, plant = models
-    model = closed if score == "cl" else plant
+    intervals, score, ahead = options.intervals, options.scoring.score, options.ahead
+    assert intervals is not None  # bands are made only with intervals
+    closed, plant = fitted.closed, fitted.plant
+    model = fitted.model(score)
     # Without --horizon (no disturbance model fitted) or none supported: the filter of the measured history alone.
     if disturbance is None:
         disturbance = residual_model(model, [log.trajectory for log in spread(list(train), MAX_EPISODES)])
     loops = [Loop.of(log.controller, controller, score) for log in train]
-    scoring = CalibrationOptions(options.level, start, offsets, MEASURED, options.stride)
+    scoring = CalibrationOptions(intervals.level, start, options.scoring.offsets, MEASURED, intervals.stride)
     dt = model.dt if model.dt is not None else train[0].dt
     horizons = [] if ahead is None else [max(1, K) for K in ahead.samples(dt)]
-    calibration = calibrate_filter(fit.folds, LogTrajectories(train), loops, scoring, disturbance, model, horizons)
+    folds = fitted.ensemble.folds
+    calibration = calibrate_filter(folds, LogTrajectories(train), loops, scoring, disturbance, model, horizons)
     seconds = {"calibration": time.perf_counter() - started}
     band = AheadBand(calibration, disturbance, model)
 
@@ -1134,27 +1161,13 @@ def _filter_bands(
 
     def elsewhere(gains, loop):
         own_variance = band.variance(loop.model(closed, plant, MEASURED))
-        if options.other_loops != "twin" or score != "cl":
+        if intervals.other_loops != "twin" or score != "cl":
             own = calibration.for_loop(own_variance)
             return own, {"gains": gains, "channels": own.as_dict(STATE_NAMES), "calibration": "held-out"}
-        from qube_koopman.identify.model_selection.transfer import (
-            DEFAULT_PROBE_GAINS,
-            session_twins,
-            twin_probe_sets,
-        )
+        from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS
 
         wanted = ([] if probes is not None or default else [DEFAULT_PROBE_GAINS]) + ([] if gains is None else [[gains]])
-        sets = (
-            twin_probe_sets(
-                LogTrajectories(train),
-                wanted,
-                per_controller=INTERVAL_PROBES,
-                params=session_twins(),
-                cache=probe_cache,
-            )
-            if wanted
-            else []
-        )
+        sets = _interval_probe_sets(train, wanted, options.probe_cache) if wanted else []
         if not default:
             probe_set = probes if probes is not None else sets.pop(0)
             if not probe_set.controllers:
@@ -1171,8 +1184,8 @@ def _filter_bands(
         }
         return combined, entry
 
-    bands = _FilterBands([], calibration, loops, options, result, folder, keep, seconds, elsewhere)
-    bands.ahead_band, bands.n_folds = band, len(fit.folds)
+    bands = _FilterBands([], calibration, loops, intervals, result, options.output, seconds, elsewhere)
+    bands.ahead_band, bands.n_folds = band, len(folds)
     bands.filter_report = {
         "innovations_covariance": np.asarray(disturbance.R, dtype=float).tolist(),
         "disturbance_entry": disturbance.entry if disturbance.q > 0 else "none",
@@ -1319,17 +1332,10 @@ def run_search(
             f"an estimation window of {options.estimate_window:g} s and {max(space.delays)} delays "
             "leave nothing to score in the shortest training episode"
         )
-    controllers = [log.controller for log in train]
-    # Folds hold out a recorded controller's episodes together, one loop per fold (its sessions' loops,
-    # each with its own command delay, are several: with_command_delay); each episode runs its own loop.
-    recorded = recorded_controllers(train)
-    loops = None if recorded is None else controllers
-    folds = cross_validation_folds(recorded or controllers, options.cv_splits, options.cv_seed, loops)
-    probes, probe_seconds = None, 0.0
-    if options.transfer == "twin":
-        started = time.perf_counter()
-        probes = twin_probes(trajs, cache=options.probe_cache)
-        probe_seconds = time.perf_counter() - started
+    folds, recorded, controllers, loops = _search_folds(train, options)
+    started = time.perf_counter()
+    probes = twin_probes(trajs, cache=options.probe_cache) if options.transfer == "twin" else None
+    probe_seconds = time.perf_counter() - started if probes is not None else 0.0
     several = folds.kind == "per-controller"
     result = search_liftings(
         trajs,
@@ -1363,3 +1369,15 @@ def run_search(
             rbf_seed=options.rbf_seed,
         )
     return result
+
+
+def _search_folds(train, options: SearchOptions) -> tuple:
+    """The search's folds, the recorded controllers (None: every log's loop is its controller alone), each
+    episode's controller, and the loops the folds hold out. A recorded controller's episodes are held out
+    together, one loop per fold (its sessions' loops, each with its own command delay, are several:
+    with_command_delay); each episode runs its own loop."""
+    controllers = [log.controller for log in train]
+    recorded = recorded_controllers(train)
+    loops = None if recorded is None else controllers
+    folds = cross_validation_folds(recorded or controllers, options.cv_splits, options.cv_seed, loops)
+    return folds, recorded, controllers, loops

@@ -93,6 +93,8 @@ METHODS = ("cl-edmd", "cl-edmd-known-rows", "edmd", "cl-edmd-lstsq", "arx", "cl-
 MAX_POLY = 10
 MAX_RBF_CENTERS = 1000
 MAX_ALPHAS = 1000
+#: The lifting's monomial order and delays when --poly and --delays are not given.
+DEFAULT_POLY, DEFAULT_DELAYS = 2, 10
 #: What every run writes in --out (figures and the search's files beside them are replaced with these).
 OUTPUT_FILES = ("model.json", "report.json", "report.md")
 #: The folder of the test episodes' predictions and intervals in --out (with --interval).
@@ -152,9 +154,8 @@ def _horizons(text: str) -> tuple[float, ...]:
     return values
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog=PROG, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_standard_options(p)
+def _add_data_options(p: argparse.ArgumentParser) -> None:
+    """The logs and how they are read."""
     data = p.add_argument_group("data")
     data.add_argument(
         "logs", nargs="*", type=path, metavar="LOGS", help="episode logs (.mcap files or folders), with --split"
@@ -170,6 +171,10 @@ def _parser() -> argparse.ArgumentParser:
         help="samples dropped at the start of each episode (default %(default)s: the rig's hand-raising second)",
     )
     data.add_argument("--strict", action="store_true", help="refuse incomplete logs instead of skipping them")
+
+
+def _add_lifting_options(p: argparse.ArgumentParser) -> None:
+    """The lifting of the plant states."""
     lift = p.add_argument_group("lifting (applied in this order: monomials, delays, RBFs)")
     lift.add_argument(
         "--poly", type=whole_number(1), metavar="ORDER", help=f"monomial order (1: none; default 2; at most {MAX_POLY})"
@@ -211,24 +216,10 @@ def _parser() -> argparse.ArgumentParser:
         help="append a constant lifting function (an affine term: the model's equilibrium is "
         "not pinned at the measured zero)",
     )
-    fit = p.add_argument_group("identification")
-    fit.add_argument(
-        "--n-jobs",
-        type=n_jobs,
-        default=-1,
-        metavar="N",
-        help="cores to use: the search's worker processes, and the threads that factor a fit's "
-        "training episodes side by side (default %(default)s: every core; the model is the same "
-        "whatever N; unused with --scheduler)",
-    )
-    fit.add_argument(
-        "--method",
-        choices=METHODS,
-        default="cl-edmd",
-        help="cl-edmd: the paper's CL EDMD (controller rows of the closed-loop matrix fitted); "
-        "cl-edmd-known-rows: the same plant, controller rows fixed to the known controller; "
-        "default: %(default)s",
-    )
+
+
+def _add_regularization_options(fit: argparse._ArgumentGroup) -> None:
+    """Alpha, or its cross-validated choice."""
     reg = fit.add_mutually_exclusive_group()
     reg.add_argument("--alpha", type=float, metavar="A", help="Tikhonov coefficient (default 1e-3)")
     reg.add_argument(
@@ -248,6 +239,29 @@ def _parser() -> argparse.ArgumentParser:
         "others are at least half of the episodes)",
     )
     fit.add_argument("--cv-seed", type=seed, default=1234, metavar="K", help="seed of the splits (default %(default)s)")
+
+
+def _add_fit_options(p: argparse.ArgumentParser) -> None:
+    """The method and how it is fitted."""
+    fit = p.add_argument_group("identification")
+    fit.add_argument(
+        "--n-jobs",
+        type=n_jobs,
+        default=-1,
+        metavar="N",
+        help="cores to use: the search's worker processes, and the threads that factor a fit's "
+        "training episodes side by side (default %(default)s: every core; the model is the same "
+        "whatever N; unused with --scheduler)",
+    )
+    fit.add_argument(
+        "--method",
+        choices=METHODS,
+        default="cl-edmd",
+        help="cl-edmd: the paper's CL EDMD (controller rows of the closed-loop matrix fitted); "
+        "cl-edmd-known-rows: the same plant, controller rows fixed to the known controller; "
+        "default: %(default)s",
+    )
+    _add_regularization_options(fit)
     fit.add_argument(
         "--score",
         choices=["cl", "plant"],
@@ -276,18 +290,10 @@ def _parser() -> argparse.ArgumentParser:
         metavar="C",
         help="centre of the eigenvalue disc of --max-radius (default %(default)s)",
     )
-    pred = p.add_argument_group("prediction of the test episodes")
-    pred.add_argument(
-        "--offsets",
-        nargs="+",
-        choices=["theta", "alpha"],
-        metavar="CHANNEL",
-        help="estimate a constant sensor offset of these channels on each test episode from its "
-        "first --estimate-window seconds, then predict with it (for example: alpha, whose "
-        "encoder zero is a few counts off upright); scores then cover the samples after the "
-        "window, beside the plain prediction's on the same samples. Default: none (the "
-        "paper's protocol)",
-    )
+
+
+def _add_ahead_options(pred: argparse._ArgumentGroup) -> None:
+    """K-step predictions and their disturbance model."""
     pred.add_argument(
         "--horizon",
         type=_horizons,
@@ -313,27 +319,10 @@ def _parser() -> argparse.ArgumentParser:
         help="with --horizon, the disturbance's variance per sample, set by hand (default: chosen on the "
         "training episodes; report.json's 'disturbance' says which)",
     )
-    pred.add_argument(
-        "--estimate-window",
-        type=float,
-        default=1.0,
-        metavar="S",
-        help="offset estimation window in seconds (default %(default)s)",
-    )
-    pred.add_argument(
-        "--offset-bound",
-        type=float,
-        default=0.05,
-        metavar="RAD",
-        help="estimates beyond this are flagged in the report and not used (default %(default)s)",
-    )
-    pred.add_argument(
-        "--protocol",
-        choices=["paper", "window"],
-        help="window: score the test episodes from the end of --estimate-window, as --search scores "
-        "its candidates (the default with --search or --offsets); paper: from the second "
-        "sample, the paper's protocol (the default otherwise; not with --offsets)",
-    )
+
+
+def _add_interval_options(pred: argparse._ArgumentGroup) -> None:
+    """The test predictions' intervals."""
     pred.add_argument(
         "--interval",
         type=float,
@@ -380,6 +369,10 @@ def _parser() -> argparse.ArgumentParser:
         "controllers (cached as --no-probe-cache says); none, as the training loop's held-out "
         "episodes (flagged in the report)",
     )
+
+
+def _add_loop_options(pred: argparse._ArgumentGroup) -> None:
+    """The test episodes' loops: a what-if controller, their command delays."""
     pred.add_argument(
         "--controller",
         type=path,
@@ -414,7 +407,50 @@ def _parser() -> argparse.ArgumentParser:
         "its session's delay after the controller computed it, counted above the least delay among "
         "the logs' sessions; a plant fitted to logs of several sessions then sees each loop as it ran",
     )
-    _add_search_options(p)
+
+
+def _add_prediction_options(p: argparse.ArgumentParser) -> None:
+    """How the test episodes are predicted and scored."""
+    pred = p.add_argument_group("prediction of the test episodes")
+    pred.add_argument(
+        "--offsets",
+        nargs="+",
+        choices=["theta", "alpha"],
+        metavar="CHANNEL",
+        help="estimate a constant sensor offset of these channels on each test episode from its "
+        "first --estimate-window seconds, then predict with it (for example: alpha, whose "
+        "encoder zero is a few counts off upright); scores then cover the samples after the "
+        "window, beside the plain prediction's on the same samples. Default: none (the "
+        "paper's protocol)",
+    )
+    _add_ahead_options(pred)
+    pred.add_argument(
+        "--estimate-window",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="offset estimation window in seconds (default %(default)s)",
+    )
+    pred.add_argument(
+        "--offset-bound",
+        type=float,
+        default=0.05,
+        metavar="RAD",
+        help="estimates beyond this are flagged in the report and not used (default %(default)s)",
+    )
+    pred.add_argument(
+        "--protocol",
+        choices=["paper", "window"],
+        help="window: score the test episodes from the end of --estimate-window, as --search scores "
+        "its candidates (the default with --search or --offsets); paper: from the second "
+        "sample, the paper's protocol (the default otherwise; not with --offsets)",
+    )
+    _add_interval_options(pred)
+    _add_loop_options(pred)
+
+
+def _add_output_options(p: argparse.ArgumentParser) -> None:
+    """What is written, and where."""
     out = p.add_argument_group("output")
     out.add_argument(
         "--out", type=path, default="identified", metavar="DIR", help="output folder (default %(default)s)"
@@ -424,6 +460,17 @@ def _parser() -> argparse.ArgumentParser:
     )
     add_renamed_option(out, "--rerun", "--rerun-save FILE.rrd", "a file; qube-run --rerun streams to a viewer")
     add_force_option(out)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = OneLineParser(prog=PROG, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_standard_options(p)
+    _add_data_options(p)
+    _add_lifting_options(p)
+    _add_fit_options(p)
+    _add_prediction_options(p)
+    _add_search_options(p)
+    _add_output_options(p)
     add_figure_options(p)
     return p
 
@@ -489,8 +536,8 @@ def live_fit_options(text: str, option: str = "--identify") -> argparse.Namespac
 
     if args.method not in LIVE_METHODS:
         raise CliError(f"{option}: --method {args.method}: an incremental fit takes {', '.join(LIVE_METHODS)}")
-    args.poly = 2 if args.poly is None else args.poly
-    args.delays = 10 if args.delays is None else args.delays
+    args.poly = DEFAULT_POLY if args.poly is None else args.poly
+    args.delays = DEFAULT_DELAYS if args.delays is None else args.delays
     if args.poly > MAX_POLY:
         raise CliError(f"{option}: --poly must be at most {MAX_POLY}, got {args.poly}")
     if args.alpha is None:
@@ -563,47 +610,36 @@ def _command_delay(text: str) -> float | str:
 
 
 def _check_args(args) -> None:
+    """Refuse what cannot run, before any work: the options together, then each option's value; then the
+    defaults that depend on other options."""
+    _check_combinations(args)
+    check_cluster_options(args, PROG)  # the address, and TLS or the loopback
+    _check_values(args)
+    _resolve_defaults(args)
+    _check_interval(args)
+    check_rerun_target(args.rerun, "--rerun-save", args.force)  # before any work, not after the fit
+    check_output_folder(args.out, OUTPUT_FILES + ((PREDICTIONS,) if args.interval else ()), force=args.force)
+
+
+def _check_combinations(args) -> None:
+    """The options that do not go together, as given (before their defaults)."""
+    arx = args.method in ("arx", "cl-arx")
     if args.search:
         _check_search_args(args)
     elif args.search_space or args.transfer != "twin":
         raise CliError("--search-space and --transfer belong to --search")
     if args.worker_logs and not args.scheduler:
         raise CliError("--worker-logs says how dask workers read the logs: it needs --scheduler")
-    if args.scheduler and args.method in ("arx", "cl-arx"):
+    if args.scheduler and arx:
         raise CliError(
             f"--scheduler computes the Koopman methods' per-episode statistics; --method {args.method} "
             "fits here (leave out --scheduler)"
         )
-    check_cluster_options(args, PROG)  # the address, and TLS or the loopback
-    if isinstance(args.command_delay, float) and args.command_delay < 0:
-        raise CliError(f"--command-delay must be 0 or more milliseconds, got {args.command_delay:g}")
-    if args.command_delay and (args.score != "cl" or args.method in ("arx", "cl-arx")):
+    if args.command_delay and (args.score != "cl" or arx):
         raise CliError("--command-delay changes the predicted loop: it needs --score cl and a Koopman method")
-    if args.command_delay == "estimate" and args.session_delays:
-        raise CliError("--session-delays gives every test log its session's delay: leave out --command-delay estimate")
-    if args.session_delays and args.method in ("arx", "cl-arx"):
-        raise CliError("--session-delays changes the logs' loops: it needs a Koopman method")
-    if args.session_delays and args.controller:
-        raise CliError(
-            "--session-delays predicts each test log under its own session's loop; a --controller what-if "
-            "would score only logs of its controller in the least delayed session: give the what-if's "
-            "latency with --command-delay instead"
-        )
-    if args.session_delays and args.scheduler:
-        raise CliError(
-            "--session-delays needs the logs' loops built here: the cluster's workers read the logs as recorded"
-        )
+    _check_session_delays(args)
     if args.protocol == "paper" and args.offsets:
         raise CliError("--offsets scores from the end of --estimate-window: it cannot use --protocol paper")
-    if args.protocol is None:
-        args.protocol = "window" if args.search or args.offsets else "paper"
-    if args.command_delay is None:  # the window protocol estimates the test loops' nuisances: offsets and latency
-        estimate = args.protocol == "window" and args.score == "cl" and args.method not in ("arx", "cl-arx")
-        args.command_delay = "estimate" if estimate and not (args.session_delays or args.controller) else 0.0
-    args.poly = 2 if args.poly is None else args.poly
-    args.delays = 10 if args.delays is None else args.delays
-    if args.poly > MAX_POLY:  # 10**30: the monomials were never all listed
-        raise CliError(f"--poly must be at most {MAX_POLY}, got {args.poly}")
     if args.split and (args.train or args.test):
         raise CliError("give either LOGS with --split, or --train and --test")
     if not args.split and not (args.train and args.test):
@@ -613,42 +649,58 @@ def _check_args(args) -> None:
     if args.friction:
         from qube_koopman.identify.lifting import CoulombFriction
 
-        lag = CoulombFriction().lag
-        if args.delays < lag:
+        lag, delays = CoulombFriction().lag, DEFAULT_DELAYS if args.delays is None else args.delays
+        if delays < lag:
             raise CliError(
                 f"--friction measures the arm's motion over {lag} samples: it needs --delays {lag} or "
-                f"more, got --delays {args.delays}"
+                f"more, got --delays {delays}"
             )
-    if args.alpha is not None and not 0 <= args.alpha < math.inf:
-        raise CliError(f"--alpha must be a finite number >= 0, got {args.alpha}")
-    if args.alpha_sweep:
-        try:
-            lo, hi, n = float(args.alpha_sweep[0]), float(args.alpha_sweep[1]), int(args.alpha_sweep[2])
-        except ValueError:
-            raise CliError(
-                f"--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30, got {' '.join(args.alpha_sweep)}"
-            ) from None
-        if not (0 < lo < hi) or n < 2:
-            raise CliError(f"--alpha-sweep needs 0 < MIN < MAX and N >= 2, got {' '.join(args.alpha_sweep)}")
-        if hi == math.inf or n > MAX_ALPHAS:
-            raise CliError(f"--alpha-sweep needs a finite MAX and N <= {MAX_ALPHAS}, got {' '.join(args.alpha_sweep)}")
-        args.alpha_sweep = (lo, hi, n)
-    if args.method in ("arx", "cl-arx") and args.alpha_sweep:
+    if arx and args.alpha_sweep:
         raise CliError("--alpha-sweep is for the Koopman methods (edmd, cl-edmd, cl-edmd-lstsq)")
     if args.method == "arx" and args.score == "cl":
         raise CliError("--method arx models the plant only; use --score plant, or --method cl-arx")
-    if (args.offsets or args.controller) and args.method in ("arx", "cl-arx"):
+    if (args.offsets or args.controller) and arx:
         raise CliError("--offsets and --controller need a Koopman method (edmd, cl-edmd, cl-edmd-lstsq)")
     if args.controller and args.score != "cl":
         raise CliError("--controller predicts the closed loop: use --score cl")
-    if args.max_radius is not None:
-        if not 0 < args.max_radius < math.inf:
-            raise CliError(f"--max-radius must be a finite positive number, got {args.max_radius}")
-        if not math.isfinite(args.pole_center):
-            raise CliError(f"--pole-center must be a finite number, got {args.pole_center}")
-        if args.method != "cl-edmd" or args.alpha_sweep:
-            raise CliError("--max-radius constrains a single CL EDMD fit (--method cl-edmd, no --alpha-sweep)")
-        args.method = "cl-edmd-stable"
+    if args.max_radius is not None and (args.method != "cl-edmd" or args.alpha_sweep):
+        raise CliError("--max-radius constrains a single CL EDMD fit (--method cl-edmd, no --alpha-sweep)")
+
+
+def _check_session_delays(args) -> None:
+    """--session-delays makes each log's loop its session's: refused with what would undo or ignore that."""
+    if not args.session_delays:
+        return
+    if args.command_delay == "estimate":
+        raise CliError("--session-delays gives every test log its session's delay: leave out --command-delay estimate")
+    if args.method in ("arx", "cl-arx"):
+        raise CliError("--session-delays changes the logs' loops: it needs a Koopman method")
+    if args.controller:
+        raise CliError(
+            "--session-delays predicts each test log under its own session's loop; a --controller what-if "
+            "would score only logs of its controller in the least delayed session: give the what-if's "
+            "latency with --command-delay instead"
+        )
+    if args.scheduler:
+        raise CliError(
+            "--session-delays needs the logs' loops built here: the cluster's workers read the logs as recorded"
+        )
+
+
+def _check_values(args) -> None:
+    """Each option's own value (``--alpha-sweep``'s made numbers)."""
+    if isinstance(args.command_delay, float) and args.command_delay < 0:
+        raise CliError(f"--command-delay must be 0 or more milliseconds, got {args.command_delay:g}")
+    if args.poly is not None and args.poly > MAX_POLY:  # 10**30: the monomials were never all listed
+        raise CliError(f"--poly must be at most {MAX_POLY}, got {args.poly}")
+    if args.alpha is not None and not 0 <= args.alpha < math.inf:
+        raise CliError(f"--alpha must be a finite number >= 0, got {args.alpha}")
+    if args.alpha_sweep:
+        args.alpha_sweep = _alpha_sweep(args.alpha_sweep)
+    if args.max_radius is not None and not 0 < args.max_radius < math.inf:
+        raise CliError(f"--max-radius must be a finite positive number, got {args.max_radius}")
+    if args.max_radius is not None and not math.isfinite(args.pole_center):
+        raise CliError(f"--pole-center must be a finite number, got {args.pole_center}")
     for option, value in (
         ("--estimate-window", args.estimate_window),
         ("--offset-bound", args.offset_bound),
@@ -663,9 +715,32 @@ def _check_args(args) -> None:
         raise CliError(
             f"--estimate-window must be at most {MAX_DURATION:g} s (the longest episode), got {args.estimate_window}"
         )
-    _check_interval(args)
-    check_rerun_target(args.rerun, "--rerun-save", args.force)  # before any work, not after the fit
-    check_output_folder(args.out, OUTPUT_FILES + ((PREDICTIONS,) if args.interval else ()), force=args.force)
+
+
+def _alpha_sweep(given: list[str]) -> tuple[float, float, int]:
+    """--alpha-sweep MIN MAX N as numbers, checked."""
+    try:
+        lo, hi, n = float(given[0]), float(given[1]), int(given[2])
+    except ValueError:
+        raise CliError(f"--alpha-sweep takes MIN MAX N, for example 1e-3 1e3 30, got {' '.join(given)}") from None
+    if not (0 < lo < hi) or n < 2:
+        raise CliError(f"--alpha-sweep needs 0 < MIN < MAX and N >= 2, got {' '.join(given)}")
+    if hi == math.inf or n > MAX_ALPHAS:
+        raise CliError(f"--alpha-sweep needs a finite MAX and N <= {MAX_ALPHAS}, got {' '.join(given)}")
+    return lo, hi, n
+
+
+def _resolve_defaults(args) -> None:
+    """The defaults that depend on other options: the protocol, the command delay, the lifting's, the method."""
+    if args.protocol is None:
+        args.protocol = "window" if args.search or args.offsets else "paper"
+    if args.command_delay is None:  # the window protocol estimates the test loops' nuisances: offsets and latency
+        estimate = args.protocol == "window" and args.score == "cl" and args.method not in ("arx", "cl-arx")
+        args.command_delay = "estimate" if estimate and not (args.session_delays or args.controller) else 0.0
+    args.poly = DEFAULT_POLY if args.poly is None else args.poly
+    args.delays = DEFAULT_DELAYS if args.delays is None else args.delays
+    if args.max_radius is not None:
+        args.method = "cl-edmd-stable"
 
 
 def _interval_method(args) -> tuple[str, str]:
@@ -809,11 +884,7 @@ def _run(args) -> int:
 
 
 def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
-    import numpy as np
-
     from qube_koopman.identify.report.markdown import write_markdown_report
-    from qube_koopman.identify.models.kstep import AheadOptions
-    from qube_koopman.identify.uncertainty import IntervalOptions
     from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
 
     try:
@@ -835,11 +906,6 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
             raise CliError(
                 f"--estimate-window {args.estimate_window} s leaves nothing to score in the shortest test episode"
             )
-        alphas = (
-            None
-            if not args.alpha_sweep
-            else np.logspace(np.log10(args.alpha_sweep[0]), np.log10(args.alpha_sweep[1]), args.alpha_sweep[2])
-        )
         search = None
         if args.search:
             from qube_koopman.identify.cli.search import run_search
@@ -848,75 +914,13 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
             args.offsets = ["alpha"] if search.winner.spec.offsets else None
             offsets = OffsetProtocol(("alpha",), args.estimate_window, args.offset_bound) if args.offsets else None
             args.alpha = search.winner.best_alpha
-        from qube_koopman.identify.cli.search import probe_cache
-
-        result = identify_and_score(
-            method=args.method,
-            lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
-            train=train,
-            test=test,
-            controller=controller,
-            alpha=1e-3 if args.alpha is None else args.alpha,
-            score=args.score,
-            alphas=alphas,
-            cv_splits=args.cv_splits,
-            cv_seed=args.cv_seed,
-            arx_lags=args.arx_lags,
-            model_path=staged.path("model.json"),
-            offsets=offsets,
-            what_if=what_if,
-            progress=progress,
-            keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
-            score_from=(
-                int(round(args.estimate_window / train[0].dt))
-                if args.protocol == "window" and offsets is None
-                else None
-            ),
-            episode_statistics=statistics,
-            intervals=(
-                IntervalOptions(
-                    args.interval,
-                    args.interval_members,
-                    seed=args.interval_seed,
-                    other_loops=args.interval_other_loops,
-                    method=_interval_method(args)[0],
-                )
-                if args.interval
-                else None
-            ),
-            predictions_folder=predictions,
-            probe_cache=probe_cache() if args.probe_cache else None,
-            command_delay=(
-                args.command_delay if args.command_delay == "estimate" else args.command_delay * 1e-3 / train[0].dt
-            ),
-            n_threads=args.n_jobs,
-            ahead=(
-                None
-                if args.horizon is None
-                else AheadOptions(args.horizon, entry=args.disturbance, q=args.disturbance_q)
-            ),
-            estimator_options=(
-                {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
-            ),
-        )
+        options = _identify_options(args, train, search, offsets, what_if, predictions, staged.path("model.json"))
+        result = identify_and_score(train, test, controller, options, progress=progress, episode_statistics=statistics)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     except NoWorkersError as exc:
         raise CliError(str(exc), status=1) from None
-    if "intervals" in result.report:
-        result.report["intervals"]["why"] = _interval_method(args)[1]
-    if sessions is not None:
-        result.report["session_delays"] = sessions
-    if statistics is not None:  # where the training statistics were computed
-        result.report["cluster"] = cluster_report(args)
-    if search is not None:
-        from qube_koopman.identify.cli.search import search_report
-
-        result.report["search"] = search_report(search, args, [log.path.name for log in train])
-    if args.figures:
-        from qube_koopman.identify.report.figures import identification_figures
-
-        result.report["figures"] = write_report_figures(out, identification_figures(result, args.figure_episodes))
+    _complete_report(args, result, train, sessions, statistics, search, out)
     write_json(staged.path("report.json"), result.report, shown=out / "report.json")
     write_markdown_report(staged.path("report.md"), result.report)
     staged.commit()
@@ -935,6 +939,89 @@ def _identify(args, cleanup: contextlib.ExitStack, staged) -> int:
     if problem:  # after the scores and the files written: the model is there whatever became of the recording
         raise CliError(problem, status=1)
     return 0
+
+
+def _identify_options(args, train, search, offsets, what_if, predictions, model_path):
+    """identify_and_score's options from the command line's (after --search, which chose the lifting and alpha)."""
+    import numpy as np
+
+    from qube_koopman.identify.cli.search import probe_cache
+    from qube_koopman.identify.models.kstep import AheadOptions
+    from qube_koopman.identify.uncertainty import IntervalOptions
+    from qube_koopman.identify.workflow import FitOptions, IdentifyOptions, OutputOptions, ScoreOptions
+
+    alphas = (
+        None
+        if not args.alpha_sweep
+        else np.logspace(np.log10(args.alpha_sweep[0]), np.log10(args.alpha_sweep[1]), args.alpha_sweep[2])
+    )
+    return IdentifyOptions(
+        fit=FitOptions(
+            method=args.method,
+            lifting=search.winner.spec.steps(args.rbf_seed) if search else _lifting(args),
+            alpha=1e-3 if args.alpha is None else args.alpha,
+            alphas=alphas,
+            cv_splits=args.cv_splits,
+            cv_seed=args.cv_seed,
+            arx_lags=args.arx_lags,
+            estimator_options=(
+                {"max_radius": args.max_radius, "center": args.pole_center} if args.max_radius is not None else None
+            ),
+            n_threads=args.n_jobs,
+        ),
+        scoring=ScoreOptions(
+            score=args.score,
+            offsets=offsets,
+            score_from=(
+                int(round(args.estimate_window / train[0].dt))
+                if args.protocol == "window" and offsets is None
+                else None
+            ),
+            what_if=what_if,
+            command_delay=(
+                args.command_delay if args.command_delay == "estimate" else args.command_delay * 1e-3 / train[0].dt
+            ),
+        ),
+        intervals=(
+            IntervalOptions(
+                args.interval,
+                args.interval_members,
+                seed=args.interval_seed,
+                other_loops=args.interval_other_loops,
+                method=_interval_method(args)[0],
+            )
+            if args.interval
+            else None
+        ),
+        probe_cache=probe_cache() if args.probe_cache else None,
+        ahead=(
+            None if args.horizon is None else AheadOptions(args.horizon, entry=args.disturbance, q=args.disturbance_q)
+        ),
+        output=OutputOptions(
+            model_path=model_path,
+            predictions_folder=predictions,
+            keep_predictions=bool(args.rerun or args.figures),  # the figures pick episodes by their scores
+        ),
+    )
+
+
+def _complete_report(args, result, train, sessions, statistics, search, out) -> None:
+    """What the command adds to the workflow's report: why the intervals' method, the session delays, the
+    cluster, the search, the figures."""
+    if "intervals" in result.report:
+        result.report["intervals"]["why"] = _interval_method(args)[1]
+    if sessions is not None:
+        result.report["session_delays"] = sessions
+    if statistics is not None:  # where the training statistics were computed
+        result.report["cluster"] = cluster_report(args)
+    if search is not None:
+        from qube_koopman.identify.cli.search import search_report
+
+        result.report["search"] = search_report(search, args, [log.path.name for log in train])
+    if args.figures:
+        from qube_koopman.identify.report.figures import identification_figures
+
+        result.report["figures"] = write_report_figures(out, identification_figures(result, args.figure_episodes))
 
 
 def _record(path, result) -> str | None:

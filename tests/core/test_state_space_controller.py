@@ -158,13 +158,13 @@ def test_what_if_under_a_state_space_file_predicts_as_under_its_gains(runs, tmp_
     assert reports["soft_ss"]["what_if"]["controller"] == reports["soft"]["what_if"]["controller"]
     # Under another controller (the state recomputed from the log): the same predictions.
     from qube_koopman.identify.cli.identify import _what_if_controller
-    from qube_koopman.identify.workflow import identify_and_score
+    from qube_koopman.identify.workflow import FitOptions, IdentifyOptions, ScoreOptions, identify_and_score
     from qube_koopman.identify import Delay
 
     train, test = load_logs(logs[:1]), load_logs(logs[1:])
-    predictions = [identify_and_score(method="cl-edmd", lifting=[Delay(2)], train=train, test=test,
-                                      controller=train[0].controller, what_if=_what_if_controller(str(f), 0.002)
-                                      ).test_predictions[0] for f in ("soft-theta", soft_ss)]
+    what_ifs = [_what_if_controller(str(f), 0.002) for f in ("soft-theta", soft_ss)]
+    options = [IdentifyOptions(FitOptions("cl-edmd", [Delay(2)]), ScoreOptions(what_if=w)) for w in what_ifs]
+    predictions = [identify_and_score(train, test, train[0].controller, o).test_predictions[0] for o in options]
     assert np.isfinite(predictions[0]).all()
     np.testing.assert_allclose(predictions[1], predictions[0], rtol=0, atol=1e-9)
 

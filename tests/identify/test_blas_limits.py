@@ -99,7 +99,7 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
     from qube_koopman.identify.data.logs import load_logs
     from qube_koopman.identify.lifting import Constant, Delay, Polynomial
     from qube_koopman.identify.uncertainty import IntervalOptions
-    from qube_koopman.identify.workflow import identify_and_score
+    from qube_koopman.identify.workflow import FitOptions, IdentifyOptions, identify_and_score
 
     files = find_logs(qube_logs)
     train, test = load_logs(files[:4], skip=500), load_logs(files[28:29], skip=500)
@@ -114,10 +114,9 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
 
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(ClEdmd, "episode_snapshots", recorded)
+            fit = FitOptions("cl-edmd", [Polynomial(2), Delay(5), Constant()], alpha=1e-3, n_threads=n)
             runs[n, intervals is None] = identify_and_score(
-                method="cl-edmd", lifting=[Polynomial(2), Delay(5), Constant()], train=train, test=test,
-                controller=train[0].controller, alpha=1e-3, intervals=intervals, n_threads=n,
-            )
+                train, test, train[0].controller, IdentifyOptions(fit, intervals=intervals))
         threads[n, intervals is None] = seen
     main = threading.current_thread().name
     for plain in (True, False):
@@ -128,5 +127,5 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
         assert one.report["test"] == two.report["test"]
     assert runs[1, False].report["intervals"]["pooled"] == runs[2, False].report["intervals"]["pooled"]
     with pytest.raises(ValueError, match="n_threads must be -1 \\(every core\\) or at least 1, got 0"):
-        identify_and_score(method="cl-edmd", lifting=[Polynomial(1)], train=train, test=test,
-                           controller=train[0].controller, n_threads=0)
+        identify_and_score(train, test, train[0].controller,
+                           IdentifyOptions(FitOptions("cl-edmd", [Polynomial(1)], n_threads=0)))

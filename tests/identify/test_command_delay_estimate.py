@@ -27,7 +27,7 @@ from qube_koopman.identify.models.latency import (
     apparent_delay,
     estimate_command_delays,
 )
-from qube_koopman.identify.workflow import identify_and_score
+from qube_koopman.identify.workflow import FitOptions, IdentifyOptions, OutputOptions, identify_and_score
 from qube_koopman.sim.pendulum import PendulumParameters
 
 
@@ -61,8 +61,9 @@ def test_the_plant_finds_a_slower_sessions_extra_delay_on_twin_logs(tmp_path):
     fast = logs("fast", params, 8, 1)
     slow = logs("slow", replace(params, delay=params.delay + 4e-3), 3, 5)
     train, test = fast[:5], fast[5:] + slow
-    fit = identify_and_score(method="cl-edmd", lifting=LiftingSpec(delays=10, poly=1).steps(0), train=train,
-                             test=test[:1], controller=train[0].controller, alpha=1e-4, keep_predictions=False)
+    options = IdentifyOptions(FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alpha=1e-4),
+                              output=OutputOptions(keep_predictions=False))
+    fit = identify_and_score(train, test[:1], train[0].controller, options)
     neighbours = [[1, 2], [0, 2], [0, 1], [4, 5], [3, 5], [3, 4]]
     reference, estimates = estimate_command_delays(
         fit.plant, [log.trajectory for log in train], [log.trajectory for log in test], neighbours, skip=250

@@ -300,15 +300,17 @@ def test_stored_logs_identify_and_score_as_logs_in_memory(qube_logs):
 
     from qube_koopman.daq.log.names import find_logs
     from qube_koopman.identify.data.logs import load_logs
-    from qube_koopman.identify.workflow import OffsetProtocol, identify_and_score
+    from qube_koopman.identify.workflow import (FitOptions, IdentifyOptions, OffsetProtocol, OutputOptions,
+                                                ScoreOptions, identify_and_score)
 
     files = find_logs(qube_logs)
     runs = {}
     for stored in (False, True):
         train, test = (load_logs(chosen, skip=500, stored=stored) for chosen in (files[:4], files[28:30]))
-        runs[stored] = identify_and_score(method="cl-edmd", lifting=[Polynomial(2), Delay(5), Constant()], train=train,
-                                          test=test, controller=train[0].controller, alphas=[1e-4, 1e-2],
-                                          offsets=OffsetProtocol(("alpha",)), keep_predictions=not stored)
+        options = IdentifyOptions(FitOptions("cl-edmd", [Polynomial(2), Delay(5), Constant()], alphas=[1e-4, 1e-2]),
+                                  ScoreOptions(offsets=OffsetProtocol(("alpha",))),
+                                  output=OutputOptions(keep_predictions=not stored))
+        runs[stored] = identify_and_score(train, test, train[0].controller, options)
     assert json.dumps(runs[True].report) == json.dumps(runs[False].report)
     np.testing.assert_array_equal(runs[True].plant.A, runs[False].plant.A)
     # Streamed test scores keep no prediction unless asked; the ones kept are those scored.

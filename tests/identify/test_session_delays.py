@@ -25,7 +25,7 @@ from qube_koopman.identify.cli.identify import main as qube_identify
 from qube_koopman.identify.data.logs import IncompleteLogSkipped, load_logs
 from qube_koopman.identify.data.sessions import session_delays
 from qube_koopman.identify.estimators.structure import command_delayed, with_command_delay
-from qube_koopman.identify.workflow import identify_and_score
+from qube_koopman.identify.workflow import FitOptions, IdentifyOptions, OutputOptions, identify_and_score
 from qube_koopman.identify.model_selection.search import LiftingSpec
 from qube_koopman.sim.pendulum import PendulumParameters
 from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
@@ -87,9 +87,9 @@ def test_a_plant_fitted_to_two_sessions_with_their_delays_predicts_the_slower_on
     assert len(test) == 2
 
     def score(train, test_logs):
-        result = identify_and_score(method="cl-edmd", lifting=LiftingSpec(delays=10, poly=1).steps(0), train=train,
-                                    test=test_logs, controller=train[0].controller, alpha=1e-3,
-                                    keep_predictions=False)
+        options = IdentifyOptions(FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alpha=1e-3),
+                                  output=OutputOptions(keep_predictions=False))
+        result = identify_and_score(train, test_logs, train[0].controller, options)
         return result.report["test"]["r2_mean"]
 
     as_recorded = score(fast + slow, test)
@@ -100,9 +100,9 @@ def test_a_plant_fitted_to_two_sessions_with_their_delays_predicts_the_slower_on
     assert with_delays > as_recorded + 0.003
     # Cross-validated over alphas: the folds are drawn from the one recorded controller's episodes and
     # each predicts one session's loop, training on the same episodes as the fold it was split from.
-    swept = identify_and_score(method="cl-edmd", lifting=LiftingSpec(delays=10, poly=1).steps(0),
-                               train=fast + delayed[:6], test=delayed[6:], controller=fast[0].controller,
-                               alphas=[1e-4, 1e-3], keep_predictions=False).report["sweep"]
+    options = IdentifyOptions(FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alphas=[1e-4, 1e-3]),
+                              output=OutputOptions(keep_predictions=False))
+    swept = identify_and_score(fast + delayed[:6], delayed[6:], fast[0].controller, options).report["sweep"]
     slow_names = {log.path.name for log in slow}
     sessions = [{name in slow_names for name in fold["validation_logs"]} for fold in swept["folds"]]
     assert all(len(s) == 1 for s in sessions) and {True, False} == set.union(*sessions)
