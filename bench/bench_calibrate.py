@@ -79,7 +79,7 @@ def main() -> None:
     reference = time.perf_counter() - started
     reference_per_iteration = reference / max(1, ref.nfev)
 
-    print(f"| measure | value | target |\n|---|---|---|")
+    print("| measure | value | target |\n|---|---|---|")
     print(f"| calibration, {len(episodes)} episodes | {ours:.1f} s ({cal.nfev_} evaluations, {cal.njev_} Jacobians) "
           "| <= 120 s |")
     print(f"| residual RMS theta, alpha | {1e3 * cal.residual_rms_[:, 0].mean():.2f}, "

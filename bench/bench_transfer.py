@@ -136,8 +136,8 @@ def main() -> None:
               flush=True)
     for label, flags in FIXED.items():
         rows[label] = judged(train, flags, judges, root, label)
-    print(f"\nR^2 on twin episodes under other controllers, after the first second (mean / worst of ~20); "
-          f"plain | with offsets\n")
+    print("\nR^2 on twin episodes under other controllers, after the first second (mean / worst of ~20); "
+          "plain | with offsets\n")
     print("| model | " + " | ".join(JUDGES) + " |")
     print("|---|" + "---|" * len(JUDGES))
     for label, row in rows.items():

@@ -172,7 +172,7 @@ def run_in_real_time(env: dict, emulator_args: list[str], run_args: list[str], t
     if stalls:  # the last attempt was lost to a stall too
         pytest.skip(f"three runs lost to measured scheduler stalls ({how}): {report}")
     if measured:
-        warnings.warn(f"runs lost to measured scheduler stalls ({how}), tried again: {report}")
+        warnings.warn(f"runs lost to measured scheduler stalls ({how}), tried again: {report}", stacklevel=2)
     return status, out, emulator_err, out_dir, path
 
 

@@ -77,7 +77,7 @@ def _commands() -> dict[str, str]:
 
 
 def _parser_of(module) -> argparse.ArgumentParser:
-    builder = getattr(module, "build_parser", None) or getattr(module, "_parser")
+    builder = getattr(module, "build_parser", None) or module._parser
     return builder()
 
 

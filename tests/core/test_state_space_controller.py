@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _episodes import assert_follows_controller
-from bridge_helpers import cache_home, core  # noqa: F401
 
 from qube_koopman.daq.backends.serial import SerialBackend
 from qube_koopman.daq.cli.run import main as run_main
@@ -98,7 +97,7 @@ def test_a_52_state_controller_runs_and_its_state_is_recomputed_from_the_log(run
         np.testing.assert_allclose(episode.control_output, pd_output[:, 0], rtol=0, atol=1e-9)
 
 
-def test_a_52_state_controller_runs_through_the_serial_bridge_too(core, runs, tmp_path):  # noqa: F811
+def test_a_52_state_controller_runs_through_the_serial_bridge_too(core, runs, tmp_path):
     """The loop's one code path, paced by the emulated bridge (lockstep) instead of the simulator."""
     info = load_controller(runs[1]["big"])
     (plan,) = plan_episodes(info, run_seeds(1, 1)[0], excitation_settings(2.0), source="test")

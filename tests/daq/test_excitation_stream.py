@@ -63,7 +63,7 @@ def test_an_hour_of_excitation_streams_in_bounded_memory():
     tracemalloc.start()
     try:
         n = 0
-        for theta, alpha, ff in stream.chunks(4096):
+        for theta, _alpha, _ff in stream.chunks(4096):
             n += len(theta)
         _, peak = tracemalloc.get_traced_memory()
     finally:

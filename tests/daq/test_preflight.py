@@ -6,7 +6,7 @@ import re
 import subprocess
 import sys
 
-from bridge_helpers import cache_home, env, fifo_command, granted_rt_priority, start_emulator, stop_process  # noqa: F401
+from bridge_helpers import fifo_command, granted_rt_priority, start_emulator, stop_process
 
 from qube_koopman.daq.cli.run import main
 

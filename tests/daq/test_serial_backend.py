@@ -29,16 +29,11 @@ import time
 import numpy as np
 import pytest
 from _episodes import assert_follows_controller, nan_controller
-from bridge_helpers import (  # noqa: F401
+from bridge_helpers import (
     FakeDevice,
     HostWait,
-    cache_home,
-    core,
-    env,
     lockstep_backend,
     run_in_real_time,
-    start_emulator,
-    stop_process,
 )
 
 from qube_koopman.daq.backends.base import BackendFault

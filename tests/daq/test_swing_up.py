@@ -8,8 +8,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from bridge_helpers import cache_home, core  # noqa: F401 (fixtures)
-
 from qube_koopman.core.controller_file import load_controller
 from qube_koopman.daq.backends import SimBackend
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
@@ -246,7 +244,7 @@ def test_qube_run_failed_swing_up_writes_a_log_that_says_why(tmp_path, capsys):
 # --- over the serial link: the emulated bridge ------------------------------------------------------
 
 
-def test_swing_up_over_the_serial_link(core, tmp_path):  # noqa: F811 (the fixture)
+def test_swing_up_over_the_serial_link(core, tmp_path):
     """The same phase over --backend serial, paced by the bridge's telemetry (lockstep): the emulated
     pendulum left hanging at the session's start is swung up, caught and settled within the limits,
     then the episode is recorded complete."""

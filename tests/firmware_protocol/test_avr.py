@@ -8,8 +8,8 @@ from qube_koopman.daq.backends.serial import DEFAULT_BAUD
 from qube_koopman.firmware_protocol import Command, Fault, FaultCode, HelloReply, Status, Telemetry
 from qube_koopman.firmware_protocol.avr import F_CPU, firmware_sizes
 from qube_koopman.firmware_protocol.qube_spi import SPI_SIZE
-from avr_helpers import Host, avr_cache, new_bridge  # noqa: F401 (fixture)
-from bridge_helpers import cache_home, env, run_in_real_time  # noqa: F401 (fixtures)
+from avr_helpers import Host, new_bridge
+from bridge_helpers import run_in_real_time
 
 
 def test_fits_the_uno(avr_cache):

@@ -108,7 +108,7 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
     for n, intervals in ((1, None), (2, None), (1, IntervalOptions(0.95, 3)), (2, IntervalOptions(0.95, 3))):
         seen = set()
 
-        def recorded(self, setup, t):
+        def recorded(self, setup, t, seen=seen):  # this pass's set, bound now
             seen.add(threading.current_thread().name.split("_")[0])
             return factor(self, setup, t)
 

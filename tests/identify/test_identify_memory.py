@@ -123,7 +123,7 @@ def test_a_fit_on_a_lazy_sequence_reads_one_episode_at_a_time():
     # their states, as Lifting.fit did) would grow the peak by 12 episodes' signals.
     lifting = [Polynomial(2), Delay(10), Constant()]
     raw_episode = sum(a.nbytes for a in (_Generated(1)[0].x, _Generated(1)[0].r, _Generated(1)[0].xc))
-    peaks = [_peak(lambda: ClEdmd(CONTROLLER, lifting, alpha=1e-6).fit(_Generated(n))) for n in (4, 16)]
+    peaks = [_peak(lambda n=n: ClEdmd(CONTROLLER, lifting, alpha=1e-6).fit(_Generated(n))) for n in (4, 16)]
     assert peaks[1] - peaks[0] < 3 * raw_episode, (peaks, raw_episode)
     lazy = ClEdmd(CONTROLLER, lifting, alpha=1e-6).fit(_Generated(4))
     listed = ClEdmd(CONTROLLER, lifting, alpha=1e-6).fit(list(_Generated(4)))
@@ -260,8 +260,8 @@ def test_the_cache_of_decoded_logs_keeps_to_its_budget_and_reads_a_changed_file_
     for _ in range(2):
         again = stored[-1].trajectory
     assert decoded[14:] == [files[-1]]
-    stored[1].trajectory
-    stored[0].trajectory
+    _ = stored[1].trajectory  # read for its effect on the cache
+    _ = stored[0].trajectory
     assert decoded[15:] == [files[0]], decoded[15:]  # the first one went, the second is still there
     assert not again.x.flags.writeable  # every reader gets the same arrays: none may write to them
 

@@ -67,7 +67,7 @@ def test_the_per_tick_simulator_steps_as_the_batch_simulation():
     batch = simulate([0.1, 0.01, 0.0, 0.0], volts, p, DT)
     sim = PendulumSimulator(p, dt=DT)
     sim.reset((0.1, 0.01, 0.0, 0.0))
-    for k, v in enumerate(volts):
+    for v in volts:
         sim.step(float(v))
     np.testing.assert_allclose(sim.state, batch[-1], rtol=1e-12, atol=1e-12)
 

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 import serial
-from bridge_helpers import REPO, HostWait, cache_home, core, env, start_emulator, stop_process  # noqa: F401
+from bridge_helpers import REPO, HostWait, start_emulator, stop_process
 
 from qube_koopman.firmware_protocol import (
     Capability,
