@@ -29,22 +29,37 @@ from qube_koopman.sim.bridge.avr import AvrBridge
 
 REPO = Path(__file__).resolve().parents[1]
 BUDGET = F_CPU // 500
-VECTORS = {"__vector_11": "TIMER1_COMPA ISR", "__vector_16": "TIMER0_OVF ISR (millis)",
-           "__vector_18": "USART_RX ISR", "__vector_19": "USART_UDRE ISR"}
+VECTORS = {
+    "__vector_11": "TIMER1_COMPA ISR",
+    "__vector_16": "TIMER0_OVF ISR (millis)",
+    "__vector_18": "USART_RX ISR",
+    "__vector_19": "USART_UDRE ISR",
+}
 
 
 def reference_elf(commit: str, out: Path) -> Path:
     """Build the sketch and C core of ``commit``."""
     src = out / "src"
     src.mkdir(parents=True)
-    names = subprocess.run(["git", "ls-tree", "--name-only", f"{commit}:firmware_protocol/c/src"], cwd=REPO,
-                           capture_output=True, text=True, check=True).stdout.split()
+    names = subprocess.run(
+        ["git", "ls-tree", "--name-only", f"{commit}:firmware_protocol/c/src"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
     for name in names:
-        (src / name).write_bytes(subprocess.run(["git", "show", f"{commit}:firmware_protocol/c/src/{name}"],
-                                                cwd=REPO, capture_output=True, check=True).stdout)
+        (src / name).write_bytes(
+            subprocess.run(
+                ["git", "show", f"{commit}:firmware_protocol/c/src/{name}"], cwd=REPO, capture_output=True, check=True
+            ).stdout
+        )
     sketch = out / "qube_bridge.ino"
-    sketch.write_bytes(subprocess.run(["git", "show", f"{commit}:{SKETCH.relative_to(REPO)}"], cwd=REPO,
-                                      capture_output=True, check=True).stdout)
+    sketch.write_bytes(
+        subprocess.run(
+            ["git", "show", f"{commit}:{SKETCH.relative_to(REPO)}"], cwd=REPO, capture_output=True, check=True
+        ).stdout
+    )
     return build_firmware(out / "build", sketch=sketch, source_dir=src)
 
 
@@ -82,9 +97,16 @@ def measure(elf: Path, seconds: float) -> dict:
             name = names[at] if at >= 0 else "interrupt vector table (jumps)"
             parts[name] = parts.get(name, 0) + after - before
     _, worst = bridge.busy_per_tick(n0)
-    return dict(ticks_per_s=ticks / ((chip.cycle - c0) / F_CPU), busy=(chip.busy_cycles - busy0) / ticks, worst=worst,
-                parts={k: v / ticks for k, v in parts.items()}, frames=len(frames), rx_lost=chip.rx_lost,
-                sizes=firmware_sizes(elf), stack=0x8FF - chip.stack_low + 1)
+    return dict(
+        ticks_per_s=ticks / ((chip.cycle - c0) / F_CPU),
+        busy=(chip.busy_cycles - busy0) / ticks,
+        worst=worst,
+        parts={k: v / ticks for k, v in parts.items()},
+        frames=len(frames),
+        rx_lost=chip.rx_lost,
+        sizes=firmware_sizes(elf),
+        stack=0x8FF - chip.stack_low + 1,
+    )
 
 
 def phase_sweep(elf: Path, n_phases: int = 16, ticks: int = 150) -> tuple[int, int, int]:
@@ -120,23 +142,31 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=1.0)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        results = {f"reference {args.reference}": measure(reference_elf(args.reference, Path(tmp)), args.seconds),
-                   "current": measure(cached_firmware(), args.seconds)}
+        results = {
+            f"reference {args.reference}": measure(reference_elf(args.reference, Path(tmp)), args.seconds),
+            "current": measure(cached_firmware(), args.seconds),
+        }
     for label, r in results.items():
         s = r["sizes"]
-        print(f"\n{label}: {r['ticks_per_s']:.1f} ticks/s, busy {r['busy']:.0f} cycles/tick "
-              f"({100 * r['busy'] / BUDGET:.1f} % of {BUDGET}), worst 10-tick mean {r['worst']:.0f}; flash {s.flash} B, static RAM {s.static_ram} B, "
-              f"stack {r['stack']} B; UART bytes lost {r['rx_lost']}")
+        print(
+            f"\n{label}: {r['ticks_per_s']:.1f} ticks/s, busy {r['busy']:.0f} cycles/tick "
+            f"({100 * r['busy'] / BUDGET:.1f} % of {BUDGET}), worst 10-tick mean {r['worst']:.0f}; flash {s.flash} B, static RAM {s.static_ram} B, "
+            f"stack {r['stack']} B; UART bytes lost {r['rx_lost']}"
+        )
         for name, cycles in sorted(r["parts"].items(), key=lambda kv: -kv[1])[:12]:
             print(f"  {cycles:8.0f}  {name}")
     worst, at, first_tick = phase_sweep(cached_firmware())
-    print(f"\ncurrent, command arriving at 16 points of the tick: worst steady-state tick {worst} cycles "
-          f"({100 * worst / BUDGET:.1f} %, command {at} cycles after the tick), worst tick of a session's "
-          f"first command {first_tick} ({100 * first_tick / BUDGET:.1f} %)")
+    print(
+        f"\ncurrent, command arriving at 16 points of the tick: worst steady-state tick {worst} cycles "
+        f"({100 * worst / BUDGET:.1f} %, command {at} cycles after the tick), worst tick of a session's "
+        f"first command {first_tick} ({100 * first_tick / BUDGET:.1f} %)"
+    )
     after = results["current"]["busy"]
-    print(f"\nbusy cycles per tick: reference {results[f'reference {args.reference}']['busy']:.0f} "
-          f"(whole period at {results[f'reference {args.reference}']['ticks_per_s']:.0f} ticks/s), "
-          f"current {after:.0f}; target <= {0.6 * BUDGET:.0f}: {'met' if after <= 0.6 * BUDGET else 'NOT met'}")
+    print(
+        f"\nbusy cycles per tick: reference {results[f'reference {args.reference}']['busy']:.0f} "
+        f"(whole period at {results[f'reference {args.reference}']['ticks_per_s']:.0f} ticks/s), "
+        f"current {after:.0f}; target <= {0.6 * BUDGET:.0f}: {'met' if after <= 0.6 * BUDGET else 'NOT met'}"
+    )
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ def main() -> None:
     from qube_koopman.identify.model_selection.split import paper_split
 
     train, _ = paper_split(sorted(args.logs.glob("*.mcap")))
-    episodes = [read_episode(path) for path in train[:args.episodes]]
+    episodes = [read_episode(path) for path in train[: args.episodes]]
     ys, us, dt = [e.states for e in episodes], [e.plant_input for e in episodes], episodes[0].dt
 
     started = time.perf_counter()
@@ -64,8 +64,11 @@ def main() -> None:
     started = time.perf_counter()
     differences = PlantCalibration(jacobian="differences").fit(ys, us, dt)
     by_differences = time.perf_counter() - started
-    apart = max(abs(getattr(cal.params_, name) - getattr(differences.params_, name)) / se
-                for name, se in cal.standard_errors_.items() if se > 0)
+    apart = max(
+        abs(getattr(cal.params_, name) - getattr(differences.params_, name)) / se
+        for name, se in cal.standard_errors_.items()
+        if se > 0
+    )
 
     # The reference: scipy's trust-region least squares on the same problem, from the same start.
     h = int(round(cal.horizon / dt))
@@ -73,24 +76,38 @@ def main() -> None:
     z0 = cal._start(ys, seg, len(ys), dt)
     lo, hi = cal._bounds(len(ys), seg.n)
     started = time.perf_counter()
-    ref = least_squares(lambda z: ms.residuals(z, seg, len(ys), cal.nominal_, dt, ENCODER_SIGMA),
-                        np.clip(z0, lo, hi), jac_sparsity=ms.sparsity(seg, len(ys)), bounds=(lo, hi),
-                        method="trf", tr_solver="lsmr", x_scale="jac", max_nfev=args.reference_iterations)
+    ref = least_squares(
+        lambda z: ms.residuals(z, seg, len(ys), cal.nominal_, dt, ENCODER_SIGMA),
+        np.clip(z0, lo, hi),
+        jac_sparsity=ms.sparsity(seg, len(ys)),
+        bounds=(lo, hi),
+        method="trf",
+        tr_solver="lsmr",
+        x_scale="jac",
+        max_nfev=args.reference_iterations,
+    )
     reference = time.perf_counter() - started
     reference_per_iteration = reference / max(1, ref.nfev)
 
     print("| measure | value | target |\n|---|---|---|")
-    print(f"| calibration, {len(episodes)} episodes | {ours:.1f} s ({cal.nfev_} evaluations, {cal.njev_} Jacobians) "
-          "| <= 120 s |")
-    print(f"| residual RMS theta, alpha | {1e3 * cal.residual_rms_[:, 0].mean():.2f}, "
-          f"{1e3 * cal.residual_rms_[:, 1].mean():.2f} mrad | |")
-    print(f"| the same fit, Jacobian by forward differences | {by_differences:.1f} s "
-          f"({differences.nfev_} evaluations, {differences.njev_} Jacobians) | |")
+    print(
+        f"| calibration, {len(episodes)} episodes | {ours:.1f} s ({cal.nfev_} evaluations, {cal.njev_} Jacobians) "
+        "| <= 120 s |"
+    )
+    print(
+        f"| residual RMS theta, alpha | {1e3 * cal.residual_rms_[:, 0].mean():.2f}, "
+        f"{1e3 * cal.residual_rms_[:, 1].mean():.2f} mrad | |"
+    )
+    print(
+        f"| the same fit, Jacobian by forward differences | {by_differences:.1f} s "
+        f"({differences.nfev_} evaluations, {differences.njev_} Jacobians) | |"
+    )
     print(f"| ratio differences / sensitivities | {by_differences / ours:.1f} | |")
     print(f"| largest parameter difference between the two | {apart:.2g} standard errors | |")
     print(f"| time per trial step (with its Jacobian): ours | {ours_per_iteration:.2f} s | |")
-    print(f"| time per iteration: scipy trf+lsmr (reference, {ref.nfev} iterations) | "
-          f"{reference_per_iteration:.2f} s | |")
+    print(
+        f"| time per iteration: scipy trf+lsmr (reference, {ref.nfev} iterations) | {reference_per_iteration:.2f} s | |"
+    )
     print(f"| ratio reference / ours per iteration | {reference_per_iteration / ours_per_iteration:.1f} | |")
 
 

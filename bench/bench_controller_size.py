@@ -119,14 +119,20 @@ def main(argv=None) -> int:
                 measured[i].append(loop_times(info, args.seconds, folder) + step_times(info.system))
     medians = [[statistics.median(column) for column in zip(*measured[i])] for i in range(len(rows))]
     pd_loop, pd_step = medians[0][1], medians[0][3]
-    print(f"{'controller':<30} {'states':>6}  {'loop p50 us':>11}  {'loop p99 us':>11}  {'x PD':>4}  "
-          f"{'step p50 us':>11}  {'step p99 us':>11}  {'x PD':>4}")
+    print(
+        f"{'controller':<30} {'states':>6}  {'loop p50 us':>11}  {'loop p99 us':>11}  {'x PD':>4}  "
+        f"{'step p50 us':>11}  {'step p99 us':>11}  {'x PD':>4}"
+    )
     for (label, info), (lp50, lp99, sp50, sp99) in zip(rows, medians):
-        print(f"{label:<30} {info.system.n_states:>6}  {lp50 * 1e6:>11.1f}  {lp99 * 1e6:>11.1f}  {lp99 / pd_loop:>4.2f}  "
-              f"{sp50 * 1e6:>11.2f}  {sp99 * 1e6:>11.2f}  {sp99 / pd_step:>4.2f}")
+        print(
+            f"{label:<30} {info.system.n_states:>6}  {lp50 * 1e6:>11.1f}  {lp99 * 1e6:>11.1f}  {lp99 / pd_loop:>4.2f}  "
+            f"{sp50 * 1e6:>11.2f}  {sp99 * 1e6:>11.2f}  {sp99 / pd_step:>4.2f}"
+        )
     worst = medians[-1][1] + medians[-1][3]
-    print(f"{rows[-1][1].system.n_states} states: loop p99 + step p99 = {worst * 1e6:.0f} us of the "
-          f"{BUDGET * 1e6:.0f} us budget ({100 * worst / BUDGET:.1f} %)")
+    print(
+        f"{rows[-1][1].system.n_states} states: loop p99 + step p99 = {worst * 1e6:.0f} us of the "
+        f"{BUDGET * 1e6:.0f} us budget ({100 * worst / BUDGET:.1f} %)"
+    )
     return 0 if worst < BUDGET else 1
 
 

@@ -62,13 +62,28 @@ def figures(folder: Path) -> dict:
     done = [e for e in episodes if e.metadata.status == "complete"]
     rows = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in done]).reshape(-1, 5)
     if not done:  # every episode stopped (a perturbed twin's draw): no cost to average
-        return {"episodes": len(episodes), "complete": 0, "J": np.nan, "tracking_rms": np.nan, "alpha_rms": np.nan,
-                "voltage_rms": np.nan, "voltage_peak": np.nan, "saturated": 0, "quiet_voltage_rms": np.nan}
-    return {"episodes": len(episodes), "complete": len(done), "J": float(rows[:, 0].mean()),
-            "tracking_rms": float(np.sqrt(np.mean(rows[:, 1] ** 2))), "alpha_rms": float(np.sqrt(np.mean(rows[:, 2] ** 2))),
-            "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))), "voltage_peak": float(rows[:, 4].max()),
-            "saturated": int(sum(e.saturation[500:].sum() for e in done)),
-            "quiet_voltage_rms": float(np.mean([np.sqrt(np.mean(e.plant_input[500:2000] ** 2)) for e in done]))}
+        return {
+            "episodes": len(episodes),
+            "complete": 0,
+            "J": np.nan,
+            "tracking_rms": np.nan,
+            "alpha_rms": np.nan,
+            "voltage_rms": np.nan,
+            "voltage_peak": np.nan,
+            "saturated": 0,
+            "quiet_voltage_rms": np.nan,
+        }
+    return {
+        "episodes": len(episodes),
+        "complete": len(done),
+        "J": float(rows[:, 0].mean()),
+        "tracking_rms": float(np.sqrt(np.mean(rows[:, 1] ** 2))),
+        "alpha_rms": float(np.sqrt(np.mean(rows[:, 2] ** 2))),
+        "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))),
+        "voltage_peak": float(rows[:, 4].max()),
+        "saturated": int(sum(e.saturation[500:].sum() for e in done)),
+        "quiet_voltage_rms": float(np.mean([np.sqrt(np.mean(e.plant_input[500:2000] ** 2)) for e in done])),
+    }
 
 
 def prediction_r2(model_path: Path, controller_path: Path, folder: Path) -> np.ndarray:
@@ -91,8 +106,14 @@ def robustness(controller: str | None, draws: int, root: Path) -> int:
     complete = 0
     for i in range(draws):
         scale = rng.uniform(0.9, 1.1, 4)
-        params = replace(base, km=base.km * scale[0], Lp=base.Lp * scale[1], mp=base.mp * scale[2],
-                         Jh=base.Jh * scale[3], delay=2 * base.delay)
+        params = replace(
+            base,
+            km=base.km * scale[0],
+            Lp=base.Lp * scale[1],
+            mp=base.mp * scale[2],
+            Jh=base.Jh * scale[3],
+            delay=2 * base.delay,
+        )
         plant_file = root / f"plant_{i}.toml"
         save_plant(plant_file, PlantFile(params, provenance={"draw": i}))
         out = root / f"draw_{i}_{'pd' if controller is None else 'design'}"
@@ -114,8 +135,9 @@ def serial_lockstep(controller: str, root: Path) -> str:
     from qube_koopman.daq.sinks import McapSink
     from qube_koopman.sim.bridge import BridgeEmulator
 
-    (plan,) = plan_episodes(load_controller(controller), run_seeds(7, 1)[0], excitation_settings(20.0),
-                            source="bench_design")
+    (plan,) = plan_episodes(
+        load_controller(controller), run_seeds(7, 1)[0], excitation_settings(20.0), source="bench_design"
+    )
     emulator = BridgeEmulator(seed=3, lockstep=True, lockstep_timeout=0.1)
     (root / "serial").mkdir(exist_ok=True)
     backend, sink = SerialBackend(emulator.start(), link_timeout=1.0), McapSink(root / "serial")
@@ -126,19 +148,44 @@ def serial_lockstep(controller: str, root: Path) -> str:
         emulator.stop()
     episode = read_episode(sink.paths[0])
     stats = {k: v for k, v in episode.metadata.backend_stats.items() if k != "decoder"}
-    return f"lockstep: {'complete' if result.complete else 'aborted: ' + str(result.reason)}, {len(episode)} samples, " \
-           f"link {stats}"
+    return (
+        f"lockstep: {'complete' if result.complete else 'aborted: ' + str(result.reason)}, {len(episode)} samples, "
+        f"link {stats}"
+    )
 
 
 def serial_realtime(controller: str, root: Path) -> str:
     """One 20 s episode through ``qube-emulate`` at 500 Hz of wall time, both under SCHED_FIFO (needs root)."""
-    emulator = subprocess.Popen(["chrt", "-f", "30", "qube-emulate", "--seed", "3"], stdout=subprocess.PIPE,
-                                stderr=subprocess.DEVNULL, text=True)
+    emulator = subprocess.Popen(
+        ["chrt", "-f", "30", "qube-emulate", "--seed", "3"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     try:
         port = emulator.stdout.readline().split()[-1]
-        run = subprocess.run(["qube-run", "--backend", "serial", "--port", port, "--episodes", "1", "--seed", "7",
-                              "--controller", controller, "--out", str(root / "serial_rt"), "--rt-priority", "20"],
-                             capture_output=True, text=True, timeout=180)
+        run = subprocess.run(
+            [
+                "qube-run",
+                "--backend",
+                "serial",
+                "--port",
+                port,
+                "--episodes",
+                "1",
+                "--seed",
+                "7",
+                "--controller",
+                controller,
+                "--out",
+                str(root / "serial_rt"),
+                "--rt-priority",
+                "20",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
     finally:
         emulator.terminate()
         emulator.wait(timeout=10)
@@ -159,8 +206,27 @@ def reidentification(controller: str, seed: int, root: Path) -> dict[str, float]
     for train in logs:
         for test in logs:
             out = root / f"reidentify_{train}_{test}"
-            assert identify_main(["--train", *logs[train][:28], "--test", *logs[test][28:], "--poly", "1", "--delays",
-                                  "35", "--const", "--alpha", "1e-3", "--out", str(out), "-q"]) == 0
+            assert (
+                identify_main(
+                    [
+                        "--train",
+                        *logs[train][:28],
+                        "--test",
+                        *logs[test][28:],
+                        "--poly",
+                        "1",
+                        "--delays",
+                        "35",
+                        "--const",
+                        "--alpha",
+                        "1e-3",
+                        "--out",
+                        str(out),
+                        "-q",
+                    ]
+                )
+                == 0
+            )
             scores[f"{train} -> {test}"] = json.loads((out / "report.json").read_text())["test"]["r2_mean"]
     return scores
 
@@ -187,16 +253,23 @@ def other_controller(model_path: Path, folder: Path) -> str:
         rows.append([loop_figures(t.x, t.r[:, 0], t.u[:, 0], 500), loop_figures(x, t.r[:, 0], u, 500)])
         runs.append((x[:, 0], t.r[:, 0], x[:, 1], u))
     rows, n = np.array(rows), min(len(run[0]) for run in runs)
-    uu, eu = loop_spectra(*(np.array([run[i][:n] for run in runs]) for i in range(4)), uncertainty.spectra.edges,
-                          uncertainty.spectra.dt, 500)
+    uu, eu = loop_spectra(
+        *(np.array([run[i][:n] for run in runs]) for i in range(4)),
+        uncertainty.spectra.edges,
+        uncertainty.spectra.dt,
+        500,
+    )
     J, V = rows[:, 1, 0].mean(), np.sqrt(np.mean(rows[:, 1, 1] ** 2))
-    found = propagate_error(uncertainty.spectra, uncertainty.held_out, linear_plant(plant), logs[0].controller, uu,
-                            eu, (J, V))
+    found = propagate_error(
+        uncertainty.spectra, uncertainty.held_out, linear_plant(plant), logs[0].controller, uu, eu, (J, V)
+    )
     ratio = np.exp(np.mean(np.log(uncertainty.held_out[:, 0, :2] / uncertainty.held_out[:, 1, :2]), axis=0))
-    return (f"{len(logs)} logs of {folder}: J measured {rows[:, 0, 0].mean():.4g}, predicted {J:.4g}, with the "
-            f"ratio {J * ratio[0]:.4g}, propagated {J * np.exp(found.shift[0]):.4g}; voltage RMS measured "
-            f"{np.sqrt(np.mean(rows[:, 0, 1] ** 2)):.4g}, predicted {V:.4g}, with the ratio {V * ratio[1]:.4g}, "
-            f"propagated {V * np.exp(found.shift[1]):.4g}")
+    return (
+        f"{len(logs)} logs of {folder}: J measured {rows[:, 0, 0].mean():.4g}, predicted {J:.4g}, with the "
+        f"ratio {J * ratio[0]:.4g}, propagated {J * np.exp(found.shift[0]):.4g}; voltage RMS measured "
+        f"{np.sqrt(np.mean(rows[:, 0, 1] ** 2)):.4g}, predicted {V:.4g}, with the ratio {V * ratio[1]:.4g}, "
+        f"propagated {V * np.exp(found.shift[1]):.4g}"
+    )
 
 
 def main() -> None:
@@ -223,30 +296,42 @@ def main() -> None:
     pd, design = figures(root / "pd"), figures(root / "design")
     print(f"\n{'':<20}{'complete':>9}{'J':>11}{'tracking':>10}{'alpha':>9}{'voltage':>9}{'quiet V':>9}{'sat':>5}")
     for name, f in (("rig's PD", pd), ("design", design)):
-        print(f"{name:<20}{f['complete']:>4}/{f['episodes']:<4}{f['J']:>11.3e}{f['tracking_rms']:>10.4f}"
-              f"{f['alpha_rms']:>9.4f}{f['voltage_rms']:>9.3f}{f['quiet_voltage_rms']:>9.3f}{f['saturated']:>5}")
-    print(f"J {100 * (design['J'] / pd['J'] - 1):+.1f} % (target <= -40 %), voltage RMS "
-          f"{design['voltage_rms'] / pd['voltage_rms']:.2f} x the PD's (target <= 1.45)")
+        print(
+            f"{name:<20}{f['complete']:>4}/{f['episodes']:<4}{f['J']:>11.3e}{f['tracking_rms']:>10.4f}"
+            f"{f['alpha_rms']:>9.4f}{f['voltage_rms']:>9.3f}{f['quiet_voltage_rms']:>9.3f}{f['saturated']:>5}"
+        )
+    print(
+        f"J {100 * (design['J'] / pd['J'] - 1):+.1f} % (target <= -40 %), voltage RMS "
+        f"{design['voltage_rms'] / pd['voltage_rms']:.2f} x the PD's (target <= 1.45)"
+    )
     predicted = load_controller(controller).provenance["predicted"]["J"]
     r2 = prediction_r2(args.model, controller, root / "design")
-    print(f"predicted J {predicted:.3e} vs measured {design['J']:.3e}: {100 * (predicted / design['J'] - 1):+.1f} % "
-          f"(target within 15 %); closed-loop prediction R^2 theta {r2[:, 0].mean():.4f} (min {r2[:, 0].min():.4f}), "
-          f"alpha {r2[:, 1].mean():.4f} (min {r2[:, 1].min():.4f}) (target >= 0.9)")
+    print(
+        f"predicted J {predicted:.3e} vs measured {design['J']:.3e}: {100 * (predicted / design['J'] - 1):+.1f} % "
+        f"(target within 15 %); closed-loop prediction R^2 theta {r2[:, 0].mean():.4f} (min {r2[:, 0].min():.4f}), "
+        f"alpha {r2[:, 1].mean():.4f} (min {r2[:, 1].min():.4f}) (target >= 0.9)"
+    )
     interval = load_controller(controller).provenance.get("interval", {})
     for name, label in (("J", "J"), ("voltage_rms", "voltage RMS"), ("voltage_peak", "voltage peak")):
         if name in interval:
             iv, measured = interval[name], design[name]
             inside = "inside" if iv["lower"] <= measured <= iv["upper"] else "OUTSIDE"
-            print(f"{label}: predicted {iv['predicted']:.4g}, with the model's error {iv['expected']:.4g}, interval "
-                  f"{iv['lower']:.4g} to {iv['upper']:.4g} at {interval['level']:g}; twin {measured:.4g} ({inside})")
+            print(
+                f"{label}: predicted {iv['predicted']:.4g}, with the model's error {iv['expected']:.4g}, interval "
+                f"{iv['lower']:.4g} to {iv['upper']:.4g} at {interval['level']:g}; twin {measured:.4g} ({inside})"
+            )
     if args.draws:
         ok, ok_pd = robustness(str(controller), args.draws, root), robustness(None, args.draws, root)
-        print(f"robustness: {ok}/{args.draws} perturbed twins complete under the design (target >= 95 %), "
-              f"{ok_pd}/{args.draws} under the PD")
+        print(
+            f"robustness: {ok}/{args.draws} perturbed twins complete under the design (target >= 95 %), "
+            f"{ok_pd}/{args.draws} under the PD"
+        )
     if args.reidentify is not None:
         scores = reidentification(str(controller), args.reidentify, root)
-        print("re-identified (train -> test, 28 -> 20 episodes, target >= 0.95): "
-              + ", ".join(f"{k} {v:.4f}" for k, v in scores.items()))
+        print(
+            "re-identified (train -> test, 28 -> 20 episodes, target >= 0.95): "
+            + ", ".join(f"{k} {v:.4f}" for k, v in scores.items())
+        )
     if args.serial:
         serial = serial_realtime if args.serial == "realtime" else serial_lockstep
         print("serial path:", serial(str(controller), root))

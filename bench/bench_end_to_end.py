@@ -57,8 +57,9 @@ def _identify(data: list[str], delays: int, out: Path) -> dict:
     from qube_koopman.identify.cli.identify import main as qube_identify
 
     with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):
-        status = qube_identify([*data, "--delays", str(delays), "--alpha", str(ALPHA), "--skip", str(SKIP),
-                                "--out", str(out)])
+        status = qube_identify(
+            [*data, "--delays", str(delays), "--alpha", str(ALPHA), "--skip", str(SKIP), "--out", str(out)]
+        )
     if status != 0:
         raise SystemExit(f"qube-identify failed with status {status}")
     return json.loads((out / "report.json").read_text())
@@ -82,46 +83,70 @@ def main(argv=None) -> int:
         toml.write_text(SECOND_GAINS)
         summary = io.StringIO()
         with redirect_stdout(summary):
-            t_first = _collect(["--episodes", str(args.episodes), "--duration", str(args.duration), "--seed", "1",
-                                "--out", str(first)])
-            t_second = _collect(["--episodes", str(args.second), "--duration", str(args.duration), "--seed", "2",
-                                 "--controller", str(toml), "--out", str(second)])
+            t_first = _collect(
+                ["--episodes", str(args.episodes), "--duration", str(args.duration), "--seed", "1", "--out", str(first)]
+            )
+            t_second = _collect(
+                [
+                    "--episodes",
+                    str(args.second),
+                    "--duration",
+                    str(args.duration),
+                    "--seed",
+                    "2",
+                    "--controller",
+                    str(toml),
+                    "--out",
+                    str(second),
+                ]
+            )
         totals = [line for line in summary.getvalue().splitlines() if "complete," in line or "ticks:" in line]
 
         # qube-identify as a user runs it; with the default 28 this is its --split paper.
         logs = [str(p) for p in sorted(first.glob("*.mcap"))]
-        train_paths, test_paths = logs[:args.train], logs[args.train:]
+        train_paths, test_paths = logs[: args.train], logs[args.train :]
         reports = {}
         for delays in (10, 20):
             start = time.perf_counter()
             own = _identify(["--train", *train_paths, "--test", *test_paths], delays, root / f"id_d{delays}")
-            cross = _identify(["--train", *train_paths, "--test", str(second)], delays,
-                              root / f"id_cross_d{delays}")
+            cross = _identify(["--train", *train_paths, "--test", str(second)], delays, root / f"id_cross_d{delays}")
             reports[delays] = (own, cross, time.perf_counter() - start)
 
     simulated = (args.episodes + args.second) * args.duration
-    print(f"collection (qube-run): {args.episodes} + {args.second} episodes x {args.duration:g} s in "
-          f"{t_first:.1f} + {t_second:.1f} s ({simulated / (t_first + t_second):.0f}x real time, "
-          "logging included)")
+    print(
+        f"collection (qube-run): {args.episodes} + {args.second} episodes x {args.duration:g} s in "
+        f"{t_first:.1f} + {t_second:.1f} s ({simulated / (t_first + t_second):.0f}x real time, "
+        "logging included)"
+    )
     for line in totals:
         print(f"  qube-run: {line}")
     own = reports[10][0]
-    print(f"identification (qube-identify, cl-edmd, alpha {own['alpha']:g}, {SKIP} samples dropped): "
-          f"{len(own['train_logs'])} training logs (the first {args.train} by name, complete ones), "
-          f"{own['test']['n_episodes']} test logs; {reports[10][1]['test']['n_episodes']} logs under other gains")
-    header = ("lifting", "R^2 test", "std", "NRMSE %", "R^2 other gains", "std", "NRMSE %", "rho plant",
-              "seconds")
+    print(
+        f"identification (qube-identify, cl-edmd, alpha {own['alpha']:g}, {SKIP} samples dropped): "
+        f"{len(own['train_logs'])} training logs (the first {args.train} by name, complete ones), "
+        f"{own['test']['n_episodes']} test logs; {reports[10][1]['test']['n_episodes']} logs under other gains"
+    )
+    header = ("lifting", "R^2 test", "std", "NRMSE %", "R^2 other gains", "std", "NRMSE %", "rho plant", "seconds")
     print("".join(f"{h:>16s}" if i else f"{h:24s}" for i, h in enumerate(header)))
     best = -float("inf")
     for delays, (own, cross, elapsed) in reports.items():
         t, c = own["test"], cross["test"]
         best = max(best, t["r2_mean"])
-        values = (f"{t['r2_mean']:.4f}", f"{t['r2_std']:.4f}", f"{t['nrmse_mean']:.2f}", f"{c['r2_mean']:.4f}",
-                  f"{c['r2_std']:.4f}", f"{c['nrmse_mean']:.2f}", f"{own['spectral_radius']['plant']:.4f}",
-                  f"{elapsed:.1f}")
+        values = (
+            f"{t['r2_mean']:.4f}",
+            f"{t['r2_std']:.4f}",
+            f"{t['nrmse_mean']:.2f}",
+            f"{c['r2_mean']:.4f}",
+            f"{c['r2_std']:.4f}",
+            f"{c['nrmse_mean']:.2f}",
+            f"{own['spectral_radius']['plant']:.4f}",
+            f"{elapsed:.1f}",
+        )
         print(f"{f'Polynomial(2) + Delay({delays})':24s}" + "".join(f"{v:>16s}" for v in values))
-    print(f"best closed-loop R^2 {best:.4f} (target >= {TARGET}: {'met' if best >= TARGET else 'NOT met'}); "
-          "the paper's lifting on the real rig's data: 0.893 (paper), 0.897 (closed form)")
+    print(
+        f"best closed-loop R^2 {best:.4f} (target >= {TARGET}: {'met' if best >= TARGET else 'NOT met'}); "
+        "the paper's lifting on the real rig's data: 0.893 (paper), 0.897 (closed form)"
+    )
     return 0
 
 

@@ -32,8 +32,11 @@ import tempfile
 import time
 from pathlib import Path
 
-DEFAULT_DATASET = Path(os.environ.get("QUBE_DATASET_DIR",
-                                      Path(__file__).resolve().parents[2] / "shared" / "datasets" / "qube_servo_20230828"))
+DEFAULT_DATASET = Path(
+    os.environ.get(
+        "QUBE_DATASET_DIR", Path(__file__).resolve().parents[2] / "shared" / "datasets" / "qube_servo_20230828"
+    )
+)
 LIFTING = ["--poly", "2", "--delays", "40", "--rbf", "thin-plate", "--rbf-centers", "50", "--alpha", "1e-4"]
 
 CHILD = r"""
@@ -52,8 +55,9 @@ def logs(dataset: Path, work: Path) -> tuple[list[Path], list[Path]]:
     """The paper's split of the imported dataset (imported once into ``work/logs``)."""
     folder = work / "logs"
     if not folder.is_dir():
-        subprocess.run(["qube-import", *map(str, sorted(dataset.glob("*.csv"))), "--out", str(folder), "-q"],
-                       check=True)
+        subprocess.run(
+            ["qube-import", *map(str, sorted(dataset.glob("*.csv"))), "--out", str(folder), "-q"], check=True
+        )
     files = sorted(folder.glob("*.mcap"))
     return files[:28], files[28:]
 
@@ -74,8 +78,7 @@ def repeated(train: list[Path], n: int, work: Path) -> list[Path]:
 
 def measure(train: list[Path], test: list[Path], out: Path, options: list[str]) -> dict:
     argv = ["--train", *map(str, train), "--test", *map(str, test), *options, "--out", str(out), "-q"]
-    done = subprocess.run([sys.executable, "-c", CHILD, json.dumps(argv)], capture_output=True, text=True,
-                          check=True)
+    done = subprocess.run([sys.executable, "-c", CHILD, json.dumps(argv)], capture_output=True, text=True, check=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -84,10 +87,15 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[28, 112, 448])
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
-    p.add_argument("--work", type=Path, default=None, help="folder for the links and outputs (default: a temporary one)")
-    p.add_argument("--lifting", default=" ".join(LIFTING),
-                   help="the lifting and alpha options, in one string (default: %(default)s); e.g. the folds' "
-                        "memory: '--poly 2 --delays 20 --alpha-sweep 1e-6 1e-2 4'")
+    p.add_argument(
+        "--work", type=Path, default=None, help="folder for the links and outputs (default: a temporary one)"
+    )
+    p.add_argument(
+        "--lifting",
+        default=" ".join(LIFTING),
+        help="the lifting and alpha options, in one string (default: %(default)s); e.g. the folds' "
+        "memory: '--poly 2 --delays 20 --alpha-sweep 1e-6 1e-2 4'",
+    )
     p.add_argument("extra", nargs="*", help="more qube-identify options, after --")
     args = p.parse_args()
     if not args.dataset.is_dir():
@@ -104,14 +112,20 @@ def main() -> None:
     base = rows[0][1]
     # CPU seconds per episode added since the previous size: the fixed cost cancels.
     steps = [None] + [(r["cpu_seconds"] - q["cpu_seconds"]) / (n - m) for (m, q, _), (n, r, _) in zip(rows, rows[1:])]
-    print(f"\n{'training episodes':>18} {'wall s':>8} {'CPU s':>8} {'CPU s/added episode':>20} {'x first step':>13} "
-          f"{'peak RSS MB':>12} {'x smallest':>11}")
+    print(
+        f"\n{'training episodes':>18} {'wall s':>8} {'CPU s':>8} {'CPU s/added episode':>20} {'x first step':>13} "
+        f"{'peak RSS MB':>12} {'x smallest':>11}"
+    )
     for (n, r, _), step in zip(rows, steps):
         per, ratio = ("", "") if step is None else (f"{step:.3f}", f"{step / steps[1]:.2f}")
-        print(f"{n:>18} {r['seconds']:>8.1f} {r['cpu_seconds']:>8.1f} {per:>20} {ratio:>13} "
-              f"{r['peak_rss_mb']:>12.0f} {r['peak_rss_mb'] / base['peak_rss_mb']:>11.2f}")
-    print(f"targets: peak RSS at the largest within 1.3 x the smallest; CPU s per added episode within 1.3 x "
-          f"the first step's. Files in {work}")
+        print(
+            f"{n:>18} {r['seconds']:>8.1f} {r['cpu_seconds']:>8.1f} {per:>20} {ratio:>13} "
+            f"{r['peak_rss_mb']:>12.0f} {r['peak_rss_mb'] / base['peak_rss_mb']:>11.2f}"
+        )
+    print(
+        f"targets: peak RSS at the largest within 1.3 x the smallest; CPU s per added episode within 1.3 x "
+        f"the first step's. Files in {work}"
+    )
 
 
 if __name__ == "__main__":

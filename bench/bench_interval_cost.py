@@ -47,8 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_search import timed_run  # noqa: E402  (one qube-identify run in this process: seconds, report.json)
 
 #: The search's lifting on the paper's split (docs/lifting-search.md).
-SEARCH_LIFTING = ("--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25 --friction --alpha 1e-5 "
-                  "--offsets alpha")
+SEARCH_LIFTING = "--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25 --friction --alpha 1e-5 --offsets alpha"
 
 
 def bench_logs(data: Path, soft_folder: Path | None, repeat: int) -> tuple[list[str], list[str], list[str], list[str]]:
@@ -88,30 +87,49 @@ def measure(label: str, argv: list[str], repeat: int, members: list[int] | None 
         pooled = intervals.get("pooled", {})
         coverage = " / ".join(f"{v:.3f}" for v in pooled.get("coverage", {}).values())
         worst = " / ".join(f"{v:.3f}" for v in pooled.get("worst_episode_coverage", {}).values())
-        print(f"{name:<44}{plain:>8.1f} s{banded:>8.1f} s{100 * (banded / plain - 1):>8.0f} %   {parts}; "
-              f"coverage {coverage} (worst {worst})", flush=True)
+        print(
+            f"{name:<44}{plain:>8.1f} s{banded:>8.1f} s{100 * (banded / plain - 1):>8.0f} %   {parts}; "
+            f"coverage {coverage} (worst {worst})",
+            flush=True,
+        )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder of the 48 imported .mcap logs")
-    parser.add_argument("--soft", type=Path, help="folder of the soft-controller .mcap logs: also time fits "
-                        "tested on them (their bands calibrated on the twin's probes)")
+    parser.add_argument(
+        "--soft",
+        type=Path,
+        help="folder of the soft-controller .mcap logs: also time fits "
+        "tested on them (their bands calibrated on the twin's probes)",
+    )
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, the median quoted (default 3)")
     parser.add_argument("--search", action="store_true", help="also time the search (minutes per run)")
-    parser.add_argument("--members", type=int, nargs="+", metavar="B", help="also time each fit's intervals with "
-                        "B bootstrap refits (--interval-members) instead of the default, a row each")
+    parser.add_argument(
+        "--members",
+        type=int,
+        nargs="+",
+        metavar="B",
+        help="also time each fit's intervals with "
+        "B bootstrap refits (--interval-members) instead of the default, a row each",
+    )
     args = parser.parse_args()
     logs, train, test, soft = bench_logs(args.data, args.soft, args.repeat)
     print(f"median of {args.repeat}; target: intervals add at most 20 %")
-    print(f"{'case':<44}{'without':>10}{'with':>10}{'added':>10}   the intervals' calibrations; pooled coverage "
-          "theta / alpha (worst episode)")
+    print(
+        f"{'case':<44}{'without':>10}{'with':>10}{'added':>10}   the intervals' calibrations; pooled coverage "
+        "theta / alpha (worst episode)"
+    )
     cases = [("default lifting, paper test", []), ("search's lifting, paper test", SEARCH_LIFTING.split())]
     for label, flags in cases:
         measure(label, ["--train", *train, "--test", *test, *flags], args.repeat, args.members)
     for label, flags in cases if soft else []:
-        measure(label.replace("paper test", "soft episodes"), ["--train", *train, "--test", *soft, *flags],
-                args.repeat, args.members)
+        measure(
+            label.replace("paper test", "soft episodes"),
+            ["--train", *train, "--test", *soft, *flags],
+            args.repeat,
+            args.members,
+        )
     if args.search:
         measure("search, paper split", [*logs, "--split", "paper", "--search"], args.repeat)
 

@@ -81,8 +81,10 @@ def coverage_row(report: dict) -> list[str]:
             half = float(np.mean([e["mean_half_width"][name] for e in finite]))
             rms = float(np.sqrt(np.mean([e["rms_error"][name] ** 2 for e in finite])))
             note = f", {len(intervals['episodes']) - len(finite)} infinite"
-        cells.append(f"{pooled['coverage'][name]:.3f}, {pooled['worst_episode_coverage'][name]:.3f}, "
-                     f"{half:.4f} / {rms:.4f} ({half / rms:.2f}{note})")
+        cells.append(
+            f"{pooled['coverage'][name]:.3f}, {pooled['worst_episode_coverage'][name]:.3f}, "
+            f"{half:.4f} / {rms:.4f} ({half / rms:.2f}{note})"
+        )
     return cells
 
 
@@ -109,8 +111,20 @@ def session_judge_sets(root: Path, judges: dict[str, Path], per_judge: int = 20)
         for k, (plant, n) in enumerate(zip(plants, counts)):
             part = folder / f"twin_{k}"
             if not part.exists():
-                run("qube-run", "--episodes", str(n), "--seed", str(201 + 10 * j + k), "--controller", controller,
-                    "--plant", plant, "--out", part, "-q")
+                run(
+                    "qube-run",
+                    "--episodes",
+                    str(n),
+                    "--seed",
+                    str(201 + 10 * j + k),
+                    "--controller",
+                    controller,
+                    "--plant",
+                    plant,
+                    "--out",
+                    part,
+                    "-q",
+                )
         out[name] = folder
     return out
 
@@ -122,9 +136,12 @@ def main() -> None:
     parser.add_argument("--flags", default="--poly 2 --delays 10 --alpha 1e-3", help="the lifting's flags")
     parser.add_argument("--other-loops", choices=("twin", "none"), default="twin")
     parser.add_argument("--out", type=Path, help="working folder (default: a temporary one)")
-    parser.add_argument("--judge-twins", choices=("calibrated", "sessions", "both"), default="calibrated",
-                        help="run the judge episodes on the calibrated twin (default), spread over its six "
-                        "session variants, or both")
+    parser.add_argument(
+        "--judge-twins",
+        choices=("calibrated", "sessions", "both"),
+        default="calibrated",
+        help="run the judge episodes on the calibrated twin (default), spread over its six session variants, or both",
+    )
     args = parser.parse_args()
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_intervals_"))
     root.mkdir(parents=True, exist_ok=True)
@@ -137,15 +154,33 @@ def main() -> None:
     if args.judge_twins in ("calibrated", "both"):
         tests.update({f"twin, {name}": sorted(folder.glob("*.mcap")) for name, folder in judges.items()})
     if args.judge_twins in ("sessions", "both"):
-        tests.update({f"session twins, {name}": sorted(folder.rglob("*.mcap"))
-                      for name, folder in session_judge_sets(root, judges).items()})
+        tests.update(
+            {
+                f"session twins, {name}": sorted(folder.rglob("*.mcap"))
+                for name, folder in session_judge_sets(root, judges).items()
+            }
+        )
     print(f"lifting {args.flags}, --offsets alpha, intervals at 0.95, other loops: {args.other_loops}\n")
     print("| test episodes | theta: coverage, worst, half-width / RMS | alpha: coverage, worst, half-width / RMS |")
     print("|---|---|---|")
     for label, test in tests.items():
         out = root / ("run_" + "".join(c if c.isalnum() else "_" for c in label))
-        run("qube-identify", "--train", *train, "--test", *test, *args.flags.split(), "--offsets", "alpha",
-            "--interval-other-loops", args.other_loops, "--out", out, "--force", "-q")
+        run(
+            "qube-identify",
+            "--train",
+            *train,
+            "--test",
+            *test,
+            *args.flags.split(),
+            "--offsets",
+            "alpha",
+            "--interval-other-loops",
+            args.other_loops,
+            "--out",
+            out,
+            "--force",
+            "-q",
+        )
         report = json.loads((out / "report.json").read_text())
         print(f"| {label} | " + " | ".join(coverage_row(report)) + " |", flush=True)
 

@@ -69,8 +69,11 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True, help="folder of the 48 imported .mcap logs")
     parser.add_argument("--soft", type=Path, help="folder of the soft-controller .mcap logs: also fits tested on them")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, the median quoted (default 3)")
-    parser.add_argument("--entry", choices=["input", "theta", "alpha", "none"], help="the disturbance's entry point "
-                        "(--disturbance); default: chosen on the training episodes")
+    parser.add_argument(
+        "--entry",
+        choices=["input", "theta", "alpha", "none"],
+        help="the disturbance's entry point (--disturbance); default: chosen on the training episodes",
+    )
     args = parser.parse_args()
     _, train, test, soft = bench_logs(args.data, args.soft, args.repeat)
     print(f"median of {args.repeat}; target: --horizon {HORIZONS} adds at most 50 %")
@@ -79,8 +82,12 @@ def main() -> None:
     for label, flags in cases:
         measure(label, ["--train", *train, "--test", *test, *flags], args.repeat, args.entry)
     for label, flags in cases if soft else []:
-        measure(label.replace("paper test", "soft episodes"), ["--train", *train, "--test", *soft, *flags],
-                args.repeat, args.entry)
+        measure(
+            label.replace("paper test", "soft episodes"),
+            ["--train", *train, "--test", *soft, *flags],
+            args.repeat,
+            args.entry,
+        )
 
 
 if __name__ == "__main__":

@@ -30,8 +30,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = Path(os.environ.get("QUBE_DATASET_DIR",
-                                      REPO.parent / "shared" / "datasets" / "qube_servo_20230828"))
+DEFAULT_DATASET = Path(os.environ.get("QUBE_DATASET_DIR", REPO.parent / "shared" / "datasets" / "qube_servo_20230828"))
 
 
 def _median_seconds(fn, repeats: int) -> float:
@@ -53,15 +52,16 @@ def _synthetic_episode_file(folder: Path) -> Path:
     from qube_koopman.core.lti import DiscreteStateSpace
 
     a = 1 / 1.1
-    controller = DiscreteStateSpace(np.eye(2) * a, np.eye(2), [[7.4380165, 10.3305785]],
-                                    [[-87.8181818, -143.6363636]], 0.002)
-    meta = EpisodeMetadata(ControllerInfo(controller, "backward-euler"), 500.0, "sim", "bench",
-                           "2026-01-01T00:00:00")
+    controller = DiscreteStateSpace(
+        np.eye(2) * a, np.eye(2), [[7.4380165, 10.3305785]], [[-87.8181818, -143.6363636]], 0.002
+    )
+    meta = EpisodeMetadata(ControllerInfo(controller, "backward-euler"), 500.0, "sim", "bench", "2026-01-01T00:00:00")
     rng = np.random.default_rng(0)
     n = 10_000
     signals = {name: np.cumsum(rng.normal(0, 1e-3, n)) for name in SIGNALS if name != "t"}
-    episode = Episode(t=np.arange(n) / 500, controller_state=rng.normal(size=(n, 2)),
-                      saturation=np.zeros(n), metadata=meta, **signals)
+    episode = Episode(
+        t=np.arange(n) / 500, controller_state=rng.normal(size=(n, 2)), saturation=np.zeros(n), metadata=meta, **signals
+    )
     return write_episode(folder / "synthetic.mcap", episode)
 
 
@@ -74,8 +74,9 @@ def _read_with_mcap_library(path: Path) -> None:
     with open(path, "rb") as f:
         for schema, _, message in make_reader(f).iter_messages(topics=["/qube/sample"]):
             if unpack is None:
-                n_fields = sum(1 for line in schema.data.decode().splitlines()
-                               if line.strip() and not line.startswith("#"))
+                n_fields = sum(
+                    1 for line in schema.data.decode().splitlines() if line.strip() and not line.startswith("#")
+                )
                 unpack = struct.Struct("<4x" + "d" * (n_fields - 1) + "b").unpack
             rows.append(unpack(message.data))
 
@@ -84,8 +85,12 @@ def _import_dataset(dataset: Path, out: Path) -> float:
     code = "import sys; from daq.cli.import_csv import main; sys.exit(main(sys.argv[1:]))"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", code, str(dataset), "--out", str(out), "--quiet"],
-                   check=True, env=env, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, "-c", code, str(dataset), "--out", str(out), "--quiet"],
+        check=True,
+        env=env,
+        stdout=subprocess.DEVNULL,
+    )
     return time.perf_counter() - start
 
 
@@ -114,11 +119,18 @@ def main() -> None:
         ours = _median_seconds(lambda: read_episode(sample), args.repeats)
         reference = _median_seconds(lambda: _read_with_mcap_library(sample), max(3, args.repeats // 6))
         rows.append((f"read {n} samples into arrays (median)", f"{ours * 1e3:.1f} ms", "<= 50 ms", ours <= 0.050))
-        rows.append(("  reference: mcap reader + struct per message", f"{reference * 1e3:.1f} ms",
-                     f"ratio {reference / ours:.0f}x slower", None))
+        rows.append(
+            (
+                "  reference: mcap reader + struct per message",
+                f"{reference * 1e3:.1f} ms",
+                f"ratio {reference / ours:.0f}x slower",
+                None,
+            )
+        )
         if csvs:
-            rows.append((f"qube-import {len(csvs)} files (fresh process)", f"{import_s:.1f} s", "<= 15 s",
-                         import_s <= 15))
+            rows.append(
+                (f"qube-import {len(csvs)} files (fresh process)", f"{import_s:.1f} s", "<= 15 s", import_s <= 15)
+            )
             rows.append(("MCAP size / CSV size", f"{ratio * 100:.1f} %", "<= 40 %", ratio <= 0.40))
         else:
             rows.append(("qube-import of the dataset", "skipped", "<= 15 s", None))

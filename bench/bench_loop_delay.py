@@ -71,8 +71,18 @@ def main(argv: list[str] | None = None) -> int:
         root = Path(tmp)
         rig = mcap_logs(args.rig, root / "rig_logs")
         soft = mcap_logs(args.soft, root / "soft_logs")
-        fit = ["--train", *map(str, rig[:28]), "--test", *map(str, rig[28:]), *shlex.split(args.lifting),
-               "--interval", "0", "--out", str(root / "fit"), "-q"]
+        fit = [
+            "--train",
+            *map(str, rig[:28]),
+            "--test",
+            *map(str, rig[28:]),
+            *shlex.split(args.lifting),
+            "--interval",
+            "0",
+            "--out",
+            str(root / "fit"),
+            "-q",
+        ]
         if identify_main(fit) != 0:
             raise SystemExit("qube-identify failed")
         plant = load_model(root / "fit" / "model.json").plant
@@ -92,8 +102,12 @@ def main(argv: list[str] | None = None) -> int:
         for j, e in enumerate(extra):
             scores[i, j] = r2_score(x[WINDOW:], predict_with_delay(plant, log, e, WINDOW)[WINDOW:])
             estimated.append(predict_with_delay(plant, log, e, estimate))
-            window_error.append(np.sum(np.mean((x[WINDOW:estimate] - estimated[j][WINDOW:estimate]) ** 2, axis=0)
-                                       / np.var(x[WINDOW:estimate], axis=0)))
+            window_error.append(
+                np.sum(
+                    np.mean((x[WINDOW:estimate] - estimated[j][WINDOW:estimate]) ** 2, axis=0)
+                    / np.var(x[WINDOW:estimate], axis=0)
+                )
+            )
         best = int(np.argmin(window_error))
         chosen.append(extra[best])
         free.append(r2_score(x[estimate:], estimated[best][estimate:]))
@@ -102,18 +116,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {names[i]} | {sessions[i] + 1} | " + " | ".join(f"{s:.3f}" for s in scores[i]) + " |")
     for s in sorted(set(sessions)):
         rows = np.array(sessions) == s
-        print(f"\nsession {s + 1} ({rows.sum()} episodes): mean R^2 by extra delay "
-              + ", ".join(f"{e:g}: {m:.3f}" for e, m in zip(extra, scores[rows].mean(axis=0))))
+        print(
+            f"\nsession {s + 1} ({rows.sum()} episodes): mean R^2 by extra delay "
+            + ", ".join(f"{e:g}: {m:.3f}" for e, m in zip(extra, scores[rows].mean(axis=0)))
+        )
     best_per_session = {s: int(np.argmax(scores[np.array(sessions) == s].mean(axis=0))) for s in set(sessions)}
     per_episode = np.array([scores[i, best_per_session[s]] for i, s in enumerate(sessions)])
-    print(f"\nall: mean / worst R^2 with no extra delay {scores[:, 0].mean():.3f} / {scores[:, 0].min():.3f}; "
-          f"with each session's best {per_episode.mean():.3f} / {per_episode.min():.3f}")
+    print(
+        f"\nall: mean / worst R^2 with no extra delay {scores[:, 0].mean():.3f} / {scores[:, 0].min():.3f}; "
+        f"with each session's best {per_episode.mean():.3f} / {per_episode.min():.3f}"
+    )
     print(f"\nestimated from the first {args.estimate_window:g} s (after the skipped one), R^2 after them:")
     print("| episode | session | extra delay | R^2 with it | without |\n|---|---|---|---|---|")
     for name, s, e, a, b in zip(names, sessions, chosen, free, fixed):
         print(f"| {name} | {s + 1} | {e:g} | {a:.3f} | {b:.3f} |")
-    print(f"mean / worst: {np.mean(free):.3f} / {np.min(free):.3f} with the estimate, "
-          f"{np.mean(fixed):.3f} / {np.min(fixed):.3f} without")
+    print(
+        f"mean / worst: {np.mean(free):.3f} / {np.min(free):.3f} with the estimate, "
+        f"{np.mean(fixed):.3f} / {np.min(fixed):.3f} without"
+    )
     return 0
 
 

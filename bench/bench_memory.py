@@ -54,9 +54,14 @@ print(json.dumps({"peak_kib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 
 def _peak(episodes: int, seconds: float, run: bool = True) -> dict:
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(episodes), str(seconds), str(int(run))],
-                          capture_output=True, text=True, cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": ""},
-                          check=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, str(episodes), str(seconds), str(int(run))],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env={"PYTHONPATH": str(REPO), "PATH": ""},
+        check=True,
+    )
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
@@ -69,8 +74,7 @@ def main(argv=None) -> int:
     base = _peak(1, 20.0, run=False)["peak_kib"]
     rows = [("baseline (imports only)", None, base)]
     pairs = []
-    for label, a, b in (("planned episodes", (1, 20.0), (10_000, 20.0)),
-                        ("episode length", (1, 20.0), (1, args.long))):
+    for label, a, b in (("planned episodes", (1, 20.0), (10_000, 20.0)), ("episode length", (1, 20.0), (1, args.long))):
         pa, pb = _peak(*a)["peak_kib"], _peak(*b)["peak_kib"]
         rows += [(f"{label}: {a[0]} x {a[1]:g} s", a, pa), (f"{label}: {b[0]} x {b[1]:g} s", b, pb)]
         pairs.append((label, pa, pb))

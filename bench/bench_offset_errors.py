@@ -52,13 +52,17 @@ def main() -> None:
     if len(logs) != 48:
         raise SystemExit(f"{args.data}: expected the paper's 48 logs, found {len(logs)}")
     cut = {k: slice(0, 6000) for k in ("x", "u", "r", "f", "xc")}
-    excitations = [replace(log.trajectory, **{k: getattr(log.trajectory, k)[s] for k, s in cut.items()})
-                   for log in load_logs(logs[:8], skip=500)]
+    excitations = [
+        replace(log.trajectory, **{k: getattr(log.trajectory, k)[s] for k, s in cut.items()})
+        for log in load_logs(logs[:8], skip=500)
+    ]
     gains = {name: load_pd_gains(name) for name in ("rig", "soft-theta")}
     as_tuple = {n: (g.kp_theta, g.kd_theta, g.kp_alpha, g.kd_alpha, g.tau) for n, g in gains.items()}
     train = twin_probes(excitations, gains=[as_tuple["rig"]], per_controller=24, seed=11, zero_offsets=None)
-    tests = {name: twin_probes(excitations, gains=[as_tuple[name]], per_controller=24, seed=12 + k)
-             for k, name in enumerate(("soft-theta", "rig"))}
+    tests = {
+        name: twin_probes(excitations, gains=[as_tuple[name]], per_controller=24, seed=12 + k)
+        for k, name in enumerate(("soft-theta", "rig"))
+    }
     print(f"{'lifting':<30}{'test loop':<12}{'RMS error':>12}{'median SE':>12}{'RMS err/SE':>12}{'beyond 2':>10}")
     for spec in (LiftingSpec(delays=20, poly=1), LiftingSpec(delays=35, poly=3, friction=True)):
         plant = ClEdmd(train.controllers[0], lifting=spec.steps(), alpha=1e-3).fit(train.episodes[0]).plant_model_
@@ -68,8 +72,11 @@ def main() -> None:
             error = np.array([e.values[0] for e in estimates]) - test.alpha_offsets[0]
             se = np.array([e.std_error[0] for e in estimates])
             z = error / se
-            print(f"{spec.label():<30}{name:<12}{np.sqrt(np.mean(error**2)):>12.1e}{np.median(se):>12.1e}"
-                  f"{np.sqrt(np.mean(z**2)):>12.1f}{np.mean(np.abs(z) > 2):>10.2f}", flush=True)
+            print(
+                f"{spec.label():<30}{name:<12}{np.sqrt(np.mean(error**2)):>12.1e}{np.median(se):>12.1e}"
+                f"{np.sqrt(np.mean(z**2)):>12.1f}{np.mean(np.abs(z) > 2):>10.2f}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -33,10 +33,18 @@ def make_stream(n_frames: int, seed: int) -> bytes:
     rng = random.Random(seed)
     frames = []
     for k in range(n_frames):
-        t = Telemetry(tick=k, encoder0=rng.randint(-3000, 3000), encoder1=rng.randint(-3000, 3000),
-                      tach_raw=rng.getrandbits(24), current_raw=rng.randint(7000, 9000), status=0x10,
-                      last_command_seq=k, applied_millivolts=rng.randint(-10000, 10000),
-                      motor_word=rng.getrandbits(16), command_age=rng.randint(0, 2))
+        t = Telemetry(
+            tick=k,
+            encoder0=rng.randint(-3000, 3000),
+            encoder1=rng.randint(-3000, 3000),
+            tach_raw=rng.getrandbits(24),
+            current_raw=rng.randint(7000, 9000),
+            status=0x10,
+            last_command_seq=k,
+            applied_millivolts=rng.randint(-10000, 10000),
+            motor_word=rng.getrandbits(16),
+            command_age=rng.randint(0, 2),
+        )
         frames.append(encode_frame(t, k, (2000 * k) & 0xFFFFFFFF))
     return b"".join(frames)
 
@@ -47,7 +55,7 @@ def chunked(stream: bytes, low: int, high: int, seed: int) -> list[bytes]:
     chunks, pos = [], 0
     while pos < len(stream):
         size = rng.randint(low, high)
-        chunks.append(stream[pos:pos + size])
+        chunks.append(stream[pos : pos + size])
         pos += size
     return chunks
 
@@ -130,10 +138,14 @@ def main(argv: list[str] | None = None) -> None:
         if c_factory is not None:
             decoders.append(("C decoder (ctypes)", c_factory))
 
-        print(f"{args.frames} telemetry frames ({len(stream) / args.frames:.0f} bytes each), "
-              f"median of {args.runs} runs; need: 500 frames/s\n")
-        header = (f"{'chunks':>10} | {'decoder':<22} | {'frames/s':>10} | {'spread':>6} | {'x need':>7} | "
-                  f"{'core @500Hz':>11} | {'vs ref':>6}")
+        print(
+            f"{args.frames} telemetry frames ({len(stream) / args.frames:.0f} bytes each), "
+            f"median of {args.runs} runs; need: 500 frames/s\n"
+        )
+        header = (
+            f"{'chunks':>10} | {'decoder':<22} | {'frames/s':>10} | {'spread':>6} | {'x need':>7} | "
+            f"{'core @500Hz':>11} | {'vs ref':>6}"
+        )
         print(header)
         print("-" * len(header))
         for label, low, high in chunkings:
@@ -141,8 +153,10 @@ def main(argv: list[str] | None = None) -> None:
             rates = {name: time_decoder(make, chunks, args.frames, args.runs) for name, make in decoders}
             reference = rates["byte loop (reference)"][0]
             for name, (rate, spread) in rates.items():
-                print(f"{label:>10} | {name:<22} | {rate:>10,.0f} | {100 * spread:>5.0f}% | {rate / 500:>7,.0f} | "
-                      f"{100 * 500 / rate:>10.2f}% | {rate / reference:>5.1f}x")
+                print(
+                    f"{label:>10} | {name:<22} | {rate:>10,.0f} | {100 * spread:>5.0f}% | {rate / 500:>7,.0f} | "
+                    f"{100 * 500 / rate:>10.2f}% | {rate / reference:>5.1f}x"
+                )
         print("\nspread: (max - min) / median over the runs; large values mean a busy machine.")
         if c_factory is None:
             print("\n(no C compiler: C decoder not measured)")

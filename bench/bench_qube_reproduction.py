@@ -56,8 +56,9 @@ def naive_cost(data: Path, n_alphas: int = 2, n_validation: int = 2) -> float:
     train_idx, val_idx = group_shuffle_splits(len(trajs))[0]
     started = time.perf_counter()
     for alpha in np.logspace(-3, 3, n_alphas):
-        model = ClEdmd(controller, lifting=[Polynomial(2), Delay(10)], alpha=alpha,
-                       known_controller_rows=False).fit([trajs[i] for i in train_idx])
+        model = ClEdmd(controller, lifting=[Polynomial(2), Delay(10)], alpha=alpha, known_controller_rows=False).fit(
+            [trajs[i] for i in train_idx]
+        )
         cl = model.closed_loop_model_
         for i in val_idx[:n_validation]:
             t = trajs[i]

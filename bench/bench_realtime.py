@@ -56,8 +56,9 @@ def main(argv=None) -> int:
 
     configs = [("hybrid sleep+spin (qube-run --realtime)", DEFAULT_SPIN, None, None, False)]
     if not args.no_rt:
-        configs.append((f"hybrid + CPU {args.cpu} + SCHED_FIFO {args.priority}", DEFAULT_SPIN, args.cpu,
-                        args.priority, False))
+        configs.append(
+            (f"hybrid + CPU {args.cpu} + SCHED_FIFO {args.priority}", DEFAULT_SPIN, args.cpu, args.priority, False)
+        )
     if args.with_rerun:
         configs.append(("hybrid + rerun recording (--rerun-save)", DEFAULT_SPIN, None, None, True))
     configs.append(("reference: absolute-deadline sleep only", 0.0, None, None, False))
@@ -71,8 +72,9 @@ def main(argv=None) -> int:
 
                 sinks.append(RerunSink(open_recording(save=Path(folder) / "bench.rrd")))
             with realtime_scheduling(cpu, priority) as rt:
-                result = run_episode(SimBackend(seed=backend_seed, realtime=True), plan, sinks,
-                                     spin=spin, handle_signals=False)
+                result = run_episode(
+                    SimBackend(seed=backend_seed, realtime=True), plan, sinks, spin=spin, handle_signals=False
+                )
             if rerun:
                 sinks[1].finish()
             if rt.notes:
@@ -84,17 +86,25 @@ def main(argv=None) -> int:
     head = ("p50", "p99", "max", "overruns", "stalls>2ms", "compute p99")
     print(f"{'':62s}" + "".join(f"{h:>12s}" for h in head))
     for label, t in rows:
-        values = (f"{t.lateness_p50 * 1e6:.1f}", f"{t.lateness_p99 * 1e6:.1f}", f"{t.lateness_max * 1e6:.0f}",
-                  str(t.overruns), str(t.stalls), f"{t.compute_p99 * 1e6:.1f}")
+        values = (
+            f"{t.lateness_p50 * 1e6:.1f}",
+            f"{t.lateness_p99 * 1e6:.1f}",
+            f"{t.lateness_max * 1e6:.0f}",
+            str(t.overruns),
+            str(t.stalls),
+            f"{t.compute_p99 * 1e6:.1f}",
+        )
         print(f"{label[:62]:62s}" + "".join(f"{v:>12s}" for v in values))
         if len(label) > 62:
             print(f"  {label[62:]}")
     best = rows[0][1]
     ref = rows[-1][1]
-    print(f"qube-run --realtime: p99 {best.lateness_p99 * 1e6:.1f} us (target <= {TARGET_P99 * 1e6:g} us: "
-          f"{'met' if best.lateness_p99 <= TARGET_P99 else 'NOT met'}), max {best.lateness_max * 1e6:.0f} us, "
-          f"{best.overruns} overruns; sleeping alone: p99 {ref.lateness_p99 * 1e6:.1f} us, "
-          f"{ref.overruns} overruns")
+    print(
+        f"qube-run --realtime: p99 {best.lateness_p99 * 1e6:.1f} us (target <= {TARGET_P99 * 1e6:g} us: "
+        f"{'met' if best.lateness_p99 <= TARGET_P99 else 'NOT met'}), max {best.lateness_max * 1e6:.0f} us, "
+        f"{best.overruns} overruns; sleeping alone: p99 {ref.lateness_p99 * 1e6:.1f} us, "
+        f"{ref.overruns} overruns"
+    )
     return 0
 
 

@@ -27,8 +27,22 @@ from pathlib import Path
 
 def _run(jobs: int, episodes: int, duration: float, out: Path) -> float:
     """Wall seconds of one ``qube-run`` with ``--n-jobs jobs``."""
-    command = [sys.executable, "-m", "qube_koopman.daq.cli.run", "--episodes", str(episodes), "--duration",
-               f"{duration:g}", "--seed", "1", "--n-jobs", str(jobs), "--out", str(out), "-q"]
+    command = [
+        sys.executable,
+        "-m",
+        "qube_koopman.daq.cli.run",
+        "--episodes",
+        str(episodes),
+        "--duration",
+        f"{duration:g}",
+        "--seed",
+        "1",
+        "--n-jobs",
+        str(jobs),
+        "--out",
+        str(out),
+        "-q",
+    ]
     start = time.perf_counter()
     proc = subprocess.run(command, capture_output=True, text=True)
     elapsed = time.perf_counter() - start
@@ -64,8 +78,10 @@ def main(argv=None) -> int:
     load = max(load, os.getloadavg()[0])
 
     base = statistics.median(times[1])
-    print(f"qube-run --episodes {args.episodes} --duration {args.duration:g} --seed 1 on the twin, "
-          f"{os.cpu_count()} cores, median of {args.repeats} (load average up to {load:.1f})")
+    print(
+        f"qube-run --episodes {args.episodes} --duration {args.duration:g} --seed 1 on the twin, "
+        f"{os.cpu_count()} cores, median of {args.repeats} (load average up to {load:.1f})"
+    )
     print(f"{'':14s}{'wall s':>10s}{'runs (s)':>26s}{'speed-up':>10s}{'per core':>10s}")
     for n in jobs:
         median = statistics.median(times[n])

@@ -53,24 +53,34 @@ def mixed_searches(rig_train: list[str], soft: list[str], repeat: int) -> None:
         raise SystemExit(f"--soft: expected the soft controller's episodes, found {len(soft)}")
     half = len(soft) // 2
     print(f"\n{'two controllers (rig 28 + soft half)':<40}{'fixed':>8}{'search':>9}{'ratio':>8}  winner, test R^2")
-    for label, train, test in (("+ first half, test the second", soft[:half], soft[half:]),
-                               ("+ second half, test the first", soft[half:], soft[:half])):
+    for label, train, test in (
+        ("+ first half, test the second", soft[:half], soft[half:]),
+        ("+ second half, test the first", soft[half:], soft[:half]),
+    ):
         argv = ["--train", *rig_train, *train, "--test", *test]
         fixed = statistics.median(timed_run([*argv, "--delays", "20"])[0] for _ in range(repeat))
         runs = [timed_run([*argv, "--search"]) for _ in range(repeat)]
         seconds, report = statistics.median(r[0] for r in runs), runs[-1][1]
-        print(f"{label:<40}{fixed:>6.1f} s{seconds:>7.1f} s{seconds / fixed:>7.1f}x  "
-              f"{report['search']['winner']['label']}, {report['test']['r2_mean']:.4f}")
+        print(
+            f"{label:<40}{fixed:>6.1f} s{seconds:>7.1f} s{seconds / fixed:>7.1f}x  "
+            f"{report['search']['winner']['label']}, {report['test']['r2_mean']:.4f}"
+        )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder of the 48 imported .mcap logs")
     parser.add_argument("--repeat", type=int, default=1, help="runs of each, the median quoted (default 1)")
-    parser.add_argument("--soft", type=Path, help="folder of the soft-controller .mcap logs: also time the "
-                        "searches over both controllers' logs")
-    parser.add_argument("--no-screen", action="store_true", help="time the search without screening (every "
-                        "candidate evaluated in full, as before successive halving)")
+    parser.add_argument(
+        "--soft",
+        type=Path,
+        help="folder of the soft-controller .mcap logs: also time the searches over both controllers' logs",
+    )
+    parser.add_argument(
+        "--no-screen",
+        action="store_true",
+        help="time the search without screening (every candidate evaluated in full, as before successive halving)",
+    )
     args = parser.parse_args()
     logs = [str(p) for p in sorted(args.data.glob("*.mcap"))]
     if len(logs) != 48:
@@ -80,8 +90,9 @@ def main() -> None:
     no_screen.write_text("n_finalists = 0\n")
     for _ in range(args.repeat):
         fixed.append(timed_run([*logs, "--split", "paper", "--delays", "20"])[0])
-        seconds, report = timed_run([*logs, "--split", "paper", "--search", *(["--search-space", str(no_screen)]
-                                                                             if args.no_screen else [])])
+        seconds, report = timed_run(
+            [*logs, "--split", "paper", "--search", *(["--search-space", str(no_screen)] if args.no_screen else [])]
+        )
         search.append(seconds)
     fixed_s, search_s = statistics.median(fixed), statistics.median(search)
     print(f"{'measure':<52}{'value':>10}{'target':>12}")
@@ -95,20 +106,26 @@ def main() -> None:
     print(f"{'fixed fit of the winning lifting, median of ' + str(args.repeat):<52}{winner:>8.1f} s")
     print(f"{'search / fixed fit of the winner':<52}{search_s / winner:>9.1f}x")
     timing = report["search"]["timing"]
-    print(f"\ntime of the last search (s): probes simulated in {timing['probe_simulation']:.1f}, "
-          f"search {timing['search']:.1f}")
+    print(
+        f"\ntime of the last search (s): probes simulated in {timing['probe_simulation']:.1f}, "
+        f"search {timing['search']:.1f}"
+    )
     keys = ("shared_statistics", *TIMING_KEYS)
     print("n: candidates evaluated in full; out: screened out (their screens' time is in the sums)")
     print(f"{'stage':<10}{'n':>3}{'out':>4}{'wall':>8}" + "".join(f"{k:>18}" for k in keys))
     for stage, t in timing["stages"].items():
-        print(f"{stage:<10}{t['candidates']:>3}{t.get('screened_out', 0):>4}{t['wall']:>8.1f}"
-              + "".join(f"{t[k]:>18.1f}" for k in keys))
+        print(
+            f"{stage:<10}{t['candidates']:>3}{t.get('screened_out', 0):>4}{t['wall']:>8.1f}"
+            + "".join(f"{t[k]:>18.1f}" for k in keys)
+        )
     if args.soft is not None:
         mixed_searches(logs[:28], sorted(str(p) for p in args.soft.glob("*.mcap")), args.repeat)
     search = report["search"]
     winner = search["winner"]
-    print(f"\nwinner: {winner['label']}, alpha {winner['alpha']:g}, CV R^2 {winner['cv_r2']:.4f}, "
-          f"transfer R^2 {winner['transfer_r2']:.4f}; paper test R^2 {report['test']['r2_mean']:.4f}")
+    print(
+        f"\nwinner: {winner['label']}, alpha {winner['alpha']:g}, CV R^2 {winner['cv_r2']:.4f}, "
+        f"transfer R^2 {winner['transfer_r2']:.4f}; paper test R^2 {report['test']['r2_mean']:.4f}"
+    )
     if "screening" in search:
         print(f"screening: {search['screening']['description']}")
         for c in search["screened"]:

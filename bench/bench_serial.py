@@ -62,8 +62,9 @@ def _env() -> dict:
 
 
 def _spawn(args: list[str]) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=_env())
+    proc = subprocess.Popen(
+        [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
+    )
     path = proc.stdout.readline().strip()
     if not path.startswith("/dev/"):
         proc.kill()
@@ -125,14 +126,17 @@ def round_trips(n: int) -> list[tuple[str, list[float]]]:
     def hello(port, nonce):
         t = time.perf_counter()
         port.write(encode_frame(Hello(nonce), nonce, 0))
-        while not any(isinstance(f.message, HelloReply) and f.message.nonce == nonce
-                      for f in decoder.feed(port.read(max(1, port.in_waiting)))):
+        while not any(
+            isinstance(f.message, HelloReply) and f.message.nonce == nonce
+            for f in decoder.feed(port.read(max(1, port.in_waiting)))
+        ):
             if time.perf_counter() - t > 1:
                 raise RuntimeError("no HELLO_REPLY within 1 s")
 
-    return [("pty echo, 25 B (reference: the link alone)", _time_round_trips(*_spawn(["-c", _ECHO]), n, 1, echo)),
-            ("HELLO -> HELLO_REPLY via the emulated bridge",
-             _time_round_trips(*_emulator("--seed", "1"), n, 0.005, hello))]
+    return [
+        ("pty echo, 25 B (reference: the link alone)", _time_round_trips(*_spawn(["-c", _ECHO]), n, 1, echo)),
+        ("HELLO -> HELLO_REPLY via the emulated bridge", _time_round_trips(*_emulator("--seed", "1"), n, 0.005, hello)),
+    ]
 
 
 class _TimedBackend:
@@ -177,8 +181,9 @@ def episode(ticks: int, spin_us: float) -> dict:
     """One real-time episode of ``ticks`` on the serial backend; the bridge's and the host's counts."""
     with tempfile.TemporaryDirectory() as tmp:
         stats_file, record = Path(tmp) / "stats.json", Path(tmp) / "record.csv"
-        proc, path = _emulator("--seed", "2", "--spin", str(spin_us), "--stats", str(stats_file), "--record",
-                               str(record))
+        proc, path = _emulator(
+            "--seed", "2", "--spin", str(spin_us), "--stats", str(stats_file), "--record", str(record)
+        )
         try:
             result, _ = _serial_episode(path, ticks / 500.0, tmp)
         finally:
@@ -187,18 +192,19 @@ def episode(ticks: int, spin_us: float) -> dict:
         rows = _read_record(record)
     # The episode's ticks: the last session's, while the host drove the motor.
     episode_ticks = (rows["session"] == rows["session"].max()) & rows["amp_enabled"]
-    return {"result": result, "device": device, "link": result.backend_stats,
-            "answer": rows["answer"][episode_ticks]}
+    return {"result": result, "device": device, "link": result.backend_stats, "answer": rows["answer"][episode_ticks]}
 
 
 def _read_record(path: Path) -> dict[str, np.ndarray]:
     with open(path) as f:
         rows = list(csv.DictReader(f))
-    return {"wall": np.array([float(r["wall"]) for r in rows]),
-            "device_us": np.array([int(r["device_us"]) for r in rows]),
-            "amp_enabled": np.array([r["amp_enabled"] == "True" for r in rows]),
-            "session": np.array([int(r["session"]) for r in rows]),
-            "answer": np.array([float(r["answer"]) for r in rows])}
+    return {
+        "wall": np.array([float(r["wall"]) for r in rows]),
+        "device_us": np.array([int(r["device_us"]) for r in rows]),
+        "amp_enabled": np.array([r["amp_enabled"] == "True" for r in rows]),
+        "session": np.array([int(r["session"]) for r in rows]),
+        "answer": np.array([float(r["answer"]) for r in rows]),
+    }
 
 
 def watchdog_after_kill() -> float:
@@ -207,9 +213,27 @@ def watchdog_after_kill() -> float:
         record = Path(tmp) / "record.csv"
         emulator, path = _emulator("--seed", "3", "--record", str(record))
         code = "import sys; from daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
-        host = subprocess.Popen([sys.executable, "-c", code, "--backend", "serial", "--port", path, "--episodes",
-                                 "1", "--duration", "20", "--out", tmp, "-q"], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, env=_env())
+        host = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                code,
+                "--backend",
+                "serial",
+                "--port",
+                path,
+                "--episodes",
+                "1",
+                "--duration",
+                "20",
+                "--out",
+                tmp,
+                "-q",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=_env(),
+        )
         time.sleep(4.0)  # imports, handshake, two seconds of control
         if host.poll() is not None:
             raise RuntimeError("qube-run ended before it could be killed")
@@ -221,7 +245,7 @@ def watchdog_after_kill() -> float:
         rows = _read_record(record)
     wall, device_us, enabled = rows["wall"], rows["device_us"], rows["amp_enabled"]
     k = np.flatnonzero(wall >= t_kill)[0]
-    if not enabled[k - 100:k].all():
+    if not enabled[k - 100 : k].all():
         raise RuntimeError("the motor was not being driven when the host was killed")
     z = k + np.flatnonzero(~enabled[k:])[0]
     return (device_us[z] - device_us[k]) / 1e3
@@ -264,21 +288,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {name:<44} {_percentiles(times)}")
 
     print(f"\n{args.ticks} ticks at 500 Hz, loop on the serial backend, bridge in real time")
-    header = (f"  {'bridge pacing':<23} {'status':<9} | {'late':>4} {'restarts':>8} {'lost':>4} {'max ms':>6} | "
-              f"{'missed':>6} {'skipped':>7} {'late cmds':>9} | {'tick->cmd ms p50/p99/max':>24} | "
-              f"{'loop late ms p50/p99':>20}")
+    header = (
+        f"  {'bridge pacing':<23} {'status':<9} | {'late':>4} {'restarts':>8} {'lost':>4} {'max ms':>6} | "
+        f"{'missed':>6} {'skipped':>7} {'late cmds':>9} | {'tick->cmd ms p50/p99/max':>24} | "
+        f"{'loop late ms p50/p99':>20}"
+    )
     print(header)
     rows = [("sleep + 300 us spin", 300.0)] + ([] if args.no_reference else [("sleep only (reference)", 0.0)])
     for name, spin in rows:
         r = episode(args.ticks, spin)
         d, link, t = r["device"], r["link"], r["result"].timing
         answered = r["answer"][np.isfinite(r["answer"])] * 1e3
-        trip = "/".join(f"{v:.2f}" for v in (np.percentile(answered, 50), np.percentile(answered, 99),
-                                               answered.max()))
-        print(f"  {name:<23} {r['result'].status:<9} | {d['late_ticks']:>4} {d['slips']:>8} "
-              f"{d['missed_periods']:>4} {d['max_lateness'] * 1e3:>6.2f} | {link['ticks_missed']:>6} "
-              f"{link['ticks_skipped']:>7} {link['late_commands']:>9} | {trip:>24} | "
-              f"{t.lateness_p50 * 1e3:>9.3f}/{t.lateness_p99 * 1e3:.3f}")
+        trip = "/".join(f"{v:.2f}" for v in (np.percentile(answered, 50), np.percentile(answered, 99), answered.max()))
+        print(
+            f"  {name:<23} {r['result'].status:<9} | {d['late_ticks']:>4} {d['slips']:>8} "
+            f"{d['missed_periods']:>4} {d['max_lateness'] * 1e3:>6.2f} | {link['ticks_missed']:>6} "
+            f"{link['ticks_skipped']:>7} {link['late_commands']:>9} | {trip:>24} | "
+            f"{t.lateness_p50 * 1e3:>9.3f}/{t.lateness_p99 * 1e3:.3f}"
+        )
         if r["result"].reason:
             print(f"    ({r['result'].reason})")
 
@@ -286,18 +313,24 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  host SIGKILLed -> motor at 0 V: {watchdog_after_kill():.0f} ms of device time (target <= 10)")
     for fault in ("vanish", "silence"):
         ms, reason = link_loss(fault)
-        print(f"  device {fault + 'ed' if fault == 'vanish' else 'silent'} -> host abort: {ms:.1f} ms "
-              f"(target < 50): {reason}")
+        print(
+            f"  device {fault + 'ed' if fault == 'vanish' else 'silent'} -> host abort: {ms:.1f} ms "
+            f"(target < 50): {reason}"
+        )
 
     rate = decoder_rate()
-    print(f"\ndecoder: StreamDecoder {rate:,.0f} telemetry frames/s ({rate / 500:,.0f}x the 500 frames/s needed; "
-          "bench/bench_protocol.py compares decoders)")
-    print("\nmissed: telemetry lost on the link; skipped: telemetry passed over because the host was a tick "
-          "behind;\nlate cmds: ticks at which the bridge had no new command (it applied the previous one);\nbridge late: "
-          "ticks that started a period or more late, caught up at once; restarts: stalls beyond three\nperiods "
-          "(device time pauses for the lost periods); max ms: the bridge's worst tick lateness;\ntick->cmd: from a "
-          "bridge tick to the host's command answering it; loop late: the loop's tick lateness\nagainst the "
-          "bridge's clock.")
+    print(
+        f"\ndecoder: StreamDecoder {rate:,.0f} telemetry frames/s ({rate / 500:,.0f}x the 500 frames/s needed; "
+        "bench/bench_protocol.py compares decoders)"
+    )
+    print(
+        "\nmissed: telemetry lost on the link; skipped: telemetry passed over because the host was a tick "
+        "behind;\nlate cmds: ticks at which the bridge had no new command (it applied the previous one);\nbridge late: "
+        "ticks that started a period or more late, caught up at once; restarts: stalls beyond three\nperiods "
+        "(device time pauses for the lost periods); max ms: the bridge's worst tick lateness;\ntick->cmd: from a "
+        "bridge tick to the host's command answering it; loop late: the loop's tick lateness\nagainst the "
+        "bridge's clock."
+    )
     return 0
 
 

@@ -86,9 +86,11 @@ def main(argv=None) -> int:
     for label, seconds in rows:
         print(f"{label:42s}{seconds:10.3f}{seconds / plans[0].n_samples * 1e6:10.1f}{SECONDS / seconds:13.1f}")
     speedup = SECONDS / rows[0][1]
-    print(f"speed-up with logging: {speedup:.1f}x real time (target >= {TARGET:g}x: "
-          f"{'met' if speedup >= TARGET else 'NOT met'}); "
-          f"{rows[3][1] / rows[0][1]:.1f}x faster than the numpy-per-tick reference")
+    print(
+        f"speed-up with logging: {speedup:.1f}x real time (target >= {TARGET:g}x: "
+        f"{'met' if speedup >= TARGET else 'NOT met'}); "
+        f"{rows[3][1] / rows[0][1]:.1f}x faster than the numpy-per-tick reference"
+    )
     return 0
 
 

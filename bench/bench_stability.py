@@ -46,8 +46,9 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
     setup = est.setup_fit(trajs)
     parts = [est.episode_snapshots(setup, t) for t in setup.trajectories]
     d = setup.lifting.n_delays_
-    psi = np.vstack([np.hstack([t.xc[d:-1], setup.lifting.transform(t.x)[:-1], t.r[d:-1], t.f[d:-1]])
-                     for t in setup.trajectories])[:n_snapshots]
+    psi = np.vstack(
+        [np.hstack([t.xc[d:-1], setup.lifting.transform(t.x)[:-1], t.r[d:-1], t.f[d:-1]]) for t in setup.trajectories]
+    )[:n_snapshots]
     target = np.vstack([setup.lifting.transform(t.x)[1:] for t in setup.trajectories])[:n_snapshots]
     est.output_matrix_, est.n_feedforward_ = setup.output_matrix, setup.n_feedforward
     S = setup.plant_input_map
@@ -62,7 +63,7 @@ def _raw_posed_fit(est, trajs, n_snapshots: int) -> float:
     rows = U_p @ S
     n_theta = n_c + U0.shape[0]
     M = cp.vstack([cp.Constant(est._known_controller_rows()[:, :n_theta]), rows[:, :n_theta]])
-    lmi = cp.bmat([[est.max_radius ** 2 * P, (P @ M).T], [P @ M, P]])
+    lmi = cp.bmat([[est.max_radius**2 * P, (P @ M).T], [P @ M, P]])
     cost = cp.sum_squares(psi @ rows.T - target) + est.alpha * cp.sum_squares(rows)
     cp.Problem(cp.Minimize(cost / len(psi)), [0.5 * (lmi + lmi.T) >> 0]).solve(solver="CLARABEL")
     return time.perf_counter() - started
@@ -115,7 +116,9 @@ def main() -> None:
     lifting = [Polynomial(2), Delay(args.delays)]
 
     def r2(model):
-        return summarize_episodes([t.trajectory.x for t in test], [model.predict(t.trajectory) for t in test])["r2_mean"]
+        return summarize_episodes([t.trajectory.x for t in test], [model.predict(t.trajectory) for t in test])[
+            "r2_mean"
+        ]
 
     plain = ClEdmdKnownRows(controller, lifting=lifting, alpha=1e-3).fit(trajs)
     fit_times = []
@@ -123,28 +126,40 @@ def main() -> None:
         started = time.perf_counter()
         stable = ClEdmdStable(controller, lifting=lifting, alpha=1e-3, max_radius=1.0).fit(trajs)
         fit_times.append(time.perf_counter() - started)
-    base_cost = _plant_cost(stable.snapshots_, stable.plant_input_map_, stable.alpha,
-                            plain.plant_koopman_matrix_, controller.n_states)
+    base_cost = _plant_cost(
+        stable.snapshots_, stable.plant_input_map_, stable.alpha, plain.plant_koopman_matrix_, controller.n_states
+    )
     sqp_s, sqp_rows = _timed_solve(stable.set_params(method="sqp"), args.repeats)
     sqp = _with_rows(stable, sqp_rows)
     sqp_cost = stable.objective_
     lmi_s, lmi_rows = _timed_solve(stable.set_params(method="lmi", n_iter=0), 1)
     lmi = _with_rows(stable, lmi_rows)
     lmi_cost = stable.objective_
-    raw_s = _raw_posed_fit(ClEdmdStable(controller, lifting=lifting, alpha=1e-3, max_radius=1.0), trajs,
-                           args.raw_snapshots)
+    raw_s = _raw_posed_fit(
+        ClEdmdStable(controller, lifting=lifting, alpha=1e-3, max_radius=1.0), trajs, args.raw_snapshots
+    )
     n_lifted = stable.closed_loop_model_.A.shape[0]
     print(f"{'':36} {'radius':>10} {'cost +rel':>10} {'test R^2':>9} {'solve (s)':>9} {'vs LMI':>7}")
-    print(f"{'closed form (unconstrained)':36} {plain.closed_loop_model_.spectral_radius():10.6f} "
-          f"{0.0:10.2e} {r2(plain.closed_loop_model_):9.4f}")
-    for name, est, cost, secs in [("sqp on eigenvalues (default)", sqp, sqp_cost, sqp_s),
-                                  ("fixed-P LMI, Gram factor", lmi, lmi_cost, lmi_s)]:
-        print(f"{name:36} {est.closed_loop_model_.spectral_radius():10.6f} {(cost - base_cost) / base_cost:10.2e} "
-              f"{r2(est.closed_loop_model_):9.4f} {secs:9.3f} {secs / lmi_s:7.4f}")
-    print(f"{f'fixed-P LMI, {args.raw_snapshots} raw snapshots':36} {'':>10} {'':>10} {'':>9} {raw_s:9.1f} "
-          f"{raw_s / lmi_s:7.2f}")
-    print(f"one full constrained fit (default, snapshot statistics included): "
-          f"{np.median(fit_times):.2f} s, median of {args.repeats}")
+    print(
+        f"{'closed form (unconstrained)':36} {plain.closed_loop_model_.spectral_radius():10.6f} "
+        f"{0.0:10.2e} {r2(plain.closed_loop_model_):9.4f}"
+    )
+    for name, est, cost, secs in [
+        ("sqp on eigenvalues (default)", sqp, sqp_cost, sqp_s),
+        ("fixed-P LMI, Gram factor", lmi, lmi_cost, lmi_s),
+    ]:
+        print(
+            f"{name:36} {est.closed_loop_model_.spectral_radius():10.6f} {(cost - base_cost) / base_cost:10.2e} "
+            f"{r2(est.closed_loop_model_):9.4f} {secs:9.3f} {secs / lmi_s:7.4f}"
+        )
+    print(
+        f"{f'fixed-P LMI, {args.raw_snapshots} raw snapshots':36} {'':>10} {'':>10} {'':>9} {raw_s:9.1f} "
+        f"{raw_s / lmi_s:7.2f}"
+    )
+    print(
+        f"one full constrained fit (default, snapshot statistics included): "
+        f"{np.median(fit_times):.2f} s, median of {args.repeats}"
+    )
     print(f"{n_lifted} closed-loop states; target: one constrained fit <= 5 s")
 
 

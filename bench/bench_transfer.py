@@ -58,11 +58,13 @@ from pathlib import Path
 JUDGES = {  # name: (kp_theta, kd_theta, kp_alpha, kd_alpha, tau) or a shipped controller name
     "soft-theta": "soft-theta",
     "softer-pd": (4.0, 1.2, 28.0, 2.2, 50.0),
-    "lqr-q1": (3.16, 3.25, 45.65, 3.92, 50.0),   # LQR on the twin's linearization, Q diag(1, 0.1, 0, 0), R 0.1
-    "lqr-q3": (5.48, 3.73, 51.25, 4.43, 50.0),   # ... Q diag(3, 0.1, 0, 0), R 0.1
+    "lqr-q1": (3.16, 3.25, 45.65, 3.92, 50.0),  # LQR on the twin's linearization, Q diag(1, 0.1, 0, 0), R 0.1
+    "lqr-q3": (5.48, 3.73, 51.25, 4.43, 50.0),  # ... Q diag(3, 0.1, 0, 0), R 0.1
 }
-FIXED = {"poly 2, 20 delays": "--poly 2 --delays 20 --alpha 1e-3",
-         "poly 1, 20 delays, const": "--poly 1 --delays 20 --const --alpha 1e-3"}
+FIXED = {
+    "poly 2, 20 delays": "--poly 2 --delays 20 --alpha 1e-3",
+    "poly 1, 20 delays, const": "--poly 1 --delays 20 --const --alpha 1e-3",
+}
 
 
 def run(*argv: str) -> None:
@@ -78,8 +80,9 @@ def judge_sets(root: Path) -> dict[str, Path]:
         folder = root / f"judge_{name}"
         if isinstance(gains, tuple):
             toml = root / f"{name}.toml"
-            toml.write_text("".join(f"{k} = {v}\n" for k, v in zip(
-                ("kp_theta", "kd_theta", "kp_alpha", "kd_alpha", "tau"), gains)))
+            toml.write_text(
+                "".join(f"{k} = {v}\n" for k, v in zip(("kp_theta", "kd_theta", "kp_alpha", "kd_alpha", "tau"), gains))
+            )
             gains = str(toml)
         if not folder.exists():
             run("qube-run", "--episodes", "20", "--seed", str(seed), "--controller", gains, "--out", folder, "-q")
@@ -92,8 +95,19 @@ def judged(train: list[Path], flags: str, judges: dict[str, Path], root: Path, l
     row = {}
     for name, folder in judges.items():
         out = root / f"{label}_{name}".replace(" ", "_").replace(",", "")
-        run("qube-identify", "--train", *train, "--test", folder, *flags.split(), "--offsets", "alpha",
-            "--out", out, "-q")
+        run(
+            "qube-identify",
+            "--train",
+            *train,
+            "--test",
+            folder,
+            *flags.split(),
+            "--offsets",
+            "alpha",
+            "--out",
+            out,
+            "-q",
+        )
         report = json.loads((out / "report.json").read_text())
         with_o, plain = report["test"], report["test_without_offsets"]
         worst = lambda t: min(float(v) for v in t["r2_per_episode"])  # noqa: E731 ("-inf" strings too)
@@ -103,8 +117,12 @@ def judged(train: list[Path], flags: str, judges: dict[str, Path], root: Path, l
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--train", choices=("real", "twin"), default="real",
-                        help="train on the paper's real episodes or on twin rig-controller episodes")
+    parser.add_argument(
+        "--train",
+        choices=("real", "twin"),
+        default="real",
+        help="train on the paper's real episodes or on twin rig-controller episodes",
+    )
     parser.add_argument("--data", type=Path, help="folder of the 48 imported .mcap logs (--train real)")
     parser.add_argument("--out", type=Path, help="working folder (default: a temporary one)")
     parser.add_argument("--n-jobs", type=int, default=2)
@@ -126,18 +144,23 @@ def main() -> None:
     rows = {}
     for transfer in ("none", "twin"):
         out = root / f"search_{transfer}"
-        run("qube-identify", *data, "--search", "--transfer", transfer,
-            "--n-jobs", str(args.n_jobs), "--out", out, "-q")
+        run(
+            "qube-identify", *data, "--search", "--transfer", transfer, "--n-jobs", str(args.n_jobs), "--out", out, "-q"
+        )
         report = json.loads((out / "report.json").read_text())
         winner = report["search"]["winner"]
         label = f"search --transfer {transfer}: {winner['label']}, alpha {winner['alpha']:g}"
         rows[label] = judged(train, winner["flags"].replace("--offsets alpha", ""), judges, root, f"w_{transfer}")
-        print(f"{label}: test R^2 {float(report['test']['r2_mean']):.4f}, search {report['search']['seconds']:.0f} s",
-              flush=True)
+        print(
+            f"{label}: test R^2 {float(report['test']['r2_mean']):.4f}, search {report['search']['seconds']:.0f} s",
+            flush=True,
+        )
     for label, flags in FIXED.items():
         rows[label] = judged(train, flags, judges, root, label)
-    print("\nR^2 on twin episodes under other controllers, after the first second (mean / worst of ~20); "
-          "plain | with offsets\n")
+    print(
+        "\nR^2 on twin episodes under other controllers, after the first second (mean / worst of ~20); "
+        "plain | with offsets\n"
+    )
     print("| model | " + " | ".join(JUDGES) + " |")
     print("|---|" + "---|" * len(JUDGES))
     for label, row in rows.items():

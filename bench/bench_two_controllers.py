@@ -75,8 +75,18 @@ def mcap_logs(folder: Path, out: Path) -> list[Path]:
 
 def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) -> dict[str, tuple[float, float]]:
     """{test log name: (R^2 with offsets, R^2 without)} of one fit."""
-    argv = ["--train", *map(str, train), "--test", *map(str, test), *shlex.split(lifting),
-            "--offsets", "alpha", "--out", str(out), "-q"]
+    argv = [
+        "--train",
+        *map(str, train),
+        "--test",
+        *map(str, test),
+        *shlex.split(lifting),
+        "--offsets",
+        "alpha",
+        "--out",
+        str(out),
+        "-q",
+    ]
     with contextlib.redirect_stdout(io.StringIO()):  # its summary lines: the table says it
         status = identify_main(argv)
     if status != 0:
@@ -127,8 +137,10 @@ def excitation_share(episodes: list[dict[str, np.ndarray]], seconds: float) -> t
 
     b, a = signal.butter(2, SLOW_HZ / (ANALYSIS_RATE / 2))
     taps = int(round(seconds * ANALYSIS_RATE)) + 1
-    X = [np.column_stack([_lagged(e["reference"], taps), _lagged(e["feedforward"], taps), np.ones(len(e["error"]))])
-         for e in episodes]
+    X = [
+        np.column_stack([_lagged(e["reference"], taps), _lagged(e["feedforward"], taps), np.ones(len(e["error"]))])
+        for e in episodes
+    ]
     y = [e["error"] for e in episodes]
     overall, slow = [], []
     for j in range(len(episodes)):
@@ -147,12 +159,17 @@ def print_error_analysis(episodes: list[dict[str, np.ndarray]]) -> None:
     b, a = signal.butter(2, SLOW_HZ / (ANALYSIS_RATE / 2))
     slow = [np.var(signal.filtfilt(b, a, e["error"])) / np.var(e["error"]) for e in episodes]
     thirds = np.median([[np.sqrt(np.mean(part**2)) for part in np.array_split(e["error"], 3)] for e in episodes], 0)
-    print(f"\nin-sample arm error: median share of its variance below {SLOW_HZ:g} Hz {np.median(slow):.2f}; "
-          f"median RMS by third of the scored samples {' / '.join(f'{v:.4f}' for v in thirds)} rad")
+    print(
+        f"\nin-sample arm error: median share of its variance below {SLOW_HZ:g} Hz {np.median(slow):.2f}; "
+        f"median RMS by third of the scored samples {' / '.join(f'{v:.4f}' for v in thirds)} rad"
+    )
     for seconds in (1.0, 3.0, 6.0):
         overall, below = excitation_share(episodes, seconds)
-        print(f"a {seconds:g} s FIR of the reference and feedforward, fitted on the other episodes, removes "
-              f"{overall:+.3f} of its energy ({below:+.3f} below {SLOW_HZ:g} Hz)", flush=True)
+        print(
+            f"a {seconds:g} s FIR of the reference and feedforward, fitted on the other episodes, removes "
+            f"{overall:+.3f} of its energy ({below:+.3f} below {SLOW_HZ:g} Hz)",
+            flush=True,
+        )
     # The control: an error that is a response to the reference (low-passed at 0.2 Hz, its RMS the error's).
     b, a = signal.butter(1, 0.2 / (ANALYSIS_RATE / 2))
     control = []
@@ -160,16 +177,20 @@ def print_error_analysis(episodes: list[dict[str, np.ndarray]]) -> None:
         response = signal.lfilter(b, a, e["reference"])
         control.append({**e, "error": e["error"] + response * np.std(e["error"]) / np.std(response)})
     overall, below = excitation_share(control, 3.0)
-    print(f"control: the error plus a response to the reference of the same RMS; the 3 s FIR removes {overall:+.3f} "
-          f"({below:+.3f} below {SLOW_HZ:g} Hz)", flush=True)
+    print(
+        f"control: the error plus a response to the reference of the same RMS; the 3 s FIR removes {overall:+.3f} "
+        f"({below:+.3f} below {SLOW_HZ:g} Hz)",
+        flush=True,
+    )
 
 
 def data_arguments(p: argparse.ArgumentParser) -> None:
     """``--rig``, ``--soft`` (the two datasets' folders) and ``--lifting``, shared with bench_loop_delay.py."""
     shared = HERE.parents[1] / "shared" / "datasets"
     p.add_argument("--rig", type=Path, default=Path(os.environ.get("QUBE_DATASET_DIR", shared / "qube_servo_20230828")))
-    p.add_argument("--soft", type=Path,
-                   default=Path(os.environ.get("QUBE_SOFT_DATASET_DIR", shared / "qube_servo_20230915_soft")))
+    p.add_argument(
+        "--soft", type=Path, default=Path(os.environ.get("QUBE_SOFT_DATASET_DIR", shared / "qube_servo_20230915_soft"))
+    )
     p.add_argument("--lifting", default=DEFAULT_LIFTING, help=f"qube-identify flags (default: {DEFAULT_LIFTING})")
 
 
@@ -187,9 +208,11 @@ def main(argv: list[str] | None = None) -> int:
         train, paper_test = rig[:28], rig[28:]
         half = len(soft) // 2
         halves = (soft[:half], soft[half:])
-        sets = {"rig only": [(train, soft)],
-                "soft only": [(halves[0], halves[1]), (halves[1], halves[0])],
-                "both": [(train + halves[0], halves[1]), (train + halves[1], halves[0])]}
+        sets = {
+            "rig only": [(train, soft)],
+            "soft only": [(halves[0], halves[1]), (halves[1], halves[0])],
+            "both": [(train + halves[0], halves[1]), (train + halves[1], halves[0])],
+        }
         paper_names = {p.name for p in paper_test}
         print(f"lifting: {args.lifting}; soft episodes: {len(soft)} (halves of {half} and {len(soft) - half})")
         print("| training set | paper test (20), offsets | without | soft held-out, offsets | without |")
@@ -197,8 +220,9 @@ def main(argv: list[str] | None = None) -> int:
         for label, fits in sets.items():
             paper, held = [], []
             for k, (fit_logs, soft_test) in enumerate(fits):
-                scores = per_episode(fit_logs, paper_test + soft_test, args.lifting,
-                                     root / f"{label.replace(' ', '_')}_{k}")
+                scores = per_episode(
+                    fit_logs, paper_test + soft_test, args.lifting, root / f"{label.replace(' ', '_')}_{k}"
+                )
                 paper.append([v for n, v in scores.items() if n in paper_names])
                 held += [v for n, v in scores.items() if n not in paper_names]
             paper_mean = np.mean(np.array(paper, float), axis=0)  # each paper episode: mean over the fits
@@ -207,17 +231,23 @@ def main(argv: list[str] | None = None) -> int:
             def cell(values):
                 return f"{values.mean():.3f} / {values.min():.3f}"
 
-            print(f"| {label} | {cell(paper_mean[:, 0])} | {cell(paper_mean[:, 1])} | {cell(held[:, 0])} "
-                  f"| {cell(held[:, 1])} |", flush=True)
+            print(
+                f"| {label} | {cell(paper_mean[:, 0])} | {cell(paper_mean[:, 1])} | {cell(held[:, 0])} "
+                f"| {cell(held[:, 1])} |",
+                flush=True,
+            )
         copies = root / "soft_in_sample"  # the training's soft logs under other names: scored in sample
         copies.mkdir(parents=True, exist_ok=True)
         for log in soft:
             shutil.copyfile(log, copies / f"in_sample_{log.name}")
         scores = per_episode(train + soft, sorted(copies.glob("*.mcap")), args.lifting, root / "in_sample")
         fitted = np.array(list(scores.values()), float)
-        print(f"| both, scored in sample (28 + {len(soft)}; a ceiling, not a transfer score) | - | - "
-              f"| {fitted[:, 0].mean():.3f} / {fitted[:, 0].min():.3f} "
-              f"| {fitted[:, 1].mean():.3f} / {fitted[:, 1].min():.3f} |", flush=True)
+        print(
+            f"| both, scored in sample (28 + {len(soft)}; a ceiling, not a transfer score) | - | - "
+            f"| {fitted[:, 0].mean():.3f} / {fitted[:, 0].min():.3f} "
+            f"| {fitted[:, 1].mean():.3f} / {fitted[:, 1].min():.3f} |",
+            flush=True,
+        )
         print_error_analysis(arm_errors(root / "in_sample" / "predictions", sorted(copies.glob("*.mcap"))))
     return 0
 

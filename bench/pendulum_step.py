@@ -39,8 +39,10 @@ def _per_tick_us(step, repeats: int = 5) -> np.ndarray:
 
 def main() -> None:
     rows = []
-    for label, sensor in (("PendulumSimulator.step (encoders)", SensorModel()),
-                          ("PendulumSimulator.step (encoders + noise)", SensorModel(noise_std=1e-3))):
+    for label, sensor in (
+        ("PendulumSimulator.step (encoders)", SensorModel()),
+        ("PendulumSimulator.step (encoders + noise)", SensorModel(noise_std=1e-3)),
+    ):
         sim = PendulumSimulator(sensor=sensor, seed=0)
         sim.reset([0.0, 0.05, 0.0, 0.0])
         rows.append((label, _per_tick_us(sim.step)))

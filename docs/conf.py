@@ -79,8 +79,14 @@ numpydoc_show_class_members = False
 numpydoc_class_members_toctree = False
 numpydoc_xref_param_type = False
 
-PACKAGES = ["qube_koopman.sim", "qube_koopman.firmware_protocol", "qube_koopman.daq", "qube_koopman.identify",
-            "qube_koopman.design", "qube_koopman.core"]
+PACKAGES = [
+    "qube_koopman.sim",
+    "qube_koopman.firmware_protocol",
+    "qube_koopman.daq",
+    "qube_koopman.identify",
+    "qube_koopman.design",
+    "qube_koopman.core",
+]
 
 
 def _reexports() -> dict[str, list[str]]:
@@ -89,8 +95,7 @@ def _reexports() -> dict[str, list[str]]:
     found = {}
     for top in PACKAGES:
         package = importlib.import_module(top)
-        names = [top] + [info.name for info in pkgutil.walk_packages(package.__path__, prefix=f"{top}.")
-                         if info.ispkg]
+        names = [top] + [info.name for info in pkgutil.walk_packages(package.__path__, prefix=f"{top}.") if info.ispkg]
         for name in names:
             module = importlib.import_module(name)
             targets = []
@@ -114,6 +119,7 @@ autosummary_context = {"reexports": _reexports()}
 from numpydoc import docscrape_sphinx  # noqa: E402
 
 if hasattr(docscrape_sphinx, "SandboxedEnvironment"):
+
     class _TemplateOnce(docscrape_sphinx.SandboxedEnvironment):
         _compiled: dict = {}
 

@@ -48,12 +48,12 @@
 # (28 training and 20 test episodes, 180 alphas: `qube-reproduce qube`).
 
 # %% tags=["parameters"]
-N_TRAIN = 8         # training episodes (the paper: 28)
-N_TEST = 3          # test episodes, from the paper's test set (the paper: 20)
-POLY = 1            # monomial order of the lifting (1: the angles themselves; the paper: 2)
-DELAYS = 35         # time delays of the lifting (the paper: 10)
+N_TRAIN = 8  # training episodes (the paper: 28)
+N_TEST = 3  # test episodes, from the paper's test set (the paper: 20)
+POLY = 1  # monomial order of the lifting (1: the angles themselves; the paper: 2)
+DELAYS = 35  # time delays of the lifting (the paper: 10)
 ALPHAS = (1e-5, 1e-4, 1e-3, 1e-1, 1e1)  # regularization coefficients compared by cross-validation
-N_TWIN = 3          # episodes run on the twin under soft-theta
+N_TWIN = 3  # episodes run on the twin under soft-theta
 TWIN_SECONDS = 12.0  # their length (the rig's: 20 s)
 
 # %% [markdown]
@@ -82,18 +82,22 @@ from qube_koopman.daq import (
 IN_NOTEBOOK = "ipykernel" in sys.modules  # a Jupyter kernel's argv is its own, not ours
 ARGS = [] if IN_NOTEBOOK else sys.argv[1:]
 if ARGS[:1] in (["-h"], ["--help"]) or len(ARGS) > 2:
-    raise SystemExit("usage: python examples/tutorial.py [DATASET_DIR] [OUT_DIR]\n"
-                     "  DATASET_DIR: the paper's QUBE-Servo dataset (default: $QUBE_DATASET_DIR)\n"
-                     "  OUT_DIR: a new or empty folder for the logs and figures (default: $QUBE_TUTORIAL_OUT,\n"
-                     "           else a temporary folder removed at the end)")
+    raise SystemExit(
+        "usage: python examples/tutorial.py [DATASET_DIR] [OUT_DIR]\n"
+        "  DATASET_DIR: the paper's QUBE-Servo dataset (default: $QUBE_DATASET_DIR)\n"
+        "  OUT_DIR: a new or empty folder for the logs and figures (default: $QUBE_TUTORIAL_OUT,\n"
+        "           else a temporary folder removed at the end)"
+    )
 DATASET = ARGS[0] if ARGS else os.environ.get("QUBE_DATASET_DIR")
 OUT = ARGS[1] if len(ARGS) > 1 else os.environ.get("QUBE_TUTORIAL_OUT")
 csv_files = sorted(Path(DATASET).glob("*.csv")) if DATASET else []
 if len(csv_files) < 28 + N_TEST or not (Path(DATASET) / "controller.toml").is_file():
-    raise SystemExit(f"{DATASET or 'no dataset given'}: not the paper's QUBE-Servo dataset (48 CSV files and "
-                     "controller.toml). Pass its folder as the first argument or set QUBE_DATASET_DIR; it is "
-                     "the folder dataset/controller_20230828 of the public repository "
-                     "decargroup/closed_loop_koopman (MIT licence).")
+    raise SystemExit(
+        f"{DATASET or 'no dataset given'}: not the paper's QUBE-Servo dataset (48 CSV files and "
+        "controller.toml). Pass its folder as the first argument or set QUBE_DATASET_DIR; it is "
+        "the folder dataset/controller_20230828 of the public repository "
+        "decargroup/closed_loop_koopman (MIT licence)."
+    )
 DATASET = Path(DATASET)
 if OUT:
     work = Path(OUT)  # the logs and figures go here, and stay
@@ -105,7 +109,7 @@ else:
     temporary = tempfile.TemporaryDirectory(prefix="qube_tutorial_")  # removed by the last cell
     work = Path(temporary.name)
 rig_controller = load_legacy_controller(DATASET / "controller.toml")
-for split, files in (("train", csv_files[:N_TRAIN]), ("test", csv_files[28:28 + N_TEST])):
+for split, files in (("train", csv_files[:N_TRAIN]), ("test", csv_files[28 : 28 + N_TEST])):
     (work / split).mkdir()
     for csv in files:
         write_episode(log_path(work / split, csv.stem), legacy_episode(csv, rig_controller))
@@ -136,8 +140,10 @@ train = load_logs(find_logs(work / "train"), skip=500)
 test = load_logs(find_logs(work / "test"), skip=500)
 controller = train[0].controller  # the rig's PD, discretized as the rig ran it
 episode = train[0].trajectory
-print(f"{episode.n_samples} samples of {episode.dt} s; states {episode.state_names}; "
-      f"controller with {controller.n_states} states")
+print(
+    f"{episode.n_samples} samples of {episode.dt} s; states {episode.state_names}; "
+    f"controller with {controller.n_states} states"
+)
 
 # %% [markdown]
 # ## 2. Identify
@@ -206,9 +212,11 @@ soft = load_pd_gains("soft-theta")
 soft_info = ControllerInfo(pd_controller(soft), "backward-euler", soft.as_dict(), "pd")
 seeds, backend_seed = run_seeds(2, N_TWIN)
 (work / "twin").mkdir()
-run = run_episodes(SimBackend(PendulumParameters(), seed=backend_seed, zero_offsets=ZeroOffsetDistribution()),
-                   plan_episodes(soft_info, seeds, excitation_settings(TWIN_SECONDS), source="tutorial"),
-                   [McapSink(work / "twin")])
+run = run_episodes(
+    SimBackend(PendulumParameters(), seed=backend_seed, zero_offsets=ZeroOffsetDistribution()),
+    plan_episodes(soft_info, seeds, excitation_settings(TWIN_SECONDS), source="tutorial"),
+    [McapSink(work / "twin")],
+)
 twin = load_logs(find_logs(work / "twin"), skip=500)
 injected = [read_episode_metadata(log.path).extra["backend"]["sensor"]["alpha_offset"] for log in twin]
 print(f"{len(twin)} twin episodes under soft-theta; their encoder zeros (rad): {np.round(injected, 5)}")
@@ -238,11 +246,15 @@ count = SensorModel().resolution  # rad per encoder count (2048 a turn)
 for log, est, zero in zip(twin, estimates, injected):
     apart = (est.as_mapping()[1] - zero) / count
     status = "" if est.status == "ok" else f"; the estimate: {est.status}"
-    print(f"{log.path.name}: alpha offset estimated {est.as_mapping()[1]:+.5f} rad, injected {zero:+.5f} rad "
-          f"({apart:+.2f} encoder counts apart{status})")
+    print(
+        f"{log.path.name}: alpha offset estimated {est.as_mapping()[1]:+.5f} rad, injected {zero:+.5f} rad "
+        f"({apart:+.2f} encoder counts apart{status})"
+    )
 change = "raise" if r2_soft_offsets > r2_soft_plain else "lower"
-print(f"soft-theta episodes: mean R^2 {r2_soft_offsets:.4f} with the offsets estimated, {r2_soft_plain:.4f} without "
-      f"(the estimates {change} it by {abs(r2_soft_offsets - r2_soft_plain):.4f})")
+print(
+    f"soft-theta episodes: mean R^2 {r2_soft_offsets:.4f} with the offsets estimated, {r2_soft_plain:.4f} without "
+    f"(the estimates {change} it by {abs(r2_soft_offsets - r2_soft_plain):.4f})"
+)
 
 # %% [markdown]
 # The estimates are offsets from the model's own zero, which is that of the training
@@ -268,11 +280,18 @@ from qube_koopman.identify import Curve, SeriesPlot, draw
 predicted = predict_with_offsets_many(soft_loop, trajectories[:1], estimates[:1])[0]
 x = trajectories[0].x
 t = np.arange(len(x)) * trajectories[0].dt
-plot = SeriesPlot(f"{twin[0].path.stem} under soft-theta (offset estimated)", t, "time (s)",
-                  ("theta (rad)", "alpha (rad)"),
-                  tuple(Curve(f"{s} {kind}", y[:, j], panel=j) for j, s in enumerate(("theta", "alpha"))
-                        for kind, y in (("measured", x), ("predicted", predicted))),
-                  marks={"end of the estimation window": t[window]})
+plot = SeriesPlot(
+    f"{twin[0].path.stem} under soft-theta (offset estimated)",
+    t,
+    "time (s)",
+    ("theta (rad)", "alpha (rad)"),
+    tuple(
+        Curve(f"{s} {kind}", y[:, j], panel=j)
+        for j, s in enumerate(("theta", "alpha"))
+        for kind, y in (("measured", x), ("predicted", predicted))
+    ),
+    marks={"end of the estimation window": t[window]},
+)
 draw(plot).savefig(work / "soft_theta.png", dpi=100)
 show(work / "soft_theta.png")
 
@@ -283,9 +302,13 @@ show(work / "soft_theta.png")
 # choice, the temporary one with the logs and figures is removed here.
 
 # %%
-summary = {"r2_test": round(r2_test, 4), "r2_soft_offsets": round(r2_soft_offsets, 4),
-           "r2_soft_plain": round(r2_soft_plain, 4), "n_twin": len(twin),
-           "offset_errors_rad": [round(est.as_mapping()[1] - zero, 5) for est, zero in zip(estimates, injected)]}
+summary = {
+    "r2_test": round(r2_test, 4),
+    "r2_soft_offsets": round(r2_soft_offsets, 4),
+    "r2_soft_plain": round(r2_soft_plain, 4),
+    "n_twin": len(twin),
+    "offset_errors_rad": [round(est.as_mapping()[1] - zero, 5) for est, zero in zip(estimates, injected)],
+}
 print(summary)
 if temporary is not None:
     temporary.cleanup()

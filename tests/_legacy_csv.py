@@ -24,7 +24,18 @@ def write_synthetic_csv(path: Path, n: int = 1000, seed: int = 0) -> np.ndarray:
     feedforward = 0.5 * np.sign(rng.normal(size=n))
     plant_input = np.clip(output[:, 0] + feedforward, -10, 10)
     saturation = np.where(output[:, 0] + feedforward > 10, 1, np.where(output[:, 0] + feedforward < -10, -1, 0))
-    data = np.column_stack((t, target[:, 0], target[:, 1], measured[:, 0], measured[:, 1], output[:, 0],
-                            feedforward, plant_input, saturation))
+    data = np.column_stack(
+        (
+            t,
+            target[:, 0],
+            target[:, 1],
+            measured[:, 0],
+            measured[:, 1],
+            output[:, 0],
+            feedforward,
+            plant_input,
+            saturation,
+        )
+    )
     np.savetxt(path, data, delimiter=", ", fmt="%.17e", header=", ".join(LEGACY_COLUMNS), comments="")
     return data

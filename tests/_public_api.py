@@ -13,8 +13,14 @@ import pkgutil
 from collections.abc import Iterator
 from types import ModuleType
 
-PACKAGES = ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.firmware_protocol",
-            "qube_koopman.design", "qube_koopman.core"]
+PACKAGES = [
+    "qube_koopman.identify",
+    "qube_koopman.sim",
+    "qube_koopman.daq",
+    "qube_koopman.firmware_protocol",
+    "qube_koopman.design",
+    "qube_koopman.core",
+]
 
 
 def all_modules(private: bool = False) -> Iterator[ModuleType]:

@@ -8,8 +8,17 @@ from pathlib import Path
 import numpy as np
 
 # Column order of the dataset's CSV files (README of the dataset).
-COLUMNS = ("t", "target_theta", "target_alpha", "theta", "alpha", "control_output",
-           "feedforward", "plant_input", "saturation")
+COLUMNS = (
+    "t",
+    "target_theta",
+    "target_alpha",
+    "theta",
+    "alpha",
+    "control_output",
+    "feedforward",
+    "plant_input",
+    "saturation",
+)
 
 
 @lru_cache(maxsize=None)

@@ -12,15 +12,25 @@ from qube_koopman.daq.sinks import McapSink
 from qube_koopman.sim.pendulum import PendulumParameters, ZeroOffsetDistribution
 
 
-def collect_pd_logs(out: Path, gains: PdGains, n: int, seed: int, params: PendulumParameters, *,
-                    duration: float = 20.0, zero_offsets: ZeroOffsetDistribution | None = ZeroOffsetDistribution()
-                    ) -> Path:
+def collect_pd_logs(
+    out: Path,
+    gains: PdGains,
+    n: int,
+    seed: int,
+    params: PendulumParameters,
+    *,
+    duration: float = 20.0,
+    zero_offsets: ZeroOffsetDistribution | None = ZeroOffsetDistribution(),
+) -> Path:
     """``n`` episodes of the PD loop with ``gains`` on the pendulum ``params``, the run's seed ``seed``,
     logged into the new folder ``out`` (returned); the pendulum encoder's zero drawn from ``zero_offsets``
     (the simulator's default; None: exact)."""
     info = ControllerInfo(pd_controller(gains), "backward-euler", gains.as_dict(), "pd")
     seeds, backend_seed = run_seeds(seed, n)
     out.mkdir(parents=True)
-    run_episodes(SimBackend(params, seed=backend_seed, zero_offsets=zero_offsets),
-                 plan_episodes(info, seeds, excitation_settings(duration), source="test"), [McapSink(out)])
+    run_episodes(
+        SimBackend(params, seed=backend_seed, zero_offsets=zero_offsets),
+        plan_episodes(info, seeds, excitation_settings(duration), source="test"),
+        [McapSink(out)],
+    )
     return out

@@ -15,8 +15,10 @@ def _need_tools() -> None:
 
     missing = avr_build.avr_tools_missing() + avr_sim.harness_missing()
     if missing:
-        message = (f"AVR firmware tests need {', '.join(missing)}: run tools/install_system_deps.sh "
-                   "(gcc-avr avr-libc arduino-core-avr simavr libsimavr-dev libsimavrparts1)")
+        message = (
+            f"AVR firmware tests need {', '.join(missing)}: run tools/install_system_deps.sh "
+            "(gcc-avr avr-libc arduino-core-avr simavr libsimavr-dev libsimavrparts1)"
+        )
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(message)  # CI installs them: missing there is a failure, not a skip
         pytest.skip(message)

@@ -38,8 +38,11 @@ def core(cache_home) -> ccore.CCore:
 @pytest.fixture(scope="session")
 def env(cache_home) -> dict:
     """Environment for subprocesses: this checkout first on the path, the session's core cache."""
-    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
-                XDG_CACHE_HOME=str(cache_home))
+    return dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+        XDG_CACHE_HOME=str(cache_home),
+    )
 
 
 #: SCHED_FIFO priority of the real-time tests' emulator and loop thread, where the machine grants
@@ -127,8 +130,9 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
             continue
         cause = reason.split(":")[1].strip()
         if (meta.timing.get("stalls") or 0) > 0:
-            lost.append(f"{meta.timing['stalls']} late ticks, worst {meta.timing['lateness_max'] * 1e3:.1f} ms "
-                        f"({cause})")
+            lost.append(
+                f"{meta.timing['stalls']} late ticks, worst {meta.timing['lateness_max'] * 1e3:.1f} ms ({cause})"
+            )
         elif (meta.timing.get("compute_max") or 0.0) > 2e-3:
             lost.append(f"a tick's work held up {meta.timing['compute_max'] * 1e3:.1f} ms ({cause})")
         elif behind > 5.0:
@@ -136,8 +140,9 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
     return lost
 
 
-def run_in_real_time(env: dict, emulator_args: list[str], run_args: list[str], tmp_path: Path,
-                     capsys) -> tuple[int, str, str, Path, str]:
+def run_in_real_time(
+    env: dict, emulator_args: list[str], run_args: list[str], tmp_path: Path, capsys
+) -> tuple[int, str, str, Path, str]:
     """``qube-run --backend serial RUN_ARGS`` against ``qube-emulate EMULATOR_ARGS``, in real time.
 
     Real time on a shared machine: where SCHED_FIFO is granted, the emulator and qube-run's loop
@@ -158,8 +163,21 @@ def run_in_real_time(env: dict, emulator_args: list[str], run_args: list[str], t
         out_dir = tmp_path / f"attempt{attempt}"
         proc, path = start_emulator(env, *emulator_args, rt_priority=rt)
         try:
-            status = main(["--backend", "serial", "--port", path, *run_args, "--out", str(out_dir),
-                           "--link-timeout", "200", "-q", *rt_args])
+            status = main(
+                [
+                    "--backend",
+                    "serial",
+                    "--port",
+                    path,
+                    *run_args,
+                    "--out",
+                    str(out_dir),
+                    "--link-timeout",
+                    "200",
+                    "-q",
+                    *rt_args,
+                ]
+            )
         finally:
             _, emulator_err = stop_process(proc)
         out = capsys.readouterr().out
@@ -235,6 +253,7 @@ class FakeDevice:
 
 
 # --- lockstep that a loaded machine cannot break ------------------------------------------------
+
 
 class HostWait:
     """The time a test host has spent waiting on the bridge's port with nothing to read, nor coming.

@@ -29,8 +29,10 @@ DATASET_ENV = "QUBE_DATASET_DIR"
 DEFAULT_DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "qube_servo_20230828"
 SOFT_DATASET_ENV = "QUBE_SOFT_DATASET_DIR"
 DEFAULT_SOFT_DATASET = DEFAULT_DATASET.parent / "qube_servo_20230915_soft"
-DATASET_SOURCE = ("the paper's QUBE-Servo dataset (public repository decargroup/closed_loop_koopman, "
-                  "folder dataset/controller_20230828, MIT licence)")
+DATASET_SOURCE = (
+    "the paper's QUBE-Servo dataset (public repository decargroup/closed_loop_koopman, "
+    "folder dataset/controller_20230828, MIT licence)"
+)
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -116,8 +118,7 @@ def qube_dataset() -> Path:
     if path is None:
         # CI must run them: a missing dataset there is a broken setup, not a reason to skip.
         fail = pytest.fail if os.environ.get("CI", "").lower() == "true" else pytest.skip
-        fail(f"dataset not found: set {DATASET_ENV} or place {DATASET_SOURCE} "
-                    f"at {DEFAULT_DATASET}")
+        fail(f"dataset not found: set {DATASET_ENV} or place {DATASET_SOURCE} at {DEFAULT_DATASET}")
     return path
 
 
@@ -248,7 +249,7 @@ def _descendants(root: int) -> dict[int, str]:
             stat = (entry / "stat").read_text()
         except OSError:
             continue
-        fields = stat[stat.rindex(")") + 2:].split()
+        fields = stat[stat.rindex(")") + 2 :].split()
         if fields[0] != "Z":
             parent[int(entry.name)] = int(fields[1])
     found, frontier = {}, [root]
@@ -288,8 +289,11 @@ def stop_library_daemons() -> set[int]:
     if executor is not None:
         # joblib's executor frees its memmapping folders (and cancels their atexit handlers)
         getattr(executor, "terminate", executor.shutdown)()
-    return {tracker._pid for tracker in (loky_tracker._resource_tracker, resource_tracker._resource_tracker)
-            if getattr(tracker, "_pid", None) is not None}
+    return {
+        tracker._pid
+        for tracker in (loky_tracker._resource_tracker, resource_tracker._resource_tracker)
+        if getattr(tracker, "_pid", None) is not None
+    }
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -318,5 +322,8 @@ def no_process_outlives_the_suite():
         except OSError:
             pass
     if left:
-        pytest.fail("processes started by the test suite outlived it: "
-                    + "; ".join(f"pid {p}: {c}" for p, c in sorted(left.items())), pytrace=False)
+        pytest.fail(
+            "processes started by the test suite outlived it: "
+            + "; ".join(f"pid {p}: {c}" for p, c in sorted(left.items())),
+            pytrace=False,
+        )

@@ -69,23 +69,21 @@ def prbs(rng, n, n_channels, amplitude, dwell=(20, 80)):
     return np.column_stack(cols)
 
 
-def closed_loop_trajectories(A_p, B_p, controller, measured, n_episodes=4, n=400, seed=0,
-                             process_noise=0.0, feedforward=True):
+def closed_loop_trajectories(
+    A_p, B_p, controller, measured, n_episodes=4, n=400, seed=0, process_noise=0.0, feedforward=True
+):
     """Episodes of the loop with PRBS references and feedforward."""
     from qube_koopman.identify import closed_loop_matrices, output_selection
 
-    A_f, _ = closed_loop_matrices(A_p, B_p, controller, output_selection(A_p.shape[0], measured),
-                                  controller.n_outputs)
+    A_f, _ = closed_loop_matrices(A_p, B_p, controller, output_selection(A_p.shape[0], measured), controller.n_outputs)
     if max(abs(np.linalg.eigvals(A_f))) >= 1:
         raise ValueError("this test loop is unstable; pick other gains")
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n_episodes):
         r = prbs(rng, n, len(measured), 1.0)
-        f = (0.3 * rng.standard_normal((n, controller.n_outputs)) if feedforward
-             else np.zeros((n, controller.n_outputs)))
+        f = 0.3 * rng.standard_normal((n, controller.n_outputs)) if feedforward else np.zeros((n, controller.n_outputs))
         w = process_noise * rng.standard_normal((n, A_p.shape[0])) if process_noise else None
         x, u, xc = simulate_loop(A_p, B_p, controller, measured, r, f, w)
-        out.append(Trajectory(x=x, u=u, r=r, f=f if feedforward else None, xc=xc,
-                              name=f"ep{i}", dt=controller.dt))
+        out.append(Trajectory(x=x, u=u, r=r, f=f if feedforward else None, xc=xc, name=f"ep{i}", dt=controller.dt))
     return out

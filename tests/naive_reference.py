@@ -12,12 +12,12 @@ def naive_predict(model, x_init: np.ndarray, v: np.ndarray, p0: np.ndarray | Non
     d, m, n_p = model.n_delays, model.n_states, model.n_passthrough
     T = v.shape[0]
     x = np.full((T, m), np.nan)
-    x[:d + 1] = x_init
+    x[: d + 1] = x_init
     p = np.zeros(n_p) if p0 is None else np.asarray(p0, dtype=float)
     with np.errstate(all="ignore"):
         for k in range(d, T - 1):
-            z = np.concatenate([p, model.lifting.transform(x[k - d:k + 1])[0]])
+            z = np.concatenate([p, model.lifting.transform(x[k - d : k + 1])[0]])
             nxt = model.A @ z + model.B @ v[k]
-            x[k + 1] = nxt[n_p:n_p + m]
+            x[k + 1] = nxt[n_p : n_p + m]
             p = nxt[:n_p]
     return x

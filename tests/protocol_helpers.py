@@ -26,8 +26,10 @@ u32 = st.integers(0, 0xFFFFFFFF)
 
 def random_message(rng: random.Random) -> Message:
     """A random valid message, mostly telemetry and commands as on a real link."""
-    cls = rng.choices(list(MESSAGE_CLASSES.values()),
-                      weights=[8 if c in (Telemetry, Command) else 1 for c in MESSAGE_CLASSES.values()])[0]
+    cls = rng.choices(
+        list(MESSAGE_CLASSES.values()),
+        weights=[8 if c in (Telemetry, Command) else 1 for c in MESSAGE_CLASSES.values()],
+    )[0]
     values = {}
     for name, (low, high) in cls.field_ranges().items():
         # Half the time small values: real counters are mostly small, and

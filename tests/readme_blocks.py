@@ -65,7 +65,7 @@ def expected_exit(line: str) -> int | None:
 def quoted_text(line: str) -> str:
     """What a command line's comment says after its ``exit N``: the output it quotes."""
     match = EXIT.search(line)
-    return "" if match is None else line[match.end():]
+    return "" if match is None else line[match.end() :]
 
 
 def runnable(line: str) -> str | None:
@@ -103,8 +103,11 @@ def figure_matches(quoted: str, printed: str) -> bool:
 def figure_problems(line: str, output: str) -> list[str]:
     """The numbers ``line``'s comment quotes that ``output`` does not print (see :func:`figure_matches`)."""
     printed = NUMBER.findall(output)
-    return [quoted for quoted in NUMBER.findall(quoted_text(line))
-            if not any(figure_matches(quoted, number) for number in printed)]
+    return [
+        quoted
+        for quoted in NUMBER.findall(quoted_text(line))
+        if not any(figure_matches(quoted, number) for number in printed)
+    ]
 
 
 def _all_blocks() -> tuple[list[list[tuple[int, str]]], list[Path]]:
@@ -176,8 +179,12 @@ def _import_key(command: str, clone: Path) -> tuple | None:
         return None
     out = words[words.index("--out") + 1]
     sources = [w for w in words[1:] if w not in ("--out", out)]
-    if (not re.fullmatch(r"[\w.-]+", out) or (clone / out).exists() or not sources
-            or not all(w.startswith("$QUBE_DATASET_DIR/") for w in sources)):
+    if (
+        not re.fullmatch(r"[\w.-]+", out)
+        or (clone / out).exists()
+        or not sources
+        or not all(w.startswith("$QUBE_DATASET_DIR/") for w in sources)
+    ):
         return None
     dataset = Path(os.environ["QUBE_DATASET_DIR"])
     files = tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(dataset.iterdir()))
@@ -192,8 +199,16 @@ def _run(command: str, clone: Path, env: dict) -> subprocess.CompletedProcess:
         if folder is not None:
             shutil.copytree(folder, clone / folder.name)
         return done
-    done = subprocess.run(["bash", "-c", command], check=False, cwd=clone, env=env, capture_output=True,
-                          text=True, timeout=600, stdin=subprocess.DEVNULL)
+    done = subprocess.run(
+        ["bash", "-c", command],
+        check=False,
+        cwd=clone,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        stdin=subprocess.DEVNULL,
+    )
     if key is not None:
         out = key[0][key[0].index("--out") + 1]
         kept = None
@@ -216,9 +231,10 @@ def run_block(index: int, clone: Path) -> None:
         done = _run(command, clone, env)
         shown = f"\n--- stdout\n{done.stdout[-3000:]}\n--- stderr\n{done.stderr[-3000:]}"
         assert done.returncode == expected_exit(line), (
-            f"{where} line {number}: {command!r} exited {done.returncode}, the text shows "
-            f"{expected_exit(line)}{shown}")
+            f"{where} line {number}: {command!r} exited {done.returncode}, the text shows {expected_exit(line)}{shown}"
+        )
         missing = figure_problems(line, done.stdout + done.stderr)
         assert not missing, (
             f"{where} line {number}: its comment quotes {missing}, which {command.split()[0]} did not print "
-            f"(a count exactly, a decimal to one unit of its last quoted digit){shown}")
+            f"(a count exactly, a decimal to one unit of its last quoted digit){shown}"
+        )

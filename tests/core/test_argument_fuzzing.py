@@ -43,20 +43,51 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[2]
 
 #: Values drawn for any option that takes one: out of range, non-finite, huge, empty, wrong type, and a few valid.
-NUMBERS = ["-1", "0", "nan", "inf", "-inf", "1e308", str(10**30), f"-{10**30}", "", "abc", "1.5", "-0.5",
-           "1", "2", "3", "0.5"]
+NUMBERS = [
+    "-1",
+    "0",
+    "nan",
+    "inf",
+    "-inf",
+    "1e308",
+    str(10**30),
+    f"-{10**30}",
+    "",
+    "abc",
+    "1.5",
+    "-0.5",
+    "1",
+    "2",
+    "3",
+    "0.5",
+]
 #: Paths, relative to the example's folder (the working directory while the command runs).
-PATHS = ["missing", "missing/deeper/x.mcap", "empty.txt", "junk.bin", "folder", "logs", "logs/a.mcap", "logs/b.mcap",
-         "csv", "csv/" + "qube_20230828T150615_434_696_394.csv", ""]
+PATHS = [
+    "missing",
+    "missing/deeper/x.mcap",
+    "empty.txt",
+    "junk.bin",
+    "folder",
+    "logs",
+    "logs/a.mcap",
+    "logs/b.mcap",
+    "csv",
+    "csv/" + "qube_20230828T150615_434_696_394.csv",
+    "",
+]
 PATH_WORDS = ("FILE", "DIR", "LOG", "SRC", "DEV", "URL", "ADDRESS", ".toml", ".rrd", ".csv", ".json")
 
 #: A valid invocation per command (and subcommand) that half the vectors start from, so that the drawn
 #: options also reach the checks behind the parsing (the logs loaded, the fit's own); the drawn options
 #: follow it (the last of an option counts).
-BASE = {"qube-identify": ["--train", "logs/a.mcap", "--test", "logs/b.mcap", "--skip", "0"],
-        "qube-run": ["--episodes", "1", "--duration", "1"], "qube-import": ["csv", "--out", "out"],
-        "qube-export": ["logs", "--format", "csv", "--out", "out"], "qube-calibrate": ["logs/a.mcap", "--out", "p.toml"],
-        "qube": ["--data", "logs"]}
+BASE = {
+    "qube-identify": ["--train", "logs/a.mcap", "--test", "logs/b.mcap", "--skip", "0"],
+    "qube-run": ["--episodes", "1", "--duration", "1"],
+    "qube-import": ["csv", "--out", "out"],
+    "qube-export": ["logs", "--format", "csv", "--out", "out"],
+    "qube-calibrate": ["logs/a.mcap", "--out", "p.toml"],
+    "qube": ["--data", "logs"],
+}
 
 #: Examples drawn per command; the count is checked by the last test.
 EXAMPLES = int(os.environ.get("QUBE_FUZZ_EXAMPLES", "60"))
@@ -154,6 +185,7 @@ def _argv(draw, parser: argparse.ArgumentParser, base: list[str]) -> list[str]:
 
 # --- the folder each example runs in --------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def template(tmp_path_factory) -> Path:
     """Files every example starts from: junk, folders, two real 2 s episode logs, a legacy CSV."""
@@ -174,8 +206,9 @@ def template(tmp_path_factory) -> Path:
     (root / "logs").mkdir()
     rate = 500.0
     seeds, backend_seed = run_seeds(1, 2)
-    plans = plan_episodes(load_controller(None, "backward-euler", 1 / rate), seeds, excitation_settings(2.0, rate),
-                          source="fuzz")
+    plans = plan_episodes(
+        load_controller(None, "backward-euler", 1 / rate), seeds, excitation_settings(2.0, rate), source="fuzz"
+    )
     sink = McapSink(root / "logs")
     run_episodes(SimBackend(seed=backend_seed, dt=1 / rate), plans, [sink])
     for path, name in zip(sink.paths, ("a", "b")):
@@ -268,8 +301,13 @@ def test_no_argument_vector_gives_a_traceback(command, words, template, stubs):
     if words:
         parser = _subcommands(parser)[words[0]]
 
-    @settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=not EXPLORE,
-              suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    @settings(
+        max_examples=EXAMPLES,
+        deadline=None,
+        database=None,
+        derandomize=not EXPLORE,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    )
     @given(argv=_argv(parser, BASE.get(words[0] if words else command, [])))
     def check(argv):
         with tempfile.TemporaryDirectory() as tmp:
@@ -291,39 +329,100 @@ def test_no_argument_vector_gives_a_traceback(command, words, template, stubs):
 # library's words without the option (radians for --alpha-limit; "Maximum allowed size exceeded"), or an
 # empty path read as the current folder (".: cannot read plant file (Is a directory)").
 FOUND = [
-    ("qube-reproduce", ["duffing", "--alpha", "inf"], "qube-reproduce: error: --alpha must be a finite number >= 0, got inf"),
-    ("qube-run", ["--alpha-limit", "1.5"], "qube-run: error: --alpha-limit 1.5 deg: inside the start gate (start_alpha"),
-    ("qube-emulate", ["--plant", ""], "qube-emulate: error: argument --plant: an empty path (an unset shell variable?)"),
-    ("qube-import", ["csv", "--out", "out", "--controller", ""], "qube-import: error: argument --controller: an empty path"),
+    (
+        "qube-reproduce",
+        ["duffing", "--alpha", "inf"],
+        "qube-reproduce: error: --alpha must be a finite number >= 0, got inf",
+    ),
+    (
+        "qube-run",
+        ["--alpha-limit", "1.5"],
+        "qube-run: error: --alpha-limit 1.5 deg: inside the start gate (start_alpha",
+    ),
+    (
+        "qube-emulate",
+        ["--plant", ""],
+        "qube-emulate: error: argument --plant: an empty path (an unset shell variable?)",
+    ),
+    (
+        "qube-import",
+        ["csv", "--out", "out", "--controller", ""],
+        "qube-import: error: argument --controller: an empty path",
+    ),
     ("qube-run", ["--out", "", "--episodes", "1", "--duration", "1"], "qube-run: error: argument --out: an empty path"),
-    ("qube-identify", [*BASE["qube-identify"], "--estimate-window", "inf", "--protocol", "window"],
-     "qube-identify: error: --estimate-window must be at most 86400 s (the longest episode), got inf"),
-    ("qube-identify", [*BASE["qube-identify"], "--estimate-window", "1e308", "--offsets", "alpha"],
-     "qube-identify: error: --estimate-window must be at most 86400 s (the longest episode), got 1e+308"),
-    ("qube-identify", [*BASE["qube-identify"], "--alpha", "inf"], "qube-identify: error: --alpha must be a finite number >= 0, got inf"),
-    ("qube-identify", [*BASE["qube-identify"], "--max-radius", "inf"],
-     "qube-identify: error: --max-radius must be a finite positive number, got inf"),
-    ("qube-identify", [*BASE["qube-identify"], "--max-radius", "1", "--pole-center", "nan"],
-     "qube-identify: error: --pole-center must be a finite number, got nan"),
-    ("qube-identify", [*BASE["qube-identify"], "--rbf", "thin-plate", "--rbf-shape", "nan"],
-     "qube-identify: error: --rbf-shape must be positive, got nan"),
-    ("qube-identify", [*BASE["qube-identify"], "--rbf", "thin-plate", "--rbf-offset", "-1"],
-     "qube-identify: error: --rbf-offset must be positive, got -1.0"),
-    ("qube-identify", [*BASE["qube-identify"], "--rbf", "thin-plate", "--rbf-centers", str(10**30)],
-     f"qube-identify: error: argument --rbf-centers: must be a whole number in [1, 1000], got {10**30}"),
-    ("qube-identify", [*BASE["qube-identify"], "--alpha-sweep", "1", "2", str(10**30)],
-     f"qube-identify: error: --alpha-sweep needs a finite MAX and N <= 1000, got 1 2 {10**30}"),
-    ("qube-identify", [*BASE["qube-identify"], "--alpha-sweep", "1", "inf", "3"],
-     "qube-identify: error: --alpha-sweep needs a finite MAX and N <= 1000, got 1 inf 3"),
-    ("qube-identify", [*BASE["qube-identify"], "--poly", str(10**30)],
-     f"qube-identify: error: --poly must be at most 10, got {10**30}"),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--estimate-window", "inf", "--protocol", "window"],
+        "qube-identify: error: --estimate-window must be at most 86400 s (the longest episode), got inf",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--estimate-window", "1e308", "--offsets", "alpha"],
+        "qube-identify: error: --estimate-window must be at most 86400 s (the longest episode), got 1e+308",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--alpha", "inf"],
+        "qube-identify: error: --alpha must be a finite number >= 0, got inf",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--max-radius", "inf"],
+        "qube-identify: error: --max-radius must be a finite positive number, got inf",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--max-radius", "1", "--pole-center", "nan"],
+        "qube-identify: error: --pole-center must be a finite number, got nan",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--rbf", "thin-plate", "--rbf-shape", "nan"],
+        "qube-identify: error: --rbf-shape must be positive, got nan",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--rbf", "thin-plate", "--rbf-offset", "-1"],
+        "qube-identify: error: --rbf-offset must be positive, got -1.0",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--rbf", "thin-plate", "--rbf-centers", str(10**30)],
+        f"qube-identify: error: argument --rbf-centers: must be a whole number in [1, 1000], got {10**30}",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--alpha-sweep", "1", "2", str(10**30)],
+        f"qube-identify: error: --alpha-sweep needs a finite MAX and N <= 1000, got 1 2 {10**30}",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--alpha-sweep", "1", "inf", "3"],
+        "qube-identify: error: --alpha-sweep needs a finite MAX and N <= 1000, got 1 inf 3",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--poly", str(10**30)],
+        f"qube-identify: error: --poly must be at most 10, got {10**30}",
+    ),
     ("qube-design", ["junk.bin", "--out", "c.toml"], "qube-design: error: junk.bin: not a readable model file ("),
-    ("qube-identify", [*BASE["qube-identify"], "--delays", str(10**30)],
-     f"qube-identify: error: --delays {10**30} needs episodes of at least {10**30 + 2} samples; "),
-    ("qube-identify", [*BASE["qube-identify"], "--search"], "qube-identify: error: --search cross-validates by "
-     "holding out whole training episodes: it needs at least 2 training logs, got 1"),
-    ("qube-identify", [*BASE["qube-identify"], "--alpha-sweep", "1e-3", "1", "3"], "qube-identify: error: "
-     "--alpha-sweep cross-validates by holding out whole training episodes: it needs at least 2 training logs, got 1"),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--delays", str(10**30)],
+        f"qube-identify: error: --delays {10**30} needs episodes of at least {10**30 + 2} samples; ",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--search"],
+        "qube-identify: error: --search cross-validates by "
+        "holding out whole training episodes: it needs at least 2 training logs, got 1",
+    ),
+    (
+        "qube-identify",
+        [*BASE["qube-identify"], "--alpha-sweep", "1e-3", "1", "3"],
+        "qube-identify: error: "
+        "--alpha-sweep cross-validates by holding out whole training episodes: it needs at least 2 training logs, got 1",
+    ),
 ]
 
 

@@ -30,7 +30,7 @@ def interrupt_text_writes(monkeypatch):
         original = getattr(Path, name)
 
         def half(self, data, *args, _original=original, **kwargs):
-            _original(self, data[:len(data) // 2], *args, **kwargs)
+            _original(self, data[: len(data) // 2], *args, **kwargs)
             raise KeyboardInterrupt
 
         monkeypatch.setattr(Path, name, half)
@@ -126,10 +126,12 @@ def test_interrupted_controller_plant_and_json_files_leave_nothing(tmp_path, mon
     from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
     system = DiscreteStateSpace(np.eye(2) * 0.5, np.eye(2), np.ones((1, 2)), np.ones((1, 2)), 0.002)
-    writers = {"c.toml": lambda p: write_controller_file(p, system),
-               "p.toml": lambda p: save_plant(p, PlantFile(PendulumParameters())),
-               "r.json": lambda p: write_json(p, {"a": 1.0}),
-               "r.md": lambda p: reports.write_markdown_report(p, {})}
+    writers = {
+        "c.toml": lambda p: write_controller_file(p, system),
+        "p.toml": lambda p: save_plant(p, PlantFile(PendulumParameters())),
+        "r.json": lambda p: write_json(p, {"a": 1.0}),
+        "r.md": lambda p: reports.write_markdown_report(p, {}),
+    }
     monkeypatch.setattr(reports, "markdown_report", lambda report: "# a report\n" * 50)  # the writing is tested
     for name, write in writers.items():
         with pytest.raises(KeyboardInterrupt):
@@ -186,12 +188,14 @@ def test_an_interrupted_identification_leaves_no_partial_model_or_report(tmp_pat
     original = Path.write_text
 
     def half(self, data, *args, **kwargs):  # the model file is the first file written
-        original(self, data[:len(data) // 2], *args, **kwargs)
+        original(self, data[: len(data) // 2], *args, **kwargs)
         raise KeyboardInterrupt
 
     monkeypatch.setattr(Path, "write_text", half)
-    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--out", str(tmp_path / "m"),
-                          "-q"]) == 130
+    assert (
+        identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--out", str(tmp_path / "m"), "-q"])
+        == 130
+    )
     assert "interrupted" in capsys.readouterr().err
     out = tmp_path / "m"
     assert not (out / "model.json").exists() and not (out / "report.json").exists()
@@ -219,6 +223,7 @@ def test_commands_stopped_by_a_signal_say_interrupted_in_one_line(signum, status
 
     from qube_koopman.daq import export as export_module
     from qube_koopman.daq import legacy_csv
+
     monkeypatch.setattr(export_module, "export_episode", stop)
     monkeypatch.setattr(legacy_csv, "legacy_episode", stop)
     monkeypatch.setattr(identify_cli, "identify_and_score", stop, raising=False)
@@ -227,11 +232,15 @@ def test_commands_stopped_by_a_signal_say_interrupted_in_one_line(signum, status
 
     rig = controller_file("rig")
     (tmp_path / "episode.csv").write_text("t\n")
-    runs = {"qube-export": lambda: export_main([*logs, "--format", "csv", "--out", str(tmp_path / "x")]),
-            "qube-import": lambda: import_main([str(tmp_path / "episode.csv"), "--controller", str(rig), "--out",
-                                                str(tmp_path / "y")]),
-            "qube-identify": lambda: identify_cli.main(["--train", logs[0], "--test", logs[1], "--out",
-                                                        str(tmp_path / "z" / "deep")])}
+    runs = {
+        "qube-export": lambda: export_main([*logs, "--format", "csv", "--out", str(tmp_path / "x")]),
+        "qube-import": lambda: import_main(
+            [str(tmp_path / "episode.csv"), "--controller", str(rig), "--out", str(tmp_path / "y")]
+        ),
+        "qube-identify": lambda: identify_cli.main(
+            ["--train", logs[0], "--test", logs[1], "--out", str(tmp_path / "z" / "deep")]
+        ),
+    }
     for name, command in runs.items():
         assert command() == status, name
         err = capsys.readouterr().err
@@ -241,9 +250,11 @@ def test_commands_stopped_by_a_signal_say_interrupted_in_one_line(signum, status
 
 def _writer_stopped_mid_write(target: Path) -> subprocess.Popen:
     """A process inside ``atomic_path(target)`` with half a file written, waiting for its stdin."""
-    code = ("import sys; from qube_koopman.core.files import atomic_path\n"
-            f"with atomic_path({str(target)!r}) as tmp:\n"
-            "    tmp.write_bytes(b'half a file'); print(tmp, flush=True); sys.stdin.read()\n")
+    code = (
+        "import sys; from qube_koopman.core.files import atomic_path\n"
+        f"with atomic_path({str(target)!r}) as tmp:\n"
+        "    tmp.write_bytes(b'half a file'); print(tmp, flush=True); sys.stdin.read()\n"
+    )
     return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
 

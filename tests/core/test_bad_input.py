@@ -174,15 +174,27 @@ def _npz_declaring(path, shape) -> None:
 _STATE_SPACE = 'format = "qube-controller/1"\nkind = "state-space"\ndt = 0.002\ninputs = ["e_theta", "e_alpha"]\n'
 
 
-@pytest.mark.parametrize("case, message", [
-    ("pipe", "{c}: a named pipe, not a regular file: not read as the controller file (--controller)"),
-    ("/dev/zero", "/dev/zero: a character device, not a regular file: not read as the controller file (--controller)"),
-    ("deep", "{c}: lists and tables nested more than 64 levels deep (--controller)"),
-    ("npz", "{c}: {d}/m.npz: array A declares 40000 x 40000 entries, more than the controller's matrices file "
-            "may hold (matrices) (--controller)"),
-    ("npz-pipe", "{c}: {d}/m.npz: a named pipe, not a regular file: not read as the controller's matrices file "
-                 "(matrices) (--controller)"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("pipe", "{c}: a named pipe, not a regular file: not read as the controller file (--controller)"),
+        (
+            "/dev/zero",
+            "/dev/zero: a character device, not a regular file: not read as the controller file (--controller)",
+        ),
+        ("deep", "{c}: lists and tables nested more than 64 levels deep (--controller)"),
+        (
+            "npz",
+            "{c}: {d}/m.npz: array A declares 40000 x 40000 entries, more than the controller's matrices file "
+            "may hold (matrices) (--controller)",
+        ),
+        (
+            "npz-pipe",
+            "{c}: {d}/m.npz: a named pipe, not a regular file: not read as the controller's matrices file "
+            "(matrices) (--controller)",
+        ),
+    ],
+)
 def test_qube_run_refuses_a_crafted_controller_file_in_one_line(tmp_path, capsys, case, message):
     import os
 
@@ -192,8 +204,10 @@ def test_qube_run_refuses_a_crafted_controller_file_in_one_line(tmp_path, capsys
     if case == "pipe":
         os.mkfifo(controller)
     elif case == "deep":
-        controller.write_text(_STATE_SPACE + "A = [[1.0]]\nB = [[1.0, 1.0]]\nC = [[1.0]]\nD = [[0.0, 0.0]]\n"
-                              f"[provenance]\nx = {_deep()}\n")
+        controller.write_text(
+            _STATE_SPACE + "A = [[1.0]]\nB = [[1.0, 1.0]]\nC = [[1.0]]\nD = [[0.0, 0.0]]\n"
+            f"[provenance]\nx = {_deep()}\n"
+        )
     elif case.startswith("npz"):
         if case == "npz":
             _npz_declaring(tmp_path / "m.npz", (40000, 40000))  # 12.8 GB once loaded
@@ -202,8 +216,22 @@ def test_qube_run_refuses_a_crafted_controller_file_in_one_line(tmp_path, capsys
         controller.write_text(_STATE_SPACE + 'matrices = "m.npz"\n')
     else:
         controller = case
-    assert main(["--episodes", "1", "--duration", "1", "--controller", str(controller),
-                 "--out", str(tmp_path / "runs"), "-q"]) == 2
+    assert (
+        main(
+            [
+                "--episodes",
+                "1",
+                "--duration",
+                "1",
+                "--controller",
+                str(controller),
+                "--out",
+                str(tmp_path / "runs"),
+                "-q",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err == "qube-run: error: " + message.format(c=controller, d=tmp_path) + "\n"
 
@@ -228,8 +256,10 @@ def test_qube_run_refuses_to_replay_a_log_whose_seeds_are_not_64_bit(tmp_path, c
     write_episode(tmp_path / "log.mcap", make_episode(400, excitation={"seeds": seeds}))
     assert main(["--replay", str(tmp_path / "log.mcap"), "--out", str(tmp_path / "runs"), "-q"]) == 2
     err = capsys.readouterr().err
-    assert err == (f"qube-run: error: {tmp_path / 'log.mcap'}: excitation seeds [{2**80}, 1, 2] are not 64-bit "
-                   "integers (qube-run records such seeds only); it cannot be replayed (--replay)\n")
+    assert err == (
+        f"qube-run: error: {tmp_path / 'log.mcap'}: excitation seeds [{2**80}, 1, 2] are not 64-bit "
+        "integers (qube-run records such seeds only); it cannot be replayed (--replay)\n"
+    )
 
 
 @pytest.mark.parametrize("command", ["export", "import"])

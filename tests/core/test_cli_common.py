@@ -12,14 +12,21 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.mark.parametrize("module, prog", [("qube_koopman.daq.cli.run", "qube-run"), ("qube_koopman.daq.cli.import_csv", "qube-import"),
-                                          ("qube_koopman.sim.cli.emulate", "qube-emulate"),
-                                          ("qube_koopman.reproduce.cli", "qube-reproduce")])
+@pytest.mark.parametrize(
+    "module, prog",
+    [
+        ("qube_koopman.daq.cli.run", "qube-run"),
+        ("qube_koopman.daq.cli.import_csv", "qube-import"),
+        ("qube_koopman.sim.cli.emulate", "qube-emulate"),
+        ("qube_koopman.reproduce.cli", "qube-reproduce"),
+    ],
+)
 def test_version(module, prog):
     from qube_koopman.core.cli import package_version
 
-    proc = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True,
-                          cwd=REPO, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", module, "--version"], capture_output=True, text=True, cwd=REPO, timeout=60
+    )
     assert proc.returncode == 0 and proc.stdout == f"{prog} {package_version()}\n", proc.stderr
     assert package_version() != ""
 
@@ -43,12 +50,25 @@ def test_the_progress_callback_draws_on_a_terminal_only(terminal, capsys, monkey
 
 # One error style for every command: `<command>: error: <file>: <problem>`, a non-zero exit, no traceback.
 BAD_ARGUMENTS = [  # module, program, arguments, the file the error must name first
-    ("qube_koopman.daq.cli.run", "qube-run", ["--controller", "{binary}", "--episodes", "1", "--duration", "1", "--out", "o", "-q"],
-     "{binary}"),
-    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{binary}", "--controller", "{binary}", "--out", "o", "-q"], "{binary}"),
+    (
+        "qube_koopman.daq.cli.run",
+        "qube-run",
+        ["--controller", "{binary}", "--episodes", "1", "--duration", "1", "--out", "o", "-q"],
+        "{binary}",
+    ),
+    (
+        "qube_koopman.daq.cli.import_csv",
+        "qube-import",
+        ["{binary}", "--controller", "{binary}", "--out", "o", "-q"],
+        "{binary}",
+    ),
     ("qube_koopman.daq.cli.export", "qube-export", ["{binary}", "--format", "csv", "--out", "o", "-q"], "{binary}"),
-    ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
-     "{missing}"),
+    (
+        "qube_koopman.identify.cli.identify",
+        "qube-identify",
+        ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
+        "{missing}",
+    ),
     ("qube_koopman.reproduce.cli", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
     ("qube_koopman.sim.cli.emulate", "qube-emulate", ["--record", "{missing}/x.csv", "-q"], "{missing}/x.csv"),
 ]
@@ -58,8 +78,14 @@ BAD_ARGUMENTS = [  # module, program, arguments, the file the error must name fi
 def test_every_command_reports_a_bad_file_as_command_error_file_problem(module, prog, argv, named, tmp_path):
     paths = {"binary": tmp_path / "bin.dat", "missing": tmp_path / "missing"}
     paths["binary"].write_bytes(b"\x7fELF\x02\x01\x01" + bytes(500))
-    proc = subprocess.run([sys.executable, "-m", module, *(a.format(**paths) for a in argv)], capture_output=True,
-                          text=True, cwd=tmp_path, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    proc = subprocess.run(
+        [sys.executable, "-m", module, *(a.format(**paths) for a in argv)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if ": error: " in line]
     assert errors and errors[0].startswith(f"{prog}: error: {named.format(**paths)}: "), proc.stderr
@@ -70,11 +96,22 @@ def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(
     from qube_koopman.identify.cli.identify import main
 
     target = tmp_path / "no" / "such" / "id.rrd"
-    status = main(["--train", str(tmp_path), "--test", str(tmp_path), "--out", str(tmp_path / "model"),
-                   "--rerun-save", str(target)])
+    status = main(
+        [
+            "--train",
+            str(tmp_path),
+            "--test",
+            str(tmp_path),
+            "--out",
+            str(tmp_path / "model"),
+            "--rerun-save",
+            str(target),
+        ]
+    )
     assert status == 2
-    assert capsys.readouterr().err == (f"qube-identify: error: {target}: folder {target.parent} does not exist "
-                                       "(--rerun-save)\n")
+    assert capsys.readouterr().err == (
+        f"qube-identify: error: {target}: folder {target.parent} does not exist (--rerun-save)\n"
+    )
     assert not (tmp_path / "model").exists()  # refused before the output folder, the data or the fit
 
 
@@ -83,14 +120,18 @@ NEGATIVE_SEEDS = [
     ("qube_koopman.daq.cli.run", ["--seed", "-5", "--episodes", "1", "--duration", "0.2"], "--seed"),
     ("qube_koopman.sim.cli.emulate", ["--seed", "-5"], "--seed"),
     ("qube_koopman.reproduce.cli", ["duffing", "--seed", "-5"], "--seed"),
-    ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--rbf", "thin-plate", "--rbf-seed", "-5"],
-     "--rbf-seed"),
+    (
+        "qube_koopman.identify.cli.identify",
+        ["--train", "x", "--test", "y", "--rbf", "thin-plate", "--rbf-seed", "-5"],
+        "--rbf-seed",
+    ),
     ("qube_koopman.identify.cli.identify", ["--train", "x", "--test", "y", "--cv-seed", "-5"], "--cv-seed"),
 ]
 
 
-@pytest.mark.parametrize("module, argv, option", NEGATIVE_SEEDS,
-                         ids=[f"{c[0].rsplit('.')[-1]} {c[2]}" for c in NEGATIVE_SEEDS])
+@pytest.mark.parametrize(
+    "module, argv, option", NEGATIVE_SEEDS, ids=[f"{c[0].rsplit('.')[-1]} {c[2]}" for c in NEGATIVE_SEEDS]
+)
 def test_a_negative_seed_is_a_usage_error_naming_the_option(module, argv, option, tmp_path, capsys, monkeypatch):
     import importlib
 
@@ -105,10 +146,11 @@ def test_a_negative_seed_is_a_usage_error_naming_the_option(module, argv, option
     assert list(tmp_path.iterdir()) == []  # refused before any work
 
 
-@pytest.mark.parametrize("option, value, minimum", [("--skip", "-1", 0), ("--delays", "-2", 0), ("--poly", "0", 1),
-                                                    ("--cv-splits", "0", 1), ("--arx-lags", "-3", 1)])
-def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(option, value, minimum, tmp_path,
-                                                                               capsys):
+@pytest.mark.parametrize(
+    "option, value, minimum",
+    [("--skip", "-1", 0), ("--delays", "-2", 0), ("--poly", "0", 1), ("--cv-splits", "0", 1), ("--arx-lags", "-3", 1)],
+)
+def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(option, value, minimum, tmp_path, capsys):
     from qube_koopman.identify.cli.identify import main
 
     with pytest.raises(SystemExit) as exc:  # the logs do not exist: refused before looking for them
@@ -119,14 +161,18 @@ def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(op
     assert "missing" not in err.splitlines()[-1]
 
 
-@pytest.mark.parametrize("module, prog, argv", [
-    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{missing}", "--out", "{tmp}/o"]),
-    ("qube_koopman.daq.cli.export", "qube-export", ["{missing}", "--format", "csv", "--out", "{tmp}/o"]),
-    ("qube_koopman.daq.cli.import_csv", "qube-import", ["{tmp}", "--out", "{tmp}/o"]),  # a folder without any
-    ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}"]),
-    ("qube_koopman.identify.cli.calibrate", "qube-calibrate", ["{missing}", "--out", "{tmp}/p.toml"]),
-    ("qube_koopman.reproduce.cli", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
-], ids=["qube-import", "qube-export", "qube-import empty folder", "qube-identify", "qube-calibrate", "qube-reproduce"])
+@pytest.mark.parametrize(
+    "module, prog, argv",
+    [
+        ("qube_koopman.daq.cli.import_csv", "qube-import", ["{missing}", "--out", "{tmp}/o"]),
+        ("qube_koopman.daq.cli.export", "qube-export", ["{missing}", "--format", "csv", "--out", "{tmp}/o"]),
+        ("qube_koopman.daq.cli.import_csv", "qube-import", ["{tmp}", "--out", "{tmp}/o"]),  # a folder without any
+        ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}"]),
+        ("qube_koopman.identify.cli.calibrate", "qube-calibrate", ["{missing}", "--out", "{tmp}/p.toml"]),
+        ("qube_koopman.reproduce.cli", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
+    ],
+    ids=["qube-import", "qube-export", "qube-import empty folder", "qube-identify", "qube-calibrate", "qube-reproduce"],
+)
 def test_a_missing_input_is_a_usage_error_in_every_command(module, prog, argv, tmp_path, capsys):
     import importlib
 
@@ -139,15 +185,22 @@ def test_a_missing_input_is_a_usage_error_in_every_command(module, prog, argv, t
 def _raises(exc):
     def command(args):
         raise exc
+
     return command
 
 
-@pytest.mark.parametrize("exc, status, line", [
-    (None, 2, "qube-x: error: f.txt: bad value"),                               # a user mistake
-    (OSError(28, "No space left on device", "/out/model.json"), 1,
-     "qube-x: error: /out/model.json: No space left on device"),                # a run-time failure
-    (KeyboardInterrupt(), 130, "qube-x: error: interrupted"),
-])
+@pytest.mark.parametrize(
+    "exc, status, line",
+    [
+        (None, 2, "qube-x: error: f.txt: bad value"),  # a user mistake
+        (
+            OSError(28, "No space left on device", "/out/model.json"),
+            1,
+            "qube-x: error: /out/model.json: No space left on device",
+        ),  # a run-time failure
+        (KeyboardInterrupt(), 130, "qube-x: error: interrupted"),
+    ],
+)
 def test_run_command_exit_statuses_follow_the_readme_table(exc, status, line, capsys):
     import argparse
 
@@ -180,8 +233,9 @@ def test_qube_emulate_names_an_output_it_cannot_write_at_exit(tmp_path):
 
     from qube_koopman.sim.cli.emulate import _write_outputs
 
-    emulator = types.SimpleNamespace(stats=lambda: {"ticks": 1}, faults=types.SimpleNamespace(as_dict=dict),
-                                     vanished_at=None, events=[])
+    emulator = types.SimpleNamespace(
+        stats=lambda: {"ticks": 1}, faults=types.SimpleNamespace(as_dict=dict), vanished_at=None, events=[]
+    )
     errors = _write_outputs(emulator, argparse.Namespace(stats="/dev/full", record=None))
     assert errors == ["/dev/full: cannot write: No space left on device"]
     good = tmp_path / "stats.json"
@@ -189,16 +243,30 @@ def test_qube_emulate_names_an_output_it_cannot_write_at_exit(tmp_path):
     assert '"ticks": 1' in good.read_text()
 
 
-@pytest.mark.parametrize("module, argv, message", [
-    ("qube_koopman.sim.cli.emulate", ["--hold-at", "1", "--hold-periods", "-3"],
-     "argument --hold-periods: must be a whole number in [1, 100000], got -3"),  # a traceback from Faults before
-    ("qube_koopman.identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--delay", "-1"],
-     "argument --delay: must be a whole number >= 0, got -1"),
-    ("qube_koopman.identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--max-nfev", "0"],
-     "argument --max-nfev: must be a whole number >= 1, got 0"),
-], ids=["emulate --hold-periods", "calibrate --delay", "calibrate --max-nfev"])
-def test_counts_out_of_range_are_usage_errors_naming_option_and_value(module, argv, message, tmp_path, capsys,
-                                                                     monkeypatch):
+@pytest.mark.parametrize(
+    "module, argv, message",
+    [
+        (
+            "qube_koopman.sim.cli.emulate",
+            ["--hold-at", "1", "--hold-periods", "-3"],
+            "argument --hold-periods: must be a whole number in [1, 100000], got -3",
+        ),  # a traceback from Faults before
+        (
+            "qube_koopman.identify.cli.calibrate",
+            ["x.mcap", "--out", "p.toml", "--delay", "-1"],
+            "argument --delay: must be a whole number >= 0, got -1",
+        ),
+        (
+            "qube_koopman.identify.cli.calibrate",
+            ["x.mcap", "--out", "p.toml", "--max-nfev", "0"],
+            "argument --max-nfev: must be a whole number >= 1, got 0",
+        ),
+    ],
+    ids=["emulate --hold-periods", "calibrate --delay", "calibrate --max-nfev"],
+)
+def test_counts_out_of_range_are_usage_errors_naming_option_and_value(
+    module, argv, message, tmp_path, capsys, monkeypatch
+):
     import importlib
 
     monkeypatch.chdir(tmp_path)
@@ -210,9 +278,19 @@ def test_counts_out_of_range_are_usage_errors_naming_option_and_value(module, ar
     assert status == 2 and message in err and "Traceback" not in err, err
 
 
-@pytest.mark.parametrize("module", ["daq.cli.import_csv", "daq.cli.export", "daq.cli.run", "identify.cli.identify",
-                                    "reproduce.cli", "identify.cli.calibrate", "design.cli.design",
-                                    "sim.cli.emulate"])
+@pytest.mark.parametrize(
+    "module",
+    [
+        "daq.cli.import_csv",
+        "daq.cli.export",
+        "daq.cli.run",
+        "identify.cli.identify",
+        "reproduce.cli",
+        "identify.cli.calibrate",
+        "design.cli.design",
+        "sim.cli.emulate",
+    ],
+)
 def test_help_is_plain_text_without_restructuredtext_markup(module, capsys):
     import importlib
 
@@ -226,11 +304,19 @@ def test_help_is_plain_text_without_restructuredtext_markup(module, capsys):
     assert "usage:" in out and "``" not in out and ":func:" not in out and ":class:" not in out
 
 
-@pytest.mark.parametrize("module, argv", [
-    ("daq.cli.import_csv", []), ("daq.cli.export", ["x.mcap", "--format", "xlsx", "--out", "d"]),
-    ("daq.cli.run", ["--episodes", "-1"]), ("identify.cli.identify", ["--delays", "-1", "x.mcap"]),
-    ("reproduce.cli", ["bogus"]), ("identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--poly"]),
-    ("design.cli.design", []), ("sim.cli.emulate", ["--drop-rate", "2"])])
+@pytest.mark.parametrize(
+    "module, argv",
+    [
+        ("daq.cli.import_csv", []),
+        ("daq.cli.export", ["x.mcap", "--format", "xlsx", "--out", "d"]),
+        ("daq.cli.run", ["--episodes", "-1"]),
+        ("identify.cli.identify", ["--delays", "-1", "x.mcap"]),
+        ("reproduce.cli", ["bogus"]),
+        ("identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--poly"]),
+        ("design.cli.design", []),
+        ("sim.cli.emulate", ["--drop-rate", "2"]),
+    ],
+)
 def test_usage_errors_are_one_line_in_every_command(module, argv, capsys):
     import importlib
 
@@ -254,8 +340,10 @@ def test_the_earlier_rerun_file_option_names_its_new_name(prog, tmp_path, capsys
     with pytest.raises(SystemExit) as stopped:
         main([str(tmp_path), "--out", str(tmp_path / "x"), "--rerun", str(tmp_path / "r.rrd")])
     assert stopped.value.code == 2
-    assert capsys.readouterr().err == (f"{prog}: error: --rerun is now --rerun-save FILE.rrd (a file; qube-run --rerun "
-                                       f"streams to a viewer) (see {prog} --help)\n")
+    assert capsys.readouterr().err == (
+        f"{prog}: error: --rerun is now --rerun-save FILE.rrd (a file; qube-run --rerun "
+        f"streams to a viewer) (see {prog} --help)\n"
+    )
 
 
 def _every_help() -> dict:
@@ -271,8 +359,9 @@ def _every_help() -> dict:
     for name, target in scripts.items():
         module, func = target.split(":")
         main = getattr(importlib.import_module(module), func)
-        for argv in (["--help"], ["qube", "--help"], ["duffing", "--help"]) if name == "qube-reproduce" else (
-                ["--help"],):
+        for argv in (
+            (["--help"], ["qube", "--help"], ["duffing", "--help"]) if name == "qube-reproduce" else (["--help"],)
+        ):
             text = StringIO()
             try:
                 with redirect_stdout(text):
@@ -290,8 +379,9 @@ def test_no_help_names_a_missing_section_or_a_development_path():
     from pathlib import Path
 
     root = Path(__file__).parents[2]
-    headings = {line.lstrip("#").strip() for line in (root / "README.md").read_text().splitlines()
-                if line.startswith("#")}
+    headings = {
+        line.lstrip("#").strip() for line in (root / "README.md").read_text().splitlines() if line.startswith("#")
+    }
     helps = _every_help()
     assert len(helps) >= 10
     for command, text in helps.items():

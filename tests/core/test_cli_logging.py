@@ -11,11 +11,15 @@ from _episodes import make_episode
 
 from qube_koopman.daq.log import write_episode
 
-COMMANDS = [("qube_koopman.daq.cli.run", "qube-run"), ("qube_koopman.daq.cli.import_csv", "qube-import"),
-            ("qube_koopman.daq.cli.export", "qube-export"), ("qube_koopman.sim.cli.emulate", "qube-emulate"),
-            ("qube_koopman.identify.cli.calibrate", "qube-calibrate"),
-            ("qube_koopman.identify.cli.identify", "qube-identify"),
-            ("qube_koopman.reproduce.cli", "qube-reproduce")]
+COMMANDS = [
+    ("qube_koopman.daq.cli.run", "qube-run"),
+    ("qube_koopman.daq.cli.import_csv", "qube-import"),
+    ("qube_koopman.daq.cli.export", "qube-export"),
+    ("qube_koopman.sim.cli.emulate", "qube-emulate"),
+    ("qube_koopman.identify.cli.calibrate", "qube-calibrate"),
+    ("qube_koopman.identify.cli.identify", "qube-identify"),
+    ("qube_koopman.reproduce.cli", "qube-reproduce"),
+]
 
 # A quick invocation of each command that gets past its argument parsing (and fails on a file).
 QUICK = {
@@ -99,6 +103,7 @@ def test_q_silences_the_identification_progress_bars(quiet, capsys, monkeypatch)
 
 # --- qube-reproduce --strict --------------------------------------------------------------------------
 
+
 @pytest.fixture
 def logs_with_an_empty_one(tmp_path):
     """29 readable logs (the paper's split needs more than 28) and an empty one among the training logs."""
@@ -122,19 +127,24 @@ def test_qube_reproduce_strict_refuses_an_unreadable_log(logs_with_an_empty_one,
     status = main(["qube", "--data", str(logs_with_an_empty_one), "--out", str(tmp_path / "o"), "--strict", "-q"])
     assert status == 2
     err = _without_split_warning(capsys.readouterr().err)
-    assert err == (f"qube-reproduce: error: {logs_with_an_empty_one / 'b_empty.mcap'}: "
-                   "empty file, not an MCAP episode log; refused because of --strict\n")
+    assert err == (
+        f"qube-reproduce: error: {logs_with_an_empty_one / 'b_empty.mcap'}: "
+        "empty file, not an MCAP episode log; refused because of --strict\n"
+    )
     assert not (tmp_path / "o" / "qube.json").exists()
 
 
 def test_qube_reproduce_without_strict_skips_it_with_a_warning(logs_with_an_empty_one, tmp_path, capsys):
     from qube_koopman.reproduce.cli import main
 
-    status = main(["qube", "--data", str(logs_with_an_empty_one), "--out", str(tmp_path / "o"), "--n-alphas", "2",
-                   "-q"])
+    status = main(
+        ["qube", "--data", str(logs_with_an_empty_one), "--out", str(tmp_path / "o"), "--n-alphas", "2", "-q"]
+    )
     err = _without_split_warning(capsys.readouterr().err)
-    assert err.splitlines()[0] == (f"qube-reproduce: warning: {logs_with_an_empty_one / 'b_empty.mcap'}: empty file, "
-                                   "not an MCAP episode log; skipped"), err
+    assert err.splitlines()[0] == (
+        f"qube-reproduce: warning: {logs_with_an_empty_one / 'b_empty.mcap'}: empty file, "
+        "not an MCAP episode log; skipped"
+    ), err
     assert status == 0 and (tmp_path / "o" / "qube.json").exists(), err  # the study ran on the other 29
 
 
@@ -146,8 +156,21 @@ def test_qube_identify_counts_the_episodes_as_an_info_line(flag, tmp_path, capsy
         write_episode(tmp_path / f"{name}.mcap", make_episode(300, seed=len(name)))
     train, test = [str(tmp_path / "train_a.mcap"), str(tmp_path / "train_b.mcap")], [str(tmp_path / "test_a.mcap")]
     # --estimate-window longer than the episodes: refused right after the count, before any fit
-    argv = ["--train", *train, "--test", *test, "--skip", "0", "--offsets", "alpha", "--estimate-window", "5",
-            "--out", str(tmp_path / "o"), *([flag] if flag else [])]
+    argv = [
+        "--train",
+        *train,
+        "--test",
+        *test,
+        "--skip",
+        "0",
+        "--offsets",
+        "alpha",
+        "--estimate-window",
+        "5",
+        "--out",
+        str(tmp_path / "o"),
+        *([flag] if flag else []),
+    ]
     assert main(argv) == 2
     err = capsys.readouterr().err
     counted = "qube-identify: info: 2 training and 1 test episodes, 0 samples dropped from each\n"

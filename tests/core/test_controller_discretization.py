@@ -32,8 +32,10 @@ def _with_control(gains: PdGains, dt: float, method: str):
     import control
 
     s = control.tf("s")
-    channels = [-(kp + kd * gains.tau * s / (s + gains.tau))
-                for kp, kd in ((gains.kp_theta, gains.kd_theta), (gains.kp_alpha, gains.kd_alpha))]
+    channels = [
+        -(kp + kd * gains.tau * s / (s + gains.tau))
+        for kp, kd in ((gains.kp_theta, gains.kd_theta), (gains.kp_alpha, gains.kd_alpha))
+    ]
     blocks = []
     for channel in channels:
         sys_d = control.sample_system(control.ss(channel), dt, method=DISCRETIZATIONS[method])
@@ -88,7 +90,12 @@ def test_sample_block_is_cont2discrete_on_a_multi_state_block(method):
     from scipy.signal import cont2discrete
 
     rng = np.random.default_rng(3)
-    A, B, C, D = rng.normal(size=(3, 3)) - 2 * np.eye(3), rng.normal(size=(3, 2)), rng.normal(size=(2, 3)), rng.normal(size=(2, 2))
+    A, B, C, D = (
+        rng.normal(size=(3, 3)) - 2 * np.eye(3),
+        rng.normal(size=(3, 2)),
+        rng.normal(size=(2, 3)),
+        rng.normal(size=(2, 2)),
+    )
     ours = _sample_block(A, B, C, D, 0.05, method)
     theirs = cont2discrete((A, B, C, D), 0.05, method=DISCRETIZATIONS[method])[:4]
     for mine, reference in zip(ours, theirs):
@@ -102,7 +109,9 @@ def test_an_unknown_discretization_is_named():
 
 def test_building_the_rigs_controller_does_not_import_python_control():
     """What the speed is for: qube-run and qube-import build a PD controller at start-up."""
-    code = ("import sys; from qube_koopman.core.controller import PdGains, pd_controller; "
-            "pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0)); print('control' in sys.modules)")
+    code = (
+        "import sys; from qube_koopman.core.controller import PdGains, pd_controller; "
+        "pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0)); print('control' in sys.modules)"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "False"

@@ -20,8 +20,14 @@ from qube_koopman.core.controller import load_pd_gains, pd_controller
 from qube_koopman.core.controller_file import load_controller, write_controller_file
 from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.log import read_episode
-from qube_koopman.identify import (ClEdmd, close_loop, closed_loop_matrices, controller_states,
-                                   extract_plant_lstsq, output_selection)
+from qube_koopman.identify import (
+    ClEdmd,
+    close_loop,
+    closed_loop_matrices,
+    controller_states,
+    extract_plant_lstsq,
+    output_selection,
+)
 from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.data.logs import load_logs
 from qube_koopman.core.lti import same_system
@@ -41,6 +47,7 @@ def with_feedforward(controller: DiscreteStateSpace, b_f, d_f: float) -> Discret
 
 
 # --- the closed-loop structure, on a linear plant (ground truth) ---------------------------------------
+
 
 @pytest.fixture(scope="module")
 def linear():
@@ -97,6 +104,7 @@ def test_a_feedforward_input_without_feedforward_data_is_refused(linear):
 
 # --- the loop's step ---------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("n_states", [2, 12], ids=["plain floats", "numpy"])
 def test_the_loops_step_runs_the_third_input_as_the_state_space_system_does(n_states):
     controller = with_feedforward(padded_realization(RIG_PD, n_states, 4), np.linspace(-1, 1, n_states), -0.5)
@@ -121,6 +129,7 @@ def test_the_loops_step_of_a_two_input_controller_ignores_the_feedforward():
 
 # --- on the twin, end to end -------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def twin(tmp_path_factory):
     """2 x 4 s twin episodes under the rig's PD and under the PD that also halves the feedforward and
@@ -129,8 +138,19 @@ def twin(tmp_path_factory):
     controller = with_feedforward(RIG_PD, [0.01, 0.0], -0.5)
     path = write_controller_file(root / "ff.toml", controller, {"designed_by": "test: PD seeing the feedforward"})
     for name, choice in (("pd", "rig"), ("ff", str(path))):
-        argv = ["--episodes", "2", "--duration", "4", "--seed", "11", "--out", str(root / name), "-q",
-                "--controller", choice]
+        argv = [
+            "--episodes",
+            "2",
+            "--duration",
+            "4",
+            "--seed",
+            "11",
+            "--out",
+            str(root / name),
+            "-q",
+            "--controller",
+            choice,
+        ]
         assert run_main(argv) == 0
     return root, path, controller
 
@@ -179,8 +199,18 @@ def test_a_plant_identified_under_the_pd_predicts_the_loop_under_the_feedforward
     assert right > 0.95
     assert 1 - wrong > 2 * (1 - right), (right, wrong)  # measured: 0.976 vs 0.922, 3.2x the residual
     # The what-if path: the PD's test log predicted under the feedforward controller's file.
-    argv = ["--train", str(pd[0]), "--test", str(pd[1]), *FLAGS, "--controller", str(path),
-            "--out", str(tmp_path / "what_if"), "-q"]
+    argv = [
+        "--train",
+        str(pd[0]),
+        "--test",
+        str(pd[1]),
+        *FLAGS,
+        "--controller",
+        str(path),
+        "--out",
+        str(tmp_path / "what_if"),
+        "-q",
+    ]
     assert identify_main(argv) == 0, capsys.readouterr().err
     assert json.loads((tmp_path / "what_if" / "report.json").read_text())["what_if"]
 

@@ -12,8 +12,9 @@ def _system(n_outputs: int = 1, seed: int = 0) -> DiscreteStateSpace:
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(3, 3))
     A *= 0.9 / max(abs(np.linalg.eigvals(A)))
-    return DiscreteStateSpace(A, rng.normal(size=(3, 2)), rng.normal(size=(n_outputs, 3)),
-                              rng.normal(size=(n_outputs, 2)), 0.002)
+    return DiscreteStateSpace(
+        A, rng.normal(size=(3, 2)), rng.normal(size=(n_outputs, 3)), rng.normal(size=(n_outputs, 2)), 0.002
+    )
 
 
 def _late(y: np.ndarray, samples: int) -> np.ndarray:

@@ -45,7 +45,8 @@ BATCH = [
     ("qube-export", ["logs", "--format", "csv", "--out", "OUT"], "a.csv"),
 ]
 FOLDER_OUTPUTS = [case for case in SINGLE_RESULT + BATCH if case[2] is not None] + [
-    ("qube-run", ["--episodes", "1", "--duration", "1", "--out", "OUT"], None)]
+    ("qube-run", ["--episodes", "1", "--duration", "1", "--out", "OUT"], None)
+]
 
 
 def _ids(cases):
@@ -76,8 +77,10 @@ def test_an_existing_result_is_refused_before_any_work_and_kept(command, argv, n
     out = target.parent.name if name else target.name
     status, err = run_in_process(command, _argv(argv, out), folder)
     assert status == 2, err
-    assert err.strip().splitlines() == [f"{command}: error: {target.relative_to(folder)}: exists (use --force to "
-                                        f"overwrite) ({argv[argv.index('OUT') - 1]})"], err
+    assert err.strip().splitlines() == [
+        f"{command}: error: {target.relative_to(folder)}: exists (use --force to "
+        f"overwrite) ({argv[argv.index('OUT') - 1]})"
+    ], err
     assert target.read_bytes() == b"earlier result\n"
 
 
@@ -109,16 +112,28 @@ def test_an_output_folder_under_a_file_is_a_user_error_before_any_work(command, 
 
 
 @pytest.mark.parametrize("command, argv, name", FOLDER_OUTPUTS[:-1], ids=_ids(FOLDER_OUTPUTS[:-1]))
-def test_a_read_only_output_folder_is_a_user_error_before_any_work(command, argv, name, folder, stubs,  # noqa: F811
-                                                                  monkeypatch):
+def test_a_read_only_output_folder_is_a_user_error_before_any_work(
+    command,
+    argv,
+    name,
+    folder,
+    stubs,  # noqa: F811
+    monkeypatch,
+):
     # Read-only as the permission check sees it (the tests may run as root, whom a mode does not stop).
     (folder / "ro").mkdir()
     real_access = os.access
-    monkeypatch.setattr(os, "access", lambda path, mode, *a, **k: (Path(path).name != "ro" or not mode & os.W_OK)
-                        and real_access(path, mode, *a, **k))
+    monkeypatch.setattr(
+        os,
+        "access",
+        lambda path, mode, *a, **k: (
+            (Path(path).name != "ro" or not mode & os.W_OK) and real_access(path, mode, *a, **k)
+        ),
+    )
     status, err = run_in_process(command, _argv(argv, "ro"), folder)
     assert status == 2 and err.strip().splitlines() == [
-        f"{command}: error: ro: cannot write in ro (permission denied) ({argv[argv.index('OUT') - 1]})"], err
+        f"{command}: error: ro: cannot write in ro (permission denied) ({argv[argv.index('OUT') - 1]})"
+    ], err
     assert list((folder / "ro").iterdir()) == []
 
 
@@ -143,9 +158,11 @@ def test_calibrate_design_and_reproduce_stopped_by_a_signal_say_so_in_one_line(s
     monkeypatch.setattr(calibrate.PlantCalibration, "fit", stop)
     monkeypatch.setattr(workflow, "design_from_model", stop)
     monkeypatch.setattr(duffing, "reproduce_duffing", stop)
-    for command, argv in (("qube-calibrate", ["logs/a.mcap", "--out", "p.toml"]),
-                          ("qube-design", ["junk.bin", "--out", "c.toml"]),
-                          ("qube-reproduce", ["duffing", "--out", "new/results"])):
+    for command, argv in (
+        ("qube-calibrate", ["logs/a.mcap", "--out", "p.toml"]),
+        ("qube-design", ["junk.bin", "--out", "c.toml"]),
+        ("qube-reproduce", ["duffing", "--out", "new/results"]),
+    ):
         got, err = run_in_process(command, argv, folder)
         assert got == status and err.strip().splitlines() == [f"{command}: error: interrupted"], (command, err)
     assert not (folder / "p.toml").exists() and not (folder / "c.toml").exists() and not (folder / "new").exists()

@@ -33,8 +33,13 @@ def _limited(limit: int):
 
 def _run_limited(module: str, argv: list, limit: int) -> subprocess.CompletedProcess:
     code = f"import sys; from qube_koopman.{module} import main; sys.exit(main(sys.argv[1:]))"
-    return subprocess.run([sys.executable, "-c", code, *map(str, argv)], capture_output=True, text=True,
-                          preexec_fn=_limited(limit), timeout=TIMEOUT_S)
+    return subprocess.run(
+        [sys.executable, "-c", code, *map(str, argv)],
+        capture_output=True,
+        text=True,
+        preexec_fn=_limited(limit),
+        timeout=TIMEOUT_S,
+    )
 
 
 def _assert_one_error_line(proc, prog: str, rrd: Path) -> None:
@@ -57,8 +62,11 @@ def logs(tmp_path_factory) -> list[Path]:
 
 def test_qube_run_on_a_file_size_limit_keeps_its_logs_and_summary(tmp_path):
     rrd = tmp_path / "run.rrd"
-    proc = _run_limited("daq.cli.run", ["--episodes", "1", "--duration", "3", "--seed", "1", "--out", tmp_path / "ep",
-                                        "--rerun-save", rrd], limit=200_000)
+    proc = _run_limited(
+        "daq.cli.run",
+        ["--episodes", "1", "--duration", "3", "--seed", "1", "--out", tmp_path / "ep", "--rerun-save", rrd],
+        limit=200_000,
+    )
     _assert_one_error_line(proc, "qube-run", rrd)
     assert "the rerun recording was not written" in proc.stderr
     assert "1 complete, 0 aborted; 1 episode log in" in proc.stdout and "rerun recording in" not in proc.stdout
@@ -67,9 +75,22 @@ def test_qube_run_on_a_file_size_limit_keeps_its_logs_and_summary(tmp_path):
 
 def test_qube_calibrate_on_a_file_size_limit_keeps_its_plant_report_and_tables(logs, tmp_path):
     rrd = tmp_path / "rep" / "calibration.rrd"
-    proc = _run_limited("identify.cli.calibrate", [logs[0], logs[1], "--validate", logs[2], "--max-nfev", "2",
-                                                   "--out", tmp_path / "c.toml", "--report", tmp_path / "rep"],
-                        limit=100_000)
+    proc = _run_limited(
+        "identify.cli.calibrate",
+        [
+            logs[0],
+            logs[1],
+            "--validate",
+            logs[2],
+            "--max-nfev",
+            "2",
+            "--out",
+            tmp_path / "c.toml",
+            "--report",
+            tmp_path / "rep",
+        ],
+        limit=100_000,
+    )
     _assert_one_error_line(proc, "qube-calibrate", rrd)
     assert (tmp_path / "c.toml").stat().st_size > 0 and "## Validation" in (tmp_path / "rep" / "report.md").read_text()
     assert "## Validation on 1 episodes not fitted" in proc.stdout
@@ -77,9 +98,25 @@ def test_qube_calibrate_on_a_file_size_limit_keeps_its_plant_report_and_tables(l
 
 def test_qube_identify_on_a_file_size_limit_keeps_its_model_reports_and_scores(logs, tmp_path):
     rrd = tmp_path / "id.rrd"
-    proc = _run_limited("identify.cli.identify", ["--train", logs[0], logs[1], "--test", logs[2], "--delays", "5",
-                                                  "--interval", "0", "--out", tmp_path / "model", "--rerun-save", rrd],
-                        limit=150_000)
+    proc = _run_limited(
+        "identify.cli.identify",
+        [
+            "--train",
+            logs[0],
+            logs[1],
+            "--test",
+            logs[2],
+            "--delays",
+            "5",
+            "--interval",
+            "0",
+            "--out",
+            tmp_path / "model",
+            "--rerun-save",
+            rrd,
+        ],
+        limit=150_000,
+    )
     _assert_one_error_line(proc, "qube-identify", rrd)
     assert "the rerun recording was not written" in proc.stderr
     for name in ("model.json", "report.json", "report.md"):
@@ -91,11 +128,32 @@ def test_qube_design_on_a_file_size_limit_keeps_its_controller_and_summary(logs,
     from qube_koopman.identify.cli.identify import main as identify_main
 
     model = tmp_path / "model"
-    assert identify_main(["--train", str(logs[0]), str(logs[1]), "--test", str(logs[2]), "--poly", "1",
-                          "--delays", "35", "--const", "--out", str(model), "-q"]) == 0
+    assert (
+        identify_main(
+            [
+                "--train",
+                str(logs[0]),
+                str(logs[1]),
+                "--test",
+                str(logs[2]),
+                "--poly",
+                "1",
+                "--delays",
+                "35",
+                "--const",
+                "--out",
+                str(model),
+                "-q",
+            ]
+        )
+        == 0
+    )
     rrd, out = tmp_path / "design.rrd", tmp_path / "designed.toml"
-    proc = _run_limited("design.cli.design", [model, "--out", out, "--episodes", "2", "--rerun-save", rrd,
-                                              "--rerun-episodes", "1"], limit=500_000)
+    proc = _run_limited(
+        "design.cli.design",
+        [model, "--out", out, "--episodes", "2", "--rerun-save", rrd, "--rerun-episodes", "1"],
+        limit=500_000,
+    )
     _assert_one_error_line(proc, "qube-design", rrd)
     assert out.stat().st_size > 0 and f"wrote {out}: qube-run --controller {out}" in proc.stdout
 
@@ -124,15 +182,22 @@ def test_the_recordings_writer_ends_when_its_command_is_killed(tmp_path):
     # A command killed outright (here after its writer's disk refused the data): the child that
     # writes the recording sees its input end and exits by itself, file complete or not.
     psutil = pytest.importorskip("psutil")
-    code = ("import os, signal, sys, numpy as np\n"
-            "from qube_koopman.core.rrd import RrdProcess\n"
-            f"rrd = RrdProcess({str(tmp_path / 'x.rrd')!r}, 'qube-test')\n"
-            "for i in range(200):\n"
-            "    rrd.send_scalars(f'a/{i}', [('time', 'duration', np.arange(500) * 0.002)], np.random.rand(500))\n"
-            "print(rrd._child.pid, flush=True)\n"
-            "sys.stdin.read()\n")
-    killed = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                              preexec_fn=_limited(20_000))
+    code = (
+        "import os, signal, sys, numpy as np\n"
+        "from qube_koopman.core.rrd import RrdProcess\n"
+        f"rrd = RrdProcess({str(tmp_path / 'x.rrd')!r}, 'qube-test')\n"
+        "for i in range(200):\n"
+        "    rrd.send_scalars(f'a/{i}', [('time', 'duration', np.arange(500) * 0.002)], np.random.rand(500))\n"
+        "print(rrd._child.pid, flush=True)\n"
+        "sys.stdin.read()\n"
+    )
+    killed = subprocess.Popen(
+        [sys.executable, "-c", code],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        preexec_fn=_limited(20_000),
+    )
     try:
         child = psutil.Process(int(killed.stdout.readline()))
     finally:

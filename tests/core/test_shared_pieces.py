@@ -18,6 +18,7 @@ from qube_koopman.core.lti import DiscreteStateSpace, replay_controller
 
 # --- the episode file-name pattern -------------------------------------------------------------
 
+
 def test_a_log_name_round_trips_through_the_pattern():
     start = datetime(2026, 11, 21, 12, 34, 56, 789_999, tzinfo=timezone.utc)
     seeds = {"target_theta": 1, "target_alpha": 22, "feedforward": 333}
@@ -68,6 +69,7 @@ def test_the_mcap_sink_names_its_files_with_the_pattern(tmp_path):
 
 # --- the controller-state replay ----------------------------------------------------------------
 
+
 def test_replay_controller_runs_the_controller_on_the_tracking_error():
     rng = np.random.default_rng(3)
     r, y = rng.normal(size=(50, 2)), rng.normal(size=(50, 2))
@@ -111,9 +113,14 @@ def test_replay_controller_runs_a_batch_of_episodes_as_each_alone():
 
 # --- signal stacking ------------------------------------------------------------------------------
 
+
 def test_stack_signals_reads_items_or_attributes_column_per_name():
-    columns = {"theta": np.arange(3.0), "alpha": np.arange(3.0) + 10, "target_theta": np.ones(3),
-               "target_alpha": np.zeros(3)}
+    columns = {
+        "theta": np.arange(3.0),
+        "alpha": np.arange(3.0) + 10,
+        "target_theta": np.ones(3),
+        "target_alpha": np.zeros(3),
+    }
     np.testing.assert_array_equal(stack_signals(columns, STATE_SIGNALS), [[0, 10], [1, 11], [2, 12]])
 
     class Holder:

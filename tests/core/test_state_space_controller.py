@@ -50,8 +50,10 @@ def runs(tmp_path_factory):
     """The same 2 x 4 s twin run under the rig's gains, the equal state-space file and the
     52-state realization of the same controller."""
     root = tmp_path_factory.mktemp("ss")
-    files = {"ss": write_controller_file(root / "rig_ss.toml", RIG_PD, {"designed_by": "test: pd_controller(rig)"}),
-             "big": write_controller_file(root / "big.toml", padded_realization(RIG_PD, 2 + N_EXTRA, 3))}
+    files = {
+        "ss": write_controller_file(root / "rig_ss.toml", RIG_PD, {"designed_by": "test: pd_controller(rig)"}),
+        "big": write_controller_file(root / "big.toml", padded_realization(RIG_PD, 2 + N_EXTRA, 3)),
+    }
     _qube_run(root / "pd", "--controller", "rig")
     for name, path in files.items():
         _qube_run(root / name, "--controller", str(path))
@@ -125,9 +127,14 @@ def test_cl_edmd_fits_the_same_plant_under_either_realization(runs, tmp_path, ca
     for path in sorted((root / "big").glob("*.mcap")):
         ep = read_episode(path)
         pd_info = ControllerInfo(RIG_PD, "backward-euler", load_pd_gains("rig").as_dict(), "pd")
-        write_episode(tmp_path / "as_pd" / path.name,
-                      replace(ep, metadata=replace(ep.metadata, controller=pd_info),
-                              controller_state=controller_states(RIG_PD, ep.references, ep.states)))
+        write_episode(
+            tmp_path / "as_pd" / path.name,
+            replace(
+                ep,
+                metadata=replace(ep.metadata, controller=pd_info),
+                controller_state=controller_states(RIG_PD, ep.references, ep.states),
+            ),
+        )
     plants = {}
     for name, folder in (("big", root / "big"), ("pd", tmp_path / "as_pd")):
         logs = sorted(folder.glob("*.mcap"))
@@ -145,10 +152,25 @@ def test_what_if_under_a_state_space_file_predicts_as_under_its_gains(runs, tmp_
     soft_ss = write_controller_file(tmp_path / "soft_ss.toml", SOFT_PD)
     logs = sorted((root / "pd").glob("*.mcap"))
     reports = {}
-    for name, controller in (("gains", "rig"), ("ss", root / "rig_ss.toml"), ("soft", "soft-theta"),
-                             ("soft_ss", soft_ss)):
-        argv = ["--train", str(logs[0]), "--test", str(logs[1]), "--delays", "2", "--controller", str(controller),
-                "--out", str(tmp_path / name), "-q"]
+    for name, controller in (
+        ("gains", "rig"),
+        ("ss", root / "rig_ss.toml"),
+        ("soft", "soft-theta"),
+        ("soft_ss", soft_ss),
+    ):
+        argv = [
+            "--train",
+            str(logs[0]),
+            "--test",
+            str(logs[1]),
+            "--delays",
+            "2",
+            "--controller",
+            str(controller),
+            "--out",
+            str(tmp_path / name),
+            "-q",
+        ]
         assert identify_main(argv) == 0, capsys.readouterr().err
         reports[name] = json.loads((tmp_path / name / "report.json").read_text())
     # Under the rig's controller (the logs' own): the same scored prediction.
@@ -170,8 +192,16 @@ def test_what_if_under_a_state_space_file_predicts_as_under_its_gains(runs, tmp_
 
 # --- refusals ------------------------------------------------------------------------------------
 
-GOOD = {"format": '"qube-controller/1"', "kind": '"state-space"', "dt": "0.002", "inputs": '["e_theta", "e_alpha"]',
-        "A": "[[0.5, 0.0], [0.0, 0.5]]", "B": "[[1.0, 0.0], [0.0, 1.0]]", "C": "[[1.0, 2.0]]", "D": "[[-3.0, -4.0]]"}
+GOOD = {
+    "format": '"qube-controller/1"',
+    "kind": '"state-space"',
+    "dt": "0.002",
+    "inputs": '["e_theta", "e_alpha"]',
+    "A": "[[0.5, 0.0], [0.0, 0.5]]",
+    "B": "[[1.0, 0.0], [0.0, 1.0]]",
+    "C": "[[1.0, 2.0]]",
+    "D": "[[-3.0, -4.0]]",
+}
 
 REFUSALS = {
     "B rows": ({"B": "[[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]"}, "B has shape 3 x 2, expected 2 x 2"),
@@ -189,10 +219,12 @@ REFUSALS = {
     "missing kind": ({"kind": None}, "missing key kind"),
     "unknown kind": ({"kind": '"lqr"'}, "unknown controller kind 'lqr'"),
     "format": ({"format": '"qube-controller/2"'}, "format 'qube-controller/2' is not supported"),
-    "inputs": ({"inputs": '["e_alpha", "e_theta"]'}, "inputs must be [\"e_theta\", \"e_alpha\"]"),
-    "feedforward columns": ({"inputs": '["e_theta", "e_alpha", "feedforward"]'},
-                            "B has shape 2 x 2, expected 2 x 3 (A has 2 rows: 2 states; 3 inputs e_theta, e_alpha, "
-                            "feedforward; 1 output, the voltage)"),
+    "inputs": ({"inputs": '["e_alpha", "e_theta"]'}, 'inputs must be ["e_theta", "e_alpha"]'),
+    "feedforward columns": (
+        {"inputs": '["e_theta", "e_alpha", "feedforward"]'},
+        "B has shape 2 x 2, expected 2 x 3 (A has 2 rows: 2 states; 3 inputs e_theta, e_alpha, "
+        "feedforward; 1 output, the voltage)",
+    ),
     "unknown key": ({"Q": "1"}, "unknown keys Q"),
     "npz missing": ({"matrices": '"nowhere.npz"', "A": None, "B": None, "C": None, "D": None}, "cannot read"),
     "npz and inline": ({"matrices": '"m.npz"'}, "A, B, C, D given both inline and in matrices"),
@@ -224,7 +256,9 @@ def test_each_refusal_names_the_file_and_the_problem(case, tmp_path):
 def test_qube_run_refuses_a_bad_file_with_exit_2_and_one_line(case, tmp_path, capsys):
     changes, message = REFUSALS[case]
     path = _write(tmp_path / "bad.toml", changes)
-    assert run_main(["--controller", str(path), "--episodes", "1", "--duration", "1", "--out", str(tmp_path / "o")]) == 2
+    assert (
+        run_main(["--controller", str(path), "--episodes", "1", "--duration", "1", "--out", str(tmp_path / "o")]) == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert err.startswith(f"qube-run: error: {path}: ") and message in err and err.rstrip().endswith("(--controller)")
@@ -248,7 +282,7 @@ def test_matrices_in_a_sibling_npz_load_as_inline(tmp_path):
     big = padded_realization(RIG_PD, 12, 0)
     inline = load_controller(write_controller_file(tmp_path / "inline.toml", big))
     npz = load_controller(write_controller_file(tmp_path / "npz.toml", big, npz=True))
-    assert "matrices = \"npz.npz\"" in (tmp_path / "npz.toml").read_text()
+    assert 'matrices = "npz.npz"' in (tmp_path / "npz.toml").read_text()
     for m in "ABCD":
         np.testing.assert_array_equal(getattr(npz.system, m), getattr(big, m))
         np.testing.assert_array_equal(getattr(inline.system, m), getattr(big, m))
@@ -267,5 +301,7 @@ def test_pd_gains_files_load_as_before(tmp_path):
 
 def _gains(tmp_path: Path, drop: str) -> Path:
     path = tmp_path / "gains.toml"
-    path.write_text("".join(f"{k} = 1.0\n" for k in ("kp_theta", "kd_theta", "kp_alpha", "kd_alpha", "tau") if k != drop))
+    path.write_text(
+        "".join(f"{k} = 1.0\n" for k in ("kp_theta", "kd_theta", "kp_alpha", "kd_alpha", "tau") if k != drop)
+    )
     return path

@@ -59,9 +59,9 @@ def test_the_next_import_removes_the_temporary_files_an_interrupted_one_left(leg
 
     out = tmp_path / "o"
     out.mkdir()
-    left = _stale(out, f".{GOOD}.mcap.1a2b3c4d.tmp", 3600)   # an import killed an hour ago
-    just = _stale(out, f".{GOOD}.mcap.99999999.tmp", 0)      # ... or killed a moment ago: no writer holds it
-    other = _stale(out, ".notes.txt.1a2b3c4d.tmp", 3600)     # not a log's temporary file
+    left = _stale(out, f".{GOOD}.mcap.1a2b3c4d.tmp", 3600)  # an import killed an hour ago
+    just = _stale(out, f".{GOOD}.mcap.99999999.tmp", 0)  # ... or killed a moment ago: no writer holds it
+    other = _stale(out, ".notes.txt.1a2b3c4d.tmp", 3600)  # not a log's temporary file
     assert main([str(legacy_folder), "--out", str(out), "-v"]) == 0
     assert not left.exists() and not just.exists() and other.exists()
     err = capsys.readouterr().err

@@ -9,8 +9,16 @@ import numpy as np
 import pytest
 from _qube_csv import load_episode
 
-from qube_koopman.daq.excitation import (ExcitationSettings, PrbsChannel, generate_excitation, held_prbs, integrate,
-                            lfsr_bits, parse_seeds, smooth)
+from qube_koopman.daq.excitation import (
+    ExcitationSettings,
+    PrbsChannel,
+    generate_excitation,
+    held_prbs,
+    integrate,
+    lfsr_bits,
+    parse_seeds,
+    smooth,
+)
 
 FS = 500.0
 
@@ -21,6 +29,7 @@ def episodes(qube_csv_files):
 
 
 # --- the dataset -----------------------------------------------------------------------------
+
 
 @pytest.mark.dataset
 def test_reproduces_all_48_dataset_files(episodes):
@@ -68,6 +77,7 @@ def test_other_readings_of_the_generator_do_not_reproduce_the_data(episodes, var
 
 # --- the pieces, against values derived by hand ----------------------------------------------
 
+
 def test_lfsr_first_bits_from_seed_1():
     # Register 1: the first feedback bit is bit 0 = 1, shifted in at bit 15; it
     # then moves down one place per shift and next reaches a tap (bit 5) on shift 12.
@@ -84,7 +94,7 @@ def test_lfsr_is_maximal_length(seed):
     assert np.array_equal(bits[:period], bits[period:])
     assert bits[:period].sum() == 2**15
     for p in (3, 5, 17, 257):
-        assert not np.array_equal(bits[: period - period // p], bits[period // p: period])
+        assert not np.array_equal(bits[: period - period // p], bits[period // p : period])
 
 
 @pytest.mark.parametrize("seed", [0, -1, 0x10000, 1.5, True])
@@ -146,8 +156,13 @@ def test_default_settings_are_the_rigs():
 
 
 def test_signals_respect_the_window_and_amplitudes():
-    settings = ExcitationSettings(window_start=100, window_stop=1100, n_samples=1500,
-                                  alpha=PrbsChannel(0.2, 0.02), feedforward=PrbsChannel(1.0, 0.04))
+    settings = ExcitationSettings(
+        window_start=100,
+        window_stop=1100,
+        n_samples=1500,
+        alpha=PrbsChannel(0.2, 0.02),
+        feedforward=PrbsChannel(1.0, 0.04),
+    )
     e = generate_excitation((5, 6, 7), settings)
     for signal in (e.target_theta, e.target_alpha, e.feedforward):
         np.testing.assert_array_equal(signal[:100], 0.0)
@@ -167,14 +182,17 @@ def test_unsmoothed_signals_are_the_raw_levels():
     assert set(np.unique(e.feedforward[2000:8000])) == {-0.5, 0.5}
 
 
-@pytest.mark.parametrize("changes, match", [
-    (dict(window_start=9000, window_stop=8000), "window_start"),
-    (dict(window_stop=10_001), "window_stop"),
-    (dict(n_samples=10.5), "n_samples"),
-    (dict(sample_rate=0.0), "sample_rate"),
-    (dict(alpha=PrbsChannel(0.01, 0.0011)), "whole number of samples"),
-    (dict(feedforward=(0.5, 0.1)), "PrbsChannel"),
-])
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        (dict(window_start=9000, window_stop=8000), "window_start"),
+        (dict(window_stop=10_001), "window_stop"),
+        (dict(n_samples=10.5), "n_samples"),
+        (dict(sample_rate=0.0), "sample_rate"),
+        (dict(alpha=PrbsChannel(0.01, 0.0011)), "whole number of samples"),
+        (dict(feedforward=(0.5, 0.1)), "PrbsChannel"),
+    ],
+)
 def test_settings_reject_bad_values(changes, match):
     with pytest.raises(ValueError, match=match):
         dataclasses.replace(ExcitationSettings(), **changes)
@@ -201,18 +219,22 @@ def test_generate_rejects_wrong_seed_count():
 
 # --- file names --------------------------------------------------------------------------------
 
+
 def test_parse_seeds_from_a_dataset_name_and_path():
     assert parse_seeds("qube_20230828T150615_434_696_394.csv") == (434, 696, 394)
     assert parse_seeds("/data/x/qube_20230828T161155_017_133_007.csv") == (17, 133, 7)
 
 
-@pytest.mark.parametrize("name", [
-    "qube_20230828T150615_434_696.csv",
-    "qube_20230828T150615_434_696_394.txt",
-    "qube_2023-08-28T150615_434_696_394.csv",
-    "run_20230828T150615_434_696_394.csv",
-    "qube_20230828T150615_434_696_39a.csv",
-])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "qube_20230828T150615_434_696.csv",
+        "qube_20230828T150615_434_696_394.txt",
+        "qube_2023-08-28T150615_434_696_394.csv",
+        "run_20230828T150615_434_696_394.csv",
+        "qube_20230828T150615_434_696_39a.csv",
+    ],
+)
 def test_parse_seeds_rejects_other_names(name):
     with pytest.raises(ValueError, match="not a dataset file name"):
         parse_seeds(name)

@@ -7,31 +7,49 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from qube_koopman.daq.excitation import (ExcitationSettings, ExcitationStream, PrbsChannel, generate_excitation,
-                                         held_prbs, integrate, smooth)
+from qube_koopman.daq.excitation import (
+    ExcitationSettings,
+    ExcitationStream,
+    PrbsChannel,
+    generate_excitation,
+    held_prbs,
+    integrate,
+    smooth,
+)
 from qube_koopman.daq.session import excitation_settings
 
 
 def whole_episode_reference(seeds, settings):
     """The generator as it was before the stream: whole arrays, built from the public steps."""
+
     def windowed(seed, channel):
         stop = settings.window_stop
         raw = held_prbs(seed, channel.amplitude, channel.bit_samples(settings.sample_rate), stop)
-        raw[:settings.window_start] = 0.0
+        raw[: settings.window_start] = 0.0
         out = np.zeros(settings.n_samples)
         out[:stop] = smooth(raw, settings.smoothing_cutoff, settings.sample_rate)
         return out
 
-    return (integrate(windowed(seeds[0], settings.theta_rate), settings.sample_rate),
-            windowed(seeds[1], settings.alpha), windowed(seeds[2], settings.feedforward))
+    return (
+        integrate(windowed(seeds[0], settings.theta_rate), settings.sample_rate),
+        windowed(seeds[1], settings.alpha),
+        windowed(seeds[2], settings.feedforward),
+    )
 
 
 SETTINGS = [
     ExcitationSettings(),
     excitation_settings(123.4),
     # Bits of 37 samples (not dividing the chunk), window ending mid-bit, no smoothing.
-    ExcitationSettings(n_samples=9_001, window_start=13, window_stop=8_888, theta_rate=PrbsChannel(0.3, 0.074),
-                       alpha=PrbsChannel(0.02, 0.074), feedforward=PrbsChannel(1.0, 0.074), smoothing_cutoff=0.0),
+    ExcitationSettings(
+        n_samples=9_001,
+        window_start=13,
+        window_stop=8_888,
+        theta_rate=PrbsChannel(0.3, 0.074),
+        alpha=PrbsChannel(0.02, 0.074),
+        feedforward=PrbsChannel(1.0, 0.074),
+        smoothing_cutoff=0.0,
+    ),
     ExcitationSettings(n_samples=5, window_start=0, window_stop=5),
 ]
 

@@ -35,7 +35,10 @@ def test_csv_round_trips_the_48_dataset_files_bit_for_bit(qube_csv_files, qube_l
     (tmp_path / "csv" / "controller.toml").write_bytes((qube_csv_files[0].parent / "controller.toml").read_bytes())
     assert import_main([str(tmp_path / "csv"), "--out", str(tmp_path / "again"), "-q"]) == 0
     for original in qube_csv_files[:5]:
-        first, again = read_episode(log_path(qube_logs, original.stem)), read_episode(log_path(tmp_path / "again", original.stem))
+        first, again = (
+            read_episode(log_path(qube_logs, original.stem)),
+            read_episode(log_path(tmp_path / "again", original.stem)),
+        )
         for name, value in first.arrays().items():
             np.testing.assert_array_equal(getattr(again, name), value, err_msg=f"{original.name}: {name}")
 
@@ -45,7 +48,9 @@ def test_csv_of_a_simulated_episode_has_the_legacy_header_and_exact_values(log, 
     out = export_episode(path, "csv", tmp_path / "out")
     lines = out.read_text().splitlines()
     assert out.name == "qube_20260101T000000_1_2_3.csv"
-    assert lines[0] == "t, target_theta, target_alpha, theta, alpha, control_output, feedforward, plant_input, saturation"
+    assert (
+        lines[0] == "t, target_theta, target_alpha, theta, alpha, control_output, feedforward, plant_input, saturation"
+    )
     assert len(lines) == 1 + len(episode)
     values = np.array([[float(v) for v in line.split(", ")] for line in lines[1:]])
     np.testing.assert_array_equal(values[:, 3], episode.theta)
@@ -81,7 +86,9 @@ def test_refused_logs_are_named_and_the_others_exported(log, tmp_path, capsys):
     path, _ = log
     bad = tmp_path / "not_a_log.mcap"
     bad.write_text("hello")
-    status = main([str(path), str(bad), str(tmp_path / "missing.mcap"), "--format", "mat", "--out", str(tmp_path / "o")])
+    status = main(
+        [str(path), str(bad), str(tmp_path / "missing.mcap"), "--format", "mat", "--out", str(tmp_path / "o")]
+    )
     err = capsys.readouterr().err
     assert status == 2  # a LOG that does not exist is a usage error, as in every command (issue 30)
     assert f"qube-export: error: {bad}: not an MCAP file" in err
@@ -129,8 +136,11 @@ def test_episode_frame_without_pandas_names_the_extra_that_installs_it(log, monk
     from qube_koopman.daq.export import episode_frame
 
     extras = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())["project"][
-        "optional-dependencies"]
-    assert any(r.startswith("pandas>=") for r in extras["pandas"]) and any(r.startswith("pandas") for r in extras["test"])
+        "optional-dependencies"
+    ]
+    assert any(r.startswith("pandas>=") for r in extras["pandas"]) and any(
+        r.startswith("pandas") for r in extras["test"]
+    )
     monkeypatch.setitem(sys.modules, "pandas", None)
     with pytest.raises(ImportError) as caught:
         episode_frame(log[1])
@@ -151,22 +161,33 @@ def test_csv_of_an_episode_that_did_not_complete_carries_its_status_beside_it(le
 
     assert import_main([str(legacy_folder), "--out", str(tmp_path / "logs"), "-q"]) == 0
     complete = read_episode(tmp_path / "logs" / f"{GOOD}.mcap")
-    stopped = dataclasses.replace(complete, metadata=dataclasses.replace(
-        complete.metadata, status="aborted", status_reason="safety: |alpha| > 45 deg"))
+    stopped = dataclasses.replace(
+        complete,
+        metadata=dataclasses.replace(complete.metadata, status="aborted", status_reason="safety: |alpha| > 45 deg"),
+    )
     write_episode(tmp_path / "logs" / f"{GOOD}.mcap", stopped, overwrite=True)
     out = tmp_path / "csv"
     assert main([str(tmp_path / "logs"), "--format", "csv", "--out", str(out)]) == 0
     sidecar = out / f"{GOOD}.status.json"
-    assert f"qube-export: warning: {tmp_path / 'logs' / f'{GOOD}.mcap'}: not a complete episode; its status is in " \
-           f"{sidecar}" in capsys.readouterr().err
-    assert json.loads(sidecar.read_text()) == {"status": "aborted", "reason": "safety: |alpha| > 45 deg",
-                                               "salvaged": False, "salvage_note": "", "samples": len(complete)}
+    assert (
+        f"qube-export: warning: {tmp_path / 'logs' / f'{GOOD}.mcap'}: not a complete episode; its status is in "
+        f"{sidecar}" in capsys.readouterr().err
+    )
+    assert json.loads(sidecar.read_text()) == {
+        "status": "aborted",
+        "reason": "safety: |alpha| > 45 deg",
+        "salvaged": False,
+        "salvage_note": "",
+        "samples": len(complete),
+    }
     # qube-import gives the status back: the CSV never reads as a complete episode
     (out / "controller.toml").write_bytes((legacy_folder / "controller.toml").read_bytes())
     capsys.readouterr()
     assert import_main([str(out), "--out", str(tmp_path / "again")]) == 0
-    assert capsys.readouterr().err == (f"qube-import: warning: {out / f'{GOOD}.csv'}: safety: |alpha| > 45 deg; "
-                                       f"imported as an aborted episode of {len(complete)} samples\n")
+    assert capsys.readouterr().err == (
+        f"qube-import: warning: {out / f'{GOOD}.csv'}: safety: |alpha| > 45 deg; "
+        f"imported as an aborted episode of {len(complete)} samples\n"
+    )
     again = read_episode(tmp_path / "again" / f"{GOOD}.mcap")
     assert not again.is_complete and again.metadata.status_reason == "safety: |alpha| > 45 deg"
     # exporting the complete episode over it removes the stale status file
@@ -194,11 +215,14 @@ def test_csv_of_a_log_that_lost_samples_says_qube_import_will_refuse_it(tmp_path
     assert main([str(logs), "--format", "csv", "--out", str(tmp_path / "csv")]) == 0
     csv = tmp_path / "csv" / f"{path.stem}.csv"
     t_before = float(episode.t[199])
-    assert (f"qube-export: warning: {csv}: 100 samples missing after t = {t_before:.3f} s (lost when the log was "
-            "read); the CSV layout is evenly spaced, so qube-import will refuse this file: --format parquet or mat "
-            "keep the episode as it is") in capsys.readouterr().err
-    (tmp_path / "csv" / "controller.toml").write_text("kp_theta = 6\nkd_theta = 1.8\nkp_alpha = 30\nkd_alpha = 2.5\n"
-                                                     "tau = 50\n")
+    assert (
+        f"qube-export: warning: {csv}: 100 samples missing after t = {t_before:.3f} s (lost when the log was "
+        "read); the CSV layout is evenly spaced, so qube-import will refuse this file: --format parquet or mat "
+        "keep the episode as it is"
+    ) in capsys.readouterr().err
+    (tmp_path / "csv" / "controller.toml").write_text(
+        "kp_theta = 6\nkd_theta = 1.8\nkp_alpha = 30\nkd_alpha = 2.5\ntau = 50\n"
+    )
     assert import_main([str(tmp_path / "csv"), "--out", str(tmp_path / "back")]) == 1
     assert "t is not evenly spaced" in capsys.readouterr().err
     # mat keeps the episode as it is: no warning

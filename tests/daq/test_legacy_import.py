@@ -22,6 +22,7 @@ from qube_koopman.daq.legacy_csv import (
 from qube_koopman.daq.log import read_episode
 from qube_koopman.daq.log.names import log_path
 
+
 def parse_csv_independently(path: Path) -> dict[str, np.ndarray]:
     """The CSV through the standard library's csv module and float(), not numpy's parser."""
     with open(path, newline="") as f:
@@ -64,6 +65,7 @@ def _stderr_lines(captured) -> list[str]:
 
 # --- the file name ---------------------------------------------------------------
 
+
 def test_start_time_and_seeds_come_from_the_file_name():
     start, seeds = parse_legacy_name(Path("/x") / f"{GOOD}.csv")
     assert start == "2023-08-28T15:06:15"
@@ -73,6 +75,7 @@ def test_start_time_and_seeds_come_from_the_file_name():
 
 
 # --- synthetic files: no dataset needed -----------------------------------------
+
 
 def test_synthetic_import_round_trip(synthetic_dir, tmp_path, capsys):
     out = tmp_path / "out"
@@ -175,9 +178,14 @@ def test_controller_check_ignores_the_first_second_only(synthetic_dir):
     path = synthetic_dir / f"{GOOD}.csv"
 
     def shift_output(row: int) -> None:
-        _edit_lines(path, lambda lines: lines[:row + 1] + [
-            ", ".join(f"{float(v) + 1e-6 * (i == 5):.17e}" for i, v in enumerate(lines[row + 1].split(",")))
-        ] + lines[row + 2:])
+        _edit_lines(
+            path,
+            lambda lines: (
+                lines[: row + 1]
+                + [", ".join(f"{float(v) + 1e-6 * (i == 5):.17e}" for i, v in enumerate(lines[row + 1].split(",")))]
+                + lines[row + 2 :]
+            ),
+        )
 
     shift_output(499)  # t = 0.998 s: the hand-raising transient is not checked
     assert len(legacy_episode(path, controller)) == 1000
@@ -210,8 +218,7 @@ def test_usage_problems_give_one_line_each_and_no_traceback(synthetic_dir, tmp_p
     errors = _stderr_lines(captured)
     assert len(errors) == 3, captured.err
     assert any("nowhere.csv: no such file or folder" in e for e in errors)
-    assert any("qube_20230828T160000_1_2_3.csv: no controller file" in e and "--controller" in e
-               for e in errors)
+    assert any("qube_20230828T160000_1_2_3.csv: no controller file" in e and "--controller" in e for e in errors)
     assert any("run7.csv: file name does not follow" in e for e in errors)
     assert "Traceback" not in captured.err
 
@@ -220,8 +227,7 @@ def test_explicit_controller_file_and_a_bad_one(synthetic_dir, tmp_path, capsys)
     gains = tmp_path / "gains.toml"
     gains.write_text(GAINS_TOML)
     (synthetic_dir / "controller.toml").unlink()
-    assert main([str(synthetic_dir / f"{GOOD}.csv"), "--out", str(tmp_path / "o"),
-                 "--controller", str(gains)]) == 0
+    assert main([str(synthetic_dir / f"{GOOD}.csv"), "--out", str(tmp_path / "o"), "--controller", str(gains)]) == 0
     gains.write_text("kp_theta = 6.0\n")
     assert main([str(synthetic_dir), "--out", str(tmp_path / "o2"), "--controller", str(gains)]) == 2
     err = capsys.readouterr().err
@@ -254,6 +260,7 @@ def test_progress_bar_on_a_terminal_and_silence_elsewhere(synthetic_dir, tmp_pat
 
 # --- the paper's dataset -----------------------------------------------------------
 
+
 @pytest.mark.dataset
 def test_dataset_subset_round_trip(qube_csv_files, tmp_path, capsys):
     subset = [qube_csv_files[0], qube_csv_files[-1]]
@@ -282,8 +289,7 @@ def test_dataset_all_episodes_round_trip_within_the_size_budget(qube_dataset, qu
 
 
 @pytest.mark.parametrize("cut_from_end", [5, 40])  # inside the last number (9 fields still), or inside the row
-def test_a_file_cut_mid_line_is_imported_without_that_line_as_incomplete(cut_from_end, legacy_folder, tmp_path,
-                                                                         capsys):
+def test_a_file_cut_mid_line_is_imported_without_that_line_as_incomplete(cut_from_end, legacy_folder, tmp_path, capsys):
     csv_path = legacy_folder / f"{GOOD}.csv"
     whole = parse_csv_independently(csv_path)
     raw = csv_path.read_bytes()
@@ -294,8 +300,10 @@ def test_a_file_cut_mid_line_is_imported_without_that_line_as_incomplete(cut_fro
     err = capsys.readouterr().err
     assert status == 0, err
     line = raw[:cut_at].count(b"\n") + 1
-    assert err == (f"qube-import: warning: {csv_path}: cut short: its last line (line {line}) ends without a "
-                   f"newline and was dropped; imported as an incomplete episode of {rows_before} samples\n")
+    assert err == (
+        f"qube-import: warning: {csv_path}: cut short: its last line (line {line}) ends without a "
+        f"newline and was dropped; imported as an incomplete episode of {rows_before} samples\n"
+    )
     episode = read_episode(tmp_path / "o" / f"{GOOD}.mcap", warn=False)
     assert len(episode) == rows_before and not episode.is_complete
     assert episode.metadata.status == "aborted" and "legacy CSV cut short" in episode.metadata.status_reason
@@ -313,10 +321,14 @@ def _half_saturated(lines):
     return lines
 
 
-@pytest.mark.parametrize("edit, problem", [
-    (_gap, "t is not evenly spaced at 500 Hz from 0 (line 301: t = 1.098, expected 0.598)"),
-    (_half_saturated, "line 21: saturation 0.5 is not -1, 0 or +1"),
-], ids=["time gap", "saturation"])
+@pytest.mark.parametrize(
+    "edit, problem",
+    [
+        (_gap, "t is not evenly spaced at 500 Hz from 0 (line 301: t = 1.098, expected 0.598)"),
+        (_half_saturated, "line 21: saturation 0.5 is not -1, 0 or +1"),
+    ],
+    ids=["time gap", "saturation"],
+)
 def test_refusals_quote_numbers_as_plain_numbers(synthetic_dir, edit, problem):
     from qube_koopman.daq.legacy_csv import LegacyCsvError, legacy_episode, load_legacy_controller
 

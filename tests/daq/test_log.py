@@ -44,9 +44,8 @@ def read_quietly(path) -> Episode:
         return read_episode(path)
 
 
-
-
 # --- round trips -----------------------------------------------------------
+
 
 def test_whole_episode_round_trip_is_exact(tmp_path):
     episode = make_episode(2000)
@@ -130,8 +129,13 @@ def test_other_compressions_round_trip(tmp_path, compression):
 def test_any_float_values_round_trip_bit_exact(tmp_path, data):
     # Signed zeros, infinities and NaN payloads included: the log stores bits, not decimals.
     names = [n for n in SIGNALS if n != "t"]
-    episode = Episode(t=np.arange(5) / RATE, controller_state=data[:, 10:12], saturation=np.zeros(5),
-                      metadata=make_metadata(), **dict(zip(names, data.T)))
+    episode = Episode(
+        t=np.arange(5) / RATE,
+        controller_state=data[:, 10:12],
+        saturation=np.zeros(5),
+        metadata=make_metadata(),
+        **dict(zip(names, data.T)),
+    )
     path = tmp_path / "h.mcap"
     read = read_episode(write_episode(path, episode, overwrite=True))
     for name in names:
@@ -148,10 +152,19 @@ def test_episode_pickles(tmp_path):
 
 def test_episode_arrays_are_read_only_copies():
     theta = np.zeros(3)
-    episode = Episode(t=np.arange(3) / RATE, theta=theta, alpha=np.zeros(3), target_theta=np.zeros(3),
-                      target_alpha=np.zeros(3), feedforward=np.zeros(3), controller_state=np.zeros((3, 2)),
-                      control_output=np.zeros(3), plant_input=np.zeros(3), saturation=np.zeros(3),
-                      metadata=make_metadata())
+    episode = Episode(
+        t=np.arange(3) / RATE,
+        theta=theta,
+        alpha=np.zeros(3),
+        target_theta=np.zeros(3),
+        target_alpha=np.zeros(3),
+        feedforward=np.zeros(3),
+        controller_state=np.zeros((3, 2)),
+        control_output=np.zeros(3),
+        plant_input=np.zeros(3),
+        saturation=np.zeros(3),
+        metadata=make_metadata(),
+    )
     theta[0] = 1.0
     assert episode.theta[0] == 0.0 and theta.flags.writeable
     with pytest.raises(ValueError):
@@ -159,15 +172,27 @@ def test_episode_arrays_are_read_only_copies():
     assert np.isnan(episode.lateness).all() and np.isnan(episode.compute_time).all()
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(alpha=np.zeros(4)), "alpha must have shape"),
-    (dict(controller_state=np.zeros((5, 3))), "controller_state must have shape"),
-    (dict(saturation=np.full(5, 2)), "saturation must hold only"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(alpha=np.zeros(4)), "alpha must have shape"),
+        (dict(controller_state=np.zeros((5, 3))), "controller_state must have shape"),
+        (dict(saturation=np.full(5, 2)), "saturation must hold only"),
+    ],
+)
 def test_episode_rejects_inconsistent_arrays(change, message):
-    arrays = dict(t=np.arange(5) / RATE, theta=np.zeros(5), alpha=np.zeros(5), target_theta=np.zeros(5),
-                  target_alpha=np.zeros(5), feedforward=np.zeros(5), controller_state=np.zeros((5, 2)),
-                  control_output=np.zeros(5), plant_input=np.zeros(5), saturation=np.zeros(5))
+    arrays = dict(
+        t=np.arange(5) / RATE,
+        theta=np.zeros(5),
+        alpha=np.zeros(5),
+        target_theta=np.zeros(5),
+        target_alpha=np.zeros(5),
+        feedforward=np.zeros(5),
+        controller_state=np.zeros((5, 2)),
+        control_output=np.zeros(5),
+        plant_input=np.zeros(5),
+        saturation=np.zeros(5),
+    )
     arrays.update(change)
     with pytest.raises(ValueError, match=message):
         Episode(metadata=make_metadata(), **arrays)
@@ -193,13 +218,13 @@ def test_existing_file_is_never_overwritten_silently(tmp_path):
 
 # --- Foxglove compatibility: the mcap library and a CDR decoder agree ------
 
+
 def _decode_cdr(schema: str, payload: bytes) -> dict:
     """A deliberately naive classic-CDR decoder driven by the ros2msg text."""
     formats = {"float64": "<d", "int8": "<b"}
     assert payload[:4] == b"\x00\x01\x00\x00"
     body, pos, out = payload[4:], 0, {}
-    for ros_type, name in (line.split("#")[0].split() for line in schema.splitlines()
-                           if line.split("#")[0].strip()):
+    for ros_type, name in (line.split("#")[0].split() for line in schema.splitlines() if line.split("#")[0].strip()):
         size = struct.calcsize(formats[ros_type])
         pos += -pos % size
         (out[name],) = struct.unpack_from(formats[ros_type], body, pos)
@@ -238,13 +263,16 @@ def test_mcap_library_reads_one_scalar_message_per_sample(tmp_path):
 
 # --- salvage -----------------------------------------------------------------
 
+
 def _chunks(path) -> list[tuple[int, int]]:
     """(start, end) byte offsets of every chunk, from the mcap library's own index."""
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        return [(c.chunk_start_offset, c.chunk_start_offset + c.chunk_length)
-                for c in make_reader(f).get_summary().chunk_indexes]
+        return [
+            (c.chunk_start_offset, c.chunk_start_offset + c.chunk_length)
+            for c in make_reader(f).get_summary().chunk_indexes
+        ]
 
 
 def test_truncated_file_reads_the_prefix_of_whole_chunks(tmp_path):
@@ -256,8 +284,17 @@ def test_truncated_file_reads_the_prefix_of_whole_chunks(tmp_path):
     chunks = _chunks(path)
     assert len(chunks) == 20
     starts, ends = zip(*chunks)
-    offsets = [starts[0], starts[0] + 10, ends[0] - 1, ends[0], ends[0] + 1, ends[7] + 5,
-               (starts[13] + ends[13]) // 2, ends[19] - 1, ends[19] + 5]
+    offsets = [
+        starts[0],
+        starts[0] + 10,
+        ends[0] - 1,
+        ends[0],
+        ends[0] + 1,
+        ends[7] + 5,
+        (starts[13] + ends[13]) // 2,
+        ends[19] - 1,
+        ends[19] + 5,
+    ]
     cut = tmp_path / "cut.mcap"
     for offset in offsets:
         cut.write_bytes(data[:offset])
@@ -379,8 +416,9 @@ for k in range(1_000_000):  # bounded, in case the kill never comes
 @pytest.mark.parametrize("mode", ["idle", "busy"])
 def test_writer_killed_mid_episode_leaves_a_readable_prefix(tmp_path, mode):
     path = tmp_path / "killed.mcap"
-    child = subprocess.Popen([sys.executable, "-c", _KILL_CHILD, str(REPO), mode, str(path)],
-                             stdout=subprocess.PIPE, text=True)
+    child = subprocess.Popen(
+        [sys.executable, "-c", _KILL_CHILD, str(REPO), mode, str(path)], stdout=subprocess.PIPE, text=True
+    )
     try:
         assert child.stdout.readline().strip() == "ready"
         if mode == "busy":
@@ -400,6 +438,7 @@ def test_writer_killed_mid_episode_leaves_a_readable_prefix(tmp_path, mode):
 
 
 # --- refused files -------------------------------------------------------------
+
 
 def test_not_an_mcap_file_is_refused_with_its_name(tmp_path):
     path = tmp_path / "notes.mcap"
@@ -470,11 +509,12 @@ def test_file_rewritten_by_another_mcap_writer_reads_the_same(tmp_path, use_chun
         for k, (schema, channel, message) in enumerate(reader.iter_messages()):
             if events is None:
                 sample_channel = writer.register_channel(
-                    channel.topic, channel.message_encoding,
-                    writer.register_schema(schema.name, schema.encoding, schema.data))
+                    channel.topic,
+                    channel.message_encoding,
+                    writer.register_schema(schema.name, schema.encoding, schema.data),
+                )
                 events = writer.register_channel("/qube/event", "json", 0)
-            writer.add_message(sample_channel, message.log_time, message.data, message.publish_time,
-                               message.sequence)
+            writer.add_message(sample_channel, message.log_time, message.data, message.publish_time, message.sequence)
             if k % 100 == 0:
                 writer.add_message(events, message.log_time, b'{"note": "x"}', message.log_time, k)
         writer.finish()
@@ -490,9 +530,14 @@ def _chunk_spans(path) -> list[tuple[int, int, range]]:
     with open(path, "rb") as f:
         index = make_reader(f).get_summary().chunk_indexes
     t0 = min(c.message_start_time for c in index)
-    return [(c.chunk_start_offset, c.chunk_start_offset + c.chunk_length,
-             range(round((c.message_start_time - t0) * 1e-9 * RATE), round((c.message_end_time - t0) * 1e-9 * RATE) + 1))
-            for c in index]
+    return [
+        (
+            c.chunk_start_offset,
+            c.chunk_start_offset + c.chunk_length,
+            range(round((c.message_start_time - t0) * 1e-9 * RATE), round((c.message_end_time - t0) * 1e-9 * RATE) + 1),
+        )
+        for c in index
+    ]
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -526,8 +571,9 @@ def test_damaged_or_cut_files_give_a_prefix_or_a_value_error(tmp_path, position,
     # Every sample of a chunk the damage missed is recovered (issue 30): a flip costs its chunk, a
     # cut the chunks it runs into; only damage before the first chunk (the episode's metadata) may
     # cost the file.
-    intact = [k for start, end, samples in chunks if (end <= offset if cut else not start <= offset < end)
-              for k in samples]
+    intact = [
+        k for start, end, samples in chunks if (end <= offset if cut else not start <= offset < end) for k in samples
+    ]
     try:
         read = read_quietly(damaged)
     except ValueError:
@@ -545,6 +591,7 @@ def test_damaged_or_cut_files_give_a_prefix_or_a_value_error(tmp_path, position,
 
 
 # --- device time (format 1.3) -------------------------------------------------
+
 
 def test_device_time_round_trips_and_shows_a_gap(tmp_path):
     # A device clock that lost three periods after sample 4, written sample by sample.
@@ -580,9 +627,9 @@ def _write_format_1_2(path, episode: Episode) -> None:
     with open(path, "wb") as f:
         writer = Writer(f)
         writer.start()
-        channel = writer.register_channel("/qube/sample", "cdr",
-                                          writer.register_schema("qube_msgs/msg/EpisodeSample", "ros2msg",
-                                                                 text.encode()))
+        channel = writer.register_channel(
+            "/qube/sample", "cdr", writer.register_schema("qube_msgs/msg/EpisodeSample", "ros2msg", text.encode())
+        )
         for name, record in episode_records(episode.metadata).items():
             if name == "qube.episode":
                 record = {**record, "format_version": "1.2"}
@@ -611,4 +658,5 @@ def test_a_damaged_chunk_size_is_reported_not_allocated(tmp_path):
     """Hypothesis found a flipped byte in a chunk's uncompressed size that made the reader
     reserve gigabytes (MemoryError); it is a damaged chunk like any other."""
     test_damaged_or_cut_files_give_a_prefix_or_a_value_error.hypothesis.inner_test(
-        tmp_path=tmp_path, position=0.02, flip=129, cut=False)
+        tmp_path=tmp_path, position=0.02, flip=129, cut=False
+    )

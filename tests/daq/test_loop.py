@@ -59,22 +59,30 @@ class ScriptedBackend(Backend):
 
 
 def _plan(n: int, target_theta=0.0, target_alpha=0.0, feedforward=0.0) -> EpisodePlan:
-    ex = Excitation(np.full(n, float(target_theta)), np.full(n, float(target_alpha)),
-                    np.full(n, float(feedforward)))
+    ex = Excitation(np.full(n, float(target_theta)), np.full(n, float(target_alpha)), np.full(n, float(feedforward)))
     return EpisodePlan(CONTROLLER, ex, {"seeds": {"target_theta": 1, "target_alpha": 2, "feedforward": 3}})
 
 
 def _fault(message="link lost"):
     def raise_fault():
         raise BackendFault(message)
+
     return raise_fault
 
 
 # --- safety ------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("bad, limit_text", [((1.6, 0.0), "|theta|"), ((-1.6, 0.0), "|theta|"),
-                                             ((0.0, 0.8), "|alpha|"), ((0.0, -0.8), "|alpha|"),
-                                             ((0.0, math.nan), "|alpha|")])
+
+@pytest.mark.parametrize(
+    "bad, limit_text",
+    [
+        ((1.6, 0.0), "|theta|"),
+        ((-1.6, 0.0), "|theta|"),
+        ((0.0, 0.8), "|alpha|"),
+        ((0.0, -0.8), "|alpha|"),
+        ((0.0, math.nan), "|alpha|"),
+    ],
+)
 def test_limit_aborts_with_zero_volts_in_the_same_tick(bad, limit_text):
     readings = [(0.0, 0.01)] * 6 + [bad] + [(0.0, 0.01)] * 10
     backend = ScriptedBackend(readings)
@@ -93,8 +101,9 @@ def test_limit_aborts_with_zero_volts_in_the_same_tick(bad, limit_text):
 
 def test_limits_are_configurable():
     readings = [(0.0, 0.01)] * 3 + [(0.0, 0.2)] * 5
-    result = run_episode(ScriptedBackend(readings), _plan(50), [MemorySink()],
-                         limits=SafetyLimits(alpha_limit=0.15, start_alpha=0.05))
+    result = run_episode(
+        ScriptedBackend(readings), _plan(50), [MemorySink()], limits=SafetyLimits(alpha_limit=0.15, start_alpha=0.05)
+    )
     assert result.cause == "safety" and "0.150 rad" in result.reason
     assert run_episode(ScriptedBackend(readings), _plan(50), [MemorySink()]).complete
 
@@ -137,6 +146,7 @@ def test_start_gate_times_out_without_opening_the_log():
 
 
 # --- faults and stops --------------------------------------------------------------------------
+
 
 def test_backend_fault_on_read_closes_the_log_aborted():
     backend = ScriptedBackend([(0.0, 0.01)] * 50, on_read={8: _fault("link lost")})
@@ -236,10 +246,10 @@ def test_sink_that_cannot_open_means_no_episode():
 
 # --- what is logged ---------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def sim_episode():
-    ex = generate_excitation((434, 696, 394), ExcitationSettings(n_samples=3000, window_start=500,
-                                                                  window_stop=2500))
+    ex = generate_excitation((434, 696, 394), ExcitationSettings(n_samples=3000, window_start=500, window_stop=2500))
     backend = SimBackend(seed=5)
     sink = MemorySink()
     result = run_episode(backend, EpisodePlan(CONTROLLER, ex), [sink])
@@ -255,8 +265,7 @@ def test_controller_state_and_output_follow_the_controller(sim_episode):
 def test_loop_on_the_simulator_matches_the_batched_closed_loop():
     # Exact angles: with encoders, float rounding differences between the per-tick and the
     # batched integrator eventually flip one count and the runs part by a count or two.
-    ex = generate_excitation((434, 696, 394), ExcitationSettings(n_samples=3000, window_start=500,
-                                                                  window_stop=2500))
+    ex = generate_excitation((434, 696, 394), ExcitationSettings(n_samples=3000, window_start=500, window_stop=2500))
     sensor = SensorModel(counts_per_rev=None)
     backend = SimBackend(sensor=sensor, seed=7)
     sink = MemorySink()
@@ -266,8 +275,9 @@ def test_loop_on_the_simulator_matches_the_batched_closed_loop():
     # The episode's encoder zero offset was drawn at its start; the batched run uses the same sensor.
     episode_sensor = SensorModel(**described["sensor"])
     assert episode_sensor.alpha_offset != 0.0
-    run = simulate_closed_loop(described["initial_state"], QUBE_PD, ep.references, ep.feedforward,
-                               sensor=episode_sensor)
+    run = simulate_closed_loop(
+        described["initial_state"], QUBE_PD, ep.references, ep.feedforward, sensor=episode_sensor
+    )
     np.testing.assert_allclose(ep.states, run.measurements, rtol=0, atol=1e-9)
     np.testing.assert_allclose(ep.controller_state, run.controller_states, rtol=0, atol=1e-9)
     np.testing.assert_allclose(ep.plant_input, run.plant_input, rtol=0, atol=1e-9)
@@ -300,6 +310,7 @@ def test_metadata_says_what_ran(sim_episode):
 
 # --- pacing ------------------------------------------------------------------------------------
 
+
 class SimClock:
     """A simulated clock for the loop's timing: ``sleep`` oversleeps as an OS does, stalls on request.
 
@@ -329,8 +340,11 @@ def _use_clock(monkeypatch, clock: SimClock) -> None:
     from qube_koopman.daq import loop, timing
 
     monkeypatch.setattr(loop, "time", types.SimpleNamespace(perf_counter=clock.perf_counter))
-    monkeypatch.setattr(loop, "DeadlinePacer", lambda period, spin: timing.DeadlinePacer(
-        period, spin, clock=clock.perf_counter, sleep=clock.sleep))
+    monkeypatch.setattr(
+        loop,
+        "DeadlinePacer",
+        lambda period, spin: timing.DeadlinePacer(period, spin, clock=clock.perf_counter, sleep=clock.sleep),
+    )
 
 
 def test_free_running_never_waits(monkeypatch):
@@ -340,8 +354,9 @@ def test_free_running_never_waits(monkeypatch):
     pacers, sleeps, me = [], [], threading.get_ident()
     real_sleep = time.sleep
     monkeypatch.setattr(loop, "DeadlinePacer", lambda *a, **k: pacers.append(a))
-    monkeypatch.setattr(time, "sleep", lambda dt: (sleeps.append(dt) if threading.get_ident() == me else None,
-                                                  real_sleep(dt)))
+    monkeypatch.setattr(
+        time, "sleep", lambda dt: (sleeps.append(dt) if threading.get_ident() == me else None, real_sleep(dt))
+    )
     backend = ScriptedBackend([(0.0, 0.01)] * 10)
     assert run_episode(backend, _plan(1000), [MemorySink()]).complete
     assert pacers == [] and sleeps == [] and len(backend.writes) == 1000 + 1  # and the final 0 V
@@ -441,13 +456,15 @@ def test_stop_from_another_thread_ends_a_paced_episode():
 
 
 def test_controller_must_match_the_backend():
-    wrong = ControllerInfo(QUBE_PD.__class__(QUBE_PD.A, QUBE_PD.B, QUBE_PD.C, QUBE_PD.D, 0.01),
-                           "backward-euler", RIG_GAINS)
+    wrong = ControllerInfo(
+        QUBE_PD.__class__(QUBE_PD.A, QUBE_PD.B, QUBE_PD.C, QUBE_PD.D, 0.01), "backward-euler", RIG_GAINS
+    )
     with pytest.raises(ValueError, match="sample period"):
         run_episode(ScriptedBackend([(0.0, 0.0)]), EpisodePlan(wrong, _plan(5).excitation), [])
 
 
 # --- a controller whose output is not a voltage --------------------------------------------------
+
 
 def test_a_non_finite_controller_output_is_a_fault_with_zero_volts_applied_and_logged():
     # On every backend alike (the serial one: test_serial_backend.py), not left to the backend to refuse.
@@ -470,8 +487,9 @@ def test_qube_run_on_the_simulator_fails_on_a_non_finite_controller_output(tmp_p
     from qube_koopman.daq.log import read_episode
 
     path = write_controller_file(tmp_path / "F.toml", nan_controller().system)
-    status = main(["--controller", str(path), "--out", str(tmp_path / "out"), "--episodes", "1", "--duration",
-                   "1", "-q"])
+    status = main(
+        ["--controller", str(path), "--out", str(tmp_path / "out"), "--episodes", "1", "--duration", "1", "-q"]
+    )
     err = capsys.readouterr().err
     assert status == 1 and "controller fault: its output is nan" in err and "Traceback" not in err
     ep = read_episode(next((tmp_path / "out").glob("*.mcap")))

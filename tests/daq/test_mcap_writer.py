@@ -18,9 +18,13 @@ COMPRESSIONS = ("zstd", "lz4", "none")
 def _script(rng: np.random.Generator):
     """A writing session: schemas, channels, metadata, blocks of messages (two sizes, two channels) and
     flushes in between, some blocks taking a chunk past its size more than once."""
-    steps = [("schema", "a", "ros2msg", b"float64 x\n"), ("schema", "b", "jsonschema", b"{}"),
-             ("channel", "/a", "cdr", 1, {}), ("channel", "/b", "json", 2, {"k": "v"}),
-             ("metadata", "first", {"x": "1"})]
+    steps = [
+        ("schema", "a", "ros2msg", b"float64 x\n"),
+        ("schema", "b", "jsonschema", b"{}"),
+        ("channel", "/a", "cdr", 1, {}),
+        ("channel", "/b", "json", 2, {"k": "v"}),
+        ("metadata", "first", {"x": "1"}),
+    ]
     sequence, time = 0, 1_700_000_000_000_000_000
     for size, n, channel in [(40, 250, 1), (40, 250, 1), (900, 2600, 2), (40, 3, 1), (120, 9000, 1), (40, 1, 2)]:
         times = time + np.cumsum(rng.integers(0, 3_000_000, n))  # repeated times too
@@ -39,10 +43,20 @@ def _script(rng: np.random.Generator):
 def _with_mcap(stream, steps, compression: str) -> None:
     from mcap.writer import CompressionType, Writer
 
-    writer = Writer(stream, compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                                          "none": CompressionType.NONE}[compression])
-    _play(writer, steps, per_message=lambda channel, seq, times, payloads: [
-        writer.add_message(channel, int(t), p.tobytes(), int(t), seq + i) for i, (t, p) in enumerate(zip(times, payloads))])
+    writer = Writer(
+        stream,
+        compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
+            compression
+        ],
+    )
+    _play(
+        writer,
+        steps,
+        per_message=lambda channel, seq, times, payloads: [
+            writer.add_message(channel, int(t), p.tobytes(), int(t), seq + i)
+            for i, (t, p) in enumerate(zip(times, payloads))
+        ],
+    )
 
 
 def _with_blocks(stream, steps, compression: str) -> None:
@@ -92,8 +106,14 @@ def _reference_log(path, episode, flush_every: int | None) -> None:
     from mcap.writer import Writer
 
     from qube_koopman.daq.log.metadata import STATUS_RECORD, episode_records, status_record
-    from qube_koopman.daq.log.schema import (CDR_LE_HEADER, FORMAT_VERSION, SAMPLE_SCHEMA_NAME, SAMPLE_TOPIC,
-                                             sample_fields, schema_text)
+    from qube_koopman.daq.log.schema import (
+        CDR_LE_HEADER,
+        FORMAT_VERSION,
+        SAMPLE_SCHEMA_NAME,
+        SAMPLE_TOPIC,
+        sample_fields,
+        schema_text,
+    )
     from qube_koopman.daq.log.writer import _epoch_ns
 
     n_states = episode.controller_state.shape[1]
@@ -108,11 +128,23 @@ def _reference_log(path, episode, flush_every: int | None) -> None:
             writer.add_metadata(name, record)
         writer.flush()
         a = episode.arrays()
-        signals = ("t", "theta", "alpha", "target_theta", "target_alpha", "feedforward", "control_output",
-                   "plant_input", "lateness", "compute_time", "device_time")
+        signals = (
+            "t",
+            "theta",
+            "alpha",
+            "target_theta",
+            "target_alpha",
+            "feedforward",
+            "control_output",
+            "plant_input",
+            "lateness",
+            "compute_time",
+            "device_time",
+        )
         for k in range(len(episode)):
-            payload = packer.pack(CDR_LE_HEADER, *[float(a[n][k]) for n in signals],
-                                  *a["controller_state"][k], int(a["saturation"][k]))
+            payload = packer.pack(
+                CDR_LE_HEADER, *[float(a[n][k]) for n in signals], *a["controller_state"][k], int(a["saturation"][k])
+            )
             time = epoch + round(float(a["t"][k]) * 1e9)
             writer.add_message(channel, time, payload, time, k)
             if flush_every and (k + 1) % flush_every == 0:

@@ -28,8 +28,14 @@ def test_check_passes_on_the_emulated_rig_and_reports_the_round_trip(env, tmp_pa
         stop_process(proc)
     assert run.returncode == 0, run.stderr
     out = run.stdout
-    for name in ("module id: 777", "encoders: read", "amplifier: enabled at 0 V", "round trip: p50", "motor sign: 1 V",
-                 "watchdog: bridge watchdog tripped: no command for 5 ticks"):
+    for name in (
+        "module id: 777",
+        "encoders: read",
+        "amplifier: enabled at 0 V",
+        "round trip: p50",
+        "motor sign: 1 V",
+        "watchdog: bridge watchdog tripped: no command for 5 ticks",
+    ):
         assert f"ok   {name}" in out, out
     # The push turns the emulated arm the way theta grows, by about what the motor's physics gives (0.1 rad).
     turned = float(re.search(r"turned the arm \+([\d.]+) rad", out).group(1))

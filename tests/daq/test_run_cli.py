@@ -67,12 +67,12 @@ def test_logs_hold_what_reproduces_the_run(tmp_path):
         meta = ep.metadata
         seeds = meta.excitation["seeds"]
         assert NAME.match(path.name).groups()[:3] == tuple(
-            str(seeds[k]) for k in ("target_theta", "target_alpha", "feedforward"))
+            str(seeds[k]) for k in ("target_theta", "target_alpha", "feedforward")
+        )
         # The excitation regenerates exactly from the log's seeds and settings.
         settings = ExcitationSettings.from_dict(meta.excitation["settings"])
         assert (settings.n_samples, settings.window_start, settings.window_stop) == (2000, 400, 1600)
-        ex = generate_excitation(tuple(seeds[k] for k in ("target_theta", "target_alpha", "feedforward")),
-                                 settings)
+        ex = generate_excitation(tuple(seeds[k] for k in ("target_theta", "target_alpha", "feedforward")), settings)
         assert np.array_equal(ep.target_theta, ex.target_theta)
         assert np.array_equal(ep.target_alpha, ex.target_alpha)
         assert np.array_equal(ep.feedforward, ex.feedforward)
@@ -85,8 +85,7 @@ def test_logs_hold_what_reproduces_the_run(tmp_path):
 
 def test_same_seed_same_episodes(tmp_path):
     for name in ("a", "b"):
-        assert main(["--episodes", "2", "--duration", "2", "--seed", "11", "--out", str(tmp_path / name),
-                     "-q"]) == 0
+        assert main(["--episodes", "2", "--duration", "2", "--seed", "11", "--out", str(tmp_path / name), "-q"]) == 0
     a, b = _episodes(tmp_path / "a"), _episodes(tmp_path / "b")
     for ea, eb in zip(a, b):
         assert ea.metadata.excitation == eb.metadata.excitation
@@ -96,8 +95,9 @@ def test_same_seed_same_episodes(tmp_path):
 
 def test_summary_counts_aborted_episodes(tmp_path, capsys):
     # A 3 deg motor-angle limit: the excitation's motor reference goes well past it.
-    status = main(["--episodes", "2", "--duration", "10", "--seed", "3", "--theta-limit", "3",
-                   "--out", str(tmp_path), "-q"])
+    status = main(
+        ["--episodes", "2", "--duration", "10", "--seed", "3", "--theta-limit", "3", "--out", str(tmp_path), "-q"]
+    )
     out = capsys.readouterr().out
     assert status == 0, "a safety stop is a recorded outcome of an episode, not an error of the run"
     assert "0 complete, 2 aborted" in out and "safety stop: |theta|" in out
@@ -107,28 +107,31 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
         assert np.all(np.abs(ep.theta[:-1]) <= math.radians(3))
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--controller", "missing.toml"], "qube-run: error: missing.toml: cannot read"),
-    (["--controller", "{bad}"], "not valid TOML"),
-    (["--out", "{file}"], "cannot write episode logs"),
-    (["--backend", "quantum"], "invalid choice: 'quantum'"),
-    (["--backend", "serial"], "--backend serial needs --port DEV"),
-    (["--backend", "serial", "--port", "/dev/null", "--realtime"], "--realtime is for --backend sim"),
-    (["--port", "/dev/ttyACM0"], "--port, --baud and --link-timeout are for --backend serial"),
-    (["--link-timeout", "100"], "--port, --baud and --link-timeout are for --backend serial"),
-    (["--backend", "serial", "--port", "/dev/x", "--baud", "0"], "must be at least 1"),
-    (["--episodes", "0"], "must be at least 1"),
-    (["--episodes", "1000001"], "--episodes 1000001: at most 1,000,000 in one run"),
-    (["--duration", "86400.002"], "at most 86400 s (24 h) per episode"),
-    (["--duration", "nan"], "must be a finite number"),
-    (["--duration", "-1"], "must be a positive number"),
-    (["--duration", "0.0013"], "not a whole, positive number of samples"),
-    (["--perturbation", "6"], "start gate"),
-    (["--alpha-limit", "2"], "start_alpha"),
-    (["--rerun-save", "no/such/folder/run.rrd"], "does not exist"),
-    (["--rerun-save", "{file}"], "a_file: exists (use --force to overwrite) (--rerun-save)"),
-    (["--controller", "{binary}"], "binary.toml: not a text file (a TOML controller file is expected)"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--controller", "missing.toml"], "qube-run: error: missing.toml: cannot read"),
+        (["--controller", "{bad}"], "not valid TOML"),
+        (["--out", "{file}"], "cannot write episode logs"),
+        (["--backend", "quantum"], "invalid choice: 'quantum'"),
+        (["--backend", "serial"], "--backend serial needs --port DEV"),
+        (["--backend", "serial", "--port", "/dev/null", "--realtime"], "--realtime is for --backend sim"),
+        (["--port", "/dev/ttyACM0"], "--port, --baud and --link-timeout are for --backend serial"),
+        (["--link-timeout", "100"], "--port, --baud and --link-timeout are for --backend serial"),
+        (["--backend", "serial", "--port", "/dev/x", "--baud", "0"], "must be at least 1"),
+        (["--episodes", "0"], "must be at least 1"),
+        (["--episodes", "1000001"], "--episodes 1000001: at most 1,000,000 in one run"),
+        (["--duration", "86400.002"], "at most 86400 s (24 h) per episode"),
+        (["--duration", "nan"], "must be a finite number"),
+        (["--duration", "-1"], "must be a positive number"),
+        (["--duration", "0.0013"], "not a whole, positive number of samples"),
+        (["--perturbation", "6"], "start gate"),
+        (["--alpha-limit", "2"], "start_alpha"),
+        (["--rerun-save", "no/such/folder/run.rrd"], "does not exist"),
+        (["--rerun-save", "{file}"], "a_file: exists (use --force to overwrite) (--rerun-save)"),
+        (["--controller", "{binary}"], "binary.toml: not a text file (a TOML controller file is expected)"),
+    ],
+)
 def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, message):
     bad = tmp_path / "bad.toml"
     bad.write_text("kp_theta = [")
@@ -151,8 +154,18 @@ def test_user_mistakes_get_one_line_and_no_traceback(tmp_path, capsys, args, mes
 def test_help_documents_the_options(capsys):
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
-    for option in ("--backend", "--episodes", "--duration", "--seed", "--out", "--controller",
-                   "--realtime", "--rerun", "--rerun-save", "exit status"):
+    for option in (
+        "--backend",
+        "--episodes",
+        "--duration",
+        "--seed",
+        "--out",
+        "--controller",
+        "--realtime",
+        "--rerun",
+        "--rerun-save",
+        "exit status",
+    ):
         assert option in text
 
 
@@ -160,8 +173,24 @@ def test_rerun_save_records_the_run_with_a_blueprint(tmp_path):
     from rerun.chunk import RrdReader
 
     rrd = tmp_path / "run.rrd"
-    assert main(["--episodes", "2", "--duration", "2", "--seed", "1", "--out", str(tmp_path / "ep"),
-                 "--rerun-save", str(rrd), "-q"]) == 0
+    assert (
+        main(
+            [
+                "--episodes",
+                "2",
+                "--duration",
+                "2",
+                "--seed",
+                "1",
+                "--out",
+                str(tmp_path / "ep"),
+                "--rerun-save",
+                str(rrd),
+                "-q",
+            ]
+        )
+        == 0
+    )
     reader = RrdReader(str(rrd))
     assert len(reader.recordings()) == 1 and len(reader.blueprints()) == 1
     rows: dict[str, int] = {}
@@ -197,9 +226,25 @@ def test_rerun_to_a_viewer_that_is_not_there_is_one_line_after_the_summary(tmp_p
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     code = "import sys; from qube_koopman.daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
-    proc = subprocess.run([sys.executable, "-c", code, "--rerun", f"rerun+http://127.0.0.1:{port}/proxy",
-                           "--episodes", "1", "--duration", "1", "--out", str(tmp_path), "-q"],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "--rerun",
+            f"rerun+http://127.0.0.1:{port}/proxy",
+            "--episodes",
+            "1",
+            "--duration",
+            "1",
+            "--out",
+            str(tmp_path),
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 1 and len(err) == 1, proc.stderr  # no traceback, none of the SDK's own lines
     assert err[0].startswith("qube-run: error: --rerun: the viewer did not take the recording: "), err
@@ -212,16 +257,34 @@ def test_rerun_streams_to_a_listening_server(tmp_path):
     port = _free_port()
     # `rerun` is a wrapper that runs the viewer binary as its child: its own session, so that
     # stopping it stops the binary too (terminating the wrapper alone left the server running).
-    server = subprocess.Popen(["rerun", "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL, start_new_session=True)
+    server = subprocess.Popen(
+        ["rerun", "--serve-grpc", "--port", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + 20
         while socket.socket().connect_ex(("127.0.0.1", port)) != 0:
             assert time.monotonic() < deadline, "rerun server did not start"
             assert server.poll() is None, "rerun server exited"
             time.sleep(0.1)
-        assert main(["--rerun", f"rerun+http://127.0.0.1:{port}/proxy", "--episodes", "1", "--duration", "1",
-                     "--out", str(tmp_path), "-q"]) == 0
+        assert (
+            main(
+                [
+                    "--rerun",
+                    f"rerun+http://127.0.0.1:{port}/proxy",
+                    "--episodes",
+                    "1",
+                    "--duration",
+                    "1",
+                    "--out",
+                    str(tmp_path),
+                    "-q",
+                ]
+            )
+            == 0
+        )
     finally:
         _stop_group(server)
 
@@ -252,14 +315,33 @@ def _group_alive(pgid: int) -> bool:
 
 # --- signals: a real process, paced in real time -------------------------------------------------
 
+
 @pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signal_stops_the_motor_and_closes_the_log_aborted(tmp_path, signum):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
     code = "import sys; from daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
-    proc = subprocess.Popen([sys.executable, "-c", code, "--realtime", "--episodes", "3", "--duration", "20",
-                             "--seed", "5", "--out", str(tmp_path), "-q"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "--realtime",
+            "--episodes",
+            "3",
+            "--duration",
+            "20",
+            "--seed",
+            "5",
+            "--out",
+            str(tmp_path),
+            "-q",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
         deadline = time.monotonic() + 30
         # Wait until the first log exists and has flushed data (0.5 s chunks), then signal.
@@ -326,7 +408,9 @@ def test_shipped_controllers_by_name_and_a_file_of_that_name_wins(tmp_path, monk
     assert load_pd_gains("rig") == PdGains(6.0, 1.8, 30.0, 2.5, 50.0)  # the dataset's controller.toml
     assert load_pd_gains("soft-theta") == PdGains(2.0, 1.0, 35.0, 3.0, 50.0)
     monkeypatch.chdir(tmp_path)
-    (tmp_path / "soft-theta").write_text("kp_theta = 1.0\nkd_theta = 1.0\nkp_alpha = 30.0\nkd_alpha = 2.5\ntau = 50.0\n")
+    (tmp_path / "soft-theta").write_text(
+        "kp_theta = 1.0\nkd_theta = 1.0\nkp_alpha = 30.0\nkd_alpha = 2.5\ntau = 50.0\n"
+    )
     assert load_pd_gains("soft-theta").kp_theta == 1.0
     assert main(["--episodes", "1", "--duration", "2", "--controller", "rig", "--out", "e", "-q"]) == 0
     assert read_episode_metadata(next((tmp_path / "e").glob("*.mcap"))).controller.gains["kp_theta"] == 6.0
@@ -336,15 +420,15 @@ def test_shipped_controllers_by_name_and_a_file_of_that_name_wins(tmp_path, monk
     assert main(["--episodes", "1", "--duration", "2", "--out", "rig", "--append", "-q"]) == 0
 
 
-@pytest.mark.parametrize("content, problem", [(None, "No such file or directory"),
-                                              (b"not a log", "not an MCAP file (bad magic bytes)")])
+@pytest.mark.parametrize(
+    "content, problem", [(None, "No such file or directory"), (b"not a log", "not an MCAP file (bad magic bytes)")]
+)
 def test_a_replay_log_that_cannot_be_read_is_named_once_and_first(content, problem, tmp_path, capsys):
     log = tmp_path / "junk.mcap"
     if content is not None:
         log.write_bytes(content)
     assert main(["--replay", str(log), "--out", str(tmp_path / "o"), "-q"]) == 2
-    assert capsys.readouterr().err == (f"qube-run: error: {log}: cannot read the episode log ({problem}) "
-                                       "(--replay)\n")
+    assert capsys.readouterr().err == (f"qube-run: error: {log}: cannot read the episode log ({problem}) (--replay)\n")
 
 
 @pytest.mark.parametrize("value", ["0", "100", "-1"])
@@ -362,8 +446,10 @@ def test_an_out_folder_with_logs_is_refused_unless_append(tmp_path, capsys):
     assert main(["--episodes", "2", "--duration", "0.2", "--out", str(out), "-q"]) == 0
     capsys.readouterr()
     assert main(["--episodes", "1", "--duration", "0.2", "--out", str(out), "-q"]) == 2
-    assert capsys.readouterr().err == (f"qube-run: error: {out}: already holds 2 episode logs; add --append to add "
-                                       "this run's to them, or give another --out\n")
+    assert capsys.readouterr().err == (
+        f"qube-run: error: {out}: already holds 2 episode logs; add --append to add "
+        "this run's to them, or give another --out\n"
+    )
     assert len(list(out.glob("*.mcap"))) == 2
     assert main(["--episodes", "1", "--duration", "0.2", "--out", str(out), "--append", "-q"]) == 0
     assert len(list(out.glob("*.mcap"))) == 3
@@ -397,8 +483,26 @@ def test_a_run_that_fails_before_any_log_leaves_no_folder_it_made(tmp_path, caps
 
 def test_max_voltage_lowers_the_clamp_for_any_controller(tmp_path, capsys):
     out = tmp_path / "low"
-    assert main(["--episodes", "1", "--duration", "4", "--seed", "2", "--max-voltage", "0.8", "--out", str(out),
-                 "--n-jobs", "1", "-q"]) == 0
+    assert (
+        main(
+            [
+                "--episodes",
+                "1",
+                "--duration",
+                "4",
+                "--seed",
+                "2",
+                "--max-voltage",
+                "0.8",
+                "--out",
+                str(out),
+                "--n-jobs",
+                "1",
+                "-q",
+            ]
+        )
+        == 0
+    )
     episode = read_episode(next(out.glob("*.mcap")))
     assert episode.metadata.extra["safety"]["max_voltage"] == 0.8
     assert np.max(np.abs(episode.plant_input)) == pytest.approx(0.8) and episode.saturation.any()
@@ -423,14 +527,19 @@ def test_a_controller_destabilising_the_twin_is_refused_on_the_rig_before_the_po
     argv = ["--backend", "serial", "--port", str(port), "--controller", str(bad), "--out", str(out)]
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert err == (f"qube-run: error: {bad}: the controller destabilises the twin's loop linearized at upright "
-                   "(spectral radius 1.0535 > 1): refused on the rig; --run-unstable runs it anyway\n")
+    assert err == (
+        f"qube-run: error: {bad}: the controller destabilises the twin's loop linearized at upright "
+        "(spectral radius 1.0535 > 1): refused on the rig; --run-unstable runs it anyway\n"
+    )
     assert not out.exists()
     # --run-unstable lifts the refusal: a warning, then the run goes on to the port (missing here: exit 1)
     assert main([*argv, "--run-unstable"]) == 1
     err = capsys.readouterr().err
     warning, error = err.splitlines()
-    assert warning.startswith(f"qube-run: warning: {bad}: the controller destabilises") and "--run-unstable asks" in warning
+    assert (
+        warning.startswith(f"qube-run: warning: {bad}: the controller destabilises")
+        and "--run-unstable asks" in warning
+    )
     assert str(port) in error and "destabilises" not in error
 
 
@@ -438,8 +547,10 @@ def test_a_controller_destabilising_the_twin_runs_on_the_simulator_with_a_warnin
     bad = tmp_path / "flipped.toml"
     bad.write_text(_FLIPPED)
     out = tmp_path / "runs"
-    assert main(["--controller", str(bad), "--episodes", "1", "--duration", "2", "--seed", "1", "--out", str(out),
-                 "-q"]) == 0
+    assert (
+        main(["--controller", str(bad), "--episodes", "1", "--duration", "2", "--seed", "1", "--out", str(out), "-q"])
+        == 0
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"qube-run: warning: {bad}: the controller destabilises the twin's")
     assert len(list(out.glob("*.mcap"))) == 1
@@ -454,11 +565,28 @@ def test_a_stable_controller_file_runs_without_a_word_and_a_kind_beyond_lti_is_n
 
     rig = pd_controller(PdGains(6.0, 1.8, 30.0, 2.5, 50.0))
     # the rig's PD with a feedforward input that cancels the feedforward: judged on its tracking-error columns
-    with_f = DiscreteStateSpace(rig.A, np.hstack([rig.B, np.zeros((rig.n_states, 1))]), rig.C,
-                                np.hstack([rig.D, [[-1.0]]]), rig.dt)
+    with_f = DiscreteStateSpace(
+        rig.A, np.hstack([rig.B, np.zeros((rig.n_states, 1))]), rig.C, np.hstack([rig.D, [[-1.0]]]), rig.dt
+    )
     path = write_controller_file(tmp_path / "rig_ff.toml", with_f)
-    assert main(["--controller", str(path), "--episodes", "1", "--duration", "2", "--seed", "1",
-                 "--out", str(tmp_path / "runs"), "-q"]) == 0
+    assert (
+        main(
+            [
+                "--controller",
+                str(path),
+                "--episodes",
+                "1",
+                "--duration",
+                "2",
+                "--seed",
+                "1",
+                "--out",
+                str(tmp_path / "runs"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert capsys.readouterr().err == ""
     flipped = pd_controller(PdGains(6.0, 1.8, -30.0, 2.5, 50.0))
     judged = ControllerInfo(flipped, "given", kind="state-space")

@@ -43,8 +43,12 @@ def runs(tmp_path_factory):
     out = {}
     for jobs in (1, 2):
         folder = tmp_path_factory.mktemp(f"jobs{jobs}")
-        proc = subprocess.run([sys.executable, "-m", "qube_koopman.daq.cli.run", *RUN, "--n-jobs", str(jobs),
-                               "--out", str(folder), "-q"], capture_output=True, text=True, timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-m", "qube_koopman.daq.cli.run", *RUN, "--n-jobs", str(jobs), "--out", str(folder), "-q"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert proc.returncode == 0, proc.stderr
         out[jobs] = folder, proc.stdout
     return out
@@ -87,19 +91,27 @@ def _records(path: Path):
 
     with path.open("rb") as f:
         reader = make_reader(f)
-        metadata = [(m.name, {k: v for k, v in m.metadata.items() if k not in TIMING_METADATA.get(m.name, ())})
-                    for m in reader.iter_metadata()]
+        metadata = [
+            (m.name, {k: v for k, v in m.metadata.items() if k not in TIMING_METADATA.get(m.name, ())})
+            for m in reader.iter_metadata()
+        ]
         messages = list(reader.iter_messages())
     schema, channel, first = messages[0]
-    samples = np.frombuffer(b"".join(m.data for _, _, m in messages),
-                            dtype=payload_dtype(parse_schema(schema.data.decode()))).copy()
+    samples = np.frombuffer(
+        b"".join(m.data for _, _, m in messages), dtype=payload_dtype(parse_schema(schema.data.decode()))
+    ).copy()
     for name in TIMING_SIGNALS:
         samples[name] = 0.0
     # log_time is the start time + t: only its offset from the first is the run's
-    header = [(m.sequence, m.log_time - first.log_time, m.publish_time - m.log_time, m.channel_id)
-              for _, _, m in messages]
-    return metadata, (schema.name, schema.encoding, schema.data, channel.topic, channel.message_encoding), \
-        header, samples.tobytes()
+    header = [
+        (m.sequence, m.log_time - first.log_time, m.publish_time - m.log_time, m.channel_id) for _, _, m in messages
+    ]
+    return (
+        metadata,
+        (schema.name, schema.encoding, schema.data, channel.topic, channel.message_encoding),
+        header,
+        samples.tobytes(),
+    )
 
 
 def test_the_files_are_the_same_record_for_record_but_the_timing_fields(runs):
@@ -145,9 +157,14 @@ def test_a_noisy_sensor_cannot_be_skipped():
         SimBackend(sensor=SensorModel(noise_std=1e-3), seed=1).skip_episode()
 
 
-@pytest.mark.parametrize("value, said", [("0", "must be -1 (every core) or at least 1, got 0"),
-                                         ("-2", "must be -1 (every core) or at least 1, got -2"),
-                                         ("two", "'two' is not a whole number")])
+@pytest.mark.parametrize(
+    "value, said",
+    [
+        ("0", "must be -1 (every core) or at least 1, got 0"),
+        ("-2", "must be -1 (every core) or at least 1, got -2"),
+        ("two", "'two' is not a whole number"),
+    ],
+)
 def test_n_jobs_out_of_range_is_a_usage_error_naming_the_option(value, said, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["--n-jobs", value, "--episodes", "2", "--duration", "1", "--out", str(out), "-q"]) == 2
@@ -156,11 +173,14 @@ def test_n_jobs_out_of_range_is_a_usage_error_naming_the_option(value, said, tmp
     assert not out.exists()
 
 
-@pytest.mark.parametrize("options, said", [
-    (["--backend", "serial", "--port", "/dev/null"], "--n-jobs 2: --backend serial runs one episode at a time"),
-    (["--rerun-save", "{tmp}/run.rrd"], "--n-jobs 2: --rerun-save runs one episode at a time"),
-    (["--rt-cpu", "0"], "--n-jobs 2: --rt-cpu runs one episode at a time"),
-])
+@pytest.mark.parametrize(
+    "options, said",
+    [
+        (["--backend", "serial", "--port", "/dev/null"], "--n-jobs 2: --backend serial runs one episode at a time"),
+        (["--rerun-save", "{tmp}/run.rrd"], "--n-jobs 2: --rerun-save runs one episode at a time"),
+        (["--rt-cpu", "0"], "--n-jobs 2: --rt-cpu runs one episode at a time"),
+    ],
+)
 def test_one_rig_one_view_or_one_pinned_process_refuse_more_jobs(options, said, tmp_path, capsys):
     out = tmp_path / "out"
     options = [o.format(tmp=tmp_path) for o in options]
@@ -180,9 +200,28 @@ def test_help_explains_n_jobs(capsys):
 def test_sigterm_to_the_run_stops_the_workers_episodes_with_their_logs_closed(tmp_path):
     # Paced episodes of 3 s: the first runs here, then two in workers; SIGTERM goes to this
     # process only (not the workers): it stops them through the run's flags.
-    proc = subprocess.Popen([sys.executable, "-m", "qube_koopman.daq.cli.run", "--realtime", "--episodes", "4",
-                             "--duration", "3", "--seed", "5", "--n-jobs", "2", "--out", str(tmp_path), "-q"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "qube_koopman.daq.cli.run",
+            "--realtime",
+            "--episodes",
+            "4",
+            "--duration",
+            "3",
+            "--seed",
+            "5",
+            "--n-jobs",
+            "2",
+            "--out",
+            str(tmp_path),
+            "-q",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 60
         while len(_logs(tmp_path)) < 3:
@@ -218,7 +257,7 @@ def _alive_descendants(root: int) -> set[int]:
                 stat = (entry / "stat").read_text()
             except OSError:
                 continue
-            fields = stat[stat.rindex(")") + 2:].split()
+            fields = stat[stat.rindex(")") + 2 :].split()
             if fields[0] != "Z":
                 parents[int(entry.name)] = int(fields[1])
     found, frontier = set(), [root]
@@ -247,9 +286,28 @@ def _gone(pid: int) -> bool:
 def test_sigkill_of_the_run_leaves_no_worker_behind(tmp_path):
     # SIGKILL: the run cannot tell its workers anything. They see their parent gone and end, a running
     # episode first closing its log as aborted (within 50 ms); within a few seconds all are gone.
-    proc = subprocess.Popen([sys.executable, "-m", "qube_koopman.daq.cli.run", "--realtime", "--episodes", "4",
-                             "--duration", "3", "--seed", "5", "--n-jobs", "2", "--out", str(tmp_path), "-q"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "qube_koopman.daq.cli.run",
+            "--realtime",
+            "--episodes",
+            "4",
+            "--duration",
+            "3",
+            "--seed",
+            "5",
+            "--n-jobs",
+            "2",
+            "--out",
+            str(tmp_path),
+            "-q",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 60
         while len(_logs(tmp_path)) < 3:  # the first episode here, then two in the workers
@@ -287,7 +345,8 @@ def test_a_relative_out_folder_is_this_processs_even_when_joblibs_workers_starte
     monkeypatch.chdir(tmp_path / "elsewhere")
     # Workers started here, as the run's (the same settings: joblib reuses them) and left running.
     started = joblib.Parallel(n_jobs=2, return_as="generator", max_nbytes=None, batch_size=1)(
-        joblib.delayed(abs)(-k) for k in range(4))
+        joblib.delayed(abs)(-k) for k in range(4)
+    )
     assert list(started) == [0, 1, 2, 3]
     monkeypatch.chdir(tmp_path / "here")
     assert main(["--episodes", "3", "--duration", "1", "--seed", "3", "--n-jobs", "2", "--out", "logs", "-q"]) == 0

@@ -93,15 +93,31 @@ class TimedBackend(SerialBackend):
         return self._timed(super().write, volts)
 
 
-def _run(core, tmp_path, faults=Faults(), seconds=4.0, lockstep_timeout=0.02, link_timeout=0.2,
-         backend_cls=SerialBackend, wait=None, controller=CONTROLLER):
+def _run(
+    core,
+    tmp_path,
+    faults=Faults(),
+    seconds=4.0,
+    lockstep_timeout=0.02,
+    link_timeout=0.2,
+    backend_cls=SerialBackend,
+    wait=None,
+    controller=CONTROLLER,
+):
     """One episode in lockstep into an MCAP log: (result, episode read back, emulator, backend).
 
     The lockstep timeout runs on the host's waiting (``wait``), the link timeout on the device clock.
     """
     wait = wait if wait is not None else HostWait()
-    emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=lockstep_timeout, lockstep_clock=wait,
-                         faults=faults, record_ticks=200_000)
+    emu = BridgeEmulator(
+        seed=9,
+        core=core,
+        lockstep=True,
+        lockstep_timeout=lockstep_timeout,
+        lockstep_clock=wait,
+        faults=faults,
+        record_ticks=200_000,
+    )
     emu.start()
     backend = lockstep_backend(emu, wait, backend_cls, link_timeout=link_timeout)
     backend.emu = emu
@@ -130,6 +146,7 @@ def _until_applied(emu, seq, limit=30.0):
 
 # --- a clean episode ------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def clean(core, tmp_path_factory):
     return _run(core, tmp_path_factory.mktemp("clean"))
@@ -145,8 +162,9 @@ def test_full_episode_passes_the_sim_backends_checks(clean):
     assert info["emulated"] is True and info["firmware"] == "1.0.0" and info["protocol_version"] == 1
     assert info["pacing"] == "device" and info["max_millivolts"] == 10_000
     seeds = meta.excitation["seeds"]
-    ex = generate_excitation(tuple(seeds[k] for k in ("target_theta", "target_alpha", "feedforward")),
-                             excitation_settings(4.0))
+    ex = generate_excitation(
+        tuple(seeds[k] for k in ("target_theta", "target_alpha", "feedforward")), excitation_settings(4.0)
+    )
     assert np.array_equal(ep.target_theta, ex.target_theta) and np.array_equal(ep.feedforward, ex.feedforward)
     assert meta.timing["n_ticks"] == 2000 and meta.timing["paced"] is True
     link = meta.backend_stats
@@ -174,14 +192,14 @@ def test_logged_angles_are_the_emulated_counts_of_contiguous_ticks(clean):
     # counts of every device tick; the log must hold a contiguous run of them, converted as the rig did.
     _, ep, emu, _ = clean
     _, angles = _session_ticks(emu)
-    starts = [g for g in range(len(angles) - len(ep)) if np.array_equal(angles[g:g + len(ep)], ep.states)]
+    starts = [g for g in range(len(angles) - len(ep)) if np.array_equal(angles[g : g + len(ep)], ep.states)]
     assert len(starts) == 1, "the episode is one contiguous run of device ticks"
 
 
 def test_each_command_is_applied_at_the_next_tick_in_integer_millivolts(clean):
     _, ep, emu, _ = clean
     rec, angles = _session_ticks(emu)
-    g = next(g for g in range(len(angles)) if np.array_equal(angles[g:g + len(ep)], ep.states))
+    g = next(g for g in range(len(angles)) if np.array_equal(angles[g : g + len(ep)], ep.states))
     # The last one may be overtaken by the 0 V the loop sends as the episode ends: only the newest
     # command is applied at a tick.
     after = g + 1 + np.arange(len(ep) - 1)
@@ -215,8 +233,9 @@ def test_a_host_held_up_for_300_ms_loses_nothing(core, tmp_path):
             if self.writes == 150:
                 time.sleep(0.3)
             if self.writes == 600:
-                stopper.append(subprocess.Popen(["sh", "-c", f"kill -STOP {os.getpid()}; sleep 0.3; "
-                                                             f"kill -CONT {os.getpid()}"]))
+                stopper.append(
+                    subprocess.Popen(["sh", "-c", f"kill -STOP {os.getpid()}; sleep 0.3; kill -CONT {os.getpid()}"])
+                )
             super().write(volts)
 
     result, ep, _, _ = _run(core, tmp_path, seconds=2.0, backend_cls=HeldUp)
@@ -228,6 +247,7 @@ def test_a_host_held_up_for_300_ms_loses_nothing(core, tmp_path):
 
 
 # --- a bad link -------------------------------------------------------------------------------------
+
 
 def test_garbage_and_corrupted_frames_are_survived_and_counted(core, tmp_path):
     faults = Faults(drop_rate=0.01, corrupt_rate=2e-4, garbage_rate=0.02)
@@ -249,13 +269,15 @@ def test_garbage_and_corrupted_frames_are_survived_and_counted(core, tmp_path):
 
 # --- link loss --------------------------------------------------------------------------------------
 
+
 def test_vanished_device_aborts_at_once_with_the_log_intact(core, tmp_path):
     # The host must see the device go at once (the port failing), not by a timeout. Timed on the
     # device clock, which stops when the device vanishes: the abort comes at the device time of the
     # vanishing, with no tick between, and its reason is the port's error, not "no telemetry" (on the
     # wall clock the same is 0.1-1 ms, but a loaded machine may hold the host up for any time).
-    result, ep, emu, backend = _run(core, tmp_path, Faults(vanish_at=1.0), lockstep_timeout=0.02,
-                                    link_timeout=0.2, backend_cls=TimedBackend)
+    result, ep, emu, backend = _run(
+        core, tmp_path, Faults(vanish_at=1.0), lockstep_timeout=0.02, link_timeout=0.2, backend_cls=TimedBackend
+    )
     assert result.status == "aborted" and result.cause == "fault" and "link lost" in result.reason
     assert "no telemetry" not in result.reason, result.reason
     vanished_us = next(d for d, _, e in emu.events if e == "vanish")
@@ -277,8 +299,9 @@ def test_silent_device_aborts_25_ms_of_device_time_after_its_last_telemetry(core
     # abort comes 24, 26 or 28 ms after the silence: the timeout plus at most one period either way.
     # Which one is the machine's luck; a loaded machine holding either side up moves neither clock,
     # so it cannot move the abort out of that window.
-    result, ep, emu, backend = _run(core, tmp_path, Faults(silence_at=1.0),
-                                    lockstep_timeout=0.01, link_timeout=0.025, backend_cls=TimedBackend)
+    result, ep, emu, backend = _run(
+        core, tmp_path, Faults(silence_at=1.0), lockstep_timeout=0.01, link_timeout=0.025, backend_cls=TimedBackend
+    )
     silences = [d for d, _, e in emu.events if e == "silence"]
     assert silences, f"the device never went silent: {result.reason}"
     assert result.cause == "fault" and "no telemetry" in result.reason and "25 ms" in result.reason
@@ -288,6 +311,7 @@ def test_silent_device_aborts_25_ms_of_device_time_after_its_last_telemetry(core
 
 
 # --- device faults ----------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("fault, text", [("stall_at", "motor stall error"), ("amp_fault_at", "amplifier fault")])
 def test_device_fault_aborts_with_the_reason_and_the_motor_off(core, tmp_path, fault, text):
@@ -345,8 +369,10 @@ def test_a_62_ms_bridge_hold_is_a_stall_in_the_timing_with_a_warning(core, tmp_p
     assert timing["device_stall_max"] == pytest.approx(0.062, abs=1e-9) == timing["device_stall_time"]
     k = int(np.flatnonzero(np.diff(ep.device_time) > 0.003)[0]) + 1  # the sample after the hold
     assert timing["device_stall_first"] == pytest.approx(k / 500)
-    assert said == [f"episode 0: the serial backend's device stalled 1 time(s), 62 ms at most (the first before "
-                    f"t = {k / 500:.3f} s): the ticks it held back are missing from the log"]
+    assert said == [
+        f"episode 0: the serial backend's device stalled 1 time(s), 62 ms at most (the first before "
+        f"t = {k / 500:.3f} s): the ticks it held back are missing from the log"
+    ]
 
 
 def test_host_falling_behind_trips_the_watchdog_and_aborts(core, tmp_path):
@@ -361,8 +387,7 @@ def test_host_falling_behind_trips_the_watchdog_and_aborts(core, tmp_path):
                 wait.hold(self.emu, 8)  # the bridge ticks on eight times without commands
             super().write(volts)
 
-    result, ep, emu, _ = _run(core, tmp_path, lockstep_timeout=0.01, link_timeout=0.2, backend_cls=Stalling,
-                              wait=wait)
+    result, ep, emu, _ = _run(core, tmp_path, lockstep_timeout=0.01, link_timeout=0.2, backend_cls=Stalling, wait=wait)
     assert result.cause == "fault" and "watchdog tripped" in result.reason
     assert "no command for 5 ticks" in ep.metadata.status_reason
     rec, _ = _session_ticks(emu)
@@ -375,8 +400,9 @@ def test_a_pause_after_holding_zero_volts_is_not_a_fault(core):
     # The bridge ticks unanswered only while the host waits (HostWait), so a loaded machine pausing
     # the host cannot make it tick ahead (a skipped tick); the pause below is eight ticks, on purpose.
     wait = HostWait()
-    emu = BridgeEmulator(seed=3, core=core, lockstep=True, lockstep_timeout=0.01, lockstep_clock=wait,
-                         record_ticks=10_000)
+    emu = BridgeEmulator(
+        seed=3, core=core, lockstep=True, lockstep_timeout=0.01, lockstep_clock=wait, record_ticks=10_000
+    )
     emu.start()
     backend = lockstep_backend(emu, wait, link_timeout=0.2)
     try:
@@ -416,8 +442,15 @@ def test_rig_start_gate_then_a_slow_log_open_still_runs_the_episode(core, tmp_pa
             wait.hold(emu, 8)
             super().open(metadata)
 
-    emu = BridgeEmulator(seed=5, core=core, lockstep=True, lockstep_timeout=0.01, lockstep_clock=wait,
-                         raise_time=1.0, record_ticks=20_000)
+    emu = BridgeEmulator(
+        seed=5,
+        core=core,
+        lockstep=True,
+        lockstep_timeout=0.01,
+        lockstep_clock=wait,
+        raise_time=1.0,
+        record_ticks=20_000,
+    )
     emu.start()
     backend = lockstep_backend(emu, wait, link_timeout=0.2)
     sink = SlowDisk(tmp_path)
@@ -447,22 +480,25 @@ def test_trip_bits_sent_before_the_rearm_arrived_are_ignored_but_not_later_ones(
         backend.start()
         os.write(dev.master, _tm(12, 0))
         backend.read()
-        backend.write(0.0)                                                      # seq 3: the gate's 0 V
+        backend.write(0.0)  # seq 3: the gate's 0 V
         tripped = Status.WATCHDOG_TRIPPED
-        os.write(dev.master, encode_frame(Fault(FaultCode.WATCHDOG_TRIPPED, 6, 5), 13, 0)
-                 + _tm(14, 6, status=tripped, last_command_seq=3))
-        backend.read()                                                          # not driving: re-arm
+        os.write(
+            dev.master,
+            encode_frame(Fault(FaultCode.WATCHDOG_TRIPPED, 6, 5), 13, 0)
+            + _tm(14, 6, status=tripped, last_command_seq=3),
+        )
+        backend.read()  # not driving: re-arm
         writes, send = [], backend._send
         backend._send = lambda data: (writes.append(data), send(data))[1]
-        backend.write(2.0)                                                      # seq 4 amp off, seq 5 2 V
+        backend.write(2.0)  # seq 4 amp off, seq 5 2 V
         # One write: a bridge (or the lockstep emulator) must not take the re-arm for a whole answer.
         assert [[f.seq for f in StreamDecoder().feed(w)] for w in writes] == [[4, 5]]
-        os.write(dev.master, _tm(15, 7, status=tripped, last_command_seq=3))    # made before seq 4 arrived
+        os.write(dev.master, _tm(15, 7, status=tripped, last_command_seq=3))  # made before seq 4 arrived
         backend.read()
         os.write(dev.master, _tm(16, 8, last_command_seq=5))
         backend.read()
         backend.write(2.0)
-        os.write(dev.master, _tm(17, 9, status=tripped, last_command_seq=6))    # a real trip now
+        os.write(dev.master, _tm(17, 9, status=tripped, last_command_seq=6))  # a real trip now
         with pytest.raises(BackendFault, match="watchdog tripped"):
             backend.read()
         backend.close()
@@ -482,7 +518,7 @@ def test_a_non_finite_controller_output_is_a_fault_with_zero_volts_applied(core,
     rec, _ = _session_ticks(emu)
     driven = rec["amp_enabled"] & (rec["command_seq"] > 0)
     assert driven.any() and not rec["amp_enabled"][-1] and rec["volts"][-1] == 0.0
-    assert np.all(rec["command_mv"][np.flatnonzero(driven)[-1] + 1:] == 0), "0 V from the fault on"
+    assert np.all(rec["command_mv"][np.flatnonzero(driven)[-1] + 1 :] == 0), "0 V from the fault on"
 
 
 def test_a_non_finite_command_is_refused_with_the_amplifier_off():
@@ -503,6 +539,7 @@ def test_a_non_finite_command_is_refused_with_the_amplifier_off():
 
 # --- sequence tracking, exactly -----------------------------------------------------------------
 
+
 def _scripted_bridge():
     def respond(frame):
         m = frame.message
@@ -511,6 +548,7 @@ def _scripted_bridge():
         if isinstance(m, Config):
             return encode_frame(ConfigAck(), 11, 0)
         return b""
+
     return FakeDevice(respond)
 
 
@@ -525,13 +563,14 @@ def test_sequence_gaps_are_counted_exactly():
         backend = SerialBackend(dev.path, link_timeout=0.5)
         backend.start()
         script = [
-            _tm(12, 0), _tm(13, 1),
-            _tm(15, 3),                                                     # tick 2 (seq 14) lost
+            _tm(12, 0),
+            _tm(13, 1),
+            _tm(15, 3),  # tick 2 (seq 14) lost
             encode_frame(Fault(FaultCode.RX_ERRORS, 3, 7), 16, 0) + _tm(17, 4),
-            _tm(19, 5),                                                     # seq 18 lost
-            _tm(20, 6, command_age=2),                                      # our command came late
+            _tm(19, 5),  # seq 18 lost
+            _tm(20, 6, command_age=2),  # our command came late
             _tm(21, 7, status=Status.TX_OVERFLOW),
-            _tm(22, 8) + _tm(23, 9),                                        # fell behind: the newest wins
+            _tm(22, 8) + _tm(23, 9),  # fell behind: the newest wins
         ]
         angles = []
         for chunk in script:
@@ -540,8 +579,11 @@ def test_sequence_gaps_are_counted_exactly():
             backend.write(0.5)
         stats = backend.statistics()
         backend.close()
-        commands = [f for f in dev.wait_for(lambda got: sum(isinstance(f.message, Command) for f in got) == 9)
-                    if isinstance(f.message, Command)]
+        commands = [
+            f
+            for f in dev.wait_for(lambda got: sum(isinstance(f.message, Command) for f in got) == 9)
+            if isinstance(f.message, Command)
+        ]
     assert stats["telemetry"] == 9 and stats["ticks_missed"] == 1 and stats["frames_lost"] == 2
     assert stats["ticks_skipped"] == 1 and stats["late_commands"] == 1 and stats["tx_overflows"] == 1
     assert stats["device_rx_errors"] == 7 and stats["host_rejects"] == 0
@@ -552,11 +594,14 @@ def test_sequence_gaps_are_counted_exactly():
     assert [c.seq for c in commands] == list(range(3, 3 + len(commands)))
 
 
-@pytest.mark.parametrize("status, fault_frame, text", [
-    (Status.WATCHDOG_TRIPPED, None, "watchdog tripped"),
-    (0, Fault(FaultCode.NOT_CONNECTED, 0, 3), "lost the session"),
-    (0, Fault(FaultCode.BAD_MODULE_ID, 0, 0), "module id 0"),
-])
+@pytest.mark.parametrize(
+    "status, fault_frame, text",
+    [
+        (Status.WATCHDOG_TRIPPED, None, "watchdog tripped"),
+        (0, Fault(FaultCode.NOT_CONNECTED, 0, 3), "lost the session"),
+        (0, Fault(FaultCode.BAD_MODULE_ID, 0, 0), "module id 0"),
+    ],
+)
 def test_fault_reports_and_status_bits_raise(status, fault_frame, text):
     import os
 
@@ -566,8 +611,11 @@ def test_fault_reports_and_status_bits_raise(status, fault_frame, text):
         os.write(dev.master, _tm(12, 0))
         backend.read()
         backend.write(1.0)  # driving: from now on a watchdog trip is a fault
-        os.write(dev.master, (encode_frame(fault_frame, 13, 0) if fault_frame else b"")
-                 + _tm(14 if fault_frame else 13, 1, status=status))
+        os.write(
+            dev.master,
+            (encode_frame(fault_frame, 13, 0) if fault_frame else b"")
+            + _tm(14 if fault_frame else 13, 1, status=status),
+        )
         with pytest.raises(BackendFault, match=text):
             backend.read()
         backend.write(3.0)
@@ -579,6 +627,7 @@ def test_fault_reports_and_status_bits_raise(status, fault_frame, text):
 
 # --- handshake failures -------------------------------------------------------------------------
 
+
 def _hello_reply(**fields):
     def respond(frame):
         if isinstance(frame.message, Hello):
@@ -586,18 +635,24 @@ def _hello_reply(**fields):
         if isinstance(frame.message, Config):
             return encode_frame(ConfigAck(result=1), 2, 0)
         return b""
+
     return respond
 
 
-@pytest.mark.parametrize("respond, text", [
-    (lambda f: b"", "no answer from the bridge"),
-    (lambda f: encode_raw_frame(0x81, 0, 0, bytes(20), version=2), "speaks protocol version 2; this host "
-                                                                     "speaks version 1"),
-    (lambda f: bytes(range(1, 200)) + b"\0" + bytes(range(50, 120)) + b"\0", "is the baud rate right"),
-    (_hello_reply(firmware_major=2, capabilities=0x7F), "firmware 2.0.0 is not supported"),
-    (_hello_reply(capabilities=0x01), "lacks telemetry or the watchdog"),
-    (_hello_reply(capabilities=0x7F), "refused the configuration"),
-])
+@pytest.mark.parametrize(
+    "respond, text",
+    [
+        (lambda f: b"", "no answer from the bridge"),
+        (
+            lambda f: encode_raw_frame(0x81, 0, 0, bytes(20), version=2),
+            "speaks protocol version 2; this host speaks version 1",
+        ),
+        (lambda f: bytes(range(1, 200)) + b"\0" + bytes(range(50, 120)) + b"\0", "is the baud rate right"),
+        (_hello_reply(firmware_major=2, capabilities=0x7F), "firmware 2.0.0 is not supported"),
+        (_hello_reply(capabilities=0x01), "lacks telemetry or the watchdog"),
+        (_hello_reply(capabilities=0x7F), "refused the configuration"),
+    ],
+)
 def test_handshake_failures_say_why(respond, text):
     with FakeDevice(respond) as dev:
         backend = SerialBackend(dev.path, handshake_timeout=0.3)
@@ -635,14 +690,14 @@ def test_a_port_in_use_is_refused_in_one_line_naming_it(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("bad", [dict(baud=0), dict(rate_hz=333), dict(max_voltage=20.0),
-                                 dict(link_timeout=0.0)])
+@pytest.mark.parametrize("bad", [dict(baud=0), dict(rate_hz=333), dict(max_voltage=20.0), dict(link_timeout=0.0)])
 def test_settings_are_checked(bad):
     with pytest.raises(ValueError):
         SerialBackend("/dev/null", **bad)
 
 
 # --- qube-run --backend serial ------------------------------------------------------------------
+
 
 def test_qube_run_with_a_bad_port_is_one_line(tmp_path, capsys):
     status = main(["--backend", "serial", "--port", "/nonexistent/tty", "--out", str(tmp_path), "-q"])
@@ -655,7 +710,8 @@ def test_qube_run_with_a_bad_port_is_one_line(tmp_path, capsys):
 @pytest.mark.slow
 def test_qube_run_in_real_time(env, tmp_path, capsys):
     status, out, emulator_err, tmp_path, path = run_in_real_time(
-        env, ["--seed", "5"], ["--episodes", "2", "--duration", "2", "--seed", "7"], tmp_path, capsys)
+        env, ["--seed", "5"], ["--episodes", "2", "--duration", "2", "--seed", "7"], tmp_path, capsys
+    )
     assert status == 0, out
     assert f"on the emulated bridge on {path} (firmware 1.0.0)" in out and "serial link: " in out
     assert "2 complete, 0 aborted" in out
@@ -677,8 +733,10 @@ def test_a_real_time_run_counts_the_emulators_own_lateness_as_a_measured_stall()
     shows it on time), and nothing is read from a report that says neither."""
     from bridge_helpers import _emulator_behind_ms
 
-    core_report = ("qube-emulate: stopped after 1000 ticks (2.0 s of device time), 1 session(s), 990 commands, "
-                   "3 ticks caught up late, 0 schedule restarts (max lateness 12.5 ms)")
+    core_report = (
+        "qube-emulate: stopped after 1000 ticks (2.0 s of device time), 1 session(s), 990 commands, "
+        "3 ticks caught up late, 0 schedule restarts (max lateness 12.5 ms)"
+    )
     avr_report = "qube-emulate: stopped after 1000 ticks (...), at most 0.8 ms behind the wall clock"
     assert _emulator_behind_ms(core_report) == 12.5
     assert _emulator_behind_ms(avr_report) == 0.8

@@ -15,8 +15,9 @@ from qube_koopman.daq.timing import timing_stats
 
 
 def _sample(k: int, late: float = math.nan) -> Sample:
-    return Sample(k, k / 500, 0.001 * k, -0.002 * k, 0.1, 0.0, 0.5, 1.0 + k, 1.5 + k, 0, late, 1e-5,
-                  (float(k), -float(k)))
+    return Sample(
+        k, k / 500, 0.001 * k, -0.002 * k, 0.1, 0.0, 0.5, 1.0 + k, 1.5 + k, 0, late, 1e-5, (float(k), -float(k))
+    )
 
 
 def _outcome(n: int, status="complete", reason="", paced=True) -> EpisodeOutcome:
@@ -53,8 +54,10 @@ def test_mcap_sink_names_files_like_the_dataset_and_records_timing(tmp_path):
         for k in range(1200):
             writer.put(_sample(k, late=1e-5 * (k % 7)))
         assert writer.close(_outcome(1200)) == []
-    assert [p.name for p in sink.paths] == ["qube_20261121T123456.789_1_2_3.mcap",
-                                            "qube_20261121T123456.789_1_2_3_1.mcap"]
+    assert [p.name for p in sink.paths] == [
+        "qube_20261121T123456.789_1_2_3.mcap",
+        "qube_20261121T123456.789_1_2_3_1.mcap",
+    ]
     ep = read_episode(sink.paths[1])
     assert ep.is_complete and len(ep) == 1200
     assert np.array_equal(ep.controller_state[:, 0], np.arange(1200.0))

@@ -51,15 +51,35 @@ def test_file_size_limit_stops_the_run_with_the_file_named(tmp_path):
 
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
     code = "import sys; from daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
-    proc = subprocess.run([sys.executable, "-c", code, "--episodes", "3", "--duration", "60", "--seed", "1",
-                           "--out", str(tmp_path), "-q"], capture_output=True, text=True, env=env,
-                          preexec_fn=limited, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "--episodes",
+            "3",
+            "--duration",
+            "60",
+            "--seed",
+            "1",
+            "--out",
+            str(tmp_path),
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        preexec_fn=limited,
+        timeout=120,
+    )
     logs = _logs(tmp_path)
     assert proc.returncode == 1, proc.stderr
     assert len(logs) == 1, "the run stopped at the first episode"
     err = proc.stderr.strip().splitlines()
-    assert err == [f"qube-run: error: {logs[0]}: File too large (EFBIG): the episode was stopped with the motor "
-                   f"at 0 V; the samples flushed before stay readable, marked incomplete"], proc.stderr
+    assert err == [
+        f"qube-run: error: {logs[0]}: File too large (EFBIG): the episode was stopped with the motor "
+        f"at 0 V; the samples flushed before stay readable, marked incomplete"
+    ], proc.stderr
     assert "0 complete, 1 aborted" in proc.stdout
     assert logs[0].stat().st_size <= limit
     _assert_salvaged(logs[0])
@@ -78,8 +98,9 @@ def _full_disk_at(monkeypatch, limit: int) -> None:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             return super().write(data)
 
-    monkeypatch.setattr(writer_module, "open", lambda path, mode: io.BufferedWriter(FullDisk(path, mode[0])),
-                        raising=False)
+    monkeypatch.setattr(
+        writer_module, "open", lambda path, mode: io.BufferedWriter(FullDisk(path, mode[0])), raising=False
+    )
 
 
 def test_full_disk_mid_episode_stops_the_run_and_is_never_complete(monkeypatch, tmp_path, capsys):
@@ -89,8 +110,10 @@ def test_full_disk_mid_episode_stops_the_run_and_is_never_complete(monkeypatch, 
     logs = _logs(tmp_path)
     assert status == 1 and "0 complete, 1 aborted" in out
     assert len(logs) == 1 and logs[0].stat().st_size == 50_000  # every byte that fitted
-    assert err == (f"qube-run: error: {logs[0]}: No space left on device (ENOSPC): the episode was stopped "
-                   f"with the motor at 0 V; the samples flushed before stay readable, marked incomplete\n")
+    assert err == (
+        f"qube-run: error: {logs[0]}: No space left on device (ENOSPC): the episode was stopped "
+        f"with the motor at 0 V; the samples flushed before stay readable, marked incomplete\n"
+    )
     _assert_salvaged(logs[0])
 
 
@@ -117,8 +140,11 @@ def test_full_disk_at_the_header_leaves_no_file(monkeypatch, tmp_path, capsys):
     assert main(["--episodes", "2", "--duration", "1", "--out", str(tmp_path), "-q"]) == 1
     err = capsys.readouterr().err
     assert _logs(tmp_path) == [] and list(tmp_path.iterdir()) == []
-    assert err.startswith("qube-run: error: ") and "No space left on device (ENOSPC): the episode was not started" \
-        in err and err.count("\n") == 1, err
+    assert (
+        err.startswith("qube-run: error: ")
+        and "No space left on device (ENOSPC): the episode was not started" in err
+        and err.count("\n") == 1
+    ), err
 
 
 def test_too_little_free_space_refuses_to_start(monkeypatch, tmp_path, capsys):
@@ -126,8 +152,9 @@ def test_too_little_free_space_refuses_to_start(monkeypatch, tmp_path, capsys):
 
     import qube_koopman.daq.sinks as sinks_module
 
-    monkeypatch.setattr(sinks_module.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9 - 10**6,
-                                                                                          10**6))
+    monkeypatch.setattr(
+        sinks_module.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9 - 10**6, 10**6)
+    )
     assert main(["--episodes", "2", "--duration", "20", "--out", str(tmp_path), "-q"]) == 1
     captured = capsys.readouterr()
     err = captured.err

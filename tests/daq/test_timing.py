@@ -12,8 +12,15 @@ import numpy as np
 import pytest
 
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from qube_koopman.daq.timing import (EXACT_TICKS, STALL_THRESHOLD, DeadlinePacer, TimingRecord, quiet_interpreter,
-                                     realtime_scheduling, timing_stats)
+from qube_koopman.daq.timing import (
+    EXACT_TICKS,
+    STALL_THRESHOLD,
+    DeadlinePacer,
+    TimingRecord,
+    quiet_interpreter,
+    realtime_scheduling,
+    timing_stats,
+)
 
 
 class FakeClock:
@@ -91,14 +98,18 @@ def test_timing_stats_of_free_running_ticks_has_no_lateness():
         timing_stats(np.zeros(3), np.zeros(4), 0.002)
 
 
-@pytest.mark.parametrize("sizes", [(300, 700, 1000), (EXACT_TICKS - 10, 40, 5), (5, EXACT_TICKS + 7, 3)],
-                         ids=["exact", "into-histogram", "histogram-merged-in"])
+@pytest.mark.parametrize(
+    "sizes",
+    [(300, 700, 1000), (EXACT_TICKS - 10, 40, 5), (5, EXACT_TICKS + 7, 3)],
+    ids=["exact", "into-histogram", "histogram-merged-in"],
+)
 def test_merged_records_say_what_one_record_of_all_the_ticks_says(sizes):
     # Episodes of worker processes (daq.parallel) are merged into the run's record: the same
     # statistics, exact or histogram, as if every tick had been added to one record.
     rng = np.random.default_rng(3)
-    parts = [(np.where(rng.random(n) < 0.01, np.nan, rng.exponential(4e-4, n)), rng.exponential(3e-5, n))
-             for n in sizes]
+    parts = [
+        (np.where(rng.random(n) < 0.01, np.nan, rng.exponential(4e-4, n)), rng.exponential(3e-5, n)) for n in sizes
+    ]
     whole, merged = TimingRecord(0.002), TimingRecord(0.002)
     for lateness, compute in parts:
         whole.add(lateness, compute)
@@ -134,6 +145,7 @@ def test_quiet_interpreter_restores_the_collector_and_switch_interval():
 
 # --- safety ----------------------------------------------------------------------------------
 
+
 def test_safety_limits_defaults_are_the_rigs():
     limits = SafetyLimits()
     assert limits.max_voltage == 10.0 and limits.theta_limit == math.pi / 2
@@ -143,8 +155,16 @@ def test_safety_limits_defaults_are_the_rigs():
     assert limits.violation(math.nan, 0.0) is not None
 
 
-@pytest.mark.parametrize("bad", [dict(max_voltage=0), dict(theta_limit=-1), dict(alpha_limit=math.inf),
-                                 dict(start_alpha=1.0), dict(start_timeout=0)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(max_voltage=0),
+        dict(theta_limit=-1),
+        dict(alpha_limit=math.inf),
+        dict(start_alpha=1.0),
+        dict(start_timeout=0),
+    ],
+)
 def test_safety_limits_refuse_nonsense(bad):
     with pytest.raises(ValueError):
         SafetyLimits(**bad)

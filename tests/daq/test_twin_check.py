@@ -31,8 +31,10 @@ def test_a_diverging_controller_is_refused_on_the_rig_and_a_warning_on_the_simul
     with pytest.raises(CliError) as caught:
         check_controller_on_twin(controller, "bad.toml", "serial")
     message = str(caught.value)
-    assert message.startswith("bad.toml: the controller destabilises the twin's loop linearized at upright "
-                              f"(spectral radius {radius:.4f} > 1): refused on the rig; --run-unstable runs it anyway")
+    assert message.startswith(
+        "bad.toml: the controller destabilises the twin's loop linearized at upright "
+        f"(spectral radius {radius:.4f} > 1): refused on the rig; --run-unstable runs it anyway"
+    )
     assert caught.value.status == 2 and "\n" not in message
     assert check_controller_on_twin(controller, "bad.toml", "sim").startswith("bad.toml: the controller destabilises")
     assert "as --run-unstable asks" in check_controller_on_twin(controller, "bad.toml", "serial", run_unstable=True)

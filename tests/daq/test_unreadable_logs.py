@@ -36,8 +36,9 @@ def test_unreadable_logs_are_skipped_with_one_warning_each(folder):
 
 
 def test_strict_refuses_the_first_unreadable_log(folder):
-    with pytest.raises(ValueError, match="b_empty.mcap: empty file, not an MCAP episode log; refused because of "
-                                         "--strict"):
+    with pytest.raises(
+        ValueError, match="b_empty.mcap: empty file, not an MCAP episode log; refused because of --strict"
+    ):
         load_logs(sorted(folder.glob("*.mcap")), strict=True)
 
 
@@ -60,7 +61,9 @@ def test_qube_identify_skips_unreadable_logs_in_a_folder(qube_logs, tmp_path, ca
     err = capsys.readouterr().err
     assert code == 0, err
     warned = [line for line in err.splitlines() if "warning:" in line]
-    assert len(warned) == 2 and "zz_cut_header.mcap: unreadable" in warned[0] and "zz_empty.mcap: empty file" in warned[1]
+    assert (
+        len(warned) == 2 and "zz_cut_header.mcap: unreadable" in warned[0] and "zz_empty.mcap: empty file" in warned[1]
+    )
     assert "qube-identify: info: 6 training and 2 test episodes" in err
     code = main(["--train", str(train), "--test", str(test), "--out", str(tmp_path / "o"), "--strict", "--force"])
     assert code == 2 and "zz_cut_header.mcap" in capsys.readouterr().err
@@ -71,10 +74,19 @@ def test_commands_print_one_warning_line_per_skipped_log(folder, capsys):
     from qube_koopman.core.command import run_command
     from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
 
-    assert run_command("qube-reproduce", lambda a: len(load_logs(sorted(folder.glob("*.mcap")))), None,
-                       one_line_warnings=ONE_LINE_WARNINGS) == 1
+    assert (
+        run_command(
+            "qube-reproduce",
+            lambda a: len(load_logs(sorted(folder.glob("*.mcap")))),
+            None,
+            one_line_warnings=ONE_LINE_WARNINGS,
+        )
+        == 1
+    )
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 3 and all(line.startswith("qube-reproduce: warning: ") and line.endswith("; skipped") for line in err)
+    assert len(err) == 3 and all(
+        line.startswith("qube-reproduce: warning: ") and line.endswith("; skipped") for line in err
+    )
     assert "b_empty.mcap" in err[0] and "c_text.mcap" in err[1] and "d_header_only.mcap" in err[2]
 
 
@@ -83,8 +95,10 @@ def test_qube_calibrate_refuses_an_unreadable_log_without_naming_an_option_it_la
     from qube_koopman.identify.cli.calibrate import main
 
     assert main([str(folder / "b_empty.mcap"), "--out", str(tmp_path / "p.toml"), "-q"]) == 2
-    assert capsys.readouterr().err == (f"qube-calibrate: error: {folder / 'b_empty.mcap'}: empty file, not an MCAP "
-                                       "episode log; refused: qube-calibrate fits complete, readable logs only\n")
+    assert capsys.readouterr().err == (
+        f"qube-calibrate: error: {folder / 'b_empty.mcap'}: empty file, not an MCAP "
+        "episode log; refused: qube-calibrate fits complete, readable logs only\n"
+    )
     assert not (tmp_path / "p.toml").exists()
 
 
@@ -105,8 +119,9 @@ def test_a_log_with_crafted_metadata_is_skipped_with_a_warning(folder):
     from qube_koopman.core.lti import DiscreteStateSpace
 
     _deeply_nested_log(folder / "e_deep.mcap")
-    neural = ControllerInfo(DiscreteStateSpace(np.eye(2), np.ones((2, 2)), np.ones((1, 2)), np.zeros((1, 2)), 0.002),
-                            "given", kind="neural")
+    neural = ControllerInfo(
+        DiscreteStateSpace(np.eye(2), np.ones((2, 2)), np.ones((1, 2)), np.zeros((1, 2)), 0.002), "given", kind="neural"
+    )
     write_episode(folder / "f_neural.mcap", make_episode(400, seed=3, controller=neural))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -114,7 +129,11 @@ def test_a_log_with_crafted_metadata_is_skipped_with_a_warning(folder):
     assert [log.path.name for log in logs] == ["a_good.mcap"]
     messages = [str(w.message) for w in caught]
     assert len(messages) == 2, messages
-    assert messages[0] == (f"{folder / 'e_deep.mcap'}: malformed episode metadata: a metadata value: lists and "
-                           "tables nested more than 64 levels deep; skipped")
-    assert messages[1] == (f"{folder / 'f_neural.mcap'}: malformed episode metadata: unknown controller kind "
-                           "'neural' (a log records one of 'pd', 'state-space', 'mpc'); skipped")
+    assert messages[0] == (
+        f"{folder / 'e_deep.mcap'}: malformed episode metadata: a metadata value: lists and "
+        "tables nested more than 64 levels deep; skipped"
+    )
+    assert messages[1] == (
+        f"{folder / 'f_neural.mcap'}: malformed episode metadata: unknown controller kind "
+        "'neural' (a log records one of 'pd', 'state-space', 'mpc'); skipped"
+    )

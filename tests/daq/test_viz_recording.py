@@ -15,8 +15,24 @@ from qube_koopman.daq.cli.run import main
 def test_a_20_s_episode_records_in_few_chunks_and_little_space(tmp_path):
     chunk_module = pytest.importorskip("rerun.chunk")
     rrd = tmp_path / "run.rrd"
-    assert main(["--episodes", "1", "--duration", "20", "--seed", "3", "--out", str(tmp_path / "ep"),
-                 "--rerun-save", str(rrd), "-q"]) == 0
+    assert (
+        main(
+            [
+                "--episodes",
+                "1",
+                "--duration",
+                "20",
+                "--seed",
+                "3",
+                "--out",
+                str(tmp_path / "ep"),
+                "--rerun-save",
+                str(rrd),
+                "-q",
+            ]
+        )
+        == 0
+    )
     chunks: dict[str, int] = {}
     rows: dict[str, int] = {}
     for chunk in chunk_module.RrdReader(str(rrd)).stream():
@@ -32,8 +48,19 @@ def test_a_20_s_episode_records_in_few_chunks_and_little_space(tmp_path):
 
 def test_qube_run_without_rerun_says_how_to_get_it(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "rerun", None)  # as if rerun-sdk (the [viz] extra) were not installed
-    status = main(["--episodes", "1", "--duration", "0.5", "--out", str(tmp_path / "ep"),
-                   "--rerun-save", str(tmp_path / "run.rrd"), "-q"])
+    status = main(
+        [
+            "--episodes",
+            "1",
+            "--duration",
+            "0.5",
+            "--out",
+            str(tmp_path / "ep"),
+            "--rerun-save",
+            str(tmp_path / "run.rrd"),
+            "-q",
+        ]
+    )
     err = capsys.readouterr().err
     assert status == 1
     assert 'rerun-sdk is not installed (the viewer is optional): pip install "qube-koopman[viz]"' in err
@@ -44,17 +71,29 @@ def test_qube_identify_without_rerun_says_how_to_get_it_before_any_work(tmp_path
     from qube_koopman.identify.cli.identify import main as identify_main
 
     monkeypatch.setitem(sys.modules, "rerun", None)
-    status = identify_main(["--train", str(tmp_path / "nothing"), "--test", str(tmp_path / "nothing"),
-                            "--out", str(tmp_path / "out"), "--rerun-save", str(tmp_path / "id.rrd")])
+    status = identify_main(
+        [
+            "--train",
+            str(tmp_path / "nothing"),
+            "--test",
+            str(tmp_path / "nothing"),
+            "--out",
+            str(tmp_path / "out"),
+            "--rerun-save",
+            str(tmp_path / "id.rrd"),
+        ]
+    )
     assert status == 1  # an optional package missing: as qube-run --rerun and qube-export --format parquet
     assert '--rerun-save needs rerun-sdk, which is optional: pip install "qube-koopman[viz]"' in capsys.readouterr().err
 
 
 def test_the_packages_import_and_run_without_rerun(tmp_path):
-    code = ("import sys; sys.modules['rerun'] = None\n"
-            "from daq.cli.run import main\n"
-            f"assert main(['--episodes', '1', '--duration', '0.5', '--out', {str(tmp_path)!r}, '-q']) == 0\n"
-            "import identify, daq.export")
+    code = (
+        "import sys; sys.modules['rerun'] = None\n"
+        "from daq.cli.run import main\n"
+        f"assert main(['--episodes', '1', '--duration', '0.5', '--out', {str(tmp_path)!r}, '-q']) == 0\n"
+        "import identify, daq.export"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert len(list(tmp_path.glob("*.mcap"))) == 1
@@ -65,9 +104,25 @@ def test_a_run_killed_mid_episode_leaves_no_recording_under_its_name(tmp_path):
     pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
     rrd, out = tmp_path / "run.rrd", tmp_path / "ep"
     code = "import sys; from qube_koopman.daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
-    run = subprocess.Popen([sys.executable, "-c", code, "--episodes", "1", "--duration", "60", "--realtime",
-                            "--out", str(out), "--rerun-save", str(rrd), "-q"],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "--episodes",
+            "1",
+            "--duration",
+            "60",
+            "--realtime",
+            "--out",
+            str(out),
+            "--rerun-save",
+            str(rrd),
+            "-q",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + 60
         while not (out.is_dir() and any(out.iterdir())):  # the episode is being logged: the recording is open

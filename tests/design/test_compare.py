@@ -39,8 +39,18 @@ def designed(tmp_path_factory) -> Path:
     plant = _plant()
     _save(root / "model.json", plant, _members(plant), _spectra())
     out = root / "designed.toml"
-    argv = [str(root / "model.json"), "--out", str(out), "--seed", str(SEED), "--episodes", str(EPISODES),
-            "--duration", str(DURATION), "-q"]
+    argv = [
+        str(root / "model.json"),
+        "--out",
+        str(out),
+        "--seed",
+        str(SEED),
+        "--episodes",
+        str(EPISODES),
+        "--duration",
+        str(DURATION),
+        "-q",
+    ]
     assert design_main(argv) == 0
     return out
 
@@ -58,20 +68,37 @@ def _logs_of_the_prediction(controller_file: Path, folder: Path, status: str = "
     paths = []
     for i in range(EPISODES):
         n = loop.theta.shape[1]
-        meta = EpisodeMetadata(info, 500.0, "sim", "test", "2026-12-02T00:00:00+00:00",
-                               excitation=excitation_record(seeds[i], excitation_settings(DURATION)), status=status,
-                               status_reason="" if status == "complete" else "alpha limit")
+        meta = EpisodeMetadata(
+            info,
+            500.0,
+            "sim",
+            "test",
+            "2026-12-02T00:00:00+00:00",
+            excitation=excitation_record(seeds[i], excitation_settings(DURATION)),
+            status=status,
+            status_reason="" if status == "complete" else "alpha limit",
+        )
         zeros = np.zeros(n)
-        episode = Episode(t=np.arange(n) / 500.0, theta=loop.theta[i], alpha=loop.alpha[i],
-                          target_theta=loop.target_theta[i], target_alpha=zeros, feedforward=zeros,
-                          controller_state=np.zeros((n, info.system.n_states)), control_output=loop.voltage[i],
-                          plant_input=loop.voltage[i], saturation=np.zeros(n, dtype=int), metadata=meta)
+        episode = Episode(
+            t=np.arange(n) / 500.0,
+            theta=loop.theta[i],
+            alpha=loop.alpha[i],
+            target_theta=loop.target_theta[i],
+            target_alpha=zeros,
+            feedforward=zeros,
+            controller_state=np.zeros((n, info.system.n_states)),
+            control_output=loop.voltage[i],
+            plant_input=loop.voltage[i],
+            saturation=np.zeros(n, dtype=int),
+            metadata=meta,
+        )
         paths.append(write_episode(folder / f"qube_{i}.mcap", episode))
     return paths
 
 
 def test_the_models_own_loop_measures_the_prediction_and_the_design_excitation_gives_the_files_figures(
-        designed, tmp_path, capsys):
+    designed, tmp_path, capsys
+):
     logs = _logs_of_the_prediction(designed, tmp_path / "runs")
     comparison = compare_runs(designed, logs)
     provenance = tomllib.loads(designed.read_text())["provenance"]
@@ -90,18 +117,27 @@ def test_the_models_own_loop_measures_the_prediction_and_the_design_excitation_g
 
     assert compare_main([str(designed), str(tmp_path / "runs")]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[1] == "2 episodes compared, after the first second, predicted by the model on the excitation it was " \
-                     "designed on"
+    assert (
+        out[1] == "2 episodes compared, after the first second, predicted by the model on the excitation it was "
+        "designed on"
+    )
     row = next(line for line in out if line.lstrip().startswith("J (rad^2)"))
     J = provenance["interval"]["J"]
-    assert row.split()[2:] == [f"{comparison.measured['J']:.3e}", f"{provenance['predicted']['J']:.3e}",
-                               f"{J['expected']:.3e}", f"{J['lower']:.3e}", "to", f"{J['upper']:.3e}",
-                               "yes" if comparison.inside("J") else "no"]
+    assert row.split()[2:] == [
+        f"{comparison.measured['J']:.3e}",
+        f"{provenance['predicted']['J']:.3e}",
+        f"{J['expected']:.3e}",
+        f"{J['lower']:.3e}",
+        "to",
+        f"{J['upper']:.3e}",
+        "yes" if comparison.inside("J") else "no",
+    ]
     assert out[-1] == "measured J +0.0 % against the prediction"
 
 
 def test_a_subset_of_the_run_is_predicted_on_its_own_excitations_and_stopped_episodes_are_left_out(
-        designed, tmp_path, capsys):
+    designed, tmp_path, capsys
+):
     logs = _logs_of_the_prediction(designed, tmp_path / "runs")
     one = compare_runs(designed, logs[1:])
     assert not one.design_excitation and one.measured["J"] == pytest.approx(one.predicted["J"], rel=1e-9)
@@ -131,20 +167,26 @@ def test_bad_input_is_one_line_naming_the_file(designed, tmp_path, capsys):
     gains = tmp_path / "gains.toml"
     gains.write_text("kp_theta = 6.0\nkd_theta = 1.8\nkp_alpha = 30.0\nkd_alpha = 2.5\ntau = 50.0\n")
     assert compare_main([str(gains), str(pd_log)]) == 1
-    assert _one_line(capsys) == f"{gains}: PD gains; the comparison predicts an LQ design qube-design wrote " \
-                                "(kind 'state-space')"
+    assert (
+        _one_line(capsys) == f"{gains}: PD gains; the comparison predicts an LQ design qube-design wrote "
+        "(kind 'state-space')"
+    )
 
     logs = _logs_of_the_prediction(designed, tmp_path / "runs")
     moved = tmp_path / "elsewhere" / "designed.toml"
     moved.parent.mkdir()
     moved.write_text(designed.read_text().replace(str(designed.parent / "model.json"), "gone/model.json"))
     assert compare_main([str(moved), *map(str, logs)]) == 1
-    assert _one_line(capsys) == f"{moved}: its model file gone/model.json is not there (nor beside the controller " \
-                                "file); give it with --model"
+    assert (
+        _one_line(capsys) == f"{moved}: its model file gone/model.json is not there (nor beside the controller "
+        "file); give it with --model"
+    )
     other = _save(tmp_path / "other.json", _plant(seed=1))
     assert compare_main([str(moved), *map(str, logs), "--model", str(other)]) == 1
-    assert _one_line(capsys) == f"{moved}: designed again from {other} with its weights, it is another controller: " \
-                                "the model file is not the one it was designed on"
+    assert (
+        _one_line(capsys) == f"{moved}: designed again from {other} with its weights, it is another controller: "
+        "the model file is not the one it was designed on"
+    )
     assert compare_main([str(moved), *map(str, logs), "--model", str(tmp_path / "none.json")]) == 2
     assert _one_line(capsys) == f"{tmp_path / 'none.json'}: no such model file (--model)"
     assert compare_main([str(moved), *map(str, logs), "--model", str(designed.parent / "model.json")]) == 0

@@ -54,7 +54,7 @@ def _pendulum_like(d: int, const: bool, seed: int = 0) -> KoopmanModel:
         A_x[:, :2] = [[1.0, 0.01], [0.0, 1.03]]
     else:  # theta_k+1 ~ 2 theta_k - theta_k-1: second order, the pendulum unstable
         A_x[:, :4] = [[1.9, 0.0, -0.9, 0.0], [0.0, 2.02, 0.0, -1.0]]
-    A_x[:, :2 * (d + 1)] += 0.01 * rng.standard_normal((2, 2 * (d + 1)))
+    A_x[:, : 2 * (d + 1)] += 0.01 * rng.standard_normal((2, 2 * (d + 1)))
     if const:
         A_x[:, -1] = [1e-4, -2e-4]
     return _plant_model(steps, A_x, np.array([2e-4, -2e-4]))
@@ -67,11 +67,11 @@ def _feedback_by_hand(model: KoopmanModel, K: np.ndarray, r: np.ndarray, f: np.n
     u = np.zeros(len(r))
     w = 0.0
     for k in range(d, len(r) - 1):
-        s = x[k - d:k + 1][::-1].ravel()  # newest first, as the lifting orders it
-        s_ref = r[k - d:k + 1][::-1].ravel()
+        s = x[k - d : k + 1][::-1].ravel()  # newest first, as the lifting orders it
+        s_ref = r[k - d : k + 1][::-1].ravel()
         u[k] = -K[0, :n_s] @ (s - s_ref) - K[0, n_s] * w + f[k]
         w += DT * (r[k, 0] - x[k, 0])
-        z = model.lifting.transform(x[k - d:k + 1])[-1]
+        z = model.lifting.transform(x[k - d : k + 1])[-1]
         x[k + 1] = model.A[:2] @ z + model.B[:2, 0] * u[k]
     return x, u
 
@@ -83,7 +83,7 @@ def test_the_realization_is_the_lifted_state_feedback_sample_for_sample(d, const
     rng = np.random.default_rng(1)
     n = 400
     r = np.cumsum(rng.normal(0, 0.01, (n, 2)), axis=0)
-    r[:d + 1] = 0.0  # the controller starts at rest: no reference before the first controlled sample
+    r[: d + 1] = 0.0  # the controller starts at rest: no reference before the first controlled sample
     f = np.repeat(rng.choice([-0.5, 0.5], n // 20), 20)
     by_hand, u_by_hand = _feedback_by_hand(model, design.gain, r, f)
     loop = close_loop(model, design.controller)  # the controller file's tick, as identify predicts it
@@ -144,8 +144,16 @@ def test_the_margins_are_where_the_closed_loop_leaves_the_unit_circle():
 
 
 def _save(path: Path, model: KoopmanModel) -> Path:
-    save_model(path, method="cl-edmd", alpha=1e-3, plant=model, closed_loop=None, controller=None,
-               measured=[0, 1], training={"logs": []})
+    save_model(
+        path,
+        method="cl-edmd",
+        alpha=1e-3,
+        plant=model,
+        closed_loop=None,
+        controller=None,
+        measured=[0, 1],
+        training={"logs": []},
+    )
     return path
 
 
@@ -161,20 +169,38 @@ def test_an_unstabilizable_model_is_refused_naming_the_mode(tmp_path, capsys):
     assert not (tmp_path / "c.toml").exists()
 
 
-@pytest.mark.parametrize("kind, expected", [
-    ("friction", "its lifting holds the arm's Coulomb friction shape (--friction)"),
-    ("arx", "an ARX model; a design needs a Koopman plant model: identify it with qube-identify ... --poly 1 --delays N"),
-    ("not json", "not a readable model file"),
-    ("missing", "not a readable model file (No such file or directory)"),
-])
+@pytest.mark.parametrize(
+    "kind, expected",
+    [
+        ("friction", "its lifting holds the arm's Coulomb friction shape (--friction)"),
+        (
+            "arx",
+            "an ARX model; a design needs a Koopman plant model: identify it with qube-identify ... --poly 1 --delays N",
+        ),
+        ("not json", "not a readable model file"),
+        ("missing", "not a readable model file (No such file or directory)"),
+    ],
+)
 def test_a_model_a_design_cannot_use_is_refused_saying_what_to_identify(kind, expected, tmp_path, capsys):
     path = tmp_path / "model.json"
     if kind == "friction":
         model = _plant_model([Delay(2), CoulombFriction(0, 2, 0.002)], np.zeros((2, 7)), np.array([1e-3, -1e-3]))
         _save(path, model)
     elif kind == "arx":
-        path.write_text(json.dumps({"format": "qube-arx-model", "version": 1, "method": "arx", "output_lags": 2,
-                                    "input_lags": 1, "inputs": ["u"], "coef": [[0.0]], "dt": DT}))
+        path.write_text(
+            json.dumps(
+                {
+                    "format": "qube-arx-model",
+                    "version": 1,
+                    "method": "arx",
+                    "output_lags": 2,
+                    "input_lags": 1,
+                    "inputs": ["u"],
+                    "coef": [[0.0]],
+                    "dt": DT,
+                }
+            )
+        )
     elif kind == "not json":
         path.write_text("kp_theta = 6\n")
     assert design_main([str(path), "--out", str(tmp_path / "c.toml")]) == 2
@@ -196,14 +222,17 @@ def test_a_nonlinear_lifting_is_designed_on_its_linearization_at_upright_and_say
     np.testing.assert_allclose(plant.F, linear_plant(linear).F, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--r-voltage", "0"], "--r-voltage must be a finite number > 0, got 0.0"),
-    (["--q-theta", "-1"], "--q-theta must be a finite number >= 0, got -1.0"),
-    (["--q-alpha", "nan"], "--q-alpha must be a finite number >= 0, got nan"),
-    (["--q-integral", "inf"], "--q-integral must be a finite number >= 0, got inf"),
-    (["--q-theta", "0", "--q-alpha", "0"], "--q-theta and --q-alpha are both 0"),
-    (["--duration", "1"], "--duration must be between 2 and 60 s, got 1.0"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--r-voltage", "0"], "--r-voltage must be a finite number > 0, got 0.0"),
+        (["--q-theta", "-1"], "--q-theta must be a finite number >= 0, got -1.0"),
+        (["--q-alpha", "nan"], "--q-alpha must be a finite number >= 0, got nan"),
+        (["--q-integral", "inf"], "--q-integral must be a finite number >= 0, got inf"),
+        (["--q-theta", "0", "--q-alpha", "0"], "--q-theta and --q-alpha are both 0"),
+        (["--duration", "1"], "--duration must be between 2 and 60 s, got 1.0"),
+    ],
+)
 def test_bad_weights_are_a_usage_error_naming_the_option(argv, message, tmp_path, capsys):
     path = _save(tmp_path / "model.json", _pendulum_like(2, False))
     assert design_main([str(path), "--out", str(tmp_path / "c.toml"), *argv]) == 2
@@ -220,10 +249,14 @@ def test_qube_design_writes_a_controller_file_qube_run_loads_with_its_provenance
     out = tmp_path / "designed.toml"
     assert design_main([str(model), "--out", str(out), "--episodes", "3", "--duration", "6", "--q-theta", "4"]) == 0
     text = capsys.readouterr().out
-    for line in ("the identified plant itself: 5 delays of theta, alpha and a constant (12 states)",
-                 "weights q_theta 4, q_alpha 0.1, r_voltage 0.01, q_integral 10", "closed loop: spectral radius 0.9",
-                 "margins at the plant input: gain +", "predicted on the rig's excitation (3 episodes of 6 s",
-                 f"wrote {out}: qube-run --controller {out}"):
+    for line in (
+        "the identified plant itself: 5 delays of theta, alpha and a constant (12 states)",
+        "weights q_theta 4, q_alpha 0.1, r_voltage 0.01, q_integral 10",
+        "closed loop: spectral radius 0.9",
+        "margins at the plant input: gain +",
+        "predicted on the rig's excitation (3 episodes of 6 s",
+        f"wrote {out}: qube-run --controller {out}",
+    ):
         assert line in text, text
     info = load_controller(out)
     assert info.kind == "state-space" and info.system.n_states == 2 * 5 + 1
@@ -257,9 +290,12 @@ def _twin_figures(folder: Path) -> dict:
 
     episodes = [read_episode(p) for p in sorted(folder.glob("*.mcap"))]
     rows = np.array([episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input) for e in episodes])
-    return {"complete": sum(e.metadata.status == "complete" for e in episodes), "J": rows[:, 0].mean(),
-            "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))),
-            "saturated": int(sum(e.saturation[500:].sum() for e in episodes))}
+    return {
+        "complete": sum(e.metadata.status == "complete" for e in episodes),
+        "J": rows[:, 0].mean(),
+        "voltage_rms": float(np.sqrt(np.mean(rows[:, 3] ** 2))),
+        "saturated": int(sum(e.saturation[500:].sum() for e in episodes)),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -280,13 +316,35 @@ def twin_cycle(tmp_path_factory) -> SimpleNamespace:
         return root / out
 
     train, test = run("train", 6, 3), run("test", 2, 4)
-    assert identify_main(["--train", *map(str, sorted(train.glob("*.mcap"))), "--test", *map(str, test.glob("*.mcap")),
-                          "--poly", "1", "--delays", "35", "--const", "--out", str(root / "model"), "-q"]) == 0
+    assert (
+        identify_main(
+            [
+                "--train",
+                *map(str, sorted(train.glob("*.mcap"))),
+                "--test",
+                *map(str, test.glob("*.mcap")),
+                "--poly",
+                "1",
+                "--delays",
+                "35",
+                "--const",
+                "--out",
+                str(root / "model"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     controller = root / "designed.toml"
     assert design_main([str(root / "model"), "--out", str(controller), "--seed", "5", "--episodes", "6", "-q"]) == 0
-    return SimpleNamespace(pd_train=train, model=root / "model", controller=controller, pd=run("pd", 6, 5),
-                           designed=run("designed", 6, 5, "--controller", str(controller)),
-                           designed_new=run("designed_new", 4, 6, "--controller", str(controller)))
+    return SimpleNamespace(
+        pd_train=train,
+        model=root / "model",
+        controller=controller,
+        pd=run("pd", 6, 5),
+        designed=run("designed", 6, 5, "--controller", str(controller)),
+        designed_new=run("designed_new", 4, 6, "--controller", str(controller)),
+    )
 
 
 @pytest.mark.slow
@@ -306,9 +364,29 @@ def _cl_edmd_r2(train: Path, test: Path, out: Path) -> float:
     Each log records the controller it ran under, so the plant identified under one controller
     predicts the other's closed loop: that is the transfer.
     """
-    assert identify_main(["--train", *map(str, sorted(train.glob("*.mcap"))), "--test", *map(str, sorted(test.glob("*.mcap"))),
-                          "--poly", "1", "--delays", "35", "--const", "--alpha", "1e-3", "--out", str(out), "-q",
-                          "--interval", "0"]) == 0  # the test R^2 is the point here, not the intervals (13 s less)
+    assert (
+        identify_main(
+            [
+                "--train",
+                *map(str, sorted(train.glob("*.mcap"))),
+                "--test",
+                *map(str, sorted(test.glob("*.mcap"))),
+                "--poly",
+                "1",
+                "--delays",
+                "35",
+                "--const",
+                "--alpha",
+                "1e-3",
+                "--out",
+                str(out),
+                "-q",
+                "--interval",
+                "0",
+            ]
+        )
+        == 0
+    )  # the test R^2 is the point here, not the intervals (13 s less)
     test = json.loads((out / "report.json").read_text())["test"]
     assert test["n_diverged"] == 0, test["diverged"]
     return test["r2_mean"]
@@ -329,9 +407,11 @@ def test_re_identified_under_the_design_the_plant_predicts_both_loops(twin_cycle
     episodes at 0.997 predicts the PD's at 0.943 whatever the regularization: 0.943-0.947 for
     alpha 1e-4 to 1e-2).
     """
-    scores = {"design -> design": _cl_edmd_r2(twin_cycle.designed, twin_cycle.designed_new, tmp_path / "dd"),
-              "design -> PD": _cl_edmd_r2(twin_cycle.designed, twin_cycle.pd_train, tmp_path / "dp"),
-              "PD -> design": _cl_edmd_r2(twin_cycle.pd_train, twin_cycle.designed_new, tmp_path / "pd")}
+    scores = {
+        "design -> design": _cl_edmd_r2(twin_cycle.designed, twin_cycle.designed_new, tmp_path / "dd"),
+        "design -> PD": _cl_edmd_r2(twin_cycle.designed, twin_cycle.pd_train, tmp_path / "dp"),
+        "PD -> design": _cl_edmd_r2(twin_cycle.pd_train, twin_cycle.designed_new, tmp_path / "pd"),
+    }
     assert scores["design -> design"] >= 0.95 and scores["PD -> design"] >= 0.95, scores
     assert scores["design -> PD"] >= 0.93, scores
 
@@ -362,12 +442,34 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
     from qube_koopman.identify.models.model_file import load_model
 
     rrd, out = tmp_path / "design.rrd", tmp_path / "again.toml"
-    assert design_main([str(twin_cycle.model), "--out", str(out), "--seed", "5", "--episodes", "6", "--rerun-save", str(rrd),
-                        "--rerun-episodes", "1", "-q"]) == 0
+    assert (
+        design_main(
+            [
+                str(twin_cycle.model),
+                "--out",
+                str(out),
+                "--seed",
+                "5",
+                "--episodes",
+                "6",
+                "--rerun-save",
+                str(rrd),
+                "--rerun-episodes",
+                "1",
+                "-q",
+            ]
+        )
+        == 0
+    )
     series = _rrd_series(rrd)
     assert {p for p in series if p.startswith("episodes/")} == (
-        {f"episodes/episode_00/{c}/{k}" for c in ("theta", "alpha", "voltage")
-         for k in ("predicted", "twin", "twin_training")} | {"episodes/episode_00/theta/target"})
+        {
+            f"episodes/episode_00/{c}/{k}"
+            for c in ("theta", "alpha", "voltage")
+            for k in ("predicted", "twin", "twin_training")
+        }
+        | {"episodes/episode_00/theta/target"}
+    )
     for kind, folder in (("twin", twin_cycle.designed), ("twin_training", twin_cycle.pd)):
         logged = read_episode(sorted(folder.glob("*.mcap"))[0])
         for channel, values in (("theta", logged.theta), ("alpha", logged.alpha), ("voltage", logged.plant_input)):
@@ -459,12 +561,31 @@ def test_qube_compare_finds_the_designs_twin_runs_inside_the_interval_it_predict
     assert same.design_excitation and len(same.logs) == 6
     assert same.predicted["J"] == pytest.approx(provenance["predicted"]["J"], rel=1e-9)
     assert (same.interval.lower["J"], same.interval.upper["J"]) == pytest.approx(
-        (provenance["interval"]["J"]["lower"], provenance["interval"]["J"]["upper"]), rel=1e-9)
+        (provenance["interval"]["J"]["lower"], provenance["interval"]["J"]["upper"]), rel=1e-9
+    )
     assert same.inside("J") and same.inside("voltage_rms"), (same.measured, same.interval.as_dict())
 
     short = tmp_path / "short"
-    assert run_main(["--backend", "sim", "--episodes", "2", "--seed", "8", "--duration", "6", "--controller",
-                     str(twin_cycle.controller), "--out", str(short), "-q"]) == 0
+    assert (
+        run_main(
+            [
+                "--backend",
+                "sim",
+                "--episodes",
+                "2",
+                "--seed",
+                "8",
+                "--duration",
+                "6",
+                "--controller",
+                str(twin_cycle.controller),
+                "--out",
+                str(short),
+                "-q",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert compare_main([str(twin_cycle.controller), str(short)]) == 0
     text = capsys.readouterr().out
@@ -476,5 +597,7 @@ def test_qube_compare_finds_the_designs_twin_runs_inside_the_interval_it_predict
 
     pd_log = sorted(twin_cycle.pd.glob("*.mcap"))[0]
     assert compare_main([str(twin_cycle.controller), str(pd_log)]) == 1
-    assert capsys.readouterr().err == (f"qube-compare: error: {pd_log}: recorded under another controller (pd, 2 "
-                                       f"states), not {twin_cycle.controller}\n")
+    assert capsys.readouterr().err == (
+        f"qube-compare: error: {pd_log}: recorded under another controller (pd, 2 "
+        f"states), not {twin_cycle.controller}\n"
+    )

@@ -18,8 +18,14 @@ import pytest
 from qube_koopman.design import Weights, design_lq, linear_plant
 from qube_koopman.design.cli.design import main as design_main
 from qube_koopman.design.predict import predict_cost, rig_excitations
-from qube_koopman.design.uncertainty import (FIGURES, NO_MEMBERS, ModelUncertainty, figure_interval, member_figures,
-                                             model_uncertainty)
+from qube_koopman.design.uncertainty import (
+    FIGURES,
+    NO_MEMBERS,
+    ModelUncertainty,
+    figure_interval,
+    member_figures,
+    model_uncertainty,
+)
 from qube_koopman.identify import Constant, Delay, KoopmanModel, Lifting
 from qube_koopman.identify.models.model_file import load_model, save_model, uncertainty_to_dict
 from qube_koopman.identify.uncertainty.spectra import error_spectra
@@ -36,7 +42,7 @@ def _plant(d: int = 3, seed: int = 0) -> KoopmanModel:
     A = np.eye(n, k=0) * 0.5
     A[:2] = 0.0
     A[:2, :4] = [[1.9, 0.0, -0.9, 0.0], [0.0, 2.02, 0.0, -1.0]]
-    A[:2, :2 * (d + 1)] += 0.01 * rng.standard_normal((2, 2 * (d + 1)))
+    A[:2, : 2 * (d + 1)] += 0.01 * rng.standard_normal((2, 2 * (d + 1)))
     A[:2, -1] = [1e-4, -2e-4]
     B = np.zeros((n, 1))
     B[:2, 0] = [2e-4, -2e-4]
@@ -55,8 +61,14 @@ def _members(plant: KoopmanModel, n: int = 6, size: float = 1e-3) -> list[Koopma
     return out
 
 
-HELD_OUT = np.array([[[1.05e-2, 1.50, 7.0], [1.00e-2, 1.45, 6.5]], [[1.51e-2, 1.55, 7.3], [1.48e-2, 1.47, 6.9]],
-                     [[1.30e-2, 1.49, 6.8], [1.31e-2, 1.44, 6.6]], [[1.42e-2, 1.52, 7.1], [1.36e-2, 1.46, 6.7]]])
+HELD_OUT = np.array(
+    [
+        [[1.05e-2, 1.50, 7.0], [1.00e-2, 1.45, 6.5]],
+        [[1.51e-2, 1.55, 7.3], [1.48e-2, 1.47, 6.9]],
+        [[1.30e-2, 1.49, 6.8], [1.31e-2, 1.44, 6.6]],
+        [[1.42e-2, 1.52, 7.1], [1.36e-2, 1.46, 6.7]],
+    ]
+)
 
 
 def _spectra(n: int = len(HELD_OUT)) -> dict:
@@ -74,8 +86,17 @@ def _save(path, plant, members=None, spectra=None):
     uncertainty = (
         None if members is None else uncertainty_to_dict(plant, members, HELD_OUT, seed=3, skip=500, spectra=spectra)
     )
-    save_model(path, method="cl-edmd", alpha=1e-3, plant=plant, closed_loop=None, controller=None, measured=[0, 1],
-               training={"logs": []}, uncertainty=uncertainty)
+    save_model(
+        path,
+        method="cl-edmd",
+        alpha=1e-3,
+        plant=plant,
+        closed_loop=None,
+        controller=None,
+        measured=[0, 1],
+        training={"logs": []},
+        uncertainty=uncertainty,
+    )
     return path
 
 
@@ -107,8 +128,9 @@ def test_the_members_batched_simulation_is_predict_cost_sample_for_sample():
     figures = member_figures([linear_plant(m) for m in members], design, excitations)
     for model, got in zip(members, figures):
         expected = predict_cost(model, design.controller, excitations)
-        np.testing.assert_allclose(got, np.column_stack([expected.cost, expected.voltage_rms, expected.voltage_peak]),
-                                   rtol=1e-10)
+        np.testing.assert_allclose(
+            got, np.column_stack([expected.cost, expected.voltage_rms, expected.voltage_peak]), rtol=1e-10
+        )
 
 
 def test_the_interval_from_members_is_the_mixtures_quantiles_by_monte_carlo():
@@ -134,8 +156,9 @@ def test_the_interval_from_members_is_the_mixtures_quantiles_by_monte_carlo():
     alone = figure_interval(predicted, nominal, members, None, 0.9)  # the members alone: their own quantiles
     for i, name in enumerate(FIGURES):
         ratios = pooled[:, i] / base[i]
-        expected = predicted[name] * np.array([np.quantile(ratios, 0.05, method="lower"),
-                                               np.quantile(ratios, 0.95, method="higher")])
+        expected = predicted[name] * np.array(
+            [np.quantile(ratios, 0.05, method="lower"), np.quantile(ratios, 0.95, method="higher")]
+        )
         np.testing.assert_allclose([alone.lower[name], alone.upper[name]], expected, rtol=1e-12)
     assert alone.n_held_out == 0 and "alone" in alone.sources
 
@@ -159,8 +182,10 @@ def test_without_bootstrap_plants_the_design_says_there_is_no_interval_and_robus
     assert design_main([str(path), "--out", str(out), "--episodes", "2", "--duration", "4"]) == 0
     assert f"no interval: {NO_MEMBERS}" in capsys.readouterr().out
     assert _provenance(out)["interval"] == {"none": NO_MEMBERS}
-    assert design_main([str(path), "--out", str(tmp_path / "r.toml"), "--robust", "--episodes", "2",
-                        "--duration", "4"]) == 2
+    assert (
+        design_main([str(path), "--out", str(tmp_path / "r.toml"), "--robust", "--episodes", "2", "--duration", "4"])
+        == 2
+    )
     err = capsys.readouterr().err
     assert "--robust designs against the model's uncertainty, and the model file holds no bootstrap plants" in err
     assert not (tmp_path / "r.toml").exists()
@@ -170,8 +195,12 @@ def test_with_bootstrap_plants_the_report_gives_the_interval_and_the_robust_choi
     plant = _plant()
     path = _save(tmp_path / "model.json", plant, _members(plant))
     out = tmp_path / "c.toml"
-    assert design_main([str(path), "--out", str(out), "--episodes", "2", "--duration", "4", "--robust",
-                        "--interval", "0.9"]) == 0
+    assert (
+        design_main(
+            [str(path), "--out", str(out), "--episodes", "2", "--duration", "4", "--robust", "--interval", "0.9"]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "interval at 0.9 (from 6 bootstrap plants and the model's error on 4 held-out training episodes)" in text
     assert "robust: " in text
@@ -205,9 +234,11 @@ def test_each_figure_line_says_what_its_numbers_are_and_its_interval_holds_the_e
     path = _save(tmp_path / "model.json", plant, _members(plant), _spectra())
     assert design_main([str(path), "--out", str(tmp_path / "c.toml"), "--episodes", "2", "--duration", "4"]) == 0
     text = capsys.readouterr().out
-    pattern = re.compile(r"predicted (\S+) \(the point model\), (\S+) with the model's error; "
-                         r"95 % interval of the loop's figure (\S+) to (\S+), its median (\S+?)"
-                         r"(?: \(the point model's prediction lies (below|above) it\))?$")
+    pattern = re.compile(
+        r"predicted (\S+) \(the point model\), (\S+) with the model's error; "
+        r"95 % interval of the loop's figure (\S+) to (\S+), its median (\S+?)"
+        r"(?: \(the point model's prediction lies (below|above) it\))?$"
+    )
     found = [m for line in text.splitlines() if (m := pattern.search(line))]
     assert len(found) == 3, text
     for m in found:
@@ -216,13 +247,20 @@ def test_each_figure_line_says_what_its_numbers_are_and_its_interval_holds_the_e
         assert m.group(6) == ("below" if predicted < lower else "above" if predicted > upper else None), m.group(0)
 
 
-@pytest.mark.parametrize("damage, message", [
-    (lambda s: s.pop("input"), "input is missing"),
-    (lambda s: s["error"]["re"].pop(), "error must hold re and im of shape (4, "),
-    (lambda s: s.__setitem__("controller_of_episode", [0, 0, 0, 3]), "controller_of_episode must give each of the 4"),
-    (lambda s: s["edges_hz"].__setitem__(1, float("nan")), "edges_hz has a non-finite entry"),
-    (lambda s: s.__setitem__("error_input", [1.0]), "error_input is missing (an object of re and im)"),
-], ids=["missing", "shape", "index", "nan", "type"])
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda s: s.pop("input"), "input is missing"),
+        (lambda s: s["error"]["re"].pop(), "error must hold re and im of shape (4, "),
+        (
+            lambda s: s.__setitem__("controller_of_episode", [0, 0, 0, 3]),
+            "controller_of_episode must give each of the 4",
+        ),
+        (lambda s: s["edges_hz"].__setitem__(1, float("nan")), "edges_hz has a non-finite entry"),
+        (lambda s: s.__setitem__("error_input", [1.0]), "error_input is missing (an object of re and im)"),
+    ],
+    ids=["missing", "shape", "index", "nan", "type"],
+)
 def test_damaged_error_spectra_are_one_error_naming_the_entry(tmp_path, capsys, damage, message):
     plant = _plant()
     spectra = _spectra()
@@ -234,11 +272,18 @@ def test_damaged_error_spectra_are_one_error_naming_the_entry(tmp_path, capsys, 
     assert not (tmp_path / "c.toml").exists()
 
 
-@pytest.mark.parametrize("damage, message", [
-    (lambda h: h["predicted"].pop(), "uncertainty.held_out: 4 measured rows, 3 predicted"),
-    (lambda h: h.__setitem__("measured", [[1.0, 2.0]] * 4), "uncertainty.held_out.measured must be rows of 3 numbers"),
-    (lambda h: h.__setitem__("predicted", "none"), "uncertainty.held_out.predicted must be rows of 3 numbers"),
-], ids=["rows", "columns", "type"])
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda h: h["predicted"].pop(), "uncertainty.held_out: 4 measured rows, 3 predicted"),
+        (
+            lambda h: h.__setitem__("measured", [[1.0, 2.0]] * 4),
+            "uncertainty.held_out.measured must be rows of 3 numbers",
+        ),
+        (lambda h: h.__setitem__("predicted", "none"), "uncertainty.held_out.predicted must be rows of 3 numbers"),
+    ],
+    ids=["rows", "columns", "type"],
+)
 def test_damaged_held_out_figures_are_one_error_naming_the_entry(tmp_path, capsys, damage, message):
     import json
 

@@ -46,7 +46,9 @@ def test_the_figures_are_written_and_their_margins_are_python_controls_of_the_sa
     bode, margins = figures / "designed_bode.png", figures / "designed_margins.png"
     assert f"wrote {bode} (Bode plots of the plant, the controller and the loop) and {margins}" in text
     with Image.open(bode) as image:
-        assert image.size == (900, 700) and "Bode plots of the plant, the controller and the loop" in image.text["Title"]
+        assert (
+            image.size == (900, 700) and "Bode plots of the plant, the controller and the loop" in image.text["Title"]
+        )
     with Image.open(margins) as image:
         title = image.text["Title"]
     up, down, phase, where, stability = _title_margins(title)
@@ -77,7 +79,7 @@ def test_the_figures_are_written_and_their_margins_are_python_controls_of_the_sa
     again.parent.mkdir()
     argv[2] = str(again)
     assert design_main(argv) == 2  # refused before any work, unless --force
-    assert capsys.readouterr().err == (f"qube-design: error: {figures / 'designed_bode.png'}: exists (use --force to "
-                                       "overwrite) (--figures)\n")
+    assert capsys.readouterr().err == (
+        f"qube-design: error: {figures / 'designed_bode.png'}: exists (use --force to overwrite) (--figures)\n"
+    )
     assert not again.exists()
-

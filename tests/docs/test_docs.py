@@ -25,9 +25,25 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 import readme_slices  # the docs' own extension, docs/_ext
 
-PAGES = ["index", "getting-started", "collecting", "identification", "transfer", "lifting-search", "cluster",
-         "calibration", "design", "formats", "NAMING", "daq/log/FORMAT", "core/CONTROLLER_FORMAT",
-         "identify/MODEL_FORMAT", "firmware_protocol/PROTOCOL", "api/index", "development"]
+PAGES = [
+    "index",
+    "getting-started",
+    "collecting",
+    "identification",
+    "transfer",
+    "lifting-search",
+    "cluster",
+    "calibration",
+    "design",
+    "formats",
+    "NAMING",
+    "daq/log/FORMAT",
+    "core/CONTROLLER_FORMAT",
+    "identify/MODEL_FORMAT",
+    "firmware_protocol/PROTOCOL",
+    "api/index",
+    "development",
+]
 
 
 README = """# Title
@@ -49,8 +65,10 @@ def test_a_readme_slice_is_whole_lines_from_its_start_marker_to_its_end_marker()
     assert "{download}`LICENSE </../LICENSE>`" in whole
 
 
-@pytest.mark.parametrize("start, end, problem", [("no such text", "", "not found"), ("item", "", "not unique"),
-                                                 ("- `cmd-a", "no such end", "not found after")])
+@pytest.mark.parametrize(
+    "start, end, problem",
+    [("no such text", "", "not found"), ("item", "", "not unique"), ("- `cmd-a", "no such end", "not found after")],
+)
 def test_a_readme_marker_that_does_not_fit_is_a_warning(start, end, problem, caplog):
     with caplog.at_level(logging.WARNING):
         assert readme_slices.readme_slice(README, start, end, "page") == ""
@@ -60,9 +78,27 @@ def test_a_readme_marker_that_does_not_fit_is_a_warning(start, end, problem, cap
 @pytest.fixture(scope="module")
 def built_docs(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("docs") / "html"
-    done = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html", "-j", "1", "-q",
-                           str(ROOT / "docs"), str(out)], check=False, capture_output=True, text=True, timeout=600,
-                          stdin=subprocess.DEVNULL)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sphinx",
+            "-W",
+            "--keep-going",
+            "-b",
+            "html",
+            "-j",
+            "1",
+            "-q",
+            str(ROOT / "docs"),
+            str(out),
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        stdin=subprocess.DEVNULL,
+    )
     assert done.returncode == 0, f"sphinx-build failed:\n{done.stdout[-3000:]}\n{done.stderr[-6000:]}"
     return out
 
@@ -103,9 +139,12 @@ def test_each_package_page_lists_the_names_the_package_exports(built_docs):
     for package in PACKAGES:
         module = importlib.import_module(package)
         page = (built_docs / "api" / "generated" / f"{package}.html").read_text()
-        missing += [f"{package}.{name}" for name in module.__all__
-                    if (inspect.isclass(obj := getattr(module, name)) or inspect.isfunction(obj))
-                    and f'href="{obj.__module__}.html#{obj.__module__}.{obj.__qualname__}"' not in page]
+        missing += [
+            f"{package}.{name}"
+            for name in module.__all__
+            if (inspect.isclass(obj := getattr(module, name)) or inspect.isfunction(obj))
+            and f'href="{obj.__module__}.html#{obj.__module__}.{obj.__qualname__}"' not in page
+        ]
     assert not missing, f"not linked from their package's page: {missing}"
 
 
@@ -132,8 +171,15 @@ print(json.dumps({"failed": failed, "attempted": attempted, "examples": examples
 
 
 def test_every_docstring_example_runs(tmp_path):
-    done = subprocess.run([sys.executable, "-P", "-c", DOCTESTS, str(ROOT / "tests")], check=False, cwd=tmp_path,
-                          capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
+    done = subprocess.run(
+        [sys.executable, "-P", "-c", DOCTESTS, str(ROOT / "tests")],
+        check=False,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        stdin=subprocess.DEVNULL,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
     assert not result["failed"], "\n".join(result["failed"])
@@ -193,16 +239,24 @@ def _user_facing_files() -> list[Path]:
     for folder in USER_FACING_FOLDERS:
         files += (ROOT / folder).rglob("*")
     skipped = {"_build", "generated", "__pycache__", ".ipynb_checkpoints"}
-    return sorted(path for path in files if path.is_file() and path.suffix in TEXT_SUFFIXES
-                  and not skipped & set(path.relative_to(ROOT).parts))
+    return sorted(
+        path
+        for path in files
+        if path.is_file() and path.suffix in TEXT_SUFFIXES and not skipped & set(path.relative_to(ROOT).parts)
+    )
 
 
 def test_user_facing_text_states_facts_instead_of_pointing_outside_the_repository():
     files = _user_facing_files()
-    assert ROOT / "README.md" in files and ROOT / "identify" / "estimators" / "regression.py" in files and len(files) > 100
-    found = [f"{path.relative_to(ROOT)}:{number}: {match[0]!r}" for path in files
-             for number, line in enumerate(path.read_text(errors="replace").splitlines(), start=1)
-             for match in OUTSIDE_POINTER.finditer(line)]
+    assert (
+        ROOT / "README.md" in files and ROOT / "identify" / "estimators" / "regression.py" in files and len(files) > 100
+    )
+    found = [
+        f"{path.relative_to(ROOT)}:{number}: {match[0]!r}"
+        for path in files
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), start=1)
+        for match in OUTSIDE_POINTER.finditer(line)
+    ]
     assert not found, "pointers to issues or to notes outside the repository:\n" + "\n".join(found)
 
 

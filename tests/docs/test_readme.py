@@ -34,8 +34,12 @@ pytestmark = [pytest.mark.slow, pytest.mark.dataset]
 def test_the_readme_has_command_blocks_and_each_line_shows_its_exit_code():
     assert len(BLOCKS) >= 4
     assert len(blocks_of(REPO / "README.md")) >= 2  # the two first commands, and the example end to end
-    missing = [f"{BLOCK_SOURCES[i].relative_to(REPO)}:{number}" for i, block in enumerate(BLOCKS)
-               for number, line in block if expected_exit(line) is None]
+    missing = [
+        f"{BLOCK_SOURCES[i].relative_to(REPO)}:{number}"
+        for i, block in enumerate(BLOCKS)
+        for number, line in block
+        if expected_exit(line) is None
+    ]
     assert not missing, f"command lines without '# exit N' in their comment: {missing}"
 
 

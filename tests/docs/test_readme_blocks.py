@@ -29,7 +29,7 @@ def test_the_readme_is_short_enough_to_read_in_five_minutes():
 def test_the_readme_links_every_page_of_the_documentation():
     readme = (REPO / "README.md").read_text()
     index = (REPO / "docs" / "index.md").read_text()
-    toctree = index[index.index("```{toctree}"):]
+    toctree = index[index.index("```{toctree}") :]
     pages = [line.strip() for line in toctree.splitlines()[1:] if line.strip() and not line.startswith((":", "```"))]
     assert "getting-started" in pages
     missing = [page for page in pages if page != "api/index" and f"(docs/{page}.md)" not in readme]
@@ -39,8 +39,12 @@ def test_the_readme_links_every_page_of_the_documentation():
 def test_the_blocks_come_from_the_readme_and_the_pages_and_each_line_shows_its_exit_code():
     assert DOCUMENTS[0] == REPO / "README.md" and BLOCK_SOURCES[0] == REPO / "README.md"
     assert {path.name for path in BLOCK_SOURCES} >= {"README.md", "getting-started.md", "design.md", "calibration.md"}
-    missing = [f"{BLOCK_SOURCES[i].relative_to(REPO)}:{number}" for i, block in enumerate(BLOCKS)
-               for number, line in block if expected_exit(line) is None]
+    missing = [
+        f"{BLOCK_SOURCES[i].relative_to(REPO)}:{number}"
+        for i, block in enumerate(BLOCKS)
+        for number, line in block
+        if expected_exit(line) is None
+    ]
     assert not missing, f"command lines without '# exit N' in their comment: {missing}"
 
 
@@ -50,21 +54,24 @@ def test_markdown_blocks_reads_any_page(tmp_path):
     assert markdown_blocks(page) == [[(5, "qube-run    --seed 1   # exit 0: 3 complete")]]
 
 
-@pytest.mark.parametrize("quoted, printed, matches", [
-    ("0.9633", "0.9633", True),
-    ("0.9633", "0.9634", True),    # one unit of the last quoted digit
-    ("0.9633", "0.9635", False),
-    ("0.963", "0.9633", True),     # quoted coarser than printed: to its own last digit
-    ("0.973", "0.9715", False),    # the figure a re-run no longer prints
-    ("0.96331", "0.9633", False),  # quoted finer than printed
-    ("-60.4", "-60.4", True),
-    ("60.4", "-60.4", False),
-    ("48", "48", True),
-    ("48", "47", False),           # a count exactly
-    ("48", "48.0", False),
-    ("5.85e-3", "5.848e-03", True),
-    ("5.85e-3", "5.838e-03", False),
-])
+@pytest.mark.parametrize(
+    "quoted, printed, matches",
+    [
+        ("0.9633", "0.9633", True),
+        ("0.9633", "0.9634", True),  # one unit of the last quoted digit
+        ("0.9633", "0.9635", False),
+        ("0.963", "0.9633", True),  # quoted coarser than printed: to its own last digit
+        ("0.973", "0.9715", False),  # the figure a re-run no longer prints
+        ("0.96331", "0.9633", False),  # quoted finer than printed
+        ("-60.4", "-60.4", True),
+        ("60.4", "-60.4", False),
+        ("48", "48", True),
+        ("48", "47", False),  # a count exactly
+        ("48", "48.0", False),
+        ("5.85e-3", "5.848e-03", True),
+        ("5.85e-3", "5.838e-03", False),
+    ],
+)
 def test_a_quoted_figure_matches_a_printed_one_to_its_precision(quoted, printed, matches):
     assert figure_matches(quoted, printed) is matches
 

@@ -66,8 +66,7 @@ def test_tutorial_runs_top_to_bottom(qube_dataset, tmp_path, monkeypatch):
     started = time.perf_counter()
     # Raises CellExecutionError, naming the cell and its traceback, if any cell fails. The kernel
     # works in the repository's root, where a user's clone puts them.
-    NotebookClient(notebook, timeout=180, kernel_name="python3",
-                   resources={"metadata": {"path": str(REPO)}}).execute()
+    NotebookClient(notebook, timeout=180, kernel_name="python3", resources={"metadata": {"path": str(REPO)}}).execute()
     print(f"tutorial executed in {time.perf_counter() - started:.1f} s")
     code = [cell for cell in notebook.cells if cell.cell_type == "code"]
     summary = _summary(_stdout(code[-1]))
@@ -83,8 +82,16 @@ def test_tutorial_runs_top_to_bottom(qube_dataset, tmp_path, monkeypatch):
 def test_tutorial_runs_as_a_script_from_the_repository_root(qube_dataset, tmp_path):
     env = {key: value for key, value in os.environ.items() if key not in ("QUBE_DATASET_DIR", "QUBE_TUTORIAL_OUT")}
     env["TMPDIR"] = str(tmp_path)
-    done = subprocess.run([sys.executable, "examples/tutorial.py", str(qube_dataset)], check=False, cwd=REPO,
-                          env=env, capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
+    done = subprocess.run(
+        [sys.executable, "examples/tutorial.py", str(qube_dataset)],
+        check=False,
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        stdin=subprocess.DEVNULL,
+    )
     assert done.returncode == 0, f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
     _check_scores(_summary(done.stdout))
     _check_printed_text(done.stdout, _summary(done.stdout))
@@ -94,8 +101,16 @@ def test_tutorial_runs_as_a_script_from_the_repository_root(qube_dataset, tmp_pa
 
 def test_the_tutorial_without_a_dataset_says_where_to_get_it():
     env = {key: value for key, value in os.environ.items() if key != "QUBE_DATASET_DIR"}
-    done = subprocess.run([sys.executable, "examples/tutorial.py"], check=False, cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    done = subprocess.run(
+        [sys.executable, "examples/tutorial.py"],
+        check=False,
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
     assert done.returncode == 1
     assert "QUBE_DATASET_DIR" in done.stderr and "decargroup/closed_loop_koopman" in done.stderr
     assert "Traceback" not in done.stderr

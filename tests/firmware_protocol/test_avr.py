@@ -99,11 +99,12 @@ def test_sleep_counts_as_sleep_not_as_busy(avr_cache):
     before = bridge.chip.pc_cycles()
     host.command_every_tick(0.1)
     spent = [a - b for a, b in zip(bridge.chip.pc_cycles(), before)]
-    listing = subprocess.run(["avr-objdump", "-d", str(avr_cache[0])], capture_output=True, text=True,
-                             check=True).stdout
+    listing = subprocess.run(
+        ["avr-objdump", "-d", str(avr_cache[0])], capture_output=True, text=True, check=True
+    ).stdout
     sleeps = [int(ln.split(":")[0], 16) // 2 for ln in listing.splitlines() if ln.rstrip().endswith("\tsleep")]
     assert sleeps, "the sketch sleeps between ticks"
-    interrupts = sum(spent[:26 * 2]) / 3  # 26 vectors of one 2-word JMP each
+    interrupts = sum(spent[: 26 * 2]) / 3  # 26 vectors of one 2-word JMP each
     assert interrupts > 50 * 20  # ~90 interrupts a tick: telemetry, commands, SPI, the timer
     assert sum(spent[w] for w in sleeps) <= 9 * interrupts
 
@@ -127,8 +128,9 @@ def test_every_lost_period_is_reported(avr_cache):
     assert len(flagged) == 1 and flagged[0].tick == overruns[0].tick
     # The counter follows the crystal: elapsed periods = ticks in telemetry + lost.
     span_s = (tm[-1].tick - tm[0].tick) * 0.002
-    assert span_s == pytest.approx((bridge.transactions[-1][0] - bridge.transactions[-len(tm)][0]) / F_CPU,
-                                   abs=5e-4)  # CS falls within a quarter period of its period's start
+    assert span_s == pytest.approx(
+        (bridge.transactions[-1][0] - bridge.transactions[-len(tm)][0]) / F_CPU, abs=5e-4
+    )  # CS falls within a quarter period of its period's start
 
 
 def test_a_burst_of_eight_commands_loses_no_byte(avr_cache):
@@ -159,7 +161,8 @@ def test_qube_run_against_the_emulated_uno_in_real_time(avr_cache, env, tmp_path
     from qube_koopman.daq.log import read_episode
 
     status, out, emulator_err, tmp_path, _ = run_in_real_time(
-        env, ["--target", "avr", "--seed", "5"], ["--episodes", "1", "--duration", "5", "--seed", "7"], tmp_path, capsys)
+        env, ["--target", "avr", "--seed", "5"], ["--episodes", "1", "--duration", "5", "--seed", "7"], tmp_path, capsys
+    )
     assert status == 0, out + emulator_err
     assert "1 complete, 0 aborted" in out
     (log,) = tmp_path.glob("*.mcap")

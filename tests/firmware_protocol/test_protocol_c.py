@@ -76,6 +76,7 @@ def core(tmp_path_factory) -> ccore.CCore:
 
 # --- golden vectors -----------------------------------------------------------
 
+
 def test_crc_and_cobs_vectors(core):
     for v in VECTORS["crc"]:
         assert core.crc16(bytes.fromhex(v["data_hex"])) == v["crc"], v
@@ -112,8 +113,12 @@ def test_frame_vectors(core, vector):
     reason, frame = core.parse_piece(wire[:-1])
     assert reason == Reject.OK
     assert (frame.version, frame.type, frame.seq, frame.timestamp_us) == (
-        1, vector["type"], vector["seq"], vector["timestamp_us"])
-    assert bytes(frame.payload[:frame.payload_len]) == payload
+        1,
+        vector["type"],
+        vector["seq"],
+        vector["timestamp_us"],
+    )
+    assert bytes(frame.payload[: frame.payload_len]) == payload
 
 
 def test_unpack_rejects_wrong_sizes(core):
@@ -163,13 +168,16 @@ def test_spi_vectors(core):
 
 # --- C and Python decoders agree ----------------------------------------------
 
+
 def _python_view(frames: list[Frame]):
     return [(f.message.TYPE, f.seq, f.timestamp_us, f.message.pack()) for f in frames]
 
 
 @settings(max_examples=150)
-@given(st.lists(st.one_of(st.binary(max_size=90), st.tuples(messages, u32, u32)), max_size=10),
-       st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 7)), max_size=5))
+@given(
+    st.lists(st.one_of(st.binary(max_size=90), st.tuples(messages, u32, u32)), max_size=10),
+    st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 7)), max_size=5),
+)
 def test_c_and_python_decoders_agree(core, parts, flips):
     stream = bytearray(b"".join(p if isinstance(p, bytes) else encode_frame(*p) for p in parts))
     for pos, bit in flips:
@@ -181,8 +189,10 @@ def test_c_and_python_decoders_agree(core, parts, flips):
 
 
 @settings(max_examples=100)
-@given(st.lists(st.one_of(st.binary(max_size=200), st.tuples(messages, u32, u32)), max_size=10),
-       st.lists(st.integers(1, 40), max_size=8))
+@given(
+    st.lists(st.one_of(st.binary(max_size=200), st.tuples(messages, u32, u32)), max_size=10),
+    st.lists(st.integers(1, 40), max_size=8),
+)
 def test_device_receive_counts_as_the_python_decoder(core, parts, cuts):
     # qd_receive copies runs between delimiters at once (qp_decoder_append): same counters as byte by
     # byte, however the stream is cut into receive calls (oversize pieces included).
@@ -191,7 +201,7 @@ def test_device_receive_counts_as_the_python_decoder(core, parts, cuts):
     py.feed(stream)
     pos = 0
     for cut in [*cuts, len(stream)]:
-        dev.receive(stream[pos:pos + cut], 0)
+        dev.receive(stream[pos : pos + cut], 0)
         pos += cut
     dev.receive(stream[pos:], 0)
     assert dev.rx_counters.as_dict() == py.stats.as_dict()
@@ -256,9 +266,18 @@ def test_silent_and_safe_before_hello(rig):
 def test_hello_reply(rig):
     rig.tick()
     reply = rig.connect()
-    assert reply == HelloReply(nonce=0xC0FFEE, protocol_version=1, firmware_major=1, firmware_minor=0,
-                               firmware_patch=0, capabilities=0x7F, rate_hz=500, watchdog_ticks=5,
-                               max_millivolts=15000, module_id=777)
+    assert reply == HelloReply(
+        nonce=0xC0FFEE,
+        protocol_version=1,
+        firmware_major=1,
+        firmware_minor=0,
+        firmware_patch=0,
+        capabilities=0x7F,
+        rate_hz=500,
+        watchdog_ticks=5,
+        max_millivolts=15000,
+        module_id=777,
+    )
     assert not reply.capabilities & Capability.EMULATED
 
 
@@ -273,15 +292,25 @@ def test_telemetry_every_tick_carries_the_spi_readings(rig):
     rig.connect()
     seqs = []
     for k in range(4):
-        resp = SpiResponse(module_id=777, encoder0=-k, encoder1=(1 << 23) - 1, tach_raw=0xABCDEF, status=0b010,
-                           current_raw=9000 + k)
+        resp = SpiResponse(
+            module_id=777, encoder0=-k, encoder1=(1 << 23) - 1, tach_raw=0xABCDEF, status=0b010, current_raw=9000 + k
+        )
         _, frames = rig.tick(resp)
         (frame,) = frames
         seqs.append(frame.seq)
         assert frame.timestamp_us == rig.now
-        assert frame.message == Telemetry(tick=k, encoder0=-k, encoder1=(1 << 23) - 1, tach_raw=0xABCDEF,
-                                          current_raw=9000 + k, status=Status.STALL_DETECTED, last_command_seq=0,
-                                          applied_millivolts=0, motor_word=0, command_age=0xFFFF)
+        assert frame.message == Telemetry(
+            tick=k,
+            encoder0=-k,
+            encoder1=(1 << 23) - 1,
+            tach_raw=0xABCDEF,
+            current_raw=9000 + k,
+            status=Status.STALL_DETECTED,
+            last_command_seq=0,
+            applied_millivolts=0,
+            motor_word=0,
+            command_age=0xFFFF,
+        )
     assert seqs == list(range(seqs[0], seqs[0] + 4))
 
 
@@ -342,8 +371,7 @@ def test_configuration(rig):
     # Refused (1e6 / 300 is not whole microseconds): nothing changes.
     rig.dev.receive(encode_raw_frame(MessageType.CONFIG, 50, 0, (300).to_bytes(2, "little") + bytes(4)), 0)
     (ack,) = rig.read()
-    assert ack.message == ConfigAck(result=ConfigResult.BAD_RATE, rate_hz=250, watchdog_ticks=10,
-                                    max_millivolts=10000)
+    assert ack.message == ConfigAck(result=ConfigResult.BAD_RATE, rate_hz=250, watchdog_ticks=10, max_millivolts=10000)
     # The limit saturates, and the watchdog now waits 10 ticks.
     rig.send(Command(millivolts=-12000, flags=CommandFlags.AMP_ENABLE))
     spi, frames = rig.tick()
@@ -372,8 +400,11 @@ def test_encoder_resets_are_one_shot_and_not_lost(rig):
 
 def test_led_values_are_clamped(rig):
     rig.connect()
-    payload = (0).to_bytes(2, "little", signed=True) + bytes([0]) + b"".join(
-        v.to_bytes(2, "little") for v in (1200, 999, 0xFFFF))
+    payload = (
+        (0).to_bytes(2, "little", signed=True)
+        + bytes([0])
+        + b"".join(v.to_bytes(2, "little") for v in (1200, 999, 0xFFFF))
+    )
     rig.dev.receive(encode_raw_frame(MessageType.COMMAND, 1, 0, payload), 0)
     spi, _ = rig.tick()
     assert (spi.led_red, spi.led_green, spi.led_blue) == (999, 999, 999)
@@ -463,14 +494,25 @@ def test_random_bytes_never_enable_the_motor(core, data):
 
 # --- sanitizers and the Arduino sketch ----------------------------------------
 
+
 def test_core_under_sanitizers(tmp_path):
     cc = ccore.find_c_compiler()
     if cc is None:
         pytest.skip("no C compiler found (set $CC or install gcc/clang)")
     exe = tmp_path / "fuzz_core"
-    cmd = [cc, *ccore.C_FLAGS, "-O1", "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
-           f"-I{ccore.C_SOURCE_DIR}", str(TESTS_C / "fuzz_core.c"), *map(str, sorted(ccore.C_SOURCE_DIR.glob("*.c"))),
-           "-o", str(exe)]
+    cmd = [
+        cc,
+        *ccore.C_FLAGS,
+        "-O1",
+        "-g",
+        "-fsanitize=address,undefined",
+        "-fno-sanitize-recover=all",
+        f"-I{ccore.C_SOURCE_DIR}",
+        str(TESTS_C / "fuzz_core.c"),
+        *map(str, sorted(ccore.C_SOURCE_DIR.glob("*.c"))),
+        "-o",
+        str(exe),
+    ]
     build = subprocess.run(cmd, capture_output=True, text=True)
     if build.returncode != 0 and "sanitize" in build.stderr:
         pytest.skip(f"the compiler has no ASan/UBSan runtime: {build.stderr.strip()[:200]}")
@@ -485,12 +527,23 @@ def test_core_compiles_for_a_16_bit_int_avr(tmp_path):
     if avr_gcc is None:
         pytest.skip("avr-gcc not installed (Debian: gcc-avr avr-libc): AVR portability not checked")
     main = tmp_path / "main.c"
-    main.write_text('#include "qp_device.h"\nstatic qd_device dev;\n'
-                    "int main(void) { uint8_t tx[17], rx[17] = {3, 9}; qd_init(&dev, 0);\n"
-                    "qd_tick_begin(&dev, 0, tx); qd_tick_end(&dev, rx); return (int)qd_pending_output(&dev); }\n")
+    main.write_text(
+        '#include "qp_device.h"\nstatic qd_device dev;\n'
+        "int main(void) { uint8_t tx[17], rx[17] = {3, 9}; qd_init(&dev, 0);\n"
+        "qd_tick_begin(&dev, 0, tx); qd_tick_end(&dev, rx); return (int)qd_pending_output(&dev); }\n"
+    )
     elf = tmp_path / "core.elf"
-    cmd = [avr_gcc, "-mmcu=atmega328p", "-Os", *ccore.C_FLAGS, f"-I{ccore.C_SOURCE_DIR}", str(main),
-           *map(str, sorted(ccore.C_SOURCE_DIR.glob("*.c"))), "-o", str(elf)]
+    cmd = [
+        avr_gcc,
+        "-mmcu=atmega328p",
+        "-Os",
+        *ccore.C_FLAGS,
+        f"-I{ccore.C_SOURCE_DIR}",
+        str(main),
+        *map(str, sorted(ccore.C_SOURCE_DIR.glob("*.c"))),
+        "-o",
+        str(elf),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     size = subprocess.run(["avr-size", str(elf)], capture_output=True, text=True).stdout.split("\n")[1].split()
@@ -512,7 +565,19 @@ def test_arduino_sketch_compiles_cleanly_for_the_uno():
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(message)
         pytest.skip(message)
-    cmd = ["avr-g++", *avr._COMMON, *avr._includes(), *avr._CXX, "-Wextra", "-Werror", "-fsyntax-only",
-           "-x", "c++", "-include", "Arduino.h", str(avr.SKETCH)]
+    cmd = [
+        "avr-g++",
+        *avr._COMMON,
+        *avr._includes(),
+        *avr._CXX,
+        "-Wextra",
+        "-Werror",
+        "-fsyntax-only",
+        "-x",
+        "c++",
+        "-include",
+        "Arduino.h",
+        str(avr.SKETCH),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr

@@ -61,6 +61,7 @@ def crc_bitwise(data: bytes) -> int:
 
 # --- CRC --------------------------------------------------------------------
 
+
 def test_crc_check_value():
     assert crc16_ccitt_false(b"123456789") == 0x29B1
 
@@ -79,6 +80,7 @@ def test_crc_matches_bitwise_definition_and_continues(a, b):
 
 
 # --- COBS -------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("vector", VECTORS["cobs"], ids=lambda v: v["decoded_hex"][:12])
 def test_cobs_wikipedia_examples(vector):
@@ -103,41 +105,70 @@ def test_cobs_decode_rejects_invalid(bad):
 
 # --- messages ---------------------------------------------------------------
 
+
 def test_payload_sizes_match_the_spec():
     # PROTOCOL.md, "Messages": the payload size of every type.
     sizes = {cls.__name__: cls.SIZE for cls in MESSAGE_CLASSES.values()}
-    assert sizes == {"Hello": 4, "HelloReply": 20, "Config": 6, "ConfigAck": 7, "Command": 9,
-                     "Telemetry": 30, "Fault": 9}
+    assert sizes == {
+        "Hello": 4,
+        "HelloReply": 20,
+        "Config": 6,
+        "ConfigAck": 7,
+        "Command": 9,
+        "Telemetry": 30,
+        "Fault": 9,
+    }
     assert max(sizes.values()) <= MAX_PAYLOAD
 
 
 def test_telemetry_layout_is_little_endian_in_field_order():
-    t = Telemetry(tick=0x01020304, encoder0=-2, encoder1=0x0A0B0C0D, tach_raw=0x123456, current_raw=0x1FFE,
-                  status=0x0210, last_command_seq=0xA1B2C3D4, applied_millivolts=-1, motor_word=0x81A1,
-                  command_age=3)
-    expected = (bytes.fromhex("04030201") + bytes.fromhex("feffffff") + bytes.fromhex("0d0c0b0a")
-                + bytes.fromhex("56341200") + bytes.fromhex("fe1f") + bytes.fromhex("1002")
-                + bytes.fromhex("d4c3b2a1") + bytes.fromhex("ffff") + bytes.fromhex("a181") + bytes.fromhex("0300"))
+    t = Telemetry(
+        tick=0x01020304,
+        encoder0=-2,
+        encoder1=0x0A0B0C0D,
+        tach_raw=0x123456,
+        current_raw=0x1FFE,
+        status=0x0210,
+        last_command_seq=0xA1B2C3D4,
+        applied_millivolts=-1,
+        motor_word=0x81A1,
+        command_age=3,
+    )
+    expected = (
+        bytes.fromhex("04030201")
+        + bytes.fromhex("feffffff")
+        + bytes.fromhex("0d0c0b0a")
+        + bytes.fromhex("56341200")
+        + bytes.fromhex("fe1f")
+        + bytes.fromhex("1002")
+        + bytes.fromhex("d4c3b2a1")
+        + bytes.fromhex("ffff")
+        + bytes.fromhex("a181")
+        + bytes.fromhex("0300")
+    )
     assert t.pack() == expected
     assert Telemetry.unpack(expected) == t
 
 
-@pytest.mark.parametrize("message, field", [
-    (Command(millivolts=15001), "millivolts"),
-    (Command(millivolts=-15001), "millivolts"),
-    (Command(led_red=1000), "led_red"),
-    (Command(flags=0x08), "flags"),
-    (Config(rate_hz=2000), "rate_hz"),
-    (Config(rate_hz=300), "rate_hz"),  # 1e6 / 300 is not whole microseconds
-    (Config(watchdog_ticks=0), "watchdog_ticks"),
-    (Config(max_millivolts=16000), "max_millivolts"),
-    (Hello(nonce=-1), "nonce"),
-    (Hello(nonce=1 << 32), "nonce"),
-    (Hello(nonce=1.0), "nonce"),
-    (Hello(nonce=True), "nonce"),
-    (Telemetry(tach_raw=1 << 24), "tach_raw"),
-    (Fault(code=256), "code"),
-])
+@pytest.mark.parametrize(
+    "message, field",
+    [
+        (Command(millivolts=15001), "millivolts"),
+        (Command(millivolts=-15001), "millivolts"),
+        (Command(led_red=1000), "led_red"),
+        (Command(flags=0x08), "flags"),
+        (Config(rate_hz=2000), "rate_hz"),
+        (Config(rate_hz=300), "rate_hz"),  # 1e6 / 300 is not whole microseconds
+        (Config(watchdog_ticks=0), "watchdog_ticks"),
+        (Config(max_millivolts=16000), "max_millivolts"),
+        (Hello(nonce=-1), "nonce"),
+        (Hello(nonce=1 << 32), "nonce"),
+        (Hello(nonce=1.0), "nonce"),
+        (Hello(nonce=True), "nonce"),
+        (Telemetry(tach_raw=1 << 24), "tach_raw"),
+        (Fault(code=256), "code"),
+    ],
+)
 def test_pack_rejects_bad_fields_naming_them(message, field):
     with pytest.raises(ValueError, match=field):
         message.pack()
@@ -157,13 +188,14 @@ def test_unpack_rejects_wrong_size():
 
 # --- frames -----------------------------------------------------------------
 
+
 def test_frame_assembled_by_hand_from_the_spec():
     """HELLO, seq 1, timestamp 1000, nonce 0x12345678, built from PROTOCOL.md alone."""
     body = bytes([1, 0x01]) + (1).to_bytes(4, "little") + (1000).to_bytes(4, "little") + bytes([4])
     body += bytes.fromhex("78563412")
     # COBS by hand: zeros at body offsets 3, 4, 5, 8, 9 leave the runs
     # [01 01 01] [] [] [e8 03] [] [04 78 56 34 12], each coded as its length + 1.
-    encoded = bytes.fromhex("04" "010101" "01" "01" "03" "e803" "01" "06" "0478563412")
+    encoded = bytes.fromhex("04010101010103e80301060478563412")
     assert cobs_decode(encoded) == body
     crc = crc_bitwise(encoded)
     trailer = bytes([0x80 | (crc & 0x7F), 0x80 | ((crc >> 7) & 0x7F), 0x80 | (crc >> 14)])
@@ -196,12 +228,15 @@ def test_wire_size_bounds():
     assert MAX_WIRE_SIZE == len(encode_raw_frame(0x7F, 0, 0, b"\1" * MAX_PAYLOAD)) - 1
 
 
-@pytest.mark.parametrize("kwargs, name", [
-    ({"seq": -1, "timestamp_us": 0}, "seq"),
-    ({"seq": 1 << 32, "timestamp_us": 0}, "seq"),
-    ({"seq": 0, "timestamp_us": 1 << 32}, "timestamp_us"),
-    ({"seq": 0, "timestamp_us": 0.5}, "timestamp_us"),
-])
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"seq": -1, "timestamp_us": 0}, "seq"),
+        ({"seq": 1 << 32, "timestamp_us": 0}, "seq"),
+        ({"seq": 0, "timestamp_us": 1 << 32}, "timestamp_us"),
+        ({"seq": 0, "timestamp_us": 0.5}, "timestamp_us"),
+    ],
+)
 def test_encode_frame_rejects_bad_header_fields(kwargs, name):
     with pytest.raises(ValueError, match=name):
         encode_frame(Hello(), **kwargs)
@@ -217,6 +252,7 @@ def test_encode_frame_rejects_non_messages_and_long_payloads():
 
 
 # --- QUBE-Servo 2 SPI transaction ---------------------------------------------
+
 
 @pytest.mark.parametrize("vector", VECTORS["motor_word"], ids=lambda v: v["why"][:25])
 def test_motor_word_vectors(vector):

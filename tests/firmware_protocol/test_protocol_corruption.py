@@ -79,8 +79,11 @@ def test_every_single_bit_error_is_rejected(wires):
 
 @pytest.mark.slow
 def test_every_double_bit_error_of_the_first_frames_is_rejected(wires):
-    variants = ((i, corrupted(w, pair)) for i, w in enumerate(wires[:N_EXHAUSTIVE_PAIRS])
-                for pair in combinations(range(8 * len(w)), 2))
+    variants = (
+        (i, corrupted(w, pair))
+        for i, w in enumerate(wires[:N_EXHAUSTIVE_PAIRS])
+        for pair in combinations(range(8 * len(w)), 2)
+    )
     count = check_none_accepted(wires, variants)
     assert count == sum(len(w) * 8 * (len(w) * 8 - 1) // 2 for w in wires[:N_EXHAUSTIVE_PAIRS])
 
@@ -98,8 +101,9 @@ def sampled_pairs(rng: random.Random, nbits: int, n: int):
 
 def test_sampled_double_bit_errors_are_rejected(wires):
     rng = random.Random(7)
-    variants = ((i, corrupted(w, pair)) for i, w in enumerate(wires)
-                for pair in sampled_pairs(rng, 8 * len(w), PAIRS_PER_FRAME))
+    variants = (
+        (i, corrupted(w, pair)) for i, w in enumerate(wires) for pair in sampled_pairs(rng, 8 * len(w), PAIRS_PER_FRAME)
+    )
     assert check_none_accepted(wires, variants) == N_FRAMES * PAIRS_PER_FRAME
 
 

@@ -47,8 +47,10 @@ def test_random_bytes_never_raise(data, cuts):
     assert decoder.stats.bytes_in == len(data)
 
 
-@given(st.lists(st.tuples(st.binary(max_size=120), messages, u32, u32), min_size=1, max_size=8),
-       st.lists(st.integers(0, 10_000), max_size=10))
+@given(
+    st.lists(st.tuples(st.binary(max_size=120), messages, u32, u32), min_size=1, max_size=8),
+    st.lists(st.integers(0, 10_000), max_size=10),
+)
 def test_resynchronizes_after_garbage(items, cuts):
     # Garbage may hold zeros or not; the delimiter a sender puts before a
     # frame after a disturbance is what makes the frame recoverable.
@@ -75,11 +77,11 @@ def mutate(stream: bytes, ops) -> bytes:
         if op == "flip":
             data[pos] ^= 1 << arg
         elif op == "delete":
-            del data[pos:pos + arg]
+            del data[pos : pos + arg]
         elif op == "insert":
             data[pos:pos] = arg
         elif op == "duplicate":
-            data[pos:pos] = data[pos:pos + arg]
+            data[pos:pos] = data[pos : pos + arg]
         else:
             del data[pos:]
     return bytes(data)
@@ -108,7 +110,7 @@ def test_counters_do_not_depend_on_chunking(garbage, specs, cuts):
 def test_golden_streams(vector):
     decoder = StreamDecoder()
     stream = bytes.fromhex(vector["stream_hex"])
-    frames = [f for i in range(len(stream)) for f in decoder.feed(stream[i:i + 1])]  # byte by byte
+    frames = [f for i in range(len(stream)) for f in decoder.feed(stream[i : i + 1])]  # byte by byte
     expected = [StreamDecoder().feed(bytes.fromhex(h))[0] for h in vector["frames_hex"]]
     assert frames == expected
     stats = decoder.stats.as_dict()

@@ -17,8 +17,7 @@ def qube_training(qube_csv_files):
         d = np.loadtxt(path, delimiter=",", skiprows=1)
         r, x = d[:, 1:3], d[:, 3:5]
         xc = controller_states(controller, r, x)
-        trajs.append(Trajectory(x=x, r=r, f=d[:, 6:7], xc=xc, u=d[:, 7:8], name=path.name,
-                                dt=0.002).skip(500))
+        trajs.append(Trajectory(x=x, r=r, f=d[:, 6:7], xc=xc, u=d[:, 7:8], name=path.name, dt=0.002).skip(500))
     return controller, trajs
 
 
@@ -41,8 +40,9 @@ def test_rewrapping_constrained_plant_gives_the_closed_loop_back(qube_training):
     model = ClEdmdKnownRows(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
     wrapped = model.wrap()
     np.testing.assert_array_equal(wrapped.koopman_matrix, model.koopman_matrix_)
-    np.testing.assert_array_equal(np.sort_complex(wrapped.eigenvalues()),
-                                  np.sort_complex(model.closed_loop_model_.eigenvalues()))
+    np.testing.assert_array_equal(
+        np.sort_complex(wrapped.eigenvalues()), np.sort_complex(model.closed_loop_model_.eigenvalues())
+    )
 
 
 def test_fitted_controller_rows_predict_like_the_controller(qube_training):
@@ -52,7 +52,7 @@ def test_fitted_controller_rows_predict_like_the_controller(qube_training):
     free = ClEdmd(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
     known = ClEdmdKnownRows(controller, lifting=LIFTING, alpha=1e-3).fit(trajs)
     n_c = controller.n_states
-    R_psi = known.snapshots_.R[:, :known.snapshots_.n_regressors]
+    R_psi = known.snapshots_.R[:, : known.snapshots_.n_regressors]
     drift = R_psi @ (free.koopman_matrix_[:n_c] - known.koopman_matrix_[:n_c]).T
     assert np.linalg.norm(drift) / np.linalg.norm(R_psi @ known.koopman_matrix_[:n_c].T) < 1e-3
     np.testing.assert_allclose(free.plant_koopman_matrix_, known.plant_koopman_matrix_)

@@ -44,8 +44,7 @@ def test_arx_state_space_form_simulates_like_predict():
 def test_cl_arx_recovers_a_linear_plant():
     A_p, B_p = mass_spring_damper()
     controller = pid_position_controller()
-    trajs = closed_loop_trajectories(A_p, B_p, controller, [0], n_episodes=3, n=600, seed=2,
-                                     feedforward=False)
+    trajs = closed_loop_trajectories(A_p, B_p, controller, [0], n_episodes=3, n=600, seed=2, feedforward=False)
     position = [Trajectory(x=t.x[:, :1], u=t.u, r=t.r, xc=t.xc, dt=t.dt) for t in trajs]
     # closed loop (2 plant + 2 controller states) is exactly a 4th order ARX
     model = ClArx(controller, output_lags=4, input_lags=4).fit(position)
@@ -71,7 +70,7 @@ def test_cl_arx_predicts_an_episode_cut_from_a_longer_run_from_its_history():
     trajs = closed_loop_trajectories(A_p, B_p, controller, [0], n_episodes=3, n=600, seed=3)
     position = [Trajectory(x=t.x[:, :1], u=t.u, r=t.r, f=t.f, xc=t.xc, dt=t.dt) for t in trajs]
     model = ClArx(controller, output_lags=4, input_lags=4).fit(position)
-    cut = position[1].skip(300)   # mid-run: the plant is not at rest at the cut's first sample
+    cut = position[1].skip(300)  # mid-run: the plant is not at rest at the cut's first sample
     assert abs(cut.x[0, 0]) > 1e-2
     # Measured 3e-5 from the history (the recovered plant is a non-minimal 22nd order
     # system); started at rest instead, the error was 0.71.
@@ -96,8 +95,12 @@ def test_an_arx_plant_prediction_that_blows_up_reads_as_diverged(tmp_path, capsy
     assert run_main(["--episodes", "2", "--duration", "4", "--seed", "3", "--out", str(tmp_path / "l"), "-q"]) == 0
     logs = sorted(map(str, (tmp_path / "l").glob("*.mcap")))
     capsys.readouterr()
-    assert identify_main(["--train", logs[0], "--test", logs[1], "--method", "arx", "--score", "plant",
-                          "--out", str(tmp_path / "o")]) == 0
+    assert (
+        identify_main(
+            ["--train", logs[0], "--test", logs[1], "--method", "arx", "--score", "plant", "--out", str(tmp_path / "o")]
+        )
+        == 0
+    )
     out, err = capsys.readouterr()
     assert "arx, alpha -: test R^2 -inf: 1 of 1 predictions diverged (plant)" in out, out
     assert "the prediction diverged at sample" in err and "alpha None" not in out

@@ -116,7 +116,8 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
             patch.setattr(ClEdmd, "episode_snapshots", recorded)
             fit = FitOptions("cl-edmd", [Polynomial(2), Delay(5), Constant()], alpha=1e-3, n_threads=n)
             runs[n, intervals is None] = identify_and_score(
-                train, test, train[0].controller, IdentifyOptions(fit, intervals=intervals))
+                train, test, train[0].controller, IdentifyOptions(fit, intervals=intervals)
+            )
         threads[n, intervals is None] = seen
     main = threading.current_thread().name
     for plain in (True, False):
@@ -127,5 +128,6 @@ def test_a_workflow_fit_factors_its_episodes_on_n_threads_and_the_model_is_the_s
         assert one.report["test"] == two.report["test"]
     assert runs[1, False].report["intervals"]["pooled"] == runs[2, False].report["intervals"]["pooled"]
     with pytest.raises(ValueError, match="n_threads must be -1 \\(every core\\) or at least 1, got 0"):
-        identify_and_score(train, test, train[0].controller,
-                           IdentifyOptions(FitOptions("cl-edmd", [Polynomial(1)], n_threads=0)))
+        identify_and_score(
+            train, test, train[0].controller, IdentifyOptions(FitOptions("cl-edmd", [Polynomial(1)], n_threads=0))
+        )

@@ -33,7 +33,7 @@ def test_a_record_is_exact_while_short_and_within_a_bin_when_long():
     for n in (EXACT_TICKS, 3 * EXACT_TICKS):
         record = TimingRecord(0.002)
         for k in range(0, n, 4096):
-            record.add(late[k:min(n, k + 4096)], comp[k:min(n, k + 4096)])
+            record.add(late[k : min(n, k + 4096)], comp[k : min(n, k + 4096)])
         got = record.stats()
         assert got == timing_stats(late[:n], comp[:n], 0.002), "chunks or whole: the same statistics"
         want_p = np.percentile(late[:n], [50, 99])

@@ -17,8 +17,9 @@ from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_
 DT = 1 / 500
 # Near the rig's calibrated values (a weaker motor with this much arm inertia lets the pendulum fall).
 # A linear cable spring unless a test gives it the softening the rig's cables show.
-TRUTH = PendulumParameters(km=0.048, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1, Jh=8e-5, delay=0.001,
-                           Kr=7e-4, cable_softening=0.0)
+TRUTH = PendulumParameters(
+    km=0.048, Dr=2.0e-4, Cr=3.0e-4, Lp=0.126, Dp=4e-5, dead_zone=0.1, Jh=8e-5, delay=0.001, Kr=7e-4, cable_softening=0.0
+)
 
 
 def soft_pd():
@@ -38,8 +39,9 @@ def simulated_logs(params: PendulumParameters, n: int = 3, seconds: float = 6.0,
     ff = np.stack([e.feedforward for e in ex], axis=1)
     offsets = rng.normal(0.0025, 0.002, n)
     state0 = np.column_stack([np.zeros(n), rng.uniform(-0.02, 0.02, n), np.zeros((n, 2))])
-    run = simulate_closed_loop(state0, controller, refs, ff, params, SensorModel(noise_std=5e-4),
-                               alpha_offsets=offsets, rng=rng)
+    run = simulate_closed_loop(
+        state0, controller, refs, ff, params, SensorModel(noise_std=5e-4), alpha_offsets=offsets, rng=rng
+    )
     return ([run.measurements[:, i] for i in range(n)], [run.plant_input[:, i] for i in range(n)], offsets)
 
 
@@ -73,8 +75,13 @@ def test_sparse_jacobian_matches_dense_differences(method, softening):
     rng = np.random.default_rng(1)
     # A fractional delay (1.7 samples) and a dead zone the voltage crosses: every term of the model is on.
     params = replace(TRUTH, cable_softening=softening, delay=0.0034, dead_zone=0.3)
-    z = np.concatenate([ms.from_params(params, PendulumParameters()), [2.0, 3.0],
-                        (np.column_stack([seg.y[0], rng.normal(0, 0.1, (seg.n, 2))])).ravel()])
+    z = np.concatenate(
+        [
+            ms.from_params(params, PendulumParameters()),
+            [2.0, 3.0],
+            (np.column_stack([seg.y[0], rng.normal(0, 0.1, (seg.n, 2))])).ravel(),
+        ]
+    )
     assert np.mean(np.abs(seg.u) < params.dead_zone) > 0.05
     jacobian_matches_dense_differences(z, seg, method)
 
@@ -87,8 +94,14 @@ def test_jacobian_methods_agree_to_the_differences_rounding_on_the_datasets_scal
     seg = ms.make_segments(ys, us, horizon=100, skip=250)
     seg = replace(seg, setups={"Kr": seg.episode.copy()}, weight=np.linspace(0.5, 1.5, seg.n))
     rng = np.random.default_rng(2)
-    z = np.concatenate([ms.from_params(replace(TRUTH, cable_softening=5.0), PendulumParameters()), [12.0],
-                        [2.0, 3.0], (np.column_stack([seg.y[0], rng.normal(0, 0.3, (seg.n, 2))])).ravel()])
+    z = np.concatenate(
+        [
+            ms.from_params(replace(TRUTH, cable_softening=5.0), PendulumParameters()),
+            [12.0],
+            [2.0, 3.0],
+            (np.column_stack([seg.y[0], rng.normal(0, 0.3, (seg.n, 2))])).ravel(),
+        ]
+    )
     r0 = ms.residuals(z, seg, 2, PendulumParameters(), DT, 1e-3)
     tangents = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3).toarray()
     differences = ms.jacobian(z, r0, seg, 2, PendulumParameters(), DT, 1e-3, method="differences").toarray()
@@ -112,8 +125,14 @@ def test_sparse_jacobian_with_setups_matches_dense_differences(method):
     seg = replace(seg, setups={"Kr": seg.episode.copy(), "delay": seg.episode.copy()})
     assert ms.setup_variables(seg) == [("Kr", 1), ("delay", 1)]
     rng = np.random.default_rng(1)
-    z = np.concatenate([ms.from_params(TRUTH, PendulumParameters()), [25.0, 2.5], [2.0, 3.0],
-                        (np.column_stack([seg.y[0], rng.normal(0, 0.1, (seg.n, 2))])).ravel()])
+    z = np.concatenate(
+        [
+            ms.from_params(TRUTH, PendulumParameters()),
+            [25.0, 2.5],
+            [2.0, 3.0],
+            (np.column_stack([seg.y[0], rng.normal(0, 0.1, (seg.n, 2))])).ravel(),
+        ]
+    )
     r0, dense = jacobian_matches_dense_differences(z, seg, method)
     for extra in (ms.N_PHYSICAL, ms.N_PHYSICAL + 1):
         column = dense[:, extra].reshape(seg.n, -1)
@@ -124,9 +143,15 @@ def test_sparse_jacobian_with_setups_matches_dense_differences(method):
     # The second episode's residuals are those of the plain problem on its own with its setup's values.
     alone = ms.make_segments(ys[1:], us[1:], horizon=10, skip=300, stride=40)
     own = replace(TRUTH, Kr=2.5e-3, delay=2.5e-3)
-    z_alone = np.concatenate([ms.from_params(own, PendulumParameters()), [3.0], z[ms.N_PHYSICAL + 4 + 4 * np.sum(seg.episode == 0):]])
-    np.testing.assert_allclose(r0.reshape(seg.n, -1)[seg.episode == 1].ravel(),
-                               ms.residuals(z_alone, alone, 1, PendulumParameters(), DT, 1e-3), rtol=1e-12, atol=1e-12)
+    z_alone = np.concatenate(
+        [ms.from_params(own, PendulumParameters()), [3.0], z[ms.N_PHYSICAL + 4 + 4 * np.sum(seg.episode == 0) :]]
+    )
+    np.testing.assert_allclose(
+        r0.reshape(seg.n, -1)[seg.episode == 1].ravel(),
+        ms.residuals(z_alone, alone, 1, PendulumParameters(), DT, 1e-3),
+        rtol=1e-12,
+        atol=1e-12,
+    )
 
 
 @pytest.mark.slow
@@ -165,8 +190,9 @@ def test_known_parameters_are_recovered_from_two_controllers_logs_at_once():
         fitted, value, se = getattr(cal.params_, name), getattr(truth, name), cal.standard_errors_[name]
         assert abs(fitted - value) <= 3 * se + 1e-12, (name, fitted, value, se)
     assert cal.standard_errors_["Kr"] < 0.05 * truth.Kr and cal.params_.Kr == pytest.approx(truth.Kr, rel=0.02)
-    np.testing.assert_array_less(np.abs(cal.alpha_offsets_ - np.concatenate([rig_off, soft_off])),
-                                 2.5 * cal.alpha_offset_errors_ + 1e-9)
+    np.testing.assert_array_less(
+        np.abs(cal.alpha_offsets_ - np.concatenate([rig_off, soft_off])), 2.5 * cal.alpha_offset_errors_ + 1e-9
+    )
 
 
 @pytest.mark.slow
@@ -177,10 +203,16 @@ def test_each_days_cables_and_each_sessions_delay_are_recovered_with_the_rest_of
     # standard errors and the other parameters are the shared truth's; one stiffness for all lands in
     # between, off both, which is what the twin fitted on both days' logs did. The cables' pull softens
     # alike on both days (one softening, as the rig's logs show): it comes back with the shared physics.
-    truth = [replace(TRUTH, Kr=6e-4, delay=1e-3, cable_softening=5.0), replace(TRUTH, Kr=2e-3, delay=2e-3,
-             cable_softening=5.0), replace(TRUTH, Kr=2e-3, delay=5e-3, cable_softening=5.0)]
-    logs = [simulated_logs(truth[0], n=2, seed=1), simulated_logs(truth[1], n=1, seed=2, controller=soft_pd()),
-            simulated_logs(truth[2], n=1, seed=3, controller=soft_pd())]
+    truth = [
+        replace(TRUTH, Kr=6e-4, delay=1e-3, cable_softening=5.0),
+        replace(TRUTH, Kr=2e-3, delay=2e-3, cable_softening=5.0),
+        replace(TRUTH, Kr=2e-3, delay=5e-3, cable_softening=5.0),
+    ]
+    logs = [
+        simulated_logs(truth[0], n=2, seed=1),
+        simulated_logs(truth[1], n=1, seed=2, controller=soft_pd()),
+        simulated_logs(truth[2], n=1, seed=3, controller=soft_pd()),
+    ]
     ys = [y for log in logs for y in log[0]]
     us = [u for log in logs for u in log[1]]
     setups = {"Kr": ["2023-08-28"] * 2 + ["2023-09-15"] * 2, "delay": ["a", "a", "b", "c"]}
@@ -235,16 +267,44 @@ def test_cli_writes_a_plant_file_qube_run_accepts_and_a_report(tmp_path):
 
     assert run_main(["--episodes", "3", "--duration", "3", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
     logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
-    assert main([*logs[:2], "--validate", logs[2], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "8",
-                 "--report", str(tmp_path / "report"), "-q"]) == 0
+    assert (
+        main(
+            [
+                *logs[:2],
+                "--validate",
+                logs[2],
+                "--out",
+                str(tmp_path / "plant.toml"),
+                "--max-nfev",
+                "8",
+                "--report",
+                str(tmp_path / "report"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     plant = load_plant(tmp_path / "plant.toml")
     assert plant.provenance["logs"] == [p.rsplit("/", 1)[-1] for p in logs[:2]]
     assert set(plant.standard_errors) == {p[0] for p in ms.PHYSICAL}
     report = (tmp_path / "report" / "report.md").read_text()
     assert "## Validation on 1 episodes not fitted" in report and "| km |" in report
-    assert run_main(["--episodes", "1", "--duration", "1", "--plant", str(tmp_path / "plant.toml"),
-                     "--out", str(tmp_path / "again"), "-q"]) == 0
-
+    assert (
+        run_main(
+            [
+                "--episodes",
+                "1",
+                "--duration",
+                "1",
+                "--plant",
+                str(tmp_path / "plant.toml"),
+                "--out",
+                str(tmp_path / "again"),
+                "-q",
+            ]
+        )
+        == 0
+    )
 
 
 def test_cli_refuses_a_log_too_short_to_fit_or_validate_before_the_fit(tmp_path, capsys):
@@ -263,6 +323,7 @@ def test_cli_refuses_a_log_too_short_to_fit_or_validate_before_the_fit(tmp_path,
         err = capsys.readouterr().err
         assert short in err and "too short" in err and "Traceback" not in err, err
     assert not (tmp_path / "plant.toml").exists()
+
 
 @pytest.fixture
 def one_log(tmp_path):
@@ -283,9 +344,13 @@ def test_cli_refuses_an_absurd_delay_or_measurement_in_one_line_before_the_fit(o
     alpha[800] = 1e300
     write_episode(tmp_path / "crafted.mcap", replace(episode, alpha=alpha))
     capsys.readouterr()
-    for argv, message in (([str(one_log), "--delay", "100000000"], "error: --delay must be at most 500 samples"),
-                          ([str(tmp_path / "crafted.mcap")], f"error: {tmp_path / 'crafted.mcap'}: alpha at sample 800 "
-                                                              "is 1e+300 (1 sample beyond +-100); refused")):
+    for argv, message in (
+        ([str(one_log), "--delay", "100000000"], "error: --delay must be at most 500 samples"),
+        (
+            [str(tmp_path / "crafted.mcap")],
+            f"error: {tmp_path / 'crafted.mcap'}: alpha at sample 800 is 1e+300 (1 sample beyond +-100); refused",
+        ),
+    ):
         assert main([*argv, "--out", str(tmp_path / "p.toml"), "-q"]) == 2
         err = capsys.readouterr().err
         assert len(err.splitlines()) == 1 and message in err, err
@@ -299,8 +364,10 @@ def test_cli_warns_that_a_fit_stopped_by_max_nfev_did_not_converge_and_names_the
     out = tmp_path / "p.toml"
     assert main([str(one_log), "--out", str(out), "--max-nfev", "1"]) == 0  # (-q would silence the warning)
     captured = capsys.readouterr()
-    assert ("qube-calibrate: warning: the fit did not converge within --max-nfev 1 steps (its cost was still "
-            f"falling): {out} holds the last step's parameters; run again with a larger --max-nfev") in captured.err
+    assert (
+        "qube-calibrate: warning: the fit did not converge within --max-nfev 1 steps (its cost was still "
+        f"falling): {out} holds the last step's parameters; run again with a larger --max-nfev"
+    ) in captured.err
     assert captured.out.endswith(f"wrote {out}: qube-run --plant {out}\n") and out.exists()
 
 
@@ -342,7 +409,6 @@ def test_offsets_estimated_together_are_each_episodes_own_and_recover_the_inject
     assert fit.status > 0 and fit.x[0] * ms.OFFSET_SCALE == pytest.approx(many[2], abs=1e-6)
 
 
-
 @pytest.mark.parametrize("controller", ["rig", "soft-theta"])
 def test_closed_loop_offsets_recover_the_twins_encoder_zeros(tmp_path, controller):
     # A twin log records the pendulum encoder zero its episode drew. The replay's estimate (the zero
@@ -364,10 +430,13 @@ def test_closed_loop_offsets_recover_the_twins_encoder_zeros(tmp_path, controlle
     errors = (found - truth) / ENCODER_COUNT
     assert np.all(np.abs(errors) <= 0.5) and np.sqrt(np.mean(errors**2)) <= 0.25, errors
     # A window longer than the logs takes what they hold (a short validation log is replayed, not refused).
-    np.testing.assert_array_equal(estimate_offset_closed_loop(episodes, PendulumParameters(), window=10_000),
-                                  estimate_offset_closed_loop(episodes, PendulumParameters(), window=1000))
+    np.testing.assert_array_equal(
+        estimate_offset_closed_loop(episodes, PendulumParameters(), window=10_000),
+        estimate_offset_closed_loop(episodes, PendulumParameters(), window=1000),
+    )
     with pytest.raises(ValueError, match="window"):
         estimate_offset_closed_loop(episodes, PendulumParameters(), start=1499)
+
 
 @pytest.mark.slow
 def test_a_calibration_under_the_rigs_gains_holds_under_another_controller(tmp_path, capsys):
@@ -380,11 +449,37 @@ def test_a_calibration_under_the_rigs_gains_holds_under_another_controller(tmp_p
     from qube_koopman.identify.cli.calibrate import main
 
     assert run_main(["--episodes", "3", "--duration", "8", "--seed", "21", "--out", str(tmp_path / "rig"), "-q"]) == 0
-    assert run_main(["--episodes", "2", "--duration", "8", "--seed", "22", "--controller", "soft-theta",
-                     "--out", str(tmp_path / "soft"), "-q"]) == 0
+    assert (
+        run_main(
+            [
+                "--episodes",
+                "2",
+                "--duration",
+                "8",
+                "--seed",
+                "22",
+                "--controller",
+                "soft-theta",
+                "--out",
+                str(tmp_path / "soft"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main([*map(str, sorted((tmp_path / "rig").glob("*.mcap"))), "--validate",
-                 *map(str, sorted((tmp_path / "soft").glob("*.mcap"))), "--out", str(tmp_path / "p.toml")]) == 0
+    assert (
+        main(
+            [
+                *map(str, sorted((tmp_path / "rig").glob("*.mcap"))),
+                "--validate",
+                *map(str, sorted((tmp_path / "soft").glob("*.mcap"))),
+                "--out",
+                str(tmp_path / "p.toml"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "balanced: 2 of 2" in out
     ratios = re.search(r"theta ([\d.]+)\.\.([\d.]+) .*alpha ([\d.]+)\.\.([\d.]+) .*voltage ([\d.]+)\.\.([\d.]+)", out)
@@ -435,8 +530,21 @@ def test_cli_takes_folders_of_logs_as_every_command_does(tmp_path, capsys):
 
     assert run_main(["--episodes", "2", "--duration", "2", "--seed", "9", "--out", str(tmp_path / "fit"), "-q"]) == 0
     assert run_main(["--episodes", "1", "--duration", "2", "--seed", "10", "--out", str(tmp_path / "val"), "-q"]) == 0
-    assert main([str(tmp_path / "fit"), "--validate", str(tmp_path / "val"), "--out", str(tmp_path / "p.toml"),
-                 "--max-nfev", "2", "-q"]) == 0
+    assert (
+        main(
+            [
+                str(tmp_path / "fit"),
+                "--validate",
+                str(tmp_path / "val"),
+                "--out",
+                str(tmp_path / "p.toml"),
+                "--max-nfev",
+                "2",
+                "-q",
+            ]
+        )
+        == 0
+    )
     plant = load_plant(tmp_path / "p.toml")
     assert plant.provenance["logs"] == [p.name for p in sorted((tmp_path / "fit").glob("*.mcap"))]
     assert len(plant.provenance["validated_on"]) == 1
@@ -463,8 +571,10 @@ def test_a_fit_by_differences_lands_where_the_fit_by_tangents_does():
     # The two Jacobians differ by the differences' rounding: the solver takes the same steps, and the
     # fitted parameters agree far within their standard errors.
     ys, us, _ = simulated_logs(TRUTH, n=2, seconds=2.0)
-    fits = [PlantCalibration(skip=0.5, max_nfev=4, nominal=PendulumParameters(), jacobian=method).fit(ys, us, DT)
-            for method in ("tangents", "differences")]
+    fits = [
+        PlantCalibration(skip=0.5, max_nfev=4, nominal=PendulumParameters(), jacobian=method).fit(ys, us, DT)
+        for method in ("tangents", "differences")
+    ]
     assert fits[0].nfev_ == fits[1].nfev_
     for name, se in fits[0].standard_errors_.items():
         assert abs(getattr(fits[0].params_, name) - getattr(fits[1].params_, name)) <= 0.01 * se + 1e-12, name

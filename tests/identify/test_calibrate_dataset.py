@@ -55,8 +55,11 @@ def setups_calibration(split, soft):
 
     fitted = split[0] + soft
     return PlantCalibration(horizon=0.25).fit(
-        [e.states for e in fitted], [e.plant_input for e in fitted], fitted[0].dt,
-        setups=setup_labels([e.metadata.start_time for e in fitted]))
+        [e.states for e in fitted],
+        [e.plant_input for e in fitted],
+        fitted[0].dt,
+        setups=setup_labels([e.metadata.start_time for e in fitted]),
+    )
 
 
 @pytest.fixture(scope="module")

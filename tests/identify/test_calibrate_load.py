@@ -20,8 +20,15 @@ def twin_logs(load: RandomLoad, n: int = 12, seconds: float = 16.0, seed: int = 
     steps = int(seconds / DT)
     ff = np.repeat(rng.choice([-0.3, 0.3], (steps // 50 + 1, n)), 50, axis=0)[:steps]
     x0 = np.column_stack([np.zeros(n), rng.uniform(-0.01, 0.01, n), np.zeros((n, 2))])
-    run = simulate_closed_loop(x0, QUBE_PD, np.zeros((steps, n, 2)), ff, PendulumParameters(), SensorModel(),
-                               load=load.sample(steps, DT, rng, (n,)))
+    run = simulate_closed_loop(
+        x0,
+        QUBE_PD,
+        np.zeros((steps, n, 2)),
+        ff,
+        PendulumParameters(),
+        SensorModel(),
+        load=load.sample(steps, DT, rng, (n,)),
+    )
     return [run.measurements[:, i] for i in range(n)], [run.plant_input[:, i] for i in range(n)]
 
 
@@ -53,11 +60,43 @@ def test_qube_calibrate_load_writes_the_load_tables_and_the_reports_band_table(t
     from qube_koopman.sim.pendulum.params_file import PlantFile, load_plant, save_plant
 
     save_plant(tmp_path / "truth.toml", PlantFile(PendulumParameters(), load=RandomLoad(0.1, 0.5)))
-    assert run_main(["--episodes", "3", "--duration", "4", "--seed", "5", "--plant", str(tmp_path / "truth.toml"),
-                     "--out", str(tmp_path / "logs"), "-q"]) == 0
+    assert (
+        run_main(
+            [
+                "--episodes",
+                "3",
+                "--duration",
+                "4",
+                "--seed",
+                "5",
+                "--plant",
+                str(tmp_path / "truth.toml"),
+                "--out",
+                str(tmp_path / "logs"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
-    assert main([*logs[:2], "--validate", logs[2], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "4",
-                 "--load", "--report", str(tmp_path / "report"), "-q"]) == 0
+    assert (
+        main(
+            [
+                *logs[:2],
+                "--validate",
+                logs[2],
+                "--out",
+                str(tmp_path / "plant.toml"),
+                "--max-nfev",
+                "4",
+                "--load",
+                "--report",
+                str(tmp_path / "report"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     plant = load_plant(tmp_path / "plant.toml")
     assert plant.load is not None and math.isfinite(plant.load.diffusion) and plant.load.diffusion > 0
     assert set(plant.load_standard_errors) >= {"diffusion"}

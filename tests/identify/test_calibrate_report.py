@@ -11,8 +11,15 @@ import pytest
 from _calibration_replay import DT, NAMES, SCALE, synthetic_replay
 from qube_koopman.identify.calibrate.validate import ReplayResult
 from qube_koopman.identify.calibrate.report import write_report
-from qube_koopman.identify.calibrate.spectra import (BANDS, CHANNELS, band_power_ratios, band_powers,
-                                                     replay_spectra, spectra_text)
+from qube_koopman.identify.calibrate.spectra import (
+    BANDS,
+    CHANNELS,
+    band_power_ratios,
+    band_powers,
+    replay_spectra,
+    spectra_text,
+)
+
 
 def table_ratios(text: str) -> dict[str, list[float]]:
     """The twin/real column of each channel's table in ``text``."""
@@ -27,12 +34,13 @@ def test_band_power_ratios_are_the_scale_squared_and_one_against_itself():
     text = spectra_text(synthetic_replay(), DT)
     ratios = table_ratios(text)
     for channel, scale in zip(CHANNELS, SCALE):
-        assert ratios[channel] == pytest.approx([scale ** 2] * len(BANDS), abs=1e-3), channel
+        assert ratios[channel] == pytest.approx([scale**2] * len(BANDS), abs=1e-3), channel
     same = table_ratios(spectra_text(synthetic_replay(scale=np.ones(3)), DT))
     assert all(r == [1.0] * len(BANDS) for r in same.values())
     assert "| 1-3 |" in text and "| 30-100 |" in text and "(2 episodes)" in text
-    np.testing.assert_allclose(band_power_ratios(replay_spectra(synthetic_replay(), DT)),
-                               np.tile(SCALE ** 2, (len(BANDS), 1)), rtol=1e-12)
+    np.testing.assert_allclose(
+        band_power_ratios(replay_spectra(synthetic_replay(), DT)), np.tile(SCALE**2, (len(BANDS), 1)), rtol=1e-12
+    )
 
 
 def test_band_power_integrates_the_psd_to_the_sinusoid_power():
@@ -42,7 +50,7 @@ def test_band_power_integrates_the_psd_to_the_sinusoid_power():
     power = band_powers(spectra.frequency, real)  # (bands, channels)
     # A sinusoid of amplitude A carries A^2 / 2, all of it in its band (2, 5 and 20 Hz: bands 1, 2, 3).
     for j, (band, amplitude) in enumerate(((1, 0.1), (2, 0.02), (3, 3.0))):
-        assert power[band, j] == pytest.approx(amplitude ** 2 / 2, rel=0.03)
+        assert power[band, j] == pytest.approx(amplitude**2 / 2, rel=0.03)
     assert np.isnan(band_powers(spectra.frequency, real, [(300.0, 400.0)])).all()  # above Nyquist
 
 
@@ -57,8 +65,12 @@ def test_report_writes_the_table_and_a_recording_with_the_expected_entities(tmp_
     assert report.startswith("# qube-calibrate report\n\ntables\n") and "## Power spectra" in report
     schema = RrdReader(tmp_path / "calibration.rrd").store().schema()
     paths = set(schema.entity_paths())
-    expected = {f"/validation/{stem}/{channel}/{kind}" for stem in ("val_a", "val_b") for channel in CHANNELS
-                for kind in ("real", "twin")}
+    expected = {
+        f"/validation/{stem}/{channel}/{kind}"
+        for stem in ("val_a", "val_b")
+        for channel in CHANNELS
+        for kind in ("real", "twin")
+    }
     expected |= {f"/spectra/{channel}/{kind}" for channel in CHANNELS for kind in ("real", "twin")}
     assert expected | {"/spectra/frequency_hz"} == paths
     timelines = {str(c) for c in schema.index_columns()}
@@ -119,8 +131,22 @@ def test_cli_report_folder_gets_the_spectra_and_the_recording(tmp_path, capsys):
     assert run_main(["--episodes", "3", "--duration", "3", "--seed", "5", "--out", str(tmp_path / "logs"), "-q"]) == 0
     logs = sorted(map(str, (tmp_path / "logs").glob("*.mcap")))
     capsys.readouterr()
-    assert main([*logs[:2], "--validate", logs[2], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "4",
-                 "--report", str(tmp_path / "report")]) == 0
+    assert (
+        main(
+            [
+                *logs[:2],
+                "--validate",
+                logs[2],
+                "--out",
+                str(tmp_path / "plant.toml"),
+                "--max-nfev",
+                "4",
+                "--report",
+                str(tmp_path / "report"),
+            ]
+        )
+        == 0
+    )
     err = capsys.readouterr().err
     report = (tmp_path / "report" / "report.md").read_text()
     assert "## Validation on 1 episodes not fitted" in report and "### voltage" in report
@@ -130,8 +156,8 @@ def test_cli_report_folder_gets_the_spectra_and_the_recording(tmp_path, capsys):
         assert "calibration.rrd not written" in err
     else:
         # No warning but the fit's own (stopped by --max-nfev 4, on purpose: a quick test).
-            warnings = [line for line in err.splitlines() if "warning" in line and "did not converge" not in line]
-            assert (tmp_path / "report" / "calibration.rrd").stat().st_size > 0 and not warnings, err
+        warnings = [line for line in err.splitlines() if "warning" in line and "did not converge" not in line]
+        assert (tmp_path / "report" / "calibration.rrd").stat().st_size > 0 and not warnings, err
 
 
 def test_validation_logs_that_were_fitted_are_not_called_held_out(tmp_path, capsys):
@@ -144,8 +170,23 @@ def test_validation_logs_that_were_fitted_are_not_called_held_out(tmp_path, caps
     capsys.readouterr()
     # The first log fitted and validated (named through another path), the second only validated.
     again = str(tmp_path / "logs" / ".." / "logs" / logs[0].rsplit("/", 1)[1])
-    assert main([logs[0], "--validate", again, logs[1], "--out", str(tmp_path / "plant.toml"), "--max-nfev", "2",
-                 "--report", str(tmp_path / "report")]) == 0
+    assert (
+        main(
+            [
+                logs[0],
+                "--validate",
+                again,
+                logs[1],
+                "--out",
+                str(tmp_path / "plant.toml"),
+                "--max-nfev",
+                "2",
+                "--report",
+                str(tmp_path / "report"),
+            ]
+        )
+        == 0
+    )
     err = capsys.readouterr().err
     assert "1 of the 2 validation logs are fitted too" in err and "not a held-out check" in err
     report = (tmp_path / "report" / "report.md").read_text()
@@ -159,8 +200,10 @@ def test_the_per_controller_fit_table_names_the_segments_length(tmp_path, capsys
     from qube_koopman.identify.cli.calibrate import main
 
     for name, extra in (("rig", []), ("soft", ["--controller", "soft-theta"])):
-        assert run_main(["--episodes", "1", "--duration", "3", "--seed", "5", "--out", str(tmp_path / name), "-q",
-                         *extra]) == 0
+        assert (
+            run_main(["--episodes", "1", "--duration", "3", "--seed", "5", "--out", str(tmp_path / name), "-q", *extra])
+            == 0
+        )
     logs = sorted(map(str, tmp_path.glob("*/*.mcap")))
     capsys.readouterr()
     assert main([*logs, "--horizon", "0.1", "--out", str(tmp_path / "plant.toml"), "--max-nfev", "2"]) == 0
@@ -189,8 +232,9 @@ def test_band_and_slow_std_ratios_are_the_scale_in_every_band():
 def test_the_per_controller_summary_has_a_row_per_controller_and_the_issue_bands():
     from qube_koopman.identify.calibrate.report import controller_summary_text
 
-    text = controller_summary_text([("kp_theta 6", synthetic_replay(n_steps=9000)),
-                                    ("kp_theta 2", synthetic_replay(np.ones(3), n_steps=9000))], DT)
+    text = controller_summary_text(
+        [("kp_theta 6", synthetic_replay(n_steps=9000)), ("kp_theta 2", synthetic_replay(np.ones(3), n_steps=9000))], DT
+    )
     rows = [line for line in text.splitlines() if line.startswith("| kp_theta")]
     assert len(rows) == 2
     header = next(line for line in text.splitlines() if line.startswith("| controller"))
@@ -205,8 +249,24 @@ def test_controller_groups_follow_the_logged_controller(tmp_path):
     from qube_koopman.identify.calibrate.validate import controller_groups
 
     assert run_main(["--episodes", "2", "--duration", "1", "--seed", "3", "--out", str(tmp_path / "a"), "-q"]) == 0
-    assert run_main(["--episodes", "1", "--duration", "1", "--seed", "4", "--controller", "soft-theta",
-                     "--out", str(tmp_path / "b"), "-q"]) == 0
+    assert (
+        run_main(
+            [
+                "--episodes",
+                "1",
+                "--duration",
+                "1",
+                "--seed",
+                "4",
+                "--controller",
+                "soft-theta",
+                "--out",
+                str(tmp_path / "b"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     paths = sorted((tmp_path / "a").glob("*.mcap")) + sorted((tmp_path / "b").glob("*.mcap"))
     episodes = [read_episode(p) for p in [paths[0], paths[2], paths[1]]]
     groups = controller_groups(episodes)

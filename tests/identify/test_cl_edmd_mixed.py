@@ -105,8 +105,9 @@ def _explicit_plant_solve(trajs, controllers, measured, alpha, regularize):
         blocks = []
         for c in {id(c): c for c in controllers}.values():
             n_c, n_r, n_f = c.n_states, C_p.shape[0], c.n_outputs
-            S = np.block([[np.zeros((n_x, n_c)), np.eye(n_x), np.zeros((n_x, n_r + n_f))],
-                          [c.C, -c.D @ C_p, c.D, np.eye(n_f)]])
+            S = np.block(
+                [[np.zeros((n_x, n_c)), np.eye(n_x), np.zeros((n_x, n_r + n_f))], [c.C, -c.D @ C_p, c.D, np.eye(n_f)]]
+            )
             blocks.append(np.sqrt(alpha * counts[id(c)] / q) * S.T)
         penalty = np.vstack(blocks)
     A = np.vstack([Z, penalty])
@@ -150,7 +151,8 @@ def test_grouped_solve_of_one_group_is_the_single_solve_bit_for_bit(noisy_mixed,
     for alpha in (0.0, 1e-3, 10.0):
         np.testing.assert_array_equal(
             grouped_plant_solve(grouped, alpha, regularize),
-            constrained_plant_solve(single, setup.plant_input_map, alpha, slice(pid.n_states, None), regularize))
+            constrained_plant_solve(single, setup.plant_input_map, alpha, slice(pid.n_states, None), regularize),
+        )
 
 
 def test_fit_without_the_reference_controllers_episodes(noisy_mixed):
@@ -175,8 +177,17 @@ def _static_loop_episodes(A_p, B_p, controller, n_episodes, n, seed):
         x[0] = rng.normal(size=2)
         for k in range(n - 1):
             x[k + 1] = A_p @ x[k] + B_p @ (-K @ x[k])
-        out.append(Trajectory(x=x, u=-x @ K.T, r=np.zeros((n, 2)), f=np.zeros((n, 1)), xc=np.zeros((n, 0)),
-                              name=f"static{seed}-{i}", dt=controller.dt))
+        out.append(
+            Trajectory(
+                x=x,
+                u=-x @ K.T,
+                r=np.zeros((n, 2)),
+                f=np.zeros((n, 1)),
+                xc=np.zeros((n, 0)),
+                name=f"static{seed}-{i}",
+                dt=controller.dt,
+            )
+        )
     return out
 
 
@@ -191,7 +202,7 @@ def test_two_controllers_identify_a_plant_that_one_cannot():
     truth = np.hstack([A_p, B_p])
     alone = ClEdmd(k1, measured=[0, 1]).fit(a).plant_koopman_matrix_
     both = ClEdmd(k1, measured=[0, 1]).fit(a + b, [k1] * 3 + [k2] * 3).plant_koopman_matrix_
-    assert np.linalg.norm(alone - truth) > 1e-3   # the minimum-norm solution of a singular problem
+    assert np.linalg.norm(alone - truth) > 1e-3  # the minimum-norm solution of a singular problem
     np.testing.assert_allclose(both, truth, atol=1e-8)
 
 
@@ -201,8 +212,15 @@ def test_leave_one_controller_out_sweep_scores_the_held_out_loops(mixed):
     A_p, B_p, pid, pd, trajs, controllers = mixed
     splits = leave_one_controller_out(ControllerGroups.of(controllers, np.eye(2)[[0]], 1).labels)
     assert [v.tolist() for _, v in splits] == [[0, 1, 2], [3, 4]]
-    sweep = regularization_sweep(ClEdmd(pid, measured=[0]), trajs, [1e-10, 1e2], splits, scorings=("cl", "plant"),
-                                 controllers=controllers, keep_fold_models=True)
+    sweep = regularization_sweep(
+        ClEdmd(pid, measured=[0]),
+        trajs,
+        [1e-10, 1e2],
+        splits,
+        scorings=("cl", "plant"),
+        controllers=controllers,
+        keep_fold_models=True,
+    )
     np.testing.assert_allclose(sweep.cv_r2["cl"][:, 0], 1.0, atol=1e-8)
     np.testing.assert_allclose(sweep.cv_r2["plant"][:, 0], 1.0, atol=1e-8)
     assert sweep.cv_r2["cl"][:, 1].max() < 0.999  # a heavy penalty does not fit: the scores are real
@@ -228,8 +246,9 @@ def test_bad_controller_lists_are_refused(mixed):
     *_, pid, pd, trajs, controllers = mixed
     with pytest.raises(ValueError, match="4 controllers for 5 episodes"):
         ClEdmd(pid, measured=[0]).fit(trajs, controllers[:4])
-    with pytest.raises(ValueError, match="episode ep0: the controller has 1 states but the data's controller "
-                                         "state has 2 channels"):
+    with pytest.raises(
+        ValueError, match="episode ep0: the controller has 1 states but the data's controller state has 2 channels"
+    ):
         ClEdmd(pid, measured=[0]).fit(trajs, [pd] + controllers[1:])
     with pytest.raises(ValueError, match="must be a DiscreteStateSpace"):
         ClEdmd(pid, measured=[0]).fit(trajs, ["pid"] + controllers[1:])
@@ -265,10 +284,11 @@ def test_partial_fold_fits_score_as_full_ones(mixed):
     alphas = [1e-6, 1e-1, 1e1]
     est = ClEdmd(pid, lifting=[Delay(2)], measured=[0])  # 6 lifted states, 2 of them fitted in the folds
     full = regularization_sweep(est, trajs, alphas, splits, controllers=controllers)
-    partial = regularization_sweep(est, trajs, alphas, splits, controllers=controllers, fit_all=False,
-                                   keep_fold_models=True)
+    partial = regularization_sweep(
+        est, trajs, alphas, splits, controllers=controllers, fit_all=False, keep_fold_models=True
+    )
     for closed, _, _ in partial.fold_models:
         n_c = closed[0].n_passthrough
-        assert np.isnan(closed[0].A[n_c + 2:]).all() and np.isfinite(closed[0].A[:n_c + 2]).all()
+        assert np.isnan(closed[0].A[n_c + 2 :]).all() and np.isfinite(closed[0].A[: n_c + 2]).all()
     np.testing.assert_allclose(partial.cv_r2["cl"], full.cv_r2["cl"], rtol=1e-10)
     np.testing.assert_allclose(partial.cv_r2["plant"], full.cv_r2["plant"], rtol=1e-10)

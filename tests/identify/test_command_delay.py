@@ -57,8 +57,9 @@ def test_the_delayed_controller_on_its_states_gives_the_command_held_late(sample
 
 
 def test_a_controller_taking_the_feedforward_and_a_negative_delay_are_refused():
-    taking_f = DiscreteStateSpace(A=np.zeros((0, 0)), B=np.zeros((0, 3)), C=np.zeros((1, 0)), D=np.ones((1, 3)),
-                                  dt=0.002)
+    taking_f = DiscreteStateSpace(
+        A=np.zeros((0, 0)), B=np.zeros((0, 3)), C=np.zeros((1, 0)), D=np.ones((1, 3)), dt=0.002
+    )
     z = np.zeros((5, 2))
     with pytest.raises(ValueError, match="takes the feedforward"):
         command_delayed(taking_f, 1.0, np.zeros((5, 0)), z, z, np.zeros((5, 1)))
@@ -82,8 +83,26 @@ def test_a_slower_hosts_episodes_are_predicted_as_well_as_the_trainings_with_its
     scores = {}
     for name, test, ms in (("same loop", same, "0"), ("delayed", delayed, "0"), ("delayed, told", delayed, "4")):
         out = tmp_path / name.replace(" ", "_").replace(",", "")
-        assert qube_identify(["--train", str(train), "--test", str(test), "--delays", "10", "--interval", "0",
-                              "--command-delay", ms, "--out", str(out), "-q"]) == 0
+        assert (
+            qube_identify(
+                [
+                    "--train",
+                    str(train),
+                    "--test",
+                    str(test),
+                    "--delays",
+                    "10",
+                    "--interval",
+                    "0",
+                    "--command-delay",
+                    ms,
+                    "--out",
+                    str(out),
+                    "-q",
+                ]
+            )
+            == 0
+        )
         report = json.loads((out / "report.json").read_text())
         scores[name] = report["test"]["r2_mean"]
         assert ("command_delay" in report) == (ms != "0")
@@ -96,6 +115,20 @@ def test_a_slower_hosts_episodes_are_predicted_as_well_as_the_trainings_with_its
     assert told["samples"] == pytest.approx(2.0) and told["seconds"] == pytest.approx(4e-3)
     assert "command delay: 4 ms (2 samples)" in (tmp_path / "delayed_told" / "report.md").read_text()
     capsys.readouterr()
-    assert qube_identify(["--train", str(train), "--test", str(delayed), "--command-delay", "-1",
-                          "--out", str(tmp_path / "bad"), "-q"]) == 2
+    assert (
+        qube_identify(
+            [
+                "--train",
+                str(train),
+                "--test",
+                str(delayed),
+                "--command-delay",
+                "-1",
+                "--out",
+                str(tmp_path / "bad"),
+                "-q",
+            ]
+        )
+        == 2
+    )
     assert "--command-delay must be 0 or more milliseconds" in capsys.readouterr().err

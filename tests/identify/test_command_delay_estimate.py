@@ -61,8 +61,10 @@ def test_the_plant_finds_a_slower_sessions_extra_delay_on_twin_logs(tmp_path):
     fast = logs("fast", params, 8, 1)
     slow = logs("slow", replace(params, delay=params.delay + 4e-3), 3, 5)
     train, test = fast[:5], fast[5:] + slow
-    options = IdentifyOptions(FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alpha=1e-4),
-                              output=OutputOptions(keep_predictions=False))
+    options = IdentifyOptions(
+        FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alpha=1e-4),
+        output=OutputOptions(keep_predictions=False),
+    )
     fit = identify_and_score(train, test[:1], train[0].controller, options)
     neighbours = [[1, 2], [0, 2], [0, 1], [4, 5], [3, 5], [3, 4]]
     reference, estimates = estimate_command_delays(
@@ -113,7 +115,8 @@ def test_the_neighbours_follow_the_recording_order_not_the_seconds_between_start
 @pytest.mark.slow
 @pytest.mark.dataset
 def test_rig_trained_predictions_of_a_later_slower_session_gain_from_its_estimated_delay(
-        qube_logs, soft_logs, tmp_path):
+    qube_logs, soft_logs, tmp_path
+):
     """Trained on the rig's 28 logs; tested on the soft controller's two sessions and five of the paper's
     test logs. The later soft session's host was about 1.7 samples (3.4 ms) slower than the earlier one's
     (the twin's calibration per session): the estimate finds that difference, gives the paper's test logs
@@ -121,8 +124,23 @@ def test_rig_trained_predictions_of_a_later_slower_session_gain_from_its_estimat
     rig = sorted(qube_logs.glob("*.mcap"))
     soft = sorted(soft_logs.glob("*.mcap"))
     test = [*soft, *rig[28:33]]
-    common = ["--train", *map(str, rig[:28]), "--test", *map(str, test), "--poly", "1", "--delays", "20",
-              "--alpha", "1e-4", "--offsets", "alpha", "--interval", "0", "-q"]
+    common = [
+        "--train",
+        *map(str, rig[:28]),
+        "--test",
+        *map(str, test),
+        "--poly",
+        "1",
+        "--delays",
+        "20",
+        "--alpha",
+        "1e-4",
+        "--offsets",
+        "alpha",
+        "--interval",
+        "0",
+        "-q",
+    ]
     reports = {}
     for name, extra in (("estimated", []), ("none", ["--command-delay", "0"])):
         assert qube_identify([*common, *extra, "--out", str(tmp_path / name)]) == 0

@@ -26,8 +26,10 @@ pytestmark = pytest.mark.dataset
 
 N_TRAIN = 5
 SAMPLES = 3500  # of the dataset's ~10,000 an episode (qube-identify drops the first 500): a quick search
-SPACE = ("delays = [0, 2, 5, 10]\npoly = [1, 2]\nconst = [false, true]\ntrig = [false]\nfriction = [false]\n"
-         "rbf = [0]\nalphas = [1e-3, 1.0]\noffsets = [false]\n")
+SPACE = (
+    "delays = [0, 2, 5, 10]\npoly = [1, 2]\nconst = [false, true]\ntrig = [false]\nfriction = [false]\n"
+    "rbf = [0]\nalphas = [1e-3, 1.0]\noffsets = [false]\n"
+)
 STARTUP = 120.0  # s: generous, for a loaded 2-core machine
 RUN = 300.0
 
@@ -96,18 +98,35 @@ def _start_cluster(folder: Path, addfinalizer) -> Cluster:
 
     def start(name: str, *argv: str) -> subprocess.Popen:
         with open(folder / f"{name}.log", "wb") as out:
-            process = subprocess.Popen([sys.executable, "-m", "dask", *argv], stdout=out,
-                                       stderr=subprocess.STDOUT, cwd=folder)
+            process = subprocess.Popen(
+                [sys.executable, "-m", "dask", *argv], stdout=out, stderr=subprocess.STDOUT, cwd=folder
+            )
         started.append(process)
         return process
 
     address = f"tcp://127.0.0.1:{_free_port()}"
     # All at once: the workers keep trying to reach the scheduler until it listens.
-    scheduler = start("scheduler", "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
-                      "--no-dashboard")
-    workers = [start(f"worker{i}", "worker", address, "--host", "127.0.0.1", "--nthreads", "1", "--no-nanny",
-                     "--no-dashboard", "--local-directory", str(folder / f"worker{i}"), "--name", f"worker{i}")
-               for i in range(2)]
+    scheduler = start(
+        "scheduler", "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1], "--no-dashboard"
+    )
+    workers = [
+        start(
+            f"worker{i}",
+            "worker",
+            address,
+            "--host",
+            "127.0.0.1",
+            "--nthreads",
+            "1",
+            "--no-nanny",
+            "--no-dashboard",
+            "--local-directory",
+            str(folder / f"worker{i}"),
+            "--name",
+            f"worker{i}",
+        )
+        for i in range(2)
+    ]
     running = Cluster(address, scheduler, workers, None, folder)
     try:
         client = Client(address, timeout=STARTUP, set_as_default=False)
@@ -189,7 +208,9 @@ def _results(out: Path) -> tuple[dict, dict]:
 def _without_timings(value):
     """A search report's scores and choices: without wall times and how it ran (they differ between runs)."""
     if isinstance(value, dict):
-        return {k: _without_timings(v) for k, v in value.items() if k not in ("seconds", "timing", "scheduler", "n_jobs")}
+        return {
+            k: _without_timings(v) for k, v in value.items() if k not in ("seconds", "timing", "scheduler", "n_jobs")
+        }
     return [_without_timings(v) for v in value] if isinstance(value, list) else value
 
 
@@ -208,8 +229,9 @@ def test_a_search_on_the_cluster_equals_the_local_search(cluster, logs, local_se
     report, model = _results(tmp_path / "out")
     reference, reference_model = local_search
     assert report["search"]["winner"]["label"] == reference["search"]["winner"]["label"]
-    assert [c["label"] for c in report["search"]["candidates"]] == [c["label"]
-                                                                    for c in reference["search"]["candidates"]]
+    assert [c["label"] for c in report["search"]["candidates"]] == [
+        c["label"] for c in reference["search"]["candidates"]
+    ]
     _assert_same_numbers(_without_timings(reference["search"]), _without_timings(report["search"]), "search")
     _assert_same_numbers(reference_model, model, "the winner's model")
     _assert_same_numbers(reference["test"], report["test"], "test scores")
@@ -221,8 +243,10 @@ def test_a_search_on_the_cluster_equals_the_local_search(cluster, logs, local_se
     families = sum(t["shared_statistics"] > 0 for t in stages.values())
     assert families == 2  # the delays stage's (the longest delays) and the form stage's
     candidates = report["search"]["candidates"]
-    screens = sum(sum(c["stage"] == stage for c in candidates) + stages[stage]["screened_out"]
-                  for stage in report["search"]["screening"]["stages"])
+    screens = sum(
+        sum(c["stage"] == stage for c in candidates) + stages[stage]["screened_out"]
+        for stage in report["search"]["screening"]["stages"]
+    )
     assert screens == 7  # 4 delays, 3 forms (poly 1 and 2, with and without the constant, but the one tried)
     assert cluster.executed() - before == len(candidates) + screens + N_TRAIN + 1 + 2 * families
 
@@ -251,9 +275,16 @@ def test_a_fit_and_an_alpha_sweep_on_the_cluster_equal_the_local_ones(cluster, l
 def test_a_worker_killed_mid_search_leaves_the_same_winner(own_cluster, logs, local_search, tmp_path):
     cluster, out = own_cluster, tmp_path / "out"
     with open(tmp_path / "search.log", "wb") as log:
-        search = subprocess.Popen([sys.executable, "-m", "qube_koopman.identify.cli.identify",
-                                   *_search_argv(logs, out, "--scheduler", cluster.address)],
-                                  stdout=log, stderr=subprocess.STDOUT)
+        search = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "qube_koopman.identify.cli.identify",
+                *_search_argv(logs, out, "--scheduler", cluster.address),
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
     try:
         victim, interrupted = _kill_a_busy_worker(cluster, search)
         assert search.wait(timeout=RUN) == 0, (tmp_path / "search.log").read_text() + cluster.logs()
@@ -344,16 +375,26 @@ def test_results_give_up_once_every_worker_died_mid_task(own_cluster):
     assert failure, "still waiting for workers that will not come"
     when, exc = failure[0]
     assert when - gone >= 2.0 - 1e-3, "gave up before the timeout (the scheduler saw no worker from `gone` on)"
-    assert str(exc) == (f"{cluster.address}: no dask worker for 2 s with 4 task(s) waiting (did every worker "
-                        "stop?); gave up (--worker-timeout)")
+    assert str(exc) == (
+        f"{cluster.address}: no dask worker for 2 s with 4 task(s) waiting (did every worker "
+        "stop?); gave up (--worker-timeout)"
+    )
 
 
 def test_qube_identify_gives_up_in_one_line_when_the_cluster_has_no_worker(own_cluster, logs, tmp_path):
     cluster = own_cluster
     _kill_workers(cluster)
-    proc = subprocess.run([sys.executable, "-m", "qube_koopman.identify.cli.identify",
-                           *_argv(logs, tmp_path / "out", "--scheduler", cluster.address, "--worker-timeout", "2")],
-                          capture_output=True, text=True, timeout=RUN)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "qube_koopman.identify.cli.identify",
+            *_argv(logs, tmp_path / "out", "--scheduler", cluster.address, "--worker-timeout", "2"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=RUN,
+    )
     assert proc.returncode == 1, proc.stderr
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
     assert proc.stderr.startswith(f"qube-identify: error: {cluster.address}: no dask worker for 2 s with ")

@@ -15,7 +15,13 @@ import pytest
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 from qube_koopman.identify import ClEdmd, Delay, Edmd, Polynomial, ThinPlateRbf
 from qube_koopman.identify.model_selection.split import group_shuffle_splits
-from qube_koopman.identify.model_selection.distributed import ClusterStatistics, LogSource, _check_versions, _unseen, ordered_results
+from qube_koopman.identify.model_selection.distributed import (
+    ClusterStatistics,
+    LogSource,
+    _check_versions,
+    _unseen,
+    ordered_results,
+)
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 
 ALPHAS = [1e-6, 1e-3, 1.0]
@@ -41,8 +47,11 @@ class _Elsewhere:
         return (estimator.episode_snapshots(setup, self.trajectories[i]) for i in indices)
 
 
-@pytest.mark.parametrize("lifting", [[Polynomial(2), Delay(3)], [ThinPlateRbf(6, seed=1), Delay(2)]],
-                         ids=["shared statistics", "lifting fitted per fold"])
+@pytest.mark.parametrize(
+    "lifting",
+    [[Polynomial(2), Delay(3)], [ThinPlateRbf(6, seed=1), Delay(2)]],
+    ids=["shared statistics", "lifting fitted per fold"],
+)
 def test_a_sweep_with_statistics_computed_elsewhere_equals_the_local_sweep(loop, lifting):
     trajs, controller = loop
     splits = group_shuffle_splits(len(trajs), n_splits=3, test_size=0.34, seed=2)
@@ -66,8 +75,11 @@ def test_a_fit_from_statistics_computed_elsewhere_equals_the_fit(loop, closed_lo
 
     trajs, controller = loop
     lifting = [Polynomial(2), Delay(3)]
-    estimator = ClEdmd(controller, lifting=lifting, alpha=1e-3, measured=[0]) if closed_loop else \
-        Edmd(lifting=lifting, alpha=1e-3)
+    estimator = (
+        ClEdmd(controller, lifting=lifting, alpha=1e-3, measured=[0])
+        if closed_loop
+        else Edmd(lifting=lifting, alpha=1e-3)
+    )
     controllers = [controller] * len(trajs) if closed_loop else None
     here = copy.deepcopy(estimator).fit(trajs, controllers) if closed_loop else copy.deepcopy(estimator).fit(trajs)
     elsewhere = _Elsewhere(trajs)
@@ -117,10 +129,13 @@ def test_shared_logs_a_worker_cannot_see_are_an_error_naming_the_file_and_the_wo
     missing = tmp_path / "elsewhere.mcap"
     assert _unseen([str(log_file), str(missing)]) == [(str(log_file), log_file.stat().st_size), (str(missing), None)]
     size = log_file.stat().st_size
-    client = _FakeClient({"tcp://10.0.0.2:4000": [(str(log_file), size)],
-                          "tcp://10.0.0.3:4000": [(str(log_file), None)]})
-    with pytest.raises(ValueError, match=f"{log_file}: not readable as the same file on dask worker "
-                                         "tcp://10.0.0.3:4000 \\(no such file\\)"):
+    client = _FakeClient(
+        {"tcp://10.0.0.2:4000": [(str(log_file), size)], "tcp://10.0.0.3:4000": [(str(log_file), None)]}
+    )
+    with pytest.raises(
+        ValueError,
+        match=f"{log_file}: not readable as the same file on dask worker tcp://10.0.0.3:4000 \\(no such file\\)",
+    ):
         ClusterStatistics(client, [log_file], skip=0, shared=True)
     client.answers["tcp://10.0.0.3:4000"] = [(str(log_file), size - 1)]
     with pytest.raises(ValueError, match=f"{size - 1} bytes, here {size}"):
@@ -165,14 +180,19 @@ def test_results_come_back_in_the_calls_order_and_a_calls_error_is_raised_here()
             list(ordered_results(client, [(_sleep_then, (0.0, 1), {}), (_sleep_then, (0.0, -1), {})]))
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--worker-logs", "shared"], "--worker-logs says how dask workers read the logs: it needs --scheduler"),
-    (["--scheduler", "tcp://h:8786", "--method", "arx", "--score", "plant"],
-     "--scheduler computes the Koopman methods' per-episode statistics; --method arx fits here"),
-    (["--scheduler", ""], "--scheduler takes a dask scheduler's address, for example tls://host:8786, got ''"),
-    (["--scheduler", "tcp://h"], "got 'tcp://h'"),
-    (["--scheduler", "h:99999"], "got 'h:99999'"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--worker-logs", "shared"], "--worker-logs says how dask workers read the logs: it needs --scheduler"),
+        (
+            ["--scheduler", "tcp://h:8786", "--method", "arx", "--score", "plant"],
+            "--scheduler computes the Koopman methods' per-episode statistics; --method arx fits here",
+        ),
+        (["--scheduler", ""], "--scheduler takes a dask scheduler's address, for example tls://host:8786, got ''"),
+        (["--scheduler", "tcp://h"], "got 'tcp://h'"),
+        (["--scheduler", "h:99999"], "got 'h:99999'"),
+    ],
+)
 def test_cluster_option_refusals(tmp_path, capsys, argv, message):
     from qube_koopman.identify.cli.identify import main
 

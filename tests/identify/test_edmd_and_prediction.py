@@ -5,8 +5,25 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from qube_koopman.identify import (ClEdmd, Constant, CoulombFriction, Delay, Edmd, GaussianRbf, Lifting, Polynomial, ThinPlateRbf, Trajectory, Trigonometric, closed_loop_matrices,
-                      controller_states, output_selection, plant_input, plant_input_map, r2_score)
+from qube_koopman.identify import (
+    ClEdmd,
+    Constant,
+    CoulombFriction,
+    Delay,
+    Edmd,
+    GaussianRbf,
+    Lifting,
+    Polynomial,
+    ThinPlateRbf,
+    Trajectory,
+    Trigonometric,
+    closed_loop_matrices,
+    controller_states,
+    output_selection,
+    plant_input,
+    plant_input_map,
+    r2_score,
+)
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
 
@@ -49,15 +66,18 @@ def test_ridge_convention_matches_normal_equations(loop):
     *_, trajs = loop
     est = Edmd(lifting=[Polynomial(2)], alpha=3.0).fit(trajs)
     G, H = est.snapshots_.G, est.snapshots_.H
-    np.testing.assert_allclose(est.koopman_matrix_, G @ np.linalg.inv(H + 3.0 * np.eye(H.shape[0])),
-                               rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(
+        est.koopman_matrix_, G @ np.linalg.inv(H + 3.0 * np.eye(H.shape[0])), rtol=1e-8, atol=1e-10
+    )
 
 
 def test_closed_form_equals_generalized_ridge_formula(loop):
     """U^p = G_2 S^T (S H_alpha S^T)^-1: the paper's constrained problem in closed form."""
     A_p, B_p, controller, trajs = loop
-    noisy = [Trajectory(x=t.x + 1e-3 * np.sin(np.arange(t.n_samples))[:, None], r=t.r, f=t.f, xc=t.xc,
-                        dt=t.dt) for t in trajs]
+    noisy = [
+        Trajectory(x=t.x + 1e-3 * np.sin(np.arange(t.n_samples))[:, None], r=t.r, f=t.f, xc=t.xc, dt=t.dt)
+        for t in trajs
+    ]
     est = ClEdmd(controller, lifting=[Polynomial(2)], alpha=2.0, measured=[0]).fit(noisy)
     G, H, S = est.snapshots_.G, est.snapshots_.H, est.plant_input_map_
     n_c = controller.n_states
@@ -97,10 +117,13 @@ def test_initial_condition_samples_are_copied(loop):
 
 def test_batched_simulation_equals_per_episode(loop):
     *_, trajs = loop
-    model = ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(1)], alpha=1e-2,
-                   measured=[0]).fit(trajs[:2]).closed_loop_model_
+    model = (
+        ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(1)], alpha=1e-2, measured=[0])
+        .fit(trajs[:2])
+        .closed_loop_model_
+    )
     d = model.n_delays
-    x_init = np.stack([t.x[:d + 1] for t in trajs])
+    x_init = np.stack([t.x[: d + 1] for t in trajs])
     v = np.stack([model.inputs_of(t) for t in trajs])
     p0 = np.stack([t.xc[d] for t in trajs])
     batched, _ = model.simulate(x_init, v, p0)
@@ -110,8 +133,11 @@ def test_batched_simulation_equals_per_episode(loop):
 
 def test_predict_many_equals_predict_for_episodes_of_any_length(loop):
     *_, trajs = loop
-    model = ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(1)], alpha=1e-2,
-                   measured=[0]).fit(trajs[:2]).closed_loop_model_
+    model = (
+        ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(1)], alpha=1e-2, measured=[0])
+        .fit(trajs[:2])
+        .closed_loop_model_
+    )
     episodes = [trajs[0], trajs[1].skip(7), trajs[2]]  # two lengths
     many = model.predict_many(episodes)
     assert len(many) == 3
@@ -149,21 +175,24 @@ def test_structure_helpers_reproduce_simulated_signals(loop):
     np.testing.assert_allclose(theta[:-1] @ A_f.T + np.hstack([t.r, t.f])[:-1] @ B_f.T, theta[1:], atol=1e-12)
 
 
-@pytest.mark.parametrize("lifting", [
-    [Polynomial(2), Delay(3)],                      # pointwise head, one delay: the ring path
-    [Polynomial(3), Delay(4), Constant()],          # the ring path with three factors and an affine term
-    [Polynomial(1), Delay(1)],                      # the ring path with the identity's features
-    [Delay(2), GaussianRbf(6, shape=0.5, seed=1)],  # delays then RBF: the ring with a radial basis
-    [Polynomial(2), Trigonometric([0, 1]), Delay(3)],                # the ring, a head applied as it is
-    [Trigonometric([1]), Delay(2), ThinPlateRbf(5, seed=3), Constant()],  # ... with RBF and an affine term
-    [Delay(2), Polynomial(2)],                      # a step after the delays: the history path
-    [Polynomial(2)],                                # no delays
-    [Polynomial(2), Delay(3), Constant()],          # the shift path with an affine term
-    [Delay(2), Constant(), GaussianRbf(4, seed=2)], # a constant inside the history path
-    [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],  # friction: the ring path
-    [Delay(4), ThinPlateRbf(5, seed=3), CoulombFriction(0, 3, 0.05), CoulombFriction(1, 1, 0.1), Constant()],
-    [Polynomial(2), Delay(3), Constant(), CoulombFriction(0, 2, 0.05)],  # friction after a constant: history
-])
+@pytest.mark.parametrize(
+    "lifting",
+    [
+        [Polynomial(2), Delay(3)],  # pointwise head, one delay: the ring path
+        [Polynomial(3), Delay(4), Constant()],  # the ring path with three factors and an affine term
+        [Polynomial(1), Delay(1)],  # the ring path with the identity's features
+        [Delay(2), GaussianRbf(6, shape=0.5, seed=1)],  # delays then RBF: the ring with a radial basis
+        [Polynomial(2), Trigonometric([0, 1]), Delay(3)],  # the ring, a head applied as it is
+        [Trigonometric([1]), Delay(2), ThinPlateRbf(5, seed=3), Constant()],  # ... with RBF and an affine term
+        [Delay(2), Polynomial(2)],  # a step after the delays: the history path
+        [Polynomial(2)],  # no delays
+        [Polynomial(2), Delay(3), Constant()],  # the shift path with an affine term
+        [Delay(2), Constant(), GaussianRbf(4, seed=2)],  # a constant inside the history path
+        [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],  # friction: the ring path
+        [Delay(4), ThinPlateRbf(5, seed=3), CoulombFriction(0, 3, 0.05), CoulombFriction(1, 1, 0.1), Constant()],
+        [Polynomial(2), Delay(3), Constant(), CoulombFriction(0, 2, 0.05)],  # friction after a constant: history
+    ],
+)
 def test_fast_predictor_equals_naive_relifting(loop, lifting):
     from naive_reference import naive_predict
 
@@ -172,10 +201,10 @@ def test_fast_predictor_equals_naive_relifting(loop, lifting):
     cl = model.closed_loop_model_
     t = trajs[2]
     d = cl.n_delays
-    expected = naive_predict(cl, t.x[:d + 1], cl.inputs_of(t), t.xc[d])
+    expected = naive_predict(cl, t.x[: d + 1], cl.inputs_of(t), t.xc[d])
     np.testing.assert_allclose(cl.predict(t), expected, rtol=1e-10, atol=1e-12)
     plant = model.plant_model_
-    np.testing.assert_allclose(plant.predict(t), naive_predict(plant, t.x[:d + 1], t.u), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(plant.predict(t), naive_predict(plant, t.x[: d + 1], t.u), rtol=1e-10, atol=1e-12)
 
 
 def test_every_search_lifting_takes_the_ring(loop):
@@ -185,8 +214,10 @@ def test_every_search_lifting_takes_the_ring(loop):
     from qube_koopman.identify.models.simulate import _RingLayout
 
     *_, trajs = loop
-    for spec in (LiftingSpec(delays=12, poly=3, friction=True, const=True),
-                 LiftingSpec(delays=12, poly=1, trig=True, rbf=5, friction=True, const=True)):
+    for spec in (
+        LiftingSpec(delays=12, poly=3, friction=True, const=True),
+        LiftingSpec(delays=12, poly=1, trig=True, rbf=5, friction=True, const=True),
+    ):
         model = ClEdmd(pid_position_controller(), lifting=spec.steps(), alpha=1e-3, measured=[0]).fit(trajs[:2])
         plant = model.plant_model_
         At = np.ascontiguousarray(plant.A.T[None, :, :2])
@@ -214,8 +245,11 @@ def test_a_model_that_diverges_before_the_scored_samples_scores_minus_infinity(l
     from qube_koopman.identify.model_selection.sweep import _score
 
     *_, trajs = loop
-    model = ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(2)], alpha=1e-3, measured=[0]).fit(
-        trajs[:2]).closed_loop_model_
+    model = (
+        ClEdmd(pid_position_controller(), lifting=[Polynomial(2), Delay(2)], alpha=1e-3, measured=[0])
+        .fit(trajs[:2])
+        .closed_loop_model_
+    )
     unstable = replace(model, A=model.A * 50.0)
     start = trajs[2].n_samples - 5
     scores = _score([model, unstable], [trajs[2]], "cl", relift=True, start=start)
@@ -234,8 +268,13 @@ def _random_models(n_models: int, n_lifted: int, n_inputs: int, n_p: int, seed: 
     return A, B
 
 
-@pytest.mark.parametrize("lifting", [[Polynomial(2), Delay(3), Constant()],   # the ring
-                                     [Delay(2), Polynomial(2)]])              # the history loop
+@pytest.mark.parametrize(
+    "lifting",
+    [
+        [Polynomial(2), Delay(3), Constant()],  # the ring
+        [Delay(2), Polynomial(2)],
+    ],
+)  # the history loop
 @pytest.mark.parametrize("n_p", [0, 9])  # 9 passthrough rows shared by every model: one product for all
 def test_batched_paired_and_shared_row_predictions_are_each_models_own(loop, lifting, n_p):
     from qube_koopman.identify.models.simulate import simulate_batch, simulate_chunks
@@ -246,21 +285,32 @@ def test_batched_paired_and_shared_row_predictions_are_each_models_own(loop, lif
     A, B = _random_models(6, n_lifted, n_in, n_p, seed=4, shared=True)
     rng = np.random.default_rng(5)
     # Two groups of three models, each group on its own two episodes (the folds of a calibration).
-    x_init = np.stack([np.stack([t.x[k:k + d + 1] for t in trajs[:2]]) for k in (0, 7)])
+    x_init = np.stack([np.stack([t.x[k : k + d + 1] for t in trajs[:2]]) for k in (0, 7)])
     v = rng.uniform(-1, 1, (2, 2, 120, n_in))
     p0 = rng.uniform(-1, 1, (2, 2, n_p)) if n_p else None
     chunks = []
-    simulate_chunks(A, B, fitted, n_p, x_init, v, p0, True,
-                    lambda k0, chunk, models: chunks.append((k0, chunk.copy(), models.copy())), paired=True)
+    simulate_chunks(
+        A,
+        B,
+        fitted,
+        n_p,
+        x_init,
+        v,
+        p0,
+        True,
+        lambda k0, chunk, models: chunks.append((k0, chunk.copy(), models.copy())),
+        paired=True,
+    )
     paired = np.concatenate([c for _, c, _ in chunks])  # (samples, models, episodes, n_p + states)
     assert all(m.tolist() == list(range(6)) for *_, m in chunks)
     for i in range(6):  # each model alone on its group's episodes: no shared rows, no pairing
         g = i // 3
-        x, p = simulate_batch(A[i:i + 1], B[i:i + 1], fitted, n_p, x_init[g], v[g], None if p0 is None else p0[g])
-        np.testing.assert_allclose(paired[:, i, :, n_p:], np.moveaxis(x[0, :, d + 1:], 1, 0), rtol=1e-10, atol=1e-12)
+        x, p = simulate_batch(A[i : i + 1], B[i : i + 1], fitted, n_p, x_init[g], v[g], None if p0 is None else p0[g])
+        np.testing.assert_allclose(paired[:, i, :, n_p:], np.moveaxis(x[0, :, d + 1 :], 1, 0), rtol=1e-10, atol=1e-12)
         if n_p:
-            np.testing.assert_allclose(paired[:, i, :, :n_p], np.moveaxis(p[0, :, d + 1:], 1, 0), rtol=1e-10,
-                                       atol=1e-12)
+            np.testing.assert_allclose(
+                paired[:, i, :, :n_p], np.moveaxis(p[0, :, d + 1 :], 1, 0), rtol=1e-10, atol=1e-12
+            )
     # The shared rows' one product gives what the per-model products give (all six on one group's episodes).
     x_all, _ = simulate_batch(A, B, fitted, n_p, x_init[0], v[0], None if p0 is None else p0[0])
     x_one, _ = simulate_batch(A[4:5], B[4:5], fitted, n_p, x_init[0], v[0], None if p0 is None else p0[0])
@@ -280,10 +330,13 @@ def test_the_ring_steps_shared_passthrough_rows_once_for_all_models():
         assert ring.perms[0].shape[-1] == (2 if shared else 11)
 
 
-@pytest.mark.parametrize("lifting", [
-    [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],
-    [Delay(4), ThinPlateRbf(5, seed=3), CoulombFriction(0, 3, 0.05), CoulombFriction(1, 1, 0.1), Constant()],
-])
+@pytest.mark.parametrize(
+    "lifting",
+    [
+        [Polynomial(2), Delay(3), CoulombFriction(0, 2, 0.05), Constant()],
+        [Delay(4), ThinPlateRbf(5, seed=3), CoulombFriction(0, 3, 0.05), CoulombFriction(1, 1, 0.1), Constant()],
+    ],
+)
 @pytest.mark.parametrize("shared", [False, True])
 def test_a_loop_of_many_states_shifts_its_delayed_features_and_predicts_as_relifting_does(loop, lifting, shared):
     # A controller of many states (a designed one) makes the ring keep one copy of A^T and shift the
@@ -298,12 +351,12 @@ def test_a_loop_of_many_states_shifts_its_delayed_features_and_predicts_as_relif
     assert n_p + m >= _SHIFT_FROM_ROWS
     A, B = _random_models(3, n_p + fitted.n_features_out_, 2, n_p, seed=6, shared=shared)
     A *= 0.5  # a thin-plate basis grows with the state: keep these random loops bounded
-    At = np.ascontiguousarray(A[:, :n_p + m, :].transpose(0, 2, 1))
+    At = np.ascontiguousarray(A[:, : n_p + m, :].transpose(0, 2, 1))
     ring = _RingLayout.of(fitted, n_p, m, At)
     assert ring is not None and ring.shift and len(ring.perms) == 1 and (ring.shared is not None) == shared
     assert not _RingLayout.of(fitted, 0, m, np.ascontiguousarray(At[:, n_p:, n_p:])).shift  # the rig's size: the ring
     rng = np.random.default_rng(7)
-    x_init = np.stack([t.x[:d + 1] for t in trajs[:2]])
+    x_init = np.stack([t.x[: d + 1] for t in trajs[:2]])
     v = rng.uniform(-0.2, 0.2, (2, 80, 2))
     p0 = rng.uniform(-0.2, 0.2, (2, n_p))
     x, _ = simulate_batch(A, B, fitted, n_p, x_init, v, p0)

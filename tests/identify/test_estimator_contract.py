@@ -51,28 +51,55 @@ CONTROLLER = pid_position_controller()
 def _unusual(cls) -> dict:
     """Legal but unusual constructor arguments (numpy scalars, lists for tuples, arrays): stored as
     given, they must come back as the same objects."""
-    closed = {"controller": CONTROLLER, "lifting": (Polynomial(np.int64(2)), Delay(np.int64(2))),
-              "alpha": np.float64(1e-3), "measured": np.array([0])}
+    closed = {
+        "controller": CONTROLLER,
+        "lifting": (Polynomial(np.int64(2)), Delay(np.int64(2))),
+        "alpha": np.float64(1e-3),
+        "measured": np.array([0]),
+    }
     return {
-        Edmd: {"lifting": Lifting([Delay(np.int64(2))]), "alpha": np.float32(0.25),
-               "input_lifting": Lifting([Polynomial(np.int64(1))])},
+        Edmd: {
+            "lifting": Lifting([Delay(np.int64(2))]),
+            "alpha": np.float32(0.25),
+            "input_lifting": Lifting([Polynomial(np.int64(1))]),
+        },
         ClEdmd: {**closed, "regularize": "plant", "known_controller_rows": np.bool_(False)},
         ClEdmdKnownRows: {**closed, "regularize": "closed_loop", "known_controller_rows": True},
         ClEdmdLstsq: {**closed, "lifting": [Delay(1)]},
-        ClEdmdSdp: {**closed, "lifting": [Delay(1)], "regularize": "plant", "solver": "clarabel",
-                    "solver_options": {"max_iter": 300}},
-        ClEdmdStable: {**closed, "max_radius": np.float64(0.999), "center": 0, "n_iter": np.int64(1),
-                       "solver": "CLARABEL", "method": "sqp"},
+        ClEdmdSdp: {
+            **closed,
+            "lifting": [Delay(1)],
+            "regularize": "plant",
+            "solver": "clarabel",
+            "solver_options": {"max_iter": 300},
+        },
+        ClEdmdStable: {
+            **closed,
+            "max_radius": np.float64(0.999),
+            "center": 0,
+            "n_iter": np.int64(1),
+            "solver": "CLARABEL",
+            "method": "sqp",
+        },
         Arx: {"output_lags": np.int64(2), "input_lags": 2, "inputs": ["u"], "alpha": np.float32(0.0)},
         ClArx: {"controller": CONTROLLER, "output_lags": np.int64(4), "input_lags": 4, "alpha": 0},
         Lifting: {"steps": [Polynomial(2), Delay(np.int64(1))]},
         Constant: {},
         Polynomial: {"order": np.int64(3)},
         Delay: {"n_delays": np.int64(3)},
-        ThinPlateRbf: {"n_centers": np.int64(4), "shape": 2, "offset": np.float32(0.01), "centers": None,
-                       "seed": np.int64(7)},
-        GaussianRbf: {"n_centers": 2, "shape": np.float64(0.5), "centers": [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]],
-                      "seed": None},
+        ThinPlateRbf: {
+            "n_centers": np.int64(4),
+            "shape": 2,
+            "offset": np.float32(0.01),
+            "centers": None,
+            "seed": np.int64(7),
+        },
+        GaussianRbf: {
+            "n_centers": 2,
+            "shape": np.float64(0.5),
+            "centers": [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]],
+            "seed": None,
+        },
         Trigonometric: {"features": [1]},
         CoulombFriction: {"feature": np.int64(0), "lag": np.int64(2), "width": 1},
     }[cls]
@@ -96,17 +123,22 @@ def same(a, b) -> bool:
     if isinstance(a, (list, tuple)):
         return type(a) is type(b) and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
     if dataclasses.is_dataclass(a) and not isinstance(a, type):
-        return type(a) is type(b) and all(same(getattr(a, f.name), getattr(b, f.name))
-                                          for f in dataclasses.fields(a))
+        return type(a) is type(b) and all(same(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
     return type(a) is type(b) and bool(a == b)
 
 
 def test_every_exported_estimator_and_lifting_is_covered():
     """The lists above are what the package defines: a new estimator or lifting is tested here."""
-    defined = {obj for module in all_modules(private=True) if module.__name__.startswith(identify.__name__)
-               for obj in vars(module).values()
-               if inspect.isclass(obj) and issubclass(obj, Params) and obj.__module__ == module.__name__
-               and obj.__name__ not in BASES}
+    defined = {
+        obj
+        for module in all_modules(private=True)
+        if module.__name__.startswith(identify.__name__)
+        for obj in vars(module).values()
+        if inspect.isclass(obj)
+        and issubclass(obj, Params)
+        and obj.__module__ == module.__name__
+        and obj.__name__ not in BASES
+    }
     assert defined == set(ESTIMATORS + LIFTINGS)
     assert {cls.__name__ for cls in defined} <= set(identify.__all__)
 
@@ -146,8 +178,12 @@ def test_deep_parameters_round_trip_through_set_params(cls):
     params = est.get_params(deep=True)
     nested = {key for key in params if "__" in key}
     # a parameter with parameters of its own (a Lifting) lists them as name__inner
-    expected = {f"{name}__{inner}" for name, value in est.get_params(deep=False).items()
-                if hasattr(value, "get_params") for inner in value.get_params(deep=True)}
+    expected = {
+        f"{name}__{inner}"
+        for name, value in est.get_params(deep=False).items()
+        if hasattr(value, "get_params")
+        for inner in value.get_params(deep=True)
+    }
     assert nested == expected
     target = cls(controller=CONTROLLER) if "controller" in params else cls()
     assert target.set_params(**params) is target
@@ -205,7 +241,7 @@ def _fit_arguments(cls, data):
     if cls is CoulombFriction:  # it reads the delayed arm angle: give it a Delay(2)'s output
         delayed = Lifting([Delay(2)]).fit(states, ["theta"])
         return [delayed.transform(x) for x in states], delayed.feature_names_out_
-    wide = [np.hstack([x, x ** 2, np.sin(x)]) for x in states]  # three features: the RBF centres' width
+    wide = [np.hstack([x, x**2, np.sin(x)]) for x in states]  # three features: the RBF centres' width
     return wide, ["a", "b", "c"]
 
 
@@ -231,15 +267,18 @@ def test_fit_returns_self_and_learns_only_attributes_ending_in_underscore(cls, d
     assert not [name for name in vars(clone(est)) if name.endswith("_")]
 
 
-@pytest.mark.parametrize("make, fit_error", [
-    (lambda: Polynomial(0), "polynomial order must be an integer >= 1, got 0"),
-    (lambda: Delay(1.5), "number of delays must be an integer >= 0, got 1.5"),
-    (lambda: ThinPlateRbf(shape=-1), "RBF shape must be positive, got -1"),
-    (lambda: ThinPlateRbf(offset=0), "thin-plate offset must be positive, got 0"),
-    (lambda: GaussianRbf(n_centers=0), "number of RBF centres must be an integer >= 1, got 0"),
-    (lambda: Trigonometric([0, 0]), r"distinct non-negative feature indices, got \(0, 0\)"),
-    (lambda: CoulombFriction(lag=0), "friction lag must be a positive number of samples, got 0"),
-])
+@pytest.mark.parametrize(
+    "make, fit_error",
+    [
+        (lambda: Polynomial(0), "polynomial order must be an integer >= 1, got 0"),
+        (lambda: Delay(1.5), "number of delays must be an integer >= 0, got 1.5"),
+        (lambda: ThinPlateRbf(shape=-1), "RBF shape must be positive, got -1"),
+        (lambda: ThinPlateRbf(offset=0), "thin-plate offset must be positive, got 0"),
+        (lambda: GaussianRbf(n_centers=0), "number of RBF centres must be an integer >= 1, got 0"),
+        (lambda: Trigonometric([0, 0]), r"distinct non-negative feature indices, got \(0, 0\)"),
+        (lambda: CoulombFriction(lag=0), "friction lag must be a positive number of samples, got 0"),
+    ],
+)
 def test_an_estimator_with_a_bad_lifting_fails_at_fit_with_the_same_message(make, fit_error, data):
     step = make()  # constructed: nothing is checked yet
     for est in (Edmd(lifting=[step]), ClEdmd(CONTROLLER, lifting=[Delay(10), step])):
@@ -259,8 +298,11 @@ def _snapshot_estimator(cls):
     return cls(CONTROLLER, lifting=lifting, alpha=1e-3)
 
 
-@pytest.mark.parametrize("cls", [cls for cls in ESTIMATORS if issubclass(cls, identify.SnapshotEstimator)
-                                 and cls is not ClEdmdSdp], ids=lambda cls: cls.__name__)
+@pytest.mark.parametrize(
+    "cls",
+    [cls for cls in ESTIMATORS if issubclass(cls, identify.SnapshotEstimator) and cls is not ClEdmdSdp],
+    ids=lambda cls: cls.__name__,
+)
 def test_the_statistics_protocol_fits_as_fit_does_and_adds_an_episode_to_refit(cls, data):
     """setup_fit, episode_snapshots folded into statistics_fold, finish_fit: ``fit`` itself; an episode
     added to the running total after a first fit refits as a fit on every episode (live identification)."""

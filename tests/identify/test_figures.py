@@ -53,9 +53,30 @@ def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, c
 
     test_logs = find_logs(small_set / "test")
     chosen = ["2", test_logs[3].name]  # a position and a file name
-    code = qube_identify([str(a) for a in ("--train", small_set / "train", "--test", small_set / "test", "--out",
-                                           tmp_path, "--alpha-sweep", "1e-3", "1e3", "4", "--cv-splits", "2",
-                                           "--offsets", "alpha", "--figures", "--figure-episodes", *chosen)])
+    code = qube_identify(
+        [
+            str(a)
+            for a in (
+                "--train",
+                small_set / "train",
+                "--test",
+                small_set / "test",
+                "--out",
+                tmp_path,
+                "--alpha-sweep",
+                "1e-3",
+                "1e3",
+                "4",
+                "--cv-splits",
+                "2",
+                "--offsets",
+                "alpha",
+                "--figures",
+                "--figure-episodes",
+                *chosen,
+            )
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     report = json.loads((tmp_path / "report.json").read_text())
     model = load_model(tmp_path / "model.json")
@@ -109,10 +130,13 @@ def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, c
     assert set(re.findall(r"\]\((figures/[^)]+)\)", md)) == {e[k] for e in report["figures"] for k in ("png", "pdf")}
 
 
-@pytest.mark.parametrize("command, argv", [
-    (qube_identify, ["--train", "a.mcap", "--test", "b.mcap", "--figures"]),
-    (qube_reproduce, ["qube", "--data", "{tmp}", "--figures"]),
-])
+@pytest.mark.parametrize(
+    "command, argv",
+    [
+        (qube_identify, ["--train", "a.mcap", "--test", "b.mcap", "--figures"]),
+        (qube_reproduce, ["qube", "--data", "{tmp}", "--figures"]),
+    ],
+)
 def test_figures_without_matplotlib_is_one_line(command, argv, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
     code = command([a.replace("{tmp}", str(tmp_path)) for a in argv] + ["--out", str(tmp_path / "out")])
@@ -125,11 +149,32 @@ def test_figures_without_matplotlib_is_one_line(command, argv, tmp_path, monkeyp
 
 @pytest.mark.dataset
 def test_figure_episode_options_need_figures_and_a_test_episode(small_set, tmp_path, capsys):  # noqa: F811
-    code = qube_identify(["--train", str(small_set / "train"), "--test", str(small_set / "test"),
-                          "--figure-episodes", "1", "--out", str(tmp_path)])
+    code = qube_identify(
+        [
+            "--train",
+            str(small_set / "train"),
+            "--test",
+            str(small_set / "test"),
+            "--figure-episodes",
+            "1",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert code == 2 and "--figure-episodes chooses what --figures draws: add --figures" in capsys.readouterr().err
-    code = qube_identify(["--train", str(small_set / "train"), "--test", str(small_set / "test"), "--figures",
-                          "--figure-episodes", "9", "--out", str(tmp_path / "o")])
+    code = qube_identify(
+        [
+            "--train",
+            str(small_set / "train"),
+            "--test",
+            str(small_set / "test"),
+            "--figures",
+            "--figure-episodes",
+            "9",
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "--figure-episodes 9: not a test episode (a position 1 to 4" in err
     assert not (tmp_path / "o").exists()
@@ -141,25 +186,51 @@ def _synthetic_results() -> dict:
 
     rng = np.random.default_rng(0)
     alphas = np.logspace(-3, 3, 5).tolist()
-    sweep = {"alpha": alphas, **{m: {"cv_r2_cl": [0.9, 0.8, -np.inf, 0.5, 0.1],
-                                     "cv_r2_plant": [-np.inf, -np.inf, -np.inf, 0.2, 0.3],
-                                     "spectral_radius_closed_loop": [1.0, 1.0, 1.2, 1.5, 2.0],
-                                     "spectral_radius_plant": [1.03, 1.02, 1.0, 0.99, 0.98]}
-                                 for m in ("edmd", "cl-edmd")}}
+    sweep = {
+        "alpha": alphas,
+        **{
+            m: {
+                "cv_r2_cl": [0.9, 0.8, -np.inf, 0.5, 0.1],
+                "cv_r2_plant": [-np.inf, -np.inf, -np.inf, 0.2, 0.3],
+                "spectral_radius_closed_loop": [1.0, 1.0, 1.2, 1.5, 2.0],
+                "spectral_radius_plant": [1.03, 1.02, 1.0, 0.99, 0.98],
+            }
+            for m in ("edmd", "cl-edmd")
+        },
+    }
     koopman = [row for row in ROWS if row.method != "arx"]
-    eig = {row.key: {kind: {"real": rng.normal(size=3).tolist(), "imag": [0.0, 0.3, -0.3]}
-                     for kind in ("closed_loop", "plant")} for row in koopman}
+    eig = {
+        row.key: {
+            kind: {"real": rng.normal(size=3).tolist(), "imag": [0.0, 0.3, -0.3]} for kind in ("closed_loop", "plant")
+        }
+        for row in koopman
+    }
     measured = rng.normal(size=(50, 2))
     predicted = {row.key: measured + 0.01 * rng.normal(size=(50, 2)) for row in ROWS}
     predicted["edmd_plant_plant"][10:] = np.inf  # a diverged prediction
     plant = {row.key: measured + 0.02 * rng.normal(size=(50, 2)) for row in koopman}
     plant["cl_edmd_cl_cl"] *= np.exp(np.arange(50))[:, None]  # an unstable plant: finite, far out of range
-    rows = {row.key: {"alpha": 1e-3, "r2_per_episode": [0.5, -np.inf if row.key == "edmd_plant_plant" else 0.9]}
-            for row in ROWS}
-    return {"sweep": sweep, "eigenvalues": eig, "rows": rows, "labels": {row.key: row.label for row in ROWS},
-            "figure_episode": {"name": "ep.mcap", "index": 1, "dt": 0.002, "measured": measured,
-                               "r": rng.normal(size=(50, 2)), "f": rng.normal(size=(50, 1)),
-                               "u": rng.normal(size=(50, 1)), "predicted": predicted, "plant_predicted": plant}}
+    rows = {
+        row.key: {"alpha": 1e-3, "r2_per_episode": [0.5, -np.inf if row.key == "edmd_plant_plant" else 0.9]}
+        for row in ROWS
+    }
+    return {
+        "sweep": sweep,
+        "eigenvalues": eig,
+        "rows": rows,
+        "labels": {row.key: row.label for row in ROWS},
+        "figure_episode": {
+            "name": "ep.mcap",
+            "index": 1,
+            "dt": 0.002,
+            "measured": measured,
+            "r": rng.normal(size=(50, 2)),
+            "f": rng.normal(size=(50, 1)),
+            "u": rng.normal(size=(50, 1)),
+            "predicted": predicted,
+            "plant_predicted": plant,
+        },
+    }
 
 
 def test_paper_figures_plot_the_results_arrays():
@@ -167,16 +238,30 @@ def test_paper_figures_plot_the_results_arrays():
 
     results = _synthetic_results()
     specs = {spec.stem: spec for spec in qube_figures(results)}
-    assert set(specs) == {"spectral_radius_cl", "spectral_radius_plant", "cross_validation_cl",
-                          "cross_validation_plant", "eigenvalues_cl", "eigenvalues_plant", "inputs", "predictions_cl",
-                          "predictions_plant"}
+    assert set(specs) == {
+        "spectral_radius_cl",
+        "spectral_radius_plant",
+        "cross_validation_cl",
+        "cross_validation_plant",
+        "eigenvalues_cl",
+        "eigenvalues_plant",
+        "inputs",
+        "predictions_cl",
+        "predictions_plant",
+    }
     sweep = results["sweep"]
-    for stem, key in (("spectral_radius_cl", "spectral_radius_closed_loop"), ("cross_validation_plant", "cv_r2_plant"),
-                      ("spectral_radius_plant", "spectral_radius_plant"), ("cross_validation_cl", "cv_r2_cl")):
+    for stem, key in (
+        ("spectral_radius_cl", "spectral_radius_closed_loop"),
+        ("cross_validation_plant", "cv_r2_plant"),
+        ("spectral_radius_plant", "spectral_radius_plant"),
+        ("cross_validation_cl", "cv_r2_cl"),
+    ):
         got = lines(figures_module.draw(specs[stem].data))
         for method, label in METHODS:
             values = np.array(sweep[method][key], dtype=float)
-            assert nan_equal(got[label], np.column_stack([sweep["alpha"], np.where(np.isfinite(values), values, np.nan)]))
+            assert nan_equal(
+                got[label], np.column_stack([sweep["alpha"], np.where(np.isfinite(values), values, np.nan)])
+            )
     for stem, kind in (("eigenvalues_cl", "closed_loop"), ("eigenvalues_plant", "plant")):
         got = lines(figures_module.draw(specs[stem].data))
         assert len(got) == 5  # four rows and the unit circle
@@ -189,8 +274,10 @@ def test_paper_figures_plot_the_results_arrays():
     got = lines(figures_module.draw(specs["inputs"].data))
     assert np.array_equal(got["r theta"], np.column_stack([t, episode["r"][:, 0]]))
     assert np.array_equal(got["f"], np.column_stack([t, episode["f"][:, 0]]))
-    for stem, which, diverged in (("predictions_cl", "predicted", "edmd_plant_plant"),
-                                  ("predictions_plant", "plant_predicted", "cl_edmd_cl_cl")):
+    for stem, which, diverged in (
+        ("predictions_cl", "predicted", "edmd_plant_plant"),
+        ("predictions_plant", "plant_predicted", "cl_edmd_cl_cl"),
+    ):
         fig = figures_module.draw(specs[stem].data)
         for ax, j in zip(fig.axes, range(2)):
             plotted = {line.get_gid(): line.get_xydata() for line in ax.get_lines()}
@@ -219,15 +306,22 @@ def test_trajectory_figures_choose_episodes_and_keep_diverged_predictions_off_th
     truth = np.column_stack([np.sin(t), 0.1 * np.cos(t)])
     diverged = truth.copy()
     diverged[50:, 1] = np.exp(np.arange(50.0)) * 1e200  # alpha: finite, then inf
-    result = SimpleNamespace(test_names=names[:2], test_time=[t, t], test_truth=[truth, truth],
-                             test_predictions=[truth + 0.01, diverged], closed_loop=None, plant=None,
-                             report={"scored_logs": names[:2], "test": {"r2_per_episode": [0.99, -np.inf]},
-                                     "scored_from_sample": 1})
+    result = SimpleNamespace(
+        test_names=names[:2],
+        test_time=[t, t],
+        test_truth=[truth, truth],
+        test_predictions=[truth + 0.01, diverged],
+        closed_loop=None,
+        plant=None,
+        report={"scored_logs": names[:2], "test": {"r2_per_episode": [0.99, -np.inf]}, "scored_from_sample": 1},
+    )
     specs = figures_module.identification_figures(result, ["1", "2"])
     assert [s.stem for s in specs] == ["trajectory_a", "trajectory_b"]  # no models: no eigenvalue figure
     good, bad = (figures_module.draw(s.data) for s in specs)
     assert good.axes[0].get_title() == "a, R^2 0.9900" and bad.axes[0].get_title() == "b, R^2 -inf"
-    assert np.array_equal(lines(bad)["alpha predicted"][:, 1], np.where(np.isfinite(diverged[:, 1]), diverged[:, 1], np.nan))
+    assert np.array_equal(
+        lines(bad)["alpha predicted"][:, 1], np.where(np.isfinite(diverged[:, 1]), diverged[:, 1], np.nan)
+    )
     lo, hi = bad.axes[1].get_ylim()  # the measured range with a margin: the diverged prediction leaves the plot
     assert lo < truth[:, 1].min() and hi > truth[:, 1].max() and hi - lo < 1
     assert specs[1].data.ylims[0] is None  # theta stayed in range: autoscaled
@@ -240,8 +334,9 @@ def test_a_long_title_fits_the_figure():
 
     t = np.linspace(0.0, 1.0, 50)
     title = "qube_20261201T235548.995_837_262_110 under soft-theta (offset estimated), a little longer still"
-    plot = SeriesPlot(title, t, "time (s)", ("theta (rad)", "alpha (rad)"),
-                      (Curve("theta", t, panel=0), Curve("alpha", -t, panel=1)))
+    plot = SeriesPlot(
+        title, t, "time (s)", ("theta (rad)", "alpha (rad)"), (Curve("theta", t, panel=0), Curve("alpha", -t, panel=1))
+    )
     fig = draw(plot)
     fig.canvas.draw()
     box = fig.axes[0].title.get_window_extent(fig.canvas.get_renderer())

@@ -24,8 +24,9 @@ def test_splits_match_the_values_scikit_learn_gave(config):
 
 @pytest.mark.parametrize("config", [(28, 3, 0.2, 1234), (10, 2, 0.3, 7), (48, 5, 0.25, 0), (7, 4, 0.5, 99)])
 def test_splits_equal_scikit_learn_when_it_is_installed(config):
-    model_selection = pytest.importorskip("sklearn.model_selection",
-                                          reason="scikit-learn is optional; the golden values cover CI")
+    model_selection = pytest.importorskip(
+        "sklearn.model_selection", reason="scikit-learn is optional; the golden values cover CI"
+    )
     n, k, test_size, seed = config
     groups = np.arange(n)
     expected = model_selection.GroupShuffleSplit(k, test_size=test_size, random_state=seed).split(groups, groups=groups)
@@ -84,8 +85,10 @@ def test_a_fold_of_several_loops_becomes_a_fold_per_loop_with_the_same_training_
     one = cross_validation_folds([soft] * 10, n_splits=2, seed=3, loops=[soft, late] * 5)
     drawn = cross_validation_folds([soft] * 10, n_splits=2, seed=3)
     assert one.kind == "episode-grouped" and len(one.splits) >= len(drawn.splits)
-    assert [sorted(np.concatenate([v for t, v in one.splits if t.tolist() == t0.tolist()]).tolist())
-            for t0, _ in drawn.splits] == [sorted(v.tolist()) for _, v in drawn.splits]
+    assert [
+        sorted(np.concatenate([v for t, v in one.splits if t.tolist() == t0.tolist()]).tolist())
+        for t0, _ in drawn.splits
+    ] == [sorted(v.tolist()) for _, v in drawn.splits]
     assert all(len({j % 2 for j in v}) == 1 for _, v in one.splits)  # each fold of one loop
     parts = split_by_loop([(np.array([0]), np.array([3, 1, 2]))], [0, 1, 0, 1])
     assert [(t.tolist(), v.tolist()) for t, v in parts] == [([0], [2]), ([0], [3, 1])]

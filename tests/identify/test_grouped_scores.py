@@ -13,13 +13,23 @@ from qube_koopman.identify.estimators.structure import close_loop
 from qube_koopman.identify.model_selection.sweep import episode_scores, grouped_episode_scores
 
 DT = 0.002
-GAINS = [PdGains(-2.0, -0.1, 30.0, 2.5, 0.01), PdGains(-4.0, -0.2, 35.0, 3.0, 0.01), PdGains(-1.5, -0.1, 25.0, 2.0, 0.02)]
+GAINS = [
+    PdGains(-2.0, -0.1, 30.0, 2.5, 0.01),
+    PdGains(-4.0, -0.2, 35.0, 3.0, 0.01),
+    PdGains(-1.5, -0.1, 25.0, 2.0, 0.02),
+]
 
 
 def _episode(rng, n: int, n_c: int) -> Trajectory:
     x = np.cumsum(rng.standard_normal((n, 2)), axis=0) * 1e-3
-    return Trajectory(x=x, r=rng.standard_normal((n, 2)) * 1e-3, f=rng.standard_normal((n, 1)) * 1e-2,
-                      xc=rng.standard_normal((n, n_c)) * 1e-3, dt=DT, name=f"{n}")
+    return Trajectory(
+        x=x,
+        r=rng.standard_normal((n, 2)) * 1e-3,
+        f=rng.standard_normal((n, 1)) * 1e-2,
+        xc=rng.standard_normal((n, n_c)) * 1e-3,
+        dt=DT,
+        name=f"{n}",
+    )
 
 
 @pytest.fixture(scope="module")

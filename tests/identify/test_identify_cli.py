@@ -37,8 +37,17 @@ def run(capsys, *argv):
 def test_cl_edmd_on_a_few_real_episodes(small_set, tmp_path, capsys):
     """Band derived from the paper's data: the full 28/20 split gives 0.897 +- 0.018; with 8
     training episodes the same model scores slightly lower but above 0.85 on these 4."""
-    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test",
-                         "--out", tmp_path, "--rerun-save", tmp_path / "run.rrd")
+    code, out, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path,
+        "--rerun-save",
+        tmp_path / "run.rrd",
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["method"] == "cl-edmd" and report["alpha"] == 1e-3
@@ -53,8 +62,23 @@ def test_cl_edmd_on_a_few_real_episodes(small_set, tmp_path, capsys):
 
 
 def test_model_file_predicts_like_the_fitted_model(small_set, tmp_path, capsys):
-    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                       "--delays", "3", "--rbf", "gaussian", "--rbf-centers", "5", "--rbf-shape", "2")
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path,
+        "--delays",
+        "3",
+        "--rbf",
+        "gaussian",
+        "--rbf-centers",
+        "5",
+        "--rbf-shape",
+        "2",
+    )
     assert code == 0, err
     loaded = load_model(tmp_path / "model.json")
     from qube_koopman.identify.data.logs import load_logs
@@ -79,8 +103,20 @@ def test_a_loaded_model_file_is_written_back_byte_for_byte(small_set, tmp_path, 
 
     from qube_koopman.identify.models.disturbance import DisturbanceModel
 
-    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                       "--delays", "5", "--const", "--interval-members", "3")
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path,
+        "--delays",
+        "5",
+        "--const",
+        "--interval-members",
+        "3",
+    )
     assert code == 0, err
     written = (tmp_path / "model.json").read_bytes()
     loaded = load_model(tmp_path / "model.json")
@@ -88,8 +124,9 @@ def test_a_loaded_model_file_is_written_back_byte_for_byte(small_set, tmp_path, 
     assert loaded.uncertainty.held_out.measured.shape == (8, 3) and len(loaded.uncertainty.held_out.logs) == 8
     loaded.save(tmp_path / "again.json")
     assert (tmp_path / "again.json").read_bytes() == written
-    disturbance = DisturbanceModel("theta", 0.99, 1e-7, np.array([[1e-6, 2e-8], [2e-8, 3e-6]]), np.array([0.1, -0.02]),
-                                   -3.5, 1200)
+    disturbance = DisturbanceModel(
+        "theta", 0.99, 1e-7, np.array([[1e-6, 2e-8], [2e-8, 3e-6]]), np.array([0.1, -0.02]), -3.5, 1200
+    )
     replace(loaded, disturbance=disturbance).save(tmp_path / "with.json")
     again = load_model(tmp_path / "with.json")
     assert again.disturbance.as_dict() == disturbance.as_dict()
@@ -99,22 +136,48 @@ def test_a_loaded_model_file_is_written_back_byte_for_byte(small_set, tmp_path, 
 
 def test_sweep_edmd_plant_scoring_and_arx(small_set, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # the progress bar draws on a terminal only
-    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                       "--method", "edmd", "--alpha-sweep", "1e-3", "1e3", "4", "--cv-splits", "2")
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path,
+        "--method",
+        "edmd",
+        "--alpha-sweep",
+        "1e-3",
+        "1e3",
+        "4",
+        "--cv-splits",
+        "2",
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     assert len(report["sweep"]["alpha"]) == 4 and len(report["sweep"]["cv_r2_mean"]) == 4
     assert report["alpha"] in report["sweep"]["alpha"]
     assert "cross-validation" in err
-    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                       "--method", "cl-arx", "--force")  # replaces the first fit's model and reports
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path,
+        "--method",
+        "cl-arx",
+        "--force",
+    )  # replaces the first fit's model and reports
     assert code == 0, err
     assert 0.7 < json.loads((tmp_path / "report.json").read_text())["test"]["r2_mean"] < 0.95
 
 
 def test_plant_scoring_of_an_unstable_plant_diverges(small_set, tmp_path, capsys):
-    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                         "--score", "plant")
+    code, out, err = run(
+        capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path, "--score", "plant"
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["test"]["r2_mean"] == "-inf"  # strict JSON: non-finite numbers as strings
@@ -146,16 +209,31 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     odd = tmp_path / "odd"
     odd.mkdir()
     write_episode(odd / "odd.mcap", replace(ep, metadata=replace(ep.metadata, controller=odd_controller)))
-    code, out, err = run(capsys, "--train", small_set / "train", odd / "odd.mcap", "--test", small_set / "test",
-                         "--out", tmp_path / "o")
+    code, out, err = run(
+        capsys, "--train", small_set / "train", odd / "odd.mcap", "--test", small_set / "test", "--out", tmp_path / "o"
+    )
     assert code == 0, err
     controllers = json.loads((tmp_path / "o" / "report.json").read_text())["training_controllers"]
     n_train = len(find_logs(small_set / "train"))
-    assert [(c["n_episodes"], c["model_closed_loop"]) for c in controllers["controllers"]] == [(n_train, True), (1, False)]
+    assert [(c["n_episodes"], c["model_closed_loop"]) for c in controllers["controllers"]] == [
+        (n_train, True),
+        (1, False),
+    ]
     assert controllers["controllers"][1]["logs"] == ["odd.mcap"]
     assert "training episodes under 2 controllers" in out
-    code, _, err = run(capsys, "--train", small_set / "train", odd / "odd.mcap", "--test", small_set / "test",
-                       "--out", tmp_path / "o", "--method", "cl-edmd-lstsq", "--force")
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        odd / "odd.mcap",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path / "o",
+        "--method",
+        "cl-edmd-lstsq",
+        "--force",
+    )
     assert code == 2 and "--method cl-edmd-lstsq identifies one closed loop" in err and "these ran 2" in err
 
     # an incomplete log is skipped with a warning, refused with --strict
@@ -163,25 +241,47 @@ def test_refusals_name_the_file(small_set, qube_logs, tmp_path, capsys):
     cut.mkdir()
     data = source.read_bytes()
     (cut / "cut.mcap").write_bytes(data[: len(data) // 2])
-    code, _, err = run(capsys, "--train", small_set / "train", cut / "cut.mcap", "--test", small_set / "test",
-                       "--out", tmp_path / "o", "--force")
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        cut / "cut.mcap",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path / "o",
+        "--force",
+    )
     assert code == 0 and "cut.mcap: incomplete episode" in err and "skipped" in err
-    code, _, err = run(capsys, "--train", small_set / "train", cut / "cut.mcap", "--test", small_set / "test",
-                       "--out", tmp_path / "o", "--strict", "--force")
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        cut / "cut.mcap",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path / "o",
+        "--strict",
+        "--force",
+    )
     assert code == 2 and "refused because of --strict" in err
 
 
-@pytest.mark.parametrize("argv,message", [
-    ([], "no data"),
-    (["--train", "nowhere.mcap", "--test", "x"], "nowhere.mcap: no such file or folder"),
-    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "0.1", "5"], "0 < MIN < MAX and N >= 2, got 1 0.1 5"),
-    (["--train", ".", "--test", ".", "--alpha-sweep", "1", "x", "5"], "for example 1e-3 1e3 30, got 1 x 5"),
-    (["--train", ".", "--test", ".", "--method", "arx"], "models the plant only"),
-    (["--train", ".", "--test", ".", "--offset-bound", "-1"], "--offset-bound must be positive, got -1.0"),
-    (["--train", ".", "--test", ".", "--estimate-window", "nan"], "--estimate-window must be positive, got nan"),
-    (["--train", ".", "--test", ".", "--interval", "1"], "--interval must be a level between 0 and 1 (0: no "),
-    (["--train", ".", "--test", ".", "--method", "cl-arx", "--interval", "0.9"], "--method cl-arx has none"),
-])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        ([], "no data"),
+        (["--train", "nowhere.mcap", "--test", "x"], "nowhere.mcap: no such file or folder"),
+        (["--train", ".", "--test", ".", "--alpha-sweep", "1", "0.1", "5"], "0 < MIN < MAX and N >= 2, got 1 0.1 5"),
+        (["--train", ".", "--test", ".", "--alpha-sweep", "1", "x", "5"], "for example 1e-3 1e3 30, got 1 x 5"),
+        (["--train", ".", "--test", ".", "--method", "arx"], "models the plant only"),
+        (["--train", ".", "--test", ".", "--offset-bound", "-1"], "--offset-bound must be positive, got -1.0"),
+        (["--train", ".", "--test", ".", "--estimate-window", "nan"], "--estimate-window must be positive, got nan"),
+        (["--train", ".", "--test", ".", "--interval", "1"], "--interval must be a level between 0 and 1 (0: no "),
+        (["--train", ".", "--test", ".", "--method", "cl-arx", "--interval", "0.9"], "--method cl-arx has none"),
+    ],
+)
 def test_user_mistakes_are_one_line_errors(tmp_path, capsys, argv, message, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code, out, err = run(capsys, *argv)
@@ -232,8 +332,16 @@ def test_a_log_in_both_training_and_test_is_refused_naming_it(how, tmp_path, cap
         test = [str(tmp_path / "b_again.mcap")]
     else:
         test = [str(shared)] if how == "same path" else [str(shared), str(train / "a.mcap")]
-    argv = ["--train", str(train) if how != "same path" else str(shared), str(train / "a.mcap"), "--test", *test,
-            "--out", str(tmp_path / "o"), "-q"]
+    argv = [
+        "--train",
+        str(train) if how != "same path" else str(shared),
+        str(train / "a.mcap"),
+        "--test",
+        *test,
+        "--out",
+        str(tmp_path / "o"),
+        "-q",
+    ]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"qube-identify: error: {test[0]}") and err.count("\n") == 1, err
@@ -254,8 +362,21 @@ def test_protocol_window_scores_from_the_end_of_the_estimation_window(small_set,
     # the same way (the default with --search or --offsets); the paper's protocol from sample 1.
     reports = {}
     for protocol in ("paper", "window"):
-        code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--method", method,
-                           "--protocol", protocol, "--estimate-window", "0.5", "--out", tmp_path / protocol)
+        code, _, err = run(
+            capsys,
+            "--train",
+            small_set / "train",
+            "--test",
+            small_set / "test",
+            "--method",
+            method,
+            "--protocol",
+            protocol,
+            "--estimate-window",
+            "0.5",
+            "--out",
+            tmp_path / protocol,
+        )
         assert code == 0, err
         reports[protocol] = json.loads((tmp_path / protocol / "report.json").read_text())
     assert reports["paper"]["scored_from_sample"] == 1 and "the paper's" in reports["paper"]["protocol"]
@@ -264,8 +385,19 @@ def test_protocol_window_scores_from_the_end_of_the_estimation_window(small_set,
 
 
 def test_every_scored_sample_gets_an_interval_written_whole_per_test_log(small_set, tmp_path, capsys):
-    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--offsets", "alpha",
-                         "--interval-members", "4", "--out", tmp_path)
+    code, out, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--offsets",
+        "alpha",
+        "--interval-members",
+        "4",
+        "--out",
+        tmp_path,
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     intervals, test_logs = report["intervals"], report["test_logs"]
@@ -285,8 +417,17 @@ def test_every_scored_sample_gets_an_interval_written_whole_per_test_log(small_s
         inside = (data["lower"] <= data["measured"]) & (data["measured"] <= data["upper"])
         assert inside.mean(axis=0).tolist() == pytest.approx([entry["coverage"]["theta"], entry["coverage"]["alpha"]])
     # --interval 0: none computed, none written
-    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--interval", "0",
-                         "--out", tmp_path / "plain")
+    code, out, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--interval",
+        "0",
+        "--out",
+        tmp_path / "plain",
+    )
     assert code == 0 and "intervals" not in json.loads((tmp_path / "plain" / "report.json").read_text())
     assert not (tmp_path / "plain" / "predictions").exists()
 
@@ -294,8 +435,21 @@ def test_every_scored_sample_gets_an_interval_written_whole_per_test_log(small_s
 def test_horizons_score_k_step_predictions_and_the_model_file_carries_the_filter(small_set, tmp_path, capsys):
     """--horizon: a disturbance model fitted on the training episodes, stored in model.json, and every test
     episode predicted ahead from its measurements; the scores are those of the saved ahead_<h> arrays."""
-    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                         "--delays", "5", "--interval", "0", "--horizon", "0.1,0.5")
+    code, out, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path,
+        "--delays",
+        "5",
+        "--interval",
+        "0",
+        "--horizon",
+        "0.1,0.5",
+    )
     assert code == 0, err
     assert "K-step (theta / alpha, disturbance" in out and "0.1 s ahead R^2" in out
     report = json.loads((tmp_path / "report.json").read_text())
@@ -324,8 +478,19 @@ def test_the_disturbance_filter_s_intervals_band_the_free_run_and_the_k_step_pre
     """With --horizon the default --interval-method is the disturbance filter's: no bootstrap refits, report.json
     says which method made the bands and why, and the K-step predictions get bands whose saved bounds give the
     reported coverage; --interval-method bootstrap is obeyed."""
-    code, out, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path,
-                         "--delays", "5", "--horizon", "0.1")
+    code, out, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path,
+        "--delays",
+        "5",
+        "--horizon",
+        "0.1",
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     intervals = report["intervals"]
@@ -348,8 +513,23 @@ def test_the_disturbance_filter_s_intervals_band_the_free_run_and_the_k_step_pre
     inside = (lower[ok] <= saved["measured"][ok]) & (saved["measured"][ok] <= upper[ok])
     np.testing.assert_allclose(inside.mean(axis=0), first["coverage"])
     # Asked for, the bootstrap band is made with --horizon too, and says so.
-    code, _, err = run(capsys, "--train", small_set / "train", "--test", small_set / "test", "--out", tmp_path / "b",
-                       "--delays", "5", "--interval-members", "2", "--horizon", "0.1", "--interval-method", "bootstrap")
+    code, _, err = run(
+        capsys,
+        "--train",
+        small_set / "train",
+        "--test",
+        small_set / "test",
+        "--out",
+        tmp_path / "b",
+        "--delays",
+        "5",
+        "--interval-members",
+        "2",
+        "--horizon",
+        "0.1",
+        "--interval-method",
+        "bootstrap",
+    )
     assert code == 0, err
     bootstrap = json.loads((tmp_path / "b" / "report.json").read_text())
     assert bootstrap["intervals"]["interval_method"] == "bootstrap" and bootstrap["intervals"]["n_members"] == 2

@@ -42,8 +42,11 @@ def _episodes(n: int) -> list[Trajectory]:
     out = []
     for _ in range(n):
         x = np.cumsum(rng.standard_normal((N_SAMPLES, 2)), axis=0) * 1e-2
-        out.append(Trajectory(x=x, r=rng.standard_normal((N_SAMPLES, 2)) * 1e-2,
-                              xc=rng.standard_normal((N_SAMPLES, 2)), dt=0.002))
+        out.append(
+            Trajectory(
+                x=x, r=rng.standard_normal((N_SAMPLES, 2)) * 1e-2, xc=rng.standard_normal((N_SAMPLES, 2)), dt=0.002
+            )
+        )
     return out
 
 
@@ -77,7 +80,9 @@ def test_the_peak_memory_of_a_fit_does_not_grow_with_the_episodes(fit):
 def test_folding_statistics_in_batches_equals_one_factor_of_everything():
     rng = np.random.default_rng(1)
     parts = [Snapshots.from_snapshots(rng.standard_normal((50, 3)), rng.standard_normal((50, 5))) for _ in range(37)]
-    everything = Snapshots.from_snapshots(np.vstack([p.R[:, 5:] for p in parts]), np.vstack([p.R[:, :5] for p in parts]))
+    everything = Snapshots.from_snapshots(
+        np.vstack([p.R[:, 5:] for p in parts]), np.vstack([p.R[:, :5] for p in parts])
+    )
     folded = Snapshots.total(iter(parts), batch=4)
     assert folded.q == sum(p.q for p in parts)
     np.testing.assert_allclose(folded.H, everything.H, rtol=1e-12)
@@ -87,6 +92,7 @@ def test_folding_statistics_in_batches_equals_one_factor_of_everything():
 
 
 # --- logs on disk, streamed: the fit, the sweeps' folds and the test scores (issue 29 section 1) ---------------
+
 
 class _Generated(EpisodeSequence):
     """Episodes made when asked for (as stored logs are read), the same each time: none is kept."""
@@ -101,9 +107,14 @@ class _Generated(EpisodeSequence):
         rng = np.random.default_rng(1000 + i)
         n_c = 2 if self.controllers is None else self.controllers[i].n_states
         x = np.cumsum(rng.standard_normal((self.n_samples, 2)), axis=0) * 1e-2
-        return Trajectory(x=x, r=rng.standard_normal((self.n_samples, 2)) * 1e-2,
-                          xc=rng.standard_normal((self.n_samples, n_c)), dt=0.002, name=f"e{i}",
-                          state_names=("theta", "alpha"))
+        return Trajectory(
+            x=x,
+            r=rng.standard_normal((self.n_samples, 2)) * 1e-2,
+            xc=rng.standard_normal((self.n_samples, n_c)),
+            dt=0.002,
+            name=f"e{i}",
+            state_names=("theta", "alpha"),
+        )
 
 
 def _direct_total(estimator, setup, episodes, indices) -> Snapshots:
@@ -115,7 +126,9 @@ def _direct_total(estimator, setup, episodes, indices) -> Snapshots:
 def _assert_same_statistics(a: Snapshots, b: Snapshots, rtol: float) -> None:
     assert a.q == b.q
     for name in ("H", "G", "F"):
-        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=rtol, atol=rtol * np.abs(getattr(b, name)).max())
+        np.testing.assert_allclose(
+            getattr(a, name), getattr(b, name), rtol=rtol, atol=rtol * np.abs(getattr(b, name)).max()
+        )
 
 
 def test_a_fit_on_a_lazy_sequence_reads_one_episode_at_a_time():
@@ -185,8 +198,10 @@ def test_validation_episodes_scored_a_batch_at_a_time_score_as_one_by_one(monkey
     from qube_koopman.identify.model_selection import sweep
 
     episodes = list(_Generated(7, 300))
-    models = [ClEdmd(CONTROLLER, [Polynomial(2), Delay(3)], alpha=a).fit(episodes[:4]).closed_loop_model_
-              for a in (1e-6, 1e-2)]
+    models = [
+        ClEdmd(CONTROLLER, [Polynomial(2), Delay(3)], alpha=a).fit(episodes[:4]).closed_loop_model_
+        for a in (1e-6, 1e-2)
+    ]
     whole = sweep._score(models, episodes, "cl", True, 5, True)
     monkeypatch.setattr(sweep, "EPISODES_PER_BATCH", 2)
     batched = sweep._score(models, episodes, "cl", True, 5, True)
@@ -228,8 +243,7 @@ def test_stored_logs_keep_their_metadata_only(qube_logs, monkeypatch):
     assert [t.name for t in LogTrajectories(stored)] == [f.name for f in files]
 
 
-def test_the_cache_of_decoded_logs_keeps_to_its_budget_and_reads_a_changed_file_again(qube_logs, tmp_path,
-                                                                                       monkeypatch):
+def test_the_cache_of_decoded_logs_keeps_to_its_budget_and_reads_a_changed_file_again(qube_logs, tmp_path, monkeypatch):
     import shutil
 
     from qube_koopman.daq.log.names import find_logs
@@ -300,16 +314,24 @@ def test_stored_logs_identify_and_score_as_logs_in_memory(qube_logs):
 
     from qube_koopman.daq.log.names import find_logs
     from qube_koopman.identify.data.logs import load_logs
-    from qube_koopman.identify.workflow import (FitOptions, IdentifyOptions, OffsetProtocol, OutputOptions,
-                                                ScoreOptions, identify_and_score)
+    from qube_koopman.identify.workflow import (
+        FitOptions,
+        IdentifyOptions,
+        OffsetProtocol,
+        OutputOptions,
+        ScoreOptions,
+        identify_and_score,
+    )
 
     files = find_logs(qube_logs)
     runs = {}
     for stored in (False, True):
         train, test = (load_logs(chosen, skip=500, stored=stored) for chosen in (files[:4], files[28:30]))
-        options = IdentifyOptions(FitOptions("cl-edmd", [Polynomial(2), Delay(5), Constant()], alphas=[1e-4, 1e-2]),
-                                  ScoreOptions(offsets=OffsetProtocol(("alpha",))),
-                                  output=OutputOptions(keep_predictions=not stored))
+        options = IdentifyOptions(
+            FitOptions("cl-edmd", [Polynomial(2), Delay(5), Constant()], alphas=[1e-4, 1e-2]),
+            ScoreOptions(offsets=OffsetProtocol(("alpha",))),
+            output=OutputOptions(keep_predictions=not stored),
+        )
         runs[stored] = identify_and_score(train, test, train[0].controller, options)
     assert json.dumps(runs[True].report) == json.dumps(runs[False].report)
     np.testing.assert_array_equal(runs[True].plant.A, runs[False].plant.A)

@@ -25,8 +25,12 @@ def two_controllers(tmp_path_factory):
     root = tmp_path_factory.mktemp("mixed")
     logs = {}
     for name, seed, extra in (("rig", 11, []), ("soft-theta", 12, ["--controller", "soft-theta"])):
-        assert run_main(["--episodes", "3", "--seed", str(seed), "--duration", "8", "--out", str(root / name),
-                         "-q", *extra]) == 0
+        assert (
+            run_main(
+                ["--episodes", "3", "--seed", str(seed), "--duration", "8", "--out", str(root / name), "-q", *extra]
+            )
+            == 0
+        )
         logs[name] = find_logs(root / name)
         assert len(logs[name]) == 3
     return logs
@@ -46,8 +50,9 @@ def _train_test(logs):
 
 def test_alpha_sweep_leaves_one_controller_out(two_controllers, tmp_path, capsys):
     train, test = _train_test(two_controllers)
-    code, out, err = run(capsys, "--train", *train, "--test", *test, "--alpha-sweep", "1e-3", "1e1", "5",
-                         "--out", tmp_path)
+    code, out, err = run(
+        capsys, "--train", *train, "--test", *test, "--alpha-sweep", "1e-3", "1e1", "5", "--out", tmp_path
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     controllers = report["training_controllers"]
@@ -61,7 +66,9 @@ def test_alpha_sweep_leaves_one_controller_out(two_controllers, tmp_path, capsys
     assert sweep["cv_kind"] == "per-controller" and sweep["cv_splits"] == 6 and sweep["cv_seed"] == 1234
     names = {name: [p.name for p in paths[:2]] for name, paths in two_controllers.items()}
     assert [(f["held_out_controller"], f["validation_logs"], f["n_train"]) for f in sweep["folds"][:2]] == [
-        (1, names["rig"], 2), (2, names["soft-theta"], 2)]
+        (1, names["rig"], 2),
+        (2, names["soft-theta"], 2),
+    ]
     assert [f["held_out_controller"] for f in sweep["folds"][2:]] == [1, 1, 2, 2]
     for f, name in zip(sweep["folds"][2:], ("rig", "rig", "soft-theta", "soft-theta")):
         assert f["n_train"] == 3 and len(f["validation_logs"]) == 1 and f["validation_logs"][0] in names[name]
@@ -80,8 +87,21 @@ def test_alpha_sweep_leaves_one_controller_out(two_controllers, tmp_path, capsys
 
 def test_one_controller_keeps_episode_grouped_splits(two_controllers, tmp_path, capsys):
     logs = two_controllers["rig"]
-    code, _, err = run(capsys, "--train", *logs[:2], "--test", logs[2], "--alpha-sweep", "1e-3", "1e1", "3",
-                       "--cv-splits", "2", "--out", tmp_path)
+    code, _, err = run(
+        capsys,
+        "--train",
+        *logs[:2],
+        "--test",
+        logs[2],
+        "--alpha-sweep",
+        "1e-3",
+        "1e1",
+        "3",
+        "--cv-splits",
+        "2",
+        "--out",
+        tmp_path,
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     sweep = report["sweep"]
@@ -93,10 +113,26 @@ def test_one_controller_keeps_episode_grouped_splits(two_controllers, tmp_path, 
 def test_search_scores_per_controller_folds(two_controllers, tmp_path, capsys):
     train, test = _train_test(two_controllers)
     space = tmp_path / "space.toml"
-    space.write_text("delays = [0, 5]\npoly = [2]\nconst = [false]\ntrig = [false]\nrbf = [0]\nfriction = [false]\n"
-                     "offsets = [false]\nalphas = [1e-3, 1e-1]\n")
-    code, _, err = run(capsys, "--train", *train, "--test", *test, "--search", "--search-space", space,
-                       "--transfer", "none", "--n-jobs", "1", "--out", tmp_path / "o")
+    space.write_text(
+        "delays = [0, 5]\npoly = [2]\nconst = [false]\ntrig = [false]\nrbf = [0]\nfriction = [false]\n"
+        "offsets = [false]\nalphas = [1e-3, 1e-1]\n"
+    )
+    code, _, err = run(
+        capsys,
+        "--train",
+        *train,
+        "--test",
+        *test,
+        "--search",
+        "--search-space",
+        space,
+        "--transfer",
+        "none",
+        "--n-jobs",
+        "1",
+        "--out",
+        tmp_path / "o",
+    )
     assert code == 0, err
     search = json.loads((tmp_path / "o" / "report.json").read_text())["search"]
     assert search["cv_kind"] == "per-controller"
@@ -112,16 +148,35 @@ def test_single_loop_methods_refuse_two_controllers(two_controllers, tmp_path, c
     assert code == 2 and "--method cl-arx identifies one closed loop" in err and "these ran 2" in err
 
 
-def test_the_search_reports_the_winners_same_controller_score_beside_leave_one_controller_out(two_controllers,
-                                                                                            tmp_path, capsys):
+def test_the_search_reports_the_winners_same_controller_score_beside_leave_one_controller_out(
+    two_controllers, tmp_path, capsys
+):
     from qube_koopman.identify.model_selection.split import within_controller_splits
 
     train, test = _train_test(two_controllers)
     space = tmp_path / "space.toml"
-    space.write_text("delays = [5]\npoly = [1]\nconst = [true]\ntrig = [false]\nrbf = [0]\nfriction = [false]\n"
-                     "offsets = [false]\nalphas = [1e-3]\n")
-    code, _, err = run(capsys, "--train", *train, "--test", *test, "--search", "--search-space", space,
-                       "--transfer", "none", "--n-jobs", "1", "--cv-splits", "2", "--out", tmp_path / "o")
+    space.write_text(
+        "delays = [5]\npoly = [1]\nconst = [true]\ntrig = [false]\nrbf = [0]\nfriction = [false]\n"
+        "offsets = [false]\nalphas = [1e-3]\n"
+    )
+    code, _, err = run(
+        capsys,
+        "--train",
+        *train,
+        "--test",
+        *test,
+        "--search",
+        "--search-space",
+        space,
+        "--transfer",
+        "none",
+        "--n-jobs",
+        "1",
+        "--cv-splits",
+        "2",
+        "--out",
+        tmp_path / "o",
+    )
     assert code == 0, err
     search = json.loads((tmp_path / "o" / "report.json").read_text())["search"]
     same = search["same_controller"]
@@ -144,14 +199,19 @@ def six_each(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("six_each")
     for name, seed, extra in (("rig", 31, []), ("soft-theta", 32, ["--controller", "soft-theta"])):
-        assert run_main(["--episodes", "6", "--seed", str(seed), "--duration", "12", "--out", str(root / name),
-                         "-q", *extra]) == 0
+        assert (
+            run_main(
+                ["--episodes", "6", "--seed", str(seed), "--duration", "12", "--out", str(root / name), "-q", *extra]
+            )
+            == 0
+        )
     return {name: find_logs(root / name) for name in ("rig", "soft-theta")}
 
 
 @pytest.mark.slow
-def test_a_plant_trained_on_both_controllers_predicts_each_loop_better_than_the_other_controllers(six_each,
-                                                                                                tmp_path, capsys):
+def test_a_plant_trained_on_both_controllers_predicts_each_loop_better_than_the_other_controllers(
+    six_each, tmp_path, capsys
+):
     # One lifting and alpha; training sets: 3 rig episodes, 3 soft-theta episodes, all 6. Each test
     # episode (3 per controller) is predicted under its own log's controller. Measured: the rig's
     # loop 0.978 / 0.934 / 0.982 (rig / soft / both), soft-theta's 0.952 / 0.967 / 0.962.
@@ -159,8 +219,22 @@ def test_a_plant_trained_on_both_controllers_predicts_each_loop_better_than_the_
     test = rig[3:] + soft[3:]
     mean = {}
     for name, train in (("rig", rig[:3]), ("soft", soft[:3]), ("both", rig[:3] + soft[:3])):
-        code, _, err = run(capsys, "--train", *train, "--test", *test, "--poly", "1", "--delays", "20", "--const",
-                           "--alpha", "1e-3", "--out", tmp_path / name)
+        code, _, err = run(
+            capsys,
+            "--train",
+            *train,
+            "--test",
+            *test,
+            "--poly",
+            "1",
+            "--delays",
+            "20",
+            "--const",
+            "--alpha",
+            "1e-3",
+            "--out",
+            tmp_path / name,
+        )
         assert code == 0, err
         r2 = json.loads((tmp_path / name / "report.json").read_text())["test"]["r2_per_episode"]
         mean[name] = {"rig": sum(r2[:3]) / 3, "soft": sum(r2[3:]) / 3}
@@ -173,17 +247,21 @@ def test_a_plant_trained_on_both_controllers_predicts_each_loop_better_than_the_
 
 
 def test_an_episode_under_a_loop_the_training_never_ran_gets_its_band_from_the_session_twins(
-        two_controllers, tmp_path, capsys):
+    two_controllers, tmp_path, capsys
+):
     """Trained on the rig's loop alone, the soft-theta episode's interval is calibrated on probes run on the six
     session twins in turn (default probe controllers and its own PD gains, 18 episodes each), and the report
     says so; the rig's own episode keeps the held-out calibration."""
     train, test = two_controllers["rig"][:2], [two_controllers["rig"][2], two_controllers["soft-theta"][2]]
-    code, out, err = run(capsys, "--train", *train, "--test", *test, "--delays", "5", "--interval-members", "4",
-                         "--out", tmp_path)
+    code, out, err = run(
+        capsys, "--train", *train, "--test", *test, "--delays", "5", "--interval-members", "4", "--out", tmp_path
+    )
     assert code == 0, err
     intervals = json.loads((tmp_path / "report.json").read_text())["intervals"]
     assert [(e["calibrated_loop"], e["calibration"]) for e in intervals["episodes"]] == [
-        (True, "held-out"), (False, "twin probes")]
+        (True, "held-out"),
+        (False, "twin probes"),
+    ]
     (entry,) = intervals["calibration_other_loops"]
     assert "6 variants of the calibrated twin" in entry["default_probes"] and "6 variants" in entry["own_probes"]
     assert 3 * 18 - 6 <= entry["n_default_episodes"] <= 3 * 18 and 12 <= entry["n_own_episodes"] <= 18
@@ -198,8 +276,21 @@ def test_a_loop_predicted_with_a_command_delay_keeps_its_own_gains_probes(two_co
     are; without them alpha's band under the stiffest judge loop was half as wide as with them). The rig's and the
     soft-theta episode each get their own gains' probes."""
     train, test = two_controllers["rig"][:2], [two_controllers["rig"][2], two_controllers["soft-theta"][2]]
-    code, out, err = run(capsys, "--train", *train, "--test", *test, "--delays", "5", "--interval-members", "4",
-                         "--command-delay", "2", "--out", tmp_path)
+    code, out, err = run(
+        capsys,
+        "--train",
+        *train,
+        "--test",
+        *test,
+        "--delays",
+        "5",
+        "--interval-members",
+        "4",
+        "--command-delay",
+        "2",
+        "--out",
+        tmp_path,
+    )
     assert code == 0, err
     intervals = json.loads((tmp_path / "report.json").read_text())["intervals"]
     assert [e["calibration"] for e in intervals["episodes"]] == ["twin probes", "twin probes"]

@@ -99,14 +99,17 @@ def test_batched_transform_equals_per_episode(episodes):
     np.testing.assert_allclose(out[1], lift.transform(episodes[1]))
 
 
-@pytest.mark.parametrize("make,match", [
-    (lambda: Polynomial(0), "order"),
-    (lambda: Delay(-1), "delays"),
-    (lambda: Delay(1.5), "delays"),
-    (lambda: ThinPlateRbf(shape=-1), "shape"),
-    (lambda: ThinPlateRbf(offset=0), "offset"),
-    (lambda: GaussianRbf(n_centers=0), "centres"),
-])
+@pytest.mark.parametrize(
+    "make,match",
+    [
+        (lambda: Polynomial(0), "order"),
+        (lambda: Delay(-1), "delays"),
+        (lambda: Delay(1.5), "delays"),
+        (lambda: ThinPlateRbf(shape=-1), "shape"),
+        (lambda: ThinPlateRbf(offset=0), "offset"),
+        (lambda: GaussianRbf(n_centers=0), "centres"),
+    ],
+)
 def test_bad_hyperparameters(make, match, episodes):
     step = make()  # stored unchanged: the fit checks them
     with pytest.raises(ValueError, match=match):

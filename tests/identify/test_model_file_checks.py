@@ -16,8 +16,12 @@ def model_file(tmp_path_factory):
     root = tmp_path_factory.mktemp("model")
     assert run_main(["--episodes", "2", "--duration", "3", "--seed", "4", "--out", str(root / "logs"), "-q"]) == 0
     logs = sorted(map(str, (root / "logs").glob("*.mcap")))
-    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--poly", "1", "--out",
-                          str(root / "m"), "-q"]) == 0
+    assert (
+        identify_main(
+            ["--train", logs[0], "--test", logs[1], "--delays", "5", "--poly", "1", "--out", str(root / "m"), "-q"]
+        )
+        == 0
+    )
     return root / "m" / "model.json"
 
 
@@ -29,18 +33,32 @@ def _damaged(model_file, tmp_path, change) -> str:
     return str(path)
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d["plant"]["A"][2].__setitem__(3, float("nan")), "plant.A has a non-finite entry (nan) at [2, 3]"),
-    (lambda d: d["closed_loop"]["B"][0].__setitem__(0, float("inf")), "closed_loop.B has a non-finite entry (inf) at [0, 0]"),
-    (lambda d: d["plant"]["B"].pop(), "plant: "),
-    (lambda d: d["lifting"]["steps"][0].__setitem__("n_delays", 10**9),
-     "lifting: number of delays 1000000000 is more than this reader takes (10000)"),
-    (lambda d: d["lifting"]["steps"][0].__setitem__("n_delays", 1e9), "lifting: number of delays must be an integer"),
-    (lambda d: d.__setitem__("dt", float("nan")), "dt must be a positive number of seconds (the sample period), "
-                                                  "got nan"),
-    (lambda d: d.__setitem__("dt", 0.01), "sample period 0.01 s, not the loop's 0.002 s"),
-    (lambda d: d.__setitem__("plant", None), "the model file holds no plant model"),
-], ids=["nan", "inf", "shape", "huge-delays", "float-delays", "dt-nan", "dt-other", "no-plant"])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d["plant"]["A"][2].__setitem__(3, float("nan")), "plant.A has a non-finite entry (nan) at [2, 3]"),
+        (
+            lambda d: d["closed_loop"]["B"][0].__setitem__(0, float("inf")),
+            "closed_loop.B has a non-finite entry (inf) at [0, 0]",
+        ),
+        (lambda d: d["plant"]["B"].pop(), "plant: "),
+        (
+            lambda d: d["lifting"]["steps"][0].__setitem__("n_delays", 10**9),
+            "lifting: number of delays 1000000000 is more than this reader takes (10000)",
+        ),
+        (
+            lambda d: d["lifting"]["steps"][0].__setitem__("n_delays", 1e9),
+            "lifting: number of delays must be an integer",
+        ),
+        (
+            lambda d: d.__setitem__("dt", float("nan")),
+            "dt must be a positive number of seconds (the sample period), got nan",
+        ),
+        (lambda d: d.__setitem__("dt", 0.01), "sample period 0.01 s, not the loop's 0.002 s"),
+        (lambda d: d.__setitem__("plant", None), "the model file holds no plant model"),
+    ],
+    ids=["nan", "inf", "shape", "huge-delays", "float-delays", "dt-nan", "dt-other", "no-plant"],
+)
 def test_qube_design_refuses_an_unusable_model_in_one_line(model_file, tmp_path, capsys, change, message):
     from qube_koopman.design.cli.design import main as design_main
 
@@ -52,10 +70,16 @@ def test_qube_design_refuses_an_unusable_model_in_one_line(model_file, tmp_path,
 
 
 @pytest.mark.parametrize("command", ["design", "calibrate"])
-@pytest.mark.parametrize("out, message", [("missing/x.toml", "folder {tmp}/missing does not exist (--out)"),
-                                          ("afolder", "is a folder; --out names the file to write")])
-def test_an_output_that_cannot_be_written_is_refused_before_any_work(command, out, message, model_file, tmp_path,
-                                                                    capsys, monkeypatch):
+@pytest.mark.parametrize(
+    "out, message",
+    [
+        ("missing/x.toml", "folder {tmp}/missing does not exist (--out)"),
+        ("afolder", "is a folder; --out names the file to write"),
+    ],
+)
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(
+    command, out, message, model_file, tmp_path, capsys, monkeypatch
+):
     from qube_koopman.design import workflow
     from qube_koopman.design.cli.design import main as design_main
     from qube_koopman.identify.calibrate import PlantCalibration
@@ -69,8 +93,11 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(command, ou
     (tmp_path / "afolder").mkdir()
     target = str(tmp_path / out)
     logs = str(model_file.parents[1] / "logs")
-    status = design_main([str(model_file), "--out", target]) if command == "design" else \
-        calibrate_main([logs, "--out", target])
+    status = (
+        design_main([str(model_file), "--out", target])
+        if command == "design"
+        else calibrate_main([logs, "--out", target])
+    )
     assert status == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].endswith(message.format(tmp=tmp_path)), err
@@ -84,17 +111,49 @@ def test_an_unstable_what_if_controller_is_named_with_its_spectral_radius(model_
     logs = sorted(map(str, (model_file.parents[1] / "logs").glob("*.mcap")))
     bad = tmp_path / "unstable.toml"
     write_controller_file(bad, DiscreteStateSpace(1.5 * np.eye(2), np.eye(2), np.ones((1, 2)), np.zeros((1, 2)), 0.002))
-    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--controller", str(bad),
-                          "--out", str(tmp_path / "o")]) == 2
+    assert (
+        identify_main(
+            [
+                "--train",
+                logs[0],
+                "--test",
+                logs[1],
+                "--delays",
+                "5",
+                "--controller",
+                str(bad),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{bad}: the controller is unstable on its own (spectral radius of A 1.5 > 1)" in err[0]
     assert not (tmp_path / "o").exists()
     # an integrator is a controller (a designed controller's integral action): accepted
     integrating = tmp_path / "integral.toml"
-    write_controller_file(integrating, DiscreteStateSpace(np.eye(1), np.ones((1, 2)), np.ones((1, 1)),
-                                                          np.zeros((1, 2)), 0.002))
-    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--controller", str(integrating),
-                          "--out", str(tmp_path / "i"), "-q"]) == 0
+    write_controller_file(
+        integrating, DiscreteStateSpace(np.eye(1), np.ones((1, 2)), np.ones((1, 1)), np.zeros((1, 2)), 0.002)
+    )
+    assert (
+        identify_main(
+            [
+                "--train",
+                logs[0],
+                "--test",
+                logs[1],
+                "--delays",
+                "5",
+                "--controller",
+                str(integrating),
+                "--out",
+                str(tmp_path / "i"),
+                "-q",
+            ]
+        )
+        == 0
+    )
 
 
 def test_the_designs_saturation_warning_names_the_peak_and_the_clamp():
@@ -115,8 +174,14 @@ def test_the_model_file_writes_a_matrix_by_rows_and_leaves_text_as_it_is():
     never rewritten, and the file loads back to the same data."""
     from qube_koopman.identify.models.model_file import _dumps
 
-    data = {"A": [[1.0, -2e-05, 3], [4, 5, 6]], "note": "x [1,2] y", "logs": ["[3,4]", "b"], "n": [float("nan"), 1.0],
-            "empty": [], "one": [0]}
+    data = {
+        "A": [[1.0, -2e-05, 3], [4, 5, 6]],
+        "note": "x [1,2] y",
+        "logs": ["[3,4]", "b"],
+        "n": [float("nan"), 1.0],
+        "empty": [],
+        "one": [0],
+    }
     text = _dumps(data)
     assert "  [1.0, -2e-05, 3],\n  [4, 5, 6]\n" in text and '"one": [0]' in text
     back = json.loads(text)
@@ -134,8 +199,10 @@ def test_qube_design_refuses_a_deeply_nested_or_special_model_file_in_one_line(t
     deep.write_text('{"format": "qube-koopman-model", "version": 1, "x": ' + "[" * 100_000 + "]" * 100_000 + "}")
     pipe = tmp_path / "pipe.json"
     os.mkfifo(pipe)
-    for path, message in [(deep, "lists and tables nested more than 64 levels deep"),
-                          (pipe, "a named pipe, not a regular file: not read as the model file")]:
+    for path, message in [
+        (deep, "lists and tables nested more than 64 levels deep"),
+        (pipe, "a named pipe, not a regular file: not read as the model file"),
+    ]:
         assert design_main([str(path), "--out", str(tmp_path / "c.toml")]) == 2
         err = capsys.readouterr().err
         assert err == f"qube-design: error: {path}: {message}\n"
@@ -164,8 +231,12 @@ def test_a_write_error_names_the_file_and_leaves_the_folder_as_it_was(model_file
     monkeypatch.setattr(markdown, "write_markdown_report", full_disk)
     logs = sorted(map(str, (model_file.parent.parent / "logs").glob("*.mcap")))
     capsys.readouterr()
-    assert identify_main(["--train", logs[0], "--test", logs[1], "--delays", "5", "--poly", "1", "--out", str(out),
-                          "--force", "-q"]) == 1
+    assert (
+        identify_main(
+            ["--train", logs[0], "--test", logs[1], "--delays", "5", "--poly", "1", "--out", str(out), "--force", "-q"]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert err == f"qube-identify: error: {out / 'report.md'}: cannot write: No space left on device; nothing written\n"
     assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before  # no staged file left either

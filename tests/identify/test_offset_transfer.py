@@ -52,16 +52,21 @@ def _identify(root, train, test, name, *extra):
     test_uncertainty.py and test_identify_cli.py do) and whose calibration under other loops simulates
     twin probes."""
     out = root / name
-    assert qube_identify(["--train", str(train), "--test", str(test), "--delays", "20", "--out", str(out),
-                          "--interval", "0", *extra]) == 0
+    assert (
+        qube_identify(
+            ["--train", str(train), "--test", str(test), "--delays", "20", "--out", str(out), "--interval", "0", *extra]
+        )
+        == 0
+    )
     return json.loads((out / "report.json").read_text())
 
 
 def test_offsets_estimated_per_episode_recover_the_injected_ones(logs):
     root, train, test = logs
     report = _identify(root, train, test, "offsets", "--offsets", "alpha")
-    injected = {p.name: read_episode_metadata(p).extra["backend"]["sensor"]["alpha_offset"]
-                for p in test.glob("*.mcap")}
+    injected = {
+        p.name: read_episode_metadata(p).extra["backend"]["sensor"]["alpha_offset"] for p in test.glob("*.mcap")
+    }
     estimated = {e["log"]: e["alpha"] for e in report["offsets"]}
     assert set(estimated) <= set(injected) and len(estimated) >= 3
     errors = np.array([estimated[k] - injected[k] for k in estimated])
@@ -70,7 +75,7 @@ def test_offsets_estimated_per_episode_recover_the_injected_ones(logs):
     with_offsets, without = report["test"], report["test_without_offsets"]
     print(f"transfer R^2 {with_offsets['r2_mean']:.4f} with offsets, {without['r2_mean']:.4f} without")
     assert with_offsets["r2_mean"] >= 0.95
-    assert without["r2_mean"] <= with_offsets["r2_mean"] - 0.05   # clearly lower without them
+    assert without["r2_mean"] <= with_offsets["r2_mean"] - 0.05  # clearly lower without them
     assert report["scored_from_sample"] == 500 and "first 1 s" in report["protocol"]
 
 

@@ -39,7 +39,7 @@ def test_prediction_with_the_estimate_is_the_true_prediction_shifted(fitted):
     with_offsets = cl.predict(measured, offsets=["position"], window=100)
     np.testing.assert_allclose(with_offsets, cl.predict(true) + [OFFSET, 0.0], atol=1e-7)
     assert r2_score(measured.x[100:], with_offsets[100:]) > 1 - 1e-10
-    assert r2_score(measured.x[100:], cl.predict(measured)[100:]) < 1 - 1e-4   # the offset hurts without it
+    assert r2_score(measured.x[100:], cl.predict(measured)[100:]) < 1 - 1e-4  # the offset hurts without it
     known = cl.predict(measured, offsets={"position": OFFSET})
     np.testing.assert_allclose(known, with_offsets, atol=1e-7)
 
@@ -60,13 +60,16 @@ def test_an_implausible_estimate_is_flagged_and_not_used(fitted):
     np.testing.assert_array_equal(pred, cl.predict(measured))
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"offsets": ["beta"], "window": 100}, "unknown channel 'beta'"),
-    ({"offsets": [5], "window": 100}, "not a state index"),
-    ({"offsets": [0]}, "needs window"),
-    ({"offsets": [0], "window": 2}, "estimation window"),
-    ({"offsets": [0, 0], "window": 100}, "repeat"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"offsets": ["beta"], "window": 100}, "unknown channel 'beta'"),
+        ({"offsets": [5], "window": 100}, "not a state index"),
+        ({"offsets": [0]}, "needs window"),
+        ({"offsets": [0], "window": 2}, "estimation window"),
+        ({"offsets": [0, 0], "window": 100}, "repeat"),
+    ],
+)
 def test_bad_offset_requests_name_the_problem(fitted, kwargs, message):
     model, _, measured = fitted
     with pytest.raises(ValueError, match=message):

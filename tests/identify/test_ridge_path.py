@@ -7,8 +7,12 @@ import numpy as np
 import pytest
 from scipy import linalg
 
-from qube_koopman.identify.estimators.regression import (Snapshots, constrained_plant_solve, ridge_solve,
-                                                         solved_for_many_alphas)
+from qube_koopman.identify.estimators.regression import (
+    Snapshots,
+    constrained_plant_solve,
+    ridge_solve,
+    solved_for_many_alphas,
+)
 
 PATHS = ["one-alpha", "many-alphas"]
 
@@ -36,7 +40,7 @@ def _data(q, p, t, collinear, seed=0):
 
 
 def _objective(U, psi, theta, alpha):
-    return np.sum((theta - psi @ U.T) ** 2) + alpha * np.sum(U ** 2)
+    return np.sum((theta - psi @ U.T) ** 2) + alpha * np.sum(U**2)
 
 
 @pytest.mark.parametrize("path", PATHS)
@@ -91,8 +95,12 @@ def test_one_decomposition_serves_every_alpha_and_a_rank_deficient_map_still_sol
     assert len(snaps._paths) == 2
     S[-1] = S[0]  # a repeated row: no triangular change of variables, the stacked problem instead
     expected = _stacked(psi @ S.T, theta, 1e-2, S.T)
-    np.testing.assert_allclose(constrained_plant_solve(snaps, S, 1e-2, slice(0, None)), expected, rtol=1e-7,
-                               atol=1e-10 * np.abs(expected).max())
+    np.testing.assert_allclose(
+        constrained_plant_solve(snaps, S, 1e-2, slice(0, None)),
+        expected,
+        rtol=1e-7,
+        atol=1e-10 * np.abs(expected).max(),
+    )
 
 
 def test_an_episodes_statistics_hold_only_their_small_factor():
@@ -125,7 +133,9 @@ def test_targets_that_copy_regressors_take_their_factor_columns(q):
     psi = rng.standard_normal((q, 30))
     near = psi[:, 7].copy()
     near[q // 2] += 1e-12  # one sample off: not a copy
-    theta = np.hstack([rng.standard_normal((q, 2)), psi[:, 3:15], near[:, None], rng.standard_normal((q, 1)), psi[:, :1]])
+    theta = np.hstack(
+        [rng.standard_normal((q, 2)), psi[:, 3:15], near[:, None], rng.standard_normal((q, 1)), psi[:, :1]]
+    )
     snaps = Snapshots.from_snapshots(theta, psi)
     M = np.hstack([psi, theta])
     np.testing.assert_allclose(snaps.R.T @ snaps.R, M.T @ M, rtol=1e-11, atol=1e-9)

@@ -65,13 +65,13 @@ def test_a_constant_true_channel_is_left_out_with_a_warning():
     with pytest.warns(ConstantChannelWarning, match=r"\[1\] are constant"):
         assert r2_score(truth, pred) == pytest.approx(expected)
     with pytest.warns(ConstantChannelWarning):
-        assert np.isnan(r2_score(truth[:, 1:], pred[:, 1:]))      # nothing to explain at all
+        assert np.isnan(r2_score(truth[:, 1:], pred[:, 1:]))  # nothing to explain at all
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert r2_scores(truth, pred) == pytest.approx(expected)  # the vectorized form agrees, silently
         bad = pred.copy()
         bad[10, 1] = np.nan
-        assert r2_scores(truth, bad) == -np.inf                   # divergence anywhere still counts
+        assert r2_scores(truth, bad) == -np.inf  # divergence anywhere still counts
 
 
 def test_a_huge_but_finite_r2_summarizes_without_an_overflow_warning():

@@ -13,14 +13,27 @@ from qube_koopman.core.lti import same_system
 from qube_koopman.identify import ClEdmd, Lifting
 from qube_koopman.identify.data.logs import check_same_controller, load_logs
 from qube_koopman.identify.model_selection.split import group_shuffle_splits
-from qube_koopman.identify.models.offsets import (estimate_offsets, estimate_offsets_many, estimate_offsets_models,
-                                                  predict_with_offsets, predict_with_offsets_many,
-                                                  predict_with_offsets_models)
+from qube_koopman.identify.models.offsets import (
+    estimate_offsets,
+    estimate_offsets_many,
+    estimate_offsets_models,
+    predict_with_offsets,
+    predict_with_offsets_many,
+    predict_with_offsets_models,
+)
 from qube_koopman.identify.metrics import r2_scores, scores_after_window, scores_after_window_models
 from qube_koopman.identify.model_selection.sweep import regularization_sweep
 from qube_koopman.identify.model_selection.transfer import twin_probes
-from qube_koopman.identify.model_selection.search import (CandidateResult, LiftingSpec, SearchData, SearchSpace,
-                                                          _finalists, evaluate_candidate, screen_bar, search_liftings)
+from qube_koopman.identify.model_selection.search import (
+    CandidateResult,
+    LiftingSpec,
+    SearchData,
+    SearchSpace,
+    _finalists,
+    evaluate_candidate,
+    screen_bar,
+    search_liftings,
+)
 
 pytestmark = pytest.mark.dataset
 WINDOW = 250  # 0.5 s
@@ -38,8 +51,10 @@ def small(qube_logs):
     """Eight real training episodes, cut to 6 s each (the search's arithmetic, not its statistics)."""
     logs = load_logs(sorted(qube_logs.glob("*.mcap"))[:8], skip=500)
     controller = check_same_controller(logs, "training")
-    trajs = [replace(log.trajectory, **{k: getattr(log.trajectory, k)[:3000] for k in ("x", "u", "r", "f", "xc")})
-             for log in logs]
+    trajs = [
+        replace(log.trajectory, **{k: getattr(log.trajectory, k)[:3000] for k in ("x", "u", "r", "f", "xc")})
+        for log in logs
+    ]
     splits = group_shuffle_splits(len(trajs), n_splits=2, test_size=0.25, seed=7)
     return trajs, controller, splits
 
@@ -54,8 +69,11 @@ def _naive_fold_score(spec, trajs, controller, splits, alpha, offsets, steps=Non
     """Refit from scratch per fold and predict each validation episode alone (no shared statistics)."""
     scores = []
     for train, validation in splits:
-        model = ClEdmd(controller, lifting=steps or spec.steps(), alpha=alpha).fit(
-            [trajs[i] for i in train]).closed_loop_model_
+        model = (
+            ClEdmd(controller, lifting=steps or spec.steps(), alpha=alpha)
+            .fit([trajs[i] for i in train])
+            .closed_loop_model_
+        )
         per_episode = []
         for i in validation:
             t = trajs[i]
@@ -69,9 +87,15 @@ def _naive_fold_score(spec, trajs, controller, splits, alpha, offsets, steps=Non
     return np.array(scores)
 
 
-@pytest.mark.parametrize("spec", [LiftingSpec(delays=3, poly=2), LiftingSpec(delays=2, poly=1, trig=True, const=True),
-                                  LiftingSpec(delays=5, poly=1, offsets=True),
-                                  LiftingSpec(delays=10, poly=1, friction=True, const=True)])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        LiftingSpec(delays=3, poly=2),
+        LiftingSpec(delays=2, poly=1, trig=True, const=True),
+        LiftingSpec(delays=5, poly=1, offsets=True),
+        LiftingSpec(delays=10, poly=1, friction=True, const=True),
+    ],
+)
 def test_candidate_scores_equal_a_naive_refit_per_fold(small, spec):
     trajs, controller, splits = small
     alphas = np.array([1e-4, 1e-2, 1.0])
@@ -100,8 +124,10 @@ def test_batched_offset_estimates_equal_levenberg_marquardt(small):
 
 def test_offsets_of_several_models_batched_equal_each_model_alone(small):
     trajs, controller, _ = small
-    models = [ClEdmd(controller, lifting=LiftingSpec(delays=4).steps(), alpha=a).fit(trajs[:6]).closed_loop_model_
-              for a in (1e-4, 1e-2, 1.0)]
+    models = [
+        ClEdmd(controller, lifting=LiftingSpec(delays=4).steps(), alpha=a).fit(trajs[:6]).closed_loop_model_
+        for a in (1e-4, 1e-2, 1.0)
+    ]
     shifted = [replace(t, x=t.x + [0.0, o], r=t.r + [0.0, o]) for t, o in zip(trajs[6:], (0.004, -0.003))]
     together = estimate_offsets_models(models, shifted, ["alpha"], WINDOW)
     predicted = predict_with_offsets_models(models, shifted, together)
@@ -118,8 +144,15 @@ def test_offsets_of_several_models_batched_equal_each_model_alone(small):
         np.testing.assert_allclose(score, scores_after_window(model, shifted, WINDOW, True), rtol=1e-9)
 
 
-@pytest.mark.parametrize("spec", [LiftingSpec(0, 1), LiftingSpec(5, 3, trig=True, const=True),
-                                  LiftingSpec(2, 2, rbf=4, const=True), LiftingSpec(12, 1, rbf=3, friction=True)])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        LiftingSpec(0, 1),
+        LiftingSpec(5, 3, trig=True, const=True),
+        LiftingSpec(2, 2, rbf=4, const=True),
+        LiftingSpec(12, 1, rbf=3, friction=True),
+    ],
+)
 def test_spec_size_matches_the_fitted_lifting(small, spec):
     trajs = small[0]
     lifting = Lifting(spec.steps()).fit([t.x for t in trajs[:2]], ("theta", "alpha"))
@@ -128,8 +161,7 @@ def test_spec_size_matches_the_fitted_lifting(small, spec):
 
 
 def test_stages_step_from_the_best_so_far():
-    space = SearchSpace(delays=(0, 4), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0, 3),
-                        alphas=(1e-3, 1.0))
+    space = SearchSpace(delays=(0, 4), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0, 3), alphas=(1e-3, 1.0))
     assert space.stage_candidates("delays", []) == [LiftingSpec(0, 2), LiftingSpec(4, 2)]
     lead = CandidateResult(LiftingSpec(4, 2), "delays", np.array(space.alphas), np.array([[0.9, 0.5]]), 0.0)
     form = space.stage_candidates("form", [lead])
@@ -147,8 +179,9 @@ def test_stages_step_from_the_best_so_far():
         SearchSpace(poly=(0, 1))
 
 
-SMALL_SPACE = SearchSpace(delays=(0, 3), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0,),
-                          alphas=(1e-4, 1e-2, 1.0))
+SMALL_SPACE = SearchSpace(
+    delays=(0, 3), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0,), alphas=(1e-4, 1e-2, 1.0)
+)
 
 
 def test_search_winner_is_the_best_candidate_and_parallel_runs_agree(small):
@@ -172,8 +205,16 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
     # the lead's bar, so that the RBF stage has finalists whatever they screen; the bar is tested below.)
     trajs, controller, splits = small
     probes = small_probes
-    space = SearchSpace(delays=(0, 2, 6, 10), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0, 3, 5),
-                        alphas=(1e-5, 1e-3, 1e-1), n_finalists=2, screen_against_lead=False)
+    space = SearchSpace(
+        delays=(0, 2, 6, 10),
+        poly=(1, 2),
+        const=(False, True),
+        trig=(False,),
+        rbf=(0, 3, 5),
+        alphas=(1e-5, 1e-3, 1e-1),
+        n_finalists=2,
+        screen_against_lead=False,
+    )
     # Which liftings the screened search lifts whole episodes in (by their number of features), and how often:
     # what is shared is counted, not timed (a timing ratio fails on a loaded machine). A lifting with fewer
     # delays lifts only each episode's first samples (the snapshots the longest lifting lacks).
@@ -188,8 +229,9 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
     with monkeypatch.context() as m:
         m.setattr(ClEdmd, "episode_snapshots", counted)
         screened = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=space, probes=probes)
-    full = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=replace(space, n_finalists=0),
-                           probes=probes)
+    full = search_liftings(
+        trajs, controller, splits=splits, window=WINDOW, space=replace(space, n_finalists=0), probes=probes
+    )
     assert screened.winner.spec == full.winner.spec and screened.winner.best_alpha == full.winner.best_alpha
     everything = {c.spec: c for c in full.candidates}
     # The same scores to rounding: relative 1e-9, or 1e-9 absolute for a score near zero (a probe's
@@ -231,15 +273,27 @@ def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(sm
 def test_a_screen_goes_on_when_it_beats_the_stages_lead_scored_on_the_same_folds():
     alphas = np.array([1e-4, 1e-2, 1.0])
     # The lead: fold scores over the alphas (first fold first), probed at two alphas.
-    lead = CandidateResult(LiftingSpec(10, 2), "delays", alphas, np.array([[0.97, 0.99, 0.90], [0.80, 0.99, 0.95]]),
-                           0.0, transfer_r2=np.array([[0.95, np.nan, 0.99], [0.93, np.nan, 0.97]]))
+    lead = CandidateResult(
+        LiftingSpec(10, 2),
+        "delays",
+        alphas,
+        np.array([[0.97, 0.99, 0.90], [0.80, 0.99, 0.95]]),
+        0.0,
+        transfer_r2=np.array([[0.95, np.nan, 0.99], [0.93, np.nan, 0.97]]),
+    )
     # Its first fold alone with its probes: min(0.97, 0.94) at 1e-4, min(0.90, 0.98) at 1.0: 0.94.
     assert screen_bar(lead, 1) == pytest.approx(0.94)
     assert screen_bar(lead, 2) == pytest.approx(0.925)  # both folds: min(0.885, 0.94) at 1e-4, min(0.925, 0.98) at 1.0
 
     def screen(poly, cv, transfer):
-        return CandidateResult(LiftingSpec(10, poly), "form", alphas, np.array([[cv, cv, cv]]), 0.0,
-                               transfer_r2=np.array([[np.nan, transfer, np.nan]]))
+        return CandidateResult(
+            LiftingSpec(10, poly),
+            "form",
+            alphas,
+            np.array([[cv, cv, cv]]),
+            0.0,
+            transfer_r2=np.array([[np.nan, transfer, np.nan]]),
+        )
 
     screens = [screen(1, 0.99, 0.95), screen(3, 0.99, 0.93), screen(2, 0.99, -np.inf)]
     assert _finalists(screens, 3) == {LiftingSpec(10, 1), LiftingSpec(10, 3)}  # the diverged one left out
@@ -268,8 +322,9 @@ def test_rbf_candidates_take_their_statistics_from_one_factorization_with_every_
         assert taken[spec][0].lifting.feature_names_out_ == setup.lifting.feature_names_out_
         for mine, own in zip([*taken[spec][1], taken[spec][2]], [*per_fold, everything]):
             assert mine.R.shape == own.R.shape and mine.q == own.q
-            np.testing.assert_allclose(mine.R.T @ mine.R, own.R.T @ own.R, rtol=1e-9,
-                                       atol=1e-9 * np.abs(own.R).max() ** 2)
+            np.testing.assert_allclose(
+                mine.R.T @ mine.R, own.R.T @ own.R, rtol=1e-9, atol=1e-9 * np.abs(own.R).max() ** 2
+            )
 
 
 def test_with_two_controllers_a_familys_statistics_are_each_controllers_columns(small, small_probes):
@@ -324,11 +379,28 @@ def test_a_screened_search_over_two_controllers_picks_the_full_searchs_winner(sm
     other = small_probes.episodes[0]
     controllers = [controller] * len(trajs) + [small_probes.controllers[0]] * len(other)
     splits = leave_one_controller_out([0] * len(trajs) + [1] * len(other))
-    space = SearchSpace(delays=(0, 6, 10), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0,),
-                        alphas=(1e-5, 1e-3, 1e-1), offsets=(False,), n_finalists=2)
-    runs = [search_liftings(trajs + other, controller, splits=splits, window=WINDOW,
-                            space=replace(space, n_finalists=k), probes=small_probes, controllers=controllers)
-            for k in (2, 0)]
+    space = SearchSpace(
+        delays=(0, 6, 10),
+        poly=(1, 2),
+        const=(False, True),
+        trig=(False,),
+        rbf=(0,),
+        alphas=(1e-5, 1e-3, 1e-1),
+        offsets=(False,),
+        n_finalists=2,
+    )
+    runs = [
+        search_liftings(
+            trajs + other,
+            controller,
+            splits=splits,
+            window=WINDOW,
+            space=replace(space, n_finalists=k),
+            probes=small_probes,
+            controllers=controllers,
+        )
+        for k in (2, 0)
+    ]
     screened, full = runs
     assert screened.screened and not full.screened
     assert screened.winner.spec == full.winner.spec and screened.winner.best_alpha == full.winner.best_alpha
@@ -350,19 +422,28 @@ def test_a_local_dask_cluster_finds_the_same_winner(small):
     trajs, controller, splits = small
     local = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, n_jobs=1)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        remote = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE,
-                                 scheduler=cluster.scheduler_address)
+        remote = search_liftings(
+            trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, scheduler=cluster.scheduler_address
+        )
     assert remote.winner.spec == local.winner.spec and remote.winner.best_alpha == local.winner.best_alpha
-    np.testing.assert_allclose([c.score for c in remote.candidates], [c.score for c in local.candidates],
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        [c.score for c in remote.candidates], [c.score for c in local.candidates], rtol=0, atol=1e-12
+    )
 
 
 def test_an_unreachable_scheduler_is_a_clear_error(small):
     pytest.importorskip("dask.distributed", reason="the dask extra is optional")
     trajs, controller, splits = small
     with pytest.raises(ValueError, match="tcp://127.0.0.1:9: cannot reach the dask scheduler"):
-        search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE,
-                        scheduler="tcp://127.0.0.1:9", connect_timeout=2)
+        search_liftings(
+            trajs,
+            controller,
+            splits=splits,
+            window=WINDOW,
+            space=SMALL_SPACE,
+            scheduler="tcp://127.0.0.1:9",
+            connect_timeout=2,
+        )
 
 
 @pytest.fixture(scope="module")
@@ -375,8 +456,10 @@ def log_dirs(qube_logs, tmp_path_factory):
         (root / name).mkdir()
         for path in chosen:
             shutil.copy(path, root / name / path.name)
-    (root / "space.toml").write_text("delays = [0, 2]\npoly = [1]\nconst = [false, true]\ntrig = [false]\n"
-                                     "rbf = [0]\nalphas = [1e-3, 1.0]\noffsets = [false]\n")
+    (root / "space.toml").write_text(
+        "delays = [0, 2]\npoly = [1]\nconst = [false, true]\ntrig = [false]\n"
+        "rbf = [0]\nalphas = [1e-3, 1.0]\noffsets = [false]\n"
+    )
     return root
 
 
@@ -393,9 +476,22 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
     from qube_koopman.identify.models.model_file import load_model
 
-    code, out, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
-                          "--search-space", log_dirs / "space.toml", "--n-jobs", "1", "--out", tmp_path,
-                          "--rerun-save", tmp_path / "id.rrd")
+    code, out, err = _cli(
+        capsys,
+        "--train",
+        log_dirs / "train",
+        "--test",
+        log_dirs / "test",
+        "--search",
+        "--search-space",
+        log_dirs / "space.toml",
+        "--n-jobs",
+        "1",
+        "--out",
+        tmp_path,
+        "--rerun-save",
+        tmp_path / "id.rrd",
+    )
     assert code == 0, err
     report = json.loads((tmp_path / "report.json").read_text())
     search = report["search"]
@@ -442,21 +538,25 @@ def test_blueprint_has_a_view_per_test_episode_and_per_section():
     from qube_koopman.identify.workflow import IdentificationResult
 
     pytest.importorskip("rerun.blueprint", reason="the viewer is the optional viz extra")
-    result = IdentificationResult(report={"sweep": {"alpha": [1.0]}, "search": {"candidates": []}},
-                                  test_names=["a.mcap", "b.mcap"])
+    result = IdentificationResult(
+        report={"sweep": {"alpha": [1.0]}, "search": {"candidates": []}}, test_names=["a.mcap", "b.mcap"]
+    )
     tabs = blueprint(result).root_container
     names = [str(view.name) for view in tabs.contents]
     assert len(names) == 4 and "search" in names[3] and "sweep" in names[2] and "eigenvalues" in names[1]
     assert [str(v.origin) for v in tabs.contents[0].contents] == ["test/a", "test/b"]
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--search", "--delays", "5"], "--search chooses the lifting, alpha and offsets itself: leave out --delays"),
-    (["--search", "--method", "edmd"], "--search selects CL EDMD models"),
-    (["--search-space", "x.toml"], "--search-space and --transfer belong to --search"),
-    (["--transfer", "none"], "--search-space and --transfer belong to --search"),
-    (["--offsets", "alpha", "--protocol", "paper"], "it cannot use --protocol paper"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--search", "--delays", "5"], "--search chooses the lifting, alpha and offsets itself: leave out --delays"),
+        (["--search", "--method", "edmd"], "--search selects CL EDMD models"),
+        (["--search-space", "x.toml"], "--search-space and --transfer belong to --search"),
+        (["--transfer", "none"], "--search-space and --transfer belong to --search"),
+        (["--offsets", "alpha", "--protocol", "paper"], "it cannot use --protocol paper"),
+    ],
+)
 def test_cli_search_refusals(log_dirs, tmp_path, capsys, argv, message):
     code, _, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--out", tmp_path, *argv)
     assert code == 2 and message in err and "Traceback" not in err
@@ -464,20 +564,40 @@ def test_cli_search_refusals(log_dirs, tmp_path, capsys, argv, message):
 
 def test_cli_search_space_file_errors_name_the_file(log_dirs, tmp_path, capsys):
     bad = tmp_path / "bad.toml"
-    for text, problem in (("delays = [", "not a readable TOML"), ("depth = [1]", "unknown search-space keys"),
-                          ("delays = [1.5]", "delays must be a non-empty list of int"),
-                          ("delays = " + "[" * 100_000 + "]" * 100_000, "nested more than 64 levels deep")):
+    for text, problem in (
+        ("delays = [", "not a readable TOML"),
+        ("depth = [1]", "unknown search-space keys"),
+        ("delays = [1.5]", "delays must be a non-empty list of int"),
+        ("delays = " + "[" * 100_000 + "]" * 100_000, "nested more than 64 levels deep"),
+    ):
         bad.write_text(text)
-        code, _, err = _cli(capsys, "--train", log_dirs / "train", "--test", log_dirs / "test", "--search",
-                            "--search-space", bad, "--out", tmp_path / "o")
+        code, _, err = _cli(
+            capsys,
+            "--train",
+            log_dirs / "train",
+            "--test",
+            log_dirs / "test",
+            "--search",
+            "--search-space",
+            bad,
+            "--out",
+            tmp_path / "o",
+        )
         assert code == 2 and f"{bad}: " in err and problem in err, err
 
 
 def test_a_sweep_without_final_fits_fits_only_the_rows_relifted_predictions_use(small):
     trajs, controller, splits = small
     lifting = LiftingSpec(delays=3, poly=2).steps()
-    sweep = regularization_sweep(ClEdmd(controller, lifting=lifting), trajs, [1e-3], splits[:1], scorings=(),
-                                 keep_fold_models=True, fit_all=False)
+    sweep = regularization_sweep(
+        ClEdmd(controller, lifting=lifting),
+        trajs,
+        [1e-3],
+        splits[:1],
+        scorings=(),
+        keep_fold_models=True,
+        fit_all=False,
+    )
     closed, plants, _ = sweep.fold_models[0]
     full = ClEdmd(controller, lifting=lifting, alpha=1e-3).fit([trajs[i] for i in splits[0][0]])
     rows = controller.n_states + 2  # the controller states, then theta and alpha
@@ -491,8 +611,9 @@ def test_an_offsets_candidate_given_its_plain_scores_scores_the_same(small):
     data = SearchData(trajs, splits, controller, np.array([1e-4, 1e-2, 1.0]), WINDOW)
     plain = evaluate_candidate(LiftingSpec(delays=5, poly=1), data)
     spec = LiftingSpec(delays=5, poly=1, offsets=True)
-    np.testing.assert_allclose(evaluate_candidate(spec, data, plain=plain.cv_r2).cv_r2,
-                               evaluate_candidate(spec, data).cv_r2, rtol=1e-12)
+    np.testing.assert_allclose(
+        evaluate_candidate(spec, data, plain=plain.cv_r2).cv_r2, evaluate_candidate(spec, data).cv_r2, rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("rbf", [0, 4])
@@ -529,8 +650,9 @@ def test_an_rbf_candidate_equals_a_naive_refit_with_centres_drawn_on_all_trainin
         np.testing.assert_allclose(result.cv_r2[:, j], naive, rtol=1e-9, atol=1e-6)
 
 
-def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_statistics(small, small_probes,
-                                                                                           monkeypatch):
+def test_a_lifting_whose_features_another_holds_scores_the_same_from_the_others_statistics(
+    small, small_probes, monkeypatch
+):
     # The form stage lifts its largest lifting once: the others' statistics are columns of its factor.
     from qube_koopman.identify.model_selection.search import family_of, family_statistics
 
@@ -575,8 +697,9 @@ def test_the_complete_search_runs_from_python_as_the_command_runs_it(qube_logs):
     assert result.folds.kind == "episode-grouped" and result.probes is None and result.same_controller is None
     for mine, theirs in zip(result.folds.splits, folds.splits):
         np.testing.assert_array_equal(mine[1], theirs[1])
-    direct = search_liftings(LogTrajectories(logs), controller, splits=folds.splits, window=500,
-                             space=SMALL_SPACE, n_jobs=1)
+    direct = search_liftings(
+        LogTrajectories(logs), controller, splits=folds.splits, window=500, space=SMALL_SPACE, n_jobs=1
+    )
     assert result.winner.spec == direct.winner.spec
     np.testing.assert_allclose(result.winner.cv_r2, direct.winner.cv_r2, rtol=1e-12)
     with pytest.raises(ValueError, match="leave nothing to score"):

@@ -87,8 +87,10 @@ def test_a_plant_fitted_to_two_sessions_with_their_delays_predicts_the_slower_on
     assert len(test) == 2
 
     def score(train, test_logs):
-        options = IdentifyOptions(FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alpha=1e-3),
-                                  output=OutputOptions(keep_predictions=False))
+        options = IdentifyOptions(
+            FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alpha=1e-3),
+            output=OutputOptions(keep_predictions=False),
+        )
         result = identify_and_score(train, test_logs, train[0].controller, options)
         return result.report["test"]["r2_mean"]
 
@@ -100,8 +102,10 @@ def test_a_plant_fitted_to_two_sessions_with_their_delays_predicts_the_slower_on
     assert with_delays > as_recorded + 0.003
     # Cross-validated over alphas: the folds are drawn from the one recorded controller's episodes and
     # each predicts one session's loop, training on the same episodes as the fold it was split from.
-    options = IdentifyOptions(FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alphas=[1e-4, 1e-3]),
-                              output=OutputOptions(keep_predictions=False))
+    options = IdentifyOptions(
+        FitOptions("cl-edmd", LiftingSpec(delays=10, poly=1).steps(0), alphas=[1e-4, 1e-3]),
+        output=OutputOptions(keep_predictions=False),
+    )
     swept = identify_and_score(fast + delayed[:6], delayed[6:], fast[0].controller, options).report["sweep"]
     slow_names = {log.path.name for log in slow}
     sessions = [{name in slow_names for name in fold["validation_logs"]} for fold in swept["folds"]]
@@ -112,8 +116,10 @@ def test_a_plant_fitted_to_two_sessions_with_their_delays_predicts_the_slower_on
 
 def _sessions_plant(path, early: float, late: float):
     # The shared delay, which the rig's logs (of no session named here) get: about its sessions' 1.1 ms.
-    plant = PlantFile(replace(PendulumParameters.previous(), delay=1.1e-3), setups={
-        "2023-09-15 14:54:50-14:59:35": {"delay": early}, "2023-09-15 15:19:11-15:23:27": {"delay": late}})
+    plant = PlantFile(
+        replace(PendulumParameters.previous(), delay=1.1e-3),
+        setups={"2023-09-15 14:54:50-14:59:35": {"delay": early}, "2023-09-15 15:19:11-15:23:27": {"delay": late}},
+    )
     save_plant(path, plant)
     return path
 
@@ -129,13 +135,43 @@ def test_each_log_gets_its_recording_sessions_delay(soft_logs, tmp_path, capsys)
         session_delays(logs, shared)
     # The command says so and exits 2, before writing anything.
     out = tmp_path / "out"
-    assert qube_identify(["--train", *map(str, logs[:3]), "--test", str(logs[3]), "--session-delays", str(shared),
-                          "--out", str(out), "-q"]) == 2
+    assert (
+        qube_identify(
+            [
+                "--train",
+                *map(str, logs[:3]),
+                "--test",
+                str(logs[3]),
+                "--session-delays",
+                str(shared),
+                "--out",
+                str(out),
+                "-q",
+            ]
+        )
+        == 2
+    )
     assert "shared.toml: no command delay per recording session" in capsys.readouterr().err
     assert not out.exists()
     sessions = _sessions_plant(tmp_path / "sessions.toml", 0.8e-3, 4.3e-3)
-    assert qube_identify(["--train", *map(str, logs[:3]), "--test", str(logs[3]), "--session-delays",
-                          str(sessions), "--controller", "rig", "--out", str(out), "-q"]) == 2
+    assert (
+        qube_identify(
+            [
+                "--train",
+                *map(str, logs[:3]),
+                "--test",
+                str(logs[3]),
+                "--session-delays",
+                str(sessions),
+                "--controller",
+                "rig",
+                "--out",
+                str(out),
+                "-q",
+            ]
+        )
+        == 2
+    )
     assert "give the what-if's latency with --command-delay" in capsys.readouterr().err
     assert not out.exists()
 
@@ -143,7 +179,8 @@ def test_each_log_gets_its_recording_sessions_delay(soft_logs, tmp_path, capsys)
 @pytest.mark.slow
 @pytest.mark.dataset
 def test_real_logs_of_two_sessions_predict_the_slower_sessions_episodes_better_with_their_delays(
-        qube_logs, soft_logs, tmp_path, capsys):
+    qube_logs, soft_logs, tmp_path, capsys
+):
     """The rig's 28 training logs and three episodes of each soft session: the held-out soft episodes
     (two of each session) with and without the sessions' delays (as qube-calibrate --setups
     cables-and-delay fits them: 0.85 and 4.21 ms; the rig's sessions, which no setup of this file
@@ -153,14 +190,29 @@ def test_real_logs_of_two_sessions_predict_the_slower_sessions_episodes_better_w
     train = [*rig, *soft[0:3], *soft[5:8]]
     test = [*soft[3:5], *soft[8:10]]
     plant = _sessions_plant(tmp_path / "sessions.toml", 0.85e-3, 4.21e-3)
-    lifting = ["--poly", "1", "--trig", "--delays", "30", "--friction", "--alpha", "1e-4", "--offsets", "alpha",
-               "--interval", "0", "-q"]
+    lifting = [
+        "--poly",
+        "1",
+        "--trig",
+        "--delays",
+        "30",
+        "--friction",
+        "--alpha",
+        "1e-4",
+        "--offsets",
+        "alpha",
+        "--interval",
+        "0",
+        "-q",
+    ]
     reports = {}
     # As recorded: no latency of any session, neither the file's nor one estimated from the test logs.
     for name, extra in (("as recorded", ["--command-delay", "0"]), ("with delays", ["--session-delays", str(plant)])):
         out = tmp_path / name.replace(" ", "_")
-        assert qube_identify(["--train", *map(str, train), "--test", *map(str, test), *lifting, *extra,
-                              "--out", str(out)]) == 0
+        assert (
+            qube_identify(["--train", *map(str, train), "--test", *map(str, test), *lifting, *extra, "--out", str(out)])
+            == 0
+        )
         reports[name] = json.loads((out / "report.json").read_text())
     scores = {name: report["test"]["r2_per_episode"] for name, report in reports.items()}
     with capsys.disabled():

@@ -46,10 +46,23 @@ def test_a_sweep_whose_best_alpha_is_its_grids_edge_says_to_widen_it(qube_logs, 
         (tmp_path / name).mkdir()
         for path in chosen:
             shutil.copy(path, tmp_path / name / path.name)
-    code = identify_main([
-        "--train", str(tmp_path / "train"), "--test", str(tmp_path / "test"), "--out", str(tmp_path / "out"),
-        "--alpha-sweep", "10", "100", "2", "--cv-splits", "2", "--quiet",
-    ])  # two alphas, both too large: the smaller is the best, and the score still rises there
+    code = identify_main(
+        [
+            "--train",
+            str(tmp_path / "train"),
+            "--test",
+            str(tmp_path / "test"),
+            "--out",
+            str(tmp_path / "out"),
+            "--alpha-sweep",
+            "10",
+            "100",
+            "2",
+            "--cv-splits",
+            "2",
+            "--quiet",
+        ]
+    )  # two alphas, both too large: the smaller is the best, and the score still rises there
     err = capsys.readouterr().err
     assert code == 0, err
     lines = [line for line in err.splitlines() if "the sweep's best alpha" in line]

@@ -14,7 +14,7 @@ from test_sdp_cross_check import random_problem
 LIFTING = [Polynomial(2), Delay(1)]
 
 
-LINEAR = [Delay(1)]   # a linear lifting: prediction diverges exactly when the closed loop is unstable
+LINEAR = [Delay(1)]  # a linear lifting: prediction diverges exactly when the closed loop is unstable
 
 
 def _closed_form(controller, trajs, alpha=1.0, lifting=LIFTING):
@@ -32,8 +32,9 @@ def test_an_inactive_constraint_returns_the_closed_form(center, method):
     exact = _closed_form(controller, trajs)
     # A disc comfortably containing every eigenvalue of the unconstrained closed loop.
     radius = 1.5 * _disc_radius(exact, center)
-    fit = ClEdmdStable(controller, lifting=LIFTING, alpha=1.0, measured=[0], max_radius=radius,
-                       center=center, method=method).fit(trajs)
+    fit = ClEdmdStable(
+        controller, lifting=LIFTING, alpha=1.0, measured=[0], max_radius=radius, center=center, method=method
+    ).fit(trajs)
     assert fit.solver_status_ == "optimal" and fit.method_ == method
     rel = np.linalg.norm(fit.koopman_matrix_ - exact.koopman_matrix_) / np.linalg.norm(exact.koopman_matrix_)
     assert rel < 1e-6
@@ -47,8 +48,9 @@ def _unstable_fit_problem():
     closed form's closed loop comes out unstable."""
     A_p, B_p = _PLANT
     controller = DiscreteStateSpace(A=[[0.5]], B=[[1.0]], C=[[0.0]], D=[[0.2]], dt=0.01)
-    trajs = closed_loop_trajectories(A_p, B_p, controller, measured=[0], n_episodes=2, n=120, seed=1,
-                                     process_noise=0.02)
+    trajs = closed_loop_trajectories(
+        A_p, B_p, controller, measured=[0], n_episodes=2, n=120, seed=1, process_noise=0.02
+    )
     return controller, trajs
 
 
@@ -63,8 +65,9 @@ def test_an_active_constraint_holds_to_solver_tolerance(center, radius, method):
     controller, trajs = _unstable_fit_problem()
     exact = _closed_form(controller, trajs, alpha=1e-3, lifting=LINEAR)
     assert _disc_radius(exact, center) > radius
-    fit = ClEdmdStable(controller, lifting=LINEAR, alpha=1e-3, measured=[0], max_radius=radius,
-                       center=center, method=method).fit(trajs)
+    fit = ClEdmdStable(
+        controller, lifting=LINEAR, alpha=1e-3, measured=[0], max_radius=radius, center=center, method=method
+    ).fit(trajs)
     assert fit.method_ == method
     assert _disc_radius(fit, center) <= radius + 1e-6
     assert fit.unconstrained_radius_ == pytest.approx(_disc_radius(exact, center))
@@ -72,8 +75,10 @@ def test_an_active_constraint_holds_to_solver_tolerance(center, radius, method):
     held_out = closed_loop_trajectories(*_PLANT, controller, measured=[0], n_episodes=1, n=400, seed=9)[0]
     r2_exact = r2_score(held_out.x[1:], exact.predict(held_out)[1:])
     r2_fit = r2_score(held_out.x[1:], fit.predict(held_out)[1:])
-    print(f"{method} disc ({center}, {radius}): radius {_disc_radius(exact, center):.5f} -> "
-          f"{_disc_radius(fit, center):.5f}; held-out R^2 {r2_exact:.4f} -> {r2_fit:.4f}")
+    print(
+        f"{method} disc ({center}, {radius}): radius {_disc_radius(exact, center):.5f} -> "
+        f"{_disc_radius(fit, center):.5f}; held-out R^2 {r2_exact:.4f} -> {r2_fit:.4f}"
+    )
     assert np.isfinite(r2_fit) and fit.objective_ > 0
 
 
@@ -81,8 +86,12 @@ def test_an_active_constraint_holds_to_solver_tolerance(center, radius, method):
 def test_the_sqp_costs_no_more_than_the_lmi_and_is_certified(center, radius):
     """The LMI's fixed Lyapunov matrix is a conservative certificate: the SQP's change is smaller."""
     controller, trajs = _unstable_fit_problem()
-    fits = {m: ClEdmdStable(controller, lifting=LINEAR, alpha=1e-3, measured=[0], max_radius=radius,
-                            center=center, method=m).fit(trajs) for m in ("sqp", "lmi")}
+    fits = {
+        m: ClEdmdStable(
+            controller, lifting=LINEAR, alpha=1e-3, measured=[0], max_radius=radius, center=center, method=m
+        ).fit(trajs)
+        for m in ("sqp", "lmi")
+    }
     sqp, lmi = fits["sqp"], fits["lmi"]
     assert sqp.method_ == "sqp" and _disc_radius(sqp, center) < radius
     assert sqp.objective_ <= lmi.objective_ * (1 + 1e-6)
@@ -95,7 +104,7 @@ def test_the_sqp_costs_no_more_than_the_lmi_and_is_certified(center, radius):
         assert P is None or np.linalg.eigvalsh(P)[0] > 0
         return
     assert np.linalg.eigvalsh(P)[0] > 0
-    assert np.allclose(M.T @ P @ M - radius ** 2 * P, -np.eye(len(P)), atol=1e-6 * np.linalg.norm(P))
+    assert np.allclose(M.T @ P @ M - radius**2 * P, -np.eye(len(P)), atol=1e-6 * np.linalg.norm(P))
 
 
 def _scalar_unstable_plant(a=1.01, b=0.1):
@@ -163,12 +172,28 @@ def test_qube_identify_max_radius_on_simulated_logs(tmp_path):
     from qube_koopman.daq.cli.run import main as qube_run
     from qube_koopman.identify.cli.identify import main as qube_identify
 
-    assert qube_run(["--episodes", "3", "--duration", "6", "--seed", "4", "--out", str(tmp_path / "logs"),
-                     "-q"]) == 0
+    assert qube_run(["--episodes", "3", "--duration", "6", "--seed", "4", "--out", str(tmp_path / "logs"), "-q"]) == 0
     logs = sorted(str(p) for p in (tmp_path / "logs").glob("*.mcap"))
     out = tmp_path / "id"
-    assert qube_identify(["--train", *logs[:2], "--test", logs[2], "--poly", "1", "--delays", "2",
-                          "--max-radius", "0.999", "--out", str(out)]) == 0
+    assert (
+        qube_identify(
+            [
+                "--train",
+                *logs[:2],
+                "--test",
+                logs[2],
+                "--poly",
+                "1",
+                "--delays",
+                "2",
+                "--max-radius",
+                "0.999",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "report.json").read_text())
     assert report["method"] == "cl-edmd-stable"
     assert report["spectral_radius"]["closed_loop"] <= 0.999 + 1e-6

@@ -51,8 +51,9 @@ def test_the_objective_is_the_lower_of_cv_and_transfer_and_ranks_by_it():
     # Unprobed alphas (NaN) and diverged probes (-inf) never win.
     unprobed = _candidate(LiftingSpec(), [0.999, 0.5], [np.nan, 0.6])
     assert unprobed.best_alpha == 1e-2
-    diverged = CandidateResult(LiftingSpec(), "test", np.array([1.0]), np.full((3, 1), 0.99), 0.0,
-                               np.array([[0.99], [-np.inf]]))
+    diverged = CandidateResult(
+        LiftingSpec(), "test", np.array([1.0]), np.full((3, 1), 0.99), 0.0, np.array([[0.99], [-np.inf]])
+    )
     assert diverged.score == -np.inf and diverged.as_dict()["transfer_r2"] is None
     # A diverged fold: the spread is undefined, reported as null without numpy's warning on stderr.
     with warnings.catch_warnings():
@@ -67,8 +68,10 @@ def test_the_objective_is_the_lower_of_cv_and_transfer_and_ranks_by_it():
 @pytest.fixture(scope="module")
 def real_train(qube_logs):
     """Eight of the paper's training episodes, cut to 12 s: their excitations drive the twin."""
-    return [replace(log.trajectory, **{k: getattr(log.trajectory, k)[:6000] for k in ("x", "u", "r", "f", "xc")})
-            for log in load_logs(sorted(qube_logs.glob("*.mcap"))[:8], skip=500)]
+    return [
+        replace(log.trajectory, **{k: getattr(log.trajectory, k)[:6000] for k in ("x", "u", "r", "f", "xc")})
+        for log in load_logs(sorted(qube_logs.glob("*.mcap"))[:8], skip=500)
+    ]
 
 
 @pytest.mark.dataset
@@ -80,8 +83,7 @@ def test_probe_scores_are_the_closed_loop_predictions_r2(real_train):
     assert "3 probe PD controllers" in probes.describe()
     for zeros in probes.alpha_offsets:  # drawn as the rig shows them (a few counts off upright)
         assert np.all(np.abs(zeros - 0.0025) < 0.005)
-    plant = ClEdmd(_rig_controller(), lifting=LiftingSpec(delays=5, poly=1).steps(),
-                   alpha=1e-3).fit(short).plant_model_
+    plant = ClEdmd(_rig_controller(), lifting=LiftingSpec(delays=5, poly=1).steps(), alpha=1e-3).fit(short).plant_model_
     scores = probe_scores(plant, probes, WINDOW, offsets=False, bound=0.05)
     expected = []
     for controller, episodes in zip(probes.controllers, probes.episodes):
@@ -116,9 +118,11 @@ def _soft_arm_twin(real_train, params):
         rig, soft = load_pd_gains("rig"), load_pd_gains("soft-theta")
         as_tuple = lambda g: (g.kp_theta, g.kd_theta, g.kp_alpha, g.kd_alpha, g.tau)  # noqa: E731
         _SOFT_ARM_TWIN[key] = (
-            twin_probes(real_train, gains=[as_tuple(rig)], per_controller=24, seed=11, zero_offsets=None,
-                        params=params),
-            twin_probes(real_train, gains=[as_tuple(soft)], per_controller=24, seed=12, params=params))
+            twin_probes(
+                real_train, gains=[as_tuple(rig)], per_controller=24, seed=11, zero_offsets=None, params=params
+            ),
+            twin_probes(real_train, gains=[as_tuple(soft)], per_controller=24, seed=12, params=params),
+        )
     return _SOFT_ARM_TWIN[key]
 
 
@@ -133,9 +137,13 @@ def _soft_arm_offset_errors(real_train, params, spec=LiftingSpec(delays=20, poly
         errors[weighted] = (np.array([e.values[0] for e in est]) - test.alpha_offsets[0]) / COUNT
         if weighted:
             assert all(e.status == "ok" and np.isfinite(e.std_error[0]) for e in est)
-    rms = {w: float(np.sqrt(np.mean(e ** 2))) for w, e in errors.items()}
-    print(f"{spec.label()}: offset errors (counts): " + "; ".join(
-        f"{'weighted' if w else 'unweighted'} bias {e.mean():+.2f} rms {rms[w]:.2f}" for w, e in errors.items()))
+    rms = {w: float(np.sqrt(np.mean(e**2))) for w, e in errors.items()}
+    print(
+        f"{spec.label()}: offset errors (counts): "
+        + "; ".join(
+            f"{'weighted' if w else 'unweighted'} bias {e.mean():+.2f} rms {rms[w]:.2f}" for w, e in errors.items()
+        )
+    )
     return errors, rms
 
 
@@ -171,10 +179,10 @@ def test_offsets_on_the_calibrated_twin_are_unbiased_with_the_friction_lifting(r
     # the arm's friction shape): the model now has the friction the linear one lacked, and the
     # estimate is unbiased. Measured with a 1 s window on these 12 s episodes: bias +0.07, rms 0.22
     # counts (seeds 21, 31, 41: +0.11 / 0.24, +0.16 / 0.24, +0.12 / 0.19).
-    errors, rms = _soft_arm_offset_errors(real_train, None, LiftingSpec(delays=35, poly=3, friction=True),
-                                          unweighted=False)
+    errors, rms = _soft_arm_offset_errors(
+        real_train, None, LiftingSpec(delays=35, poly=3, friction=True), unweighted=False
+    )
     assert abs(errors[True].mean()) <= 0.2 and rms[True] <= 0.25
-
 
 
 def test_offset_status_says_flat_and_beyond_bound_aloud():
@@ -190,8 +198,14 @@ def test_offset_status_says_flat_and_beyond_bound_aloud():
     beyond = estimate(0.08, 1e-4)
     assert beyond.status == "beyond bound" and beyond.as_mapping() == {}
     row = flat.as_dict(["alpha"])
-    assert row == {"alpha": 0.003, "alpha_std_error": 0.02, "plausible": True, "status": "flat",
-                   "rms_before": 0.01, "rms_after": 0.005}
+    assert row == {
+        "alpha": 0.003,
+        "alpha_std_error": 0.02,
+        "plausible": True,
+        "status": "flat",
+        "rms_before": 0.01,
+        "rms_after": 0.005,
+    }
     assert estimate(0.003, np.inf).as_dict(["alpha"])["alpha_std_error"] is None  # strict JSON
 
 
@@ -200,10 +214,18 @@ def _short_sources(n: int = 3, samples: int = 1200):
     from qube_koopman.identify.data.trajectory import Trajectory
 
     t = np.arange(samples)
-    return [Trajectory(x=np.zeros((samples, 2)), u=np.zeros((samples, 1)),
-                       r=np.column_stack([0.03 * (k + 1) * np.sign(np.sin(2 * np.pi * t / 600)), np.zeros(samples)]),
-                       f=np.zeros((samples, 1)), xc=np.zeros((samples, 2)), dt=0.002, name=f"s{k}")
-            for k in range(n)]
+    return [
+        Trajectory(
+            x=np.zeros((samples, 2)),
+            u=np.zeros((samples, 1)),
+            r=np.column_stack([0.03 * (k + 1) * np.sign(np.sin(2 * np.pi * t / 600)), np.zeros(samples)]),
+            f=np.zeros((samples, 1)),
+            xc=np.zeros((samples, 2)),
+            dt=0.002,
+            name=f"s{k}",
+        )
+        for k in range(n)
+    ]
 
 
 def test_a_cached_probe_set_is_the_simulated_one_and_changes_with_what_it_depends_on(tmp_path, monkeypatch):
@@ -234,8 +256,9 @@ def test_a_cached_probe_set_is_the_simulated_one_and_changes_with_what_it_depend
     other_twin = changed(PendulumParameters(), Kr=PendulumParameters().Kr + 1e-4)
     other_excitation = [changed(sources[0], r=sources[0].r * 0.5)] + sources[1:]
     for kwargs in ({"params": other_twin}, {"seed": 1}, {"skip": 101}, {}):
-        twin_probes(other_excitation if not kwargs else sources, per_controller=1,
-                    **({"skip": 100} | kwargs), cache=tmp_path)
+        twin_probes(
+            other_excitation if not kwargs else sources, per_controller=1, **({"skip": 100} | kwargs), cache=tmp_path
+        )
     assert len(list(tmp_path.glob("probes-*.npz"))) == 5
 
 
@@ -260,11 +283,13 @@ def test_probes_on_session_twins_run_each_episode_on_its_own_twin(tmp_path):
     twins = session_twins()
     assert len(twins) == 6 and len({(t.delay, t.Kr) for t in twins}) == 6
     assert {t.delay for t in twins} == {0.6e-3, 1.35e-3, 4.1e-3}
-    assert all(replace(t, delay=PendulumParameters().delay, Kr=PendulumParameters().Kr) == PendulumParameters()
-               for t in twins)  # only the delay and the cables vary
+    assert all(
+        replace(t, delay=PendulumParameters().delay, Kr=PendulumParameters().Kr) == PendulumParameters() for t in twins
+    )  # only the delay and the cables vary
     mixed = [twins[0], twins[5]]  # 0.6 ms and the softer cables; 4.1 ms and the stiffer
-    varied = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=mixed, skip=100,
-                         cache=tmp_path)
+    varied = twin_probes(
+        sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=mixed, skip=100, cache=tmp_path
+    )
     assert varied.n_twins == 2 and "2 variants" in varied.describe()
     for k, twin in enumerate(mixed):
         alone = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=twin, skip=100)
@@ -274,8 +299,9 @@ def test_probes_on_session_twins_run_each_episode_on_its_own_twin(tmp_path):
             np.testing.assert_array_equal(varied.episodes[0][j].u, alone.episodes[0][j].u)
     nominal = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, skip=100)
     assert not np.array_equal(varied.episodes[0][1].u, nominal.episodes[0][1].u)
-    again = twin_probes(sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=mixed, skip=100,
-                        cache=tmp_path)
+    again = twin_probes(
+        sources, gains=[(2.0, 2.0, 35.0, 3.0, 50.0)], per_controller=4, params=mixed, skip=100, cache=tmp_path
+    )
     assert again.n_twins == 2 and np.array_equal(again.episodes[0][3].x, varied.episodes[0][3].x)
 
 

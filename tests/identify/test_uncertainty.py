@@ -13,9 +13,19 @@ from qube_koopman.identify import ClEdmd, Trajectory
 from qube_koopman.identify.models.offsets import OffsetEstimate
 from qube_koopman.identify.metrics import DivergedPrediction
 from qube_koopman.identify.model_selection.sweep import fitted_models
-from qube_koopman.identify.uncertainty import (CalibrationOptions, EpisodePrediction, IntervalCalibration,
-                                               IntervalOptions, Loop, calibrate, ensemble_statistics, fit_ensemble,
-                                               predict_episodes, prediction_band, summarize_bands)
+from qube_koopman.identify.uncertainty import (
+    CalibrationOptions,
+    EpisodePrediction,
+    IntervalCalibration,
+    IntervalOptions,
+    Loop,
+    calibrate,
+    ensemble_statistics,
+    fit_ensemble,
+    predict_episodes,
+    prediction_band,
+    summarize_bands,
+)
 from qube_koopman.core.lti import DiscreteStateSpace
 
 DT = 0.01
@@ -32,8 +42,9 @@ def ar1_loop(n_episodes: int, n_samples: int, seed: int) -> list[Trajectory]:
     return loop_episodes(n_episodes, GAIN, B_P, seed, n_samples, feedforward=False)
 
 
-def loop_episodes(n_episodes: int, gain: float, b_plant: float, seed: int, n_samples: int = 300,
-                  feedforward: bool = True) -> list[Trajectory]:
+def loop_episodes(
+    n_episodes: int, gain: float, b_plant: float, seed: int, n_samples: int = 300, feedforward: bool = True
+) -> list[Trajectory]:
     """Episodes of the first-order loop under ``u = gain (r - x)`` with the plant's input gain ``b_plant``
     (with a zero feedforward signal when ``feedforward``: a wrapped plant's loop takes one)."""
     rng = np.random.default_rng(seed)
@@ -46,8 +57,11 @@ def loop_episodes(n_episodes: int, gain: float, b_plant: float, seed: int, n_sam
             u = gain * (r[k, 0] - x[k, 0])
             x[k + 1] = A_P * x[k] + b_plant * u + SIGMA * rng.standard_normal()
         f = np.zeros((n_samples, 1)) if feedforward else None
-        episodes.append(Trajectory(x=x, r=r, f=f, xc=np.zeros((n_samples, 1)), name=f"g{gain}-{i}" if feedforward
-                                   else f"e{i}", dt=DT))
+        episodes.append(
+            Trajectory(
+                x=x, r=r, f=f, xc=np.zeros((n_samples, 1)), name=f"g{gain}-{i}" if feedforward else f"e{i}", dt=DT
+            )
+        )
     return episodes
 
 
@@ -60,8 +74,10 @@ def _bands(fit, calibration, episodes, measured=(0,)):
     models = [fit.estimator.closed_loop_model_] + [closed for closed, _ in fit.members]
     with warnings.catch_warnings():
         warnings.simplefilter("error", DivergedPrediction)
-        return [prediction_band(t.name, t, p, calibration, 1, 0)
-                for t, p in zip(episodes, predict_episodes(models, episodes))]
+        return [
+            prediction_band(t.name, t, p, calibration, 1, 0)
+            for t, p in zip(episodes, predict_episodes(models, episodes))
+        ]
 
 
 def test_intervals_cover_a_first_order_loop_at_the_level_and_match_its_predictive_spread(ar1):
@@ -76,7 +92,7 @@ def test_intervals_cover_a_first_order_loop_at_the_level_and_match_its_predictiv
     # samples tell it, the true model's own errors give 14 on 30 such episodes, 10.4 on 200), and at long
     # horizons the half-width is the normal quantile times the stationary standard deviation.
     assert calibration.timescale_[0] == pytest.approx(-1 / (2 * np.log(RHO)), rel=0.5)
-    stationary = SIGMA / np.sqrt(1 - RHO ** 2)
+    stationary = SIGMA / np.sqrt(1 - RHO**2)
     assert np.sqrt(calibration.scale_[0]) == pytest.approx(stationary, rel=0.1)
     assert calibration.factor_[0] == pytest.approx(1.645, rel=0.1)
 
@@ -95,8 +111,9 @@ def test_the_bootstrap_weighted_factors_are_a_fit_on_the_duplicated_episodes(ar1
     np.testing.assert_allclose(closed[0].koopman_matrix[:rows], direct.koopman_matrix[:rows], rtol=1e-9, atol=1e-12)
     # The total of all the episodes is the plain fit's, bit for bit.
     estimator.finish_fit(setup, total)
-    np.testing.assert_array_equal(estimator.koopman_matrix_,
-                                  ClEdmd(P_CONTROLLER, alpha=1e-3).fit(train).koopman_matrix_)
+    np.testing.assert_array_equal(
+        estimator.koopman_matrix_, ClEdmd(P_CONTROLLER, alpha=1e-3).fit(train).koopman_matrix_
+    )
 
 
 def _estimate(std_error: float) -> OffsetEstimate:
@@ -168,8 +185,11 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     def controller(gain):
         return DiscreteStateSpace([[0.0]], [[0.0]], [[0.0]], [[gain]], DT)
 
-    probes = ProbeSet([controller(1.2), controller(1.8)],
-                      [loop_episodes(20, 1.2, 0.16, seed=3), loop_episodes(20, 1.8, 0.16, seed=4)], [])
+    probes = ProbeSet(
+        [controller(1.2), controller(1.8)],
+        [loop_episodes(20, 1.2, 0.16, seed=3), loop_episodes(20, 1.8, 0.16, seed=4)],
+        [],
+    )
     on_probes = calibrate_on_probes(fit, probes, CalibrationOptions(level, stride=1))
     # Its members' spread is the same sort as the held-out one; the model error is larger.
     assert on_probes.scale_[0] > 1.3 * held_out.scale_[0]
@@ -177,8 +197,9 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     episodes = probes.episodes[0] + probes.episodes[1]
     loops = [Loop("wrapped", c) for c, group in zip(probes.controllers, probes.episodes) for _ in group]
     point = (fit.estimator.closed_loop_model_, fit.estimator.plant_model_)
-    one_fold = dataclasses.replace(fit, folds=[dataclasses.replace(fit.folds[0], validation=np.arange(40),
-                                                                   point=point, members=fit.members)])
+    one_fold = dataclasses.replace(
+        fit, folds=[dataclasses.replace(fit.folds[0], validation=np.arange(40), point=point, members=fit.members)]
+    )
     again = calibrate(one_fold, episodes, loops, CalibrationOptions(level, stride=1))
     np.testing.assert_allclose(on_probes.scale_, again.scale_, rtol=1e-12)
     np.testing.assert_allclose(on_probes.factor_, again.factor_, rtol=1e-12)
@@ -234,8 +255,10 @@ def test_the_widest_calibration_takes_each_channel_from_the_wider_band():
     np.testing.assert_array_equal(w.factor_, [2.0, 3.0])
     assert (w.n_samples_, w.n_diverged_) == (200, 2)
     variances, horizons = np.zeros((5, 2)), np.array([1, 10, 100, 1_000, 10_000])
-    np.testing.assert_allclose(w.half_width(variances, horizons),
-                               np.maximum(a.half_width(variances, horizons), b.half_width(variances, horizons)))
+    np.testing.assert_allclose(
+        w.half_width(variances, horizons),
+        np.maximum(a.half_width(variances, horizons), b.half_width(variances, horizons)),
+    )
     # A band that grows slowly to the wider limit (c: 2 sqrt(0.04) = 0.4 after 1000 samples) is the narrower
     # one at short horizons (d: 1.2 sqrt(0.09) = 0.36 after 10): the widest band is d's there, c's far out.
     c, d = fitted([0.04, 0.01], [1000.0, 20.0], [2.0, 2.0]), fitted([0.09, 0.01], [10.0, 20.0], [1.2, 1.0])
@@ -278,10 +301,10 @@ def test_the_folds_predicted_together_are_each_folds_own_predictions(ar1, offset
     from qube_koopman.identify.uncertainty import predict_groups
 
     train = ar1[0][:12]
-    fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-3), train, IntervalOptions(n_members=3, n_calibration_members=3,
-                                                                                n_folds=3))
-    shorter = dataclasses.replace(train[0], x=train[0].x[:200], r=train[0].r[:200], xc=train[0].xc[:200],
-                                  name="short")
+    fit = fit_ensemble(
+        ClEdmd(P_CONTROLLER, alpha=1e-3), train, IntervalOptions(n_members=3, n_calibration_members=3, n_folds=3)
+    )
+    shorter = dataclasses.replace(train[0], x=train[0].x[:200], r=train[0].r[:200], xc=train[0].xc[:200], name="short")
     groups = []
     for i, fold in enumerate(fit.folds):  # unequal groups: one more episode (a shorter one) in the first
         episodes = [train[j] for j in fold.validation] + ([shorter] if i == 0 else [])
@@ -330,8 +353,11 @@ def test_the_design_figures_reuse_the_calibrations_held_out_predictions(offsets)
 
     train = _two_state_loop(12, 300, seed=7)
     controllers = [P_CONTROLLER] * len(train)
-    fit = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-3, measured=[0]), train,
-                       IntervalOptions(n_members=3, n_calibration_members=3, n_folds=3))
+    fit = fit_ensemble(
+        ClEdmd(P_CONTROLLER, alpha=1e-3, measured=[0]),
+        train,
+        IntervalOptions(n_members=3, n_calibration_members=3, n_folds=3),
+    )
     expected = held_out.held_out_figures(fit, train, controllers, [0], 20)
     points: dict = {}
     calibrate(fit, train, [Loop("closed")] * len(train), CalibrationOptions(0.9, 60, offsets, [0]), points=points)

@@ -10,18 +10,21 @@ from qube_koopman.identify.workflow import FitOptions, IdentifyOptions, OffsetPr
 WHAT_IF = pd_controller(PdGains(-2.0, -0.5, 20.0, 1.0, 0.01))
 
 
-@pytest.mark.parametrize("fit, scoring, extra, message", [
-    ("arx", ScoreOptions("plant", offsets=OffsetProtocol(("alpha",))), {}, "need a Koopman method, not arx"),
-    ("cl-arx", ScoreOptions(), {"intervals": IntervalOptions(0.9)}, "need a Koopman method, not cl-arx"),
-    ("cl-arx", ScoreOptions(), {"ahead": AheadOptions((0.1,))}, "need a Koopman method, not cl-arx"),
-    ("arx", ScoreOptions("cl"), {}, "ARX models the plant only"),
-    ("cl-edmd", ScoreOptions("plant", what_if=WHAT_IF), {}, "a what-if controller predicts the closed loop"),
-    ("cl-edmd", ScoreOptions("plant", command_delay=1.0), {}, "a command delay changes the predicted loop"),
-    ("cl-arx", ScoreOptions("cl", command_delay="estimate"), {}, "a command delay changes the predicted loop"),
-    ("cl-edmd", ScoreOptions(command_delay="soon"), {}, "a number of sample periods or 'estimate', got 'soon'"),
-    ("cl-edmd", ScoreOptions(command_delay=-1.0), {}, "must be 0 or more sample periods, got -1.0"),
-    ("sindy", ScoreOptions(), {}, "unknown method 'sindy'"),
-])
+@pytest.mark.parametrize(
+    "fit, scoring, extra, message",
+    [
+        ("arx", ScoreOptions("plant", offsets=OffsetProtocol(("alpha",))), {}, "need a Koopman method, not arx"),
+        ("cl-arx", ScoreOptions(), {"intervals": IntervalOptions(0.9)}, "need a Koopman method, not cl-arx"),
+        ("cl-arx", ScoreOptions(), {"ahead": AheadOptions((0.1,))}, "need a Koopman method, not cl-arx"),
+        ("arx", ScoreOptions("cl"), {}, "ARX models the plant only"),
+        ("cl-edmd", ScoreOptions("plant", what_if=WHAT_IF), {}, "a what-if controller predicts the closed loop"),
+        ("cl-edmd", ScoreOptions("plant", command_delay=1.0), {}, "a command delay changes the predicted loop"),
+        ("cl-arx", ScoreOptions("cl", command_delay="estimate"), {}, "a command delay changes the predicted loop"),
+        ("cl-edmd", ScoreOptions(command_delay="soon"), {}, "a number of sample periods or 'estimate', got 'soon'"),
+        ("cl-edmd", ScoreOptions(command_delay=-1.0), {}, "must be 0 or more sample periods, got -1.0"),
+        ("sindy", ScoreOptions(), {}, "unknown method 'sindy'"),
+    ],
+)
 def test_contradicting_options_are_refused_when_made(fit, scoring, extra, message):
     with pytest.raises(ValueError, match=message):
         IdentifyOptions(FitOptions(fit), scoring, **extra)

@@ -26,8 +26,24 @@ def collected(tmp_path_factory):
     # A second set under other gains, to predict with the plant identified under the first.
     toml = root / "stiffer.toml"
     toml.write_text("kp_theta = 6.0\nkd_theta = 1.8\nkp_alpha = 35.0\nkd_alpha = 3.0\ntau = 50.0\n")
-    assert qube_run(["--episodes", "3", "--duration", "10", "--seed", "2", "--controller", str(toml),
-                     "--out", str(root / "b"), "-q"]) == 0
+    assert (
+        qube_run(
+            [
+                "--episodes",
+                "3",
+                "--duration",
+                "10",
+                "--seed",
+                "2",
+                "--controller",
+                str(toml),
+                "--out",
+                str(root / "b"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     logs = sorted((root / "a").glob("*.mcap"))  # by name: the order they ran
     return root, [str(p) for p in logs[:5]], [str(p) for p in logs[5:]], str(root / "b")
 

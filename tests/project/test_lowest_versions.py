@@ -19,9 +19,16 @@ ROOT = Path(__file__).resolve().parents[2]
 PINS = ROOT / ".ci" / "lowest-versions.txt"
 # One seed of the SDP cross-check (cvxpy + clarabel: clarabel 0.6.0 failed it at closed_loop-5.0).
 SDP = "tests/identify/test_sdp_cross_check.py::test_closed_form_equals_sdp"
-SMOKE_TESTS = ["tests/daq/test_log.py", "tests/daq/test_export.py", "tests/identify/test_analytic.py", "tests/identify/test_appendix_lstsq.py",
-               "tests/daq/test_viz_recording.py", f"{SDP}[closed_loop-0.0-2]", f"{SDP}[closed_loop-5.0-2]",
-               f"{SDP}[plant-5.0-2]"]
+SMOKE_TESTS = [
+    "tests/daq/test_log.py",
+    "tests/daq/test_export.py",
+    "tests/identify/test_analytic.py",
+    "tests/identify/test_appendix_lstsq.py",
+    "tests/daq/test_viz_recording.py",
+    f"{SDP}[closed_loop-0.0-2]",
+    f"{SDP}[closed_loop-5.0-2]",
+    f"{SDP}[plant-5.0-2]",
+]
 
 #: The 48 files' CSV round trip reaches no dependency the other export tests do not (numpy's text
 #: output): half the subset's time, and the main suite runs it.
@@ -64,8 +71,9 @@ def _run(args: list, cwd: Path, timeout: float = 600) -> subprocess.CompletedPro
 
 
 def _unreachable(done: subprocess.CompletedProcess) -> bool:
-    return done.returncode != 0 and bool(re.search(r"(?i)connection|network is unreachable|temporary failure",
-                                                   done.stdout + done.stderr))
+    return done.returncode != 0 and bool(
+        re.search(r"(?i)connection|network is unreachable|temporary failure", done.stdout + done.stderr)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +81,10 @@ def built_wheel(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     """The wheel built from this checkout by pip (verbose, for the build's warnings), once for the
     module: the venv below installs this file rather than building it a second time."""
     tmp_path = tmp_path_factory.mktemp("wheel")
-    built = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--disable-pip-version-check", "-v",
-                  "-w", tmp_path, ROOT], tmp_path)
+    built = _run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--disable-pip-version-check", "-v", "-w", tmp_path, ROOT],
+        tmp_path,
+    )
     if _unreachable(built):
         pytest.skip("PyPI not reachable (the build backend comes from it)")
     assert built.returncode == 0, built.stderr[-3000:]
@@ -93,26 +103,51 @@ def lowest_venv(tmp_path_factory, built_wheel) -> Path:
     # The runtime and viewer dependencies at their floors, and only what the smoke subset runs with
     # (pytest, hypothesis, pytest-xdist for the addopts): the test extra's documentation, notebook,
     # linter and cluster tools have no floor here, and installing them took most of this test's time.
-    install = _run([python, "-m", "pip", "install", "--disable-pip-version-check", "--only-binary", ":all:",
-                    "-c", PINS, f"{built_wheel[0]}[viz]", *SMOKE_RUNNER, "identify"], tmp_path, timeout=900)
+    install = _run(
+        [
+            python,
+            "-m",
+            "pip",
+            "install",
+            "--disable-pip-version-check",
+            "--only-binary",
+            ":all:",
+            "-c",
+            PINS,
+            f"{built_wheel[0]}[viz]",
+            *SMOKE_RUNNER,
+            "identify",
+        ],
+        tmp_path,
+        timeout=900,
+    )
     if _unreachable(install):
         pytest.skip(f"PyPI not reachable: {install.stderr.strip().splitlines()[-1]}")
     assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
     return env_dir
 
 
-COMMANDS = ["qube-run", "qube-identify", "qube-reproduce", "qube-import", "qube-export", "qube-emulate",
-            "qube-calibrate"]
+COMMANDS = [
+    "qube-run",
+    "qube-identify",
+    "qube-reproduce",
+    "qube-import",
+    "qube-export",
+    "qube-emulate",
+    "qube-calibrate",
+]
 
 
 @pytest.mark.slow
 @pytest.mark.network
 def test_the_wheel_installs_beside_pypi_identify(lowest_venv, tmp_path):
     python = lowest_venv / "bin" / "python"
-    code = ("import identify, identify.identify, qube_koopman.identify, qube_koopman.daq, qube_koopman.sim, "
-            "qube_koopman.firmware_protocol; from qube_koopman.identify import ClEdmd; "
-            "print(identify.__file__); print(qube_koopman.identify.__file__); "
-            "print(identify.identify.tags_from_filename('x.py'))")
+    code = (
+        "import identify, identify.identify, qube_koopman.identify, qube_koopman.daq, qube_koopman.sim, "
+        "qube_koopman.firmware_protocol; from qube_koopman.identify import ClEdmd; "
+        "print(identify.__file__); print(qube_koopman.identify.__file__); "
+        "print(identify.identify.tags_from_filename('x.py'))"
+    )
     done = _run([python, "-c", code], tmp_path)  # outside the checkout: only installed code is seen
     assert done.returncode == 0, done.stderr[-3000:]
     theirs, ours, tags = done.stdout.split("\n")[:3]
@@ -138,13 +173,36 @@ def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(lowest_venv, tm
     # The commands, from the installed wheel: acquire, record, identify, export.
     logs, held_out = tmp_path / "logs", tmp_path / "held_out"
     steps = [
-        [bin_dir / "qube-run", "--episodes", "4", "--duration", "2", "--seed", "1", "--out", logs,
-         "--rerun-save", tmp_path / "run.rrd", "-q"],
+        [
+            bin_dir / "qube-run",
+            "--episodes",
+            "4",
+            "--duration",
+            "2",
+            "--seed",
+            "1",
+            "--out",
+            logs,
+            "--rerun-save",
+            tmp_path / "run.rrd",
+            "-q",
+        ],
         [bin_dir / "qube-run", "--episodes", "1", "--duration", "2", "--seed", "2", "--out", held_out, "-q"],
         [bin_dir / "rerun", "rrd", "verify", tmp_path / "run.rrd"],
         # training and test logs apart: qube-identify refuses a log given as both
-        [bin_dir / "qube-identify", "--train", logs, "--test", held_out, "--delays", "2", "--out", tmp_path / "model",
-         "--rerun-save", tmp_path / "id.rrd"],
+        [
+            bin_dir / "qube-identify",
+            "--train",
+            logs,
+            "--test",
+            held_out,
+            "--delays",
+            "2",
+            "--out",
+            tmp_path / "model",
+            "--rerun-save",
+            tmp_path / "id.rrd",
+        ],
         [bin_dir / "qube-export", logs, "--format", "parquet", "--out", tmp_path / "pq", "-q"],
         [bin_dir / "qube-export", logs, "--format", "mat", "--out", tmp_path / "mat", "-q"],
     ]
@@ -155,8 +213,22 @@ def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(lowest_venv, tm
     assert f"def {name}(" in (ROOT / file).read_text()  # a renamed test would be deselected silently
     # A subset of the tests that reaches every dependency (run from the sources), in this process: the
     # suite's other worker keeps the second core busy, and two workers of its own each imported it all.
-    tests = _run([python, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0", *SMOKE_TESTS,
-                  "--deselect", SMOKE_DESELECTED], ROOT)
+    tests = _run(
+        [
+            python,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            "-n",
+            "0",
+            *SMOKE_TESTS,
+            "--deselect",
+            SMOKE_DESELECTED,
+        ],
+        ROOT,
+    )
     assert tests.returncode == 0, tests.stdout[-4000:] + tests.stderr[-2000:]
 
 

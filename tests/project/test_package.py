@@ -15,11 +15,22 @@ def test_every_public_function_and_class_is_documented():
     assert not missing, f"undocumented: {missing}"
 
 
-@pytest.mark.parametrize("module", ["qube_koopman.identify", "qube_koopman.sim", "qube_koopman.daq", "qube_koopman.reproduce.cli",
-                                    "qube_koopman.design", "qube_koopman.design.cli.design"])
+@pytest.mark.parametrize(
+    "module",
+    [
+        "qube_koopman.identify",
+        "qube_koopman.sim",
+        "qube_koopman.daq",
+        "qube_koopman.reproduce.cli",
+        "qube_koopman.design",
+        "qube_koopman.design.cli.design",
+    ],
+)
 def test_import_has_no_heavy_side_effects(module):
-    code = (f"import sys, {module}; heavy = [m for m in ('cvxpy', 'control', 'matplotlib', 'rerun', 'mcap')"
-            " if m in sys.modules]; print(','.join(heavy))")
+    code = (
+        f"import sys, {module}; heavy = [m for m in ('cvxpy', 'control', 'matplotlib', 'rerun', 'mcap')"
+        " if m in sys.modules]; print(','.join(heavy))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
 
@@ -32,8 +43,11 @@ def test_the_installed_package_list_covers_every_source_folder():
 
     root = Path(__file__).resolve().parents[2]
     tool = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
-    folders = {"qube_koopman." + str(init.parent.relative_to(root)).replace("/", ".")
-               for top in tool["package-dir"].values() for init in (root / top).rglob("__init__.py")}
+    folders = {
+        "qube_koopman." + str(init.parent.relative_to(root)).replace("/", ".")
+        for top in tool["package-dir"].values()
+        for init in (root / top).rglob("__init__.py")
+    }
     assert set(tool["packages"]) == folders
     for name, folder in tool["package-dir"].items():
         assert name == f"qube_koopman.{folder}"
@@ -46,8 +60,12 @@ def test_imports_point_one_way_nothing_below_design_imports_it():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    offenders = [str(path.relative_to(root)) for top in ("firmware_protocol", "sim", "daq", "identify")
-                 for path in (root / top).rglob("*.py") if "qube_koopman.design" in path.read_text()]
+    offenders = [
+        str(path.relative_to(root))
+        for top in ("firmware_protocol", "sim", "daq", "identify")
+        for path in (root / top).rglob("*.py")
+        if "qube_koopman.design" in path.read_text()
+    ]
     assert not offenders
 
 
@@ -56,9 +74,14 @@ def test_core_imports_no_other_package_of_the_toolkit():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    offenders = [str(path.relative_to(root)) for path in (root / "core").rglob("*.py")
-                 if any(f"qube_koopman.{top}" in path.read_text()
-                        for top in ("firmware_protocol", "sim", "daq", "identify", "design", "reproduce"))]
+    offenders = [
+        str(path.relative_to(root))
+        for path in (root / "core").rglob("*.py")
+        if any(
+            f"qube_koopman.{top}" in path.read_text()
+            for top in ("firmware_protocol", "sim", "daq", "identify", "design", "reproduce")
+        )
+    ]
     assert not offenders
 
 
@@ -74,8 +97,11 @@ def _modules(*tops):
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    return [(path.relative_to(root), ast.parse(path.read_text()))
-            for top in tops for path in sorted((root / top).rglob("*.py"))]
+    return [
+        (path.relative_to(root), ast.parse(path.read_text()))
+        for top in tops
+        for path in sorted((root / top).rglob("*.py"))
+    ]
 
 
 def test_every_import_points_down_the_layers():
@@ -86,10 +112,15 @@ def test_every_import_points_down_the_layers():
     offenders = []
     for path, tree in _modules(*LAYERS, *APPLICATIONS):
         top = path.parts[0]
-        above = (LAYERS[LAYERS.index(top) + 1:] if top in LAYERS else ("design",)) + APPLICATIONS
+        above = (LAYERS[LAYERS.index(top) + 1 :] if top in LAYERS else ("design",)) + APPLICATIONS
         for node in ast.walk(tree):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module]
+                if isinstance(node, ast.ImportFrom) and node.module
+                else []
+            )
             for name in names:
                 parts = name.split(".")
                 if parts[0] == "qube_koopman" and len(parts) > 1 and parts[1] in above and parts[1] != top:
@@ -105,10 +136,18 @@ def test_the_applications_share_no_command_helper_of_identify_cli():
     offenders = []
     for path, tree in _modules(*(top for top in LAYERS + APPLICATIONS if top != "identify")):
         for node in ast.walk(tree):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
-            offenders += [f"{path}:{node.lineno} imports {name}" for name in names
-                          if name == "qube_koopman.identify.cli" or name.startswith("qube_koopman.identify.cli.")]
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module]
+                if isinstance(node, ast.ImportFrom) and node.module
+                else []
+            )
+            offenders += [
+                f"{path}:{node.lineno} imports {name}"
+                for name in names
+                if name == "qube_koopman.identify.cli" or name.startswith("qube_koopman.identify.cli.")
+            ]
     assert not offenders
 
 
@@ -176,8 +215,12 @@ def test_the_uncertainty_functions_are_short_and_take_few_parameters():
 def test_the_identify_workflow_functions_are_short_and_take_few_parameters():
     # identify_and_score's settings come in one IdentifyOptions, and its stages (fit, intervals, model file,
     # test scores, K-step predictions) are functions of their own.
-    offenders = [hit for path, tree in _modules("identify") if path.as_posix() == "identify/workflow.py"
-                 for hit in _long_functions(tree, path)]
+    offenders = [
+        hit
+        for path, tree in _modules("identify")
+        if path.as_posix() == "identify/workflow.py"
+        for hit in _long_functions(tree, path)
+    ]
     assert not offenders
 
 
@@ -188,7 +231,9 @@ def test_the_function_size_check_finds_what_it_is_for():
     eight = "def eight(self, a, b, c, d, e, f, g, h):\n    return a\n"
     long = "def long():\n" + "    x = 1\n" * 79 + "    return x\n"
     assert _long_functions(ast.parse(many + eight + long), "m.py") == [
-        "m.py:1 many: 2 lines, 9 parameters", "m.py:5 long: 81 lines, 0 parameters"]
+        "m.py:1 many: 2 lines, 9 parameters",
+        "m.py:5 long: 81 lines, 0 parameters",
+    ]
 
 
 def test_identify_reads_logs_in_its_data_package_only():
@@ -199,11 +244,17 @@ def test_identify_reads_logs_in_its_data_package_only():
     offenders = []
     for path, tree in _modules("identify"):
         for node in ast.walk(tree):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module]
+                if isinstance(node, ast.ImportFrom) and node.module
+                else []
+            )
             for name in names:
-                if name.startswith("qube_koopman.daq") and (path.parts[1] != "data" or not name.startswith(
-                        "qube_koopman.daq.log")):
+                if name.startswith("qube_koopman.daq") and (
+                    path.parts[1] != "data" or not name.startswith("qube_koopman.daq.log")
+                ):
                     offenders.append(f"{path}:{node.lineno} imports {name}")
     assert not offenders
 
@@ -220,10 +271,12 @@ def test_every_command_is_written_with_the_toolkit_of_core():
     from qube_koopman.core import cli, command, console
 
     toolkit = {*cli.__all__, *console.__all__, *command.__all__, "_Fail", "fail"}
-    again = [f"{path}:{node.lineno} defines {node.name}"
-             for path, tree in _modules(*LAYERS[1:], *APPLICATIONS)
-             for node in ast.walk(tree)
-             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name in toolkit]
+    again = [
+        f"{path}:{node.lineno} defines {node.name}"
+        for path, tree in _modules(*LAYERS[1:], *APPLICATIONS)
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name in toolkit
+    ]
     assert not again
 
     root = Path(__file__).resolve().parents[2]
@@ -234,7 +287,9 @@ def test_every_command_is_written_with_the_toolkit_of_core():
         module, function = target.removeprefix("qube_koopman.").split(":")
         tree = ast.parse((root / (module.replace(".", "/") + ".py")).read_text())
         main = next(node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == function)
-        calls = {node.func.id for node in ast.walk(main) if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
+        calls = {
+            node.func.id for node in ast.walk(main) if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+        }
         if "run_command" not in calls:
             without.append(name)
     assert not without, f"commands not run through core.command.run_command: {without}"
@@ -257,8 +312,13 @@ def test_ruff_formats_the_packages_as_they_are():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    checked = subprocess.run([*_ruff(), "format", "--check", "--no-cache", "--config", str(root / "pyproject.toml"),
-                              *LAYERS, *APPLICATIONS], cwd=root, capture_output=True, text=True, timeout=300)
+    checked = subprocess.run(
+        [*_ruff(), "format", "--check", "--no-cache", "--config", str(root / "pyproject.toml"), *LAYERS, *APPLICATIONS],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert checked.returncode == 0, "run `ruff format` on:\n" + checked.stdout[-8000:] + checked.stderr[-2000:]
 
 
@@ -268,9 +328,13 @@ def test_ruff_finds_nothing_in_the_packages():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    checked = subprocess.run([*_ruff(), "check", "--no-cache", "--config", str(root / "pyproject.toml"),
-                              *LAYERS, *APPLICATIONS],
-                             cwd=root, capture_output=True, text=True, timeout=300)
+    checked = subprocess.run(
+        [*_ruff(), "check", "--no-cache", "--config", str(root / "pyproject.toml"), *LAYERS, *APPLICATIONS],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]
 
 
@@ -293,9 +357,24 @@ def test_mypy_finds_nothing_in_the_packages(tmp_path):
     tree.mkdir()
     for top in (*LAYERS, *APPLICATIONS):
         (tree / top).symlink_to(root / top, target_is_directory=True)
-    checked = subprocess.run([sys.executable, "-m", "mypy", "-p", "qube_koopman", "--explicit-package-bases",
-                              "--config-file", str(root / "pyproject.toml"), "--cache-dir", str(cache_root() / "mypy")],
-                             cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    checked = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mypy",
+            "-p",
+            "qube_koopman",
+            "--explicit-package-bases",
+            "--config-file",
+            str(root / "pyproject.toml"),
+            "--cache-dir",
+            str(cache_root() / "mypy"),
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]
 
 
@@ -312,8 +391,16 @@ def test_the_tests_are_grouped_as_the_packages_are():
 
 
 #: Keys only a model file holds: a subscript or ``.get`` with one reads the file's dict, not the typed model.
-MODEL_FILE_KEYS = {"plant", "closed_loop", "plant_members", "uncertainty", "held_out", "error_spectra", "disturbance",
-                   "lifting"}
+MODEL_FILE_KEYS = {
+    "plant",
+    "closed_loop",
+    "plant_members",
+    "uncertainty",
+    "held_out",
+    "error_spectra",
+    "disturbance",
+    "lifting",
+}
 
 
 def _model_dict_reads(tree, path) -> list[str]:
@@ -322,8 +409,9 @@ def _model_dict_reads(tree, path) -> list[str]:
     import ast
 
     def is_model(node) -> bool:
-        return (isinstance(node, ast.Name) and node.id == "model") or (isinstance(node, ast.Attribute)
-                                                                      and node.attr == "model")
+        return (isinstance(node, ast.Name) and node.id == "model") or (
+            isinstance(node, ast.Attribute) and node.attr == "model"
+        )
 
     def is_key(node) -> bool:
         return isinstance(node, ast.Constant) and node.value in MODEL_FILE_KEYS
@@ -332,8 +420,12 @@ def _model_dict_reads(tree, path) -> list[str]:
     for node in ast.walk(tree):
         if isinstance(node, ast.Subscript) and (is_model(node.value) or is_key(node.slice)):
             found.append(f"{path}:{node.lineno} {ast.unparse(node)}")
-        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get"
-              and (is_model(node.func.value) or (node.args and is_key(node.args[0])))):
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "get"
+            and (is_model(node.func.value) or (node.args and is_key(node.args[0])))
+        ):
             found.append(f"{path}:{node.lineno} {ast.unparse(node)}")
     return found
 
@@ -343,16 +435,25 @@ def test_design_reads_the_identified_model_by_its_attributes_never_as_a_dict():
     load_model returns): no ``model["plant"]``, ``model.get("controller")`` or ``held["measured"]`` in it."""
     # mpc_file reads the controller file of kind mpc, whose [disturbance] table shares its name with the model
     # file's entry: a TOML table read by key, not the model.
-    offenders = [hit for path, tree in _modules("design") if not str(path).endswith("mpc_file.py")
-                 for hit in _model_dict_reads(tree, path)]
+    offenders = [
+        hit
+        for path, tree in _modules("design")
+        if not str(path).endswith("mpc_file.py")
+        for hit in _model_dict_reads(tree, path)
+    ]
     assert not offenders
 
 
 def test_the_model_dict_check_finds_what_it_is_for():
     import ast
 
-    code = ('a = model["plant"]\nb = report.model.get("controller")\nc = data.get("uncertainty")\n'
-            'd = held["held_out"]\ne = model.plant\nf = out["predicted"]\n')
+    code = (
+        'a = model["plant"]\nb = report.model.get("controller")\nc = data.get("uncertainty")\n'
+        'd = held["held_out"]\ne = model.plant\nf = out["predicted"]\n'
+    )
     assert _model_dict_reads(ast.parse(code), "m.py") == [
-        "m.py:1 model['plant']", "m.py:2 report.model.get('controller')", "m.py:3 data.get('uncertainty')",
-        "m.py:4 held['held_out']"]
+        "m.py:1 model['plant']",
+        "m.py:2 report.model.get('controller')",
+        "m.py:3 data.get('uncertainty')",
+        "m.py:4 held['held_out']",
+    ]

@@ -41,8 +41,11 @@ def _constructor_parameters(obj) -> list[str]:
         signature = inspect.signature(obj)
     except (TypeError, ValueError):  # a builtin without a signature
         return []
-    return [p.name for p in signature.parameters.values()
-            if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD) and p.name not in ("self", "cls")]
+    return [
+        p.name
+        for p in signature.parameters.values()
+        if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD) and p.name not in ("self", "cls")
+    ]
 
 
 def docstring_problems(obj) -> list[str]:
@@ -78,8 +81,11 @@ def test_every_name_a_package_exports_resolves(package):
 @pytest.mark.parametrize("package", USER_PACKAGES)
 def test_every_function_and_class_a_package_exports_has_a_numpydoc_docstring(package):
     module = importlib.import_module(package)
-    problems = {name: docstring_problems(obj) for name in module.__all__
-                if inspect.isfunction(obj := getattr(module, name)) or inspect.isclass(obj)}
+    problems = {
+        name: docstring_problems(obj)
+        for name in module.__all__
+        if inspect.isfunction(obj := getattr(module, name)) or inspect.isclass(obj)
+    }
     problems = {name: found for name, found in problems.items() if found}
     assert not problems, f"{package}: {problems}"
 
@@ -105,27 +111,59 @@ def test_the_docstring_check_finds_what_it_is_for():
     assert docstring_problems(lambda: None) == ["no docstring"]
 
 
-@pytest.mark.parametrize("package, names", [
-    ("qube_koopman.identify", {"ClEdmd", "ClEdmdStable", "clone", "identify_and_score", "search_liftings",
-                               "regularization_sweep", "load_logs", "twin_probes", "save_model", "load_model",
-                               "IdentifiedModel", "Lifting", "Delay", "KoopmanModel", "Trajectory"}),
-    ("qube_koopman.daq", {"read_episode", "write_episode", "Episode", "run_episodes", "plan_episodes"}),
-    ("qube_koopman.sim", {"PendulumParameters", "simulate_closed_loop", "PendulumSimulator"}),
-    ("qube_koopman.core", {"DiscreteStateSpace", "replay_controller", "spectral_radius", "atomic_path",
-                           "load_controller", "ControllerInfo", "pd_controller", "PdGains", "write_controller_file"}),
-    ("qube_koopman.design", {"design_lq", "linear_plant", "design_from_model"}),
-])
+@pytest.mark.parametrize(
+    "package, names",
+    [
+        (
+            "qube_koopman.identify",
+            {
+                "ClEdmd",
+                "ClEdmdStable",
+                "clone",
+                "identify_and_score",
+                "search_liftings",
+                "regularization_sweep",
+                "load_logs",
+                "twin_probes",
+                "save_model",
+                "load_model",
+                "IdentifiedModel",
+                "Lifting",
+                "Delay",
+                "KoopmanModel",
+                "Trajectory",
+            },
+        ),
+        ("qube_koopman.daq", {"read_episode", "write_episode", "Episode", "run_episodes", "plan_episodes"}),
+        ("qube_koopman.sim", {"PendulumParameters", "simulate_closed_loop", "PendulumSimulator"}),
+        (
+            "qube_koopman.core",
+            {
+                "DiscreteStateSpace",
+                "replay_controller",
+                "spectral_radius",
+                "atomic_path",
+                "load_controller",
+                "ControllerInfo",
+                "pd_controller",
+                "PdGains",
+                "write_controller_file",
+            },
+        ),
+        ("qube_koopman.design", {"design_lq", "linear_plant", "design_from_model"}),
+    ],
+)
 def test_the_packages_export_what_users_import(package, names):
     assert names <= set(importlib.import_module(package).__all__)
 
 
-@pytest.mark.parametrize("package", ["qube_koopman.daq", "qube_koopman.sim", "qube_koopman.identify",
-                                     "qube_koopman.design"])
+@pytest.mark.parametrize(
+    "package", ["qube_koopman.daq", "qube_koopman.sim", "qube_koopman.identify", "qube_koopman.design"]
+)
 def test_importing_a_package_imports_none_of_the_modules_it_exports_from(package):
     """The names are imported when first used (PEP 562): ``import qube_koopman.daq`` does not load
     the episode log's mcap or scipy, and the 500 Hz loop pays only for the modules it imports."""
-    code = (f"import sys; import {package}; "
-            f"print(','.join(m for m in sys.modules if m.startswith('{package}.')))")
+    code = f"import sys; import {package}; print(','.join(m for m in sys.modules if m.startswith('{package}.')))"
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == ""
 
@@ -149,9 +187,11 @@ def _private_imports(path: Path) -> list[str]:
     found = []
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.ImportFrom):
-            found += [f"{relative}:{node.lineno}: from {'.' * node.level}{node.module or ''} "
-                      f"import {alias.name}" for alias in node.names
-                      if alias.name.startswith("_") and not alias.name.startswith("__")]
+            found += [
+                f"{relative}:{node.lineno}: from {'.' * node.level}{node.module or ''} import {alias.name}"
+                for alias in node.names
+                if alias.name.startswith("_") and not alias.name.startswith("__")
+            ]
             modules = [_imported_module(path, node)]
         elif isinstance(node, ast.Import):
             modules = [alias.name for alias in node.names]
@@ -161,8 +201,9 @@ def _private_imports(path: Path) -> list[str]:
             parts = module.split(".")
             if parts[0] != "qube_koopman" or len(parts) < 3:
                 continue
-            private = [i for i, part in enumerate(parts) if i >= 2 and part.startswith("_")
-                       and not part.startswith("__")]
+            private = [
+                i for i, part in enumerate(parts) if i >= 2 and part.startswith("_") and not part.startswith("__")
+            ]
             if not private:
                 continue
             owner = tuple(parts[: private[0]])  # the package holding the private module
@@ -174,8 +215,9 @@ def _private_imports(path: Path) -> list[str]:
 
 
 def test_no_module_imports_a_private_name_of_another_module():
-    offenders = [hit for folder in _package_folders() for path in sorted(folder.rglob("*.py"))
-                 for hit in _private_imports(path)]
+    offenders = [
+        hit for folder in _package_folders() for path in sorted(folder.rglob("*.py")) for hit in _private_imports(path)
+    ]
     assert not offenders, "\n".join(offenders)
 
 
@@ -183,15 +225,19 @@ def test_the_private_import_scan_finds_what_it_is_for(tmp_path, monkeypatch):
     folder = tmp_path / "daq"
     folder.mkdir()
     source = folder / "mod.py"
-    source.write_text("from qube_koopman.core.lti import _helper, DiscreteStateSpace\n"
-                      "from .sibling import _thing as thing\n"
-                      "from qube_koopman.identify.estimators._base import Estimator\n"
-                      "from qube_koopman.daq._own import fine\n"
-                      "from qube_koopman.sim import __version__\n")
+    source.write_text(
+        "from qube_koopman.core.lti import _helper, DiscreteStateSpace\n"
+        "from .sibling import _thing as thing\n"
+        "from qube_koopman.identify.estimators._base import Estimator\n"
+        "from qube_koopman.daq._own import fine\n"
+        "from qube_koopman.sim import __version__\n"
+    )
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
-    assert _private_imports(source) == ["daq/mod.py:1: from qube_koopman.core.lti import _helper",
-                                        "daq/mod.py:2: from .sibling import _thing",
-                                        "daq/mod.py:3: import of qube_koopman.identify.estimators._base, private to identify"]
+    assert _private_imports(source) == [
+        "daq/mod.py:1: from qube_koopman.core.lti import _helper",
+        "daq/mod.py:2: from .sibling import _thing",
+        "daq/mod.py:3: import of qube_koopman.identify.estimators._base, private to identify",
+    ]
 
 
 def test_the_private_import_scan_finds_a_private_module_of_another_subpackage(tmp_path, monkeypatch):
@@ -199,12 +245,14 @@ def test_the_private_import_scan_finds_a_private_module_of_another_subpackage(tm
     (tmp_path / "identify" / "uncertainty").mkdir(parents=True)
     (tmp_path / "identify" / "estimators").mkdir()
     outside = tmp_path / "identify" / "uncertainty" / "mod.py"
-    outside.write_text("from qube_koopman.identify.estimators._base import episode_statistics\n"
-                       "import qube_koopman.identify.estimators._base\n"
-                       "from ..estimators._base import FitSetup\n"
-                       "from qube_koopman.identify._checks import check_alpha\n"
-                       "from qube_koopman.identify.uncertainty._own import fine\n"
-                       "from ._own import fine_too\n")
+    outside.write_text(
+        "from qube_koopman.identify.estimators._base import episode_statistics\n"
+        "import qube_koopman.identify.estimators._base\n"
+        "from ..estimators._base import FitSetup\n"
+        "from qube_koopman.identify._checks import check_alpha\n"
+        "from qube_koopman.identify.uncertainty._own import fine\n"
+        "from ._own import fine_too\n"
+    )
     inside = tmp_path / "identify" / "estimators" / "mod.py"
     inside.write_text("from qube_koopman.identify.estimators._base import FitSetup\nfrom ._base import Estimator\n")
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
@@ -212,7 +260,8 @@ def test_the_private_import_scan_finds_a_private_module_of_another_subpackage(tm
     assert _private_imports(outside) == [
         f"identify/uncertainty/mod.py:1: import of qube_koopman.identify.estimators._base, {private}",
         f"identify/uncertainty/mod.py:2: import of qube_koopman.identify.estimators._base, {private}",
-        f"identify/uncertainty/mod.py:3: import of qube_koopman.identify.estimators._base, {private}"]
+        f"identify/uncertainty/mod.py:3: import of qube_koopman.identify.estimators._base, {private}",
+    ]
     assert _private_imports(inside) == []
 
 
@@ -221,8 +270,14 @@ def _private_members(tree: ast.AST) -> set[str]:
     names = set()
     for cls in (node for node in ast.walk(tree) if isinstance(node, ast.ClassDef)):
         names |= {node.name for node in cls.body if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))}
-        names |= {node.attr for node in ast.walk(cls) if isinstance(node, ast.Attribute)
-                  and isinstance(node.ctx, ast.Store) and isinstance(node.value, ast.Name) and node.value.id == "self"}
+        names |= {
+            node.attr
+            for node in ast.walk(cls)
+            if isinstance(node, ast.Attribute)
+            and isinstance(node.ctx, ast.Store)
+            and isinstance(node.value, ast.Name)
+            and node.value.id == "self"
+        }
     return {name for name in names if name.startswith("_") and not name.startswith("__")}
 
 
@@ -262,21 +317,26 @@ def test_no_module_uses_a_private_method_or_attribute_of_another_modules_objects
 def test_the_private_member_scan_finds_what_it_is_for(tmp_path, monkeypatch):
     (tmp_path / "identify").mkdir()
     estimator = tmp_path / "identify" / "estimator.py"
-    estimator.write_text("class Estimator:\n"
-                         "    def __init__(self):\n        self._cache = None\n"
-                         "    def _setup(self, data):\n        return self._cache\n"
-                         "    def setup_fit(self, data):\n        return self._setup(data)\n"
-                         "class Child(Estimator):\n"
-                         "    def _setup(self, data):\n        return super()._setup(data)\n")
+    estimator.write_text(
+        "class Estimator:\n"
+        "    def __init__(self):\n        self._cache = None\n"
+        "    def _setup(self, data):\n        return self._cache\n"
+        "    def setup_fit(self, data):\n        return self._setup(data)\n"
+        "class Child(Estimator):\n"
+        "    def _setup(self, data):\n        return super()._setup(data)\n"
+    )
     sweep = tmp_path / "identify" / "sweep.py"
-    sweep.write_text("def sweep(estimator, data):\n"
-                     "    estimator._setup(data)\n"
-                     "    print(estimator._cache)\n"
-                     "    return estimator.setup_fit(data)\n")
+    sweep.write_text(
+        "def sweep(estimator, data):\n"
+        "    estimator._setup(data)\n"
+        "    print(estimator._cache)\n"
+        "    return estimator.setup_fit(data)\n"
+    )
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     assert _foreign_private_uses([estimator, sweep]) == [
         "identify/sweep.py:2: ._setup, private to identify/estimator.py",
-        "identify/sweep.py:3: ._cache, private to identify/estimator.py"]
+        "identify/sweep.py:3: ._cache, private to identify/estimator.py",
+    ]
 
 
 def test_the_tutorial_imports_from_the_packages_only():

@@ -45,7 +45,6 @@ def test_a_missing_dataset_fails_under_ci(pytester, monkeypatch):
     pytester.runpytest("-p", "no:cacheprovider").assert_outcomes(skipped=1)
 
 
-
 @pytest.mark.slow  # a pytest run of its own with two loky workers: about 5 s
 def test_joblib_workers_are_stopped_without_tracebacks_after_the_summary(pytester):
     # A memmapped array a worker still holds when its Parallel call ends leaves joblib a folder
@@ -68,8 +67,13 @@ def test_joblib_workers_are_stopped_without_tracebacks_after_the_summary(pyteste
     """)
     # Not runpytest_subprocess: it reads stderr when pytest exits, before the tracker has written
     # there; a pipe is read to its end, when the last process holding it (the tracker) is gone.
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"], cwd=pytester.path,
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"],
+        cwd=pytester.path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0 and "1 passed" in proc.stdout, proc.stdout + proc.stderr
     err = proc.stderr + proc.stdout.split("1 passed")[-1]
     assert "Traceback" not in err and "KeyError" not in err and "leaked" not in err, err
@@ -81,8 +85,13 @@ def test_what_the_readme_blocks_write_in_a_clone_is_ignored_by_git():
 
     from readme_blocks import BLOCKS, REPO, expected_exit
 
-    outputs = {m.group(1) for block in BLOCKS for _, line in block if expected_exit(line) == 0
-               for m in re.finditer(r"--(?:out|report|rerun|rerun-save)\s+([\w./-]+)", line.split("#")[0])}
+    outputs = {
+        m.group(1)
+        for block in BLOCKS
+        for _, line in block
+        if expected_exit(line) == 0
+        for m in re.finditer(r"--(?:out|report|rerun|rerun-save)\s+([\w./-]+)", line.split("#")[0])
+    }
     assert "qube_logs" in outputs and "designed.toml" in outputs
     tracked = subprocess.run(["git", "check-ignore", *sorted(outputs)], cwd=REPO, capture_output=True, text=True)
     assert set(tracked.stdout.split()) == outputs, sorted(outputs - set(tracked.stdout.split()))
@@ -94,8 +103,24 @@ def test_the_longest_files_scheduled_first_exist_and_run_first():
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     missing = [path for path in LONGEST_FIRST if not os.path.isfile(os.path.join(root, path))]
     assert not missing, f"tests/conftest.py LONGEST_FIRST names files that are gone: {missing}"
-    listed = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "-p",
-                             "no:cacheprovider", "tests/project/test_suite_hygiene.py", LONGEST_FIRST[-1]],
-                            cwd=root, capture_output=True, text=True, timeout=120).stdout.splitlines()
+    listed = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "--collect-only",
+            "-q",
+            "-n",
+            "0",
+            "-p",
+            "no:cacheprovider",
+            "tests/project/test_suite_hygiene.py",
+            LONGEST_FIRST[-1],
+        ],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    ).stdout.splitlines()
     files = [line.split("::")[0] for line in listed if "::" in line]
     assert files and files[0] == LONGEST_FIRST[-1], files[:3]

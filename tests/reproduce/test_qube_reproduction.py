@@ -60,9 +60,20 @@ def test_paper_figures_plot_qube_json(qube_reproduction_out, results):
 
     data, md = results
     stems = [f["png"] for f in data["figures"]]
-    assert stems == [f"figures/{s}.png" for s in ("spectral_radius_cl", "spectral_radius_plant", "cross_validation_cl",
-                                                  "cross_validation_plant", "eigenvalues_cl", "eigenvalues_plant",
-                                                  "inputs", "predictions_cl", "predictions_plant")]
+    assert stems == [
+        f"figures/{s}.png"
+        for s in (
+            "spectral_radius_cl",
+            "spectral_radius_plant",
+            "cross_validation_cl",
+            "cross_validation_plant",
+            "eigenvalues_cl",
+            "eigenvalues_plant",
+            "inputs",
+            "predictions_cl",
+            "predictions_plant",
+        )
+    ]
     for f in data["figures"]:
         assert (qube_reproduction_out / f["png"]).stat().st_size > 1000 and (qube_reproduction_out / f["pdf"]).is_file()
         assert f"]({f['png']})" in md

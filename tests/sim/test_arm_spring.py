@@ -14,15 +14,25 @@ from qube_koopman.sim.pendulum.model import dynamics, linearize_upright, total_e
 DT = 1 / 500
 # No motor torque on the arm's motion (km = 0 removes the back-EMF), no friction, no dead zone, no delay;
 # a linear spring (its softening is tested below).
-FREE = replace(PendulumParameters(), km=0.0, Dr=0.0, Dp=0.0, Cr=0.0, dead_zone=0.0, delay=0.0,
-               Kr=1e-3, theta_rest=0.05, cable_softening=0.0)
+FREE = replace(
+    PendulumParameters(),
+    km=0.0,
+    Dr=0.0,
+    Dp=0.0,
+    Cr=0.0,
+    dead_zone=0.0,
+    delay=0.0,
+    Kr=1e-3,
+    theta_rest=0.05,
+    cable_softening=0.0,
+)
 
 
 def test_the_arm_alone_oscillates_at_the_springs_natural_frequency():
     # A pendulum of negligible mass: the arm is a torsion oscillator, theta_rest + A cos(w t),
     # w = sqrt(Kr / J), J the arm's inertia about the motor axis.
     p = replace(FREE, mp=1e-12)
-    J = p.Jr + p.Jh + p.mp * p.Lr ** 2
+    J = p.Jr + p.Jh + p.mp * p.Lr**2
     w = math.sqrt(p.Kr / J)
     x = simulate([p.theta_rest + 0.1, 0.0, 0.0, 0.0], np.zeros(1000), p, DT)
     t = np.arange(1001) * DT
@@ -93,9 +103,10 @@ def test_a_negative_stiffness_or_softening_is_refused():
         PendulumParameters(cable_softening=-1.0)
 
 
-@pytest.mark.parametrize("gains, stiffness, softening", [((2.0, 2.0, 35.0, 3.0), 0.32, 0.0),
-                                                        ((6.0, 1.8, 30.0, 2.5), 0.14, 0.0),
-                                                        ((2.0, 2.0, 35.0, 3.0), 0.55, 5.2)])
+@pytest.mark.parametrize(
+    "gains, stiffness, softening",
+    [((2.0, 2.0, 35.0, 3.0), 0.32, 0.0), ((6.0, 1.8, 30.0, 2.5), 0.14, 0.0), ((2.0, 2.0, 35.0, 3.0), 0.55, 5.2)],
+)
 def test_under_the_balancing_loop_the_spring_lowers_the_arms_stiffness(gains, stiffness, softening):
     # Balancing, the PD's arm channel pushes with kp_theta (theta - r) volts (its sign is the one that
     # tips the pendulum the right way); at rest, upright, the motor holds the spring's Kr theta, so the
@@ -116,7 +127,9 @@ def test_under_the_balancing_loop_the_spring_lowers_the_arms_stiffness(gains, st
     n, r = 8000, 0.2
     refs = np.zeros((n, 1, 2))
     refs[:, 0, 0] = r
-    run = simulate_closed_loop(np.zeros((1, 4)), controller, refs, np.zeros((n, 1)), p, SensorModel(counts_per_rev=None))
+    run = simulate_closed_loop(
+        np.zeros((1, 4)), controller, refs, np.zeros((n, 1)), p, SensorModel(counts_per_rev=None)
+    )
     settled = run.states[-1, 0]
     c = math.sqrt(softening)
     pull = (lambda x: stiffness * math.tanh(c * x) / c) if c else (lambda x: stiffness * x)

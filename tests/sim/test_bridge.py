@@ -53,11 +53,12 @@ STEP = 2 * math.pi / 2048
 
 # --- the rig's encoder conversion ---------------------------------------------------------------
 
+
 def test_counts_convert_as_the_rig_did():
     # The rig's C program: theta = enc0 * 2 pi / 2048, alpha = wrap(enc1 * 2 pi / 2048 - pi), zero hanging down.
-    assert counts_to_angles(0, 1024) == (0.0, 0.0)          # upright
-    assert counts_to_angles(0, 0)[1] == -math.pi             # hanging down: the counter's zero
-    assert counts_to_angles(0, 2048)[1] == -math.pi          # one turn later, still hanging
+    assert counts_to_angles(0, 1024) == (0.0, 0.0)  # upright
+    assert counts_to_angles(0, 0)[1] == -math.pi  # hanging down: the counter's zero
+    assert counts_to_angles(0, 2048)[1] == -math.pi  # one turn later, still hanging
     assert counts_to_angles(512, 1024 + 256) == (math.pi / 2, math.pi / 4)
     assert counts_to_angles(-1, 1023) == (-STEP, -STEP)
     assert counts_to_angles(0, 1024 + 3 * 2048) == (0.0, 0.0)  # alpha wraps, theta does not
@@ -75,9 +76,11 @@ def test_emulated_counts_read_back_as_the_simulator_measures():
 
 # --- the emulated QUBE's SPI side ---------------------------------------------------------------
 
+
 def _transfer(qube: EmulatedQube, motor: int, mask: int = MASK_NORMAL, preset1: int = 0):
-    return unpack_spi_response(qube.transfer(pack_spi_command(SpiCommand(write_mask=mask, motor=motor,
-                                                                         encoder1_preset=preset1))))
+    return unpack_spi_response(
+        qube.transfer(pack_spi_command(SpiCommand(write_mask=mask, motor=motor, encoder1_preset=preset1)))
+    )
 
 
 def test_qube_applies_the_motor_word():
@@ -88,8 +91,9 @@ def test_qube_applies_the_motor_word():
     assert resp.current_raw == 8190, "no current before the voltage is applied"
     assert qube.volts == pytest.approx(417 * 0.024) and qube.enabled
     assert _transfer(qube, 0xFE5F) is not None and qube.volts == pytest.approx(-417 * 0.024)
-    assert _transfer(qube, 0x017F).status == 0 and qube.volts == 0.0 and not qube.enabled, \
+    assert _transfer(qube, 0x017F).status == 0 and qube.volts == 0.0 and not qube.enabled, (
         "bit 15 clear: amplifier off whatever the PWM bits"
+    )
     qube.place((0.0, 0.0, 0.0, 0.0))
     _transfer(qube, 0x8000 | 208)  # +5 V from rest
     resp = _transfer(qube, 0x8000 | 208)
@@ -123,6 +127,7 @@ def test_qube_encoder_preset_applies_after_the_transfer():
 
 # --- fault injection pieces ---------------------------------------------------------------------
 
+
 def _telemetry_stream(n: int) -> bytes:
     return b"".join(encode_frame(Telemetry(tick=k, encoder1=1024), k, 2000 * k) for k in range(n))
 
@@ -133,7 +138,7 @@ def test_link_faults_are_seeded_and_counted():
     outs = []
     for _ in range(2):
         link = FaultyLink(faults, random.Random(7))
-        outs.append(b"".join(link.outgoing(stream[i * 46:(i + 1) * 46]) for i in range(2000)))
+        outs.append(b"".join(link.outgoing(stream[i * 46 : (i + 1) * 46]) for i in range(2000)))
     assert outs[0] == outs[1], "same seed, same faults"
     assert 150 < link.frames_dropped < 250 and 60 < link.bytes_corrupted < 130 and 60 < link.garbage_bursts < 140
     decoder = StreamDecoder()
@@ -153,14 +158,16 @@ def test_delay_line_holds_bytes_for_its_delay():
     assert line.take(1.005) == b"ab" and line.take(1.01) == b"cd" and line.next_release == math.inf
 
 
-@pytest.mark.parametrize("bad", [dict(drop_rate=1.5), dict(corrupt_rate=-0.1), dict(latency=-1.0),
-                                 dict(vanish_at=float("nan"))])
+@pytest.mark.parametrize(
+    "bad", [dict(drop_rate=1.5), dict(corrupt_rate=-0.1), dict(latency=-1.0), dict(vanish_at=float("nan"))]
+)
 def test_faults_refuse_nonsense(bad):
     with pytest.raises(ValueError):
         Faults(**bad)
 
 
 # --- the emulator over a pty, with a scripted host -----------------------------------------------
+
 
 class Host:
     """The minimum of a host: HELLO, then frames in, commands out."""
@@ -302,6 +309,7 @@ def test_same_seed_same_start(core):
 
 # --- the host killed mid-episode: the real path, in real time ------------------------------------
 
+
 @pytest.mark.slow
 def test_killed_host_gets_the_motor_zeroed_within_ten_ms_of_device_time(core, env, tmp_path):
     # Everything is asserted on the device's clock. In lockstep the device ticks once the host
@@ -313,9 +321,32 @@ def test_killed_host_gets_the_motor_zeroed_within_ten_ms_of_device_time(core, en
     emu = BridgeEmulator(seed=4, core=core, lockstep=True, lockstep_timeout=2.0, record_ticks=100_000)
     path = emu.start()
     code = "import sys; from daq.cli.run import main; sys.exit(main(sys.argv[1:]))"
-    host = subprocess.Popen([sys.executable, "-c", code, "--backend", "serial", "--port", path, "--episodes", "1",
-                             "--duration", "20", "--seed", "3", "--out", str(tmp_path), "--link-timeout", "30000",
-                             "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    host = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "--backend",
+            "serial",
+            "--port",
+            path,
+            "--episodes",
+            "1",
+            "--duration",
+            "20",
+            "--seed",
+            "3",
+            "--out",
+            str(tmp_path),
+            "--link-timeout",
+            "30000",
+            "-q",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
         deadline = time.monotonic() + 120
         while emu.stats()["commands"] < 1000:  # two seconds of control, in device time
@@ -340,7 +371,7 @@ def test_killed_host_gets_the_motor_zeroed_within_ten_ms_of_device_time(core, en
     last_seq = rec["command_seq"][-1]
     j = np.flatnonzero(rec["command_seq"] == last_seq)[0]
     z = j + np.flatnonzero(~rec["amp_enabled"][j:])[0]
-    assert rec["amp_enabled"][j - 200:z].all(), ("the host was not driving the motor until it died", stalls)
+    assert rec["amp_enabled"][j - 200 : z].all(), ("the host was not driving the motor until it died", stalls)
     assert z - j == 5 and rec["device_us"][z] - rec["device_us"][j] == 10_000, stalls
     # Bytes written before the kill are read by the first tick after it, so that command came no later.
     assert j <= k_kill
@@ -350,6 +381,7 @@ def test_killed_host_gets_the_motor_zeroed_within_ten_ms_of_device_time(core, en
 
 
 # --- qube-emulate ---------------------------------------------------------------------------------
+
 
 def test_cli_prints_the_path_first_and_stops_cleanly_on_sigterm(env, tmp_path):
     stats_file = tmp_path / "stats.json"
@@ -382,8 +414,18 @@ def test_cli_help_and_usage_errors(env):
     run = [sys.executable, "-m", "qube_koopman.sim.cli.emulate"]
     help_text = subprocess.run(run + ["--help"], capture_output=True, text=True, env=env)
     assert help_text.returncode == 0
-    for option in ("--lockstep", "--drop-rate", "--corrupt-rate", "--latency", "--stall-at", "--amp-fault-at",
-                   "--vanish-at", "--seed", "qube-run --backend serial --port", "exit status"):
+    for option in (
+        "--lockstep",
+        "--drop-rate",
+        "--corrupt-rate",
+        "--latency",
+        "--stall-at",
+        "--amp-fault-at",
+        "--vanish-at",
+        "--seed",
+        "qube-run --backend serial --port",
+        "exit status",
+    ):
         assert option in help_text.stdout
     bad = subprocess.run(run + ["--drop-rate", "2"], capture_output=True, text=True, env=env)
     assert bad.returncode == 2 and bad.stdout == "" and bad.stderr.count("\n") == 1
@@ -393,8 +435,9 @@ def test_cli_help_and_usage_errors(env):
 def test_cli_without_a_compiler_says_so_in_one_line(env, tmp_path):
     bare = dict(env, PATH=str(tmp_path), XDG_CACHE_HOME=str(tmp_path / "empty_cache"))
     bare.pop("CC", None)
-    proc = subprocess.run([sys.executable, "-m", "qube_koopman.sim.cli.emulate"], capture_output=True, text=True, env=bare,
-                          cwd=REPO)
+    proc = subprocess.run(
+        [sys.executable, "-m", "qube_koopman.sim.cli.emulate"], capture_output=True, text=True, env=bare, cwd=REPO
+    )
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.count("\n") == 1 and "no C compiler found" in proc.stderr and "Traceback" not in proc.stderr
 

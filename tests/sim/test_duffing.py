@@ -98,12 +98,12 @@ def test_cl_edmd_and_edmd_solve_different_problems_on_the_duffing_data():
     n = lifting.n_features_out_
     # Raw snapshots: theta^p_k, controller state, reference and plant input of every episode.
     z = [lifting.transform(t.x) for t in train]
-    psi_p = np.vstack([np.hstack([zi[:-1], t.u[d:-1]]) for zi, t in zip(z, train)])     # [theta^p; u]
+    psi_p = np.vstack([np.hstack([zi[:-1], t.u[d:-1]]) for zi, t in zip(z, train)])  # [theta^p; u]
     psi_cl = np.vstack([np.hstack([t.xc[d:-1], zi[:-1], t.r[d:-1]]) for zi, t in zip(z, train)])
     target = np.vstack([zi[1:] for zi in z])
     # S maps [x^c; theta^p; r] to [theta^p; u] with u = C^c x^c + D^c (r - theta^p_0).
     S = np.zeros((n + 1, 1 + n + 1))
-    S[:n, 1:n + 1] = np.eye(n)
+    S[:n, 1 : n + 1] = np.eye(n)
     S[n, 0], S[n, 1], S[n, n + 1] = ctrl.C[0, 0], -ctrl.D[0, 0], ctrl.D[0, 0]
     np.testing.assert_allclose(psi_cl @ S.T, psi_p, atol=1e-9)
     H = psi_cl.T @ psi_cl + alpha * np.eye(psi_cl.shape[1])
@@ -112,4 +112,4 @@ def test_cl_edmd_and_edmd_solve_different_problems_on_the_duffing_data():
     scale = np.linalg.norm(U_cl)
     assert np.linalg.norm(cl.plant_koopman_matrix_ - U_cl) / scale < 1e-6
     assert np.linalg.norm(edmd.koopman_matrix_ - U_edmd) / scale < 1e-6
-    assert np.linalg.norm(U_cl - U_edmd) / scale > 1e-3        # the two problems really differ
+    assert np.linalg.norm(U_cl - U_edmd) / scale > 1e-3  # the two problems really differ

@@ -16,7 +16,7 @@ def test_offset_shifts_the_measured_alpha_by_whole_counts_when_it_is_whole_count
     plain = measure(state, SensorModel())
     shifted = measure(state, SensorModel(alpha_offset=3 * COUNT))
     np.testing.assert_allclose(shifted[:, 1] - plain[:, 1], 3 * COUNT, atol=1e-12)
-    np.testing.assert_array_equal(shifted[:, 0], plain[:, 0])      # theta untouched
+    np.testing.assert_array_equal(shifted[:, 0], plain[:, 0])  # theta untouched
 
 
 def test_per_tick_simulator_and_batched_measurement_agree_on_the_offset():
@@ -55,14 +55,22 @@ def test_the_controller_balances_the_true_upright_not_the_measured_zero():
     # Measured alpha settles at the offset (the true pendulum is upright on average).
     from qube_koopman.core.controller import PdGains, pd_controller
     from qube_koopman.sim.pendulum import simulate_closed_loop
+
     ctrl = pd_controller(PdGains(kp_theta=6, kd_theta=1.8, kp_alpha=30, kd_alpha=2.5, tau=50))
     n = 4000
     refs = np.zeros((n, 2))
     # Without dry friction and dead zone (PendulumParameters.previous()): the calibrated twin's
     # friction lets the arm rest anywhere in a small band, so its equilibrium is not this point.
     from qube_koopman.sim.pendulum import PendulumParameters
-    run = simulate_closed_loop(np.zeros(4), ctrl, refs, np.zeros(n), PendulumParameters.previous(),
-                               sensor=SensorModel(counts_per_rev=None, alpha_offset=0.01))
+
+    run = simulate_closed_loop(
+        np.zeros(4),
+        ctrl,
+        refs,
+        np.zeros(n),
+        PendulumParameters.previous(),
+        sensor=SensorModel(counts_per_rev=None, alpha_offset=0.01),
+    )
     tail = slice(n // 2, None)
     assert np.mean(run.states[1:][tail, 1]) == pytest.approx(0.0, abs=1e-4)
     assert np.mean(run.measurements[tail, 1]) == pytest.approx(0.01, abs=1e-4)

@@ -10,8 +10,18 @@ import numpy as np
 import pytest
 
 from qube_koopman.core.controller import PdGains, pd_controller
-from qube_koopman.sim.pendulum import (PendulumParameters, PendulumSimulator, SensorModel, dynamics, linear_model,
-                          linearize_upright, measure, rk4_step, simulate, total_energy)
+from qube_koopman.sim.pendulum import (
+    PendulumParameters,
+    PendulumSimulator,
+    SensorModel,
+    dynamics,
+    linear_model,
+    linearize_upright,
+    measure,
+    rk4_step,
+    simulate,
+    total_energy,
+)
 
 #: The workbook's model with hardware-fitted damping (the defaults before calibration): no dry
 #: friction, dead zone, hub inertia or delay, so the analytic checks below hold exactly.
@@ -31,11 +41,11 @@ def test_previous_is_the_workbook_with_hardware_fitted_damping():
 
 def test_defaults_are_the_calibrated_twin_with_the_workbook_masses():
     from qube_koopman.sim.pendulum.params_file import PLANTS, load_plant
+
     cal = PendulumParameters()
     assert cal == load_plant(PLANTS / "qube_20230828_20230915.toml").params  # digit for digit
     assert (cal.Rm, cal.mr, cal.Lr, cal.mp, cal.g) == (P.Rm, P.mr, P.Lr, P.mp, P.g)
     assert cal.Jh > 0 and cal.delay > 0 and cal.Cr > 0 and cal.dead_zone > 0 and cal.Kr > 0
-
 
 
 def test_hub_inertia_adds_to_the_arm_rod():
@@ -50,14 +60,18 @@ def test_hub_inertia_adds_to_the_arm_rod():
     with pytest.raises(ValueError, match="Jh"):
         dataclasses.replace(P, Jh=-1e-6)
 
-@pytest.mark.parametrize("changes, match", [(dict(Rm=0.0), "Rm"), (dict(Dr=-1e-4), "Dr"),
-                                            (dict(mp=float("nan")), "mp"), (dict(km="0.04"), "km")])
+
+@pytest.mark.parametrize(
+    "changes, match",
+    [(dict(Rm=0.0), "Rm"), (dict(Dr=-1e-4), "Dr"), (dict(mp=float("nan")), "mp"), (dict(km="0.04"), "km")],
+)
 def test_parameters_reject_bad_values(changes, match):
     with pytest.raises(ValueError, match=match):
         dataclasses.replace(P, **changes)
 
 
 # --- linearization -----------------------------------------------------------------------------
+
 
 def test_linearization_has_the_familiar_magnitudes():
     A, B = linearize_upright(P)
@@ -111,6 +125,7 @@ def test_linear_model_matches_small_nonlinear_motions():
 
 # --- behaviour of the nonlinear model ----------------------------------------------------------
 
+
 def test_constant_1v_settles_at_the_back_emf_limited_speed():
     # Hanging down at rest, 1 V: steady state km V / Rm = (km^2 / Rm + Dr) w.
     x = simulate([0.0, math.pi, 0.0, 0.0], np.ones(2500), P)  # 5 s, ~10 time constants
@@ -160,8 +175,17 @@ def test_more_substeps_converge():
     assert errors[1] < 1e-5
 
 
-@pytest.mark.parametrize("changes", [{}, dict(Cr=0.0), dict(Kr=0.0), dict(cable_softening=0.0), dict(dead_zone=0.3),
-                                     dict(Cr=0.0, Kr=0.0, dead_zone=0.0)])
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {},
+        dict(Cr=0.0),
+        dict(Kr=0.0),
+        dict(cable_softening=0.0),
+        dict(dead_zone=0.3),
+        dict(Cr=0.0, Kr=0.0, dead_zone=0.0),
+    ],
+)
 def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):
     """The simulator's float integrator (its coefficients bound once) against the general one that
     batches and the calibration use: the same floats for every combination of the optional terms."""
@@ -176,7 +200,8 @@ def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):
         assert rk4(*x, volts, 1e-3, 2) == _rk4(*x, volts, 1e-3, 2, k, math.sin, math.cos)
         weights = (1.0, 0.4)  # a fractional delay: the previous command held into the second substep
         assert advance(x, -volts, volts, weights, 1e-3, k, math.sin, math.cos, rk4) == advance(
-            x, -volts, volts, weights, 1e-3, k, math.sin, math.cos)
+            x, -volts, volts, weights, 1e-3, k, math.sin, math.cos
+        )
 
 
 def test_batches_match_single_states():
@@ -192,18 +217,22 @@ def test_batches_match_single_states():
     np.testing.assert_array_equal(trajectory[1], rk4_step(states[0], volts[0], P))
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda: dynamics(np.zeros(3), 0.0), "shape"),
-    (lambda: rk4_step(np.zeros(4), 0.0, n_substeps=0), "n_substeps"),
-    (lambda: rk4_step(np.zeros(4), 0.0, dt=-1.0), "dt"),
-    (lambda: simulate(np.zeros(4), 1.0), "time axis"),
-])
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: dynamics(np.zeros(3), 0.0), "shape"),
+        (lambda: rk4_step(np.zeros(4), 0.0, n_substeps=0), "n_substeps"),
+        (lambda: rk4_step(np.zeros(4), 0.0, dt=-1.0), "dt"),
+        (lambda: simulate(np.zeros(4), 1.0), "time axis"),
+    ],
+)
 def test_model_functions_reject_bad_arguments(call, match):
     with pytest.raises(ValueError, match=match):
         call()
 
 
 # --- encoders ----------------------------------------------------------------------------------
+
 
 def test_encoder_quantizes_to_2048_counts_and_wraps_alpha():
     rng = np.random.default_rng(1)
@@ -244,6 +273,7 @@ def test_sensor_rejects_bad_settings(kwargs):
 
 
 # --- the per-tick simulator --------------------------------------------------------------------
+
 
 def test_simulator_follows_the_batch_integrator():
     sim = PendulumSimulator()
@@ -320,13 +350,16 @@ def test_simulator_balances_under_the_paper_controller():
     assert abs(sim.state[1]) < 0.02 and abs(sim.state[0]) < 0.1
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda: PendulumSimulator().reset([0, 0, 0]), "4 finite"),
-    (lambda: PendulumSimulator().reset([0, 0, np.nan, 0]), "4 finite"),
-    (lambda: PendulumSimulator().step(float("nan")), "voltage"),
-    (lambda: PendulumSimulator(max_voltage=0.0), "max_voltage"),
-    (lambda: PendulumSimulator(n_substeps=0), "n_substeps"),
-])
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: PendulumSimulator().reset([0, 0, 0]), "4 finite"),
+        (lambda: PendulumSimulator().reset([0, 0, np.nan, 0]), "4 finite"),
+        (lambda: PendulumSimulator().step(float("nan")), "voltage"),
+        (lambda: PendulumSimulator(max_voltage=0.0), "max_voltage"),
+        (lambda: PendulumSimulator(n_substeps=0), "n_substeps"),
+    ],
+)
 def test_simulator_rejects_bad_arguments(call, match):
     with pytest.raises(ValueError, match=match):
         call()
@@ -365,8 +398,10 @@ def test_a_batch_of_pendulums_each_with_its_own_physics_and_delay_runs_as_each_a
 
     controller = pd_controller(PdGains(2.0, 2.0, 35.0, 3.0, 50.0), 0.002, "backward-euler")
     base = PendulumParameters()
-    params = [replace(base, delay=d, Kr=base.Kr * s, Dr=base.Dr * s)
-              for d, s in ((1.0e-3, 0.5), (4.9e-3, 2.0), (2.0e-3, 1.0), (0.0, 1.5))]
+    params = [
+        replace(base, delay=d, Kr=base.Kr * s, Dr=base.Dr * s)
+        for d, s in ((1.0e-3, 0.5), (4.9e-3, 2.0), (2.0e-3, 1.0), (0.0, 1.5))
+    ]
     n, rng = 800, np.random.default_rng(3)
     refs = np.zeros((n, 4, 2))
     refs[:, :, 0] = np.repeat(rng.uniform(-0.2, 0.2, (n // 200, 4)), 200, axis=0)
@@ -378,15 +413,27 @@ def test_a_batch_of_pendulums_each_with_its_own_physics_and_delay_runs_as_each_a
     batch = simulate_closed_loop(x0, controller, refs, ff, params, exact, past_voltages=past)
     assert np.abs(batch.states[..., 1]).max() < 0.3  # every episode stays balanced
     for j, p in enumerate(params):
-        alone = simulate_closed_loop(x0[j:j + 1], controller, refs[:, j:j + 1], ff[:, j:j + 1], p, exact,
-                                     past_voltages=past[:, j:j + 1])
+        alone = simulate_closed_loop(
+            x0[j : j + 1], controller, refs[:, j : j + 1], ff[:, j : j + 1], p, exact, past_voltages=past[:, j : j + 1]
+        )
         np.testing.assert_allclose(batch.states[:, j], alone.states[:, 0], rtol=0, atol=1e-11)
         np.testing.assert_allclose(batch.plant_input[:, j], alone.plant_input[:, 0], rtol=0, atol=1e-11)
     # The delay matters: the 4.9 ms pendulum's run is not the 1 ms one's.
-    assert np.abs(batch.states[:, 1] - simulate_closed_loop(x0[1:2], controller, refs[:, 1:2], ff[:, 1:2],
-                                                            replace(params[1], delay=1.0e-3), exact,
-                                                            past_voltages=past[:, 1:2]).states[:, 0]).max() > 1e-4
-
+    assert (
+        np.abs(
+            batch.states[:, 1]
+            - simulate_closed_loop(
+                x0[1:2],
+                controller,
+                refs[:, 1:2],
+                ff[:, 1:2],
+                replace(params[1], delay=1.0e-3),
+                exact,
+                past_voltages=past[:, 1:2],
+            ).states[:, 0]
+        ).max()
+        > 1e-4
+    )
 
 
 def test_several_controllers_episodes_in_one_batch_run_as_each_controllers_batch_alone():
@@ -412,13 +459,21 @@ def test_several_controllers_episodes_in_one_batch_run_as_each_controllers_batch
     x0[:, 1] = rng.normal(0, 0.005, 6)
     zeros = rng.normal(0, 0.003, 6)
     params = [twins[j % 2] for j in range(6)]
-    batch = simulate_closed_loop(x0, [controllers[i] for i in order], refs, ff, params, SensorModel(),
-                                 alpha_offsets=zeros)
+    batch = simulate_closed_loop(
+        x0, [controllers[i] for i in order], refs, ff, params, SensorModel(), alpha_offsets=zeros
+    )
     assert np.abs(batch.states[..., 1]).max() < 0.3  # every episode stays balanced
     for i, controller in enumerate(controllers):
         mine = [j for j, c in enumerate(order) if c == i]
-        alone = simulate_closed_loop(x0[mine], controller, refs[:, mine], ff[:, mine], [params[j] for j in mine],
-                                     SensorModel(), alpha_offsets=zeros[mine])
+        alone = simulate_closed_loop(
+            x0[mine],
+            controller,
+            refs[:, mine],
+            ff[:, mine],
+            [params[j] for j in mine],
+            SensorModel(),
+            alpha_offsets=zeros[mine],
+        )
         for name in ("states", "measurements", "controller_states", "control_output", "plant_input"):
             np.testing.assert_array_equal(getattr(batch, name)[:, mine], getattr(alone, name), err_msg=name)
     # The controllers matter: the same episodes under the first controller alone differ.
@@ -427,15 +482,19 @@ def test_several_controllers_episodes_in_one_batch_run_as_each_controllers_batch
     with pytest.raises(ValueError, match="one per episode"):
         simulate_closed_loop(x0, controllers, refs, ff, params)
     with pytest.raises(ValueError, match="share their order"):
-        simulate_closed_loop(x0[:2], [controllers[0], pd_controller(PdGains(*gains[0]), 0.004, "backward-euler")],
-                             refs[:, :2], ff[:, :2])
+        simulate_closed_loop(
+            x0[:2], [controllers[0], pd_controller(PdGains(*gains[0]), 0.004, "backward-euler")], refs[:, :2], ff[:, :2]
+        )
+
 
 def test_one_pendulum_per_batch_element_is_each_simulated_alone():
     # What a multiple-shooting fit with setups runs: segments of different cables and delays (whole
     # and fractional samples apart) in one batch, each as if simulated on its own.
     from dataclasses import replace
 
-    pendulums = [replace(PendulumParameters(), Kr=kr, delay=d) for kr, d in ((7e-4, 1e-3), (1.8e-3, 4.3e-3), (1e-3, 0.0))]
+    pendulums = [
+        replace(PendulumParameters(), Kr=kr, delay=d) for kr, d in ((7e-4, 1e-3), (1.8e-3, 4.3e-3), (1e-3, 0.0))
+    ]
     rng = np.random.default_rng(3)
     state0 = np.column_stack([rng.normal(0, 0.05, 3), rng.normal(0, 0.02, 3), np.zeros((3, 2))])
     volts = rng.normal(0, 1.0, (200, 3))

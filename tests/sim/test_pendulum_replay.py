@@ -48,12 +48,13 @@ def controller(qube_dataset):
 
 
 def replay(real, controller, params):
-    r, y = real["r"][:START + 1], real["y"][:START + 1]
+    r, y = real["r"][: START + 1], real["y"][: START + 1]
     controller_state = np.stack([replay_controller(controller, r[:, i], y[:, i])[0][START] for i in range(r.shape[1])])
-    rates = savgol_filter(real["y"][START - 10:START + 11], 21, 2, deriv=1, delta=DT, axis=0)[10]
+    rates = savgol_filter(real["y"][START - 10 : START + 11], 21, 2, deriv=1, delta=DT, axis=0)[10]
     state0 = np.concatenate([real["y"][START], rates], axis=-1)
-    return simulate_closed_loop(state0, controller, real["r"][START:], real["feedforward"][START:],
-                                params, controller_state0=controller_state)
+    return simulate_closed_loop(
+        state0, controller, real["r"][START:], real["feedforward"][START:], params, controller_state0=controller_state
+    )
 
 
 def balanced(run):
@@ -79,12 +80,13 @@ def test_replay_keeps_all_48_balanced_with_realistic_spread(real, controller):
     run = replay(real, controller, PendulumParameters())
     assert balanced(run).all(), f"fell: episodes {np.flatnonzero(~balanced(run)).tolist()}"
     ratio = run.measurements.std(axis=0) / real["y"][START:].std(axis=0)  # (48, 2)
-    print(f"replay std ratio sim/real: theta {ratio[:, 0].min():.3f}..{ratio[:, 0].max():.3f}, "
-          f"alpha {ratio[:, 1].min():.3f}..{ratio[:, 1].max():.3f}")
+    print(
+        f"replay std ratio sim/real: theta {ratio[:, 0].min():.3f}..{ratio[:, 0].max():.3f}, "
+        f"alpha {ratio[:, 1].min():.3f}..{ratio[:, 1].max():.3f}"
+    )
     assert np.all((ratio > 0.5) & (ratio < 2.0)), ratio
     # The simulated loop applies what the controller asked for, clipped like the rig.
-    np.testing.assert_array_equal(run.plant_input,
-                                  np.clip(run.control_output + real["feedforward"][START:], -10, 10))
+    np.testing.assert_array_equal(run.plant_input, np.clip(run.control_output + real["feedforward"][START:], -10, 10))
 
 
 @pytest.mark.slow

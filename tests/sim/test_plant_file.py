@@ -16,8 +16,11 @@ from qube_koopman.sim.pendulum.params_file import PlantFile, PlantFileError, loa
 
 def test_round_trip_keeps_every_value_and_the_provenance(tmp_path):
     params = PendulumParameters(km=0.0411234567891, Dr=3.1e-4, Cr=4.5e-4, coulomb_speed=0.02)
-    plant = PlantFile(params, {"km": 1e-4}, {"source": "test", "logs": ["a.mcap", 'b "q".mcap'],
-                                             "residual_rms": 1.5e-3, "n": 3, "ok": True})
+    plant = PlantFile(
+        params,
+        {"km": 1e-4},
+        {"source": "test", "logs": ["a.mcap", 'b "q".mcap'], "residual_rms": 1.5e-3, "n": 3, "ok": True},
+    )
     save_plant(tmp_path / "p.toml", plant)
     back = load_plant(tmp_path / "p.toml")
     assert back.params == params
@@ -27,8 +30,12 @@ def test_round_trip_keeps_every_value_and_the_provenance(tmp_path):
 
 def test_setups_round_trip_and_give_each_logs_twin(tmp_path):
     params = PendulumParameters(Kr=1e-3, delay=1.9e-3)
-    setups = {"2023-08-28": {"Kr": 7e-4}, "2023-09-15": {"Kr": 2e-3},
-              "2023-09-15 15:19:11-15:23:27": {"delay": 4.9e-3}, "2023-08-28 16:11:55-16:49:02": {"delay": 1e-3}}
+    setups = {
+        "2023-08-28": {"Kr": 7e-4},
+        "2023-09-15": {"Kr": 2e-3},
+        "2023-09-15 15:19:11-15:23:27": {"delay": 4.9e-3},
+        "2023-08-28 16:11:55-16:49:02": {"delay": 1e-3},
+    }
     plant = PlantFile(params, {"Kr": 2e-6}, {"source": "test"}, setups, {"2023-09-15": {"Kr": 4e-6}})
     save_plant(tmp_path / "p.toml", plant)
     back = load_plant(tmp_path / "p.toml")
@@ -51,8 +58,13 @@ def test_recording_sessions_follow_the_gap_between_starts():
     from qube_koopman.sim.pendulum.params_file import recording_day, recording_sessions
 
     starts = ["2023-09-15T15:19:11", "2023-09-15T14:54:50", "2023-09-15T15:04:50", "2023-09-15T15:23:27", None]
-    assert recording_sessions(starts) == ["2023-09-15 15:19:11-15:23:27", "2023-09-15 14:54:50-15:04:50",
-                                          "2023-09-15 14:54:50-15:04:50", "2023-09-15 15:19:11-15:23:27", "unknown"]
+    assert recording_sessions(starts) == [
+        "2023-09-15 15:19:11-15:23:27",
+        "2023-09-15 14:54:50-15:04:50",
+        "2023-09-15 14:54:50-15:04:50",
+        "2023-09-15 15:19:11-15:23:27",
+        "unknown",
+    ]
     assert recording_day("2023-09-15T15:19:11") == "2023-09-15" and recording_day(None) == "unknown"
 
 
@@ -75,24 +87,36 @@ def test_a_version_1_file_keeps_the_linear_cable_spring_it_was_fitted_with(tmp_p
     assert load_plant(tmp_path / "new.toml").params == old
 
 
-@pytest.mark.parametrize("text, message", [
-    ('format = "qube-plant/1"\n[parameters]\nDrr = 0.001\n', "unknown parameter(s) Drr"),
-    ('format = "qube-plant/1"\n[parameters]\nRm = -1.0\n', "Rm must be positive"),
-    ('format = "qube-plant/1"\n[parameters]\nRm = "8"\n', "Rm must be a number"),
-    ('[parameters]\nRm = 8.0\n', "format must be"),
-    ('format = = 1', "not a TOML file"),
-    ('format = "qube-plant/2"\n[parameters]\nkm = 1e300\n', "parameter km must be at most 1e+06 in size, got 1e+300"),
-    ('format = "qube-plant/2"\n[parameters]\nRm = 1e-300\n', "parameter Rm must be at least 1e-15, got 1e-300"),
-    ('format = "qube-plant/2"\n[parameters]\ndelay = 1e5\n', "parameter delay must be at most 1 s, got 100000.0"),
-    pytest.param('format = "qube-plant/2"\n[provenance]\nx = ' + "[" * 100_000 + "]" * 100_000,
-                 "nested more than 64 levels deep", id="nested-100000-deep"),
-    *((f'format = "qube-plant/1"\n[parameters]\nKr = 0.001\n{table}', message) for table, message in [
-        ('[setups."2023-09-15"]\nKrr = 0.001\n', "setup 2023-09-15: unknown parameter(s) Krr"),
-        ('[setups."2023-09-15"]\nKr = -0.001\n', "setup 2023-09-15: parameter Kr must be non-negative"),
-        ('[setups."2023-09-15"]\nKr = "x"\n', "setup 2023-09-15: parameter Kr must be a number"),
-        ('[setups]\nday = 1.0\n', "setup day: must be a table"),
-    ]),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('format = "qube-plant/1"\n[parameters]\nDrr = 0.001\n', "unknown parameter(s) Drr"),
+        ('format = "qube-plant/1"\n[parameters]\nRm = -1.0\n', "Rm must be positive"),
+        ('format = "qube-plant/1"\n[parameters]\nRm = "8"\n', "Rm must be a number"),
+        ("[parameters]\nRm = 8.0\n", "format must be"),
+        ("format = = 1", "not a TOML file"),
+        (
+            'format = "qube-plant/2"\n[parameters]\nkm = 1e300\n',
+            "parameter km must be at most 1e+06 in size, got 1e+300",
+        ),
+        ('format = "qube-plant/2"\n[parameters]\nRm = 1e-300\n', "parameter Rm must be at least 1e-15, got 1e-300"),
+        ('format = "qube-plant/2"\n[parameters]\ndelay = 1e5\n', "parameter delay must be at most 1 s, got 100000.0"),
+        pytest.param(
+            'format = "qube-plant/2"\n[provenance]\nx = ' + "[" * 100_000 + "]" * 100_000,
+            "nested more than 64 levels deep",
+            id="nested-100000-deep",
+        ),
+        *(
+            (f'format = "qube-plant/1"\n[parameters]\nKr = 0.001\n{table}', message)
+            for table, message in [
+                ('[setups."2023-09-15"]\nKrr = 0.001\n', "setup 2023-09-15: unknown parameter(s) Krr"),
+                ('[setups."2023-09-15"]\nKr = -0.001\n', "setup 2023-09-15: parameter Kr must be non-negative"),
+                ('[setups."2023-09-15"]\nKr = "x"\n', "setup 2023-09-15: parameter Kr must be a number"),
+                ("[setups]\nday = 1.0\n", "setup day: must be a table"),
+            ]
+        ),
+    ],
+)
 def test_bad_files_name_the_file_and_the_problem(tmp_path, text, message):
     path = tmp_path / "p.toml"
     path.write_text(text)
@@ -144,13 +168,43 @@ def test_per_tick_simulator_and_batch_model_agree_with_friction():
 def test_qube_run_plant_option_reaches_the_simulator(tmp_path, capsys):
     params = PendulumParameters(Dr=4e-4, Cr=3e-4)
     save_plant(tmp_path / "plant.toml", PlantFile(params, provenance={"source": "test"}))
-    assert run_main(["--episodes", "1", "--duration", "1", "--seed", "2", "--out", str(tmp_path / "ep"),
-                     "--plant", str(tmp_path / "plant.toml"), "-q"]) == 0
+    assert (
+        run_main(
+            [
+                "--episodes",
+                "1",
+                "--duration",
+                "1",
+                "--seed",
+                "2",
+                "--out",
+                str(tmp_path / "ep"),
+                "--plant",
+                str(tmp_path / "plant.toml"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     (path,) = (tmp_path / "ep").glob("*.mcap")
     assert read_episode(path).metadata.extra["backend"]["params"] == asdict(params)
     capsys.readouterr()
-    assert run_main(["--episodes", "1", "--duration", "1", "--out", str(tmp_path / "ep2"),
-                     "--plant", str(tmp_path / "missing.toml"), "-q"]) == 2
+    assert (
+        run_main(
+            [
+                "--episodes",
+                "1",
+                "--duration",
+                "1",
+                "--out",
+                str(tmp_path / "ep2"),
+                "--plant",
+                str(tmp_path / "missing.toml"),
+                "-q",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "missing.toml" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
@@ -168,8 +222,12 @@ def test_replay_repeats_the_logged_excitations_under_another_plant(tmp_path, cap
     assert run_main(["--episodes", "2", "--duration", "2", "--seed", "4", "--out", str(tmp_path / "a"), "-q"]) == 0
     logs = sorted((tmp_path / "a").glob("*.mcap"))
     save_plant(tmp_path / "plant.toml", PlantFile(PendulumParameters(Cr=2e-4)))
-    assert run_main(["--replay", *map(str, logs), "--plant", str(tmp_path / "plant.toml"),
-                     "--out", str(tmp_path / "b"), "-q"]) == 0
+    assert (
+        run_main(
+            ["--replay", *map(str, logs), "--plant", str(tmp_path / "plant.toml"), "--out", str(tmp_path / "b"), "-q"]
+        )
+        == 0
+    )
     replays = sorted((tmp_path / "b").glob("*.mcap"))
     assert len(replays) == 2
     by_origin = {read_episode(p).metadata.extra["replay_of"]: read_episode(p) for p in replays}
@@ -222,8 +280,9 @@ def test_dead_zone_swallows_small_voltages_and_is_off_in_the_workbook_model():
     x0 = np.array([0.0, math.pi, 0.0, 0.0])
     params = replace(base, dead_zone=0.3)
     np.testing.assert_array_equal(simulate(x0, np.full(100, 0.25), params), simulate(x0, np.zeros(100), params))
-    np.testing.assert_allclose(simulate(x0, np.full(100, 1.3), params), simulate(x0, np.full(100, 1.0), base),
-                               rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        simulate(x0, np.full(100, 1.3), params), simulate(x0, np.full(100, 1.0), base), rtol=1e-12, atol=1e-15
+    )
 
 
 def test_the_default_twin_is_the_calibration_on_two_controllers():
@@ -237,7 +296,9 @@ def test_the_default_twin_is_the_calibration_on_two_controllers():
     # The paper's 20 test episodes were not fitted; their replay met the targets (within 1 +- 0.05).
     rig_tests = [name for name in plant.provenance["validated_on"] if name.startswith("qube_20230828")]
     assert len(rig_tests) == 20 and set(rig_tests).isdisjoint(logs)
-    rig = plant.provenance["validation_controllers"].index("kp_theta 6, kd_theta 1.8, kp_alpha 30, kd_alpha 2.5, tau 50")
+    rig = plant.provenance["validation_controllers"].index(
+        "kp_theta 6, kd_theta 1.8, kp_alpha 30, kd_alpha 2.5, tau 50"
+    )
     assert all(abs(r - 1) <= 0.05 for r in plant.provenance["std_ratio_median_by_controller"][rig])
     assert plant.params.Kr > 20 * plant.standard_errors["Kr"]
 

@@ -117,19 +117,26 @@ def test_the_plant_files_load_round_trips_and_old_files_have_none(tmp_path):
     assert back.load_setups == plant.load_setups
     assert back.load_setup_standard_errors == plant.load_setup_standard_errors
     assert back.loads_for_logs(["2023-09-15T15:00:00", "2023-08-28T16:00:00", "2024-01-01T00:00:00", None]) == [
-        RandomLoad(0.09, 0.55), RandomLoad(0.02), plant.load, plant.load]
+        RandomLoad(0.09, 0.55),
+        RandomLoad(0.02),
+        plant.load,
+        plant.load,
+    ]
     assert back.params == plant.params and back.setups == plant.setups
 
 
-@pytest.mark.parametrize("table, problem", [
-    ("[load]\ndiffusion = -1.0\n", "load diffusion must be between 0"),
-    ("[load]\ndiffusion = 0.1\ntime_constant = 0.0\n", "time_constant must be positive"),
-    ("[load]\ntime_constant = 2.0\n", "diffusion (V/sqrt(s)) is missing"),
-    ("[load]\ndiffusion = 0.1\nstd = 0.2\n", "unknown key(s) std"),
-    ("[load]\ndiffusion = \"much\"\n", "diffusion must be a number"),
-    ("load = 3\n", "[load] must be a table"),
-    ("[load_setups.\"2023-09-15\"]\ndiffusion = 0.1\n", "needs a [load] table"),
-])
+@pytest.mark.parametrize(
+    "table, problem",
+    [
+        ("[load]\ndiffusion = -1.0\n", "load diffusion must be between 0"),
+        ("[load]\ndiffusion = 0.1\ntime_constant = 0.0\n", "time_constant must be positive"),
+        ("[load]\ntime_constant = 2.0\n", "diffusion (V/sqrt(s)) is missing"),
+        ("[load]\ndiffusion = 0.1\nstd = 0.2\n", "unknown key(s) std"),
+        ('[load]\ndiffusion = "much"\n', "diffusion must be a number"),
+        ("load = 3\n", "[load] must be a table"),
+        ('[load_setups."2023-09-15"]\ndiffusion = 0.1\n', "needs a [load] table"),
+    ],
+)
 def test_a_bad_load_table_is_one_error_naming_the_file(tmp_path, table, problem):
     path = tmp_path / "bad.toml"
     head = 'format = "qube-plant/2"\n'
@@ -163,10 +170,23 @@ def test_qube_run_no_load_is_a_plant_file_without_the_table_and_the_log_records_
     save_plant(tmp_path / "load.toml", plant)
     save_plant(tmp_path / "none.toml", PlantFile(PendulumParameters()))
     argv = ["--episodes", "2", "--duration", "1", "--seed", "5", "--n-jobs", "1", "-q"]
-    for name, extra in (("a", ["--plant", "load.toml"]), ("b", ["--plant", "load.toml"]),
-                        ("off", ["--plant", "load.toml", "--no-load"]), ("none", ["--plant", "none.toml"])):
-        assert main([*argv, *[str(tmp_path / x) if x.endswith(".toml") else x for x in extra],
-                     "--out", str(tmp_path / name)]) == 0
+    for name, extra in (
+        ("a", ["--plant", "load.toml"]),
+        ("b", ["--plant", "load.toml"]),
+        ("off", ["--plant", "load.toml", "--no-load"]),
+        ("none", ["--plant", "none.toml"]),
+    ):
+        assert (
+            main(
+                [
+                    *argv,
+                    *[str(tmp_path / x) if x.endswith(".toml") else x for x in extra],
+                    "--out",
+                    str(tmp_path / name),
+                ]
+            )
+            == 0
+        )
     a, loads = _states(tmp_path / "a")
     b, _ = _states(tmp_path / "b")
     off, off_loads = _states(tmp_path / "off")
@@ -191,13 +211,18 @@ def test_a_replay_runs_each_log_with_its_days_load(tmp_path):
 
     assert main(["--episodes", "1", "--duration", "1", "--seed", "8", "--out", str(tmp_path / "orig"), "-q"]) == 0
     day = next((tmp_path / "orig").glob("*.mcap")).name[5:13]
-    plant = PlantFile(PendulumParameters(), load=RandomLoad(0.2, 1.0),
-                      load_setups={f"{day[:4]}-{day[4:6]}-{day[6:]}": RandomLoad(0.5, 2.0)})
+    plant = PlantFile(
+        PendulumParameters(),
+        load=RandomLoad(0.2, 1.0),
+        load_setups={f"{day[:4]}-{day[4:6]}-{day[6:]}": RandomLoad(0.5, 2.0)},
+    )
     save_plant(tmp_path / "p.toml", plant)
     log = str(next((tmp_path / "orig").glob("*.mcap")))
     assert main(["--replay", log, "--plant", str(tmp_path / "p.toml"), "--out", str(tmp_path / "r"), "-q"]) == 0
-    assert main(["--replay", log, "--plant", str(tmp_path / "p.toml"), "--no-load",
-                 "--out", str(tmp_path / "n"), "-q"]) == 0
+    assert (
+        main(["--replay", log, "--plant", str(tmp_path / "p.toml"), "--no-load", "--out", str(tmp_path / "n"), "-q"])
+        == 0
+    )
     _, loads = _states(tmp_path / "r")
     _, none = _states(tmp_path / "n")
     assert loads[0]["diffusion"] == 0.5 and loads[0]["time_constant"] == 2.0 and none == [None]

@@ -14,8 +14,9 @@ from qube_koopman.sim.pendulum.sensitivity import FIELDS, Directions, simulate_t
 DT = 1 / 500
 #: Every optional term on: Coulomb friction, a dead zone the voltage crosses, a fractional delay (1.6
 #: samples), the cables' levelling pull away from the encoder's zero.
-PARAMS = replace(PendulumParameters(), Cr=4e-4, dead_zone=0.2, delay=0.0032, Kr=2e-3, cable_softening=4.0,
-                 theta_rest=0.05, Dp=3e-5)
+PARAMS = replace(
+    PendulumParameters(), Cr=4e-4, dead_zone=0.2, delay=0.0032, Kr=2e-3, cable_softening=4.0, theta_rest=0.05, Dp=3e-5
+)
 
 
 def _case(n_seg: int = 6, n_steps: int = 80):
@@ -48,8 +49,9 @@ def test_each_parameters_tangent_is_the_simulations_difference(name):
     directions = Directions(np.zeros((1, 4)), ((_row(moved) - _row(PARAMS)) / step)[None], np.zeros(1))
     angles, tangents = simulate_tangents(state0, voltages, PARAMS, directions, DT, past_voltages=past)
     # The same trajectory (its own arithmetic, so to rounding)
-    np.testing.assert_allclose(angles, simulate(state0, voltages, PARAMS, DT, past_voltages=past)[..., :2],
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        angles, simulate(state0, voltages, PARAMS, DT, past_voltages=past)[..., :2], rtol=0, atol=1e-12
+    )
     expected = _differences(state0, voltages, past, lambda h: (0.0, replace(PARAMS, **{name: value + h * value})))
     expected /= value  # per unit of the parameter (the step was relative)
     assert np.abs(expected).max() > 0  # the parameter moves the angles

@@ -39,8 +39,10 @@ TIE = 0.01
 def twin(qube_logs, tmp_path_factory):
     logs = tmp_path_factory.mktemp("twin_logs")
     out = tmp_path_factory.mktemp("twin_out")
-    assert qube_run(["--replay", *map(str, sorted(qube_logs.glob("*.mcap"))), "--seed", "1", "--out", str(logs),
-                     "-q"]) == 0
+    assert (
+        qube_run(["--replay", *map(str, sorted(qube_logs.glob("*.mcap"))), "--seed", "1", "--out", str(logs), "-q"])
+        == 0
+    )
     assert qube_reproduce(["qube", "--data", str(logs), "--out", str(out), "-q"]) == 0
     return logs, json.loads((out / "qube.json").read_text())
 
@@ -54,6 +56,7 @@ def test_the_twin_replays_all_48_excitations_to_the_end(twin, qube_logs):
     metas = [read_episode_metadata(p) for p in sorted(logs.glob("*.mcap"))]
     assert len(metas) == 48 and all(m.status == "complete" for m in metas)
     assert result["n_train"] == 28 and result["n_test"] == 20
+
     def seeds(meta):
         return tuple(sorted(meta.excitation["seeds"].items()))
 
