@@ -150,7 +150,8 @@ def main() -> None:
         s = r["sizes"]
         print(
             f"\n{label}: {r['ticks_per_s']:.1f} ticks/s, busy {r['busy']:.0f} cycles/tick "
-            f"({100 * r['busy'] / BUDGET:.1f} % of {BUDGET}), worst 10-tick mean {r['worst']:.0f}; flash {s.flash} B, static RAM {s.static_ram} B, "
+            f"({100 * r['busy'] / BUDGET:.1f} % of {BUDGET}), worst 10-tick mean {r['worst']:.0f}; "
+            f"flash {s.flash} B, static RAM {s.static_ram} B, "
             f"stack {r['stack']} B; UART bytes lost {r['rx_lost']}"
         )
         for name, cycles in sorted(r["parts"].items(), key=lambda kv: -kv[1])[:12]:

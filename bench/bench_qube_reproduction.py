@@ -2,7 +2,8 @@
 
 Target: the whole reproduction, import excluded, in at most 10 s on
 a 2-core machine. The sweeps run in one worker
-process per core; the same code in one process is timed beside it. The reference implementation solved an SDP per fit and
+process per core; the same code in one process is timed beside it. The reference
+implementation solved an SDP per fit and
 predicted about 1 ms per step (36 CPU-hours for the protocol). Here the naive
 approach is: for every (fold, alpha) build the lifted snapshots and fit from
 scratch, then predict each validation episode step by step with the full

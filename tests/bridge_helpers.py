@@ -262,7 +262,8 @@ class HostWait:
     these tests (``lockstep_clock=wait``). A read of the port that came back empty adds the port's
     read timeout, however long the machine held the host, and only when the host has read every
     byte the bridge sent and the bridge has read every byte the host sent (a pseudo-terminal hands
-    bytes on a moment later, longer on a loaded machine: an empty read then is not a lost frame). So the clock does not move while the host
+    bytes on a moment later, longer on a loaded machine: an empty read then is not a lost frame). So
+    the clock does not move while the host
     is held up (between a read and its answer, or in the middle of a read), nor while the bridge's
     bytes are on their way; only while the host runs and waits for a frame that will not come.
     The bridge then ticks unanswered only for a lost frame (or a host that does not answer that

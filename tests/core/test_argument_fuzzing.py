@@ -421,7 +421,8 @@ FOUND = [
         "qube-identify",
         [*BASE["qube-identify"], "--alpha-sweep", "1e-3", "1", "3"],
         "qube-identify: error: "
-        "--alpha-sweep cross-validates by holding out whole training episodes: it needs at least 2 training logs, got 1",
+        "--alpha-sweep cross-validates by holding out whole training episodes: "
+        "it needs at least 2 training logs, got 1",
     ),
 ]
 

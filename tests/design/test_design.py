@@ -175,7 +175,8 @@ def test_an_unstabilizable_model_is_refused_naming_the_mode(tmp_path, capsys):
         ("friction", "its lifting holds the arm's Coulomb friction shape (--friction)"),
         (
             "arx",
-            "an ARX model; a design needs a Koopman plant model: identify it with qube-identify ... --poly 1 --delays N",
+            "an ARX model; a design needs a Koopman plant model: "
+            "identify it with qube-identify ... --poly 1 --delays N",
         ),
         ("not json", "not a readable model file"),
         ("missing", "not a readable model file (No such file or directory)"),
@@ -494,9 +495,9 @@ def test_the_rerun_recording_shows_the_prediction_the_twins_episodes_and_both_lo
 def test_on_the_twin_the_designs_measured_cost_falls_in_its_predicted_interval(twin_cycle):
     """Over 20 seeds (the 20 episodes of ``qube-run --seed 5 --episodes 20``, 6 s each: their cost after the
     first second is what the interval is about, and 6 s keep the test at 6 s of twin time) the design's mean
-    measured J and its voltage RMS lie within the interval at 0.95 that its model file's bootstrap plants and held-out episodes
-    give (design.uncertainty), and the interval is not the bootstrap's alone (which misses: the bootstrap
-    plants' J spans about 1.5 %, the model's error on held-out episodes is 2 to 5 %)."""
+    measured J and its voltage RMS lie within the interval at 0.95 that its model file's bootstrap plants
+    and held-out episodes give (design.uncertainty), and the interval is not the bootstrap's alone (which
+    misses: the bootstrap plants' J spans about 1.5 %, the model's error on held-out episodes is 2 to 5 %)."""
     from qube_koopman.design.predict import episode_cost, predict_cost, rig_excitations
     from qube_koopman.design.twin import run_on_twin
     from qube_koopman.design.uncertainty import interval_from_logs, model_uncertainty

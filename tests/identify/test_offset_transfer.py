@@ -2,7 +2,8 @@
 episodes run under softer theta gains, whose encoder zeros are off by a few counts.
 
 Under a PD loop the arm settles where kp_theta (theta - r) balances kp_alpha alpha, so an
-alpha offset moves the arm by kp_alpha / kp_theta times itself: 17x under these gains. Estimating each test episode's offset from its first second fixes that.
+alpha offset moves the arm by kp_alpha / kp_theta times itself: 17x under these gains.
+Estimating each test episode's offset from its first second fixes that.
 
 The offset phenomenon is shown on the workbook's frictionless plant
 (``PendulumParameters.previous()``): R^2 0.978 with the offsets estimated, 0.78 without.

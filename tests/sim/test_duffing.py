@@ -83,8 +83,8 @@ def test_cli_errors_are_clean(tmp_path, capsys):
 @pytest.mark.slow
 def test_cl_edmd_and_edmd_solve_different_problems_on_the_duffing_data():
     """Each estimator matches its own normal equations (built here from the raw snapshots,
-    the generalized ridge of the paper's constrained problem for CL EDMD) and not the other's: with a real regularization the closed-loop penalty
-    ||U^p S||^2 and EDMD's ||U^p||^2 give different plants."""
+    the generalized ridge of the paper's constrained problem for CL EDMD) and not the other's: with a
+    real regularization the closed-loop penalty ||U^p S||^2 and EDMD's ||U^p||^2 give different plants."""
     from qube_koopman.identify import ClEdmd, Edmd
     from qube_koopman.reproduce.duffing import duffing_lifting, duffing_trajectory
 
