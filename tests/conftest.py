@@ -19,11 +19,12 @@ hypothesis_settings.register_profile("suite", derandomize=True, database=None)
 hypothesis_settings.register_profile("explore", derandomize=False)
 hypothesis_settings.load_profile("explore" if os.environ.get("QUBE_FUZZ_EXPLORE") == "1" else "suite")
 
-# Fixtures the tests of several folders share: the built firmware core and the environment of the
-# emulated bridge's subprocesses (bridge_helpers), the Uno firmware built for simavr (avr_helpers).
-# Registered once here, not imported by name into each test module: an imported fixture is a second
-# definition per module (its session-scoped value built again) and shadows the module's import.
-pytest_plugins = ["bridge_helpers", "avr_helpers"]
+# Fixtures the tests of several files share: the built firmware core and the environment of the
+# emulated bridge's subprocesses (bridge_helpers), the Uno firmware built for simavr (avr_helpers),
+# the dask cluster tests' logs (_cluster_logs). Registered once here, not imported by name into each
+# test module: an imported fixture is a second definition per module (a session-scoped value built
+# again) and the test's parameter of the same name shadows the import.
+pytest_plugins = ["bridge_helpers", "avr_helpers", "_cluster_logs"]
 
 DATASET_ENV = "QUBE_DATASET_DIR"
 DEFAULT_DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "qube_servo_20230828"

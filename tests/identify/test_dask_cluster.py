@@ -19,17 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cluster_logs import N_TRAIN
 
 pytest.importorskip("dask.distributed", reason="the dask extra is optional")
 
 pytestmark = pytest.mark.dataset
 
-N_TRAIN = 5
-SAMPLES = 3500  # of the dataset's ~10,000 an episode (qube-identify drops the first 500): a quick search
-SPACE = (
-    "delays = [0, 2, 5, 10]\npoly = [1, 2]\nconst = [false, true]\ntrig = [false]\nfriction = [false]\n"
-    "rbf = [0]\nalphas = [1e-3, 1.0]\noffsets = [false]\n"
-)
 STARTUP = 120.0  # s: generous, for a loaded 2-core machine
 RUN = 300.0
 
@@ -151,26 +146,6 @@ def own_cluster(tmp_path, request) -> Cluster:
     return _start_cluster(tmp_path / "cluster", request.addfinalizer)
 
 
-@pytest.fixture(scope="module")
-def logs(qube_csv_files, tmp_path_factory) -> Path:
-    """Five training and two test logs of the dataset (imported from its CSV files), their first 7 s."""
-    from qube_koopman.daq.episode import Episode
-    from qube_koopman.daq.legacy_csv import legacy_episode, load_legacy_controller
-    from qube_koopman.daq.log import write_episode
-    from qube_koopman.daq.log.names import log_path
-
-    root = tmp_path_factory.mktemp("cluster_logs")
-    controller = load_legacy_controller(qube_csv_files[0].parent / "controller.toml")
-    for name, chosen in (("train", qube_csv_files[:N_TRAIN]), ("test", qube_csv_files[28:30])):
-        (root / name).mkdir()
-        for path in chosen:
-            whole = legacy_episode(path, controller)
-            cut = {key: value[:SAMPLES] for key, value in whole.arrays().items() if value is not None}
-            write_episode(log_path(root / name, path.stem), Episode(**cut, metadata=whole.metadata))
-    (root / "space.toml").write_text(SPACE)
-    return root
-
-
 def _argv(logs: Path, out: Path, *extra) -> list[str]:
     return [str(a) for a in ("--train", logs / "train", "--test", logs / "test", "--out", out, "-q", *extra)]
 
@@ -215,17 +190,17 @@ def _without_timings(value):
 
 
 @pytest.fixture(scope="module")
-def local_search(logs, tmp_path_factory) -> dict:
+def local_search(cluster_logs, tmp_path_factory) -> dict:
     """The narrowed search run locally, in this process: the cluster runs' reference."""
     out = tmp_path_factory.mktemp("local_search")
-    _identify(_search_argv(logs, out, "--n-jobs", "1"))
+    _identify(_search_argv(cluster_logs, out, "--n-jobs", "1"))
     return _results(out)
 
 
 @pytest.mark.slow
-def test_a_search_on_the_cluster_equals_the_local_search(cluster, logs, local_search, tmp_path):
+def test_a_search_on_the_cluster_equals_the_local_search(cluster, cluster_logs, local_search, tmp_path):
     before = cluster.executed()
-    _identify(_search_argv(logs, tmp_path / "out", "--scheduler", cluster.address))
+    _identify(_search_argv(cluster_logs, tmp_path / "out", "--scheduler", cluster.address))
     report, model = _results(tmp_path / "out")
     reference, reference_model = local_search
     assert report["search"]["winner"]["label"] == reference["search"]["winner"]["label"]
@@ -252,15 +227,15 @@ def test_a_search_on_the_cluster_equals_the_local_search(cluster, logs, local_se
 
 
 @pytest.mark.slow
-def test_a_fit_and_an_alpha_sweep_on_the_cluster_equal_the_local_ones(cluster, logs, tmp_path):
+def test_a_fit_and_an_alpha_sweep_on_the_cluster_equal_the_local_ones(cluster, cluster_logs, tmp_path):
     before = cluster.executed()
     fit = ("--poly", "2", "--delays", "10", "--alpha", "1e-3", "--worker-logs", "shared")
     sweep = ("--poly", "2", "--delays", "5", "--trig", "--alpha-sweep", "1e-4", "1", "3")  # logs shipped
     for name, options in (("fit", fit), ("sweep", sweep)):
         local = [o for o in options if o not in ("--worker-logs", "shared")]
-        _identify(_argv(logs, tmp_path / f"{name}_local", *local))
+        _identify(_argv(cluster_logs, tmp_path / f"{name}_local", *local))
         reference, reference_model = _results(tmp_path / f"{name}_local")
-        _identify(_argv(logs, tmp_path / name, *options, "--scheduler", cluster.address))
+        _identify(_argv(cluster_logs, tmp_path / name, *options, "--scheduler", cluster.address))
         report, model = _results(tmp_path / name)
         _assert_same_numbers(reference_model, model, f"{name}: model")
         _assert_same_numbers(reference["test"], report["test"], f"{name}: test scores")
@@ -272,7 +247,7 @@ def test_a_fit_and_an_alpha_sweep_on_the_cluster_equal_the_local_ones(cluster, l
 
 
 @pytest.mark.slow
-def test_a_worker_killed_mid_search_leaves_the_same_winner(own_cluster, logs, local_search, tmp_path):
+def test_a_worker_killed_mid_search_leaves_the_same_winner(own_cluster, cluster_logs, local_search, tmp_path):
     cluster, out = own_cluster, tmp_path / "out"
     with open(tmp_path / "search.log", "wb") as log:
         search = subprocess.Popen(
@@ -280,7 +255,7 @@ def test_a_worker_killed_mid_search_leaves_the_same_winner(own_cluster, logs, lo
                 sys.executable,
                 "-m",
                 "qube_koopman.identify.cli.identify",
-                *_search_argv(logs, out, "--scheduler", cluster.address),
+                *_search_argv(cluster_logs, out, "--scheduler", cluster.address),
             ],
             stdout=log,
             stderr=subprocess.STDOUT,
@@ -381,7 +356,7 @@ def test_results_give_up_once_every_worker_died_mid_task(own_cluster):
     )
 
 
-def test_qube_identify_gives_up_in_one_line_when_the_cluster_has_no_worker(own_cluster, logs, tmp_path):
+def test_qube_identify_gives_up_in_one_line_when_the_cluster_has_no_worker(own_cluster, cluster_logs, tmp_path):
     cluster = own_cluster
     _kill_workers(cluster)
     proc = subprocess.run(
@@ -389,7 +364,7 @@ def test_qube_identify_gives_up_in_one_line_when_the_cluster_has_no_worker(own_c
             sys.executable,
             "-m",
             "qube_koopman.identify.cli.identify",
-            *_argv(logs, tmp_path / "out", "--scheduler", cluster.address, "--worker-timeout", "2"),
+            *_argv(cluster_logs, tmp_path / "out", "--scheduler", cluster.address, "--worker-timeout", "2"),
         ],
         capture_output=True,
         text=True,

@@ -8,7 +8,7 @@ cluster: a plain tcp:// address off the loopback is refused unless ``--insecure-
 and each bad certificate option is a one-line error naming it.
 
 The real cluster of processes (``dask scheduler``, ``dask worker``) is tests/identify/test_dask_cluster.py's;
-the fit here runs on its logs (its ``logs`` fixture and helpers).
+the fit here runs on its logs (the ``cluster_logs`` fixture, tests/_cluster_logs.py) and helpers.
 """
 
 from __future__ import annotations
@@ -25,10 +25,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from _cluster_logs import N_TRAIN
 
 pytest.importorskip("dask.distributed", reason="the dask extra is optional")
 
-from test_dask_cluster import N_TRAIN, _argv, _identify, _results, logs  # noqa: F401 (logs: the fixture)
+from test_dask_cluster import _argv, _identify, _results
 
 REFUSED = 10.0  # s: a refused client must fail well before this (it is told at once, not left to time out)
 
@@ -190,8 +191,8 @@ def tls_cluster(certificates):
 
 @pytest.mark.dataset
 def test_a_fit_runs_on_a_tls_cluster_that_refuses_clients_without_its_certificates(
-    tls_cluster, certificates, logs, tmp_path
-):  # noqa: F811
+    tls_cluster, certificates, cluster_logs, tmp_path
+):
     from distributed import Client
 
     address = tls_cluster.scheduler_address
@@ -201,7 +202,7 @@ def test_a_fit_runs_on_a_tls_cluster_that_refuses_clients_without_its_certificat
         before = executed()
         _identify(
             _argv(
-                logs,
+                cluster_logs,
                 tmp_path / "fit",
                 "--poly",
                 "1",
@@ -252,7 +253,7 @@ def test_a_fit_runs_on_a_tls_cluster_that_refuses_clients_without_its_certificat
     # qube-identify with the stranger's certificates: one line, exit 2.
     from qube_koopman.identify.cli.identify import main
 
-    assert main(_argv(logs, tmp_path / "refused", "--scheduler", address, *stranger.options())) == 2
+    assert main(_argv(cluster_logs, tmp_path / "refused", "--scheduler", address, *stranger.options())) == 2
     assert not (tmp_path / "refused").exists()
 
 
@@ -366,7 +367,8 @@ TLS = ["--scheduler", "tls://h:8786"]
         ),
         (
             ["--scheduler", "tcp://127.0.0.1:8786", "--tls-ca-file", "{ca}", "--tls-cert", "{cert}"],
-            "--tls-ca-file, --tls-cert: certificates secure a tls:// scheduler, but --scheduler tcp://127.0.0.1:8786 is",
+            "--tls-ca-file, --tls-cert: certificates secure a tls:// scheduler, "
+            "but --scheduler tcp://127.0.0.1:8786 is",
         ),
         (["--scheduler", "10.0.0.5:8786", "--tls-cert", "{cert}"], "is plain tcp: give tls://10.0.0.5:8786"),
         (TLS, "--scheduler tls://h:8786 needs the cluster's CA certificate (--tls-ca-file) and a client certificate"),
