@@ -307,34 +307,62 @@ def _ruff() -> list[str]:
     pytest.fail('ruff is not installed: pip install -e ".[test]"')
 
 
-def test_ruff_formats_the_packages_as_they_are():
-    """The formatter (``ruff format``, pyproject.toml's [tool.ruff]) would change nothing in the package folders."""
+def _ruff_run(*args: str) -> subprocess.CompletedProcess:
+    """ruff run from the repository's root with its settings (pyproject.toml's [tool.ruff])."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    checked = subprocess.run(
-        [*_ruff(), "format", "--check", "--no-cache", "--config", str(root / "pyproject.toml"), *LAYERS, *APPLICATIONS],
+    return subprocess.run(
+        [*_ruff(), *args[:1], "--no-cache", "--config", str(root / "pyproject.toml"), *args[1:]],
         cwd=root,
         capture_output=True,
         text=True,
         timeout=300,
     )
+
+
+def _ruffed_files() -> list[str]:
+    """The Python files ``ruff check .`` reads, relative to the repository's root."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    shown = _ruff_run("check", "--show-files", ".")
+    assert shown.returncode == 0, shown.stdout[-2000:] + shown.stderr[-2000:]
+    files = [Path(line.strip()) for line in shown.stdout.splitlines() if line.strip()]
+    return [str(path.relative_to(root)) for path in files if path.suffix in (".py", ".pyi", ".ipynb")]
+
+
+def test_ruff_reads_the_whole_repository_and_ignores_no_folder():
+    """``ruff check .`` reads every top folder that holds Python (the tests, benchmarks, the example and
+    docs/conf.py as well as the packages), and pyproject.toml's per-file-ignores name single files, each
+    with a reason beside it, never a folder or a pattern that would silence many files at once."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    holding = {
+        top.name
+        for top in root.iterdir()
+        if top.is_dir() and not top.name.startswith(".") and top.name not in ("build", "dist")
+        if not top.name.endswith(".egg-info") and any(top.rglob("*.py"))
+    }
+    tops = {Path(name).parts[0] for name in _ruffed_files()}
+    assert {*LAYERS, *APPLICATIONS, "tests", "bench", "examples", "docs"} <= holding <= tops, (holding, tops)
+    ignores = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["ruff"]["lint"].get("per-file-ignores", {})
+    assert all((root / name).is_file() for name in ignores), sorted(ignores)
+
+
+def test_ruff_formats_the_repository_as_it_is():
+    """The formatter (``ruff format``, pyproject.toml's [tool.ruff]) would change none of the files the
+    linter reads: the packages, the tests, the benchmarks, the tools and the example."""
+    checked = _ruff_run("format", "--check", *_ruffed_files())
     assert checked.returncode == 0, "run `ruff format` on:\n" + checked.stdout[-8000:] + checked.stderr[-2000:]
 
 
-def test_ruff_finds_nothing_in_the_packages():
-    """The linter, configured in pyproject.toml ([tool.ruff]), reports nothing on the package folders.
+def test_ruff_finds_nothing_in_the_repository():
+    """The linter, configured in pyproject.toml ([tool.ruff]), reports nothing on the whole repository.
     ruff is in the test extra: missing, it is an incomplete install, which fails rather than skips."""
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[2]
-    checked = subprocess.run(
-        [*_ruff(), "check", "--no-cache", "--config", str(root / "pyproject.toml"), *LAYERS, *APPLICATIONS],
-        cwd=root,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    checked = _ruff_run("check", ".")
     assert checked.returncode == 0, checked.stdout[-8000:] + checked.stderr[-2000:]
 
 
