@@ -21,10 +21,11 @@ hypothesis_settings.load_profile("explore" if os.environ.get("QUBE_FUZZ_EXPLORE"
 
 # Fixtures the tests of several files share: the built firmware core and the environment of the
 # emulated bridge's subprocesses (bridge_helpers), the Uno firmware built for simavr (avr_helpers),
-# the dask cluster tests' logs (_cluster_logs). Registered once here, not imported by name into each
-# test module: an imported fixture is a second definition per module (a session-scoped value built
-# again) and the test's parameter of the same name shadows the import.
-pytest_plugins = ["bridge_helpers", "avr_helpers", "_cluster_logs"]
+# the dask cluster tests' logs (_cluster_logs), the documentation blocks' clone (readme_blocks).
+# Registered once here, not imported by name into each test module: an imported fixture is a second
+# definition per module (a session-scoped value built again) and the test's parameter of the same
+# name shadows the import.
+pytest_plugins = ["bridge_helpers", "avr_helpers", "_cluster_logs", "readme_blocks"]
 
 DATASET_ENV = "QUBE_DATASET_DIR"
 DEFAULT_DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "qube_servo_20230828"
@@ -190,6 +191,23 @@ def qube_logs(qube_csv_files, tmp_path_factory) -> Path:
             write_episode(log_path(out, path.stem), legacy_episode(path, controller))
 
     return made_once(tmp_path_factory, "qube_logs", make)
+
+
+@pytest.fixture(scope="module")
+def small_set(qube_logs, tmp_path_factory) -> Path:
+    """8 training and 4 test episodes of the real data (``train/`` and ``test/`` of a folder), for the
+    qube-identify tests (tests/identify/test_identify_cli.py, test_figures.py)."""
+    import shutil
+
+    from qube_koopman.daq.log.names import find_logs
+
+    logs = find_logs(qube_logs)
+    root = tmp_path_factory.mktemp("small")
+    for name, chosen in (("train", logs[:8]), ("test", logs[28:32])):
+        (root / name).mkdir()
+        for path in chosen:
+            shutil.copy(path, root / name / path.name)
+    return root
 
 
 @pytest.fixture(scope="session")

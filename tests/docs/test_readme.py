@@ -16,14 +16,13 @@ tests/docs/test_readme_calibrate.py.
 from __future__ import annotations
 
 import pytest
-from readme_blocks import (  # noqa: F401
+from readme_blocks import (
     BLOCK_SOURCES,
     BLOCKS,
     OTHER_BLOCKS,
     REPO,
     block_id,
     blocks_of,
-    clone,
     expected_exit,
     run_block,
 )
@@ -51,5 +50,5 @@ def test_the_readme_test_command_is_what_ci_runs():
 
 
 @pytest.mark.parametrize("index", OTHER_BLOCKS, ids=block_id)
-def test_readme_block_runs_as_written(index, clone):  # noqa: F811
+def test_readme_block_runs_as_written(index, clone):
     run_block(index, clone)

@@ -8,7 +8,7 @@ block is one of the longest, and pytest-xdist (``--dist loadfile``) gives each f
 from __future__ import annotations
 
 import pytest
-from readme_blocks import block_id, blocks_running, clone, run_block  # noqa: F401
+from readme_blocks import block_id, blocks_running, run_block
 
 pytestmark = [pytest.mark.slow, pytest.mark.dataset]
 
@@ -20,5 +20,5 @@ def test_the_readme_has_a_calibration_block():
 
 
 @pytest.mark.parametrize("index", CALIBRATE_BLOCKS, ids=block_id)
-def test_readme_calibration_block_runs_as_written(index, clone):  # noqa: F811
+def test_readme_calibration_block_runs_as_written(index, clone):
     run_block(index, clone)

@@ -8,12 +8,11 @@ cycles are the longest blocks, and pytest-xdist (``--dist loadfile``) gives each
 from __future__ import annotations
 
 import pytest
-from readme_blocks import (  # noqa: F401
+from readme_blocks import (
     BLOCK_SOURCES,
     REPO,
     block_id,
     blocks_running,
-    clone,
     run_block,
 )
 
@@ -29,5 +28,5 @@ def test_the_readme_has_a_design_cycle_block():
 
 
 @pytest.mark.parametrize("index", DESIGN_BLOCKS, ids=block_id)
-def test_readme_design_block_runs_as_written(index, clone):  # noqa: F811
+def test_readme_design_block_runs_as_written(index, clone):
     run_block(index, clone)

@@ -16,7 +16,6 @@ import pytest
 from qube_koopman.identify.report import figures as figures_module
 from qube_koopman.identify.cli.identify import main as qube_identify
 from qube_koopman.reproduce.cli import main as qube_reproduce
-from test_identify_cli import small_set  # noqa: F401  (the module fixture: 8 training, 4 test episodes)
 
 
 @pytest.fixture
@@ -45,7 +44,7 @@ def nan_equal(a, b) -> bool:
 
 @pytest.mark.dataset
 @pytest.mark.slow
-def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, capsys):  # noqa: F811
+def test_identify_figures_plot_the_reported_arrays(small_set, tmp_path, drawn, capsys):
     from qube_koopman.daq.log.names import find_logs
     from qube_koopman.identify.data.logs import load_logs
     from qube_koopman.identify.models.model_file import load_model
@@ -148,7 +147,7 @@ def test_figures_without_matplotlib_is_one_line(command, argv, tmp_path, monkeyp
 
 
 @pytest.mark.dataset
-def test_figure_episode_options_need_figures_and_a_test_episode(small_set, tmp_path, capsys):  # noqa: F811
+def test_figure_episode_options_need_figures_and_a_test_episode(small_set, tmp_path, capsys):
     code = qube_identify(
         [
             "--train",

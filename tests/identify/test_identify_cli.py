@@ -2,7 +2,6 @@
 
 import json
 import os
-import shutil
 import sys
 from pathlib import Path
 
@@ -14,18 +13,6 @@ from qube_koopman.identify.cli.identify import main
 from qube_koopman.identify.models.model_file import load_model
 
 pytestmark = pytest.mark.dataset
-
-
-@pytest.fixture(scope="module")
-def small_set(qube_logs, tmp_path_factory):
-    """8 training and 4 test episodes of the real data."""
-    logs = find_logs(qube_logs)
-    root = tmp_path_factory.mktemp("small")
-    for name, chosen in (("train", logs[:8]), ("test", logs[28:32])):
-        (root / name).mkdir()
-        for path in chosen:
-            shutil.copy(path, root / name / path.name)
-    return root
 
 
 def run(capsys, *argv):
