@@ -21,11 +21,11 @@ hypothesis_settings.load_profile("explore" if os.environ.get("QUBE_FUZZ_EXPLORE"
 
 # Fixtures the tests of several files share: the built firmware core and the environment of the
 # emulated bridge's subprocesses (bridge_helpers), the Uno firmware built for simavr (avr_helpers),
-# the dask cluster tests' logs (_cluster_logs), the documentation blocks' clone (readme_blocks).
-# Registered once here, not imported by name into each test module: an imported fixture is a second
-# definition per module (a session-scoped value built again) and the test's parameter of the same
-# name shadows the import.
-pytest_plugins = ["bridge_helpers", "avr_helpers", "_cluster_logs", "readme_blocks"]
+# the dask cluster tests' logs (_cluster_logs), the documentation blocks' clone (readme_blocks), the
+# commands' input folder and stubbed long work (_command_stubs). Registered once here, not imported
+# by name into each test module: an imported fixture is a second definition per module (a
+# session-scoped value built again) and the test's parameter of the same name shadows the import.
+pytest_plugins = ["bridge_helpers", "avr_helpers", "_cluster_logs", "readme_blocks", "_command_stubs"]
 
 DATASET_ENV = "QUBE_DATASET_DIR"
 DEFAULT_DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "qube_servo_20230828"

@@ -14,33 +14,29 @@ The vectors are the same every run (hypothesis derandomized), so the suite is de
 Long work is never started: where the arguments pass, the step that would run for seconds or
 forever (the emulator's pseudo-terminal, the calibration's fit, the Duffing experiment, the
 lifting search, a qube-run longer than 2 s of simulated time or paced, streamed or at real-time
-priority) is replaced by a stub that ends the command (:class:`_Reached`, counted as a pass).
-The Duffing stub first checks what the library itself requires of its arguments, so a value
-the command let through and the library refuses still fails here. No serial device is opened:
-the only ports drawn are files and folders under the example's temporary folder.
+priority) is replaced by a stub that ends the command (``Reached``, counted as a pass; the
+stubs and the folder each example starts from are tests/_command_stubs.py's). The Duffing stub
+first checks what the library itself requires of its arguments, so a value the command let
+through and the library refuses still fails here. No serial device is opened: the only ports
+drawn are files and folders under the example's temporary folder.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 from collections import Counter
 import importlib
-import io
 import os
 import shutil
 import tempfile
-import tomllib
-import traceback
 from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from _command_stubs import commands, run_in_process
 
 pytestmark = pytest.mark.slow
-
-REPO = Path(__file__).resolve().parents[2]
 
 #: Values drawn for any option that takes one: out of range, non-finite, huge, empty, wrong type, and a few valid.
 NUMBERS = [
@@ -98,15 +94,6 @@ EXPLORE = os.environ.get("QUBE_FUZZ_EXPLORE") == "1"
 DRAWN: dict[str, Counter] = {}  # command -> exit statuses ("reached": the long work's stub)
 
 
-class _Reached(BaseException):
-    """The command got past its arguments to long work, which the harness does not run."""
-
-
-def _commands() -> dict[str, str]:
-    """Every console script: name -> "module:function"."""
-    return tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
-
-
 def _parser_of(module) -> argparse.ArgumentParser:
     builder = getattr(module, "build_parser", None) or module._parser
     return builder()
@@ -122,7 +109,7 @@ def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.Argument
 def _variants() -> list[tuple[str, list[str]]]:
     """(command, leading words): one per command, one per subcommand."""
     found = []
-    for name, target in sorted(_commands().items()):
+    for name, target in sorted(commands().items()):
         module = importlib.import_module(target.split(":")[0])
         subs = _subcommands(_parser_of(module))
         found += [(name, [sub]) for sub in sorted(subs)] or [(name, [])]
@@ -183,106 +170,6 @@ def _argv(draw, parser: argparse.ArgumentParser, base: list[str]) -> list[str]:
     return argv
 
 
-# --- the folder each example runs in --------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def template(tmp_path_factory) -> Path:
-    """Files every example starts from: junk, folders, two real 2 s episode logs, a legacy CSV."""
-    from _legacy_csv import GAINS_TOML, GOOD, write_synthetic_csv
-
-    from qube_koopman.daq.backends import SimBackend
-    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_episodes, run_seeds
-    from qube_koopman.core.controller_file import load_controller
-    from qube_koopman.daq.sinks import McapSink
-
-    root = tmp_path_factory.mktemp("fuzz_template")
-    (root / "empty.txt").touch()
-    (root / "junk.bin").write_bytes(b"\x7fELF\x02\x01\x01\x00\xff\xfe" + bytes(range(256)) * 4)
-    (root / "folder").mkdir()
-    (root / "csv").mkdir()
-    (root / "csv" / "controller.toml").write_text(GAINS_TOML)
-    write_synthetic_csv(root / "csv" / f"{GOOD}.csv")
-    (root / "logs").mkdir()
-    rate = 500.0
-    seeds, backend_seed = run_seeds(1, 2)
-    plans = plan_episodes(
-        load_controller(None, "backward-euler", 1 / rate), seeds, excitation_settings(2.0, rate), source="fuzz"
-    )
-    sink = McapSink(root / "logs")
-    run_episodes(SimBackend(seed=backend_seed, dt=1 / rate), plans, [sink])
-    for path, name in zip(sink.paths, ("a", "b")):
-        path.rename(root / "logs" / f"{name}.mcap")
-    return root
-
-
-@pytest.fixture(scope="module")
-def stubs():
-    """Replace each command's long work by :class:`_Reached` (see the module's docstring)."""
-    import math
-
-    from qube_koopman.daq.cli import run
-    from qube_koopman.identify import calibrate
-    from qube_koopman.identify.model_selection import distributed, search, transfer
-    from qube_koopman.identify._checks import check_alpha
-    from qube_koopman.reproduce import duffing
-    from qube_koopman.sim.bridge import BridgeEmulator, avr_pty
-
-    def reached(*args, **kwargs):
-        raise _Reached
-
-    real_collect = run._collect
-
-    def collect(args, backend, plans, settings, *rest):
-        short = args.episodes * args.duration <= 2 and not args.realtime and args.rerun is None
-        if short and args.rt_cpu is None and args.rt_priority is None:
-            return real_collect(args, backend, plans, settings, *rest)
-        raise _Reached
-
-    def reproduce_duffing(seed, alpha):
-        import numpy as np
-
-        check_alpha(alpha)  # what the library requires of the command's values
-        np.random.default_rng(seed)
-        assert math.isfinite(alpha)
-        raise _Reached
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(run, "_collect", collect)
-        mp.setattr(BridgeEmulator, "open", reached)
-        mp.setattr(avr_pty.AvrPtyBridge, "open", reached)
-        mp.setattr(calibrate.PlantCalibration, "fit", reached)
-        mp.setattr(duffing, "reproduce_duffing", reproduce_duffing)
-        mp.setattr(transfer, "twin_probes", lambda *a, **k: None)
-        mp.setattr(search, "search_liftings", reached)
-        mp.setattr(distributed, "connect", reached)  # --scheduler: no waiting for a scheduler's answer
-        yield
-
-
-def run_in_process(command: str, argv: list[str], folder: Path) -> tuple[int | str, str]:
-    """``command``'s ``main(argv)`` in ``folder``: (exit status, or "reached"; stderr)."""
-    target = _commands()[command]
-    module_name, function = target.split(":")
-    main = getattr(importlib.import_module(module_name), function)
-    err, out = io.StringIO(), io.StringIO()
-    cwd = os.getcwd()
-    os.chdir(folder)
-    try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
-            try:
-                status = main(argv)
-            except SystemExit as exc:
-                status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
-            except _Reached:
-                status = "reached"
-            except Exception:  # the failure this test is for
-                traceback.print_exc(file=err)
-                status = "traceback"
-    finally:
-        os.chdir(cwd)
-    return status, err.getvalue()
-
-
 def _names_the_problem(stderr: str, argv: list[str], parser: argparse.ArgumentParser) -> bool:
     """An error (or a warning it follows) names a flag, a path or a value of ``argv``, or what is missing."""
     lines = [line for line in stderr.splitlines() if ": error: " in line or ": warning: " in line]
@@ -296,7 +183,7 @@ def _names_the_problem(stderr: str, argv: list[str], parser: argparse.ArgumentPa
 
 @pytest.mark.parametrize("command, words", VARIANTS, ids=[" ".join([c, *w]) for c, w in VARIANTS])
 def test_no_argument_vector_gives_a_traceback(command, words, template, stubs):
-    module = importlib.import_module(_commands()[command].split(":")[0])
+    module = importlib.import_module(commands()[command].split(":")[0])
     parser = _parser_of(module)
     if words:
         parser = _subcommands(parser)[words[0]]
@@ -440,7 +327,7 @@ def test_zz_every_command_drew_its_argument_vectors(capsys):
     """Last in the file: how many vectors were drawn (hypothesis may stop early when it has seen them all)."""
     if not DRAWN:
         pytest.skip("the fuzzing tests did not run in this process")
-    assert {name.split()[0] for name in DRAWN} == set(_commands()), DRAWN
+    assert {name.split()[0] for name in DRAWN} == set(commands()), DRAWN
     total = sum(sum(c.values()) for c in DRAWN.values())
     with capsys.disabled():
         print(f"\nargument fuzzing: {total} argument vectors; exit statuses by command:")

@@ -7,9 +7,9 @@
   own and go on with the others (exit 1, as for any file refused).
 - Every command stopped by SIGINT / SIGTERM says so in one line (130 / 143).
 
-Each command runs in-process in a copy of the argument fuzzing's template folder (two short real
-episode logs, a legacy CSV, junk files); its long work is stubbed (the fuzzing's ``stubs``), so
-reaching it counts as "passed the checks".
+Each command runs in-process in a copy of the ``template`` folder the argument fuzzing starts from
+too (two short real episode logs, a legacy CSV, junk files); its long work is stubbed (``stubs``,
+both tests/_command_stubs.py's), so reaching it counts as "passed the checks".
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from test_argument_fuzzing import run_in_process, stubs, template  # noqa: F401 (fixtures)
+from _command_stubs import run_in_process
 
 GOOD_CSV = "qube_20230828T150615_434_696_394"
 IDENTIFY = ["--train", "logs/a.mcap", "--test", "logs/b.mcap", "--skip", "0"]
@@ -58,7 +58,7 @@ def _argv(argv: list[str], out: str) -> list[str]:
 
 
 @pytest.fixture
-def folder(template, tmp_path):  # noqa: F811 (the fixture imported above)
+def folder(template, tmp_path):
     shutil.copytree(template, tmp_path / "run")
     return tmp_path / "run"
 
@@ -72,7 +72,7 @@ def _existing(folder: Path, name: str | None, out: str) -> Path:
 
 
 @pytest.mark.parametrize("command, argv, name", SINGLE_RESULT, ids=_ids(SINGLE_RESULT))
-def test_an_existing_result_is_refused_before_any_work_and_kept(command, argv, name, folder, stubs):  # noqa: F811
+def test_an_existing_result_is_refused_before_any_work_and_kept(command, argv, name, folder, stubs):
     target = _existing(folder, name, "result.rrd" if "--rerun" in argv or "--rerun-save" in argv else "result")
     out = target.parent.name if name else target.name
     status, err = run_in_process(command, _argv(argv, out), folder)
@@ -85,7 +85,7 @@ def test_an_existing_result_is_refused_before_any_work_and_kept(command, argv, n
 
 
 @pytest.mark.parametrize("command, argv, name", SINGLE_RESULT, ids=_ids(SINGLE_RESULT))
-def test_force_lets_the_command_past_an_existing_result(command, argv, name, folder, stubs):  # noqa: F811
+def test_force_lets_the_command_past_an_existing_result(command, argv, name, folder, stubs):
     target = _existing(folder, name, "result.rrd" if "--rerun" in argv or "--rerun-save" in argv else "result")
     out = target.parent.name if name else target.name
     status, err = run_in_process(command, [*_argv(argv, out), "--force"], folder)
@@ -95,7 +95,7 @@ def test_force_lets_the_command_past_an_existing_result(command, argv, name, fol
 
 
 @pytest.mark.parametrize("command, argv, name", BATCH, ids=_ids(BATCH))
-def test_batch_commands_refuse_each_existing_file_and_go_on(command, argv, name, folder, stubs):  # noqa: F811
+def test_batch_commands_refuse_each_existing_file_and_go_on(command, argv, name, folder, stubs):
     target = _existing(folder, name, "o")
     status, err = run_in_process(command, _argv(argv, "o"), folder)
     assert status == 1 and "exists (use --force to overwrite)" in err and str(target.relative_to(folder)) in err, err
@@ -105,7 +105,7 @@ def test_batch_commands_refuse_each_existing_file_and_go_on(command, argv, name,
 
 
 @pytest.mark.parametrize("command, argv, name", FOLDER_OUTPUTS, ids=_ids(FOLDER_OUTPUTS))
-def test_an_output_folder_under_a_file_is_a_user_error_before_any_work(command, argv, name, folder, stubs):  # noqa: F811
+def test_an_output_folder_under_a_file_is_a_user_error_before_any_work(command, argv, name, folder, stubs):
     status, err = run_in_process(command, _argv(argv, "empty.txt/o"), folder)
     lines = err.strip().splitlines()
     assert status == 2 and len(lines) == 1 and "empty.txt" in lines[0] and "Traceback" not in err, err
@@ -117,7 +117,7 @@ def test_a_read_only_output_folder_is_a_user_error_before_any_work(
     argv,
     name,
     folder,
-    stubs,  # noqa: F811
+    stubs,
     monkeypatch,
 ):
     # Read-only as the permission check sees it (the tests may run as root, whom a mode does not stop).
@@ -137,7 +137,7 @@ def test_a_read_only_output_folder_is_a_user_error_before_any_work(
     assert list((folder / "ro").iterdir()) == []
 
 
-def test_a_missing_output_folder_for_a_file_is_named(folder, stubs):  # noqa: F811
+def test_a_missing_output_folder_for_a_file_is_named(folder, stubs):
     status, err = run_in_process("qube-design", ["junk.bin", "--out", "missing/c.toml"], folder)
     assert status == 2 and err.strip() == "qube-design: error: missing/c.toml: folder missing does not exist (--out)"
 
