@@ -67,9 +67,12 @@ def test_joblib_workers_are_stopped_without_tracebacks_after_the_summary(pyteste
     """)
     # Not runpytest_subprocess: it reads stderr when pytest exits, before the tracker has written
     # there; a pipe is read to its end, when the last process holding it (the tracker) is gone.
+    # The helper modules whose fixtures the conftest registers (pytest_plugins) stay in tests/.
+    tests = os.path.dirname(os.path.dirname(__file__))
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"],
         cwd=pytester.path,
+        env=dict(os.environ, PYTHONPATH=os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])),
         capture_output=True,
         text=True,
         timeout=120,
