@@ -41,7 +41,8 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   (default ``docs/_static/mpc_episode.png``).
 - ``--only stiff-cables``: offset-free control on a twin the model did not see, the cables' stiffness ``Kr``
   twice the calibrated one: the MPC designed on MODEL.json with and without ``--no-offset-free`` (with and
-  without the arm's integral), the arm's reference stepped to +-0.1 rad at 0.5 s (the sign from the seed),
+  without the arm's integral), the arm's reference stepped to +-0.1 rad at 0.5 s (the sign from the seed;
+  ``--stiff-ramp 0.3``: ramped to +-0.3 rad from 0.5 s to 2.5 s instead),
   12 s per seed of ``--load-seeds``: the arm's mean tracking error from 5 s on (``mean(theta - target)``, in
   absolute value, averaged over the seeds), beside the same on the calibrated twin.
 
@@ -309,7 +310,9 @@ def _figure(root: Path, model: Path, limit: float, png: Path) -> None:
     )
 
 
-def _stiff_cables(root: Path, model: Path, seeds: list[int], step: float = 0.1, seconds: float = 12.0) -> None:
+def _stiff_cables(
+    root: Path, model: Path, seeds: list[int], step: float = 0.1, seconds: float = 12.0, ramp: bool = False
+) -> None:
     """The arm's mean tracking error from 5 s on, on a twin whose cables are twice as stiff as the calibrated one."""
     from dataclasses import replace
 
@@ -320,7 +323,8 @@ def _stiff_cables(root: Path, model: Path, seeds: list[int], step: float = 0.1, 
     quiet = ["--episodes", "1", "--duration", "2", "--interval", "0", "-q", "--force"]
     dt, n = 0.002, round(seconds / 0.002)
     print(
-        f"\nstiff cables: the arm's reference stepped to +-{step:g} rad at 0.5 s, {seconds:g} s per seed {seeds}; "
+        f"\nstiff cables: the arm's reference {'ramped' if ramp else 'stepped'} to +-{step:g} rad at 0.5 s, "
+        f"{seconds:g} s per seed {seeds}; "
         f"mean |mean(theta - target)| from 5 s on (mrad)"
     )
     print(f"{'integral':>8} {'offset-free':>11} " + " ".join(f"{k:>12}" for k in twins) + f" {'|estimate| x2 V':>15}")
@@ -341,7 +345,7 @@ def _stiff_cables(root: Path, model: Path, seeds: list[int], step: float = 0.1, 
                     theta, alpha = sim.reset((0.0, 0.02, 0.0, 0.0))
                     err = np.zeros(n)
                     for k in range(n):
-                        r = r_step if k * dt >= 0.5 else 0.0
+                        r = r_step * (min(max((k * dt - 0.5) / 2.0, 0.0), 1.0) if ramp else float(k * dt >= 0.5))
                         e0, e1 = r - theta, -alpha
                         u, _ = out(e0, e1, 0.0, r)
                         err[k] = theta - r
@@ -371,6 +375,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--only", choices=("timing", "offset-free", "j-table", "stiff-cables", "figure"), default=None)
     p.add_argument("--figure", type=Path, default=Path(__file__).parents[1] / "docs" / "_static" / "mpc_episode.png")
+    p.add_argument("--stiff-ramp", type=float, default=None, metavar="RAD")
     p.add_argument("--j-episodes", type=int, default=20)
     p.add_argument("--j-seed", type=int, default=7)
     p.add_argument("--j-horizon", type=int, default=20)
@@ -387,7 +392,11 @@ def main(argv=None) -> int:
         elif args.only == "j-table":
             _j_table(root, args.model, args.voltage_limit or 4.0, args.j_episodes, args.j_seed, args.j_horizon)
         else:
-            _stiff_cables(root, args.model, [int(s) for s in args.load_seeds.split(",")])
+            seeds = [int(s) for s in args.load_seeds.split(",")]
+            if args.stiff_ramp is None:
+                _stiff_cables(root, args.model, seeds)
+            else:
+                _stiff_cables(root, args.model, seeds, step=args.stiff_ramp, ramp=True)
         return 0
     if args.only != "timing":
         _offset_free(root, [int(s) for s in args.load_seeds.split(",")], args.load)
