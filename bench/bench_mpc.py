@@ -1,8 +1,8 @@
 """The MPC of ``qube-design --mpc`` on the twin: its solve time per tick, and its cost against the LQ design clipped.
 
     python bench/bench_mpc.py [MODEL.json] [--seeds 5,6,7] [--episodes 2] [--duration 10] [--voltage-limit V]
-                              [--horizons 10,20,40] [--out DIR] [--only timing|offset-free]
-                              [--load 0.5] [--load-seeds 1,2,3,4,5]
+                              [--horizons 10,20,40] [--out DIR] [--only timing|offset-free|j-table|stiff-cables]
+                              [--load 0.5] [--load-seeds 1,2,3,4,5] [--j-episodes 20] [--j-seed 7] [--j-horizon 20]
 
 MODEL.json is a plant identified by ``qube-identify`` (without one, the bench identifies one on 6
 twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design page's cycle). It prints:
@@ -28,6 +28,23 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   steady-state offset (mean of theta - target_theta over the last second of each step, in absolute value,
   averaged), the estimate's final value against the load, and the solve time per tick (the thread's CPU
   time) p50 / p99.
+
+- ``--only j-table``: the design bench's excitations (``qube-run --seed 7 --episodes 20``, 20 s each) under
+  the rig's PD, the LQ design, the LQ clipped at the limit (``qube-run --max-voltage``), the MPC
+  (``--no-offset-free``) and the offset-free MPC at the limit (``--voltage-limit``, default 4 V), and the MPC at
+  the rig's 10 V beside the LQ: per controller the episodes completed, J over the complete ones and over the
+  episodes every controller completed, the ticks over the limit and at it, the fallbacks. MODEL.json should
+  carry a disturbance model (``qube-identify ... --horizon 0.1,1 --disturbance input``). The MPC files run
+  without their time budget (the algorithm's J, not the host's luck: the timing table measures the host).
+- ``--only figure``: the docs' figure of an MPC episode (:mod:`design.mpc_figure`): the offset-free MPC at the
+  limit (default 4 V), the first episode of ``qube-run --seed 7`` (20 s), written to ``--figure PNG``
+  (default ``docs/_static/mpc_episode.png``).
+- ``--only stiff-cables``: offset-free control on a twin the model did not see, the cables' stiffness ``Kr``
+  twice the calibrated one: the MPC designed on MODEL.json with and without ``--no-offset-free`` (with and
+  without the arm's integral), the arm's reference stepped to +-0.1 rad at 0.5 s (the sign from the seed;
+  ``--stiff-ramp 0.3``: ramped to +-0.3 rad from 0.5 s to 2.5 s instead),
+  12 s per seed of ``--load-seeds``: the arm's mean tracking error from 5 s on (``mean(theta - target)``, in
+  absolute value, averaged over the seeds), beside the same on the calibrated twin.
 
 Timing is the host's: on a machine shared with other work the tails (p99, max) of the loop's
 (wall-clock) solve time are the machine's as much as the solver's; the bench therefore also runs
@@ -190,6 +207,163 @@ def _offset_free(root: Path, seeds: list[int], load: float) -> None:
             )
 
 
+def _no_budget(path: Path) -> Path:
+    path.write_text(path.read_text().replace("time_budget = 0.001", "time_budget = 10.0"))
+    return path
+
+
+def _episodes_figures(folder: Path, limit: float) -> dict:
+    """Completion, J per complete episode (by name), ticks over and at the limit, fallbacks, of a folder of logs."""
+    eps = {p.name[-16:]: read_episode(p, warn=False) for p in sorted(folder.glob("*.mcap"))}
+    J = {
+        k: episode_cost(e.theta, e.target_theta, e.alpha, e.plant_input)[0]
+        for k, e in eps.items()
+        if e.metadata.status == "complete"
+    }
+    u = np.concatenate([e.plant_input[round(1.0 / e.dt) :] for e in eps.values()])
+    fallback = 0
+    for e in eps.values():
+        fields = e.metadata.controller.tick_fields or ()
+        if "fallback" in fields:
+            fallback += int(e.controller_record[:, fields.index("fallback")].sum())
+    return {
+        "n": len(eps),
+        "J": J,
+        "over": int(np.sum(np.abs(u) > limit + 1e-9)),
+        "at": float(np.mean(np.abs(u) >= limit - 1e-6)),
+        "fallback": fallback,
+        "peaks": [float(np.max(np.abs(e.plant_input))) for e in eps.values()],
+    }
+
+
+def _j_table(root: Path, model: Path, limit: float, episodes: int, seed: int, horizon: int) -> None:
+    """The design bench's excitations under the PD, the LQ, the LQ clipped, the MPC and the offset-free MPC."""
+    quiet = ["--episodes", "2", "--duration", "4", "--interval", "0", "-q", "--force"]
+    mpc = ["--mpc", "--horizon", str(horizon)]
+    files = {"LQ": root / "j_lq.toml"}
+    design_main([str(model), "--out", str(files["LQ"]), *quiet])
+    for name, flags in (
+        ("MPC", ["--voltage-limit", f"{limit:g}", "--no-offset-free"]),
+        ("MPC offset-free", ["--voltage-limit", f"{limit:g}"]),
+        ("MPC 10 V", ["--voltage-limit", "10", "--no-offset-free"]),
+    ):
+        files[name] = root / f"j_{name.replace(' ', '_')}.toml"
+        design_main([str(model), *mpc, *flags, "--out", str(files[name]), *quiet])
+        _no_budget(files[name])
+    runs = {
+        "rig's PD": [],
+        "LQ": ["--controller", str(files["LQ"])],
+        f"LQ clipped at {limit:g} V": ["--controller", str(files["LQ"]), "--max-voltage", f"{limit:g}"],
+        f"MPC at {limit:g} V": ["--controller", str(files["MPC"])],
+        f"MPC offset-free at {limit:g} V": ["--controller", str(files["MPC offset-free"])],
+        "MPC at 10 V": ["--controller", str(files["MPC 10 V"])],
+    }
+    rows = {}
+    for name, extra in runs.items():
+        out = root / ("j_" + re.sub(r"[^A-Za-z0-9]+", "_", name))
+        argv = ["--episodes", str(episodes), "--seed", str(seed), "--out", str(out), "-q", "--force", *extra]
+        run_main(argv)
+        rows[name] = _episodes_figures(out, limit if "10 V" not in name and name not in ("LQ", "rig's PD") else 10.0)
+    lq_peaks = np.array(rows["LQ"]["peaks"])
+    print(
+        f"\nJ table: {episodes} episodes of qube-run --seed {seed} (20 s), model {model}, limit {limit:g} V; the LQ "
+        f"design's voltage peak per episode: median {np.median(lq_peaks):.2f} V, max {lq_peaks.max():.2f} V; MPC "
+        f"horizon {horizon}"
+    )
+    common = set.intersection(*(set(r["J"]) for r in rows.values()))
+    clipped = rows[f"LQ clipped at {limit:g} V"]
+    print(
+        f"{'controller':<30} {'complete':>8} {'J complete':>11} {'J common':>10} {'vs LQc':>7} "
+        f"{'over':>5} {'at limit %':>10} {'fallback':>8}"
+    )
+    for name, r in rows.items():
+        Jc = np.mean([r["J"][k] for k in common]) if common else np.nan
+        Jq = np.mean([clipped["J"][k] for k in common]) if common else np.nan
+        print(
+            f"{name:<30} {len(r['J']):>4}/{r['n']:<3} {np.mean(list(r['J'].values())):>11.3e} {Jc:>10.3e} "
+            f"{100 * (Jc / Jq - 1):>+6.1f}% {r['over']:>5d} {100 * r['at']:>10.2f} {r['fallback']:>8d}"
+        )
+    print(f"J common: the {len(common)} episodes every controller completed; over / at limit: after the first second")
+    a, b = rows["MPC at 10 V"]["J"], rows["LQ"]["J"]
+    both = set(a) & set(b)
+    print(
+        f"MPC at 10 V / LQ: J {np.mean([a[k] for k in both]) / np.mean([b[k] for k in both]):.4f} (target within 2 %)"
+    )
+
+
+def _figure(root: Path, model: Path, limit: float, png: Path) -> None:
+    """The offset-free MPC at the limit on the first excitation of ``qube-run --seed 7``, as a figure."""
+    from qube_koopman.design.mpc_figure import write_mpc_episode_figure
+
+    f = root / "figure_mpc.toml"
+    quiet = ["--episodes", "1", "--duration", "2", "--interval", "0", "-q", "--force"]
+    design_main([str(model), "--mpc", "--voltage-limit", f"{limit:g}", "--out", str(f), *quiet])
+    _no_budget(f)
+    run_main(["--controller", str(f), "--episodes", "1", "--seed", "7", "--out", str(root / "figure"), "-q", "--force"])
+    (log,) = sorted((root / "figure").glob("*.mcap"))
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig = write_mpc_episode_figure(log, f, png)
+    error = 1e3 * np.abs(fig.predicted_theta[: len(fig.measured_theta)] - fig.measured_theta)
+    print(
+        f"wrote {png}: constraint active on {100 * fig.active_fraction:.1f} % of the ticks; tick {fig.tick}'s "
+        f"horizon: theta predicted within {error.max():.2f} mrad of the twin (first step {error[0]:.2f} mrad)"
+    )
+
+
+def _stiff_cables(
+    root: Path, model: Path, seeds: list[int], step: float = 0.1, seconds: float = 12.0, ramp: bool = False
+) -> None:
+    """The arm's mean tracking error from 5 s on, on a twin whose cables are twice as stiff as the calibrated one."""
+    from dataclasses import replace
+
+    from qube_koopman.sim.pendulum import PendulumParameters
+
+    base = PendulumParameters()
+    twins = {"calibrated": base, "cables x2": replace(base, Kr=2 * base.Kr)}
+    quiet = ["--episodes", "1", "--duration", "2", "--interval", "0", "-q", "--force"]
+    dt, n = 0.002, round(seconds / 0.002)
+    print(
+        f"\nstiff cables: the arm's reference {'ramped' if ramp else 'stepped'} to +-{step:g} rad at 0.5 s, "
+        f"{seconds:g} s per seed {seeds}; "
+        f"mean |mean(theta - target)| from 5 s on (mrad)"
+    )
+    print(f"{'integral':>8} {'offset-free':>11} " + " ".join(f"{k:>12}" for k in twins) + f" {'|estimate| x2 V':>15}")
+    for integral in (True, False):
+        for offset_free in (False, True):
+            flags = ([] if integral else ["--no-integral"]) + ([] if offset_free else ["--no-offset-free"])
+            f = root / f"stiff_{int(integral)}{int(offset_free)}.toml"
+            design_main([str(model), "--mpc", *flags, "--out", str(f), *quiet])
+            _no_budget(f)
+            cells, estimate = [], []
+            for twin in twins.values():
+                errors = []
+                for s in seeds:
+                    r_step = step * (1 if s % 2 else -1)
+                    runtime = load_controller(f).runtime
+                    out, upd = runtime.step()
+                    sim = PendulumSimulator(params=twin, seed=s)
+                    theta, alpha = sim.reset((0.0, 0.02, 0.0, 0.0))
+                    err = np.zeros(n)
+                    for k in range(n):
+                        r = r_step * (min(max((k * dt - 0.5) / 2.0, 0.0), 1.0) if ramp else float(k * dt >= 0.5))
+                        e0, e1 = r - theta, -alpha
+                        u, _ = out(e0, e1, 0.0, r)
+                        err[k] = theta - r
+                        theta, alpha = sim.step(u)
+                        upd(e0, e1, 0.0)
+                        if abs(alpha) > 0.5:  # lost (the rig's supervisor would stop it)
+                            raise SystemExit(f"stiff cables: the pendulum fell (seed {s}); try a smaller step")
+                    errors.append(abs(err[round(5.0 / dt) :].mean()))
+                    if twin is not base:
+                        estimate.append(abs(runtime.estimate))
+                cells.append(1e3 * np.mean(errors))
+            print(
+                f"{'on' if integral else 'off':>8} {'on' if offset_free else 'off':>11} "
+                + " ".join(f"{c:>12.3f}" for c in cells)
+                + f" {np.mean(estimate):>15.4f}"
+            )
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("model", nargs="?", type=Path)
@@ -199,12 +373,31 @@ def main(argv=None) -> int:
     p.add_argument("--voltage-limit", type=float, default=None)
     p.add_argument("--horizons", default="10,20,40")
     p.add_argument("--out", type=Path, default=None)
-    p.add_argument("--only", choices=("timing", "offset-free"), default=None)
+    p.add_argument("--only", choices=("timing", "offset-free", "j-table", "stiff-cables", "figure"), default=None)
+    p.add_argument("--figure", type=Path, default=Path(__file__).parents[1] / "docs" / "_static" / "mpc_episode.png")
+    p.add_argument("--stiff-ramp", type=float, default=None, metavar="RAD")
+    p.add_argument("--j-episodes", type=int, default=20)
+    p.add_argument("--j-seed", type=int, default=7)
+    p.add_argument("--j-horizon", type=int, default=20)
     p.add_argument("--load", type=float, default=0.5)
     p.add_argument("--load-seeds", default="1,2,3,4,5")
     args = p.parse_args(argv)
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_mpc_"))
     root.mkdir(parents=True, exist_ok=True)
+    if args.only in ("j-table", "stiff-cables", "figure"):
+        if args.model is None:
+            p.error(f"--only {args.only} needs MODEL.json (with a disturbance model)")
+        if args.only == "figure":
+            _figure(root, args.model, args.voltage_limit or 4.0, args.figure)
+        elif args.only == "j-table":
+            _j_table(root, args.model, args.voltage_limit or 4.0, args.j_episodes, args.j_seed, args.j_horizon)
+        else:
+            seeds = [int(s) for s in args.load_seeds.split(",")]
+            if args.stiff_ramp is None:
+                _stiff_cables(root, args.model, seeds)
+            else:
+                _stiff_cables(root, args.model, seeds, step=args.stiff_ramp, ramp=True)
+        return 0
     if args.only != "timing":
         _offset_free(root, [int(s) for s in args.load_seeds.split(",")], args.load)
     if args.only == "offset-free":

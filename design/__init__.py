@@ -55,6 +55,9 @@ _HOMES = {
     # the design's frequency responses (qube-design --figures)
     "FrequencyFigures": "frequency",
     "write_frequency_figures": "frequency",
+    # an MPC episode's figure (bench/bench_mpc.py --only figure)
+    "MpcEpisodeFigure": "mpc_figure",
+    "write_mpc_episode_figure": "mpc_figure",
     # episodes run under a design against its prediction (qube-compare)
     "RunComparison": "compare",
     "compare_runs": "compare",

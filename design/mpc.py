@@ -585,6 +585,9 @@ class MpcRuntime:
         self.plan: np.ndarray | None = None
         #: The last tick's disturbance estimate ``d_{k|k}`` (0 without a disturbance model).
         self.estimate = 0.0
+        #: The last tick's prediction terms ``(theta_z z_0, r_theta, shift)``: its plan predicts the arm at
+        #: ``r_theta + theta_U (plan - shift) + theta_z z_0`` (``shift``: the steady state's input, offset-free).
+        self.prediction: tuple[np.ndarray, float, float] = (np.zeros(problem.horizon), 0.0, 0.0)
         self._osqp = OsqpSolver(problem) if problem.settings.solver == "osqp" else None
 
     def step(self):
@@ -641,6 +644,7 @@ class MpcRuntime:
                     hi -= shift
             g = p.G_z @ zz
             mz = p.theta_z @ zz  # theta_i - r_theta = theta_U U + mz
+            self.prediction = (mz, r_theta, shift)
             m_hi = p.theta_max - r_theta - mz
             m_lo = -p.theta_max - r_theta - mz
             U0 = np.zeros(N) if self.plan is None else np.append(self.plan[1:], self.plan[-1])

@@ -156,3 +156,32 @@ def test_qube_design_refuses_mpc_settings_without_mpc(twin_model, tmp_path, caps
     assert "--voltage-limit is a setting of --mpc" in capsys.readouterr().err
     assert design_main([str(twin_model), "--mpc", "--voltage-limit", "12", "--out", str(tmp_path / "x.toml")]) == 2
     assert "--voltage-limit must be above 0 and at most the rig's 10 V" in capsys.readouterr().err
+
+
+def test_the_episode_figure_shows_the_limit_the_active_ticks_and_one_ticks_horizon(twin_model, tmp_path):
+    from PIL import Image
+
+    from qube_koopman.design.mpc_figure import write_mpc_episode_figure
+
+    out = tmp_path / "mpc.toml"
+    argv = [str(twin_model), "--mpc", "--voltage-limit", "3", "--horizon", "15", "--out", str(out), "-q"]
+    assert design_main([*argv, "--episodes", "1", "--duration", "2", "--interval", "0"]) == 0
+    out.write_text(out.read_text().replace("time_budget = 0.001", "time_budget = 10.0"))  # no host luck
+    runs = tmp_path / "runs"
+    argv = ["--controller", str(out), "--episodes", "1", "--duration", "4", "--seed", "5", "--out", str(runs), "-q"]
+    assert run_main([*argv, "--n-jobs", "1"]) == 0
+    (log,) = sorted(runs.glob("*.mcap"))
+    figure = write_mpc_episode_figure(log, out, tmp_path / "episode.png")
+    episode = read_episode(log)
+    record = dict(zip(episode.metadata.controller.tick_fields, episode.controller_record.T))
+    k = figure.tick
+    assert k >= 500 and record["constraint_active"][k] == 1 and not record["constraint_active"][500:k].any()
+    assert figure.voltage_limit == 3.0 and figure.active_fraction == pytest.approx(record["constraint_active"].mean())
+    # the replayed plan is the one the loop solved: its first input is the one applied, all within the limit
+    assert figure.plan[0] == pytest.approx(episode.plant_input[k], abs=1e-9)
+    assert len(figure.plan) == 15 and np.all(np.abs(figure.plan) <= 3.0 + 1e-9)
+    # the model's prediction over the horizon follows the twin (0.03 s ahead, within a few encoder counts)
+    assert np.max(np.abs(figure.predicted_theta - figure.measured_theta)) < 0.02
+    assert abs(figure.predicted_theta[0] - figure.measured_theta[0]) < 0.006
+    image = Image.open(figure.path)
+    assert image.size[0] > 500 and "constraint active" in image.info["Title"]
