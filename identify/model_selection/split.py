@@ -119,10 +119,12 @@ def per_controller_splits(
     Why not :func:`leave_one_controller_out` alone: with a new controller's few episodes beside the
     rig's many, its fold that holds out the rig's trains on the few alone, a fit nothing like the one
     the search recommends (on the rig's 28 and 6 soft episodes, that fold scored the rig-only winner's
-    lifting 0.85 where every fold trained on 28 or more scored it 0.96-0.99, and it took no part in the
-    ranking after), and no fold asks how well the rig's own loop is still predicted. Every fold here
-    trains on at least half of the episodes, and each controller weighs the same (as many folds each),
-    whatever its share of the episodes.
+    lifting 0.85 where every fold trained on 28 or more scored it 0.96-0.99, and below zero at larger
+    alphas, which dropped that lifting from the ranking), and no fold asks how well the rig's own loop
+    is still predicted. Every fold here trains on at least half of the episodes, and each controller
+    weighs the same (as many folds each), whatever its share of the episodes; a controller of a
+    single episode has only its whole fold (none when the others are fewer), since no part of one
+    episode can be held out.
 
     Returns
     -------
@@ -131,14 +133,14 @@ def per_controller_splits(
         controller's others in the labels' order.
     """
     ids = np.asarray(labels)
+    parts = within_controller_splits(ids, n_splits, seed)
     whole, within = [], []
     for g in np.unique(ids):
         own, others = np.flatnonzero(ids == g), np.flatnonzero(ids != g)
         alone = 2 * others.size >= ids.size
         if alone:
             whole.append((others, own, int(g)))
-        parts = [(t, v, lab) for t, v, lab in within_controller_splits(ids, n_splits, seed) if lab == g]
-        within += parts[: n_splits - int(alone)]
+        within += [p for p in parts if p[2] == g][: n_splits - int(alone)]
     return whole + within
 
 

@@ -92,3 +92,14 @@ def test_a_fold_of_several_loops_becomes_a_fold_per_loop_with_the_same_training_
     assert all(len({j % 2 for j in v}) == 1 for _, v in one.splits)  # each fold of one loop
     parts = split_by_loop([(np.array([0]), np.array([3, 1, 2]))], [0, 1, 0, 1])
     assert [(t.tolist(), v.tolist()) for t, v in parts] == [([0], [2]), ([0], [3, 1])]
+
+
+def test_a_controller_of_one_episode_has_its_whole_fold_only():
+    from qube_koopman.identify.model_selection.split import per_controller_splits
+
+    folds = per_controller_splits([0, 0, 0, 0, 0, 1], n_splits=3)
+    assert [g for _, _, g in folds] == [1, 0, 0, 0]
+    train, validation, _ = folds[0]
+    assert validation.tolist() == [5] and train.tolist() == [0, 1, 2, 3, 4]
+    # the rig's five held out whole would leave one episode to train on: a part of them instead, 3 times
+    assert all(len(v) == 1 and 5 not in v and len(t) == 5 for t, v, _ in folds[1:])
