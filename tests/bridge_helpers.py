@@ -115,9 +115,13 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
     than 2 ms late in the host's own log (``timing.stalls``), a tick whose work the host's log
     measured at more than 2 ms (``timing.compute_max``; a tick's work takes about 0.2 ms at its
     99th percentile: the process was held up inside it, which leaves the next tick on time but
-    the bridge without a command for as long), or the emulated bridge (the chip, or the emulated
+    the bridge without a command for as long), the emulated bridge (the chip, or the emulated
     core's ticks) more than half the watchdog (5 ms) behind the wall clock by its own report (a
-    quiet machine: under 4 ms); the worst lateness or work is given.
+    quiet machine: under 4 ms), or, the host on time by its own log, commands the bridge itself
+    reports arriving after the tick they were sent for (``late_commands``: each command carries the
+    tick it answers, so the bridge measures this; held up between the two processes, in the
+    pseudo-terminal or the emulator's reading thread, as a loaded suite once saw: 6 late commands
+    and a tripped watchdog with the host's worst tick 1.6 ms late); the worst lateness or work is given.
     """
     from qube_koopman.daq.log import read_episode
 
@@ -137,6 +141,9 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
             lost.append(f"a tick's work held up {meta.timing['compute_max'] * 1e3:.1f} ms ({cause})")
         elif behind > 5.0:
             lost.append(f"the emulated bridge up to {behind:.1f} ms behind the wall clock ({cause})")
+        elif (meta.backend_stats or {}).get("late_commands", 0) > 0:
+            late = meta.backend_stats["late_commands"]
+            lost.append(f"{late} commands reached the bridge after their tick, the host on time ({cause})")
     return lost
 
 
