@@ -13,7 +13,16 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Mapping, NamedTuple
 
-__all__ = ["LOG_SUFFIX", "SEED_SIGNALS", "EpisodeName", "episode_stem", "parse_episode_name", "log_path", "find_logs"]
+__all__ = [
+    "LOG_SUFFIX",
+    "SEED_SIGNALS",
+    "EpisodeName",
+    "episode_stem",
+    "parse_episode_name",
+    "log_path",
+    "find_logs",
+    "expand_logs",
+]
 
 #: Suffix of an episode log.
 LOG_SUFFIX = ".mcap"
@@ -104,3 +113,36 @@ def find_logs(folder: str | Path) -> list[Path]:
     list of Path
     """
     return sorted(Path(folder).glob(f"*{LOG_SUFFIX}"))
+
+
+def expand_logs(items) -> list[Path]:
+    """Log paths from a command line: files as given, folders as the logs in them (:func:`find_logs`).
+
+    Parameters
+    ----------
+    items : iterable of str or Path, or None
+
+    Returns
+    -------
+    list of Path
+
+    Raises
+    ------
+    CliError
+        An item that does not exist, or a folder without logs (the message names it).
+    """
+    from qube_koopman.core.command import CliError
+
+    paths = []
+    for item in items or []:
+        path = Path(item)
+        if path.is_dir():
+            found = find_logs(path)
+            if not found:
+                raise CliError(f"{path}: folder has no {LOG_SUFFIX} logs")
+            paths.extend(found)
+        elif path.is_file():
+            paths.append(path)
+        else:
+            raise CliError(f"{path}: no such file or folder")
+    return paths

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from qube_koopman.core.cli import OneLineParser, add_standard_options, parse_args, path
 from qube_koopman.core.command import CliError, run_command
@@ -62,25 +61,8 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _logs(items: list[Path]) -> list[Path]:
-    """Log files as given, folders as the logs in them (by name); a missing one or an empty folder named."""
-    from qube_koopman.daq.log.names import find_logs
-
-    paths: list[Path] = []
-    for item in items:
-        if item.is_dir():
-            found = find_logs(item)
-            if not found:
-                raise CliError(f"{item}: folder has no .mcap logs")
-            paths.extend(found)
-        elif item.is_file():
-            paths.append(item)
-        else:
-            raise CliError(f"{item}: no such file or folder")
-    return paths
-
-
 def _run(args) -> int:
+    from qube_koopman.daq.log.names import expand_logs
     from qube_koopman.design.compare import compare_runs, comparison_text
     from qube_koopman.design.plant import DesignError
 
@@ -88,7 +70,7 @@ def _run(args) -> int:
         raise CliError(f"{args.controller}: no such controller file")
     if args.model is not None and not args.model.exists():
         raise CliError(f"{args.model}: no such model file (--model)")
-    logs = _logs(args.logs)
+    logs = expand_logs(args.logs)
     try:
         comparison = compare_runs(args.controller, logs, model=args.model)
     except DesignError as exc:

@@ -33,6 +33,7 @@ __all__ = [
     "IncompleteLogSkipped",
     "UnreadableLogSkipped",
     "find_logs",
+    "expand_logs",
     "read_episodes",
 ]
 
@@ -378,6 +379,19 @@ def find_logs(folder: str | Path) -> list[Path]:
     from qube_koopman.daq.log.names import find_logs as logs_in
 
     return logs_in(folder)
+
+
+def expand_logs(items) -> list[Path]:
+    """Log paths from a command line: files as given, folders as the logs in them (by name).
+
+    Raises
+    ------
+    CliError
+        An item that does not exist, or a folder without logs (the message names it).
+    """
+    from qube_koopman.daq.log.names import expand_logs as expand
+
+    return expand(items)
 
 
 def read_episodes(logs: Sequence[LoggedTrajectory | StoredLog]) -> list:
