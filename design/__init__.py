@@ -30,6 +30,12 @@ _HOMES = {
     "build_problem": "mpc",
     "MpcRuntime": "mpc",
     "MpcDisturbance": "mpc",
+    # the plant's multi-step predictors: the model's own, Korda & Mezić's lifted map, the MPC's
+    "PREDICTORS": "predictors",
+    "PredictorScores": "predictors",
+    "lifted_condensed": "predictors",
+    "predict_windows": "predictors",
+    "score_predictors": "predictors",
     # the closed loop it predicts
     "CostPrediction": "predict",
     "predict_cost": "predict",
