@@ -3,6 +3,7 @@
     python bench/bench_mpc.py [MODEL.json] [--seeds 5,6,7] [--episodes 2] [--duration 10] [--voltage-limit V]
                               [--horizons 10,20,40] [--out DIR] [--only timing|offset-free|j-table|stiff-cables]
                               [--load 0.5] [--load-seeds 1,2,3,4,5] [--j-episodes 20] [--j-seed 7] [--j-horizon 20]
+    python bench/bench_mpc.py --only predictors --data DIR [--predictor-horizons 5,20,50,100,250] [--starts 200]
 
 MODEL.json is a plant identified by ``qube-identify`` (without one, the bench identifies one on 6
 twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design page's cycle). It prints:
@@ -45,6 +46,19 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   ``--stiff-ramp 0.3``: ramped to +-0.3 rad from 0.5 s to 2.5 s instead),
   12 s per seed of ``--load-seeds``: the arm's mean tracking error from 5 s on (``mean(theta - target)``, in
   absolute value, averaged over the seeds), beside the same on the calibrated twin.
+
+- ``--only predictors``: the multi-step predictors (:mod:`design.predictors`) on the paper's real data (``--data
+  DIR``, its 48 episodes as .mcap logs, ``qube-import``'s): plants fitted on the 28 training episodes
+  (``qube-identify DIR --split paper --interval 0``) with ``--poly 1 --delays 35 --const`` (the design's
+  plant: the MPC's prediction is the model itself), ``--poly 3 --delays 35`` (the MPC's prediction is its
+  linearization at upright) and ``--poly 3 --delays 35 --friction`` (a plant the design refuses); on the 20
+  test episodes, from ``--starts`` samples of each (after the skipped first second), the logged plant input
+  applied, each predictor's prediction ``K`` ticks ahead for each of ``--predictor-horizons``: the model's
+  own (``relifted``, qube-identify's free run), Korda & Mezić's lifted map without re-lifting (``lifted``)
+  and the MPC's (``upright``); R^2 per channel (averaged over the episodes) and the RMS error (mrad). Under
+  the logged input, not in closed loop: the MPC predicts the plant under the inputs it plans, and the logged
+  input is the one the plant received. The open-loop plant is unstable, so long horizons diverge whatever
+  the predictor. One to two minutes on two shared cores (three fits; the scores take seconds).
 
 Timing is the host's: on a machine shared with other work the tails (p99, max) of the loop's
 (wall-clock) solve time are the machine's as much as the solver's; the bench therefore also runs
@@ -364,6 +378,66 @@ def _stiff_cables(
             )
 
 
+#: The plants the predictors part fits on the paper's split (qube-identify's lifting flags).
+PREDICTOR_PLANTS = ("--poly 1 --delays 35 --const", "--poly 3 --delays 35", "--poly 3 --delays 35 --friction")
+
+
+def _fixed(value: float, decimals: int) -> str:
+    """``value`` with ``decimals`` decimals, or in 3 significant digits when that would not fit 8 characters."""
+    text = f"{value:.{decimals}f}"
+    return text if len(text) <= 8 or not np.isfinite(value) else f"{value:.3g}"
+
+
+def _predictors(root: Path, data: Path, horizons: list[int], n_starts: int) -> None:
+    """The three multi-step predictors of each plant on the paper's test episodes, under the logged plant input."""
+    from qube_koopman.core.qube import SKIP_SAMPLES
+    from qube_koopman.design.predictors import score_predictors
+    from qube_koopman.identify import load_logs, load_model
+    from qube_koopman.identify.model_selection.split import paper_split
+
+    logs = sorted(data.glob("*.mcap"))
+    if not logs:
+        raise SystemExit(f"{data}: no .mcap logs (qube-import the paper's dataset into it)")
+    _, test = paper_split(logs)
+    episodes = [log.trajectory for log in load_logs(test, skip=SKIP_SAMPLES)]
+    print(
+        f"\npredictors: plants fitted on the paper's 28 training episodes, each predictor's prediction K ticks ahead "
+        f"on its {len(episodes)} test episodes from {n_starts} starts each, under the logged plant input"
+    )
+    cells = " ".join(f"{f'K={K}':>17}" for K in horizons)
+    print(f"{'plant':<32} {'predictor':<9} {'':<5} {cells}")
+    cols = range(len(horizons))
+    for flags in PREDICTOR_PLANTS:
+        out = root / ("predictors_" + re.sub(r"[^A-Za-z0-9]+", "_", flags).strip("_"))
+        identify_main(
+            [str(data), "--split", "paper", *flags.split(), "--interval", "0", "--out", str(out), "-q", "--force"]
+        )
+        scores = score_predictors(load_model(out / "model.json").plant, episodes, horizons, n_starts)
+        for p, name in enumerate(scores.predictors):
+            r2 = " ".join(f"{_fixed(scores.r2[p, h, 0], 4):>8}/{_fixed(scores.r2[p, h, 1], 4):<8}" for h in cols)
+            rms = " ".join(
+                f"{_fixed(1e3 * scores.rms[p, h, 0], 2):>8}/{_fixed(1e3 * scores.rms[p, h, 1], 2):<8}" for h in cols
+            )
+            print(f"{flags if p == 0 else '':<32} {name:<9} {'R^2':<5} {r2}")
+            print(f"{'':<32} {'':<9} {'RMS':<5} {rms}")
+            if scores.n_diverged[p].any():
+                lost = ", ".join(f"K={K}: {n}" for K, n in zip(horizons, scores.n_diverged[p]) if n)
+                print(f"{'':<32} {'':<9} diverged of {scores.n_windows}: {lost}")
+        if scores.refused:
+            print(f"{'':<32} {'upright':<9} refused: {scores.refused.split(',')[0]}")
+        else:  # episode by episode: does the lifted map predict better than the MPC's linearization?
+            e = scores.episode_rms
+            a, b = scores.predictors.index("lifted"), scores.predictors.index("upright")
+            wins = " ".join(
+                f"{np.sum(e[:, a, h, 0] < e[:, b, h, 0]):>8}/{np.sum(e[:, a, h, 1] < e[:, b, h, 1]):<8}" for h in cols
+            )
+            print(f"{'':<32} {'lifted < upright':<15} {wins}  (episodes of {len(e)})")
+    print(
+        "R^2 and RMS error (mrad) as theta/alpha; R^2 per episode against its variance, averaged; RMS pooled; "
+        "one diverged prediction makes them inf"
+    )
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("model", nargs="?", type=Path)
@@ -373,7 +447,12 @@ def main(argv=None) -> int:
     p.add_argument("--voltage-limit", type=float, default=None)
     p.add_argument("--horizons", default="10,20,40")
     p.add_argument("--out", type=Path, default=None)
-    p.add_argument("--only", choices=("timing", "offset-free", "j-table", "stiff-cables", "figure"), default=None)
+    p.add_argument(
+        "--only", choices=("timing", "offset-free", "j-table", "stiff-cables", "figure", "predictors"), default=None
+    )
+    p.add_argument("--data", type=Path, default=None, help="the paper's 48 episodes as .mcap logs (--only predictors)")
+    p.add_argument("--predictor-horizons", default="5,20,50,100,250")
+    p.add_argument("--starts", type=int, default=200)
     p.add_argument("--figure", type=Path, default=Path(__file__).parents[1] / "docs" / "_static" / "mpc_episode.png")
     p.add_argument("--stiff-ramp", type=float, default=None, metavar="RAD")
     p.add_argument("--j-episodes", type=int, default=20)
@@ -384,6 +463,11 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_mpc_"))
     root.mkdir(parents=True, exist_ok=True)
+    if args.only == "predictors":
+        if args.data is None:
+            p.error("--only predictors needs --data DIR (the paper's 48 episodes as .mcap logs)")
+        _predictors(root, args.data, [int(h) for h in args.predictor_horizons.split(",")], args.starts)
+        return 0
     if args.only in ("j-table", "stiff-cables", "figure"):
         if args.model is None:
             p.error(f"--only {args.only} needs MODEL.json (with a disturbance model)")

@@ -5,7 +5,9 @@ of its last ``d + 1`` measurements and the integral of the arm's tracking error,
 coordinates of the tracking errors, ``z_k = [s_k - s_ref; w_k]`` (``s_ref``: the references held
 over the horizon), ``z_{k+1} = F_a z_k + G_a u_k``. Over a horizon of ``N`` inputs
 ``U = [u_0 .. u_{N-1}]`` the predicted states are ``Z = Phi z_0 + Gamma U``, built once (the
-condensed form), and the tick's problem is a QP in ``U`` alone::
+condensed form), and the tick's problem is a QP in ``U`` alone (why this predictor and not Korda & Mezić's
+lifted map ``z_{k+1} = A z_k + B u_k``, measured on the paper's held-out episodes: :mod:`design.predictors`,
+docs/design.md)::
 
     minimize    sum_{i<N} z_i' Q z_i + u_i' R u_i + z_N' P z_N  +  rho sum_i (slack_i)^2
     subject to  -V - f <= u_i <= V - f                    (the voltage limit; f the feedforward)

@@ -109,7 +109,8 @@ def test_a_model_predicting_its_own_episodes_scores_one_with_every_predictor():
     model = _linear_model(3, False)
     scores = score_predictors(model, _episodes(model, 2), [1, 5, 20], n_starts=12)
     assert scores.predictors == PREDICTORS and scores.refused == "" and scores.n_windows == 24
-    assert scores.r2.shape == scores.rms.shape == (3, 3, 2)
+    assert scores.r2.shape == scores.rms.shape == (3, 3, 2) and not scores.n_diverged.any()
+    assert scores.episode_rms.shape == (2, 3, 3, 2)
     np.testing.assert_allclose(scores.r2, 1.0, atol=1e-9)
     assert np.all(scores.rms < 1e-9)
 
