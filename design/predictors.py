@@ -24,7 +24,7 @@ to rounding: re-lifting a linear lifting gives back the propagated state. With n
 they differ: ``A`` advances ``theta^2`` by its own fitted row where re-lifting squares the
 predicted ``theta``.
 
-:func:`score_predictors` scores them on episodes: from every ``stride``-th sample, the logged
+:func:`score_predictors` scores them on episodes: from ``n_starts`` samples of each, the logged
 plant input applied (the inputs the MPC would be choosing), each predictor's prediction ``K``
 samples ahead against the measured sample, as ``qube-identify --horizon`` scores its K-step
 predictions (R^2 per channel of the episode, averaged over episodes; the RMS error pooled).
