@@ -19,11 +19,11 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   LQ's voltage peak on those excitations (so that the limit binds).
 
 - offset-free control under a constant load: a plant identified on 6 twin episodes with a disturbance model
-  (``--horizon 0.1,1 --disturbance input --disturbance-q 1e-5``: the twin's episodes have no load to set
-  ``q`` from), the MPC designed on it with and without ``--no-offset-free``, with the arm's integral (the
-  default) and without (``--no-integral``), and (offset-free "none") the same file without its disturbance
-  table, the MPC estimating nothing; each run on the twin for 10 s, ``--load`` volts added at the
-  plant input from 1 s on (the controller does not see it), the arm's reference a step every 2.5 s (to
+  (``--horizon 0.1,1 --disturbance input --disturbance-q 1e-5 --disturbance-pole 1``: the twin's episodes have
+  no load to set ``q`` and the pole from), the MPC designed on it with and without ``--no-offset-free``, with
+  the arm's integral (the default) and without (``--no-integral``), and (offset-free "none") the same file
+  without its disturbance table, the MPC estimating nothing; each run on the twin for 10 s, ``--load`` volts added at
+  the plant input from 1 s on (the controller does not see it), the arm's reference a step every 2.5 s (to
   +-0.05 rad, drawn from the seed: steps of 0.3 rad lose the pendulum under the MPC of the default weights,
   with or without a load), per seed of ``--load-seeds``: J after the first second, the arm's
   steady-state offset (mean of theta - target_theta over the last second of each step, in absolute value,
@@ -35,8 +35,9 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   (``--no-offset-free``) and the offset-free MPC at the limit (``--voltage-limit``, default 4 V), and the MPC at
   the rig's 10 V beside the LQ: per controller the episodes completed, J over the complete ones and over the
   episodes every controller completed, the ticks over the limit and at it, the fallbacks. MODEL.json should
-  carry a disturbance model (``qube-identify ... --horizon 0.1,1 --disturbance input``). The MPC files run
-  without their time budget (the algorithm's J, not the host's luck: the timing table measures the host).
+  carry a disturbance model (``qube-identify ... --horizon 0.1,1 --disturbance input --disturbance-pole 1``).
+  The MPC files run without their time budget (the algorithm's J, not the host's luck: the timing table
+  measures the host).
 - ``--only figure``: the docs' figure of an MPC episode (:mod:`design.mpc_figure`): the offset-free MPC at the
   limit (default 4 V), the first episode of ``qube-run --seed 7`` (20 s), written to ``--figure PNG``
   (default ``docs/_static/mpc_episode.png``).
@@ -192,7 +193,9 @@ def _loaded_run(controller: Path, seed: int, load: float, seconds: float = 10.0)
 
 def _offset_free(root: Path, seeds: list[int], load: float) -> None:
     """J, the steady-state offset and the solve time under a constant load, with and without offset-free control."""
-    model = _model(root, "--horizon", "0.1,1", "--disturbance", "input", "--disturbance-q", "1e-5")
+    model = _model(
+        root, "--horizon", "0.1,1", "--disturbance", "input", "--disturbance-q", "1e-5", "--disturbance-pole", "1"
+    )
     quiet = ["--episodes", "1", "--duration", "2", "--interval", "0", "-q", "--force"]
     print(f"\noffset-free MPC: {load:g} V added at the plant input from 1 s on, 10 s on the twin per seed {seeds}")
     print(

@@ -230,7 +230,7 @@ class MpcDisturbance:
         return {"entry": self.entry, "pole": float(self.pole), "gain": [float(v) for v in self.gain]}
 
 
-def mpc_disturbance(plant: LinearPlant, disturbance: DisturbanceModel) -> MpcDisturbance:
+def mpc_disturbance(plant: LinearPlant, disturbance: DisturbanceModel, integrate: bool = False) -> MpcDisturbance:
     """The model file's disturbance model on the design plant (its affine term left out): what the MPC estimates.
 
     Parameters
@@ -238,19 +238,27 @@ def mpc_disturbance(plant: LinearPlant, disturbance: DisturbanceModel) -> MpcDis
     plant : LinearPlant
     disturbance : DisturbanceModel
         The model file's; its ``entry``, ``pole`` and ``gain`` are used as they are.
+    integrate : bool
+        A first-order disturbance becomes a random walk with the same ``q`` and ``R`` and the
+        Kalman gain of pole 1 (:meth:`DisturbanceModel.integrated`): what offset-free control needs
+        to reject a constant load (nothing refitted).
 
     Returns
     -------
     MpcDisturbance
     """
     m = plant.n_measured
-    return MpcDisturbance(
+    out = MpcDisturbance(
         str(disturbance.entry),
         float(disturbance.pole),
         np.asarray(disturbance.gain, dtype=float).reshape(-1),
         plant.F[:m].copy(),
         plant.G[:m, 0].copy(),
     )
+    if not integrate or disturbance.pole == 1.0:
+        return out
+    walk = disturbance.integrated(out.direction)
+    return MpcDisturbance(out.entry, 1.0, np.asarray(walk.gain, dtype=float).reshape(-1), out.rows, out.input)
 
 
 @dataclass(frozen=True, eq=False)

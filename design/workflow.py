@@ -432,10 +432,11 @@ def offset_free_settings(report: DesignReport, settings):
     """The MPC's settings with ``offset_free`` as the model file allows it, and a line saying which.
 
     Offset-free control (``settings.offset_free``, what ``qube-design --mpc`` asks for unless
-    ``--no-offset-free``) needs the model file's disturbance model: a random-walk load at the plant
-    input with a nonzero gain. A rate on theta or alpha is estimated and logged but not used: the
-    arm integrates a rate, so the steady state that balances it is far from where the plant rests
-    under a load (on the twin, 0.1 rad of arm offset under 0.3 V). Without one the MPC is the one
+    ``--no-offset-free``) needs the model file's disturbance model: a load at the plant input with a
+    nonzero gain (a first-order one is integrated: :func:`design.mpc.mpc_disturbance`). A rate on
+    theta or alpha is estimated and logged but not used: the arm integrates a rate, so the steady
+    state that balances it is far from where the plant rests under a load (on the twin, 0.1 rad
+    of arm offset under 0.3 V). Without one the MPC is the one
     without a disturbance model.
 
     Parameters
@@ -477,10 +478,11 @@ def offset_free_settings(report: DesignReport, settings):
         return replace(settings, offset_free=False), line
     if disturbance.pole != 1.0:
         line = (
-            f"offset-free: off: the model file's disturbance is first-order (pole {disturbance.pole:g}), not a "
-            f"random walk; the MPC records its estimate of {where} per tick"
+            f"offset-free: on: the model file's disturbance, {where}, is first-order (pole {disturbance.pole:g}); the "
+            "MPC estimates it each tick as a random walk with the model file's q and R (the Kalman gain of pole 1, "
+            "nothing refitted), so that it holds the arm at its reference under a constant one (--no-offset-free: off)"
         )
-        return replace(settings, offset_free=False), line
+        return settings, line
     line = (
         f"offset-free: on: the MPC estimates {where} each tick with the model file's Kalman filter and holds "
         "the arm at its reference under a constant one (--no-offset-free: off)"
@@ -510,7 +512,7 @@ def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
     Raises
     ------
     DesignError
-        When ``settings.offset_free`` and the model file has no random-walk disturbance, or the plant
+        When ``settings.offset_free`` and the model file has no disturbance model, or the plant
         no steady state with the arm at its reference under it.
     """
     import control  # lazily: python-control imports matplotlib
@@ -521,10 +523,12 @@ def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
 
     plant, weights = report.design.plant, report.design.weights
     model = model_disturbance(report.model)
-    disturbance = None if model is None or not np.any(model.gain) else mpc_disturbance(plant, model)
+    disturbance = (
+        None if model is None or not np.any(model.gain) else mpc_disturbance(plant, model, settings.offset_free)
+    )
     if settings.offset_free:
         if disturbance is None or disturbance.pole != 1.0:
-            raise DesignError("offset-free MPC needs the model file's random-walk disturbance model")
+            raise DesignError("offset-free MPC needs the model file's disturbance model")
         disturbance.target_map()  # the steady state exists, or a DesignError says why
     P, _, _ = control.dare(*augment(plant, weights))
     out = provenance(report)

@@ -18,6 +18,7 @@ from qube_koopman.core.cli import (
     add_standard_options,
     finite_number,
     n_jobs,
+    number_in,
     path,
     positive_number,
     seed,
@@ -318,6 +319,15 @@ def _add_ahead_options(pred: argparse._ArgumentGroup) -> None:
         metavar="Q",
         help="with --horizon, the disturbance's variance per sample, set by hand (default: chosen on the "
         "training episodes; report.json's 'disturbance' says which)",
+    )
+    pred.add_argument(
+        "--disturbance-pole",
+        type=number_in(0.0, 1.0, "--disturbance-pole"),
+        metavar="P",
+        help="with --horizon, the disturbance's pole, set by hand: 1 a random walk (integrated white noise), "
+        "below 1 a first-order process (0.995: a time constant of 0.4 s at 500 Hz) (default: for each entry, "
+        "the one of 1, 0.999, 0.998, 0.995, 0.99, 0.98, 0.95 that predicts the training episodes best; "
+        "report.json's 'disturbance' gives each one's cost)",
     )
 
 
@@ -995,7 +1005,9 @@ def _identify_options(args, train, search, offsets, what_if, predictions, model_
         ),
         probe_cache=probe_cache() if args.probe_cache else None,
         ahead=(
-            None if args.horizon is None else AheadOptions(args.horizon, entry=args.disturbance, q=args.disturbance_q)
+            None
+            if args.horizon is None
+            else AheadOptions(args.horizon, entry=args.disturbance, q=args.disturbance_q, pole=args.disturbance_pole)
         ),
         output=OutputOptions(
             model_path=model_path,

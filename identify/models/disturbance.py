@@ -58,6 +58,7 @@ from qube_koopman.identify.models.model import KoopmanModel
 
 __all__ = [
     "ENTRIES",
+    "POLES",
     "DisturbanceModel",
     "KStepData",
     "NotDetectable",
@@ -78,6 +79,11 @@ __all__ = [
 
 #: Where a disturbance may enter: a load at the plant input, or a rate on one angle's equation.
 ENTRIES = ("input", "theta", "alpha")
+#: The disturbance's poles a fit chooses among (:func:`~qube_koopman.identify.models.kstep.fit_training_disturbance`): a
+#: random walk (1), then first-order processes whose time constants at 500 Hz are 2, 1, 0.4, 0.2, 0.1 and 0.04 s.
+#: A random walk's forecast holds the last estimate for the whole horizon; a first-order one lets it fade as the
+#: residuals' own correlation does.
+POLES = (1.0, 0.999, 0.998, 0.995, 0.99, 0.98, 0.95)
 #: Starts per episode and horizon of the K-step scores: an R^2 estimated from a few hundred predictions
 #: differs from the every-sample one by far less than episodes differ.
 N_STARTS = 200
@@ -169,6 +175,19 @@ class DisturbanceModel:
     def with_gain(self, gain: np.ndarray) -> "DisturbanceModel":
         """The same model with another filter gain (zero: the free-run prediction)."""
         return DisturbanceModel(self.entry, self.pole, self.q, self.R, np.asarray(gain, dtype=float))
+
+    def integrated(self, G: np.ndarray) -> "DisturbanceModel":
+        """The same disturbance as a random walk: its ``q`` and ``R``, pole 1, the steady-state gain for ``G = C E``.
+
+        What offset-free control needs (a controller rejects a constant load only when its model
+        integrates one: Pannocchia & Rawlings 2003, and MATLAB's MPC adds integrated white noise
+        by default whatever the plant's noise model). Nothing is refitted: the gain is the Kalman
+        filter's of the same covariances with the pole at 1. A random walk is returned as it is.
+        """
+        if self.pole == 1.0:
+            return self
+        gain, _ = steady_state_gain(G, 1.0, self.q, self.R)
+        return DisturbanceModel(self.entry, 1.0, self.q, self.R, gain, self.log_likelihood, self.n_samples)
 
 
 def disturbance_direction(model: KoopmanModel, entry: str) -> np.ndarray:

@@ -47,17 +47,24 @@ class AheadOptions:
         the horizons is kept (``"none"`` when none beats predicting without a disturbance).
     q : float, optional
         The disturbance's variance per sample, set by hand (``R`` and the gain still estimated).
+    pole : float, optional
+        The disturbance's pole, set by hand (1: a random walk; below 1: a first-order process).
+        Default: each entry's of :data:`~qube_koopman.identify.models.disturbance.POLES` that
+        predicts the training episodes best at the horizons.
     """
 
     horizons: tuple[float, ...] = (0.1, 1.0)
     entry: str = "auto"
     q: float | None = None
+    pole: float | None = None
 
     def __post_init__(self) -> None:
         if not self.horizons or any(not (np.isfinite(h) and h >= 0) for h in self.horizons):
             raise ValueError(f"horizons are seconds, 0 or more, got {self.horizons}")
         if self.entry not in ("auto", "none", *dm.ENTRIES):
             raise ValueError(f"unknown disturbance entry {self.entry!r} (auto, none, {', '.join(dm.ENTRIES)})")
+        if self.pole is not None and not (0.0 <= self.pole <= 1.0):
+            raise ValueError(f"the disturbance's pole is in [0, 1] (1: a random walk), got {self.pole}")
 
     def samples(self, dt: float) -> list[int]:
         """The horizons in samples."""
@@ -106,13 +113,12 @@ def fit_training_disturbance(
     per_episode = {"none": dm.prediction_errors(model, data, [none], per_episode=True)[0].sum(axis=(1, 2))}
     fitted: dict[str, dm.DisturbanceModel] = {}
     refused: dict[str, str] = {}
+    by_pole: dict[str, dict[str, float]] = {}
     for entry in dm.ENTRIES if options.entry == "auto" else (options.entry,):
         try:
-            fitted[entry] = dm.fit_disturbance(model, train, entry, q=options.q, data=data)
+            fitted[entry], per_episode[entry], by_pole[entry] = _best_pole(model, train, entry, options, data)
         except (dm.NotDetectable, ValueError) as exc:
             refused[entry] = str(exc)
-            continue
-        per_episode[entry] = dm.prediction_errors(model, data, [fitted[entry]], per_episode=True)[0].sum(axis=(1, 2))
     if options.entry != "auto" and options.entry in refused:
         raise ValueError(refused[options.entry])
     costs = {k: float(v.mean()) for k, v in per_episode.items()}
@@ -125,19 +131,25 @@ def fit_training_disturbance(
     if options.entry == "auto":
         best = min(supported, key=lambda k: costs[k]) if supported else "none"
         why = (
-            f"{best} predicts the training episodes best at {', '.join(horizon_label(h) for h in options.horizons)} "
-            f"s, better than none on {better[best]} of {n}"
+            f"{best} ({_pole_words(fitted[best].pole, dt)}) predicts the training episodes best at "
+            f"{', '.join(horizon_label(h) for h in options.horizons)} s, better than none on {better[best]} of {n}"
             if best != "none"
             else f"no entry predicts better than none on {needed} or more of the {n} training episodes"
         )
     else:
-        best, why = options.entry, f"{options.entry} asked for (--disturbance {options.entry})"
+        best = options.entry
+        why = f"{best} asked for (--disturbance {best}), {_pole_words(fitted[best].pole, dt)}"
     report = {
         "entry": best,
         "criterion": "1 - R^2 of the training episodes' predictions at the scored horizons, summed over horizons "
         "and channels, averaged over episodes (lower is better); an entry is supported when it predicts better "
         f"than none on at least {needed} of the {n} episodes (a one-sided sign test at 5 %)",
         "training_cost": costs,
+        "training_cost_by_pole": by_pole,
+        "pole_choice": "each entry's pole is the one of "
+        + ", ".join(f"{p:g}" for p in (dm.POLES if options.pole is None else (options.pole,)))
+        + (" (--disturbance-pole)" if options.pole is not None else "")
+        + " whose filter, its q chosen likewise, has the lowest training cost",
         "episodes_better": better,
         "training_episodes": n,
         "refused": refused,
@@ -147,6 +159,30 @@ def fit_training_disturbance(
         return None, report
     report["model"] = fitted[best].as_dict()
     return fitted[best], report
+
+
+def _best_pole(
+    model: KoopmanModel, train: Sequence[Trajectory], entry: str, options: AheadOptions, data: dm.KStepData
+) -> tuple[dm.DisturbanceModel, np.ndarray, dict[str, float]]:
+    """One entry's disturbance model at the pole (:data:`~dm.POLES`, or the one asked for) whose filter predicts the
+    training episodes best; its per-episode costs; the cost at each pole."""
+    best: tuple[dm.DisturbanceModel, np.ndarray] | None = None
+    costs: dict[str, float] = {}
+    for pole in dm.POLES if options.pole is None else (options.pole,):
+        candidate = dm.fit_disturbance(model, train, entry, q=options.q, pole=pole, data=data)
+        per_episode = dm.prediction_errors(model, data, [candidate], per_episode=True)[0].sum(axis=(1, 2))
+        costs[f"{pole:g}"] = float(per_episode.mean())
+        if best is None or per_episode.mean() < best[1].mean():
+            best = (candidate, per_episode)
+    assert best is not None
+    return best[0], best[1], costs
+
+
+def _pole_words(pole: float, dt: float) -> str:
+    """A pole as the report says it: a random walk, or a first-order process and its time constant."""
+    if pole >= 1.0:
+        return "a random walk"
+    return f"first-order, pole {pole:g}: a time constant of {dt / max(1e-12, -np.log(pole)):.2g} s"
 
 
 @dataclass

@@ -351,10 +351,18 @@ def _ahead_section(ahead: dict | None, disturbance: dict | None, test: dict | No
         )
         + "."
     )
+    by_pole = d.get("training_cost_by_pole", {}).get(d.get("entry"))
+    if by_pole:
+        lines.append(
+            f"Its pole ({d.get('pole_choice', '')}), cost by pole: "
+            + ", ".join(f"{p} {format_number(v, '.5g')}" for p, v in by_pole.items())
+            + "."
+        )
     if d.get("model"):
         m = d["model"]
         lines.append(
-            f"Its {m['kind']} has q {format_number(m['q'], '.3g')} per sample and filter gain "
+            f"Its {m['kind']} (pole {format_number(m['pole'], 'g')}) has q {format_number(m['q'], '.3g')} per "
+            "sample and filter gain "
             f"[{', '.join(format_number(g, '.3g') for g in m['gain'])}] (theta, alpha)."
         )
     lines += [

@@ -29,14 +29,15 @@ DT = 0.002
 @pytest.fixture(scope="module")
 def models(tmp_path_factory) -> dict[str, Path]:
     """A plant identified on 3 rig-PD episodes of the twin (10 delays and a constant), with a load at the plant
-    input as its disturbance model (q set: the twin's episodes have no load to estimate it from), and without."""
+    input as its disturbance model (q and the pole set: the twin's episodes have no load to estimate them from), and
+    without."""
     root = tmp_path_factory.mktemp("offset_free")
     for out, n, seed in (("train", 3, 3), ("test", 1, 4)):
         argv = ["--episodes", str(n), "--duration", "8", "--seed", str(seed), "--out", str(root / out), "-q"]
         assert run_main([*argv, "--n-jobs", "1"]) == 0
     logs = ["--train", *map(str, sorted((root / "train").glob("*.mcap"))), "--test", str(root / "test")]
     fit = ["--poly", "1", "--delays", "10", "--const", "--interval", "0", "-q"]
-    horizon = ["--horizon", "0.1,1", "--disturbance", "input", "--disturbance-q", "1e-5"]
+    horizon = ["--horizon", "0.1,1", "--disturbance", "input", "--disturbance-q", "1e-5", "--disturbance-pole", "1"]
     assert identify_main([*logs, *fit, *horizon, "--out", str(root / "with")]) == 0
     assert identify_main([*logs, *fit, "--out", str(root / "without")]) == 0
     return {"with": root / "with", "without": root / "without", "root": root}
@@ -138,6 +139,25 @@ def test_without_a_disturbance_model_the_outputs_are_the_ones_before_offset_free
     assert [us[k] for k in (0, 7, 50, 120, 199)] == pytest.approx(before, rel=1e-9)
 
 
+def test_a_first_order_load_is_integrated_for_offset_free_control_with_its_covariances():
+    """Offset-free control needs an integrating disturbance: a first-order one keeps its q and R, and the MPC
+    filters it with the Kalman gain of pole 1 (python-control's dlqe on the same covariances), nothing refitted."""
+    import control
+
+    from qube_koopman.design.mpc import mpc_disturbance
+    from qube_koopman.identify.models.disturbance import DisturbanceModel
+
+    plant = linear_plant(_pendulum_like(3, False))
+    R = np.diag([4e-8, 1e-8])
+    model = DisturbanceModel("input", 0.99, 1e-4, R, np.array([5.0, -1.0]))
+    kept = mpc_disturbance(plant, model)
+    assert kept.pole == 0.99 and kept.gain.tolist() == [5.0, -1.0]
+    walk = mpc_disturbance(plant, model, integrate=True)
+    L, _, _ = control.dlqe(np.eye(1), np.eye(1), walk.direction[:, None], 1e-4, R)
+    assert walk.pole == 1.0 and walk.gain == pytest.approx(np.asarray(L).ravel(), rel=1e-6)
+    assert walk.target_map().shape == (2, 2)  # the offset-free target exists for it
+
+
 def test_the_estimate_does_not_change_the_mpc_without_offset_free_control():
     plant = linear_plant(_pendulum_like(3, False))
     p = build_problem(plant, Weights(), MpcSettings(horizon=15, voltage_limit=2.0, time_budget=10.0))
@@ -179,15 +199,21 @@ def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_th
         ("input", 1.0, [1.0, -1.0], True, True, "offset-free: on: the MPC estimates a load at the plant input"),
         ("input", 1.0, [1.0, -1.0], False, False, "offset-free: off (--no-offset-free)"),
         ("input", 1.0, [0.0, 0.0], True, False, "has a zero gain"),
-        ("input", 0.99, [1.0, -1.0], True, False, "is first-order (pole 0.99)"),
+        (
+            "input",
+            0.99,
+            [1.0, -1.0],
+            True,
+            True,
+            "is first-order (pole 0.99); the MPC estimates it each tick as a random walk",
+        ),
+        ("input", 0.99, [1.0, -1.0], False, False, "offset-free: off (--no-offset-free)"),
         ("theta", 1.0, [1.0, -1.0], True, False, "is a rate on theta, and offset-free control needs a load"),
         ("alpha", 1.0, [1.0, -1.0], True, False, "is a rate on alpha, and offset-free control needs a load"),
         (None, 1.0, [1.0, -1.0], True, False, "the model file has no disturbance model"),
     ],
 )
-def test_qube_design_turns_offset_free_control_on_only_for_a_random_walk_load_with_a_gain(
-    entry, pole, gain, wanted, on, says
-):
+def test_qube_design_turns_offset_free_control_on_only_for_a_load_with_a_gain(entry, pole, gain, wanted, on, says):
     from types import SimpleNamespace
 
     from qube_koopman.design.workflow import offset_free_settings

@@ -205,3 +205,57 @@ def test_the_model_round_trips_through_its_dict_and_damage_is_named():
         dm.DisturbanceModel.from_dict({**dist.as_dict(), "entry": "wind"})
     with pytest.raises(ValueError, match="do not fit"):
         dm.DisturbanceModel.from_dict({**dist.as_dict(), "gain": [1.0, 2.0, 3.0]})
+
+
+def _coloured_episodes(pole: float, q: float, n_episodes: int = 3, n: int = 6000, seed: int = 11):
+    """Episodes of the true plant under a random input and a first-order load ``d_{k+1} = pole d_k + w_k``."""
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n_episodes):
+        u = rng.standard_normal((n, 1))
+        d = lfilter([1.0], [1.0, -pole], rng.standard_normal(n) * np.sqrt(q))
+        w = B_TRUE[None, :] * (u + d[:, None]) + np.array([2e-4, 1e-4]) * rng.standard_normal((n, 2))
+        x = np.zeros((n, 2))
+        for k in range(n - 1):
+            x[k + 1] = A_TRUE @ x[k] + w[k]
+        out.append(Trajectory(x=x, u=u, dt=0.002, name=f"ep{i}"))
+    return out
+
+
+@pytest.mark.parametrize("pole, expected", [(1.0, {1.0, 0.999}), (0.98, {0.99, 0.98, 0.95})])
+def test_the_pole_the_training_episodes_support_is_chosen(pole, expected):
+    """A random-walk load is kept a random walk (or nearly: a 2 s time constant, indistinguishable in 12 s); a
+    first-order load of time constant 0.1 s gets a pole near its own, and predicts better than the random walk."""
+    from qube_koopman.identify.models.kstep import AheadOptions, fit_training_disturbance
+
+    model = _plant_model()
+    episodes = _coloured_episodes(pole, 1e-3 if pole == 1.0 else 2e-2)
+    fitted, report = fit_training_disturbance(model, episodes, AheadOptions((0.05, 0.5), entry="input"))
+    assert fitted is not None and fitted.pole in expected
+    costs = report["training_cost_by_pole"]["input"]
+    assert set(costs) == {f"{p:g}" for p in dm.POLES}
+    assert costs[f"{fitted.pole:g}"] == min(costs.values())
+    if pole < 1.0:
+        assert costs[f"{fitted.pole:g}"] < 0.95 * costs["1"]
+        assert "first-order" in report["why"]
+    # set by hand, the pole is obeyed
+    forced, _ = fit_training_disturbance(model, episodes, AheadOptions((0.05, 0.5), entry="input", pole=0.995))
+    assert forced is not None and forced.pole == 0.995
+    with pytest.raises(ValueError, match="pole is in"):
+        AheadOptions((0.1,), pole=1.5)
+
+
+def test_a_first_order_disturbance_integrated_keeps_its_covariances_with_the_random_walks_gain():
+    import control
+
+    model = _plant_model()
+    G = model.C @ dm.disturbance_direction(model, "input")
+    R = np.diag([4e-8, 1e-8])
+    first_order = dm.DisturbanceModel("input", 0.99, 1e-4, R, dm.steady_state_gain(G, 0.99, 1e-4, R)[0])
+    walk = first_order.integrated(G)
+    assert (walk.pole, walk.q, walk.entry) == (1.0, 1e-4, "input") and walk.R is R
+    L, _, _ = control.dlqe(np.eye(1), np.eye(1), G[:, None], 1e-4, R)
+    assert walk.gain == pytest.approx(np.asarray(L).ravel(), rel=1e-6)
+    assert walk.integrated(G) is walk
