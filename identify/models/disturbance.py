@@ -48,7 +48,7 @@ innovations form); with a zero gain, its prediction from the first window is the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -371,11 +371,12 @@ def load_response(model: KoopmanModel, E: np.ndarray, pole: float, horizons: Seq
     propagation is linear). Returns an array of shape ``(len(horizons), n_states)``.
     """
     K_max = max(int(K) for K in horizons)
-    z = np.zeros(model.A.shape[0])
+    A, C = model.A, model.C  # C is built by its property: once, not per step
+    z = np.zeros(A.shape[0])
     out = np.zeros((K_max + 1, model.n_states))
     for j in range(K_max):
-        z = model.A @ z + E * pole**j
-        out[j + 1] = model.C @ z
+        z = A @ z + E * pole**j
+        out[j + 1] = C @ z
     return out[[int(K) for K in horizons]]
 
 
@@ -492,6 +493,35 @@ class KStepData:
     truths: list[np.ndarray]
     bases: list[dict[int, np.ndarray]]
     residuals: list[np.ndarray]
+    #: What every candidate's errors share, per episode and per (entry, pole): computed on first use.
+    _terms: list | None = field(default=None, repr=False, compare=False)
+    _responses: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def episode_terms(self) -> list[tuple[np.ndarray, int, np.ndarray, dict[int, np.ndarray], dict[int, np.ndarray]]]:
+        """Per episode: each channel's variance from ``skip`` on, the first residual's row, the residuals from it
+        (NaN-free), and per horizon the scored end samples and the misses without a disturbance there."""
+        if self._terms is None:
+            terms = []
+            for x, base, residuals in zip(self.truths, self.bases, self.residuals):
+                var = np.maximum(x[self.skip :].var(axis=0), 1e-300)
+                ok = np.flatnonzero(np.all(np.isfinite(residuals), axis=1))
+                first = int(ok[0]) if ok.size else len(x)
+                ends_of, misses = {}, {}
+                for h, K in enumerate(self.horizons):
+                    ends = np.flatnonzero(np.all(np.isfinite(base[K]), axis=1))
+                    ends_of[h] = ends[ends - K >= self.skip]
+                    misses[h] = x[ends_of[h]] - base[K][ends_of[h]]
+                terms.append((var, first, np.nan_to_num(residuals[first:]), ends_of, misses))
+            self._terms = terms
+        return self._terms
+
+    def response(self, model: KoopmanModel, entry: str, pole: float) -> tuple[np.ndarray, np.ndarray]:
+        """``G = C E`` and :func:`load_response` at the horizons of a disturbance at ``entry`` with ``pole``."""
+        key = (entry, float(pole))
+        if key not in self._responses:
+            E = disturbance_direction(model, entry)
+            self._responses[key] = (model.C @ E, load_response(model, E, pole, self.horizons))
+        return self._responses[key]
 
     @classmethod
     def of(
@@ -534,34 +564,19 @@ def prediction_errors(
     ndarray of shape (n_candidates, n_horizons, n_states), or (n_candidates, n_episodes, n_horizons,
     n_states) with ``per_episode``
     """
-    horizons, skip = data.horizons, data.skip
+    horizons = data.horizons
     out = np.zeros((len(candidates), len(data.truths), len(horizons), model.n_states))
-    responses, directions = {}, {}
-    for cand in candidates:
-        if cand.entry not in directions:
-            directions[cand.entry] = model.C @ disturbance_direction(model, cand.entry)
-        if (cand.entry, cand.pole) not in responses:
-            E = disturbance_direction(model, cand.entry)
-            responses[cand.entry, cand.pole] = load_response(model, E, cand.pole, horizons)
-    for i, (x, base, residuals) in enumerate(zip(data.truths, data.bases, data.residuals)):
-        var = np.maximum(x[skip:].var(axis=0), 1e-300)
-        ok = np.flatnonzero(np.all(np.isfinite(residuals), axis=1))
-        first = int(ok[0]) if ok.size else len(x)
-        rr = np.nan_to_num(residuals[first:])
-        ends_of, misses = {}, {}
-        for h, K in enumerate(horizons):
-            ends = np.flatnonzero(np.all(np.isfinite(base[K]), axis=1))
-            ends_of[h] = ends[ends - K >= skip]
-            misses[h] = x[ends_of[h]] - base[K][ends_of[h]]
+    for i, (var, first, rr, ends_of, misses) in enumerate(data.episode_terms()):
         for c, cand in enumerate(candidates):
+            G, response = data.response(model, cand.entry, cand.pole)
             # filter_disturbance's recursion, its filtered estimate alone (the innovations are not needed here)
-            dhat = np.zeros(len(x))
+            dhat = np.zeros(len(data.truths[i]))
             if rr.size and np.any(cand.gain):
-                dhat[first:] = cand.pole * _filter_recursion(rr, directions[cand.entry], cand.pole, cand.gain)
+                dhat[first:] = cand.pole * _filter_recursion(rr, G, cand.pole, cand.gain)
             for h, K in enumerate(horizons):
                 if not ends_of[h].size:
                     continue
-                err = misses[h] - dhat[ends_of[h] - K, None] * responses[cand.entry, cand.pole][h][None, :]
+                err = misses[h] - dhat[ends_of[h] - K, None] * response[h][None, :]
                 out[c, i, h] = np.mean(err**2, axis=0) / var
     return out if per_episode else out.mean(axis=1)
 
