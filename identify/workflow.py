@@ -12,7 +12,7 @@ import numpy as np
 
 from qube_koopman.core.blas import episode_threads, limited_blas_threads
 from qube_koopman.core.files import atomic_path
-from qube_koopman.core.parallel import resolve_n_jobs
+from qube_koopman.core.workers import resolve_n_jobs
 from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.identify.estimators.arx import Arx, ClArx
 from qube_koopman.identify.estimators.base import episode_statistics as statistics_here

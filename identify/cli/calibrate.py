@@ -321,7 +321,7 @@ def _save(cal, plant, out) -> None:
 def _fit_loads(episodes, plant) -> str:
     """Estimate the arm's random load from the fitted logs (each on its own twin) into ``plant``: over all
     of them (``[load]``) and per recording day (``[load_setups]``, with two days or more); the report's text."""
-    from qube_koopman.identify.calibrate.load import fit_load, load_text, reconstruct_load
+    from qube_koopman.identify.calibrate.load_fit import fit_load, load_text, reconstruct_load
     from qube_koopman.sim.pendulum.params_file import recording_day
 
     starts = [e.metadata.start_time for e in episodes]

@@ -21,7 +21,7 @@ def test_every_public_function_and_class_is_documented():
         "qube_koopman.identify",
         "qube_koopman.sim",
         "qube_koopman.daq",
-        "qube_koopman.reproduce.cli",
+        "qube_koopman.reproduce.cli.reproduce",
         "qube_koopman.design",
         "qube_koopman.design.cli.design",
     ],
@@ -149,6 +149,54 @@ def test_the_applications_share_no_command_helper_of_identify_cli():
                 if name == "qube_koopman.identify.cli" or name.startswith("qube_koopman.identify.cli.")
             ]
     assert not offenders
+
+
+#: Base names two modules may share (each with its reason; at most two): none today.
+SHARED_MODULE_NAMES: dict[str, str] = {}
+
+
+def _shared_module_names(root, tops) -> list[str]:
+    """Base names that two modules of the packages ``tops`` under ``root`` share, ``__init__.py`` aside: a
+    search by name would land in the wrong one. A command (``cli/<x>.py``) may share the name of its
+    concept's module (``<x>.py``), not another command's."""
+    from collections import defaultdict
+
+    found: dict[tuple[str, bool], list[str]] = defaultdict(list)
+    for top in tops:
+        for path in sorted((root / top).rglob("*.py")):
+            if path.name != "__init__.py":
+                found[path.name, path.parent.name == "cli"].append(path.relative_to(root).as_posix())
+    return [
+        f"{name}: {', '.join(paths)}"
+        for (name, _), paths in sorted(found.items())
+        if len(paths) > 1 and name not in SHARED_MODULE_NAMES
+    ]
+
+
+def test_no_two_modules_share_a_name():
+    from pathlib import Path
+
+    assert len(SHARED_MODULE_NAMES) <= 2
+    assert not _shared_module_names(Path(__file__).resolve().parents[2], LAYERS + APPLICATIONS)
+
+
+def test_the_module_name_check_finds_what_it_is_for(tmp_path):
+    for module in (
+        "a/qube.py",
+        "b/sub/qube.py",  # two modules of one name: found
+        "a/export.py",
+        "a/cli/export.py",  # a command beside its concept: the convention
+        "a/cli/run.py",
+        "b/cli/run.py",  # two commands of one name: found
+        "a/__init__.py",
+        "b/__init__.py",
+    ):
+        (tmp_path / module).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / module).write_text("")
+    assert _shared_module_names(tmp_path, ("a", "b")) == [
+        "qube.py: a/qube.py, b/sub/qube.py",
+        "run.py: a/cli/run.py, b/cli/run.py",
+    ]
 
 
 #: The most lines a package's __init__.py holds: it lists and re-exports, the code lives in modules.
