@@ -24,7 +24,7 @@ import tempfile
 from pathlib import Path
 
 from qube_koopman.firmware_protocol import Command, Hello, StreamDecoder, encode_frame
-from qube_koopman.firmware_protocol.avr import F_CPU, SKETCH, build_firmware, cached_firmware, firmware_sizes
+from qube_koopman.firmware_protocol.avr_build import F_CPU, SKETCH, build_firmware, cached_firmware, firmware_sizes
 from qube_koopman.sim.bridge.avr import AvrBridge
 
 REPO = Path(__file__).resolve().parents[1]

@@ -81,7 +81,7 @@ def main() -> None:
             t0 = time.perf_counter()
             import_dataset(data)
             print(f"imported the dataset in {time.perf_counter() - t0:.1f} s (not counted)")
-        from qube_koopman.reproduce.qube import reproduce_qube
+        from qube_koopman.reproduce.qube_study import reproduce_qube
 
         runs, serial = [], []
         for _ in range(3):

@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.identify.calibrate.load import fit_load, reconstruct_balance
-from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios
+from qube_koopman.identify.calibrate.load_fit import fit_load, reconstruct_balance
+from qube_koopman.identify.calibrate.replay_spectra import STD_BANDS, band_std_ratios
 from qube_koopman.identify.calibrate.validate import controller_groups, replay_episodes
 from qube_koopman.identify.data.logs import load_logs, read_episodes
 from qube_koopman.sim.pendulum.params_file import load_plant, recording_day

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 from qube_koopman.identify.cli.identify import main as identify_main
-from qube_koopman.identify.model_selection.search import TIMING_KEYS
+from qube_koopman.identify.model_selection.ranking import TIMING_KEYS
 
 
 def timed_run(argv: list[str]) -> tuple[float, dict]:

@@ -145,7 +145,7 @@ class _TimedBackend:
     fault_at: float | None = None
 
     def _timed(self, call, *args):
-        from qube_koopman.daq.backends.base import BackendFault
+        from qube_koopman.daq.backends.contract import BackendFault
 
         try:
             return call(*args)

@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.daq.backends.contract import Backend, BackendFault, Pacing
 from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.excitation import Excitation, ExcitationStream
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals

@@ -42,7 +42,7 @@ from itertools import count
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-from qube_koopman.core.parallel import resolve_n_jobs
+from qube_koopman.core.workers import resolve_n_jobs
 from qube_koopman.daq.excitation import ExcitationStream
 from qube_koopman.daq.loop import EpisodePlan, EpisodeResult, run_episode
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from qube_koopman.daq.backends.base import BackendFault
+from qube_koopman.daq.backends.contract import BackendFault
 from qube_koopman.firmware_protocol import Status
 from qube_koopman.firmware_protocol.messages import MODULE_ID_QUBE_SERVO_2
 

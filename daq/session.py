@@ -15,7 +15,7 @@ from typing import Callable, Sequence, overload
 
 import numpy as np
 
-from qube_koopman.daq.backends.base import Backend
+from qube_koopman.daq.backends.contract import Backend
 from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.excitation import ExcitationSettings, ExcitationStream
 from qube_koopman.daq.log.names import SEED_SIGNALS

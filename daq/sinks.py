@@ -88,7 +88,7 @@ class EpisodeOutcome:
         Ticks recorded.
     timing : TimingStats
     backend_stats : dict
-        The backend's counters of the episode (:meth:`~daq.backends.base.Backend.statistics`).
+        The backend's counters of the episode (:meth:`~daq.backends.contract.Backend.statistics`).
     """
 
     status: str

@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from qube_koopman.core.lti import DiscreteStateSpace
-from qube_koopman.daq.backends.base import Backend
+from qube_koopman.daq.backends.contract import Backend
 from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, SwingUpLimits
 from qube_koopman.daq.timing import DeadlinePacer
@@ -240,7 +240,7 @@ def run_swing_up(
     ----------
     backend : Backend
         Started; left running (at 0 V when the phase did not settle). A
-        :class:`~qube_koopman.daq.backends.base.BackendFault` propagates to the caller.
+        :class:`~qube_koopman.daq.backends.contract.BackendFault` propagates to the caller.
     balance : DiscreteStateSpace
         The episode's controller (tracking errors, and optionally the feedforward, in; volts out).
     swing : SwingUp

@@ -15,7 +15,7 @@ from qube_koopman.core.command import CliError
 from qube_koopman.core.controller_file import STATE_SPACE_KIND, ControllerInfo
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.sim.pendulum.closed_loop import linear_loop_radius
-from qube_koopman.sim.pendulum.model import PendulumParameters
+from qube_koopman.sim.pendulum.physics import PendulumParameters
 
 __all__ = ["RUN_UNSTABLE_OPTION", "check_controller_on_twin", "check_controller_file_on_twin", "judged_system"]
 

@@ -45,9 +45,9 @@ _HOMES = {
     "loop_margins": "predict",
     "loop_response": "predict",
     # what qube-design runs, and the design run on the twin
-    "DesignReport": "workflow",
-    "design_from_model": "workflow",
-    "report_text": "workflow",
+    "DesignReport": "controller_design",
+    "design_from_model": "controller_design",
+    "report_text": "controller_design",
     # the model's uncertainty: the predicted figures' interval, the robust design
     "ModelUncertainty": "uncertainty",
     "model_uncertainty": "uncertainty",

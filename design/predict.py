@@ -26,7 +26,7 @@ from qube_koopman.design.plant import LinearPlant
 from qube_koopman.identify.models.model import KoopmanModel
 from qube_koopman.identify.estimators.structure import close_loop, closed_loop_matrices, plant_input
 from qube_koopman.core.lti import DiscreteStateSpace
-from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
+from qube_koopman.sim.pendulum.physics import SAMPLE_PERIOD
 
 __all__ = [
     "CostPrediction",

@@ -98,7 +98,7 @@ def build_library(out_dir: str | os.PathLike, *, extra_flags: tuple[str, ...] = 
 def cache_root() -> Path:
     """Where the C builds are cached: :func:`qube_koopman.core.files.cache_root`.
 
-    Shared with the AVR firmware's builds (:mod:`~qube_koopman.firmware_protocol.avr`,
+    Shared with the AVR firmware's builds (:mod:`~qube_koopman.firmware_protocol.avr_build`,
     :mod:`~qube_koopman.sim.bridge.avr`); not created here.
     """
     from qube_koopman.core.files import cache_root as toolkit_cache

@@ -52,8 +52,9 @@ _HOMES = {
     ),
     **dict.fromkeys(("IdentificationResult", "OffsetProtocol", "run_search", "SearchOptions"), "workflow"),
     "regularization_sweep": "model_selection.sweep",
-    "search_liftings": "model_selection.search",
-    "LiftingSpec": "model_selection.search",
+    "SweepOptions": "model_selection.sweep",
+    **dict.fromkeys(("search_liftings", "SearchSettings"), "model_selection.search"),
+    "LiftingSpec": "model_selection.lifting_space",
     "twin_probes": "model_selection.transfer",
     "probe_scores": "metrics",
     # per-episode offsets

@@ -12,7 +12,7 @@ import numpy as np
 
 from qube_koopman.core.blas import episode_threads, limited_blas_threads
 from qube_koopman.core.files import atomic_path
-from qube_koopman.core.parallel import resolve_n_jobs
+from qube_koopman.core.workers import resolve_n_jobs
 from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.identify.estimators.arx import Arx, ClArx
 from qube_koopman.identify.estimators.base import episode_statistics as statistics_here
@@ -35,7 +35,12 @@ from qube_koopman.identify.models.kstep import (
 )
 from qube_koopman.identify.metrics import DivergedPrediction, EpisodeScore, episode_score, summarize_scores
 from qube_koopman.identify.estimators.structure import close_loop, command_delayed, controller_states
-from qube_koopman.identify.model_selection.sweep import SweepResult, regularization_sweep, warn_at_grid_edge
+from qube_koopman.identify.model_selection.sweep import (
+    SweepOptions,
+    SweepResult,
+    regularization_sweep,
+    warn_at_grid_edge,
+)
 from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty.filter_band import (
     AheadBand,
@@ -66,7 +71,7 @@ from qube_koopman.core.qube import MEASURED, SKIP_SAMPLES, STATE_NAMES
 
 if TYPE_CHECKING:
     from qube_koopman.identify.models.model import KoopmanModel
-    from qube_koopman.identify.model_selection.search import SearchSpace
+    from qube_koopman.identify.model_selection.lifting_space import SearchSpace
     from qube_koopman.identify.model_selection.transfer import ProbeSet
 
 __all__ = [
@@ -555,10 +560,8 @@ def _select_alpha(estimator, train, controller, fit, score, result, progress, el
         folds.splits,
         scorings=(score,),
         controller=controller,
-        measured=MEASURED,
-        progress=report,
         controllers=controllers,
-        episode_statistics=elsewhere,
+        options=SweepOptions(measured=MEASURED, progress=report, episode_statistics=elsewhere),
     )
     alpha = sweep.best_alpha(score)
     warn_at_grid_edge(sweep.alphas, alpha, sweep.cv_r2_mean(score))
@@ -1249,7 +1252,7 @@ class SearchOptions:
     Parameters
     ----------
     space : SearchSpace, optional
-        The values to try (:class:`~qube_koopman.identify.model_selection.search.SearchSpace`'s
+        The values to try (:class:`~qube_koopman.identify.model_selection.lifting_space.SearchSpace`'s
         defaults when None).
     estimate_window : float
         Offset estimation window (s); every candidate is scored from its end on.
@@ -1321,7 +1324,9 @@ def run_search(
     ValueError
         When the estimation window and the largest delay leave nothing to score.
     """
-    from qube_koopman.identify.model_selection.search import SearchSpace, same_controller_scores, search_liftings
+    from qube_koopman.identify.model_selection.evaluation import SameControllerFolds, same_controller_scores
+    from qube_koopman.identify.model_selection.lifting_space import SearchSpace
+    from qube_koopman.identify.model_selection.search import search_liftings
     from qube_koopman.identify.model_selection.transfer import twin_probes
 
     space = options.space or SearchSpace()
@@ -1343,15 +1348,9 @@ def run_search(
         splits=folds.splits,
         window=window,
         space=space,
-        n_jobs=options.n_jobs,
-        scheduler=options.scheduler,
-        security=options.security,
-        worker_timeout=options.worker_timeout,
-        bound=options.offset_bound,
-        rbf_seed=options.rbf_seed,
         probes=probes,
-        progress=progress,
         controllers=controllers if several or loops is not None else None,
+        settings=_search_settings(options, progress),
     )
     result.folds = folds
     result.probe_seconds = probe_seconds
@@ -1361,14 +1360,27 @@ def run_search(
             trajs,
             controller,
             recorded or controllers,
-            loops=loops,
             window=window,
-            n_splits=options.cv_splits,
-            seed=options.cv_seed,
+            folds=SameControllerFolds(options.cv_splits, options.cv_seed, loops),
             bound=options.offset_bound,
             rbf_seed=options.rbf_seed,
         )
     return result
+
+
+def _search_settings(options: SearchOptions, progress: Callable | None):
+    """The search's settings besides its space: the offsets' bound, the RBF seed, its workers, the progress."""
+    from qube_koopman.identify.model_selection.search import SearchSettings
+
+    return SearchSettings(
+        bound=options.offset_bound,
+        rbf_seed=options.rbf_seed,
+        n_jobs=options.n_jobs,
+        scheduler=options.scheduler,
+        security=options.security,
+        worker_timeout=options.worker_timeout,
+        progress=progress,
+    )
 
 
 def _search_folds(train, options: SearchOptions) -> tuple:

@@ -66,7 +66,7 @@ def stubs():
     from qube_koopman.identify import calibrate
     from qube_koopman.identify.model_selection import distributed, search, transfer
     from qube_koopman.identify._checks import check_alpha
-    from qube_koopman.reproduce import duffing
+    from qube_koopman.reproduce import duffing_study
     from qube_koopman.sim.bridge import BridgeEmulator, avr_pty
 
     def reached(*args, **kwargs):
@@ -93,7 +93,7 @@ def stubs():
         mp.setattr(BridgeEmulator, "open", reached)
         mp.setattr(avr_pty.AvrPtyBridge, "open", reached)
         mp.setattr(calibrate.PlantCalibration, "fit", reached)
-        mp.setattr(duffing, "reproduce_duffing", reproduce_duffing)
+        mp.setattr(duffing_study, "reproduce_duffing", reproduce_duffing)
         mp.setattr(transfer, "twin_probes", lambda *a, **k: None)
         mp.setattr(search, "search_liftings", reached)
         mp.setattr(distributed, "connect", reached)  # --scheduler: no waiting for a scheduler's answer

@@ -7,7 +7,7 @@ import os
 import pytest
 
 from qube_koopman.firmware_protocol import Command, Hello, StreamDecoder, encode_frame
-from qube_koopman.firmware_protocol import avr as avr_build
+from qube_koopman.firmware_protocol import avr_build
 
 
 def _need_tools() -> None:

@@ -215,7 +215,7 @@ def qube_reproduction_out(qube_logs, tmp_path_factory) -> Path:
     """``qube-reproduce qube --figures`` on the imported dataset, once per session: its output folder."""
 
     def make(out: Path) -> None:
-        from qube_koopman.reproduce.cli import main
+        from qube_koopman.reproduce.cli.reproduce import main
 
         assert main(["qube", "--data", str(qube_logs), "--out", str(out), "--figures", "-q"]) == 0
 

@@ -9,7 +9,7 @@ through :func:`sim.pendulum.sensor.counts_to_angles`, the rig's conversion.
 
 Each episode opens a fresh session (HELLO, version check, CONFIG), so the
 bridge's tick counter, watchdog and faults start clean. The backend aborts
-the episode, by raising :class:`~daq.backends.base.BackendFault` with the
+the episode, by raising :class:`~daq.backends.contract.BackendFault` with the
 reason, on:
 
 - link loss: no telemetry for ``link_timeout`` (25 ms by default, 12 ticks),
@@ -45,7 +45,7 @@ import time
 from collections import deque
 from typing import Any, Callable
 
-from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.daq.backends.contract import Backend, BackendFault, Pacing
 from qube_koopman.firmware_protocol import (
     PROTOCOL_VERSION,
     Capability,

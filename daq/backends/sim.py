@@ -24,7 +24,7 @@ from dataclasses import asdict, replace
 
 import numpy as np
 
-from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
+from qube_koopman.daq.backends.contract import Backend, BackendFault, Pacing
 from qube_koopman.sim.pendulum import (
     SAMPLE_PERIOD,
     PendulumParameters,

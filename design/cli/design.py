@@ -237,7 +237,7 @@ def _mpc_settings(args):
 def _run(args) -> int:
     from qube_koopman.core.controller_file import write_controller_file
     from qube_koopman.design.plant import DesignError
-    from qube_koopman.design.workflow import design_from_model, provenance, report_text, saturation_warning
+    from qube_koopman.design.controller_design import design_from_model, provenance, report_text, saturation_warning
 
     weights = _weights(args)
     settings = _mpc_settings(args)
@@ -271,7 +271,7 @@ def _run(args) -> int:
         print(f"qube-design: warning: {warning}", file=sys.stderr)
     try:
         if settings is not None:
-            from qube_koopman.design.workflow import offset_free_settings, write_mpc
+            from qube_koopman.design.controller_design import offset_free_settings, write_mpc
 
             settings, line = offset_free_settings(report, settings)
             print(line)
@@ -319,7 +319,7 @@ def _figures(args, report) -> None:
 def _record(args, report, written) -> None:
     """The --rerun-save recording, with the controller as qube-run loads it from the written file."""
     from qube_koopman.core.controller_file import load_controller
-    from qube_koopman.design.workflow import record_design
+    from qube_koopman.design.controller_design import record_design
 
     n = min(args.rerun_episodes, args.episodes)
     try:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from qube_koopman.core.files import atomic_path
-from qube_koopman.sim.pendulum.model import Coefficients
+from qube_koopman.sim.pendulum.physics import Coefficients
 from qube_koopman.sim.pendulum.params_file import named_parameters
 
 __all__ = ["calibration_text", "validation_text", "controller_summary_text", "write_report"]
@@ -131,7 +131,7 @@ def controller_summary_text(groups: list, dt: float) -> str:
     dt : float
         Sample period (s).
     """
-    from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios, slow_std_ratio
+    from qube_koopman.identify.calibrate.replay_spectra import STD_BANDS, band_std_ratios, slow_std_ratio
 
     bands = [f"{lo:g}-{hi:g} Hz" if np.isfinite(hi) else f"above {lo:g} Hz" for lo, hi in STD_BANDS]
     lines = [
@@ -170,7 +170,7 @@ def load_bands_text(groups: list, dt: float) -> str:
     dt : float
         Sample period (s).
     """
-    from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios
+    from qube_koopman.identify.calibrate.replay_spectra import STD_BANDS, band_std_ratios
 
     bands = [f"{lo:g}-{hi:g} Hz" if np.isfinite(hi) else f"above {lo:g} Hz" for lo, hi in STD_BANDS]
     lines = [
@@ -229,7 +229,7 @@ def write_report(folder: Path, text: str, validation=None, dt: float | None = No
         return [path]
     if dt is None:
         raise ValueError("write_report needs dt (the replay's sample period) with validation")
-    from qube_koopman.identify.calibrate.spectra import spectra_text
+    from qube_koopman.identify.calibrate.replay_spectra import spectra_text
 
     groups = validation if isinstance(validation, list) else [validation]
     spectra = [spectra_text(replay, dt) for replay, *_ in groups]
@@ -245,6 +245,6 @@ def write_report(folder: Path, text: str, validation=None, dt: float | None = No
             ", ".join(str(r) for r in rrds),
         )
         return [path]
-    from qube_koopman.identify.calibrate.recording import write_recording
+    from qube_koopman.identify.calibrate.validation_recording import write_recording
 
     return [path] + [write_recording(rrd, replay, names, dt) for rrd, (replay, _, names, *_) in zip(rrds, groups)]

@@ -342,7 +342,7 @@ def _difference_columns(z, r0, seg: Segments, n_episodes: int, nominal, dt: floa
 
 def _coefficient_row(p: PendulumParameters) -> np.ndarray:
     """A pendulum's coefficients in :data:`~qube_koopman.sim.pendulum.sensitivity.FIELDS`' order."""
-    from qube_koopman.sim.pendulum.model import Coefficients
+    from qube_koopman.sim.pendulum.physics import Coefficients
     from qube_koopman.sim.pendulum.sensitivity import FIELDS
 
     k = Coefficients.of(p)._asdict()

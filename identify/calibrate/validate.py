@@ -266,7 +266,7 @@ class ReplayResult:
         The twin's theta, alpha (measured) and voltage of the replay from the
         measured start; ``real`` the log's.
     twins : ndarray (n_steps, n_draws, n, 3) or None
-        Every replay's (``twin`` is the first); :func:`~qube_koopman.identify.calibrate.spectra.band_std_ratios`
+        Every replay's (``twin`` is the first); :func:`~qube_koopman.identify.calibrate.replay_spectra.band_std_ratios`
         averages the band powers over them.
     """
 

@@ -164,11 +164,44 @@ def _check_measurements(path, episode) -> None:
 
 
 def _run(args) -> int:
-    from qube_koopman.identify.calibrate import PlantCalibration
     from qube_koopman.identify.calibrate.report import calibration_text, write_report
-    from qube_koopman.identify.calibrate.validate import OPEN_LOOP_HORIZON, controller_groups
+    from qube_koopman.identify.calibrate.validate import OPEN_LOOP_HORIZON
+
+    fit_paths, val_paths = _checked_paths(args)
+    episodes = _read(fit_paths, args.horizon, "fit")
+    held = _read(val_paths, OPEN_LOOP_HORIZON, "validate") if val_paths else []  # refused before the fit, not after
+    started = time.perf_counter()
+    cal, plant, fit_groups = _calibrate(episodes, args)
+    seconds = time.perf_counter() - started
+    names = [p.name for p in fit_paths]
+    text = calibration_text(cal, names, seconds, fit_groups)
+    if args.load:
+        text += "\n" + _fit_loads(episodes, plant)
+    provenance = _provenance(args, cal, names, episodes[0].metadata.software_version, seconds, fit_groups)
+    validation, val_dt = None, None
+    if val_paths:
+        validation, val_dt, summary = _validate_and_record(held, (val_paths, fit_paths), plant, fit_groups, provenance)
+        text += summary
+    plant.provenance = provenance
+    _save(cal, plant, args.out)
+    print(text)
+    if not cal.converged_:
+        _log.warning(
+            "the fit did not converge within --max-nfev %d steps (its cost was still falling): %s holds the last "
+            "step's parameters; run again with a larger --max-nfev to finish it",
+            args.max_nfev,
+            args.out,
+        )
+    print(f"wrote {args.out}: qube-run --plant {args.out}")
+    if args.report is not None:
+        write_report(output_dir(args.report), text, validation, val_dt)
+    return 0
+
+
+def _checked_paths(args) -> tuple[list, list]:
+    """The logs to fit and to validate on (``--split paper`` holds some out), once the options and the
+    outputs are checked: before the fit's minute of work, not after."""
     from qube_koopman.identify.model_selection.split import paper_split
-    from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
 
     fit_paths, val_paths = expand_logs(args.logs), expand_logs(args.validate)
     if args.split == "paper":
@@ -184,11 +217,17 @@ def _run(args) -> int:
             f"--delay must be at most {_MAX_DELAY_SAMPLES} samples (the QUBE's transport delay is a few), "
             f"got {args.delay}"
         )
-    check_output_file(args.out, force=args.force)  # before the fit's minute of work, not after
+    check_output_file(args.out, force=args.force)
     check_output_folder(args.report, ("report.md", "calibration.rrd"), "--report", args.force)
-    episodes = _read(fit_paths, args.horizon, "fit")
-    held = _read(val_paths, OPEN_LOOP_HORIZON, "validate") if val_paths else []  # refused before the fit, not after
-    started = time.perf_counter()
+    return fit_paths, val_paths
+
+
+def _calibrate(episodes, args) -> tuple:
+    """The fitted PlantCalibration, its plant file (without provenance) and the fitted logs' controller groups."""
+    from qube_koopman.identify.calibrate import PlantCalibration
+    from qube_koopman.identify.calibrate.validate import controller_groups
+    from qube_koopman.sim.pendulum.params_file import PlantFile
+
     fit_groups = controller_groups(episodes)
     group_of = {i: label for label, members in fit_groups for i in members}
     cal = PlantCalibration(
@@ -211,15 +250,15 @@ def _run(args) -> int:
         setups=_by_setup(cal.setup_values_),
         setup_standard_errors=_by_setup(cal.setup_errors_),
     )
-    seconds = time.perf_counter() - started
-    names = [p.name for p in fit_paths]
-    text = calibration_text(cal, names, seconds, fit_groups)
-    if args.load:
-        text += "\n" + _fit_loads(episodes, plant)
+    return cal, plant, fit_groups
+
+
+def _provenance(args, cal, names: list[str], software_version, seconds: float, fit_groups) -> dict:
+    """The plant file's provenance: what was fitted, how, and how well."""
     provenance = {
         "source": "qube-calibrate",
         "logs": names,
-        "software_version": episodes[0].metadata.software_version,
+        "software_version": software_version,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "residual_rms_theta": float(cal.residual_rms_[:, 0].mean()),
         "residual_rms_alpha": float(cal.residual_rms_[:, 1].mean()),
@@ -231,60 +270,58 @@ def _run(args) -> int:
     }
     if len(fit_groups) > 1:
         provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
-    validation, val_dt = None, None
-    if val_paths:
-        refitted = _also_fitted(val_paths, fit_paths)
-        validation, val_dt, summary = _validate(held, val_paths, plant, set(refitted))
-        text += summary
-        replays = [v[0] for v in validation]
-        ratio = np.concatenate([r.std_ratio for r in replays])
-        if refitted:
-            shown = ", ".join(p.name for p in refitted[:3]) + (", ..." if len(refitted) > 3 else "")
-            _log.warning(
-                "%d of the %d validation logs are fitted too (%s): their replay is not a held-out check",
-                len(refitted),
-                len(val_paths),
-                shown,
-            )
-        provenance.update(
-            validated_on=[p.name for p in val_paths],
-            validated_also_fitted=len(refitted),
-            balanced=int(sum(r.balanced.sum() for r in replays)),
-            std_ratio_min=[round(float(v), 4) for v in ratio.min(axis=0)],
-            std_ratio_max=[round(float(v), 4) for v in ratio.max(axis=0)],
-            replay_nrmse_percent=round(float(np.concatenate([r.nrmse for r in replays]).mean()), 3),
-        )
-        if len(validation) > 1 or len(fit_groups) > 1:
-            provenance.update(
-                validation_controllers=[v[3] for v in validation],
-                std_ratio_median_by_controller=[
-                    [round(float(x), 4) for x in np.median(v[0].std_ratio, axis=0)] for v in validation
-                ],
-            )
-    plant.provenance = provenance
-    _check_finite(cal, args.out)
-    try:
-        save_plant(args.out, plant)
-    except OSError as exc:
-        raise CliError(f"{args.out}: cannot write: {exc.strerror or exc}", status=1) from None
-    print(text)
-    if not cal.converged_:
+    return provenance
+
+
+def _validate_and_record(held, paths: tuple, plant, fit_groups, provenance: dict) -> tuple:
+    """The validation logs replayed on ``plant`` (``paths``: the validation and the fitted logs' paths), their
+    figures added to ``provenance``; returns the validation, its sample time and the report's summary."""
+    val_paths, fit_paths = paths
+    refitted = _also_fitted(val_paths, fit_paths)
+    validation, val_dt, summary = _validate(held, val_paths, plant, set(refitted))
+    replays = [v[0] for v in validation]
+    ratio = np.concatenate([r.std_ratio for r in replays])
+    if refitted:
+        shown = ", ".join(p.name for p in refitted[:3]) + (", ..." if len(refitted) > 3 else "")
         _log.warning(
-            "the fit did not converge within --max-nfev %d steps (its cost was still falling): %s holds the last "
-            "step's parameters; run again with a larger --max-nfev to finish it",
-            args.max_nfev,
-            args.out,
+            "%d of the %d validation logs are fitted too (%s): their replay is not a held-out check",
+            len(refitted),
+            len(val_paths),
+            shown,
         )
-    print(f"wrote {args.out}: qube-run --plant {args.out}")
-    if args.report is not None:
-        write_report(output_dir(args.report), text, validation, val_dt)
-    return 0
+    provenance.update(
+        validated_on=[p.name for p in val_paths],
+        validated_also_fitted=len(refitted),
+        balanced=int(sum(r.balanced.sum() for r in replays)),
+        std_ratio_min=[round(float(v), 4) for v in ratio.min(axis=0)],
+        std_ratio_max=[round(float(v), 4) for v in ratio.max(axis=0)],
+        replay_nrmse_percent=round(float(np.concatenate([r.nrmse for r in replays]).mean()), 3),
+    )
+    if len(validation) > 1 or len(fit_groups) > 1:
+        provenance.update(
+            validation_controllers=[v[3] for v in validation],
+            std_ratio_median_by_controller=[
+                [round(float(x), 4) for x in np.median(v[0].std_ratio, axis=0)] for v in validation
+            ],
+        )
+    return validation, val_dt, summary
+
+
+def _save(cal, plant, out) -> None:
+    """The plant file written to ``out`` (refused when the fit is not finite)."""
+    from qube_koopman.sim.pendulum.params_file import save_plant
+
+    _check_finite(cal, out)
+    try:
+        save_plant(out, plant)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot write: {exc.strerror or exc}", status=1) from None
 
 
 def _fit_loads(episodes, plant) -> str:
     """Estimate the arm's random load from the fitted logs (each on its own twin) into ``plant``: over all
     of them (``[load]``) and per recording day (``[load_setups]``, with two days or more); the report's text."""
-    from qube_koopman.identify.calibrate.load import fit_load, load_text, reconstruct_load
+    from qube_koopman.identify.calibrate.load_fit import fit_load, load_text, reconstruct_load
     from qube_koopman.sim.pendulum.params_file import recording_day
 
     starts = [e.metadata.start_time for e in episodes]

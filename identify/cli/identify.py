@@ -487,7 +487,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _lifting(args) -> list:
     """The lifting the options give: one builder with the search's (``LiftingSpec.steps``)."""
-    from qube_koopman.identify.model_selection.search import LiftingSpec
+    from qube_koopman.identify.model_selection.lifting_space import LiftingSpec
 
     spec = LiftingSpec(
         delays=args.delays,

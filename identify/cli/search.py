@@ -35,7 +35,7 @@ MAX_SPACE_BYTES = 2**20
 
 def load_space(path: str | None):
     """The search space: the defaults, with the lists of a TOML file replacing theirs."""
-    from qube_koopman.identify.model_selection.search import SearchSpace
+    from qube_koopman.identify.model_selection.lifting_space import SearchSpace
 
     if path is None:
         return SearchSpace()
@@ -118,7 +118,7 @@ def search_options(args):
 def run_search(args, train, controller):
     """Run the search on the training logs (:func:`~qube_koopman.identify.workflow.run_search`); logs its
     time per stage and prints the winner's line."""
-    from qube_koopman.identify.model_selection.search import TIMING_KEYS
+    from qube_koopman.identify.model_selection.ranking import TIMING_KEYS
     from qube_koopman.identify.workflow import run_search as search
 
     try:
@@ -193,7 +193,7 @@ SCREENING_LEAD = (
 def search_report(result, args, names) -> dict:
     """The search's part of report.json (``names``: the training logs')."""
     from qube_koopman.identify.model_selection.split import FOLD_KINDS
-    from qube_koopman.identify.model_selection.search import STAGES
+    from qube_koopman.identify.model_selection.lifting_space import STAGES
 
     space = search_space(args)
     return {

@@ -1,6 +1,6 @@
 """Lifting functions: composable, fitted on training data, episode-aware."""
 
-from qube_koopman.identify.lifting.base import Lifting, LiftingFunction
+from qube_koopman.identify.lifting.pipeline import Lifting, LiftingFunction
 from qube_koopman.identify.lifting.constant import Constant
 from qube_koopman.identify.lifting.delay import Delay
 from qube_koopman.identify.lifting.friction import CoulombFriction

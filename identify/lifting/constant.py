@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from qube_koopman.identify.lifting.base import LiftingFunction
+from qube_koopman.identify.lifting.pipeline import LiftingFunction
 
 __all__ = ["Constant"]
 

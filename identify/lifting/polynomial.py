@@ -7,7 +7,7 @@ from itertools import combinations_with_replacement
 import numpy as np
 
 from qube_koopman.identify._checks import check_nonneg_int
-from qube_koopman.identify.lifting.base import LiftingFunction
+from qube_koopman.identify.lifting.pipeline import LiftingFunction
 
 __all__ = ["Polynomial"]
 

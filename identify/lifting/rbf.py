@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from qube_koopman.identify._checks import check_nonneg_int
-from qube_koopman.identify.lifting.base import LiftingFunction
+from qube_koopman.identify.lifting.pipeline import LiftingFunction
 
 __all__ = ["ThinPlateRbf", "GaussianRbf"]
 

@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.identify.lifting.base import LiftingFunction
+from qube_koopman.identify.lifting.pipeline import LiftingFunction
 
 __all__ = ["Trigonometric"]
 
@@ -15,7 +15,7 @@ class Trigonometric(LiftingFunction):
     """Append ``sin`` and ``cos`` of chosen input features (angles, in radians).
 
     The pendulum's gravity torque is ``sin(alpha)`` and its inertia terms
-    involve ``cos(alpha)`` (:mod:`qube_koopman.sim.pendulum.model`): these are the lifting functions
+    involve ``cos(alpha)`` (:mod:`qube_koopman.sim.pendulum.physics`): these are the lifting functions
     its equations name. Pointwise: put it before a delay step.
 
     Parameters

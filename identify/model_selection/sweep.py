@@ -45,6 +45,7 @@ __all__ = [
     "warn_at_grid_edge",
     "SweepResult",
     "regularization_sweep",
+    "SweepOptions",
     "fitted_models",
     "fit_alphas",
     "episode_scores",
@@ -401,40 +402,12 @@ def _controller_states(t: Trajectory) -> np.ndarray:
     return t.xc
 
 
-def regularization_sweep(
-    estimator,
-    trajectories: Sequence[Trajectory],
-    alphas: Sequence[float] | np.ndarray,
-    splits: Sequence[tuple[np.ndarray, np.ndarray]],
-    scorings: Sequence[str] = SCORINGS,
-    controller: DiscreteStateSpace | None = None,
-    measured=None,
-    relift: bool = True,
-    progress: Callable[[int, int], None] | None = None,
-    score_from: int = 1,
-    measured_only: bool = False,
-    keep_fold_models: bool | str = False,
-    fit_all: bool = True,
-    controllers: Sequence[DiscreteStateSpace] | None = None,
-    episode_statistics: Callable | None = None,
-    shared: tuple | None = None,
-) -> SweepResult:
-    """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
+@dataclass(frozen=True)
+class SweepOptions:
+    """How :func:`regularization_sweep` scores, what it keeps and fits, and where its statistics come from.
 
     Parameters
     ----------
-    estimator : Edmd or ClEdmd (or ClEdmdLstsq)
-        Unfitted template; its ``alpha`` is ignored.
-    trajectories : sequence of Trajectory
-        Training episodes (signals x, u, r, f, xc as the scorings need).
-    alphas : sequence of float (or ndarray)
-    splits : sequence of (train_indices, validation_indices)
-        For example :func:`identify.model_selection.split.group_shuffle_splits`, or with
-        several controllers :func:`identify.model_selection.split.leave_one_controller_out`.
-    scorings : sequence of {"cl", "plant"}
-    controller : DiscreteStateSpace, optional
-        Wraps EDMD plants for closed-loop scoring (a closed-loop estimator
-        uses its own).
     measured : sequence of int, optional
         Fed-back states for wrapping EDMD plants.
     relift : bool
@@ -455,12 +428,6 @@ def regularization_sweep(
         in the result); a search that only ranks liftings can skip it, and
         then (with ``relift``) the folds fit only the Koopman rows that
         re-lifted predictions use.
-    controllers : sequence of DiscreteStateSpace, optional
-        The controller each episode was recorded under (None: all ran the
-        estimator's, or ``controller`` for EDMD). Each fold's validation
-        episodes must share one controller: the fold's closed loops are that
-        controller's (a closed-loop estimator's plant fitted to the fold's
-        training episodes, whatever their controllers).
     episode_statistics : callable(estimator, setup, indices), optional
         Computes the per-episode statistics of the episodes at ``indices`` (of
         ``trajectories``), in order, elsewhere: on a dask cluster,
@@ -472,33 +439,75 @@ def regularization_sweep(
         episodes again, when it can (a single controller; fewer delays with the episodes'
         heads, :func:`episode_heads`). As :class:`OwnStatistics`, this very lifting's (with
         ``controllers`` too): used as they are.
+    """
+
+    measured: Sequence[int] | None = None
+    relift: bool = True
+    progress: Callable[[int, int], None] | None = None
+    score_from: int = 1
+    measured_only: bool = False
+    keep_fold_models: bool | str = False
+    fit_all: bool = True
+    episode_statistics: Callable | None = None
+    shared: tuple | None = None
+
+
+def regularization_sweep(
+    estimator,
+    trajectories: Sequence[Trajectory],
+    alphas: Sequence[float] | np.ndarray,
+    splits: Sequence[tuple[np.ndarray, np.ndarray]],
+    scorings: Sequence[str] = SCORINGS,
+    controller: DiscreteStateSpace | None = None,
+    controllers: Sequence[DiscreteStateSpace] | None = None,
+    options: SweepOptions = SweepOptions(),
+) -> SweepResult:
+    """Cross-validate ``estimator`` over ``alphas`` on episode-grouped ``splits``.
+
+    Parameters
+    ----------
+    estimator : Edmd or ClEdmd (or ClEdmdLstsq)
+        Unfitted template; its ``alpha`` is ignored.
+    trajectories : sequence of Trajectory
+        Training episodes (signals x, u, r, f, xc as the scorings need).
+    alphas : sequence of float (or ndarray)
+    splits : sequence of (train_indices, validation_indices)
+        For example :func:`identify.model_selection.split.group_shuffle_splits`, or with
+        several controllers :func:`identify.model_selection.split.leave_one_controller_out`.
+    scorings : sequence of {"cl", "plant"}
+    controller : DiscreteStateSpace, optional
+        Wraps EDMD plants for closed-loop scoring (a closed-loop estimator
+        uses its own).
+    controllers : sequence of DiscreteStateSpace, optional
+        The controller each episode was recorded under (None: all ran the
+        estimator's, or ``controller`` for EDMD). Each fold's validation
+        episodes must share one controller: the fold's closed loops are that
+        controller's (a closed-loop estimator's plant fitted to the fold's
+        training episodes, whatever their controllers).
+    options : SweepOptions
+        How it scores, what it keeps and fits, where the statistics come from.
 
     Returns
     -------
     SweepResult
     """
     with limited_blas_threads(1):
-        return _sweep(
-            estimator,
-            trajectories,
-            alphas,
-            splits,
-            scorings,
-            controller,
-            measured,
-            relift,
-            progress,
-            (score_from, measured_only, keep_fold_models, fit_all, controllers, episode_statistics, shared),
-        )
+        return _sweep(estimator, trajectories, alphas, splits, scorings, controller, controllers, options)
 
 
-def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measured, relift, progress, options):
-    start, measured_only, keep, fit_all, controllers, elsewhere, given = options
+def _sweep(estimator, trajectories, alphas, splits, scorings, controller, controllers, options):
+    start, measured_only, keep, relift = (
+        options.score_from,
+        options.measured_only,
+        options.keep_fold_models,
+        options.relift,
+    )
     for s in scorings:
         check_choice(s, "scoring", SCORINGS)
     alphas = np.asarray(alphas, dtype=float)
     if alphas.ndim != 1 or alphas.size == 0 or not np.all(np.isfinite(alphas)) or np.any(alphas < 0):
         raise ValueError("alphas must be a non-empty list of non-negative numbers")
+    measured = options.measured
     if isinstance(estimator, ClosedLoopKoopman):
         controller, measured = estimator.controller, estimator.measured
     elif "cl" in scorings and controller is None:
@@ -509,32 +518,13 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
     total = len(splits) + 1
     # Without the final fits only re-lifted predictions are made: the rows they recompute from
     # the predicted states need no fit (on a 40-delay search lifting, 4 rows of 370).
-    partial = relift and not fit_all
+    partial = relift and not options.fit_all
     result = SweepResult(
         alphas, {s: np.zeros((len(splits), alphas.size)) for s in scorings}, fold_models=[] if keep else None
     )
     timed = seconds_timer(result.seconds)
-    if given is None or fit_all or not relift:
-        derived = None
-    elif isinstance(given, OwnStatistics):
-        derived = tuple(given)[:3]
-    else:
-        derived = sub_statistics(estimator, given, controllers, splits)
-    if derived is not None:
-        with timed("statistics"):
-            setup, per_fold, everything = derived
-        shared = (setup, everything)
-    elif _learns_from_data(estimator):
-        shared, per_fold = None, None
-    else:
-        # One pass over the episodes folds each into the running totals of the folds training on it
-        # (and of all of them): memory O(folds x p^2), not O(episodes x p^2).
-        with timed("statistics"):
-            setup, (*per_fold, everything) = _statistics(
-                estimator, trajectories, [t for t, _ in splits] + [None], partial, controllers, elsewhere
-            )
-        shared = (setup, everything)
-    result.statistics = None if fit_all else shared
+    shared, per_fold = _sweep_statistics(estimator, trajectories, splits, controllers, options, timed)
+    result.statistics = None if options.fit_all else shared
     for i, (train, validation) in enumerate(splits):
         held_out_by = _fold_controller(controllers, validation, controller, i)
         fold = _for_controller(estimator, held_out_by)
@@ -546,7 +536,7 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
                     [None],
                     partial,
                     None if controllers is None else [controllers[j] for j in train],
-                    elsewhere,
+                    options.episode_statistics,
                     train,
                 )
         else:
@@ -561,22 +551,63 @@ def _sweep(estimator, trajectories, alphas, splits, scorings, controller, measur
             if keep == "rows":
                 closed, plants = [FittedRows.of(m) for m in closed], [FittedRows.of(m) for m in plants]
             result.fold_models.append((closed, plants, np.asarray(validation)))
-        if progress:
-            progress(i + 1, total)
-    if not fit_all:
+        if options.progress:
+            options.progress(i + 1, total)
+    if not options.fit_all:
         return result
+    _final_fits(
+        estimator, trajectories, controllers, shared, (controller, measured), options.episode_statistics, result
+    )
+    if options.progress:
+        options.progress(total, total)
+    return result
+
+
+def _sweep_statistics(estimator, trajectories, splits, controllers, options: SweepOptions, timed) -> tuple:
+    """The statistics the sweep's folds share, ``((setup, all-episode statistics), per-fold statistics)``:
+    taken from ``options.shared``, or from one pass over the episodes; ``(None, None)`` for a lifting
+    that learns from each fold's episodes."""
+    given = options.shared
+    if given is None or options.fit_all or not options.relift:
+        derived = None
+    elif isinstance(given, OwnStatistics):
+        derived = tuple(given)[:3]
+    else:
+        derived = sub_statistics(estimator, given, controllers, splits)
+    if derived is not None:
+        with timed("statistics"):
+            setup, per_fold, everything = derived
+        return (setup, everything), per_fold
+    if _learns_from_data(estimator):
+        return None, None
+    # One pass over the episodes folds each into the running totals of the folds training on it
+    # (and of all of them): memory O(folds x p^2), not O(episodes x p^2).
+    partial = options.relift and not options.fit_all
+    with timed("statistics"):
+        setup, (*per_fold, everything) = _statistics(
+            estimator,
+            trajectories,
+            [t for t, _ in splits] + [None],
+            partial,
+            controllers,
+            options.episode_statistics,
+        )
+    return (setup, everything), per_fold
+
+
+def _final_fits(estimator, trajectories, controllers, shared, loop, elsewhere, result):
+    """Every alpha fitted on all the episodes (``loop``: the controller and measured states wrapping a plant),
+    its models and spectral radii set in ``result``."""
+    controller, measured = loop
     if shared is None:
         setup, (snapshots,) = _statistics(estimator, trajectories, [None], controllers=controllers, elsewhere=elsewhere)
     else:
         setup, snapshots = shared
-    closed, plants = fitted_models(estimator, setup, snapshots, alphas, controller, measured)
+    closed, plants = fitted_models(estimator, setup, snapshots, result.alphas, controller, measured)
     result.closed_loop_models, result.plant_models = closed, plants
     result.spectral_radius_plant = np.array([m.spectral_radius() for m in plants])
     if closed[0] is not None:
         result.spectral_radius_closed_loop = np.array([m.spectral_radius() for m in closed])
-    if progress:
-        progress(total, total)
-    return result
 
 
 def fold_statistics(

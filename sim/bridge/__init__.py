@@ -8,7 +8,7 @@ QUBE-Servo 2 behind its SPI interface; ``Faults`` says what to break.
 
 from qube_koopman.sim.bridge.emulator import DEFAULT_PERTURBATION, RECORD_FIELDS, BridgeEmulator
 from qube_koopman.sim.bridge.faults import DelayLine, Faults, FaultyLink
-from qube_koopman.sim.bridge.qube import EmulatedQube
+from qube_koopman.sim.bridge.emulated_qube import EmulatedQube
 
 __all__ = [
     "BridgeEmulator",

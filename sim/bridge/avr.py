@@ -1,9 +1,9 @@
 """The real bridge firmware on an emulated ATmega328P (simavr), in simulated time.
 
-:class:`AvrBridge` runs the Uno image built by :mod:`firmware_protocol.avr`
+:class:`AvrBridge` runs the Uno image built by :mod:`firmware_protocol.avr_build`
 on simavr through a small C harness (``avr_harness.c``, built here on first
 use and cached by source hash, driven through ctypes). The bridge's SPI bus
-is answered by the same :class:`~sim.bridge.qube.EmulatedQube` the host
+is answered by the same :class:`~sim.bridge.emulated_qube.EmulatedQube` the host
 emulator uses: at chip select falling the QUBE latches its answer, at chip
 select rising it takes the bridge's command, and the pendulum is advanced by
 the simulated time between transactions, so the firmware's timing errors
@@ -25,9 +25,9 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from qube_koopman.firmware_protocol.avr import F_CPU, symbol_address
+from qube_koopman.firmware_protocol.avr_build import F_CPU, symbol_address
 from qube_koopman.firmware_protocol.ccore import cache_root, find_c_compiler
-from qube_koopman.sim.bridge.qube import EmulatedQube
+from qube_koopman.sim.bridge.emulated_qube import EmulatedQube
 
 __all__ = ["HARNESS_SOURCE", "AvrBridge", "AvrChip", "cached_harness", "harness_missing", "RAMEND"]
 
@@ -209,7 +209,7 @@ class AvrBridge:
     Parameters
     ----------
     elf : path
-        The firmware image (:func:`firmware_protocol.avr.cached_firmware`).
+        The firmware image (:func:`firmware_protocol.avr_build.cached_firmware`).
     qube : EmulatedQube, optional
         The QUBE behind the SPI bus (default: a fresh one, pendulum hanging).
     harness : path, optional

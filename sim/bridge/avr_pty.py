@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from qube_koopman.firmware_protocol import Hello, StreamDecoder
-from qube_koopman.firmware_protocol.avr import F_CPU, cached_firmware
+from qube_koopman.firmware_protocol.avr_build import F_CPU, cached_firmware
 from qube_koopman.sim.bridge.avr import AvrBridge
 from qube_koopman.sim.bridge.emulator import close_fds, open_raw_pty
 

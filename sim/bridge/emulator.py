@@ -6,7 +6,7 @@ with pyserial as it would open the bridge's USB serial port. Inside, the
 bridge firmware's own core (``firmware_protocol/c/src``, compiled and loaded
 through ``firmware_protocol.ccore``) runs as on the microcontroller: host
 bytes go in, and at every tick it does one SPI transfer, here with an
-:class:`~sim.bridge.qube.EmulatedQube`, and queues telemetry for the host.
+:class:`~sim.bridge.emulated_qube.EmulatedQube`, and queues telemetry for the host.
 
 Time. Device time advances one period per tick (2 ms at 500 Hz) and is what
 the firmware core and the pendulum see; frames carry it as their timestamp.
@@ -59,7 +59,7 @@ import numpy as np
 
 from qube_koopman.firmware_protocol import Capability, Command, Hello, StreamDecoder
 from qube_koopman.sim.bridge.faults import DelayLine, Faults, FaultyLink
-from qube_koopman.sim.bridge.qube import EmulatedQube
+from qube_koopman.sim.bridge.emulated_qube import EmulatedQube
 from qube_koopman.sim.pendulum import PendulumParameters
 
 if TYPE_CHECKING:

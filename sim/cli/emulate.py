@@ -309,7 +309,7 @@ def _main_avr(args, parser) -> int:
         raise CliError(
             f"--target avr takes only --seed, --perturbation, --hanging and -q (not --{extra[0].replace('_', '-')})"
         )
-    from qube_koopman.firmware_protocol.avr import AvrToolsMissing
+    from qube_koopman.firmware_protocol.avr_build import AvrToolsMissing
     from qube_koopman.sim.bridge.avr_pty import AvrPtyBridge
 
     emulator = AvrPtyBridge(

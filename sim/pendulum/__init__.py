@@ -2,7 +2,7 @@
 
 from qube_koopman.sim.pendulum.closed_loop import ClosedLoopRun, linear_loop_radius, simulate_closed_loop
 from qube_koopman.sim.pendulum.load import LoadStream, RandomLoad
-from qube_koopman.sim.pendulum.model import (
+from qube_koopman.sim.pendulum.physics import (
     SAMPLE_PERIOD,
     PendulumParameters,
     dynamics,

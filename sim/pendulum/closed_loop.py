@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from qube_koopman.core.lti import DiscreteStateSpace, spectral_radius, with_output_delay
-from qube_koopman.sim.pendulum.model import (
+from qube_koopman.sim.pendulum.physics import (
     DEFAULT_SUBSTEPS,
     PendulumParameters,
     advance,
@@ -261,7 +261,7 @@ def linear_loop_radius(controller: DiscreteStateSpace, params: PendulumParameter
 
     The loop is the one :func:`simulate_closed_loop` runs (the command from the tick's reading, held over the
     tick), with the plant's transport delay (``params.delay``) on the command. The arm's smoothed Coulomb
-    friction is left out: its slope at rest, which :func:`~qube_koopman.sim.pendulum.model.linearize_upright`
+    friction is left out: its slope at rest, which :func:`~qube_koopman.sim.pendulum.physics.linearize_upright`
     takes as viscous damping, holds only within ``coulomb_speed`` of rest, where a moving loop spends little
     time, and with it the calibrated twin's linearization calls the rig's own PD unstable (1.0029) where the
     twin and the rig balance under it (0.9919 without).

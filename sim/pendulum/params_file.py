@@ -54,7 +54,7 @@ Version 1 is version 2 before the cables' pull could level off: a version-1 file
 Unknown keys in ``[parameters]`` and ``[setups.*]`` are an error (a misspelt ``Dr`` must not
 silently keep its default), and so are values the model's arithmetic cannot take: a size over 1e6, a
 resistance, mass, length or Coulomb speed under 1e-15, a delay over 1 s
-(:class:`~qube_koopman.sim.pendulum.model.PendulumParameters`); a file over 16 MiB, nested more than
+(:class:`~qube_koopman.sim.pendulum.physics.PendulumParameters`); a file over 16 MiB, nested more than
 64 levels deep, or a named pipe or device is refused unread. A setup is what differed when the logs
 were recorded: the cables between the arm's hub and the base are dressed anew each time the rig is
 set up (a day: the two recording days' logs want stiffnesses 3.1 times apart), the host's latency
@@ -95,7 +95,7 @@ from pathlib import Path
 from typing import Sequence
 
 from qube_koopman.sim.pendulum.load import RandomLoad
-from qube_koopman.sim.pendulum.model import PendulumParameters
+from qube_koopman.sim.pendulum.physics import PendulumParameters
 from qube_koopman.core.files import atomic_path, loads_toml, read_bounded_text
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""How :func:`~qube_koopman.sim.pendulum.model.simulate`'s angles change with the initial state and the
+"""How :func:`~qube_koopman.sim.pendulum.physics.simulate`'s angles change with the initial state and the
 coefficients: its RK4 differentiated step by step (forward sensitivities, the tangent-linear model).
 
 A multiple-shooting calibration needs the Jacobian of every segment's predicted angles with respect to
@@ -6,7 +6,7 @@ the segment's initial state and the shared parameters at every iteration. Finite
 whole simulation per parameter (about 15 a Jacobian); the tangents of all of them ride along one
 simulation here: each RK4 stage's accelerations are differentiated analytically once (the partial
 derivatives are arrays over the segments), and every direction's tangent is then a few multiply-adds
-of them. The equations differentiated are :func:`~qube_koopman.sim.pendulum.model._accelerations`'
+of them. The equations differentiated are :func:`~qube_koopman.sim.pendulum.physics._accelerations`'
 (a test compares the tangents with finite differences of :func:`simulate` with every optional term on).
 
 A direction is an initial-state tangent and a derivative of the coefficients
@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from qube_koopman.sim.pendulum.model import (
+from qube_koopman.sim.pendulum.physics import (
     DEFAULT_SUBSTEPS,
     SAMPLE_PERIOD,
     Coefficients,
@@ -103,7 +103,7 @@ def _stretch_and_slopes(x, k: Coefficients):
 
 
 def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients, active: np.ndarray):
-    """The accelerations (a, b) of :func:`~qube_koopman.sim.pendulum.model._accelerations` at one RK4 stage,
+    """The accelerations (a, b) of :func:`~qube_koopman.sim.pendulum.physics._accelerations` at one RK4 stage,
     their partial derivatives in the state and the motor voltage (``(a_x, b_x)``, each a list of five
     arrays: theta, alpha, theta_dot, alpha_dot, voltage), and in the ``active`` coefficients
     (``(len(active), n_seg)`` arrays for a and b)."""
@@ -194,7 +194,7 @@ def simulate_tangents(
     n_substeps: int = DEFAULT_SUBSTEPS,
     past_voltages=None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The angles of :func:`~qube_koopman.sim.pendulum.model.simulate` and their tangents along ``directions``.
+    """The angles of :func:`~qube_koopman.sim.pendulum.physics.simulate` and their tangents along ``directions``.
 
     Parameters
     ----------
@@ -203,7 +203,7 @@ def simulate_tangents(
     params : PendulumParameters, or one per segment
     directions : Directions
     dt, n_substeps, past_voltages
-        As for :func:`~qube_koopman.sim.pendulum.model.simulate`.
+        As for :func:`~qube_koopman.sim.pendulum.physics.simulate`.
 
     Returns
     -------

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from qube_koopman.sim.pendulum.model import (
+from qube_koopman.sim.pendulum.physics import (
     DEFAULT_SUBSTEPS,
     SAMPLE_PERIOD,
     Coefficients,

@@ -166,7 +166,7 @@ def test_an_interrupted_figure_or_recording_leaves_nothing(tmp_path, monkeypatch
     assert list(tmp_path.glob("radius*")) == [] and _leftovers(tmp_path) == []
 
     pytest.importorskip("rerun")
-    from qube_koopman.identify.calibrate.recording import write_recording
+    from qube_koopman.identify.calibrate.validation_recording import write_recording
     from _calibration_replay import DT, NAMES, synthetic_replay
 
     def half(self, data):  # the recording's bytes half on disk when Ctrl-C comes

@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[2]
         ("qube_koopman.daq.cli.run", "qube-run"),
         ("qube_koopman.daq.cli.import_csv", "qube-import"),
         ("qube_koopman.sim.cli.emulate", "qube-emulate"),
-        ("qube_koopman.reproduce.cli", "qube-reproduce"),
+        ("qube_koopman.reproduce.cli.reproduce", "qube-reproduce"),
     ],
 )
 def test_version(module, prog):
@@ -69,7 +69,7 @@ BAD_ARGUMENTS = [  # module, program, arguments, the file the error must name fi
         ["--train", "{missing}", "--test", "{missing}", "--out", "o"],
         "{missing}",
     ),
-    ("qube_koopman.reproduce.cli", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
+    ("qube_koopman.reproduce.cli.reproduce", "qube-reproduce", ["duffing", "--out", "{binary}"], "{binary}"),
     ("qube_koopman.sim.cli.emulate", "qube-emulate", ["--record", "{missing}/x.csv", "-q"], "{missing}/x.csv"),
 ]
 
@@ -119,7 +119,7 @@ def test_qube_identify_refuses_a_rerun_file_in_a_missing_folder_before_any_work(
 NEGATIVE_SEEDS = [
     ("qube_koopman.daq.cli.run", ["--seed", "-5", "--episodes", "1", "--duration", "0.2"], "--seed"),
     ("qube_koopman.sim.cli.emulate", ["--seed", "-5"], "--seed"),
-    ("qube_koopman.reproduce.cli", ["duffing", "--seed", "-5"], "--seed"),
+    ("qube_koopman.reproduce.cli.reproduce", ["duffing", "--seed", "-5"], "--seed"),
     (
         "qube_koopman.identify.cli.identify",
         ["--train", "x", "--test", "y", "--rbf", "thin-plate", "--rbf-seed", "-5"],
@@ -169,7 +169,7 @@ def test_qube_identify_names_the_option_and_value_out_of_range_before_loading(op
         ("qube_koopman.daq.cli.import_csv", "qube-import", ["{tmp}", "--out", "{tmp}/o"]),  # a folder without any
         ("qube_koopman.identify.cli.identify", "qube-identify", ["--train", "{missing}", "--test", "{missing}"]),
         ("qube_koopman.identify.cli.calibrate", "qube-calibrate", ["{missing}", "--out", "{tmp}/p.toml"]),
-        ("qube_koopman.reproduce.cli", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
+        ("qube_koopman.reproduce.cli.reproduce", "qube-reproduce", ["qube", "--data", "{missing}", "--out", "{tmp}/o"]),
     ],
     ids=["qube-import", "qube-export", "qube-import empty folder", "qube-identify", "qube-calibrate", "qube-reproduce"],
 )
@@ -285,7 +285,7 @@ def test_counts_out_of_range_are_usage_errors_naming_option_and_value(
         "daq.cli.export",
         "daq.cli.run",
         "identify.cli.identify",
-        "reproduce.cli",
+        "reproduce.cli.reproduce",
         "identify.cli.calibrate",
         "design.cli.design",
         "sim.cli.emulate",
@@ -311,7 +311,7 @@ def test_help_is_plain_text_without_restructuredtext_markup(module, capsys):
         ("daq.cli.export", ["x.mcap", "--format", "xlsx", "--out", "d"]),
         ("daq.cli.run", ["--episodes", "-1"]),
         ("identify.cli.identify", ["--delays", "-1", "x.mcap"]),
-        ("reproduce.cli", ["bogus"]),
+        ("reproduce.cli.reproduce", ["bogus"]),
         ("identify.cli.calibrate", ["x.mcap", "--out", "p.toml", "--poly"]),
         ("design.cli.design", []),
         ("sim.cli.emulate", ["--drop-rate", "2"]),

@@ -18,7 +18,7 @@ COMMANDS = [
     ("qube_koopman.sim.cli.emulate", "qube-emulate"),
     ("qube_koopman.identify.cli.calibrate", "qube-calibrate"),
     ("qube_koopman.identify.cli.identify", "qube-identify"),
-    ("qube_koopman.reproduce.cli", "qube-reproduce"),
+    ("qube_koopman.reproduce.cli.reproduce", "qube-reproduce"),
 ]
 
 # A quick invocation of each command that gets past its argument parsing (and fails on a file).
@@ -122,7 +122,7 @@ def _without_split_warning(err: str) -> str:
 
 
 def test_qube_reproduce_strict_refuses_an_unreadable_log(logs_with_an_empty_one, tmp_path, capsys):
-    from qube_koopman.reproduce.cli import main
+    from qube_koopman.reproduce.cli.reproduce import main
 
     status = main(["qube", "--data", str(logs_with_an_empty_one), "--out", str(tmp_path / "o"), "--strict", "-q"])
     assert status == 2
@@ -135,7 +135,7 @@ def test_qube_reproduce_strict_refuses_an_unreadable_log(logs_with_an_empty_one,
 
 
 def test_qube_reproduce_without_strict_skips_it_with_a_warning(logs_with_an_empty_one, tmp_path, capsys):
-    from qube_koopman.reproduce.cli import main
+    from qube_koopman.reproduce.cli.reproduce import main
 
     status = main(
         ["qube", "--data", str(logs_with_an_empty_one), "--out", str(tmp_path / "o"), "--n-alphas", "2", "-q"]

@@ -147,17 +147,17 @@ def test_calibrate_design_and_reproduce_stopped_by_a_signal_say_so_in_one_line(s
     # The commands test_atomic_writes does not stop: each is stopped in its long work by the signal.
     import signal
 
-    from qube_koopman.design import workflow
+    from qube_koopman.design import controller_design
     from qube_koopman.identify import calibrate
-    from qube_koopman.reproduce import duffing
+    from qube_koopman.reproduce import duffing_study
 
     def stop(*args, **kwargs):
         os.kill(os.getpid(), getattr(signal, signum))
         raise AssertionError("the signal should have stopped the command")
 
     monkeypatch.setattr(calibrate.PlantCalibration, "fit", stop)
-    monkeypatch.setattr(workflow, "design_from_model", stop)
-    monkeypatch.setattr(duffing, "reproduce_duffing", stop)
+    monkeypatch.setattr(controller_design, "design_from_model", stop)
+    monkeypatch.setattr(duffing_study, "reproduce_duffing", stop)
     for command, argv in (
         ("qube-calibrate", ["logs/a.mcap", "--out", "p.toml"]),
         ("qube-design", ["junk.bin", "--out", "c.toml"]),

@@ -36,7 +36,7 @@ from bridge_helpers import (
     run_in_real_time,
 )
 
-from qube_koopman.daq.backends.base import BackendFault
+from qube_koopman.daq.backends.contract import BackendFault
 from qube_koopman.daq.backends.serial import SerialBackend
 from qube_koopman.daq.cli.run import main
 from qube_koopman.daq.excitation import generate_excitation

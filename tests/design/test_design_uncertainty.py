@@ -326,7 +326,7 @@ def test_j_has_one_definition_and_the_design_reports_it(tmp_path):
     predicted J, the bootstrap plants' batched J and identify's held-out J are its values."""
     from qube_koopman.core.qube import loop_cost
     from qube_koopman.design.predict import episode_cost, predict_loop
-    from qube_koopman.design.workflow import design_from_model
+    from qube_koopman.design.controller_design import design_from_model
     from qube_koopman.identify.uncertainty import loop_figures
 
     # Its definition, by hand: tracking errors (1, -1) and alpha (2, 0) after one skipped sample.

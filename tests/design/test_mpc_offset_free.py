@@ -216,7 +216,7 @@ def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_th
 def test_qube_design_turns_offset_free_control_on_only_for_a_load_with_a_gain(entry, pole, gain, wanted, on, says):
     from types import SimpleNamespace
 
-    from qube_koopman.design.workflow import offset_free_settings
+    from qube_koopman.design.controller_design import offset_free_settings
     from qube_koopman.identify.models.disturbance import DisturbanceModel
 
     model = None if entry is None else DisturbanceModel(entry, pole, 1e-5, np.eye(2), np.array(gain))

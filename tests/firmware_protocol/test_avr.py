@@ -6,7 +6,7 @@ import pytest
 
 from qube_koopman.daq.backends.serial import DEFAULT_BAUD
 from qube_koopman.firmware_protocol import Command, Fault, FaultCode, HelloReply, Status, Telemetry
-from qube_koopman.firmware_protocol.avr import F_CPU, firmware_sizes
+from qube_koopman.firmware_protocol.avr_build import F_CPU, firmware_sizes
 from qube_koopman.firmware_protocol.qube_spi import SPI_SIZE
 from avr_helpers import Host, new_bridge
 from bridge_helpers import run_in_real_time

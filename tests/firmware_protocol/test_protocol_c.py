@@ -557,7 +557,7 @@ def test_arduino_sketch_compiles_cleanly_for_the_uno():
     (It drives the ATmega328P's registers directly, so stub headers no longer
     describe it; tests/firmware_protocol/test_avr.py builds and runs it.)
     """
-    from qube_koopman.firmware_protocol import avr
+    from qube_koopman.firmware_protocol import avr_build as avr
 
     missing = avr.avr_tools_missing()
     if missing:

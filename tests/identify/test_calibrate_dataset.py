@@ -149,7 +149,7 @@ def test_the_cable_spring_brings_the_soft_loops_slow_arm_motion_back(soft, calib
     # The soft controller's arm wanders slowly; the twin without the cables' spring (calibrated on the
     # rig's logs alone) replayed its arm at 0.885 of the real standard deviation (0.87 below 0.5 Hz).
     # Measured with the spring: 0.950 overall, 0.946 below 0.5 Hz.
-    from qube_koopman.identify.calibrate.spectra import slow_std_ratio
+    from qube_koopman.identify.calibrate.replay_spectra import slow_std_ratio
     from qube_koopman.sim.pendulum.params_file import named_parameters
 
     now = replay_episodes(soft, calibration.params_, n_draws=2)
@@ -167,7 +167,7 @@ def test_each_days_cables_bring_the_soft_loops_arm_back_without_losing_the_rigs(
     # stiffness for both days, with offsets from open-loop segments, 0.950 / 0.996 / 0.968), the arm's
     # slow motion within 10 % (1.016, against 0.946), while the paper's test episodes keep their
     # targets (test_validation_targets).
-    from qube_koopman.identify.calibrate.spectra import slow_std_ratio
+    from qube_koopman.identify.calibrate.replay_spectra import slow_std_ratio
 
     now = replay_episodes(soft, shipped.params_for_logs([e.metadata.start_time for e in soft]), n_draws=2)
     assert now.balanced.all() and replay.balanced.all()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from _episodes import QUBE_PD
-from qube_koopman.identify.calibrate.load import fit_load, reconstruct_load
+from qube_koopman.identify.calibrate.load_fit import fit_load, reconstruct_load
 from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad, SensorModel, simulate_closed_loop
 
 DT = 1 / 500

@@ -11,7 +11,7 @@ import pytest
 from _calibration_replay import DT, NAMES, SCALE, synthetic_replay
 from qube_koopman.identify.calibrate.validate import ReplayResult
 from qube_koopman.identify.calibrate.report import write_report
-from qube_koopman.identify.calibrate.spectra import (
+from qube_koopman.identify.calibrate.replay_spectra import (
     BANDS,
     CHANNELS,
     band_power_ratios,
@@ -79,7 +79,7 @@ def test_report_writes_the_table_and_a_recording_with_the_expected_entities(tmp_
 
 def test_blueprint_has_an_episode_grid_and_a_spectra_tab():
     pytest.importorskip("rerun", reason="the viewer is the optional viz extra")
-    from qube_koopman.identify.calibrate.recording import blueprint, episode_paths
+    from qube_koopman.identify.calibrate.validation_recording import blueprint, episode_paths
 
     parts = episode_paths(["a.mcap", "dir/a.mcap", "b c.mcap"])
     assert parts[0] == "a" and parts[1] != "a" and len(set(parts)) == 3
@@ -213,7 +213,7 @@ def test_the_per_controller_fit_table_names_the_segments_length(tmp_path, capsys
 
 def test_band_and_slow_std_ratios_are_the_scale_in_every_band():
     # twin = real * SCALE: every band's and the slow signals' std ratio is SCALE, whatever the spectrum.
-    from qube_koopman.identify.calibrate.spectra import STD_BANDS, band_std_ratios, slow_std_ratio
+    from qube_koopman.identify.calibrate.replay_spectra import STD_BANDS, band_std_ratios, slow_std_ratio
 
     replay = synthetic_replay(n_steps=9000)
     ratios = band_std_ratios(replay, DT)

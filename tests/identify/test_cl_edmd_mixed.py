@@ -15,7 +15,7 @@ from qube_koopman.identify.estimators.mixed import ControllerGroups, majority_co
 from qube_koopman.identify.model_selection.split import leave_one_controller_out
 from qube_koopman.identify.estimators.regression import constrained_plant_solve, grouped_plant_solve
 from qube_koopman.identify.estimators.stability import ClEdmdStable
-from qube_koopman.identify.model_selection.sweep import regularization_sweep
+from qube_koopman.identify.model_selection.sweep import SweepOptions, regularization_sweep
 from qube_koopman.core.lti import DiscreteStateSpace
 from linear_loops import closed_loop_trajectories, mass_spring_damper, pid_position_controller
 
@@ -219,7 +219,7 @@ def test_leave_one_controller_out_sweep_scores_the_held_out_loops(mixed):
         splits,
         scorings=("cl", "plant"),
         controllers=controllers,
-        keep_fold_models=True,
+        options=SweepOptions(keep_fold_models=True),
     )
     np.testing.assert_allclose(sweep.cv_r2["cl"][:, 0], 1.0, atol=1e-8)
     np.testing.assert_allclose(sweep.cv_r2["plant"][:, 0], 1.0, atol=1e-8)
@@ -285,7 +285,7 @@ def test_partial_fold_fits_score_as_full_ones(mixed):
     est = ClEdmd(pid, lifting=[Delay(2)], measured=[0])  # 6 lifted states, 2 of them fitted in the folds
     full = regularization_sweep(est, trajs, alphas, splits, controllers=controllers)
     partial = regularization_sweep(
-        est, trajs, alphas, splits, controllers=controllers, fit_all=False, keep_fold_models=True
+        est, trajs, alphas, splits, controllers=controllers, options=SweepOptions(fit_all=False, keep_fold_models=True)
     )
     for closed, _, _ in partial.fold_models:
         n_c = closed[0].n_passthrough

@@ -22,7 +22,7 @@ from qube_koopman.identify.model_selection.distributed import (
     _unseen,
     ordered_results,
 )
-from qube_koopman.identify.model_selection.sweep import regularization_sweep
+from qube_koopman.identify.model_selection.sweep import SweepOptions, regularization_sweep
 
 ALPHAS = [1e-6, 1e-3, 1.0]
 
@@ -58,7 +58,9 @@ def test_a_sweep_with_statistics_computed_elsewhere_equals_the_local_sweep(loop,
     template = ClEdmd(controller, lifting=lifting, measured=[0])
     here = regularization_sweep(template, trajs, ALPHAS, splits, scorings=("cl",))
     elsewhere = _Elsewhere(trajs)
-    there = regularization_sweep(template, trajs, ALPHAS, splits, scorings=("cl",), episode_statistics=elsewhere)
+    there = regularization_sweep(
+        template, trajs, ALPHAS, splits, scorings=("cl",), options=SweepOptions(episode_statistics=elsewhere)
+    )
     np.testing.assert_array_equal(there.cv_r2["cl"], here.cv_r2["cl"])
     for a, b in zip(here.closed_loop_models, there.closed_loop_models):
         np.testing.assert_array_equal(a.A, b.A)

@@ -15,7 +15,7 @@ import pytest
 
 from qube_koopman.identify.report import figures as figures_module
 from qube_koopman.identify.cli.identify import main as qube_identify
-from qube_koopman.reproduce.cli import main as qube_reproduce
+from qube_koopman.reproduce.cli.reproduce import main as qube_reproduce
 
 
 @pytest.fixture
@@ -181,7 +181,7 @@ def test_figure_episode_options_need_figures_and_a_test_episode(small_set, tmp_p
 
 def _synthetic_results() -> dict:
     """A reproduce_qube results dict in miniature: 5 alphas, 3-state models, a 50-sample episode."""
-    from qube_koopman.reproduce.qube import ROWS
+    from qube_koopman.reproduce.qube_study import ROWS
 
     rng = np.random.default_rng(0)
     alphas = np.logspace(-3, 3, 5).tolist()
@@ -233,7 +233,7 @@ def _synthetic_results() -> dict:
 
 
 def test_paper_figures_plot_the_results_arrays():
-    from qube_koopman.reproduce.figures import EIGENVALUE_ROWS, METHODS, qube_figures
+    from qube_koopman.reproduce.qube_figures import EIGENVALUE_ROWS, METHODS, qube_figures
 
     results = _synthetic_results()
     specs = {spec.stem: spec for spec in qube_figures(results)}

@@ -80,7 +80,7 @@ def test_qube_design_refuses_an_unusable_model_in_one_line(model_file, tmp_path,
 def test_an_output_that_cannot_be_written_is_refused_before_any_work(
     command, out, message, model_file, tmp_path, capsys, monkeypatch
 ):
-    from qube_koopman.design import workflow
+    from qube_koopman.design import controller_design
     from qube_koopman.design.cli.design import main as design_main
     from qube_koopman.identify.calibrate import PlantCalibration
     from qube_koopman.identify.cli.calibrate import main as calibrate_main
@@ -88,7 +88,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(
     def no_work(*args, **kwargs):
         raise AssertionError("the work started before the output was checked")
 
-    monkeypatch.setattr(workflow, "design_from_model", no_work)
+    monkeypatch.setattr(controller_design, "design_from_model", no_work)
     monkeypatch.setattr(PlantCalibration, "fit", no_work)
     (tmp_path / "afolder").mkdir()
     target = str(tmp_path / out)
@@ -160,7 +160,7 @@ def test_the_designs_saturation_warning_names_the_peak_and_the_clamp():
     # qube-design prints it as a `qube-design: warning:` line on stderr, apart from the report on stdout
     from types import SimpleNamespace
 
-    from qube_koopman.design.workflow import saturation_warning
+    from qube_koopman.design.controller_design import saturation_warning
 
     def report(peak):
         return SimpleNamespace(predicted=SimpleNamespace(summary=lambda: {"voltage_peak": peak}))

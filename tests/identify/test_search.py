@@ -22,14 +22,15 @@ from qube_koopman.identify.models.offsets import (
     predict_with_offsets_models,
 )
 from qube_koopman.identify.metrics import r2_scores, scores_after_window, scores_after_window_models
-from qube_koopman.identify.model_selection.sweep import regularization_sweep
+from qube_koopman.identify.model_selection.sweep import SweepOptions, regularization_sweep
 from qube_koopman.identify.model_selection.transfer import twin_probes
 from qube_koopman.identify.model_selection.search import (
     CandidateResult,
     LiftingSpec,
     SearchData,
+    SearchSettings,
     SearchSpace,
-    _finalists,
+    finalists,
     evaluate_candidate,
     screen_bar,
     search_liftings,
@@ -186,14 +187,18 @@ SMALL_SPACE = SearchSpace(
 
 def test_search_winner_is_the_best_candidate_and_parallel_runs_agree(small):
     trajs, controller, splits = small
-    serial = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, n_jobs=1)
+    serial = search_liftings(
+        trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, settings=SearchSettings(n_jobs=1)
+    )
     stages = [c.stage for c in serial.candidates]
     assert stages == sorted(stages, key=["delays", "form", "rbf", "offsets"].index)
     assert len({c.spec for c in serial.candidates}) == len(serial.candidates)  # nothing evaluated twice
     assert serial.winner.score == max(c.score for c in serial.candidates)
     best_delays = max((c for c in serial.candidates if c.stage == "delays"), key=lambda c: c.score).spec.delays
     assert {c.spec.delays for c in serial.candidates if c.stage == "form"} == {best_delays}
-    parallel = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, n_jobs=2)
+    parallel = search_liftings(
+        trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, settings=SearchSettings(n_jobs=2)
+    )
     assert [c.spec for c in parallel.candidates] == [c.spec for c in serial.candidates]
     for a, b in zip(serial.candidates, parallel.candidates):
         np.testing.assert_array_equal(a.cv_r2, b.cv_r2)
@@ -296,16 +301,16 @@ def test_a_screen_goes_on_when_it_beats_the_stages_lead_scored_on_the_same_folds
         )
 
     screens = [screen(1, 0.99, 0.95), screen(3, 0.99, 0.93), screen(2, 0.99, -np.inf)]
-    assert _finalists(screens, 3) == {LiftingSpec(10, 1), LiftingSpec(10, 3)}  # the diverged one left out
-    assert _finalists(screens, 3, bar=0.94) == {LiftingSpec(10, 1)}
-    assert _finalists(screens, 3, bar=0.96) == set()  # none beats the lead: the lead stays the best so far
-    assert _finalists(screens[2:], 3) == {LiftingSpec(10, 2)}  # no bar: one in full at least
+    assert finalists(screens, 3) == {LiftingSpec(10, 1), LiftingSpec(10, 3)}  # the diverged one left out
+    assert finalists(screens, 3, bar=0.94) == {LiftingSpec(10, 1)}
+    assert finalists(screens, 3, bar=0.96) == set()  # none beats the lead: the lead stays the best so far
+    assert finalists(screens[2:], 3) == {LiftingSpec(10, 2)}  # no bar: one in full at least
 
 
 def test_rbf_candidates_take_their_statistics_from_one_factorization_with_every_basis(small):
     # The RBF stage lifts its episodes once, with every candidate's centres in one basis; each candidate's fold
     # statistics are columns of that factor: the same Gram matrices as its own lifting's.
-    from qube_koopman.identify.model_selection.search import _radial_statistics, family_statistics
+    from qube_koopman.identify.model_selection.search import family_statistics, radial_statistics
     from qube_koopman.identify.model_selection.sweep import OwnStatistics
 
     trajs, controller, splits = small
@@ -315,7 +320,7 @@ def test_rbf_candidates_take_their_statistics_from_one_factorization_with_every_
     def run(calls):
         return [fn(*args, **kwargs) for fn, args, kwargs in calls]
 
-    taken = _radial_statistics(specs, data, run, n_parts=2)
+    taken = radial_statistics(specs, data, run, n_parts=2)
     for spec in specs:
         assert isinstance(taken[spec], OwnStatistics)
         setup, per_fold, everything = family_statistics(spec, data)
@@ -420,10 +425,17 @@ def test_a_screened_search_over_two_controllers_picks_the_full_searchs_winner(sm
 def test_a_local_dask_cluster_finds_the_same_winner(small):
     distributed = pytest.importorskip("dask.distributed", reason="the dask extra is optional")
     trajs, controller, splits = small
-    local = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, n_jobs=1)
+    local = search_liftings(
+        trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, settings=SearchSettings(n_jobs=1)
+    )
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         remote = search_liftings(
-            trajs, controller, splits=splits, window=WINDOW, space=SMALL_SPACE, scheduler=cluster.scheduler_address
+            trajs,
+            controller,
+            splits=splits,
+            window=WINDOW,
+            space=SMALL_SPACE,
+            settings=SearchSettings(scheduler=cluster.scheduler_address),
         )
     assert remote.winner.spec == local.winner.spec and remote.winner.best_alpha == local.winner.best_alpha
     np.testing.assert_allclose(
@@ -441,8 +453,7 @@ def test_an_unreachable_scheduler_is_a_clear_error(small):
             splits=splits,
             window=WINDOW,
             space=SMALL_SPACE,
-            scheduler="tcp://127.0.0.1:9",
-            connect_timeout=2,
+            settings=SearchSettings(scheduler="tcp://127.0.0.1:9", connect_timeout=2),
         )
 
 
@@ -595,8 +606,7 @@ def test_a_sweep_without_final_fits_fits_only_the_rows_relifted_predictions_use(
         [1e-3],
         splits[:1],
         scorings=(),
-        keep_fold_models=True,
-        fit_all=False,
+        options=SweepOptions(keep_fold_models=True, fit_all=False),
     )
     closed, plants, _ = sweep.fold_models[0]
     full = ClEdmd(controller, lifting=lifting, alpha=1e-3).fit([trajs[i] for i in splits[0][0]])
@@ -698,7 +708,12 @@ def test_the_complete_search_runs_from_python_as_the_command_runs_it(qube_logs):
     for mine, theirs in zip(result.folds.splits, folds.splits):
         np.testing.assert_array_equal(mine[1], theirs[1])
     direct = search_liftings(
-        LogTrajectories(logs), controller, splits=folds.splits, window=500, space=SMALL_SPACE, n_jobs=1
+        LogTrajectories(logs),
+        controller,
+        splits=folds.splits,
+        window=500,
+        space=SMALL_SPACE,
+        settings=SearchSettings(n_jobs=1),
     )
     assert result.winner.spec == direct.winner.spec
     np.testing.assert_allclose(result.winner.cv_r2, direct.winner.cv_r2, rtol=1e-12)

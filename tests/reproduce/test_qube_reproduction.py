@@ -56,7 +56,7 @@ def test_paper_figures_plot_qube_json(qube_reproduction_out, results):
     import numpy as np
 
     from qube_koopman.identify.report.figures import draw
-    from qube_koopman.reproduce.figures import EIGENVALUE_ROWS, qube_figures
+    from qube_koopman.reproduce.qube_figures import EIGENVALUE_ROWS, qube_figures
 
     data, md = results
     stems = [f["png"] for f in data["figures"]]

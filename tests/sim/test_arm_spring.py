@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from qube_koopman.sim.pendulum import PendulumParameters, PendulumSimulator, simulate
-from qube_koopman.sim.pendulum.model import dynamics, linearize_upright, total_energy
+from qube_koopman.sim.pendulum.physics import dynamics, linearize_upright, total_energy
 
 DT = 1 / 500
 # No motor torque on the arm's motion (km = 0 removes the back-EMF), no friction, no dead zone, no delay;

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from qube_koopman.core.controller import pi_controller
-from qube_koopman.reproduce.cli import main
-from qube_koopman.reproduce.duffing import reproduce_duffing
+from qube_koopman.reproduce.cli.reproduce import main
+from qube_koopman.reproduce.duffing_study import reproduce_duffing
 from qube_koopman.sim.duffing import coloured_noise, duffing_experiment, duffing_pi_controller, random_dwell_prbs
 
 
@@ -86,7 +86,7 @@ def test_cl_edmd_and_edmd_solve_different_problems_on_the_duffing_data():
     the generalized ridge of the paper's constrained problem for CL EDMD) and not the other's: with a
     real regularization the closed-loop penalty ||U^p S||^2 and EDMD's ||U^p||^2 give different plants."""
     from qube_koopman.identify import ClEdmd, Edmd
-    from qube_koopman.reproduce.duffing import duffing_lifting, duffing_trajectory
+    from qube_koopman.reproduce.duffing_study import duffing_lifting, duffing_trajectory
 
     experiment = duffing_experiment(seed=5)
     dt, ctrl = experiment.controller.dt, experiment.controller

@@ -189,7 +189,7 @@ def test_more_substeps_converge():
 def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):
     """The simulator's float integrator (its coefficients bound once) against the general one that
     batches and the calibration use: the same floats for every combination of the optional terms."""
-    from qube_koopman.sim.pendulum.model import Coefficients, _rk4, advance, scalar_rk4
+    from qube_koopman.sim.pendulum.physics import Coefficients, _rk4, advance, scalar_rk4
 
     k = Coefficients.of(dataclasses.replace(PendulumParameters(), **changes))
     rk4 = scalar_rk4(k)

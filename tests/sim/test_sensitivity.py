@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from qube_koopman.sim.pendulum import PendulumParameters, simulate
-from qube_koopman.sim.pendulum.model import Coefficients
+from qube_koopman.sim.pendulum.physics import Coefficients
 from qube_koopman.sim.pendulum.sensitivity import FIELDS, Directions, simulate_tangents
 
 DT = 1 / 500

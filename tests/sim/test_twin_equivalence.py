@@ -28,7 +28,7 @@ import pytest
 
 from qube_koopman.daq.cli.run import main as qube_run
 from qube_koopman.daq.log import read_episode_metadata
-from qube_koopman.reproduce.cli import main as qube_reproduce
+from qube_koopman.reproduce.cli.reproduce import main as qube_reproduce
 
 pytestmark = [pytest.mark.dataset, pytest.mark.slow]
 

@@ -9,7 +9,7 @@
  * and checks on a PC; this glue is tested on an emulated ATmega328P
  * (sim/bridge/avr.py).
  *
- * Build: firmware_protocol/avr.py (Debian's gcc-avr, avr-libc and
+ * Build: firmware_protocol/avr_build.py (Debian's gcc-avr, avr-libc and
  * arduino-core-avr; no IDE), or arduino-cli compile --library
  * <repo>/firmware_protocol/c --fqbn arduino:avr:uno <this folder>.
  *

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from qube_koopman.core.rrd import RrdFile, import_rerun
-from qube_koopman.identify.calibrate.spectra import CHANNELS, replay_spectra
+from qube_koopman.identify.calibrate.replay_spectra import CHANNELS, replay_spectra
 
 __all__ = ["blueprint", "episode_paths", "write_recording"]
 

@@ -33,7 +33,7 @@ from qube_koopman.firmware_protocol.qube_spi import (
     unpack_spi_command,
 )
 from qube_koopman.sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel
-from qube_koopman.sim.pendulum.model import SAMPLE_PERIOD
+from qube_koopman.sim.pendulum.physics import SAMPLE_PERIOD
 from qube_koopman.sim.pendulum.sensor import angles_to_counts
 
 __all__ = ["EmulatedQube", "STATUS_AMP_FAULT", "STATUS_STALL_ERROR", "current_raw"]

@@ -37,7 +37,7 @@ from scipy.signal import savgol_filter, welch
 
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad
-from qube_koopman.sim.pendulum.model import Coefficients
+from qube_koopman.sim.pendulum.physics import Coefficients
 
 __all__ = ["FIT_BAND", "LoadFit", "reconstruct_load", "reconstruct_balance", "fit_load", "load_text"]
 

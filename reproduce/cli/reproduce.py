@@ -119,8 +119,8 @@ def _qube(args) -> int:
     from pathlib import Path
 
     from qube_koopman.identify.data.logs import IncompleteLogSkipped
-    from qube_koopman.reproduce.qube import reproduce_qube
-    from qube_koopman.reproduce.report import qube_markdown, qube_table
+    from qube_koopman.reproduce.qube_study import reproduce_qube
+    from qube_koopman.reproduce.qube_tables import qube_markdown, qube_table
 
     if not Path(args.data).is_dir():
         raise CliError(f"--data {args.data}: no such folder")
@@ -151,7 +151,7 @@ def _qube(args) -> int:
         print(f"{'PASS' if ok else 'FAIL'}  {name}")
     print(f"computed in {results['timing_s']:.1f} s")
     if args.figures:
-        from qube_koopman.reproduce.figures import qube_figures
+        from qube_koopman.reproduce.qube_figures import qube_figures
 
         results["figures"] = write_report_figures(out, qube_figures(results))
         episode = results.pop("figure_episode")  # arrays: drawn, not written to qube.json
@@ -167,7 +167,7 @@ def _qube(args) -> int:
 
 
 def _duffing(args) -> int:
-    from qube_koopman.reproduce.duffing import DEFAULT_ALPHA, PAPER_DUFFING, reproduce_duffing
+    from qube_koopman.reproduce.duffing_study import DEFAULT_ALPHA, PAPER_DUFFING, reproduce_duffing
 
     alpha = DEFAULT_ALPHA if args.alpha is None else args.alpha
     if not 0 <= alpha < math.inf:  # inf reached the fit as a traceback

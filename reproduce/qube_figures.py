@@ -1,6 +1,6 @@
 """The paper's QUBE-Servo figures (section 5), regenerated from ``qube-reproduce qube``'s results.
 
-Built from the results dict of :func:`qube_koopman.reproduce.qube.reproduce_qube`,
+Built from the results dict of :func:`qube_koopman.reproduce.qube_study.reproduce_qube`,
 the same arrays qube.json and qube.md report:
 
 - ``inputs``: the exogenous inputs of one test episode (the paper's "sample of the
@@ -143,7 +143,7 @@ def qube_figures(results: dict) -> list[FigureSpec]:
     Parameters
     ----------
     results : dict
-        From :func:`~qube_koopman.reproduce.qube.reproduce_qube` (or
+        From :func:`~qube_koopman.reproduce.qube_study.reproduce_qube` (or
         qube.json, read back); the episode figures need it run with
         ``figure_episode`` (their arrays are not written to qube.json).
 

@@ -1,0 +1,1 @@
+"""The command-line tool of the reproduce package: ``qube-reproduce``."""
