@@ -7,8 +7,10 @@ loop's backend one tick at a time like the episode itself (so every backend supp
 - **pump**: the energy controller of Astrom and Furuta (:class:`EnergyController`) drives the
   pendulum's energy towards the upright's, with an arm-centering term that keeps the arm near
   its zero;
-- **catch**: once ``|alpha| < catch_angle`` the episode's balance controller takes over, its
-  state reset as the episode would start it, with zero references and feedforward; if the
+- **catch**: once ``|alpha| < catch_angle`` the episode's balance controller takes over, with
+  zero references and feedforward, its state the one it reaches from zero with the catch's
+  errors held for ``catch_hold`` (so that its derivative sees no step: a zero state would take
+  the arm's and the pendulum's whole errors for a step and kick the arm with them); if the
   pendulum leaves the episode's pendulum limit the phase goes back to pumping;
 - **settled**: once the pendulum and arm have stayed near upright and near the arm's zero for
   ``settle_time``, the phase ends and the recorded episode starts at the next tick, its
@@ -16,7 +18,10 @@ loop's backend one tick at a time like the episode itself (so every backend supp
 
 The supervisor's swing-up limits (:class:`~qube_koopman.daq.safety.SwingUpLimits`: the arm angle,
 the voltage and a time limit) hold throughout: a breach puts 0 V in the tick that sees it and
-ends the phase with the reason, as does a stop request (Ctrl-C, SIGTERM). The phase's samples are
+ends the phase with the reason, as does a stop request (Ctrl-C, SIGTERM). A phase that starts
+with the arm already past its limit (left there by the previous episode's fall, on the rig) holds
+0 V until the arm is back within it, under the time limit, and pumps only then: the arm limit
+ends the phase once the arm has been within it. The phase's samples are
 not part of the episode's: its log records only the outcome (``extra.swing_up``).
 
 Angles: the loop's convention, ``alpha = 0`` upright, wrapped to ``[-pi, pi)``; rates are
@@ -166,6 +171,12 @@ class SwingUp:
         ... for this long without a break (s; 1).
     rate_filter : float
         Bandwidth of the rate estimates (rad/s; the rig controller's 50).
+    catch_hold : float
+        At a catch the balance controller's state is the one it reaches from zero with the
+        catch's tracking errors held this long (s; 0.1, five time constants of the rig
+        controller's derivative filter): its derivative then sees no step. 0 takes over from
+        zero state, whose derivative takes the whole errors for a step (on the rig's PD, 82 V
+        per rad of the arm's error in the first tick, from the derivative alone).
     """
 
     energy: EnergyController = field(default_factory=EnergyController)
@@ -175,12 +186,15 @@ class SwingUp:
     settle_theta: float = 0.1
     settle_time: float = 1.0
     rate_filter: float = 50.0
+    catch_hold: float = 0.1
 
     def __post_init__(self) -> None:
         for name in ("catch_angle", "settle_alpha", "settle_theta", "settle_time", "rate_filter"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"swing-up {name} must be a positive number, got {value!r}")
+        if not (math.isfinite(self.catch_hold) and 0 <= self.catch_hold <= 10):
+            raise ValueError(f"swing-up catch_hold must be in [0, 10] s, got {self.catch_hold!r}")
 
     def as_dict(self) -> dict:
         """Plain-data form, for episode metadata."""
@@ -205,7 +219,8 @@ class SwingUpReport:
     n_catches : int
         How many times the balance controller took over.
     max_abs_theta, max_abs_voltage : float
-        Largest ``|theta|`` read and ``|V|`` written during the phase.
+        Largest ``|theta|`` read and ``|V|`` written during the phase (``|theta|`` from the first
+        tick the arm was within its limit).
     """
 
     outcome: str
@@ -260,6 +275,7 @@ def run_swing_up(
     energy = swing.energy
     max_ticks = max(1, round(sup.time_limit / period))
     settle_ticks = max(1, round(swing.settle_time / period))
+    hold_ticks = round(swing.catch_hold / period)
     pole = 1.0 / (1.0 + swing.rate_filter * period)
     gain = swing.rate_filter * pole
     theta_prev = alpha_prev = 0.0
@@ -270,6 +286,8 @@ def run_swing_up(
     catch_k: int | None = None
     still = 0
     max_theta = max_volts = 0.0
+    arm_within = False  # the arm limit applies once the arm has been within it
+    started = False  # a tick within it has run (the rate estimates' first)
     if pacer is not None:
         pacer.start()
 
@@ -292,24 +310,33 @@ def run_swing_up(
         if stop.requested:
             backend.write(0.0)
             return report("stopped", f"{stop.reason} during the swing-up", k)
-        violation = sup.violation(theta, alpha)
+        arm_within = arm_within or abs(theta) <= sup.arm_limit
+        violation = sup.violation(theta if arm_within or not math.isfinite(theta) else 0.0, alpha)
         if violation is not None:
             backend.write(0.0)
             return report("failed", violation, k)
-        max_theta = max(max_theta, abs(theta))
         if k == max_ticks:
             backend.write(0.0)
             return report("failed", sup.timeout_reason(), k)
-        if k:
+        if not arm_within:
+            # Past the arm's limit since before the phase: 0 V until the arm is back (its rates
+            # are estimated from the first tick within).
+            backend.write(0.0)
+            continue
+        max_theta = max(max_theta, abs(theta))
+        if started:
             theta_dot = pole * theta_dot + gain * (theta - theta_prev)
             alpha_dot = pole * alpha_dot + gain * wrap_angle(alpha - alpha_prev)
         theta_prev, alpha_prev = theta, alpha
+        started = True
         if catching and abs(alpha) > limits.alpha_limit:
             catching = False  # missed: pump again
             still = 0
         if not catching and abs(alpha) < swing.catch_angle:
             catching = True
             output, update = controller_step(balance)
+            for _ in range(hold_ticks):  # the catch's errors held: no step for a derivative
+                update(-theta, -alpha, 0.0)
             n_catches += 1
             catch_k = k
             still = 0
