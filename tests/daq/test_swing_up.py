@@ -402,10 +402,11 @@ def test_a_swing_up_giving_up_over_serial_puts_0_v_through_the_bridge(env, tmp_p
     assert driven[-1] + 1 < len(ticks["volts"])  # ... and the bridge ticked on at 0 V
 
 
-def test_sigterm_during_a_swing_up_over_serial_puts_0_v_through_the_bridge(core, env, tmp_path):
-    """SIGTERM to ``qube-run --backend serial --swing-up`` while it pumps (a 1 V clamp: slow to swing up):
-    exit 143, no log (the episode never started), and the bridge's last command 0 V, applied from the
-    tick after it came to the end of the session."""
+@pytest.mark.parametrize("signame, status", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_during_a_swing_up_over_serial_puts_0_v_through_the_bridge(signame, status, core, env, tmp_path):
+    """Ctrl-C or SIGTERM to ``qube-run --backend serial --swing-up`` while it pumps (a 1 V clamp: slow to
+    swing up): exit 130 or 143, no log (the episode never started), and the bridge's last command 0 V,
+    applied from the tick after it came to the end of the session."""
     import signal
     import subprocess
     import sys
@@ -428,7 +429,7 @@ def test_sigterm_during_a_swing_up_over_serial_puts_0_v_through_the_bridge(core,
             assert run.poll() is None, run.communicate()
             assert time.monotonic() < deadline, "qube-run did not start its swing-up in 60 s"
             time.sleep(0.01)
-        run.send_signal(signal.SIGTERM)
+        run.send_signal(getattr(signal, signame))
         _, err = run.communicate(timeout=30)
     finally:
         if run.poll() is None:
@@ -436,8 +437,8 @@ def test_sigterm_during_a_swing_up_over_serial_puts_0_v_through_the_bridge(core,
             run.communicate()
         time.sleep(0.05)
         emu.stop()
-    assert run.returncode == 143, err
-    assert "interrupted by SIGTERM" in err and not list(out.glob("*.mcap"))
+    assert run.returncode == status, err
+    assert f"interrupted by {signame}" in err and not list(out.glob("*.mcap"))
     ticks = emu.record()
     mine = ticks["session"] == 2
     volts, commands = ticks["volts"][mine], ticks["command_mv"][mine]
