@@ -32,8 +32,8 @@ estimated from the angles by the rig controller's derivative filter (backward Eu
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Callable
 
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.daq.backends.base import Backend
@@ -248,6 +248,7 @@ def run_swing_up(
     limits: SafetyLimits,
     stop: StopRequest,
     pacer: DeadlinePacer | None = None,
+    prepare: Callable[[SwingUpReport], Callable[[], bool]] | None = None,
 ) -> SwingUpReport:
     """Swing the pendulum up, catch it with ``balance`` and wait until it has settled.
 
@@ -265,10 +266,18 @@ def run_swing_up(
         Checked every tick.
     pacer : DeadlinePacer, optional
         For a loop-paced backend.
+    prepare : callable, optional
+        Called once with the settled report when the pendulum has settled (the episode's log
+        opening, for a device whose clock runs on regardless); it returns a poll, and the phase
+        keeps the balance controller running, under the same limits, until the poll says True:
+        the recorded episode then starts at the next tick, with no tick left uncommanded. A
+        pendulum lost meanwhile fails the phase. Without it the phase returns at once.
 
     Returns
     -------
     SwingUpReport
+        With ``prepare``, a settled report is the one ``prepare`` was given (its duration and
+        largest values up to the settling; the ticks waited for the poll follow it).
     """
     period = backend.sample_period
     sup = swing.limits
@@ -287,6 +296,8 @@ def run_swing_up(
     still = 0
     max_theta = max_volts = 0.0
     arm_within = False  # the arm limit applies once the arm has been within it
+    settled: SwingUpReport | None = None  # given to prepare; then waiting for ready()
+    ready: Callable[[], bool] | None = None
     started = False  # a tick within it has run (the rate estimates' first)
     if pacer is not None:
         pacer.start()
@@ -330,6 +341,14 @@ def run_swing_up(
         theta_prev, alpha_prev = theta, alpha
         started = True
         if catching and abs(alpha) > limits.alpha_limit:
+            if settled is not None:
+                backend.write(0.0)
+                return report(
+                    "failed",
+                    f"swing-up stopped: the pendulum fell after it settled (|alpha| = "
+                    f"{abs(alpha):.3f} rad > {limits.alpha_limit:.3f} rad)",
+                    k,
+                )
             catching = False  # missed: pump again
             still = 0
         if not catching and abs(alpha) < swing.catch_angle:
@@ -346,13 +365,18 @@ def run_swing_up(
             update(-theta, -alpha, 0.0)
             vmax = min(limits.max_voltage, sup.max_voltage)
             still = still + 1 if abs(alpha) < swing.settle_alpha and abs(theta) < swing.settle_theta else 0
-            if still >= settle_ticks:
-                # Settled: the last command stays applied until the episode's first tick
-                # writes its own (one period, as between any two ticks).
+            if settled is None and still >= settle_ticks:
+                settled = report("settled", "", k + 1)
+                ready = prepare(settled) if prepare is not None else None
+            if settled is not None and (ready is None or ready()):
+                # Settled (and the episode ready): the last command stays applied until the
+                # episode's first tick writes its own (one period, as between any two ticks).
                 volts = min(max(u, -vmax), vmax)
                 backend.write(volts)
                 max_volts = max(max_volts, abs(volts))
-                return report("settled", "", k + 1)
+                if prepare is not None:
+                    return settled  # what the log was opened with
+                return replace(settled, max_abs_voltage=max_volts)
         else:
             u = energy.voltage(theta, alpha, theta_dot, alpha_dot)
             vmax = sup.max_voltage
