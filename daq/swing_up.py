@@ -13,8 +13,9 @@ loop's backend one tick at a time like the episode itself (so every backend supp
   the arm's and the pendulum's whole errors for a step and kick the arm with them); if the
   pendulum leaves the episode's pendulum limit the phase goes back to pumping;
 - **settled**: once the pendulum and arm have stayed near upright and near the arm's zero for
-  ``settle_time``, the phase ends and the recorded episode starts at the next tick, its
-  controller again from zero state, as an episode started upright by hand.
+  ``settle_time``, the phase ends and the recorded episode starts at the next tick (with a
+  ``prepare`` hook, once it is ready: the balance controller runs on meanwhile), its controller
+  again from zero state, as an episode started upright by hand.
 
 The supervisor's swing-up limits (:class:`~qube_koopman.daq.safety.SwingUpLimits`: the arm angle,
 the voltage and a time limit) hold throughout: a breach puts 0 V in the tick that sees it and
