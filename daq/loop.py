@@ -242,9 +242,10 @@ class _LogOpening:
         return self._thread is not None
 
     def __call__(self, report: SwingUpReport) -> Callable[[], bool]:
-        self._thread = threading.Thread(target=self._open, args=(report,), name="episode-log-open", daemon=True)
-        self._thread.start()
-        return lambda: not self._thread.is_alive()
+        thread = threading.Thread(target=self._open, args=(report,), name="episode-log-open", daemon=True)
+        self._thread = thread
+        thread.start()
+        return lambda: not thread.is_alive()
 
     def _open(self, report: SwingUpReport) -> None:
         try:

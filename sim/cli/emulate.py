@@ -25,7 +25,8 @@ that scripts can read it, e.g.:
   qube-run --backend serial --port /dev/pts/N
 
 Each time a host opens a session the pendulum is put back upright, at rest,
-with a small seeded tilt (as a person raises the real one by hand). Runs until
+with a small seeded tilt (as a person raises the real one by hand); with
+--hanging it is left hanging for a swing-up (qube-run --swing-up). Runs until
 Ctrl-C or SIGTERM, or until the device vanishes (--vanish-at).
 """
 
