@@ -23,6 +23,7 @@ reach the sinks, which are closed with status ``aborted`` and the reason.
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import math
@@ -39,7 +40,7 @@ from qube_koopman.daq.backends.base import Backend, BackendFault, Pacing
 from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.excitation import Excitation, ExcitationStream
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from qube_koopman.daq.episode import EpisodeMetadata
+from qube_koopman.daq.episode import EpisodeMetadata, software_version
 from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
 from qube_koopman.daq.swing_up import SwingUp, SwingUpReport, run_swing_up
@@ -229,6 +230,10 @@ class _LogOpening:
     """
 
     def __init__(self, plan: EpisodePlan, backend: Backend, limits: SafetyLimits, sinks: list[Sink]) -> None:
+        # What a process's first log opening does once, done before the swing-up: 60 ms of Python (the
+        # package's version from its metadata, mcap's record classes) in the thread beside the loop.
+        software_version()
+        importlib.import_module("mcap.records")
         self._args = plan, backend, limits
         self.writer = SinkWriter(sinks)
         self.metadata: EpisodeMetadata | None = None
