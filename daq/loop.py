@@ -9,7 +9,10 @@ An episode whose plan has a swing-up (:mod:`daq.swing_up`) starts with that phas
 start gate: the same backend, tick by tick, under the supervisor's swing-up limits. Its samples
 are not the episode's: the episode's sample 0 is the tick after the pendulum has settled, with the
 controller from zero state as after the start gate. A swing-up that fails still writes the
-episode's log, with no samples and the reason (status ``aborted``).
+episode's log, with no samples and the reason (status ``aborted``). On a backend whose device
+keeps the time (the serial bridge, whose watchdog switches the motor off after five ticks
+without a command), the log is opened while the settled pendulum stays balanced, and the episode
+starts at the tick after it is open: opening it can take longer than the watchdog waits.
 
 Aborts (a safety limit, SIGINT/SIGTERM, a log that cannot be written) put
 the motor at 0 V in the tick that sees them, and that tick is logged with
@@ -20,14 +23,16 @@ reach the sinks, which are closed with status ``aborted`` and the reason.
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import math
+import threading
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -35,7 +40,7 @@ from qube_koopman.daq.backends.contract import Backend, BackendFault, Pacing
 from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.excitation import Excitation, ExcitationStream
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, stop_on_signals
-from qube_koopman.daq.episode import EpisodeMetadata
+from qube_koopman.daq.episode import EpisodeMetadata, software_version
 from qube_koopman.core.controller_file import ControllerInfo
 from qube_koopman.daq.sinks import EpisodeOutcome, Sample, Sink, SinkWriter
 from qube_koopman.daq.swing_up import SwingUp, SwingUpReport, run_swing_up
@@ -216,8 +221,61 @@ def _check_controller(ctrl, period: float) -> None:
         raise ValueError(f"controller dt {ctrl.dt} s differs from the backend's sample period {period} s")
 
 
+class _LogOpening:
+    """An episode's log opened in a thread while its settled swing-up keeps the pendulum balanced.
+
+    ``prepare`` of :func:`~qube_koopman.daq.swing_up.run_swing_up`: called with the settled report, it
+    starts the thread (the metadata, then :meth:`SinkWriter.open`) and returns the poll that says it
+    has finished.
+    """
+
+    def __init__(self, plan: EpisodePlan, backend: Backend, limits: SafetyLimits, sinks: list[Sink]) -> None:
+        # What a process's first log opening does once, done before the swing-up: 60 ms of Python (the
+        # package's version from its metadata, mcap's record classes) in the thread beside the loop.
+        software_version()
+        importlib.import_module("mcap.records")
+        self._args = plan, backend, limits
+        self.writer = SinkWriter(sinks)
+        self.metadata: EpisodeMetadata | None = None
+        self.opened = False
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def started(self) -> bool:
+        """Whether the log is being (or has been) opened."""
+        return self._thread is not None
+
+    def __call__(self, report: SwingUpReport) -> Callable[[], bool]:
+        thread = threading.Thread(target=self._open, args=(report,), name="episode-log-open", daemon=True)
+        self._thread = thread
+        thread.start()
+        return lambda: not thread.is_alive()
+
+    def _open(self, report: SwingUpReport) -> None:
+        try:
+            self.metadata = _episode_metadata(*self._args, report)
+            self.opened = self.writer.open(self.metadata)
+        except BaseException as exc:  # noqa: BLE001 - raised again in the loop's thread (result)
+            self._error = exc
+
+    def result(self) -> tuple[EpisodeMetadata, SinkWriter, bool]:
+        """(metadata, writer, opened) once the thread has finished; its error raised here."""
+        assert self._thread is not None  # only once started
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        assert self.metadata is not None  # set unless it raised
+        return self.metadata, self.writer, self.opened
+
+
 def _start(
-    backend: Backend, plan: EpisodePlan, limits: SafetyLimits, stop: StopRequest, pacer: DeadlinePacer | None
+    backend: Backend,
+    plan: EpisodePlan,
+    limits: SafetyLimits,
+    stop: StopRequest,
+    pacer: DeadlinePacer | None,
+    opening: _LogOpening | None = None,
 ) -> tuple[str, str, SwingUpReport | None]:
     """Start the backend and pass the start gate, or swing the pendulum up; ('', '', report) then,
     else (why not, cause, report) with the motor at 0 V. The report is the swing-up's (None without)."""
@@ -227,7 +285,7 @@ def _start(
         if plan.swing_up is None:
             reason, cause = _wait_upright(backend, limits, stop, pacer)
         else:
-            report = run_swing_up(backend, plan.controller.system, plan.swing_up, limits, stop, pacer)
+            report = run_swing_up(backend, plan.controller.system, plan.swing_up, limits, stop, pacer, opening)
             reason = report.reason
             cause = "" if report.settled else "stop" if report.outcome == "stopped" else "swing-up"
     except BackendFault as exc:
@@ -310,17 +368,19 @@ def _run_logged(
     pacer: DeadlinePacer | None,
     times: _TickTimes,
     refused: tuple[str, str] = ("", ""),
+    opened: tuple[SinkWriter, bool] | None = None,
 ) -> _Logged:
     """Open the sinks, run the ticks, and whatever happens zero the motor and close the sinks.
 
     ``refused``: (reason, cause) of an episode that cannot start (a failed swing-up): its log is
-    opened and closed aborted with that reason, without a tick.
+    opened and closed aborted with that reason, without a tick. ``opened``: the writer already
+    opened with ``metadata`` (while a swing-up balanced the pendulum) and whether it opened.
     """
-    writer = SinkWriter(sinks)
+    writer = SinkWriter(sinks) if opened is None else opened[0]
     n_done = 0
     reason = cause = ""
     try:
-        if not writer.open(metadata):
+        if not (writer.open(metadata) if opened is None else opened[1]):
             reason, cause = f"log failed: {writer.failed}", "log"
         elif refused[0]:
             reason, cause = refused
@@ -408,8 +468,15 @@ def run_episode(
             backend.use_plant(plan.plant)
         if plan.load is not None and hasattr(backend, "use_load"):
             backend.use_load(plan.load)
-        reason, cause, swing = _start(backend, plan, limits, stop, pacer)
-        if reason and cause != "swing-up":
+        # A device that keeps the time trips its watchdog while a log opens between the swing-up's
+        # last tick and the episode's first: it is opened while the swing-up keeps balancing.
+        opening = (
+            _LogOpening(plan, backend, limits, sinks)
+            if plan.swing_up is not None and backend.pacing is Pacing.DEVICE
+            else None
+        )
+        reason, cause, swing = _start(backend, plan, limits, stop, pacer, opening)
+        if reason and cause != "swing-up" and not (opening is not None and opening.started):
             return EpisodeResult(
                 "aborted",
                 reason,
@@ -419,8 +486,12 @@ def run_episode(
                 signal=stop.signal,
                 cause=cause,
             )
-        metadata = _episode_metadata(plan, backend, limits, swing)
-        run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times, (reason, cause))
+        if opening is not None and opening.started:
+            metadata, writer, ok = opening.result()
+            run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times, (reason, cause), (writer, ok))
+        else:
+            metadata = _episode_metadata(plan, backend, limits, swing)
+            run = _run_logged(backend, plan, metadata, sinks, limits, stop, pacer, times, (reason, cause))
     outcome, stats = run.outcome, run.outcome.timing
     metadata = replace(
         metadata,

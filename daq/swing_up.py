@@ -7,16 +7,22 @@ loop's backend one tick at a time like the episode itself (so every backend supp
 - **pump**: the energy controller of Astrom and Furuta (:class:`EnergyController`) drives the
   pendulum's energy towards the upright's, with an arm-centering term that keeps the arm near
   its zero;
-- **catch**: once ``|alpha| < catch_angle`` the episode's balance controller takes over, its
-  state reset as the episode would start it, with zero references and feedforward; if the
+- **catch**: once ``|alpha| < catch_angle`` the episode's balance controller takes over, with
+  zero references and feedforward, its state the one it reaches from zero with the catch's
+  errors held for ``catch_hold`` (so that its derivative sees no step: a zero state would take
+  the arm's and the pendulum's whole errors for a step and kick the arm with them); if the
   pendulum leaves the episode's pendulum limit the phase goes back to pumping;
 - **settled**: once the pendulum and arm have stayed near upright and near the arm's zero for
-  ``settle_time``, the phase ends and the recorded episode starts at the next tick, its
-  controller again from zero state, as an episode started upright by hand.
+  ``settle_time``, the phase ends and the recorded episode starts at the next tick (with a
+  ``prepare`` hook, once it is ready: the balance controller runs on meanwhile), its controller
+  again from zero state, as an episode started upright by hand.
 
 The supervisor's swing-up limits (:class:`~qube_koopman.daq.safety.SwingUpLimits`: the arm angle,
 the voltage and a time limit) hold throughout: a breach puts 0 V in the tick that sees it and
-ends the phase with the reason, as does a stop request (Ctrl-C, SIGTERM). The phase's samples are
+ends the phase with the reason, as does a stop request (Ctrl-C, SIGTERM). A phase that starts
+with the arm already past its limit (left there by the previous episode's fall, on the rig) holds
+0 V until the arm is back within it, under the time limit, and pumps only then: the arm limit
+ends the phase once the arm has been within it. The phase's samples are
 not part of the episode's: its log records only the outcome (``extra.swing_up``).
 
 Angles: the loop's convention, ``alpha = 0`` upright, wrapped to ``[-pi, pi)``; rates are
@@ -27,8 +33,8 @@ estimated from the angles by the rig controller's derivative filter (backward Eu
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Callable
 
 from qube_koopman.core.lti import DiscreteStateSpace
 from qube_koopman.daq.backends.contract import Backend
@@ -166,6 +172,12 @@ class SwingUp:
         ... for this long without a break (s; 1).
     rate_filter : float
         Bandwidth of the rate estimates (rad/s; the rig controller's 50).
+    catch_hold : float
+        At a catch the balance controller's state is the one it reaches from zero with the
+        catch's tracking errors held this long (s; 0.1, five time constants of the rig
+        controller's derivative filter): its derivative then sees no step. 0 takes over from
+        zero state, whose derivative takes the whole errors for a step (on the rig's PD, 82 V
+        per rad of the arm's error in the first tick, from the derivative alone).
     """
 
     energy: EnergyController = field(default_factory=EnergyController)
@@ -175,12 +187,15 @@ class SwingUp:
     settle_theta: float = 0.1
     settle_time: float = 1.0
     rate_filter: float = 50.0
+    catch_hold: float = 0.1
 
     def __post_init__(self) -> None:
         for name in ("catch_angle", "settle_alpha", "settle_theta", "settle_time", "rate_filter"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"swing-up {name} must be a positive number, got {value!r}")
+        if not (math.isfinite(self.catch_hold) and 0 <= self.catch_hold <= 10):
+            raise ValueError(f"swing-up catch_hold must be in [0, 10] s, got {self.catch_hold!r}")
 
     def as_dict(self) -> dict:
         """Plain-data form, for episode metadata."""
@@ -205,7 +220,8 @@ class SwingUpReport:
     n_catches : int
         How many times the balance controller took over.
     max_abs_theta, max_abs_voltage : float
-        Largest ``|theta|`` read and ``|V|`` written during the phase.
+        Largest ``|theta|`` read and ``|V|`` written during the phase (``|theta|`` from the first
+        tick the arm was within its limit).
     """
 
     outcome: str
@@ -233,6 +249,7 @@ def run_swing_up(
     limits: SafetyLimits,
     stop: StopRequest,
     pacer: DeadlinePacer | None = None,
+    prepare: Callable[[SwingUpReport], Callable[[], bool]] | None = None,
 ) -> SwingUpReport:
     """Swing the pendulum up, catch it with ``balance`` and wait until it has settled.
 
@@ -250,16 +267,25 @@ def run_swing_up(
         Checked every tick.
     pacer : DeadlinePacer, optional
         For a loop-paced backend.
+    prepare : callable, optional
+        Called once with the settled report when the pendulum has settled (the episode's log
+        opening, for a device whose clock runs on regardless); it returns a poll, and the phase
+        keeps the balance controller running, under the same limits, until the poll says True:
+        the recorded episode then starts at the next tick, with no tick left uncommanded. A
+        pendulum lost meanwhile fails the phase. Without it the phase returns at once.
 
     Returns
     -------
     SwingUpReport
+        With ``prepare``, a settled report is the one ``prepare`` was given (its duration and
+        largest values up to the settling; the ticks waited for the poll follow it).
     """
     period = backend.sample_period
     sup = swing.limits
     energy = swing.energy
     max_ticks = max(1, round(sup.time_limit / period))
     settle_ticks = max(1, round(swing.settle_time / period))
+    hold_ticks = round(swing.catch_hold / period)
     pole = 1.0 / (1.0 + swing.rate_filter * period)
     gain = swing.rate_filter * pole
     theta_prev = alpha_prev = 0.0
@@ -270,6 +296,10 @@ def run_swing_up(
     catch_k: int | None = None
     still = 0
     max_theta = max_volts = 0.0
+    arm_within = False  # the arm limit applies once the arm has been within it
+    settled: SwingUpReport | None = None  # given to prepare; then waiting for ready()
+    ready: Callable[[], bool] | None = None
+    started = False  # a tick within it has run (the rate estimates' first)
     if pacer is not None:
         pacer.start()
 
@@ -292,24 +322,41 @@ def run_swing_up(
         if stop.requested:
             backend.write(0.0)
             return report("stopped", f"{stop.reason} during the swing-up", k)
-        violation = sup.violation(theta, alpha)
+        arm_within = arm_within or abs(theta) <= sup.arm_limit
+        violation = sup.violation(theta if arm_within or not math.isfinite(theta) else 0.0, alpha)
         if violation is not None:
             backend.write(0.0)
             return report("failed", violation, k)
-        max_theta = max(max_theta, abs(theta))
         if k == max_ticks:
             backend.write(0.0)
             return report("failed", sup.timeout_reason(), k)
-        if k:
+        if not arm_within:
+            # Past the arm's limit since before the phase: 0 V until the arm is back (its rates
+            # are estimated from the first tick within).
+            backend.write(0.0)
+            continue
+        max_theta = max(max_theta, abs(theta))
+        if started:
             theta_dot = pole * theta_dot + gain * (theta - theta_prev)
             alpha_dot = pole * alpha_dot + gain * wrap_angle(alpha - alpha_prev)
         theta_prev, alpha_prev = theta, alpha
+        started = True
         if catching and abs(alpha) > limits.alpha_limit:
+            if settled is not None:
+                backend.write(0.0)
+                return report(
+                    "failed",
+                    f"swing-up stopped: the pendulum fell after it settled (|alpha| = "
+                    f"{abs(alpha):.3f} rad > {limits.alpha_limit:.3f} rad)",
+                    k,
+                )
             catching = False  # missed: pump again
             still = 0
         if not catching and abs(alpha) < swing.catch_angle:
             catching = True
             output, update = controller_step(balance)
+            for _ in range(hold_ticks):  # the catch's errors held: no step for a derivative
+                update(-theta, -alpha, 0.0)
             n_catches += 1
             catch_k = k
             still = 0
@@ -319,13 +366,18 @@ def run_swing_up(
             update(-theta, -alpha, 0.0)
             vmax = min(limits.max_voltage, sup.max_voltage)
             still = still + 1 if abs(alpha) < swing.settle_alpha and abs(theta) < swing.settle_theta else 0
-            if still >= settle_ticks:
-                # Settled: the last command stays applied until the episode's first tick
-                # writes its own (one period, as between any two ticks).
+            if settled is None and still >= settle_ticks:
+                settled = report("settled", "", k + 1)
+                ready = prepare(settled) if prepare is not None else None
+            if settled is not None and (ready is None or ready()):
+                # Settled (and the episode ready): the last command stays applied until the
+                # episode's first tick writes its own (one period, as between any two ticks).
                 volts = min(max(u, -vmax), vmax)
                 backend.write(volts)
                 max_volts = max(max_volts, abs(volts))
-                return report("settled", "", k + 1)
+                if prepare is not None:
+                    return settled  # what the log was opened with
+                return replace(settled, max_abs_voltage=max_volts)
         else:
             u = energy.voltage(theta, alpha, theta_dot, alpha_dot)
             vmax = sup.max_voltage

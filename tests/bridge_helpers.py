@@ -106,8 +106,9 @@ def _emulator_behind_ms(emulator_err: str) -> float:
     return float(found.group(1) or found.group(2)) if found else 0.0
 
 
-def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
-    """What was measured of each episode in ``folder`` lost to a scheduler stall.
+def _lost_to_stalls(folder: Path, emulator_err: str, run_out: str = "") -> list[str]:
+    """What was measured of each episode in ``folder`` lost to a scheduler stall, and of one lost before its
+    start (``run_out``, qube-run's output: an episode lost during its swing-up leaves no log).
 
     A host stalled past the bridge's watchdog (10 ms) loses its episode to the watchdog; a
     stalled emulator process, to link loss or, once the emulated chip catches up on the time
@@ -122,6 +123,9 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
     tick it answers, so the bridge measures this; held up between the two processes, in the
     pseudo-terminal or the emulator's reading thread, as a loaded suite once saw: 6 late commands
     and a tripped watchdog with the host's worst tick 1.6 ms late); the worst lateness or work is given.
+    An episode lost before its start has no log, nor the host's timing: the emulated bridge behind, or
+    the late commands the bridge reported in the run's summary (``serial link: ... N commands late``),
+    count as measured there.
     """
     from qube_koopman.daq.log import read_episode
 
@@ -144,6 +148,17 @@ def _lost_to_stalls(folder: Path, emulator_err: str) -> list[str]:
         elif (meta.backend_stats or {}).get("late_commands", 0) > 0:
             late = meta.backend_stats["late_commands"]
             lost.append(f"{late} commands reached the bridge after their tick, the host on time ({cause})")
+    before = re.search(r"backend fault before the start: (bridge watchdog tripped|link lost: no telemetry)", run_out)
+    late_commands = re.search(r"(\d+) commands late", run_out)
+    if before is not None:
+        if behind > 5.0:
+            lost.append(
+                f"the emulated bridge up to {behind:.1f} ms behind the wall clock ({before[1]}, before the start)"
+            )
+        elif late_commands is not None and int(late_commands[1]) > 0:
+            lost.append(
+                f"{late_commands[1]} commands reached the bridge after their tick ({before[1]}, before the start)"
+            )
     return lost
 
 
@@ -188,7 +203,7 @@ def run_in_real_time(
         finally:
             _, emulator_err = stop_process(proc)
         out = capsys.readouterr().out
-        stalls = _lost_to_stalls(out_dir, emulator_err) if status != 0 else []
+        stalls = _lost_to_stalls(out_dir, emulator_err, out) if status != 0 else []
         if not stalls:
             break
         measured += stalls

@@ -140,10 +140,14 @@ class BridgeEmulator:
         waiting for telemetry (see the module docstring).
     perturbation : float
         Each session starts at rest with alpha uniform in
-        ``[-perturbation, perturbation]`` (rad).
+        ``[-perturbation, perturbation]`` (rad); with ``start_upright`` False
+        the first session starts at rest that far from hanging straight down.
     start_upright : bool
         Raise the pendulum at each HELLO; False leaves it hanging, as after
-        power-up (the host's start gate then waits in vain).
+        power-up (the host's start gate then waits in vain): at the first
+        HELLO at rest within ``perturbation`` of straight down (the counters
+        still zero straight down), later ones wherever the pendulum is (as
+        on the rig after an episode: falling, or swinging).
     raise_time : float
         Seconds of device time the raising takes (0: at once). Meanwhile
         the pendulum follows the hand, whatever the motor does.
@@ -227,6 +231,7 @@ class BridgeEmulator:
         self._session = False
         self._awaiting = False
         self._raise_pending = False
+        self._release_pending = False  # start_upright False: the first session's tilt about the bottom
         self._first_hello_us: int | None = None
         self._fired: set[str] = set()
         self._timed_faults = any(
@@ -458,6 +463,7 @@ class BridgeEmulator:
             if isinstance(message, Hello):
                 self._session = True
                 self._raise_pending = self.start_upright
+                self._release_pending = not self.start_upright and self._counts["sessions"] == 0
                 self._counts["sessions"] += 1
                 if self._first_hello_us is None:
                     self._first_hello_us = self._device_us
@@ -515,6 +521,15 @@ class BridgeEmulator:
             self._raise_pending = False
             alpha0 = float(self._pose_rng.uniform(-self.perturbation, self.perturbation))
             self._raising = (0, round(self.raise_time * 1e6 / period_us), alpha0)
+        if self._release_pending:
+            # Left hanging: at the first session it hangs at rest tilted by up to the perturbation
+            # about the bottom (its counters still zero hanging straight down); later sessions find
+            # it wherever the last one left it.
+            self._release_pending = False
+            tilt = float(self._pose_rng.uniform(-self.perturbation, self.perturbation))
+            state = (0.0, math.pi + tilt, 0.0, 0.0)
+            qube.place(state)
+            self.initial_states.append(state)
         held = self._hand(qube)
         spi_rx = qube.transfer(dev.tick_begin(self._device_us))
         dev.tick_end(spi_rx)

@@ -25,7 +25,8 @@ that scripts can read it, e.g.:
   qube-run --backend serial --port /dev/pts/N
 
 Each time a host opens a session the pendulum is put back upright, at rest,
-with a small seeded tilt (as a person raises the real one by hand). Runs until
+with a small seeded tilt (as a person raises the real one by hand); with
+--hanging it is left hanging for a swing-up (qube-run --swing-up). Runs until
 Ctrl-C or SIGTERM, or until the device vanishes (--vanish-at).
 """
 
@@ -74,7 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=number_in(0.0, 4.9, "the tilt"),
         default=2.0,
         metavar="DEG",
-        help="each session starts with |alpha| up to this (default 2; qube-run starts below 5)",
+        help="each session starts with |alpha| up to this (default 2; qube-run starts below 5); with --hanging "
+        "the first session, that far from straight down",
     )
     p.add_argument(
         "--plant",
@@ -85,7 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: the twin calibrated on the paper's rig; 'workbook', 'previous')",
     )
     p.add_argument(
-        "--hanging", action="store_true", help="do not raise the pendulum at each session: it stays hanging down"
+        "--hanging",
+        action="store_true",
+        help="do not raise the pendulum: the first session finds it hanging at rest (within --perturbation of "
+        "straight down; --target avr: straight down), later ones wherever the last one left it",
     )
     p.add_argument(
         "--raise-time",

@@ -741,3 +741,19 @@ def test_a_real_time_run_counts_the_emulators_own_lateness_as_a_measured_stall()
     assert _emulator_behind_ms(core_report) == 12.5
     assert _emulator_behind_ms(avr_report) == 0.8
     assert _emulator_behind_ms("qube-emulate: error: no such port") == 0.0
+
+
+def test_an_episode_lost_before_its_start_counts_as_a_stall_only_when_measured(tmp_path):
+    """An episode lost to the watchdog during its swing-up leaves no log: qube-run's summary is read instead,
+    a stall only when the bridge reported late commands there (or the emulator fell behind), and any other
+    failure before the start is left for the test to fail on."""
+    from bridge_helpers import _lost_to_stalls
+
+    fault = "episode 0: backend fault before the start: bridge watchdog tripped: no command for 5 ticks\n"
+    summary = "serial link: 57 telemetry frames, 0 ticks missed, 6 skipped, 0 frames lost, 0 rejected, {} commands late"
+    (lost,) = _lost_to_stalls(tmp_path, "", fault + summary.format(7))
+    assert lost.startswith("7 commands reached the bridge after their tick") and "before the start" in lost
+    assert _lost_to_stalls(tmp_path, "", fault + summary.format(0)) == []
+    assert _lost_to_stalls(tmp_path, "", "episode 0: swing-up gave up\n" + summary.format(7)) == []
+    behind = "qube-emulate: stopped after 1000 ticks, 3 ticks caught up late (max lateness 12.5 ms)"
+    assert "12.5 ms behind" in _lost_to_stalls(tmp_path, behind, fault + summary.format(0))[0]

@@ -307,6 +307,28 @@ def test_same_seed_same_start(core):
     assert all(0 < abs(s[1]) <= math.radians(2) for s in starts[0])
 
 
+def test_left_hanging_the_first_session_finds_it_tilted_about_the_bottom_and_later_ones_as_left(core):
+    """``start_upright=False`` (``qube-emulate --hanging``): the first session's pendulum hangs at rest within
+    the perturbation of straight down, seeded (another seed, another tilt), the counters still zero straight
+    down; a later session is not placed (it finds the pendulum as the last one left it)."""
+    tilts = []
+    for seed in (21, 22):
+        with BridgeEmulator(seed=seed, core=core, spin=0, start_upright=False) as emu:
+            for nonce in (1, 2):
+                host = Host(emu.path)
+                host.send(Hello(nonce=nonce))
+                frames = host.frames(_count(Telemetry, 2))
+                host.close()
+                if nonce == 1:
+                    first = next(f.message for f in frames if isinstance(f.message, Telemetry))
+        (state,) = emu.initial_states  # the second session placed nothing
+        assert state[0] == state[2] == state[3] == 0.0 and 0 < abs(state[1] - math.pi) <= math.radians(2)
+        counts = (first.encoder1 + 1024) % 2048 - 1024  # a turn is 2048 counts, zero straight down
+        assert counts == pytest.approx((state[1] - math.pi) / STEP, abs=1) and counts != 0
+        tilts.append(state[1])
+    assert tilts[0] != tilts[1]
+
+
 # --- the host killed mid-episode: the real path, in real time ------------------------------------
 
 
