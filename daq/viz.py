@@ -163,15 +163,31 @@ def open_recording(
         ) from None
     if not live and save is None:
         raise ValueError("open_recording needs live=True or a save path")
-    stream = None
-    if live:
+    stream, unreachable = None, None
+    address = _address(url) if live and url else None
+    if address is not None and not _port_open(*address, timeout=1.0):
+        # Told of a viewer that is not there, the SDK waits 5 s to open the stream and 5 s more to close it: the
+        # run goes on without it and says so at its end, as for a viewer that goes away.
+        unreachable = f"nothing listens on {address[0]}:{address[1]}"
+    elif live:
         stream = rr.RecordingStream(application_id, recording_id=recording_id)
         stream.set_sinks(_live_sink(url, port), default_blueprint=blueprint())
     rrd = None
     if save is not None:
         same_id = recording_id if stream is None else stream.get_recording_id()  # one recording in the viewer
         rrd = RrdProcess(save, application_id, blueprint=f"{__name__}:blueprint", recording_id=same_id)
-    return RunRecording(stream, rrd)
+    return RunRecording(stream, rrd, unreachable)
+
+
+def _address(url: str) -> tuple[str, int] | None:
+    """A viewer URL's host and port (``rerun+http://HOST:PORT/proxy``), None when it names none."""
+    from urllib.parse import urlsplit
+
+    try:
+        where = urlsplit(url.removeprefix("rerun+"))
+        return (where.hostname, where.port) if where.hostname and where.port else None
+    except ValueError:
+        return None
 
 
 class RunRecording:
@@ -186,11 +202,15 @@ class RunRecording:
         The stream to a viewer.
     rrd : core.rrd.RrdProcess or None
         The file.
+    unreachable : str, optional
+        Why a viewer asked for was not streamed to (nothing listened at its address): reported by
+        :meth:`finish` as a viewer that did not take the recording.
     """
 
-    def __init__(self, live=None, rrd: RrdProcess | None = None) -> None:
+    def __init__(self, live=None, rrd: RrdProcess | None = None, unreachable: str | None = None) -> None:
         self.live = live
         self.rrd = rrd
+        self.unreachable = unreachable
 
     def _apply(self, op: tuple) -> None:
         if self.live is not None:
@@ -224,6 +244,8 @@ class RunRecording:
             file is left under its name); both are tried whatever the other did.
         """
         problems = []
+        if self.unreachable is not None:
+            problems.append(f"--rerun: the viewer did not take the recording: {self.unreachable}")
         if self.live is not None:
             try:
                 flush_recording(self.live, timeout)
