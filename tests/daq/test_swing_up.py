@@ -13,7 +13,7 @@ from bridge_helpers import run_in_real_time
 
 from qube_koopman.core.controller_file import load_controller
 from qube_koopman.daq.backends import SimBackend
-from qube_koopman.daq.backends.base import Backend
+from qube_koopman.daq.backends.contract import Backend
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
 from qube_koopman.daq.loop import EpisodePlan, run_episode
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, SwingUpLimits
