@@ -333,11 +333,9 @@ def test_swing_up_over_the_serial_link(core, tmp_path):
     """The same phase over --backend serial, paced by the bridge's telemetry (lockstep): the emulated
     pendulum left hanging at the session's start is swung up, caught and settled within the limits,
     then the episode is recorded complete."""
-    import time
 
     from qube_koopman.daq.backends.serial import SerialBackend
     from qube_koopman.daq.log import read_episode
-    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
     from qube_koopman.daq.sinks import McapSink
     from qube_koopman.sim.bridge import BridgeEmulator
 
@@ -345,14 +343,7 @@ def test_swing_up_over_the_serial_link(core, tmp_path):
     path = emu.start()
     backend = SerialBackend(path, link_timeout=0.2)
     sink = McapSink(tmp_path)
-    seeds, _ = run_seeds(1, 1)
-    (plan,) = plan_episodes(CONTROLLER, seeds, excitation_settings(2.0), source="test", swing_up=SwingUp())
-    try:
-        result = run_episode(backend, plan, [sink])
-    finally:
-        backend.close()
-        time.sleep(0.05)
-        emu.stop()
+    result = _swing_up_episode_on(emu, backend, sink, 2.0)
     assert result.complete, result.reason
     episode = read_episode(sink.paths[0])
     report = episode.metadata.extra["swing_up"]
@@ -373,7 +364,6 @@ def test_over_the_serial_link_the_log_opens_while_the_settled_pendulum_stays_bal
     from bridge_helpers import HostWait, lockstep_backend
 
     from qube_koopman.daq.log import read_episode
-    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
     from qube_koopman.daq.sinks import McapSink
     from qube_koopman.sim.bridge import BridgeEmulator
 
@@ -401,14 +391,7 @@ def test_over_the_serial_link_the_log_opens_while_the_settled_pendulum_stays_bal
     emu.start()
     backend = lockstep_backend(emu, wait, link_timeout=0.2)
     sink = SlowDisk(tmp_path)
-    seeds, _ = run_seeds(1, 1)
-    (plan,) = plan_episodes(CONTROLLER, seeds, excitation_settings(1.0), source="test", swing_up=SwingUp())
-    try:
-        result = run_episode(backend, plan, [sink])
-    finally:
-        backend.close()
-        time.sleep(0.05)
-        emu.stop()
+    result = _swing_up_episode_on(emu, backend, sink, 1.0)
     assert result.complete, result.reason
     assert ticked and ticked[0] >= 8  # the bridge ticked on, answered, while the log opened
     episode = read_episode(sink.paths[0])
@@ -453,6 +436,24 @@ def test_qube_run_swing_up_over_serial_against_qube_emulate(env, tmp_path, capsy
         for signal in ("target_theta", "target_alpha", "feedforward"):
             np.testing.assert_array_equal(getattr(episode, signal), getattr(on_twin, signal))
     assert logs[0].metadata.extra["swing_up"]["catch_time"] > 1.0  # from hanging: pumped first
+
+
+def _swing_up_episode_on(emulator, backend, sink, duration: float):
+    """One swung-up episode of ``duration`` s of the rig's controller (the run's first seeds) through ``backend``
+    to the started ``emulator``, which is stopped after it."""
+    import time
+
+    from qube_koopman.daq.session import excitation_settings, plan_episodes, run_seeds
+
+    seeds, _ = run_seeds(1, 1)
+    swing = SwingUp()
+    (plan,) = plan_episodes(CONTROLLER, seeds, excitation_settings(duration), source="test", swing_up=swing)
+    try:
+        return run_episode(backend, plan, [sink])
+    finally:
+        backend.close()
+        time.sleep(0.05)  # the link's last bytes reach the emulator before it stops
+        emulator.stop()
 
 
 def _session_ticks(record: Path, session: int) -> dict[str, np.ndarray]:
