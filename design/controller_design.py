@@ -527,7 +527,7 @@ def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
         None if model is None or not np.any(model.gain) else mpc_disturbance(plant, model, settings.offset_free)
     )
     if settings.offset_free:
-        if disturbance is None or disturbance.pole != 1.0:
+        if disturbance is None:  # a first-order one was integrated above
             raise DesignError("offset-free MPC needs the model file's disturbance model")
         disturbance.target_map()  # the steady state exists, or a DesignError says why
     P, _, _ = control.dare(*augment(plant, weights))

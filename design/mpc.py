@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -255,10 +255,10 @@ def mpc_disturbance(plant: LinearPlant, disturbance: DisturbanceModel, integrate
         plant.F[:m].copy(),
         plant.G[:m, 0].copy(),
     )
-    if not integrate or disturbance.pole == 1.0:
+    if not integrate:
         return out
-    walk = disturbance.integrated(out.direction)
-    return MpcDisturbance(out.entry, 1.0, np.asarray(walk.gain, dtype=float).reshape(-1), out.rows, out.input)
+    walk = disturbance.integrated(out.direction)  # itself when it is a random walk already
+    return replace(out, pole=walk.pole, gain=np.asarray(walk.gain, dtype=float).reshape(-1))
 
 
 @dataclass(frozen=True, eq=False)
