@@ -461,23 +461,32 @@ def fit_disturbance(
         )
     G = model.C @ E
     trajectories = list(trajectories)
-    residuals = []
-    for i, t in enumerate(trajectories):
-        r = (one_step_residuals(model, t)[0] if data is None else data.residuals[i]).copy()
-        r[: max(skip, 0)] = np.nan
-        residuals.append(r)
-    stacked = np.concatenate([r[np.all(np.isfinite(r), axis=1)] for r in residuals])
-    if len(stacked) < 10:
-        raise ValueError("too few one-step residuals to estimate a disturbance model")
-    R = np.cov(stacked.T)
+    if data is None:
+        residuals, n_residuals, R = _residual_statistics([one_step_residuals(model, t)[0] for t in trajectories], skip)
+    else:
+        residuals, n_residuals, R = data.residual_statistics(skip)
     if method == "likelihood":
-        return _maximum_likelihood(entry, residuals, G, pole, R, len(stacked))
+        return _maximum_likelihood(entry, residuals, G, pole, R, n_residuals)
     if q is None:
         if data is None:
             data = KStepData.of(model, trajectories, horizons, skip, stride)
         q = _best_prediction_q(model, data, entry, G, pole, R)
     L, _ = steady_state_gain(G, pole, q, R)
-    return DisturbanceModel(entry, float(pole), float(q), R, L, float("nan"), int(len(stacked)))
+    return DisturbanceModel(entry, float(pole), float(q), R, L, float("nan"), int(n_residuals))
+
+
+def _residual_statistics(residuals: list[np.ndarray], skip: int) -> tuple[list[np.ndarray], int, np.ndarray]:
+    """The episodes' one-step residuals with their first ``skip`` samples left out (NaN), how many are finite, and
+    their covariance ``R`` (a ValueError when fewer than 10)."""
+    kept = []
+    for r in residuals:
+        r = r.copy()
+        r[: max(skip, 0)] = np.nan
+        kept.append(r)
+    stacked = np.concatenate([r[np.all(np.isfinite(r), axis=1)] for r in kept])
+    if len(stacked) < 10:
+        raise ValueError("too few one-step residuals to estimate a disturbance model")
+    return kept, len(stacked), np.cov(stacked.T)
 
 
 @dataclass
@@ -496,6 +505,14 @@ class KStepData:
     #: What every candidate's errors share, per episode and per (entry, pole): computed on first use.
     _terms: list | None = field(default=None, repr=False, compare=False)
     _responses: dict = field(default_factory=dict, repr=False, compare=False)
+    _statistics: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def residual_statistics(self, skip: int) -> tuple[list[np.ndarray], int, np.ndarray]:
+        """The one-step residuals from ``skip`` on, how many, and their covariance: what every candidate disturbance
+        model fitted on these episodes shares (computed once per ``skip``)."""
+        if skip not in self._statistics:
+            self._statistics[skip] = _residual_statistics(self.residuals, skip)
+        return self._statistics[skip]
 
     def episode_terms(self) -> list[tuple[np.ndarray, int, np.ndarray, dict[int, np.ndarray], dict[int, np.ndarray]]]:
         """Per episode: each channel's variance from ``skip`` on, the first residual's row, the residuals from it
