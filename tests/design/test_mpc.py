@@ -130,7 +130,8 @@ def test_a_solve_over_budget_applies_the_previous_plans_next_input_or_the_clippe
 def test_a_solver_failure_applies_the_fallback_not_the_last_voltage(monkeypatch):
     import qube_koopman.design.mpc as mpc
 
-    plant, p = _plant_problem(MpcSettings(voltage_limit=5.0))
+    # a budget no host misses: the first tick must plan, whatever the machine's load
+    plant, p = _plant_problem(MpcSettings(voltage_limit=5.0, time_budget=10.0))
     runtime = MpcRuntime(p, plant.n_delays, True, plant.dt)
     out, upd = runtime.step()
     out(0.05, 0.0, 0.0, 0.0)
