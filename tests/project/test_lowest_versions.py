@@ -6,6 +6,7 @@ quick (the first downloads the dependencies' wheels). The pins are in .ci/lowest
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -66,8 +67,15 @@ def test_every_floor_is_pinned_in_the_lowest_versions_file():
         assert _same_version(pins[name], floor), f"{name}: floor {floor} in pyproject.toml, {pins[name]} tested"
 
 
+#: The venv's commands write their bytecode (the suite may run with PYTHONDONTWRITEBYTECODE): the
+#: install compiles nothing, so the first command compiles what it imports and the others reuse it.
+VENV_ENV = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+
+
 def _run(args: list, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=VENV_ENV
+    )
 
 
 def _unreachable(done: subprocess.CompletedProcess) -> bool:
@@ -98,18 +106,20 @@ def lowest_venv(tmp_path_factory, built_wheel) -> Path:
     PyPI's own `identify` (pre-commit's dependency, whose import name the project must not take)."""
     tmp_path = tmp_path_factory.mktemp("lowest")
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, with_pip=True)
+    # No pip of its own: this interpreter's pip installs into it (`pip --python`), 3 s less than
+    # bootstrapping one with ensurepip.
+    venv.create(env_dir, with_pip=False)
     python = env_dir / "bin" / "python"
     # The runtime and viewer dependencies at their floors, and only what the smoke subset runs with
     # (pytest, hypothesis, pytest-xdist for the addopts): the test extra's documentation, notebook,
     # linter and cluster tools have no floor here, and installing them took most of this test's time.
+    # --no-compile: byte-compiling every installed module (scipy's and cvxpy's tests among them)
+    # took half the install; the smoke commands compile what they import, once (VENV_ENV).
     install = _run(
         [
-            python,
-            "-m",
-            "pip",
+            *_pip(python),
             "install",
-            "--disable-pip-version-check",
+            "--no-compile",
             "--only-binary",
             ":all:",
             "-c",
@@ -125,6 +135,11 @@ def lowest_venv(tmp_path_factory, built_wheel) -> Path:
         pytest.skip(f"PyPI not reachable: {install.stderr.strip().splitlines()[-1]}")
     assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
     return env_dir
+
+
+def _pip(python: Path) -> list:
+    """This interpreter's pip, acting on the venv of ``python``."""
+    return [sys.executable, "-m", "pip", "--python", python, "--disable-pip-version-check"]
 
 
 COMMANDS = [
@@ -165,7 +180,7 @@ def test_the_wheel_installs_beside_pypi_identify(lowest_venv, tmp_path):
 def test_lowest_allowed_versions_install_and_pass_a_smoke_subset(lowest_venv, tmp_path):
     bin_dir = lowest_venv / "bin"
     python = bin_dir / "python"
-    listed = _run([python, "-m", "pip", "list", "--format", "freeze"], tmp_path).stdout
+    listed = _run([*_pip(python), "list", "--format", "freeze"], tmp_path).stdout
     installed = dict(line.split("==") for line in listed.split() if "==" in line)
     for name, version in _pins().items():
         assert installed.get(name) == version, (name, installed.get(name))
