@@ -8,9 +8,9 @@ most 50 % to a ``qube-identify`` command. Each case runs ``qube-identify``'s ``m
 the medians, their ratio, the disturbance the fit chose and the K-step R^2 per horizon and channel are
 printed beside the free run's. The machine is shared: only the medians and their ratio mean something.
 
-Cases: the default lifting and the search's lifting on the paper's split (28 training episodes, 20
-test); with ``--soft DIR`` also both trained on the paper's 28 and tested on the soft controller's
-episodes, and with ``--entry E`` the disturbance's entry point set by hand (``--disturbance E``)
+Cases: the default lifting, the design page's linear one and the search's lifting on the paper's split
+(28 training episodes, 20 test); with ``--soft DIR`` also both trained on the paper's 28 and tested on the
+soft controller's episodes, and with ``--entry E`` the disturbance's entry point set by hand (``--disturbance E``)
 instead of chosen on the training episodes.
 
 Usage: python bench/bench_kstep.py --data DIR [--soft DIR] [--repeat N] [--entry E]
@@ -29,6 +29,8 @@ from bench_search import timed_run  # noqa: E402  (one qube-identify run in this
 from bench_interval_cost import SEARCH_LIFTING, bench_logs  # noqa: E402
 
 HORIZONS = "0.1,1"
+#: The design page's plant: an affine lifting, whose K-step predictions are a filter (no window simulated per start).
+LINEAR_LIFTING = "--poly 1 --delays 35 --const"
 
 
 def _free_run_r2(report: dict) -> str:
@@ -78,7 +80,11 @@ def main() -> None:
     _, train, test, soft = bench_logs(args.data, args.soft, args.repeat)
     print(f"median of {args.repeat}; target: --horizon {HORIZONS} adds at most 50 %")
     print(f"{'case':<40}{'without':>10}{'with':>10}{'added':>9}")
-    cases = [("default lifting, paper test", []), ("search's lifting, paper test", SEARCH_LIFTING.split())]
+    cases = [
+        ("default lifting, paper test", []),
+        ("linear lifting, paper test", LINEAR_LIFTING.split()),
+        ("search's lifting, paper test", SEARCH_LIFTING.split()),
+    ]
     for label, flags in cases:
         measure(label, ["--train", *train, "--test", *test, *flags], args.repeat, args.entry)
     for label, flags in cases if soft else []:

@@ -21,6 +21,7 @@ class Constant(LiftingFunction):
     """
 
     learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
+    affine = True
 
     def _names_out(self, names):
         return list(names) + ["1"]

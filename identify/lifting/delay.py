@@ -20,6 +20,7 @@ class Delay(LiftingFunction):
     """
 
     learns_from_data = False  # output depends on hyperparameters only: folds may share statistics
+    affine = True  # a stack of past samples
 
     def __init__(self, n_delays: int = 1) -> None:
         self.n_delays = n_delays

@@ -27,6 +27,14 @@ class LiftingFunction(Params, ABC):
     n_delays: int = 0
 
     @property
+    def affine(self) -> bool:
+        """Whether the output is an affine function of the input window (delays, a constant, degree-1
+        monomials). A model on an affine lifting predicts affinely, re-lifted or not, so its K-step
+        predictions are a filter of the measurements (:mod:`~qube_koopman.identify.models.disturbance`).
+        Conservative default False; steps that are affine set it True."""
+        return False
+
+    @property
     def learns_from_data(self) -> bool:
         """Whether the output depends on the training data (then refit on every fold). Conservative
         default True; steps whose output depends on hyperparameters only set it False."""
@@ -98,6 +106,11 @@ class Lifting(Params):
             if not isinstance(step, LiftingFunction):
                 raise ValueError(f"lifting step {step!r} is not a LiftingFunction")
             step._check_params()
+
+    @property
+    def affine(self) -> bool:
+        """Whether every step is affine (:attr:`LiftingFunction.affine`): then so is the lifting."""
+        return all(step.affine for step in self.steps)
 
     @property
     def n_delays(self) -> int:

@@ -28,6 +28,11 @@ class Polynomial(LiftingFunction):
     def __init__(self, order: int = 2) -> None:
         self.order = order
 
+    @property
+    def affine(self) -> bool:
+        """Order 1 is the identity."""
+        return self.order == 1
+
     def _check_params(self) -> None:
         check_nonneg_int(self.order, "polynomial order", minimum=1)
 

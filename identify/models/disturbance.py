@@ -73,6 +73,7 @@ __all__ = [
     "prediction_errors",
     "predict_ahead",
     "predict_ahead_many",
+    "simulate_with_rate",
     "starts_stride",
     "steady_state_gain",
 ]
@@ -583,18 +584,23 @@ def prediction_errors(
     """
     horizons = data.horizons
     out = np.zeros((len(candidates), len(data.truths), len(horizons), model.n_states))
+    # Candidates of one entry and pole (a grid of q) share the response: their errors are one array each step
+    groups: dict[tuple[str, float], list[int]] = {}
+    for c, cand in enumerate(candidates):
+        groups.setdefault((cand.entry, float(cand.pole)), []).append(c)
     for i, (var, first, rr, ends_of, misses) in enumerate(data.episode_terms()):
-        for c, cand in enumerate(candidates):
-            G, response = data.response(model, cand.entry, cand.pole)
+        for (entry, pole), members in groups.items():
+            G, response = data.response(model, entry, pole)
             # filter_disturbance's recursion, its filtered estimate alone (the innovations are not needed here)
-            dhat = np.zeros(len(data.truths[i]))
-            if rr.size and np.any(cand.gain):
-                dhat[first:] = cand.pole * _filter_recursion(rr, G, cand.pole, cand.gain)
+            dhat = np.zeros((len(members), len(data.truths[i])))
+            for row, c in enumerate(members):
+                if rr.size and np.any(candidates[c].gain):
+                    dhat[row, first:] = pole * _filter_recursion(rr, G, pole, candidates[c].gain)
             for h, K in enumerate(horizons):
                 if not ends_of[h].size:
                     continue
-                err = misses[h] - dhat[ends_of[h] - K, None] * response[h][None, :]
-                out[c, i, h] = np.mean(err**2, axis=0) / var
+                err = misses[h][None] - dhat[:, ends_of[h] - K, None] * response[h][None, None, :]
+                out[members, i, h] = np.mean(err**2, axis=1) / var
     return out if per_episode else out.mean(axis=1)
 
 
@@ -748,28 +754,84 @@ def predict_ahead_many(
             if disturbance.entry == "input":
                 vv[:, d:, -1] += forecast  # the load adds to the plant input (a closed loop's feedforward)
                 forecast = None
-        pred = np.empty((len(x_init), d + K + 1, model.n_states))
-        for c in range(0, len(x_init), _WINDOWS_PER_BATCH):
-            part = slice(c, c + _WINDOWS_PER_BATCH)
-            p0_part = None if p0 is None else p0[part]
-            if forecast is None:
-                pred[part] = model.simulate(x_init[part], vv[part], p0_part, relift=relift)[0]
-            else:
-                assert disturbance is not None
-                pred[part] = _simulate_with_rate(
-                    model, disturbance, x_init[part], vv[part], p0_part, forecast[part], relift
-                )
+        loop, windows = model, vv
+        if forecast is not None:  # a rate disturbance: the model with one more input, the forecast its signal
+            assert disturbance is not None
+            loop, windows = _with_rate_input(model, disturbance), _rate_windows(vv, forecast)
+        ahead = _affine_ahead(loop, x_init, windows, p0, K, relift)
+        if ahead is None:
+            ahead = np.empty((len(x_init), model.n_states))
+            for c in range(0, len(x_init), _WINDOWS_PER_BATCH):
+                part = slice(c, c + _WINDOWS_PER_BATCH)
+                p0_part = None if p0 is None else p0[part]
+                ahead[part] = loop.simulate(x_init[part], windows[part], p0_part, relift=relift)[0][:, d + K]
         at = 0
         for i, s in enumerate(starts):
-            out[i][K][s + K] = pred[at : at + len(s), d + K]
+            out[i][K][s + K] = ahead[at : at + len(s)]
             at += len(s)
     return out
 
 
-def _simulate_with_rate(model, disturbance, x_init, v, p0, forecast, relift):
-    """The windows simulated with a rate disturbance on one angle's equation (a model with one more input)."""
+#: Windows simulated directly to check the affine predictor against (a nonlinear step is caught, whatever
+#: the lifting claims).
+_AFFINE_CHECKS = 4
+
+
+def _affine_ahead(model: KoopmanModel, x_init, v, p0, K: int, relift: bool) -> np.ndarray | None:
+    """Each window's state ``K`` samples after its start, as a filter of its history and inputs: None unless the
+    model's lifting is affine and the filter reproduces a direct simulation of the first windows.
+
+    A model on an affine lifting predicts an affine function of its window, re-lifted or not: the
+    state ``K`` ahead is ``y_0 + H x_init + P p0 + sum_j M_j v_j`` (each sample's input ``v_j``
+    weighed by the loop's response to it). The weights come from one batch of probe windows (a unit
+    change of each history sample, of each passthrough state, and of each input at the first step:
+    the loop is time-invariant, so that impulse's response gives every later input's), ``K`` steps
+    each, whatever the number of windows: a few thousand windows cost their gathered inputs' product
+    with the weights, not a simulation each (the prediction-error method's and the scores' K-step
+    predictions, at horizons of hundreds of samples).
+    """
+    if not model.lifting.affine or len(x_init) <= _AFFINE_CHECKS:
+        return None
+    d, n = model.n_delays, model.n_states
+    m, n_p = v.shape[2], model.n_passthrough
+    length = d + K + 1
+    n_hist, n_past = (d + 1) * n, d * m
+    n_probe = 1 + n_hist + n_past + m + n_p
+    X = np.zeros((n_probe, d + 1, n))
+    V = np.zeros((n_probe, length, m))
+    P = np.zeros((n_probe, n_p)) if n_p else None
+    rows = np.arange(n_probe)
+    X.reshape(n_probe, -1)[rows[1 : 1 + n_hist], np.arange(n_hist)] = 1.0
+    first = 1 + n_hist
+    V[:, :d].reshape(n_probe, -1)[rows[first : first + n_past], np.arange(n_past)] = 1.0
+    first += n_past
+    V[rows[first : first + m], d, np.arange(m)] = 1.0  # an impulse at the first step
+    if P is not None:
+        P[rows[first + m :], np.arange(n_p)] = 1.0
+    with np.errstate(all="ignore"):
+        Y = model.simulate(X, V, P, relift=relift)[0]  # (n_probe, length, n)
+        response = Y[1:] - Y[0]
+        at_k = response[:, d + K]  # each probe's change of the state K ahead
+        impulse = response[n_hist + n_past : n_hist + n_past + m]  # (m, length, n)
+        # the input at sample d + j moves the state K ahead as the first step's impulse moves the state K - j ahead
+        weights = impulse[:, d + K - np.arange(K + 1)].transpose(1, 0, 2)  # (K + 1, m, n)
+        ahead = Y[0, d + K] + x_init.reshape(len(x_init), -1) @ at_k[:n_hist]
+        ahead += v[:, :d].reshape(len(v), -1) @ at_k[n_hist : n_hist + n_past]
+        ahead += np.einsum("wji,jin->wn", v[:, d:], weights)
+        if p0 is not None and n_p:
+            ahead += p0 @ at_k[n_hist + n_past + m :]
+    if not np.all(np.isfinite(ahead)):
+        return None
+    check = slice(0, _AFFINE_CHECKS)
+    direct = model.simulate(x_init[check], v[check], None if p0 is None else p0[check], relift=relift)[0][:, d + K]
+    scale = 1.0 + float(np.max(np.abs(direct)))
+    return ahead if np.max(np.abs(direct - ahead[check])) <= 1e-9 * scale else None
+
+
+def _with_rate_input(model: KoopmanModel, disturbance: DisturbanceModel) -> KoopmanModel:
+    """The model with a rate disturbance on one angle's equation as one more input."""
     E = disturbance_direction(model, disturbance.entry)
-    augmented = KoopmanModel(
+    return KoopmanModel(
         model.A,
         np.hstack([model.B, E[:, None]]),
         model.lifting,
@@ -780,7 +842,38 @@ def _simulate_with_rate(model, disturbance, x_init, v, p0, forecast, relift):
         model.passthrough_names,
         model.feedback,
     )
+
+
+def simulate_with_rate(
+    model: KoopmanModel,
+    disturbance: DisturbanceModel,
+    x_init: np.ndarray,
+    v: np.ndarray,
+    p0: np.ndarray | None,
+    forecast: np.ndarray,
+    relift: bool = True,
+) -> np.ndarray:
+    """Windows simulated with a rate disturbance (entry ``theta`` or ``alpha``) following ``forecast``.
+
+    Parameters
+    ----------
+    model : KoopmanModel
+    disturbance : DisturbanceModel
+        Its entry says which angle's equation the disturbance moves.
+    x_init, v, p0, relift
+        As for :meth:`KoopmanModel.simulate` (batched: one window per row).
+    forecast : ndarray of shape (n_windows, n_steps)
+        The disturbance over each window's last ``n_steps`` samples.
+
+    Returns
+    -------
+    ndarray of shape (n_windows, n_samples, n_states)
+    """
+    return _with_rate_input(model, disturbance).simulate(x_init, _rate_windows(v, forecast), p0, relift=relift)[0]
+
+
+def _rate_windows(v: np.ndarray, forecast: np.ndarray) -> np.ndarray:
+    """The windows' inputs with the rate disturbance's forecast as the last input (from the windows' start on)."""
     extra = np.zeros(v.shape[:2] + (1,))
     extra[:, -forecast.shape[1] :, 0] = forecast
-    xs, _ = augmented.simulate(x_init, np.concatenate([v, extra], axis=2), p0, relift=relift)
-    return xs
+    return np.concatenate([v, extra], axis=2)

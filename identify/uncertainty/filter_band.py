@@ -128,7 +128,7 @@ def innovation_responses(
             vv[:, d:, -1] = signs * forecast[None, :]
             y, _ = model.simulate(xs, vv, p, relift=relift)
         else:
-            y = dm._simulate_with_rate(model, disturbance, xs, vv, p, signs * forecast[None, :], relift)
+            y = dm.simulate_with_rate(model, disturbance, xs, vv, p, signs * forecast[None, :], relift)
         response = (y[0, d:] - y[1, d:]) / (2 * size)  # S_j, j = 0 .. n_steps - 1
         psi = H + response[:, :, None] * np.asarray(disturbance.gain, dtype=float)[None, None, :]
     return psi

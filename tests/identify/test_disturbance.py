@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from qube_koopman.identify import KoopmanModel, Lifting, Polynomial, Delay, Trajectory
+from qube_koopman.identify import Constant, Delay, KoopmanModel, Lifting, Polynomial, ThinPlateRbf, Trajectory
 from qube_koopman.identify.models import disturbance as dm
 
 #: A lightly damped, stable two-state plant (theta, alpha) driven by one input, sampled at 500 Hz.
@@ -138,6 +138,56 @@ def test_a_rate_on_an_angle_is_re_simulated_the_same_way():
     v = np.hstack([model.inputs_of(t)[k - d : k + K + 1], np.full((K + d + 1, 1), dhat[k])])
     x, _ = augmented.simulate(t.x[k - d : k + 1], v, t.xc[k])
     np.testing.assert_allclose(ahead[k + K], x[d + K], rtol=1e-10)
+
+
+def _affine_loop_model():
+    """A closed loop on an affine lifting (3 delays and a constant) with a controller state."""
+    rng = np.random.default_rng(4)
+    lifting = Lifting([Polynomial(1), Delay(3), Constant()]).fit([rng.standard_normal((50, 2))], ["theta", "alpha"])
+    n_z = 1 + lifting.n_features_out_
+    A = 0.05 * rng.standard_normal((n_z, n_z))
+    A[:3, :3] += np.diag([0.9, 0.95, 0.97])
+    A[-2, :] = 0.0
+    A[-2, -2] = 1.0  # the constant stays 1
+    B = 0.05 * rng.standard_normal((n_z, 2))
+    B[-2] = 0.0
+    return KoopmanModel(A, B, lifting, ("r", "f"), n_passthrough=1, dt=0.002)
+
+
+@pytest.mark.parametrize("entry", ["input", "alpha"])
+def test_an_affine_loops_k_step_predictions_are_a_filter_equal_to_re_simulating_every_start(entry, monkeypatch):
+    model = _affine_loop_model()
+    assert model.lifting.affine and not _loop_model().lifting.affine
+    t = _loop_episode(model, n=600, seed=9)
+    dist = dm.DisturbanceModel(entry, 0.99, 1e-4, np.eye(2) * 1e-2, np.array([0.2, 0.1]))
+    horizons = [1, 8, 60]
+    filtered = dm.predict_ahead(model, dist, t, horizons, stride=2)
+    # the same predictions with the filter refused: every start re-simulated
+    simulated_calls = []
+    original = KoopmanModel.simulate
+
+    def counting(self, x_init, v, p0=None, relift=True):
+        simulated_calls.append(np.asarray(x_init).shape[0] if np.asarray(x_init).ndim == 3 else 1)
+        return original(self, x_init, v, p0, relift)
+
+    monkeypatch.setattr(KoopmanModel, "simulate", counting)
+    dm.predict_ahead(model, dist, t, horizons, stride=2)
+    filter_windows = sum(simulated_calls)
+    n_starts = sum(len(range(model.n_delays, t.n_samples - K, 2)) for K in horizons)
+    assert filter_windows < n_starts / 2  # probes and checks, not one simulation per start
+    monkeypatch.setattr(type(model.lifting), "affine", property(lambda self: False))
+    resimulated = dm.predict_ahead(model, dist, t, horizons, stride=2)
+    for K in horizons:
+        ok = np.isfinite(resimulated[K][:, 0])
+        assert ok.sum() > 200
+        np.testing.assert_array_equal(np.isfinite(filtered[K][:, 0]), ok)
+        np.testing.assert_allclose(filtered[K][ok], resimulated[K][ok], rtol=1e-9, atol=1e-12)
+
+
+def test_a_lifting_is_affine_only_when_every_step_is():
+    assert Lifting([Delay(2), Constant()]).affine and Lifting([Polynomial(1), Delay(1)]).affine
+    assert not Lifting([Polynomial(2), Delay(1)]).affine
+    assert not Lifting([Delay(1), ThinPlateRbf()]).affine
 
 
 def test_zero_steps_ahead_is_the_filtered_estimate():
