@@ -1,7 +1,7 @@
 """The MPC of ``qube-design --mpc`` on the twin: its solve time per tick, and its cost against the LQ design clipped.
 
     python bench/bench_mpc.py [MODEL.json] [--seeds 5,6,7] [--episodes 2] [--duration 10] [--voltage-limit V]
-                              [--horizons 10,20,40] [--out DIR] [--only timing|offset-free|j-table|stiff-cables]
+                              [--horizons 10,20,40] [--out DIR] [--only timing|offset-free|j-table|stiff-cables|paced]
                               [--load 0.5] [--load-seeds 1,2,3,4,5] [--j-episodes 20] [--j-seed 7] [--j-horizon 20]
     python bench/bench_mpc.py --only predictors --data DIR [--predictor-horizons 5,20,50,100,250] [--starts 200]
 
@@ -48,6 +48,11 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   12 s per seed of ``--load-seeds``: the arm's mean tracking error from 5 s on (``mean(theta - target)``, in
   absolute value, averaged over the seeds), beside the same on the calibrated twin.
 
+- ``--only paced``: the MPC at the limit (default 4 V) replayed on one logged twin episode's ticks (8 s), its
+  output step's wall time per tick p50 / p99 / max, with nothing between the ticks (as the free-running
+  loop), with the rest of a 2 ms tick asleep (as a paced loop waits for its deadline or the bridge's
+  sample) and with it spinning: what waiting asleep costs the next tick's compute on this machine.
+
 - ``--only predictors``: the multi-step predictors (:mod:`design.predictors`) on the paper's real data (``--data
   DIR``, its 48 episodes as .mcap logs, ``qube-import``'s): plants fitted on the 28 training episodes
   (``qube-identify DIR --split paper --interval 0``) with ``--poly 1 --delays 35 --const`` (the design's
@@ -80,6 +85,7 @@ from pathlib import Path
 
 import numpy as np
 
+from qube_koopman.core.controller import QUBE_SAMPLE_PERIOD
 from qube_koopman.core.controller_file import load_controller
 from qube_koopman.daq.cli.run import main as _run_main
 from qube_koopman.daq.log import read_episode
@@ -129,6 +135,35 @@ def _run(out: Path, controller: Path, seed: int, episodes: int, duration: float,
     argv = ["--controller", str(controller), "--episodes", str(episodes), "--duration", f"{duration:g}"]
     run_main([*argv, "--seed", str(seed), "--out", str(out), "--n-jobs", "1", "-q", *extra])
     return [read_episode(p) for p in sorted(out.glob("*.mcap"))]
+
+
+def _paced(root: Path, model: Path, limit: float, ticks: int = 4000) -> None:
+    """The MPC's output step per tick (wall time), the logged ticks replayed back to back and with the rest of a
+    2 ms tick between them spent asleep (as a paced loop waits) or spinning."""
+    controller = root / "mpc_paced.toml"
+    design_main([str(model), "--mpc", "--voltage-limit", f"{limit:g}", "--out", str(controller), "--interval", "0"])
+    episode = _run(root / "paced_runs", controller, 7, 1, ticks * QUBE_SAMPLE_PERIOD)[0]
+    print(f"MPC at {limit:g} V on {model}: its output step per tick over {len(episode)} logged ticks, in us")
+    print(f"{'between ticks':<28}{'p50':>8}{'p99':>8}{'max':>8}")
+    for label, pause in (("nothing", 0.0), ("1.5 ms asleep", 1.5e-3), ("1.5 ms spinning", -1.5e-3)):
+        runtime = load_controller(controller).runtime
+        runtime.clock = lambda: 0.0  # no budget: every tick solves
+        output, update = runtime.step()
+        err = episode.references - episode.states
+        spent = []
+        for k in range(len(episode)):
+            if pause > 0:
+                time.sleep(pause)
+            elif pause < 0:
+                end = time.perf_counter() - pause
+                while time.perf_counter() < end:
+                    pass
+            t = time.perf_counter()
+            output(err[k, 0], err[k, 1], episode.feedforward[k], episode.target_theta[k])
+            spent.append(time.perf_counter() - t)
+            update(err[k, 0], err[k, 1], episode.feedforward[k])
+        p50, p99 = np.percentile(spent, [50, 99]) * 1e6
+        print(f"{label:<28}{p50:8.0f}{p99:8.0f}{max(spent) * 1e6:8.0f}")
 
 
 def _cost(episodes: list) -> tuple[float, int, float]:
@@ -451,7 +486,9 @@ def main(argv=None) -> int:
     p.add_argument("--horizons", default="10,20,40")
     p.add_argument("--out", type=Path, default=None)
     p.add_argument(
-        "--only", choices=("timing", "offset-free", "j-table", "stiff-cables", "figure", "predictors"), default=None
+        "--only",
+        choices=("timing", "offset-free", "j-table", "stiff-cables", "figure", "predictors", "paced"),
+        default=None,
     )
     p.add_argument("--data", type=Path, default=None, help="the paper's 48 episodes as .mcap logs (--only predictors)")
     p.add_argument("--predictor-horizons", default="5,20,50,100,250")
@@ -484,6 +521,9 @@ def main(argv=None) -> int:
                 _stiff_cables(root, args.model, seeds)
             else:
                 _stiff_cables(root, args.model, seeds, step=args.stiff_ramp, ramp=True)
+        return 0
+    if args.only == "paced":
+        _paced(root, args.model or _model(root), args.voltage_limit or 4.0)
         return 0
     if args.only != "timing":
         _offset_free(root, [int(s) for s in args.load_seeds.split(",")], args.load)
