@@ -10,6 +10,8 @@ keeps each episode's predictions for its predictions file (``ahead_<h>``).
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
@@ -79,11 +81,13 @@ def spread(items: list, n: int) -> list:
 
 
 def _sign_test_count(n: int, level: float = 0.05) -> int:
-    """The fewest of ``n`` episodes that must improve for a one-sided sign test to reject chance at ``level``."""
-    from scipy.stats import binom
+    """The fewest of ``n`` episodes that must improve for a one-sided sign test to reject chance at ``level``.
 
+    The binomial tail ``P(X >= k)``, ``X ~ B(n, 1/2)``, summed exactly in integers (scipy.stats' ``binom.sf``
+    gives the same; importing scipy.stats took 0.3 s of every ``qube-identify --horizon`` run).
+    """
     for k in range(n + 1):
-        if binom.sf(k - 1, n, 0.5) <= level:
+        if sum(math.comb(n, j) for j in range(k, n + 1)) <= level * 2**n:
             return k
     return n + 1
 
