@@ -355,6 +355,10 @@ class SolveResult:
     active: bool
 
 
+#: The projected Armijo search's halvings of Newton's step before a projected gradient step is taken instead.
+_NEWTON_HALVINGS = 8
+
+
 def solve_newton(
     H: np.ndarray,
     g: np.ndarray,
@@ -425,9 +429,13 @@ def solve_newton(
                 Hf += rho * (Mp.T @ Mp)
             d = np.zeros_like(U)
             d[free] = -np.linalg.solve(Hf, grad[free])
-        for _ in range(2):  # Newton's step, else a projected gradient step (which always descends)
+        # Newton's step, else a projected gradient step (which always descends). Newton's search stops at a
+        # step of 1/256: a Newton direction that needs less has crossed a kink of the penalty or a bound, and
+        # halving it further cost the slowest ticks up to 45 evaluations where the gradient step takes one
+        # (the same plans to 2e-14 V on a twin episode at 4 V; its slowest solve 0.90 to 0.69 ms).
+        for halvings in (_NEWTON_HALVINGS, 20):
             step = 1.0
-            for _ in range(20):  # projected Armijo search
+            for _ in range(halvings):  # projected Armijo search
                 trial = np.clip(U + step * d, lo, hi)
                 tval, tgrad, tpen = value_grad(trial)
                 if tval <= val + 1e-4 * (grad @ (trial - U)) + 1e-13 * (1.0 + abs(val)):
