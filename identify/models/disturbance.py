@@ -602,7 +602,7 @@ def prediction_errors(
     """
     horizons = data.horizons
     out = np.zeros((len(candidates), len(data.truths), len(horizons), model.n_states))
-    # Candidates of one entry and pole (a grid of q) share the response: their errors are one array each step
+    # Candidates of one entry and pole (a grid of q) share the response: their errors are one array per horizon
     groups: dict[tuple[str, float], list[int]] = {}
     for c, cand in enumerate(candidates):
         groups.setdefault((cand.entry, float(cand.pole)), []).append(c)
