@@ -11,8 +11,8 @@ keeps each episode's predictions for its predictions file (``ahead_<h>``).
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -87,7 +87,7 @@ def _sign_test_count(n: int, level: float = 0.05) -> int:
     gives the same; importing scipy.stats took 0.3 s of every ``qube-identify --horizon`` run).
     """
     for k in range(n + 1):
-        if sum(math.comb(n, j) for j in range(k, n + 1)) <= level * 2**n:
+        if Fraction(sum(math.comb(n, j) for j in range(k, n + 1)), 2**n) <= Fraction(level):
             return k
     return n + 1
 
