@@ -812,32 +812,29 @@ def _affine_ahead(model: KoopmanModel, x_init, v, p0, K: int, relift: bool) -> n
         return None
     d, n = model.n_delays, model.n_states
     m, n_p = v.shape[2], model.n_passthrough
-    length = d + K + 1
-    n_hist, n_past = (d + 1) * n, d * m
-    n_probe = 1 + n_hist + n_past + m + n_p
+    n_hist = (d + 1) * n
+    # The probes: none moved (the affine part), each history sample, each input at the first step, each
+    # passthrough state. The inputs before the first step are not used (KoopmanModel.simulate).
+    n_probe = 1 + n_hist + m + n_p
     X = np.zeros((n_probe, d + 1, n))
-    V = np.zeros((n_probe, length, m))
+    V = np.zeros((n_probe, d + K + 1, m))
     P = np.zeros((n_probe, n_p)) if n_p else None
     rows = np.arange(n_probe)
     X.reshape(n_probe, -1)[rows[1 : 1 + n_hist], np.arange(n_hist)] = 1.0
-    first = 1 + n_hist
-    V[:, :d].reshape(n_probe, -1)[rows[first : first + n_past], np.arange(n_past)] = 1.0
-    first += n_past
-    V[rows[first : first + m], d, np.arange(m)] = 1.0  # an impulse at the first step
+    V[rows[1 + n_hist : 1 + n_hist + m], d, np.arange(m)] = 1.0  # an impulse at the first step
     if P is not None:
-        P[rows[first + m :], np.arange(n_p)] = 1.0
+        P[rows[1 + n_hist + m :], np.arange(n_p)] = 1.0
     with np.errstate(all="ignore"):
-        Y = model.simulate(X, V, P, relift=relift)[0]  # (n_probe, length, n)
+        Y = model.simulate(X, V, P, relift=relift)[0]  # (n_probe, d + K + 1, n)
         response = Y[1:] - Y[0]
         at_k = response[:, d + K]  # each probe's change of the state K ahead
-        impulse = response[n_hist + n_past : n_hist + n_past + m]  # (m, length, n)
+        impulse = response[n_hist : n_hist + m]  # (m, d + K + 1, n)
         # the input at sample d + j moves the state K ahead as the first step's impulse moves the state K - j ahead
         weights = impulse[:, d + K - np.arange(K + 1)].transpose(1, 0, 2)  # (K + 1, m, n)
         ahead = Y[0, d + K] + x_init.reshape(len(x_init), -1) @ at_k[:n_hist]
-        ahead += v[:, :d].reshape(len(v), -1) @ at_k[n_hist : n_hist + n_past]
         ahead += np.einsum("wji,jin->wn", v[:, d:], weights)
         if p0 is not None and n_p:
-            ahead += p0 @ at_k[n_hist + n_past + m :]
+            ahead += p0 @ at_k[n_hist + m :]
     if not np.all(np.isfinite(ahead)):
         return None
     check = slice(0, _AFFINE_CHECKS)
