@@ -45,7 +45,7 @@ from qube_koopman.identify.uncertainty.spectra import error_spectra
 from qube_koopman.identify.uncertainty.filter_band import (
     AheadBand,
     calibrate_filter,
-    calibrate_filter_on_probes,
+    calibrate_filter_on_probe_sets,
     fold_fits,
     residual_model,
 )
@@ -56,7 +56,7 @@ from qube_koopman.identify.uncertainty import (
     IntervalOptions,
     Loop,
     calibrate,
-    calibrate_on_probes,
+    calibrate_on_probe_sets,
     consecutive_runs,
     widest,
     fit_ensemble,
@@ -1029,8 +1029,8 @@ def _test_bands(ensemble, options: IdentifyOptions, train, controller, start, re
     default: list[tuple[ProbeSet, IntervalCalibration]] = []  # the default probes' calibration, made once
     by_gains: dict[tuple, tuple] = {}  # gains -> (their calibration or None, the report's fields on them)
 
-    def on_probes(probe_set):
-        return calibrate_on_probes(ensemble, probe_set, scoring, intervals.n_probe_members)
+    def on_probes(*probe_sets):
+        return calibrate_on_probe_sets(ensemble, probe_sets, scoring, intervals.n_probe_members)
 
     def on_session_twins(*gain_sets):
         return _interval_probe_sets(train, gain_sets, options.probe_cache)
@@ -1048,8 +1048,12 @@ def _test_bands(ensemble, options: IdentifyOptions, train, controller, start, re
             probe_set = probes if probes is not None else sets.pop(0)
             if not probe_set.controllers:
                 raise ValueError("no probe episode stayed balanced on the twin")
-            default.append((probe_set, on_probes(probe_set)))
             own = sets[0] if sets else None
+            # Both calibrated in one simulation of their episodes.
+            made = on_probes(probe_set, *([own] if own is not None and own.controllers else []))
+            default.append((probe_set, made[0]))
+            if len(made) > 1:
+                by_gains[gains] = _own_fields(own, made[1])
         probe_set, calibration = default[0]
         entry = {
             "default_probes": probe_set.describe(),
@@ -1090,13 +1094,17 @@ def _own_calibration(gains, own, on_session_twins, on_probes) -> tuple:
         return None, {"own_probes": f"none: {exc}"}
     if not own.controllers:
         return None, {"own_probes": "none: no probe episode stayed balanced on the twin"}
-    own_calibration = on_probes(own)
+    return _own_fields(own, on_probes(own)[0])
+
+
+def _own_fields(own, calibration) -> tuple:
+    """A loop's own probes' calibration and the report's fields on them."""
     fields = {
         "own_probes": own.describe(),
         "n_own_episodes": own.n_episodes,
-        "own_channels": own_calibration.as_dict(STATE_NAMES),
+        "own_channels": calibration.as_dict(STATE_NAMES),
     }
-    return own_calibration, fields
+    return calibration, fields
 
 
 #: How the filter's intervals are made, in words (report.json's ``intervals.method`` with ``method`` disturbance).
@@ -1159,8 +1167,8 @@ def _filter_bands(fitted: _KoopmanFit, options: IdentifyOptions, train, controll
 
     default: list = []  # the default probes' calibration, made once (before its loop's variance)
 
-    def on_probes(probe_set):
-        return calibrate_filter_on_probes((closed, plant), probe_set, scoring, disturbance, model, band.variance)
+    def on_probes(probe_sets):
+        return calibrate_filter_on_probe_sets((closed, plant), probe_sets, scoring, disturbance, model, band.variance)
 
     def elsewhere(gains, loop):
         own_variance = band.variance(loop.model(closed, plant, MEASURED))
@@ -1171,12 +1179,16 @@ def _filter_bands(fitted: _KoopmanFit, options: IdentifyOptions, train, controll
 
         wanted = ([] if probes is not None or default else [DEFAULT_PROBE_GAINS]) + ([] if gains is None else [[gains]])
         sets = _interval_probe_sets(train, wanted, options.probe_cache) if wanted else []
+        todo = []
         if not default:
             probe_set = probes if probes is not None else sets.pop(0)
             if not probe_set.controllers:
                 raise ValueError("no probe episode stayed balanced on the twin")
-            default.append((probe_set, on_probes(probe_set)))
-        parts = [default[0][1]] + [on_probes(own) for own in sets if own.controllers]
+            todo.append(probe_set)
+        made = on_probes(todo + [own for own in sets if own.controllers])  # in one simulation
+        if not default:
+            default.append((todo[0], made.pop(0)))
+        parts = [default[0][1]] + made
         combined = widest([part.for_loop(own_variance) for part in parts])
         combined.uses_spread = False  # its parts are the filter's
         entry = {

@@ -112,3 +112,22 @@ def nan_controller() -> ControllerInfo:
         dt=0.002,
     )
     return ControllerInfo(system, "given", {}, kind="state-space")
+
+
+def probe_sources(n: int = 3, samples: int = 1200) -> list:
+    """Excitations the twin balances under every probe controller: small arm steps, no feedforward."""
+    from qube_koopman.identify.data.trajectory import Trajectory
+
+    t = np.arange(samples)
+    return [
+        Trajectory(
+            x=np.zeros((samples, 2)),
+            u=np.zeros((samples, 1)),
+            r=np.column_stack([0.03 * (k + 1) * np.sign(np.sin(2 * np.pi * t / 600)), np.zeros(samples)]),
+            f=np.zeros((samples, 1)),
+            xc=np.zeros((samples, 2)),
+            dt=0.002,
+            name=f"s{k}",
+        )
+        for k in range(n)
+    ]

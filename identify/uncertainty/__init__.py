@@ -17,6 +17,7 @@ from qube_koopman.identify.uncertainty.calibration import (
     IntervalCalibration,
     calibrate,
     calibrate_on_probes,
+    calibrate_on_probe_sets,
     widest,
 )
 from qube_koopman.identify.uncertainty.ensemble import (
@@ -58,6 +59,7 @@ __all__ = [
     "bootstrap_counts",
     "calibrate",
     "calibrate_on_probes",
+    "calibrate_on_probe_sets",
     "consecutive_runs",
     "widest",
     "ensemble_statistics",

@@ -3,7 +3,6 @@ on the twin's probe episodes for loops the training never ran."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -20,6 +19,7 @@ __all__ = [
     "REPORTED_HORIZONS",
     "calibrate",
     "calibrate_on_probes",
+    "calibrate_on_probe_sets",
     "widest",
 ]
 
@@ -214,23 +214,9 @@ def calibrate(
     -------
     IntervalCalibration
     """
-    level, start, offsets, measured, stride = (
-        options.level,
-        options.start,
-        options.offsets,
-        options.measured,
-        options.stride,
-    )
     trajectories = as_episodes(trajectories)
-    groups, indices = [], []  # (models, held-out episodes) of every fold's runs of one loop; their indices
-    for fold in fit.folds:
-        held_out = select_episodes(trajectories, fold.validation)
-        for run in consecutive_runs([loops[j] for j in fold.validation]):
-            loop = loops[fold.validation[run[0]]]
-            models = [loop.model(*fold.point, measured)] + [loop.model(*m, measured) for m in fold.members]
-            groups.append((models, [held_out[i] for i in run]))
-            indices.append([int(fold.validation[i]) for i in run])
-    predictions = predict_groups(groups, offsets)  # the folds' ensembles together
+    groups, indices = _held_out_groups(fit.folds, trajectories, loops, options.measured)
+    predictions = predict_groups(groups, options.offsets)  # the folds' ensembles together
     if points is not None:
         for idx, (_, trajs), predicted in zip(indices, groups, predictions):
             points.update(
@@ -238,18 +224,36 @@ def calibrate(
                 for j, t, p in zip(idx, trajs, predicted)
                 if loops[j].kind != "plant"
             )
+    return _fit_on_groups(groups, predictions, options)
+
+
+def _held_out_groups(folds, trajectories, loops: Sequence[Loop], measured) -> tuple[list, list]:
+    """(models, held-out episodes) of every fold's runs of one loop, and the episodes' indices."""
+    groups, indices = [], []
+    for fold in folds:
+        held_out = select_episodes(trajectories, fold.validation)
+        for run in consecutive_runs([loops[j] for j in fold.validation]):
+            loop = loops[fold.validation[run[0]]]
+            models = [loop.model(*fold.point, measured)] + [loop.model(*m, measured) for m in fold.members]
+            groups.append((models, [held_out[i] for i in run]))
+            indices.append([int(fold.validation[i]) for i in run])
+    return groups, indices
+
+
+def _fit_on_groups(groups, predictions, options: CalibrationOptions) -> IntervalCalibration:
+    """:func:`calibrate` from its groups' predictions (made together with other groups')."""
     errors, variances, horizons, diverged = [], [], [], 0
     for (models, trajs), predicted in zip(groups, predictions):
         d = models[0].n_delays
         for t, p in zip(trajs, predicted):
             # A diverged held-out prediction says nothing about the size of the errors: left out from there.
-            end = diverged_from(p.prediction, t.x, start) or t.n_samples
+            end = diverged_from(p.prediction, t.x, options.start) or t.n_samples
             diverged += end < t.n_samples
-            k = np.arange(max(start, d + 1), end, stride)
+            k = np.arange(max(options.start, d + 1), end, options.stride)
             errors.append(t.x[k] - p.prediction[k])
             variances.append(members_variance(p)[k])
             horizons.append(k - d)
-    calibration = IntervalCalibration(level).fit(
+    calibration = IntervalCalibration(options.level).fit(
         np.concatenate(errors), np.concatenate(variances), np.concatenate(horizons)
     )
     calibration.n_diverged_ = diverged
@@ -283,15 +287,32 @@ def calibrate_on_probes(
     -------
     IntervalCalibration
     """
+    return calibrate_on_probe_sets(fit, [probes], options, n_members)[0]
+
+
+def calibrate_on_probe_sets(
+    fit: EnsembleFit, probe_sets: Sequence, options: CalibrationOptions, n_members: int | None = None
+) -> list[IntervalCalibration]:
+    """:func:`calibrate_on_probes` of several probe sets, one calibration each, their episodes predicted
+    in one simulation (a pass over the samples costs about the same for one set's episodes as for all of
+    them: a step's time is numpy's per-call overhead more than arithmetic)."""
     estimator = fit.estimator  # a closed-loop fit's plant, or EDMD's model of the plant
     point = (getattr(estimator, "closed_loop_model_", None), getattr(estimator, "plant_model_", estimator.model_))
     members = fit.members if n_members is None else fit.members[:n_members]
-    episodes = [episode for group in probes.episodes for episode in group]
-    loops = [
-        Loop("wrapped", controller) for controller, group in zip(probes.controllers, probes.episodes) for _ in group
-    ]
-    on_probes = dataclasses.replace(fit, folds=[FoldEnsemble(np.arange(len(episodes)), point, members)])
-    return calibrate(on_probes, episodes, loops, options)
+    per_set = []
+    for probes in probe_sets:
+        episodes = [episode for group in probes.episodes for episode in group]
+        loops = [
+            Loop("wrapped", controller) for controller, group in zip(probes.controllers, probes.episodes) for _ in group
+        ]
+        fold = FoldEnsemble(np.arange(len(episodes)), point, members)
+        per_set.append(_held_out_groups([fold], as_episodes(episodes), loops, options.measured)[0])
+    predicted = predict_groups([group for groups in per_set for group in groups], options.offsets)
+    out, first = [], 0
+    for groups in per_set:
+        out.append(_fit_on_groups(groups, predicted[first : first + len(groups)], options))
+        first += len(groups)
+    return out
 
 
 def widest(calibrations: Sequence[IntervalCalibration]) -> IntervalCalibration:

@@ -56,6 +56,7 @@ __all__ = [
     "LINEARIZED_STEPS",
     "calibrate_filter",
     "calibrate_filter_on_probes",
+    "calibrate_filter_on_probe_sets",
     "filter_variance",
     "fold_fits",
     "innovation_covariance",
@@ -362,14 +363,28 @@ def calibrate_filter(
     FilterCalibration
     """
     trajectories = as_episodes(trajectories)
-    variance = filter_variance(model, disturbance) if variance_of is None else variance_of(model)
+    groups = _held_out_groups(folds, trajectories, loops, options)
+    return _fit_on_groups(
+        groups, predict_groups(groups, options.offsets), options, disturbance, model, ahead, variance_of
+    )
+
+
+def _held_out_groups(folds: Sequence[FoldEnsemble], trajectories, loops: Sequence[Loop], options: CalibrationOptions):
+    """Each fold's held-out episodes by consecutive runs of one loop, with the fold's fit wrapped in that loop."""
     groups = []
     for fold in folds:
         held_out = select_episodes(trajectories, fold.validation)
         for run in consecutive_runs([loops[j] for j in fold.validation]):
             loop = loops[fold.validation[run[0]]]
             groups.append(([loop.model(*fold.point, options.measured)], [held_out[i] for i in run]))
-    predictions = predict_groups(groups, options.offsets)
+    return groups
+
+
+def _fit_on_groups(
+    groups, predictions, options: CalibrationOptions, disturbance, model: KoopmanModel, ahead, variance_of
+) -> FilterCalibration:
+    """:func:`calibrate_filter` from its groups' predictions (made together with other groups')."""
+    variance = filter_variance(model, disturbance) if variance_of is None else variance_of(model)
     errors, others, horizons, own, diverged = [], [], [], [], 0
     for (models, trajs), predicted in zip(groups, predictions):
         d = models[0].n_delays
@@ -407,10 +422,33 @@ def calibrate_filter_on_probes(
     controller, as test episodes are predicted; each probe loop's samples get that loop's ``V``
     (``variance_of``), and ``model``'s is the calibration's until :meth:`FilterCalibration.for_loop`.
     """
-    episodes = [episode for group in probes.episodes for episode in group]
-    loops = [Loop("wrapped", c) for c, group in zip(probes.controllers, probes.episodes) for _ in group]
-    fold = FoldEnsemble(np.arange(len(episodes)), point, [])
-    return calibrate_filter([fold], episodes, loops, options, disturbance, model, variance_of=variance_of)
+    return calibrate_filter_on_probe_sets(point, [probes], options, disturbance, model, variance_of)[0]
+
+
+def calibrate_filter_on_probe_sets(
+    point: tuple,
+    probe_sets: Sequence,
+    options: CalibrationOptions,
+    disturbance: dm.DisturbanceModel,
+    model: KoopmanModel,
+    variance_of: Callable[[KoopmanModel], FilterVariance],
+) -> list[FilterCalibration]:
+    """:func:`calibrate_filter_on_probes` of several probe sets, one calibration each, their episodes
+    predicted in one simulation (a pass over the samples costs the same for one set's episodes as for
+    all of them: the step's time is numpy's per-call overhead, not arithmetic)."""
+    per_set = []
+    for probes in probe_sets:
+        episodes = [episode for group in probes.episodes for episode in group]
+        loops = [Loop("wrapped", c) for c, group in zip(probes.controllers, probes.episodes) for _ in group]
+        fold = FoldEnsemble(np.arange(len(episodes)), point, [])
+        per_set.append(_held_out_groups([fold], as_episodes(episodes), loops, options))
+    predicted = predict_groups([group for groups in per_set for group in groups], options.offsets)
+    out, first = [], 0
+    for groups in per_set:
+        mine = predicted[first : first + len(groups)]
+        out.append(_fit_on_groups(groups, mine, options, disturbance, model, (), variance_of))
+        first += len(groups)
+    return out
 
 
 def _calibrate_ahead(calibration: FilterCalibration, groups, disturbance, K: int, options: CalibrationOptions) -> None:

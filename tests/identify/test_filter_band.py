@@ -101,3 +101,54 @@ def test_the_calibrated_band_covers_the_level_on_held_out_errors(model_error):
     coverage = (np.abs(e2) <= cal.half_width(np.zeros_like(e2), h2)).mean(axis=0)
     np.testing.assert_allclose(coverage, 0.9, atol=0.01)
     assert np.all(cal.factor_ > 1.0)  # wider than the filter alone says
+
+
+def test_probe_sets_calibrated_together_are_each_calibrated_alone():
+    """calibrate_filter_on_probe_sets predicts every set's probe episodes in one simulation: each set's
+    calibration is the one calibrate_filter makes of that set's episodes alone (as a held-out fold)."""
+    from _episodes import probe_sources
+    from qube_koopman.core.controller import PdGains, pd_controller
+    from qube_koopman.identify import ClEdmd
+    from qube_koopman.identify.model_selection.search import LiftingSpec
+    from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS, twin_probe_sets
+    from qube_koopman.identify.uncertainty.calibration import CalibrationOptions
+    from qube_koopman.identify.uncertainty.ensemble import FoldEnsemble
+    from qube_koopman.identify.uncertainty.filter_band import (
+        calibrate_filter,
+        calibrate_filter_on_probe_sets,
+        residual_model,
+    )
+    from qube_koopman.identify.uncertainty.loops import Loop
+
+    sources = probe_sources(3)
+    rig = (6.0, 2.0, 35.0, 3.0, 50.0)  # the rig's gains' form: kp_theta, kd_theta, kp_alpha, kd_alpha, filter
+    soft = [(2.0, 2.0, 35.0, 3.0, 50.0)]
+    train, default, own = twin_probe_sets(sources, [[rig], DEFAULT_PROBE_GAINS, soft], per_controller=2, skip=100)
+    fit = ClEdmd(pd_controller(PdGains(*rig)), lifting=LiftingSpec(delays=5, poly=1).steps(), alpha=1e-3)
+    fit.fit(train.episodes[0])
+    closed, plant = fit.closed_loop_model_, fit.plant_model_
+    disturbance = residual_model(closed, train.episodes[0])
+    options = CalibrationOptions(0.95, start=50, measured=[0, 1])
+
+    def variance_of(model):
+        return filter_variance(model, disturbance)
+
+    together = calibrate_filter_on_probe_sets(
+        (closed, plant), [default, own], options, disturbance, closed, variance_of
+    )
+    assert len(together) == 2
+    first, second = (c.as_dict(["theta", "alpha"])["theta"]["factor"] for c in together)
+    assert first != second  # the sets' calibrations differ: each must be its own
+    for probes, joint in zip([default, own], together):
+        episodes = [e for group in probes.episodes for e in group]
+        loops = [Loop("wrapped", c) for c, group in zip(probes.controllers, probes.episodes) for _ in group]
+        fold = FoldEnsemble(np.arange(len(episodes)), (closed, plant), [])
+        alone = calibrate_filter([fold], episodes, loops, options, disturbance, closed, variance_of=variance_of)
+        a, b = joint.as_dict(["theta", "alpha"]), alone.as_dict(["theta", "alpha"])
+        assert a.keys() == b.keys() and joint.n_samples_ == alone.n_samples_ > 0
+        for name in a:
+            assert a[name].keys() == b[name].keys()
+            numbers = [key for key, value in b[name].items() if not isinstance(value, dict)]
+            assert {"factor", "scale", "timescale_samples", "held_out_coverage"} <= set(numbers), numbers
+            for key in numbers:
+                np.testing.assert_allclose(a[name][key], b[name][key], rtol=1e-12, err_msg=f"{name} {key}")

@@ -19,6 +19,7 @@ import warnings
 import numpy as np
 import pytest
 
+from _episodes import probe_sources
 from qube_koopman.core.controller import load_pd_gains
 from qube_koopman.identify import ClEdmd
 from qube_koopman.identify.data.logs import load_logs
@@ -209,32 +210,13 @@ def test_offset_status_says_flat_and_beyond_bound_aloud():
     assert estimate(0.003, np.inf).as_dict(["alpha"])["alpha_std_error"] is None  # strict JSON
 
 
-def _short_sources(n: int = 3, samples: int = 1200):
-    """Excitations the twin balances under every probe controller: small arm steps, no feedforward."""
-    from qube_koopman.identify.data.trajectory import Trajectory
-
-    t = np.arange(samples)
-    return [
-        Trajectory(
-            x=np.zeros((samples, 2)),
-            u=np.zeros((samples, 1)),
-            r=np.column_stack([0.03 * (k + 1) * np.sign(np.sin(2 * np.pi * t / 600)), np.zeros(samples)]),
-            f=np.zeros((samples, 1)),
-            xc=np.zeros((samples, 2)),
-            dt=0.002,
-            name=f"s{k}",
-        )
-        for k in range(n)
-    ]
-
-
 def test_a_cached_probe_set_is_the_simulated_one_and_changes_with_what_it_depends_on(tmp_path, monkeypatch):
     from dataclasses import replace as changed
 
     from qube_koopman.identify.model_selection import transfer
     from qube_koopman.sim.pendulum import PendulumParameters
 
-    sources = _short_sources()
+    sources = probe_sources()
     first = twin_probes(sources, per_controller=1, skip=100, cache=tmp_path)
     stored = list(tmp_path.glob("probes-*.npz"))
     assert len(stored) == 1 and first.n_episodes == 3
@@ -263,7 +245,7 @@ def test_a_cached_probe_set_is_the_simulated_one_and_changes_with_what_it_depend
 
 
 def test_a_damaged_stored_probe_set_is_simulated_again(tmp_path):
-    sources = _short_sources(2)
+    sources = probe_sources(2)
     first = twin_probes(sources, per_controller=1, skip=100, cache=tmp_path)
     (stored,) = tmp_path.glob("probes-*.npz")
     stored.write_bytes(stored.read_bytes()[:200])  # cut short, as by a full disk
@@ -279,7 +261,7 @@ def test_probes_on_session_twins_run_each_episode_on_its_own_twin(tmp_path):
     from qube_koopman.identify.model_selection.transfer import session_twins
     from qube_koopman.sim.pendulum import PendulumParameters
 
-    sources = _short_sources(4)
+    sources = probe_sources(4)
     twins = session_twins()
     assert len(twins) == 6 and len({(t.delay, t.Kr) for t in twins}) == 6
     assert {t.delay for t in twins} == {0.6e-3, 1.35e-3, 4.1e-3}
@@ -330,7 +312,7 @@ def test_probe_sets_simulated_together_are_each_set_simulated_alone(tmp_path, mo
     from qube_koopman.identify.model_selection import transfer
     from qube_koopman.identify.model_selection.transfer import DEFAULT_PROBE_GAINS, session_twins, twin_probe_sets
 
-    sources = _short_sources(3) + [replace(t, name="short") for t in _short_sources(1, samples=900)]
+    sources = probe_sources(3) + [replace(t, name="short") for t in probe_sources(1, samples=900)]
     soft, falling = [(2.0, 2.0, 35.0, 3.0, 50.0)], [(0.0, 0.0, 1.0, 0.0, 50.0)]  # no derivative: fewer states
     twins = session_twins()[:2]
     sets = [DEFAULT_PROBE_GAINS, soft, falling]
@@ -368,7 +350,7 @@ def test_the_probe_cache_stays_within_its_size_and_keeps_what_was_used_last(tmp_
 
     from qube_koopman.identify.model_selection import transfer
 
-    sources = _short_sources(2)
+    sources = probe_sources(2)
 
     def stored_set(seed: int):
         before = set(tmp_path.glob("probes-*.npz"))

@@ -174,7 +174,7 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     the test episodes under gain 1.5, while the calibration on probe episodes under gains 1.2 and 1.8
     (predicted by the wrapped fit, :func:`calibrate_on_probes`) covers them at about the level."""
     from qube_koopman.identify.model_selection.transfer import ProbeSet
-    from qube_koopman.identify.uncertainty import calibrate_on_probes
+    from qube_koopman.identify.uncertainty import calibrate_on_probe_sets, calibrate_on_probes
 
     train, _ = ar1
     level = 0.9
@@ -203,6 +203,20 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     again = calibrate(one_fold, episodes, loops, CalibrationOptions(level, stride=1))
     np.testing.assert_allclose(on_probes.scale_, again.scale_, rtol=1e-12)
     np.testing.assert_allclose(on_probes.factor_, again.factor_, rtol=1e-12)
+    # Two probe sets calibrated in one simulation: each is its own calibration.
+    other = ProbeSet([controller(1.5)], [loop_episodes(10, 1.5, 0.16, seed=6)], [])
+    first, second = calibrate_on_probe_sets(fit, [probes, other], CalibrationOptions(level, stride=1))
+    np.testing.assert_allclose(first.factor_, on_probes.factor_, rtol=1e-12)
+    np.testing.assert_allclose(first.scale_, on_probes.scale_, rtol=1e-12)
+    alone = calibrate(
+        dataclasses.replace(one_fold, folds=[dataclasses.replace(one_fold.folds[0], validation=np.arange(10))]),
+        other.episodes[0],
+        [Loop("wrapped", controller(1.5))] * 10,
+        CalibrationOptions(level, stride=1),
+    )
+    assert second.n_samples_ == alone.n_samples_ and not np.allclose(second.scale_, first.scale_)
+    np.testing.assert_allclose(second.scale_, alone.scale_, rtol=1e-12)
+    np.testing.assert_allclose(second.factor_, alone.factor_, rtol=1e-12)
 
     test = loop_episodes(30, 1.5, 0.16, seed=5)
     wrapped = Loop("wrapped", controller(1.5))
@@ -230,10 +244,23 @@ def test_the_probes_take_their_own_number_of_members_and_the_calibration_folds_t
     more = fit_ensemble(ClEdmd(P_CONTROLLER, alpha=1e-6), train, dataclasses.replace(options, n_calibration_members=3))
     np.testing.assert_array_equal(more.counts, fit.counts)
     seen = []
-    monkeypatch.setattr(calibration, "calibrate", lambda on_probes, *a, **k: seen.append(on_probes.folds[0].members))
+
+    class Seen(Exception):
+        pass
+
+    def predict_groups(groups, offsets=None):
+        seen.extend(models for models, _ in groups)
+        raise Seen
+
+    monkeypatch.setattr(calibration, "predict_groups", predict_groups)
     probes = dataclasses.make_dataclass("Probes", ["controllers", "episodes"])([P_CONTROLLER], [train[:2]])
-    calibration.calibrate_on_probes(fit, probes, CalibrationOptions(0.9), n_members=options.n_probe_members)
-    assert seen[0] == fit.members[:5]
+    with pytest.raises(Seen):
+        calibration.calibrate_on_probes(fit, probes, CalibrationOptions(0.9), n_members=options.n_probe_members)
+    wrapped = Loop("wrapped", P_CONTROLLER)
+    expected = [wrapped.model(*member, None) for member in fit.members[:5]]
+    assert len(seen) == 1 and len(seen[0]) == 6  # the point fit and the first 5 members
+    for got, want in zip(seen[0][1:], expected):
+        np.testing.assert_array_equal(got.A, want.A)
     with pytest.raises(ValueError, match="probe members"):
         IntervalOptions(n_probe_members=1)
 
