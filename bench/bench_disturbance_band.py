@@ -17,25 +17,30 @@ Cases: the paper's 28 training episodes (``--split paper``) tested on its 20 tes
 the soft controller's 10 (``--soft DIR``: a loop the training never ran); the default lifting, and
 with ``--search-lifting`` also the search's.
 
-Measured (2 cores shared with other work; the paper test's medians of 3, the soft episodes' single
-runs, so the seconds are rough and the bands exact; theta / alpha; the seconds each band adds to the
-run without intervals):
+Measured (2 cores; medians of 7 for the default lifting, 3 for the search's; the seconds vary from run to
+run by more than the bands differ, the ratio of the two bands' seconds holds; theta / alpha; the seconds
+each band adds to the run without intervals):
 
 | case | band | pooled coverage | worst episode | half-width / RMS | added |
 |---|---|---|---|---|---|
-| default lifting, paper test | bootstrap | 0.955 / 0.960 | 0.906 / 0.929 | 2.04 / 2.12 | +87 % |
-| | disturbance | 0.953 / 0.956 | 0.906 / 0.926 | 2.14 / 2.19 | +16 % |
-| default lifting, soft episodes | bootstrap | 0.913 / 0.953 | 0.774 / 0.880 | 1.66 / 2.11 | +91 % |
-| | disturbance | 0.896 / 0.970 | 0.759 / 0.909 | 1.67 / 2.40 | +42 % |
-| search's lifting, paper test | bootstrap | 0.968 / 0.956 | 0.924 / 0.911 | 2.03 / 1.89 | +82 % |
-| | disturbance | 0.966 / 0.955 | 0.914 / 0.911 | 2.04 / 1.90 | +12 % |
-| search's lifting, soft episodes | bootstrap | 0.960 / 0.979 | 0.898 / 0.889 | 2.09 / 2.50 | +108 % |
-| | disturbance | 0.979 / 0.985 | 0.902 / 0.917 | 2.36 / 2.93 | +56 % |
+| default lifting, paper test | bootstrap | 0.955 / 0.960 | 0.906 / 0.929 | 2.04 / 2.12 | +175 % |
+| | disturbance | 0.953 / 0.956 | 0.906 / 0.926 | 2.14 / 2.19 | +54 % |
+| default lifting, soft episodes | bootstrap | 0.913 / 0.953 | 0.774 / 0.880 | 1.66 / 2.11 | +374 % |
+| | disturbance | 0.896 / 0.970 | 0.759 / 0.909 | 1.67 / 2.40 | +132 % |
+| search's lifting, paper test | bootstrap | 0.968 / 0.956 | 0.924 / 0.911 | 2.03 / 1.89 | +131 % |
+| | disturbance | 0.966 / 0.955 | 0.914 / 0.911 | 2.04 / 1.90 | +34 % |
+| search's lifting, soft episodes | bootstrap | 0.960 / 0.979 | 0.898 / 0.889 | 2.09 / 2.50 | +211 % |
+| | disturbance | 0.979 / 0.985 | 0.902 / 0.917 | 2.36 / 2.93 | +101 % |
+
+As commands (``--commands``, fresh processes, the default lifting, medians of 7): the filter's band adds
++15 % (paper test, 1.73 s without intervals) and +35 % (soft episodes, 1.51 s), the bootstrap band +41 %
+and +100 %.
 
 The filter's K-step bands (``--horizon``; default lifting, paper test): 0.1 s ahead 0.976 / 0.973
 (worst 0.953 / 0.953), 1 s ahead 0.958 / 0.965 (worst 0.885 / 0.885), half-width 2.1-2.4 x the RMS error.
 
 Usage: python bench/bench_disturbance_band.py --data DIR [--soft DIR] [--repeat N] [--search-lifting] [--horizon]
+       [--commands]
 (DIR: the paper's 48 episodes as .mcap logs, e.g. qube-import <the dataset's CSV folder> --out DIR)
 """
 
@@ -48,6 +53,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_interval_cost import SEARCH_LIFTING, bench_logs  # noqa: E402
+from bench_kstep import command_seconds  # noqa: E402  (one qube-identify command in a fresh process: seconds)
 from bench_search import timed_run  # noqa: E402  (one qube-identify run in this process: seconds, report.json)
 
 BANDS = ("bootstrap", "disturbance")
@@ -115,6 +121,23 @@ def measure(label: str, argv: list[str], repeat: int) -> None:
     print(f"  the filter's band adds {ratio:.2f} x the bootstrap band's seconds", flush=True)
 
 
+def measure_commands(label: str, argv: list[str], repeat: int) -> None:
+    """Each run a ``qube-identify`` command of its own, without intervals and with each band, alternating (what a
+    user waits for: the imports included, and the probe cache already filled by the in-process runs)."""
+    plain: list[float] = []
+    seconds: dict[str, list[float]] = {b: [] for b in BANDS}
+    for _ in range(repeat):
+        plain.append(command_seconds([*argv, "--interval", "0"]))
+        for band in BANDS:
+            seconds[band].append(command_seconds([*argv, "--interval-method", band]))
+    base = statistics.median(plain)
+    added = "".join(
+        f"{statistics.median(seconds[b]) - base:>+9.2f} s ({100 * (statistics.median(seconds[b]) / base - 1):+4.0f} %)"
+        for b in BANDS
+    )
+    print(f"{label:<36}{base:>7.2f} s{added}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder of the paper's 48 imported .mcap logs")
@@ -122,6 +145,9 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, the median quoted (default 3)")
     parser.add_argument("--search-lifting", action="store_true", help="also the search's lifting (minutes)")
     parser.add_argument("--horizon", action="store_true", help="also predict 0.1 s and 1 s ahead (K-step bands)")
+    parser.add_argument(
+        "--commands", action="store_true", help="also time the default lifting's runs as commands, in fresh processes"
+    )
     args = parser.parse_args()
     _, train, test, soft = bench_logs(args.data, args.soft, args.repeat)
     extra = ["--horizon", "0.1,1"] if args.horizon else []
@@ -134,6 +160,13 @@ def main() -> None:
         measure(f"{label}, paper test", ["--train", *train, "--test", *test, *flags, *extra], args.repeat)
         if soft:
             measure(f"{label}, soft episodes", ["--train", *train, "--test", *soft, *flags, *extra], args.repeat)
+    if args.commands:
+        print(f"\nas commands, each in a fresh process (imports included), median of {args.repeat}")
+        print(f"{'case':<36}{'without':>9}{'bootstrap adds':>20}{'disturbance adds':>20}")
+        for label, tests in (("paper test", test), ("soft episodes", soft)):
+            if tests:
+                argv = ["--train", *train, "--test", *tests, *extra]
+                measure_commands(f"default lifting, {label}", argv, args.repeat)
 
 
 if __name__ == "__main__":
