@@ -74,9 +74,10 @@ _STEP = 3e-4
 # Residual given to a diverged prediction: large and finite, so the solver backs off.
 _DIVERGED = 1e3
 # The batched Gauss-Newton steps stop once no offset moves more than this (rad): a three-thousandth of
-# an encoder count, a hundredth of the estimates' standard errors or less. The steps shrink about tenfold
-# each (the lifting's curvature, which Gauss-Newton leaves out), so what is left is below 1e-7 rad; a
-# tighter stop took twice the steps (8 against 4) for digits no prediction or score shows.
+# an encoder count, under a fiftieth of the estimates' standard errors (7e-5 rad and more on the soft
+# controller's episodes). The steps shrink about tenfold each (the lifting's curvature, which
+# Gauss-Newton leaves out), so what is left is below 1e-7 rad; a tighter stop took twice the steps
+# (8 against 4) for digits no prediction or score shows.
 _CONVERGED = 1e-6
 
 
