@@ -294,11 +294,13 @@ def calibrate_on_probe_sets(
     fit: EnsembleFit, probe_sets: Sequence, options: CalibrationOptions, n_members: int | None = None
 ) -> list[IntervalCalibration]:
     """:func:`calibrate_on_probes` of several probe sets, one calibration each, their episodes predicted
-    in one simulation (a pass over the samples costs about the same for one set's episodes as for all of
-    them: a step's time is numpy's per-call overhead more than arithmetic)."""
+    in one simulation: a pass's per-sample overhead (numpy's per-call cost, most of a small lifting's
+    step) is paid once for all the sets, not once each."""
     estimator = fit.estimator  # a closed-loop fit's plant, or EDMD's model of the plant
     point = (getattr(estimator, "closed_loop_model_", None), getattr(estimator, "plant_model_", estimator.model_))
     members = fit.members if n_members is None else fit.members[:n_members]
+    if not probe_sets:
+        return []
     per_set = []
     for probes in probe_sets:
         episodes = [episode for group in probes.episodes for episode in group]

@@ -434,8 +434,10 @@ def calibrate_filter_on_probe_sets(
     variance_of: Callable[[KoopmanModel], FilterVariance],
 ) -> list[FilterCalibration]:
     """:func:`calibrate_filter_on_probes` of several probe sets, one calibration each, their episodes
-    predicted in one simulation (a pass over the samples costs the same for one set's episodes as for
-    all of them: the step's time is numpy's per-call overhead, not arithmetic)."""
+    predicted in one simulation: a pass's per-sample overhead (numpy's per-call cost, most of a small
+    lifting's step) is paid once for all the sets, not once each."""
+    if not probe_sets:
+        return []
     per_set = []
     for probes in probe_sets:
         episodes = [episode for group in probes.episodes for episode in group]

@@ -137,6 +137,7 @@ def test_probe_sets_calibrated_together_are_each_calibrated_alone():
         (closed, plant), [default, own], options, disturbance, closed, variance_of
     )
     assert len(together) == 2
+    assert calibrate_filter_on_probe_sets((closed, plant), [], options, disturbance, closed, variance_of) == []
     first, second = (c.as_dict(["theta", "alpha"])["theta"]["factor"] for c in together)
     assert first != second  # the sets' calibrations differ: each must be its own
     for probes, joint in zip([default, own], together):

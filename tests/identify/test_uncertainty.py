@@ -206,6 +206,7 @@ def test_a_loop_the_training_never_ran_is_calibrated_on_probes_of_other_loops(ar
     # Two probe sets calibrated in one simulation: each is its own calibration.
     other = ProbeSet([controller(1.5)], [loop_episodes(10, 1.5, 0.16, seed=6)], [])
     first, second = calibrate_on_probe_sets(fit, [probes, other], CalibrationOptions(level, stride=1))
+    assert calibrate_on_probe_sets(fit, [], CalibrationOptions(level)) == []
     np.testing.assert_allclose(first.factor_, on_probes.factor_, rtol=1e-12)
     np.testing.assert_allclose(first.scale_, on_probes.scale_, rtol=1e-12)
     alone = calibrate(
