@@ -319,7 +319,7 @@ def _simulate_probes(requests, params, distribution, seed: int, skip: int) -> li
 PROBE_CACHE_BYTES = 512 * 2**20
 
 #: Bump when what a stored probe set holds changes (the simulator's own code is hashed anyway).
-PROBE_CACHE_FORMAT = 2
+PROBE_CACHE_FORMAT = 3
 
 
 def probe_cache_key(
@@ -370,9 +370,10 @@ def _write_probes(path: Path, probes: ProbeSet) -> None:
         arrays[f"c{i}_names"] = np.array([t.name for t in episodes])
         for name in ("A", "B", "C", "D"):
             arrays[f"c{i}_{name}"] = getattr(controller, name)
-        for j, t in enumerate(episodes):
-            for name in ("x", "u", "r", "f", "xc"):
-                arrays[f"c{i}_e{j}_{name}"] = getattr(t, name)
+        # One array per signal and controller, its episodes stacked (they run equally long): a stored member
+        # costs np.load a few hundred microseconds whatever its size, and a set has some 70 episodes.
+        for name in ("x", "u", "r", "f", "xc"):
+            arrays[f"c{i}_{name}"] = np.stack([getattr(t, name) for t in episodes])
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -402,14 +403,15 @@ def _read_probes(path: Path, dt: float | None) -> ProbeSet | None:
                 A, B, C, D = (data[f"c{i}_{name}"] for name in ("A", "B", "C", "D"))
                 controllers.append(DiscreteStateSpace(A, B, C, D, dt))
                 zeros.append(data[f"c{i}_zeros"])
+                x, u, r, f, xc = (data[f"c{i}_{name}"] for name in ("x", "u", "r", "f", "xc"))
                 episodes.append(
                     [
                         Trajectory(
-                            x=data[f"c{i}_e{j}_x"],
-                            u=data[f"c{i}_e{j}_u"],
-                            r=data[f"c{i}_e{j}_r"],
-                            f=data[f"c{i}_e{j}_f"],
-                            xc=data[f"c{i}_e{j}_xc"],
+                            x=x[j],
+                            u=u[j],
+                            r=r[j],
+                            f=f[j],
+                            xc=xc[j],
                             dt=dt,
                             name=str(name),
                             state_names=("theta", "alpha"),
