@@ -371,7 +371,7 @@ def _write_probes(path: Path, probes: ProbeSet) -> None:
         for name in ("A", "B", "C", "D"):
             arrays[f"c{i}_{name}"] = getattr(controller, name)
         # One array per signal and controller, its episodes stacked (they run equally long): a stored member
-        # costs np.load a few hundred microseconds whatever its size, and a set has some 70 episodes.
+        # costs np.load a few hundred microseconds whatever its size, and a set holds up to 54 episodes.
         for name in ("x", "u", "r", "f", "xc"):
             arrays[f"c{i}_{name}"] = np.stack([getattr(t, name) for t in episodes])
     try:
