@@ -761,7 +761,7 @@ def _interval_method(args) -> tuple[str, str]:
         return "disturbance", (
             "the default with --horizon: on the paper's data the disturbance filter's band covers the test episodes "
             "as the bootstrap band does (pooled 0.953 / 0.956 against 0.955 / 0.960 with the default lifting) "
-            "for a quarter to a third of its added time, and bands the K-step predictions too"
+            "for a fifth to a third of its added time, and bands the K-step predictions too"
         )
     return "bootstrap", (
         "the default without --horizon: the bootstrap refits also give model.json the plants qube-design "
