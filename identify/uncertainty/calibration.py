@@ -11,7 +11,12 @@ import numpy as np
 from qube_koopman.identify.data.trajectory import Trajectory, as_episodes, select_episodes
 from qube_koopman.identify.uncertainty.ensemble import EnsembleFit, FoldEnsemble
 from qube_koopman.identify.uncertainty.loops import Loop, consecutive_runs
-from qube_koopman.identify.uncertainty.prediction import diverged_from, members_variance, predict_groups
+from qube_koopman.identify.uncertainty.prediction import (
+    diverged_from,
+    members_variance,
+    predict_group_sets,
+    predict_groups,
+)
 
 __all__ = [
     "CalibrationOptions",
@@ -20,6 +25,7 @@ __all__ = [
     "calibrate",
     "calibrate_on_probes",
     "calibrate_on_probe_sets",
+    "probe_set_groups",
     "widest",
 ]
 
@@ -299,21 +305,22 @@ def calibrate_on_probe_sets(
     estimator = fit.estimator  # a closed-loop fit's plant, or EDMD's model of the plant
     point = (getattr(estimator, "closed_loop_model_", None), getattr(estimator, "plant_model_", estimator.model_))
     members = fit.members if n_members is None else fit.members[:n_members]
-    if not probe_sets:
-        return []
-    per_set = []
+    groups = probe_set_groups(probe_sets, point, members, options.measured)
+    return [_fit_on_groups(g, p, options) for g, p in zip(groups, predict_group_sets(groups, options.offsets))]
+
+
+def probe_set_groups(probe_sets: Sequence, point: tuple, members: Sequence, measured=None) -> list[list]:
+    """Per probe set, its ``(models, episodes)`` groups: each probe controller's episodes, predicted by the
+    fit on all the training episodes (``point``: closed loop, plant) and ``members``, each wrapped in it
+    (:func:`~qube_koopman.identify.uncertainty.prediction.predict_group_sets` predicts them)."""
+    out = []
     for probes in probe_sets:
         episodes = [episode for group in probes.episodes for episode in group]
         loops = [
             Loop("wrapped", controller) for controller, group in zip(probes.controllers, probes.episodes) for _ in group
         ]
-        fold = FoldEnsemble(np.arange(len(episodes)), point, members)
-        per_set.append(_held_out_groups([fold], as_episodes(episodes), loops, options.measured)[0])
-    predicted = predict_groups([group for groups in per_set for group in groups], options.offsets)
-    out, first = [], 0
-    for groups in per_set:
-        out.append(_fit_on_groups(groups, predicted[first : first + len(groups)], options))
-        first += len(groups)
+        fold = FoldEnsemble(np.arange(len(episodes)), point, list(members))
+        out.append(_held_out_groups([fold], as_episodes(episodes), loops, measured)[0])
     return out
 
 

@@ -44,10 +44,10 @@ import numpy as np
 from qube_koopman.identify.data.trajectory import as_episodes, select_episodes
 from qube_koopman.identify.models import disturbance as dm
 from qube_koopman.identify.models.model import KoopmanModel
-from qube_koopman.identify.uncertainty.calibration import CalibrationOptions, IntervalCalibration
+from qube_koopman.identify.uncertainty.calibration import CalibrationOptions, IntervalCalibration, probe_set_groups
 from qube_koopman.identify.uncertainty.ensemble import EnsembleFit, FoldEnsemble, IntervalOptions, episode_folds
 from qube_koopman.identify.uncertainty.loops import Loop, consecutive_runs
-from qube_koopman.identify.uncertainty.prediction import diverged_from, predict_groups
+from qube_koopman.identify.uncertainty.prediction import diverged_from, predict_group_sets, predict_groups
 
 __all__ = [
     "AheadBand",
@@ -436,21 +436,11 @@ def calibrate_filter_on_probe_sets(
     """:func:`calibrate_filter_on_probes` of several probe sets, one calibration each, their episodes
     predicted in one simulation: a pass's per-sample overhead (numpy's per-call cost, most of a small
     lifting's step) is paid once for all the sets, not once each."""
-    if not probe_sets:
-        return []
-    per_set = []
-    for probes in probe_sets:
-        episodes = [episode for group in probes.episodes for episode in group]
-        loops = [Loop("wrapped", c) for c, group in zip(probes.controllers, probes.episodes) for _ in group]
-        fold = FoldEnsemble(np.arange(len(episodes)), point, [])
-        per_set.append(_held_out_groups([fold], as_episodes(episodes), loops, options))
-    predicted = predict_groups([group for groups in per_set for group in groups], options.offsets)
-    out, first = [], 0
-    for groups in per_set:
-        mine = predicted[first : first + len(groups)]
-        out.append(_fit_on_groups(groups, mine, options, disturbance, model, (), variance_of))
-        first += len(groups)
-    return out
+    groups = probe_set_groups(probe_sets, point, [], options.measured)
+    return [
+        _fit_on_groups(g, p, options, disturbance, model, (), variance_of)
+        for g, p in zip(groups, predict_group_sets(groups, options.offsets))
+    ]
 
 
 def _calibrate_ahead(calibration: FilterCalibration, groups, disturbance, K: int, options: CalibrationOptions) -> None:

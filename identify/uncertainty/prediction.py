@@ -19,6 +19,7 @@ __all__ = [
     "members_variance",
     "predict_episodes",
     "predict_groups",
+    "predict_group_sets",
 ]
 
 
@@ -122,6 +123,19 @@ def predict_groups(
         _with_offset_spread(models, len(trajs), found, group, at, o_s)
         for (models, trajs), found, group, at, o_s in zip(groups, estimates, predicted, plain, runs)
     ]
+
+
+def predict_group_sets(
+    group_sets: Sequence[Sequence[tuple[Sequence, Sequence[Trajectory]]]], offsets=None
+) -> list[list[list[EpisodePrediction]]]:
+    """:func:`predict_groups` of several lists of groups in one call (one simulation where their shapes
+    agree), the predictions handed back per list: ``[set][group][episode]``."""
+    flat = predict_groups([group for groups in group_sets for group in groups], offsets)
+    out, first = [], 0
+    for groups in group_sets:
+        out.append(flat[first : first + len(groups)])
+        first += len(groups)
+    return out
 
 
 def _predicted_at_offsets(groups, estimates) -> list[list[EpisodePrediction]]:

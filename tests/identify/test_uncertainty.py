@@ -249,11 +249,11 @@ def test_the_probes_take_their_own_number_of_members_and_the_calibration_folds_t
     class Seen(Exception):
         pass
 
-    def predict_groups(groups, offsets=None):
-        seen.extend(models for models, _ in groups)
+    def predict_group_sets(group_sets, offsets=None):
+        seen.extend(models for groups in group_sets for models, _ in groups)
         raise Seen
 
-    monkeypatch.setattr(calibration, "predict_groups", predict_groups)
+    monkeypatch.setattr(calibration, "predict_group_sets", predict_group_sets)
     probes = dataclasses.make_dataclass("Probes", ["controllers", "episodes"])([P_CONTROLLER], [train[:2]])
     with pytest.raises(Seen):
         calibration.calibrate_on_probes(fit, probes, CalibrationOptions(0.9), n_members=options.n_probe_members)
