@@ -19,6 +19,16 @@ hypothesis_settings.register_profile("suite", derandomize=True, database=None)
 hypothesis_settings.register_profile("explore", derandomize=False)
 hypothesis_settings.load_profile("explore" if os.environ.get("QUBE_FUZZ_EXPLORE") == "1" else "suite")
 
+# Bytecode is cached during the suite even where the environment turns it off (PYTHONDONTWRITEBYTECODE,
+# set on some CI images): each pytest-xdist worker otherwise rewrites every test module's asserts and
+# compiles the package from source (7 s a worker of the 12 s collection), and each of the suite's
+# few hundred command subprocesses compiles the modules it imports again (0.2 s of a 0.7 s start).
+# Read here, at the conftest's import in the controller, before the workers start: they and every
+# subprocess inherit the environment. The files go where Python puts them by default (__pycache__,
+# ignored by git); the tests judge the same code either way.
+if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
+    sys.dont_write_bytecode = False
+
 # Fixtures the tests of several files share: the built firmware core and the environment of the
 # emulated bridge's subprocesses (bridge_helpers), the Uno firmware built for simavr (avr_helpers),
 # the dask cluster tests' logs (_cluster_logs), the documentation blocks' clone (readme_blocks), the
