@@ -46,6 +46,8 @@ MAX_PARAMETER = 1e6
 MIN_POSITIVE_PARAMETER = 1e-15
 #: The longest transport delay (s): the simulator keeps that many seconds of commands.
 MAX_DELAY = 1.0
+#: The largest tilt of the base (rad, about 6 degrees): far beyond any rig that balances on a desk.
+MAX_TILT = 0.1
 DEFAULT_SUBSTEPS = 2
 
 
@@ -113,6 +115,17 @@ class PendulumParameters:
         slide in their clamp); 0 keeps the spring linear. Run backwards on the logs,
         the equations without a spring leave a restoring load that levels off near
         half a radian on both recording days, each with its own stiffness.
+    tilt_x, tilt_y : float
+        The base's tilt (rad), to first order: the pendulum balances at
+        ``alpha_b = tilt_x sin(theta) + tilt_y cos(theta)`` in the encoder's frame
+        (``tilt_y`` the slope across the arm where it points at ``theta = 0``,
+        ``tilt_x`` the slope along it), and the arm's tip rises and falls as it turns,
+        so gravity pulls the arm with ``-(mr / 2 + mp) g Lr alpha_b``. Under the balancing
+        loop a balance point that moves with the arm is a load on the arm (the loop
+        pushes the arm to keep the pendulum upright), the slower the arm loop the more.
+        A rig set up on a desk a few tenths of a degree off level is tilted by some
+        mrad, differently each time it is set up: a setup's value, like the cables'.
+        0 (a level base) leaves the terms out; at most 0.1 rad.
     delay : float
         Transport delay (s) from a command to the motor: over each sample the
         motor sees the command of ``delay`` seconds earlier, so a fraction of a
@@ -140,6 +153,8 @@ class PendulumParameters:
     Kr: float = 0.0017123295002048101
     theta_rest: float = 0.0
     cable_softening: float = 5.179489002800374
+    tilt_x: float = 0.0
+    tilt_y: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -169,6 +184,11 @@ class PendulumParameters:
                 )
         if self.delay > MAX_DELAY:
             raise ValueError(f"parameter delay must be at most {MAX_DELAY:g} s, got {self.delay}")
+        for name in ("tilt_x", "tilt_y"):
+            if abs(getattr(self, name)) > MAX_TILT:
+                raise ValueError(
+                    f"parameter {name} must be at most {MAX_TILT:g} rad in size, got {getattr(self, name)}"
+                )
 
     @classmethod
     def workbook(cls) -> "PendulumParameters":
@@ -232,6 +252,9 @@ class Coefficients(NamedTuple):
     arm_stiffness: float = 0.0  # Kr
     arm_rest: float = 0.0  # theta_rest
     cable_curvature: float = 0.0  # sqrt(cable_softening)
+    tilt_x: float = 0.0  # the base's tilt: the pendulum balances at tilt_x sin(theta) + tilt_y cos(theta)
+    tilt_y: float = 0.0
+    arm_gravity: float = 0.0  # (mr / 2 + mp) g Lr: gravity's torque on the arm per radian of the balance angle
 
     @classmethod
     def of(cls, p: PendulumParameters) -> Coefficients:
@@ -251,6 +274,9 @@ class Coefficients(NamedTuple):
             arm_stiffness=p.Kr,
             arm_rest=p.theta_rest,
             cable_curvature=math.sqrt(p.cable_softening),
+            tilt_x=p.tilt_x,
+            tilt_y=p.tilt_y,
+            arm_gravity=(p.mr / 2.0 + p.mp) * p.g * p.Lr,
         )
 
     @classmethod
@@ -302,7 +328,7 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
     """(theta_ddot, alpha_ddot) from the arm angle, sin and cos of alpha and the motor's voltage
     (past the dead zone, :func:`_motor_voltage`); floats or arrays alike. ``terms``: :func:`_terms`
     of ``k`` and ``tanh``, when bound once for many calls."""
-    coulomb, stretch = _terms(k, tanh) if terms is None else terms
+    coulomb, stretch, tilted = _terms(k, tanh) if terms is None else terms
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
     r1 = (
@@ -315,16 +341,40 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
         r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
     if stretch is not None:  # the cables' spring; as above, exactly the old arithmetic without it
         r1 = r1 - k.arm_stiffness * stretch(theta - k.arm_rest)
-    r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * s
+    upright = s
+    if tilted:  # a tilted base's gravity on both bodies; as above, exactly the old arithmetic on a level one
+        arm, upright = _tilt_torques(theta, s, c, k, *_TRIG[tanh is math.tanh])
+        r1 = r1 + arm
+    r2 = -k.pendulum_damping * alpha_dot + k.quarter * s * c * theta_dot * theta_dot + k.gravity * upright
     m11 = k.m11 + k.quarter * s * s
     m12 = k.m12 * c
     det = m11 * k.m22 - m12 * m12
     return (k.m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det
 
 
-def _terms(k: Coefficients, tanh: Callable) -> tuple[bool, Callable | None]:
-    """Which optional terms :func:`_accelerations` adds: Coulomb friction, and the cables' pull."""
-    return _on(k.arm_coulomb), _cable_stretch(k, tanh)
+#: sin and cos of numpy (arrays) or of math (the float integrators: scalar_rk4's floats), by ``tanh is math.tanh``.
+_TRIG: dict[bool, tuple[Callable, Callable]] = {False: (np.sin, np.cos), True: (math.sin, math.cos)}
+
+
+def _tilt_torques(theta, s, c, k: Coefficients, sin: Callable, cos: Callable):
+    """A tilted base's gravity, to first order in the tilt: the arm's torque, and the pendulum's gravity
+    term per ``k.gravity`` (``sin(alpha)`` on a level base).
+
+    The potential ``gravity (cos(alpha) + alpha_b sin(alpha)) - arm_gravity (tilt_x cos(theta) - tilt_y
+    sin(theta))`` with the balance angle ``alpha_b = tilt_x sin(theta) + tilt_y cos(theta)``: the
+    pendulum's centre and the arm's tip rise and fall with the base's slope under them. Its forces:
+    ``-arm_gravity alpha_b - gravity alpha_b' sin(alpha)`` on the arm, ``gravity (sin(alpha) - alpha_b
+    cos(alpha))`` on the pendulum (:func:`total_energy` adds the same potential).
+    """
+    sin_theta, cos_theta = sin(theta), cos(theta)
+    balance = k.tilt_x * sin_theta + k.tilt_y * cos_theta
+    slope = k.tilt_x * cos_theta - k.tilt_y * sin_theta
+    return -k.arm_gravity * balance - k.gravity * slope * s, s - c * balance
+
+
+def _terms(k: Coefficients, tanh: Callable) -> tuple[bool, Callable | None, bool]:
+    """Which optional terms :func:`_accelerations` adds: Coulomb friction, the cables' pull, and a tilted base."""
+    return _on(k.arm_coulomb), _cable_stretch(k, tanh), _on(k.tilt_x) or _on(k.tilt_y)
 
 
 def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coefficients, sin: Callable, cos: Callable):
@@ -406,6 +456,7 @@ def scalar_rk4(k: Coefficients) -> Callable:
         bool(curvature),
         bool(dead_zone),
     )
+    has_tilt = bool(k.tilt_x) or bool(k.tilt_y)
     sin, cos, tanh = math.sin, math.cos, math.tanh
 
     def accelerations(theta, s, c, theta_dot, alpha_dot, voltage):
@@ -420,7 +471,11 @@ def scalar_rk4(k: Coefficients) -> Callable:
         if has_spring:
             x = theta - rest
             r1 = r1 - stiffness * (tanh(curvature * x) / curvature if has_curve else x)
-        r2 = -pendulum_damping * alpha_dot + quarter * s * c * theta_dot * theta_dot + gravity * s
+        upright = s
+        if has_tilt:
+            arm, upright = _tilt_torques(theta, s, c, k, sin, cos)
+            r1 = r1 + arm
+        r2 = -pendulum_damping * alpha_dot + quarter * s * c * theta_dot * theta_dot + gravity * upright
         m11 = m11_0 + quarter * s * s
         m12 = m12_0 * c
         det = m11 * m22 - m12 * m12
@@ -645,7 +700,8 @@ def simulate(
 def total_energy(state, params: PendulumParameters = PendulumParameters()) -> np.ndarray:
     """Kinetic (full inertia matrix) plus potential energy (J), zero potential level at the pivot.
 
-    With alpha = 0 upright the pendulum's potential is ``mp g Lp / 2 cos(alpha)``; the cables'
+    With alpha = 0 upright the pendulum's potential is ``mp g Lp / 2 cos(alpha)``; a tilted base adds
+    its slope under the pendulum and the arm (:func:`_tilt_torques`); the cables'
     spring adds ``Kr (theta - theta_rest)^2 / 2``, or with a ``cable_softening`` ``c^2``,
     ``Kr log(cosh(c (theta - theta_rest))) / c^2`` (the work of its levelling pull).
     """
@@ -662,7 +718,10 @@ def total_energy(state, params: PendulumParameters = PendulumParameters()) -> np
         else (np.abs(curvature * stretch) + np.log1p(np.exp(-2 * np.abs(curvature * stretch))) - np.log(2.0))
         / curvature**2
     )
-    return kinetic + k.gravity * c + k.arm_stiffness * spring
+    sin_theta, cos_theta = np.sin(x[..., 0]), np.cos(x[..., 0])
+    balance = k.tilt_x * sin_theta + k.tilt_y * cos_theta
+    tilt = k.gravity * balance * s - k.arm_gravity * (k.tilt_x * cos_theta - k.tilt_y * sin_theta)
+    return kinetic + k.gravity * c + k.arm_stiffness * spring + tilt
 
 
 def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tuple[np.ndarray, np.ndarray]:
@@ -694,13 +753,24 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     as viscous damping of the arm. The cables' spring (``Kr``) enters as a
     stiffness of the arm (its slope at rest, whatever its ``cable_softening``); the
     equilibrium is at ``theta = theta_rest``, so the state's theta is measured from there.
+    A tilted base enters to first order in the tilt, at ``theta_rest``: the slope there of the
+    pendulum's balance angle ``alpha_b`` couples the pendulum's gravity to the arm (both ways) and
+    stiffens or softens the arm; ``alpha_b`` there is where the state's alpha is measured from (as
+    from an encoder's zero), and the constant torque the tilt puts on the arm there is left out (a
+    load, which the loop holds), so this is the Jacobian there rather than at an equilibrium.
     """
     k = Coefficients.of(params)
     mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])
     # Generalized forces to first order at alpha = 0: columns (theta, alpha, theta_dot, alpha_dot).
     # The smoothed Coulomb torque's slope at rest acts as viscous damping there.
     arm_damping = k.arm_damping + k.arm_coulomb * k.inverse_coulomb_speed
-    forces = np.array([[-k.arm_stiffness, 0.0, -arm_damping, 0.0], [0.0, k.gravity, 0.0, -k.pendulum_damping]])
+    slope = k.tilt_x * math.cos(k.arm_rest) - k.tilt_y * math.sin(k.arm_rest)  # of the balance angle
+    forces = np.array(
+        [
+            [-k.arm_stiffness - k.arm_gravity * slope, -k.gravity * slope, -arm_damping, 0.0],
+            [-k.gravity * slope, k.gravity, 0.0, -k.pendulum_damping],
+        ]
+    )
     A = np.zeros((4, 4))
     A[0, 2] = A[1, 3] = 1.0
     A[2:] = np.linalg.solve(mass, forces)

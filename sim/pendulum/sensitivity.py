@@ -50,6 +50,9 @@ FIELDS = (
     "arm_stiffness",
     "arm_rest",
     "cable_softening",
+    "tilt_x",
+    "tilt_y",
+    "arm_gravity",
 )
 _DEAD_ZONE = FIELDS.index("dead_zone")
 
@@ -122,7 +125,17 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         - k.arm_coulomb * friction
         - k.arm_stiffness * stretch
     )
-    r2 = -k.pendulum_damping * alpha_dot + q * sc * theta_dot * theta_dot + k.gravity * s
+    # A tilted base (physics._tilt_torques): the balance angle alpha_b = tilt_x sin(theta) + tilt_y cos(theta)
+    # and its slope in theta; on a level one exactly the arithmetic without the terms.
+    tilted = bool(np.any(k.tilt_x)) or bool(np.any(k.tilt_y))
+    upright, upright_alpha = s, c  # the pendulum's gravity term per k.gravity, and its slope in alpha
+    if tilted:
+        sin_theta, cos_theta = np.sin(theta), np.cos(theta)
+        balance = k.tilt_x * sin_theta + k.tilt_y * cos_theta
+        slope = k.tilt_x * cos_theta - k.tilt_y * sin_theta
+        r1 = r1 - k.arm_gravity * balance - k.gravity * slope * s
+        upright, upright_alpha = s - c * balance, c + s * balance
+    r2 = -k.pendulum_damping * alpha_dot + q * sc * theta_dot * theta_dot + k.gravity * upright
     m11 = k.m11 + q * s * s
     m12 = m12k * c
     m22 = k.m22
@@ -137,7 +150,12 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
     cos2 = c * c - s * s
     r1_theta = -k.arm_stiffness * stretch_slope
     r1_alpha = -2.0 * q * cos2 * theta_dot * alpha_dot + m12k * c * alpha_dot * alpha_dot
-    r2_alpha = q * cos2 * theta_dot * theta_dot + k.gravity * c
+    r2_alpha = q * cos2 * theta_dot * theta_dot + k.gravity * upright_alpha
+    r2_theta = None
+    if tilted:  # the balance angle's second slope in theta is -alpha_b
+        r1_theta = r1_theta - k.arm_gravity * slope + k.gravity * balance * s
+        r1_alpha = r1_alpha - k.gravity * slope * c
+        r2_theta = -k.gravity * slope * c
     m11_alpha, m12_alpha = 2.0 * q * sc, -m12k * s
     r1_theta_dot = -k.arm_damping - 2.0 * q * sc * alpha_dot - k.arm_coulomb * k.inverse_coulomb_speed * friction_slope
     r2_theta_dot = 2.0 * q * sc * theta_dot
@@ -146,7 +164,7 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
 
     def along(c1, c2, c11, c12):  # an acceleration's partials in the state and the voltage, by its quotient rule
         return [
-            c1 * r1_theta,
+            c1 * r1_theta if r2_theta is None else c1 * r1_theta + c2 * r2_theta,
             c1 * r1_alpha + c2 * r2_alpha + c11 * m11_alpha + c12 * m12_alpha,
             c1 * r1_theta_dot + c2 * r2_theta_dot,
             c1 * r1_alpha_dot + c2 * r2_alpha_dot,
@@ -160,7 +178,7 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         "quarter": lambda: (-2.0 * sc * theta_dot * alpha_dot, sc * theta_dot * theta_dot, s * s, None, None),
         "m12": lambda: (s * alpha_dot * alpha_dot, None, None, c, None),
         "m22": lambda: (None, None, None, None, 1.0),
-        "gravity": lambda: (None, s, None, None, None),
+        "gravity": lambda: (-slope * s if tilted else None, upright, None, None, None),
         "torque_per_volt": lambda: (motor_voltage, None, None, None, None),
         "arm_damping": lambda: (-theta_dot, None, None, None, None),
         "pendulum_damping": lambda: (None, -alpha_dot, None, None, None),
@@ -169,6 +187,21 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         "arm_stiffness": lambda: (-stretch, None, None, None, None),
         "arm_rest": lambda: (k.arm_stiffness * stretch_slope, None, None, None, None),
         "cable_softening": lambda: (-k.arm_stiffness * by_softening, None, None, None, None),
+        "tilt_x": lambda: (
+            -k.arm_gravity * np.sin(theta) - k.gravity * np.cos(theta) * s,
+            -k.gravity * c * np.sin(theta),
+            None,
+            None,
+            None,
+        ),
+        "tilt_y": lambda: (
+            -k.arm_gravity * np.cos(theta) + k.gravity * np.sin(theta) * s,
+            -k.gravity * c * np.cos(theta),
+            None,
+            None,
+            None,
+        ),
+        "arm_gravity": lambda: (-balance if tilted else None, None, None, None, None),
     }
     a_rows, b_rows = [], []
     for field in active:

@@ -63,7 +63,13 @@ def test_hub_inertia_adds_to_the_arm_rod():
 
 @pytest.mark.parametrize(
     "changes, match",
-    [(dict(Rm=0.0), "Rm"), (dict(Dr=-1e-4), "Dr"), (dict(mp=float("nan")), "mp"), (dict(km="0.04"), "km")],
+    [
+        (dict(Rm=0.0), "Rm"),
+        (dict(Dr=-1e-4), "Dr"),
+        (dict(mp=float("nan")), "mp"),
+        (dict(km="0.04"), "km"),
+        (dict(tilt_x=0.2), "tilt_x"),
+    ],
 )
 def test_parameters_reject_bad_values(changes, match):
     with pytest.raises(ValueError, match=match):
@@ -86,16 +92,47 @@ def test_linearization_has_the_familiar_magnitudes():
     np.testing.assert_array_equal(A[:2], [[0, 0, 1, 0], [0, 0, 0, 1]])
 
 
-def test_linearization_is_the_jacobian_of_the_dynamics():
-    A, B = linearize_upright(P)
+#: A base tilted by a few mrad, as the rig's was on its recording days.
+TILTED = dataclasses.replace(P, tilt_x=-5e-3, tilt_y=4e-3)
+
+
+@pytest.mark.parametrize("params", [P, TILTED], ids=["level", "tilted"])
+def test_linearization_is_the_jacobian_of_the_dynamics(params):
+    # On a tilted base about its equilibrium: the arm at rest, the pendulum at its balance angle there.
+    A, B = linearize_upright(params)
+    rest = np.array([0.0, params.tilt_y, 0.0, 0.0])
     eps = 1e-6
     jac = np.empty((4, 5))
     for i in range(5):
         step = np.zeros(5)
         step[i] = eps
-        plus, minus = step[:4], -step[:4]
-        jac[:, i] = (dynamics(plus, step[4], P) - dynamics(minus, -step[4], P)) / (2 * eps)
-    np.testing.assert_allclose(jac, np.hstack([A, B]), rtol=1e-6, atol=1e-6)
+        plus, minus = rest + step[:4], rest - step[:4]
+        jac[:, i] = (dynamics(plus, step[4], params) - dynamics(minus, -step[4], params)) / (2 * eps)
+    # level: exact; tilted: to first order in the tilt (the terms left out are of the tilt's relative size, 4e-3)
+    tolerance = 5e-3 if params.tilt_x or params.tilt_y else 1e-6
+    np.testing.assert_allclose(jac, np.hstack([A, B]), rtol=tolerance, atol=1e-6)
+    if params.tilt_x:
+        assert A[3, 0] != 0.0 and A[2, 0] != 0.0  # the arm's angle moves the pendulum's balance
+
+
+def test_on_a_tilted_base_gravity_pulls_the_pendulum_to_its_balance_angle_and_the_arm_downhill():
+    from qube_koopman.sim.pendulum.physics import Coefficients
+
+    free = dataclasses.replace(TILTED, Kr=0.0, Cr=0.0)
+    k = Coefficients.of(free)
+    for theta in (-1.0, 0.0, 0.4, 2.0):
+        # at its balance angle gravity leaves the pendulum no torque: only the arm's motion moves it
+        balance = free.tilt_x * math.sin(theta) + free.tilt_y * math.cos(theta)
+        arm, pendulum = dynamics([theta, balance, 0.0, 0.0], 0.0, free)[2:]
+        # (to first order in the tilt: what is left is of third order in the balance angle)
+        assert abs(k.m12 * math.cos(balance) * arm + k.m22 * pendulum) < k.gravity * abs(balance) ** 3
+        # ... and the arm's tip, on the slope, is pulled towards the low side
+        assert abs(arm) > 1e-3 and np.sign(arm) == -np.sign(balance)
+        level = dynamics([theta, balance, 0.0, 0.0], 0.0, dataclasses.replace(free, tilt_x=0.0, tilt_y=0.0))
+        assert abs(k.m12 * math.cos(balance) * level[2] + k.m22 * level[3]) > 0.9 * k.gravity * abs(balance)
+    # upright where the balance angle is zero (the arm across the slope) is an equilibrium of both
+    across = math.atan2(-free.tilt_y, free.tilt_x)
+    np.testing.assert_allclose(dynamics([across, 0.0, 0.0, 0.0], 0.0, free), 0.0, atol=1e-14)
 
 
 def test_paper_controller_stabilizes_the_linear_model():
@@ -136,10 +173,12 @@ def test_constant_1v_settles_at_the_back_emf_limited_speed():
     assert abs(x[-1, 1] - math.pi) < 1e-3 and abs(x[-1, 3]) < 1e-3
 
 
-def test_energy_is_conserved_without_damping_or_input():
+@pytest.mark.parametrize("params", [P, TILTED], ids=["level", "tilted"])
+def test_energy_is_conserved_without_damping_or_input(params):
     # An amplifier at 0 V still brakes the arm through the back-EMF (km^2/Rm),
-    # so the undamped case also takes the motor out (km = 0).
-    free = dataclasses.replace(P, Dr=0.0, Dp=0.0, km=0.0)
+    # so the undamped case also takes the motor out (km = 0). On a tilted base the
+    # pendulum's potential depends on the arm's angle: energy moves between them.
+    free = dataclasses.replace(params, Dr=0.0, Dp=0.0, km=0.0, Cr=0.0)
     x = simulate([0.0, 0.3, 5.0, 0.0], np.zeros(5000), free)  # 10 s at 500 Hz
     # Large swings: through hanging down and back to near upright, fast.
     assert np.ptp(x[:, 1]) > 5.0 and np.max(np.abs(x[:, 3])) > 20.0
@@ -184,6 +223,8 @@ def test_more_substeps_converge():
         dict(cable_softening=0.0),
         dict(dead_zone=0.3),
         dict(Cr=0.0, Kr=0.0, dead_zone=0.0),
+        dict(tilt_x=-5e-3, tilt_y=4e-3),
+        dict(tilt_y=4e-3),
     ],
 )
 def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):

@@ -13,9 +13,18 @@ from qube_koopman.sim.pendulum.sensitivity import FIELDS, Directions, simulate_t
 
 DT = 1 / 500
 #: Every optional term on: Coulomb friction, a dead zone the voltage crosses, a fractional delay (1.6
-#: samples), the cables' levelling pull away from the encoder's zero.
+#: samples), the cables' levelling pull away from the encoder's zero, a tilted base.
 PARAMS = replace(
-    PendulumParameters(), Cr=4e-4, dead_zone=0.2, delay=0.0032, Kr=2e-3, cable_softening=4.0, theta_rest=0.05, Dp=3e-5
+    PendulumParameters(),
+    Cr=4e-4,
+    dead_zone=0.2,
+    delay=0.0032,
+    Kr=2e-3,
+    cable_softening=4.0,
+    theta_rest=0.05,
+    Dp=3e-5,
+    tilt_x=-5e-3,
+    tilt_y=4e-3,
 )
 
 
@@ -40,7 +49,9 @@ def _row(p: PendulumParameters) -> np.ndarray:
     return np.array([k[name] for name in FIELDS])
 
 
-@pytest.mark.parametrize("name", ["km", "Lp", "Jh", "Cr", "dead_zone", "Kr", "cable_softening", "coulomb_speed"])
+@pytest.mark.parametrize(
+    "name", ["km", "Lp", "Jh", "Cr", "dead_zone", "Kr", "cable_softening", "coulomb_speed", "tilt_x", "tilt_y"]
+)
 def test_each_parameters_tangent_is_the_simulations_difference(name):
     state0, voltages, past = _case()
     value = getattr(PARAMS, name)
