@@ -20,7 +20,13 @@ is the mean over the draws, the ratio the median over episodes (theta / alpha / 
   one property of the rig would replay both days' logs alike);
 - zero drift, its day's: instead of a load, the pendulum encoder's zero drifting as the pendulum's
   equation run backwards on the day's fitted logs says (the alternative entry point);
-- load + zero drift.
+- load + zero drift;
+- tilt, its day's: the base tilted as the plant file's setups say (``qube-calibrate --tilt``), or
+  where they do not, as the day's fitted logs' balance angles say
+  (:func:`~qube_koopman.identify.calibrate.tilt_fit.fit_tilt`), no load;
+- load + tilt: both, each the day's.
+
+Every row but the last two replays a level base, whatever the plant file's setups hold.
 
 The target: every band within 1 +- 0.10, the overall ratios within 1 +- 0.05.
 """
@@ -32,10 +38,13 @@ import sys
 import time
 from pathlib import Path
 
+from dataclasses import replace
+
 import numpy as np
 
 from qube_koopman.identify.calibrate.load_fit import fit_load, reconstruct_balance
 from qube_koopman.identify.calibrate.replay_spectra import STD_BANDS, band_std_ratios
+from qube_koopman.identify.calibrate.tilt_fit import fit_tilt
 from qube_koopman.identify.calibrate.validate import controller_groups, replay_episodes
 from qube_koopman.identify.data.logs import load_logs, read_episodes
 from qube_koopman.sim.pendulum.params_file import load_plant, recording_day
@@ -75,9 +84,18 @@ def main(argv: list[str] | None = None) -> int:
     twins_fit = plant.params_for_logs([e.metadata.start_time for e in fit_eps])
     by_day: dict[str, list] = {}
     for e, twin in zip(fit_eps, twins_fit):
-        by_day.setdefault(recording_day(e.metadata.start_time), []).append(reconstruct_balance(e.states, twin, e.dt))
-    drift = {day: fit_load(zs, fit_eps[0].dt).load for day, zs in by_day.items()}
+        by_day.setdefault(recording_day(e.metadata.start_time), []).append((e, twin))
+    drift = {
+        day: fit_load([reconstruct_balance(e.states, twin, e.dt) for e, twin in pairs], fit_eps[0].dt).load
+        for day, pairs in by_day.items()
+    }
     print(f"pendulum zero drift from the pendulum's equation on the fitted logs (rad): {drift}")
+    tilts = {
+        day: fit_tilt([e.states for e, _ in pairs], [twin for _, twin in pairs], fit_eps[0].dt)
+        for day, pairs in by_day.items()
+    }
+    for day, tilt in tilts.items():
+        print(f"{day}: tilt_x {tilt.tilt_x:.5f} +- {tilt.standard_errors['tilt_x']:.5f} rad (R^2 {tilt.r2:.2f})")
     print(f"loads of the plant file (V at the motor): {plant.load_setups or {'all': plant.load}}")
     held_eps = _episodes(held)
     starts = [e.metadata.start_time for e in held_eps]
@@ -90,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     print("|---" * (4 + len(bands)) + "|")
     for label, members in controller_groups(held_eps):
         eps = [held_eps[i] for i in members]
-        params = [twins[i] for i in members]
+        plant_tilted = [twins[i] for i in members]
+        params = [replace(p, tilt_x=0.0, tilt_y=0.0) for p in plant_tilted]  # a level base
         own = [loads[i] for i in members]
         day = recording_day(eps[0].metadata.start_time)
         other = [d for d in days if d != day]
@@ -101,9 +120,17 @@ def main(argv: list[str] | None = None) -> int:
         if day in drift:
             rows.append(("zero drift, its day's", {"alpha_drift": drift[day]}))
             rows.append(("load + zero drift", {"load": own, "alpha_drift": drift[day]}))
+        if any(p.tilt_x or p.tilt_y for p in plant_tilted):
+            tilted = plant_tilted
+        else:
+            tilted = [replace(p, tilt_x=tilts[day].tilt_x) for p in params] if day in tilts else None
+        if tilted is not None:
+            rows.append(("tilt, its day's", {"params": tilted}))
+            rows.append(("load + tilt", {"load": own, "params": tilted}))
         name = f"{label.split(',')[0]} ({len(eps)})"
         for row, kwargs in rows:
-            replay = replay_episodes(eps, params, n_draws=args.draws, **kwargs)
+            kwargs = {"params": params, **kwargs}
+            replay = replay_episodes(eps, kwargs.pop("params"), n_draws=args.draws, **kwargs)
             overall = np.median(replay.std_ratio, axis=0)
             band = band_std_ratios(replay, eps[0].dt, all_draws=True)
             miss = _miss(overall, band)

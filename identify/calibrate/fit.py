@@ -131,6 +131,7 @@ class PlantCalibration:
         dt: float,
         groups: Sequence | None = None,
         setups: Mapping[str, Sequence] | None = None,
+        fixed: Mapping[str, Sequence[float]] | None = None,
     ) -> "PlantCalibration":
         """Fit to episodes: ``measured[i]`` (n_i, 2) angles, ``voltages[i]`` (n_i,) plant input (V).
 
@@ -138,7 +139,10 @@ class PlantCalibration:
         ``setups``: per parameter of :data:`~qube_koopman.identify.calibrate.shooting.SETUP_PARAMETERS`,
         a label per episode (the cables' stiffness ``Kr``: its recording day; the ``delay``: its
         session): each setup gets its own value, the rest of the physics is shared
-        (:attr:`setup_values_`).
+        (:attr:`setup_values_`). ``fixed``: per parameter of
+        :data:`~qube_koopman.identify.calibrate.shooting.FIXED_PARAMETERS`, a value per episode that
+        its segments simulate with and the fit leaves as given (the base's tilt of the episode's day,
+        :func:`~qube_koopman.identify.calibrate.tilt_fit.fit_tilt`).
         """
         if len(measured) != len(voltages) or not measured:
             raise ValueError("need one voltage sequence per measured episode, and at least one episode")
@@ -151,7 +155,17 @@ class PlantCalibration:
         if unknown:
             may = ", ".join(ms.SETUP_PARAMETERS)
             raise ValueError(f"no setup may have its own {', '.join(unknown)}; these may: {may}")
-        for name, labels in (("group", groups), *((f"{k} setup", v) for k, v in setups.items())):
+        held = {name: np.asarray(values, float) for name, values in (fixed or {}).items()}
+        unfit = sorted(set(held) - set(ms.FIXED_PARAMETERS))
+        if unfit:
+            raise ValueError(
+                f"no fixed {', '.join(unfit)}: these may be held per episode: {', '.join(ms.FIXED_PARAMETERS)}"
+            )
+        for name, labels in (
+            ("group", groups),
+            *((f"{k} setup", v) for k, v in setups.items()),
+            *((f"fixed {k}", v) for k, v in held.items()),
+        ):
             if labels is not None and len(labels) != len(measured):
                 raise ValueError(
                     f"need one {name} label per episode: {len(labels)} labels for {len(measured)} episodes"
@@ -168,6 +182,8 @@ class PlantCalibration:
         n_ep = len(measured)
         if self.weighting == "group" and groups is not None:
             seg = replace(seg, weight=_group_weights(seg.episode, groups))
+        if held:
+            seg = replace(seg, fixed={name: values[seg.episode] for name, values in held.items()})
         distinct = {name: sorted({str(v) for v in labels}) for name, labels in setups.items()}
         self.setup_labels_ = {name: labels for name, labels in distinct.items() if len(labels) > 1}
         if self.setup_labels_:

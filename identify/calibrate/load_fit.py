@@ -100,6 +100,10 @@ def reconstruct_load(
         x = theta - k.arm_rest
         curve = k.cable_curvature
         known = known - k.arm_stiffness * (np.tanh(curve * x) / curve if curve else x)
+    if k.tilt_x or k.tilt_y:  # a tilted base's gravity on the arm (PendulumParameters' tilt_x, tilt_y)
+        balance = k.tilt_x * np.sin(theta) + k.tilt_y * np.cos(theta)
+        slope = k.tilt_x * np.cos(theta) - k.tilt_y * np.sin(theta)
+        known = known - k.arm_gravity * balance - k.gravity * slope * s
     return (inertia - known) / k.torque_per_volt - _motor_voltage(np.asarray(voltage, float), params, dt, start)
 
 

@@ -120,6 +120,9 @@ def from_params(params: PendulumParameters, nominal: PendulumParameters) -> np.n
 PHYSICAL_NAMES = tuple(p[0] for p in PHYSICAL)
 #: The parameters a setup may have its own value of (:attr:`Segments.setups`).
 SETUP_PARAMETERS = ("Kr", "delay")
+#: The parameters each episode may hold at a value of its own, not fitted (:attr:`Segments.fixed`): the base's
+#: tilt, which the short segments do not see (it is estimated from the logs' slow balance angle instead).
+FIXED_PARAMETERS = ("tilt_x", "tilt_y")
 
 
 def physical_bounds(seg: "Segments | None" = None) -> tuple[np.ndarray, np.ndarray]:
@@ -176,6 +179,9 @@ class Segments:
     setups : dict of str to ndarray of int (n_seg,), optional
         Per parameter of :data:`SETUP_PARAMETERS`, each segment's setup (0, 1, ...), whose value of
         that parameter it simulates with; a parameter left out is shared.
+    fixed : dict of str to ndarray (n_seg,), optional
+        Per parameter the fit does not fit (:data:`FIXED_PARAMETERS`: the base's tilt), each
+        segment's value of it, held as given (its episode's; for example its day's tilt).
     """
 
     y: np.ndarray
@@ -185,6 +191,7 @@ class Segments:
     past: np.ndarray | None = None
     weight: np.ndarray | None = None
     setups: dict | None = None
+    fixed: dict | None = None
 
     @property
     def n(self) -> int:
@@ -354,13 +361,21 @@ def _coefficient_row(p: PendulumParameters) -> np.ndarray:
 def _segment_twins(phys: np.ndarray, seg: Segments, nominal: PendulumParameters):
     """The pendulum each segment simulates with (one, or a list of one per segment, as :func:`residuals`)."""
     params = to_params(phys, nominal)
-    if not seg.setups:
+    if not seg.setups and not seg.fixed:
         return params
-    values = setup_values(phys, seg)
-    names = list(values)
-    which = np.column_stack([seg.setups[name] for name in names])
-    combinations, index = np.unique(which, axis=0, return_inverse=True)
-    twins = [replace(params, **{n: float(values[n][c]) for n, c in zip(names, row)}) for row in combinations]
+    setups, fixed_values = seg.setups or {}, seg.fixed or {}
+    values = setup_values(phys, seg) if setups else {}
+    names, fixed = list(values), list(fixed_values)
+    columns = [setups[name].astype(float) for name in names] + [fixed_values[name] for name in fixed]
+    combinations, index = np.unique(np.column_stack(columns), axis=0, return_inverse=True)
+    twins = [
+        replace(
+            params,
+            **{n: float(values[n][int(c)]) for n, c in zip(names, row)},
+            **{n: float(v) for n, v in zip(fixed, row[len(names) :])},
+        )
+        for row in combinations
+    ]
     return [twins[i] for i in index.ravel()]
 
 

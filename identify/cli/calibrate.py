@@ -116,6 +116,13 @@ def _parser() -> argparse.ArgumentParser:
         "and a spectral fit; write it into the plant file's [load] tables, and with validation replay the "
         "held-out logs with it too (band table, load off beside on)",
     )
+    p.add_argument(
+        "--tilt",
+        action="store_true",
+        help="also estimate the base's tilt per recording day (tilt_x: the pendulum's balance angle moving "
+        "with the arm's angle), from the fitted logs' slow balance angles before the fit; the fit then "
+        "simulates each log with its day's tilt, and the plant file's setups keep it",
+    )
     add_force_option(p)
     add_standard_options(p, "no progress line")
     return p
@@ -171,10 +178,13 @@ def _run(args) -> int:
     episodes = _read(fit_paths, args.horizon, "fit")
     held = _read(val_paths, OPEN_LOOP_HORIZON, "validate") if val_paths else []  # refused before the fit, not after
     started = time.perf_counter()
-    cal, plant, fit_groups = _calibrate(episodes, args)
+    tilts = _fit_tilts(episodes, fit_paths) if args.tilt else None
+    cal, plant, fit_groups = _calibrate(episodes, args, tilts)
     seconds = time.perf_counter() - started
     names = [p.name for p in fit_paths]
     text = calibration_text(cal, names, seconds, fit_groups)
+    if tilts is not None:
+        text += "\n" + _tilt_text(tilts)
     if args.load:
         text += "\n" + _fit_loads(episodes, plant)
     provenance = _provenance(args, cal, names, episodes[0].metadata.software_version, seconds, fit_groups)
@@ -222,11 +232,43 @@ def _checked_paths(args) -> tuple[list, list]:
     return fit_paths, val_paths
 
 
-def _calibrate(episodes, args) -> tuple:
-    """The fitted PlantCalibration, its plant file (without provenance) and the fitted logs' controller groups."""
+def _fit_tilts(episodes, paths) -> dict:
+    """Each recording day's tilt of the base (``--tilt``), from its fitted logs' balance angles."""
+    from qube_koopman.identify.calibrate.tilt_fit import fit_tilt
+    from qube_koopman.sim.pendulum import PendulumParameters
+    from qube_koopman.sim.pendulum.params_file import recording_day
+
+    days: dict[str, list] = {}
+    for e, log_path in zip(episodes, paths):
+        days.setdefault(recording_day(e.metadata.start_time), []).append((e, log_path))
+    tilts = {}
+    for day, pairs in days.items():
+        members = [e for e, _ in pairs]
+        if len(members) < 2:
+            raise CliError(f"{pairs[0][1]}: the only log of {day}: --tilt needs two or more logs of each day")
+        try:  # the balance angle needs the pendulum's masses and length, which the fit barely moves (the workbook's)
+            tilts[day] = fit_tilt([e.states for e in members], PendulumParameters.previous(), members[0].dt)
+        except ValueError as exc:
+            raise CliError(f"--tilt: {day}: {exc}") from None
+    return tilts
+
+
+def _tilt_text(tilts: dict) -> str:
+    rows = [
+        f"| {day} | {fit.n_episodes} | {1e3 * fit.tilt_x:+.2f} +- {1e3 * fit.standard_errors['tilt_x']:.2f} | "
+        f"{fit.r2:.2f} |"
+        for day, fit in sorted(tilts.items())
+    ]
+    header = "| recording day | logs | tilt_x (mrad) | R^2 of the slow balance angle |\n|---|---|---|---|"
+    return "The base's tilt (the pendulum's balance angle against sin(theta)):\n\n" + "\n".join([header, *rows]) + "\n"
+
+
+def _calibrate(episodes, args, tilts: dict | None = None) -> tuple:
+    """The fitted PlantCalibration, its plant file (without provenance) and the fitted logs' controller groups;
+    with ``tilts`` (per recording day) each log simulated with its day's tilt, which the setups keep."""
     from qube_koopman.identify.calibrate import PlantCalibration
     from qube_koopman.identify.calibrate.validate import controller_groups
-    from qube_koopman.sim.pendulum.params_file import PlantFile
+    from qube_koopman.sim.pendulum.params_file import PlantFile, recording_day
 
     fit_groups = controller_groups(episodes)
     group_of = {i: label for label, members in fit_groups for i in members}
@@ -243,12 +285,19 @@ def _calibrate(episodes, args) -> tuple:
         episodes[0].dt,
         [group_of[i] for i in range(len(episodes))],
         _setups(episodes, args.setups),
+        fixed=None
+        if tilts is None
+        else {"tilt_x": [tilts[recording_day(e.metadata.start_time)].tilt_x for e in episodes]},
     )
+    values, errors = dict(cal.setup_values_), dict(cal.setup_errors_)
+    if tilts is not None:
+        values["tilt_x"] = {day: fit.tilt_x for day, fit in tilts.items()}
+        errors["tilt_x"] = {day: fit.standard_errors["tilt_x"] for day, fit in tilts.items()}
     plant = PlantFile(
         cal.params_,
         cal.standard_errors_,
-        setups=_by_setup(cal.setup_values_),
-        setup_standard_errors=_by_setup(cal.setup_errors_),
+        setups=_by_setup(values),
+        setup_standard_errors=_by_setup(errors),
     )
     return cal, plant, fit_groups
 
@@ -267,6 +316,7 @@ def _provenance(args, cal, names: list[str], software_version, seconds: float, f
         "seconds": round(seconds, 1),
         "weighting": args.weighting,
         "setups": args.setups,
+        "tilt": bool(args.tilt),
     }
     if len(fit_groups) > 1:
         provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
