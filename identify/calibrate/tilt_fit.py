@@ -12,9 +12,12 @@ clustered by episode (the slow residuals are correlated over seconds, the episod
 ``tilt_y`` is not fitted (the fit's ``tilt_y`` is 0): it multiplies ``cos(theta)``, whose constant part
 is the encoder's zero and whose change over an excursion of a few tenths of a radian is of second
 order, as even in the arm's angle as the loop's own errors at the excursions' ends. Regressed with
-it, twin episodes of a known tilt gave ``tilt_y`` off by ten times its size. On twin episodes the
-fitted ``tilt_x`` is within about 1 mrad of the truth (a level base: -0.7 +- 0.2 mrad; -4.5 mrad:
--3.3; +4.5 mrad: 4.3), which the loop's own slow motion biases.
+it, twin episodes of a known tilt gave ``tilt_y`` off by ten times its size. On twin episodes of
+square-wave arm references the fitted ``tilt_x`` is within about 1 mrad of the truth (a level base:
+-0.7 to +0.6 mrad under the rig's gains, +0.8 under a soft arm loop), the loop's own slow motion
+under that excitation; the twin's level-base replays of the real logs (their excitations,
+controllers and quantized encoders) give -0.01 +- 0.03 mrad (the rig's day) and -0.03 +- 0.12 (the
+soft day): on those logs the estimate is the base's, not the loop's.
 """
 
 from __future__ import annotations
