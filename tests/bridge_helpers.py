@@ -162,6 +162,41 @@ def _lost_to_stalls(folder: Path, emulator_err: str, run_out: str = "") -> list[
     return lost
 
 
+def await_bridge_ticks(path: str, frames: int = 2, timeout: float = 10.0) -> int:
+    """Wait until the bridge behind ``path`` has sent ``frames`` frames since this call; returns how many came.
+
+    After ``qube-run`` has left the port, a test that stops the emulator at once may stop it
+    before it ticks on what the host last sent (its 0 V), on a loaded machine: the record then
+    ends at the tick before. The bridge keeps ticking (in lockstep, one tick per lockstep
+    timeout with no host); what was buffered before this call is flushed, and the second fresh
+    frame comes from a tick that started after the first was written, so after the host left.
+    Returns early (fewer frames) where the port cannot be opened or nothing comes in time: the
+    caller's own assertions decide then.
+    """
+    import select
+    import termios
+    import time
+
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError:
+        return 0
+    try:
+        tty.setraw(fd)
+        termios.tcflush(fd, termios.TCIFLUSH)
+        decoder, seen = StreamDecoder(), 0
+        deadline = time.monotonic() + timeout
+        while seen < frames and (left := deadline - time.monotonic()) > 0:
+            if select.select([fd], [], [], left)[0]:
+                try:
+                    seen += len(decoder.feed(os.read(fd, 4096)))
+                except BlockingIOError:
+                    continue
+        return seen
+    finally:
+        os.close(fd)
+
+
 def run_in_real_time(
     env: dict, emulator_args: list[str], run_args: list[str], tmp_path: Path, capsys
 ) -> tuple[int, str, str, Path, str]:
@@ -200,6 +235,7 @@ def run_in_real_time(
                     *rt_args,
                 ]
             )
+            await_bridge_ticks(path)  # the bridge has ticked on what qube-run sent last
         finally:
             _, emulator_err = stop_process(proc)
         out = capsys.readouterr().out
