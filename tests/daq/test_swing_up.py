@@ -518,7 +518,11 @@ def test_a_signal_during_a_swing_up_over_serial_puts_0_v_through_the_bridge(sign
         if run.poll() is None:
             run.kill()
             run.communicate()
-        time.sleep(0.05)
+        # Two ticks after qube-run has gone: the second began after its last bytes (watched on the
+        # bridge's count, not guessed in wall time; the deadline only guards against a hang).
+        gone, deadline = emu.stats()["ticks"], time.monotonic() + 30.0
+        while emu.stats()["ticks"] < gone + 2 and emu.running and time.monotonic() < deadline:
+            time.sleep(0.002)
         emu.stop()
     assert run.returncode == status, err
     assert f"interrupted by {signame}" in err and not list(out.glob("*.mcap"))
