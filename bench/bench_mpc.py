@@ -51,7 +51,9 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
 - ``--only paced``: the MPC at the limit (default 4 V) replayed on one logged twin episode's ticks (8 s), its
   output step's wall time per tick p50 / p99 / max, with nothing between the ticks (as the free-running
   loop), with the rest of a 2 ms tick asleep (as a paced loop waits for its deadline or the bridge's
-  sample) and with it spinning: what waiting asleep costs the next tick's compute on this machine.
+  sample) and with it spinning: what waiting asleep costs the next tick's compute on this machine. Then the
+  same controller in the twin's paced loop (``qube-run --realtime``), waiting asleep and with ``--spin``,
+  alternating, two episodes each: the loop's compute per tick and the MPC's solve time, p50 / p99 / max.
 
 - ``--only predictors``: the multi-step predictors (:mod:`design.predictors`) on the paper's real data (``--data
   DIR``, its 48 episodes as .mcap logs, ``qube-import``'s): plants fitted on the 28 training episodes
@@ -78,6 +80,7 @@ import argparse
 import contextlib
 import io
 import re
+import shutil
 import sys
 import tempfile
 import time
@@ -164,6 +167,23 @@ def _paced(root: Path, model: Path, limit: float, ticks: int = 4000) -> None:
             update(err[k, 0], err[k, 1], episode.feedforward[k])
         p50, p99 = np.percentile(spent, [50, 99]) * 1e6
         print(f"{label:<28}{p50:8.0f}{p99:8.0f}{max(spent) * 1e6:8.0f}")
+    # The same controller in the twin's paced loop (qube-run --realtime), the loop asleep between ticks or spinning
+    # (--spin), alternating, two episodes each: the tick's compute (the loop's, the log's) and the MPC's solve.
+    print(f"\nin qube-run --realtime, {2 * ticks * QUBE_SAMPLE_PERIOD:g} s each way, alternating; in us")
+    print(f"{'the loop waits':<28}{'compute p50':>12}{'p99':>8}{'max':>8}{'solve p50':>10}{'p99':>8}{'max':>8}")
+    runs: dict[str, list] = {"asleep": [], "spinning (--spin)": []}
+    for round_ in range(2):
+        for label, extra in (("asleep", ()), ("spinning (--spin)", ("--spin",))):
+            out = root / f"paced_{'spin' if extra else 'sleep'}_{round_}"
+            shutil.rmtree(out, ignore_errors=True)
+            runs[label] += _run(out, controller, 7, 1, ticks * QUBE_SAMPLE_PERIOD, "--realtime", *extra)
+    for label, episodes in runs.items():
+        compute = np.concatenate([e.compute_time for e in episodes]) * 1e6
+        fields = episodes[0].metadata.controller.tick_fields
+        solve = np.concatenate([e.controller_record[:, fields.index("solve_time")] for e in episodes]) * 1e6
+        c50, c99 = np.percentile(compute, [50, 99])
+        s50, s99 = np.percentile(solve, [50, 99])
+        print(f"{label:<28}{c50:12.0f}{c99:8.0f}{compute.max():8.0f}{s50:10.0f}{s99:8.0f}{solve.max():8.0f}")
 
 
 def _cost(episodes: list) -> tuple[float, int, float]:

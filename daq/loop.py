@@ -444,7 +444,8 @@ def run_episode(
         Turn SIGINT and SIGTERM into a stop while the episode runs (main
         thread only); the previous handlers are restored afterwards.
     spin : float
-        For a loop-paced backend: spin this long before each deadline (s).
+        For a loop-paced backend: spin this long before each deadline (s); the whole period when
+        the backend asks to spin (:attr:`Backend.spin`).
     timing : TimingRecord, optional
         Also add the episode's tick timing to it (a run's statistics over its episodes).
 
@@ -462,7 +463,7 @@ def run_episode(
     # control must begin within a tick, not after a collection of the whole heap.
     quiet = quiet_interpreter(REALTIME_SWITCH_INTERVAL if paced else None)
     with signals, quiet:
-        pacer = DeadlinePacer(period, spin) if backend.pacing is Pacing.LOOP else None
+        pacer = DeadlinePacer(period, period if backend.spin else spin) if backend.pacing is Pacing.LOOP else None
         times = _TickTimes(period, timing)
         if plan.plant is not None and hasattr(backend, "use_plant"):
             backend.use_plant(plan.plant)

@@ -146,6 +146,9 @@ class SerialBackend(Backend):
         bridge ticks, and every tick sends telemetry, so a host held up by a
         loaded machine (the bridge's ticks then wait in the port) is never
         taken for a lost link.
+    spin : bool
+        Wait for each telemetry busy, the port polled without blocking, rather than asleep in the
+        port's read (:attr:`Backend.spin`).
     """
 
     name = "serial"
@@ -163,6 +166,7 @@ class SerialBackend(Backend):
         link_timeout: float = DEFAULT_LINK_TIMEOUT,
         handshake_timeout: float = 1.0,
         clock: Callable[[], float] = time.perf_counter,
+        spin: bool = False,
     ) -> None:
         if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
             raise ValueError(f"baud must be a positive whole number, got {baud!r}")
@@ -180,6 +184,7 @@ class SerialBackend(Backend):
         self.link_timeout = float(link_timeout)
         self.handshake_timeout = float(handshake_timeout)
         self._clock = clock
+        self.spin = bool(spin)
         self.sample_period = 1.0 / self.rate_hz
         self._serial: Any | None = None  # the pyserial port (untyped): open() opens it, close() drops it
         self._low_latency = "not tried"
@@ -214,13 +219,14 @@ class SerialBackend(Backend):
         import serial
 
         try:
-            # A short read timeout: read() polls in slices of it until its own deadline. Exclusive
+            # A short read timeout: read() polls in slices of it until its own deadline (none with
+            # spin: each read returns at once, and read() spins to its deadline). Exclusive
             # (an advisory lock every pyserial program takes): a second qube-run on the same port
             # must fail, not take the rig over in the middle of an episode.
             port = serial.serial_for_url(
                 self.port,
                 baudrate=self.baud,
-                timeout=min(0.005, self.link_timeout),
+                timeout=0 if self.spin else min(0.005, self.link_timeout),
                 write_timeout=self.link_timeout,
                 exclusive=True,
             )

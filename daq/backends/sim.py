@@ -72,6 +72,9 @@ class SimBackend(Backend):
         A random torque on the arm (a plant file's ``[load]``); each episode's load has its own
         seed, drawn after the episode's other draws (so without a load every draw is as before),
         and the log records it (``extra.backend.load``). None: no load.
+    spin : bool
+        With ``realtime``, spin through each tick to its deadline instead of sleeping until shortly
+        before it (:attr:`Backend.spin`).
     """
 
     name = "sim"
@@ -89,6 +92,7 @@ class SimBackend(Backend):
         dt: float = SAMPLE_PERIOD,
         start: str = "upright",
         load: RandomLoad | None = None,
+        spin: bool = False,
     ) -> None:
         if start not in STARTS:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, got {start!r}")
@@ -101,6 +105,7 @@ class SimBackend(Backend):
         self.seed = seed
         self.realtime = bool(realtime)
         self.pacing = Pacing.LOOP if realtime else Pacing.NONE
+        self.spin = bool(spin)
         self.sample_period = float(dt)
         self.start_at = start
         self._rng = np.random.default_rng(seed)

@@ -315,6 +315,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="run SCHED_FIFO at priority P (1..99; needs permission)",
     )
+    rt.add_argument(
+        "--spin",
+        action="store_true",
+        help="wait for each tick busy instead of asleep (--realtime: the loop spins to each deadline; "
+        "--backend serial: the port is polled): the core stays awake for the controller's step after the "
+        "wait, which a cold core makes slower (an MPC's step at its 99th percentile), at the cost of a "
+        "core kept busy for the whole run. Default: sleep until 0.3 ms before the deadline, or in the "
+        "port's read",
+    )
     for extension in _extensions():
         extension.add_arguments(p)
     add_standard_options(p, "no progress bar")
@@ -398,6 +407,8 @@ def _check_backend_options(args) -> None:
             raise CliError("--no-load is for --backend sim: the serial backend drives a real (or emulated) pendulum")
     elif args.check:
         raise CliError("--check is for --backend serial (the pre-flight of the real rig)")
+    elif args.spin and not args.realtime:
+        raise CliError("--spin is for a loop that waits: give --realtime (a free-running simulator never waits)")
     elif args.port is not None or args.baud is not None or args.link_timeout is not None:
         raise CliError("--port, --baud and --link-timeout are for --backend serial")
 
@@ -492,6 +503,7 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
             realtime=args.realtime,
             dt=1.0 / rate,
             start="hanging" if args.swing_up else "upright",
+            spin=args.spin,
         )
     from qube_koopman.daq.backends import BackendFault
     from qube_koopman.daq.backends.serial import DEFAULT_BAUD, DEFAULT_LINK_TIMEOUT, SerialBackend
@@ -503,6 +515,7 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
         rate_hz=round(rate),
         max_voltage=limits.max_voltage,
         link_timeout=link_timeout,
+        spin=args.spin,
     )
     try:
         backend.open()

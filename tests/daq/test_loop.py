@@ -394,6 +394,23 @@ def test_loop_paced_backend_keeps_absolute_deadlines(monkeypatch):
     assert ep.lateness[-1] < 0.0006 and np.median(ep.lateness) < 0.0006, "the schedule drifted"
 
 
+def test_a_spinning_paced_backend_never_sleeps_and_keeps_its_deadlines(monkeypatch):
+    # A backend that asks to spin (qube-run --spin): the loop busy-waits every tick to its deadline
+    # on the simulated clock, never asleep. Sleeps that overshoot by 0.5 ms make the sleeping loop's
+    # ticks 0.2 ms late (past its 0.3 ms of spin); the spinning loop's are on time.
+    for spin, slept, worst in ((True, False, (0.0, 5e-5)), (False, True, (1.5e-4, 2.5e-4))):
+        clock = SimClock(oversleep=0.0005)
+        _use_clock(monkeypatch, clock)
+        backend = ClockedBackend(clock, [(0.0, 0.01)] * 10, pacing=Pacing.LOOP)
+        backend.spin = spin
+        sink = MemorySink()
+        assert run_episode(backend, _plan(100), [sink]).complete
+        late = sink.episodes[0].episode().lateness
+        assert (clock.sleeps > 0) is slept and np.all(late >= 0), spin
+        assert worst[0] <= late[1:].max() < worst[1], (spin, late.max())
+        assert backend.describe()["spin"] is spin
+
+
 def test_device_paced_backend_is_not_paced_by_the_loop(monkeypatch):
     clock = SimClock()
     _use_clock(monkeypatch, clock)

@@ -116,6 +116,7 @@ def test_summary_counts_aborted_episodes(tmp_path, capsys):
         (["--backend", "quantum"], "invalid choice: 'quantum'"),
         (["--backend", "serial"], "--backend serial needs --port DEV"),
         (["--backend", "serial", "--port", "/dev/null", "--realtime"], "--realtime is for --backend sim"),
+        (["--spin"], "--spin is for a loop that waits: give --realtime"),
         (["--port", "/dev/ttyACM0"], "--port, --baud and --link-timeout are for --backend serial"),
         (["--link-timeout", "100"], "--port, --baud and --link-timeout are for --backend serial"),
         (["--backend", "serial", "--port", "/dev/x", "--baud", "0"], "must be at least 1"),
@@ -594,3 +595,12 @@ def test_a_stable_controller_file_runs_without_a_word_and_a_kind_beyond_lti_is_n
     assert check_controller_file_on_twin(judged, "f.toml", "sim").startswith("f.toml: the controller destabilises")
     beyond = ControllerInfo(flipped, "given", kind="mpc", runtime=object())  # an MPC's loop is not its system's
     assert judged_system(beyond) is None and check_controller_file_on_twin(beyond, "m.toml", "serial") is None
+
+
+def test_realtime_spin_runs_paced_and_the_log_says_the_loop_spun(tmp_path):
+    """``qube-run --realtime --spin``: the episode runs paced, as without it, and its log records the wait."""
+    assert main(["--realtime", "--spin", "--episodes", "1", "--duration", "0.5", "--out", str(tmp_path), "-q"]) == 0
+    (log,) = tmp_path.glob("*.mcap")
+    meta = read_episode(log).metadata
+    assert meta.status == "complete" and meta.timing["paced"] is True
+    assert meta.extra["backend"]["spin"] is True and meta.extra["backend"]["realtime"] is True

@@ -32,6 +32,7 @@ from _episodes import assert_follows_controller, nan_controller
 from bridge_helpers import (
     FakeDevice,
     HostWait,
+    device_clock,
     lockstep_backend,
     run_in_real_time,
 )
@@ -697,6 +698,29 @@ def test_settings_are_checked(bad):
 
 
 # --- qube-run --backend serial ------------------------------------------------------------------
+
+
+def test_a_spinning_host_polls_the_port_and_follows_the_bridge(core, tmp_path):
+    """``SerialBackend(spin=True)`` (``qube-run --spin``): its port's reads return at once and read() spins to
+    the next telemetry; the episode is an episode like any other, and its log says the host spun. Lockstep on
+    the wall clock (the host's empty reads take no time to count on a clock of their own), the link
+    timeout on the device's."""
+    emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=0.05, record_ticks=10_000)
+    emu.start()
+    backend = SerialBackend(emu.path, clock=device_clock(emu), link_timeout=0.2, spin=True)
+    sink = McapSink(tmp_path)
+    try:
+        result = run_episode(backend, _plan(1.0), [sink])
+        read_timeout = backend._serial.timeout
+    finally:
+        backend.close()
+        _until_applied(emu, backend.last_command_seq)
+        emu.stop()
+    assert result.complete, result.reason
+    ep = read_episode(sink.paths[0])
+    assert read_timeout == 0 and ep.metadata.extra["backend"]["spin"] is True
+    assert ep.metadata.backend_stats["ticks_missed"] == 0
+    assert_follows_controller(ep)
 
 
 def test_qube_run_with_a_bad_port_is_one_line(tmp_path, capsys):
