@@ -39,7 +39,7 @@ from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad
 from qube_koopman.sim.pendulum.physics import Coefficients
 
-__all__ = ["FIT_BAND", "LoadFit", "reconstruct_load", "reconstruct_balance", "fit_load", "load_text"]
+__all__ = ["FIT_BAND", "LoadFit", "reconstruct_load", "reconstruct_balance", "fit_load", "load_fit_check", "load_text"]
 
 #: The band (Hz) whose periodogram bins the load's fit uses: above it the reconstruction is the
 #: differentiated encoders and the loop's fast dynamics, not a load.
@@ -247,6 +247,38 @@ def fit_load(loads: Sequence[np.ndarray], dt: float, band: float = FIT_BAND) -> 
         "floor": floor * math.sqrt(cov_ou[2, 2]),
     }
     return LoadFit(RandomLoad(q, tau, floor, band), errors, floor, likelihood, f.size, slow)
+
+
+#: The bands (Hz) :func:`load_fit_check` compares the fitted spectrum with the data in.
+CHECK_BANDS = ((0.0, 0.1), (0.1, 0.3), (0.3, 0.6), (0.6, 1.0))
+
+
+def load_fit_check(
+    loads: Sequence[np.ndarray], dt: float, bands: Sequence[tuple[float, float]] = CHECK_BANDS
+) -> list[tuple[str, float]]:
+    """How well :func:`fit_load`'s spectrum follows the reconstructions, band by band.
+
+    Fits the load to ``loads`` as :func:`fit_load` does, then divides the periodograms' mean power
+    in each band by the fitted spectrum's (load and floor) over the same bins: 1 where the fitted
+    process has the data's power there. Bands without a bin are left out.
+
+    Returns
+    -------
+    list of (str, float)
+        ``("LO-HI Hz", ratio)`` per band.
+    """
+    fit = fit_load(loads, dt)
+    load = fit.load
+    f, p = _periodograms(loads, dt, max(hi for _, hi in bands))
+    w, q, tau = 2 * np.pi * f, load.diffusion, load.time_constant
+    # _spectrum's two shapes, from the fitted values (a floor fitted to nothing is 0, whose log is not)
+    model = (2 * q * q / w**2 if math.isinf(tau) else 2 * q * q * tau * tau / (1 + (w * tau) ** 2)) + fit.floor
+    out = []
+    for lo, hi in bands:
+        k = (f > lo) & (f <= hi)
+        if k.any():
+            out.append((f"{lo:g}-{hi:g} Hz", float(p[k].mean() / model[k].mean())))
+    return out
 
 
 def load_text(fits: dict) -> str:

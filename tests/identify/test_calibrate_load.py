@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from _episodes import QUBE_PD
-from qube_koopman.identify.calibrate.load_fit import fit_load, reconstruct_load
+from qube_koopman.identify.calibrate.load_fit import fit_load, load_fit_check, reconstruct_load
 from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad, SensorModel, simulate_closed_loop
 
 DT = 1 / 500
@@ -52,6 +52,23 @@ def test_without_a_load_the_reconstruction_has_no_slow_torque():
     ys, us = twin_logs(RandomLoad(0.0, 1.0), n=4)
     fit = fit_load([reconstruct_load(y, u, PendulumParameters(), DT) for y, u in zip(ys, us)], DT)
     assert fit.load.std < 0.05 / 20
+
+
+def test_the_fit_check_is_1_in_every_band_for_a_load_of_the_fitted_kind_and_not_for_another():
+    """Loads drawn from a first-order process (0.1 V, 0.5 s, a floor): the fitted spectrum has their power in
+    every band within a fifth. The same with a 0.45 Hz oscillation of 0.05 V added, which no first-order
+    spectrum has: the data have twice the fitted power in its band, and less than two thirds of it
+    either side."""
+    rng = np.random.default_rng(4)
+    steps = int(18.0 / DT)
+    drawn = RandomLoad(0.1, 0.5, floor=1e-4).sample(steps, DT, rng, (60,))
+    fitted = dict(load_fit_check(list(drawn.T), DT))
+    assert list(fitted) == ["0-0.1 Hz", "0.1-0.3 Hz", "0.3-0.6 Hz", "0.6-1 Hz"]
+    assert all(0.8 < ratio < 1.25 for ratio in fitted.values()), fitted
+    t = np.arange(steps)[:, None] * DT
+    line = 0.05 * np.sin(2 * np.pi * 0.45 * t + rng.uniform(0, 2 * np.pi, drawn.shape[1]))
+    off = dict(load_fit_check(list((drawn + line).T), DT))
+    assert off["0.3-0.6 Hz"] > 1.8 and off["0.1-0.3 Hz"] < 0.67 and off["0.6-1 Hz"] < 0.67, off
 
 
 def test_qube_calibrate_load_writes_the_load_tables_and_the_reports_band_table(tmp_path):
