@@ -1,6 +1,7 @@
 """The twin's random load against the logs: band-by-band std ratios of held-out replays, load off and on.
 
     python bench/bench_random_load.py --plant PLANT.toml --rig DIR --soft DIR [--draws N] [--in-sample]
+                                      [--cable-softening C]
 
 ``PLANT.toml``: ``qube-calibrate --load`` on the paper's 28 training episodes and the soft
 controller's episodes 1-3 and 6-8 (both sessions of its day), with ``--setups cables-and-delay
@@ -116,8 +117,18 @@ def main(argv: list[str] | None = None) -> int:
         help="also replay the fitted episodes (load + tilt) and compare the load's fitted spectrum with their "
         "reconstructions",
     )
+    p.add_argument(
+        "--cable-softening",
+        type=float,
+        metavar="C",
+        help="replay with this cable softening instead of the plant file's (0: a linear spring; each day's "
+        "stiffness as fitted)",
+    )
     args = p.parse_args(argv)
     plant = load_plant(args.plant)
+    if args.cable_softening is not None:
+        plant.params = replace(plant.params, cable_softening=args.cable_softening)
+        print(f"cable softening {args.cable_softening:g} instead of the plant file's")
     if plant.load is None:
         print(f"{args.plant}: no [load] table: write it with qube-calibrate --load", file=sys.stderr)
         return 2
