@@ -72,37 +72,47 @@ def _miss(overall: np.ndarray, bands: np.ndarray) -> float:
     return max(float(np.max(np.abs(overall - 1) - 0.05)), float(np.max(np.abs(bands - 1) - 0.10)))
 
 
-def _group_rows(label, eps, plant_tilted, own, plant, days, drift, tilts, draws, only=None) -> None:
-    """One controller group's rows (``only``: that row alone)."""
-    params = [replace(p, tilt_x=0.0, tilt_y=0.0) for p in plant_tilted]  # a level base
-    day = recording_day(eps[0].metadata.start_time)
-    other = [d for d in days if d != day]
-    rows = [("off", {})]
-    rows.append(("load, its day's", {"load": own}))
-    if other and plant.load_setups:
-        rows.append((f"load, the other day's ({other[0]})", {"load": plant.load_setups[other[0]]}))
-    if day in drift:
-        rows.append(("zero drift, its day's", {"alpha_drift": drift[day]}))
-        rows.append(("load + zero drift", {"load": own, "alpha_drift": drift[day]}))
-    if any(p.tilt_x or p.tilt_y for p in plant_tilted):
-        tilted = plant_tilted
-    else:
-        tilted = [replace(p, tilt_x=tilts[day].tilt_x) for p in params] if day in tilts else None
-    if tilted is not None:
-        rows.append(("tilt, its day's", {"params": tilted}))
-        rows.append(("load + tilt", {"load": own, "params": tilted}))
-    name = f"{label.split(',')[0]} ({len(eps)})"
-    for row, kwargs in rows:
-        if only is not None and row != only:
-            continue
-        kwargs = {"params": params, **kwargs}
-        replay = replay_episodes(eps, kwargs.pop("params"), n_draws=draws, **kwargs)
-        overall = np.median(replay.std_ratio, axis=0)
-        band = band_std_ratios(replay, eps[0].dt, all_draws=True)
-        miss = _miss(overall, band)
-        verdict = "within" if miss <= 0 else f"{miss:.3f}"
-        print(f"| {name} | {row} | {_cell(overall)} | " + " | ".join(_cell(b) for b in band) + f" | {verdict} |")
-        sys.stdout.flush()
+def _day_tilted(twins, tilts, day):
+    """The episodes' twins on a tilted base: the plant file's tilt where its setups hold one, else the day's tilt
+    from the fitted logs (None where there is neither)."""
+    if any(p.tilt_x or p.tilt_y for p in twins):
+        return list(twins)
+    return [replace(p, tilt_x=tilts[day].tilt_x, tilt_y=0.0) for p in twins] if day in tilts else None
+
+
+def _table_rows(prefix, episodes, twins, loads, plant, drift, tilts, draws, only=None) -> None:
+    """The table's rows of each controller's episodes (``only``: that row alone)."""
+    days = sorted(plant.load_setups) or ["all"]
+    for label, members in controller_groups(episodes):
+        eps = [episodes[i] for i in members]
+        plant_tilted = [twins[i] for i in members]
+        own = [loads[i] for i in members]
+        params = [replace(p, tilt_x=0.0, tilt_y=0.0) for p in plant_tilted]  # a level base
+        day = recording_day(eps[0].metadata.start_time)
+        other = [d for d in days if d != day]
+        rows = [("off", {})]
+        rows.append(("load, its day's", {"load": own}))
+        if other and plant.load_setups:
+            rows.append((f"load, the other day's ({other[0]})", {"load": plant.load_setups[other[0]]}))
+        if day in drift:
+            rows.append(("zero drift, its day's", {"alpha_drift": drift[day]}))
+            rows.append(("load + zero drift", {"load": own, "alpha_drift": drift[day]}))
+        tilted = _day_tilted(plant_tilted, tilts, day)
+        if tilted is not None:
+            rows.append(("tilt, its day's", {"params": tilted}))
+            rows.append(("load + tilt", {"load": own, "params": tilted}))
+        name = f"{prefix}{label.split(',')[0]} ({len(eps)})"
+        for row, kwargs in rows:
+            if only is not None and row != only:
+                continue
+            kwargs = {"params": params, **kwargs}
+            replay = replay_episodes(eps, kwargs.pop("params"), n_draws=draws, **kwargs)
+            overall = np.median(replay.std_ratio, axis=0)
+            band = band_std_ratios(replay, eps[0].dt, all_draws=True)
+            miss = _miss(overall, band)
+            verdict = "within" if miss <= 0 else f"{miss:.3f}"
+            print(f"| {name} | {row} | {_cell(overall)} | " + " | ".join(_cell(b) for b in band) + f" | {verdict} |")
+            sys.stdout.flush()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -157,44 +167,17 @@ def main(argv: list[str] | None = None) -> int:
     starts = [e.metadata.start_time for e in held_eps]
     twins = plant.params_for_logs(starts)
     loads = plant.loads_for_logs(starts)
-    days = sorted(plant.load_setups) or ["all"]
     bands = [f"{lo:g}-{hi:g} Hz" if np.isfinite(hi) else f">{lo:g} Hz" for lo, hi in STD_BANDS]
     print()
     print("| held out | disturbance | overall | " + " | ".join(bands) + " | beyond target |")
     print("|---" * (4 + len(bands)) + "|")
-    for label, members in controller_groups(held_eps):
-        _group_rows(
-            label,
-            [held_eps[i] for i in members],
-            [twins[i] for i in members],
-            [loads[i] for i in members],
-            plant,
-            days,
-            drift,
-            tilts,
-            args.draws,
-        )
+    _table_rows("", held_eps, twins, loads, plant, drift, tilts, args.draws)
     if args.in_sample:  # the fitted episodes replayed alike: a shortfall there too is the twin's, not the draws'
         fit_loads = plant.loads_for_logs([e.metadata.start_time for e in fit_eps])
-        for label, members in controller_groups(fit_eps):
-            _group_rows(
-                f"fitted {label}",
-                [fit_eps[i] for i in members],
-                [twins_fit[i] for i in members],
-                [fit_loads[i] for i in members],
-                plant,
-                days,
-                drift,
-                tilts,
-                args.draws,
-                only="load + tilt",
-            )
+        _table_rows("fitted ", fit_eps, twins_fit, fit_loads, plant, drift, tilts, args.draws, only="load + tilt")
         print("\nthe load's fit against the fitted logs' reconstructions, data / model power by band:")
         for day, pairs in by_day.items():
-            tilted = [
-                replace(twin, tilt_x=tilts[day].tilt_x) if not (twin.tilt_x or twin.tilt_y) else twin
-                for _, twin in pairs
-            ]
+            tilted = _day_tilted([twin for _, twin in pairs], tilts, day)
             loads_day = [reconstruct_load(e.states, e.plant_input, twin, e.dt) for (e, _), twin in zip(pairs, tilted)]
             check = load_fit_check(loads_day, fit_eps[0].dt)
             print(f"{day}: " + ", ".join(f"{band}: {ratio:.3f}" for band, ratio in check))

@@ -180,14 +180,21 @@ def _periodograms(loads: Sequence[np.ndarray], dt: float, band: float):
     return np.concatenate(fs), np.concatenate(ps)
 
 
-def _spectrum(z: np.ndarray, f: np.ndarray, walk: bool) -> np.ndarray:
+def _psd(f: np.ndarray, q: float, tau: float, floor: float) -> np.ndarray:
+    """The module docstring's one-sided spectrum (V^2/Hz): first order, or a random walk where ``tau`` is inf."""
     w = 2 * np.pi * f
+    if math.isinf(tau):
+        return 2 * q * q / w**2 + floor
+    return 2 * q * q * tau**2 / (1 + (w * tau) ** 2) + floor
+
+
+def _spectrum(z: np.ndarray, f: np.ndarray, walk: bool) -> np.ndarray:
+    """:func:`_psd` in the fitted variables: ``log q, log n`` (a walk) or ``log q, log tau, log n``."""
     if walk:
         log_q, log_n = z
-        return 2 * np.exp(2 * log_q) / w**2 + np.exp(log_n)
+        return _psd(f, np.exp(log_q), math.inf, np.exp(log_n))
     log_q, log_tau, log_n = z
-    tau = np.exp(log_tau)
-    return 2 * np.exp(2 * log_q) * tau**2 / (1 + (w * tau) ** 2) + np.exp(log_n)
+    return _psd(f, np.exp(log_q), np.exp(log_tau), np.exp(log_n))
 
 
 def _whittle(f: np.ndarray, p: np.ndarray, walk: bool, z0: np.ndarray):
@@ -270,9 +277,7 @@ def load_fit_check(
     fit = fit_load(loads, dt)
     load = fit.load
     f, p = _periodograms(loads, dt, max(hi for _, hi in bands))
-    w, q, tau = 2 * np.pi * f, load.diffusion, load.time_constant
-    # _spectrum's two shapes, from the fitted values (a floor fitted to nothing is 0, whose log is not)
-    model = (2 * q * q / w**2 if math.isinf(tau) else 2 * q * q * tau * tau / (1 + (w * tau) ** 2)) + fit.floor
+    model = _psd(f, load.diffusion, load.time_constant, fit.floor)
     out = []
     for lo, hi in bands:
         k = (f > lo) & (f <= hi)
