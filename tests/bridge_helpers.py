@@ -197,6 +197,19 @@ def await_bridge_ticks(path: str, frames: int = 2, timeout: float = 10.0) -> int
         os.close(fd)
 
 
+def await_emulator_ticks(emu, ticks: int, limit: float = 30.0, poll: float = 0.002) -> None:
+    """Wait until the in-process ``emu`` has ticked ``ticks`` more times than now, or stopped running.
+
+    Watched on the bridge's own count, not guessed in wall time; ``limit`` (s) only guards against a
+    hang, and the caller's assertions decide then.
+    """
+    import time
+
+    target, deadline = emu.stats()["ticks"] + ticks, time.monotonic() + limit
+    while emu.stats()["ticks"] < target and emu.running and time.monotonic() < deadline:
+        time.sleep(poll)
+
+
 def run_in_real_time(
     env: dict, emulator_args: list[str], run_args: list[str], tmp_path: Path, capsys
 ) -> tuple[int, str, str, Path, str]:

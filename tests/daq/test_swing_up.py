@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bridge_helpers import run_in_real_time
+from bridge_helpers import await_emulator_ticks, run_in_real_time
 
 from qube_koopman.core.controller_file import load_controller
 from qube_koopman.daq.backends import SimBackend
@@ -518,11 +518,7 @@ def test_a_signal_during_a_swing_up_over_serial_puts_0_v_through_the_bridge(sign
         if run.poll() is None:
             run.kill()
             run.communicate()
-        # Two ticks after qube-run has gone: the second began after its last bytes (watched on the
-        # bridge's count, not guessed in wall time; the deadline only guards against a hang).
-        gone, deadline = emu.stats()["ticks"], time.monotonic() + 30.0
-        while emu.stats()["ticks"] < gone + 2 and emu.running and time.monotonic() < deadline:
-            time.sleep(0.002)
+        await_emulator_ticks(emu, 2)  # the second began after qube-run's last bytes
         emu.stop()
     assert run.returncode == status, err
     assert f"interrupted by {signame}" in err and not list(out.glob("*.mcap"))

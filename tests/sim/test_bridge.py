@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 import serial
-from bridge_helpers import REPO, HostWait, start_emulator, stop_process
+from bridge_helpers import REPO, HostWait, await_emulator_ticks, start_emulator, stop_process
 
 from qube_koopman.firmware_protocol import (
     Capability,
@@ -379,9 +379,7 @@ def test_killed_host_gets_the_motor_zeroed_within_ten_ms_of_device_time(core, en
         host.kill()
         host.wait(10)
         emu.lockstep_timeout = 0.05
-        ticks = emu.stats()["ticks"]
-        while emu.stats()["ticks"] < ticks + 20 and time.monotonic() < deadline:
-            time.sleep(0.05)  # 20 more device ticks, one per 50 ms lockstep timeout
+        await_emulator_ticks(emu, 20, limit=max(0.0, deadline - time.monotonic()), poll=0.05)  # one per 50 ms
     finally:
         if host.poll() is None:
             host.kill()
