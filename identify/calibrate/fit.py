@@ -74,6 +74,12 @@ class PlantCalibration:
         a simulation per parameter (the way it was computed before; the two agree to the
         differences' rounding, about 1e-6 of a column, and the fits to a thousandth of a
         standard error).
+    hold : dict of str to float, optional
+        Physical parameters of :data:`~qube_koopman.identify.calibrate.shooting.PHYSICAL_NAMES` held
+        at a value of their own rather than fitted (for example ``{"cable_softening": 0.0}``, a
+        linear cable spring), each within its physical range; the others are fitted around it, and
+        their standard errors are conditional on it (a held parameter's is 0). A parameter with a
+        value per setup may not be held.
 
     Attributes
     ----------
@@ -94,6 +100,8 @@ class PlantCalibration:
         Pendulum encoder zero offsets (rad); ``alpha_offset_errors_`` their standard errors.
     residual_rms_ : ndarray (n_episodes, 2)
         RMS prediction error (rad) of theta and alpha over each episode's segments.
+    held_ : dict of str to float
+        The parameters ``hold`` held, at their values (empty without ``hold``).
     warnings_ : list of str
         Parameters at a bound or poorly identified.
     cost_, nfev_, njev_ : float, int, int
@@ -113,6 +121,7 @@ class PlantCalibration:
         progress: bool = False,
         weighting: str = "episode",
         jacobian: str = "tangents",
+        hold: Mapping[str, float] | None = None,
     ) -> None:
         self.horizon = horizon
         self.skip = skip
@@ -123,6 +132,7 @@ class PlantCalibration:
         self.progress = progress
         self.weighting = weighting
         self.jacobian = jacobian
+        self.hold = hold
 
     def fit(
         self,
@@ -170,6 +180,7 @@ class PlantCalibration:
                 raise ValueError(
                     f"need one {name} label per episode: {len(labels)} labels for {len(measured)} episodes"
                 )
+        hold = self._checked_hold(setups)
         h = max(2, int(round(self.horizon / dt)))
         seg = ms.make_segments(
             [np.asarray(y, float) for y in measured],
@@ -199,6 +210,8 @@ class PlantCalibration:
         self.nominal_ = PendulumParameters.previous() if self.nominal is None else self.nominal
         z0 = self._start(measured, seg, n_ep, dt)
         lo, hi = self._bounds(n_ep, seg.n, seg)
+        for i, z_held in hold.items():  # a held variable: both bounds at its value, which the solver keeps
+            lo[i] = hi[i] = z0[i] = z_held
         z0 = np.clip(z0, lo, hi)
         progress = _Progress(self.progress, self.max_nfev)
 
@@ -213,8 +226,28 @@ class PlantCalibration:
 
         result = levenberg_marquardt(fun, jac, z0, lo, hi, max_iter=self.max_nfev, callback=progress, normal=normal)
         progress.done()
-        self._store(result, seg, n_ep, lo, hi)
+        self._store(result, seg, n_ep, lo, hi, sorted(hold))
         return self
+
+    def _checked_hold(self, setups: Mapping) -> dict[int, float]:
+        """``hold`` as {index of the physical variable: its fitted variable's value}, checked."""
+        out = {}
+        for name, value in dict(self.hold or {}).items():
+            if name not in ms.PHYSICAL_NAMES:
+                raise ValueError(f"cannot hold {name!r}: the fitted parameters are {', '.join(ms.PHYSICAL_NAMES)}")
+            if len({str(label) for label in setups.get(name, ())}) > 1:
+                raise ValueError(f"cannot hold {name}: it has a value per setup in this fit")
+            i = ms.PHYSICAL_NAMES.index(name)
+            _, kind, scale, lower, upper = ms.PHYSICAL[i]
+            nominal = getattr(PendulumParameters.previous() if self.nominal is None else self.nominal, name)
+            if kind == "log":
+                low, high = nominal * np.exp(lower), nominal * np.exp(upper)
+            else:
+                low, high = scale * lower, scale * upper
+            if not low <= float(value) <= high:
+                raise ValueError(f"cannot hold {name} at {value:g}: its physical range is [{low:.4g}, {high:.4g}]")
+            out[i] = float(np.log(value / nominal) if kind == "log" else value / scale)
+        return out
 
     def _start(self, measured, seg: ms.Segments, n_ep: int, dt: float) -> np.ndarray:
         """Nominal parameters, offsets = mean measured alpha, nodes from smoothed data."""
@@ -237,7 +270,9 @@ class PlantCalibration:
         hi = np.concatenate([phi, np.full(n_ep, 100.0), np.full(4 * n_seg, np.inf)])
         return lo, hi
 
-    def _store(self, result, seg: ms.Segments, n_ep: int, lo: np.ndarray, hi: np.ndarray) -> None:
+    def _store(
+        self, result, seg: ms.Segments, n_ep: int, lo: np.ndarray, hi: np.ndarray, held: Sequence[int] = ()
+    ) -> None:
         z = result.x
         n_x = ms.n_setup_variables(seg)
         n_phys = ms.N_PHYSICAL + n_x
@@ -247,7 +282,7 @@ class PlantCalibration:
         self.converged_ = bool(result.converged)
         n_res, n_var = result.jac.shape
         s2 = 2 * result.cost / max(1, n_res - n_var)
-        cov = _marginal_covariance(ms.normal_matrix(result.jac, seg, n_ep), n_phys + n_ep) * s2
+        cov = _marginal_covariance(ms.normal_matrix(result.jac, seg, n_ep), n_phys + n_ep, held) * s2
         z_se = np.sqrt(np.maximum(np.diag(cov), 0))
         self.setup_values_: dict[str, dict[str, float]] = {}
         self.setup_errors_: dict[str, dict[str, float]] = {}
@@ -266,6 +301,7 @@ class PlantCalibration:
         if seg.weight is not None:  # the residuals as measured, not as weighted
             r = r / seg.weight[:, None, None]
         self.residual_rms_ = np.array([np.sqrt(np.mean(r[seg.episode == e] ** 2, axis=(0, 1))) for e in range(n_ep)])
+        self.held_ = {ms.PHYSICAL_NAMES[i]: float(getattr(self.params_, ms.PHYSICAL_NAMES[i])) for i in held}
         self.warnings_ = self._warnings(z[: ms.N_PHYSICAL], lo, hi)
 
     def _central_setups(self, phys: np.ndarray, z_se: np.ndarray, cov: np.ndarray, seg: ms.Segments) -> None:
@@ -301,6 +337,8 @@ class PlantCalibration:
     def _warnings(self, z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> list[str]:
         out = []
         for i, name in enumerate(self.fitted_names_):
+            if name in self.held_:
+                continue
             span = hi[i] - lo[i]
             value, se = getattr(self.params_, name), self.standard_errors_[name]
             if z[i] - lo[i] < 1e-4 * span or hi[i] - z[i] < 1e-4 * span:
@@ -310,7 +348,7 @@ class PlantCalibration:
         n = len(self.fitted_names_)
         for i in range(n):
             for j in range(i + 1, n):
-                if abs(self.correlation_[i, j]) > 0.95:
+                if abs(self.correlation_[i, j]) > 0.95:  # (a held parameter's correlations are 0)
                     out.append(
                         f"{self.fitted_names_[i]} and {self.fitted_names_[j]} are strongly correlated "
                         f"({self.correlation_[i, j]:+.3f}): only a combination of them is well identified"
@@ -326,6 +364,7 @@ class PlantCalibration:
             "residual_rms": self.residual_rms_.tolist(),
             "warnings": list(self.warnings_),
             "setup_values": {k: dict(v) for k, v in self.setup_values_.items()},
+            "held": dict(self.held_),
             "cost": self.cost_,
             "nfev": self.nfev_,
             "njev": self.njev_,
@@ -344,14 +383,29 @@ def _group_weights(episode_of_segment: np.ndarray, groups: Sequence) -> np.ndarr
     return np.array([per_group[name] for name in labels])
 
 
-def _marginal_covariance(jtj, q: int) -> np.ndarray:
-    """The top-left q x q block of (J^T J)^-1 from the sparse normal matrix ``jtj`` (the nodes marginalized out)."""
+def _marginal_covariance(jtj, q: int, held: Sequence[int] = ()) -> np.ndarray:
+    """The top-left q x q block of (J^T J)^-1 from the sparse normal matrix ``jtj`` (the nodes marginalized out).
+
+    ``held``: variables held at a given value; the covariance is conditional on them (their rows and
+    columns of ``jtj`` replaced by the identity's, and zero in the result).
+    """
+    from scipy.sparse import diags
+
     n = jtj.shape[0]
+    if len(held):
+        free = np.ones(n)
+        free[list(held)] = 0.0
+        keep = diags(free, format="csc")
+        jtj = keep @ jtj @ keep + diags(1.0 - free, format="csc")
     jtj = jtj + 1e-12 * jtj.diagonal().max() * _identity(n)
-    lu = splu(jtj)
+    lu = splu(jtj.tocsc())
     rhs = np.zeros((n, q))
     rhs[np.arange(q), np.arange(q)] = 1.0
-    return lu.solve(rhs)[:q]
+    cov = lu.solve(rhs)[:q]
+    held_rows = [i for i in held if i < q]
+    cov[held_rows, :] = 0.0
+    cov[:, held_rows] = 0.0
+    return cov
 
 
 def _identity(n: int):

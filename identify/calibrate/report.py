@@ -35,11 +35,10 @@ def calibration_text(cal, names: list[str], seconds: float, groups: list | None 
         "| parameter | fitted | std. error | default |",
         "|---|---|---|---|",
     ]
+    held = getattr(cal, "held_", {})
     for name in cal.fitted_names_:
-        lines.append(
-            f"| {name} | {getattr(cal.params_, name):.5g} | {cal.standard_errors_[name]:.2g} "
-            f"| {getattr(default, name):.5g} |"
-        )
+        error = "held" if name in held else f"{cal.standard_errors_[name]:.2g}"
+        lines.append(f"| {name} | {getattr(cal.params_, name):.5g} | {error} | {getattr(default, name):.5g} |")
     setups = getattr(cal, "setup_values_", {})
     if setups:
         lines += [

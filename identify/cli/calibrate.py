@@ -108,6 +108,14 @@ def _parser() -> argparse.ArgumentParser:
         "recording session (logs started less than 10 minutes apart: the host's latency); none: one value "
         "of each for all logs. A replay of a log recorded then uses its setups' values",
     )
+    _add_physics_options(p)
+    add_force_option(p)
+    add_standard_options(p, "no progress line")
+    return p
+
+
+def _add_physics_options(p: argparse.ArgumentParser) -> None:
+    """What the fit adds to the physics or keeps from it: --load, --tilt, --hold."""
     p.add_argument(
         "--load",
         action="store_true",
@@ -123,9 +131,34 @@ def _parser() -> argparse.ArgumentParser:
         "with the arm's angle), from the fitted logs' slow balance angles before the fit; the fit then "
         "simulates each log with its day's tilt, and the plant file's setups keep it",
     )
-    add_force_option(p)
-    add_standard_options(p, "no progress line")
-    return p
+    p.add_argument(
+        "--hold",
+        action="append",
+        type=_held_value,
+        default=[],
+        metavar="NAME=VALUE",
+        help="hold a physical parameter at VALUE instead of fitting it, the rest fitted around it (repeatable; "
+        "for example cable_softening=0: a linear cable spring); the report marks it held and the plant file's "
+        "provenance records it. NAME is one of the fitted parameters: " + ", ".join(_FITTED),
+    )
+
+
+#: The parameters the fit takes (shooting.PHYSICAL_NAMES, named here without importing scipy for --help).
+_FITTED = ("km", "Dr", "Cr", "Lp", "Dp", "dead_zone", "Jh", "delay", "Kr", "cable_softening")
+
+
+def _held_value(text: str) -> tuple[str, float]:
+    """``--hold NAME=VALUE`` parsed (argparse turns the ValueError into a one-line usage error)."""
+    name, sep, value = text.partition("=")
+    if not sep or name.strip() not in _FITTED:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with NAME one of {', '.join(_FITTED)}, got {text!r}")
+    try:
+        number = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{name.strip()}: {value!r} is not a number") from None
+    if not np.isfinite(number):
+        raise argparse.ArgumentTypeError(f"{name.strip()}: {value!r} is not a finite number")
+    return name.strip(), number
 
 
 def _read(paths, segment: float, role: str):
@@ -278,17 +311,25 @@ def _calibrate(episodes, args, tilts: dict | None = None) -> tuple:
         max_nfev=args.max_nfev,
         progress=not args.quiet,
         weighting="group" if args.weighting == "controller" else "episode",
+        hold=dict(args.hold),
     )
-    cal.fit(
-        [e.states for e in episodes],
-        [e.plant_input for e in episodes],
-        episodes[0].dt,
-        [group_of[i] for i in range(len(episodes))],
-        _setups(episodes, args.setups),
-        fixed=None
-        if tilts is None
-        else {"tilt_x": [tilts[recording_day(e.metadata.start_time)].tilt_x for e in episodes]},
-    )
+    try:
+        cal.fit(
+            [e.states for e in episodes],
+            [e.plant_input for e in episodes],
+            episodes[0].dt,
+            [group_of[i] for i in range(len(episodes))],
+            _setups(episodes, args.setups),
+            fixed=None
+            if tilts is None
+            else {"tilt_x": [tilts[recording_day(e.metadata.start_time)].tilt_x for e in episodes]},
+        )
+    except ValueError as exc:
+        if str(exc).startswith("cannot hold"):  # --hold's value out of range, or a parameter with setups
+            raise CliError(
+                f"--hold: {exc}" + (" (--setups none fits one value)" if "per setup" in str(exc) else "")
+            ) from None
+        raise
     values, errors = dict(cal.setup_values_), dict(cal.setup_errors_)
     if tilts is not None:
         values["tilt_x"] = {day: fit.tilt_x for day, fit in tilts.items()}
@@ -318,6 +359,8 @@ def _provenance(args, cal, names: list[str], software_version, seconds: float, f
         "setups": args.setups,
         "tilt": bool(args.tilt),
     }
+    if args.hold:
+        provenance["held"] = [f"{name}={value:g}" for name, value in args.hold]
     if len(fit_groups) > 1:
         provenance["fitted_controllers"] = [f"{label} ({len(members)} logs)" for label, members in fit_groups]
     return provenance

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -173,6 +174,44 @@ def test_known_parameters_are_recovered_within_two_standard_errors():
     assert len(cal.warnings_) <= 1
 
 
+def test_a_held_parameter_keeps_its_value_and_the_rest_are_recovered_around_it():
+    # A linear cable spring (no levelling-off), held at that: the fit must not move it, give it no
+    # error and no warning, and recover the rest within three of their (conditional) standard errors
+    # (asymptotic ones, which take the encoders' quantization for white noise).
+    known = replace(TRUTH, cable_softening=0.0)
+    ys, us, _ = simulated_logs(known, n=2)
+    fit = lambda hold: PlantCalibration(horizon=0.2, skip=0.5, stride=0.2, nominal=PendulumParameters(), hold=hold)  # noqa: E731
+    cal = fit({"cable_softening": 0.0}).fit(ys, us, DT)
+    assert cal.params_.cable_softening == 0.0 and cal.held_ == {"cable_softening": 0.0}
+    assert cal.standard_errors_["cable_softening"] == 0.0 and cal.summary()["held"] == {"cable_softening": 0.0}
+    assert not [w for w in cal.warnings_ if "cable_softening" in w]
+    for name in set(cal.fitted_names_) - {"cable_softening"}:
+        fitted, truth, se = getattr(cal.params_, name), getattr(known, name), cal.standard_errors_[name]
+        assert 0 < se and abs(fitted - truth) <= 3 * se + 1e-12, (name, fitted, truth, se)
+    # Held at a wrong value the same logs fit worse, and the stiffness absorbs what it can.
+    wrong = fit({"cable_softening": 20.0}).fit(ys, us, DT)
+    assert (
+        wrong.params_.cable_softening == 20.0
+        and wrong.cost_ > 1.2 * cal.cost_
+        and wrong.params_.Kr > 1.5 * cal.params_.Kr
+    )
+
+
+@pytest.mark.parametrize(
+    ("hold", "setups", "message"),
+    [
+        ({"theta_rest": 0.0}, None, "cannot hold 'theta_rest': the fitted parameters are km, "),
+        ({"Kr": 1e-3}, {"Kr": ["a", "b"]}, "cannot hold Kr: it has a value per setup in this fit"),
+        ({"cable_softening": -1.0}, None, "cannot hold cable_softening at -1: its physical range is [0, 100]"),
+        ({"km": 0.0}, None, "cannot hold km at 0: its physical range is ["),
+    ],
+)
+def test_a_hold_the_fit_cannot_keep_is_refused_in_one_line(hold, setups, message):
+    ys, us, _ = simulated_logs(TRUTH, n=2, seconds=2.0)
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        PlantCalibration(horizon=0.2, skip=0.5, hold=hold).fit(ys, us, DT, setups=setups)
+
+
 @pytest.mark.slow
 def test_known_parameters_are_recovered_from_two_controllers_logs_at_once():
     # Twin logs under the rig's gains and under soft-theta, fitted together (the fit is open loop:
@@ -279,6 +318,8 @@ def test_cli_writes_a_plant_file_qube_run_accepts_and_a_report(tmp_path):
                 "8",
                 "--report",
                 str(tmp_path / "report"),
+                "--hold",
+                "cable_softening=0",
                 "-q",
             ]
         )
@@ -289,6 +330,9 @@ def test_cli_writes_a_plant_file_qube_run_accepts_and_a_report(tmp_path):
     assert set(plant.standard_errors) == {p[0] for p in ms.PHYSICAL}
     report = (tmp_path / "report" / "report.md").read_text()
     assert "## Validation on 1 episodes not fitted" in report and "| km |" in report
+    # --hold: the linear spring kept, marked in the report and the provenance
+    assert plant.params.cable_softening == 0.0 and plant.standard_errors["cable_softening"] == 0.0
+    assert "| cable_softening | 0 | held |" in report and plant.provenance["held"] == ["cable_softening=0"]
     assert (
         run_main(
             [
@@ -350,10 +394,22 @@ def test_cli_refuses_an_absurd_delay_or_measurement_in_one_line_before_the_fit(o
             [str(tmp_path / "crafted.mcap")],
             f"error: {tmp_path / 'crafted.mcap'}: alpha at sample 800 is 1e+300 (1 sample beyond +-100); refused",
         ),
+        (
+            [str(one_log), "--hold", "cable_softening=-1"],
+            "error: --hold: cannot hold cable_softening at -1: its physical range is [0, 100]",
+        ),
     ):
         assert main([*argv, "--out", str(tmp_path / "p.toml"), "-q"]) == 2
         err = capsys.readouterr().err
         assert len(err.splitlines()) == 1 and message in err, err
+    for hold, message in (
+        ("theta_rest=0", "error: argument --hold: expected NAME=VALUE with NAME one of km,"),
+        ("Kr=nan", "error: argument --hold: Kr: 'nan' is not a finite number"),
+    ):
+        with pytest.raises(SystemExit) as exit_:  # the parser's own usage error
+            main([str(one_log), "--hold", hold, "--out", str(tmp_path / "p.toml"), "-q"])
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and len(err.splitlines()) == 1 and message in err, err
     assert not (tmp_path / "p.toml").exists()
 
 
@@ -580,3 +636,10 @@ def test_a_fit_by_differences_lands_where_the_fit_by_tangents_does():
         assert abs(getattr(fits[0].params_, name) - getattr(fits[1].params_, name)) <= 0.01 * se + 1e-12, name
     with pytest.raises(ValueError, match="jacobian must be"):
         PlantCalibration(jacobian="adjoint").fit(ys, us, DT)
+
+
+def test_the_commands_list_of_parameters_to_hold_is_the_fits():
+    # qube-calibrate names them without importing the fit (its --help stays quick)
+    from qube_koopman.identify.cli import calibrate
+
+    assert calibrate._FITTED == ms.PHYSICAL_NAMES
