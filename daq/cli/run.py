@@ -268,7 +268,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.toml",
         help="the simulated pendulum's physical parameters: a qube-calibrate plant file or a "
         "named set (default: the twin calibrated on the rig under two controllers, "
-        "'calibrated-two-controllers'; 'calibrated-20230828': on the rig's gains alone; "
+        "'calibrated-two-controllers'; 'calibrated-with-load': the same with the arm's random load and each "
+        "recording day's tilt of the base; 'calibrated-20230828': on the rig's gains alone; "
         "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)",
     )
     safety.add_argument(

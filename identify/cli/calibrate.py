@@ -371,7 +371,7 @@ def _validate_and_record(held, paths: tuple, plant, fit_groups, provenance: dict
     figures added to ``provenance``; returns the validation, its sample time and the report's summary."""
     val_paths, fit_paths = paths
     refitted = _also_fitted(val_paths, fit_paths)
-    validation, val_dt, summary = _validate(held, val_paths, plant, set(refitted))
+    validation, val_dt, summary, with_load = _validate(held, val_paths, plant, set(refitted))
     replays = [v[0] for v in validation]
     ratio = np.concatenate([r.std_ratio for r in replays])
     if refitted:
@@ -397,6 +397,16 @@ def _validate_and_record(held, paths: tuple, plant, fit_groups, provenance: dict
                 [round(float(x), 4) for x in np.median(v[0].std_ratio, axis=0)] for v in validation
             ],
         )
+    if with_load:  # per controller, with the load: the overall ratio, then each band's (theta, alpha, voltage)
+        from qube_koopman.identify.calibrate.replay_spectra import band_std_ratios
+
+        provenance["load_std_ratio_bands_by_controller"] = [
+            [
+                [round(float(x), 4) for x in row]
+                for row in (np.median(on.std_ratio, axis=0), *band_std_ratios(on, val_dt, all_draws=True))
+            ]
+            for _, _, on in with_load
+        ]
     return validation, val_dt, summary
 
 
@@ -479,8 +489,9 @@ def _validate(held, paths, plant, refitted=frozenset()):
 
     ``refitted`` holds the paths of those logs that the fit used too: their tables say so.
     Returns the per-controller ``(replay, open_loop, names, label)`` tuples, the
-    sample period and the report's text (each controller's table, then the
-    summary across controllers).
+    sample period, the report's text (each controller's table, then the
+    summary across controllers) and, with the plant's load, per controller
+    ``(label, replay without it, replay with it)``.
     """
     from qube_koopman.identify.calibrate.report import controller_summary_text, validation_text
     from qube_koopman.identify.calibrate.validate import (
@@ -511,7 +522,7 @@ def _validate(held, paths, plant, refitted=frozenset()):
         from qube_koopman.identify.calibrate.report import load_bands_text
 
         text += "\n" + load_bands_text(with_load, dt)
-    return out, dt, text
+    return out, dt, text, with_load
 
 
 def main(argv: list[str] | None = None) -> int:

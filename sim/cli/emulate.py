@@ -84,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="FILE.toml",
         help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
-        "(default: the twin calibrated on the paper's rig; 'workbook', 'previous')",
+        "(default: the twin calibrated on the paper's rig; 'workbook', 'previous'); its parameters only: the "
+        "emulator simulates no random load (a plant file's [load] table is for qube-run)",
     )
     p.add_argument(
         "--hanging",

@@ -80,7 +80,10 @@ recording session; its closed-loop validation is in its provenance), ``"default"
 :class:`PendulumParameters` gives: the same values), ``"calibrated-20230828"``
 (``plants/qube_20230828.toml``: the paper's 28 training episodes alone, with the arm's hub
 inertia and the transport delay fitted and no cable spring: the default before the second
-controller's logs),
+controller's logs), ``"calibrated-with-load"`` (``plants/qube_20230828_20230915_load_tilt.toml``:
+the same logs and recipe as the default with ``qube-calibrate --load --tilt``: the arm's random
+load, central and per recording day, and each day's tilt of the base; :func:`plant_file` gives
+its ``[load]`` tables, which ``qube-run`` simulates),
 ``"workbook"`` (the Quanser workbook, including its damping) and
 ``"previous"`` (workbook masses with another public project's hardware-fitted
 damping: the default before calibration, the calibration's starting point).
@@ -341,7 +344,20 @@ class PlantFile:
 
 
 #: The named parameter sets (:func:`named_parameters`).
-PARAMETER_SETS = ("default", "calibrated-two-controllers", "calibrated-20230828", "workbook", "previous")
+PARAMETER_SETS = (
+    "default",
+    "calibrated-two-controllers",
+    "calibrated-with-load",
+    "calibrated-20230828",
+    "workbook",
+    "previous",
+)
+#: The named sets that are shipped plant files with setups (:func:`plant_file` reads them whole).
+_SHIPPED_FILES = {
+    "default": "qube_20230828_20230915.toml",
+    "calibrated-two-controllers": "qube_20230828_20230915.toml",
+    "calibrated-with-load": "qube_20230828_20230915_load_tilt.toml",
+}
 
 
 def named_parameters(name: str) -> PendulumParameters:
@@ -351,6 +367,7 @@ def named_parameters(name: str) -> PendulumParameters:
         "workbook": PendulumParameters.workbook,
         "previous": PendulumParameters.previous,
         "calibrated-two-controllers": lambda: load_plant(PLANTS / "qube_20230828_20230915.toml").params,
+        "calibrated-with-load": lambda: load_plant(PLANTS / _SHIPPED_FILES["calibrated-with-load"]).params,
         "calibrated-20230828": lambda: load_plant(PLANTS / "qube_20230828.toml").params,
     }
     if name not in sets:
@@ -385,8 +402,10 @@ def plant_file(name_or_path: str | Path | None) -> PlantFile:
         The file cannot be read (the message names it).
     """
     named = name_or_path is not None and str(name_or_path) in PARAMETER_SETS and not Path(name_or_path).exists()
-    if name_or_path is None or (named and str(name_or_path) in ("default", "calibrated-two-controllers")):
-        return load_plant(PLANTS / "qube_20230828_20230915.toml")
+    if name_or_path is None:
+        return load_plant(PLANTS / _SHIPPED_FILES["default"])
+    if named and str(name_or_path) in _SHIPPED_FILES:
+        return load_plant(PLANTS / _SHIPPED_FILES[str(name_or_path)])
     if named:
         return PlantFile(named_parameters(str(name_or_path)))
     return load_plant(name_or_path)

@@ -303,6 +303,30 @@ def test_the_default_twin_is_the_calibration_on_two_controllers():
     assert plant.params.Kr > 20 * plant.standard_errors["Kr"]
 
 
+def test_the_shipped_twin_with_the_load_replays_the_rigs_held_out_bands_within_a_tenth():
+    # The default twin's logs and recipe with --load --tilt: each day's load and tilt beside the central ones.
+    from qube_koopman.sim.pendulum.params_file import PLANTS, plant_file
+
+    plant = plant_file("calibrated-with-load")
+    default = load_plant(PLANTS / "qube_20230828_20230915.toml")
+    assert plant.provenance["logs"] == default.provenance["logs"] and plant.provenance["tilt"] is True
+    assert named_parameters("calibrated-with-load") == plant.params
+    assert plant.params.km == pytest.approx(default.params.km, rel=0.01) and plant.params.tilt_x == 0.0
+    assert set(plant.load_setups) == {"2023-08-28", "2023-09-15"} and plant.load is not None
+    # The rig's base tilted downhill with the arm's positive angle, the soft day's the other way
+    # (each more than four standard errors from level).
+    tilts = {day: values["tilt_x"] for day, values in plant.setups.items() if "tilt_x" in values}
+    assert tilts["2023-08-28"] < -4 * plant.setup_standard_errors["2023-08-28"]["tilt_x"] < 0
+    assert tilts["2023-09-15"] > 4 * plant.setup_standard_errors["2023-09-15"]["tilt_x"] > 0
+    # Replayed with their day's load, the paper's 20 test episodes (never fitted): the overall ratios
+    # within 1 +- 0.05 and every band's within 1 +- 0.10, theta, alpha and voltage.
+    rig = plant.provenance["validation_controllers"].index(
+        "kp_theta 6, kd_theta 1.8, kp_alpha 30, kd_alpha 2.5, tau 50"
+    )
+    overall, *bands = np.array(plant.provenance["load_std_ratio_bands_by_controller"][rig])
+    assert np.all(np.abs(overall - 1) <= 0.05) and np.all(np.abs(np.array(bands) - 1) <= 0.10), (overall, bands)
+
+
 def test_shipped_calibration_loads_with_its_provenance():
     from qube_koopman.sim.pendulum.params_file import PLANTS
 

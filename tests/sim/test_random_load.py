@@ -226,3 +226,17 @@ def test_a_replay_runs_each_log_with_its_days_load(tmp_path):
     _, loads = _states(tmp_path / "r")
     _, none = _states(tmp_path / "n")
     assert loads[0]["diffusion"] == 0.5 and loads[0]["time_constant"] == 2.0 and none == [None]
+
+
+def test_qube_run_on_the_named_twin_with_the_load_draws_its_central_load(tmp_path):
+    from qube_koopman.daq.cli.run import main
+    from qube_koopman.sim.pendulum.params_file import plant_file
+
+    central = plant_file("calibrated-with-load").load
+    argv = ["--episodes", "1", "--duration", "1", "--seed", "5", "--plant", "calibrated-with-load", "-q"]
+    assert main([*argv, "--out", str(tmp_path / "on")]) == 0
+    assert main([*argv, "--no-load", "--out", str(tmp_path / "off")]) == 0
+    (on,), (recorded,) = _states(tmp_path / "on")
+    (off,), (none,) = _states(tmp_path / "off")
+    assert recorded["diffusion"] == central.diffusion and recorded["time_constant"] == central.time_constant
+    assert none is None and np.abs(on - off).max() > 0
