@@ -33,6 +33,7 @@ from qube_koopman.firmware_protocol.qube_spi import (
     unpack_spi_command,
 )
 from qube_koopman.sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel
+from qube_koopman.sim.pendulum.load import RandomLoad
 from qube_koopman.sim.pendulum.physics import SAMPLE_PERIOD
 from qube_koopman.sim.pendulum.sensor import angles_to_counts
 
@@ -62,6 +63,9 @@ class EmulatedQube:
     module_id : int
         The id returned over SPI (777 for a QUBE-Servo 2; anything else makes
         the firmware report the QUBE absent).
+    load : RandomLoad, optional
+        A random torque on the arm (a plant file's ``[load]``); :meth:`place` with a
+        ``load_seed`` starts a new draw of it. None: none.
     """
 
     def __init__(
@@ -69,11 +73,13 @@ class EmulatedQube:
         params: PendulumParameters = PendulumParameters(),
         dt: float = SAMPLE_PERIOD,
         module_id: int = MODULE_ID_QUBE_SERVO_2,
+        load: RandomLoad | None = None,
     ) -> None:
         self.params = params
         self.module_id = module_id
+        self.load = load
         # Exact angles: the counters quantize, once, in transfer().
-        self._sim = PendulumSimulator(params, SensorModel(counts_per_rev=None), dt=dt)
+        self._sim = PendulumSimulator(params, SensorModel(counts_per_rev=None), dt=dt, load=load)
         self._offsets = [0, 0]
         self.volts = 0.0
         self.enabled = False
@@ -92,9 +98,13 @@ class EmulatedQube:
         if dt != self._sim.dt:
             self._sim.set_period(dt)  # the commands in flight (transport delay) carry over
 
-    def place(self, state=(0.0, 0.0, 0.0, 0.0)) -> None:
-        """Put the pendulum in ``state`` (theta, alpha, theta_dot, alpha_dot), counters as at power-up."""
-        self._sim.reset(state)
+    def place(self, state=(0.0, 0.0, 0.0, 0.0), load_seed: int | None = None) -> None:
+        """Put the pendulum in ``state`` (theta, alpha, theta_dot, alpha_dot), counters as at power-up.
+
+        ``load_seed``: with a load, the seed of its new draw from here on (None: the current seed's
+        draw, restarted).
+        """
+        self._sim.reset(state, load_seed=load_seed)
         self._offsets = [0, 0]
 
     @property

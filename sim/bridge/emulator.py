@@ -64,6 +64,7 @@ from qube_koopman.sim.pendulum import PendulumParameters
 
 if TYPE_CHECKING:
     from qube_koopman.firmware_protocol.ccore import CDevice
+    from qube_koopman.sim.pendulum.load import RandomLoad
 
 __all__ = ["BridgeEmulator", "DEFAULT_PERTURBATION", "DEFAULT_SPIN", "RECORD_FIELDS"]
 
@@ -155,6 +156,9 @@ class BridgeEmulator:
         What to break.
     params : PendulumParameters
         Physical model of the pendulum.
+    load : RandomLoad, optional
+        A random torque on the arm (a plant file's ``[load]``), a new draw at each session's
+        start (seeded from ``seed``); None: none, every draw as without one.
     spin : float
         Real time: spin this long before each deadline (s); 0 sleeps only
         (less CPU, more jitter).
@@ -177,6 +181,7 @@ class BridgeEmulator:
         raise_time: float = 0.0,
         faults: Faults = Faults(),
         params: PendulumParameters = PendulumParameters(),
+        load: RandomLoad | None = None,
         spin: float = DEFAULT_SPIN,
         record_ticks: int = 0,
         core=None,
@@ -196,8 +201,9 @@ class BridgeEmulator:
             assert isinstance(sequence.entropy, int)  # drawn from the OS: one int
             seed = sequence.entropy
         self.seed = seed
-        pose_seq, link_seq = sequence.spawn(2)
+        pose_seq, link_seq, load_seq = sequence.spawn(3)  # (the first two as when there were two)
         self._pose_rng = np.random.default_rng(pose_seq)
+        self._load_rng = np.random.default_rng(load_seq)
         self._link = FaultyLink(faults, random.Random(int(link_seq.generate_state(1)[0])))
         self.lockstep = bool(lockstep)
         self.lockstep_timeout = float(lockstep_timeout)
@@ -208,6 +214,7 @@ class BridgeEmulator:
         self._raising: tuple[int, int, float] | None = None  # ticks done, ticks in all, final alpha
         self.faults = faults
         self.params = params
+        self.load = load
         self.spin = float(spin)
         self._core = core
         self._record: deque | None = deque(maxlen=int(record_ticks)) if record_ticks > 0 else None
@@ -273,7 +280,7 @@ class BridgeEmulator:
 
         core = self._core if self._core is not None else ccore.CCore(ccore.cached_library())
         self._dev = dev = ccore.CDevice(core, Capability.EMULATED)
-        self._qube = qube = EmulatedQube(self.params, dt=dev.period_us * 1e-6)
+        self._qube = qube = EmulatedQube(self.params, dt=dev.period_us * 1e-6, load=self.load)
         # Power-up: the pendulum hangs at rest, the counters read zero.
         qube.place((0.0, math.pi, 0.0, 0.0))
         self._master, self._slave, self.path = open_raw_pty()
@@ -528,7 +535,7 @@ class BridgeEmulator:
             self._release_pending = False
             tilt = float(self._pose_rng.uniform(-self.perturbation, self.perturbation))
             state = (0.0, math.pi + tilt, 0.0, 0.0)
-            qube.place(state)
+            qube.place(state, load_seed=self._session_load_seed())
             self.initial_states.append(state)
         held = self._hand(qube)
         spi_rx = qube.transfer(dev.tick_begin(self._device_us))
@@ -560,6 +567,10 @@ class BridgeEmulator:
         self._last_tick_us = self._device_us
         self._device_us += period_us
 
+    def _session_load_seed(self) -> int | None:
+        """A new session's load seed (None without a load: no draw)."""
+        return None if self.load is None else int(self._load_rng.integers(2**63))
+
     def _hand(self, qube: EmulatedQube) -> bool:
         """Carry the pendulum from hanging to its start tilt; True while it is held."""
         if self._raising is None:
@@ -568,7 +579,7 @@ class BridgeEmulator:
         if done >= total:
             self._raising = None
             state = (0.0, alpha0, 0.0, 0.0)
-            qube.place(state)
+            qube.place(state, load_seed=self._session_load_seed())
             self.initial_states.append(state)
             return False
         s = done / total
@@ -622,6 +633,7 @@ class BridgeEmulator:
             "device_time": self.device_time,
             "seed": self.seed,
             "lockstep": self.lockstep,
+            "load": None if self.load is None else self.load.to_dict(),
             **self._link.counters(),
             "host_frames": self._mirror.stats.frames,
             "host_rejects": self._mirror.stats.rejected,

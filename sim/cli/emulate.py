@@ -84,8 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="FILE.toml",
         help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
-        "(default: the twin calibrated on the paper's rig; 'workbook', 'previous'); its parameters only: the "
-        "emulator simulates no random load (a plant file's [load] table is for qube-run)",
+        "(default: the twin calibrated on the paper's rig; 'calibrated-with-load': with the arm's random load; "
+        "'workbook', 'previous'); with a [load] table, each session's load is a new draw (from --seed)",
+    )
+    p.add_argument(
+        "--no-load",
+        action="store_true",
+        help="leave out the plant file's random load on the arm (its [load] table)",
     )
     p.add_argument(
         "--hanging",
@@ -234,15 +239,16 @@ def _emulate(args) -> int:
         hold_at=args.hold_at,
         hold_periods=args.hold_periods,
     )
-    from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_parameters
+    from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_file
 
     try:
-        params = plant_parameters(args.plant)
+        plant = plant_file(args.plant)
     except PlantFileError as exc:
         raise CliError(str(exc)) from None
     emulator = BridgeEmulator(
         seed=args.seed,
-        params=params,
+        params=plant.params,
+        load=None if args.no_load else plant.load,
         lockstep=args.lockstep,
         perturbation=math.radians(args.perturbation),
         start_upright=not args.hanging,
@@ -270,6 +276,7 @@ def _emulate(args) -> int:
         print(path, flush=True)
         if not args.quiet:
             mode = "lockstep" if args.lockstep else "real time, 500 Hz"
+            mode += "" if emulator.load is None else ", the plant's random load on the arm"
             print(
                 f"{PROG}: emulated QUBE-Servo bridge on {path} ({mode}, seed {emulator.seed}); try "
                 f"qube-run --backend serial --port {path}; Ctrl-C to stop",

@@ -104,6 +104,7 @@ def _run(
     backend_cls=SerialBackend,
     wait=None,
     controller=CONTROLLER,
+    load=None,
 ):
     """One episode in lockstep into an MCAP log: (result, episode read back, emulator, backend).
 
@@ -118,6 +119,7 @@ def _run(
         lockstep_clock=wait,
         faults=faults,
         record_ticks=200_000,
+        load=load,
     )
     emu.start()
     backend = lockstep_backend(emu, wait, backend_cls, link_timeout=link_timeout)
@@ -151,6 +153,18 @@ def _until_applied(emu, seq, limit=30.0):
 @pytest.fixture(scope="module")
 def clean(core, tmp_path_factory):
     return _run(core, tmp_path_factory.mktemp("clean"))
+
+
+def test_the_emulated_rig_carries_a_plant_files_random_load(core, clean, tmp_path):
+    # The same seed, excitation and lockstep as the clean episode, with a strong random torque on the
+    # arm: the device's arm goes elsewhere, the loop still balances, and the emulator says which load.
+    from qube_koopman.sim.pendulum.load import RandomLoad
+
+    load = RandomLoad(0.5, 1.0)
+    result, ep, emu, _ = _run(core, tmp_path, load=load)
+    assert result.complete and emu.stats()["load"] == load.to_dict() and clean[2].stats()["load"] is None
+    assert np.abs(ep.alpha).max() < math.radians(20)
+    assert np.abs(ep.theta - clean[1].theta).max() > 0.02  # rad: well beyond the encoder's count
 
 
 def test_full_episode_passes_the_sim_backends_checks(clean):

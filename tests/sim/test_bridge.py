@@ -83,6 +83,22 @@ def _transfer(qube: EmulatedQube, motor: int, mask: int = MASK_NORMAL, preset1: 
     )
 
 
+def test_the_emulated_qubes_random_load_moves_the_arm_and_each_seed_draws_its_own():
+    from qube_koopman.sim.pendulum.load import RandomLoad
+
+    def arm(load, seed):
+        qube = EmulatedQube(load=load)
+        qube.place((0.0, math.pi, 0.0, 0.0), load_seed=seed)  # hanging, the motor off
+        for _ in range(500):
+            qube.advance()
+        return qube.state[0]
+
+    load = RandomLoad(0.5, 1.0)
+    assert arm(None, 1) == arm(None, 2) and abs(arm(None, 1)) < 1e-12  # no load: hanging at rest stays at rest
+    assert arm(load, 1) == arm(load, 1) != arm(load, 2)  # a seed's draw, and another's
+    assert abs(arm(load, 1)) > 1e-3
+
+
 def test_qube_applies_the_motor_word():
     qube = EmulatedQube()
     qube.place((0.0, 0.0, 0.0, 0.0))
@@ -417,6 +433,18 @@ def test_cli_prints_the_path_first_and_stops_cleanly_on_sigterm(env, tmp_path):
     stats = json.loads(stats_file.read_text())
     assert stats["stats"]["sessions"] == 1 and stats["stats"]["ticks"] >= 10
     assert not os.path.exists(path)
+
+
+def test_cli_runs_a_named_plants_random_load_and_leaves_it_out_on_request(env, tmp_path):
+    from qube_koopman.sim.pendulum.params_file import plant_file
+
+    central = plant_file("calibrated-with-load").load.to_dict()
+    for extra, load in (([], central), (["--no-load"], None)):
+        stats_file = tmp_path / f"stats{len(extra)}.json"
+        proc, _ = start_emulator(env, "--plant", "calibrated-with-load", *extra, "--stats", str(stats_file))
+        out, err = stop_process(proc)
+        assert proc.returncode == 0 and ("the plant's random load on the arm" in err) == (load is not None), err
+        assert json.loads(stats_file.read_text())["stats"]["load"] == load
 
 
 def test_cli_vanishes_on_request_and_exits(env):
