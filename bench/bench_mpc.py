@@ -3,6 +3,7 @@
     python bench/bench_mpc.py [MODEL.json] [--seeds 5,6,7] [--episodes 2] [--duration 10] [--voltage-limit V]
                               [--horizons 10,20,40] [--out DIR] [--only timing|offset-free|j-table|stiff-cables|paced]
                               [--load 0.5] [--load-seeds 1,2,3,4,5] [--j-episodes 20] [--j-seed 7] [--j-horizon 20]
+                              [--plant NAME]
     python bench/bench_mpc.py --only predictors --data DIR [--predictor-horizons 5,20,50,100,250] [--starts 200]
 
 MODEL.json is a plant identified by ``qube-identify`` (without one, the bench identifies one on 6
@@ -37,7 +38,7 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   episodes every controller completed, the ticks over the limit and at it, the fallbacks. MODEL.json should
   carry a disturbance model (``qube-identify ... --horizon 0.1,1 --disturbance input --disturbance-pole 1``).
   The MPC files run without their time budget (the algorithm's J, not the host's luck: the timing table
-  measures the host).
+  measures the host). ``--plant NAME``: on that twin (``calibrated-with-load``: with the rig's random load).
 - ``--only figure``: the docs' figure of an MPC episode (:mod:`design.mpc_figure`): the offset-free MPC at the
   limit (default 4 V), the first episode of ``qube-run --seed 7`` (20 s), written to ``--figure PNG``
   (default ``docs/_static/mpc_episode.png``).
@@ -308,8 +309,9 @@ def _episodes_figures(folder: Path, limit: float) -> dict:
     }
 
 
-def _j_table(root: Path, model: Path, limit: float, episodes: int, seed: int, horizon: int) -> None:
-    """The design bench's excitations under the PD, the LQ, the LQ clipped, the MPC and the offset-free MPC."""
+def _j_table(root: Path, model: Path, limit: float, episodes: int, seed: int, horizon: int, plant=None) -> None:
+    """The design bench's excitations under the PD, the LQ, the LQ clipped, the MPC and the offset-free MPC
+    (on ``plant``, a ``qube-run --plant`` name or file, when given)."""
     quiet = ["--episodes", "2", "--duration", "4", "--interval", "0", "-q", "--force"]
     mpc = ["--mpc", "--horizon", str(horizon)]
     files = {"LQ": root / "j_lq.toml"}
@@ -334,13 +336,13 @@ def _j_table(root: Path, model: Path, limit: float, episodes: int, seed: int, ho
     for name, extra in runs.items():
         out = root / ("j_" + re.sub(r"[^A-Za-z0-9]+", "_", name))
         argv = ["--episodes", str(episodes), "--seed", str(seed), "--out", str(out), "-q", "--force", *extra]
-        run_main(argv)
+        run_main([*argv, *([] if plant is None else ["--plant", str(plant)])])
         rows[name] = _episodes_figures(out, limit if "10 V" not in name and name not in ("LQ", "rig's PD") else 10.0)
     lq_peaks = np.array(rows["LQ"]["peaks"])
     print(
         f"\nJ table: {episodes} episodes of qube-run --seed {seed} (20 s), model {model}, limit {limit:g} V; the LQ "
         f"design's voltage peak per episode: median {np.median(lq_peaks):.2f} V, max {lq_peaks.max():.2f} V; MPC "
-        f"horizon {horizon}"
+        f"horizon {horizon}" + ("" if plant is None else f"; the twin: --plant {plant}")
     )
     common = set.intersection(*(set(r["J"]) for r in rows.values()))
     clipped = rows[f"LQ clipped at {limit:g} V"]
@@ -520,6 +522,9 @@ def main(argv=None) -> int:
     p.add_argument("--j-horizon", type=int, default=20)
     p.add_argument("--load", type=float, default=0.5)
     p.add_argument("--load-seeds", default="1,2,3,4,5")
+    p.add_argument(
+        "--plant", default=None, help="--only j-table: the twin's qube-run --plant (default: the default twin)"
+    )
     args = p.parse_args(argv)
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_mpc_"))
     root.mkdir(parents=True, exist_ok=True)
@@ -534,7 +539,8 @@ def main(argv=None) -> int:
         if args.only == "figure":
             _figure(root, args.model, args.voltage_limit or 4.0, args.figure)
         elif args.only == "j-table":
-            _j_table(root, args.model, args.voltage_limit or 4.0, args.j_episodes, args.j_seed, args.j_horizon)
+            limit = args.voltage_limit or 4.0
+            _j_table(root, args.model, limit, args.j_episodes, args.j_seed, args.j_horizon, args.plant)
         else:
             seeds = [int(s) for s in args.load_seeds.split(",")]
             if args.stiff_ramp is None:
