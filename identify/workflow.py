@@ -1354,6 +1354,7 @@ def run_search(
     probes = twin_probes(trajs, cache=options.probe_cache) if options.transfer == "twin" else None
     probe_seconds = time.perf_counter() - started if probes is not None else 0.0
     several = folds.kind == "per-controller"
+    space = space.for_training(2 if several else 1)
     result = search_liftings(
         trajs,
         controller,
@@ -1365,6 +1366,7 @@ def run_search(
         settings=_search_settings(options, progress),
     )
     result.folds = folds
+    result.offsets_first = bool(space.offsets_first)
     result.probe_seconds = probe_seconds
     if several:
         result.same_controller = same_controller_scores(

@@ -25,8 +25,8 @@ _LISTS = {
     "friction": bool,
 }
 #: Single values a space file may set: how many candidates of a screened stage are evaluated in full (0: all),
-#: and whether a finalist must beat the stage's lead scored as a screen.
-_NUMBERS = {"n_finalists": int, "screen_against_lead": bool}
+#: whether a finalist must beat the stage's lead scored as a screen, and whether every stage scores with offsets.
+_NUMBERS = {"n_finalists": int, "screen_against_lead": bool, "offsets_first": bool}
 
 
 #: The largest search-space file read (a few lists of numbers).
@@ -220,6 +220,7 @@ def search_report(result, args, names) -> dict:
         },
         "screened": [r.as_dict() for r in result.screened],
         "stages": list(STAGES),
+        "offsets_first": result.offsets_first,
         "space": {f.name: getattr(space, f.name) for f in fields(space) if f.name in _LISTS},
         "alphas": list(space.alphas),
         "cv_kind": result.folds.kind,

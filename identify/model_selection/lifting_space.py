@@ -11,6 +11,12 @@ The stages, in order (:data:`STAGES`), each a coordinate step from the best so f
 4. ``rbf``: at the best so far, every number of thin-plate RBF centres;
 5. ``offsets``: the best candidates so far again, with per-episode offsets
    estimated on each validation episode and probe (at their best alphas).
+
+With :attr:`SearchSpace.offsets_first` every stage scores its candidates with the offsets, and
+the last stage has nothing to add: where the validation episodes' encoder zeros are far from the
+training's (a loop that amplifies them, as the soft controller's does seventeenfold), the scores
+without offsets measure the zeros more than the lifting, and the stages before the last would
+choose the lifting on them.
 """
 
 from __future__ import annotations
@@ -147,6 +153,10 @@ class SearchSpace:
     friction: tuple[bool, ...] = (False, True)
     base: LiftingSpec = LiftingSpec(delays=0, poly=2)
     n_offset_candidates: int = 3  # stage 4 re-scores this many of the best with offsets
+    #: Every stage scores its candidates with per-episode offsets (the offsets stage then adds none); needs
+    #: ``True in offsets``. None: decided by the training logs (:meth:`for_training`), which
+    #: :func:`~.search_liftings` itself takes as False.
+    offsets_first: bool | None = None
     n_offset_alphas: int = 3  # ... each at its best alphas
     #: Successive halving: the stages ``screened_stages`` screen their candidates (:func:`~.screen_candidate`)
     #: and evaluate in full the ``n_finalists`` best whose screens did not diverge (0: every candidate
@@ -167,6 +177,23 @@ class SearchSpace:
             raise ValueError("search space: poly (monomial orders) starts at 1")
         if self.n_finalists < 0 or self.screen_folds < 1:
             raise ValueError("search space: n_finalists must be >= 0 and screen_folds >= 1")
+        if self.offsets_first and True not in self.offsets:
+            raise ValueError("search space: offsets_first needs offsets to include true")
+
+    def for_training(self, n_controllers: int) -> "SearchSpace":
+        """This space with :attr:`offsets_first` decided where it is None: on when the training logs ran
+        two or more controllers (and offsets are tried).
+
+        Why: a softer loop's episodes are predictable only with their encoder zeros estimated (under the
+        soft controller a count's error moves the arm seventeen times as far), so scored without them
+        its folds rank liftings by how they bear the zeros; on the rig's 28 logs and half of ten soft
+        ones, the staged search then chose heavily regularized liftings (alpha 0.03-0.1) that
+        predicted the soft episodes it did not see worse than the rig-only recommendation on three
+        of four splits, and with offsets from the first stage better on three (docs/transfer.md).
+        """
+        if self.offsets_first is not None:
+            return self
+        return replace(self, offsets_first=n_controllers >= 2 and True in self.offsets)
 
     def tries_friction(self, lead: LiftingSpec) -> bool:
         """Whether the friction stage would try ``lead`` with the friction shape (it lacks it and has the delays)."""
@@ -178,6 +205,13 @@ class SearchSpace:
 
     def stage_candidates(self, stage: str, best: Sequence["CandidateResult"]) -> list[LiftingSpec]:
         """The liftings a stage tries, given the results so far (best first)."""
+        if not self.offsets_first:
+            return self._stage_candidates(stage, best)
+        if stage == "offsets":
+            return []  # every candidate had them
+        return [replace(spec, offsets=True) for spec in self._stage_candidates(stage, best)]
+
+    def _stage_candidates(self, stage: str, best: Sequence["CandidateResult"]) -> list[LiftingSpec]:
         lead = best[0].spec if best else self.base
         if stage == "delays":
             return [replace(self.base, delays=d) for d in self.delays]

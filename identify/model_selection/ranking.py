@@ -181,6 +181,9 @@ class SearchResult:
         once (:func:`~.family_statistics`), before its candidates ran.
     probe_seconds : float
         Time the probes took to simulate (set by the caller that made them).
+    offsets_first : bool
+        Whether every stage scored its candidates with offsets
+        (:attr:`~.lifting_space.SearchSpace.offsets_first`, as decided for the training logs).
     screens : list of CandidateResult
         Every screen (:func:`~.screen_candidate`) of the stages that screened, finalists' included.
     screened : list of CandidateResult
@@ -198,6 +201,7 @@ class SearchResult:
     same_controller: list | None = None
     stage_seconds: dict = field(default_factory=dict)
     probe_seconds: float = 0.0
+    offsets_first: bool = False
     shared_seconds: dict = field(default_factory=dict)
     screens: list = field(default_factory=list)
     screened: list = field(default_factory=list)

@@ -148,7 +148,14 @@ def _search_section(search: dict) -> list[str]:
         "",
         f"{len(search['candidates'])} candidates in {format_number(search['seconds'], '.0f')} s, "
         f"{_folds_phrase(search)} of the training episodes; "
-        f"score: {search['score']}. Stages: {', '.join(search['stages'])}.",
+        f"score: {search['score']}. Stages: {', '.join(search['stages'])}."
+        + (
+            " Every stage scored its candidates with per-episode offsets (the training logs ran several "
+            "controllers: scored without them, a loop that amplifies the encoder zeros ranks liftings by the "
+            "zeros; `offsets_first = false` in a --search-space file scores as with one controller)."
+            if search.get("offsets_first")
+            else ""
+        ),
         "",
         f"Ranked by {search.get('objective', 'the cross-validated R^2')}."
         + (f" Transfer probes: {search['transfer']}." if search.get("transfer") else ""),

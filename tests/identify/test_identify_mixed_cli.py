@@ -115,7 +115,7 @@ def test_search_scores_per_controller_folds(two_controllers, tmp_path, capsys):
     space = tmp_path / "space.toml"
     space.write_text(
         "delays = [0, 5]\npoly = [2]\nconst = [false]\ntrig = [false]\nrbf = [0]\nfriction = [false]\n"
-        "offsets = [false]\nalphas = [1e-3, 1e-1]\n"
+        "offsets = [false, true]\nalphas = [1e-3, 1e-1]\n"
     )
     code, _, err = run(
         capsys,
@@ -139,7 +139,12 @@ def test_search_scores_per_controller_folds(two_controllers, tmp_path, capsys):
     assert [f["held_out_controller"] for f in search["folds"]] == [1, 2, 1, 1, 2, 2]
     winner = search["winner"]
     assert sum(f["cv_r2"] for f in search["folds"]) / 6 == pytest.approx(winner["cv_r2"], rel=1e-12)
-    assert "per-controller folds" in (tmp_path / "o" / "report.md").read_text()
+    md = (tmp_path / "o" / "report.md").read_text()
+    assert "per-controller folds" in md
+    # Two training controllers: every stage scored its candidates with offsets, and the report says why.
+    assert search["offsets_first"] is True and all(c["offsets"] for c in search["candidates"])
+    assert "offsets" not in {c["stage"] for c in search["candidates"]}
+    assert "Every stage scored its candidates with per-episode offsets (the training logs ran several" in md
 
 
 def test_single_loop_methods_refuse_two_controllers(two_controllers, tmp_path, capsys):

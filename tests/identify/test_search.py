@@ -180,6 +180,17 @@ def test_stages_step_from_the_best_so_far():
         SearchSpace(poly=(0, 1))
 
 
+def test_offsets_first_scores_every_stages_candidates_with_offsets():
+    space = SearchSpace(delays=(0, 4), poly=(1, 2), const=(False,), trig=(False,), rbf=(0, 3), offsets_first=True)
+    lead = CandidateResult(LiftingSpec(4, 2, offsets=True), "delays", np.array(space.alphas[:1]), np.ones((1, 1)), 0.0)
+    for stage in ("delays", "form", "friction", "rbf"):
+        plain = replace(space, offsets_first=False).stage_candidates(stage, [lead])
+        assert space.stage_candidates(stage, [lead]) == [replace(c, offsets=True) for c in plain], stage
+    assert space.stage_candidates("offsets", [lead]) == []  # every candidate had them
+    with pytest.raises(ValueError, match="offsets_first needs offsets to include true"):
+        replace(space, offsets=(False,))
+
+
 SMALL_SPACE = SearchSpace(
     delays=(0, 3), poly=(1, 2), const=(False, True), trig=(False,), rbf=(0,), alphas=(1e-4, 1e-2, 1.0)
 )
@@ -202,6 +213,16 @@ def test_search_winner_is_the_best_candidate_and_parallel_runs_agree(small):
     assert [c.spec for c in parallel.candidates] == [c.spec for c in serial.candidates]
     for a, b in zip(serial.candidates, parallel.candidates):
         np.testing.assert_array_equal(a.cv_r2, b.cv_r2)
+
+
+def test_a_search_with_offsets_first_ranks_only_candidates_with_offsets(small):
+    trajs, controller, splits = small
+    space = replace(SMALL_SPACE, offsets_first=True)
+    result = search_liftings(trajs, controller, splits=splits, window=WINDOW, space=space)
+    assert result.candidates and all(c.spec.offsets for c in result.candidates)
+    assert "offsets" not in {c.stage for c in result.candidates}
+    assert result.winner.score == max(c.score for c in result.candidates)
+    assert np.all(np.isfinite(result.winner.cv_r2[:, result.winner.best_index]))
 
 
 def test_a_screened_search_picks_the_full_searchs_winner_with_the_same_scores(small, small_probes, monkeypatch):
@@ -508,6 +529,7 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     search = report["search"]
     # delays 0, 2; then const on/off at the best: the form stage's screens go on only above the lead's bar.
     assert len(search["candidates"]) + len(search["screened"]) == 4
+    assert search["offsets_first"] is False  # one training controller: offsets in the last stage only
     bar = search["screening"]["lead_screen_objective"]["form"]
     for c in search["screened"]:
         assert c["stage"] == "form" and (c["objective"] is None or c["objective"] <= bar)
@@ -579,6 +601,8 @@ def test_cli_search_space_file_errors_name_the_file(log_dirs, tmp_path, capsys):
         ("delays = [", "not a readable TOML"),
         ("depth = [1]", "unknown search-space keys"),
         ("delays = [1.5]", "delays must be a non-empty list of int"),
+        ("offsets_first = 1", "offsets_first must be true or false"),
+        ("offsets_first = true\noffsets = [false]", "offsets_first needs offsets to include true"),
         ("delays = " + "[" * 100_000 + "]" * 100_000, "nested more than 64 levels deep"),
     ):
         bad.write_text(text)
