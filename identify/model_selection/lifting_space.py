@@ -153,11 +153,11 @@ class SearchSpace:
     friction: tuple[bool, ...] = (False, True)
     base: LiftingSpec = LiftingSpec(delays=0, poly=2)
     n_offset_candidates: int = 3  # stage 4 re-scores this many of the best with offsets
+    n_offset_alphas: int = 3  # ... each at its best alphas
     #: Every stage scores its candidates with per-episode offsets (the offsets stage then adds none); needs
     #: ``True in offsets``. None: decided by the training logs (:meth:`for_training`), which
     #: :func:`~.search_liftings` itself takes as False.
     offsets_first: bool | None = None
-    n_offset_alphas: int = 3  # ... each at its best alphas
     #: Successive halving: the stages ``screened_stages`` screen their candidates (:func:`~.screen_candidate`)
     #: and evaluate in full the ``n_finalists`` best whose screens did not diverge (0: every candidate
     #: in full, no screening).
