@@ -54,7 +54,8 @@ Examples:
 
 With --search the lifting, alpha and offset protocol are chosen on the
 training episodes only, in stages (delays; monomial order x constant x sin/cos;
-friction on/off; RBF centres; offsets on the best few). Each candidate is scored twice: by
+friction on/off; RBF centres; offsets on the best few; with training logs of several
+controllers every stage with offsets). Each candidate is scored twice: by
 episode-grouped cross-validation (closed-loop prediction under the training
 controller, from the end of the --estimate-window on; with training logs of
 several controllers as many folds per controller, one holding it out whole) and, with --transfer twin
@@ -66,7 +67,8 @@ not run. The winner is fitted on all training episodes, written to model.json
 and scored on the test episodes from the same sample as the candidates;
 report.md lists every candidate with both scores and the flags that refit the
 winner by hand. --search-space FILE.toml narrows or widens the space (keys:
-delays, poly, const, trig, friction, rbf, alphas, offsets: lists).
+delays, poly, const, trig, friction, rbf, alphas, offsets: lists; n_finalists,
+screen_against_lead, offsets_first: single values).
 
 Training logs may come from several controllers (the plant is common, each
 loop differs by its known controller): each episode is fitted with the
