@@ -1354,7 +1354,7 @@ def run_search(
     probes = twin_probes(trajs, cache=options.probe_cache) if options.transfer == "twin" else None
     probe_seconds = time.perf_counter() - started if probes is not None else 0.0
     several = folds.kind == "per-controller"
-    space = space.for_training(2 if several else 1)
+    space = space.for_training(several)
     result = search_liftings(
         trajs,
         controller,

@@ -238,15 +238,11 @@ class PlantCalibration:
             if len({str(label) for label in setups.get(name, ())}) > 1:
                 raise ValueError(f"cannot hold {name}: it has a value per setup in this fit")
             i = ms.PHYSICAL_NAMES.index(name)
-            _, kind, scale, lower, upper = ms.PHYSICAL[i]
-            nominal = getattr(PendulumParameters.previous() if self.nominal is None else self.nominal, name)
-            if kind == "log":
-                low, high = nominal * np.exp(lower), nominal * np.exp(upper)
-            else:
-                low, high = scale * lower, scale * upper
+            nominal = PendulumParameters.previous() if self.nominal is None else self.nominal
+            low, high = (getattr(ms.to_params(bound, nominal), name) for bound in ms.physical_bounds())
             if not low <= float(value) <= high:
                 raise ValueError(f"cannot hold {name} at {value:g}: its physical range is [{low:.4g}, {high:.4g}]")
-            out[i] = float(np.log(value / nominal) if kind == "log" else value / scale)
+            out[i] = float(ms.from_params(replace(nominal, **{name: float(value)}), nominal)[i])
         return out
 
     def _start(self, measured, seg: ms.Segments, n_ep: int, dt: float) -> np.ndarray:

@@ -157,19 +157,27 @@ def controller_summary_text(groups: list, dt: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def load_bands_text(groups: list, dt: float) -> str:
+def load_band_ratios(replay, dt: float) -> np.ndarray:
+    """A replay's std ratios twin / real, median over episodes: overall, then each band of ``STD_BANDS``.
+
+    Shape ``(1 + n_bands, 3)`` (theta, alpha, voltage); every band's twin power is the mean over the
+    replays (their start angles, and the load's draws).
+    """
+    from qube_koopman.identify.calibrate.replay_spectra import band_std_ratios
+
+    return np.vstack([np.median(replay.std_ratio, axis=0), band_std_ratios(replay, dt, all_draws=True)])
+
+
+def load_bands_text(groups: list) -> str:
     """Markdown: per controller, the replay's std ratios overall and by band with the random load off and on.
 
     Parameters
     ----------
-    groups : list of (str, validate.ReplayResult, validate.ReplayResult)
-        Each controller's label and the replays of its validation episodes without and with the load;
-        every band's twin power is the mean over the replays (their start angles, and the load's
-        draws), the ratio the median over episodes.
-    dt : float
-        Sample period (s).
+    groups : list of (str, ndarray, ndarray)
+        Each controller's label and the :func:`load_band_ratios` of its validation episodes' replays
+        without and with the load.
     """
-    from qube_koopman.identify.calibrate.replay_spectra import STD_BANDS, band_std_ratios
+    from qube_koopman.identify.calibrate.replay_spectra import STD_BANDS
 
     bands = [f"{lo:g}-{hi:g} Hz" if np.isfinite(hi) else f"above {lo:g} Hz" for lo, hi in STD_BANDS]
     lines = [
@@ -186,13 +194,8 @@ def load_bands_text(groups: list, dt: float) -> str:
         return " / ".join(f"{x:.3f}" for x in v)
 
     for label, off, on in groups:
-        for name, replay in (("off", off), ("on", on)):
-            band = band_std_ratios(replay, dt, all_draws=True)
-            lines.append(
-                f"| {label} | {name} | {cell(np.median(replay.std_ratio, axis=0))} | "
-                + " | ".join(cell(row) for row in band)
-                + " |"
-            )
+        for name, rows in (("off", off), ("on", on)):
+            lines.append(f"| {label} | {name} | " + " | ".join(cell(row) for row in rows) + " |")
     return "\n".join(lines) + "\n"
 
 

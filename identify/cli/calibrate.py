@@ -398,14 +398,8 @@ def _validate_and_record(held, paths: tuple, plant, fit_groups, provenance: dict
             ],
         )
     if with_load:  # per controller, with the load: the overall ratio, then each band's (theta, alpha, voltage)
-        from qube_koopman.identify.calibrate.replay_spectra import band_std_ratios
-
         provenance["load_std_ratio_bands_by_controller"] = [
-            [
-                [round(float(x), 4) for x in row]
-                for row in (np.median(on.std_ratio, axis=0), *band_std_ratios(on, val_dt, all_draws=True))
-            ]
-            for _, _, on in with_load
+            [[round(float(x), 4) for x in row] for row in on] for _, _, on in with_load
         ]
     return validation, val_dt, summary
 
@@ -491,9 +485,14 @@ def _validate(held, paths, plant, refitted=frozenset()):
     Returns the per-controller ``(replay, open_loop, names, label)`` tuples, the
     sample period, the report's text (each controller's table, then the
     summary across controllers) and, with the plant's load, per controller
-    ``(label, replay without it, replay with it)``.
+    ``(label, ratios without it, ratios with it)`` (``report.load_band_ratios``).
     """
-    from qube_koopman.identify.calibrate.report import controller_summary_text, validation_text
+    from qube_koopman.identify.calibrate.report import (
+        controller_summary_text,
+        load_band_ratios,
+        load_bands_text,
+        validation_text,
+    )
     from qube_koopman.identify.calibrate.validate import (
         OPEN_LOOP_HORIZON,
         controller_groups,
@@ -515,13 +514,12 @@ def _validate(held, paths, plant, refitted=frozenset()):
         fitted = sum(paths[i] in refitted for i in members)
         text += "\n" + validation_text(*out[-1][:3], controller=label if several else None, fitted=fitted)
         if plant.load is not None:
-            with_load.append((label, replay, replay_episodes(episodes, params, load=[loads[i] for i in members])))
+            loaded = replay_episodes(episodes, params, load=[loads[i] for i in members])
+            with_load.append((label, load_band_ratios(replay, held[0].dt), load_band_ratios(loaded, held[0].dt)))
     dt = held[0].dt
     text += "\n" + controller_summary_text([(v[3], v[0]) for v in out], dt)
     if with_load:
-        from qube_koopman.identify.calibrate.report import load_bands_text
-
-        text += "\n" + load_bands_text(with_load, dt)
+        text += "\n" + load_bands_text(with_load)
     return out, dt, text, with_load
 
 

@@ -180,9 +180,9 @@ class SearchSpace:
         if self.offsets_first and True not in self.offsets:
             raise ValueError("search space: offsets_first needs offsets to include true")
 
-    def for_training(self, n_controllers: int) -> "SearchSpace":
+    def for_training(self, several_controllers: bool) -> "SearchSpace":
         """This space with :attr:`offsets_first` decided where it is None: on when the training logs ran
-        two or more controllers (and offsets are tried).
+        two or more controllers (``several_controllers``) and offsets are tried.
 
         Why: a softer loop's episodes are predictable only with their encoder zeros estimated (under the
         soft controller a count's error moves the arm seventeen times as far), so scored without them
@@ -193,7 +193,7 @@ class SearchSpace:
         """
         if self.offsets_first is not None:
             return self
-        return replace(self, offsets_first=n_controllers >= 2 and True in self.offsets)
+        return replace(self, offsets_first=several_controllers and True in self.offsets)
 
     def tries_friction(self, lead: LiftingSpec) -> bool:
         """Whether the friction stage would try ``lead`` with the friction shape (it lacks it and has the delays)."""

@@ -366,7 +366,7 @@ def named_parameters(name: str) -> PendulumParameters:
         "default": PendulumParameters,
         "workbook": PendulumParameters.workbook,
         "previous": PendulumParameters.previous,
-        "calibrated-two-controllers": lambda: load_plant(PLANTS / "qube_20230828_20230915.toml").params,
+        "calibrated-two-controllers": lambda: load_plant(PLANTS / _SHIPPED_FILES["calibrated-two-controllers"]).params,
         "calibrated-with-load": lambda: load_plant(PLANTS / _SHIPPED_FILES["calibrated-with-load"]).params,
         "calibrated-20230828": lambda: load_plant(PLANTS / "qube_20230828.toml").params,
     }
@@ -402,10 +402,8 @@ def plant_file(name_or_path: str | Path | None) -> PlantFile:
         The file cannot be read (the message names it).
     """
     named = name_or_path is not None and str(name_or_path) in PARAMETER_SETS and not Path(name_or_path).exists()
-    if name_or_path is None:
-        return load_plant(PLANTS / _SHIPPED_FILES["default"])
-    if named and str(name_or_path) in _SHIPPED_FILES:
-        return load_plant(PLANTS / _SHIPPED_FILES[str(name_or_path)])
+    if name_or_path is None or (named and str(name_or_path) in _SHIPPED_FILES):
+        return load_plant(PLANTS / _SHIPPED_FILES[str(name_or_path or "default")])
     if named:
         return PlantFile(named_parameters(str(name_or_path)))
     return load_plant(name_or_path)
