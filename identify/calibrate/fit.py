@@ -14,10 +14,24 @@ from qube_koopman.identify.calibrate import shooting as ms
 from qube_koopman.identify.calibrate.solver import levenberg_marquardt
 from qube_koopman.sim.pendulum import PendulumParameters
 
-__all__ = ["PlantCalibration"]
+__all__ = ["HoldRefused", "PlantCalibration"]
 
 #: Standard deviation (rad) of a 2048-count encoder's quantization error: the residual scale.
 ENCODER_SIGMA = 2 * np.pi / 2048 / np.sqrt(12)
+
+
+class HoldRefused(ValueError):
+    """A parameter :class:`PlantCalibration`'s ``hold`` cannot keep at its value.
+
+    Attributes
+    ----------
+    per_setup : bool
+        The parameter has a value per setup in this fit (fitting one value for all setups could hold it).
+    """
+
+    def __init__(self, message: str, per_setup: bool = False) -> None:
+        super().__init__(message)
+        self.per_setup = per_setup
 
 
 class _Progress:
@@ -234,14 +248,14 @@ class PlantCalibration:
         out = {}
         for name, value in dict(self.hold or {}).items():
             if name not in ms.PHYSICAL_NAMES:
-                raise ValueError(f"cannot hold {name!r}: the fitted parameters are {', '.join(ms.PHYSICAL_NAMES)}")
+                raise HoldRefused(f"cannot hold {name!r}: the fitted parameters are {', '.join(ms.PHYSICAL_NAMES)}")
             if len({str(label) for label in setups.get(name, ())}) > 1:
-                raise ValueError(f"cannot hold {name}: it has a value per setup in this fit")
+                raise HoldRefused(f"cannot hold {name}: it has a value per setup in this fit", per_setup=True)
             i = ms.PHYSICAL_NAMES.index(name)
             nominal = PendulumParameters.previous() if self.nominal is None else self.nominal
             low, high = (getattr(ms.to_params(bound, nominal), name) for bound in ms.physical_bounds())
             if not low <= float(value) <= high:
-                raise ValueError(f"cannot hold {name} at {value:g}: its physical range is [{low:.4g}, {high:.4g}]")
+                raise HoldRefused(f"cannot hold {name} at {value:g}: its physical range is [{low:.4g}, {high:.4g}]")
             out[i] = float(ms.from_params(replace(nominal, **{name: float(value)}), nominal)[i])
         return out
 

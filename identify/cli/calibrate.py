@@ -299,7 +299,7 @@ def _tilt_text(tilts: dict) -> str:
 def _calibrate(episodes, args, tilts: dict | None = None) -> tuple:
     """The fitted PlantCalibration, its plant file (without provenance) and the fitted logs' controller groups;
     with ``tilts`` (per recording day) each log simulated with its day's tilt, which the setups keep."""
-    from qube_koopman.identify.calibrate import PlantCalibration
+    from qube_koopman.identify.calibrate import HoldRefused, PlantCalibration
     from qube_koopman.identify.calibrate.validate import controller_groups
     from qube_koopman.sim.pendulum.params_file import PlantFile, recording_day
 
@@ -324,12 +324,8 @@ def _calibrate(episodes, args, tilts: dict | None = None) -> tuple:
             if tilts is None
             else {"tilt_x": [tilts[recording_day(e.metadata.start_time)].tilt_x for e in episodes]},
         )
-    except ValueError as exc:
-        if str(exc).startswith("cannot hold"):  # --hold's value out of range, or a parameter with setups
-            raise CliError(
-                f"--hold: {exc}" + (" (--setups none fits one value)" if "per setup" in str(exc) else "")
-            ) from None
-        raise
+    except HoldRefused as exc:  # --hold's value out of range, or a parameter with a value per setup
+        raise CliError(f"--hold: {exc}" + (" (--setups none fits one value)" if exc.per_setup else "")) from None
     values, errors = dict(cal.setup_values_), dict(cal.setup_errors_)
     if tilts is not None:
         values["tilt_x"] = {day: fit.tilt_x for day, fit in tilts.items()}

@@ -11,7 +11,7 @@ import pytest
 from _episodes import QUBE_PD
 from qube_koopman.daq.episode import REFERENCE_SIGNALS, stack_signals
 from qube_koopman.daq.excitation import ExcitationSettings, generate_excitation
-from qube_koopman.identify.calibrate import PlantCalibration
+from qube_koopman.identify.calibrate import HoldRefused, PlantCalibration
 from qube_koopman.identify.calibrate import shooting as ms
 from qube_koopman.sim.pendulum import PendulumParameters, SensorModel, simulate_closed_loop
 
@@ -210,8 +210,9 @@ def test_a_held_parameter_keeps_its_value_and_the_rest_are_recovered_around_it()
 )
 def test_a_hold_the_fit_cannot_keep_is_refused_in_one_line(hold, setups, message):
     ys, us, _ = simulated_logs(TRUTH, n=2, seconds=2.0)
-    with pytest.raises(ValueError, match="^" + re.escape(message)):
+    with pytest.raises(HoldRefused, match="^" + re.escape(message)) as refused:
         PlantCalibration(horizon=0.2, skip=0.5, hold=hold).fit(ys, us, DT, setups=setups)
+    assert isinstance(refused.value, ValueError) and refused.value.per_setup == (setups is not None)
 
 
 @pytest.mark.slow
