@@ -332,16 +332,22 @@ def test_qube_run_failed_swing_up_writes_a_log_that_says_why(tmp_path, capsys):
 def test_swing_up_over_the_serial_link(core, tmp_path):
     """The same phase over --backend serial, paced by the bridge's telemetry (lockstep): the emulated
     pendulum left hanging at the session's start is swung up, caught and settled within the limits,
-    then the episode is recorded complete."""
+    then the episode is recorded complete. The link's timeout runs on the bridge's device clock and
+    the bridge's lockstep on the host's waiting (``HostWait``): a machine that holds either process up
+    for a while loses no tick (on the wall clock a loaded run once lost the link before the start)."""
 
-    from qube_koopman.daq.backends.serial import SerialBackend
+    from bridge_helpers import HostWait, lockstep_backend
+
     from qube_koopman.daq.log import read_episode
     from qube_koopman.daq.sinks import McapSink
     from qube_koopman.sim.bridge import BridgeEmulator
 
-    emu = BridgeEmulator(seed=9, core=core, lockstep=True, lockstep_timeout=0.1, start_upright=False)
-    path = emu.start()
-    backend = SerialBackend(path, link_timeout=0.2)
+    wait = HostWait()
+    emu = BridgeEmulator(
+        seed=9, core=core, lockstep=True, lockstep_timeout=0.1, lockstep_clock=wait, start_upright=False
+    )
+    emu.start()
+    backend = lockstep_backend(emu, wait, link_timeout=0.2)
     sink = McapSink(tmp_path)
     result = _swing_up_episode_on(emu, backend, sink, 2.0)
     assert result.complete, result.reason
