@@ -21,7 +21,7 @@ ENCODER_SIGMA = 2 * np.pi / 2048 / np.sqrt(12)
 
 
 class HoldRefused(ValueError):
-    """A parameter :class:`PlantCalibration`'s ``hold`` cannot keep at its value.
+    """Refused: :class:`PlantCalibration`'s ``hold`` names a parameter it cannot keep at the value given.
 
     Attributes
     ----------
