@@ -47,7 +47,7 @@ from scipy.signal import butter, sosfiltfilt
 from qube_koopman.daq.log import read_episode
 from qube_koopman.identify.calibrate.replay_spectra import CHANNELS, band_std_ratios
 from qube_koopman.identify.calibrate.validate import replay_episodes
-from qube_koopman.sim.pendulum.params_file import plant_file
+from qube_koopman.sim.pendulum.params_file import PlantFileError, plant_file
 
 #: (label, low Hz or 0, high Hz): the bands the replays are split into.
 SPLIT = (("below 0.1 Hz", 0.0, 0.1), ("0.1-0.3 Hz", 0.1, 0.3), ("below 0.3 Hz", 0.0, 0.3))
@@ -84,7 +84,10 @@ def main() -> None:
     episodes = [read_episode(p) for p in sorted(args.soft.glob("*.mcap"))[-args.last :]]
     if not episodes:
         raise SystemExit(f"{args.soft}: no .mcap logs")
-    plant = plant_file(args.plant)
+    try:
+        plant = plant_file(args.plant)
+    except PlantFileError as exc:
+        raise SystemExit(str(exc)) from None
     times = [e.metadata.start_time for e in episodes]
     loads = plant.loads_for_logs(times) if plant.load is not None else None
     replay = replay_episodes(episodes, plant.params_for_logs(times), n_draws=args.draws, load=loads)
