@@ -42,6 +42,7 @@ from qube_koopman.daq.controller_step import controller_step
 from qube_koopman.daq.safety import SafetyLimits, StopRequest, SwingUpLimits
 from qube_koopman.daq.timing import DeadlinePacer
 from qube_koopman.sim.pendulum import PendulumParameters
+from qube_koopman.sim.pendulum.physics import Coefficients, static_friction
 
 __all__ = ["EnergyController", "SwingUp", "SwingUpReport", "run_swing_up", "wrap_angle"]
 
@@ -147,6 +148,8 @@ class EnergyController:
             - p.Cr * math.tanh(theta_dot / p.coulomb_speed)
             - p.Kr * stretch
         )
+        if p.Cs:
+            passive -= static_friction(theta_dot, Coefficients.of(p), math.tanh)
         volts = (r1 - passive) * p.Rm / p.km
         if volts != 0.0:
             volts += math.copysign(p.dead_zone, volts)

@@ -30,6 +30,7 @@ __all__ = [
     "rk4_step",
     "simulate",
     "total_energy",
+    "static_friction",
     "linearize_upright",
     "linear_model",
     "SAMPLE_PERIOD",
@@ -88,6 +89,12 @@ class PendulumParameters:
         ``Cr tanh(theta_dot / coulomb_speed)``; 0 leaves it out.
     coulomb_speed : float
         Arm speed (rad/s) over which the Coulomb torque changes sign.
+    Cs : float
+        Static friction of the arm beyond its Coulomb torque (N m): the arm breaks away at ``Cr + Cs``,
+        the excess fading as the arm speeds up (Stribeck), ``Cs exp(-(theta_dot / stribeck_speed)^2)
+        tanh(theta_dot / coulomb_speed)``; 0 leaves it out.
+    stribeck_speed : float
+        Arm speed (rad/s) over which the static friction's excess fades.
     dead_zone : float
         Amplifier dead zone (V): the motor sees ``V - clip(V, -dead_zone, dead_zone)``;
         0 leaves it out.
@@ -155,6 +162,8 @@ class PendulumParameters:
     cable_softening: float = 5.179489002800374
     tilt_x: float = 0.0
     tilt_y: float = 0.0
+    Cs: float = 0.0
+    stribeck_speed: float = 0.1
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -165,9 +174,10 @@ class PendulumParameters:
             if getattr(self, name) <= 0:
                 raise ValueError(f"parameter {name} must be positive, got {getattr(self, name)}")
         # km = 0 (motor disconnected) and zero damping are legitimate idealizations.
-        if self.coulomb_speed <= 0:
-            raise ValueError(f"parameter coulomb_speed must be positive, got {self.coulomb_speed}")
-        for name in ("km", "Dr", "Dp", "g", "Cr", "dead_zone", "Jh", "delay", "Kr", "cable_softening"):
+        for name in ("coulomb_speed", "stribeck_speed"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"parameter {name} must be positive, got {getattr(self, name)}")
+        for name in ("km", "Dr", "Dp", "g", "Cr", "Cs", "dead_zone", "Jh", "delay", "Kr", "cable_softening"):
             if getattr(self, name) < 0:
                 raise ValueError(f"parameter {name} must be non-negative, got {getattr(self, name)}")
         # Beyond these the arithmetic of the model itself overflows (km**2 / Rm, a delay buffer of
@@ -177,7 +187,7 @@ class PendulumParameters:
                 raise ValueError(
                     f"parameter {f.name} must be at most {MAX_PARAMETER:g} in size, got {getattr(self, f.name)}"
                 )
-        for name in ("Rm", "mr", "Lr", "mp", "Lp", "coulomb_speed"):
+        for name in ("Rm", "mr", "Lr", "mp", "Lp", "coulomb_speed", "stribeck_speed"):
             if getattr(self, name) < MIN_POSITIVE_PARAMETER:
                 raise ValueError(
                     f"parameter {name} must be at least {MIN_POSITIVE_PARAMETER:g}, got {getattr(self, name)}"
@@ -255,6 +265,8 @@ class Coefficients(NamedTuple):
     tilt_x: float = 0.0  # the base's tilt: the pendulum balances at tilt_x sin(theta) + tilt_y cos(theta)
     tilt_y: float = 0.0
     arm_gravity: float = 0.0  # (mr / 2 + mp) g Lr: gravity's torque on the arm per radian of the balance angle
+    arm_static: float = 0.0  # Cs
+    inverse_stribeck_speed: float = 10.0  # 1 / stribeck_speed
 
     @classmethod
     def of(cls, p: PendulumParameters) -> Coefficients:
@@ -277,6 +289,8 @@ class Coefficients(NamedTuple):
             tilt_x=p.tilt_x,
             tilt_y=p.tilt_y,
             arm_gravity=(p.mr / 2.0 + p.mp) * p.g * p.Lr,
+            arm_static=p.Cs,
+            inverse_stribeck_speed=1.0 / p.stribeck_speed,
         )
 
     @classmethod
@@ -328,7 +342,7 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
     """(theta_ddot, alpha_ddot) from the arm angle, sin and cos of alpha and the motor's voltage
     (past the dead zone, :func:`_motor_voltage`); floats or arrays alike. ``terms``: :func:`_terms`
     of ``k`` and ``tanh``, when bound once for many calls."""
-    coulomb, stretch, tilted = _terms(k, tanh) if terms is None else terms
+    coulomb, stretch, tilted, static = _terms(k, tanh) if terms is None else terms
     # tau - Dr theta_dot with tau = km (V - km theta_dot) / Rm: the back-EMF
     # opposes the motion, which bounds the no-load speed at 1/km rad/s per volt.
     r1 = (
@@ -339,6 +353,8 @@ def _accelerations(theta, s, c, theta_dot, alpha_dot, voltage, k: Coefficients, 
     )
     if coulomb:  # a Python branch: without friction the arithmetic is exactly as before
         r1 = r1 - k.arm_coulomb * tanh(theta_dot * k.inverse_coulomb_speed)
+    if static:  # the static friction's excess (Stribeck); as above, exactly the old arithmetic without it
+        r1 = r1 - static_friction(theta_dot, k, tanh)
     if stretch is not None:  # the cables' spring; as above, exactly the old arithmetic without it
         r1 = r1 - k.arm_stiffness * stretch(theta - k.arm_rest)
     upright = s
@@ -372,9 +388,19 @@ def _tilt_torques(theta, s, c, k: Coefficients, sin: Callable, cos: Callable):
     return -k.arm_gravity * balance - k.gravity * slope * s, s - c * balance
 
 
-def _terms(k: Coefficients, tanh: Callable) -> tuple[bool, Callable | None, bool]:
-    """Which optional terms :func:`_accelerations` adds: Coulomb friction, the cables' pull, and a tilted base."""
-    return _on(k.arm_coulomb), _cable_stretch(k, tanh), _on(k.tilt_x) or _on(k.tilt_y)
+def static_friction(theta_dot, k: Coefficients, tanh: Callable = np.tanh):
+    """The arm's static friction beyond its Coulomb torque (N m), ``Cs exp(-(theta_dot / v_s)^2) tanh(theta_dot /
+    v_c)`` (:class:`PendulumParameters`' ``Cs``, ``stribeck_speed`` and ``coulomb_speed``): floats with ``math.tanh``,
+    arrays with numpy's."""
+    exp = math.exp if tanh is math.tanh else np.exp
+    fade = theta_dot * k.inverse_stribeck_speed
+    return k.arm_static * exp(-fade * fade) * tanh(theta_dot * k.inverse_coulomb_speed)
+
+
+def _terms(k: Coefficients, tanh: Callable) -> tuple[bool, Callable | None, bool, bool]:
+    """Which optional terms :func:`_accelerations` adds: Coulomb friction, the cables' pull, a tilted base and
+    static friction."""
+    return _on(k.arm_coulomb), _cable_stretch(k, tanh), _on(k.tilt_x) or _on(k.tilt_y), _on(k.arm_static)
 
 
 def _rk4(theta, alpha, theta_dot, alpha_dot, voltage, h: float, n: int, k: Coefficients, sin: Callable, cos: Callable):
@@ -457,6 +483,7 @@ def scalar_rk4(k: Coefficients) -> Callable:
         bool(dead_zone),
     )
     has_tilt = bool(k.tilt_x) or bool(k.tilt_y)
+    has_static = bool(k.arm_static)
     sin, cos, tanh = math.sin, math.cos, math.tanh
 
     def accelerations(theta, s, c, theta_dot, alpha_dot, voltage):
@@ -468,6 +495,8 @@ def scalar_rk4(k: Coefficients) -> Callable:
         )
         if has_coulomb:
             r1 = r1 - coulomb * tanh(theta_dot * inverse_speed)
+        if has_static:
+            r1 = r1 - static_friction(theta_dot, k, tanh)
         if has_spring:
             x = theta - rest
             r1 = r1 - stiffness * (tanh(curvature * x) / curvature if has_curve else x)

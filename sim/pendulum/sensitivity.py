@@ -53,6 +53,8 @@ FIELDS = (
     "tilt_x",
     "tilt_y",
     "arm_gravity",
+    "arm_static",
+    "inverse_stribeck_speed",
 )
 _DEAD_ZONE = FIELDS.index("dead_zone")
 
@@ -135,6 +137,12 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         slope = k.tilt_x * cos_theta - k.tilt_y * sin_theta
         r1 = r1 - k.arm_gravity * balance - k.gravity * slope * s
         upright, upright_alpha = s - c * balance, c + s * balance
+    # The static friction's excess (physics._static_friction): Cs e tanh(v u), e = exp(-(v w)^2).
+    static = bool(np.any(k.arm_static))
+    if static:
+        fade = theta_dot * k.inverse_stribeck_speed
+        excess = np.exp(-fade * fade) * friction  # e tanh(v u), per unit Cs
+        r1 = r1 - k.arm_static * excess
     r2 = -k.pendulum_damping * alpha_dot + q * sc * theta_dot * theta_dot + k.gravity * upright
     m11 = k.m11 + q * s * s
     m12 = m12k * c
@@ -158,6 +166,12 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         r2_theta = -k.gravity * slope * c
     m11_alpha, m12_alpha = 2.0 * q * sc, -m12k * s
     r1_theta_dot = -k.arm_damping - 2.0 * q * sc * alpha_dot - k.arm_coulomb * k.inverse_coulomb_speed * friction_slope
+    if static:  # d(e tanh(v u)) / dv = e (u (1 - tanh^2) - 2 v w^2 tanh)
+        fading = np.exp(-fade * fade)
+        w = k.inverse_stribeck_speed
+        r1_theta_dot = r1_theta_dot - k.arm_static * fading * (
+            k.inverse_coulomb_speed * friction_slope - 2.0 * theta_dot * w * w * friction
+        )
     r2_theta_dot = 2.0 * q * sc * theta_dot
     r1_alpha_dot = -2.0 * q * sc * theta_dot + 2.0 * m12k * s * alpha_dot
     r2_alpha_dot = -k.pendulum_damping
@@ -183,7 +197,13 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         "arm_damping": lambda: (-theta_dot, None, None, None, None),
         "pendulum_damping": lambda: (None, -alpha_dot, None, None, None),
         "arm_coulomb": lambda: (-friction, None, None, None, None),
-        "inverse_coulomb_speed": lambda: (-k.arm_coulomb * friction_slope * theta_dot, None, None, None, None),
+        "inverse_coulomb_speed": lambda: (
+            -(k.arm_coulomb + (k.arm_static * fading if static else 0.0)) * friction_slope * theta_dot,
+            None,
+            None,
+            None,
+            None,
+        ),
         "arm_stiffness": lambda: (-stretch, None, None, None, None),
         "arm_rest": lambda: (k.arm_stiffness * stretch_slope, None, None, None, None),
         "cable_softening": lambda: (-k.arm_stiffness * by_softening, None, None, None, None),
@@ -202,6 +222,20 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
             None,
         ),
         "arm_gravity": lambda: (-balance if tilted else None, None, None, None, None),
+        "arm_static": lambda: (
+            -np.exp(-((theta_dot * k.inverse_stribeck_speed) ** 2)) * friction,
+            None,
+            None,
+            None,
+            None,
+        ),
+        "inverse_stribeck_speed": lambda: (
+            (2.0 * k.arm_static * theta_dot * theta_dot * k.inverse_stribeck_speed * excess) if static else None,
+            None,
+            None,
+            None,
+            None,
+        ),
     }
     a_rows, b_rows = [], []
     for field in active:

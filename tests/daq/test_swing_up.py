@@ -51,6 +51,25 @@ def _pendulum_energy_rate(state, volts, params=PARAMS) -> float:
     return inertia * alpha_dot * alpha_ddot - params.mp * params.Lp * params.g / 2.0 * math.sin(alpha) * alpha_dot
 
 
+def test_the_energy_controllers_voltage_gives_the_arm_its_acceleration_through_every_friction():
+    """The voltage the controller asks for, applied to the model, gives the arm the acceleration it
+    wanted with the arm moving (its Coulomb and static friction, its cables and dead zone all acting)."""
+    params = replace(PARAMS, Cs=2 * PARAMS.Cr, stribeck_speed=0.1)
+    ctrl = EnergyController(params, energy_margin=0.0)
+    rng = np.random.default_rng(2)
+    checked = 0
+    for theta, alpha, theta_dot, alpha_dot in rng.uniform(
+        [-0.5, -math.pi, -0.3, -15], [0.5, math.pi, 0.3, 15], (200, 4)
+    ):
+        volts = ctrl.voltage(theta, alpha, theta_dot, alpha_dot)
+        if abs(volts) < 10.0:  # inside the clamp: the acceleration is the one asked for
+            wanted = ctrl.acceleration(theta, alpha, theta_dot, alpha_dot)
+            got = dynamics([theta, alpha, theta_dot, alpha_dot], volts, params)[2]
+            assert got == pytest.approx(wanted, rel=1e-9, abs=1e-9)
+            checked += 1
+    assert checked > 100
+
+
 @pytest.mark.parametrize("params", [PARAMS, PendulumParameters.workbook()], ids=["twin", "workbook"])
 def test_energy_controller_pumps_energy_towards_the_upright(params):
     """With the arm at rest at its zero (the centering term then asks nothing), the voltage the

@@ -69,6 +69,8 @@ def test_hub_inertia_adds_to_the_arm_rod():
         (dict(mp=float("nan")), "mp"),
         (dict(km="0.04"), "km"),
         (dict(tilt_x=0.2), "tilt_x"),
+        (dict(Cs=-1e-4), "Cs"),
+        (dict(stribeck_speed=0.0), "stribeck_speed"),
     ],
 )
 def test_parameters_reject_bad_values(changes, match):
@@ -173,6 +175,24 @@ def test_constant_1v_settles_at_the_back_emf_limited_speed():
     assert abs(x[-1, 1] - math.pi) < 1e-3 and abs(x[-1, 3]) < 1e-3
 
 
+def test_static_friction_holds_the_arm_against_a_torque_coulomb_friction_alone_would_yield_to():
+    # Hanging down at rest, a voltage whose torque (km V / Rm = 1.3 Cr) is above the Coulomb torque but
+    # below the breakaway one (Cr + Cs = 2 Cr). Without the static excess the arm runs off (0.30 rad/s
+    # after a second, 0.18 rad); with it the arm only creeps, as far as tanh's smoothing of the friction's
+    # sign over 0.05 rad/s lets it (measured 0.046 rad/s, 0.041 rad).
+    twin = PendulumParameters()  # the calibrated twin's Coulomb torque
+    free = dataclasses.replace(twin, dead_zone=0.0, Kr=0.0)  # the motor's torque alone against the friction
+    sticky = dataclasses.replace(free, Cs=twin.Cr, stribeck_speed=0.1)
+    volts = 1.3 * twin.Cr * twin.Rm / twin.km
+    hanging = [0.0, math.pi, 0.0, 0.0]
+    held = simulate(hanging, np.full(500, volts), sticky)
+    slid = simulate(hanging, np.full(500, volts), free)
+    assert abs(held[-1, 0]) < 0.05 and abs(held[-1, 2]) < 0.06
+    assert abs(slid[-1, 0]) > 3 * abs(held[-1, 0]) and abs(slid[-1, 2]) > 5 * abs(held[-1, 2])
+    # Once the torque is above the breakaway, the arm moves whether or not the excess is there.
+    assert abs(simulate(hanging, np.full(500, 2.5 * volts), sticky)[-1, 2]) > 0.1
+
+
 @pytest.mark.parametrize("params", [P, TILTED], ids=["level", "tilted"])
 def test_energy_is_conserved_without_damping_or_input(params):
     # An amplifier at 0 V still brakes the arm through the back-EMF (km^2/Rm),
@@ -225,6 +245,8 @@ def test_more_substeps_converge():
         dict(Cr=0.0, Kr=0.0, dead_zone=0.0),
         dict(tilt_x=-5e-3, tilt_y=4e-3),
         dict(tilt_y=4e-3),
+        dict(Cs=8e-4, stribeck_speed=0.2),
+        dict(Cr=0.0, Cs=8e-4),
     ],
 )
 def test_the_per_tick_integrator_is_the_general_one_bit_for_bit(changes):

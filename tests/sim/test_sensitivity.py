@@ -12,8 +12,8 @@ from qube_koopman.sim.pendulum.physics import Coefficients
 from qube_koopman.sim.pendulum.sensitivity import FIELDS, Directions, simulate_tangents
 
 DT = 1 / 500
-#: Every optional term on: Coulomb friction, a dead zone the voltage crosses, a fractional delay (1.6
-#: samples), the cables' levelling pull away from the encoder's zero, a tilted base.
+#: Every optional term on: Coulomb friction and a static excess over it, a dead zone the voltage crosses, a
+#: fractional delay (1.6 samples), the cables' levelling pull away from the encoder's zero, a tilted base.
 PARAMS = replace(
     PendulumParameters(),
     Cr=4e-4,
@@ -25,6 +25,8 @@ PARAMS = replace(
     Dp=3e-5,
     tilt_x=-5e-3,
     tilt_y=4e-3,
+    Cs=8e-4,
+    stribeck_speed=0.5,
 )
 
 
@@ -50,7 +52,21 @@ def _row(p: PendulumParameters) -> np.ndarray:
 
 
 @pytest.mark.parametrize(
-    "name", ["km", "Lp", "Jh", "Cr", "dead_zone", "Kr", "cable_softening", "coulomb_speed", "tilt_x", "tilt_y"]
+    "name",
+    [
+        "km",
+        "Lp",
+        "Jh",
+        "Cr",
+        "dead_zone",
+        "Kr",
+        "cable_softening",
+        "coulomb_speed",
+        "tilt_x",
+        "tilt_y",
+        "Cs",
+        "stribeck_speed",
+    ],
 )
 def test_each_parameters_tangent_is_the_simulations_difference(name):
     state0, voltages, past = _case()
