@@ -32,8 +32,9 @@ Also printed: the share of each episode's time its arm's encoder count holds sti
 0.1, 0.2 and 0.4 s (mean over episodes and draws). Measured, real / twin: soft 0.221 / 0.164,
 0.124 / 0.073, 0.038 / 0.009; rig test 0.153 / 0.115, 0.048 / 0.019, 0.000 / 0.000. The real arm
 stays put longer than the twin's, most under the soft loop, whose small arm gain builds the
-voltage that moves it again slowest: what static friction does, and the twin's friction (Coulomb,
-smoothed by ``tanh`` over 0.05 rad/s) does not have.
+voltage that moves it again slowest; the twin's friction (Coulomb's, its sign smoothed by ``tanh``
+over 0.05 rad/s) lets a stuck arm creep. ``--plant FILE`` replays a plant file with other friction
+(``Cs``, ``stribeck_speed``, ``coulomb_speed`` in its ``[parameters]``; docs/calibration.md).
 """
 
 from __future__ import annotations
