@@ -779,8 +779,8 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     slope at 0 V of a dead zone is zero, which describes no motion the loop
     makes; the linearization is that of the motor outside it. The smoothed
     Coulomb torque enters through its slope at rest, ``Cr / coulomb_speed``,
-    as viscous damping of the arm. The cables' spring (``Kr``) enters as a
-    stiffness of the arm (its slope at rest, whatever its ``cable_softening``); the
+    as viscous damping of the arm (with static friction, ``(Cr + Cs) / coulomb_speed``). The
+    cables' spring (``Kr``) enters as a stiffness of the arm (its slope at rest, whatever its ``cable_softening``); the
     equilibrium is at ``theta = theta_rest``, so the state's theta is measured from there.
     A tilted base enters to first order in the tilt, at ``theta_rest``: the slope there of the
     pendulum's balance angle ``alpha_b`` couples the pendulum's gravity to the arm (both ways) and
@@ -791,8 +791,8 @@ def linearize_upright(params: PendulumParameters = PendulumParameters()) -> tupl
     k = Coefficients.of(params)
     mass = np.array([[k.m11, k.m12], [k.m12, k.m22]])
     # Generalized forces to first order at alpha = 0: columns (theta, alpha, theta_dot, alpha_dot).
-    # The smoothed Coulomb torque's slope at rest acts as viscous damping there.
-    arm_damping = k.arm_damping + k.arm_coulomb * k.inverse_coulomb_speed
+    # The smoothed Coulomb torque's slope at rest acts as viscous damping there, and so does the static friction's.
+    arm_damping = k.arm_damping + (k.arm_coulomb + k.arm_static) * k.inverse_coulomb_speed
     slope = k.tilt_x * math.cos(k.arm_rest) - k.tilt_y * math.sin(k.arm_rest)  # of the balance angle
     forces = np.array(
         [

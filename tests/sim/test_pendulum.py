@@ -96,9 +96,12 @@ def test_linearization_has_the_familiar_magnitudes():
 
 #: A base tilted by a few mrad, as the rig's was on its recording days.
 TILTED = dataclasses.replace(P, tilt_x=-5e-3, tilt_y=4e-3)
+#: The calibrated twin with static friction beyond its Coulomb torque (and no dead zone, which the
+#: linearization leaves out).
+STICKY = dataclasses.replace(PendulumParameters(), dead_zone=0.0, Cs=8e-4, stribeck_speed=0.1)
 
 
-@pytest.mark.parametrize("params", [P, TILTED], ids=["level", "tilted"])
+@pytest.mark.parametrize("params", [P, TILTED, STICKY], ids=["level", "tilted", "static-friction"])
 def test_linearization_is_the_jacobian_of_the_dynamics(params):
     # On a tilted base about its equilibrium: the arm at rest, the pendulum at its balance angle there.
     A, B = linearize_upright(params)
