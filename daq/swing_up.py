@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from typing import Any, Callable
 
 from qube_koopman.core.lti import DiscreteStateSpace
@@ -101,6 +102,11 @@ class EnergyController:
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"energy controller {name} must be a non-negative number, got {value!r}")
 
+    @cached_property
+    def _coefficients(self) -> Coefficients:
+        """The model's coefficients, made once rather than at every tick that needs them."""
+        return Coefficients.of(self.params)
+
     @property
     def reference_energy(self) -> float:
         """``E0``: the pendulum's energy upright at rest (J)."""
@@ -149,7 +155,7 @@ class EnergyController:
             - p.Kr * stretch
         )
         if p.Cs:
-            passive -= static_friction(theta_dot, Coefficients.of(p), math.tanh)
+            passive -= static_friction(theta_dot, self._coefficients, math.tanh)
         volts = (r1 - passive) * p.Rm / p.km
         if volts != 0.0:
             volts += math.copysign(p.dead_zone, volts)

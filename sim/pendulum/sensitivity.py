@@ -137,11 +137,11 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         slope = k.tilt_x * cos_theta - k.tilt_y * sin_theta
         r1 = r1 - k.arm_gravity * balance - k.gravity * slope * s
         upright, upright_alpha = s - c * balance, c + s * balance
-    # The static friction's excess (physics._static_friction): Cs e tanh(v u), e = exp(-(v w)^2).
+    # The static friction's excess (physics.static_friction): Cs e tanh(v u), e = exp(-(v w)^2).
     static = bool(np.any(k.arm_static))
     if static:
-        fade = theta_dot * k.inverse_stribeck_speed
-        excess = np.exp(-fade * fade) * friction  # e tanh(v u), per unit Cs
+        fading = np.exp(-((theta_dot * k.inverse_stribeck_speed) ** 2))  # e
+        excess = fading * friction  # e tanh(v u), per unit Cs
         r1 = r1 - k.arm_static * excess
     r2 = -k.pendulum_damping * alpha_dot + q * sc * theta_dot * theta_dot + k.gravity * upright
     m11 = k.m11 + q * s * s
@@ -167,7 +167,6 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
     m11_alpha, m12_alpha = 2.0 * q * sc, -m12k * s
     r1_theta_dot = -k.arm_damping - 2.0 * q * sc * alpha_dot - k.arm_coulomb * k.inverse_coulomb_speed * friction_slope
     if static:  # d(e tanh(v u)) / dv = e (u (1 - tanh^2) - 2 v w^2 tanh)
-        fading = np.exp(-fade * fade)
         w = k.inverse_stribeck_speed
         r1_theta_dot = r1_theta_dot - k.arm_static * fading * (
             k.inverse_coulomb_speed * friction_slope - 2.0 * theta_dot * w * w * friction
@@ -223,7 +222,7 @@ def _partials(theta, alpha, theta_dot, alpha_dot, motor_voltage, k: Coefficients
         ),
         "arm_gravity": lambda: (-balance if tilted else None, None, None, None, None),
         "arm_static": lambda: (
-            -np.exp(-((theta_dot * k.inverse_stribeck_speed) ** 2)) * friction,
+            -(excess if static else np.exp(-((theta_dot * k.inverse_stribeck_speed) ** 2)) * friction),
             None,
             None,
             None,
