@@ -104,6 +104,9 @@ class EpisodePlan:
     load : RandomLoad, optional
         On a simulated backend, the random load on the arm this episode runs with (``qube-run --replay``:
         the replayed log's recording day's load); None: the backend's.
+    relaxation : CableRelaxation, optional
+        On a simulated backend, the cables' relaxation this episode runs with (``qube-run --replay``:
+        the replayed log's recording day's); None: the backend's.
     swing_up : SwingUp, optional
         Swing the pendulum up from hanging before the episode (instead of waiting for it to be
         raised to the start gate); None: the start gate.
@@ -118,6 +121,7 @@ class EpisodePlan:
     plant: Any = None
     swing_up: SwingUp | None = None
     load: Any = None
+    relaxation: Any = None
 
     @property
     def n_samples(self) -> int:
@@ -469,6 +473,8 @@ def run_episode(
             backend.use_plant(plan.plant)
         if plan.load is not None and hasattr(backend, "use_load"):
             backend.use_load(plan.load)
+        if plan.relaxation is not None and hasattr(backend, "use_relaxation"):
+            backend.use_relaxation(plan.relaxation)
         # A device that keeps the time trips its watchdog while a log opens between the swing-up's
         # last tick and the episode's first: it is opened while the swing-up keeps balancing.
         opening = (

@@ -37,6 +37,7 @@ def replay_plans(
     source: str = "qube-run --replay",
     twins: Callable[[list], list] | None = None,
     loads: Callable[[list], list] | None = None,
+    relaxations: Callable[[list], list] | None = None,
 ) -> list[EpisodePlan]:
     """One plan per log: its excitation regenerated, under ``controller`` or the log's own.
 
@@ -45,7 +46,8 @@ def replay_plans(
     recording day's cables and its session's delay), set as the plans' ``plant``; None leaves the
     backend's. ``loads`` likewise maps them to each replay's random load on the arm (a plant file's
     :meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.loads_for_logs`: each log's recording
-    day's load), set as the plans' ``load``.
+    day's load), set as the plans' ``load``, and ``relaxations`` to each replay's cables' relaxation
+    (:meth:`~qube_koopman.sim.pendulum.params_file.PlantFile.relaxations_for_logs`), the plans' ``relaxation``.
 
     Raises
     ------
@@ -92,4 +94,6 @@ def replay_plans(
         plans = [replace(plan, plant=twin) for plan, twin in zip(plans, twins(starts))]
     if loads is not None:
         plans = [replace(plan, load=load) for plan, load in zip(plans, loads(starts))]
+    if relaxations is not None:
+        plans = [replace(plan, relaxation=r) for plan, r in zip(plans, relaxations(starts))]
     return plans

@@ -27,6 +27,7 @@ import numpy as np
 from qube_koopman.daq.backends.contract import Backend, BackendFault, Pacing
 from qube_koopman.sim.pendulum import (
     SAMPLE_PERIOD,
+    CableRelaxation,
     PendulumParameters,
     PendulumSimulator,
     RandomLoad,
@@ -75,6 +76,9 @@ class SimBackend(Backend):
     spin : bool
         With ``realtime``, spin through each tick to its deadline instead of sleeping until shortly
         before it (:attr:`Backend.spin`).
+    relaxation : CableRelaxation, optional
+        The cables' torque that the arm's motion drives (a plant file's ``[relaxation]``); the log
+        records it (``extra.backend.relaxation``). None: none.
     """
 
     name = "sim"
@@ -93,6 +97,7 @@ class SimBackend(Backend):
         start: str = "upright",
         load: RandomLoad | None = None,
         spin: bool = False,
+        relaxation: CableRelaxation | None = None,
     ) -> None:
         if start not in STARTS:
             raise ValueError(f"start must be one of {', '.join(STARTS)}, got {start!r}")
@@ -111,7 +116,7 @@ class SimBackend(Backend):
         self._rng = np.random.default_rng(seed)
         noise_seed = int(self._rng.integers(2**63))
         self.load = load
-        self._sim = PendulumSimulator(params, sensor, dt=dt, seed=noise_seed, load=load)
+        self._sim = PendulumSimulator(params, sensor, dt=dt, seed=noise_seed, load=load, relaxation=relaxation)
         self._y = self._sim.measurement
         self._initial_state = (0.0, 0.0, 0.0, 0.0)
         self._running = False
@@ -125,6 +130,15 @@ class SimBackend(Backend):
         """Run with ``load`` on the arm from the next :meth:`start` on (a replayed log's day's load); None: none."""
         self.load = load
         self._sim.load = load
+
+    @property
+    def relaxation(self) -> CableRelaxation | None:
+        """The cables' relaxation the twin runs with (None: none)."""
+        return self._sim.relaxation
+
+    def use_relaxation(self, relaxation: CableRelaxation | None) -> None:
+        """Run with the cables' ``relaxation`` from the next :meth:`start` on (a replayed log's day's); None: none."""
+        self._sim.relaxation = relaxation
 
     def start(self) -> None:
         """Reset the pendulum at rest, upright or hanging, with a fresh random perturbation and encoder zero."""
@@ -204,5 +218,6 @@ class SimBackend(Backend):
             "sensor": asdict(self._sim.sensor),
             "zero_offsets": offsets,
             "load": None if self.load is None else {**self.load.to_dict(), "seed": self._sim.load_seed},
+            **({} if self.relaxation is None else {"relaxation": asdict(self.relaxation)}),
             "sample_period": self.sample_period,
         }

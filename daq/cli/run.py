@@ -454,14 +454,16 @@ def _replay(args, rate: float, swing_up=None):
     controller = None
     if args.controller is not None:
         controller = load_controller(args.controller, args.discretization, 1.0 / rate)
-    twins = loads = None
+    twins = loads = relaxations = None
     if args.backend == "sim":  # each log on its recording day's twin, when the plant file knows the day
         plant = _load_plant_file(args.plant)
         twins = plant.params_for_logs
         if plant.load is not None and not args.no_load:  # and with its day's load, when the file has one
             loads = plant.loads_for_logs
+        if plant.relaxation is not None:  # and its day's cables' relaxation
+            relaxations = plant.relaxations_for_logs
     try:
-        plans = replay_plans(args.replay, controller, twins=twins, loads=loads)
+        plans = replay_plans(args.replay, controller, twins=twins, loads=loads, relaxations=relaxations)
     except ValueError as exc:
         raise CliError(f"{exc} (--replay)") from None
     if swing_up is not None:
@@ -499,6 +501,7 @@ def _make_backend(args, limits, backend_seed: int, rate: float):
         return SimBackend(
             params=plant.params,
             load=None if args.no_load else plant.load,
+            relaxation=plant.relaxation,
             perturbation=math.radians(args.perturbation),
             seed=backend_seed,
             realtime=args.realtime,

@@ -36,7 +36,7 @@ from qube_koopman.core.qube import ALPHA_LIMIT, SKIP_SAMPLES, THETA_LIMIT
 from qube_koopman.identify.calibrate import shooting as ms
 from qube_koopman.identify.calibrate.fit import ENCODER_SIGMA
 from qube_koopman.identify.calibrate.solver import levenberg_marquardt
-from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad, simulate_closed_loop
+from qube_koopman.sim.pendulum import CableRelaxation, PendulumParameters, RandomLoad, simulate_closed_loop
 from qube_koopman.sim.pendulum.sensor import COUNTS_PER_REV
 
 ENCODER_COUNT = 2 * math.pi / COUNTS_PER_REV  # rad: one count of the rig's encoders
@@ -288,6 +288,7 @@ def replay_episodes(
     seed: int = 0,
     load: RandomLoad | Sequence[RandomLoad | None] | None = None,
     alpha_drift: RandomLoad | None = None,
+    relaxation: CableRelaxation | Sequence[CableRelaxation | None] | None = None,
 ) -> ReplayResult:
     """Closed-loop replay of logged episodes (``daq.episode.Episode``) through ``params``.
 
@@ -305,6 +306,9 @@ def replay_episodes(
     scores are means over ``n_draws`` loads too. None: no load, exactly as before loads existed.
     ``alpha_drift``: instead (or besides), a pendulum encoder zero that drifts as such a process
     (its values in rad): the alternative entry point the calibration's evidence weighs.
+    ``relaxation``: the cables' torque that the arm's motion drives
+    (:class:`~qube_koopman.sim.pendulum.relaxation.CableRelaxation`), or one per episode (None for
+    none), the same in every draw. None: none.
     """
     if n_draws < 1:
         raise ValueError(f"n_draws must be at least 1, got {n_draws}")
@@ -332,7 +336,14 @@ def replay_episodes(
     if alpha_drift is not None:
         n_steps = min(len(y) for y in ys) - start
         drift = alpha_drift.sample(n_steps, dt, np.random.default_rng([seed, 2]), (n_draws, len(ys)))
-    run = _replay_draws(episodes, us, draws, offsets, params, start, load=loads, alpha_drift=drift)
+    if relaxation is not None and not isinstance(relaxation, CableRelaxation):
+        relaxation = list(relaxation)
+        if len(relaxation) != len(ys):
+            raise ValueError(f"{len(relaxation)} relaxations for {len(ys)} episodes: give one, or one per episode")
+        relaxation = relaxation * n_draws  # the batch is (draw, episode), in C order
+    run = _replay_draws(
+        episodes, us, draws, offsets, params, start, load=loads, alpha_drift=drift, relaxation=relaxation
+    )
     twin = np.concatenate([run.measurements, run.plant_input[..., None]], axis=-1)  # (time, draw, episode, 3)
     real = np.stack([np.column_stack([y[start:], u[start:]]) for y, u in zip(ys, us)], axis=1)
     ratio = (twin.std(axis=0) / real.std(axis=0)).mean(axis=0)
@@ -353,6 +364,7 @@ def _replay_draws(
     stop: int | None = None,
     load: np.ndarray | None = None,
     alpha_drift: np.ndarray | None = None,
+    relaxation=None,
 ):
     """The closed loop from start states ``draws`` (n_draws, n_episodes, 4), one batch, over samples
     ``start:stop``; ``offsets`` broadcast to (n_draws, n_episodes); ``load`` (n_steps, n_draws,
@@ -381,6 +393,7 @@ def _replay_draws(
         past_voltages=per_draw(past) if len(past) else None,
         load=load,
         alpha_drift=alpha_drift,
+        relaxation=relaxation,
     )
 
 

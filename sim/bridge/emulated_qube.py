@@ -34,6 +34,7 @@ from qube_koopman.firmware_protocol.qube_spi import (
 )
 from qube_koopman.sim.pendulum import PendulumParameters, PendulumSimulator, SensorModel
 from qube_koopman.sim.pendulum.load import RandomLoad
+from qube_koopman.sim.pendulum.relaxation import CableRelaxation
 from qube_koopman.sim.pendulum.physics import SAMPLE_PERIOD
 from qube_koopman.sim.pendulum.sensor import angles_to_counts
 
@@ -66,6 +67,8 @@ class EmulatedQube:
     load : RandomLoad, optional
         A random torque on the arm (a plant file's ``[load]``); :meth:`place` with a
         ``load_seed`` starts a new draw of it. None: none.
+    relaxation : CableRelaxation, optional
+        The cables' torque that the arm's motion drives (a plant file's ``[relaxation]``); None: none.
     """
 
     def __init__(
@@ -74,12 +77,13 @@ class EmulatedQube:
         dt: float = SAMPLE_PERIOD,
         module_id: int = MODULE_ID_QUBE_SERVO_2,
         load: RandomLoad | None = None,
+        relaxation: CableRelaxation | None = None,
     ) -> None:
         self.params = params
         self.module_id = module_id
         self.load = load
         # Exact angles: the counters quantize, once, in transfer().
-        self._sim = PendulumSimulator(params, SensorModel(counts_per_rev=None), dt=dt, load=load)
+        self._sim = PendulumSimulator(params, SensorModel(counts_per_rev=None), dt=dt, load=load, relaxation=relaxation)
         self._offsets = [0, 0]
         self.volts = 0.0
         self.enabled = False

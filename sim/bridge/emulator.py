@@ -45,6 +45,7 @@ then holds the motor at 0 V meanwhile, as on the rig). Faults are injected as
 from __future__ import annotations
 
 import errno
+import dataclasses
 import math
 import os
 import random
@@ -65,6 +66,7 @@ from qube_koopman.sim.pendulum import PendulumParameters
 if TYPE_CHECKING:
     from qube_koopman.firmware_protocol.ccore import CDevice
     from qube_koopman.sim.pendulum.load import RandomLoad
+    from qube_koopman.sim.pendulum.relaxation import CableRelaxation
 
 __all__ = ["BridgeEmulator", "DEFAULT_PERTURBATION", "DEFAULT_SPIN", "RECORD_FIELDS"]
 
@@ -159,6 +161,8 @@ class BridgeEmulator:
     load : RandomLoad, optional
         A random torque on the arm (a plant file's ``[load]``), a new draw at each session's
         start (seeded from ``seed``); None: none, every draw as without one.
+    relaxation : CableRelaxation, optional
+        The cables' torque that the arm's motion drives (a plant file's ``[relaxation]``); None: none.
     spin : float
         Real time: spin this long before each deadline (s); 0 sleeps only
         (less CPU, more jitter).
@@ -182,6 +186,7 @@ class BridgeEmulator:
         faults: Faults = Faults(),
         params: PendulumParameters = PendulumParameters(),
         load: RandomLoad | None = None,
+        relaxation: CableRelaxation | None = None,
         spin: float = DEFAULT_SPIN,
         record_ticks: int = 0,
         core=None,
@@ -215,6 +220,7 @@ class BridgeEmulator:
         self.faults = faults
         self.params = params
         self.load = load
+        self.relaxation = relaxation
         self.spin = float(spin)
         self._core = core
         self._record: deque | None = deque(maxlen=int(record_ticks)) if record_ticks > 0 else None
@@ -280,7 +286,9 @@ class BridgeEmulator:
 
         core = self._core if self._core is not None else ccore.CCore(ccore.cached_library())
         self._dev = dev = ccore.CDevice(core, Capability.EMULATED)
-        self._qube = qube = EmulatedQube(self.params, dt=dev.period_us * 1e-6, load=self.load)
+        self._qube = qube = EmulatedQube(
+            self.params, dt=dev.period_us * 1e-6, load=self.load, relaxation=self.relaxation
+        )
         # Power-up: the pendulum hangs at rest, the counters read zero.
         qube.place((0.0, math.pi, 0.0, 0.0))
         self._master, self._slave, self.path = open_raw_pty()
@@ -634,6 +642,7 @@ class BridgeEmulator:
             "seed": self.seed,
             "lockstep": self.lockstep,
             "load": None if self.load is None else self.load.to_dict(),
+            **({} if self.relaxation is None else {"relaxation": dataclasses.asdict(self.relaxation)}),
             **self._link.counters(),
             "host_frames": self._mirror.stats.frames,
             "host_rejects": self._mirror.stats.rejected,

@@ -249,6 +249,7 @@ def _emulate(args) -> int:
         seed=args.seed,
         params=plant.params,
         load=None if args.no_load else plant.load,
+        relaxation=plant.relaxation,
         lockstep=args.lockstep,
         perturbation=math.radians(args.perturbation),
         start_upright=not args.hanging,

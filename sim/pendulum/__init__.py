@@ -12,10 +12,12 @@ from qube_koopman.sim.pendulum.physics import (
     simulate,
     total_energy,
 )
+from qube_koopman.sim.pendulum.relaxation import CableRelaxation
 from qube_koopman.sim.pendulum.sensor import SensorModel, ZeroOffsetDistribution, measure
 from qube_koopman.sim.pendulum.simulator import PendulumSimulator
 
 __all__ = [
+    "CableRelaxation",
     "ClosedLoopRun",
     "LoadStream",
     "RandomLoad",

@@ -14,6 +14,7 @@ linear models, not with this physics.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -30,6 +31,7 @@ from qube_koopman.sim.pendulum.physics import (
     coefficients_and_hold,
     linear_model,
 )
+from qube_koopman.sim.pendulum.relaxation import CableRelaxation
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
 __all__ = ["ClosedLoopRun", "simulate_closed_loop", "linear_loop_radius"]
@@ -75,6 +77,7 @@ def simulate_closed_loop(
     past_voltages=None,
     load=None,
     alpha_drift=None,
+    relaxation: CableRelaxation | Sequence[CableRelaxation | None] | None = None,
 ) -> ClosedLoopRun:
     """Run the pendulum under a controller on the tracking error, for a batch of episodes.
 
@@ -119,6 +122,12 @@ def simulate_closed_loop(
         A pendulum encoder zero that moves during the episode (rad), added to ``alpha_offsets`` at
         each step: the alternative to a load on the arm that the calibration's evidence weighs
         (``docs/calibration.md``). None: a constant zero.
+    relaxation : CableRelaxation, or a sequence of them (or None), optional
+        The cables' torque beyond the twin's spring that the arm's own motion drives
+        (:class:`~qube_koopman.sim.pendulum.relaxation.CableRelaxation`), added to the load at each
+        step, its element starting relaxed at the first state; a sequence gives one per episode of
+        the batch (in its C order; None: none for that episode). None: none, exactly the arithmetic
+        without it.
     """
     # The one controller, or the first of one per episode (all of its order, inputs and sample period).
     controllers: list[DiscreteStateSpace] | None = None
@@ -184,6 +193,8 @@ def simulate_closed_loop(
         base = 0.0 if alpha_offsets is None else np.broadcast_to(np.asarray(alpha_offsets, dtype=float), batch)
         drift_shift = np.stack(np.broadcast_arrays(0.0, base + alpha_drift), axis=-1)  # (n_steps, *batch, 2)
     comps = tuple(x[..., i] for i in range(4))
+    relax = None if relaxation is None else _relaxation_arrays(relaxation, batch, system.dt)
+    remembered = None if relax is None else np.array(comps[0], dtype=float, copy=True)
     shift = (
         None
         if alpha_offsets is None
@@ -217,12 +228,33 @@ def simulate_closed_loop(
             held = np.stack(history)
             previous = np.take_along_axis(held, (len(history) - wholes - 2)[None], 0)[0]
             current = np.take_along_axis(held, (len(history) - wholes - 1)[None], 0)[0]
-        comps = advance(
-            comps, previous, current, weights, h, k, np.sin, np.cos, rk4, None if load is None else load[step]
-        )
+        torque = None if load is None else load[step]
+        if relax is not None:  # the cables' relaxing torque, the arm's angle held over the step
+            fast, relaxing, decay = relax
+            theta = comps[0]
+            extra = relaxing * remembered - fast * theta
+            torque = extra if torque is None else torque + extra
+            remembered = theta + (remembered - theta) * decay
+        comps = advance(comps, previous, current, weights, h, k, np.sin, np.cos, rk4, torque)
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)
     return ClosedLoopRun(states, measurements, xcs, control, plant_input)
+
+
+def _relaxation_arrays(relaxation, batch: tuple[int, ...], dt: float) -> tuple:
+    """``(fast, relaxing, decay)`` of one relaxation, or arrays of shape ``batch`` of one per episode."""
+    if isinstance(relaxation, CableRelaxation):
+        return relaxation.fast, relaxation.relaxing, relaxation.decay(dt)
+    each = list(relaxation)
+    if len(each) != math.prod(batch) or not all(r is None or isinstance(r, CableRelaxation) for r in each):
+        raise ValueError(
+            f"relaxation must be a CableRelaxation or one per episode of the batch {batch} (None for none), "
+            f"got {len(each)} items"
+        )
+    none = CableRelaxation(0.0, 0.0, 1.0)
+    each = [none if r is None else r for r in each]
+    columns = np.array([(r.fast, r.relaxing, r.decay(dt)) for r in each], dtype=float)
+    return tuple(columns[:, j].reshape(batch) for j in range(3))
 
 
 def _check_per_episode(controllers: list) -> DiscreteStateSpace:

@@ -41,6 +41,16 @@
     [load_setup_standard_errors."2023-09-15"]
     diffusion = 0.02
 
+    [relaxation]            # optional: the cables' relaxation (absent: none)
+    fast = 0.26             # V/rad: stiffer than the cable spring against fast motion
+    relaxing = 0.38         # V/rad: the part of it that relaxes
+    time_constant = 1.0     # s: over which it relaxes
+
+    [relaxation_setups."2023-09-15"]   # optional: a recording day's own relaxation
+    fast = 0.25
+    relaxing = 0.37
+    time_constant = 1.0
+
     [provenance]            # optional, free-form: where the numbers came from
     source = "qube-calibrate"
     logs = ["episodes/ep_001.mcap", ...]
@@ -69,6 +79,10 @@ without it simulates no load, exactly as before the table existed; ``qube-run --
 out. Its keys are ``diffusion``, ``time_constant``, ``floor`` and ``floor_corner``, nothing else;
 ``[load_setups.DAY]`` holds a recording day's own load (the rig's load differed between its
 recording days, as its cables did), which a replay of a log of that day uses (:meth:`PlantFile.loads_for_logs`).
+The ``[relaxation]`` table is the cables' torque that the arm's own motion drives
+(:class:`~qube_koopman.sim.pendulum.relaxation.CableRelaxation`: ``fast``, ``relaxing``,
+``time_constant``, all three required); ``[relaxation_setups.DAY]`` a recording day's own
+(:meth:`PlantFile.relaxations_for_logs`). A file without it simulates none.
 Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
@@ -98,6 +112,7 @@ from pathlib import Path
 from typing import Sequence
 
 from qube_koopman.sim.pendulum.load import RandomLoad
+from qube_koopman.sim.pendulum.relaxation import CableRelaxation
 from qube_koopman.sim.pendulum.physics import PendulumParameters
 from qube_koopman.core.files import atomic_path, loads_toml, read_bounded_text
 
@@ -127,6 +142,8 @@ _OLDER_FORMATS = {"qube-plant/1": {"cable_softening": 0.0}}
 
 #: The keys of the ``[load]`` table (:class:`RandomLoad`'s fields).
 _LOAD_KEYS = ("diffusion", "time_constant", "floor", "floor_corner")
+#: The keys of the ``[relaxation]`` table (:class:`CableRelaxation`'s fields).
+_RELAXATION_KEYS = ("fast", "relaxing", "time_constant")
 
 #: Seconds between two logs' starts beyond which the second starts a new recording session.
 SESSION_GAP = 600.0
@@ -244,7 +261,16 @@ class PlantFile:
         A recording day's (``YYYY-MM-DD``) own load.
     load_setup_standard_errors : dict of str to dict of str to float, optional
         Their standard errors.
+    relaxation : CableRelaxation, optional
+        The cables' relaxation (the ``[relaxation]`` table); None: none.
+    relaxation_setups : dict of str to CableRelaxation, optional
+        A recording day's (``YYYY-MM-DD``) own relaxation.
     """
+
+    def relaxations_for_logs(self, start_times: Sequence[str | None]) -> list[CableRelaxation | None]:
+        """The cables' relaxation of each log's replay: its recording day's (``relaxation_setups``) or the central
+        one (None where the file has none)."""
+        return [self.relaxation_setups.get(recording_day(t), self.relaxation) for t in start_times]
 
     def loads_for_logs(self, start_times: Sequence[str | None]) -> list[RandomLoad | None]:
         """The random load of each log's replay: its recording day's (``load_setups``) or the central one.
@@ -272,8 +298,14 @@ class PlantFile:
         load_standard_errors: dict | None = None,
         load_setups: dict | None = None,
         load_setup_standard_errors: dict | None = None,
+        relaxation: CableRelaxation | None = None,
+        relaxation_setups: dict | None = None,
     ) -> None:
         self.params = params
+        self.relaxation = relaxation
+        self.relaxation_setups = {str(k): v for k, v in (relaxation_setups or {}).items()}
+        if self.relaxation_setups and relaxation is None:
+            raise ValueError("a recording day's relaxation (relaxation_setups) needs the central one beside it")
         self.load = load
         self.load_standard_errors = dict(load_standard_errors or {})
         self.load_setups = {str(k): v for k, v in (load_setups or {}).items()}
@@ -460,6 +492,17 @@ def load_plant(path: str | Path) -> PlantFile:
             load_setup_errors[day] = errors
     if load_setups and load is None:
         raise PlantFileError(f"{path}: [load_setups] needs a [load] table beside it (the central load)")
+    relaxation = _relaxation_table(path, data.get("relaxation"), "relaxation")
+    if not isinstance(data.get("relaxation_setups", {}), dict):
+        raise PlantFileError(
+            f"{path}: [relaxation_setups] must hold a table per recording day, got {data['relaxation_setups']!r}"
+        )
+    relaxation_setups = {
+        str(day): _relaxation_table(path, table, f"relaxation_setups.{day}")
+        for day, table in data.get("relaxation_setups", {}).items()
+    }
+    if relaxation_setups and relaxation is None:
+        raise PlantFileError(f"{path}: [relaxation_setups] needs a [relaxation] table beside it (the central one)")
     plant = PlantFile(
         params,
         data.get("standard_errors", {}),
@@ -470,6 +513,8 @@ def load_plant(path: str | Path) -> PlantFile:
         load_errors,
         load_setups,
         load_setup_errors,
+        relaxation,
+        relaxation_setups,
     )
     for day, table in setups.items():
         try:
@@ -506,6 +551,23 @@ def _load_table(
         return RandomLoad(**out[0]), out[1]
     except ValueError as exc:
         raise PlantFileError(f"{path}: [{title}]: {exc}") from None
+
+
+def _relaxation_table(path: Path, table, title: str) -> CableRelaxation | None:
+    """The ``[title]`` table as a :class:`CableRelaxation` (None without one), checked."""
+    if table is None:
+        return None
+    if not isinstance(table, dict):
+        raise PlantFileError(f"{path}: [{title}] must be a table ({', '.join(_RELAXATION_KEYS)}), got {table!r}")
+    unknown, missing = sorted(set(table) - set(_RELAXATION_KEYS)), [k for k in _RELAXATION_KEYS if k not in table]
+    if unknown or missing:
+        what = f"unknown key(s) {', '.join(unknown)}" if unknown else f"missing {', '.join(missing)}"
+        raise PlantFileError(f"{path}: [{title}]: {what}; it takes {', '.join(_RELAXATION_KEYS)}")
+    try:
+        CableRelaxation(**table)  # the checks, on the values as written (a boolean is not a number)
+    except ValueError as exc:
+        raise PlantFileError(f"{path}: [{title}]: {exc}") from None
+    return CableRelaxation(*(float(table[k]) for k in _RELAXATION_KEYS))
 
 
 def _numbers(path: Path, values, where: str) -> dict[str, float]:
@@ -573,6 +635,13 @@ def save_plant(path: str | Path, plant: PlantFile) -> None:
             if table:
                 lines += ["", f"[load_setup_standard_errors.{_toml_value(str(day))}]"]
                 lines += [f"{k} = {_toml_value(float(v))}" for k, v in table.items()]
+    if plant.relaxation is not None:
+        for title, relaxation in (
+            ("relaxation", plant.relaxation),
+            *((f"relaxation_setups.{_toml_value(str(day))}", r) for day, r in plant.relaxation_setups.items()),
+        ):
+            lines += ["", f"[{title}]"]
+            lines += [f"{k} = {_toml_value(float(getattr(relaxation, k)))}" for k in _RELAXATION_KEYS]
     if plant.provenance:
         lines += ["", "[provenance]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in plant.provenance.items()]

@@ -21,6 +21,7 @@ from qube_koopman.sim.pendulum.physics import (
     scalar_rk4,
 )
 from qube_koopman.sim.pendulum.load import LoadStream, RandomLoad
+from qube_koopman.sim.pendulum.relaxation import CableRelaxation
 from qube_koopman.sim.pendulum.sensor import SensorModel, encoder_angles
 
 __all__ = ["PendulumSimulator"]
@@ -55,6 +56,10 @@ class PendulumSimulator:
         :meth:`reset`.
     load_seed : int
         The load's seed (:meth:`reset` takes a new one for each episode).
+    relaxation : CableRelaxation, optional
+        The cables' torque that the arm's own motion drives
+        (:mod:`~qube_koopman.sim.pendulum.relaxation`), its element relaxed at each :meth:`reset`;
+        settable between episodes (the attribute). None: none, the arithmetic exactly as without it.
     """
 
     def __init__(
@@ -67,6 +72,7 @@ class PendulumSimulator:
         seed: int | None = None,
         load: RandomLoad | None = None,
         load_seed: int = 0,
+        relaxation: CableRelaxation | None = None,
     ) -> None:
         check_timing(dt, n_substeps)
         if max_voltage is not None and not (math.isfinite(max_voltage) and max_voltage > 0):
@@ -88,6 +94,8 @@ class PendulumSimulator:
         self._steps = 0
         self._load = load
         self._load_stream = None if load is None else LoadStream(load, self.dt, load_seed)
+        self.relaxation = relaxation
+        self._remembered = 0.0  # the relaxing element's memory of the arm's angle (relaxed at each reset)
         self._y = self._measure()
 
     @property
@@ -121,6 +129,7 @@ class PendulumSimulator:
         if len(values) != 4 or not all(math.isfinite(v) for v in values):
             raise ValueError(f"state must be 4 finite numbers (theta, alpha, theta_dot, alpha_dot), got {state!r}")
         self._x = values
+        self._remembered = values[0]
         self._steps = 0
         self._commands = [0.0] * (self._whole + 1)
         self._y = self._measure()
@@ -134,6 +143,13 @@ class PendulumSimulator:
         v = min(max(v, -self.max_voltage), self.max_voltage)
         commands = self._commands
         commands.append(v)
+        torque = None if self._load_stream is None else self._load_stream.value
+        relaxation = self.relaxation
+        if relaxation is not None:  # the cables' relaxing torque, the arm's angle held over the step
+            theta = self._x[0]
+            extra = relaxation.torque(theta, self._remembered)
+            torque = extra if torque is None else torque + extra
+            self._remembered = relaxation.then(self._remembered, theta, self.dt)
         self._x = advance(
             self._x,
             commands[-self._whole - 2],
@@ -144,7 +160,7 @@ class PendulumSimulator:
             math.sin,
             math.cos,
             self._rk4,
-            None if self._load_stream is None else self._load_stream.value,
+            torque,
         )
         if self._load_stream is not None:
             self._load_stream.advance()
