@@ -36,10 +36,21 @@ from scipy.optimize import minimize
 from scipy.signal import savgol_filter, welch
 
 from qube_koopman.core.qube import SKIP_SAMPLES
-from qube_koopman.sim.pendulum import PendulumParameters, RandomLoad
+from qube_koopman.sim.pendulum import CableRelaxation, PendulumParameters, RandomLoad
 from qube_koopman.sim.pendulum.physics import Coefficients
 
-__all__ = ["FIT_BAND", "LoadFit", "reconstruct_load", "reconstruct_balance", "fit_load", "load_fit_check", "load_text"]
+__all__ = [
+    "FIT_BAND",
+    "RELAXATION_TIMES",
+    "LoadFit",
+    "RelaxationFit",
+    "reconstruct_load",
+    "reconstruct_balance",
+    "fit_load",
+    "fit_relaxation",
+    "load_fit_check",
+    "load_text",
+]
 
 #: The band (Hz) whose periodogram bins the load's fit uses: above it the reconstruction is the
 #: differentiated encoders and the loop's fast dynamics, not a load.
@@ -257,6 +268,138 @@ def fit_load(loads: Sequence[np.ndarray], dt: float, band: float = FIT_BAND) -> 
         "floor": floor * math.sqrt(cov_ou[2, 2]),
     }
     return LoadFit(RandomLoad(q, tau, floor, band), errors, floor, likelihood, f.size, slow)
+
+
+#: The relaxation times (s) :func:`fit_relaxation` tries: a second's lag, a decade either way.
+RELAXATION_TIMES = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+#: The low passes (s) of the excitation that :func:`fit_relaxation` takes as instruments, beside it as it is.
+INSTRUMENT_LAGS = (0.1, 0.3, 1.0, 3.0, 10.0)
+
+
+@dataclass(frozen=True)
+class RelaxationFit:
+    """What :func:`fit_relaxation` found.
+
+    Attributes
+    ----------
+    relaxation : CableRelaxation
+        The cables' relaxation, at the relaxation time that left the least.
+    residuals : list of ndarray
+        Each episode's load with the relaxation's torque taken out (V): what is left for the random load.
+    explained : float
+        The share of the loads' variance below :data:`FIT_BAND` Hz (each episode's mean removed)
+        that the relaxation's torque explains.
+    explained_by_time : dict of float to float
+        At every relaxation time tried, the share of the loads' excitation-driven part (below) that
+        its fit explains: the criterion the relaxation time is chosen by.
+    driven : float
+        The share of the loads' slow variance that a linear filter of the excitation explains at
+        all: torque the excitation causes, which no disturbance from outside the loop can be.
+    """
+
+    relaxation: CableRelaxation
+    residuals: list
+    explained: float
+    explained_by_time: dict
+    driven: float
+
+
+def fit_relaxation(
+    loads: Sequence[np.ndarray],
+    thetas: Sequence[np.ndarray],
+    excitations: Sequence[np.ndarray],
+    dt: float,
+    time_constants: Sequence[float] = RELAXATION_TIMES,
+    band: float = FIT_BAND,
+) -> RelaxationFit:
+    """The part of reconstructed loads that the arm's motion drives, as the cables' relaxation.
+
+    The load is regressed on the arm angle ``theta`` and the relaxing element's memory of it ``x``
+    (:meth:`~qube_koopman.sim.pendulum.relaxation.CableRelaxation.remembered`), all low-passed below
+    ``band`` Hz (zero-phase Butterworth, order 4: above it the reconstruction is the differentiated
+    encoders' noise), each episode's mean removed. In closed loop a disturbance from outside moves
+    the arm too, so plain least squares can credit the arm with it (on twin episodes whose arm only
+    a random load and a fast random feedforward moved, it found 0.6 V/rad of stiffness where there
+    was none; on replays of the soft controller's logs, whose references move the arm slowly, it
+    did not, and on the logs themselves the two agree within 6 %). The fit is therefore
+    two-stage least squares with the excitation as the instrument:
+    ``theta`` and ``x`` are replaced by what a linear filter of the excitation (each channel
+    low-passed over :data:`INSTRUMENT_LAGS` seconds, and as it is) predicts of them, which no
+    disturbance moves. At each of ``time_constants`` the fit is made, and the time whose predicted
+    torque leaves least of the loads' excitation-driven part is kept. Where ``x``'s coefficient
+    comes out negative (no element that gives way) ``theta`` alone is fitted: a stiffness, no
+    relaxation.
+
+    Parameters
+    ----------
+    loads : sequence of ndarray
+        Each episode's reconstruction (:func:`reconstruct_load`, V).
+    thetas : sequence of ndarray
+        The measured arm angle over the same samples (rad).
+    excitations : sequence of ndarray
+        What drives each episode from outside the loop over the same samples, (n,) or (n, m): the
+        arm's reference, the feedforward.
+    dt : float
+        Sample period (s).
+    time_constants : sequence of float
+        Relaxation times tried (s).
+    band : float
+        Highest frequency (Hz) fitted.
+
+    Returns
+    -------
+    RelaxationFit
+    """
+    from scipy.signal import butter, sosfiltfilt
+
+    loads = [np.asarray(d, dtype=float) for d in loads]
+    thetas = [np.asarray(t, dtype=float) for t in thetas]
+    excitations = [np.asarray(e, dtype=float).reshape(len(e), -1) for e in excitations]
+    if not loads or not len(loads) == len(thetas) == len(excitations):
+        raise ValueError("give one arm angle and one excitation sequence per load")
+    if any(d.ndim != 1 or t.shape != d.shape or len(e) != len(d) for d, t, e in zip(loads, thetas, excitations)):
+        raise ValueError("each arm angle and excitation must have its load's length")
+    if not time_constants:
+        raise ValueError("give at least one relaxation time")
+    sos = butter(4, band, fs=1.0 / dt, output="sos")
+
+    def slow(x: np.ndarray) -> np.ndarray:
+        return sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
+
+    def lagged(e: np.ndarray) -> np.ndarray:  # the instruments: the excitation and its low passes
+        return slow(
+            np.column_stack([e] + [CableRelaxation(1.0, 1.0, lag).remembered(e, dt) for lag in INSTRUMENT_LAGS])
+        )
+
+    y = np.concatenate([slow(d) for d in loads])
+    z = np.vstack([lagged(e) for e in excitations])
+    z = z[:, np.std(z, axis=0) > 0]  # a channel that never moves instruments nothing
+    theta_slow = np.concatenate([slow(t) for t in thetas])
+    driven = z @ np.linalg.lstsq(z, y, rcond=None)[0]  # the loads' part the excitation explains
+    best: tuple[float, CableRelaxation] | None = None
+    by_time: dict[float, float] = {}
+    for tau in time_constants:
+        unit = CableRelaxation(1.0, 1.0, float(tau))
+        x_slow = np.concatenate([slow(unit.remembered(t, dt)) for t in thetas])
+        regressors = np.column_stack([x_slow, theta_slow])
+        predicted = z @ np.linalg.lstsq(z, regressors, rcond=None)[0]  # first stage
+        (relaxing, theta_coef), *_ = np.linalg.lstsq(predicted, y, rcond=None)
+        if relaxing < 0:
+            relaxing, theta_coef = 0.0, float(predicted[:, 1] @ y / (predicted[:, 1] @ predicted[:, 1]))
+        by_time[float(tau)] = _share(driven, relaxing * predicted[:, 0] + theta_coef * predicted[:, 1])
+        if best is None or by_time[float(tau)] > best[0]:
+            best = (by_time[float(tau)], CableRelaxation(float(-theta_coef), float(relaxing), float(tau)))
+    assert best is not None  # at least one time was tried
+    relaxation = best[1]
+    residuals = [d - relaxation.torque(t, relaxation.remembered(t, dt)) for d, t in zip(loads, thetas)]
+    torque = np.concatenate([slow(d - r) for d, r in zip(loads, residuals)])
+    return RelaxationFit(relaxation, residuals, _share(y, torque), by_time, _share(y, driven))
+
+
+def _share(y: np.ndarray, fit: np.ndarray) -> float:
+    """The share of ``y``'s sum of squares that ``fit`` explains (0 for a ``y`` of zeros)."""
+    total = float(y @ y)
+    return 1.0 - float((y - fit) @ (y - fit)) / total if total > 0 else 0.0
 
 
 #: The bands (Hz) :func:`load_fit_check` compares the fitted spectrum with the data in.

@@ -125,6 +125,15 @@ def _add_physics_options(p: argparse.ArgumentParser) -> None:
         "held-out logs with it too (band table, load off beside on)",
     )
     p.add_argument(
+        "--relaxation",
+        action="store_true",
+        help="with --load: first take out of the reconstructed load the part the arm's motion drives, the cables' "
+        "relaxation (stiffer against fast motion, softer held still, relaxing over a time from 0.125 to 8 s), "
+        "estimated per recording day with the logs' excitation (the arm's reference, the feedforward) as the "
+        "instrument; write it into [relaxation] tables, fit the random load on what it leaves, and with "
+        "validation replay the held-out logs with both",
+    )
+    p.add_argument(
         "--tilt",
         action="store_true",
         help="also estimate the base's tilt per recording day (tilt_x: the pendulum's balance angle moving "
@@ -207,6 +216,8 @@ def _run(args) -> int:
     from qube_koopman.identify.calibrate.report import calibration_text, write_report
     from qube_koopman.identify.calibrate.validate import OPEN_LOOP_HORIZON
 
+    if args.relaxation and not args.load:
+        raise CliError("--relaxation needs --load: it is the part of the load that the arm's motion drives")
     fit_paths, val_paths = _checked_paths(args)
     episodes = _read(fit_paths, args.horizon, "fit")
     held = _read(val_paths, OPEN_LOOP_HORIZON, "validate") if val_paths else []  # refused before the fit, not after
@@ -219,7 +230,7 @@ def _run(args) -> int:
     if tilts is not None:
         text += "\n" + _tilt_text(tilts)
     if args.load:
-        text += "\n" + _fit_loads(episodes, plant)
+        text += "\n" + _fit_loads(episodes, plant, args.relaxation)
     provenance = _provenance(args, cal, names, episodes[0].metadata.software_version, seconds, fit_groups)
     validation, val_dt = None, None
     if val_paths:
@@ -354,6 +365,7 @@ def _provenance(args, cal, names: list[str], software_version, seconds: float, f
         "weighting": args.weighting,
         "setups": args.setups,
         "tilt": bool(args.tilt),
+        **({"relaxation": True} if args.relaxation else {}),
     }
     if args.hold:
         provenance["held"] = [f"{name}={value:g}" for name, value in args.hold]
@@ -411,10 +423,13 @@ def _save(cal, plant, out) -> None:
         raise CliError(f"{out}: cannot write: {exc.strerror or exc}", status=1) from None
 
 
-def _fit_loads(episodes, plant) -> str:
+def _fit_loads(episodes, plant, relaxation: bool = False) -> str:
     """Estimate the arm's random load from the fitted logs (each on its own twin) into ``plant``: over all
-    of them (``[load]``) and per recording day (``[load_setups]``, with two days or more); the report's text."""
-    from qube_koopman.identify.calibrate.load_fit import fit_load, load_text, reconstruct_load
+    of them (``[load]``) and per recording day (``[load_setups]``, with two days or more); with
+    ``relaxation``, the cables' relaxation first (``[relaxation]``, ``[relaxation_setups]``) and the load
+    from what it leaves. The report's text."""
+    from qube_koopman.core.qube import SKIP_SAMPLES
+    from qube_koopman.identify.calibrate.load_fit import fit_load, fit_relaxation, load_text, reconstruct_load
     from qube_koopman.sim.pendulum.params_file import recording_day
 
     starts = [e.metadata.start_time for e in episodes]
@@ -424,10 +439,28 @@ def _fit_loads(episodes, plant) -> str:
     for i, t in enumerate(starts):
         days.setdefault(recording_day(t), []).append(i)
     dt = episodes[0].dt
+    groups = {f"all {len(loads)} logs": list(range(len(loads)))}
+    if len(days) > 1:
+        groups.update(days)
+    relaxations, text = {}, ""
     try:
-        fits = {f"all {len(loads)} logs": fit_load(loads, dt)}
-        if len(days) > 1:
-            fits.update({day: fit_load([loads[i] for i in members], dt) for day, members in days.items()})
+        if relaxation:
+            thetas = [np.asarray(e.states, float)[SKIP_SAMPLES:, 0] for e in episodes]
+            excitation = [
+                np.column_stack(
+                    [np.asarray(e.references, float)[SKIP_SAMPLES:, 0], np.asarray(e.feedforward, float)[SKIP_SAMPLES:]]
+                )
+                for e in episodes
+            ]
+            for name, members in groups.items():
+                relaxations[name] = fit_relaxation(
+                    [loads[i] for i in members], [thetas[i] for i in members], [excitation[i] for i in members], dt
+                )
+            text = _relaxation_text(relaxations)
+        fits = {
+            name: fit_load(relaxations[name].residuals if relaxation else [loads[i] for i in members], dt)
+            for name, members in groups.items()
+        }
     except ValueError as exc:
         raise CliError(f"--load: {exc}") from None
     central = next(iter(fits.values()))
@@ -435,7 +468,34 @@ def _fit_loads(episodes, plant) -> str:
     if len(days) > 1:
         plant.load_setups = {day: fits[day].load for day in days}
         plant.load_setup_standard_errors = {day: fits[day].standard_errors for day in days}
-    return load_text(fits)
+    if relaxation:
+        plant.relaxation = next(iter(relaxations.values())).relaxation
+        plant.relaxation_setups = {day: relaxations[day].relaxation for day in days} if len(days) > 1 else {}
+    return text + load_text(fits)
+
+
+def _relaxation_text(fits: dict) -> str:
+    """The report's section on the cables' relaxation: one row per group of logs, and why its time won."""
+    lines = [
+        "## The cables' relaxation",
+        "",
+        "The part of the reconstructed load that the arm's motion drives (stiffer than the twin's cables against",
+        "fast motion by `fast`, softer held still by `relaxing - fast`, relaxing over `time constant`): two-stage",
+        "least squares with the excitation as the instrument. The relaxation time is the one whose fit explains",
+        "most of the load's excitation-driven part (below 1 Hz); the random load is fitted on what it leaves.",
+        "",
+        "| logs | fast (V/rad) | relaxing (V/rad) | time constant (s) | load explained | excitation-driven "
+        "| explained of it, per time (s) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, fit in fits.items():
+        r = fit.relaxation
+        per_time = ", ".join(f"{t:g}: {v:.2f}" for t, v in fit.explained_by_time.items())
+        lines.append(
+            f"| {name} | {r.fast:.4f} | {r.relaxing:.4f} | {r.time_constant:g} | {fit.explained:.2f} "
+            f"| {fit.driven:.2f} | {per_time} |"
+        )
+    return "\n".join(lines) + "\n\n"
 
 
 def _check_finite(cal, out) -> None:
@@ -500,6 +560,7 @@ def _validate(held, paths, plant, refitted=frozenset()):
     several = len(groups) > 1
     twins = plant.params_for_logs([e.metadata.start_time for e in held])
     loads = plant.loads_for_logs([e.metadata.start_time for e in held])
+    relaxations = plant.relaxations_for_logs([e.metadata.start_time for e in held])
     out, text, with_load = [], "", []
     for label, members in groups:
         episodes = [held[i] for i in members]
@@ -510,7 +571,12 @@ def _validate(held, paths, plant, refitted=frozenset()):
         fitted = sum(paths[i] in refitted for i in members)
         text += "\n" + validation_text(*out[-1][:3], controller=label if several else None, fitted=fitted)
         if plant.load is not None:
-            loaded = replay_episodes(episodes, params, load=[loads[i] for i in members])
+            loaded = replay_episodes(
+                episodes,
+                params,
+                load=[loads[i] for i in members],
+                relaxation=[relaxations[i] for i in members] if plant.relaxation is not None else None,
+            )
             with_load.append((label, load_band_ratios(replay, held[0].dt), load_band_ratios(loaded, held[0].dt)))
     dt = held[0].dt
     text += "\n" + controller_summary_text([(v[3], v[0]) for v in out], dt)
