@@ -40,7 +40,14 @@ import time
 
 import numpy as np
 
-from qube_koopman.core.cli import OneLineParser, add_force_option, add_standard_options, path, whole_number
+from qube_koopman.core.cli import (
+    OneLineParser,
+    add_force_option,
+    add_standard_options,
+    path,
+    positive_number,
+    whole_number,
+)
 from qube_koopman.core.command import CliError, check_output_file, check_output_folder, output_dir, run_command
 from qube_koopman.identify.cli.common import expand_logs
 from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
@@ -134,6 +141,13 @@ def _add_physics_options(p: argparse.ArgumentParser) -> None:
         "validation replay the held-out logs with both",
     )
     p.add_argument(
+        "--relaxation-time",
+        type=positive_number,
+        metavar="S",
+        help="with --relaxation: fit the relaxation at this time constant (s) instead of choosing it from "
+        "0.125-8 s (the report gives each time's share, so a choice can be rerun by hand)",
+    )
+    p.add_argument(
         "--tilt",
         action="store_true",
         help="also estimate the base's tilt per recording day (tilt_x: the pendulum's balance angle moving "
@@ -218,6 +232,8 @@ def _run(args) -> int:
 
     if args.relaxation and not args.load:
         raise CliError("--relaxation needs --load: it is the part of the load that the arm's motion drives")
+    if args.relaxation_time is not None and not args.relaxation:
+        raise CliError("--relaxation-time needs --relaxation")
     fit_paths, val_paths = _checked_paths(args)
     episodes = _read(fit_paths, args.horizon, "fit")
     held = _read(val_paths, OPEN_LOOP_HORIZON, "validate") if val_paths else []  # refused before the fit, not after
@@ -230,7 +246,8 @@ def _run(args) -> int:
     if tilts is not None:
         text += "\n" + _tilt_text(tilts)
     if args.load:
-        text += "\n" + _fit_loads(episodes, plant, args.relaxation)
+        times = None if args.relaxation_time is None else (args.relaxation_time,)
+        text += "\n" + _fit_loads(episodes, plant, args.relaxation, times)
     provenance = _provenance(args, cal, names, episodes[0].metadata.software_version, seconds, fit_groups)
     validation, val_dt = None, None
     if val_paths:
@@ -366,6 +383,7 @@ def _provenance(args, cal, names: list[str], software_version, seconds: float, f
         "setups": args.setups,
         "tilt": bool(args.tilt),
         **({"relaxation": True} if args.relaxation else {}),
+        **({"relaxation_time": args.relaxation_time} if args.relaxation_time is not None else {}),
     }
     if args.hold:
         provenance["held"] = [f"{name}={value:g}" for name, value in args.hold]
@@ -423,13 +441,19 @@ def _save(cal, plant, out) -> None:
         raise CliError(f"{out}: cannot write: {exc.strerror or exc}", status=1) from None
 
 
-def _fit_loads(episodes, plant, relaxation: bool = False) -> str:
+def _fit_loads(episodes, plant, relaxation: bool = False, times=None) -> str:
     """Estimate the arm's random load from the fitted logs (each on its own twin) into ``plant``: over all
     of them (``[load]``) and per recording day (``[load_setups]``, with two days or more); with
-    ``relaxation``, the cables' relaxation first (``[relaxation]``, ``[relaxation_setups]``) and the load
-    from what it leaves. The report's text."""
+    ``relaxation``, the cables' relaxation first (``[relaxation]``, ``[relaxation_setups]``; at the
+    relaxation ``times`` given, else the grid's best) and the load from what it leaves. The report's text."""
     from qube_koopman.core.qube import SKIP_SAMPLES
-    from qube_koopman.identify.calibrate.load_fit import fit_load, fit_relaxation, load_text, reconstruct_load
+    from qube_koopman.identify.calibrate.load_fit import (
+        RELAXATION_TIMES,
+        fit_load,
+        fit_relaxation,
+        load_text,
+        reconstruct_load,
+    )
     from qube_koopman.sim.pendulum.params_file import recording_day
 
     starts = [e.metadata.start_time for e in episodes]
@@ -454,7 +478,11 @@ def _fit_loads(episodes, plant, relaxation: bool = False) -> str:
             ]
             for name, members in groups.items():
                 relaxations[name] = fit_relaxation(
-                    [loads[i] for i in members], [thetas[i] for i in members], [excitation[i] for i in members], dt
+                    [loads[i] for i in members],
+                    [thetas[i] for i in members],
+                    [excitation[i] for i in members],
+                    dt,
+                    RELAXATION_TIMES if times is None else times,
                 )
             text = _relaxation_text(relaxations)
         fits = {
