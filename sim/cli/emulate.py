@@ -278,6 +278,7 @@ def _emulate(args) -> int:
         if not args.quiet:
             mode = "lockstep" if args.lockstep else "real time, 500 Hz"
             mode += "" if emulator.load is None else ", the plant's random load on the arm"
+            mode += "" if emulator.relaxation is None else ", the cables' relaxation"
             print(
                 f"{PROG}: emulated QUBE-Servo bridge on {path} ({mode}, seed {emulator.seed}); try "
                 f"qube-run --backend serial --port {path}; Ctrl-C to stop",

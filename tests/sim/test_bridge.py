@@ -447,6 +447,22 @@ def test_cli_runs_a_named_plants_random_load_and_leaves_it_out_on_request(env, t
         assert json.loads(stats_file.read_text())["stats"]["load"] == load
 
 
+def test_cli_runs_a_plant_files_cable_relaxation_and_records_it(env, tmp_path):
+    from qube_koopman.sim.pendulum import CableRelaxation, PendulumParameters
+    from qube_koopman.sim.pendulum.params_file import PlantFile, save_plant
+
+    save_plant(tmp_path / "plant.toml", PlantFile(PendulumParameters(), relaxation=CableRelaxation(0.26, 0.38, 1.0)))
+    stats_file = tmp_path / "stats.json"
+    proc, _ = start_emulator(env, "--plant", str(tmp_path / "plant.toml"), "--stats", str(stats_file))
+    out, err = stop_process(proc)
+    assert proc.returncode == 0 and "the cables' relaxation" in err, err
+    assert json.loads(stats_file.read_text())["stats"]["relaxation"] == {
+        "fast": 0.26,
+        "relaxing": 0.38,
+        "time_constant": 1.0,
+    }
+
+
 def test_cli_vanishes_on_request_and_exits(env):
     proc, path = start_emulator(env, "--vanish-at", "0.2", "-q")
     host = Host(path)
