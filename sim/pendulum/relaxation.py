@@ -16,7 +16,7 @@ still, ``fast - relaxing`` stiffer (negative: softer), the difference relaxing o
 second, the sample is 2 ms) and update ``x`` exactly for that: ``x <- theta + (x - theta) exp(-dt /
 time_constant)``, starting relaxed (``x = theta``).
 
-``qube-calibrate --load`` estimates it per recording day from the logs' reconstructed loads
+``qube-calibrate --load --relaxation`` estimates it per recording day from the logs' reconstructed loads
 (:func:`~qube_koopman.identify.calibrate.load_fit.fit_relaxation`), and the random load from what
 it leaves.
 """
