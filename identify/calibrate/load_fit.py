@@ -38,6 +38,7 @@ from scipy.signal import savgol_filter, welch
 from qube_koopman.core.qube import SKIP_SAMPLES
 from qube_koopman.sim.pendulum import CableRelaxation, PendulumParameters, RandomLoad
 from qube_koopman.sim.pendulum.physics import Coefficients
+from qube_koopman.sim.pendulum.relaxation import lagged
 
 __all__ = [
     "FIT_BAND",
@@ -366,21 +367,18 @@ def fit_relaxation(
     def slow(x: np.ndarray) -> np.ndarray:
         return sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
 
-    def lagged(e: np.ndarray) -> np.ndarray:  # the instruments: the excitation and its low passes
-        return slow(
-            np.column_stack([e] + [CableRelaxation(1.0, 1.0, lag).remembered(e, dt) for lag in INSTRUMENT_LAGS])
-        )
+    def instruments(e: np.ndarray) -> np.ndarray:  # the excitation and its low passes
+        return slow(np.column_stack([e] + [lagged(e, lag, dt) for lag in INSTRUMENT_LAGS]))
 
     y = np.concatenate([slow(d) for d in loads])
-    z = np.vstack([lagged(e) for e in excitations])
+    z = np.vstack([instruments(e) for e in excitations])
     z = z[:, np.std(z, axis=0) > 0]  # a channel that never moves instruments nothing
     theta_slow = np.concatenate([slow(t) for t in thetas])
     driven = z @ np.linalg.lstsq(z, y, rcond=None)[0]  # the loads' part the excitation explains
     best: tuple[float, CableRelaxation] | None = None
     by_time: dict[float, float] = {}
     for tau in time_constants:
-        unit = CableRelaxation(1.0, 1.0, float(tau))
-        x_slow = np.concatenate([slow(unit.remembered(t, dt)) for t in thetas])
+        x_slow = np.concatenate([slow(lagged(t, float(tau), dt)) for t in thetas])
         regressors = np.column_stack([x_slow, theta_slow])
         predicted = z @ np.linalg.lstsq(z, regressors, rcond=None)[0]  # first stage
         (relaxing, theta_coef), *_ = np.linalg.lstsq(predicted, y, rcond=None)

@@ -31,7 +31,7 @@ from qube_koopman.sim.pendulum.physics import (
     coefficients_and_hold,
     linear_model,
 )
-from qube_koopman.sim.pendulum.relaxation import CableRelaxation
+from qube_koopman.sim.pendulum.relaxation import CableRelaxation, relaxation_torque, relaxed
 from qube_koopman.sim.pendulum.sensor import SensorModel, measure
 
 __all__ = ["ClosedLoopRun", "simulate_closed_loop", "linear_loop_radius"]
@@ -232,9 +232,9 @@ def simulate_closed_loop(
         if relax is not None:  # the cables' relaxing torque, the arm's angle held over the step
             fast, relaxing, decay = relax
             theta = comps[0]
-            extra = relaxing * remembered - fast * theta
+            extra = relaxation_torque(fast, relaxing, theta, remembered)
             torque = extra if torque is None else torque + extra
-            remembered = theta + (remembered - theta) * decay
+            remembered = relaxed(remembered, theta, decay)
         comps = advance(comps, previous, current, weights, h, k, np.sin, np.cos, rk4, torque)
         del history[0]
         states[step + 1] = np.stack(comps, axis=-1)

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CableRelaxation"]
+__all__ = ["CableRelaxation", "lagged", "relaxation_torque", "relaxed"]
 
 
 @dataclass(frozen=True)
@@ -65,24 +65,40 @@ class CableRelaxation:
 
     def torque(self, theta, x):
         """The torque (V at the motor) at arm angle ``theta`` with the element at ``x`` (floats or arrays)."""
-        return self.relaxing * x - self.fast * theta
+        return relaxation_torque(self.fast, self.relaxing, theta, x)
 
     def remembered(self, theta: np.ndarray, dt: float) -> np.ndarray:
         """``x`` at each sample of arm angles (along the first axis) held over each sample, starting relaxed:
         the state the simulations use at that sample (before its update)."""
-        theta = np.asarray(theta, dtype=float)
-        x = np.empty_like(theta)
-        if len(theta) == 0:
-            return x
-        from scipy.signal import lfilter
-
-        # x[k+1] = r x[k] + (1 - r) theta[k], x[0] = theta[0]: one recursion, as the simulations step it.
-        r = self.decay(dt)
-        x[0] = theta[0]
-        if len(theta) > 1:
-            x[1:] = lfilter([1.0 - r], [1.0, -r], theta[:-1], axis=0, zi=r * theta[:1])[0]
-        return x
+        return lagged(theta, self.time_constant, dt)
 
     def then(self, x, theta, dt: float):
         """``x`` after a sample of ``dt`` seconds with the arm held at ``theta``."""
-        return theta + (x - theta) * self.decay(dt)
+        return relaxed(x, theta, self.decay(dt))
+
+
+def relaxation_torque(fast, relaxing, theta, x):
+    """:class:`CableRelaxation`'s torque from its stiffnesses (floats, or arrays of one per episode)."""
+    return relaxing * x - fast * theta
+
+
+def relaxed(x, theta, decay):
+    """The element's ``x`` after a sample with the arm held at ``theta``, ``decay`` of its lag left (floats, arrays)."""
+    return theta + (x - theta) * decay
+
+
+def lagged(values: np.ndarray, time_constant: float, dt: float) -> np.ndarray:
+    """A first-order lag of ``values`` (along the first axis), each held over its sample, starting at the first:
+    the relaxing element's ``x`` at each sample (:meth:`CableRelaxation.remembered`), and any such low pass."""
+    values = np.asarray(values, dtype=float)
+    x = np.empty_like(values)
+    if len(values) == 0:
+        return x
+    from scipy.signal import lfilter
+
+    # x[k+1] = r x[k] + (1 - r) v[k], x[0] = v[0]: one recursion, as the simulations step it.
+    r = math.exp(-dt / time_constant)
+    x[0] = values[0]
+    if len(values) > 1:
+        x[1:] = lfilter([1.0 - r], [1.0, -r], values[:-1], axis=0, zi=r * values[:1])[0]
+    return x
