@@ -156,6 +156,7 @@ class PlantCalibration:
         groups: Sequence | None = None,
         setups: Mapping[str, Sequence] | None = None,
         fixed: Mapping[str, Sequence[float]] | None = None,
+        loads: Sequence[np.ndarray] | None = None,
     ) -> "PlantCalibration":
         """Fit to episodes: ``measured[i]`` (n_i, 2) angles, ``voltages[i]`` (n_i,) plant input (V).
 
@@ -166,10 +167,17 @@ class PlantCalibration:
         (:attr:`setup_values_`). ``fixed``: per parameter of
         :data:`~qube_koopman.identify.calibrate.shooting.FIXED_PARAMETERS`, a value per episode that
         its segments simulate with and the fit leaves as given (the base's tilt of the episode's day,
-        :func:`~qube_koopman.identify.calibrate.tilt_fit.fit_tilt`).
+        :func:`~qube_koopman.identify.calibrate.tilt_fit.fit_tilt`). ``loads``: per episode, a known
+        torque on the arm at each sample (n_i,), in volts at the motor past the dead zone, that every
+        segment simulates with (the cables' relaxation computed from the logged arm angle:
+        :meth:`~qube_koopman.sim.pendulum.relaxation.CableRelaxation.torque_of`).
         """
         if len(measured) != len(voltages) or not measured:
             raise ValueError("need one voltage sequence per measured episode, and at least one episode")
+        if loads is not None:
+            loads = [np.asarray(d, float) for d in loads]
+            if len(loads) != len(voltages) or any(d.shape != np.shape(u) for d, u in zip(loads, voltages)):
+                raise ValueError("need one load per episode, as long as its voltages")
         if self.weighting not in ("episode", "group"):
             raise ValueError(f"weighting must be 'episode' or 'group', got {self.weighting!r}")
         if self.jacobian not in ("tangents", "differences"):
@@ -203,6 +211,7 @@ class PlantCalibration:
             int(round(self.skip / dt)),
             self.delay,
             2 * h if self.stride is None else max(1, int(round(self.stride / dt))),
+            loads,
         )
         n_ep = len(measured)
         if self.weighting == "group" and groups is not None:

@@ -182,6 +182,9 @@ class Segments:
     fixed : dict of str to ndarray (n_seg,), optional
         Per parameter the fit does not fit (:data:`FIXED_PARAMETERS`: the base's tilt), each
         segment's value of it, held as given (its episode's; for example its day's tilt).
+    load : ndarray (horizon, n_seg) or None
+        A known torque on the arm over each sample, in volts at the motor past the dead zone (for
+        example the cables' relaxation from the logged arm angle); None: none.
     """
 
     y: np.ndarray
@@ -192,6 +195,7 @@ class Segments:
     weight: np.ndarray | None = None
     setups: dict | None = None
     fixed: dict | None = None
+    load: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -209,14 +213,16 @@ def make_segments(
     skip: int,
     delay: int = 0,
     stride: int | None = None,
+    loads: list[np.ndarray] | None = None,
 ) -> Segments:
     """Cut episodes into segments of ``horizon`` samples, every ``stride`` samples from ``skip``.
 
     ``delay`` whole samples of transport delay: the voltage logged at sample
-    ``k - delay`` acts over sample ``k``.
+    ``k - delay`` acts over sample ``k``. ``loads``: per episode, a known torque on the arm at each
+    sample (:attr:`Segments.load`; not delayed).
     """
     stride = horizon if stride is None else stride
-    ys, us, pasts, eps, starts = [], [], [], [], []
+    ys, us, pasts, eps, starts, ds = [], [], [], [], [], []
     for e, (y, u) in enumerate(zip(measured, voltages)):
         u = np.concatenate([np.zeros(delay), u[: len(u) - delay]]) if delay else u
         padded = np.concatenate([np.zeros(N_PAST), u])  # zero volts before the log's start
@@ -226,10 +232,17 @@ def make_segments(
             pasts.append(padded[k : k + N_PAST])
             eps.append(e)
             starts.append(k)
+            if loads is not None:
+                ds.append(loads[e][k : k + horizon])
     if not ys:
         raise ValueError(f"no segment of {horizon} samples fits after skipping {skip}")
     return Segments(
-        np.stack(ys, axis=1), np.stack(us, axis=1), np.array(eps), np.array(starts), np.stack(pasts, axis=1)
+        np.stack(ys, axis=1),
+        np.stack(us, axis=1),
+        np.array(eps),
+        np.array(starts),
+        np.stack(pasts, axis=1),
+        load=np.stack(ds, axis=1) if loads is not None else None,
     )
 
 
@@ -240,14 +253,15 @@ def simulate_segments(
     dt: float,
     n_substeps: int = 2,
     past: np.ndarray | None = None,
+    load: np.ndarray | None = None,
 ) -> np.ndarray:
     """Angles (horizon + 1, n_seg, 2) from node states (n_seg, 4) under voltages (horizon, n_seg).
 
     ``past`` (n_past, n_seg): the commands before each segment, which a transport delay still applies.
-    ``params``: the pendulum, or one per segment.
+    ``params``: the pendulum, or one per segment. ``load`` (horizon, n_seg): :attr:`Segments.load`.
     """
     with np.errstate(over="ignore", invalid="ignore"):
-        return simulate(nodes, u, params, dt, n_substeps, past_voltages=past)[..., :2]
+        return simulate(nodes, u, params, dt, n_substeps, past_voltages=past, loads=load)[..., :2]
 
 
 def unpack(z: np.ndarray, n_episodes: int, n_seg: int, n_extra: int = 0):
@@ -270,7 +284,7 @@ def residuals(
     n_extra = n_setup_variables(seg)
     phys, offsets, nodes = unpack(z, n_episodes, seg.n, n_extra)
     # With setups every segment simulates with its setups' values, all in one batch.
-    pred = simulate_segments(nodes, seg.u, _segment_twins(phys, seg, nominal), dt, past=seg.past)
+    pred = simulate_segments(nodes, seg.u, _segment_twins(phys, seg, nominal), dt, past=seg.past, load=seg.load)
     pred[..., 1] += offsets[seg.episode]
     r = (pred - seg.y) / sigma
     if seg.weight is not None:
@@ -422,7 +436,13 @@ def _tangent_rows(z, seg: Segments, n_episodes: int, nominal, dt: float, sigma: 
             mask[4 + i] = owner == setup
     with np.errstate(over="ignore", invalid="ignore"):
         _, tangents = simulate_tangents(
-            nodes, seg.u, twins, Directions(state, coefficients, delay, mask), dt, past_voltages=seg.past
+            nodes,
+            seg.u,
+            twins,
+            Directions(state, coefficients, delay, mask),
+            dt,
+            past_voltages=seg.past,
+            loads=seg.load,
         )
     # (sample, direction, segment, angle) to the residuals' pairs of rows (segment, sample), each
     # theta's then alpha's entries (_pair_rows), written in place: the tangents are the fit's largest

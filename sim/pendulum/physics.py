@@ -673,6 +673,7 @@ def simulate(
     dt: float = SAMPLE_PERIOD,
     n_substeps: int = DEFAULT_SUBSTEPS,
     past_voltages=None,
+    loads=None,
 ) -> np.ndarray:
     """Open-loop trajectory under a sequence of zero-order-held voltages.
 
@@ -688,6 +689,10 @@ def simulate(
     past_voltages : array_like of shape (n_past, ...), optional
         Commands before the first sample, oldest first: with a transport delay
         (``params.delay``) the motor still sees them; zero volts by default.
+    loads : array_like of shape (n_steps, ...), optional
+        A known torque on the arm over each sample, in volts at the motor past the dead zone and
+        not delayed (as :func:`advance`'s ``load``; for example the cables' relaxation computed from
+        a log's arm angle); None: exactly the arithmetic without it.
 
     Returns
     -------
@@ -710,6 +715,12 @@ def simulate(
     if past.ndim != voltages.ndim:
         raise ValueError("past_voltages must have a leading time axis and the voltages' trailing shape")
     commands = np.concatenate([np.broadcast_to(past, (past.shape[0], *voltages.shape[1:])), voltages])
+    if loads is not None:
+        loads = np.asarray(loads, dtype=float)
+        if loads.shape[0] != voltages.shape[0]:
+            raise ValueError(
+                f"loads must have one row per sample of the voltages: {loads.shape[0]} for {voltages.shape[0]}"
+            )
     first = past.shape[0] - whole
     if wholes is not None:  # each episode's own whole samples of delay back: commands over the whole batch
         commands = np.broadcast_to(commands, (commands.shape[0], *batch))
@@ -721,7 +732,8 @@ def simulate(
         else:
             now = np.take_along_axis(commands, np.maximum(own + step, 0)[None], 0)[0]
             before = np.take_along_axis(commands, np.maximum(own + step - 1, 0)[None], 0)[0]
-        comps = advance(comps, before, now, weights, h, k, np.sin, np.cos, rk4)
+        load = None if loads is None else loads[step]
+        comps = advance(comps, before, now, weights, h, k, np.sin, np.cos, rk4, load)
         out[step + 1] = np.stack(np.broadcast_arrays(*comps), axis=-1)
     return out
 

@@ -72,6 +72,14 @@ class CableRelaxation:
         the state the simulations use at that sample (before its update)."""
         return lagged(theta, self.time_constant, dt)
 
+    def torque_of(self, theta: np.ndarray, dt: float) -> np.ndarray:
+        """The torque (V at the motor) over each sample of a logged arm angle, the element starting relaxed:
+        what the twin's relaxation applies along that motion. ``qube-calibrate --relaxation``'s shooting
+        fit simulates its 0.25 s segments with it as a known load (over a segment the arm the twin
+        predicts stays within a few milliradians of the logged one)."""
+        theta = np.asarray(theta, dtype=float)
+        return self.torque(theta, self.remembered(theta, dt))
+
     def then(self, x, theta, dt: float):
         """``x`` after a sample of ``dt`` seconds with the arm held at ``theta``."""
         return relaxed(x, theta, self.decay(dt))

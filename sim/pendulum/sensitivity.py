@@ -259,6 +259,7 @@ def simulate_tangents(
     dt: float = SAMPLE_PERIOD,
     n_substeps: int = DEFAULT_SUBSTEPS,
     past_voltages=None,
+    loads=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The angles of :func:`~qube_koopman.sim.pendulum.physics.simulate` and their tangents along ``directions``.
 
@@ -268,8 +269,9 @@ def simulate_tangents(
     voltages : array_like (n_steps, n_seg)
     params : PendulumParameters, or one per segment
     directions : Directions
-    dt, n_substeps, past_voltages
-        As for :func:`~qube_koopman.sim.pendulum.physics.simulate`.
+    dt, n_substeps, past_voltages, loads
+        As for :func:`~qube_koopman.sim.pendulum.physics.simulate` (``loads``: (n_steps, n_seg), a known
+        torque on the arm in volts at the motor past the dead zone; no direction moves it).
 
     Returns
     -------
@@ -291,6 +293,7 @@ def simulate_tangents(
     k = k._replace(dead_zone=np.asarray(k.dead_zone, dtype=float))
     h = dt / n_substeps
     past = np.zeros((whole + 1, n_seg)) if past_voltages is None else np.asarray(past_voltages, float)
+    loads = None if loads is None else np.asarray(loads, dtype=float)
     commands = np.concatenate([np.broadcast_to(past, (past.shape[0], n_seg)), u])
     own = past.shape[0] - (np.full(n_seg, whole) if wholes is None else wholes)
     # d(weight of the previous command in substep j) / d(delay): n / dt while the switch is inside it.
@@ -319,6 +322,8 @@ def simulate_tangents(
             voltage = now + w * (before - now)
             outside = np.abs(voltage) > k.dead_zone
             motor = voltage - np.clip(voltage, -k.dead_zone, k.dead_zone)
+            if loads is not None:  # past the dead zone, as physics.advance adds it
+                motor = motor + loads[step]
             # The motor voltage's tangent, in the directions that move it (delay, dead zone).
             d_motor = np.zeros((moved.size, n_seg))
             if moved.size:

@@ -102,3 +102,47 @@ def test_state_and_delay_tangents_and_a_mask_that_keeps_a_direction_to_some_segm
     np.testing.assert_allclose(tangents[:, 4], expected, rtol=0, atol=1e-4 * np.abs(expected).max())
     np.testing.assert_array_equal(tangents[:, 5, ::2], 0.0)
     np.testing.assert_array_equal(tangents[:, 5, 1::2], tangents[:, 4, 1::2])
+
+
+def test_a_known_load_moves_the_trajectory_and_its_tangents_as_the_simulation_with_it():
+    # A known torque on the arm (volts past the dead zone, not delayed): the tangents are the differences of
+    # the simulation under the same load, for a parameter (km scales the load's torque too) and the state.
+    state0, voltages, past = _case()
+    loads = np.random.default_rng(4).normal(0, 0.5, voltages.shape)
+    step = 1e-6 * PARAMS.km
+    moved = replace(PARAMS, km=PARAMS.km + step)
+    directions = Directions(
+        np.vstack([np.zeros((1, 4)), np.eye(4)[:1]]),
+        np.vstack([(_row(moved) - _row(PARAMS)) / step, np.zeros(len(FIELDS))]),
+        np.zeros(2),
+    )
+    angles, tangents = simulate_tangents(state0, voltages, PARAMS, directions, DT, past_voltages=past, loads=loads)
+    with_load = simulate(state0, voltages, PARAMS, DT, past_voltages=past, loads=loads)[..., :2]
+    np.testing.assert_allclose(angles, with_load, rtol=0, atol=1e-12)
+    assert np.abs(with_load - simulate(state0, voltages, PARAMS, DT, past_voltages=past)[..., :2]).max() > 1e-3
+
+    def loaded(h, which):
+        p = replace(PARAMS, km=PARAMS.km * (1 + h)) if which == "km" else PARAMS
+        s = np.eye(4)[0] * h if which == "theta" else 0.0
+        return simulate(state0 + s, voltages, p, DT, past_voltages=past, loads=loads)[..., :2]
+
+    for j, which in enumerate(("km", "theta")):
+        expected = (loaded(1e-6, which) - loaded(0.0, which)) / 1e-6
+        if which == "km":
+            expected /= PARAMS.km
+        np.testing.assert_allclose(tangents[:, j], expected, rtol=0, atol=2e-5 * np.abs(expected).max())
+
+
+def test_a_load_is_the_same_voltage_past_a_zero_dead_zone_without_delay():
+    # With no dead zone and no delay, a load of d volts at the motor is the command raised by d.
+    state0, voltages, _ = _case()
+    plain = replace(PARAMS, dead_zone=0.0, delay=0.0)
+    loads = np.random.default_rng(5).normal(0, 0.5, voltages.shape)
+    np.testing.assert_allclose(
+        simulate(state0, voltages, plain, DT, loads=loads),
+        simulate(state0, voltages + loads, plain, DT),
+        rtol=0,
+        atol=1e-10,
+    )
+    with pytest.raises(ValueError, match="one row per sample"):
+        simulate(state0, voltages, plain, DT, loads=loads[:-1])
