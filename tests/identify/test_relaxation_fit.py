@@ -132,14 +132,23 @@ def test_qube_calibrate_relaxation_writes_its_tables_and_qube_run_simulates_and_
     assert plant.relaxation is not None and plant.relaxation.time_constant in (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
     # A time given by hand is the one fitted (and the provenance says so).
     fixed = [*logs[:2], "--out", str(tmp_path / "fixed.toml"), "--max-nfev", "4", "--load", "--relaxation"]
-    assert main([*fixed, "--relaxation-time", "0.7", "-q"]) == 0
+    assert main([*fixed, "--relaxation-time", "0.7", "--relaxation-passes", "0", "-q"]) == 0
     fixed_plant = load_plant(tmp_path / "fixed.toml")
     assert fixed_plant.relaxation.time_constant == 0.7 and fixed_plant.provenance["relaxation_time"] == 0.7
+    assert fixed_plant.provenance["relaxation_passes"] == 0
+    assert main([*logs, "--out", str(tmp_path / "z.toml"), "--load", "--relaxation-passes", "1", "-q"]) == 2
+    assert "--relaxation-passes needs --relaxation" in capsys.readouterr().err
+    assert main([*fixed, "--relaxation-passes", "-1", "-q"]) == 2
+    assert "--relaxation-passes must be 0 or more" in capsys.readouterr().err
     assert main([*logs, "--out", str(tmp_path / "y.toml"), "--load", "--relaxation-time", "1", "-q"]) == 2
     assert "--relaxation-time needs --relaxation" in capsys.readouterr().err
     assert plant.relaxation_setups == {} and plant.provenance["relaxation"] is True  # one recording day
     text = (report / "report.md").read_text()
     assert "## The cables' relaxation" in text and "| on |" in text
+    # The default passes: the physics fitted again twice under the relaxation estimated before, each a row.
+    assert plant.provenance["relaxation_passes"] == 2
+    passes = text.split("## The relaxation in the fit")[1].split("\n## ")[0]
+    assert [line.split("|")[1].strip() for line in passes.splitlines() if line.startswith("| ")][1:] == ["0", "1", "2"]
 
 
 def test_a_plant_files_relaxation_round_trips_and_bad_tables_are_refused(tmp_path):
