@@ -269,7 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="the simulated pendulum's physical parameters: a qube-calibrate plant file or a "
         "named set (default: the twin calibrated on the rig under two controllers, "
         "'calibrated-two-controllers'; 'calibrated-with-load': the same with the arm's random load and each "
-        "recording day's tilt of the base; 'calibrated-20230828': on the rig's gains alone; "
+        "recording day's tilt of the base; 'calibrated-with-relaxation': also the cables' relaxation, fitted "
+        "with the physics (the closest replay of both controllers' slow band); 'calibrated-20230828': on the "
+        "rig's gains alone; "
         "'workbook': the Quanser workbook; 'previous': the workbook with fitted damping)",
     )
     safety.add_argument(

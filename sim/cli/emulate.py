@@ -85,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.toml",
         help="the pendulum's physical parameters: a qube-calibrate plant file or a named set "
         "(default: the twin calibrated on the paper's rig; 'calibrated-with-load': with the arm's random load; "
+        "'calibrated-with-relaxation': also the cables' relaxation; "
         "'workbook', 'previous'); with a [load] table, each session's load is a new draw (from --seed)",
     )
     p.add_argument(

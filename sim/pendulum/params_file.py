@@ -97,7 +97,9 @@ inertia and the transport delay fitted and no cable spring: the default before t
 controller's logs), ``"calibrated-with-load"`` (``plants/qube_20230828_20230915_load_tilt.toml``:
 the same logs and recipe as the default with ``qube-calibrate --load --tilt``: the arm's random
 load, central and per recording day, and each day's tilt of the base; :func:`plant_file` gives
-its ``[load]`` tables, which ``qube-run`` simulates),
+its ``[load]`` tables, which ``qube-run`` simulates), ``"calibrated-with-relaxation"``
+(``plants/qube_20230828_20230915_relaxation.toml``: the same with ``--relaxation`` too: each day's
+cable relaxation, fitted with the physics, and the random load it leaves),
 ``"workbook"`` (the Quanser workbook, including its damping) and
 ``"previous"`` (workbook masses with another public project's hardware-fitted
 damping: the default before calibration, the calibration's starting point).
@@ -380,6 +382,7 @@ PARAMETER_SETS = (
     "default",
     "calibrated-two-controllers",
     "calibrated-with-load",
+    "calibrated-with-relaxation",
     "calibrated-20230828",
     "workbook",
     "previous",
@@ -389,6 +392,7 @@ _SHIPPED_FILES = {
     "default": "qube_20230828_20230915.toml",
     "calibrated-two-controllers": "qube_20230828_20230915.toml",
     "calibrated-with-load": "qube_20230828_20230915_load_tilt.toml",
+    "calibrated-with-relaxation": "qube_20230828_20230915_relaxation.toml",
 }
 
 
@@ -400,6 +404,7 @@ def named_parameters(name: str) -> PendulumParameters:
         "previous": PendulumParameters.previous,
         "calibrated-two-controllers": lambda: load_plant(PLANTS / _SHIPPED_FILES["calibrated-two-controllers"]).params,
         "calibrated-with-load": lambda: load_plant(PLANTS / _SHIPPED_FILES["calibrated-with-load"]).params,
+        "calibrated-with-relaxation": lambda: load_plant(PLANTS / _SHIPPED_FILES["calibrated-with-relaxation"]).params,
         "calibrated-20230828": lambda: load_plant(PLANTS / "qube_20230828.toml").params,
     }
     if name not in sets:

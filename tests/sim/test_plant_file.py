@@ -327,6 +327,31 @@ def test_the_shipped_twin_with_the_load_replays_the_rigs_held_out_bands_within_a
     assert np.all(np.abs(overall - 1) <= 0.05) and np.all(np.abs(np.array(bands) - 1) <= 0.10), (overall, bands)
 
 
+def test_the_shipped_twin_with_the_relaxation_replays_both_controllers_slow_bands_within_a_tenth():
+    # The same logs and recipe with --relaxation (its default passes): each day's relaxation beside the load.
+    from qube_koopman.sim.pendulum.params_file import PLANTS, plant_file
+
+    plant, with_load = plant_file("calibrated-with-relaxation"), plant_file("calibrated-with-load")
+    assert plant.provenance["logs"] == with_load.provenance["logs"]
+    assert plant.provenance["relaxation"] is True and plant.provenance["relaxation_passes"] == 2
+    assert named_parameters("calibrated-with-relaxation") == plant.params
+    assert load_plant(PLANTS / "qube_20230828_20230915_relaxation.toml").params == plant.params
+    assert set(plant.relaxation_setups) == set(plant.load_setups) == {"2023-08-28", "2023-09-15"}
+    assert all(r.time_constant == 1.0 and r.fast > 0.1 for r in plant.relaxation_setups.values())
+    controllers = plant.provenance["validation_controllers"]
+    rig = controllers.index("kp_theta 6, kd_theta 1.8, kp_alpha 30, kd_alpha 2.5, tau 50")
+    soft = controllers.index("kp_theta 2, kd_theta 2, kp_alpha 35, kd_alpha 3, tau 50")
+    bands = {name: np.array(f.provenance["load_std_ratio_bands_by_controller"]) for name, f in
+             (("relaxation", plant), ("load", with_load))}  # fmt: skip
+    # The rig's 20 test episodes (never fitted): overall within 1 +- 0.05, every band within 1 +- 0.10, and
+    # no band further from 1 than with the random load alone. The soft episodes (fitted, replayed from their
+    # starts) within 1 +- 0.10 too, where the load alone leaves their slow voltage at 0.86.
+    assert np.all(np.abs(bands["relaxation"][rig][0] - 1) <= 0.05)
+    assert np.all(np.abs(bands["relaxation"][[rig, soft]] - 1) <= 0.10), bands["relaxation"]
+    assert np.abs(bands["relaxation"][rig] - 1).max() <= np.abs(bands["load"][rig] - 1).max()
+    assert np.abs(bands["load"][soft] - 1).max() > 0.10
+
+
 def test_shipped_calibration_loads_with_its_provenance():
     from qube_koopman.sim.pendulum.params_file import PLANTS
 
