@@ -403,21 +403,26 @@ def open_loop_error(
     offsets: np.ndarray,
     horizon: float = OPEN_LOOP_HORIZON,
     start: int = SKIP_SAMPLES,
+    relaxation=None,
 ) -> np.ndarray:
     """RMS error (rad) of theta and alpha over open-loop predictions of ``horizon`` seconds.
 
     Each prediction starts from the data (measured angles less the offset,
     Savitzky-Golay rates) every ``horizon`` seconds and is driven by the
-    logged voltage; ``params`` the twin or one per episode. Returns (n_episodes, 2).
+    logged voltage; ``params`` the twin or one per episode; ``relaxation`` (a
+    :class:`~qube_koopman.sim.pendulum.CableRelaxation` or one per episode, None for none) adds the
+    cables' relaxation torque along the logged arm angle, as the twin's fit simulated it. Returns
+    (n_episodes, 2).
     """
     dt = episodes[0].dt
     h = int(round(horizon / dt))
+    relaxations = relaxation if isinstance(relaxation, (list, tuple)) else [relaxation] * len(episodes)
     out = []
-    for e, o, twin in zip(episodes, offsets, per_episode_params(params, len(episodes))):
+    for e, o, twin, r in zip(episodes, offsets, per_episode_params(params, len(episodes)), relaxations):
         y, u = np.asarray(e.states, float), np.asarray(e.plant_input, float)
-        seg = ms.make_segments([y], [u], h, start)
+        seg = ms.make_segments([y], [u], h, start, loads=None if r is None else [r.torque_of(y[:, 0], dt)])
         nodes = np.concatenate([seg.y[0] - [0.0, o], _rates(y, dt)[seg.start]], axis=1)
-        pred = ms.simulate_segments(nodes, seg.u, twin, dt, past=seg.past)
+        pred = ms.simulate_segments(nodes, seg.u, twin, dt, past=seg.past, load=seg.load)
         pred[..., 1] += o
         out.append(np.sqrt(np.mean((pred - seg.y) ** 2, axis=(0, 1))))
     return np.array(out)

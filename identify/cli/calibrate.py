@@ -670,7 +670,8 @@ def _validate(held, paths, plant, refitted=frozenset()):
         episodes = [held[i] for i in members]
         params = [twins[i] for i in members]
         replay = replay_episodes(episodes, params)
-        open_loop = open_loop_error(episodes, params, replay.offsets, OPEN_LOOP_HORIZON)
+        relaxed = [relaxations[i] for i in members] if plant.relaxation is not None else None
+        open_loop = open_loop_error(episodes, params, replay.offsets, OPEN_LOOP_HORIZON, relaxation=relaxed)
         out.append((replay, open_loop, [paths[i].name for i in members], label))
         fitted = sum(paths[i] in refitted for i in members)
         text += "\n" + validation_text(*out[-1][:3], controller=label if several else None, fitted=fitted)
@@ -679,7 +680,7 @@ def _validate(held, paths, plant, refitted=frozenset()):
                 episodes,
                 params,
                 load=[loads[i] for i in members],
-                relaxation=[relaxations[i] for i in members] if plant.relaxation is not None else None,
+                relaxation=relaxed,
             )
             with_load.append((label, load_band_ratios(replay, held[0].dt), load_band_ratios(loaded, held[0].dt)))
     dt = held[0].dt

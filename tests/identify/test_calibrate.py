@@ -207,6 +207,23 @@ def test_told_the_cables_relaxation_the_fit_recovers_the_spring_it_otherwise_tak
         fit().fit(ys, us, DT, loads=[np.zeros(3), np.zeros(3)])
 
 
+def test_the_validations_open_loop_predictions_carry_the_plants_relaxation():
+    # The held-out logs' 0.25 s open-loop predictions simulate a relaxation plant's torque as its fit did:
+    # on logs of a twin whose cables relax they come closer with it, and a zero relaxation changes nothing.
+    from types import SimpleNamespace
+
+    from qube_koopman.identify.calibrate.validate import open_loop_error
+    from qube_koopman.sim.pendulum import CableRelaxation
+
+    relaxation = CableRelaxation(fast=0.3, relaxing=0.3, time_constant=1.0)
+    ys, us, offsets = simulated_logs(TRUTH, n=2, seconds=4.0, relaxation=relaxation)
+    episodes = [SimpleNamespace(states=y, plant_input=u, dt=DT) for y, u in zip(ys, us)]
+    plain = open_loop_error(episodes, TRUTH, offsets)
+    told = open_loop_error(episodes, TRUTH, offsets, relaxation=[relaxation, relaxation])
+    assert np.all(told[:, 0] < 0.9 * plain[:, 0]), (told, plain)
+    np.testing.assert_array_equal(open_loop_error(episodes, TRUTH, offsets, relaxation=CableRelaxation(0, 0, 1)), plain)
+
+
 def test_a_held_parameter_keeps_its_value_and_the_rest_are_recovered_around_it():
     # A linear cable spring (no levelling-off), held at that: the fit must not move it, give it no
     # error and no warning, and recover the rest within three of their (conditional) standard errors
