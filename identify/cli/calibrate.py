@@ -53,7 +53,7 @@ from qube_koopman.identify.cli.common import expand_logs
 from qube_koopman.identify.command_warnings import ONE_LINE_WARNINGS
 
 #: The fits of the physics that --relaxation adds by default, each under the relaxation estimated before
-#: (on the paper's 28 training logs and six soft ones the second moved the relaxation by 4-10 % and the
+#: (on the paper's 28 training logs and six soft ones the second moved the relaxation by 1-10 % and the
 #: held-out bands by at most 0.01).
 RELAXATION_PASSES = 2
 
