@@ -28,7 +28,7 @@ windowed periodogram are not independent).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -296,6 +296,10 @@ class RelaxationFit:
     driven : float
         The share of the loads' slow variance that a linear filter of the excitation explains at
         all: torque the excitation causes, which no disturbance from outside the loop can be.
+    standard_errors : dict of str to float
+        ``fast`` and ``relaxing``'s standard errors (V/rad) at the chosen relaxation time, from the
+        spread of the fit over :data:`RELAXATION_BOOTSTRAP` resamplings of the episodes (whole
+        episodes, so that each one's slow wander counts once; NaN with a single episode).
     """
 
     relaxation: CableRelaxation
@@ -303,6 +307,11 @@ class RelaxationFit:
     explained: float
     explained_by_time: dict
     driven: float
+    standard_errors: dict = field(default_factory=dict)
+
+
+#: Resamplings of the episodes behind :attr:`RelaxationFit.standard_errors` (seeded: a fit is reproducible).
+RELAXATION_BOOTSTRAP = 400
 
 
 def fit_relaxation(
@@ -391,7 +400,43 @@ def fit_relaxation(
     relaxation = best[1]
     residuals = [d - relaxation.torque(t, relaxation.remembered(t, dt)) for d, t in zip(loads, thetas)]
     torque = np.concatenate([slow(d - r) for d, r in zip(loads, residuals)])
-    return RelaxationFit(relaxation, residuals, _share(y, torque), by_time, _share(y, driven))
+    x_slow = np.concatenate([slow(lagged(t, relaxation.time_constant, dt)) for t in thetas])
+    errors = _bootstrap_errors(
+        [len(d) for d in loads], z, np.column_stack([x_slow, theta_slow]), y, RELAXATION_BOOTSTRAP
+    )
+    return RelaxationFit(relaxation, residuals, _share(y, torque), by_time, _share(y, driven), errors)
+
+
+def _two_stage(zz: np.ndarray, zr: np.ndarray, zy: np.ndarray) -> tuple[float, float]:
+    """``(relaxing, theta's coefficient)`` of two-stage least squares from the moments ``Z'Z``, ``Z'R``, ``Z'y``
+    (``R``: the element's memory and the arm angle), as :func:`fit_relaxation` makes it (the arm alone where the
+    relaxing part comes out negative)."""
+    first = np.linalg.lstsq(zz, zr, rcond=None)[0]  # the first stage's coefficients
+    pp, py = first.T @ zz @ first, first.T @ zy  # P'P and P'y for the predicted regressors P = Z first
+    relaxing, theta_coef = np.linalg.lstsq(pp, py, rcond=None)[0]
+    if relaxing < 0:
+        return 0.0, float(py[1] / pp[1, 1])
+    return float(relaxing), float(theta_coef)
+
+
+def _bootstrap_errors(lengths: list[int], z: np.ndarray, regressors: np.ndarray, y: np.ndarray, n: int) -> dict:
+    """``fast`` and ``relaxing``'s standard errors: the spread of the two-stage fit over ``n`` resamplings of
+    whole episodes (``lengths``: each one's rows), from each episode's moments (a resampling sums them, so
+    it costs a few small solves, not a regression over every sample)."""
+    if len(lengths) < 2:
+        return {"fast": float("nan"), "relaxing": float("nan")}
+    edges = np.cumsum([0, *lengths])
+    parts = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
+    zz = np.stack([z[k].T @ z[k] for k in parts])
+    zr = np.stack([z[k].T @ regressors[k] for k in parts])
+    zy = np.stack([z[k].T @ y[k] for k in parts])
+    rng = np.random.default_rng(0)
+    draws = []
+    for _ in range(n):
+        counts = np.bincount(rng.integers(0, len(parts), len(parts)), minlength=len(parts)).astype(float)
+        draws.append(_two_stage(*(np.tensordot(counts, m, axes=1) for m in (zz, zr, zy))))
+    relaxing, theta_coef = np.array(draws).T
+    return {"fast": float(np.std(-theta_coef, ddof=1)), "relaxing": float(np.std(relaxing, ddof=1))}
 
 
 def _share(y: np.ndarray, fit: np.ndarray) -> float:
