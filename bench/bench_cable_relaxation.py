@@ -53,8 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qube_koopman.core.qube import SKIP_SAMPLES
-from qube_koopman.identify.calibrate.load_fit import fit_load, fit_relaxation, reconstruct_load
+from qube_koopman.identify.calibrate.load_fit import fit_load, fit_relaxation, reconstruct_load, relaxation_signals
 from qube_koopman.identify.calibrate.replay_spectra import band_std_ratios
 from qube_koopman.identify.calibrate.validate import replay_episodes
 from qube_koopman.identify.data.logs import load_logs, read_episodes
@@ -118,13 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         eps = [e for e in fitted if recording_day(e.metadata.start_time) == day]
         twins = plant.params_for_logs([e.metadata.start_time for e in eps])
         loads = [reconstruct_load(e.states, e.plant_input, twin, e.dt) for e, twin in zip(eps, twins)]
-        thetas = [np.asarray(e.states, float)[SKIP_SAMPLES:, 0] for e in eps]
-        excitations = [
-            np.column_stack(
-                [np.asarray(e.references, float)[SKIP_SAMPLES:, 0], np.asarray(e.feedforward, float)[SKIP_SAMPLES:]]
-            )
-            for e in eps
-        ]
+        thetas, excitations = zip(*map(relaxation_signals, eps))
         fit = fit_relaxation(loads, thetas, excitations, dt)
         plain = _least_squares(loads, thetas, fit.relaxation, dt)
         left = fit_load(fit.residuals, dt).load

@@ -407,6 +407,16 @@ def fit_relaxation(
     return RelaxationFit(relaxation, residuals, _share(y, torque), by_time, _share(y, driven), errors)
 
 
+def relaxation_signals(episode) -> tuple[np.ndarray, np.ndarray]:
+    """An episode's arm angle and excitation (the arm's reference, the feedforward; (n, 2)) over the samples of
+    its :func:`reconstruct_load`: what :func:`fit_relaxation` takes beside its load."""
+    theta = np.asarray(episode.states, float)[SKIP_SAMPLES:, 0]
+    excitation = np.column_stack(
+        [np.asarray(episode.references, float)[SKIP_SAMPLES:, 0], np.asarray(episode.feedforward, float)[SKIP_SAMPLES:]]
+    )
+    return theta, excitation
+
+
 def _two_stage(zz: np.ndarray, zr: np.ndarray, zy: np.ndarray) -> tuple[float, float]:
     """``(relaxing, theta's coefficient)`` of two-stage least squares from the moments ``Z'Z``, ``Z'R``, ``Z'y``
     (``R``: the element's memory and the arm angle), as :func:`fit_relaxation` makes it (the arm alone where the

@@ -103,6 +103,18 @@ def per_episode_params(
     return each
 
 
+def per_episode_relaxations(relaxation, n_episodes: int) -> list:
+    """The cables' relaxation of each of ``n_episodes`` episodes: ``relaxation`` (a
+    :class:`~qube_koopman.sim.pendulum.CableRelaxation`, or None for none) repeated, or checked to be one per
+    episode."""
+    if relaxation is None or isinstance(relaxation, CableRelaxation):
+        return [relaxation] * n_episodes
+    each = list(relaxation)
+    if len(each) != n_episodes:
+        raise ValueError(f"{len(each)} relaxations for {n_episodes} episodes: give one, or one per episode")
+    return each
+
+
 def _rates(y: np.ndarray, dt: float) -> np.ndarray:
     return savgol_filter(np.asarray(y, float), 21, 2, deriv=1, delta=dt, axis=0)
 
@@ -337,10 +349,7 @@ def replay_episodes(
         n_steps = min(len(y) for y in ys) - start
         drift = alpha_drift.sample(n_steps, dt, np.random.default_rng([seed, 2]), (n_draws, len(ys)))
     if relaxation is not None and not isinstance(relaxation, CableRelaxation):
-        relaxation = list(relaxation)
-        if len(relaxation) != len(ys):
-            raise ValueError(f"{len(relaxation)} relaxations for {len(ys)} episodes: give one, or one per episode")
-        relaxation = relaxation * n_draws  # the batch is (draw, episode), in C order
+        relaxation = per_episode_relaxations(relaxation, len(ys)) * n_draws  # the batch is (draw, episode), in C order
     run = _replay_draws(
         episodes, us, draws, offsets, params, start, load=loads, alpha_drift=drift, relaxation=relaxation
     )
@@ -416,7 +425,7 @@ def open_loop_error(
     """
     dt = episodes[0].dt
     h = int(round(horizon / dt))
-    relaxations = relaxation if isinstance(relaxation, (list, tuple)) else [relaxation] * len(episodes)
+    relaxations = per_episode_relaxations(relaxation, len(episodes))
     out = []
     for e, o, twin, r in zip(episodes, offsets, per_episode_params(params, len(episodes)), relaxations):
         y, u = np.asarray(e.states, float), np.asarray(e.plant_input, float)

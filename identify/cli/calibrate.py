@@ -261,20 +261,19 @@ def _run(args) -> int:
     started = time.perf_counter()
     tilts = _fit_tilts(episodes, fit_paths) if args.tilt else None
     cal, plant, fit_groups = _calibrate(episodes, args, tilts)
-    seconds = time.perf_counter() - started
+    seconds = time.perf_counter() - started  # the physics' fit (with --relaxation, all its passes)
     names = [p.name for p in fit_paths]
-    text = calibration_text(cal, names, seconds, fit_groups)
-    if tilts is not None:
-        text += "\n" + _tilt_text(tilts)
+    loads_text = passes = ""
     if args.load:
         times = None if args.relaxation_time is None else (args.relaxation_time,)
         loads_text = _fit_loads(episodes, plant, args.relaxation, times)
         if args.relaxation and args.relaxation_passes:
             cal, plant, loads_text, passes = _refit_with_relaxation(episodes, args, tilts, (cal, plant), times)
             seconds = time.perf_counter() - started
-            text = calibration_text(cal, names, seconds, fit_groups) + ("\n" + _tilt_text(tilts) if tilts else "")
-            text += "\n" + passes
-        text += "\n" + loads_text
+    text = calibration_text(cal, names, seconds, fit_groups)
+    for section in (_tilt_text(tilts) if tilts is not None else "", passes, loads_text):
+        if section:
+            text += "\n" + section
     provenance = _provenance(args, cal, names, episodes[0].metadata.software_version, seconds, fit_groups)
     validation, val_dt = None, None
     if val_paths:
@@ -476,13 +475,13 @@ def _fit_loads(episodes, plant, relaxation: bool = False, times=None) -> str:
     of them (``[load]``) and per recording day (``[load_setups]``, with two days or more); with
     ``relaxation``, the cables' relaxation first (``[relaxation]``, ``[relaxation_setups]``; at the
     relaxation ``times`` given, else the grid's best) and the load from what it leaves. The report's text."""
-    from qube_koopman.core.qube import SKIP_SAMPLES
     from qube_koopman.identify.calibrate.load_fit import (
         RELAXATION_TIMES,
         fit_load,
         fit_relaxation,
         load_text,
         reconstruct_load,
+        relaxation_signals,
     )
     from qube_koopman.sim.pendulum.params_file import recording_day
 
@@ -499,13 +498,7 @@ def _fit_loads(episodes, plant, relaxation: bool = False, times=None) -> str:
     relaxations, text = {}, ""
     try:
         if relaxation:
-            thetas = [np.asarray(e.states, float)[SKIP_SAMPLES:, 0] for e in episodes]
-            excitation = [
-                np.column_stack(
-                    [np.asarray(e.references, float)[SKIP_SAMPLES:, 0], np.asarray(e.feedforward, float)[SKIP_SAMPLES:]]
-                )
-                for e in episodes
-            ]
+            thetas, excitation = zip(*map(relaxation_signals, episodes))
             for name, members in groups.items():
                 relaxations[name] = fit_relaxation(
                     [loads[i] for i in members],
