@@ -520,8 +520,14 @@ def _fit_loads(episodes, plant, relaxation: bool = False, times=None) -> str:
         plant.load_setups = {day: fits[day].load for day in days}
         plant.load_setup_standard_errors = {day: fits[day].standard_errors for day in days}
     if relaxation:
-        plant.relaxation = next(iter(relaxations.values())).relaxation
-        plant.relaxation_setups = {day: relaxations[day].relaxation for day in days} if len(days) > 1 else {}
+        central_relaxation = next(iter(relaxations.values()))
+        plant.relaxation = central_relaxation.relaxation
+        plant.relaxation_standard_errors = dict(central_relaxation.standard_errors)
+        per_day = len(days) > 1
+        plant.relaxation_setups = {day: relaxations[day].relaxation for day in days} if per_day else {}
+        plant.relaxation_setup_standard_errors = (
+            {day: dict(relaxations[day].standard_errors) for day in days} if per_day else {}
+        )
     return text + load_text(fits)
 
 

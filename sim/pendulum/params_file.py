@@ -46,10 +46,18 @@
     relaxing = 0.38         # V/rad: the part of it that relaxes
     time_constant = 1.0     # s: over which it relaxes
 
+    [relaxation_standard_errors]      # optional: its standard errors (V/rad)
+    fast = 0.02
+    relaxing = 0.03
+
     [relaxation_setups."2023-09-15"]   # optional: a recording day's own relaxation
     fast = 0.25
     relaxing = 0.37
     time_constant = 1.0
+
+    [relaxation_setup_standard_errors."2023-09-15"]
+    fast = 0.03
+    relaxing = 0.04
 
     [provenance]            # optional, free-form: where the numbers came from
     source = "qube-calibrate"
@@ -82,7 +90,10 @@ recording days, as its cables did), which a replay of a log of that day uses (:m
 The ``[relaxation]`` table is the cables' torque that the arm's own motion drives
 (:class:`~qube_koopman.sim.pendulum.relaxation.CableRelaxation`: ``fast``, ``relaxing``,
 ``time_constant``, all three required); ``[relaxation_setups.DAY]`` a recording day's own
-(:meth:`PlantFile.relaxations_for_logs`). A file without it simulates none.
+(:meth:`PlantFile.relaxations_for_logs`). A file without it simulates none. Their standard errors
+(``[relaxation_standard_errors]``, ``[relaxation_setup_standard_errors.DAY]``: ``fast`` and
+``relaxing``; the time constant is chosen from a grid, not fitted) are read and written with them
+and change no simulation.
 Values are TOML floats or integers; provenance
 values are strings, numbers, booleans or lists of those.
 
@@ -267,6 +278,10 @@ class PlantFile:
         The cables' relaxation (the ``[relaxation]`` table); None: none.
     relaxation_setups : dict of str to CableRelaxation, optional
         A recording day's (``YYYY-MM-DD``) own relaxation.
+    relaxation_standard_errors : dict of str to float, optional
+        The central relaxation's standard errors (``fast``, ``relaxing``).
+    relaxation_setup_standard_errors : dict of str to dict of str to float, optional
+        A recording day's relaxation's standard errors.
     """
 
     def relaxations_for_logs(self, start_times: Sequence[str | None]) -> list[CableRelaxation | None]:
@@ -302,10 +317,16 @@ class PlantFile:
         load_setup_standard_errors: dict | None = None,
         relaxation: CableRelaxation | None = None,
         relaxation_setups: dict | None = None,
+        relaxation_standard_errors: dict | None = None,
+        relaxation_setup_standard_errors: dict | None = None,
     ) -> None:
         self.params = params
         self.relaxation = relaxation
         self.relaxation_setups = {str(k): v for k, v in (relaxation_setups or {}).items()}
+        self.relaxation_standard_errors = dict(relaxation_standard_errors or {})
+        self.relaxation_setup_standard_errors = {
+            str(k): dict(v) for k, v in (relaxation_setup_standard_errors or {}).items()
+        }
         if self.relaxation_setups and relaxation is None:
             raise ValueError("a recording day's relaxation (relaxation_setups) needs the central one beside it")
         self.load = load
@@ -508,6 +529,20 @@ def load_plant(path: str | Path) -> PlantFile:
     }
     if relaxation_setups and relaxation is None:
         raise PlantFileError(f"{path}: [relaxation_setups] needs a [relaxation] table beside it (the central one)")
+    relaxation_errors = _relaxation_errors(path, data.get("relaxation_standard_errors"), "relaxation_standard_errors")
+    setup_errors = data.get("relaxation_setup_standard_errors", {})
+    if not isinstance(setup_errors, dict):
+        raise PlantFileError(
+            f"{path}: [relaxation_setup_standard_errors] must hold a table per recording day, got {setup_errors!r}"
+        )
+    relaxation_setup_errors = {
+        str(day): _relaxation_errors(path, table, f"relaxation_setup_standard_errors.{day}")
+        for day, table in setup_errors.items()
+    }
+    unmatched = sorted(set(relaxation_setup_errors) - set(relaxation_setups))
+    if (relaxation_errors and relaxation is None) or unmatched:
+        what = "[relaxation_standard_errors]" if not unmatched else f"[relaxation_setup_standard_errors.{unmatched[0]}]"
+        raise PlantFileError(f"{path}: {what} has no relaxation beside it to be the errors of")
     plant = PlantFile(
         params,
         data.get("standard_errors", {}),
@@ -520,6 +555,8 @@ def load_plant(path: str | Path) -> PlantFile:
         load_setup_errors,
         relaxation,
         relaxation_setups,
+        relaxation_errors,
+        relaxation_setup_errors,
     )
     for day, table in setups.items():
         try:
@@ -573,6 +610,25 @@ def _relaxation_table(path: Path, table, title: str) -> CableRelaxation | None:
     except ValueError as exc:
         raise PlantFileError(f"{path}: [{title}]: {exc}") from None
     return CableRelaxation(*(float(table[k]) for k in _RELAXATION_KEYS))
+
+
+#: The keys a relaxation's standard errors may have: the fitted stiffnesses (its time is chosen from a grid).
+_RELAXATION_ERROR_KEYS = ("fast", "relaxing")
+
+
+def _relaxation_errors(path: Path, table, title: str) -> dict[str, float]:
+    """The ``[title]`` table of a relaxation's standard errors (empty without one), checked."""
+    if table is None:
+        return {}
+    if not isinstance(table, dict):
+        raise PlantFileError(f"{path}: [{title}] must be a table (fast, relaxing), got {table!r}")
+    unknown = sorted(set(table) - set(_RELAXATION_ERROR_KEYS))
+    if unknown:
+        raise PlantFileError(f"{path}: [{title}]: unknown key(s) {', '.join(unknown)}; it takes fast, relaxing")
+    for key, value in table.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            raise PlantFileError(f"{path}: [{title}]: {key} must be a number, 0 or more (or nan), got {value!r}")
+    return {k: float(v) for k, v in table.items()}
 
 
 def _numbers(path: Path, values, where: str) -> dict[str, float]:
@@ -641,12 +697,21 @@ def save_plant(path: str | Path, plant: PlantFile) -> None:
                 lines += ["", f"[load_setup_standard_errors.{_toml_value(str(day))}]"]
                 lines += [f"{k} = {_toml_value(float(v))}" for k, v in table.items()]
     if plant.relaxation is not None:
-        for title, relaxation in (
-            ("relaxation", plant.relaxation),
-            *((f"relaxation_setups.{_toml_value(str(day))}", r) for day, r in plant.relaxation_setups.items()),
-        ):
+        relaxation_tables = [
+            ("relaxation", "relaxation_standard_errors", plant.relaxation, plant.relaxation_standard_errors)
+        ]
+        for day, relaxation in plant.relaxation_setups.items():
+            errors = plant.relaxation_setup_standard_errors.get(day, {})
+            key = _toml_value(str(day))
+            relaxation_tables.append(
+                (f"relaxation_setups.{key}", f"relaxation_setup_standard_errors.{key}", relaxation, errors)
+            )
+        for title, errors_title, relaxation, errors in relaxation_tables:
             lines += ["", f"[{title}]"]
             lines += [f"{k} = {_toml_value(float(getattr(relaxation, k)))}" for k in _RELAXATION_KEYS]
+            if errors:
+                lines += ["", f"[{errors_title}]"]
+                lines += [f"{k} = {_toml_value(float(v))}" for k, v in errors.items()]
     if plant.provenance:
         lines += ["", "[provenance]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in plant.provenance.items()]

@@ -150,6 +150,10 @@ def test_qube_calibrate_relaxation_writes_its_tables_and_qube_run_simulates_and_
     assert main([*logs, "--out", str(tmp_path / "y.toml"), "--load", "--relaxation-time", "1", "-q"]) == 2
     assert "--relaxation-time needs --relaxation" in capsys.readouterr().err
     assert plant.relaxation_setups == {} and plant.provenance["relaxation"] is True  # one recording day
+    # The relaxation's standard errors (the episode bootstrap's) are written beside it, as the load's are.
+    assert set(plant.relaxation_standard_errors) == {"fast", "relaxing"}
+    assert all(0 < e < 1 for e in plant.relaxation_standard_errors.values()), plant.relaxation_standard_errors
+    assert plant.relaxation_setup_standard_errors == {}
     text = (report / "report.md").read_text()
     assert "## The cables' relaxation" in text and "| on |" in text
     # The default passes: the physics fitted again twice under the relaxation estimated before, each a row.
@@ -162,11 +166,22 @@ def test_a_plant_files_relaxation_round_trips_and_bad_tables_are_refused(tmp_pat
     from qube_koopman.sim.pendulum.params_file import PlantFile, PlantFileError, load_plant, save_plant
 
     central, day = CableRelaxation(0.26, 0.38, 1.0), CableRelaxation(0.13, 0.14, 2.0)
+    errors, day_errors = {"fast": 0.011, "relaxing": 0.018}, {"fast": 0.03, "relaxing": float("nan")}
     save_plant(
-        tmp_path / "p.toml", PlantFile(PendulumParameters(), relaxation=central, relaxation_setups={"2023-08-28": day})
+        tmp_path / "p.toml",
+        PlantFile(
+            PendulumParameters(),
+            relaxation=central,
+            relaxation_setups={"2023-08-28": day},
+            relaxation_standard_errors=errors,
+            relaxation_setup_standard_errors={"2023-08-28": day_errors},
+        ),
     )
     plant = load_plant(tmp_path / "p.toml")
     assert plant.relaxation == central and plant.relaxation_setups == {"2023-08-28": day}
+    assert plant.relaxation_standard_errors == errors
+    assert plant.relaxation_setup_standard_errors["2023-08-28"]["fast"] == 0.03
+    assert np.isnan(plant.relaxation_setup_standard_errors["2023-08-28"]["relaxing"])  # one episode: no spread
     assert plant.relaxations_for_logs(["2023-08-28T16:00:00", "2023-09-15T15:00:00", None]) == [day, central, central]
     text = (tmp_path / "p.toml").read_text()
     for bad, message in [
@@ -184,6 +199,23 @@ def test_a_plant_files_relaxation_round_trips_and_bad_tables_are_refused(tmp_pat
         + '[relaxation_setups."2023-08-28"]\nfast = 0.1\nrelaxing = 0.2\ntime_constant = 1\n'
     )
     with pytest.raises(PlantFileError, match="needs a \\[relaxation\\] table"):
+        load_plant(tmp_path / "orphan.toml")
+    save_plant(tmp_path / "plain.toml", PlantFile(PendulumParameters(), relaxation=central))
+    plain = (tmp_path / "plain.toml").read_text()
+    assert "standard_errors" not in plain  # none given, none written
+    for bad, message in [
+        ("[relaxation_standard_errors]\nfast = 0.1\ntime_constant = 0.2\n", "unknown key"),
+        ("[relaxation_standard_errors]\nfast = -0.1\n", "0 or more"),
+        ("[relaxation_standard_errors]\nfast = true\n", "0 or more"),
+        ('[relaxation_setup_standard_errors."2023-09-15"]\nfast = 0.1\n', "no relaxation beside it"),
+    ]:
+        (tmp_path / "bad.toml").write_text(plain + "\n" + bad)
+        with pytest.raises(PlantFileError, match=message):
+            load_plant(tmp_path / "bad.toml")
+    (tmp_path / "orphan.toml").write_text(
+        text[: text.index("[relaxation]")] + "[relaxation_standard_errors]\nfast = 0.1\n"
+    )
+    with pytest.raises(PlantFileError, match="no relaxation beside it"):
         load_plant(tmp_path / "orphan.toml")
 
 

@@ -338,6 +338,12 @@ def test_the_shipped_twin_with_the_relaxation_replays_both_controllers_slow_band
     assert load_plant(PLANTS / "qube_20230828_20230915_relaxation.toml").params == plant.params
     assert set(plant.relaxation_setups) == set(plant.load_setups) == {"2023-08-28", "2023-09-15"}
     assert all(r.time_constant == 1.0 and r.fast > 0.1 for r in plant.relaxation_setups.values())
+    # Each day's relaxation carries its standard errors (the episode bootstrap's), and the soft day's cables
+    # relax more than the rig day's by far more than them (0.437 +- 0.027 against 0.157 +- 0.021 V/rad).
+    days, errors = plant.relaxation_setups, plant.relaxation_setup_standard_errors
+    assert set(errors) == set(days) and set(plant.relaxation_standard_errors) == {"fast", "relaxing"}
+    gap = days["2023-09-15"].relaxing - days["2023-08-28"].relaxing
+    assert gap > 5 * np.hypot(errors["2023-09-15"]["relaxing"], errors["2023-08-28"]["relaxing"]), (days, errors)
     controllers = plant.provenance["validation_controllers"]
     rig = controllers.index("kp_theta 6, kd_theta 1.8, kp_alpha 30, kd_alpha 2.5, tau 50")
     soft = controllers.index("kp_theta 2, kd_theta 2, kp_alpha 35, kd_alpha 3, tau 50")
