@@ -506,38 +506,27 @@ def load_plant(path: str | Path) -> PlantFile:
     setups = {str(day): _numbers(path, table, f"setup {day}: ") for day, table in data.get("setups", {}).items()}
     load, load_errors = _load_table(path, data, "load", "load_standard_errors")
     load_setups, load_setup_errors = {}, {}
-    for name in ("load_setups", "load_setup_standard_errors"):
-        if not isinstance(data.get(name, {}), dict):
-            raise PlantFileError(f"{path}: [{name}] must hold a table per recording day, got {data[name]!r}")
-    for day in data.get("load_setups", {}):
-        errors = data.get("load_setup_standard_errors", {}).get(day, {})
+    per_day_load_errors = _per_day(path, data, "load_setup_standard_errors")
+    for day, table in _per_day(path, data, "load_setups").items():
+        errors = per_day_load_errors.get(day, {})
         load_setups[day], errors = _load_table(
-            path, {"load": data["load_setups"][day], "errors": errors}, "load", "errors", f"load_setups.{day}"
+            path, {"load": table, "errors": errors}, "load", "errors", f"load_setups.{day}"
         )
         if errors:
             load_setup_errors[day] = errors
     if load_setups and load is None:
         raise PlantFileError(f"{path}: [load_setups] needs a [load] table beside it (the central load)")
     relaxation = _relaxation_table(path, data.get("relaxation"), "relaxation")
-    if not isinstance(data.get("relaxation_setups", {}), dict):
-        raise PlantFileError(
-            f"{path}: [relaxation_setups] must hold a table per recording day, got {data['relaxation_setups']!r}"
-        )
     relaxation_setups = {
         str(day): _relaxation_table(path, table, f"relaxation_setups.{day}")
-        for day, table in data.get("relaxation_setups", {}).items()
+        for day, table in _per_day(path, data, "relaxation_setups").items()
     }
     if relaxation_setups and relaxation is None:
         raise PlantFileError(f"{path}: [relaxation_setups] needs a [relaxation] table beside it (the central one)")
     relaxation_errors = _relaxation_errors(path, data.get("relaxation_standard_errors"), "relaxation_standard_errors")
-    setup_errors = data.get("relaxation_setup_standard_errors", {})
-    if not isinstance(setup_errors, dict):
-        raise PlantFileError(
-            f"{path}: [relaxation_setup_standard_errors] must hold a table per recording day, got {setup_errors!r}"
-        )
     relaxation_setup_errors = {
         str(day): _relaxation_errors(path, table, f"relaxation_setup_standard_errors.{day}")
-        for day, table in setup_errors.items()
+        for day, table in _per_day(path, data, "relaxation_setup_standard_errors").items()
     }
     unmatched = sorted(set(relaxation_setup_errors) - set(relaxation_setups))
     if (relaxation_errors and relaxation is None) or unmatched:
@@ -574,19 +563,10 @@ def _load_table(
     errors = data.get(errors_key, {})
     if key not in data:
         return None, {}
-    out = []
-    for name, table in ((title, data[key]), (f"{title} standard errors", errors)):
-        if not isinstance(table, dict):
-            raise PlantFileError(f"{path}: [{name}] must be a table (diffusion, time_constant), got {table!r}")
-        unknown = sorted(set(table) - set(_LOAD_KEYS))
-        if unknown:
-            raise PlantFileError(
-                f"{path}: [{name}]: unknown key(s) {', '.join(unknown)}; known: {', '.join(_LOAD_KEYS)}"
-            )
-        for key, value in table.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise PlantFileError(f"{path}: [{name}]: {key} must be a number, got {value!r}")
-        out.append({k: float(v) for k, v in table.items()})
+    out = [
+        _number_table(path, table, name, _LOAD_KEYS, "diffusion, time_constant")
+        for name, table in ((title, data[key]), (f"{title} standard errors", errors))
+    ]
     if "diffusion" not in out[0]:
         raise PlantFileError(f"{path}: [{title}]: diffusion (V/sqrt(s)) is missing")
     try:
@@ -616,19 +596,34 @@ def _relaxation_table(path: Path, table, title: str) -> CableRelaxation | None:
 _RELAXATION_ERROR_KEYS = ("fast", "relaxing")
 
 
+def _number_table(path: Path, table, title: str, keys: Sequence[str], hint: str, lower: float | None = None) -> dict:
+    """The ``[title]`` table of numbers under ``keys`` (``hint``: what the message says it holds), checked; each
+    value at least ``lower`` when given (NaN passes: an error that could not be estimated)."""
+    if not isinstance(table, dict):
+        raise PlantFileError(f"{path}: [{title}] must be a table ({hint}), got {table!r}")
+    unknown = sorted(set(table) - set(keys))
+    if unknown:
+        raise PlantFileError(f"{path}: [{title}]: unknown key(s) {', '.join(unknown)}; known: {', '.join(keys)}")
+    bound = "" if lower is None else f", {lower:g} or more (or nan)"
+    for key, value in table.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (lower is not None and value < lower):
+            raise PlantFileError(f"{path}: [{title}]: {key} must be a number{bound}, got {value!r}")
+    return {k: float(v) for k, v in table.items()}
+
+
 def _relaxation_errors(path: Path, table, title: str) -> dict[str, float]:
     """The ``[title]`` table of a relaxation's standard errors (empty without one), checked."""
     if table is None:
         return {}
-    if not isinstance(table, dict):
-        raise PlantFileError(f"{path}: [{title}] must be a table (fast, relaxing), got {table!r}")
-    unknown = sorted(set(table) - set(_RELAXATION_ERROR_KEYS))
-    if unknown:
-        raise PlantFileError(f"{path}: [{title}]: unknown key(s) {', '.join(unknown)}; it takes fast, relaxing")
-    for key, value in table.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
-            raise PlantFileError(f"{path}: [{title}]: {key} must be a number, 0 or more (or nan), got {value!r}")
-    return {k: float(v) for k, v in table.items()}
+    return _number_table(path, table, title, _RELAXATION_ERROR_KEYS, "fast, relaxing", lower=0.0)
+
+
+def _per_day(path: Path, data: dict, name: str) -> dict:
+    """``data[name]``, a table per recording day (empty without one), checked to be one."""
+    tables = data.get(name, {})
+    if not isinstance(tables, dict):
+        raise PlantFileError(f"{path}: [{name}] must hold a table per recording day, got {tables!r}")
+    return tables
 
 
 def _numbers(path: Path, values, where: str) -> dict[str, float]:
