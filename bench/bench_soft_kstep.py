@@ -37,6 +37,7 @@ import numpy as np
 from bench_two_controllers import data_arguments, mcap_logs
 
 from qube_koopman.identify.cli.identify import main as identify_main
+from qube_koopman.identify.metrics import r2_score
 
 SEARCH_LIFTING = "--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25 --friction --alpha 1e-5 --offsets alpha"
 #: Frequency bands (Hz) of the free run's pendulum error.
@@ -73,7 +74,7 @@ def free_run(out: Path) -> tuple[np.ndarray, np.ndarray]:
     for path in sorted(glob.glob(str(out / "predictions" / "*.npz"))):
         with np.load(path) as z:
             y, p = z["measured"], z["predicted"]
-        r2.append(1 - ((y - p) ** 2).sum(0) / ((y - y.mean(0)) ** 2).sum(0))
+        r2.append([r2_score(y[:, [c]], p[:, [c]]) for c in range(y.shape[1])])
         f, psd = welch(y[:, 1] - p[:, 1], fs=500, nperseg=2048)
         power += [psd[(f >= lo) & (f < hi)].sum() for lo, hi in BANDS]
     return np.mean(r2, axis=0), power / power.sum()
@@ -105,7 +106,6 @@ def stiffness_check(out: Path, soft: list[Path]) -> None:
     from qube_koopman.identify.data.logs import load_logs
     from qube_koopman.identify.estimators.structure import close_loop, with_command_delay
     from qube_koopman.identify.models import disturbance as dm
-    from qube_koopman.identify.models.model import KoopmanModel
     from qube_koopman.identify.models.model_file import load_model
     from qube_koopman.identify.models.offsets import shift_trajectory
 
@@ -132,13 +132,8 @@ def stiffness_check(out: Path, soft: list[Path]) -> None:
         explained = 1 - np.var(slow - slow_fit) / np.var(slow)  # the slow load's share the arm angle explains
         scores = []
         for added in (0.0, stiffness):
-            A = loop.A + added * np.outer(E, np.eye(loop.A.shape[0])[loop.n_passthrough])
-            stiffer = KoopmanModel(
-                A, loop.B, loop.lifting, loop.input_signals, loop.n_passthrough, loop.input_lifting, loop.dt,
-                loop.passthrough_names, loop.feedback,
-            )  # fmt: skip
-            y, p = trajectory.x[500:, 0], stiffer.predict(trajectory)[500:, 0]
-            scores.append(1 - ((y - p) ** 2).sum() / ((y - y.mean()) ** 2).sum())
+            stiffer = replace(loop, A=loop.A + added * np.outer(E, np.eye(loop.A.shape[0])[loop.n_passthrough]))
+            scores.append(r2_score(trajectory.x[500:, :1], stiffer.predict(trajectory)[500:, :1]))
         before.append(scores[0])
         after.append(scores[1])
         print(f"{log.path.stem[:24]:<24}{stiffness:>8.3f}{explained:>11.2f}   {scores[0]:.4f}, {scores[1]:.4f}")

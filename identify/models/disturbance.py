@@ -48,7 +48,7 @@ innovations form); with a zero gain, its prediction from the first window is the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -846,17 +846,7 @@ def _affine_ahead(model: KoopmanModel, x_init, v, p0, K: int, relift: bool) -> n
 def _with_rate_input(model: KoopmanModel, disturbance: DisturbanceModel) -> KoopmanModel:
     """The model with a rate disturbance on one angle's equation as one more input."""
     E = disturbance_direction(model, disturbance.entry)
-    return KoopmanModel(
-        model.A,
-        np.hstack([model.B, E[:, None]]),
-        model.lifting,
-        model.input_signals,
-        model.n_passthrough,
-        model.input_lifting,
-        model.dt,
-        model.passthrough_names,
-        model.feedback,
-    )
+    return replace(model, B=np.hstack([model.B, E[:, None]]))
 
 
 def simulate_with_rate(
