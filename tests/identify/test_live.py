@@ -91,7 +91,9 @@ def test_sink_scores_each_episode_with_the_model_of_the_ones_before(episodes):
     reference = IncrementalIdentifier(lifting)
     for path in paths[:2]:
         reference.add(load_logs([path], skip=500)[0])
-    assert scores[2].score.r2 == reference.score(load_logs([paths[2]], skip=500)[0]).r2
+    # the same fit to rounding: the sink's thread may sum in another order (numpy 2.4 differs in the 15th digit);
+    # a fit of other episodes differs from the first digits on
+    assert scores[2].score.r2 == pytest.approx(reference.score(load_logs([paths[2]], skip=500)[0]).r2, rel=1e-12)
     assert sink.stop_reason is not None  # met after the third episode's score (two scores at -inf or more)
     sink.close(_Outcome())  # the next episode's close asks the run to stop
     assert stop.requested and stop.reason.startswith("identified:")
