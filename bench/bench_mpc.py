@@ -21,9 +21,11 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
 
 - offset-free control under a constant load: a plant identified on 6 twin episodes with a disturbance model
   (``--horizon 0.1,1 --disturbance input --disturbance-q 1e-5 --disturbance-pole 1``: the twin's episodes have
-  no load to set ``q`` and the pole from), the MPC designed on it with and without ``--no-offset-free``, with
-  the arm's integral (the default) and without (``--no-integral``), and (offset-free "none") the same file
-  without its disturbance table, the MPC estimating nothing; each run on the twin for 10 s, ``--load`` volts added at
+  no load to set ``q`` and the pole from), the MPC designed on it with ``--no-offset-free`` ("off": the model's
+  load estimated and logged), ``--disturbances input`` ("input": the load alone estimated and used) and by
+  default ("input,theta": a load and the arm's rate), with the arm's integral (the default) and without
+  (``--no-integral``), and (offset-free "none") the same file without its disturbance table, the MPC
+  estimating nothing; each run on the twin for 10 s, ``--load`` volts added at
   the plant input from 1 s on (the controller does not see it), the arm's reference a step every 2.5 s (to
   +-0.05 rad, drawn from the seed: steps of 0.3 rad lose the pendulum under the MPC of the default weights,
   with or without a load), per seed of ``--load-seeds``: J after the first second, the arm's
@@ -43,11 +45,11 @@ twin episodes of the rig's PD, ``--poly 1 --delays 35 --const``, as the design p
   limit (default 4 V), the first episode of ``qube-run --seed 7`` (20 s), written to ``--figure PNG``
   (default ``docs/_static/mpc_episode.png``).
 - ``--only stiff-cables``: offset-free control on a twin the model did not see, the cables' stiffness ``Kr``
-  twice the calibrated one: the MPC designed on MODEL.json with and without ``--no-offset-free`` (with and
-  without the arm's integral), from a start drawn from the seed (the arm within 0.02 rad of 0, the pendulum
-  0.01-0.03 rad off upright), the arm's reference stepped to +-0.1 rad at 0.5 s (the sign from the seed;
-  ``--stiff-ramp 0.3``: ramped to +-0.3 rad from 0.5 s to 2.5 s instead),
-  12 s per seed of ``--load-seeds``: the arm's mean tracking error from 5 s on (``mean(theta - target)``, in
+  twice the calibrated one: the MPC designed on MODEL.json with ``--no-offset-free``, ``--disturbances input``
+  and the default two disturbances (with and without the arm's integral), from a start drawn from the seed
+  (the arm within 0.02 rad of 0, the pendulum 0.01-0.03 rad off upright), the arm's reference stepped to
+  +-0.1 rad at 0.5 s (the sign from the seed; ``--stiff-ramp 0.3``: ramped to +-0.3 rad from 0.5 s to 2.5 s
+  instead), 12 s per seed of ``--load-seeds``: the arm's mean tracking error from 5 s on (``mean(theta - target)``, in
   absolute value, averaged over the seeds), beside the same on the calibrated twin.
 
 - ``--only paced``: the MPC at the limit (default 4 V) replayed on one logged twin episode's ticks (8 s), its
@@ -236,7 +238,7 @@ def _loaded_run(controller: Path, seed: int, load: float, seconds: float = 10.0)
     for k in range(n):
         e0, e1 = r[k] - theta, -alpha
         u, _ = out(e0, e1, 0.0, r[k])
-        x[k], estimate[k], solve[k] = (theta, alpha), runtime.estimate, runtime.tick_record[2]
+        x[k], estimate[k], solve[k] = (theta, alpha), _load_estimate(runtime), runtime.tick_record[2]
         theta, alpha = sim.step(u + (load if k * dt >= 1.0 else 0.0))
         upd(e0, e1, 0.0)
         if abs(theta) > 2.0 or abs(alpha) > 0.5:  # lost (the rig's supervisor would stop it)
@@ -246,6 +248,20 @@ def _loaded_run(controller: Path, seed: int, load: float, seconds: float = 10.0)
     ends = [slice(i - round(1.0 / dt), i) for i in range(step, n + 1, step)]
     offset = float(np.mean([abs(np.mean(x[e, 0] - r[e])) for e in ends]))
     return {"lost": False, "J": J, "offset": offset, "estimate": float(estimate[-1]), "solve": solve}
+
+
+def _load_estimate(runtime) -> float:
+    """The MPC's estimate of the load at the plant input (V), 0 when it estimates none."""
+    entries = runtime.disturbance.entries if runtime.disturbance is not None else ()
+    return float(runtime.estimate[entries.index("input")]) if "input" in entries else 0.0
+
+
+#: The offset-free variants the tables compare: qube-design's flags for each.
+OFFSET_FREE_VARIANTS = {
+    "off": ["--no-offset-free"],
+    "input": ["--disturbances", "input"],
+    "input,theta": [],  # the default
+}
 
 
 def _offset_free(root: Path, seeds: list[int], load: float) -> None:
@@ -260,9 +276,11 @@ def _offset_free(root: Path, seeds: list[int], load: float) -> None:
         f"{'estimate / load':>15} {'CPU solve p50/p99 us':>20} {'lost':>4}"
     )
     for integral in (True, False):
-        for offset_free in ("none", "off", "on"):
-            flags = ([] if integral else ["--no-integral"]) + ([] if offset_free == "on" else ["--no-offset-free"])
-            f = root / f"mpc_load_{int(integral)}{offset_free}.toml"
+        for offset_free in ("none", *OFFSET_FREE_VARIANTS):
+            flags = ([] if integral else ["--no-integral"]) + OFFSET_FREE_VARIANTS.get(
+                offset_free, ["--no-offset-free"]
+            )
+            f = root / f"mpc_load_{int(integral)}{offset_free.replace(',', '_')}.toml"
             design_main([str(model), "--mpc", *flags, "--out", str(f), *quiet])
             text = f.read_text().replace("time_budget = 0.001", "time_budget = 10.0")  # no host luck
             if offset_free == "none":  # the same MPC without the disturbance table: no estimate at all
@@ -402,11 +420,11 @@ def _stiff_cables(
         f"{seconds:g} s per seed {seeds}; "
         f"mean |mean(theta - target)| from 5 s on (mrad)"
     )
-    print(f"{'integral':>8} {'offset-free':>11} " + " ".join(f"{k:>12}" for k in twins) + f" {'|estimate| x2 V':>15}")
+    print(f"{'integral':>8} {'offset-free':>11} " + " ".join(f"{k:>12}" for k in twins) + f" {'|load est.| x2 V':>16}")
     for integral in (True, False):
-        for offset_free in (False, True):
-            flags = ([] if integral else ["--no-integral"]) + ([] if offset_free else ["--no-offset-free"])
-            f = root / f"stiff_{int(integral)}{int(offset_free)}.toml"
+        for offset_free, variant in OFFSET_FREE_VARIANTS.items():
+            flags = ([] if integral else ["--no-integral"]) + variant
+            f = root / f"stiff_{int(integral)}{offset_free.replace(',', '_')}.toml"
             design_main([str(model), "--mpc", *flags, "--out", str(f), *quiet])
             _no_budget(f)
             cells, estimate = [], []
@@ -433,12 +451,12 @@ def _stiff_cables(
                             raise SystemExit(f"stiff cables: the pendulum fell (seed {s}); try a smaller step")
                     errors.append(abs(err[round(5.0 / dt) :].mean()))
                     if twin is not base:
-                        estimate.append(abs(runtime.estimate))
+                        estimate.append(abs(_load_estimate(runtime)))
                 cells.append(1e3 * np.mean(errors))
             print(
-                f"{'on' if integral else 'off':>8} {'on' if offset_free else 'off':>11} "
+                f"{'on' if integral else 'off':>8} {offset_free:>11} "
                 + " ".join(f"{c:>12.3f}" for c in cells)
-                + f" {np.mean(estimate):>15.4f}"
+                + f" {np.mean(estimate):>16.4f}"
             )
 
 

@@ -428,21 +428,26 @@ def _finite(value):
     return value
 
 
-def offset_free_settings(report: DesignReport, settings):
+def _where(entry: str) -> str:
+    return "a load at the plant input (V)" if entry == "input" else f"a rate on {entry} (rad per tick)"
+
+
+def offset_free_settings(report: DesignReport, settings, entries: tuple[str, ...] | None = None):
     """The MPC's settings with ``offset_free`` as the model file allows it, and a line saying which.
 
     Offset-free control (``settings.offset_free``, what ``qube-design --mpc`` asks for unless
-    ``--no-offset-free``) needs the model file's disturbance model: a load at the plant input with a
-    nonzero gain (a first-order one is integrated: :func:`design.mpc.mpc_disturbance`). A rate on
-    theta or alpha is estimated and logged but not used: the arm integrates a rate, so the steady
-    state that balances it is far from where the plant rests under a load (on the twin, 0.1 rad
-    of arm offset under 0.3 V). Without one the MPC is the one
-    without a disturbance model.
+    ``--no-offset-free``) needs the model file's disturbance model with a nonzero gain: from its
+    covariances the MPC estimates ``entries`` (default :data:`design.mpc.OFFSET_FREE_ENTRIES`, a
+    load at the plant input and a rate on the arm's angle) as random walks
+    (:func:`design.mpc.mpc_disturbance`), whatever the model's own entry and pole. Without one the
+    MPC is the one without a disturbance model.
 
     Parameters
     ----------
     report : DesignReport
     settings : design.mpc.MpcSettings
+    entries : tuple of str, optional
+        The disturbances the offset-free MPC estimates (``--disturbances``).
 
     Returns
     -------
@@ -451,8 +456,9 @@ def offset_free_settings(report: DesignReport, settings):
     """
     from dataclasses import replace
 
-    from qube_koopman.design.mpc import model_disturbance
+    from qube_koopman.design.mpc import OFFSET_FREE_ENTRIES, model_disturbance
 
+    entries = OFFSET_FREE_ENTRIES if entries is None else tuple(entries)
     disturbance = model_disturbance(report.model)
     if disturbance is None:
         line = (
@@ -466,35 +472,25 @@ def offset_free_settings(report: DesignReport, settings):
             "show no disturbance), so the MPC is as without one"
         )
         return replace(settings, offset_free=False), line
-    where = "a load at the plant input (V)" if disturbance.entry == "input" else f"a rate on {disturbance.entry}"
+    own = _where(disturbance.entry)
     if not settings.offset_free:
-        return settings, f"offset-free: off (--no-offset-free): the MPC records its estimate of {where} per tick"
-    if disturbance.entry != "input":
-        line = (
-            f"offset-free: off: the model file's disturbance is {where}, and offset-free control needs a load at the "
-            "plant input (qube-identify --disturbance input): the arm integrates a rate, and the steady state that "
-            "balances one is not where the plant rests under a load; the MPC records its estimate per tick"
-        )
-        return replace(settings, offset_free=False), line
-    if disturbance.pole != 1.0:
-        line = (
-            f"offset-free: on: the model file's disturbance, {where}, is first-order (pole {disturbance.pole:g}); the "
-            "MPC estimates it each tick as a random walk with the model file's q and R (the Kalman gain of pole 1, "
-            "nothing refitted), so that it holds the arm at its reference under a constant one (--no-offset-free: off)"
-        )
-        return settings, line
+        return settings, f"offset-free: off (--no-offset-free): the MPC records its estimate of {own} per tick"
+    kind = "a random walk" if disturbance.pole == 1.0 else f"first-order (pole {disturbance.pole:g})"
     line = (
-        f"offset-free: on: the MPC estimates {where} each tick with the model file's Kalman filter and holds "
-        "the arm at its reference under a constant one (--no-offset-free: off)"
+        f"offset-free: on: the MPC estimates {' and '.join(map(_where, entries))} each tick as random walks, with "
+        f"the Kalman gain of the model file's R and the filter speed of its disturbance ({own}, {kind}; nothing "
+        "refitted), and holds the arm at its reference under constant ones "
+        f"(--disturbances {','.join(entries)}; --no-offset-free: off)"
     )
     return settings, line
 
 
-def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
+def write_mpc(path: str | Path, report: DesignReport, settings, entries: tuple[str, ...] | None = None) -> Path:
     """Write the MPC on the report's plant and weights (``qube-design --mpc``): kind ``mpc``, with the provenance.
 
-    The model file's disturbance model, when it has one, goes in the file (the MPC estimates it
-    each tick, and with ``settings.offset_free`` rejects it: :func:`offset_free_settings`).
+    The model file's disturbance model, when it has one, goes in the file: with
+    ``settings.offset_free`` as the disturbances ``entries`` that the MPC estimates and rejects
+    (:func:`offset_free_settings`), without it as the model's own, estimated and logged each tick.
 
     Parameters
     ----------
@@ -504,6 +500,9 @@ def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
         The LQ design (:func:`design_from_model`): its plant and weights; its Riccati cost is the
         MPC's terminal cost.
     settings : design.mpc.MpcSettings
+    entries : tuple of str, optional
+        With ``settings.offset_free``, the disturbances estimated (default
+        :data:`design.mpc.OFFSET_FREE_ENTRIES`).
 
     Returns
     -------
@@ -518,16 +517,20 @@ def write_mpc(path: str | Path, report: DesignReport, settings) -> Path:
     import control  # lazily: python-control imports matplotlib
 
     from qube_koopman.design.lq import augment
-    from qube_koopman.design.mpc import model_disturbance, mpc_disturbance
+    from qube_koopman.design.mpc import OFFSET_FREE_ENTRIES, model_disturbance, mpc_disturbance
     from qube_koopman.design.mpc_file import write_mpc_file
 
     plant, weights = report.design.plant, report.design.weights
     model = model_disturbance(report.model)
-    disturbance = (
-        None if model is None or not np.any(model.gain) else mpc_disturbance(plant, model, settings.offset_free)
-    )
+    disturbance = None
+    if model is not None and np.any(model.gain):
+        if settings.offset_free:  # random walks, as many as asked for
+            entries = OFFSET_FREE_ENTRIES if entries is None else tuple(entries)
+            disturbance = mpc_disturbance(plant, model, integrate=True, entries=entries)
+        else:
+            disturbance = mpc_disturbance(plant, model)
     if settings.offset_free:
-        if disturbance is None:  # a first-order one was integrated above
+        if disturbance is None:
             raise DesignError("offset-free MPC needs the model file's disturbance model")
         disturbance.target_map()  # the steady state exists, or a DesignError says why
     P, _, _ = control.dare(*augment(plant, weights))

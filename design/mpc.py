@@ -29,12 +29,13 @@ Two solvers of the same problem (``solver`` setting):
   Cholesky factor of an N x N matrix, which a tick with nothing binding does not even need.
 - ``"osqp"``: OSQP on the same QP with one slack per predicted step, warm-started.
 
-Offset-free control (``settings.offset_free``, :class:`MpcDisturbance`): with the model file's
-disturbance model, each tick filters the disturbance from the measurements with that model's
-steady-state Kalman gain, predicts it constant over the horizon and solves the same QP about the
-steady state it implies (the arm at its reference, the voltage cancelling the load): a constant
-load leaves no offset, which without the arm's integral it otherwise does (Pannocchia & Rawlings
-2003; Maeder, Borrelli & Morari 2009).
+Offset-free control (``settings.offset_free``, :class:`MpcDisturbance`): from the model file's
+disturbance model, each tick filters a load at the plant input and a rate on the arm's angle (one
+disturbance per measured angle, :func:`mpc_disturbance`) from the measurements with a steady-state
+Kalman gain, predicts them constant over the horizon and solves the same QP about the steady state
+they imply (the arm at its reference, the voltage cancelling the load): a constant load, or a
+plant that is not the model's, leaves no offset, which without the arm's integral it otherwise
+does (Pannocchia & Rawlings 2003; Maeder, Borrelli & Morari 2009).
 
 A tick whose solve does not finish within its budget (``time_budget``, s, checked between
 iterations; OSQP's own ``time_limit``) or fails applies a fallback: the previous plan's next input,
@@ -53,12 +54,13 @@ from qube_koopman.core.qube import THETA_LIMIT
 from qube_koopman.design.lq import Weights, augment
 from qube_koopman.design.plant import DesignError, LinearPlant
 from qube_koopman.identify.models.disturbance import ENTRIES as DISTURBANCE_ENTRIES
-from qube_koopman.identify.models.disturbance import DisturbanceModel
+from qube_koopman.identify.models.disturbance import DisturbanceModel, steady_state_gains
 from qube_koopman.identify.models.identified import IdentifiedModel
 
 __all__ = [
     "MpcSettings",
     "MpcDisturbance",
+    "OFFSET_FREE_ENTRIES",
     "model_disturbance",
     "mpc_disturbance",
     "MpcProblem",
@@ -144,68 +146,89 @@ def model_disturbance(model: IdentifiedModel) -> DisturbanceModel | None:
     return model.disturbance
 
 
+#: The disturbances the offset-free MPC estimates by default: a load at the plant input and a rate on the
+#: arm's angle, as many as measured angles (:func:`mpc_disturbance`).
+OFFSET_FREE_ENTRIES = ("input", "theta")
+
+
 @dataclass(frozen=True, eq=False)
 class MpcDisturbance:
-    """The disturbance an MPC estimates each tick: where it enters, the plant it is estimated on, the filter's gain.
+    """The disturbances an MPC estimates each tick: where they enter, the plant they are estimated on, the filter gain.
 
-    The model file's disturbance model (``identify.models.disturbance``; nothing refitted) on the
-    design plant ``x_{k+1} = F_x s_k + b v_k + E_x d_k`` (``s_k`` the measured history, ``v_k`` the
-    plant input: the controller's output plus the feedforward), with ``E_x = b`` for a load at the
-    plant input (``d`` in volts) and the angle's unit vector for a rate on theta or alpha (rad per
-    tick). The plant's affine term (a ``Constant`` lifting step) is left out, as the LQ design and
-    the MPC's prediction leave it: the estimate takes up what of it a disturbance along ``E_x``
-    explains. (Kept, the model's constant, a fit to closed-loop episodes, sets a target the plant
-    does not rest at: on the twin an offset of 0.01 rad with no load at all.) Each tick, from the
-    one-step residual ``r_k = x_k - (F_x s_{k-1} + b v_{k-1})``, the steady-state Kalman filter in
-    innovations form
-    (:func:`identify.models.disturbance.filter_disturbance`, the same recursion)::
+    On the design plant ``x_{k+1} = F_x s_k + b v_k + G d_k`` (``s_k`` the measured history, ``v_k``
+    the plant input: the controller's output plus the feedforward), ``G``'s column of each
+    disturbance is ``b`` for a load at the plant input (volts) and the angle's unit vector for a
+    rate on theta or alpha (rad per tick). The plant's affine term (a ``Constant`` lifting step) is
+    left out, as the LQ design and the MPC's prediction leave it: the estimate takes up what of it
+    the disturbances explain. (Kept, the model's constant, a fit to closed-loop episodes, sets a
+    target the plant does not rest at: on the twin an offset of 0.01 rad with no load at all.) Each
+    tick, from the one-step residual ``r_k = x_k - (F_x s_{k-1} + b v_{k-1})``, the steady-state
+    Kalman filter in innovations form (with one disturbance
+    :func:`identify.models.disturbance.filter_disturbance`, the same recursion)::
 
-        p_k = pole f_{k-1},   f_k = p_k + L (r_k - G p_k),   d_k = pole f_k      (G = E_x)
+        p_k = pole f_{k-1},   f_k = p_k + L (r_k - G p_k),   d_k = pole f_k
 
     Parameters
     ----------
-    entry : {"input", "theta", "alpha"}
+    entries : str or tuple of str
+        Where each disturbance enters (``"input"``, ``"theta"``, ``"alpha"``), at most one per
+        measured angle; a string for one.
     pole : float
         ``d_{k+1} = pole d_k + w_k``; offset-free control needs a random walk (1).
-    gain : ndarray of shape (2,)
-        ``L``, the model file's.
+    gain : ndarray of shape (n_d, 2), or (2,) with one disturbance
+        ``L``.
     rows : ndarray of shape (2, n)
         ``F_x``, the plant's one-step map on its history (newest sample first).
     input : ndarray of shape (2,)
         ``b``.
     """
 
-    entry: str
+    entries: tuple[str, ...]
     pole: float
     gain: np.ndarray
     rows: np.ndarray
     input: np.ndarray
 
     def __post_init__(self) -> None:
-        if self.entry not in DISTURBANCE_ENTRIES:
-            raise DesignError(f"unknown disturbance entry {self.entry!r} (one of {', '.join(DISTURBANCE_ENTRIES)})")
+        entries = (self.entries,) if isinstance(self.entries, str) else tuple(self.entries)
+        object.__setattr__(self, "entries", entries)
+        for entry in entries:
+            if entry not in DISTURBANCE_ENTRIES:
+                raise DesignError(f"unknown disturbance entry {entry!r} (one of {', '.join(DISTURBANCE_ENTRIES)})")
         m = len(self.input)
-        if np.shape(self.gain) != (m,) or np.shape(self.rows)[0] != m:
-            raise DesignError(f"the disturbance's gain must have {m} entries, one per measured angle")
-        if not (0.0 <= self.pole <= 1.0) or not np.all(np.isfinite(self.gain)):
+        if not (1 <= len(entries) <= m) or len(set(entries)) != len(entries):
+            raise DesignError(f"the MPC estimates 1 to {m} distinct disturbances, got {', '.join(entries) or 'none'}")
+        gain = np.asarray(self.gain, dtype=float)
+        gain = gain.reshape(1, -1) if gain.ndim == 1 else gain
+        object.__setattr__(self, "gain", gain)
+        if gain.shape != (len(entries), m) or np.shape(self.rows)[0] != m:
+            raise DesignError(f"the disturbance's gain must have {len(entries)} row(s) of {m}, one per measured angle")
+        if not (0.0 <= self.pole <= 1.0) or not np.all(np.isfinite(gain)):
             raise DesignError(f"the disturbance's pole {self.pole!r} must be in [0, 1] and its gain finite")
+        if np.linalg.matrix_rank(self.direction) < len(entries):
+            raise DesignError(
+                f"the disturbances {', '.join(entries)} move the angles alike: the filter cannot tell them apart"
+            )
 
     @property
     def direction(self) -> np.ndarray:
-        """``E_x = G``: a unit disturbance's effect on the next measurement."""
-        if self.entry == "input":
-            return np.asarray(self.input, dtype=float)
-        E = np.zeros(len(self.input))
-        E[DISTURBANCE_ENTRIES.index(self.entry) - 1] = 1.0
-        return E
+        """``G`` (2 x n_d): each disturbance's unit effect on the next measurement."""
+        m = len(self.input)
+        G = np.zeros((m, len(self.entries)))
+        for j, entry in enumerate(self.entries):
+            if entry == "input":
+                G[:, j] = self.input
+            else:
+                G[DISTURBANCE_ENTRIES.index(entry) - 1, j] = 1.0
+        return G
 
     def target_map(self) -> np.ndarray:
-        """``T`` (2 x 2): the steady state ``[alpha_ss, v_ss] = T @ [r_theta, d]`` with the arm at its reference.
+        """``T`` (2 x (1 + n_d)): the steady state ``[alpha_ss, v_ss] = T @ [r_theta, d]``, the arm at its reference.
 
-        Solves ``(I - sum_j A_j) x_ss = b v_ss + E_x d`` for ``x_ss = [r_theta, alpha_ss]``
+        Solves ``(I - sum_j A_j) x_ss = b v_ss + G d`` for ``x_ss = [r_theta, alpha_ss]``
         (``A_j``: ``F_x``'s block on ``x_{k-j}``), the target calculation of offset-free MPC
         (Pannocchia & Rawlings 2003): the arm at its reference, the pendulum and the voltage where
-        the plant, under the constant disturbance, rests.
+        the plant, under the constant disturbances, rests.
 
         Raises
         ------
@@ -227,38 +250,68 @@ class MpcDisturbance:
 
     def as_dict(self) -> dict:
         """The controller file's ``disturbance`` table (the plant's rows are the file's ``plant_rows``)."""
-        return {"entry": self.entry, "pole": float(self.pole), "gain": [float(v) for v in self.gain]}
+        return {
+            "entries": list(self.entries),
+            "pole": float(self.pole),
+            "gain": [[float(v) for v in row] for row in self.gain],
+        }
 
 
-def mpc_disturbance(plant: LinearPlant, disturbance: DisturbanceModel, integrate: bool = False) -> MpcDisturbance:
+def mpc_disturbance(
+    plant: LinearPlant,
+    disturbance: DisturbanceModel,
+    integrate: bool = False,
+    entries: tuple[str, ...] | None = None,
+) -> MpcDisturbance:
     """The model file's disturbance model on the design plant (its affine term left out): what the MPC estimates.
 
     Parameters
     ----------
     plant : LinearPlant
     disturbance : DisturbanceModel
-        The model file's; its ``entry``, ``pole`` and ``gain`` are used as they are.
+        The model file's. Alone (``entries`` None or its own entry) its ``entry``, ``pole`` and
+        ``gain`` are used as they are.
     integrate : bool
         A first-order disturbance becomes a random walk with the same ``q`` and ``R`` and the
         Kalman gain of pole 1 (:meth:`DisturbanceModel.integrated`): what offset-free control needs
         to reject a constant load (nothing refitted).
+    entries : tuple of str, optional
+        The disturbances to estimate, when not the model file's one alone; offset-free control's
+        default is :data:`OFFSET_FREE_ENTRIES`, one per measured angle, since with fewer
+        disturbances than measured outputs a plant the model did not see leaves an offset (the
+        filter's innovations need not vanish at rest, and the target then misses the arm's
+        reference: Pannocchia & Rawlings 2003, Maeder, Borrelli & Morari 2009). Each gets the
+        model file's ``R`` and a ``q`` that gives it alone the model's disturbance's filter speed:
+        a scalar filter's gain depends on ``q g' R^-1 g`` only, so ``q_j = q g' R^-1 g / g_j' R^-1 g_j``
+        (``g`` the model's disturbance's direction, ``g_j`` this one's); the filter's gain is the
+        Kalman gain of those covariances (:func:`identify.models.disturbance.steady_state_gains`),
+        with the model's pole, or 1 with ``integrate``. Nothing is refitted.
 
     Returns
     -------
     MpcDisturbance
     """
     m = plant.n_measured
-    out = MpcDisturbance(
-        str(disturbance.entry),
-        float(disturbance.pole),
-        np.asarray(disturbance.gain, dtype=float).reshape(-1),
-        plant.F[:m].copy(),
-        plant.G[:m, 0].copy(),
-    )
-    if not integrate:
-        return out
-    walk = disturbance.integrated(out.direction)  # itself when it is a random walk already
-    return replace(out, pole=walk.pole, gain=np.asarray(walk.gain, dtype=float).reshape(-1))
+    rows, b = plant.F[:m].copy(), plant.G[:m, 0].copy()
+    own = MpcDisturbance((str(disturbance.entry),), float(disturbance.pole), disturbance.gain, rows, b)
+    if entries is None or tuple(entries) == own.entries:
+        if not integrate:
+            return own
+        walk = disturbance.integrated(own.direction[:, 0])  # itself when it is a random walk already
+        return replace(own, pole=walk.pole, gain=walk.gain)
+    pole = 1.0 if integrate else float(disturbance.pole)
+    out = MpcDisturbance(tuple(entries), pole, np.zeros((len(entries), m)), rows, b)
+    R = np.asarray(disturbance.R, dtype=float)
+    speed = float(disturbance.q) * _information(own.direction[:, 0], R)  # q g' R^-1 g
+    G = out.direction
+    Q = np.diag([speed / _information(G[:, j], R) for j in range(G.shape[1])])
+    gain, _ = steady_state_gains(G, pole, Q, R)
+    return replace(out, gain=gain)
+
+
+def _information(g: np.ndarray, R: np.ndarray) -> float:
+    """``g' R^-1 g``: how much one sample's residual says about a unit disturbance along ``g``."""
+    return float(g @ np.linalg.solve(R, g))
 
 
 @dataclass(frozen=True, eq=False)
@@ -538,10 +591,10 @@ class MpcRuntime:
     ``z_k = [-E_k; w_k]``. Its state update is linear (the log's ``A``, ``B`` replay it); the
     output is the QP's first input.
 
-    With a ``disturbance``, each tick also filters the disturbance from the measurements
+    With a ``disturbance``, each tick also filters the disturbances from the measurements
     (``theta = r_theta - e_theta``, ``alpha = -e_alpha``: the pendulum's reference is upright) and
     the plant input the previous tick applied (its output plus the feedforward), and records the
-    estimate. With ``settings.offset_free`` the tick uses it (offset-free MPC, Pannocchia &
+    estimates. With ``settings.offset_free`` the tick uses it (offset-free MPC, Pannocchia &
     Rawlings 2003; Maeder, Borrelli & Morari 2009): the prediction carries the estimate, held
     constant over the horizon as a random walk's forecast is, and the QP is solved about the
     steady state it implies (:meth:`MpcDisturbance.target_map`): the arm at its reference, the
@@ -565,8 +618,8 @@ class MpcRuntime:
 
     #: The per-tick record's fields (the log's sample fields for this kind).
     TICK_FIELDS = ("solver_status", "solver_iterations", "solve_time", "constraint_active", "fallback")
-    #: The field added when the controller estimates a disturbance: ``d_{k|k}`` (V at the plant input, or
-    #: rad per tick on the angle).
+    #: The fields added when the controller estimates disturbances, one per entry, ``disturbance_<entry>``:
+    #: ``d_{k|k}`` (V at the plant input, or rad per tick on the angle).
     DISTURBANCE_FIELD = "disturbance"
 
     def __init__(
@@ -594,15 +647,16 @@ class MpcRuntime:
                     f"offset-free MPC needs a random-walk disturbance (pole 1); this one's pole is {disturbance.pole:g}"
                 )
             self._target = disturbance.target_map()
-        #: The per-tick record's fields: :attr:`TICK_FIELDS`, and the disturbance estimate with a disturbance model.
-        self.tick_fields = self.TICK_FIELDS + ((self.DISTURBANCE_FIELD,) if disturbance is not None else ())
+        entries = disturbance.entries if disturbance is not None else ()
+        #: The per-tick record's fields: :attr:`TICK_FIELDS`, and the disturbances' estimates with a disturbance model.
+        self.tick_fields = self.TICK_FIELDS + tuple(f"{self.DISTURBANCE_FIELD}_{entry}" for entry in entries)
         self.n_fallbacks = 0
         self.n_ticks = 0
         self.tick_record: tuple[float, ...] = (0.0,) * len(self.tick_fields)
         #: The plan the last tick left: its first entry is the input that tick applied.
         self.plan: np.ndarray | None = None
-        #: The last tick's disturbance estimate ``d_{k|k}`` (0 without a disturbance model).
-        self.estimate = 0.0
+        #: The last tick's disturbance estimates ``d_{k|k}``, one per entry (none without a disturbance model).
+        self.estimate = np.zeros(len(entries))
         #: The last tick's prediction terms ``(theta_z z_0, r_theta, shift)``: its plan predicts the arm at
         #: ``r_theta + theta_U (plan - shift) + theta_z z_0`` (``shift``: the steady state's input, offset-free).
         self.prediction: tuple[np.ndarray, float, float] = (np.zeros(problem.horizon), 0.0, 0.0)
@@ -622,16 +676,16 @@ class MpcRuntime:
         Hinv = np.linalg.inv(p.H)
         code = SOLVER_STATUS
         self.n_fallbacks = self.n_ticks = 0
-        self.estimate = 0.0
         est = self.disturbance
         offset_free = self.offset_free
         if est is not None:
             rows, b = np.asarray(est.rows), np.asarray(est.input)
-            G, L, pole = est.direction, np.asarray(est.gain), float(est.pole)
-            LG = float(L @ G)
+            L, pole = est.gain, float(est.pole)
+            LG = L @ est.direction
+            self.estimate = np.zeros(len(est.entries))
             history = np.zeros(m * (d + 1))  # x_k .. x_{k-d}, newest first, once update has run
             # filt: f_{k-1}; predicted: x_k's one-step prediction (None until the history is full)
-            kf = {"filt": 0.0, "predicted": None, "x": np.zeros(m), "u": 0.0, "filled": 0}
+            kf = {"filt": np.zeros(len(est.entries)), "predicted": None, "x": np.zeros(m), "u": 0.0, "filled": 0}
             alpha_at = slice(1, m * (d + 1), m)  # the pendulum's entries of z's history
 
         def output(e0: float, e1: float, f: float, r_theta: float = 0.0):
@@ -650,12 +704,12 @@ class MpcRuntime:
                 predicted = kf["predicted"]
                 if predicted is not None:  # the filter, as identify's filter_disturbance runs it
                     prior = pole * kf["filt"]
-                    kf["filt"] = prior + float(L @ (x - predicted)) - LG * prior
+                    kf["filt"] = prior + L @ (x - predicted) - LG @ prior
                 self.estimate = dhat = pole * kf["filt"]
                 if offset_free:
                     T = self._target
-                    alpha_ss = T[0, 0] * r_theta + T[0, 1] * dhat
-                    shift = T[1, 0] * r_theta + T[1, 1] * dhat - f  # the output's steady state
+                    alpha_ss = T[0, 0] * r_theta + float(T[0, 1:] @ dhat)
+                    shift = T[1, 0] * r_theta + float(T[1, 1:] @ dhat) - f  # the output's steady state
                     zz = z.copy()
                     zz[alpha_at] -= alpha_ss
                     lo -= shift
@@ -709,7 +763,7 @@ class MpcRuntime:
                 float(res.active),
                 float(fallback),
             )
-            self.tick_record = record if est is None else record + (self.estimate,)
+            self.tick_record = record if est is None else record + tuple(self.estimate.tolist())
             if est is not None:
                 kf["u"] = u + f  # the plant input this tick applies
             return u, state

@@ -10,10 +10,11 @@ problem again (a few milliseconds) and returns a :class:`~core.controller_file.C
 whose ``system`` is the LQ realization of the same weights (the controller's state, which the
 log records, and its output when no constraint binds) and whose ``runtime`` is the MPC.
 
-With a disturbance model (the model file's, :class:`design.mpc.MpcDisturbance`) the file also
-holds its ``disturbance`` table (entry, pole, the Kalman filter's gain); ``settings.offset_free``
-says whether the MPC uses the estimate or only records it. A file without the table is the MPC
-without a disturbance model, exactly.
+With a disturbance model (:class:`design.mpc.MpcDisturbance`) the file also holds its
+``disturbance`` table (``entries``, ``pole``, the Kalman filter's ``gain``, one row per entry; a
+file written with one disturbance, ``entry`` and a gain of one row, reads as that);
+``settings.offset_free`` says whether the MPC uses the estimates or only records them. A file
+without the table is the MPC without a disturbance model, exactly.
 """
 
 from __future__ import annotations
@@ -201,13 +202,17 @@ def build_mpc_controller(data: dict, path: Path, dt: float) -> ControllerInfo:
     disturbance = None
     if "disturbance" in data:
         table = data["disturbance"]
-        if not isinstance(table, dict) or set(table) != {"entry", "pole", "gain"}:
-            raise ValueError(f"{path}: disturbance must be a table of entry, pole and gain")
+        if not isinstance(table, dict) or set(table) not in ({"entries", "pole", "gain"}, {"entry", "pole", "gain"}):
+            raise ValueError(f"{path}: disturbance must be a table of entries, pole and gain")
+        entries = table["entries"] if "entries" in table else [table["entry"]]
+        if not isinstance(entries, list) or not entries:
+            raise ValueError(f"{path}: disturbance.entries must be a list of where each disturbance enters")
+        shape = (2,) if "entry" in table else (len(entries), 2)
         try:
             disturbance = MpcDisturbance(
-                str(table["entry"]),
+                tuple(map(str, entries)),
                 float(table["pole"]),
-                _array(table["gain"], "disturbance.gain", (2,), path),
+                _array(table["gain"], "disturbance.gain", shape, path),
                 rows,
                 b,
             )

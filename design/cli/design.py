@@ -3,7 +3,8 @@
     qube-design MODEL --out FILE.toml [--q-theta Q] [--q-alpha Q] [--r-voltage R]
                 [--q-integral Q | --no-integral] [--seed K] [--episodes N] [--duration S] [--npz]
                 [--interval LEVEL] [--robust] [--rerun FILE.rrd [--rerun-episodes N]]
-                [--mpc [--voltage-limit V] [--horizon N] [--no-offset-free]] [--figures DIR]
+                [--mpc [--voltage-limit V] [--horizon N] [--disturbances E[,E]] [--no-offset-free]]
+                [--figures DIR]
 
 Reads a ``model.json`` of ``qube-identify`` (or its output folder), designs an LQ state
 feedback on the plant's history of measurements (with integral action on the arm's tracking
@@ -30,11 +31,12 @@ the LQ design's Riccati cost as the terminal cost (so that without active constr
 LQ design), the voltage kept within ``--voltage-limit V`` (default the rig's 10 V) and the arm
 kept within 0.2 rad of the safety stop (a soft bound: a penalty, so every tick's problem is
 feasible). The report above it is the LQ design's, the MPC's law while no constraint binds. When
-the model file has a disturbance model (``qube-identify --horizon S[,S...]``), the MPC estimates
-the disturbance each tick with its Kalman filter and is offset-free: the prediction carries the
-estimate and the steady-state target moves the voltage so that the arm tracks its reference with
-no offset under a constant load (``--no-offset-free``: the estimate is only logged). A line says
-which.
+the model file has a disturbance model (``qube-identify --horizon S[,S...]``), the MPC is
+offset-free: with that model's covariances it estimates a load at the plant input and a rate on
+the arm's angle each tick (``--disturbances ENTRIES``), the prediction carries the estimates and
+the steady-state target moves the voltage so that the arm tracks its reference with no offset
+under a constant load or a plant the model did not see (``--no-offset-free``: the model's own
+estimate is only logged). A line says which.
 
 With ``--figures DIR`` it also writes the design's frequency responses into DIR, named after the
 controller file: ``STEM_bode.png``, Bode plots of the identified plant (voltage to each angle), of the
@@ -188,6 +190,15 @@ def _parser() -> argparse.ArgumentParser:
         help="with --mpc: inputs predicted, ticks of 2 ms (default 20)",
     )
     mpc.add_argument(
+        "--disturbances",
+        type=_entries,
+        default=None,
+        metavar="ENTRY[,ENTRY]",
+        help="with --mpc: the disturbances the offset-free MPC estimates, one or two of input (a load at the plant "
+        "input), theta, alpha (a rate on that angle) (default input,theta: one per measured angle, so that a plant "
+        "the model did not see leaves no offset either)",
+    )
+    mpc.add_argument(
         "--no-offset-free",
         action="store_true",
         help="with --mpc: do not use the model file's disturbance estimate (offset-free control is on when the "
@@ -213,6 +224,16 @@ def _weights(args):
         raise CliError(str(exc)) from None
 
 
+def _entries(text: str) -> tuple[str, ...]:
+    """``--disturbances``: one or two distinct entries."""
+    from qube_koopman.identify.models.disturbance import ENTRIES
+
+    entries = tuple(e.strip() for e in text.split(","))
+    if not (1 <= len(entries) <= 2 and len(set(entries)) == len(entries) and set(entries) <= set(ENTRIES)):
+        raise argparse.ArgumentTypeError(f"one or two distinct of {', '.join(ENTRIES)}, got {text!r}")
+    return entries
+
+
 def _mpc_settings(args):
     """The MPC's settings with --mpc, else None (--voltage-limit and --horizon refused without it)."""
     from qube_koopman.design.mpc import MpcSettings
@@ -222,8 +243,9 @@ def _mpc_settings(args):
         for name in ("voltage_limit", "horizon"):
             if getattr(args, name) is not None:
                 raise CliError(f"--{name.replace('_', '-')} is a setting of --mpc")
-        if args.no_offset_free:
-            raise CliError("--no-offset-free is a setting of --mpc")
+        for flag, value in (("--no-offset-free", args.no_offset_free), ("--disturbances", args.disturbances)):
+            if value:
+                raise CliError(f"{flag} is a setting of --mpc")
         return None
     if args.npz or args.robust or args.rerun:
         raise CliError("--mpc writes its matrices in the file and takes no --npz, --robust or --rerun-save")
@@ -273,9 +295,9 @@ def _run(args) -> int:
         if settings is not None:
             from qube_koopman.design.controller_design import offset_free_settings, write_mpc
 
-            settings, line = offset_free_settings(report, settings)
+            settings, line = offset_free_settings(report, settings, args.disturbances)
             print(line)
-            written = write_mpc(args.out, report, settings)
+            written = write_mpc(args.out, report, settings, args.disturbances)
         else:
             written = write_controller_file(args.out, report.controller, provenance(report), npz=args.npz)
     except DesignError as exc:

@@ -77,6 +77,7 @@ __all__ = [
     "simulate_with_rate",
     "starts_stride",
     "steady_state_gain",
+    "steady_state_gains",
 ]
 
 #: Where a disturbance may enter: a load at the plant input, or a rate on one angle's equation.
@@ -269,6 +270,38 @@ def steady_state_gain(G: np.ndarray, pole: float, q: float, R: np.ndarray) -> tu
     P = (-b + np.sqrt(b * b + 4.0 * gamma * q)) / (2.0 * gamma)
     L = P * np.linalg.solve(R, G) / (1.0 + gamma * P)
     return L, float(P)
+
+
+def steady_state_gains(G: np.ndarray, pole: float, Q: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`steady_state_gain` for several disturbances: ``d_{k+1} = pole d_k + w``, ``r_k = G d_k + e_k``.
+
+    Parameters
+    ----------
+    G : ndarray of shape (n_outputs, n_d)
+        One column per disturbance, ``C E``; full column rank (:func:`disturbance_detectable`).
+    pole : float
+        The disturbances' common pole.
+    Q : ndarray of shape (n_d, n_d)
+        ``cov(w)``.
+    R : ndarray of shape (n_outputs, n_outputs)
+        ``cov(e)``.
+
+    Returns
+    -------
+    L : ndarray of shape (n_d, n_outputs)
+        The filtered gain, ``d_{k|k} = d_{k|k-1} + L (r_k - G d_{k|k-1})``.
+    P : ndarray of shape (n_d, n_d)
+        The predicted covariance, ``cov(d_k - d_{k|k-1})``: the filter's Riccati equation, solved
+        by scipy's ``solve_discrete_are`` (python-control's ``dlqe`` gives the same gain).
+    """
+    from scipy.linalg import solve_discrete_are
+
+    G = np.asarray(G, dtype=float)
+    Q, R = np.atleast_2d(np.asarray(Q, dtype=float)), np.asarray(R, dtype=float)
+    n_d = G.shape[1]
+    P = solve_discrete_are(pole * np.eye(n_d), G.T, Q, R)
+    L = np.linalg.solve(G @ P @ G.T + R, G @ P).T  # P G' S^-1, S symmetric
+    return L, P
 
 
 def one_step_residuals(model: KoopmanModel, trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,7 @@
-"""Offset-free MPC: the model file's disturbance filtered each tick and used in the target; on the twin under a
-constant load the arm stays at its reference where the MPC without it does not; without a disturbance model the
-MPC is the one it was."""
+"""Offset-free MPC: a load at the plant input and a rate on the arm's angle filtered each tick with the model
+file's covariances and used in the target; on the twin under a constant load, and on a twin with stiffer cables,
+the arm stays at its reference where the MPC without them does not; without a disturbance model the MPC is the one
+it was."""
 
 from __future__ import annotations
 
@@ -51,20 +52,23 @@ def _design(model: Path, out: Path, *flags: str) -> Path:
     return out
 
 
-def _twin_loop(path: Path, load: float, seconds: float = 4.0, load_from: float = 0.5):
-    """The controller file on the twin, ``load`` volts added at the plant input from ``load_from`` s on (the
-    controller does not see it): theta, alpha, the controller's output and its disturbance estimate per tick."""
+def _twin_loop(path: Path, load: float, seconds: float = 4.0, load_from: float = 0.5, params=None, step=0.0):
+    """The controller file on the twin (``params``: its physics), ``load`` volts added at the plant input from
+    ``load_from`` s on (the controller does not see it) and the arm's reference stepped to ``step`` there: theta,
+    alpha, the controller's output and its disturbance estimates (one column per entry) per tick."""
     runtime = load_controller(path).runtime
     out, upd = runtime.step()
-    sim = PendulumSimulator(seed=0)
+    sim = PendulumSimulator(seed=0) if params is None else PendulumSimulator(params=params, seed=0)
     theta, alpha = sim.reset((0.0, 0.02, 0.0, 0.0))
     n = round(seconds / DT)
-    rec = np.zeros((n, 4))
+    rec = np.zeros((n, 3 + len(runtime.estimate)))
     for k in range(n):
-        e0, e1 = -theta, -alpha
-        u, _ = out(e0, e1, 0.0, 0.0)
-        rec[k] = theta, alpha, u, runtime.estimate
-        theta, alpha = sim.step(u + (load if k * DT >= load_from else 0.0))
+        on = k * DT >= load_from
+        r = step if on else 0.0
+        e0, e1 = r - theta, -alpha
+        u, _ = out(e0, e1, 0.0, r)
+        rec[k] = theta - r, alpha, u, *runtime.estimate
+        theta, alpha = sim.step(u + (load if on else 0.0))
         upd(e0, e1, 0.0)
     assert runtime.n_fallbacks == 0
     return rec
@@ -77,36 +81,90 @@ def test_under_a_constant_load_the_offset_free_mpc_holds_the_arm_at_its_referenc
     off = _design(models["with"], tmp_path / "off.toml", "--no-integral", "--no-offset-free")
     assert "offset-free: off (--no-offset-free)" in capsys.readouterr().out
     load = 0.5
-    with_estimate, without = _twin_loop(on, load), _twin_loop(off, load)
+    # 10 s: the two estimates settle about 6 s after the load starts (one alone in about 3)
+    with_estimate, without = _twin_loop(on, load, seconds=10.0), _twin_loop(off, load, seconds=10.0)
     last = slice(-750, None)  # the last 1.5 s
     offset_off = abs(np.mean(without[last, 0]))
     offset_on = abs(np.mean(with_estimate[last, 0]))
     assert offset_off > 0.01  # rad: the load pushes the arm off
     assert offset_on < 0.1 * offset_off
-    # the estimate converges to the load (both controllers estimate it; one uses it)
+    # the load's estimate converges to the load (both controllers estimate it; one uses it), the arm's rate to
+    # next to nothing (rad per tick: under a tenth of what the load moves the arm by, b_theta rad per tick per volt)
     for rec in (with_estimate, without):
         assert np.mean(rec[last, 3]) == pytest.approx(load, rel=0.2)
+    b_theta = load_controller(on).runtime.disturbance.input[0]
+    assert abs(np.mean(with_estimate[last, 4])) < 0.1 * abs(b_theta) * load
     assert abs(np.mean(with_estimate[: round(0.5 / DT), 3])) < 0.1 * load  # no load yet: none estimated
     # the offset-free MPC's steady state cancels the load: its voltage is the load's opposite
     assert np.mean(with_estimate[last, 2]) == pytest.approx(-load, rel=0.2)
 
 
-def test_the_estimate_is_identifys_kalman_filter_on_the_same_residuals(models, tmp_path):
+def _residuals(rec: np.ndarray, d: MpcDisturbance, n_delays: int) -> np.ndarray:
+    """The one-step residuals of the plant the controller filters on, from a :func:`_twin_loop` record (reference 0)."""
+    x = rec[:, :2]
+    v = rec[:, 2]  # the plant input the controller applied (no feedforward; the load is not the controller's)
+    residuals = np.full_like(x, np.nan)
+    for k in range(n_delays + 1, len(x)):
+        s = x[k - 1 - n_delays : k][::-1].ravel()
+        residuals[k] = x[k] - (d.rows @ s + d.input * v[k - 1])
+    return residuals
+
+
+def test_one_estimate_is_identifys_kalman_filter_on_the_same_residuals(models, tmp_path):
+    path = _design(models["with"], tmp_path / "on.toml", "--disturbances", "input")
+    rec = _twin_loop(path, 0.3, seconds=2.0)
+    info = load_controller(path)
+    d = info.runtime.disturbance
+    residuals = _residuals(rec, d, info.runtime.n_delays)
+    filtered, _ = filter_disturbance(residuals, d.direction[:, 0], d.pole, d.gain[0])
+    np.testing.assert_allclose(rec[:, 3], filtered, rtol=1e-9, atol=1e-12)
+    assert info.settings["offset_free"] is True
+    assert info.settings["disturbance"]["entries"] == ["input"]
+
+
+def test_two_estimates_are_the_kalman_filter_of_dlqe_on_the_same_residuals(models, tmp_path):
+    """The default offset-free MPC filters a load and the arm's rate: each tick's estimates are the steady-state
+    Kalman filter's (python-control's dlqe on the model file's R and the equal-speed q's) run by hand."""
+    import control
+
+    from qube_koopman.identify.models.model_file import load_model
+
     path = _design(models["with"], tmp_path / "on.toml")
     rec = _twin_loop(path, 0.3, seconds=2.0)
     info = load_controller(path)
     d = info.runtime.disturbance
-    n_d = info.runtime.n_delays
-    x = rec[:, :2]
-    v = rec[:, 2]  # the plant input the controller applied (no feedforward; the load is not the controller's)
-    residuals = np.full_like(x, np.nan)
-    for k in range(n_d + 1, len(x)):
-        s = x[k - 1 - n_d : k][::-1].ravel()
-        residuals[k] = x[k] - (d.rows @ s + d.input * v[k - 1])
-    filtered, _ = filter_disturbance(residuals, d.direction, d.pole, d.gain)
-    np.testing.assert_allclose(rec[:, 3], filtered, rtol=1e-9, atol=1e-12)
-    assert info.settings["offset_free"] is True
-    assert info.settings["disturbance"]["entry"] == "input"
+    assert d.entries == ("input", "theta") and info.settings["disturbance"]["entries"] == ["input", "theta"]
+    model = load_model(models["with"] / "model.json").disturbance
+    G = d.direction
+    R = np.asarray(model.R)
+    speed = model.q * G[:, 0] @ np.linalg.solve(R, G[:, 0])  # the model's load: its q and direction
+    Q = np.diag([speed / (g @ np.linalg.solve(R, g)) for g in G.T])
+    L, _, _ = control.dlqe(np.eye(2), np.eye(2), G, Q, R)
+    np.testing.assert_allclose(d.gain, L, rtol=1e-6)
+    residuals = _residuals(rec, d, info.runtime.n_delays)
+    f, estimates = np.zeros(2), np.zeros((len(rec), 2))
+    for k, r in enumerate(residuals):
+        if np.all(np.isfinite(r)):
+            f = f + L @ (r - G @ f)
+        estimates[k] = f
+    np.testing.assert_allclose(rec[:, 3:5], estimates, rtol=1e-7, atol=1e-12)
+
+
+def test_on_stiffer_cables_than_the_models_the_arm_reaches_its_reference_with_two_estimates(models, tmp_path):
+    """A plant the model did not see (the cables twice as stiff): one estimate per measured angle takes the arm's
+    offset to under a third of the MPC's without an estimate, where a load alone leaves more."""
+    from dataclasses import replace
+
+    from qube_koopman.sim.pendulum import PendulumParameters
+
+    stiff = replace(PendulumParameters(), Kr=2 * PendulumParameters().Kr)
+    offsets = {}
+    for name, flags in (("none", ["--no-offset-free"]), ("load", ["--disturbances", "input"]), ("both", [])):
+        path = _design(models["with"], tmp_path / f"{name}.toml", "--no-integral", *flags)
+        rec = _twin_loop(path, 0.0, seconds=6.0, params=stiff, step=0.1)
+        offsets[name] = abs(np.mean(rec[-1500:, 0]))  # the last 3 s
+    assert offsets["both"] < offsets["none"] / 3
+    assert offsets["both"] < offsets["load"]
 
 
 def test_without_a_disturbance_model_the_mpc_is_unchanged(models, tmp_path, capsys):
@@ -145,17 +203,28 @@ def test_a_first_order_load_is_integrated_for_offset_free_control_with_its_covar
     import control
 
     from qube_koopman.design.mpc import mpc_disturbance
-    from qube_koopman.identify.models.disturbance import DisturbanceModel
+    from qube_koopman.identify.models.disturbance import DisturbanceModel, steady_state_gain
 
     plant = linear_plant(_pendulum_like(3, False))
     R = np.diag([4e-8, 1e-8])
     model = DisturbanceModel("input", 0.99, 1e-4, R, np.array([5.0, -1.0]))
     kept = mpc_disturbance(plant, model)
-    assert kept.pole == 0.99 and kept.gain.tolist() == [5.0, -1.0]
+    assert kept.pole == 0.99 and kept.gain.tolist() == [[5.0, -1.0]]
     walk = mpc_disturbance(plant, model, integrate=True)
-    L, _, _ = control.dlqe(np.eye(1), np.eye(1), walk.direction[:, None], 1e-4, R)
-    assert walk.pole == 1.0 and walk.gain == pytest.approx(np.asarray(L).ravel(), rel=1e-6)
+    L, _, _ = control.dlqe(np.eye(1), np.eye(1), walk.direction, 1e-4, R)
+    assert walk.pole == 1.0 and walk.gain[0] == pytest.approx(np.asarray(L).ravel(), rel=1e-6)
     assert walk.target_map().shape == (2, 2)  # the offset-free target exists for it
+    # two disturbances: each alone filtered as fast as the model's (the scalar filter's speed L g), together dlqe's
+    both = mpc_disturbance(plant, model, integrate=True, entries=("input", "theta"))
+    G = both.direction
+    assert both.entries == ("input", "theta") and both.target_map().shape == (2, 3)
+    assert G[:, 0].tolist() == walk.direction[:, 0].tolist() and G[:, 1].tolist() == [1.0, 0.0]
+    info = [g @ np.linalg.solve(R, g) for g in G.T]
+    Q = np.diag([1e-4 * info[0] / i for i in info])
+    speeds = [steady_state_gain(g, 1.0, q, R)[0] @ g for g, q in zip(G.T, np.diag(Q))]
+    assert speeds[0] == pytest.approx(speeds[1], rel=1e-9) and speeds[0] == pytest.approx(walk.gain[0] @ G[:, 0])
+    L, _, _ = control.dlqe(np.eye(2), np.eye(2), G, Q, R)
+    np.testing.assert_allclose(both.gain, L, rtol=1e-6)
 
 
 def test_the_estimate_does_not_change_the_mpc_without_offset_free_control():
@@ -165,7 +234,7 @@ def test_the_estimate_does_not_change_the_mpc_without_offset_free_control():
     disturbance = MpcDisturbance("input", 1.0, np.array([3.0, -2.0]), plant.F[:m], plant.G[:m, 0])
     plain = MpcRuntime(p, plant.n_delays, True, plant.dt)
     estimating = MpcRuntime(p, plant.n_delays, True, plant.dt, disturbance=disturbance)
-    assert estimating.tick_fields == plain.tick_fields + ("disturbance",)
+    assert estimating.tick_fields == plain.tick_fields + ("disturbance_input",)
     (out_a, upd_a), (out_b, upd_b) = plain.step(), estimating.step()
     rng = np.random.default_rng(4)
     for _ in range(100):
@@ -175,7 +244,7 @@ def test_the_estimate_does_not_change_the_mpc_without_offset_free_control():
         assert [estimating.tick_record[i] for i in same] == [plain.tick_record[i] for i in same]
         upd_a(e0, e1, 0.1)
         upd_b(e0, e1, 0.1)
-    assert estimating.estimate != 0.0
+    assert estimating.estimate.shape == (1,) and estimating.estimate[0] != 0.0
 
 
 def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_the_file(models, tmp_path):
@@ -183,7 +252,9 @@ def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_th
     text = path.read_text()
     bad = tmp_path / "bad.toml"
     for edit, message in (
-        (text.replace('entry = "input"', 'entry = "torque"'), "unknown disturbance entry 'torque'"),
+        (text.replace('entries = ["input", "theta"]', 'entries = ["torque", "theta"]'), "unknown disturbance entry"),
+        (text.replace('entries = ["input", "theta"]', 'entries = ["input", "input"]'), "1 to 2 distinct"),
+        (text.replace('entries = ["input", "theta"]', 'entries = ["input"]'), "disturbance.gain has shape 2 x 2"),
         (text.replace("pole = 1.0", "pole = 0.9"), "offset-free MPC needs a random-walk disturbance"),
         ("\n".join(line for line in text.splitlines() if not line.startswith("disturbance")), "needs a disturbance"),
     ):
@@ -196,7 +267,14 @@ def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_th
 @pytest.mark.parametrize(
     "entry, pole, gain, wanted, on, says",
     [
-        ("input", 1.0, [1.0, -1.0], True, True, "offset-free: on: the MPC estimates a load at the plant input"),
+        (
+            "input",
+            1.0,
+            [1.0, -1.0],
+            True,
+            True,
+            "offset-free: on: the MPC estimates a load at the plant input (V) and a rate on theta (rad per tick)",
+        ),
         ("input", 1.0, [1.0, -1.0], False, False, "offset-free: off (--no-offset-free)"),
         ("input", 1.0, [0.0, 0.0], True, False, "has a zero gain"),
         (
@@ -205,15 +283,17 @@ def test_a_bad_disturbance_table_or_offset_free_without_one_is_refused_naming_th
             [1.0, -1.0],
             True,
             True,
-            "is first-order (pole 0.99); the MPC estimates it each tick as a random walk",
+            "first-order (pole 0.99); nothing refitted",
         ),
         ("input", 0.99, [1.0, -1.0], False, False, "offset-free: off (--no-offset-free)"),
-        ("theta", 1.0, [1.0, -1.0], True, False, "is a rate on theta, and offset-free control needs a load"),
-        ("alpha", 1.0, [1.0, -1.0], True, False, "is a rate on alpha, and offset-free control needs a load"),
+        ("theta", 1.0, [1.0, -1.0], True, True, "filter speed of its disturbance (a rate on theta (rad per tick)"),
+        ("alpha", 1.0, [1.0, -1.0], True, True, "filter speed of its disturbance (a rate on alpha (rad per tick)"),
         (None, 1.0, [1.0, -1.0], True, False, "the model file has no disturbance model"),
     ],
 )
-def test_qube_design_turns_offset_free_control_on_only_for_a_load_with_a_gain(entry, pole, gain, wanted, on, says):
+def test_qube_design_turns_offset_free_control_on_for_a_disturbance_model_with_a_gain(
+    entry, pole, gain, wanted, on, says
+):
     from types import SimpleNamespace
 
     from qube_koopman.design.controller_design import offset_free_settings
@@ -239,7 +319,22 @@ def test_qube_run_logs_the_disturbance_estimate_per_tick(models, tmp_path):
     (log,) = sorted(runs.glob("*.mcap"))
     e = read_episode(log)
     c = e.metadata.controller
-    assert c.tick_fields[-1] == "disturbance" and c.settings["offset_free"] is True
-    estimate = e.controller_record[:, -1]
-    assert np.all(np.isfinite(estimate)) and np.any(estimate != 0.0)
+    assert c.tick_fields[-2:] == ("disturbance_input", "disturbance_theta") and c.settings["offset_free"] is True
+    estimate = e.controller_record[:, -2]
+    assert np.all(np.isfinite(e.controller_record[:, -2:])) and np.any(estimate != 0.0)
     assert np.max(np.abs(estimate)) < 0.5  # V: the twin has no load; the estimate is the model's small error
+
+
+def test_a_file_with_one_disturbance_entry_reads_as_the_same_controller(models, tmp_path):
+    """A file written before the MPC estimated several disturbances (``entry`` and one gain row) loads as one entry."""
+    import re
+
+    path = _design(models["with"], tmp_path / "one.toml", "--disturbances", "input")
+    text = path.read_text()
+    one = r'entries = \["input"\], pole = 1.0, gain = \[(\[[^\]]*\])\]'
+    old = re.sub(one, r'entry = "input", pole = 1.0, gain = \1', text)
+    assert old != text
+    (tmp_path / "old.toml").write_text(old)
+    new, before = load_controller(path), load_controller(tmp_path / "old.toml")
+    assert before.runtime.disturbance.entries == ("input",) and before.tick_fields == new.tick_fields
+    np.testing.assert_array_equal(before.runtime.disturbance.gain, new.runtime.disturbance.gain)

@@ -349,3 +349,22 @@ def test_a_first_order_disturbance_integrated_keeps_its_covariances_with_the_ran
     L, _, _ = control.dlqe(np.eye(1), np.eye(1), G[:, None], 1e-4, R)
     assert walk.gain == pytest.approx(np.asarray(L).ravel(), rel=1e-6)
     assert walk.integrated(G) is walk
+
+
+def test_several_disturbances_gain_is_dlqes_and_one_is_the_scalar_closed_form():
+    import control
+
+    rng = np.random.default_rng(5)
+    R = np.array([[4e-8, 1e-9], [1e-9, 1e-8]])
+    G = np.column_stack([B_TRUE, [1.0, 0.0]])
+    Q = np.diag([1e-6, 2e-9])
+    for pole in (1.0, 0.99):
+        L, P = dm.steady_state_gains(G, pole, Q, R)
+        L_ref, P_ref, _ = control.dlqe(pole * np.eye(2), np.eye(2), G, Q, R)
+        np.testing.assert_allclose(pole * L, L_ref, rtol=1e-6)  # dlqe's gain is the predictor's, A P C' S^-1
+        np.testing.assert_allclose(P, P_ref, rtol=1e-6)
+    g, q = rng.standard_normal(2), 1e-5
+    L1, P1 = dm.steady_state_gains(g[:, None], 0.995, np.array([[q]]), R)
+    L0, P0 = dm.steady_state_gain(g, 0.995, q, R)
+    np.testing.assert_allclose(L1[0], L0, rtol=1e-8)
+    assert P1[0, 0] == pytest.approx(P0, rel=1e-8)
