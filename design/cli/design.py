@@ -249,6 +249,8 @@ def _mpc_settings(args):
         return None
     if args.npz or args.robust or args.rerun:
         raise CliError("--mpc writes its matrices in the file and takes no --npz, --robust or --rerun-save")
+    if args.disturbances and args.no_offset_free:
+        raise CliError("--disturbances are what offset-free control estimates; --no-offset-free turns it off")
     values = {"voltage_limit": args.voltage_limit, "horizon": args.horizon, "offset_free": not args.no_offset_free}
     try:
         return MpcSettings(**{k: v for k, v in values.items() if v is not None})

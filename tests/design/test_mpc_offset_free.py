@@ -307,9 +307,19 @@ def test_qube_design_turns_offset_free_control_on_for_a_disturbance_model_with_a
     assert settings.offset_free is on and says in line
 
 
-def test_no_offset_free_is_a_setting_of_mpc(models, tmp_path, capsys):
-    assert design_main([str(models["with"]), "--no-offset-free", "--out", str(tmp_path / "x.toml")]) == 2
+def test_no_offset_free_and_disturbances_are_settings_of_mpc_and_exclude_each_other(models, tmp_path, capsys):
+    out = ["--out", str(tmp_path / "x.toml")]
+    assert design_main([str(models["with"]), "--no-offset-free", *out]) == 2
     assert "--no-offset-free is a setting of --mpc" in capsys.readouterr().err
+    assert design_main([str(models["with"]), "--disturbances", "input", *out]) == 2
+    assert "--disturbances is a setting of --mpc" in capsys.readouterr().err
+    assert design_main([str(models["with"]), "--mpc", "--disturbances", "input", "--no-offset-free", *out]) == 2
+    assert "--no-offset-free turns it off" in capsys.readouterr().err
+    for bad in ("input,input", "torque", "input,theta,alpha"):
+        with pytest.raises(SystemExit):
+            design_main([str(models["with"]), "--mpc", "--disturbances", bad, *out])
+        assert "--disturbances" in capsys.readouterr().err
+    assert not (tmp_path / "x.toml").exists()
 
 
 def test_qube_run_logs_the_disturbance_estimate_per_tick(models, tmp_path):
