@@ -19,6 +19,7 @@ from qube_koopman.design.cli.design import main as design_main
 from qube_koopman.design.mpc import MpcDisturbance, MpcRuntime, MpcSettings, build_problem
 from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.models.disturbance import filter_disturbance
+from qube_koopman.sim.pendulum import PendulumParameters
 from qube_koopman.sim.pendulum.simulator import PendulumSimulator
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -52,13 +53,15 @@ def _design(model: Path, out: Path, *flags: str) -> Path:
     return out
 
 
-def _twin_loop(path: Path, load: float, seconds: float = 4.0, load_from: float = 0.5, params=None, step=0.0):
+def _twin_loop(
+    path: Path, load: float, seconds: float = 4.0, load_from: float = 0.5, params=PendulumParameters(), step=0.0
+):
     """The controller file on the twin (``params``: its physics), ``load`` volts added at the plant input from
     ``load_from`` s on (the controller does not see it) and the arm's reference stepped to ``step`` there: theta,
     alpha, the controller's output and its disturbance estimates (one column per entry) per tick."""
     runtime = load_controller(path).runtime
     out, upd = runtime.step()
-    sim = PendulumSimulator(seed=0) if params is None else PendulumSimulator(params=params, seed=0)
+    sim = PendulumSimulator(params=params, seed=0)
     theta, alpha = sim.reset((0.0, 0.02, 0.0, 0.0))
     n = round(seconds / DT)
     rec = np.zeros((n, 3 + len(runtime.estimate)))
@@ -155,8 +158,6 @@ def test_on_stiffer_cables_than_the_models_the_arm_reaches_its_reference_with_tw
     """A plant the model did not see (the cables twice as stiff): one estimate per measured angle takes the arm's
     offset to under a third of the MPC's without an estimate, where a load alone leaves more."""
     from dataclasses import replace
-
-    from qube_koopman.sim.pendulum import PendulumParameters
 
     stiff = replace(PendulumParameters(), Kr=2 * PendulumParameters().Kr)
     offsets = {}
