@@ -184,14 +184,16 @@ def print_error_analysis(episodes: list[dict[str, np.ndarray]]) -> None:
     )
 
 
-def data_arguments(p: argparse.ArgumentParser) -> None:
-    """``--rig``, ``--soft`` (the two datasets' folders) and ``--lifting``, shared with bench_loop_delay.py."""
+def data_arguments(p: argparse.ArgumentParser, lifting: bool = True) -> None:
+    """``--rig``, ``--soft`` (the two datasets' folders) and, with ``lifting``, ``--lifting``; shared with
+    bench_loop_delay.py and bench_mixed_search.py."""
     shared = HERE.parents[1] / "shared" / "datasets"
     p.add_argument("--rig", type=Path, default=Path(os.environ.get("QUBE_DATASET_DIR", shared / "qube_servo_20230828")))
     p.add_argument(
         "--soft", type=Path, default=Path(os.environ.get("QUBE_SOFT_DATASET_DIR", shared / "qube_servo_20230915_soft"))
     )
-    p.add_argument("--lifting", default=DEFAULT_LIFTING, help=f"qube-identify flags (default: {DEFAULT_LIFTING})")
+    if lifting:
+        p.add_argument("--lifting", default=DEFAULT_LIFTING, help=f"qube-identify flags (default: {DEFAULT_LIFTING})")
 
 
 def main(argv: list[str] | None = None) -> int:

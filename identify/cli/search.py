@@ -25,8 +25,9 @@ _LISTS = {
     "friction": bool,
 }
 #: Single values a space file may set: how many candidates of a screened stage are evaluated in full (0: all),
-#: whether a finalist must beat the stage's lead scored as a screen, and whether every stage scores with offsets.
-_NUMBERS = {"n_finalists": int, "screen_against_lead": bool, "offsets_first": bool}
+#: whether a finalist must beat the stage's lead scored as a screen, whether every stage scores with offsets,
+#: and how many standard errors of the best objective tie (0: the best objective wins).
+_NUMBERS = {"n_finalists": int, "screen_against_lead": bool, "offsets_first": bool, "tie_standard_errors": float}
 
 
 #: The largest search-space file read (a few lists of numbers).
@@ -55,6 +56,11 @@ def load_space(path: str | None):
             if not isinstance(value, bool):
                 raise CliError(f"{path}: {key} must be true or false")
             values[key] = value
+            continue
+        if key in _NUMBERS and _NUMBERS[key] is float:
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < float("inf"):
+                raise CliError(f"{path}: {key} must be a number >= 0")
+            values[key] = float(value)
             continue
         if key in _NUMBERS:
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
@@ -190,22 +196,52 @@ SCREENING_LEAD = (
 )
 
 
+SELECTION = (
+    "the candidates within {k} standard error(s) of the best objective are tied (the standard error of the "
+    "paired difference over the folds, or over the probe episodes where the best one's transfer R^2 is the "
+    "lower of its two); of them the one with the highest transfer R^2 wins (tie_standard_errors = 0 in a "
+    "--search-space file: the best objective)"
+)
+
+
+def _ranked_report(result) -> list[dict]:
+    """The candidates as ranked, each with its gap to the best objective, the gap's standard error and
+    whether the two are tied (:meth:`~.SearchResult.tied`)."""
+    from qube_koopman.identify.model_selection.ranking import objective_gap
+
+    ranked, tied = result.ranked(), result.tied()
+    best = tied[0] if tied else None
+    out = []
+    for r in ranked:
+        entry = r.as_dict()
+        if best is not None:
+            gap, standard_error = objective_gap(best, r)
+            entry["objective_gap"] = float(gap) if math.isfinite(gap) else None
+            entry["objective_gap_se"] = float(standard_error) if math.isfinite(standard_error) else None
+            entry["tied_with_best"] = any(r is t for t in tied)
+        out.append(entry)
+    return out
+
+
 def search_report(result, args, names) -> dict:
     """The search's part of report.json (``names``: the training logs')."""
     from qube_koopman.identify.model_selection.split import FOLD_KINDS
     from qube_koopman.identify.model_selection.lifting_space import STAGES
 
     space = search_space(args)
+    candidates = _ranked_report(result)
     return {
         "winner": {
-            **result.winner.as_dict(),
+            **candidates[0],
             "flags": " ".join(
                 result.winner.spec.flags(args.rbf_seed)
                 + ["--alpha", f"{result.winner.best_alpha:g}", "--estimate-window", f"{args.estimate_window:g}"]
                 + (["--session-delays", str(args.session_delays)] if args.session_delays else [])
             ),
         },
-        "candidates": [r.as_dict() for r in result.ranked()],
+        "candidates": candidates,
+        "tie_standard_errors": result.tie_standard_errors,
+        "selection": SELECTION.format(k=f"{result.tie_standard_errors:g}"),
         "screening": {
             "n_finalists": space.n_finalists,
             "screen_folds": space.screen_folds,

@@ -42,11 +42,14 @@ from qube_koopman.identify.lifting import (
 if TYPE_CHECKING:
     from qube_koopman.identify.model_selection.ranking import CandidateResult
 
-__all__ = ["LiftingSpec", "SearchSpace", "search_steps", "rbf_box", "STAGES", "FRICTION_LAG"]
+__all__ = ["LiftingSpec", "SearchSpace", "search_steps", "rbf_box", "STAGES", "FRICTION_LAG", "TIE_STANDARD_ERRORS"]
 
 #: The search's stages, in the order they run (see the module docstring).
 STAGES = ("delays", "form", "friction", "rbf", "offsets")
 FRICTION_LAG = CoulombFriction().lag  # samples: the fewest delays the friction lifting needs
+#: Candidates within this many standard errors of the best objective are tied, and the one of them that
+#: transfers best wins (:meth:`~.ranking.SearchResult.ranked`, the one-standard-error rule).
+TIE_STANDARD_ERRORS = 1.0
 
 
 @dataclass(frozen=True, order=True)
@@ -167,6 +170,9 @@ class SearchSpace:
     #: After the first stage a finalist's screen must also beat the stage's lead scored as a screen
     #: (:func:`~.screen_bar`); False: the ``n_finalists`` best screens go on whatever the lead scored.
     screen_against_lead: bool = True
+    #: Candidates within this many standard errors of the best objective are tied, and the one of them that
+    #: transfers best leads each stage and wins (:meth:`~.ranking.SearchResult.ranked`); 0: the best objective.
+    tie_standard_errors: float = TIE_STANDARD_ERRORS
 
     def __post_init__(self):
         for name in ("delays", "poly", "rbf", "alphas"):
@@ -177,6 +183,8 @@ class SearchSpace:
             raise ValueError("search space: poly (monomial orders) starts at 1")
         if self.n_finalists < 0 or self.screen_folds < 1:
             raise ValueError("search space: n_finalists must be >= 0 and screen_folds >= 1")
+        if not np.isfinite(self.tie_standard_errors) or self.tie_standard_errors < 0:
+            raise ValueError("search space: tie_standard_errors must be a finite number >= 0")
         if self.offsets_first and True not in self.offsets:
             raise ValueError("search space: offsets_first needs offsets to include true")
 

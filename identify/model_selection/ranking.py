@@ -6,6 +6,21 @@ ranking of every candidate (:class:`SearchResult`), and which screens go on to a
 Cross-validation under the training controller alone rewards liftings that fit that loop's own
 correlations (high-order monomials, RBFs), which diverged under other controllers: candidates rank
 by the lower of the two scores.
+
+The winner is not the largest objective alone. Candidates whose objective is within
+:attr:`SearchResult.tie_standard_errors` standard errors of the best one's (the standard error of the
+paired difference over the folds, or the probe episodes, whichever sets the best one's objective:
+:func:`objective_gap`) are tied, the one-standard-error rule of cross-validation; among them the
+winner transfers best (the highest transfer R^2, the question a plant identified in closed loop is
+for; among equal transfers the better objective). Why: the lower of two scores ignores the other one, and with a new
+controller's few episodes in training its folds set the objective and differ between liftings by
+less than their own noise, so the largest objective picked among a dozen near-equal liftings the
+one whose noise was luckiest: on the rig's 28 logs and six soft episodes it chose a 40-delay,
+50-RBF lifting (objective 0.9789, transfer 0.9822) over the same with the arm's friction shape
+(0.9780, one standard error 0.0012 away; transfer 0.9902), and predicted the four soft episodes
+it had not seen at 0.969 / 0.935 (mean / worst R^2), below the plant trained on the rig's logs
+alone (0.972 / 0.942); with the rule the search wins with the friction shape, 0.974 / 0.942
+(docs/transfer.md).
 """
 
 from __future__ import annotations
@@ -15,13 +30,13 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from qube_koopman.identify.model_selection.lifting_space import LiftingSpec
+from qube_koopman.identify.model_selection.lifting_space import TIE_STANDARD_ERRORS, LiftingSpec
 from qube_koopman.identify.model_selection.transfer import ProbeSet
 
 if TYPE_CHECKING:
     from qube_koopman.identify.model_selection.evaluation import Reuse
 
-__all__ = ["CandidateResult", "SearchResult", "finalists", "screen_bar", "TIMING_KEYS"]
+__all__ = ["CandidateResult", "SearchResult", "finalists", "screen_bar", "objective_gap", "TIMING_KEYS"]
 
 #: What a candidate's time is spent on (:attr:`CandidateResult.timing`), in the order it is spent.
 TIMING_KEYS = ("statistics", "fits", "predictions", "offsets", "probe_fits", "probe_scoring")
@@ -191,6 +206,9 @@ class SearchResult:
     screen_bars : dict of str to float
         Per screened stage after the first, the lead's score on the screens' folds (:func:`screen_bar`),
         which a finalist's screen beat.
+    tie_standard_errors : float
+        Candidates within this many standard errors of the best objective are tied (:meth:`tied`);
+        0: the best objective wins.
     """
 
     candidates: list[CandidateResult] = field(default_factory=list)
@@ -206,6 +224,7 @@ class SearchResult:
     screens: list = field(default_factory=list)
     screened: list = field(default_factory=list)
     screen_bars: dict = field(default_factory=dict)
+    tie_standard_errors: float = TIE_STANDARD_ERRORS
 
     def timing(self) -> dict:
         """Where the search's time went: per stage its wall time and its candidates' summed
@@ -228,13 +247,70 @@ class SearchResult:
         return {"probe_simulation": round(self.probe_seconds, 3), "stages": stages, "search": round(self.seconds, 3)}
 
     def ranked(self) -> list[CandidateResult]:
-        """Best :attr:`CandidateResult.score` first; ties go to the smaller lifting, then the plain protocol."""
-        return sorted(self.candidates, key=lambda r: (-r.score, r.spec.n_features(), r.spec.offsets, r.spec))
+        """The winner first (see :meth:`tied`), then the others by :attr:`CandidateResult.score`, best first;
+        equal scores go to the smaller lifting, then the plain protocol."""
+        by_score = sorted(self.candidates, key=_score_key)
+        tied = self.tied(by_score)
+        if not tied:
+            return by_score
+        winner = max(tied, key=_transfer)  # max keeps the first of equals: the better scored
+        return [winner] + [r for r in by_score if r is not winner]
+
+    def tied(self, by_score: "list[CandidateResult] | None" = None) -> list[CandidateResult]:
+        """The candidates tied with the best objective, best first: within :attr:`tie_standard_errors`
+        standard errors of it (:func:`objective_gap`). The winner is the one among them with the highest
+        transfer R^2 (the best objective without probes). Empty without candidates."""
+        ranked = sorted(self.candidates, key=_score_key) if by_score is None else by_score
+        if not ranked or not np.isfinite(ranked[0].score):
+            return ranked[:1]
+        best = ranked[0]
+        out = []
+        for r in ranked:
+            gap, standard_error = objective_gap(best, r)
+            if gap <= self.tie_standard_errors * standard_error:
+                out.append(r)
+        return out
 
     @property
     def winner(self) -> CandidateResult:
-        """The best candidate."""
+        """The recommended candidate: of those tied with the best objective, the best transfer (see :meth:`tied`)."""
         return self.ranked()[0]
+
+
+def _score_key(r: CandidateResult) -> tuple:
+    return (-r.score, r.spec.n_features(), r.spec.offsets, r.spec)
+
+
+def _transfer(r: CandidateResult) -> float:
+    t = r.transfer_score
+    return -np.inf if t is None or not np.isfinite(t) else t
+
+
+def objective_gap(best: CandidateResult, other: CandidateResult) -> tuple[float, float]:
+    """How far ``other``'s objective is below ``best``'s, and the standard error of that difference.
+
+    The objective is the lower of two means (:attr:`CandidateResult.objective`); the standard error is that of
+    the paired differences of the mean ``best``'s objective takes: over the folds (each candidate at its best
+    alpha) when its cross-validated R^2 is the lower, over the probe episodes when its transfer R^2 is. A
+    paired difference, since the candidates are scored on the same folds and probes, whose own difficulty
+    is shared. NaN standard error (never tied unless equal) where a difference is not finite or fewer than
+    two are scored.
+    """
+    gap = best.score - other.score
+    transfer = best.transfer_score
+    if (
+        best.transfer_r2 is not None
+        and other.transfer_r2 is not None
+        and transfer is not None
+        and transfer <= best.cv_score
+    ):
+        a, b = best.transfer_r2[:, best.best_index], other.transfer_r2[:, other.best_index]
+    else:
+        a, b = best.cv_r2[:, best.best_index], other.cv_r2[:, other.best_index]
+    d = a - b
+    if d.size < 2 or not np.all(np.isfinite(d)):
+        return gap, float("nan") if gap else 0.0
+    return gap, float(np.std(d, ddof=1) / np.sqrt(d.size))
 
 
 def finalists(screens: Sequence[CandidateResult], k: int, bar: float | None = None) -> set[LiftingSpec]:
@@ -244,7 +320,8 @@ def finalists(screens: Sequence[CandidateResult], k: int, bar: float | None = No
     Without a bar, the best one when all diverged (the first stage evaluates one candidate in full at
     least); with one, none when none beats it: the stage's lead stays the best so far.
     """
-    ranked = SearchResult(list(screens)).ranked()
+    # a screen's one fold gives no standard error: the screens rank by their objective
+    ranked = SearchResult(list(screens), tie_standard_errors=0.0).ranked()
     passed = [r for r in ranked if np.isfinite(r.score) and (bar is None or r.score > bar)][:k]
     return {r.spec for r in (passed or (ranked[:1] if bar is None else []))}
 

@@ -7,7 +7,8 @@ controller (:mod:`~qube_koopman.identify.model_selection.evaluation`). Transfer:
 (:mod:`~qube_koopman.identify.model_selection.transfer`), its plant fitted on all the training
 episodes, wrapped with probe controllers unlike the training one, predicts twin episodes run under
 them (:mod:`~qube_koopman.identify.model_selection.candidate_scores`). Candidates rank by the lower
-of the two (:mod:`~qube_koopman.identify.model_selection.ranking`).
+of the two, and of those within a standard error of the best, the one that transfers best leads each
+stage and wins (:mod:`~qube_koopman.identify.model_selection.ranking`).
 
 The space is searched in stages, each a coordinate step from the best so far (a full product of
 the default space would be about 1,400 liftings; the stages and the space:
@@ -223,7 +224,7 @@ def search_liftings(
     # parts whatever the workers (the same numbers on any machine).
     n_parts = max(1, min(FAMILY_PARTS, len(data.trajectories) // 4))
     started = time.perf_counter()
-    result = SearchResult(window=int(window), probes=probes)
+    result = SearchResult(window=int(window), probes=probes, tie_standard_errors=space.tie_standard_errors)
     # the time each stage spends on statistics shared by its candidates
     search = _Search(data, space, run, n_parts, result, seconds_timer(result.shared_seconds), settings.progress)
     try:

@@ -123,10 +123,22 @@ def _intervals_section(intervals: dict | None) -> list[str]:
 
 
 def _why_it_won(search: dict) -> str:
-    """One sentence: the winner's scores against the best cross-validated candidate's."""
+    """One sentence: the winner's scores against the best cross-validated candidate's, and, where a
+    candidate tied with it has the better objective, why it won over that one."""
     w, candidates = search["winner"], search["candidates"]
     if w.get("transfer_r2") is None:
         return "It has the best cross-validated R^2."
+    top = max(candidates, key=lambda c: -math.inf if c.get("objective") is None else c["objective"])
+    if top["label"] != w["label"] or top["alpha"] != w["alpha"]:
+        return (
+            f"{top['label']} (alpha {top['alpha']:g}) has the best objective, "
+            f"{format_number(top['objective'], '.4f')}; the winner's is {format_number(w['objective_gap'], '.4f')} "
+            f"lower, within {search.get('tie_standard_errors', 1):g} standard error(s) of the difference "
+            f"({format_number(w.get('objective_gap_se'), '.4f')}), so the two are tied, and of the "
+            f"{sum(bool(c.get('tied_with_best')) for c in candidates)} tied candidates it transfers best: "
+            f"transfer R^2 {format_number(w['transfer_r2'], '.4f')} against "
+            f"{format_number(top['transfer_r2'], '.4f')}."
+        )
     by_cv = max(candidates, key=lambda c: -math.inf if c["cv_r2"] is None else c["cv_r2"])
     if by_cv["label"] == w["label"] and by_cv["alpha"] == w["alpha"]:
         return "It has both the best objective and the best cross-validated R^2."
@@ -157,7 +169,8 @@ def _search_section(search: dict) -> list[str]:
             else ""
         ),
         "",
-        f"Ranked by {search.get('objective', 'the cross-validated R^2')}."
+        f"Ranked by {search.get('objective', 'the cross-validated R^2')}"
+        + (f"; {search['selection']}." if search.get("selection") else ".")
         + (f" Transfer probes: {search['transfer']}." if search.get("transfer") else ""),
         "",
         f"Winner: **{w['label']}**, alpha {w['alpha']:g}, cross-validated R^2 {format_number(w['cv_r2'], '.4f')}"
@@ -167,8 +180,8 @@ def _search_section(search: dict) -> list[str]:
         + _same_controller_phrase(search.get("same_controller"), w),
         "",
         "| rank | stage | lifting | features | alpha | CV R^2 | CV R^2 std | transfer R^2 | worst probe "
-        "| objective | seconds |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| objective | gap to the best (SE) | seconds |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for i, c in enumerate(search["candidates"], start=1):
         lines.append(
@@ -177,9 +190,19 @@ def _search_section(search: dict) -> list[str]:
             f"| {format_number(c.get('transfer_r2'), '.4f')} "
             f"| {format_number(c.get('transfer_r2_worst'), '.3f')} "
             f"| {format_number(c.get('objective', c['cv_r2']), '.4f')} "
+            f"| {_gap(c)} "
             f"| {format_number(c['seconds'], '.1f')} |"
         )
     return lines + _screened_lines(search)
+
+
+def _gap(candidate: dict) -> str:
+    """A candidate's objective below the best one's and the standard error of that gap, marked when tied."""
+    gap = candidate.get("objective_gap")
+    if gap is None:
+        return "-"
+    tied = ", tied" if candidate.get("tied_with_best") else ""
+    return f"{gap:.4f} ({format_number(candidate.get('objective_gap_se'), '.4f')}{tied})"
 
 
 def _screened_lines(search: dict) -> list[str]:

@@ -328,6 +328,72 @@ def test_a_screen_goes_on_when_it_beats_the_stages_lead_scored_on_the_same_folds
     assert finalists(screens[2:], 3) == {LiftingSpec(10, 2)}  # no bar: one in full at least
 
 
+def _candidate(spec, folds, probes=None):
+    """A candidate scored at one alpha: its folds' R^2 and, optionally, its probe episodes'."""
+    return CandidateResult(
+        spec,
+        "form",
+        np.array([1e-3]),
+        np.array(folds, float)[:, None],
+        0.0,
+        transfer_r2=None if probes is None else np.array(probes, float)[:, None],
+    )
+
+
+def test_candidates_within_a_standard_error_of_the_best_objective_are_tied_and_the_best_transfer_wins():
+    from qube_koopman.identify.model_selection.ranking import SearchResult, objective_gap
+
+    # The folds set the objective (cross-validated R^2 below transfer), as a new controller's few episodes do.
+    best = _candidate(LiftingSpec(40, 2, rbf=50), [0.963, 0.992, 0.993, 0.991, 0.970, 0.965], [0.982] * 4)
+    friction = _candidate(LiftingSpec(40, 2, friction=True), [0.961, 0.993, 0.994, 0.994, 0.965, 0.962], [0.990] * 4)
+    far = _candidate(LiftingSpec(30, 1), [0.950, 0.980, 0.981, 0.980, 0.955, 0.950], [0.995] * 4)
+    gap, se = objective_gap(best, friction)
+    d = np.array([0.963 - 0.961, 0.992 - 0.993, 0.993 - 0.994, 0.991 - 0.994, 0.970 - 0.965, 0.965 - 0.962])
+    assert gap == pytest.approx(d.mean()) and se == pytest.approx(d.std(ddof=1) / np.sqrt(6))
+    assert 0 < gap < se  # tied: the paired difference is within its own noise
+    gap_far, se_far = objective_gap(best, far)
+    assert gap_far > se_far  # not tied, however well it transfers
+    result = SearchResult([best, far, friction])
+    assert result.tied() == [best, friction]
+    assert result.winner is friction and result.ranked() == [friction, best, far]
+    # 0 standard errors: the best objective wins, as before the rule.
+    assert SearchResult([best, far, friction], tie_standard_errors=0.0).winner is best
+    # Without probes there is no transfer to prefer: the best objective wins.
+    plain = [_candidate(c.spec, c.cv_r2[:, 0]) for c in (best, friction)]
+    assert SearchResult(plain).winner is plain[0]
+
+
+def test_where_transfer_sets_the_objective_the_probe_episodes_give_the_standard_error():
+    from qube_koopman.identify.model_selection.ranking import SearchResult, objective_gap
+
+    # The rig's own folds are easy, the probes set the objective: the gap's noise is the probes'.
+    best = _candidate(LiftingSpec(35, 1, rbf=25), [0.994, 0.994, 0.995], [0.985, 0.994, 0.974, 0.990])
+    close = _candidate(LiftingSpec(35, 1), [0.993, 0.994, 0.994], [0.986, 0.993, 0.972, 0.990])
+    gap, se = objective_gap(best, close)
+    d = np.array([-0.001, 0.001, 0.002, 0.0])
+    assert gap == pytest.approx(d.mean()) and se == pytest.approx(d.std(ddof=1) / 2)
+    # Tied, but the best transfers best: it stays the winner (the smaller one does not win on size alone).
+    assert SearchResult([close, best]).tied() == [best, close] and SearchResult([close, best]).winner is best
+    # A diverged fold gives no standard error: only an equal objective ties.
+    broken = _candidate(LiftingSpec(35, 2), [0.994, -np.inf, 0.995], [0.999] * 4)
+    assert all(c is not broken for c in SearchResult([best, broken]).tied())
+
+
+def test_a_search_space_file_sets_the_tie_and_refuses_a_bad_one(tmp_path):
+    from qube_koopman.core.command import CliError
+    from qube_koopman.identify.cli.search import load_space
+
+    path = tmp_path / "space.toml"
+    path.write_text("tie_standard_errors = 0\n")
+    assert load_space(str(path)).tie_standard_errors == 0.0
+    path.write_text("tie_standard_errors = 2.5\n")
+    assert load_space(str(path)).tie_standard_errors == 2.5
+    for bad in ("-1", "true", '"one"', "inf"):
+        path.write_text(f"tie_standard_errors = {bad}\n")
+        with pytest.raises(CliError, match="space.toml: tie_standard_errors must be a number >= 0"):
+            load_space(str(path))
+
+
 def test_rbf_candidates_take_their_statistics_from_one_factorization_with_every_basis(small):
     # The RBF stage lifts its episodes once, with every candidate's centres in one basis; each candidate's fold
     # statistics are columns of that factor: the same Gram matrices as its own lifting's.
@@ -538,7 +604,14 @@ def test_cli_search_writes_the_winner_the_table_and_the_recording(log_dirs, tmp_
     # Ranked by the lower of the cross-validated and the transfer R^2 (the default --transfer twin).
     for c in search["candidates"]:
         assert c["transfer_r2"] is not None and c["objective"] == pytest.approx(min(c["cv_r2"], c["transfer_r2"]))
-    assert winner["objective"] == max(c["objective"] for c in search["candidates"])
+    # The winner is tied with the best objective (within a standard error of it) and transfers best of those tied.
+    best = max(search["candidates"], key=lambda c: c["objective"])
+    tied = [c for c in search["candidates"] if c["tied_with_best"]]
+    assert best in tied and winner["tied_with_best"] and best["objective_gap"] == 0.0
+    assert winner["transfer_r2"] == max(c["transfer_r2"] for c in tied)
+    for c in search["candidates"]:
+        assert c["tied_with_best"] == (c["objective_gap"] <= c["objective_gap_se"]), c["label"]
+    assert search["tie_standard_errors"] == 1.0 and "one with the highest transfer R^2 wins" in search["selection"]
     assert "probe PD controllers" in search["transfer"] and "lower of the cross-validated" in search["objective"]
     assert report["alpha"] == winner["alpha"]
     # Where the time went: each candidate's parts add up to no more than its time, the stages' walls
@@ -743,3 +816,40 @@ def test_the_complete_search_runs_from_python_as_the_command_runs_it(qube_logs):
     np.testing.assert_allclose(result.winner.cv_r2, direct.winner.cv_r2, rtol=1e-12)
     with pytest.raises(ValueError, match="leave nothing to score"):
         run_search(logs, controller, SearchOptions(space=SMALL_SPACE, estimate_window=40.0, transfer="none"))
+
+
+def test_the_report_says_why_a_tied_candidate_won_over_the_best_objective():
+    from types import SimpleNamespace
+
+    from qube_koopman.identify.cli.search import search_report
+    from qube_koopman.identify.model_selection.ranking import SearchResult
+    from qube_koopman.identify.model_selection.split import CrossValidationFolds
+    from qube_koopman.identify.report.markdown import markdown_report
+
+    best = _candidate(LiftingSpec(40, 2, rbf=50), [0.963, 0.992, 0.993, 0.991, 0.970, 0.965], [0.982] * 4)
+    friction = _candidate(LiftingSpec(40, 2, friction=True), [0.961, 0.993, 0.994, 0.994, 0.965, 0.962], [0.990] * 4)
+    far = _candidate(LiftingSpec(30, 1), [0.950, 0.980, 0.981, 0.980, 0.955, 0.950], [0.995] * 4)
+    result = SearchResult([best, far, friction])
+    result.folds = CrossValidationFolds("episode-grouped", [(np.arange(4), np.array([4 + i])) for i in range(6)])
+    args = SimpleNamespace(
+        search_space=None,
+        screen=True,
+        rbf_seed=0,
+        estimate_window=1.0,
+        session_delays=None,
+        transfer="twin",
+        cv_seed=1234,
+        n_jobs=1,
+        scheduler=None,
+    )
+    search = search_report(result, args, [f"log{i}.mcap" for i in range(10)])
+    assert search["winner"]["label"] == friction.spec.label() and search["winner"]["tied_with_best"]
+    assert [c["tied_with_best"] for c in search["candidates"]] == [True, True, False]
+    report = {"method": "cl-edmd", "score": "cl", "train_logs": [], "test_logs": [], "test": None, "search": search}
+    text = markdown_report(report)
+    assert f"{best.spec.label()} (alpha 0.001) has the best objective, 0.9790" in text
+    assert (
+        "so the two are tied, and of the 2 tied candidates it transfers best: transfer R^2 0.9900 against 0.9820"
+        in text
+    )
+    assert "| 0.0000 (0.0000, tied) |" in text and f"| {far.spec.label()} |" in text
