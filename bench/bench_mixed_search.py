@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_two_controllers import data_arguments, mcap_logs
+from bench_two_controllers import data_arguments, read_datasets
 
 from qube_koopman.identify.cli.identify import main as identify_main
 
@@ -68,10 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = args.out or Path(tmp)
-        rig = mcap_logs(args.rig, root / "rig_logs")
-        soft = mcap_logs(args.soft, root / "soft_logs")
-        if len(rig) != 48 or len(soft) != 10:
-            raise SystemExit(f"need the paper's 48 episodes and the 10 soft ones; got {len(rig)} and {len(soft)}")
+        rig, soft = read_datasets(args, root, 10, 10)
         train, paper_test = [str(x) for x in rig[:28]], [str(x) for x in rig[28:]]
         space = []
         if args.tie_standard_errors is not None:

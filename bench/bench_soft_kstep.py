@@ -34,7 +34,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from bench_two_controllers import data_arguments, mcap_logs
+from bench_two_controllers import data_arguments, read_datasets
 
 from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.metrics import r2_score
@@ -149,10 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     ahead = ["--horizon", "0.1,1"]
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        rig = mcap_logs(args.rig, root / "rig_logs")
-        soft = mcap_logs(args.soft, root / "soft_logs")
-        if len(rig) != 48 or not soft:
-            raise SystemExit(f"need the paper's 48 episodes and the soft ones; got {len(rig)} and {len(soft)}")
+        rig, soft = read_datasets(args, root, 1)
         train, paper_test = rig[:28], rig[28:]
 
         print(f"1. trained on the paper's 28 ({args.lifting}), tested on the {len(soft)} soft episodes")

@@ -73,6 +73,28 @@ def mcap_logs(folder: Path, out: Path) -> list[Path]:
     return sorted(out.glob("*.mcap"))
 
 
+def read_datasets(
+    args: argparse.Namespace, root: Path, min_soft: int, max_soft: int | None = None
+) -> tuple[list[Path], list[Path]]:
+    """The paper's 48 logs and the soft ones (``--rig``, ``--soft``; CSV folders imported under ``root``),
+    sorted by name; exits naming the folder when it does not hold the paper's 48, or ``min_soft`` to
+    ``max_soft`` soft episodes."""
+    rig = mcap_logs(args.rig, root / "rig_logs")
+    soft = mcap_logs(args.soft, root / "soft_logs")
+    if len(rig) != 48:
+        raise SystemExit(f"{args.rig}: need the paper's 48 episodes, found {len(rig)}")
+    if len(soft) < min_soft or (max_soft is not None and len(soft) > max_soft):
+        wanted = (
+            f"at least {min_soft}"
+            if max_soft is None
+            else f"{min_soft}"
+            if max_soft == min_soft
+            else f"{min_soft}-{max_soft}"
+        )
+        raise SystemExit(f"{args.soft}: need {wanted} soft episodes, found {len(soft)}")
+    return rig, soft
+
+
 def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) -> dict[str, tuple[float, float]]:
     """{test log name: (R^2 with offsets, R^2 without)} of one fit."""
     argv = [
@@ -203,10 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = args.out or Path(tmp)
-        rig = mcap_logs(args.rig, root / "rig_logs")
-        soft = mcap_logs(args.soft, root / "soft_logs")
-        if len(rig) != 48 or len(soft) < 2:
-            raise SystemExit(f"need the paper's 48 episodes and at least 2 soft ones; got {len(rig)} and {len(soft)}")
+        rig, soft = read_datasets(args, root, 2)
         train, paper_test = rig[:28], rig[28:]
         half = len(soft) // 2
         halves = (soft[:half], soft[half:])
