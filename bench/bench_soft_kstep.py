@@ -15,7 +15,10 @@ controller's episodes, as ``bench_kstep.py --soft`` does. This bench prints:
    angle and its reference (``calibrated-with-load``'s ``tilt_x`` per day), scored again;
 4. each soft episode's load (the one-step residuals' load signature) regressed on the arm angle: the
    stiffness it suggests, the share of the slow load (low-passed at 1 s) the arm angle explains, and the
-   free run with that stiffness added to the model (the arm's R^2 before and after).
+   free run with that stiffness added to the model (the arm's R^2 before and after);
+5. a drifting balance point followed by the filter (``--disturbance alpha``, a random walk, ``q`` set by hand):
+   the soft episodes' K-step scores, and the cost on the rig's training episodes beside no disturbance's (what
+   ``auto`` weighs).
 
 Each fit is one ``qube-identify`` run in this process; the figures are deterministic (no timing).
 """
@@ -44,6 +47,9 @@ SEARCH_LIFTING = "--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25 
 BANDS = ((0, 0.3), (0.3, 1), (1, 3), (3, 6), (6, 12), (12, 250))
 #: The rig's own q multiplied by these (the disturbance's size the soft loop would want).
 Q_FACTORS = (1, 10, 100)
+#: A drifting balance point followed by the filter: the pendulum's rate as a random walk of these q (rad^2 per
+#: sample), set by hand (the rig's episodes choose none).
+BALANCE_Q = (1e-12, 1e-11)
 
 
 def identify(train, test, flags: list[str], out: Path) -> dict:
@@ -186,6 +192,16 @@ def main(argv: list[str] | None = None) -> int:
 
         print("\n4. the slow load against the arm angle (each soft episode), and that stiffness in the model")
         stiffness_check(root / "soft", soft)
+
+        print("\n5. a drifting balance point: the pendulum's rate as a random walk, q set by hand")
+        for q in BALANCE_Q:
+            hand = ["--disturbance", "alpha", "--disturbance-pole", "1", "--disturbance-q", f"{q:g}", "--interval", "0"]
+            scored = identify(train, soft, [*flags, *ahead, *hand], root / f"balance_{q:g}")
+            cost = scored["disturbance"]["training_cost"]
+            print(
+                f"q {q:g}: soft K-step {kstep(scored)}; the rig's training cost {cost['alpha']:.4f} "
+                f"against {cost['none']:.4f} without"
+            )
     return 0
 
 
