@@ -17,7 +17,8 @@ controller's episodes, as ``bench_kstep.py --soft`` does. This bench prints:
    stiffness it suggests, the share of the slow load (low-passed at 1 s) the arm angle explains, and the
    free run with that stiffness added to the model (the arm's R^2 before and after);
 5. a drifting balance point followed by the filter (``--disturbance alpha``, a random walk, ``q`` set by hand):
-   the soft episodes' K-step scores, and the cost on the rig's training episodes beside no disturbance's (what
+   each soft episode's mean and RMS error of the arm 1 s ahead without a disturbance, the soft episodes' K-step
+   scores with the filter, and the cost on the rig's training episodes beside no disturbance's (what
    ``auto`` weighs).
 
 Each fit is one ``qube-identify`` run in this process; the figures are deterministic (no timing).
@@ -84,6 +85,18 @@ def free_run(out: Path) -> tuple[np.ndarray, np.ndarray]:
         f, psd = welch(y[:, 1] - p[:, 1], fs=500, nperseg=2048)
         power += [psd[(f >= lo) & (f < hi)].sum() for lo, hi in BANDS]
     return np.mean(r2, axis=0), power / power.sum()
+
+
+def one_second_arm_errors(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Each episode's mean and RMS error of the arm's predictions 1 s ahead (a drift shows as a mean of its own)."""
+    means, rms = [], []
+    for path in sorted(glob.glob(str(out / "predictions" / "*.npz"))):
+        with np.load(path) as z:
+            error = z["ahead_1"][:, 0] - z["measured"][:, 0]
+        error = error[np.isfinite(error)]
+        means.append(error.mean())
+        rms.append(np.sqrt(np.mean(error**2)))
+    return np.array(means), np.array(rms)
 
 
 def tilted(soft: list[Path], out: Path) -> list[Path]:
@@ -194,6 +207,12 @@ def main(argv: list[str] | None = None) -> int:
         stiffness_check(root / "soft", soft)
 
         print("\n5. a drifting balance point: the pendulum's rate as a random walk, q set by hand")
+        identify(train, soft, [*flags, *ahead, "--disturbance", "none", "--interval", "0"], root / "none")
+        means, rms = one_second_arm_errors(root / "none")
+        print(
+            f"without a disturbance, each episode's 1 s arm error: mean {means.min() * 1e3:+.0f} to "
+            f"{means.max() * 1e3:+.0f} mrad, RMS {rms.min() * 1e3:.0f} to {rms.max() * 1e3:.0f} mrad"
+        )
         for q in BALANCE_Q:
             hand = ["--disturbance", "alpha", "--disturbance-pole", "1", "--disturbance-q", f"{q:g}", "--interval", "0"]
             scored = identify(train, soft, [*flags, *ahead, *hand], root / f"balance_{q:g}")
