@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
-import json
 import shlex
 import tempfile
 import time
@@ -31,9 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_two_controllers import data_arguments, read_datasets
+from bench_two_controllers import data_arguments, identify_report, read_datasets
 
-from qube_koopman.identify.cli.identify import main as identify_main
 
 #: The mixed training sets: soft episodes (0-based, sorted by name) trained on with the rig's 28.
 SETS = {
@@ -45,12 +43,9 @@ SETS = {
 
 
 def run(argv: list[str], out: Path) -> dict:
-    """report.json of one ``qube-identify`` run (its console lines swallowed)."""
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        status = identify_main([*argv, "--interval", "0", "--out", str(out), "-q"])
-    if status != 0:
-        raise SystemExit(f"qube-identify failed: {shlex.join(argv)}")
-    return json.loads((out / "report.json").read_text())
+    """report.json of one ``qube-identify`` run without intervals (its console lines swallowed)."""
+    with contextlib.redirect_stderr(io.StringIO()):
+        return identify_report([*argv, "--interval", "0"], out)
 
 
 def split_scores(report: dict, soft_names: set[str]) -> tuple[np.ndarray, np.ndarray]:

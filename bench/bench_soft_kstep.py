@@ -27,9 +27,7 @@ Each fit is one ``qube-identify`` run in this process; the figures are determini
 from __future__ import annotations
 
 import argparse
-import contextlib
 import glob
-import io
 import json
 import math
 import shlex
@@ -38,9 +36,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from bench_two_controllers import data_arguments, read_datasets
+from bench_two_controllers import data_arguments, identify_report, read_datasets
 
-from qube_koopman.identify.cli.identify import main as identify_main
 from qube_koopman.identify.metrics import r2_score
 
 SEARCH_LIFTING = "--poly 1 --trig --delays 35 --rbf thin-plate --rbf-centers 25 --friction --alpha 1e-5 --offsets alpha"
@@ -55,13 +52,7 @@ BALANCE_Q = (1e-12, 1e-11)
 
 def identify(train, test, flags: list[str], out: Path) -> dict:
     """One ``qube-identify`` run; its report.json."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        status = identify_main(
-            ["--train", *map(str, train), "--test", *map(str, test), *flags, "--out", str(out), "-q"]
-        )
-    if status != 0:
-        raise SystemExit(f"qube-identify {shlex.join(flags)} failed with exit status {status}")
-    return json.loads((out / "report.json").read_text())
+    return identify_report(["--train", *map(str, train), "--test", *map(str, test), *flags], out)
 
 
 def kstep(report: dict) -> str:

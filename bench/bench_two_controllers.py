@@ -95,25 +95,21 @@ def read_datasets(
     return rig, soft
 
 
+def identify_report(argv: list[str], out: Path) -> dict:
+    """report.json of one ``qube-identify`` run writing to ``out`` (its summary lines swallowed: the benches'
+    tables say it); exits naming the flags when it fails. Shared with bench_soft_kstep.py and
+    bench_mixed_search.py."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        status = identify_main([*argv, "--out", str(out), "-q"])
+    if status != 0:
+        raise SystemExit(f"qube-identify failed: {shlex.join(argv)}")
+    return json.loads((out / "report.json").read_text())
+
+
 def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) -> dict[str, tuple[float, float]]:
     """{test log name: (R^2 with offsets, R^2 without)} of one fit."""
-    argv = [
-        "--train",
-        *map(str, train),
-        "--test",
-        *map(str, test),
-        *shlex.split(lifting),
-        "--offsets",
-        "alpha",
-        "--out",
-        str(out),
-        "-q",
-    ]
-    with contextlib.redirect_stdout(io.StringIO()):  # its summary lines: the table says it
-        status = identify_main(argv)
-    if status != 0:
-        raise SystemExit(f"qube-identify failed: {' '.join(argv)}")
-    report = json.loads((out / "report.json").read_text())
+    argv = ["--train", *map(str, train), "--test", *map(str, test), *shlex.split(lifting), "--offsets", "alpha"]
+    report = identify_report(argv, out)
     names = report["scored_logs"]
     return dict(zip(names, zip(report["test"]["r2_per_episode"], report["test_without_offsets"]["r2_per_episode"])))
 
