@@ -19,7 +19,10 @@ controller's episodes, as ``bench_kstep.py --soft`` does. This bench prints:
 5. a drifting balance point followed by the filter (``--disturbance alpha``, a random walk, ``q`` set by hand):
    each soft episode's mean and RMS error of the arm 1 s ahead without a disturbance, the soft episodes' K-step
    scores with the filter, and the cost on the rig's training episodes beside no disturbance's (what
-   ``auto`` weighs).
+   ``auto`` weighs);
+6. the soft loop's own ceiling: the same lifting trained on the soft episodes and scored on them (their copies
+   under other names, as ``bench_two_controllers.py`` scores in sample), with ``auto`` and with the drifting
+   balance point of 5: what a model of the soft loop's own episodes reaches at each horizon.
 
 Each fit is one ``qube-identify`` run in this process; the figures are deterministic (no timing).
 """
@@ -31,6 +34,7 @@ import glob
 import json
 import math
 import shlex
+import shutil
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -212,6 +216,24 @@ def main(argv: list[str] | None = None) -> int:
                 f"q {q:g}: soft K-step {kstep(scored)}; the rig's training cost {cost['alpha']:.4f} "
                 f"against {cost['none']:.4f} without"
             )
+
+        print("\n6. the soft loop's own ceiling: trained on the soft episodes, scored in sample")
+        copies = root / "soft_in_sample"  # the training's logs under other names: qube-identify scores them
+        copies.mkdir()
+        for log in soft:
+            shutil.copyfile(log, copies / f"in_sample_{log.name}")
+        in_sample = sorted(copies.glob("*.mcap"))
+        for name, hand in (
+            ("auto", []),
+            (
+                f"balance q {BALANCE_Q[0]:g}",
+                ["--disturbance", "alpha", "--disturbance-pole", "1", "--disturbance-q", f"{BALANCE_Q[0]:g}"],
+            ),
+        ):
+            scored = identify(
+                soft, in_sample, [*flags, *ahead, *hand, "--interval", "0"], root / f"ceiling_{len(hand)}"
+            )
+            print(f"{name:<17} (disturbance {scored['disturbance']['entry']}): K-step {kstep(scored)}")
     return 0
 
 
