@@ -297,7 +297,7 @@ class Coefficients(NamedTuple):
     def per_episode(cls, params: Sequence[PendulumParameters], batch: tuple[int, ...]) -> Coefficients:
         """The coefficients of one pendulum per episode of a batch: each field an array of shape ``batch``
         (``params`` in the batch's C order), or a float where every pendulum has the same value."""
-        unique = {p: cls.of(p) for p in params}  # a batch of segments shares a few pendulums
+        unique = {p: cls.of(p) for p in dict.fromkeys(params)}  # a batch of segments shares a few pendulums
         each = [unique[p] for p in params]
         if len(each) != math.prod(batch):
             raise ValueError(f"{len(each)} parameter sets for a batch of {batch}: give one per episode")
