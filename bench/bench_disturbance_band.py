@@ -32,9 +32,9 @@ each band adds to the run without intervals):
 | search's lifting, soft episodes | bootstrap | 0.960 / 0.979 | 0.898 / 0.889 | 2.09 / 2.50 | +211 % |
 | | disturbance | 0.979 / 0.985 | 0.902 / 0.917 | 2.36 / 2.93 | +101 % |
 
-As commands (``--commands``, fresh processes, the default lifting, medians of 7, two runs): the filter's band
-adds +15 to +20 % (paper test, 1.7-1.9 s without intervals) and +30 to +35 % (soft episodes, 1.5-2.1 s), the
-bootstrap band +41 to +44 % and +77 to +100 %.
+As commands (``--commands``, fresh processes, the default lifting, medians of 7, three runs): the filter's band
+adds +15 to +20 % (paper test, 1.7-2.5 s without intervals) and +30 to +40 % (soft episodes, 1.5-2.1 s), the
+bootstrap band +41 to +69 % and +77 to +142 %.
 
 The filter's K-step bands (``--horizon``; default lifting, paper test): 0.1 s ahead 0.976 / 0.973
 (worst 0.953 / 0.953), 1 s ahead 0.958 / 0.965 (worst 0.885 / 0.885), half-width 2.1-2.4 x the RMS error.
