@@ -34,13 +34,12 @@ import glob
 import json
 import math
 import shlex
-import shutil
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from bench_two_controllers import data_arguments, identify_report, read_datasets
+from bench_two_controllers import data_arguments, identify_report, in_sample_copies, read_datasets
 
 from qube_koopman.identify.metrics import r2_score
 
@@ -218,11 +217,7 @@ def main(argv: list[str] | None = None) -> int:
             )
 
         print("\n6. the soft loop's own ceiling: trained on the soft episodes, scored in sample")
-        copies = root / "soft_in_sample"  # the training's logs under other names: qube-identify scores them
-        copies.mkdir()
-        for log in soft:
-            shutil.copyfile(log, copies / f"in_sample_{log.name}")
-        in_sample = sorted(copies.glob("*.mcap"))
+        in_sample = in_sample_copies(soft, root / "soft_in_sample")
         for name, hand in (
             ("auto", []),
             (

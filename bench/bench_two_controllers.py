@@ -106,6 +106,15 @@ def identify_report(argv: list[str], out: Path) -> dict:
     return json.loads((out / "report.json").read_text())
 
 
+def in_sample_copies(logs: list[Path], folder: Path) -> list[Path]:
+    """``logs`` copied under other names (``in_sample_<name>``) into ``folder``: qube-identify refuses a log among
+    both its training and its test logs, and scores these copies of training logs in sample (a ceiling)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for log in logs:
+        shutil.copyfile(log, folder / f"in_sample_{log.name}")
+    return sorted(folder.glob("*.mcap"))
+
+
 def per_episode(train: list[Path], test: list[Path], lifting: str, out: Path) -> dict[str, tuple[float, float]]:
     """{test log name: (R^2 with offsets, R^2 without)} of one fit."""
     argv = ["--train", *map(str, train), "--test", *map(str, test), *shlex.split(lifting), "--offsets", "alpha"]
@@ -253,11 +262,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"| {cell(held[:, 1])} |",
                 flush=True,
             )
-        copies = root / "soft_in_sample"  # the training's soft logs under other names: scored in sample
-        copies.mkdir(parents=True, exist_ok=True)
-        for log in soft:
-            shutil.copyfile(log, copies / f"in_sample_{log.name}")
-        scores = per_episode(train + soft, sorted(copies.glob("*.mcap")), args.lifting, root / "in_sample")
+        copies = in_sample_copies(soft, root / "soft_in_sample")  # the training's soft logs: scored in sample
+        scores = per_episode(train + soft, copies, args.lifting, root / "in_sample")
         fitted = np.array(list(scores.values()), float)
         print(
             f"| both, scored in sample (28 + {len(soft)}; a ceiling, not a transfer score) | - | - "
@@ -265,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
             f"| {fitted[:, 1].mean():.3f} / {fitted[:, 1].min():.3f} |",
             flush=True,
         )
-        print_error_analysis(arm_errors(root / "in_sample" / "predictions", sorted(copies.glob("*.mcap"))))
+        print_error_analysis(arm_errors(root / "in_sample" / "predictions", copies))
     return 0
 
 
