@@ -242,8 +242,8 @@ def _partials(
             None,
         ),
     }
-    # Each row summed term by term into its place: the same sums as term after term, without a stack of
-    # the rows (a Jacobian's 4000 stages each built and stacked two; a fifth of the kernel's time, measured).
+    # Each row summed term by term into its place: the same sums as term after term, without building lists of
+    # rows and stacking them (in each of a Jacobian's 1000 stages: about a fifth of its tangents' time, measured).
     a_k, b_k = np.empty((active.size, *np.shape(a))), np.empty((active.size, *np.shape(a)))
     for row, field in enumerate(active):
         first = True
