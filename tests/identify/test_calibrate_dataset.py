@@ -46,7 +46,7 @@ def calibration(split, soft):
     """The shipped recipe (``qube-calibrate --setups cables-and-delay --horizon 0.25``): the cables'
     stiffness per recording day and the command delay per recording session, the rest shared.
 
-    The one calibration of the module (a fit on the 38 logs takes a minute or more): every test
+    The one calibration of the module (a fit on the 38 logs: half a minute alone, a minute in the suite): every test
     here judges this fit or the twin it gives, not the constructor's defaults (0.2 s segments, one
     stiffness and one delay for all logs), which tests/identify/test_calibrate.py covers on
     simulated logs."""
