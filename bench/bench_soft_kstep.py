@@ -53,6 +53,11 @@ Q_FACTORS = (1, 10, 100)
 BALANCE_Q = (1e-12, 1e-11)
 
 
+def balance_flags(q: float) -> list[str]:
+    """qube-identify's flags for that filter: the pendulum's rate as a random walk of variance ``q`` per sample."""
+    return ["--disturbance", "alpha", "--disturbance-pole", "1", "--disturbance-q", f"{q:g}"]
+
+
 def identify(train, test, flags: list[str], out: Path) -> dict:
     """One ``qube-identify`` run; its report.json."""
     return identify_report(["--train", *map(str, train), "--test", *map(str, test), *flags], out)
@@ -208,8 +213,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{means.max() * 1e3:+.0f} mrad, RMS {rms.min() * 1e3:.0f} to {rms.max() * 1e3:.0f} mrad"
         )
         for q in BALANCE_Q:
-            hand = ["--disturbance", "alpha", "--disturbance-pole", "1", "--disturbance-q", f"{q:g}", "--interval", "0"]
-            scored = identify(train, soft, [*flags, *ahead, *hand], root / f"balance_{q:g}")
+            scored = identify(
+                train, soft, [*flags, *ahead, *balance_flags(q), "--interval", "0"], root / f"balance_{q:g}"
+            )
             cost = scored["disturbance"]["training_cost"]
             print(
                 f"q {q:g}: soft K-step {kstep(scored)}; the rig's training cost {cost['alpha']:.4f} "
@@ -218,13 +224,7 @@ def main(argv: list[str] | None = None) -> int:
 
         print("\n6. the soft loop's own ceiling: trained on the soft episodes, scored in sample")
         in_sample = in_sample_copies(soft, root / "soft_in_sample")
-        for name, hand in (
-            ("auto", []),
-            (
-                f"balance q {BALANCE_Q[0]:g}",
-                ["--disturbance", "alpha", "--disturbance-pole", "1", "--disturbance-q", f"{BALANCE_Q[0]:g}"],
-            ),
-        ):
+        for name, hand in (("auto", []), (f"balance q {BALANCE_Q[0]:g}", balance_flags(BALANCE_Q[0]))):
             scored = identify(
                 soft, in_sample, [*flags, *ahead, *hand, "--interval", "0"], root / f"ceiling_{len(hand)}"
             )
